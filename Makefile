@@ -1,0 +1,37 @@
+# drake-rus: the two commands a new user needs.
+#   make demo   set up .venv and run the main job (writes runs/demo/)
+#   make test   set up .venv with the test extras and run the whole test suite
+PYTHON ?= python3.11
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.drake_rus_installed
+TEST_STAMP := $(VENV)/.drake_rus_test_installed
+
+.PHONY: demo test setup setup-test benchmarks clean
+
+$(STAMP): pyproject.toml scripts/install_system_deps.sh
+	bash scripts/install_system_deps.sh
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e .
+	touch $(STAMP)
+
+$(TEST_STAMP): $(STAMP)
+	$(PY) -m pip install --quiet -e '.[test]'
+	touch $(TEST_STAMP)
+
+setup: $(STAMP)
+
+setup-test: $(TEST_STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/drake-rus demo --out runs/demo
+
+test: $(TEST_STAMP)
+	$(PY) -m pytest
+
+benchmarks: $(STAMP)
+	$(PY) -m benchmarks all
+
+clean:
+	rm -rf runs .pytest_cache

@@ -1,0 +1,1 @@
+"""Imaging: probe geometry, slice sensor, ultrasound emulator, segmenter, back-projection."""

@@ -1,0 +1,1 @@
+"""drake-rus metrics."""

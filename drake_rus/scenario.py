@@ -1,0 +1,240 @@
+"""Typed scenarios: everything a run needs, loaded from ``diagrams/*.scenarios.yaml``.
+
+One YAML file holds named scenarios (top-level keys); YAML anchors let one scenario reuse
+another's sections. Loading validates the raw YAML against these dataclasses first, so a
+misspelt key, a wrong type or a missing file gives one :class:`ScenarioError` that names the
+file, the scenario and the field, then builds the dataclasses with Drake's
+``yaml_load_typed`` (as Drake's hardware_sim example and the manipulation course do).
+
+Units are SI (m, rad, N, s, kg) unless a field name says otherwise (``_deg``, ``_hz``).
+"""
+
+
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from pydrake.common.schema import Transform
+from pydrake.common.yaml import yaml_load_file, yaml_load_typed
+
+from drake_rus.config_schema import ScenarioError, check_dataclass_values, validate
+from drake_rus.control.config import ControllerConfig, SafetyConfig
+from drake_rus.imaging.config import ImagingConfig
+from drake_rus.paths import DIAGRAMS_DIR
+
+__all__ = [
+    "ContactConfig", "PatientConfig", "ProbeCalibration", "RobotConfig", "Scenario",
+    "ScenarioError", "LoadScenario", "ListScenarios", "DEFAULT_SCENARIOS_FILE",
+]
+
+DEFAULT_SCENARIOS_FILE = DIAGRAMS_DIR / "default.scenarios.yaml"
+
+# FR3 joint limits (rad), facts/fr3.md "Limits (current FR3 specification, 2025)".
+FR3_Q_MIN = [-2.9007, -1.8361, -2.9007, -3.0770, -2.8763, 0.4398, -3.0508]
+FR3_Q_MAX = [2.9007, 1.8361, 2.9007, -0.1169, 2.8763, 4.6216, 3.0508]
+
+
+def _transform(xyz=(0.0, 0.0, 0.0), rpy_deg=(0.0, 0.0, 0.0)) -> Transform:
+    t = Transform()
+    t.translation = list(xyz)
+    t.set_rotation_rpy_deg(list(rpy_deg))
+    return t
+
+
+@dataclass
+class RobotConfig:
+    """The FR3 arm. The robot base frame B is the world frame (z up)."""
+    # Model file, as a package:// URL resolved through models/package.xml.
+    model: str = "package://drake_rus_models/fr3/fr3.urdf"
+    # Joint configuration at t = 0 (rad): probe pointing down above the patient placeholder.
+    initial_joint_positions: list[float] = field(
+        default_factory=lambda: [0.0, 0.15, 0.0, -2.0, 0.0, 2.15, 0.785],
+        metadata={"length": 7})
+    # Stiffness (N m/rad) and damping (N m s/rad) of the velocity driver's implicit joint PD,
+    # which tracks the integrated velocity command like the FR3's joint-velocity mode.
+    driver_kp: list[float] = field(
+        default_factory=lambda: [3000.0, 3000.0, 3000.0, 3000.0, 800.0, 800.0, 400.0],
+        metadata={"length": 7, "positive": True})
+    driver_kd: list[float] = field(
+        default_factory=lambda: [120.0, 120.0, 120.0, 120.0, 30.0, 30.0, 15.0],
+        metadata={"length": 7, "min": 0.0})
+    # Compensate gravity in the driver (the real robot does so in velocity mode).
+    gravity_compensation: bool = True
+
+
+@dataclass
+class ProbeCalibration:
+    """The probe holder and curvilinear probe rigidly mounted on the flange F.
+
+    The tip frame P has its origin at the centre of the probe face, z_P along the beam (into
+    the body), x_P along the transducer array (DESIGN.md). On hardware these numbers come
+    from pivot calibration and the holder's CAD; they live here, never in code.
+    """
+    # Geometry (visual and collision) of the probe, expressed in the tip frame P.
+    model: str = "package://drake_rus_models/probe/curvilinear_probe.sdf"
+    # Pose of the tip frame P in the flange frame F (m, deg).
+    X_FP: Transform = field(default_factory=lambda: _transform((0.0, 0.0, 0.20)))
+    # Lumped mass of holder + probe + cable strain relief (kg).
+    mass: float = field(default=0.55, metadata={"positive": True})
+    # Centre of mass in the flange frame F (m).
+    p_FCm: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.09],
+                               metadata={"length": 3})
+    # Principal moments of inertia about the centre of mass, flange axes (kg m^2).
+    inertia_diagonal: list[float] = field(
+        default_factory=lambda: [2.2e-3, 2.2e-3, 4.0e-4],
+        metadata={"length": 3, "positive": True})
+
+
+@dataclass
+class PatientConfig:
+    """Which patient lies on the bed and where.
+
+    The patient frame Pt sits on the bed surface under the body's midline: x_Pt towards the
+    patient's left, y_Pt superior (head), z_Pt anterior. It is placed in the robot base frame
+    by ``X_BPt``; with the default the patient lies along the base y-axis, their right side
+    towards the robot.
+    """
+    # "placeholder" (a soft ellipsoidal torso), or a virtual/real patient once available.
+    source: str = "placeholder"
+    # Which kidney is the scan's target.
+    side: str = field(default="right", metadata={"choices": ["right", "left"]})
+    posture: str = field(default="supine",
+                         metadata={"choices": ["supine", "left_lateral_decubitus"]})
+    X_BPt: Transform = field(default_factory=lambda: _transform((0.55, 0.0, 0.0)))
+    # Semi-axes (m) of the placeholder torso ellipsoid: left-right, head-foot, front-back.
+    placeholder_semi_axes: list[float] = field(
+        default_factory=lambda: [0.17, 0.40, 0.12], metadata={"length": 3, "positive": True})
+
+
+@dataclass
+class ContactConfig:
+    """Plant time step and the probe-body contact model."""
+    # "hydroelastic": compliant patient, rigid probe (point contact for the other pairs);
+    # "point": point contact everywhere (faster, cruder force distribution).
+    model: str = field(default="hydroelastic", metadata={"choices": ["hydroelastic", "point"]})
+    discrete_contact_approximation: str = field(
+        default="sap", metadata={"choices": ["sap", "tamsi", "similar", "lagged"]})
+    # Discrete plant period (s): 1 kHz, the FR3's control rate.
+    time_step: float = field(default=0.001, metadata={"positive": True})
+    # Hydroelastic modulus of the soft body (Pa): soft tissue indents ~1 cm at ~9 N.
+    hydroelastic_modulus: float = field(default=2.0e5, metadata={"positive": True})
+    # Resolution hint of the soft body's tetrahedral mesh (m).
+    patient_resolution_hint: float = field(default=0.03, metadata={"positive": True})
+    # Resolution hint of the rigid probe face mesh (m).
+    probe_resolution_hint: float = field(default=0.01, metadata={"positive": True})
+    # Hunt-Crossley dissipation (s/m) of the soft body.
+    hunt_crossley_dissipation: float = field(default=5.0, metadata={"min": 0.0})
+    # Point-contact stiffness (N/m) when model == "point".
+    point_stiffness: float = field(default=2000.0, metadata={"positive": True})
+    # Coulomb friction of the gel-coupled probe on skin (static = dynamic).
+    friction: float = field(default=0.2, metadata={"min": 0.0})
+
+
+@dataclass
+class Scenario:
+    """A whole run: robot, probe, patient, contact, imaging, controller, safety."""
+    robot: RobotConfig = field(default_factory=RobotConfig)
+    probe: ProbeCalibration = field(default_factory=ProbeCalibration)
+    patient: PatientConfig = field(default_factory=PatientConfig)
+    contact: ContactConfig = field(default_factory=ContactConfig)
+    imaging: ImagingConfig = field(default_factory=ImagingConfig)
+    controller: ControllerConfig = field(default_factory=ControllerConfig)
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
+    # false: simulated station; true: a real FR3 and ultrasound machine.
+    hardware: bool = False
+    # Default duration of a run (s).
+    simulation_duration: float = field(default=10.0, metadata={"positive": True})
+    # Seed of every random draw in a run (noise, speckle, starts).
+    random_seed: int = field(default=0, metadata={"min": 0})
+
+
+def ListScenarios(filename: str | Path = DEFAULT_SCENARIOS_FILE) -> list[str]:
+    """Names of the scenarios in ``filename``."""
+    return list(_load_raw(Path(filename)).keys())
+
+
+def _load_raw(path: Path) -> dict:
+    if not path.is_file():
+        raise ScenarioError(f"scenario file not found: {path}")
+    try:
+        raw = yaml_load_file(str(path))
+    except Exception as e:  # yaml syntax errors
+        raise ScenarioError(f"scenario file {path} is not valid YAML: {e}") from None
+    if not isinstance(raw, dict) or not raw:
+        raise ScenarioError(
+            f"scenario file {path} must map scenario names to scenarios, got {type(raw).__name__}")
+    return raw
+
+
+def LoadScenario(*, filename: str | Path = DEFAULT_SCENARIOS_FILE,
+                 scenario_name: str = "default",
+                 scenario_text: str | None = None) -> Scenario:
+    """Loads the scenario ``scenario_name`` from ``filename`` (plus optional YAML overrides).
+
+    ``scenario_text`` is YAML merged on top, e.g. ``"{contact: {model: point}}"``.
+    Raises ScenarioError naming the file, the scenario and the field on any problem.
+    """
+    path = Path(filename)
+    raw = _load_raw(path)
+    if scenario_name not in raw:
+        raise ScenarioError(
+            f"scenario '{scenario_name}' is not in {path}; available: {', '.join(raw)}")
+    context = f"{path}: scenario '{scenario_name}'"
+    node = raw[scenario_name]
+    if node is None:
+        node = {}
+    try:
+        validate(Scenario, node)
+    except ScenarioError as e:
+        raise ScenarioError(f"{context}: {e}") from None
+    try:
+        scenario = yaml_load_typed(schema=Scenario, filename=str(path), child_name=scenario_name,
+                                   defaults=Scenario())
+    except Exception as e:
+        raise ScenarioError(f"{context}: {e}") from None
+    if scenario_text:
+        scenario = ApplyOverrides(scenario, scenario_text, context=f"{context} (overrides)")
+    try:
+        CheckScenario(scenario)
+    except ScenarioError as e:
+        raise ScenarioError(f"{context}: {e}") from None
+    return scenario
+
+
+def ApplyOverrides(scenario: Scenario, text: str, context: str = "overrides") -> Scenario:
+    """Returns ``scenario`` with the YAML mapping ``text`` merged on top."""
+    from pydrake.common.yaml import yaml_load
+    try:
+        node = yaml_load(data=text)
+    except Exception as e:
+        raise ScenarioError(f"{context}: not valid YAML: {e}") from None
+    try:
+        validate(Scenario, node or {})
+        return yaml_load_typed(schema=Scenario, data=text, defaults=scenario)
+    except ScenarioError as e:
+        raise ScenarioError(f"{context}: {e}") from None
+    except Exception as e:
+        raise ScenarioError(f"{context}: {e}") from None
+
+
+def CheckScenario(scenario: Scenario) -> None:
+    """Checks cross-field constraints of a constructed scenario."""
+    check_dataclass_values(scenario)
+    q0 = scenario.robot.initial_joint_positions
+    for i, (q, lo, hi) in enumerate(zip(q0, FR3_Q_MIN, FR3_Q_MAX)):
+        if not lo <= q <= hi:
+            raise ScenarioError(
+                f"field 'robot.initial_joint_positions[{i}]': {q} rad is outside the FR3 "
+                f"joint {i + 1} limits [{lo}, {hi}]")
+
+
+def ScenarioToYaml(scenario: Scenario) -> str:
+    """The scenario as YAML (for run logs)."""
+    from pydrake.common.yaml import yaml_dump_typed
+    return yaml_dump_typed(scenario)
+
+
+def replace(obj, **changes):
+    """dataclasses.replace, re-exported for notebook convenience."""
+    return dataclasses.replace(obj, **changes)
