@@ -1,17 +1,116 @@
-"""Scenario sections ``controller`` and ``safety``."""
+"""Scenario sections ``controller`` and ``safety``.
+
+Gain names follow the seed paper (section II-C, eq. 1-12; II-E, eq. 17; II-G, eq. 23). Units
+are SI; a gain's unit is written next to it. Limits quote ``facts/fr3.md`` (FR3 specification
+2025): joint velocity limits (rectangular set) dq = [2, 1, 1.5, 1.25, 3, 1.5, 3] rad/s,
+Cartesian limits 3.0 m/s translation and 2.5 rad/s rotation. Our defaults sit well below them
+because the probe touches a person.
+"""
 
 from dataclasses import dataclass, field
+
+# facts/fr3.md, "Limits": conservative rectangular joint velocity set (rad/s).
+FR3_DQ_RECTANGULAR = [2.0, 1.0, 1.5, 1.25, 3.0, 1.5, 3.0]
 
 
 @dataclass
 class ControllerConfig:
     # Controller update rate (Hz); the plant runs at 1 kHz, images at 20 Hz.
-    rate_hz: float = field(default=200.0, metadata={"positive": True})
+    rate_hz: float = field(default=200.0, metadata={"positive": True, "max": 1000.0})
     # Desired contact force along the approach vector (N); the seed used 9 N in vivo.
     desired_force: float = field(default=9.0, metadata={"min": 0.0})
+
+    # --- Orientation alignment (eq. 1-5) ---
+    # K_p1 (1/s): approach-vector alignment gain, omega_a = K_p1 (a x a_des) + ... (eq. 2).
+    K_p1: float = field(default=3.0, metadata={"min": 0.0})
+    # K_p11 (-): feed-forward gain on a_des rate, K_p11 (a x da_des/dt) (eq. 2); 1 = exact.
+    K_p11: float = field(default=1.0, metadata={"min": 0.0})
+    # K_p2 (1/s): orientation-vector alignment gain about a (eq. 4).
+    K_p2: float = field(default=3.0, metadata={"min": 0.0})
+
+    # --- Force PD (eq. 6) ---
+    # K_p3 ((m/s)/N): proportional force gain, v_z = K_p3 (F_des - F_z) a.
+    K_p3: float = field(default=0.004, metadata={"min": 0.0})
+    # K_d1 ((m/s)/(N/s)): derivative gain on the low-pass filtered force error.
+    K_d1: float = field(default=0.0002, metadata={"min": 0.0})
+    # Cut-off (Hz) of the first-order low-pass on the estimated contact force.
+    force_filter_cutoff_hz: float = field(default=15.0, metadata={"positive": True})
+
+    # --- Position P (eq. 7) ---
+    # K_p4, K_p5 (1/s): tip x / y tracking gains in the base frame.
+    K_p4: float = field(default=2.0, metadata={"min": 0.0})
+    K_p5: float = field(default=2.0, metadata={"min": 0.0})
+
+    # --- Null-space differential IK (eq. 10-12) ---
+    # K_p6 (rad/s per unit manipulability gradient): null-space manipulability ascent (eq. 11).
+    K_p6: float = field(default=2.0, metadata={"min": 0.0})
+    # Finite-difference step epsilon (rad) of the manipulability gradient (eq. 12).
+    manipulability_epsilon: float = field(default=1e-4, metadata={"positive": True})
+    # Singularity damping: below this smallest singular value of J the pseudo-inverse is
+    # damped (Nakamura/Chiaverini variable damping), with at most singular_damping_max.
+    singular_value_threshold: float = field(default=0.03, metadata={"positive": True})
+    singular_damping_max: float = field(default=0.03, metadata={"min": 0.0})
+    # Joint velocity limits (rad/s) of the command: half the FR3 rectangular set (facts/fr3.md).
+    joint_velocity_limits: list[float] = field(
+        default_factory=lambda: [0.5 * v for v in FR3_DQ_RECTANGULAR],
+        metadata={"length": 7, "positive": True})
+    # Within this distance (rad) of a joint limit the velocity towards it ramps down to zero.
+    joint_limit_margin: float = field(default=0.1, metadata={"positive": True})
+    # Twist saturation: tip speed (m/s; FR3 limit 3.0) and angular speed (rad/s; FR3 2.5).
+    max_tip_speed: float = field(default=0.05, metadata={"positive": True, "max": 3.0})
+    max_angular_speed: float = field(default=0.6, metadata={"positive": True, "max": 2.5})
+
+    # --- Scan (section II-E, II-G) ---
+    # Exploration scan speed v_scan (m/s) along the base y-axis (seed: 5 mm/s, eq. 17).
+    scan_speed: float = field(default=0.005, metadata={"positive": True, "max": 0.05})
+    # Scan direction along the base y-axis (the patient lies along y).
+    scan_direction: str = field(default="-y", metadata={"choices": ["+y", "-y"]})
+    # K_p7 (m/s per unit of normalised centroid offset): mask-centring gain (eq. 17).
+    K_p7: float = field(default=0.02, metadata={"min": 0.0})
+    # Exploration ratio ER in [0, 1] and reference kidney length L_m (m): EXPLORE ends after
+    # ER * L_m of travel (section III-C).
+    exploration_ratio: float = field(default=0.5, metadata={"min": 0.0, "max": 1.0})
+    kidney_length: float = field(default=0.10, metadata={"positive": True})
+    # Contact is "made" when the filtered force reaches this fraction of desired_force.
+    contact_fraction: float = field(default=0.8, metadata={"positive": True, "max": 1.0})
+    # The kidney counts as having left the image after this long invisible (s).
+    visibility_debounce: float = field(default=0.15, metadata={"min": 0.0})
+    # LOCALIZE holds the probe at least this long (s) before reading the kidney pose.
+    localize_hold_time: float = field(default=0.5, metadata={"min": 0.0})
+    # TRANSIT ends within this tip distance (m) of p* and approach error (rad) of r3*.
+    transit_position_tolerance: float = field(default=0.002, metadata={"positive": True})
+    transit_angle_tolerance: float = field(default=0.02, metadata={"positive": True})
+    # TRANSIT aborts if p* is not reached in this time (s).
+    transit_timeout: float = field(default=30.0, metadata={"positive": True})
+    # Pivot angular rate theta_dot (rad/s) (eq. 23) and maximum tilt from r3* (rad).
+    pivot_rate: float = field(default=0.1, metadata={"positive": True, "max": 1.0})
+    max_pivot_tilt: float = field(default=0.6, metadata={"positive": True, "max": 1.2})
 
 
 @dataclass
 class SafetyConfig:
     # Contact force ceiling (N): passive force limiters sit around 20 N (facts).
     force_ceiling: float = field(default=20.0, metadata={"positive": True})
+    # After a force-ceiling stop, retract along -a by this distance (m) at this speed (m/s);
+    # 0 disables the retract (a plain stop).
+    retract_distance: float = field(default=0.01, metadata={"min": 0.0, "max": 0.05})
+    retract_speed: float = field(default=0.02, metadata={"positive": True, "max": 0.1})
+    # Measured tip speed (m/s) above which the robot is stopped (FR3 Cartesian limit 3.0 m/s).
+    max_tip_speed: float = field(default=0.15, metadata={"positive": True, "max": 3.0})
+    # Command clamp: commanded tip speed (m/s) is scaled down to this.
+    command_tip_speed: float = field(default=0.08, metadata={"positive": True, "max": 3.0})
+    # Joint velocity limits (rad/s) of the command (the FR3 rectangular set, facts/fr3.md):
+    # commands are scaled into them; a measured velocity beyond them stops the robot.
+    joint_velocity_limits: list[float] = field(
+        default_factory=lambda: list(FR3_DQ_RECTANGULAR),
+        metadata={"length": 7, "positive": True})
+    # Workspace box of the probe tip in the base frame (m): [x, y, z] min and max.
+    workspace_min: list[float] = field(default_factory=lambda: [0.2, -0.5, -0.05],
+                                       metadata={"length": 3})
+    workspace_max: list[float] = field(default_factory=lambda: [0.9, 0.5, 0.7],
+                                       metadata={"length": 3})
+    # Watchdogs (s): newest image older than this; robot state unchanged this long while
+    # motion is commanded; kidney invisible this long while the supervisor needs it.
+    image_timeout: float = field(default=0.25, metadata={"positive": True})
+    state_timeout: float = field(default=0.05, metadata={"positive": True})
+    segmentation_timeout: float = field(default=1.0, metadata={"positive": True})

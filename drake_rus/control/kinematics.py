@@ -1,0 +1,82 @@
+"""Tip kinematics on a control plant (FR3 + probe): pose and Jacobian of P as functions of q.
+
+The controller never touches the station's plant: it owns a plant with only the arm and the
+probe tip frame (``drake_rus.station.MakeControlPlant``), the same model the hardware station
+uses, and a private context for it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pydrake.math import RigidTransform
+from pydrake.multibody.plant import MultibodyPlant
+from pydrake.multibody.tree import JacobianWrtVariable
+
+
+class TipKinematics:
+    """Forward kinematics and the 6xn Jacobian [w; v] of the tip frame P in the base B.
+
+    B is the plant's world frame (the FR3 base is welded at the world origin).
+    """
+
+    def __init__(self, plant: MultibodyPlant, tip_frame):
+        self.plant = plant
+        self.frame = tip_frame
+        self.context = plant.CreateDefaultContext()
+        self.nq = plant.num_positions()
+        lower = plant.GetPositionLowerLimits()
+        upper = plant.GetPositionUpperLimits()
+        self.q_min = np.where(np.isfinite(lower), lower, -1e3)
+        self.q_max = np.where(np.isfinite(upper), upper, 1e3)
+
+    def _set(self, q) -> None:
+        self.plant.SetPositions(self.context, np.asarray(q, dtype=float))
+
+    def jacobian(self, q) -> np.ndarray:
+        """J_BP(q): spatial velocity of P's origin in B per joint rate (6 x nq)."""
+        self._set(q)
+        W = self.plant.world_frame()
+        return self.plant.CalcJacobianSpatialVelocity(
+            self.context, JacobianWrtVariable.kV, self.frame, np.zeros(3), W, W)
+
+    def pose(self, q) -> RigidTransform:
+        """X_BP(q)."""
+        self._set(q)
+        return self.frame.CalcPoseInWorld(self.context)
+
+
+def MakeControlPlantFallback(scenario=None):
+    """FR3 + a tip frame "probe_tip" welded to the flange at the scenario's X_FP.
+
+    Used when ``drake_rus.station.MakeControlPlant`` is not available (unit tests of the
+    controller in isolation). Returns (plant, probe_tip_frame).
+    """
+    from pydrake.math import RigidTransform as RT
+    from pydrake.multibody.parsing import Parser
+    from pydrake.multibody.tree import FixedOffsetFrame
+
+    from drake_rus.paths import AddDrakeRusPackages
+    from drake_rus.scenario import Scenario
+
+    scenario = scenario or Scenario()
+    plant = MultibodyPlant(0.0)
+    parser = Parser(plant)
+    AddDrakeRusPackages(parser.package_map())
+    (model,) = parser.AddModels(url=scenario.robot.model)
+    plant.WeldFrames(plant.world_frame(), plant.GetFrameByName("fr3_link0", model), RT())
+    X_FP = scenario.probe.X_FP.GetDeterministicValue()
+    tip = plant.AddFrame(FixedOffsetFrame("probe_tip", plant.GetFrameByName("fr3_link8", model),
+                                          X_FP))
+    plant.Finalize()
+    return plant, tip
+
+
+def MakeControlPlant(scenario=None):
+    """The station's control plant if it exists, else :func:`MakeControlPlantFallback`."""
+    try:
+        from drake_rus.station import MakeControlPlant as station_make
+    except ImportError:
+        return MakeControlPlantFallback(scenario)
+    from drake_rus.scenario import Scenario
+    return station_make(scenario or Scenario())

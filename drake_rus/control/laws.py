@@ -1,0 +1,240 @@
+"""Pure control laws of the seed's section II-C (eq. 1-12): numpy in, numpy out.
+
+Frames (DESIGN.md): B is the robot base (= world, z up); P is the probe tip frame with
+z_P = a (approach vector, into the body) and x_P = o (orientation vector, along the array).
+Twists are Drake-ordered [omega; v] of frame P's origin, expressed in B.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def _vec3(x) -> np.ndarray:
+    x = np.asarray(x, dtype=float).reshape(-1)
+    if x.shape != (3,):
+        raise ValueError(f"expected a 3-vector, got shape {x.shape}")
+    return x
+
+
+# ----------------------------------------------------------------------------- orientation
+def approach_alignment(a_curr, a_des, a_des_dot, K_p1: float, K_p11: float) -> np.ndarray:
+    """Angular velocity (rad/s, in B) tilting the approach vector (eq. 1-2).
+
+    e_a = a_curr x a_des (eq. 1); omega_a = K_p1 e_a + K_p11 (a_curr x da_des/dt) (eq. 2).
+    """
+    a = _vec3(a_curr)
+    e_a = np.cross(a, _vec3(a_des))
+    return K_p1 * e_a + K_p11 * np.cross(a, _vec3(a_des_dot))
+
+
+def orientation_vector_alignment(o_curr, o_des, a_curr, K_p2: float) -> np.ndarray:
+    """Angular velocity (rad/s, in B) rotating the array about a only (eq. 3-4).
+
+    e_o = o_curr x o_des (eq. 3); omega_o = K_p2 (e_o . a_curr) a_curr (eq. 4). The paper
+    writes the scalar K_p2 (e_o . a); the rotation it commands is about a_curr, so the
+    vector is that scalar times a_curr (which does not disturb the tilt task).
+    """
+    a = _vec3(a_curr)
+    e_o = np.cross(_vec3(o_curr), _vec3(o_des))
+    return K_p2 * float(e_o @ a) * a
+
+
+def orientation_alignment(R_BP, a_des, o_des, a_des_dot, K_p1: float, K_p11: float,
+                          K_p2: float) -> np.ndarray:
+    """omega_total = omega_a + omega_o (eq. 5), from the tip rotation R_BP (3x3).
+
+    a_curr = R_BP[:, 2] (z_P), o_curr = R_BP[:, 0] (x_P).
+    """
+    R = np.asarray(R_BP, dtype=float)
+    a, o = R[:, 2], R[:, 0]
+    return (approach_alignment(a, a_des, a_des_dot, K_p1, K_p11)
+            + orientation_vector_alignment(o, o_des, a, K_p2))
+
+
+def angle_between(u, v) -> float:
+    """Angle (rad) between two vectors, robust near 0 and pi."""
+    u, v = _vec3(u), _vec3(v)
+    return math.atan2(float(np.linalg.norm(np.cross(u, v))), float(u @ v))
+
+
+# ----------------------------------------------------------------------------- force
+def lowpass_alpha(dt: float, cutoff_hz: float) -> float:
+    """Smoothing factor of a first-order low-pass y += alpha (x - y), sampled every dt (s)."""
+    tau = 1.0 / (2.0 * math.pi * cutoff_hz)
+    return dt / (tau + dt)
+
+
+def lowpass_update(y_prev: float, x: float, alpha: float) -> float:
+    """One step of the first-order low-pass filter on the force estimate (eq. 6's F_z)."""
+    return y_prev + alpha * (x - y_prev)
+
+
+def force_pd(F_des: float, F_filtered: float, error_rate: float, a_curr, K_p3: float,
+             K_d1: float) -> np.ndarray:
+    """Linear velocity (m/s, in B) along a that regulates the contact force (eq. 6).
+
+    v_z = [K_p3 (F_des - F_z) + K_d1 d/dt(F_des - F_z)] a_curr, with F_z the low-pass
+    filtered contact force (N, positive when pressing) and ``error_rate`` (N/s) the
+    derivative of the filtered error. Too little force -> move along +a (into the body).
+    """
+    return (K_p3 * (F_des - F_filtered) + K_d1 * error_rate) * _vec3(a_curr)
+
+
+def force_pd_step(state, F_measured: float, F_des: float, a_curr, dt: float, alpha: float,
+                  K_p3: float, K_d1: float):
+    """One controller period of eq. 6 with filter and derivative on the filtered signal.
+
+    ``state`` = (F_filtered, e_prev, initialised). Returns (v_z (3,), new_state). The first
+    call seeds the filter with the measurement and uses a zero derivative (no kick).
+    """
+    F_f, e_prev, initialised = state
+    if not initialised:
+        F_f = F_measured
+        e_prev = F_des - F_measured
+    F_f = lowpass_update(F_f, F_measured, alpha)
+    e = F_des - F_f
+    e_rate = (e - e_prev) / dt
+    v = force_pd(F_des, F_f, e_rate, a_curr, K_p3, K_d1)
+    return v, (F_f, e, 1.0)
+
+
+# ----------------------------------------------------------------------------- position
+def position_p(P_des_xy, p_BP, K_p4: float, K_p5: float) -> np.ndarray:
+    """Tip linear velocity (m/s, in B) tracking the desired tip x, y (eq. 7).
+
+    v_x = K_p4 (P_x_des - P_x), v_y = K_p5 (P_y_des - P_y); the z component is left to the
+    force loop (eq. 6), so this returns [v_x, v_y, 0].
+    """
+    P_des_xy = np.asarray(P_des_xy, dtype=float).reshape(2)
+    p = _vec3(p_BP)
+    return np.array([K_p4 * (P_des_xy[0] - p[0]), K_p5 * (P_des_xy[1] - p[1]), 0.0])
+
+
+def assemble_twist(omega_total, v_position, v_force, max_tip_speed: float = math.inf,
+                   max_angular_speed: float = math.inf) -> np.ndarray:
+    """Task twist xi_b = [omega_total; v_total] (eq. 8-9), saturated.
+
+    v_total = [v_x, v_y, 0] + v_z: eq. 8 stacks v_x, v_y (eq. 7) with the force velocity
+    (eq. 6), which is a vector along a_curr; for a vertical probe this is exactly
+    [v_x, v_y, v_z]. Linear and angular parts are scaled down (direction kept) to the speed
+    limits (m/s, rad/s).
+    """
+    w = _vec3(omega_total).copy()
+    v = _vec3(v_position) + _vec3(v_force)
+    nw, nv = np.linalg.norm(w), np.linalg.norm(v)
+    if nw > max_angular_speed:
+        w *= max_angular_speed / nw
+    if nv > max_tip_speed:
+        v *= max_tip_speed / nv
+    return np.concatenate([w, v])
+
+
+# ----------------------------------------------------------------------------- diff IK
+def manipulability(J) -> float:
+    """Yoshikawa manipulability m = sqrt(det(J J^T)) (section II-C, after eq. 10)."""
+    J = np.asarray(J, dtype=float)
+    d = float(np.linalg.det(J @ J.T))
+    return math.sqrt(max(d, 0.0))
+
+
+def manipulability_gradient(q, jacobian, epsilon: float = 1e-4) -> np.ndarray:
+    """Forward-difference gradient of m(q) (eq. 12); ``jacobian(q)`` returns the 6xn J.
+
+    dm/dq_i ~ (m(q + eps e_i) - m(q)) / eps.
+    """
+    q = np.asarray(q, dtype=float).reshape(-1)
+    m0 = manipulability(jacobian(q))
+    grad = np.empty_like(q)
+    for i in range(q.size):
+        qi = q.copy()
+        qi[i] += epsilon
+        grad[i] = (manipulability(jacobian(qi)) - m0) / epsilon
+    return grad
+
+
+def damped_pseudo_inverse(J, sigma_threshold: float = 0.03, damping_max: float = 0.03):
+    """Damped Moore-Penrose pseudo-inverse and exact null-space projector of J (eq. 10).
+
+    Singular-value decomposition J = U S V^T. Each singular value s_i is inverted as
+    s_i / (s_i^2 + lambda^2) with variable damping lambda^2 = damping_max^2 (1 - (s_min /
+    sigma_threshold)^2) when s_min < sigma_threshold, else 0 (the plain J^+ away from
+    singularities). The null-space projector I - V_r V_r^T uses the rank-r row space of J
+    (equal to I - J^+ J for a full-rank J), so the secondary task never leaks into the task.
+
+    Returns (J_pinv (n x 6), N (n x n), lambda).
+    """
+    J = np.asarray(J, dtype=float)
+    U, s, Vt = np.linalg.svd(J, full_matrices=True)
+    m = s.size
+    s_min = float(s[-1])
+    lam2 = 0.0
+    if s_min < sigma_threshold:
+        lam2 = damping_max**2 * (1.0 - (s_min / sigma_threshold) ** 2)
+    inv = s / (s**2 + lam2) if lam2 > 0 else np.where(s > 1e-12, 1.0 / np.maximum(s, 1e-300), 0.0)
+    V = Vt.T
+    J_pinv = V[:, :m] @ np.diag(inv) @ U[:, :m].T
+    rank = int(np.sum(s > 1e-9))
+    Vr = V[:, :rank]
+    N = np.eye(J.shape[1]) - Vr @ Vr.T
+    return J_pinv, N, math.sqrt(lam2)
+
+
+def joint_velocity_bounds(q, q_min, q_max, dq_max, margin: float):
+    """Per-joint velocity bounds (rad/s) from speed limits and a joint-limit margin.
+
+    Within ``margin`` (rad) of a limit, the allowed speed towards it ramps linearly from
+    dq_max down to 0 at the limit (and stays 0 beyond it); away from the limit is always
+    allowed. Returns (lower <= 0, upper >= 0).
+    """
+    q = np.asarray(q, dtype=float)
+    dq_max = np.asarray(dq_max, dtype=float)
+    up = np.clip((np.asarray(q_max) - q) / margin, 0.0, 1.0) * dq_max
+    lo = -np.clip((q - np.asarray(q_min)) / margin, 0.0, 1.0) * dq_max
+    return lo, up
+
+
+def scale_into_bounds(qdot, lower, upper) -> np.ndarray:
+    """Scales qdot uniformly (direction kept) so that lower <= qdot <= upper."""
+    qdot = np.asarray(qdot, dtype=float)
+    s = 1.0
+    for v, lo, hi in zip(qdot, lower, upper):
+        if v > hi:
+            s = min(s, hi / v if v > 0 else 0.0)
+        elif v < lo:
+            s = min(s, lo / v if v < 0 else 0.0)
+    return qdot * max(s, 0.0)
+
+
+def null_space_diff_ik(J, xi_b, qdot_null, *, sigma_threshold: float = 0.03,
+                       damping_max: float = 0.03) -> np.ndarray:
+    """qdot = J^+ xi_b + (I - J^+ J) qdot_null (eq. 10) with the damped pseudo-inverse."""
+    J_pinv, N, _ = damped_pseudo_inverse(J, sigma_threshold, damping_max)
+    return J_pinv @ np.asarray(xi_b, dtype=float) + N @ np.asarray(qdot_null, dtype=float)
+
+
+def solve_joint_velocities(q, xi_b, jacobian, *, K_p6: float, epsilon: float, q_min, q_max,
+                           dq_max, joint_limit_margin: float, sigma_threshold: float = 0.03,
+                           damping_max: float = 0.03) -> np.ndarray:
+    """The whole differential IK: eq. 10-12 then the joint-limit margin and speed limits.
+
+    qdot_null = K_p6 grad m(q) (eq. 11-12); qdot from eq. 10; finally qdot is scaled
+    uniformly into the per-joint bounds of :func:`joint_velocity_bounds` so the probe path
+    keeps its direction while slowing before a joint limit. Non-finite input gives zeros.
+    """
+    q = np.asarray(q, dtype=float)
+    xi_b = np.asarray(xi_b, dtype=float)
+    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(xi_b))):
+        return np.zeros_like(q)
+    J = jacobian(q)
+    qdot_null = (K_p6 * manipulability_gradient(q, jacobian, epsilon)
+                 if K_p6 > 0 else np.zeros_like(q))
+    qdot = null_space_diff_ik(J, xi_b, qdot_null, sigma_threshold=sigma_threshold,
+                              damping_max=damping_max)
+    lo, up = joint_velocity_bounds(q, q_min, q_max, dq_max, joint_limit_margin)
+    qdot = scale_into_bounds(qdot, lo, up)
+    if not np.all(np.isfinite(qdot)):
+        return np.zeros_like(q)
+    return qdot

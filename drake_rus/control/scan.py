@@ -1,0 +1,267 @@
+"""Pure motion laws of the three scan phases: exploration (eq. 17), optimal pivot pose
+(eq. 20-22) and the Rodrigues pivot sweep (eq. 23), plus the supervisor's state machine.
+
+All vectors are expressed in the robot base frame B (z up; the patient lies along y).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import math
+
+import numpy as np
+
+from drake_rus.control.laws import angle_between
+
+
+# ----------------------------------------------------------------------------- eq. 17
+def exploration_update(P_des_xy, c_msk: float, x_p, v_scan_y: float, K_p7: float,
+                       dt: float) -> np.ndarray:
+    """Desired tip (x, y) one control interval later during exploration (eq. 17).
+
+    P_x(t+dt) = P_x(t) + (delta_msk dt)(x_p . [1, 0, 0]), delta_msk = K_p7 (c_msk - 0.5);
+    P_y(t+dt) = P_y(t) + v_scan dt. ``c_msk`` in [0, 1] is the horizontal mask centroid
+    (0 at the image column of -x_P, 1 at +x_P); ``x_p`` = R_BP [1, 0, 0] is the probe x-axis
+    in B; ``v_scan_y`` (m/s) is signed along base y. A NaN centroid (no mask) gives no x
+    correction.
+    """
+    P = np.asarray(P_des_xy, dtype=float).reshape(2).copy()
+    x_p = np.asarray(x_p, dtype=float).reshape(3)
+    if math.isfinite(c_msk):
+        delta_msk = K_p7 * (c_msk - 0.5)
+        P[0] += delta_msk * dt * float(x_p[0])
+    P[1] += v_scan_y * dt
+    return P
+
+
+# ----------------------------------------------------------------------------- eq. 20-22
+def optimal_pivot_pose(R_BK, p_BK):
+    """Optimal pivoting pose T* = [r1 r2 r3 p*] (eq. 20-22) from the kidney pose T_k^b.
+
+    r3* = [0, 0, -1] (probe pointing down); r1* = unit(x_k - (x_k . r3*) r3*) with
+    x_k = R_BK [1, 0, 0] (eq. 21); p* = t_k^b. The seed writes r2* = unit(r1* x r3*)
+    (eq. 22), which makes [r1 r2 r3] a reflection (det = -1); a rotation needs
+    r2* = r3* x r1*, used here (the same line, opposite sign). If the kidney's long axis
+    is vertical (r1* undefined) the base x-axis is projected instead.
+
+    Returns (R_BPstar (3x3), p_star (3,)).
+    """
+    R_BK = np.asarray(R_BK, dtype=float)
+    r3 = np.array([0.0, 0.0, -1.0])
+    x_k = R_BK[:, 0]
+    r1 = x_k - float(x_k @ r3) * r3
+    n = np.linalg.norm(r1)
+    if n < 1e-6:
+        r1 = np.array([1.0, 0.0, 0.0])
+        n = 1.0
+    r1 = r1 / n
+    r2 = np.cross(r3, r1)
+    r2 /= np.linalg.norm(r2)
+    return np.column_stack([r1, r2, r3]), np.asarray(p_BK, dtype=float).reshape(3).copy()
+
+
+# ----------------------------------------------------------------------------- eq. 23
+def rodrigues_pivot_update(a_des, o_des, dtheta: float) -> np.ndarray:
+    """Approach vector rotated by dtheta (rad) about o_des (eq. 23).
+
+    a(t+dt) = a cos(dtheta) + (o x a) sin(dtheta); the (a . o) term of Rodrigues' formula
+    vanishes because a is kept orthogonal to o. The result is re-orthogonalised against o
+    and normalised so rounding does not accumulate over thousands of steps.
+    """
+    a = np.asarray(a_des, dtype=float).reshape(3)
+    o = np.asarray(o_des, dtype=float).reshape(3)
+    a_new = a * math.cos(dtheta) + np.cross(o, a) * math.sin(dtheta)
+    o_hat = o / np.linalg.norm(o)
+    a_new = a_new - float(a_new @ o_hat) * o_hat
+    return a_new / np.linalg.norm(a_new)
+
+
+def pivot_rate_vector(a_des, o_des, direction: float, rate: float) -> np.ndarray:
+    """d a_des/dt of the pivot sweep (rad/s): direction * rate * (o x a), for eq. 2's K_p11."""
+    return direction * rate * np.cross(np.asarray(o_des, float), np.asarray(a_des, float))
+
+
+# ----------------------------------------------------------------------------- supervisor
+class Phase(enum.IntEnum):
+    """Scan phases. APPROACH (press until contact) precedes the seed's EXPLORE."""
+    APPROACH = 0
+    EXPLORE = 1
+    LOCALIZE = 2
+    TRANSIT = 3
+    PIVOT = 4
+    DONE = 5
+    ABORT = 6
+
+
+@dataclasses.dataclass
+class SupervisorState:
+    """Everything the ScanSupervisor remembers between control periods."""
+    phase: Phase = Phase.APPROACH
+    a_des: np.ndarray = dataclasses.field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
+    o_des: np.ndarray = dataclasses.field(default_factory=lambda: np.array([1.0, 0.0, 0.0]))
+    a_des_dot: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
+    P_des: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(2))
+    F_des: float = 0.0
+    initialised: bool = False
+    phase_start: float = 0.0
+    travel: float = 0.0              # exploration travel along y (m)
+    invisible_since: float = math.nan  # time the kidney was last seen to disappear
+    pivot_direction: float = 1.0
+    pivot_angle: float = 0.0         # tilt of a_des from r3* about o_des (rad), signed
+    pivot_legs_done: int = 0
+    pivot_limits: tuple = ()         # tilt angles (rad) where each leg ended
+    a_star: np.ndarray = dataclasses.field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
+    p_star: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, math.nan))
+    reason: str = ""
+    events: tuple = ()               # (time, phase name, message) transitions
+
+    def copy(self) -> "SupervisorState":
+        return dataclasses.replace(
+            self, a_des=self.a_des.copy(), o_des=self.o_des.copy(),
+            a_des_dot=self.a_des_dot.copy(), P_des=self.P_des.copy(),
+            a_star=self.a_star.copy(), p_star=self.p_star.copy())
+
+
+@dataclasses.dataclass
+class SupervisorInputs:
+    """What the supervisor reads each period (base frame B, SI units)."""
+    t: float
+    R_BP: np.ndarray
+    p_BP: np.ndarray
+    F_z: float                 # contact force along a (N), positive pressing
+    kidney_visible: bool
+    c_msk: float               # horizontal mask centroid in [0, 1] (NaN when no mask)
+    R_BK: np.ndarray | None = None   # kidney pose estimate (localizer or ground truth)
+    p_BK: np.ndarray | None = None
+    localization_ready: bool = True
+
+
+def _goto(s: SupervisorState, phase: Phase, t: float, message: str) -> SupervisorState:
+    s.phase = phase
+    s.phase_start = t
+    s.invisible_since = math.nan
+    s.events = s.events + ((t, phase.name, message),)
+    return s
+
+
+def _update_visibility(s: SupervisorState, u: SupervisorInputs, debounce: float) -> bool:
+    """Tracks when the kidney vanished; True once it has been invisible for ``debounce``."""
+    if u.kidney_visible:
+        s.invisible_since = math.nan
+        return False
+    if math.isnan(s.invisible_since):
+        s.invisible_since = u.t
+    return u.t - s.invisible_since >= debounce - 1e-9
+
+
+def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float
+                    ) -> SupervisorState:
+    """One control period of the scan state machine (pure: returns a new state).
+
+    APPROACH: hold pose, press to F_des until the filtered force reaches contact_fraction
+    F_des. EXPLORE: constant orientation, eq. 17, until ER L_m of travel or the kidney has
+    left the image. LOCALIZE: hold (force control only) for localize_hold_time and until
+    the localizer is ready, then compute T* (eq. 20-22). TRANSIT: slide to (p_x*, p_y*)
+    with a_des = r3*, o_des = r1*. PIVOT: a_des rotates about o_des (eq. 23) one way until
+    the kidney leaves the image (or max tilt), then back through r3* to the other side;
+    then DONE. ABORT (with reason) on a non-finite input or pose, a missing kidney pose, or
+    a TRANSIT timeout.
+    """
+    s = state.copy()
+    R = np.asarray(u.R_BP, dtype=float)
+    p = np.asarray(u.p_BP, dtype=float)
+    s.a_des_dot = np.zeros(3)
+    if s.phase in (Phase.DONE, Phase.ABORT):
+        return s
+    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(p)) and math.isfinite(u.F_z)):
+        s.reason = "non-finite probe pose or force"
+        return _goto(s, Phase.ABORT, u.t, s.reason)
+
+    if not s.initialised:
+        # Hold the current orientation and tip position; press to the desired force.
+        s.a_des = R[:, 2].copy()
+        s.o_des = R[:, 0].copy()
+        s.P_des = p[:2].copy()
+        s.F_des = float(cfg.desired_force)
+        s.initialised = True
+        s.phase_start = u.t
+        s.events = s.events + ((u.t, s.phase.name, "start"),)
+
+    if s.phase == Phase.APPROACH:
+        if u.F_z >= cfg.contact_fraction * cfg.desired_force:
+            s.P_des = p[:2].copy()
+            return _goto(s, Phase.EXPLORE, u.t, f"contact at {u.F_z:.2f} N")
+        return s
+
+    if s.phase == Phase.EXPLORE:
+        sign = 1.0 if cfg.scan_direction == "+y" else -1.0
+        left = _update_visibility(s, u, cfg.visibility_debounce)
+        target = cfg.exploration_ratio * cfg.kidney_length
+        if s.travel >= target - 1e-12:
+            s.P_des = p[:2].copy()
+            return _goto(s, Phase.LOCALIZE, u.t, f"explored {s.travel * 1e3:.1f} mm")
+        if left:
+            s.P_des = p[:2].copy()
+            return _goto(s, Phase.LOCALIZE, u.t,
+                         f"kidney left the image after {s.travel * 1e3:.1f} mm")
+        step = min(cfg.scan_speed * dt, target - s.travel)
+        c = u.c_msk if u.kidney_visible else math.nan
+        s.P_des = exploration_update(s.P_des, c, R[:, 0], sign * step / dt, cfg.K_p7, dt)
+        s.travel += step
+        return s
+
+    if s.phase == Phase.LOCALIZE:
+        if u.t - s.phase_start < cfg.localize_hold_time - 1e-9 or not u.localization_ready:
+            return s
+        if u.R_BK is None or u.p_BK is None or not (
+                np.all(np.isfinite(u.R_BK)) and np.all(np.isfinite(u.p_BK))):
+            s.reason = "no finite kidney pose from localization"
+            return _goto(s, Phase.ABORT, u.t, s.reason)
+        R_star, p_star = optimal_pivot_pose(u.R_BK, u.p_BK)
+        s.a_star = R_star[:, 2].copy()
+        s.a_des = R_star[:, 2].copy()
+        s.o_des = R_star[:, 0].copy()
+        s.p_star = p_star
+        s.P_des = p_star[:2].copy()
+        return _goto(s, Phase.TRANSIT, u.t,
+                     f"p* = ({p_star[0]:.4f}, {p_star[1]:.4f}, {p_star[2]:.4f}) m")
+
+    if s.phase == Phase.TRANSIT:
+        dist = float(np.linalg.norm(p[:2] - s.p_star[:2]))
+        ang = max(angle_between(R[:, 2], s.a_des), angle_between(R[:, 0], s.o_des))
+        if dist <= cfg.transit_position_tolerance and ang <= cfg.transit_angle_tolerance:
+            s.pivot_direction = 1.0
+            s.pivot_angle = 0.0
+            return _goto(s, Phase.PIVOT, u.t, f"at p* ({dist * 1e3:.2f} mm)")
+        if u.t - s.phase_start > cfg.transit_timeout:
+            s.reason = f"TRANSIT timeout: {dist * 1e3:.1f} mm from p*"
+            return _goto(s, Phase.ABORT, u.t, s.reason)
+        return s
+
+    if s.phase == Phase.PIVOT:
+        left = _update_visibility(s, u, cfg.visibility_debounce)
+        # On the second leg, only a loss past the start (on the new side) ends the sweep.
+        on_new_side = s.pivot_legs_done == 0 or s.pivot_angle * s.pivot_direction > 0
+        at_tilt = abs(s.pivot_angle) >= cfg.max_pivot_tilt - 1e-9 and on_new_side
+        if (left and on_new_side) or at_tilt:
+            why = "kidney left the image" if (left and on_new_side) else "maximum tilt"
+            s.pivot_limits = s.pivot_limits + (s.pivot_angle,)
+            s.pivot_legs_done += 1
+            s.events = s.events + ((u.t, "PIVOT",
+                                    f"leg {s.pivot_legs_done} ended at "
+                                    f"{math.degrees(s.pivot_angle):.1f} deg: {why}"),)
+            if s.pivot_legs_done >= 2:
+                return _goto(s, Phase.DONE, u.t, "pivot sweep complete")
+            s.pivot_direction = -s.pivot_direction
+            s.invisible_since = math.nan
+        dtheta = s.pivot_direction * cfg.pivot_rate * dt
+        # Do not overshoot the tilt bound.
+        new_angle = float(np.clip(s.pivot_angle + dtheta, -cfg.max_pivot_tilt,
+                                  cfg.max_pivot_tilt))
+        dtheta = new_angle - s.pivot_angle
+        s.a_des = rodrigues_pivot_update(s.a_des, s.o_des, dtheta)
+        s.pivot_angle = new_angle
+        s.a_des_dot = pivot_rate_vector(s.a_des, s.o_des, s.pivot_direction, cfg.pivot_rate)
+        return s
+    return s

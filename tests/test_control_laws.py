@@ -1,0 +1,251 @@
+"""Unit tests of the pure control laws (seed eq. 1-12)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from drake_rus.control import laws
+from drake_rus.control.kinematics import MakeControlPlantFallback, TipKinematics
+from pydrake.math import RollPitchYaw, RotationMatrix
+
+Q0 = np.array([0.0, 0.15, 0.0, -2.0, 0.0, 2.15, 0.785])
+
+
+def rot(rpy):
+    return RotationMatrix(RollPitchYaw(rpy)).matrix()
+
+
+def so3_exp(w):
+    th = np.linalg.norm(w)
+    if th < 1e-15:
+        return np.eye(3)
+    k = w / th
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(th) * K + (1 - math.cos(th)) * K @ K
+
+
+# ------------------------------------------------------------------ eq. 1-2
+def test_approach_alignment_rotates_a_towards_a_des():
+    a = np.array([0.0, 0.0, -1.0])
+    a_des = np.array([math.sin(0.3), 0.0, -math.cos(0.3)])
+    w = laws.approach_alignment(a, a_des, np.zeros(3), K_p1=2.0, K_p11=0.0)
+    # eq. 1: e_a = a x a_des, times K_p1
+    np.testing.assert_allclose(w, 2.0 * np.cross(a, a_des))
+    # Rotating a by w (da/dt = w x a) reduces the angle to a_des.
+    a_next = a + 1e-3 * np.cross(w, a)
+    assert laws.angle_between(a_next, a_des) < laws.angle_between(a, a_des)
+
+
+def test_approach_alignment_feedforward_term():
+    a = np.array([0.0, 0.0, -1.0])
+    a_dot = np.array([0.1, 0.0, 0.0])
+    w = laws.approach_alignment(a, a, a_dot, K_p1=5.0, K_p11=1.0)
+    # No error: only the K_p11 (a x da_des/dt) term, and it makes da/dt = a_dot.
+    np.testing.assert_allclose(w, np.cross(a, a_dot))
+    np.testing.assert_allclose(np.cross(w, a), a_dot, atol=1e-12)
+
+
+# ------------------------------------------------------------------ eq. 3-5
+def test_orientation_vector_term_is_about_a_only():
+    R = rot([0.2, -0.1, 0.4])
+    a, o = R[:, 2], R[:, 0]
+    o_des = rot([0.2, -0.1, 0.9])[:, 0]
+    w = laws.orientation_vector_alignment(o, o_des, a, K_p2=3.0)
+    e_o = np.cross(o, o_des)
+    np.testing.assert_allclose(w, 3.0 * (e_o @ a) * a)
+    assert np.linalg.norm(np.cross(w, a)) < 1e-12  # parallel to a: does not tilt a
+
+
+def test_orientation_alignment_converges_from_20_deg_step():
+    """Closed loop of eq. 5 on a kinematic rotation: 20 deg error -> < 1 deg in 2 s."""
+    R_des = rot([math.pi, 0.0, 0.3])
+    R = R_des @ rot([math.radians(20.0), 0.0, 0.0]).T @ rot([0, 0, math.radians(30)])
+    a_des, o_des = R_des[:, 2], R_des[:, 0]
+    dt = 0.005
+    for _ in range(int(2.0 / dt)):
+        w = laws.orientation_alignment(R, a_des, o_des, np.zeros(3), 3.0, 1.0, 3.0)
+        R = so3_exp(w * dt) @ R
+    assert laws.angle_between(R[:, 2], a_des) < math.radians(1.0)
+    assert laws.angle_between(R[:, 0], o_des) < math.radians(1.0)
+
+
+def test_angle_between():
+    assert laws.angle_between([1, 0, 0], [0, 1, 0]) == pytest.approx(math.pi / 2)
+    assert laws.angle_between([1, 0, 0], [-1, 0, 0]) == pytest.approx(math.pi)
+    assert laws.angle_between([1, 0, 0], [1, 1e-9, 0]) == pytest.approx(1e-9)
+
+
+# ------------------------------------------------------------------ eq. 6
+def test_force_pd_direction_and_value():
+    a = np.array([0.0, 0.0, -1.0])
+    v = laws.force_pd(9.0, 4.0, 0.0, a, K_p3=0.01, K_d1=0.0)
+    np.testing.assert_allclose(v, 0.05 * a)  # too little force: move into the body (along a)
+    v = laws.force_pd(9.0, 12.0, 0.0, a, K_p3=0.01, K_d1=0.0)
+    assert v @ a < 0  # too much: back off
+    v = laws.force_pd(9.0, 9.0, 10.0, a, K_p3=0.01, K_d1=0.002)
+    np.testing.assert_allclose(v, 0.02 * a)
+
+
+def test_lowpass_step_response_time_constant():
+    dt, fc = 0.005, 10.0
+    alpha = laws.lowpass_alpha(dt, fc)
+    y, t = 0.0, 0.0
+    tau = 1 / (2 * math.pi * fc)
+    while t < tau - 1e-12:
+        y = laws.lowpass_update(y, 1.0, alpha)
+        t += dt
+    assert y == pytest.approx(1 - math.exp(-1), abs=0.06)
+
+
+def test_force_pd_step_filters_and_differentiates_filtered_error():
+    a = np.array([0.0, 0.0, -1.0])
+    dt, alpha = 0.005, 0.5
+    state = (0.0, 0.0, 0.0)
+    v, state = laws.force_pd_step(state, 2.0, 9.0, a, dt, alpha, 0.01, 0.001)
+    # First call seeds the filter: no derivative kick.
+    np.testing.assert_allclose(v, 0.01 * 7.0 * a)
+    assert state[0] == pytest.approx(2.0)
+    v, state = laws.force_pd_step(state, 4.0, 9.0, a, dt, alpha, 0.01, 0.001)
+    F_f = 3.0  # 2 + 0.5 (4 - 2)
+    e_rate = ((9 - F_f) - 7.0) / dt
+    np.testing.assert_allclose(v, (0.01 * (9 - F_f) + 0.001 * e_rate) * a)
+    # A single-sample spike moves the filtered force only by alpha of the spike.
+    _, s2 = laws.force_pd_step(state, 100.0, 9.0, a, dt, alpha, 0.01, 0.001)
+    assert s2[0] == pytest.approx(3.0 + 0.5 * 97.0)
+
+
+def test_force_loop_settles_on_a_spring():
+    """Eq. 6 on a 1-D spring body (k = 900 N/m) reaches 9 N +- 0.5 within 2 s."""
+    k, dt = 900.0, 0.005
+    a = np.array([0.0, 0.0, -1.0])
+    depth, state = 0.0, (0.0, 0.0, 0.0)
+    alpha = laws.lowpass_alpha(dt, 15.0)
+    forces = []
+    for _ in range(int(2.0 / dt)):
+        F = k * max(depth, 0.0)
+        v, state = laws.force_pd_step(state, F, 9.0, a, dt, alpha, 0.004, 0.0002)
+        depth += float(v @ a) * dt
+        forces.append(F)
+    assert abs(forces[-1] - 9.0) < 0.5
+    assert max(forces) < 12.0
+
+
+# ------------------------------------------------------------------ eq. 7-9
+def test_position_p():
+    v = laws.position_p([0.5, 0.1], [0.4, 0.2, 0.3], K_p4=2.0, K_p5=3.0)
+    np.testing.assert_allclose(v, [0.2, -0.3, 0.0])
+
+
+def test_assemble_twist_orders_and_saturates():
+    xi = laws.assemble_twist([0.1, 0, 0], [0.01, 0, 0], [0, 0, -0.02])
+    np.testing.assert_allclose(xi, [0.1, 0, 0, 0.01, 0, -0.02])
+    xi = laws.assemble_twist([3.0, 4.0, 0], [0.3, 0, 0], [0, 0, 0.4], max_tip_speed=0.05,
+                             max_angular_speed=0.5)
+    np.testing.assert_allclose(np.linalg.norm(xi[:3]), 0.5)
+    np.testing.assert_allclose(np.linalg.norm(xi[3:]), 0.05)
+    np.testing.assert_allclose(xi[3:] / 0.05, [0.6, 0, 0.8])  # direction kept
+
+
+# ------------------------------------------------------------------ eq. 10-12
+@pytest.fixture(scope="module")
+def kin():
+    plant, frame = MakeControlPlantFallback()
+    return TipKinematics(plant, frame)
+
+
+def test_manipulability_matches_singular_values(kin):
+    J = kin.jacobian(Q0)
+    s = np.linalg.svd(J, compute_uv=False)
+    assert laws.manipulability(J) == pytest.approx(np.prod(s), rel=1e-9)
+    assert laws.manipulability(np.zeros((6, 7))) == 0.0
+
+
+def test_manipulability_gradient_matches_central_difference(kin):
+    g = laws.manipulability_gradient(Q0, kin.jacobian, 1e-6)
+    for i in range(7):
+        dq = np.zeros(7)
+        dq[i] = 1e-5
+        c = (laws.manipulability(kin.jacobian(Q0 + dq))
+             - laws.manipulability(kin.jacobian(Q0 - dq))) / 2e-5
+        assert g[i] == pytest.approx(c, abs=1e-4)
+    assert np.linalg.norm(g) > 1e-3
+
+
+def test_damped_pinv_is_exact_away_from_singularity(kin):
+    J = kin.jacobian(Q0)
+    J_pinv, N, lam = laws.damped_pseudo_inverse(J, 0.03, 0.03)
+    assert lam == 0.0
+    np.testing.assert_allclose(J_pinv, np.linalg.pinv(J), atol=1e-9)
+    np.testing.assert_allclose(J @ N, 0, atol=1e-9)
+    np.testing.assert_allclose(N @ N, N, atol=1e-9)
+
+
+def test_damped_pinv_bounded_at_singularity():
+    J = np.zeros((6, 7))
+    J[:5, :5] = np.eye(5)
+    J[5, 5] = 1e-6  # nearly singular
+    J_pinv, N, lam = laws.damped_pseudo_inverse(J, 0.03, 0.03)
+    assert lam > 0.029
+    assert np.abs(J_pinv).max() < 1.0 / (2 * 0.03) + 1e-9  # s/(s^2+l^2) <= 1/(2l)
+    raw = np.linalg.pinv(J, rcond=1e-12)
+    assert np.abs(raw).max() > 1e5
+
+
+def test_null_space_ik_tracks_twist_and_null_motion_is_invisible(kin):
+    J = kin.jacobian(Q0)
+    xi = np.array([0.05, -0.02, 0.01, 0.01, 0.02, -0.03])
+    rng = np.random.default_rng(0)
+    q_null = rng.normal(size=7)
+    qdot = laws.null_space_diff_ik(J, xi, q_null)
+    np.testing.assert_allclose(J @ qdot, xi, atol=1e-9)
+    qdot0 = laws.null_space_diff_ik(J, xi, np.zeros(7))
+    assert np.linalg.norm(qdot - qdot0) > 1e-3  # the null-space term moved the joints
+
+
+def test_joint_limit_bounds_and_scaling():
+    q_min, q_max = -np.ones(3), np.ones(3)
+    lo, up = laws.joint_velocity_bounds([0.0, 0.95, -1.2], q_min, q_max, [1, 1, 1], 0.1)
+    np.testing.assert_allclose(up, [1, 0.5, 1])
+    np.testing.assert_allclose(lo, [-1, -1, 0])
+    qdot = laws.scale_into_bounds([0.2, 1.0, 0.1], lo, up)
+    np.testing.assert_allclose(qdot, [0.1, 0.5, 0.05])  # uniform scaling keeps direction
+    qdot = laws.scale_into_bounds([0.2, 0.1, -0.1], lo, up)
+    np.testing.assert_allclose(qdot, 0)  # would push joint 3 further past its limit
+
+
+def test_solve_joint_velocities_respects_limits(kin):
+    xi = np.array([0, 0, 0, 0.0, 0.0, -2.0])  # far too fast on purpose
+    dq_max = np.array([2, 1, 1.5, 1.25, 3, 1.5, 3]) * 0.5
+    qdot = laws.solve_joint_velocities(
+        Q0, xi, kin.jacobian, K_p6=1.0, epsilon=1e-4, q_min=kin.q_min, q_max=kin.q_max,
+        dq_max=dq_max, joint_limit_margin=0.1)
+    assert np.all(np.abs(qdot) <= dq_max + 1e-12)
+    v = kin.jacobian(Q0) @ qdot
+    assert v[5] < 0 and abs(v[3]) < 1e-3 * abs(v[5]) + 1e-9
+    bad = laws.solve_joint_velocities(
+        Q0 * np.nan, xi, kin.jacobian, K_p6=1.0, epsilon=1e-4, q_min=kin.q_min,
+        q_max=kin.q_max, dq_max=dq_max, joint_limit_margin=0.1)
+    np.testing.assert_array_equal(bad, 0)
+
+
+def test_null_space_gradient_raises_manipulability(kin):
+    """Kinematic integration of eq. 10-11 along a long motion: min m is higher with K_p6."""
+    # Start away from the best elbow posture (Q0 itself is a manipulability maximum of the
+    # self-motion), then slide the tip 24 cm along +y.
+    q_start = Q0 + np.array([0.4, 0.0, -1.0, 0.0, 0.6, 0.0, 0.0])
+
+    def run(K_p6):
+        q = q_start.copy()
+        ms = []
+        dt = 0.01
+        for k in range(300):
+            xi = np.array([0, 0, 0, 0.0, 0.08, 0.0])  # slide 24 cm along y
+            qdot = laws.solve_joint_velocities(
+                q, xi, kin.jacobian, K_p6=K_p6, epsilon=1e-4, q_min=kin.q_min,
+                q_max=kin.q_max, dq_max=np.full(7, 2.0), joint_limit_margin=0.1)
+            q = q + qdot * dt
+            ms.append(laws.manipulability(kin.jacobian(q)))
+        return min(ms)
+    m_with, m_without = run(5.0), run(0.0)
+    assert m_with > m_without * 1.1

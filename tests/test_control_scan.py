@@ -1,0 +1,232 @@
+"""Unit tests of the scan laws (eq. 17, 20-23) and the supervisor state machine."""
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from drake_rus.control import scan
+from drake_rus.control.config import ControllerConfig
+from drake_rus.control.laws import angle_between
+from pydrake.math import RollPitchYaw, RotationMatrix
+
+R_DOWN = np.diag([1.0, -1.0, -1.0])  # x_P = +x_B, z_P = -z_B
+
+
+# ------------------------------------------------------------------ eq. 17
+def test_exploration_update_advances_y_and_centres_x():
+    P = scan.exploration_update([0.5, 0.0], 0.8, [1.0, 0.0, 0.0], 0.005, 0.02, 0.01)
+    np.testing.assert_allclose(P, [0.5 + 0.02 * 0.3 * 0.01, 0.00005])
+    # Probe x-axis pointing along -x_B: the same image offset moves the tip the other way.
+    P = scan.exploration_update([0.5, 0.0], 0.8, [-1.0, 0.0, 0.0], -0.005, 0.02, 0.01)
+    np.testing.assert_allclose(P, [0.5 - 0.02 * 0.3 * 0.01, -0.00005])
+    # Centred mask or no mask: no x correction.
+    for c in (0.5, math.nan):
+        P = scan.exploration_update([0.5, 0.0], c, [1.0, 0.0, 0.0], 0.005, 0.02, 0.01)
+        assert P[0] == 0.5
+
+
+def test_exploration_speed_is_v_scan():
+    P = np.array([0.5, 0.0])
+    for _ in range(200):
+        P = scan.exploration_update(P, 0.5, [1, 0, 0], 0.005, 0.02, 0.005)
+    assert P[1] == pytest.approx(0.005 * 1.0)
+
+
+# ------------------------------------------------------------------ eq. 20-22
+def test_optimal_pivot_pose_is_a_rotation_with_r1_along_kidney_x():
+    R_BK = RotationMatrix(RollPitchYaw(0.3, -0.4, 1.2)).matrix()
+    p_BK = np.array([0.55, 0.05, 0.02])
+    R, p = scan.optimal_pivot_pose(R_BK, p_BK)
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0)
+    np.testing.assert_allclose(R[:, 2], [0, 0, -1])
+    x_k = R_BK[:, 0]
+    expected = np.array([x_k[0], x_k[1], 0.0]) / np.linalg.norm(x_k[:2])
+    np.testing.assert_allclose(R[:, 0], expected, atol=1e-12)
+    np.testing.assert_allclose(p, p_BK)
+    # The seed's eq. 22 (r1 x r3) is the same line as r2, opposite sign.
+    np.testing.assert_allclose(R[:, 1], -np.cross(R[:, 0], R[:, 2]), atol=1e-12)
+
+
+def test_optimal_pivot_pose_vertical_kidney_axis_falls_back():
+    R_BK = RotationMatrix(RollPitchYaw(0.0, -math.pi / 2, 0.0)).matrix()  # x_k vertical
+    R, _ = scan.optimal_pivot_pose(R_BK, np.zeros(3))
+    assert np.linalg.det(R) == pytest.approx(1.0)
+    assert np.all(np.isfinite(R))
+
+
+# ------------------------------------------------------------------ eq. 23
+def test_rodrigues_pivot_update():
+    a, o = np.array([0.0, 0.0, -1.0]), np.array([0.0, 1.0, 0.0])
+    a1 = scan.rodrigues_pivot_update(a, o, 0.1)
+    np.testing.assert_allclose(a1, a * math.cos(0.1) + np.cross(o, a) * math.sin(0.1))
+    assert a1 @ o == pytest.approx(0.0)
+    # Many small steps equal one big rotation; the norm stays 1.
+    ak = a
+    for _ in range(1000):
+        ak = scan.rodrigues_pivot_update(ak, o, 0.0005)
+    np.testing.assert_allclose(ak, scan.rodrigues_pivot_update(a, o, 0.5), atol=1e-9)
+    assert angle_between(ak, a) == pytest.approx(0.5)
+    # The rate vector of eq. 2's feed-forward matches the finite difference.
+    rate = scan.pivot_rate_vector(a, o, -1.0, 0.2)
+    np.testing.assert_allclose(rate, (scan.rodrigues_pivot_update(a, o, -0.2e-6) - a) / 1e-6,
+                               atol=1e-6)
+
+
+# ------------------------------------------------------------------ supervisor
+def cfg(**kw):
+    return dataclasses.replace(ControllerConfig(), **kw)
+
+
+def inputs(t, p=(0.55, 0.0, 0.1), F=9.0, visible=True, c=0.5, R=R_DOWN, R_BK=None,
+           p_BK=None, ready=True):
+    return scan.SupervisorInputs(t=t, R_BP=np.asarray(R), p_BP=np.asarray(p, float), F_z=F,
+                                 kidney_visible=visible, c_msk=c, R_BK=R_BK, p_BK=p_BK,
+                                 localization_ready=ready)
+
+
+def test_supervisor_approach_then_explore_distance():
+    c = cfg(exploration_ratio=0.2, kidney_length=0.1, scan_direction="+y")
+    dt = 0.01
+    s = scan.SupervisorState()
+    s = scan.supervisor_step(s, inputs(0.0, F=0.0), c, dt)
+    assert s.phase == scan.Phase.APPROACH
+    np.testing.assert_allclose(s.a_des, [0, 0, -1])
+    assert s.F_des == 9.0
+    s = scan.supervisor_step(s, inputs(0.01, F=8.0), c, dt)
+    assert s.phase == scan.Phase.EXPLORE
+    t = 0.01
+    while s.phase == scan.Phase.EXPLORE and t < 10:
+        t += dt
+        s = scan.supervisor_step(s, inputs(t, p=(0.55, s.P_des[1], 0.1)), c, dt)
+    assert s.phase == scan.Phase.LOCALIZE
+    assert s.travel == pytest.approx(0.02)
+    assert t == pytest.approx(0.01 + 0.02 / 0.005 + dt, abs=2 * dt)  # 5 mm/s
+    np.testing.assert_allclose(s.a_des, [0, 0, -1])  # orientation unchanged
+
+
+def test_supervisor_explore_ends_when_kidney_leaves_after_debounce():
+    c = cfg(visibility_debounce=0.1)
+    dt = 0.01
+    s = scan.supervisor_step(scan.SupervisorState(), inputs(0.0, F=9.0), c, dt)
+    s = scan.supervisor_step(s, inputs(0.01), c, dt)
+    assert s.phase == scan.Phase.EXPLORE
+    t = 0.01
+    for _ in range(9):
+        t += dt
+        s = scan.supervisor_step(s, inputs(t, visible=False), c, dt)
+    assert s.phase == scan.Phase.EXPLORE  # 0.08 s invisible: not yet
+    for _ in range(3):
+        t += dt
+        s = scan.supervisor_step(s, inputs(t, visible=False), c, dt)
+    assert s.phase == scan.Phase.LOCALIZE
+    assert "left the image" in s.events[-1][2]
+
+
+def test_supervisor_explore_centres_mask():
+    c = cfg(K_p7=0.02)
+    dt = 0.01
+    s = scan.supervisor_step(scan.SupervisorState(), inputs(0.0), c, dt)
+    s = scan.supervisor_step(s, inputs(0.01), c, dt)
+    x0 = s.P_des[0]
+    s = scan.supervisor_step(s, inputs(0.02, c=0.9), c, dt)
+    assert s.P_des[0] == pytest.approx(x0 + 0.02 * 0.4 * dt)  # x_P = +x_B
+
+
+def run_to_localize(c, dt=0.01):
+    s = scan.supervisor_step(scan.SupervisorState(), inputs(0.0), c, dt)
+    s = scan.supervisor_step(s, inputs(0.01), c, dt)
+    t = 0.01
+    while s.phase == scan.Phase.EXPLORE:
+        t += dt
+        s = scan.supervisor_step(s, inputs(t), c, dt)
+    return s, t
+
+
+def test_supervisor_localize_transit_pivot_done():
+    c = cfg(exploration_ratio=0.05, localize_hold_time=0.2, pivot_rate=0.2,
+            max_pivot_tilt=0.6, visibility_debounce=0.05)
+    dt = 0.01
+    s, t = run_to_localize(c, dt)
+    assert s.phase == scan.Phase.LOCALIZE
+    R_BK = RotationMatrix(RollPitchYaw(0.1, 0.2, math.pi / 2 + 0.1)).matrix()
+    p_BK = np.array([0.57, 0.03, 0.0])
+    # Waits for the hold time and for the localizer.
+    t += dt
+    s = scan.supervisor_step(s, inputs(t, R_BK=R_BK, p_BK=p_BK, ready=False), c, dt)
+    assert s.phase == scan.Phase.LOCALIZE
+    t += 0.3
+    s = scan.supervisor_step(s, inputs(t, R_BK=R_BK, p_BK=p_BK, ready=False), c, dt)
+    assert s.phase == scan.Phase.LOCALIZE
+    s = scan.supervisor_step(s, inputs(t + dt, R_BK=R_BK, p_BK=p_BK), c, dt)
+    assert s.phase == scan.Phase.TRANSIT
+    t += dt
+    R_star, p_star = scan.optimal_pivot_pose(R_BK, p_BK)
+    np.testing.assert_allclose(s.a_des, R_star[:, 2])
+    np.testing.assert_allclose(s.o_des, R_star[:, 0])
+    np.testing.assert_allclose(s.P_des, p_star[:2])
+    # Not there yet.
+    t += dt
+    s = scan.supervisor_step(s, inputs(t, p=(0.55, 0.0, 0.1), R=R_star), c, dt)
+    assert s.phase == scan.Phase.TRANSIT
+    t += dt
+    s = scan.supervisor_step(s, inputs(t, p=(0.5705, 0.03, 0.1), R=R_star), c, dt)
+    assert s.phase == scan.Phase.PIVOT
+    # Pivot: visible until tilt +0.3 rad, then invisible beyond; other side beyond -0.2 rad.
+    tilts, a_dots = [], []
+    while s.phase == scan.Phase.PIVOT and t < 60:
+        t += dt
+        vis = -0.2 < s.pivot_angle < 0.3
+        s = scan.supervisor_step(s, inputs(t, p=(0.5705, 0.03, 0.1), R=R_star, visible=vis),
+                                 c, dt)
+        tilts.append(s.pivot_angle)
+        a_dots.append(s.a_des_dot)
+        np.testing.assert_allclose(s.o_des, R_star[:, 0])  # o_des unchanged
+        assert s.a_des @ s.o_des == pytest.approx(0.0, abs=1e-9)
+    assert s.phase == scan.Phase.DONE
+    assert len(s.pivot_limits) == 2
+    assert 0.3 <= s.pivot_limits[0] <= 0.3 + 0.2 * (0.05 + 2 * dt)
+    assert -0.2 - 0.2 * (0.05 + 2 * dt) <= s.pivot_limits[1] <= -0.2
+    assert max(tilts) == pytest.approx(s.pivot_limits[0], abs=0.2 * dt + 1e-9)
+    assert angle_between(s.a_des, R_star[:, 2]) == pytest.approx(abs(s.pivot_limits[1]),
+                                                                 abs=0.01)
+    assert max(np.linalg.norm(a) for a in a_dots) == pytest.approx(0.2)
+
+
+def test_supervisor_pivot_bounded_by_max_tilt():
+    c = cfg(exploration_ratio=0.02, localize_hold_time=0.0, pivot_rate=0.5, max_pivot_tilt=0.3)
+    dt = 0.01
+    s, t = run_to_localize(c, dt)
+    s = scan.supervisor_step(s, inputs(t + dt, R_BK=np.eye(3), p_BK=[0.55, 0.0, 0.0]), c, dt)
+    R_star, _ = scan.optimal_pivot_pose(np.eye(3), [0.55, 0, 0])
+    t += 2 * dt
+    s = scan.supervisor_step(s, inputs(t, p=(0.55, 0.0, 0.1), R=R_star), c, dt)
+    assert s.phase == scan.Phase.PIVOT
+    angles = []
+    while s.phase == scan.Phase.PIVOT:
+        t += dt
+        s = scan.supervisor_step(s, inputs(t, p=(0.55, 0.0, 0.1), R=R_star), c, dt)
+        angles.append(s.pivot_angle)
+    assert s.phase == scan.Phase.DONE
+    assert max(angles) == pytest.approx(0.3) and min(angles) == pytest.approx(-0.3)
+    assert "maximum tilt" in s.events[-2][2]
+
+
+def test_supervisor_aborts_with_reason():
+    c = cfg(exploration_ratio=0.02, localize_hold_time=0.0, transit_timeout=0.5)
+    dt = 0.01
+    s = scan.supervisor_step(scan.SupervisorState(), inputs(0.0), c, dt)
+    bad = scan.supervisor_step(s, inputs(0.01, p=(math.nan, 0, 0)), c, dt)
+    assert bad.phase == scan.Phase.ABORT and "non-finite" in bad.reason
+    s, t = run_to_localize(c, dt)
+    nopose = scan.supervisor_step(s, inputs(t + dt, R_BK=None), c, dt)
+    assert nopose.phase == scan.Phase.ABORT and "kidney pose" in nopose.reason
+    s = scan.supervisor_step(s, inputs(t + dt, R_BK=np.eye(3), p_BK=[0.6, 0.1, 0]), c, dt)
+    assert s.phase == scan.Phase.TRANSIT
+    s = scan.supervisor_step(s, inputs(t + 1.0), c, dt)
+    assert s.phase == scan.Phase.ABORT and "timeout" in s.reason
+    # ABORT and DONE are terminal.
+    s2 = scan.supervisor_step(s, inputs(t + 2.0), c, dt)
+    assert s2.phase == scan.Phase.ABORT
