@@ -1,4 +1,8 @@
-"""Scenario section ``imaging``: probe fan geometry, sensor rate, emulator and segmenter."""
+"""Scenario section ``imaging``: probe fan geometry, sensor rate, emulator and segmenter.
+
+Units are SI (m, s) unless the field name says otherwise (``_deg``, ``_hz``, ``_mhz``,
+``_db``). Probe and tissue numbers come from ``facts/anatomy_and_ultrasound.md``.
+"""
 
 from dataclasses import dataclass, field
 
@@ -7,3 +11,69 @@ from dataclasses import dataclass, field
 class ImagingConfig:
     # Frame rate of the slice sensor / frame grabber (Hz). The seed grabbed frames at 20 fps.
     frame_rate_hz: float = field(default=20.0, metadata={"positive": True})
+
+    # --- Curvilinear probe (like the seed's GE C1-6; facts: "Probe") -----------------------
+    # Radius of curvature of the transducer face (m). Comparable convex probes: 45-60 mm.
+    probe_radius: float = field(default=0.050, metadata={"positive": True})
+    # Full opening angle of the fan (deg). Comparable probes span 56-73 deg, but the seed
+    # quotes "around 10 cm lateral width at 10 cm depth" for its images, which with a 50 mm
+    # radius is a 40 deg fan (2 * 150 mm * sin 20 deg = 103 mm); we follow the seed.
+    field_of_view_deg: float = field(default=40.0, metadata={"positive": True, "max": 170.0})
+    # Imaging depth from the probe face along each scan line (m). Kidney lies 80-105 mm deep.
+    depth: float = field(default=0.150, metadata={"positive": True})
+    # Elevational (slice) beam width (m): comparable probes 7-14 mm.
+    elevation_width: float = field(default=0.010, metadata={"positive": True})
+    # Number of parallel planes sampled across the elevational width (1 = a thin plane).
+    elevation_planes: int = field(default=1, metadata={"min": 1, "max": 15})
+    # How the planes' labels combine per pixel: "majority" (most frequent label) or "max"
+    # (the highest label value, which favours gas and bone: elevational shadowing).
+    elevation_combine: str = field(default="majority", metadata={"choices": ["majority", "max"]})
+    # Size of the scan-converted (Cartesian) image in pixels: rows (depth), columns (lateral).
+    image_height_px: int = field(default=256, metadata={"min": 16, "max": 4096})
+    image_width_px: int = field(default=256, metadata={"min": 16, "max": 4096})
+
+    # --- Ultrasound emulator -----------------------------------------------------------------
+    # Number of scan lines across the fan and samples along each line (the beamformed grid).
+    scan_lines: int = field(default=128, metadata={"min": 8, "max": 2048})
+    samples_per_line: int = field(default=256, metadata={"min": 16, "max": 4096})
+    # Centre frequency (MHz): C1-6 band about 1.8-5 MHz.
+    center_frequency_mhz: float = field(default=3.5, metadata={"positive": True})
+    # Time-gain compensation (dB/cm/MHz, two-way applied as 2x): compensates average soft
+    # tissue attenuation (about 0.5-1.0 dB/cm/MHz in the facts table).
+    tgc_db_per_cm_mhz: float = field(default=0.7, metadata={"min": 0.0})
+    # Log-compression dynamic range (dB) and overall gain (dB).
+    dynamic_range_db: float = field(default=50.0, metadata={"positive": True})
+    gain_db: float = field(default=-12.0)
+    # Speckle: multiplicative Rayleigh amplitude (0 = no speckle).
+    speckle: bool = True
+    # Gain of the specular echo at tissue interfaces (relative to the reflected intensity).
+    interface_gain: float = field(default=6.0, metadata={"min": 0.0})
+    # Air within this distance of the face, before any tissue on a scan line, counts as
+    # coupling gel (m): the convex face's corners sit 3 mm above its centre.
+    gel_gap: float = field(default=0.005, metadata={"min": 0.0})
+
+    # --- Segmenter -----------------------------------------------------------------------------
+    # "oracle": kidney labels of the label image (ground truth, like the seed's simulation);
+    # "classical": filtering + thresholding + morphology on the emulated image;
+    # "onnx": a learned model through ONNX Runtime (ours ships in models/segmenter/).
+    segmenter: str = field(default="oracle", metadata={"choices": ["oracle", "classical", "onnx"]})
+    # Minimum kidney area (m^2) for the kidney to count as visible (rejects specks).
+    min_kidney_area: float = field(default=1.0e-4, metadata={"min": 0.0})
+    # ONNX model file: absolute, or relative to the repository root.
+    onnx_model: str = "models/segmenter/kidney_unet.onnx"
+    # Model input shape (N, C, H, W); N may be 1. The grey image (0-255) is resized to H x W,
+    # scaled to [0, 1], then normalised as (x - mean) / std, and repeated over C channels.
+    onnx_input_shape: list[int] = field(default_factory=lambda: [1, 1, 128, 128],
+                                        metadata={"length": 4, "positive": True})
+    onnx_input_mean: float = 0.0
+    onnx_input_std: float = field(default=1.0, metadata={"positive": True})
+    # What the model outputs: "logits" (sigmoid applied here), "probability" (in [0, 1]) or
+    # "labels" (argmax over channels == onnx_kidney_channel).
+    onnx_output: str = field(default="logits",
+                             metadata={"choices": ["logits", "probability", "labels"]})
+    # Which output channel is the kidney (for multi-channel outputs).
+    onnx_kidney_channel: int = field(default=0, metadata={"min": 0})
+    # Threshold on the kidney probability.
+    onnx_threshold: float = field(default=0.5, metadata={"min": 0.0, "max": 1.0})
+    # ONNX Runtime intra-op threads (1 leaves the other cores to the simulation).
+    onnx_threads: int = field(default=1, metadata={"min": 1, "max": 64})

@@ -1,0 +1,246 @@
+"""B-mode-like ultrasound emulation from a label image, along the fan's scan lines.
+
+Per scan line (a ray from the array into the body), every sample gets:
+
+- diffuse backscatter: the tissue's echogenicity squared times fully developed speckle
+  (exponentially distributed intensity, i.e. Rayleigh amplitude);
+- a specular echo where the acoustic impedance changes: amplitude reflection coefficient
+  ``r = |Z2 - Z1| / (Z2 + Z1)`` times ``interface_gain``;
+- two-way transmission losses through every interface before it, ``prod (1 - r^2)^2``:
+  soft tissue to gas reflects about 99.9% (complete shadow), to bone about 43%, and bone's
+  5-15 dB/cm/MHz attenuation darkens the rest (strong shadow behind ribs);
+- two-way attenuation ``2 f sum(alpha ds)`` (dB), minus the time-gain compensation;
+- log compression to ``dynamic_range_db`` and scan conversion to the Cartesian image.
+
+Depths assume the nominal 1540 m/s (speed-of-sound errors are not emulated). Tissue numbers:
+``facts/anatomy_and_ultrasound.md`` "Tissue acoustics" unless a comment says otherwise.
+Deterministic: the speckle of frame ``k`` depends only on (seed, k).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+from scipy import ndimage
+
+from drake_rus.anatomy.labels import Label
+from drake_rus.imaging.config import ImagingConfig
+from drake_rus.imaging.probe import ProbeGeometry
+
+# Acoustic impedance of the gel-coupled probe face (MRayl): matched to soft tissue.
+Z_PROBE = 1.63
+# Look-up index of coupling gel: air between the face and the skin within ``gel_gap`` of the
+# face (the face's corners above a flat skin) is taken as gel, as on a gel-coupled probe.
+GEL = 255
+
+
+@dataclass(frozen=True)
+class Tissue:
+    impedance: float       # MRayl
+    attenuation: float     # dB/cm/MHz
+    echogenicity: float    # relative backscatter amplitude (1 = brightest parenchyma)
+
+
+# Tissue table by label (facts: "Tissue acoustics"; echogenicity from the facts' ordering:
+# sinus fat brightest, cortex iso- to hypo-echoic to liver, pyramids darker, vessels
+# anechoic).
+TISSUES: dict[int, Tissue] = {
+    Label.OUTSIDE: Tissue(0.0004, 7.5, 0.0),          # air, like bowel gas
+    Label.SOFT_TISSUE: Tissue(1.63, 0.7, 0.50),       # generic soft tissue (liver-like)
+    Label.FAT: Tissue(1.38, 0.63, 0.70),              # fat: 1.38 MRayl, 0.63 dB/cm/MHz
+    Label.MUSCLE: Tissue(1.70, 1.2, 0.35),            # muscle: 1.70 MRayl, 1.0-1.4
+    Label.KIDNEY_CORTEX: Tissue(1.62, 1.0, 0.40),     # kidney: 1.62 MRayl, 1.0
+    Label.KIDNEY_MEDULLA: Tissue(1.62, 1.0, 0.18),    # pyramids: darker than cortex
+    Label.KIDNEY_SINUS: Tissue(1.38, 0.63, 1.00),     # sinus fat: fat's acoustics, brightest
+    Label.LIVER: Tissue(1.65, 0.6, 0.50),             # liver: 1.65 MRayl, 0.5-0.7
+    Label.BONE: Tissue(7.8, 10.0, 0.30),              # rib: 7.8 MRayl, 5-15 dB/cm/MHz
+    Label.GAS: Tissue(0.0004, 7.5, 0.0),              # bowel gas: 0.0004 MRayl, 7.5
+    # Blood (not in the facts table): about 1.61 MRayl and 0.18 dB/cm/MHz (textbook values).
+    Label.VESSEL: Tissue(1.61, 0.18, 0.02),
+}
+# Labels missing from the table behave as generic soft tissue.
+_DEFAULT_TISSUE = TISSUES[Label.SOFT_TISSUE]
+
+
+def tissue_tables() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Look-up tables (256,) by label value: impedance, attenuation, echogenicity."""
+    Z = np.full(256, _DEFAULT_TISSUE.impedance, np.float32)
+    a = np.full(256, _DEFAULT_TISSUE.attenuation, np.float32)
+    e = np.full(256, _DEFAULT_TISSUE.echogenicity, np.float32)
+    for label, t in TISSUES.items():
+        Z[int(label)], a[int(label)], e[int(label)] = t.impedance, t.attenuation, t.echogenicity
+    # Ultrasound gel: water-like (about 1.5 MRayl, negligible attenuation), anechoic.
+    Z[GEL], a[GEL], e[GEL] = 1.52, 0.05, 0.0
+    return Z, a, e
+
+
+@dataclass(frozen=True)
+class EmulatorModel:
+    """Precomputed scan-line geometry and tissue tables for :func:`emulate`."""
+    geometry: ProbeGeometry
+    scan_lines: int = 128
+    samples_per_line: int = 256
+    frequency_mhz: float = 3.5
+    tgc_db_per_cm_mhz: float = 0.7
+    dynamic_range_db: float = 50.0
+    gain_db: float = -12.0
+    speckle: bool = True
+    interface_gain: float = 6.0
+    gel_gap: float = 0.005
+
+    @classmethod
+    def from_config(cls, config: ImagingConfig, geometry: ProbeGeometry | None = None
+                    ) -> "EmulatorModel":
+        return cls(geometry=geometry or ProbeGeometry.from_config(config),
+                   scan_lines=int(config.scan_lines),
+                   samples_per_line=int(config.samples_per_line),
+                   frequency_mhz=config.center_frequency_mhz,
+                   tgc_db_per_cm_mhz=config.tgc_db_per_cm_mhz,
+                   dynamic_range_db=config.dynamic_range_db,
+                   gain_db=config.gain_db,
+                   speckle=config.speckle,
+                   interface_gain=config.interface_gain,
+                   gel_gap=config.gel_gap)
+
+    @property
+    def line_angles(self) -> np.ndarray:
+        """Angle (rad) of each scan line, centres of equal angular bins across the fan."""
+        g, L = self.geometry, self.scan_lines
+        return -g.half_angle + (np.arange(L) + 0.5) * (2 * g.half_angle / L)
+
+    @property
+    def sample_spacing(self) -> float:
+        """Distance (m) between samples along a line."""
+        return self.geometry.depth / self.samples_per_line
+
+    @property
+    def sample_depths(self) -> np.ndarray:
+        return (np.arange(self.samples_per_line) + 0.5) * self.sample_spacing
+
+    @cached_property
+    def polar_to_image_index(self) -> np.ndarray:
+        """(L, S) flat index of the fan pixel nearest to every scan-line sample."""
+        g = self.geometry
+        th, d = np.meshgrid(self.line_angles, self.sample_depths, indexing="ij")
+        uv = g.P_to_pixel(g.polar_to_P(th, d))
+        u = np.clip(np.rint(uv[:, 0]).astype(np.intp), 0, g.width_px - 1)
+        v = np.clip(np.rint(uv[:, 1]).astype(np.intp), 0, g.height_px - 1)
+        # Samples whose nearest pixel centre falls just outside the fan take the nearest fan
+        # pixel instead (else the fan's edge would read as air and cast a false shadow).
+        rows, cols = ndimage.distance_transform_edt(
+            ~g.fan_mask, return_distances=False, return_indices=True)
+        flat = rows[v, u] * g.width_px + cols[v, u]
+        return flat.reshape(self.scan_lines, self.samples_per_line)
+
+    @cached_property
+    def scan_conversion(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Bilinear weights from the polar grid to the fan pixels: (i00, i01, i10, i11) flat
+        polar indices and (wl, ws) weights, for pixels in ``geometry.fan_flat_index`` order."""
+        g, L, S = self.geometry, self.scan_lines, self.samples_per_line
+        theta, d = g.P_to_polar(g.fan_p_P)
+        lf = np.clip((theta + g.half_angle) / (2 * g.half_angle / L) - 0.5, 0, L - 1)
+        sf = np.clip(d / self.sample_spacing - 0.5, 0, S - 1)
+        l0 = np.minimum(np.floor(lf).astype(np.intp), L - 2)
+        s0 = np.minimum(np.floor(sf).astype(np.intp), S - 2)
+        wl = (lf - l0).astype(np.float32)
+        ws = (sf - s0).astype(np.float32)
+        i00 = l0 * S + s0
+        return i00, wl, ws, np.intp(S)
+
+    @property
+    def gel_samples(self) -> int:
+        return int(min(self.samples_per_line, np.ceil(self.gel_gap / self.sample_spacing)))
+
+    @cached_property
+    def tables(self):
+        return tissue_tables()
+
+    @cached_property
+    def tgc_minus_offset_db(self) -> np.ndarray:
+        """(S,) time-gain compensation (dB, two-way) at every sample depth."""
+        d_cm = self.sample_depths * 100.0
+        return (2.0 * self.frequency_mhz * self.tgc_db_per_cm_mhz * d_cm).astype(np.float32)
+
+
+def line_intensity(labels_ls: np.ndarray, model: EmulatorModel, speckle: np.ndarray | None
+                   ) -> np.ndarray:
+    """Echo intensity (L, S) (linear, before log compression) of label samples (L, S)."""
+    Z_lut, a_lut, e_lut = model.tables
+    n_gel = model.gel_samples
+    if n_gel > 0:
+        head = labels_ls[:, :n_gel]
+        leading_air = np.cumprod(head == Label.OUTSIDE, axis=1, dtype=np.uint8).astype(bool)
+        if leading_air.any():
+            labels_ls = labels_ls.copy()
+            labels_ls[:, :n_gel][leading_air] = GEL
+    Z = Z_lut[labels_ls]
+    Z_prev = np.empty_like(Z)
+    Z_prev[:, 0] = Z_PROBE
+    Z_prev[:, 1:] = Z[:, :-1]
+    r = np.abs(Z - Z_prev) / (Z + Z_prev)                 # amplitude reflection coefficient
+    t2 = (1.0 - r * r) ** 2                                 # two-way intensity transmission
+    T_incl = np.cumprod(t2, axis=1)                         # through the interface at s
+    T_excl = np.empty_like(T_incl)
+    T_excl[:, 0] = 1.0
+    T_excl[:, 1:] = T_incl[:, :-1]
+    alpha = a_lut[labels_ls]
+    ds_cm = model.sample_spacing * 100.0
+    att_db = (2.0 * model.frequency_mhz * ds_cm) * (np.cumsum(alpha, axis=1) - 0.5 * alpha)
+    net_db = att_db - model.tgc_minus_offset_db - model.gain_db
+    e = e_lut[labels_ls]
+    diffuse = e * e
+    if speckle is not None:
+        diffuse = diffuse * speckle
+    spec = (model.interface_gain * r) ** 2
+    return (T_incl * diffuse + T_excl * spec) * np.power(np.float32(10.0), -net_db / 10.0)
+
+
+def log_compress(intensity: np.ndarray, dynamic_range_db: float) -> np.ndarray:
+    """Intensity -> grey level in [0, 255] (float32): 0 dB white, -dynamic_range black."""
+    db = 10.0 * np.log10(np.maximum(intensity, 1e-12))
+    return np.clip((db + dynamic_range_db) * (255.0 / dynamic_range_db), 0.0, 255.0)
+
+
+def speckle_field(model: EmulatorModel, seed: int, frame_index: int) -> np.ndarray:
+    """(L, S) fully developed speckle intensity (mean 1) for frame ``frame_index``."""
+    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, int(frame_index) & 0xFFFFFFFF])
+    return rng.standard_exponential((model.scan_lines, model.samples_per_line),
+                                    dtype=np.float32)
+
+
+def emulate(label_image: np.ndarray, model: EmulatorModel, seed: int = 0, frame_index: int = 0
+            ) -> np.ndarray:
+    """Emulated B-mode image (rows, cols) uint8 of a label image (rows, cols).
+
+    Deterministic in (label_image, seed, frame_index). Pixels outside the fan are 0.
+    """
+    g = model.geometry
+    label_image = np.asarray(label_image)
+    if label_image.shape != g.image_shape:
+        raise ValueError(f"emulate: label image has shape {label_image.shape}, the probe "
+                         f"geometry expects {g.image_shape}")
+    labels_ls = label_image.reshape(-1)[model.polar_to_image_index]
+    if labels_ls.dtype != np.uint8:
+        labels_ls = labels_ls.astype(np.uint8)
+    speckle = speckle_field(model, seed, frame_index) if model.speckle else None
+    grey = log_compress(line_intensity(labels_ls, model, speckle), model.dynamic_range_db)
+    return scan_convert(grey, model)
+
+
+def scan_convert(polar: np.ndarray, model: EmulatorModel) -> np.ndarray:
+    """Polar grey image (L, S) -> Cartesian uint8 image (rows, cols), bilinear in the fan."""
+    i00, wl, ws, S = model.scan_conversion
+    flat = polar.reshape(-1)
+    a = flat[i00]
+    b = flat[i00 + 1]
+    c = flat[i00 + S]
+    d = flat[i00 + S + 1]
+    top = a + (b - a) * ws
+    bot = c + (d - c) * ws
+    val = top + (bot - top) * wl
+    g = model.geometry
+    image = np.zeros(g.image_shape, dtype=np.uint8)
+    image.reshape(-1)[g.fan_flat_index] = (val + 0.5).astype(np.uint8)
+    return image

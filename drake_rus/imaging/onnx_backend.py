@@ -1,0 +1,174 @@
+"""ONNX Runtime kidney segmenter: any model whose input/output shapes the scenario names.
+
+Contract (``ImagingConfig``): one float32 input of shape ``onnx_input_shape`` (N, C, H, W)
+(dimensions the model leaves symbolic are accepted); the grey image (0-255) is resized to
+H x W (block mean when the sizes divide, else nearest), scaled to [0, 1], normalised with
+``(x - onnx_input_mean) / onnx_input_std`` and repeated over C channels. The first output is
+(N, K, h, w) or (N, h, w): ``logits`` (a sigmoid is applied; with K > 1 a softmax over K),
+``probability`` or ``labels`` (integer class per pixel, or K scores to argmax); channel
+(or class index) ``onnx_kidney_channel`` is the kidney. The kidney probability is resized back to the image (bilinear) and thresholded.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+
+from drake_rus.imaging.config import ImagingConfig
+from drake_rus.imaging.probe import ProbeGeometry
+from drake_rus.paths import REPO_ROOT
+
+
+def resolve_model_path(path: str) -> Path:
+    p = Path(path).expanduser()
+    return p if p.is_absolute() else REPO_ROOT / p
+
+
+def resize_to(image: np.ndarray, h: int, w: int) -> np.ndarray:
+    """float32 image resized to (h, w): block mean when the size divides, else nearest."""
+    H, W = image.shape
+    img = image.astype(np.float32, copy=False)
+    if H % h == 0 and W % w == 0:
+        return img.reshape(h, H // h, w, W // w).mean(axis=(1, 3))
+    rows = np.minimum(((np.arange(h) + 0.5) * H / h).astype(int), H - 1)
+    cols = np.minimum(((np.arange(w) + 0.5) * W / w).astype(int), W - 1)
+    return img[np.ix_(rows, cols)]
+
+
+def upsample_to(prob: np.ndarray, H: int, W: int) -> np.ndarray:
+    """Bilinear resize (pixel-centre aligned) of a (h, w) map to (H, W)."""
+    h, w = prob.shape
+    if (h, w) == (H, W):
+        return prob
+    r = np.clip((np.arange(H) + 0.5) * h / H - 0.5, 0, h - 1)
+    c = np.clip((np.arange(W) + 0.5) * w / W - 0.5, 0, w - 1)
+    r0 = np.minimum(r.astype(int), max(h - 2, 0))
+    c0 = np.minimum(c.astype(int), max(w - 2, 0))
+    r1 = np.minimum(r0 + 1, h - 1)
+    c1 = np.minimum(c0 + 1, w - 1)
+    wr = (r - r0)[:, None].astype(np.float32)
+    wc = (c - c0)[None, :].astype(np.float32)
+    top = prob[np.ix_(r0, c0)] * (1 - wc) + prob[np.ix_(r0, c1)] * wc
+    bot = prob[np.ix_(r1, c0)] * (1 - wc) + prob[np.ix_(r1, c1)] * wc
+    return top * (1 - wr) + bot * wr
+
+
+class OnnxSegmenter:
+    """A loaded ONNX model; call it on a uint8 grey image to get a bool kidney mask."""
+
+    def __init__(self, model_path: str | Path, geometry: ProbeGeometry,
+                 input_shape=(1, 1, 128, 128), mean: float = 0.0, std: float = 1.0,
+                 output: str = "logits", kidney_channel: int = 0, threshold: float = 0.5,
+                 threads: int = 1, field_prefix: str = "imaging."):
+        import onnxruntime as ort
+        self.geometry = geometry
+        self.path = resolve_model_path(str(model_path))
+        where = f"{field_prefix}onnx_model"
+        if not self.path.is_file():
+            raise ValueError(f"{where}: ONNX model file not found: {self.path}")
+        if len(input_shape) != 4 or not all(int(d) > 0 for d in input_shape):
+            raise ValueError(f"{field_prefix}onnx_input_shape: expected 4 positive sizes "
+                             f"(N, C, H, W), got {list(input_shape)}")
+        self.input_shape = tuple(int(d) for d in input_shape)
+        if output not in ("logits", "probability", "labels"):
+            raise ValueError(f"{field_prefix}onnx_output: expected 'logits', 'probability' "
+                             f"or 'labels', got {output!r}")
+        self.mean, self.std, self.output = float(mean), float(std), output
+        self.kidney_channel, self.threshold = int(kidney_channel), float(threshold)
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = int(threads)
+        options.inter_op_num_threads = 1
+        options.log_severity_level = 3
+        try:
+            self.session = ort.InferenceSession(str(self.path), sess_options=options,
+                                                providers=["CPUExecutionProvider"])
+        except Exception as e:  # onnxruntime raises its own Fail/InvalidGraph types
+            raise ValueError(f"{where}: cannot load ONNX model {self.path}: {e}") from None
+        inputs = self.session.get_inputs()
+        if len(inputs) != 1:
+            raise ValueError(f"{where}: model {self.path.name} has {len(inputs)} inputs; "
+                             f"expected one image input")
+        declared = inputs[0].shape
+        if len(declared) != 4 or any(isinstance(d, int) and d != want
+                                     for d, want in zip(declared, self.input_shape)):
+            raise ValueError(
+                f"{field_prefix}onnx_input_shape: the scenario names {list(self.input_shape)} "
+                f"but model {self.path.name} input '{inputs[0].name}' has shape {declared}")
+        if "float" not in inputs[0].type:
+            raise ValueError(f"{where}: model input '{inputs[0].name}' has type "
+                             f"{inputs[0].type}; expected a float tensor")
+        self.input_name = inputs[0].name
+        self.output_name = self.session.get_outputs()[0].name
+        # Check the output once on a blank image, so a bad model fails here, not mid-run.
+        try:
+            probe = self.session.run([self.output_name], {self.input_name: np.zeros(
+                self.input_shape, np.float32)})[0]
+        except Exception as e:
+            raise ValueError(f"{where}: model {self.path.name} fails on an input of shape "
+                             f"{list(self.input_shape)}: {e}") from None
+        self._kidney_map(probe)
+
+    @classmethod
+    def from_config(cls, config: ImagingConfig, geometry: ProbeGeometry) -> "OnnxSegmenter":
+        return cls(config.onnx_model, geometry, config.onnx_input_shape, config.onnx_input_mean,
+                   config.onnx_input_std, config.onnx_output, config.onnx_kidney_channel,
+                   config.onnx_threshold, config.onnx_threads)
+
+    def preprocess(self, image: np.ndarray) -> np.ndarray:
+        n, c, h, w = self.input_shape
+        x = resize_to(np.asarray(image), h, w) * np.float32(1.0 / 255.0)
+        x = (x - np.float32(self.mean)) * np.float32(1.0 / self.std)
+        return np.broadcast_to(x, (n, c, h, w)).astype(np.float32)
+
+    def _kidney_map(self, out: np.ndarray) -> np.ndarray:
+        """(h, w) kidney probability of the first batch item of a model output."""
+        out = np.asarray(out)
+        if out.ndim == 3:
+            out = out[:, None]
+        if out.ndim != 4:
+            raise ValueError(f"imaging.onnx_model: model {self.path.name} output has shape "
+                             f"{list(out.shape)}; expected (N, K, h, w) or (N, h, w)")
+        k = out.shape[1]
+        if self.output == "labels":
+            # One channel of class indices, or K score channels (argmax); kidney class index
+            # = onnx_kidney_channel.
+            lab = np.rint(out[0, 0]) if k == 1 else np.argmax(out[0], axis=0)
+            return (lab == self.kidney_channel).astype(np.float32)
+        if self.kidney_channel >= k:
+            raise ValueError(f"imaging.onnx_kidney_channel: {self.kidney_channel} but model "
+                             f"{self.path.name} outputs {k} channel(s)")
+        if self.output == "probability":
+            return out[0, self.kidney_channel].astype(np.float32)
+        if k == 1:
+            return (1.0 / (1.0 + np.exp(-out[0, 0]))).astype(np.float32)
+        z = out[0] - out[0].max(axis=0, keepdims=True)
+        e = np.exp(z)
+        return (e[self.kidney_channel] / e.sum(axis=0)).astype(np.float32)
+
+    def probability(self, image: np.ndarray) -> np.ndarray:
+        """Kidney probability (rows, cols) of a uint8 grey image."""
+        image = np.asarray(image)
+        if image.shape != self.geometry.image_shape:
+            raise ValueError(f"OnnxSegmenter: image shape {image.shape} != probe image shape "
+                             f"{self.geometry.image_shape}")
+        out = self.session.run([self.output_name], {self.input_name: self.preprocess(image)})[0]
+        H, W = self.geometry.image_shape
+        return upsample_to(self._kidney_map(out), H, W)
+
+    def __call__(self, image: np.ndarray) -> np.ndarray:
+        """Bool kidney mask (rows, cols) of a uint8 grey image: largest component, holes
+        filled, inside the fan."""
+        mask = (self.probability(image) > self.threshold) & self.geometry.fan_mask
+        return largest_component(mask)
+
+
+def largest_component(mask: np.ndarray) -> np.ndarray:
+    """The largest 8-connected component of a mask, holes filled."""
+    labels, n = ndimage.label(mask, structure=np.ones((3, 3), bool))
+    if n <= 1:
+        return ndimage.binary_fill_holes(mask) if n == 1 else mask
+    sizes = np.bincount(labels.ravel())
+    sizes[0] = 0
+    return ndimage.binary_fill_holes(labels == int(np.argmax(sizes)))

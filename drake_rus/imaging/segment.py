@@ -1,0 +1,149 @@
+"""Kidney segmentation of ultrasound frames, and what the controller reads off a mask.
+
+Backends (``ImagingConfig.segmenter``):
+
+- ``oracle``: kidney labels of the label image (ground truth);
+- ``classical``: despeckle, dark-region threshold, hole filling (the bright sinus inside the
+  darker parenchyma), morphology, then the plausible component that best overlaps the
+  previous frame's mask (temporal prior) or else the largest one;
+- ``onnx``: a learned model (:mod:`drake_rus.imaging.onnx_backend`).
+
+Mask read-outs (seed II-E): visible flag (area above ``min_kidney_area``), horizontal mask
+centroid ``c_msk`` in [0, 1] (eq. 17) and the boundary pixels that are back-projected.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from drake_rus.anatomy.labels import is_kidney
+from drake_rus.imaging.probe import ProbeGeometry
+
+_CROSS = ndimage.generate_binary_structure(2, 1)
+
+
+def segment_oracle(label_image: np.ndarray) -> np.ndarray:
+    """Ground-truth kidney mask (bool, rows x cols) of a label image."""
+    return is_kidney(np.asarray(label_image))
+
+
+@dataclass(frozen=True)
+class MaskReadout:
+    visible: bool
+    centroid: float          # c_msk in [0, 1] across the image width; 0.5 when not visible
+    area: float              # m^2
+    boundary: np.ndarray     # (N, 2) boundary pixels (u, v)
+
+
+def mask_centroid(mask: np.ndarray) -> float:
+    """Horizontal centroid of a mask in [0, 1] (pixel centres at (u + 0.5) / width); 0.5 for
+    an empty mask (no centring correction, eq. 17)."""
+    mask = np.asarray(mask, bool)
+    cols = mask.sum(axis=0)
+    n = cols.sum()
+    if n == 0:
+        return 0.5
+    return float(np.dot(cols, np.arange(mask.shape[1]) + 0.5) / (n * mask.shape[1]))
+
+
+def boundary_pixels(mask: np.ndarray) -> np.ndarray:
+    """Pixels (N, 2) as (u, v) of the mask's inner boundary (4-connected)."""
+    mask = np.asarray(mask, bool)
+    edge = mask & ~ndimage.binary_erosion(mask, _CROSS, border_value=0)
+    v, u = np.nonzero(edge)
+    return np.stack([u, v], axis=1).astype(float)
+
+
+def read_mask(mask: np.ndarray, geometry: ProbeGeometry, min_area: float) -> MaskReadout:
+    """Visible flag, c_msk, area (m^2) and boundary pixels of a kidney mask."""
+    mask = np.asarray(mask, bool)
+    area = float(mask.sum()) * geometry.pixel_area
+    visible = area >= min_area and area > 0
+    if not visible:
+        return MaskReadout(False, 0.5, area, np.zeros((0, 2)))
+    return MaskReadout(True, mask_centroid(mask), area, boundary_pixels(mask))
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    """Intersection over union of two masks (1.0 when both are empty)."""
+    a, b = np.asarray(a, bool), np.asarray(b, bool)
+    union = np.count_nonzero(a | b)
+    return 1.0 if union == 0 else np.count_nonzero(a & b) / union
+
+
+# --- classical ------------------------------------------------------------------------------
+def _block_mean(image: np.ndarray, f: int) -> np.ndarray:
+    h, w = image.shape
+    h2, w2 = h // f, w // f
+    return image[:h2 * f, :w2 * f].reshape(h2, f, w2, f).mean(axis=(1, 3), dtype=np.float32)
+
+
+def segment_classical(us_image: np.ndarray, geometry: ProbeGeometry,
+                      prev_mask: np.ndarray | None = None, min_area: float = 1.0e-4
+                      ) -> np.ndarray:
+    """Kidney mask (bool, rows x cols) of an emulated/real B-mode image, no learning.
+
+    1. 2x2 block mean then a 5x5 median: despeckle at half resolution;
+    2. parenchyma = darker than 0.82 x the median grey of the lit fan (shadows, i.e. pixels
+       below 15% of it, and the region near the face are excluded);
+    3. opening, hole filling (the bright sinus and fat inside the dark ring join the kidney);
+    4. components: drop those touching the fan's side or bottom edges (shadows run there)
+       or outside the plausible area (``min_area`` to 60 cm^2); keep the one overlapping
+       ``prev_mask`` most, else the most compact large one;
+    5. back to full resolution, closed and hole-filled.
+    """
+    img = np.asarray(us_image)
+    if img.shape != geometry.image_shape:
+        raise ValueError(f"segment_classical: image shape {img.shape} != probe image shape "
+                         f"{geometry.image_shape}")
+    f = 2
+    small = _block_mean(img.astype(np.float32), f)
+    fan = _block_mean(geometry.fan_mask.astype(np.float32), f) > 0.99
+    fan = ndimage.binary_erosion(fan, iterations=2)
+    small = ndimage.median_filter(small, size=5)
+    lit = fan & (small > 8)
+    if np.count_nonzero(lit) < 50:
+        return np.zeros(geometry.image_shape, bool)
+    ref = float(np.median(small[lit]))
+    dark = fan & (small < 0.82 * ref) & (small > 0.15 * ref)
+    # Skip the first ~10 mm under the face (skin, fat and muscle layers).
+    top_rows = int(np.ceil((0.010 - geometry.z_min) / (geometry.dz * f)))
+    dark[:top_rows] = False
+    dark = ndimage.binary_opening(dark, _CROSS, iterations=2)
+    filled = ndimage.binary_fill_holes(dark)
+    labels, n = ndimage.label(filled)
+    if n == 0:
+        return np.zeros(geometry.image_shape, bool)
+    edge = fan & ~ndimage.binary_erosion(fan, iterations=2)
+    index = np.arange(1, n + 1)
+    areas = ndimage.sum_labels(np.ones_like(labels), labels, index) * geometry.pixel_area * f * f
+    touches = ndimage.maximum(edge, labels, index) > 0
+    ok = (areas >= max(min_area, 1e-6)) & (areas <= 60e-4) & ~touches
+    if not ok.any():
+        return np.zeros(geometry.image_shape, bool)
+    best = None
+    if prev_mask is not None and np.any(prev_mask):
+        prev_small = _block_mean(np.asarray(prev_mask, np.float32), f) > 0.5
+        overlap = ndimage.sum_labels(prev_small, labels, index)
+        overlap = np.where(ok, overlap, 0)
+        if overlap.max() > 0:
+            best = int(np.argmax(overlap)) + 1
+    if best is None:
+        # Compactness: area over bounding-box area, times area (prefer big, round blobs).
+        slices = ndimage.find_objects(labels)
+        score = np.zeros(n)
+        for i, sl in enumerate(slices):
+            if ok[i] and sl is not None:
+                box = (sl[0].stop - sl[0].start) * (sl[1].stop - sl[1].start)
+                score[i] = areas[i] * (areas[i] / (box * geometry.pixel_area * f * f))
+        best = int(np.argmax(score)) + 1
+    comp = labels == best
+    comp = ndimage.binary_closing(comp, _CROSS, iterations=2, border_value=0)
+    comp = ndimage.binary_fill_holes(comp)
+    full = np.repeat(np.repeat(comp, f, axis=0), f, axis=1)
+    out = np.zeros(geometry.image_shape, bool)
+    out[:full.shape[0], :full.shape[1]] = full
+    return out & geometry.fan_mask

@@ -1,0 +1,287 @@
+"""Thin Drake LeafSystems over the imaging functions.
+
+- :class:`SliceSensor`: probe pose -> label image, sampled at the frame rate;
+- :class:`UltrasoundEmulator`: label image -> B-mode-like image;
+- :class:`Segmenter`: image -> kidney mask, visible flag, c_msk, boundary pixels;
+- :class:`PointCloudAccumulator`: boundary pixels (+ their X_BP) -> P_local in the base frame.
+
+Images travel as :class:`~drake_rus.imaging.frames.UsFrame` (image + acquisition time + X_BP +
+frame index). Only the SliceSensor samples on a clock (a periodic unrestricted update at
+``frame_rate_hz``); the emulator and segmenter are direct feedthrough, and compute once per
+new frame (their outputs depend only on their inputs, and a frame's result is memoised).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.math import RigidTransform
+from pydrake.systems.framework import BasicVector, EventStatus, LeafSystem
+
+from drake_rus.anatomy.labels import LabelVolume
+from drake_rus.imaging.backprojection import accumulate
+from drake_rus.imaging.config import ImagingConfig
+from drake_rus.imaging.emulator import EmulatorModel, emulate
+from drake_rus.imaging.frames import BoundaryPixels, PointCloud, UsFrame
+from drake_rus.imaging.probe import ProbeGeometry, check_pose
+from drake_rus.imaging.segment import read_mask, segment_classical, segment_oracle
+from drake_rus.imaging.slicing import slice_volume
+
+
+def _frame_key(frame: UsFrame):
+    return (id(frame.image), frame.frame_index, frame.time)
+
+
+class SliceSensor(LeafSystem):
+    """Oblique slicing of a patient's label volume at the probe pose (seed III-A).
+
+    Input ``X_BP`` (abstract RigidTransform): pose of the probe tip frame P in the robot base B.
+    Output ``label_image`` (abstract UsFrame): uint8 tissue labels (rows, cols) on the probe's
+    fan (0 outside it), stamped with the acquisition time (s) and the X_BP used. A frame is
+    acquired at initialization and then every 1 / ``frame_rate_hz`` s.
+    """
+
+    def __init__(self, config: ImagingConfig, volume: LabelVolume, X_BV: RigidTransform):
+        super().__init__()
+        if not isinstance(volume, LabelVolume):
+            raise ValueError(f"SliceSensor: volume must be a LabelVolume, got "
+                             f"{type(volume).__name__}")
+        self._geometry = ProbeGeometry.from_config(config)
+        self._volume = volume
+        self._X_BV = check_pose(X_BV, "SliceSensor X_BV (pose of the volume grid in B)")
+        self._planes = int(config.elevation_planes)
+        self._combine = config.elevation_combine
+        self._X_BP_port = self.DeclareAbstractInputPort(
+            "X_BP", AbstractValue.Make(RigidTransform()))
+        empty = UsFrame(np.zeros(self._geometry.image_shape, np.uint8))
+        self._state_index = self.DeclareAbstractState(AbstractValue.Make(empty))
+        period = 1.0 / config.frame_rate_hz
+        self.DeclareInitializationUnrestrictedUpdateEvent(self._acquire)
+        self.DeclarePeriodicUnrestrictedUpdateEvent(period, period, self._acquire)
+        self.DeclareAbstractOutputPort(
+            "label_image", lambda: AbstractValue.Make(empty), self._calc_label_image,
+            prerequisites_of_calc={self.abstract_state_ticket(self._state_index)})
+
+    @property
+    def geometry(self) -> ProbeGeometry:
+        return self._geometry
+
+    def _acquire(self, context, state):
+        if not self._X_BP_port.HasValue(context):
+            raise RuntimeError("SliceSensor: input port 'X_BP' is not connected")
+        X_BP = self._X_BP_port.Eval(context)
+        check_pose(X_BP, f"SliceSensor input 'X_BP' at t = {context.get_time():.4f} s")
+        previous = context.get_abstract_state(self._state_index).get_value()
+        image = slice_volume(self._geometry, self._volume, self._X_BV, X_BP,
+                             self._planes, self._combine)
+        frame = UsFrame(image=image, time=context.get_time(), X_BP=RigidTransform(X_BP),
+                        frame_index=previous.frame_index + 1)
+        state.get_mutable_abstract_state(self._state_index).set_value(frame)
+        return EventStatus.Succeeded()
+
+    def _calc_label_image(self, context, output):
+        output.set_value(context.get_abstract_state(self._state_index).get_value())
+
+
+class UltrasoundEmulator(LeafSystem):
+    """Label image -> B-mode-like image (speckle, attenuation, interfaces, shadows).
+
+    Input ``label_image`` (abstract UsFrame, uint8 labels). Output ``us_image`` (abstract
+    UsFrame, uint8 grey 0-255, 0 outside the fan) with the input frame's time, X_BP and index.
+    Deterministic: frame k's speckle depends only on (``seed``, k).
+    """
+
+    def __init__(self, config: ImagingConfig, seed: int = 0):
+        super().__init__()
+        self._model = EmulatorModel.from_config(config)
+        self._seed = int(seed)
+        empty = UsFrame(np.zeros(self._model.geometry.image_shape, np.uint8))
+        self._empty = empty
+        self._in = self.DeclareAbstractInputPort("label_image", AbstractValue.Make(empty))
+        self.DeclareAbstractOutputPort(
+            "us_image", lambda: AbstractValue.Make(empty), self._calc,
+            prerequisites_of_calc={self.input_port_ticket(self._in.get_index())})
+        self._memo_key = None
+        self._memo = empty
+        # Warm the precomputed scan-line geometry now, not inside the first simulation step.
+        _ = self._model.polar_to_image_index, self._model.scan_conversion
+
+    def _calc(self, context, output):
+        frame = self._in.Eval(context)
+        if not frame.valid:
+            output.set_value(self._empty)
+            return
+        key = _frame_key(frame)
+        if key != self._memo_key:
+            image = emulate(frame.image, self._model, self._seed, frame.frame_index)
+            self._memo = UsFrame(image=image, time=frame.time, X_BP=frame.X_BP,
+                                 frame_index=frame.frame_index)
+            self._memo_key = key
+        output.set_value(self._memo)
+
+
+def make_segmenter_backend(config: ImagingConfig, geometry: ProbeGeometry):
+    """A callable ``(us_image, label_image, prev_mask) -> mask`` for ``config.segmenter``.
+    Raises ValueError naming the field when the backend cannot be built (e.g. a bad model)."""
+    backend = config.segmenter
+    if backend == "oracle":
+        return lambda us, labels, prev: segment_oracle(labels)
+    if backend == "classical":
+        min_area = config.min_kidney_area
+        return lambda us, labels, prev: segment_classical(us, geometry, prev, min_area)
+    if backend == "onnx":
+        from drake_rus.imaging.onnx_backend import OnnxSegmenter
+        model = OnnxSegmenter.from_config(config, geometry)
+        return lambda us, labels, prev: model(us)
+    raise ValueError(f"imaging.segmenter: unknown backend {backend!r}; expected 'oracle', "
+                     f"'classical' or 'onnx'")
+
+
+class Segmenter(LeafSystem):
+    """Kidney segmentation of the current frame and the read-outs the controller uses.
+
+    Inputs: ``us_image`` (abstract UsFrame, uint8 grey) for the ``classical`` and ``onnx``
+    backends; ``label_image`` (abstract UsFrame, uint8 labels) for the ``oracle`` backend.
+    Outputs (all for the latest frame):
+      ``kidney_mask`` (abstract UsFrame, bool mask, with the frame's time, X_BP, index);
+      ``kidney_visible`` (1-vector, 1.0 when the mask area >= ``min_kidney_area``, else 0.0);
+      ``mask_centroid`` (1-vector, c_msk in [0, 1] across the image width, eq. 17; 0.5
+      when not visible);
+      ``boundary_pixels`` (abstract BoundaryPixels, (N, 2) pixels (u, v) + time, X_BP, index).
+    The classical backend keeps the previous frame's mask as a temporal prior (state updated
+    at the frame rate).
+    """
+
+    def __init__(self, config: ImagingConfig):
+        super().__init__()
+        self._geometry = ProbeGeometry.from_config(config)
+        self._backend_name = config.segmenter
+        self._backend = make_segmenter_backend(config, self._geometry)
+        self._min_area = config.min_kidney_area
+        shape = self._geometry.image_shape
+        empty = UsFrame(np.zeros(shape, np.uint8))
+        self._empty_mask = UsFrame(np.zeros(shape, bool))
+        self._us = self.DeclareAbstractInputPort("us_image", AbstractValue.Make(empty))
+        self._labels = self.DeclareAbstractInputPort("label_image", AbstractValue.Make(empty))
+        self._source = self._labels if self._backend_name == "oracle" else self._us
+        self._uses_prior = self._backend_name == "classical"
+        self._prior_index = self.DeclareAbstractState(AbstractValue.Make(self._empty_mask))
+        tickets = {self.input_port_ticket(self._source.get_index())}
+        if self._uses_prior:
+            tickets.add(self.abstract_state_ticket(self._prior_index))
+            period = 1.0 / config.frame_rate_hz
+            self.DeclarePeriodicUnrestrictedUpdateEvent(period, 0.5 * period, self._keep_prior)
+        self.DeclareAbstractOutputPort(
+            "kidney_mask", lambda: AbstractValue.Make(self._empty_mask),
+            lambda c, o: o.set_value(self._result(c)[0]), prerequisites_of_calc=tickets)
+        self.DeclareVectorOutputPort(
+            "kidney_visible", 1, lambda c, o: o.SetAtIndex(0, float(self._result(c)[1].visible)),
+            prerequisites_of_calc=tickets)
+        self.DeclareVectorOutputPort(
+            "mask_centroid", 1, lambda c, o: o.SetAtIndex(0, self._result(c)[1].centroid),
+            prerequisites_of_calc=tickets)
+        self.DeclareAbstractOutputPort(
+            "boundary_pixels", lambda: AbstractValue.Make(BoundaryPixels(np.zeros((0, 2)))),
+            lambda c, o: o.set_value(self._result(c)[2]), prerequisites_of_calc=tickets)
+        self._memo_key = None
+        self._memo = None
+
+    @property
+    def geometry(self) -> ProbeGeometry:
+        return self._geometry
+
+    def _result(self, context):
+        if not self._source.HasValue(context):
+            raise RuntimeError(f"Segmenter ({self._backend_name}): input port "
+                               f"'{self._source.get_name()}' is not connected")
+        frame = self._source.Eval(context)
+        prior = (context.get_abstract_state(self._prior_index).get_value()
+                 if self._uses_prior else self._empty_mask)
+        key = (_frame_key(frame), id(prior.image))
+        if key == self._memo_key:
+            return self._memo
+        if not frame.valid:
+            readout = read_mask(self._empty_mask.image, self._geometry, self._min_area)
+            result = (self._empty_mask, readout,
+                      BoundaryPixels(np.zeros((0, 2)), frame.time, frame.X_BP, -1))
+        else:
+            if frame.image.shape != self._geometry.image_shape:
+                raise ValueError(
+                    f"Segmenter: input '{self._source.get_name()}' has shape "
+                    f"{frame.image.shape}, expected {self._geometry.image_shape} (imaging.image_"
+                    f"height_px x image_width_px)")
+            us = frame.image if self._source is self._us else None
+            labels = frame.image if self._source is self._labels else None
+            prev = prior.image if prior.valid else None
+            mask = np.asarray(self._backend(us, labels, prev), bool) & self._geometry.fan_mask
+            readout = read_mask(mask, self._geometry, self._min_area)
+            mask_frame = UsFrame(mask, frame.time, frame.X_BP, frame.frame_index)
+            result = (mask_frame, readout,
+                      BoundaryPixels(readout.boundary, frame.time, frame.X_BP,
+                                     frame.frame_index))
+        self._memo_key, self._memo = key, result
+        return result
+
+    def _keep_prior(self, context, state):
+        if not self._source.HasValue(context):
+            return EventStatus.DidNothing()
+        mask_frame = self._result(context)[0]
+        if mask_frame.valid:
+            state.get_mutable_abstract_state(self._prior_index).set_value(mask_frame)
+        return EventStatus.Succeeded()
+
+
+class PointCloudAccumulator(LeafSystem):
+    """Collects P_local: back-projected kidney boundary points in the base frame (seed II-E).
+
+    Inputs: ``boundary_pixels`` (abstract BoundaryPixels from the Segmenter); ``enable``
+    (1-vector, optional: accumulate while > 0.5; always when unconnected); ``reset``
+    (1-vector, optional: > 0.5 clears the cloud).
+    Outputs: ``point_cloud`` (abstract PointCloud: points (N, 3) in B (m), frame count, the
+    X_BP and time (s) of every kept frame); ``frame_count`` (1-vector).
+    Checks for a new frame at ``frame_rate_hz``, half a period after the sensor's clock.
+    """
+
+    def __init__(self, config: ImagingConfig, max_points_per_frame: int = 0):
+        super().__init__()
+        self._geometry = ProbeGeometry.from_config(config)
+        self._max_points = int(max_points_per_frame)
+        self._boundary = self.DeclareAbstractInputPort(
+            "boundary_pixels", AbstractValue.Make(BoundaryPixels(np.zeros((0, 2)))))
+        self._enable = self.DeclareVectorInputPort("enable", 1)
+        self._reset = self.DeclareVectorInputPort("reset", 1)
+        self._cloud_index = self.DeclareAbstractState(AbstractValue.Make(PointCloud()))
+        # Index of the last frame taken (so a frame is never counted twice).
+        self._last_index = self.DeclareAbstractState(AbstractValue.Make(-1))
+        period = 1.0 / config.frame_rate_hz
+        self.DeclarePeriodicUnrestrictedUpdateEvent(period, 0.5 * period, self._update)
+        self.DeclareAbstractOutputPort(
+            "point_cloud", lambda: AbstractValue.Make(PointCloud()),
+            lambda c, o: o.set_value(c.get_abstract_state(self._cloud_index).get_value()),
+            prerequisites_of_calc={self.abstract_state_ticket(self._cloud_index)})
+        self.DeclareVectorOutputPort(
+            "frame_count", 1,
+            lambda c, o: o.SetAtIndex(
+                0, c.get_abstract_state(self._cloud_index).get_value().frame_count),
+            prerequisites_of_calc={self.abstract_state_ticket(self._cloud_index)})
+
+    def _flag(self, port, context, default: bool) -> bool:
+        if not port.HasValue(context):
+            return default
+        return bool(port.Eval(context)[0] > 0.5)
+
+    def _update(self, context, state):
+        if self._flag(self._reset, context, False):
+            state.get_mutable_abstract_state(self._cloud_index).set_value(PointCloud())
+            return EventStatus.Succeeded()
+        if not self._flag(self._enable, context, True) or not self._boundary.HasValue(context):
+            return EventStatus.DidNothing()
+        boundary = self._boundary.Eval(context)
+        last = context.get_abstract_state(self._last_index).get_value()
+        if boundary.frame_index < 0 or boundary.frame_index <= last:
+            return EventStatus.DidNothing()
+        cloud = context.get_abstract_state(self._cloud_index).get_value()
+        state.get_mutable_abstract_state(self._cloud_index).set_value(
+            accumulate(cloud, boundary, self._geometry, self._max_points))
+        state.get_mutable_abstract_state(self._last_index).set_value(boundary.frame_index)
+        return EventStatus.Succeeded()
