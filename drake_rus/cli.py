@@ -36,7 +36,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (ScenarioError, UserError, FileNotFoundError) as e:
+    except (ScenarioError, UserError, FileNotFoundError, ValueError) as e:
         print(f"drake-rus {args.command}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

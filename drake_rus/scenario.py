@@ -120,9 +120,9 @@ class ContactConfig:
     # Hydroelastic modulus of the soft body (Pa): soft tissue indents ~1 cm at ~9 N.
     hydroelastic_modulus: float = field(default=2.0e5, metadata={"positive": True})
     # Resolution hint of the soft body's tetrahedral mesh (m).
-    patient_resolution_hint: float = field(default=0.03, metadata={"positive": True})
+    patient_resolution_hint: float = field(default=0.06, metadata={"positive": True})
     # Resolution hint of the rigid probe face mesh (m).
-    probe_resolution_hint: float = field(default=0.01, metadata={"positive": True})
+    probe_resolution_hint: float = field(default=0.02, metadata={"positive": True})
     # Hunt-Crossley dissipation (s/m) of the soft body.
     hunt_crossley_dissipation: float = field(default=5.0, metadata={"min": 0.0})
     # Point-contact stiffness (N/m) when model == "point".

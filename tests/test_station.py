@@ -1,0 +1,157 @@
+"""The simulated station: ports, velocity driver, and the probe force estimate."""
+
+import json
+
+import numpy as np
+import pytest
+from pydrake.math import RigidTransform
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput
+
+from drake_rus.cli import main as cli_main
+from drake_rus.config_schema import ScenarioError
+from drake_rus.scenario import LoadScenario
+from drake_rus.sim.force_estimation import contact_force_along_approach, estimate_tip_wrench
+from drake_rus.sim.press import PressDiagram
+from drake_rus.station import MakeControlPlant, MakeStation
+
+STATION_INPUTS = {"joint_velocity_command"}
+STATION_OUTPUTS = {"joint_position", "joint_velocity", "X_BP", "tau_external", "probe_force"}
+
+
+def test_estimate_tip_wrench_recovers_a_known_wrench():
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        J = rng.normal(size=(6, 7))
+        # A random rotation R_WP.
+        Q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        R_WP = Q * np.sign(np.linalg.det(Q))
+        F_P = rng.normal(size=6) * [0.5, 0.5, 0.5, 5, 5, 20]
+        F_W = np.concatenate([R_WP @ F_P[:3], R_WP @ F_P[3:]])
+        tau = J.T @ F_W
+        np.testing.assert_allclose(estimate_tip_wrench(J, tau, R_WP, damping=1e-9), F_P,
+                                   atol=1e-6)
+    assert contact_force_along_approach([0, 0, 0, 0, 0, -9.0]) == 9.0
+    with pytest.raises(ValueError, match="J_WP: expected shape"):
+        estimate_tip_wrench(np.zeros((6, 6)), np.zeros(7), np.eye(3))
+
+
+def test_station_ports_match_design():
+    station = MakeStation(LoadScenario())
+    inputs = {station.get_input_port(i).get_name() for i in range(station.num_input_ports())}
+    outputs = {station.get_output_port(i).get_name() for i in range(station.num_output_ports())}
+    assert inputs == STATION_INPUTS
+    assert STATION_OUTPUTS <= outputs
+    assert station.GetOutputPort("probe_force").size() == 6
+
+
+def test_control_plant_tip_matches_station():
+    scenario = LoadScenario()
+    plant, tip = MakeControlPlant(scenario)
+    context = plant.CreateDefaultContext()
+    X_BP = tip.CalcPoseInWorld(context)
+    station = MakeStation(scenario)
+    station_context = station.CreateDefaultContext()
+    station.GetInputPort("joint_velocity_command").FixValue(station_context, np.zeros(7))
+    X_station = station.GetOutputPort("X_BP").Eval(station_context)
+    np.testing.assert_allclose(X_BP.GetAsMatrix4(), X_station.GetAsMatrix4(), atol=1e-12)
+    # The probe points down at the start (z_P = -z_B) and sits above the body.
+    np.testing.assert_allclose(X_BP.rotation().matrix()[:, 2], [0, 0, -1], atol=1e-6)
+
+
+def _run_with_command(command, duration, scenario=None):
+    scenario = scenario or LoadScenario()
+    builder = DiagramBuilder()
+    station = builder.AddSystem(MakeStation(scenario))
+    source = builder.AddSystem(ConstantVectorSource(np.asarray(command, dtype=float)))
+    builder.Connect(source.get_output_port(), station.GetInputPort("joint_velocity_command"))
+    q_log = LogVectorOutput(station.GetOutputPort("joint_position"), builder, 0.01)
+    v_log = LogVectorOutput(station.GetOutputPort("joint_velocity"), builder, 0.01)
+    diagram = builder.Build()
+    simulator = Simulator(diagram)
+    context = simulator.get_mutable_context()
+    station_context = station.GetMyContextFromRoot(context)
+    # Copies: Eval returns a reference into the cache, which the simulation overwrites.
+    X0 = RigidTransform(station.GetOutputPort("X_BP").Eval(station_context))
+    simulator.AdvanceTo(duration)
+    X1 = RigidTransform(station.GetOutputPort("X_BP").Eval(station_context))
+    return X0, X1, q_log.FindLog(context), v_log.FindLog(context)
+
+
+def test_zero_command_holds_the_arm():
+    X0, X1, q_log, _ = _run_with_command(np.zeros(7), 2.0)
+    drift = np.linalg.norm(X1.translation() - X0.translation())
+    assert drift < 1e-3, f"tip drifted {drift * 1000:.3f} mm in 2 s"
+
+
+def test_zero_command_without_gravity_compensation_sags():
+    # The check above means something: without gravity compensation the same arm sags.
+    scenario = LoadScenario(scenario_text="{robot: {gravity_compensation: false}}")
+    X0, X1, _, _ = _run_with_command(np.zeros(7), 0.5, scenario)
+    assert np.linalg.norm(X1.translation() - X0.translation()) > 1e-3
+
+
+def test_constant_joint_velocity_is_tracked():
+    command = np.array([0.10, -0.05, 0.10, 0.10, -0.20, 0.10, 0.30])
+    _, _, q_log, v_log = _run_with_command(command, 1.0)
+    t = v_log.sample_times()
+    steady = t >= 0.4
+    v_mean = v_log.data()[:, steady].mean(axis=1)
+    np.testing.assert_allclose(v_mean, command, rtol=0.05)
+    # And the positions advance at that rate.
+    dq = q_log.data()[:, -1] - q_log.data()[:, np.argmax(t >= 0.4)]
+    np.testing.assert_allclose(dq / (t[-1] - 0.4), command, rtol=0.05)
+
+
+@pytest.mark.parametrize("model", ["hydroelastic", "point"])
+def test_probe_force_agrees_with_contact_results(model):
+    scenario = LoadScenario(scenario_text=f"{{contact: {{model: {model}}}}}")
+    press = PressDiagram(scenario, desired_force=9.0)
+    simulator = Simulator(press.diagram)
+    simulator.AdvanceTo(4.5)
+    t, F_est, F_true = press.logs(simulator.get_context())
+    assert F_true[t < 1.0].max() == 0.0, "probe must start out of contact"
+    steady = t >= 4.0
+    assert F_true[steady].min() > 5.0, "probe must be pressing at the end"
+    error = np.abs(F_est[steady] - F_true[steady])
+    assert np.all(error <= np.maximum(0.05 * F_true[steady], 0.2))
+    np.testing.assert_allclose(F_true[-1], 9.0, atol=0.5)
+
+
+def test_hardware_station_gives_clear_error_until_it_exists():
+    scenario = LoadScenario(scenario_name="hardware")
+    try:
+        import drake_rus.hardware.station  # noqa: F401
+    except ImportError:
+        with pytest.raises(ScenarioError, match="field 'hardware'"):
+            MakeStation(scenario)
+
+
+def test_demo_writes_recording_plot_and_summary(tmp_path):
+    out = tmp_path / "demo"
+    assert cli_main(["demo", "--out", str(out), "--duration", "3.5"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["first_contact_s"] is not None
+    assert summary["settled_force_true_n"] > 5.0
+    assert abs(summary["settled_force_true_n"] - summary["settled_force_estimated_n"]) < 0.2
+    assert (out / "force.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    html = (out / "press.html").read_text()
+    assert "<html" in html.lower() and "meshcat" in html.lower()
+    assert len(html) > 10_000
+
+
+def test_demo_bad_input_is_a_clear_error(tmp_path, capsys):
+    assert cli_main(["demo", "--out", str(tmp_path / "x"), "--set",
+                     "{contact: {modle: point}}"]) == 2
+    assert "field 'contact.modle'" in capsys.readouterr().err
+    assert cli_main(["demo", "--out", str(tmp_path / "y"), "--force", "50"]) == 2
+    assert "--force" in capsys.readouterr().err
+    assert not (tmp_path / "y" / "summary.json").exists()
+
+
+def test_render_diagram(tmp_path):
+    out = tmp_path / "station.svg"
+    assert cli_main(["render-diagram", "--out", str(out)]) == 0
+    svg = out.read_text()
+    assert "<svg" in svg and "plant" in svg and "joint_velocity_command" in svg
