@@ -30,11 +30,13 @@ class ControllerConfig:
 
     # --- Force PD (eq. 6) ---
     # K_p3 ((m/s)/N): proportional force gain, v_z = K_p3 (F_des - F_z) a.
-    K_p3: float = field(default=0.004, metadata={"min": 0.0})
-    # K_d1 ((m/s)/(N/s)): derivative gain on the low-pass filtered force error.
-    K_d1: float = field(default=0.0002, metadata={"min": 0.0})
+    K_p3: float = field(default=0.006, metadata={"min": 0.0})
+    # K_d1 ((m/s)/(N/s)): derivative gain on the low-pass filtered force error. Kept small:
+    # on the simulated station K_d1 = 2e-4 with a 15 Hz filter limit-cycles at the
+    # controller's Nyquist rate (100 Hz at 200 Hz control).
+    K_d1: float = field(default=0.00005, metadata={"min": 0.0})
     # Cut-off (Hz) of the first-order low-pass on the estimated contact force.
-    force_filter_cutoff_hz: float = field(default=15.0, metadata={"positive": True})
+    force_filter_cutoff_hz: float = field(default=5.0, metadata={"positive": True})
 
     # --- Position P (eq. 7) ---
     # K_p4, K_p5 (1/s): tip x / y tracking gains in the base frame.

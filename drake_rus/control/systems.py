@@ -1,0 +1,305 @@
+"""Thin LeafSystems over the pure control laws (laws.py, scan.py, safety.py).
+
+Timing: every system here runs at the controller rate (``ControllerConfig.rate_hz``, default
+200 Hz), never per plant step. The SafetyLayer holds the joint velocity command in its
+discrete state and exposes it through a state output port, so the 1 kHz plant reads it
+without calling Python; its periodic update pulls the controller chain (IK <- alignment,
+force, position <- supervisor) once per control period.
+
+Frames and units: B = robot base (world), P = probe tip; SI units.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from pydrake.common.value import AbstractValue
+from pydrake.math import RigidTransform
+from pydrake.systems.framework import BasicVector, LeafSystem
+
+from drake_rus.control import laws, scan
+from drake_rus.control.kinematics import TipKinematics
+from drake_rus.control.safety import SafetyInputs, SafetyState, safety_step
+
+
+def contact_force(probe_force) -> float:
+    """F_z of eq. 6 (N, positive pressing) from the station's probe_force
+    [tau_x, tau_y, tau_z, f_x, f_y, f_z] on the probe in P: the body pushes along -z_P."""
+    return float(-np.asarray(probe_force)[5])
+
+
+def _X(port, context) -> RigidTransform:
+    return port.Eval(context)
+
+
+def _optional_scalar(port, context, default: float) -> float:
+    return float(port.Eval(context)[0]) if port.HasValue(context) else default
+
+
+class OrientationAlignment(LeafSystem):
+    """omega_total (eq. 1-5): tilts a towards a_des (with a_des rate feed-forward) and turns
+    o towards o_des about a.
+
+    Inputs: X_BP (RigidTransform), a_des (3, unit, in B), o_des (3, unit, in B),
+    a_des_dot (3, 1/s, in B; optional, zero if unconnected).
+    Output: omega_BP (3, rad/s, in B).
+    """
+
+    def __init__(self, config):
+        super().__init__()
+        self._cfg = config
+        self._X = self.DeclareAbstractInputPort("X_BP", AbstractValue.Make(RigidTransform()))
+        self._a = self.DeclareVectorInputPort("a_des", 3)
+        self._o = self.DeclareVectorInputPort("o_des", 3)
+        self._adot = self.DeclareVectorInputPort("a_des_dot", 3)
+        self.DeclareVectorOutputPort("omega_BP", 3, self._calc)
+
+    def _calc(self, context, output: BasicVector):
+        c = self._cfg
+        R = _X(self._X, context).rotation().matrix()
+        adot = self._adot.Eval(context) if self._adot.HasValue(context) else np.zeros(3)
+        output.SetFromVector(laws.orientation_alignment(
+            R, self._a.Eval(context), self._o.Eval(context), adot, c.K_p1, c.K_p11, c.K_p2))
+
+
+class ForcePD(LeafSystem):
+    """Force PD along the approach vector (eq. 6) on the low-pass filtered contact force,
+    derivative on the filtered error.
+
+    Inputs: probe_force (6, [N m, N], on the probe in P), X_BP (RigidTransform),
+    F_des (1, N; optional, defaults to the configured desired force).
+    Outputs: v_force (3, m/s, in B), F_filtered (1, N; state, positive pressing).
+    State: [F_filtered, previous error, initialised], updated every control period.
+    """
+
+    def __init__(self, config):
+        super().__init__()
+        self._cfg = config
+        self._dt = 1.0 / config.rate_hz
+        self._alpha = laws.lowpass_alpha(self._dt, config.force_filter_cutoff_hz)
+        self._F = self.DeclareVectorInputPort("probe_force", 6)
+        self._X = self.DeclareAbstractInputPort("X_BP", AbstractValue.Make(RigidTransform()))
+        self._Fdes = self.DeclareVectorInputPort("F_des", 1)
+        self._state = self.DeclareDiscreteState(3)
+        self._filtered = self.DeclareDiscreteState(1)
+        self.DeclarePeriodicDiscreteUpdateEvent(self._dt, 0.0, self._update)
+        self.DeclareVectorOutputPort("v_force", 3, self._calc)
+        self.DeclareStateOutputPort("F_filtered", self._filtered)
+
+    def _step(self, context):
+        s = context.get_discrete_state(self._state).get_value()
+        F = contact_force(self._F.Eval(context))
+        F_des = _optional_scalar(self._Fdes, context, self._cfg.desired_force)
+        a = _X(self._X, context).rotation().matrix()[:, 2]
+        if not math.isfinite(F):
+            return np.zeros(3), tuple(s)
+        c = self._cfg
+        return laws.force_pd_step(tuple(s), F, F_des, a, self._dt, self._alpha, c.K_p3, c.K_d1)
+
+    def _calc(self, context, output):
+        output.SetFromVector(self._step(context)[0])
+
+    def _update(self, context, discrete_state):
+        _, s = self._step(context)
+        discrete_state.set_value(self._state, np.asarray(s, dtype=float))
+        discrete_state.set_value(self._filtered, [s[0]])
+
+
+class PositionP(LeafSystem):
+    """Tip x/y tracking (eq. 7).
+
+    Inputs: X_BP (RigidTransform), P_des (2, m, desired tip x, y in B).
+    Output: v_position (3, m/s, in B; z = 0).
+    """
+
+    def __init__(self, config):
+        super().__init__()
+        self._cfg = config
+        self._X = self.DeclareAbstractInputPort("X_BP", AbstractValue.Make(RigidTransform()))
+        self._P = self.DeclareVectorInputPort("P_des", 2)
+        self.DeclareVectorOutputPort("v_position", 3, self._calc)
+
+    def _calc(self, context, output):
+        p = _X(self._X, context).translation()
+        output.SetFromVector(laws.position_p(self._P.Eval(context), p, self._cfg.K_p4,
+                                             self._cfg.K_p5))
+
+
+class NullSpaceDiffIK(LeafSystem):
+    """Task twist (eq. 8-9) -> joint velocities (eq. 10-12): damped pseudo-inverse of the
+    tip Jacobian, null-space manipulability gradient, joint-limit margin, speed limits.
+
+    Constructed with a control plant holding only the FR3 and the probe (``MakeControlPlant``).
+    Inputs: joint_position (7, rad), omega_BP (3, rad/s, in B), v_force (3, m/s, in B),
+    v_position (3, m/s, in B).
+    Outputs: joint_velocity_desired (7, rad/s), V_BP_desired (6, [rad/s, m/s], in B),
+    manipulability (1, at the measured q).
+    """
+
+    def __init__(self, plant, tip_frame, config, use_null_space: bool = True):
+        super().__init__()
+        self._cfg = config
+        self._kin = TipKinematics(plant, tip_frame)
+        self._K_p6 = config.K_p6 if use_null_space else 0.0
+        n = self._kin.nq
+        self._q = self.DeclareVectorInputPort("joint_position", n)
+        self._w = self.DeclareVectorInputPort("omega_BP", 3)
+        self._vf = self.DeclareVectorInputPort("v_force", 3)
+        self._vp = self.DeclareVectorInputPort("v_position", 3)
+        self.DeclareVectorOutputPort("joint_velocity_desired", n, self._calc_qdot)
+        self.DeclareVectorOutputPort("V_BP_desired", 6, self._calc_twist)
+        self.DeclareVectorOutputPort("manipulability", 1, self._calc_m)
+
+    def twist(self, context) -> np.ndarray:
+        c = self._cfg
+        return laws.assemble_twist(self._w.Eval(context), self._vp.Eval(context),
+                                   self._vf.Eval(context), c.max_tip_speed, c.max_angular_speed)
+
+    def _calc_twist(self, context, output):
+        output.SetFromVector(self.twist(context))
+
+    def _calc_qdot(self, context, output):
+        c, k = self._cfg, self._kin
+        qdot = laws.solve_joint_velocities(
+            self._q.Eval(context), self.twist(context), k.jacobian, K_p6=self._K_p6,
+            epsilon=c.manipulability_epsilon, q_min=k.q_min, q_max=k.q_max,
+            dq_max=c.joint_velocity_limits, joint_limit_margin=c.joint_limit_margin,
+            sigma_threshold=c.singular_value_threshold, damping_max=c.singular_damping_max)
+        output.SetFromVector(qdot)
+
+    def _calc_m(self, context, output):
+        q = self._q.Eval(context)
+        m = laws.manipulability(self._kin.jacobian(q)) if np.all(np.isfinite(q)) else math.nan
+        output.SetFromVector([m])
+
+
+class ScanSupervisor(LeafSystem):
+    """The scan state machine (APPROACH -> EXPLORE -> LOCALIZE -> TRANSIT -> PIVOT -> DONE,
+    or ABORT with a reason): ``scan.supervisor_step`` every control period.
+
+    Inputs: X_BP (RigidTransform); contact_force (1, N, filtered, positive pressing);
+    kidney_visible (1, 0/1; optional: visible if unconnected); mask_centroid (1, horizontal
+    centroid in [0, 1]; optional); X_BK (RigidTransform: the kidney pose estimate, or a
+    ground-truth stand-in until localization lands; optional); localization_ready (1, 0/1;
+    optional: ready if unconnected).
+    Outputs: a_des (3), o_des (3), a_des_dot (3, 1/s), P_des (2, m), F_des (1, N), all in B;
+    phase (1, scan.Phase value); segmentation_required (1, 0/1); abort (1, 0/1);
+    supervisor_state (SupervisorState, for logs).
+    """
+
+    def __init__(self, config):
+        super().__init__()
+        self._cfg = config
+        self._dt = 1.0 / config.rate_hz
+        self._X = self.DeclareAbstractInputPort("X_BP", AbstractValue.Make(RigidTransform()))
+        self._F = self.DeclareVectorInputPort("contact_force", 1)
+        self._vis = self.DeclareVectorInputPort("kidney_visible", 1)
+        self._c = self.DeclareVectorInputPort("mask_centroid", 1)
+        self._XK = self.DeclareAbstractInputPort("X_BK", AbstractValue.Make(RigidTransform()))
+        self._ready = self.DeclareVectorInputPort("localization_ready", 1)
+        self._s = self.DeclareAbstractState(AbstractValue.Make(scan.SupervisorState()))
+        self.DeclarePeriodicUnrestrictedUpdateEvent(self._dt, 0.0, self._update)
+        S = lambda ctx: ctx.get_abstract_state(0).get_value()  # noqa: E731
+        self._S = S
+        self.DeclareVectorOutputPort("a_des", 3, lambda c, o: o.SetFromVector(S(c).a_des))
+        self.DeclareVectorOutputPort("o_des", 3, lambda c, o: o.SetFromVector(S(c).o_des))
+        self.DeclareVectorOutputPort("a_des_dot", 3,
+                                     lambda c, o: o.SetFromVector(S(c).a_des_dot))
+        self.DeclareVectorOutputPort("P_des", 2, lambda c, o: o.SetFromVector(S(c).P_des))
+        self.DeclareVectorOutputPort("F_des", 1, lambda c, o: o.SetFromVector([S(c).F_des]))
+        self.DeclareVectorOutputPort("phase", 1,
+                                     lambda c, o: o.SetFromVector([float(S(c).phase)]))
+        self.DeclareVectorOutputPort(
+            "segmentation_required", 1,
+            lambda c, o: o.SetFromVector([float(S(c).phase in (scan.Phase.EXPLORE,
+                                                                scan.Phase.PIVOT))]))
+        self.DeclareVectorOutputPort(
+            "abort", 1, lambda c, o: o.SetFromVector([float(S(c).phase == scan.Phase.ABORT)]))
+        self.DeclareAbstractOutputPort(
+            "supervisor_state", lambda: AbstractValue.Make(scan.SupervisorState()),
+            lambda c, o: o.set_value(S(c)))
+
+    def state(self, context) -> scan.SupervisorState:
+        return context.get_abstract_state(0).get_value()
+
+    def _update(self, context, state):
+        X = _X(self._X, context)
+        R_BK = p_BK = None
+        if self._XK.HasValue(context):
+            X_BK = self._XK.Eval(context)
+            R_BK, p_BK = X_BK.rotation().matrix(), X_BK.translation()
+        c = _optional_scalar(self._c, context, 0.5)
+        u = scan.SupervisorInputs(
+            t=context.get_time(), R_BP=X.rotation().matrix(), p_BP=X.translation(),
+            F_z=float(self._F.Eval(context)[0]),
+            kidney_visible=_optional_scalar(self._vis, context, 1.0) > 0.5,
+            c_msk=c, R_BK=R_BK, p_BK=p_BK,
+            localization_ready=_optional_scalar(self._ready, context, 1.0) > 0.5)
+        new = scan.supervisor_step(self.state(context), u, self._cfg, self._dt)
+        state.get_mutable_abstract_state(0).set_value(new)
+
+
+class SafetyLayer(LeafSystem):
+    """Between controller and station; can stop the robot on its own (safety.py).
+
+    Every control period: checks the faults, limits the desired command, latches a stop
+    (zero command from this period on; a force-ceiling stop retracts along -a first) and
+    logs each stop as a SafetyEvent.
+    Inputs: joint_velocity_desired (7, rad/s), joint_position (7, rad), joint_velocity
+    (7, rad/s), X_BP (RigidTransform), probe_force (6, on the probe in P); optional:
+    image_time (1, s: stamp of the newest image), kidney_visible (1, 0/1),
+    segmentation_required (1, 0/1), supervisor_abort (1, 0/1).
+    Outputs: joint_velocity_command (7, rad/s; state), stopped (1, 0/1; state),
+    safety_events (tuple of SafetyEvent).
+    """
+
+    def __init__(self, plant, tip_frame, safety_config, rate_hz: float):
+        super().__init__()
+        self._cfg = safety_config
+        self._dt = 1.0 / rate_hz
+        self._kin = TipKinematics(plant, tip_frame)
+        n = self._kin.nq
+        self._qd = self.DeclareVectorInputPort("joint_velocity_desired", n)
+        self._q = self.DeclareVectorInputPort("joint_position", n)
+        self._v = self.DeclareVectorInputPort("joint_velocity", n)
+        self._X = self.DeclareAbstractInputPort("X_BP", AbstractValue.Make(RigidTransform()))
+        self._F = self.DeclareVectorInputPort("probe_force", 6)
+        self._img = self.DeclareVectorInputPort("image_time", 1)
+        self._vis = self.DeclareVectorInputPort("kidney_visible", 1)
+        self._req = self.DeclareVectorInputPort("segmentation_required", 1)
+        self._abort = self.DeclareVectorInputPort("supervisor_abort", 1)
+        self._cmd = self.DeclareDiscreteState(n)
+        self._stopped = self.DeclareDiscreteState(1)
+        self.DeclareAbstractState(AbstractValue.Make(SafetyState()))
+        self.DeclarePeriodicUnrestrictedUpdateEvent(self._dt, 0.0, self._update)
+        self.DeclareStateOutputPort("joint_velocity_command", self._cmd)
+        self.DeclareStateOutputPort("stopped", self._stopped)
+        self.DeclareAbstractOutputPort(
+            "safety_events", lambda: AbstractValue.Make(()),
+            lambda c, o: o.set_value(c.get_abstract_state(0).get_value().events))
+
+    def safety_state(self, context) -> SafetyState:
+        return context.get_abstract_state(0).get_value()
+
+    def _update(self, context, state):
+        q = np.asarray(self._q.Eval(context), dtype=float)
+        X = _X(self._X, context)
+        J = (self._kin.jacobian(q) if np.all(np.isfinite(q))
+             else np.full((6, q.size), math.nan))
+        visible = (bool(self._vis.Eval(context)[0] > 0.5) if self._vis.HasValue(context)
+                   else None)
+        u = SafetyInputs(
+            t=context.get_time(), q=q, v=np.asarray(self._v.Eval(context), dtype=float),
+            qdot_desired=np.asarray(self._qd.Eval(context), dtype=float),
+            R_BP=X.rotation().matrix(), p_BP=X.translation(),
+            F_z=contact_force(self._F.Eval(context)), J=J,
+            image_time=_optional_scalar(self._img, context, math.nan),
+            kidney_visible=visible,
+            segmentation_required=_optional_scalar(self._req, context, 1.0) > 0.5,
+            supervisor_abort=_optional_scalar(self._abort, context, 0.0) > 0.5)
+        cmd, new = safety_step(self.safety_state(context), u, self._cfg)
+        state.get_mutable_discrete_state(self._cmd).set_value(cmd)
+        state.get_mutable_discrete_state(self._stopped).set_value([float(new.stopped)])
+        state.get_mutable_abstract_state(0).set_value(new)
