@@ -82,18 +82,21 @@ def _block_mean(image: np.ndarray, f: int) -> np.ndarray:
 
 
 def segment_classical(us_image: np.ndarray, geometry: ProbeGeometry,
-                      prev_mask: np.ndarray | None = None, min_area: float = 1.0e-4
-                      ) -> np.ndarray:
+                      prev_mask: np.ndarray | None = None, min_area: float = 1.0e-4,
+                      strong: float = 0.75, weak: float = 1.0, grow_m: float = 0.008,
+                      reject_edge: bool = False) -> np.ndarray:
     """Kidney mask (bool, rows x cols) of an emulated/real B-mode image, no learning.
 
     1. 2x2 block mean then a 5x5 median: despeckle at half resolution;
-    2. parenchyma = darker than 0.82 x the median grey of the lit fan (shadows, i.e. pixels
-       below 15% of it, and the region near the face are excluded);
+    2. parenchyma = darker than ``strong`` x the median grey of the lit fan (shadows, i.e.
+       pixels below 15% of it, and the region near the face are excluded);
     3. opening, hole filling (the bright sinus and fat inside the dark ring join the kidney);
-    4. components: drop those touching the fan's side or bottom edges (shadows run there)
-       or outside the plausible area (``min_area`` to 60 cm^2); keep the one overlapping
-       ``prev_mask`` most, else the most compact large one;
-    5. back to full resolution, closed and hole-filled.
+    4. components: drop those outside the plausible area (``min_area`` to 60 cm^2) and, with
+       ``reject_edge``, those touching the fan's sides or bottom (where shadows run); keep
+       the one overlapping ``prev_mask`` most, else the most compact large one;
+    5. hysteresis: grow the component up to ``grow_m`` into pixels darker than ``weak`` x
+       the median (the cortex is only slightly darker than its surroundings);
+    6. back to full resolution, closed and hole-filled.
     """
     img = np.asarray(us_image)
     if img.shape != geometry.image_shape:
@@ -108,7 +111,8 @@ def segment_classical(us_image: np.ndarray, geometry: ProbeGeometry,
     if np.count_nonzero(lit) < 50:
         return np.zeros(geometry.image_shape, bool)
     ref = float(np.median(small[lit]))
-    dark = fan & (small < 0.82 * ref) & (small > 0.15 * ref)
+    not_shadow = small > 0.15 * ref
+    dark = fan & (small < strong * ref) & not_shadow
     # Skip the first ~10 mm under the face (skin, fat and muscle layers).
     top_rows = int(np.ceil((0.010 - geometry.z_min) / (geometry.dz * f)))
     dark[:top_rows] = False
@@ -121,7 +125,9 @@ def segment_classical(us_image: np.ndarray, geometry: ProbeGeometry,
     index = np.arange(1, n + 1)
     areas = ndimage.sum_labels(np.ones_like(labels), labels, index) * geometry.pixel_area * f * f
     touches = ndimage.maximum(edge, labels, index) > 0
-    ok = (areas >= max(min_area, 1e-6)) & (areas <= 60e-4) & ~touches
+    ok = (areas >= max(min_area, 1e-6)) & (areas <= 60e-4)
+    if reject_edge:
+        ok &= ~touches
     if not ok.any():
         return np.zeros(geometry.image_shape, bool)
     best = None
@@ -141,6 +147,10 @@ def segment_classical(us_image: np.ndarray, geometry: ProbeGeometry,
                 score[i] = areas[i] * (areas[i] / (box * geometry.pixel_area * f * f))
         best = int(np.argmax(score)) + 1
     comp = labels == best
+    grow_px = int(round(grow_m / (f * 0.5 * (geometry.dx + geometry.dz))))
+    if grow_px > 0:
+        weak_mask = fan & (small < weak * ref) & not_shadow
+        comp = ndimage.binary_dilation(comp, _CROSS, iterations=grow_px, mask=weak_mask | comp)
     comp = ndimage.binary_closing(comp, _CROSS, iterations=2, border_value=0)
     comp = ndimage.binary_fill_holes(comp)
     full = np.repeat(np.repeat(comp, f, axis=0), f, axis=1)

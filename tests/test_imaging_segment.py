@@ -1,0 +1,115 @@
+"""Segmentation read-outs, oracle/classical backends and boundary back-projection."""
+
+import numpy as np
+import pytest
+from pydrake.math import RigidTransform, RotationMatrix
+
+from drake_rus.anatomy.labels import Label
+from drake_rus.imaging.backprojection import accumulate, backproject_pixels
+from drake_rus.imaging.config import ImagingConfig
+from drake_rus.imaging.emulator import EmulatorModel, emulate
+from drake_rus.imaging.frames import BoundaryPixels, PointCloud
+from drake_rus.imaging.phantoms import kidney_phantom
+from drake_rus.imaging.probe import ProbeGeometry
+from drake_rus.imaging.segment import (boundary_pixels, iou, mask_centroid, read_mask,
+                                       segment_classical, segment_oracle)
+from drake_rus.imaging.slicing import slice_volume
+
+DOWN = RotationMatrix(np.diag([1.0, -1.0, -1.0]))   # z_P = -z_B (looking down), x_P = x_B
+
+
+@pytest.fixture(scope="module")
+def geometry():
+    return ProbeGeometry.from_config(ImagingConfig())
+
+
+@pytest.fixture(scope="module")
+def phantom():
+    # Mean-size kidney, no rib/gas, cortex only: the mask is exactly the ellipsoid.
+    return kidney_phantom(None, shape=(140, 180, 140), rib=False, gas=False, with_internal=False)
+
+
+def test_mask_centroid_and_boundary():
+    m = np.zeros((10, 20), bool)
+    m[:, :10] = True
+    assert mask_centroid(m) == pytest.approx(0.25)
+    m2 = np.zeros((10, 20), bool)
+    m2[4, 19] = True
+    assert mask_centroid(m2) == pytest.approx(19.5 / 20)
+    assert mask_centroid(np.zeros((5, 5), bool)) == 0.5
+    sq = np.zeros((10, 10), bool)
+    sq[2:7, 3:8] = True
+    b = boundary_pixels(sq)
+    assert len(b) == 16                     # perimeter of a 5x5 square
+    assert set(map(tuple, b.astype(int))) == {(u, v) for v in range(2, 7) for u in range(3, 8)
+                                             if v in (2, 6) or u in (3, 7)}
+
+
+def test_read_mask_visibility(geometry):
+    m = np.zeros(geometry.image_shape, bool)
+    n_px = int(np.ceil(1.0e-4 / geometry.pixel_area))
+    m.reshape(-1)[geometry.fan_flat_index[:n_px - 1]] = True
+    assert not read_mask(m, geometry, 1.0e-4).visible
+    m.reshape(-1)[geometry.fan_flat_index[n_px - 1]] = True
+    r = read_mask(m, geometry, 1.0e-4)
+    assert r.visible and r.area == pytest.approx(n_px * geometry.pixel_area)
+    empty = read_mask(np.zeros_like(m), geometry, 1.0e-4)
+    assert not empty.visible and empty.centroid == 0.5 and len(empty.boundary) == 0
+
+
+def test_backprojected_boundary_lies_on_the_kidney_surface(geometry, phantom):
+    c = phantom.X_VK.translation()
+    X_BV = RigidTransform([0.2, -0.1, -0.3])   # any placement of the volume in B
+    dists = []
+    cloud = PointCloud()
+    # A transverse sweep: x_P across the body, steps of 10 mm along the body axis y.
+    for k, dy in enumerate(np.arange(-0.04, 0.041, 0.01)):
+        p_V = np.array([c[0], c[1] + dy, phantom.skin_z - 0.003])
+        X_BP = X_BV.multiply(RigidTransform(DOWN, p_V))
+        labels = slice_volume(geometry, phantom.volume, X_BV, X_BP)
+        mask = segment_oracle(labels)
+        assert mask.any()
+        px = boundary_pixels(mask)
+        p_B = backproject_pixels(geometry, px, X_BP)
+        p_Vb = X_BV.inverse().multiply(p_B.T).T
+        dists.append(phantom.kidney_surface_distance(p_Vb))
+        cloud = accumulate(cloud, BoundaryPixels(px, 0.05 * k, X_BP, k), geometry)
+    d = np.concatenate(dists)
+    assert d.mean() < 0.001          # 1 mm voxels: boundary within a pixel of the surface
+    assert np.percentile(d, 95) < 0.0015
+    assert cloud.frame_count == 9 and len(cloud.points) == len(d)
+    assert cloud.poses[3].IsExactlyEqualTo(X_BV.multiply(
+        RigidTransform(DOWN, [c[0], c[1] - 0.01, phantom.skin_z - 0.003])))
+
+
+def test_classical_finds_the_kidney_on_an_emulated_frame(geometry):
+    cfg = ImagingConfig()
+    model = EmulatorModel.from_config(cfg, geometry)
+    ph = kidney_phantom(None, shape=(140, 180, 140), rib=False, gas=False)
+    c = ph.X_VK.translation()
+    X_BP = RigidTransform(DOWN, [c[0], c[1], ph.skin_z - 0.003])
+    labels = slice_volume(geometry, ph.volume, RigidTransform(), X_BP)
+    us = emulate(labels, model, seed=0, frame_index=0)
+    gt = labels >= Label.KIDNEY_CORTEX
+    gt &= labels <= Label.KIDNEY_SINUS
+    pred = segment_classical(us, geometry)
+    assert iou(pred, gt) > 0.35     # the classical backend is weak (see README), not blind
+    # Temporal prior: with two candidate blobs, the one overlapping the previous mask wins.
+    img = np.full(geometry.image_shape, 150, np.uint8)
+    img[~geometry.fan_mask] = 0
+    v, u = np.mgrid[0:256, 0:256]
+    blob_a = (u - 100) ** 2 + (v - 120) ** 2 < 20 ** 2
+    blob_b = (u - 160) ** 2 + (v - 170) ** 2 < 24 ** 2
+    img[blob_a | blob_b] = 60
+    assert iou(segment_classical(img, geometry, prev_mask=blob_a), blob_a) > 0.8
+    assert iou(segment_classical(img, geometry, prev_mask=blob_b), blob_b) > 0.8
+    assert iou(segment_classical(img, geometry), blob_b) > 0.8      # larger one by default
+
+
+def test_iou():
+    a = np.zeros((4, 4), bool)
+    b = a.copy()
+    assert iou(a, b) == 1.0
+    a[0, :2] = True
+    b[0, 1:3] = True
+    assert iou(a, b) == pytest.approx(1 / 3)
