@@ -75,6 +75,14 @@ class SafetyState:
     invisible_since: float = math.nan
     events: tuple = ()
 
+    # Drake clones abstract state values with deepcopy on every update; safety_step never
+    # mutates a stored state in place (it works on a replaced copy), so clones may share it.
+    def __deepcopy__(self, memo):
+        return self
+
+    def __copy__(self):
+        return self
+
 
 def check_faults(u: SafetyInputs, s: SafetyState, cfg) -> tuple[str, str] | None:
     """The first fault present in ``u`` as (reason, detail), or None. Also updates the
@@ -106,13 +114,13 @@ def check_faults(u: SafetyInputs, s: SafetyState, cfg) -> tuple[str, str] | None
         s.last_q = q.copy()
         s.last_q_change = u.t
     elif (np.linalg.norm(u.qdot_desired) > 1e-6
-          and u.t - s.last_q_change > cfg.state_timeout + 1e-9):
+          and u.t - s.last_q_change >= cfg.state_timeout - 1e-9):
         return StopReason.STALE_STATE, (
             f"joint positions unchanged for {u.t - s.last_q_change:.3f} s while moving")
     if u.kidney_visible is not None and u.segmentation_required and not u.kidney_visible:
         if math.isnan(s.invisible_since):
             s.invisible_since = u.t
-        if u.t - s.invisible_since > cfg.segmentation_timeout + 1e-9:
+        if u.t - s.invisible_since >= cfg.segmentation_timeout - 1e-9:
             return StopReason.SEGMENTATION_LOST, (
                 f"kidney invisible for {u.t - s.invisible_since:.3f} s")
     else:

@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from drake_rus.control.laws import angle_between
+from drake_rus.control.laws import angle_between, cross3
 
 
 # ----------------------------------------------------------------------------- eq. 17
@@ -56,7 +56,7 @@ def optimal_pivot_pose(R_BK, p_BK):
         r1 = np.array([1.0, 0.0, 0.0])
         n = 1.0
     r1 = r1 / n
-    r2 = np.cross(r3, r1)
+    r2 = cross3(r3, r1)
     r2 /= np.linalg.norm(r2)
     return np.column_stack([r1, r2, r3]), np.asarray(p_BK, dtype=float).reshape(3).copy()
 
@@ -71,7 +71,7 @@ def rodrigues_pivot_update(a_des, o_des, dtheta: float) -> np.ndarray:
     """
     a = np.asarray(a_des, dtype=float).reshape(3)
     o = np.asarray(o_des, dtype=float).reshape(3)
-    a_new = a * math.cos(dtheta) + np.cross(o, a) * math.sin(dtheta)
+    a_new = a * math.cos(dtheta) + cross3(o, a) * math.sin(dtheta)
     o_hat = o / np.linalg.norm(o)
     a_new = a_new - float(a_new @ o_hat) * o_hat
     return a_new / np.linalg.norm(a_new)
@@ -79,7 +79,7 @@ def rodrigues_pivot_update(a_des, o_des, dtheta: float) -> np.ndarray:
 
 def pivot_rate_vector(a_des, o_des, direction: float, rate: float) -> np.ndarray:
     """d a_des/dt of the pivot sweep (rad/s): direction * rate * (o x a), for eq. 2's K_p11."""
-    return direction * rate * np.cross(np.asarray(o_des, float), np.asarray(a_des, float))
+    return direction * rate * cross3(np.asarray(o_des, float), np.asarray(a_des, float))
 
 
 # ----------------------------------------------------------------------------- supervisor
@@ -115,6 +115,14 @@ class SupervisorState:
     p_star: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, math.nan))
     reason: str = ""
     events: tuple = ()               # (time, phase name, message) transitions
+
+    # Drake clones abstract state values with deepcopy on every update; states are never
+    # mutated in place (supervisor_step works on a copy), so clones may share them.
+    def __deepcopy__(self, memo):
+        return self
+
+    def __copy__(self):
+        return self
 
     def copy(self) -> "SupervisorState":
         return dataclasses.replace(

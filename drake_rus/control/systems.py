@@ -84,27 +84,36 @@ class ForcePD(LeafSystem):
         self._Fdes = self.DeclareVectorInputPort("F_des", 1)
         self._state = self.DeclareDiscreteState(3)
         self._filtered = self.DeclareDiscreteState(1)
-        self.DeclarePeriodicDiscreteUpdateEvent(self._dt, 0.0, self._update)
+        # Unrestricted (not discrete) update so that it runs in the same phase as the safety
+        # layer's and the supervisor's: one evaluation of the station's sensors per period.
+        self.DeclarePeriodicUnrestrictedUpdateEvent(self._dt, 0.0, self._update)
+        self._memo = (None, None)
         self.DeclareVectorOutputPort("v_force", 3, self._calc)
         self.DeclareStateOutputPort("F_filtered", self._filtered)
 
     def _step(self, context):
-        s = context.get_discrete_state(self._state).get_value()
+        s = tuple(context.get_discrete_state(self._state).get_value())
         F = contact_force(self._F.Eval(context))
         F_des = _optional_scalar(self._Fdes, context, self._cfg.desired_force)
         a = _X(self._X, context).rotation().matrix()[:, 2]
+        key = (context.get_time(), s, F, F_des, tuple(a))
+        if self._memo[0] == key:  # output and update in the same period: compute once
+            return self._memo[1]
         if not math.isfinite(F):
-            return np.zeros(3), tuple(s)
-        c = self._cfg
-        return laws.force_pd_step(tuple(s), F, F_des, a, self._dt, self._alpha, c.K_p3, c.K_d1)
+            result = (np.zeros(3), s)
+        else:
+            c = self._cfg
+            result = laws.force_pd_step(s, F, F_des, a, self._dt, self._alpha, c.K_p3, c.K_d1)
+        self._memo = (key, result)
+        return result
 
     def _calc(self, context, output):
         output.SetFromVector(self._step(context)[0])
 
-    def _update(self, context, discrete_state):
+    def _update(self, context, state):
         _, s = self._step(context)
-        discrete_state.set_value(self._state, np.asarray(s, dtype=float))
-        discrete_state.set_value(self._filtered, [s[0]])
+        state.get_mutable_discrete_state(self._state).set_value(np.asarray(s, dtype=float))
+        state.get_mutable_discrete_state(self._filtered).set_value([s[0]])
 
 
 class PositionP(LeafSystem):
