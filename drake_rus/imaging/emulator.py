@@ -29,11 +29,11 @@ from drake_rus.anatomy.labels import Label
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.probe import ProbeGeometry
 
-# Acoustic impedance of the gel-coupled probe face (MRayl): matched to soft tissue.
-Z_PROBE = 1.63
 # Look-up index of coupling gel: air between the face and the skin within ``gel_gap`` of the
 # face (the face's corners above a flat skin) is taken as gel, as on a gel-coupled probe.
 GEL = 255
+# Look-up index standing for the probe face (gel-coupled: impedance of gel) before sample 0.
+PROBE_LABEL = GEL
 
 
 @dataclass(frozen=True)
@@ -154,20 +154,80 @@ class EmulatorModel:
         return int(min(self.samples_per_line, np.ceil(self.gel_gap / self.sample_spacing)))
 
     @cached_property
+    def scan_matrix(self):
+        """Sparse (rows * cols, L * S) bilinear interpolation matrix of the scan conversion;
+        rows of pixels outside the fan are empty (they come out 0)."""
+        import scipy.sparse as sps
+        g = self.geometry
+        i00, wl, ws, S = self.scan_conversion
+        rows = np.repeat(g.fan_flat_index, 4)
+        cols = np.stack([i00, i00 + 1, i00 + S, i00 + S + 1], axis=1).ravel()
+        w = np.stack([(1 - wl) * (1 - ws), (1 - wl) * ws, wl * (1 - ws), wl * ws], axis=1)
+        return sps.csr_matrix((w.ravel().astype(np.float32), (rows, cols)),
+                              shape=(g.height_px * g.width_px,
+                                     self.scan_lines * self.samples_per_line))
+
+    @cached_property
     def tables(self):
         return tissue_tables()
 
     @cached_property
-    def tgc_minus_offset_db(self) -> np.ndarray:
-        """(S,) time-gain compensation (dB, two-way) at every sample depth."""
+    def tgc_db(self) -> np.ndarray:
+        """(S,) time-gain compensation (dB, two-way) plus the overall gain at every depth."""
         d_cm = self.sample_depths * 100.0
-        return (2.0 * self.frequency_mhz * self.tgc_db_per_cm_mhz * d_cm).astype(np.float32)
+        return (2.0 * self.frequency_mhz * self.tgc_db_per_cm_mhz * d_cm
+                + self.gain_db).astype(np.float32)
+
+    @cached_property
+    def pair_luts(self):
+        return pair_tables(self)
+
+    def speckle_bank(self, seed: int) -> np.ndarray:
+        """(2L, 2S) speckle intensities (mean 1) for ``seed``; frames take shifted windows."""
+        bank = self._banks.get(seed)
+        if bank is None:
+            rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, 0x5EC1E])
+            bank = rng.standard_exponential((2 * self.scan_lines, 2 * self.samples_per_line),
+                                            dtype=np.float32)
+            if len(self._banks) > 8:
+                self._banks.clear()
+            self._banks[seed] = bank
+        return bank
+
+    @cached_property
+    def _banks(self) -> dict:
+        return {}
 
 
-def line_intensity(labels_ls: np.ndarray, model: EmulatorModel, speckle: np.ndarray | None
-                   ) -> np.ndarray:
-    """Echo intensity (L, S) (linear, before log compression) of label samples (L, S)."""
-    Z_lut, a_lut, e_lut = model.tables
+def pair_tables(model: "EmulatorModel") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Look-up tables (65536,) indexed by ``prev_label << 8 | label`` of a sample and the one
+    before it on its scan line:
+
+    - ``loss_db``: two-way loss (dB) entering this sample: interface transmission
+      ``-10 log10((1 - r^2)^2)`` plus attenuation ``2 f alpha ds``;
+    - ``diffuse``: backscatter intensity ``echogenicity^2`` of the sample's tissue;
+    - ``specular``: the interface echo ``(interface_gain r)^2`` divided by the interface's
+      own transmission (the echo comes back before crossing it).
+    """
+    Z, a, e = tissue_tables()
+    Zp, Zc = Z[:, None].astype(np.float64), Z[None, :].astype(np.float64)
+    r = np.abs(Zc - Zp) / (Zc + Zp)
+    t2 = (1.0 - r * r) ** 2
+    ds_cm = model.sample_spacing * 100.0
+    loss = -10.0 * np.log10(t2) + 2.0 * model.frequency_mhz * ds_cm * a[None, :]
+    diffuse = np.broadcast_to(e[None, :].astype(np.float64) ** 2, (256, 256))
+    spec = (model.interface_gain * r) ** 2 / t2
+    as32 = lambda x: np.ascontiguousarray(x, dtype=np.float32).reshape(-1)
+    return as32(loss), as32(diffuse), as32(spec)
+
+
+def line_db(labels_ls: np.ndarray, model: "EmulatorModel", speckle: np.ndarray | None
+            ) -> np.ndarray:
+    """Echo level (dB re the brightest parenchyma, float32) of label samples (L, S).
+
+    ``10 log10(diffuse * speckle + specular) - cumulative loss + TGC + gain``: the
+    cumulative two-way loss adds interface transmission and attenuation in dB along the line.
+    """
     n_gel = model.gel_samples
     if n_gel > 0:
         head = labels_ls[:, :n_gel]
@@ -175,39 +235,55 @@ def line_intensity(labels_ls: np.ndarray, model: EmulatorModel, speckle: np.ndar
         if leading_air.any():
             labels_ls = labels_ls.copy()
             labels_ls[:, :n_gel][leading_air] = GEL
-    Z = Z_lut[labels_ls]
-    Z_prev = np.empty_like(Z)
-    Z_prev[:, 0] = Z_PROBE
-    Z_prev[:, 1:] = Z[:, :-1]
-    r = np.abs(Z - Z_prev) / (Z + Z_prev)                 # amplitude reflection coefficient
-    t2 = (1.0 - r * r) ** 2                                 # two-way intensity transmission
-    T_incl = np.cumprod(t2, axis=1)                         # through the interface at s
-    T_excl = np.empty_like(T_incl)
-    T_excl[:, 0] = 1.0
-    T_excl[:, 1:] = T_incl[:, :-1]
-    alpha = a_lut[labels_ls]
-    ds_cm = model.sample_spacing * 100.0
-    att_db = (2.0 * model.frequency_mhz * ds_cm) * (np.cumsum(alpha, axis=1) - 0.5 * alpha)
-    net_db = att_db - model.tgc_minus_offset_db - model.gain_db
-    e = e_lut[labels_ls]
-    diffuse = e * e
+    cur = labels_ls.astype(np.uint16)
+    pair = np.empty_like(cur)
+    pair[:, 0] = PROBE_LABEL << 8
+    pair[:, 1:] = cur[:, :-1] << 8
+    pair |= cur
+    loss_lut, diffuse_lut, spec_lut = model.pair_luts
+    loss = np.take(loss_lut, pair)
+    echo = np.take(diffuse_lut, pair)
     if speckle is not None:
-        diffuse = diffuse * speckle
-    spec = (model.interface_gain * r) ** 2
-    return (T_incl * diffuse + T_excl * spec) * np.power(np.float32(10.0), -net_db / 10.0)
+        echo *= speckle
+    echo += np.take(spec_lut, pair)
+    np.maximum(echo, np.float32(1e-12), out=echo)
+    db = np.log10(echo)
+    db *= np.float32(10.0)
+    db -= np.cumsum(loss, axis=1, dtype=np.float32)
+    db += model.tgc_db
+    return db
+
+
+def line_intensity(labels_ls: np.ndarray, model: "EmulatorModel", speckle: np.ndarray | None
+                   ) -> np.ndarray:
+    """Echo intensity (L, S) (linear, before log compression) of label samples (L, S)."""
+    return np.power(np.float32(10.0), line_db(labels_ls, model, speckle) / np.float32(10.0))
+
+
+def db_to_grey(db: np.ndarray, dynamic_range_db: float) -> np.ndarray:
+    """Echo level (dB) -> grey level in [0, 255] (float32): 0 dB white, -range black."""
+    grey = db + np.float32(dynamic_range_db)
+    grey *= np.float32(255.0 / dynamic_range_db)
+    return np.clip(grey, 0.0, 255.0, out=grey)
 
 
 def log_compress(intensity: np.ndarray, dynamic_range_db: float) -> np.ndarray:
     """Intensity -> grey level in [0, 255] (float32): 0 dB white, -dynamic_range black."""
-    db = 10.0 * np.log10(np.maximum(intensity, 1e-12))
-    return np.clip((db + dynamic_range_db) * (255.0 / dynamic_range_db), 0.0, 255.0)
+    db = 10.0 * np.log10(np.maximum(intensity, 1e-12)).astype(np.float32)
+    return db_to_grey(db, dynamic_range_db)
 
 
 def speckle_field(model: EmulatorModel, seed: int, frame_index: int) -> np.ndarray:
-    """(L, S) fully developed speckle intensity (mean 1) for frame ``frame_index``."""
+    """(L, S) fully developed speckle intensity (exponential, mean 1) for a frame.
+
+    A window of a per-seed bank of 2L x 2S draws, at an offset drawn from (seed, frame), so
+    frames differ without drawing 32k random numbers per frame.
+    """
+    bank = model.speckle_bank(int(seed))
     rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, int(frame_index) & 0xFFFFFFFF])
-    return rng.standard_exponential((model.scan_lines, model.samples_per_line),
-                                    dtype=np.float32)
+    L, S = model.scan_lines, model.samples_per_line
+    i, j = rng.integers(0, L + 1), rng.integers(0, S + 1)
+    return bank[i:i + L, j:j + S]
 
 
 def emulate(label_image: np.ndarray, model: EmulatorModel, seed: int = 0, frame_index: int = 0
@@ -225,22 +301,12 @@ def emulate(label_image: np.ndarray, model: EmulatorModel, seed: int = 0, frame_
     if labels_ls.dtype != np.uint8:
         labels_ls = labels_ls.astype(np.uint8)
     speckle = speckle_field(model, seed, frame_index) if model.speckle else None
-    grey = log_compress(line_intensity(labels_ls, model, speckle), model.dynamic_range_db)
+    grey = db_to_grey(line_db(labels_ls, model, speckle), model.dynamic_range_db)
     return scan_convert(grey, model)
 
 
 def scan_convert(polar: np.ndarray, model: EmulatorModel) -> np.ndarray:
     """Polar grey image (L, S) -> Cartesian uint8 image (rows, cols), bilinear in the fan."""
-    i00, wl, ws, S = model.scan_conversion
-    flat = polar.reshape(-1)
-    a = flat[i00]
-    b = flat[i00 + 1]
-    c = flat[i00 + S]
-    d = flat[i00 + S + 1]
-    top = a + (b - a) * ws
-    bot = c + (d - c) * ws
-    val = top + (bot - top) * wl
-    g = model.geometry
-    image = np.zeros(g.image_shape, dtype=np.uint8)
-    image.reshape(-1)[g.fan_flat_index] = (val + 0.5).astype(np.uint8)
-    return image
+    values = model.scan_matrix @ np.ascontiguousarray(polar, dtype=np.float32).reshape(-1)
+    values += np.float32(0.5)
+    return values.astype(np.uint8).reshape(model.geometry.image_shape)

@@ -189,6 +189,15 @@ class ProbeGeometry:
         p.flags.writeable = False
         return p
 
+    @cached_property
+    def fan_x_z(self) -> tuple[np.ndarray, np.ndarray]:
+        """(x_P, z_P) coordinates (N,) each of the fan pixels' centres (contiguous arrays)."""
+        x = np.ascontiguousarray(self.fan_p_P[:, 0])
+        z = np.ascontiguousarray(self.fan_p_P[:, 2])
+        x.flags.writeable = False
+        z.flags.writeable = False
+        return x, z
+
     def column_of_x(self, x: float) -> float:
         return (x - self.x0) / self.dx
 

@@ -138,13 +138,27 @@ def segment_classical(us_image: np.ndarray, geometry: ProbeGeometry,
         if overlap.max() > 0:
             best = int(np.argmax(overlap)) + 1
     if best is None:
-        # Compactness: area over bounding-box area, times area (prefer big, round blobs).
+        # Score: sqrt(area) x compactness (area / bounding-box area) x the contrast with a
+        # ring around the component (the kidney sits in bright perirenal fat; shadows and
+        # the fan's edges have dark or no surroundings).
         slices = ndimage.find_objects(labels)
         score = np.zeros(n)
         for i, sl in enumerate(slices):
-            if ok[i] and sl is not None:
-                box = (sl[0].stop - sl[0].start) * (sl[1].stop - sl[1].start)
-                score[i] = areas[i] * (areas[i] / (box * geometry.pixel_area * f * f))
+            if not ok[i] or sl is None:
+                continue
+            r0, r1 = max(sl[0].start - 4, 0), sl[0].stop + 4
+            c0, c1 = max(sl[1].start - 4, 0), sl[1].stop + 4
+            comp_i = labels[r0:r1, c0:c1] == i + 1
+            ring = ndimage.binary_dilation(comp_i, iterations=3) & ~comp_i
+            inside_mean = small[r0:r1, c0:c1][comp_i].mean()
+            ring_vals = small[r0:r1, c0:c1][ring & fan[r0:r1, c0:c1]]
+            if len(ring_vals) < 0.5 * ring.sum():
+                continue          # mostly outside the fan: an edge artefact
+            contrast = max(ring_vals.mean() - inside_mean, 0.0) / ref
+            box = (sl[0].stop - sl[0].start) * (sl[1].stop - sl[1].start)
+            score[i] = np.sqrt(areas[i]) * (comp_i.sum() / box) * contrast
+        if score.max() <= 0:
+            return np.zeros(geometry.image_shape, bool)
         best = int(np.argmax(score)) + 1
     comp = labels == best
     grow_px = int(round(grow_m / (f * 0.5 * (geometry.dx + geometry.dz))))

@@ -29,19 +29,47 @@ def sample_labels(volume: LabelVolume, p_V: np.ndarray, outside: int = int(Label
 
 def _lookup(labels: np.ndarray, f: np.ndarray, outside: int) -> np.ndarray:
     """Labels at continuous voxel coordinates ``f`` (N, 3) (voxel centres at integers)."""
-    n0, n1, n2 = labels.shape
-    fi, fj, fk = f[:, 0], f[:, 1], f[:, 2]
-    valid = ((fi > -0.5) & (fi < n0 - 0.5) & (fj > -0.5) & (fj < n1 - 0.5)
-             & (fk > -0.5) & (fk < n2 - 0.5))
-    # Round half up (valid coordinates are > -0.5, so +0.5 then truncation is a floor).
-    i = (fi + 0.5).astype(np.intp)
-    j = (fj + 0.5).astype(np.intp)
-    k = (fk + 0.5).astype(np.intp)
-    flat = (i * n1 + j) * n2 + k
-    np.clip(flat, 0, labels.size - 1, out=flat)
-    out = np.take(labels.reshape(-1), flat)
-    out[~valid] = outside
-    return out
+    padded = padded_labels(labels, outside)
+    return _lookup_padded(padded, f[:, 0], f[:, 1], f[:, 2])
+
+
+_PAD_CACHE: dict = {}
+
+
+def padded_labels(labels: np.ndarray, outside: int = int(Label.OUTSIDE)) -> np.ndarray:
+    """``labels`` (uint8) with a one-voxel border of ``outside``; cached per array, so that
+    out-of-volume samples are found by clipping indices instead of masking."""
+    key = (id(labels), labels.shape, outside)
+    hit = _PAD_CACHE.get(key)
+    if hit is not None and hit[0] is labels:
+        return hit[1]
+    padded = np.pad(np.asarray(labels, dtype=np.uint8), 1, constant_values=outside)
+    if len(_PAD_CACHE) >= 4:
+        _PAD_CACHE.pop(next(iter(_PAD_CACHE)))
+    _PAD_CACHE[key] = (labels, padded)
+    return padded
+
+
+def _lookup_padded(padded: np.ndarray, fi: np.ndarray, fj: np.ndarray, fk: np.ndarray
+                   ) -> np.ndarray:
+    """Nearest labels at voxel coordinates (fi, fj, fk) of the unpadded grid.
+
+    Index in the padded grid = round(f) + 1 = trunc(f + 1.5) for f > -1.5; any f below
+    -0.5 truncates to 0 or less and clips onto the air border, and any f beyond the grid
+    clips onto the far border: no validity masks needed.
+    """
+    m0, m1, m2 = padded.shape
+    i = (fi + 1.5).astype(np.intp)
+    j = (fj + 1.5).astype(np.intp)
+    k = (fk + 1.5).astype(np.intp)
+    np.clip(i, 0, m0 - 1, out=i)
+    np.clip(j, 0, m1 - 1, out=j)
+    np.clip(k, 0, m2 - 1, out=k)
+    i *= m1 * m2
+    j *= m2
+    i += j
+    i += k
+    return np.take(padded.reshape(-1), i)
 
 
 def slice_volume(geometry: ProbeGeometry, volume: LabelVolume, X_BV: RigidTransform,
@@ -61,17 +89,20 @@ def slice_volume(geometry: ProbeGeometry, volume: LabelVolume, X_BV: RigidTransf
     # Voxel coordinates f = (R_VP p_P + p_VP) / h, split so that y_P offsets are cheap.
     A = X_VP.rotation().matrix() / volume.voxel_size
     b = X_VP.translation() / volume.voxel_size
-    p = geometry.fan_p_P
-    f_plane = p[:, 0:1] * A[:, 0] + p[:, 2:3] * A[:, 2] + b   # (N, 3) at y_P = 0
-    labels = volume.labels
-    if labels.dtype != np.uint8:
-        labels = labels.astype(np.uint8)
+    px, pz = geometry.fan_x_z
+    padded = padded_labels(volume.labels)
     offsets = elevation_offsets(geometry.elevation_width, planes)
-    outside = int(Label.OUTSIDE)
+
+    def plane(y: float) -> np.ndarray:
+        c = b + y * A[:, 1]
+        return _lookup_padded(padded, px * A[0, 0] + (pz * A[0, 2] + c[0]),
+                              px * A[1, 0] + (pz * A[1, 2] + c[1]),
+                              px * A[2, 0] + (pz * A[2, 2] + c[2]))
+
     if len(offsets) == 1:
-        values = _lookup(labels, f_plane, outside)
+        values = plane(0.0)
     else:
-        stack = np.stack([_lookup(labels, f_plane + y * A[:, 1], outside) for y in offsets])
+        stack = np.stack([plane(y) for y in offsets])
         if combine == "max":
             values = stack.max(axis=0)
         else:

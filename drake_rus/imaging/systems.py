@@ -104,7 +104,7 @@ class UltrasoundEmulator(LeafSystem):
         self._memo_key = None
         self._memo = empty
         # Warm the precomputed scan-line geometry now, not inside the first simulation step.
-        _ = self._model.polar_to_image_index, self._model.scan_conversion
+        _ = self._model.polar_to_image_index, self._model.scan_matrix, self._model.pair_luts
 
     def _calc(self, context, output):
         frame = self._in.Eval(context)
