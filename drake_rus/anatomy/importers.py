@@ -1,0 +1,424 @@
+"""Real data: patients from surface meshes (STL/OBJ/PLY) or integer label maps (NIfTI/NRRD).
+
+Both routes express everything in the body frame Bd (x left, y superior, z anterior), then
+place the patient frame Pt like the generator: origin on the bed surface (the lowest skin
+point of the torso cross-section at the kidney centroid's level), under the centre of that
+cross-section, at the kidney centroid's level (y_Pt = 0); axes by posture
+(:mod:`drake_rus.anatomy.frames`).
+
+Label volumes of mesh patients: skin -> body (soft tissue), a subcutaneous fat layer and a
+muscle wall measured in-plane from the skin (modelling choice, 15 mm and 12 mm by default:
+real meshes carry no layers), liver, both kidneys; the target kidney's cortex and sinus
+sub-labels are set by depth below its surface (Glodny 2009: cortex 6.6 mm, parenchyma
+15.4 mm). No ribs or gas: the HuBMAP body has none (its README).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from matplotlib.path import Path as MplPath
+from pydrake.math import RigidTransform, RotationMatrix
+from scipy import ndimage
+from skimage import measure
+
+from drake_rus.anatomy.frames import R_BdS, R_PtBd, check_side_posture, transform_mesh
+from drake_rus.anatomy.labels import Label, LabelVolume
+from drake_rus.anatomy.patient import Patient
+from drake_rus.anatomy.rasterize import rasterize_mesh
+
+__all__ = ["patient_from_meshes", "patient_from_label_map", "crop_body_section",
+           "mask_to_mesh", "TOTALSEGMENTATOR_MAPPING", "MAPPING_NAMES", "find_mesh_files",
+           "LABEL_MAP_SUFFIXES", "MESH_SUFFIXES"]
+
+MESH_SUFFIXES = (".stl", ".obj", ".ply", ".off", ".glb")
+LABEL_MAP_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd")
+
+# Names a mapping may use, and the label each becomes (kidneys decided by side).
+MAPPING_NAMES = {
+    "body": Label.SOFT_TISSUE, "soft_tissue": Label.SOFT_TISSUE, "fat": Label.FAT,
+    "muscle": Label.MUSCLE, "liver": Label.LIVER, "bone": Label.BONE, "rib": Label.BONE,
+    "gas": Label.GAS, "vessel": Label.VESSEL, "kidney": Label.KIDNEY_CORTEX,
+    "kidney_right": Label.KIDNEY_CORTEX, "kidney_left": Label.KIDNEY_CORTEX,
+    "kidney_cortex": Label.KIDNEY_CORTEX, "kidney_medulla": Label.KIDNEY_MEDULLA,
+    "kidney_sinus": Label.KIDNEY_SINUS, "ignore": None,
+}
+
+# TotalSegmentator v2, task 'total' class indices (the package's class map), for the labels
+# the ultrasound scene needs. TotalSegmentator has no whole-body label in this task: merge
+# its 'body' task output in as value 200 (or give your own mapping with a 'body' entry).
+TOTALSEGMENTATOR_MAPPING = {
+    2: "kidney_right", 3: "kidney_left", 5: "liver", 23: "kidney_left", 24: "kidney_right",
+    18: "gas", 19: "soft_tissue", 20: "gas",            # bowel: small bowel, duodenum, colon
+    52: "vessel", 63: "vessel", 64: "vessel",           # aorta, IVC, portal/splenic vein
+    86: "muscle", 87: "muscle", 88: "muscle", 89: "muscle",   # autochthon, iliopsoas
+    **{v: "bone" for v in range(25, 51)},               # sacrum, vertebrae
+    **{v: "rib" for v in range(92, 118)},               # ribs 1-12 both sides, sternum, cartilage
+    200: "body",
+}
+
+
+def _fail(msg: str):
+    raise ValueError(msg)
+
+
+def load_mesh(obj, what: str) -> trimesh.Trimesh:
+    """A watertight triangle mesh from a path or trimesh object, with clear errors."""
+    if isinstance(obj, trimesh.Trimesh):
+        m = obj.copy()
+        where = what
+    else:
+        path = Path(obj)
+        where = f"{what} {path}"
+        if not path.is_file():
+            raise FileNotFoundError(f"{what}: file not found: {path}")
+        try:
+            m = trimesh.load(str(path), force="mesh")
+        except Exception as e:
+            _fail(f"{where}: cannot read the mesh ({e})")
+    if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
+        _fail(f"{where}: no triangles in the file")
+    if not m.is_watertight:
+        m.merge_vertices()
+        trimesh.repair.fill_holes(m)
+    if not m.is_watertight:
+        _fail(f"{where}: the mesh is not watertight (holes or non-manifold edges); "
+              "a closed solid surface is needed (e.g. the *_solid.stl files)")
+    if m.volume < 0:
+        m.invert()
+    return m
+
+
+def find_mesh_files(directory: Path, side: str) -> dict:
+    """Kidney/skin/liver mesh files in a directory, by name (e.g. the HuBMAP folder)."""
+    files = [p for p in sorted(Path(directory).iterdir())
+             if p.is_file() and p.name.lower().endswith(MESH_SUFFIXES[:-1])]
+
+    def pick(*keys, avoid=()):
+        for p in files:
+            n = p.name.lower()
+            if all(k in n for k in keys) and not any(a in n for a in avoid):
+                return p
+        return None
+    other = "left" if side == "right" else "right"
+    return {
+        "kidney": pick("kidney", side) or pick("kidney", f"_{side[0]}", avoid=(other,)),
+        "other_kidney": pick("kidney", other),
+        "skin": pick("skin") or pick("body"),
+        "liver": pick("liver"),
+    }
+
+
+def _torso_loop(skin_Bd: trimesh.Trimesh, p: np.ndarray):
+    """The skin cross-section loop (in x-z) at level p[1] that contains p: (N, 2) points."""
+    sec = skin_Bd.section(plane_origin=[0, p[1], 0], plane_normal=[0, 1, 0])
+    if sec is None:
+        _fail("skin mesh: no cross-section at the kidney's level (the skin does not reach it)")
+    best = None
+    for e in sec.entities:
+        xz = sec.vertices[e.points][:, [0, 2]]
+        if len(xz) >= 3 and MplPath(xz).contains_point((p[0], p[2])):
+            area = abs(0.5 * np.sum(xz[:-1, 0] * xz[1:, 1] - xz[1:, 0] * xz[:-1, 1]))
+            if best is None or area < best[0]:
+                best = (area, xz)
+    if best is None:
+        _fail("skin mesh: the kidney is not inside the body surface at its own level "
+              "(check the axes/units of the meshes)")
+    return best[1]
+
+
+def _X_PtBd(skin_Bd, kidney_centroid_Bd, posture) -> RigidTransform:
+    xz = _torso_loop(skin_Bd, kidney_centroid_Bd)
+    y0 = kidney_centroid_Bd[1]
+    R = R_PtBd(posture)
+    if posture == "supine":
+        p = -np.array([0.5 * (xz[:, 0].min() + xz[:, 0].max()), y0, xz[:, 1].min()])
+    else:   # left flank (max x_Bd) on the bed, centre of the section above the origin
+        p = np.array([-0.5 * (xz[:, 1].min() + xz[:, 1].max()), -y0, xz[:, 0].max()])
+    return RigidTransform(RotationMatrix(R), p)
+
+
+def mask_to_mesh(mask: np.ndarray, X_PtV: RigidTransform, voxel_size: float,
+                 sigma_vox: float = 1.0, keep_point=None, what: str = "mask") -> trimesh.Trimesh:
+    """Watertight surface of a binary mask (marching cubes on a smoothed, padded mask).
+    ``keep_point`` (Pt): keep the connected component containing it (else the largest)."""
+    if not mask.any():
+        _fail(f"{what}: empty mask")
+    m = np.pad(mask.astype(np.float32), 2)
+    if sigma_vox > 0:
+        m = ndimage.gaussian_filter(m, sigma_vox)
+    verts, faces, _, _ = measure.marching_cubes(m, 0.5)
+    verts = (verts - 2.0) * voxel_size
+    v_Pt = X_PtV.multiply(verts.T).T
+    mesh = trimesh.Trimesh(v_Pt, faces, process=True)
+    parts = mesh.split(only_watertight=False)
+    if len(parts) > 1:
+        if keep_point is not None:
+            inside = [pt for pt in parts if pt.is_watertight and pt.contains([keep_point])[0]]
+            parts = inside or parts
+        mesh = max(parts, key=lambda q: abs(q.volume) if q.is_watertight else 0.0)
+    trimesh.repair.fix_normals(mesh)
+    if mesh.volume < 0:
+        mesh.invert()
+    if not mesh.is_watertight:
+        _fail(f"{what}: marching cubes did not give a watertight surface")
+    return mesh
+
+
+def _grid_around(meshes_bounds, voxel_size):
+    lo, hi = meshes_bounds
+    shape = np.ceil((hi - lo) / voxel_size).astype(int) + 1
+    return shape, RigidTransform(lo)
+
+
+def _wall_layers(body: np.ndarray, voxel_size: float, fat: float, muscle: float,
+                 axis: int = 1) -> np.ndarray:
+    """Depth (m) below the skin measured in-plane (slices normal to ``axis``) for body voxels."""
+    depth = np.zeros(body.shape, dtype=np.float32)
+    for j in range(body.shape[axis]):
+        sl = [slice(None)] * 3
+        sl[axis] = j
+        b = body[tuple(sl)]
+        if b.any():
+            depth[tuple(sl)] = ndimage.distance_transform_edt(np.pad(b, 1))[1:-1, 1:-1] * voxel_size
+    return depth
+
+
+def _kidney_sublabels(labels, kidney_mask, voxel_size, cortex=0.0066, parenchyma=0.0154):
+    idx = np.argwhere(kidney_mask)
+    lo = np.maximum(idx.min(axis=0) - 2, 0)
+    hi = idx.max(axis=0) + 3
+    sub = kidney_mask[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+    depth = ndimage.distance_transform_edt(sub) * voxel_size
+    lab = labels[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+    lab[sub] = Label.KIDNEY_CORTEX
+    lab[sub & (depth >= parenchyma)] = Label.KIDNEY_SINUS
+    # Medulla: between cortex and sinus (pyramids are not resolved in surface meshes).
+    lab[sub & (depth >= cortex) & (depth < parenchyma)] = Label.KIDNEY_MEDULLA
+
+
+def _mesh_labels(kidney, skin_section, liver, other_kidney, voxel_size, fat, muscle):
+    """Label volume (Pt-aligned grid) of a mesh patient, meshes in Pt."""
+    lo, hi = skin_section.bounds
+    shape, X_PtV = _grid_around((lo - 0.003, hi + 0.003), voxel_size)
+    body = rasterize_mesh(skin_section, shape, X_PtV, voxel_size)
+    labels = np.zeros(shape, dtype=np.uint8)
+    depth = _wall_layers(body, voxel_size, fat, muscle, axis=1)
+    labels[body] = Label.SOFT_TISSUE
+    labels[body & (depth <= fat + muscle)] = Label.MUSCLE
+    labels[body & (depth <= fat)] = Label.FAT
+    if liver is not None:
+        labels[rasterize_mesh(liver, shape, X_PtV, voxel_size) & body] = Label.LIVER
+    if other_kidney is not None:
+        labels[rasterize_mesh(other_kidney, shape, X_PtV, voxel_size) & body] = Label.KIDNEY_CORTEX
+    kmask = rasterize_mesh(kidney, shape, X_PtV, voxel_size)
+    if not kmask.any():
+        _fail("kidney mesh: no voxel of the label grid lies inside it")
+    _kidney_sublabels(labels, kmask, voxel_size)
+    return LabelVolume(labels=labels, voxel_size=voxel_size, X_PtV=X_PtV)
+
+
+def crop_body_section(skin_mesh, center_Pt, half_length_m, voxel_size=0.005):
+    """Watertight body surface between y = center_y -/+ half_length (Pt): the skin is
+    rasterised in that slab, the component containing ``center_Pt`` kept, and re-surfaced
+    with marching cubes (flat caps at both ends)."""
+    c = np.asarray(center_Pt, dtype=float)
+    lo, hi = skin_mesh.bounds.copy()
+    lo[1], hi[1] = c[1] - half_length_m, c[1] + half_length_m
+    shape, X_PtV = _grid_around((lo - voxel_size, hi + voxel_size), voxel_size)
+    body = rasterize_mesh(skin_mesh, shape, X_PtV, voxel_size)
+    y = X_PtV.translation()[1] + voxel_size * np.arange(shape[1])
+    body[:, (y < lo[1]) | (y > hi[1]), :] = False
+    # Keep, slice by slice, the 2-D component containing the kidney's (x, z): the torso
+    # without the arms.
+    ijk = np.round((c - X_PtV.translation()) / voxel_size).astype(int)
+    ci, ck = int(np.clip(ijk[0], 0, shape[0] - 1)), int(np.clip(ijk[2], 0, shape[2] - 1))
+    for j in range(shape[1]):
+        sl = body[:, j, :]
+        if not sl.any():
+            continue
+        lab, n = ndimage.label(sl)
+        if lab[ci, ck] > 0:
+            body[:, j, :] = lab == lab[ci, ck]
+        elif n > 1:
+            sizes = np.bincount(lab.ravel())[1:]
+            body[:, j, :] = lab == (1 + int(np.argmax(sizes)))
+    return mask_to_mesh(body, X_PtV, voxel_size, sigma_vox=0.7, keep_point=c,
+                        what="skin mesh (torso section)")
+
+
+def _assemble(name, side, posture, kidney_Bd, skin_Bd, liver_Bd, other_Bd, meta,
+              voxel_size, fat, muscle, label_volume_Bd=None) -> Patient:
+    c = kidney_Bd.vertices.mean(axis=0)
+    from drake_rus.template.pca import mesh_surface_moments
+    _, c, _ = mesh_surface_moments(kidney_Bd.vertices, kidney_Bd.faces)
+    X_PtBd = _X_PtBd(skin_Bd, c, posture)
+    kidney = transform_mesh(kidney_Bd, X_PtBd)
+    skin = transform_mesh(skin_Bd, X_PtBd)
+    liver = transform_mesh(liver_Bd, X_PtBd) if liver_Bd is not None else None
+    other = transform_mesh(other_Bd, X_PtBd) if other_Bd is not None else None
+    meta = dict(meta)
+    meta["X_PtBd"] = X_PtBd.GetAsMatrix4().tolist()
+    holder = {}
+
+    def torso_builder(h):
+        if h not in holder:
+            holder[h] = crop_body_section(skin, X_PtBd.multiply(c), h)
+        return holder[h]
+
+    if label_volume_Bd is not None:
+        labels_Bd, X_BdV, vs = label_volume_Bd
+
+        def label_builder():
+            return LabelVolume(labels=labels_Bd, voxel_size=vs, X_PtV=X_PtBd.multiply(X_BdV))
+    else:
+        def label_builder():
+            extent = float(np.ptp(kidney.vertices[:, 1])) / 2 + 0.07
+            return _mesh_labels(kidney, torso_builder_fine(extent), liver, other, voxel_size,
+                                fat, muscle)
+
+        def torso_builder_fine(h):
+            return crop_body_section(skin, X_PtBd.multiply(c), h, voxel_size=max(voxel_size, 0.002))
+
+    return Patient(name=name, side=side, posture=posture, kidney_mesh=kidney, skin_mesh=skin,
+                   liver_mesh=liver, label_builder=label_builder, torso_builder=torso_builder,
+                   meta=meta)
+
+
+def patient_from_meshes(kidney, skin, *, liver=None, other_kidney=None, side="right",
+                        posture="supine", axes="LSA", units="auto", name=None,
+                        voxel_size=0.001, fat=0.015, muscle=0.012) -> Patient:
+    check_side_posture(side, posture)
+    km = load_mesh(kidney, "kidney mesh")
+    sm = load_mesh(skin, "skin mesh")
+    lm = load_mesh(liver, "liver mesh") if liver is not None else None
+    om = load_mesh(other_kidney, "other kidney mesh") if other_kidney is not None else None
+    if units == "auto":
+        scale = 0.001 if float(np.ptp(km.vertices, axis=0).max()) > 1.0 else 1.0
+    elif units in ("mm", "m"):
+        scale = 0.001 if units == "mm" else 1.0
+    else:
+        _fail(f"units: expected 'auto', 'mm' or 'm', got {units!r}")
+    R = R_BdS(axes)
+    X = np.eye(4)
+    X[:3, :3] = R * scale
+
+    def to_Bd(m):
+        if m is None:
+            return None
+        m = m.copy()
+        m.apply_transform(X)
+        return m
+    km, sm, lm, om = to_Bd(km), to_Bd(sm), to_Bd(lm), to_Bd(om)
+    ext = float(np.ptp(km.vertices, axis=0).max())
+    if not 0.03 < ext < 0.3:
+        _fail(f"kidney mesh: largest extent {ext * 1e3:.0f} mm after unit conversion "
+              f"(units={units!r}); expected a kidney of 30-300 mm")
+    name = name or (Path(kidney).parent.name if not isinstance(kidney, trimesh.Trimesh) else "meshes")
+    meta = {"source": "meshes", "kidney": str(kidney) if not isinstance(kidney, trimesh.Trimesh) else "mesh",
+            "skin": str(skin) if not isinstance(skin, trimesh.Trimesh) else "mesh",
+            "axes": axes, "units_scale": scale,
+            "layers": {"fat": fat, "muscle": muscle, "note": "modelling choice (no layers in meshes)"}}
+    return _assemble(name, side, posture, km, sm, lm, om, meta, voxel_size, fat, muscle)
+
+
+def _read_label_map(path: Path, voxel_size: float):
+    import SimpleITK as sitk
+    if not path.is_file():
+        raise FileNotFoundError(f"label map: file not found: {path}")
+    try:
+        img = sitk.ReadImage(str(path))
+    except Exception as e:
+        _fail(f"label map {path}: cannot read it ({str(e).strip().splitlines()[-1]})")
+    if img.GetDimension() != 3:
+        _fail(f"label map {path}: expected a 3-D image, got {img.GetDimension()}-D")
+    if img.GetNumberOfComponentsPerPixel() != 1:
+        _fail(f"label map {path}: expected one label per voxel, got "
+              f"{img.GetNumberOfComponentsPerPixel()} components")
+    arr = sitk.GetArrayViewFromImage(img)
+    if not np.issubdtype(arr.dtype, np.integer):
+        a = np.asarray(arr)
+        if not np.all(np.isfinite(a)) or np.any(a != np.round(a)):
+            _fail(f"label map {path}: voxel values are not integer labels (dtype {a.dtype})")
+        img = sitk.Cast(img, sitk.sitkInt32)
+    spacing = np.array(img.GetSpacing())
+    target = voxel_size * 1000.0
+    if np.any(np.abs(spacing - target) > 1e-6):
+        size = np.round(np.array(img.GetSize()) * spacing / target).astype(int).tolist()
+        img = sitk.Resample(img, size, sitk.Transform(), sitk.sitkNearestNeighbor,
+                            img.GetOrigin(), [target] * 3, img.GetDirection(), 0,
+                            img.GetPixelID())
+    labels = sitk.GetArrayFromImage(img).transpose(2, 1, 0)     # (i, j, k)
+    D = np.array(img.GetDirection()).reshape(3, 3)               # columns: index axes in LPS
+    origin = np.array(img.GetOrigin()) / 1000.0
+    if np.linalg.det(D) < 0:                                     # make the grid right-handed
+        labels = labels[:, :, ::-1]
+        origin = origin + D[:, 2] * voxel_size * (labels.shape[2] - 1)
+        D[:, 2] *= -1
+    return np.ascontiguousarray(labels), D, origin
+
+
+def patient_from_label_map(path, mapping="totalsegmentator", *, side="right",
+                           posture="supine", name=None, voxel_size=0.001,
+                           fat=0.015, muscle=0.012) -> Patient:
+    check_side_posture(side, posture)
+    path = Path(path)
+    if isinstance(mapping, str):
+        if mapping.lower() != "totalsegmentator":
+            _fail(f"mapping: unknown preset {mapping!r}; use 'totalsegmentator' or a dict "
+                  "{label value: name}")
+        mapping = TOTALSEGMENTATOR_MAPPING
+    mapping = {int(k): str(v).lower() for k, v in dict(mapping).items()}
+    for k, v in mapping.items():
+        if v not in MAPPING_NAMES:
+            _fail(f"mapping: unknown label name {v!r} for value {k}; known names: "
+                  f"{', '.join(sorted(MAPPING_NAMES))}")
+    raw, D, origin = _read_label_map(path, voxel_size)
+    present = set(np.unique(raw).tolist()) - {0}
+    if not present:
+        _fail(f"label map {path}: empty (no nonzero labels)")
+    target_names = (f"kidney_{side}", "kidney")
+    kid_vals = [k for k, v in mapping.items() if v in target_names and k in present]
+    if not kid_vals:
+        _fail(f"label map {path}: no voxels of the {side} kidney (values mapped to "
+              f"{' or '.join(target_names)}: "
+              f"{[k for k, v in mapping.items() if v in target_names] or 'none'})")
+    body_vals = [k for k, v in mapping.items() if v == "body" and k in present]
+    if not body_vals:
+        _fail(f"label map {path}: no body label (a value mapped to 'body'); the skin surface "
+              "cannot be found without it (TotalSegmentator: merge the 'body' task as 200)")
+    kidney_mask = np.isin(raw, kid_vals)
+    body = np.isin(raw, body_vals) | np.isin(raw, [k for k, v in mapping.items()
+                                                   if v not in ("ignore",) and k in present])
+    body = ndimage.binary_fill_holes(body)
+    labels = np.zeros(raw.shape, dtype=np.uint8)
+    labels[body] = Label.SOFT_TISSUE
+    depth = _wall_layers(body, voxel_size, fat, muscle, axis=int(np.argmax(np.abs(D[2]))))
+    labels[body & (depth <= fat + muscle)] = Label.MUSCLE
+    labels[body & (depth <= fat)] = Label.FAT
+    for k, v in mapping.items():
+        lab = MAPPING_NAMES[v]
+        if k in present and lab is not None and v not in ("body", "soft_tissue") \
+                and k not in kid_vals:
+            labels[(raw == k) & body] = lab
+    if not any(v in ("kidney_medulla", "kidney_sinus") for v in mapping.values()):
+        _kidney_sublabels(labels, kidney_mask, voxel_size)
+    else:
+        labels[kidney_mask] = Label.KIDNEY_CORTEX
+    # Grid frame V in LPS, then in Bd.
+    R_BdLPS = R_BdS("LPS")
+    X_BdV = RigidTransform(RotationMatrix(R_BdLPS @ D), R_BdLPS @ origin)
+    kidney_Bd = mask_to_mesh(kidney_mask, X_BdV, voxel_size, sigma_vox=1.0, what=f"{path}: kidney")
+    coarse = max(1, int(round(0.003 / voxel_size)))
+    body_c = body[::coarse, ::coarse, ::coarse]
+    skin_Bd = mask_to_mesh(body_c, X_BdV, voxel_size * coarse, sigma_vox=0.7,
+                           keep_point=None, what=f"{path}: body")
+    liver_vals = [k for k, v in mapping.items() if v == "liver" and k in present]
+    liver_Bd = (mask_to_mesh(np.isin(raw, liver_vals), X_BdV, voxel_size, what=f"{path}: liver")
+                if liver_vals else None)
+    meta = {"source": "label_map", "path": str(path), "mapping_values_present": sorted(present),
+            "layers": {"fat": fat, "muscle": muscle, "note": "modelling choice"}}
+    return _assemble(name or path.name, side, posture, kidney_Bd, skin_Bd, liver_Bd, None, meta,
+                     voxel_size, fat, muscle, label_volume_Bd=(labels, X_BdV, voxel_size))

@@ -1,0 +1,212 @@
+"""The Patient: label volume, kidney and skin meshes and the true kidney pose, in the patient
+frame Pt (the bed frame, see :mod:`drake_rus.anatomy.frames`).
+
+Generated patients (:mod:`drake_rus.anatomy.generator`) and imported ones
+(:meth:`Patient.from_meshes`, :meth:`Patient.from_label_map`) give the same object.
+The label volume is built lazily, on first access of ``patient.labels`` (a few seconds at 1 mm),
+so cohort statistics and the template builder never pay for it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import trimesh
+from pydrake.math import RigidTransform
+
+from drake_rus.anatomy.frames import reference_axes_Pt, check_side_posture, transform_mesh
+from drake_rus.anatomy.labels import LabelVolume
+from drake_rus.template.pca import mesh_canonical_frame, extents_in_frame
+
+__all__ = ["Patient", "vertical_depth", "kidney_metrics"]
+
+
+def _check_mesh(mesh, what: str) -> trimesh.Trimesh:
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise ValueError(f"{what}: expected a trimesh.Trimesh, got {type(mesh).__name__}")
+    if len(mesh.faces) == 0:
+        raise ValueError(f"{what}: the mesh is empty")
+    if not mesh.is_watertight:
+        raise ValueError(f"{what}: the mesh is not watertight (holes or non-manifold edges)")
+    return mesh
+
+
+def vertical_depth(kidney_mesh: trimesh.Trimesh, skin_mesh: trimesh.Trimesh,
+                   point=None) -> float:
+    """Depth (m) of the kidney below the upper skin surface, along the vertical (-z_Pt) line
+    through ``point`` (default: the kidney's surface centroid): top skin hit minus top kidney
+    hit. This is what a probe on the upper surface pointing straight down must see through."""
+    if point is None:
+        point = kidney_mesh.vertices.mean(axis=0)
+    p = np.asarray(point, dtype=float)
+    top = max(skin_mesh.bounds[1, 2], kidney_mesh.bounds[1, 2]) + 1.0
+    origin = np.array([[p[0], p[1], top]])
+    direction = np.array([[0.0, 0.0, -1.0]])
+    hits_s, _, _ = skin_mesh.ray.intersects_location(origin, direction, multiple_hits=True)
+    hits_k, _, _ = kidney_mesh.ray.intersects_location(origin, direction, multiple_hits=True)
+    if len(hits_s) == 0 or len(hits_k) == 0:
+        return float("nan")
+    return float(hits_s[:, 2].max() - hits_k[:, 2].max())
+
+
+def _min_distance_to_surface(points: np.ndarray, mesh: trimesh.Trimesh, n_exact: int = 16) -> float:
+    """Shortest distance (m) from any of ``points`` to the surface ``mesh``: a k-d tree on
+    triangle centroids picks the closest candidates, exact point-triangle distances decide."""
+    from scipy.spatial import cKDTree
+    tri = mesh.triangles
+    cent = tri.mean(axis=1)
+    tree = cKDTree(cent)
+    d, _ = tree.query(points)
+    best = np.inf
+    edge = float(np.linalg.norm(tri[:, 0] - tri[:, 1], axis=1).max())
+    for p in points[np.argsort(d)[:n_exact]]:
+        ids = tree.query_ball_point(p, float(d.min()) + edge)
+        if not ids:
+            continue
+        cp = trimesh.triangles.closest_point(tri[ids], np.repeat(p[None], len(ids), axis=0))
+        best = min(best, float(np.linalg.norm(cp - p, axis=1).min()))
+    return best
+
+
+def kidney_metrics(kidney_mesh, skin_mesh, X_PtK: RigidTransform, posture: str) -> dict:
+    """Length, width, thickness (canonical extents), volume, depths and axis angles (SI)."""
+    ext = extents_in_frame(kidney_mesh.vertices, X_PtK)
+    R = X_PtK.rotation().matrix()
+    x_k = R[:, 0]
+    # Angles of the long axis in the body frame (supine reference pose).
+    from drake_rus.anatomy.frames import R_PtBd
+    x_Bd = R_PtBd(posture).T @ x_k
+    coronal = np.arctan2(abs(x_Bd[0]), x_Bd[1])     # off craniocaudal, in the coronal plane
+    sagittal = np.arctan2(-x_Bd[2], x_Bd[1])         # > 0: upper pole posterior
+    dist = _min_distance_to_surface(kidney_mesh.vertices, skin_mesh)
+    return {
+        "length": float(ext[0]), "width": float(ext[1]), "thickness": float(ext[2]),
+        "volume": float(kidney_mesh.volume),
+        "depth_vertical": vertical_depth(kidney_mesh, skin_mesh),
+        "depth_min": dist,
+        "coronal_angle": float(coronal), "sagittal_angle": float(sagittal),
+        "centroid_Pt": X_PtK.translation().tolist(),
+    }
+
+
+class Patient:
+    """A virtual or imported patient, everything in the patient frame Pt (m).
+
+    Attributes: ``name``, ``side`` ("right"/"left": the target kidney), ``posture``
+    ("supine"/"left_lateral_decubitus"), ``kidney_mesh`` and ``skin_mesh`` (watertight
+    trimesh, Pt, m), ``X_PtK`` (true canonical kidney frame, eq. 13-14 on the kidney surface),
+    ``labels`` (:class:`LabelVolume`, lazily built), ``meta`` (parameters, provenance).
+    """
+
+    def __init__(self, *, name: str, side: str, posture: str, kidney_mesh, skin_mesh,
+                 labels: LabelVolume | None = None,
+                 label_builder: Callable[[], LabelVolume] | None = None,
+                 torso_builder: Callable[[float], trimesh.Trimesh] | None = None,
+                 kidney_mask_builder: Callable[[float], tuple] | None = None,
+                 liver_mesh=None, meta: dict | None = None, X_PtK: RigidTransform | None = None):
+        check_side_posture(side, posture)
+        self.name = name
+        self.side = side
+        self.posture = posture
+        self.kidney_mesh = _check_mesh(kidney_mesh, f"{name}: kidney mesh")
+        self.skin_mesh = _check_mesh(skin_mesh, f"{name}: skin mesh")
+        self.liver_mesh = liver_mesh
+        self.meta = dict(meta or {})
+        if labels is None and label_builder is None:
+            raise ValueError(f"{name}: a Patient needs labels or a label builder")
+        self._labels = labels
+        self._label_builder = label_builder
+        self._torso_builder = torso_builder
+        self._kidney_mask_builder = kidney_mask_builder
+        x_ref, y_ref = reference_axes_Pt(side, posture)
+        self.X_PtK = X_PtK if X_PtK is not None else mesh_canonical_frame(
+            self.kidney_mesh, x_ref, y_ref)
+
+    # --- lazily built parts ----------------------------------------------------------------
+    @property
+    def labels(self) -> LabelVolume:
+        if self._labels is None:
+            self._labels = self._label_builder()
+        return self._labels
+
+    @property
+    def has_labels(self) -> bool:
+        return self._labels is not None
+
+    def reference_axes(self):
+        """(x_ref, y_ref) in Pt for the canonical-frame sign rules."""
+        return reference_axes_Pt(self.side, self.posture)
+
+    def X_BK(self, X_BPt: RigidTransform) -> RigidTransform:
+        """True kidney pose in the robot base frame for the patient placement X_BPt."""
+        return X_BPt.multiply(self.X_PtK)
+
+    def torso_section(self, half_length_m: float = 0.15) -> trimesh.Trimesh:
+        """Watertight body surface between the kidney centroid's level -/+ ``half_length_m``
+        (along y_Pt): the compliant contact body of the simulated station."""
+        if not (np.isfinite(half_length_m) and half_length_m > 0):
+            raise ValueError(f"half_length_m: expected a positive length in m, got {half_length_m}")
+        if self._torso_builder is not None:
+            return self._torso_builder(half_length_m)
+        from drake_rus.anatomy.importers import crop_body_section
+        return crop_body_section(self.skin_mesh, self.X_PtK.translation(), half_length_m)
+
+    def kidney_mask(self, voxel_size: float = 0.001):
+        """Binary mask of the target kidney on a Pt-aligned grid around it: (mask, X_PtV), voxel
+        (i, j, k) centred at X_PtV * (voxel_size * [i, j, k]) like :class:`LabelVolume`."""
+        if self._kidney_mask_builder is not None:
+            return self._kidney_mask_builder(voxel_size)
+        from drake_rus.anatomy.rasterize import mesh_mask_on_aligned_grid
+        return mesh_mask_on_aligned_grid(self.kidney_mesh, voxel_size, margin=3 * voxel_size)
+
+    def metrics(self) -> dict:
+        """Kidney length, width, thickness, volume, depth below the skin, axis angles (SI)."""
+        if "_metrics" not in self.__dict__:
+            self._metrics = kidney_metrics(self.kidney_mesh, self.skin_mesh, self.X_PtK,
+                                           self.posture)
+            for key in ("hilum_angle",):
+                if key in self.meta:
+                    self._metrics[key] = self.meta[key]
+        return self._metrics
+
+    def transformed(self, X: RigidTransform):
+        """Meshes expressed in another frame F given X_FPt (for pictures)."""
+        return transform_mesh(self.kidney_mesh, X), transform_mesh(self.skin_mesh, X)
+
+    # --- importers (same object as the generator) -----------------------------------------
+    @staticmethod
+    def from_meshes(kidney, skin, *, liver=None, other_kidney=None, side: str = "right",
+                    posture: str = "supine", axes: str = "LSA", units: str = "auto",
+                    name: str | None = None, voxel_size: float = 0.001) -> "Patient":
+        """A patient from surface meshes (STL/OBJ/PLY paths or trimesh objects) given in a
+        body-fixed frame whose axes point to the anatomical directions ``axes`` (default
+        "LSA": +x left, +y superior, +z anterior, the glTF/HuBMAP body frame)."""
+        from drake_rus.anatomy.importers import patient_from_meshes
+        return patient_from_meshes(kidney, skin, liver=liver, other_kidney=other_kidney,
+                                   side=side, posture=posture, axes=axes, units=units,
+                                   name=name, voxel_size=voxel_size)
+
+    @staticmethod
+    def from_label_map(path, mapping="totalsegmentator", *, side: str = "right",
+                       posture: str = "supine", name: str | None = None,
+                       voxel_size: float = 0.001) -> "Patient":
+        """A patient from a NIfTI/NRRD (any SimpleITK-readable) integer label map.
+
+        ``mapping``: "totalsegmentator" (v2 'total' class indices; needs a body label from
+        the 'body' task merged in as value 200, or pass a dict), or a dict
+        {label value: name}, names from :data:`drake_rus.anatomy.importers.MAPPING_NAMES`.
+        """
+        from drake_rus.anatomy.importers import patient_from_label_map
+        return patient_from_label_map(path, mapping, side=side, posture=posture, name=name,
+                                      voxel_size=voxel_size)
+
+    def export(self, out_dir, fmt: str = "nrrd") -> list[Path]:
+        """Writes the label volume (NRRD or NIfTI) and kidney/skin meshes (STL, mm) for 3D
+        Slicer. Returns the written paths."""
+        from drake_rus.anatomy.export import export_patient
+        return export_patient(self, out_dir, fmt)
+
+    def __repr__(self):
+        return f"Patient({self.name!r}, side={self.side}, posture={self.posture})"
