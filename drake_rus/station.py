@@ -426,6 +426,9 @@ def MakeSimStation(scenario: Scenario, meshcat: Meshcat | None = None, *, patien
     builder.Connect(plant.get_contact_results_output_port(), truth.get_input_port(0))
     builder.Connect(fk.get_output_port(), truth.get_input_port(1))
 
+    if patient is not None:
+        _AddImaging(builder, scenario, patient, fk)
+
     if meshcat is not None:
         MeshcatVisualizer.AddToBuilder(
             builder, scene_graph, meshcat,
@@ -450,6 +453,32 @@ def MakeSimStation(scenario: Scenario, meshcat: Meshcat | None = None, *, patien
     diagram = builder.Build()
     diagram.set_name(name)
     return diagram
+
+
+def _AddImaging(builder: DiagramBuilder, scenario: Scenario, patient, fk) -> None:
+    """Slice sensor + ultrasound emulator on the patient's label volume (sim only).
+
+    Exports ``us_image`` (abstract UsFrame, grey uint8, stamped with time and X_BP), and the
+    ground truth ``label_image`` (abstract UsFrame, tissue labels) and ``X_BK_true``
+    (abstract RigidTransform, the true canonical kidney frame in B).
+    """
+    from pydrake.systems.primitives import ConstantValueSource
+
+    from drake_rus.imaging.systems import SliceSensor, UltrasoundEmulator
+
+    X_BPt = scenario.patient.X_BPt.GetDeterministicValue()
+    volume = patient.labels
+    X_BV = X_BPt @ volume.X_PtV
+    sensor = builder.AddNamedSystem("slice_sensor", SliceSensor(scenario.imaging, volume, X_BV))
+    builder.Connect(fk.get_output_port(), sensor.GetInputPort("X_BP"))
+    emulator = builder.AddNamedSystem(
+        "ultrasound_emulator", UltrasoundEmulator(scenario.imaging, scenario.random_seed))
+    builder.Connect(sensor.GetOutputPort("label_image"), emulator.GetInputPort("label_image"))
+    builder.ExportOutput(emulator.GetOutputPort("us_image"), "us_image")
+    builder.ExportOutput(sensor.GetOutputPort("label_image"), "label_image")
+    X_BK = builder.AddNamedSystem(
+        "X_BK_true", ConstantValueSource(AbstractValue.Make(patient.X_BK(X_BPt))))
+    builder.ExportOutput(X_BK.get_output_port(), "X_BK_true")
 
 
 def _geometry_frame_map(plant, scene_graph) -> dict:
