@@ -20,6 +20,7 @@ from pydrake.common.yaml import yaml_load_file, yaml_load_typed
 
 from drake_rus.config_schema import ScenarioError, check_dataclass_values, validate
 from drake_rus.control.config import ControllerConfig, SafetyConfig
+from drake_rus.hardware.config import HardwareConfig
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.paths import DIAGRAMS_DIR
 
@@ -143,6 +144,7 @@ class Scenario:
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     # false: simulated station; true: a real FR3 and ultrasound machine.
     hardware: bool = False
+    hardware_interface: HardwareConfig = field(default_factory=HardwareConfig)
     # Default duration of a run (s).
     simulation_duration: float = field(default=10.0, metadata={"positive": True})
     # Seed of every random draw in a run (noise, speckle, starts).
