@@ -22,6 +22,7 @@ from drake_rus.config_schema import ScenarioError, check_dataclass_values, valid
 from drake_rus.control.config import ControllerConfig, SafetyConfig
 from drake_rus.hardware.config import HardwareConfig
 from drake_rus.imaging.config import ImagingConfig
+from drake_rus.localization.config import LocalizationConfig
 from drake_rus.paths import DIAGRAMS_DIR
 
 __all__ = [
@@ -140,6 +141,7 @@ class Scenario:
     patient: PatientConfig = field(default_factory=PatientConfig)
     contact: ContactConfig = field(default_factory=ContactConfig)
     imaging: ImagingConfig = field(default_factory=ImagingConfig)
+    localization: LocalizationConfig = field(default_factory=LocalizationConfig)
     controller: ControllerConfig = field(default_factory=ControllerConfig)
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     # false: simulated station; true: a real FR3 and ultrasound machine.

@@ -1,0 +1,38 @@
+"""Scenario section ``localization``: registration method and its parameters (seed II-F)."""
+
+from dataclasses import dataclass, field
+
+
+@dataclass
+class LocalizationConfig:
+    # "seed": the paper's rigid constrained plane-to-plane ICP on the mean template;
+    # "deformable": pose and the template's first shape modes fitted together (MAP, the
+    # statistical shape model's variances as the prior): the seed's stated future work.
+    method: str = field(default="deformable", metadata={"choices": ["seed", "deformable"]})
+    # Template file (absolute, or relative to the repository root).
+    template: str = "models/kidney_template.npz"
+    # Per-iteration clamp of each rotation-increment component (deg), eq. 19.
+    theta_max_deg: float = field(default=2.0, metadata={"positive": True, "max": 45.0})
+    # Stop when the mean squared projection error changes by less than this (m^2): the
+    # seed's 1e-5 mm^2.
+    error_change_tol: float = field(default=1e-11, metadata={"positive": True})
+    max_iterations: int = field(default=200, metadata={"min": 1})
+    # Initial translation: "centroid" (partial cloud centroid on the template origin) or
+    # "zero" (the seed's t0 = 0); see drake_rus/localization/icp.py.
+    init_translation: str = field(default="centroid", metadata={"choices": ["centroid", "zero"]})
+    # Pairs farther apart than this are left out of each solve (m); 0 = keep all (the seed).
+    max_correspondence_distance: float = field(default=0.0, metadata={"min": 0.0})
+    # Deformable method: number of shape modes used (at most those in the template) and the
+    # residual variance weighing data against the shape prior (m^2).
+    shape_modes: int = field(default=3, metadata={"min": 0})
+    shape_residual_variance: float = field(default=1e-6, metadata={"positive": True})
+    # Partial clouds are thinned to at most this many points before registration.
+    max_points: int = field(default=4000, metadata={"min": 6})
+    # Adaptive exploration (beyond the seed): stop exploring once two successive estimates,
+    # computed every ``adaptive_period`` s of exploration, differ by less than these.
+    adaptive_exploration: bool = False
+    adaptive_period: float = field(default=1.0, metadata={"positive": True})
+    adaptive_translation_tol: float = field(default=0.002, metadata={"positive": True})
+    adaptive_rotation_tol_deg: float = field(default=2.0, metadata={"positive": True})
+    # Minimum exploration (fraction of L_m) before the adaptive stop may trigger.
+    adaptive_min_ratio: float = field(default=0.3, metadata={"min": 0.0, "max": 1.0})

@@ -1,0 +1,165 @@
+"""Kidney localization: partial cloud + template -> T_k^b (seed II-F), seed or deformable.
+
+``localize`` is the plain function (kinematic studies call it directly); ``IcpLocalizer`` is
+the LeafSystem the scan supervisor triggers in its LOCALIZE phase.
+"""
+
+import dataclasses
+import time
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.math import RigidTransform
+from pydrake.systems.framework import EventStatus, LeafSystem
+from scipy.spatial import cKDTree
+
+from drake_rus.localization.config import LocalizationConfig
+from drake_rus.localization.icp import (
+    IcpResult, heuristic_initial_rotation, register_plane_to_plane)
+from drake_rus.paths import REPO_ROOT
+
+
+@dataclasses.dataclass
+class RegistrationTemplate:
+    """Template points/normals in the canonical frame K (m) and its shape modes."""
+    points: np.ndarray                 # (N, 3)
+    normals: np.ndarray                # (N, 3) unit outward normals
+    modes: np.ndarray | None = None    # (n_modes, N, 3) displacement fields (m per unit b)
+    variances: np.ndarray | None = None  # (n_modes,) variances of the mode weights
+    tree: cKDTree | None = None
+
+    def __post_init__(self):
+        self.points = np.asarray(self.points, dtype=float)
+        self.normals = np.asarray(self.normals, dtype=float)
+        if self.modes is not None:
+            modes = np.asarray(self.modes, dtype=float)
+            self.modes = modes.reshape(modes.shape[0], -1, 3)
+            self.variances = np.asarray(self.variances, dtype=float).reshape(-1)
+        self.tree = cKDTree(self.points)
+
+
+def load_registration_template(path: str | None = None) -> RegistrationTemplate:
+    """Loads the kidney template (``models/kidney_template.npz`` by default)."""
+    from drake_rus.template import load_template
+    resolved = None
+    if path is not None:
+        resolved = path if str(path).startswith("/") else str(REPO_ROOT / path)
+    template = load_template(resolved)
+    modes = getattr(template, "modes", None)
+    variances = getattr(template, "variances", None)
+    if modes is not None and len(modes) == 0:
+        modes, variances = None, None
+    return RegistrationTemplate(template.points, template.normals, modes, variances)
+
+
+def body_directions_B(X_BPt: RigidTransform, side: str, posture: str):
+    """(superior_B, lateral_B): the body's head direction and the kidney's medial->lateral
+    direction in the robot base, from the patient's placement and posture (known at the
+    bedside, so usable on hardware)."""
+    from drake_rus.anatomy.frames import reference_axes_Pt
+    x_ref, y_ref = reference_axes_Pt(side, posture)
+    R_BPt = X_BPt.rotation().matrix()
+    return R_BPt @ x_ref, R_BPt @ y_ref
+
+
+def thin_cloud(points: np.ndarray, max_points: int, seed: int = 0) -> np.ndarray:
+    """At most ``max_points`` of ``points``, a deterministic uniform random subset."""
+    points = np.asarray(points, dtype=float)
+    if len(points) <= max_points:
+        return points
+    rng = np.random.default_rng(seed)
+    return points[np.sort(rng.choice(len(points), max_points, replace=False))]
+
+
+def localize(P_local_B: np.ndarray, template: RegistrationTemplate, config: LocalizationConfig,
+             superior_B, lateral_B) -> IcpResult:
+    """T_k^b from the partial cloud with ``config.method`` ("seed" or "deformable")."""
+    P = thin_cloud(P_local_B, config.max_points)
+    R0 = heuristic_initial_rotation(superior_B, lateral_B)
+    kwargs = dict(
+        init_translation=config.init_translation, theta_max=np.deg2rad(config.theta_max_deg),
+        error_change_tol=config.error_change_tol, max_iterations=config.max_iterations,
+        max_correspondence_distance=config.max_correspondence_distance or np.inf)
+    if config.method == "deformable" and template.modes is not None and config.shape_modes > 0:
+        k = min(config.shape_modes, template.modes.shape[0])
+        return register_plane_to_plane(
+            P, template.points, template.normals, R0, shape_modes_K=template.modes[:k],
+            shape_variances=template.variances[:k],
+            shape_regularization=config.shape_residual_variance, **kwargs)
+    return register_plane_to_plane(P, template.points, template.normals, R0,
+                                   template_tree=template.tree, **kwargs)
+
+
+@dataclasses.dataclass
+class LocalizationOutcome:
+    """What the localizer produced: the estimate, diagnostics and its compute time."""
+    result: IcpResult | None = None
+    n_points: int = 0
+    compute_s: float = 0.0
+    time: float = -1.0       # simulation time (s) the estimate was made
+    error: str = ""          # why no estimate (too few points, ...)
+
+
+class IcpLocalizer(LeafSystem):
+    """Registers the explored cloud when the supervisor enters LOCALIZE.
+
+    Inputs: ``point_cloud`` (abstract PointCloud: points (N, 3) in B, m), ``phase``
+    (1-vector, the supervisor's phase; LOCALIZE triggers one registration).
+    Outputs: ``X_BK`` (abstract RigidTransform: estimated canonical kidney frame in B, the
+    heuristic initial guess until an estimate exists), ``localization_ready`` (1-vector: 1
+    once the estimate is final), ``localization`` (abstract LocalizationOutcome).
+    """
+
+    def __init__(self, template: RegistrationTemplate, config: LocalizationConfig,
+                 superior_B, lateral_B, localize_phase: int, rate_hz: float = 20.0,
+                 min_points: int = 50):
+        super().__init__()
+        from drake_rus.imaging.frames import PointCloud
+        self._template = template
+        self._config = config
+        self._superior_B = np.asarray(superior_B, dtype=float)
+        self._lateral_B = np.asarray(lateral_B, dtype=float)
+        self._phase = localize_phase
+        self._min_points = min_points
+        self._cloud = self.DeclareAbstractInputPort("point_cloud", AbstractValue.Make(PointCloud()))
+        self._phase_port = self.DeclareVectorInputPort("phase", 1)
+        initial = RigidTransform(heuristic_initial_rotation(self._superior_B, self._lateral_B),
+                                 np.zeros(3))
+        self._X = self.DeclareAbstractState(AbstractValue.Make(initial))
+        self._outcome = self.DeclareAbstractState(AbstractValue.Make(LocalizationOutcome()))
+        self.DeclarePeriodicUnrestrictedUpdateEvent(1.0 / rate_hz, 0.0, self._update)
+        self.DeclareAbstractOutputPort(
+            "X_BK", lambda: AbstractValue.Make(RigidTransform()),
+            lambda c, o: o.set_value(c.get_abstract_state(self._X).get_value()),
+            prerequisites_of_calc={self.abstract_state_ticket(self._X)})
+        self.DeclareVectorOutputPort(
+            "localization_ready", 1,
+            lambda c, o: o.SetAtIndex(0, float(
+                c.get_abstract_state(self._outcome).get_value().result is not None)),
+            prerequisites_of_calc={self.abstract_state_ticket(self._outcome)})
+        self.DeclareAbstractOutputPort(
+            "localization", lambda: AbstractValue.Make(LocalizationOutcome()),
+            lambda c, o: o.set_value(c.get_abstract_state(self._outcome).get_value()),
+            prerequisites_of_calc={self.abstract_state_ticket(self._outcome)})
+
+    def _update(self, context, state):
+        outcome = context.get_abstract_state(self._outcome).get_value()
+        if outcome.result is not None or outcome.error:
+            return EventStatus.DidNothing()
+        if int(round(self._phase_port.Eval(context)[0])) != self._phase:
+            return EventStatus.DidNothing()
+        points = self._cloud.Eval(context).points
+        if len(points) < self._min_points:
+            state.get_mutable_abstract_state(self._outcome).set_value(LocalizationOutcome(
+                n_points=len(points), time=context.get_time(),
+                error=f"only {len(points)} kidney boundary points were explored "
+                      f"(need {self._min_points})"))
+            return EventStatus.Succeeded()
+        start = time.perf_counter()
+        result = localize(points, self._template, self._config, self._superior_B,
+                          self._lateral_B)
+        state.get_mutable_abstract_state(self._X).set_value(result.X_BK)
+        state.get_mutable_abstract_state(self._outcome).set_value(LocalizationOutcome(
+            result=result, n_points=len(points), compute_s=time.perf_counter() - start,
+            time=context.get_time()))
+        return EventStatus.Succeeded()
