@@ -63,7 +63,7 @@ class ImagingConfig:
     onnx_model: str = "models/segmenter/kidney_unet.onnx"
     # Model input shape (N, C, H, W); N may be 1. The grey image (0-255) is resized to H x W,
     # scaled to [0, 1], then normalised as (x - mean) / std, and repeated over C channels.
-    onnx_input_shape: list[int] = field(default_factory=lambda: [1, 1, 128, 128],
+    onnx_input_shape: list[int] = field(default_factory=lambda: [1, 1, 64, 64],
                                         metadata={"length": 4, "positive": True})
     onnx_input_mean: float = 0.0
     onnx_input_std: float = field(default=1.0, metadata={"positive": True})

@@ -7,7 +7,8 @@ Recipe (the same for training and evaluation; only the patients differ):
 2. probe poses that look at the kidney through the skin, like the exploration's transverse
    views: a random kidney voxel, moved up to ``lateral_jitter`` across the beam (so some
    views only graze the kidney or miss it), an approach direction within ``tilt_deg`` of
-   the volume's skin-facing direction, the face placed on the skin along that line and
+   the volume's skin-facing direction (a ``far_fraction`` of views up to ``far_jitter``
+   off, which often miss it), the face placed on the skin along that line and
    pressed ``indent`` into it, a random rotation of the array about the beam;
 3. per pose: label image (:func:`slice_volume`), emulated image (:func:`emulate`, speckle
    seeded by the frame index), mask = kidney labels.
@@ -32,6 +33,8 @@ class ViewSampler:
     approach_V: np.ndarray            # unit vector from the kidney towards the skin, in V
     tilt_deg: float = 25.0
     lateral_jitter: float = 0.025     # m
+    far_fraction: float = 0.15        # share of views offset up to far_jitter (may miss)
+    far_jitter: float = 0.07          # m
     indent: float = 0.004             # m, face pressed into the skin
     max_depth: float = 0.16           # m, give up if no skin within this distance
 
@@ -71,7 +74,8 @@ class ViewSampler:
             w = rng.normal(size=3)
             w -= w.dot(u) * u
             w /= np.linalg.norm(w)
-            target = target + rng.uniform(0, self.lateral_jitter) * w
+            jitter = self.far_jitter if rng.random() < self.far_fraction else self.lateral_jitter
+            target = target + rng.uniform(0, jitter) * w
             skin = self._skin_along(target, u)
             if skin is None:
                 continue
