@@ -1,0 +1,266 @@
+"""The FR3 through franky-control (libfranka 0.21 and Ruckig, from PyPI).
+
+franky runs libfranka's 1 kHz loop in its own thread; we send joint-velocity targets at the
+controller rate as asynchronous ``JointVelocityMotion`` s, each of which takes over from the
+previous one seamlessly and *expires* after ``command_timeout`` (franky then ramps to zero on
+its own): a frozen Python process stops the robot. On top of that a watchdog thread sends
+zero when no fresh command came within ``command_timeout`` (and logs the latency).
+
+Every robot call goes through one lock (the Drake thread and the watchdog thread share the
+client). Any libfranka exception becomes :class:`HardwareFault` after the command has been set
+to zero.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import threading
+import time
+
+import numpy as np
+
+from drake_rus.hardware.config import HardwareConfig
+from drake_rus.hardware.core import check_robot_ip, external_torque_to_drake, watchdog_expired
+
+LOG = logging.getLogger("drake_rus.hardware")
+
+__all__ = ["HardwareFault", "RobotReading", "WatchdogEvent", "FrankyBackend"]
+
+
+class HardwareFault(RuntimeError):
+    """The robot, its connection or the image source failed; the command is zero."""
+
+
+@dataclasses.dataclass(frozen=True)
+class RobotReading:
+    """One robot state: joint positions (rad), velocities (rad/s), external torques in
+    Drake's sign (N m, on the arm by the environment), wall-clock time of the read (s,
+    ``time.monotonic``), the robot's own clock (s) and the velocity its controller is
+    currently commanded (libfranka ``dq_d``, rad/s)."""
+    q: np.ndarray
+    v: np.ndarray
+    tau_external: np.ndarray
+    wall_time: float
+    robot_time: float = math.nan
+    v_commanded: np.ndarray | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class WatchdogEvent:
+    """The watchdog zeroed the command: at ``wall_time`` (s, monotonic), ``latency`` (s)
+    after the last fresh command."""
+    wall_time: float
+    latency: float
+
+
+def _import_franky():
+    try:
+        import franky
+    except ImportError as e:
+        raise HardwareFault(
+            "field 'hardware_interface.backend': 'franky' needs franky-control "
+            "(pip install 'drake-rus[hardware]'): " + str(e)) from None
+    return franky
+
+
+class FrankyBackend:
+    """A connected FR3 (or franky-sim) through franky-control.
+
+    ``read()`` returns a :class:`RobotReading`; ``send(v)`` commands joint velocities (rad/s;
+    the caller has limited them); ``stop()`` brings the robot to rest; ``close()`` stops the
+    watchdog and the robot. With ``config.dry_run`` the robot is never commanded: ``send``
+    only records the zero it did not send.
+    """
+
+    def __init__(self, config: HardwareConfig):
+        self.config = config
+        self.dry_run = bool(config.dry_run)
+        self._franky = _import_franky()
+        self._lock = threading.RLock()
+        self._robot = None
+        self._fault: str | None = None
+        self._last_sent = np.zeros(7)
+        self._last_command_time = math.nan
+        self._moving = False
+        self.watchdog_events: list[WatchdogEvent] = []
+        self.command_log: list[tuple[float, np.ndarray]] = []   # (monotonic s, rad/s)
+        # (robot clock s, q rad, velocity sent right after that read rad/s), when tracing.
+        self.trace: list[tuple[float, np.ndarray, np.ndarray]] | None = None
+        self.tau_bias = np.zeros(7)
+        self._stop_watchdog = threading.Event()
+        self._watchdog = None
+        self._connect()
+        self._estimate_bias()
+        self._watchdog = threading.Thread(target=self._watchdog_loop, name="drake_rus_watchdog",
+                                          daemon=True)
+        self._watchdog.start()
+
+    # --- connection -------------------------------------------------------------------
+    def _connect(self):
+        cfg = self.config
+        host = check_robot_ip(cfg.robot_ip)
+        franky = self._franky
+        deadline = time.monotonic() + cfg.connect_timeout
+        last_error = None
+        while time.monotonic() < deadline:
+            try:
+                robot = franky.Robot(host, realtime_config=franky.RealtimeConfig.Ignore)
+                break
+            except Exception as e:  # NetworkException, IncompatibleVersionException, ...
+                last_error = e
+                if isinstance(e, getattr(franky, "IncompatibleVersionException", ())):
+                    break
+                time.sleep(0.2)
+        else:
+            robot = None
+        if robot is None:
+            raise HardwareFault(
+                f"field 'hardware_interface.robot_ip': cannot connect to the FR3 at {host!r} "
+                f"within {cfg.connect_timeout:g} s (hardware_interface.connect_timeout): "
+                f"{last_error}")
+        robot.relative_dynamics_factor = float(cfg.relative_dynamics_factor)
+        self._robot = robot
+        LOG.info("connected to the FR3 at %s (dry run: %s)", host, self.dry_run)
+
+    def _estimate_bias(self):
+        duration = float(self.config.tau_external_bias_duration)
+        if duration <= 0.0:
+            return
+        samples = []
+        end = time.monotonic() + duration
+        while time.monotonic() < end or not samples:
+            samples.append(self._read_raw().tau_external)
+            time.sleep(0.005)
+        self.tau_bias = np.mean(samples, axis=0)
+
+    # --- reading ----------------------------------------------------------------------
+    def _read_raw(self) -> RobotReading:
+        with self._lock:
+            if self._fault:
+                raise HardwareFault(self._fault)
+            try:
+                if self._moving:
+                    self._moving = self._robot.poll_motion()
+                state = self._robot.state
+            except Exception as e:
+                self._set_fault(f"FR3 at {self.config.robot_ip}: {type(e).__name__}: {e}")
+                raise HardwareFault(self._fault) from e
+        return RobotReading(np.array(state.q, float), np.array(state.dq, float),
+                            external_torque_to_drake(state.tau_ext_hat_filtered),
+                            time.monotonic(), state.time.to_msec() * 1e-3,
+                            np.array(state.dq_d, float))
+
+    def read(self) -> RobotReading:
+        """The robot state now; external torques with the start-up bias removed."""
+        r = self._read_raw()
+        return dataclasses.replace(r, tau_external=r.tau_external - self.tau_bias)
+
+    # --- commanding -------------------------------------------------------------------
+    def send(self, v) -> np.ndarray:
+        """Commands joint velocities ``v`` (rad/s) now; returns what was actually sent."""
+        v = np.asarray(v, float)
+        with self._lock:
+            now = time.monotonic()
+            self._last_command_time = now
+            if self._fault or self.dry_run or not np.all(np.isfinite(v)):
+                v = np.zeros(7)
+            if self.dry_run:
+                self._last_sent = v
+                return v
+            if not np.any(v) and not np.any(self._last_sent):
+                return v    # at rest and asked to stay: start no motion
+            self._move(v)
+            self.command_log.append((now, v.copy()))
+            return v
+
+    def _move(self, v):
+        franky = self._franky
+        ms = max(1, int(round(self.config.command_timeout * 1000.0)))
+        try:
+            self._robot.move(franky.JointVelocityMotion(v, duration=franky.Duration(ms)),
+                             asynchronous=True)
+            self._moving = True
+            self._last_sent = v.copy()
+        except Exception as e:
+            self._last_sent = np.zeros(7)
+            self._set_fault(f"FR3 at {self.config.robot_ip}: {type(e).__name__}: {e}")
+            raise HardwareFault(self._fault) from e
+
+    @property
+    def last_sent(self) -> np.ndarray:
+        with self._lock:
+            return self._last_sent.copy()
+
+    @property
+    def fault(self) -> str | None:
+        return self._fault
+
+    def _set_fault(self, message: str):
+        if self._fault is None:
+            LOG.error("hardware fault: %s", message)
+            self._fault = message
+        self._last_sent = np.zeros(7)
+
+    def _watchdog_loop(self):
+        period = max(self.config.command_timeout / 5.0, 0.002)
+        while not self._stop_watchdog.wait(period):
+            with self._lock:
+                now = time.monotonic()
+                if (np.any(self._last_sent)
+                        and watchdog_expired(now, self._last_command_time,
+                                             self.config.command_timeout)):
+                    latency = now - self._last_command_time
+                    LOG.warning("command watchdog: no fresh command for %.3f s: zero velocity",
+                                latency)
+                    self.watchdog_events.append(WatchdogEvent(now, latency))
+                    try:
+                        if not self._fault:
+                            self._move(np.zeros(7))
+                    except HardwareFault:
+                        pass
+                    self._last_sent = np.zeros(7)
+
+    # --- stopping ---------------------------------------------------------------------
+    def stop(self, timeout: float = 2.0) -> None:
+        """Zero velocity now and wait (at most ``timeout`` s) until franky's motion ended.
+        Never raises: a failed stop is logged (the robot stops on its own when the
+        connection is gone)."""
+        with self._lock:
+            self._last_command_time = time.monotonic()
+            was_moving = np.any(self._last_sent) or self._moving
+            self._last_sent = np.zeros(7)
+            if self.dry_run or self._robot is None or not was_moving:
+                return
+            try:
+                self._robot.move(self._franky.JointVelocityStopMotion(), asynchronous=True)
+                self.command_log.append((time.monotonic(), np.zeros(7)))
+            except Exception as e:
+                LOG.error("stop: %s: %s", type(e).__name__, e)
+                return
+        try:
+            self._robot.join_motion(timeout)
+        except Exception as e:
+            LOG.error("stop: %s: %s", type(e).__name__, e)
+        with self._lock:
+            self._moving = False
+
+    def close(self) -> None:
+        """Stops the robot and the watchdog; the backend cannot be used afterwards."""
+        self._stop_watchdog.set()
+        try:
+            self.stop()
+        finally:
+            if self._watchdog is not None:
+                self._watchdog.join(1.0)
+            with self._lock:
+                self._robot = None
+                if self._fault is None:
+                    self._fault = "backend closed"
+
+    def __del__(self):
+        try:
+            self._stop_watchdog.set()
+        except Exception:
+            pass
