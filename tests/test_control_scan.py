@@ -175,13 +175,14 @@ def test_supervisor_localize_transit_pivot_done():
     s = scan.supervisor_step(s, inputs(t, p=(0.5705, 0.03, 0.1), R=R_star), c, dt)
     assert s.phase == scan.Phase.PIVOT
     # Pivot: visible until tilt +0.3 rad, then invisible beyond; other side beyond -0.2 rad.
-    tilts, a_dots = [], []
+    tilts, a_dots, required = [], [], []
     while s.phase == scan.Phase.PIVOT and t < 60:
         t += dt
         vis = -0.2 < s.pivot_angle < 0.3
         s = scan.supervisor_step(s, inputs(t, p=(0.5705, 0.03, 0.1), R=R_star, visible=vis),
                                  c, dt)
         tilts.append(s.pivot_angle)
+        required.append((vis, scan.segmentation_required(s)))
         a_dots.append(s.a_des_dot)
         np.testing.assert_allclose(s.o_des, R_star[:, 0])  # o_des unchanged
         assert s.a_des @ s.o_des == pytest.approx(0.0, abs=1e-9)
@@ -189,10 +190,25 @@ def test_supervisor_localize_transit_pivot_done():
     assert len(s.pivot_limits) == 2
     assert 0.3 <= s.pivot_limits[0] <= 0.3 + 0.2 * (0.05 + 2 * dt)
     assert -0.2 - 0.2 * (0.05 + 2 * dt) <= s.pivot_limits[1] <= -0.2
-    assert max(tilts) == pytest.approx(s.pivot_limits[0], abs=0.2 * dt + 1e-9)
+    # After a leg ends the tilt rate ramps down (pivot_acceleration): bounded overshoot.
+    overshoot = 0.2**2 / (2 * c.pivot_acceleration)
+    assert max(tilts) == pytest.approx(s.pivot_limits[0] + overshoot, abs=0.2 * dt + 1e-3)
+    # The rate never jumps by more than pivot_acceleration dt per period.
+    speeds = np.diff(tilts[:-1]) / dt  # (the last entry is DONE)
+    assert np.abs(np.diff(speeds)).max() <= c.pivot_acceleration * dt + 1e-9
     assert angle_between(s.a_des, R_star[:, 2]) == pytest.approx(abs(s.pivot_limits[1]),
                                                                  abs=0.01)
     assert max(np.linalg.norm(a) for a in a_dots) == pytest.approx(0.2)
+    # The kidney is required except while coming back from the first leg's end.
+    assert any(not r for v, r in required) and all(r for v, r in required if v)
+    # DONE ramps the last tilt rate down, then holds.
+    for k in range(100):
+        t += dt
+        s = scan.supervisor_step(s, inputs(t, R=R_star, visible=False), c, dt)
+    assert s.phase == scan.Phase.DONE and s.pivot_speed == 0.0
+    assert np.linalg.norm(s.a_des_dot) == 0.0
+    # a_des_dot is the rate of a_des actually applied (for eq. 2's feed-forward).
+    assert all(np.linalg.norm(a) <= 0.2 + 1e-9 for a in a_dots)
 
 
 def test_supervisor_pivot_bounded_by_max_tilt():
@@ -227,6 +243,9 @@ def test_supervisor_aborts_with_reason():
     assert s.phase == scan.Phase.TRANSIT
     s = scan.supervisor_step(s, inputs(t + 1.0), c, dt)
     assert s.phase == scan.Phase.ABORT and "timeout" in s.reason
+    stopped = scan.supervisor_step(scan.SupervisorState(), dataclasses.replace(
+        inputs(0.0), safety_stopped=True), c, dt)
+    assert stopped.phase == scan.Phase.ABORT and stopped.reason == "safety stop"
     # ABORT and DONE are terminal.
     s2 = scan.supervisor_step(s, inputs(t + 2.0), c, dt)
     assert s2.phase == scan.Phase.ABORT

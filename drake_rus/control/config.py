@@ -65,10 +65,15 @@ class ControllerConfig:
     # --- Scan (section II-E, II-G) ---
     # Exploration scan speed v_scan (m/s) along the base y-axis (seed: 5 mm/s, eq. 17).
     scan_speed: float = field(default=0.005, metadata={"positive": True, "max": 0.05})
+    # Probe orientation during APPROACH and EXPLORE: "hold" keeps the start orientation (the
+    # seed's manual placement); "transverse" turns the array o onto the base x-axis (across
+    # the patient, a transverse image) about the current approach vector.
+    explore_orientation: str = field(default="transverse",
+                                     metadata={"choices": ["hold", "transverse"]})
     # Scan direction along the base y-axis (the patient lies along y).
     scan_direction: str = field(default="-y", metadata={"choices": ["+y", "-y"]})
     # K_p7 (m/s per unit of normalised centroid offset): mask-centring gain (eq. 17).
-    K_p7: float = field(default=0.02, metadata={"min": 0.0})
+    K_p7: float = field(default=0.1, metadata={"min": 0.0})
     # Exploration ratio ER in [0, 1] and reference kidney length L_m (m): EXPLORE ends after
     # ER * L_m of travel (section III-C).
     exploration_ratio: float = field(default=0.5, metadata={"min": 0.0, "max": 1.0})
@@ -87,6 +92,8 @@ class ControllerConfig:
     # Pivot angular rate theta_dot (rad/s) (eq. 23) and maximum tilt from r3* (rad).
     pivot_rate: float = field(default=0.1, metadata={"positive": True, "max": 1.0})
     max_pivot_tilt: float = field(default=0.6, metadata={"positive": True, "max": 1.2})
+    # The tilt rate ramps at this angular acceleration (rad/s^2), so reversals are smooth.
+    pivot_acceleration: float = field(default=0.4, metadata={"positive": True})
 
 
 @dataclass

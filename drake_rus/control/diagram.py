@@ -136,6 +136,7 @@ def AddController(builder: DiagramBuilder, station, scenario, *, plant=None,
         builder.Connect(supervisor.GetOutputPort("segmentation_required"),
                         safety.GetInputPort("segmentation_required"))
         builder.Connect(supervisor.GetOutputPort("abort"), safety.GetInputPort("supervisor_abort"))
+        builder.Connect(safety.GetOutputPort("stopped"), supervisor.GetInputPort("safety_stopped"))
         if kidney_pose_port is not None:
             builder.Connect(kidney_pose_port, supervisor.GetInputPort("X_BK"))
         if localization_ready_port is not None:
@@ -173,15 +174,17 @@ class ClosedLoop:
 def BuildClosedLoop(scenario, *, meshcat=None, station=None, use_supervisor: bool = True,
                     use_null_space: bool = True, fault: str | None = None,
                     t_fault: float = math.inf, segmenter=None, kidney_pose_port=None,
-                    log_period: float | None = None) -> ClosedLoop:
+                    kidney_view=None, log_period: float | None = None) -> ClosedLoop:
     """Station + controller + safety in one diagram (tests, notebook, benchmark).
 
     ``fault`` inserts a :class:`~drake_rus.control.faults.FaultInjector` between the
     station's sensors and the controller (the command still goes straight to the station).
     Without the supervisor, constant reference sources hold the probe's initial
     orientation and tip x, y and the scenario's desired force; change them through
-    :meth:`ClosedLoop.reference_value`. ``log_period`` adds loggers of the command, the
-    joint positions, probe_force and the filtered force at that period.
+    :meth:`ClosedLoop.reference_value`. ``kidney_view`` (a
+    :class:`~drake_rus.control.synthetic_view.GeometricKidneyView`) is added and wired as
+    the segmenter and the kidney pose source. ``log_period`` adds loggers of the command,
+    the joint positions, probe_force and the filtered force at that period.
     """
     from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
 
@@ -192,6 +195,11 @@ def BuildClosedLoop(scenario, *, meshcat=None, station=None, use_supervisor: boo
         from drake_rus.station import MakeStation
         station = MakeStation(scenario, meshcat=meshcat)
     builder.AddNamedSystem("station", station)
+    if kidney_view is not None:
+        builder.AddNamedSystem("kidney_view", kidney_view)
+        builder.Connect(station.GetOutputPort("X_BP"), kidney_view.GetInputPort("X_BP"))
+        segmenter = kidney_view
+        kidney_pose_port = kidney_view.GetOutputPort("X_BK")
     sensors, injector = station, None
     if fault is not None:
         injector = builder.AddNamedSystem(
@@ -227,6 +235,9 @@ def BuildClosedLoop(scenario, *, meshcat=None, station=None, use_supervisor: boo
         if parts.supervisor is not None:
             ports["phase"] = parts.supervisor.GetOutputPort("phase")
             ports["P_des"] = parts.supervisor.GetOutputPort("P_des")
+        if segmenter is not None:
+            ports["kidney_visible"] = segmenter.GetOutputPort("kidney_visible")
+            ports["mask_centroid"] = segmenter.GetOutputPort("mask_centroid")
         for name, port in ports.items():
             log = builder.AddNamedSystem(f"log_{name}", VectorLogSink(port.size(), log_period))
             builder.Connect(port, log.get_input_port())

@@ -82,6 +82,19 @@ def pivot_rate_vector(a_des, o_des, direction: float, rate: float) -> np.ndarray
     return direction * rate * cross3(np.asarray(o_des, float), np.asarray(a_des, float))
 
 
+def transverse_orientation(a, o_curr) -> np.ndarray:
+    """Orientation vector across the patient: the base x-axis made orthogonal to a, with the
+    sign closest to the current o (the smaller rotation)."""
+    a = np.asarray(a, dtype=float)
+    x = np.array([1.0, 0.0, 0.0])
+    o = x - float(x @ a) * a
+    n = np.linalg.norm(o)
+    if n < 1e-6:  # a along x: keep the current orientation
+        return np.asarray(o_curr, dtype=float).copy()
+    o /= n
+    return o if float(o @ np.asarray(o_curr)) >= 0 else -o
+
+
 # ----------------------------------------------------------------------------- supervisor
 class Phase(enum.IntEnum):
     """Scan phases. APPROACH (press until contact) precedes the seed's EXPLORE."""
@@ -108,6 +121,8 @@ class SupervisorState:
     travel: float = 0.0              # exploration travel along y (m)
     invisible_since: float = math.nan  # time the kidney was last seen to disappear
     pivot_direction: float = 1.0
+    pivot_speed: float = 0.0         # signed current tilt rate (rad/s), ramped
+    expect_invisible: bool = False   # after a pivot leg ends, until the kidney is seen again
     pivot_angle: float = 0.0         # tilt of a_des from r3* about o_des (rad), signed
     pivot_legs_done: int = 0
     pivot_limits: tuple = ()         # tilt angles (rad) where each leg ended
@@ -143,6 +158,7 @@ class SupervisorInputs:
     R_BK: np.ndarray | None = None   # kidney pose estimate (localizer or ground truth)
     p_BK: np.ndarray | None = None
     localization_ready: bool = True
+    safety_stopped: bool = False     # the safety layer has stopped the robot
 
 
 def _goto(s: SupervisorState, phase: Phase, t: float, message: str) -> SupervisorState:
@@ -163,6 +179,26 @@ def _update_visibility(s: SupervisorState, u: SupervisorInputs, debounce: float)
     return u.t - s.invisible_since >= debounce - 1e-9
 
 
+def _ramp(x: float, target: float, step: float) -> float:
+    return float(np.clip(target, x - step, x + step))
+
+
+def _pivot_advance(s: SupervisorState, cfg, dt: float) -> None:
+    """Rotates a_des about o_des by pivot_speed dt (eq. 23), within +-max_pivot_tilt."""
+    new_angle = float(np.clip(s.pivot_angle + s.pivot_speed * dt, -cfg.max_pivot_tilt,
+                              cfg.max_pivot_tilt))
+    dtheta = new_angle - s.pivot_angle
+    s.a_des = rodrigues_pivot_update(s.a_des, s.o_des, dtheta)
+    s.pivot_angle = new_angle
+    s.a_des_dot = pivot_rate_vector(s.a_des, s.o_des, 1.0, dtheta / dt)
+
+
+def segmentation_required(s: SupervisorState) -> bool:
+    """Whether the kidney must be visible now (EXPLORE; PIVOT except while returning from a
+    leg that ended because it left the image); drives the safety layer's watchdog."""
+    return s.phase == Phase.EXPLORE or (s.phase == Phase.PIVOT and not s.expect_invisible)
+
+
 def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float
                     ) -> SupervisorState:
     """One control period of the scan state machine (pure: returns a new state).
@@ -173,15 +209,23 @@ def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float
     the localizer is ready, then compute T* (eq. 20-22). TRANSIT: slide to (p_x*, p_y*)
     with a_des = r3*, o_des = r1*. PIVOT: a_des rotates about o_des (eq. 23) one way until
     the kidney leaves the image (or max tilt), then back through r3* to the other side;
-    then DONE. ABORT (with reason) on a non-finite input or pose, a missing kidney pose, or
-    a TRANSIT timeout.
+    then DONE. ABORT (with reason) on a safety stop, a non-finite input or pose, a missing
+    kidney pose, or a TRANSIT timeout. The pivot tilt rate ramps with pivot_acceleration.
     """
     s = state.copy()
     R = np.asarray(u.R_BP, dtype=float)
     p = np.asarray(u.p_BP, dtype=float)
     s.a_des_dot = np.zeros(3)
+    if s.phase == Phase.DONE and s.pivot_speed != 0.0:
+        # Ramp the last pivot leg's tilt rate down to zero (no jump of the command).
+        s.pivot_speed = _ramp(s.pivot_speed, 0.0, cfg.pivot_acceleration * dt)
+        _pivot_advance(s, cfg, dt)
+        return s
     if s.phase in (Phase.DONE, Phase.ABORT):
         return s
+    if u.safety_stopped:
+        s.reason = "safety stop"
+        return _goto(s, Phase.ABORT, u.t, s.reason)
     if not (np.all(np.isfinite(R)) and np.all(np.isfinite(p)) and math.isfinite(u.F_z)):
         s.reason = "non-finite probe pose or force"
         return _goto(s, Phase.ABORT, u.t, s.reason)
@@ -190,6 +234,8 @@ def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float
         # Hold the current orientation and tip position; press to the desired force.
         s.a_des = R[:, 2].copy()
         s.o_des = R[:, 0].copy()
+        if getattr(cfg, "explore_orientation", "hold") == "transverse":
+            s.o_des = transverse_orientation(s.a_des, s.o_des)
         s.P_des = p[:2].copy()
         s.F_des = float(cfg.desired_force)
         s.initialised = True
@@ -240,6 +286,7 @@ def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float
         ang = max(angle_between(R[:, 2], s.a_des), angle_between(R[:, 0], s.o_des))
         if dist <= cfg.transit_position_tolerance and ang <= cfg.transit_angle_tolerance:
             s.pivot_direction = 1.0
+            s.pivot_speed = 0.0
             s.pivot_angle = 0.0
             return _goto(s, Phase.PIVOT, u.t, f"at p* ({dist * 1e3:.2f} mm)")
         if u.t - s.phase_start > cfg.transit_timeout:
@@ -249,6 +296,8 @@ def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float
 
     if s.phase == Phase.PIVOT:
         left = _update_visibility(s, u, cfg.visibility_debounce)
+        if u.kidney_visible:
+            s.expect_invisible = False
         # On the second leg, only a loss past the start (on the new side) ends the sweep.
         on_new_side = s.pivot_legs_done == 0 or s.pivot_angle * s.pivot_direction > 0
         at_tilt = abs(s.pivot_angle) >= cfg.max_pivot_tilt - 1e-9 and on_new_side
@@ -263,13 +312,11 @@ def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float
                 return _goto(s, Phase.DONE, u.t, "pivot sweep complete")
             s.pivot_direction = -s.pivot_direction
             s.invisible_since = math.nan
-        dtheta = s.pivot_direction * cfg.pivot_rate * dt
-        # Do not overshoot the tilt bound.
-        new_angle = float(np.clip(s.pivot_angle + dtheta, -cfg.max_pivot_tilt,
-                                  cfg.max_pivot_tilt))
-        dtheta = new_angle - s.pivot_angle
-        s.a_des = rodrigues_pivot_update(s.a_des, s.o_des, dtheta)
-        s.pivot_angle = new_angle
-        s.a_des_dot = pivot_rate_vector(s.a_des, s.o_des, s.pivot_direction, cfg.pivot_rate)
+            s.expect_invisible = True
+        # The tilt rate ramps (pivot_acceleration) to +-pivot_rate: a reversal is smooth, not
+        # a jump of the commanded angular velocity (which presses the probe edge in).
+        s.pivot_speed = _ramp(s.pivot_speed, s.pivot_direction * cfg.pivot_rate,
+                              cfg.pivot_acceleration * dt)
+        _pivot_advance(s, cfg, dt)
         return s
     return s

@@ -192,7 +192,8 @@ class ScanSupervisor(LeafSystem):
     kidney_visible (1, 0/1; optional: visible if unconnected); mask_centroid (1, horizontal
     centroid in [0, 1]; optional); X_BK (RigidTransform: the kidney pose estimate, or a
     ground-truth stand-in until localization lands; optional); localization_ready (1, 0/1;
-    optional: ready if unconnected).
+    optional: ready if unconnected); safety_stopped (1, 0/1; optional: a safety stop aborts
+    the scan).
     Outputs: a_des (3), o_des (3), a_des_dot (3, 1/s), P_des (2, m), F_des (1, N), all in B;
     phase (1, scan.Phase value); segmentation_required (1, 0/1); abort (1, 0/1);
     supervisor_state (SupervisorState, for logs).
@@ -208,6 +209,7 @@ class ScanSupervisor(LeafSystem):
         self._c = self.DeclareVectorInputPort("mask_centroid", 1)
         self._XK = self.DeclareAbstractInputPort("X_BK", AbstractValue.Make(RigidTransform()))
         self._ready = self.DeclareVectorInputPort("localization_ready", 1)
+        self._stopped = self.DeclareVectorInputPort("safety_stopped", 1)
         self._s = self.DeclareAbstractState(AbstractValue.Make(scan.SupervisorState()))
         self.DeclarePeriodicUnrestrictedUpdateEvent(self._dt, 0.0, self._update)
         S = lambda ctx: ctx.get_abstract_state(0).get_value()  # noqa: E731
@@ -222,8 +224,7 @@ class ScanSupervisor(LeafSystem):
                                      lambda c, o: o.SetFromVector([float(S(c).phase)]))
         self.DeclareVectorOutputPort(
             "segmentation_required", 1,
-            lambda c, o: o.SetFromVector([float(S(c).phase in (scan.Phase.EXPLORE,
-                                                                scan.Phase.PIVOT))]))
+            lambda c, o: o.SetFromVector([float(scan.segmentation_required(S(c)))]))
         self.DeclareVectorOutputPort(
             "abort", 1, lambda c, o: o.SetFromVector([float(S(c).phase == scan.Phase.ABORT)]))
         self.DeclareAbstractOutputPort(
@@ -245,7 +246,8 @@ class ScanSupervisor(LeafSystem):
             F_z=float(self._F.Eval(context)[0]),
             kidney_visible=_optional_scalar(self._vis, context, 1.0) > 0.5,
             c_msk=c, R_BK=R_BK, p_BK=p_BK,
-            localization_ready=_optional_scalar(self._ready, context, 1.0) > 0.5)
+            localization_ready=_optional_scalar(self._ready, context, 1.0) > 0.5,
+            safety_stopped=_optional_scalar(self._stopped, context, 0.0) > 0.5)
         new = scan.supervisor_step(self.state(context), u, self._cfg, self._dt)
         state.get_mutable_abstract_state(0).set_value(new)
 
