@@ -315,10 +315,13 @@ class HardwareSession:
 
 
 def RunHardware(simulator, station: HardwareStation, duration: float, *,
-                check_period: float = 0.05, realtime_rate: float = 1.0) -> float:
+                check_period: float = 0.05, realtime_rate: float = 1.0,
+                on_step=None) -> float:
     """Advances ``simulator`` (whose diagram contains ``station``) by ``duration`` s at
-    ``realtime_rate`` inside a :class:`HardwareSession`; raises HardwareFault as soon as
-    the station's ``robot_ok`` drops (the command is zero by then). Returns the end time."""
+    ``realtime_rate`` (0: as fast as possible) inside a :class:`HardwareSession`, in
+    chunks of ``check_period`` s, calling ``on_step()`` after each; raises HardwareFault as
+    soon as the station's ``robot_ok`` drops (the command is zero by then). Returns the
+    end time."""
     simulator.set_target_realtime_rate(realtime_rate)
     root = simulator.get_context()
     station_context = station.GetMyContextFromRoot(root)
@@ -327,6 +330,8 @@ def RunHardware(simulator, station: HardwareStation, duration: float, *,
     with HardwareSession(station):
         while root.get_time() < t_end - 1e-12:
             simulator.AdvanceTo(min(t_end, root.get_time() + check_period))
+            if on_step is not None:
+                on_step()
             if ok_port.Eval(station_context)[0] < 0.5:
                 fault = getattr(station.backend, "fault", None) or "robot state lost"
                 raise HardwareFault(f"hardware fault at t = {root.get_time():.3f} s: {fault}")
