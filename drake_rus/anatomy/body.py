@@ -130,10 +130,10 @@ class Torso:
             j = (i + 1) % n_points
             faces.append([c_lo, j, i])
             faces.append([c_hi, last + i, last + j])
-        m = trimesh.Trimesh(V, np.asarray(faces), process=True)
-        trimesh.repair.fix_normals(m)
+        F = np.asarray(faces)
+        m = trimesh.Trimesh(V, F, process=False)
         if m.volume < 0:
-            m.invert()
+            m = trimesh.Trimesh(V, F[:, ::-1], process=False)
         return m
 
     def to_dict(self) -> dict:

@@ -86,9 +86,10 @@ def load_mesh(obj, what: str) -> trimesh.Trimesh:
     if not m.is_watertight:
         _fail(f"{where}: the mesh is not watertight (holes or non-manifold edges); "
               "a closed solid surface is needed (e.g. the *_solid.stl files)")
+    faces = np.asarray(m.faces)
     if m.volume < 0:
-        m.invert()
-    return m
+        faces = faces[:, ::-1]
+    return trimesh.Trimesh(np.asarray(m.vertices), faces, process=False)
 
 
 def find_mesh_files(directory: Path, side: str) -> dict:
@@ -159,12 +160,13 @@ def mask_to_mesh(mask: np.ndarray, X_PtV: RigidTransform, voxel_size: float,
             inside = [pt for pt in parts if pt.is_watertight and pt.contains([keep_point])[0]]
             parts = inside or parts
         mesh = max(parts, key=lambda q: abs(q.volume) if q.is_watertight else 0.0)
-    trimesh.repair.fix_normals(mesh)
-    if mesh.volume < 0:
-        mesh.invert()
-    if not mesh.is_watertight:
+    faces = np.asarray(mesh.faces)
+    fresh = trimesh.Trimesh(np.asarray(mesh.vertices), faces, process=False)
+    if fresh.volume < 0:
+        fresh = trimesh.Trimesh(np.asarray(mesh.vertices), faces[:, ::-1], process=False)
+    if not fresh.is_watertight:
         _fail(f"{what}: marching cubes did not give a watertight surface")
-    return mesh
+    return fresh
 
 
 def _grid_around(meshes_bounds, voxel_size):

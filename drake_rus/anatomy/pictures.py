@@ -1,0 +1,115 @@
+"""Pictures: cohort overview in the canonical frame (like seed Fig. 3b), orthogonal label
+slices of a patient, and the patient's anatomy in Meshcat."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from drake_rus.anatomy.labels import Label
+
+# Display colours of the labels (RGB 0-1).
+LABEL_COLORS = {
+    Label.OUTSIDE: (0, 0, 0), Label.SOFT_TISSUE: (0.55, 0.45, 0.45), Label.FAT: (0.95, 0.85, 0.5),
+    Label.MUSCLE: (0.7, 0.2, 0.2), Label.KIDNEY_CORTEX: (0.2, 0.7, 0.3),
+    Label.KIDNEY_MEDULLA: (0.1, 0.4, 0.2), Label.KIDNEY_SINUS: (0.9, 0.95, 0.6),
+    Label.LIVER: (0.5, 0.2, 0.5), Label.BONE: (1, 1, 1), Label.GAS: (0.3, 0.6, 1.0),
+    Label.VESSEL: (0.1, 0.1, 0.6),
+}
+
+
+def _save(fig, path):
+    import matplotlib.pyplot as plt
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.stem + ".tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    tmp.replace(path)
+    return path
+
+
+def _lut():
+    lut = np.zeros((256, 3))
+    for k, c in LABEL_COLORS.items():
+        lut[int(k)] = c
+    return lut
+
+
+def plot_label_slices(patient, path) -> Path:
+    """Three orthogonal label slices through the kidney centroid (Pt axes)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    lv = patient.labels
+    c = patient.X_PtK.translation()
+    R = lv.X_PtV.rotation().matrix()
+    ijk = np.round(R.T @ (c - lv.X_PtV.translation()) / lv.voxel_size).astype(int)
+    ijk = np.clip(ijk, 0, np.array(lv.shape) - 1)
+    lut = _lut()
+    vs = lv.voxel_size * 1e3
+    fig, axes = plt.subplots(1, 3, figsize=(14, 4.8))
+    views = [("axial (j = kidney centroid)", lv.labels[:, ijk[1], :], ("i", "k")),
+             ("coronal (k = kidney centroid)", lv.labels[:, :, ijk[2]], ("i", "j")),
+             ("sagittal (i = kidney centroid)", lv.labels[ijk[0], :, :], ("j", "k"))]
+    for ax, (title, sl, (a, b)) in zip(axes, views):
+        ax.imshow(lut[sl.T], origin="lower", extent=[0, sl.shape[0] * vs, 0, sl.shape[1] * vs])
+        ax.set_title(title, fontsize=9)
+        ax.set_xlabel(f"grid {a} (mm)")
+        ax.set_ylabel(f"grid {b} (mm)")
+    handles = [plt.Rectangle((0, 0), 1, 1, color=LABEL_COLORS[k]) for k in Label]
+    fig.legend(handles, [k.name.lower() for k in Label], loc="lower center", ncol=6, fontsize=8)
+    fig.suptitle(f"{patient.name}: labels ({patient.posture}, {patient.side} kidney; grid axes "
+                 f"= Pt axes{' rotated' if patient.posture != 'supine' else ''})", fontsize=10)
+    fig.tight_layout(rect=(0, 0.08, 1, 0.95))
+    return _save(fig, path)
+
+
+def plot_cohort_overview(patients, path, template=None) -> Path:
+    """Kidney surfaces of a cohort in their canonical frames (x_k-y_k and x_k-z_k), one colour
+    per subject, like seed Fig. 3b; the template mean in black if given."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.4))
+    cmap = plt.get_cmap("tab20")
+    for n, p in enumerate(patients):
+        v = p.X_PtK.inverse().multiply(p.kidney_mesh.vertices.T).T[::7] * 1e3
+        for ax, j in zip(axes, (1, 2)):
+            ax.scatter(v[:, 0], v[:, j], s=0.3, color=cmap(n % 20), alpha=0.5)
+    if template is not None:
+        t = template.points * 1e3
+        for ax, j in zip(axes, (1, 2)):
+            ax.scatter(t[:, 0], t[:, j], s=0.3, c="k")
+    for ax, lab in zip(axes, ("y_k medial->lateral (mm)", "z_k (mm)")):
+        ax.set_aspect("equal")
+        ax.set_xlabel("x_k inferior->superior (mm)")
+        ax.set_ylabel(lab)
+        ax.grid(alpha=0.3)
+    fig.suptitle(f"{len(patients)} kidneys in their canonical frames"
+                 + (" (black: template)" if template is not None else ""))
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def show_in_meshcat(patient, meshcat, prefix: str = "patient") -> None:
+    """Skin (translucent), kidney and liver meshes and the kidney frame in a Meshcat."""
+    from pydrake.geometry import Rgba, TriangleSurfaceMesh, SurfaceTriangle
+    from pydrake.geometry import Cylinder
+
+    def tsm(m):
+        return TriangleSurfaceMesh([SurfaceTriangle(*map(int, f)) for f in m.faces],
+                                   [np.asarray(v, dtype=float) for v in m.vertices])
+    meshcat.SetObject(f"{prefix}/skin", tsm(patient.skin_mesh), Rgba(0.9, 0.75, 0.65, 0.25))
+    meshcat.SetObject(f"{prefix}/kidney", tsm(patient.kidney_mesh), Rgba(0.6, 0.15, 0.15, 1.0))
+    if patient.liver_mesh is not None:
+        meshcat.SetObject(f"{prefix}/liver", tsm(patient.liver_mesh), Rgba(0.4, 0.1, 0.3, 0.6))
+    from pydrake.math import RigidTransform, RotationMatrix
+    X = patient.X_PtK
+    for axis, color, R in (("x", Rgba(1, 0, 0, 1), RotationMatrix.MakeYRotation(np.pi / 2)),
+                           ("y", Rgba(0, 1, 0, 1), RotationMatrix.MakeXRotation(-np.pi / 2)),
+                           ("z", Rgba(0, 0, 1, 1), RotationMatrix())):
+        path = f"{prefix}/X_PtK/{axis}"
+        meshcat.SetObject(path, Cylinder(0.002, 0.06), color)
+        meshcat.SetTransform(path, X.multiply(RigidTransform(R, R.multiply([0, 0, 0.03]))))

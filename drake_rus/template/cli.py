@@ -1,0 +1,169 @@
+"""``drake-rus template build|info``: build the kidney template from the training cohort."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from drake_rus.template.builder import build_template, save_template, subject_from_mask
+from drake_rus.template.io import DEFAULT_TEMPLATE_PATH, load_template
+
+
+def subjects_from_cohort(split: str = "train", n: int = 20, voxel_size: float = 0.001,
+                         side: str = "right", progress: bool = True):
+    """Template subjects from a virtual cohort: each kidney's mask (``voxel_size`` voxels, like
+    a CT segmentation) -> marching cubes -> canonical frame."""
+    from drake_rus.anatomy.cohort import cohort_seeds
+    from drake_rus.anatomy.generator import generate_patient
+    subjects = []
+    for k, seed in enumerate(tqdm(cohort_seeds(split, n), desc="template: subjects",
+                                  disable=not progress)):
+        p = generate_patient(seed, side=side, name=f"{split}:{k}", progress=False)
+        mask, X_PtV = p.kidney_mask(voxel_size)
+        x_ref, y_ref = p.reference_axes()
+        subjects.append(subject_from_mask(mask, X_PtV, voxel_size, x_ref, y_ref, name=p.name))
+    return subjects
+
+
+def plot_convergence(conv: dict, path: Path) -> Path:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    n = np.asarray(conv["n"])
+    fig, ax = plt.subplots(figsize=(5.5, 3.6))
+    ax.plot(n[1:], np.asarray(conv["change"][1:]) * 1e3, "o-", label="change when adding subject n")
+    ax.plot(n, np.asarray(conv["to_final"]) * 1e3, "s--", ms=3, label="distance to final template")
+    ax.set_xlabel("number of subjects N")
+    ax.set_ylabel("mean per-vertex difference (mm)")
+    ax.set_title("Kidney template convergence (seed Fig. 3d)")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.stem + ".tmp.png")
+    fig.savefig(tmp, dpi=120)
+    plt.close(fig)
+    tmp.replace(path)
+    return path
+
+
+def plot_template_modes(template, path: Path, n_modes: int = 3) -> Path:
+    """The template (top: x-y, bottom: x-z projection) with mean -/+ 2 SD of its first modes."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    k = min(n_modes, len(template.variances))
+    fig, axes = plt.subplots(2, k + 1, figsize=(3.2 * (k + 1), 5.2), squeeze=False)
+    for col in range(k + 1):
+        for row, (i, j) in enumerate(((0, 1), (0, 2))):
+            ax = axes[row, col]
+            if col == 0:
+                p = template.points
+                ax.scatter(p[:, i] * 1e3, p[:, j] * 1e3, s=1, c="0.3")
+                ax.set_title("mean template" if row == 0 else "")
+            else:
+                for sd, color in ((-2, "tab:blue"), (2, "tab:red")):
+                    b = np.zeros(len(template.variances))
+                    b[col - 1] = sd
+                    p = template.shape_sd(b)
+                    ax.scatter(p[:, i] * 1e3, p[:, j] * 1e3, s=0.6, c=color,
+                               label=f"{sd:+d} SD")
+                if row == 0:
+                    frac = template.meta.get("explained", [0] * k)[col - 1]
+                    ax.set_title(f"mode {col} ({100 * frac:.0f}% var.)")
+                    ax.legend(markerscale=6, fontsize=7)
+            ax.set_aspect("equal")
+            ax.set_xlabel("x_k (mm)")
+            ax.set_ylabel("y_k (mm)" if row == 0 else "z_k (mm)")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.stem + ".tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    tmp.replace(path)
+    return path
+
+
+def _build(args) -> int:
+    from drake_rus.cli import UserError
+    if args.n < 1:
+        raise UserError(f"--n: expected at least 1 subject, got {args.n}")
+    if args.points < 100:
+        raise UserError(f"--points: expected at least 100, got {args.points}")
+    if not 0.2 <= args.voxel_mm <= 5:
+        raise UserError(f"--voxel-mm: expected 0.2-5 mm, got {args.voxel_mm}")
+    out = Path(args.out)
+    if out.suffix != ".npz":
+        raise UserError(f"--out: expected a .npz file name, got {out}")
+    t0 = time.time()
+    subjects = subjects_from_cohort(args.split, args.n, args.voxel_mm / 1000.0,
+                                    side=args.side, progress=not args.quiet)
+    t1 = time.time()
+    result = build_template(subjects, n_points=args.points, use_features=not args.no_features,
+                            progress=not args.quiet)
+    t2 = time.time()
+    extra = {"split": args.split, "side": args.side, "voxel_mm": args.voxel_mm,
+             "subject_seconds": round(t1 - t0, 2), "total_seconds": round(t2 - t0, 2),
+             "source": "drake-rus virtual cohort (drake_rus.anatomy.generator)"}
+    save_template(result, out, extra)
+    png = Path(args.png) if args.png else out.with_name(out.stem + "_convergence.png")
+    plot_convergence(result.convergence, png)
+    modes_png = out.with_name(out.stem + "_modes.png")
+    plot_template_modes(load_template(out), modes_png)
+    summary = {"out": str(out), "convergence_png": str(png), "modes_png": str(modes_png),
+               "n_subjects": result.meta["n_subjects"], "n_points": result.meta["n_points"],
+               "n_modes": result.meta["n_modes"],
+               "explained_pct": [round(100 * f, 1) for f in result.meta["explained"]],
+               "extent_mm": result.meta["extent_mm"],
+               "ransac_used": result.meta["ransac_used"],
+               "ransac_rejected": result.meta["ransac_rejected"],
+               "convergence_change_mm": [None if not np.isfinite(c) else round(c * 1e3, 3)
+                                         for c in result.convergence["change"]],
+               "seconds": {"subjects": round(t1 - t0, 1), "template": round(t2 - t1, 1),
+                           "total": round(t2 - t0, 1)}}
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+def _info(args) -> int:
+    from drake_rus.cli import UserError
+    try:
+        t = load_template(args.path)
+    except ValueError as e:
+        raise UserError(str(e)) from None
+    m = t.meta
+    print(json.dumps({
+        "path": str(args.path or DEFAULT_TEMPLATE_PATH), "n_points": len(t.points),
+        "n_subjects": m.get("n_subjects"), "n_modes": len(t.variances),
+        "mode_sd_mm": [round(float(np.sqrt(v)) * 1e3, 2) for v in t.variances],
+        "extent_mm": m.get("extent_mm"), "build_seconds": m.get("total_seconds"),
+    }, indent=2))
+    return 0
+
+
+def add_commands(subparsers) -> None:
+    p = subparsers.add_parser("template", help="kidney template (seed II-D): build, info")
+    sub = p.add_subparsers(dest="template_command", metavar="ACTION")
+    sub.required = True
+    b = sub.add_parser("build", help="build the template from the virtual training cohort")
+    b.add_argument("--n", type=int, default=20, help="number of training subjects (default 20)")
+    b.add_argument("--split", default="train", choices=["train", "test", "seed"],
+                   help="cohort to build from (default train; never test for evaluation)")
+    b.add_argument("--side", default="right", choices=["right", "left"])
+    b.add_argument("--out", default=str(DEFAULT_TEMPLATE_PATH), help="output .npz")
+    b.add_argument("--points", type=int, default=2500, help="template vertices (default 2500)")
+    b.add_argument("--voxel-mm", type=float, default=1.0, help="mask voxel size (default 1 mm)")
+    b.add_argument("--png", default=None, help="convergence plot (default beside --out)")
+    b.add_argument("--no-features", action="store_true",
+                   help="skip FPFH+RANSAC (ICP from the canonical frames only)")
+    b.add_argument("--quiet", action="store_true", help="no progress bars")
+    b.set_defaults(func=_build)
+    i = sub.add_parser("info", help="summary of a template file")
+    i.add_argument("path", nargs="?", default=None)
+    i.set_defaults(func=_info)

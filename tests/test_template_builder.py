@@ -1,0 +1,169 @@
+"""Kidney template (seed II-D): resampling, alignment, correspondence, mean shape (eq. 15),
+shape model, convergence, file round trip, and a ground truth the pipeline cannot cheat."""
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+from pydrake.math import RigidTransform, RotationMatrix
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from drake_rus.anatomy.kidney_shape import KidneyShape, sample_kidney_shape_params
+from drake_rus.anatomy.rasterize import mesh_mask_on_aligned_grid
+from drake_rus.cli import main as cli_main
+from drake_rus.template import load_template
+from drake_rus.template.builder import (align_to_reference, build_template, convergence,
+                                        correspond, farthest_point_sampling, mean_shape,
+                                        save_template, shape_model, subject_from_mask,
+                                        subject_from_mesh)
+from drake_rus.template.io import DEFAULT_TEMPLATE_PATH
+from drake_rus.template.pca import mesh_canonical_frame
+
+
+def test_mean_shape_is_eq15():
+    rng = np.random.default_rng(0)
+    a = rng.standard_normal((5, 7, 3))
+    np.testing.assert_allclose(mean_shape(a), a.sum(axis=0) / 5)
+    with pytest.raises(ValueError, match="aligned shapes"):
+        mean_shape(np.zeros((0, 3)))
+
+
+def test_shape_model_recovers_planted_modes():
+    rng = np.random.default_rng(1)
+    base = rng.standard_normal((50, 3))
+    m1 = rng.standard_normal((50, 3)); m1 /= np.linalg.norm(m1)
+    m2 = rng.standard_normal((50, 3)); m2 -= (m2.ravel() @ m1.ravel()) * m1; m2 /= np.linalg.norm(m2)
+    b = rng.standard_normal((40, 2)) * [3.0, 1.0]
+    shapes = base + b[:, :1, None] * m1 + b[:, 1:, None] * m2 + 1e-3 * rng.standard_normal((40, 50, 3))
+    mean, modes, var, frac = shape_model(shapes, keep=0.95)
+    assert len(var) == 2
+    assert abs(modes[0].ravel() @ m1.ravel()) > 0.99
+    assert var[0] == pytest.approx(np.var(b[:, 0], ddof=1), rel=0.05)
+    assert np.cumsum(frac)[-1] >= 0.95
+
+
+def test_convergence_decreases_with_n():
+    rng = np.random.default_rng(2)
+    shapes = rng.standard_normal((20, 100, 3)) * 0.003
+    conv = convergence(shapes)
+    ch = np.asarray(conv["change"][1:])
+    assert np.mean(ch[-5:]) < 0.5 * np.mean(ch[:3])
+    assert conv["to_final"][-1] == 0.0
+    assert conv["to_final"][0] > conv["to_final"][10]
+
+
+def test_farthest_point_sampling_spreads_points():
+    rng = np.random.default_rng(3)
+    p = rng.uniform(0, 1, (3000, 3))
+    idx = farthest_point_sampling(p, 100)
+    assert len(set(idx.tolist())) == 100
+    d_fps = cKDTree(p[idx]).query(p[idx], k=2)[0][:, 1].min()
+    d_rnd = cKDTree(p[:100]).query(p[:100], k=2)[0][:, 1].min()
+    assert d_fps > 2 * d_rnd
+
+
+def test_alignment_recovers_known_transform():
+    shape = KidneyShape(sample_kidney_shape_params(np.random.default_rng(5)))
+    sub = subject_from_mesh(shape.mesh, [1, 0, 0], [0, 1, 0])
+    idx = farthest_point_sampling(sub.points, 1500)
+    ref_p, ref_n = sub.points[idx], sub.normals[idx]
+    R = Rotation.from_rotvec([0.08, -0.05, 0.1]).as_matrix()
+    t = np.array([0.004, -0.003, 0.002])
+    src_p = (ref_p - t) @ R          # ref = R src + t
+    src_n = ref_n @ R
+    T, info = align_to_reference(src_p, src_n, ref_p, ref_n, use_features=True, seed=0)
+    np.testing.assert_allclose(T[:3, :3], R, atol=2e-3)
+    np.testing.assert_allclose(T[:3, 3], t, atol=5e-4)
+    assert info["fitness"] > 0.95
+
+
+def test_correspond_reindexes_by_nearest_neighbour():
+    ref = np.array([[0, 0, 0], [1, 0, 0]], float)
+    pts = np.array([[1.1, 0, 0], [0.05, 0, 0], [5, 5, 5]], float)
+    nrm = np.eye(3)
+    P, N = correspond(ref, pts, nrm)
+    np.testing.assert_allclose(P, [[0.05, 0, 0], [1.1, 0, 0]])
+    np.testing.assert_allclose(N, [[0, 1, 0], [1, 0, 0]])
+
+
+def test_template_reproduces_known_correspondence_mean():
+    """Kidneys from the parametric generator share vertex topology (vertex j = same landmark),
+    so their true mean shape is known without any registration. The builder sees only masks
+    in random poses and must recover that mean within 1 mm."""
+    truth, subjects = [], []
+    for i in range(6):
+        rng = np.random.default_rng(50 + i)
+        shape = KidneyShape(sample_kidney_shape_params(rng))
+        m = shape.mesh.copy()
+        R = Rotation.random(random_state=i).as_matrix()
+        m.apply_transform(RigidTransform(RotationMatrix(R), rng.uniform(-0.2, 0.2, 3)).GetAsMatrix4())
+        x_ref, y_ref = R[:, 0], R[:, 1]
+        X_SK = mesh_canonical_frame(m, x_ref, y_ref)
+        truth.append(X_SK.inverse().multiply(m.vertices.T).T)
+        mask, X_SV = mesh_mask_on_aligned_grid(m, 0.001)
+        subjects.append(subject_from_mask(mask, X_SV, 0.001, x_ref, y_ref, name=str(i)))
+    true_mean = trimesh.Trimesh(np.mean(truth, axis=0), shape.mesh.faces, process=False)
+    true_mean.apply_transform(
+        mesh_canonical_frame(true_mean, [1, 0, 0], [0, 1, 0]).inverse().GetAsMatrix4())
+    res = build_template(subjects, n_points=1500, progress=False)
+    # No registration between template and truth: both in their canonical frames.
+    _, d, _ = trimesh.proximity.closest_point(true_mean, res.points)
+    assert d.mean() < 0.001
+    _, idx = cKDTree(res.points).query(true_mean.vertices)
+    back = np.abs(np.sum((true_mean.vertices - res.points[idx]) * res.normals[idx], axis=1))
+    assert back.mean() < 0.001
+    # Normals are unit and outward.
+    np.testing.assert_allclose(np.linalg.norm(res.normals, axis=1), 1.0, atol=1e-9)
+    assert np.mean(np.sum(res.points * res.normals, axis=1) > 0) > 0.85
+
+
+def test_save_load_round_trip(tmp_path):
+    rng = np.random.default_rng(4)
+    subjects = [subject_from_mesh(KidneyShape(sample_kidney_shape_params(rng)).mesh,
+                                  [1, 0, 0], [0, 1, 0], name=str(i)) for i in range(3)]
+    res = build_template(subjects, n_points=400, refine_passes=1, progress=False)
+    out = save_template(res, tmp_path / "t.npz", {"note": "test"})
+    assert [p.name for p in tmp_path.iterdir()] == ["t.npz"]      # no temporary left
+    t = load_template(out)
+    np.testing.assert_allclose(t.points, res.points)
+    assert t.modes.shape[1:] == t.points.shape and len(t.variances) == len(t.modes)
+    assert t.meta["note"] == "test" and t.meta["n_subjects"] == 3
+    np.testing.assert_allclose(t.shape(np.zeros(len(t.variances))), t.points)
+    with pytest.raises(ValueError, match="coefficients"):
+        t.shape(np.zeros(len(t.variances) + 1))
+    bad = tmp_path / "bad.npz"
+    bad.write_text("not a zip")
+    with pytest.raises(ValueError, match="bad.npz"):
+        load_template(bad)
+    with pytest.raises(FileNotFoundError, match="template build"):
+        load_template(tmp_path / "missing.npz")
+
+
+def test_shipped_template():
+    t = load_template()
+    assert t.points.shape == t.normals.shape and t.points.shape[1] == 3
+    assert t.meta["n_subjects"] == 20
+    # Canonical frame: centred, long axis x, then y, then z.
+    np.testing.assert_allclose(t.points.mean(axis=0), 0.0, atol=1e-9)
+    ext = np.ptp(t.points, axis=0)
+    assert ext[0] > ext[1] > ext[2]
+    assert 0.095 < ext[0] < 0.125
+    assert np.sum(t.explained if hasattr(t, "explained") else t.meta["explained"]) >= 0.95
+    ch = np.asarray(t.convergence["change"][1:])
+    assert np.mean(ch[-5:]) < 0.5 * np.mean(ch[:3])
+    assert DEFAULT_TEMPLATE_PATH.with_name("kidney_template_convergence.png").is_file()
+
+
+def test_cli_template_build_small(tmp_path, capsys):
+    out = tmp_path / "t.npz"
+    rc = cli_main(["template", "build", "--n", "3", "--points", "300", "--voxel-mm", "2",
+                   "--out", str(out), "--quiet"])
+    assert rc == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["n_subjects"] == 3 and out.is_file()
+    assert (tmp_path / "t_convergence.png").is_file()
+    assert cli_main(["template", "build", "--n", "0", "--out", str(out)]) == 2
+    assert "--n" in capsys.readouterr().err
+    assert cli_main(["template", "info", str(tmp_path / "nope.npz")]) == 2
