@@ -107,6 +107,19 @@ def test_supervisor_approach_then_explore_distance():
     np.testing.assert_allclose(s.a_des, [0, 0, -1])  # orientation unchanged
 
 
+def test_supervisor_approach_to_start_xy():
+    c = cfg(start_xy=[0.5, 0.02])
+    dt = 0.01
+    s = scan.supervisor_step(scan.SupervisorState(), inputs(0.0, F=0.0), c, dt)
+    np.testing.assert_allclose(s.P_des, [0.5, 0.02])
+    s = scan.supervisor_step(s, inputs(0.01, F=9.0), c, dt)  # contact, but not there yet
+    assert s.phase == scan.Phase.APPROACH
+    s = scan.supervisor_step(s, inputs(0.02, p=(0.5005, 0.02, 0.1), F=9.0), c, dt)
+    assert s.phase == scan.Phase.EXPLORE
+    with pytest.raises(ValueError, match="start_xy"):
+        scan.supervisor_step(scan.SupervisorState(), inputs(0.0), cfg(start_xy=[0.5]), dt)
+
+
 def test_supervisor_explore_ends_when_kidney_leaves_after_debounce():
     c = cfg(visibility_debounce=0.1)
     dt = 0.01

@@ -70,6 +70,9 @@ class ControllerConfig:
     # the patient, a transverse image) about the current approach vector.
     explore_orientation: str = field(default="transverse",
                                      metadata={"choices": ["hold", "transverse"]})
+    # Where APPROACH lands the probe: tip (x, y) in the base frame (m); empty = straight down
+    # from the start pose. The seed places the probe by hand where the kidney is visible.
+    start_xy: list[float] = field(default_factory=list)
     # Scan direction along the base y-axis (the patient lies along y).
     scan_direction: str = field(default="-y", metadata={"choices": ["+y", "-y"]})
     # K_p7 (m/s per unit of normalised centroid offset): mask-centring gain (eq. 17).

@@ -203,8 +203,8 @@ def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float
                     ) -> SupervisorState:
     """One control period of the scan state machine (pure: returns a new state).
 
-    APPROACH: hold pose, press to F_des until the filtered force reaches contact_fraction
-    F_des. EXPLORE: constant orientation, eq. 17, until ER L_m of travel or the kidney has
+    APPROACH: hold the orientation (or turn o transverse), move the tip over start_xy (if
+    given) and press to F_des until the filtered force reaches contact_fraction F_des there. EXPLORE: constant orientation, eq. 17, until ER L_m of travel or the kidney has
     left the image. LOCALIZE: hold (force control only) for localize_hold_time and until
     the localizer is ready, then compute T* (eq. 20-22). TRANSIT: slide to (p_x*, p_y*)
     with a_des = r3*, o_des = r1*. PIVOT: a_des rotates about o_des (eq. 23) one way until
@@ -237,13 +237,19 @@ def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float
         if getattr(cfg, "explore_orientation", "hold") == "transverse":
             s.o_des = transverse_orientation(s.a_des, s.o_des)
         s.P_des = p[:2].copy()
+        start_xy = list(getattr(cfg, "start_xy", []) or [])
+        if start_xy:
+            if len(start_xy) != 2:
+                raise ValueError(f"controller.start_xy: expected [] or [x, y] (m), got {start_xy}")
+            s.P_des = np.asarray(start_xy, dtype=float)
         s.F_des = float(cfg.desired_force)
         s.initialised = True
         s.phase_start = u.t
         s.events = s.events + ((u.t, s.phase.name, "start"),)
 
     if s.phase == Phase.APPROACH:
-        if u.F_z >= cfg.contact_fraction * cfg.desired_force:
+        at_start = float(np.linalg.norm(p[:2] - s.P_des)) <= cfg.transit_position_tolerance
+        if u.F_z >= cfg.contact_fraction * cfg.desired_force and at_start:
             s.P_des = p[:2].copy()
             return _goto(s, Phase.EXPLORE, u.t, f"contact at {u.F_z:.2f} N")
         return s

@@ -1,0 +1,133 @@
+"""Closed-loop real-time rate of station + controller during exploration
+(``python -m benchmarks control``).
+
+Runs the scan supervisor through APPROACH into EXPLORE, then times ``--duration`` simulated
+seconds of exploration (5 mm/s slide under 9 N force control, mask centring in the loop).
+With ``--patient SPEC`` (e.g. ``test:0``) the station renders emulated images of a virtual
+patient and the scenario's segmenter closes the loop; otherwise the geometric kidney view
+stands in for image + segmenter on the placeholder torso. Also times the station alone
+pressed by the minimal press driver as the reference measured in the same run.
+The last line is one JSON object.
+"""
+
+import argparse
+import json
+import math
+import time
+
+import numpy as np
+from pydrake.math import RigidTransform, RollPitchYaw
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder
+
+from drake_rus.control import scan
+from drake_rus.control.diagram import BuildClosedLoop
+from drake_rus.control.synthetic_view import GeometricKidneyView
+from drake_rus.scenario import ApplyOverrides, LoadScenario
+
+
+def _closed_loop(scenario, patient: str | None):
+    if patient:
+        from drake_rus.imaging.systems import Segmenter
+        from drake_rus.station import MakeStation
+        station = MakeStation(scenario)
+        return _with_segmenter(scenario, station, Segmenter(scenario.imaging))
+    X_BK = RigidTransform(RollPitchYaw(0.1, 0.0, math.radians(105.0)), [0.595, -0.035, 0.035])
+    view = GeometricKidneyView(X_BK, [0.055, 0.03, 0.025],
+                               frame_rate_hz=scenario.imaging.frame_rate_hz)
+    return BuildClosedLoop(scenario, kidney_view=view)
+
+
+def _with_segmenter(scenario, station, segmenter):
+    """BuildClosedLoop's wiring with the station's images -> Segmenter in the loop."""
+    from drake_rus.control.diagram import AddController, ClosedLoop
+    builder = DiagramBuilder()
+    builder.AddNamedSystem("station", station)
+    builder.AddNamedSystem("segmenter", segmenter)
+    for name in ("us_image", "label_image"):
+        builder.Connect(station.GetOutputPort(name), segmenter.GetInputPort(name))
+    parts = AddController(builder, station, scenario, segmenter=segmenter,
+                          kidney_pose_port=station.GetOutputPort("X_BK_true"))
+    return ClosedLoop(builder.Build(), station, parts, None, {}, {})
+
+
+def _station_alone_rtf(scenario, duration: float) -> float | None:
+    """Reference measured in the same run: the station pressed and held by the lead's
+    minimal C++-light press driver (drake_rus.sim.press), no scan controller."""
+    try:
+        from drake_rus.sim.press import PressDiagram
+    except ImportError:
+        return None
+    press = PressDiagram(scenario)
+    sim = Simulator(press.diagram)
+    sim.AdvanceTo(2.0)
+    start = time.perf_counter()
+    sim.AdvanceTo(2.0 + duration)
+    return duration / (time.perf_counter() - start)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks control")
+    parser.add_argument("--duration", type=float, default=5.0,
+                        help="simulated seconds of exploration to time")
+    parser.add_argument("--scenario", default="default")
+    parser.add_argument("--patient", default=None,
+                        help="virtual patient spec (e.g. test:0) for emulated images + segmenter")
+    parser.add_argument("--rate-hz", type=float, default=None, help="controller rate override")
+    parser.add_argument("--contact", choices=["hydroelastic", "point"], default=None)
+    parser.add_argument("--no-reference", action="store_true",
+                        help="skip the station-alone reference run")
+    args = parser.parse_args(argv)
+
+    scenario = LoadScenario(scenario_name=args.scenario)
+    overrides = ["exploration_ratio: 1.0"]
+    if args.rate_hz:
+        overrides.append(f"rate_hz: {args.rate_hz}")
+    scenario = ApplyOverrides(scenario, "{controller: {%s}}" % ", ".join(overrides))
+    if args.contact:
+        scenario = ApplyOverrides(scenario, "{contact: {model: %s}}" % args.contact)
+    if args.patient:
+        scenario = ApplyOverrides(scenario, "{patient: {source: '%s'}}" % args.patient)
+
+    t0 = time.perf_counter()
+    cl = _closed_loop(scenario, args.patient)
+    build_s = time.perf_counter() - t0
+    sim = Simulator(cl.diagram)
+    ctx = sim.get_mutable_context()
+    sup = cl.parts.supervisor
+    sup_ctx = sup.GetMyContextFromRoot(ctx)
+    t_wall0 = time.perf_counter()
+    while sup.state(sup_ctx).phase == scan.Phase.APPROACH and ctx.get_time() < 10.0:
+        sim.AdvanceTo(ctx.get_time() + 0.1)
+    approach_wall = time.perf_counter() - t_wall0
+    phase = sup.state(sup_ctx).phase
+    t_start = ctx.get_time()
+    start = time.perf_counter()
+    sim.AdvanceTo(t_start + args.duration)
+    wall = time.perf_counter() - start
+    state = sup.state(sup_ctx)
+    safety = cl.parts.safety.safety_state(cl.parts.safety.GetMyContextFromRoot(ctx))
+    reference = None if args.no_reference else _station_alone_rtf(scenario, args.duration)
+    result = {
+        "rtf_exploration": round(args.duration / wall, 3),
+        "rtf_station_press_reference": None if reference is None else round(reference, 3),
+        "explored_m": round(state.travel, 4),
+        "phase_at_start": phase.name,
+        "phase_at_end": state.phase.name,
+        "safety_stops": [e.reason for e in safety.events],
+        "controller_rate_hz": scenario.controller.rate_hz,
+        "contact_model": scenario.contact.model,
+        "images": "emulated + " + scenario.imaging.segmenter if args.patient
+        else "geometric kidney view",
+        "approach_wall_s": round(approach_wall, 2),
+        "build_s": round(build_s, 2),
+        "duration_s": args.duration,
+    }
+    print(f"exploration: {args.duration} s simulated in {wall:.2f} s wall "
+          f"(real-time factor {args.duration / wall:.2f})")
+    print(json.dumps(result))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
