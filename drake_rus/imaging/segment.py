@@ -81,13 +81,30 @@ def _block_mean(image: np.ndarray, f: int) -> np.ndarray:
     return image[:h2 * f, :w2 * f].reshape(h2, f, w2, f).mean(axis=(1, 3), dtype=np.float32)
 
 
+_FAN_CACHE: dict = {}
+
+
+def _half_res_fan(geometry: ProbeGeometry) -> tuple[np.ndarray, np.ndarray]:
+    """Half-resolution fan masks, cached per geometry: (interior, edge band, fan as 0/1,
+    5x5 box mean of the fan: the normaliser of the box filter)."""
+    hit = _FAN_CACHE.get(geometry)
+    if hit is None:
+        cover = _block_mean(geometry.fan_mask.astype(np.float32), 2)
+        fan_any = (cover > 0.99).astype(np.float32)
+        weight = np.maximum(ndimage.uniform_filter(fan_any, size=5), 1e-3)
+        fan = ndimage.binary_erosion(cover > 0.99, iterations=2)
+        edge = fan & ~ndimage.binary_erosion(fan, iterations=2)
+        hit = _FAN_CACHE[geometry] = (fan, edge, fan_any, weight)
+    return hit
+
+
 def segment_classical(us_image: np.ndarray, geometry: ProbeGeometry,
                       prev_mask: np.ndarray | None = None, min_area: float = 1.0e-4,
                       strong: float = 0.75, weak: float = 1.0, grow_m: float = 0.008,
                       reject_edge: bool = False) -> np.ndarray:
     """Kidney mask (bool, rows x cols) of an emulated/real B-mode image, no learning.
 
-    1. 2x2 block mean then a 5x5 median: despeckle at half resolution;
+    1. 2x2 block mean then a 5x5 box mean: despeckle at half resolution;
     2. parenchyma = darker than ``strong`` x the median grey of the lit fan (shadows, i.e.
        pixels below 15% of it, and the region near the face are excluded);
     3. opening, hole filling (the bright sinus and fat inside the dark ring join the kidney);
@@ -104,9 +121,9 @@ def segment_classical(us_image: np.ndarray, geometry: ProbeGeometry,
                          f"{geometry.image_shape}")
     f = 2
     small = _block_mean(img.astype(np.float32), f)
-    fan = _block_mean(geometry.fan_mask.astype(np.float32), f) > 0.99
-    fan = ndimage.binary_erosion(fan, iterations=2)
-    small = ndimage.median_filter(small, size=5)
+    fan, edge, fan_any, fan_weight = _half_res_fan(geometry)
+    # Box mean over fan pixels only (normalised), so the black outside does not leak in.
+    small = ndimage.uniform_filter(small * fan_any, size=5) / fan_weight
     lit = fan & (small > 8)
     if np.count_nonzero(lit) < 50:
         return np.zeros(geometry.image_shape, bool)
@@ -121,7 +138,6 @@ def segment_classical(us_image: np.ndarray, geometry: ProbeGeometry,
     labels, n = ndimage.label(filled)
     if n == 0:
         return np.zeros(geometry.image_shape, bool)
-    edge = fan & ~ndimage.binary_erosion(fan, iterations=2)
     index = np.arange(1, n + 1)
     areas = ndimage.sum_labels(np.ones_like(labels), labels, index) * geometry.pixel_area * f * f
     touches = ndimage.maximum(edge, labels, index) > 0

@@ -142,7 +142,7 @@ def train(X, Y, width: int, epochs: int, batch: int = 16, lr: float = 3e-3, seed
             loss.backward()
             opt.step()
             sched.step()
-            total += float(loss) * len(idx)
+            total += loss.item() * len(idx)
         log(f"epoch {epoch + 1}/{epochs}: loss {total / len(X):.4f} ({time.time() - t0:.0f} s)")
     net.eval()
     return net
