@@ -1,0 +1,36 @@
+"""Pictures and masks: label slices, cohort overview, Meshcat scene, kidney masks."""
+
+import numpy as np
+import pytest
+from pydrake.geometry import Meshcat
+
+from drake_rus.anatomy.generator import generate_patient
+from drake_rus.anatomy.pictures import plot_cohort_overview, plot_label_slices, show_in_meshcat
+
+
+@pytest.mark.parametrize("posture", ["supine", "left_lateral_decubitus"])
+def test_kidney_mask_matches_mesh(posture):
+    p = generate_patient(6, posture=posture)
+    mask, X_PtV = p.kidney_mask(0.0015)
+    vs = 0.0015
+    assert mask.sum() * vs ** 3 == pytest.approx(p.kidney_mesh.volume, rel=0.03)
+    c = X_PtV.multiply((np.argwhere(mask) * vs).T).T.mean(axis=0)
+    # Volume centroid and surface centroid of a kidney differ by a few mm at most.
+    assert np.linalg.norm(c - p.X_PtK.translation()) < 0.005
+
+
+def test_pictures_are_written(tmp_path):
+    p = generate_patient(8, voxel_size=0.004, progress=False)
+    out = plot_label_slices(p, tmp_path / "slices.png")
+    assert out.is_file() and out.stat().st_size > 10_000
+    out = plot_cohort_overview([p, generate_patient(9)], tmp_path / "cohort.png")
+    assert out.is_file()
+    assert not list(tmp_path.glob("*.tmp.png"))
+
+
+def test_meshcat_scene():
+    p = generate_patient(8)
+    meshcat = Meshcat()
+    show_in_meshcat(p, meshcat)
+    assert meshcat.HasPath("patient/kidney") and meshcat.HasPath("patient/skin")
+    assert meshcat.HasPath("patient/X_PtK/x")
