@@ -24,12 +24,17 @@ __all__ = ["ScriptedMotion", "MotionResult", "BuildHardwareClosedLoop", "RunScri
 
 @dataclasses.dataclass
 class ScriptedMotion:
-    """An orientation step then a slide (s, rad, m), in the base frame."""
+    """An orientation step then a slide (s, rad, m), in the base frame. With
+    ``settle_angle`` / ``settle_distance`` > 0 the run ends early, after the slide started,
+    once the approach vector is within ``settle_angle`` (rad) and the tip within
+    ``settle_distance`` (m, base x-y) of their targets; ``duration`` bounds it."""
     t_orientation: float = 0.3
     angle: float = math.radians(5.0)
     t_slide: float = 2.0
     slide: float = 0.02
     duration: float = 5.0
+    settle_angle: float = 0.0
+    settle_distance: float = 0.0
 
 
 @dataclasses.dataclass
@@ -81,15 +86,20 @@ def BuildHardwareClosedLoop(scenario, station):
 
 
 def RunScriptedMotion(loop, station, motion: ScriptedMotion, *, realtime_rate: float = 1.0,
-                      check_period: float = 0.05, on_step=None) -> MotionResult:
+                      check_period: float = 0.05, on_step=None,
+                      context_out: dict | None = None) -> MotionResult:
     """Runs ``motion`` on the closed loop (from :func:`BuildHardwareClosedLoop`) inside a
-    hardware session (zero velocity at the end, on any exception or fault)."""
+    hardware session (zero velocity at the end, on any exception or fault). ``on_step()``
+    runs after every ``check_period`` s; ``context_out["root"]`` receives the root
+    context."""
     from pydrake.systems.analysis import Simulator
 
     from drake_rus.hardware.station import RunHardware
 
     simulator = Simulator(loop.diagram)
     root = simulator.get_context()
+    if context_out is not None:
+        context_out["root"] = root
     st_ctx = station.GetMyContextFromRoot(root)
     X0 = RigidTransform(station.GetOutputPort("X_BP").Eval(st_ctx))
     q0 = np.array(station.GetOutputPort("joint_position").Eval(st_ctx))
@@ -111,9 +121,17 @@ def RunScriptedMotion(loop, station, motion: ScriptedMotion, *, realtime_rate: f
         if on_step is not None:
             on_step()
 
+    def settled():
+        if motion.settle_angle <= 0 or not stage["slide"]:
+            return False
+        X = station.GetOutputPort("X_BP").Eval(st_ctx)
+        a = X.rotation().matrix()[:, 2]
+        return (np.arccos(np.clip(a @ a_target, -1, 1)) < motion.settle_angle
+                and np.linalg.norm(X.translation()[:2] - p_target) < motion.settle_distance)
+
     simulator.Initialize()
     end = RunHardware(simulator, station, motion.duration, check_period=check_period,
-                      realtime_rate=realtime_rate, on_step=step)
+                      realtime_rate=realtime_rate, on_step=step, until=settled)
     safety_ctx = loop.parts.safety.GetMyContextFromRoot(root)
     events = loop.parts.safety.GetOutputPort("safety_events").Eval(safety_ctx)
     frame = station.GetOutputPort("us_image").Eval(st_ctx)

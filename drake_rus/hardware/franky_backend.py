@@ -84,6 +84,8 @@ class FrankyBackend:
         self._last_sent = np.zeros(7)
         self._last_command_time = math.nan
         self._moving = False
+        self._robot_time = math.nan
+        self._robot_time_change = math.nan
         self.watchdog_events: list[WatchdogEvent] = []
         self.command_log: list[tuple[float, np.ndarray]] = []   # (monotonic s, rad/s)
         # (robot clock s, q rad, velocity sent right after that read rad/s), when tracing.
@@ -147,10 +149,19 @@ class FrankyBackend:
             except Exception as e:
                 self._set_fault(f"FR3 at {self.config.robot_ip}: {type(e).__name__}: {e}")
                 raise HardwareFault(self._fault) from e
+            now = time.monotonic()
+            robot_time = state.time.to_msec() * 1e-3
+            if robot_time != self._robot_time:
+                self._robot_time, self._robot_time_change = robot_time, now
+            elif now - self._robot_time_change > self.config.status_timeout:
+                self._set_fault(
+                    f"FR3 at {self.config.robot_ip}: robot state not updated for "
+                    f"{now - self._robot_time_change:.3f} s (hardware_interface.status_timeout"
+                    f" {self.config.status_timeout:g} s): connection lost")
+                raise HardwareFault(self._fault)
         return RobotReading(np.array(state.q, float), np.array(state.dq, float),
                             external_torque_to_drake(state.tau_ext_hat_filtered),
-                            time.monotonic(), state.time.to_msec() * 1e-3,
-                            np.array(state.dq_d, float))
+                            now, robot_time, np.array(state.dq_d, float))
 
     def read(self) -> RobotReading:
         """The robot state now; external torques with the start-up bias removed."""
@@ -224,7 +235,8 @@ class FrankyBackend:
 
     # --- stopping ---------------------------------------------------------------------
     def stop(self, timeout: float = 2.0) -> None:
-        """Zero velocity now and wait (at most ``timeout`` s) until franky's motion ended.
+        """Zero velocity now and wait (at most ``timeout`` s) until franky's motion ended and
+        the robot's commanded velocity (``dq_d``) is zero.
         Never raises: a failed stop is logged (the robot stops on its own when the
         connection is gone)."""
         with self._lock:
@@ -239,8 +251,18 @@ class FrankyBackend:
             except Exception as e:
                 LOG.error("stop: %s: %s", type(e).__name__, e)
                 return
+        deadline = time.monotonic() + timeout
         try:
             self._robot.join_motion(timeout)
+            # The motion has ended; wait until the robot's own commanded velocity is zero.
+            while time.monotonic() < deadline:
+                with self._lock:
+                    dq_d = np.asarray(self._robot.state.dq_d, float)
+                if np.abs(dq_d).max() < 1e-4:
+                    break
+                time.sleep(0.005)
+            else:
+                LOG.error("stop: the robot's commanded velocity is not zero after %g s", timeout)
         except Exception as e:
             LOG.error("stop: %s: %s", type(e).__name__, e)
         with self._lock:

@@ -316,12 +316,12 @@ class HardwareSession:
 
 def RunHardware(simulator, station: HardwareStation, duration: float, *,
                 check_period: float = 0.05, realtime_rate: float = 1.0,
-                on_step=None) -> float:
+                on_step=None, until=None) -> float:
     """Advances ``simulator`` (whose diagram contains ``station``) by ``duration`` s at
     ``realtime_rate`` (0: as fast as possible) inside a :class:`HardwareSession`, in
-    chunks of ``check_period`` s, calling ``on_step()`` after each; raises HardwareFault as
-    soon as the station's ``robot_ok`` drops (the command is zero by then). Returns the
-    end time."""
+    chunks of ``check_period`` s, calling ``on_step()`` after each and ending early when
+    ``until()`` returns True; raises HardwareFault as soon as the station's ``robot_ok``
+    drops (the command is zero by then). Returns the end time."""
     simulator.set_target_realtime_rate(realtime_rate)
     root = simulator.get_context()
     station_context = station.GetMyContextFromRoot(root)
@@ -335,4 +335,6 @@ def RunHardware(simulator, station: HardwareStation, duration: float, *,
             if ok_port.Eval(station_context)[0] < 0.5:
                 fault = getattr(station.backend, "fault", None) or "robot state lost"
                 raise HardwareFault(f"hardware fault at t = {root.get_time():.3f} s: {fault}")
+            if until is not None and until():
+                break
     return root.get_time()
