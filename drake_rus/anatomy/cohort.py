@@ -98,15 +98,17 @@ def kidney_statistics(seed: int, side: str = "right", posture: str = "supine") -
     ext = extents_in_frame(mesh.vertices, X)
     x_k = X.rotation().matrix()[:, 0]
     depth = float(lay.torso.top_z(lay.p_c[0], lay.p_c[1]) - lay.kidney_top_z)
-    return {
+    out = {
         "seed": int(seed), "size_class": prm.torso.size_class,
         "length": float(ext[0]), "width": float(ext[1]), "thickness": float(ext[2]),
         "volume": float(mesh.volume),
         "hilum_angle": lay.hilum_angle_measured(x_k),
         "coronal_angle": float(np.arctan2(abs(x_k[0]), x_k[1])),
         "sagittal_angle": float(np.arctan2(-x_k[2], x_k[1])),
-        "depth_vertical": depth,
     }
+    if posture == "supine":    # the analytic upper surface is the anterior one
+        out["depth_vertical"] = depth
+    return out
 
 
 # Published values to compare with (facts file).
@@ -129,7 +131,7 @@ _UNITS = {"length": ("length_mm", 1e3), "width": ("width_mm", 1e3),
           "depth_vertical": ("depth_vertical_mm", 1e3), "depth_min": ("depth_min_mm", 1e3)}
 
 
-def summarize(rows: list[dict], side: str = "right") -> dict:
+def summarize(rows: list[dict], side: str = "right", posture: str = "supine") -> dict:
     """Mean, SD, min, max of each statistic, in report units (mm, mL, deg)."""
     out = {}
     for key, (name, scale) in _UNITS.items():
@@ -140,6 +142,8 @@ def summarize(rows: list[dict], side: str = "right") -> dict:
         out[name] = {"mean": round(float(vals.mean()), 2),
                      "sd": round(float(vals.std(ddof=1)) if len(vals) > 1 else 0.0, 2),
                      "min": round(float(vals.min()), 2), "max": round(float(vals.max()), 2)}
+        if name == "depth_vertical_mm" and posture != "supine":
+            ref = "less than supine: through the upper (right) flank; no published range"
         if ref is not None:
             out[name]["reference"] = ref[side] if isinstance(ref, dict) else ref
     classes = [r["size_class"] for r in rows if "size_class" in r]
@@ -164,4 +168,4 @@ def cohort_stats(split: str, count: int | None = None, side: str = "right",
             row = kidney_statistics(seed, side, posture)
         rows.append(row)
     return {"split": split, "count": len(seeds), "side": side, "posture": posture,
-            "seeds": [seeds[0], seeds[-1]], "statistics": summarize(rows, side)}
+            "seeds": [seeds[0], seeds[-1]], "statistics": summarize(rows, side, posture)}
