@@ -222,7 +222,7 @@ def _mesh_labels(kidney, skin_section, liver, other_kidney, voxel_size, fat, mus
     return LabelVolume(labels=labels, voxel_size=voxel_size, X_PtV=X_PtV)
 
 
-def crop_body_section(skin_mesh, center_Pt, half_length_m, voxel_size=0.005):
+def crop_body_section(skin_mesh, center_Pt, half_length_m, voxel_size=0.005, detach_m=0.035):
     """Watertight body surface between y = center_y -/+ half_length (Pt): the skin is
     rasterised in that slab, the component containing ``center_Pt`` kept, and re-surfaced
     with marching cubes (flat caps at both ends)."""
@@ -234,19 +234,31 @@ def crop_body_section(skin_mesh, center_Pt, half_length_m, voxel_size=0.005):
     y = X_PtV.translation()[1] + voxel_size * np.arange(shape[1])
     body[:, (y < lo[1]) | (y > hi[1]), :] = False
     # Keep, slice by slice, the 2-D component containing the kidney's (x, z): the torso
-    # without the arms.
+    # without the arms. A morphological opening (radius ``detach_m``) first cuts arms that
+    # touch the torso over a narrow contact.
     ijk = np.round((c - X_PtV.translation()) / voxel_size).astype(int)
     ci, ck = int(np.clip(ijk[0], 0, shape[0] - 1)), int(np.clip(ijk[2], 0, shape[2] - 1))
+    r = max(1, int(round(detach_m / voxel_size)))
+    disk = np.add.outer(np.arange(-r, r + 1) ** 2, np.arange(-r, r + 1) ** 2) <= r * r
     for j in range(shape[1]):
         sl = body[:, j, :]
         if not sl.any():
             continue
-        lab, n = ndimage.label(sl)
+        core = ndimage.binary_erosion(sl, disk)
+        lab, n = ndimage.label(core if core.any() else sl)
+        if n == 0:
+            continue
         if lab[ci, ck] > 0:
-            body[:, j, :] = lab == lab[ci, ck]
-        elif n > 1:
+            keep = lab == lab[ci, ck]
+        else:
             sizes = np.bincount(lab.ravel())[1:]
-            body[:, j, :] = lab == (1 + int(np.argmax(sizes)))
+            keep = lab == (1 + int(np.argmax(sizes)))
+        if core.any():
+            keep = ndimage.binary_dilation(keep, disk) & sl
+        lab2, _ = ndimage.label(keep)
+        if lab2[ci, ck] > 0:
+            keep = lab2 == lab2[ci, ck]
+        body[:, j, :] = keep
     return mask_to_mesh(body, X_PtV, voxel_size, sigma_vox=0.7, keep_point=c,
                         what="skin mesh (torso section)")
 
