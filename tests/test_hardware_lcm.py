@@ -1,7 +1,7 @@
 """The LCM backend in-process on ``memq://``: the hardware station against a simulated
 drake-franka-driver built from Drake's PandaCommandReceiver / PandaStatusSender.
 
-The driver drops commands whose utime is not within 0.1 s of its wall clock (like the real
+The driver drops commands whose utime is not within EXPIRY s of its wall clock (like the real
 driver), integrates the velocities it accepts and reports libfranka's torque sign. The two
 diagrams share one DrakeLcm and are stepped in lockstep in this thread.
 """
@@ -27,7 +27,7 @@ from drake_rus.imaging.frames import UsFrame
 from drake_rus.scenario import ApplyOverrides, LoadScenario
 from drake_rus.station import MakeControlPlant, MakeStation
 
-EXPIRY = 0.1        # s, the simulated driver's command expiry
+EXPIRY = 0.25       # s, the simulated driver's command expiry (generous: shared CPU)
 STEP = 0.005        # s, lockstep chunk (one control period at 200 Hz)
 
 pytestmark = pytest.mark.timeout(300)
@@ -35,7 +35,7 @@ pytestmark = pytest.mark.timeout(300)
 
 def lcm_scenario(**hw):
     fields = {"backend": "lcm", "dry_run": False, "tau_external_bias_duration": 0.0,
-              "connect_timeout": 5.0, "status_timeout": 0.1}
+              "connect_timeout": 5.0, "status_timeout": 0.5}
     fields.update(hw)
     text = ", ".join(f"{k}: {str(v).lower() if isinstance(v, bool) else v}"
                      for k, v in fields.items())
@@ -205,7 +205,7 @@ def test_stale_command_stops_the_driver():
         time.sleep(0.002)
     assert stopped_at is not None, "the driver kept a stale command"
     latency = stopped_at - t_last
-    assert latency >= EXPIRY - 0.02      # stamped at publish, tapped a little later
+    assert latency >= EXPIRY - 0.05      # stamped at publish, tapped a little later
     q_stop = rig.driver_q().copy()
     for _ in range(20):
         rig.step_driver()
@@ -215,7 +215,7 @@ def test_stale_command_stops_the_driver():
 
 
 def test_lost_connection_ends_at_zero_command():
-    rig = Rig(lcm_scenario(status_timeout=0.1))
+    rig = Rig(lcm_scenario(status_timeout=0.3))
     st = rig.station
     sim = Simulator(st)
     ctx = st.GetMyContextFromRoot(sim.get_context())
@@ -233,6 +233,7 @@ def test_lost_connection_ends_at_zero_command():
     with pytest.raises(HardwareFault, match="robot state lost"):
         RunHardware(sim, st, 5.0, check_period=STEP, realtime_rate=0.0, on_step=step)
     detected = time.time()
+    assert detected - t_wall["lost"] >= 0.3 - 0.01
     assert st.GetOutputPort("robot_ok").Eval(ctx)[0] == 0.0
     assert not np.any(st.GetOutputPort("commanded_velocity").Eval(ctx))
     # The session's final commands on the wire are zero, stamped with wall-clock time.
@@ -240,7 +241,7 @@ def test_lost_connection_ends_at_zero_command():
     assert all(m.joint_velocity == tuple([0.0] * 7) for _, m in wire[-3:])
     assert all(abs(t - m.utime * 1e-6) < EXPIRY for t, m in wire[-3:])
     print(f"\n[lcm lost] fault detected {1e3 * (detected - t_wall['lost']):.0f} ms after the "
-          f"last status (status_timeout 100 ms)")
+          f"last status (status_timeout 300 ms)")
 
 
 class Boom(LeafSystem):
@@ -297,3 +298,30 @@ def test_no_driver_is_a_clear_error():
     scenario = lcm_scenario(connect_timeout=0.2)
     with pytest.raises(HardwareFault, match="hardware_interface.lcm_status_channel"):
         MakeHardwareStation(scenario, lcm=DrakeLcm("memq://"))
+
+
+def test_sigterm_ends_at_zero_command():
+    """SIGTERM (or Ctrl-C) during a run: the session turns it into KeyboardInterrupt and
+    sends zero velocity."""
+    import os
+    import signal
+    rig = Rig(lcm_scenario())
+    st = rig.station
+    sim = Simulator(st)
+    ctx = st.GetMyContextFromRoot(sim.get_context())
+    st.get_input_port().FixValue(ctx, np.array([0, 0, 0.1, 0, 0, 0, 0]))
+    sim.Initialize()
+
+    def step():
+        rig.step_driver()
+        if sim.get_context().get_time() >= 0.2:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    previous = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(KeyboardInterrupt):
+        RunHardware(sim, st, 2.0, check_period=STEP, realtime_rate=0.0, on_step=step)
+    assert signal.getsignal(signal.SIGTERM) is previous      # handler restored
+    assert rig.pump()[-1][1].joint_velocity == tuple([0.0] * 7)
+    for _ in range(3):
+        rig.step_driver()
+    assert not np.any(rig.driver_v())
