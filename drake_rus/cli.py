@@ -13,6 +13,7 @@ from drake_rus.config_schema import ScenarioError
 COMMAND_MODULES = [
     "drake_rus.demo",            # demo: the station demo (pressing probe)
     "drake_rus.render",          # render-diagram: station diagram picture
+    "drake_rus.hardware.check",  # hardware check: connect, dry run, scripted motion
     "drake_rus.anatomy.cli",
     "drake_rus.template.cli",
     "drake_rus.imaging.cli",
