@@ -327,3 +327,16 @@ def test_bad_robot_address_and_video_are_clear_errors(tmp_path):
         MakeHardwareStation(franky_scenario("300.0.0.1"))
     with pytest.raises(ValueError, match="video file not found"):
         MakeHardwareStation(franky_scenario("127.0.0.1", video=tmp_path / "missing.avi"))
+
+
+def test_cli_hardware_check(franky_sim, capsys):
+    from drake_rus.cli import main
+    overrides = ("{hardware_interface: {robot_ip: %s, connect_timeout: 30, "
+                 "status_timeout: 0.5}}" % franky_sim.host)
+    assert main(["hardware", "check", "--dry-run", "--duration", "0.3", "--set",
+                 overrides]) == 0
+    out = capsys.readouterr().out
+    assert "connected (franky)" in out and "dry run: no motion was commanded" in out
+    assert main(["hardware", "check", "--set",
+                 "{hardware_interface: {robot_ip: 127.0.0.9, connect_timeout: 0.5}}"]) == 2
+    assert "cannot connect to the FR3 at '127.0.0.9'" in capsys.readouterr().err

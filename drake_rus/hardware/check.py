@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import sys
 
 import numpy as np
 from pydrake.math import RigidTransform, RotationMatrix
@@ -162,42 +163,55 @@ def add_commands(subparsers) -> None:
 
 
 def run_check(args) -> int:
-    from pydrake.systems.analysis import Simulator
-
-    from drake_rus.hardware.station import MakeHardwareStation, RunHardware
+    from drake_rus.hardware.station import HardwareFault, MakeHardwareStation
     from drake_rus.scenario import ApplyOverrides, LoadScenario
 
     scenario = LoadScenario(filename=args.scenarios_file, scenario_name=args.scenario,
                             scenario_text=args.overrides)
     scenario = ApplyOverrides(scenario, "{hardware: true, hardware_interface: {dry_run: %s}}"
                               % ("true" if args.dry_run else "false"))
-    station = MakeHardwareStation(scenario)
     try:
-        ctx = station.CreateDefaultContext()
-        q = station.GetOutputPort("joint_position").Eval(ctx)
-        X = station.GetOutputPort("X_BP").Eval(ctx)
-        print(f"connected ({scenario.hardware_interface.backend}); q = "
-              f"{np.array2string(np.asarray(q), precision=4)} rad")
-        print(f"probe tip p_BP = {np.array2string(X.translation(), precision=4)} m")
-        if args.dry_run:
-            simulator = Simulator(station)
-            station.get_input_port().FixValue(station.GetMyContextFromRoot(
-                simulator.get_context()), np.zeros(7))
-            simulator.Initialize()
-            RunHardware(simulator, station, args.duration)
-            sc = station.GetMyContextFromRoot(simulator.get_context())
-            F = station.GetOutputPort("probe_force").Eval(sc)
-            frame = station.GetOutputPort("us_image").Eval(sc)
-            print(f"probe_force = {np.array2string(np.asarray(F), precision=2)} (N m, N)")
-            print(f"frames grabbed: {frame.frame_index + 1} in {args.duration:g} s")
-            print("dry run: no motion was commanded")
-            return 0
-        loop = BuildHardwareClosedLoop(scenario, station)
-        result = RunScriptedMotion(loop, station, ScriptedMotion())
-        print(f"approach error {math.degrees(result.approach_error):.2f} deg, tip x-y error "
-              f"{1e3 * result.position_error_xy:.1f} mm, safety events: "
-              f"{[e.reason for e in result.safety_events] or 'none'}")
-        return 0
+        station = MakeHardwareStation(scenario)
+    except HardwareFault as e:
+        print(f"drake-rus hardware check: error: {e}", file=sys.stderr)
+        return 2
+    try:
+        return _check(args, scenario, station)
+    except HardwareFault as e:
+        print(f"drake-rus hardware check: error: {e}", file=sys.stderr)
+        return 2
     finally:
         station.close()
+
+
+def _check(args, scenario, station) -> int:
+    from pydrake.systems.analysis import Simulator
+
+    from drake_rus.hardware.station import RunHardware
+    ctx = station.CreateDefaultContext()
+    q = station.GetOutputPort("joint_position").Eval(ctx)
+    X = station.GetOutputPort("X_BP").Eval(ctx)
+    print(f"connected ({scenario.hardware_interface.backend}); q = "
+          f"{np.array2string(np.asarray(q), precision=4)} rad")
+    print(f"probe tip p_BP = {np.array2string(X.translation(), precision=4)} m")
+    if args.dry_run:
+        simulator = Simulator(station)
+        station.get_input_port().FixValue(station.GetMyContextFromRoot(
+            simulator.get_context()), np.zeros(7))
+        simulator.Initialize()
+        RunHardware(simulator, station, args.duration)
+        sc = station.GetMyContextFromRoot(simulator.get_context())
+        F = station.GetOutputPort("probe_force").Eval(sc)
+        frame = station.GetOutputPort("us_image").Eval(sc)
+        print(f"probe_force = {np.array2string(np.asarray(F), precision=2)} (N m, N)")
+        print(f"frames grabbed: {frame.frame_index + 1} in {args.duration:g} s")
+        print("dry run: no motion was commanded")
+        return 0
+    loop = BuildHardwareClosedLoop(scenario, station)
+    result = RunScriptedMotion(loop, station, ScriptedMotion(
+        duration=15.0, settle_angle=math.radians(0.5), settle_distance=1.5e-3))
+    print(f"approach error {math.degrees(result.approach_error):.2f} deg, tip x-y error "
+          f"{1e3 * result.position_error_xy:.1f} mm, safety events: "
+          f"{[e.reason for e in result.safety_events] or 'none'}")
+    return 0 if not result.safety_events else 1
 
