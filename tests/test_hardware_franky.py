@@ -109,7 +109,10 @@ def video_file(tmp_path_factory):
 
 def franky_scenario(host, video=None, **hw):
     fields = {"backend": "franky", "robot_ip": host, "dry_run": False,
-              "connect_timeout": 60.0, "command_timeout": 0.1, "status_timeout": 0.5}
+              "connect_timeout": 60.0, "command_timeout": 0.1, "status_timeout": 0.5,
+              # franky-sim's MuJoCo arm carries no probe: declaring the probe's load makes
+              # its gravity model disagree with its physics (the arm then sags).
+              "set_load": False}
     if video is not None:
         fields.update(video_source=f"'{video}'", video_crop=CROP)
     fields.update(hw)
@@ -305,9 +308,13 @@ def test_franky_lost_connection_ends_at_zero():
 
 
 def test_franky_dry_run_reads_and_never_commands(franky_sim):
-    scenario = franky_scenario(franky_sim.host, dry_run=True)
+    scenario = franky_scenario(franky_sim.host, dry_run=True, set_load=True)
     station = MakeHardwareStation(scenario)
     try:
+        # The probe's load went to libfranka (its external torque estimate excludes it).
+        state = station.backend._robot.state
+        assert state.m_load == pytest.approx(scenario.probe.mass, rel=1e-6)
+        np.testing.assert_allclose(state.F_x_Cload, scenario.probe.p_FCm, atol=1e-7)
         sim = Simulator(station)
         ctx = station.GetMyContextFromRoot(sim.get_context())
         q0 = np.array(station.GetOutputPort("joint_position").Eval(ctx))

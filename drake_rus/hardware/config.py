@@ -45,6 +45,9 @@ class HardwareConfig:
     # franky's global relative dynamics factor in (0, 1] (its Ruckig limits on the targets).
     relative_dynamics_factor: float = field(default=0.2, metadata={"positive": True,
                                                                    "max": 1.0})
+    # Tell libfranka the probe holder's load (scenario probe.mass, p_FCm, inertia_diagonal)
+    # at connection, so its external torque estimate excludes the probe's weight (franky).
+    set_load: bool = True
     # Subtract the external joint torque read at rest at start-up (seconds of averaging; 0
     # disables): the FR3's estimate carries a configuration-dependent offset in free space.
     tau_external_bias_duration: float = field(default=0.2, metadata={"min": 0.0, "max": 5.0})

@@ -74,8 +74,11 @@ class FrankyBackend:
     only records the zero it did not send.
     """
 
-    def __init__(self, config: HardwareConfig):
+    def __init__(self, config: HardwareConfig, load=None):
+        """``load``: (mass kg, centre of mass in the flange frame (3,) m, inertia about the
+        centre of mass (3, 3) kg m^2) sent to libfranka when ``config.set_load``."""
         self.config = config
+        self._load = load
         self.dry_run = bool(config.dry_run)
         self._franky = _import_franky()
         self._lock = threading.RLock()
@@ -94,6 +97,7 @@ class FrankyBackend:
         self._stop_watchdog = threading.Event()
         self._watchdog = None
         self._connect()
+        self._configure_load()
         self._estimate_bias()
         self._watchdog = threading.Thread(target=self._watchdog_loop, name="drake_rus_watchdog",
                                           daemon=True)
@@ -125,6 +129,21 @@ class FrankyBackend:
         robot.relative_dynamics_factor = float(cfg.relative_dynamics_factor)
         self._robot = robot
         LOG.info("connected to the FR3 at %s (dry run: %s)", host, self.dry_run)
+
+    def _configure_load(self):
+        if not (self.config.set_load and self._load is not None):
+            return
+        mass, p_FC, inertia = self._load
+        inertia = np.asarray(inertia, float).reshape(3, 3)
+        try:
+            with self._lock:
+                self._robot.set_load(float(mass), [float(x) for x in p_FC],
+                                     [float(x) for x in inertia.flatten(order="F")])
+        except Exception as e:
+            raise HardwareFault(f"FR3 at {self.config.robot_ip}: set_load (scenario probe.mass, "
+                                f"probe.p_FCm, probe.inertia_diagonal) failed: "
+                                f"{type(e).__name__}: {e}") from None
+        time.sleep(0.05)    # let the estimate settle on the new load
 
     def _estimate_bias(self):
         duration = float(self.config.tau_external_bias_duration)

@@ -203,7 +203,9 @@ def MakeHardwareStation(scenario, meshcat=None, *, lcm=None, lcm_idle=None,
                                  scenario.imaging.image_width_px),
                            scenario.imaging.frame_rate_hz)
     if cfg.backend == "franky":
-        backend = FrankyBackend(cfg)
+        probe = scenario.probe
+        backend = FrankyBackend(cfg, load=(probe.mass, list(probe.p_FCm),
+                                           np.diag(probe.inertia_diagonal)))
         robot = builder.AddNamedSystem("franka", FrankaRobotInterface(backend, rate))
         builder.Connect(guard.GetOutputPort("joint_velocity_sent"),
                         robot.GetInputPort("joint_velocity_sent"))
