@@ -27,15 +27,30 @@ from drake_rus.scenario import ApplyOverrides, LoadScenario
 
 
 def _closed_loop(scenario, patient: str | None):
+    """(closed loop, scenario used)."""
     if patient:
+        from drake_rus.anatomy import load_patient
+        from drake_rus.control.kinematics import JointsForTipPosition, MakeControlPlant
         from drake_rus.imaging.systems import Segmenter
         from drake_rus.station import MakeStation
-        station = MakeStation(scenario)
-        return _with_segmenter(scenario, station, Segmenter(scenario.imaging))
+        body = load_patient(patient, side=scenario.patient.side,
+                            posture=scenario.patient.posture, progress=False)
+        # Start 22 cm above the kidney centre and land the probe there (the seed places it
+        # by hand where the kidney is visible); the default start pose is below the top of
+        # a virtual patient's torso.
+        p_K = body.X_BK(scenario.patient.X_BPt.GetDeterministicValue()).translation()
+        plant, tip = MakeControlPlant(scenario)
+        q0 = JointsForTipPosition(plant, tip, scenario.robot.initial_joint_positions,
+                                  [p_K[0], p_K[1], p_K[2] + 0.22])
+        scenario = ApplyOverrides(scenario, "{robot: {initial_joint_positions: [%s]}}"
+                                  % ", ".join(f"{v:.6f}" for v in q0))
+        scenario.controller.start_xy = [float(v) for v in p_K[:2]]
+        station = MakeStation(scenario, patient=body)
+        return _with_segmenter(scenario, station, Segmenter(scenario.imaging)), scenario
     X_BK = RigidTransform(RollPitchYaw(0.1, 0.0, math.radians(105.0)), [0.595, -0.035, 0.035])
     view = GeometricKidneyView(X_BK, [0.055, 0.03, 0.025],
                                frame_rate_hz=scenario.imaging.frame_rate_hz)
-    return BuildClosedLoop(scenario, kidney_view=view)
+    return BuildClosedLoop(scenario, kidney_view=view), scenario
 
 
 def _with_segmenter(scenario, station, segmenter):
@@ -90,14 +105,14 @@ def main(argv=None) -> int:
         scenario = ApplyOverrides(scenario, "{patient: {source: '%s'}}" % args.patient)
 
     t0 = time.perf_counter()
-    cl = _closed_loop(scenario, args.patient)
+    cl, scenario = _closed_loop(scenario, args.patient)
     build_s = time.perf_counter() - t0
     sim = Simulator(cl.diagram)
     ctx = sim.get_mutable_context()
     sup = cl.parts.supervisor
     sup_ctx = sup.GetMyContextFromRoot(ctx)
     t_wall0 = time.perf_counter()
-    while sup.state(sup_ctx).phase == scan.Phase.APPROACH and ctx.get_time() < 10.0:
+    while sup.state(sup_ctx).phase == scan.Phase.APPROACH and ctx.get_time() < 20.0:
         sim.AdvanceTo(ctx.get_time() + 0.1)
     approach_wall = time.perf_counter() - t_wall0
     phase = sup.state(sup_ctx).phase
@@ -115,6 +130,7 @@ def main(argv=None) -> int:
         "phase_at_start": phase.name,
         "phase_at_end": state.phase.name,
         "safety_stops": [e.reason for e in safety.events],
+        "supervisor_events": [f"{t:.2f} {name}: {msg}" for t, name, msg in state.events],
         "controller_rate_hz": scenario.controller.rate_hz,
         "contact_model": scenario.contact.model,
         "images": "emulated + " + scenario.imaging.segmenter if args.patient

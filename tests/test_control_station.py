@@ -208,7 +208,7 @@ def test_null_space_term_keeps_manipulability_higher_along_long_motion():
     assert m_with > 1.05 * m_without
 
 
-T_FAULT = 0.3023  # between two control ticks (200 Hz)
+T_FAULT = 0.3023  # between two control ticks
 
 
 @pytest.mark.parametrize("fault, reason, extra", [

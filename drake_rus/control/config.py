@@ -16,7 +16,7 @@ FR3_DQ_RECTANGULAR = [2.0, 1.0, 1.5, 1.25, 3.0, 1.5, 3.0]
 @dataclass
 class ControllerConfig:
     # Controller update rate (Hz); the plant runs at 1 kHz, images at 20 Hz.
-    rate_hz: float = field(default=200.0, metadata={"positive": True, "max": 1000.0})
+    rate_hz: float = field(default=100.0, metadata={"positive": True, "max": 1000.0})
     # Desired contact force along the approach vector (N); the seed used 9 N in vivo.
     desired_force: float = field(default=9.0, metadata={"min": 0.0})
 
@@ -46,6 +46,9 @@ class ControllerConfig:
     # --- Null-space differential IK (eq. 10-12) ---
     # K_p6 (rad/s per unit manipulability gradient): null-space manipulability ascent (eq. 11).
     K_p6: float = field(default=2.0, metadata={"min": 0.0})
+    # The null-space velocity K_p6 grad m(q) is refreshed at this period (s): a slow
+    # secondary task; each refresh costs eight Jacobians.
+    null_space_period: float = field(default=0.02, metadata={"positive": True})
     # Finite-difference step epsilon (rad) of the manipulability gradient (eq. 12).
     manipulability_epsilon: float = field(default=1e-4, metadata={"positive": True})
     # Singularity damping: below this smallest singular value of J the pseudo-inverse is

@@ -80,3 +80,24 @@ def MakeControlPlant(scenario=None):
         return MakeControlPlantFallback(scenario)
     from drake_rus.scenario import Scenario
     return station_make(scenario or Scenario())
+
+
+def JointsForTipPosition(plant, tip_frame, q0, p_target, *, iterations: int = 400,
+                         gain: float = 0.5) -> np.ndarray:
+    """Joint positions putting the tip at ``p_target`` (m, in B) with the orientation of
+    ``q0``, by integrating the controller's own differential IK (eq. 10-12) kinematically.
+    For choosing start configurations (e.g. the probe above a patient's kidney)."""
+    from drake_rus.control import laws
+    kin = TipKinematics(plant, tip_frame)
+    q = np.asarray(q0, dtype=float).copy()
+    R0 = kin.pose(q).rotation().matrix()
+    for _ in range(iterations):
+        X = kin.pose(q)
+        R = X.rotation().matrix()
+        w = laws.orientation_alignment(R, R0[:, 2], R0[:, 0], np.zeros(3), gain, 0.0, gain)
+        v = gain * (np.asarray(p_target, dtype=float) - X.translation())
+        qdot = laws.solve_joint_velocities(
+            q, np.concatenate([w, v]), kin.jacobian, K_p6=1.0, epsilon=1e-4, q_min=kin.q_min,
+            q_max=kin.q_max, dq_max=np.full(q.size, 2.0), joint_limit_margin=0.1)
+        q = q + 0.1 * qdot
+    return q

@@ -221,22 +221,25 @@ def null_space_diff_ik(J, xi_b, qdot_null, *, sigma_threshold: float = 0.03,
     return J_pinv @ np.asarray(xi_b, dtype=float) + N @ np.asarray(qdot_null, dtype=float)
 
 
-def solve_joint_velocities(q, xi_b, jacobian, *, K_p6: float, epsilon: float, q_min, q_max,
-                           dq_max, joint_limit_margin: float, sigma_threshold: float = 0.03,
+def solve_joint_velocities(q, xi_b, jacobian, *, q_min, q_max, dq_max,
+                           joint_limit_margin: float, K_p6: float = 0.0, epsilon: float = 1e-4,
+                           qdot_null=None, sigma_threshold: float = 0.03,
                            damping_max: float = 0.03) -> np.ndarray:
     """The whole differential IK: eq. 10-12 then the joint-limit margin and speed limits.
 
-    qdot_null = K_p6 grad m(q) (eq. 11-12); qdot from eq. 10; finally qdot is scaled
-    uniformly into the per-joint bounds of :func:`joint_velocity_bounds` so the probe path
-    keeps its direction while slowing before a joint limit. Non-finite input gives zeros.
+    qdot_null = K_p6 grad m(q) (eq. 11-12) unless given precomputed; qdot from eq. 10;
+    finally qdot is scaled uniformly into the per-joint bounds of
+    :func:`joint_velocity_bounds` so the probe path keeps its direction while slowing before
+    a joint limit. Non-finite input gives zeros.
     """
     q = np.asarray(q, dtype=float)
     xi_b = np.asarray(xi_b, dtype=float)
     if not (np.all(np.isfinite(q)) and np.all(np.isfinite(xi_b))):
         return np.zeros_like(q)
     J = jacobian(q)
-    qdot_null = (K_p6 * manipulability_gradient(q, jacobian, epsilon)
-                 if K_p6 > 0 else np.zeros_like(q))
+    if qdot_null is None:
+        qdot_null = (K_p6 * manipulability_gradient(q, jacobian, epsilon)
+                     if K_p6 > 0 else np.zeros_like(q))
     qdot = null_space_diff_ik(J, xi_b, qdot_null, sigma_threshold=sigma_threshold,
                               damping_max=damping_max)
     lo, up = joint_velocity_bounds(q, q_min, q_max, dq_max, joint_limit_margin)

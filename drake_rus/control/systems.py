@@ -141,6 +141,7 @@ class NullSpaceDiffIK(LeafSystem):
     tip Jacobian, null-space manipulability gradient, joint-limit margin, speed limits.
 
     Constructed with a control plant holding only the FR3 and the probe (``MakeControlPlant``).
+    The null-space velocity K_p6 grad m(q) is state, refreshed every null_space_period.
     Inputs: joint_position (7, rad), omega_BP (3, rad/s, in B), v_force (3, m/s, in B),
     v_position (3, m/s, in B).
     Outputs: joint_velocity_desired (7, rad/s), V_BP_desired (6, [rad/s, m/s], in B),
@@ -160,6 +161,20 @@ class NullSpaceDiffIK(LeafSystem):
         self.DeclareVectorOutputPort("joint_velocity_desired", n, self._calc_qdot)
         self.DeclareVectorOutputPort("V_BP_desired", 6, self._calc_twist)
         self.DeclareVectorOutputPort("manipulability", 1, self._calc_m)
+        # qdot_null = K_p6 grad m(q) (eq. 11-12) is a slow secondary task: it is held in
+        # state and refreshed every null_space_period (8 Jacobians per refresh).
+        self._null = self.DeclareDiscreteState(n)
+        if self._K_p6 > 0:
+            self.DeclareInitializationUnrestrictedUpdateEvent(self._update_null)
+            self.DeclarePeriodicUnrestrictedUpdateEvent(
+                config.null_space_period, 0.0, self._update_null)
+
+    def _update_null(self, context, state):
+        q = np.asarray(self._q.Eval(context), dtype=float)
+        g = (laws.manipulability_gradient(q, self._kin.jacobian,
+                                          self._cfg.manipulability_epsilon)
+             if np.all(np.isfinite(q)) else np.zeros_like(q))
+        state.get_mutable_discrete_state(self._null).set_value(self._K_p6 * g)
 
     def twist(self, context) -> np.ndarray:
         c = self._cfg
@@ -172,8 +187,9 @@ class NullSpaceDiffIK(LeafSystem):
     def _calc_qdot(self, context, output):
         c, k = self._cfg, self._kin
         qdot = laws.solve_joint_velocities(
-            self._q.Eval(context), self.twist(context), k.jacobian, K_p6=self._K_p6,
-            epsilon=c.manipulability_epsilon, q_min=k.q_min, q_max=k.q_max,
+            self._q.Eval(context), self.twist(context), k.jacobian,
+            qdot_null=context.get_discrete_state(self._null).get_value(),
+            q_min=k.q_min, q_max=k.q_max,
             dq_max=c.joint_velocity_limits, joint_limit_margin=c.joint_limit_margin,
             sigma_threshold=c.singular_value_threshold, damping_max=c.singular_damping_max)
         output.SetFromVector(qdot)
