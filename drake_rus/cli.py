@@ -17,6 +17,7 @@ COMMAND_MODULES = [
     "drake_rus.anatomy.cli",
     "drake_rus.template.cli",
     "drake_rus.imaging.cli",
+    "drake_rus.scan",            # scan: the full autonomous scan
 ]
 
 

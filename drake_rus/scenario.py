@@ -125,6 +125,9 @@ class ContactConfig:
     patient_resolution_hint: float = field(default=0.06, metadata={"positive": True})
     # Resolution hint of the rigid probe face mesh (m).
     probe_resolution_hint: float = field(default=0.02, metadata={"positive": True})
+    # Vertices of the convex hull used as a virtual patient's contact body (see
+    # station.ContactHull): more is closer to the skin, fewer is faster.
+    patient_hull_vertices: int = field(default=300, metadata={"min": 8})
     # Hunt-Crossley dissipation (s/m) of the soft body.
     hunt_crossley_dissipation: float = field(default=5.0, metadata={"min": 0.0})
     # Point-contact stiffness (N/m) when model == "point".

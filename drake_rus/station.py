@@ -284,7 +284,7 @@ def AddPatientBody(plant: MultibodyPlant, scenario: Scenario, patient=None,
         return added
     mesh_dir = Path(mesh_dir or tempfile.mkdtemp(prefix="drake_rus_patient_"))
     mesh_dir.mkdir(parents=True, exist_ok=True)
-    torso = patient.torso_section(0.20)
+    torso = ContactHull(patient.torso_section(0.20), scenario.contact.patient_hull_vertices)
     torso_path = mesh_dir / "torso_section.obj"
     torso.export(torso_path)
     added["collision"] = plant.RegisterCollisionGeometry(
@@ -299,6 +299,28 @@ def AddPatientBody(plant: MultibodyPlant, scenario: Scenario, patient=None,
                                  np.array([0.7, 0.15, 0.15, 0.9]))
     added["files"] = [torso_path, skin_path, kidney_path]
     return added
+
+
+def ContactHull(mesh, max_vertices: int):
+    """Convex hull of ``mesh`` with at most ``max_vertices`` vertices (trimesh, same frame).
+
+    Drake treats a compliant Convex/Mesh body through its convex hull; a hull of thousands of
+    skin vertices makes every contact query slow for no gain in the scanning region, so the
+    hull is rebuilt from a farthest-point subset of its own vertices (deviation from the full
+    hull: a few mm at 300 vertices on a torso).
+    """
+    hull = mesh.convex_hull
+    v = np.asarray(hull.vertices)
+    if len(v) <= max_vertices:
+        return hull
+    chosen = [int(np.argmax(v[:, 2]))]
+    distance = np.linalg.norm(v - v[chosen[0]], axis=1)
+    for _ in range(max_vertices - 1):
+        k = int(np.argmax(distance))
+        chosen.append(k)
+        distance = np.minimum(distance, np.linalg.norm(v - v[k], axis=1))
+    import trimesh
+    return trimesh.convex.convex_hull(v[chosen])
 
 
 def _plant_config(scenario: Scenario) -> MultibodyPlantConfig:

@@ -8,11 +8,13 @@ from drake_rus.io_utils import write_text_atomic
 
 
 def AdvanceWithProgress(simulator, t_final: float, desc: str = "simulating",
-                        step: float = 0.1, disable: bool | None = None, on_step=None) -> None:
+                        step: float = 0.1, disable: bool | None = None, on_step=None,
+                        should_stop=None) -> None:
     """Advances ``simulator`` to ``t_final`` (s) in ``step`` chunks with a tqdm bar.
 
-    ``on_step(context)`` is called after each chunk (e.g. to update a phase label). The bar
-    is hidden when stderr is not a terminal unless ``disable=False``.
+    ``on_step(context)`` is called after each chunk (e.g. to update a phase label);
+    ``should_stop(context)`` ends the run early when it returns True. The bar is hidden when
+    stderr is not a terminal unless ``disable=False``.
     """
     context = simulator.get_context()
     t0 = context.get_time()
@@ -27,6 +29,8 @@ def AdvanceWithProgress(simulator, t_final: float, desc: str = "simulating",
                 postfix = on_step(context)
                 if postfix:
                     bar.set_postfix_str(postfix)
+            if should_stop is not None and should_stop(context):
+                break
 
 
 def SaveMeshcatRecording(meshcat, path: str | Path) -> Path:

@@ -1,0 +1,185 @@
+"""What a scan leaves on disk for a person to look at.
+
+``summary.json``; ``partial_cloud.ply`` and ``registered_template.ply`` (base frame, m);
+``registration.png`` (partial cloud on the registered and the true template, like the seed's
+Fig. 7/8); ``coverage.png`` (V against frames and against eps, like Fig. 10, and the probe
+path); ``traces.png`` (contact force, approach-vector tilt, manipulability, phases);
+``pivot_frames.png`` (emulated frames of the pivot with the segmentation, like Fig. 11c).
+Every file is written to a temporary name and renamed when complete.
+"""
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from drake_rus.io_utils import atomic_path, write_text_atomic
+
+PHASE_COLORS = {"APPROACH": "#dddddd", "EXPLORE": "#cfe8ff", "LOCALIZE": "#ffe9b3",
+                "TRANSIT": "#e6d5ff", "PIVOT": "#d4f5d4", "DONE": "#ffffff", "ABORT": "#ffc9c9"}
+
+
+def _plt():
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def _save(fig, path: Path):
+    plt = _plt()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110)
+    plt.close(fig)
+
+
+def write_ply(path: Path, points: np.ndarray) -> None:
+    import trimesh
+    with atomic_path(path) as tmp:
+        trimesh.PointCloud(np.asarray(points, float)).export(tmp, file_type="ply")
+
+
+def plot_registration(result, path: Path) -> None:
+    plt = _plt()
+    fig, axes = plt.subplots(1, 3, figsize=(12, 4.2))
+    views = [(0, 1, "x (mm)", "y (mm)", "top view (x-y)"),
+             (1, 2, "y (mm)", "z (mm)", "side view (y-z)"),
+             (0, 2, "x (mm)", "z (mm)", "front view (x-z)")]
+    true_shape = result.kidney_points_B
+    for ax, (i, j, xl, yl, title) in zip(axes, views):
+        sub = true_shape[:: max(1, len(true_shape) // 3000)]
+        ax.scatter(sub[:, i] * 1e3, sub[:, j] * 1e3, s=1, c="#bbbbbb", label="true kidney")
+        if result.registered_template_B is not None:
+            t = result.registered_template_B
+            ax.scatter(t[:, i] * 1e3, t[:, j] * 1e3, s=1, c="tab:red", alpha=0.5,
+                       label="registered template")
+        c = result.partial_cloud_B
+        if len(c):
+            c = c[:: max(1, len(c) // 3000)]
+            ax.scatter(c[:, i] * 1e3, c[:, j] * 1e3, s=1.5, c="k", label="explored cloud")
+        ax.set_xlabel(xl)
+        ax.set_ylabel(yl)
+        ax.set_title(title)
+        ax.set_aspect("equal", adjustable="datalim")
+    axes[0].legend(loc="best", fontsize=7, markerscale=5)
+    fig.suptitle(f"Registration: {result.patient}")
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def plot_coverage(result, metrics: dict, path: Path) -> None:
+    plt = _plt()
+    fig, axes = plt.subplots(1, 3, figsize=(13, 4))
+    V = np.asarray(metrics["V_curve"])
+    eps = np.asarray(metrics["eps_curve_mm"])
+    axes[0].plot(np.arange(1, len(V) + 1), V, color="tab:green")
+    axes[0].set_xlabel("frames during the pivot, n")
+    axes[0].set_ylabel("volume reconstruction ratio V")
+    axes[0].set_ylim(0, 1.05)
+    axes[0].grid(alpha=0.3)
+    if len(V):
+        axes[1].plot(eps[1:len(V) + 1], V, color="tab:green")
+    axes[1].set_xlabel(r"imaging-window path length $\varepsilon$ (mm)")
+    axes[1].set_ylabel("V")
+    axes[1].set_ylim(0, 1.05)
+    axes[1].grid(alpha=0.3)
+    p = np.array([f.X_BP.translation() for f in result.frames]) if result.frames else np.zeros((0, 3))
+    phases = np.array([f.phase for f in result.frames])
+    from drake_rus.scan import PHASE_NAMES
+    for k, name in enumerate(PHASE_NAMES):
+        sel = phases == k
+        if sel.any():
+            axes[2].plot(p[sel, 0] * 1e3, p[sel, 1] * 1e3, ".", ms=3, label=name)
+    axes[2].set_xlabel("tip x (mm)")
+    axes[2].set_ylabel("tip y (mm)")
+    axes[2].set_title("probe tip path (base frame)")
+    axes[2].set_aspect("equal", adjustable="datalim")
+    axes[2].legend(fontsize=7)
+    fig.suptitle(f"Coverage: V = {metrics['volume_ratio']:.3f} after n = {metrics['n_frames']} "
+                 f"pivot frames, eps = {metrics['eps_mm']:.1f} mm")
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def _shade_phases(ax, phases):
+    for name, a, b in phases:
+        ax.axvspan(a, b, color=PHASE_COLORS.get(name, "#ffffff"), alpha=0.6, lw=0)
+
+
+def plot_traces(result, path: Path) -> None:
+    plt = _plt()
+    fig, axes = plt.subplots(3, 1, figsize=(10, 7.5), sharex=True)
+    t, F = result.logs["force"][0], result.logs["force"][1][0]
+    tt, Ft = result.logs["force_true"][0], -result.logs["force_true"][1][5]
+    _shade_phases(axes[0], result.phases)
+    axes[0].plot(tt, Ft, color="tab:gray", lw=1.5, label="true contact force")
+    axes[0].plot(t, F, color="tab:blue", lw=1, label="estimated, filtered")
+    axes[0].axhline(result.scenario.controller.desired_force, ls=":", color="tab:red",
+                    label="desired")
+    axes[0].axhline(result.scenario.safety.force_ceiling, ls="--", color="darkred", lw=0.8,
+                    label="ceiling")
+    axes[0].set_ylabel("F_z (N)")
+    axes[0].legend(fontsize=7, loc="upper right")
+    ta, a = result.logs["a_des"][0], result.logs["a_des"][1]
+    tilt = np.degrees(np.arccos(np.clip(-a[2], -1, 1)))
+    frames_t = [f.time for f in result.frames]
+    actual = [np.degrees(np.arccos(np.clip(-f.X_BP.rotation().matrix()[2, 2], -1, 1)))
+              for f in result.frames]
+    _shade_phases(axes[1], result.phases)
+    axes[1].plot(ta, tilt, color="tab:orange", label="desired tilt of a from vertical")
+    axes[1].plot(frames_t, actual, ".", ms=2, color="k", label="actual")
+    axes[1].set_ylabel("tilt (deg)")
+    axes[1].legend(fontsize=7, loc="upper left")
+    tm, m = result.logs["manipulability"][0], result.logs["manipulability"][1][0]
+    _shade_phases(axes[2], result.phases)
+    axes[2].plot(tm, m, color="tab:purple")
+    axes[2].set_ylabel("manipulability")
+    axes[2].set_xlabel("time (s)")
+    handles = [plt.Rectangle((0, 0), 1, 1, color=c) for c in PHASE_COLORS.values()]
+    fig.legend(handles, PHASE_COLORS.keys(), loc="lower center", ncol=7, fontsize=7)
+    fig.suptitle(f"Scan traces: {result.patient} ({result.status})")
+    fig.tight_layout(rect=(0, 0.04, 1, 1))
+    _save(fig, path)
+
+
+def plot_frames(result, path: Path, count: int = 6) -> None:
+    if not result.images:
+        return
+    plt = _plt()
+    picks = np.linspace(0, len(result.images) - 1, min(count, len(result.images))).astype(int)
+    fig, axes = plt.subplots(1, len(picks), figsize=(2.6 * len(picks), 2.9))
+    axes = np.atleast_1d(axes)
+    for ax, k in zip(axes, picks):
+        t, grey, mask = result.images[k]
+        ax.imshow(grey, cmap="gray", vmin=0, vmax=255)
+        if mask.any():
+            overlay = np.zeros(mask.shape + (4,))
+            overlay[mask] = (0.1, 0.9, 0.2, 0.35)
+            ax.imshow(overlay)
+        ax.set_title(f"t = {t:.1f} s", fontsize=8)
+        ax.axis("off")
+    fig.suptitle("Emulated frames during the pivot, segmentation in green")
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def WriteScanOutputs(result, metrics: dict, summary: dict, out: Path) -> list[Path]:
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    write_text_atomic(out / "summary.json", json.dumps(summary, indent=2, default=str) + "\n")
+    written.append(out / "summary.json")
+    if len(result.partial_cloud_B):
+        write_ply(out / "partial_cloud.ply", result.partial_cloud_B)
+        written.append(out / "partial_cloud.ply")
+    if result.registered_template_B is not None:
+        write_ply(out / "registered_template.ply", result.registered_template_B)
+        written.append(out / "registered_template.ply")
+    for name, fn in (("registration.png", lambda p: plot_registration(result, p)),
+                     ("coverage.png", lambda p: plot_coverage(result, metrics, p)),
+                     ("traces.png", lambda p: plot_traces(result, p)),
+                     ("pivot_frames.png", lambda p: plot_frames(result, p))):
+        fn(out / name)
+        if (out / name).exists():
+            written.append(out / name)
+    return written
