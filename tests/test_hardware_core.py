@@ -200,3 +200,33 @@ def test_hardware_config_validation_names_fields():
     assert ok.hardware_interface.backend == "lcm" and not ok.hardware_interface.dry_run
     assert ok.hardware_interface.video_crop == [10, 20, 300, 200]
     assert Scenario().hardware_interface.dry_run   # safe default: never moves
+
+
+def test_command_guard_system_limits_latches_and_dry_runs():
+    from pydrake.systems.analysis import Simulator
+
+    from drake_rus.hardware.config import HardwareConfig
+    from drake_rus.hardware.systems import CommandGuard
+    guard = CommandGuard(HardwareConfig(dry_run=False), rate_hz=200.0)
+    sim = Simulator(guard)
+    ctx = sim.get_context()
+    desired = np.array([0.3, 0, 0, 0, 0, 0, 5.0])
+    guard.GetInputPort("joint_velocity_command").FixValue(ctx, desired)
+    guard.GetInputPort("robot_ok").FixValue(ctx, [1.0])
+    out = guard.GetOutputPort("joint_velocity_sent")
+    # First period from rest: each joint moves by at most a_max dt = 0.01 rad/s.
+    np.testing.assert_allclose(out.Eval(ctx)[[0, 6]], [0.01, 0.01], atol=1e-12)
+    sim.AdvanceTo(1.0)
+    v = out.Eval(ctx)
+    # Scaled into the joint-7 limit (1.2 rad/s), direction kept.
+    np.testing.assert_allclose(v, desired * 1.2 / 5.0, atol=1e-12)
+    guard.GetInputPort("robot_ok").FixValue(ctx, [0.0])
+    assert not np.any(out.Eval(ctx))
+    sim.AdvanceTo(1.01)
+    guard.GetInputPort("robot_ok").FixValue(ctx, [1.0])
+    assert not np.any(out.Eval(ctx))                     # a fault latches the stop
+    assert guard.GetOutputPort("stopped").Eval(ctx)[0] == 1.0
+    dry = CommandGuard(HardwareConfig(dry_run=True), rate_hz=200.0)
+    dctx = dry.CreateDefaultContext()
+    dry.GetInputPort("joint_velocity_command").FixValue(dctx, desired)
+    assert not np.any(dry.GetOutputPort("joint_velocity_sent").Eval(dctx))
