@@ -138,6 +138,16 @@ def test_supervisor_explore_ends_when_kidney_leaves_after_debounce():
     assert "left the image" in s.events[-1][2]
 
 
+def test_transverse_orientation():
+    a = np.array([0.0, 0.0, -1.0])
+    np.testing.assert_allclose(scan.transverse_orientation(a, [0.7, -0.7, 0]), [1, 0, 0])
+    np.testing.assert_allclose(scan.transverse_orientation(a, [-0.7, 0.7, 0]), [-1, 0, 0])
+    a = np.array([math.sin(0.2), 0.0, -math.cos(0.2)])  # tilted about y
+    o = scan.transverse_orientation(a, [1, 0, 0])
+    assert o @ a == pytest.approx(0.0) and np.linalg.norm(o) == pytest.approx(1.0)
+    assert o[1] == pytest.approx(0.0) and o[0] > 0.9
+
+
 def test_supervisor_explore_centres_mask():
     c = cfg(K_p7=0.02)
     dt = 0.01
@@ -250,6 +260,12 @@ def test_supervisor_aborts_with_reason():
     bad = scan.supervisor_step(s, inputs(0.01, p=(math.nan, 0, 0)), c, dt)
     assert bad.phase == scan.Phase.ABORT and "non-finite" in bad.reason
     s, t = run_to_localize(c, dt)
+    waiting = scan.supervisor_step(s, inputs(t + dt, R_BK=np.eye(3), p_BK=[0.6, 0.1, 0],
+                                             ready=False), c, dt)
+    assert waiting.phase == scan.Phase.LOCALIZE
+    late = scan.supervisor_step(waiting, inputs(t + c.localize_timeout + 1.0, ready=False),
+                                c, dt)
+    assert late.phase == scan.Phase.ABORT and "LOCALIZE timeout" in late.reason
     nopose = scan.supervisor_step(s, inputs(t + dt, R_BK=None), c, dt)
     assert nopose.phase == scan.Phase.ABORT and "kidney pose" in nopose.reason
     s = scan.supervisor_step(s, inputs(t + dt, R_BK=np.eye(3), p_BK=[0.6, 0.1, 0]), c, dt)

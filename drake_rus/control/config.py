@@ -90,6 +90,8 @@ class ControllerConfig:
     visibility_debounce: float = field(default=0.15, metadata={"min": 0.0})
     # LOCALIZE holds the probe at least this long (s) before reading the kidney pose.
     localize_hold_time: float = field(default=0.5, metadata={"min": 0.0})
+    # LOCALIZE aborts if the localizer has no pose ready after this time (s).
+    localize_timeout: float = field(default=30.0, metadata={"positive": True})
     # TRANSIT ends within this tip distance (m) of p* and approach error (rad) of r3*.
     transit_position_tolerance: float = field(default=0.002, metadata={"positive": True})
     transit_angle_tolerance: float = field(default=0.02, metadata={"positive": True})

@@ -210,7 +210,7 @@ def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float
     with a_des = r3*, o_des = r1*. PIVOT: a_des rotates about o_des (eq. 23) one way until
     the kidney leaves the image (or max tilt), then back through r3* to the other side;
     then DONE. ABORT (with reason) on a safety stop, a non-finite input or pose, a missing
-    kidney pose, or a TRANSIT timeout. The pivot tilt rate ramps with pivot_acceleration.
+    kidney pose, a LOCALIZE or TRANSIT timeout. The pivot tilt rate ramps with pivot_acceleration.
     """
     s = state.copy()
     R = np.asarray(u.R_BP, dtype=float)
@@ -273,6 +273,9 @@ def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float
 
     if s.phase == Phase.LOCALIZE:
         if u.t - s.phase_start < cfg.localize_hold_time - 1e-9 or not u.localization_ready:
+            if u.t - s.phase_start > cfg.localize_timeout:
+                s.reason = f"LOCALIZE timeout: no kidney pose after {cfg.localize_timeout:.1f} s"
+                return _goto(s, Phase.ABORT, u.t, s.reason)
             return s
         if u.R_BK is None or u.p_BK is None or not (
                 np.all(np.isfinite(u.R_BK)) and np.all(np.isfinite(u.p_BK))):

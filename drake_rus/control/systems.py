@@ -211,7 +211,8 @@ class ScanSupervisor(LeafSystem):
     optional: ready if unconnected); safety_stopped (1, 0/1; optional: a safety stop aborts
     the scan).
     Outputs: a_des (3), o_des (3), a_des_dot (3, 1/s), P_des (2, m), F_des (1, N), all in B;
-    phase (1, scan.Phase value); segmentation_required (1, 0/1); abort (1, 0/1);
+    phase (1, scan.Phase value, e.g. the localizer's trigger); segmentation_required (1, 0/1);
+    exploring (1, 0/1: enable of the point-cloud accumulator); abort (1, 0/1);
     supervisor_state (SupervisorState, for logs).
     """
 
@@ -241,6 +242,9 @@ class ScanSupervisor(LeafSystem):
         self.DeclareVectorOutputPort(
             "segmentation_required", 1,
             lambda c, o: o.SetFromVector([float(scan.segmentation_required(S(c)))]))
+        self.DeclareVectorOutputPort(
+            "exploring", 1,
+            lambda c, o: o.SetFromVector([float(S(c).phase == scan.Phase.EXPLORE)]))
         self.DeclareVectorOutputPort(
             "abort", 1, lambda c, o: o.SetFromVector([float(S(c).phase == scan.Phase.ABORT)]))
         self.DeclareAbstractOutputPort(
