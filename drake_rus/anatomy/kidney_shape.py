@@ -66,12 +66,12 @@ def sample_kidney_shape_params(rng: np.random.Generator, side: str = "right") ->
         z = rng.standard_normal(3)
         length = mean_len + sd_len * z[0]
         # Emamian 1993: width 58 mm, 10-90th pct 51-64 mm -> SD about 5 mm.
-        width = 0.058 + 0.2 * (length - mean_len) + 0.0045 * z[1]
+        width = 0.058 + 0.08 * (length - mean_len) + 0.0045 * z[1]
         # Thickness 30-45 mm (textbook): mean 39 mm, SD 3.5 mm.
-        thickness = 0.039 + 0.12 * (length - mean_len) + 0.0035 * z[2]
+        thickness = 0.039 + 0.03 * (length - mean_len) + 0.0035 * z[2]
         approx_volume = 0.48 * length * width * thickness   # bean ~ 0.92 x ellipsoid
         if (0.075 <= length <= 0.145 and width >= thickness + 0.010 and thickness >= 0.028
-                and 90e-6 <= approx_volume <= 230e-6):
+                and 83e-6 <= approx_volume <= 230e-6):
             break
     p = KidneyShapeParams(length=float(length), width=float(width), thickness=float(thickness))
     p.hilum_depth = float(rng.uniform(0.45, 0.65))
