@@ -183,7 +183,7 @@ def test_franky_sim_scripted_motion_and_frame_grabber(franky_sim, video_file):
     # model limit-cycles at its +-12 N m torque limit whenever it moves (seen with franky
     # alone, no Drake involved), so it only gets a loose bound.
     assert np.all(err[:6] <= 0.2 * np.abs(predicted[:6]) + 0.003), (actual, predicted)
-    assert err[6] < 0.04, (actual, predicted)
+    assert err[6] < 0.08, (actual, predicted)
 
     # Frames: cropped (no white border), fitted to the probe's image, replayed in order at
     # 20 Hz stamped with the diagram's time.
