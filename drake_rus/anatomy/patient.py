@@ -70,7 +70,8 @@ def _min_distance_to_surface(points: np.ndarray, mesh: trimesh.Trimesh, n_exact:
     return best
 
 
-def kidney_metrics(kidney_mesh, skin_mesh, X_PtK: RigidTransform, posture: str) -> dict:
+def kidney_metrics(kidney_mesh, skin_mesh, X_PtK: RigidTransform, posture: str,
+                   upper_body_mesh=None) -> dict:
     """Length, width, thickness (canonical extents), volume, depths and axis angles (SI)."""
     ext = extents_in_frame(kidney_mesh.vertices, X_PtK)
     R = X_PtK.rotation().matrix()
@@ -84,7 +85,8 @@ def kidney_metrics(kidney_mesh, skin_mesh, X_PtK: RigidTransform, posture: str) 
     return {
         "length": float(ext[0]), "width": float(ext[1]), "thickness": float(ext[2]),
         "volume": float(kidney_mesh.volume),
-        "depth_vertical": vertical_depth(kidney_mesh, skin_mesh),
+        "depth_vertical": vertical_depth(
+            kidney_mesh, skin_mesh if upper_body_mesh is None else upper_body_mesh),
         "depth_min": dist,
         "coronal_angle": float(coronal), "sagittal_angle": float(sagittal),
         "centroid_Pt": X_PtK.translation().tolist(),
@@ -162,10 +164,16 @@ class Patient:
         return mesh_mask_on_aligned_grid(self.kidney_mesh, voxel_size, margin=3 * voxel_size)
 
     def metrics(self) -> dict:
-        """Kidney length, width, thickness, volume, depth below the skin, axis angles (SI)."""
+        """Kidney length, width, thickness, volume, depths below the skin surface ``skin_mesh``
+    (vertical: :func:`vertical_depth`; shortest distance), long-axis angles (SI)."""
         if "_metrics" not in self.__dict__:
+            # The vertical depth is measured to the torso around the kidney (arms excluded: on
+            # a real body lying on its side the upper arm rests on the flank); the shortest
+            # distance to the whole skin (the torso section has artificial flat caps).
+            half = float(np.ptp(self.kidney_mesh.vertices[:, 1])) / 2 + 0.03
+            body = self.torso_section(half)
             self._metrics = kidney_metrics(self.kidney_mesh, self.skin_mesh, self.X_PtK,
-                                           self.posture)
+                                           self.posture, upper_body_mesh=body)
             for key in ("hilum_angle",):
                 if key in self.meta:
                     self._metrics[key] = self.meta[key]
