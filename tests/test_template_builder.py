@@ -125,7 +125,8 @@ def test_save_load_round_trip(tmp_path):
                                   [1, 0, 0], [0, 1, 0], name=str(i)) for i in range(3)]
     res = build_template(subjects, n_points=400, refine_passes=1, progress=False)
     out = save_template(res, tmp_path / "t.npz", {"note": "test"})
-    assert [p.name for p in tmp_path.iterdir()] == ["t.npz"]      # no temporary left
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["t.json", "t.npz"]   # no temporaries
+    assert json.loads((tmp_path / "t.json").read_text())["note"] == "test"
     t = load_template(out)
     np.testing.assert_allclose(t.points, res.points)
     assert t.modes.shape[1:] == t.points.shape and len(t.variances) == len(t.modes)

@@ -274,4 +274,15 @@ def save_template(result: TemplateResult, path, extra_meta: dict | None = None) 
     finally:
         if os.path.exists(tmp):
             os.remove(tmp)
+    write_metadata_json(path, meta)
     return path
+
+
+def write_metadata_json(npz_path, meta: dict) -> Path:
+    """Human-readable copy of the template metadata beside the .npz (same stem, .json)."""
+    out = Path(npz_path).with_suffix(".json")
+    fd, tmp = tempfile.mkstemp(suffix=".json", dir=str(out.parent))
+    with os.fdopen(fd, "w") as f:
+        json.dump(meta, f, indent=1)
+    os.replace(tmp, out)
+    return out
