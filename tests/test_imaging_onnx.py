@@ -99,3 +99,12 @@ def test_segmenter_system_with_a_bad_model_fails_at_construction(tmp_path):
     bad.write_bytes(b"\x00" * 100)
     with pytest.raises(ValueError, match="onnx_model"):
         Segmenter(ImagingConfig(segmenter="onnx", onnx_model=str(bad)))
+
+
+def test_fill_holes_matches_scipy():
+    from scipy import ndimage
+    from drake_rus.imaging.onnx_backend import fill_holes
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        m = ndimage.binary_opening(rng.random((40, 40)) < 0.6)
+        assert np.array_equal(fill_holes(m), ndimage.binary_fill_holes(m))

@@ -52,7 +52,11 @@ def mask_centroid(mask: np.ndarray) -> float:
 def boundary_pixels(mask: np.ndarray) -> np.ndarray:
     """Pixels (N, 2) as (u, v) of the mask's inner boundary (4-connected)."""
     mask = np.asarray(mask, bool)
-    edge = mask & ~ndimage.binary_erosion(mask, _CROSS, border_value=0)
+    # Erosion by the 4-neighbour cross with a zero border, by array shifts (fast).
+    inner = np.zeros_like(mask)
+    inner[1:-1, 1:-1] = (mask[1:-1, 1:-1] & mask[:-2, 1:-1] & mask[2:, 1:-1]
+                         & mask[1:-1, :-2] & mask[1:-1, 2:])
+    edge = mask & ~inner
     v, u = np.nonzero(edge)
     return np.stack([u, v], axis=1).astype(float)
 
