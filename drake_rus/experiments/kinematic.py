@@ -1,0 +1,461 @@
+"""Kinematic mode: the seed's exploration and sweeps along planned probe poses, no dynamics.
+
+Studies that need hundreds of runs (ER sweep, random starts, sweep strategies; seed III-C..E)
+call the same pure functions as the closed-loop scan (eq. 17 exploration update, eq. 20-22
+optimal pivot pose, eq. 23 Rodrigues pivot, slicing, segmentation, back-projection, ICP) but
+place the probe exactly where the controller asks, one frame period at a time, instead of
+stepping the robot's dynamics. What is left out: contact and tracking errors of the
+controller, tissue compression under the probe and the robot's joint limits. Every figure
+made from these runs says "kinematic".
+
+Conventions (DESIGN.md): base frame B (z up, patient along y), tip frame P (z_P = beam, x_P =
+array), SI units. The tip sits on the skin surface (the height of the body surface above
+the tip's (x, y), ``skin_height_B``); orientation is held exactly.
+
+- :func:`prepare_patient` -> :class:`KinematicPatient` (label volume, skin height map, true
+  kidney pose and voxels), built once per patient and process;
+- :class:`Imager`: probe pose -> kidney mask (slice the label volume, emulate and segment with
+  ``oracle`` (default), ``classical`` or ``onnx``);
+- :func:`explore`: transverse straight-line sweep along base y at v_scan with eq. 17
+  centring, for ER x L_m of travel (II-E, III-C), collecting P_local;
+- :func:`localize_cloud`: T_k^b from P_local (II-F) with the heuristic fallback at ER 0;
+- :func:`pivot_sweep`: fixed-point pivot about o (eq. 23), one way until the kidney leaves the
+  image (or max tilt), then back through the start to the other side (II-G);
+- :func:`strategy_sweep`: OP, GT-OP, NOP, SL (III-E); :func:`sweep_curves`: n, eps, V.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+from pydrake.math import RigidTransform, RotationMatrix
+
+from drake_rus.control.scan import exploration_update, optimal_pivot_pose, rodrigues_pivot_update
+from drake_rus.experiments.planning import R_B_TRANSVERSE, exploration_roi, skin_height_B
+from drake_rus.imaging.probe import ProbeGeometry
+from drake_rus.imaging.segment import read_mask
+from drake_rus.imaging.slicing import slice_volume
+
+STRATEGIES = ("OP", "GT-OP", "NOP", "SL")
+MODE = "kinematic"
+
+
+# ---------------------------------------------------------------------------- skin surface
+class SkinHeightMap:
+    """Body-surface height z_B(x, y) (m) on a regular grid, bilinear in between.
+
+    Heights come from one batched vertical ray cast onto the skin mesh over the rectangle
+    ``x_range`` x ``y_range`` (m, base frame) at ``spacing``; points outside the grid, or on
+    grid cells with a missing hit, fall back to a single ray (``skin_height_B``).
+    """
+
+    def __init__(self, patient, X_BPt: RigidTransform, x_range, y_range, spacing: float = 0.002):
+        if not spacing > 0:
+            raise ValueError(f"spacing: expected a positive grid spacing in m, got {spacing}")
+        self._patient, self._X_BPt = patient, X_BPt
+        self.xs = np.arange(x_range[0], x_range[1] + 0.5 * spacing, spacing)
+        self.ys = np.arange(y_range[0], y_range[1] + 0.5 * spacing, spacing)
+        gx, gy = np.meshgrid(self.xs, self.ys, indexing="ij")
+        self.z = skin_heights_B(patient, X_BPt, np.column_stack([gx.ravel(), gy.ravel()])
+                                ).reshape(gx.shape)
+        self.spacing = float(spacing)
+
+    def __call__(self, x: float, y: float) -> float:
+        fx = (x - self.xs[0]) / self.spacing
+        fy = (y - self.ys[0]) / self.spacing
+        i, j = int(math.floor(fx)), int(math.floor(fy))
+        if 0 <= i < len(self.xs) - 1 and 0 <= j < len(self.ys) - 1:
+            c = self.z[i:i + 2, j:j + 2]
+            if np.all(np.isfinite(c)):
+                a, b = fx - i, fy - j
+                return float((1 - a) * (1 - b) * c[0, 0] + a * (1 - b) * c[1, 0]
+                             + (1 - a) * b * c[0, 1] + a * b * c[1, 1])
+        return skin_height_B(self._patient, self._X_BPt, x, y)
+
+
+def skin_heights_B(patient, X_BPt: RigidTransform, xy_B: np.ndarray) -> np.ndarray:
+    """Heights z (m, base frame) of the body surface above many points (N, 2); NaN where a
+    vertical line misses the body. One batched ray cast (``skin_height_B`` for one point)."""
+    xy = np.asarray(xy_B, dtype=float).reshape(-1, 2)
+    X_PtB = X_BPt.inverse()
+    origins_B = np.column_stack([xy, np.full(len(xy), 10.0)])
+    origins = origins_B @ X_PtB.rotation().matrix().T + X_PtB.translation()
+    direction = X_PtB.rotation().multiply(np.array([0.0, 0.0, -1.0]))
+    hits, ray, _ = patient.skin_mesh.ray.intersects_location(
+        origins, np.repeat(direction[None], len(xy), axis=0), multiple_hits=True)
+    z = np.full(len(xy), -np.inf)
+    if len(hits):
+        hits_B = np.asarray(hits) @ X_BPt.rotation().matrix().T + X_BPt.translation()
+        np.maximum.at(z, ray, hits_B[:, 2])
+    z[~np.isfinite(z)] = np.nan
+    return z
+
+
+# ---------------------------------------------------------------------------- the patient
+@dataclasses.dataclass
+class KinematicPatient:
+    """What kinematic runs need of one patient placed at ``X_BPt``."""
+    patient: object
+    X_BPt: RigidTransform
+    X_BV: RigidTransform            # label volume grid in B
+    X_BK_true: RigidTransform
+    roi: object                     # ExplorationRoi
+    skin: SkinHeightMap
+    kidney_points_B: np.ndarray     # (N, 3) centres of the true kidney's voxels (m)
+    voxel_size: float               # of kidney_points_B (m)
+    superior_B: np.ndarray
+    lateral_B: np.ndarray
+
+    @property
+    def volume(self):
+        return self.patient.labels
+
+    @property
+    def voxel_volume(self) -> float:
+        return self.voxel_size ** 3
+
+    @property
+    def kidney_volume(self) -> float:
+        """True kidney volume (m^3) of the kidney surface mesh."""
+        return float(abs(self.patient.kidney_mesh.volume))
+
+
+def kidney_voxels_B(patient, X_BPt: RigidTransform, voxel_size: float) -> np.ndarray:
+    """Centres (N, 3) in B of the kidney's voxels on a ``voxel_size`` grid (m)."""
+    mask, X_PtV = patient.kidney_mask(voxel_size)
+    ijk = np.argwhere(mask)
+    p_Pt = X_PtV.multiply((ijk * voxel_size).T).T
+    return X_BPt.multiply(p_Pt.T).T
+
+
+def prepare_patient(patient, X_BPt: RigidTransform, *, coverage_voxel: float = 0.002,
+                    skin_margin: float = 0.07, skin_spacing: float = 0.002) -> KinematicPatient:
+    """Builds (once) the label volume, skin height map and true kidney voxels of ``patient``."""
+    from drake_rus.localization.localize import body_directions_B
+    if not isinstance(X_BPt, RigidTransform):
+        raise ValueError(f"X_BPt: expected a RigidTransform, got {type(X_BPt).__name__}")
+    volume = patient.labels
+    roi = exploration_roi(patient, X_BPt)
+    m = float(skin_margin)
+    skin = SkinHeightMap(patient, X_BPt, (roi.x_min - m, roi.x_max + m),
+                         (roi.y_min - m, roi.y_max + m), skin_spacing)
+    superior_B, lateral_B = body_directions_B(X_BPt, patient.side, patient.posture)
+    return KinematicPatient(
+        patient=patient, X_BPt=X_BPt, X_BV=X_BPt.multiply(volume.X_PtV),
+        X_BK_true=patient.X_BK(X_BPt), roi=roi, skin=skin,
+        kidney_points_B=kidney_voxels_B(patient, X_BPt, coverage_voxel),
+        voxel_size=float(coverage_voxel), superior_B=np.asarray(superior_B, float),
+        lateral_B=np.asarray(lateral_B, float))
+
+
+# ---------------------------------------------------------------------------- imaging
+@dataclasses.dataclass
+class Frame:
+    """One acquired frame: probe pose, the read-outs and (optionally) the images."""
+    X_BP: RigidTransform
+    visible: bool
+    centroid: float                 # c_msk in [0, 1]
+    area: float                     # mask area (m^2)
+    boundary_B: np.ndarray          # (N, 3) back-projected boundary points (m)
+    mask: np.ndarray | None = None
+    image: np.ndarray | None = None  # grey image (classical/onnx) if kept
+
+
+class Imager:
+    """Probe pose -> kidney mask and its read-outs, like SliceSensor + emulator + Segmenter.
+
+    ``segmenter``: "oracle" (kidney labels of the label image, the seed's simulation),
+    "classical" or "onnx" (emulated B-mode image, then that backend; the classical one keeps
+    the previous mask as a temporal prior). ``seed`` fixes the emulator's speckle.
+    """
+
+    def __init__(self, kp: KinematicPatient, imaging, segmenter: str | None = None, seed: int = 0):
+        from drake_rus.imaging.systems import make_segmenter_backend
+        self.kp = kp
+        self.imaging = dataclasses.replace(imaging, segmenter=segmenter or imaging.segmenter)
+        self.geometry = ProbeGeometry.from_config(self.imaging)
+        self.backend_name = self.imaging.segmenter
+        self._backend = make_segmenter_backend(self.imaging, self.geometry)
+        self._model = None
+        if self.backend_name != "oracle":
+            from drake_rus.imaging.emulator import EmulatorModel
+            self._model = EmulatorModel.from_config(self.imaging, self.geometry)
+        self.seed = int(seed)
+        self.frame_index = 0
+        self._prev = None
+
+    def reset(self) -> None:
+        """Forget the temporal prior (a new sweep)."""
+        self._prev = None
+
+    def __call__(self, X_BP: RigidTransform, keep: bool = False) -> Frame:
+        g = self.geometry
+        labels = slice_volume(g, self.kp.volume, self.kp.X_BV, X_BP,
+                              int(self.imaging.elevation_planes), self.imaging.elevation_combine)
+        us = None
+        if self._model is not None:
+            from drake_rus.imaging.emulator import emulate
+            us = emulate(labels, self._model, self.seed, self.frame_index)
+        self.frame_index += 1
+        mask = np.asarray(self._backend(us, labels, self._prev), bool) & g.fan_mask
+        readout = read_mask(mask, g, self.imaging.min_kidney_area)
+        self._prev = mask if readout.visible else None
+        boundary = (g.pixel_to_B(readout.boundary, X_BP) if len(readout.boundary)
+                    else np.zeros((0, 3)))
+        return Frame(X_BP=X_BP, visible=bool(readout.visible), centroid=float(readout.centroid),
+                     area=float(readout.area), boundary_B=boundary,
+                     mask=mask if keep else None, image=us if keep else None)
+
+
+# ---------------------------------------------------------------------------- sweeps
+@dataclasses.dataclass
+class Sweep:
+    """Frames of one probe motion, in acquisition order; ``kind`` "explore", "line" or
+    "pivot"; ``angles`` (rad, pivot tilt from r3*) or ``travel`` (m, along y) per frame;
+    ``leg`` (pivot: 1 or 2) per frame; ``events`` human-readable notes."""
+    kind: str
+    frames: list
+    angles: np.ndarray | None = None
+    travel: np.ndarray | None = None
+    leg: np.ndarray | None = None
+    events: list = dataclasses.field(default_factory=list)
+
+    @property
+    def poses(self) -> list:
+        return [f.X_BP for f in self.frames]
+
+    @property
+    def visible(self) -> np.ndarray:
+        return np.array([f.visible for f in self.frames], bool)
+
+    def point_cloud(self) -> np.ndarray:
+        """P_local: all frames' back-projected boundary points (N, 3) in B (m)."""
+        parts = [f.boundary_B for f in self.frames if len(f.boundary_B)]
+        return np.concatenate(parts) if parts else np.zeros((0, 3))
+
+    def pole_to_pole(self) -> "Sweep":
+        """The part that images the kidney from one pole to the other: for a pivot, the
+        second leg; then from its first to its last frame with the kidney visible (what
+        the seed records, III-E). Empty if the kidney was never visible."""
+        keep = np.ones(len(self.frames), bool)
+        if self.leg is not None and np.any(self.leg == 2):
+            keep = self.leg == 2
+        idx = np.flatnonzero(keep & self.visible)
+        if len(idx) == 0:
+            return dataclasses.replace(self, frames=[], angles=_take(self.angles, []),
+                                       travel=_take(self.travel, []), leg=_take(self.leg, []))
+        sel = np.arange(idx[0], idx[-1] + 1)
+        return dataclasses.replace(self, frames=[self.frames[i] for i in sel],
+                                   angles=_take(self.angles, sel), travel=_take(self.travel, sel),
+                                   leg=_take(self.leg, sel))
+
+
+def _take(a, idx):
+    return None if a is None else np.asarray(a)[np.asarray(idx, dtype=int)]
+
+
+def tip_pose(kp: KinematicPatient, R_BP, x: float, y: float) -> RigidTransform:
+    """Probe pose with orientation R_BP and the tip on the skin above (x, y)."""
+    R = R_BP if isinstance(R_BP, RotationMatrix) else RotationMatrix(np.asarray(R_BP, float))
+    return RigidTransform(R, [x, y, kp.skin(x, y)])
+
+
+def start_xy(kp: KinematicPatient, start_fraction: float = 0.0, scan_direction: str = "-y",
+             x_offset: float = 0.0) -> np.ndarray:
+    """Exploration start (x, y) (III-C, ``exploration_start``): over the kidney centroid's x
+    (+ ``x_offset``), at the E-ROI end the scan leaves from, ``start_fraction`` of the
+    E-ROI's length inside it."""
+    roi = kp.roi
+    if scan_direction == "-y":
+        y = roi.y_max - start_fraction * roi.length_y
+    elif scan_direction == "+y":
+        y = roi.y_min + start_fraction * roi.length_y
+    else:
+        raise ValueError(f"scan_direction: expected '+y' or '-y', got {scan_direction!r}")
+    return np.array([float(roi.centroid_B[0]) + x_offset, y])
+
+
+def explore(kp: KinematicPatient, imager: Imager, controller, *, exploration_ratio: float,
+            start_fraction: float = 0.0, x_offset: float = 0.0, travel: float | None = None,
+            stop_when_lost: bool = True, keep_images: bool = False,
+            start: np.ndarray | None = None) -> Sweep:
+    """Transverse straight-line sweep (II-E): the seed's exploration in kinematic mode.
+
+    The tip starts at ``start`` (x, y) or :func:`start_xy` and advances along
+    ``controller.scan_direction`` at ``controller.scan_speed`` with one frame every
+    1 / frame rate, for ``travel`` m (default ``exploration_ratio`` x
+    ``controller.kidney_length``, the ER of III-C). Between frames x is re-centred on the
+    kidney with eq. 17 (gain ``controller.K_p7``) from the mask centroid; z follows the skin.
+    With ``stop_when_lost`` the sweep ends once the kidney, having been seen, has been out
+    of the image for ``controller.visibility_debounce`` (the supervisor's rule).
+    """
+    if not 0.0 <= exploration_ratio <= 1.0:
+        raise ValueError(f"exploration_ratio: expected a value in [0, 1], got {exploration_ratio}")
+    fps = float(imager.imaging.frame_rate_hz)
+    dt = 1.0 / fps
+    sign = 1.0 if controller.scan_direction == "+y" else -1.0
+    target = exploration_ratio * controller.kidney_length if travel is None else float(travel)
+    step = controller.scan_speed * dt
+    n_steps = int(math.floor(target / step + 1e-9))
+    P = (start_xy(kp, start_fraction, controller.scan_direction, x_offset) if start is None
+         else np.asarray(start, float).reshape(2).copy())
+    R = R_B_TRANSVERSE
+    x_p = R.matrix()[:, 0]
+    debounce = max(1, int(math.ceil(controller.visibility_debounce * fps - 1e-9)))
+    imager.reset()
+    frames, travelled, seen, invisible_run = [], [], False, 0
+    events = []
+    for k in range(n_steps + 1):
+        frame = imager(tip_pose(kp, R, P[0], P[1]), keep=keep_images)
+        frames.append(frame)
+        travelled.append(k * step)
+        seen |= frame.visible
+        invisible_run = 0 if frame.visible else invisible_run + 1
+        if stop_when_lost and seen and invisible_run >= debounce:
+            events.append(f"kidney left the image after {k * step * 1e3:.1f} mm")
+            break
+        c = frame.centroid if frame.visible else math.nan
+        P = exploration_update(P, c, x_p, sign * controller.scan_speed, controller.K_p7, dt)
+    return Sweep("explore", frames, travel=np.asarray(travelled), events=events)
+
+
+def pivot_sweep(kp: KinematicPatient, imager: Imager, R_BPstar, p_xy, *, pivot_rate: float,
+                max_tilt: float, keep_images: bool = False) -> Sweep:
+    """Fixed-point pivot sweep (II-G, eq. 23) at tip (x, y) = ``p_xy`` on the skin.
+
+    The array o = R_BP*[:, 0] stays fixed; the approach a starts at R_BP*[:, 2] and turns
+    about o by +pivot_rate / frame rate per frame (eq. 23). Leg 1 runs until the kidney,
+    having been seen on this leg, leaves the image, or to ``max_tilt``; leg 2 runs back
+    through the start to the other side under the same rule. (The closed-loop supervisor
+    also ends a leg when the kidney is not seen at all for the debounce time; here an unseen
+    kidney is searched for up to the tilt limit.)
+    """
+    o = np.asarray(R_BPstar, float)[:, 0].copy()
+    a = np.asarray(R_BPstar, float)[:, 2].copy()
+    fps = float(imager.imaging.frame_rate_hz)
+    dtheta = pivot_rate / fps
+    p = np.asarray(p_xy, float).reshape(-1)[:2]
+    z = kp.skin(p[0], p[1])
+    imager.reset()
+    frames, angles, legs, events = [], [], [], []
+    angle, direction = 0.0, 1.0
+    for leg in (1, 2):
+        seen = False
+        while True:
+            R = np.column_stack([o, np.cross(a, o), a])
+            frame = imager(RigidTransform(RotationMatrix(R), [p[0], p[1], z]), keep=keep_images)
+            frames.append(frame)
+            angles.append(angle)
+            legs.append(leg)
+            new_side = leg == 1 or angle * direction > 0
+            seen |= frame.visible
+            if seen and not frame.visible and new_side:
+                events.append(f"leg {leg} ended at {math.degrees(angle):.1f} deg: "
+                              "kidney left the image")
+                break
+            if abs(angle) >= max_tilt - 1e-9 and new_side:
+                events.append(f"leg {leg} ended at {math.degrees(angle):.1f} deg: maximum tilt")
+                break
+            new_angle = float(np.clip(angle + direction * dtheta, -max_tilt, max_tilt))
+            a = rodrigues_pivot_update(a, o, new_angle - angle)
+            angle = new_angle
+        direction = -direction
+    return Sweep("pivot", frames, angles=np.asarray(angles), leg=np.asarray(legs), events=events)
+
+
+def nop_pose(R_BK: np.ndarray, p_BK: np.ndarray):
+    """Non-optimal pivot pose (III-E, NOP): probe down, array along the kidney's y-axis
+    projected on the horizontal, tip over the kidney centroid. Returns (R_BP, p)."""
+    R_BK = np.asarray(R_BK, float)
+    swapped = np.column_stack([R_BK[:, 1], -R_BK[:, 0], R_BK[:, 2]])
+    return optimal_pivot_pose(swapped, p_BK)
+
+
+def strategy_sweep(kp: KinematicPatient, imager: Imager, strategy: str, controller,
+                   X_BK_estimated: RigidTransform | None = None, keep_images: bool = False,
+                   sl_margin: float = 0.01) -> Sweep:
+    """The sweep of one strategy (III-E):
+
+    - ``OP``: pivot at T* of the estimated kidney pose (eq. 20-22);
+    - ``GT-OP``: pivot at T* of the true kidney pose;
+    - ``NOP``: pivot with the array along the true kidney's y-axis at the projected true
+      centroid (the in-vivo NOP was expert-placed, so ground truth here too);
+    - ``SL``: transverse straight line (exploration controller, eq. 17) from ``sl_margin``
+      beyond the E-ROI's superior end until the kidney has left the image (ER 100%).
+    """
+    c = controller
+    if strategy == "OP":
+        if X_BK_estimated is None:
+            raise ValueError("strategy OP: needs X_BK_estimated (the registered kidney pose)")
+        R, p = optimal_pivot_pose(X_BK_estimated.rotation().matrix(), X_BK_estimated.translation())
+    elif strategy == "GT-OP":
+        R, p = optimal_pivot_pose(kp.X_BK_true.rotation().matrix(), kp.X_BK_true.translation())
+    elif strategy == "NOP":
+        R, p = nop_pose(kp.X_BK_true.rotation().matrix(), kp.X_BK_true.translation())
+    elif strategy == "SL":
+        sign = 1.0 if c.scan_direction == "+y" else -1.0
+        start = start_xy(kp, 0.0, c.scan_direction) - np.array([0.0, sign * sl_margin])
+        sweep = explore(kp, imager, c, exploration_ratio=1.0, travel=kp.roi.length_y
+                        + 2 * sl_margin + 0.03, start=start, keep_images=keep_images)
+        sweep.kind = "line"
+        return sweep
+    else:
+        raise ValueError(f"strategy: expected one of {', '.join(STRATEGIES)}, got {strategy!r}")
+    return pivot_sweep(kp, imager, R, p[:2], pivot_rate=c.pivot_rate, max_tilt=c.max_pivot_tilt,
+                       keep_images=keep_images)
+
+
+# ---------------------------------------------------------------------------- localization
+@dataclasses.dataclass
+class Localization:
+    X_BK: RigidTransform
+    n_points: int
+    compute_s: float
+    result: object | None     # IcpResult, None for the heuristic fallback
+    note: str = ""
+
+
+def heuristic_pose(kp: KinematicPatient, p_xy, depth: float = 0.09) -> RigidTransform:
+    """Initial alignment alone (ER 0, III-C): heuristic rotation, centroid ``depth`` below
+    the skin at the probe's (x, y)."""
+    from drake_rus.localization.icp import heuristic_initial_rotation
+    R0 = heuristic_initial_rotation(kp.superior_B, kp.lateral_B)
+    x, y = float(p_xy[0]), float(p_xy[1])
+    return RigidTransform(R0, [x, y, kp.skin(x, y) - depth])
+
+
+def localize_cloud(kp: KinematicPatient, P_local_B: np.ndarray, template, config,
+                   fallback_xy, min_points: int = 50) -> Localization:
+    """T_k^b from the explored cloud (II-F, ``localize``), or the heuristic initial alignment
+    at ``fallback_xy`` when fewer than ``min_points`` points were explored."""
+    import time
+    from drake_rus.localization.localize import localize
+    P = np.asarray(P_local_B, float).reshape(-1, 3)
+    if len(P) < min_points:
+        return Localization(heuristic_pose(kp, fallback_xy), len(P), 0.0, None,
+                            f"only {len(P)} boundary points: initial alignment only")
+    t = time.perf_counter()
+    result = localize(P, template, config, kp.superior_B, kp.lateral_B)
+    return Localization(result.X_BK, len(P), time.perf_counter() - t, result)
+
+
+# ---------------------------------------------------------------------------- metrics
+def sweep_curves(kp: KinematicPatient, sweep: Sweep, geometry: ProbeGeometry,
+                 image_depth: float | None = None) -> dict:
+    """n, cumulative eps (m, eq. 24) and V (eq. 25) frame by frame of ``sweep`` (use
+    ``sweep.pole_to_pole()`` for the seed's curves). Keys: n (1..N), eps (N,), V (N,),
+    n_frames, eps_total, V_final."""
+    from drake_rus.metrics.core import CoverageAccumulator, window_steps
+    L = geometry.depth if image_depth is None else image_depth
+    poses = sweep.poses
+    if not poses:
+        return {"n": np.zeros(0, int), "eps": np.zeros(0), "V": np.zeros(0), "n_frames": 0,
+                "eps_total": 0.0, "V_final": 0.0}
+    acc = CoverageAccumulator(kp.kidney_points_B, kp.voxel_volume, geometry.in_fan,
+                              geometry.elevation_width)
+    V = np.asarray([acc.add_frame(X) for X in poses])
+    eps = np.concatenate([[0.0], np.cumsum(window_steps(poses, L))])
+    return {"n": np.arange(1, len(poses) + 1), "eps": eps, "V": V, "n_frames": len(poses),
+            "eps_total": float(eps[-1]), "V_final": float(V[-1])}
