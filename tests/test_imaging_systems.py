@@ -19,7 +19,7 @@ DOWN = RotationMatrix(np.diag([1.0, -1.0, -1.0]))
 
 def build(X_BP, config=None, with_accumulator=True):
     config = config or ImagingConfig(image_height_px=128, image_width_px=128, scan_lines=64,
-                                     samples_per_line=128)
+                                     samples_per_line=128, segmenter="oracle")
     # Sphere of kidney cortex 20 mm radius, centre 60 mm under the probe, 15 mm to +x_P.
     vol = sphere_volume(shape=(120, 60, 120), center=(0.075, 0.03, 0.04), radius=0.02,
                         label=Label.KIDNEY_CORTEX)
@@ -80,7 +80,7 @@ def test_pipeline_samples_at_frame_rate_and_stamps_frames():
 
 def test_accumulator_enable_and_reset():
     config = ImagingConfig(image_height_px=64, image_width_px=64, scan_lines=32,
-                           samples_per_line=64)
+                           samples_per_line=64, segmenter="oracle")
     X_BP = RigidTransform(DOWN, [0.0, 0.0, 0.0])
     diagram, sensor, emu, seg, acc = build(X_BP, config)
     ctx = diagram.CreateDefaultContext()
