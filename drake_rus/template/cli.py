@@ -153,8 +153,9 @@ def add_commands(subparsers) -> None:
     sub.required = True
     b = sub.add_parser("build", help="build the template from the virtual training cohort")
     b.add_argument("--n", type=int, default=20, help="number of training subjects (default 20)")
-    b.add_argument("--split", default="train", choices=["train", "test", "seed"],
-                   help="cohort to build from (default train; never test for evaluation)")
+    b.add_argument("--split", default="train", choices=["train", "seed"],
+                   help="cohort to build from (default train); the test split is reserved "
+                        "for evaluation and refused")
     b.add_argument("--side", default="right", choices=["right", "left"])
     b.add_argument("--out", default=str(DEFAULT_TEMPLATE_PATH), help="output .npz")
     b.add_argument("--points", type=int, default=2500, help="template vertices (default 2500)")
