@@ -50,7 +50,7 @@ def _closed_loop(scenario, patient: str | None):
     X_BK = RigidTransform(RollPitchYaw(0.1, 0.0, math.radians(105.0)), [0.595, -0.035, 0.035])
     view = GeometricKidneyView(X_BK, [0.055, 0.03, 0.025],
                                frame_rate_hz=scenario.imaging.frame_rate_hz)
-    return BuildClosedLoop(scenario, kidney_view=view), scenario
+    return BuildClosedLoop(scenario, kidney_view=view, log_period=0.05), scenario
 
 
 def _with_segmenter(scenario, station, segmenter):
@@ -63,7 +63,22 @@ def _with_segmenter(scenario, station, segmenter):
         builder.Connect(station.GetOutputPort(name), segmenter.GetInputPort(name))
     parts = AddController(builder, station, scenario, segmenter=segmenter,
                           kidney_pose_port=station.GetOutputPort("X_BK_true"))
-    return ClosedLoop(builder.Build(), station, parts, None, {}, {})
+    loggers = _add_loggers(builder, {
+        "probe_force": station.GetOutputPort("probe_force"),
+        "mask_centroid": segmenter.GetOutputPort("mask_centroid"),
+        "kidney_visible": segmenter.GetOutputPort("kidney_visible"),
+        "phase": parts.supervisor.GetOutputPort("phase")})
+    return ClosedLoop(builder.Build(), station, parts, None, {}, loggers)
+
+
+def _add_loggers(builder, ports, period=0.05):
+    from pydrake.systems.primitives import VectorLogSink
+    loggers = {}
+    for name, port in ports.items():
+        log = builder.AddSystem(VectorLogSink(port.size(), period))
+        builder.Connect(port, log.get_input_port())
+        loggers[name] = log
+    return loggers
 
 
 def _station_alone_rtf(scenario, duration: float) -> float | None:
@@ -122,6 +137,20 @@ def main(argv=None) -> int:
     wall = time.perf_counter() - start
     state = sup.state(sup_ctx)
     safety = cl.parts.safety.safety_state(cl.parts.safety.GetMyContextFromRoot(ctx))
+    figures = {}
+    if "phase" in cl.loggers:
+        phase_log = cl.loggers["phase"].FindLog(ctx)
+        m = (phase_log.sample_times() >= t_start + 1.0) & \
+            (phase_log.data()[0] == float(scan.Phase.EXPLORE))
+        F = -cl.loggers["probe_force"].FindLog(ctx).data()[5][m]
+        c = cl.loggers["mask_centroid"].FindLog(ctx).data()[0][m]
+        vis = cl.loggers["kidney_visible"].FindLog(ctx).data()[0][m]
+        if m.any():
+            figures = {"force_min_n": round(float(F.min()), 3),
+                       "force_max_n": round(float(F.max()), 3),
+                       "centroid_min": round(float(c.min()), 3),
+                       "centroid_max": round(float(c.max()), 3),
+                       "kidney_visible_fraction": round(float(vis.mean()), 3)}
     reference = None if args.no_reference else _station_alone_rtf(scenario, args.duration)
     result = {
         "rtf_exploration": round(args.duration / wall, 3),
@@ -129,6 +158,7 @@ def main(argv=None) -> int:
         "explored_m": round(state.travel, 4),
         "phase_at_start": phase.name,
         "phase_at_end": state.phase.name,
+        "exploration_figures_after_1s": figures,
         "safety_stops": [e.reason for e in safety.events],
         "supervisor_events": [f"{t:.2f} {name}: {msg}" for t, name, msg in state.events],
         "controller_rate_hz": scenario.controller.rate_hz,

@@ -91,7 +91,7 @@ def AddController(builder: DiagramBuilder, station, scenario, *, plant=None,
             (localizer estimate or a ground-truth stand-in).
         localization_ready_port: 1-vector output, 1 when X_BK is final (optional).
         image_port: the image frames port for the stale-image watchdog (default: the
-            station's ``us_image`` if it has one).
+            segmenter's ``kidney_mask`` if it has one, else the station's ``us_image``).
         connect_command: connect safety.joint_velocity_command to the station.
     """
     cfg, scfg = scenario.controller, scenario.safety
@@ -117,8 +117,13 @@ def AddController(builder: DiagramBuilder, station, scenario, *, plant=None,
                     safety.GetInputPort("joint_velocity_desired"))
     for name in ("joint_position", "joint_velocity", "X_BP", "probe_force"):
         builder.Connect(S(name), safety.GetInputPort(name))
-    if image_port is None and station.HasOutputPort("us_image"):
-        image_port = S("us_image")
+    if image_port is None:
+        # Watch the frames the controller actually uses: the segmenter's mask (stamped with
+        # its source frame's time) if there is one, else the station's ultrasound images.
+        if segmenter is not None and segmenter.HasOutputPort("kidney_mask"):
+            image_port = segmenter.GetOutputPort("kidney_mask")
+        elif station.HasOutputPort("us_image"):
+            image_port = S("us_image")
     if image_port is not None:
         stamp = builder.AddNamedSystem("image_stamp", FrameTime(image_port.Allocate()))
         builder.Connect(image_port, stamp.get_input_port())
