@@ -44,6 +44,7 @@ def test_nominal_passes_command(kin):
     (dict(v=np.array([0, 0, 0, 0, 0, 0, 3.5])), StopReason.JOINT_SPEED),
     (dict(image_time=0.5), StopReason.STALE_IMAGE),
     (dict(supervisor_abort=True, supervisor_reason="x"), StopReason.SUPERVISOR_ABORT),
+    (dict(robot_ok=False), StopReason.ROBOT_FAULT),
 ])
 def test_each_fault_stops_in_the_same_period(kin, fault, reason):
     cfg = SafetyConfig(retract_distance=0.0)

@@ -129,6 +129,9 @@ def AddController(builder: DiagramBuilder, station, scenario, *, plant=None,
         builder.Connect(image_port, stamp.get_input_port())
         builder.Connect(stamp.get_output_port(), safety.GetInputPort("image_time"))
 
+    if station.HasOutputPort("robot_ok"):
+        builder.Connect(_vector1(builder, S("robot_ok")), safety.GetInputPort("robot_ok"))
+
     supervisor = None
     if use_supervisor:
         supervisor = builder.AddNamedSystem("scan_supervisor", ScanSupervisor(cfg))

@@ -1,7 +1,8 @@
 """Safety layer logic (pure): fault checks, command limiting, stop and retract.
 
 The safety layer sits between the controller and the station and can stop the robot on its
-own. Every control period it checks, in this order: non-finite values anywhere, contact
+own. Every control period it checks, in this order: non-finite values anywhere, a robot
+fault reported by the (hardware) station, contact
 force above the ceiling, tip outside the workspace box, measured tip speed and joint
 velocities above their limits, a stale image, a stale robot state, the kidney lost for too
 long while the supervisor needs it, and a supervisor abort. The first fault latches a stop
@@ -35,6 +36,7 @@ class StopReason:
     STALE_STATE = "stale robot state"
     SEGMENTATION_LOST = "segmentation lost"
     SUPERVISOR_ABORT = "supervisor abort"
+    ROBOT_FAULT = "robot fault"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,6 +63,7 @@ class SafetyInputs:
     segmentation_required: bool = True
     supervisor_abort: bool = False
     supervisor_reason: str = ""
+    robot_ok: bool = True               # the hardware station's robot_ok (True in sim)
 
 
 @dataclasses.dataclass
@@ -94,6 +97,8 @@ def check_faults(u: SafetyInputs, s: SafetyState, cfg) -> tuple[str, str] | None
             return StopReason.NAN, f"{name} is not finite"
     if not math.isfinite(u.F_z):
         return StopReason.NAN, "contact force is not finite"
+    if not u.robot_ok:
+        return StopReason.ROBOT_FAULT, "the station reports robot_ok = 0"
     if u.F_z > cfg.force_ceiling:
         return StopReason.FORCE, f"F_z = {u.F_z:.2f} N > {cfg.force_ceiling:.2f} N"
     lo, hi = np.asarray(cfg.workspace_min), np.asarray(cfg.workspace_max)

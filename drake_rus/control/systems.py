@@ -281,7 +281,8 @@ class SafetyLayer(LeafSystem):
     Inputs: joint_velocity_desired (7, rad/s), joint_position (7, rad), joint_velocity
     (7, rad/s), X_BP (RigidTransform), probe_force (6, on the probe in P); optional:
     image_time (1, s: stamp of the newest image), kidney_visible (1, 0/1),
-    segmentation_required (1, 0/1), supervisor_abort (1, 0/1).
+    segmentation_required (1, 0/1), supervisor_abort (1, 0/1), robot_ok (1, 0/1: the
+    hardware station's robot/connection health).
     Outputs: joint_velocity_command (7, rad/s; state), stopped (1, 0/1; state),
     safety_events (tuple of SafetyEvent).
     """
@@ -301,6 +302,7 @@ class SafetyLayer(LeafSystem):
         self._vis = self.DeclareVectorInputPort("kidney_visible", 1)
         self._req = self.DeclareVectorInputPort("segmentation_required", 1)
         self._abort = self.DeclareVectorInputPort("supervisor_abort", 1)
+        self._ok = self.DeclareVectorInputPort("robot_ok", 1)
         self._cmd = self.DeclareDiscreteState(n)
         self._stopped = self.DeclareDiscreteState(1)
         self.DeclareAbstractState(AbstractValue.Make(SafetyState()))
@@ -329,7 +331,8 @@ class SafetyLayer(LeafSystem):
             image_time=_optional_scalar(self._img, context, math.nan),
             kidney_visible=visible,
             segmentation_required=_optional_scalar(self._req, context, 1.0) > 0.5,
-            supervisor_abort=_optional_scalar(self._abort, context, 0.0) > 0.5)
+            supervisor_abort=_optional_scalar(self._abort, context, 0.0) > 0.5,
+            robot_ok=_optional_scalar(self._ok, context, 1.0) > 0.5)
         cmd, new = safety_step(self.safety_state(context), u, self._cfg)
         state.get_mutable_discrete_state(self._cmd).set_value(cmd)
         state.get_mutable_discrete_state(self._stopped).set_value([float(new.stopped)])
