@@ -3,9 +3,10 @@
 
 Runs the scan supervisor through APPROACH into EXPLORE, then times ``--duration`` simulated
 seconds of exploration (5 mm/s slide under 9 N force control, mask centring in the loop).
-With ``--patient SPEC`` (e.g. ``test:0``) the station renders emulated images of a virtual
-patient and the scenario's segmenter closes the loop; otherwise the geometric kidney view
-stands in for image + segmenter on the placeholder torso. Also times the station alone
+By default the station renders emulated images of the virtual patient ``test:0`` (slice
+sensor + ultrasound emulator at 20 Hz) and the scenario's segmenter closes the loop; with
+``--patient none`` the geometric kidney view stands in for image + segmenter on the
+placeholder torso. Patient generation and diagram build are not timed. Also times the station alone
 pressed by the minimal press driver as the reference measured in the same run.
 The last line is one JSON object.
 """
@@ -101,13 +102,17 @@ def main(argv=None) -> int:
     parser.add_argument("--duration", type=float, default=5.0,
                         help="simulated seconds of exploration to time")
     parser.add_argument("--scenario", default="default")
-    parser.add_argument("--patient", default=None,
-                        help="virtual patient spec (e.g. test:0) for emulated images + segmenter")
+    parser.add_argument("--patient", default="test:0",
+                        help="virtual patient spec for emulated images + the scenario's "
+                             "segmenter (default test:0); 'none' = placeholder torso with the "
+                             "geometric kidney view")
     parser.add_argument("--rate-hz", type=float, default=None, help="controller rate override")
     parser.add_argument("--contact", choices=["hydroelastic", "point"], default=None)
     parser.add_argument("--no-reference", action="store_true",
                         help="skip the station-alone reference run")
     args = parser.parse_args(argv)
+    if args.patient in ("none", ""):
+        args.patient = None
 
     scenario = LoadScenario(scenario_name=args.scenario)
     overrides = ["exploration_ratio: 1.0"]
