@@ -78,7 +78,7 @@ def plot_coverage(result, metrics: dict, path: Path) -> None:
     axes[0].set_ylim(0, 1.05)
     axes[0].grid(alpha=0.3)
     if len(V):
-        axes[1].plot(eps[1:len(V) + 1], V, color="tab:green")
+        axes[1].plot(eps[:len(V)], V, color="tab:green")
     axes[1].set_xlabel(r"imaging-window path length $\varepsilon$ (mm)")
     axes[1].set_ylabel("V")
     axes[1].set_ylim(0, 1.05)

@@ -112,8 +112,9 @@ def register_plane_to_plane(
         shape_modes_K, shape_variances: optional statistical shape model, modes as
             (n_modes, N, 3) displacement fields with their variances (m^2): the template
             deforms as q_j(b) = q_j + sum_k b_k phi_kj, fitted with the pose as a MAP estimate:
-            sum_i r_i^2 / s2 + sum_k b_k^2 / variance_k with s2 = ``shape_regularization``
-            (m^2, the residual variance; default (1 mm)^2) (deformable registration).
+            mean_i r_i^2 / s2 + sum_k b_k^2 / variance_k with s2 = ``shape_regularization``
+            (m^2, the residual variance; default (1 mm)^2), each b_k kept within 3 standard
+            deviations (deformable registration).
     """
     P = _check_cloud("P_local_B", P_local_B)
     Q = _check_cloud("template_points_K", template_points_K)
@@ -138,6 +139,7 @@ def register_plane_to_plane(
         if shape_variances.shape != (n_modes,) or np.any(shape_variances <= 0):
             raise ValueError("shape_variances: expected one positive variance per mode")
 
+    sigma_b = np.sqrt(shape_variances) if n_modes else None
     R_KB = R_BK0.matrix().T
     t_KB = -R_KB @ P.mean(axis=0) if init_translation == "centroid" else np.zeros(3)
     b = np.zeros(n_modes)
@@ -168,10 +170,14 @@ def register_plane_to_plane(
         if n_modes:
             A[:, 6:] = -np.einsum("ij,kij->ik", n, shape_modes_K[:, j, :])
         Au, ru = A[use], residual[use]
-        H = Au.T @ Au
-        g = -Au.T @ ru
+        m = len(ru)
+        H = Au.T @ Au / m
+        g = -Au.T @ ru / m
         if n_modes:
-            # MAP: sum r^2 / s2 + sum b^2 / var, scaled by s2 = shape_regularization.
+            # MAP with the data term as a mean: mean(r^2) / s2 + sum b^2 / var, scaled by
+            # s2 = shape_regularization. Boundary points of one partial view are strongly
+            # correlated, so counting each as an independent observation would let the
+            # shape modes absorb pose error (overfitting); the mean counts the view once.
             prior = shape_regularization / shape_variances
             H[6:, 6:] += np.diag(prior)
             g[6:] -= prior * b
@@ -183,7 +189,8 @@ def register_plane_to_plane(
         R_KB = dR @ R_KB
         t_KB = dR @ t_KB + x[3:6]
         if n_modes:
-            b = b + x[6:]
+            # Stay within 3 standard deviations of the shape model.
+            b = np.clip(b + x[6:], -3 * sigma_b, 3 * sigma_b)
             Q_current = Q + np.einsum("k,kij->ij", b, shape_modes_K)
             tree = cKDTree(Q_current)
     # Diagnostics at the final pose.

@@ -1,0 +1,49 @@
+"""End to end: `drake-rus scan` on a test patient in the closed-loop simulation."""
+
+import json
+
+import numpy as np
+import pytest
+from pydrake.math import RigidTransform
+
+from drake_rus.cli import main as cli_main
+from drake_rus.scan import PHASE_NAMES, PhaseIs
+
+
+def test_phase_is():
+    system = PhaseIs(PHASE_NAMES.index("EXPLORE"))
+    context = system.CreateDefaultContext()
+    for phase, expected in ((0, 0.0), (1, 1.0), (2, 0.0)):
+        system.get_input_port(0).FixValue(context, [phase])
+        assert system.get_output_port(0).Eval(context)[0] == expected
+
+
+@pytest.mark.slow
+def test_scan_on_a_test_patient(tmp_path):
+    out = tmp_path / "scan"
+    code = cli_main(["scan", "--patient", "test:1", "--scenario", "quick", "--out", str(out),
+                     "--no-record", "--max-sim-time", "90"])
+    summary = json.loads((out / "summary.json").read_text())
+    assert code == 0, summary
+    assert summary["status"] == "DONE", summary["reason"]
+    assert summary["volume_ratio"] > 0.9
+    phases = [p["phase"] for p in summary["phases"]]
+    for name in ("EXPLORE", "LOCALIZE", "TRANSIT", "PIVOT", "DONE"):
+        assert name in phases
+    assert phases.index("EXPLORE") < phases.index("LOCALIZE") < phases.index("PIVOT")
+    # The localization produced an estimate in the kidney's neighbourhood.
+    assert summary["e_trans_mm"] < 30 and summary["e_rot_x_deg"] < 30
+    assert summary["peak_force_n"] < 20.0
+    for name in ("partial_cloud.ply", "registered_template.ply", "registration.png",
+                 "coverage.png", "traces.png", "pivot_frames.png"):
+        assert (out / name).stat().st_size > 0, name
+
+
+def test_scan_bad_input_is_a_clear_error(tmp_path, capsys):
+    assert cli_main(["scan", "--patient", "test:0", "--out", str(tmp_path),
+                     "--max-sim-time", "-1"]) == 2
+    assert "--max-sim-time" in capsys.readouterr().err
+    assert cli_main(["scan", "--patient", "test:0", "--out", str(tmp_path),
+                     "--set", "{localization: {method: magic}}"]) == 2
+    assert "'localization.method'" in capsys.readouterr().err
+    assert not (tmp_path / "summary.json").exists()
