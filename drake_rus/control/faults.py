@@ -37,7 +37,8 @@ class FaultInjector(LeafSystem):
     1 / frame_rate_hz s).
     Faults from ``t_fault`` (s): force_spike (probe f_z = -spike_force N, i.e. F_z =
     spike_force), frozen_image (image stamps stop), nan_pose (X_BP translation NaN),
-    segmentation_loss (kidney_visible = 0), frozen_state (joint positions held).
+    segmentation_loss (kidney_visible = 0), frozen_state (joint positions held at their last
+    value before t_fault).
     """
 
     def __init__(self, fault: str = "none", t_fault: float = math.inf,
@@ -53,7 +54,11 @@ class FaultInjector(LeafSystem):
         self._F = self.DeclareVectorInputPort("probe_force", 6)
         self._vis = self.DeclareVectorInputPort("kidney_visible", 1)
         self._c = self.DeclareVectorInputPort("mask_centroid", 1)
-        self._q_frozen = None
+        if fault == "frozen_state":
+            # The last joint positions before t_fault, sampled at 1 kHz (declared only for
+            # this fault: a Python update per plant step is costly).
+            self._q_last = self.DeclareDiscreteState(n)
+            self.DeclarePeriodicDiscreteUpdateEvent(1e-3, 0.0, self._sample_q)
         self.DeclareVectorOutputPort("joint_position", n, self._calc_q)
         self.DeclareVectorOutputPort("joint_velocity", n,
                                      lambda c, o: o.SetFromVector(self._v.Eval(c)))
@@ -69,13 +74,15 @@ class FaultInjector(LeafSystem):
     def _active(self, context, kind: str) -> bool:
         return self.fault == kind and context.get_time() >= self.t_fault
 
+    def _sample_q(self, context, discrete_state):
+        if context.get_time() < self.t_fault:
+            discrete_state.set_value(self._q_last, self._q.Eval(context))
+
     def _calc_q(self, context, output):
-        q = np.asarray(self._q.Eval(context))
         if self._active(context, "frozen_state"):
-            if self._q_frozen is None:
-                self._q_frozen = q.copy()
-            q = self._q_frozen
-        output.SetFromVector(q)
+            output.SetFromVector(context.get_discrete_state(self._q_last).get_value())
+        else:
+            output.SetFromVector(self._q.Eval(context))
 
     def _calc_X(self, context, output):
         X = self._X.Eval(context)
