@@ -166,12 +166,14 @@ class Frame:
 class Imager:
     """Probe pose -> kidney mask and its read-outs, like SliceSensor + emulator + Segmenter.
 
-    ``segmenter``: "oracle" (kidney labels of the label image, the seed's simulation),
-    "classical" or "onnx" (emulated B-mode image, then that backend; the classical one keeps
-    the previous mask as a temporal prior). ``seed`` fixes the emulator's speckle.
+    ``segmenter``: "oracle" (the default here whatever ``imaging.segmenter`` says: kidney
+    labels of the label image, as in the seed's simulation), "classical" or "onnx" (emulated
+    B-mode image, then that backend; the classical one keeps the previous mask as a temporal
+    prior), or None for ``imaging.segmenter``. ``seed`` fixes the emulator's speckle.
     """
 
-    def __init__(self, kp: KinematicPatient, imaging, segmenter: str | None = None, seed: int = 0):
+    def __init__(self, kp: KinematicPatient, imaging, segmenter: str | None = "oracle",
+                 seed: int = 0):
         from drake_rus.imaging.systems import make_segmenter_backend
         self.kp = kp
         self.imaging = dataclasses.replace(imaging, segmenter=segmenter or imaging.segmenter)
@@ -341,8 +343,15 @@ def pivot_sweep(kp: KinematicPatient, imager: Imager, R_BPstar, p_xy, *, pivot_r
     imager.reset()
     frames, angles, legs, events = [], [], [], []
     angle, direction = 0.0, 1.0
+
+    def advance(a, angle):
+        new_angle = float(np.clip(angle + direction * dtheta, -max_tilt, max_tilt))
+        return rodrigues_pivot_update(a, o, new_angle - angle), new_angle
+
     for leg in (1, 2):
         seen = False
+        if leg == 2:          # the reversal frame is not acquired twice
+            a, angle = advance(a, angle)
         while True:
             R = np.column_stack([o, np.cross(a, o), a])
             frame = imager(RigidTransform(RotationMatrix(R), [p[0], p[1], z]), keep=keep_images)
@@ -358,9 +367,7 @@ def pivot_sweep(kp: KinematicPatient, imager: Imager, R_BPstar, p_xy, *, pivot_r
             if abs(angle) >= max_tilt - 1e-9 and new_side:
                 events.append(f"leg {leg} ended at {math.degrees(angle):.1f} deg: maximum tilt")
                 break
-            new_angle = float(np.clip(angle + direction * dtheta, -max_tilt, max_tilt))
-            a = rodrigues_pivot_update(a, o, new_angle - angle)
-            angle = new_angle
+            a, angle = advance(a, angle)
         direction = -direction
     return Sweep("pivot", frames, angles=np.asarray(angles), leg=np.asarray(legs), events=events)
 
