@@ -129,6 +129,29 @@ def test_from_label_map(tmp_path, suffix):
     np.testing.assert_allclose(pts.mean(axis=0), p.X_PtK.translation(), atol=0.003)
 
 
+def test_totalsegmentator_mask_folder(tmp_path):
+    """TotalSegmentator's default output: one binary mask per structure."""
+    lab, kid = _synthetic_label_volume()
+    d = tmp_path / "ts"
+    d.mkdir()
+    for name, value in (("body", 200), ("kidney_right", 2), ("liver", 5)):
+        m = (lab > 0) if name == "body" else (lab == value)
+        _write_label_map(d / f"{name}.nii.gz", m.astype(np.uint8), (2.0, 2.0, 2.0),
+                         (-160.0, -120.0, -80.0))
+    (d / "notes.txt").write_text("ignored")
+    p = load_patient(str(d), voxel_size=0.002)
+    assert p.meta["source"] == "mask_folder"
+    assert p.metrics()["length"] == pytest.approx(0.110, abs=0.006)
+    assert (p.labels.labels == Label.LIVER).any()
+    _write_label_map(d / "rib_right_11.nii.gz", np.zeros((10, 10, 10), np.uint8), (2.0, 2.0, 2.0))
+    with pytest.raises(ValueError, match="rib_right_11.nii.gz is not on the same grid"):
+        load_patient(str(d), voxel_size=0.002)
+    (d / "body.nii.gz").unlink()
+    (d / "rib_right_11.nii.gz").unlink()
+    with pytest.raises(ValueError, match="no body mask"):
+        load_patient(str(d), voxel_size=0.002)
+
+
 def test_label_map_errors(tmp_path):
     lab, _ = _synthetic_label_volume()
     path = tmp_path / "seg.nrrd"

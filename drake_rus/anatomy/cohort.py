@@ -45,8 +45,9 @@ def load_patient(spec: str, side: str = "right", posture: str = "supine", *,
                  voxel_size: float = 0.001, mapping="totalsegmentator",
                  progress: bool = True) -> Patient:
     """A patient from a spec: ``seed:N``, ``train:K``, ``test:K`` (virtual, deterministic),
-    a directory of meshes (kidney_right/left, skin, liver by file name, like the HuBMAP
-    folder), a mesh file of the kidney (skin beside it) or a NIfTI/NRRD label map."""
+    a directory of TotalSegmentator per-structure masks (kidney_right.nii.gz, body.nii.gz,
+    ...), a directory of meshes (kidney_right/left, skin, liver by file name, like the HuBMAP
+    folder) or a NIfTI/NRRD label map (multi-label, TotalSegmentator indices by default)."""
     check_side_posture(side, posture)
     spec = str(spec)
     head, sep, tail = spec.partition(":")
@@ -59,12 +60,17 @@ def load_patient(spec: str, side: str = "right", posture: str = "supine", *,
         return generate_patient(seed, side, posture, name=spec, voxel_size=voxel_size,
                                 progress=progress)
     from drake_rus.anatomy.importers import (LABEL_MAP_SUFFIXES, find_mesh_files,
-                                             patient_from_label_map, patient_from_meshes)
+                                             patient_from_label_map, patient_from_mask_folder,
+                                             patient_from_meshes, totalsegmentator_mask_files)
     path = Path(spec)
     if not path.exists():
         raise FileNotFoundError(
             f"patient spec {spec!r}: not seed:N/train:K/test:K and no such file or directory")
     if path.is_dir():
+        masks = totalsegmentator_mask_files(path)
+        if f"kidney_{side}" in masks:
+            return patient_from_mask_folder(path, side=side, posture=posture,
+                                            voxel_size=voxel_size)
         found = find_mesh_files(path, side)
         if found["kidney"] is None or found["skin"] is None:
             maps = [p for p in sorted(path.iterdir()) if p.name.lower().endswith(LABEL_MAP_SUFFIXES)]

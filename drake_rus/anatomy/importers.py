@@ -29,7 +29,7 @@ from drake_rus.anatomy.labels import Label, LabelVolume
 from drake_rus.anatomy.patient import Patient
 from drake_rus.anatomy.rasterize import rasterize_mesh
 
-__all__ = ["patient_from_meshes", "patient_from_label_map", "crop_body_section",
+__all__ = ["patient_from_meshes", "patient_from_label_map", "patient_from_mask_folder", "crop_body_section",
            "mask_to_mesh", "TOTALSEGMENTATOR_MAPPING", "MAPPING_NAMES", "find_mesh_files",
            "LABEL_MAP_SUFFIXES", "MESH_SUFFIXES"]
 
@@ -390,6 +390,80 @@ def patient_from_label_map(path, mapping="totalsegmentator", *, side="right",
             _fail(f"mapping: unknown label name {v!r} for value {k}; known names: "
                   f"{', '.join(sorted(MAPPING_NAMES))}")
     raw, D, origin = _read_label_map(path, voxel_size)
+    return _patient_from_raw(raw, D, origin, mapping, path, side=side, posture=posture,
+                             name=name or path.name, voxel_size=voxel_size, fat=fat,
+                             muscle=muscle, meta={"source": "label_map", "path": str(path)})
+
+
+# TotalSegmentator's per-structure output files (<class>.nii.gz) -> class index, for the
+# classes in TOTALSEGMENTATOR_MAPPING; the 'body' task's body / body_trunc become 200.
+TOTALSEGMENTATOR_FILES = {
+    "kidney_right": 2, "kidney_left": 3, "liver": 5, "small_bowel": 18, "duodenum": 19,
+    "colon": 20, "kidney_cyst_left": 23, "kidney_cyst_right": 24, "sacrum": 25,
+    "aorta": 52, "inferior_vena_cava": 63, "portal_vein_and_splenic_vein": 64,
+    "autochthon_left": 86, "autochthon_right": 87, "iliopsoas_left": 88, "iliopsoas_right": 89,
+    **{f"vertebrae_{v}": 26 + i for i, v in enumerate(
+        ["S1", "L5", "L4", "L3", "L2", "L1", "T12", "T11", "T10", "T9", "T8", "T7", "T6", "T5",
+         "T4", "T3", "T2", "T1", "C7", "C6", "C5", "C4", "C3", "C2", "C1"])},
+    **{f"rib_left_{i}": 91 + i for i in range(1, 13)},
+    **{f"rib_right_{i}": 103 + i for i in range(1, 13)},
+    "sternum": 116, "costal_cartilages": 117,
+    "body": 200, "body_trunc": 200, "skin": 200,
+}
+
+
+def _stem(p: Path) -> str:
+    n = p.name
+    for suf in LABEL_MAP_SUFFIXES:
+        if n.lower().endswith(suf):
+            return n[: -len(suf)]
+    return p.stem
+
+
+def totalsegmentator_mask_files(directory: Path) -> dict:
+    """{class name: path} of TotalSegmentator per-structure masks in a directory."""
+    out = {}
+    for p in sorted(Path(directory).iterdir()):
+        if p.is_file() and p.name.lower().endswith(LABEL_MAP_SUFFIXES):
+            stem = _stem(p)
+            if stem in TOTALSEGMENTATOR_FILES:
+                out[stem] = p
+    return out
+
+
+def patient_from_mask_folder(directory, *, side="right", posture="supine", name=None,
+                             voxel_size=0.001, fat=0.015, muscle=0.012) -> Patient:
+    """A patient from TotalSegmentator's default output: one binary mask per structure
+    (kidney_right.nii.gz, liver.nii.gz, rib_right_11.nii.gz, ...) plus the body mask of its
+    'body' task (body.nii.gz or body_trunc.nii.gz). All masks must share one grid."""
+    check_side_posture(side, posture)
+    directory = Path(directory)
+    files = totalsegmentator_mask_files(directory)
+    if f"kidney_{side}" not in files:
+        _fail(f"mask folder {directory}: no kidney_{side} mask (kidney_{side}.nii.gz)")
+    body_files = [k for k in ("body", "body_trunc", "skin") if k in files]
+    if not body_files:
+        _fail(f"mask folder {directory}: no body mask (body.nii.gz or body_trunc.nii.gz from "
+              "TotalSegmentator's 'body' task); the skin surface cannot be found without it")
+    order = body_files + [k for k in files if k not in body_files]
+    raw = D = origin = None
+    for key in order:
+        m, D_k, o_k = _read_label_map(files[key], voxel_size)
+        if raw is None:
+            raw, D, origin = np.zeros(m.shape, dtype=np.int32), D_k, o_k
+        elif m.shape != raw.shape or not np.allclose(D_k, D) or not np.allclose(o_k, origin):
+            _fail(f"mask folder {directory}: {files[key].name} is not on the same grid as "
+                  f"{files[order[0]].name}")
+        raw[m > 0] = TOTALSEGMENTATOR_FILES[key]
+    return _patient_from_raw(raw, D, origin, TOTALSEGMENTATOR_MAPPING, directory, side=side,
+                             posture=posture, name=name or directory.name,
+                             voxel_size=voxel_size, fat=fat, muscle=muscle,
+                             meta={"source": "mask_folder", "path": str(directory),
+                                   "files": sorted(files)})
+
+
+def _patient_from_raw(raw, D, origin, mapping, path, *, side, posture, name, voxel_size,
+                      fat, muscle, meta) -> Patient:
     present = set(np.unique(raw).tolist()) - {0}
     if not present:
         _fail(f"label map {path}: empty (no nonzero labels)")
@@ -432,7 +506,8 @@ def patient_from_label_map(path, mapping="totalsegmentator", *, side="right",
     liver_vals = [k for k, v in mapping.items() if v == "liver" and k in present]
     liver_Bd = (mask_to_mesh(np.isin(raw, liver_vals), X_BdV, voxel_size, what=f"{path}: liver")
                 if liver_vals else None)
-    meta = {"source": "label_map", "path": str(path), "mapping_values_present": sorted(present),
-            "layers": {"fat": fat, "muscle": muscle, "note": "modelling choice"}}
-    return _assemble(name or path.name, side, posture, kidney_Bd, skin_Bd, liver_Bd, None, meta,
+    meta = dict(meta)
+    meta.update({"mapping_values_present": sorted(present),
+                 "layers": {"fat": fat, "muscle": muscle, "note": "modelling choice"}})
+    return _assemble(name, side, posture, kidney_Bd, skin_Bd, liver_Bd, None, meta,
                      voxel_size, fat, muscle, label_volume_Bd=(labels, X_BdV, voxel_size))
