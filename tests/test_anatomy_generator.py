@@ -156,6 +156,13 @@ def test_label_volume_contents():
     inside = p.skin_mesh.contains(pts)
     agree = (lab[tuple(ijk_all.T)] > 0) == inside
     assert agree.mean() > 0.97
+    # Ribs 10-12 with intercostal gaps: on the patient's right, lateral to the kidney, the
+    # bone label splits into separate ribs.
+    from scipy import ndimage
+    x = lv.X_PtV.translation()[0] + lv.voxel_size * np.arange(lab.shape[0])
+    lateral = lab[x < p.X_PtK.translation()[0] - 0.03] == Label.BONE
+    _, n_ribs = ndimage.label(lateral)
+    assert n_ribs >= 2
     # Liver over the right kidney's upper pole: voxels above it contain liver.
     R = p.X_PtK.rotation().matrix()
     up = p.X_PtK.translation() + 0.35 * p.metrics()["length"] * R[:, 0]

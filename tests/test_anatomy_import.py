@@ -219,3 +219,13 @@ def test_cli_cohort_stats_small(capsys):
     out = json.loads(capsys.readouterr().out)
     assert out["count"] == 2 and out["seeds"] == [2000000, 2000001]
     assert 80 <= out["statistics"]["depth_vertical_mm"]["min"] <= 105
+
+
+def test_cli_patient_export(tmp_path, capsys):
+    out = tmp_path / "exp"
+    assert cli_main(["patient", "export", "seed:2", "--out", str(out), "--voxel-mm", "4",
+                     "--format", "nrrd"]) == 0
+    written = json.loads(capsys.readouterr().out)["written"]
+    assert any(w.endswith("seed_2_labels.nrrd") for w in written)
+    img = sitk.ReadImage(str(out / "seed_2_labels.nrrd"))
+    assert img.GetSpacing() == pytest.approx((4.0, 4.0, 4.0))
