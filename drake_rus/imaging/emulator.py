@@ -179,8 +179,22 @@ class EmulatorModel:
                 + self.gain_db).astype(np.float32)
 
     @cached_property
+    def compact_codes(self) -> np.ndarray:
+        """(256,) uint8 code 0-15 per label value: labels 0-14 keep their value, gel is 15,
+        any other label maps to soft tissue (as in :func:`tissue_tables`)."""
+        codes = np.full(256, int(Label.SOFT_TISSUE), np.uint8)
+        codes[:15] = np.arange(15)
+        codes[GEL] = 15
+        return codes
+
+    @cached_property
     def pair_luts(self):
-        return pair_tables(self)
+        """Pair tables (256,) indexed by ``code(prev) << 4 | code(label)``."""
+        full = pair_tables(self)
+        label_of_code = np.arange(16)
+        label_of_code[15] = GEL
+        idx = (label_of_code[:, None] << 8 | label_of_code[None, :]).ravel()
+        return tuple(np.ascontiguousarray(t[idx]) for t in full)
 
     def speckle_bank(self, seed: int) -> np.ndarray:
         """(2L, 2S) speckle intensities (mean 1) for ``seed``; frames take shifted windows."""
@@ -235,10 +249,11 @@ def line_db(labels_ls: np.ndarray, model: "EmulatorModel", speckle: np.ndarray |
         if leading_air.any():
             labels_ls = labels_ls.copy()
             labels_ls[:, :n_gel][leading_air] = GEL
-    cur = labels_ls.astype(np.uint16)
+    # Compact label codes (0-15) so the pair tables have 256 entries and stay in L1 cache.
+    cur = np.take(model.compact_codes, labels_ls)
     pair = np.empty_like(cur)
-    pair[:, 0] = PROBE_LABEL << 8
-    pair[:, 1:] = cur[:, :-1] << 8
+    pair[:, 0] = model.compact_codes[PROBE_LABEL] << 4
+    pair[:, 1:] = cur[:, :-1] << 4
     pair |= cur
     loss_lut, diffuse_lut, spec_lut = model.pair_luts
     loss = np.take(loss_lut, pair)
