@@ -19,10 +19,9 @@ import time
 import numpy as np
 from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.systems.analysis import Simulator
-from pydrake.systems.framework import DiagramBuilder
 
 from drake_rus.control import scan
-from drake_rus.control.diagram import BuildClosedLoop
+from drake_rus.control.diagram import BuildClosedLoop, BuildClosedLoopOnPatient
 from drake_rus.control.synthetic_view import GeometricKidneyView
 from drake_rus.scenario import ApplyOverrides, LoadScenario
 
@@ -30,56 +29,11 @@ from drake_rus.scenario import ApplyOverrides, LoadScenario
 def _closed_loop(scenario, patient: str | None):
     """(closed loop, scenario used)."""
     if patient:
-        from drake_rus.anatomy import load_patient
-        from drake_rus.control.kinematics import JointsForTipPosition, MakeControlPlant
-        from drake_rus.imaging.systems import Segmenter
-        from drake_rus.station import MakeStation
-        body = load_patient(patient, side=scenario.patient.side,
-                            posture=scenario.patient.posture, progress=False)
-        # Start 22 cm above the kidney centre and land the probe there (the seed places it
-        # by hand where the kidney is visible); the default start pose is below the top of
-        # a virtual patient's torso.
-        p_K = body.X_BK(scenario.patient.X_BPt.GetDeterministicValue()).translation()
-        plant, tip = MakeControlPlant(scenario)
-        q0 = JointsForTipPosition(plant, tip, scenario.robot.initial_joint_positions,
-                                  [p_K[0], p_K[1], p_K[2] + 0.22])
-        scenario = ApplyOverrides(scenario, "{robot: {initial_joint_positions: [%s]}}"
-                                  % ", ".join(f"{v:.6f}" for v in q0))
-        scenario.controller.start_xy = [float(v) for v in p_K[:2]]
-        station = MakeStation(scenario, patient=body)
-        return _with_segmenter(scenario, station, Segmenter(scenario.imaging)), scenario
+        return BuildClosedLoopOnPatient(scenario, patient, log_period=0.05)
     X_BK = RigidTransform(RollPitchYaw(0.1, 0.0, math.radians(105.0)), [0.595, -0.035, 0.035])
     view = GeometricKidneyView(X_BK, [0.055, 0.03, 0.025],
                                frame_rate_hz=scenario.imaging.frame_rate_hz)
     return BuildClosedLoop(scenario, kidney_view=view, log_period=0.05), scenario
-
-
-def _with_segmenter(scenario, station, segmenter):
-    """BuildClosedLoop's wiring with the station's images -> Segmenter in the loop."""
-    from drake_rus.control.diagram import AddController, ClosedLoop
-    builder = DiagramBuilder()
-    builder.AddNamedSystem("station", station)
-    builder.AddNamedSystem("segmenter", segmenter)
-    for name in ("us_image", "label_image"):
-        builder.Connect(station.GetOutputPort(name), segmenter.GetInputPort(name))
-    parts = AddController(builder, station, scenario, segmenter=segmenter,
-                          kidney_pose_port=station.GetOutputPort("X_BK_true"))
-    loggers = _add_loggers(builder, {
-        "probe_force": station.GetOutputPort("probe_force"),
-        "mask_centroid": segmenter.GetOutputPort("mask_centroid"),
-        "kidney_visible": segmenter.GetOutputPort("kidney_visible"),
-        "phase": parts.supervisor.GetOutputPort("phase")})
-    return ClosedLoop(builder.Build(), station, parts, None, {}, loggers)
-
-
-def _add_loggers(builder, ports, period=0.05):
-    from pydrake.systems.primitives import VectorLogSink
-    loggers = {}
-    for name, port in ports.items():
-        log = builder.AddSystem(VectorLogSink(port.size(), period))
-        builder.Connect(port, log.get_input_port())
-        loggers[name] = log
-    return loggers
 
 
 def _station_alone_rtf(scenario, duration: float) -> float | None:

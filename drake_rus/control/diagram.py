@@ -252,3 +252,54 @@ def BuildClosedLoop(scenario, *, meshcat=None, station=None, use_supervisor: boo
             loggers[name] = log
     diagram = builder.Build()
     return ClosedLoop(diagram, station, parts, injector, refs, loggers)
+
+
+def BuildClosedLoopOnPatient(scenario, patient, *, log_period: float | None = 0.05,
+                             start_height: float = 0.22, meshcat=None):
+    """Station with a virtual patient's emulated images + the scenario's Segmenter +
+    controller + safety; the supervisor's LOCALIZE reads the station's ``X_BK_true``
+    (ground-truth stand-in). The robot starts ``start_height`` (m) above the kidney centre
+    and APPROACH lands the probe over it (the seed places the probe by hand where the kidney
+    is visible). ``patient`` is a Patient or a spec such as ``"test:0"``.
+
+    Returns (ClosedLoop, the scenario actually used).
+    """
+    from drake_rus.control.kinematics import JointsForTipPosition
+    from drake_rus.imaging.systems import Segmenter
+    from drake_rus.scenario import ApplyOverrides
+    from drake_rus.station import MakeStation
+
+    if isinstance(patient, str):
+        from drake_rus.anatomy import load_patient
+        patient = load_patient(patient, side=scenario.patient.side,
+                               posture=scenario.patient.posture, progress=False)
+    p_K = patient.X_BK(scenario.patient.X_BPt.GetDeterministicValue()).translation()
+    plant, tip = MakeControlPlant(scenario)
+    q0 = JointsForTipPosition(plant, tip, scenario.robot.initial_joint_positions,
+                              [p_K[0], p_K[1], p_K[2] + start_height])
+    scenario = ApplyOverrides(scenario, "{robot: {initial_joint_positions: [%s]}}"
+                              % ", ".join(f"{v:.6f}" for v in q0))
+    scenario.controller.start_xy = [float(v) for v in p_K[:2]]
+    station = MakeStation(scenario, meshcat=meshcat, patient=patient)
+
+    builder = DiagramBuilder()
+    builder.AddNamedSystem("station", station)
+    segmenter = builder.AddNamedSystem("segmenter", Segmenter(scenario.imaging))
+    for name in ("us_image", "label_image"):
+        builder.Connect(station.GetOutputPort(name), segmenter.GetInputPort(name))
+    parts = AddController(builder, station, scenario, plant=plant, tip_frame=tip,
+                          segmenter=segmenter,
+                          kidney_pose_port=station.GetOutputPort("X_BK_true"))
+    loggers = {}
+    if log_period:
+        from pydrake.systems.primitives import VectorLogSink
+        ports = {"probe_force": station.GetOutputPort("probe_force"),
+                 "q": station.GetOutputPort("joint_position"),
+                 "mask_centroid": segmenter.GetOutputPort("mask_centroid"),
+                 "kidney_visible": segmenter.GetOutputPort("kidney_visible"),
+                 "phase": parts.supervisor.GetOutputPort("phase")}
+        for name, port in ports.items():
+            log = builder.AddNamedSystem(f"log_{name}", VectorLogSink(port.size(), log_period))
+            builder.Connect(port, log.get_input_port())
+            loggers[name] = log
+    return ClosedLoop(builder.Build(), station, parts, None, {}, loggers), scenario
