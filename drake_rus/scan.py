@@ -247,6 +247,8 @@ def _collect(scenario, patient, template, diagram, h, simulator, wall) -> ScanRe
             phases.append((PHASE_NAMES[ph[start_index]], float(t[start_index]),
                            float(t[k] if k < len(t) else context.get_time())))
             start_index = k
+    if not phases or phases[-1][0] != phase:
+        phases.append((phase, context.get_time(), context.get_time()))
     loc_ctx = h["localizer"].GetMyContextFromRoot(context)
     outcome = h["localizer"].GetOutputPort("localization").Eval(loc_ctx)
     cloud = h["accumulator"].GetOutputPort("point_cloud").Eval(
