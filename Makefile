@@ -1,5 +1,5 @@
 # drake-rus: the two commands a new user needs.
-#   make demo   set up .venv and run the main job (writes runs/demo/)
+#   make demo   set up .venv and run the main job, the autonomous scan (writes runs/demo/)
 #   make test   set up .venv with the test extras and run the whole test suite
 PYTHON ?= python3.11
 VENV ?= .venv
@@ -25,7 +25,7 @@ setup: $(STAMP)
 setup-test: $(TEST_STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/drake-rus demo --out runs/demo
+	$(VENV)/bin/drake-rus scan --patient test:0 --out runs/demo
 
 test: $(TEST_STAMP)
 	$(PY) -m pytest
