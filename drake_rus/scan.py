@@ -229,7 +229,7 @@ def _collect(scenario, patient, template, diagram, h, simulator, wall) -> ScanRe
     state = sup.GetOutputPort("supervisor_state").Eval(sup_ctx)
     phase = PHASE_NAMES[int(state.phase)]
     status = phase if phase in ("DONE", "ABORT") else "TIMEOUT"
-    reason = getattr(state, "abort_reason", "") or getattr(state, "message", "") or ""
+    reason = state.events[-1][2] if status == "ABORT" and state.events else ""
     safety_ctx = h["parts"].safety.GetMyContextFromRoot(context)
     events = list(h["parts"].safety.GetOutputPort("safety_events").Eval(safety_ctx))
     if status == "TIMEOUT":
