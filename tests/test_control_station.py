@@ -32,8 +32,7 @@ def logs(cl, context):
 
 
 def tip_positions(cl, q_log):
-    plant, frame = cl.parts.ik._kin.plant, cl.parts.ik._kin.frame
-    kin = TipKinematics(plant, frame)
+    kin = cl.parts.ik.kinematics
     return np.array([kin.pose(q).translation() for q in q_log.T])
 
 
@@ -156,7 +155,7 @@ def test_orientation_error_below_1_deg_within_2_s_after_20_deg_step():
     cl.reference_value(ctx, "a_des").set_value(a1)
     sim.AdvanceTo(4.5)
     L = logs(cl, ctx)
-    kin = TipKinematics(cl.parts.ik._kin.plant, cl.parts.ik._kin.frame)
+    kin = cl.parts.ik.kinematics
     t = L["q"].sample_times()
     errs = []
     for tk, q in zip(t, L["q"].data().T):
@@ -192,7 +191,7 @@ def _min_manipulability(use_null_space):
         sim.AdvanceTo(0.2 * (k + 1))
     sim.AdvanceTo(4.6)  # let the tip catch up
     L = logs(cl, ctx)
-    kin = TipKinematics(cl.parts.ik._kin.plant, cl.parts.ik._kin.frame)
+    kin = cl.parts.ik.kinematics
     from drake_rus.control.laws import manipulability
     ms = [manipulability(kin.jacobian(q)) for q in L["q"].data().T]
     p_end = kin.pose(L["q"].data()[:, -1]).translation()
@@ -259,7 +258,7 @@ def test_force_ceiling_stop_retracts_then_zero():
     assert ev.reason == StopReason.FORCE
     L = logs(cl, ctx)
     t, cmd, q = L["command"].sample_times(), L["command"].data(), L["q"].data()
-    kin = TipKinematics(cl.parts.ik._kin.plant, cl.parts.ik._kin.frame)
+    kin = cl.parts.ik.kinematics
     i = int(np.argmax(t > ev.time + 1e-9))  # first sample after the stop
     X = kin.pose(q[:, i])
     V = kin.jacobian(q[:, i]) @ cmd[:, i]
@@ -288,7 +287,7 @@ def test_workspace_exit_stops():
     assert st.stopped and st.events[0].reason == StopReason.WORKSPACE
     L = logs(cl, ctx)
     t, cmd, q = L["command"].sample_times(), L["command"].data(), L["q"].data()
-    kin = TipKinematics(cl.parts.ik._kin.plant, cl.parts.ik._kin.frame)
+    kin = cl.parts.ik.kinematics
     z = np.array([kin.pose(qk).translation()[2] for qk in q.T])
     crossed = t[int(np.argmax(z < z_min))]
     latency = st.events[0].time - crossed

@@ -176,6 +176,11 @@ class NullSpaceDiffIK(LeafSystem):
              if np.all(np.isfinite(q)) else np.zeros_like(q))
         state.get_mutable_discrete_state(self._null).set_value(self._K_p6 * g)
 
+    @property
+    def kinematics(self) -> TipKinematics:
+        """The control plant's tip kinematics (pose and Jacobian of P as functions of q)."""
+        return self._kin
+
     def twist(self, context) -> np.ndarray:
         c = self._cfg
         return laws.assemble_twist(self._w.Eval(context), self._vp.Eval(context),
