@@ -1,0 +1,170 @@
+"""``drake-rus study er-sweep|starts|efficiency|paper``: the seed's section III studies.
+
+Every run is kinematic (planned probe poses, no robot dynamics) and executed through Dask:
+an embedded LocalCluster of ``--workers`` processes by default, or ``--scheduler
+tcp://HOST:PORT``. Each run's result is written to OUT/runs/ as it finishes; running the
+same command again resumes (finished runs are skipped). Tables (CSV), figures (PNG) and,
+for ``paper``, ``report.md`` go to OUT.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from drake_rus.io_utils import write_text_atomic
+
+
+def add_commands(subparsers) -> None:
+    from drake_rus.demo import add_scenario_arguments
+    p = subparsers.add_parser("study", help="the seed paper's studies (kinematic, Dask)",
+                              description=__doc__,
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="study", metavar="STUDY")
+    sub.required = True
+    helps = {"er-sweep": "localization error vs exploration ratio 0..100% (Fig. 7d)",
+             "starts": "five random exploration starts at the critical ER (Fig. 9d)",
+             "efficiency": "OP, GT-OP, NOP, SL sweeps: V vs n and eps (Fig. 10), volumes",
+             "paper": "all of the above into one report directory with report.md"}
+    for name, text in helps.items():
+        q = sub.add_parser(name, help=text, description=text)
+        add_scenario_arguments(q)
+        q.add_argument("--patients", default="test:0-14",
+                       help="comma list: test:0-14, seed:100-120, train:3 or patient paths "
+                            "(default test:0-14)")
+        q.add_argument("--out", default=f"reports/{name}", help=f"output directory "
+                                                                f"(default reports/{name})")
+        q.add_argument("--workers", type=int, default=2,
+                       help="Dask worker processes of the embedded cluster (default 2; 0 = "
+                            "run in this process)")
+        q.add_argument("--scheduler", default=None,
+                       help="address of an existing Dask scheduler, e.g. tcp://host:8786")
+        q.add_argument("--segmenter", default="oracle", choices=["oracle", "classical", "onnx"],
+                       help="segmentation of the kinematic frames (default oracle, as the "
+                            "seed's simulation)")
+        q.add_argument("--method", default="seed", choices=["seed", "deformable"],
+                       help="localization method (default seed, the paper's)")
+        q.add_argument("--seed", type=int, default=0, help="study seed (random starts)")
+        q.add_argument("--voxel", type=float, default=0.002,
+                       help="label-volume voxel size in m (default 0.002)")
+        if name in ("er-sweep", "paper"):
+            q.add_argument("--ers", default=None,
+                           help="comma list of exploration ratios (default 0,0.1,...,1)")
+        if name in ("starts", "efficiency"):
+            q.add_argument("--er", type=float, default=None,
+                           help="exploration ratio (default: the critical ER found by an "
+                                "er-sweep in OUT, else 0.6)")
+        if name in ("starts", "paper"):
+            q.add_argument("--starts", type=int, default=5, help="random starts (default 5)")
+        q.add_argument("--no-progress", action="store_true", help="no progress bar")
+        q.set_defaults(func=run_study_command)
+
+
+def _ers(text):
+    from drake_rus.experiments.studies import ER_GRID
+    if not text:
+        return list(ER_GRID)
+    try:
+        ers = sorted({round(float(x), 4) for x in text.split(",") if x.strip()})
+    except ValueError:
+        raise ValueError(f"--ers: expected a comma list of numbers in [0, 1], got {text!r}") from None
+    if not ers or ers[0] < 0 or ers[-1] > 1:
+        raise ValueError(f"--ers: values must lie in [0, 1], got {text!r}")
+    return ers
+
+
+def _options(args):
+    from drake_rus.experiments.studies import StudyOptions
+    if not args.voxel > 0:
+        raise ValueError(f"--voxel: expected a positive size in m, got {args.voxel}")
+    return StudyOptions(scenario=args.scenario, scenarios_file=args.scenarios_file,
+                        overrides=args.overrides, segmenter=args.segmenter, method=args.method,
+                        voxel=float(args.voxel), seed=int(args.seed))
+
+
+def _critical_er(out: Path, default: float = 0.6) -> float:
+    path = out / "er_sweep.json"
+    if path.exists():
+        return float(json.loads(path.read_text())["critical_er"])
+    return default
+
+
+def run_study_command(args) -> int:
+    from drake_rus.experiments import studies as st
+    from drake_rus.scenario import LoadScenario
+
+    patients = st.expand_patients(args.patients)
+    options = _options(args)
+    # Fail early (in this process) on a bad scenario or template, not in every worker.
+    LoadScenario(filename=args.scenarios_file, scenario_name=args.scenario,
+                 scenario_text=args.overrides)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    run = dict(out_dir=out, workers=args.workers, scheduler=args.scheduler,
+               progress=not args.no_progress)
+    t0 = time.perf_counter()
+    failed = []
+    er_an = starts_an = eff_an = None
+
+    def go(tasks, desc):
+        status = st.run_tasks(tasks, desc=desc, **run)
+        failed.extend(status["failed"])
+        for rid, err in status["failed"]:
+            print(f"run {rid} failed: {err}", flush=True)
+        return status
+
+    ran = {}
+    if args.study in ("er-sweep", "paper"):
+        tasks = st.er_sweep_tasks(patients, options, _ers(args.ers))
+        t = time.perf_counter()
+        go(tasks, "er-sweep")
+        ran["er-sweep"] = time.perf_counter() - t
+        results = _of(st.load_results(out, "er-sweep"), tasks)
+        er_an = st.write_er_sweep_outputs(out, results)
+        print(f"er-sweep: critical ER {er_an['critical_er'] * 100:.0f}% "
+              f"({len(results)} runs)", flush=True)
+    er = getattr(args, "er", None)
+    if er is None:
+        er = er_an["critical_er"] if er_an else _critical_er(out)
+    if not 0 <= er <= 1:
+        raise ValueError(f"--er: expected a value in [0, 1], got {er}")
+    if args.study in ("starts", "paper"):
+        tasks = st.starts_tasks(patients, options, er, args.starts)
+        t = time.perf_counter()
+        go(tasks, "starts")
+        ran["starts"] = time.perf_counter() - t
+        results = _of(st.load_results(out, "starts"), tasks)
+        starts_an = st.write_starts_outputs(out, results)
+        print(f"starts at ER {er * 100:.0f}%: any significant difference: "
+              f"{starts_an['any_significant']}", flush=True)
+    if args.study in ("efficiency", "paper"):
+        tasks = st.efficiency_tasks(patients, options, er)
+        t = time.perf_counter()
+        go(tasks, "efficiency")
+        ran["efficiency"] = time.perf_counter() - t
+        results = _of(st.load_results(out, "efficiency"), tasks)
+        eff_an = st.write_efficiency_outputs(out, results)
+        s = eff_an["summary"]
+        print("efficiency (pole to pole): " + "; ".join(
+            f"{k} n {s[k]['n'][0]:.0f} eps {s[k]['eps_mm'][0]:.1f} mm V {s[k]['V'][0]:.3f}"
+            for k in st.STRATEGY_ORDER), flush=True)
+    wall = time.perf_counter() - t0
+    meta = {"study": args.study, "patients": patients, "segmenter": options.segmenter,
+            "method": options.method, "voxel": options.voxel, "seed": options.seed,
+            "workers": args.workers, "scheduler": args.scheduler, "wall_s": wall,
+            "stage_wall_s": ran, "er": er, "mode": "kinematic", "failed_runs": failed}
+    write_text_atomic(out / f"study_{args.study}.json", json.dumps(meta, indent=1))
+    if args.study == "paper":
+        write_text_atomic(out / "report.md", st.report_markdown(meta, er_an, starts_an, eff_an))
+        print(f"wrote {out / 'report.md'}", flush=True)
+    print(f"study {args.study}: {wall:.0f} s wall, outputs in {out}", flush=True)
+    return 1 if failed else 0
+
+
+def _of(results, tasks):
+    """The results that belong to ``tasks`` (OUT may hold other runs)."""
+    from drake_rus.experiments.studies import run_id
+    wanted = {run_id(t) for t in tasks}
+    return [r for r in results if r["run_id"] in wanted]
