@@ -18,6 +18,7 @@ COMMAND_MODULES = [
     "drake_rus.template.cli",
     "drake_rus.imaging.cli",
     "drake_rus.scan",            # scan: the full autonomous scan
+    "drake_rus.experiments.cli",  # study: the seed paper's studies (kinematic, Dask)
 ]
 
 
