@@ -1,6 +1,7 @@
 """The controller with the imaging chain in the loop: a virtual patient's emulated images
-(slice sensor at 20 Hz) and the segmenter's visibility and mask centroid drive APPROACH and
-EXPLORE (eq. 17) on the simulated station."""
+(slice sensor at 20 Hz) and the segmenter's visibility and mask centroid drive the whole scan
+(APPROACH -> EXPLORE (eq. 17) -> LOCALIZE (ground-truth X_BK stand-in) -> TRANSIT -> PIVOT
+(eq. 23) -> DONE) on the simulated station."""
 
 import numpy as np
 import pytest
@@ -14,30 +15,45 @@ from drake_rus.scenario import LoadScenario
 pytestmark = pytest.mark.slow
 
 
-def test_exploration_on_a_virtual_patient_keeps_the_kidney_centred():
-    s = LoadScenario(scenario_text="{patient: {source: 'test:0'}, imaging: {segmenter: oracle}}")
+def test_full_scan_on_a_virtual_patient_with_emulated_images_and_segmenter():
+    s = LoadScenario(scenario_text="{patient: {source: 'test:0'}, imaging: {segmenter: oracle}, "
+                                   "controller: {exploration_ratio: 0.3, pivot_rate: 0.15}}")
     cl, s = BuildClosedLoopOnPatient(s, "test:0", log_period=0.05)
     sim = Simulator(cl.diagram)
     ctx = sim.get_mutable_context()
     sup = cl.parts.supervisor
     sup_ctx = sup.GetMyContextFromRoot(ctx)
-    while sup.state(sup_ctx).phase == scan.Phase.APPROACH and ctx.get_time() < 6.0:
-        sim.AdvanceTo(ctx.get_time() + 0.25)
-    assert sup.state(sup_ctx).phase == scan.Phase.EXPLORE, sup.state(sup_ctx).events
-    t_explore = sup.state(sup_ctx).events[-1][0]
-    sim.AdvanceTo(t_explore + 3.0)
+    while ctx.get_time() < 40.0 and sup.state(sup_ctx).phase not in (scan.Phase.DONE,
+                                                                       scan.Phase.ABORT):
+        sim.AdvanceTo(ctx.get_time() + 0.5)
     st = sup.state(sup_ctx)
+    print("\nsupervisor events:", *st.events, sep="\n  ")
     safety = cl.parts.safety.safety_state(cl.parts.safety.GetMyContextFromRoot(ctx))
     assert not safety.events
-    assert st.phase == scan.Phase.EXPLORE and st.travel > 0.014
+    assert [e[1] for e in st.events] == ["APPROACH", "EXPLORE", "LOCALIZE", "TRANSIT", "PIVOT",
+                                         "PIVOT", "PIVOT", "DONE"]
     L = {k: v.FindLog(ctx) for k, v in cl.loggers.items()}
-    t = L["mask_centroid"].sample_times()
-    m = t >= t_explore + 1.0
-    c = L["mask_centroid"].data()[0][m]
-    vis = L["kidney_visible"].data()[0][m]
-    F = -L["probe_force"].data()[5][m]
-    print(f"\nvirtual patient test:0 (oracle segmenter): kidney visible {vis.mean():.2f} of "
-          f"frames, centroid {c.min():.3f}-{c.max():.3f}, F {F.min():.2f}-{F.max():.2f} N")
-    assert np.all(vis == 1.0)
-    assert np.all(np.abs(c - 0.5) <= 0.1)
-    assert np.all(np.abs(F - 9.0) <= 0.5)
+    t = L["phase"].sample_times()
+    phase = L["phase"].data()[0]
+    c = L["mask_centroid"].data()[0]
+    vis = L["kidney_visible"].data()[0]
+    F = -L["probe_force"].data()[5]
+    t_explore = [e[0] for e in st.events if e[1] == "EXPLORE"][0]
+    explore = (phase == scan.Phase.EXPLORE) & (t >= t_explore + 1.0)
+    pivot = phase == scan.Phase.PIVOT
+    kin = cl.parts.ik.kinematics
+    p = np.array([kin.pose(q).translation() for q in L["q"].data().T])
+    d = np.linalg.norm(p[pivot, :2] - st.p_star[:2], axis=1)
+    print(f"EXPLORE: kidney visible {vis[explore].mean():.2f}, centroid "
+          f"{c[explore].min():.3f}-{c[explore].max():.3f}, F {F[explore].min():.2f}-"
+          f"{F[explore].max():.2f} N; PIVOT: tip within {d.max() * 1e3:.2f} mm of p*, legs "
+          f"{np.degrees(st.pivot_limits[0]):.1f} / {np.degrees(st.pivot_limits[1]):.1f} deg, "
+          f"F {F[pivot].min():.2f}-{F[pivot].max():.2f} N")
+    assert np.all(vis[explore] == 1.0)
+    assert np.all(np.abs(c[explore] - 0.5) <= 0.1)
+    assert np.all(np.abs(F[explore] - 9.0) <= 0.5)
+    assert d.max() <= 0.002
+    legs = [e for e in st.events if e[1] == "PIVOT" and "leg" in e[2]]
+    assert all("kidney left the image" in e[2] for e in legs)
+    assert st.pivot_limits[0] * st.pivot_limits[1] < 0
+    assert np.all(np.abs(F[pivot] - 9.0) <= 1.0)
