@@ -198,6 +198,14 @@ class ProbeGeometry:
         z.flags.writeable = False
         return x, z
 
+    @cached_property
+    def fan_x_z32(self) -> tuple[np.ndarray, np.ndarray]:
+        """``fan_x_z`` as float32 (for the slicer's index arithmetic)."""
+        x, z = (a.astype(np.float32) for a in self.fan_x_z)
+        x.flags.writeable = False
+        z.flags.writeable = False
+        return x, z
+
     def column_of_x(self, x: float) -> float:
         return (x - self.x0) / self.dx
 

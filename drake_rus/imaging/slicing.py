@@ -50,18 +50,23 @@ def padded_labels(labels: np.ndarray, outside: int = int(Label.OUTSIDE)) -> np.n
     return padded
 
 
-def _lookup_padded(padded: np.ndarray, fi: np.ndarray, fj: np.ndarray, fk: np.ndarray
-                   ) -> np.ndarray:
+def _lookup_padded(padded: np.ndarray, fi: np.ndarray, fj: np.ndarray, fk: np.ndarray,
+                   shifted: bool = False) -> np.ndarray:
     """Nearest labels at voxel coordinates (fi, fj, fk) of the unpadded grid.
 
     Index in the padded grid = round(f) + 1 = trunc(f + 1.5) for f > -1.5; any f below
     -0.5 truncates to 0 or less and clips onto the air border, and any f beyond the grid
-    clips onto the far border: no validity masks needed.
+    clips onto the far border: no validity masks needed. ``shifted``: the caller already
+    added the 1.5.
     """
     m0, m1, m2 = padded.shape
-    i = (fi + 1.5).astype(np.intp)
-    j = (fj + 1.5).astype(np.intp)
-    k = (fk + 1.5).astype(np.intp)
+    itype = np.int32 if padded.size < 2 ** 31 else np.intp
+    if shifted:
+        i, j, k = fi.astype(itype), fj.astype(itype), fk.astype(itype)
+    else:
+        i = (fi + 1.5).astype(itype)
+        j = (fj + 1.5).astype(itype)
+        k = (fk + 1.5).astype(itype)
     np.clip(i, 0, m0 - 1, out=i)
     np.clip(j, 0, m1 - 1, out=j)
     np.clip(k, 0, m2 - 1, out=k)
@@ -87,17 +92,18 @@ def slice_volume(geometry: ProbeGeometry, volume: LabelVolume, X_BV: RigidTransf
         raise ValueError(f"slice_volume: combine must be 'majority' or 'max', got {combine!r}")
     X_VP = X_BV.InvertAndCompose(X_BP)
     # Voxel coordinates f = (R_VP p_P + p_VP) / h, split so that y_P offsets are cheap.
-    A = X_VP.rotation().matrix() / volume.voxel_size
-    b = X_VP.translation() / volume.voxel_size
-    px, pz = geometry.fan_x_z
+    # float32 is ample: its rounding error is about 1e-5 voxel at index 500.
+    A = (X_VP.rotation().matrix() / volume.voxel_size).astype(np.float32)
+    b = (X_VP.translation() / volume.voxel_size).astype(np.float32)
+    px, pz = geometry.fan_x_z32
     padded = padded_labels(volume.labels)
     offsets = elevation_offsets(geometry.elevation_width, planes)
 
     def plane(y: float) -> np.ndarray:
-        c = b + y * A[:, 1]
+        c = b + np.float32(y) * A[:, 1] + np.float32(1.5)   # + 1.5: see _lookup_padded
         return _lookup_padded(padded, px * A[0, 0] + (pz * A[0, 2] + c[0]),
                               px * A[1, 0] + (pz * A[1, 2] + c[1]),
-                              px * A[2, 0] + (pz * A[2, 2] + c[2]))
+                              px * A[2, 0] + (pz * A[2, 2] + c[2]), shifted=True)
 
     if len(offsets) == 1:
         values = plane(0.0)
