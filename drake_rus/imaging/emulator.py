@@ -132,7 +132,7 @@ class EmulatorModel:
         rows, cols = ndimage.distance_transform_edt(
             ~g.fan_mask, return_distances=False, return_indices=True)
         flat = rows[v, u] * g.width_px + cols[v, u]
-        return flat.reshape(self.scan_lines, self.samples_per_line)
+        return flat.reshape(self.scan_lines, self.samples_per_line).astype(np.int32)
 
     @cached_property
     def scan_conversion(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -262,9 +262,9 @@ def line_db(labels_ls: np.ndarray, model: "EmulatorModel", speckle: np.ndarray |
         echo *= speckle
     echo += np.take(spec_lut, pair)
     np.maximum(echo, np.float32(1e-12), out=echo)
-    db = np.log10(echo)
+    db = np.log10(echo, out=echo)
     db *= np.float32(10.0)
-    db -= np.cumsum(loss, axis=1, dtype=np.float32)
+    db -= np.cumsum(loss, axis=1, out=loss)
     db += model.tgc_db
     return db
 
@@ -312,7 +312,7 @@ def emulate(label_image: np.ndarray, model: EmulatorModel, seed: int = 0, frame_
     if label_image.shape != g.image_shape:
         raise ValueError(f"emulate: label image has shape {label_image.shape}, the probe "
                          f"geometry expects {g.image_shape}")
-    labels_ls = label_image.reshape(-1)[model.polar_to_image_index]
+    labels_ls = np.take(label_image.reshape(-1), model.polar_to_image_index)
     if labels_ls.dtype != np.uint8:
         labels_ls = labels_ls.astype(np.uint8)
     speckle = speckle_field(model, seed, frame_index) if model.speckle else None
