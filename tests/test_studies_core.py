@@ -1,0 +1,196 @@
+"""Study bookkeeping and statistics on constructed results, the runner's resume, and one tiny
+real study through the CLI (Dask, one worker) whose output the paper notebook reads."""
+
+import json
+import os
+from pathlib import Path
+
+import nbformat
+import numpy as np
+import pytest
+from nbclient import NotebookClient
+
+from drake_rus.experiments import studies as st
+
+NOTEBOOK = Path(__file__).resolve().parent.parent / "notebooks" / "reproduce_paper.ipynb"
+
+
+def test_expand_patients():
+    assert st.expand_patients("test:0-2") == ["test:0", "test:1", "test:2"]
+    assert st.expand_patients("seed:7, train:3,test:1-1") == ["seed:7", "train:3", "test:1"]
+    assert st.expand_patients("../shared/anatomy/body") == ["../shared/anatomy/body"]
+    for bad in ("test:3-1", "bogus", ""):
+        with pytest.raises(ValueError, match="--patients"):
+            st.expand_patients(bad)
+
+
+def test_tasks_and_run_ids_are_unique_and_deterministic():
+    o = st.StudyOptions()
+    tasks = (st.er_sweep_tasks(["test:0", "test:1"], o) + st.starts_tasks(["test:0"], o, 0.6)
+             + st.efficiency_tasks(["seed:5", "../x/y"], o, 0.6))
+    ids = [st.run_id(t) for t in tasks]
+    assert len(set(ids)) == len(ids) == 22 + 5 + 2
+    assert "er-sweep__test-0__er060" in ids and "starts__test-0__er060__s4" in ids
+    assert all("/" not in i and ":" not in i for i in ids)
+    assert len(st.ER_GRID) == 11 and st.ER_GRID[0] == 0.0 and st.ER_GRID[-1] == 1.0
+
+
+def _er_results(rng, n=12):
+    """ER sweep results whose errors converge from ER 0.6 on (below: larger errors)."""
+    out = []
+    for k in range(n):
+        base_t, base_r = rng.uniform(2, 6), rng.uniform(2, 6)
+        for er in st.ER_GRID:
+            bump = 0.0 if er >= 0.6 else 30.0 * (0.6 - er)
+            # Below ER 1: +-0.2 alternating over patients (zero mean difference at ER >=
+            # 0.6, so those p-values are exactly 1; no chance significance).
+            wobble = 0.0 if er == 1.0 else 0.2 * (-1) ** k
+            out.append({"patient": f"test:{k}", "er": er,
+                        "e_trans_mm": base_t + bump + wobble,
+                        "e_rot_x_deg": base_r + bump - wobble,
+                        "registration_ms": 10.0, "points": 100})
+    return out
+
+
+def test_er_sweep_critical_er_and_paired_tests():
+    an = st.analyze_er_sweep(_er_results(np.random.default_rng(0)))
+    assert an["critical_er"] == pytest.approx(0.6)
+    rows = {r["er"]: r for r in an["rows"]}
+    assert rows[1.0]["p_e_trans"] == 1.0
+    assert rows[0.3]["p_e_trans"] < 0.05 and rows[0.3]["p_e_rot_x"] < 0.05
+    assert rows[0.0]["e_trans_mm_mean"] > rows[1.0]["e_trans_mm_mean"] + 10
+
+
+def test_er_sweep_critical_er_needs_every_larger_er_to_agree():
+    res = _er_results(np.random.default_rng(1))
+    for r in res:                       # ER 0.8 is worse than 100%: the critical ER is 0.9
+        if r["er"] == 0.8:
+            r["e_trans_mm"] += 10 + float(np.random.default_rng(len(r["patient"])).normal())
+    an = st.analyze_er_sweep(res)
+    assert an["critical_er"] == pytest.approx(0.9)
+    assert an["first_not_significant_er"] == pytest.approx(0.6)
+
+
+def test_starts_bonferroni():
+    rng = np.random.default_rng(2)
+    res = [{"patient": f"test:{k}", "start": s, "er": 0.6,
+            "e_trans_mm": 4 + rng.normal(0, 1) + (5.0 if s == 4 else 0.0),
+            "e_rot_x_deg": 4 + rng.normal(0, 1)} for k in range(15) for s in range(5)]
+    an = st.analyze_starts(res)
+    assert an["bonferroni_threshold"] == pytest.approx(0.005)
+    assert len(an["tests"]) == 10
+    sig = [(t["start_a"], t["start_b"]) for t in an["tests"] if t["significant_e_trans_mm"]]
+    assert sig and all(4 in pair for pair in sig)
+    assert not any(t["significant_e_rot_x_deg"] for t in an["tests"])
+    assert an["any_significant"]
+
+
+def _eff_result(patient, n_op, n_nop):
+    def entry(n, step):
+        V = np.minimum(1.0, np.arange(1, n + 1) / n)
+        return {"n": n, "eps_mm": (n - 1) * step, "V": 1.0, "curve_V": V.tolist(),
+                "curve_eps_mm": (np.arange(n) * step).tolist(), "volume_error_pct": 2.0,
+                "n_full": n, "eps_full_mm": (n - 1) * step, "V_full": 1.0, "volume_ml": 100.0}
+    return {"patient": patient, "e_trans_mm": 3.0, "e_rot_x_deg": 3.0, "true_volume_ml": 98.0,
+            "strategies": {"OP": entry(n_op, 0.75), "GT-OP": entry(n_op - 5, 0.75),
+                           "NOP": entry(n_nop, 0.75), "SL": entry(400, 0.25)}}
+
+
+def test_efficiency_reductions_and_mean_curves():
+    res = [_eff_result(f"test:{k}", 100 + k, 200 + 3 * k) for k in range(6)]
+    an = st.analyze_efficiency(res)
+    c = {(x["comparison"], x["metric"]): x for x in an["comparisons"]}
+    nop = c[("OP vs NOP", "n")]
+    assert nop["reduction_mean"] == pytest.approx(np.mean([100 + 2 * k for k in range(6)]))
+    assert nop["op_lower_count"] == 6 and nop["significant"]
+    assert c[("OP vs GT-OP", "n")]["reduction_mean"] == pytest.approx(-5)
+    assert an["bonferroni_threshold"] == pytest.approx(0.05 / 6)
+    assert an["summary"]["OP"]["within_5pct"] == 6
+    grid = np.array([1.0, 50.0, 500.0])
+    V = st.mean_curve(res, "OP", "n", grid)
+    assert V[-1] == pytest.approx(1.0) and 0.4 < V[1] < 0.55
+
+
+def test_runner_writes_each_run_and_resumes(tmp_path, monkeypatch):
+    calls = []
+
+    def fake(task):
+        calls.append(task["patient"])
+        if task["patient"] == "test:2":
+            raise RuntimeError("boom")
+        return {"run_id": st.run_id(task), "task": task, "value": len(calls)}
+
+    monkeypatch.setattr(st, "run_task", fake)
+    tasks = st.er_sweep_tasks(["test:0", "test:1", "test:2"], st.StudyOptions(), [0.5])
+    status = st.run_tasks(tasks, tmp_path, workers=0, progress=False)
+    assert status["done"] == 2 and status["failed"][0][0] == "er-sweep__test-2__er050"
+    assert "boom" in status["failed"][0][1]
+    assert sorted(p.name for p in (tmp_path / "runs").iterdir()) == [
+        "er-sweep__test-0__er050.json", "er-sweep__test-1__er050.json"]
+    # Resume: only the failed run is tried again.
+    calls.clear()
+    status = st.run_tasks(tasks, tmp_path, workers=0, progress=False)
+    assert calls == ["test:2"] and status["skipped"] == 2
+    assert len(st.load_results(tmp_path, "er-sweep")) == 2
+
+
+@pytest.fixture(scope="module")
+def tiny_paper(tmp_path_factory):
+    """A real (tiny) paper study through the CLI: one patient, two ERs, two starts, the
+    efficiency sweeps, run on an embedded Dask cluster of one worker."""
+    from drake_rus.cli import main
+    out = tmp_path_factory.mktemp("paper")
+    code = main(["study", "paper", "--patients", "test:2", "--ers", "0.6,1", "--starts", "2",
+                 "--out", str(out), "--workers", "1", "--no-progress"])
+    return code, out
+
+
+def test_tiny_paper_study_outputs(tiny_paper):
+    code, out = tiny_paper
+    assert code == 0
+    for name in ("report.md", "fig7d_er_sweep.png", "fig9d_starts.png", "fig10_efficiency.png",
+                 "er_sweep_table.csv", "starts_tests.csv", "efficiency_runs.csv",
+                 "study_paper.json"):
+        assert (out / name).stat().st_size > 0, name
+    assert len(list((out / "runs").glob("*.json"))) == 2 + 2 + 1
+    meta = json.loads((out / "study_paper.json").read_text())
+    assert meta["mode"] == "kinematic" and meta["failed_runs"] == []
+    eff = st.load_results(out, "efficiency")[0]
+    s = eff["strategies"]
+    assert s["GT-OP"]["V"] > 0.9 and s["GT-OP"]["n"] < s["NOP"]["n"]
+    assert abs(s["GT-OP"]["volume_error_pct"]) < 5.0
+    report = (out / "report.md").read_text()
+    assert "kinematic" in report and "8.73" in report and "| OP |" in report
+
+
+def test_study_resumes_without_rerunning(tiny_paper):
+    from drake_rus.cli import main
+    code, out = tiny_paper
+    stamps = {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*.json")}
+    assert main(["study", "starts", "--patients", "test:2", "--starts", "2", "--out", str(out),
+                 "--workers", "0", "--no-progress"]) == 0
+    assert {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*.json")} == stamps
+
+
+def test_reproduce_paper_notebook_runs_on_the_tiny_study(tiny_paper, tmp_path, monkeypatch):
+    _, out = tiny_paper
+    monkeypatch.setenv("DRAKE_RUS_STUDY_DIR", str(out))
+    monkeypatch.setenv("DRAKE_RUS_FIG_DIR", str(tmp_path))
+    monkeypatch.setenv("MPLBACKEND", "Agg")
+    nb = nbformat.read(NOTEBOOK, as_version=4)
+    NotebookClient(nb, timeout=300, kernel_name="python3",
+                   resources={"metadata": {"path": str(NOTEBOOK.parent)}}).execute()
+    for name in ("fig7d_er_sweep.png", "fig9d_starts.png", "fig10_efficiency.png"):
+        assert (tmp_path / name).stat().st_size > 0
+    text = "".join(o.get("text", "") for c in nb.cells if c.cell_type == "code"
+                   for o in c.get("outputs", []))
+    assert "OP vs NOP" in text
+
+
+def test_cli_errors_are_named(capsys):
+    from drake_rus.cli import main
+    assert main(["study", "er-sweep", "--patients", "nonsense", "--workers", "0"]) == 2
+    assert "--patients" in capsys.readouterr().err
+    assert main(["study", "er-sweep", "--patients", "test:0", "--ers", "0.5,2",
+                 "--workers", "0"]) == 2
+    assert "--ers" in capsys.readouterr().err
