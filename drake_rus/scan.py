@@ -145,6 +145,8 @@ def BuildScanDiagram(scenario, patient, template, *, meshcat=None):
                           localization_ready_port=localizer.GetOutputPort("localization_ready"))
     supervisor = parts.supervisor
     builder.Connect(supervisor.GetOutputPort("phase"), localizer.GetInputPort("phase"))
+    builder.Connect(localizer.GetOutputPort("localization_error"),
+                    supervisor.GetInputPort("localization_error"))
     exploring = builder.AddNamedSystem("exploring", PhaseIs(PHASE_NAMES.index("EXPLORE")))
     builder.Connect(supervisor.GetOutputPort("phase"), exploring.get_input_port(0))
     builder.Connect(exploring.get_output_port(0), accumulator.GetInputPort("enable"))

@@ -159,6 +159,7 @@ class SupervisorInputs:
     p_BK: np.ndarray | None = None
     localization_ready: bool = True
     safety_stopped: bool = False     # the safety layer has stopped the robot
+    localization_error: str = ""     # why the localizer could not give a pose ("" = none)
 
 
 def _goto(s: SupervisorState, phase: Phase, t: float, message: str) -> SupervisorState:
@@ -272,6 +273,9 @@ def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float
         return s
 
     if s.phase == Phase.LOCALIZE:
+        if u.localization_error:
+            s.reason = f"localization failed: {u.localization_error}"
+            return _goto(s, Phase.ABORT, u.t, s.reason)
         if u.t - s.phase_start < cfg.localize_hold_time - 1e-9 or not u.localization_ready:
             if u.t - s.phase_start > cfg.localize_timeout:
                 s.reason = f"LOCALIZE timeout: no kidney pose after {cfg.localize_timeout:.1f} s"

@@ -232,6 +232,9 @@ class ScanSupervisor(LeafSystem):
         self._XK = self.DeclareAbstractInputPort("X_BK", AbstractValue.Make(RigidTransform()))
         self._ready = self.DeclareVectorInputPort("localization_ready", 1)
         self._stopped = self.DeclareVectorInputPort("safety_stopped", 1)
+        # Optional: the localizer's reason for giving no pose (abstract str; "" = none).
+        self._loc_error = self.DeclareAbstractInputPort("localization_error",
+                                                        AbstractValue.Make(""))
         self._s = self.DeclareAbstractState(AbstractValue.Make(scan.SupervisorState()))
         self.DeclarePeriodicUnrestrictedUpdateEvent(self._dt, 0.0, self._update)
         S = lambda ctx: ctx.get_abstract_state(0).get_value()  # noqa: E731
@@ -272,7 +275,9 @@ class ScanSupervisor(LeafSystem):
             kidney_visible=_optional_scalar(self._vis, context, 1.0) > 0.5,
             c_msk=c, R_BK=R_BK, p_BK=p_BK,
             localization_ready=_optional_scalar(self._ready, context, 1.0) > 0.5,
-            safety_stopped=_optional_scalar(self._stopped, context, 0.0) > 0.5)
+            safety_stopped=_optional_scalar(self._stopped, context, 0.0) > 0.5,
+            localization_error=(self._loc_error.Eval(context)
+                                if self._loc_error.HasValue(context) else ""))
         new = scan.supervisor_step(self.state(context), u, self._cfg, self._dt)
         state.get_mutable_abstract_state(0).set_value(new)
 

@@ -26,6 +26,17 @@ class LocalizationConfig:
     # residual variance weighing data against the shape prior (m^2).
     shape_modes: int = field(default=3, metadata={"min": 0})
     shape_residual_variance: float = field(default=1e-6, metadata={"positive": True})
+    # Per-iteration bound on the translation step (m): a degenerate partial view (one
+    # cross-section) leaves directions unconstrained, and an unbounded least-squares step
+    # along them can throw the template far away. Not in the seed (it bounds rotation only).
+    max_translation_step: float = field(default=0.01, metadata={"positive": True})
+    # Sanity checks of an estimate; a rejected estimate is never sent to the robot (the
+    # supervisor then aborts the scan with the reason).
+    min_inlier_fraction: float = field(default=0.3, metadata={"min": 0.0, "max": 1.0})
+    max_rms_residual: float = field(default=0.004, metadata={"positive": True})
+    max_centroid_offset: float = field(default=0.08, metadata={"positive": True})
+    # Exploration shorter than this (m of probe travel) cannot localize the kidney.
+    min_exploration_travel: float = field(default=0.015, metadata={"min": 0.0})
     # Partial clouds are thinned to at most this many points before registration.
     max_points: int = field(default=4000, metadata={"min": 6})
     # Adaptive exploration (beyond the seed): stop exploring once two successive estimates,

@@ -97,7 +97,8 @@ def register_plane_to_plane(
         error_change_tol: float = 1e-11, max_iterations: int = 200,
         inlier_distance: float = 0.003, max_correspondence_distance: float = np.inf,
         shape_modes_K: np.ndarray | None = None, shape_variances: np.ndarray | None = None,
-        shape_regularization: float = 1e-6, template_tree: cKDTree | None = None) -> IcpResult:
+        shape_regularization: float = 1e-6, template_tree: cKDTree | None = None,
+        max_translation_step: float = np.inf) -> IcpResult:
     """Registers ``P_local_B`` onto the template; returns X_BK and diagnostics.
 
     Args:
@@ -109,6 +110,7 @@ def register_plane_to_plane(
         error_change_tol: stop when |E_k - E_{k-1}| < tol, E = mean squared residual (m^2).
         inlier_distance: residual bound (m) for the inlier fraction diagnostic.
         max_correspondence_distance: pairs farther apart are left out of the solve (m).
+        max_translation_step: bound on the norm of each iteration's translation step (m).
         shape_modes_K, shape_variances: optional statistical shape model, modes as
             (n_modes, N, 3) displacement fields with their variances (m^2): the template
             deforms as q_j(b) = q_j + sum_k b_k phi_kj, fitted with the pose as a MAP estimate:
@@ -185,9 +187,13 @@ def register_plane_to_plane(
         x = np.linalg.lstsq(H, g, rcond=None)[0]
         dtheta = np.clip(x[:3], -theta_max, theta_max)  # eq. 19
         steps.append(float(np.max(np.abs(dtheta))))
+        dt = x[3:6]
+        dt_norm = np.linalg.norm(dt)
+        if dt_norm > max_translation_step:
+            dt = dt * (max_translation_step / dt_norm)
         dR = rotation_from_vector(dtheta)
         R_KB = dR @ R_KB
-        t_KB = dR @ t_KB + x[3:6]
+        t_KB = dR @ t_KB + dt
         if n_modes:
             # Stay within 3 standard deviations of the shape model.
             b = np.clip(b + x[6:], -3 * sigma_b, 3 * sigma_b)

@@ -79,7 +79,8 @@ def localize(P_local_B: np.ndarray, template: RegistrationTemplate, config: Loca
     kwargs = dict(
         init_translation=config.init_translation, theta_max=np.deg2rad(config.theta_max_deg),
         error_change_tol=config.error_change_tol, max_iterations=config.max_iterations,
-        max_correspondence_distance=config.max_correspondence_distance or np.inf)
+        max_correspondence_distance=config.max_correspondence_distance or np.inf,
+        max_translation_step=config.max_translation_step)
     if config.method == "deformable" and template.modes is not None and config.shape_modes > 0:
         k = min(config.shape_modes, template.modes.shape[0])
         return register_plane_to_plane(
@@ -90,6 +91,33 @@ def localize(P_local_B: np.ndarray, template: RegistrationTemplate, config: Loca
                                    template_tree=template.tree, **kwargs)
 
 
+def exploration_travel(poses) -> float:
+    """Largest tip distance (m) between any explored frame and the first one."""
+    if len(poses) < 2:
+        return 0.0
+    p = np.array([X.translation() for X in poses])
+    return float(np.max(np.linalg.norm(p - p[0], axis=1)))
+
+
+def check_registration(result: IcpResult, P_local_B: np.ndarray,
+                       config: LocalizationConfig) -> str:
+    """Why the estimate must not be used ('' when it passes the sanity checks)."""
+    if not np.all(np.isfinite(result.X_BK.GetAsMatrix4())):
+        return "registration produced a non-finite pose"
+    if result.inlier_fraction < config.min_inlier_fraction:
+        return (f"registration rejected: only {100 * result.inlier_fraction:.0f}% of the "
+                f"explored points lie within 3 mm of the registered template "
+                f"(need {100 * config.min_inlier_fraction:.0f}%)")
+    if result.rms_residual > config.max_rms_residual:
+        return (f"registration rejected: RMS residual {1000 * result.rms_residual:.1f} mm "
+                f"> {1000 * config.max_rms_residual:.1f} mm")
+    offset = np.linalg.norm(result.X_BK.translation() - np.mean(P_local_B, axis=0))
+    if offset > config.max_centroid_offset:
+        return (f"registration rejected: the estimated kidney centre is {1000 * offset:.0f} mm "
+                f"from the explored points (limit {1000 * config.max_centroid_offset:.0f} mm)")
+    return ""
+
+
 @dataclasses.dataclass
 class LocalizationOutcome:
     """What the localizer produced: the estimate, diagnostics and its compute time."""
@@ -97,7 +125,8 @@ class LocalizationOutcome:
     n_points: int = 0
     compute_s: float = 0.0
     time: float = -1.0       # simulation time (s) the estimate was made
-    error: str = ""          # why no estimate (too few points, ...)
+    error: str = ""          # why no estimate (too few points, rejected registration, ...)
+    rejected: IcpResult | None = None  # a registration that failed the sanity checks
 
 
 class IcpLocalizer(LeafSystem):
@@ -107,7 +136,8 @@ class IcpLocalizer(LeafSystem):
     (1-vector, the supervisor's phase; LOCALIZE triggers one registration).
     Outputs: ``X_BK`` (abstract RigidTransform: estimated canonical kidney frame in B, the
     heuristic initial guess until an estimate exists), ``localization_ready`` (1-vector: 1
-    once the estimate is final), ``localization`` (abstract LocalizationOutcome).
+    once the estimate is final), ``localization_error`` (abstract str: why there is no
+    estimate, "" otherwise), ``localization`` (abstract LocalizationOutcome).
     """
 
     def __init__(self, template: RegistrationTemplate, config: LocalizationConfig,
@@ -138,6 +168,10 @@ class IcpLocalizer(LeafSystem):
                 c.get_abstract_state(self._outcome).get_value().result is not None)),
             prerequisites_of_calc={self.abstract_state_ticket(self._outcome)})
         self.DeclareAbstractOutputPort(
+            "localization_error", lambda: AbstractValue.Make(""),
+            lambda c, o: o.set_value(c.get_abstract_state(self._outcome).get_value().error),
+            prerequisites_of_calc={self.abstract_state_ticket(self._outcome)})
+        self.DeclareAbstractOutputPort(
             "localization", lambda: AbstractValue.Make(LocalizationOutcome()),
             lambda c, o: o.set_value(c.get_abstract_state(self._outcome).get_value()),
             prerequisites_of_calc={self.abstract_state_ticket(self._outcome)})
@@ -148,16 +182,29 @@ class IcpLocalizer(LeafSystem):
             return EventStatus.DidNothing()
         if int(round(self._phase_port.Eval(context)[0])) != self._phase:
             return EventStatus.DidNothing()
-        points = self._cloud.Eval(context).points
+        cloud = self._cloud.Eval(context)
+        points = cloud.points
+        travel = exploration_travel(cloud.poses)
+        error = ""
         if len(points) < self._min_points:
+            error = (f"only {len(points)} kidney boundary points were explored "
+                     f"(need {self._min_points})")
+        elif travel < self._config.min_exploration_travel:
+            error = (f"the kidney was seen over only {1000 * travel:.1f} mm of exploration "
+                     f"(need {1000 * self._config.min_exploration_travel:.0f} mm)")
+        if error:
             state.get_mutable_abstract_state(self._outcome).set_value(LocalizationOutcome(
-                n_points=len(points), time=context.get_time(),
-                error=f"only {len(points)} kidney boundary points were explored "
-                      f"(need {self._min_points})"))
+                n_points=len(points), time=context.get_time(), error=error))
             return EventStatus.Succeeded()
         start = time.perf_counter()
         result = localize(points, self._template, self._config, self._superior_B,
                           self._lateral_B)
+        error = check_registration(result, points, self._config)
+        if error:
+            state.get_mutable_abstract_state(self._outcome).set_value(LocalizationOutcome(
+                n_points=len(points), compute_s=time.perf_counter() - start,
+                time=context.get_time(), error=error, rejected=result))
+            return EventStatus.Succeeded()
         state.get_mutable_abstract_state(self._X).set_value(result.X_BK)
         state.get_mutable_abstract_state(self._outcome).set_value(LocalizationOutcome(
             result=result, n_points=len(points), compute_s=time.perf_counter() - start,

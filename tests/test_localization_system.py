@@ -1,0 +1,109 @@
+"""The localizer's safeguards and the IcpLocalizer LeafSystem in isolation."""
+
+import dataclasses
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pydrake.common.value import AbstractValue
+from pydrake.math import RigidTransform
+
+from drake_rus.control import scan
+from drake_rus.control.config import ControllerConfig
+from drake_rus.imaging.frames import PointCloud
+from drake_rus.localization.config import LocalizationConfig
+from drake_rus.localization.icp import heuristic_initial_rotation, register_plane_to_plane
+from drake_rus.localization.localize import (
+    IcpLocalizer, RegistrationTemplate, check_registration, exploration_travel)
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_localization_icp import LATERAL_B, SUPERIOR_B, bean_template, true_pose  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def template():
+    Q, N, _ = bean_template(3)
+    return RegistrationTemplate(Q, N)
+
+
+def partial_cloud(template, fraction=0.6):
+    X_BK = true_pose()
+    Q = template.points
+    seen = Q[:, 0] > Q[:, 0].max() - fraction * np.ptp(Q[:, 0])
+    return X_BK, X_BK.multiply(Q[seen].T).T
+
+
+def test_check_registration_accepts_good_and_rejects_bad(template):
+    config = LocalizationConfig()
+    X_BK, P = partial_cloud(template)
+    R0 = heuristic_initial_rotation(SUPERIOR_B, LATERAL_B)
+    good = register_plane_to_plane(P, template.points, template.normals, R0)
+    assert check_registration(good, P, config) == ""
+    far = dataclasses.replace(good, X_BK=RigidTransform(good.X_BK.rotation(),
+                                                        good.X_BK.translation() + [0.3, 0, 0]))
+    assert "from the explored points" in check_registration(far, P, config)
+    sloppy = dataclasses.replace(good, inlier_fraction=0.1)
+    assert "only 10%" in check_registration(sloppy, P, config)
+    rough = dataclasses.replace(good, rms_residual=0.01)
+    assert "RMS residual 10.0 mm" in check_registration(rough, P, config)
+
+
+def test_translation_step_is_bounded(template):
+    # One thin cross-section: degenerate along the long axis. Steps stay bounded.
+    X_BK, P = partial_cloud(template, 0.05)
+    R0 = heuristic_initial_rotation(SUPERIOR_B, LATERAL_B)
+    r = register_plane_to_plane(P, template.points, template.normals, R0,
+                                max_translation_step=0.005, max_iterations=30)
+    assert np.linalg.norm(r.X_BK.translation() - P.mean(axis=0)) <= 30 * 0.005 + 0.06
+
+
+def _cloud(points, travel_m):
+    poses = tuple(RigidTransform([0.5, -travel_m * k / 9, 0.2]) for k in range(10))
+    return PointCloud(points=points, frame_count=10, poses=poses,
+                      times=tuple(0.05 * k for k in range(10)))
+
+
+@pytest.mark.parametrize("travel, expect_pose", [(0.04, True), (0.005, False)])
+def test_icp_localizer_system(template, travel, expect_pose):
+    X_BK, P = partial_cloud(template)
+    phase = scan.Phase.LOCALIZE
+    system = IcpLocalizer(template, LocalizationConfig(method="seed"), SUPERIOR_B, LATERAL_B,
+                          localize_phase=int(phase))
+    from pydrake.systems.analysis import Simulator
+    simulator = Simulator(system)
+    context = simulator.get_mutable_context()
+    system.GetInputPort("point_cloud").FixValue(context, _cloud(P, travel))
+    system.GetInputPort("phase").FixValue(context, [float(scan.Phase.EXPLORE)])
+    simulator.AdvanceTo(0.2)  # not in LOCALIZE: nothing happens
+    assert system.GetOutputPort("localization_ready").Eval(context)[0] == 0.0
+    assert system.GetOutputPort("localization_error").Eval(context) == ""
+    system.GetInputPort("phase").FixValue(context, [float(phase)])
+    simulator.AdvanceTo(0.4)
+    ready = system.GetOutputPort("localization_ready").Eval(context)[0]
+    error = system.GetOutputPort("localization_error").Eval(context)
+    if expect_pose:
+        assert ready == 1.0 and error == ""
+        X = system.GetOutputPort("X_BK").Eval(context)
+        assert np.linalg.norm(X.translation() - X_BK.translation()) < 2e-3
+    else:
+        assert ready == 0.0 and "5.0 mm of exploration" in error
+
+
+def test_exploration_travel():
+    assert exploration_travel(()) == 0.0
+    poses = [RigidTransform([0, -0.001 * k, 0]) for k in range(11)]
+    assert exploration_travel(poses) == pytest.approx(0.01)
+
+
+def test_supervisor_aborts_on_localization_error():
+    s = scan.SupervisorState()
+    s.initialised = True
+    s.phase = scan.Phase.LOCALIZE
+    s.phase_start = 1.0
+    u = scan.SupervisorInputs(t=1.2, R_BP=np.diag([1.0, -1, -1]), p_BP=np.array([0.5, 0, 0.2]),
+                              F_z=9.0, kidney_visible=True, c_msk=0.5, localization_ready=False,
+                              localization_error="only 3 kidney boundary points were explored")
+    s = scan.supervisor_step(s, u, ControllerConfig(), 0.01)
+    assert s.phase == scan.Phase.ABORT
+    assert "localization failed: only 3 kidney" in s.reason
