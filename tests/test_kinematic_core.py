@@ -245,3 +245,14 @@ def test_generated_patient_exploration_localization_and_gt_op(patient0):
     gt = km.strategy_sweep(kp, imager, "GT-OP", CTRL).pole_to_pole()
     curves = km.sweep_curves(kp, gt, imager.geometry)
     assert curves["V_final"] > 0.9
+
+
+def test_prefix_of_a_long_exploration_is_the_short_exploration():
+    kp = synthetic()
+    long = km.explore(kp, km.Imager(kp, IMG), CTRL, exploration_ratio=0.8, x_offset=0.01)
+    short = km.explore(kp, km.Imager(kp, IMG), CTRL, exploration_ratio=0.3, x_offset=0.01)
+    cut = long.prefix(0.3 * CTRL.kidney_length)
+    assert len(cut.frames) == len(short.frames)
+    for a, b in zip(cut.frames, short.frames):
+        np.testing.assert_array_equal(a.X_BP.GetAsMatrix4(), b.X_BP.GetAsMatrix4())
+    np.testing.assert_array_equal(cut.point_cloud(), short.point_cloud())

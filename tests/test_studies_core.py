@@ -141,7 +141,8 @@ def tiny_paper(tmp_path_factory):
     from drake_rus.cli import main
     out = tmp_path_factory.mktemp("paper")
     code = main(["study", "paper", "--patients", "test:2", "--ers", "0.6,1", "--starts", "2",
-                 "--out", str(out), "--workers", "1", "--no-progress"])
+                 "--out", str(out), "--workers", "1", "--no-progress", "--recon-spacing",
+                 "0.002", "--set", "{localization: {max_points: 1500}}"])
     return code, out
 
 

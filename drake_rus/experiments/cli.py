@@ -49,6 +49,10 @@ def add_commands(subparsers) -> None:
         q.add_argument("--seed", type=int, default=0, help="study seed (random starts)")
         q.add_argument("--voxel", type=float, default=0.002,
                        help="label-volume voxel size in m (default 0.002)")
+        if name in ("efficiency", "paper"):
+            q.add_argument("--recon-spacing", type=float, default=0.001,
+                           help="voxel size (m) of the kidney volume reconstruction "
+                                "(default 0.001)")
         if name in ("er-sweep", "paper"):
             q.add_argument("--ers", default=None,
                            help="comma list of exploration ratios (default 0,0.1,...,1)")
@@ -79,9 +83,12 @@ def _options(args):
     from drake_rus.experiments.studies import StudyOptions
     if not args.voxel > 0:
         raise ValueError(f"--voxel: expected a positive size in m, got {args.voxel}")
+    recon = float(getattr(args, "recon_spacing", 0.001))
+    if not recon > 0:
+        raise ValueError(f"--recon-spacing: expected a positive size in m, got {recon}")
     return StudyOptions(scenario=args.scenario, scenarios_file=args.scenarios_file,
                         overrides=args.overrides, segmenter=args.segmenter, method=args.method,
-                        voxel=float(args.voxel), seed=int(args.seed))
+                        voxel=float(args.voxel), seed=int(args.seed), recon_spacing=recon)
 
 
 def _critical_er(out: Path, default: float = 0.6) -> float:

@@ -237,6 +237,16 @@ class Sweep:
         parts = [f.boundary_B for f in self.frames if len(f.boundary_B)]
         return np.concatenate(parts) if parts else np.zeros((0, 3))
 
+    def prefix(self, travel: float) -> "Sweep":
+        """The frames acquired within the first ``travel`` m of an exploration: exactly the
+        sweep a shorter exploration (same start, same controller) would have produced,
+        because eq. 17 only looks back."""
+        if self.travel is None:
+            raise ValueError("prefix: only an exploration sweep (with travel) has a prefix")
+        k = int(np.searchsorted(self.travel, travel + 1e-9, side="right"))
+        return dataclasses.replace(self, frames=self.frames[:k], travel=self.travel[:k],
+                                   events=list(self.events) if k == len(self.frames) else [])
+
     def pole_to_pole(self) -> "Sweep":
         """The part that images the kidney from one pole to the other: for a pivot, the
         second leg; then from its first to its last frame with the kidney visible (what

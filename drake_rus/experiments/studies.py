@@ -161,6 +161,26 @@ def random_start(task: dict, kp, controller) -> tuple[float, float]:
     return float(rng.uniform(0.0, room)), float(rng.uniform(-0.25, 0.25) * width)
 
 
+_EXPLORATIONS: dict = {}
+
+
+def exploration(task: dict, kp, imager, controller, start_fraction: float, x_offset: float):
+    """The exploration of ``task``. Runs that differ only in ER share one full (ER 100%)
+    exploration per process and take its prefix (identical to exploring less: see
+    ``Sweep.prefix``)."""
+    from drake_rus.experiments import kinematic as km
+    key = (task["patient"], task["voxel"], task["segmenter"], task["seed"], task["scenario"],
+           task.get("scenarios_file"), task.get("overrides"), start_fraction, x_offset)
+    full = _EXPLORATIONS.get(key)
+    if full is None:
+        full = km.explore(kp, imager, controller, exploration_ratio=1.0,
+                          start_fraction=start_fraction, x_offset=x_offset)
+        if len(_EXPLORATIONS) >= 16:
+            _EXPLORATIONS.pop(next(iter(_EXPLORATIONS)))
+        _EXPLORATIONS[key] = full
+    return full.prefix(float(task["er"]) * controller.kidney_length)
+
+
 def run_task(task: dict) -> dict:
     """Executes one run (kinematic) and returns its JSON-ready result."""
     from drake_rus.experiments import kinematic as km
@@ -176,8 +196,7 @@ def run_task(task: dict) -> dict:
     start_fraction, x_offset = 0.0, 0.0
     if task["study"] == "starts":
         start_fraction, x_offset = random_start(task, kp, controller)
-    sweep = km.explore(kp, imager, controller, exploration_ratio=float(task["er"]),
-                       start_fraction=start_fraction, x_offset=x_offset)
+    sweep = exploration(task, kp, imager, controller, start_fraction, x_offset)
     P = sweep.point_cloud()
     template = _template(scenario.localization.template)
     config = dataclasses.replace(scenario.localization, method=task["method"])
