@@ -71,26 +71,30 @@ def build_dataset(sources: list[str], frames_per_source: int, size: int, cache: 
     return np.concatenate(Xs), np.concatenate(Ys)
 
 
-def make_unet(width: int = 8):
+def make_unet(width: int = 8, lite: bool = False):
+    """A small U-Net; ``lite``: one convolution (not two) in the full-resolution blocks."""
     import torch
     from torch import nn
 
-    def block(cin, cout):
-        return nn.Sequential(nn.Conv2d(cin, cout, 3, padding=1, bias=False),
-                             nn.BatchNorm2d(cout), nn.ReLU(inplace=True),
-                             nn.Conv2d(cout, cout, 3, padding=1, bias=False),
-                             nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+    def block(cin, cout, convs=2):
+        layers = []
+        for k in range(convs):
+            layers += [nn.Conv2d(cin if k == 0 else cout, cout, 3, padding=1, bias=False),
+                       nn.BatchNorm2d(cout), nn.ReLU(inplace=True)]
+        return nn.Sequential(*layers)
+
+    full_res_convs = 1 if lite else 2
 
     class UNet(nn.Module):
         def __init__(self, w):
             super().__init__()
-            self.e1, self.e2 = block(1, w), block(w, 2 * w)
+            self.e1, self.e2 = block(1, w, full_res_convs), block(w, 2 * w)
             self.e3, self.b = block(2 * w, 4 * w), block(4 * w, 4 * w)
             self.pool = nn.MaxPool2d(2)
             self.up = nn.Upsample(scale_factor=2, mode="bilinear", align_corners=False)
             self.d3 = block(8 * w, 2 * w)
             self.d2 = block(4 * w, w)
-            self.d1 = block(2 * w, w)
+            self.d1 = block(2 * w, w, full_res_convs)
             self.head = nn.Conv2d(w, 1, 1)
 
         def forward(self, x):
@@ -107,11 +111,11 @@ def make_unet(width: int = 8):
 
 
 def train(X, Y, width: int, epochs: int, batch: int = 16, lr: float = 3e-3, seed: int = 0,
-          threads: int = 1, log=print):
+          threads: int = 1, log=print, lite: bool = False):
     import torch
     torch.manual_seed(seed)
     torch.set_num_threads(threads)
-    net = make_unet(width)
+    net = make_unet(width, lite)
     opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
     steps = epochs * int(np.ceil(len(X) / batch))
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=steps)
@@ -165,7 +169,9 @@ def main(argv=None) -> int:
     ap.add_argument("--data-size", type=int, default=128,
                     help="size the cached data is kept at (a multiple of --size)")
     ap.add_argument("--width", type=int, default=8, help="U-Net channels at full resolution")
-    ap.add_argument("--epochs", type=int, default=14)
+    ap.add_argument("--epochs", type=int, default=10)
+    ap.add_argument("--lite", action="store_true",
+                    help="one convolution per full-resolution block (faster inference)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--cache", default="/tmp/drake_rus_segmenter_data")
     ap.add_argument("--out", default="models/segmenter")
@@ -184,7 +190,7 @@ def main(argv=None) -> int:
         return 0
     t = time.time()
     net = train(X, Y, args.width, args.epochs, threads=args.threads,
-                log=lambda s: print(s, flush=True))
+                log=lambda s: print(s, flush=True), lite=args.lite)
     out = Path(args.out)
     onnx_path = out / "kidney_unet.onnx"
     export_onnx(net, onnx_path, args.size)
@@ -198,7 +204,7 @@ def main(argv=None) -> int:
                      "onnx_input_shape": [1, 1, args.size, args.size], "onnx_input_mean": 0.0,
                      "onnx_input_std": 1.0, "onnx_output": "logits"},
         "training": {"sources": sources, "frames_per_source": args.frames,
-                     "epochs": args.epochs, "width": args.width,
+                     "epochs": args.epochs, "width": args.width, "lite": args.lite,
                      "train_seconds": round(time.time() - t),
                      "recipe": "drake_rus/imaging/train_segmenter.py"},
     }
