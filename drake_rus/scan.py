@@ -138,7 +138,9 @@ def BuildScanDiagram(scenario, patient, template, *, meshcat=None):
                                               scenario.patient.posture)
     localizer = builder.AddNamedSystem("icp_localizer", IcpLocalizer(
         template, scenario.localization, superior_B, lateral_B,
-        localize_phase=PHASE_NAMES.index("LOCALIZE"), rate_hz=scenario.imaging.frame_rate_hz))
+        localize_phase=PHASE_NAMES.index("LOCALIZE"), rate_hz=scenario.imaging.frame_rate_hz,
+        explore_phase=PHASE_NAMES.index("EXPLORE"),
+        kidney_length=scenario.controller.kidney_length))
     builder.Connect(accumulator.GetOutputPort("point_cloud"), localizer.GetInputPort("point_cloud"))
     parts = AddController(builder, station, scenario, segmenter=segmenter,
                           kidney_pose_port=localizer.GetOutputPort("X_BK"),
@@ -147,6 +149,8 @@ def BuildScanDiagram(scenario, patient, template, *, meshcat=None):
     builder.Connect(supervisor.GetOutputPort("phase"), localizer.GetInputPort("phase"))
     builder.Connect(localizer.GetOutputPort("localization_error"),
                     supervisor.GetInputPort("localization_error"))
+    builder.Connect(localizer.GetOutputPort("exploration_sufficient"),
+                    supervisor.GetInputPort("exploration_sufficient"))
     exploring = builder.AddNamedSystem("exploring", PhaseIs(PHASE_NAMES.index("EXPLORE")))
     builder.Connect(supervisor.GetOutputPort("phase"), exploring.get_input_port(0))
     builder.Connect(exploring.get_output_port(0), accumulator.GetInputPort("enable"))

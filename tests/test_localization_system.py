@@ -107,3 +107,34 @@ def test_supervisor_aborts_on_localization_error():
     s = scan.supervisor_step(s, u, ControllerConfig(), 0.01)
     assert s.phase == scan.Phase.ABORT
     assert "localization failed: only 3 kidney" in s.reason
+
+
+@pytest.mark.parametrize("enabled", [True, False])
+def test_adaptive_exploration_flags_a_settled_estimate(template, enabled):
+    from pydrake.systems.analysis import Simulator
+    X_BK, P = partial_cloud(template)
+    config = LocalizationConfig(method="seed", adaptive_exploration=enabled, adaptive_period=0.2)
+    system = IcpLocalizer(template, config, SUPERIOR_B, LATERAL_B,
+                          localize_phase=int(scan.Phase.LOCALIZE),
+                          explore_phase=int(scan.Phase.EXPLORE), kidney_length=0.1)
+    simulator = Simulator(system)
+    context = simulator.get_mutable_context()
+    system.GetInputPort("point_cloud").FixValue(context, _cloud(P, 0.04))
+    system.GetInputPort("phase").FixValue(context, [float(scan.Phase.EXPLORE)])
+    simulator.AdvanceTo(0.05)
+    assert system.GetOutputPort("exploration_sufficient").Eval(context)[0] == 0.0
+    simulator.AdvanceTo(0.5)  # two interim estimates of the same cloud agree
+    assert system.GetOutputPort("exploration_sufficient").Eval(context)[0] == float(enabled)
+
+
+def test_supervisor_ends_exploration_when_sufficient():
+    s = scan.SupervisorState()
+    s.initialised = True
+    s.phase = scan.Phase.EXPLORE
+    s.P_des = np.array([0.5, 0.0])
+    u = scan.SupervisorInputs(t=2.0, R_BP=np.diag([1.0, -1, -1]), p_BP=np.array([0.5, 0, 0.2]),
+                              F_z=9.0, kidney_visible=True, c_msk=0.5,
+                              exploration_sufficient=True)
+    s = scan.supervisor_step(s, u, ControllerConfig(), 0.01)
+    assert s.phase == scan.Phase.LOCALIZE
+    assert "adaptive" in s.events[-1][2]

@@ -160,6 +160,7 @@ class SupervisorInputs:
     localization_ready: bool = True
     safety_stopped: bool = False     # the safety layer has stopped the robot
     localization_error: str = ""     # why the localizer could not give a pose ("" = none)
+    exploration_sufficient: bool = False  # adaptive exploration: the estimate has settled
 
 
 def _goto(s: SupervisorState, phase: Phase, t: float, message: str) -> SupervisorState:
@@ -266,6 +267,10 @@ def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float
             s.P_des = p[:2].copy()
             return _goto(s, Phase.LOCALIZE, u.t,
                          f"kidney left the image after {s.travel * 1e3:.1f} mm")
+        if u.exploration_sufficient:
+            s.P_des = p[:2].copy()
+            return _goto(s, Phase.LOCALIZE, u.t,
+                         f"pose estimate settled after {s.travel * 1e3:.1f} mm (adaptive)")
         step = min(cfg.scan_speed * dt, target - s.travel)
         c = u.c_msk if u.kidney_visible else math.nan
         s.P_des = exploration_update(s.P_des, c, R[:, 0], sign * step / dt, cfg.K_p7, dt)

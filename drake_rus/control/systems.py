@@ -235,6 +235,8 @@ class ScanSupervisor(LeafSystem):
         # Optional: the localizer's reason for giving no pose (abstract str; "" = none).
         self._loc_error = self.DeclareAbstractInputPort("localization_error",
                                                         AbstractValue.Make(""))
+        # Optional: adaptive exploration's "estimate has settled" flag (1-vector).
+        self._sufficient = self.DeclareVectorInputPort("exploration_sufficient", 1)
         self._s = self.DeclareAbstractState(AbstractValue.Make(scan.SupervisorState()))
         self.DeclarePeriodicUnrestrictedUpdateEvent(self._dt, 0.0, self._update)
         S = lambda ctx: ctx.get_abstract_state(0).get_value()  # noqa: E731
@@ -277,7 +279,8 @@ class ScanSupervisor(LeafSystem):
             localization_ready=_optional_scalar(self._ready, context, 1.0) > 0.5,
             safety_stopped=_optional_scalar(self._stopped, context, 0.0) > 0.5,
             localization_error=(self._loc_error.Eval(context)
-                                if self._loc_error.HasValue(context) else ""))
+                                if self._loc_error.HasValue(context) else ""),
+            exploration_sufficient=_optional_scalar(self._sufficient, context, 0.0) > 0.5)
         new = scan.supervisor_step(self.state(context), u, self._cfg, self._dt)
         state.get_mutable_abstract_state(0).set_value(new)
 

@@ -129,6 +129,22 @@ class LocalizationOutcome:
     rejected: IcpResult | None = None  # a registration that failed the sanity checks
 
 
+@dataclasses.dataclass
+class AdaptiveState:
+    """Interim estimates of adaptive exploration (beyond the seed)."""
+    last_time: float = -np.inf
+    last_X_BK: RigidTransform | None = None
+    sufficient: bool = False
+    checks: tuple = ()   # (time s, travel m, change of translation m, of x-axis angle rad)
+
+
+def estimate_change(X_a: RigidTransform, X_b: RigidTransform) -> tuple[float, float]:
+    """(translation change (m), kidney x-axis angle change (rad)) between two estimates."""
+    dp = float(np.linalg.norm(X_a.translation() - X_b.translation()))
+    xa, xb = X_a.rotation().matrix()[:, 0], X_b.rotation().matrix()[:, 0]
+    return dp, float(np.arctan2(np.linalg.norm(np.cross(xa, xb)), float(xa @ xb)))
+
+
 class IcpLocalizer(LeafSystem):
     """Registers the explored cloud when the supervisor enters LOCALIZE.
 
@@ -142,7 +158,8 @@ class IcpLocalizer(LeafSystem):
 
     def __init__(self, template: RegistrationTemplate, config: LocalizationConfig,
                  superior_B, lateral_B, localize_phase: int, rate_hz: float = 20.0,
-                 min_points: int = 50):
+                 min_points: int = 50, explore_phase: int | None = None,
+                 kidney_length: float = 0.10):
         super().__init__()
         from drake_rus.imaging.frames import PointCloud
         self._template = template
@@ -150,6 +167,8 @@ class IcpLocalizer(LeafSystem):
         self._superior_B = np.asarray(superior_B, dtype=float)
         self._lateral_B = np.asarray(lateral_B, dtype=float)
         self._phase = localize_phase
+        self._explore_phase = explore_phase
+        self._kidney_length = kidney_length
         self._min_points = min_points
         self._cloud = self.DeclareAbstractInputPort("point_cloud", AbstractValue.Make(PointCloud()))
         self._phase_port = self.DeclareVectorInputPort("phase", 1)
@@ -157,6 +176,10 @@ class IcpLocalizer(LeafSystem):
                                  np.zeros(3))
         self._X = self.DeclareAbstractState(AbstractValue.Make(initial))
         self._outcome = self.DeclareAbstractState(AbstractValue.Make(LocalizationOutcome()))
+        # Adaptive exploration: (time of the last interim estimate, its X_BK or None,
+        # sufficient flag, list of (travel m, dtranslation m, dangle rad) per check).
+        self._adaptive = self.DeclareAbstractState(
+            AbstractValue.Make(AdaptiveState()))
         self.DeclarePeriodicUnrestrictedUpdateEvent(1.0 / rate_hz, 0.0, self._update)
         self.DeclareAbstractOutputPort(
             "X_BK", lambda: AbstractValue.Make(RigidTransform()),
@@ -167,6 +190,11 @@ class IcpLocalizer(LeafSystem):
             lambda c, o: o.SetAtIndex(0, float(
                 c.get_abstract_state(self._outcome).get_value().result is not None)),
             prerequisites_of_calc={self.abstract_state_ticket(self._outcome)})
+        self.DeclareVectorOutputPort(
+            "exploration_sufficient", 1,
+            lambda c, o: o.SetAtIndex(0, float(
+                c.get_abstract_state(self._adaptive).get_value().sufficient)),
+            prerequisites_of_calc={self.abstract_state_ticket(self._adaptive)})
         self.DeclareAbstractOutputPort(
             "localization_error", lambda: AbstractValue.Make(""),
             lambda c, o: o.set_value(c.get_abstract_state(self._outcome).get_value().error),
@@ -180,7 +208,11 @@ class IcpLocalizer(LeafSystem):
         outcome = context.get_abstract_state(self._outcome).get_value()
         if outcome.result is not None or outcome.error:
             return EventStatus.DidNothing()
-        if int(round(self._phase_port.Eval(context)[0])) != self._phase:
+        phase = int(round(self._phase_port.Eval(context)[0]))
+        if (self._config.adaptive_exploration and self._explore_phase is not None
+                and phase == self._explore_phase):
+            return self._adaptive_check(context, state)
+        if phase != self._phase:
             return EventStatus.DidNothing()
         cloud = self._cloud.Eval(context)
         points = cloud.points
@@ -209,4 +241,31 @@ class IcpLocalizer(LeafSystem):
         state.get_mutable_abstract_state(self._outcome).set_value(LocalizationOutcome(
             result=result, n_points=len(points), compute_s=time.perf_counter() - start,
             time=context.get_time()))
+        return EventStatus.Succeeded()
+
+    def _adaptive_check(self, context, state):
+        """During EXPLORE: every ``adaptive_period`` s register the cloud so far; once two
+        successive estimates agree within the tolerances, flag the exploration as sufficient."""
+        cfg = self._config
+        a = context.get_abstract_state(self._adaptive).get_value()
+        t = context.get_time()
+        if a.sufficient or t - a.last_time < cfg.adaptive_period - 1e-9:
+            return EventStatus.DidNothing()
+        cloud = self._cloud.Eval(context)
+        travel = exploration_travel(cloud.poses)
+        if travel < cfg.adaptive_min_ratio * self._kidney_length or \
+                len(cloud.points) < self._min_points:
+            return EventStatus.DidNothing()
+        result = localize(cloud.points, self._template, cfg, self._superior_B, self._lateral_B)
+        new = dataclasses.replace(a, last_time=t)
+        if check_registration(result, cloud.points, cfg):
+            new.last_X_BK = None
+        else:
+            if a.last_X_BK is not None:
+                dp, dangle = estimate_change(a.last_X_BK, result.X_BK)
+                new.checks = a.checks + ((t, travel, dp, dangle),)
+                new.sufficient = (dp < cfg.adaptive_translation_tol and
+                                  dangle < np.deg2rad(cfg.adaptive_rotation_tol_deg))
+            new.last_X_BK = result.X_BK
+        state.get_mutable_abstract_state(self._adaptive).set_value(new)
         return EventStatus.Succeeded()
