@@ -127,6 +127,27 @@ def MakeControlPlant(scenario: Scenario) -> tuple[MultibodyPlant, object]:
     return plant, plant.GetFrameByName(PROBE_TIP_FRAME, parts.probe)
 
 
+class TipKinematics:
+    """Pose and Jacobian of the probe tip for joint positions q (its own plant context)."""
+
+    def __init__(self, control_plant: MultibodyPlant, tip_frame):
+        self.plant = control_plant
+        self.frame = tip_frame
+        self._context = control_plant.CreateDefaultContext()
+
+    def pose(self, q) -> RigidTransform:
+        """X_WP (m) at joint positions q (rad)."""
+        self.plant.SetPositions(self._context, q)
+        return self.frame.CalcPoseInWorld(self._context)
+
+    def jacobian(self, q) -> np.ndarray:
+        """J_WP (6 x 7): [w; v] of the tip frame about its origin, in W, w.r.t. joint rates."""
+        self.plant.SetPositions(self._context, q)
+        world = self.plant.world_frame()
+        return self.plant.CalcJacobianSpatialVelocity(
+            self._context, JacobianWrtVariable.kV, self.frame, np.zeros(3), world, world)
+
+
 class ProbePoseFromJoints(LeafSystem):
     """Forward kinematics of the probe tip.
 
@@ -136,17 +157,12 @@ class ProbePoseFromJoints(LeafSystem):
 
     def __init__(self, control_plant: MultibodyPlant, tip_frame):
         super().__init__()
-        self._plant = control_plant
-        self._frame = tip_frame
-        self._plant_context = control_plant.CreateDefaultContext()
+        self._tip = TipKinematics(control_plant, tip_frame)
         self.DeclareVectorInputPort("joint_position", NUM_JOINTS)
         self.DeclareAbstractOutputPort(
-            "X_BP", lambda: AbstractValue.Make(RigidTransform()), self._calc)
-
-    def _calc(self, context, output):
-        q = self.get_input_port(0).Eval(context)
-        self._plant.SetPositions(self._plant_context, q)
-        output.set_value(self._frame.CalcPoseInWorld(self._plant_context))
+            "X_BP", lambda: AbstractValue.Make(RigidTransform()),
+            lambda context, output: output.set_value(
+                self._tip.pose(self.get_input_port(0).Eval(context))))
 
 
 class ProbeForceEstimator(LeafSystem):
@@ -158,9 +174,7 @@ class ProbeForceEstimator(LeafSystem):
 
     def __init__(self, control_plant: MultibodyPlant, tip_frame):
         super().__init__()
-        self._plant = control_plant
-        self._frame = tip_frame
-        self._plant_context = control_plant.CreateDefaultContext()
+        self._tip = TipKinematics(control_plant, tip_frame)
         self.DeclareVectorInputPort("joint_position", NUM_JOINTS)
         self.DeclareVectorInputPort("tau_external", NUM_JOINTS)
         self.DeclareVectorOutputPort("probe_force", 6, self._calc)
@@ -168,12 +182,8 @@ class ProbeForceEstimator(LeafSystem):
     def _calc(self, context, output):
         q = self.get_input_port(0).Eval(context)
         tau = self.get_input_port(1).Eval(context)
-        self._plant.SetPositions(self._plant_context, q)
-        world = self._plant.world_frame()
-        J_WP = self._plant.CalcJacobianSpatialVelocity(
-            self._plant_context, JacobianWrtVariable.kV, self._frame, np.zeros(3), world, world)
-        R_WP = self._frame.CalcPoseInWorld(self._plant_context).rotation().matrix()
-        output.SetFromVector(estimate_tip_wrench(J_WP, tau, R_WP))
+        R_WP = self._tip.pose(q).rotation().matrix()
+        output.SetFromVector(estimate_tip_wrench(self._tip.jacobian(q), tau, R_WP))
 
 
 class ProbeContactWrench(LeafSystem):
@@ -183,10 +193,11 @@ class ProbeContactWrench(LeafSystem):
     ``probe_contact_wrench_true`` (6): as ``probe_force``, in P about P's origin (N m, N).
     """
 
-    def __init__(self, plant: MultibodyPlant, probe_body_indices):
+    def __init__(self, plant: MultibodyPlant, probe_body_indices, geometry_frames: dict):
         super().__init__()
         self._plant = plant
         self._bodies = set(int(i) for i in probe_body_indices)
+        self._geometry_frames = geometry_frames  # GeometryId -> FrameId
         self.DeclareAbstractInputPort("contact_results", AbstractValue.Make(ContactResults()))
         self.DeclareAbstractInputPort("X_BP", AbstractValue.Make(RigidTransform()))
         self.DeclareVectorOutputPort("probe_contact_wrench_true", 6, self._calc)
@@ -197,7 +208,6 @@ class ProbeContactWrench(LeafSystem):
         p_WP = X_WP.translation()
         torque_W = np.zeros(3)
         force_W = np.zeros(3)
-        inspector = None
 
         def accumulate(f_W, p_WC, sign):
             nonlocal torque_W, force_W
@@ -227,18 +237,9 @@ class ProbeContactWrench(LeafSystem):
 
     def _hydro_bodies(self, info):
         surface = info.contact_surface()
-        inspector_plant = self._plant
-        bA = inspector_plant.GetBodyFromFrameId(
-            self._frame_id(surface.id_M()))
-        bB = inspector_plant.GetBodyFromFrameId(
-            self._frame_id(surface.id_N()))
-        return int(bA.index()), int(bB.index())
-
-    def _frame_id(self, geometry_id):
-        return self._geometry_frames[geometry_id]
-
-    def set_geometry_frames(self, mapping):
-        self._geometry_frames = mapping
+        body = lambda geometry_id: self._plant.GetBodyFromFrameId(  # noqa: E731
+            self._geometry_frames[geometry_id])
+        return int(body(surface.id_M()).index()), int(body(surface.id_N()).index())
 
 
 def _patient_properties(scenario: Scenario) -> ProximityProperties:
@@ -443,8 +444,8 @@ def MakeSimStation(scenario: Scenario, meshcat: Meshcat | None = None, *, patien
 
     truth = builder.AddNamedSystem(
         "probe_contact_truth",
-        ProbeContactWrench(plant, [b.index() for b in parts.probe_bodies]))
-    truth.set_geometry_frames(_geometry_frame_map(plant, scene_graph))
+        ProbeContactWrench(plant, [b.index() for b in parts.probe_bodies],
+                           _geometry_frame_map(plant, scene_graph)))
     builder.Connect(plant.get_contact_results_output_port(), truth.get_input_port(0))
     builder.Connect(fk.get_output_port(), truth.get_input_port(1))
 

@@ -7,10 +7,7 @@ so the station can be driven into steady contact with nothing but its own ports.
 """
 
 import numpy as np
-from pydrake.common.value import AbstractValue
-from pydrake.math import RigidTransform
-from pydrake.multibody.tree import JacobianWrtVariable
-from pydrake.systems.framework import BasicVector, LeafSystem
+from pydrake.systems.framework import LeafSystem
 
 from drake_rus.sim.force_estimation import contact_force_along_approach
 
@@ -39,9 +36,8 @@ class PressDriver(LeafSystem):
                  force_gain: float = 0.004, max_speed: float = 0.03, rate_hz: float = 100.0,
                  start_time: float = 0.0):
         super().__init__()
-        self._plant = control_plant
-        self._frame = tip_frame
-        self._plant_context = control_plant.CreateDefaultContext()
+        from drake_rus.station import TipKinematics
+        self._tip = TipKinematics(control_plant, tip_frame)
         self._desired_force = desired_force
         self._force_gain = force_gain
         self._max_speed = max_speed
@@ -58,12 +54,8 @@ class PressDriver(LeafSystem):
             return
         q = self.get_input_port(0).Eval(context)
         F_P = self.get_input_port(1).Eval(context)
-        self._plant.SetPositions(self._plant_context, q)
-        world = self._plant.world_frame()
-        J_WP = self._plant.CalcJacobianSpatialVelocity(
-            self._plant_context, JacobianWrtVariable.kV, self._frame, np.zeros(3), world, world)
-        a_W = self._frame.CalcPoseInWorld(self._plant_context).rotation().matrix()[:, 2]
-        qdot = press_joint_velocity(J_WP, a_W, contact_force_along_approach(F_P),
+        a_W = self._tip.pose(q).rotation().matrix()[:, 2]
+        qdot = press_joint_velocity(self._tip.jacobian(q), a_W, contact_force_along_approach(F_P),
                                     self._desired_force, self._force_gain, self._max_speed)
         discrete_state.get_mutable_vector().SetFromVector(qdot)
 
