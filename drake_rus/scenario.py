@@ -23,6 +23,7 @@ from drake_rus.control.config import ControllerConfig, SafetyConfig
 from drake_rus.hardware.config import HardwareConfig
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.localization.config import LocalizationConfig
+from drake_rus.reliability.config import FaultConfig
 from drake_rus.paths import DIAGRAMS_DIR
 
 __all__ = [
@@ -150,6 +151,8 @@ class Scenario:
     # false: simulated station; true: a real FR3 and ultrasound machine.
     hardware: bool = False
     hardware_interface: HardwareConfig = field(default_factory=HardwareConfig)
+    # Injected faults and patient motion (simulation only; all off by default).
+    faults: FaultConfig = field(default_factory=FaultConfig)
     # Default duration of a run (s).
     simulation_duration: float = field(default=10.0, metadata={"positive": True})
     # Seed of every random draw in a run (noise, speckle, starts).

@@ -1,0 +1,1 @@
+"""Reliability and safety: fault injection, patient motion, the campaign, bad-input checks."""
