@@ -197,7 +197,8 @@ def main(argv=None) -> int:
     meta = {
         "model": onnx_path.name,
         "input": {"name": "image", "shape": [1, 1, args.size, args.size], "dtype": "float32",
-                  "normalisation": "grey / 255 (mean 0, std 1); image resized by 2x2 block mean"},
+                  "normalisation": (f"grey / 255 (mean 0, std 1); the 256 x 256 image reduced "
+                                    f"by {256 // args.size}x{256 // args.size} block means")},
         "output": {"name": "logits", "shape": [1, 1, args.size, args.size],
                    "kind": "logits", "kidney_channel": 0},
         "scenario": {"segmenter": "onnx", "onnx_model": str(onnx_path),
