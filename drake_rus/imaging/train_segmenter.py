@@ -17,7 +17,8 @@ Augmentation: left-right flips and a random gain / contrast change of the grey l
     nice .venv/bin/python -m drake_rus.imaging.train_segmenter --patients 12 --frames 200 \\
         --epochs 10 --out models/segmenter
 
-Writes ``kidney_unet.onnx`` and ``kidney_unet.json`` (shapes, normalisation, recipe, IoU).
+Writes ``kidney_unet.onnx`` and ``kidney_unet.json`` (shapes, normalisation, recipe); the
+held-out IoU comes from ``python -m benchmarks imaging`` and is recorded there by hand.
 """
 
 from __future__ import annotations
