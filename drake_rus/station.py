@@ -71,13 +71,13 @@ def AddFr3AndProbe(plant: MultibodyPlant, scenario: Scenario,
     parser = Parser(plant)
     AddDrakeRusPackages(parser.package_map())
     try:
-        (robot,) = parser.AddModelsFromUrl(scenario.robot.model)
+        (robot,) = parser.AddModelsFromUrl(_model_url(scenario.robot.model))
     except Exception as e:
         raise ScenarioError(f"field 'robot.model': cannot load {scenario.robot.model}: {e}")
     plant.WeldFrames(plant.world_frame(), plant.GetFrameByName("fr3_link0", robot))
     parser.SetAutoRenaming(True)
     try:
-        (probe,) = parser.AddModelsFromUrl(scenario.probe.model)
+        (probe,) = parser.AddModelsFromUrl(_model_url(scenario.probe.model))
     except Exception as e:
         raise ScenarioError(f"field 'probe.model': cannot load {scenario.probe.model}: {e}")
     flange = plant.GetFrameByName(FLANGE_FRAME, robot)
@@ -103,6 +103,11 @@ def AddFr3AndProbe(plant: MultibodyPlant, scenario: Scenario,
     if not with_collision:
         _remove_collision_geometry(plant)
     return RobotAndProbe(robot, probe, tip_frame, [probe_body, payload])
+
+
+def _model_url(model: str) -> str:
+    """A package:// or file:// URL as is; a plain file path as an absolute file:// URL."""
+    return model if "://" in model else Path(model).resolve().as_uri()
 
 
 def _fixed_offset_frame(name, parent_frame, X_PF):

@@ -478,6 +478,11 @@ def _patient_from_raw(raw, D, origin, mapping, path, *, side, posture, name, vox
         _fail(f"label map {path}: no body label (a value mapped to 'body'); the skin surface "
               "cannot be found without it (TotalSegmentator: merge the 'body' task as 200)")
     kidney_mask = np.isin(raw, kid_vals)
+    faces = [kidney_mask[0], kidney_mask[-1], kidney_mask[:, 0], kidney_mask[:, -1],
+             kidney_mask[:, :, 0], kidney_mask[:, :, -1]]
+    if all(f.any() for f in faces):
+        _fail(f"label map {path}: the {side} kidney touches all six faces of the grid; the "
+              "label volume is inside-out (kidney and background swapped?)")
     body = np.isin(raw, body_vals) | np.isin(raw, [k for k, v in mapping.items()
                                                    if v not in ("ignore",) and k in present])
     body = ndimage.binary_fill_holes(body)

@@ -51,6 +51,9 @@ class LabelVolume:
         if not np.issubdtype(self.labels.dtype, np.integer):
             raise ValueError(
                 f"LabelVolume.labels: expected integer labels, got dtype {self.labels.dtype}")
+        if self.labels.size == 0:
+            raise ValueError(
+                f"LabelVolume.labels: the volume is empty (shape {self.labels.shape})")
         if not (np.isfinite(self.voxel_size) and self.voxel_size > 0):
             raise ValueError(
                 f"LabelVolume.voxel_size: expected a positive size in m, got {self.voxel_size}")

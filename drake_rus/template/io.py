@@ -59,10 +59,15 @@ def load_template(path=None) -> Template:
         if isinstance(e, ValueError) and str(path) in str(e):
             raise
         raise ValueError(f"kidney template {path}: not a readable .npz file ({e})") from None
-    meta = json.loads(str(data["metadata"]))
+    try:
+        meta = json.loads(str(data["metadata"]))
+    except json.JSONDecodeError as e:
+        raise ValueError(f"kidney template {path}: 'metadata' is not valid JSON ({e})") from None
     pts, nrm = data["points"], data["normals"]
     if pts.ndim != 2 or pts.shape[1] != 3 or nrm.shape != pts.shape:
         raise ValueError(f"kidney template {path}: points/normals must be (M, 3) arrays")
+    if not (np.all(np.isfinite(pts)) and np.all(np.isfinite(nrm))):
+        raise ValueError(f"kidney template {path}: points/normals contain NaN or inf")
     conv = {}
     if "convergence_n" in data:
         conv = {"n": data["convergence_n"].tolist(), "change": data["convergence_change"].tolist(),
