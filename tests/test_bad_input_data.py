@@ -1,0 +1,319 @@
+"""Bad-input corpus, data files: meshes, label volumes, images, templates, model files.
+Each bad input gives one clear error that names the file or the field."""
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from drake_rus.anatomy.importers import load_mesh, patient_from_label_map
+from drake_rus.anatomy.labels import LabelVolume
+from drake_rus.anatomy.patient import Patient
+from drake_rus.config_schema import ScenarioError
+from drake_rus.imaging.config import ImagingConfig
+from drake_rus.imaging.probe import ProbeGeometry
+from drake_rus.io_utils import write_text_atomic
+from drake_rus.scenario import ApplyOverrides, Scenario
+from drake_rus.template.io import load_template
+
+
+def _box():
+    return trimesh.creation.box((0.10, 0.05, 0.04))
+
+
+# ------------------------------------------------------------------------------ meshes
+def test_missing_mesh_file_is_named(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"kidney mesh: file not found: .*x\.stl"):
+        load_mesh(tmp_path / "x.stl", "kidney mesh")
+
+
+@pytest.mark.parametrize("name,content", [
+    ("junk.stl", b"solid junk\nfacet nonsense\n"),
+    ("empty.stl", b""),
+    ("broken.obj", b"v 1 2\nf 1 2 3 4 5\n"),
+    ("zeros.stl", bytes(84)),
+], ids=["garbage_stl", "empty_stl", "broken_obj", "zero_triangle_binary_stl"])
+def test_corrupt_mesh_file_is_named(tmp_path, name, content):
+    path = tmp_path / name
+    path.write_bytes(content)
+    with pytest.raises(ValueError) as e:
+        load_mesh(path, "skin mesh")
+    assert "skin mesh" in str(e.value) and name in str(e.value)
+
+
+def test_point_cloud_is_not_a_mesh(tmp_path):
+    path = tmp_path / "cloud.ply"
+    trimesh.PointCloud(np.random.default_rng(0).random((20, 3))).export(path)
+    with pytest.raises(ValueError, match=r"kidney mesh .*cloud\.ply: no triangles"):
+        load_mesh(path, "kidney mesh")
+
+
+def test_open_surface_is_not_watertight(tmp_path):
+    path = tmp_path / "sheet.stl"
+    plane = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0, 0.5]],
+                            [[0, 1, 2], [0, 2, 3], [1, 4, 2]])
+    plane.export(path)
+    with pytest.raises(ValueError, match=r"kidney mesh .*sheet\.stl: the mesh is not watertight"):
+        load_mesh(path, "kidney mesh")
+
+
+def test_non_manifold_mesh_is_not_watertight():
+    box = _box()
+    # A fin: one extra triangle on an existing edge makes that edge non-manifold.
+    v = np.vstack([box.vertices, [[0.3, 0.3, 0.3]]])
+    f = np.vstack([box.faces, [[box.faces[0][0], box.faces[0][1], len(v) - 1]]])
+    with pytest.raises(ValueError, match="organ mesh: the mesh is not watertight"):
+        load_mesh(trimesh.Trimesh(v, f, process=False), "organ mesh")
+
+
+def test_inside_out_mesh_is_turned_outward():
+    inverted = trimesh.Trimesh(_box().vertices, _box().faces[:, ::-1], process=False)
+    assert inverted.volume < 0
+    fixed = load_mesh(inverted, "kidney mesh")
+    assert fixed.volume == pytest.approx(0.10 * 0.05 * 0.04)
+
+
+def test_small_holes_are_repaired():
+    box = _box()
+    holed = trimesh.Trimesh(box.vertices, box.faces[:-1], process=False)
+    assert not holed.is_watertight
+    assert load_mesh(holed, "kidney mesh").is_watertight
+
+
+@pytest.mark.parametrize("which", ["kidney mesh", "skin mesh"])
+def test_patient_rejects_open_meshes(which):
+    box, sheet = _box(), trimesh.Trimesh(_box().vertices, _box().faces[:-3], process=False)
+    meshes = {"kidney mesh": box, "skin mesh": box}
+    meshes[which] = sheet
+    with pytest.raises(ValueError, match=f"p: {which}: the mesh is not watertight"):
+        Patient(name="p", side="right", posture="supine", kidney_mesh=meshes["kidney mesh"],
+                skin_mesh=meshes["skin mesh"], labels=LabelVolume(np.ones((2, 2, 2), np.uint8)))
+
+
+def test_patient_rejects_empty_mesh():
+    with pytest.raises(ValueError, match="p: kidney mesh: the mesh is empty"):
+        Patient(name="p", side="right", posture="supine", kidney_mesh=trimesh.Trimesh(),
+                skin_mesh=_box(), labels=LabelVolume(np.ones((2, 2, 2), np.uint8)))
+
+
+# ------------------------------------------------------------------------ label volumes
+@pytest.mark.parametrize("labels,voxel,words", [
+    (np.zeros((0, 4, 4), np.uint8), 0.001, ["LabelVolume.labels", "empty"]),
+    (np.zeros((4, 4), np.uint8), 0.001, ["LabelVolume.labels", "3-D"]),
+    (np.zeros((4, 4, 4), np.float32), 0.001, ["LabelVolume.labels", "integer"]),
+    (np.zeros((4, 4, 4), np.uint8), 0.0, ["LabelVolume.voxel_size"]),
+    (np.zeros((4, 4, 4), np.uint8), float("nan"), ["LabelVolume.voxel_size"]),
+    (np.zeros((4, 4, 4), np.uint8), -0.001, ["LabelVolume.voxel_size"]),
+], ids=["empty", "2d", "float", "zero_voxel", "nan_voxel", "negative_voxel"])
+def test_bad_label_volume_names_field(labels, voxel, words):
+    with pytest.raises(ValueError) as e:
+        LabelVolume(labels, voxel_size=voxel)
+    for w in words:
+        assert w in str(e.value)
+
+
+def _write_label_map(path, array, dtype=np.uint8):
+    import SimpleITK as sitk
+    sitk.WriteImage(sitk.GetImageFromArray(np.asarray(array, dtype)), str(path))
+    return path
+
+
+def test_empty_label_map_is_named(tmp_path):
+    path = _write_label_map(tmp_path / "empty.nii.gz", np.zeros((10, 10, 10)))
+    with pytest.raises(ValueError, match=r"label map .*empty\.nii\.gz: empty"):
+        patient_from_label_map(path)
+
+
+def test_label_map_without_kidney_is_named(tmp_path):
+    path = _write_label_map(tmp_path / "nokidney.nii.gz", np.full((10, 10, 10), 200))
+    with pytest.raises(ValueError, match=r"nokidney\.nii\.gz: no voxels of the right kidney"):
+        patient_from_label_map(path)
+
+
+def test_label_map_without_body_is_named(tmp_path):
+    a = np.zeros((12, 12, 12))
+    a[4:8, 4:8, 4:8] = 2
+    path = _write_label_map(tmp_path / "nobody.nii.gz", a)
+    with pytest.raises(ValueError, match=r"nobody\.nii\.gz: no body label"):
+        patient_from_label_map(path)
+
+
+def test_inside_out_label_map_is_named(tmp_path):
+    a = np.full((30, 30, 30), 2)          # kidney everywhere ...
+    a[8:22, 8:22, 8:22] = 200             # ... except a body-labelled core: inverted
+    path = _write_label_map(tmp_path / "inverted.nii.gz", a)
+    with pytest.raises(ValueError, match=r"inverted\.nii\.gz: .*inside-out"):
+        patient_from_label_map(path)
+
+
+def test_unreadable_label_map_is_named(tmp_path):
+    path = tmp_path / "junk.nii.gz"
+    path.write_bytes(b"not a nifti file")
+    with pytest.raises(ValueError, match=r"label map .*junk\.nii\.gz: cannot read it"):
+        patient_from_label_map(path)
+
+
+def test_2d_label_map_is_named(tmp_path):
+    path = _write_label_map(tmp_path / "flat.nii.gz", np.zeros((10, 10)))
+    with pytest.raises(ValueError, match=r"flat\.nii\.gz: expected a 3-D image"):
+        patient_from_label_map(path)
+
+
+def test_float_label_map_is_named(tmp_path):
+    path = _write_label_map(tmp_path / "float.nii.gz", np.full((5, 5, 5), 0.5), np.float32)
+    with pytest.raises(ValueError, match=r"float\.nii\.gz: voxel values are not integer"):
+        patient_from_label_map(path)
+
+
+def test_missing_label_map_is_named(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"label map: file not found: .*gone\.nii\.gz"):
+        patient_from_label_map(tmp_path / "gone.nii.gz")
+
+
+@pytest.mark.parametrize("spec,exc,words", [
+    ("bogus:3", FileNotFoundError, ["bogus:3"]),
+    ("test:x", ValueError, ["test:x", "integer"]),
+], ids=["unknown_spec", "non_integer_index"])
+def test_bad_patient_spec_is_named(spec, exc, words):
+    from drake_rus.anatomy import load_patient
+    with pytest.raises(exc) as e:
+        load_patient(spec)
+    for w in words:
+        assert w in str(e.value)
+
+
+def test_patient_directory_without_meshes_is_named(tmp_path):
+    from drake_rus.anatomy import load_patient
+    (tmp_path / "readme.txt").write_text("nothing here")
+    with pytest.raises(ValueError, match=f"patient directory {tmp_path}: no kidney"):
+        load_patient(str(tmp_path))
+
+
+# -------------------------------------------------------------------------------- images
+@pytest.fixture(scope="module")
+def geometry():
+    return ProbeGeometry.from_config(ImagingConfig())
+
+
+@pytest.mark.parametrize("shape", [(10, 10), (256, 255), (256, 256, 3)],
+                         ids=["tiny", "off_by_one", "rgb"])
+def test_wrong_image_size_emulator(shape):
+    from drake_rus.imaging.emulator import EmulatorModel, emulate
+    with pytest.raises(ValueError, match=r"emulate: label image has shape"):
+        emulate(np.zeros(shape, np.uint8), EmulatorModel.from_config(ImagingConfig()))
+
+
+@pytest.mark.parametrize("shape", [(10, 10), (257, 256)], ids=["tiny", "off_by_one"])
+def test_wrong_image_size_segmenter(geometry, shape):
+    from drake_rus.imaging.segment import segment_classical
+    with pytest.raises(ValueError, match=r"segment_classical: image shape"):
+        segment_classical(np.zeros(shape, np.uint8), geometry)
+
+
+def test_wrong_image_size_segmenter_system_names_config_fields():
+    from drake_rus.imaging.frames import UsFrame
+    from drake_rus.imaging.systems import Segmenter
+    seg = Segmenter(ImagingConfig(segmenter="oracle"))
+    ctx = seg.CreateDefaultContext()
+    seg.GetInputPort("label_image").FixValue(ctx, UsFrame(np.zeros((32, 32), np.uint8),
+                                                          frame_index=0))
+    with pytest.raises(ValueError, match="image_height_px x image_width_px"):
+        seg.GetOutputPort("kidney_visible").Eval(ctx)
+
+
+def test_non_finite_pose_is_named(geometry):
+    from pydrake.math import RigidTransform
+
+    from drake_rus.imaging.slicing import slice_volume
+    with pytest.raises(ValueError, match="X_BP: pose has non-finite entries"):
+        slice_volume(geometry, LabelVolume(np.zeros((5, 5, 5), np.uint8)), RigidTransform(),
+                     RigidTransform([np.nan, 0.0, 0.0]))
+
+
+def test_slice_sensor_rejects_raw_array():
+    from pydrake.math import RigidTransform
+
+    from drake_rus.imaging.systems import SliceSensor
+    with pytest.raises(ValueError, match="SliceSensor: volume must be a LabelVolume"):
+        SliceSensor(ImagingConfig(), np.zeros((5, 5, 5), np.uint8), RigidTransform())
+
+
+# ------------------------------------------------------------------------------ templates
+def _template_arrays(**changes):
+    arrays = dict(points=np.zeros((4, 3)), normals=np.zeros((4, 3)), modes=np.zeros((0, 4, 3)),
+                  variances=np.zeros(0), metadata=json.dumps({}))
+    arrays.update(changes)
+    return {k: v for k, v in arrays.items() if v is not None}
+
+
+@pytest.mark.parametrize("arrays,words", [
+    (_template_arrays(normals=None, modes=None), ["missing arrays", "normals"]),
+    (_template_arrays(points=np.zeros((4, 2)), normals=np.zeros((4, 2))), ["(M, 3)"]),
+    (_template_arrays(metadata="{not json"), ["metadata", "JSON"]),
+    (_template_arrays(points=np.full((4, 3), np.nan)), ["NaN"]),
+], ids=["missing_arrays", "wrong_shape", "bad_metadata", "nan_points"])
+def test_bad_template_is_named(tmp_path, arrays, words):
+    path = tmp_path / "template.npz"
+    np.savez(path, **arrays)
+    with pytest.raises(ValueError) as e:
+        load_template(path)
+    assert "template.npz" in str(e.value)
+    for w in words:
+        assert w in str(e.value)
+
+
+def test_unreadable_template_is_named(tmp_path):
+    path = tmp_path / "junk.npz"
+    path.write_bytes(b"junk")
+    with pytest.raises(ValueError, match=r"junk\.npz: not a readable \.npz"):
+        load_template(path)
+
+
+def test_missing_template_is_named(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"kidney template not found: .*none\.npz"):
+        load_template(tmp_path / "none.npz")
+
+
+# ------------------------------------------------------------------------------ model files
+@pytest.mark.parametrize("section,url", [
+    ("robot", "package://drake_rus_models/fr3/nope.urdf"),
+    ("probe", "package://drake_rus_models/probe/nope.sdf"),
+    ("robot", "/nonexistent/dir/fr3.urdf"),
+    ("probe", "relative/missing_probe.sdf"),
+], ids=["robot_package", "probe_package", "robot_absolute_path", "probe_relative_path"])
+def test_missing_model_file_names_field(section, url):
+    from drake_rus.station import MakeControlPlant
+    scenario = ApplyOverrides(Scenario(), f"{{{section}: {{model: '{url}'}}}}")
+    with pytest.raises(ScenarioError) as e:
+        MakeControlPlant(scenario)
+    assert f"field '{section}.model'" in str(e.value) and "does not exist" in str(e.value)
+
+
+def test_malformed_model_file_names_field(tmp_path):
+    from drake_rus.station import MakeControlPlant
+    path = tmp_path / "broken.urdf"
+    path.write_text("<robot name='x'><link name='a'></robot>")
+    scenario = ApplyOverrides(Scenario(), f"{{robot: {{model: '{path}'}}}}")
+    with pytest.raises(ScenarioError, match=r"field 'robot.model'.*broken\.urdf.*XML"):
+        MakeControlPlant(scenario)
+
+
+def test_missing_onnx_model_names_field():
+    from drake_rus.imaging.systems import Segmenter
+    with pytest.raises(ValueError, match=r"imaging\.onnx_model: .*not found"):
+        Segmenter(ImagingConfig(segmenter="onnx", onnx_model="models/nope.onnx"))
+
+
+# ------------------------------------------------------------------ nothing half-written
+def test_atomic_write_leaves_nothing_on_failure(tmp_path):
+    from drake_rus.io_utils import atomic_path
+    target = tmp_path / "out" / "summary.json"
+    with pytest.raises(RuntimeError):
+        with atomic_path(target) as tmp:
+            tmp.write_text("{partial")
+            raise RuntimeError("crash mid-write")
+    assert not target.exists()
+    assert list(target.parent.iterdir()) == []
+    write_text_atomic(target, "{}")
+    assert target.read_text() == "{}" and len(list(target.parent.iterdir())) == 1
