@@ -115,8 +115,12 @@ def run_study_command(args) -> int:
     failed = []
     er_an = starts_an = eff_an = None
 
+    counts = {"done": 0, "skipped": 0}
+
     def go(tasks, desc):
         status = st.run_tasks(tasks, desc=desc, **run)
+        counts["done"] += status["done"]
+        counts["skipped"] += status["skipped"]
         failed.extend(status["failed"])
         for rid, err in status["failed"]:
             print(f"run {rid} failed: {err}", flush=True)
@@ -161,8 +165,22 @@ def run_study_command(args) -> int:
     meta = {"study": args.study, "patients": patients, "segmenter": options.segmenter,
             "method": options.method, "voxel": options.voxel, "seed": options.seed,
             "workers": args.workers, "scheduler": args.scheduler, "wall_s": wall,
-            "stage_wall_s": ran, "er": er, "mode": "kinematic", "failed_runs": failed}
-    write_text_atomic(out / f"study_{args.study}.json", json.dumps(meta, indent=1))
+            "stage_wall_s": ran, "er": er, "mode": "kinematic", "failed_runs": failed,
+            "runs_done": counts["done"], "runs_skipped": counts["skipped"]}
+    # Keep the history of invocations: a resumed study's wall time covers only what it ran.
+    meta_path = out / f"study_{args.study}.json"
+    history = []
+    if meta_path.exists():
+        try:
+            old = json.loads(meta_path.read_text())
+            history = old.get("invocations") or ([{k: old.get(k) for k in (
+                "wall_s", "stage_wall_s", "runs_done", "runs_skipped", "workers",
+                "scheduler")}] if "wall_s" in old else [])
+        except (ValueError, AttributeError):
+            history = []
+    meta["invocations"] = history + [{k: meta[k] for k in (
+        "wall_s", "stage_wall_s", "runs_done", "runs_skipped", "workers", "scheduler")}]
+    write_text_atomic(meta_path, json.dumps(meta, indent=1))
     if args.study == "paper":
         write_text_atomic(out / "report.md", st.report_markdown(meta, er_an, starts_an, eff_an))
         print(f"wrote {out / 'report.md'}", flush=True)

@@ -649,6 +649,27 @@ def _flat(r: dict) -> dict:
 
 
 # ------------------------------------------------------------------------------- report
+def _where(i: dict) -> str:
+    if i.get("scheduler"):
+        return f"Dask scheduler {i['scheduler']}"
+    if not i.get("workers"):
+        return "in one process"
+    return f"embedded LocalCluster, {i['workers']} worker(s)"
+
+
+def _runs(i: dict) -> str:
+    if i.get("runs_done") is None:
+        return "all runs; "
+    return f"{i['runs_done']} runs run, {i['runs_skipped']} skipped; "
+
+
+def _p(x):
+    """A p-value: 4 decimals, or scientific notation below 1e-4."""
+    if x is None or not np.isfinite(x):
+        return "n/a"
+    return f"{x:.4f}" if x >= 1e-4 else f"{x:.1e}"
+
+
 def _f(x, nd=2):
     return "n/a" if x is None or (isinstance(x, float) and not np.isfinite(x)) else f"{x:.{nd}f}"
 
@@ -660,8 +681,13 @@ def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict 
          f"- Mode: **{MODE_NOTE}** for every run in this report (no closed-loop dynamic runs).",
          f"- Segmenter: {meta['segmenter']}; localization method: `{meta['method']}`; "
          f"label voxel {meta['voxel'] * 1e3:.0f} mm; study seed {meta['seed']}.",
-         f"- Wall time: {meta.get('wall_s', float('nan')):.0f} s with {meta.get('workers')} "
-         f"worker(s) ({meta.get('scheduler') or 'embedded LocalCluster'}).", ""]
+         f"- Starts and efficiency ran at ER {meta.get('er', float('nan')) * 100:.0f}% (the "
+         f"critical ER of this sweep when it ran).", "- Wall time per invocation (resumed "
+         "invocations skip finished runs): " + "; ".join(
+             f"{i['wall_s']:.0f} s ({_runs(i)}{_where(i)}; stages "
+             + ", ".join(f"{k} {v:.0f} s" for k, v in (i.get("stage_wall_s") or {}).items())
+             + ")"
+             for i in meta.get("invocations", [meta])), ""]
     if er is not None:
         p = PAPER["er_sweep"]
         L += ["## Exploration ratio vs localization (Fig. 7d, `fig7d_er_sweep.png`)", "",
@@ -670,8 +696,8 @@ def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict 
         for r in er["rows"]:
             L.append(f"| {r['er'] * 100:.0f}% | {_f(r['e_trans_mm_mean'])} +- "
                      f"{_f(r['e_trans_mm_sd'])} | {_f(r['e_rot_x_deg_mean'])} +- "
-                     f"{_f(r['e_rot_x_deg_sd'])} | {_f(r['p_e_trans'], 4)} | "
-                     f"{_f(r['p_e_rot_x'], 4)} |")
+                     f"{_f(r['e_rot_x_deg_sd'])} | {_p(r['p_e_trans'])} | "
+                     f"{_p(r['p_e_rot_x'])} |")
         row60 = next((r for r in er["rows"] if abs(r["er"] - 0.6) < 1e-6), None)
         L += ["", f"Critical ER (smallest ER from which on no ER differs from 100% at p > 0.05 "
               f"in either error): **ours {er['critical_er'] * 100:.0f}%**, paper "
@@ -702,7 +728,7 @@ def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict 
                    or [float("nan")])
         L += ["", f"Pairwise paired t-tests ({len(starts['tests'])} pairs x 2 errors, "
               f"Bonferroni threshold p < {starts['bonferroni_threshold']:.4f}): "
-              f"**{n_sig} significant** (smallest p = {_f(pmin, 4)}). Paper: "
+              f"**{n_sig} significant** (smallest p = {_p(pmin)}). Paper: "
               f"{PAPER['starts']}.", ""]
     if eff is not None:
         s = eff["summary"]
@@ -725,7 +751,7 @@ def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict 
             unit = " mm" if c["metric"] == "eps_mm" else " frames"
             L.append(f"| {c['comparison']} | {c['metric']} | {_f(c['reduction_mean'], 1)} +- "
                      f"{_f(c['reduction_sd'], 1)}{unit} | {c['op_lower_count']}/{c['patients']} | "
-                     f"{_f(c['p'], 4)} | {c['significant']} |")
+                     f"{_p(c['p'])} | {c['significant']} |")
         L += ["", f"Paper (simulation, 15 patients): OP reduced eps by {pe['eps_reduction_vs_SL_mm'][0]}"
               f" +- {pe['eps_reduction_vs_SL_mm'][1]} mm against SL and by "
               f"{pe['eps_reduction_vs_NOP_mm'][0]} +- {pe['eps_reduction_vs_NOP_mm'][1]} mm "
