@@ -153,7 +153,9 @@ def BuildScanDiagram(scenario, patient, template, *, meshcat=None):
                     supervisor.GetInputPort("exploration_sufficient"))
     exploring = builder.AddNamedSystem("exploring", PhaseIs(PHASE_NAMES.index("EXPLORE")))
     builder.Connect(supervisor.GetOutputPort("phase"), exploring.get_input_port(0))
-    builder.Connect(exploring.get_output_port(0), accumulator.GetInputPort("enable"))
+    from drake_rus.reliability.station import GateByBreathHold
+    builder.Connect(GateByBreathHold(builder, scenario, station, exploring.get_output_port(0)),
+                    accumulator.GetInputPort("enable"))
 
     recorder = builder.AddNamedSystem("scan_recorder", ScanRecorder(scenario.imaging.frame_rate_hz))
     builder.Connect(station.GetOutputPort("us_image"), recorder.GetInputPort("us_image"))

@@ -480,7 +480,8 @@ def MakeSimStation(scenario: Scenario, meshcat: Meshcat | None = None, *, patien
 
     diagram = builder.Build()
     diagram.set_name(name)
-    return diagram
+    from drake_rus.reliability.station import WithSensorFaults
+    return WithSensorFaults(diagram, scenario, name)   # itself unless scenario.faults asks
 
 
 def _AddImaging(builder: DiagramBuilder, scenario: Scenario, patient, fk) -> None:
@@ -493,7 +494,10 @@ def _AddImaging(builder: DiagramBuilder, scenario: Scenario, patient, fk) -> Non
     from pydrake.systems.primitives import ConstantValueSource
 
     from drake_rus.imaging.systems import SliceSensor, UltrasoundEmulator
+    from drake_rus.reliability.station import AddFaultyImaging, needs_faulty_imaging
 
+    if needs_faulty_imaging(scenario):   # patient motion / image faults (scenario.faults)
+        return AddFaultyImaging(builder, scenario, patient, fk)
     X_BPt = scenario.patient.X_BPt.GetDeterministicValue()
     volume = patient.labels
     X_BV = X_BPt @ volume.X_PtV
