@@ -160,6 +160,12 @@ def test_tiny_paper_study_outputs(tiny_paper):
     s = eff["strategies"]
     assert s["GT-OP"]["V"] > 0.9 and s["GT-OP"]["n"] < s["NOP"]["n"]
     assert abs(s["GT-OP"]["volume_error_pct"]) < 5.0
+    assert sorted(s["GT-OP"]["nrrd"]) == ["test-2__GT-OP__kidney_mask.nrrd",
+                                          "test-2__GT-OP__kidney_probability.nrrd"]
+    import nrrd
+    mask, header = nrrd.read(str(out / "volumes" / "test-2__GT-OP__kidney_mask.nrrd"))
+    ml = mask.sum() * float(np.prod(np.diag(header["space directions"]))) / 1000.0
+    assert ml == pytest.approx(s["GT-OP"]["volume_ml"], rel=1e-6)
     report = (out / "report.md").read_text()
     assert "kinematic" in report and "8.73" in report and "| OP |" in report
 

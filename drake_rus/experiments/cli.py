@@ -53,6 +53,9 @@ def add_commands(subparsers) -> None:
             q.add_argument("--recon-spacing", type=float, default=0.001,
                            help="voxel size (m) of the kidney volume reconstruction "
                                 "(default 0.001)")
+            q.add_argument("--no-nrrd", action="store_true",
+                           help="do not export the OP/GT-OP reconstructions to OUT/volumes "
+                                "as NRRD")
         if name in ("er-sweep", "paper"):
             q.add_argument("--ers", default=None,
                            help="comma list of exploration ratios (default 0,0.1,...,1)")
@@ -151,7 +154,8 @@ def run_study_command(args) -> int:
         print(f"starts at ER {er * 100:.0f}%: any significant difference: "
               f"{starts_an['any_significant']}", flush=True)
     if args.study in ("efficiency", "paper"):
-        tasks = st.efficiency_tasks(patients, options, er)
+        export = None if args.no_nrrd else (out / "volumes").resolve()
+        tasks = st.efficiency_tasks(patients, options, er, export)
         t = time.perf_counter()
         go(tasks, "efficiency")
         ran["efficiency"] = time.perf_counter() - t

@@ -115,8 +115,11 @@ def starts_tasks(patients, options: StudyOptions, er: float, n_starts: int = 5) 
             for p in patients for k in range(n_starts)]
 
 
-def efficiency_tasks(patients, options: StudyOptions, er: float) -> list[dict]:
-    return [dict(options.base(), study="efficiency", patient=p, er=float(er), start=-1)
+def efficiency_tasks(patients, options: StudyOptions, er: float,
+                     export_dir: str | None = None) -> list[dict]:
+    """``export_dir``: write the OP and GT-OP reconstructions there as NRRD."""
+    return [dict(options.base(), study="efficiency", patient=p, er=float(er), start=-1,
+                 export_dir=None if export_dir is None else str(export_dir))
             for p in patients]
 
 
@@ -215,17 +218,25 @@ def run_task(task: dict) -> dict:
         "true_volume_ml": kp.kidney_volume * 1e6,
     }
     if task["study"] == "efficiency":
-        result["strategies"] = efficiency_of(kp, imager, controller, loc.X_BK,
-                                             float(task.get("recon_spacing", 0.001)))
+        export = task.get("export_dir")
+        result["strategies"] = efficiency_of(
+            kp, imager, controller, loc.X_BK, float(task.get("recon_spacing", 0.001)),
+            export_dir=export, name=re.sub(r"[^A-Za-z0-9]+", "-", task["patient"]).strip("-"))
     result["wall_s"] = time.perf_counter() - t0
     return result
 
 
-def efficiency_of(kp, imager, controller, X_BK_est, recon_spacing: float) -> dict:
+EXPORT_STRATEGIES = ("OP", "GT-OP")
+
+
+def efficiency_of(kp, imager, controller, X_BK_est, recon_spacing: float, *,
+                  export_dir=None, name: str = "patient") -> dict:
     """Per strategy: pole-to-pole curves (n, eps mm, V), totals, the whole sweep's totals,
-    and the reconstructed kidney volume (mL) from the pole-to-pole masks."""
+    and the reconstructed kidney volume (mL) from the pole-to-pole masks. With
+    ``export_dir``, the OP and GT-OP reconstructions are written there as NRRD (kidney
+    probability, kidney mask and, for the classical/onnx segmenters, the grey volume)."""
     from drake_rus.experiments import kinematic as km
-    from drake_rus.metrics.reconstruction import reconstruct_kidney
+    from drake_rus.metrics.reconstruction import compound, reconstruct_kidney, write_nrrd
     out = {}
     for s in STRATEGY_ORDER:
         sweep = km.strategy_sweep(kp, imager, s, controller, X_BK_est, keep_images=True)
@@ -247,6 +258,21 @@ def efficiency_of(kp, imager, controller, X_BK_est, recon_spacing: float) -> dic
                 entry["volume_ml"] = rec["volume_ml"]
                 entry["volume_error_pct"] = 100 * (rec["volume_ml"] / (kp.kidney_volume * 1e6)
                                                    - 1)
+                if export_dir is not None and s in EXPORT_STRATEGIES:
+                    d = Path(export_dir)
+                    tag = f"{name}__{s}"
+                    note = (f"drake-rus {s} sweep of {name}, kinematic mode; axes = robot base "
+                            "frame x, y, z (mm)")
+                    write_nrrd(d / f"{tag}__kidney_probability.nrrd",
+                               rec["reconstruction"].values, rec["grid"], description=note)
+                    write_nrrd(d / f"{tag}__kidney_mask.nrrd", rec["mask"], rec["grid"],
+                               description=note)
+                    if all(f.image is not None for f in p2p.frames):
+                        grey = compound([f.image for f in p2p.frames], p2p.poses,
+                                        imager.geometry, rec["grid"])
+                        write_nrrd(d / f"{tag}__grey.nrrd", grey.values, rec["grid"],
+                                   description=note)
+                    entry["nrrd"] = sorted(str(p.name) for p in d.glob(f"{tag}__*.nrrd"))
             except ValueError as e:
                 entry["volume_note"] = str(e)
         out[s] = entry
