@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import types
 import typing
 
@@ -51,6 +52,17 @@ def _type_name(tp) -> str:
 
 def _is_number(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+# YAML 1.2 (and Drake's typed loader) read 1e-3 as a number; PyYAML's YAML 1.1 rules give
+# the string '1e-3'. Such strings are accepted where a float is expected.
+_YAML12_FLOAT = re.compile(r"[-+]?(\.[0-9]+|[0-9]+(\.[0-9]*)?)[eE][-+]?[0-9]+")
+
+
+def _yaml12_float(value):
+    if isinstance(value, str) and _YAML12_FLOAT.fullmatch(value.strip()):
+        return float(value)
+    return value
 
 
 def _check_number(path: str, value, meta: dict, integer: bool = False) -> None:
@@ -132,7 +144,7 @@ def validate(schema, data, path: str = "", meta: dict | None = None) -> None:
             raise ScenarioError(f"field '{where}': expected true or false, got {data!r}")
         return
     if schema is float:
-        _check_number(where, data, meta)
+        _check_number(where, _yaml12_float(data), meta)
         return
     if schema is int:
         _check_number(where, data, meta, integer=True)
