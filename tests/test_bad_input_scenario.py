@@ -209,3 +209,14 @@ def test_property_adversarial_structures_never_crash(tmp_path, node):
         LoadScenario(filename=path, scenario_name="s")
     except ScenarioError as e:
         assert "adv.scenarios.yaml" in str(e)
+
+
+def test_scientific_notation_without_dot_is_a_number(tmp_path):
+    """1e-3 is a number in YAML 1.2 and for Drake's loader (it used to be rejected as the
+    string '1e-3'); a negative one is still checked against the field's bound."""
+    scenario, _ = _load(tmp_path, "s: {contact: {time_step: 1e-3}, "
+                                  "probe: {inertia_diagonal: [1e-3, 2e-3, 1e-4]}}")
+    assert scenario.contact.time_step == 0.001
+    assert scenario.probe.inertia_diagonal == [0.001, 0.002, 0.0001]
+    with pytest.raises(ScenarioError, match=r"contact\.time_step.*> 0"):
+        _load(tmp_path, "s: {contact: {time_step: -1e-3}}")
