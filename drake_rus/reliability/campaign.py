@@ -1,0 +1,257 @@
+"""The reliability campaign: randomised faulty closed-loop scans across the test patients.
+
+Each run draws one fault (round-robin over :data:`CAMPAIGN_FAULTS`, so every type gets its
+share) with random timing and size, a test patient and a seed; it runs the full scan with
+:func:`~drake_rus.reliability.run.RunFaultyScan` and records DONE or ABORT with a reason,
+the peak true contact force, the time above the force ceiling, whether the robot ended at
+rest, and any exception. Results are one JSON file per run under ``OUT/runs`` (written
+atomically), so an interrupted campaign resumes where it stopped; runs go to a pool of
+worker processes.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+import time
+import traceback
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+
+import numpy as np
+
+from drake_rus.io_utils import write_text_atomic
+
+# Fault types of the campaign: the sensor faults, breathing, a patient shift, and none.
+CAMPAIGN_FAULTS = ["none", "image_dropout", "frozen_image", "segmentation_miss",
+                   "segmentation_false_positive", "force_spike", "force_bias",
+                   "joint_state_delay", "nan_joint_position", "nan_joint_velocity",
+                   "nan_force", "nan_pose", "nan_image", "breathing", "patient_shift"]
+
+
+def _yaml_list(v) -> str:
+    return "[" + ", ".join(f"{float(x):.6g}" for x in v) + "]"
+
+
+def fault_overrides(kind: str, rng: np.random.Generator, seed: int) -> str:
+    """Scenario YAML overrides for one random fault of type ``kind``."""
+    start = float(rng.uniform(1.0, 18.0))       # a quick scan lasts ~19 s
+    if kind == "none":
+        return "{}"
+    if kind == "breathing":
+        hold = rng.random() < 0.5
+        return ("{faults: {seed: %d, breathing: {enabled: true, amplitude: %.4f, "
+                "rate_per_min: %.2f, hold_period: %.2f, hold_duration: %.2f}}}"
+                % (seed, rng.uniform(0.005, 0.020), rng.uniform(12.0, 20.0),
+                   rng.uniform(12.0, 20.0) if hold else 0.0, rng.uniform(6.0, 10.0)))
+    if kind == "patient_shift":
+        direction = rng.normal(size=3)
+        direction[2] *= 0.3                          # mostly along the bed
+        offset = direction / np.linalg.norm(direction) * rng.uniform(0.005, 0.02)
+        offset = np.clip(offset, -0.02, 0.02)
+        return ("{faults: {seed: %d, patient_shift: {enabled: true, time: %.3f, offset: %s, "
+                "ramp: %.2f}}}" % (seed, start, _yaml_list(offset), rng.uniform(0.2, 2.0)))
+    duration = float(rng.choice([rng.uniform(0.05, 0.5), rng.uniform(0.5, 5.0), 1.0e9]))
+    extra = ""
+    if kind == "force_spike":
+        extra = ", magnitude: %.2f, spike_period: %.3f, spike_width: %.3f" % (
+            rng.uniform(10.0, 40.0), rng.uniform(0.2, 2.0), rng.uniform(0.005, 0.05))
+    elif kind == "force_bias":
+        extra = ", magnitude: %.2f" % rng.uniform(-6.0, 10.0)
+    elif kind == "joint_state_delay":
+        extra = ", delay: %.3f" % rng.uniform(0.01, 0.3)
+    elif kind in ("image_dropout", "frozen_image", "segmentation_miss",
+                  "segmentation_false_positive", "nan_image"):
+        extra = ", probability: %.2f" % rng.choice([rng.uniform(0.05, 0.5), 1.0])
+    return ("{faults: {seed: %d, sensor: [{kind: %s, start: %.3f, duration: %.4g%s}]}}"
+            % (seed, kind, start, duration, extra))
+
+
+def make_tasks(n: int, *, seed: int = 0, patients: int = 15, scenario: str = "quick",
+               scenarios_file: str | None = None, max_sim_time: float = 60.0) -> list[dict]:
+    """``n`` reproducible run descriptions (the same n and seed give the same runs)."""
+    tasks = []
+    for i in range(n):
+        rng = np.random.default_rng([seed, i])
+        kind = CAMPAIGN_FAULTS[i % len(CAMPAIGN_FAULTS)]
+        run_seed = int(rng.integers(0, 2**31 - 1))
+        tasks.append({
+            "run_id": f"run{i:04d}_{kind}",
+            "index": i, "fault": kind, "patient": f"test:{int(rng.integers(0, patients))}",
+            "scenario": scenario, "scenarios_file": scenarios_file,
+            "overrides": fault_overrides(kind, rng, run_seed % 100000),
+            "random_seed": run_seed % 100000, "max_sim_time": max_sim_time,
+        })
+    return tasks
+
+
+_CACHE: dict = {}
+
+
+def _patient(spec: str, side: str, posture: str):
+    from drake_rus.anatomy import load_patient
+    key = (spec, side, posture)
+    if key not in _CACHE:
+        _CACHE.clear()           # one patient at a time per worker (memory)
+        _CACHE[key] = load_patient(spec, side=side, posture=posture, progress=False)
+    return _CACHE[key]
+
+
+def run_task(task: dict) -> dict:
+    """Runs one campaign scan; never raises (an exception is recorded in the result)."""
+    start = time.perf_counter()
+    record = {"task": task, "run_id": task["run_id"], "fault": task["fault"],
+              "patient": task["patient"], "status": "EXCEPTION", "reason": "",
+              "peak_force_n": None, "time_above_ceiling_s": None,
+              "longest_above_ceiling_s": None, "force_violation": None, "at_rest": None,
+              "sim_s": None, "e_trans_mm": None, "exception": None}
+    try:
+        import dataclasses
+
+        from drake_rus.localization.localize import load_registration_template
+        from drake_rus.reliability.run import RunFaultyScan, outcome_reason
+        from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, LoadScenario
+        scenario = LoadScenario(filename=task["scenarios_file"] or DEFAULT_SCENARIOS_FILE,
+                                scenario_name=task["scenario"],
+                                scenario_text=task["overrides"])
+        scenario = dataclasses.replace(scenario, random_seed=int(task["random_seed"]))
+        template = load_registration_template(scenario.localization.template)
+        patient = _patient(task["patient"], scenario.patient.side, scenario.patient.posture)
+        result, check = RunFaultyScan(scenario, patient, template,
+                                      max_sim_time=float(task["max_sim_time"]))
+        record.update(check)
+        record.update({
+            "status": result.status, "reason": outcome_reason(result), "sim_s": result.sim_s,
+            "scan_wall_s": result.wall_s,
+            "e_trans_mm": (None if result.X_BK_estimated is None else
+                           float(np.linalg.norm(result.X_BK_estimated.translation()
+                                                - result.X_BK_true.translation()) * 1000)),
+            "safety_events": [f"{e.time:.3f} s {e.reason}: {e.detail}"
+                              for e in result.safety_events],
+        })
+    except Exception as e:  # noqa: BLE001 - the campaign counts these
+        record["exception"] = f"{type(e).__name__}: {e}"
+        record["traceback"] = traceback.format_exc(limit=8)
+    record["wall_s"] = time.perf_counter() - start
+    return record
+
+
+def result_path(out_dir, task) -> Path:
+    return Path(out_dir) / "runs" / f"{task['run_id']}.json"
+
+
+def run_campaign(tasks: list[dict], out_dir, *, workers: int = 2, progress=None) -> list[dict]:
+    """Runs the tasks without a result under ``out_dir/runs`` (resumable), ``workers``
+    processes in parallel (0: in this process). Returns all results of ``tasks``."""
+    todo = [t for t in tasks if not result_path(out_dir, t).exists()]
+    (Path(out_dir) / "runs").mkdir(parents=True, exist_ok=True)
+
+    def save(task, record):
+        write_text_atomic(result_path(out_dir, task), json.dumps(record, default=_json))
+        if progress:
+            progress(record)
+
+    if workers == 0:
+        for t in todo:
+            save(t, run_task(t))
+    elif todo:
+        import multiprocessing
+        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+            os.environ.setdefault(var, "1")
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+            futures = {pool.submit(run_task, t): t for t in todo}
+            for fut in as_completed(futures):
+                task = futures[fut]
+                try:
+                    record = fut.result()
+                except Exception as e:  # noqa: BLE001 - a crashed worker process
+                    record = {"task": task, "run_id": task["run_id"], "fault": task["fault"],
+                              "patient": task["patient"], "status": "EXCEPTION",
+                              "reason": "", "exception": f"worker died: {type(e).__name__}: {e}"}
+                save(task, record)
+    return [json.loads(result_path(out_dir, t).read_text()) for t in tasks
+            if result_path(out_dir, t).exists()]
+
+
+def _json(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def summarize(results: list[dict]) -> dict:
+    """The campaign's headline figures (the command's last output line)."""
+    peaks = [r["peak_force_n"] for r in results if r.get("peak_force_n") is not None]
+    return {
+        "runs": len(results),
+        "done": sum(r["status"] == "DONE" for r in results),
+        "abort": sum(r["status"] == "ABORT" for r in results),
+        "timeout": sum(r["status"] == "TIMEOUT" for r in results),
+        "force_violations": sum(bool(r.get("force_violation")) for r in results),
+        "exceptions": sum(r["status"] == "EXCEPTION" or bool(r.get("exception"))
+                          for r in results),
+        "not_at_rest": sum(r.get("at_rest") is False for r in results),
+        "aborts_without_reason": sum(r["status"] == "ABORT" and not r.get("reason")
+                                     for r in results),
+        "peak_force_n": max(peaks) if peaks else None,
+    }
+
+
+def per_fault(results: list[dict]) -> list[dict]:
+    rows = []
+    for kind in CAMPAIGN_FAULTS:
+        rs = [r for r in results if r["fault"] == kind]
+        if rs:
+            done = sum(r["status"] == "DONE" for r in rs)
+            rows.append({"fault": kind, "runs": len(rs), "done": done,
+                         "done_fraction": done / len(rs),
+                         "abort": sum(r["status"] == "ABORT" for r in rs),
+                         "max_peak_force_n": max((r.get("peak_force_n") or 0.0) for r in rs)})
+    return rows
+
+
+def outcome_table(results: list[dict]) -> str:
+    """A plain-text table, one row per run."""
+    head = (f"{'run':<32} {'patient':<8} {'status':<9} {'peak F [N]':>10} {'>ceil [ms]':>10} "
+            f"{'rest':>5} {'sim s':>6} {'wall s':>7}  reason / exception")
+    lines = [head, "-" * len(head)]
+    for r in sorted(results, key=lambda r: r["run_id"]):
+        def num(key, scale=1.0, fmt="{:.1f}"):
+            v = r.get(key)
+            return "-" if v is None else fmt.format(v * scale)
+        rest = {True: "yes", False: "NO", None: "-"}[r.get("at_rest")]
+        why = r.get("exception") or r.get("reason") or ""
+        lines.append(f"{r['run_id']:<32} {r['patient']:<8} {r['status']:<9} "
+                     f"{num('peak_force_n'):>10} {num('time_above_ceiling_s', 1000, '{:.0f}'):>10} "
+                     f"{rest:>5} {num('sim_s'):>6} {num('wall_s'):>7}  {why[:90]}")
+    return "\n".join(lines)
+
+
+def write_outputs(out_dir, results: list[dict], meta: dict) -> list[Path]:
+    out = Path(out_dir)
+    summary = summarize(results)
+    faults = per_fault(results)
+    buf = io.StringIO()
+    keys = ["run_id", "fault", "patient", "status", "reason", "peak_force_n",
+            "time_above_ceiling_s", "longest_above_ceiling_s", "force_violation", "at_rest",
+            "sim_s", "wall_s", "e_trans_mm", "exception"]
+    w = csv.DictWriter(buf, keys, extrasaction="ignore")
+    w.writeheader()
+    for r in sorted(results, key=lambda r: r["run_id"]):
+        w.writerow(r)
+    md = ["# Reliability campaign", "", f"{meta}", "", "## Summary", "",
+          "```", json.dumps(summary, indent=1), "```", "", "## DONE fraction per fault type",
+          "", "| fault | runs | DONE | ABORT | DONE fraction | max peak F (N) |",
+          "|---|---|---|---|---|---|"]
+    md += [f"| {f['fault']} | {f['runs']} | {f['done']} | {f['abort']} | "
+           f"{f['done_fraction']:.2f} | {f['max_peak_force_n']:.1f} |" for f in faults]
+    md += ["", "## Runs", "", "```", outcome_table(results), "```", ""]
+    return [write_text_atomic(out / "campaign.csv", buf.getvalue()),
+            write_text_atomic(out / "campaign.json", json.dumps(
+                {"summary": summary, "per_fault": faults, "meta": meta}, indent=1)),
+            write_text_atomic(out / "campaign.md", "\n".join(md))]
