@@ -19,6 +19,7 @@ COMMAND_MODULES = [
     "drake_rus.imaging.cli",
     "drake_rus.scan",            # scan: the full autonomous scan
     "drake_rus.experiments.cli",  # study: the seed paper's studies (kinematic, Dask)
+    "drake_rus.reliability.cli",  # campaign: randomised faulty scans (safety figures)
 ]
 
 
