@@ -142,7 +142,7 @@ def tiny_paper(tmp_path_factory):
     out = tmp_path_factory.mktemp("paper")
     code = main(["study", "paper", "--patients", "test:2", "--ers", "0.6,1", "--starts", "2",
                  "--out", str(out), "--workers", "1", "--no-progress", "--recon-spacing",
-                 "0.002", "--set", "{localization: {max_points: 1500}}"])
+                 "0.002", "--set", "{localization: {max_points: 1500}}", "--closed-loop", "1"])
     return code, out
 
 
@@ -153,9 +153,14 @@ def test_tiny_paper_study_outputs(tiny_paper):
                  "er_sweep_table.csv", "starts_tests.csv", "efficiency_runs.csv",
                  "study_paper.json"):
         assert (out / name).stat().st_size > 0, name
-    assert len(list((out / "runs").glob("*.json"))) == 2 + 2 + 1
+    assert len(list((out / "runs").glob("*.json"))) == 2 + 2 + 1 + 1
     meta = json.loads((out / "study_paper.json").read_text())
-    assert meta["mode"] == "kinematic" and meta["failed_runs"] == []
+    assert meta["mode"].startswith("kinematic") and meta["failed_runs"] == []
+    # The closed-loop check: one dynamic scan beside its kinematic twin.
+    closed = st.load_results(out, "closed-loop")
+    assert len(closed) == 1 and closed[0]["closed_loop"]["status"] == "DONE"
+    assert closed[0]["closed_loop"]["V"] > 0.9 and closed[0]["kinematic"]["V"] > 0.9
+    assert (out / "closed_loop.csv").stat().st_size > 0
     eff = st.load_results(out, "efficiency")[0]
     s = eff["strategies"]
     assert s["GT-OP"]["V"] > 0.9 and s["GT-OP"]["n"] < s["NOP"]["n"]
@@ -168,6 +173,7 @@ def test_tiny_paper_study_outputs(tiny_paper):
     assert ml == pytest.approx(s["GT-OP"]["volume_ml"], rel=1e-6)
     report = (out / "report.md").read_text()
     assert "kinematic" in report and "8.73" in report and "| OP |" in report
+    assert "| test:2 | closed-loop | DONE |" in report
 
 
 def test_study_resumes_without_rerunning(tiny_paper):

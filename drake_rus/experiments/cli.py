@@ -65,6 +65,11 @@ def add_commands(subparsers) -> None:
                                 "er-sweep in OUT, else 0.6)")
         if name in ("starts", "paper"):
             q.add_argument("--starts", type=int, default=5, help="random starts (default 5)")
+        if name == "paper":
+            q.add_argument("--closed-loop", type=int, default=3,
+                           help="closed-loop dynamic scans (first N patients, at the "
+                                "scenario's ER) beside their kinematic twins (default 3; 0 "
+                                "skips)")
         q.add_argument("--no-progress", action="store_true", help="no progress bar")
         q.set_defaults(func=run_study_command)
 
@@ -165,11 +170,24 @@ def run_study_command(args) -> int:
         print("efficiency (pole to pole): " + "; ".join(
             f"{k} n {s[k]['n'][0]:.0f} eps {s[k]['eps_mm'][0]:.1f} mm V {s[k]['V'][0]:.3f}"
             for k in st.STRATEGY_ORDER), flush=True)
+    closed = None
+    if args.study == "paper" and args.closed_loop > 0:
+        scenario = LoadScenario(filename=args.scenarios_file, scenario_name=args.scenario,
+                                scenario_text=args.overrides)
+        tasks = st.closed_loop_tasks(patients[:args.closed_loop], options,
+                                     scenario.controller.exploration_ratio)
+        t = time.perf_counter()
+        go(tasks, "closed-loop")
+        ran["closed-loop"] = time.perf_counter() - t
+        closed = _of(st.load_results(out, "closed-loop"), tasks)
+        st.write_closed_loop_outputs(out, closed)
     wall = time.perf_counter() - t0
     meta = {"study": args.study, "patients": patients, "segmenter": options.segmenter,
             "method": options.method, "voxel": options.voxel, "seed": options.seed,
             "workers": args.workers, "scheduler": args.scheduler, "wall_s": wall,
-            "stage_wall_s": ran, "er": er, "mode": "kinematic", "failed_runs": failed,
+            "stage_wall_s": ran, "er": er,
+            "mode": "kinematic" + (" (+ closed-loop check)" if closed else ""),
+            "failed_runs": failed,
             "runs_done": counts["done"], "runs_skipped": counts["skipped"]}
     # Keep the history of invocations: a resumed study's wall time covers only what it ran.
     meta_path = out / f"study_{args.study}.json"
@@ -186,7 +204,8 @@ def run_study_command(args) -> int:
         "wall_s", "stage_wall_s", "runs_done", "runs_skipped", "workers", "scheduler")}]
     write_text_atomic(meta_path, json.dumps(meta, indent=1))
     if args.study == "paper":
-        write_text_atomic(out / "report.md", st.report_markdown(meta, er_an, starts_an, eff_an))
+        write_text_atomic(out / "report.md", st.report_markdown(meta, er_an, starts_an, eff_an,
+                                                                 closed))
         print(f"wrote {out / 'report.md'}", flush=True)
     print(f"study {args.study}: {wall:.0f} s wall, outputs in {out}", flush=True)
     return 1 if failed else 0

@@ -100,6 +100,8 @@ def run_id(task: dict) -> str:
     """File-name-safe unique name of a run."""
     patient = re.sub(r"[^A-Za-z0-9]+", "-", str(task["patient"])).strip("-")
     parts = [task["study"], patient, f"er{int(round(task['er'] * 100)):03d}"]
+    if task["study"] == "closed-loop":
+        parts.append(f"f{int(round(task['start_fraction'] * 100)):03d}")
     if task["study"] == "starts":
         parts.append(f"s{task['start']}")
     return "__".join(parts)
@@ -184,8 +186,60 @@ def exploration(task: dict, kp, imager, controller, start_fraction: float, x_off
     return full.prefix(float(task["er"]) * controller.kidney_length)
 
 
+def closed_loop_tasks(patients, options: StudyOptions, er: float,
+                      start_fraction: float = 0.1) -> list[dict]:
+    """A few closed-loop dynamic scans (``RunScan``) with their kinematic twins."""
+    return [dict(options.base(), study="closed-loop", patient=p, er=float(er), start=-1,
+                 start_fraction=float(start_fraction)) for p in patients]
+
+
+def run_closed_loop(task: dict) -> dict:
+    """One closed-loop dynamic scan (the lead's ``RunScan``: MultibodyPlant, controller,
+    contact) and the same scan in kinematic mode (same patient, start, ER, segmenter,
+    localization method): E_trans, E_rot,x, and n, eps, V over both pivot legs (what
+    ``ScanMetrics`` counts)."""
+    from drake_rus.experiments import kinematic as km
+    from drake_rus.metrics.core import e_rot_x, e_trans
+    from drake_rus.scan import RunScan, ScanMetrics
+
+    t0 = time.perf_counter()
+    base = _scenario(task["scenario"], task.get("scenarios_file"), task.get("overrides"))
+    scenario = dataclasses.replace(
+        base, controller=dataclasses.replace(base.controller, exploration_ratio=task["er"]),
+        localization=dataclasses.replace(base.localization, method=task["method"]),
+        imaging=dataclasses.replace(base.imaging, segmenter=task["segmenter"]))
+    X_BPt = scenario.patient.X_BPt.GetDeterministicValue()
+    kp = prepared_patient(task["patient"], scenario.patient.side, scenario.patient.posture,
+                          float(task["voxel"]), X_BPt)
+    template = _template(scenario.localization.template)
+    scan = RunScan(scenario, kp.patient, template, progress=False,
+                   start_fraction=float(task["start_fraction"]))
+    m = ScanMetrics(scan)
+    closed = {"status": scan.status, "reason": scan.reason, "e_trans_mm": m["e_trans_mm"],
+              "e_rot_x_deg": m["e_rot_x_deg"], "n": m["n_frames"], "eps_mm": m["eps_mm"],
+              "V": m["volume_ratio"], "sim_s": scan.sim_s, "wall_s": scan.wall_s,
+              "mode": "closed-loop dynamic simulation"}
+    t1 = time.perf_counter()
+    imager = km.Imager(kp, scenario.imaging, task["segmenter"], seed=int(task["seed"]))
+    sweep = km.explore(kp, imager, scenario.controller, exploration_ratio=task["er"],
+                       start_fraction=float(task["start_fraction"]))
+    loc = km.localize_cloud(kp, sweep.point_cloud(), template, scenario.localization,
+                            sweep.frames[0].X_BP.translation()[:2])
+    op = km.strategy_sweep(kp, imager, "OP", scenario.controller, loc.X_BK)
+    c = km.sweep_curves(kp, op, imager.geometry)
+    kin = {"e_trans_mm": e_trans(loc.X_BK, kp.X_BK_true) * 1e3,
+           "e_rot_x_deg": math.degrees(e_rot_x(loc.X_BK, kp.X_BK_true)),
+           "n": int(c["n_frames"]), "eps_mm": c["eps_total"] * 1e3, "V": c["V_final"],
+           "wall_s": time.perf_counter() - t1, "mode": km.MODE}
+    return {"run_id": run_id(task), "task": task, "mode": "closed-loop + kinematic twin",
+            "patient": task["patient"], "er": task["er"], "start": -1,
+            "closed_loop": closed, "kinematic": kin, "wall_s": time.perf_counter() - t0}
+
+
 def run_task(task: dict) -> dict:
     """Executes one run (kinematic) and returns its JSON-ready result."""
+    if task["study"] == "closed-loop":
+        return run_closed_loop(task)
     from drake_rus.experiments import kinematic as km
     from drake_rus.metrics.core import e_rot_x, e_trans
 
@@ -700,11 +754,14 @@ def _f(x, nd=2):
     return "n/a" if x is None or (isinstance(x, float) and not np.isfinite(x)) else f"{x:.{nd}f}"
 
 
-def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict | None) -> str:
+def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict | None,
+                    closed: list | None = None) -> str:
     """report.md: our numbers beside the seed paper's for each table and figure."""
     L = [f"# drake-rus studies: the seed paper's section III on our virtual cohort", "",
          f"- Patients: {', '.join(meta['patients'])} ({len(meta['patients'])})",
-         f"- Mode: **{MODE_NOTE}** for every run in this report (no closed-loop dynamic runs).",
+         f"- Mode: **{MODE_NOTE}** for every run of the tables and figures; "
+         + (f"{len(closed)} closed-loop dynamic scan(s) only in the closed-loop check."
+            if closed else "no closed-loop dynamic runs."),
          f"- Segmenter: {meta['segmenter']}; localization method: `{meta['method']}`; "
          f"label voxel {meta['voxel'] * 1e3:.0f} mm; study seed {meta['seed']}.",
          f"- Starts and efficiency ran at ER {meta.get('er', float('nan')) * 100:.0f}% (the "
@@ -784,6 +841,21 @@ def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict 
               f"against NOP; localization error cost {pe['eps_extra_vs_GT_OP_mm'][0]} +- "
               f"{pe['eps_extra_vs_GT_OP_mm'][1]} mm against GT-OP. Volume: "
               f"{PAPER['volume_loa']}; our target: GT-OP within 5%.", ""]
+    if closed:
+        L += ["## Closed-loop check (a few dynamic scans beside their kinematic twins)", "",
+              "Same patient, start (10% into the E-ROI), ER, segmenter and localization; "
+              "n, eps and V over both pivot legs (as the scan's `ScanMetrics` counts them).", "",
+              "| patient | mode | status | E_trans (mm) | E_rot,x (deg) | n | eps (mm) | V | "
+              "wall (s) |", "|---|---|---|---|---|---|---|---|---|"]
+        for r in closed:
+            c, k = r["closed_loop"], r["kinematic"]
+            L.append(f"| {r['patient']} | closed-loop | {c['status']} | {_f(c['e_trans_mm'])} | "
+                     f"{_f(c['e_rot_x_deg'])} | {c['n']} | {_f(c['eps_mm'], 1)} | "
+                     f"{_f(c['V'], 3)} | {_f(c['wall_s'], 0)} (sim {_f(c['sim_s'], 1)} s) |")
+            L.append(f"| {r['patient']} | kinematic | - | {_f(k['e_trans_mm'])} | "
+                     f"{_f(k['e_rot_x_deg'])} | {k['n']} | {_f(k['eps_mm'], 1)} | "
+                     f"{_f(k['V'], 3)} | {_f(k['wall_s'], 0)} |")
+        L.append("")
     L += ["## Method notes", "",
           "- Kinematic runs place the probe exactly where the controller laws ask (eq. 17 "
           "exploration, eq. 20-23 pivot), tip on the skin surface; no contact dynamics, "
@@ -798,3 +870,16 @@ def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict 
           "- Kidney volume: masks compounded at 1 mm (nearest-pixel, fan clipping, hole "
           "filling), threshold 0.5, against the kidney mesh's volume.", ""]
     return "\n".join(L)
+
+
+def write_closed_loop_outputs(out_dir, results) -> Path:
+    """closed_loop.csv: each closed-loop scan beside its kinematic twin."""
+    rows = []
+    for r in results:
+        for mode in ("closed_loop", "kinematic"):
+            e = r[mode]
+            rows.append({"patient": r["patient"], "mode": mode, "er": r["er"],
+                         "status": e.get("status", ""), "e_trans_mm": e["e_trans_mm"],
+                         "e_rot_x_deg": e["e_rot_x_deg"], "n": e["n"], "eps_mm": e["eps_mm"],
+                         "V": e["V"], "wall_s": e["wall_s"], "sim_s": e.get("sim_s")})
+    return _csv(Path(out_dir) / "closed_loop.csv", rows)
