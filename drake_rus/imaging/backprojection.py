@@ -26,7 +26,10 @@ def accumulate(cloud: PointCloud, boundary: BoundaryPixels, geometry: ProbeGeome
 
     ``max_points_per_frame`` > 0 keeps an evenly strided subset of each frame's boundary.
     A frame with no boundary still counts (and keeps its pose): the kidney was looked for.
+    A frame with a non-finite pose (NaN or inf) is dropped.
     """
+    if not np.all(np.isfinite(boundary.X_BP.GetAsMatrix4())):
+        return cloud    # a frame whose pose is not finite cannot be placed in B: dropped
     px = boundary.pixels
     if max_points_per_frame > 0 and len(px) > max_points_per_frame:
         px = px[np.linspace(0, len(px) - 1, max_points_per_frame).astype(int)]
