@@ -191,3 +191,15 @@ def test_moving_slice_sensor_sees_the_kidney_move(geometry):
     pctx.SetTime(2.0)
     np.testing.assert_allclose(pose.get_output_port().Eval(pctx).translation(),
                                [0.11, 0.2, 0.3], atol=1e-12)
+
+
+def test_nan_stamped_frame_is_not_accumulated(geometry):
+    """A frame whose probe pose is NaN (fault nan_image) adds nothing to P_local."""
+    from drake_rus.imaging.backprojection import BoundaryPixels, PointCloud, accumulate
+    px = np.array([[100.0, 120.0], [110.0, 130.0]])
+    good = accumulate(PointCloud(), BoundaryPixels(px, 0.0, RigidTransform([0.5, 0, 0.1]), 0),
+                      geometry)
+    assert good.frame_count == 1 and len(good.points) == 2
+    bad = accumulate(good, BoundaryPixels(px, 0.05, RigidTransform(np.full(3, np.nan)), 1),
+                     geometry)
+    assert bad.frame_count == 1 and np.all(np.isfinite(bad.points))

@@ -217,7 +217,7 @@ def per_fault(results: list[dict]) -> list[dict]:
 
 def outcome_table(results: list[dict]) -> str:
     """A plain-text table, one row per run."""
-    head = (f"{'run':<32} {'patient':<8} {'status':<9} {'peak F [N]':>10} {'>ceil [ms]':>10} "
+    head = (f"{'run':<36} {'patient':<8} {'status':<9} {'peak F [N]':>10} {'>ceil [ms]':>10} "
             f"{'rest':>5} {'sim s':>6} {'wall s':>7}  reason / exception")
     lines = [head, "-" * len(head)]
     for r in sorted(results, key=lambda r: r["run_id"]):
@@ -226,7 +226,7 @@ def outcome_table(results: list[dict]) -> str:
             return "-" if v is None else fmt.format(v * scale)
         rest = {True: "yes", False: "NO", None: "-"}[r.get("at_rest")]
         why = r.get("exception") or r.get("reason") or ""
-        lines.append(f"{r['run_id']:<32} {r['patient']:<8} {r['status']:<9} "
+        lines.append(f"{r['run_id']:<36} {r['patient']:<8} {r['status']:<9} "
                      f"{num('peak_force_n'):>10} {num('time_above_ceiling_s', 1000, '{:.0f}'):>10} "
                      f"{rest:>5} {num('sim_s'):>6} {num('wall_s'):>7}  {why[:90]}")
     return "\n".join(lines)

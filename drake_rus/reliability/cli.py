@@ -25,6 +25,8 @@ def add_commands(subparsers) -> None:
     p.add_argument("--max-sim-time", type=float, default=60.0,
                    help="per-run limit of simulated time in s (default 60)")
     p.set_defaults(func=run_campaign_command)
+    from drake_rus.reliability.breathing import add_commands as add_breathing
+    add_breathing(subparsers)
 
 
 def _check_args(args) -> None:
