@@ -60,8 +60,12 @@ def _robot_velocity(station, station_context) -> np.ndarray:
 
 
 def RunFaultyScan(scenario, patient, template, *, max_sim_time: float = 150.0,
-                  settle: float = 0.5, start_fraction: float = 0.1):
-    """Runs one scan; returns (ScanResult, safety dict)."""
+                  settle: float | None = None, start_fraction: float = 0.1):
+    """Runs one scan; returns (ScanResult, safety dict). ``settle`` (s) defaults to the
+    force-stop retract time plus 0.3 s."""
+    if settle is None:
+        cfg = scenario.safety
+        settle = cfg.retract_distance / cfg.retract_speed + 0.3
     scenario, _ = PrepareScenario(scenario, patient, start_fraction)
     diagram, h = BuildScanDiagram(scenario, patient, template)
     simulator = Simulator(diagram)

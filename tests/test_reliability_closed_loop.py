@@ -1,0 +1,73 @@
+"""Closed-loop scans with injected faults end safely: ABORT with the right reason, the robot
+at rest afterwards, and the true contact force never above the ceiling for > 50 ms.
+Short runs only (a fault at 1.5 s of simulated time)."""
+
+import json
+
+import pytest
+
+from drake_rus.reliability.campaign import make_tasks, run_campaign, summarize
+from drake_rus.reliability.run import FORCE_VIOLATION_S, ForceWatch, RunFaultyScan, outcome_reason
+from drake_rus.scenario import LoadScenario
+
+
+@pytest.fixture(scope="module")
+def patient_and_template():
+    from drake_rus.anatomy import load_patient
+    from drake_rus.localization.localize import load_registration_template
+    scenario = LoadScenario(scenario_name="quick")
+    return (load_patient("test:0", progress=False),
+            load_registration_template(scenario.localization.template))
+
+
+@pytest.mark.parametrize("fault,words", [
+    ("{kind: force_spike, start: 1.5, magnitude: 30.0}", ["force ceiling"]),
+    ("{kind: image_dropout, start: 1.5}", ["stale image"]),
+    ("{kind: nan_pose, start: 1.5, duration: 0.2}", ["non-finite"]),
+], ids=["force_spike", "image_dropout", "nan_pose"])
+def test_fault_ends_in_a_safe_stop(patient_and_template, fault, words):
+    patient, template = patient_and_template
+    scenario = LoadScenario(scenario_name="quick",
+                            scenario_text=f"{{faults: {{sensor: [{fault}]}}}}")
+    result, check = RunFaultyScan(scenario, patient, template, max_sim_time=4.0)
+    assert result.status == "ABORT"
+    reason = outcome_reason(result)
+    assert all(w in reason for w in words), reason
+    assert result.safety_events[0].time >= 1.5
+    assert result.safety_events[0].time < 1.5 + 0.35      # detected within the watchdogs
+    assert check["safety_stopped"] and check["at_rest"], check
+    assert check["final_command_norm"] == 0.0
+    assert not check["force_violation"] and check["peak_force_n"] < 20.0
+
+
+def test_force_watch_measures_time_above_ceiling():
+    w = ForceWatch(ceiling=20.0)
+    for k in range(200):
+        t = k * 0.001
+        w.add(t, 25.0 if 0.050 <= t < 0.090 else 10.0)
+    assert w.peak == 25.0
+    assert w.longest_above == pytest.approx(0.040, abs=0.0015)
+    assert not w.violation
+    for k in range(200, 300):
+        w.add(k * 0.001, 30.0)
+    assert w.longest_above > FORCE_VIOLATION_S and w.violation
+
+
+def test_campaign_runs_resume_and_summarize(tmp_path):
+    tasks = make_tasks(2, seed=4, patients=1, max_sim_time=2.5)
+    assert [t["fault"] for t in tasks] == ["none", "image_dropout"]
+    assert make_tasks(2, seed=4, patients=1, max_sim_time=2.5) == tasks   # reproducible
+    results = run_campaign(tasks[:1], tmp_path, workers=0)
+    assert len(results) == 1 and results[0]["exception"] is None
+    assert results[0]["status"] == "TIMEOUT" and results[0]["peak_force_n"] > 1.0
+    first = (tmp_path / "runs" / f"{tasks[0]['run_id']}.json").read_text()
+    # Resuming does not redo a finished run (its file is untouched).
+    seen = []
+    again = run_campaign(tasks[:1], tmp_path, workers=0, progress=seen.append)
+    assert seen == [] and again == results
+    assert (tmp_path / "runs" / f"{tasks[0]['run_id']}.json").read_text() == first
+    assert json.loads(first)["run_id"] == tasks[0]["run_id"]
+    summary = summarize(results)
+    assert summary["runs"] == 1 and summary["exceptions"] == 0
+    assert summary["force_violations"] == 0
+    assert not list((tmp_path / "runs").glob(".*"))      # no temporary files left behind
