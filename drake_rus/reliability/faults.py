@@ -27,8 +27,8 @@ def _hold_schedule(cfg: BreathingConfig):
 
 
 def _hold_offset(cfg: BreathingConfig, k: int, seed: int) -> float:
-    """Where hold k lands (m from end-expiration), uniform in +-hold_reproducibility/2...
-    as a fixed draw per hold; hold -1 (before the first) is at 0."""
+    """Where hold k lands (m caudal of end-expiration): a fixed draw per hold, uniform in
+    [0, hold_reproducibility]; before the first hold, 0."""
     if k < 0 or cfg.hold_reproducibility == 0.0:
         return 0.0
     rng = np.random.default_rng([seed, 7919, k])
