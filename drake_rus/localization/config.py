@@ -17,6 +17,9 @@ class LocalizationConfig:
     # seed's 1e-5 mm^2.
     error_change_tol: float = field(default=1e-11, metadata={"positive": True})
     max_iterations: int = field(default=200, metadata={"min": 1})
+    # Also stop once an iteration's rotation (rad) and translation (m) steps fall below this
+    # (1e-4: 0.006 deg and 0.1 mm, far below the localization error).
+    step_tolerance: float = field(default=1e-4, metadata={"positive": True})
     # Initial translation: "centroid" (partial cloud centroid on the template origin) or
     # "zero" (the seed's t0 = 0); see drake_rus/localization/icp.py.
     init_translation: str = field(default="centroid", metadata={"choices": ["centroid", "zero"]})
@@ -38,7 +41,7 @@ class LocalizationConfig:
     # Exploration shorter than this (m of probe travel) cannot localize the kidney.
     min_exploration_travel: float = field(default=0.015, metadata={"min": 0.0})
     # Partial clouds are thinned to at most this many points before registration.
-    max_points: int = field(default=4000, metadata={"min": 6})
+    max_points: int = field(default=1500, metadata={"min": 6})
     # Adaptive exploration (beyond the seed): stop exploring once two successive estimates,
     # computed every ``adaptive_period`` s of exploration, differ by less than these.
     adaptive_exploration: bool = False

@@ -15,7 +15,7 @@ from scipy.spatial import cKDTree
 
 from drake_rus.localization.config import LocalizationConfig
 from drake_rus.localization.icp import (
-    IcpResult, heuristic_initial_rotation, register_plane_to_plane)
+    IcpResult, NearestPointGrid, heuristic_initial_rotation, register_plane_to_plane)
 from drake_rus.paths import REPO_ROOT
 
 
@@ -26,7 +26,6 @@ class RegistrationTemplate:
     normals: np.ndarray                # (N, 3) unit outward normals
     modes: np.ndarray | None = None    # (n_modes, N, 3) displacement fields (m per unit b)
     variances: np.ndarray | None = None  # (n_modes,) variances of the mode weights
-    tree: cKDTree | None = None
 
     def __post_init__(self):
         self.points = np.asarray(self.points, dtype=float)
@@ -35,7 +34,14 @@ class RegistrationTemplate:
             modes = np.asarray(self.modes, dtype=float)
             self.modes = modes.reshape(modes.shape[0], -1, 3)
             self.variances = np.asarray(self.variances, dtype=float).reshape(-1)
-        self.tree = cKDTree(self.points)
+        self._grid = None
+
+    @property
+    def tree(self) -> NearestPointGrid:
+        """Nearest-point lookup on the mean template (built on first use, ~1 s)."""
+        if self._grid is None:
+            self._grid = NearestPointGrid(self.points)
+        return self._grid
 
 
 def load_registration_template(path: str | None = None) -> RegistrationTemplate:
@@ -80,7 +86,8 @@ def localize(P_local_B: np.ndarray, template: RegistrationTemplate, config: Loca
         init_translation=config.init_translation, theta_max=np.deg2rad(config.theta_max_deg),
         error_change_tol=config.error_change_tol, max_iterations=config.max_iterations,
         max_correspondence_distance=config.max_correspondence_distance or np.inf,
-        max_translation_step=config.max_translation_step)
+        max_translation_step=config.max_translation_step,
+        step_tolerance=config.step_tolerance)
     if config.method == "deformable" and template.modes is not None and config.shape_modes > 0:
         k = min(config.shape_modes, template.modes.shape[0])
         return register_plane_to_plane(
