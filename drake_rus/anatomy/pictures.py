@@ -20,14 +20,8 @@ LABEL_COLORS = {
 
 
 def _save(fig, path):
-    import matplotlib.pyplot as plt
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    tmp.replace(path)
-    return path
+    from drake_rus.io_utils import save_figure
+    return save_figure(fig, path, dpi=110)
 
 
 def _lut():

@@ -279,14 +279,9 @@ def start_xy(kp: KinematicPatient, start_fraction: float = 0.0, scan_direction: 
     """Exploration start (x, y) (III-C, ``exploration_start``): over the kidney centroid's x
     (+ ``x_offset``), at the E-ROI end the scan leaves from, ``start_fraction`` of the
     E-ROI's length inside it."""
-    roi = kp.roi
-    if scan_direction == "-y":
-        y = roi.y_max - start_fraction * roi.length_y
-    elif scan_direction == "+y":
-        y = roi.y_min + start_fraction * roi.length_y
-    else:
-        raise ValueError(f"scan_direction: expected '+y' or '-y', got {scan_direction!r}")
-    return np.array([float(roi.centroid_B[0]) + x_offset, y])
+    from drake_rus.experiments.planning import exploration_start_xy
+    x, y = exploration_start_xy(kp.roi, scan_direction, start_fraction)
+    return np.array([x + x_offset, y])
 
 
 def explore(kp: KinematicPatient, imager: Imager, controller, *, exploration_ratio: float,

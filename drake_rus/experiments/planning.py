@@ -56,6 +56,19 @@ def skin_height_B(patient, X_BPt: RigidTransform, x: float, y: float) -> float:
     return float(hits_B[:, 2].max())
 
 
+def exploration_start_xy(roi: ExplorationRoi, scan_direction: str = "-y",
+                         start_fraction: float = 0.0) -> tuple[float, float]:
+    """(x, y) of the exploration start: over the kidney centroid's x, at the E-ROI's end the
+    scan leaves from, ``start_fraction`` of the E-ROI's length inside it."""
+    if scan_direction == "-y":
+        y = roi.y_max - start_fraction * roi.length_y
+    elif scan_direction == "+y":
+        y = roi.y_min + start_fraction * roi.length_y
+    else:
+        raise ValueError(f"scan_direction: expected '+y' or '-y', got {scan_direction!r}")
+    return float(roi.centroid_B[0]), float(y)
+
+
 def exploration_start(patient, X_BPt: RigidTransform, *, scan_direction: str = "-y",
                       start_fraction: float = 0.0, hover: float = 0.015) -> RigidTransform:
     """Tip pose (transverse view, pointing down) ``hover`` m above the skin at the start.
@@ -64,13 +77,7 @@ def exploration_start(patient, X_BPt: RigidTransform, *, scan_direction: str = "
     (its superior end for a "-y" scan when the head is at +y), moved into the E-ROI by
     ``start_fraction`` of its length (0: at the pole; randomised starts use more).
     """
-    roi = exploration_roi(patient, X_BPt)
-    if scan_direction == "-y":
-        y = roi.y_max - start_fraction * roi.length_y
-    elif scan_direction == "+y":
-        y = roi.y_min + start_fraction * roi.length_y
-    else:
-        raise ValueError(f"scan_direction: expected '+y' or '-y', got {scan_direction!r}")
-    x = float(roi.centroid_B[0])
+    x, y = exploration_start_xy(exploration_roi(patient, X_BPt), scan_direction,
+                                start_fraction)
     z = skin_height_B(patient, X_BPt, x, y) + hover
     return RigidTransform(R_B_TRANSVERSE, [x, y, z])

@@ -44,13 +44,8 @@ def plot_convergence(conv: dict, path: Path) -> Path:
     ax.legend(loc="upper right", fontsize=8, framealpha=0.9)
     ax.set_ylim(bottom=0)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=120)
-    plt.close(fig)
-    tmp.replace(path)
-    return path
+    from drake_rus.io_utils import save_figure
+    return save_figure(fig, path, dpi=120)
 
 
 def plot_template_modes(template, path: Path, n_modes: int = 3) -> Path:
