@@ -34,7 +34,7 @@ from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import (
     AddMultibodyPlant, ContactResults, CoulombFriction, MultibodyPlant, MultibodyPlantConfig)
 from pydrake.multibody.tree import (
-    JacobianWrtVariable, PdControllerGains, RotationalInertia, SpatialInertia, UnitInertia)
+    PdControllerGains, RotationalInertia, SpatialInertia, UnitInertia)
 from pydrake.systems.controllers import InverseDynamics
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import Diagram, DiagramBuilder, LeafSystem
@@ -42,6 +42,7 @@ from pydrake.systems.primitives import (
     Adder, ConstantVectorSource, Demultiplexer, DiscreteTimeIntegrator, Multiplexer, PassThrough)
 
 from drake_rus.config_schema import ScenarioError
+from drake_rus.control.kinematics import TipKinematics
 from drake_rus.paths import AddDrakeRusPackages
 from drake_rus.scenario import CheckScenario, Scenario
 from drake_rus.sim.force_estimation import contact_force_along_approach, estimate_tip_wrench
@@ -130,27 +131,6 @@ def MakeControlPlant(scenario: Scenario) -> tuple[MultibodyPlant, object]:
     parts = AddFr3AndProbe(plant, scenario, with_collision=False)
     plant.Finalize()
     return plant, plant.GetFrameByName(PROBE_TIP_FRAME, parts.probe)
-
-
-class TipKinematics:
-    """Pose and Jacobian of the probe tip for joint positions q (its own plant context)."""
-
-    def __init__(self, control_plant: MultibodyPlant, tip_frame):
-        self.plant = control_plant
-        self.frame = tip_frame
-        self._context = control_plant.CreateDefaultContext()
-
-    def pose(self, q) -> RigidTransform:
-        """X_WP (m) at joint positions q (rad)."""
-        self.plant.SetPositions(self._context, q)
-        return self.frame.CalcPoseInWorld(self._context)
-
-    def jacobian(self, q) -> np.ndarray:
-        """J_WP (6 x 7): [w; v] of the tip frame about its origin, in W, w.r.t. joint rates."""
-        self.plant.SetPositions(self._context, q)
-        world = self.plant.world_frame()
-        return self.plant.CalcJacobianSpatialVelocity(
-            self._context, JacobianWrtVariable.kV, self.frame, np.zeros(3), world, world)
 
 
 class ProbePoseFromJoints(LeafSystem):

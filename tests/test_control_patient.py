@@ -9,7 +9,7 @@ import pytest
 from pydrake.systems.analysis import Simulator
 
 from drake_rus.control import scan
-from drake_rus.control.diagram import BuildClosedLoopOnPatient
+from drake_rus.control.diagram import AdvanceUntilScanEnds, BuildClosedLoopOnPatient
 from drake_rus.scenario import LoadScenario
 
 pytestmark = pytest.mark.slow
@@ -23,9 +23,7 @@ def test_full_scan_on_a_virtual_patient_with_emulated_images_and_segmenter():
     ctx = sim.get_mutable_context()
     sup = cl.parts.supervisor
     sup_ctx = sup.GetMyContextFromRoot(ctx)
-    while ctx.get_time() < 40.0 and sup.state(sup_ctx).phase not in (scan.Phase.DONE,
-                                                                       scan.Phase.ABORT):
-        sim.AdvanceTo(ctx.get_time() + 0.5)
+    AdvanceUntilScanEnds(sim, sup, 40.0)
     st = sup.state(sup_ctx)
     print("\nsupervisor events:", *st.events, sep="\n  ")
     safety = cl.parts.safety.safety_state(cl.parts.safety.GetMyContextFromRoot(ctx))

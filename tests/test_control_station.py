@@ -13,7 +13,7 @@ from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.systems.analysis import Simulator
 
 from drake_rus.control import scan
-from drake_rus.control.diagram import BuildClosedLoop
+from drake_rus.control.diagram import AdvanceUntilScanEnds, BuildClosedLoop
 from drake_rus.control.kinematics import TipKinematics
 from drake_rus.control.laws import angle_between
 from drake_rus.control.safety import StopReason
@@ -60,9 +60,7 @@ def full_scan():
     ctx = sim.get_mutable_context()
     sup = cl.parts.supervisor
     sup_ctx = sup.GetMyContextFromRoot(ctx)
-    while ctx.get_time() < 40.0 and sup.state(sup_ctx).phase not in (scan.Phase.DONE,
-                                                                       scan.Phase.ABORT):
-        sim.AdvanceTo(ctx.get_time() + 0.5)
+    AdvanceUntilScanEnds(sim, sup, 40.0)
     L = logs(cl, ctx)
     state = sup.state(sup_ctx)
     safety_events = cl.parts.safety.safety_state(cl.parts.safety.GetMyContextFromRoot(ctx)).events

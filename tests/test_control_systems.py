@@ -13,7 +13,7 @@ from pydrake.systems.primitives import ConstantVectorSource
 from drake_rus.control import laws, scan
 from drake_rus.control.config import ControllerConfig, SafetyConfig
 from drake_rus.control.faults import FaultInjector
-from drake_rus.control.kinematics import (JointsForTipPosition, MakeControlPlantFallback,
+from drake_rus.control.kinematics import (JointsForTipPosition, MakeControlPlant,
                                           TipKinematics)
 from drake_rus.control.synthetic_view import GeometricKidneyView, kidney_section
 from drake_rus.control.systems import (ForcePD, NullSpaceDiffIK, OrientationAlignment,
@@ -25,7 +25,7 @@ X_TILT = RigidTransform(RollPitchYaw(math.pi + 0.2, 0.1, 0.3), [0.55, 0.02, 0.11
 
 @pytest.fixture(scope="module")
 def plant_and_frame():
-    return MakeControlPlantFallback()
+    return MakeControlPlant()
 
 
 def test_contact_force_sign():

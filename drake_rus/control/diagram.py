@@ -303,3 +303,14 @@ def BuildClosedLoopOnPatient(scenario, patient, *, log_period: float | None = 0.
             builder.Connect(port, log.get_input_port())
             loggers[name] = log
     return ClosedLoop(builder.Build(), station, parts, None, {}, loggers), scenario
+
+
+def AdvanceUntilScanEnds(simulator, supervisor, t_max: float, step: float = 0.5) -> None:
+    """Advances ``simulator`` in ``step`` s chunks until ``supervisor`` (a ScanSupervisor in
+    its diagram) reaches DONE or ABORT, or the time reaches ``t_max`` (s)."""
+    from drake_rus.control import scan
+    context = simulator.get_mutable_context()
+    supervisor_context = supervisor.GetMyContextFromRoot(context)
+    while context.get_time() < t_max and supervisor.state(supervisor_context).phase not in (
+            scan.Phase.DONE, scan.Phase.ABORT):
+        simulator.AdvanceTo(min(t_max, context.get_time() + step))

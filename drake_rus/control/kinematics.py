@@ -46,39 +46,11 @@ class TipKinematics:
         return self.frame.CalcPoseInWorld(self.context)
 
 
-def MakeControlPlantFallback(scenario=None):
-    """FR3 + a tip frame "probe_tip" welded to the flange at the scenario's X_FP.
-
-    Used when ``drake_rus.station.MakeControlPlant`` is not available (unit tests of the
-    controller in isolation). Returns (plant, probe_tip_frame).
-    """
-    from pydrake.math import RigidTransform as RT
-    from pydrake.multibody.parsing import Parser
-    from pydrake.multibody.tree import FixedOffsetFrame
-
-    from drake_rus.paths import AddDrakeRusPackages
-    from drake_rus.scenario import Scenario
-
-    scenario = scenario or Scenario()
-    plant = MultibodyPlant(0.0)
-    parser = Parser(plant)
-    AddDrakeRusPackages(parser.package_map())
-    (model,) = parser.AddModels(url=scenario.robot.model)
-    plant.WeldFrames(plant.world_frame(), plant.GetFrameByName("fr3_link0", model), RT())
-    X_FP = scenario.probe.X_FP.GetDeterministicValue()
-    tip = plant.AddFrame(FixedOffsetFrame("probe_tip", plant.GetFrameByName("fr3_link8", model),
-                                          X_FP))
-    plant.Finalize()
-    return plant, tip
-
-
 def MakeControlPlant(scenario=None):
-    """The station's control plant if it exists, else :func:`MakeControlPlantFallback`."""
-    try:
-        from drake_rus.station import MakeControlPlant as station_make
-    except ImportError:
-        return MakeControlPlantFallback(scenario)
+    """The control plant (FR3 + calibrated probe) of ``drake_rus.station.MakeControlPlant``
+    for ``scenario`` (default: the default Scenario). Returns (plant, probe_tip_frame)."""
     from drake_rus.scenario import Scenario
+    from drake_rus.station import MakeControlPlant as station_make
     return station_make(scenario or Scenario())
 
 

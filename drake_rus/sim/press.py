@@ -36,7 +36,7 @@ class PressDriver(LeafSystem):
                  force_gain: float = 0.004, max_speed: float = 0.03, rate_hz: float = 100.0,
                  start_time: float = 0.0):
         super().__init__()
-        from drake_rus.station import TipKinematics
+        from drake_rus.control.kinematics import TipKinematics
         self._tip = TipKinematics(control_plant, tip_frame)
         self._desired_force = desired_force
         self._force_gain = force_gain
