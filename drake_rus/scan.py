@@ -105,6 +105,8 @@ class ScanResult:
     logs: dict                     # name -> (times, data)
     safety_events: list
     scenario: object
+    # Kidney tracking checks after localization: ((time s, apparent drift m), ...).
+    tracking_drift: tuple = ()
 
 
 def _kidney_voxels_B(patient, X_BPt, voxel_size):
@@ -121,6 +123,7 @@ def BuildScanDiagram(scenario, patient, template, *, meshcat=None):
     from drake_rus.control.diagram import AddController
     from drake_rus.imaging.systems import PointCloudAccumulator, Segmenter
     from drake_rus.localization.localize import IcpLocalizer, body_directions_B
+    from drake_rus.localization.tracking import KidneyTrackingMonitor
     from drake_rus.station import MakeStation
 
     builder = DiagramBuilder()
@@ -153,9 +156,22 @@ def BuildScanDiagram(scenario, patient, template, *, meshcat=None):
                     supervisor.GetInputPort("exploration_sufficient"))
     exploring = builder.AddNamedSystem("exploring", PhaseIs(PHASE_NAMES.index("EXPLORE")))
     builder.Connect(supervisor.GetOutputPort("phase"), exploring.get_input_port(0))
-    from drake_rus.reliability.station import GateByBreathHold
+    from drake_rus.reliability.station import BreathHoldPort, GateByBreathHold
     builder.Connect(GateByBreathHold(builder, scenario, station, exploring.get_output_port(0)),
                     accumulator.GetInputPort("enable"))
+    tracking = builder.AddNamedSystem("kidney_tracking_monitor", KidneyTrackingMonitor(
+        template, scenario.localization, scenario.imaging,
+        check_phases=[PHASE_NAMES.index("TRANSIT"), PHASE_NAMES.index("PIVOT")]))
+    builder.Connect(segmenter.GetOutputPort("boundary_pixels"),
+                    tracking.GetInputPort("boundary_pixels"))
+    builder.Connect(localizer.GetOutputPort("localization"), tracking.GetInputPort("localization"))
+    builder.Connect(supervisor.GetOutputPort("phase"), tracking.GetInputPort("phase"))
+    builder.Connect(tracking.GetOutputPort("tracking_error"),
+                    supervisor.GetInputPort("tracking_error"))
+    hold = BreathHoldPort(scenario, station)
+    if hold is not None:
+        builder.Connect(hold, supervisor.GetInputPort("motion_allowed"))
+        builder.Connect(hold, tracking.GetInputPort("motion_allowed"))
 
     recorder = builder.AddNamedSystem("scan_recorder", ScanRecorder(scenario.imaging.frame_rate_hz))
     builder.Connect(station.GetOutputPort("us_image"), recorder.GetInputPort("us_image"))
@@ -180,6 +196,7 @@ def BuildScanDiagram(scenario, patient, template, *, meshcat=None):
     diagram.set_name("scan")
     handles = dict(station=station, segmenter=segmenter, accumulator=accumulator,
                    localizer=localizer, supervisor=supervisor, recorder=recorder, parts=parts,
+                   tracking=tracking,
                    logs=logs)
     return diagram, handles
 
@@ -279,7 +296,8 @@ def _collect(scenario, patient, template, diagram, h, simulator, wall) -> ScanRe
         X_BK_true=patient.X_BK(X_BPt), X_BK_estimated=X_BK_est,
         registered_template_B=registered,
         kidney_points_B=_kidney_voxels_B(patient, X_BPt, voxel), voxel_volume=voxel**3,
-        logs=logs, safety_events=events, scenario=scenario)
+        logs=logs, safety_events=events, scenario=scenario,
+        tracking_drift=h["tracking"].state(h["tracking"].GetMyContextFromRoot(context)).history)
 
 
 def ScanMetrics(result: ScanResult) -> dict:
@@ -344,6 +362,8 @@ def Summary(result: ScanResult, metrics: dict) -> dict:
         "phases": [{"phase": n, "start_s": a, "end_s": b, "duration_s": b - a}
                    for n, a, b in result.phases],
         "localization": diag, "localization_error": loc.error or None,
+        "max_kidney_drift_mm": (max(d for _, d in result.tracking_drift) * 1000
+                                if result.tracking_drift else None),
         "exploration_ratio": result.scenario.controller.exploration_ratio,
         "segmenter": result.scenario.imaging.segmenter,
         "peak_force_n": float(np.max(force)) if len(force) else 0.0,

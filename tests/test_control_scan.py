@@ -278,3 +278,94 @@ def test_supervisor_aborts_with_reason():
     # ABORT and DONE are terminal.
     s2 = scan.supervisor_step(s, inputs(t + 2.0), c, dt)
     assert s2.phase == scan.Phase.ABORT
+
+
+# ------------------------------------------------------------------ respiration gating
+def gated(t, allowed, **kw):
+    return dataclasses.replace(inputs(t, **kw), motion_allowed=allowed)
+
+
+def test_supervisor_exploration_holds_still_outside_breath_holds():
+    """Outside a hold the exploration target stays put and the kidney may leave the image;
+    travel resumes in the next hold and the total travel is unchanged."""
+    c = cfg(exploration_ratio=0.1, kidney_length=0.1, visibility_debounce=0.05)
+    dt = 0.01
+    s = scan.supervisor_step(scan.SupervisorState(), inputs(0.0), c, dt)
+    s = scan.supervisor_step(s, inputs(0.01), c, dt)
+    assert s.phase == scan.Phase.EXPLORE
+    t = 0.01
+    for _ in range(50):                      # 0.5 s of travel in a hold
+        t += dt
+        s = scan.supervisor_step(s, gated(t, True), c, dt)
+    travel, P = s.travel, s.P_des.copy()
+    assert travel == pytest.approx(51 * 0.005 * dt)   # the EXPLORE entry step moves too
+    for _ in range(100):                     # 1 s of breathing: kidney gone from the image
+        t += dt
+        s = scan.supervisor_step(s, gated(t, False, visible=False), c, dt)
+        assert s.phase == scan.Phase.EXPLORE and s.paused
+        assert not scan.segmentation_required(s)
+    assert s.travel == travel
+    np.testing.assert_array_equal(s.P_des, P)
+    assert s.paused_time == pytest.approx(1.0)
+    t += dt
+    s = scan.supervisor_step(s, gated(t, True), c, dt)   # the next hold
+    assert not s.paused and scan.segmentation_required(s)
+    assert s.travel > travel
+    while s.phase == scan.Phase.EXPLORE and t < 60:
+        t += dt
+        s = scan.supervisor_step(s, gated(t, True), c, dt)
+    assert s.phase == scan.Phase.LOCALIZE and s.travel == pytest.approx(0.01)
+
+
+def _to_pivot(c, dt=0.01):
+    s, t = run_to_localize(c, dt)
+    R_BK = RotationMatrix(RollPitchYaw(0.0, 0.0, math.pi / 2)).matrix()
+    p_BK = np.array([0.55, 0.0, 0.0])
+    t += 1.0
+    s = scan.supervisor_step(s, inputs(t, R_BK=R_BK, p_BK=p_BK), c, dt)
+    R_star, _ = scan.optimal_pivot_pose(R_BK, p_BK)
+    t += dt
+    s = scan.supervisor_step(s, inputs(t, p=(0.55, 0.0, 0.1), R=R_star), c, dt)
+    assert s.phase == scan.Phase.PIVOT
+    return s, t, R_star
+
+
+def test_supervisor_pivot_ramps_to_rest_outside_breath_holds_and_resumes():
+    c = cfg(exploration_ratio=0.02, localize_hold_time=0.0, pivot_rate=0.2,
+            max_pivot_tilt=0.5, visibility_debounce=0.05)
+    dt = 0.01
+    s, t, R = _to_pivot(c, dt)
+    for _ in range(100):
+        t += dt
+        s = scan.supervisor_step(s, gated(t, True, R=R), c, dt)
+    angle = s.pivot_angle
+    assert s.pivot_speed == pytest.approx(0.2)
+    speeds = []
+    for _ in range(200):                     # 2 s outside a hold, kidney not visible
+        t += dt
+        s = scan.supervisor_step(s, gated(t, False, R=R, visible=False), c, dt)
+        speeds.append(s.pivot_speed)
+        assert s.phase == scan.Phase.PIVOT and s.pivot_legs_done == 0
+    assert speeds[-1] == 0.0
+    assert np.all(np.abs(np.diff([0.2] + speeds)) <= c.pivot_acceleration * dt + 1e-12)
+    ramp = 0.2**2 / (2 * c.pivot_acceleration)          # the stopping distance
+    assert s.pivot_angle == pytest.approx(angle + ramp, abs=0.2 * dt + 1e-6)
+    held = s.pivot_angle
+    t += dt
+    s = scan.supervisor_step(s, gated(t, True, R=R), c, dt)
+    assert s.pivot_angle > held and not s.paused
+
+
+def test_supervisor_aborts_when_the_kidney_moved_after_localization():
+    c = cfg(exploration_ratio=0.02, localize_hold_time=0.0)
+    dt = 0.01
+    s, t, R = _to_pivot(c, dt)
+    t += dt
+    u = dataclasses.replace(inputs(t, R=R), tracking_error="drift 12 mm")
+    s = scan.supervisor_step(s, u, c, dt)
+    assert s.phase == scan.Phase.ABORT
+    assert s.reason == "kidney moved: drift 12 mm"
+    # Before localization a tracking error has no meaning and is ignored.
+    s2 = scan.supervisor_step(scan.SupervisorState(), inputs(0.0), c, dt)
+    s2 = scan.supervisor_step(s2, dataclasses.replace(inputs(0.01), tracking_error="x"), c, dt)
+    assert s2.phase == scan.Phase.EXPLORE

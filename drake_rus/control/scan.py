@@ -126,6 +126,8 @@ class SupervisorState:
     pivot_angle: float = 0.0         # tilt of a_des from r3* about o_des (rad), signed
     pivot_legs_done: int = 0
     pivot_limits: tuple = ()         # tilt angles (rad) where each leg ended
+    paused: bool = False             # exploration/pivot motion held (outside a breath-hold)
+    paused_time: float = 0.0         # total time (s) motion was held
     a_star: np.ndarray = dataclasses.field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
     p_star: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, math.nan))
     reason: str = ""
@@ -161,6 +163,12 @@ class SupervisorInputs:
     safety_stopped: bool = False     # the safety layer has stopped the robot
     localization_error: str = ""     # why the localizer could not give a pose ("" = none)
     exploration_sufficient: bool = False  # adaptive exploration: the estimate has settled
+    # Respiration gating: False outside breath-holds; exploration travel and the pivot tilt
+    # then hold still (force control keeps contact) until the next hold.
+    motion_allowed: bool = True
+    # The kidney no longer lies where localization put it ("" = consistent): TRANSIT and
+    # PIVOT abort, since the pivot would image the wrong place.
+    tracking_error: str = ""
 
 
 def _goto(s: SupervisorState, phase: Phase, t: float, message: str) -> SupervisorState:
@@ -198,7 +206,17 @@ def _pivot_advance(s: SupervisorState, cfg, dt: float) -> None:
 def segmentation_required(s: SupervisorState) -> bool:
     """Whether the kidney must be visible now (EXPLORE; PIVOT except while returning from a
     leg that ended because it left the image); drives the safety layer's watchdog."""
+    if s.paused:
+        return False   # holding still outside a breath-hold: the kidney may drift away
     return s.phase == Phase.EXPLORE or (s.phase == Phase.PIVOT and not s.expect_invisible)
+
+
+def _hold_motion(s: SupervisorState, dt: float) -> SupervisorState:
+    """Respiration gating: no exploration travel or pivot leg ending while paused."""
+    s.paused = True
+    s.paused_time += dt
+    s.invisible_since = math.nan
+    return s
 
 
 def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float
@@ -212,7 +230,10 @@ def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float
     with a_des = r3*, o_des = r1*. PIVOT: a_des rotates about o_des (eq. 23) one way until
     the kidney leaves the image (or max tilt), then back through r3* to the other side;
     then DONE. ABORT (with reason) on a safety stop, a non-finite input or pose, a missing
-    kidney pose, a LOCALIZE or TRANSIT timeout. The pivot tilt rate ramps with pivot_acceleration.
+    kidney pose, a LOCALIZE or TRANSIT timeout, or (TRANSIT, PIVOT) a tracking error: the
+    kidney has moved away from its registered pose. The pivot tilt rate ramps with
+    pivot_acceleration. While ``motion_allowed`` is False (outside a breath-hold) EXPLORE
+    and PIVOT hold still (the pivot rate ramps to zero) and the kidney may leave the image.
     """
     s = state.copy()
     R = np.asarray(u.R_BP, dtype=float)
@@ -258,7 +279,7 @@ def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float
 
     if s.phase == Phase.EXPLORE:
         sign = 1.0 if cfg.scan_direction == "+y" else -1.0
-        left = _update_visibility(s, u, cfg.visibility_debounce)
+        left = u.motion_allowed and _update_visibility(s, u, cfg.visibility_debounce)
         target = cfg.exploration_ratio * cfg.kidney_length
         if s.travel >= target - 1e-12:
             s.P_des = p[:2].copy()
@@ -271,6 +292,9 @@ def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float
             s.P_des = p[:2].copy()
             return _goto(s, Phase.LOCALIZE, u.t,
                          f"pose estimate settled after {s.travel * 1e3:.1f} mm (adaptive)")
+        if not u.motion_allowed:
+            return _hold_motion(s, dt)
+        s.paused = False
         step = min(cfg.scan_speed * dt, target - s.travel)
         c = u.c_msk if u.kidney_visible else math.nan
         s.P_des = exploration_update(s.P_des, c, R[:, 0], sign * step / dt, cfg.K_p7, dt)
@@ -299,6 +323,11 @@ def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float
         return _goto(s, Phase.TRANSIT, u.t,
                      f"p* = ({p_star[0]:.4f}, {p_star[1]:.4f}, {p_star[2]:.4f}) m")
 
+    if s.phase in (Phase.TRANSIT, Phase.PIVOT) and u.tracking_error:
+        s.reason = f"kidney moved: {u.tracking_error}"
+        s.pivot_speed = 0.0
+        return _goto(s, Phase.ABORT, u.t, s.reason)
+
     if s.phase == Phase.TRANSIT:
         dist = float(np.linalg.norm(p[:2] - s.p_star[:2]))
         ang = max(angle_between(R[:, 2], s.a_des), angle_between(R[:, 0], s.o_des))
@@ -313,6 +342,11 @@ def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float
         return s
 
     if s.phase == Phase.PIVOT:
+        if not u.motion_allowed:
+            s.pivot_speed = _ramp(s.pivot_speed, 0.0, cfg.pivot_acceleration * dt)
+            _pivot_advance(s, cfg, dt)
+            return _hold_motion(s, dt)
+        s.paused = False
         left = _update_visibility(s, u, cfg.visibility_debounce)
         if u.kidney_visible:
             s.expect_invisible = False

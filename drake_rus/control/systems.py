@@ -214,7 +214,10 @@ class ScanSupervisor(LeafSystem):
     centroid in [0, 1]; optional); X_BK (RigidTransform: the kidney pose estimate, or a
     ground-truth stand-in until localization lands; optional); localization_ready (1, 0/1;
     optional: ready if unconnected); safety_stopped (1, 0/1; optional: a safety stop aborts
-    the scan).
+    the scan); localization_error (str; optional); exploration_sufficient (1, 0/1;
+    optional); motion_allowed (1, 0/1; optional, allowed if unconnected: respiration
+    gating, 0 outside breath-holds holds exploration and pivot motion); tracking_error
+    (str; optional: "" while the kidney stays where localization put it, else why not).
     Outputs: a_des (3), o_des (3), a_des_dot (3, 1/s), P_des (2, m), F_des (1, N), all in B;
     phase (1, scan.Phase value, e.g. the localizer's trigger); segmentation_required (1, 0/1);
     exploring (1, 0/1: enable of the point-cloud accumulator); abort (1, 0/1);
@@ -237,6 +240,8 @@ class ScanSupervisor(LeafSystem):
                                                         AbstractValue.Make(""))
         # Optional: adaptive exploration's "estimate has settled" flag (1-vector).
         self._sufficient = self.DeclareVectorInputPort("exploration_sufficient", 1)
+        self._motion = self.DeclareVectorInputPort("motion_allowed", 1)
+        self._tracking = self.DeclareAbstractInputPort("tracking_error", AbstractValue.Make(""))
         self._s = self.DeclareAbstractState(AbstractValue.Make(scan.SupervisorState()))
         self.DeclarePeriodicUnrestrictedUpdateEvent(self._dt, 0.0, self._update)
         S = lambda ctx: ctx.get_abstract_state(0).get_value()  # noqa: E731
@@ -280,7 +285,10 @@ class ScanSupervisor(LeafSystem):
             safety_stopped=_optional_scalar(self._stopped, context, 0.0) > 0.5,
             localization_error=(self._loc_error.Eval(context)
                                 if self._loc_error.HasValue(context) else ""),
-            exploration_sufficient=_optional_scalar(self._sufficient, context, 0.0) > 0.5)
+            exploration_sufficient=_optional_scalar(self._sufficient, context, 0.0) > 0.5,
+            motion_allowed=_optional_scalar(self._motion, context, 1.0) > 0.5,
+            tracking_error=(self._tracking.Eval(context)
+                            if self._tracking.HasValue(context) else ""))
         new = scan.supervisor_step(self.state(context), u, self._cfg, self._dt)
         state.get_mutable_abstract_state(0).set_value(new)
 

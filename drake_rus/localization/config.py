@@ -50,3 +50,19 @@ class LocalizationConfig:
     adaptive_rotation_tol_deg: float = field(default=2.0, metadata={"positive": True})
     # Minimum exploration (fraction of L_m) before the adaptive stop may trigger.
     adaptive_min_ratio: float = field(default=0.3, metadata={"min": 0.0, "max": 1.0})
+    # Kidney tracking after localization (localization/tracking.py, beyond the seed): the
+    # frames of the last ``tracking_window`` s of TRANSIT and PIVOT are fitted to the
+    # registered template every ``tracking_period`` s; an apparent kidney drift above
+    # ``tracking_max_drift`` (m) on ``tracking_confirmations`` successive checks aborts the
+    # scan (the pivot would image the wrong place). The 15 mm limit sits above the largest
+    # apparent drift of unshifted test patients (13.4 mm on test:0, whose registration is
+    # itself 9.7 mm off); a shift along the kidney's long axis is barely observable in
+    # long-axis frames whose image does not reach the poles (the aperture problem), so
+    # this catches gross shifts across the kidney, not every shift.
+    tracking_check: bool = True
+    tracking_max_drift: float = field(default=0.015, metadata={"positive": True})
+    tracking_window: float = field(default=1.0, metadata={"positive": True})
+    tracking_period: float = field(default=0.5, metadata={"positive": True})
+    tracking_confirmations: int = field(default=2, metadata={"min": 1})
+    tracking_min_frames: int = field(default=5, metadata={"min": 1})
+    tracking_max_points: int = field(default=1500, metadata={"min": 10})

@@ -41,11 +41,15 @@ def fault_overrides(kind: str, rng: np.random.Generator, seed: int) -> str:
     if kind == "none":
         return "{}"
     if kind == "breathing":
+        # Half the runs have breath-holds, and then scan respiration-aware (exploration,
+        # pivot and localization frames only during holds); the others breathe freely.
         hold = rng.random() < 0.5
         return ("{faults: {seed: %d, breathing: {enabled: true, amplitude: %.4f, "
-                "rate_per_min: %.2f, hold_period: %.2f, hold_duration: %.2f}}}"
+                "rate_per_min: %.2f, hold_period: %.2f, hold_duration: %.2f, "
+                "gate_exploration: %s}}}"
                 % (seed, rng.uniform(0.005, 0.020), rng.uniform(12.0, 20.0),
-                   rng.uniform(12.0, 20.0) if hold else 0.0, rng.uniform(6.0, 10.0)))
+                   rng.uniform(12.0, 20.0) if hold else 0.0, rng.uniform(6.0, 10.0),
+                   "true" if hold else "false"))
     if kind == "patient_shift":
         direction = rng.normal(size=3)
         direction[2] *= 0.3                          # mostly along the bed

@@ -17,6 +17,7 @@ import numpy as np
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import EventStatus
 
+from drake_rus.control.safety import StopReason
 from drake_rus.scan import PHASE_NAMES, BuildScanDiagram, PrepareScenario, _collect
 
 # A run whose contact force exceeds the ceiling for longer than this (s) is a violation.
@@ -114,11 +115,12 @@ def RunFaultyScan(scenario, patient, template, *, max_sim_time: float = 150.0,
 
 
 def outcome_reason(result) -> str:
-    """The most specific reason of an ABORT: the first safety stop's reason and detail,
-    else the supervisor's reason."""
+    """The most specific reason of an ABORT: the first safety stop's reason and detail when
+    the safety layer stopped on its own, else the supervisor's reason (a stop the
+    supervisor asked for carries no detail of its own)."""
     if result.status == "DONE":
         return ""
-    if result.safety_events:
-        e = result.safety_events[0]
-        return f"{e.reason}: {e.detail}" if e.detail else e.reason
+    for e in result.safety_events[:1]:
+        if e.reason != StopReason.SUPERVISOR_ABORT:
+            return f"{e.reason}: {e.detail}" if e.detail else str(e.reason)
     return result.reason or result.status

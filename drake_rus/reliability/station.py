@@ -9,7 +9,9 @@ Three hooks, each a no-op unless the scenario's ``faults`` section asks for it:
   that its joint state, probe pose and force outputs pass through :class:`RobotSensorFaults`;
   every other port is re-exported unchanged under the same name;
 - :func:`GateByBreathHold` (``scan.BuildScanDiagram``): the point-cloud accumulator's
-  ``enable`` becomes exploring AND breath-hold when ``faults.breathing.gate_exploration``.
+  ``enable`` becomes exploring AND breath-hold when ``faults.breathing.gate_exploration``;
+  :func:`BreathHoldPort` also drives the supervisor's and the tracking monitor's
+  ``motion_allowed`` then (exploration and pivot move only during breath-holds).
 """
 
 from __future__ import annotations
@@ -93,13 +95,22 @@ def WithSensorFaults(station: Diagram, scenario, name: str = "station") -> Diagr
     return diagram
 
 
+def BreathHoldPort(scenario, station):
+    """The station's ``breath_hold`` output when respiration-aware scanning is on
+    (``faults.breathing.enabled`` and ``gate_exploration``), else None."""
+    cfg = scenario.faults.breathing
+    if not (cfg.enabled and cfg.gate_exploration and station.HasOutputPort("breath_hold")):
+        return None
+    return station.GetOutputPort("breath_hold")
+
+
 def GateByBreathHold(builder: DiagramBuilder, scenario, station, enable_port):
     """``enable_port`` AND the station's ``breath_hold`` when exploration frames are gated
     to breath-holds (``faults.breathing.gate_exploration``); else ``enable_port``."""
-    cfg = scenario.faults.breathing
-    if not (cfg.enabled and cfg.gate_exploration and station.HasOutputPort("breath_hold")):
+    hold = BreathHoldPort(scenario, station)
+    if hold is None:
         return enable_port
     gate = builder.AddNamedSystem("breath_hold_gate", And2())
     builder.Connect(enable_port, gate.GetInputPort("a"))
-    builder.Connect(station.GetOutputPort("breath_hold"), gate.GetInputPort("b"))
+    builder.Connect(hold, gate.GetInputPort("b"))
     return gate.GetOutputPort("value")

@@ -1,0 +1,208 @@
+"""Kidney tracking after localization: has the kidney moved away from its registered pose?
+
+The pivot (seed II-G) trusts one registration made at the end of exploration. If the
+patient shifts afterwards, the probe pivots about the wrong point and the "whole-kidney"
+sweep images the wrong place while reporting success. The monitor re-checks the estimate
+on the frames acquired after localization: it back-projects their kidney boundary pixels
+into the kidney frame K and fits the one translation that best lays them on the registered
+template (trimmed point-to-plane ICP, translation only). That translation is the kidney's
+apparent drift since localization; a drift above ``tracking_max_drift`` on
+``tracking_confirmations`` successive checks is reported on ``tracking_error`` and the
+supervisor aborts the scan.
+
+``estimate_drift`` and ``tracking_update`` are the plain functions; ``KidneyTrackingMonitor``
+is the LeafSystem.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.math import RigidTransform
+from pydrake.systems.framework import EventStatus, LeafSystem
+from scipy.spatial import cKDTree
+
+__all__ = ["estimate_drift", "DriftEstimate", "TrackingState", "tracking_update",
+           "KidneyTrackingMonitor"]
+
+
+@dataclasses.dataclass(frozen=True)
+class DriftEstimate:
+    """The kidney's apparent displacement since localization."""
+    drift_B: np.ndarray        # (3,) m, in the base frame
+    rms_residual: float        # m, point-to-plane residual of the kept pairs after the fit
+    n_points: int
+
+    @property
+    def magnitude(self) -> float:
+        return float(np.linalg.norm(self.drift_B))
+
+
+def estimate_drift(points_B: np.ndarray, X_BK: RigidTransform, shape_K: np.ndarray,
+                   normals_K: np.ndarray, *, tree: cKDTree | None = None,
+                   iterations: int = 15, keep_fraction: float = 0.7,
+                   regularization: float = 0.05) -> DriftEstimate:
+    """Translation (m, frame B) that moves the registered template onto ``points_B``.
+
+    points_B (N, 3): kidney boundary points seen after localization (m, B); X_BK: the
+    registered kidney pose; shape_K (M, 3) and normals_K (M, 3): the registered template
+    surface in K. Each iteration pairs every point with its nearest template point, keeps
+    the ``keep_fraction`` smallest point-to-plane residuals (boundary pixels where the fan
+    cuts the kidney are not on its surface) and solves the regularised least squares
+    (A^T A + regularization N I) t = A^T b. Directions the points do not constrain (one
+    flat cross-section) stay near zero instead of drifting.
+    """
+    points_B = np.asarray(points_B, dtype=float).reshape(-1, 3)
+    if len(points_B) == 0:
+        return DriftEstimate(np.zeros(3), math.nan, 0)
+    if tree is None:
+        tree = cKDTree(shape_K)
+    X_KB = X_BK.inverse()
+    p_K = X_KB.multiply(points_B.T).T
+    t = np.zeros(3)
+    rms = math.nan
+    for _ in range(iterations):
+        _, idx = tree.query(p_K + t)
+        n = normals_K[idx]
+        r = np.einsum("ij,ij->i", n, p_K + t - shape_K[idx])
+        cutoff = np.quantile(np.abs(r), keep_fraction)
+        keep = np.abs(r) <= cutoff
+        A, b = n[keep], -r[keep]
+        rms = float(np.sqrt(np.mean(r[keep] ** 2)))
+        H = A.T @ A + regularization * len(A) * np.eye(3)
+        dt = np.linalg.solve(H, A.T @ b)
+        t = t + dt
+        if np.linalg.norm(dt) < 1e-5:
+            break
+    # p_K + t lies on the template: the kidney sits at -t in K relative to its estimate.
+    drift_B = -(X_BK.rotation().matrix() @ t)
+    return DriftEstimate(drift_B, rms, len(points_B))
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackingState:
+    """The monitor's memory: recent post-localization frames and the check history."""
+    frames: tuple = ()          # ((time s, points (N, 3) in B), ...) within the window
+    last_index: int = -1        # index of the newest frame taken
+    last_check: float = -math.inf
+    exceed_count: int = 0       # successive checks above the drift limit
+    drift_m: float = math.nan   # latest drift magnitude (m)
+    history: tuple = ()         # ((time s, drift m), ...) of every check
+    error: str = ""             # latched once the kidney is judged to have moved
+
+
+def tracking_update(state: TrackingState, t: float, drift: DriftEstimate | None,
+                    config) -> TrackingState:
+    """One check: records the drift at time t and latches an error after
+    ``tracking_confirmations`` successive drifts above ``tracking_max_drift``."""
+    if state.error or drift is None:
+        return dataclasses.replace(state, last_check=t)
+    d = drift.magnitude
+    count = state.exceed_count + 1 if d > config.tracking_max_drift else 0
+    error = ""
+    if count >= config.tracking_confirmations:
+        v = drift.drift_B * 1000
+        error = (f"the frames since localization put the kidney {d * 1000:.1f} mm "
+                 f"from its registered pose (drift [{v[0]:.1f}, {v[1]:.1f}, {v[2]:.1f}] mm "
+                 f"in B; limit {config.tracking_max_drift * 1000:.1f} mm)")
+    return dataclasses.replace(state, last_check=t, exceed_count=count, drift_m=d,
+                               history=state.history + ((t, d),), error=error)
+
+
+class KidneyTrackingMonitor(LeafSystem):
+    """Checks, during the phases after localization, that the kidney is still where the
+    registration put it (see the module docstring).
+
+    Inputs: ``boundary_pixels`` (abstract BoundaryPixels from the Segmenter: pixels, frame
+    time, X_BP, index); ``localization`` (abstract LocalizationOutcome from IcpLocalizer);
+    ``phase`` (1-vector, the supervisor's phase); ``motion_allowed`` (1-vector, optional:
+    frames acquired while it is 0, outside a breath-hold, are not used).
+    Outputs: ``tracking_error`` (abstract str: "" while consistent); ``kidney_drift``
+    (1-vector, m: the latest drift magnitude, NaN before the first check).
+    Frames are collected at the imaging frame rate; a check runs every
+    ``tracking_period`` s over the frames of the last ``tracking_window`` s.
+    """
+
+    def __init__(self, template, config, imaging_config, check_phases):
+        super().__init__()
+        from drake_rus.imaging.frames import BoundaryPixels
+        from drake_rus.imaging.probe import ProbeGeometry
+        from drake_rus.localization.localize import LocalizationOutcome
+        self._template = template
+        self._cfg = config
+        self._geometry = ProbeGeometry.from_config(imaging_config)
+        self._phases = {int(p) for p in check_phases}
+        self._tree_key = None
+        self._tree = None
+        self._shape = None
+        self._boundary = self.DeclareAbstractInputPort(
+            "boundary_pixels", AbstractValue.Make(BoundaryPixels(np.zeros((0, 2)))))
+        self._outcome = self.DeclareAbstractInputPort(
+            "localization", AbstractValue.Make(LocalizationOutcome()))
+        self._phase = self.DeclareVectorInputPort("phase", 1)
+        self._motion = self.DeclareVectorInputPort("motion_allowed", 1)
+        self._state = self.DeclareAbstractState(AbstractValue.Make(TrackingState()))
+        period = 1.0 / imaging_config.frame_rate_hz
+        self.DeclarePeriodicUnrestrictedUpdateEvent(period, 0.5 * period, self._update)
+        ticket = {self.abstract_state_ticket(self._state)}
+        self.DeclareAbstractOutputPort(
+            "tracking_error", lambda: AbstractValue.Make(""),
+            lambda c, o: o.set_value(c.get_abstract_state(self._state).get_value().error),
+            prerequisites_of_calc=ticket)
+        self.DeclareVectorOutputPort(
+            "kidney_drift", 1,
+            lambda c, o: o.SetAtIndex(0, c.get_abstract_state(self._state).get_value().drift_m),
+            prerequisites_of_calc=ticket)
+
+    def state(self, context) -> TrackingState:
+        return context.get_abstract_state(self._state).get_value()
+
+    def _registered_shape(self, outcome):
+        """(tree, shape_K) of the registered template, cached per estimate."""
+        key = (outcome.time, id(outcome.result))
+        if key != self._tree_key:
+            shape = self._template.points
+            b = outcome.result.shape_coefficients
+            if b is not None and self._template.modes is not None:
+                shape = shape + np.einsum("k,kij->ij", b, self._template.modes[:len(b)])
+            self._tree_key, self._shape, self._tree = key, shape, cKDTree(shape)
+        return self._tree, self._shape
+
+    def _update(self, context, state):
+        cfg = self._cfg
+        if not cfg.tracking_check:
+            return EventStatus.DidNothing()
+        s = self.state(context)
+        if s.error or int(round(self._phase.Eval(context)[0])) not in self._phases:
+            return EventStatus.DidNothing()
+        outcome = self._outcome.Eval(context)
+        if outcome.result is None:
+            return EventStatus.DidNothing()
+        t = context.get_time()
+        allowed = (not self._motion.HasValue(context)) or self._motion.Eval(context)[0] > 0.5
+        frames = tuple(f for f in s.frames if t - f[0] <= cfg.tracking_window)
+        boundary = self._boundary.Eval(context)
+        new_index = s.last_index
+        if (allowed and boundary.frame_index > s.last_index and len(boundary.pixels)
+                and np.all(np.isfinite(boundary.X_BP.GetAsMatrix4()))):
+            from drake_rus.imaging.backprojection import backproject_pixels
+            points = backproject_pixels(self._geometry, boundary.pixels, boundary.X_BP)
+            frames = frames + ((boundary.time, points),)
+            new_index = boundary.frame_index
+        s = dataclasses.replace(s, frames=frames, last_index=new_index)
+        if t - s.last_check >= cfg.tracking_period - 1e-9:
+            drift = None
+            if len(frames) >= cfg.tracking_min_frames:
+                points = np.concatenate([f[1] for f in frames])
+                if len(points) > cfg.tracking_max_points:
+                    points = points[np.linspace(0, len(points) - 1,
+                                                cfg.tracking_max_points).astype(int)]
+                tree, shape = self._registered_shape(outcome)
+                drift = estimate_drift(points, outcome.result.X_BK, shape,
+                                       self._template.normals, tree=tree)
+            s = tracking_update(s, t, drift, cfg)
+        state.get_mutable_abstract_state(self._state).set_value(s)
+        return EventStatus.Succeeded()
