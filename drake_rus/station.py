@@ -247,8 +247,10 @@ def _probe_face_properties(scenario: Scenario) -> ProximityProperties:
 
 
 def AddPatientBody(plant: MultibodyPlant, scenario: Scenario, patient=None,
-                   mesh_dir: Path | None = None) -> dict:
-    """Adds the patient's body surface as a soft (compliant) body welded to the world.
+                   mesh_dir: Path | None = None, moving: bool = False) -> dict:
+    """Adds the patient's body surface as a soft (compliant) body welded to the world, or
+    with ``moving`` on a body driven along base x, y, z (see _AddMovingPatientBody;
+    ``added["instance"]`` is then its model instance).
 
     With ``patient=None`` and ``scenario.patient.source == "placeholder"`` the body is an
     ellipsoidal torso with the scenario's semi-axes, centred on the bed at ``X_BPt``.
@@ -260,6 +262,9 @@ def AddPatientBody(plant: MultibodyPlant, scenario: Scenario, patient=None,
     props = _patient_properties(scenario)
     world = plant.world_body()
     added = {}
+    if moving:
+        world = _AddMovingPatientBody(plant)
+        added["instance"] = world.model_instance()
     if patient is None:
         a, b, c = scenario.patient.placeholder_semi_axes
         shape = Ellipsoid(a, b, c)
@@ -285,6 +290,35 @@ def AddPatientBody(plant: MultibodyPlant, scenario: Scenario, patient=None,
                                  np.array([0.7, 0.15, 0.15, 0.9]))
     added["files"] = [torso_path, skin_path, kidney_path]
     return added
+
+
+# The moving patient body (breathing / shifting patients, simulation only): a torso of
+# PATIENT_MASS kg on x-y-z prismatic joints held by implicit (SAP) PD actuators. 1e5 N/m
+# with critical damping tracks breathing (<= 0.05 m/s^2) to well under 0.1 mm and gives
+# 0.1 mm under a 10 N probe force; gravity is fed forward.
+PATIENT_MASS = 10.0
+PATIENT_KP = 1.0e5
+PATIENT_KD = 2.0 * (PATIENT_KP * PATIENT_MASS) ** 0.5
+
+
+def _AddMovingPatientBody(plant: MultibodyPlant):
+    """A "patient" model instance: world -> prismatic x -> y -> z -> patient_torso, each
+    joint PD-actuated (its desired state is the patient's displacement in B). Returns the
+    torso body, whose frame coincides with the world frame at zero displacement."""
+    from pydrake.multibody.tree import PrismaticJoint
+    instance = plant.AddModelInstance("patient")
+    parent = plant.world_body()
+    for axis, name in zip(np.eye(3), "xyz"):
+        last = name == "z"
+        mass = PATIENT_MASS if last else 0.1
+        body = plant.AddRigidBody("patient_torso" if last else f"patient_slider_{name}",
+                                  instance, SpatialInertia.SolidSphereWithMass(mass, 0.1))
+        joint = plant.AddJoint(PrismaticJoint(f"patient_{name}", parent.body_frame(),
+                                              body.body_frame(), axis))
+        actuator = plant.AddJointActuator(f"patient_{name}", joint, effort_limit=1.0e4)
+        actuator.set_controller_gains(PdControllerGains(p=PATIENT_KP, d=PATIENT_KD))
+        parent = body
+    return parent
 
 
 def ContactHull(mesh, max_vertices: int):
@@ -360,7 +394,9 @@ def MakeSimStation(scenario: Scenario, meshcat: Meshcat | None = None, *, patien
     plant, scene_graph = AddMultibodyPlant(_plant_config(scenario), builder)
     plant.set_name("plant")
     parts = AddFr3AndProbe(plant, scenario)
-    AddPatientBody(plant, scenario, patient)
+    from drake_rus.reliability.station import moves_patient_body
+    patient_parts = AddPatientBody(plant, scenario, patient,
+                                   moving=moves_patient_body(scenario, patient))
     plant.Finalize()
 
     # Probe contact: the face is rigid hydroelastic at the scenario's resolution, all probe
@@ -436,6 +472,9 @@ def MakeSimStation(scenario: Scenario, meshcat: Meshcat | None = None, *, patien
 
     if patient is not None:
         _AddImaging(builder, scenario, patient, fk)
+    if "instance" in patient_parts:     # breathing / shifting patient (scenario.faults)
+        from drake_rus.reliability.station import AddPatientMotionDriver
+        AddPatientMotionDriver(builder, plant, scenario, patient_parts["instance"])
 
     if meshcat is not None:
         MeshcatVisualizer.AddToBuilder(

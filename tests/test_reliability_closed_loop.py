@@ -71,3 +71,22 @@ def test_campaign_runs_resume_and_summarize(tmp_path):
     assert summary["runs"] == 1 and summary["exceptions"] == 0
     assert summary["force_violations"] == 0
     assert not list((tmp_path / "runs").glob(".*"))      # no temporary files left behind
+
+
+def test_done_fraction_per_fault_type():
+    from drake_rus.reliability.campaign import fault_table, per_fault
+
+    def rec(fault, status, peak):
+        return {"run_id": f"{fault}{status}{peak}", "fault": fault, "patient": "test:0",
+                "status": status, "peak_force_n": peak}
+    results = [rec("none", "DONE", 9.5), rec("none", "DONE", 10.5), rec("force_spike", "ABORT", 12.0),
+               rec("breathing", "DONE", 9.0), rec("breathing", "ABORT", 11.0),
+               rec("breathing", "TIMEOUT", 9.9)]
+    rows = {r["fault"]: r for r in per_fault(results)}
+    assert list(rows) == ["none", "force_spike", "breathing"]     # campaign order
+    assert rows["none"]["done_fraction"] == 1.0 and rows["none"]["max_peak_force_n"] == 10.5
+    assert rows["force_spike"]["done_fraction"] == 0.0 and rows["force_spike"]["abort"] == 1
+    assert rows["breathing"]["done_fraction"] == pytest.approx(1 / 3)
+    table = fault_table(results).splitlines()
+    assert len(table) == 4
+    assert table[3].split() == ["breathing", "3", "1", "1", "1", "0.33", "11.0"]

@@ -205,3 +205,41 @@ def test_nan_stamped_frame_is_not_accumulated(geometry):
     bad = accumulate(good, BoundaryPixels(px, 0.05, RigidTransform(np.full(3, np.nan)), 1),
                      geometry)
     assert bad.frame_count == 1 and np.all(np.isfinite(bad.points))
+
+
+def test_patient_contact_body_moves_with_breathing_and_shift():
+    """With breathing or a shift the contact body is on driven joints and follows the
+    same displacement as the imaged anatomy (sub-millimetre, with the robot pressing on
+    it); without patient motion it stays welded (no extra degrees of freedom)."""
+    from pydrake.systems.analysis import Simulator
+
+    from drake_rus.anatomy import load_patient
+    from drake_rus.reliability.station import fault_seed, superior_axis_B
+    from drake_rus.scenario import LoadScenario
+    from drake_rus.station import MakeStation
+
+    patient = load_patient("test:0", progress=False)
+    still = MakeStation(LoadScenario(scenario_name="quick"), patient=patient)
+    assert not still.GetSubsystemByName("plant").HasModelInstanceNamed("patient")
+    scenario = LoadScenario(scenario_name="quick", scenario_text=(
+        "{faults: {breathing: {enabled: true, amplitude: 0.02, rate_per_min: 20, "
+        "hold_period: 0}, patient_shift: {enabled: true, time: 0.6, offset: [0.01, 0.0, "
+        "0.005], ramp: 0.3}}}"))
+    station = MakeStation(scenario, patient=patient)
+    plant = station.GetSubsystemByName("plant")
+    assert plant.HasModelInstanceNamed("patient")
+    simulator = Simulator(station)
+    context = simulator.get_mutable_context()
+    station.GetInputPort("joint_velocity_command").FixValue(context, np.zeros(7))
+    up = superior_axis_B(scenario)
+    moved = []
+    for t in (0.5, 1.2):
+        simulator.AdvanceTo(t)
+        x = station.GetOutputPort("plant_state").Eval(context)
+        q_patient = x[7:len(x) // 2]
+        want = F.patient_offset_B(t, scenario.faults.breathing, scenario.faults.patient_shift,
+                                  up, fault_seed(scenario))
+        assert np.linalg.norm(want) > 0.004
+        np.testing.assert_allclose(q_patient, want, atol=0.001)
+        moved.append(q_patient)
+    assert moved[1][0] == pytest.approx(0.01, abs=0.001)        # the shift along x

@@ -219,6 +219,17 @@ def per_fault(results: list[dict]) -> list[dict]:
     return rows
 
 
+def fault_table(results: list[dict]) -> str:
+    """DONE fraction per fault type, as a plain-text table."""
+    lines = [f"{'fault':<30} {'runs':>4} {'DONE':>4} {'ABORT':>5} {'other':>5} "
+             f"{'DONE frac':>9} {'max peak F [N]':>14}"]
+    for f in per_fault(results):
+        other = f["runs"] - f["done"] - f["abort"]
+        lines.append(f"{f['fault']:<30} {f['runs']:>4} {f['done']:>4} {f['abort']:>5} "
+                     f"{other:>5} {f['done_fraction']:>9.2f} {f['max_peak_force_n']:>14.1f}")
+    return "\n".join(lines)
+
+
 def outcome_table(results: list[dict]) -> str:
     """A plain-text table, one row per run."""
     head = (f"{'run':<36} {'patient':<8} {'status':<9} {'peak F [N]':>10} {'>ceil [ms]':>10} "

@@ -48,7 +48,7 @@ def _check_args(args) -> None:
 
 def run_campaign_command(args) -> int:
     from drake_rus.reliability.campaign import (
-        make_tasks, outcome_table, run_campaign, summarize, write_outputs)
+        fault_table, make_tasks, outcome_table, run_campaign, summarize, write_outputs)
     from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, LoadScenario
 
     _check_args(args)
@@ -78,6 +78,7 @@ def run_campaign_command(args) -> int:
             "wall_s_this_invocation": round(wall, 1), "runs_this_invocation": done[0]}
     written = write_outputs(args.out, results, meta)
     print(outcome_table(results))
+    print(fault_table(results))
     print(f"wrote {', '.join(str(p) for p in written)}; {done[0]} runs in {wall:.0f} s")
     summary = summarize(results)
     print(json.dumps({k: summary[k] for k in ("runs", "done", "abort", "force_violations",

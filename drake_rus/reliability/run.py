@@ -56,8 +56,10 @@ class ForceWatch:
 
 def _robot_velocity(station, station_context) -> np.ndarray:
     """The robot's true joint velocities from the plant state (not the faulty sensor)."""
+    from drake_rus.station import NUM_JOINTS
     x = np.asarray(station.GetOutputPort("plant_state").Eval(station_context))
-    return x[len(x) // 2:]
+    # [q (robot first, then a moving patient's joints), v (likewise)]
+    return x[len(x) // 2:][:NUM_JOINTS]
 
 
 def RunFaultyScan(scenario, patient, template, *, max_sim_time: float = 150.0,

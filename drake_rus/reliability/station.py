@@ -1,6 +1,10 @@
 """Wiring of fault injection and patient motion into the simulated station.
 
-Three hooks, each a no-op unless the scenario's ``faults`` section asks for it:
+Four hooks, each a no-op unless the scenario's ``faults`` section asks for it:
+
+- :func:`moves_patient_body` / :func:`AddPatientMotionDriver` (``station.MakeSimStation``):
+  with breathing or a shift the patient's contact body sits on driven x-y-z joints and moves
+  with the same displacement as the imaged anatomy;
 
 - :func:`AddFaultyImaging` (from ``station._AddImaging``): moving slice sensor ->
   label-frame faults -> ultrasound emulator; exports ``us_image``, ``label_image``,
@@ -69,6 +73,29 @@ def AddFaultyImaging(builder: DiagramBuilder, scenario, patient, fk) -> None:
     builder.ExportOutput(X_BK.get_output_port(), "X_BK_true")
     hold = builder.AddNamedSystem("breath_hold", BreathHoldSignal(scenario.faults))
     builder.ExportOutput(hold.get_output_port(), "breath_hold")
+
+
+def moves_patient_body(scenario, patient) -> bool:
+    """Whether the contact body moves with the patient (breathing or a shift, virtual
+    patient): the skin then moves under the probe as the kidney does in the images."""
+    return patient is not None and scenario.faults.moves_patient
+
+
+def AddPatientMotionDriver(builder: DiagramBuilder, plant, scenario, instance) -> None:
+    """Drives the moving patient body: desired state = the patient displacement of the
+    imaging chain (same model, same seed), gravity fed forward."""
+    import numpy as np
+    from pydrake.systems.primitives import ConstantVectorSource
+
+    from drake_rus.reliability.systems import PatientMotionDesiredState
+    desired = builder.AddNamedSystem("patient_motion", PatientMotionDesiredState(
+        scenario.faults, superior_axis_B(scenario), fault_seed(scenario)))
+    builder.Connect(desired.get_output_port(), plant.get_desired_state_input_port(instance))
+    mass = sum(plant.get_body(b).default_mass() for b in plant.GetBodyIndices(instance))
+    g = float(np.linalg.norm(plant.gravity_field().gravity_vector()))
+    weight = builder.AddNamedSystem("patient_weight",
+                                    ConstantVectorSource([0.0, 0.0, mass * g]))
+    builder.Connect(weight.get_output_port(), plant.get_actuation_input_port(instance))
 
 
 def WithSensorFaults(station: Diagram, scenario, name: str = "station") -> Diagram:

@@ -251,6 +251,24 @@ class MovingPose(LeafSystem):
             prerequisites_of_calc={self.time_ticket()})
 
 
+class PatientMotionDesiredState(LeafSystem):
+    """Output ``desired_state`` (6-vector): [offset_B(t), d offset_B/dt] (m, m/s), the
+    desired state of the patient body's x-y-z prismatic joints (base frame axes)."""
+
+    def __init__(self, faults: FaultConfig, superior_B, seed: int = 0):
+        super().__init__()
+        self._motion = _PatientMotion(faults, superior_B, seed)
+        self.DeclareVectorOutputPort("desired_state", 6, self._calc,
+                                     prerequisites_of_calc={self.time_ticket()})
+
+    def _calc(self, context, output):
+        t, h = context.get_time(), 1e-4
+        q = self._motion.offset_B(t)
+        v = (self._motion.offset_B(t + h) - self._motion.offset_B(max(0.0, t - h))) / (
+            t + h - max(0.0, t - h))
+        output.SetFromVector(np.concatenate([q, v]))
+
+
 class BreathHoldSignal(LeafSystem):
     """Output ``breath_hold`` (1-vector): 1.0 while the patient holds their breath."""
 
