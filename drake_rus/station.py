@@ -273,23 +273,32 @@ def AddPatientBody(plant: MultibodyPlant, scenario: Scenario, patient=None,
         plant.RegisterVisualGeometry(world, X_BPt, shape, "patient_body_visual",
                                      np.array([0.93, 0.78, 0.68, 0.55]))
         return added
-    mesh_dir = Path(mesh_dir or tempfile.mkdtemp(prefix="drake_rus_patient_"))
-    mesh_dir.mkdir(parents=True, exist_ok=True)
+    mesh_dir = Path(mesh_dir) if mesh_dir else Path(tempfile.gettempdir()) / "drake_rus_meshes"
     torso = ContactHull(patient.torso_section(0.20), scenario.contact.patient_hull_vertices)
-    torso_path = mesh_dir / "torso_section.obj"
-    torso.export(torso_path)
+    torso_path = _mesh_file(torso, mesh_dir, "torso_section")
     added["collision"] = plant.RegisterCollisionGeometry(
         world, X_BPt, Convex(str(torso_path)), "patient_body", props)
-    skin_path = mesh_dir / "skin.obj"
-    patient.skin_mesh.export(skin_path)
+    skin_path = _mesh_file(patient.skin_mesh, mesh_dir, "skin")
     plant.RegisterVisualGeometry(world, X_BPt, Mesh(str(skin_path)), "patient_skin_visual",
                                  np.array([0.93, 0.78, 0.68, 0.35]))
-    kidney_path = mesh_dir / "kidney.obj"
-    patient.kidney_mesh.export(kidney_path)
+    kidney_path = _mesh_file(patient.kidney_mesh, mesh_dir, "kidney")
     plant.RegisterVisualGeometry(world, X_BPt, Mesh(str(kidney_path)), "kidney_visual",
                                  np.array([0.7, 0.15, 0.15, 0.9]))
     added["files"] = [torso_path, skin_path, kidney_path]
     return added
+
+
+def _mesh_file(mesh, directory: Path, name: str) -> Path:
+    """``directory/name_<content hash>.obj`` holding ``mesh`` (written atomically once, then
+    reused): building many stations of the same patient does not litter the disk."""
+    import hashlib
+
+    from drake_rus.io_utils import write_text_atomic
+    text = mesh.export(file_type="obj")
+    path = Path(directory) / f"{name}_{hashlib.sha1(text.encode()).hexdigest()[:16]}.obj"
+    if not path.exists():
+        write_text_atomic(path, text)
+    return path
 
 
 # The moving patient body (breathing / shifting patients, simulation only): a torso of

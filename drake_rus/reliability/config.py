@@ -49,7 +49,7 @@ class SensorFaultConfig:
 @dataclass
 class BreathingConfig:
     """Craniocaudal respiratory motion of the kidney and skin (facts: 7-11 mm mean, up to
-    20-30 mm; breath-hold reproducibility < 4 mm).
+    20-30 mm; breath-hold reproducibility < 4 mm); the contact body moves with it.
 
     The displacement along the patient's superior axis is
     d(t) = amplitude * (1 - cos(2 pi f t)) / 2, f = rate_per_min / 60 (0 at end-expiration,
@@ -66,16 +66,17 @@ class BreathingConfig:
     hold_reproducibility: float = field(default=0.002, metadata={"min": 0.0, "max": 0.01})
     # First hold starts at this time (s).
     first_hold: float = field(default=0.0, metadata={"min": 0.0})
-    # Respiration-aware scanning: the cloud accumulator keeps exploration frames only
-    # during breath-holds (the station exports ``breath_hold``).
+    # Respiration-aware scanning: exploration and pivot motion advance, and the cloud
+    # accumulator keeps exploration frames, only during breath-holds (the station exports
+    # ``breath_hold``; the supervisor's ``motion_allowed`` input).
     gate_exploration: bool = False
 
 
 @dataclass
 class PatientShiftConfig:
     """The patient shifts rigidly by ``offset`` (m, in the robot base frame) at ``time``,
-    ramped over ``ramp`` s. Imaging only: the label volume and the true kidney pose move; the
-    contact body stays (a shift along the skin barely changes the normal contact)."""
+    ramped over ``ramp`` s. The label volume, the true kidney pose and the contact body all
+    move (the station puts the torso on driven joints when the patient moves)."""
     enabled: bool = False
     time: float = field(default=10.0, metadata={"min": 0.0})
     offset: list[float] = field(default_factory=lambda: [0.0, 0.01, 0.0],
