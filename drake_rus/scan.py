@@ -247,7 +247,10 @@ def RunScan(scenario, patient, template, *, meshcat=None, max_sim_time: float = 
     return _collect(scenario, patient, template, diagram, h, simulator, wall)
 
 
-def _collect(scenario, patient, template, diagram, h, simulator, wall) -> ScanResult:
+def _collect(scenario, patient, template, diagram, h, simulator, wall,
+             end_time: float | None = None) -> ScanResult:
+    """The ScanResult of a finished simulation; ``end_time`` (s): when the scan proper
+    ended, if the simulator ran on after it (default: the context's time)."""
     context = simulator.get_context()
     sup = h["supervisor"]
     sup_ctx = sup.GetMyContextFromRoot(context)
@@ -258,7 +261,8 @@ def _collect(scenario, patient, template, diagram, h, simulator, wall) -> ScanRe
     safety_ctx = h["parts"].safety.GetMyContextFromRoot(context)
     events = list(h["parts"].safety.GetOutputPort("safety_events").Eval(safety_ctx))
     if status == "TIMEOUT":
-        reason = f"still in {phase} after {context.get_time():.1f} s of simulated time"
+        t_end = context.get_time() if end_time is None else end_time
+        reason = f"still in {phase} after {t_end:.1f} s of simulated time"
     logs = {}
     for name, logger in h["logs"].items():
         log = logger.FindLog(context)

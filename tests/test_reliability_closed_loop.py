@@ -90,3 +90,32 @@ def test_done_fraction_per_fault_type():
     table = fault_table(results).splitlines()
     assert len(table) == 4
     assert table[3].split() == ["breathing", "3", "1", "1", "1", "0.33", "11.0"]
+
+
+def test_respiration_aware_exploration_moves_only_during_breath_holds(patient_and_template):
+    """Closed loop, 15 mm breathing with 1.5 s holds every 3 s: the probe travels along the
+    kidney during holds and holds its target (in contact, no watchdog stop) between them."""
+    import numpy as np
+
+    from drake_rus.reliability.faults import breath_hold
+    patient, template = patient_and_template
+    scenario = LoadScenario(scenario_name="quick", scenario_text=(
+        "{faults: {breathing: {enabled: true, amplitude: 0.015, rate_per_min: 20, "
+        "hold_period: 3.0, hold_duration: 1.5, gate_exploration: true}}}"))
+    result, check = RunFaultyScan(scenario, patient, template, max_sim_time=6.5)
+    assert result.status == "TIMEOUT" and not result.safety_events, result.safety_events
+    explore = [f for f in result.frames if f.phase == 1]          # EXPLORE
+    t = np.array([f.time for f in explore])
+    y = np.array([f.X_BP.translation()[1] for f in explore])
+    speed = np.abs(np.gradient(y, t))
+    cfg = scenario.faults.breathing
+    inside = np.array([breath_hold(ti - 0.3, cfg) and breath_hold(ti, cfg) for ti in t])
+    outside = np.array([not breath_hold(ti - 0.4, cfg) and not breath_hold(ti, cfg) for ti in t])
+    assert inside.sum() > 10 and outside.sum() > 10
+    v = scenario.controller.scan_speed
+    assert np.median(speed[inside]) == pytest.approx(v, rel=0.3)
+    # Between holds the target stands still; friction with the breathing skin (up to
+    # 16 mm/s) drags the probe at ~1 mm/s against the position loop.
+    assert np.median(speed[outside]) < 0.3 * v
+    assert min(f.force for f in explore) > 0.5 * scenario.controller.desired_force
+    assert not check["force_violation"]

@@ -358,22 +358,35 @@ def _json_default(o):
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
+def _task_id(task: dict) -> str:
+    return task["run_id"] if "run_id" in task else run_id(task)
+
+
 def run_tasks(tasks: list[dict], out_dir, *, workers: int = 2, scheduler: str | None = None,
-              progress: bool = True, desc: str = "runs") -> dict:
+              progress: bool = True, desc: str = "runs", function=None, path_of=None,
+              on_result=None) -> dict:
     """Runs the ``tasks`` not yet done under ``out_dir/runs`` and writes each result
     (atomically) as it finishes. ``scheduler``: address of an existing Dask scheduler;
     otherwise an embedded LocalCluster of ``workers`` single-threaded processes, or, with
-    ``workers`` = 0, in this process. Returns {done, skipped, failed: [(run_id, error)]}."""
+    ``workers`` = 0, in this process. Returns {done, skipped, failed: [(run_id, error)]}.
+
+    The study runs by default; another campaign passes its own picklable ``function``
+    (task -> JSON-ready dict), ``path_of`` (out_dir, task -> result file) and, optionally,
+    ``on_result`` (called with each saved result, e.g. to print a line)."""
     from tqdm import tqdm
-    todo = [t for t in tasks if not result_path(out_dir, t).exists()]
+    function = function or run_task
+    path_of = path_of or result_path
+    todo = [t for t in tasks if not path_of(out_dir, t).exists()]
     skipped = len(tasks) - len(todo)
     failed = []
     bar = tqdm(total=len(tasks), initial=skipped, desc=desc, unit="run", disable=not progress,
                dynamic_ncols=True)
 
     def save(task, result):
-        write_text_atomic(result_path(out_dir, task), json.dumps(result, default=_json_default))
+        write_text_atomic(path_of(out_dir, task), json.dumps(result, default=_json_default))
         bar.update(1)
+        if on_result is not None:
+            on_result(result)
 
     try:
         if not todo:
@@ -381,9 +394,9 @@ def run_tasks(tasks: list[dict], out_dir, *, workers: int = 2, scheduler: str | 
         if scheduler is None and workers == 0:
             for task in todo:
                 try:
-                    save(task, run_task(task))
+                    save(task, function(task))
                 except Exception as e:    # noqa: BLE001 - report, keep going
-                    failed.append((run_id(task), f"{type(e).__name__}: {e}"))
+                    failed.append((_task_id(task), f"{type(e).__name__}: {e}"))
             return {"done": len(todo) - len(failed), "skipped": skipped, "failed": failed}
         from distributed import Client, LocalCluster, as_completed
         cluster = None
@@ -399,14 +412,14 @@ def run_tasks(tasks: list[dict], out_dir, *, workers: int = 2, scheduler: str | 
             client = Client(scheduler)
         try:
             # Patient-major order: a worker tends to get the same patient's runs (cache).
-            futures = {client.submit(run_task, t, pure=False, key=f"run-{run_id(t)}"): t
+            futures = {client.submit(function, t, pure=False, key=f"run-{_task_id(t)}"): t
                        for t in todo}
             for fut in as_completed(futures):
                 task = futures[fut]
                 try:
                     save(task, fut.result())
                 except Exception as e:    # noqa: BLE001
-                    failed.append((run_id(task), f"{type(e).__name__}: {e}"))
+                    failed.append((_task_id(task), f"{type(e).__name__}: {e}"))
         finally:
             client.close()
             if cluster is not None:

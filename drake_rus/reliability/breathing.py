@@ -74,6 +74,8 @@ def add_commands(subparsers) -> None:
 
 
 def run_breathing_command(args) -> int:
+    from tqdm import tqdm
+
     from drake_rus.reliability.campaign import run_campaign
     patients = [s.strip() for s in args.patients.split(",") if s.strip()]
     if not patients:
@@ -85,8 +87,8 @@ def run_breathing_command(args) -> int:
     tasks = breathing_tasks(patients, amplitude=args.amplitude, rate_per_min=args.rate,
                             hold_period=args.hold_period, hold_duration=args.hold_duration)
     results = run_campaign(tasks, args.out, workers=args.workers,
-                           progress=lambda r: print(f"{r['run_id']}: {r['status']} "
-                                                    f"e_trans {r.get('e_trans_mm')}", flush=True))
+                           progress=lambda r: tqdm.write(f"{r['run_id']}: {r['status']} "
+                                                         f"e_trans {r.get('e_trans_mm')}"))
     table = compare(results)
     write_text_atomic(Path(args.out) / "breathing.json", json.dumps(
         {"conditions": table, "amplitude_m": args.amplitude, "rate_per_min": args.rate,

@@ -5,8 +5,8 @@ share) with random timing and size, a test patient and a seed; it runs the full 
 :func:`~drake_rus.reliability.run.RunFaultyScan` and records DONE or ABORT with a reason,
 the peak true contact force, the time above the force ceiling, whether the robot ended at
 rest, and any exception. Results are one JSON file per run under ``OUT/runs`` (written
-atomically), so an interrupted campaign resumes where it stopped; runs go to a pool of
-worker processes.
+atomically), so an interrupted campaign resumes where it stopped; runs go through the
+study runner (Dask worker processes, or an existing Dask scheduler).
 """
 
 from __future__ import annotations
@@ -14,10 +14,8 @@ from __future__ import annotations
 import csv
 import io
 import json
-import os
 import time
 import traceback
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
@@ -146,36 +144,27 @@ def result_path(out_dir, task) -> Path:
     return Path(out_dir) / "runs" / f"{task['run_id']}.json"
 
 
-def run_campaign(tasks: list[dict], out_dir, *, workers: int = 2, progress=None) -> list[dict]:
-    """Runs the tasks without a result under ``out_dir/runs`` (resumable), ``workers``
-    processes in parallel (0: in this process). Returns all results of ``tasks``."""
-    todo = [t for t in tasks if not result_path(out_dir, t).exists()]
+def run_campaign(tasks: list[dict], out_dir, *, workers: int = 2, progress=None,
+                 scheduler: str | None = None, show_bar: bool = True) -> list[dict]:
+    """Runs the tasks without a result under ``out_dir/runs`` (resumable) through the study
+    runner (``experiments.studies.run_tasks``): ``workers`` Dask worker processes, an
+    existing Dask ``scheduler``, or (``workers`` = 0) this process. ``progress`` is called
+    with each finished record. A run whose worker process died is recorded as an
+    exception. Returns all results of ``tasks``."""
+    from drake_rus.experiments.studies import run_tasks
     (Path(out_dir) / "runs").mkdir(parents=True, exist_ok=True)
-
-    def save(task, record):
+    status = run_tasks(tasks, out_dir, workers=workers, scheduler=scheduler,
+                       progress=show_bar, desc="campaign", function=run_task,
+                       path_of=result_path, on_result=progress)
+    by_id = {t["run_id"]: t for t in tasks}
+    for run_id, error in status["failed"]:     # run_task never raises: a dead worker
+        task = by_id[run_id]
+        record = {"task": task, "run_id": run_id, "fault": task["fault"],
+                  "patient": task["patient"], "status": "EXCEPTION", "reason": "",
+                  "exception": f"worker died: {error}"}
         write_text_atomic(result_path(out_dir, task), json.dumps(record, default=_json))
         if progress:
             progress(record)
-
-    if workers == 0:
-        for t in todo:
-            save(t, run_task(t))
-    elif todo:
-        import multiprocessing
-        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-            os.environ.setdefault(var, "1")
-        ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-            futures = {pool.submit(run_task, t): t for t in todo}
-            for fut in as_completed(futures):
-                task = futures[fut]
-                try:
-                    record = fut.result()
-                except Exception as e:  # noqa: BLE001 - a crashed worker process
-                    record = {"task": task, "run_id": task["run_id"], "fault": task["fault"],
-                              "patient": task["patient"], "status": "EXCEPTION",
-                              "reason": "", "exception": f"worker died: {type(e).__name__}: {e}"}
-                save(task, record)
     return [json.loads(result_path(out_dir, t).read_text()) for t in tasks
             if result_path(out_dir, t).exists()]
 

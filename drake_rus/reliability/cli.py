@@ -17,6 +17,8 @@ def add_commands(subparsers) -> None:
     p.add_argument("--out", required=True, help="output directory (resumable)")
     p.add_argument("--workers", type=int, default=2,
                    help="parallel worker processes (0: run in this process; default 2)")
+    p.add_argument("--scheduler", default=None,
+                   help="address of a running Dask scheduler to run on (default: local workers)")
     p.add_argument("--seed", type=int, default=0, help="campaign seed (default 0)")
     p.add_argument("--patients", type=int, default=15,
                    help="draw patients from test:0 .. test:K-1 (default 15)")
@@ -67,11 +69,13 @@ def run_campaign_command(args) -> int:
     done = [0]
 
     def progress(record):
+        from tqdm import tqdm
         done[0] += 1
-        print(f"[{done[0]}] {record['run_id']} {record['patient']}: {record['status']}"
-              f" {record.get('exception') or record.get('reason') or ''}"[:160], flush=True)
+        tqdm.write(f"[{done[0]}] {record['run_id']} {record['patient']}: {record['status']}"
+                   f" {record.get('exception') or record.get('reason') or ''}"[:160])
 
-    results = run_campaign(tasks, args.out, workers=args.workers, progress=progress)
+    results = run_campaign(tasks, args.out, workers=args.workers, progress=progress,
+                           scheduler=args.scheduler)
     wall = time.perf_counter() - start
     meta = {"runs": args.runs, "seed": args.seed, "scenario": args.scenario,
             "workers": args.workers, "max_sim_time": args.max_sim_time,

@@ -102,7 +102,7 @@ def RunFaultyScan(scenario, patient, template, *, max_sim_time: float = 150.0,
         safety.GetMyContextFromRoot(context)))
     stopped = bool(safety.GetOutputPort("stopped").Eval(safety.GetMyContextFromRoot(context))[0])
     # The scan result as of the end of the scan proper (before settling).
-    result = _collect(scenario, patient, template, diagram, h, simulator, wall)
+    result = _collect(scenario, patient, template, diagram, h, simulator, wall, end_time=t_end)
     result.sim_s = t_end
     check = {
         "peak_force_n": watch.peak, "time_above_ceiling_s": watch.time_above,
