@@ -73,12 +73,12 @@ def test_campaign_runs_resume_and_summarize(tmp_path):
     assert not list((tmp_path / "runs").glob(".*"))      # no temporary files left behind
 
 
-def test_done_fraction_per_fault_type():
-    from drake_rus.reliability.campaign import fault_table, per_fault
+def test_done_fraction_per_fault_type(tmp_path):
+    from drake_rus.reliability.campaign import fault_table, per_fault, write_outputs
 
     def rec(fault, status, peak):
         return {"run_id": f"{fault}{status}{peak}", "fault": fault, "patient": "test:0",
-                "status": status, "peak_force_n": peak}
+                "status": status, "peak_force_n": peak, "reason": "", "wall_s": 1.0}
     results = [rec("none", "DONE", 9.5), rec("none", "DONE", 10.5), rec("force_spike", "ABORT", 12.0),
                rec("breathing", "DONE", 9.0), rec("breathing", "ABORT", 11.0),
                rec("breathing", "TIMEOUT", 9.9)]
@@ -90,6 +90,12 @@ def test_done_fraction_per_fault_type():
     table = fault_table(results).splitlines()
     assert len(table) == 4
     assert table[3].split() == ["breathing", "3", "1", "1", "1", "0.33", "11.0"]
+    written = write_outputs(tmp_path, results, {"force_ceiling_n": 20.0})
+    assert sorted(p.name for p in written) == ["campaign.csv", "campaign.json", "campaign.md",
+                                               "campaign.png"]
+    assert (tmp_path / "campaign.png").read_bytes()[:4] == b"\x89PNG"
+    md = (tmp_path / "campaign.md").read_text()
+    assert "| breathing | 3 | 1 | 1 | 0.33 | 11.0 |" in md
 
 
 def test_respiration_aware_exploration_moves_only_during_breath_holds(patient_and_template):
@@ -119,3 +125,24 @@ def test_respiration_aware_exploration_moves_only_during_breath_holds(patient_an
     assert np.median(speed[outside]) < 0.3 * v
     assert min(f.force for f in explore) > 0.5 * scenario.controller.desired_force
     assert not check["force_violation"]
+
+
+def test_breathing_comparison_table_and_plot(tmp_path):
+    from drake_rus.reliability.breathing import breathing_tasks, compare, plot_comparison
+    tasks = breathing_tasks(["test:0", "test:1"], amplitude=0.015)
+    assert [t["fault"] for t in tasks[:3]] == ["no_breathing", "breathing_ungated",
+                                               "breathing_gated"]
+    assert "gate_exploration: true" in tasks[2]["overrides"]
+    assert "gate_exploration: false" in tasks[1]["overrides"]
+    assert "amplitude: 0.0150" in tasks[1]["overrides"]
+    errors = {"no_breathing": (4.0, 6.0), "breathing_ungated": (9.0, None),
+              "breathing_gated": (5.0, 7.0)}
+    results = [{"run_id": t["run_id"], "fault": t["fault"], "patient": t["patient"],
+                "status": "DONE" if errors[t["fault"]][t["index"]] else "ABORT",
+                "e_trans_mm": errors[t["fault"]][t["index"]]} for t in tasks]
+    table = compare(results)
+    assert table["no_breathing"]["mean_e_trans_mm"] == pytest.approx(5.0)
+    assert table["breathing_ungated"]["e_trans_mm"] == [9.0]
+    assert table["breathing_ungated"]["done"] == 1
+    assert table["breathing_gated"]["max_e_trans_mm"] == 7.0
+    assert plot_comparison(results, tmp_path / "b.png").read_bytes()[:4] == b"\x89PNG"

@@ -54,6 +54,34 @@ def compare(results: list[dict]) -> dict:
     return out
 
 
+def plot_comparison(results: list[dict], path) -> Path:
+    """breathing.png: E_trans per patient under each condition (filled: DONE, open: ABORT)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from drake_rus.io_utils import save_figure
+    patients = sorted({r["patient"] for r in results}, key=lambda p: (len(p), p))
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    for k, name in enumerate(CONDITIONS):
+        for r in results:
+            if r["fault"] != name or r.get("e_trans_mm") is None:
+                continue
+            x = patients.index(r["patient"]) + (k - 1) * 0.22
+            done = r["status"] == "DONE"
+            ax.scatter(x, r["e_trans_mm"], s=40, color=f"C{k}",
+                       facecolors=f"C{k}" if done else "none")
+    ax.set_xticks(range(len(patients)), patients)
+    ax.set_ylabel("localisation error E_trans (mm)")
+    ax.set_title("Localisation with breathing: off / all frames / breath-hold gated\n"
+                 "(open markers: the scan ended in ABORT)")
+    from matplotlib.lines import Line2D
+    ax.legend([Line2D([], [], ls="", marker="o", color=f"C{k}") for k in range(len(CONDITIONS))],
+              list(CONDITIONS), fontsize=8)
+    ax.grid(axis="y", alpha=0.3)
+    return save_figure(fig, path)
+
+
 def add_commands(subparsers) -> None:
     import argparse
     p = subparsers.add_parser(
@@ -94,6 +122,8 @@ def run_breathing_command(args) -> int:
         {"conditions": table, "amplitude_m": args.amplitude, "rate_per_min": args.rate,
          "hold_period_s": args.hold_period, "hold_duration_s": args.hold_duration,
          "patients": patients}, indent=1))
+    if results:
+        plot_comparison(results, Path(args.out) / "breathing.png")
     print(f"{'condition':<20} {'runs':>4} {'DONE':>4} {'mean E_trans [mm]':>18}  per patient")
     for name, row in table.items():
         mean = "-" if row["mean_e_trans_mm"] is None else f"{row['mean_e_trans_mm']:.2f}"

@@ -236,6 +236,45 @@ def outcome_table(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def plot_campaign(results: list[dict], ceiling: float, path) -> Path:
+    """campaign.png: outcomes per fault type (stacked DONE / ABORT / other) and the peak
+    true contact force of every run against the force ceiling."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from drake_rus.io_utils import save_figure
+    rows = per_fault(results)
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(14, 6))
+    fig.subplots_adjust(left=0.16, right=0.98, wspace=0.6, bottom=0.2)
+    y = np.arange(len(rows))
+    done = np.array([r["done"] for r in rows])
+    abort = np.array([r["abort"] for r in rows])
+    other = np.array([r["runs"] for r in rows]) - done - abort
+    ax1.barh(y, done, color="tab:green", label="DONE")
+    ax1.barh(y, abort, left=done, color="tab:orange", label="ABORT (with reason)")
+    ax1.barh(y, other, left=done + abort, color="tab:red", label="timeout / exception")
+    ax1.set_yticks(y, [r["fault"] for r in rows])
+    ax1.invert_yaxis()
+    ax1.set_xlabel("runs")
+    ax1.set_title("Outcome per fault type")
+    ax1.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=3, fontsize=8)
+    index = {r["fault"]: i for i, r in enumerate(rows)}
+    for r in results:
+        if r.get("peak_force_n") is None or r["fault"] not in index:
+            continue
+        colour = {"DONE": "tab:green", "ABORT": "tab:orange"}.get(r["status"], "tab:red")
+        ax2.scatter(r["peak_force_n"], index[r["fault"]], s=14, color=colour, alpha=0.7)
+    ax2.axvline(ceiling, color="k", ls="--", lw=1, label=f"force ceiling {ceiling:.0f} N")
+    ax2.set_yticks(y, [r["fault"] for r in rows])
+    ax2.invert_yaxis()
+    ax2.set_xlabel("peak TRUE contact force per run (N)")
+    ax2.set_title("Peak contact force (simulation ground truth, 1 ms)")
+    ax2.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), fontsize=8)
+    fig.suptitle(f"Reliability campaign: {len(results)} runs")
+    return save_figure(fig, path)
+
+
 def write_outputs(out_dir, results: list[dict], meta: dict) -> list[Path]:
     out = Path(out_dir)
     summary = summarize(results)
@@ -255,7 +294,9 @@ def write_outputs(out_dir, results: list[dict], meta: dict) -> list[Path]:
     md += [f"| {f['fault']} | {f['runs']} | {f['done']} | {f['abort']} | "
            f"{f['done_fraction']:.2f} | {f['max_peak_force_n']:.1f} |" for f in faults]
     md += ["", "## Runs", "", "```", outcome_table(results), "```", ""]
-    return [write_text_atomic(out / "campaign.csv", buf.getvalue()),
+    written = [plot_campaign(results, float(meta.get("force_ceiling_n", 20.0)),
+                             out / "campaign.png")] if results else []
+    return written + [write_text_atomic(out / "campaign.csv", buf.getvalue()),
             write_text_atomic(out / "campaign.json", json.dumps(
                 {"summary": summary, "per_fault": faults, "meta": meta}, indent=1)),
             write_text_atomic(out / "campaign.md", "\n".join(md))]

@@ -79,7 +79,8 @@ def run_campaign_command(args) -> int:
     wall = time.perf_counter() - start
     meta = {"runs": args.runs, "seed": args.seed, "scenario": args.scenario,
             "workers": args.workers, "max_sim_time": args.max_sim_time,
-            "wall_s_this_invocation": round(wall, 1), "runs_this_invocation": done[0]}
+            "wall_s_this_invocation": round(wall, 1), "runs_this_invocation": done[0],
+            "force_ceiling_n": scenario.safety.force_ceiling}
     written = write_outputs(args.out, results, meta)
     print(outcome_table(results))
     print(fault_table(results))
