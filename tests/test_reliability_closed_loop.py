@@ -145,4 +145,7 @@ def test_breathing_comparison_table_and_plot(tmp_path):
     assert table["breathing_ungated"]["e_trans_mm"] == [9.0]
     assert table["breathing_ungated"]["done"] == 1
     assert table["breathing_gated"]["max_e_trans_mm"] == 7.0
+    assert table["breathing_gated"]["mean_abs_change_mm"] == pytest.approx(1.0)
+    assert table["breathing_ungated"]["max_abs_change_mm"] == pytest.approx(5.0)
+    assert table["no_breathing"]["max_abs_change_mm"] == 0.0
     assert plot_comparison(results, tmp_path / "b.png").read_bytes()[:4] == b"\x89PNG"

@@ -42,15 +42,23 @@ def breathing_tasks(patients: list[str], *, amplitude=0.010, rate_per_min=15.0,
 
 
 def compare(results: list[dict]) -> dict:
-    """Per condition: runs, DONE count, translation errors (mm) and their mean."""
+    """Per condition: runs, DONE count, translation errors (mm), their mean and maximum, and
+    how far each patient's error moved from its no-breathing error (|delta E_trans|, mm: a
+    lower bound of how far breathing moved the estimate)."""
+    baseline = {r["patient"]: r["e_trans_mm"] for r in results
+                if r["fault"] == "no_breathing" and r.get("e_trans_mm") is not None}
     out = {}
     for name in CONDITIONS:
         rs = [r for r in results if r["fault"] == name]
         errs = [r["e_trans_mm"] for r in rs if r.get("e_trans_mm") is not None]
+        change = [abs(r["e_trans_mm"] - baseline[r["patient"]]) for r in rs
+                  if r.get("e_trans_mm") is not None and r["patient"] in baseline]
         out[name] = {"runs": len(rs), "done": sum(r["status"] == "DONE" for r in rs),
                      "e_trans_mm": errs,
                      "mean_e_trans_mm": float(np.mean(errs)) if errs else None,
-                     "max_e_trans_mm": float(np.max(errs)) if errs else None}
+                     "max_e_trans_mm": float(np.max(errs)) if errs else None,
+                     "mean_abs_change_mm": float(np.mean(change)) if change else None,
+                     "max_abs_change_mm": float(np.max(change)) if change else None}
     return out
 
 
@@ -124,10 +132,13 @@ def run_breathing_command(args) -> int:
          "patients": patients}, indent=1))
     if results:
         plot_comparison(results, Path(args.out) / "breathing.png")
-    print(f"{'condition':<20} {'runs':>4} {'DONE':>4} {'mean E_trans [mm]':>18}  per patient")
+    print(f"{'condition':<20} {'runs':>4} {'DONE':>4} {'mean E_trans [mm]':>18} "
+          f"{'mean/max |dE| vs off [mm]':>26}  per patient")
     for name, row in table.items():
         mean = "-" if row["mean_e_trans_mm"] is None else f"{row['mean_e_trans_mm']:.2f}"
-        print(f"{name:<20} {row['runs']:>4} {row['done']:>4} {mean:>18}  "
+        change = ("-" if row["mean_abs_change_mm"] is None else
+                  f"{row['mean_abs_change_mm']:.2f} / {row['max_abs_change_mm']:.2f}")
+        print(f"{name:<20} {row['runs']:>4} {row['done']:>4} {mean:>18} {change:>26}  "
               f"{[round(e, 2) for e in row['e_trans_mm']]}")
     print(json.dumps({k: v["mean_e_trans_mm"] for k, v in table.items()}))
     return 0
