@@ -78,7 +78,8 @@ def test_done_fraction_per_fault_type(tmp_path):
 
     def rec(fault, status, peak):
         return {"run_id": f"{fault}{status}{peak}", "fault": fault, "patient": "test:0",
-                "status": status, "peak_force_n": peak, "reason": "", "wall_s": 1.0}
+                "status": status, "peak_force_n": peak, "reason": "", "wall_s": 1.0,
+                "e_trans_mm": peak / 2, "e_trans_at_localization_mm": peak / 4}
     results = [rec("none", "DONE", 9.5), rec("none", "DONE", 10.5), rec("force_spike", "ABORT", 12.0),
                rec("breathing", "DONE", 9.0), rec("breathing", "ABORT", 11.0),
                rec("breathing", "TIMEOUT", 9.9)]
@@ -87,15 +88,17 @@ def test_done_fraction_per_fault_type(tmp_path):
     assert rows["none"]["done_fraction"] == 1.0 and rows["none"]["max_peak_force_n"] == 10.5
     assert rows["force_spike"]["done_fraction"] == 0.0 and rows["force_spike"]["abort"] == 1
     assert rows["breathing"]["done_fraction"] == pytest.approx(1 / 3)
+    assert rows["none"]["median_e_trans_done_mm"] == pytest.approx(2.5)   # DONE runs only
+    assert rows["force_spike"]["median_e_trans_done_mm"] is None
     table = fault_table(results).splitlines()
     assert len(table) == 4
-    assert table[3].split() == ["breathing", "3", "1", "1", "1", "0.33", "11.0"]
+    assert table[3].split() == ["breathing", "3", "1", "1", "1", "0.33", "11.0", "2.2"]
     written = write_outputs(tmp_path, results, {"force_ceiling_n": 20.0})
     assert sorted(p.name for p in written) == ["campaign.csv", "campaign.json", "campaign.md",
                                                "campaign.png"]
     assert (tmp_path / "campaign.png").read_bytes()[:4] == b"\x89PNG"
     md = (tmp_path / "campaign.md").read_text()
-    assert "| breathing | 3 | 1 | 1 | 0.33 | 11.0 |" in md
+    assert "| breathing | 3 | 1 | 1 | 0.33 | 11.0 | 2.2 |" in md
 
 
 def test_respiration_aware_exploration_moves_only_during_breath_holds(patient_and_template):

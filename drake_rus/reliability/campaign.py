@@ -130,6 +130,7 @@ def run_task(task: dict) -> dict:
             "e_trans_mm": (None if result.X_BK_estimated is None else
                            float(np.linalg.norm(result.X_BK_estimated.translation()
                                                 - result.X_BK_true.translation()) * 1000)),
+            "e_trans_at_localization_mm": error_at_localization_mm(scenario, result),
             "safety_events": [f"{e.time:.3f} s {e.reason}: {e.detail}"
                               for e in result.safety_events],
         })
@@ -138,6 +139,19 @@ def run_task(task: dict) -> dict:
         record["traceback"] = traceback.format_exc(limit=8)
     record["wall_s"] = time.perf_counter() - start
     return record
+
+
+def error_at_localization_mm(scenario, result) -> float | None:
+    """E_trans (mm) against where the kidney truly was when it was localized: its
+    end-expiration pose (where breath-holds put it) moved by the patient shift at the
+    estimate's time. Equal to e_trans_mm when the patient does not shift; None without an
+    estimate."""
+    if result.X_BK_estimated is None:
+        return None
+    from drake_rus.reliability.faults import shift_offset
+    truth = (result.X_BK_true.translation()
+             + shift_offset(result.localization.time, scenario.faults.patient_shift))
+    return float(np.linalg.norm(result.X_BK_estimated.translation() - truth) * 1000)
 
 
 def result_path(out_dir, task) -> Path:
@@ -201,8 +215,12 @@ def per_fault(results: list[dict]) -> list[dict]:
         rs = [r for r in results if r["fault"] == kind]
         if rs:
             done = sum(r["status"] == "DONE" for r in rs)
+            errs = [r.get("e_trans_at_localization_mm", r.get("e_trans_mm")) for r in rs
+                    if r["status"] == "DONE"]
+            errs = [e for e in errs if e is not None]
             rows.append({"fault": kind, "runs": len(rs), "done": done,
                          "done_fraction": done / len(rs),
+                         "median_e_trans_done_mm": float(np.median(errs)) if errs else None,
                          "abort": sum(r["status"] == "ABORT" for r in rs),
                          "max_peak_force_n": max((r.get("peak_force_n") or 0.0) for r in rs)})
     return rows
@@ -211,11 +229,12 @@ def per_fault(results: list[dict]) -> list[dict]:
 def fault_table(results: list[dict]) -> str:
     """DONE fraction per fault type, as a plain-text table."""
     lines = [f"{'fault':<30} {'runs':>4} {'DONE':>4} {'ABORT':>5} {'other':>5} "
-             f"{'DONE frac':>9} {'max peak F [N]':>14}"]
+             f"{'DONE frac':>9} {'max peak F [N]':>14} {'median E_trans DONE [mm]':>24}"]
     for f in per_fault(results):
         other = f["runs"] - f["done"] - f["abort"]
         lines.append(f"{f['fault']:<30} {f['runs']:>4} {f['done']:>4} {f['abort']:>5} "
-                     f"{other:>5} {f['done_fraction']:>9.2f} {f['max_peak_force_n']:>14.1f}")
+                     f"{other:>5} {f['done_fraction']:>9.2f} {f['max_peak_force_n']:>14.1f} "
+                     f"{_fmt(f['median_e_trans_done_mm']):>24}")
     return "\n".join(lines)
 
 
@@ -275,6 +294,10 @@ def plot_campaign(results: list[dict], ceiling: float, path) -> Path:
     return save_figure(fig, path)
 
 
+def _fmt(v, spec: str = ".1f") -> str:
+    return "-" if v is None else format(v, spec)
+
+
 def write_outputs(out_dir, results: list[dict], meta: dict) -> list[Path]:
     out = Path(out_dir)
     summary = summarize(results)
@@ -282,17 +305,19 @@ def write_outputs(out_dir, results: list[dict], meta: dict) -> list[Path]:
     buf = io.StringIO()
     keys = ["run_id", "fault", "patient", "status", "reason", "peak_force_n",
             "time_above_ceiling_s", "longest_above_ceiling_s", "force_violation", "at_rest",
-            "sim_s", "wall_s", "e_trans_mm", "exception"]
+            "sim_s", "wall_s", "e_trans_mm", "e_trans_at_localization_mm", "exception"]
     w = csv.DictWriter(buf, keys, extrasaction="ignore")
     w.writeheader()
     for r in sorted(results, key=lambda r: r["run_id"]):
         w.writerow(r)
     md = ["# Reliability campaign", "", f"{meta}", "", "## Summary", "",
           "```", json.dumps(summary, indent=1), "```", "", "## DONE fraction per fault type",
-          "", "| fault | runs | DONE | ABORT | DONE fraction | max peak F (N) |",
-          "|---|---|---|---|---|---|"]
+          "", "| fault | runs | DONE | ABORT | DONE fraction | max peak F (N) | "
+          "median E_trans of DONE runs (mm, vs the kidney at localization) |",
+          "|---|---|---|---|---|---|---|"]
     md += [f"| {f['fault']} | {f['runs']} | {f['done']} | {f['abort']} | "
-           f"{f['done_fraction']:.2f} | {f['max_peak_force_n']:.1f} |" for f in faults]
+           f"{f['done_fraction']:.2f} | {f['max_peak_force_n']:.1f} | "
+           f"{_fmt(f['median_e_trans_done_mm'])} |" for f in faults]
     md += ["", "## Runs", "", "```", outcome_table(results), "```", ""]
     written = [plot_campaign(results, float(meta.get("force_ceiling_n", 20.0)),
                              out / "campaign.png")] if results else []
