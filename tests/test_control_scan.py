@@ -315,6 +315,14 @@ def test_supervisor_exploration_holds_still_outside_breath_holds():
         t += dt
         s = scan.supervisor_step(s, gated(t, True), c, dt)
     assert s.phase == scan.Phase.LOCALIZE and s.travel == pytest.approx(0.01)
+    # A pause does not outlive its phase: paused, then the adaptive stop ends EXPLORE.
+    s = scan.supervisor_step(scan.SupervisorState(), inputs(0.0), c, dt)
+    s = scan.supervisor_step(s, gated(0.01, False), c, dt)
+    s = scan.supervisor_step(s, gated(0.02, False), c, dt)
+    assert s.phase == scan.Phase.EXPLORE and s.paused
+    u = dataclasses.replace(gated(0.03, False), exploration_sufficient=True)
+    s = scan.supervisor_step(s, u, c, dt)
+    assert s.phase == scan.Phase.LOCALIZE and not s.paused
 
 
 def _to_pivot(c, dt=0.01):

@@ -175,6 +175,7 @@ def _goto(s: SupervisorState, phase: Phase, t: float, message: str) -> Superviso
     s.phase = phase
     s.phase_start = t
     s.invisible_since = math.nan
+    s.paused = False     # a pause belongs to the phase that held still
     s.events = s.events + ((t, phase.name, message),)
     return s
 
