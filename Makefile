@@ -1,13 +1,13 @@
 # drake-rus: the two commands a new user needs.
 #   make demo   set up .venv and run the main job, the autonomous scan (writes runs/demo/)
-#   make test   set up .venv with the test extras and run the whole test suite
+#   make test   set up .venv with the test extras, lint (ruff) and run the whole test suite
 PYTHON ?= python3.11
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.drake_rus_installed
 TEST_STAMP := $(VENV)/.drake_rus_test_installed
 
-.PHONY: demo test setup setup-test benchmarks clean
+.PHONY: demo test lint setup setup-test benchmarks clean
 
 $(STAMP): pyproject.toml scripts/install_system_deps.sh
 	bash scripts/install_system_deps.sh
@@ -27,7 +27,10 @@ setup-test: $(TEST_STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/drake-rus scan --patient test:0 --out runs/demo
 
-test: $(TEST_STAMP)
+lint: $(TEST_STAMP)
+	$(VENV)/bin/ruff check drake_rus tests benchmarks models notebooks
+
+test: lint
 	$(PY) -m pytest
 
 benchmarks: $(STAMP)

@@ -16,12 +16,11 @@ import json
 import math
 import time
 
-import numpy as np
 from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.systems.analysis import Simulator
 
-from drake_rus.control import scan
-from drake_rus.control.diagram import BuildClosedLoop, BuildClosedLoopOnPatient
+from drake_rus.control import supervisor
+from drake_rus.closed_loop import BuildClosedLoop, BuildClosedLoopOnPatient
 from drake_rus.control.synthetic_view import GeometricKidneyView
 from drake_rus.scenario import ApplyOverrides, LoadScenario
 
@@ -38,9 +37,9 @@ def _closed_loop(scenario, patient: str | None):
 
 def _station_alone_rtf(scenario, duration: float) -> float | None:
     """Reference measured in the same run: the station pressed and held by the lead's
-    minimal C++-light press driver (drake_rus.sim.press), no scan controller."""
+    minimal C++-light press driver (drake_rus.control.press), no scan controller."""
     try:
-        from drake_rus.sim.press import PressDiagram
+        from drake_rus.demo import PressDiagram
     except ImportError:
         return None
     press = PressDiagram(scenario)
@@ -86,7 +85,7 @@ def main(argv=None) -> int:
     sup = cl.parts.supervisor
     sup_ctx = sup.GetMyContextFromRoot(ctx)
     t_wall0 = time.perf_counter()
-    while sup.state(sup_ctx).phase == scan.Phase.APPROACH and ctx.get_time() < 20.0:
+    while sup.state(sup_ctx).phase == supervisor.Phase.APPROACH and ctx.get_time() < 20.0:
         sim.AdvanceTo(ctx.get_time() + 0.1)
     approach_wall = time.perf_counter() - t_wall0
     phase = sup.state(sup_ctx).phase
@@ -100,7 +99,7 @@ def main(argv=None) -> int:
     if "phase" in cl.loggers:
         phase_log = cl.loggers["phase"].FindLog(ctx)
         m = (phase_log.sample_times() >= t_start + 1.0) & \
-            (phase_log.data()[0] == float(scan.Phase.EXPLORE))
+            (phase_log.data()[0] == float(supervisor.Phase.EXPLORE))
         F = -cl.loggers["probe_force"].FindLog(ctx).data()[5][m]
         c = cl.loggers["mask_centroid"].FindLog(ctx).data()[0][m]
         vis = cl.loggers["kidney_visible"].FindLog(ctx).data()[0][m]

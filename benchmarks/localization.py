@@ -27,6 +27,16 @@ import sys
 import time
 
 import numpy as np
+from pydrake.math import RigidTransform, RotationMatrix  # Drake first: its libs load once
+from tqdm import tqdm
+
+from drake_rus.anatomy import load_patient
+from drake_rus.experiments import kinematic as km
+from drake_rus.experiments.tasks import expand_patients
+from drake_rus.localization.icp import heuristic_initial_rotation
+from drake_rus.localization.localize import load_registration_template, thin_cloud
+from drake_rus.metrics.core import e_rot_x, e_trans
+from drake_rus.scenario import LoadScenario
 
 PAPER = {
     "source": "seed paper, simulation, 15 CT patients, ER 60% (section IV-B; IV-A for the "
@@ -46,7 +56,6 @@ def parse_patients(text: str) -> list[str]:
         if n < 1:
             raise ValueError(f"--patients: expected at least 1, got {n}")
         return [f"test:{k}" for k in range(n)]
-    from drake_rus.experiments.studies import expand_patients
     return expand_patients(text)
 
 
@@ -54,8 +63,7 @@ def register_open3d(P_B: np.ndarray, template, R_BK0: np.ndarray, *,
                     max_correspondence_distance: float = 0.05, max_iteration: int = 200):
     """Open3D point-to-plane ICP of the cloud (B) onto the template (K, with normals) from
     X_KB0 = (R_BK0^T, -R_BK0^T centroid). Returns (X_BK, iterations unknown -> None, seconds)."""
-    import open3d as o3d
-    from pydrake.math import RigidTransform, RotationMatrix
+    import open3d as o3d  # optional, heavy
     reg = o3d.pipelines.registration
     src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(P_B, float)))
     tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(template.points))
@@ -98,17 +106,6 @@ def main(argv=None) -> int:
     ap.add_argument("--scenario", default="default", help="scenario name (default 'default')")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
-
-    from pydrake.math import RigidTransform  # noqa: F401  (Drake first: its libs load once)
-    from tqdm import tqdm
-
-    from drake_rus.anatomy import load_patient
-    from drake_rus.experiments import kinematic as km
-    from drake_rus.localization.icp import heuristic_initial_rotation
-    from drake_rus.localization.localize import load_registration_template, thin_cloud
-    from drake_rus.metrics.core import e_rot_x, e_trans
-    from drake_rus.scenario import LoadScenario
-
     specs = parse_patients(args.patients)
     scenario = LoadScenario(scenario_name=args.scenario)
     X_BPt = scenario.patient.X_BPt.GetDeterministicValue()

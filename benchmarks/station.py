@@ -19,8 +19,8 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import Sine
 
 from drake_rus.scenario import ApplyOverrides, LoadScenario
-from drake_rus.sim.press import PressDiagram
-from drake_rus.station import MakeStation
+from drake_rus.demo import PressDiagram
+from drake_rus.stations import MakeStation
 
 
 def _press_run(scenario, duration: float) -> dict:

@@ -13,11 +13,11 @@ from drake_rus.config_schema import ScenarioError
 COMMAND_MODULES = [
     "drake_rus.demo",            # demo: the station demo (pressing probe)
     "drake_rus.render",          # render-diagram: station diagram picture
-    "drake_rus.hardware.check",  # hardware check: connect, dry run, scripted motion
+    "drake_rus.hardware.cli",    # hardware check: connect, dry run, scripted motion
     "drake_rus.anatomy.cli",
     "drake_rus.template.cli",
     "drake_rus.imaging.cli",
-    "drake_rus.scan",            # scan: the full autonomous scan
+    "drake_rus.scan.cli",        # scan: the full autonomous scan
     "drake_rus.experiments.cli",  # study: the seed paper's studies (kinematic, Dask)
     "drake_rus.reliability.cli",  # campaign: randomised faulty scans (safety figures)
 ]

@@ -1,4 +1,5 @@
-"""``drake-rus demo``: the simulated station pressing the probe into the patient's body.
+"""``drake-rus demo``: the simulated station pressing the probe into the patient's body
+(``PressDiagram``: station + the minimal ``drake_rus.control.press.PressDriver``).
 
 Writes to ``--out``: ``press.html`` (standalone Meshcat recording), ``force.png`` (estimated
 and true contact force over time), ``summary.json`` (settled force, estimate error, rates).
@@ -9,9 +10,19 @@ import json
 import time
 from pathlib import Path
 
+import matplotlib
 import numpy as np
+from pydrake.geometry import Meshcat, MeshcatParams
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput
 
-from drake_rus.io_utils import atomic_path, write_text_atomic
+from drake_rus.control.press import PressDriver
+from drake_rus.io_utils import save_figure, write_text_atomic
+from drake_rus.progress import AdvanceWithProgress, SaveMeshcatRecording
+from drake_rus.robot import MakeControlPlant
+from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, LoadScenario
+from drake_rus.stations import MakeStation
 
 
 def add_commands(subparsers) -> None:
@@ -32,7 +43,6 @@ def add_commands(subparsers) -> None:
 
 def add_scenario_arguments(parser) -> None:
     """--scenario / --scenarios-file / --set, shared by every command that builds a station."""
-    from drake_rus.scenario import DEFAULT_SCENARIOS_FILE
     parser.add_argument("--scenario", default="default", help="scenario name (default 'default')")
     parser.add_argument("--scenarios-file", default=str(DEFAULT_SCENARIOS_FILE),
                         help="YAML file of named scenarios")
@@ -41,14 +51,12 @@ def add_scenario_arguments(parser) -> None:
 
 
 def load_scenario_from_args(args):
-    from drake_rus.scenario import LoadScenario
     return LoadScenario(filename=args.scenarios_file, scenario_name=args.scenario,
                         scenario_text=args.overrides)
 
 
 def MakeMeshcat(port: int | None = None):
     """A Meshcat server on localhost (no other network)."""
-    from pydrake.geometry import Meshcat, MeshcatParams
     params = MeshcatParams()
     params.host = "localhost"
     if port is not None:
@@ -57,7 +65,6 @@ def MakeMeshcat(port: int | None = None):
 
 
 def plot_force(times, F_est, F_true, desired, path: Path) -> None:
-    import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     fig, ax = plt.subplots(figsize=(7, 3.6), dpi=110)
@@ -71,17 +78,46 @@ def plot_force(times, F_est, F_true, desired, path: Path) -> None:
     ax.grid(alpha=0.3)
     ax.legend(loc="lower right", fontsize=8)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
+
+
+class PressDiagram:
+    """Station + PressDriver (+ loggers of the estimated and true probe wrench)."""
+
+    def __init__(self, scenario, meshcat=None, desired_force: float = 9.0,
+                 log_period: float = 0.01, patient=None, drive: bool = True):
+        builder = DiagramBuilder()
+        self.station = builder.AddNamedSystem(
+            "station", MakeStation(scenario, meshcat=meshcat, patient=patient))
+        if drive:
+            control_plant, tip_frame = MakeControlPlant(scenario)
+            self.driver = builder.AddNamedSystem(
+                "press_driver", PressDriver(control_plant, tip_frame, desired_force))
+            builder.Connect(self.station.GetOutputPort("joint_position"),
+                            self.driver.get_input_port(0))
+            builder.Connect(self.station.GetOutputPort("probe_force"),
+                            self.driver.get_input_port(1))
+            builder.Connect(self.driver.get_output_port(),
+                            self.station.GetInputPort("joint_velocity_command"))
+        else:
+            self.driver = builder.AddNamedSystem("zero_command", ConstantVectorSource(np.zeros(7)))
+            builder.Connect(self.driver.get_output_port(),
+                            self.station.GetInputPort("joint_velocity_command"))
+        self.force_log = LogVectorOutput(self.station.GetOutputPort("probe_force"), builder,
+                                         log_period)
+        self.truth_log = LogVectorOutput(
+            self.station.GetOutputPort("probe_contact_wrench_true"), builder, log_period)
+        self.diagram = builder.Build()
+        self.diagram.set_name("press_demo")
+
+    def logs(self, root_context):
+        """(times (N,), estimated F_z (N,), true F_z (N,)) in s and N."""
+        est = self.force_log.FindLog(root_context)
+        tru = self.truth_log.FindLog(root_context)
+        return est.sample_times(), -est.data()[5], -tru.data()[5]
 
 
 def run_demo(args) -> int:
-    from pydrake.systems.analysis import Simulator
-
-    from drake_rus.sim.press import PressDiagram
-    from drake_rus.sim.run import AdvanceWithProgress, SaveMeshcatRecording
-
     scenario = load_scenario_from_args(args)
     if not (np.isfinite(args.duration) and args.duration > 0):
         raise ValueError(f"--duration: expected a positive time in s, got {args.duration}")

@@ -5,8 +5,6 @@ from pathlib import Path
 REPO_ROOT = Path(__file__).resolve().parent.parent
 MODELS_DIR = REPO_ROOT / "models"
 DIAGRAMS_DIR = REPO_ROOT / "diagrams"
-# Shared data beside the clone (CI has ``../shared`` next to the repository).
-SHARED_DIR = REPO_ROOT.parent / "shared"
 
 
 def AddDrakeRusPackages(package_map) -> None:

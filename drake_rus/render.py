@@ -1,19 +1,29 @@
-"""``drake-rus render-diagram``: draws the station diagram with Graphviz."""
+"""``drake-rus render-diagram``: draws the station or the whole scan diagram with Graphviz."""
 
 import shutil
 import subprocess
 from pathlib import Path
 
+from drake_rus.anatomy import load_patient
 from drake_rus.cli import UserError
+from drake_rus.demo import add_scenario_arguments, load_scenario_from_args
 from drake_rus.io_utils import atomic_path
+from drake_rus.localization.localize import load_registration_template
+from drake_rus.scan import BuildScanDiagram
+from drake_rus.stations import MakeStation
 
 
 def add_commands(subparsers) -> None:
-    from drake_rus.demo import add_scenario_arguments
-    p = subparsers.add_parser("render-diagram", help="draw the station diagram (SVG or PNG)")
+    p = subparsers.add_parser("render-diagram",
+                              help="draw the station or the scan diagram (SVG or PNG)")
     add_scenario_arguments(p)
-    p.add_argument("--out", default="diagrams/station.svg",
-                   help="output file; .svg or .png (default diagrams/station.svg)")
+    p.add_argument("--diagram", choices=["station", "scan"], default="station",
+                   help="'station' (the station alone) or 'scan' (station + segmenter, "
+                        "localizer, controller, safety, monitors on a virtual patient)")
+    p.add_argument("--patient", default="test:0",
+                   help="patient of the simulated scan diagram (default test:0)")
+    p.add_argument("--out", default=None,
+                   help="output file; .svg or .png (default diagrams/DIAGRAM.svg)")
     p.add_argument("--depth", type=int, default=1, help="subsystem nesting depth to draw")
     p.set_defaults(func=run_render)
 
@@ -33,10 +43,20 @@ def render_graphviz(dot_source: str, out: Path) -> Path:
 
 
 def run_render(args) -> int:
-    from drake_rus.demo import load_scenario_from_args
-    from drake_rus.station import MakeStation
+    if args.depth < 0:
+        raise UserError(f"--depth: expected a non-negative nesting depth, got {args.depth}")
     scenario = load_scenario_from_args(args)
-    station = MakeStation(scenario)
-    out = render_graphviz(station.GetGraphvizString(max_depth=args.depth), Path(args.out))
+    out = Path(args.out or f"diagrams/{args.diagram}.svg")
+    if args.diagram == "station":
+        diagram = MakeStation(scenario)
+    else:
+        patient = None if scenario.hardware else load_patient(
+            args.patient, side=scenario.patient.side, posture=scenario.patient.posture)
+        station = MakeStation(scenario, patient=patient)
+        builder, _ = BuildScanDiagram(scenario, station,
+                                      load_registration_template(scenario.localization.template))
+        diagram = builder.Build()
+        diagram.set_name("scan")
+    out = render_graphviz(diagram.GetGraphvizString(max_depth=args.depth), out)
     print(f"wrote {out}")
     return 0

@@ -9,8 +9,6 @@ file, the scenario and the field, then builds the dataclasses with Drake's
 Units are SI (m, rad, N, s, kg) unless a field name says otherwise (``_deg``, ``_hz``).
 """
 
-
-
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,6 +16,7 @@ from pathlib import Path
 from pydrake.common.schema import Transform
 from pydrake.common.yaml import yaml_load_file, yaml_load_typed
 
+from drake_rus.anatomy.motion import PatientMotionConfig
 from drake_rus.config_schema import ScenarioError, check_dataclass_values, validate
 from drake_rus.control.config import ControllerConfig, SafetyConfig
 from drake_rus.hardware.config import HardwareConfig
@@ -33,7 +32,7 @@ __all__ = [
 
 DEFAULT_SCENARIOS_FILE = DIAGRAMS_DIR / "default.scenarios.yaml"
 
-# FR3 joint limits (rad), facts/fr3.md "Limits (current FR3 specification, 2025)".
+# FR3 joint limits (rad), docs/facts/fr3.md "Limits (current FR3 specification, 2025)".
 FR3_Q_MIN = [-2.9007, -1.8361, -2.9007, -3.0770, -2.8763, 0.4398, -3.0508]
 FR3_Q_MAX = [2.9007, 1.8361, 2.9007, -0.1169, 2.8763, 4.6216, 3.0508]
 
@@ -71,7 +70,7 @@ class ProbeCalibration:
     """The probe holder and curvilinear probe rigidly mounted on the flange F.
 
     The tip frame P has its origin at the centre of the probe face, z_P along the beam (into
-    the body), x_P along the transducer array (DESIGN.md). On hardware these numbers come
+    the body), x_P along the transducer array (docs/design.md). On hardware these numbers come
     from pivot calibration and the holder's CAD; they live here, never in code.
     """
     # Geometry (visual and collision) of the probe, expressed in the tip frame P.
@@ -108,6 +107,10 @@ class PatientConfig:
     # Semi-axes (m) of the placeholder torso ellipsoid: left-right, head-foot, front-back.
     placeholder_semi_axes: list[float] = field(
         default_factory=lambda: [0.17, 0.40, 0.12], metadata={"length": 3, "positive": True})
+    # How the patient moves during the scan: breathing, a rigid shift (simulation; off by
+    # default). The station moves the imaged anatomy, the true kidney pose and the contact
+    # body together (drake_rus.anatomy.motion).
+    motion: PatientMotionConfig = field(default_factory=PatientMotionConfig)
 
 
 @dataclass
@@ -151,10 +154,9 @@ class Scenario:
     # false: simulated station; true: a real FR3 and ultrasound machine.
     hardware: bool = False
     hardware_interface: HardwareConfig = field(default_factory=HardwareConfig)
-    # Injected faults and patient motion (simulation only; all off by default).
+    # Injected sensor faults (read only by drake_rus.reliability, which wraps the simulated
+    # station from outside; the product never reads this section). All off by default.
     faults: FaultConfig = field(default_factory=FaultConfig)
-    # Default duration of a run (s).
-    simulation_duration: float = field(default=10.0, metadata={"positive": True})
     # Seed of every random draw in a run (noise, speckle, starts).
     random_seed: int = field(default=0, metadata={"min": 0})
 

@@ -12,7 +12,6 @@ from drake_rus.anatomy.labels import LabelVolume
 from drake_rus.anatomy.patient import Patient
 from drake_rus.config_schema import ScenarioError
 from drake_rus.imaging.config import ImagingConfig
-from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.io_utils import write_text_atomic
 from drake_rus.scenario import ApplyOverrides, Scenario
 from drake_rus.template.io import load_template
@@ -191,11 +190,6 @@ def test_patient_directory_without_meshes_is_named(tmp_path):
 
 
 # -------------------------------------------------------------------------------- images
-@pytest.fixture(scope="module")
-def geometry():
-    return ProbeGeometry.from_config(ImagingConfig())
-
-
 @pytest.mark.parametrize("shape", [(10, 10), (256, 255), (256, 256, 3)],
                          ids=["tiny", "off_by_one", "rgb"])
 def test_wrong_image_size_emulator(shape):
@@ -283,7 +277,7 @@ def test_missing_template_is_named(tmp_path):
     ("probe", "relative/missing_probe.sdf"),
 ], ids=["robot_package", "probe_package", "robot_absolute_path", "probe_relative_path"])
 def test_missing_model_file_names_field(section, url):
-    from drake_rus.station import MakeControlPlant
+    from drake_rus.robot import MakeControlPlant
     scenario = ApplyOverrides(Scenario(), f"{{{section}: {{model: '{url}'}}}}")
     with pytest.raises(ScenarioError) as e:
         MakeControlPlant(scenario)
@@ -291,7 +285,7 @@ def test_missing_model_file_names_field(section, url):
 
 
 def test_malformed_model_file_names_field(tmp_path):
-    from drake_rus.station import MakeControlPlant
+    from drake_rus.robot import MakeControlPlant
     path = tmp_path / "broken.urdf"
     path.write_text("<robot name='x'><link name='a'></robot>")
     scenario = ApplyOverrides(Scenario(), f"{{robot: {{model: '{path}'}}}}")

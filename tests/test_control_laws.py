@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 from drake_rus.control import laws
-from drake_rus.control.kinematics import MakeControlPlant, TipKinematics
 from pydrake.math import RollPitchYaw, RotationMatrix
 
 Q0 = np.array([0.0, 0.15, 0.0, -2.0, 0.0, 2.15, 0.785])
@@ -148,12 +147,6 @@ def test_assemble_twist_orders_and_saturates():
 
 
 # ------------------------------------------------------------------ eq. 10-12
-@pytest.fixture(scope="module")
-def kin():
-    plant, frame = MakeControlPlant()
-    return TipKinematics(plant, frame)
-
-
 def test_manipulability_matches_singular_values(kin):
     J = kin.jacobian(Q0)
     s = np.linalg.svd(J, compute_uv=False)

@@ -8,8 +8,8 @@ import pytest
 
 from pydrake.systems.analysis import Simulator
 
-from drake_rus.control import scan
-from drake_rus.control.diagram import AdvanceUntilScanEnds, BuildClosedLoopOnPatient
+from drake_rus.control import supervisor
+from drake_rus.closed_loop import AdvanceUntilScanEnds, BuildClosedLoopOnPatient
 from drake_rus.scenario import LoadScenario
 
 pytestmark = pytest.mark.slow
@@ -37,8 +37,8 @@ def test_full_scan_on_a_virtual_patient_with_emulated_images_and_segmenter():
     vis = L["kidney_visible"].data()[0]
     F = -L["probe_force"].data()[5]
     t_explore = [e[0] for e in st.events if e[1] == "EXPLORE"][0]
-    explore = (phase == scan.Phase.EXPLORE) & (t >= t_explore + 1.0)
-    pivot = phase == scan.Phase.PIVOT
+    explore = (phase == supervisor.Phase.EXPLORE) & (t >= t_explore + 1.0)
+    pivot = phase == supervisor.Phase.PIVOT
     kin = cl.parts.ik.kinematics
     p = np.array([kin.pose(q).translation() for q in L["q"].data().T])
     d = np.linalg.norm(p[pivot, :2] - st.p_star[:2], axis=1)

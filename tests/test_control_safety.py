@@ -7,17 +7,10 @@ import numpy as np
 import pytest
 
 from drake_rus.control.config import SafetyConfig
-from drake_rus.control.kinematics import MakeControlPlant, TipKinematics
 from drake_rus.control.safety import (SafetyInputs, SafetyState, StopReason, limit_command,
                                       safety_step)
 
 Q0 = np.array([0.0, 0.15, 0.0, -2.0, 0.0, 2.15, 0.785])
-
-
-@pytest.fixture(scope="module")
-def kin():
-    plant, frame = MakeControlPlant()
-    return TipKinematics(plant, frame)
 
 
 def nominal(kin, t=1.0, **kw):

@@ -12,9 +12,10 @@ import pytest
 from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.systems.analysis import Simulator
 
-from drake_rus.control import scan
-from drake_rus.control.diagram import AdvanceUntilScanEnds, BuildClosedLoop
-from drake_rus.control.kinematics import TipKinematics
+from drake_rus.control import supervisor
+from drake_rus.control.laws import manipulability
+from drake_rus.closed_loop import AdvanceUntilScanEnds, BuildClosedLoop
+from drake_rus.reliability.injector import BuildClosedLoopWithFault
 from drake_rus.control.laws import angle_between
 from drake_rus.control.safety import StopReason
 from drake_rus.control.synthetic_view import GeometricKidneyView
@@ -149,7 +150,7 @@ def test_orientation_error_below_1_deg_within_2_s_after_20_deg_step():
         cl.references["a_des"].GetMyContextFromRoot(ctx)))
     o0 = np.array(cl.references["o_des"].get_output_port().Eval(
         cl.references["o_des"].GetMyContextFromRoot(ctx)))
-    a1 = scan.rodrigues_pivot_update(a0, o0, math.radians(20.0))  # tilt 20 deg about o
+    a1 = supervisor.rodrigues_pivot_update(a0, o0, math.radians(20.0))  # tilt 20 deg about o
     cl.reference_value(ctx, "a_des").set_value(a1)
     sim.AdvanceTo(4.5)
     L = logs(cl, ctx)
@@ -183,14 +184,12 @@ def _min_manipulability(use_null_space):
     P0 = np.array(cl.references["P_des"].get_output_port().Eval(
         cl.references["P_des"].GetMyContextFromRoot(ctx)))
     # A long motion in free space: 20 cm along +y, 1 cm per step every 0.2 s.
-    m = []
     for k in range(20):
         cl.reference_value(ctx, "P_des").set_value(P0 + [0.0, 0.01 * (k + 1)])
         sim.AdvanceTo(0.2 * (k + 1))
     sim.AdvanceTo(4.6)  # let the tip catch up
     L = logs(cl, ctx)
     kin = cl.parts.ik.kinematics
-    from drake_rus.control.laws import manipulability
     ms = [manipulability(kin.jacobian(q)) for q in L["q"].data().T]
     p_end = kin.pose(L["q"].data()[:, -1]).translation()
     return min(ms), p_end[1] - P0[1]
@@ -217,7 +216,7 @@ T_FAULT = 0.3023  # between two control ticks
 ])
 def test_safety_stop_on_injected_fault(fault, reason, extra):
     s = scenario(extra)
-    cl = BuildClosedLoop(s, use_supervisor=False, fault=fault, t_fault=T_FAULT,
+    cl = BuildClosedLoopWithFault(s, fault, T_FAULT, use_supervisor=False,
                          log_period=1.0 / s.controller.rate_hz)
     sim = Simulator(cl.diagram)
     ctx = sim.get_mutable_context()
@@ -247,7 +246,7 @@ def test_safety_stop_on_injected_fault(fault, reason, extra):
 
 def test_force_ceiling_stop_retracts_then_zero():
     s = scenario("{safety: {retract_distance: 0.004, retract_speed: 0.02}}")
-    cl = BuildClosedLoop(s, use_supervisor=False, fault="force_spike", t_fault=T_FAULT,
+    cl = BuildClosedLoopWithFault(s, "force_spike", T_FAULT, use_supervisor=False,
                          log_period=1.0 / s.controller.rate_hz)
     sim = Simulator(cl.diagram)
     ctx = sim.get_mutable_context()

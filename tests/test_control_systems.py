@@ -10,11 +10,10 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource
 
-from drake_rus.control import laws, scan
+from drake_rus.control import laws, supervisor
 from drake_rus.control.config import ControllerConfig, SafetyConfig
-from drake_rus.control.faults import FaultInjector
-from drake_rus.control.kinematics import (JointsForTipPosition, MakeControlPlant,
-                                          TipKinematics)
+from drake_rus.reliability.injector import FaultInjector
+from drake_rus.robot import MakeControlPlant, SolveTipPose, TipKinematics
 from drake_rus.control.synthetic_view import GeometricKidneyView, kidney_section
 from drake_rus.control.systems import (ForcePD, NullSpaceDiffIK, OrientationAlignment,
                                        PositionP, SafetyLayer, ScanSupervisor, contact_force)
@@ -129,13 +128,13 @@ def test_scan_supervisor_system_outputs(plant_and_frame):
     sup.GetInputPort("X_BP").FixValue(ctx, X)
     force = sup.GetInputPort("contact_force").FixValue(ctx, [0.0])
     sim.AdvanceTo(0.005)
-    assert sup.GetOutputPort("phase").Eval(ctx)[0] == scan.Phase.APPROACH
+    assert sup.GetOutputPort("phase").Eval(ctx)[0] == supervisor.Phase.APPROACH
     np.testing.assert_allclose(sup.GetOutputPort("a_des").Eval(ctx), [0, 0, -1], atol=1e-12)
     np.testing.assert_allclose(sup.GetOutputPort("P_des").Eval(ctx), [0.55, 0.0])
     assert sup.GetOutputPort("F_des").Eval(ctx)[0] == cfg.desired_force
     force.GetMutableData().set_value(np.array([9.0]))
     sim.AdvanceTo(0.015)
-    assert sup.GetOutputPort("phase").Eval(ctx)[0] == scan.Phase.EXPLORE
+    assert sup.GetOutputPort("phase").Eval(ctx)[0] == supervisor.Phase.EXPLORE
     assert sup.GetOutputPort("exploring").Eval(ctx)[0] == 1.0
     assert sup.GetOutputPort("segmentation_required").Eval(ctx)[0] == 1.0
     sup.GetInputPort("safety_stopped").FixValue(ctx, [1.0])
@@ -179,7 +178,7 @@ def test_joints_for_tip_position(plant_and_frame):
     plant, frame = plant_and_frame
     kin = TipKinematics(plant, frame)
     target = kin.pose(Q0).translation() + [0.05, -0.05, 0.1]
-    q = JointsForTipPosition(plant, frame, Q0, target)
+    q = SolveTipPose(plant, frame, RigidTransform(kin.pose(Q0).rotation(), target), q_nominal=Q0)
     np.testing.assert_allclose(kin.pose(q).translation(), target, atol=1e-4)
     assert laws.angle_between(kin.pose(q).rotation().matrix()[:, 2],
                               kin.pose(Q0).rotation().matrix()[:, 2]) < 1e-3

@@ -6,13 +6,13 @@ import time
 
 import numpy as np
 import pytest
-from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
+from pydrake.math import RollPitchYaw, RotationMatrix
 
 from drake_rus.hardware import core
 from drake_rus.hardware.calibration import flange_poses_from_joints, pivot_calibration
 from drake_rus.scenario import ApplyOverrides, Scenario, ScenarioError
-from drake_rus.sim.force_estimation import estimate_tip_wrench
-from drake_rus.station import MakeControlPlant
+from drake_rus.robot import estimate_tip_wrench
+from drake_rus.robot import MakeControlPlant
 
 V_MAX = np.array([0.8, 0.4, 0.6, 0.5, 1.2, 0.6, 1.2])
 A_MAX = np.full(7, 2.0)

@@ -24,12 +24,11 @@ import pytest
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
 
-from drake_rus.hardware.check import BuildHardwareClosedLoop, RunScriptedMotion, ScriptedMotion
+from drake_rus.hardware.cli import BuildHardwareClosedLoop, RunScriptedMotion, ScriptedMotion
 from drake_rus.hardware.station import (HardwareFault, HardwareStation, MakeHardwareStation,
                                         RunHardware)
-from drake_rus.imaging.frames import UsFrame
 from drake_rus.scenario import ApplyOverrides, LoadScenario
-from drake_rus.station import MakeStation
+from drake_rus.stations import MakeStation
 
 pytestmark = pytest.mark.timeout(240)
 

@@ -11,7 +11,6 @@ import time
 
 import numpy as np
 import pytest
-from pydrake.common.value import AbstractValue
 from pydrake.lcm import DrakeLcm
 from pydrake.math import RigidTransform
 from pydrake.multibody.tree import JacobianWrtVariable
@@ -19,13 +18,14 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import LeafSystem
 
 import drake
-from drake_rus.hardware.check import BuildHardwareClosedLoop, RunScriptedMotion, ScriptedMotion
+from drake_rus.hardware.cli import BuildHardwareClosedLoop, RunScriptedMotion, ScriptedMotion
 from drake_rus.hardware.lcm_sim_driver import CommandExpiry, SimulatedPandaDriver
-from drake_rus.hardware.station import (HardwareFault, HardwareSession, MakeHardwareStation,
+from drake_rus.hardware.station import (HardwareFault, MakeHardwareStation,
                                         RunHardware)
 from drake_rus.imaging.frames import UsFrame
 from drake_rus.scenario import ApplyOverrides, LoadScenario
-from drake_rus.station import MakeControlPlant, MakeStation
+from drake_rus.robot import MakeControlPlant
+from drake_rus.stations import MakeStation
 
 EXPIRY = 0.25       # s, the simulated driver's command expiry (generous: shared CPU)
 STEP = 0.005        # s, lockstep chunk (one control period at 200 Hz)

@@ -5,12 +5,7 @@ import pytest
 from pydrake.math import RigidTransform, RollPitchYaw
 
 from drake_rus.imaging.config import ImagingConfig
-from drake_rus.imaging.probe import ProbeGeometry, check_pose
-
-
-@pytest.fixture(scope="module")
-def geometry():
-    return ProbeGeometry.from_config(ImagingConfig())
+from drake_rus.imaging.probe import check_pose
 
 
 def random_pose(rng):

@@ -10,17 +10,11 @@ from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.emulator import EmulatorModel, emulate
 from drake_rus.imaging.frames import BoundaryPixels, PointCloud
 from drake_rus.imaging.phantoms import kidney_phantom
-from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.imaging.segment import (boundary_pixels, iou, mask_centroid, read_mask,
                                        segment_classical, segment_oracle)
 from drake_rus.imaging.slicing import slice_volume
 
 DOWN = RotationMatrix(np.diag([1.0, -1.0, -1.0]))   # z_P = -z_B (looking down), x_P = x_B
-
-
-@pytest.fixture(scope="module")
-def geometry():
-    return ProbeGeometry.from_config(ImagingConfig())
 
 
 @pytest.fixture(scope="module")

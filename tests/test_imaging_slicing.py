@@ -5,18 +5,12 @@ import pytest
 from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
 
 from drake_rus.anatomy.labels import Label, LabelVolume
-from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.phantoms import box_volume, sphere_volume
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.imaging.slicing import slice_volume
 
 H = 0.001                     # voxel size (m)
 HALF_DIAG = np.sqrt(3) / 2 * H  # farthest a point can be from its nearest voxel centre
-
-
-@pytest.fixture(scope="module")
-def geometry():
-    return ProbeGeometry.from_config(ImagingConfig())
 
 
 def fan_points_B(geometry, X_BP):

@@ -1,7 +1,6 @@
 """Kinematic mode on a synthetic box body with an ellipsoidal kidney, and on one patient."""
 
 import math
-import types
 
 import numpy as np
 import pytest

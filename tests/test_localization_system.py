@@ -6,10 +6,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 
-from drake_rus.control import scan
+from drake_rus.control import supervisor
 from drake_rus.control.config import ControllerConfig
 from drake_rus.imaging.frames import PointCloud
 from drake_rus.localization.config import LocalizationConfig
@@ -67,14 +66,14 @@ def _cloud(points, travel_m):
 @pytest.mark.parametrize("travel, expect_pose", [(0.04, True), (0.005, False)])
 def test_icp_localizer_system(template, travel, expect_pose):
     X_BK, P = partial_cloud(template)
-    phase = scan.Phase.LOCALIZE
+    phase = supervisor.Phase.LOCALIZE
     system = IcpLocalizer(template, LocalizationConfig(method="seed"), SUPERIOR_B, LATERAL_B,
                           localize_phase=int(phase))
     from pydrake.systems.analysis import Simulator
     simulator = Simulator(system)
     context = simulator.get_mutable_context()
     system.GetInputPort("point_cloud").FixValue(context, _cloud(P, travel))
-    system.GetInputPort("phase").FixValue(context, [float(scan.Phase.EXPLORE)])
+    system.GetInputPort("phase").FixValue(context, [float(supervisor.Phase.EXPLORE)])
     simulator.AdvanceTo(0.2)  # not in LOCALIZE: nothing happens
     assert system.GetOutputPort("localization_ready").Eval(context)[0] == 0.0
     assert system.GetOutputPort("localization_error").Eval(context) == ""
@@ -97,15 +96,15 @@ def test_exploration_travel():
 
 
 def test_supervisor_aborts_on_localization_error():
-    s = scan.SupervisorState()
+    s = supervisor.SupervisorState()
     s.initialised = True
-    s.phase = scan.Phase.LOCALIZE
+    s.phase = supervisor.Phase.LOCALIZE
     s.phase_start = 1.0
-    u = scan.SupervisorInputs(t=1.2, R_BP=np.diag([1.0, -1, -1]), p_BP=np.array([0.5, 0, 0.2]),
+    u = supervisor.SupervisorInputs(t=1.2, R_BP=np.diag([1.0, -1, -1]), p_BP=np.array([0.5, 0, 0.2]),
                               F_z=9.0, kidney_visible=True, c_msk=0.5, localization_ready=False,
                               localization_error="only 3 kidney boundary points were explored")
-    s = scan.supervisor_step(s, u, ControllerConfig(), 0.01)
-    assert s.phase == scan.Phase.ABORT
+    s = supervisor.supervisor_step(s, u, ControllerConfig(), 0.01)
+    assert s.phase == supervisor.Phase.ABORT
     assert "localization failed: only 3 kidney" in s.reason
 
 
@@ -115,12 +114,12 @@ def test_adaptive_exploration_flags_a_settled_estimate(template, enabled):
     X_BK, P = partial_cloud(template)
     config = LocalizationConfig(method="seed", adaptive_exploration=enabled, adaptive_period=0.2)
     system = IcpLocalizer(template, config, SUPERIOR_B, LATERAL_B,
-                          localize_phase=int(scan.Phase.LOCALIZE),
-                          explore_phase=int(scan.Phase.EXPLORE), kidney_length=0.1)
+                          localize_phase=int(supervisor.Phase.LOCALIZE),
+                          explore_phase=int(supervisor.Phase.EXPLORE), kidney_length=0.1)
     simulator = Simulator(system)
     context = simulator.get_mutable_context()
     system.GetInputPort("point_cloud").FixValue(context, _cloud(P, 0.04))
-    system.GetInputPort("phase").FixValue(context, [float(scan.Phase.EXPLORE)])
+    system.GetInputPort("phase").FixValue(context, [float(supervisor.Phase.EXPLORE)])
     simulator.AdvanceTo(0.05)
     assert system.GetOutputPort("exploration_sufficient").Eval(context)[0] == 0.0
     simulator.AdvanceTo(0.5)  # two interim estimates of the same cloud agree
@@ -128,13 +127,13 @@ def test_adaptive_exploration_flags_a_settled_estimate(template, enabled):
 
 
 def test_supervisor_ends_exploration_when_sufficient():
-    s = scan.SupervisorState()
+    s = supervisor.SupervisorState()
     s.initialised = True
-    s.phase = scan.Phase.EXPLORE
+    s.phase = supervisor.Phase.EXPLORE
     s.P_des = np.array([0.5, 0.0])
-    u = scan.SupervisorInputs(t=2.0, R_BP=np.diag([1.0, -1, -1]), p_BP=np.array([0.5, 0, 0.2]),
+    u = supervisor.SupervisorInputs(t=2.0, R_BP=np.diag([1.0, -1, -1]), p_BP=np.array([0.5, 0, 0.2]),
                               F_z=9.0, kidney_visible=True, c_msk=0.5,
                               exploration_sufficient=True)
-    s = scan.supervisor_step(s, u, ControllerConfig(), 0.01)
-    assert s.phase == scan.Phase.LOCALIZE
+    s = supervisor.supervisor_step(s, u, ControllerConfig(), 0.01)
+    assert s.phase == supervisor.Phase.LOCALIZE
     assert "adaptive" in s.events[-1][2]

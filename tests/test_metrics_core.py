@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
+from pydrake.math import RigidTransform, RotationMatrix
 
 from drake_rus.metrics.core import (
     CoverageAccumulator, e_rot_x, e_trans, imaging_window_path_length, volume_ratio)

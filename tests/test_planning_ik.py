@@ -3,13 +3,13 @@
 import numpy as np
 import pytest
 import trimesh
-from pydrake.math import RigidTransform, RotationMatrix
+from pydrake.math import RigidTransform
 
-from drake_rus.experiments.planning import (
+from drake_rus.scan.planning import (
     R_B_TRANSVERSE, exploration_roi, exploration_start, skin_height_B)
 from drake_rus.scenario import LoadScenario
-from drake_rus.sim.ik import IkError, SolveTipPose
-from drake_rus.station import MakeControlPlant
+from drake_rus.robot import IkError, SolveTipPose
+from drake_rus.robot import MakeControlPlant
 
 
 class BoxPatient:

@@ -106,18 +106,18 @@ def test_respiration_aware_exploration_moves_only_during_breath_holds(patient_an
     kidney during holds and holds its target (in contact, no watchdog stop) between them."""
     import numpy as np
 
-    from drake_rus.reliability.faults import breath_hold
+    from drake_rus.anatomy.motion import breath_hold
     patient, template = patient_and_template
     scenario = LoadScenario(scenario_name="quick", scenario_text=(
-        "{faults: {breathing: {enabled: true, amplitude: 0.015, rate_per_min: 20, "
-        "hold_period: 3.0, hold_duration: 1.5, gate_exploration: true}}}"))
+        "{patient: {motion: {breathing: {enabled: true, amplitude: 0.015, rate_per_min: 20, "
+        "hold_period: 3.0, hold_duration: 1.5, gate_exploration: true}}}}"))
     result, check = RunFaultyScan(scenario, patient, template, max_sim_time=6.5)
     assert result.status == "TIMEOUT" and not result.safety_events, result.safety_events
     explore = [f for f in result.frames if f.phase == 1]          # EXPLORE
     t = np.array([f.time for f in explore])
     y = np.array([f.X_BP.translation()[1] for f in explore])
     speed = np.abs(np.gradient(y, t))
-    cfg = scenario.faults.breathing
+    cfg = scenario.patient.motion.breathing
     inside = np.array([breath_hold(ti - 0.3, cfg) and breath_hold(ti, cfg) for ti in t])
     outside = np.array([not breath_hold(ti - 0.4, cfg) and not breath_hold(ti, cfg) for ti in t])
     assert inside.sum() > 10 and outside.sum() > 10

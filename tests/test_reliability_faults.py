@@ -1,54 +1,17 @@
-"""Fault and patient-motion models and their systems (fast, no full scan)."""
+"""Sensor-fault models and their systems (fast, no full scan). Patient motion:
+tests/test_patient_motion.py."""
 
-import dataclasses
-import math
 
 import numpy as np
 import pytest
 from pydrake.math import RigidTransform
 
-from drake_rus.anatomy.labels import Label, LabelVolume, is_kidney
+from drake_rus.anatomy.labels import Label, is_kidney
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.frames import UsFrame
-from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.reliability import faults as F
-from drake_rus.reliability.config import (
-    BreathingConfig, FaultConfig, PatientShiftConfig, SensorFaultConfig)
-from drake_rus.reliability.systems import (
-    LabelImageFaults, MovingPose, MovingSliceSensor, RobotSensorFaults)
-
-
-def test_breathing_amplitude_rate_and_holds():
-    cfg = BreathingConfig(enabled=True, amplitude=0.012, rate_per_min=15.0, hold_period=12.0,
-                          hold_duration=8.0, hold_reproducibility=0.003)
-    t = np.arange(0.0, 60.0, 0.001)
-    d = np.array([F.breathing_displacement(x, cfg, seed=3) for x in t])
-    hold = np.array([F.breath_hold(x, cfg) for x in t])
-    # Continuous: no 1 ms step beyond twice the peak breathing speed A pi f (one breath per
-    # 4 s of free breathing), bounded by amplitude + hold offset.
-    peak_speed = 0.012 * math.pi * 0.25
-    assert np.max(np.abs(np.diff(d))) < 2 * peak_speed * 0.001
-    assert d.min() >= 0.0 and d.max() <= 0.012 + 0.003 + 1e-12
-    assert d.max() > 0.0119
-    # Holds: 8 of every 12 s, still and within the reproducibility of end-expiration.
-    assert hold.mean() == pytest.approx(8 / 12, abs=0.01)
-    assert np.all(d[hold] <= 0.003)
-    for a, b in F.hold_windows(60.0, cfg):
-        seg = d[(t >= a) & (t < b)]
-        assert np.ptp(seg) == 0.0
-    # Free breathing only: 15 breaths/min peaks every 4 s.
-    free = dataclasses.replace(cfg, hold_period=0.0)
-    assert F.breathing_displacement(2.0, free) == pytest.approx(0.012)
-    assert F.breathing_displacement(4.0, free) == pytest.approx(0.0, abs=1e-12)
-    assert not F.breath_hold(1.0, free)
-    assert F.breath_hold(1.0, BreathingConfig(enabled=False))
-
-
-def test_patient_shift_ramps_to_offset():
-    cfg = PatientShiftConfig(enabled=True, time=2.0, offset=[0.0, 0.02, -0.005], ramp=0.5)
-    np.testing.assert_allclose(F.shift_offset(1.9, cfg), 0.0)
-    np.testing.assert_allclose(F.shift_offset(2.25, cfg), [0.0, 0.01, -0.0025])
-    np.testing.assert_allclose(F.shift_offset(10.0, cfg), [0.0, 0.02, -0.005])
+from drake_rus.reliability.config import FaultConfig, SensorFaultConfig
+from drake_rus.reliability.systems import LabelImageFaults, RobotSensorFaults
 
 
 def test_force_faults():
@@ -68,11 +31,6 @@ def test_frame_probability_is_deterministic_and_about_right():
     hits = [F.frame_affected(k, f, seed=5) for k in range(2000)]
     assert hits == [F.frame_affected(k, f, seed=5) for k in range(2000)]
     assert np.mean(hits) == pytest.approx(0.3, abs=0.04)
-
-
-@pytest.fixture(scope="module")
-def geometry():
-    return ProbeGeometry.from_config(ImagingConfig())
 
 
 def _label_frame(geometry, index, t):
@@ -159,42 +117,6 @@ def test_robot_sensor_faults_force_nan_and_delay():
     assert np.all(np.isfinite(system.GetOutputPort("X_BP").Eval(ctx).translation()))
 
 
-def test_moving_slice_sensor_sees_the_kidney_move(geometry):
-    """A kidney block moved 10 mm caudally by breathing appears 10 mm further along the
-    probe's x axis (the probe's array along the body's head-foot axis)."""
-    labels = np.full((80, 80, 240), Label.SOFT_TISSUE, np.uint8)
-    labels[30:50, 35:45, 40:160] = Label.KIDNEY_CORTEX    # x in [30, 50) mm
-    volume = LabelVolume(labels, 0.001)
-    # Probe at the grid's centre top, beam down (-z_B), array along +x_B; up = -x_B, so
-    # d > 0 (caudal) moves the kidney along +x_B.
-    from pydrake.math import RotationMatrix
-    X_BP = RigidTransform(RotationMatrix(np.diag([1.0, -1.0, -1.0])), [0.040, 0.040, 0.230])
-    faults = FaultConfig(breathing=BreathingConfig(enabled=True, amplitude=0.01,
-                                                   rate_per_min=15.0, hold_period=0.0))
-    sensor = MovingSliceSensor(ImagingConfig(), volume, RigidTransform(), faults,
-                               superior_B=[-1.0, 0.0, 0.0])
-    from pydrake.systems.analysis import Simulator
-    simulator = Simulator(sensor)
-    ctx = simulator.get_mutable_context()
-    sensor.GetInputPort("X_BP").FixValue(ctx, X_BP)
-    simulator.Initialize()
-
-    def kidney_columns(t):
-        simulator.AdvanceTo(t + 1e-6)
-        frame = sensor.GetOutputPort("label_image").Eval(ctx)
-        assert frame.time == pytest.approx(t)
-        return np.nonzero(is_kidney(frame.image).any(axis=0))[0].mean()
-
-    c0, c1 = kidney_columns(0.0), kidney_columns(2.0)     # d = 0, then d = 10 mm
-    assert (c1 - c0) * geometry.dx == pytest.approx(0.010, abs=0.0015)
-    X0 = RigidTransform([0.1, 0.2, 0.3])
-    pose = MovingPose(X0, faults, [-1.0, 0.0, 0.0])
-    pctx = pose.CreateDefaultContext()
-    pctx.SetTime(2.0)
-    np.testing.assert_allclose(pose.get_output_port().Eval(pctx).translation(),
-                               [0.11, 0.2, 0.3], atol=1e-12)
-
-
 def test_nan_stamped_frame_is_not_accumulated(geometry):
     """A frame whose probe pose is NaN (fault nan_image) adds nothing to P_local."""
     from drake_rus.imaging.backprojection import BoundaryPixels, PointCloud, accumulate
@@ -205,41 +127,3 @@ def test_nan_stamped_frame_is_not_accumulated(geometry):
     bad = accumulate(good, BoundaryPixels(px, 0.05, RigidTransform(np.full(3, np.nan)), 1),
                      geometry)
     assert bad.frame_count == 1 and np.all(np.isfinite(bad.points))
-
-
-def test_patient_contact_body_moves_with_breathing_and_shift():
-    """With breathing or a shift the contact body is on driven joints and follows the
-    same displacement as the imaged anatomy (sub-millimetre, with the robot pressing on
-    it); without patient motion it stays welded (no extra degrees of freedom)."""
-    from pydrake.systems.analysis import Simulator
-
-    from drake_rus.anatomy import load_patient
-    from drake_rus.reliability.station import fault_seed, superior_axis_B
-    from drake_rus.scenario import LoadScenario
-    from drake_rus.station import MakeStation
-
-    patient = load_patient("test:0", progress=False)
-    still = MakeStation(LoadScenario(scenario_name="quick"), patient=patient)
-    assert not still.GetSubsystemByName("plant").HasModelInstanceNamed("patient")
-    scenario = LoadScenario(scenario_name="quick", scenario_text=(
-        "{faults: {breathing: {enabled: true, amplitude: 0.02, rate_per_min: 20, "
-        "hold_period: 0}, patient_shift: {enabled: true, time: 0.6, offset: [0.01, 0.0, "
-        "0.005], ramp: 0.3}}}"))
-    station = MakeStation(scenario, patient=patient)
-    plant = station.GetSubsystemByName("plant")
-    assert plant.HasModelInstanceNamed("patient")
-    simulator = Simulator(station)
-    context = simulator.get_mutable_context()
-    station.GetInputPort("joint_velocity_command").FixValue(context, np.zeros(7))
-    up = superior_axis_B(scenario)
-    moved = []
-    for t in (0.5, 1.2):
-        simulator.AdvanceTo(t)
-        x = station.GetOutputPort("plant_state").Eval(context)
-        q_patient = x[7:len(x) // 2]
-        want = F.patient_offset_B(t, scenario.faults.breathing, scenario.faults.patient_shift,
-                                  up, fault_seed(scenario))
-        assert np.linalg.norm(want) > 0.004
-        np.testing.assert_allclose(q_patient, want, atol=0.001)
-        moved.append(q_patient)
-    assert moved[1][0] == pytest.approx(0.01, abs=0.001)        # the shift along x

@@ -2,16 +2,15 @@
 
 import json
 
-import numpy as np
 import pytest
-from pydrake.math import RigidTransform
 
 from drake_rus.cli import main as cli_main
-from drake_rus.scan import PHASE_NAMES, PhaseIs
+from drake_rus.control.supervisor import Phase
+from drake_rus.scan import PhaseIs
 
 
 def test_phase_is():
-    system = PhaseIs(PHASE_NAMES.index("EXPLORE"))
+    system = PhaseIs(Phase.EXPLORE)
     context = system.CreateDefaultContext()
     for phase, expected in ((0, 0.0), (1, 1.0), (2, 0.0)):
         system.get_input_port(0).FixValue(context, [phase])

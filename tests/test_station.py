@@ -4,17 +4,18 @@ import json
 
 import numpy as np
 import pytest
+from pydrake.multibody.tree import BodyIndex
 from pydrake.math import RigidTransform
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput
 
 from drake_rus.cli import main as cli_main
-from drake_rus.config_schema import ScenarioError
 from drake_rus.scenario import LoadScenario
-from drake_rus.sim.force_estimation import contact_force_along_approach, estimate_tip_wrench
-from drake_rus.sim.press import PressDiagram
-from drake_rus.station import MakeControlPlant, MakeStation
+from drake_rus.robot import contact_force_along_approach, estimate_tip_wrench
+from drake_rus.demo import PressDiagram
+from drake_rus.robot import MakeControlPlant
+from drake_rus.stations import MakeStation
 
 STATION_INPUTS = {"joint_velocity_command"}
 STATION_OUTPUTS = {"joint_position", "joint_velocity", "X_BP", "tau_external", "probe_force"}
@@ -119,13 +120,33 @@ def test_probe_force_agrees_with_contact_results(model):
     np.testing.assert_allclose(F_true[-1], 9.0, atol=0.5)
 
 
-def test_hardware_station_gives_clear_error_until_it_exists():
-    scenario = LoadScenario(scenario_name="hardware")
-    try:
-        import drake_rus.hardware.station  # noqa: F401
-    except ImportError:
-        with pytest.raises(ScenarioError, match="field 'hardware'"):
-            MakeStation(scenario)
+@pytest.mark.parametrize("hardware", [False, True])
+def test_make_station_dispatches_on_the_hardware_flag(monkeypatch, hardware):
+    """MakeStation builds the simulated station for hardware: false and the hardware station
+    for hardware: true, passing the scenario through; nothing else chooses."""
+    import drake_rus.stations as stations
+    calls = []
+    monkeypatch.setattr(stations, "MakeSimStation",
+                        lambda scenario, **kw: calls.append(("sim", scenario)) or "sim")
+    monkeypatch.setattr(stations, "MakeHardwareStation",
+                        lambda scenario, **kw: calls.append(("hw", scenario)) or "hw")
+    scenario = LoadScenario(scenario_name="hardware" if hardware else "default")
+    assert scenario.hardware == hardware
+    assert stations.MakeStation(scenario) == ("hw" if hardware else "sim")
+    assert calls == [("hw" if hardware else "sim", scenario)]
+
+
+def test_control_plant_has_no_geometry_the_sim_plant_has():
+    """The control plant (FK, Jacobians, gravity) carries no geometry; the simulated
+    station's plant has the probe face it presses with."""
+    scenario = LoadScenario()
+    plant, _ = MakeControlPlant(scenario)
+    assert not plant.geometry_source_is_registered()
+    assert all(len(plant.GetCollisionGeometriesForBody(plant.get_body(BodyIndex(i)))) == 0
+               for i in range(plant.num_bodies()))
+    sim_plant = MakeStation(scenario).GetSubsystemByName("plant")
+    probe = sim_plant.GetBodyByName("probe")
+    assert len(sim_plant.GetCollisionGeometriesForBody(probe)) > 0
 
 
 def test_demo_writes_recording_plot_and_summary(tmp_path):

@@ -2,15 +2,18 @@
 real study through the CLI (Dask, one worker) whose output the paper notebook reads."""
 
 import json
-import os
 from pathlib import Path
 
 import nbformat
+import nrrd
 import numpy as np
 import pytest
 from nbclient import NotebookClient
 
-from drake_rus.experiments import studies as st
+from drake_rus import batch
+from drake_rus.cli import main
+from drake_rus.experiments import analysis
+from drake_rus.experiments import tasks as st
 
 NOTEBOOK = Path(__file__).resolve().parent.parent / "notebooks" / "reproduce_paper.ipynb"
 
@@ -53,7 +56,7 @@ def _er_results(rng, n=12):
 
 
 def test_er_sweep_critical_er_and_paired_tests():
-    an = st.analyze_er_sweep(_er_results(np.random.default_rng(0)))
+    an = analysis.analyze_er_sweep(_er_results(np.random.default_rng(0)))
     assert an["critical_er"] == pytest.approx(0.6)
     rows = {r["er"]: r for r in an["rows"]}
     assert rows[1.0]["p_e_trans"] == 1.0
@@ -66,7 +69,7 @@ def test_er_sweep_critical_er_needs_every_larger_er_to_agree():
     for r in res:                       # ER 0.8 is worse than 100%: the critical ER is 0.9
         if r["er"] == 0.8:
             r["e_trans_mm"] += 10 + float(np.random.default_rng(len(r["patient"])).normal())
-    an = st.analyze_er_sweep(res)
+    an = analysis.analyze_er_sweep(res)
     assert an["critical_er"] == pytest.approx(0.9)
     assert an["first_not_significant_er"] == pytest.approx(0.6)
 
@@ -76,7 +79,7 @@ def test_starts_bonferroni():
     res = [{"patient": f"test:{k}", "start": s, "er": 0.6,
             "e_trans_mm": 4 + rng.normal(0, 1) + (5.0 if s == 4 else 0.0),
             "e_rot_x_deg": 4 + rng.normal(0, 1)} for k in range(15) for s in range(5)]
-    an = st.analyze_starts(res)
+    an = analysis.analyze_starts(res)
     assert an["bonferroni_threshold"] == pytest.approx(0.005)
     assert len(an["tests"]) == 10
     sig = [(t["start_a"], t["start_b"]) for t in an["tests"] if t["significant_e_trans_mm"]]
@@ -98,7 +101,7 @@ def _eff_result(patient, n_op, n_nop):
 
 def test_efficiency_reductions_and_mean_curves():
     res = [_eff_result(f"test:{k}", 100 + k, 200 + 3 * k) for k in range(6)]
-    an = st.analyze_efficiency(res)
+    an = analysis.analyze_efficiency(res)
     c = {(x["comparison"], x["metric"]): x for x in an["comparisons"]}
     nop = c[("OP vs NOP", "n")]
     assert nop["reduction_mean"] == pytest.approx(np.mean([100 + 2 * k for k in range(6)]))
@@ -107,11 +110,11 @@ def test_efficiency_reductions_and_mean_curves():
     assert an["bonferroni_threshold"] == pytest.approx(0.05 / 6)
     assert an["summary"]["OP"]["within_5pct"] == 6
     grid = np.array([1.0, 50.0, 500.0])
-    V = st.mean_curve(res, "OP", "n", grid)
+    V = analysis.mean_curve(res, "OP", "n", grid)
     assert V[-1] == pytest.approx(1.0) and 0.4 < V[1] < 0.55
 
 
-def test_runner_writes_each_run_and_resumes(tmp_path, monkeypatch):
+def test_runner_writes_each_run_and_resumes(tmp_path):
     calls = []
 
     def fake(task):
@@ -120,25 +123,23 @@ def test_runner_writes_each_run_and_resumes(tmp_path, monkeypatch):
             raise RuntimeError("boom")
         return {"run_id": st.run_id(task), "task": task, "value": len(calls)}
 
-    monkeypatch.setattr(st, "run_task", fake)
     tasks = st.er_sweep_tasks(["test:0", "test:1", "test:2"], st.StudyOptions(), [0.5])
-    status = st.run_tasks(tasks, tmp_path, workers=0, progress=False)
+    status = batch.run_tasks(tasks, fake, tmp_path, st.run_id, workers=0, progress=False)
     assert status["done"] == 2 and status["failed"][0][0] == "er-sweep__test-2__er050"
     assert "boom" in status["failed"][0][1]
     assert sorted(p.name for p in (tmp_path / "runs").iterdir()) == [
         "er-sweep__test-0__er050.json", "er-sweep__test-1__er050.json"]
     # Resume: only the failed run is tried again.
     calls.clear()
-    status = st.run_tasks(tasks, tmp_path, workers=0, progress=False)
+    status = batch.run_tasks(tasks, fake, tmp_path, st.run_id, workers=0, progress=False)
     assert calls == ["test:2"] and status["skipped"] == 2
-    assert len(st.load_results(tmp_path, "er-sweep")) == 2
+    assert len(st.load_study_results(tmp_path, "er-sweep")) == 2
 
 
 @pytest.fixture(scope="module")
 def tiny_paper(tmp_path_factory):
     """A real (tiny) paper study through the CLI: one patient, two ERs, two starts, the
     efficiency sweeps, run on an embedded Dask cluster of one worker."""
-    from drake_rus.cli import main
     out = tmp_path_factory.mktemp("paper")
     code = main(["study", "paper", "--patients", "test:2", "--ers", "0.6,1", "--starts", "2",
                  "--out", str(out), "--workers", "1", "--no-progress", "--recon-spacing",
@@ -157,17 +158,16 @@ def test_tiny_paper_study_outputs(tiny_paper):
     meta = json.loads((out / "study_paper.json").read_text())
     assert meta["mode"].startswith("kinematic") and meta["failed_runs"] == []
     # The closed-loop check: one dynamic scan beside its kinematic twin.
-    closed = st.load_results(out, "closed-loop")
+    closed = st.load_study_results(out, "closed-loop")
     assert len(closed) == 1 and closed[0]["closed_loop"]["status"] == "DONE"
     assert closed[0]["closed_loop"]["V"] > 0.9 and closed[0]["kinematic"]["V"] > 0.9
     assert (out / "closed_loop.csv").stat().st_size > 0
-    eff = st.load_results(out, "efficiency")[0]
+    eff = st.load_study_results(out, "efficiency")[0]
     s = eff["strategies"]
     assert s["GT-OP"]["V"] > 0.9 and s["GT-OP"]["n"] < s["NOP"]["n"]
     assert abs(s["GT-OP"]["volume_error_pct"]) < 5.0
     assert sorted(s["GT-OP"]["nrrd"]) == ["test-2__GT-OP__kidney_mask.nrrd",
                                           "test-2__GT-OP__kidney_probability.nrrd"]
-    import nrrd
     mask, header = nrrd.read(str(out / "volumes" / "test-2__GT-OP__kidney_mask.nrrd"))
     ml = mask.sum() * float(np.prod(np.diag(header["space directions"]))) / 1000.0
     assert ml == pytest.approx(s["GT-OP"]["volume_ml"], rel=1e-6)
@@ -177,7 +177,6 @@ def test_tiny_paper_study_outputs(tiny_paper):
 
 
 def test_study_resumes_without_rerunning(tiny_paper):
-    from drake_rus.cli import main
     code, out = tiny_paper
     stamps = {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*.json")}
     assert main(["study", "starts", "--patients", "test:2", "--starts", "2", "--out", str(out),
@@ -201,7 +200,6 @@ def test_reproduce_paper_notebook_runs_on_the_tiny_study(tiny_paper, tmp_path, m
 
 
 def test_cli_errors_are_named(capsys):
-    from drake_rus.cli import main
     assert main(["study", "er-sweep", "--patients", "nonsense", "--workers", "0"]) == 2
     assert "--patients" in capsys.readouterr().err
     assert main(["study", "er-sweep", "--patients", "test:0", "--ers", "0.5,2",

@@ -8,14 +8,18 @@ from pathlib import Path
 
 import numpy as np
 
+from drake_rus.anatomy.cohort import cohort_seeds, cohort_stats, load_patient
+from drake_rus.anatomy.generator import generate_patient
+from drake_rus.anatomy.pictures import plot_cohort_overview, plot_label_slices, show_in_meshcat
+from drake_rus.cli import UserError
+from drake_rus.template import load_template
+
 
 def _user_error(e):
-    from drake_rus.cli import UserError
     return UserError(str(e))
 
 
 def _load(args):
-    from drake_rus.anatomy.cohort import load_patient
     try:
         return load_patient(args.spec, side=args.side, posture=args.posture,
                             voxel_size=args.voxel_mm / 1000.0)
@@ -64,7 +68,6 @@ def _export(args) -> int:
 
 
 def _show(args) -> int:
-    from drake_rus.anatomy.pictures import plot_label_slices, show_in_meshcat
     p = _load(args)
     out = Path(args.png)
     plot_label_slices(p, out)
@@ -83,8 +86,6 @@ def _show(args) -> int:
 
 
 def _cohort(args) -> int:
-    from drake_rus.anatomy.cohort import cohort_seeds, cohort_stats
-    from drake_rus.anatomy.generator import generate_patient
     if args.count is not None and args.count < 1:
         raise _user_error(f"--count: expected at least 1, got {args.count}")
     t0 = time.time()
@@ -94,10 +95,8 @@ def _cohort(args) -> int:
         out["seconds"] = round(time.time() - t0, 1)
         print(json.dumps(out, indent=2))
     if args.png:
-        from drake_rus.anatomy.pictures import plot_cohort_overview
         template = None
         try:
-            from drake_rus.template import load_template
             template = load_template()
         except (FileNotFoundError, ValueError):
             pass

@@ -10,9 +10,16 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import trimesh
+from tqdm import tqdm
 
+from drake_rus.anatomy.cache import cached_patient, file_digest
 from drake_rus.anatomy.frames import check_side_posture
-from drake_rus.anatomy.generator import _Layout, generate_patient, sample_patient_params
+from drake_rus.anatomy.generator import (_Layout, generate_patient, patient_builders,
+                                         sample_patient_params)
+from drake_rus.anatomy.importers import (LABEL_MAP_SUFFIXES, find_mesh_files,
+                                         patient_from_label_map, patient_from_mask_folder,
+                                         patient_from_meshes, totalsegmentator_mask_files)
 from drake_rus.anatomy.patient import Patient
 from drake_rus.template.pca import extents_in_frame, mesh_canonical_frame
 
@@ -43,13 +50,34 @@ def cohort_seeds(split: str, count: int | None = None) -> list[int]:
 
 def load_patient(spec: str, side: str = "right", posture: str = "supine", *,
                  voxel_size: float = 0.001, mapping="totalsegmentator",
-                 progress: bool = True) -> Patient:
+                 progress: bool = True, cache: bool = True) -> Patient:
     """A patient from a spec: ``seed:N``, ``train:K``, ``test:K`` (virtual, deterministic),
     a directory of TotalSegmentator per-structure masks (kidney_right.nii.gz, body.nii.gz,
     ...), a directory of meshes (kidney_right/left, skin, liver by file name, like the HuBMAP
-    folder) or a NIfTI/NRRD label map (multi-label, TotalSegmentator indices by default)."""
+    folder) or a NIfTI/NRRD label map (multi-label, TotalSegmentator indices by default).
+
+    ``cache``: reuse (and store) the patient in the on-disk patient cache
+    (:mod:`drake_rus.anatomy.cache`), its label volume included once built; False builds it
+    afresh and writes nothing."""
     check_side_posture(side, posture)
-    spec = str(spec)
+    inputs, build, builders = _resolve_spec(str(spec), side, posture, voxel_size, mapping,
+                                            progress)
+    if not cache:
+        return build()
+    return cached_patient(inputs, build, builders=builders)
+
+
+def _mapping_key(mapping):
+    if isinstance(mapping, str):
+        return mapping.lower()
+    return sorted([int(k), str(v).lower()] for k, v in dict(mapping).items())
+
+
+def _resolve_spec(spec: str, side: str, posture: str, voxel_size: float, mapping,
+                  progress: bool):
+    """(cache inputs, build(), builders() or None) of a patient spec: the inputs name the
+    generator seed or the bytes of every file the import reads."""
+    common = {"spec": spec, "side": side, "posture": posture, "voxel_size": float(voxel_size)}
     head, sep, tail = spec.partition(":")
     if sep and head in SPLIT_OFFSETS:
         try:
@@ -57,36 +85,53 @@ def load_patient(spec: str, side: str = "right", posture: str = "supine", *,
         except ValueError:
             raise ValueError(f"patient spec {spec!r}: expected an integer after '{head}:'") from None
         seed = split_seed(head, k)
-        return generate_patient(seed, side, posture, name=spec, voxel_size=voxel_size,
-                                progress=progress)
-    from drake_rus.anatomy.importers import (LABEL_MAP_SUFFIXES, find_mesh_files,
-                                             patient_from_label_map, patient_from_mask_folder,
-                                             patient_from_meshes, totalsegmentator_mask_files)
+        return ({"kind": "generator", "seed": seed, **common},
+                lambda: generate_patient(seed, side, posture, name=spec, voxel_size=voxel_size,
+                                         progress=progress),
+                lambda: patient_builders(seed, side, posture, voxel_size=voxel_size,
+                                         progress=progress))
     path = Path(spec)
     if not path.exists():
         raise FileNotFoundError(
             f"patient spec {spec!r}: not seed:N/train:K/test:K and no such file or directory")
+
+    def imported(route, files, build, with_mapping=False):
+        inputs = {"kind": route, **common,
+                  "files": {str(p): file_digest(p) for p in files}}
+        if with_mapping:
+            inputs["mapping"] = _mapping_key(mapping)
+        return inputs, build, None
+
     if path.is_dir():
         masks = totalsegmentator_mask_files(path)
         if f"kidney_{side}" in masks:
-            return patient_from_mask_folder(path, side=side, posture=posture,
-                                            voxel_size=voxel_size)
+            return imported("mask_folder", masks.values(),
+                            lambda: patient_from_mask_folder(path, side=side, posture=posture,
+                                                             voxel_size=voxel_size))
         found = find_mesh_files(path, side)
         if found["kidney"] is None or found["skin"] is None:
             maps = [p for p in sorted(path.iterdir()) if p.name.lower().endswith(LABEL_MAP_SUFFIXES)]
             if len(maps) == 1:
-                return patient_from_label_map(maps[0], mapping, side=side, posture=posture,
-                                              voxel_size=voxel_size)
+                return imported("label_map", maps,
+                                lambda: patient_from_label_map(maps[0], mapping, side=side,
+                                                               posture=posture,
+                                                               voxel_size=voxel_size),
+                                with_mapping=True)
             missing = [k for k in ("kidney", "skin") if found[k] is None]
             raise ValueError(f"patient directory {path}: no {' and no '.join(missing)} mesh "
                              f"found (expected file names containing 'kidney' and '{side}', "
                              "and 'skin'), and not exactly one label map")
-        return patient_from_meshes(found["kidney"], found["skin"], liver=found["liver"],
-                                   other_kidney=found["other_kidney"], side=side,
-                                   posture=posture, name=path.name, voxel_size=voxel_size)
+        return imported("meshes", [p for p in found.values() if p is not None],
+                        lambda: patient_from_meshes(found["kidney"], found["skin"],
+                                                    liver=found["liver"],
+                                                    other_kidney=found["other_kidney"],
+                                                    side=side, posture=posture, name=path.name,
+                                                    voxel_size=voxel_size))
     if path.name.lower().endswith(LABEL_MAP_SUFFIXES):
-        return patient_from_label_map(path, mapping, side=side, posture=posture,
-                                      voxel_size=voxel_size)
+        return imported("label_map", [path],
+                        lambda: patient_from_label_map(path, mapping, side=side, posture=posture,
+                                                       voxel_size=voxel_size),
+                        with_mapping=True)
     raise ValueError(f"patient spec {spec!r}: unknown file type (label maps: "
                      f"{', '.join(LABEL_MAP_SUFFIXES)}; meshes: give their directory)")
 
@@ -97,7 +142,6 @@ def kidney_statistics(seed: int, side: str = "right", posture: str = "supine") -
     Identical to ``Patient.metrics()`` for the same seed (tested)."""
     prm = sample_patient_params(seed, side, posture)
     lay = _Layout(prm)
-    import trimesh
     mesh = trimesh.Trimesh(lay.kidney_vertices_Bd, lay.shape.mesh.faces, process=False)
     lateral = np.array([-1.0, 0, 0]) if side == "right" else np.array([1.0, 0, 0])
     X = mesh_canonical_frame(mesh, [0, 1, 0], lateral)
@@ -162,7 +206,6 @@ def cohort_stats(split: str, count: int | None = None, side: str = "right",
                  posture: str = "supine", full: bool = True, progress: bool = True) -> dict:
     """Summary statistics of a cohort. ``full``: build each Patient (meshes, exact depths
     through the meshes, shortest skin distance); else the fast per-seed statistics."""
-    from tqdm import tqdm
     seeds = cohort_seeds(split, count)
     rows = []
     for k, seed in enumerate(tqdm(seeds, desc=f"cohort {split}", disable=not progress)):

@@ -2,7 +2,7 @@
 
 Body frame Bd: x_Bd towards the patient's left, y_Bd superior (head), z_Bd anterior.
 
-Patient frame Pt = bed frame (DESIGN.md, PatientConfig): origin on the bed surface, x_Pt across
+Patient frame Pt = bed frame (docs/design.md, PatientConfig): origin on the bed surface, x_Pt across
 the bed away from the robot, y_Pt towards the head, z_Pt up.
 
 - supine: Bd axes = Pt axes (patient's left = +x_Pt, anterior = up); the right side (right

@@ -1,6 +1,6 @@
 """Virtual patients from published statistics, deterministic per seed.
 
-Every number below comes from ``../shared/facts/anatomy_and_ultrasound.md`` unless marked as a
+Every number below comes from ``docs/facts/anatomy_and_ultrasound.md`` unless marked as a
 modelling choice. Placement (body frame Bd, see :mod:`drake_rus.anatomy.body`):
 
 - kidney size and shape: :mod:`drake_rus.anatomy.kidney_shape` (Glodny 2009, Emamian 1993);
@@ -31,13 +31,14 @@ from pydrake.math import RigidTransform, RotationMatrix
 from tqdm import tqdm
 
 from drake_rus.anatomy.body import BODY_SIZES, Torso, TorsoParams
-from drake_rus.anatomy.frames import R_PtBd, check_side_posture, transform_mesh
+from drake_rus.anatomy.frames import R_PtBd, check_side_posture, reference_axes_Pt, transform_mesh
 from drake_rus.anatomy.kidney_shape import KidneyShape, KidneyShapeParams, sample_kidney_shape_params
 from drake_rus.anatomy.labels import Label, LabelVolume
 from drake_rus.anatomy.patient import Patient
 from drake_rus.template.pca import mesh_canonical_frame, mesh_surface_moments
 
-__all__ = ["PatientParams", "sample_patient_params", "generate_patient", "VERTEBRA_Y"]
+__all__ = ["PatientParams", "sample_patient_params", "generate_patient", "patient_builders",
+           "VERTEBRA_Y"]
 
 # Levels (m, y_Bd) of vertebral centres relative to L1 (modelling choice: about 27-30 mm per
 # thoracolumbar vertebra + disc).
@@ -346,6 +347,42 @@ def _kidney_mask_builder(lay: _Layout, X_PtBd: RigidTransform):
     return build
 
 
+def _builders(layout, voxel_size: float, margin: float, progress: bool) -> dict:
+    """The lazily built parts of a generated patient (Patient's label, torso and kidney mask
+    builders) from ``layout()``, which returns the patient's :class:`_Layout`."""
+    def label_builder():
+        return _build_labels(layout(), voxel_size, margin, progress)
+
+    def torso_builder(half_length):
+        lay = layout()
+        y_c = float(lay.p_c[1])
+        m = lay.torso.mesh(y_c - half_length, y_c + half_length, spacing=0.01, n_points=96)
+        return transform_mesh(m, _X_PtBd(lay))
+
+    def kidney_mask_builder(vs):
+        lay = layout()
+        return _kidney_mask_builder(lay, _X_PtBd(lay))(vs)
+
+    return {"label_builder": label_builder, "torso_builder": torso_builder,
+            "kidney_mask_builder": kidney_mask_builder}
+
+
+def patient_builders(seed: int, side: str = "right", posture: str = "supine", *,
+                     voxel_size: float = 0.001, margin: float = 0.07,
+                     progress: bool = True) -> dict:
+    """The builders (``label_builder``, ``torso_builder``, ``kidney_mask_builder``) that
+    :func:`generate_patient` gives its Patient, for a Patient rebuilt from stored meshes (the
+    patient cache): the body layout is recomputed from the seed on first use (about 30 ms)."""
+    check_side_posture(side, posture)
+    holder = []
+
+    def layout():
+        if not holder:
+            holder.append(_Layout(sample_patient_params(seed, side, posture)))
+        return holder[0]
+    return _builders(layout, voxel_size, margin, progress)
+
+
 def generate_patient(seed: int, side: str = "right", posture: str = "supine", *,
                      name: str | None = None, voxel_size: float = 0.001, margin: float = 0.07,
                      progress: bool = True) -> Patient:
@@ -358,13 +395,6 @@ def generate_patient(seed: int, side: str = "right", posture: str = "supine", *,
     kidney_Bd = trimesh.Trimesh(lay.kidney_vertices_Bd, lay.shape.mesh.faces, process=False)
     kidney = transform_mesh(kidney_Bd, X_PtBd)
     skin = transform_mesh(lay.torso.mesh(spacing=0.01, n_points=128), X_PtBd)
-    y_c = float(lay.p_c[1])
-
-    def torso_builder(half_length):
-        m = lay.torso.mesh(y_c - half_length, y_c + half_length, spacing=0.01, n_points=96)
-        return transform_mesh(m, X_PtBd)
-
-    from drake_rus.anatomy.frames import reference_axes_Pt
     X_PtK = mesh_canonical_frame(kidney, *reference_axes_Pt(side, posture))
     patient_X_PtK_x = X_PtK.rotation().matrix()[:, 0]
     meta = {
@@ -380,8 +410,5 @@ def generate_patient(seed: int, side: str = "right", posture: str = "supine", *,
     }
     return Patient(
         name=name or f"seed:{seed}", side=side, posture=posture, kidney_mesh=kidney,
-        skin_mesh=skin,
-        label_builder=lambda: _build_labels(lay, voxel_size, margin, progress),
-        torso_builder=torso_builder,
-        kidney_mask_builder=_kidney_mask_builder(lay, X_PtBd),
-        meta=meta, X_PtK=X_PtK)
+        skin_mesh=skin, meta=meta, X_PtK=X_PtK,
+        **_builders(lambda: lay, voxel_size, margin, progress))

@@ -22,16 +22,19 @@ import trimesh
 from matplotlib.path import Path as MplPath
 from pydrake.math import RigidTransform, RotationMatrix
 from scipy import ndimage
-from skimage import measure
 
+from drake_rus.anatomy.body_section import crop_body_section
 from drake_rus.anatomy.frames import R_BdS, R_PtBd, check_side_posture, transform_mesh
 from drake_rus.anatomy.labels import Label, LabelVolume
 from drake_rus.anatomy.patient import Patient
-from drake_rus.anatomy.rasterize import rasterize_mesh
+from drake_rus.anatomy.rasterize import grid_around, mask_to_mesh, rasterize_mesh
+from drake_rus.template.pca import mesh_surface_moments
 
-__all__ = ["patient_from_meshes", "patient_from_label_map", "patient_from_mask_folder", "crop_body_section",
-           "mask_to_mesh", "TOTALSEGMENTATOR_MAPPING", "MAPPING_NAMES", "find_mesh_files",
-           "LABEL_MAP_SUFFIXES", "MESH_SUFFIXES"]
+# crop_body_section (body_section) and mask_to_mesh (rasterize) are re-exported here.
+__all__ = ["patient_from_meshes", "patient_from_label_map", "patient_from_mask_folder",
+           "crop_body_section", "mask_to_mesh", "TOTALSEGMENTATOR_MAPPING", "MAPPING_NAMES",
+           "find_mesh_files", "totalsegmentator_mask_files", "LABEL_MAP_SUFFIXES",
+           "MESH_SUFFIXES"]
 
 MESH_SUFFIXES = (".stl", ".obj", ".ply", ".off", ".glb")
 LABEL_MAP_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd")
@@ -141,40 +144,6 @@ def _X_PtBd(skin_Bd, kidney_centroid_Bd, posture) -> RigidTransform:
     return RigidTransform(RotationMatrix(R), p)
 
 
-def mask_to_mesh(mask: np.ndarray, X_PtV: RigidTransform, voxel_size: float,
-                 sigma_vox: float = 1.0, keep_point=None, what: str = "mask") -> trimesh.Trimesh:
-    """Watertight surface of a binary mask (marching cubes on a smoothed, padded mask).
-    ``keep_point`` (Pt): keep the connected component containing it (else the largest)."""
-    if not mask.any():
-        _fail(f"{what}: empty mask")
-    m = np.pad(mask.astype(np.float32), 2)
-    if sigma_vox > 0:
-        m = ndimage.gaussian_filter(m, sigma_vox)
-    verts, faces, _, _ = measure.marching_cubes(m, 0.5)
-    verts = (verts - 2.0) * voxel_size
-    v_Pt = X_PtV.multiply(verts.T).T
-    mesh = trimesh.Trimesh(v_Pt, faces, process=True)
-    parts = mesh.split(only_watertight=False)
-    if len(parts) > 1:
-        if keep_point is not None:
-            inside = [pt for pt in parts if pt.is_watertight and pt.contains([keep_point])[0]]
-            parts = inside or parts
-        mesh = max(parts, key=lambda q: abs(q.volume) if q.is_watertight else 0.0)
-    faces = np.asarray(mesh.faces)
-    fresh = trimesh.Trimesh(np.asarray(mesh.vertices), faces, process=False)
-    if fresh.volume < 0:
-        fresh = trimesh.Trimesh(np.asarray(mesh.vertices), faces[:, ::-1], process=False)
-    if not fresh.is_watertight:
-        _fail(f"{what}: marching cubes did not give a watertight surface")
-    return fresh
-
-
-def _grid_around(meshes_bounds, voxel_size):
-    lo, hi = meshes_bounds
-    shape = np.ceil((hi - lo) / voxel_size).astype(int) + 1
-    return shape, RigidTransform(lo)
-
-
 def _wall_layers(body: np.ndarray, voxel_size: float, fat: float, muscle: float,
                  axis: int = 1) -> np.ndarray:
     """Depth (m) below the skin measured in-plane (slices normal to ``axis``) for body voxels."""
@@ -204,7 +173,7 @@ def _kidney_sublabels(labels, kidney_mask, voxel_size, cortex=0.0066, parenchyma
 def _mesh_labels(kidney, skin_section, liver, other_kidney, voxel_size, fat, muscle):
     """Label volume (Pt-aligned grid) of a mesh patient, meshes in Pt."""
     lo, hi = skin_section.bounds
-    shape, X_PtV = _grid_around((lo - 0.003, hi + 0.003), voxel_size)
+    shape, X_PtV = grid_around((lo - 0.003, hi + 0.003), voxel_size)
     body = rasterize_mesh(skin_section, shape, X_PtV, voxel_size)
     labels = np.zeros(shape, dtype=np.uint8)
     depth = _wall_layers(body, voxel_size, fat, muscle, axis=1)
@@ -222,51 +191,8 @@ def _mesh_labels(kidney, skin_section, liver, other_kidney, voxel_size, fat, mus
     return LabelVolume(labels=labels, voxel_size=voxel_size, X_PtV=X_PtV)
 
 
-def crop_body_section(skin_mesh, center_Pt, half_length_m, voxel_size=0.005, detach_m=0.035):
-    """Watertight body surface between y = center_y -/+ half_length (Pt): the skin is
-    rasterised in that slab, the component containing ``center_Pt`` kept, and re-surfaced
-    with marching cubes (flat caps at both ends)."""
-    c = np.asarray(center_Pt, dtype=float)
-    lo, hi = skin_mesh.bounds.copy()
-    lo[1], hi[1] = c[1] - half_length_m, c[1] + half_length_m
-    shape, X_PtV = _grid_around((lo - voxel_size, hi + voxel_size), voxel_size)
-    body = rasterize_mesh(skin_mesh, shape, X_PtV, voxel_size)
-    y = X_PtV.translation()[1] + voxel_size * np.arange(shape[1])
-    body[:, (y < lo[1]) | (y > hi[1]), :] = False
-    # Keep, slice by slice, the 2-D component containing the kidney's (x, z): the torso
-    # without the arms. A morphological opening (radius ``detach_m``) first cuts arms that
-    # touch the torso over a narrow contact.
-    ijk = np.round((c - X_PtV.translation()) / voxel_size).astype(int)
-    ci, ck = int(np.clip(ijk[0], 0, shape[0] - 1)), int(np.clip(ijk[2], 0, shape[2] - 1))
-    r = max(1, int(round(detach_m / voxel_size)))
-    disk = np.add.outer(np.arange(-r, r + 1) ** 2, np.arange(-r, r + 1) ** 2) <= r * r
-    for j in range(shape[1]):
-        sl = body[:, j, :]
-        if not sl.any():
-            continue
-        core = ndimage.binary_erosion(sl, disk)
-        lab, n = ndimage.label(core if core.any() else sl)
-        if n == 0:
-            continue
-        if lab[ci, ck] > 0:
-            keep = lab == lab[ci, ck]
-        else:
-            sizes = np.bincount(lab.ravel())[1:]
-            keep = lab == (1 + int(np.argmax(sizes)))
-        if core.any():
-            keep = ndimage.binary_dilation(keep, disk) & sl
-        lab2, _ = ndimage.label(keep)
-        if lab2[ci, ck] > 0:
-            keep = lab2 == lab2[ci, ck]
-        body[:, j, :] = keep
-    return mask_to_mesh(body, X_PtV, voxel_size, sigma_vox=0.7, keep_point=c,
-                        what="skin mesh (torso section)")
-
-
 def _assemble(name, side, posture, kidney_Bd, skin_Bd, liver_Bd, other_Bd, meta,
               voxel_size, fat, muscle, label_volume_Bd=None) -> Patient:
-    c = kidney_Bd.vertices.mean(axis=0)
-    from drake_rus.template.pca import mesh_surface_moments
     _, c, _ = mesh_surface_moments(kidney_Bd.vertices, kidney_Bd.faces)
     X_PtBd = _X_PtBd(skin_Bd, c, posture)
     kidney = transform_mesh(kidney_Bd, X_PtBd)
@@ -275,12 +201,8 @@ def _assemble(name, side, posture, kidney_Bd, skin_Bd, liver_Bd, other_Bd, meta,
     other = transform_mesh(other_Bd, X_PtBd) if other_Bd is not None else None
     meta = dict(meta)
     meta["X_PtBd"] = X_PtBd.GetAsMatrix4().tolist()
-    holder = {}
-
-    def torso_builder(h):
-        if h not in holder:
-            holder[h] = crop_body_section(skin, X_PtBd.multiply(c), h)
-        return holder[h]
+    # The torso section (Patient.torso_section) is cut around the kidney's surface centroid.
+    torso_center_Pt = X_PtBd.multiply(c)
 
     if label_volume_Bd is not None:
         labels_Bd, X_BdV, vs = label_volume_Bd
@@ -294,16 +216,21 @@ def _assemble(name, side, posture, kidney_Bd, skin_Bd, liver_Bd, other_Bd, meta,
                                 fat, muscle)
 
         def torso_builder_fine(h):
-            return crop_body_section(skin, X_PtBd.multiply(c), h, voxel_size=max(voxel_size, 0.002))
+            return crop_body_section(skin, torso_center_Pt, h, voxel_size=max(voxel_size, 0.002))
 
     return Patient(name=name, side=side, posture=posture, kidney_mesh=kidney, skin_mesh=skin,
-                   liver_mesh=liver, label_builder=label_builder, torso_builder=torso_builder,
-                   meta=meta)
+                   liver_mesh=liver, label_builder=label_builder,
+                   torso_center_Pt=torso_center_Pt, meta=meta)
 
 
 def patient_from_meshes(kidney, skin, *, liver=None, other_kidney=None, side="right",
                         posture="supine", axes="LSA", units="auto", name=None,
                         voxel_size=0.001, fat=0.015, muscle=0.012) -> Patient:
+    """A patient from surface meshes (STL/OBJ/PLY paths or trimesh objects) given in a
+    body-fixed frame whose axes point to the anatomical directions ``axes`` (default
+    "LSA": +x left, +y superior, +z anterior, the glTF/HuBMAP body frame). ``units``: "mm",
+    "m" or "auto" (from the kidney's size). ``fat``/``muscle``: thickness (m) of the layers
+    under the skin in the label volume (meshes carry none)."""
     check_side_posture(side, posture)
     km = load_mesh(kidney, "kidney mesh")
     sm = load_mesh(skin, "skin mesh")
@@ -377,6 +304,12 @@ def _read_label_map(path: Path, voxel_size: float):
 def patient_from_label_map(path, mapping="totalsegmentator", *, side="right",
                            posture="supine", name=None, voxel_size=0.001,
                            fat=0.015, muscle=0.012) -> Patient:
+    """A patient from a NIfTI/NRRD (any SimpleITK-readable) integer label map.
+
+    ``mapping``: "totalsegmentator" (v2 'total' class indices; needs a body label from
+    the 'body' task merged in as value 200, or pass a dict), or a dict
+    {label value: name}, names from :data:`MAPPING_NAMES`.
+    """
     check_side_posture(side, posture)
     path = Path(path)
     if isinstance(mapping, str):

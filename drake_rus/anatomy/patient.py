@@ -2,7 +2,8 @@
 frame Pt (the bed frame, see :mod:`drake_rus.anatomy.frames`).
 
 Generated patients (:mod:`drake_rus.anatomy.generator`) and imported ones
-(:meth:`Patient.from_meshes`, :meth:`Patient.from_label_map`) give the same object.
+(:func:`drake_rus.anatomy.importers.patient_from_meshes`,
+:func:`~drake_rus.anatomy.importers.patient_from_label_map`) give the same object.
 The label volume is built lazily, on first access of ``patient.labels`` (a few seconds at 1 mm),
 so cohort statistics and the template builder never pay for it.
 """
@@ -15,9 +16,13 @@ from typing import Callable
 import numpy as np
 import trimesh
 from pydrake.math import RigidTransform
+from scipy.spatial import cKDTree
 
-from drake_rus.anatomy.frames import reference_axes_Pt, check_side_posture, transform_mesh
+from drake_rus.anatomy.body_section import crop_body_section
+from drake_rus.anatomy.export import export_patient
+from drake_rus.anatomy.frames import R_PtBd, reference_axes_Pt, check_side_posture, transform_mesh
 from drake_rus.anatomy.labels import LabelVolume
+from drake_rus.anatomy.rasterize import mesh_mask_on_aligned_grid
 from drake_rus.template.pca import mesh_canonical_frame, extents_in_frame
 
 __all__ = ["Patient", "vertical_depth", "kidney_metrics"]
@@ -54,7 +59,6 @@ def vertical_depth(kidney_mesh: trimesh.Trimesh, skin_mesh: trimesh.Trimesh,
 def _min_distance_to_surface(points: np.ndarray, mesh: trimesh.Trimesh, n_exact: int = 16) -> float:
     """Shortest distance (m) from any of ``points`` to the surface ``mesh``: a k-d tree on
     triangle centroids picks the closest candidates, exact point-triangle distances decide."""
-    from scipy.spatial import cKDTree
     tri = mesh.triangles
     cent = tri.mean(axis=1)
     tree = cKDTree(cent)
@@ -77,7 +81,6 @@ def kidney_metrics(kidney_mesh, skin_mesh, X_PtK: RigidTransform, posture: str,
     R = X_PtK.rotation().matrix()
     x_k = R[:, 0]
     # Angles of the long axis in the body frame (supine reference pose).
-    from drake_rus.anatomy.frames import R_PtBd
     x_Bd = R_PtBd(posture).T @ x_k
     coronal = np.arctan2(abs(x_Bd[0]), x_Bd[1])     # off craniocaudal, in the coronal plane
     sagittal = np.arctan2(-x_Bd[2], x_Bd[1])         # > 0: upper pole posterior
@@ -100,6 +103,9 @@ class Patient:
     ("supine"/"left_lateral_decubitus"), ``kidney_mesh`` and ``skin_mesh`` (watertight
     trimesh, Pt, m), ``X_PtK`` (true canonical kidney frame, eq. 13-14 on the kidney surface),
     ``labels`` (:class:`LabelVolume`, lazily built), ``meta`` (parameters, provenance).
+
+    Without a ``torso_builder`` the torso section is cut from the skin mesh around
+    ``torso_center_Pt`` (default: the kidney frame's origin), see :meth:`torso_section`.
     """
 
     def __init__(self, *, name: str, side: str, posture: str, kidney_mesh, skin_mesh,
@@ -107,7 +113,8 @@ class Patient:
                  label_builder: Callable[[], LabelVolume] | None = None,
                  torso_builder: Callable[[float], trimesh.Trimesh] | None = None,
                  kidney_mask_builder: Callable[[float], tuple] | None = None,
-                 liver_mesh=None, meta: dict | None = None, X_PtK: RigidTransform | None = None):
+                 liver_mesh=None, meta: dict | None = None, X_PtK: RigidTransform | None = None,
+                 torso_center_Pt=None):
         check_side_posture(side, posture)
         self.name = name
         self.side = side
@@ -122,20 +129,34 @@ class Patient:
         self._label_builder = label_builder
         self._torso_builder = torso_builder
         self._kidney_mask_builder = kidney_mask_builder
+        self._label_listeners: list[Callable[[LabelVolume], None]] = []
+        self._torso_sections: dict[float, trimesh.Trimesh] = {}
         x_ref, y_ref = reference_axes_Pt(side, posture)
         self.X_PtK = X_PtK if X_PtK is not None else mesh_canonical_frame(
             self.kidney_mesh, x_ref, y_ref)
+        self.torso_center_Pt = (None if torso_center_Pt is None
+                                else np.asarray(torso_center_Pt, dtype=float).reshape(3))
 
     # --- lazily built parts ----------------------------------------------------------------
     @property
     def labels(self) -> LabelVolume:
         if self._labels is None:
             self._labels = self._label_builder()
+            listeners, self._label_listeners = self._label_listeners, []
+            for listener in listeners:
+                listener(self._labels)
         return self._labels
 
     @property
     def has_labels(self) -> bool:
         return self._labels is not None
+
+    def on_labels_built(self, listener: Callable[[LabelVolume], None]) -> None:
+        """Calls ``listener(labels)`` once, when the lazily built label volume is built (not
+        at all if it already is: check :attr:`has_labels`). The patient cache
+        (:mod:`drake_rus.anatomy.cache`) stores the volume then."""
+        if self._labels is None:
+            self._label_listeners.append(listener)
 
     def reference_axes(self):
         """(x_ref, y_ref) in Pt for the canonical-frame sign rules."""
@@ -152,15 +173,18 @@ class Patient:
             raise ValueError(f"half_length_m: expected a positive length in m, got {half_length_m}")
         if self._torso_builder is not None:
             return self._torso_builder(half_length_m)
-        from drake_rus.anatomy.importers import crop_body_section
-        return crop_body_section(self.skin_mesh, self.X_PtK.translation(), half_length_m)
+        if half_length_m not in self._torso_sections:
+            center = (self.X_PtK.translation() if self.torso_center_Pt is None
+                      else self.torso_center_Pt)
+            self._torso_sections[half_length_m] = crop_body_section(self.skin_mesh, center,
+                                                                    half_length_m)
+        return self._torso_sections[half_length_m]
 
     def kidney_mask(self, voxel_size: float = 0.001):
         """Binary mask of the target kidney on a Pt-aligned grid around it: (mask, X_PtV), voxel
         (i, j, k) centred at X_PtV * (voxel_size * [i, j, k]) like :class:`LabelVolume`."""
         if self._kidney_mask_builder is not None:
             return self._kidney_mask_builder(voxel_size)
-        from drake_rus.anatomy.rasterize import mesh_mask_on_aligned_grid
         return mesh_mask_on_aligned_grid(self.kidney_mesh, voxel_size, margin=3 * voxel_size)
 
     def metrics(self) -> dict:
@@ -183,37 +207,10 @@ class Patient:
         """Meshes expressed in another frame F given X_FPt (for pictures)."""
         return transform_mesh(self.kidney_mesh, X), transform_mesh(self.skin_mesh, X)
 
-    # --- importers (same object as the generator) -----------------------------------------
-    @staticmethod
-    def from_meshes(kidney, skin, *, liver=None, other_kidney=None, side: str = "right",
-                    posture: str = "supine", axes: str = "LSA", units: str = "auto",
-                    name: str | None = None, voxel_size: float = 0.001) -> "Patient":
-        """A patient from surface meshes (STL/OBJ/PLY paths or trimesh objects) given in a
-        body-fixed frame whose axes point to the anatomical directions ``axes`` (default
-        "LSA": +x left, +y superior, +z anterior, the glTF/HuBMAP body frame)."""
-        from drake_rus.anatomy.importers import patient_from_meshes
-        return patient_from_meshes(kidney, skin, liver=liver, other_kidney=other_kidney,
-                                   side=side, posture=posture, axes=axes, units=units,
-                                   name=name, voxel_size=voxel_size)
-
-    @staticmethod
-    def from_label_map(path, mapping="totalsegmentator", *, side: str = "right",
-                       posture: str = "supine", name: str | None = None,
-                       voxel_size: float = 0.001) -> "Patient":
-        """A patient from a NIfTI/NRRD (any SimpleITK-readable) integer label map.
-
-        ``mapping``: "totalsegmentator" (v2 'total' class indices; needs a body label from
-        the 'body' task merged in as value 200, or pass a dict), or a dict
-        {label value: name}, names from :data:`drake_rus.anatomy.importers.MAPPING_NAMES`.
-        """
-        from drake_rus.anatomy.importers import patient_from_label_map
-        return patient_from_label_map(path, mapping, side=side, posture=posture, name=name,
-                                      voxel_size=voxel_size)
-
+    # --- export -------------------------------------------------------------------------
     def export(self, out_dir, fmt: str = "nrrd") -> list[Path]:
         """Writes the label volume (NRRD or NIfTI) and kidney/skin meshes (STL, mm) for 3D
-        Slicer. Returns the written paths."""
-        from drake_rus.anatomy.export import export_patient
+        Slicer. Returns the written paths (:func:`drake_rus.anatomy.export.export_patient`)."""
         return export_patient(self, out_dir, fmt)
 
     def __repr__(self):

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from drake_rus.anatomy.labels import Label
+from drake_rus.io_utils import save_figure
 
 # Display colours of the labels (RGB 0-1).
 LABEL_COLORS = {
@@ -20,7 +21,6 @@ LABEL_COLORS = {
 
 
 def _save(fig, path):
-    from drake_rus.io_utils import save_figure
     return save_figure(fig, path, dpi=110)
 
 

@@ -1,14 +1,20 @@
-"""Watertight mesh -> voxel mask, by ray parity along the grid's k axis (vectorised numpy).
+"""Watertight mesh <-> voxel mask.
 
-For every grid column (i, j) a ray along +k counts the surface crossings below each voxel
-centre; an odd count means inside. Column positions carry a tiny irrational offset so no ray
-passes exactly through a mesh edge or vertex (each crossing is counted once).
+Mesh -> mask (:func:`rasterize_mesh`) by ray parity along the grid's k axis (vectorised
+numpy): for every grid column (i, j) a ray along +k counts the surface crossings below each
+voxel centre; an odd count means inside. Column positions carry a tiny irrational offset so no
+ray passes exactly through a mesh edge or vertex (each crossing is counted once).
+
+Mask -> mesh (:func:`mask_to_mesh`) by marching cubes on the smoothed, padded mask.
 """
 
 import numpy as np
+import trimesh
 from pydrake.math import RigidTransform
+from scipy import ndimage
+from skimage import measure
 
-__all__ = ["rasterize_mesh", "mesh_mask_on_aligned_grid"]
+__all__ = ["rasterize_mesh", "mesh_mask_on_aligned_grid", "mask_to_mesh", "grid_around"]
 
 _JITTER = (1e-4 * np.pi, 1e-4 * np.e)
 
@@ -68,3 +74,38 @@ def mesh_mask_on_aligned_grid(mesh, voxel_size: float, margin: float = 0.003):
     shape = np.ceil((hi - lo) / voxel_size).astype(int) + 1
     X_PtV = RigidTransform(lo)
     return rasterize_mesh(mesh, shape, X_PtV, voxel_size), X_PtV
+
+
+def grid_around(bounds, voxel_size: float):
+    """(shape, X_PtV) of the Pt-aligned grid of ``voxel_size`` covering ``bounds`` (lo, hi)."""
+    lo, hi = bounds
+    shape = np.ceil((hi - lo) / voxel_size).astype(int) + 1
+    return shape, RigidTransform(lo)
+
+
+def mask_to_mesh(mask: np.ndarray, X_PtV: RigidTransform, voxel_size: float,
+                 sigma_vox: float = 1.0, keep_point=None, what: str = "mask") -> trimesh.Trimesh:
+    """Watertight surface of a binary mask (marching cubes on a smoothed, padded mask).
+    ``keep_point`` (Pt): keep the connected component containing it (else the largest)."""
+    if not mask.any():
+        raise ValueError(f"{what}: empty mask")
+    m = np.pad(mask.astype(np.float32), 2)
+    if sigma_vox > 0:
+        m = ndimage.gaussian_filter(m, sigma_vox)
+    verts, faces, _, _ = measure.marching_cubes(m, 0.5)
+    verts = (verts - 2.0) * voxel_size
+    v_Pt = X_PtV.multiply(verts.T).T
+    mesh = trimesh.Trimesh(v_Pt, faces, process=True)
+    parts = mesh.split(only_watertight=False)
+    if len(parts) > 1:
+        if keep_point is not None:
+            inside = [pt for pt in parts if pt.is_watertight and pt.contains([keep_point])[0]]
+            parts = inside or parts
+        mesh = max(parts, key=lambda q: abs(q.volume) if q.is_watertight else 0.0)
+    faces = np.asarray(mesh.faces)
+    fresh = trimesh.Trimesh(np.asarray(mesh.vertices), faces, process=False)
+    if fresh.volume < 0:
+        fresh = trimesh.Trimesh(np.asarray(mesh.vertices), faces[:, ::-1], process=False)
+    if not fresh.is_watertight:
+        raise ValueError(f"{what}: marching cubes did not give a watertight surface")
+    return fresh

@@ -1,7 +1,7 @@
 """Scenario sections ``controller`` and ``safety``.
 
 Gain names follow the seed paper (section II-C, eq. 1-12; II-E, eq. 17; II-G, eq. 23). Units
-are SI; a gain's unit is written next to it. Limits quote ``facts/fr3.md`` (FR3 specification
+are SI; a gain's unit is written next to it. Limits quote ``docs/facts/fr3.md`` (FR3 specification
 2025): joint velocity limits (rectangular set) dq = [2, 1, 1.5, 1.25, 3, 1.5, 3] rad/s,
 Cartesian limits 3.0 m/s translation and 2.5 rad/s rotation. Our defaults sit well below them
 because the probe touches a person.
@@ -9,7 +9,7 @@ because the probe touches a person.
 
 from dataclasses import dataclass, field
 
-# facts/fr3.md, "Limits": conservative rectangular joint velocity set (rad/s).
+# docs/facts/fr3.md, "Limits": conservative rectangular joint velocity set (rad/s).
 FR3_DQ_RECTANGULAR = [2.0, 1.0, 1.5, 1.25, 3.0, 1.5, 3.0]
 
 
@@ -55,7 +55,7 @@ class ControllerConfig:
     # damped (Nakamura/Chiaverini variable damping), with at most singular_damping_max.
     singular_value_threshold: float = field(default=0.03, metadata={"positive": True})
     singular_damping_max: float = field(default=0.03, metadata={"min": 0.0})
-    # Joint velocity limits (rad/s) of the command: half the FR3 rectangular set (facts/fr3.md).
+    # Joint velocity limits (rad/s) of the command: half the FR3 rectangular set (docs/facts/fr3.md).
     joint_velocity_limits: list[float] = field(
         default_factory=lambda: [0.5 * v for v in FR3_DQ_RECTANGULAR],
         metadata={"length": 7, "positive": True})
@@ -116,7 +116,7 @@ class SafetyConfig:
     max_tip_speed: float = field(default=0.15, metadata={"positive": True, "max": 3.0})
     # Command clamp: commanded tip speed (m/s) is scaled down to this.
     command_tip_speed: float = field(default=0.08, metadata={"positive": True, "max": 3.0})
-    # Joint velocity limits (rad/s) of the command (the FR3 rectangular set, facts/fr3.md):
+    # Joint velocity limits (rad/s) of the command (the FR3 rectangular set, docs/facts/fr3.md):
     # commands are scaled into them; a measured velocity beyond them stops the robot.
     joint_velocity_limits: list[float] = field(
         default_factory=lambda: list(FR3_DQ_RECTANGULAR),

@@ -1,6 +1,6 @@
 """Pure control laws of the seed's section II-C (eq. 1-12): numpy in, numpy out.
 
-Frames (DESIGN.md): B is the robot base (= world, z up); P is the probe tip frame with
+Frames (docs/design.md): B is the robot base (= world, z up); P is the probe tip frame with
 z_P = a (approach vector, into the body) and x_P = o (orientation vector, along the array).
 Twists are Drake-ordered [omega; v] of frame P's origin, expressed in B.
 """

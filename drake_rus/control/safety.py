@@ -8,7 +8,7 @@ velocities above their limits, a stale image, a stale robot state, the kidney lo
 long while the supervisor needs it, and a supervisor abort. The first fault latches a stop
 (the command becomes zero in the same period) and is logged as an event with its reason. A
 force-ceiling stop first retracts the probe along -a (out of the body) by a short distance,
-then holds zero. Limits: facts/fr3.md (FR3 joint velocity rectangular set
+then holds zero. Limits: docs/facts/fr3.md (FR3 joint velocity rectangular set
 [2, 1, 1.5, 1.25, 3, 1.5, 3] rad/s, Cartesian 3.0 m/s, 2.5 rad/s).
 """
 

@@ -1,7 +1,7 @@
 """A geometric stand-in for the image + segmenter: what part of a known kidney ellipsoid the
 probe's image plane cuts (tests and tuning of the scan supervisor without the imaging chain).
 
-The image plane is the x_P-z_P plane of the tip frame P (DESIGN.md); its field of view is
+The image plane is the x_P-z_P plane of the tip frame P (docs/design.md); its field of view is
 approximated by the fan of a curvilinear probe: depths w in [0, depth] below the face and
 lateral positions |u| <= (radius + w) sin(half_angle), u along +x_P. Image columns run
 along +x_P, so the horizontal mask centroid is c_msk = (u_mean - u_min) / (u_max - u_min).

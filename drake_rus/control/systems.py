@@ -1,7 +1,7 @@
-"""Thin LeafSystems over the pure control laws (laws.py, scan.py, safety.py).
+"""Thin LeafSystems over the pure control laws (laws.py, supervisor.py, safety.py).
 
 Timing: every system here runs at the controller rate (``ControllerConfig.rate_hz``, default
-200 Hz), never per plant step. The SafetyLayer holds the joint velocity command in its
+100 Hz), never per plant step. The SafetyLayer holds the joint velocity command in its
 discrete state and exposes it through a state output port, so the 1 kHz plant reads it
 without calling Python; its periodic update pulls the controller chain (IK <- alignment,
 force, position <- supervisor) once per control period.
@@ -19,8 +19,8 @@ from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import BasicVector, LeafSystem
 
-from drake_rus.control import laws, scan
-from drake_rus.control.kinematics import TipKinematics
+from drake_rus.control import laws, supervisor
+from drake_rus.robot import TipKinematics
 from drake_rus.control.safety import SafetyInputs, SafetyState, safety_step
 
 
@@ -207,7 +207,7 @@ class NullSpaceDiffIK(LeafSystem):
 
 class ScanSupervisor(LeafSystem):
     """The scan state machine (APPROACH -> EXPLORE -> LOCALIZE -> TRANSIT -> PIVOT -> DONE,
-    or ABORT with a reason): ``scan.supervisor_step`` every control period.
+    or ABORT with a reason): ``supervisor.supervisor_step`` every control period.
 
     Inputs: X_BP (RigidTransform); contact_force (1, N, filtered, positive pressing);
     kidney_visible (1, 0/1; optional: visible if unconnected); mask_centroid (1, horizontal
@@ -219,7 +219,7 @@ class ScanSupervisor(LeafSystem):
     gating, 0 outside breath-holds holds exploration and pivot motion); tracking_error
     (str; optional: "" while the kidney stays where localization put it, else why not).
     Outputs: a_des (3), o_des (3), a_des_dot (3, 1/s), P_des (2, m), F_des (1, N), all in B;
-    phase (1, scan.Phase value, e.g. the localizer's trigger); segmentation_required (1, 0/1);
+    phase (1, supervisor.Phase value, e.g. the localizer's trigger); segmentation_required (1, 0/1);
     exploring (1, 0/1: enable of the point-cloud accumulator); abort (1, 0/1);
     supervisor_state (SupervisorState, for logs).
     """
@@ -242,7 +242,7 @@ class ScanSupervisor(LeafSystem):
         self._sufficient = self.DeclareVectorInputPort("exploration_sufficient", 1)
         self._motion = self.DeclareVectorInputPort("motion_allowed", 1)
         self._tracking = self.DeclareAbstractInputPort("tracking_error", AbstractValue.Make(""))
-        self._s = self.DeclareAbstractState(AbstractValue.Make(scan.SupervisorState()))
+        self._s = self.DeclareAbstractState(AbstractValue.Make(supervisor.SupervisorState()))
         self.DeclarePeriodicUnrestrictedUpdateEvent(self._dt, 0.0, self._update)
         S = lambda ctx: ctx.get_abstract_state(0).get_value()  # noqa: E731
         self._S = S
@@ -256,17 +256,17 @@ class ScanSupervisor(LeafSystem):
                                      lambda c, o: o.SetFromVector([float(S(c).phase)]))
         self.DeclareVectorOutputPort(
             "segmentation_required", 1,
-            lambda c, o: o.SetFromVector([float(scan.segmentation_required(S(c)))]))
+            lambda c, o: o.SetFromVector([float(supervisor.segmentation_required(S(c)))]))
         self.DeclareVectorOutputPort(
             "exploring", 1,
-            lambda c, o: o.SetFromVector([float(S(c).phase == scan.Phase.EXPLORE)]))
+            lambda c, o: o.SetFromVector([float(S(c).phase == supervisor.Phase.EXPLORE)]))
         self.DeclareVectorOutputPort(
-            "abort", 1, lambda c, o: o.SetFromVector([float(S(c).phase == scan.Phase.ABORT)]))
+            "abort", 1, lambda c, o: o.SetFromVector([float(S(c).phase == supervisor.Phase.ABORT)]))
         self.DeclareAbstractOutputPort(
-            "supervisor_state", lambda: AbstractValue.Make(scan.SupervisorState()),
+            "supervisor_state", lambda: AbstractValue.Make(supervisor.SupervisorState()),
             lambda c, o: o.set_value(S(c)))
 
-    def state(self, context) -> scan.SupervisorState:
+    def state(self, context) -> supervisor.SupervisorState:
         return context.get_abstract_state(0).get_value()
 
     def _update(self, context, state):
@@ -276,7 +276,7 @@ class ScanSupervisor(LeafSystem):
             X_BK = self._XK.Eval(context)
             R_BK, p_BK = X_BK.rotation().matrix(), X_BK.translation()
         c = _optional_scalar(self._c, context, 0.5)
-        u = scan.SupervisorInputs(
+        u = supervisor.SupervisorInputs(
             t=context.get_time(), R_BP=X.rotation().matrix(), p_BP=X.translation(),
             F_z=float(self._F.Eval(context)[0]),
             kidney_visible=_optional_scalar(self._vis, context, 1.0) > 0.5,
@@ -289,7 +289,7 @@ class ScanSupervisor(LeafSystem):
             motion_allowed=_optional_scalar(self._motion, context, 1.0) > 0.5,
             tracking_error=(self._tracking.Eval(context)
                             if self._tracking.HasValue(context) else ""))
-        new = scan.supervisor_step(self.state(context), u, self._cfg, self._dt)
+        new = supervisor.supervisor_step(self.state(context), u, self._cfg, self._dt)
         state.get_mutable_abstract_state(0).set_value(new)
 
 

@@ -14,11 +14,20 @@ import json
 import time
 from pathlib import Path
 
+from drake_rus.batch import run_tasks
+from drake_rus.demo import add_scenario_arguments
+from drake_rus.experiments.analysis import STRATEGY_ORDER
+from drake_rus.experiments.report import (
+    report_markdown, write_closed_loop_outputs, write_efficiency_outputs,
+    write_er_sweep_outputs, write_starts_outputs)
+from drake_rus.experiments.tasks import (
+    ER_GRID, StudyOptions, closed_loop_tasks, efficiency_tasks, er_sweep_tasks,
+    expand_patients, load_study_results, run_id, run_task, starts_tasks)
 from drake_rus.io_utils import write_text_atomic
+from drake_rus.scenario import LoadScenario
 
 
 def add_commands(subparsers) -> None:
-    from drake_rus.demo import add_scenario_arguments
     p = subparsers.add_parser("study", help="the seed paper's studies (kinematic, Dask)",
                               description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -29,7 +38,8 @@ def add_commands(subparsers) -> None:
              "efficiency": "OP, GT-OP, NOP, SL sweeps: V vs n and eps (Fig. 10), volumes",
              "paper": "all of the above into one report directory with report.md"}
     for name, text in helps.items():
-        q = sub.add_parser(name, help=text, description=text)
+        # argparse %-formats help strings (not descriptions): escape the "%" of "100%".
+        q = sub.add_parser(name, help=text.replace("%", "%%"), description=text)
         add_scenario_arguments(q)
         q.add_argument("--patients", default="test:0-14",
                        help="comma list: test:0-14, seed:100-120, train:3 or patient paths "
@@ -75,7 +85,6 @@ def add_commands(subparsers) -> None:
 
 
 def _ers(text):
-    from drake_rus.experiments.studies import ER_GRID
     if not text:
         return list(ER_GRID)
     try:
@@ -88,7 +97,6 @@ def _ers(text):
 
 
 def _options(args):
-    from drake_rus.experiments.studies import StudyOptions
     if not args.voxel > 0:
         raise ValueError(f"--voxel: expected a positive size in m, got {args.voxel}")
     recon = float(getattr(args, "recon_spacing", 0.001))
@@ -107,18 +115,14 @@ def _critical_er(out: Path, default: float = 0.6) -> float:
 
 
 def run_study_command(args) -> int:
-    from drake_rus.experiments import studies as st
-    from drake_rus.scenario import LoadScenario
-
-    patients = st.expand_patients(args.patients)
+    patients = expand_patients(args.patients)
     options = _options(args)
     # Fail early (in this process) on a bad scenario or template, not in every worker.
     LoadScenario(filename=args.scenarios_file, scenario_name=args.scenario,
                  scenario_text=args.overrides)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    run = dict(out_dir=out, workers=args.workers, scheduler=args.scheduler,
-               progress=not args.no_progress)
+    run = dict(workers=args.workers, scheduler=args.scheduler, progress=not args.no_progress)
     t0 = time.perf_counter()
     failed = []
     er_an = starts_an = eff_an = None
@@ -126,7 +130,7 @@ def run_study_command(args) -> int:
     counts = {"done": 0, "skipped": 0}
 
     def go(tasks, desc):
-        status = st.run_tasks(tasks, desc=desc, **run)
+        status = run_tasks(tasks, run_task, out, run_id, desc=desc, **run)
         counts["done"] += status["done"]
         counts["skipped"] += status["skipped"]
         failed.extend(status["failed"])
@@ -136,12 +140,12 @@ def run_study_command(args) -> int:
 
     ran = {}
     if args.study in ("er-sweep", "paper"):
-        tasks = st.er_sweep_tasks(patients, options, _ers(args.ers))
+        tasks = er_sweep_tasks(patients, options, _ers(args.ers))
         t = time.perf_counter()
         go(tasks, "er-sweep")
         ran["er-sweep"] = time.perf_counter() - t
-        results = _of(st.load_results(out, "er-sweep"), tasks)
-        er_an = st.write_er_sweep_outputs(out, results)
+        results = _of(load_study_results(out, "er-sweep"), tasks)
+        er_an = write_er_sweep_outputs(out, results)
         print(f"er-sweep: critical ER {er_an['critical_er'] * 100:.0f}% "
               f"({len(results)} runs)", flush=True)
     er = getattr(args, "er", None)
@@ -150,37 +154,37 @@ def run_study_command(args) -> int:
     if not 0 <= er <= 1:
         raise ValueError(f"--er: expected a value in [0, 1], got {er}")
     if args.study in ("starts", "paper"):
-        tasks = st.starts_tasks(patients, options, er, args.starts)
+        tasks = starts_tasks(patients, options, er, args.starts)
         t = time.perf_counter()
         go(tasks, "starts")
         ran["starts"] = time.perf_counter() - t
-        results = _of(st.load_results(out, "starts"), tasks)
-        starts_an = st.write_starts_outputs(out, results)
+        results = _of(load_study_results(out, "starts"), tasks)
+        starts_an = write_starts_outputs(out, results)
         print(f"starts at ER {er * 100:.0f}%: any significant difference: "
               f"{starts_an['any_significant']}", flush=True)
     if args.study in ("efficiency", "paper"):
         export = None if args.no_nrrd else (out / "volumes").resolve()
-        tasks = st.efficiency_tasks(patients, options, er, export)
+        tasks = efficiency_tasks(patients, options, er, export)
         t = time.perf_counter()
         go(tasks, "efficiency")
         ran["efficiency"] = time.perf_counter() - t
-        results = _of(st.load_results(out, "efficiency"), tasks)
-        eff_an = st.write_efficiency_outputs(out, results)
+        results = _of(load_study_results(out, "efficiency"), tasks)
+        eff_an = write_efficiency_outputs(out, results)
         s = eff_an["summary"]
         print("efficiency (pole to pole): " + "; ".join(
             f"{k} n {s[k]['n'][0]:.0f} eps {s[k]['eps_mm'][0]:.1f} mm V {s[k]['V'][0]:.3f}"
-            for k in st.STRATEGY_ORDER), flush=True)
+            for k in STRATEGY_ORDER), flush=True)
     closed = None
     if args.study == "paper" and args.closed_loop > 0:
         scenario = LoadScenario(filename=args.scenarios_file, scenario_name=args.scenario,
                                 scenario_text=args.overrides)
-        tasks = st.closed_loop_tasks(patients[:args.closed_loop], options,
-                                     scenario.controller.exploration_ratio)
+        tasks = closed_loop_tasks(patients[:args.closed_loop], options,
+                                  scenario.controller.exploration_ratio)
         t = time.perf_counter()
         go(tasks, "closed-loop")
         ran["closed-loop"] = time.perf_counter() - t
-        closed = _of(st.load_results(out, "closed-loop"), tasks)
-        st.write_closed_loop_outputs(out, closed)
+        closed = _of(load_study_results(out, "closed-loop"), tasks)
+        write_closed_loop_outputs(out, closed)
     wall = time.perf_counter() - t0
     meta = {"study": args.study, "patients": patients, "segmenter": options.segmenter,
             "method": options.method, "voxel": options.voxel, "seed": options.seed,
@@ -204,8 +208,8 @@ def run_study_command(args) -> int:
         "wall_s", "stage_wall_s", "runs_done", "runs_skipped", "workers", "scheduler")}]
     write_text_atomic(meta_path, json.dumps(meta, indent=1))
     if args.study == "paper":
-        write_text_atomic(out / "report.md", st.report_markdown(meta, er_an, starts_an, eff_an,
-                                                                 closed))
+        write_text_atomic(out / "report.md",
+                          report_markdown(meta, er_an, starts_an, eff_an, closed))
         print(f"wrote {out / 'report.md'}", flush=True)
     print(f"study {args.study}: {wall:.0f} s wall, outputs in {out}", flush=True)
     return 1 if failed else 0
@@ -213,6 +217,5 @@ def run_study_command(args) -> int:
 
 def _of(results, tasks):
     """The results that belong to ``tasks`` (OUT may hold other runs)."""
-    from drake_rus.experiments.studies import run_id
     wanted = {run_id(t) for t in tasks}
     return [r for r in results if r["run_id"] in wanted]

@@ -8,7 +8,7 @@ stepping the robot's dynamics. What is left out: contact and tracking errors of 
 controller, tissue compression under the probe and the robot's joint limits. Every figure
 made from these runs says "kinematic".
 
-Conventions (DESIGN.md): base frame B (z up, patient along y), tip frame P (z_P = beam, x_P =
+Conventions (docs/design.md): base frame B (z up, patient along y), tip frame P (z_P = beam, x_P =
 array), SI units. The tip sits on the skin surface (the height of the body surface above
 the tip's (x, y), ``skin_height_B``); orientation is held exactly.
 
@@ -32,11 +32,25 @@ import math
 import numpy as np
 from pydrake.math import RigidTransform, RotationMatrix
 
-from drake_rus.control.scan import exploration_update, optimal_pivot_pose, rodrigues_pivot_update
-from drake_rus.experiments.planning import R_B_TRANSVERSE, exploration_roi, skin_height_B
+from drake_rus.control.supervisor import (
+    exploration_update,
+    optimal_pivot_pose,
+    rodrigues_pivot_update,
+)
+from drake_rus.imaging.emulator import EmulatorModel, emulate
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.imaging.segment import read_mask
 from drake_rus.imaging.slicing import slice_volume
+from drake_rus.imaging.systems import make_segmenter_backend
+from drake_rus.localization.icp import heuristic_initial_rotation
+from drake_rus.localization.localize import body_directions_B, localize
+from drake_rus.metrics.core import CoverageAccumulator, window_steps
+from drake_rus.scan.planning import (
+    R_B_TRANSVERSE,
+    exploration_roi,
+    exploration_start_xy,
+    skin_height_B,
+)
 
 STRATEGIES = ("OP", "GT-OP", "NOP", "SL")
 MODE = "kinematic"
@@ -133,7 +147,6 @@ def kidney_voxels_B(patient, X_BPt: RigidTransform, voxel_size: float) -> np.nda
 def prepare_patient(patient, X_BPt: RigidTransform, *, coverage_voxel: float = 0.002,
                     skin_margin: float = 0.07, skin_spacing: float = 0.002) -> KinematicPatient:
     """Builds (once) the label volume, skin height map and true kidney voxels of ``patient``."""
-    from drake_rus.localization.localize import body_directions_B
     if not isinstance(X_BPt, RigidTransform):
         raise ValueError(f"X_BPt: expected a RigidTransform, got {type(X_BPt).__name__}")
     volume = patient.labels
@@ -174,7 +187,6 @@ class Imager:
 
     def __init__(self, kp: KinematicPatient, imaging, segmenter: str | None = "oracle",
                  seed: int = 0):
-        from drake_rus.imaging.systems import make_segmenter_backend
         self.kp = kp
         self.imaging = dataclasses.replace(imaging, segmenter=segmenter or imaging.segmenter)
         self.geometry = ProbeGeometry.from_config(self.imaging)
@@ -182,7 +194,6 @@ class Imager:
         self._backend = make_segmenter_backend(self.imaging, self.geometry)
         self._model = None
         if self.backend_name != "oracle":
-            from drake_rus.imaging.emulator import EmulatorModel
             self._model = EmulatorModel.from_config(self.imaging, self.geometry)
         self.seed = int(seed)
         self.frame_index = 0
@@ -198,7 +209,6 @@ class Imager:
                               int(self.imaging.elevation_planes), self.imaging.elevation_combine)
         us = None
         if self._model is not None:
-            from drake_rus.imaging.emulator import emulate
             us = emulate(labels, self._model, self.seed, self.frame_index)
         self.frame_index += 1
         mask = np.asarray(self._backend(us, labels, self._prev), bool) & g.fan_mask
@@ -279,7 +289,6 @@ def start_xy(kp: KinematicPatient, start_fraction: float = 0.0, scan_direction: 
     """Exploration start (x, y) (III-C, ``exploration_start``): over the kidney centroid's x
     (+ ``x_offset``), at the E-ROI end the scan leaves from, ``start_fraction`` of the
     E-ROI's length inside it."""
-    from drake_rus.experiments.planning import exploration_start_xy
     x, y = exploration_start_xy(kp.roi, scan_direction, start_fraction)
     return np.array([x + x_offset, y])
 
@@ -432,7 +441,6 @@ class Localization:
 def heuristic_pose(kp: KinematicPatient, p_xy, depth: float = 0.09) -> RigidTransform:
     """Initial alignment alone (ER 0, III-C): heuristic rotation, centroid ``depth`` below
     the skin at the probe's (x, y)."""
-    from drake_rus.localization.icp import heuristic_initial_rotation
     R0 = heuristic_initial_rotation(kp.superior_B, kp.lateral_B)
     x, y = float(p_xy[0]), float(p_xy[1])
     return RigidTransform(R0, [x, y, kp.skin(x, y) - depth])
@@ -443,7 +451,6 @@ def localize_cloud(kp: KinematicPatient, P_local_B: np.ndarray, template, config
     """T_k^b from the explored cloud (II-F, ``localize``), or the heuristic initial alignment
     at ``fallback_xy`` when fewer than ``min_points`` points were explored."""
     import time
-    from drake_rus.localization.localize import localize
     P = np.asarray(P_local_B, float).reshape(-1, 3)
     if len(P) < min_points:
         return Localization(heuristic_pose(kp, fallback_xy), len(P), 0.0, None,
@@ -459,7 +466,6 @@ def sweep_curves(kp: KinematicPatient, sweep: Sweep, geometry: ProbeGeometry,
     """n, cumulative eps (m, eq. 24) and V (eq. 25) frame by frame of ``sweep`` (use
     ``sweep.pole_to_pole()`` for the seed's curves). Keys: n (1..N), eps (N,), V (N,),
     n_frames, eps_total, V_final."""
-    from drake_rus.metrics.core import CoverageAccumulator, window_steps
     L = geometry.depth if image_depth is None else image_depth
     poses = sweep.poses
     if not poses:

@@ -9,7 +9,7 @@
 - ``lcm_sim_driver``: a simulated drake-franka-driver (PandaCommandReceiver /
   PandaStatusSender) for tests and rehearsal;
 - ``calibration``: pivot calibration of the probe tip;
-- ``check``: ``drake-rus hardware check`` and the scripted free-space motion.
+- ``cli``: ``drake-rus hardware check`` and the scripted free-space motion.
 
 See docs/hardware_bringup.md.
 """

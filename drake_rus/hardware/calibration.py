@@ -18,6 +18,8 @@ import dataclasses
 
 import numpy as np
 
+from drake_rus.robot import FLANGE_FRAME, MakeControlPlant
+
 __all__ = ["PivotCalibration", "pivot_calibration", "flange_poses_from_joints"]
 
 
@@ -82,7 +84,6 @@ def pivot_calibration(rotations, translations, min_singular_value: float = 0.05
 def flange_poses_from_joints(scenario, joint_positions):
     """Flange poses (R_BF (N, 3, 3), p_BF (N, 3)) by our FR3 model's forward kinematics for
     joint configurations (N, 7) rad recorded while pivoting."""
-    from drake_rus.station import FLANGE_FRAME, MakeControlPlant
     plant, _ = MakeControlPlant(scenario)
     context = plant.CreateDefaultContext()
     flange = plant.GetFrameByName(FLANGE_FRAME)

@@ -1,7 +1,7 @@
 """Scenario section ``hardware_interface``: how the hardware station reaches the real setup.
 
 Used only when the scenario says ``hardware: true``. Units are SI (m, rad, s); rates in Hz.
-Client-side limits sit below the FR3's own (facts/fr3.md: joint velocity rectangular set
+Client-side limits sit below the FR3's own (docs/facts/fr3.md: joint velocity rectangular set
 [2, 1, 1.5, 1.25, 3, 1.5, 3] rad/s, joint acceleration 10 rad/s^2): the robot's limits stay
 the last line of defence, ours act first.
 """

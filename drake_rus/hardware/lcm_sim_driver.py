@@ -14,16 +14,15 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import Diagram, DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import ConstantVectorSource
 
 from drake_rus.hardware.core import is_command_fresh, wall_clock_utime
 from drake_rus.hardware.systems import WallClockStamper
+from drake_rus.robot.model import NUM_JOINTS
 
 __all__ = ["SimulatedPandaDriver", "CommandExpiry", "SimulatedJoints"]
 
-NUM_JOINTS = 7
 
 
 class CommandExpiry(LeafSystem):

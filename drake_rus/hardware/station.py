@@ -1,8 +1,8 @@
 """The hardware station: the simulated station's ports, on a real FR3 and ultrasound machine.
 
 ``MakeHardwareStation(scenario, meshcat=None)`` returns a :class:`HardwareStation` (a Diagram)
-exporting what ``MakeSimStation`` exports, so the controller and safety layer are built the
-same way on both (DESIGN.md):
+exporting what the simulated station (``drake_rus.station.MakeSimStation``) exports, so the controller and safety layer are built the
+same way on both (docs/design.md):
 
 - input ``joint_velocity_command`` (7, rad/s);
 - outputs ``joint_position`` (7, rad), ``joint_velocity`` (7, rad/s), ``X_BP`` (abstract
@@ -31,7 +31,6 @@ run (normal end, Ctrl-C, any exception, a lost connection) with a zero-velocity 
 from __future__ import annotations
 
 import logging
-import math
 import signal
 import threading
 import time
@@ -44,6 +43,8 @@ from drake_rus.config_schema import ScenarioError
 from drake_rus.hardware.config import HardwareConfig
 from drake_rus.hardware.core import external_torque_to_drake, wall_clock_utime
 from drake_rus.hardware.franky_backend import FrankyBackend, HardwareFault
+from drake_rus.robot import (
+    NUM_JOINTS, MakeControlPlant, ProbeForceEstimator, ProbePoseFromJoints)
 from drake_rus.hardware.systems import (
     CommandGuard, ExternalTorqueToDrake, FrameGrabber, FrankaRobotInterface, PandaStatusLatch,
     WallClockCommandStamper)
@@ -53,7 +54,6 @@ LOG = logging.getLogger("drake_rus.hardware")
 __all__ = ["MakeHardwareStation", "HardwareStation", "HardwareSession", "RunHardware",
            "HardwareFault", "LcmBackend", "wait_for_panda_status"]
 
-NUM_JOINTS = 7
 
 
 def wait_for_panda_status(lcm, channel: str, timeout: float, *, count: int = 1,
@@ -185,8 +185,6 @@ def MakeHardwareStation(scenario, meshcat=None, *, lcm=None, lcm_idle=None,
     ``memq://``); ``lcm_idle()``: called while waiting for the driver's first statuses (a
     simulated driver stepped in the same thread). ``meshcat`` is accepted for symmetry with the sim station (unused).
     """
-    from drake_rus.station import MakeControlPlant, ProbeForceEstimator, ProbePoseFromJoints
-
     cfg: HardwareConfig = scenario.hardware_interface
     _check_rates(scenario)
     rate = float(cfg.command_rate_hz)

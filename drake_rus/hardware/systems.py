@@ -30,9 +30,9 @@ from drake_rus.hardware.core import (
     wall_clock_utime, watchdog_expired)
 from drake_rus.hardware.franky_backend import HardwareFault
 from drake_rus.imaging.frames import UsFrame
+from drake_rus.robot.model import NUM_JOINTS
 
 LOG = logging.getLogger("drake_rus.hardware")
-NUM_JOINTS = 7
 
 
 class CommandGuard(LeafSystem):

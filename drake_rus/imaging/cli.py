@@ -14,9 +14,21 @@ from pathlib import Path
 
 import numpy as np
 
+from drake_rus.anatomy import load_patient
+from drake_rus.anatomy.labels import is_kidney
+from drake_rus.cli import UserError
+from drake_rus.demo import add_scenario_arguments, load_scenario_from_args
+from drake_rus.imaging.dataset import ViewSampler
+from drake_rus.imaging.emulator import EmulatorModel, emulate
+from drake_rus.imaging.phantoms import kidney_phantom
+from drake_rus.imaging.probe import ProbeGeometry
+from drake_rus.imaging.segment import iou, read_mask
+from drake_rus.imaging.slicing import slice_volume
+from drake_rus.imaging.systems import make_segmenter_backend
+from drake_rus.io_utils import save_figure
+
 
 def add_commands(subparsers) -> None:
-    from drake_rus.demo import add_scenario_arguments
     p = subparsers.add_parser(
         "imaging-pictures", help="PNGs of emulated ultrasound frames with the kidney mask")
     add_scenario_arguments(p)
@@ -37,7 +49,6 @@ def add_commands(subparsers) -> None:
 
 def parse_pose(text: str):
     from pydrake.math import RigidTransform, RollPitchYaw
-    from drake_rus.cli import UserError
     try:
         v = [float(s) for s in text.split(",")]
     except ValueError:
@@ -52,7 +63,6 @@ def centred_view(volume, X_PtV, X_PtK, approach_V):
     """Probe straight down over the kidney centroid (x_P along x_Pt: a transverse view),
     face on the skin, pressed 4 mm in. Returns X_VP, or None if no skin above."""
     from pydrake.math import RigidTransform, RotationMatrix
-    from drake_rus.imaging.dataset import ViewSampler
     sampler = ViewSampler(volume, approach_V)
     c_V = X_PtV.inverse().multiply(X_PtK.translation())
     u = np.asarray(approach_V, float)
@@ -73,14 +83,6 @@ def run_pictures(args) -> int:
     import matplotlib.pyplot as plt
     from pydrake.math import RigidTransform
 
-    from drake_rus.anatomy.labels import is_kidney
-    from drake_rus.demo import load_scenario_from_args
-    from drake_rus.imaging.dataset import ViewSampler
-    from drake_rus.imaging.emulator import EmulatorModel, emulate
-    from drake_rus.imaging.probe import ProbeGeometry
-    from drake_rus.imaging.segment import iou, read_mask
-    from drake_rus.imaging.slicing import slice_volume
-    from drake_rus.imaging.systems import make_segmenter_backend
 
     scenario = load_scenario_from_args(args)
     cfg = scenario.imaging
@@ -94,11 +96,9 @@ def run_pictures(args) -> int:
 
     head, _, tail = args.patient.partition(":")
     if head == "phantom":
-        from drake_rus.imaging.phantoms import kidney_phantom
         ph = kidney_phantom(np.random.default_rng(int(tail)))
         volume, X_PtV, X_PtK = ph.volume, RigidTransform(), ph.X_VK
     else:
-        from drake_rus.anatomy import load_patient
         patient = load_patient(args.patient, side=side)
         volume, X_PtV, X_PtK = patient.labels, patient.labels.X_PtV, patient.X_PtK
     up_V = np.asarray(X_PtV.rotation().inverse().multiply(np.array([0.0, 0.0, 1.0])))
@@ -148,8 +148,7 @@ def run_pictures(args) -> int:
         ax[0].set_ylabel("z_P depth (mm)")
         fig.tight_layout()
         path = out / f"{k:02d}_{name}.png"
-        fig.savefig(path, dpi=90)
-        plt.close(fig)
+        save_figure(fig, path, dpi=90)
         X_PtP = X_PtV.multiply(X_VP)
         summary.append({"file": path.name, "view": name, "iou": score,
                         "visible": readout.visible, "c_msk": readout.centroid,
@@ -167,8 +166,7 @@ def run_pictures(args) -> int:
             a.set_title(name, fontsize=9)
         fig.suptitle(f"{args.patient} ({side} kidney), segmenter {cfg.segmenter}")
         fig.tight_layout()
-        fig.savefig(out / "contact_sheet.png", dpi=80)
-        plt.close(fig)
+        save_figure(fig, out / "contact_sheet.png", dpi=80)
     (out / "pictures.json").write_text(json.dumps(
         {"patient": args.patient, "side": side, "segmenter": cfg.segmenter, "views": summary},
         indent=2) + "\n")

@@ -1,7 +1,7 @@
 """Scenario section ``imaging``: probe fan geometry, sensor rate, emulator and segmenter.
 
 Units are SI (m, s) unless the field name says otherwise (``_deg``, ``_hz``, ``_mhz``,
-``_db``). Probe and tissue numbers come from ``facts/anatomy_and_ultrasound.md``.
+``_db``). Probe and tissue numbers come from ``docs/facts/anatomy_and_ultrasound.md``.
 """
 
 from dataclasses import dataclass, field

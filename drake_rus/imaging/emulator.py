@@ -13,7 +13,7 @@ Per scan line (a ray from the array into the body), every sample gets:
 - log compression to ``dynamic_range_db`` and scan conversion to the Cartesian image.
 
 Depths assume the nominal 1540 m/s (speed-of-sound errors are not emulated). Tissue numbers:
-``facts/anatomy_and_ultrasound.md`` "Tissue acoustics" unless a comment says otherwise.
+``docs/facts/anatomy_and_ultrasound.md`` "Tissue acoustics" unless a comment says otherwise.
 Deterministic: the speckle of frame ``k`` depends only on (seed, k).
 """
 

@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from drake_rus.anatomy import load_patient
 from drake_rus.anatomy.labels import LabelVolume
 from drake_rus.imaging.dataset import make_frames
 from drake_rus.imaging.emulator import EmulatorModel
+from drake_rus.imaging.phantoms import kidney_phantom
 from drake_rus.imaging.segment import iou
 
 
@@ -20,10 +22,8 @@ def load_volume(spec: str, side: str = "right") -> tuple[LabelVolume, np.ndarray
     """(label volume, unit approach direction in the volume's grid frame V) for a source."""
     head, _, tail = spec.partition(":")
     if head == "phantom":
-        from drake_rus.imaging.phantoms import kidney_phantom
         ph = kidney_phantom(np.random.default_rng(int(tail)))
         return ph.volume, np.array([0.0, 0.0, 1.0])
-    from drake_rus.anatomy import load_patient
     patient = load_patient(spec, side=side, progress=False)
     vol = patient.labels
     # Up from the bed (+z_Pt) expressed in V.

@@ -1,6 +1,6 @@
 """Geometry of the curvilinear probe's image: pixels <-> probe tip frame P <-> base frame B.
 
-Frame P (DESIGN.md): origin at the centre of the probe face, z_P the beam direction into the
+Frame P (docs/design.md): origin at the centre of the probe face, z_P the beam direction into the
 body, x_P the transducer array direction; the image plane is the x_P-z_P plane (y_P = 0).
 
 The convex array is an arc of radius ``R`` centred on the fan apex ``(0, 0, -R)`` (behind the

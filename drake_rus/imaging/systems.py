@@ -16,13 +16,14 @@ from __future__ import annotations
 import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
-from pydrake.systems.framework import BasicVector, EventStatus, LeafSystem
+from pydrake.systems.framework import EventStatus, LeafSystem
 
 from drake_rus.anatomy.labels import LabelVolume
 from drake_rus.imaging.backprojection import accumulate
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.emulator import EmulatorModel, emulate
 from drake_rus.imaging.frames import BoundaryPixels, PointCloud, UsFrame
+from drake_rus.imaging.onnx_backend import OnnxSegmenter
 from drake_rus.imaging.probe import ProbeGeometry, check_pose
 from drake_rus.imaging.segment import read_mask, segment_classical, segment_oracle
 from drake_rus.imaging.slicing import slice_volume
@@ -39,9 +40,14 @@ class SliceSensor(LeafSystem):
     Output ``label_image`` (abstract UsFrame): uint8 tissue labels (rows, cols) on the probe's
     fan (0 outside it), stamped with the acquisition time (s) and the X_BP used. A frame is
     acquired at initialization and then every 1 / ``frame_rate_hz`` s.
+
+    ``motion`` (optional, e.g. :class:`drake_rus.anatomy.motion.PatientMotion`): anything with
+    ``offset_B(t)`` (m, in B); the volume then sits at translate(offset_B(t)) * X_BV, so a
+    breathing or shifting patient moves under the probe.
     """
 
-    def __init__(self, config: ImagingConfig, volume: LabelVolume, X_BV: RigidTransform):
+    def __init__(self, config: ImagingConfig, volume: LabelVolume, X_BV: RigidTransform,
+                 motion=None):
         super().__init__()
         if not isinstance(volume, LabelVolume):
             raise ValueError(f"SliceSensor: volume must be a LabelVolume, got "
@@ -49,6 +55,7 @@ class SliceSensor(LeafSystem):
         self._geometry = ProbeGeometry.from_config(config)
         self._volume = volume
         self._X_BV = check_pose(X_BV, "SliceSensor X_BV (pose of the volume grid in B)")
+        self._motion = motion
         self._planes = int(config.elevation_planes)
         self._combine = config.elevation_combine
         self._X_BP_port = self.DeclareAbstractInputPort(
@@ -66,13 +73,19 @@ class SliceSensor(LeafSystem):
     def geometry(self) -> ProbeGeometry:
         return self._geometry
 
+    def X_BV(self, t: float) -> RigidTransform:
+        """Pose of the label grid in B at time t (s)."""
+        if self._motion is None:
+            return self._X_BV
+        return RigidTransform(self._motion.offset_B(t)) @ self._X_BV
+
     def _acquire(self, context, state):
         if not self._X_BP_port.HasValue(context):
             raise RuntimeError("SliceSensor: input port 'X_BP' is not connected")
         X_BP = self._X_BP_port.Eval(context)
         check_pose(X_BP, f"SliceSensor input 'X_BP' at t = {context.get_time():.4f} s")
         previous = context.get_abstract_state(self._state_index).get_value()
-        image = slice_volume(self._geometry, self._volume, self._X_BV, X_BP,
+        image = slice_volume(self._geometry, self._volume, self.X_BV(context.get_time()), X_BP,
                              self._planes, self._combine)
         frame = UsFrame(image=image, time=context.get_time(), X_BP=RigidTransform(X_BP),
                         frame_index=previous.frame_index + 1)
@@ -130,7 +143,6 @@ def make_segmenter_backend(config: ImagingConfig, geometry: ProbeGeometry):
         min_area = config.min_kidney_area
         return lambda us, labels, prev: segment_classical(us, geometry, prev, min_area)
     if backend == "onnx":
-        from drake_rus.imaging.onnx_backend import OnnxSegmenter
         model = OnnxSegmenter.from_config(config, geometry)
         return lambda us, labels, prev: model(us)
     raise ValueError(f"imaging.segmenter: unknown backend {backend!r}; expected 'oracle', "

@@ -32,12 +32,13 @@ import numpy as np
 
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.emulator import EmulatorModel
+from drake_rus.imaging.evaluation import make_source_frames
+from drake_rus.imaging.onnx_backend import resize_to
 from drake_rus.imaging.probe import ProbeGeometry
 
 
 def reduce_frames(frames, size: int):
     """(images float32 (N, size, size) in [0, 1], masks float32 (N, size, size))."""
-    from drake_rus.imaging.onnx_backend import resize_to
     X = np.stack([resize_to(us, size, size) / 255.0 for us, *_ in frames]).astype(np.float32)
     Y = np.stack([resize_to(m.astype(np.float32), size, size) > 0.5
                   for _, m, *_ in frames]).astype(np.float32)
@@ -47,7 +48,6 @@ def reduce_frames(frames, size: int):
 def build_dataset(sources: list[str], frames_per_source: int, size: int, cache: Path | None,
                   seed: int = 0, config: ImagingConfig | None = None):
     """Emulated training images and masks from ``sources``, cached as .npz per source."""
-    from drake_rus.imaging.evaluation import make_source_frames
     config = config or ImagingConfig()
     model = EmulatorModel.from_config(config, ProbeGeometry.from_config(config))
     Xs, Ys = [], []

@@ -11,12 +11,18 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import EventStatus, LeafSystem
-from scipy.spatial import cKDTree
 
+from drake_rus.anatomy.frames import reference_axes_Pt
+from drake_rus.imaging.frames import PointCloud
 from drake_rus.localization.config import LocalizationConfig
 from drake_rus.localization.icp import (
-    IcpResult, NearestPointGrid, heuristic_initial_rotation, register_plane_to_plane)
+    IcpResult,
+    NearestPointGrid,
+    heuristic_initial_rotation,
+    register_plane_to_plane,
+)
 from drake_rus.paths import REPO_ROOT
+from drake_rus.template import load_template
 
 
 @dataclasses.dataclass
@@ -46,7 +52,6 @@ class RegistrationTemplate:
 
 def load_registration_template(path: str | None = None) -> RegistrationTemplate:
     """Loads the kidney template (``models/kidney_template.npz`` by default)."""
-    from drake_rus.template import load_template
     resolved = None
     if path is not None:
         resolved = path if str(path).startswith("/") else str(REPO_ROOT / path)
@@ -62,7 +67,6 @@ def body_directions_B(X_BPt: RigidTransform, side: str, posture: str):
     """(superior_B, lateral_B): the body's head direction and the kidney's medial->lateral
     direction in the robot base, from the patient's placement and posture (known at the
     bedside, so usable on hardware)."""
-    from drake_rus.anatomy.frames import reference_axes_Pt
     x_ref, y_ref = reference_axes_Pt(side, posture)
     R_BPt = X_BPt.rotation().matrix()
     return R_BPt @ x_ref, R_BPt @ y_ref
@@ -168,7 +172,6 @@ class IcpLocalizer(LeafSystem):
                  min_points: int = 50, explore_phase: int | None = None,
                  kidney_length: float = 0.10):
         super().__init__()
-        from drake_rus.imaging.frames import PointCloud
         self._template = template
         self._config = config
         self._superior_B = np.asarray(superior_B, dtype=float)

@@ -25,6 +25,11 @@ from pydrake.math import RigidTransform
 from pydrake.systems.framework import EventStatus, LeafSystem
 from scipy.spatial import cKDTree
 
+from drake_rus.imaging.backprojection import backproject_pixels
+from drake_rus.imaging.frames import BoundaryPixels
+from drake_rus.imaging.probe import ProbeGeometry
+from drake_rus.localization.localize import LocalizationOutcome
+
 __all__ = ["estimate_drift", "DriftEstimate", "TrackingState", "tracking_update",
            "KidneyTrackingMonitor"]
 
@@ -128,9 +133,6 @@ class KidneyTrackingMonitor(LeafSystem):
 
     def __init__(self, template, config, imaging_config, check_phases):
         super().__init__()
-        from drake_rus.imaging.frames import BoundaryPixels
-        from drake_rus.imaging.probe import ProbeGeometry
-        from drake_rus.localization.localize import LocalizationOutcome
         self._template = template
         self._cfg = config
         self._geometry = ProbeGeometry.from_config(imaging_config)
@@ -188,7 +190,6 @@ class KidneyTrackingMonitor(LeafSystem):
         new_index = s.last_index
         if (allowed and boundary.frame_index > s.last_index and len(boundary.pixels)
                 and np.all(np.isfinite(boundary.X_BP.GetAsMatrix4()))):
-            from drake_rus.imaging.backprojection import backproject_pixels
             points = backproject_pixels(self._geometry, boundary.pixels, boundary.X_BP)
             frames = frames + ((boundary.time, points),)
             new_index = boundary.frame_index

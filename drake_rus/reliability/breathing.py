@@ -1,7 +1,7 @@
 """Localisation under breathing: the same scans with breathing off, breathing with every
 exploration frame used, and breathing with exploration frames gated to breath-holds.
 
-The kidney moves craniocaudally by d(t) (``faults.breathing``); holds are at
+The kidney moves craniocaudally by d(t) (``patient.motion.breathing``); holds are at
 end-expiration (within ``hold_reproducibility``), which is also the reference pose the
 error is measured against. Gating (``gate_exploration``) makes the point-cloud accumulator
 keep only frames acquired during a hold, so the registration sees a still kidney.
@@ -9,21 +9,24 @@ keep only frames acquired during a hold, so the registration sees a still kidney
 
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
-from drake_rus.io_utils import write_text_atomic
+from drake_rus.io_utils import save_figure, write_text_atomic
+from drake_rus.reliability.campaign import run_campaign
 
 CONDITIONS = {
     "no_breathing": "{}",
-    "breathing_ungated": "{faults: {breathing: {enabled: true, amplitude: %(a).4f, "
+    "breathing_ungated": "{patient: {motion: {breathing: {enabled: true, amplitude: %(a).4f, "
                          "rate_per_min: %(r).1f, hold_period: %(p).1f, hold_duration: %(h).1f, "
-                         "gate_exploration: false}}}",
-    "breathing_gated": "{faults: {breathing: {enabled: true, amplitude: %(a).4f, "
+                         "gate_exploration: false}}}}",
+    "breathing_gated": "{patient: {motion: {breathing: {enabled: true, amplitude: %(a).4f, "
                        "rate_per_min: %(r).1f, hold_period: %(p).1f, hold_duration: %(h).1f, "
-                       "gate_exploration: true}}}",
+                       "gate_exploration: true}}}}",
 }
 
 
@@ -67,8 +70,7 @@ def plot_comparison(results: list[dict], path) -> Path:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from drake_rus.io_utils import save_figure
+    from matplotlib.lines import Line2D
     patients = sorted({r["patient"] for r in results}, key=lambda p: (len(p), p))
     fig, ax = plt.subplots(figsize=(8, 4.5))
     for k, name in enumerate(CONDITIONS):
@@ -83,7 +85,6 @@ def plot_comparison(results: list[dict], path) -> Path:
     ax.set_ylabel("localisation error E_trans (mm)")
     ax.set_title("Localisation with breathing: off / all frames / breath-hold gated\n"
                  "(open markers: the scan ended in ABORT)")
-    from matplotlib.lines import Line2D
     ax.legend([Line2D([], [], ls="", marker="o", color=f"C{k}") for k in range(len(CONDITIONS))],
               list(CONDITIONS), fontsize=8)
     ax.grid(axis="y", alpha=0.3)
@@ -91,7 +92,6 @@ def plot_comparison(results: list[dict], path) -> Path:
 
 
 def add_commands(subparsers) -> None:
-    import argparse
     p = subparsers.add_parser(
         "breathing", help="localisation error with breathing off / on / gated to breath-holds",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -110,9 +110,6 @@ def add_commands(subparsers) -> None:
 
 
 def run_breathing_command(args) -> int:
-    from tqdm import tqdm
-
-    from drake_rus.reliability.campaign import run_campaign
     patients = [s.strip() for s in args.patients.split(",") if s.strip()]
     if not patients:
         raise ValueError("--patients: expected at least one patient spec")

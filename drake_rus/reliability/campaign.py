@@ -6,21 +6,29 @@ share) with random timing and size, a test patient and a seed; it runs the full 
 the peak true contact force, the time above the force ceiling, whether the robot ended at
 rest, and any exception. Results are one JSON file per run under ``OUT/runs`` (written
 atomically), so an interrupted campaign resumes where it stopped; runs go through the
-study runner (Dask worker processes, or an existing Dask scheduler).
+project's batch runner (:func:`drake_rus.batch.run_tasks`: Dask worker processes, or an
+existing Dask scheduler).
 """
 
 from __future__ import annotations
 
-import csv
-import io
+import dataclasses
 import json
+import operator
 import time
 import traceback
 from pathlib import Path
 
 import numpy as np
 
-from drake_rus.io_utils import write_text_atomic
+from drake_rus import batch
+from drake_rus.anatomy import load_patient
+from drake_rus.anatomy.motion import shift_offset
+from drake_rus.io_utils import save_figure, write_text_atomic
+from drake_rus.localization.localize import load_registration_template
+from drake_rus.reliability.run import RunFaultyScan, outcome_reason
+from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, LoadScenario
+from drake_rus.tables import write_csv_atomic
 
 # Fault types of the campaign: the sensor faults, breathing, a patient shift, and none.
 CAMPAIGN_FAULTS = ["none", "image_dropout", "frozen_image", "segmentation_miss",
@@ -42,9 +50,9 @@ def fault_overrides(kind: str, rng: np.random.Generator, seed: int) -> str:
         # Half the runs have breath-holds, and then scan respiration-aware (exploration,
         # pivot and localization frames only during holds); the others breathe freely.
         hold = rng.random() < 0.5
-        return ("{faults: {seed: %d, breathing: {enabled: true, amplitude: %.4f, "
+        return ("{patient: {motion: {seed: %d, breathing: {enabled: true, amplitude: %.4f, "
                 "rate_per_min: %.2f, hold_period: %.2f, hold_duration: %.2f, "
-                "gate_exploration: %s}}}"
+                "gate_exploration: %s}}}}"
                 % (seed, rng.uniform(0.005, 0.020), rng.uniform(12.0, 20.0),
                    rng.uniform(12.0, 20.0) if hold else 0.0, rng.uniform(6.0, 10.0),
                    "true" if hold else "false"))
@@ -53,8 +61,8 @@ def fault_overrides(kind: str, rng: np.random.Generator, seed: int) -> str:
         direction[2] *= 0.3                          # mostly along the bed
         offset = direction / np.linalg.norm(direction) * rng.uniform(0.005, 0.02)
         offset = np.clip(offset, -0.02, 0.02)
-        return ("{faults: {seed: %d, patient_shift: {enabled: true, time: %.3f, offset: %s, "
-                "ramp: %.2f}}}" % (seed, start, _yaml_list(offset), rng.uniform(0.2, 2.0)))
+        return ("{patient: {motion: {seed: %d, shift: {enabled: true, time: %.3f, offset: %s, "
+                "ramp: %.2f}}}}" % (seed, start, _yaml_list(offset), rng.uniform(0.2, 2.0)))
     duration = float(rng.choice([rng.uniform(0.05, 0.5), rng.uniform(0.5, 5.0), 1.0e9]))
     extra = ""
     if kind == "force_spike":
@@ -93,7 +101,6 @@ _CACHE: dict = {}
 
 
 def _patient(spec: str, side: str, posture: str):
-    from drake_rus.anatomy import load_patient
     key = (spec, side, posture)
     if key not in _CACHE:
         _CACHE.clear()           # one patient at a time per worker (memory)
@@ -110,11 +117,6 @@ def run_task(task: dict) -> dict:
               "longest_above_ceiling_s": None, "force_violation": None, "at_rest": None,
               "sim_s": None, "e_trans_mm": None, "exception": None}
     try:
-        import dataclasses
-
-        from drake_rus.localization.localize import load_registration_template
-        from drake_rus.reliability.run import RunFaultyScan, outcome_reason
-        from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, LoadScenario
         scenario = LoadScenario(filename=task["scenarios_file"] or DEFAULT_SCENARIOS_FILE,
                                 scenario_name=task["scenario"],
                                 scenario_text=task["overrides"])
@@ -148,47 +150,41 @@ def error_at_localization_mm(scenario, result) -> float | None:
     estimate."""
     if result.X_BK_estimated is None:
         return None
-    from drake_rus.reliability.faults import shift_offset
     truth = (result.X_BK_true.translation()
-             + shift_offset(result.localization.time, scenario.faults.patient_shift))
+             + shift_offset(result.localization.time, scenario.patient.motion.shift))
     return float(np.linalg.norm(result.X_BK_estimated.translation() - truth) * 1000)
 
 
+# The id of a campaign run (its result file's name): picklable, unlike a lambda.
+task_id = operator.itemgetter("run_id")
+
+
 def result_path(out_dir, task) -> Path:
-    return Path(out_dir) / "runs" / f"{task['run_id']}.json"
+    return batch.result_path(out_dir, task_id(task))
 
 
 def run_campaign(tasks: list[dict], out_dir, *, workers: int = 2, progress=None,
                  scheduler: str | None = None, show_bar: bool = True) -> list[dict]:
-    """Runs the tasks without a result under ``out_dir/runs`` (resumable) through the study
-    runner (``experiments.studies.run_tasks``): ``workers`` Dask worker processes, an
+    """Runs the tasks without a result under ``out_dir/runs`` (resumable) through the batch
+    runner (:func:`drake_rus.batch.run_tasks`): ``workers`` Dask worker processes, an
     existing Dask ``scheduler``, or (``workers`` = 0) this process. ``progress`` is called
     with each finished record. A run whose worker process died is recorded as an
     exception. Returns all results of ``tasks``."""
-    from drake_rus.experiments.studies import run_tasks
-    (Path(out_dir) / "runs").mkdir(parents=True, exist_ok=True)
-    status = run_tasks(tasks, out_dir, workers=workers, scheduler=scheduler,
-                       progress=show_bar, desc="campaign", function=run_task,
-                       path_of=result_path, on_result=progress)
+    batch.runs_dir(out_dir).mkdir(parents=True, exist_ok=True)
+    status = batch.run_tasks(tasks, run_task, out_dir, task_id, workers=workers,
+                             scheduler=scheduler, progress=show_bar, desc="campaign",
+                             on_result=progress)
     by_id = {t["run_id"]: t for t in tasks}
     for run_id, error in status["failed"]:     # run_task never raises: a dead worker
         task = by_id[run_id]
         record = {"task": task, "run_id": run_id, "fault": task["fault"],
                   "patient": task["patient"], "status": "EXCEPTION", "reason": "",
                   "exception": f"worker died: {error}"}
-        write_text_atomic(result_path(out_dir, task), json.dumps(record, default=_json))
+        batch.save_result(out_dir, run_id, record)
         if progress:
             progress(record)
     return [json.loads(result_path(out_dir, t).read_text()) for t in tasks
             if result_path(out_dir, t).exists()]
-
-
-def _json(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
 def summarize(results: list[dict]) -> dict:
@@ -261,8 +257,6 @@ def plot_campaign(results: list[dict], ceiling: float, path) -> Path:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from drake_rus.io_utils import save_figure
     rows = per_fault(results)
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(14, 6))
     fig.subplots_adjust(left=0.16, right=0.98, wspace=0.6, bottom=0.2)
@@ -302,14 +296,10 @@ def write_outputs(out_dir, results: list[dict], meta: dict) -> list[Path]:
     out = Path(out_dir)
     summary = summarize(results)
     faults = per_fault(results)
-    buf = io.StringIO()
     keys = ["run_id", "fault", "patient", "status", "reason", "peak_force_n",
             "time_above_ceiling_s", "longest_above_ceiling_s", "force_violation", "at_rest",
             "sim_s", "wall_s", "e_trans_mm", "e_trans_at_localization_mm", "exception"]
-    w = csv.DictWriter(buf, keys, extrasaction="ignore")
-    w.writeheader()
-    for r in sorted(results, key=lambda r: r["run_id"]):
-        w.writerow(r)
+    rows = sorted(results, key=lambda r: r["run_id"])
     md = ["# Reliability campaign", "", f"{meta}", "", "## Summary", "",
           "```", json.dumps(summary, indent=1), "```", "", "## DONE fraction per fault type",
           "", "| fault | runs | DONE | ABORT | DONE fraction | max peak F (N) | "
@@ -321,7 +311,9 @@ def write_outputs(out_dir, results: list[dict], meta: dict) -> list[Path]:
     md += ["", "## Runs", "", "```", outcome_table(results), "```", ""]
     written = [plot_campaign(results, float(meta.get("force_ceiling_n", 20.0)),
                              out / "campaign.png")] if results else []
-    return written + [write_text_atomic(out / "campaign.csv", buf.getvalue()),
-            write_text_atomic(out / "campaign.json", json.dumps(
-                {"summary": summary, "per_fault": faults, "meta": meta}, indent=1)),
-            write_text_atomic(out / "campaign.md", "\n".join(md))]
+    return written + [
+        write_csv_atomic(out / "campaign.csv", rows, keys, float_format=None,
+                         extrasaction="ignore"),
+        write_text_atomic(out / "campaign.json", json.dumps(
+            {"summary": summary, "per_fault": faults, "meta": meta}, indent=1)),
+        write_text_atomic(out / "campaign.md", "\n".join(md))]

@@ -7,9 +7,21 @@ import json
 import time
 from pathlib import Path
 
+from drake_rus.localization.localize import load_registration_template
+from drake_rus.reliability.breathing import add_commands as add_breathing
+from drake_rus.reliability.campaign import __doc__ as doc
+from drake_rus.reliability.campaign import (
+    fault_table,
+    make_tasks,
+    outcome_table,
+    run_campaign,
+    summarize,
+    write_outputs,
+)
+from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, LoadScenario
+
 
 def add_commands(subparsers) -> None:
-    from drake_rus.reliability.campaign import __doc__ as doc
     p = subparsers.add_parser(
         "campaign", help="reliability campaign: randomised faulty scans, DONE/ABORT + safety",
         description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -27,7 +39,6 @@ def add_commands(subparsers) -> None:
     p.add_argument("--max-sim-time", type=float, default=60.0,
                    help="per-run limit of simulated time in s (default 60)")
     p.set_defaults(func=run_campaign_command)
-    from drake_rus.reliability.breathing import add_commands as add_breathing
     add_breathing(subparsers)
 
 
@@ -49,15 +60,11 @@ def _check_args(args) -> None:
 
 
 def run_campaign_command(args) -> int:
-    from drake_rus.reliability.campaign import (
-        fault_table, make_tasks, outcome_table, run_campaign, summarize, write_outputs)
-    from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, LoadScenario
 
     _check_args(args)
     # Fail fast on a bad scenario or template, before any run starts or anything is written.
     scenario = LoadScenario(filename=args.scenarios_file or DEFAULT_SCENARIOS_FILE,
                             scenario_name=args.scenario)
-    from drake_rus.localization.localize import load_registration_template
     try:
         load_registration_template(scenario.localization.template)
     except FileNotFoundError as e:

@@ -1,4 +1,7 @@
-"""Fault-injection and patient-motion configuration: the scenario's ``faults`` section.
+"""Fault-injection configuration: the scenario's ``faults`` section (sensor faults).
+
+Patient motion (breathing, a shift) is not a fault: it describes the patient
+(``patient.motion``, :mod:`drake_rus.anatomy.motion`).
 
 Every fault is off by default, so a scenario without a ``faults`` section runs exactly as
 before. Times are simulated seconds from the start of the run, SI units otherwise
@@ -7,8 +10,7 @@ before. Times are simulated seconds from the start of the run, SI units otherwis
 
 from dataclasses import dataclass, field
 
-__all__ = ["FaultConfig", "BreathingConfig", "PatientShiftConfig", "SensorFaultConfig",
-           "FAULT_KINDS"]
+__all__ = ["FaultConfig", "SensorFaultConfig", "FAULT_KINDS"]
 
 # Sensor fault kinds (SensorFaultConfig.kind).
 FAULT_KINDS = ["none", "image_dropout", "frozen_image", "segmentation_miss",
@@ -47,56 +49,12 @@ class SensorFaultConfig:
 
 
 @dataclass
-class BreathingConfig:
-    """Craniocaudal respiratory motion of the kidney and skin (facts: 7-11 mm mean, up to
-    20-30 mm; breath-hold reproducibility < 4 mm); the contact body moves with it.
-
-    The displacement along the patient's superior axis is
-    d(t) = amplitude * (1 - cos(2 pi f t)) / 2, f = rate_per_min / 60 (0 at end-expiration,
-    amplitude at end-inspiration). Every hold_period s the patient holds their breath at
-    end-expiration for hold_duration s; each hold lands within hold_reproducibility of the
-    reference position (a fixed per-hold draw).
-    """
-    enabled: bool = False
-    amplitude: float = field(default=0.010, metadata={"min": 0.0, "max": 0.03})
-    rate_per_min: float = field(default=15.0, metadata={"min": 6.0, "max": 30.0})
-    # Breath-holds: 0 disables them (free breathing only).
-    hold_period: float = field(default=12.0, metadata={"min": 0.0})
-    hold_duration: float = field(default=8.0, metadata={"min": 0.0})
-    hold_reproducibility: float = field(default=0.002, metadata={"min": 0.0, "max": 0.01})
-    # First hold starts at this time (s).
-    first_hold: float = field(default=0.0, metadata={"min": 0.0})
-    # Respiration-aware scanning: exploration and pivot motion advance, and the cloud
-    # accumulator keeps exploration frames, only during breath-holds (the station exports
-    # ``breath_hold``; the supervisor's ``motion_allowed`` input).
-    gate_exploration: bool = False
-
-
-@dataclass
-class PatientShiftConfig:
-    """The patient shifts rigidly by ``offset`` (m, in the robot base frame) at ``time``,
-    ramped over ``ramp`` s. The label volume, the true kidney pose and the contact body all
-    move (the station puts the torso on driven joints when the patient moves)."""
-    enabled: bool = False
-    time: float = field(default=10.0, metadata={"min": 0.0})
-    offset: list[float] = field(default_factory=lambda: [0.0, 0.01, 0.0],
-                                metadata={"length": 3, "min": -0.02, "max": 0.02})
-    ramp: float = field(default=0.5, metadata={"positive": True})
-
-
-@dataclass
 class FaultConfig:
-    """Faults injected into the simulated station (ignored on hardware)."""
+    """Sensor faults injected into the simulated station by ``drake_rus.reliability``."""
     sensor: list[SensorFaultConfig] = field(default_factory=list)
-    breathing: BreathingConfig = field(default_factory=BreathingConfig)
-    patient_shift: PatientShiftConfig = field(default_factory=PatientShiftConfig)
-    # Seed of the fault draws (which frames drop, hold offsets); combined with random_seed.
+    # Seed of the fault draws (which frames drop); combined with random_seed.
     seed: int = field(default=0, metadata={"min": 0})
 
     @property
     def active_sensor_faults(self) -> list:
         return [f for f in self.sensor if f.kind != "none"]
-
-    @property
-    def moves_patient(self) -> bool:
-        return self.breathing.enabled or self.patient_shift.enabled

@@ -1,4 +1,6 @@
-"""Fault and patient-motion models as pure functions of time (the functional core).
+"""Sensor-fault models as pure functions of time and frame index (the functional core).
+
+Patient motion (breathing, shift) lives in :mod:`drake_rus.anatomy.motion`.
 
 Everything here is deterministic: a fault's per-frame draws come from a hash of
 (seed, frame index), so a run is reproducible and a system's output depends only on its
@@ -7,99 +9,14 @@ inputs and the time.
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 
 from drake_rus.anatomy.labels import KIDNEY_LABELS, Label
-from drake_rus.reliability.config import BreathingConfig, PatientShiftConfig, SensorFaultConfig
+from drake_rus.reliability.config import SensorFaultConfig
 
-__all__ = ["breath_hold", "breathing_displacement", "shift_offset", "fault_active",
-           "frame_affected", "force_offset", "remove_kidney", "add_false_kidney",
-           "patient_offset_B", "hold_windows"]
-
-
-def _hold_schedule(cfg: BreathingConfig):
-    """(period, duration) of breath-holds, or None for free breathing only."""
-    if cfg.hold_period <= 0.0 or cfg.hold_duration <= 0.0:
-        return None
-    return cfg.hold_period, min(cfg.hold_duration, cfg.hold_period)
-
-
-def _hold_offset(cfg: BreathingConfig, k: int, seed: int) -> float:
-    """Where hold k lands (m caudal of end-expiration): a fixed draw per hold, uniform in
-    [0, hold_reproducibility]; before the first hold, 0."""
-    if k < 0 or cfg.hold_reproducibility == 0.0:
-        return 0.0
-    rng = np.random.default_rng([seed, 7919, k])
-    return float(rng.uniform(0.0, cfg.hold_reproducibility))
-
-
-def breath_hold(t: float, cfg: BreathingConfig) -> bool:
-    """True while the patient holds their breath at time t (s)."""
-    if not cfg.enabled:
-        return True
-    schedule = _hold_schedule(cfg)
-    if schedule is None or t < cfg.first_hold:
-        return False
-    period, duration = schedule
-    return (t - cfg.first_hold) % period < duration
-
-
-def hold_windows(t_end: float, cfg: BreathingConfig) -> list[tuple[float, float]]:
-    """The breath-hold windows [(start, end)] up to t_end (s)."""
-    schedule = _hold_schedule(cfg) if cfg.enabled else None
-    if schedule is None:
-        return []
-    period, duration = schedule
-    out, start = [], cfg.first_hold
-    while start < t_end:
-        out.append((start, min(start + duration, t_end)))
-        start += period
-    return out
-
-
-def breathing_displacement(t: float, cfg: BreathingConfig, seed: int = 0) -> float:
-    """Craniocaudal displacement d(t) (m, towards the feet is positive: inspiration pushes
-    the kidney caudally). Continuous in t: free breathing between holds is a whole number
-    of cycles that starts and ends at the holds' positions."""
-    if not cfg.enabled:
-        return 0.0
-    A, f = cfg.amplitude, cfg.rate_per_min / 60.0
-    schedule = _hold_schedule(cfg)
-    if schedule is None:
-        return A * 0.5 * (1.0 - math.cos(2.0 * math.pi * f * t))
-    period, duration = schedule
-    if t < cfg.first_hold:
-        # Free breathing before the first hold, ending at end-expiration when it starts.
-        n = max(1, round(cfg.first_hold * f))
-        return A * 0.5 * (1.0 - math.cos(2.0 * math.pi * n * (cfg.first_hold - t)
-                                         / cfg.first_hold))
-    k = int((t - cfg.first_hold) // period)
-    phase = (t - cfg.first_hold) - k * period
-    if phase < duration:
-        return _hold_offset(cfg, k, seed)
-    free = period - duration
-    s = (phase - duration) / free
-    n = max(1, round(free * f))
-    e0, e1 = _hold_offset(cfg, k, seed), _hold_offset(cfg, k + 1, seed)
-    return A * 0.5 * (1.0 - math.cos(2.0 * math.pi * n * s)) + e0 + (e1 - e0) * s
-
-
-def shift_offset(t: float, cfg: PatientShiftConfig) -> np.ndarray:
-    """Rigid patient shift (m, robot base frame) at time t: 0 before cfg.time, ramped
-    linearly to cfg.offset over cfg.ramp s."""
-    if not cfg.enabled or t <= cfg.time:
-        return np.zeros(3)
-    s = min(1.0, (t - cfg.time) / cfg.ramp)
-    return s * np.asarray(cfg.offset, dtype=float)
-
-
-def patient_offset_B(t: float, breathing: BreathingConfig, shift: PatientShiftConfig,
-                     superior_B: np.ndarray, seed: int = 0) -> np.ndarray:
-    """Total displacement (m, base frame) of the imaged anatomy at time t."""
-    d = breathing_displacement(t, breathing, seed)
-    return -d * np.asarray(superior_B, dtype=float) + shift_offset(t, shift)
+__all__ = ["fault_active", "frame_affected", "force_offset", "remove_kidney",
+           "add_false_kidney"]
 
 
 def fault_active(t: float, f: SensorFaultConfig) -> bool:

@@ -1,16 +1,11 @@
-"""Fault-injection and patient-motion LeafSystems for the simulated station (thin shells
-around :mod:`drake_rus.reliability.faults`).
+"""Fault-injection LeafSystems for the simulated station (thin shells around
+:mod:`drake_rus.reliability.faults`).
 
-- :class:`MovingSliceSensor`: the slice sensor with the label volume displaced over time
-  (breathing, patient shift);
 - :class:`LabelImageFaults`: image dropouts, frozen frames, segmentation misses and false
   positives, NaN-stamped frames, on the label frames before the ultrasound emulator (so the
   emulated image and any segmenter see them);
 - :class:`RobotSensorFaults`: force spikes and bias, joint-state delay, NaN in the joint
-  state, force or probe pose;
-- :class:`MovingPose`: a pose displaced like the patient (the true kidney pose);
-- :class:`BreathHoldSignal`: 1 during breath-holds (a respiratory belt or the operator);
-- :class:`And2`: logical and of two 1-vectors (breath-hold gating of exploration frames).
+  state, force or probe pose.
 """
 
 from __future__ import annotations
@@ -23,8 +18,7 @@ from pydrake.math import RigidTransform
 from pydrake.systems.framework import EventStatus, LeafSystem
 
 from drake_rus.imaging.frames import UsFrame
-from drake_rus.imaging.probe import ProbeGeometry, check_pose
-from drake_rus.imaging.slicing import slice_volume
+from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.reliability import faults as F
 from drake_rus.reliability.config import FaultConfig
 
@@ -32,58 +26,6 @@ IMAGE_FAULTS = ("image_dropout", "frozen_image", "segmentation_miss",
                 "segmentation_false_positive", "nan_image")
 ROBOT_FAULTS = ("force_spike", "force_bias", "joint_state_delay", "nan_joint_position",
                 "nan_joint_velocity", "nan_force", "nan_pose")
-
-
-class _PatientMotion:
-    """d(t) of the imaged anatomy in B (m) for a FaultConfig and the patient's head axis."""
-
-    def __init__(self, faults: FaultConfig, superior_B, seed: int):
-        self._faults, self._up, self._seed = faults, np.asarray(superior_B, float), seed
-
-    def offset_B(self, t: float) -> np.ndarray:
-        return F.patient_offset_B(t, self._faults.breathing, self._faults.patient_shift,
-                                  self._up, self._seed)
-
-
-class MovingSliceSensor(LeafSystem):
-    """SliceSensor whose label volume sits at X_BV(t) = translate(offset_B(t)) * X_BV.
-
-    Input ``X_BP``; output ``label_image`` (UsFrame stamped with the time, the true probe
-    pose and the frame index), a frame at initialization and every 1/frame_rate_hz s.
-    """
-
-    def __init__(self, config, volume, X_BV: RigidTransform, faults: FaultConfig,
-                 superior_B, seed: int = 0):
-        super().__init__()
-        self._geometry = ProbeGeometry.from_config(config)
-        self._volume = volume
-        self._X_BV = check_pose(X_BV, "MovingSliceSensor X_BV")
-        self._motion = _PatientMotion(faults, superior_B, seed)
-        self._planes, self._combine = int(config.elevation_planes), config.elevation_combine
-        self._X_BP = self.DeclareAbstractInputPort("X_BP", AbstractValue.Make(RigidTransform()))
-        empty = UsFrame(np.zeros(self._geometry.image_shape, np.uint8))
-        self._state = self.DeclareAbstractState(AbstractValue.Make(empty))
-        period = 1.0 / config.frame_rate_hz
-        self.DeclareInitializationUnrestrictedUpdateEvent(self._acquire)
-        self.DeclarePeriodicUnrestrictedUpdateEvent(period, period, self._acquire)
-        self.DeclareAbstractOutputPort(
-            "label_image", lambda: AbstractValue.Make(empty),
-            lambda c, o: o.set_value(c.get_abstract_state(self._state).get_value()),
-            prerequisites_of_calc={self.abstract_state_ticket(self._state)})
-
-    def X_BV(self, t: float) -> RigidTransform:
-        return RigidTransform(self._motion.offset_B(t)) @ self._X_BV
-
-    def _acquire(self, context, state):
-        t = context.get_time()
-        X_BP = check_pose(self._X_BP.Eval(context), f"MovingSliceSensor input 'X_BP' at t = {t:.4f} s")
-        previous = context.get_abstract_state(self._state).get_value()
-        image = slice_volume(self._geometry, self._volume, self.X_BV(t), X_BP, self._planes,
-                             self._combine)
-        state.get_mutable_abstract_state(self._state).set_value(
-            UsFrame(image=image, time=t, X_BP=RigidTransform(X_BP),
-                    frame_index=previous.frame_index + 1))
-        return EventStatus.Succeeded()
 
 
 class LabelImageFaults(LeafSystem):
@@ -235,59 +177,3 @@ class RobotSensorFaults(LeafSystem):
         if self._active(t, "nan_force"):
             W[5] = math.nan
         output.SetFromVector(W)
-
-
-class MovingPose(LeafSystem):
-    """Output ``X`` (RigidTransform): translate(offset_B(t)) * X0, moving with the patient."""
-
-    def __init__(self, X0: RigidTransform, faults: FaultConfig, superior_B, seed: int = 0):
-        super().__init__()
-        self._X0 = RigidTransform(X0)
-        self._motion = _PatientMotion(faults, superior_B, seed)
-        self.DeclareAbstractOutputPort(
-            "X", lambda: AbstractValue.Make(RigidTransform()),
-            lambda c, o: o.set_value(RigidTransform(self._motion.offset_B(c.get_time()))
-                                     @ self._X0),
-            prerequisites_of_calc={self.time_ticket()})
-
-
-class PatientMotionDesiredState(LeafSystem):
-    """Output ``desired_state`` (6-vector): [offset_B(t), d offset_B/dt] (m, m/s), the
-    desired state of the patient body's x-y-z prismatic joints (base frame axes)."""
-
-    def __init__(self, faults: FaultConfig, superior_B, seed: int = 0):
-        super().__init__()
-        self._motion = _PatientMotion(faults, superior_B, seed)
-        self.DeclareVectorOutputPort("desired_state", 6, self._calc,
-                                     prerequisites_of_calc={self.time_ticket()})
-
-    def _calc(self, context, output):
-        t, h = context.get_time(), 1e-4
-        q = self._motion.offset_B(t)
-        v = (self._motion.offset_B(t + h) - self._motion.offset_B(max(0.0, t - h))) / (
-            t + h - max(0.0, t - h))
-        output.SetFromVector(np.concatenate([q, v]))
-
-
-class BreathHoldSignal(LeafSystem):
-    """Output ``breath_hold`` (1-vector): 1.0 while the patient holds their breath."""
-
-    def __init__(self, faults: FaultConfig):
-        super().__init__()
-        self._cfg = faults.breathing
-        self.DeclareVectorOutputPort(
-            "breath_hold", 1,
-            lambda c, o: o.SetAtIndex(0, float(F.breath_hold(c.get_time(), self._cfg))),
-            prerequisites_of_calc={self.time_ticket()})
-
-
-class And2(LeafSystem):
-    """Output ``value`` (1-vector): 1.0 when both inputs ``a`` and ``b`` are > 0.5."""
-
-    def __init__(self):
-        super().__init__()
-        a = self.DeclareVectorInputPort("a", 1)
-        b = self.DeclareVectorInputPort("b", 1)
-        self.DeclareVectorOutputPort(
-            "value", 1, lambda c, o: o.SetAtIndex(
-                0, float(a.Eval(c)[0] > 0.5 and b.Eval(c)[0] > 0.5)))

@@ -24,6 +24,7 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
+from drake_rus.anatomy.rasterize import mask_to_mesh
 from drake_rus.template.pca import canonical_frame, mesh_canonical_frame
 
 __all__ = ["Subject", "subject_from_mask", "subject_from_mesh", "farthest_point_sampling",
@@ -56,7 +57,6 @@ def subject_from_mesh(mesh, x_ref, y_ref, name: str = "subject") -> Subject:
 def subject_from_mask(mask: np.ndarray, X_SV, voxel_size: float, x_ref, y_ref,
                       name: str = "subject", sigma_vox: float = 1.0) -> Subject:
     """Marching cubes on a (lightly smoothed) kidney mask, then :func:`subject_from_mesh`."""
-    from drake_rus.anatomy.importers import mask_to_mesh
     mesh = mask_to_mesh(mask, X_SV, voxel_size, sigma_vox=sigma_vox, what=f"{name}: kidney mask")
     return subject_from_mesh(mesh, x_ref, y_ref, name)
 

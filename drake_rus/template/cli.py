@@ -9,6 +9,10 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from drake_rus.anatomy.cohort import cohort_seeds
+from drake_rus.anatomy.generator import generate_patient
+from drake_rus.cli import UserError
+from drake_rus.io_utils import save_figure
 from drake_rus.template.builder import build_template, save_template, subject_from_mask
 from drake_rus.template.io import DEFAULT_TEMPLATE_PATH, load_template
 
@@ -17,8 +21,6 @@ def subjects_from_cohort(split: str = "train", n: int = 20, voxel_size: float = 
                          side: str = "right", progress: bool = True):
     """Template subjects from a virtual cohort: each kidney's mask (``voxel_size`` voxels, like
     a CT segmentation) -> marching cubes -> canonical frame."""
-    from drake_rus.anatomy.cohort import cohort_seeds
-    from drake_rus.anatomy.generator import generate_patient
     subjects = []
     for k, seed in enumerate(tqdm(cohort_seeds(split, n), desc="template: subjects",
                                   disable=not progress)):
@@ -44,7 +46,6 @@ def plot_convergence(conv: dict, path: Path) -> Path:
     ax.legend(loc="upper right", fontsize=8, framealpha=0.9)
     ax.set_ylim(bottom=0)
     fig.tight_layout()
-    from drake_rus.io_utils import save_figure
     return save_figure(fig, path, dpi=120)
 
 
@@ -87,7 +88,6 @@ def plot_template_modes(template, path: Path, n_modes: int = 3) -> Path:
 
 
 def _build(args) -> int:
-    from drake_rus.cli import UserError
     if args.n < 1:
         raise UserError(f"--n: expected at least 1 subject, got {args.n}")
     if args.points < 100:
@@ -128,7 +128,6 @@ def _build(args) -> int:
 
 
 def _info(args) -> int:
-    from drake_rus.cli import UserError
     try:
         t = load_template(args.path)
     except ValueError as e:

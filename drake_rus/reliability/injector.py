@@ -1,4 +1,5 @@
-"""Fault injection between a station and the controller (tests, notebook demonstrations).
+"""Fault injection between a station and the controller (controller safety tests, notebook
+demonstrations), from outside: ``BuildClosedLoopWithFault`` or ``FaultInjectorHook``.
 
 ``FaultInjector`` re-exports a station's sensor ports under the same names (so
 ``AddController`` can be given it in place of the station) and corrupts one of them from
@@ -15,6 +16,8 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import LeafSystem
+
+from drake_rus.closed_loop import BuildClosedLoop
 
 FAULTS = ("none", "force_spike", "frozen_image", "nan_pose", "segmentation_loss",
           "frozen_state")
@@ -119,3 +122,21 @@ def ConnectFaultInjector(builder, station, injector: FaultInjector, segmenter=No
                         injector.GetInputPort("kidney_visible"))
         builder.Connect(segmenter.GetOutputPort("mask_centroid"),
                         injector.GetInputPort("mask_centroid"))
+
+
+def FaultInjectorHook(fault: str, t_fault: float, frame_rate_hz: float = 20.0):
+    """A ``sensor_hook`` for :func:`drake_rus.closed_loop.BuildClosedLoop` that puts a
+    :class:`FaultInjector` (``fault`` from ``t_fault`` s on) between the station and the
+    controller."""
+    def hook(builder, station, segmenter):
+        injector = builder.AddNamedSystem(
+            "fault_injector", FaultInjector(fault, t_fault, frame_rate_hz=frame_rate_hz))
+        ConnectFaultInjector(builder, station, injector, segmenter)
+        return injector, injector, injector
+    return hook
+
+
+def BuildClosedLoopWithFault(scenario, fault: str, t_fault: float, **kwargs):
+    """``BuildClosedLoop`` with a :class:`FaultInjector` (``fault`` from ``t_fault`` s)."""
+    return BuildClosedLoop(scenario, sensor_hook=FaultInjectorHook(
+        fault, t_fault, scenario.imaging.frame_rate_hz), **kwargs)

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from drake_rus.control import scan
+from drake_rus.control import supervisor
 from drake_rus.control.config import ControllerConfig
 from drake_rus.control.laws import angle_between
 from pydrake.math import RollPitchYaw, RotationMatrix
@@ -16,21 +16,21 @@ R_DOWN = np.diag([1.0, -1.0, -1.0])  # x_P = +x_B, z_P = -z_B
 
 # ------------------------------------------------------------------ eq. 17
 def test_exploration_update_advances_y_and_centres_x():
-    P = scan.exploration_update([0.5, 0.0], 0.8, [1.0, 0.0, 0.0], 0.005, 0.02, 0.01)
+    P = supervisor.exploration_update([0.5, 0.0], 0.8, [1.0, 0.0, 0.0], 0.005, 0.02, 0.01)
     np.testing.assert_allclose(P, [0.5 + 0.02 * 0.3 * 0.01, 0.00005])
     # Probe x-axis pointing along -x_B: the same image offset moves the tip the other way.
-    P = scan.exploration_update([0.5, 0.0], 0.8, [-1.0, 0.0, 0.0], -0.005, 0.02, 0.01)
+    P = supervisor.exploration_update([0.5, 0.0], 0.8, [-1.0, 0.0, 0.0], -0.005, 0.02, 0.01)
     np.testing.assert_allclose(P, [0.5 - 0.02 * 0.3 * 0.01, -0.00005])
     # Centred mask or no mask: no x correction.
     for c in (0.5, math.nan):
-        P = scan.exploration_update([0.5, 0.0], c, [1.0, 0.0, 0.0], 0.005, 0.02, 0.01)
+        P = supervisor.exploration_update([0.5, 0.0], c, [1.0, 0.0, 0.0], 0.005, 0.02, 0.01)
         assert P[0] == 0.5
 
 
 def test_exploration_speed_is_v_scan():
     P = np.array([0.5, 0.0])
     for _ in range(200):
-        P = scan.exploration_update(P, 0.5, [1, 0, 0], 0.005, 0.02, 0.005)
+        P = supervisor.exploration_update(P, 0.5, [1, 0, 0], 0.005, 0.02, 0.005)
     assert P[1] == pytest.approx(0.005 * 1.0)
 
 
@@ -38,7 +38,7 @@ def test_exploration_speed_is_v_scan():
 def test_optimal_pivot_pose_is_a_rotation_with_r1_along_kidney_x():
     R_BK = RotationMatrix(RollPitchYaw(0.3, -0.4, 1.2)).matrix()
     p_BK = np.array([0.55, 0.05, 0.02])
-    R, p = scan.optimal_pivot_pose(R_BK, p_BK)
+    R, p = supervisor.optimal_pivot_pose(R_BK, p_BK)
     np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
     assert np.linalg.det(R) == pytest.approx(1.0)
     np.testing.assert_allclose(R[:, 2], [0, 0, -1])
@@ -52,7 +52,7 @@ def test_optimal_pivot_pose_is_a_rotation_with_r1_along_kidney_x():
 
 def test_optimal_pivot_pose_vertical_kidney_axis_falls_back():
     R_BK = RotationMatrix(RollPitchYaw(0.0, -math.pi / 2, 0.0)).matrix()  # x_k vertical
-    R, _ = scan.optimal_pivot_pose(R_BK, np.zeros(3))
+    R, _ = supervisor.optimal_pivot_pose(R_BK, np.zeros(3))
     assert np.linalg.det(R) == pytest.approx(1.0)
     assert np.all(np.isfinite(R))
 
@@ -60,18 +60,18 @@ def test_optimal_pivot_pose_vertical_kidney_axis_falls_back():
 # ------------------------------------------------------------------ eq. 23
 def test_rodrigues_pivot_update():
     a, o = np.array([0.0, 0.0, -1.0]), np.array([0.0, 1.0, 0.0])
-    a1 = scan.rodrigues_pivot_update(a, o, 0.1)
+    a1 = supervisor.rodrigues_pivot_update(a, o, 0.1)
     np.testing.assert_allclose(a1, a * math.cos(0.1) + np.cross(o, a) * math.sin(0.1))
     assert a1 @ o == pytest.approx(0.0)
     # Many small steps equal one big rotation; the norm stays 1.
     ak = a
     for _ in range(1000):
-        ak = scan.rodrigues_pivot_update(ak, o, 0.0005)
-    np.testing.assert_allclose(ak, scan.rodrigues_pivot_update(a, o, 0.5), atol=1e-9)
+        ak = supervisor.rodrigues_pivot_update(ak, o, 0.0005)
+    np.testing.assert_allclose(ak, supervisor.rodrigues_pivot_update(a, o, 0.5), atol=1e-9)
     assert angle_between(ak, a) == pytest.approx(0.5)
     # The rate vector of eq. 2's feed-forward matches the finite difference.
-    rate = scan.pivot_rate_vector(a, o, -1.0, 0.2)
-    np.testing.assert_allclose(rate, (scan.rodrigues_pivot_update(a, o, -0.2e-6) - a) / 1e-6,
+    rate = supervisor.pivot_rate_vector(a, o, -1.0, 0.2)
+    np.testing.assert_allclose(rate, (supervisor.rodrigues_pivot_update(a, o, -0.2e-6) - a) / 1e-6,
                                atol=1e-6)
 
 
@@ -82,7 +82,7 @@ def cfg(**kw):
 
 def inputs(t, p=(0.55, 0.0, 0.1), F=9.0, visible=True, c=0.5, R=R_DOWN, R_BK=None,
            p_BK=None, ready=True):
-    return scan.SupervisorInputs(t=t, R_BP=np.asarray(R), p_BP=np.asarray(p, float), F_z=F,
+    return supervisor.SupervisorInputs(t=t, R_BP=np.asarray(R), p_BP=np.asarray(p, float), F_z=F,
                                  kidney_visible=visible, c_msk=c, R_BK=R_BK, p_BK=p_BK,
                                  localization_ready=ready)
 
@@ -90,18 +90,18 @@ def inputs(t, p=(0.55, 0.0, 0.1), F=9.0, visible=True, c=0.5, R=R_DOWN, R_BK=Non
 def test_supervisor_approach_then_explore_distance():
     c = cfg(exploration_ratio=0.2, kidney_length=0.1, scan_direction="+y")
     dt = 0.01
-    s = scan.SupervisorState()
-    s = scan.supervisor_step(s, inputs(0.0, F=0.0), c, dt)
-    assert s.phase == scan.Phase.APPROACH
+    s = supervisor.SupervisorState()
+    s = supervisor.supervisor_step(s, inputs(0.0, F=0.0), c, dt)
+    assert s.phase == supervisor.Phase.APPROACH
     np.testing.assert_allclose(s.a_des, [0, 0, -1])
     assert s.F_des == 9.0
-    s = scan.supervisor_step(s, inputs(0.01, F=8.0), c, dt)
-    assert s.phase == scan.Phase.EXPLORE
+    s = supervisor.supervisor_step(s, inputs(0.01, F=8.0), c, dt)
+    assert s.phase == supervisor.Phase.EXPLORE
     t = 0.01
-    while s.phase == scan.Phase.EXPLORE and t < 10:
+    while s.phase == supervisor.Phase.EXPLORE and t < 10:
         t += dt
-        s = scan.supervisor_step(s, inputs(t, p=(0.55, s.P_des[1], 0.1)), c, dt)
-    assert s.phase == scan.Phase.LOCALIZE
+        s = supervisor.supervisor_step(s, inputs(t, p=(0.55, s.P_des[1], 0.1)), c, dt)
+    assert s.phase == supervisor.Phase.LOCALIZE
     assert s.travel == pytest.approx(0.02)
     assert t == pytest.approx(0.01 + 0.02 / 0.005 + dt, abs=2 * dt)  # 5 mm/s
     np.testing.assert_allclose(s.a_des, [0, 0, -1])  # orientation unchanged
@@ -110,40 +110,40 @@ def test_supervisor_approach_then_explore_distance():
 def test_supervisor_approach_to_start_xy():
     c = cfg(start_xy=[0.5, 0.02])
     dt = 0.01
-    s = scan.supervisor_step(scan.SupervisorState(), inputs(0.0, F=0.0), c, dt)
+    s = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0, F=0.0), c, dt)
     np.testing.assert_allclose(s.P_des, [0.5, 0.02])
-    s = scan.supervisor_step(s, inputs(0.01, F=9.0), c, dt)  # contact, but not there yet
-    assert s.phase == scan.Phase.APPROACH
-    s = scan.supervisor_step(s, inputs(0.02, p=(0.5005, 0.02, 0.1), F=9.0), c, dt)
-    assert s.phase == scan.Phase.EXPLORE
+    s = supervisor.supervisor_step(s, inputs(0.01, F=9.0), c, dt)  # contact, but not there yet
+    assert s.phase == supervisor.Phase.APPROACH
+    s = supervisor.supervisor_step(s, inputs(0.02, p=(0.5005, 0.02, 0.1), F=9.0), c, dt)
+    assert s.phase == supervisor.Phase.EXPLORE
     with pytest.raises(ValueError, match="start_xy"):
-        scan.supervisor_step(scan.SupervisorState(), inputs(0.0), cfg(start_xy=[0.5]), dt)
+        supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0), cfg(start_xy=[0.5]), dt)
 
 
 def test_supervisor_explore_ends_when_kidney_leaves_after_debounce():
     c = cfg(visibility_debounce=0.1)
     dt = 0.01
-    s = scan.supervisor_step(scan.SupervisorState(), inputs(0.0, F=9.0), c, dt)
-    s = scan.supervisor_step(s, inputs(0.01), c, dt)
-    assert s.phase == scan.Phase.EXPLORE
+    s = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0, F=9.0), c, dt)
+    s = supervisor.supervisor_step(s, inputs(0.01), c, dt)
+    assert s.phase == supervisor.Phase.EXPLORE
     t = 0.01
     for _ in range(9):
         t += dt
-        s = scan.supervisor_step(s, inputs(t, visible=False), c, dt)
-    assert s.phase == scan.Phase.EXPLORE  # 0.08 s invisible: not yet
+        s = supervisor.supervisor_step(s, inputs(t, visible=False), c, dt)
+    assert s.phase == supervisor.Phase.EXPLORE  # 0.08 s invisible: not yet
     for _ in range(3):
         t += dt
-        s = scan.supervisor_step(s, inputs(t, visible=False), c, dt)
-    assert s.phase == scan.Phase.LOCALIZE
+        s = supervisor.supervisor_step(s, inputs(t, visible=False), c, dt)
+    assert s.phase == supervisor.Phase.LOCALIZE
     assert "left the image" in s.events[-1][2]
 
 
 def test_transverse_orientation():
     a = np.array([0.0, 0.0, -1.0])
-    np.testing.assert_allclose(scan.transverse_orientation(a, [0.7, -0.7, 0]), [1, 0, 0])
-    np.testing.assert_allclose(scan.transverse_orientation(a, [-0.7, 0.7, 0]), [-1, 0, 0])
+    np.testing.assert_allclose(supervisor.transverse_orientation(a, [0.7, -0.7, 0]), [1, 0, 0])
+    np.testing.assert_allclose(supervisor.transverse_orientation(a, [-0.7, 0.7, 0]), [-1, 0, 0])
     a = np.array([math.sin(0.2), 0.0, -math.cos(0.2)])  # tilted about y
-    o = scan.transverse_orientation(a, [1, 0, 0])
+    o = supervisor.transverse_orientation(a, [1, 0, 0])
     assert o @ a == pytest.approx(0.0) and np.linalg.norm(o) == pytest.approx(1.0)
     assert o[1] == pytest.approx(0.0) and o[0] > 0.9
 
@@ -151,20 +151,20 @@ def test_transverse_orientation():
 def test_supervisor_explore_centres_mask():
     c = cfg(K_p7=0.02)
     dt = 0.01
-    s = scan.supervisor_step(scan.SupervisorState(), inputs(0.0), c, dt)
-    s = scan.supervisor_step(s, inputs(0.01), c, dt)
+    s = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0), c, dt)
+    s = supervisor.supervisor_step(s, inputs(0.01), c, dt)
     x0 = s.P_des[0]
-    s = scan.supervisor_step(s, inputs(0.02, c=0.9), c, dt)
+    s = supervisor.supervisor_step(s, inputs(0.02, c=0.9), c, dt)
     assert s.P_des[0] == pytest.approx(x0 + 0.02 * 0.4 * dt)  # x_P = +x_B
 
 
 def run_to_localize(c, dt=0.01):
-    s = scan.supervisor_step(scan.SupervisorState(), inputs(0.0), c, dt)
-    s = scan.supervisor_step(s, inputs(0.01), c, dt)
+    s = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0), c, dt)
+    s = supervisor.supervisor_step(s, inputs(0.01), c, dt)
     t = 0.01
-    while s.phase == scan.Phase.EXPLORE:
+    while s.phase == supervisor.Phase.EXPLORE:
         t += dt
-        s = scan.supervisor_step(s, inputs(t), c, dt)
+        s = supervisor.supervisor_step(s, inputs(t), c, dt)
     return s, t
 
 
@@ -173,43 +173,43 @@ def test_supervisor_localize_transit_pivot_done():
             max_pivot_tilt=0.6, visibility_debounce=0.05)
     dt = 0.01
     s, t = run_to_localize(c, dt)
-    assert s.phase == scan.Phase.LOCALIZE
+    assert s.phase == supervisor.Phase.LOCALIZE
     R_BK = RotationMatrix(RollPitchYaw(0.1, 0.2, math.pi / 2 + 0.1)).matrix()
     p_BK = np.array([0.57, 0.03, 0.0])
     # Waits for the hold time and for the localizer.
     t += dt
-    s = scan.supervisor_step(s, inputs(t, R_BK=R_BK, p_BK=p_BK, ready=False), c, dt)
-    assert s.phase == scan.Phase.LOCALIZE
+    s = supervisor.supervisor_step(s, inputs(t, R_BK=R_BK, p_BK=p_BK, ready=False), c, dt)
+    assert s.phase == supervisor.Phase.LOCALIZE
     t += 0.3
-    s = scan.supervisor_step(s, inputs(t, R_BK=R_BK, p_BK=p_BK, ready=False), c, dt)
-    assert s.phase == scan.Phase.LOCALIZE
-    s = scan.supervisor_step(s, inputs(t + dt, R_BK=R_BK, p_BK=p_BK), c, dt)
-    assert s.phase == scan.Phase.TRANSIT
+    s = supervisor.supervisor_step(s, inputs(t, R_BK=R_BK, p_BK=p_BK, ready=False), c, dt)
+    assert s.phase == supervisor.Phase.LOCALIZE
+    s = supervisor.supervisor_step(s, inputs(t + dt, R_BK=R_BK, p_BK=p_BK), c, dt)
+    assert s.phase == supervisor.Phase.TRANSIT
     t += dt
-    R_star, p_star = scan.optimal_pivot_pose(R_BK, p_BK)
+    R_star, p_star = supervisor.optimal_pivot_pose(R_BK, p_BK)
     np.testing.assert_allclose(s.a_des, R_star[:, 2])
     np.testing.assert_allclose(s.o_des, R_star[:, 0])
     np.testing.assert_allclose(s.P_des, p_star[:2])
     # Not there yet.
     t += dt
-    s = scan.supervisor_step(s, inputs(t, p=(0.55, 0.0, 0.1), R=R_star), c, dt)
-    assert s.phase == scan.Phase.TRANSIT
+    s = supervisor.supervisor_step(s, inputs(t, p=(0.55, 0.0, 0.1), R=R_star), c, dt)
+    assert s.phase == supervisor.Phase.TRANSIT
     t += dt
-    s = scan.supervisor_step(s, inputs(t, p=(0.5705, 0.03, 0.1), R=R_star), c, dt)
-    assert s.phase == scan.Phase.PIVOT
+    s = supervisor.supervisor_step(s, inputs(t, p=(0.5705, 0.03, 0.1), R=R_star), c, dt)
+    assert s.phase == supervisor.Phase.PIVOT
     # Pivot: visible until tilt +0.3 rad, then invisible beyond; other side beyond -0.2 rad.
     tilts, a_dots, required = [], [], []
-    while s.phase == scan.Phase.PIVOT and t < 60:
+    while s.phase == supervisor.Phase.PIVOT and t < 60:
         t += dt
         vis = -0.2 < s.pivot_angle < 0.3
-        s = scan.supervisor_step(s, inputs(t, p=(0.5705, 0.03, 0.1), R=R_star, visible=vis),
+        s = supervisor.supervisor_step(s, inputs(t, p=(0.5705, 0.03, 0.1), R=R_star, visible=vis),
                                  c, dt)
         tilts.append(s.pivot_angle)
-        required.append((vis, scan.segmentation_required(s)))
+        required.append((vis, supervisor.segmentation_required(s)))
         a_dots.append(s.a_des_dot)
         np.testing.assert_allclose(s.o_des, R_star[:, 0])  # o_des unchanged
         assert s.a_des @ s.o_des == pytest.approx(0.0, abs=1e-9)
-    assert s.phase == scan.Phase.DONE
+    assert s.phase == supervisor.Phase.DONE
     assert len(s.pivot_limits) == 2
     assert 0.3 <= s.pivot_limits[0] <= 0.3 + 0.2 * (0.05 + 2 * dt)
     assert -0.2 - 0.2 * (0.05 + 2 * dt) <= s.pivot_limits[1] <= -0.2
@@ -227,8 +227,8 @@ def test_supervisor_localize_transit_pivot_done():
     # DONE ramps the last tilt rate down, then holds.
     for k in range(100):
         t += dt
-        s = scan.supervisor_step(s, inputs(t, R=R_star, visible=False), c, dt)
-    assert s.phase == scan.Phase.DONE and s.pivot_speed == 0.0
+        s = supervisor.supervisor_step(s, inputs(t, R=R_star, visible=False), c, dt)
+    assert s.phase == supervisor.Phase.DONE and s.pivot_speed == 0.0
     assert np.linalg.norm(s.a_des_dot) == 0.0
     # a_des_dot is the rate of a_des actually applied (for eq. 2's feed-forward).
     assert all(np.linalg.norm(a) <= 0.2 + 1e-9 for a in a_dots)
@@ -238,17 +238,17 @@ def test_supervisor_pivot_bounded_by_max_tilt():
     c = cfg(exploration_ratio=0.02, localize_hold_time=0.0, pivot_rate=0.5, max_pivot_tilt=0.3)
     dt = 0.01
     s, t = run_to_localize(c, dt)
-    s = scan.supervisor_step(s, inputs(t + dt, R_BK=np.eye(3), p_BK=[0.55, 0.0, 0.0]), c, dt)
-    R_star, _ = scan.optimal_pivot_pose(np.eye(3), [0.55, 0, 0])
+    s = supervisor.supervisor_step(s, inputs(t + dt, R_BK=np.eye(3), p_BK=[0.55, 0.0, 0.0]), c, dt)
+    R_star, _ = supervisor.optimal_pivot_pose(np.eye(3), [0.55, 0, 0])
     t += 2 * dt
-    s = scan.supervisor_step(s, inputs(t, p=(0.55, 0.0, 0.1), R=R_star), c, dt)
-    assert s.phase == scan.Phase.PIVOT
+    s = supervisor.supervisor_step(s, inputs(t, p=(0.55, 0.0, 0.1), R=R_star), c, dt)
+    assert s.phase == supervisor.Phase.PIVOT
     angles = []
-    while s.phase == scan.Phase.PIVOT:
+    while s.phase == supervisor.Phase.PIVOT:
         t += dt
-        s = scan.supervisor_step(s, inputs(t, p=(0.55, 0.0, 0.1), R=R_star), c, dt)
+        s = supervisor.supervisor_step(s, inputs(t, p=(0.55, 0.0, 0.1), R=R_star), c, dt)
         angles.append(s.pivot_angle)
-    assert s.phase == scan.Phase.DONE
+    assert s.phase == supervisor.Phase.DONE
     assert max(angles) == pytest.approx(0.3) and min(angles) == pytest.approx(-0.3)
     assert "maximum tilt" in s.events[-2][2]
 
@@ -256,28 +256,28 @@ def test_supervisor_pivot_bounded_by_max_tilt():
 def test_supervisor_aborts_with_reason():
     c = cfg(exploration_ratio=0.02, localize_hold_time=0.0, transit_timeout=0.5)
     dt = 0.01
-    s = scan.supervisor_step(scan.SupervisorState(), inputs(0.0), c, dt)
-    bad = scan.supervisor_step(s, inputs(0.01, p=(math.nan, 0, 0)), c, dt)
-    assert bad.phase == scan.Phase.ABORT and "non-finite" in bad.reason
+    s = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0), c, dt)
+    bad = supervisor.supervisor_step(s, inputs(0.01, p=(math.nan, 0, 0)), c, dt)
+    assert bad.phase == supervisor.Phase.ABORT and "non-finite" in bad.reason
     s, t = run_to_localize(c, dt)
-    waiting = scan.supervisor_step(s, inputs(t + dt, R_BK=np.eye(3), p_BK=[0.6, 0.1, 0],
+    waiting = supervisor.supervisor_step(s, inputs(t + dt, R_BK=np.eye(3), p_BK=[0.6, 0.1, 0],
                                              ready=False), c, dt)
-    assert waiting.phase == scan.Phase.LOCALIZE
-    late = scan.supervisor_step(waiting, inputs(t + c.localize_timeout + 1.0, ready=False),
+    assert waiting.phase == supervisor.Phase.LOCALIZE
+    late = supervisor.supervisor_step(waiting, inputs(t + c.localize_timeout + 1.0, ready=False),
                                 c, dt)
-    assert late.phase == scan.Phase.ABORT and "LOCALIZE timeout" in late.reason
-    nopose = scan.supervisor_step(s, inputs(t + dt, R_BK=None), c, dt)
-    assert nopose.phase == scan.Phase.ABORT and "kidney pose" in nopose.reason
-    s = scan.supervisor_step(s, inputs(t + dt, R_BK=np.eye(3), p_BK=[0.6, 0.1, 0]), c, dt)
-    assert s.phase == scan.Phase.TRANSIT
-    s = scan.supervisor_step(s, inputs(t + 1.0), c, dt)
-    assert s.phase == scan.Phase.ABORT and "timeout" in s.reason
-    stopped = scan.supervisor_step(scan.SupervisorState(), dataclasses.replace(
+    assert late.phase == supervisor.Phase.ABORT and "LOCALIZE timeout" in late.reason
+    nopose = supervisor.supervisor_step(s, inputs(t + dt, R_BK=None), c, dt)
+    assert nopose.phase == supervisor.Phase.ABORT and "kidney pose" in nopose.reason
+    s = supervisor.supervisor_step(s, inputs(t + dt, R_BK=np.eye(3), p_BK=[0.6, 0.1, 0]), c, dt)
+    assert s.phase == supervisor.Phase.TRANSIT
+    s = supervisor.supervisor_step(s, inputs(t + 1.0), c, dt)
+    assert s.phase == supervisor.Phase.ABORT and "timeout" in s.reason
+    stopped = supervisor.supervisor_step(supervisor.SupervisorState(), dataclasses.replace(
         inputs(0.0), safety_stopped=True), c, dt)
-    assert stopped.phase == scan.Phase.ABORT and stopped.reason == "safety stop"
+    assert stopped.phase == supervisor.Phase.ABORT and stopped.reason == "safety stop"
     # ABORT and DONE are terminal.
-    s2 = scan.supervisor_step(s, inputs(t + 2.0), c, dt)
-    assert s2.phase == scan.Phase.ABORT
+    s2 = supervisor.supervisor_step(s, inputs(t + 2.0), c, dt)
+    assert s2.phase == supervisor.Phase.ABORT
 
 
 # ------------------------------------------------------------------ respiration gating
@@ -290,39 +290,39 @@ def test_supervisor_exploration_holds_still_outside_breath_holds():
     travel resumes in the next hold and the total travel is unchanged."""
     c = cfg(exploration_ratio=0.1, kidney_length=0.1, visibility_debounce=0.05)
     dt = 0.01
-    s = scan.supervisor_step(scan.SupervisorState(), inputs(0.0), c, dt)
-    s = scan.supervisor_step(s, inputs(0.01), c, dt)
-    assert s.phase == scan.Phase.EXPLORE
+    s = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0), c, dt)
+    s = supervisor.supervisor_step(s, inputs(0.01), c, dt)
+    assert s.phase == supervisor.Phase.EXPLORE
     t = 0.01
     for _ in range(50):                      # 0.5 s of travel in a hold
         t += dt
-        s = scan.supervisor_step(s, gated(t, True), c, dt)
+        s = supervisor.supervisor_step(s, gated(t, True), c, dt)
     travel, P = s.travel, s.P_des.copy()
     assert travel == pytest.approx(51 * 0.005 * dt)   # the EXPLORE entry step moves too
     for _ in range(100):                     # 1 s of breathing: kidney gone from the image
         t += dt
-        s = scan.supervisor_step(s, gated(t, False, visible=False), c, dt)
-        assert s.phase == scan.Phase.EXPLORE and s.paused
-        assert not scan.segmentation_required(s)
+        s = supervisor.supervisor_step(s, gated(t, False, visible=False), c, dt)
+        assert s.phase == supervisor.Phase.EXPLORE and s.paused
+        assert not supervisor.segmentation_required(s)
     assert s.travel == travel
     np.testing.assert_array_equal(s.P_des, P)
     assert s.paused_time == pytest.approx(1.0)
     t += dt
-    s = scan.supervisor_step(s, gated(t, True), c, dt)   # the next hold
-    assert not s.paused and scan.segmentation_required(s)
+    s = supervisor.supervisor_step(s, gated(t, True), c, dt)   # the next hold
+    assert not s.paused and supervisor.segmentation_required(s)
     assert s.travel > travel
-    while s.phase == scan.Phase.EXPLORE and t < 60:
+    while s.phase == supervisor.Phase.EXPLORE and t < 60:
         t += dt
-        s = scan.supervisor_step(s, gated(t, True), c, dt)
-    assert s.phase == scan.Phase.LOCALIZE and s.travel == pytest.approx(0.01)
+        s = supervisor.supervisor_step(s, gated(t, True), c, dt)
+    assert s.phase == supervisor.Phase.LOCALIZE and s.travel == pytest.approx(0.01)
     # A pause does not outlive its phase: paused, then the adaptive stop ends EXPLORE.
-    s = scan.supervisor_step(scan.SupervisorState(), inputs(0.0), c, dt)
-    s = scan.supervisor_step(s, gated(0.01, False), c, dt)
-    s = scan.supervisor_step(s, gated(0.02, False), c, dt)
-    assert s.phase == scan.Phase.EXPLORE and s.paused
+    s = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0), c, dt)
+    s = supervisor.supervisor_step(s, gated(0.01, False), c, dt)
+    s = supervisor.supervisor_step(s, gated(0.02, False), c, dt)
+    assert s.phase == supervisor.Phase.EXPLORE and s.paused
     u = dataclasses.replace(gated(0.03, False), exploration_sufficient=True)
-    s = scan.supervisor_step(s, u, c, dt)
-    assert s.phase == scan.Phase.LOCALIZE and not s.paused
+    s = supervisor.supervisor_step(s, u, c, dt)
+    assert s.phase == supervisor.Phase.LOCALIZE and not s.paused
 
 
 def _to_pivot(c, dt=0.01):
@@ -330,11 +330,11 @@ def _to_pivot(c, dt=0.01):
     R_BK = RotationMatrix(RollPitchYaw(0.0, 0.0, math.pi / 2)).matrix()
     p_BK = np.array([0.55, 0.0, 0.0])
     t += 1.0
-    s = scan.supervisor_step(s, inputs(t, R_BK=R_BK, p_BK=p_BK), c, dt)
-    R_star, _ = scan.optimal_pivot_pose(R_BK, p_BK)
+    s = supervisor.supervisor_step(s, inputs(t, R_BK=R_BK, p_BK=p_BK), c, dt)
+    R_star, _ = supervisor.optimal_pivot_pose(R_BK, p_BK)
     t += dt
-    s = scan.supervisor_step(s, inputs(t, p=(0.55, 0.0, 0.1), R=R_star), c, dt)
-    assert s.phase == scan.Phase.PIVOT
+    s = supervisor.supervisor_step(s, inputs(t, p=(0.55, 0.0, 0.1), R=R_star), c, dt)
+    assert s.phase == supervisor.Phase.PIVOT
     return s, t, R_star
 
 
@@ -345,22 +345,22 @@ def test_supervisor_pivot_ramps_to_rest_outside_breath_holds_and_resumes():
     s, t, R = _to_pivot(c, dt)
     for _ in range(100):
         t += dt
-        s = scan.supervisor_step(s, gated(t, True, R=R), c, dt)
+        s = supervisor.supervisor_step(s, gated(t, True, R=R), c, dt)
     angle = s.pivot_angle
     assert s.pivot_speed == pytest.approx(0.2)
     speeds = []
     for _ in range(200):                     # 2 s outside a hold, kidney not visible
         t += dt
-        s = scan.supervisor_step(s, gated(t, False, R=R, visible=False), c, dt)
+        s = supervisor.supervisor_step(s, gated(t, False, R=R, visible=False), c, dt)
         speeds.append(s.pivot_speed)
-        assert s.phase == scan.Phase.PIVOT and s.pivot_legs_done == 0
+        assert s.phase == supervisor.Phase.PIVOT and s.pivot_legs_done == 0
     assert speeds[-1] == 0.0
     assert np.all(np.abs(np.diff([0.2] + speeds)) <= c.pivot_acceleration * dt + 1e-12)
     ramp = 0.2**2 / (2 * c.pivot_acceleration)          # the stopping distance
     assert s.pivot_angle == pytest.approx(angle + ramp, abs=0.2 * dt + 1e-6)
     held = s.pivot_angle
     t += dt
-    s = scan.supervisor_step(s, gated(t, True, R=R), c, dt)
+    s = supervisor.supervisor_step(s, gated(t, True, R=R), c, dt)
     assert s.pivot_angle > held and not s.paused
 
 
@@ -370,10 +370,10 @@ def test_supervisor_aborts_when_the_kidney_moved_after_localization():
     s, t, R = _to_pivot(c, dt)
     t += dt
     u = dataclasses.replace(inputs(t, R=R), tracking_error="drift 12 mm")
-    s = scan.supervisor_step(s, u, c, dt)
-    assert s.phase == scan.Phase.ABORT
+    s = supervisor.supervisor_step(s, u, c, dt)
+    assert s.phase == supervisor.Phase.ABORT
     assert s.reason == "kidney moved: drift 12 mm"
     # Before localization a tracking error has no meaning and is ignored.
-    s2 = scan.supervisor_step(scan.SupervisorState(), inputs(0.0), c, dt)
-    s2 = scan.supervisor_step(s2, dataclasses.replace(inputs(0.01), tracking_error="x"), c, dt)
-    assert s2.phase == scan.Phase.EXPLORE
+    s2 = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0), c, dt)
+    s2 = supervisor.supervisor_step(s2, dataclasses.replace(inputs(0.01), tracking_error="x"), c, dt)
+    assert s2.phase == supervisor.Phase.EXPLORE

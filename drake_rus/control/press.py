@@ -9,7 +9,7 @@ so the station can be driven into steady contact with nothing but its own ports.
 import numpy as np
 from pydrake.systems.framework import LeafSystem
 
-from drake_rus.sim.force_estimation import contact_force_along_approach
+from drake_rus.robot import TipKinematics, contact_force_along_approach
 
 
 def press_joint_velocity(J_WP: np.ndarray, a_W: np.ndarray, F_z: float, desired_force: float,
@@ -36,7 +36,6 @@ class PressDriver(LeafSystem):
                  force_gain: float = 0.004, max_speed: float = 0.03, rate_hz: float = 100.0,
                  start_time: float = 0.0):
         super().__init__()
-        from drake_rus.control.kinematics import TipKinematics
         self._tip = TipKinematics(control_plant, tip_frame)
         self._desired_force = desired_force
         self._force_gain = force_gain
@@ -58,44 +57,3 @@ class PressDriver(LeafSystem):
         qdot = press_joint_velocity(self._tip.jacobian(q), a_W, contact_force_along_approach(F_P),
                                     self._desired_force, self._force_gain, self._max_speed)
         discrete_state.get_mutable_vector().SetFromVector(qdot)
-
-
-class PressDiagram:
-    """Station + PressDriver (+ loggers of the estimated and true probe wrench)."""
-
-    def __init__(self, scenario, meshcat=None, desired_force: float = 9.0,
-                 log_period: float = 0.01, patient=None, drive: bool = True):
-        from pydrake.systems.framework import DiagramBuilder
-        from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput
-
-        from drake_rus.station import MakeControlPlant, MakeStation
-
-        builder = DiagramBuilder()
-        self.station = builder.AddNamedSystem(
-            "station", MakeStation(scenario, meshcat=meshcat, patient=patient))
-        if drive:
-            control_plant, tip_frame = MakeControlPlant(scenario)
-            self.driver = builder.AddNamedSystem(
-                "press_driver", PressDriver(control_plant, tip_frame, desired_force))
-            builder.Connect(self.station.GetOutputPort("joint_position"),
-                            self.driver.get_input_port(0))
-            builder.Connect(self.station.GetOutputPort("probe_force"),
-                            self.driver.get_input_port(1))
-            builder.Connect(self.driver.get_output_port(),
-                            self.station.GetInputPort("joint_velocity_command"))
-        else:
-            self.driver = builder.AddNamedSystem("zero_command", ConstantVectorSource(np.zeros(7)))
-            builder.Connect(self.driver.get_output_port(),
-                            self.station.GetInputPort("joint_velocity_command"))
-        self.force_log = LogVectorOutput(self.station.GetOutputPort("probe_force"), builder,
-                                         log_period)
-        self.truth_log = LogVectorOutput(
-            self.station.GetOutputPort("probe_contact_wrench_true"), builder, log_period)
-        self.diagram = builder.Build()
-        self.diagram.set_name("press_demo")
-
-    def logs(self, root_context):
-        """(times (N,), estimated F_z (N,), true F_z (N,)) in s and N."""
-        est = self.force_log.FindLog(root_context)
-        tru = self.truth_log.FindLog(root_context)
-        return est.sample_times(), -est.data()[5], -tru.data()[5]

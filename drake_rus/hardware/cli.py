@@ -19,6 +19,11 @@ import sys
 import numpy as np
 from pydrake.math import RigidTransform, RotationMatrix
 
+from drake_rus.closed_loop import BuildClosedLoop
+from drake_rus.demo import add_scenario_arguments
+from drake_rus.hardware.station import HardwareFault, MakeHardwareStation, RunHardware
+from drake_rus.scenario import ApplyOverrides, LoadScenario
+
 __all__ = ["ScriptedMotion", "MotionResult", "BuildHardwareClosedLoop", "RunScriptedMotion",
            "add_commands"]
 
@@ -81,7 +86,6 @@ def scenario_for_motion(scenario):
 def BuildHardwareClosedLoop(scenario, station):
     """The controller + safety layer (``BuildClosedLoop``, supervisor off, force control
     off) on ``station``."""
-    from drake_rus.control.diagram import BuildClosedLoop
     return BuildClosedLoop(scenario_for_motion(scenario), station=station,
                            use_supervisor=False, log_period=None)
 
@@ -95,7 +99,6 @@ def RunScriptedMotion(loop, station, motion: ScriptedMotion, *, realtime_rate: f
     context."""
     from pydrake.systems.analysis import Simulator
 
-    from drake_rus.hardware.station import RunHardware
 
     simulator = Simulator(loop.diagram)
     root = simulator.get_context()
@@ -150,7 +153,6 @@ def add_commands(subparsers) -> None:
     sub.required = True
     c = sub.add_parser("check", help="connect, read joints / torques / images; with "
                        "--no-dry-run also run the scripted free-space motion")
-    from drake_rus.demo import add_scenario_arguments
     add_scenario_arguments(c)
     group = c.add_mutually_exclusive_group()
     group.add_argument("--dry-run", dest="dry_run", action="store_true", default=True,
@@ -163,8 +165,6 @@ def add_commands(subparsers) -> None:
 
 
 def run_check(args) -> int:
-    from drake_rus.hardware.station import HardwareFault, MakeHardwareStation
-    from drake_rus.scenario import ApplyOverrides, LoadScenario
 
     scenario = LoadScenario(filename=args.scenarios_file, scenario_name=args.scenario,
                             scenario_text=args.overrides)
@@ -187,7 +187,6 @@ def run_check(args) -> int:
 def _check(args, scenario, station) -> int:
     from pydrake.systems.analysis import Simulator
 
-    from drake_rus.hardware.station import RunHardware
     ctx = station.CreateDefaultContext()
     q = station.GetOutputPort("joint_position").Eval(ctx)
     X = station.GetOutputPort("X_BP").Eval(ctx)

@@ -11,30 +11,28 @@ Every file is written to a temporary name and renamed when complete.
 import json
 from pathlib import Path
 
+import matplotlib
 import numpy as np
+import trimesh
 
-from drake_rus.io_utils import atomic_path, write_text_atomic
+from drake_rus.control.supervisor import Phase
+from drake_rus.io_utils import atomic_path, save_figure, write_text_atomic
 
 PHASE_COLORS = {"APPROACH": "#dddddd", "EXPLORE": "#cfe8ff", "LOCALIZE": "#ffe9b3",
                 "TRANSIT": "#e6d5ff", "PIVOT": "#d4f5d4", "DONE": "#ffffff", "ABORT": "#ffc9c9"}
 
 
 def _plt():
-    import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     return plt
 
 
 def _save(fig, path: Path):
-    plt = _plt()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 def write_ply(path: Path, points: np.ndarray) -> None:
-    import trimesh
     with atomic_path(path) as tmp:
         trimesh.PointCloud(np.asarray(points, float)).export(tmp, file_type="ply")
 
@@ -45,10 +43,11 @@ def plot_registration(result, path: Path) -> None:
     views = [(0, 1, "x (mm)", "y (mm)", "top view (x-y)"),
              (1, 2, "y (mm)", "z (mm)", "side view (y-z)"),
              (0, 2, "x (mm)", "z (mm)", "front view (x-z)")]
-    true_shape = result.kidney_points_B
+    true_shape = result.truth.kidney_points_B if result.truth is not None else np.zeros((0, 3))
     for ax, (i, j, xl, yl, title) in zip(axes, views):
-        sub = true_shape[:: max(1, len(true_shape) // 3000)]
-        ax.scatter(sub[:, i] * 1e3, sub[:, j] * 1e3, s=1, c="#bbbbbb", label="true kidney")
+        if len(true_shape):
+            sub = true_shape[:: max(1, len(true_shape) // 3000)]
+            ax.scatter(sub[:, i] * 1e3, sub[:, j] * 1e3, s=1, c="#bbbbbb", label="true kidney")
         if result.registered_template_B is not None:
             t = result.registered_template_B
             ax.scatter(t[:, i] * 1e3, t[:, j] * 1e3, s=1, c="tab:red", alpha=0.5,
@@ -85,17 +84,17 @@ def plot_coverage(result, metrics: dict, path: Path) -> None:
     axes[1].grid(alpha=0.3)
     p = np.array([f.X_BP.translation() for f in result.frames]) if result.frames else np.zeros((0, 3))
     phases = np.array([f.phase for f in result.frames])
-    from drake_rus.scan import PHASE_NAMES
-    for k, name in enumerate(PHASE_NAMES):
-        sel = phases == k
+    for phase in Phase:
+        sel = phases == int(phase)
         if sel.any():
-            axes[2].plot(p[sel, 0] * 1e3, p[sel, 1] * 1e3, ".", ms=3, label=name)
+            axes[2].plot(p[sel, 0] * 1e3, p[sel, 1] * 1e3, ".", ms=3, label=phase.name)
     axes[2].set_xlabel("tip x (mm)")
     axes[2].set_ylabel("tip y (mm)")
     axes[2].set_title("probe tip path (base frame)")
     axes[2].set_aspect("equal", adjustable="datalim")
     axes[2].legend(fontsize=7)
-    fig.suptitle(f"Coverage: V = {metrics['volume_ratio']:.3f} after n = {metrics['n_frames']} "
+    V_text = "unknown" if metrics["volume_ratio"] is None else f"{metrics['volume_ratio']:.3f}"
+    fig.suptitle(f"Coverage: V = {V_text} after n = {metrics['n_frames']} "
                  f"pivot frames, eps = {metrics['eps_mm']:.1f} mm")
     fig.tight_layout()
     _save(fig, path)
@@ -110,9 +109,10 @@ def plot_traces(result, path: Path) -> None:
     plt = _plt()
     fig, axes = plt.subplots(3, 1, figsize=(10, 7.5), sharex=True)
     t, F = result.logs["force"][0], result.logs["force"][1][0]
-    tt, Ft = result.logs["force_true"][0], -result.logs["force_true"][1][5]
     _shade_phases(axes[0], result.phases)
-    axes[0].plot(tt, Ft, color="tab:gray", lw=1.5, label="true contact force")
+    if "force_true" in result.logs:   # simulation truth
+        tt, Ft = result.logs["force_true"][0], -result.logs["force_true"][1][5]
+        axes[0].plot(tt, Ft, color="tab:gray", lw=1.5, label="true contact force")
     axes[0].plot(t, F, color="tab:blue", lw=1, label="estimated, filtered")
     axes[0].axhline(result.scenario.controller.desired_force, ls=":", color="tab:red",
                     label="desired")

@@ -1,5 +1,6 @@
-"""Pure motion laws of the three scan phases: exploration (eq. 17), optimal pivot pose
-(eq. 20-22) and the Rodrigues pivot sweep (eq. 23), plus the supervisor's state machine.
+"""The scan supervisor: the motion laws of the three scan phases, exploration (eq. 17),
+optimal pivot pose (eq. 20-22) and the Rodrigues pivot sweep (eq. 23), and the state machine
+over them. :class:`Phase` is the project's one list of scan phases.
 
 All vectors are expressed in the robot base frame B (z up; the patient lies along y).
 """
@@ -220,21 +221,150 @@ def _hold_motion(s: SupervisorState, dt: float) -> SupervisorState:
     return s
 
 
+def _start(s: SupervisorState, u: SupervisorInputs, R, p, cfg) -> None:
+    """First period: hold the current orientation (or turn o transverse) and tip position,
+    or head for ``start_xy``; press to the desired force."""
+    s.a_des = R[:, 2].copy()
+    s.o_des = R[:, 0].copy()
+    if cfg.explore_orientation == "transverse":
+        s.o_des = transverse_orientation(s.a_des, s.o_des)
+    s.P_des = p[:2].copy()
+    start_xy = list(cfg.start_xy or [])
+    if start_xy:
+        if len(start_xy) != 2:
+            raise ValueError(f"controller.start_xy: expected [] or [x, y] (m), got {start_xy}")
+        s.P_des = np.asarray(start_xy, dtype=float)
+    s.F_des = float(cfg.desired_force)
+    s.initialised = True
+    s.phase_start = u.t
+    s.events = s.events + ((u.t, s.phase.name, "start"),)
+
+
+def _approach(s, u, R, p, cfg, dt):
+    """Press to F_des over start_xy; EXPLORE once the force reaches contact_fraction F_des."""
+    at_start = float(np.linalg.norm(p[:2] - s.P_des)) <= cfg.transit_position_tolerance
+    if u.F_z >= cfg.contact_fraction * cfg.desired_force and at_start:
+        s.P_des = p[:2].copy()
+        return _goto(s, Phase.EXPLORE, u.t, f"contact at {u.F_z:.2f} N")
+    return s
+
+
+def _explore(s, u, R, p, cfg, dt):
+    """Constant orientation, eq. 17, until ER L_m of travel, the kidney has left the image or
+    (adaptive) the pose estimate has settled; then LOCALIZE."""
+    sign = 1.0 if cfg.scan_direction == "+y" else -1.0
+    left = u.motion_allowed and _update_visibility(s, u, cfg.visibility_debounce)
+    target = cfg.exploration_ratio * cfg.kidney_length
+    if s.travel >= target - 1e-12:
+        s.P_des = p[:2].copy()
+        return _goto(s, Phase.LOCALIZE, u.t, f"explored {s.travel * 1e3:.1f} mm")
+    if left:
+        s.P_des = p[:2].copy()
+        return _goto(s, Phase.LOCALIZE, u.t,
+                     f"kidney left the image after {s.travel * 1e3:.1f} mm")
+    if u.exploration_sufficient:
+        s.P_des = p[:2].copy()
+        return _goto(s, Phase.LOCALIZE, u.t,
+                     f"pose estimate settled after {s.travel * 1e3:.1f} mm (adaptive)")
+    if not u.motion_allowed:
+        return _hold_motion(s, dt)
+    s.paused = False
+    step = min(cfg.scan_speed * dt, target - s.travel)
+    c = u.c_msk if u.kidney_visible else math.nan
+    s.P_des = exploration_update(s.P_des, c, R[:, 0], sign * step / dt, cfg.K_p7, dt)
+    s.travel += step
+    return s
+
+
+def _localize(s, u, R, p, cfg, dt):
+    """Hold (force control only) for localize_hold_time and until the localizer is ready,
+    then T* (eq. 20-22) and TRANSIT; ABORT on a localization error or timeout."""
+    if u.localization_error:
+        s.reason = f"localization failed: {u.localization_error}"
+        return _goto(s, Phase.ABORT, u.t, s.reason)
+    if u.t - s.phase_start < cfg.localize_hold_time - 1e-9 or not u.localization_ready:
+        if u.t - s.phase_start > cfg.localize_timeout:
+            s.reason = f"LOCALIZE timeout: no kidney pose after {cfg.localize_timeout:.1f} s"
+            return _goto(s, Phase.ABORT, u.t, s.reason)
+        return s
+    if u.R_BK is None or u.p_BK is None or not (
+            np.all(np.isfinite(u.R_BK)) and np.all(np.isfinite(u.p_BK))):
+        s.reason = "no finite kidney pose from localization"
+        return _goto(s, Phase.ABORT, u.t, s.reason)
+    R_star, p_star = optimal_pivot_pose(u.R_BK, u.p_BK)
+    s.a_star = R_star[:, 2].copy()
+    s.a_des = R_star[:, 2].copy()
+    s.o_des = R_star[:, 0].copy()
+    s.p_star = p_star
+    s.P_des = p_star[:2].copy()
+    return _goto(s, Phase.TRANSIT, u.t,
+                 f"p* = ({p_star[0]:.4f}, {p_star[1]:.4f}, {p_star[2]:.4f}) m")
+
+
+def _transit(s, u, R, p, cfg, dt):
+    """Slide to (p_x*, p_y*) with a_des = r3*, o_des = r1*; PIVOT when there and aligned."""
+    dist = float(np.linalg.norm(p[:2] - s.p_star[:2]))
+    ang = max(angle_between(R[:, 2], s.a_des), angle_between(R[:, 0], s.o_des))
+    if dist <= cfg.transit_position_tolerance and ang <= cfg.transit_angle_tolerance:
+        s.pivot_direction = 1.0
+        s.pivot_speed = 0.0
+        s.pivot_angle = 0.0
+        return _goto(s, Phase.PIVOT, u.t, f"at p* ({dist * 1e3:.2f} mm)")
+    if u.t - s.phase_start > cfg.transit_timeout:
+        s.reason = f"TRANSIT timeout: {dist * 1e3:.1f} mm from p*"
+        return _goto(s, Phase.ABORT, u.t, s.reason)
+    return s
+
+
+def _pivot(s, u, R, p, cfg, dt):
+    """a_des rotates about o_des (eq. 23) one way until the kidney leaves the image (or the
+    maximum tilt), then back through r3* to the other side; then DONE."""
+    if not u.motion_allowed:
+        s.pivot_speed = _ramp(s.pivot_speed, 0.0, cfg.pivot_acceleration * dt)
+        _pivot_advance(s, cfg, dt)
+        return _hold_motion(s, dt)
+    s.paused = False
+    left = _update_visibility(s, u, cfg.visibility_debounce)
+    if u.kidney_visible:
+        s.expect_invisible = False
+    # On the second leg, only a loss past the start (on the new side) ends the sweep.
+    on_new_side = s.pivot_legs_done == 0 or s.pivot_angle * s.pivot_direction > 0
+    at_tilt = abs(s.pivot_angle) >= cfg.max_pivot_tilt - 1e-9 and on_new_side
+    if (left and on_new_side) or at_tilt:
+        why = "kidney left the image" if (left and on_new_side) else "maximum tilt"
+        s.pivot_limits = s.pivot_limits + (s.pivot_angle,)
+        s.pivot_legs_done += 1
+        s.events = s.events + ((u.t, "PIVOT",
+                                f"leg {s.pivot_legs_done} ended at "
+                                f"{math.degrees(s.pivot_angle):.1f} deg: {why}"),)
+        if s.pivot_legs_done >= 2:
+            return _goto(s, Phase.DONE, u.t, "pivot sweep complete")
+        s.pivot_direction = -s.pivot_direction
+        s.invisible_since = math.nan
+        s.expect_invisible = True
+    # The tilt rate ramps (pivot_acceleration) to +-pivot_rate: a reversal is smooth, not a
+    # jump of the commanded angular velocity (which presses the probe edge in).
+    s.pivot_speed = _ramp(s.pivot_speed, s.pivot_direction * cfg.pivot_rate,
+                          cfg.pivot_acceleration * dt)
+    _pivot_advance(s, cfg, dt)
+    return s
+
+
+_PHASE_STEP = {Phase.APPROACH: _approach, Phase.EXPLORE: _explore,
+               Phase.LOCALIZE: _localize, Phase.TRANSIT: _transit, Phase.PIVOT: _pivot}
+
+
 def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float
                     ) -> SupervisorState:
     """One control period of the scan state machine (pure: returns a new state).
 
-    APPROACH: hold the orientation (or turn o transverse), move the tip over start_xy (if
-    given) and press to F_des until the filtered force reaches contact_fraction F_des there. EXPLORE: constant orientation, eq. 17, until ER L_m of travel or the kidney has
-    left the image. LOCALIZE: hold (force control only) for localize_hold_time and until
-    the localizer is ready, then compute T* (eq. 20-22). TRANSIT: slide to (p_x*, p_y*)
-    with a_des = r3*, o_des = r1*. PIVOT: a_des rotates about o_des (eq. 23) one way until
-    the kidney leaves the image (or max tilt), then back through r3* to the other side;
-    then DONE. ABORT (with reason) on a safety stop, a non-finite input or pose, a missing
-    kidney pose, a LOCALIZE or TRANSIT timeout, or (TRANSIT, PIVOT) a tracking error: the
-    kidney has moved away from its registered pose. The pivot tilt rate ramps with
-    pivot_acceleration. While ``motion_allowed`` is False (outside a breath-hold) EXPLORE
-    and PIVOT hold still (the pivot rate ramps to zero) and the kidney may leave the image.
+    APPROACH -> EXPLORE -> LOCALIZE -> TRANSIT -> PIVOT -> DONE (each phase's rule is its
+    own function above). ABORT (with reason) from any phase on a safety stop, a non-finite
+    input or pose, a missing kidney pose, a LOCALIZE or TRANSIT timeout, or (TRANSIT, PIVOT)
+    a tracking error: the kidney has moved away from its registered pose. The pivot tilt
+    rate ramps with pivot_acceleration. While ``motion_allowed`` is False (outside a
+    breath-hold) EXPLORE and PIVOT hold still (the pivot rate ramps to zero) and the kidney
+    may leave the image.
     """
     s = state.copy()
     R = np.asarray(u.R_BP, dtype=float)
@@ -253,123 +383,10 @@ def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float
     if not (np.all(np.isfinite(R)) and np.all(np.isfinite(p)) and math.isfinite(u.F_z)):
         s.reason = "non-finite probe pose or force"
         return _goto(s, Phase.ABORT, u.t, s.reason)
-
     if not s.initialised:
-        # Hold the current orientation and tip position; press to the desired force.
-        s.a_des = R[:, 2].copy()
-        s.o_des = R[:, 0].copy()
-        if getattr(cfg, "explore_orientation", "hold") == "transverse":
-            s.o_des = transverse_orientation(s.a_des, s.o_des)
-        s.P_des = p[:2].copy()
-        start_xy = list(getattr(cfg, "start_xy", []) or [])
-        if start_xy:
-            if len(start_xy) != 2:
-                raise ValueError(f"controller.start_xy: expected [] or [x, y] (m), got {start_xy}")
-            s.P_des = np.asarray(start_xy, dtype=float)
-        s.F_des = float(cfg.desired_force)
-        s.initialised = True
-        s.phase_start = u.t
-        s.events = s.events + ((u.t, s.phase.name, "start"),)
-
-    if s.phase == Phase.APPROACH:
-        at_start = float(np.linalg.norm(p[:2] - s.P_des)) <= cfg.transit_position_tolerance
-        if u.F_z >= cfg.contact_fraction * cfg.desired_force and at_start:
-            s.P_des = p[:2].copy()
-            return _goto(s, Phase.EXPLORE, u.t, f"contact at {u.F_z:.2f} N")
-        return s
-
-    if s.phase == Phase.EXPLORE:
-        sign = 1.0 if cfg.scan_direction == "+y" else -1.0
-        left = u.motion_allowed and _update_visibility(s, u, cfg.visibility_debounce)
-        target = cfg.exploration_ratio * cfg.kidney_length
-        if s.travel >= target - 1e-12:
-            s.P_des = p[:2].copy()
-            return _goto(s, Phase.LOCALIZE, u.t, f"explored {s.travel * 1e3:.1f} mm")
-        if left:
-            s.P_des = p[:2].copy()
-            return _goto(s, Phase.LOCALIZE, u.t,
-                         f"kidney left the image after {s.travel * 1e3:.1f} mm")
-        if u.exploration_sufficient:
-            s.P_des = p[:2].copy()
-            return _goto(s, Phase.LOCALIZE, u.t,
-                         f"pose estimate settled after {s.travel * 1e3:.1f} mm (adaptive)")
-        if not u.motion_allowed:
-            return _hold_motion(s, dt)
-        s.paused = False
-        step = min(cfg.scan_speed * dt, target - s.travel)
-        c = u.c_msk if u.kidney_visible else math.nan
-        s.P_des = exploration_update(s.P_des, c, R[:, 0], sign * step / dt, cfg.K_p7, dt)
-        s.travel += step
-        return s
-
-    if s.phase == Phase.LOCALIZE:
-        if u.localization_error:
-            s.reason = f"localization failed: {u.localization_error}"
-            return _goto(s, Phase.ABORT, u.t, s.reason)
-        if u.t - s.phase_start < cfg.localize_hold_time - 1e-9 or not u.localization_ready:
-            if u.t - s.phase_start > cfg.localize_timeout:
-                s.reason = f"LOCALIZE timeout: no kidney pose after {cfg.localize_timeout:.1f} s"
-                return _goto(s, Phase.ABORT, u.t, s.reason)
-            return s
-        if u.R_BK is None or u.p_BK is None or not (
-                np.all(np.isfinite(u.R_BK)) and np.all(np.isfinite(u.p_BK))):
-            s.reason = "no finite kidney pose from localization"
-            return _goto(s, Phase.ABORT, u.t, s.reason)
-        R_star, p_star = optimal_pivot_pose(u.R_BK, u.p_BK)
-        s.a_star = R_star[:, 2].copy()
-        s.a_des = R_star[:, 2].copy()
-        s.o_des = R_star[:, 0].copy()
-        s.p_star = p_star
-        s.P_des = p_star[:2].copy()
-        return _goto(s, Phase.TRANSIT, u.t,
-                     f"p* = ({p_star[0]:.4f}, {p_star[1]:.4f}, {p_star[2]:.4f}) m")
-
+        _start(s, u, R, p, cfg)
     if s.phase in (Phase.TRANSIT, Phase.PIVOT) and u.tracking_error:
         s.reason = f"kidney moved: {u.tracking_error}"
         s.pivot_speed = 0.0
         return _goto(s, Phase.ABORT, u.t, s.reason)
-
-    if s.phase == Phase.TRANSIT:
-        dist = float(np.linalg.norm(p[:2] - s.p_star[:2]))
-        ang = max(angle_between(R[:, 2], s.a_des), angle_between(R[:, 0], s.o_des))
-        if dist <= cfg.transit_position_tolerance and ang <= cfg.transit_angle_tolerance:
-            s.pivot_direction = 1.0
-            s.pivot_speed = 0.0
-            s.pivot_angle = 0.0
-            return _goto(s, Phase.PIVOT, u.t, f"at p* ({dist * 1e3:.2f} mm)")
-        if u.t - s.phase_start > cfg.transit_timeout:
-            s.reason = f"TRANSIT timeout: {dist * 1e3:.1f} mm from p*"
-            return _goto(s, Phase.ABORT, u.t, s.reason)
-        return s
-
-    if s.phase == Phase.PIVOT:
-        if not u.motion_allowed:
-            s.pivot_speed = _ramp(s.pivot_speed, 0.0, cfg.pivot_acceleration * dt)
-            _pivot_advance(s, cfg, dt)
-            return _hold_motion(s, dt)
-        s.paused = False
-        left = _update_visibility(s, u, cfg.visibility_debounce)
-        if u.kidney_visible:
-            s.expect_invisible = False
-        # On the second leg, only a loss past the start (on the new side) ends the sweep.
-        on_new_side = s.pivot_legs_done == 0 or s.pivot_angle * s.pivot_direction > 0
-        at_tilt = abs(s.pivot_angle) >= cfg.max_pivot_tilt - 1e-9 and on_new_side
-        if (left and on_new_side) or at_tilt:
-            why = "kidney left the image" if (left and on_new_side) else "maximum tilt"
-            s.pivot_limits = s.pivot_limits + (s.pivot_angle,)
-            s.pivot_legs_done += 1
-            s.events = s.events + ((u.t, "PIVOT",
-                                    f"leg {s.pivot_legs_done} ended at "
-                                    f"{math.degrees(s.pivot_angle):.1f} deg: {why}"),)
-            if s.pivot_legs_done >= 2:
-                return _goto(s, Phase.DONE, u.t, "pivot sweep complete")
-            s.pivot_direction = -s.pivot_direction
-            s.invisible_since = math.nan
-            s.expect_invisible = True
-        # The tilt rate ramps (pivot_acceleration) to +-pivot_rate: a reversal is smooth, not
-        # a jump of the commanded angular velocity (which presses the probe edge in).
-        s.pivot_speed = _ramp(s.pivot_speed, s.pivot_direction * cfg.pivot_rate,
-                              cfg.pivot_acceleration * dt)
-        _pivot_advance(s, cfg, dt)
-        return s
-    return s
+    return _PHASE_STEP[s.phase](s, u, R, p, cfg, dt)

@@ -10,7 +10,6 @@ the scan's metrics.
 import dataclasses
 
 import numpy as np
-import trimesh
 from pydrake.math import RigidTransform, RotationMatrix
 
 # Probe pointing down (z_P = -z_B) with its array across the body (x_P = +x_B): a transverse

@@ -1,4 +1,5 @@
-"""Joint configurations for a desired probe tip pose (start poses of scans and studies)."""
+"""The one start-pose IK: joint configurations for a desired probe tip pose (the start of a
+scan, study runs, test set-ups)."""
 
 import numpy as np
 from pydrake.math import RigidTransform, RotationMatrix

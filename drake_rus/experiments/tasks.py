@@ -1,0 +1,321 @@
+"""The runs of the seed's section III studies on the virtual cohort, in kinematic mode.
+
+Studies (each a list of independent runs; a run is a plain dict, its result a JSON file):
+
+- ``er-sweep`` (III-C, Fig. 7d): exploration ratios 0..100% in 10% steps per patient.
+- ``starts`` (III-D, Fig. 9d): at the critical ER, five random starts per patient inside the
+  E-ROI (start fraction along y leaving room for the whole ER x L_m of travel, and an x
+  offset within the middle half of the E-ROI's width).
+- ``efficiency`` (III-E, Fig. 10): OP (at T* of the registered pose), GT-OP, NOP and SL per
+  patient: V against n and eps (pole to pole), totals, and the kidney volume reconstructed
+  from each sweep's masks (:mod:`drake_rus.metrics.reconstruction`).
+- ``closed-loop``: a few closed-loop dynamic scans (``RunScan``) beside their kinematic
+  twins.
+
+Every study run is kinematic (:mod:`drake_rus.experiments.kinematic`): probe poses planned
+exactly, no robot dynamics. Runs are deterministic given their dict (seeded starts).
+:func:`run_task` executes one run; the batch runner (:func:`drake_rus.batch.run_tasks`
+with :func:`run_task` and :func:`run_id`) executes a list of them through Dask, writing
+each result as it finishes, so an interrupted study resumes. The statistics are in
+:mod:`drake_rus.experiments.analysis`, tables, figures and report in
+:mod:`drake_rus.experiments.report`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import re
+import time
+import zlib
+from pathlib import Path
+
+import numpy as np
+
+from drake_rus import batch
+from drake_rus.anatomy import load_patient
+from drake_rus.experiments import kinematic as km
+from drake_rus.experiments.analysis import STRATEGY_ORDER
+from drake_rus.localization.localize import load_registration_template
+from drake_rus.metrics.core import e_rot_x, e_trans
+from drake_rus.metrics.reconstruction import compound, reconstruct_kidney, write_nrrd
+from drake_rus.scan import RunScan, ScanMetrics
+from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, LoadScenario
+
+ER_GRID = tuple(round(0.1 * k, 1) for k in range(11))
+
+
+# ------------------------------------------------------------------------------- patients
+def expand_patients(text: str) -> list[str]:
+    """Patient specs from a comma list of ``test:0-14``, ``seed:100-120``, ``train:3`` or
+    patient paths. Ranges are inclusive."""
+    specs = []
+    for part in str(text).split(","):
+        part = part.strip()
+        if not part:
+            continue
+        m = re.fullmatch(r"(test|train|seed):(\d+)-(\d+)", part)
+        if m:
+            lo, hi = int(m.group(2)), int(m.group(3))
+            if hi < lo:
+                raise ValueError(f"--patients: range {part!r} runs backwards")
+            specs += [f"{m.group(1)}:{k}" for k in range(lo, hi + 1)]
+        elif re.fullmatch(r"(test|train|seed):\d+", part) or "/" in part or "." in part:
+            specs.append(part)
+        else:
+            raise ValueError(f"--patients: cannot read {part!r} (expected test:0-14, "
+                             "seed:100-120, train:3 or a patient path)")
+    if not specs:
+        raise ValueError("--patients: no patients given")
+    return specs
+
+
+# ------------------------------------------------------------------------------- run specs
+@dataclasses.dataclass(frozen=True)
+class StudyOptions:
+    """What every run of a study shares."""
+    scenario: str = "default"
+    scenarios_file: str | None = None
+    overrides: str | None = None
+    segmenter: str = "oracle"
+    method: str = "seed"            # localization method of the runs (the seed's by default)
+    voxel: float = 0.002            # label-volume voxel size (m)
+    seed: int = 0                   # random starts, emulator speckle
+    recon_spacing: float = 0.001    # reconstruction grid (m)
+
+    def base(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def run_id(task: dict) -> str:
+    """File-name-safe unique name of a run."""
+    patient = re.sub(r"[^A-Za-z0-9]+", "-", str(task["patient"])).strip("-")
+    parts = [task["study"], patient, f"er{int(round(task['er'] * 100)):03d}"]
+    if task["study"] == "closed-loop":
+        parts.append(f"f{int(round(task['start_fraction'] * 100)):03d}")
+    if task["study"] == "starts":
+        parts.append(f"s{task['start']}")
+    return "__".join(parts)
+
+
+def er_sweep_tasks(patients, options: StudyOptions, ers=ER_GRID) -> list[dict]:
+    return [dict(options.base(), study="er-sweep", patient=p, er=float(er), start=-1)
+            for p in patients for er in ers]
+
+
+def starts_tasks(patients, options: StudyOptions, er: float, n_starts: int = 5) -> list[dict]:
+    return [dict(options.base(), study="starts", patient=p, er=float(er), start=k)
+            for p in patients for k in range(n_starts)]
+
+
+def efficiency_tasks(patients, options: StudyOptions, er: float,
+                     export_dir: str | None = None) -> list[dict]:
+    """``export_dir``: write the OP and GT-OP reconstructions there as NRRD."""
+    return [dict(options.base(), study="efficiency", patient=p, er=float(er), start=-1,
+                 export_dir=None if export_dir is None else str(export_dir))
+            for p in patients]
+
+
+def closed_loop_tasks(patients, options: StudyOptions, er: float,
+                      start_fraction: float = 0.1) -> list[dict]:
+    """A few closed-loop dynamic scans (``RunScan``) with their kinematic twins."""
+    return [dict(options.base(), study="closed-loop", patient=p, er=float(er), start=-1,
+                 start_fraction=float(start_fraction)) for p in patients]
+
+
+# ------------------------------------------------------------------------------- one run
+@functools.lru_cache(maxsize=4)
+def _scenario(name, filename, overrides):
+    return LoadScenario(filename=filename or DEFAULT_SCENARIOS_FILE, scenario_name=name,
+                        scenario_text=overrides)
+
+
+@functools.lru_cache(maxsize=2)
+def _template(path):
+    return load_registration_template(path)
+
+
+_PATIENTS: dict = {}
+
+
+def prepared_patient(spec: str, side: str, posture: str, voxel: float, X_BPt):
+    """Kinematic patient, cached per process (label volumes take seconds to build)."""
+    key = (spec, side, posture, voxel, tuple(X_BPt.GetAsMatrix4().ravel()))
+    if key not in _PATIENTS:
+        if len(_PATIENTS) >= 16:
+            _PATIENTS.pop(next(iter(_PATIENTS)))
+        patient = load_patient(spec, side=side, posture=posture, voxel_size=voxel,
+                               progress=False)
+        _PATIENTS[key] = km.prepare_patient(patient, X_BPt)
+    return _PATIENTS[key]
+
+
+def random_start(task: dict, kp, controller) -> tuple[float, float]:
+    """(start_fraction, x_offset) of random start ``task['start']`` (deterministic in the
+    study seed, the patient and the start index)."""
+    rng = np.random.default_rng([int(task["seed"]), zlib.crc32(str(task["patient"]).encode()),
+                                 int(task["start"])])
+    room = max(0.0, 1.0 - task["er"] * controller.kidney_length / max(kp.roi.length_y, 1e-9))
+    width = kp.roi.x_max - kp.roi.x_min
+    return float(rng.uniform(0.0, room)), float(rng.uniform(-0.25, 0.25) * width)
+
+
+_EXPLORATIONS: dict = {}
+
+
+def exploration(task: dict, kp, imager, controller, start_fraction: float, x_offset: float):
+    """The exploration of ``task``. Runs that differ only in ER share one full (ER 100%)
+    exploration per process and take its prefix (identical to exploring less: see
+    ``Sweep.prefix``)."""
+    key = (task["patient"], task["voxel"], task["segmenter"], task["seed"], task["scenario"],
+           task.get("scenarios_file"), task.get("overrides"), start_fraction, x_offset)
+    full = _EXPLORATIONS.get(key)
+    if full is None:
+        full = km.explore(kp, imager, controller, exploration_ratio=1.0,
+                          start_fraction=start_fraction, x_offset=x_offset)
+        if len(_EXPLORATIONS) >= 16:
+            _EXPLORATIONS.pop(next(iter(_EXPLORATIONS)))
+        _EXPLORATIONS[key] = full
+    return full.prefix(float(task["er"]) * controller.kidney_length)
+
+
+def run_closed_loop(task: dict) -> dict:
+    """One closed-loop dynamic scan (the lead's ``RunScan``: MultibodyPlant, controller,
+    contact) and the same scan in kinematic mode (same patient, start, ER, segmenter,
+    localization method): E_trans, E_rot,x, and n, eps, V over both pivot legs (what
+    ``ScanMetrics`` counts)."""
+    t0 = time.perf_counter()
+    base = _scenario(task["scenario"], task.get("scenarios_file"), task.get("overrides"))
+    scenario = dataclasses.replace(
+        base, controller=dataclasses.replace(base.controller, exploration_ratio=task["er"]),
+        localization=dataclasses.replace(base.localization, method=task["method"]),
+        imaging=dataclasses.replace(base.imaging, segmenter=task["segmenter"]))
+    X_BPt = scenario.patient.X_BPt.GetDeterministicValue()
+    kp = prepared_patient(task["patient"], scenario.patient.side, scenario.patient.posture,
+                          float(task["voxel"]), X_BPt)
+    template = _template(scenario.localization.template)
+    scan = RunScan(scenario, kp.patient, template, progress=False,
+                   start_fraction=float(task["start_fraction"]))
+    m = ScanMetrics(scan)
+    closed = {"status": scan.status, "reason": scan.reason, "e_trans_mm": m["e_trans_mm"],
+              "e_rot_x_deg": m["e_rot_x_deg"], "n": m["n_frames"], "eps_mm": m["eps_mm"],
+              "V": m["volume_ratio"], "sim_s": scan.sim_s, "wall_s": scan.wall_s,
+              "mode": "closed-loop dynamic simulation"}
+    t1 = time.perf_counter()
+    imager = km.Imager(kp, scenario.imaging, task["segmenter"], seed=int(task["seed"]))
+    sweep = km.explore(kp, imager, scenario.controller, exploration_ratio=task["er"],
+                       start_fraction=float(task["start_fraction"]))
+    loc = km.localize_cloud(kp, sweep.point_cloud(), template, scenario.localization,
+                            sweep.frames[0].X_BP.translation()[:2])
+    op = km.strategy_sweep(kp, imager, "OP", scenario.controller, loc.X_BK)
+    c = km.sweep_curves(kp, op, imager.geometry)
+    kin = {"e_trans_mm": e_trans(loc.X_BK, kp.X_BK_true) * 1e3,
+           "e_rot_x_deg": math.degrees(e_rot_x(loc.X_BK, kp.X_BK_true)),
+           "n": int(c["n_frames"]), "eps_mm": c["eps_total"] * 1e3, "V": c["V_final"],
+           "wall_s": time.perf_counter() - t1, "mode": km.MODE}
+    return {"run_id": run_id(task), "task": task, "mode": "closed-loop + kinematic twin",
+            "patient": task["patient"], "er": task["er"], "start": -1,
+            "closed_loop": closed, "kinematic": kin, "wall_s": time.perf_counter() - t0}
+
+
+def run_task(task: dict) -> dict:
+    """Executes one run (kinematic) and returns its JSON-ready result."""
+    if task["study"] == "closed-loop":
+        return run_closed_loop(task)
+
+    t0 = time.perf_counter()
+    scenario = _scenario(task["scenario"], task.get("scenarios_file"), task.get("overrides"))
+    X_BPt = scenario.patient.X_BPt.GetDeterministicValue()
+    kp = prepared_patient(task["patient"], scenario.patient.side, scenario.patient.posture,
+                          float(task["voxel"]), X_BPt)
+    controller = scenario.controller
+    imager = km.Imager(kp, scenario.imaging, task["segmenter"], seed=int(task["seed"]))
+    start_fraction, x_offset = 0.0, 0.0
+    if task["study"] == "starts":
+        start_fraction, x_offset = random_start(task, kp, controller)
+    sweep = exploration(task, kp, imager, controller, start_fraction, x_offset)
+    P = sweep.point_cloud()
+    template = _template(scenario.localization.template)
+    config = dataclasses.replace(scenario.localization, method=task["method"])
+    loc = km.localize_cloud(kp, P, template, config, sweep.frames[0].X_BP.translation()[:2])
+    result = {
+        "run_id": run_id(task), "task": task, "mode": km.MODE,
+        "patient": task["patient"], "er": task["er"], "start": task["start"],
+        "start_fraction": start_fraction, "x_offset_mm": x_offset * 1e3,
+        "explore_frames": len(sweep.frames), "explore_travel_mm": float(sweep.travel[-1] * 1e3),
+        "points": int(len(P)),
+        "e_trans_mm": e_trans(loc.X_BK, kp.X_BK_true) * 1e3,
+        "e_rot_x_deg": math.degrees(e_rot_x(loc.X_BK, kp.X_BK_true)),
+        "registration_ms": loc.compute_s * 1e3,
+        "iterations": None if loc.result is None else int(loc.result.iterations),
+        "localization_note": loc.note,
+        "true_volume_ml": kp.kidney_volume * 1e6,
+    }
+    if task["study"] == "efficiency":
+        export = task.get("export_dir")
+        result["strategies"] = efficiency_of(
+            kp, imager, controller, loc.X_BK, float(task.get("recon_spacing", 0.001)),
+            export_dir=export, name=re.sub(r"[^A-Za-z0-9]+", "-", task["patient"]).strip("-"))
+    result["wall_s"] = time.perf_counter() - t0
+    return result
+
+
+EXPORT_STRATEGIES = ("OP", "GT-OP")
+
+
+def efficiency_of(kp, imager, controller, X_BK_est, recon_spacing: float, *,
+                  export_dir=None, name: str = "patient") -> dict:
+    """Per strategy: pole-to-pole curves (n, eps mm, V), totals, the whole sweep's totals,
+    and the reconstructed kidney volume (mL) from the pole-to-pole masks. With
+    ``export_dir``, the OP and GT-OP reconstructions are written there as NRRD (kidney
+    probability, kidney mask and, for the classical/onnx segmenters, the grey volume)."""
+    out = {}
+    for s in STRATEGY_ORDER:
+        sweep = km.strategy_sweep(kp, imager, s, controller, X_BK_est, keep_images=True)
+        p2p = sweep.pole_to_pole()
+        c = km.sweep_curves(kp, p2p, imager.geometry)
+        full = km.sweep_curves(kp, sweep, imager.geometry)
+        entry = {
+            "n": int(c["n_frames"]), "eps_mm": c["eps_total"] * 1e3, "V": c["V_final"],
+            "n_full": int(full["n_frames"]), "eps_full_mm": full["eps_total"] * 1e3,
+            "V_full": full["V_final"], "events": sweep.events,
+            "curve_eps_mm": np.round(c["eps"] * 1e3, 3).tolist(),
+            "curve_V": np.round(c["V"], 5).tolist(),
+            "volume_ml": None, "volume_error_pct": None,
+        }
+        if p2p.frames:
+            try:
+                rec = reconstruct_kidney([f.mask for f in p2p.frames], p2p.poses,
+                                         imager.geometry, spacing=recon_spacing)
+                entry["volume_ml"] = rec["volume_ml"]
+                entry["volume_error_pct"] = 100 * (rec["volume_ml"] / (kp.kidney_volume * 1e6)
+                                                   - 1)
+                if export_dir is not None and s in EXPORT_STRATEGIES:
+                    d = Path(export_dir)
+                    tag = f"{name}__{s}"
+                    note = (f"drake-rus {s} sweep of {name}, kinematic mode; axes = robot base "
+                            "frame x, y, z (mm)")
+                    write_nrrd(d / f"{tag}__kidney_probability.nrrd",
+                               rec["reconstruction"].values, rec["grid"], description=note)
+                    write_nrrd(d / f"{tag}__kidney_mask.nrrd", rec["mask"], rec["grid"],
+                               description=note)
+                    if all(f.image is not None for f in p2p.frames):
+                        grey = compound([f.image for f in p2p.frames], p2p.poses,
+                                        imager.geometry, rec["grid"])
+                        write_nrrd(d / f"{tag}__grey.nrrd", grey.values, rec["grid"],
+                                   description=note)
+                    entry["nrrd"] = sorted(str(p.name) for p in d.glob(f"{tag}__*.nrrd"))
+            except ValueError as e:
+                entry["volume_note"] = str(e)
+        out[s] = entry
+    return out
+
+
+
+# ------------------------------------------------------------------------------- results
+def load_study_results(out_dir, study: str | None = None) -> list[dict]:
+    """All finished run results under ``out_dir/runs`` (optionally of one study)."""
+    if study is None:
+        return batch.load_results(out_dir)
+    return batch.load_results(out_dir, lambda r: r["task"]["study"] == study)

@@ -1,0 +1,203 @@
+"""The patient's body in the simulated station: the soft contact body, its drawing, and the
+systems that move it with the patient (breathing, a shift; :mod:`drake_rus.anatomy.motion`).
+
+Simulation only; the hardware station has a real patient.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from pydrake.common.value import AbstractValue
+from pydrake.geometry import (
+    AddCompliantHydroelasticProperties, AddContactMaterial, Convex, Ellipsoid, Mesh,
+    ProximityProperties)
+from pydrake.math import RigidTransform
+from pydrake.multibody.plant import CoulombFriction, MultibodyPlant
+from pydrake.multibody.tree import PdControllerGains, PrismaticJoint, SpatialInertia
+from pydrake.systems.framework import DiagramBuilder, LeafSystem
+from pydrake.systems.primitives import ConstantVectorSource
+
+from drake_rus.anatomy.motion import PatientMotion
+from drake_rus.io_utils import write_text_atomic
+from drake_rus.scenario import Scenario
+
+__all__ = ["AddPatientBody", "ContactHull", "AddPatientMotionDriver", "PatientMotionFor",
+           "MovingPose", "BreathHoldSignal", "PatientMotionDesiredState"]
+
+# The moving patient body (breathing / shifting patients): a torso of PATIENT_MASS kg on
+# x-y-z prismatic joints held by implicit (SAP) PD actuators. 1e5 N/m with critical damping
+# tracks breathing (<= 0.05 m/s^2) to well under 0.1 mm and gives 0.1 mm under a 10 N probe
+# force; gravity is fed forward.
+PATIENT_MASS = 10.0
+PATIENT_KP = 1.0e5
+PATIENT_KD = 2.0 * (PATIENT_KP * PATIENT_MASS) ** 0.5
+
+
+def PatientMotionFor(scenario: Scenario) -> PatientMotion:
+    """The patient's motion in B for ``scenario``: ``patient.motion`` along the patient's
+    superior axis (y of the patient frame Pt), seeded by (random_seed, motion.seed)."""
+    X_BPt = scenario.patient.X_BPt.GetDeterministicValue()
+    superior_B = X_BPt.rotation().matrix()[:, 1]
+    cfg = scenario.patient.motion
+    return PatientMotion(cfg, superior_B, int(scenario.random_seed) * 1000003 + int(cfg.seed))
+
+
+def _patient_properties(scenario: Scenario) -> ProximityProperties:
+    contact = scenario.contact
+    props = ProximityProperties()
+    AddCompliantHydroelasticProperties(
+        contact.patient_resolution_hint, contact.hydroelastic_modulus, props)
+    AddContactMaterial(contact.hunt_crossley_dissipation, contact.point_stiffness,
+                       CoulombFriction(contact.friction, contact.friction), props)
+    return props
+
+
+def AddPatientBody(plant: MultibodyPlant, scenario: Scenario, patient=None,
+                   mesh_dir: Path | None = None, moving: bool = False) -> dict:
+    """Adds the patient's body surface as a soft (compliant) body welded to the world, or
+    with ``moving`` on a body driven along base x, y, z (``added["instance"]`` is then its
+    model instance; drive it with :func:`AddPatientMotionDriver`).
+
+    With ``patient=None`` the body is an ellipsoidal torso with the scenario's semi-axes,
+    centred on the bed at ``X_BPt``. Otherwise the patient's torso section (skin mesh around
+    the kidney level) is the contact body (its convex hull, compliant hydroelastic) and the
+    skin and kidney are drawn. Returns a dict of what was added (geometry ids, files).
+    """
+    X_BPt = scenario.patient.X_BPt.GetDeterministicValue()
+    props = _patient_properties(scenario)
+    body = plant.world_body()
+    added = {}
+    if moving:
+        body = _AddMovingPatientBody(plant)
+        added["instance"] = body.model_instance()
+    if patient is None:
+        a, b, c = scenario.patient.placeholder_semi_axes
+        shape = Ellipsoid(a, b, c)
+        added["collision"] = plant.RegisterCollisionGeometry(
+            body, X_BPt, shape, "patient_body", props)
+        plant.RegisterVisualGeometry(body, X_BPt, shape, "patient_body_visual",
+                                     np.array([0.93, 0.78, 0.68, 0.55]))
+        return added
+    mesh_dir = Path(mesh_dir) if mesh_dir else Path(tempfile.gettempdir()) / "drake_rus_meshes"
+    torso = ContactHull(patient.torso_section(0.20), scenario.contact.patient_hull_vertices)
+    torso_path = _mesh_file(torso, mesh_dir, "torso_section")
+    added["collision"] = plant.RegisterCollisionGeometry(
+        body, X_BPt, Convex(str(torso_path)), "patient_body", props)
+    skin_path = _mesh_file(patient.skin_mesh, mesh_dir, "skin")
+    plant.RegisterVisualGeometry(body, X_BPt, Mesh(str(skin_path)), "patient_skin_visual",
+                                 np.array([0.93, 0.78, 0.68, 0.35]))
+    kidney_path = _mesh_file(patient.kidney_mesh, mesh_dir, "kidney")
+    plant.RegisterVisualGeometry(body, X_BPt, Mesh(str(kidney_path)), "kidney_visual",
+                                 np.array([0.7, 0.15, 0.15, 0.9]))
+    added["files"] = [torso_path, skin_path, kidney_path]
+    return added
+
+
+def _mesh_file(mesh, directory: Path, name: str) -> Path:
+    """``directory/name_<content hash>.obj`` holding ``mesh`` (written atomically once, then
+    reused): building many stations of the same patient does not litter the disk."""
+    text = mesh.export(file_type="obj")
+    path = Path(directory) / f"{name}_{hashlib.sha1(text.encode()).hexdigest()[:16]}.obj"
+    if not path.exists():
+        write_text_atomic(path, text)
+    return path
+
+
+def _AddMovingPatientBody(plant: MultibodyPlant):
+    """A "patient" model instance: world -> prismatic x -> y -> z -> patient_torso, each
+    joint PD-actuated (its desired state is the patient's displacement in B). Returns the
+    torso body, whose frame coincides with the world frame at zero displacement."""
+    instance = plant.AddModelInstance("patient")
+    parent = plant.world_body()
+    for axis, name in zip(np.eye(3), "xyz"):
+        last = name == "z"
+        mass = PATIENT_MASS if last else 0.1
+        body = plant.AddRigidBody("patient_torso" if last else f"patient_slider_{name}",
+                                  instance, SpatialInertia.SolidSphereWithMass(mass, 0.1))
+        joint = plant.AddJoint(PrismaticJoint(f"patient_{name}", parent.body_frame(),
+                                              body.body_frame(), axis))
+        actuator = plant.AddJointActuator(f"patient_{name}", joint, effort_limit=1.0e4)
+        actuator.set_controller_gains(PdControllerGains(p=PATIENT_KP, d=PATIENT_KD))
+        parent = body
+    return parent
+
+
+def ContactHull(mesh, max_vertices: int):
+    """Convex hull of ``mesh`` with at most ``max_vertices`` vertices (trimesh, same frame).
+
+    Drake treats a compliant Convex/Mesh body through its convex hull; a hull of thousands of
+    skin vertices makes every contact query slow for no gain in the scanning region, so the
+    hull is rebuilt from a farthest-point subset of its own vertices (deviation from the full
+    hull: a few mm at 300 vertices on a torso).
+    """
+    hull = mesh.convex_hull
+    v = np.asarray(hull.vertices)
+    if len(v) <= max_vertices:
+        return hull
+    chosen = [int(np.argmax(v[:, 2]))]
+    distance = np.linalg.norm(v - v[chosen[0]], axis=1)
+    for _ in range(max_vertices - 1):
+        k = int(np.argmax(distance))
+        chosen.append(k)
+        distance = np.minimum(distance, np.linalg.norm(v - v[k], axis=1))
+    return trimesh.convex.convex_hull(v[chosen])
+
+
+class MovingPose(LeafSystem):
+    """Output ``X`` (abstract RigidTransform): translate(offset_B(t)) * X0, a pose moving
+    with the patient (the true kidney pose of a breathing patient)."""
+
+    def __init__(self, X0: RigidTransform, motion: PatientMotion):
+        super().__init__()
+        self._X0 = RigidTransform(X0)
+        self._motion = motion
+        self.DeclareAbstractOutputPort(
+            "X", lambda: AbstractValue.Make(RigidTransform()),
+            lambda c, o: o.set_value(RigidTransform(self._motion.offset_B(c.get_time()))
+                                     @ self._X0),
+            prerequisites_of_calc={self.time_ticket()})
+
+
+class PatientMotionDesiredState(LeafSystem):
+    """Output ``desired_state`` (6-vector): [offset_B(t), d offset_B/dt] (m, m/s), the
+    desired state of the patient body's x-y-z prismatic joints (base frame axes)."""
+
+    def __init__(self, motion: PatientMotion):
+        super().__init__()
+        self._motion = motion
+        self.DeclareVectorOutputPort(
+            "desired_state", 6,
+            lambda c, o: o.SetFromVector(np.concatenate([
+                self._motion.offset_B(c.get_time()), self._motion.velocity_B(c.get_time())])),
+            prerequisites_of_calc={self.time_ticket()})
+
+
+class BreathHoldSignal(LeafSystem):
+    """Output ``breath_hold`` (1-vector): 1.0 while the patient holds their breath (what a
+    respiratory belt or the operator's pedal reports on a real setup)."""
+
+    def __init__(self, motion: PatientMotion):
+        super().__init__()
+        self._motion = motion
+        self.DeclareVectorOutputPort(
+            "breath_hold", 1,
+            lambda c, o: o.SetAtIndex(0, float(self._motion.breath_hold(c.get_time()))),
+            prerequisites_of_calc={self.time_ticket()})
+
+
+def AddPatientMotionDriver(builder: DiagramBuilder, plant: MultibodyPlant,
+                           motion: PatientMotion, instance) -> None:
+    """Drives the moving patient body: desired state = the patient displacement of the
+    imaging chain (the same PatientMotion), gravity fed forward."""
+    desired = builder.AddNamedSystem("patient_motion", PatientMotionDesiredState(motion))
+    builder.Connect(desired.get_output_port(), plant.get_desired_state_input_port(instance))
+    mass = sum(plant.get_body(b).default_mass() for b in plant.GetBodyIndices(instance))
+    g = float(np.linalg.norm(plant.gravity_field().gravity_vector()))
+    weight = builder.AddNamedSystem("patient_weight",
+                                    ConstantVectorSource([0.0, 0.0, mass * g]))
+    builder.Connect(weight.get_output_port(), plant.get_actuation_input_port(instance))

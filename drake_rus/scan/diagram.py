@@ -1,0 +1,223 @@
+"""The scan diagram (seed Fig. 2) on ANY station: only the ports both stations export.
+
+    station.us_image -> Segmenter -> PointCloudAccumulator (while EXPLOREing) -> IcpLocalizer
+    station.{joint_position, joint_velocity, X_BP, probe_force} -> controller + safety
+    ScanSupervisor phases: APPROACH -> EXPLORE -> LOCALIZE -> TRANSIT -> PIVOT -> DONE | ABORT
+    KidneyTrackingMonitor (after LOCALIZE), ScanRecorder (every frame), loggers
+
+The station is built by the caller (``drake_rus.stations.MakeStation``, or a wrapped one).
+Optional station ports are used when present: ``label_image`` (the oracle segmenter reads
+it; simulation only) and ``breath_hold`` (respiration-aware scanning). Simulation truth
+(true contact force, true kidney pose) is attached separately by ``scan.truth``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.math import RigidTransform
+from pydrake.systems.framework import DiagramBuilder, EventStatus, LeafSystem
+from pydrake.systems.primitives import LogVectorOutput
+
+from drake_rus.config_schema import ScenarioError
+from drake_rus.control.diagram import AddController
+from drake_rus.control.supervisor import Phase
+from drake_rus.imaging.frames import UsFrame
+from drake_rus.imaging.systems import PointCloudAccumulator, Segmenter
+from drake_rus.localization.localize import IcpLocalizer, body_directions_B
+from drake_rus.localization.tracking import KidneyTrackingMonitor
+
+__all__ = ["BuildScanDiagram", "ScanHandles", "PhaseIs", "And2", "ScanRecorder",
+           "FrameRecord", "LOG_PERIOD"]
+
+# Period (s) of the scan's loggers (phase, force, a_des, manipulability, q).
+LOG_PERIOD = 0.02
+
+
+class PhaseIs(LeafSystem):
+    """1-vector output ``value``: 1.0 while the input ``phase`` equals ``phase_value``."""
+
+    def __init__(self, phase_value: int):
+        super().__init__()
+        self._value = int(phase_value)
+        self.DeclareVectorInputPort("phase", 1)
+        self.DeclareVectorOutputPort(
+            "value", 1, lambda c, o: o.SetAtIndex(
+                0, float(int(round(self.get_input_port(0).Eval(c)[0])) == self._value)))
+
+
+class And2(LeafSystem):
+    """Output ``value`` (1-vector): 1.0 when both inputs ``a`` and ``b`` are > 0.5."""
+
+    def __init__(self):
+        super().__init__()
+        a = self.DeclareVectorInputPort("a", 1)
+        b = self.DeclareVectorInputPort("b", 1)
+        self.DeclareVectorOutputPort(
+            "value", 1, lambda c, o: o.SetAtIndex(
+                0, float(a.Eval(c)[0] > 0.5 and b.Eval(c)[0] > 0.5)))
+
+
+@dataclasses.dataclass
+class FrameRecord:
+    """One acquired frame as the scan saw it: capture time (s), frame index, supervisor
+    phase, probe pose X_BP, kidney visible, filtered contact force F_z (N)."""
+    time: float
+    frame_index: int
+    phase: int
+    X_BP: RigidTransform
+    visible: bool
+    force: float
+
+
+class ScanRecorder(LeafSystem):
+    """Records every acquired frame (time, pose, phase, visibility, force) and keeps a few
+    grey images and masks of the PIVOT phase for the report. A publish-only observer.
+
+    Inputs ``us_image`` and ``kidney_mask`` (UsFrame), ``phase``, ``kidney_visible``,
+    ``contact_force`` (1-vectors; N for the force)."""
+
+    def __init__(self, frame_rate_hz: float, keep_every: int = 10, keep_max: int = 40):
+        super().__init__()
+        empty = UsFrame(np.zeros((1, 1), np.uint8))
+        self._us = self.DeclareAbstractInputPort("us_image", AbstractValue.Make(empty))
+        self._mask = self.DeclareAbstractInputPort("kidney_mask", AbstractValue.Make(empty))
+        self._phase = self.DeclareVectorInputPort("phase", 1)
+        self._visible = self.DeclareVectorInputPort("kidney_visible", 1)
+        self._force = self.DeclareVectorInputPort("contact_force", 1)
+        period = 1.0 / frame_rate_hz
+        self.DeclarePeriodicPublishEvent(period, 0.5 * period, self._record)
+        self.frames: list[FrameRecord] = []
+        self.images: list[tuple] = []
+        self._keep_every, self._keep_max = keep_every, keep_max
+        self._last_index = -1
+        self._pivot_count = 0
+
+    def _record(self, context):
+        us = self._us.Eval(context)
+        if us.frame_index < 0 or us.frame_index == self._last_index:
+            return EventStatus.DidNothing()
+        self._last_index = us.frame_index
+        phase = int(round(self._phase.Eval(context)[0]))
+        visible = bool(self._visible.Eval(context)[0] > 0.5)
+        self.frames.append(FrameRecord(us.time, us.frame_index, phase, RigidTransform(us.X_BP),
+                                       visible, float(self._force.Eval(context)[0])))
+        if phase == Phase.PIVOT:
+            if self._pivot_count % self._keep_every == 0 and len(self.images) < self._keep_max:
+                mask = self._mask.Eval(context)
+                self.images.append((us.time, np.array(us.image), np.array(mask.image)))
+            self._pivot_count += 1
+        return EventStatus.Succeeded()
+
+
+@dataclasses.dataclass
+class ScanHandles:
+    """The systems of a scan diagram, for reading their state after (or during) a run."""
+    station: object
+    segmenter: Segmenter
+    accumulator: PointCloudAccumulator
+    localizer: IcpLocalizer
+    supervisor: object
+    recorder: ScanRecorder
+    parts: object                 # ControllerParts
+    tracking: KidneyTrackingMonitor
+    logs: dict                    # name -> VectorLogSink
+
+    def __getitem__(self, name):  # handles["supervisor"] reads like a dict
+        return getattr(self, name)
+
+
+def _breath_hold_port(scenario, station):
+    """The station's ``breath_hold`` when respiration-aware scanning is asked for
+    (``patient.motion.breathing.gate_exploration``) and the station reports holds."""
+    if not scenario.patient.motion.breathing.gate_exploration:
+        return None
+    if not station.HasOutputPort("breath_hold"):
+        raise ScenarioError("field 'patient.motion.breathing.gate_exploration': the station "
+                            "has no 'breath_hold' output to gate on")
+    return station.GetOutputPort("breath_hold")
+
+
+def BuildScanDiagram(scenario, station, template, *, builder: DiagramBuilder | None = None):
+    """Adds ``station`` (any station) and the scan around it to ``builder`` (default: a new
+    one). Returns ``(builder, ScanHandles)``; the caller may add observers (simulation
+    truth) before ``builder.Build()``."""
+    builder = builder or DiagramBuilder()
+    builder.AddNamedSystem("station", station)
+    segmenter = builder.AddNamedSystem("segmenter", Segmenter(scenario.imaging))
+    builder.Connect(station.GetOutputPort("us_image"), segmenter.GetInputPort("us_image"))
+    if scenario.imaging.segmenter == "oracle":
+        if not station.HasOutputPort("label_image"):
+            raise ScenarioError("field 'imaging.segmenter': 'oracle' reads the simulated "
+                                "station's label_image, which this station does not have; "
+                                "use 'onnx' or 'classical'")
+        builder.Connect(station.GetOutputPort("label_image"),
+                        segmenter.GetInputPort("label_image"))
+    accumulator = builder.AddNamedSystem("point_cloud_accumulator",
+                                         PointCloudAccumulator(scenario.imaging))
+    builder.Connect(segmenter.GetOutputPort("boundary_pixels"),
+                    accumulator.GetInputPort("boundary_pixels"))
+    X_BPt = scenario.patient.X_BPt.GetDeterministicValue()
+    superior_B, lateral_B = body_directions_B(X_BPt, scenario.patient.side,
+                                              scenario.patient.posture)
+    localizer = builder.AddNamedSystem("icp_localizer", IcpLocalizer(
+        template, scenario.localization, superior_B, lateral_B,
+        localize_phase=int(Phase.LOCALIZE), rate_hz=scenario.imaging.frame_rate_hz,
+        explore_phase=int(Phase.EXPLORE), kidney_length=scenario.controller.kidney_length))
+    builder.Connect(accumulator.GetOutputPort("point_cloud"), localizer.GetInputPort("point_cloud"))
+    parts = AddController(builder, station, scenario, segmenter=segmenter,
+                          kidney_pose_port=localizer.GetOutputPort("X_BK"),
+                          localization_ready_port=localizer.GetOutputPort("localization_ready"))
+    supervisor = parts.supervisor
+    phase = supervisor.GetOutputPort("phase")
+    builder.Connect(phase, localizer.GetInputPort("phase"))
+    builder.Connect(localizer.GetOutputPort("localization_error"),
+                    supervisor.GetInputPort("localization_error"))
+    builder.Connect(localizer.GetOutputPort("exploration_sufficient"),
+                    supervisor.GetInputPort("exploration_sufficient"))
+    exploring = builder.AddNamedSystem("exploring", PhaseIs(Phase.EXPLORE))
+    builder.Connect(phase, exploring.get_input_port(0))
+    enable = exploring.get_output_port(0)
+    hold = _breath_hold_port(scenario, station)
+    if hold is not None:
+        # Respiration-aware: exploration frames enter P_local only during breath-holds, and
+        # exploration and pivot motion advance only then (the supervisor's motion_allowed).
+        gate = builder.AddNamedSystem("breath_hold_gate", And2())
+        builder.Connect(enable, gate.GetInputPort("a"))
+        builder.Connect(hold, gate.GetInputPort("b"))
+        enable = gate.GetOutputPort("value")
+    builder.Connect(enable, accumulator.GetInputPort("enable"))
+    tracking = builder.AddNamedSystem("kidney_tracking_monitor", KidneyTrackingMonitor(
+        template, scenario.localization, scenario.imaging,
+        check_phases=[int(Phase.TRANSIT), int(Phase.PIVOT)]))
+    builder.Connect(segmenter.GetOutputPort("boundary_pixels"),
+                    tracking.GetInputPort("boundary_pixels"))
+    builder.Connect(localizer.GetOutputPort("localization"), tracking.GetInputPort("localization"))
+    builder.Connect(phase, tracking.GetInputPort("phase"))
+    builder.Connect(tracking.GetOutputPort("tracking_error"),
+                    supervisor.GetInputPort("tracking_error"))
+    if hold is not None:
+        builder.Connect(hold, supervisor.GetInputPort("motion_allowed"))
+        builder.Connect(hold, tracking.GetInputPort("motion_allowed"))
+
+    recorder = builder.AddNamedSystem("scan_recorder", ScanRecorder(scenario.imaging.frame_rate_hz))
+    builder.Connect(station.GetOutputPort("us_image"), recorder.GetInputPort("us_image"))
+    builder.Connect(segmenter.GetOutputPort("kidney_mask"), recorder.GetInputPort("kidney_mask"))
+    builder.Connect(phase, recorder.GetInputPort("phase"))
+    builder.Connect(segmenter.GetOutputPort("kidney_visible"),
+                    recorder.GetInputPort("kidney_visible"))
+    builder.Connect(parts.force.GetOutputPort("F_filtered"), recorder.GetInputPort("contact_force"))
+
+    logs = {
+        "phase": LogVectorOutput(phase, builder, LOG_PERIOD),
+        "force": LogVectorOutput(parts.force.GetOutputPort("F_filtered"), builder, LOG_PERIOD),
+        "a_des": LogVectorOutput(supervisor.GetOutputPort("a_des"), builder, LOG_PERIOD),
+        "manipulability": LogVectorOutput(parts.ik.GetOutputPort("manipulability"), builder,
+                                          LOG_PERIOD),
+        "q": LogVectorOutput(station.GetOutputPort("joint_position"), builder, LOG_PERIOD),
+    }
+    return builder, ScanHandles(station=station, segmenter=segmenter, accumulator=accumulator,
+                                localizer=localizer, supervisor=supervisor, recorder=recorder,
+                                parts=parts, tracking=tracking, logs=logs)

@@ -1,0 +1,209 @@
+"""Running the scan: the start pose, the simulation loop, monitors, and the result.
+
+``RunScan(scenario, patient, template)`` plans the start pose over the patient's kidney (the
+stand-in for the paper's manual probe placement), builds the station with ``make_station``
+(default ``drake_rus.stations.MakeStation``; a caller may pass a wrapped station, e.g. with
+faults), the scan diagram and the simulation-truth observer, runs it until DONE, ABORT or
+``max_sim_time`` and returns a :class:`ScanResult`. ``monitors`` watch every simulator step.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Callable, Sequence
+
+import numpy as np
+from pydrake.math import RigidTransform
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import EventStatus
+
+from drake_rus.control.supervisor import Phase
+from drake_rus.scan.planning import exploration_start
+from drake_rus.progress import AdvanceWithProgress
+from drake_rus.robot import MakeControlPlant, SolveTipPose
+from drake_rus.scan.diagram import BuildScanDiagram, ScanHandles
+from drake_rus.scan.truth import AttachSimulationTruth, SimulationTruth
+from drake_rus.stations import MakeStation
+
+__all__ = ["RunScan", "PrepareScenario", "ScanResult", "ScanMonitor", "CollectScanResult",
+           "TERMINAL_PHASES"]
+
+TERMINAL_PHASES = (Phase.DONE, Phase.ABORT)
+
+
+class ScanMonitor:
+    """Watches a running scan at every simulator step (override what you need).
+
+    ``attach(diagram, handles, root_context)`` before the run; ``observe(root_context)`` after
+    every step (it must not change the state); ``finish(root_context)`` once the run (and any
+    settling time) is over."""
+
+    def attach(self, diagram, handles: ScanHandles, root_context) -> None:
+        pass
+
+    def observe(self, root_context) -> None:
+        pass
+
+    def finish(self, root_context) -> None:
+        pass
+
+
+@dataclasses.dataclass
+class ScanResult:
+    """A finished scan: outcome, timing, what was recorded, and the truth if simulated."""
+    status: str                    # "DONE", "ABORT" or "TIMEOUT"
+    reason: str
+    patient: str
+    sim_s: float
+    wall_s: float
+    phases: list                   # [(name, start s, end s)]
+    frames: list                   # FrameRecord per acquired frame
+    images: list                   # (time, grey, mask) of some PIVOT frames
+    partial_cloud_B: np.ndarray
+    localization: object           # LocalizationOutcome
+    X_BK_estimated: RigidTransform | None
+    registered_template_B: np.ndarray | None
+    logs: dict                     # name -> (times, data)
+    safety_events: list
+    scenario: object
+    truth: SimulationTruth | None = None
+    # Kidney tracking checks after localization: ((time s, apparent drift m), ...).
+    tracking_drift: tuple = ()
+
+    @property
+    def X_BK_true(self) -> RigidTransform | None:
+        return None if self.truth is None else self.truth.X_BK
+
+
+def PrepareScenario(scenario, patient, start_fraction: float = 0.1):
+    """The scenario with the robot's initial joints set above the exploration start over the
+    patient's kidney (simulation's stand-in for the operator's placement). Returns
+    ``(scenario, X_start)``."""
+    X_BPt = scenario.patient.X_BPt.GetDeterministicValue()
+    X_start = exploration_start(patient, X_BPt, scan_direction=scenario.controller.scan_direction,
+                                start_fraction=start_fraction)
+    plant, tip = MakeControlPlant(scenario)
+    q0 = SolveTipPose(plant, tip, X_start)
+    robot = dataclasses.replace(scenario.robot, initial_joint_positions=[float(v) for v in q0])
+    return dataclasses.replace(scenario, robot=robot), X_start
+
+
+def _phase_intervals(times, phases, end_time: float, final_phase: str) -> list:
+    """[(name, start, end)] from a phase log; closes with the final phase."""
+    out = []
+    start = 0
+    for k in range(1, len(phases) + 1):
+        if k == len(phases) or phases[k] != phases[start]:
+            out.append((Phase(phases[start]).name, float(times[start]),
+                        float(times[k] if k < len(times) else end_time)))
+            start = k
+    if not out or out[-1][0] != final_phase:
+        out.append((final_phase, end_time, end_time))
+    return out
+
+
+def CollectScanResult(scenario, patient_name: str, template, handles: ScanHandles,
+                      truth: SimulationTruth | None, root_context, wall: float,
+                      end_time: float | None = None) -> ScanResult:
+    """The ScanResult of a finished run; ``end_time`` (s): when the scan proper ended, if the
+    simulator ran on after it (default: the context's time)."""
+    h = handles
+    now = root_context.get_time()
+    t_end = now if end_time is None else end_time
+    state = h.supervisor.GetOutputPort("supervisor_state").Eval(
+        h.supervisor.GetMyContextFromRoot(root_context))
+    phase = Phase(int(state.phase)).name
+    status = phase if phase in ("DONE", "ABORT") else "TIMEOUT"
+    reason = state.events[-1][2] if status == "ABORT" and state.events else ""
+    if status == "TIMEOUT":
+        reason = f"still in {phase} after {t_end:.1f} s of simulated time"
+    safety = h.parts.safety
+    events = list(safety.GetOutputPort("safety_events").Eval(
+        safety.GetMyContextFromRoot(root_context)))
+    logs = {}
+    for name, logger in h.logs.items():
+        log = logger.FindLog(root_context)
+        logs[name] = (log.sample_times().copy(), log.data().copy())
+    if truth is not None and truth.force_log is not None:
+        log = truth.force_log.FindLog(root_context)
+        logs["force_true"] = (log.sample_times().copy(), log.data().copy())
+    t, ph = logs["phase"][0], logs["phase"][1][0].round().astype(int)
+    phases = _phase_intervals(t, ph, now, phase)
+    outcome = h.localizer.GetOutputPort("localization").Eval(
+        h.localizer.GetMyContextFromRoot(root_context))
+    cloud = h.accumulator.GetOutputPort("point_cloud").Eval(
+        h.accumulator.GetMyContextFromRoot(root_context))
+    X_BK_est, registered = None, None
+    if outcome.result is not None:
+        X_BK_est = outcome.result.X_BK
+        shape = template.points
+        if outcome.result.shape_coefficients is not None:
+            b = outcome.result.shape_coefficients
+            shape = template.points + np.einsum("k,kij->ij", b, template.modes[:len(b)])
+        registered = X_BK_est.multiply(shape.T).T
+    return ScanResult(
+        status=status, reason=reason, patient=patient_name, sim_s=now, wall_s=wall,
+        phases=phases, frames=list(h.recorder.frames), images=list(h.recorder.images),
+        partial_cloud_B=np.array(cloud.points), localization=outcome, X_BK_estimated=X_BK_est,
+        registered_template_B=registered, logs=logs, safety_events=events, scenario=scenario,
+        truth=truth,
+        tracking_drift=h.tracking.state(h.tracking.GetMyContextFromRoot(root_context)).history)
+
+
+def RunScan(scenario, patient, template, *, make_station: Callable = MakeStation,
+            meshcat=None, max_sim_time: float = 150.0, progress: bool | None = None,
+            start_fraction: float = 0.1, monitors: Sequence[ScanMonitor] = (),
+            settle: float = 0.0) -> ScanResult:
+    """Runs the closed-loop scan until DONE, ABORT or ``max_sim_time`` (s).
+
+    ``patient``: the virtual patient (simulation: plans the start pose and attaches the
+    truth), or None on hardware (the scan starts where the operator placed the probe).
+    ``make_station(scenario, meshcat=..., patient=...)`` builds the station. ``settle`` (s):
+    keep simulating this long after the scan ends (monitors still observe), e.g. to check
+    the robot comes to rest; the result describes the scan proper.
+    """
+    if patient is not None and not scenario.hardware:
+        scenario, _ = PrepareScenario(scenario, patient, start_fraction)
+    station = make_station(scenario, meshcat=meshcat, patient=patient)
+    builder, h = BuildScanDiagram(scenario, station, template)
+    truth = (AttachSimulationTruth(builder, station, patient, scenario)
+             if patient is not None else None)
+    diagram = builder.Build()
+    diagram.set_name("scan")
+    simulator = Simulator(diagram)
+    context = simulator.get_mutable_context()
+    phase_port = h.supervisor.GetOutputPort("phase")
+    supervisor_context = h.supervisor.GetMyContextFromRoot(context)
+    stop_at_terminal = [True]
+
+    def phase_now() -> Phase:
+        return Phase(int(round(phase_port.Eval(supervisor_context)[0])))
+
+    def monitor(root_context):
+        for m in monitors:
+            m.observe(root_context)
+        if stop_at_terminal[0] and phase_now() in TERMINAL_PHASES:
+            return EventStatus.ReachedTermination(diagram, "scan finished")
+        return EventStatus.Succeeded()
+
+    simulator.set_monitor(monitor)
+    for m in monitors:
+        m.attach(diagram, h, context)
+    simulator.Initialize()
+    start = time.perf_counter()
+    AdvanceWithProgress(simulator, max_sim_time, desc="scan", step=0.25,
+                        disable=None if progress is None else not progress,
+                        on_step=lambda c: phase_now().name,
+                        should_stop=lambda c: phase_now() in TERMINAL_PHASES)
+    t_end = context.get_time()
+    if settle > 0.0:
+        stop_at_terminal[0] = False
+        simulator.AdvanceTo(t_end + settle)
+    wall = time.perf_counter() - start
+    for m in monitors:
+        m.finish(context)
+    name = patient.name if patient is not None else "patient on the bed"
+    result = CollectScanResult(scenario, name, template, h, truth, context, wall, end_time=t_end)
+    result.sim_s = t_end
+    return result

@@ -1,0 +1,55 @@
+"""Simulation truth: what only a simulation knows, attached to a scan as an observer.
+
+The scan diagram never reads it (the controller and the localizer see only the ports a real
+setup has). It holds the patient's true kidney pose X_BK and kidney voxels (for E_trans,
+E_rot,x and the volume ratio V) and logs the true probe contact wrench when the station
+exports ``probe_contact_wrench_true``. On hardware there is none (``RunScan`` gets no
+patient), and the metrics that need it are reported as unknown.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from pydrake.math import RigidTransform
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.primitives import LogVectorOutput
+
+from drake_rus.scan.diagram import LOG_PERIOD
+
+__all__ = ["SimulationTruth", "AttachSimulationTruth", "kidney_voxels_B"]
+
+# Voxel size (m) of the true kidney for the volume ratio V (eq. 25).
+TRUTH_VOXEL = 0.002
+
+
+@dataclasses.dataclass
+class SimulationTruth:
+    """The true kidney frame K in B at the start of the scan, the true kidney's voxel centres
+    in B (m) and their volume (m^3 each), and the logger of the true contact wrench."""
+    X_BK: RigidTransform
+    kidney_points_B: np.ndarray
+    voxel_volume: float
+    force_log: object | None = None
+
+
+def kidney_voxels_B(patient, X_BPt: RigidTransform, voxel_size: float) -> np.ndarray:
+    """Centres (N, 3) in B of the patient's kidney voxels at ``voxel_size`` (m)."""
+    mask, X_PtV = patient.kidney_mask(voxel_size)
+    ijk = np.argwhere(mask)
+    p_Pt = X_PtV.multiply((ijk * voxel_size).T).T
+    return X_BPt.multiply(p_Pt.T).T
+
+
+def AttachSimulationTruth(builder: DiagramBuilder, station, patient, scenario,
+                          voxel_size: float = TRUTH_VOXEL) -> SimulationTruth:
+    """The truth of ``patient`` on the bed at ``scenario.patient.X_BPt``, with a logger of the
+    station's true contact wrench added to ``builder`` when the station has one."""
+    X_BPt = scenario.patient.X_BPt.GetDeterministicValue()
+    force_log = None
+    if station.HasOutputPort("probe_contact_wrench_true"):
+        force_log = LogVectorOutput(station.GetOutputPort("probe_contact_wrench_true"),
+                                    builder, LOG_PERIOD)
+    return SimulationTruth(patient.X_BK(X_BPt), kidney_voxels_B(patient, X_BPt, voxel_size),
+                           voxel_size**3, force_log)

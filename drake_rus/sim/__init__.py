@@ -1,1 +1,0 @@
-"""drake-rus sim."""

@@ -1,0 +1,29 @@
+"""Fixtures shared by the test modules."""
+
+import pytest
+
+from drake_rus.imaging.config import ImagingConfig
+from drake_rus.imaging.probe import ProbeGeometry
+from drake_rus.robot import MakeControlPlant, TipKinematics
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _throwaway_patient_cache(tmp_path_factory):
+    """Tests use their own patient cache (drake_rus.anatomy.cache), never ~/.cache; it is
+    shared by the whole session, so each patient is built once per test run."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("DRAKE_RUS_CACHE_DIR", str(tmp_path_factory.mktemp("patient_cache")))
+        yield
+
+
+@pytest.fixture(scope="session")
+def geometry() -> ProbeGeometry:
+    """The default probe geometry (40 deg fan, 150 mm deep, 256 x 256 image)."""
+    return ProbeGeometry.from_config(ImagingConfig())
+
+
+@pytest.fixture(scope="session")
+def kin() -> TipKinematics:
+    """Tip kinematics on the default scenario's control plant (FR3 + probe)."""
+    plant, frame = MakeControlPlant()
+    return TipKinematics(plant, frame)
