@@ -68,7 +68,9 @@ def main(argv=None) -> int:
         args.patient = None
 
     scenario = LoadScenario(scenario_name=args.scenario)
-    overrides = ["exploration_ratio: 1.0"]
+    # The default joint pose hovers about 0.1 m above the placeholder torso: allow that
+    # approach (the patient variant starts 0.22 m above the kidney and allows its own).
+    overrides = ["exploration_ratio: 1.0", "approach_max_travel: 0.2"]
     if args.rate_hz:
         overrides.append(f"rate_hz: {args.rate_hz}")
     scenario = ApplyOverrides(scenario, "{controller: {%s}}" % ", ".join(overrides))

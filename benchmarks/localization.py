@@ -13,8 +13,16 @@ registered to the kidney template by
   ``TransformationEstimationPointToPlane`` on the template's normals, from the same initial
   pose (heuristic rotation, cloud centroid on the template origin) and the same thinned cloud.
 
+The exploration's length follows ``controller.exploration_length`` (or
+``--exploration-length``): ``fixed`` explores ER x L_m; ``estimated`` replays the scan's
+rule along the same sweep: every ``localization.adaptive_period`` s of exploration (once
+``localization.length_min_travel`` has been explored) the localizer's kidney length
+estimate is computed from the cloud so far, and the exploration ends at ER x the latest
+estimate (``supervisor.exploration_target``), or where the kidney leaves the image.
+
 Reported: mean and SD (sample, ddof = 1) over patients of E_trans (mm) and E_rot,x (deg),
 ms per registration (wall clock of the registration call alone, this run, this machine),
+how the ICP iterations ended (converged / cycle / iteration cap), the exploration travel
 and the seed paper's numbers beside ours. The last output line is one JSON object.
 """
 
@@ -31,10 +39,15 @@ from pydrake.math import RigidTransform, RotationMatrix  # Drake first: its libs
 from tqdm import tqdm
 
 from drake_rus.anatomy import load_patient
+from drake_rus.control.supervisor import exploration_target
 from drake_rus.experiments import kinematic as km
 from drake_rus.experiments.tasks import expand_patients
 from drake_rus.localization.icp import heuristic_initial_rotation
-from drake_rus.localization.localize import load_registration_template, thin_cloud
+from drake_rus.localization.localize import (
+    estimate_kidney_length,
+    load_registration_template,
+    thin_cloud,
+)
 from drake_rus.metrics.core import e_rot_x, e_trans
 from drake_rus.scenario import LoadScenario
 
@@ -83,6 +96,43 @@ def register_open3d(P_B: np.ndarray, template, R_BK0: np.ndarray, *,
     return X_KB.inverse(), seconds
 
 
+def explore_estimated(kp, imager, controller, localization, template):
+    """The scan's ``exploration_length: estimated`` rule replayed kinematically: one sweep to
+    the travel cap (f ER L_m), the kidney length estimated from its prefix every
+    ``adaptive_period`` s of travel from ``length_min_travel`` on, cut where ER x the
+    latest estimate is reached (or the kidney left the image). Returns (sweep, estimate m,
+    ((travel m, estimate m), ...))."""
+    cap = (controller.exploration_ratio * controller.exploration_length_factor
+           * controller.kidney_length)
+    full = km.explore(kp, imager, controller, exploration_ratio=controller.exploration_ratio,
+                      travel=cap)
+    end = float(full.travel[-1])
+    step = localization.adaptive_period * controller.scan_speed
+    estimate, target, checks, stop = float("nan"), exploration_target(controller), [], None
+    travel = localization.length_min_travel
+    while travel < min(target, end) - 1e-12:
+        P = full.prefix(travel).point_cloud()
+        if len(P) >= 50:
+            length, _ = estimate_kidney_length(P, template, localization, kp.superior_B,
+                                               kp.lateral_B)
+            checks.append((travel, length))
+            if np.isfinite(length):
+                estimate = length
+                target = exploration_target(controller, estimate)
+                if target <= travel:       # a shorter kidney than assumed: ends now
+                    stop = travel
+                    break
+        travel += step
+    stop = min(target if stop is None else stop, end)
+    return full.prefix(stop), estimate, tuple(checks)
+
+
+def true_length(kp) -> float:
+    """The true kidney's extent along its own long axis (m, voxel centres + one voxel)."""
+    p_K = kp.X_BK_true.inverse().multiply(kp.kidney_points_B.T).T
+    return float(np.ptp(p_K[:, 0]) + kp.voxel_size)
+
+
 def _stats(values) -> dict:
     v = np.asarray([x for x in values if x is not None and np.isfinite(x)], float)
     if len(v) == 0:
@@ -104,10 +154,16 @@ def main(argv=None) -> int:
     ap.add_argument("--voxel", type=float, default=0.002,
                     help="label-volume voxel size in m (default 0.002)")
     ap.add_argument("--scenario", default="default", help="scenario name (default 'default')")
+    ap.add_argument("--exploration-length", choices=["fixed", "estimated"], default=None,
+                    help="ER x L_m or ER x the estimated kidney length (default: the "
+                         "scenario's controller.exploration_length)")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
     specs = parse_patients(args.patients)
     scenario = LoadScenario(scenario_name=args.scenario)
+    controller = dataclasses.replace(
+        scenario.controller, exploration_ratio=args.er,
+        exploration_length=args.exploration_length or scenario.controller.exploration_length)
     X_BPt = scenario.patient.X_BPt.GetDeterministicValue()
     template = load_registration_template(scenario.localization.template)
     setup0 = time.perf_counter()
@@ -122,11 +178,23 @@ def main(argv=None) -> int:
                                posture=scenario.patient.posture, voxel_size=args.voxel,
                                progress=False)
         kp = km.prepare_patient(patient, X_BPt)
-        imager = km.Imager(kp, scenario.imaging, args.segmenter)
-        sweep = km.explore(kp, imager, scenario.controller, exploration_ratio=args.er)
+        imager = km.Imager(kp, km.imaging_for(kp, scenario.imaging, scenario.start),
+                           args.segmenter)
+        estimate, checks = float("nan"), ()
+        if controller.exploration_length == "estimated":
+            sweep, estimate, checks = explore_estimated(kp, imager, controller,
+                                                        scenario.localization, template)
+        else:
+            sweep = km.explore(kp, imager, controller, exploration_ratio=args.er)
         P = sweep.point_cloud()
+        length = true_length(kp)
+        travel = float(sweep.travel[-1]) if len(sweep.travel) else 0.0
         row = {"patient": spec, "frames": len(sweep.frames), "points": int(len(P)),
-               "visible_frames": int(sweep.visible.sum())}
+               "visible_frames": int(sweep.visible.sum()), "travel_mm": travel * 1e3,
+               "kidney_length_mm": length * 1e3,
+               "kidney_length_estimate_mm": estimate * 1e3 if np.isfinite(estimate) else None,
+               "length_checks": [[round(t * 1e3, 1), round(v * 1e3, 1)] for t, v in checks],
+               "er_of_true_length": travel / length}
         for method in ("seed", "deformable"):
             cfg = dataclasses.replace(scenario.localization, method=method)
             loc = km.localize_cloud(kp, P, template, cfg, sweep.frames[0].X_BP.translation()[:2])
@@ -135,7 +203,8 @@ def main(argv=None) -> int:
                 "e_rot_x_deg": float(np.degrees(e_rot_x(loc.X_BK, kp.X_BK_true))),
                 "ms": loc.compute_s * 1e3,
                 "iterations": None if loc.result is None else int(loc.result.iterations),
-                "converged": None if loc.result is None else bool(loc.result.converged)}
+                "converged": None if loc.result is None else bool(loc.result.converged),
+                "stop_reason": None if loc.result is None else loc.result.stop_reason}
         P_thin = thin_cloud(P, scenario.localization.max_points)
         if len(P_thin) >= 6:
             R0 = heuristic_initial_rotation(kp.superior_B, kp.lateral_B).matrix()
@@ -143,7 +212,8 @@ def main(argv=None) -> int:
             row["open3d_point_to_plane"] = {
                 "e_trans_mm": e_trans(X_BK, kp.X_BK_true) * 1e3,
                 "e_rot_x_deg": float(np.degrees(e_rot_x(X_BK, kp.X_BK_true))),
-                "ms": seconds * 1e3, "iterations": None, "converged": None}
+                "ms": seconds * 1e3, "iterations": None, "converged": None,
+                "stop_reason": None}
         rows.append(row)
     wall = time.perf_counter() - wall0
 
@@ -160,6 +230,8 @@ def main(argv=None) -> int:
             summary[m]["iterations_mean"] = round(float(np.mean(its)), 1)
             summary[m]["converged_fraction"] = round(float(np.mean(
                 [bool(g["converged"]) for g in got if g["converged"] is not None])), 3)
+            reasons = [g["stop_reason"] for g in got if g["stop_reason"]]
+            summary[m]["stop_reasons"] = {k: reasons.count(k) for k in sorted(set(reasons))}
     for r in rows:
         for m in methods:
             if m in r:
@@ -173,6 +245,9 @@ def main(argv=None) -> int:
                        "centring, tip on the skin; registration as in the closed-loop scan",
         "exploration_ratio": args.er,
         "kidney_length_m": scenario.controller.kidney_length,
+        "exploration_length": controller.exploration_length,
+        "exploration_travel_mm": _stats([r["travel_mm"] for r in rows]),
+        "er_of_true_length": _stats([r["er_of_true_length"] for r in rows]),
         "segmenter": args.segmenter,
         "label_voxel_mm": args.voxel * 1e3,
         "patients": specs,
@@ -191,7 +266,12 @@ def main(argv=None) -> int:
         s = summary[m]
         print(f"{m:24s} E_trans {s['e_trans_mm']['mean']} +- {s['e_trans_mm']['sd']} mm | "
               f"E_rot,x {s['e_rot_x_deg']['mean']} +- {s['e_rot_x_deg']['sd']} deg | "
-              f"{s['ms_per_registration']['mean']} ms/registration")
+              f"{s['ms_per_registration']['mean']} ms/registration"
+              + (f" | {s['stop_reasons']}" if s.get("stop_reasons") else ""))
+    t = out["exploration_travel_mm"]
+    print(f"{'exploration':24s} {controller.exploration_length}: travel {t['mean']} mm "
+          f"(max {t['max']}), ER of the true length {out['er_of_true_length']['mean']} +- "
+          f"{out['er_of_true_length']['sd']}")
     print(f"{'seed paper':24s} E_trans 8.73 +- 6.93 mm | E_rot,x 12.86 +- 20.86 deg")
     print(json.dumps(out))
     return 0

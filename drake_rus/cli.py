@@ -20,6 +20,7 @@ COMMAND_MODULES = [
     "drake_rus.scan.cli",        # scan: the full autonomous scan
     "drake_rus.experiments.cli",  # study: the seed paper's studies (kinematic, Dask)
     "drake_rus.reliability.cli",  # campaign: randomised faulty scans (safety figures)
+    "drake_rus.rehearsal.cli",   # rehearse: software-in-the-loop rehearsal on the wire
 ]
 
 

@@ -143,8 +143,11 @@ def BuildClosedLoopOnPatient(scenario, patient, *, log_period: float | None = 0.
     R0 = TipKinematics(plant, tip).pose(q_initial).rotation()
     q0 = SolveTipPose(plant, tip, RigidTransform(R0, [p_K[0], p_K[1], p_K[2] + start_height]),
                       q_nominal=q_initial)
-    scenario = ApplyOverrides(scenario, "{robot: {initial_joint_positions: [%s]}}"
-                              % ", ".join(f"{v:.6f}" for v in q0))
+    # It starts higher above the skin than an operator's placement: allow that approach.
+    travel = max(scenario.controller.approach_max_travel, start_height)
+    scenario = ApplyOverrides(scenario, "{robot: {initial_joint_positions: [%s]}, "
+                              "controller: {approach_max_travel: %.3f}}"
+                              % (", ".join(f"{v:.6f}" for v in q0), travel))
     scenario.controller.start_xy = [float(v) for v in p_K[:2]]
     station = MakeStation(scenario, meshcat=meshcat, patient=patient)
 

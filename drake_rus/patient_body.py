@@ -7,6 +7,7 @@ Simulation only; the hardware station has a real patient.
 from __future__ import annotations
 
 import hashlib
+import logging
 import tempfile
 from pathlib import Path
 
@@ -26,8 +27,10 @@ from drake_rus.anatomy.motion import PatientMotion
 from drake_rus.io_utils import write_text_atomic
 from drake_rus.scenario import Scenario
 
-__all__ = ["AddPatientBody", "ContactHull", "AddPatientMotionDriver", "PatientMotionFor",
+__all__ = ["AddPatientBody", "ContactHull", "ContactSection", "hull_gap_over_kidney", "AddPatientMotionDriver", "PatientMotionFor",
            "MovingPose", "BreathHoldSignal", "PatientMotionDesiredState"]
+
+LOG = logging.getLogger("drake_rus.patient_body")
 
 # The moving patient body (breathing / shifting patients): a torso of PATIENT_MASS kg on
 # x-y-z prismatic joints held by implicit (SAP) PD actuators. 1e5 N/m with critical damping
@@ -84,7 +87,8 @@ def AddPatientBody(plant: MultibodyPlant, scenario: Scenario, patient=None,
                                      np.array([0.93, 0.78, 0.68, 0.55]))
         return added
     mesh_dir = Path(mesh_dir) if mesh_dir else Path(tempfile.gettempdir()) / "drake_rus_meshes"
-    torso = ContactHull(patient.torso_section(0.20), scenario.contact.patient_hull_vertices)
+    torso, half_length, gap = ContactSection(patient, scenario.contact)
+    added["section_half_length"], added["hull_gap"] = half_length, gap
     torso_path = _mesh_file(torso, mesh_dir, "torso_section")
     added["collision"] = plant.RegisterCollisionGeometry(
         body, X_BPt, Convex(str(torso_path)), "patient_body", props)
@@ -125,6 +129,50 @@ def _AddMovingPatientBody(plant: MultibodyPlant):
         actuator.set_controller_gains(PdControllerGains(p=PATIENT_KP, d=PATIENT_KD))
         parent = body
     return parent
+
+
+def hull_gap_over_kidney(patient, hull, samples: int = 9, width: float = 0.02) -> float:
+    """How far (m) ``hull`` lies above the skin where the probe travels: the largest
+    difference of their top surfaces along z of the patient frame (the bed's up) on a strip
+    ``width`` wide along the body's long axis over the kidney's centroid, as long as the
+    kidney. 0 when the hull follows the skin there."""
+    v = np.asarray(patient.kidney_mesh.vertices)
+    c = v.mean(axis=0)
+    xs, ys = np.meshgrid(np.linspace(c[0] - width / 2, c[0] + width / 2, 3),
+                         np.linspace(v[:, 1].min(), v[:, 1].max(), samples))
+    top = max(float(patient.skin_mesh.bounds[1, 2]), float(hull.bounds[1, 2])) + 1.0
+    origins = np.column_stack([xs.ravel(), ys.ravel(), np.full(xs.size, top)])
+    down = np.tile([0.0, 0.0, -1.0], (len(origins), 1))
+
+    def first_hits(mesh):
+        z = np.full(len(origins), np.nan)
+        locations, index, _ = mesh.ray.intersects_location(origins, down)
+        for p, i in zip(locations, index):
+            z[i] = p[2] if np.isnan(z[i]) else max(z[i], p[2])
+        return z
+
+    gaps = first_hits(hull) - first_hits(patient.skin_mesh)
+    gaps = gaps[np.isfinite(gaps)]
+    return float(max(0.0, gaps.max())) if len(gaps) else 0.0
+
+
+def ContactSection(patient, contact):
+    """The patient's contact body: the convex hull (``ContactHull``) of the torso section
+    with the longest half-length in ``contact.patient_section_half_lengths`` whose hull lies
+    within ``contact.patient_hull_max_gap`` of the skin over the kidney (else the shortest).
+    Returns (hull mesh, half-length m, gap m)."""
+    best = None
+    for half_length in sorted(contact.patient_section_half_lengths, reverse=True):
+        hull = ContactHull(patient.torso_section(half_length), contact.patient_hull_vertices)
+        gap = hull_gap_over_kidney(patient, hull)
+        if best is None or gap < best[2]:
+            best = (hull, half_length, gap)
+        if gap <= contact.patient_hull_max_gap:
+            return hull, half_length, gap
+    LOG.warning("the patient's contact hull lies %.1f mm above the skin over the kidney even "
+                "with a %.0f mm torso section (contact.patient_hull_max_gap %.1f mm)",
+                best[2] * 1000, best[1] * 2000, contact.patient_hull_max_gap * 1000)
+    return best
 
 
 def ContactHull(mesh, max_vertices: int):

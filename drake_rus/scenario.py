@@ -23,6 +23,7 @@ from drake_rus.hardware.config import HardwareConfig
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.localization.config import LocalizationConfig
 from drake_rus.reliability.config import FaultConfig
+from drake_rus.scan.config import StartConfig
 from drake_rus.paths import DIAGRAMS_DIR
 
 __all__ = [
@@ -130,8 +131,16 @@ class ContactConfig:
     # Resolution hint of the rigid probe face mesh (m).
     probe_resolution_hint: float = field(default=0.02, metadata={"positive": True})
     # Vertices of the convex hull used as a virtual patient's contact body (see
-    # station.ContactHull): more is closer to the skin, fewer is faster.
+    # patient_body.ContactHull): more is closer to the skin, fewer is faster.
     patient_hull_vertices: int = field(default=300, metadata={"min": 8})
+    # The contact body is the convex hull of the torso between the kidney's level -/+ a
+    # half-length: the longest of these (m) whose hull stays within patient_hull_max_gap of
+    # the skin over the kidney (a convex hull bridges a waist between hips and shoulders,
+    # e.g. in left lateral decubitus).
+    patient_section_half_lengths: list[float] = field(
+        default_factory=lambda: [0.20, 0.15, 0.12, 0.10, 0.08, 0.06],
+        metadata={"positive": True, "max": 0.5})
+    patient_hull_max_gap: float = field(default=0.004, metadata={"positive": True, "max": 0.05})
     # Hunt-Crossley dissipation (s/m) of the soft body.
     hunt_crossley_dissipation: float = field(default=5.0, metadata={"min": 0.0})
     # Point-contact stiffness (N/m) when model == "point".
@@ -149,6 +158,8 @@ class Scenario:
     contact: ContactConfig = field(default_factory=ContactConfig)
     imaging: ImagingConfig = field(default_factory=ImagingConfig)
     localization: LocalizationConfig = field(default_factory=LocalizationConfig)
+    # Where the scan starts: the start planner (simulation's stand-in for the operator).
+    start: StartConfig = field(default_factory=StartConfig)
     controller: ControllerConfig = field(default_factory=ControllerConfig)
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     # false: simulated station; true: a real FR3 and ultrasound machine.

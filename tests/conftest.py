@@ -5,6 +5,7 @@ import pytest
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.robot import MakeControlPlant, TipKinematics
+from drake_rus.scenario import ApplyOverrides, LoadScenario
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -27,3 +28,13 @@ def kin() -> TipKinematics:
     """Tip kinematics on the default scenario's control plant (FR3 + probe)."""
     plant, frame = MakeControlPlant()
     return TipKinematics(plant, frame)
+
+
+def hardware_scenario(fields: dict, extra: str = ""):
+    """The default scenario with ``hardware: true`` and ``hardware_interface`` set to
+    ``fields`` (booleans written as YAML), plus ``extra`` top-level YAML (e.g. a safety
+    section), for the hardware-station tests."""
+    text = ", ".join(f"{k}: {str(v).lower() if isinstance(v, bool) else v}"
+                     for k, v in fields.items())
+    return ApplyOverrides(LoadScenario(), "{hardware: true, %shardware_interface: {%s}}"
+                          % (f"{extra}, " if extra else "", text))

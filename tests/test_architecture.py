@@ -21,6 +21,7 @@ LAYERS = [
               "drake_rus.progress", "drake_rus.tables", "drake_rus.control.config",
               "drake_rus.hardware.config", "drake_rus.imaging.config",
               "drake_rus.localization.config", "drake_rus.reliability.config",
+              "drake_rus.scan.config",
               "drake_rus.anatomy.motion"]),
     ("scenario", ["drake_rus.scenario"]),
     ("models", ["drake_rus.robot", "drake_rus.anatomy", "drake_rus.template",
@@ -29,7 +30,7 @@ LAYERS = [
     ("stations", ["drake_rus.station", "drake_rus.patient_body", "drake_rus.hardware"]),
     ("dispatch", ["drake_rus.stations"]),
     ("scan", ["drake_rus.scan", "drake_rus.closed_loop"]),
-    ("studies", ["drake_rus.experiments", "drake_rus.reliability"]),
+    ("studies", ["drake_rus.experiments", "drake_rus.reliability", "drake_rus.rehearsal"]),
     ("front", ["drake_rus.cli", "drake_rus.demo", "drake_rus.render"]),
 ]
 # Allowed exceptions, each with its reason.

@@ -53,7 +53,10 @@ KIDNEY_SEMI_AXES = [0.055, 0.03, 0.025]
 @pytest.fixture(scope="module")
 def full_scan():
     """APPROACH -> EXPLORE (30 mm) -> LOCALIZE -> TRANSIT -> PIVOT -> DONE on the station."""
-    s = scenario("{controller: {exploration_ratio: 0.3, pivot_rate: 0.15}}")
+    # The default joint pose hovers about 0.1 m above the placeholder torso, higher than an
+    # operator's placement: allow that approach.
+    s = scenario("{controller: {exploration_ratio: 0.3, pivot_rate: 0.15, "
+                 "approach_max_travel: 0.2}}")
     view = GeometricKidneyView(X_BK_TRUE, KIDNEY_SEMI_AXES,
                                frame_rate_hz=s.imaging.frame_rate_hz)
     cl = BuildClosedLoop(s, kidney_view=view, log_period=0.01)

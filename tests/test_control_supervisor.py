@@ -77,6 +77,9 @@ def test_rodrigues_pivot_update():
 
 # ------------------------------------------------------------------ supervisor
 def cfg(**kw):
+    """The default controller config; contact without a dwell time unless a test sets one
+    (the dwell has its own test)."""
+    kw.setdefault("contact_dwell", 0.0)
     return dataclasses.replace(ControllerConfig(), **kw)
 
 
@@ -377,3 +380,79 @@ def test_supervisor_aborts_when_the_kidney_moved_after_localization():
     s2 = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0), c, dt)
     s2 = supervisor.supervisor_step(s2, dataclasses.replace(inputs(0.01), tracking_error="x"), c, dt)
     assert s2.phase == supervisor.Phase.EXPLORE
+
+
+def test_approach_without_contact_aborts_after_the_travel_limit():
+    """In free air (no force) APPROACH gives up with a clear reason once the tip has moved
+    approach_max_travel along the beam; before that it keeps pressing."""
+    c, dt = cfg(approach_max_travel=0.05), 0.01
+    s = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0, F=0.0), c, dt)
+    s = supervisor.supervisor_step(s, inputs(0.5, p=(0.5, 0.0, 0.07), F=0.0), c, dt)
+    assert s.phase == supervisor.Phase.APPROACH                  # 30 mm down: keep going
+    s = supervisor.supervisor_step(s, inputs(1.0, p=(0.5, 0.0, 0.045), F=0.0), c, dt)
+    assert s.phase == supervisor.Phase.ABORT
+    assert s.reason.startswith("no contact") and "55 mm" in s.reason
+    slow = cfg(approach_timeout=2.0)
+    s = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0, F=0.0), slow, dt)
+    s = supervisor.supervisor_step(s, inputs(2.5, F=0.0), slow, dt)
+    assert s.phase == supervisor.Phase.ABORT and "no contact after 2 s" in s.reason
+
+
+def test_contact_needs_the_force_held_for_the_dwell_time():
+    """A force transient (an accelerating arm's torque estimate) is not contact: the force
+    must stay at contact_fraction F_des for contact_dwell."""
+    c, dt = cfg(contact_dwell=0.2), 0.01
+    s = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0, F=0.0), c, dt)
+    s = supervisor.supervisor_step(s, inputs(0.10, F=9.0), c, dt)      # spike ...
+    s = supervisor.supervisor_step(s, inputs(0.15, F=1.0), c, dt)      # ... gone
+    s = supervisor.supervisor_step(s, inputs(0.20, F=9.0), c, dt)
+    s = supervisor.supervisor_step(s, inputs(0.35, F=9.0), c, dt)
+    assert s.phase == supervisor.Phase.APPROACH                          # 0.15 s held
+    s = supervisor.supervisor_step(s, inputs(0.41, F=8.0), c, dt)
+    assert s.phase == supervisor.Phase.EXPLORE                           # 0.21 s held
+
+
+# ------------------------------------------------------------------ exploration length
+def test_exploration_target_rule():
+    fixed = cfg(exploration_ratio=0.6, kidney_length=0.1, exploration_length="fixed")
+    assert supervisor.exploration_target(fixed, 0.127) == pytest.approx(0.06)
+    est = cfg(exploration_ratio=0.6, kidney_length=0.1, exploration_length="estimated",
+              exploration_length_factor=1.5)
+    assert supervisor.exploration_target(est, math.nan) == pytest.approx(0.06)   # not known
+    assert supervisor.exploration_target(est) == pytest.approx(0.06)
+    assert supervisor.exploration_target(est, 0.127) == pytest.approx(0.6 * 0.127)
+    assert supervisor.exploration_target(est, 0.088) == pytest.approx(0.6 * 0.088)
+    # Never beyond the factor times the fixed travel, nor below it divided by the factor.
+    assert supervisor.exploration_target(est, 0.30) == pytest.approx(1.5 * 0.06)
+    assert supervisor.exploration_target(est, 0.02) == pytest.approx(0.06 / 1.5)
+    assert supervisor.exploration_target(est, -1.0) == pytest.approx(0.06)
+
+
+def _explore_until_localize(c, estimate, t_max=20.0):
+    dt = 0.01
+    s = supervisor.SupervisorState()
+    s.initialised, s.phase, s.P_des = True, supervisor.Phase.EXPLORE, np.array([0.55, 0.0])
+    t = 0.0
+    while s.phase == supervisor.Phase.EXPLORE and t < t_max:
+        t += dt
+        u = dataclasses.replace(inputs(t, p=(0.55, s.P_des[1], 0.1)),
+                                kidney_length_estimate=estimate(s.travel))
+        s = supervisor.supervisor_step(s, u, c, dt)
+    return s
+
+
+def test_exploration_ends_at_er_times_the_estimated_length():
+    c = cfg(exploration_ratio=0.5, kidney_length=0.1, exploration_length="estimated")
+    # The estimate appears after 30 mm: a 127 mm kidney is explored for 63.5 mm.
+    s = _explore_until_localize(c, lambda travel: 0.127 if travel >= 0.03 else math.nan)
+    assert s.phase == supervisor.Phase.LOCALIZE
+    assert s.travel == pytest.approx(0.5 * 0.127, abs=1e-6)
+    assert "estimated kidney length 127 mm" in s.events[-1][2]
+    # A short kidney ends it early, once the estimate is known.
+    s = _explore_until_localize(c, lambda travel: 0.088 if travel >= 0.03 else math.nan)
+    assert s.travel == pytest.approx(0.044, abs=1e-6)
+    # Without an estimate, or with exploration_length: fixed, ER x L_m.
+    assert _explore_until_localize(c, lambda travel: math.nan).travel == pytest.approx(0.05)
+    fixed = dataclasses.replace(c, exploration_length="fixed")
+    s = _explore_until_localize(fixed, lambda travel: 0.127)
+    assert s.travel == pytest.approx(0.05) and "estimated" not in s.events[-1][2]

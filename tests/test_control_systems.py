@@ -134,12 +134,47 @@ def test_scan_supervisor_system_outputs(plant_and_frame):
     assert sup.GetOutputPort("F_des").Eval(ctx)[0] == cfg.desired_force
     force.GetMutableData().set_value(np.array([9.0]))
     sim.AdvanceTo(0.015)
+    # Contact is declared once the force has held for contact_dwell.
+    assert sup.GetOutputPort("phase").Eval(ctx)[0] == supervisor.Phase.APPROACH
+    sim.AdvanceTo(0.015 + cfg.contact_dwell + 0.01)
     assert sup.GetOutputPort("phase").Eval(ctx)[0] == supervisor.Phase.EXPLORE
     assert sup.GetOutputPort("exploring").Eval(ctx)[0] == 1.0
     assert sup.GetOutputPort("segmentation_required").Eval(ctx)[0] == 1.0
     sup.GetInputPort("safety_stopped").FixValue(ctx, [1.0])
-    sim.AdvanceTo(0.025)
+    sim.AdvanceTo(0.035 + cfg.contact_dwell)
     assert sup.GetOutputPort("abort").Eval(ctx)[0] == 1.0
+
+
+@pytest.mark.parametrize("estimate, explored", [(None, 0.05), (0.14, 0.07)])
+def test_scan_supervisor_kidney_length_estimate_input(estimate, explored):
+    """Unconnected, the estimate is NaN (EXPLORE ends at ER x L_m); connected, EXPLORE ends
+    at ER x the estimate (``exploration_length: estimated``)."""
+    import dataclasses
+    cfg = dataclasses.replace(ControllerConfig(), exploration_ratio=0.5, kidney_length=0.1,
+                              exploration_length="estimated")
+    sup = ScanSupervisor(cfg)
+    sim = Simulator(sup)
+    ctx = sim.get_mutable_context()
+    X = RigidTransform(RotationMatrix.MakeXRotation(math.pi), [0.55, 0.0, 0.12])
+    sup.GetInputPort("X_BP").FixValue(ctx, X)
+    sup.GetInputPort("contact_force").FixValue(ctx, [9.0])
+    if estimate is not None:
+        sup.GetInputPort("kidney_length_estimate").FixValue(ctx, [estimate])
+    s = supervisor.SupervisorState()
+    s.initialised, s.phase, s.P_des = True, supervisor.Phase.EXPLORE, np.array([0.55, 0.0])
+    s.travel = 0.0495                          # just short of 50 mm
+    ctx.get_mutable_abstract_state(0).set_value(s)
+    sim.AdvanceTo(0.5)
+    state = sup.state(ctx)
+    if estimate is None:
+        assert state.phase == supervisor.Phase.LOCALIZE
+        assert state.travel == pytest.approx(explored)
+    else:
+        assert state.phase == supervisor.Phase.EXPLORE and state.travel < explored
+        sim.AdvanceTo(0.0205 / cfg.scan_speed + 0.2)             # 20.5 mm more at v_scan
+        assert sup.state(ctx).phase == supervisor.Phase.LOCALIZE
+        assert sup.state(ctx).travel == pytest.approx(explored)
+        assert "estimated kidney length 140 mm" in sup.state(ctx).events[-1][2]
 
 
 def test_kidney_section_and_view():

@@ -11,6 +11,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import hardware_scenario
 from pydrake.lcm import DrakeLcm
 from pydrake.math import RigidTransform
 from pydrake.multibody.tree import JacobianWrtVariable
@@ -23,7 +24,7 @@ from drake_rus.hardware.lcm_sim_driver import CommandExpiry, SimulatedPandaDrive
 from drake_rus.hardware.station import (HardwareFault, MakeHardwareStation,
                                         RunHardware)
 from drake_rus.imaging.frames import UsFrame
-from drake_rus.scenario import ApplyOverrides, LoadScenario
+from drake_rus.scenario import LoadScenario
 from drake_rus.robot import MakeControlPlant
 from drake_rus.stations import MakeStation
 
@@ -35,11 +36,12 @@ pytestmark = pytest.mark.timeout(300)
 
 def lcm_scenario(**hw):
     fields = {"backend": "lcm", "dry_run": False, "tau_external_bias_duration": 0.0,
-              "connect_timeout": 5.0, "status_timeout": 0.5}
+              "connect_timeout": 5.0, "status_timeout": 0.5,
+              # The simulated robot reports no probe weight: as if the probe were entered
+              # in Desk (lcm_compensate_load must then be off).
+              "lcm_compensate_load": False}
     fields.update(hw)
-    text = ", ".join(f"{k}: {str(v).lower() if isinstance(v, bool) else v}"
-                     for k, v in fields.items())
-    return ApplyOverrides(LoadScenario(), "{hardware: true, hardware_interface: {%s}}" % text)
+    return hardware_scenario(fields)
 
 
 class Rig:

@@ -140,3 +140,70 @@ def test_rotation_from_vector_is_exact():
     R = rotation_from_vector(w)
     np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
     np.testing.assert_allclose(RotationMatrix(R).ToAngleAxis().angle(), np.linalg.norm(w))
+
+
+# ------------------------------------------------------------------ stopping: cycles
+# A tiny template (four points with normals) and six points (mm) on which plane-to-plane
+# ICP alternates between two poses for ever: each pose's nearest neighbours pull the
+# solve to the other one, the error alternates between 1.02 and 0.85 mm RMS, neither the
+# error-change test nor the step test ever fires.
+CYCLE_Q_MM = [[8, -1, 0], [-8, 3, -7], [4, -4, -10], [-8, 9, 4]]
+CYCLE_N = [[0, 0, 1], [0, 0, 1], [1, 0, 1], [0, 1, 1]]
+CYCLE_P_MM = [[-4, 1, 1], [8, 5, 6], [-4, -5, 1], [-3, 10, -3], [-4, 9, 10], [4, 4, 6]]
+
+
+def _cycle_case():
+    N = np.asarray(CYCLE_N, float)
+    return (np.asarray(CYCLE_P_MM, float) / 1000, np.asarray(CYCLE_Q_MM, float) / 1000,
+            N / np.linalg.norm(N, axis=1, keepdims=True))
+
+
+def test_a_two_cycle_runs_to_the_cap_without_detection():
+    P, Q, N = _cycle_case()
+    r = register_plane_to_plane(P, Q, N, RotationMatrix(), max_iterations=100,
+                                cycle_max_period=0)
+    assert r.iterations == 100 and not r.converged and r.stop_reason == "iteration cap"
+    e = r.errors[-8:]
+    np.testing.assert_allclose(e[2:], e[:-2], rtol=1e-9)     # period 2 ...
+    assert abs(e[-1] - e[-2]) > 1e-8                         # ... not a fixed point
+
+
+def test_a_two_cycle_is_caught():
+    P, Q, N = _cycle_case()
+    r = register_plane_to_plane(P, Q, N, RotationMatrix(), max_iterations=100)
+    assert r.stop_reason == "cycle" and not r.converged
+    assert r.cycle_period == 2 and r.iterations < 30
+    # The member of the cycle with the lower error is returned, with the cycle's spread.
+    assert r.rms_residual ** 2 == pytest.approx(min(r.errors[-2:]), rel=1e-9)
+    assert r.cycle_translation_spread > 1e-3 and r.cycle_rotation_spread > np.deg2rad(1.0)
+
+
+def test_a_clean_registration_stops_as_converged():
+    Q, N, _ = bean_template(3)
+    P_B = true_pose().multiply(Q.T).T
+    R0 = heuristic_initial_rotation(SUPERIOR_B, LATERAL_B)
+    for kwargs in ({}, {"shape_modes_K": np.zeros((1,) + Q.shape),
+                        "shape_variances": np.array([1e-4])}):
+        r = register_plane_to_plane(P_B, Q, N, R0, **kwargs)
+        assert r.converged and r.stop_reason == "converged" and r.cycle_period == 0
+        assert r.cycle_translation_spread == 0.0 and r.iterations < 100
+
+
+def test_cycle_detector_needs_a_return_after_an_excursion():
+    from drake_rus.localization.icp import _cycle_period
+
+    def state(x, angle=0.0):
+        return (rotation_from_vector(np.array([0.0, 0.0, angle])), np.array([x, 0.0, 0.0]),
+                np.zeros(0))
+
+    # Slow monotone convergence and a damped oscillation (equal errors: the poses decide):
+    # not cycles.
+    for ratio in (0.97, -0.8):
+        states = [state(0.01 * ratio ** k) for k in range(60)]
+        for k in range(3, len(states) + 1):
+            assert _cycle_period(states[:k], [1e-6] * k, 8, 1e-4, 1e-11, None) == 0
+    # A period-3 cycle of 2 mm / 1 deg excursions: found with its period.
+    cyc = [state(0.0), state(0.002, 0.0175), state(-0.002)] * 3
+    errors = [1e-6, 2e-6, 3e-6] * 3
+    assert _cycle_period(cyc, errors, 8, 1e-4, 1e-11, None) == 3
+    assert _cycle_period(cyc, errors, 2, 1e-4, 1e-11, None) == 0     # longer than looked for

@@ -14,7 +14,8 @@ from drake_rus.imaging.frames import PointCloud
 from drake_rus.localization.config import LocalizationConfig
 from drake_rus.localization.icp import heuristic_initial_rotation, register_plane_to_plane
 from drake_rus.localization.localize import (
-    IcpLocalizer, RegistrationTemplate, check_registration, exploration_travel)
+    IcpLocalizer, RegistrationTemplate, check_registration, estimate_kidney_length,
+    exploration_travel)
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_localization_icp import LATERAL_B, SUPERIOR_B, bean_template, true_pose  # noqa: E402
@@ -137,3 +138,87 @@ def test_supervisor_ends_exploration_when_sufficient():
     s = supervisor.supervisor_step(s, u, ControllerConfig(), 0.01)
     assert s.phase == supervisor.Phase.LOCALIZE
     assert "adaptive" in s.events[-1][2]
+
+
+def test_rms_bound_depends_on_the_method(template):
+    """A rigid template leaves a real kidney's whole shape difference in the residual (up to
+    5.6 mm on the VH female's kidneys); the deformable fit absorbs part of it."""
+    config = LocalizationConfig()
+    X_BK, P = partial_cloud(template)
+    good = register_plane_to_plane(P, template.points, template.normals,
+                                   heuristic_initial_rotation(SUPERIOR_B, LATERAL_B))
+    rigid = dataclasses.replace(good, rms_residual=0.0055)
+    assert check_registration(rigid, P, config) == ""
+    assert "RMS residual 6.5 mm > 6.0 mm" in check_registration(
+        dataclasses.replace(rigid, rms_residual=0.0065), P, config)
+    deformable = dataclasses.replace(rigid, shape_coefficients=np.zeros(3))
+    assert "RMS residual 5.5 mm > 5.0 mm" in check_registration(deformable, P, config)
+
+
+def test_localizer_needs_the_kidney_seen_along_the_body(template):
+    """The probe travelled 40 mm but the kidney showed in one place only (a few frames):
+    too little of it to register."""
+    X_BK, P = partial_cloud(template)
+    y = P @ SUPERIOR_B
+    P = P[np.abs(y - np.median(y)) < 0.002]                     # a 4 mm band of the kidney
+    system = IcpLocalizer(template, LocalizationConfig(method="seed"), SUPERIOR_B, LATERAL_B,
+                          localize_phase=int(supervisor.Phase.LOCALIZE), min_points=10)
+    from pydrake.systems.analysis import Simulator
+    simulator = Simulator(system)
+    context = simulator.get_mutable_context()
+    system.GetInputPort("point_cloud").FixValue(context, _cloud(P, 0.04))
+    system.GetInputPort("phase").FixValue(context, [float(supervisor.Phase.LOCALIZE)])
+    simulator.AdvanceTo(0.1)
+    assert "the kidney was seen over only" in system.GetOutputPort("localization_error").Eval(
+        context)
+
+
+def lengthening_template(template):
+    """The bean with one shape mode that lengthens it (poles +-1 m per unit weight)."""
+    Q = template.points
+    mode = np.zeros_like(Q)
+    mode[:, 0] = Q[:, 0] / np.abs(Q[:, 0]).max()
+    return RegistrationTemplate(Q, template.normals, mode[None], np.array([0.01 ** 2])), mode
+
+
+def test_kidney_length_estimate_from_a_partial_cloud(template):
+    shaped, mode = lengthening_template(template)
+    b_true = 0.012                                                # 24 mm longer
+    X_BK = true_pose((5.0, -4.0, 6.0))
+    K = template.points + b_true * mode
+    seen = K[:, 0] > K[:, 0].max() - 0.6 * np.ptp(K[:, 0])       # 60% from the upper pole
+    P = X_BK.multiply(K[seen].T).T
+    config = LocalizationConfig(length_shape_modes=1)
+    length, result = estimate_kidney_length(P, shaped, config, SUPERIOR_B, LATERAL_B)
+    assert np.ptp(template.points[:, 0]) + 0.02 < length          # longer than the template
+    assert length == pytest.approx(np.ptp(K[:, 0]), abs=0.004)
+    assert result.shape_coefficients is not None
+    # Without shape modes the template's own length says nothing about the kidney.
+    assert np.isnan(estimate_kidney_length(P, template, config, SUPERIOR_B, LATERAL_B)[0])
+
+
+@pytest.mark.parametrize("enabled", [True, False])
+def test_icp_localizer_kidney_length_estimate_port(template, enabled):
+    from pydrake.systems.analysis import Simulator
+    shaped, mode = lengthening_template(template)
+    K = template.points + 0.012 * mode
+    X_BK = true_pose((5.0, -4.0, 6.0))
+    P = X_BK.multiply(K[K[:, 0] > K[:, 0].max() - 0.6 * np.ptp(K[:, 0])].T).T
+    config = LocalizationConfig(length_shape_modes=1, length_estimation=enabled,
+                                adaptive_period=0.2, length_min_travel=0.03)
+    system = IcpLocalizer(shaped, config, SUPERIOR_B, LATERAL_B,
+                          localize_phase=int(supervisor.Phase.LOCALIZE),
+                          explore_phase=int(supervisor.Phase.EXPLORE))
+    simulator = Simulator(system)
+    context = simulator.get_mutable_context()
+    port = system.GetOutputPort("kidney_length_estimate")
+    system.GetInputPort("phase").FixValue(context, [float(supervisor.Phase.EXPLORE)])
+    system.GetInputPort("point_cloud").FixValue(context, _cloud(P, 0.02))
+    simulator.AdvanceTo(0.3)
+    assert np.isnan(port.Eval(context)[0])                        # 20 mm explored: not yet
+    system.GetInputPort("point_cloud").FixValue(context, _cloud(P, 0.04))
+    simulator.AdvanceTo(0.6)
+    if enabled:
+        assert port.Eval(context)[0] == pytest.approx(np.ptp(K[:, 0]), abs=0.004)
+    else:
+        assert np.isnan(port.Eval(context)[0])

@@ -15,7 +15,8 @@ from drake_rus.localization.config import LocalizationConfig
 from drake_rus.localization.icp import IcpResult
 from drake_rus.localization.localize import LocalizationOutcome, load_registration_template
 from drake_rus.localization.tracking import (
-    DriftEstimate, KidneyTrackingMonitor, TrackingState, estimate_drift, tracking_update)
+    DriftEstimate, KidneyTrackingMonitor, TrackingLimits, TrackingState, estimate_drift,
+    judged_drift, tracking_limits, tracking_update)
 
 X_BK = RigidTransform(RollPitchYaw(0.05, -0.1, math.pi / 2 + 0.2), [0.55, 0.02, 0.08])
 
@@ -139,3 +140,60 @@ def test_monitor_ignores_frames_outside_its_phases_and_breath_holds(template):
     off = dataclasses.replace(LocalizationConfig(), tracking_check=False)
     state, _ = _run_monitor(template, lateral, config=off)
     assert state.error == "" and state.history == ()
+
+
+def _result(rms=0.001):
+    return IcpResult(X_BK=X_BK, iterations=1, converged=True, rms_residual=rms,
+                     inlier_fraction=1.0, covariance=np.eye(6), errors=np.zeros(1),
+                     max_rotation_steps=np.zeros(1))
+
+
+def test_judged_drift_allows_the_registrations_axial_uncertainty():
+    lim = TrackingLimits(0.015, 0.015, np.array([0.0, 1.0, 0.0]))
+    assert judged_drift([0.0, 0.014, 0.0], lim) == 0.0           # within the allowance
+    assert judged_drift([0.0, -0.020, 0.0], lim) == pytest.approx(0.005)
+    assert judged_drift([0.012, 0.020, 0.0], lim) == pytest.approx(math.hypot(0.012, 0.005))
+    # Without an axis the whole drift counts (the plain limit).
+    assert judged_drift([0.012, 0.020, 0.0], TrackingLimits(0.015)) == pytest.approx(
+        math.hypot(0.012, 0.020))
+
+
+def test_tracking_limits_follow_the_registration():
+    cfg = LocalizationConfig()
+    lim = tracking_limits(_result(0.002), cfg)
+    assert lim.limit == cfg.tracking_max_drift
+    assert lim.axial_allowance == cfg.tracking_axial_allowance
+    np.testing.assert_allclose(lim.axis_B, X_BK.rotation().matrix()[:, 0])
+    scaled = dataclasses.replace(cfg, tracking_rms_factor=10.0)
+    assert tracking_limits(_result(0.002), scaled).limit == pytest.approx(0.020)
+    assert tracking_limits(_result(0.001), scaled).limit == cfg.tracking_max_drift
+    plain = tracking_limits(None, cfg)
+    assert plain.limit == cfg.tracking_max_drift and plain.axis_B is None
+
+
+def test_tracking_update_judges_with_the_limits():
+    cfg = LocalizationConfig(tracking_confirmations=2)
+    lim = TrackingLimits(0.015, 0.015, np.array([0.0, 1.0, 0.0]))
+    along = DriftEstimate(np.array([0.0, 0.025, 0.0]), 0.001, 100)
+    s = tracking_update(tracking_update(TrackingState(), 1.0, along, cfg, lim), 1.5, along,
+                        cfg, lim)
+    assert s.error == "" and s.judged_m == pytest.approx(0.010) and s.limit_m == 0.015
+    assert s.drift_m == pytest.approx(0.025)                    # the apparent drift itself
+    across = DriftEstimate(np.array([0.016, 0.025, 0.0]), 0.001, 100)
+    s = tracking_update(tracking_update(s, 2.0, across, cfg, lim), 2.5, across, cfg, lim)
+    assert "25.0 mm of it along the kidney's long axis, where 15 mm are allowed" in s.error
+    assert "judged 18.9 mm" in s.error and "29.7 mm from its registered pose" in s.error
+    assert "from its registered pose" in s.error and "limit 15.0 mm" in s.error
+
+
+def test_monitor_passes_a_still_kidney_its_template_misplaces_along_the_axis(template):
+    """The pivot frames of a kidney longer than the template pull the template along the
+    kidney's axis (half the length difference) although nothing moved: not motion."""
+    along = X_BK.rotation().matrix()[:, 0] * 0.018
+    state, drift = _run_monitor(template, along)
+    assert drift == pytest.approx(0.018, abs=0.004)            # the apparent drift ...
+    assert state.error == "" and state.judged_m < 0.006        # ... within the allowance
+    assert state.limit_m == pytest.approx(0.015)
+    plain = dataclasses.replace(LocalizationConfig(), tracking_axial_allowance=0.0)
+    state, _ = _run_monitor(template, along, config=plain)     # the former rule: "moved"
+    assert "from its registered pose" in state.error

@@ -33,8 +33,14 @@ def test_scan_on_a_test_patient(tmp_path):
     # The localization produced an estimate in the kidney's neighbourhood.
     assert summary["e_trans_mm"] < 30 and summary["e_rot_x_deg"] < 30
     assert summary["peak_force_n"] < 20.0
+    # The start planner chose a window and a depth preset, and the image depth followed it.
+    start = summary["start"]
+    assert start["planner"] == "window" and start["windows_feasible"] >= 1
+    assert summary["image_depth_m"] == start["depth_preset_m"]
+    assert start["depth_preset_m"] * 1000 >= start["needed_depth_mm"]
+    assert start["placement_error_mm"] == pytest.approx(5.0)
     for name in ("partial_cloud.ply", "registered_template.ply", "registration.png",
-                 "coverage.png", "traces.png", "pivot_frames.png"):
+                 "coverage.png", "traces.png", "pivot_frames.png", "start_plan.png"):
         assert (out / name).stat().st_size > 0, name
 
 

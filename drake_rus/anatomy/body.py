@@ -17,14 +17,20 @@ import trimesh
 
 __all__ = ["TorsoParams", "Torso", "BODY_SIZES"]
 
-# Body-size classes. Half-widths follow adult abdominal transverse diameters at L1-L2
-# (about 260-380 mm); subcutaneous fat thickness grows with BMI (about 5-40 mm).
+# Body-size classes. P(class): WHO 2022, 43% of adults overweight (BMI >= 25) and 16% obese
+# (BMI >= 30), so 27% overweight and 16% obese; the other 57% split lean/normal (modelling
+# choice). Half-widths follow adult
+# abdominal transverse diameters at L1-L2 (about 260-380 mm); subcutaneous fat thickness
+# grows with BMI (about 5-40 mm). Vertical (anterior) skin-to-kidney depth supine, drawn
+# uniformly per class: 75-165 mm over the classes; CT skin-to-kidney distances have means
+# near 100 mm with SDs of 25-30 mm (lithotripsy series, facts file), and the Visible Human
+# female measures 147.5 mm (inside the obese range). The class ranges are a modelling choice.
 BODY_SIZES = {
     #            P(class) half-width(m) fat(m)  vertical kidney depth range (m)
-    "lean":       (0.20, 0.138, 0.008, (0.080, 0.092)),
-    "normal":     (0.40, 0.150, 0.015, (0.082, 0.098)),
-    "overweight": (0.30, 0.163, 0.024, (0.088, 0.104)),
-    "obese":      (0.10, 0.178, 0.033, (0.094, 0.105)),
+    "lean":       (0.17, 0.138, 0.008, (0.075, 0.095)),
+    "normal":     (0.40, 0.150, 0.015, (0.085, 0.112)),
+    "overweight": (0.27, 0.165, 0.025, (0.098, 0.130)),
+    "obese":      (0.16, 0.182, 0.036, (0.118, 0.165)),
 }
 
 

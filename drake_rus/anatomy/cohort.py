@@ -170,7 +170,7 @@ REFERENCE = {
     "hilum_angle_deg": "40-45 (Sakate 2009)",
     "coronal_angle_deg": "15-20",
     "sagittal_angle_deg": "10-25 (sampled range, no published angle)",
-    "depth_vertical_mm": "80-105 (CT skin-to-kidney)",
+    "depth_vertical_mm": "75-165 by body size (modelling choice; CT skin-to-kidney 100 +- 25-30)",
 }
 
 _UNITS = {"length": ("length_mm", 1e3), "width": ("width_mm", 1e3),

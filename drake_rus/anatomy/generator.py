@@ -15,9 +15,11 @@ modelling choice. Placement (body frame Bd, see :mod:`drake_rus.anatomy.body`):
   about 45-50 mm from the midline); moved medially if the kidney would leave the cavity;
 - depth: the kidney's posterior surface lies N(35, 5) mm in front of the back fat (posterior
   muscles and perirenal fat), and the body's anteroposterior size is set so that the vertical
-  depth from the upper skin above the kidney centroid to the kidney is in 80-105 mm
-  (CT skin-to-kidney depth, facts file), drawn per body-size class. This is the depth a probe
-  on the upper surface pointing down (-z_Pt) must see through when supine; in left lateral
+  depth from the upper skin above the kidney centroid to the kidney is drawn uniformly in the
+  body-size class's range (:data:`~drake_rus.anatomy.body.BODY_SIZES`: 75-95 mm lean up to
+  118-165 mm obese; CT skin-to-kidney distances, facts file; the Visible Human female's
+  147.5 mm lies near the 94th percentile of the cohort). This is the depth a probe on the
+  upper surface pointing down (-z_Pt) must see through when supine; in left lateral
   decubitus the upper surface is the right flank and the depth is smaller (reported, not set).
 """
 

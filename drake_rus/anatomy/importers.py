@@ -11,6 +11,11 @@ muscle wall measured in-plane from the skin (modelling choice, 15 mm and 12 mm b
 real meshes carry no layers), liver, both kidneys; the target kidney's cortex and sinus
 sub-labels are set by depth below its surface (Glodny 2009: cortex 6.6 mm, parenchyma
 15.4 mm). No ribs or gas: the HuBMAP body has none (its README).
+
+The arms are removed from the body before the posture roll, for both postures
+(:mod:`drake_rus.anatomy.trunk`): an arm beside the trunk would otherwise lie over the
+right flank in left lateral decubitus and join the contact body's hull. The roll itself is
+rigid: organs do not shift under gravity (see :mod:`drake_rus.anatomy.trunk`).
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ from drake_rus.anatomy.frames import R_BdS, R_PtBd, check_side_posture, transfor
 from drake_rus.anatomy.labels import Label, LabelVolume
 from drake_rus.anatomy.patient import Patient
 from drake_rus.anatomy.rasterize import grid_around, mask_to_mesh, rasterize_mesh
+from drake_rus.anatomy.trunk import remove_arms, trunk_mask
 from drake_rus.template.pca import mesh_surface_moments
 
 # crop_body_section (body_section) and mask_to_mesh (rasterize) are re-exported here.
@@ -257,10 +263,12 @@ def patient_from_meshes(kidney, skin, *, liver=None, other_kidney=None, side="ri
     if not 0.03 < ext < 0.3:
         _fail(f"kidney mesh: largest extent {ext * 1e3:.0f} mm after unit conversion "
               f"(units={units!r}); expected a kidney of 30-300 mm")
+    _, c_kidney, _ = mesh_surface_moments(km.vertices, km.faces)
+    sm, arms = remove_arms(sm, c_kidney)
     name = name or (Path(kidney).parent.name if not isinstance(kidney, trimesh.Trimesh) else "meshes")
     meta = {"source": "meshes", "kidney": str(kidney) if not isinstance(kidney, trimesh.Trimesh) else "mesh",
             "skin": str(skin) if not isinstance(skin, trimesh.Trimesh) else "mesh",
-            "axes": axes, "units_scale": scale,
+            "axes": axes, "units_scale": scale, "arms_removed": arms,
             "layers": {"fat": fat, "muscle": muscle, "note": "modelling choice (no layers in meshes)"}}
     return _assemble(name, side, posture, km, sm, lm, om, meta, voxel_size, fat, muscle)
 
@@ -419,9 +427,15 @@ def _patient_from_raw(raw, D, origin, mapping, path, *, side, posture, name, vox
     body = np.isin(raw, body_vals) | np.isin(raw, [k for k, v in mapping.items()
                                                    if v not in ("ignore",) and k in present])
     body = ndimage.binary_fill_holes(body)
+    # The arms off (module docstring): slices normal to the grid axis nearest to superior.
+    sup_axis = int(np.argmax(np.abs(D[2])))
+    trunk = trunk_mask(body, sup_axis, np.argwhere(kidney_mask).mean(axis=0), voxel_size)
+    arms = {"method": "axial-slice trunk tracking (anatomy/trunk.py)",
+            "removed_volume_l": round(float((body & ~trunk).sum()) * voxel_size ** 3 * 1e3, 3)}
+    body = trunk
     labels = np.zeros(raw.shape, dtype=np.uint8)
     labels[body] = Label.SOFT_TISSUE
-    depth = _wall_layers(body, voxel_size, fat, muscle, axis=int(np.argmax(np.abs(D[2]))))
+    depth = _wall_layers(body, voxel_size, fat, muscle, axis=sup_axis)
     labels[body & (depth <= fat + muscle)] = Label.MUSCLE
     labels[body & (depth <= fat)] = Label.FAT
     for k, v in mapping.items():
@@ -445,7 +459,7 @@ def _patient_from_raw(raw, D, origin, mapping, path, *, side, posture, name, vox
     liver_Bd = (mask_to_mesh(np.isin(raw, liver_vals), X_BdV, voxel_size, what=f"{path}: liver")
                 if liver_vals else None)
     meta = dict(meta)
-    meta.update({"mapping_values_present": sorted(present),
+    meta.update({"mapping_values_present": sorted(present), "arms_removed": arms,
                  "layers": {"fat": fat, "muscle": muscle, "note": "modelling choice"}})
     return _assemble(name, side, posture, kidney_Bd, skin_Bd, liver_Bd, None, meta,
                      voxel_size, fat, muscle, label_volume_Bd=(labels, X_BdV, voxel_size))

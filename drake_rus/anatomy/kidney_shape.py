@@ -58,19 +58,23 @@ class KidneyShapeParams:
 
 def sample_kidney_shape_params(rng: np.random.Generator, side: str = "right") -> KidneyShapeParams:
     """Draws shape parameters from the published distributions (facts file, kidney size)."""
-    # Length: Glodny 2009 CT means/SDs; width and thickness correlated with length
-    # (allometry), volume kept in the physiological range by resampling (Lee 1996: right
-    # 129 +- 30 mL, left 137 +- 30 mL).
+    # Length: Glodny 2009 CT mean and SD, truncated to 75-145 mm (about -2.7 to +3 SD); the
+    # length is drawn first and kept, so its distribution is the published one (real bodies
+    # reach 127 mm: about the 93rd percentile). Width and thickness are correlated with
+    # length (allometry) and redrawn until the volume is in the physiological range (Lee
+    # 1996: right 129 +- 30 mL, left 137 +- 30 mL).
     mean_len, sd_len = (0.1085, 0.0122) if side == "right" else (0.1113, 0.0126)
-    for _ in range(100):
-        z = rng.standard_normal(3)
-        length = mean_len + sd_len * z[0]
+    length = mean_len + sd_len * rng.standard_normal()
+    while not 0.075 <= length <= 0.145:
+        length = mean_len + sd_len * rng.standard_normal()
+    for _ in range(200):
+        z = rng.standard_normal(2)
         # Emamian 1993: width 58 mm, 10-90th pct 51-64 mm -> SD about 5 mm.
-        width = 0.058 + 0.08 * (length - mean_len) + 0.0045 * z[1]
+        width = 0.058 + 0.08 * (length - mean_len) + 0.0045 * z[0]
         # Thickness 30-45 mm (textbook): mean 39 mm, SD 3.5 mm.
-        thickness = 0.039 + 0.03 * (length - mean_len) + 0.0035 * z[2]
+        thickness = 0.039 + 0.03 * (length - mean_len) + 0.0035 * z[1]
         approx_volume = 0.48 * length * width * thickness   # bean ~ 0.92 x ellipsoid
-        if (0.075 <= length <= 0.145 and width >= thickness + 0.010 and thickness >= 0.028
+        if (width >= thickness + 0.010 and thickness >= 0.028
                 and 83e-6 <= approx_volume <= 230e-6):
             break
     p = KidneyShapeParams(length=float(length), width=float(width), thickness=float(thickness))

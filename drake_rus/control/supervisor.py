@@ -130,6 +130,8 @@ class SupervisorState:
     paused: bool = False             # exploration/pivot motion held (outside a breath-hold)
     paused_time: float = 0.0         # total time (s) motion was held
     a_star: np.ndarray = dataclasses.field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
+    approach_origin: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, math.nan))
+    contact_since: float = math.nan  # APPROACH: when the force last reached contact
     p_star: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, math.nan))
     reason: str = ""
     events: tuple = ()               # (time, phase name, message) transitions
@@ -146,7 +148,8 @@ class SupervisorState:
         return dataclasses.replace(
             self, a_des=self.a_des.copy(), o_des=self.o_des.copy(),
             a_des_dot=self.a_des_dot.copy(), P_des=self.P_des.copy(),
-            a_star=self.a_star.copy(), p_star=self.p_star.copy())
+            a_star=self.a_star.copy(), p_star=self.p_star.copy(),
+            approach_origin=self.approach_origin.copy())
 
 
 @dataclasses.dataclass
@@ -170,6 +173,9 @@ class SupervisorInputs:
     # The kidney no longer lies where localization put it ("" = consistent): TRANSIT and
     # PIVOT abort, since the pivot would image the wrong place.
     tracking_error: str = ""
+    # The localizer's estimate of the kidney's length along its long axis (m; NaN until
+    # known): with ``exploration_length: estimated`` EXPLORE ends at ER times it.
+    kidney_length_estimate: float = math.nan
 
 
 def _goto(s: SupervisorState, phase: Phase, t: float, message: str) -> SupervisorState:
@@ -235,29 +241,66 @@ def _start(s: SupervisorState, u: SupervisorInputs, R, p, cfg) -> None:
             raise ValueError(f"controller.start_xy: expected [] or [x, y] (m), got {start_xy}")
         s.P_des = np.asarray(start_xy, dtype=float)
     s.F_des = float(cfg.desired_force)
+    s.approach_origin = p.copy()
     s.initialised = True
     s.phase_start = u.t
     s.events = s.events + ((u.t, s.phase.name, "start"),)
 
 
 def _approach(s, u, R, p, cfg, dt):
-    """Press to F_des over start_xy; EXPLORE once the force reaches contact_fraction F_des."""
+    """Press to F_des over start_xy; EXPLORE once the force has stayed at contact_fraction
+    F_des or more for contact_dwell;
+    ABORT ("no contact") after approach_max_travel along the approach vector or
+    approach_timeout without it."""
     at_start = float(np.linalg.norm(p[:2] - s.P_des)) <= cfg.transit_position_tolerance
     if u.F_z >= cfg.contact_fraction * cfg.desired_force and at_start:
-        s.P_des = p[:2].copy()
-        return _goto(s, Phase.EXPLORE, u.t, f"contact at {u.F_z:.2f} N")
+        if math.isnan(s.contact_since):
+            s.contact_since = u.t
+        if u.t - s.contact_since >= cfg.contact_dwell - 1e-9:
+            s.P_des = p[:2].copy()
+            return _goto(s, Phase.EXPLORE, u.t, f"contact at {u.F_z:.2f} N")
+    else:
+        s.contact_since = math.nan
+    travel = float((p - s.approach_origin) @ s.a_des)
+    if travel > cfg.approach_max_travel:
+        s.reason = (f"no contact: the probe moved {travel * 1e3:.0f} mm along its beam "
+                    f"without reaching {cfg.contact_fraction * cfg.desired_force:.1f} N")
+        return _goto(s, Phase.ABORT, u.t, s.reason)
+    if u.t - s.phase_start > cfg.approach_timeout:
+        s.reason = (f"no contact after {cfg.approach_timeout:.0f} s of APPROACH "
+                    f"({u.F_z:.2f} N)")
+        return _goto(s, Phase.ABORT, u.t, s.reason)
     return s
 
 
+def exploration_target(cfg, kidney_length_estimate: float = math.nan) -> float:
+    """Exploration travel (m) after which EXPLORE ends: ER x L (section III-C). L is the
+    reference length L_m (``kidney_length``) with ``exploration_length: fixed`` or while no
+    estimate exists (NaN); with ``estimated`` it is the patient's estimated length, clipped
+    to [L_m / f, f L_m] (f = ``exploration_length_factor``), so the travel never exceeds
+    f ER L_m."""
+    L = float(cfg.kidney_length)
+    estimate = float(kidney_length_estimate)
+    if cfg.exploration_length == "estimated" and math.isfinite(estimate) and estimate > 0:
+        f = float(cfg.exploration_length_factor)
+        L = min(max(estimate, L / f), f * L)
+    return cfg.exploration_ratio * L
+
+
 def _explore(s, u, R, p, cfg, dt):
-    """Constant orientation, eq. 17, until ER L_m of travel, the kidney has left the image or
-    (adaptive) the pose estimate has settled; then LOCALIZE."""
+    """Constant orientation, eq. 17, until ER L of travel (``exploration_target``: L_m, or
+    the patient's estimated kidney length), the kidney has left the image or (adaptive) the
+    pose estimate has settled; then LOCALIZE."""
     sign = 1.0 if cfg.scan_direction == "+y" else -1.0
     left = u.motion_allowed and _update_visibility(s, u, cfg.visibility_debounce)
-    target = cfg.exploration_ratio * cfg.kidney_length
+    target = exploration_target(cfg, u.kidney_length_estimate)
     if s.travel >= target - 1e-12:
         s.P_des = p[:2].copy()
-        return _goto(s, Phase.LOCALIZE, u.t, f"explored {s.travel * 1e3:.1f} mm")
+        how = ""
+        if cfg.exploration_length == "estimated" and math.isfinite(u.kidney_length_estimate):
+            how = (f" (ER {cfg.exploration_ratio:g} x the estimated kidney length "
+                   f"{u.kidney_length_estimate * 1e3:.0f} mm)")
+        return _goto(s, Phase.LOCALIZE, u.t, f"explored {s.travel * 1e3:.1f} mm{how}")
     if left:
         s.P_des = p[:2].copy()
         return _goto(s, Phase.LOCALIZE, u.t,

@@ -46,6 +46,7 @@ from drake_rus.localization.icp import heuristic_initial_rotation
 from drake_rus.localization.localize import body_directions_B, localize
 from drake_rus.metrics.core import CoverageAccumulator, window_steps
 from drake_rus.scan.planning import (
+    PlanStart,
     R_B_TRANSVERSE,
     exploration_roi,
     exploration_start_xy,
@@ -161,6 +162,19 @@ def prepare_patient(patient, X_BPt: RigidTransform, *, coverage_voxel: float = 0
         kidney_points_B=kidney_voxels_B(patient, X_BPt, coverage_voxel),
         voxel_size=float(coverage_voxel), superior_B=np.asarray(superior_B, float),
         lateral_B=np.asarray(lateral_B, float))
+
+
+def imaging_for(kp: "KinematicPatient", imaging, start):
+    """The imaging config for this patient, as the closed-loop scan would set it: with the
+    window planner (``start.planner: window``) the depth follows the shallowest preset that
+    holds the kidney under the vertical probe of the kinematic sweep (``PlanStart`` with no
+    tilt, reach or placement error); with ``vertical`` the configured depth stays."""
+    if start.planner == "vertical":
+        return imaging
+    plan = PlanStart(kp.patient, kp.X_BPt, imaging,
+                     dataclasses.replace(start, max_tilt_deg=0.0, placement_error=0.0,
+                                         placement_error_angle_deg=0.0))
+    return dataclasses.replace(imaging, depth=plan.depth_preset)
 
 
 # ---------------------------------------------------------------------------- imaging

@@ -203,7 +203,8 @@ def run_closed_loop(task: dict) -> dict:
               "V": m["volume_ratio"], "sim_s": scan.sim_s, "wall_s": scan.wall_s,
               "mode": "closed-loop dynamic simulation"}
     t1 = time.perf_counter()
-    imager = km.Imager(kp, scenario.imaging, task["segmenter"], seed=int(task["seed"]))
+    imager = km.Imager(kp, km.imaging_for(kp, scenario.imaging, scenario.start),
+                       task["segmenter"], seed=int(task["seed"]))
     sweep = km.explore(kp, imager, scenario.controller, exploration_ratio=task["er"],
                        start_fraction=float(task["start_fraction"]))
     loc = km.localize_cloud(kp, sweep.point_cloud(), template, scenario.localization,
@@ -230,7 +231,8 @@ def run_task(task: dict) -> dict:
     kp = prepared_patient(task["patient"], scenario.patient.side, scenario.patient.posture,
                           float(task["voxel"]), X_BPt)
     controller = scenario.controller
-    imager = km.Imager(kp, scenario.imaging, task["segmenter"], seed=int(task["seed"]))
+    imager = km.Imager(kp, km.imaging_for(kp, scenario.imaging, scenario.start),
+                       task["segmenter"], seed=int(task["seed"]))
     start_fraction, x_offset = 0.0, 0.0
     if task["study"] == "starts":
         start_fraction, x_offset = random_start(task, kp, controller)

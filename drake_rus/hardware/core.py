@@ -8,7 +8,9 @@
 - the client-side command guard: non-finite -> zero, velocity scaled into the client limits,
   acceleration limited against the previous command, zero when dry-running or stopped;
 - the command watchdog test;
-- frame grabber: crop rectangle checks, crop, grey conversion, resize to the probe's image.
+- frame grabber: crop rectangle checks, crop, grey conversion, resize to the probe's image;
+- the weight of an undeclared probe as joint torques; the robot's collision thresholds;
+  control-loop timing statistics.
 """
 
 from __future__ import annotations
@@ -21,7 +23,8 @@ import numpy as np
 __all__ = [
     "external_torque_to_drake", "wall_clock_utime", "utime_age", "is_command_fresh",
     "limit_joint_velocity", "guard_command", "watchdog_expired", "check_crop", "crop_image",
-    "to_grey", "fit_image", "check_robot_ip",
+    "to_grey", "fit_image", "check_robot_ip", "weight_torque", "load_declaration",
+    "collision_thresholds", "period_statistics",
 ]
 
 
@@ -170,3 +173,69 @@ def check_robot_ip(robot_ip: str, field_name: str = "hardware_interface.robot_ip
         raise ValueError(f"field '{field_name}': {robot_ip!r} is neither an IPv4 address nor "
                          f"a host name")
     return text
+
+
+def weight_torque(J_v_WCm, mass: float, gravity) -> np.ndarray:
+    """Generalized force (N m, Drake's sign: on the arm by the environment) of the weight of
+    a body of ``mass`` (kg) hanging at a point whose translational Jacobian in the world is
+    ``J_v_WCm`` (3, nv), in a ``gravity`` field (3, m/s^2): ``J^T m g``. A robot that was not
+    told about the body reports this as external torque."""
+    J = np.asarray(J_v_WCm, float)
+    return J.T @ (float(mass) * np.asarray(gravity, float).reshape(3))
+
+
+def load_declaration(tau_at_rest, tau_load, min_weight_torque: float = 0.5) -> str:
+    """Which load model external torques measured at rest (Drake's sign, N m, no bias
+    removed, nothing touching the probe) fit: "declared" (about zero: the robot knows the
+    probe), "undeclared" (about ``tau_load``, the probe's weight as joint torques) or
+    "unclear" (neither by a clear margin, or a weight too small to tell)."""
+    tau = np.asarray(tau_at_rest, float)
+    load = np.asarray(tau_load, float)
+    w = float(np.linalg.norm(load))
+    if w < min_weight_torque:
+        return "unclear"
+    r_declared = float(np.linalg.norm(tau))
+    r_undeclared = float(np.linalg.norm(tau - load))
+    if r_declared < 0.5 * w and r_declared < 0.5 * r_undeclared:
+        return "declared"
+    if r_undeclared < 0.5 * w and r_undeclared < 0.5 * r_declared:
+        return "undeclared"
+    return "unclear"
+
+
+def collision_thresholds(config) -> dict:
+    """libfranka ``setCollisionBehavior`` arguments (lower = contact, upper = collision;
+    joint torques N m, Cartesian wrench N and N m) from a HardwareConfig; a contact threshold
+    above its collision threshold is a ValueError naming the field."""
+    out = {}
+    for kind, n in (("torque", 7), ("force", 6)):
+        lower = np.asarray(getattr(config, f"contact_{kind}_thresholds"), float)
+        upper = np.asarray(getattr(config, f"collision_{kind}_thresholds"), float)
+        if lower.shape != (n,) or upper.shape != (n,):
+            raise ValueError(f"field 'hardware_interface.contact_{kind}_thresholds': expected "
+                             f"{n} values")
+        if not (np.all(np.isfinite(lower)) and np.all(np.isfinite(upper))
+                and np.all(lower > 0) and np.all(upper > 0)):
+            raise ValueError(f"field 'hardware_interface.collision_{kind}_thresholds': "
+                             f"thresholds must be finite and positive")
+        if np.any(lower > upper):
+            i = int(np.argmax(lower > upper))
+            raise ValueError(
+                f"field 'hardware_interface.contact_{kind}_thresholds': entry {i} "
+                f"({lower[i]:g}) is above collision_{kind}_thresholds[{i}] ({upper[i]:g}): a "
+                f"contact must be flagged before the robot stops")
+        out[f"lower_{kind}"], out[f"upper_{kind}"] = lower, upper
+    return out
+
+
+def period_statistics(times) -> dict:
+    """Wall-clock gaps between consecutive ticks at ``times`` (s, increasing): count, mean,
+    standard deviation, median, 99th and 99.9th percentiles and maximum (all s)."""
+    t = np.asarray(times, float)
+    gaps = np.diff(t) if t.size > 1 else np.zeros(0)
+    if gaps.size == 0:
+        return {"count": 0, "mean": math.nan, "std": math.nan, "p50": math.nan,
+                "p99": math.nan, "p999": math.nan, "max": math.nan}
+    return {"count": int(gaps.size), "mean": float(gaps.mean()), "std": float(gaps.std()),
+            "p50": float(np.percentile(gaps, 50)), "p99": float(np.percentile(gaps, 99)),
+            "p999": float(np.percentile(gaps, 99.9)), "max": float(gaps.max())}

@@ -9,6 +9,12 @@ zero when no fresh command came within ``command_timeout`` (and logs the latency
 Every robot call goes through one lock (the Drake thread and the watchdog thread share the
 client). Any libfranka exception becomes :class:`HardwareFault` after the command has been set
 to zero.
+
+At connection the robot's own reflexes are set (``set_collision_behavior``: contact and
+collision thresholds on joint torques and on the Cartesian wrench, below the safety layer's
+force ceiling), the probe's load is declared (``set_load``), and a robot with errors pending
+(after a reflex or the user stop) is either refused with a message saying what to do, or
+reset (``error_recovery: at_connect``); never during a run.
 """
 
 from __future__ import annotations
@@ -16,17 +22,55 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import socket
 import threading
 import time
 
 import numpy as np
 
 from drake_rus.hardware.config import HardwareConfig
-from drake_rus.hardware.core import check_robot_ip, external_torque_to_drake, watchdog_expired
+from drake_rus.hardware.core import (
+    check_robot_ip, collision_thresholds, external_torque_to_drake, watchdog_expired)
 
 LOG = logging.getLogger("drake_rus.hardware")
 
-__all__ = ["HardwareFault", "RobotReading", "WatchdogEvent", "FrankyBackend"]
+__all__ = ["HardwareFault", "RobotReading", "WatchdogEvent", "FrankyBackend", "FCI_PORT",
+           "robot_error_names", "wait_for_port"]
+
+FCI_PORT = 1337         # libfranka's command port on the robot's control box
+
+
+def robot_error_names(errors) -> list[str]:
+    """Names of the active errors in a franky ``Errors`` (libfranka franka::Errors)."""
+    if errors is None:
+        return []
+    try:
+        flags = errors.__getstate__()
+    except Exception:
+        return [] if not errors else [str(errors)]
+    if not any(flags):
+        return []
+    names = sorted(n for n in dir(type(errors)) if not n.startswith("_")
+                   and isinstance(getattr(type(errors), n, None), property))
+    active = [n for n in names if getattr(errors, n, False) is True]
+    return active or [repr(errors)]
+
+
+def wait_for_port(host: str, port: int, timeout: float) -> tuple[bool, float, str]:
+    """Tries a TCP connection to ``host:port`` until it is accepted or ``timeout`` s pass.
+    Returns (accepted, seconds spent, last error)."""
+    start = time.monotonic()
+    last = ""
+    while True:
+        remaining = timeout - (time.monotonic() - start)
+        if remaining <= 0:
+            return False, time.monotonic() - start, last
+        try:
+            with socket.create_connection((host, port), timeout=max(0.05, min(remaining, 2.0))):
+                return True, time.monotonic() - start, ""
+        except OSError as e:
+            last = f"{type(e).__name__}: {e}"
+        time.sleep(min(0.2, max(0.0, timeout - (time.monotonic() - start))))
 
 
 class HardwareFault(RuntimeError):
@@ -94,9 +138,12 @@ class FrankyBackend:
         # (robot clock s, q rad, velocity sent right after that read rad/s), when tracing.
         self.trace: list[tuple[float, np.ndarray, np.ndarray]] | None = None
         self.tau_bias = np.zeros(7)
+        self.collision_thresholds: dict | None = None
         self._stop_watchdog = threading.Event()
         self._watchdog = None
         self._connect()
+        self._check_errors()
+        self._configure_collision()
         self._configure_load()
         self._estimate_bias()
         self._watchdog = threading.Thread(target=self._watchdog_loop, name="drake_rus_watchdog",
@@ -108,27 +155,86 @@ class FrankyBackend:
         cfg = self.config
         host = check_robot_ip(cfg.robot_ip)
         franky = self._franky
-        deadline = time.monotonic() + cfg.connect_timeout
-        last_error = None
-        while time.monotonic() < deadline:
+        start = time.monotonic()
+        # libfranka's own connection attempt can block for a minute on an unreachable
+        # address: probe the FCI port first, within connect_timeout.
+        reachable, spent, why = wait_for_port(host, FCI_PORT, cfg.connect_timeout)
+        robot, last_error = None, why
+        while reachable:
             try:
                 robot = franky.Robot(host, realtime_config=franky.RealtimeConfig.Ignore)
                 break
             except Exception as e:  # NetworkException, IncompatibleVersionException, ...
-                last_error = e
-                if isinstance(e, getattr(franky, "IncompatibleVersionException", ())):
+                last_error = f"{type(e).__name__}: {e}"
+                if (isinstance(e, getattr(franky, "IncompatibleVersionException", ()))
+                        or time.monotonic() - start > cfg.connect_timeout):
                     break
                 time.sleep(0.2)
-        else:
-            robot = None
         if robot is None:
+            elapsed = time.monotonic() - start
+            where = (f"no answer on {host}:{FCI_PORT} (libfranka's FCI port)" if not reachable
+                     else "the connection was refused")
             raise HardwareFault(
-                f"field 'hardware_interface.robot_ip': cannot connect to the FR3 at {host!r} "
-                f"within {cfg.connect_timeout:g} s (hardware_interface.connect_timeout): "
-                f"{last_error}")
+                f"field 'hardware_interface.robot_ip': cannot connect to the FR3 at {host!r}: "
+                f"{where} after {elapsed:.1f} s (hardware_interface.connect_timeout "
+                f"{cfg.connect_timeout:g} s): {last_error or 'no error reported'}")
         robot.relative_dynamics_factor = float(cfg.relative_dynamics_factor)
         self._robot = robot
-        LOG.info("connected to the FR3 at %s (dry run: %s)", host, self.dry_run)
+        LOG.info("connected to the FR3 at %s in %.1f s (dry run: %s)", host,
+                 time.monotonic() - start, self.dry_run)
+
+    def _check_errors(self):
+        """A robot with errors pending (a reflex, the user stop) refuses motion. Reset it
+        only when the configuration says so (error_recovery: at_connect)."""
+        with self._lock:
+            state = self._robot.state
+        mode = getattr(state, "robot_mode", None)
+        errors = robot_error_names(getattr(state, "current_errors", None))
+        reflex = mode is not None and getattr(mode, "name", str(mode)) == "Reflex"
+        if not errors and not reflex:
+            return
+        what = ", ".join(errors) or "robot in Reflex mode"
+        if self.config.error_recovery != "at_connect":
+            raise HardwareFault(
+                f"FR3 at {self.config.robot_ip}: errors pending ({what}). Check the patient "
+                f"and the probe (lift it in guiding mode if it still presses), then reset: "
+                f"`drake-rus hardware check --recover`, or Desk's error acknowledgement "
+                f"(hardware_interface.error_recovery: operator)")
+        LOG.warning("FR3 at %s: errors pending (%s): automatic error recovery "
+                    "(hardware_interface.error_recovery: at_connect)", self.config.robot_ip,
+                    what)
+        try:
+            with self._lock:
+                recovered = self._robot.recover_from_errors()
+        except Exception as e:
+            raise HardwareFault(f"FR3 at {self.config.robot_ip}: error recovery failed: "
+                                f"{type(e).__name__}: {e}") from None
+        if recovered is False:
+            raise HardwareFault(f"FR3 at {self.config.robot_ip}: error recovery failed "
+                                f"({what}); reset in Desk")
+
+    def _configure_collision(self):
+        """The FR3's own contact / collision thresholds (libfranka setCollisionBehavior,
+        the same while accelerating and at constant velocity)."""
+        if not self.config.set_collision_behavior:
+            LOG.warning("hardware_interface.set_collision_behavior is false: the robot keeps "
+                        "its previous collision thresholds (franky's default: 20 N m, 30 N)")
+            return
+        try:
+            t = collision_thresholds(self.config)
+        except ValueError as e:
+            raise HardwareFault(str(e)) from None
+        try:
+            with self._lock:
+                self._robot.set_collision_behavior(t["lower_torque"], t["upper_torque"],
+                                                   t["lower_force"], t["upper_force"])
+        except Exception as e:
+            raise HardwareFault(f"FR3 at {self.config.robot_ip}: set_collision_behavior "
+                                f"(hardware_interface.contact_/collision_*_thresholds) failed: "
+                                f"{type(e).__name__}: {e}") from None
+        self.collision_thresholds = t
+        LOG.info("FR3 collision thresholds: joints %s N m, wrench %s (N, N m)",
+                 [float(x) for x in t["upper_torque"]], [float(x) for x in t["upper_force"]])
 
     def _configure_load(self):
         if not (self.config.set_load and self._load is not None):

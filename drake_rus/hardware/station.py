@@ -9,7 +9,9 @@ same way on both (docs/design.md):
   RigidTransform, our FR3 model's FK with the scenario's probe calibration),
   ``tau_external`` (7, N m, Drake's sign: on the arm by the environment), ``probe_force``
   (6, through the same ``ProbeForceEstimator`` as in simulation), ``us_image`` (abstract
-  UsFrame from the frame grabber);
+  UsFrame from the frame grabber: the newest picture of a capture thread, mapped onto the
+  probe's image grid by the image calibration, stamped with the probe pose and the diagram
+  time of its acquisition instant, see ``video.py``);
 - hardware only: ``commanded_velocity`` (7, rad/s: what went to the robot after the
   client-side guard), ``robot_ok`` (1: 0 once the robot or its connection failed).
 
@@ -20,7 +22,8 @@ Backends (``scenario.hardware_interface.backend``):
 - ``lcm``: drake-franka-driver through Drake's ``PandaCommandSender`` /
   ``PandaStatusReceiver`` over ``LcmInterfaceSystem``, channels PANDA_COMMAND / PANDA_STATUS,
   velocity mode, commands stamped with wall-clock microseconds, the driver's external torque
-  sign flipped to Drake's.
+  sign flipped to Drake's and (``lcm_compensate_load``) the probe's weight removed, since
+  the driver cannot declare a load.
 
 Safety on hardware, in addition to the safety layer: the client-side guard (velocity and
 acceleration limits below the robot's, zero on dry run or fault), a command watchdog (no fresh
@@ -43,17 +46,19 @@ from drake_rus.config_schema import ScenarioError
 from drake_rus.hardware.config import HardwareConfig
 from drake_rus.hardware.core import external_torque_to_drake, wall_clock_utime
 from drake_rus.hardware.franky_backend import FrankyBackend, HardwareFault
-from drake_rus.robot import (
-    NUM_JOINTS, MakeControlPlant, ProbeForceEstimator, ProbePoseFromJoints)
+from drake_rus.hardware.image_calibration import (
+    ImageToProbeMap, load_image_calibration, preset_for_depth)
 from drake_rus.hardware.systems import (
     CommandGuard, ExternalTorqueToDrake, FrameGrabber, FrankaRobotInterface, PandaStatusLatch,
-    WallClockCommandStamper)
+    ProbeLoadCompensation, ProbeLoadTorque, WallClockCommandStamper)
+from drake_rus.imaging.probe import ProbeGeometry
+from drake_rus.robot import (
+    NUM_JOINTS, MakeControlPlant, ProbeForceEstimator, ProbePoseFromJoints)
 
 LOG = logging.getLogger("drake_rus.hardware")
 
 __all__ = ["MakeHardwareStation", "HardwareStation", "HardwareSession", "RunHardware",
-           "HardwareFault", "LcmBackend", "wait_for_panda_status"]
-
+           "HardwareFault", "LcmBackend", "wait_for_panda_status", "picture_processing"]
 
 
 def wait_for_panda_status(lcm, channel: str, timeout: float, *, count: int = 1,
@@ -88,7 +93,9 @@ def wait_for_panda_status(lcm, channel: str, timeout: float, *, count: int = 1,
 class LcmBackend:
     """The LCM side of a hardware station: the DrakeLcm, its channels, the clean stop."""
 
-    def __init__(self, config: HardwareConfig, lcm=None, idle=None):
+    def __init__(self, config: HardwareConfig, lcm=None, idle=None, load_torque=None):
+        """``load_torque(q)``: the undeclared probe's weight as joint torques (Drake's
+        sign), removed before the start-up bias is estimated (None: no compensation)."""
         from pydrake.lcm import DrakeLcm
         self.config = config
         self.dry_run = bool(config.dry_run)
@@ -110,9 +117,16 @@ class LcmBackend:
                                 f"{config.lcm_status_channel!r} are not for a 7-joint arm")
         self.first_status = decoded[-1].encode()
         self.tau_bias = np.zeros(NUM_JOINTS)
+        self.load_torque = load_torque
+        # At rest, before any bias or load is removed (for the load check).
+        self.rest_q = np.mean([m.joint_position for m in decoded], axis=0)
+        self.rest_tau = np.mean([external_torque_to_drake(m.joint_torque_external)
+                                 for m in decoded], axis=0)
         if config.tau_external_bias_duration > 0.0:
-            self.tau_bias = np.mean([external_torque_to_drake(m.joint_torque_external)
-                                     for m in decoded], axis=0)
+            self.tau_bias = np.mean([
+                external_torque_to_drake(m.joint_torque_external)
+                - (load_torque(m.joint_position) if load_torque is not None else 0.0)
+                for m in decoded], axis=0)
         self.fault = None
 
     def publish_zero(self, repeats: int = 3) -> None:
@@ -144,7 +158,8 @@ class LcmBackend:
 
 
 class HardwareStation(Diagram):
-    """The hardware station Diagram, with handles on its backend for a clean stop."""
+    """The hardware station Diagram, with handles on its backend for a clean stop and on its
+    frame grabber (``grabber``: pose history, diagram clock, tick times, video stats)."""
 
     def __init__(self, builder: DiagramBuilder, backend, grabber: FrameGrabber, config):
         super().__init__()
@@ -175,15 +190,38 @@ def _check_rates(scenario) -> None:
                     "(%g Hz)", cfg.command_rate_hz, scenario.controller.rate_hz)
 
 
+def picture_processing(scenario):
+    """The grabbed picture -> ``us_image`` map for the scenario: with
+    ``hardware_interface.image_calibration``, the metric :class:`ImageToProbeMap` of the
+    entry for ``imaging.depth``; without, None (the grabber then crops ``video_crop`` and
+    stretches to the image size, which is not metric: logged)."""
+    cfg = scenario.hardware_interface
+    if not cfg.image_calibration.strip():
+        if cfg.video_source.strip():
+            LOG.warning("hardware_interface.image_calibration is empty: frames are the crop "
+                        "stretched to the image size, not metric (docs/hardware_bringup.md, "
+                        "step 3a)")
+        return None
+    path = cfg.image_calibration.strip()
+    cal = load_image_calibration(path)
+    preset = preset_for_depth(cal, scenario.imaging.depth, source=path)
+    return ImageToProbeMap(cal, preset, ProbeGeometry.from_config(scenario.imaging))
+
+
 def MakeHardwareStation(scenario, meshcat=None, *, lcm=None, lcm_idle=None,
-                        name: str = "station") -> HardwareStation:
+                        name: str = "station", video=None,
+                        keep_raw_pictures: bool = False) -> HardwareStation:
     """The station on the real robot (``scenario.hardware: true``); see the module doc.
 
     Connects at once (raises HardwareFault naming the field when the robot or the driver
-    cannot be reached, ScenarioError / ValueError for a bad video source or crop).
-    ``lcm``: a DrakeLcm to use instead of ``hardware_interface.lcm_url`` (tests:
-    ``memq://``); ``lcm_idle()``: called while waiting for the driver's first statuses (a
-    simulated driver stepped in the same thread). ``meshcat`` is accepted for symmetry with the sim station (unused).
+    cannot be reached, ScenarioError / ValueError for a bad video source, crop or image
+    calibration). ``lcm``: a DrakeLcm to use instead of ``hardware_interface.lcm_url``
+    (tests: ``memq://``); ``lcm_idle()``: called while waiting for the driver's first
+    statuses (a simulated driver stepped in the same thread). ``video``: a source (string,
+    or an object with ``read()`` such as ``video.SyntheticVideo``) instead of
+    ``hardware_interface.video_source``; ``keep_raw_pictures``: the capture thread also keeps
+    the unprocessed picture (calibration tools). ``meshcat`` is accepted for symmetry with
+    the sim station (unused).
     """
     cfg: HardwareConfig = scenario.hardware_interface
     _check_rates(scenario)
@@ -196,35 +234,43 @@ def MakeHardwareStation(scenario, meshcat=None, *, lcm=None, lcm_idle=None,
     guard = builder.AddNamedSystem("command_guard", CommandGuard(cfg, rate))
     builder.Connect(command.get_output_port(), guard.GetInputPort("joint_velocity_command"))
 
-    # Grabber first: a bad video file or crop fails before we touch the robot.
-    grabber = FrameGrabber(cfg, (scenario.imaging.image_height_px,
-                                 scenario.imaging.image_width_px),
-                           scenario.imaging.frame_rate_hz)
-    if cfg.backend == "franky":
-        probe = scenario.probe
-        backend = FrankyBackend(cfg, load=(probe.mass, list(probe.p_FCm),
-                                           np.diag(probe.inertia_diagonal)))
-        robot = builder.AddNamedSystem("franka", FrankaRobotInterface(backend, rate))
-        builder.Connect(guard.GetOutputPort("joint_velocity_sent"),
-                        robot.GetInputPort("joint_velocity_sent"))
-        builder.Connect(robot.GetOutputPort("robot_ok"), guard.GetInputPort("robot_ok"))
-        q_port = robot.GetOutputPort("joint_position")
-        v_port = robot.GetOutputPort("joint_velocity")
-        tau_port = robot.GetOutputPort("tau_external")
-        sent_port = robot.GetOutputPort("commanded_velocity")
-        ok_port = robot.GetOutputPort("robot_ok")
-    elif cfg.backend == "lcm":
-        backend = LcmBackend(cfg, lcm, lcm_idle)
-        q_port, v_port, tau_port, sent_port, ok_port = _add_lcm_backend(
-            builder, backend, guard, rate)
-    else:
-        raise ScenarioError(f"field 'hardware_interface.backend': unknown backend "
-                            f"{cfg.backend!r}")
+    # Grabber first: a bad video source, crop or calibration fails before we touch the robot.
+    image_shape = (scenario.imaging.image_height_px, scenario.imaging.image_width_px)
+    grabber = FrameGrabber(cfg, image_shape, rate, process=picture_processing(scenario),
+                           source=video, keep_raw=keep_raw_pictures)
+    probe = scenario.probe
+    try:
+        if cfg.backend == "franky":
+            backend = FrankyBackend(cfg, load=(probe.mass, list(probe.p_FCm),
+                                               np.diag(probe.inertia_diagonal)))
+            robot = builder.AddNamedSystem("franka", FrankaRobotInterface(backend, rate))
+            builder.Connect(guard.GetOutputPort("joint_velocity_sent"),
+                            robot.GetInputPort("joint_velocity_sent"))
+            builder.Connect(robot.GetOutputPort("robot_ok"), guard.GetInputPort("robot_ok"))
+            q_port = robot.GetOutputPort("joint_position")
+            v_port = robot.GetOutputPort("joint_velocity")
+            tau_port = robot.GetOutputPort("tau_external")
+            sent_port = robot.GetOutputPort("commanded_velocity")
+            ok_port = robot.GetOutputPort("robot_ok")
+            time_port = robot.GetOutputPort("state_time")
+        elif cfg.backend == "lcm":
+            load_torque = (ProbeLoadTorque(control_plant, probe.mass, probe.p_FCm)
+                           if cfg.lcm_compensate_load else None)
+            backend = LcmBackend(cfg, lcm, lcm_idle, load_torque=load_torque)
+            q_port, v_port, tau_port, sent_port, ok_port, time_port = _add_lcm_backend(
+                builder, backend, guard, rate, control_plant, probe)
+        else:
+            raise ScenarioError(f"field 'hardware_interface.backend': unknown backend "
+                                f"{cfg.backend!r}")
+    except BaseException:
+        grabber.release()
+        raise
 
     builder.AddNamedSystem("frame_grabber", grabber)
     fk = builder.AddNamedSystem("probe_pose", ProbePoseFromJoints(control_plant, tip_frame))
     builder.Connect(q_port, fk.get_input_port(0))
     builder.Connect(fk.get_output_port(), grabber.GetInputPort("X_BP"))
+    builder.Connect(time_port, grabber.GetInputPort("state_time"))
     estimator = builder.AddNamedSystem(
         "probe_force_estimator", ProbeForceEstimator(control_plant, tip_frame))
     builder.Connect(q_port, estimator.get_input_port(0))
@@ -244,7 +290,7 @@ def MakeHardwareStation(scenario, meshcat=None, *, lcm=None, lcm_idle=None,
     return station
 
 
-def _add_lcm_backend(builder, backend: LcmBackend, guard, rate):
+def _add_lcm_backend(builder, backend: LcmBackend, guard, rate, control_plant, probe):
     import drake
     from pydrake.manipulation import (PandaCommandSender, PandaControlMode,
                                       PandaStatusReceiver)
@@ -264,6 +310,15 @@ def _add_lcm_backend(builder, backend: LcmBackend, guard, rate):
     torque = builder.AddNamedSystem("external_torque_to_drake",
                                     ExternalTorqueToDrake(backend.tau_bias))
     builder.Connect(receiver.get_torque_external_output_port(), torque.get_input_port())
+    tau_port = torque.get_output_port()
+    if backend.load_torque is not None:
+        # drake-franka-driver cannot declare the probe's load: remove its weight here.
+        load = builder.AddNamedSystem("probe_load_compensation", ProbeLoadCompensation(
+            control_plant, probe.mass, probe.p_FCm))
+        builder.Connect(receiver.get_position_measured_output_port(),
+                        load.GetInputPort("joint_position"))
+        builder.Connect(tau_port, load.GetInputPort("tau_external"))
+        tau_port = load.GetOutputPort("tau_external")
 
     sender = builder.AddNamedSystem(
         "panda_command_sender", PandaCommandSender(NUM_JOINTS, PandaControlMode.kVelocity))
@@ -277,8 +332,9 @@ def _add_lcm_backend(builder, backend: LcmBackend, guard, rate):
             lcm=backend.lcm, publish_period=1.0 / rate, use_cpp_serializer=False))
         builder.Connect(stamper.get_output_port(), publisher.get_input_port())
     return (receiver.get_position_measured_output_port(),
-            receiver.get_velocity_measured_output_port(), torque.get_output_port(),
-            guard.GetOutputPort("joint_velocity_sent"), latch.GetOutputPort("robot_ok"))
+            receiver.get_velocity_measured_output_port(), tau_port,
+            guard.GetOutputPort("joint_velocity_sent"), latch.GetOutputPort("robot_ok"),
+            latch.GetOutputPort("state_time"))
 
 
 class HardwareSession:

@@ -19,8 +19,15 @@ class ImagingConfig:
     # quotes "around 10 cm lateral width at 10 cm depth" for its images, which with a 50 mm
     # radius is a 40 deg fan (2 * 150 mm * sin 20 deg = 103 mm); we follow the seed.
     field_of_view_deg: float = field(default=40.0, metadata={"positive": True, "max": 170.0})
-    # Imaging depth from the probe face along each scan line (m). Kidney lies 80-105 mm deep.
+    # Imaging depth from the probe face along each scan line (m). Kidney lies 80-105 mm deep
+    # in most generated bodies; real bodies go deeper (147.5 mm in the VH female, supine).
     depth: float = field(default=0.150, metadata={"positive": True})
+    # The probe's depth presets (m): the start planner picks the shallowest that holds the
+    # whole kidney, and ``depth`` follows it. Curvilinear abdominal probes offer presets up
+    # to about 240-300 mm (docs/facts/anatomy_and_ultrasound.md, "Probe").
+    depth_presets: list[float] = field(
+        default_factory=lambda: [0.10, 0.15, 0.20, 0.25, 0.30],
+        metadata={"positive": True, "max": 0.4})
     # Elevational (slice) beam width (m): comparable probes 7-14 mm.
     elevation_width: float = field(default=0.010, metadata={"positive": True})
     # Number of parallel planes sampled across the elevational width (1 = a thin plane).

@@ -5,6 +5,7 @@ the LeafSystem the scan supervisor triggers in its LOCALIZE phase.
 """
 
 import dataclasses
+import math
 import time
 
 import numpy as np
@@ -91,7 +92,7 @@ def localize(P_local_B: np.ndarray, template: RegistrationTemplate, config: Loca
         error_change_tol=config.error_change_tol, max_iterations=config.max_iterations,
         max_correspondence_distance=config.max_correspondence_distance or np.inf,
         max_translation_step=config.max_translation_step,
-        step_tolerance=config.step_tolerance)
+        step_tolerance=config.step_tolerance, cycle_max_period=config.cycle_max_period)
     if config.method == "deformable" and template.modes is not None and config.shape_modes > 0:
         k = min(config.shape_modes, template.modes.shape[0])
         return register_plane_to_plane(
@@ -100,6 +101,48 @@ def localize(P_local_B: np.ndarray, template: RegistrationTemplate, config: Loca
             shape_regularization=config.shape_residual_variance, **kwargs)
     return register_plane_to_plane(P, template.points, template.normals, R0,
                                    template_tree=template.tree, **kwargs)
+
+
+def kidney_length_of(template: RegistrationTemplate, result: IcpResult) -> float:
+    """Extent (m) along the kidney's long axis (K's x) of the registered template, deformed
+    by the result's shape coefficients if it has them."""
+    shape = template.points
+    b = result.shape_coefficients
+    if b is not None and template.modes is not None:
+        shape = shape + np.einsum("k,kij->ij", b, template.modes[:len(b)])
+    return float(np.ptp(shape[:, 0]))
+
+
+def estimate_kidney_length(P_local_B: np.ndarray, template: RegistrationTemplate,
+                           config: LocalizationConfig, superior_B, lateral_B
+                           ) -> tuple[float, IcpResult | None]:
+    """(length (m), the fit) of the kidney along its long axis from a partial cloud: the
+    template's first ``config.length_shape_modes`` shape modes fitted with the pose under
+    the weak prior ``config.length_shape_residual_variance``, the length being the fitted
+    shape's extent along K's x. NaN (and None) without shape modes in the template (the
+    rigid template's length is the template's, not the kidney's) or when the fit fails the
+    sanity checks. The seen part of a kidney constrains its length only through the shape
+    model (the far pole is not seen); see ``LocalizationConfig`` for how well it works."""
+    if template.modes is None or config.length_shape_modes < 1:
+        return math.nan, None
+    k = min(config.length_shape_modes, template.modes.shape[0])
+    cfg = dataclasses.replace(config, method="deformable", shape_modes=k,
+                              shape_residual_variance=config.length_shape_residual_variance)
+    P = np.asarray(P_local_B, dtype=float).reshape(-1, 3)
+    result = localize(P, template, cfg, superior_B, lateral_B)
+    if check_registration(result, P, cfg):
+        return math.nan, result
+    return kidney_length_of(template, result), result
+
+
+def kidney_extent_along(points: np.ndarray, direction) -> float:
+    """Extent (m) of ``points`` along ``direction`` (e.g. the body's superior direction):
+    how far along the body the kidney was actually seen."""
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    if len(points) == 0:
+        return 0.0
+    d = np.asarray(direction, dtype=float)
+    return float(np.ptp(points @ (d / np.linalg.norm(d))))
 
 
 def exploration_travel(poses) -> float:
@@ -119,9 +162,12 @@ def check_registration(result: IcpResult, P_local_B: np.ndarray,
         return (f"registration rejected: only {100 * result.inlier_fraction:.0f}% of the "
                 f"explored points lie within 3 mm of the registered template "
                 f"(need {100 * config.min_inlier_fraction:.0f}%)")
-    if result.rms_residual > config.max_rms_residual:
+    # The deformable fit absorbs part of the kidney's shape difference: its own bound.
+    max_rms = (config.max_rms_residual_deformable if result.shape_coefficients is not None
+               else config.max_rms_residual)
+    if result.rms_residual > max_rms:
         return (f"registration rejected: RMS residual {1000 * result.rms_residual:.1f} mm "
-                f"> {1000 * config.max_rms_residual:.1f} mm")
+                f"> {1000 * max_rms:.1f} mm")
     offset = np.linalg.norm(result.X_BK.translation() - np.mean(P_local_B, axis=0))
     if offset > config.max_centroid_offset:
         return (f"registration rejected: the estimated kidney centre is {1000 * offset:.0f} mm "
@@ -138,6 +184,14 @@ class LocalizationOutcome:
     time: float = -1.0       # simulation time (s) the estimate was made
     error: str = ""          # why no estimate (too few points, rejected registration, ...)
     rejected: IcpResult | None = None  # a registration that failed the sanity checks
+
+
+@dataclasses.dataclass(frozen=True)
+class LengthState:
+    """Kidney length estimates during exploration (beyond the seed)."""
+    last_time: float = -math.inf
+    length: float = math.nan     # latest estimate (m); NaN until one passes the checks
+    checks: tuple = ()           # ((time s, travel m, length m or NaN), ...)
 
 
 @dataclasses.dataclass
@@ -164,7 +218,11 @@ class IcpLocalizer(LeafSystem):
     Outputs: ``X_BK`` (abstract RigidTransform: estimated canonical kidney frame in B, the
     heuristic initial guess until an estimate exists), ``localization_ready`` (1-vector: 1
     once the estimate is final), ``localization_error`` (abstract str: why there is no
-    estimate, "" otherwise), ``localization`` (abstract LocalizationOutcome).
+    estimate, "" otherwise), ``localization`` (abstract LocalizationOutcome),
+    ``exploration_sufficient`` (1-vector, adaptive exploration), ``kidney_length_estimate``
+    (1-vector, m: the kidney's length along its long axis estimated from the cloud explored
+    so far, every ``adaptive_period`` s of EXPLORE once ``length_min_travel`` has been
+    explored (``length_estimation``); NaN until known).
     """
 
     def __init__(self, template: RegistrationTemplate, config: LocalizationConfig,
@@ -190,6 +248,7 @@ class IcpLocalizer(LeafSystem):
         # sufficient flag, list of (travel m, dtranslation m, dangle rad) per check).
         self._adaptive = self.DeclareAbstractState(
             AbstractValue.Make(AdaptiveState()))
+        self._length = self.DeclareAbstractState(AbstractValue.Make(LengthState()))
         self.DeclarePeriodicUnrestrictedUpdateEvent(1.0 / rate_hz, 0.0, self._update)
         self.DeclareAbstractOutputPort(
             "X_BK", lambda: AbstractValue.Make(RigidTransform()),
@@ -205,6 +264,10 @@ class IcpLocalizer(LeafSystem):
             lambda c, o: o.SetAtIndex(0, float(
                 c.get_abstract_state(self._adaptive).get_value().sufficient)),
             prerequisites_of_calc={self.abstract_state_ticket(self._adaptive)})
+        self.DeclareVectorOutputPort(
+            "kidney_length_estimate", 1,
+            lambda c, o: o.SetAtIndex(0, c.get_abstract_state(self._length).get_value().length),
+            prerequisites_of_calc={self.abstract_state_ticket(self._length)})
         self.DeclareAbstractOutputPort(
             "localization_error", lambda: AbstractValue.Make(""),
             lambda c, o: o.set_value(c.get_abstract_state(self._outcome).get_value().error),
@@ -219,14 +282,22 @@ class IcpLocalizer(LeafSystem):
         if outcome.result is not None or outcome.error:
             return EventStatus.DidNothing()
         phase = int(round(self._phase_port.Eval(context)[0]))
-        if (self._config.adaptive_exploration and self._explore_phase is not None
-                and phase == self._explore_phase):
-            return self._adaptive_check(context, state)
+        if self._explore_phase is not None and phase == self._explore_phase:
+            did = False
+            if self._config.length_estimation:
+                did |= self._length_check(context, state)
+            if self._config.adaptive_exploration:
+                status = self._adaptive_check(context, state)
+                did |= status.severity() != EventStatus.Severity.kDidNothing
+            return EventStatus.Succeeded() if did else EventStatus.DidNothing()
         if phase != self._phase:
             return EventStatus.DidNothing()
         cloud = self._cloud.Eval(context)
         points = cloud.points
-        travel = exploration_travel(cloud.poses)
+        # The probe's travel, and how far along the body the kidney was actually seen (a
+        # frame without kidney still counts for the travel).
+        travel = min(exploration_travel(cloud.poses),
+                     kidney_extent_along(points, self._superior_B))
         error = ""
         if len(points) < self._min_points:
             error = (f"only {len(points)} kidney boundary points were explored "
@@ -252,6 +323,26 @@ class IcpLocalizer(LeafSystem):
             result=result, n_points=len(points), compute_s=time.perf_counter() - start,
             time=context.get_time()))
         return EventStatus.Succeeded()
+
+    def _length_check(self, context, state) -> bool:
+        """During EXPLORE: every ``adaptive_period`` s (once ``length_min_travel`` has been
+        explored) re-estimate the kidney's length from the cloud so far; a fit that fails
+        the sanity checks keeps the previous estimate. True if a check ran."""
+        cfg = self._config
+        s = context.get_abstract_state(self._length).get_value()
+        t = context.get_time()
+        if t - s.last_time < cfg.adaptive_period - 1e-9:
+            return False
+        cloud = self._cloud.Eval(context)
+        travel = exploration_travel(cloud.poses)
+        if travel < cfg.length_min_travel or len(cloud.points) < self._min_points:
+            return False
+        length, _ = estimate_kidney_length(cloud.points, self._template, cfg,
+                                           self._superior_B, self._lateral_B)
+        new = LengthState(last_time=t, length=length if math.isfinite(length) else s.length,
+                          checks=s.checks + ((t, travel, length),))
+        state.get_mutable_abstract_state(self._length).set_value(new)
+        return True
 
     def _adaptive_check(self, context, state):
         """During EXPLORE: every ``adaptive_period`` s register the cloud so far; once two

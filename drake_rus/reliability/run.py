@@ -94,7 +94,7 @@ class SafetyWatch(ScanMonitor):
 
 
 def RunFaultyScan(scenario, patient, template, *, max_sim_time: float = 150.0,
-                  settle: float | None = None, start_fraction: float = 0.1):
+                  settle: float | None = None, start_fraction: float | None = None):
     """Runs one scan on the faulty station (``MakeFaultyStation``) under a
     :class:`SafetyWatch`; returns (ScanResult, safety dict). ``settle`` (s) defaults to the
     force-stop retract time plus 0.3 s."""

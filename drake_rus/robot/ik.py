@@ -10,8 +10,9 @@ from pydrake.solvers import Solve
 NOMINAL_Q = np.array([0.0, 0.15, 0.0, -2.0, 0.0, 2.15, 0.785])
 
 
-class IkError(RuntimeError):
-    """No joint configuration reaches the requested tip pose within the joint limits."""
+class IkError(ValueError):
+    """No joint configuration reaches the requested tip pose within the joint limits (a
+    ValueError: the pose asked for, e.g. a patient placed out of reach, is the cause)."""
 
 
 def SolveTipPose(control_plant, tip_frame, X_BP: RigidTransform, q_nominal=None,

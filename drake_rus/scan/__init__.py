@@ -4,15 +4,30 @@
 ``ScanMetrics`` and ``Summary`` give the paper's figures; ``WriteScanOutputs`` writes what a
 person looks at. The scan diagram (``BuildScanDiagram``) uses only the ports both stations
 export; simulation truth is an observer (``scan.truth``) attached only in simulation.
+
+The names below load on first use, so the light ``drake_rus.scan.config`` (the scenario's
+``start`` section) can be imported by the scenario schema without the whole scan.
 """
 
-from drake_rus.scan.diagram import BuildScanDiagram, FrameRecord, PhaseIs, ScanHandles
-from drake_rus.scan.metrics import ScanMetrics, Summary
-from drake_rus.scan.report import WriteScanOutputs
-from drake_rus.scan.run import (
-    TERMINAL_PHASES, CollectScanResult, PrepareScenario, RunScan, ScanMonitor, ScanResult)
-from drake_rus.scan.truth import SimulationTruth
+import importlib
 
-__all__ = ["BuildScanDiagram", "ScanHandles", "PhaseIs", "FrameRecord", "RunScan",
-           "PrepareScenario", "ScanResult", "ScanMonitor", "CollectScanResult",
-           "TERMINAL_PHASES", "ScanMetrics", "Summary", "WriteScanOutputs", "SimulationTruth"]
+_EXPORTS = {
+    "BuildScanDiagram": "diagram", "ScanHandles": "diagram", "PhaseIs": "diagram",
+    "FrameRecord": "diagram", "ScanMetrics": "metrics", "Summary": "metrics",
+    "WriteScanOutputs": "report", "RunScan": "run", "PrepareScenario": "run",
+    "ScanResult": "run", "ScanMonitor": "run", "CollectScanResult": "run",
+    "TERMINAL_PHASES": "run", "SimulationTruth": "truth", "StartPlan": "planning",
+    "PlanStart": "planning",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name):
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(f"drake_rus.scan.{_EXPORTS[name]}"), name)
+    raise AttributeError(f"module 'drake_rus.scan' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(list(globals()) + __all__)

@@ -177,6 +177,8 @@ def BuildScanDiagram(scenario, station, template, *, builder: DiagramBuilder | N
                     supervisor.GetInputPort("localization_error"))
     builder.Connect(localizer.GetOutputPort("exploration_sufficient"),
                     supervisor.GetInputPort("exploration_sufficient"))
+    builder.Connect(localizer.GetOutputPort("kidney_length_estimate"),
+                    supervisor.GetInputPort("kidney_length_estimate"))
     exploring = builder.AddNamedSystem("exploring", PhaseIs(Phase.EXPLORE))
     builder.Connect(phase, exploring.get_input_port(0))
     enable = exploring.get_output_port(0)

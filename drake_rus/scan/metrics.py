@@ -11,6 +11,7 @@ import numpy as np
 
 from drake_rus.control.supervisor import Phase
 from drake_rus.imaging.probe import ProbeGeometry
+from drake_rus.localization.tracking import tracking_limits
 from drake_rus.metrics import CoverageAccumulator, e_rot_x, e_trans, window_steps
 from drake_rus.scan.run import ScanResult
 
@@ -51,8 +52,13 @@ def ScanMetrics(result: ScanResult) -> dict:
 
 def _mode(scenario) -> str:
     if scenario.hardware:
-        return (f"hardware ({scenario.hardware_interface.backend} backend, controller "
-                f"{scenario.controller.rate_hz:.0f} Hz)")
+        hw = scenario.hardware_interface
+        robot = (f"FR3 at {hw.robot_ip} (franky-control)" if hw.backend == "franky"
+                 else f"FR3 through drake-franka-driver on {hw.lcm_url}")
+        video = hw.video_source.strip() or "none"
+        return (f"hardware: {robot}, video {video}, controller "
+                f"{scenario.controller.rate_hz:.0f} Hz, real time"
+                + (", dry run (no motion commanded)" if hw.dry_run else ""))
     return (f"closed-loop dynamic simulation (MultibodyPlant "
             f"{scenario.contact.time_step * 1000:g} ms "
             f"{scenario.contact.discrete_contact_approximation.upper()}, controller "
@@ -69,7 +75,10 @@ def Summary(result: ScanResult, metrics: dict) -> dict:
                 "rms_residual_mm": loc.result.rms_residual * 1000,
                 "inlier_fraction": loc.result.inlier_fraction, "points": loc.n_points,
                 "compute_ms": loc.compute_s * 1000,
-                "method": result.scenario.localization.method}
+                "method": result.scenario.localization.method,
+                "stop_reason": loc.result.stop_reason, "cycle_period": loc.result.cycle_period}
+    # The kidney tracking's limits for this registration (the monitor computes the same).
+    limits = tracking_limits(loc.result, result.scenario.localization)
     force = result.logs["force"][1][0]
     return {
         "status": result.status, "reason": result.reason, "patient": result.patient,
@@ -84,7 +93,15 @@ def Summary(result: ScanResult, metrics: dict) -> dict:
         "localization": diag, "localization_error": loc.error or None,
         "max_kidney_drift_mm": (max(d for _, d in result.tracking_drift) * 1000
                                 if result.tracking_drift else None),
+        "tracking_limit_mm": limits.limit * 1000 if loc.result is not None else None,
+        "tracking_axial_allowance_mm": (limits.axial_allowance * 1000
+                                        if loc.result is not None else None),
+        "exploration_length": result.scenario.controller.exploration_length,
         "exploration_ratio": result.scenario.controller.exploration_ratio,
+        "image_depth_m": result.scenario.imaging.depth,
+        "start": (result.start_plan.summary() if result.start_plan is not None
+                  else {"planner": "none" if result.scenario.hardware
+                        else result.scenario.start.planner}),
         "segmenter": result.scenario.imaging.segmenter,
         "peak_force_n": float(np.max(force)) if len(force) else 0.0,
         "frames_total": len(result.frames),

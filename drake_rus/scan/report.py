@@ -4,7 +4,8 @@
 ``registration.png`` (partial cloud on the registered and the true template, like the seed's
 Fig. 7/8); ``coverage.png`` (V against frames and against eps, like Fig. 10, and the probe
 path); ``traces.png`` (contact force, approach-vector tilt, manipulability, phases);
-``pivot_frames.png`` (emulated frames of the pivot with the segmentation, like Fig. 11c).
+``pivot_frames.png`` (emulated frames of the pivot with the segmentation, like Fig. 11c);
+``start_plan.png`` (the start planner's acoustic window, depth preset and rejected windows).
 Every file is written to a temporary name and renamed when complete.
 """
 
@@ -17,6 +18,7 @@ import trimesh
 
 from drake_rus.control.supervisor import Phase
 from drake_rus.io_utils import atomic_path, save_figure, write_text_atomic
+from drake_rus.scan.planning import plot_start_plan
 
 PHASE_COLORS = {"APPROACH": "#dddddd", "EXPLORE": "#cfe8ff", "LOCALIZE": "#ffe9b3",
                 "TRANSIT": "#e6d5ff", "PIVOT": "#d4f5d4", "DONE": "#ffffff", "ABORT": "#ffc9c9"}
@@ -175,6 +177,10 @@ def WriteScanOutputs(result, metrics: dict, summary: dict, out: Path) -> list[Pa
     if result.registered_template_B is not None:
         write_ply(out / "registered_template.ply", result.registered_template_B)
         written.append(out / "registered_template.ply")
+    if result.start_plan is not None:
+        plot_start_plan(result.start_plan, result.scenario.imaging, out / "start_plan.png",
+                        title=f"Start planner: {result.patient}")
+        written.append(out / "start_plan.png")
     for name, fn in (("registration.png", lambda p: plot_registration(result, p)),
                      ("coverage.png", lambda p: plot_coverage(result, metrics, p)),
                      ("traces.png", lambda p: plot_traces(result, p)),

@@ -9,6 +9,7 @@ faults), the scan diagram and the simulation-truth observer, runs it until DONE,
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
 from typing import Callable, Sequence
@@ -19,9 +20,10 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import EventStatus
 
 from drake_rus.control.supervisor import Phase
-from drake_rus.scan.planning import exploration_start
+from drake_rus.hardware.station import HardwareSession
+from drake_rus.scan.planning import DrawStartPlan, PlanStart, exploration_start
 from drake_rus.progress import AdvanceWithProgress
-from drake_rus.robot import MakeControlPlant, SolveTipPose
+from drake_rus.robot import IkError, MakeControlPlant, SolveTipPose
 from drake_rus.scan.diagram import BuildScanDiagram, ScanHandles
 from drake_rus.scan.truth import AttachSimulationTruth, SimulationTruth
 from drake_rus.stations import MakeStation
@@ -30,6 +32,9 @@ __all__ = ["RunScan", "PrepareScenario", "ScanResult", "ScanMonitor", "CollectSc
            "TERMINAL_PHASES"]
 
 TERMINAL_PHASES = (Phase.DONE, Phase.ABORT)
+# A live (hardware) run that falls this far (s) behind the wall clock is stopped: its
+# commands would reach the robot late.
+MAX_REALTIME_LAG = 0.25
 
 
 class ScanMonitor:
@@ -70,23 +75,49 @@ class ScanResult:
     truth: SimulationTruth | None = None
     # Kidney tracking checks after localization: ((time s, apparent drift m), ...).
     tracking_drift: tuple = ()
+    # The start planner's choice (simulation; None for the vertical planner or hardware).
+    start_plan: object = None
 
     @property
     def X_BK_true(self) -> RigidTransform | None:
         return None if self.truth is None else self.truth.X_BK
 
 
-def PrepareScenario(scenario, patient, start_fraction: float = 0.1):
-    """The scenario with the robot's initial joints set above the exploration start over the
-    patient's kidney (simulation's stand-in for the operator's placement). Returns
-    ``(scenario, X_start)``."""
+def _can_reach(plant, tip):
+    def reachable(X_BP: RigidTransform) -> bool:
+        try:
+            SolveTipPose(plant, tip, X_BP)
+        except IkError:
+            return False
+        return True
+    return reachable
+
+
+def PrepareScenario(scenario, patient, start_fraction: float | None = None):
+    """The scenario set up for the start of a scan on ``patient`` (simulation's stand-in for
+    the operator's placement, ``scenario.start``): the robot's initial joints put the probe
+    over the planned start, and with the window planner ``imaging.depth`` follows the chosen
+    depth preset. ``start_fraction`` overrides ``start.start_fraction``. Returns
+    ``(scenario, X_start, plan)``; ``plan`` is the :class:`StartPlan` (None for the vertical
+    planner). Raises StartPlanError or IkError with a clear message when no start works."""
     X_BPt = scenario.patient.X_BPt.GetDeterministicValue()
-    X_start = exploration_start(patient, X_BPt, scan_direction=scenario.controller.scan_direction,
-                                start_fraction=start_fraction)
     plant, tip = MakeControlPlant(scenario)
+    sf = scenario.start.start_fraction if start_fraction is None else start_fraction
+    plan = None
+    if scenario.start.planner == "vertical":
+        X_start = exploration_start(patient, X_BPt,
+                                    scan_direction=scenario.controller.scan_direction,
+                                    start_fraction=sf, hover=scenario.start.hover)
+    else:
+        plan = PlanStart(patient, X_BPt, scenario.imaging, scenario.start,
+                         reachable=_can_reach(plant, tip), seed=scenario.random_seed,
+                         scan_direction=scenario.controller.scan_direction, start_fraction=sf)
+        X_start = plan.X_start
+        scenario = dataclasses.replace(
+            scenario, imaging=dataclasses.replace(scenario.imaging, depth=plan.depth_preset))
     q0 = SolveTipPose(plant, tip, X_start)
     robot = dataclasses.replace(scenario.robot, initial_joint_positions=[float(v) for v in q0])
-    return dataclasses.replace(scenario, robot=robot), X_start
+    return dataclasses.replace(scenario, robot=robot), X_start, plan
 
 
 def _phase_intervals(times, phases, end_time: float, final_phase: str) -> list:
@@ -153,18 +184,24 @@ def CollectScanResult(scenario, patient_name: str, template, handles: ScanHandle
 
 def RunScan(scenario, patient, template, *, make_station: Callable = MakeStation,
             meshcat=None, max_sim_time: float = 150.0, progress: bool | None = None,
-            start_fraction: float = 0.1, monitors: Sequence[ScanMonitor] = (),
+            start_fraction: float | None = None, monitors: Sequence[ScanMonitor] = (),
             settle: float = 0.0) -> ScanResult:
     """Runs the closed-loop scan until DONE, ABORT or ``max_sim_time`` (s).
 
     ``patient``: the virtual patient (simulation: plans the start pose and attaches the
     truth), or None on hardware (the scan starts where the operator placed the probe).
-    ``make_station(scenario, meshcat=..., patient=...)`` builds the station. ``settle`` (s):
+    ``make_station(scenario, meshcat=..., patient=...)`` builds the station; a station that
+    can ``stop()`` a real robot runs paced at real time inside a ``HardwareSession`` (zero
+    velocity on every exit) and is stopped if it falls ``MAX_REALTIME_LAG`` behind the wall
+    clock. ``settle`` (s):
     keep simulating this long after the scan ends (monitors still observe), e.g. to check
     the robot comes to rest; the result describes the scan proper.
     """
+    plan = None
     if patient is not None and not scenario.hardware:
-        scenario, _ = PrepareScenario(scenario, patient, start_fraction)
+        scenario, _, plan = PrepareScenario(scenario, patient, start_fraction)
+    if meshcat is not None and plan is not None:
+        DrawStartPlan(meshcat, plan)
     station = make_station(scenario, meshcat=meshcat, patient=patient)
     builder, h = BuildScanDiagram(scenario, station, template)
     truth = (AttachSimulationTruth(builder, station, patient, scenario)
@@ -190,20 +227,50 @@ def RunScan(scenario, patient, template, *, make_station: Callable = MakeStation
     simulator.set_monitor(monitor)
     for m in monitors:
         m.attach(diagram, h, context)
+    # A station that drives a real robot (it can stop() it) runs at real time, inside a
+    # session that commands zero velocity on every exit (end, exception, Ctrl-C, SIGTERM),
+    # and must keep up with the wall clock.
+    live = callable(getattr(station, "stop", None))
+    behind = []
+    if live:
+        simulator.set_target_realtime_rate(1.0)
     simulator.Initialize()
     start = time.perf_counter()
-    AdvanceWithProgress(simulator, max_sim_time, desc="scan", step=0.25,
-                        disable=None if progress is None else not progress,
-                        on_step=lambda c: phase_now().name,
-                        should_stop=lambda c: phase_now() in TERMINAL_PHASES)
-    t_end = context.get_time()
-    if settle > 0.0:
-        stop_at_terminal[0] = False
-        simulator.AdvanceTo(t_end + settle)
-    wall = time.perf_counter() - start
-    for m in monitors:
-        m.finish(context)
-    name = patient.name if patient is not None else "patient on the bed"
-    result = CollectScanResult(scenario, name, template, h, truth, context, wall, end_time=t_end)
+
+    def should_stop(root_context) -> bool:
+        if live:
+            lag = (time.perf_counter() - start) - root_context.get_time()
+            if lag > MAX_REALTIME_LAG:
+                behind.append(lag)
+                return True
+        return phase_now() in TERMINAL_PHASES
+
+    try:
+        with (HardwareSession(station) if live else contextlib.nullcontext()):
+            AdvanceWithProgress(simulator, max_sim_time, desc="scan",
+                                step=0.1 if live else 0.25,
+                                disable=None if progress is None else not progress,
+                                on_step=lambda c: phase_now().name, should_stop=should_stop)
+            t_end = context.get_time()
+            if settle > 0.0 and not behind:
+                stop_at_terminal[0] = False
+                simulator.AdvanceTo(t_end + settle)
+        wall = time.perf_counter() - start
+        for m in monitors:
+            m.finish(context)
+        name = patient.name if patient is not None else "patient on the bed"
+        result = CollectScanResult(scenario, name, template, h, truth, context, wall,
+                                   end_time=t_end)
+    finally:
+        # A live station holds a robot connection and a video capture thread: release them
+        # once the robot is at rest (the session already commanded zero velocity).
+        if live and callable(getattr(station, "close", None)):
+            station.close()
     result.sim_s = t_end
+    result.start_plan = plan
+    if behind:
+        result.status = "ABORT"
+        result.reason = (f"the diagram fell {behind[0]:.2f} s behind real time at "
+                         f"{t_end:.2f} s (limit {MAX_REALTIME_LAG:g} s): stopped at zero "
+                         "velocity")
     return result

@@ -2,9 +2,9 @@
 
 Per subject: kidney mask -> marching cubes surface -> canonical frame by PCA with the sign
 rules (eq. 13-14) -> surface expressed in its canonical frame -> farthest-point resampling.
-Across subjects: feature-based alignment to a reference (FPFH + RANSAC, then point-to-plane
-ICP; Open3D, the pipeline of the seed's ref. [34]), kNN re-indexing so vertex j corresponds
-across subjects, mean shape (eq. 15). Two refinement passes re-align every subject to the
+Across subjects: feature-based alignment to a reference, the subject of median size (FPFH +
+RANSAC, then point-to-plane ICP; Open3D, the pipeline of the seed's ref. [34]), kNN
+re-indexing so vertex j corresponds across subjects, mean shape (eq. 15). Two refinement passes re-align every subject to the
 current mean (generalised Procrustes, rigid). The template is finally expressed in its own
 canonical frame. The corresponded shapes also give a statistical shape model: PCA, keeping
 the modes that explain 95% of the variance.
@@ -28,7 +28,7 @@ from drake_rus.anatomy.rasterize import mask_to_mesh
 from drake_rus.template.pca import canonical_frame, mesh_canonical_frame
 
 __all__ = ["Subject", "subject_from_mask", "subject_from_mesh", "farthest_point_sampling",
-           "align_to_reference", "correspond", "mean_shape", "shape_model",
+           "align_to_reference", "reference_subject", "correspond", "mean_shape", "shape_model",
            "convergence", "build_template", "TemplateResult", "save_template"]
 
 FORMAT_VERSION = 1
@@ -181,6 +181,14 @@ class TemplateResult:
     meta: dict = field(default_factory=dict)
 
 
+def reference_subject(subjects: list[Subject]) -> int:
+    """Index of the subject whose canonical extents (length, width, thickness) are nearest,
+    relatively, to the median extents of all subjects (the first such on ties)."""
+    ext = np.array([np.ptp(np.asarray(s.points), axis=0) for s in subjects])
+    med = np.median(ext, axis=0)
+    return int(np.argmin(np.linalg.norm((ext - med) / med, axis=1)))
+
+
 def build_template(subjects: list[Subject], n_points: int = 2500, refine_passes: int = 2,
                    use_features: bool = True, seed: int = 0, progress: bool = True,
                    keep_variance: float = 0.95) -> TemplateResult:
@@ -193,12 +201,16 @@ def build_template(subjects: list[Subject], n_points: int = 2500, refine_passes:
     for s in tqdm(subjects, desc="template: FPS", disable=not progress, leave=False):
         pc = _pcd(s.points, s.normals).farthest_point_down_sample(min(n_points, len(s.points)))
         fps.append((np.asarray(pc.points), np.asarray(pc.normals)))
-    ref_pts, ref_nrm = fps[0]
+    # The reference is the subject of median size: kNN correspondence (for every reference
+    # point the nearest subject point) pulls the mean towards the reference's size, so a
+    # short or long first subject would make a short or long template.
+    ref = reference_subject(subjects)
+    ref_pts, ref_nrm = fps[ref]
     transforms = [np.eye(4) for _ in subjects]
     infos = [{} for _ in subjects]
-    # Global feature-based alignment of every subject to the reference (subject 0).
-    for i in tqdm(range(1, len(subjects)), desc="template: FPFH+RANSAC+ICP",
-                  disable=not progress, leave=False):
+    # Global feature-based alignment of every subject to the reference.
+    for i in tqdm([i for i in range(len(subjects)) if i != ref],
+                  desc="template: FPFH+RANSAC+ICP", disable=not progress, leave=False):
         transforms[i], infos[i] = align_to_reference(
             fps[i][0], fps[i][1], ref_pts, ref_nrm, use_features=use_features, seed=seed + i)
 
@@ -239,6 +251,7 @@ def build_template(subjects: list[Subject], n_points: int = 2500, refine_passes:
         "equations": "seed II-D eq. 13-15",
         "n_subjects": len(subjects), "n_points": int(len(mean)),
         "subjects": [s.name for s in subjects],
+        "reference": subjects[ref].name,
         "volumes_ml": [round(s.volume * 1e6, 2) for s in subjects],
         "ransac_used": int(sum(1 for i in infos if i.get("ransac"))),
         "ransac_rejected": int(sum(1 for i in infos if i.get("ransac_rejected"))),

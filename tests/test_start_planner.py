@@ -1,0 +1,112 @@
+"""The start planner (drake_rus.scan.planning.PlanStart): an acoustic window like a
+sonographer's, on synthetic bodies whose answer is known."""
+
+import types
+
+import numpy as np
+import pytest
+import trimesh
+from pydrake.math import RigidTransform
+
+from drake_rus.anatomy.labels import Label, LabelVolume
+from drake_rus.imaging.config import ImagingConfig
+from drake_rus.scan.config import StartConfig
+from drake_rus.scan.planning import PlanStart, StartPlanError, probe_rotation
+
+VOXEL = 0.002
+
+
+def box_body(kidney_depth=0.09, blocker=None, size=(0.30, 0.30, 0.24)):
+    """A box torso (x across, y along the body, z up; bed at z = 0) with an ellipsoidal
+    kidney ``kidney_depth`` below the top skin, and optionally a slab of ``blocker`` label
+    (bone or gas) right under the skin straight above the kidney. Patient frame = B."""
+    sx, sy, sz = size
+    skin = trimesh.creation.box(extents=size)
+    skin.apply_translation([0.0, 0.0, sz / 2])
+    kidney = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    kidney.apply_scale([0.025, 0.05, 0.02])
+    center = np.array([0.0, 0.0, sz - kidney_depth])
+    kidney.apply_translation(center)
+    shape = np.round(np.array(size) / VOXEL).astype(int)
+    labels = np.full(shape, Label.SOFT_TISSUE, np.uint8)
+    X_PtV = RigidTransform([-sx / 2, -sy / 2, 0.0])
+    idx = np.indices(shape).reshape(3, -1).T
+    p = idx * VOXEL + X_PtV.translation()
+    inside = (((p - center) / [0.025, 0.05, 0.02]) ** 2).sum(axis=1) <= 1.0
+    labels.reshape(-1)[inside] = Label.KIDNEY_CORTEX
+    if blocker is not None:
+        slab = (np.abs(p[:, 0]) < 0.03) & (np.abs(p[:, 1]) < 0.07) & (p[:, 2] > sz - 0.03) & (
+            p[:, 2] < sz - 0.02)
+        labels.reshape(-1)[slab] = blocker
+    return types.SimpleNamespace(skin_mesh=skin, kidney_mesh=kidney, side="right",
+                                 labels=LabelVolume(labels, VOXEL, X_PtV))
+
+
+X_BPT = RigidTransform([0.55, 0.0, 0.0])
+
+
+def test_clear_body_gets_the_vertical_window_and_the_shallowest_preset():
+    plan = PlanStart(box_body(0.09), X_BPT, ImagingConfig(), StartConfig(placement_error=0.0,
+                     placement_error_angle_deg=0.0))
+    assert plan.window.tilt_deg == 0.0
+    np.testing.assert_allclose(plan.window.approach_B, [0, 0, -1], atol=1e-12)
+    # Kidney far side 0.09 + 0.02 m below the skin, + 10 mm margin -> the 150 mm preset.
+    assert plan.window.needed_depth == pytest.approx(0.12, abs=0.004)
+    assert plan.depth_preset == 0.15
+    # The start hovers 15 mm above the top skin, over the kidney's superior part.
+    p = plan.X_start.translation()
+    assert p[2] == pytest.approx(0.24 + 0.015, abs=1e-6)
+    assert 0.0 < p[1] < 0.05 and abs(p[0] - 0.55) < 1e-6
+    deeper = PlanStart(box_body(0.15), X_BPT, ImagingConfig(), StartConfig())
+    assert deeper.depth_preset == 0.20
+
+
+@pytest.mark.parametrize("blocker", [Label.BONE, Label.GAS])
+def test_bone_or_gas_in_the_straight_path_moves_the_window(blocker):
+    clear = PlanStart(box_body(blocker=None), X_BPT, ImagingConfig(), StartConfig())
+    blocked = PlanStart(box_body(blocker=blocker), X_BPT, ImagingConfig(), StartConfig())
+    assert clear.window.tilt_deg == 0.0
+    assert abs(blocked.window.tilt_deg) > 0.0
+    vertical = [c for c in blocked.candidates if c.tilt_deg == 0.0][0]
+    assert not vertical.feasible and "bone or gas" in vertical.reason
+    assert len(vertical.blockers_B) > 0
+    assert blocked.window.blocked_fraction <= StartConfig().max_blocked_fraction
+
+
+def test_unreachable_windows_are_refused_with_a_clear_message():
+    with pytest.raises(StartPlanError, match="cannot reach"):
+        PlanStart(box_body(), X_BPT, ImagingConfig(), StartConfig(), reachable=lambda X: False)
+    # Only tilted windows reachable: the planner takes one of them.
+    plan = PlanStart(box_body(), X_BPT, ImagingConfig(), StartConfig(),
+                     reachable=lambda X: X.rotation().matrix()[2, 2] > -0.999)
+    assert abs(plan.window.tilt_deg) > 0.0
+
+
+def test_a_kidney_deeper_than_every_preset_is_refused():
+    imaging = ImagingConfig(depth_presets=[0.10, 0.15])
+    with pytest.raises(StartPlanError, match="deepest preset 150 mm"):
+        PlanStart(box_body(0.15), X_BPT, imaging, StartConfig(max_tilt_deg=0.0))
+
+
+def test_placement_error_has_the_configured_size_and_is_seeded():
+    cfg = StartConfig(placement_error=0.005, placement_error_angle_deg=3.0)
+    a = PlanStart(box_body(), X_BPT, ImagingConfig(), cfg, seed=1)
+    b = PlanStart(box_body(), X_BPT, ImagingConfig(), cfg, seed=1)
+    c = PlanStart(box_body(), X_BPT, ImagingConfig(), cfg, seed=2)
+    offset = a.X_start.translation() - a.X_planned.translation()
+    assert np.linalg.norm(offset) == pytest.approx(0.005)
+    assert abs(offset @ a.window.approach_B) < 1e-9          # across the beam
+    angle = a.X_start.rotation().inverse().multiply(a.X_planned.rotation()).ToAngleAxis().angle()
+    assert angle == pytest.approx(np.radians(3.0))
+    np.testing.assert_allclose(a.X_start.GetAsMatrix4(), b.X_start.GetAsMatrix4())
+    assert not np.allclose(a.X_start.translation(), c.X_start.translation())
+    s = a.summary()
+    assert s["placement_error_mm"] == pytest.approx(5.0) and s["depth_preset_m"] == 0.15
+
+
+def test_probe_rotation_is_a_transverse_view():
+    R = probe_rotation([0.0, 0.0, -1.0], [0.0, 1.0, 0.0]).matrix()
+    np.testing.assert_allclose(R, np.diag([1.0, -1.0, -1.0]), atol=1e-12)
+    tilted = probe_rotation([0.5, 0.0, -np.sqrt(0.75)], [0.0, 1.0, 0.0]).matrix()
+    assert abs(tilted[:, 0] @ [0, 1, 0]) < 1e-12          # the array stays across the body
+    assert np.linalg.det(tilted) == pytest.approx(1.0)
