@@ -12,7 +12,21 @@ wall-clock rates. ``load_average`` says how busy the machine was.
 
 Accuracy: mean IoU against the true kidney mask over emulated frames (kidney area >= the
 scenario's ``min_kidney_area``) of held-out test patients ``test:0..N-1``, which training never
-uses (it uses ``train:K``): ``iou_classical`` and ``iou_onnx`` (null if no model).
+uses (it uses ``train:K``): ``iou_classical`` and ``iou_onnx`` (null if no model), at the
+scenario's depth, supine.
+
+Across depths and postures (the onnx model, one segmenter per depth preset):
+- ``iou_by_depth``: held-out generated patients ``test:0..M-1`` (``--depth-patients``) in both
+  postures, the same ``--depth-views`` views of each imaged at every preset of
+  ``imaging.depth_presets``; per preset the mean IoU, also split by posture;
+- ``vh_female``: the real Visible Human female body (``/work/shared/anatomy``, never used in
+  training) in both postures, ``--vh-views`` views each, scored against the right kidney at
+  the preset a scan would pick (the shallowest holding the kidney below the upper skin,
+  10 mm margin), and at every preset;
+- ``ms_model_resample``: ms per frame of preprocessing (the physical-canvas resampling) +
+  ONNX inference (``onnx_threads``, default 1) + mapping the probability back, per preset;
+  ``ms_segment``: the whole onnx segment call (+ largest component, threshold).
+With ``--source phantom`` the depth study uses the phantoms and the VH body is skipped.
 The last line is one JSON object.
 """
 
@@ -24,6 +38,7 @@ import os
 import time
 
 import numpy as np
+from tqdm import tqdm
 
 
 def _rate(fn, items, repeat: int = 3):
@@ -46,6 +61,17 @@ def main(argv=None) -> int:
     ap.add_argument("--patients", type=int, default=3, help="test patients for the IoU")
     ap.add_argument("--iou-frames", type=int, default=60, help="frames per test patient")
     ap.add_argument("--source", default="test", help="'test' (test:K patients) or 'phantom'")
+    ap.add_argument("--depth-patients", type=int, default=4,
+                    help="held-out patients test:0..M-1 of the per-depth table (0: skip it)")
+    ap.add_argument("--depth-views", type=int, default=30,
+                    help="views per patient and posture in the per-depth table")
+    ap.add_argument("--vh-views", type=int, default=60,
+                    help="views per posture of the VH female body (0: skip it)")
+    ap.add_argument("--speed-frames", type=int, default=60,
+                    help="frames per preset for the per-preset segmenter speed")
+    ap.add_argument("--no-progress", action="store_true", help="no tqdm bars")
+    ap.add_argument("--onnx-model", default=None,
+                    help="ONNX model to measure (default: the scenario's imaging.onnx_model)")
     args = ap.parse_args(argv)
 
     from pydrake.math import RigidTransform
@@ -60,6 +86,8 @@ def main(argv=None) -> int:
     from drake_rus.imaging.slicing import slice_volume
 
     cfg = ImagingConfig()
+    if args.onnx_model:
+        cfg = ImagingConfig(onnx_model=args.onnx_model)
     g = ProbeGeometry.from_config(cfg)
     model = EmulatorModel.from_config(cfg, g)
     specs = ([f"test:{k}" for k in range(args.patients)] if args.source == "test"
@@ -108,6 +136,10 @@ def main(argv=None) -> int:
               + (f", onnx IoU {r_on['iou']:.3f}" if r_on else "")
               + f" ({r_cl['frames_with_kidney']} frames with kidney)", flush=True)
 
+    depth_part = {}
+    if onnx is not None and args.depth_patients > 0 and args.depth_views > 0:
+        depth_part = depth_and_posture_study(cfg, args)
+
     r = lambda x: None if x is None else round(float(x), 3)
     result = {
         "fps_slice": r(fps_slice),
@@ -126,11 +158,137 @@ def main(argv=None) -> int:
         "iou_sources": specs, "iou_frames_per_source": args.iou_frames,
         "iou_details": details,
         "onnx_model": str(onnx_path) if onnx is not None else None,
+        **depth_part,
         "seconds": round(time.perf_counter() - t0, 1),
         "load_average": [round(x, 2) for x in os.getloadavg()],
     }
     print(json.dumps(result))
     return 0
+
+
+def _round(x, nd=3):
+    return None if x is None or not np.isfinite(x) else round(float(x), nd)
+
+
+def _segment_speed(segmenters: dict, frames_by_depth: dict) -> tuple[dict, dict]:
+    """({depth: ms of resampling + model + back-mapping}, {depth: ms of the whole segment
+    call}) per frame, best of 3 passes (wall clock, one ONNX thread by default)."""
+    ms_model, ms_seg = {}, {}
+    for d, (_, _, seg) in segmenters.items():
+        images = frames_by_depth[d]
+        if not images:
+            continue
+        model_only = lambda us: seg.to_image(seg.model_probability(us))
+        ms_model[d] = 1e3 / _rate(model_only, images)[1]
+        ms_seg[d] = 1e3 / _rate(seg, images)[1]
+    return ms_model, ms_seg
+
+
+def depth_and_posture_study(cfg, args) -> dict:
+    """Per-depth IoU table (held-out generated patients, both postures), the VH female body
+    per posture, and the per-preset segmenter speed."""
+    from pydrake.math import RigidTransform
+
+    from drake_rus.imaging.emulator import EmulatorModel, emulate
+    from drake_rus.imaging.evaluation import (POSTURES, VH_FEMALE, depth_study, load_source,
+                                              sample_views, scan_preset, segmenters_by_depth,
+                                              summarise)
+    from drake_rus.imaging.slicing import slice_volume
+
+    presets = [float(p) for p in cfg.depth_presets]
+    progress = not args.no_progress
+    segmenters = segmenters_by_depth(presets, cfg)
+    seg0 = next(iter(segmenters.values()))[2]
+    if args.source == "test":
+        specs = [(f"test:{k}", p) for k in range(args.depth_patients) for p in POSTURES]
+    else:
+        specs = [(f"phantom:{5000 + k}", "supine") for k in range(args.depth_patients)]
+    sources = [load_source(spec, posture=post) for spec, post in
+               tqdm(specs, desc="loading patients", disable=not progress)]
+    records = depth_study(sources, segmenters, args.depth_views, seed=4242, progress=progress,
+                          desc="per-depth IoU")
+    by_depth = summarise(records)
+    by_depth_posture = summarise(records, key=lambda q: (q["depth"], q["posture"]))
+    postures = sorted({q["posture"] for q in records}, key=lambda p: POSTURES.index(p))
+
+    print("\nheld-out generated patients " + ", ".join(sorted({s.name for s in sources}))
+          + f" ({args.depth_views} views each per posture; IoU over frames with a kidney)")
+    head = f"{'depth':>7} | {'IoU all':>7} | " + " | ".join(f"{p[:12]:>12}" for p in postures)
+    print(head + f" | {'frames':>6} | {'FP rate':>7} | {'IoU unshadowed (frames)':>23}")
+    print("-" * (len(head) + 45))
+    for d in presets:
+        row = by_depth.get(d)
+        if row is None:
+            continue
+        cells = " | ".join(f"{by_depth_posture.get((d, p), {}).get('iou', float('nan')):12.3f}"
+                           for p in postures)
+        print(f"{d * 1000:5.0f}mm | {row['iou']:7.3f} | {cells} | "
+              f"{row['frames_with_kidney']:6d} | {row['false_positive_rate']:7.2f} | "
+              f"{row['iou_visible']:15.3f} ({row['frames_visible']:3d})")
+
+    out = {
+        "pixel_size_mm": seg0.pixel_size_mm,
+        "canvas_px": list(seg0.canvas.shape) if seg0.canvas is not None else None,
+        "iou_by_depth": {f"{d:.2f}": _round(v["iou"]) for d, v in sorted(by_depth.items())},
+        "iou_by_depth_posture": {f"{d:.2f}": {p: _round(by_depth_posture[(d, p)]["iou"])
+                                              for p in postures if (d, p) in by_depth_posture}
+                                 for d in presets},
+        "iou_by_depth_min": _round(min(v["iou"] for v in by_depth.values())),
+        "iou_by_depth_unshadowed": {f"{d:.2f}": _round(v["iou_visible"])
+                                    for d, v in sorted(by_depth.items())},
+        "depth_details": {f"{d:.2f}": {k: _round(x) if isinstance(x, float) else x
+                                       for k, x in v.items()}
+                          for d, v in sorted(by_depth.items())},
+        "depth_sources": sorted({s.name for s in sources}),
+        "depth_views": args.depth_views,
+    }
+
+    vh = {}
+    if args.source == "test" and args.vh_views > 0:
+        vh_sources = [load_source(VH_FEMALE, posture=p) for p in
+                      tqdm(POSTURES, desc="loading VH female", disable=not progress)]
+        vh_records = depth_study(vh_sources, segmenters, args.vh_views, seed=99,
+                                 progress=progress, desc="VH female")
+        by = summarise(vh_records, key=lambda q: (q["posture"], q["depth"]))
+        print(f"\nVH female ({args.vh_views} views per posture; right kidney)")
+        for src in vh_sources:
+            p = src.posture
+            preset = scan_preset(src, presets)
+            row = by.get((p, preset), {})
+            cells = "  ".join(f"{d * 1000:.0f}mm {by[(p, d)]['iou']:.3f} "
+                              f"({by[(p, d)]['frames_with_kidney']})" for d in presets
+                              if (p, d) in by)
+            print(f"  {p}: scan preset {preset * 1000:.0f} mm (kidney needs "
+                  f"{src.needed_depth() * 1000:.0f} mm): IoU {row.get('iou', float('nan')):.3f} "
+                  f"over {row.get('frames_with_kidney', 0)} frames (unshadowed "
+                  f"{row.get('iou_visible', float('nan')):.3f}); per preset: {cells}")
+            vh[p] = {"preset": preset, "needed_depth": _round(src.needed_depth()),
+                     "iou": _round(row.get("iou")),
+                     "frames_with_kidney": row.get("frames_with_kidney", 0),
+                     "iou_unshadowed": _round(row.get("iou_visible")),
+                     "false_positive_rate": _round(row.get("false_positive_rate")),
+                     "iou_by_depth": {f"{d:.2f}": _round(by[(p, d)]["iou"])
+                                      for d in presets if (p, d) in by}}
+    out["vh_female"] = vh or None
+    out["vh_female_iou"] = {p: v["iou"] for p, v in vh.items()} or None
+
+    # Speed per preset, on frames of the first source at that depth.
+    src = sources[0]
+    poses = sample_views(src, args.speed_frames, 5)
+    frames_by_depth = {}
+    for d, (c, g, _) in segmenters.items():
+        model = EmulatorModel.from_config(c, g)
+        frames_by_depth[d] = [emulate(slice_volume(g, src.volume, RigidTransform(), X), model,
+                                      0, i) for i, X in enumerate(poses)]
+    ms_model, ms_seg = _segment_speed(segmenters, frames_by_depth)
+    print("\nsegmenter speed (ms per frame, wall clock, "
+          f"{cfg.onnx_threads} ONNX thread(s)): resampling + model + back-mapping / whole call")
+    print("  " + "  ".join(f"{d * 1000:.0f}mm {ms_model[d]:.2f} / {ms_seg[d]:.2f}"
+                           for d in ms_model))
+    out["ms_model_resample"] = {f"{d:.2f}": _round(v, 2) for d, v in ms_model.items()}
+    out["ms_segment"] = {f"{d:.2f}": _round(v, 2) for d, v in ms_seg.items()}
+    out["ms_model_resample_mean"] = _round(float(np.mean(list(ms_model.values()))), 2)
+    return out
 
 
 if __name__ == "__main__":

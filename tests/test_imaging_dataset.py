@@ -5,11 +5,15 @@ import json
 import numpy as np
 import pytest
 
-from drake_rus.anatomy.labels import Label
+from pydrake.math import RigidTransform, RotationMatrix
+
+from drake_rus.anatomy.labels import Label, LabelVolume, is_kidney
 from drake_rus.imaging.config import ImagingConfig
-from drake_rus.imaging.dataset import ViewSampler, make_frames
-from drake_rus.imaging.emulator import EmulatorModel
-from drake_rus.imaging.evaluation import mean_iou
+from drake_rus.imaging.dataset import (EmulatorBank, Randomisation, ViewSampler, VolumeVariant,
+                                       canvas_frames, make_frames, randomised_emulator,
+                                       thicken_wall)
+from drake_rus.imaging.emulator import EmulatorModel, emulate
+from drake_rus.imaging.evaluation import Source, mean_iou, summarise
 from drake_rus.imaging.phantoms import kidney_phantom
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.imaging.slicing import sample_labels
@@ -64,3 +68,94 @@ def test_pictures_command_writes_pngs(tmp_path):
     assert (out / "00_centred.png").is_file()
     assert main(["imaging-pictures", "--patient", "phantom:2", "--pose", "1,2,3",
                  "--out", str(out)]) == 2
+
+
+def _kidney_centroid_Pt(vol: LabelVolume) -> np.ndarray:
+    c_V = np.argwhere(is_kidney(vol.labels)).mean(axis=0) * vol.voxel_size
+    return vol.X_PtV.multiply(c_V)
+
+
+def _flipped(vol: LabelVolume) -> LabelVolume:
+    """The same body on a grid whose first axis points down (up = -axis 0), like a decubitus
+    patient's grid."""
+    K = vol.labels.shape[2]
+    labels = np.ascontiguousarray(np.moveaxis(vol.labels, 2, 0)[::-1])
+    R = RotationMatrix(np.array([[0.0, 1, 0], [0, 0, 1], [-1, 0, 0]]))
+    X_VW = RigidTransform(R, [0, 0, (K - 1) * vol.voxel_size])
+    return LabelVolume(labels, vol.voxel_size, vol.X_PtV @ X_VW)
+
+
+def test_thicken_wall_puts_the_kidney_deeper_and_keeps_it(phantom):
+    vol = phantom.volume
+    for v, up in ((vol, np.array([0.0, 0.0, 1.0])), (_flipped(vol), np.array([-1.0, 0, 0]))):
+        before = Source("p", "supine", v, up).needed_depth(0.0)
+        thick = thicken_wall(v, up, fat=0.010, inner=0.020)
+        assert thick.labels.size > v.labels.size
+        # The kidney keeps its voxels and its place in the patient frame ...
+        assert is_kidney(thick.labels).sum() == is_kidney(v.labels).sum()
+        np.testing.assert_allclose(_kidney_centroid_Pt(thick), _kidney_centroid_Pt(v),
+                                   atol=1e-9)
+        # ... and lies 30 mm deeper below the upper skin, under 10 mm more fat.
+        after = Source("p", "supine", thick, up).needed_depth(0.0)
+        assert after - before == pytest.approx(0.030, abs=1.5e-3)
+        assert (thick.labels == Label.FAT).sum() > (v.labels == Label.FAT).sum()
+    assert thicken_wall(vol, [0, 0, 1.0]) is vol
+    with pytest.raises(ValueError, match="grid axis"):
+        thicken_wall(vol, [1.0, 0, 1.0], fat=0.01)
+
+
+def test_free_views_mostly_miss_the_kidney(phantom):
+    cfg = ImagingConfig(image_height_px=128, image_width_px=128, scan_lines=64,
+                        samples_per_line=128)
+    g = ProbeGeometry.from_config(cfg)
+    up = np.array([0.0, 0.0, 1.0])
+    sampler = ViewSampler(phantom.volume, up, free_fraction=1.0, free_offset=(0.07, 0.09))
+    frames = make_frames(phantom.volume, up, EmulatorModel.from_config(cfg, g), 12,
+                         np.random.default_rng(2), sampler=sampler)
+    seen = [m.sum() * g.pixel_area >= 1e-4 for _, m, *_ in frames]
+    assert len(frames) == 12 and np.mean(seen) < 0.5
+
+
+def test_randomised_emulator_shares_the_geometry_and_varies_the_image():
+    bank = EmulatorBank(ImagingConfig(image_height_px=128, image_width_px=128, scan_lines=64,
+                                      samples_per_line=128))
+    base = bank.get(0.15)
+    assert bank.get(0.15) is base and bank.get(0.20) is not base
+    assert bank.get(0.15, 32).scan_lines == 32
+    rng = np.random.default_rng(0)
+    m = randomised_emulator(base, rng)
+    assert m.scan_matrix is base.scan_matrix and m.geometry is base.geometry
+    assert m.gain_db != base.gain_db and m.frequency_mhz != base.frequency_mhz
+    labels = np.where(base.geometry.fan_mask, int(Label.LIVER), 0).astype(np.uint8)
+    a, b = emulate(labels, base, 0, 0), emulate(labels, m, 0, 0)
+    assert a.shape == b.shape and not np.array_equal(a, b)
+
+
+def test_canvas_frames_are_on_the_physical_canvas(phantom):
+    cfg = ImagingConfig(image_height_px=128, image_width_px=128, scan_lines=64,
+                        samples_per_line=128)
+    up = np.array([0.0, 0.0, 1.0])
+    thick = thicken_wall(phantom.volume, up, fat=0.01)
+    variants = [VolumeVariant(phantom.volume, up), VolumeVariant(thick, up, extra_depth=0.01)]
+    d = canvas_frames(variants, [0.10, 0.20], 6, np.random.default_rng(0), EmulatorBank(cfg),
+                      0.0048, (64, 56), -0.004, Randomisation())
+    assert d["image"].shape == (6, 64, 56) and d["kidney"].shape == (6, 64, 56)
+    assert set(d["depth"].tolist()) <= {np.float32(0.10), np.float32(0.20)}
+    k = d["kidney"].astype(np.float32)
+    assert k.min() >= 0 and k.max() <= 1.0 + 1e-3
+    assert (d["kidney_px"] > 0).sum() >= 3
+    # Kidney area on the canvas (mm^2) = kidney pixels x the image's pixel area.
+    for i in range(6):
+        g = ProbeGeometry.from_config(ImagingConfig(
+            depth=float(d["depth"][i]), image_height_px=128, image_width_px=128))
+        assert k[i].sum() * 4.8 ** 2 == pytest.approx(d["kidney_px"][i] * g.pixel_area * 1e6,
+                                                        rel=0.02, abs=1.0)
+
+
+def test_summarise_groups_records():
+    recs = [{"depth": 0.1, "posture": "supine", "iou": 0.8, "false_positive": False},
+            {"depth": 0.1, "posture": "supine", "iou": None, "false_positive": True},
+            {"depth": 0.2, "posture": "supine", "iou": 0.6, "false_positive": False}]
+    out = summarise(recs)
+    assert out[0.1]["iou"] == 0.8 and out[0.1]["false_positive_rate"] == 1.0
+    assert out[0.2]["frames_with_kidney"] == 1 and out[0.2]["frames_without_kidney"] == 0

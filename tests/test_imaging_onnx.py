@@ -1,16 +1,20 @@
 """The ONNX segmenter backend: the shipped model, and clear errors for bad models/shapes."""
 
 import json
+import shutil
 
 import numpy as np
 import pytest
+from scipy import ndimage
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.frames import UsFrame
-from drake_rus.imaging.onnx_backend import (OnnxSegmenter, largest_component, resize_to,
+from drake_rus.imaging.onnx_backend import (OnnxSegmenter, PhysicalCanvas, card_canvas,
+                                            largest_component, read_model_card, resize_to,
                                             resolve_model_path, upsample_to)
+from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.imaging.systems import Segmenter
 
 CFG = ImagingConfig(segmenter="onnx")
@@ -50,17 +54,29 @@ def test_garbage_model_is_named(geometry, tmp_path):
         OnnxSegmenter(bad, geometry)
 
 
-def test_wrong_input_shape_is_named(geometry):
+def _bare_copy(tmp_path):
+    """The shipped model without its card (so the scenario's input shape rules)."""
+    bare = tmp_path / "bare.onnx"
+    shutil.copyfile(MODEL, bare)
+    return bare
+
+
+def test_wrong_input_shape_is_named(geometry, tmp_path):
     with pytest.raises(ValueError, match="imaging.onnx_input_shape.*1, 1, 96, 96"):
-        OnnxSegmenter(MODEL, geometry, input_shape=(1, 1, 96, 96))
+        OnnxSegmenter(_bare_copy(tmp_path), geometry, input_shape=(1, 1, 96, 96))
 
 
 def test_shipped_model_matches_its_json_and_the_default_scenario(geometry):
     meta = json.loads(MODEL.with_suffix(".json").read_text())
-    assert meta["input"]["shape"] == CFG.onnx_input_shape
+    seg = OnnxSegmenter.from_config(CFG, geometry)
+    # The default scenario runs the model at the card's input shape: N, C from the scenario,
+    # H, W = the card's physical canvas.
+    assert meta["input"]["shape"] == list(seg.input_shape)
+    assert meta["input"]["shape"][:2] == CFG.onnx_input_shape[:2]
+    assert meta["input"]["shape"][2:] == meta["canvas_px"]
+    assert seg.pixel_size_mm == pytest.approx(meta["pixel_size_mm"])
     assert meta["scenario"]["onnx_output"] == CFG.onnx_output
     assert MODEL.stat().st_size < 5e6
-    seg = OnnxSegmenter.from_config(CFG, geometry)
     # A blank (black) image has no kidney.
     assert not seg(np.zeros(geometry.image_shape, np.uint8)).any()
     with pytest.raises(ValueError, match="image shape"):
@@ -106,3 +122,102 @@ def test_fill_holes_matches_scipy():
     for _ in range(50):
         m = ndimage.binary_opening(rng.random((40, 40)) < 0.6)
         assert np.array_equal(fill_holes(m), ndimage.binary_fill_holes(m))
+
+
+# --- physical pixel size ------------------------------------------------------------------------
+
+def _disc(g: ProbeGeometry, x: float, z: float, r: float) -> np.ndarray:
+    p = g.pixel_to_P(g._all_uv)
+    return (((p[:, 0] - x) ** 2 + (p[:, 2] - z) ** 2) <= r * r).reshape(g.image_shape)
+
+
+def test_a_disc_keeps_its_physical_size_on_the_canvas_and_back():
+    """A disc of 20 mm radius imaged at 100 and 250 mm depth (0.40 and 0.99 mm per pixel
+    along the beam) covers the same canvas pixels (2.4 mm), and maps back onto itself within
+    a pixel."""
+    canvases, discs = [], []
+    for depth in (0.10, 0.25):
+        g = ProbeGeometry.from_config(ImagingConfig(depth=depth))
+        c = PhysicalCanvas(g, 0.0024, (128, 112), -0.004)
+        disc = _disc(g, 0.012, 0.055, 0.020)
+        on_canvas = c.to_canvas(disc.astype(np.float32))
+        # Area preserved (the canvas holds the area fraction per pixel).
+        assert on_canvas.sum() * 2.4 ** 2 == pytest.approx(np.pi * 20.0 ** 2, rel=0.01)
+        back = c.to_image(on_canvas) > 0.5
+        ring = ndimage.binary_dilation(disc, iterations=1) & ~ndimage.binary_erosion(disc)
+        assert not (back ^ disc)[~ring].any(), "more than a pixel off the disc's edge"
+        canvases.append(on_canvas > 0.5)
+        discs.append(disc)
+        # Pixels outside the image (below 100 mm) are zero padding; the fan is inside.
+        assert c.fan_mask.any() and not c.fan_mask[-1].any()
+    a, b = canvases
+    assert (a ^ b).sum() <= 0.1 * a.sum()          # the same canvas pixels, up to the edge
+    assert (a & b).sum() / (a | b).sum() > 0.9
+    # A grey image maps to the same canvas grey, whatever the depth.
+    for depth in (0.10, 0.30):
+        g = ProbeGeometry.from_config(ImagingConfig(depth=depth))
+        c = PhysicalCanvas(g, 0.0024, (128, 112), -0.004)
+        flat = np.full(g.image_shape, 200, np.uint8)
+        inner = ndimage.binary_erosion(c.fan_mask, iterations=2)
+        assert np.allclose(c.to_canvas(flat * g.fan_mask)[inner], 200, atol=1e-3)
+
+
+def test_card_fields_are_read_and_a_missing_field_falls_back(geometry, tmp_path):
+    assert card_canvas({}) is None
+    assert card_canvas({"pixel_size_mm": 2.4}) is None           # no canvas_px
+    assert card_canvas({"canvas_px": [128, 112]}) is None        # no pixel size
+    spec = card_canvas({"pixel_size_mm": 2.4, "canvas_px": [128, 112]})
+    assert spec["pixel_size"] == pytest.approx(0.0024) and spec["shape"] == (128, 112)
+    assert spec["top"] is None                                   # default: the image's top
+    assert PhysicalCanvas(geometry, 0.0024, (128, 112)).top == pytest.approx(geometry.z_min)
+    with pytest.raises(ValueError, match="pixel_size_mm"):
+        card_canvas({"pixel_size_mm": -1, "canvas_px": [128, 112]})
+    # The shipped card declares the canvas; the backend reads it from the .json.
+    card = read_model_card(MODEL)
+    seg = OnnxSegmenter.from_config(CFG, geometry)
+    assert seg.canvas is not None and seg.canvas.shape == tuple(card["canvas_px"])
+    assert seg.canvas.top == pytest.approx(card["canvas_top_mm"] * 1e-3)
+    # A card without the fields: today's plain resize to the scenario's H x W.
+    bare = _bare_copy(tmp_path)
+    shape = (1, 1) + tuple(card["canvas_px"])
+    bare.with_suffix(".json").write_text(json.dumps({"pixel_size_mm": 2.4}))
+    legacy = OnnxSegmenter(bare, geometry, input_shape=shape)
+    assert legacy.canvas is None and legacy.pixel_size_mm is None
+    img = np.random.default_rng(0).integers(0, 255, geometry.image_shape).astype(np.uint8)
+    np.testing.assert_allclose(legacy.preprocess(img)[0, 0],
+                               resize_to(img, *shape[2:]) / 255.0, atol=1e-6)
+    # No card at all: the same; a broken card is named.
+    bare.with_suffix(".json").unlink()
+    assert OnnxSegmenter(bare, geometry, input_shape=shape).canvas is None
+    bare.with_suffix(".json").write_text("{not json")
+    with pytest.raises(ValueError, match="bare.json"):
+        OnnxSegmenter(bare, geometry, input_shape=shape)
+    # A card whose canvas the model does not take is named too.
+    bare.with_suffix(".json").write_text(json.dumps({"pixel_size_mm": 2.4,
+                                                     "canvas_px": [96, 96]}))
+    with pytest.raises(ValueError, match="canvas_px"):
+        OnnxSegmenter(bare, geometry)
+
+
+def test_shipped_model_holds_at_shallow_and_deep_presets():
+    """The shipped model on a held-out patient (test:0, supine) at 100 and 250 mm depth:
+    mean IoU of a few emulated views with a kidney above a floor."""
+    from drake_rus.imaging.emulator import EmulatorModel, emulate
+    from drake_rus.imaging.evaluation import load_source, sample_views
+    from drake_rus.imaging.segment import iou
+    from drake_rus.imaging.slicing import slice_volume
+    src = load_source("test:0", posture="supine")
+    poses = sample_views(src, 8, seed=3)
+    for depth in (0.10, 0.25):
+        cfg = ImagingConfig(depth=depth)
+        g = ProbeGeometry.from_config(cfg)
+        model = EmulatorModel.from_config(cfg, g)
+        seg = OnnxSegmenter.from_config(cfg, g)
+        ious = []
+        for i, X in enumerate(poses):
+            labels = slice_volume(g, src.volume, RigidTransform(), X)
+            gt = src.kidney_mask(labels, g, X)
+            if gt.sum() * g.pixel_area >= cfg.min_kidney_area:
+                ious.append(iou(seg(emulate(labels, model, 1, i)), gt))
+        assert len(ious) >= 3, depth
+        assert np.mean(ious) > 0.75, (depth, ious)

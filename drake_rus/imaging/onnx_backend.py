@@ -7,13 +7,26 @@ H x W (block mean when the sizes divide, else nearest), scaled to [0, 1], normal
 (N, K, h, w) or (N, h, w): ``logits`` (a sigmoid is applied; with K > 1 a softmax over K),
 ``probability`` or ``labels`` (integer class per pixel, or K scores to argmax); channel
 (or class index) ``onnx_kidney_channel`` is the kidney. The kidney probability is resized back to the image (bilinear) and thresholded.
+
+Physical pixel size (model card): when the JSON card next to the model (same name, ``.json``)
+declares ``pixel_size_mm`` (p) and ``canvas_px`` ([H, W]), the model sees every frame at that
+fixed physical pixel size, whatever the imaging depth: the image (whose mm per pixel grows
+with ``ImagingConfig.depth``) is area-averaged onto an H x W canvas of p mm pixels in the
+probe frame P (columns centred on the beam axis x_P = 0, the top edge at z_P =
+``canvas_top_mm``, default the image's top), padded with 0 where the image is shallower or
+narrower (cropped where it is larger); the kidney probability is mapped back onto the image
+grid (bilinear). The model input is then (N, C, H, W) with N, C from ``onnx_input_shape`` and
+H, W from the card (the scenario's H, W are not used). A card without these fields, or no
+card, keeps the resize above. :class:`PhysicalCanvas` does the mapping.
 """
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
+import scipy.sparse as sps
 from scipy import ndimage
 
 from drake_rus.imaging.config import ImagingConfig
@@ -73,13 +86,129 @@ def upsample_to(prob: np.ndarray, H: int, W: int) -> np.ndarray:
     return rows[:, c0] + (rows[:, c1] - rows[:, c0]) * wc
 
 
+def read_model_card(model_path: str | Path) -> dict:
+    """The model card (the ``.json`` next to the ``.onnx``) as a dict; {} when there is none.
+    A card that is not a JSON object raises ValueError naming the file."""
+    card = Path(model_path).with_suffix(".json")
+    if not card.is_file():
+        return {}
+    try:
+        data = json.loads(card.read_text())
+    except (OSError, ValueError) as e:
+        raise ValueError(f"imaging.onnx_model: model card {card} is not valid JSON: {e}"
+                         ) from None
+    if not isinstance(data, dict):
+        raise ValueError(f"imaging.onnx_model: model card {card} is not a JSON object")
+    return data
+
+
+def card_canvas(card: dict, where: str = "model card") -> dict | None:
+    """``{"pixel_size": m, "shape": (H, W), "top": m or None}`` from a card's
+    ``pixel_size_mm``, ``canvas_px`` and optional ``canvas_top_mm``; None (the plain
+    resize) when ``pixel_size_mm`` or ``canvas_px`` is missing. Bad values raise ValueError."""
+    if "pixel_size_mm" not in card or "canvas_px" not in card:
+        return None
+    try:
+        p = float(card["pixel_size_mm"])
+        shape = tuple(int(v) for v in card["canvas_px"])
+        top = card.get("canvas_top_mm")
+        top = None if top is None else float(top) * 1e-3
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: pixel_size_mm must be a number, canvas_px two integers "
+                         f"and canvas_top_mm a number; got {card.get('pixel_size_mm')!r}, "
+                         f"{card.get('canvas_px')!r}, {card.get('canvas_top_mm')!r}") from None
+    if not (np.isfinite(p) and p > 0) or len(shape) != 2 or min(shape) < 2:
+        raise ValueError(f"{where}: expected pixel_size_mm > 0 and canvas_px [H, W] of at "
+                         f"least 2 pixels, got {card['pixel_size_mm']!r}, {card['canvas_px']!r}")
+    return {"pixel_size": p * 1e-3, "shape": shape, "top": top}
+
+
+def _area_matrix(centres: np.ndarray, size: float, lo: float, step: float, n_out: int):
+    """Sparse (n_out, n_in) box filter from input cells (centres, width ``size``) to output
+    cells ``[lo + i step, lo + (i + 1) step]``: each weight is the overlap length over
+    ``step``, so an output cell half outside the input gets half its area filled with 0
+    (zero padding)."""
+    edges = lo + np.arange(n_out + 1) * step
+    a, b = centres - 0.5 * size, centres + 0.5 * size
+    ov = np.clip(np.minimum(b[None, :], edges[1:, None])
+                 - np.maximum(a[None, :], edges[:-1, None]), 0.0, None) / step
+    return sps.csr_matrix(ov.astype(np.float32))
+
+
+def _linear_matrix(pos: np.ndarray, n: int):
+    """Sparse (len(pos), n) linear interpolation at continuous indices ``pos`` of n samples
+    (pixel centres at integers); rows more than half a sample outside the grid are 0."""
+    inside = (pos >= -0.5) & (pos <= n - 0.5)
+    x = np.clip(pos, 0, n - 1)
+    i0 = np.minimum(np.floor(x).astype(np.intp), max(n - 2, 0))
+    i1 = np.minimum(i0 + 1, n - 1)
+    w = (x - i0) * inside
+    rows = np.arange(len(pos))
+    return sps.csr_matrix((np.concatenate([(1 - w) * inside, w]).astype(np.float32),
+                           (np.concatenate([rows, rows]), np.concatenate([i0, i1]))),
+                          shape=(len(pos), n))
+
+
+class PhysicalCanvas:
+    """Maps images of a probe geometry to and from a fixed canvas of square physical pixels.
+
+    Canvas pixel (row i, column j) covers z_P in ``top + [i, i + 1] * pixel_size`` and x_P in
+    ``(j - W / 2 + [0, 1]) * pixel_size`` (m): the canvas is centred on the beam axis and its
+    top edge is at ``top`` (default the image's top edge ``geometry.z_min``). Both maps are
+    separable (rows along z_P, columns along x_P): two sparse products, precomputed per
+    geometry (sparse, not dense BLAS, whose thread pool costs more than the work here).
+    """
+
+    def __init__(self, geometry: ProbeGeometry, pixel_size: float, shape: tuple[int, int],
+                 top: float | None = None):
+        g = geometry
+        self.geometry = g
+        self.pixel_size = float(pixel_size)
+        self.shape = (int(shape[0]), int(shape[1]))
+        self.top = float(g.z_min if top is None else top)
+        self.left = -0.5 * self.shape[1] * self.pixel_size
+        self._z = g.z0 + np.arange(g.height_px) * g.dz
+        self._x = g.x0 + np.arange(g.width_px) * g.dx
+        self._rows = _area_matrix(self._z, g.dz, self.top, self.pixel_size, self.shape[0])
+        self._cols_T = _area_matrix(self._x, g.dx, self.left, self.pixel_size,
+                                    self.shape[1]).T.tocsr()
+        self._back: dict = {}
+        #: Canvas pixels at least half covered by the image's fan.
+        self.fan_mask = self.to_canvas(g.fan_mask.astype(np.float32)) >= 0.5
+        self.fan_mask.flags.writeable = False
+
+    def to_canvas(self, image: np.ndarray) -> np.ndarray:
+        """float32 (H, W) canvas of an image (rows, cols): the area mean of the image over
+        each canvas pixel, 0 where the canvas lies outside the image."""
+        img = np.asarray(image, dtype=np.float32)
+        return np.asarray((self._rows @ img) @ self._cols_T, dtype=np.float32)
+
+    def to_image(self, canvas_map: np.ndarray) -> np.ndarray:
+        """float32 (rows, cols) image of a map (h, w) over the canvas (the canvas's shape or
+        any other grid covering the same extent): bilinear at the image's pixel centres, 0
+        where the image lies outside the canvas."""
+        m = np.asarray(canvas_map, dtype=np.float32)
+        h, w = m.shape
+        hit = self._back.get((h, w))
+        if hit is None:
+            sz = self.shape[0] * self.pixel_size / h
+            sx = self.shape[1] * self.pixel_size / w
+            hit = self._back[(h, w)] = (
+                _linear_matrix((self._z - self.top) / sz - 0.5, h),
+                _linear_matrix((self._x - self.left) / sx - 0.5, w).T.tocsr())
+        rows, cols_T = hit
+        return np.asarray((rows @ m) @ cols_T, dtype=np.float32)
+
+
 class OnnxSegmenter:
     """A loaded ONNX model; call it on a uint8 grey image to get a bool kidney mask."""
 
     def __init__(self, model_path: str | Path, geometry: ProbeGeometry,
                  input_shape=(1, 1, 128, 128), mean: float = 0.0, std: float = 1.0,
                  output: str = "logits", kidney_channel: int = 0, threshold: float = 0.5,
-                 threads: int = 1, field_prefix: str = "imaging."):
+                 threads: int = 1, field_prefix: str = "imaging.", card: dict | None = None):
+        """``card``: the model card's fields (default: read from the ``.json`` next to the
+        model); ``pixel_size_mm`` and ``canvas_px`` switch on the physical canvas."""
         import onnxruntime as ort
         self.geometry = geometry
         self.path = resolve_model_path(str(model_path))
@@ -90,6 +219,16 @@ class OnnxSegmenter:
             raise ValueError(f"{field_prefix}onnx_input_shape: expected 4 positive sizes "
                              f"(N, C, H, W), got {list(input_shape)}")
         self.input_shape = tuple(int(d) for d in input_shape)
+        card_name = self.path.with_suffix(".json").name
+        self.card = read_model_card(self.path) if card is None else dict(card)
+        spec = card_canvas(self.card, f"{where}: model card {card_name}")
+        #: The physical canvas (None: the plain resize of the whole image to H x W).
+        self.canvas = None
+        if spec is not None:
+            self.canvas = PhysicalCanvas(geometry, spec["pixel_size"], spec["shape"],
+                                         spec["top"])
+            self.input_shape = self.input_shape[:2] + self.canvas.shape
+        self._fan_at: dict = {}
         if output not in ("logits", "probability", "labels"):
             raise ValueError(f"{field_prefix}onnx_output: expected 'logits', 'probability' "
                              f"or 'labels', got {output!r}")
@@ -111,6 +250,12 @@ class OnnxSegmenter:
         declared = inputs[0].shape
         if len(declared) != 4 or any(isinstance(d, int) and d != want
                                      for d, want in zip(declared, self.input_shape)):
+            if self.canvas is not None:
+                raise ValueError(
+                    f"{where}: model card {card_name} declares canvas_px "
+                    f"{list(self.canvas.shape)} (input {list(self.input_shape)} with N, C from "
+                    f"{field_prefix}onnx_input_shape) but model {self.path.name} input "
+                    f"'{inputs[0].name}' has shape {declared}")
             raise ValueError(
                 f"{field_prefix}onnx_input_shape: the scenario names {list(self.input_shape)} "
                 f"but model {self.path.name} input '{inputs[0].name}' has shape {declared}")
@@ -134,9 +279,17 @@ class OnnxSegmenter:
                    config.onnx_input_std, config.onnx_output, config.onnx_kidney_channel,
                    config.onnx_threshold, config.onnx_threads)
 
+    @property
+    def pixel_size_mm(self) -> float | None:
+        """The model's physical pixel size (mm), None without a physical canvas."""
+        return None if self.canvas is None else self.canvas.pixel_size * 1e3
+
     def preprocess(self, image: np.ndarray) -> np.ndarray:
         n, c, h, w = self.input_shape
-        x = resize_to(np.asarray(image), h, w) * np.float32(1.0 / 255.0)
+        if self.canvas is not None:
+            x = self.canvas.to_canvas(image) * np.float32(1.0 / 255.0)
+        else:
+            x = resize_to(np.asarray(image), h, w) * np.float32(1.0 / 255.0)
         x = (x - np.float32(self.mean)) * np.float32(1.0 / self.std)
         return np.broadcast_to(x, (n, c, h, w)).astype(np.float32)
 
@@ -165,23 +318,43 @@ class OnnxSegmenter:
         e = np.exp(z)
         return (e[self.kidney_channel] / e.sum(axis=0)).astype(np.float32)
 
+    def to_image(self, prob: np.ndarray) -> np.ndarray:
+        """A map at the model's output resolution -> (rows, cols) on the image grid."""
+        if self.canvas is not None:
+            return self.canvas.to_image(prob)
+        H, W = self.geometry.image_shape
+        return upsample_to(prob, H, W)
+
     def probability(self, image: np.ndarray) -> np.ndarray:
         """Kidney probability (rows, cols) of a uint8 grey image."""
-        H, W = self.geometry.image_shape
-        return upsample_to(self.model_probability(image), H, W)
+        return self.to_image(self.model_probability(image))
+
+    def _canvas_fan(self, h: int, w: int) -> np.ndarray:
+        """The canvas's fan pixels at a model output resolution (h, w)."""
+        hit = self._fan_at.get((h, w))
+        if hit is None:
+            fan = self.canvas.fan_mask
+            hit = fan if fan.shape == (h, w) else resize_to(fan.astype(np.float32), h, w) >= 0.5
+            self._fan_at[(h, w)] = hit
+        return hit
 
     def model_probability(self, image: np.ndarray) -> np.ndarray:
-        """Kidney probability at the model's output resolution."""
+        """Kidney probability at the model's output resolution (on the physical canvas, 0
+        outside the image's fan, when the card declares one)."""
         image = np.asarray(image)
         if image.shape != self.geometry.image_shape:
             raise ValueError(f"OnnxSegmenter: image shape {image.shape} != probe image shape "
                              f"{self.geometry.image_shape}")
         out = self.session.run([self.output_name], {self.input_name: self.preprocess(image)})[0]
-        return self._kidney_map(out)
+        prob = self._kidney_map(out)
+        if self.canvas is not None:
+            prob = np.where(self._canvas_fan(*prob.shape), prob, np.float32(0.0))
+        return prob
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
         """Bool kidney mask (rows, cols) of a uint8 grey image: the largest component (holes
-        filled) at the model's resolution, upsampled bilinearly, thresholded, in the fan."""
+        filled) at the model's resolution, mapped back to the image bilinearly (from the
+        physical canvas, when there is one), thresholded, in the fan."""
         prob = self.model_probability(image)
         keep = largest_component(prob > self.threshold)
         if not keep.any():
@@ -190,8 +363,7 @@ class OnnxSegmenter:
         # its filled holes count as kidney.
         prob = np.where(ndimage.binary_dilation(keep), prob, 0.0).astype(np.float32)
         prob[keep & (prob <= self.threshold)] = 1.0
-        H, W = self.geometry.image_shape
-        return (upsample_to(prob, H, W) > self.threshold) & self.geometry.fan_mask
+        return (self.to_image(prob) > self.threshold) & self.geometry.fan_mask
 
 
 _EIGHT = np.ones((3, 3), bool)

@@ -1,44 +1,98 @@
 """Trains the learned kidney segmenter and exports it to ONNX (needs the ``train`` extra).
 
-Data recipe (``drake_rus.imaging.dataset``): for each training patient (``train:K``, never a
-``test:K`` one), ``--frames`` probe views looking down at the kidney through the upper skin
-(random kidney point, up to 25 mm lateral offset, up to 25 deg tilt, random array rotation),
-each sliced, emulated with the scenario's default emulator (speckle seeded per frame) and
-labelled with the true kidney mask. Images and masks are reduced to the model's input size
-(2x2 block mean; mask = block majority).
+The model works at a fixed physical pixel size (``--pixel-size-mm``, 2.4 mm) on a fixed
+canvas (``--canvas``, 128 x 112 px = 307 x 269 mm, the top edge 4 mm above the face centre),
+which holds the whole fan at the deepest preset (300 mm, 239 mm wide); the backend maps each
+frame onto it and back (:class:`~drake_rus.imaging.onnx_backend.PhysicalCanvas`), so one
+model serves every depth preset. The card (``kidney_unet.json``) declares ``pixel_size_mm``,
+``canvas_px`` and ``canvas_top_mm``.
 
-Model: a small U-Net on a 64 x 64 input (the 256 x 256 image reduced by 4 x 4 block means,
-which also averages the speckle away), 3 poolings, ``--width`` channels at full resolution
-doubling per level, 1 input channel (grey / 255), 1 output channel (kidney logit) at 64 x 64;
-the backend upsamples the probability bilinearly to the image before thresholding. Loss: BCE + soft Dice.
-Augmentation: left-right flips and a random gain / contrast change of the grey levels.
+Data recipe (:func:`~drake_rus.imaging.dataset.canvas_frames`): training patients only
+(``train:K``, never ``test:K``, never a real body), both postures (supine: views down through
+the upper skin; left lateral decubitus: views down through the right flank, which then faces
+up), ``--frames`` views per patient and posture (random kidney point, up to 25 mm lateral
+offset, 15% up to 70 mm, 10% aimed 80-160 mm away (kidney-free), up to 30 deg tilt, random
+array rotation; views crossing ribs and gas are kept, with their shadows), each at a random
+depth preset. A quarter of the frames use the scenario's emulator as is; the others are
+randomised (:class:`~drake_rus.imaging.dataset.Randomisation`): gain (-18..-6 dB), TGC
+(+-10 dB at the image's bottom), dynamic range (42-58 dB), frequency (2.5-5 MHz: attenuation
+against the TGC), interface echo (3-9), tissue echogenicity (x 0.6-1.4 per tissue, cortex
+kept iso- to hypo-echoic to liver), speckle grain (96/128/160 scan lines x 192/256/320
+samples, half of them at the default 128 x 256); every frame has its own speckle. Fat
+thickness is not a generator input (it follows the body-size class: the patients span all
+four); volumes are also rebuilt with a thicker wall
+(:func:`~drake_rus.imaging.dataset.thicken_wall`: 5-25 mm more fat, or 30-60 / 70-120 mm
+more tissue between wall and kidney supine, 20-50 mm in decubitus) so that kidneys lie as
+deep as in real bodies; a thick wall is used only at presets deep enough (extra depth <=
+preset - 70 mm). The kidney's context and structure are randomised per volume: no perirenal
+fat (:func:`~drake_rus.imaging.dataset.remove_perirenal_fat`) and / or a thin cortex over a
+continuous medulla (:func:`~drake_rus.imaging.dataset.thin_cortex`). Images and masks are
+stored on the canvas (mask = kidney area fraction per canvas pixel, a soft target), cached
+under ``--cache``. Validation: ``--val-patients`` more training-split patients, volume and
+emulator as they are.
+
+Model: a U-Net behind a 2 x 2 space-to-depth stem (the 128 x 112 canvas as 4 channels of
+64 x 56; output 4 channels shuffled back to 128 x 112): the network runs at half the canvas
+resolution but sees and predicts every canvas pixel, at about the cost of the old 64 x 64
+U-Net. 3 poolings, ``--width`` channels at the first level, doubling per level. Loss: BCE +
+soft Dice. Augmentation: left-right flips and a small gain / contrast change.
 
     .venv/bin/pip install torch==2.13.0 onnx
-    nice .venv/bin/python -m drake_rus.imaging.train_segmenter --patients 12 --frames 200 \\
-        --epochs 10 --out models/segmenter
+    nice .venv/bin/python -m drake_rus.imaging.train_segmenter --patients 20 --frames 300 \\
+        --epochs 16 --width 16 --out models/segmenter
 
-Writes ``kidney_unet.onnx`` and ``kidney_unet.json`` (shapes, normalisation, recipe); the
-held-out IoU comes from ``python -m benchmarks imaging`` and is recorded there by hand.
+Writes ``kidney_unet.onnx`` and ``kidney_unet.json`` (shapes, canvas, normalisation, data,
+augmentation, training time, command). The held-out IoU comes from ``python -m benchmarks
+imaging``; ``--record-benchmark FILE`` (its JSON line) adds it to the card.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shlex
+import sys
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
 from drake_rus.imaging.config import ImagingConfig
+from drake_rus.imaging.dataset import (EmulatorBank, Randomisation, VolumeVariant, canvas_frames,
+                                       remove_perirenal_fat, thicken_wall, thin_cortex)
 from drake_rus.imaging.emulator import EmulatorModel
-from drake_rus.imaging.evaluation import make_source_frames
+from drake_rus.imaging.evaluation import POSTURES, load_source, make_source_frames
 from drake_rus.imaging.onnx_backend import resize_to
 from drake_rus.imaging.probe import ProbeGeometry
 
+# View sampling of the training frames.
+SAMPLER = {"tilt_deg": 30.0, "lateral_jitter": 0.025, "far_fraction": 0.15, "far_jitter": 0.07,
+           "free_fraction": 0.10, "free_offset": (0.08, 0.16), "max_depth": 0.45}
+# Wall thickening per posture: (fat range, inner range) in m per extra volume.
+WALL_VARIANTS = {
+    "supine": [((0.005, 0.025), (0.0, 0.0)), ((0.0, 0.015), (0.030, 0.060)),
+               ((0.0, 0.015), (0.070, 0.120))],
+    "left_lateral_decubitus": [((0.005, 0.025), (0.0, 0.0)), ((0.010, 0.020), (0.020, 0.050))],
+}
+
+# Kidney context and structure randomisation of a volume: perirenal fat removal (fat within
+# PERIRENAL_MARGIN m of the kidney becomes soft tissue) and a thin cortex (THIN_CORTEX m over
+# a continuous medulla), each with its probability.
+P_NO_PERIRENAL_FAT = 0.5
+PERIRENAL_MARGIN = (0.010, 0.025)
+P_THIN_CORTEX = 0.35
+THIN_CORTEX = (0.003, 0.006)
+
+
+def max_extra_depth(depth: float) -> float:
+    """Thickest wall (extra kidney depth, m) used at a depth preset."""
+    return max(0.0, depth - 0.10) + 0.03
+
 
 def reduce_frames(frames, size: int):
-    """(images float32 (N, size, size) in [0, 1], masks float32 (N, size, size))."""
+    """(images float32 (N, size, size) in [0, 1], masks float32 (N, size, size)): the plain
+    resize of the first model (kept for models without a physical canvas)."""
     X = np.stack([resize_to(us, size, size) / 255.0 for us, *_ in frames]).astype(np.float32)
     Y = np.stack([resize_to(m.astype(np.float32), size, size) > 0.5
                   for _, m, *_ in frames]).astype(np.float32)
@@ -47,7 +101,8 @@ def reduce_frames(frames, size: int):
 
 def build_dataset(sources: list[str], frames_per_source: int, size: int, cache: Path | None,
                   seed: int = 0, config: ImagingConfig | None = None):
-    """Emulated training images and masks from ``sources``, cached as .npz per source."""
+    """The first model's data (150 mm, supine, default emulator, plain resize), cached as .npz
+    per source."""
     config = config or ImagingConfig()
     model = EmulatorModel.from_config(config, ProbeGeometry.from_config(config))
     Xs, Ys = [], []
@@ -72,8 +127,93 @@ def build_dataset(sources: list[str], frames_per_source: int, size: int, cache: 
     return np.concatenate(Xs), np.concatenate(Ys)
 
 
-def make_unet(width: int = 8, lite: bool = False):
-    """A small U-Net; ``lite``: one convolution (not two) in the full-resolution blocks."""
+def _randomised_anatomy(volume, rng: np.random.Generator, force: bool = False):
+    """``volume`` without perirenal fat and / or with a thin cortex (each by its own coin,
+    :data:`P_NO_PERIRENAL_FAT`, :data:`P_THIN_CORTEX`; ``force``: at least one)."""
+    no_fat = rng.random() < P_NO_PERIRENAL_FAT
+    thin = rng.random() < P_THIN_CORTEX
+    if force and not (no_fat or thin):
+        no_fat = rng.random() < 0.5
+        thin = not no_fat
+    if thin:
+        volume = thin_cortex(volume, float(rng.uniform(*THIN_CORTEX)))
+    if no_fat:
+        volume = remove_perirenal_fat(volume, float(rng.uniform(*PERIRENAL_MARGIN)))
+    return volume
+
+
+def wall_variants(source, posture: str, rng: np.random.Generator) -> list[VolumeVariant]:
+    """The source's volume; one with a randomised kidney context or structure (no
+    perirenal fat and / or a thin cortex); thickened versions (:data:`WALL_VARIANTS`) of the
+    volume with its context and structure randomised again."""
+    kw = {"sampler_kw": dict(SAMPLER)}
+    out = [VolumeVariant(source.volume, source.up_V, **kw),
+           VolumeVariant(_randomised_anatomy(source.volume, rng, force=True), source.up_V, **kw)]
+    for fat_range, inner_range in WALL_VARIANTS[posture]:
+        fat, inner = float(rng.uniform(*fat_range)), float(rng.uniform(*inner_range))
+        vol = thicken_wall(_randomised_anatomy(source.volume, rng), source.up_V, fat=fat,
+                           inner=inner)
+        out.append(VolumeVariant(vol, source.up_V, extra_depth=fat + inner, fat=fat,
+                                 inner=inner, **kw))
+    return out
+
+
+def build_canvas_dataset(specs: list[str], postures, frames: int, pixel_size: float,
+                         canvas: tuple[int, int], canvas_top: float, cache: Path | None,
+                         seed: int = 0, config: ImagingConfig | None = None,
+                         log=print, randomised: bool = True) -> dict:
+    """Canvas frames of every (spec, posture): uint8 images (N, H, W) grey, uint8 masks
+    (kidney area fraction x 255), depth, posture index, source index; cached per source.
+    ``randomised`` False: the scenario's emulator and the volume as it is (validation)."""
+    config = config or ImagingConfig()
+    presets = [float(p) for p in config.depth_presets]
+    bank = EmulatorBank(config)
+    parts = []
+    tag = (f"v3_{frames}_{pixel_size * 1e3:g}mm_{canvas[0]}x{canvas[1]}_{canvas_top * 1e3:g}_"
+           f"{'-'.join(f'{p:g}' for p in presets)}_{seed}{'' if randomised else '_nominal'}")
+    for i, spec in enumerate(specs):
+        for j, posture in enumerate(postures):
+            if spec.startswith("phantom:") and posture != "supine":
+                continue
+            path = None
+            if cache is not None:
+                cache.mkdir(parents=True, exist_ok=True)
+                path = cache / f"{spec.replace(':', '_')}_{posture}_{tag}.npz"
+                if path.is_file():
+                    d = dict(np.load(path))
+                    d["source"] = np.full(len(d["image"]), i, np.int16)
+                    parts.append(d)
+                    continue
+            t = time.time()
+            rng = np.random.default_rng([seed, i, j, 77])
+            src = load_source(spec, posture=posture, target=False)
+            variants = (wall_variants(src, posture, rng) if randomised else
+                        [VolumeVariant(src.volume, src.up_V, sampler_kw=dict(SAMPLER))])
+            d = canvas_frames(variants, presets, frames, rng, bank, pixel_size, canvas,
+                              canvas_top, Randomisation() if randomised else None,
+                              max_extra=max_extra_depth)
+            out = {"image": np.clip(np.rint(d["image"].astype(np.float32)), 0, 255
+                                    ).astype(np.uint8),
+                   "kidney": np.rint(d["kidney"].astype(np.float32) * 255).astype(np.uint8),
+                   "depth": d["depth"], "kidney_px": d["kidney_px"],
+                   "extra_depth": np.array([variants[v].extra_depth for v in d["variant"]],
+                                           np.float32),
+                   "posture": np.full(frames, j, np.int8)}
+            if path is not None:
+                np.savez_compressed(path, **out)
+            out["source"] = np.full(frames, i, np.int16)
+            parts.append(out)
+            log(f"data {spec} {posture}: {frames} frames in {time.time() - t:.0f} s "
+                f"(kidney in {np.mean(out['kidney_px'] > 0):.0%}; size class "
+                f"{src.size_class})")
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+def make_unet(width: int = 8, lite: bool = False, space_to_depth: int = 1):
+    """A small U-Net; ``lite``: one convolution (not two) in the full-resolution blocks;
+    ``space_to_depth`` f > 1: the input is rearranged into f x f channels at 1/f resolution
+    and the f x f output channels back (pixel shuffle), so the U-Net runs at 1/f resolution
+    but predicts every input pixel."""
     import torch
     from torch import nn
 
@@ -85,20 +225,23 @@ def make_unet(width: int = 8, lite: bool = False):
         return nn.Sequential(*layers)
 
     full_res_convs = 1 if lite else 2
+    f = int(space_to_depth)
 
     class UNet(nn.Module):
         def __init__(self, w):
             super().__init__()
-            self.e1, self.e2 = block(1, w, full_res_convs), block(w, 2 * w)
+            self.e1, self.e2 = block(f * f, w, full_res_convs), block(w, 2 * w)
             self.e3, self.b = block(2 * w, 4 * w), block(4 * w, 4 * w)
             self.pool = nn.MaxPool2d(2)
             self.up = nn.Upsample(scale_factor=2, mode="bilinear", align_corners=False)
             self.d3 = block(8 * w, 2 * w)
             self.d2 = block(4 * w, w)
             self.d1 = block(2 * w, w, full_res_convs)
-            self.head = nn.Conv2d(w, 1, 1)
+            self.head = nn.Conv2d(w, f * f, 1)
 
         def forward(self, x):
+            if f > 1:
+                x = nn.functional.pixel_unshuffle(x, f)
             e1 = self.e1(x)
             e2 = self.e2(self.pool(e1))
             e3 = self.e3(self.pool(e2))
@@ -106,37 +249,54 @@ def make_unet(width: int = 8, lite: bool = False):
             d3 = self.d3(torch.cat([self.up(b), e3], 1))
             d2 = self.d2(torch.cat([self.up(d3), e2], 1))
             d1 = self.d1(torch.cat([self.up(d2), e1], 1))
-            return self.head(d1)
+            out = self.head(d1)
+            return nn.functional.pixel_shuffle(out, f) if f > 1 else out
 
     return UNet(width)
 
 
+def _canvas_iou(logits: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Per-frame IoU on the canvas (prediction > 0.5 against target fraction > 0.5); NaN
+    for frames without kidney."""
+    p = logits > 0
+    t = target > 0.5
+    inter = (p & t).sum((1, 2, 3))
+    union = (p | t).sum((1, 2, 3))
+    return np.where(t.sum((1, 2, 3)) > 0, inter / np.maximum(union, 1), np.nan)
+
+
 def train(X, Y, width: int, epochs: int, batch: int = 16, lr: float = 3e-3, seed: int = 0,
-          threads: int = 1, log=print, lite: bool = False):
+          threads: int = 1, log=print, lite: bool = False, space_to_depth: int = 1,
+          val=None, time_limit: float | None = None):
+    """Trains on X (N, H, W) grey and Y (N, H, W) kidney targets in [0, 1] (float32, or
+    uint8 / 255). ``val``: (X, Y, groups) checked after each epoch (canvas IoU per group).
+    ``time_limit`` (s): stop after the epoch that passes it (the schedule is not shortened)."""
     import torch
     torch.manual_seed(seed)
     torch.set_num_threads(threads)
-    net = make_unet(width, lite)
+    net = make_unet(width, lite, space_to_depth)
     opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
     steps = epochs * int(np.ceil(len(X) / batch))
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=steps)
-    Xt = torch.from_numpy(X[:, None])
-    Yt = torch.from_numpy(Y[:, None])
+    scale = np.float32(1 / 255.0) if X.dtype == np.uint8 else np.float32(1.0)
+    yscale = np.float32(1 / 255.0) if Y.dtype == np.uint8 else np.float32(1.0)
     rng = np.random.default_rng(seed)
     bce = torch.nn.BCEWithLogitsLoss()
+    t_start = time.time()
     for epoch in range(epochs):
         net.train()
         order = rng.permutation(len(X))
         total, t0 = 0.0, time.time()
         for k in range(0, len(order), batch):
-            idx = order[k:k + batch]
-            x, y = Xt[idx].clone(), Yt[idx].clone()
+            idx = np.sort(order[k:k + batch])
+            x = torch.from_numpy(X[idx][:, None].astype(np.float32) * scale)
+            y = torch.from_numpy(Y[idx][:, None].astype(np.float32) * yscale)
             flip = torch.from_numpy(rng.random(len(idx)) < 0.5)
             x[flip] = x[flip].flip(-1)
             y[flip] = y[flip].flip(-1)
             # Gain / contrast jitter (a different machine setting or patient habitus).
-            g = torch.from_numpy(rng.uniform(0.8, 1.2, (len(idx), 1, 1, 1)).astype(np.float32))
-            c = torch.from_numpy(rng.uniform(-0.08, 0.08, (len(idx), 1, 1, 1)).astype(np.float32))
+            g = torch.from_numpy(rng.uniform(0.85, 1.15, (len(idx), 1, 1, 1)).astype(np.float32))
+            c = torch.from_numpy(rng.uniform(-0.05, 0.05, (len(idx), 1, 1, 1)).astype(np.float32))
             x = torch.where(x > 0, (x * g + c).clamp(0, 1), x)
             logits = net(x)
             p = torch.sigmoid(logits)
@@ -148,70 +308,210 @@ def train(X, Y, width: int, epochs: int, batch: int = 16, lr: float = 3e-3, seed
             opt.step()
             sched.step()
             total += loss.item() * len(idx)
-        log(f"epoch {epoch + 1}/{epochs}: loss {total / len(X):.4f} ({time.time() - t0:.0f} s)")
+        msg = f"epoch {epoch + 1}/{epochs}: loss {total / len(X):.4f} ({time.time() - t0:.0f} s)"
+        if val is not None:
+            msg += " | val IoU " + validate(net, *val)
+        log(msg)
+        if time_limit is not None and time.time() - t_start > time_limit and epoch + 1 < epochs:
+            log(f"time limit {time_limit:.0f} s reached after epoch {epoch + 1}")
+            break
     net.eval()
     return net
 
 
-def export_onnx(net, path: Path, size: int):
+def validate(net, X, Y, groups, batch: int = 64) -> str:
+    """Canvas IoU of ``net`` on (X, Y) per group label, as text."""
     import torch
+    net.eval()
+    scale = np.float32(1 / 255.0) if X.dtype == np.uint8 else np.float32(1.0)
+    yscale = np.float32(1 / 255.0) if Y.dtype == np.uint8 else np.float32(1.0)
+    ious = []
+    with torch.no_grad():
+        for k in range(0, len(X), batch):
+            x = torch.from_numpy(X[k:k + batch][:, None].astype(np.float32) * scale)
+            ious.append(_canvas_iou(net(x).numpy(),
+                                    Y[k:k + batch][:, None].astype(np.float32) * yscale))
+    ious = np.concatenate(ious)
+    net.train()
+    parts = []
+    for gname in sorted(set(groups)):
+        sel = np.asarray(groups) == gname
+        parts.append(f"{gname} {np.nanmean(ious[sel]):.3f}")
+    return f"{np.nanmean(ious):.3f} (" + ", ".join(parts) + ")"
+
+
+def export_onnx(net, path: Path, size: int | tuple[int, int]):
+    import torch
+    h, w = (size, size) if np.isscalar(size) else size
     path.parent.mkdir(parents=True, exist_ok=True)
-    dummy = torch.zeros(1, 1, size, size)
+    dummy = torch.zeros(1, 1, h, w)
     torch.onnx.export(net, dummy, str(path), input_names=["image"], output_names=["logits"],
                       opset_version=17, dynamo=False)
+    # ONNX Runtime must agree with torch on a random frame.
+    import onnxruntime as ort
+    x = np.random.default_rng(0).random((1, 1, h, w)).astype(np.float32)
+    with torch.no_grad():
+        ref = net(torch.from_numpy(x)).numpy()
+    got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(
+        None, {"image": x})[0]
+    if not np.allclose(ref, got, atol=1e-3):
+        raise RuntimeError(f"export_onnx: ONNX Runtime differs from torch by "
+                           f"{np.abs(ref - got).max():.2e}")
+
+
+def record_benchmark(card_path: Path, bench_json: Path) -> dict:
+    """Adds the evaluation of ``python -m benchmarks imaging`` (its JSON line, in a file) to
+    the model card."""
+    card = json.loads(card_path.read_text())
+    lines = [ln for ln in bench_json.read_text().splitlines() if ln.startswith("{")]
+    b = json.loads(lines[-1])
+    card["evaluation"] = {
+        "iou_by_depth": b.get("iou_by_depth"),
+        "iou_by_depth_posture": b.get("iou_by_depth_posture"),
+        "depth_sources": b.get("depth_sources"),
+        "depth_views_per_patient_and_posture": b.get("depth_views"),
+        "depth_details": b.get("depth_details"),
+        "vh_female_iou": b.get("vh_female_iou"),
+        "vh_female": b.get("vh_female"),
+        "iou_onnx_150mm_supine": b.get("iou_onnx"),
+        "iou_onnx_150mm_supine_sources": b.get("iou_sources"),
+        "iou_onnx_150mm_supine_details": {k: v.get("onnx") for k, v in
+                                          (b.get("iou_details") or {}).items()},
+        "ms_model_resample": b.get("ms_model_resample"),
+        "ms_segment": b.get("ms_segment"),
+        "load_average": b.get("load_average"),
+        "measured_by": "python -m benchmarks imaging",
+    }
+    card_path.write_text(json.dumps(card, indent=2) + "\n")
+    return card
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--patients", type=int, default=8, help="training patients train:0..N-1")
-    ap.add_argument("--frames", type=int, default=160, help="frames per patient")
+    ap.add_argument("--patients", type=int, default=20, help="training patients train:0..N-1")
+    ap.add_argument("--frames", type=int, default=300, help="frames per patient and posture")
+    ap.add_argument("--postures", default=",".join(POSTURES))
     ap.add_argument("--phantoms", type=int, default=0, help="also N synthetic phantoms")
-    ap.add_argument("--size", type=int, default=64, help="model input size (pixels)")
-    ap.add_argument("--data-size", type=int, default=128,
-                    help="size the cached data is kept at (a multiple of --size)")
-    ap.add_argument("--width", type=int, default=8, help="U-Net channels at full resolution")
-    ap.add_argument("--epochs", type=int, default=10)
+    ap.add_argument("--val-patients", type=int, default=2,
+                    help="training-split patients train:N..N+V-1 kept for validation")
+    ap.add_argument("--val-frames", type=int, default=100)
+    ap.add_argument("--pixel-size-mm", type=float, default=2.4)
+    ap.add_argument("--canvas", type=int, nargs=2, default=[128, 112], metavar=("H", "W"))
+    ap.add_argument("--canvas-top-mm", type=float, default=-4.0)
+    ap.add_argument("--width", type=int, default=16, help="U-Net channels at the first level")
+    ap.add_argument("--space-to-depth", type=int, default=2)
+    ap.add_argument("--epochs", type=int, default=16)
+    ap.add_argument("--lr", type=float, default=3e-3)
     ap.add_argument("--lite", action="store_true",
-                    help="one convolution per full-resolution block (faster inference)")
+                    help="one convolution per first-level block (faster inference)")
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--cache", default="/tmp/drake_rus_segmenter_data")
+    ap.add_argument("--time-limit-min", type=float, default=None,
+                    help="stop training after the epoch that passes this many minutes")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--cache", default="/tmp/drake_rus_segmenter_data/canvas")
     ap.add_argument("--out", default="models/segmenter")
     ap.add_argument("--data-only", action="store_true")
+    ap.add_argument("--record-benchmark", metavar="FILE",
+                    help="only add this benchmark output (JSON line) to the card in --out")
     args = ap.parse_args(argv)
-    sources = [f"train:{k}" for k in range(args.patients)]
-    sources += [f"phantom:{1000 + k}" for k in range(args.phantoms)]
-    X, Y = build_dataset(sources, args.frames, args.data_size, Path(args.cache))
-    if args.size != args.data_size:
-        f = args.data_size // args.size
-        X = X.reshape(len(X), args.size, f, args.size, f).mean(axis=(2, 4))
-        Y = (Y.reshape(len(Y), args.size, f, args.size, f).mean(axis=(2, 4)) > 0.5)
-        Y = Y.astype(np.float32)
-    print(f"dataset: {len(X)} frames, kidney in {(Y.sum((1, 2)) > 0).mean():.0%}", flush=True)
+    out = Path(args.out)
+    if args.record_benchmark:
+        record_benchmark(out / "kidney_unet.json", Path(args.record_benchmark))
+        print(f"recorded {args.record_benchmark} in {out / 'kidney_unet.json'}")
+        return 0
+    command = ("nice .venv/bin/python -m drake_rus.imaging.train_segmenter "
+               + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv)))
+    postures = [p for p in args.postures.split(",") if p]
+    p = args.pixel_size_mm * 1e-3
+    canvas = tuple(args.canvas)
+    top = args.canvas_top_mm * 1e-3
+    f = args.space_to_depth
+    if canvas[0] % (8 * f) or canvas[1] % (8 * f):
+        ap.error(f"--canvas: both sizes must be multiples of {8 * f} (3 poolings after a "
+                 f"{f} x {f} space-to-depth)")
+    specs = [f"train:{k}" for k in range(args.patients)]
+    specs += [f"phantom:{1000 + k}" for k in range(args.phantoms)]
+    cache = Path(args.cache)
+    log = lambda s: print(s, flush=True)
+    t_data = time.time()
+    data = build_canvas_dataset(specs, postures, args.frames, p, canvas, top, cache,
+                                args.seed, log=log)
+    val_specs = [f"train:{args.patients + k}" for k in range(args.val_patients)]
+    val = None
+    if val_specs:
+        v = build_canvas_dataset(val_specs, postures, args.val_frames, p, canvas, top, cache,
+                                 args.seed + 1, log=log, randomised=False)
+        groups = [f"{d * 1000:.0f}" for d in v["depth"]]
+        val = (v["image"], v["kidney"], groups)
+    has_kidney = data["kidney_px"] > 0
+    log(f"dataset: {len(data['image'])} frames ({time.time() - t_data:.0f} s), kidney in "
+        f"{has_kidney.mean():.0%}; per depth: "
+        + ", ".join(f"{d * 1000:.0f} mm {np.sum(data['depth'] == d)}"
+                    for d in sorted(set(data["depth"].tolist()))))
     if args.data_only:
         return 0
     t = time.time()
-    net = train(X, Y, args.width, args.epochs, threads=args.threads,
-                log=lambda s: print(s, flush=True), lite=args.lite)
-    out = Path(args.out)
+    net = train(data["image"], data["kidney"], args.width, args.epochs, lr=args.lr,
+                threads=args.threads, log=log, lite=args.lite, space_to_depth=f, val=val,
+                seed=args.seed,
+                time_limit=None if args.time_limit_min is None else 60 * args.time_limit_min)
+    train_seconds = round(time.time() - t)
     onnx_path = out / "kidney_unet.onnx"
-    export_onnx(net, onnx_path, args.size)
+    export_onnx(net, onnx_path, canvas)
+    n_params = sum(q.numel() for q in net.parameters())
+    shape = [1, 1, canvas[0], canvas[1]]
     meta = {
         "model": onnx_path.name,
-        "input": {"name": "image", "shape": [1, 1, args.size, args.size], "dtype": "float32",
-                  "normalisation": (f"grey / 255 (mean 0, std 1); the 256 x 256 image reduced "
-                                    f"by {256 // args.size}x{256 // args.size} block means")},
-        "output": {"name": "logits", "shape": [1, 1, args.size, args.size],
-                   "kind": "logits", "kidney_channel": 0},
+        "pixel_size_mm": args.pixel_size_mm,
+        "canvas_px": list(canvas),
+        "canvas_top_mm": args.canvas_top_mm,
+        "canvas": (f"{canvas[0]} x {canvas[1]} px of {args.pixel_size_mm} mm = "
+                   f"{canvas[0] * args.pixel_size_mm:.0f} mm deep from z_P = "
+                   f"{args.canvas_top_mm} mm x {canvas[1] * args.pixel_size_mm:.0f} mm wide, "
+                   "centred on the beam axis; the backend area-averages each frame onto it "
+                   "(0 outside the image) and maps the probability back bilinearly"),
+        "input": {"name": "image", "shape": shape, "dtype": "float32",
+                  "normalisation": "grey / 255 (mean 0, std 1) on the physical canvas"},
+        "output": {"name": "logits", "shape": shape, "kind": "logits", "kidney_channel": 0},
         "scenario": {"segmenter": "onnx", "onnx_model": str(onnx_path),
-                     "onnx_input_shape": [1, 1, args.size, args.size], "onnx_input_mean": 0.0,
-                     "onnx_input_std": 1.0, "onnx_output": "logits"},
-        "training": {"sources": sources, "frames_per_source": args.frames,
-                     "epochs": args.epochs, "width": args.width, "lite": args.lite,
-                     "train_seconds": round(time.time() - t),
-                     "recipe": "drake_rus/imaging/train_segmenter.py"},
+                     "onnx_input_shape": shape, "onnx_input_mean": 0.0,
+                     "onnx_input_std": 1.0, "onnx_output": "logits",
+                     "note": "N and C come from onnx_input_shape; H and W from canvas_px"},
+        "architecture": {"kind": "U-Net behind a space-to-depth stem", "width": args.width,
+                         "space_to_depth": f, "lite": args.lite, "poolings": 3,
+                         "parameters": int(n_params)},
+        "training": {
+            "sources": specs, "postures": postures, "frames_per_source_and_posture":
+                args.frames, "frames": int(len(data["image"])),
+            "frames_with_kidney": float(round(has_kidney.mean(), 3)),
+            "validation_sources": val_specs, "depth_presets": list(ImagingConfig().depth_presets),
+            "views": SAMPLER,
+            "wall_variants_m": {k: [list(map(list, v)) for v in vs]
+                                for k, vs in WALL_VARIANTS.items()},
+            "wall_variant_rule": "extra depth <= preset - 0.10 m + 0.03 m",
+            "kidney_context_and_structure": {
+                "no_perirenal_fat": {"probability": P_NO_PERIRENAL_FAT,
+                                     "margin_m": PERIRENAL_MARGIN},
+                "thin_cortex": {"probability": P_THIN_CORTEX, "cortex_m": THIN_CORTEX},
+                "rule": ("per patient and posture: the volume as is, one with at least one of "
+                         "these, and each thickened volume with each by its coin")},
+            "validation": "train:N.. patients, volume as is, scenario emulator, canvas IoU",
+            "randomisation": asdict(Randomisation()),
+            "augmentation": "left-right flip; grey x U(0.85, 1.15) + U(-0.05, 0.05) in the fan",
+            "fat_thickness": ("not a generator input (set by the body-size class); training "
+                              "patients span lean, normal, overweight and obese; plus "
+                              "thicken_wall volumes"),
+            "loss": "BCE + soft Dice on the canvas kidney area fraction",
+            "epochs": args.epochs, "lr": args.lr, "seed": args.seed, "threads": args.threads,
+            "train_seconds": train_seconds,
+            "data_seconds": round(t - t_data),
+            "command": command,
+            "recipe": "drake_rus/imaging/train_segmenter.py, drake_rus/imaging/dataset.py",
+        },
     }
     (out / "kidney_unet.json").write_text(json.dumps(meta, indent=2) + "\n")
-    print(f"wrote {onnx_path} ({onnx_path.stat().st_size / 1e3:.0f} kB)")
+    log(f"wrote {onnx_path} ({onnx_path.stat().st_size / 1e3:.0f} kB, {n_params} parameters), "
+        f"trained in {train_seconds} s")
     return 0
 
 
