@@ -35,6 +35,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 
 import numpy as np
@@ -53,6 +54,14 @@ def _rate(fn, items, repeat: int = 3):
         best_wall = min(best_wall, time.perf_counter() - t_wall)
     n = len(items)
     return n / max(best_cpu, 1e-9), n / max(best_wall, 1e-9)
+
+
+_T0 = time.perf_counter()
+
+
+def _stage(text: str) -> None:
+    """One progress line on stderr (the JSON result stays the last line of stdout)."""
+    print(f"[imaging {time.perf_counter() - _T0:5.0f} s] {text}", file=sys.stderr, flush=True)
 
 
 def main(argv=None) -> int:
@@ -93,6 +102,7 @@ def main(argv=None) -> int:
     specs = ([f"test:{k}" for k in range(args.patients)] if args.source == "test"
              else [f"phantom:{5000 + k}" for k in range(args.patients)])
     t0 = time.perf_counter()
+    _stage(f"loading {specs[0]} and making {args.frames} frames for the speed measurements")
     vol, up = load_volume(specs[0])
     sampler = ViewSampler(vol, up)
     rng = np.random.default_rng(0)
@@ -113,6 +123,7 @@ def main(argv=None) -> int:
         return run
 
     idx = list(range(len(poses)))
+    _stage(f"speed: slicing, emulation, segmentation ({len(idx)} frames x 3 repeats each)")
     fps_slice, wall_slice = _rate(lambda i: slice_volume(g, vol, X_BV, poses[i]), idx)
     fps_se, wall_se = _rate(lambda i: emulate(slice_volume(g, vol, X_BV, poses[i]), model, 0, i),
                             idx)
@@ -125,6 +136,7 @@ def main(argv=None) -> int:
 
     ious_cl, ious_on, details = [], [], {}
     for k, spec in enumerate(specs):
+        _stage(f"IoU {k + 1}/{len(specs)}: {spec} ({args.iou_frames} frames)")
         frames = make_source_frames(spec, model, args.iou_frames, seed=777 + k)
         r_cl = mean_iou(classical, frames, g, cfg.min_kidney_area)
         r_on = mean_iou(onnx, frames, g, cfg.min_kidney_area) if onnx is not None else None
@@ -138,6 +150,8 @@ def main(argv=None) -> int:
 
     depth_part = {}
     if onnx is not None and args.depth_patients > 0 and args.depth_views > 0:
+        _stage(f"per-depth table: {args.depth_patients} patients x 2 postures x "
+               f"{args.depth_views} views per preset")
         depth_part = depth_and_posture_study(cfg, args)
 
     r = lambda x: None if x is None else round(float(x), 3)

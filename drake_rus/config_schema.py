@@ -201,3 +201,159 @@ def check_dataclass_values(obj, path: str = "") -> None:
             for i, v in enumerate(value):
                 if _is_number(v):
                     _check_number(f"{where}[{i}]", v, meta)
+
+
+# ------------------------------------------------------------------ physical ranges and rules
+# Every value a scenario may hold is checked against these, after the schema's own bounds
+# (``metadata``): a number outside is refused with the field, the range and the reason. Each
+# rule is stated once, here. field path -> (min, max, unit, why).
+PHYSICAL_RANGES = {
+    "contact.time_step": (1e-5, 0.01, "s",
+                          "the plant's discrete step (default 10 ms, validated against 1 ms: "
+                          "python -m benchmarks scan --validate); longer steps miss contact"),
+    "contact.hydroelastic_modulus": (1e3, 1e8, "Pa", "soft tissue is about 1e4-1e6 Pa"),
+    "contact.point_stiffness": (10.0, 1e6, "N/m", "soft tissue under a probe"),
+    "contact.friction": (0.0, 2.0, "", "Coulomb friction of gel on skin"),
+    "probe.mass": (0.05, 3.0, "kg", "a probe with its holder; the FR3's rated payload is 3 kg"),
+    "probe.inertia_diagonal": (1e-7, 0.05, "kg m^2", "a hand-held probe and holder"),
+    "probe.p_FCm": (-0.3, 0.3, "m", "the probe's centre of mass near the flange"),
+    "controller.rate_hz": (10.0, 1000.0, "Hz", "the controller runs at most at the FR3's 1 kHz"),
+    "controller.desired_force": (0.0, 30.0, "N", "probe contact forces are a few N to 20 N"),
+    "safety.force_ceiling": (1.0, 50.0, "N", "passive force limiters sit around 20 N"),
+    "imaging.frame_rate_hz": (1.0, 200.0, "Hz", "ultrasound frame rates are 10-100 Hz"),
+    "imaging.depth": (0.03, 0.4, "m", "curvilinear probes image 30-300 mm deep"),
+    "imaging.depth_presets": (0.03, 0.4, "m", "curvilinear probes image 30-300 mm deep"),
+    "imaging.probe_radius": (0.005, 0.2, "m", "convex probe faces are 10-80 mm in radius"),
+    "imaging.elevation_width": (0.0005, 0.05, "m", "elevational beam widths are a few mm"),
+    "imaging.center_frequency_mhz": (0.5, 20.0, "MHz", "diagnostic ultrasound"),
+    "hardware_interface.command_rate_hz": (10.0, 1000.0, "Hz",
+                                           "velocity targets at most at the FR3's 1 kHz"),
+}
+
+# Patient placement: the bed lies within this distance (m) of the robot base (the FR3
+# reaches 0.855 m; the bed is beside it).
+MAX_PATIENT_DISTANCE = 1.5
+
+
+def _get(obj, path: str):
+    for part in path.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def _fmt(v) -> str:
+    return f"{v:g}" if isinstance(v, (int, float)) else repr(v)
+
+
+# Rules between fields: (fields, holds(scenario) -> bool, what must hold). The first field
+# is the one named in the error.
+CROSS_FIELD_RULES = [
+    (("controller.desired_force", "safety.force_ceiling"),
+     lambda s: s.controller.desired_force < s.safety.force_ceiling,
+     "the desired force must be below the safety force ceiling (or every scan ends in a "
+     "safety stop)"),
+    (("contact.time_step", "controller.rate_hz"),
+     lambda s: s.contact.time_step <= 1.0 / s.controller.rate_hz + 1e-12,
+     "the plant must step at least once per controller period"),
+    (("imaging.frame_rate_hz", "contact.time_step"),
+     lambda s: s.imaging.frame_rate_hz <= 1.0 / s.contact.time_step + 1e-9,
+     "at most one ultrasound frame per plant step"),
+    (("controller.max_tip_speed", "safety.command_tip_speed"),
+     lambda s: s.controller.max_tip_speed <= s.safety.command_tip_speed,
+     "the controller's tip speed must fit within the safety layer's command clamp"),
+    (("safety.command_tip_speed", "safety.max_tip_speed"),
+     lambda s: s.safety.command_tip_speed <= s.safety.max_tip_speed,
+     "the commanded tip speed must be below the speed that stops the robot"),
+    (("safety.workspace_min", "safety.workspace_max"),
+     lambda s: all(lo < hi for lo, hi in zip(s.safety.workspace_min, s.safety.workspace_max)),
+     "every workspace minimum must be below its maximum"),
+    (("hardware_interface.command_rate_hz", "controller.rate_hz"),
+     lambda s: s.hardware_interface.command_rate_hz >= s.controller.rate_hz - 1e-9,
+     "velocity targets must be sent at least as often as the controller computes them"),
+    (("patient.X_BPt.translation",),
+     lambda s: float(np.linalg.norm(
+         s.patient.X_BPt.GetDeterministicValue().translation())) <= MAX_PATIENT_DISTANCE,
+     f"the patient must lie within {MAX_PATIENT_DISTANCE:g} m of the robot base (the FR3 "
+     "reaches 0.855 m)"),
+]
+
+
+def check_physical(scenario) -> None:
+    """Checks ``PHYSICAL_RANGES`` and ``CROSS_FIELD_RULES`` on a constructed scenario."""
+    for path, (lo, hi, unit, why) in PHYSICAL_RANGES.items():
+        try:
+            value = _get(scenario, path)
+        except AttributeError:
+            continue
+        values = list(value) if isinstance(value, (list, tuple)) else [value]
+        for i, v in enumerate(values):
+            if _is_number(v) and not lo <= v <= hi:
+                where = f"{path}[{i}]" if isinstance(value, (list, tuple)) else path
+                raise ScenarioError(
+                    f"field '{where}': {v:g} {unit} is outside the physical range "
+                    f"{lo:g}-{hi:g} {unit} ({why})".replace("  ", " "))
+    for fields, holds, what in CROSS_FIELD_RULES:
+        try:
+            ok = holds(scenario)
+        except AttributeError:
+            continue
+        if not ok:
+            values = []
+            for f in fields:
+                try:
+                    values.append(f"{f} = {_fmt(_value_for_message(scenario, f))}")
+                except AttributeError:
+                    pass
+            raise ScenarioError(f"field '{fields[0]}': {what}; got {', '.join(values)}")
+
+
+def _value_for_message(scenario, path: str):
+    if path.endswith("X_BPt.translation"):
+        return [round(float(x), 3) for x in
+                scenario.patient.X_BPt.GetDeterministicValue().translation()]
+    return _get(scenario, path)
+
+
+# ------------------------------------------------------------------------ duplicate keys
+def check_duplicate_keys(text: str, scenarios_file: bool = False) -> None:
+    """Raises ScenarioError naming the field path and line of the first key written twice in
+    one mapping of the YAML ``text`` (YAML loaders keep the last silently); in a
+    ``scenarios_file`` the top-level keys are scenario names. Merge keys
+    (``<<: *anchor``) and what they bring in may be overridden, as YAML intends. Text that is
+    not YAML is left to the loader's own error."""
+    import yaml
+    try:
+        root = yaml.compose(text, Loader=yaml.SafeLoader)
+    except yaml.YAMLError:
+        return
+    seen_nodes = set()
+
+    def walk(node, path: str) -> None:
+        if node is None or id(node) in seen_nodes:
+            return
+        seen_nodes.add(id(node))
+        if isinstance(node, yaml.MappingNode):
+            keys = {}
+            for key_node, value_node in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge" or key_node.value == "<<":
+                    continue
+                key = key_node.value if isinstance(key_node, yaml.ScalarNode) else None
+                if key is not None:
+                    where = f"{path}.{key}" if path else key
+                    if key in keys:
+                        lines = f"lines {keys[key]} and {key_node.start_mark.line + 1}"
+                        if scenarios_file and not path:
+                            raise ScenarioError(f"scenario '{key}' is given twice ({lines})")
+                        if scenarios_file:
+                            name, _, field = where.partition(".")
+                            raise ScenarioError(f"scenario '{name}': field '{field}' is "
+                                                f"given twice ({lines}); remove one")
+                        raise ScenarioError(
+                            f"field '{where}' is given twice ({lines}); remove one")
+                    keys[key] = key_node.start_mark.line + 1
+                    walk(value_node, where)
+        elif isinstance(node, yaml.SequenceNode):
+            for i, item in enumerate(node.value):
+                walk(item, f"{path}[{i}]")
+
+    walk(root, "")

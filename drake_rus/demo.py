@@ -6,7 +6,6 @@ and true contact force over time), ``summary.json`` (settled force, estimate err
 """
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -18,11 +17,15 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput
 
 from drake_rus.control.press import PressDriver
-from drake_rus.io_utils import save_figure, write_text_atomic
+from drake_rus.io_utils import (MB, check_output_file, dumps_strict, output_dir, save_figure,
+                                write_text_atomic)
 from drake_rus.progress import AdvanceWithProgress, SaveMeshcatRecording
 from drake_rus.robot import MakeControlPlant
 from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, LoadScenario
 from drake_rus.stations import MakeStation
+
+# About what the demo's Meshcat recording takes on disk (bytes).
+DEMO_RECORDING_BYTES = 20 * MB
 
 
 def add_commands(subparsers) -> None:
@@ -38,7 +41,7 @@ def add_commands(subparsers) -> None:
                    help="live Meshcat in the browser, simulated at real time")
     p.add_argument("--record", default=None,
                    help="where to save the Meshcat recording (default OUT/press.html)")
-    p.set_defaults(func=run_demo)
+    p.set_defaults(func=run_demo, outputs={"out": "dir", "record": "file:.html"})
 
 
 def add_scenario_arguments(parser) -> None:
@@ -119,14 +122,19 @@ class PressDiagram:
 
 def run_demo(args) -> int:
     scenario = load_scenario_from_args(args)
-    if not (np.isfinite(args.duration) and args.duration > 0):
-        raise ValueError(f"--duration: expected a positive time in s, got {args.duration}")
     desired = scenario.controller.desired_force if args.force is None else args.force
     if not (0 < desired <= scenario.safety.force_ceiling):
         raise ValueError(f"--force: expected 0 < F <= the force ceiling "
                          f"{scenario.safety.force_ceiling} N, got {desired}")
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    need = 2 * MB + (0 if args.record else DEMO_RECORDING_BYTES)
+    if args.record:
+        check_output_file(args.record, "--record", need_bytes=DEMO_RECORDING_BYTES,
+                          suffixes=(".html",))
+    with output_dir(args.out, "--out", need_bytes=need, what="demo") as out:
+        return _demo(args, scenario, desired, out)
+
+
+def _demo(args, scenario, desired: float, out: Path) -> int:
     meshcat = MakeMeshcat()
     if args.meshcat:
         print(f"Meshcat: {meshcat.web_url()}", flush=True)
@@ -161,7 +169,7 @@ def run_demo(args) -> int:
         "recording": str(record),
         "force_plot": str(out / "force.png"),
     }
-    write_text_atomic(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    write_text_atomic(out / "summary.json", dumps_strict(summary, indent=2) + "\n")
     print(f"settled force {summary['settled_force_true_n']:.2f} N (estimated "
           f"{summary['settled_force_estimated_n']:.2f} N, desired {desired:.1f} N); "
           f"{summary['realtime_rate']:.1f}x real time")

@@ -2,6 +2,16 @@
 systems that move it with the patient (breathing, a shift; :mod:`drake_rus.anatomy.motion`).
 
 Simulation only; the hardware station has a real patient.
+
+Contact geometry, stated plainly. A virtual (or imported) patient's contact body is a
+``Convex`` shape: the convex hull of the torso section around the kidney, at most
+``contact.patient_hull_vertices`` (300) vertices. Drake makes a compliant convex body's
+volume mesh by joining the enclosed volume's centroid to every hull triangle (a fan of
+tetrahedra, one interior vertex), so ``contact.patient_resolution_hint`` has no effect on it:
+the hint only sets the tetrahedra of the placeholder ellipsoid torso (``patient: {source:
+placeholder}``). The hull's triangles (a few cm across over the kidney) and the probe face's
+(``contact.probe_resolution_hint``) set the contact polygons; the hull lies within
+``contact.patient_hull_max_gap`` (4 mm) of the skin along the kidney.
 """
 
 from __future__ import annotations
@@ -51,6 +61,9 @@ def PatientMotionFor(scenario: Scenario) -> PatientMotion:
 
 
 def _patient_properties(scenario: Scenario) -> ProximityProperties:
+    """Compliant hydroelastic properties of the patient's body. The resolution hint reaches
+    only the placeholder ellipsoid; a patient's convex hull is meshed without it (module
+    doc)."""
     contact = scenario.contact
     props = ProximityProperties()
     AddCompliantHydroelasticProperties(

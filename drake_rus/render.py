@@ -4,12 +4,13 @@ import shutil
 import subprocess
 from pathlib import Path
 
-from drake_rus.anatomy import load_patient
+from drake_rus.anatomy.cli import load_patient_for
 from drake_rus.cli import UserError
 from drake_rus.demo import add_scenario_arguments, load_scenario_from_args
-from drake_rus.io_utils import atomic_path
-from drake_rus.localization.localize import load_registration_template
+from drake_rus.io_utils import atomic_path, check_output_file
+from drake_rus.progress import stderr_is_terminal
 from drake_rus.scan import BuildScanDiagram
+from drake_rus.scan.cli import load_template_for
 from drake_rus.stations import MakeStation
 
 
@@ -24,8 +25,9 @@ def add_commands(subparsers) -> None:
                    help="patient of the simulated scan diagram (default test:0)")
     p.add_argument("--out", default=None,
                    help="output file; .svg or .png (default diagrams/DIAGRAM.svg)")
-    p.add_argument("--depth", type=int, default=1, help="subsystem nesting depth to draw")
-    p.set_defaults(func=run_render)
+    p.add_argument("--depth", type=int, default=1,
+                   help="subsystem nesting depth to draw (0 or more; default 1)")
+    p.set_defaults(func=run_render, outputs={"out": "file:.svg,.png"})
 
 
 def render_graphviz(dot_source: str, out: Path) -> Path:
@@ -43,18 +45,20 @@ def render_graphviz(dot_source: str, out: Path) -> Path:
 
 
 def run_render(args) -> int:
-    if args.depth < 0:
-        raise UserError(f"--depth: expected a non-negative nesting depth, got {args.depth}")
     scenario = load_scenario_from_args(args)
-    out = Path(args.out or f"diagrams/{args.diagram}.svg")
+    out = check_output_file(args.out or f"diagrams/{args.diagram}.svg", "--out",
+                            suffixes=(".svg", ".png"))
+    if shutil.which("dot") is None:
+        raise UserError("Graphviz 'dot' is not installed (apt-get install graphviz)")
     if args.diagram == "station":
         diagram = MakeStation(scenario)
     else:
-        patient = None if scenario.hardware else load_patient(
-            args.patient, side=scenario.patient.side, posture=scenario.patient.posture)
+        template = load_template_for(scenario)
+        patient = None if scenario.hardware else load_patient_for(
+            args.patient, "--patient", side=scenario.patient.side,
+            posture=scenario.patient.posture, progress=stderr_is_terminal())
         station = MakeStation(scenario, patient=patient)
-        builder, _ = BuildScanDiagram(scenario, station,
-                                      load_registration_template(scenario.localization.template))
+        builder, _ = BuildScanDiagram(scenario, station, template)
         diagram = builder.Build()
         diagram.set_name("scan")
     out = render_graphviz(diagram.GetGraphvizString(max_depth=args.depth), out)

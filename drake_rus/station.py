@@ -53,7 +53,7 @@ from drake_rus.patient_body import (
     AddPatientBody, AddPatientMotionDriver, BreathHoldSignal, MovingPose, PatientMotionFor)
 from drake_rus.robot import (
     NUM_JOINTS, PROBE_FACE_GEOMETRY, AddFr3AndProbe, MakeControlPlant, ProbeForceEstimator,
-    ProbePoseFromJoints)
+    ProbePoseFromJoints, TipKinematics)
 from drake_rus.scenario import CheckScenario, Scenario
 
 __all__ = ["MakeSimStation", "ProbeContactWrench", "LoadScenarioPatient"]
@@ -70,10 +70,16 @@ class ProbeContactWrench(LeafSystem):
         super().__init__()
         self._plant = plant
         self._bodies = set(int(i) for i in probe_body_indices)
-        self._geometry_frames = geometry_frames  # GeometryId -> FrameId
-        self.DeclareAbstractInputPort("contact_results", AbstractValue.Make(ContactResults()))
-        self.DeclareAbstractInputPort("X_BP", AbstractValue.Make(RigidTransform()))
-        self.DeclareVectorOutputPort("probe_contact_wrench_true", 6, self._calc)
+        # GeometryId -> is it on the probe (looked up once, not per contact per call).
+        self._on_probe = {g: int(plant.GetBodyFromFrameId(f).index()) in self._bodies
+                          for g, f in geometry_frames.items()}
+        results = self.DeclareAbstractInputPort("contact_results",
+                                                AbstractValue.Make(ContactResults()))
+        X = self.DeclareAbstractInputPort("X_BP", AbstractValue.Make(RigidTransform()))
+        self.DeclareVectorOutputPort(
+            "probe_contact_wrench_true", 6, self._calc,
+            prerequisites_of_calc={self.input_port_ticket(results.get_index()),
+                                   self.input_port_ticket(X.get_index())})
 
     def _calc(self, context, output):
         results = self.get_input_port(0).Eval(context)
@@ -96,23 +102,20 @@ class ProbeContactWrench(LeafSystem):
                 accumulate(info.contact_force(), info.contact_point(), -1.0)
         for i in range(results.num_hydroelastic_contacts()):
             info = results.hydroelastic_contact_info(i)
+            surface = info.contact_surface()
+            onA, onB = self._on_probe[surface.id_M()], self._on_probe[surface.id_N()]
+            if not (onA or onB):
+                continue
             F_Ac_W = info.F_Ac_W()  # on body A's geometry M, at the surface centroid C
-            p_WC = info.contact_surface().centroid()
-            bodyA, bodyB = self._hydro_bodies(info)
-            if bodyA in self._bodies:
+            p_WC = surface.centroid()
+            if onA:
                 accumulate(F_Ac_W.translational(), p_WC, +1.0)
                 torque_W += F_Ac_W.rotational()
-            if bodyB in self._bodies:
+            if onB:
                 accumulate(F_Ac_W.translational(), p_WC, -1.0)
                 torque_W -= F_Ac_W.rotational()
-        R_PW = X_WP.rotation().inverse().matrix()
+        R_PW = X_WP.rotation().matrix().T
         output.SetFromVector(np.concatenate([R_PW @ torque_W, R_PW @ force_W]))
-
-    def _hydro_bodies(self, info):
-        surface = info.contact_surface()
-        body = lambda geometry_id: self._plant.GetBodyFromFrameId(  # noqa: E731
-            self._geometry_frames[geometry_id])
-        return int(body(surface.id_M()).index()), int(body(surface.id_N()).index())
 
 
 def _probe_face_properties(scenario: Scenario) -> ProximityProperties:
@@ -132,7 +135,13 @@ def _plant_config(scenario: Scenario) -> MultibodyPlantConfig:
         contact_model="hydroelastic_with_fallback" if contact.model == "hydroelastic"
         else "point",
         penetration_allowance=0.002,
-        use_sampled_output_ports=True,
+        # Unsampled: the contact forces the robot senses (tau_external, hence probe_force)
+        # are those of the current state, not of the step that led to it. On a 5-10 ms step
+        # the sampled ports' one-step-old force doubles the force ripple in PIVOT (measured
+        # with `python -m benchmarks scan --validate`); unsampled, the ripple at 10 ms matches
+        # the 1 ms step's. Cost: one more contact solve per controller period (the command
+        # changes after the controller has read the force).
+        use_sampled_output_ports=False,
     )
 
 
@@ -223,10 +232,13 @@ def MakeSimStation(scenario: Scenario, meshcat: Meshcat | None = None, *, patien
 
     state_split = builder.AddNamedSystem("robot_state", Demultiplexer([NUM_JOINTS, NUM_JOINTS]))
     builder.Connect(plant.get_state_output_port(parts.robot), state_split.get_input_port())
-    fk = builder.AddNamedSystem("probe_pose", ProbePoseFromJoints(control_plant, tip_frame))
+    # One tip-kinematics object (memoised on q) for the pose and the force estimate.
+    tip_kinematics = TipKinematics(control_plant, tip_frame)
+    fk = builder.AddNamedSystem("probe_pose", ProbePoseFromJoints(control_plant, tip_frame,
+                                                                   tip_kinematics))
     builder.Connect(state_split.get_output_port(0), fk.get_input_port(0))
     estimator = builder.AddNamedSystem(
-        "probe_force_estimator", ProbeForceEstimator(control_plant, tip_frame))
+        "probe_force_estimator", ProbeForceEstimator(control_plant, tip_frame, tip_kinematics))
     builder.Connect(state_split.get_output_port(0), estimator.get_input_port(0))
     builder.Connect(plant.get_generalized_contact_forces_output_port(parts.robot),
                     estimator.get_input_port(1))

@@ -2,6 +2,8 @@
 Each bad input gives one clear error that names the file or the field."""
 
 import json
+import os
+import stat
 
 import numpy as np
 import pytest
@@ -311,3 +313,115 @@ def test_atomic_write_leaves_nothing_on_failure(tmp_path):
     assert list(target.parent.iterdir()) == []
     write_text_atomic(target, "{}")
     assert target.read_text() == "{}" and len(list(target.parent.iterdir())) == 1
+
+
+# ------------------------------------------------------- issue 17: exports and strict JSON
+def _small_patient():
+    box = _box()
+    labels = np.zeros((6, 6, 6), np.uint8)
+    labels[2:4, 2:4, 2:4] = 2
+    return Patient(name="test:9", side="right", posture="supine", kidney_mesh=box,
+                   skin_mesh=trimesh.creation.box((0.3, 0.3, 0.2)),
+                   labels=LabelVolume(labels, voxel_size=0.002))
+
+
+@pytest.mark.parametrize("fmt", ["nrrd", "nifti"])
+def test_export_files_are_0644_under_umask_022(tmp_path, fmt):
+    from drake_rus.anatomy.export import export_patient
+    old = os.umask(0o022)
+    try:
+        paths = export_patient(_small_patient(), tmp_path / "exp", fmt)
+    finally:
+        os.umask(old)
+    for p in paths:
+        assert stat.S_IMODE(p.stat().st_mode) == 0o644, p
+    assert sorted(x.name for x in (tmp_path / "exp").iterdir()) == sorted(p.name for p in paths)
+
+
+def test_export_info_units_are_consistent(tmp_path):
+    from drake_rus.anatomy.export import export_patient
+    patient = _small_patient()
+    paths = export_patient(patient, tmp_path, "nrrd")
+    info = json.loads([p for p in paths if p.name.endswith("_info.json")][0].read_text())
+    assert info["units"] == "mm"
+    np.testing.assert_allclose(np.array(info["X_PtK"])[:3, 3],
+                               patient.X_PtK.translation() * 1000.0, atol=1e-6)
+    assert "not LPS" in info["nrrd_space"]
+
+
+def test_export_nrrd_space_is_not_labelled_lps(tmp_path):
+    import SimpleITK as sitk
+
+    from drake_rus.anatomy.export import export_patient
+    paths = export_patient(_small_patient(), tmp_path, "nrrd")
+    nrrd = [p for p in paths if p.name.endswith(".nrrd")][0]
+    header = nrrd.read_bytes().split(b"\n\n")[0].decode()
+    assert "space: 3D-right-handed" in header and "left-posterior-superior" not in header
+    assert "drake_rus_frame:=" in header
+    image = sitk.ReadImage(str(nrrd))          # still readable, same geometry
+    assert image.GetSpacing() == pytest.approx((2.0, 2.0, 2.0))
+    assert sitk.GetArrayFromImage(image).sum() > 0
+
+
+def test_json_files_are_strict(tmp_path):
+    from drake_rus.io_utils import dumps_strict
+    path = write_text_atomic(tmp_path / "x.json",
+                             json.dumps({"a": float("nan"), "b": [1.0, float("inf")]}))
+    text = path.read_text()
+    assert "NaN" not in text and "Infinity" not in text
+    assert json.loads(text) == {"a": None, "b": [1.0, None]}
+    assert json.loads(dumps_strict({"v": np.float64("nan"), "w": np.arange(2)},
+                                   default=lambda o: o.tolist())) == {"v": None, "w": [0, 1]}
+    # Not JSON files are written as they are.
+    assert write_text_atomic(tmp_path / "x.txt", "NaN").read_text() == "NaN"
+
+
+def test_atomic_writes_honour_the_umask(tmp_path):
+    old = os.umask(0o022)
+    try:
+        path = write_text_atomic(tmp_path / "a.json", "{}")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(path.stat().st_mode) == 0o644
+
+
+def test_output_lock_refuses_a_busy_folder_and_takes_a_stale_one(tmp_path):
+    from drake_rus.io_utils import LOCK_NAME, OutputError, output_dir
+    out = tmp_path / "run"
+    with output_dir(out, "--out") as o:
+        assert (o / LOCK_NAME).exists()
+        with pytest.raises(OutputError, match="--out: .* in use"):
+            with output_dir(out, "--out"):
+                pass
+        (o / "summary.json").write_text("{}")
+    assert not (out / LOCK_NAME).exists() and (out / "summary.json").exists()
+    (out / LOCK_NAME).write_text("999999999 scan\n")      # its process is gone
+    with output_dir(out, "--out"):
+        pass
+
+
+def test_output_folder_removed_when_the_run_fails_before_writing(tmp_path):
+    from drake_rus.io_utils import output_dir
+    out = tmp_path / "a" / "b"
+    with pytest.raises(RuntimeError):
+        with output_dir(out, "--out"):
+            raise RuntimeError("bad input found late")
+    assert not (tmp_path / "a").exists()
+    with pytest.raises(KeyboardInterrupt):
+        with output_dir(out, "--out") as o:
+            (o / "partial.json").write_text("{}")
+            raise KeyboardInterrupt
+    assert (out / "partial.json").exists()
+
+
+def test_label_map_spacing_checked_from_the_header(tmp_path):
+    from drake_rus.anatomy.cli import check_patient_spec
+    from drake_rus.cli import UserError
+    path = _write_label_map(tmp_path / "m.nrrd", np.zeros((4, 4, 4)))   # 1 mm: fine
+    check_patient_spec(str(path))
+    import SimpleITK as sitk
+    img = sitk.GetImageFromArray(np.zeros((4, 4, 4), np.uint8))
+    img.SetSpacing((1.0, 1.0, 30.0))
+    sitk.WriteImage(img, str(tmp_path / "thick.nrrd"))
+    with pytest.raises(UserError, match=r"--patient: label map .*thick\.nrrd: voxel spacing"):
+        check_patient_spec(str(tmp_path / "thick.nrrd"))

@@ -75,6 +75,59 @@ FIELD_CASES = [
      ["faults.breathing"]),
     ("random_seed_negative", "s: {random_seed: -1}", ["random_seed"]),
     ("workspace_length", "s: {safety: {workspace_min: [0, 0]}}", ["safety.workspace_min"]),
+    # Physical ranges (config_schema.PHYSICAL_RANGES), issue 17.
+    ("probe_1000_kg", "s: {probe: {mass: 1000}}", ["probe.mass", "0.05-3 kg"]),
+    ("probe_feather", "s: {probe: {mass: 0.001}}", ["probe.mass", "physical range"]),
+    ("time_step_10_s", "s: {contact: {time_step: 10}}", ["contact.time_step", "0.01 s"]),
+    ("time_step_too_fine", "s: {contact: {time_step: 1e-7}}", ["contact.time_step"]),
+    ("frame_rate_1e9", "s: {imaging: {frame_rate_hz: 1e9}}", ["imaging.frame_rate_hz", "Hz"]),
+    ("frame_rate_tiny", "s: {imaging: {frame_rate_hz: 0.01}}", ["imaging.frame_rate_hz"]),
+    ("depth_2_m", "s: {imaging: {depth: 2.0}}", ["imaging.depth", "0.03-0.4 m"]),
+    ("depth_1_mm", "s: {imaging: {depth: 0.001}}", ["imaging.depth"]),
+    ("preset_1_mm", "s: {imaging: {depth_presets: [0.001, 0.15]}}",
+     ["imaging.depth_presets[0]"]),
+    ("probe_radius_1_m", "s: {imaging: {probe_radius: 1.0}}", ["imaging.probe_radius"]),
+    ("inertia_1000", "s: {probe: {inertia_diagonal: [1000, 0.001, 0.001]}}",
+     ["probe.inertia_diagonal[0]"]),
+    ("com_2_m", "s: {probe: {p_FCm: [0, 0, 2.0]}}", ["probe.p_FCm[2]"]),
+    ("modulus_1_pa", "s: {contact: {hydroelastic_modulus: 1}}", ["contact.hydroelastic_modulus"]),
+    ("friction_5", "s: {contact: {friction: 5}}", ["contact.friction"]),
+    ("controller_rate_1_hz", "s: {controller: {rate_hz: 1}}", ["controller.rate_hz"]),
+    ("force_ceiling_500", "s: {safety: {force_ceiling: 500}}", ["safety.force_ceiling"]),
+    ("command_rate_5_hz", "s: {hardware_interface: {command_rate_hz: 5}}",
+     ["hardware_interface.command_rate_hz"]),
+    ("frequency_100_mhz", "s: {imaging: {center_frequency_mhz: 100}}",
+     ["imaging.center_frequency_mhz"]),
+    # Cross-field rules (config_schema.CROSS_FIELD_RULES).
+    ("force_above_ceiling", "s: {controller: {desired_force: 25}}",
+     ["controller.desired_force", "safety.force_ceiling = 20"]),
+    ("force_equal_ceiling", "s: {controller: {desired_force: 12}, safety: {force_ceiling: 12}}",
+     ["controller.desired_force", "below"]),
+    ("time_step_slower_than_controller",
+     "s: {contact: {time_step: 0.008}, controller: {rate_hz: 200}}",
+     ["contact.time_step", "controller.rate_hz = 200"]),
+    ("frames_faster_than_plant", "s: {contact: {time_step: 0.01}, imaging: {frame_rate_hz: 150}}",
+     ["imaging.frame_rate_hz", "contact.time_step"]),
+    ("tip_speed_above_clamp", "s: {controller: {max_tip_speed: 0.1}}",
+     ["controller.max_tip_speed", "safety.command_tip_speed"]),
+    ("clamp_above_stop", "s: {safety: {command_tip_speed: 0.2}}",
+     ["safety.command_tip_speed", "safety.max_tip_speed"]),
+    ("workspace_inverted", "s: {safety: {workspace_min: [0.9, -0.5, -0.05]}}",
+     ["safety.workspace_min", "below its maximum"]),
+    ("command_rate_below_controller",
+     "s: {hardware_interface: {command_rate_hz: 50}}",
+     ["hardware_interface.command_rate_hz", "controller.rate_hz"]),
+    ("patient_100_m_away", "s: {patient: {X_BPt: {translation: [100, 0, 0]}}}",
+     ["patient.X_BPt.translation", "1.5 m"]),
+    ("patient_below_floor", "s: {patient: {X_BPt: {translation: [0.5, 0, -3]}}}",
+     ["patient.X_BPt.translation"]),
+    # Duplicate keys: YAML loaders keep the last one silently.
+    ("duplicate_top_key", "s: {contact: {model: point}, contact: {model: hydroelastic}}",
+     ["'contact'", "twice"]),
+    ("duplicate_nested_key", "s:\n  probe:\n    mass: 0.5\n    mass: 0.6\n",
+     ["probe.mass", "twice", "lines 3 and 4"]),
+    ("duplicate_in_list_item", "s: {faults: {sensor: [{kind: force_spike, kind: force_bias}]}}",
+     ["faults.sensor[0].kind", "twice"]),
 ]
 
 
@@ -83,7 +136,8 @@ def test_bad_scenario_field_is_named(tmp_path, case_id, text, words):
     with pytest.raises(ScenarioError) as e:
         _load(tmp_path, text)
     message = str(e.value)
-    assert "bad.scenarios.yaml" in message and "'s'" in message, message
+    assert "bad.scenarios.yaml" in message, message
+    assert "'s'" in message or "twice" in message, message
     for word in words:
         assert word in message, message
     assert "Traceback" not in message
@@ -134,11 +188,24 @@ def test_bad_overrides_name_the_field():
 # Numeric leaf fields of the scenario with their constraint; any value outside it must be
 # rejected with the field named, any value inside accepted.
 NUMERIC_FIELDS = [
-    ("contact", "time_step", "positive"), ("contact", "hydroelastic_modulus", "positive"),
-    ("contact", "friction", "nonneg"), ("safety", "force_ceiling", "positive"),
-    ("safety", "image_timeout", "positive"), ("probe", "mass", "positive"),
+    ("contact", "time_step", "range"), ("contact", "hydroelastic_modulus", "range"),
+    ("contact", "friction", "range"), ("safety", "force_ceiling", "range"),
+    ("safety", "image_timeout", "positive"), ("probe", "mass", "range"),
     ("faults", "seed", "nonneg_int"),
 ]
+
+
+def _in_range(section, name, value) -> bool:
+    """Whether the default scenario with ``section.name = value`` is acceptable: the
+    physical range of config_schema.PHYSICAL_RANGES and the cross-field rules it enters."""
+    from drake_rus.config_schema import PHYSICAL_RANGES
+    lo, hi, _, _ = PHYSICAL_RANGES[f"{section}.{name}"]
+    ok = lo <= value <= hi
+    if (section, name) == ("contact", "time_step"):      # <= 1 / controller.rate_hz, and
+        ok = ok and value <= 0.01 and 20.0 <= 1.0 / value + 1e-9   # one frame per step
+    if (section, name) == ("safety", "force_ceiling"):   # above the desired 9 N
+        ok = ok and value > 9.0
+    return ok
 
 _bad_scalar = st.one_of(
     st.text(st.characters(whitelist_categories=("L", "N", "P", "Zs")), min_size=1, max_size=8)
@@ -171,7 +238,8 @@ def test_property_numbers_accepted_iff_in_range(tmp_path, field, value):
     section, name, rule = field
     if rule == "nonneg_int":
         value = int(value)
-    ok = {"positive": value > 0, "nonneg": value >= 0, "nonneg_int": value >= 0}[rule]
+    ok = {"positive": value > 0, "nonneg_int": value >= 0,
+          "range": rule == "range" and _in_range(section, name, value)}[rule]
     if ok:
         scenario, _ = _load(tmp_path, f"s: {{{section}: {{{name}: {value!r}}}}}")
         assert getattr(getattr(scenario, section), name) == pytest.approx(value)
@@ -223,3 +291,47 @@ def test_scientific_notation_without_dot_is_a_number(tmp_path):
     assert scenario.probe.inertia_diagonal == [0.001, 0.002, 0.0001]
     with pytest.raises(ScenarioError, match=r"contact\.time_step.*> 0"):
         _load(tmp_path, "s: {contact: {time_step: -1e-3}}")
+
+
+# ---------------------------------------------------------------- issue 17: physics and YAML
+def test_duplicate_key_in_overrides_is_named():
+    with pytest.raises(ScenarioError, match=r"overrides.*'contact\.time_step' is given twice"):
+        ApplyOverrides(Scenario(), "{contact: {time_step: 0.001, time_step: 0.002}}")
+
+
+def test_merge_keys_may_be_overridden(tmp_path):
+    """`<<: *anchor` then the same key is YAML's override, not a duplicate."""
+    scenario, _ = _load(tmp_path, "a: &a\n  contact: &c\n    model: point\n"
+                                  "s:\n  <<: *a\n  contact:\n    <<: *c\n    model: hydroelastic\n")
+    assert scenario.contact.model == "hydroelastic"
+
+
+def test_shipped_scenarios_pass_every_rule():
+    from drake_rus.scenario import ListScenarios
+    for name in ListScenarios():
+        LoadScenario(scenario_name=name)
+
+
+def test_every_physical_range_names_a_real_field_and_holds_by_default():
+    from drake_rus.config_schema import CROSS_FIELD_RULES, PHYSICAL_RANGES, _get
+    s = Scenario()
+    for path, (lo, hi, unit, why) in PHYSICAL_RANGES.items():
+        value = _get(s, path)
+        for v in (value if isinstance(value, list) else [value]):
+            assert lo <= v <= hi, (path, v)
+        assert lo < hi and why
+    for fields, holds, what in CROSS_FIELD_RULES:
+        assert holds(s), fields
+        for f in fields:
+            if not f.endswith("translation"):
+                _get(s, f)
+
+
+def test_scenario_file_that_is_a_folder_is_named(tmp_path):
+    with pytest.raises(ScenarioError, match="is a folder"):
+        LoadScenario(filename=tmp_path)
+
+
+def test_duplicate_scenario_name_is_named(tmp_path):
+    with pytest.raises(ScenarioError, match=r"scenario 's' is given twice \(lines 1 and 2\)"):
+        _load(tmp_path, "s: {}\ns: {contact: {model: point}}\n")

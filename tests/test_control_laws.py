@@ -242,3 +242,74 @@ def test_null_space_gradient_raises_manipulability(kin):
         return min(ms)
     m_with, m_without = run(5.0), run(0.0)
     assert m_with > m_without * 1.1
+
+
+def test_jacobian_derivatives_match_finite_differences(kin):
+    rng = np.random.default_rng(3)
+    for q in (Q0, Q0 + rng.uniform(-0.4, 0.4, 7)):
+        dJ = laws.jacobian_derivatives(kin.jacobian(q))
+        for i in range(7):
+            e = np.zeros(7)
+            e[i] = 1e-6
+            fd = (kin.jacobian(q + e) - kin.jacobian(q - e)) / 2e-6
+            assert np.allclose(dJ[i], fd, atol=1e-7), i
+
+
+def test_manipulability_gradient_analytic_matches_finite_differences(kin):
+    rng = np.random.default_rng(4)
+    for q in (Q0, Q0 + rng.uniform(-0.5, 0.5, 7), Q0 + rng.uniform(-0.5, 0.5, 7)):
+        analytic = laws.manipulability_gradient_analytic(kin.jacobian(q))
+        central = np.array([
+            (laws.manipulability(kin.jacobian(q + 1e-6 * e))
+             - laws.manipulability(kin.jacobian(q - 1e-6 * e))) / 2e-6 for e in np.eye(7)])
+        assert np.allclose(analytic, central, atol=1e-8, rtol=1e-6)
+
+
+def test_manipulability_gradient_analytic_zero_at_singularity():
+    J = np.zeros((6, 7))
+    J[:, :5] = np.eye(6)[:, :5]
+    assert np.array_equal(laws.manipulability_gradient_analytic(J), np.zeros(7))
+
+
+def _scale_into_bounds_loop(qdot, lower, upper):
+    """The per-joint loop the vectorised scale_into_bounds replaced (reference)."""
+    s = 1.0
+    for v, lo, hi in zip(qdot, lower, upper):
+        if v > hi:
+            s = min(s, hi / v if v > 0 else 0.0)
+        elif v < lo:
+            s = min(s, lo / v if v < 0 else 0.0)
+    return np.asarray(qdot, dtype=float) * max(s, 0.0)
+
+
+def test_scale_into_bounds_matches_the_per_joint_rule():
+    rng = np.random.default_rng(5)
+    for _ in range(500):
+        qdot = rng.normal(0.0, 1.0, 7)
+        lo = -np.abs(rng.normal(0.0, 0.8, 7)) * (rng.random(7) > 0.2)
+        up = np.abs(rng.normal(0.0, 0.8, 7)) * (rng.random(7) > 0.2)
+        out = laws.scale_into_bounds(qdot, lo, up)
+        np.testing.assert_allclose(out, _scale_into_bounds_loop(qdot, lo, up), atol=1e-15)
+        assert np.all(out <= up + 1e-12) and np.all(out >= lo - 1e-12)
+
+
+def test_tip_kinematics_memoises_on_q(kin):
+    q2 = Q0 + 0.1
+    J0 = kin.jacobian(Q0)
+    assert kin.jacobian(Q0.copy()) is J0            # same q: the same evaluation
+    J2 = kin.jacobian(q2)
+    assert not np.allclose(J2, J0)                  # another q: recomputed
+    X2 = kin.pose(q2)
+    np.testing.assert_allclose(kin.jacobian(Q0), J0)
+    assert not np.allclose(kin.pose(Q0).translation(), X2.translation())
+
+
+def test_null_space_diff_ik_equals_the_explicit_pseudo_inverse_and_projector(kin):
+    rng = np.random.default_rng(6)
+    singular = kin.jacobian(Q0).copy()
+    singular[:, 3] = singular[:, 2]          # a rank-deficient J takes the damped branch
+    for J in (kin.jacobian(Q0), kin.jacobian(Q0 + rng.uniform(-0.5, 0.5, 7)), singular):
+        xi, qn = rng.normal(size=6), rng.normal(size=7)
+        J_pinv, N, _ = laws.damped_pseudo_inverse(J, 0.03, 0.03)
+        np.testing.assert_allclose(laws.null_space_diff_ik(J, xi, qn), J_pinv @ xi + N @ qn,
+                                   atol=1e-10)

@@ -357,3 +357,39 @@ def test_cli_hardware_check(franky_sim, capsys):
                  "{hardware_interface: {robot_ip: 127.0.0.9, connect_timeout: 0.5}}"]) == 2
     err = capsys.readouterr().err
     assert "cannot connect to the FR3 at '127.0.0.9'" in err and "after 0.5 s" in err
+
+
+def test_call_within_times_out_and_passes_results_and_errors():
+    from drake_rus.hardware.franky_backend import call_within
+    assert call_within(lambda: 7, 1.0) == 7
+    with pytest.raises(KeyError):
+        call_within(lambda: {}["x"], 1.0)
+    start = time.monotonic()
+    with pytest.raises(TimeoutError):
+        call_within(lambda: time.sleep(5.0), 0.3)
+    assert time.monotonic() - start < 2.0
+
+
+def test_a_silent_peer_on_the_fci_port_fails_within_connect_timeout():
+    """Something accepts TCP on the FCI port but never answers libfranka's handshake (which
+    would hold franky.Robot() for about a minute): the station gives up within
+    connect_timeout, naming the field."""
+    from drake_rus.hardware.franky_backend import FCI_PORT
+    host = "127.0.0.7"
+    server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        server.bind((host, FCI_PORT))
+    except OSError as e:
+        server.close()
+        pytest.skip(f"cannot listen on {host}:{FCI_PORT}: {e}")
+    server.listen(4)
+    scenario = franky_scenario(host)
+    scenario.hardware_interface.connect_timeout = 1.5
+    start = time.monotonic()
+    try:
+        with pytest.raises(HardwareFault, match="hardware_interface.robot_ip"):
+            MakeHardwareStation(scenario)
+    finally:
+        server.close()
+    assert time.monotonic() - start < 5.0

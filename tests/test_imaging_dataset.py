@@ -61,7 +61,9 @@ def test_pictures_command_writes_pngs(tmp_path):
     rc = main(["imaging-pictures", "--patient", "phantom:2", "--segmenter", "oracle",
                "--views", "1", "--pose", "0.08,0.1,0.15,180,0,0", "--out", str(out)])
     assert rc == 0
-    summary = json.loads((out / "pictures.json").read_text())
+    # Strict JSON: NaN/Infinity (a view without a kidney has no IoU) would fail here.
+    summary = json.loads((out / "pictures.json").read_text(),
+                         parse_constant=lambda c: pytest.fail(f"pictures.json holds {c}"))
     assert [v["view"] for v in summary["views"]] == ["centred", "pose0", "view0"]
     assert summary["views"][0]["visible"] and summary["views"][0]["iou"] == 1.0
     assert (out / "contact_sheet.png").stat().st_size > 1000
@@ -159,3 +161,25 @@ def test_summarise_groups_records():
     out = summarise(recs)
     assert out[0.1]["iou"] == 0.8 and out[0.1]["false_positive_rate"] == 1.0
     assert out[0.2]["frames_with_kidney"] == 1 and out[0.2]["frames_without_kidney"] == 0
+
+
+def test_kidney_context_and_structure_randomisation(phantom):
+    from scipy import ndimage
+    from drake_rus.imaging.dataset import remove_perirenal_fat, thin_cortex
+    vol = phantom.volume
+    kid = is_kidney(vol.labels)
+    # A thin cortex: same kidney outline, cortex only within 3 mm of its surface.
+    thin = thin_cortex(vol, 0.003)
+    assert np.array_equal(is_kidney(thin.labels), kid)
+    cortex = thin.labels == Label.KIDNEY_CORTEX
+    assert 0 < cortex.sum() < (vol.labels == Label.KIDNEY_CORTEX).sum()
+    depth = ndimage.distance_transform_edt(kid) * vol.voxel_size
+    assert depth[cortex].max() <= 0.003 + 1e-9
+    # No perirenal fat: fat near the kidney becomes soft tissue, the rest stays.
+    fat_near = (vol.labels == Label.FAT) & (ndimage.distance_transform_edt(~kid) <= 15)
+    assert fat_near.any()
+    lean = remove_perirenal_fat(vol, 0.015)
+    assert np.array_equal(is_kidney(lean.labels), kid)
+    assert not (lean.labels[fat_near] == Label.FAT).any()
+    far_fat = (vol.labels == Label.FAT) & ~fat_near
+    assert (lean.labels[far_fat] == Label.FAT).all()

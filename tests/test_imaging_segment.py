@@ -109,3 +109,51 @@ def test_iou():
     a[0, :2] = True
     b[0, 1:3] = True
     assert iou(a, b) == pytest.approx(1 / 3)
+
+
+def _disc(shape, centre, radius):
+    r, c = np.ogrid[:shape[0], :shape[1]]
+    return (r - centre[0]) ** 2 + (c - centre[1]) ** 2 <= radius ** 2
+
+
+def test_tracked_component_follows_the_kidney_not_the_largest_region():
+    from drake_rus.imaging.probe import ProbeGeometry
+    from drake_rus.imaging.segment import tracked_component
+    g = ProbeGeometry.from_config(ImagingConfig())
+    shape = g.image_shape
+    kidney_before = _disc(shape, (100, 120), 20)
+    kidney_now = _disc(shape, (104, 124), 18)       # moved 4 px (about 2.5 mm)
+    band = _disc(shape, (220, 60), 35)             # larger, far from the kidney
+    regions = [band, kidney_now]
+    follow = dict(max_gap=2.0, reach=0.010)
+    assert tracked_component(regions, kidney_before, 0.05, g, **follow) == 1
+    # The kidney gone: the band elsewhere is not taken for it while the gap lasts ...
+    assert tracked_component([band], kidney_before, 0.5, g, **follow) is None
+    # ... but after it (or never seen before), the largest region is.
+    assert tracked_component([band], kidney_before, 2.5, g, **follow) == 0
+    assert tracked_component(regions, None, np.inf, g, **follow) == 0
+    # A region within reach of the last mask (not overlapping it) continues it.
+    near = _disc(shape, (100, 120 + 20 + 8), 6)   # 8 px = about 5 mm beyond the old edge
+    assert tracked_component([band, near], kidney_before, 0.05, g, **follow) == 1
+    assert tracked_component([], kidney_before, 0.05, g, **follow) is None
+
+
+def test_kidney_track_is_followed_only_once_established():
+    from drake_rus.imaging.probe import ProbeGeometry
+    from drake_rus.imaging.segment import KidneyTrack, track_prior, track_update
+    g = ProbeGeometry.from_config(ImagingConfig())
+    shape = g.image_shape
+    follow = dict(max_gap=2.0, reach=0.010)
+    track = KidneyTrack()
+    assert track_prior(track, 0.0, 0.5) == (None, np.inf)
+    # Seen at 0.0, continued (moved 3 px) every 0.05 s: established after 0.5 s.
+    for k in range(11):
+        track = track_update(track, _disc(shape, (100, 120 + k * 0.3), 20), True, 0.05 * k,
+                             g, **follow)
+        prior, age = track_prior(track, 0.05 * k + 0.05, 0.5)
+        assert (prior is None) == (k < 10), k
+    assert track.since == 0.0 and age == pytest.approx(0.05)
+    # A frame without the kidney keeps the track; a region elsewhere starts a new one.
+    assert track_update(track, np.zeros(shape, bool), False, 0.6, g, **follow) is track
+    jumped = track_update(track, _disc(shape, (220, 60), 20), True, 0.6, g, **follow)
+    assert jumped.since == 0.6 and track_prior(jumped, 0.65, 0.5)[0] is None

@@ -16,7 +16,7 @@ from drake_rus.localization.icp import IcpResult
 from drake_rus.localization.localize import LocalizationOutcome, load_registration_template
 from drake_rus.localization.tracking import (
     DriftEstimate, KidneyTrackingMonitor, TrackingLimits, TrackingState, estimate_drift,
-    judged_drift, tracking_limits, tracking_update)
+    judged_drift, kidney_in_view, tracking_limits, tracking_update)
 
 X_BK = RigidTransform(RollPitchYaw(0.05, -0.1, math.pi / 2 + 0.2), [0.55, 0.02, 0.08])
 
@@ -78,8 +78,42 @@ def test_tracking_update_latches_after_successive_confirmations():
     assert tracking_update(TrackingState(), 1.0, None, cfg).last_check == 1.0
 
 
+def test_estimate_drift_leaves_out_outlier_frames_but_not_a_shift(template):
+    """Six frames of the kidney's section and four of a region 60 mm away (a muscle band
+    taken for the kidney; 40% of the points, more than the trimming drops): with the frames
+    named, the outliers are left out; a shift that every frame shows is still measured."""
+    section = long_axis_slab(template)
+    z_B = X_BK.rotation().matrix()[:, 2]
+    band = section + 0.06 * z_B
+    P = np.concatenate([section] * 6 + [band] * 4)
+    ids = np.repeat(np.arange(10), len(section))
+    fooled = estimate_drift(P, X_BK, template.points, template.normals)
+    kept = estimate_drift(P, X_BK, template.points, template.normals, frame_ids=ids)
+    assert fooled.magnitude > 0.004
+    assert kept.magnitude < 0.0015 and (kept.n_frames_used, kept.n_frames) == (6, 10)
+    shift = 0.012 * z_B
+    moved = estimate_drift(np.concatenate([section + shift] * 8), X_BK, template.points,
+                           template.normals, frame_ids=np.repeat(np.arange(8), len(section)))
+    assert moved.n_frames_used == 8
+    np.testing.assert_allclose(moved.drift_B, shift, atol=0.002)
+
+
+def test_kidney_in_view_counts_the_registered_surface_in_the_image(template):
+    geometry = ProbeGeometry.from_config(ImagingConfig())
+    shape_B = X_BK.multiply(template.points.T).T
+    R_KP = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+    over = X_BK.multiply(RigidTransform(RotationMatrix(R_KP), [0.0, 0.0, 0.06]))
+    assert kidney_in_view(shape_B, over, geometry, 0.003) > 50
+    # The same view 120 mm along the kidney's long axis (past its pole), and turned so the
+    # image plane lies beside the kidney (30 mm off along its y): nothing to compare.
+    past = X_BK.multiply(RigidTransform(RotationMatrix(R_KP), [0.12, 0.0, 0.06]))
+    beside = X_BK.multiply(RigidTransform(RotationMatrix(R_KP), [0.0, 0.035, 0.06]))
+    assert kidney_in_view(shape_B, past, geometry, 0.003) == 0
+    assert kidney_in_view(shape_B, beside, geometry, 0.003) == 0
+
+
 def _run_monitor(template, shift_B, *, phase=4, motion_allowed=None, duration=2.0,
-                 config=None):
+                 config=None, outlier=None, view_offset_K=(0.0, 0.0, 0.0)):
     """Runs the monitor on synthetic long-axis frames of a kidney displaced by shift_B (m):
     the template's section through its x-z plane, seen by a probe whose image plane is
     that plane, one frame per imaging period."""
@@ -107,13 +141,18 @@ def _run_monitor(template, shift_B, *, phase=4, motion_allowed=None, duration=2.
     mctx = monitor.GetMyContextFromRoot(sim.get_mutable_context())
     # Image plane = the kidney's x-z plane: P's x along K's x, P's z (depth) along -K's z.
     R_KP = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
-    X_BP = X_BK.multiply(RigidTransform(RotationMatrix(R_KP), [0.0, 0.0, 0.06]))
+    X_BP = X_BK.multiply(RigidTransform(RotationMatrix(R_KP),
+                                        np.add([0.0, 0.0, 0.06], view_offset_K)))
     section = long_axis_slab(template, 0.0015) + np.asarray(shift_B)
     pixels, _ = geometry.B_to_pixel(section, X_BP)
     period = 1.0 / imaging.frame_rate_hz
     for k in range(int(duration / period)):
+        px = pixels
+        if outlier is not None and outlier(k):
+            # A region 60 mm deeper in the image than the kidney's section.
+            px = pixels + [0.0, 0.06 / geometry.dz]
         monitor.GetInputPort("boundary_pixels").FixValue(
-            mctx, BoundaryPixels(pixels, k * period, X_BP, k))
+            mctx, BoundaryPixels(px, k * period, X_BP, k))
         sim.AdvanceTo((k + 1) * period)
     return monitor.state(mctx), monitor.GetOutputPort("kidney_drift").Eval(mctx)[0]
 
@@ -129,6 +168,22 @@ def test_monitor_reports_a_kidney_that_moved_across(template):
     state, drift = _run_monitor(template, lateral)
     assert "from its registered pose" in state.error and "limit 15.0 mm" in state.error
     assert drift == pytest.approx(0.02, abs=0.003)
+
+
+def test_monitor_is_not_fooled_by_a_few_outlier_frames(template):
+    """Two frames in five segment a region 60 mm deeper than the kidney: not motion (the
+    trimmed fit alone, without the frame gate, reads 4.8 mm)."""
+    state, drift = _run_monitor(template, [0.0, 0.0, 0.0], outlier=lambda k: k % 5 in (1, 3))
+    assert state.error == "" and len(state.history) >= 3
+    assert drift < 0.001
+
+
+def test_monitor_skips_views_the_registered_kidney_does_not_cross(template):
+    """Past the registered pole (the view 120 mm along the long axis) whatever the
+    segmenter marks is not compared: no check, no error (compared, it reads 60 mm)."""
+    state, drift = _run_monitor(template, [0.0, 0.0, 0.0], view_offset_K=(0.12, 0.0, 0.0),
+                                outlier=lambda k: True)
+    assert state.error == "" and state.frames == () and math.isnan(drift)
 
 
 def test_monitor_ignores_frames_outside_its_phases_and_breath_holds(template):

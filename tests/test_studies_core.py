@@ -33,7 +33,10 @@ def test_tasks_and_run_ids_are_unique_and_deterministic():
              + st.efficiency_tasks(["seed:5", "../x/y"], o, 0.6))
     ids = [st.run_id(t) for t in tasks]
     assert len(set(ids)) == len(ids) == 22 + 5 + 2
-    assert "er-sweep__test-0__er060" in ids and "starts__test-0__er060__s4" in ids
+    # ER in units of the patient's kidney length (the default) is "erk"; of L_m "er".
+    assert "er-sweep__test-0__erk060" in ids and "starts__test-0__erk060__s4" in ids
+    fixed = st.er_sweep_tasks(["test:0"], st.StudyOptions(er_unit="fixed"), [0.6])
+    assert st.run_id(fixed[0]) == "er-sweep__test-0__er060"
     assert all("/" not in i and ":" not in i for i in ids)
     assert len(st.ER_GRID) == 11 and st.ER_GRID[0] == 0.0 and st.ER_GRID[-1] == 1.0
 
@@ -69,9 +72,13 @@ def test_er_sweep_critical_er_needs_every_larger_er_to_agree():
     for r in res:                       # ER 0.8 is worse than 100%: the critical ER is 0.9
         if r["er"] == 0.8:
             r["e_trans_mm"] += 10 + float(np.random.default_rng(len(r["patient"])).normal())
-    an = analysis.analyze_er_sweep(res)
+    an = analysis.analyze_er_sweep(res, rule="strict")
     assert an["critical_er"] == pytest.approx(0.9)
     assert an["first_not_significant_er"] == pytest.approx(0.6)
+    # The paper's rule (the default): the smallest ER that passes.
+    paper = analysis.analyze_er_sweep(res)
+    assert paper["rule"] == "paper" and paper["critical_er"] == pytest.approx(0.6)
+    assert paper["critical_er_strict_rule"] == pytest.approx(0.9)
 
 
 def test_starts_bonferroni():
@@ -102,7 +109,8 @@ def _eff_result(patient, n_op, n_nop):
 def test_efficiency_reductions_and_mean_curves():
     res = [_eff_result(f"test:{k}", 100 + k, 200 + 3 * k) for k in range(6)]
     an = analysis.analyze_efficiency(res)
-    c = {(x["comparison"], x["metric"]): x for x in an["comparisons"]}
+    c = {(x["comparison"], x["metric"]): x for x in an["comparisons"]
+         if x["definition"] == "pole_to_pole"}
     nop = c[("OP vs NOP", "n")]
     assert nop["reduction_mean"] == pytest.approx(np.mean([100 + 2 * k for k in range(6)]))
     assert nop["op_lower_count"] == 6 and nop["significant"]
@@ -123,7 +131,8 @@ def test_runner_writes_each_run_and_resumes(tmp_path):
             raise RuntimeError("boom")
         return {"run_id": st.run_id(task), "task": task, "value": len(calls)}
 
-    tasks = st.er_sweep_tasks(["test:0", "test:1", "test:2"], st.StudyOptions(), [0.5])
+    tasks = st.er_sweep_tasks(["test:0", "test:1", "test:2"], st.StudyOptions(er_unit="fixed"),
+                              [0.5])
     status = batch.run_tasks(tasks, fake, tmp_path, st.run_id, workers=0, progress=False)
     assert status["done"] == 2 and status["failed"][0][0] == "er-sweep__test-2__er050"
     assert "boom" in status["failed"][0][1]

@@ -2,29 +2,102 @@
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 
 from drake_rus.anatomy.cohort import cohort_seeds, cohort_stats, load_patient
+from drake_rus.anatomy.export import estimated_export_bytes
 from drake_rus.anatomy.generator import generate_patient
+from drake_rus.anatomy.importers import LABEL_MAP_SUFFIXES
 from drake_rus.anatomy.pictures import plot_cohort_overview, plot_label_slices, show_in_meshcat
-from drake_rus.cli import UserError
+from drake_rus.cli import PREFLIGHT_CHECKS, UserError
+from drake_rus.io_utils import check_output_dir, dumps_strict, output_dir
 from drake_rus.template import load_template
+
+# Voxel spacing (mm) a label map may have: CT and MR are 0.3-5 mm; outside this range the
+# spacing is in other units (metres) or the file is not a body scan.
+LABEL_MAP_SPACING_MM = (0.1, 10.0)
+# At most this many label-map headers of a folder are checked before the load.
+_MAX_HEADERS = 200
 
 
 def _user_error(e):
     return UserError(str(e))
 
 
-def _load(args):
+def _label_map_files(path: Path) -> list[Path]:
+    if path.is_dir():
+        return [p for p in sorted(path.iterdir())
+                if p.name.lower().endswith(LABEL_MAP_SUFFIXES)][:_MAX_HEADERS]
+    if path.name.lower().endswith(LABEL_MAP_SUFFIXES):
+        return [path]
+    return []
+
+
+def check_label_map_spacing(path: Path, arg: str) -> None:
+    """Raises a user error naming ``arg`` if a label map's voxel spacing (read from its
+    header, not its voxels) is outside ``LABEL_MAP_SPACING_MM``."""
+    import SimpleITK as sitk
+    lo, hi = LABEL_MAP_SPACING_MM
+    for f in _label_map_files(path):
+        reader = sitk.ImageFileReader()
+        reader.SetFileName(str(f))
+        try:
+            reader.ReadImageInformation()
+        except RuntimeError:
+            continue                  # unreadable: the importer names it
+        spacing = reader.GetSpacing()
+        if not all(np.isfinite(spacing)) or not all(lo <= s <= hi for s in spacing):
+            shown = ", ".join(f"{s:g}" for s in spacing)
+            hint = " (in metres? label maps are read in mm)" if max(spacing) < lo else ""
+            raise _user_error(f"{arg}: label map {f}: voxel spacing ({shown}) mm is outside "
+                              f"{lo:g}-{hi:g} mm{hint}")
+
+
+def check_patient_spec(spec: str, arg: str = "--patient") -> None:
+    """Checks a patient spec before any work: ``phantom:N`` has an integer N, label maps
+    have a plausible voxel spacing. Other problems are found by the loader."""
+    head, sep, tail = spec.partition(":")
+    if sep and head == "phantom":
+        if not tail.strip().isdigit():
+            raise _user_error(f"{arg}: expected phantom:N with a non-negative integer N, "
+                              f"got {spec!r}")
+        return
+    path = Path(spec)
+    if path.exists():
+        check_label_map_spacing(path, arg)
+
+
+def check_patient_arguments(args) -> None:
+    """Preflight check of every command's ``--patient`` (or patient ``spec``) argument."""
+    for name, arg in (("patient", "--patient"), ("spec", "patient spec")):
+        spec = getattr(args, name, None)
+        if isinstance(spec, str):
+            check_patient_spec(spec, arg)
+
+
+def load_patient_for(spec: str, arg: str = "--patient", **kwargs):
+    """``load_patient`` for a command: its ValueErrors become one line naming ``arg``."""
     try:
-        return load_patient(args.spec, side=args.side, posture=args.posture,
-                            voxel_size=args.voxel_mm / 1000.0)
+        return load_patient(spec, **kwargs)
     except ValueError as e:
-        raise _user_error(e) from None
+        text = str(e)
+        if "Surface level" in text or "marching" in text.lower():
+            text = (f"patient {spec!r}: the kidney label is too small to make a surface of "
+                    f"(a few voxels at most); check the label values and the mapping")
+        raise _user_error(f"{arg}: {text}") from None
+
+
+def _load(args):
+    return load_patient_for(args.spec, "patient spec", side=args.side, posture=args.posture,
+                            voxel_size=args.voxel_mm / 1000.0, progress=_tty())
+
+
+def _tty() -> bool:
+    import sys
+    return sys.stderr.isatty()
 
 
 def patient_info(patient) -> dict:
@@ -53,17 +126,20 @@ def patient_info(patient) -> dict:
 
 def _info(args) -> int:
     p = _load(args)
-    print(json.dumps(patient_info(p), indent=2))
+    print(dumps_strict(patient_info(p), indent=2))
     return 0
 
 
 def _export(args) -> int:
+    check_output_dir(args.out, "--out", need_bytes=64 * 1024)
     p = _load(args)
-    try:
-        paths = p.export(args.out, args.format)
-    except ValueError as e:
-        raise _user_error(e) from None
-    print(json.dumps({"written": [str(x) for x in paths]}, indent=2))
+    need = estimated_export_bytes(p)
+    with output_dir(args.out, "--out", need_bytes=need, what="patient export") as out:
+        try:
+            paths = p.export(out, args.format)
+        except ValueError as e:
+            raise _user_error(e) from None
+    print(dumps_strict({"written": [str(x) for x in paths]}, indent=2))
     return 0
 
 
@@ -71,7 +147,7 @@ def _show(args) -> int:
     p = _load(args)
     out = Path(args.png)
     plot_label_slices(p, out)
-    print(json.dumps({"slices_png": str(out)}))
+    print(dumps_strict({"slices_png": str(out)}))
     if args.meshcat:
         from pydrake.geometry import Meshcat
         meshcat = Meshcat()
@@ -89,11 +165,12 @@ def _cohort(args) -> int:
     if args.count is not None and args.count < 1:
         raise _user_error(f"--count: expected at least 1, got {args.count}")
     t0 = time.time()
+    progress = not args.quiet and _tty()
     if args.stats or not args.png:
         out = cohort_stats(args.split, args.count, args.side, args.posture, full=not args.fast,
-                           progress=not args.quiet)
+                           progress=progress)
         out["seconds"] = round(time.time() - t0, 1)
-        print(json.dumps(out, indent=2))
+        print(dumps_strict(out, indent=2))
     if args.png:
         template = None
         try:
@@ -103,7 +180,7 @@ def _cohort(args) -> int:
         pats = [generate_patient(s, args.side, args.posture, progress=False)
                 for s in cohort_seeds(args.split, args.count)]
         plot_cohort_overview(pats, args.png, template)
-        print(json.dumps({"overview_png": args.png}))
+        print(dumps_strict({"overview_png": args.png}))
     return 0
 
 
@@ -115,6 +192,8 @@ def _common(p, spec=True):
 
 
 def add_commands(subparsers) -> None:
+    if check_patient_arguments not in PREFLIGHT_CHECKS:
+        PREFLIGHT_CHECKS.append(check_patient_arguments)
     c = subparsers.add_parser("cohort", help="virtual patient cohorts: statistics, overview")
     c.add_argument("--split", default="test", choices=["train", "test"])
     c.add_argument("--count", type=int, default=None, help="patients (default 20 train, 15 test)")
@@ -124,7 +203,7 @@ def add_commands(subparsers) -> None:
     c.add_argument("--png", default=None, help="write a canonical-frame overview picture")
     c.add_argument("--quiet", action="store_true")
     _common(c, spec=False)
-    c.set_defaults(func=_cohort)
+    c.set_defaults(func=_cohort, outputs={"png": "file:.png"})
 
     p = subparsers.add_parser("patient", help="one patient: info, export, show")
     sub = p.add_subparsers(dest="patient_command", metavar="ACTION")
@@ -138,10 +217,10 @@ def add_commands(subparsers) -> None:
     e.add_argument("--out", required=True, help="output directory")
     e.add_argument("--format", default="nrrd", choices=["nrrd", "nifti"])
     e.add_argument("--voxel-mm", type=float, default=1.0)
-    e.set_defaults(func=_export)
+    e.set_defaults(func=_export, outputs={"out": "dir"})
     s = sub.add_parser("show", help="orthogonal label slices (PNG), optionally Meshcat 3-D")
     _common(s)
     s.add_argument("--png", required=True)
     s.add_argument("--voxel-mm", type=float, default=1.0)
     s.add_argument("--meshcat", action="store_true", help="also show in Meshcat until Ctrl-C")
-    s.set_defaults(func=_show)
+    s.set_defaults(func=_show, outputs={"png": "file:.png"})

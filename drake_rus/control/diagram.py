@@ -21,7 +21,7 @@ from pydrake.systems.framework import DiagramBuilder, LeafSystem, PortDataType
 
 from drake_rus.control.systems import (ForcePD, NullSpaceDiffIK, OrientationAlignment,
                                        PositionP, SafetyLayer, ScanSupervisor)
-from drake_rus.robot import MakeControlPlant
+from drake_rus.robot import MakeControlPlant, TipKinematics
 
 
 class FrameTime(LeafSystem):
@@ -98,12 +98,17 @@ def AddController(builder: DiagramBuilder, station, scenario, *, plant=None,
     if plant is None:
         plant, tip_frame = MakeControlPlant(scenario)
     S = station.GetOutputPort
+    # One tip-kinematics object (memoised on q) shared by the IK and the safety layer: one
+    # forward kinematics and one Jacobian per control period.
+    kinematics = TipKinematics(plant, tip_frame)
     orientation = builder.AddNamedSystem("orientation_alignment", OrientationAlignment(cfg))
     force = builder.AddNamedSystem("force_pd", ForcePD(cfg))
     position = builder.AddNamedSystem("position_p", PositionP(cfg))
     ik = builder.AddNamedSystem("null_space_diff_ik",
-                                NullSpaceDiffIK(plant, tip_frame, cfg, use_null_space))
-    safety = builder.AddNamedSystem("safety", SafetyLayer(plant, tip_frame, scfg, cfg.rate_hz))
+                                NullSpaceDiffIK(plant, tip_frame, cfg, use_null_space,
+                                                kinematics=kinematics))
+    safety = builder.AddNamedSystem("safety", SafetyLayer(plant, tip_frame, scfg, cfg.rate_hz,
+                                                          kinematics=kinematics))
 
     for sys in (orientation, force, position):
         builder.Connect(S("X_BP"), sys.GetInputPort("X_BP"))

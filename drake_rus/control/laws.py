@@ -161,6 +161,59 @@ def manipulability_gradient(q, jacobian, epsilon: float = 1e-4) -> np.ndarray:
     return grad
 
 
+_UPPER_MASKS: dict = {}
+
+
+def _upper_mask(n: int) -> np.ndarray:
+    """(n, 1, n) bool mask of i <= j (cached per n)."""
+    mask = _UPPER_MASKS.get(n)
+    if mask is None:
+        mask = _UPPER_MASKS[n] = np.triu(np.ones((n, n), bool))[:, None, :]
+    return mask
+
+
+def jacobian_derivatives(J) -> np.ndarray:
+    """dJ/dq_i of the 6xn geometric Jacobian [w; v] of a frame on the last link of a serial
+    chain of revolute joints (columns in chain order), from J alone: (n, 6, n), [i] = dJ/dq_i.
+
+    Column j is the twist of joint j about the frame's origin: angular part the joint axis
+    z_j, linear part v_j. Turning joint i <= j rotates joint j's axis and lever arm rigidly,
+    so d(column j)/dq_i = [z_i x z_j; z_i x v_j]; turning a later joint i > j moves only the
+    frame's origin (by v_i), so d(column j)/dq_i = [0; z_j x v_i].
+    """
+    J = np.asarray(J, dtype=float)
+    z, v = J[:3], J[3:]                                       # (3, n) each
+    n = J.shape[1]
+    # S[i] = [z_i]x, the cross-product matrix of joint i's axis: S[i] @ w = z_i x w.
+    S = np.zeros((n, 3, 3))
+    S[:, 0, 1], S[:, 0, 2], S[:, 1, 2] = -z[2], z[1], -z[0]
+    S[:, 1, 0], S[:, 2, 0], S[:, 2, 1] = z[2], -z[1], z[0]
+    zz = S @ z                                                # [i] = z_i x z_j (3, n)
+    zv = S @ v                                                # [i] = z_i x v_j
+    later = zv.transpose(2, 1, 0)                             # [i][:, j] = z_j x v_i
+    upper = _upper_mask(n)                                    # i <= j
+    dw = np.where(upper, zz, 0.0)
+    dv = np.where(upper, zv, later)
+    return np.concatenate([dw, dv], axis=1)
+
+
+def manipulability_gradient_analytic(J) -> np.ndarray:
+    """grad m(q) of m = sqrt(det(J J^T)) (eq. 12) from J alone, for a serial revolute chain
+    (see :func:`jacobian_derivatives`): dm/dq_i = m tr((J J^T)^-1 dJ/dq_i J^T). One Jacobian
+    instead of n + 1 (the forward difference of :func:`manipulability_gradient`). Zero at a
+    singularity (m = 0)."""
+    J = np.asarray(J, dtype=float)
+    A = J @ J.T
+    d = float(np.linalg.det(A))
+    if not d > 0.0:
+        return np.zeros(J.shape[1])
+    m = math.sqrt(d)
+    dJ = jacobian_derivatives(J)                               # (n, 6, n)
+    B = np.linalg.solve(A, J)                                  # A^-1 J  (6, n)
+    # tr(A^-1 dJ_i J^T) = sum_kl (A^-1 J)_kl (dJ_i)_kl  (A symmetric)
+    return m * (dJ.reshape(dJ.shape[0], -1) @ B.ravel())
+
+
 def damped_pseudo_inverse(J, sigma_threshold: float = 0.03, damping_max: float = 0.03):
     """Damped Moore-Penrose pseudo-inverse and exact null-space projector of J (eq. 10).
 
@@ -173,19 +226,23 @@ def damped_pseudo_inverse(J, sigma_threshold: float = 0.03, damping_max: float =
     Returns (J_pinv (n x 6), N (n x n), lambda).
     """
     J = np.asarray(J, dtype=float)
+    U, Vt, inv, Vr, lam2 = _damped_svd(J, sigma_threshold, damping_max)
+    m = inv.size
+    J_pinv = (Vt[:m].T * inv) @ U[:, :m].T
+    N = np.eye(J.shape[1]) - Vr.T @ Vr
+    return J_pinv, N, math.sqrt(lam2)
+
+
+def _damped_svd(J: np.ndarray, sigma_threshold: float, damping_max: float):
+    """(U, V^T, damped inverse singular values, the row-space basis V_r, lambda^2) of J, the
+    variable damping of :func:`damped_pseudo_inverse`."""
     U, s, Vt = np.linalg.svd(J, full_matrices=True)
-    m = s.size
     s_min = float(s[-1])
     lam2 = 0.0
     if s_min < sigma_threshold:
         lam2 = damping_max**2 * (1.0 - (s_min / sigma_threshold) ** 2)
     inv = s / (s**2 + lam2) if lam2 > 0 else np.where(s > 1e-12, 1.0 / np.maximum(s, 1e-300), 0.0)
-    V = Vt.T
-    J_pinv = V[:, :m] @ np.diag(inv) @ U[:, :m].T
-    rank = int(np.sum(s > 1e-9))
-    Vr = V[:, :rank]
-    N = np.eye(J.shape[1]) - Vr @ Vr.T
-    return J_pinv, N, math.sqrt(lam2)
+    return U, Vt, inv, Vt[:int(np.count_nonzero(s > 1e-9))], lam2
 
 
 def joint_velocity_bounds(q, q_min, q_max, dq_max, margin: float):
@@ -205,20 +262,30 @@ def joint_velocity_bounds(q, q_min, q_max, dq_max, margin: float):
 def scale_into_bounds(qdot, lower, upper) -> np.ndarray:
     """Scales qdot uniformly (direction kept) so that lower <= qdot <= upper."""
     qdot = np.asarray(qdot, dtype=float)
-    s = 1.0
-    for v, lo, hi in zip(qdot, lower, upper):
-        if v > hi:
-            s = min(s, hi / v if v > 0 else 0.0)
-        elif v < lo:
-            s = min(s, lo / v if v < 0 else 0.0)
+    lower, upper = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
+    above, below = qdot > upper, qdot < lower
+    if not (above.any() or below.any()):
+        return qdot * 1.0
+    # Per violated joint the largest admissible scale (0 when the bound has the other sign).
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s_hi = np.where(qdot > 0, upper / qdot, 0.0)
+        s_lo = np.where(qdot < 0, lower / qdot, 0.0)
+    s = min(1.0, float(np.min(s_hi[above], initial=1.0)), float(np.min(s_lo[below], initial=1.0)))
     return qdot * max(s, 0.0)
 
 
 def null_space_diff_ik(J, xi_b, qdot_null, *, sigma_threshold: float = 0.03,
                        damping_max: float = 0.03) -> np.ndarray:
-    """qdot = J^+ xi_b + (I - J^+ J) qdot_null (eq. 10) with the damped pseudo-inverse."""
-    J_pinv, N, _ = damped_pseudo_inverse(J, sigma_threshold, damping_max)
-    return J_pinv @ np.asarray(xi_b, dtype=float) + N @ np.asarray(qdot_null, dtype=float)
+    """qdot = J^+ xi_b + (I - J^+ J) qdot_null (eq. 10) with the damped pseudo-inverse.
+
+    The same arithmetic as :func:`damped_pseudo_inverse` applied to the two vectors, without
+    forming J^+ and N (one SVD, a few matrix-vector products)."""
+    J = np.asarray(J, dtype=float)
+    xi_b = np.asarray(xi_b, dtype=float)
+    qdot_null = np.asarray(qdot_null, dtype=float)
+    U, Vt, inv, Vr, _ = _damped_svd(J, sigma_threshold, damping_max)
+    m = inv.size
+    return Vt[:m].T @ (inv * (U[:, :m].T @ xi_b)) + qdot_null - Vr.T @ (Vr @ qdot_null)
 
 
 def solve_joint_velocities(q, xi_b, jacobian, *, q_min, q_max, dq_max,

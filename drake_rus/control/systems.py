@@ -148,10 +148,12 @@ class NullSpaceDiffIK(LeafSystem):
     manipulability (1, at the measured q).
     """
 
-    def __init__(self, plant, tip_frame, config, use_null_space: bool = True):
+    def __init__(self, plant, tip_frame, config, use_null_space: bool = True,
+                 kinematics: TipKinematics | None = None):
         super().__init__()
         self._cfg = config
-        self._kin = TipKinematics(plant, tip_frame)
+        # ``kinematics`` may be shared with the safety layer: one FK + Jacobian per tick.
+        self._kin = kinematics or TipKinematics(plant, tip_frame)
         self._K_p6 = config.K_p6 if use_null_space else 0.0
         n = self._kin.nq
         self._q = self.DeclareVectorInputPort("joint_position", n)
@@ -162,7 +164,8 @@ class NullSpaceDiffIK(LeafSystem):
         self.DeclareVectorOutputPort("V_BP_desired", 6, self._calc_twist)
         self.DeclareVectorOutputPort("manipulability", 1, self._calc_m)
         # qdot_null = K_p6 grad m(q) (eq. 11-12) is a slow secondary task: it is held in
-        # state and refreshed every null_space_period (8 Jacobians per refresh).
+        # state and refreshed every null_space_period, analytically from the Jacobian at q
+        # (laws.manipulability_gradient_analytic: no extra Jacobians).
         self._null = self.DeclareDiscreteState(n)
         if self._K_p6 > 0:
             self.DeclareInitializationUnrestrictedUpdateEvent(self._update_null)
@@ -171,8 +174,7 @@ class NullSpaceDiffIK(LeafSystem):
 
     def _update_null(self, context, state):
         q = np.asarray(self._q.Eval(context), dtype=float)
-        g = (laws.manipulability_gradient(q, self._kin.jacobian,
-                                          self._cfg.manipulability_epsilon)
+        g = (laws.manipulability_gradient_analytic(self._kin.jacobian(q))
              if np.all(np.isfinite(q)) else np.zeros_like(q))
         state.get_mutable_discrete_state(self._null).set_value(self._K_p6 * g)
 
@@ -249,25 +251,28 @@ class ScanSupervisor(LeafSystem):
         self.DeclarePeriodicUnrestrictedUpdateEvent(self._dt, 0.0, self._update)
         S = lambda ctx: ctx.get_abstract_state(0).get_value()  # noqa: E731
         self._S = S
-        self.DeclareVectorOutputPort("a_des", 3, lambda c, o: o.SetFromVector(S(c).a_des))
-        self.DeclareVectorOutputPort("o_des", 3, lambda c, o: o.SetFromVector(S(c).o_des))
-        self.DeclareVectorOutputPort("a_des_dot", 3,
-                                     lambda c, o: o.SetFromVector(S(c).a_des_dot))
-        self.DeclareVectorOutputPort("P_des", 2, lambda c, o: o.SetFromVector(S(c).P_des))
-        self.DeclareVectorOutputPort("F_des", 1, lambda c, o: o.SetFromVector([S(c).F_des]))
-        self.DeclareVectorOutputPort("phase", 1,
-                                     lambda c, o: o.SetFromVector([float(S(c).phase)]))
-        self.DeclareVectorOutputPort(
-            "segmentation_required", 1,
-            lambda c, o: o.SetFromVector([float(supervisor.segmentation_required(S(c)))]))
-        self.DeclareVectorOutputPort(
-            "exploring", 1,
-            lambda c, o: o.SetFromVector([float(S(c).phase == supervisor.Phase.EXPLORE)]))
-        self.DeclareVectorOutputPort(
-            "abort", 1, lambda c, o: o.SetFromVector([float(S(c).phase == supervisor.Phase.ABORT)]))
+        # Every output is a function of the state alone: declared so, they are recomputed
+        # only when the state changes (once per period), not whenever time or an input does.
+        only_state = {self.abstract_state_ticket(self._s)}
+
+        def vector(name, size, calc):
+            self.DeclareVectorOutputPort(name, size, calc, prerequisites_of_calc=only_state)
+
+        vector("a_des", 3, lambda c, o: o.SetFromVector(S(c).a_des))
+        vector("o_des", 3, lambda c, o: o.SetFromVector(S(c).o_des))
+        vector("a_des_dot", 3, lambda c, o: o.SetFromVector(S(c).a_des_dot))
+        vector("P_des", 2, lambda c, o: o.SetFromVector(S(c).P_des))
+        vector("F_des", 1, lambda c, o: o.SetFromVector([S(c).F_des]))
+        vector("phase", 1, lambda c, o: o.SetFromVector([float(S(c).phase)]))
+        vector("segmentation_required", 1,
+               lambda c, o: o.SetFromVector([float(supervisor.segmentation_required(S(c)))]))
+        vector("exploring", 1,
+               lambda c, o: o.SetFromVector([float(S(c).phase == supervisor.Phase.EXPLORE)]))
+        vector("abort", 1,
+               lambda c, o: o.SetFromVector([float(S(c).phase == supervisor.Phase.ABORT)]))
         self.DeclareAbstractOutputPort(
             "supervisor_state", lambda: AbstractValue.Make(supervisor.SupervisorState()),
-            lambda c, o: o.set_value(S(c)))
+            lambda c, o: o.set_value(S(c)), prerequisites_of_calc=only_state)
 
     def state(self, context) -> supervisor.SupervisorState:
         return context.get_abstract_state(0).get_value()
@@ -312,11 +317,12 @@ class SafetyLayer(LeafSystem):
     safety_events (tuple of SafetyEvent).
     """
 
-    def __init__(self, plant, tip_frame, safety_config, rate_hz: float):
+    def __init__(self, plant, tip_frame, safety_config, rate_hz: float,
+                 kinematics: TipKinematics | None = None):
         super().__init__()
         self._cfg = safety_config
         self._dt = 1.0 / rate_hz
-        self._kin = TipKinematics(plant, tip_frame)
+        self._kin = kinematics or TipKinematics(plant, tip_frame)
         n = self._kin.nq
         self._qd = self.DeclareVectorInputPort("joint_velocity_desired", n)
         self._q = self.DeclareVectorInputPort("joint_position", n)

@@ -1,14 +1,19 @@
 """Statistics of the seed's section III studies on finished run results (plain dicts).
 
 - :func:`analyze_er_sweep` (III-C, Fig. 7d): per exploration ratio, paired t-tests
-  (``scipy.stats.ttest_rel``) of E_trans and E_rot,x against ER 100%. Critical ER = the
-  smallest ER from which on every ER is not significantly different from 100% (p > 0.05)
-  in both errors (the seed: "the smallest ER at which both errors are not significantly
-  different"; requiring it for the larger ERs too guards against a lucky low ER).
+  (``scipy.stats.ttest_rel``) of E_trans and E_rot,x against ER 100%. Critical ER
+  (:func:`critical_er`), rule ``paper`` (default, the seed's IV-A): the smallest ER at which
+  neither error differs significantly from ER 100% (p > 0.05); rule ``strict`` (ours, an
+  option): the smallest ER from which on EVERY larger ER passes too (guards against a lucky
+  low ER).
 - :func:`analyze_starts` (III-D, Fig. 9d): pairwise paired t-tests of the random starts
   over patients with Bonferroni correction (5 starts, 10 pairs: p < 0.005).
-- :func:`analyze_efficiency` (III-E, Fig. 10): totals per strategy, OP against the others
-  (paired, Bonferroni over the comparisons), reconstructed kidney volume errors;
+- :func:`analyze_template` (beyond the paper): errors against the template's distance from
+  the patient for template variants (mean, scaled, single kidney, leave-one-out).
+- :func:`analyze_efficiency` (III-E, Fig. 10): totals per strategy pole to pole (the
+  paper's), over the whole pivot and at matched coverage (n and eps to reach V = 0.9), OP
+  against the others (paired, Bonferroni over each definition's comparisons), how often the
+  tilt cap ended a pivot leg, reconstructed kidney volume errors;
   :func:`mean_curve` averages V against n or eps over patients.
 
 :data:`PAPER` holds the seed paper's numbers the report puts beside ours.
@@ -55,8 +60,41 @@ def mean_sd(v) -> tuple[float, float]:
     return float(v.mean()), float(v.std(ddof=1)) if len(v) > 1 else 0.0
 
 
-def analyze_er_sweep(results: list[dict], alpha: float = 0.05) -> dict:
-    """Per ER: mean/SD of both errors, paired p-values against ER 100%; the critical ER."""
+CRITICAL_ER_RULES = {
+    "paper": "the smallest ER at which neither E_trans nor E_rot,x differs from ER 100% "
+             "(paired t-test, p > alpha): the seed's rule (IV-A)",
+    "strict": "the smallest ER from which on every ER (it and all larger) differs from ER "
+              "100% in neither error (p > alpha): ours, stricter",
+}
+
+
+def _passes(row: dict, alpha: float) -> bool:
+    """Neither error significantly different from the reference (NaN p: too few to test)."""
+    return all(not np.isfinite(row[k]) or row[k] > alpha for k in ("p_e_trans", "p_e_rot_x"))
+
+
+def critical_er(rows: list[dict], alpha: float = 0.05, rule: str = "paper") -> float:
+    """The critical ER of rows (``er``, ``p_e_trans``, ``p_e_rot_x``; any order) under
+    ``rule`` (:data:`CRITICAL_ER_RULES`); the largest ER (the reference) when none passes."""
+    if rule not in CRITICAL_ER_RULES:
+        raise ValueError(f"critical-ER rule: expected one of {', '.join(CRITICAL_ER_RULES)}, "
+                         f"got {rule!r}")
+    rows = sorted(rows, key=lambda r: r["er"])
+    if not rows:
+        raise ValueError("critical ER: no rows")
+    if rule == "paper":
+        return next((r["er"] for r in rows if _passes(r, alpha)), rows[-1]["er"])
+    critical = rows[-1]["er"]
+    for row in reversed(rows):
+        if not _passes(row, alpha):
+            break
+        critical = row["er"]
+    return critical
+
+
+def analyze_er_sweep(results: list[dict], alpha: float = 0.05, rule: str = "paper") -> dict:
+    """Per ER: mean/SD of both errors, paired p-values against ER 100%; the critical ER under
+    ``rule`` ("paper" or "strict", :func:`critical_er`) and under both rules."""
     by = {}
     for r in results:
         by.setdefault(round(r["er"], 3), {})[r["patient"]] = r
@@ -79,17 +117,16 @@ def analyze_er_sweep(results: list[dict], alpha: float = 0.05) -> dict:
             "registration_ms_mean": mean_sd([by[er][p]["registration_ms"] for p in common])[0],
             "points_mean": mean_sd([by[er][p]["points"] for p in common])[0],
         })
-    critical = ref_er
-    for row in reversed(rows):
-        ok = (row["p_e_trans"] > alpha or not np.isfinite(row["p_e_trans"])) and \
-             (row["p_e_rot_x"] > alpha or not np.isfinite(row["p_e_rot_x"]))
-        if not ok:
-            break
-        critical = row["er"]
-    first_ok = next((r["er"] for r in rows if r["p_e_trans"] > alpha and r["p_e_rot_x"] > alpha),
-                    ref_er)
-    return {"rows": rows, "critical_er": critical, "first_not_significant_er": first_ok,
-            "reference_er": ref_er, "alpha": alpha}
+    both = {k: critical_er(rows, alpha, k) for k in CRITICAL_ER_RULES}
+    units = sorted({str(r.get("er_unit", "fixed")) for r in results})
+    lengths = [r["kidney_length_mm"] for r in results if r.get("kidney_length_mm") is not None]
+    return {"rows": rows, "critical_er": both[rule], "rule": rule,
+            "rule_text": CRITICAL_ER_RULES[rule],
+            "critical_er_paper_rule": both["paper"], "critical_er_strict_rule": both["strict"],
+            "first_not_significant_er": both["paper"], "reference_er": ref_er, "alpha": alpha,
+            "er_unit": units[0] if len(units) == 1 else units,
+            "kidney_length_mm": (mean_sd(lengths), float(min(lengths)), float(max(lengths)))
+            if lengths else None}
 
 
 def analyze_starts(results: list[dict], alpha: float = 0.05) -> dict:
@@ -125,38 +162,116 @@ def analyze_starts(results: list[dict], alpha: float = 0.05) -> dict:
             "e_rot_x_deg": mean_sd([r["e_rot_x_deg"] for r in allv])}
 
 
-def analyze_efficiency(results: list[dict], alpha: float = 0.05) -> dict:
-    """Totals per strategy, OP against the others (paired, Bonferroni), volume errors."""
+# Metric keys of a strategy entry per definition (module ``drake_rus.metrics.sweep``).
+EFFICIENCY_DEFINITIONS = {
+    "pole_to_pole": ("n", "eps_mm"),
+    "whole_pivot": ("n_whole_pivot", "eps_whole_pivot_mm"),
+}
+
+
+def _entry_value(e: dict, key: str):
+    """A strategy entry's value; the whole pivot's under its old name (``*_full``) in runs
+    written before the definitions were named."""
+    old = {"n_whole_pivot": "n_full", "eps_whole_pivot_mm": "eps_full_mm",
+           "V_whole_pivot": "V_full"}
+    return e.get(key, e.get(old.get(key, key)))
+
+
+def _at(e: dict, target: str, key: str, field: str):
+    r = (e.get(key) or {}).get(target)
+    return None if r is None else r[field]
+
+
+def analyze_efficiency(results: list[dict], alpha: float = 0.05, V_target: float = 0.9) -> dict:
+    """Totals per strategy pole to pole (the paper's) and over the whole pivot, n and eps to
+    reach ``V_target`` (matched coverage; patients that never reach it are left out of that
+    comparison), OP against the others (paired, Bonferroni over each definition's
+    comparisons), tilt-cap counts, volume errors."""
     results = sorted(results, key=lambda r: r["patient"])
-    per = {s: {"n": [], "eps_mm": [], "V": [], "volume_error_pct": []} for s in STRATEGY_ORDER}
+    tgt = f"{V_target:g}"
+    keys = ("n", "eps_mm", "V", "n_whole_pivot", "eps_whole_pivot_mm", "V_whole_pivot",
+            "n_at_V", "eps_at_V_mm", "n_at_V_whole_pivot", "eps_at_V_whole_pivot_mm",
+            "volume_error_pct")
+    per = {s: {k: [] for k in keys} | {"tilt_cap_legs": []} for s in STRATEGY_ORDER}
     for r in results:
         for s in STRATEGY_ORDER:
             e = r["strategies"][s]
-            per[s]["n"].append(e["n"])
-            per[s]["eps_mm"].append(e["eps_mm"])
-            per[s]["V"].append(e["V"])
-            per[s]["volume_error_pct"].append(e["volume_error_pct"])
+            for k in ("n", "eps_mm", "V", "n_whole_pivot", "eps_whole_pivot_mm",
+                      "V_whole_pivot", "volume_error_pct"):
+                per[s][k].append(_entry_value(e, k))
+            per[s]["n_at_V"].append(_at(e, tgt, "at_V", "n"))
+            per[s]["eps_at_V_mm"].append(_at(e, tgt, "at_V", "eps_mm"))
+            per[s]["n_at_V_whole_pivot"].append(_at(e, tgt, "at_V_whole_pivot", "n"))
+            per[s]["eps_at_V_whole_pivot_mm"].append(_at(e, tgt, "at_V_whole_pivot", "eps_mm"))
+            per[s]["tilt_cap_legs"].append(list(e.get("tilt_cap_legs") or []))
     summary = {}
     for s in STRATEGY_ORDER:
-        summary[s] = {k: mean_sd(v) for k, v in per[s].items()}
+        summary[s] = {k: mean_sd(per[s][k]) for k in keys}
         ve = [abs(x) for x in per[s]["volume_error_pct"] if x is not None]
         summary[s]["abs_volume_error_pct"] = mean_sd(ve)
         summary[s]["within_5pct"] = int(sum(x <= 5 for x in ve))
+        summary[s]["reached_V"] = int(sum(x is not None for x in per[s]["n_at_V"]))
+        summary[s]["tilt_cap_patients"] = int(sum(bool(x) for x in per[s]["tilt_cap_legs"]))
+        summary[s]["tilt_cap_leg_counts"] = {
+            str(leg): int(sum(leg in x for x in per[s]["tilt_cap_legs"])) for leg in (1, 2)}
     others = [s for s in STRATEGY_ORDER if s != "OP"]
+    families = dict(EFFICIENCY_DEFINITIONS)
+    families[f"at_V{tgt}"] = ("n_at_V", "eps_at_V_mm")
     m = 2 * len(others)
     comparisons = []
-    for s in others:
-        for key in ("n", "eps_mm"):
-            a, b = np.asarray(per["OP"][key], float), np.asarray(per[s][key], float)
-            p = paired_p(a, b)
-            comparisons.append({
-                "comparison": f"OP vs {s}", "metric": key,
-                "reduction_mean": float(np.mean(b - a)) if len(a) else float("nan"),
-                "reduction_sd": float(np.std(b - a, ddof=1)) if len(a) > 1 else 0.0,
-                "op_lower_count": int(np.sum(a < b)), "patients": int(len(a)),
-                "p": p, "significant": bool(p < alpha / m)})
+    for definition, metric_keys in families.items():
+        for s in others:
+            for key in metric_keys:
+                pairs = [(a, b) for a, b in zip(per["OP"][key], per[s][key])
+                         if a is not None and b is not None]
+                a = np.asarray([x for x, _ in pairs], float)
+                b = np.asarray([y for _, y in pairs], float)
+                p = paired_p(a, b)
+                comparisons.append({
+                    "definition": definition, "comparison": f"OP vs {s}",
+                    "metric": "n" if key.startswith("n") else "eps_mm",
+                    "reduction_mean": float(np.mean(b - a)) if len(a) else float("nan"),
+                    "reduction_sd": float(np.std(b - a, ddof=1)) if len(a) > 1 else 0.0,
+                    "op_lower_count": int(np.sum(a < b)), "patients": int(len(a)),
+                    "p": p, "significant": bool(np.isfinite(p) and p < alpha / m)})
     return {"per_patient": per, "summary": summary, "comparisons": comparisons,
-            "bonferroni_threshold": alpha / m, "patients": [r["patient"] for r in results]}
+            "bonferroni_threshold": alpha / m, "V_target": V_target,
+            "patients": [r["patient"] for r in results]}
+
+
+def analyze_template(results: list[dict]) -> dict:
+    """Template-mismatch study: per template variant the template's distance from the
+    patients' kidneys and both errors (mean, SD), paired t-tests of each variant's errors
+    against the mean template's on the same patients, and over all runs the Pearson
+    correlation and least-squares slope of each error against the template distance."""
+    by = {}
+    for r in results:
+        by.setdefault(r["template_variant"], {})[r["patient"]] = r
+    rows = []
+    ref = by.get("mean", {})
+    for v in sorted(by, key=lambda v: (v != "mean", v)):
+        runs = by[v]
+        vals = list(runs.values())
+        common = sorted(set(runs) & set(ref))
+        row = {"variant": v, "n": len(vals)}
+        for key in ("template_distance_mm", "e_trans_mm", "e_rot_x_deg"):
+            row[f"{key}_mean"], row[f"{key}_sd"] = mean_sd([x[key] for x in vals])
+        for key in ("e_trans_mm", "e_rot_x_deg"):
+            row[f"p_{key}_vs_mean"] = (paired_p([runs[q][key] for q in common],
+                                                [ref[q][key] for q in common])
+                                       if v != "mean" else float("nan"))
+        rows.append(row)
+    d = np.asarray([r["template_distance_mm"] for r in results], float)
+    trend = {}
+    for key in ("e_trans_mm", "e_rot_x_deg"):
+        y = np.asarray([r[key] for r in results], float)
+        if len(d) > 2 and np.ptp(d) > 0 and np.ptp(y) > 0:
+            trend[key] = {"r": float(np.corrcoef(d, y)[0, 1]),
+                          "slope_per_mm": float(np.polyfit(d, y, 1)[0])}
+        else:
+            trend[key] = {"r": float("nan"), "slope_per_mm": float("nan")}
+    return {"rows": rows, "trend": trend, "patients": sorted({r["patient"] for r in results}),
+            "er": sorted({r["er"] for r in results})}
 
 
 def mean_curve(results: list[dict], strategy: str, x_key: str, grid: np.ndarray) -> np.ndarray:

@@ -11,20 +11,27 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import sys
 import time
 from pathlib import Path
 
-from drake_rus.batch import run_tasks
+from drake_rus.batch import result_path, run_tasks
 from drake_rus.demo import add_scenario_arguments
 from drake_rus.experiments.analysis import STRATEGY_ORDER
 from drake_rus.experiments.report import (
     report_markdown, write_closed_loop_outputs, write_efficiency_outputs,
-    write_er_sweep_outputs, write_starts_outputs)
+    write_er_sweep_outputs, write_starts_outputs, write_template_outputs)
 from drake_rus.experiments.tasks import (
-    ER_GRID, StudyOptions, closed_loop_tasks, efficiency_tasks, er_sweep_tasks,
-    expand_patients, load_study_results, run_id, run_task, starts_tasks)
-from drake_rus.io_utils import write_text_atomic
+    ER_GRID, TEMPLATE_VARIANTS, StudyOptions, closed_loop_tasks, efficiency_tasks,
+    er_sweep_tasks, expand_patients, load_study_results, run_id, run_task, starts_tasks,
+    template_tasks)
+from drake_rus.io_utils import MB, dumps_strict, output_dir, write_text_atomic
+from drake_rus.progress import stderr_is_terminal
 from drake_rus.scenario import LoadScenario
+
+# About what a study writes (bytes): per-run JSON, tables, figures, NRRD volumes.
+STUDY_OUTPUT_BYTES = 50 * MB
 
 
 def add_commands(subparsers) -> None:
@@ -36,7 +43,9 @@ def add_commands(subparsers) -> None:
     helps = {"er-sweep": "localization error vs exploration ratio 0..100% (Fig. 7d)",
              "starts": "five random exploration starts at the critical ER (Fig. 9d)",
              "efficiency": "OP, GT-OP, NOP, SL sweeps: V vs n and eps (Fig. 10), volumes",
-             "paper": "all of the above into one report directory with report.md"}
+             "paper": "all of the above into one report directory with report.md",
+             "template": "localization with mismatched templates (mean, scaled, single "
+                         "kidney, leave-one-out) against the template's distance"}
     for name, text in helps.items():
         # argparse %-formats help strings (not descriptions): escape the "%" of "100%".
         q = sub.add_parser(name, help=text.replace("%", "%%"), description=text)
@@ -57,6 +66,14 @@ def add_commands(subparsers) -> None:
         q.add_argument("--method", default="seed", choices=["seed", "deformable"],
                        help="localization method (default seed, the paper's)")
         q.add_argument("--seed", type=int, default=0, help="study seed (random starts)")
+        q.add_argument("--er-unit", default="kidney", choices=["kidney", "fixed"],
+                       help="what ER multiplies: the patient's kidney length (default, the "
+                            "paper's simulation) or the fixed L_m = 100 mm (its in-vivo rule)")
+        if name in ("er-sweep", "paper"):
+            q.add_argument("--critical-er-rule", default="paper", choices=["paper", "strict"],
+                           help="critical ER: the smallest ER not significantly different "
+                                "from 100%% (paper, default) or the smallest from which on "
+                                "every larger ER is not either (strict)")
         q.add_argument("--voxel", type=float, default=0.002,
                        help="label-volume voxel size in m (default 0.002)")
         if name in ("efficiency", "paper"):
@@ -69,7 +86,11 @@ def add_commands(subparsers) -> None:
         if name in ("er-sweep", "paper"):
             q.add_argument("--ers", default=None,
                            help="comma list of exploration ratios (default 0,0.1,...,1)")
-        if name in ("starts", "efficiency"):
+        if name == "template":
+            q.add_argument("--variants", default=",".join(TEMPLATE_VARIANTS),
+                           help="comma list of template variants: mean, scale-S, single:K, "
+                                "loo (training patients only) (default %(default)s)")
+        if name in ("starts", "efficiency", "template"):
             q.add_argument("--er", type=float, default=None,
                            help="exploration ratio (default: the critical ER found by an "
                                 "er-sweep in OUT, else 0.6)")
@@ -81,7 +102,7 @@ def add_commands(subparsers) -> None:
                                 "scenario's ER) beside their kinematic twins (default 3; 0 "
                                 "skips)")
         q.add_argument("--no-progress", action="store_true", help="no progress bar")
-        q.set_defaults(func=run_study_command)
+        q.set_defaults(func=run_study_command, outputs={"out": "dir"})
 
 
 def _ers(text):
@@ -104,7 +125,8 @@ def _options(args):
         raise ValueError(f"--recon-spacing: expected a positive size in m, got {recon}")
     return StudyOptions(scenario=args.scenario, scenarios_file=args.scenarios_file,
                         overrides=args.overrides, segmenter=args.segmenter, method=args.method,
-                        voxel=float(args.voxel), seed=int(args.seed), recon_spacing=recon)
+                        voxel=float(args.voxel), seed=int(args.seed), recon_spacing=recon,
+                        er_unit=getattr(args, "er_unit", "kidney"))
 
 
 def _critical_er(out: Path, default: float = 0.6) -> float:
@@ -115,14 +137,35 @@ def _critical_er(out: Path, default: float = 0.6) -> float:
 
 
 def run_study_command(args) -> int:
-    patients = expand_patients(args.patients)
+    try:
+        patients = expand_patients(args.patients)
+    except ValueError as e:
+        raise ValueError(f"--patients: {e}") from None
     options = _options(args)
-    # Fail early (in this process) on a bad scenario or template, not in every worker.
+    # Fail early (in this process) on a bad scenario or template, not in every worker, and
+    # on every argument before the output folder is made.
     LoadScenario(filename=args.scenarios_file, scenario_name=args.scenario,
                  scenario_text=args.overrides)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    run = dict(workers=args.workers, scheduler=args.scheduler, progress=not args.no_progress)
+    if args.study in ("er-sweep", "paper"):
+        _ers(args.ers)
+    if args.study == "template":
+        try:
+            template_tasks([], options, 0.6, [v.strip() for v in args.variants.split(",")
+                                              if v.strip()])
+        except ValueError as e:
+            raise ValueError(f"--variants: {e}") from None
+    er = getattr(args, "er", None)
+    if er is not None and not (math.isfinite(er) and 0 <= er <= 1):
+        raise ValueError(f"--er: expected a value in [0, 1], got {er}")
+    with output_dir(args.out, "--out", need_bytes=STUDY_OUTPUT_BYTES,
+                    what=f"study {args.study}") as out:
+        return _study(args, patients, options, out)
+
+
+def _study(args, patients, options, out: Path) -> int:
+    terminal = stderr_is_terminal()
+    run = dict(workers=args.workers, scheduler=args.scheduler,
+               progress=not args.no_progress and terminal)
     t0 = time.perf_counter()
     failed = []
     er_an = starts_an = eff_an = None
@@ -130,7 +173,20 @@ def run_study_command(args) -> int:
     counts = {"done": 0, "skipped": 0}
 
     def go(tasks, desc):
-        status = run_tasks(tasks, run_task, out, run_id, desc=desc, **run)
+        todo = sum(1 for t in tasks if not result_path(out, run_id(t)).exists())
+        where = args.scheduler or (f"{args.workers} workers" if args.workers else
+                                   "this process")
+        print(f"{desc}: {len(tasks)} runs, {len(tasks) - todo} already done, {todo} to run "
+              f"on {where}", file=sys.stderr, flush=True)
+        finished = [0]
+
+        def line(result):
+            # Per-run progress as lines when the bar is off (a log file) or not wanted.
+            finished[0] += 1
+            if not run["progress"] and not args.no_progress:
+                print(f"{desc}: run {finished[0]}/{todo} {result.get('run_id', '')} "
+                      f"({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
+        status = run_tasks(tasks, run_task, out, run_id, desc=desc, on_result=line, **run)
         counts["done"] += status["done"]
         counts["skipped"] += status["skipped"]
         failed.extend(status["failed"])
@@ -145,14 +201,12 @@ def run_study_command(args) -> int:
         go(tasks, "er-sweep")
         ran["er-sweep"] = time.perf_counter() - t
         results = _of(load_study_results(out, "er-sweep"), tasks)
-        er_an = write_er_sweep_outputs(out, results)
+        er_an = write_er_sweep_outputs(out, results, rule=args.critical_er_rule)
         print(f"er-sweep: critical ER {er_an['critical_er'] * 100:.0f}% "
               f"({len(results)} runs)", flush=True)
     er = getattr(args, "er", None)
     if er is None:
         er = er_an["critical_er"] if er_an else _critical_er(out)
-    if not 0 <= er <= 1:
-        raise ValueError(f"--er: expected a value in [0, 1], got {er}")
     if args.study in ("starts", "paper"):
         tasks = starts_tasks(patients, options, er, args.starts)
         t = time.perf_counter()
@@ -174,6 +228,19 @@ def run_study_command(args) -> int:
         print("efficiency (pole to pole): " + "; ".join(
             f"{k} n {s[k]['n'][0]:.0f} eps {s[k]['eps_mm'][0]:.1f} mm V {s[k]['V'][0]:.3f}"
             for k in STRATEGY_ORDER), flush=True)
+    template_an = None
+    if args.study == "template":
+        variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+        tasks = template_tasks(patients, options, er, variants)
+        t = time.perf_counter()
+        go(tasks, "template")
+        ran["template"] = time.perf_counter() - t
+        template_an = write_template_outputs(out, _of(load_study_results(out, "template"),
+                                                      tasks))
+        print("template: " + "; ".join(
+            f"{r['variant']} d {r['template_distance_mm_mean']:.1f} mm, E_trans "
+            f"{r['e_trans_mm_mean']:.1f} mm, E_rot,x {r['e_rot_x_deg_mean']:.1f} deg"
+            for r in template_an["rows"]), flush=True)
     closed = None
     if args.study == "paper" and args.closed_loop > 0:
         scenario = LoadScenario(filename=args.scenarios_file, scenario_name=args.scenario,
@@ -189,7 +256,8 @@ def run_study_command(args) -> int:
     meta = {"study": args.study, "patients": patients, "segmenter": options.segmenter,
             "method": options.method, "voxel": options.voxel, "seed": options.seed,
             "workers": args.workers, "scheduler": args.scheduler, "wall_s": wall,
-            "stage_wall_s": ran, "er": er,
+            "stage_wall_s": ran, "er": er, "er_unit": options.er_unit,
+            "critical_er_rule": getattr(args, "critical_er_rule", None),
             "mode": "kinematic" + (" (+ closed-loop check)" if closed else ""),
             "failed_runs": failed,
             "runs_done": counts["done"], "runs_skipped": counts["skipped"]}
@@ -206,7 +274,11 @@ def run_study_command(args) -> int:
             history = []
     meta["invocations"] = history + [{k: meta[k] for k in (
         "wall_s", "stage_wall_s", "runs_done", "runs_skipped", "workers", "scheduler")}]
-    write_text_atomic(meta_path, json.dumps(meta, indent=1))
+    write_text_atomic(meta_path, dumps_strict(meta, indent=1))
+    if args.study == "template":
+        write_text_atomic(out / "report.md", report_markdown(meta, None, None, None, None,
+                                                             template_an))
+        print(f"wrote {out / 'report.md'}", flush=True)
     if args.study == "paper":
         write_text_atomic(out / "report.md",
                           report_markdown(meta, er_an, starts_an, eff_an, closed))

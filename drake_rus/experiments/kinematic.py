@@ -39,12 +39,13 @@ from drake_rus.control.supervisor import (
 )
 from drake_rus.imaging.emulator import EmulatorModel, emulate
 from drake_rus.imaging.probe import ProbeGeometry
-from drake_rus.imaging.segment import read_mask
+from drake_rus.imaging.segment import KidneyTrack, read_mask, track_prior, track_update
 from drake_rus.imaging.slicing import slice_volume
 from drake_rus.imaging.systems import make_segmenter_backend
 from drake_rus.localization.icp import heuristic_initial_rotation
 from drake_rus.localization.localize import body_directions_B, localize
 from drake_rus.metrics.core import CoverageAccumulator, window_steps
+from drake_rus.metrics.sweep import pole_to_pole_indices
 from drake_rus.scan.planning import (
     PlanStart,
     R_B_TRANSVERSE,
@@ -212,10 +213,12 @@ class Imager:
         self.seed = int(seed)
         self.frame_index = 0
         self._prev = None
+        self._track = KidneyTrack()
 
     def reset(self) -> None:
         """Forget the temporal prior (a new sweep)."""
         self._prev = None
+        self._track = KidneyTrack()
 
     def __call__(self, X_BP: RigidTransform, keep: bool = False) -> Frame:
         g = self.geometry
@@ -225,9 +228,21 @@ class Imager:
         if self._model is not None:
             us = emulate(labels, self._model, self.seed, self.frame_index)
         self.frame_index += 1
-        mask = np.asarray(self._backend(us, labels, self._prev), bool) & g.fan_mask
+        # The classical prior: the previous frame's visible mask; the onnx backend follows
+        # the kidney (a KidneyTrack, as the Segmenter system does; frames at
+        # imaging.frame_rate_hz).
+        t = self.frame_index / self.imaging.frame_rate_hz
+        if self.backend_name == "onnx":
+            prev, age = track_prior(self._track, t, self.imaging.track_confirm)
+        else:
+            prev, age = self._prev, math.inf
+        mask = np.asarray(self._backend(us, labels, prev, age), bool) & g.fan_mask
         readout = read_mask(mask, g, self.imaging.min_kidney_area)
         self._prev = mask if readout.visible else None
+        if self.backend_name == "onnx":
+            self._track = track_update(self._track, mask, readout.visible, t, g,
+                                       max_gap=self.imaging.track_gap,
+                                       reach=self.imaging.track_reach)
         boundary = (g.pixel_to_B(readout.boundary, X_BP) if len(readout.boundary)
                     else np.zeros((0, 3)))
         return Frame(X_BP=X_BP, visible=bool(readout.visible), centroid=float(readout.centroid),
@@ -275,14 +290,7 @@ class Sweep:
         """The part that images the kidney from one pole to the other: for a pivot, the
         second leg; then from its first to its last frame with the kidney visible (what
         the seed records, III-E). Empty if the kidney was never visible."""
-        keep = np.ones(len(self.frames), bool)
-        if self.leg is not None and np.any(self.leg == 2):
-            keep = self.leg == 2
-        idx = np.flatnonzero(keep & self.visible)
-        if len(idx) == 0:
-            return dataclasses.replace(self, frames=[], angles=_take(self.angles, []),
-                                       travel=_take(self.travel, []), leg=_take(self.leg, []))
-        sel = np.arange(idx[0], idx[-1] + 1)
+        sel = pole_to_pole_indices(self.visible, self.leg)   # the one definition
         return dataclasses.replace(self, frames=[self.frames[i] for i in sel],
                                    angles=_take(self.angles, sel), travel=_take(self.travel, sel),
                                    leg=_take(self.leg, sel))

@@ -14,11 +14,31 @@ import numpy as np
 
 from drake_rus.batch import json_default
 from drake_rus.experiments.analysis import (
-    PAPER, STRATEGY_ORDER, analyze_efficiency, analyze_er_sweep, analyze_starts, mean_curve)
+    CRITICAL_ER_RULES, PAPER, STRATEGY_ORDER, analyze_efficiency, analyze_er_sweep,
+    analyze_starts, analyze_template, mean_curve)
+from drake_rus.experiments.tasks import ER_UNIT_TEXT
 from drake_rus.io_utils import save_figure, write_text_atomic
+from drake_rus.metrics.sweep import MATCHED_V, POLE_TO_POLE, WHOLE_PIVOT
 from drake_rus.tables import write_csv_atomic
 
 MODE_NOTE = "kinematic mode (planned probe poses, no robot dynamics)"
+KINEMATIC = "kinematic twin (planned probe poses, no robot dynamics)"
+CLOSED_LOOP = "closed loop (Drake diagram: MultibodyPlant, controller, contact)"
+
+
+def provenance(meta: dict, *, mode: str = KINEMATIC, definition: str | None = None,
+               er_unit: str | None = None, extra: str = "") -> str:
+    """The line under every table and figure of report.md saying what produced it: mode,
+    registration method, segmenter, ER unit and (for sweep costs) the metric definition."""
+    unit = er_unit or meta.get("er_unit", "fixed")
+    parts = [f"mode: {mode}", f"registration: `{meta.get('method', '?')}`",
+             f"segmenter: `{meta.get('segmenter', '?')}`",
+             f"ER unit: {ER_UNIT_TEXT.get(unit, unit)}"]
+    if definition:
+        parts.append(f"metric: {definition}")
+    if extra:
+        parts.append(extra)
+    return "*Produced by " + "; ".join(parts) + ".*"
 
 
 def plot_er_sweep(analysis: dict, path) -> Path:
@@ -39,11 +59,15 @@ def plot_er_sweep(analysis: dict, path) -> Path:
         ax.errorbar([60], [paper[0]], yerr=[paper[1]], fmt="s", color="k", capsize=4,
                     label="seed paper at ER 60%")
         ax.axvline(analysis["critical_er"] * 100, color="g", ls="--",
-                   label=f"critical ER {analysis['critical_er'] * 100:.0f}%")
+                   label=f"critical ER {analysis['critical_er'] * 100:.0f}% "
+                         f"({analysis.get('rule', 'strict')} rule)")
         ax.set_ylabel(f"{'E_trans' if unit == 'mm' else 'E_rot,x'} ({unit})")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7)
-    axes[1].set_xlabel("exploration ratio ER (%)")
+    unit = analysis.get("er_unit")
+    axes[1].set_xlabel("exploration ratio ER (% of " + (
+        "the patient's kidney length" if unit == "kidney" else
+        "L_m = 100 mm" if unit == "fixed" else "?") + ")")
     fig.suptitle(f"Localization vs exploration ratio (Fig. 7d), {MODE_NOTE}", fontsize=8)
     fig.tight_layout()
     return save_figure(fig, path)
@@ -117,9 +141,9 @@ def plot_efficiency(results: list[dict], analysis: dict, path) -> Path:
     return save_figure(fig, path)
 
 
-def write_er_sweep_outputs(out_dir, results) -> dict:
+def write_er_sweep_outputs(out_dir, results, rule: str = "paper") -> dict:
     out = Path(out_dir)
-    analysis = analyze_er_sweep(results)
+    analysis = analyze_er_sweep(results, rule=rule)
     write_csv_atomic(out / "er_sweep_runs.csv", [_flat(r) for r in results])
     write_csv_atomic(out / "er_sweep_table.csv", analysis["rows"])
     plot_er_sweep(analysis, out / "fig7d_er_sweep.png")
@@ -144,9 +168,18 @@ def write_efficiency_outputs(out_dir, results) -> dict:
     for r in results:
         for s in STRATEGY_ORDER:
             e = r["strategies"][s]
+            at = (e.get("at_V") or {}).get(f"{analysis['V_target']:g}") or {}
+            at_w = (e.get("at_V_whole_pivot") or {}).get(f"{analysis['V_target']:g}") or {}
             rows.append({"patient": r["patient"], "strategy": s, "n": e["n"],
-                         "eps_mm": e["eps_mm"], "V": e["V"], "n_full": e["n_full"],
-                         "eps_full_mm": e["eps_full_mm"], "volume_ml": e["volume_ml"],
+                         "eps_mm": e["eps_mm"], "V": e["V"],
+                         "n_whole_pivot": e.get("n_whole_pivot", e.get("n_full")),
+                         "eps_whole_pivot_mm": e.get("eps_whole_pivot_mm", e.get("eps_full_mm")),
+                         "V_whole_pivot": e.get("V_whole_pivot", e.get("V_full")),
+                         "V_target": analysis["V_target"], "n_at_V": at.get("n"),
+                         "eps_at_V_mm": at.get("eps_mm"), "n_at_V_whole_pivot": at_w.get("n"),
+                         "eps_at_V_whole_pivot_mm": at_w.get("eps_mm"),
+                         "tilt_cap_legs": " ".join(str(x) for x in e.get("tilt_cap_legs") or []),
+                         "volume_ml": e["volume_ml"],
                          "true_volume_ml": r["true_volume_ml"],
                          "volume_error_pct": e["volume_error_pct"],
                          "e_trans_mm": r["e_trans_mm"], "e_rot_x_deg": r["e_rot_x_deg"]})
@@ -159,10 +192,77 @@ def write_efficiency_outputs(out_dir, results) -> dict:
     return analysis
 
 
+def plot_template(results: list[dict], analysis: dict, path) -> Path:
+    """E_trans and E_rot,x against the template's distance from the patient, per variant,
+    with the paper's localization-study mean +- SD (its template vs its test patients)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
+    variants = [r["variant"] for r in analysis["rows"]]
+    pl = PAPER["localization"]
+    for ax, key, label, paper in ((axes[0], "e_trans_mm", "E_trans (mm)", pl["e_trans_mm"]),
+                                  (axes[1], "e_rot_x_deg", "E_rot,x (deg)", pl["e_rot_x_deg"])):
+        for v in variants:
+            sel = [r for r in results if r["template_variant"] == v]
+            ax.plot([r["template_distance_mm"] for r in sel], [r[key] for r in sel], "o",
+                    ms=4, label=v)
+        ax.axhline(paper[0], color="k", ls="--", lw=1, label="seed paper (mean)")
+        ax.axhspan(max(0.0, paper[0] - paper[1]), paper[0] + paper[1], color="k", alpha=0.06)
+        t = analysis["trend"][key]
+        ax.set(xlabel="template distance from the patient's kidney (mm)", ylabel=label,
+               title=f"r = {t['r']:.2f}, slope {t['slope_per_mm']:.2f} per mm")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.suptitle(f"Template mismatch, {MODE_NOTE}", fontsize=9)
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def write_template_outputs(out_dir, results) -> dict:
+    out = Path(out_dir)
+    analysis = analyze_template(results)
+    write_csv_atomic(out / "template_runs.csv",
+                     [dict(_flat(r), template_variant=r["template_variant"],
+                           template_distance_mm=r["template_distance_mm"]) for r in results])
+    write_csv_atomic(out / "template_table.csv", analysis["rows"])
+    plot_template(results, analysis, out / "fig_template_mismatch.png")
+    write_text_atomic(out / "template.json", json.dumps(analysis, default=json_default, indent=1))
+    return analysis
+
+
+def template_markdown(meta: dict, analysis: dict) -> list[str]:
+    """The template-mismatch section of report.md."""
+    pl = PAPER["localization"]
+    L = ["## Template mismatch (beyond the paper, `fig_template_mismatch.png`)", "",
+         provenance(meta, extra="template variants: mean (ours), mean scaled by S, a single "
+                    "training kidney (single:K), leave-one-out mean for training patients "
+                    "(loo); distance = symmetric mean surface distance in the canonical "
+                    "frames"), "",
+         f"ER {', '.join(f'{e * 100:.0f}%' for e in analysis['er'])}; patients: "
+         f"{', '.join(analysis['patients'])}.", "",
+         "| template | runs | distance (mm) | E_trans (mm) | E_rot,x (deg) | p E_trans vs "
+         "mean | p E_rot,x vs mean |", "|---|---|---|---|---|---|---|"]
+    for r in analysis["rows"]:
+        L.append(f"| {r['variant']} | {r['n']} | {_f(r['template_distance_mm_mean'])} +- "
+                 f"{_f(r['template_distance_mm_sd'])} | {_f(r['e_trans_mm_mean'])} +- "
+                 f"{_f(r['e_trans_mm_sd'])} | {_f(r['e_rot_x_deg_mean'])} +- "
+                 f"{_f(r['e_rot_x_deg_sd'])} | {_p(r['p_e_trans_mm_vs_mean'])} | "
+                 f"{_p(r['p_e_rot_x_deg_vs_mean'])} |")
+    t = analysis["trend"]
+    L += ["", f"Over all runs: E_trans against distance r = {_f(t['e_trans_mm']['r'])} "
+          f"({_f(t['e_trans_mm']['slope_per_mm'])} mm per mm), E_rot,x r = "
+          f"{_f(t['e_rot_x_deg']['r'])} ({_f(t['e_rot_x_deg']['slope_per_mm'])} deg per mm). "
+          f"Paper (its template on its 15 test patients): {pl['e_trans_mm'][0]} +- "
+          f"{pl['e_trans_mm'][1]} mm, {pl['e_rot_x_deg'][0]} +- {pl['e_rot_x_deg'][1]} deg.",
+          ""]
+    return L
+
+
 def _flat(r: dict) -> dict:
-    keys = ("patient", "er", "start", "start_fraction", "x_offset_mm", "explore_frames",
-            "explore_travel_mm", "points", "e_trans_mm", "e_rot_x_deg", "registration_ms",
-            "iterations", "wall_s")
+    keys = ("patient", "er", "er_unit", "start", "start_fraction", "x_offset_mm",
+            "explore_frames", "explore_travel_mm", "kidney_length_mm", "points", "e_trans_mm",
+            "e_rot_x_deg", "registration_ms", "iterations", "wall_s")
     return {k: r.get(k) for k in keys}
 
 
@@ -192,18 +292,49 @@ def _f(x, nd=2):
     return "n/a" if x is None or (isinstance(x, float) and not np.isfinite(x)) else f"{x:.{nd}f}"
 
 
+def _eff_table(L: list, s: dict, n_pat: int, keys: tuple, V_key: str | None, extra=True):
+    """Rows of strategy | n | eps | V (| volume) for one metric definition."""
+    n_key, e_key = keys
+    for k in STRATEGY_ORDER:
+        row = (f"| {k} | {_f(s[k][n_key][0], 1)} +- {_f(s[k][n_key][1], 1)} | "
+               f"{_f(s[k][e_key][0], 1)} +- {_f(s[k][e_key][1], 1)} |")
+        if V_key:
+            row += f" {_f(s[k][V_key][0], 3)} |"
+        else:
+            row += f" {s[k]['reached_V']}/{n_pat} |"
+        if extra:
+            row += (f" {_f(s[k]['volume_error_pct'][0])} +- {_f(s[k]['volume_error_pct'][1])} | "
+                    f"{_f(s[k]['abs_volume_error_pct'][0])} (within 5%: "
+                    f"{s[k]['within_5pct']}/{n_pat}) |")
+        L.append(row)
+
+
 def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict | None,
-                    closed: list | None = None) -> str:
-    """report.md: our numbers beside the seed paper's for each table and figure."""
+                    closed: list | None = None, template: dict | None = None) -> str:
+    """report.md: our numbers beside the seed paper's for each table and figure, each with
+    the mode, registration method, segmenter, ER unit and metric definition that produced
+    it."""
+    unit = meta.get("er_unit", "fixed")
+    rule = meta.get("critical_er_rule", (er or {}).get("rule", "paper"))
     L = ["# drake-rus studies: the seed paper's section III on our virtual cohort", "",
          f"- Patients: {', '.join(meta['patients'])} ({len(meta['patients'])})",
-         f"- Mode: **{MODE_NOTE}** for every run of the tables and figures; "
-         + (f"{len(closed)} closed-loop dynamic scan(s) only in the closed-loop check."
+         f"- Mode: **{KINEMATIC}** for every run of the tables and figures unless a table "
+         "says otherwise; "
+         + (f"{len(closed)} closed-loop dynamic scan(s) in the closed-loop check."
             if closed else "no closed-loop dynamic runs."),
-         f"- Segmenter: {meta['segmenter']}; localization method: `{meta['method']}`; "
-         f"label voxel {meta['voxel'] * 1e3:.0f} mm; study seed {meta['seed']}.",
-         f"- Starts and efficiency ran at ER {meta.get('er', float('nan')) * 100:.0f}% (the "
-         f"critical ER of this sweep when it ran).", "- Wall time per invocation (resumed "
+         f"- Segmenter: `{meta['segmenter']}`; registration (localization method): "
+         f"`{meta['method']}`; label voxel {meta['voxel'] * 1e3:.0f} mm; study seed "
+         f"{meta['seed']}.",
+         f"- ER: {ER_UNIT_TEXT.get(unit, unit)}." + (
+             f" Critical-ER rule: `{rule}`, {CRITICAL_ER_RULES[rule]}."
+             if rule in CRITICAL_ER_RULES else ""),
+         f"- Sweep costs (eps eq. 24, n, V eq. 25; `drake_rus/metrics/sweep.py`, the same "
+         f"functions for the kinematic twin and the closed-loop scan): **{POLE_TO_POLE}**; "
+         f"beside it, **{WHOLE_PIVOT}**; {MATCHED_V}.",
+         f"- Starts, efficiency and template runs ran at ER "
+         f"{meta.get('er', float('nan')) * 100:.0f}% (the critical ER of this sweep when it "
+         f"ran, unless `--er` was given).",
+         "- Wall time per invocation (resumed "
          "invocations skip finished runs): " + "; ".join(
              f"{i['wall_s']:.0f} s ({_runs(i)}{_where(i)}; stages "
              + ", ".join(f"{k} {v:.0f} s" for k, v in (i.get("stage_wall_s") or {}).items())
@@ -211,8 +342,14 @@ def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict 
              for i in meta.get("invocations", [meta])), ""]
     if er is not None:
         p = PAPER["er_sweep"]
+        kl = er.get("kidney_length_mm")
         L += ["## Exploration ratio vs localization (Fig. 7d, `fig7d_er_sweep.png`)", "",
-              "| ER | E_trans (mm) | E_rot,x (deg) | p (E_trans vs 100%) | p (E_rot,x vs 100%) |",
+              provenance(meta, er_unit=er.get("er_unit") if isinstance(er.get("er_unit"), str)
+                         else None), ""]
+        if kl:
+            L += [f"Kidney length along the exploration line: {_f(kl[0][0], 1)} +- "
+                  f"{_f(kl[0][1], 1)} mm ({_f(kl[1], 1)}-{_f(kl[2], 1)} mm); L_m = 100 mm.", ""]
+        L += ["| ER | E_trans (mm) | E_rot,x (deg) | p (E_trans vs 100%) | p (E_rot,x vs 100%) |",
               "|---|---|---|---|---|"]
         for r in er["rows"]:
             L.append(f"| {r['er'] * 100:.0f}% | {_f(r['e_trans_mm_mean'])} +- "
@@ -220,11 +357,13 @@ def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict 
                      f"{_f(r['e_rot_x_deg_sd'])} | {_p(r['p_e_trans'])} | "
                      f"{_p(r['p_e_rot_x'])} |")
         row60 = next((r for r in er["rows"] if abs(r["er"] - 0.6) < 1e-6), None)
-        L += ["", f"Critical ER (smallest ER from which on no ER differs from 100% at p > 0.05 "
-              f"in either error): **ours {er['critical_er'] * 100:.0f}%**, paper "
-              f"{p['critical_er'] * 100:.0f}% (p = {p['p_e_trans_at_60']} and "
-              f"{p['p_e_rot_at_60']} at 60%). First ER with both p > 0.05: "
-              f"{er['first_not_significant_er'] * 100:.0f}%."]
+        paper_rule = er.get("critical_er_paper_rule", er.get("first_not_significant_er"))
+        strict_rule = er.get("critical_er_strict_rule", er["critical_er"])
+        L += ["", f"Critical ER (rule `{er.get('rule', 'strict')}`): **ours "
+              f"{er['critical_er'] * 100:.0f}%**, paper {p['critical_er'] * 100:.0f}% (p = "
+              f"{p['p_e_trans_at_60']} and {p['p_e_rot_at_60']} at 60%). Under the paper's "
+              f"rule ({CRITICAL_ER_RULES['paper']}): {paper_rule * 100:.0f}%; under ours "
+              f"({CRITICAL_ER_RULES['strict']}): {strict_rule * 100:.0f}%."]
         if row60:
             L.append(f"At ER 60%: ours {_f(row60['e_trans_mm_mean'])} +- "
                      f"{_f(row60['e_trans_mm_sd'])} mm, {_f(row60['e_rot_x_deg_mean'])} +- "
@@ -235,6 +374,7 @@ def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict 
     if starts is not None:
         pl = PAPER["localization"]
         L += ["## Random exploration starts (Fig. 9d, `fig9d_starts.png`)", "",
+              provenance(meta), "",
               f"All runs: E_trans {_f(starts['e_trans_mm'][0])} +- {_f(starts['e_trans_mm'][1])}"
               f" mm, E_rot,x {_f(starts['e_rot_x_deg'][0])} +- {_f(starts['e_rot_x_deg'][1])} "
               f"deg (paper, 15 patients x 5 starts: {pl['e_trans_mm'][0]} +- "
@@ -254,46 +394,74 @@ def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict 
     if eff is not None:
         s = eff["summary"]
         pe = PAPER["efficiency"]
+        n_pat = len(eff["patients"])
+        tgt = eff.get("V_target", 0.9)
         L += ["## Sweep efficiency (Fig. 10, `fig10_efficiency.png`)", "",
-              "Pole to pole (from the first to the last frame showing the kidney; for a pivot, "
-              "its second leg, which runs from one pole to the other).", "",
+              provenance(meta, definition=POLE_TO_POLE), "",
+              "Pole to pole (the paper's eps, n and V):", "",
               "| strategy | n | eps (mm) | V | volume error (%) | abs volume error (%) |",
               "|---|---|---|---|---|---|"]
-        for k in STRATEGY_ORDER:
-            L.append(f"| {k} | {_f(s[k]['n'][0], 1)} +- {_f(s[k]['n'][1], 1)} | "
-                     f"{_f(s[k]['eps_mm'][0], 1)} +- {_f(s[k]['eps_mm'][1], 1)} | "
-                     f"{_f(s[k]['V'][0], 3)} | {_f(s[k]['volume_error_pct'][0])} +- "
-                     f"{_f(s[k]['volume_error_pct'][1])} | "
-                     f"{_f(s[k]['abs_volume_error_pct'][0])} (within 5%: "
-                     f"{s[k]['within_5pct']}/{len(eff['patients'])}) |")
-        L += ["", "| comparison | metric | reduction by OP (mean +- SD) | OP lower on | p | "
-              "significant (Bonferroni) |", "|---|---|---|---|---|---|"]
+        _eff_table(L, s, n_pat, ("n", "eps_mm"), "V")
+        L += ["", provenance(meta, definition=WHOLE_PIVOT), "",
+              "Whole pivot (both legs; for SL the whole line), what the robot spends:", "",
+              "| strategy | n_whole_pivot | eps_whole_pivot (mm) | V_whole_pivot |",
+              "|---|---|---|---|"]
+        _eff_table(L, s, n_pat, ("n_whole_pivot", "eps_whole_pivot_mm"), "V_whole_pivot",
+                   extra=False)
+        L += ["", provenance(meta, definition=f"{MATCHED_V} = {tgt:g}"), "",
+              f"At matched coverage (n and eps, pole to pole, to first reach V = {tgt:g}):", "",
+              f"| strategy | n to V {tgt:g} | eps to V {tgt:g} (mm) | patients reaching it |",
+              "|---|---|---|---|"]
+        _eff_table(L, s, n_pat, ("n_at_V", "eps_at_V_mm"), None, extra=False)
+        caps = "; ".join(
+            f"{k} on {s[k]['tilt_cap_patients']}/{n_pat} patients (leg 1: "
+            f"{s[k]['tilt_cap_leg_counts']['1']}, leg 2: {s[k]['tilt_cap_leg_counts']['2']})"
+            for k in STRATEGY_ORDER if k != "SL")
+        L += ["", f"Tilt cap (a pivot leg ended at the controller's `max_pivot_tilt` instead of "
+              f"where the kidney left the image): {caps}.", "",
+              "| definition | comparison | metric | reduction by OP (mean +- SD) | OP lower on | "
+              "p | significant (Bonferroni) |", "|---|---|---|---|---|---|---|"]
         for c in eff["comparisons"]:
-            unit = " mm" if c["metric"] == "eps_mm" else " frames"
-            L.append(f"| {c['comparison']} | {c['metric']} | {_f(c['reduction_mean'], 1)} +- "
-                     f"{_f(c['reduction_sd'], 1)}{unit} | {c['op_lower_count']}/{c['patients']} | "
-                     f"{_p(c['p'])} | {c['significant']} |")
-        L += ["", f"Paper (simulation, 15 patients): OP reduced eps by {pe['eps_reduction_vs_SL_mm'][0]}"
+            unit_c = " mm" if c["metric"] == "eps_mm" else " frames"
+            L.append(f"| {c.get('definition', 'pole_to_pole')} | {c['comparison']} | "
+                     f"{c['metric']} | {_f(c['reduction_mean'], 1)} +- "
+                     f"{_f(c['reduction_sd'], 1)}{unit_c} | {c['op_lower_count']}/"
+                     f"{c['patients']} | {_p(c['p'])} | {c['significant']} |")
+        L += ["", f"Paper (simulation, 15 patients, pole to pole): OP reduced eps by "
+              f"{pe['eps_reduction_vs_SL_mm'][0]}"
               f" +- {pe['eps_reduction_vs_SL_mm'][1]} mm against SL and by "
               f"{pe['eps_reduction_vs_NOP_mm'][0]} +- {pe['eps_reduction_vs_NOP_mm'][1]} mm "
               f"against NOP; localization error cost {pe['eps_extra_vs_GT_OP_mm'][0]} +- "
               f"{pe['eps_extra_vs_GT_OP_mm'][1]} mm against GT-OP. Volume: "
               f"{PAPER['volume_loa']}; our target: GT-OP within 5%.", ""]
     if closed:
+        cl_unit = closed[0]["closed_loop"].get("er_unit", "fixed")
+        cl_unit_text = ("fraction of the kidney length the closed loop estimates from its "
+                        "explored cloud (controller `exploration_length: estimated`)"
+                        if cl_unit == "estimated" else ER_UNIT_TEXT["fixed"])
         L += ["## Closed-loop check (a few dynamic scans beside their kinematic twins)", "",
-              "Same patient, start (10% into the E-ROI), ER, segmenter and localization; "
-              "n, eps and V over both pivot legs (as the scan's `ScanMetrics` counts them).", "",
+              provenance(meta, mode=f"{CLOSED_LOOP} and its {KINEMATIC}",
+                         definition=f"{POLE_TO_POLE} (n, eps, V); {WHOLE_PIVOT} (n_whole, "
+                                    "eps_whole, V_whole)",
+                         extra=f"closed-loop ER: {cl_unit_text}"), "",
+              "Same patient, start (10% into the E-ROI), ER, segmenter and localization; OP "
+              "pivot.", "",
               "| patient | mode | status | E_trans (mm) | E_rot,x (deg) | n | eps (mm) | V | "
-              "wall (s) |", "|---|---|---|---|---|---|---|---|---|"]
+              "n_whole | eps_whole (mm) | V_whole | tilt cap legs | wall (s) |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in closed:
-            c, k = r["closed_loop"], r["kinematic"]
-            L.append(f"| {r['patient']} | closed-loop | {c['status']} | {_f(c['e_trans_mm'])} | "
-                     f"{_f(c['e_rot_x_deg'])} | {c['n']} | {_f(c['eps_mm'], 1)} | "
-                     f"{_f(c['V'], 3)} | {_f(c['wall_s'], 0)} (sim {_f(c['sim_s'], 1)} s) |")
-            L.append(f"| {r['patient']} | kinematic | - | {_f(k['e_trans_mm'])} | "
-                     f"{_f(k['e_rot_x_deg'])} | {k['n']} | {_f(k['eps_mm'], 1)} | "
-                     f"{_f(k['V'], 3)} | {_f(k['wall_s'], 0)} |")
+            for label, c in (("closed-loop", r["closed_loop"]), ("kinematic", r["kinematic"])):
+                wall = (f"{_f(c['wall_s'], 0)} (sim {_f(c['sim_s'], 1)} s)" if "sim_s" in c
+                        else _f(c["wall_s"], 0))
+                caps = " ".join(str(x) for x in c.get("tilt_cap_legs") or []) or "-"
+                L.append(f"| {r['patient']} | {label} | {c.get('status', '-')} | "
+                         f"{_f(c['e_trans_mm'])} | {_f(c['e_rot_x_deg'])} | {c['n']} | "
+                         f"{_f(c['eps_mm'], 1)} | {_f(c['V'], 3)} | "
+                         f"{c.get('n_whole_pivot', '-')} | {_f(c.get('eps_whole_pivot_mm'), 1)} | "
+                         f"{_f(c.get('V_whole_pivot'), 3)} | {caps} | {wall} |")
         L.append("")
+    if template is not None:
+        L += template_markdown(meta, template)
     L += ["## Method notes", "",
           "- Kinematic runs place the probe exactly where the controller laws ask (eq. 17 "
           "exploration, eq. 20-23 pivot), tip on the skin surface; no contact dynamics, "
@@ -301,6 +469,8 @@ def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict 
           "- Exploration starts at the E-ROI's superior end (ER sweep, efficiency) or at a "
           "seeded random point inside the E-ROI (starts). ER 0% uses the initial alignment "
           "alone (heuristic rotation, centroid under the start point).",
+          "- The kidney length of the ER is the kidney's extent along the exploration line "
+          "(base y, the E-ROI's length): ER 100% explores the whole kidney.",
           "- NOP uses the true kidney pose (the in-vivo NOP was expert-placed); OP the "
           "registered pose; SL is the exploration controller over the whole kidney.",
           "- V (eq. 25): fraction of the true kidney's 2 mm voxels inside the fan and the "
@@ -317,7 +487,12 @@ def write_closed_loop_outputs(out_dir, results) -> Path:
         for mode in ("closed_loop", "kinematic"):
             e = r[mode]
             rows.append({"patient": r["patient"], "mode": mode, "er": r["er"],
+                         "er_unit": e.get("er_unit", ""),
                          "status": e.get("status", ""), "e_trans_mm": e["e_trans_mm"],
                          "e_rot_x_deg": e["e_rot_x_deg"], "n": e["n"], "eps_mm": e["eps_mm"],
-                         "V": e["V"], "wall_s": e["wall_s"], "sim_s": e.get("sim_s")})
+                         "V": e["V"], "n_whole_pivot": e.get("n_whole_pivot"),
+                         "eps_whole_pivot_mm": e.get("eps_whole_pivot_mm"),
+                         "V_whole_pivot": e.get("V_whole_pivot"),
+                         "tilt_cap_legs": " ".join(str(x) for x in e.get("tilt_cap_legs") or []),
+                         "wall_s": e["wall_s"], "sim_s": e.get("sim_s")})
     return write_csv_atomic(Path(out_dir) / "closed_loop.csv", rows)

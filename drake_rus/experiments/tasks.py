@@ -4,13 +4,28 @@ Studies (each a list of independent runs; a run is a plain dict, its result a JS
 
 - ``er-sweep`` (III-C, Fig. 7d): exploration ratios 0..100% in 10% steps per patient.
 - ``starts`` (III-D, Fig. 9d): at the critical ER, five random starts per patient inside the
-  E-ROI (start fraction along y leaving room for the whole ER x L_m of travel, and an x
+  E-ROI (start fraction along y leaving room for the whole ER travel, and an x
   offset within the middle half of the E-ROI's width).
 - ``efficiency`` (III-E, Fig. 10): OP (at T* of the registered pose), GT-OP, NOP and SL per
-  patient: V against n and eps (pole to pole), totals, and the kidney volume reconstructed
-  from each sweep's masks (:mod:`drake_rus.metrics.reconstruction`).
+  patient: V against n and eps pole to pole (the paper's), the whole pivot's n, eps and V
+  beside them, n and eps needed to reach V = 0.9, the pivot legs the tilt cap ended
+  (:mod:`drake_rus.metrics.sweep`, the same functions the closed-loop scan uses), and the
+  kidney volume reconstructed from each sweep's masks
+  (:mod:`drake_rus.metrics.reconstruction`).
 - ``closed-loop``: a few closed-loop dynamic scans (``RunScan``) beside their kinematic
   twins.
+- ``template`` (beyond the paper, issue 18): localization at one ER with template variants
+  that differ from the patient by known amounts (:func:`template_variant`): the mean
+  template, the mean scaled by 0.9 / 1.1, a single training kidney (``single:K``), and for
+  training patients the leave-one-out mean (``loo``, the mean of the other 19 corresponded
+  training shapes); each run records the template's distance from the patient's kidney
+  (:func:`template_distance`), so E_trans and E_rot,x can be read against it.
+
+ER (``StudyOptions.er_unit``): ``kidney`` (default, the paper's simulation, III-C: "the
+fraction of total kidney length traversed by the probe") explores ER x the patient's kidney
+length along the exploration line (the E-ROI's length along base y, :func:`kidney_length`);
+``fixed`` explores ER x L_m (``controller.kidney_length``, 100 mm: the paper's in-vivo rule,
+III-F).
 
 Every study run is kinematic (:mod:`drake_rus.experiments.kinematic`): probe poses planned
 exactly, no robot dynamics. Runs are deterministic given their dict (seeded starts).
@@ -32,18 +47,46 @@ import zlib
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from drake_rus import batch
 from drake_rus.anatomy import load_patient
 from drake_rus.experiments import kinematic as km
 from drake_rus.experiments.analysis import STRATEGY_ORDER
-from drake_rus.localization.localize import load_registration_template
-from drake_rus.metrics.core import e_rot_x, e_trans
+from drake_rus.localization.localize import RegistrationTemplate, load_registration_template
+from drake_rus.metrics.core import CoverageAccumulator, e_rot_x, e_trans
 from drake_rus.metrics.reconstruction import compound, reconstruct_kidney, write_nrrd
+from drake_rus.metrics.sweep import sweep_efficiency
+from drake_rus.paths import REPO_ROOT
 from drake_rus.scan import RunScan, ScanMetrics
 from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, LoadScenario
+from drake_rus.template.io import DEFAULT_TEMPLATE_PATH
 
 ER_GRID = tuple(round(0.1 * k, 1) for k in range(11))
+# What ER multiplies: the patient's kidney length (the paper's simulation) or L_m.
+ER_UNITS = ("kidney", "fixed")
+ER_UNIT_TEXT = {"kidney": "fraction of the patient's kidney length along the exploration line "
+                          "(the paper's simulation, III-C)",
+                "fixed": "fraction of the fixed length L_m = 100 mm (the paper's in-vivo "
+                         "rule, III-F)"}
+# Coverage at which the sweep costs are also compared (matched coverage).
+V_TARGETS = (0.9,)
+
+
+def kidney_length(kp) -> float:
+    """The patient's kidney length (m) along the exploration line (base y): the E-ROI's
+    length, i.e. the travel that takes the transverse view from one pole to the other."""
+    return float(kp.roi.length_y)
+
+
+def exploration_travel(er: float, unit: str, patient_length: float, L_m: float) -> float:
+    """Travel (m) of an exploration at ratio ``er``: er x the patient's kidney length
+    (``unit`` "kidney") or er x L_m ("fixed")."""
+    if unit == "kidney":
+        return float(er) * float(patient_length)
+    if unit == "fixed":
+        return float(er) * float(L_m)
+    raise ValueError(f"er_unit: expected one of {', '.join(ER_UNITS)}, got {unit!r}")
 
 
 # ------------------------------------------------------------------------------- patients
@@ -83,19 +126,46 @@ class StudyOptions:
     voxel: float = 0.002            # label-volume voxel size (m)
     seed: int = 0                   # random starts, emulator speckle
     recon_spacing: float = 0.001    # reconstruction grid (m)
+    er_unit: str = "kidney"         # ER x the patient's kidney length, or "fixed" (x L_m)
 
     def base(self) -> dict:
         return dataclasses.asdict(self)
 
 
+TEMPLATE_VARIANTS = ("mean", "scale-0.9", "scale-1.1", "single:0", "loo")
+
+
+def template_tasks(patients, options: StudyOptions, er: float,
+                   variants=TEMPLATE_VARIANTS) -> list[dict]:
+    """One run per patient and template variant; ``loo`` only for training patients
+    (``train:K``: the template without K); others are not in the template anyway."""
+    for v in variants:
+        _check_variant(v)
+    return [dict(options.base(), study="template", patient=p, er=float(er), start=-1,
+                 template_variant=v)
+            for p in patients for v in variants
+            if v != "loo" or re.fullmatch(r"train:\d+", str(p))]
+
+
+def _check_variant(v: str) -> None:
+    if not (v in ("mean", "loo") or re.fullmatch(r"scale-\d+(\.\d+)?", v)
+            or re.fullmatch(r"single:\d+", v)):
+        raise ValueError(f"template variant: expected mean, scale-S, single:K or loo, got {v!r}")
+
+
 def run_id(task: dict) -> str:
     """File-name-safe unique name of a run."""
     patient = re.sub(r"[^A-Za-z0-9]+", "-", str(task["patient"])).strip("-")
-    parts = [task["study"], patient, f"er{int(round(task['er'] * 100)):03d}"]
+    # "erk": ER in units of the patient's kidney length; "er": of L_m (the runs before
+    # ER units existed were all L_m).
+    unit = "erk" if task.get("er_unit", "fixed") == "kidney" else "er"
+    parts = [task["study"], patient, f"{unit}{int(round(task['er'] * 100)):03d}"]
     if task["study"] == "closed-loop":
         parts.append(f"f{int(round(task['start_fraction'] * 100)):03d}")
     if task["study"] == "starts":
         parts.append(f"s{task['start']}")
+    if task["study"] == "template":
+        parts.append("t-" + re.sub(r"[^A-Za-z0-9.]+", "-", task["template_variant"]))
     return "__".join(parts)
 
 
@@ -136,6 +206,62 @@ def _template(path):
     return load_registration_template(path)
 
 
+def _normals_like(points: np.ndarray, reference_normals: np.ndarray, k: int = 12):
+    """Unit normals of a point set by local PCA (``k`` neighbours), each oriented like the
+    corresponding (same index) reference normal."""
+    _, nb = cKDTree(points).query(points, k=k)
+    q = points[nb] - points[nb].mean(axis=1, keepdims=True)
+    _, _, vt = np.linalg.svd(q, full_matrices=False)
+    n = vt[:, -1, :]
+    n *= np.sign(np.sum(n * reference_normals, axis=1))[:, None] + (
+        np.sum(n * reference_normals, axis=1) == 0)[:, None]
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+@functools.lru_cache(maxsize=8)
+def template_variant(path, variant: str, patient: str = ""):
+    """The registration template of ``variant`` (see the module doc), from the template file
+    at ``path`` (its corresponded training shapes ``aligned``, subjects train:0..N-1).
+    Variants other than ``mean`` carry no shape modes (rigid registration)."""
+    _check_variant(variant)
+    base = _template(path)
+    if variant == "mean":
+        return base
+    if variant.startswith("scale-"):
+        f = float(variant.split("-", 1)[1])
+        return RegistrationTemplate(base.points * f, base.normals)
+    file = DEFAULT_TEMPLATE_PATH if path is None else (
+        path if str(path).startswith("/") else REPO_ROOT / path)
+    with np.load(file) as z:
+        aligned = np.asarray(z["aligned"], float)
+    if variant.startswith("single:"):
+        k = int(variant.split(":")[1])
+        if not 0 <= k < len(aligned):
+            raise ValueError(f"template variant {variant}: the template has {len(aligned)} "
+                             "training shapes")
+        pts = aligned[k]
+    else:   # loo
+        m = re.fullmatch(r"train:(\d+)", str(patient))
+        if m is None:
+            raise ValueError(f"template variant loo: only for training patients (train:K), "
+                             f"got {patient!r}")
+        k = int(m.group(1))
+        pts = np.delete(aligned, k, axis=0).mean(axis=0) if k < len(aligned) else aligned.mean(0)
+    pts = pts - pts.mean(axis=0)
+    return RegistrationTemplate(pts, _normals_like(pts, base.normals))
+
+
+def template_distance(template, kp) -> float:
+    """Symmetric mean nearest-neighbour distance (m) between the template's points and the
+    patient's true kidney surface, both in their canonical frames K."""
+    v = np.asarray(kp.patient.kidney_mesh.vertices, float)
+    X_KB = kp.X_BK_true.inverse()
+    p_K = X_KB.multiply(kp.X_BPt.multiply(v.T)).T
+    a = cKDTree(p_K).query(template.points)[0].mean()
+    b = cKDTree(template.points).query(p_K)[0].mean()
+    return float(0.5 * (a + b))
+
+
 _PATIENTS: dict = {}
 
 
@@ -156,7 +282,9 @@ def random_start(task: dict, kp, controller) -> tuple[float, float]:
     study seed, the patient and the start index)."""
     rng = np.random.default_rng([int(task["seed"]), zlib.crc32(str(task["patient"]).encode()),
                                  int(task["start"])])
-    room = max(0.0, 1.0 - task["er"] * controller.kidney_length / max(kp.roi.length_y, 1e-9))
+    travel = exploration_travel(task["er"], task.get("er_unit", "fixed"), kidney_length(kp),
+                                controller.kidney_length)
+    room = max(0.0, 1.0 - travel / max(kp.roi.length_y, 1e-9))
     width = kp.roi.x_max - kp.roi.x_min
     return float(rng.uniform(0.0, room)), float(rng.uniform(-0.25, 0.25) * width)
 
@@ -173,18 +301,54 @@ def exploration(task: dict, kp, imager, controller, start_fraction: float, x_off
     full = _EXPLORATIONS.get(key)
     if full is None:
         full = km.explore(kp, imager, controller, exploration_ratio=1.0,
-                          start_fraction=start_fraction, x_offset=x_offset)
+                          start_fraction=start_fraction, x_offset=x_offset,
+                          travel=max(kidney_length(kp), controller.kidney_length))
         if len(_EXPLORATIONS) >= 16:
             _EXPLORATIONS.pop(next(iter(_EXPLORATIONS)))
         _EXPLORATIONS[key] = full
-    return full.prefix(float(task["er"]) * controller.kidney_length)
+    return full.prefix(exploration_travel(task["er"], task.get("er_unit", "fixed"),
+                                          kidney_length(kp), controller.kidney_length))
+
+
+def _reach(r):
+    return None if r is None else {"n": int(r["n"]), "eps_mm": r["eps"] * 1e3}
+
+
+def sweep_entry(kp, sweep, geometry, controller) -> dict:
+    """The sweep costs of one kinematic sweep (:func:`drake_rus.metrics.sweep_efficiency`,
+    the definitions the closed-loop scan uses): pole to pole (``n``, ``eps_mm``, ``V``, the
+    paper's), the whole pivot (``n_whole_pivot``, ``eps_whole_pivot_mm``,
+    ``V_whole_pivot``), n and eps to reach V (``at_V``, pole to pole; ``at_V_whole_pivot``),
+    and the pivot legs ended by the tilt cap (``tilt_cap_legs``). Also returns the
+    pole-to-pole curves (``curve_eps_mm``, ``curve_V``) and the sweep's events."""
+    def coverage():
+        return CoverageAccumulator(kp.kidney_points_B, kp.voxel_volume, geometry.in_fan,
+                                   geometry.elevation_width)
+    eff = sweep_efficiency(sweep.poses, sweep.visible, geometry.depth, legs=sweep.leg,
+                           coverage=coverage, V_targets=V_TARGETS, angles=sweep.angles,
+                           max_tilt=controller.max_pivot_tilt if sweep.angles is not None
+                           else None)
+    return {
+        "n": int(eff["n"]), "eps_mm": eff["eps"] * 1e3, "V": eff["V"],
+        "n_whole_pivot": int(eff["n_whole_pivot"]),
+        "eps_whole_pivot_mm": eff["eps_whole_pivot"] * 1e3, "V_whole_pivot": eff["V_whole_pivot"],
+        "at_V": {f"{t:g}": _reach(eff["at_V"][t]) for t in V_TARGETS},
+        "at_V_whole_pivot": {f"{t:g}": _reach(eff["at_V_whole_pivot"][t]) for t in V_TARGETS},
+        "tilt_cap_legs": list(eff["tilt_cap_legs"]), "events": list(sweep.events),
+        "curve_eps_mm": np.round(eff["eps_curve"] * 1e3, 3).tolist(),
+        "curve_V": np.round(eff["V_curve"], 5).tolist(),
+        "pole_to_pole": [int(i) for i in eff["pole_to_pole"][[0, -1]]]
+        if len(eff["pole_to_pole"]) else [],
+    }
 
 
 def run_closed_loop(task: dict) -> dict:
     """One closed-loop dynamic scan (the lead's ``RunScan``: MultibodyPlant, controller,
     contact) and the same scan in kinematic mode (same patient, start, ER, segmenter,
-    localization method): E_trans, E_rot,x, and n, eps, V over both pivot legs (what
-    ``ScanMetrics`` counts)."""
+    localization method): E_trans, E_rot,x, and n, eps, V pole to pole (the paper's) and
+    over the whole pivot, both by :mod:`drake_rus.metrics.sweep`. The closed-loop scan's ER
+    multiplies its controller's ``exploration_length`` (the estimated kidney length by
+    default); the twin's the task's ``er_unit``."""
     t0 = time.perf_counter()
     base = _scenario(task["scenario"], task.get("scenarios_file"), task.get("overrides"))
     scenario = dataclasses.replace(
@@ -198,25 +362,39 @@ def run_closed_loop(task: dict) -> dict:
     scan = RunScan(scenario, kp.patient, template, progress=False,
                    start_fraction=float(task["start_fraction"]))
     m = ScanMetrics(scan)
+    at = m["at_matched_V"]
     closed = {"status": scan.status, "reason": scan.reason, "e_trans_mm": m["e_trans_mm"],
               "e_rot_x_deg": m["e_rot_x_deg"], "n": m["n_frames"], "eps_mm": m["eps_mm"],
-              "V": m["volume_ratio"], "sim_s": scan.sim_s, "wall_s": scan.wall_s,
+              "V": m["volume_ratio"], "n_whole_pivot": m["n_whole_pivot"],
+              "eps_whole_pivot_mm": m["eps_whole_pivot_mm"],
+              "V_whole_pivot": m["volume_ratio_whole_pivot"],
+              "at_V": {k: v["pole_to_pole"] for k, v in at.items()},
+              "at_V_whole_pivot": {k: v["whole_pivot"] for k, v in at.items()},
+              "tilt_cap_legs": m["pivot"]["tilt_cap_legs"],
+              "er_unit": getattr(scenario.controller, "exploration_length", "fixed"),
+              "sim_s": scan.sim_s, "wall_s": scan.wall_s,
               "mode": "closed-loop dynamic simulation"}
     t1 = time.perf_counter()
     imager = km.Imager(kp, km.imaging_for(kp, scenario.imaging, scenario.start),
                        task["segmenter"], seed=int(task["seed"]))
     sweep = km.explore(kp, imager, scenario.controller, exploration_ratio=task["er"],
-                       start_fraction=float(task["start_fraction"]))
+                       start_fraction=float(task["start_fraction"]),
+                       travel=exploration_travel(task["er"], task.get("er_unit", "fixed"),
+                                                 kidney_length(kp),
+                                                 scenario.controller.kidney_length))
     loc = km.localize_cloud(kp, sweep.point_cloud(), template, scenario.localization,
                             sweep.frames[0].X_BP.translation()[:2])
     op = km.strategy_sweep(kp, imager, "OP", scenario.controller, loc.X_BK)
-    c = km.sweep_curves(kp, op, imager.geometry)
-    kin = {"e_trans_mm": e_trans(loc.X_BK, kp.X_BK_true) * 1e3,
-           "e_rot_x_deg": math.degrees(e_rot_x(loc.X_BK, kp.X_BK_true)),
-           "n": int(c["n_frames"]), "eps_mm": c["eps_total"] * 1e3, "V": c["V_final"],
-           "wall_s": time.perf_counter() - t1, "mode": km.MODE}
+    kin = sweep_entry(kp, op, imager.geometry, scenario.controller)
+    for k in ("curve_eps_mm", "curve_V", "events", "pole_to_pole"):
+        kin.pop(k)
+    kin.update({"e_trans_mm": e_trans(loc.X_BK, kp.X_BK_true) * 1e3,
+                "e_rot_x_deg": math.degrees(e_rot_x(loc.X_BK, kp.X_BK_true)),
+                "er_unit": task.get("er_unit", "fixed"),
+                "wall_s": time.perf_counter() - t1, "mode": km.MODE})
     return {"run_id": run_id(task), "task": task, "mode": "closed-loop + kinematic twin",
             "patient": task["patient"], "er": task["er"], "start": -1,
+            "kidney_length_mm": kidney_length(kp) * 1e3,
             "closed_loop": closed, "kinematic": kin, "wall_s": time.perf_counter() - t0}
 
 
@@ -238,7 +416,9 @@ def run_task(task: dict) -> dict:
         start_fraction, x_offset = random_start(task, kp, controller)
     sweep = exploration(task, kp, imager, controller, start_fraction, x_offset)
     P = sweep.point_cloud()
-    template = _template(scenario.localization.template)
+    variant = task.get("template_variant", "mean")
+    template = template_variant(scenario.localization.template, variant,
+                                str(task["patient"]) if variant == "loo" else "")
     config = dataclasses.replace(scenario.localization, method=task["method"])
     loc = km.localize_cloud(kp, P, template, config, sweep.frames[0].X_BP.translation()[:2])
     result = {
@@ -246,6 +426,7 @@ def run_task(task: dict) -> dict:
         "patient": task["patient"], "er": task["er"], "start": task["start"],
         "start_fraction": start_fraction, "x_offset_mm": x_offset * 1e3,
         "explore_frames": len(sweep.frames), "explore_travel_mm": float(sweep.travel[-1] * 1e3),
+        "kidney_length_mm": kidney_length(kp) * 1e3, "er_unit": task.get("er_unit", "fixed"),
         "points": int(len(P)),
         "e_trans_mm": e_trans(loc.X_BK, kp.X_BK_true) * 1e3,
         "e_rot_x_deg": math.degrees(e_rot_x(loc.X_BK, kp.X_BK_true)),
@@ -254,6 +435,9 @@ def run_task(task: dict) -> dict:
         "localization_note": loc.note,
         "true_volume_ml": kp.kidney_volume * 1e6,
     }
+    if task["study"] == "template":
+        result["template_variant"] = variant
+        result["template_distance_mm"] = template_distance(template, kp) * 1e3
     if task["study"] == "efficiency":
         export = task.get("export_dir")
         result["strategies"] = efficiency_of(
@@ -268,24 +452,17 @@ EXPORT_STRATEGIES = ("OP", "GT-OP")
 
 def efficiency_of(kp, imager, controller, X_BK_est, recon_spacing: float, *,
                   export_dir=None, name: str = "patient") -> dict:
-    """Per strategy: pole-to-pole curves (n, eps mm, V), totals, the whole sweep's totals,
-    and the reconstructed kidney volume (mL) from the pole-to-pole masks. With
+    """Per strategy: :func:`sweep_entry` (pole-to-pole curves and totals, the whole pivot's
+    totals, matched coverage, tilt cap) and the reconstructed kidney volume (mL) from the
+    pole-to-pole masks. With
     ``export_dir``, the OP and GT-OP reconstructions are written there as NRRD (kidney
     probability, kidney mask and, for the classical/onnx segmenters, the grey volume)."""
     out = {}
     for s in STRATEGY_ORDER:
         sweep = km.strategy_sweep(kp, imager, s, controller, X_BK_est, keep_images=True)
         p2p = sweep.pole_to_pole()
-        c = km.sweep_curves(kp, p2p, imager.geometry)
-        full = km.sweep_curves(kp, sweep, imager.geometry)
-        entry = {
-            "n": int(c["n_frames"]), "eps_mm": c["eps_total"] * 1e3, "V": c["V_final"],
-            "n_full": int(full["n_frames"]), "eps_full_mm": full["eps_total"] * 1e3,
-            "V_full": full["V_final"], "events": sweep.events,
-            "curve_eps_mm": np.round(c["eps"] * 1e3, 3).tolist(),
-            "curve_V": np.round(c["V"], 5).tolist(),
-            "volume_ml": None, "volume_error_pct": None,
-        }
+        entry = sweep_entry(kp, sweep, imager.geometry, controller)
+        entry.update(volume_ml=None, volume_error_pct=None)
         if p2p.frames:
             try:
                 rec = reconstruct_kidney([f.mask for f in p2p.frames], p2p.poses,

@@ -402,7 +402,7 @@ def add_commands(subparsers) -> None:
                    help="joint samples per second recorded (default 10)")
     c.add_argument("--save", default=None, metavar="CSV",
                    help="also write the recorded joint positions (rad) to this file")
-    c.set_defaults(func=run_pivot)
+    c.set_defaults(func=run_pivot, outputs={"save": "file"})
 
     c = sub.add_parser("grab", help="save the newest grabbed picture and the joint "
                        "positions, and list them in a target file for calibrate-image")
@@ -412,7 +412,7 @@ def add_commands(subparsers) -> None:
     c.add_argument("--p-P", dest="p_P", type=float, nargs=3, default=None,
                    metavar=("X", "Y", "Z"),
                    help="the target's position in the probe frame (m), if known (a jig)")
-    c.set_defaults(func=run_grab)
+    c.set_defaults(func=run_grab, outputs={"out": "dir"})
 
     c = sub.add_parser("calibrate-image", help="fit mm per pixel and the image origin of a "
                        "depth preset to point-target pictures; write the calibration file")
@@ -421,7 +421,7 @@ def add_commands(subparsers) -> None:
     c.add_argument("--out", required=True, help="image calibration file to write or update")
     c.add_argument("--force", action="store_true",
                    help="write even when the residuals exceed the guide's limits")
-    c.set_defaults(func=run_calibrate_image)
+    c.set_defaults(func=run_calibrate_image, outputs={"out": "file"})
 
     c = sub.add_parser("calibrate-latency", help="move the probe sinusoidally over a point "
                        "target (in water or a phantom) and estimate the video latency")

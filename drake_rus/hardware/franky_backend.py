@@ -73,6 +73,27 @@ def wait_for_port(host: str, port: int, timeout: float) -> tuple[bool, float, st
         time.sleep(min(0.2, max(0.0, timeout - (time.monotonic() - start))))
 
 
+def call_within(fn, timeout: float):
+    """``fn()``'s result, or TimeoutError after ``timeout`` s (fn then runs on in a daemon
+    thread, whose late result is dropped). Exceptions of fn are raised here."""
+    box: dict = {}
+
+    def run():
+        try:
+            box["value"] = fn()
+        except BaseException as e:  # noqa: BLE001 - handed to the caller
+            box["error"] = e
+
+    worker = threading.Thread(target=run, name="drake_rus_connect", daemon=True)
+    worker.start()
+    worker.join(timeout)
+    if worker.is_alive():
+        raise TimeoutError(f"no result within {timeout:.1f} s")
+    if "error" in box:
+        raise box["error"]
+    return box["value"]
+
+
 class HardwareFault(RuntimeError):
     """The robot, its connection or the image source failed; the command is zero."""
 
@@ -162,7 +183,16 @@ class FrankyBackend:
         robot, last_error = None, why
         while reachable:
             try:
-                robot = franky.Robot(host, realtime_config=franky.RealtimeConfig.Ignore)
+                # A peer that accepts TCP on the FCI port but never answers the handshake
+                # holds franky.Robot() for about a minute inside libfranka: wait for it only
+                # as long as connect_timeout allows.
+                left = max(cfg.connect_timeout - (time.monotonic() - start), 0.5)
+                robot = call_within(
+                    lambda: franky.Robot(host, realtime_config=franky.RealtimeConfig.Ignore),
+                    left)
+                break
+            except TimeoutError:
+                last_error = f"no handshake on {host}:{FCI_PORT} (a peer accepts, never answers)"
                 break
             except Exception as e:  # NetworkException, IncompatibleVersionException, ...
                 last_error = f"{type(e).__name__}: {e}"

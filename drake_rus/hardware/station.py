@@ -184,10 +184,15 @@ class HardwareStation(Diagram):
 
 
 def _check_rates(scenario) -> None:
+    # Sending targets at a whole multiple of the controller's rate (the default 200 Hz for a
+    # 100 Hz controller) re-sends every command on time; slower is refused by the scenario
+    # (drake_rus.config_schema.CROSS_FIELD_RULES); another ratio jitters: warn.
     cfg = scenario.hardware_interface
-    if abs(cfg.command_rate_hz - scenario.controller.rate_hz) > 1e-9:
-        LOG.warning("hardware_interface.command_rate_hz (%g Hz) differs from controller.rate_hz "
-                    "(%g Hz)", cfg.command_rate_hz, scenario.controller.rate_hz)
+    ratio = cfg.command_rate_hz / scenario.controller.rate_hz
+    if abs(ratio - round(ratio)) > 1e-6 or round(ratio) < 1:
+        LOG.warning("hardware_interface.command_rate_hz (%g Hz) is not a whole multiple of "
+                    "controller.rate_hz (%g Hz)", cfg.command_rate_hz,
+                    scenario.controller.rate_hz)
 
 
 def picture_processing(scenario):

@@ -9,7 +9,6 @@ the true kidney outline (yellow); plus ``contact_sheet.png`` with every view's o
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +24,7 @@ from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.imaging.segment import iou, read_mask
 from drake_rus.imaging.slicing import slice_volume
 from drake_rus.imaging.systems import make_segmenter_backend
-from drake_rus.io_utils import save_figure
+from drake_rus.io_utils import dumps_strict, save_figure, write_text_atomic
 
 
 def add_commands(subparsers) -> None:
@@ -167,7 +166,8 @@ def run_pictures(args) -> int:
         fig.suptitle(f"{args.patient} ({side} kidney), segmenter {cfg.segmenter}")
         fig.tight_layout()
         save_figure(fig, out / "contact_sheet.png", dpi=80)
-    (out / "pictures.json").write_text(json.dumps(
+    # Strict JSON: a view without a kidney has no IoU (null, not NaN).
+    write_text_atomic(out / "pictures.json", dumps_strict(
         {"patient": args.patient, "side": side, "segmenter": cfg.segmenter, "views": summary},
         indent=2) + "\n")
     return 0

@@ -84,5 +84,24 @@ class ImagingConfig:
     onnx_kidney_channel: int = field(default=0, metadata={"min": 0})
     # Threshold on the kidney probability.
     onnx_threshold: float = field(default=0.5, metadata={"min": 0.0, "max": 1.0})
+    # Following the kidney from frame to frame (onnx backend): the model may also mark a
+    # hypoechoic region that is not the kidney (a muscle band, a bowel loop). Once the kidney
+    # is seen, a frame's kidney is the candidate region overlapping the last kidney mask grown
+    # by ``track_reach`` (m), and for ``track_gap`` s after the kidney was last seen a region
+    # elsewhere is not taken for it (at 20 frames/s a kidney section moves millimetres between
+    # frames; it does not jump across the image). After the gap, the largest region is taken.
+    # 2 s spans a pivot leg's reversal: the kidney leaves the image at a pole, the probe turns
+    # back and the kidney re-enters where it left. Measured on the VH female in left lateral
+    # decubitus (the muscle band under the kidney marked in 5 of 30 late pivot frames): with
+    # 0.5 s the band was taken for the kidney during the reversal and the tracking check
+    # stopped a good scan; with 2 s the scan ended DONE.
+    track_gap: float = field(default=2.0, metadata={"min": 0.0})
+    track_reach: float = field(default=0.010, metadata={"min": 0.0})
+    # The kidney is followed only once it has been seen without a jump for ``track_confirm``
+    # s; before, each frame takes its largest region. While the probe lands, the first
+    # frames may show a region that is not the kidney (measured on the VH female, supine:
+    # a region taken in the first frame and followed hid the kidney for the whole
+    # exploration).
+    track_confirm: float = field(default=0.5, metadata={"min": 0.0})
     # ONNX Runtime intra-op threads (1 leaves the other cores to the simulation).
     onnx_threads: int = field(default=1, metadata={"min": 1, "max": 64})

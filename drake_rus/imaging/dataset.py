@@ -233,7 +233,7 @@ class Randomisation:
         (int(Label.KIDNEY_CORTEX), 0.75, 1.1), (int(Label.KIDNEY_MEDULLA), 0.6, 1.4),
         (int(Label.KIDNEY_SINUS), 0.8, 1.1))
     # Share of frames made with the scenario's emulator as is (no randomisation at all).
-    nominal: float = 0.25
+    nominal: float = 0.35
 
 
 def randomised_emulator(base: EmulatorModel, rng: np.random.Generator,
@@ -288,11 +288,11 @@ def remove_perirenal_fat(volume: LabelVolume, margin: float = 0.015) -> LabelVol
     idx = np.argwhere(kid)
     if len(idx) == 0:
         return volume
-    r = int(np.ceil(margin / volume.voxel_size))
+    r = int(np.ceil(margin / volume.voxel_size - 1e-9))
     lo = np.maximum(idx.min(axis=0) - r - 1, 0)
     hi = np.minimum(idx.max(axis=0) + r + 2, volume.labels.shape)
     box = tuple(slice(a, b) for a, b in zip(lo, hi))
-    near = ndimage.distance_transform_edt(~kid[box]) <= r
+    near = ndimage.distance_transform_edt(~kid[box]) * volume.voxel_size <= margin + 1e-9
     labels = volume.labels.copy()
     sub = labels[box]
     sub[near & (sub == Label.FAT)] = Label.SOFT_TISSUE
@@ -336,9 +336,10 @@ def canvas_frames(variants: list[VolumeVariant], presets: list[float], n: int,
                   rng: np.random.Generator, bank: EmulatorBank, pixel_size: float,
                   canvas_shape: tuple[int, int], canvas_top: float | None,
                   randomisation: Randomisation | None = Randomisation(),
-                  max_extra=lambda depth: max(0.0, depth - 0.10) + 0.03) -> dict:
+                  max_extra=lambda depth: max(0.0, depth - 0.10) + 0.03,
+                  preset_weights=None) -> dict:
     """``n`` randomised training frames on the physical canvas: for each, a depth preset
-    (uniform over ``presets``), a volume variant whose ``extra_depth`` is at most
+    (over ``presets``, with ``preset_weights`` or uniform), a volume variant whose ``extra_depth`` is at most
     ``max_extra(depth)`` (so thick walls come with the deep presets), a view, a randomised
     emulator (``randomisation`` None: the scenario's, at every frame; else a share
     ``randomisation.nominal`` of frames with the scenario's) and a random speckle seed.
@@ -354,6 +355,8 @@ def canvas_frames(variants: list[VolumeVariant], presets: list[float], n: int,
     kidney_px = np.zeros(n, np.int32)
     canvases: dict = {}
     r = randomisation
+    pw = np.ones(len(presets)) if preset_weights is None else np.asarray(preset_weights, float)
+    pw = pw / pw.sum()
     X_VV = RigidTransform()
     k = 0
     attempts = 0
@@ -361,7 +364,7 @@ def canvas_frames(variants: list[VolumeVariant], presets: list[float], n: int,
         attempts += 1
         if attempts > 20 * n + 100:
             raise RuntimeError(f"canvas_frames: only {k} of {n} views found")
-        depth = float(presets[rng.integers(len(presets))])
+        depth = float(presets[rng.choice(len(presets), p=pw)])
         allowed = [i for i, v in enumerate(variants) if v.extra_depth <= max_extra(depth)]
         vi = allowed[rng.integers(len(allowed))] if allowed else 0
         v = variants[vi]

@@ -18,7 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from pydrake.math import RigidTransform
+from pydrake.math import RigidTransform, RotationMatrix
 from scipy import ndimage
 from tqdm import tqdm
 
@@ -160,6 +160,31 @@ def sample_views(source: Source, n: int, seed: int, max_depth: float = 0.40, **k
         X = sampler.sample(rng)
         if X is not None:
             poses.append(X)
+    return poses
+
+
+def centred_views(source: Source, angles_deg=(0.0, 60.0, 120.0), indent: float = 0.004
+                  ) -> list[RigidTransform]:
+    """Probe poses X_VP straight down (against ``up_V``) over the target kidney's centroid,
+    the face on the skin pressed ``indent`` in, the array turned by each of ``angles_deg``
+    about the beam: the start of a scan's vertical pivot."""
+    p = source.target_V if source.target is not None else (
+        np.argwhere(is_kidney(source.volume.labels)) * source.volume.voxel_size)
+    u = source.up_V / np.linalg.norm(source.up_V)
+    c = p.mean(axis=0)
+    h = source.volume.voxel_size
+    s = np.arange(0.0, 0.6, 0.5 * h)
+    air = np.flatnonzero(sample_labels(source.volume, c + s[:, None] * u) == Label.OUTSIDE)
+    origin = c + (s[air[0]] if len(air) else s[-1]) * u - (indent + 0.5 * h) * u
+    e1 = np.cross(u, [1.0, 0, 0] if abs(u[0]) < 0.9 else [0, 1.0, 0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(u, e1)
+    poses = []
+    for a in np.radians(np.asarray(angles_deg, float)):
+        x = np.cos(a) * e1 + np.sin(a) * e2
+        z = -u
+        poses.append(RigidTransform(RotationMatrix(np.column_stack([x, np.cross(z, x), z])),
+                                    origin))
     return poses
 
 

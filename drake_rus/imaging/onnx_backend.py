@@ -23,6 +23,7 @@ card, keeps the resize above. :class:`PhysicalCanvas` does the mapping.
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +32,7 @@ from scipy import ndimage
 
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.probe import ProbeGeometry
+from drake_rus.imaging.segment import tracked_component
 from drake_rus.paths import REPO_ROOT
 
 
@@ -206,9 +208,13 @@ class OnnxSegmenter:
     def __init__(self, model_path: str | Path, geometry: ProbeGeometry,
                  input_shape=(1, 1, 128, 128), mean: float = 0.0, std: float = 1.0,
                  output: str = "logits", kidney_channel: int = 0, threshold: float = 0.5,
-                 threads: int = 1, field_prefix: str = "imaging.", card: dict | None = None):
+                 threads: int = 1, field_prefix: str = "imaging.", card: dict | None = None,
+                 track_gap: float = 2.0, track_reach: float = 0.010):
         """``card``: the model card's fields (default: read from the ``.json`` next to the
-        model); ``pixel_size_mm`` and ``canvas_px`` switch on the physical canvas."""
+        model); ``pixel_size_mm`` and ``canvas_px`` switch on the physical canvas.
+        ``track_gap`` (s), ``track_reach`` (m): how a kidney seen before is followed (see
+        ``ImagingConfig.track_gap``)."""
+        self.track_gap, self.track_reach = float(track_gap), float(track_reach)
         import onnxruntime as ort
         self.geometry = geometry
         self.path = resolve_model_path(str(model_path))
@@ -277,7 +283,8 @@ class OnnxSegmenter:
     def from_config(cls, config: ImagingConfig, geometry: ProbeGeometry) -> "OnnxSegmenter":
         return cls(config.onnx_model, geometry, config.onnx_input_shape, config.onnx_input_mean,
                    config.onnx_input_std, config.onnx_output, config.onnx_kidney_channel,
-                   config.onnx_threshold, config.onnx_threads)
+                   config.onnx_threshold, config.onnx_threads,
+                   track_gap=config.track_gap, track_reach=config.track_reach)
 
     @property
     def pixel_size_mm(self) -> float | None:
@@ -327,7 +334,17 @@ class OnnxSegmenter:
 
     def probability(self, image: np.ndarray) -> np.ndarray:
         """Kidney probability (rows, cols) of a uint8 grey image."""
-        return self.to_image(self.model_probability(image))
+        return self.to_image(self._past_fan(self.model_probability(image)))
+
+    def _past_fan(self, prob: np.ndarray) -> np.ndarray:
+        """On the physical canvas: the canvas pixels just outside the fan take their
+        neighbours' largest probability, so that the bilinear map back holds a kidney that
+        touches the fan's edge up to the edge (else it would fade half a canvas pixel, 1.2
+        mm, inside it). The image's fan mask crops the rest."""
+        if self.canvas is None:
+            return prob
+        fan = self._canvas_fan(*prob.shape)
+        return np.where(fan, prob, ndimage.grey_dilation(prob, size=(3, 3)))
 
     def _canvas_fan(self, h: int, w: int) -> np.ndarray:
         """The canvas's fan pixels at a model output resolution (h, w)."""
@@ -351,19 +368,42 @@ class OnnxSegmenter:
             prob = np.where(self._canvas_fan(*prob.shape), prob, np.float32(0.0))
         return prob
 
-    def __call__(self, image: np.ndarray) -> np.ndarray:
-        """Bool kidney mask (rows, cols) of a uint8 grey image: the largest component (holes
-        filled) at the model's resolution, mapped back to the image bilinearly (from the
-        physical canvas, when there is one), thresholded, in the fan."""
+    def __call__(self, image: np.ndarray, prior_mask: np.ndarray | None = None,
+                 prior_age: float = math.inf) -> np.ndarray:
+        """Bool kidney mask (rows, cols) of a uint8 grey image: without a prior, the largest
+        candidate region; with the kidney mask last seen ``prior_age`` s ago, the region
+        that continues it (:func:`~drake_rus.imaging.segment.tracked_component`, with the
+        ``track_gap`` and ``track_reach`` this segmenter was built with)."""
+        regions = self.candidates(image, largest_only=prior_mask is None)
+        if prior_mask is None:
+            return regions[0] if regions else np.zeros(self.geometry.image_shape, bool)
+        k = tracked_component(regions, prior_mask, prior_age, self.geometry,
+                              max_gap=self.track_gap, reach=self.track_reach)
+        return regions[k] if k is not None else np.zeros(self.geometry.image_shape, bool)
+
+    def candidates(self, image: np.ndarray, largest_only: bool = False) -> list[np.ndarray]:
+        """The frame's candidate kidney regions, largest first, each a bool mask (rows,
+        cols): an 8-connected component of the thresholded probability at the model's
+        resolution (holes filled), mapped back to the image bilinearly (from the physical
+        canvas, when there is one), thresholded, in the fan. Regions that vanish in the
+        mapping back are dropped."""
         prob = self.model_probability(image)
-        keep = largest_component(prob > self.threshold)
-        if not keep.any():
-            return np.zeros(self.geometry.image_shape, bool)
-        # Only the kept component (and a one-pixel margin for the interpolation) survives;
-        # its filled holes count as kidney.
-        prob = np.where(ndimage.binary_dilation(keep), prob, 0.0).astype(np.float32)
-        prob[keep & (prob <= self.threshold)] = 1.0
-        return (self.to_image(prob) > self.threshold) & self.geometry.fan_mask
+        labels, n = ndimage.label(prob > self.threshold, structure=_EIGHT)
+        if n == 0:
+            return []
+        sizes = np.bincount(labels.ravel())[1:]
+        order = np.argsort(-sizes, kind="stable")[:1 if largest_only else None]
+        out = []
+        for k in order:
+            keep = fill_holes(labels == k + 1)
+            # Only this component (and a one-pixel margin for the interpolation) survives;
+            # its filled holes count as kidney.
+            p = np.where(ndimage.binary_dilation(keep), prob, 0.0).astype(np.float32)
+            p[keep & (p <= self.threshold)] = 1.0
+            mask = (self.to_image(self._past_fan(p)) > self.threshold) & self.geometry.fan_mask
+            if mask.any():
+                out.append(mask)
+        return out
 
 
 _EIGHT = np.ones((3, 3), bool)

@@ -6,7 +6,8 @@ Backends (``ImagingConfig.segmenter``):
 - ``classical``: despeckle, dark-region threshold, hole filling (the bright sinus inside the
   darker parenchyma), morphology, then the plausible component that best overlaps the
   previous frame's mask (temporal prior) or else the largest one;
-- ``onnx``: a learned model (:mod:`drake_rus.imaging.onnx_backend`).
+- ``onnx``: a learned model (:mod:`drake_rus.imaging.onnx_backend`), whose candidate regions
+  are followed from frame to frame (:func:`tracked_component`).
 
 Mask read-outs (seed II-E): visible flag (area above ``min_kidney_area``), horizontal mask
 centroid ``c_msk`` in [0, 1] (eq. 17) and the boundary pixels that are back-projected.
@@ -14,6 +15,7 @@ centroid ``c_msk`` in [0, 1] (eq. 17) and the boundary pixels that are back-proj
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -192,3 +194,72 @@ def segment_classical(us_image: np.ndarray, geometry: ProbeGeometry,
     out = np.zeros(geometry.image_shape, bool)
     out[:full.shape[0], :full.shape[1]] = full
     return out & geometry.fan_mask
+
+
+def tracked_component(components: list[np.ndarray], prior_mask: np.ndarray | None,
+                      prior_age: float, geometry: ProbeGeometry, *, max_gap: float,
+                      reach: float) -> int | None:
+    """Which candidate region of a frame is the kidney (index into ``components``, None: none).
+
+    components: bool masks (rows, cols) of the frame's candidate regions; prior_mask: the
+    kidney mask last seen, ``prior_age`` s ago (None: never seen). While the kidney was seen
+    within ``max_gap`` s, the kidney is the region overlapping the last mask grown by
+    ``reach`` (m) most, and a region elsewhere is not taken for it: between frames 50 ms
+    apart a kidney section moves a few millimetres, it does not jump across the image (a
+    hypoechoic muscle band or bowel loop that the model also marks is left alone). Else
+    (first sight, or the kidney lost for longer than ``max_gap``): the largest region.
+    """
+    if not components:
+        return None
+    if prior_mask is not None and np.any(prior_mask) and prior_age <= max_gap:
+        prior = np.asarray(prior_mask, bool)
+        rows, cols = np.nonzero(prior)
+        dr, dc = int(np.ceil(reach / geometry.dz)) + 1, int(np.ceil(reach / geometry.dx)) + 1
+        box = (slice(max(rows.min() - dr, 0), rows.max() + dr + 1),
+               slice(max(cols.min() - dc, 0), cols.max() + dc + 1))
+        near = np.zeros(prior.shape, bool)
+        near[box] = ndimage.distance_transform_edt(
+            ~prior[box], sampling=(geometry.dz, geometry.dx)) <= reach
+        overlap = [int(np.count_nonzero(c & near)) for c in components]
+        best = int(np.argmax(overlap))
+        return best if overlap[best] > 0 else None
+    return int(np.argmax([int(np.count_nonzero(c)) for c in components]))
+
+
+@dataclass(frozen=True)
+class KidneyTrack:
+    """The kidney followed across frames: its last visible mask (rows, cols), the time (s)
+    of that frame, and since when (s) it has been followed without a jump (a region that
+    did not continue the previous one starts a new track)."""
+    mask: np.ndarray | None = None
+    time: float = -math.inf
+    since: float = math.inf
+
+    def __copy__(self):
+        return self
+
+    def __deepcopy__(self, memo):
+        return self   # immutable
+
+
+def track_prior(track: KidneyTrack, t: float, confirm: float
+                ) -> tuple[np.ndarray | None, float]:
+    """(prior mask, its age in s) to follow at time t, or (None, inf) while the track is not
+    established: followed for less than ``confirm`` s (the first sights while the probe lands
+    may be a region that is not the kidney; following it would hide the kidney)."""
+    if track.mask is None or track.time - track.since < confirm - 1e-9:
+        return None, math.inf
+    return track.mask, t - track.time
+
+
+def track_update(track: KidneyTrack, mask: np.ndarray, visible: bool, t: float,
+                 geometry: ProbeGeometry, *, max_gap: float, reach: float) -> KidneyTrack:
+    """The track after a frame at time t whose kidney mask is ``mask``: unchanged when the
+    kidney is not visible; else this mask, continuing the track when it overlaps the last
+    mask grown by ``reach`` within ``max_gap`` s, a new track otherwise."""
+    if not visible:
+        return track
+    continues = track.mask is not None and tracked_component(
+        [np.asarray(mask, bool)], track.mask, t - track.time, geometry, max_gap=max_gap,
+        reach=reach) == 0
+    return KidneyTrack(np.asarray(mask, bool), float(t), track.since if continues else float(t))

@@ -13,6 +13,8 @@ new frame (their outputs depend only on their inputs, and a frame's result is me
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
@@ -25,7 +27,8 @@ from drake_rus.imaging.emulator import EmulatorModel, emulate
 from drake_rus.imaging.frames import BoundaryPixels, PointCloud, UsFrame
 from drake_rus.imaging.onnx_backend import OnnxSegmenter
 from drake_rus.imaging.probe import ProbeGeometry, check_pose
-from drake_rus.imaging.segment import read_mask, segment_classical, segment_oracle
+from drake_rus.imaging.segment import (KidneyTrack, read_mask, segment_classical,
+                                       segment_oracle, track_prior, track_update)
 from drake_rus.imaging.slicing import slice_volume
 
 
@@ -134,17 +137,20 @@ class UltrasoundEmulator(LeafSystem):
 
 
 def make_segmenter_backend(config: ImagingConfig, geometry: ProbeGeometry):
-    """A callable ``(us_image, label_image, prev_mask) -> mask`` for ``config.segmenter``.
+    """A callable ``(us_image, label_image, prev_mask, prev_age=inf) -> mask`` for
+    ``config.segmenter``: ``prev_mask`` is the classical backend's temporal prior, or the
+    kidney last seen ``prev_age`` s ago that the onnx backend follows (None: none).
     Raises ValueError naming the field when the backend cannot be built (e.g. a bad model)."""
     backend = config.segmenter
     if backend == "oracle":
-        return lambda us, labels, prev: segment_oracle(labels)
+        return lambda us, labels, prev, age=math.inf: segment_oracle(labels)
     if backend == "classical":
         min_area = config.min_kidney_area
-        return lambda us, labels, prev: segment_classical(us, geometry, prev, min_area)
+        return lambda us, labels, prev, age=math.inf: segment_classical(us, geometry, prev,
+                                                                         min_area)
     if backend == "onnx":
         model = OnnxSegmenter.from_config(config, geometry)
-        return lambda us, labels, prev: model(us)
+        return lambda us, labels, prev, age=math.inf: model(us, prev, age)
     raise ValueError(f"imaging.segmenter: unknown backend {backend!r}; expected 'oracle', "
                      f"'classical' or 'onnx'")
 
@@ -160,8 +166,10 @@ class Segmenter(LeafSystem):
       ``mask_centroid`` (1-vector, c_msk in [0, 1] across the image width, eq. 17; 0.5
       when not visible);
       ``boundary_pixels`` (abstract BoundaryPixels, (N, 2) pixels (u, v) + time, X_BP, index).
-    The classical backend keeps the previous frame's mask as a temporal prior (state updated
-    at the frame rate).
+    The classical backend keeps the previous frame's mask as a temporal prior; the onnx
+    backend follows the kidney once seen (``imaging.track_gap``, ``track_reach``,
+    ``track_confirm``; :class:`~drake_rus.imaging.segment.KidneyTrack`); both are state
+    updated at the frame rate.
     """
 
     def __init__(self, config: ImagingConfig):
@@ -176,8 +184,14 @@ class Segmenter(LeafSystem):
         self._us = self.DeclareAbstractInputPort("us_image", AbstractValue.Make(empty))
         self._labels = self.DeclareAbstractInputPort("label_image", AbstractValue.Make(empty))
         self._source = self._labels if self._backend_name == "oracle" else self._us
-        self._uses_prior = self._backend_name == "classical"
-        self._prior_index = self.DeclareAbstractState(AbstractValue.Make(self._empty_mask))
+        self._uses_prior = self._backend_name in ("classical", "onnx")
+        # The classical prior is the previous frame's mask; the onnx backend follows a
+        # KidneyTrack (the last visible kidney, kept while the kidney is not seen).
+        self._follows = self._backend_name == "onnx"
+        self._track_config = dict(max_gap=config.track_gap, reach=config.track_reach)
+        self._track_confirm = config.track_confirm
+        self._prior_index = self.DeclareAbstractState(AbstractValue.Make(
+            KidneyTrack() if self._follows else self._empty_mask))
         tickets = {self.input_port_ticket(self._source.get_index())}
         if self._uses_prior:
             tickets.add(self.abstract_state_ticket(self._prior_index))
@@ -209,7 +223,16 @@ class Segmenter(LeafSystem):
         frame = self._source.Eval(context)
         prior = (context.get_abstract_state(self._prior_index).get_value()
                  if self._uses_prior else self._empty_mask)
-        key = (_frame_key(frame), id(prior.image))
+        frame_key = _frame_key(frame)
+        # A prior taken from this very frame (the update event after it ran) must not change
+        # the frame's segmentation: the controller and the point cloud see one result, and
+        # the frame is segmented once.
+        prior_from_frame = (prior.time >= frame.time if self._follows
+                            else prior.valid and prior.frame_index >= frame.frame_index)
+        if (self._memo_key is not None and self._memo_key[0] == frame_key
+                and frame.frame_index >= 0 and prior_from_frame):
+            return self._memo
+        key = (frame_key, id(prior))
         if key == self._memo_key:
             return self._memo
         if not frame.valid:
@@ -224,8 +247,13 @@ class Segmenter(LeafSystem):
                     f"height_px x image_width_px)")
             us = frame.image if self._source is self._us else None
             labels = frame.image if self._source is self._labels else None
-            prev = prior.image if prior.valid else None
-            mask = np.asarray(self._backend(us, labels, prev), bool) & self._geometry.fan_mask
+            if self._follows:
+                prev, age = track_prior(prior, frame.time, self._track_confirm)
+            else:
+                prev = prior.image if prior.valid else None
+                age = frame.time - prior.time if prior.valid else math.inf
+            mask = (np.asarray(self._backend(us, labels, prev, age), bool)
+                    & self._geometry.fan_mask)
             readout = read_mask(mask, self._geometry, self._min_area)
             mask_frame = UsFrame(mask, frame.time, frame.X_BP, frame.frame_index)
             result = (mask_frame, readout,
@@ -237,8 +265,16 @@ class Segmenter(LeafSystem):
     def _keep_prior(self, context, state):
         if not self._source.HasValue(context):
             return EventStatus.DidNothing()
-        mask_frame = self._result(context)[0]
-        if mask_frame.valid:
+        mask_frame, readout, _ = self._result(context)
+        if not mask_frame.valid:
+            return EventStatus.DidNothing()
+        if self._follows:
+            track = context.get_abstract_state(self._prior_index).get_value()
+            new = track_update(track, mask_frame.image, readout.visible, mask_frame.time,
+                               self._geometry, **self._track_config)
+            if new is not track:
+                state.get_mutable_abstract_state(self._prior_index).set_value(new)
+        else:
             state.get_mutable_abstract_state(self._prior_index).set_value(mask_frame)
         return EventStatus.Succeeded()
 

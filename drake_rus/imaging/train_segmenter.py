@@ -13,7 +13,8 @@ the upper skin; left lateral decubitus: views down through the right flank, whic
 up), ``--frames`` views per patient and posture (random kidney point, up to 25 mm lateral
 offset, 15% up to 70 mm, 10% aimed 80-160 mm away (kidney-free), up to 30 deg tilt, random
 array rotation; views crossing ribs and gas are kept, with their shadows), each at a random
-depth preset. A quarter of the frames use the scenario's emulator as is; the others are
+depth preset (150 mm, the scenario's default, 1.6 times as often as each other). 35% of
+the frames use the scenario's emulator as is; the others are
 randomised (:class:`~drake_rus.imaging.dataset.Randomisation`): gain (-18..-6 dB), TGC
 (+-10 dB at the image's bottom), dynamic range (42-58 dB), frequency (2.5-5 MHz: attenuation
 against the TGC), interface echo (3-9), tissue echogenicity (x 0.6-1.4 per tissue, cortex
@@ -39,7 +40,7 @@ soft Dice. Augmentation: left-right flips and a small gain / contrast change.
 
     .venv/bin/pip install torch==2.13.0 onnx
     nice .venv/bin/python -m drake_rus.imaging.train_segmenter --patients 20 --frames 300 \\
-        --epochs 16 --width 16 --out models/segmenter
+        --epochs 20 --width 16 --out models/segmenter
 
 Writes ``kidney_unet.onnx`` and ``kidney_unet.json`` (shapes, canvas, normalisation, data,
 augmentation, training time, command). The held-out IoU comes from ``python -m benchmarks
@@ -79,9 +80,12 @@ WALL_VARIANTS = {
 # Kidney context and structure randomisation of a volume: perirenal fat removal (fat within
 # PERIRENAL_MARGIN m of the kidney becomes soft tissue) and a thin cortex (THIN_CORTEX m over
 # a continuous medulla), each with its probability.
-P_NO_PERIRENAL_FAT = 0.5
+P_NO_PERIRENAL_FAT = 0.4
 PERIRENAL_MARGIN = (0.010, 0.025)
-P_THIN_CORTEX = 0.35
+P_THIN_CORTEX = 0.3
+# Depth presets are drawn with these weights (by preset order): the scenario's default
+# 150 mm a bit more often.
+PRESET_WEIGHTS = {0.15: 1.6}
 THIN_CORTEX = (0.003, 0.006)
 
 
@@ -169,7 +173,7 @@ def build_canvas_dataset(specs: list[str], postures, frames: int, pixel_size: fl
     presets = [float(p) for p in config.depth_presets]
     bank = EmulatorBank(config)
     parts = []
-    tag = (f"v3_{frames}_{pixel_size * 1e3:g}mm_{canvas[0]}x{canvas[1]}_{canvas_top * 1e3:g}_"
+    tag = (f"v4_{frames}_{pixel_size * 1e3:g}mm_{canvas[0]}x{canvas[1]}_{canvas_top * 1e3:g}_"
            f"{'-'.join(f'{p:g}' for p in presets)}_{seed}{'' if randomised else '_nominal'}")
     for i, spec in enumerate(specs):
         for j, posture in enumerate(postures):
@@ -191,7 +195,9 @@ def build_canvas_dataset(specs: list[str], postures, frames: int, pixel_size: fl
                         [VolumeVariant(src.volume, src.up_V, sampler_kw=dict(SAMPLER))])
             d = canvas_frames(variants, presets, frames, rng, bank, pixel_size, canvas,
                               canvas_top, Randomisation() if randomised else None,
-                              max_extra=max_extra_depth)
+                              max_extra=max_extra_depth,
+                              preset_weights=[PRESET_WEIGHTS.get(q, 1.0) if randomised else 1.0
+                                              for q in presets])
             out = {"image": np.clip(np.rint(d["image"].astype(np.float32)), 0, 255
                                     ).astype(np.uint8),
                    "kidney": np.rint(d["kidney"].astype(np.float32) * 255).astype(np.uint8),
@@ -400,7 +406,7 @@ def main(argv=None) -> int:
     ap.add_argument("--canvas-top-mm", type=float, default=-4.0)
     ap.add_argument("--width", type=int, default=16, help="U-Net channels at the first level")
     ap.add_argument("--space-to-depth", type=int, default=2)
-    ap.add_argument("--epochs", type=int, default=16)
+    ap.add_argument("--epochs", type=int, default=20)
     ap.add_argument("--lr", type=float, default=3e-3)
     ap.add_argument("--lite", action="store_true",
                     help="one convolution per first-level block (faster inference)")
@@ -489,6 +495,7 @@ def main(argv=None) -> int:
             "wall_variants_m": {k: [list(map(list, v)) for v in vs]
                                 for k, vs in WALL_VARIANTS.items()},
             "wall_variant_rule": "extra depth <= preset - 0.10 m + 0.03 m",
+            "preset_weights": {f"{k:g}": v for k, v in PRESET_WEIGHTS.items()},
             "kidney_context_and_structure": {
                 "no_perirenal_fat": {"probability": P_NO_PERIRENAL_FAT,
                                      "margin_m": PERIRENAL_MARGIN},

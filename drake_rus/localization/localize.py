@@ -185,6 +185,11 @@ class LocalizationOutcome:
     error: str = ""          # why no estimate (too few points, rejected registration, ...)
     rejected: IcpResult | None = None  # a registration that failed the sanity checks
 
+    # Drake clones abstract state with deepcopy on every update of the localizer (20 Hz);
+    # an outcome is made once and never changed in place, so clones may share it.
+    def __deepcopy__(self, memo):
+        return self
+
 
 @dataclasses.dataclass(frozen=True)
 class LengthState:
@@ -192,6 +197,9 @@ class LengthState:
     last_time: float = -math.inf
     length: float = math.nan     # latest estimate (m); NaN until one passes the checks
     checks: tuple = ()           # ((time s, travel m, length m or NaN), ...)
+
+    def __deepcopy__(self, memo):   # immutable: clones may share it
+        return self
 
 
 @dataclasses.dataclass

@@ -22,8 +22,14 @@ registrations 0.3-21 mm off, nor the drift of the first checks after localizatio
 on a registration that later reads 17 mm while still, predicts that error; see
 ``LocalizationConfig``.)
 
-``estimate_drift``, ``tracking_limits``, ``judged_drift`` and ``tracking_update`` are the
-plain functions; ``KidneyTrackingMonitor`` is the LeafSystem.
+Segmentation outliers are not motion: a frame is compared with the registration only where
+the registered kidney crosses its view (``kidney_in_view``), and the fit leaves out the
+frames whose points lie far from the template while the window's other frames fit it (a
+moved kidney moves in every frame; a muscle band the segmenter takes for the kidney shows in
+a few).
+
+``estimate_drift``, ``kidney_in_view``, ``tracking_limits``, ``judged_drift`` and
+``tracking_update`` are the plain functions; ``KidneyTrackingMonitor`` is the LeafSystem.
 """
 
 from __future__ import annotations
@@ -42,7 +48,7 @@ from drake_rus.imaging.frames import BoundaryPixels
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.localization.localize import LocalizationOutcome
 
-__all__ = ["estimate_drift", "DriftEstimate", "TrackingLimits", "tracking_limits",
+__all__ = ["estimate_drift", "kidney_in_view", "DriftEstimate", "TrackingLimits", "tracking_limits",
            "judged_drift", "TrackingState", "tracking_update", "KidneyTrackingMonitor"]
 
 
@@ -52,6 +58,8 @@ class DriftEstimate:
     drift_B: np.ndarray        # (3,) m, in the base frame
     rms_residual: float        # m, point-to-plane residual of the kept pairs after the fit
     n_points: int
+    n_frames_used: int = 0     # frames kept by the consensus gate (0: frames not given)
+    n_frames: int = 0
 
     @property
     def magnitude(self) -> float:
@@ -61,7 +69,9 @@ class DriftEstimate:
 def estimate_drift(points_B: np.ndarray, X_BK: RigidTransform, shape_K: np.ndarray,
                    normals_K: np.ndarray, *, tree: cKDTree | None = None,
                    iterations: int = 15, keep_fraction: float = 0.7,
-                   regularization: float = 0.05) -> DriftEstimate:
+                   regularization: float = 0.05, frame_ids: np.ndarray | None = None,
+                   frame_gate_factor: float = 3.0, frame_gate_floor: float = 0.010
+                   ) -> DriftEstimate:
     """Translation (m, frame B) that moves the registered template onto ``points_B``.
 
     points_B (N, 3): kidney boundary points seen after localization (m, B); X_BK: the
@@ -71,6 +81,11 @@ def estimate_drift(points_B: np.ndarray, X_BK: RigidTransform, shape_K: np.ndarr
     cuts the kidney are not on its surface) and solves the regularised least squares
     (A^T A + regularization N I) t = A^T b. Directions the points do not constrain (one
     flat cross-section) stay near zero instead of drifting.
+
+    frame_ids (N,): which frame each point came from. A moved kidney moves in every frame,
+    a segmentation outlier (a muscle band taken for the kidney) in a few: each iteration
+    leaves out the frames whose median distance to the template exceeds
+    max(``frame_gate_factor`` x the median over frames, ``frame_gate_floor`` m).
     """
     points_B = np.asarray(points_B, dtype=float).reshape(-1, 3)
     if len(points_B) == 0:
@@ -81,12 +96,22 @@ def estimate_drift(points_B: np.ndarray, X_BK: RigidTransform, shape_K: np.ndarr
     p_K = X_KB.multiply(points_B.T).T
     t = np.zeros(3)
     rms = math.nan
+    frames_used = n_frames = 0
+    if frame_ids is not None:
+        _, inverse = np.unique(np.asarray(frame_ids).reshape(-1), return_inverse=True)
+        n_frames = int(inverse.max()) + 1
     for _ in range(iterations):
-        _, idx = tree.query(p_K + t)
+        dist, idx = tree.query(p_K + t)
         n = normals_K[idx]
         r = np.einsum("ij,ij->i", n, p_K + t - shape_K[idx])
-        cutoff = np.quantile(np.abs(r), keep_fraction)
-        keep = np.abs(r) <= cutoff
+        use = np.ones(len(r), bool)
+        if frame_ids is not None:
+            median = np.array([np.median(dist[inverse == f]) for f in range(n_frames)])
+            gate = max(frame_gate_factor * float(np.median(median)), frame_gate_floor)
+            use = (median <= gate)[inverse]
+            frames_used = int(np.count_nonzero(median <= gate))
+        cutoff = np.quantile(np.abs(r[use]), keep_fraction)
+        keep = use & (np.abs(r) <= cutoff)
         A, b = n[keep], -r[keep]
         rms = float(np.sqrt(np.mean(r[keep] ** 2)))
         H = A.T @ A + regularization * len(A) * np.eye(3)
@@ -96,7 +121,19 @@ def estimate_drift(points_B: np.ndarray, X_BK: RigidTransform, shape_K: np.ndarr
             break
     # p_K + t lies on the template: the kidney sits at -t in K relative to its estimate.
     drift_B = -(X_BK.rotation().matrix() @ t)
-    return DriftEstimate(drift_B, rms, len(points_B))
+    return DriftEstimate(drift_B, rms, len(points_B), frames_used, n_frames)
+
+
+def kidney_in_view(shape_B: np.ndarray, X_BP: RigidTransform, geometry: ProbeGeometry,
+                   slab: float) -> int:
+    """How many points of the registered kidney surface ``shape_B`` (M, 3; m, B) lie in the
+    image of a probe at X_BP: within ``slab`` (m) of the image plane and inside the fan.
+    Where the registered kidney does not cross the view (past its registered pole, or the
+    fan beside it), a segmented region cannot be compared with it."""
+    p_P = (np.asarray(shape_B, float).reshape(-1, 3) - X_BP.translation()) @ (
+        X_BP.rotation().matrix())
+    near = np.abs(p_P[:, 1]) <= slab
+    return int(np.count_nonzero(geometry.in_fan(p_P[near]))) if near.any() else 0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -199,6 +236,7 @@ class KidneyTrackingMonitor(LeafSystem):
         self._tree_key = None
         self._tree = None
         self._shape = None
+        self._shape_B = None
         self._boundary = self.DeclareAbstractInputPort(
             "boundary_pixels", AbstractValue.Make(BoundaryPixels(np.zeros((0, 2)))))
         self._outcome = self.DeclareAbstractInputPort(
@@ -222,7 +260,7 @@ class KidneyTrackingMonitor(LeafSystem):
         return context.get_abstract_state(self._state).get_value()
 
     def _registered_shape(self, outcome):
-        """(tree, shape_K) of the registered template, cached per estimate."""
+        """(tree, shape_K, shape_B) of the registered template, cached per estimate."""
         key = (outcome.time, id(outcome.result))
         if key != self._tree_key:
             shape = self._template.points
@@ -230,7 +268,8 @@ class KidneyTrackingMonitor(LeafSystem):
             if b is not None and self._template.modes is not None:
                 shape = shape + np.einsum("k,kij->ij", b, self._template.modes[:len(b)])
             self._tree_key, self._shape, self._tree = key, shape, cKDTree(shape)
-        return self._tree, self._shape
+            self._shape_B = outcome.result.X_BK.multiply(shape.T).T
+        return self._tree, self._shape, self._shape_B
 
     def _update(self, context, state):
         cfg = self._cfg
@@ -247,22 +286,27 @@ class KidneyTrackingMonitor(LeafSystem):
         frames = tuple(f for f in s.frames if t - f[0] <= cfg.tracking_window)
         boundary = self._boundary.Eval(context)
         new_index = s.last_index
+        tree, shape, shape_B = self._registered_shape(outcome)
         if (allowed and boundary.frame_index > s.last_index and len(boundary.pixels)
                 and np.all(np.isfinite(boundary.X_BP.GetAsMatrix4()))):
-            points = backproject_pixels(self._geometry, boundary.pixels, boundary.X_BP)
-            frames = frames + ((boundary.time, points),)
             new_index = boundary.frame_index
+            if kidney_in_view(shape_B, boundary.X_BP, self._geometry,
+                              cfg.tracking_view_slab) >= cfg.tracking_min_view_points:
+                points = backproject_pixels(self._geometry, boundary.pixels, boundary.X_BP)
+                frames = frames + ((boundary.time, points),)
         s = dataclasses.replace(s, frames=frames, last_index=new_index)
         if t - s.last_check >= cfg.tracking_period - 1e-9:
             drift = None
             if len(frames) >= cfg.tracking_min_frames:
                 points = np.concatenate([f[1] for f in frames])
+                ids = np.repeat(np.arange(len(frames)), [len(f[1]) for f in frames])
                 if len(points) > cfg.tracking_max_points:
-                    points = points[np.linspace(0, len(points) - 1,
-                                                cfg.tracking_max_points).astype(int)]
-                tree, shape = self._registered_shape(outcome)
+                    pick = np.linspace(0, len(points) - 1, cfg.tracking_max_points).astype(int)
+                    points, ids = points[pick], ids[pick]
                 drift = estimate_drift(points, outcome.result.X_BK, shape,
-                                       self._template.normals, tree=tree)
+                                       self._template.normals, tree=tree, frame_ids=ids,
+                                       frame_gate_factor=cfg.tracking_frame_gate_factor,
+                                       frame_gate_floor=cfg.tracking_frame_gate_floor)
             s = tracking_update(s, t, drift, cfg, tracking_limits(outcome.result, cfg))
         state.get_mutable_abstract_state(self._state).set_value(s)
         return EventStatus.Succeeded()

@@ -38,7 +38,7 @@ def add_commands(subparsers) -> None:
     p.add_argument("--scenarios-file", default=None, help="YAML file of named scenarios")
     p.add_argument("--max-sim-time", type=float, default=60.0,
                    help="per-run limit of simulated time in s (default 60)")
-    p.set_defaults(func=run_campaign_command)
+    p.set_defaults(func=run_campaign_command, outputs={"out": "dir"})
     add_breathing(subparsers)
 
 

@@ -31,17 +31,32 @@ class TipKinematics:
         self.q_min = np.where(np.isfinite(lower), lower, -1e3)
         self.q_max = np.where(np.isfinite(upper), upper, 1e3)
 
+        # The last q and what was computed at it: every system sharing this object (the
+        # controller chain, the safety layer) reads one set of kinematics per tick.
+        self._q_key = None
+        self._X = None
+        self._J = None
+
     def _set(self, q) -> None:
-        self.plant.SetPositions(self.context, np.asarray(q, dtype=float))
+        q = np.asarray(q, dtype=float)
+        key = q.tobytes()
+        if key != self._q_key:
+            self.plant.SetPositions(self.context, q)
+            self._q_key, self._X, self._J = key, None, None
 
     def jacobian(self, q) -> np.ndarray:
-        """J_BP(q): spatial velocity of P's origin in B per joint rate (6 x nq)."""
+        """J_BP(q): spatial velocity of P's origin in B per joint rate (6 x nq). The array is
+        shared with later calls at the same q: do not modify it."""
         self._set(q)
-        W = self.plant.world_frame()
-        return self.plant.CalcJacobianSpatialVelocity(
-            self.context, JacobianWrtVariable.kV, self.frame, np.zeros(3), W, W)
+        if self._J is None:
+            W = self.plant.world_frame()
+            self._J = self.plant.CalcJacobianSpatialVelocity(
+                self.context, JacobianWrtVariable.kV, self.frame, np.zeros(3), W, W)
+        return self._J
 
     def pose(self, q) -> RigidTransform:
         """X_BP(q)."""
         self._set(q)
-        return self.frame.CalcPoseInWorld(self.context)
+        if self._X is None:
+            self._X = self.frame.CalcPoseInWorld(self.context)
+        return self._X

@@ -10,15 +10,25 @@ import argparse
 import dataclasses
 from pathlib import Path
 
-import numpy as np
-
-from drake_rus.anatomy import load_patient
+from drake_rus.anatomy.cli import load_patient_for
+from drake_rus.cli import UserError
+from drake_rus.config_schema import ScenarioError
 from drake_rus.demo import MakeMeshcat, add_scenario_arguments, load_scenario_from_args
+from drake_rus.io_utils import MB, check_output_file, dumps_strict, output_dir, write_text_atomic
 from drake_rus.localization.localize import load_registration_template
-from drake_rus.progress import SaveMeshcatRecording
+from drake_rus.paths import REPO_ROOT
+from drake_rus.progress import SaveMeshcatRecording, stderr_is_terminal
+from drake_rus.robot import IkError
 from drake_rus.scan.metrics import ScanMetrics, Summary
+from drake_rus.scan.planning import StartPlanError
 from drake_rus.scan.report import WriteScanOutputs
 from drake_rus.scan.run import RunScan
+
+# About what a scan writes (bytes): summary, clouds and plots; the Meshcat recording.
+SCAN_OUTPUT_BYTES = 8 * MB
+RECORDING_BYTES = 40 * MB
+# Exit status of a scan stopped with Ctrl-C (128 + SIGINT), after its partial outputs.
+EXIT_INTERRUPTED = 130
 
 
 def add_commands(subparsers) -> None:
@@ -37,38 +47,67 @@ def add_commands(subparsers) -> None:
     p.add_argument("--seed", type=int, default=None, help="random seed (speckle, noise)")
     p.add_argument("--max-sim-time", type=float, default=150.0,
                    help="give up after this much simulated time in s (default 150)")
-    p.set_defaults(func=run_scan_command)
+    p.set_defaults(func=run_scan_command, outputs={"out": "dir", "record": "file:.html"})
 
 
 def run_scan_command(args) -> int:
     scenario = load_scenario_from_args(args)
     if args.seed is not None:
-        if args.seed < 0:
-            raise ValueError(f"--seed: expected a non-negative integer, got {args.seed}")
         scenario = dataclasses.replace(scenario, random_seed=args.seed)
-    if not (np.isfinite(args.max_sim_time) and args.max_sim_time > 0):
-        raise ValueError(f"--max-sim-time: expected a positive time in s, got {args.max_sim_time}")
+    template = load_template_for(scenario)
+    record = not args.no_record
+    need = SCAN_OUTPUT_BYTES + (RECORDING_BYTES if record and not args.record else 0)
+    if record and args.record:
+        check_output_file(args.record, "--record", need_bytes=RECORDING_BYTES,
+                          suffixes=(".html",))
+    # The output folder is checked and locked before any work, and removed again if the run
+    # fails before writing into it.
+    with output_dir(args.out, "--out", need_bytes=need, what="scan") as out:
+        return _scan(args, scenario, template, out)
+
+
+def load_template_for(scenario):
+    """The scenario's registration template; errors name ``localization.template``."""
+    path = scenario.localization.template
+    if path and (REPO_ROOT / path).is_dir():
+        raise ScenarioError(f"field 'localization.template': {REPO_ROOT / path} is a folder; "
+                            "expected a template .npz file")
     try:
-        template = load_registration_template(scenario.localization.template)
+        return load_registration_template(path)
     except FileNotFoundError as e:
         raise FileNotFoundError(
             f"localization.template: {e} (build one with 'drake-rus template build')") from None
+    except ValueError as e:
+        raise ScenarioError(f"field 'localization.template': {e}") from None
+
+
+def _scan(args, scenario, template, out: Path) -> int:
     patient = None
     if not scenario.hardware:    # on hardware the patient is the one on the bed
         print(f"patient {args.patient}: loading ...", flush=True)
-        patient = load_patient(args.patient, side=scenario.patient.side,
-                               posture=scenario.patient.posture)
+        patient = load_patient_for(args.patient, "--patient", side=scenario.patient.side,
+                                   posture=scenario.patient.posture,
+                                   progress=stderr_is_terminal())
     meshcat = None
     if args.meshcat or not args.no_record:
         meshcat = MakeMeshcat()
         if args.meshcat:
             print(f"Meshcat: {meshcat.web_url()}", flush=True)
         meshcat.StartRecording(frames_per_second=20.0)
-    result = RunScan(scenario, patient, template, meshcat=meshcat,
-                     max_sim_time=args.max_sim_time)
-    out = Path(args.out)
+    try:
+        result = RunScan(scenario, patient, template, meshcat=meshcat,
+                         max_sim_time=args.max_sim_time)
+    except (IkError, StartPlanError) as e:
+        raise UserError(f"--patient {args.patient} (patient.X_BPt, start): no start pose: "
+                        f"{e}") from None
     metrics = ScanMetrics(result)
     summary = Summary(result, metrics)
+    if result.status == "INTERRUPTED":
+        # Ctrl-C: the user wants to stop; write the partial summary only (a few ms).
+        path = write_text_atomic(out / "summary.json",
+                                 dumps_strict(summary, indent=2, default=str) + "\n")
+        print(f"INTERRUPTED: {summary['reason']}; wrote {path}", flush=True)
+        return EXIT_INTERRUPTED
     written = WriteScanOutputs(result, metrics, summary, out)
     if meshcat is not None and not args.no_record:
         record = Path(args.record) if args.record else out / "scan.html"
@@ -76,9 +115,19 @@ def run_scan_command(args) -> int:
         written.append(record)
     e_t, e_r, V = summary["e_trans_mm"], summary["e_rot_x_deg"], summary["volume_ratio"]
     print(f"{summary['status']}{': ' + summary['reason'] if summary['status'] != 'DONE' else ''}"
-          f" | E_trans {e_t if e_t is None else round(e_t, 2)} mm, E_rot,x "
-          f"{e_r if e_r is None else round(e_r, 2)} deg | eps {summary['eps_mm']:.1f} mm, "
-          f"n {summary['n_frames']}, V {V if V is None else round(V, 3)} | "
-          f"{summary['sim_s']:.1f} sim s in {summary['wall_s']:.1f} s")
+          f" | E_trans {_r(e_t, 2)} mm, E_rot,x {_r(e_r, 2)} deg | pole to pole: eps "
+          f"{_r(summary['eps_mm'], 1)} mm, n {summary['n_frames']}, V {_r(V, 3)} | whole "
+          f"pivot: eps {_r(summary.get('eps_whole_pivot_mm'), 1)} mm, n "
+          f"{summary.get('n_whole_pivot')}, V {_r(summary.get('volume_ratio_whole_pivot'), 3)}"
+          f" | {summary['sim_s']:.1f} sim s in {summary['wall_s']:.1f} s")
     print("wrote " + ", ".join(str(p) for p in written))
     return 0 if summary["status"] == "DONE" else 1
+
+
+def _r(value, digits):
+    """A number rounded for the one-line report (None and NaN as None)."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return None
+    return round(v, digits) if v == v else None

@@ -30,6 +30,7 @@ from drake_rus.localization.localize import IcpLocalizer, body_directions_B
 from drake_rus.localization.tracking import KidneyTrackingMonitor
 
 __all__ = ["BuildScanDiagram", "ScanHandles", "PhaseIs", "And2", "ScanRecorder",
+           "ScanTerminator",
            "FrameRecord", "LOG_PERIOD"]
 
 # Period (s) of the scan's loggers (phase, force, a_des, manipulability, q).
@@ -58,6 +59,26 @@ class And2(LeafSystem):
         self.DeclareVectorOutputPort(
             "value", 1, lambda c, o: o.SetAtIndex(
                 0, float(a.Eval(c)[0] > 0.5 and b.Eval(c)[0] > 0.5)))
+
+
+class ScanTerminator(LeafSystem):
+    """Ends the simulation once the scan has ended: a periodic publish event (every
+    ``period`` s, the controller's) that returns ReachedTermination while the input ``phase``
+    is one of ``terminal_phases`` and ``enabled`` is True. This replaces a simulator monitor
+    that called Python after every plant step. Set ``enabled = False`` to simulate on after
+    the end (e.g. to let the robot settle)."""
+
+    def __init__(self, terminal_phases, period: float):
+        super().__init__()
+        self._terminal = {int(p) for p in terminal_phases}
+        self.enabled = True
+        self._phase = self.DeclareVectorInputPort("phase", 1)
+        self.DeclarePeriodicPublishEvent(period, 0.0, self._check)
+
+    def _check(self, context):
+        if self.enabled and int(round(self._phase.Eval(context)[0])) in self._terminal:
+            return EventStatus.ReachedTermination(self, "scan finished")
+        return EventStatus.DidNothing()
 
 
 @dataclasses.dataclass
@@ -124,6 +145,7 @@ class ScanHandles:
     parts: object                 # ControllerParts
     tracking: KidneyTrackingMonitor
     logs: dict                    # name -> VectorLogSink
+    terminator: ScanTerminator | None = None
 
     def __getitem__(self, name):  # handles["supervisor"] reads like a dict
         return getattr(self, name)
@@ -220,6 +242,10 @@ def BuildScanDiagram(scenario, station, template, *, builder: DiagramBuilder | N
                                           LOG_PERIOD),
         "q": LogVectorOutput(station.GetOutputPort("joint_position"), builder, LOG_PERIOD),
     }
+    terminator = builder.AddNamedSystem("scan_terminator", ScanTerminator(
+        (Phase.DONE, Phase.ABORT), 1.0 / scenario.controller.rate_hz))
+    builder.Connect(phase, terminator.get_input_port(0))
     return builder, ScanHandles(station=station, segmenter=segmenter, accumulator=accumulator,
                                 localizer=localizer, supervisor=supervisor, recorder=recorder,
-                                parts=parts, tracking=tracking, logs=logs)
+                                parts=parts, tracking=tracking, logs=logs,
+                                terminator=terminator)

@@ -1,8 +1,11 @@
 """The paper's metrics of one scan (section III) and the scan's summary.
 
 E_trans (x-y distance of the kidney centroids), E_rot,x (angle between the kidney x-axes),
-eps (eq. 24, L = the image depth), n (frames during the pivot) and V (eq. 25). E_trans,
-E_rot,x and V need the simulation truth; without it (hardware) they are None.
+and the sweep costs of :mod:`drake_rus.metrics.sweep` (the same functions the studies use):
+eps (eq. 24, L = the image depth), n and V (eq. 25) **pole to pole** (the paper's
+definition), the **whole pivot**'s n, eps and V (both legs) beside them, n and eps needed to
+reach V = 0.9, and the pivot legs the tilt cap ended. E_trans, E_rot,x and V need the
+simulation truth; without it (hardware) they are None.
 """
 
 from __future__ import annotations
@@ -12,38 +15,78 @@ import numpy as np
 from drake_rus.control.supervisor import Phase
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.localization.tracking import tracking_limits
-from drake_rus.metrics import CoverageAccumulator, e_rot_x, e_trans, window_steps
+from drake_rus.metrics import (
+    MATCHED_V, POLE_TO_POLE, WHOLE_PIVOT, CoverageAccumulator, e_rot_x, e_trans, pivot_legs,
+    signed_pivot_angles, sweep_efficiency)
 from drake_rus.scan.run import ScanResult
 
-__all__ = ["ScanMetrics", "Summary"]
+__all__ = ["METRIC_DEFINITIONS", "ScanMetrics", "Summary", "V_TARGETS"]
+
+# Coverage levels at which the sweep costs are also compared (matched coverage).
+V_TARGETS = (0.9,)
+METRIC_DEFINITIONS = {
+    "n_frames, eps_mm, volume_ratio": POLE_TO_POLE,
+    "n_whole_pivot, eps_whole_pivot_mm, volume_ratio_whole_pivot": WHOLE_PIVOT,
+    "at_matched_V": MATCHED_V,
+    "volume_ratio_all_frames": "V (eq. 25) over every frame of the scan (exploration too)",
+    "eps": "eq. 24, sum of sqrt(|dp|^2 + (L dtheta)^2), L = the image depth",
+}
+
+
+def _reach_mm(r):
+    return None if r is None else {"n": r["n"], "eps_mm": r["eps"] * 1000}
 
 
 def ScanMetrics(result: ScanResult) -> dict:
-    """The seed's metrics for one scan (section III): E_trans, E_rot,x, eps, n, V."""
+    """The seed's metrics for one scan (section III): E_trans, E_rot,x, and eps, n, V pole to
+    pole (the paper's) with the whole pivot's beside them."""
     imaging = result.scenario.imaging
+    ctrl = result.scenario.controller
     pivot = [f for f in result.frames if f.phase == Phase.PIVOT]
-    eps_curve = np.concatenate([[0.0], np.cumsum(
-        window_steps([f.X_BP for f in pivot], imaging.depth))]) if pivot else np.zeros(1)
+    poses = [f.X_BP for f in pivot]
+    angles = signed_pivot_angles([X.rotation() for X in poses])
+    legs = pivot_legs(angles)
+    truth = result.truth
+    coverage = None
+    if truth is not None:
+        geometry = ProbeGeometry.from_config(imaging)
+
+        def coverage():
+            return CoverageAccumulator(truth.kidney_points_B, truth.voxel_volume,
+                                       geometry.in_fan, imaging.elevation_width)
+    eff = sweep_efficiency(poses, [f.visible for f in pivot], imaging.depth, legs=legs,
+                           coverage=coverage, V_targets=V_TARGETS, angles=angles,
+                           max_tilt=ctrl.max_pivot_tilt)
+    ends = [float(np.rad2deg(angles[legs == k][np.argmax(np.abs(angles[legs == k]))]))
+            for k in (1, 2) if np.any(legs == k)]
     metrics = {
-        "n_frames": len(pivot),
-        "eps_mm": float(eps_curve[-1] * 1000) if pivot else 0.0,
-        "eps_curve_mm": (eps_curve * 1000).tolist(),
-        "volume_ratio": None, "volume_ratio_all_frames": None, "V_curve": [],
+        "n_frames": eff["n"], "eps_mm": eff["eps"] * 1000,
+        "eps_curve_mm": (eff["eps_curve"] * 1000).tolist(),
+        "n_whole_pivot": eff["n_whole_pivot"], "eps_whole_pivot_mm": eff["eps_whole_pivot"] * 1000,
+        "eps_whole_pivot_curve_mm": (eff["eps_whole_pivot_curve"] * 1000).tolist(),
+        "volume_ratio": eff["V"], "volume_ratio_whole_pivot": eff["V_whole_pivot"],
+        "volume_ratio_all_frames": None,
+        "V_curve": [] if eff["V_curve"] is None else eff["V_curve"].tolist(),
+        "V_whole_pivot_curve": ([] if eff["V_whole_pivot_curve"] is None
+                                else eff["V_whole_pivot_curve"].tolist()),
+        "at_matched_V": {f"{t:g}": {"pole_to_pole": _reach_mm(eff["at_V"][t]),
+                                    "whole_pivot": _reach_mm(eff["at_V_whole_pivot"][t])}
+                         for t in V_TARGETS},
+        "pivot": {"legs": int(legs.max()) if len(legs) else 0,
+                  "leg_end_tilt_deg": ends,
+                  "tilt_cap_deg": float(np.rad2deg(ctrl.max_pivot_tilt)),
+                  "tilt_cap_legs": eff["tilt_cap_legs"],
+                  "pole_to_pole_frames": ([int(eff["pole_to_pole"][0]),
+                                           int(eff["pole_to_pole"][-1])]
+                                          if len(eff["pole_to_pole"]) else [])},
         "e_trans_mm": None, "e_rot_x_deg": None,
     }
-    truth = result.truth
     if truth is None:
         return metrics
-    geometry = ProbeGeometry.from_config(imaging)
-    coverage = CoverageAccumulator(truth.kidney_points_B, truth.voxel_volume, geometry.in_fan,
-                                   imaging.elevation_width)
-    V_curve = [coverage.add_frame(f.X_BP) for f in pivot]
-    all_cov = CoverageAccumulator(truth.kidney_points_B, truth.voxel_volume, geometry.in_fan,
-                                  imaging.elevation_width)
+    all_cov = coverage()
     for f in result.frames:
         all_cov.add_frame(f.X_BP)
-    metrics.update(volume_ratio=float(V_curve[-1]) if V_curve else 0.0,
-                   volume_ratio_all_frames=all_cov.ratio, V_curve=V_curve)
+    metrics["volume_ratio_all_frames"] = all_cov.ratio
     if result.X_BK_estimated is not None:
         metrics["e_trans_mm"] = e_trans(result.X_BK_estimated, truth.X_BK) * 1000
         metrics["e_rot_x_deg"] = float(np.rad2deg(e_rot_x(result.X_BK_estimated, truth.X_BK)))
@@ -66,6 +109,16 @@ def _mode(scenario) -> str:
             f"{scenario.imaging.frame_rate_hz:.0f} Hz)")
 
 
+def _er_unit(controller) -> str:
+    """What the scan's ER multiplies (the controller's ``exploration_length``)."""
+    L_m = controller.kidney_length * 1000
+    if getattr(controller, "exploration_length", "fixed") == "estimated":
+        return (f"the kidney length estimated from the explored cloud (L_m = {L_m:g} mm until "
+                f"an estimate exists, clipped to [L_m / {controller.exploration_length_factor:g}"
+                f", {controller.exploration_length_factor:g} L_m])")
+    return f"the fixed kidney length L_m = {L_m:g} mm"
+
+
 def Summary(result: ScanResult, metrics: dict) -> dict:
     """The JSON summary of a scan (``summary.json``)."""
     loc = result.localization
@@ -85,7 +138,12 @@ def Summary(result: ScanResult, metrics: dict) -> dict:
         "e_trans_mm": metrics["e_trans_mm"], "e_rot_x_deg": metrics["e_rot_x_deg"],
         "eps_mm": metrics["eps_mm"], "n_frames": metrics["n_frames"],
         "volume_ratio": metrics["volume_ratio"],
+        "eps_whole_pivot_mm": metrics["eps_whole_pivot_mm"],
+        "n_whole_pivot": metrics["n_whole_pivot"],
+        "volume_ratio_whole_pivot": metrics["volume_ratio_whole_pivot"],
         "volume_ratio_all_frames": metrics["volume_ratio_all_frames"],
+        "at_matched_V": metrics["at_matched_V"], "pivot": metrics["pivot"],
+        "metric_definitions": METRIC_DEFINITIONS,
         "wall_s": result.wall_s, "sim_s": result.sim_s,
         "realtime_rate": result.sim_s / result.wall_s if result.wall_s > 0 else None,
         "phases": [{"phase": n, "start_s": a, "end_s": b, "duration_s": b - a}
@@ -98,11 +156,13 @@ def Summary(result: ScanResult, metrics: dict) -> dict:
                                         if loc.result is not None else None),
         "exploration_length": result.scenario.controller.exploration_length,
         "exploration_ratio": result.scenario.controller.exploration_ratio,
+        "exploration_ratio_unit": _er_unit(result.scenario.controller),
         "image_depth_m": result.scenario.imaging.depth,
         "start": (result.start_plan.summary() if result.start_plan is not None
                   else {"planner": "none" if result.scenario.hardware
                         else result.scenario.start.planner}),
         "segmenter": result.scenario.imaging.segmenter,
+        "registration_method": result.scenario.localization.method,
         "peak_force_n": float(np.max(force)) if len(force) else 0.0,
         "frames_total": len(result.frames),
         "safety_events": [str(e) for e in result.safety_events],

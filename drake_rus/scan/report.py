@@ -71,15 +71,20 @@ def plot_registration(result, path: Path) -> None:
 def plot_coverage(result, metrics: dict, path: Path) -> None:
     plt = _plt()
     fig, axes = plt.subplots(1, 3, figsize=(13, 4))
-    V = np.asarray(metrics["V_curve"])
-    eps = np.asarray(metrics["eps_curve_mm"])
-    axes[0].plot(np.arange(1, len(V) + 1), V, color="tab:green")
+    # Pole to pole (the paper's eps, n, V) and the whole pivot (both legs) beside it.
+    for key_V, key_eps, label, style in (
+            ("V_whole_pivot_curve", "eps_whole_pivot_curve_mm", "whole pivot (both legs)", ":"),
+            ("V_curve", "eps_curve_mm", "pole to pole (paper)", "-")):
+        V = np.asarray(metrics.get(key_V) or [])
+        eps = np.asarray(metrics.get(key_eps) or [])
+        if len(V):
+            axes[0].plot(np.arange(1, len(V) + 1), V, style, color="tab:green", label=label)
+            axes[1].plot(eps[:len(V)], V, style, color="tab:green", label=label)
     axes[0].set_xlabel("frames during the pivot, n")
     axes[0].set_ylabel("volume reconstruction ratio V")
     axes[0].set_ylim(0, 1.05)
     axes[0].grid(alpha=0.3)
-    if len(V):
-        axes[1].plot(eps[:len(V)], V, color="tab:green")
+    axes[0].legend(fontsize=7)
     axes[1].set_xlabel(r"imaging-window path length $\varepsilon$ (mm)")
     axes[1].set_ylabel("V")
     axes[1].set_ylim(0, 1.05)
@@ -96,8 +101,10 @@ def plot_coverage(result, metrics: dict, path: Path) -> None:
     axes[2].set_aspect("equal", adjustable="datalim")
     axes[2].legend(fontsize=7)
     V_text = "unknown" if metrics["volume_ratio"] is None else f"{metrics['volume_ratio']:.3f}"
-    fig.suptitle(f"Coverage: V = {V_text} after n = {metrics['n_frames']} "
-                 f"pivot frames, eps = {metrics['eps_mm']:.1f} mm")
+    whole = (f"; whole pivot n = {metrics['n_whole_pivot']}, eps = "
+             f"{metrics['eps_whole_pivot_mm']:.1f} mm" if "n_whole_pivot" in metrics else "")
+    fig.suptitle(f"Coverage pole to pole (paper): V = {V_text}, n = {metrics['n_frames']} "
+                 f"frames, eps = {metrics['eps_mm']:.1f} mm{whole}", fontsize=9)
     fig.tight_layout()
     _save(fig, path)
 

@@ -28,13 +28,22 @@ from drake_rus.scan.diagram import BuildScanDiagram, ScanHandles
 from drake_rus.scan.truth import AttachSimulationTruth, SimulationTruth
 from drake_rus.stations import MakeStation
 
-__all__ = ["RunScan", "PrepareScenario", "ScanResult", "ScanMonitor", "CollectScanResult",
-           "TERMINAL_PHASES"]
+__all__ = ["RunScan", "ExpectedScanTime", "PrepareScenario", "ScanResult", "ScanMonitor",
+           "CollectScanResult", "TERMINAL_PHASES"]
 
 TERMINAL_PHASES = (Phase.DONE, Phase.ABORT)
 # A live (hardware) run that falls this far (s) behind the wall clock is stopped: its
 # commands would reach the robot late.
 MAX_REALTIME_LAG = 0.25
+
+
+def ExpectedScanTime(scenario) -> float:
+    """About how long (simulated s) a scan with ``scenario`` takes when all goes well, for
+    the progress bar: landing, the exploration (ER x L_m at v_scan), LOCALIZE, TRANSIT and
+    a pivot through about 1 rad in all (out to both sides of r3*)."""
+    c = scenario.controller
+    explore = c.exploration_ratio * c.kidney_length / c.scan_speed
+    return 1.5 + explore + c.localize_hold_time + 0.5 + 2.0 + 1.0 / c.pivot_rate
 
 
 class ScanMonitor:
@@ -57,7 +66,7 @@ class ScanMonitor:
 @dataclasses.dataclass
 class ScanResult:
     """A finished scan: outcome, timing, what was recorded, and the truth if simulated."""
-    status: str                    # "DONE", "ABORT" or "TIMEOUT"
+    status: str                    # "DONE", "ABORT", "TIMEOUT" or "INTERRUPTED" (Ctrl-C)
     reason: str
     patient: str
     sim_s: float
@@ -77,6 +86,9 @@ class ScanResult:
     tracking_drift: tuple = ()
     # The start planner's choice (simulation; None for the vertical planner or hardware).
     start_plan: object = None
+    # Process CPU time (s) of the simulation loop (wall_s's counterpart, robust to other jobs
+    # on the machine; benchmarks report sim_s / cpu_s).
+    cpu_s: float = float("nan")
 
     @property
     def X_BK_true(self) -> RigidTransform | None:
@@ -224,7 +236,10 @@ def RunScan(scenario, patient, template, *, make_station: Callable = MakeStation
             return EventStatus.ReachedTermination(diagram, "scan finished")
         return EventStatus.Succeeded()
 
-    simulator.set_monitor(monitor)
+    # The scan's end is caught by the diagram's ScanTerminator (an event at the controller
+    # rate); a per-step monitor (Python after every plant step) only when monitors watch.
+    if monitors:
+        simulator.set_monitor(monitor)
     for m in monitors:
         m.attach(diagram, h, context)
     # A station that drives a real robot (it can stop() it) runs at real time, inside a
@@ -232,10 +247,12 @@ def RunScan(scenario, patient, template, *, make_station: Callable = MakeStation
     # and must keep up with the wall clock.
     live = callable(getattr(station, "stop", None))
     behind = []
+    interrupted = []
     if live:
         simulator.set_target_realtime_rate(1.0)
     simulator.Initialize()
     start = time.perf_counter()
+    cpu_start = time.process_time()
 
     def should_stop(root_context) -> bool:
         if live:
@@ -246,16 +263,26 @@ def RunScan(scenario, patient, template, *, make_station: Callable = MakeStation
         return phase_now() in TERMINAL_PHASES
 
     try:
-        with (HardwareSession(station) if live else contextlib.nullcontext()):
-            AdvanceWithProgress(simulator, max_sim_time, desc="scan",
-                                step=0.1 if live else 0.25,
-                                disable=None if progress is None else not progress,
-                                on_step=lambda c: phase_now().name, should_stop=should_stop)
+        try:
+            with (HardwareSession(station) if live else contextlib.nullcontext()):
+                AdvanceWithProgress(simulator, max_sim_time, desc="scan",
+                                    step=0.1 if live else 0.25,
+                                    disable=None if progress is None else not progress,
+                                    on_step=lambda c: phase_now().name,
+                                    should_stop=should_stop,
+                                    expected=ExpectedScanTime(scenario))
+                t_end = context.get_time()
+                if settle > 0.0 and not behind:
+                    stop_at_terminal[0] = False
+                    h.terminator.enabled = False
+                    simulator.AdvanceTo(t_end + settle)
+        except KeyboardInterrupt:
+            # Ctrl-C (or SIGTERM on hardware): the session has already commanded zero
+            # velocity; collect what there is (status INTERRUPTED).
+            interrupted.append(context.get_time())
             t_end = context.get_time()
-            if settle > 0.0 and not behind:
-                stop_at_terminal[0] = False
-                simulator.AdvanceTo(t_end + settle)
         wall = time.perf_counter() - start
+        cpu = time.process_time() - cpu_start
         for m in monitors:
             m.finish(context)
         name = patient.name if patient is not None else "patient on the bed"
@@ -267,8 +294,13 @@ def RunScan(scenario, patient, template, *, make_station: Callable = MakeStation
         if live and callable(getattr(station, "close", None)):
             station.close()
     result.sim_s = t_end
+    result.cpu_s = cpu
     result.start_plan = plan
-    if behind:
+    if interrupted:
+        result.status = "INTERRUPTED"
+        result.reason = (f"interrupted (Ctrl-C) at {t_end:.2f} s of simulated time, in "
+                         f"{phase_now().name}; the outputs are partial")
+    elif behind:
         result.status = "ABORT"
         result.reason = (f"the diagram fell {behind[0]:.2f} s behind real time at "
                          f"{t_end:.2f} s (limit {MAX_REALTIME_LAG:g} s): stopped at zero "

@@ -18,10 +18,14 @@ from pydrake.systems.primitives import LogVectorOutput
 
 from drake_rus.scan.diagram import LOG_PERIOD
 
-__all__ = ["SimulationTruth", "AttachSimulationTruth", "kidney_voxels_B"]
+__all__ = ["SimulationTruth", "AttachSimulationTruth", "kidney_voxels_B", "force_trace_stats",
+           "FORCE_LOG_PERIOD"]
 
 # Voxel size (m) of the true kidney for the volume ratio V (eq. 25).
 TRUTH_VOXEL = 0.002
+# Period (s) of the true contact-wrench log (read at call time; a validation run may log
+# faster to catch the landing peak).
+FORCE_LOG_PERIOD = LOG_PERIOD
 
 
 @dataclasses.dataclass
@@ -50,6 +54,33 @@ def AttachSimulationTruth(builder: DiagramBuilder, station, patient, scenario,
     force_log = None
     if station.HasOutputPort("probe_contact_wrench_true"):
         force_log = LogVectorOutput(station.GetOutputPort("probe_contact_wrench_true"),
-                                    builder, LOG_PERIOD)
+                                    builder, FORCE_LOG_PERIOD)
     return SimulationTruth(patient.X_BK(X_BPt), kidney_voxels_B(patient, X_BPt, voxel_size),
                            voxel_size**3, force_log)
+
+
+def force_trace_stats(result, settle: float = 0.5, landing_window: float = 1.0) -> dict:
+    """The true contact force F_z (N, positive pressing; from the ``force_true`` log) over a
+    finished scan: mean and ripple (standard deviation) in EXPLORE (after its first
+    ``settle`` s, the landing) and in PIVOT, and the landing peak (the largest force before
+    EXPLORE started plus ``landing_window`` s). Values are None when the phase did not occur
+    or the scan has no truth log."""
+    out = {"explore_mean_n": None, "explore_ripple_n": None, "pivot_mean_n": None,
+           "pivot_ripple_n": None, "landing_peak_n": None}
+    if "force_true" not in result.logs:
+        return out
+    t, wrench = result.logs["force_true"]
+    F = -np.asarray(wrench)[5]
+    phases = {name: (start, end) for name, start, end in result.phases}
+    for name, key, skip in (("EXPLORE", "explore", settle), ("PIVOT", "pivot", 0.0)):
+        if name in phases:
+            start, end = phases[name]
+            sel = (t >= start + skip) & (t <= end)
+            if sel.any():
+                out[f"{key}_mean_n"] = float(F[sel].mean())
+                out[f"{key}_ripple_n"] = float(F[sel].std())
+    landing_end = phases["EXPLORE"][0] + landing_window if "EXPLORE" in phases else t[-1]
+    sel = t <= landing_end
+    if sel.any():
+        out["landing_peak_n"] = float(F[sel].max())
+    return out

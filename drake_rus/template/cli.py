@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -12,7 +11,8 @@ from tqdm import tqdm
 from drake_rus.anatomy.cohort import cohort_seeds
 from drake_rus.anatomy.generator import generate_patient
 from drake_rus.cli import UserError
-from drake_rus.io_utils import save_figure
+from drake_rus.io_utils import dumps_strict, save_figure
+from drake_rus.progress import stderr_is_terminal
 from drake_rus.template.builder import build_template, save_template, subject_from_mask
 from drake_rus.template.io import DEFAULT_TEMPLATE_PATH, load_template
 
@@ -98,11 +98,12 @@ def _build(args) -> int:
     if out.suffix != ".npz":
         raise UserError(f"--out: expected a .npz file name, got {out}")
     t0 = time.time()
+    progress = not args.quiet and stderr_is_terminal()
     subjects = subjects_from_cohort(args.split, args.n, args.voxel_mm / 1000.0,
-                                    side=args.side, progress=not args.quiet)
+                                    side=args.side, progress=progress)
     t1 = time.time()
     result = build_template(subjects, n_points=args.points, use_features=not args.no_features,
-                            progress=not args.quiet)
+                            progress=progress)
     t2 = time.time()
     extra = {"split": args.split, "side": args.side, "voxel_mm": args.voxel_mm,
              "subject_seconds": round(t1 - t0, 2), "total_seconds": round(t2 - t0, 2),
@@ -123,17 +124,19 @@ def _build(args) -> int:
                                          for c in result.convergence["change"]],
                "seconds": {"subjects": round(t1 - t0, 1), "template": round(t2 - t1, 1),
                            "total": round(t2 - t0, 1)}}
-    print(json.dumps(summary, indent=2))
+    print(dumps_strict(summary, indent=2))
     return 0
 
 
 def _info(args) -> int:
+    if args.path is not None and Path(args.path).is_dir():
+        raise UserError(f"path: {args.path} is a folder; expected a template .npz file")
     try:
         t = load_template(args.path)
     except ValueError as e:
         raise UserError(str(e)) from None
     m = t.meta
-    print(json.dumps({
+    print(dumps_strict({
         "path": str(args.path or DEFAULT_TEMPLATE_PATH), "n_points": len(t.points),
         "n_subjects": m.get("n_subjects"), "n_modes": len(t.variances),
         "mode_sd_mm": [round(float(np.sqrt(v)) * 1e3, 2) for v in t.variances],
@@ -159,7 +162,7 @@ def add_commands(subparsers) -> None:
     b.add_argument("--no-features", action="store_true",
                    help="skip FPFH+RANSAC (ICP from the canonical frames only)")
     b.add_argument("--quiet", action="store_true", help="no progress bars")
-    b.set_defaults(func=_build)
+    b.set_defaults(func=_build, outputs={"out": "file:.npz", "png": "file:.png"})
     i = sub.add_parser("info", help="summary of a template file")
     i.add_argument("path", nargs="?", default=None)
     i.set_defaults(func=_info)
