@@ -52,3 +52,15 @@ def test_scan_bad_input_is_a_clear_error(tmp_path, capsys):
                      "--set", "{localization: {method: magic}}"]) == 2
     assert "'localization.method'" in capsys.readouterr().err
     assert not (tmp_path / "summary.json").exists()
+
+
+def test_predicted_end_pivot_through_the_cli(tmp_path):
+    """controller.pivot_strategy predicted_end reaches the scan diagram's supervisor (the
+    template and fan on its pivot_model input): the pivot is one sweep, not two legs."""
+    out = tmp_path / "scan"
+    code = cli_main(["scan", "--patient", "test:1", "--scenario", "quick", "--out", str(out),
+                     "--no-record", "--max-sim-time", "90", "--set",
+                     "{controller: {pivot_strategy: predicted_end}}"])
+    summary = json.loads((out / "summary.json").read_text())
+    assert code == 0 and summary["status"] == "DONE", summary["reason"]
+    assert summary["pivot"]["legs"] == 1 and summary["volume_ratio"] > 0.9

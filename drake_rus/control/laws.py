@@ -314,3 +314,50 @@ def solve_joint_velocities(q, xi_b, jacobian, *, q_min, q_max, dq_max,
     if not np.all(np.isfinite(qdot)):
         return np.zeros_like(q)
     return qdot
+
+
+# ----------------------------------------------------------------------------- pivot ends
+def pivot_end_angles(R_BK, p_BK, points_K, pivot_point, a0, o, *, probe_radius: float,
+                     half_angle: float, depth: float, slab_half_width: float,
+                     max_angle: float, step: float = math.radians(0.25)) -> tuple:
+    """Predicted tilt angles (rad) where the kidney leaves the image on each side of a pivot
+    (beyond the seed; its pivot is eq. 23).
+
+    The probe tip stays at ``pivot_point`` (B) and its approach vector a(theta) = a0 cos theta
+    + (o x a0) sin theta turns about the array direction ``o`` (eq. 23's sign: positive
+    theta is a positive rotation about o). The probe frame at theta is x_P = o, z_P = a,
+    y_P = a x o (origin at the tip, the face centre). A template point (``points_K``, in K,
+    placed by X_BK = (R_BK, p_BK)) is imaged when it lies in the image plane's slab
+    |y_P| <= ``slab_half_width`` and inside the curvilinear fan (apex ``probe_radius`` behind
+    the face, |scan-line angle| <= ``half_angle``, 0 <= depth along the line <= ``depth``).
+
+    Returns (theta_plus >= 0, theta_minus <= 0): on each side the largest tilt (on a grid of
+    ``step``, up to ``max_angle``) at which some point is imaged; 0 on a side where none is
+    imaged past the start; +-``max_angle`` when the kidney is still imaged there.
+    """
+    o = np.asarray(o, float).reshape(3)
+    o = o / np.linalg.norm(o)
+    a0 = np.asarray(a0, float).reshape(3)
+    a0 = a0 - float(a0 @ o) * o
+    a0 = a0 / np.linalg.norm(a0)
+    b0 = np.cross(o, a0)                     # a(theta) = a0 cos + b0 sin
+    q = (np.asarray(points_K, float).reshape(-1, 3) @ np.asarray(R_BK, float).T
+         + np.asarray(p_BK, float).reshape(3) - np.asarray(pivot_point, float).reshape(3))
+    x = q @ o                                # along the array: unchanged by the tilt
+    qa, qb = q @ a0, q @ b0
+    n = max(1, int(math.ceil(max_angle / step)))
+    ends = []
+    for side in (1.0, -1.0):
+        th = side * np.linspace(0.0, max_angle, n + 1)           # (T,)
+        c, s = np.cos(th)[:, None], np.sin(th)[:, None]
+        z = qa[None, :] * c + qb[None, :] * s                    # along a(theta)
+        # y_P = (a x o) . q with a x o = a0 sin - b0 cos:
+        y = qa[None, :] * s - qb[None, :] * c
+        zc = z + probe_radius
+        line = np.arctan2(x[None, :], zc)
+        d = np.hypot(x[None, :], zc) - probe_radius
+        seen = ((np.abs(y) <= slab_half_width) & (np.abs(line) <= half_angle)
+                & (d >= 0.0) & (d <= depth)).any(axis=1)
+        idx = np.flatnonzero(seen)
+        ends.append(float(th[idx[-1]]) if len(idx) else 0.0)
+    return ends[0], ends[1]

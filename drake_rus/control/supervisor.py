@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from drake_rus.control.laws import angle_between, cross3
+from drake_rus.control.laws import angle_between, cross3, pivot_end_angles
 
 
 # ----------------------------------------------------------------------------- eq. 17
@@ -109,6 +109,20 @@ class Phase(enum.IntEnum):
 
 
 @dataclasses.dataclass
+class PivotModel:
+    """What the ``predicted_end`` pivot strategy needs to predict where the kidney leaves the
+    image: the registration template's points in K (m) and the probe's fan (m, rad)."""
+    points_K: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3)))
+    probe_radius: float = 0.05
+    half_angle: float = math.radians(20.0)
+    depth: float = 0.15
+    slab_half_width: float = 0.005
+
+    def __deepcopy__(self, memo):   # never changed in place: clones may share it
+        return self
+
+
+@dataclasses.dataclass
 class SupervisorState:
     """Everything the ScanSupervisor remembers between control periods."""
     phase: Phase = Phase.APPROACH
@@ -127,6 +141,13 @@ class SupervisorState:
     pivot_angle: float = 0.0         # tilt of a_des from r3* about o_des (rad), signed
     pivot_legs_done: int = 0
     pivot_limits: tuple = ()         # tilt angles (rad) where each leg ended
+    # predicted_end strategy: (theta_plus, theta_minus) predicted ends (rad), the pre-tilt
+    # stage in TRANSIT (0 none/not yet, 1 tilting to the target, 2 at it: checking the
+    # kidney is out of the image) and side (+-1) and target tilt (rad).
+    pivot_ends: tuple = ()
+    pretilt_stage: int = 0
+    pretilt_side: float = 1.0
+    pretilt_target: float = 0.0
     paused: bool = False             # exploration/pivot motion held (outside a breath-hold)
     paused_time: float = 0.0         # total time (s) motion was held
     a_star: np.ndarray = dataclasses.field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
@@ -176,6 +197,8 @@ class SupervisorInputs:
     # The localizer's estimate of the kidney's length along its long axis (m; NaN until
     # known): with ``exploration_length: estimated`` EXPLORE ends at ER times it.
     kidney_length_estimate: float = math.nan
+    # The template and fan for the predicted_end pivot strategy (None: two_leg).
+    pivot_model: PivotModel | None = None
 
 
 def _goto(s: SupervisorState, phase: Phase, t: float, message: str) -> SupervisorState:
@@ -344,15 +367,94 @@ def _localize(s, u, R, p, cfg, dt):
                  f"p* = ({p_star[0]:.4f}, {p_star[1]:.4f}, {p_star[2]:.4f}) m")
 
 
+def predicted_pivot_ends(s: SupervisorState, model: PivotModel, u: SupervisorInputs, p,
+                         cfg) -> tuple:
+    """(theta_plus, theta_minus) (rad): where the registered template leaves the image on
+    each side of a pivot about the tip ``p`` turning a_des about o_des (laws.pivot_end_angles)."""
+    return pivot_end_angles(
+        u.R_BK, u.p_BK, model.points_K, p, s.a_des, s.o_des,
+        probe_radius=model.probe_radius, half_angle=model.half_angle, depth=model.depth,
+        slab_half_width=model.slab_half_width, max_angle=cfg.max_pivot_tilt)
+
+
+def _start_pivot(s, t, message, direction=1.0):
+    s.pivot_direction = direction
+    return _goto(s, Phase.PIVOT, t, message)
+
+
+def _pretilt(s, u, R, cfg, dt):
+    """predicted_end strategy, end of TRANSIT: stage 1 tilts (pretilt_rate, decelerating
+    into it) to the target past the predicted end; stage 2, there, waits until the kidney
+    has been out of the image for visibility_debounce, tilting on at pivot_rate while it is
+    still seen, up to the maximum tilt; then PIVOT sweeps back once (as a second leg)."""
+    side = s.pretilt_side
+    if s.pretilt_stage == 1:
+        remaining = max(0.0, side * (s.pretilt_target - s.pivot_angle))
+        v_max = min(cfg.pretilt_rate, math.sqrt(2.0 * cfg.pivot_acceleration * remaining))
+        s.pivot_speed = _ramp(s.pivot_speed, side * v_max, cfg.pivot_acceleration * dt)
+        if side * s.pivot_speed * dt > remaining:
+            s.pivot_speed = side * remaining / dt
+        _pivot_advance(s, cfg, dt)
+        remaining = side * (s.pretilt_target - s.pivot_angle)
+        if remaining <= 1e-6 and angle_between(R[:, 2], s.a_des) <= cfg.transit_angle_tolerance:
+            s.pretilt_stage = 2
+            s.invisible_since = math.nan
+            s.events = s.events + ((u.t, "TRANSIT",
+                                    f"pre-tilt at {math.degrees(s.pivot_angle):.1f} deg"),)
+        return s
+    if not u.motion_allowed:
+        s.pivot_speed = _ramp(s.pivot_speed, 0.0, cfg.pivot_acceleration * dt)
+        _pivot_advance(s, cfg, dt)
+        return _hold_motion(s, dt)
+    s.paused = False
+    gone = _update_visibility(s, u, cfg.visibility_debounce)
+    at_tilt = abs(s.pivot_angle) >= cfg.max_pivot_tilt - 1e-9
+    if gone or at_tilt:
+        why = "kidney out of the image" if gone else "maximum tilt"
+        s.pivot_limits = (s.pivot_angle,)
+        s.pivot_legs_done = 1
+        s.expect_invisible = True
+        return _start_pivot(s, u.t, f"from the predicted end at "
+                            f"{math.degrees(s.pivot_angle):.1f} deg ({why})", -side)
+    target = side * cfg.pivot_rate if u.kidney_visible else 0.0
+    s.pivot_speed = _ramp(s.pivot_speed, target, cfg.pivot_acceleration * dt)
+    _pivot_advance(s, cfg, dt)
+    return s
+
+
 def _transit(s, u, R, p, cfg, dt):
-    """Slide to (p_x*, p_y*) with a_des = r3*, o_des = r1*; PIVOT when there and aligned."""
+    """Slide to (p_x*, p_y*) with a_des = r3*, o_des = r1*; PIVOT when there and aligned.
+    With ``pivot_strategy: predicted_end`` (and a pivot model) the probe then tilts to the
+    predicted end of the nearer side first (``_pretilt``)."""
+    if s.pretilt_stage:
+        if u.t - s.phase_start > 2 * cfg.transit_timeout:
+            s.reason = f"TRANSIT timeout: pre-tilt at {math.degrees(s.pivot_angle):.1f} deg"
+            return _goto(s, Phase.ABORT, u.t, s.reason)
+        return _pretilt(s, u, R, cfg, dt)
     dist = float(np.linalg.norm(p[:2] - s.p_star[:2]))
     ang = max(angle_between(R[:, 2], s.a_des), angle_between(R[:, 0], s.o_des))
     if dist <= cfg.transit_position_tolerance and ang <= cfg.transit_angle_tolerance:
-        s.pivot_direction = 1.0
         s.pivot_speed = 0.0
         s.pivot_angle = 0.0
-        return _goto(s, Phase.PIVOT, u.t, f"at p* ({dist * 1e3:.2f} mm)")
+        model = u.pivot_model
+        if cfg.pivot_strategy == "predicted_end":
+            if model is None or len(model.points_K) == 0:
+                return _start_pivot(s, u.t, f"at p* ({dist * 1e3:.2f} mm); no pivot model: "
+                                    "two-leg pivot")
+            plus, minus = predicted_pivot_ends(s, model, u, p, cfg)
+            s.pivot_ends = (plus, minus)
+            s.pretilt_side = 1.0 if plus <= -minus else -1.0
+            end = plus if s.pretilt_side > 0 else minus
+            s.pretilt_target = float(np.clip(end + s.pretilt_side * cfg.pivot_end_margin,
+                                             -cfg.max_pivot_tilt, cfg.max_pivot_tilt))
+            s.pretilt_stage = 1
+            s.events = s.events + ((u.t, "TRANSIT",
+                                    f"at p* ({dist * 1e3:.2f} mm); predicted ends "
+                                    f"{math.degrees(plus):.1f} / {math.degrees(minus):.1f} "
+                                    f"deg: pre-tilt to "
+                                    f"{math.degrees(s.pretilt_target):.1f} deg"),)
+            return s
+        return _start_pivot(s, u.t, f"at p* ({dist * 1e3:.2f} mm)")
     if u.t - s.phase_start > cfg.transit_timeout:
         s.reason = f"TRANSIT timeout: {dist * 1e3:.1f} mm from p*"
         return _goto(s, Phase.ABORT, u.t, s.reason)
@@ -372,6 +474,10 @@ def _pivot(s, u, R, p, cfg, dt):
         s.expect_invisible = False
     # On the second leg, only a loss past the start (on the new side) ends the sweep.
     on_new_side = s.pivot_legs_done == 0 or s.pivot_angle * s.pivot_direction > 0
+    if on_new_side and s.pivot_ends and s.pivot_legs_done == 1:
+        # predicted_end: the single sweep ends near the predicted other end or beyond.
+        other = s.pivot_ends[0] if s.pivot_direction > 0 else s.pivot_ends[1]
+        on_new_side = abs(s.pivot_angle) >= abs(other) - cfg.pivot_end_tolerance - 1e-9
     at_tilt = abs(s.pivot_angle) >= cfg.max_pivot_tilt - 1e-9 and on_new_side
     if (left and on_new_side) or at_tilt:
         why = "kidney left the image" if (left and on_new_side) else "maximum tilt"

@@ -221,7 +221,9 @@ class ScanSupervisor(LeafSystem):
     gating, 0 outside breath-holds holds exploration and pivot motion); tracking_error
     (str; optional: "" while the kidney stays where localization put it, else why not);
     kidney_length_estimate (1, m; optional, NaN if unconnected: the localizer's estimate of
-    the kidney's length, which ends EXPLORE with ``exploration_length: estimated``).
+    the kidney's length, which ends EXPLORE with ``exploration_length: estimated``);
+    pivot_model (supervisor.PivotModel; optional: the template points and fan the
+    ``predicted_end`` pivot strategy predicts the pivot's ends with; unconnected: two-leg).
     Outputs: a_des (3), o_des (3), a_des_dot (3, 1/s), P_des (2, m), F_des (1, N), all in B;
     phase (1, supervisor.Phase value, e.g. the localizer's trigger); segmentation_required (1, 0/1);
     exploring (1, 0/1: enable of the point-cloud accumulator); abort (1, 0/1);
@@ -247,6 +249,8 @@ class ScanSupervisor(LeafSystem):
         self._motion = self.DeclareVectorInputPort("motion_allowed", 1)
         self._tracking = self.DeclareAbstractInputPort("tracking_error", AbstractValue.Make(""))
         self._length = self.DeclareVectorInputPort("kidney_length_estimate", 1)
+        self._pivot_model = self.DeclareAbstractInputPort(
+            "pivot_model", AbstractValue.Make(supervisor.PivotModel()))
         self._s = self.DeclareAbstractState(AbstractValue.Make(supervisor.SupervisorState()))
         self.DeclarePeriodicUnrestrictedUpdateEvent(self._dt, 0.0, self._update)
         S = lambda ctx: ctx.get_abstract_state(0).get_value()  # noqa: E731
@@ -297,7 +301,9 @@ class ScanSupervisor(LeafSystem):
             motion_allowed=_optional_scalar(self._motion, context, 1.0) > 0.5,
             tracking_error=(self._tracking.Eval(context)
                             if self._tracking.HasValue(context) else ""),
-            kidney_length_estimate=_optional_scalar(self._length, context, math.nan))
+            kidney_length_estimate=_optional_scalar(self._length, context, math.nan),
+            pivot_model=(self._pivot_model.Eval(context)
+                         if self._pivot_model.HasValue(context) else None))
         new = supervisor.supervisor_step(self.state(context), u, self._cfg, self._dt)
         state.get_mutable_abstract_state(0).set_value(new)
 

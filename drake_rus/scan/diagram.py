@@ -14,16 +14,17 @@ it; simulation only) and ``breath_hold`` (respiration-aware scanning). Simulatio
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import DiagramBuilder, EventStatus, LeafSystem
-from pydrake.systems.primitives import LogVectorOutput
+from pydrake.systems.primitives import ConstantValueSource, LogVectorOutput
 
 from drake_rus.config_schema import ScenarioError
 from drake_rus.control.diagram import AddController
-from drake_rus.control.supervisor import Phase
+from drake_rus.control.supervisor import Phase, PivotModel
 from drake_rus.imaging.frames import UsFrame
 from drake_rus.imaging.systems import PointCloudAccumulator, Segmenter
 from drake_rus.localization.localize import IcpLocalizer, body_directions_B
@@ -162,6 +163,16 @@ def _breath_hold_port(scenario, station):
     return station.GetOutputPort("breath_hold")
 
 
+def PivotModelFor(template, imaging) -> PivotModel:
+    """The supervisor's pivot model: the registration template's points in K (m) and the
+    fan of the probe at the scan's depth (m, rad), with half the elevational beam width as
+    the image slab."""
+    return PivotModel(points_K=np.asarray(template.points, float),
+                      probe_radius=imaging.probe_radius,
+                      half_angle=math.radians(imaging.field_of_view_deg) / 2,
+                      depth=imaging.depth, slab_half_width=imaging.elevation_width / 2)
+
+
 def BuildScanDiagram(scenario, station, template, *, builder: DiagramBuilder | None = None):
     """Adds ``station`` (any station) and the scan around it to ``builder`` (default: a new
     one). Returns ``(builder, ScanHandles)``; the caller may add observers (simulation
@@ -201,6 +212,11 @@ def BuildScanDiagram(scenario, station, template, *, builder: DiagramBuilder | N
                     supervisor.GetInputPort("exploration_sufficient"))
     builder.Connect(localizer.GetOutputPort("kidney_length_estimate"),
                     supervisor.GetInputPort("kidney_length_estimate"))
+    # What the predicted_end pivot strategy predicts the kidney's ends from (unused by the
+    # paper's two-leg pivot): the template in K and the probe's fan.
+    model = builder.AddNamedSystem("pivot_model", ConstantValueSource(AbstractValue.Make(
+        PivotModelFor(template, scenario.imaging))))
+    builder.Connect(model.get_output_port(0), supervisor.GetInputPort("pivot_model"))
     exploring = builder.AddNamedSystem("exploring", PhaseIs(Phase.EXPLORE))
     builder.Connect(phase, exploring.get_input_port(0))
     enable = exploring.get_output_port(0)
