@@ -117,7 +117,8 @@ def run_one(scenario, patient_name: str) -> dict:
         "rtf_scan_cpu": round(result.sim_s / result.cpu_s, 3),
         "setup_s": round(loaded - start + total - result.wall_s, 2),
         "phases": {p["phase"]: round(p["duration_s"], 2) for p in summary["phases"]},
-        "pivot_frames": summary.get("n_frames"),
+        "pivot_frames_pole_to_pole": summary.get("n_frames"),
+        "pivot_frames_whole_pivot": summary.get("n_whole_pivot"),
         "volume_ratio": summary["volume_ratio"], "e_trans_mm": summary["e_trans_mm"],
         "e_rot_x_deg": summary["e_rot_x_deg"],
     }

@@ -192,9 +192,11 @@ def analyze_efficiency(results: list[dict], alpha: float = 0.05, V_target: float
     keys = ("n", "eps_mm", "V", "n_whole_pivot", "eps_whole_pivot_mm", "V_whole_pivot",
             "n_at_V", "eps_at_V_mm", "n_at_V_whole_pivot", "eps_at_V_whole_pivot_mm",
             "volume_error_pct")
-    per = {s: {k: [] for k in keys} | {"tilt_cap_legs": []} for s in STRATEGY_ORDER}
+    # The strategies every run has (closed-loop runs have OP only), in the report's order.
+    order = [s for s in STRATEGY_ORDER if results and all(s in r["strategies"] for r in results)]
+    per = {s: {k: [] for k in keys} | {"tilt_cap_legs": []} for s in order}
     for r in results:
-        for s in STRATEGY_ORDER:
+        for s in order:
             e = r["strategies"][s]
             for k in ("n", "eps_mm", "V", "n_whole_pivot", "eps_whole_pivot_mm",
                       "V_whole_pivot", "volume_error_pct"):
@@ -205,7 +207,7 @@ def analyze_efficiency(results: list[dict], alpha: float = 0.05, V_target: float
             per[s]["eps_at_V_whole_pivot_mm"].append(_at(e, tgt, "at_V_whole_pivot", "eps_mm"))
             per[s]["tilt_cap_legs"].append(list(e.get("tilt_cap_legs") or []))
     summary = {}
-    for s in STRATEGY_ORDER:
+    for s in order:
         summary[s] = {k: mean_sd(per[s][k]) for k in keys}
         ve = [abs(x) for x in per[s]["volume_error_pct"] if x is not None]
         summary[s]["abs_volume_error_pct"] = mean_sd(ve)
@@ -214,10 +216,10 @@ def analyze_efficiency(results: list[dict], alpha: float = 0.05, V_target: float
         summary[s]["tilt_cap_patients"] = int(sum(bool(x) for x in per[s]["tilt_cap_legs"]))
         summary[s]["tilt_cap_leg_counts"] = {
             str(leg): int(sum(leg in x for x in per[s]["tilt_cap_legs"])) for leg in (1, 2)}
-    others = [s for s in STRATEGY_ORDER if s != "OP"]
+    others = [s for s in order if s != "OP"] if "OP" in order else []
     families = dict(EFFICIENCY_DEFINITIONS)
     families[f"at_V{tgt}"] = ("n_at_V", "eps_at_V_mm")
-    m = 2 * len(others)
+    m = max(1, 2 * len(others))
     comparisons = []
     for definition, metric_keys in families.items():
         for s in others:

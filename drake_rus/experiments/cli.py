@@ -1,6 +1,10 @@
 """``drake-rus study er-sweep|starts|efficiency|paper``: the seed's section III studies.
 
-Every run is kinematic (planned probe poses, no robot dynamics) and executed through Dask:
+Every run is kinematic (planned probe poses, no robot dynamics; the fast twin, default) or,
+with ``--mode closed-loop``, a full closed-loop scan on the Drake diagram (same run record;
+tables, figures and report in OUT/closed-loop, runs in OUT/runs beside the kinematic ones,
+and ``paper``'s report puts both modes side by side when both are in OUT). Runs go through
+Dask:
 an embedded LocalCluster of ``--workers`` processes by default, or ``--scheduler
 tcp://HOST:PORT``. Each run's result is written to OUT/runs/ as it finishes; running the
 same command again resumes (finished runs are skipped). Tables (CSV), figures (PNG) and,
@@ -20,12 +24,15 @@ from drake_rus.batch import result_path, run_tasks
 from drake_rus.demo import add_scenario_arguments
 from drake_rus.experiments.analysis import STRATEGY_ORDER
 from drake_rus.experiments.report import (
-    report_markdown, write_closed_loop_outputs, write_efficiency_outputs,
-    write_er_sweep_outputs, write_starts_outputs, write_template_outputs)
+    CLOSED_LOOP, KINEMATIC, report_markdown, write_closed_loop_outputs,
+    write_efficiency_outputs, write_er_sweep_outputs, write_starts_outputs,
+    write_template_outputs)
+from drake_rus.experiments.analysis import (
+    analyze_efficiency, analyze_er_sweep, analyze_starts)
 from drake_rus.experiments.tasks import (
-    ER_GRID, TEMPLATE_VARIANTS, StudyOptions, closed_loop_tasks, efficiency_tasks,
-    er_sweep_tasks, expand_patients, load_study_results, run_id, run_task, starts_tasks,
-    template_tasks)
+    ER_GRID, MODES, TEMPLATE_VARIANTS, StudyOptions, check_strategies, closed_loop_tasks,
+    default_strategies, efficiency_tasks, er_sweep_tasks, expand_patients, load_study_results,
+    run_id, run_task, starts_tasks, template_tasks)
 from drake_rus.io_utils import MB, dumps_strict, output_dir, write_text_atomic
 from drake_rus.progress import stderr_is_terminal
 from drake_rus.scenario import LoadScenario
@@ -35,7 +42,8 @@ STUDY_OUTPUT_BYTES = 50 * MB
 
 
 def add_commands(subparsers) -> None:
-    p = subparsers.add_parser("study", help="the seed paper's studies (kinematic, Dask)",
+    p = subparsers.add_parser("study", help="the seed paper's studies (kinematic or closed "
+                                            "loop, Dask)",
                               description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="study", metavar="STUDY")
@@ -66,6 +74,10 @@ def add_commands(subparsers) -> None:
         q.add_argument("--method", default="seed", choices=["seed", "deformable"],
                        help="localization method (default seed, the paper's)")
         q.add_argument("--seed", type=int, default=0, help="study seed (random starts)")
+        q.add_argument("--mode", default="kinematic", choices=list(MODES),
+                       help="kinematic: the fast twin (planned probe poses, default); "
+                            "closed-loop: every run a full closed-loop scan on the Drake "
+                            "diagram (outputs in OUT/closed-loop)")
         q.add_argument("--er-unit", default="kidney", choices=["kidney", "fixed"],
                        help="what ER multiplies: the patient's kidney length (default, the "
                             "paper's simulation) or the fixed L_m = 100 mm (its in-vivo rule)")
@@ -80,6 +92,9 @@ def add_commands(subparsers) -> None:
             q.add_argument("--recon-spacing", type=float, default=0.001,
                            help="voxel size (m) of the kidney volume reconstruction "
                                 "(default 0.001)")
+            q.add_argument("--strategies", default=None,
+                           help="comma list of OP, GT-OP, NOP, SL (default all in kinematic "
+                                "mode; OP, the only one, in closed-loop mode)")
             q.add_argument("--no-nrrd", action="store_true",
                            help="do not export the OP/GT-OP reconstructions to OUT/volumes "
                                 "as NRRD")
@@ -126,7 +141,57 @@ def _options(args):
     return StudyOptions(scenario=args.scenario, scenarios_file=args.scenarios_file,
                         overrides=args.overrides, segmenter=args.segmenter, method=args.method,
                         voxel=float(args.voxel), seed=int(args.seed), recon_spacing=recon,
-                        er_unit=getattr(args, "er_unit", "kidney"))
+                        er_unit=getattr(args, "er_unit", "kidney"),
+                        mode=getattr(args, "mode", "kinematic"))
+
+
+def _strategies(args, mode):
+    text = getattr(args, "strategies", None)
+    if not text:
+        return default_strategies(mode)
+    return check_strategies(text.split(","), mode)
+
+
+def _mode_dir(out: Path, mode: str) -> Path:
+    """Where a mode's tables, figures and report go: OUT (kinematic) or OUT/closed-loop."""
+    if mode == "closed-loop":
+        (out / "closed-loop").mkdir(exist_ok=True)
+        return out / "closed-loop"
+    return out
+
+
+def _other_mode(out: Path, patients, mode: str, rule: str) -> dict | None:
+    """The other mode's analyses from OUT, if it holds them (for the side-by-side report):
+    {"mode", "er", "starts", "eff"}, None for a study it lacks. Its starts and efficiency
+    runs are those at the ER its own paper study used (its critical ER may differ)."""
+    other = "kinematic" if mode == "closed-loop" else "closed-loop"
+    meta_path = _mode_dir(out, other) / "study_paper.json"
+    er = json.loads(meta_path.read_text()).get("er") if meta_path.exists() else None
+    wanted = set(patients)
+    found = {}
+    for study, key in (("er-sweep", "er"), ("starts", "starts"), ("efficiency", "eff")):
+        rs = _usable([r for r in load_study_results(out, study)
+                      if r["task"].get("mode", "kinematic") == other and r["patient"] in wanted
+                      and (study == "er-sweep" or (er is not None and abs(r["er"] - er) < 1e-6))])
+        if not rs:
+            continue
+        try:
+            if study == "er-sweep":
+                found[key] = analyze_er_sweep(rs, rule=rule)
+            elif study == "starts":
+                found[key] = analyze_starts(rs)
+            else:
+                found[key] = analyze_efficiency(rs)
+        except (ValueError, KeyError, ZeroDivisionError):
+            continue
+    if not found:
+        return None
+    return dict(found, mode=CLOSED_LOOP if other == "closed-loop" else KINEMATIC)
+
+
+def _usable(results):
+    """Runs with a localization (a closed-loop scan that stopped before it has none)."""
+    return [r for r in results if r.get("e_trans_mm") is not None]
 
 
 def _critical_er(out: Path, default: float = 0.6) -> float:
@@ -148,6 +213,8 @@ def run_study_command(args) -> int:
                  scenario_text=args.overrides)
     if args.study in ("er-sweep", "paper"):
         _ers(args.ers)
+    if args.study in ("efficiency", "paper"):
+        _strategies(args, options.mode)
     if args.study == "template":
         try:
             template_tasks([], options, 0.6, [v.strip() for v in args.variants.split(",")
@@ -169,6 +236,19 @@ def _study(args, patients, options, out: Path) -> int:
     t0 = time.perf_counter()
     failed = []
     er_an = starts_an = eff_an = None
+    mode = options.mode
+    mode_text = CLOSED_LOOP if mode == "closed-loop" else KINEMATIC
+    dest = _mode_dir(out, mode)
+    unusable = {}
+
+    def usable(study, results):
+        ok = _usable(results)
+        if len(ok) < len(results):
+            unusable[study] = [f"{r['run_id']}: {r.get('status', '?')} {r.get('reason', '')}"
+                               for r in results if r.get("e_trans_mm") is None]
+            print(f"{study}: {len(results) - len(ok)} run(s) without a localization left "
+                  "out of the analysis", file=sys.stderr, flush=True)
+        return ok
 
     counts = {"done": 0, "skipped": 0}
 
@@ -200,34 +280,35 @@ def _study(args, patients, options, out: Path) -> int:
         t = time.perf_counter()
         go(tasks, "er-sweep")
         ran["er-sweep"] = time.perf_counter() - t
-        results = _of(load_study_results(out, "er-sweep"), tasks)
-        er_an = write_er_sweep_outputs(out, results, rule=args.critical_er_rule)
+        results = usable("er-sweep", _of(load_study_results(out, "er-sweep"), tasks))
+        er_an = write_er_sweep_outputs(dest, results, rule=args.critical_er_rule,
+                                       mode=mode_text)
         print(f"er-sweep: critical ER {er_an['critical_er'] * 100:.0f}% "
               f"({len(results)} runs)", flush=True)
     er = getattr(args, "er", None)
     if er is None:
-        er = er_an["critical_er"] if er_an else _critical_er(out)
+        er = er_an["critical_er"] if er_an else _critical_er(dest)
     if args.study in ("starts", "paper"):
         tasks = starts_tasks(patients, options, er, args.starts)
         t = time.perf_counter()
         go(tasks, "starts")
         ran["starts"] = time.perf_counter() - t
-        results = _of(load_study_results(out, "starts"), tasks)
-        starts_an = write_starts_outputs(out, results)
+        results = usable("starts", _of(load_study_results(out, "starts"), tasks))
+        starts_an = write_starts_outputs(dest, results, mode=mode_text)
         print(f"starts at ER {er * 100:.0f}%: any significant difference: "
               f"{starts_an['any_significant']}", flush=True)
     if args.study in ("efficiency", "paper"):
         export = None if args.no_nrrd else (out / "volumes").resolve()
-        tasks = efficiency_tasks(patients, options, er, export)
+        tasks = efficiency_tasks(patients, options, er, export, _strategies(args, mode))
         t = time.perf_counter()
         go(tasks, "efficiency")
         ran["efficiency"] = time.perf_counter() - t
-        results = _of(load_study_results(out, "efficiency"), tasks)
-        eff_an = write_efficiency_outputs(out, results)
+        results = usable("efficiency", _of(load_study_results(out, "efficiency"), tasks))
+        eff_an = write_efficiency_outputs(dest, results, mode=mode_text)
         s = eff_an["summary"]
         print("efficiency (pole to pole): " + "; ".join(
             f"{k} n {s[k]['n'][0]:.0f} eps {s[k]['eps_mm'][0]:.1f} mm V {s[k]['V'][0]:.3f}"
-            for k in STRATEGY_ORDER), flush=True)
+            for k in STRATEGY_ORDER if k in s), flush=True)
     template_an = None
     if args.study == "template":
         variants = [v.strip() for v in args.variants.split(",") if v.strip()]
@@ -235,14 +316,14 @@ def _study(args, patients, options, out: Path) -> int:
         t = time.perf_counter()
         go(tasks, "template")
         ran["template"] = time.perf_counter() - t
-        template_an = write_template_outputs(out, _of(load_study_results(out, "template"),
-                                                      tasks))
+        template_an = write_template_outputs(
+            dest, usable("template", _of(load_study_results(out, "template"), tasks)))
         print("template: " + "; ".join(
             f"{r['variant']} d {r['template_distance_mm_mean']:.1f} mm, E_trans "
             f"{r['e_trans_mm_mean']:.1f} mm, E_rot,x {r['e_rot_x_deg_mean']:.1f} deg"
             for r in template_an["rows"]), flush=True)
     closed = None
-    if args.study == "paper" and args.closed_loop > 0:
+    if args.study == "paper" and args.closed_loop > 0 and mode == "kinematic":
         scenario = LoadScenario(filename=args.scenarios_file, scenario_name=args.scenario,
                                 scenario_text=args.overrides)
         tasks = closed_loop_tasks(patients[:args.closed_loop], options,
@@ -251,18 +332,19 @@ def _study(args, patients, options, out: Path) -> int:
         go(tasks, "closed-loop")
         ran["closed-loop"] = time.perf_counter() - t
         closed = _of(load_study_results(out, "closed-loop"), tasks)
-        write_closed_loop_outputs(out, closed)
+        write_closed_loop_outputs(dest, closed)
     wall = time.perf_counter() - t0
     meta = {"study": args.study, "patients": patients, "segmenter": options.segmenter,
             "method": options.method, "voxel": options.voxel, "seed": options.seed,
             "workers": args.workers, "scheduler": args.scheduler, "wall_s": wall,
             "stage_wall_s": ran, "er": er, "er_unit": options.er_unit,
             "critical_er_rule": getattr(args, "critical_er_rule", None),
-            "mode": "kinematic" + (" (+ closed-loop check)" if closed else ""),
+            "mode": mode + (" (+ closed-loop check)" if closed else ""),
+            "mode_text": mode_text, "runs_without_localization": unusable,
             "failed_runs": failed,
             "runs_done": counts["done"], "runs_skipped": counts["skipped"]}
     # Keep the history of invocations: a resumed study's wall time covers only what it ran.
-    meta_path = out / f"study_{args.study}.json"
+    meta_path = dest / f"study_{args.study}.json"
     history = []
     if meta_path.exists():
         try:
@@ -276,14 +358,18 @@ def _study(args, patients, options, out: Path) -> int:
         "wall_s", "stage_wall_s", "runs_done", "runs_skipped", "workers", "scheduler")}]
     write_text_atomic(meta_path, dumps_strict(meta, indent=1))
     if args.study == "template":
-        write_text_atomic(out / "report.md", report_markdown(meta, None, None, None, None,
-                                                             template_an))
-        print(f"wrote {out / 'report.md'}", flush=True)
+        write_text_atomic(dest / "report.md", report_markdown(meta, None, None, None, None,
+                                                              template_an))
+        print(f"wrote {dest / 'report.md'}", flush=True)
     if args.study == "paper":
-        write_text_atomic(out / "report.md",
-                          report_markdown(meta, er_an, starts_an, eff_an, closed))
-        print(f"wrote {out / 'report.md'}", flush=True)
-    print(f"study {args.study}: {wall:.0f} s wall, outputs in {out}", flush=True)
+        compare = _other_mode(out, patients, mode, args.critical_er_rule)
+        write_text_atomic(dest / "report.md",
+                          report_markdown(meta, er_an, starts_an, eff_an, closed,
+                                          compare=compare))
+        print(f"wrote {dest / 'report.md'}"
+              + (" (with the other mode's runs of OUT side by side)" if compare else ""),
+              flush=True)
+    print(f"study {args.study}: {wall:.0f} s wall, outputs in {dest}", flush=True)
     return 1 if failed else 0
 
 

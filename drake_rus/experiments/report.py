@@ -41,7 +41,15 @@ def provenance(meta: dict, *, mode: str = KINEMATIC, definition: str | None = No
     return "*Produced by " + "; ".join(parts) + ".*"
 
 
-def plot_er_sweep(analysis: dict, path) -> Path:
+_provenance = provenance
+
+
+def _strategies(analysis: dict) -> list:
+    """The strategies an efficiency analysis holds, in the report's order."""
+    return [k for k in STRATEGY_ORDER if k in analysis["summary"]]
+
+
+def plot_er_sweep(analysis: dict, path, mode: str = MODE_NOTE) -> Path:
     """Fig. 7d: E_trans and E_rot,x against ER, mean +- SD across patients."""
     import matplotlib
     matplotlib.use("Agg")
@@ -68,12 +76,12 @@ def plot_er_sweep(analysis: dict, path) -> Path:
     axes[1].set_xlabel("exploration ratio ER (% of " + (
         "the patient's kidney length" if unit == "kidney" else
         "L_m = 100 mm" if unit == "fixed" else "?") + ")")
-    fig.suptitle(f"Localization vs exploration ratio (Fig. 7d), {MODE_NOTE}", fontsize=8)
+    fig.suptitle(f"Localization vs exploration ratio (Fig. 7d), {mode}", fontsize=8)
     fig.tight_layout()
     return save_figure(fig, path)
 
 
-def plot_starts(results: list[dict], analysis: dict, path) -> Path:
+def plot_starts(results: list[dict], analysis: dict, path, mode: str = MODE_NOTE) -> Path:
     """Fig. 9d: box plots of both errors per random start."""
     import matplotlib
     matplotlib.use("Agg")
@@ -87,7 +95,7 @@ def plot_starts(results: list[dict], analysis: dict, path) -> Path:
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
     er = results[0]["er"] if results else float("nan")
-    fig.suptitle(f"Random exploration starts at ER {er * 100:.0f}% (Fig. 9d), {MODE_NOTE}; "
+    fig.suptitle(f"Random exploration starts at ER {er * 100:.0f}% (Fig. 9d), {mode}; "
                  f"Bonferroni p < {analysis['bonferroni_threshold']:.4f}", fontsize=8)
     fig.tight_layout()
     return save_figure(fig, path)
@@ -96,18 +104,19 @@ def plot_starts(results: list[dict], analysis: dict, path) -> Path:
 COLORS = {"OP": "tab:red", "GT-OP": "tab:green", "NOP": "tab:blue", "SL": "tab:orange"}
 
 
-def plot_efficiency(results: list[dict], analysis: dict, path) -> Path:
+def plot_efficiency(results: list[dict], analysis: dict, path, mode: str = MODE_NOTE) -> Path:
     """Fig. 10e-h (+ volume error): mean V against n and eps, box plots of totals."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     fig, axes = plt.subplots(2, 3, figsize=(13, 7.5))
     per = analysis["per_patient"]
-    n_max = max([max(per[s]["n"]) for s in STRATEGY_ORDER if per[s]["n"]] + [2])
-    e_max = max([max(per[s]["eps_mm"]) for s in STRATEGY_ORDER if per[s]["eps_mm"]] + [1.0])
+    order = _strategies(analysis)
+    n_max = max([max(per[s]["n"]) for s in order if per[s]["n"]] + [2])
+    e_max = max([max(per[s]["eps_mm"]) for s in order if per[s]["eps_mm"]] + [1.0])
     n_grid = np.linspace(1, n_max, 200)
     e_grid = np.linspace(0, e_max, 200)
-    for s in STRATEGY_ORDER:
+    for s in order:
         axes[0, 0].plot(n_grid, mean_curve(results, s, "n", n_grid), color=COLORS[s], label=s)
         axes[0, 1].plot(e_grid, mean_curve(results, s, "eps", e_grid), color=COLORS[s], label=s)
     axes[0, 0].set(xlabel="US frame count n", ylabel="volume ratio V (mean)",
@@ -117,56 +126,59 @@ def plot_efficiency(results: list[dict], analysis: dict, path) -> Path:
     axes[0, 0].legend()
     for ax, key, label, title in ((axes[1, 0], "n", "total frames n", "(g) total n"),
                                   (axes[1, 1], "eps_mm", "total eps (mm)", "(h) total eps")):
-        ax.boxplot([per[s][key] for s in STRATEGY_ORDER], tick_labels=list(STRATEGY_ORDER))
+        ax.boxplot([per[s][key] for s in order], tick_labels=order)
         ax.set_ylabel(label)
         ax.set_title(title)
-    vol = [[v for v in per[s]["volume_error_pct"] if v is not None] for s in STRATEGY_ORDER]
-    axes[1, 2].boxplot(vol, tick_labels=list(STRATEGY_ORDER))
+    vol = [[v for v in per[s]["volume_error_pct"] if v is not None] for s in order]
+    axes[1, 2].boxplot(vol, tick_labels=order)
     axes[1, 2].axhspan(-5, 5, color="g", alpha=0.1, label="+-5%")
     axes[1, 2].set(ylabel="reconstructed - true volume (%)", title="kidney volume error")
     axes[1, 2].legend(fontsize=7)
     # Per patient: OP's totals against NOP's and SL's.
     ax = axes[0, 2]
     x = np.arange(len(analysis["patients"]))
-    for s in STRATEGY_ORDER:
+    for s in order:
         ax.plot(x, per[s]["eps_mm"], "o-", color=COLORS[s], label=s, ms=3)
     ax.set(xlabel="patient", ylabel="total eps (mm)", title="eps per patient")
     ax.set_xticks(x)
     ax.set_xticklabels([p.split(":")[-1] for p in analysis["patients"]], fontsize=7)
     for a in axes.ravel():
         a.grid(alpha=0.3)
-    fig.suptitle(f"Sweep efficiency by strategy (Fig. 10e-h), pole to pole, {MODE_NOTE}",
+    fig.suptitle(f"Sweep efficiency by strategy (Fig. 10e-h), pole to pole, {mode}",
                  fontsize=9)
     fig.tight_layout()
     return save_figure(fig, path)
 
 
-def write_er_sweep_outputs(out_dir, results, rule: str = "paper") -> dict:
+def write_er_sweep_outputs(out_dir, results, rule: str = "paper", mode: str = KINEMATIC) -> dict:
     out = Path(out_dir)
     analysis = analyze_er_sweep(results, rule=rule)
     write_csv_atomic(out / "er_sweep_runs.csv", [_flat(r) for r in results])
     write_csv_atomic(out / "er_sweep_table.csv", analysis["rows"])
-    plot_er_sweep(analysis, out / "fig7d_er_sweep.png")
+    analysis["mode"] = mode
+    plot_er_sweep(analysis, out / "fig7d_er_sweep.png", mode)
     write_text_atomic(out / "er_sweep.json", json.dumps(analysis, default=json_default, indent=1))
     return analysis
 
 
-def write_starts_outputs(out_dir, results) -> dict:
+def write_starts_outputs(out_dir, results, mode: str = KINEMATIC) -> dict:
     out = Path(out_dir)
     analysis = analyze_starts(results)
     write_csv_atomic(out / "starts_runs.csv", [_flat(r) for r in results])
     write_csv_atomic(out / "starts_tests.csv", analysis["tests"])
-    plot_starts(results, analysis, out / "fig9d_starts.png")
+    analysis["mode"] = mode
+    plot_starts(results, analysis, out / "fig9d_starts.png", mode)
     write_text_atomic(out / "starts.json", json.dumps(analysis, default=json_default, indent=1))
     return analysis
 
 
-def write_efficiency_outputs(out_dir, results) -> dict:
+def write_efficiency_outputs(out_dir, results, mode: str = KINEMATIC) -> dict:
     out = Path(out_dir)
     analysis = analyze_efficiency(results)
+    analysis["mode"] = mode
     rows = []
     for r in results:
-        for s in STRATEGY_ORDER:
+        for s in _strategies(analysis):
             e = r["strategies"][s]
             at = (e.get("at_V") or {}).get(f"{analysis['V_target']:g}") or {}
             at_w = (e.get("at_V_whole_pivot") or {}).get(f"{analysis['V_target']:g}") or {}
@@ -185,7 +197,7 @@ def write_efficiency_outputs(out_dir, results) -> dict:
                          "e_trans_mm": r["e_trans_mm"], "e_rot_x_deg": r["e_rot_x_deg"]})
     write_csv_atomic(out / "efficiency_runs.csv", rows)
     write_csv_atomic(out / "efficiency_tests.csv", analysis["comparisons"])
-    plot_efficiency(results, analysis, out / "fig10_efficiency.png")
+    plot_efficiency(results, analysis, out / "fig10_efficiency.png", mode)
     write_text_atomic(out / "efficiency.json",
                       json.dumps({k: v for k, v in analysis.items() if k != "per_patient"},
                                  default=json_default, indent=1))
@@ -219,9 +231,10 @@ def plot_template(results: list[dict], analysis: dict, path) -> Path:
     return save_figure(fig, path)
 
 
-def write_template_outputs(out_dir, results) -> dict:
+def write_template_outputs(out_dir, results, mode: str = KINEMATIC) -> dict:
     out = Path(out_dir)
     analysis = analyze_template(results)
+    analysis["mode"] = mode
     write_csv_atomic(out / "template_runs.csv",
                      [dict(_flat(r), template_variant=r["template_variant"],
                            template_distance_mm=r["template_distance_mm"]) for r in results])
@@ -235,7 +248,7 @@ def template_markdown(meta: dict, analysis: dict) -> list[str]:
     """The template-mismatch section of report.md."""
     pl = PAPER["localization"]
     L = ["## Template mismatch (beyond the paper, `fig_template_mismatch.png`)", "",
-         provenance(meta, extra="template variants: mean (ours), mean scaled by S, a single "
+         provenance(meta, mode=meta.get("mode_text", KINEMATIC), extra="template variants: mean (ours), mean scaled by S, a single "
                     "training kidney (single:K), leave-one-out mean for training patients "
                     "(loo); distance = symmetric mean surface distance in the canonical "
                     "frames"), "",
@@ -260,9 +273,9 @@ def template_markdown(meta: dict, analysis: dict) -> list[str]:
 
 
 def _flat(r: dict) -> dict:
-    keys = ("patient", "er", "er_unit", "start", "start_fraction", "x_offset_mm",
-            "explore_frames", "explore_travel_mm", "kidney_length_mm", "points", "e_trans_mm",
-            "e_rot_x_deg", "registration_ms", "iterations", "wall_s")
+    keys = ("patient", "mode", "status", "er", "er_unit", "start", "start_fraction",
+            "x_offset_mm", "explore_frames", "explore_travel_mm", "kidney_length_mm", "points",
+            "e_trans_mm", "e_rot_x_deg", "registration_ms", "iterations", "sim_s", "wall_s")
     return {k: r.get(k) for k in keys}
 
 
@@ -295,7 +308,7 @@ def _f(x, nd=2):
 def _eff_table(L: list, s: dict, n_pat: int, keys: tuple, V_key: str | None, extra=True):
     """Rows of strategy | n | eps | V (| volume) for one metric definition."""
     n_key, e_key = keys
-    for k in STRATEGY_ORDER:
+    for k in [k for k in STRATEGY_ORDER if k in s]:
         row = (f"| {k} | {_f(s[k][n_key][0], 1)} +- {_f(s[k][n_key][1], 1)} | "
                f"{_f(s[k][e_key][0], 1)} +- {_f(s[k][e_key][1], 1)} |")
         if V_key:
@@ -310,15 +323,21 @@ def _eff_table(L: list, s: dict, n_pat: int, keys: tuple, V_key: str | None, ext
 
 
 def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict | None,
-                    closed: list | None = None, template: dict | None = None) -> str:
+                    closed: list | None = None, template: dict | None = None,
+                    compare: dict | None = None) -> str:
     """report.md: our numbers beside the seed paper's for each table and figure, each with
     the mode, registration method, segmenter, ER unit and metric definition that produced
-    it."""
+    it. ``compare``: the other mode's analyses of the same runs ({"mode", "er", "starts",
+    "eff"}), put side by side with these and the paper's."""
+    mode = meta.get("mode_text", KINEMATIC)
+
+    def provenance(meta, **kw):   # every section of this report: the run's mode
+        return _provenance(meta, **({"mode": mode} | kw))
     unit = meta.get("er_unit", "fixed")
     rule = meta.get("critical_er_rule", (er or {}).get("rule", "paper"))
     L = ["# drake-rus studies: the seed paper's section III on our virtual cohort", "",
          f"- Patients: {', '.join(meta['patients'])} ({len(meta['patients'])})",
-         f"- Mode: **{KINEMATIC}** for every run of the tables and figures unless a table "
+         f"- Mode: **{mode}** for every run of the tables and figures unless a table "
          "says otherwise; "
          + (f"{len(closed)} closed-loop dynamic scan(s) in the closed-loop check."
             if closed else "no closed-loop dynamic runs."),
@@ -416,7 +435,7 @@ def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict 
         caps = "; ".join(
             f"{k} on {s[k]['tilt_cap_patients']}/{n_pat} patients (leg 1: "
             f"{s[k]['tilt_cap_leg_counts']['1']}, leg 2: {s[k]['tilt_cap_leg_counts']['2']})"
-            for k in STRATEGY_ORDER if k != "SL")
+            for k in STRATEGY_ORDER if k != "SL" and k in s)
         L += ["", f"Tilt cap (a pivot leg ended at the controller's `max_pivot_tilt` instead of "
               f"where the kidney left the image): {caps}.", "",
               "| definition | comparison | metric | reduction by OP (mean +- SD) | OP lower on | "
@@ -460,6 +479,9 @@ def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict 
                          f"{c.get('n_whole_pivot', '-')} | {_f(c.get('eps_whole_pivot_mm'), 1)} | "
                          f"{_f(c.get('V_whole_pivot'), 3)} | {caps} | {wall} |")
         L.append("")
+    if compare:
+        L += compare_markdown(meta, {"mode": mode, "er": er, "starts": starts, "eff": eff},
+                              compare)
     if template is not None:
         L += template_markdown(meta, template)
     L += ["## Method notes", "",
@@ -475,9 +497,68 @@ def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict 
           "registered pose; SL is the exploration controller over the whole kidney.",
           "- V (eq. 25): fraction of the true kidney's 2 mm voxels inside the fan and the "
           "elevational slab of at least one frame (`drake_rus/metrics/core.py`).",
+          "- Closed-loop mode (`--mode closed-loop`): each run is a full scan on the Drake "
+          "diagram (`RunScan`: approach, exploration, localization, transit, the OP two-leg "
+          "pivot) with the run's ER (ER x the patient's kidney length as the controller's "
+          "L_m, `exploration_length: fixed`), start, segmenter and registration; efficiency "
+          "has OP only (GT-OP, NOP and SL have no closed-loop scan) and no volume "
+          "reconstruction.",
           "- Kidney volume: masks compounded at 1 mm (nearest-pixel, fan clipping, hole "
           "filling), threshold 0.5, against the kidney mesh's volume.", ""]
     return "\n".join(L)
+
+
+def _mode_label(text: str) -> str:
+    return "closed loop" if text.startswith("closed") else "kinematic"
+
+
+def compare_markdown(meta: dict, this: dict, other: dict) -> list[str]:
+    """The two modes side by side with the paper: ER sweep, starts, efficiency (OP)."""
+    cols = sorted([this, other], key=lambda d: _mode_label(d["mode"]) != "kinematic")
+    names = [_mode_label(c["mode"]) for c in cols]
+    L = ["## Kinematic twin and closed loop side by side", "",
+         _provenance(meta, mode=" and ".join(c["mode"] for c in cols)),
+         ""]
+    ers = [c["er"] for c in cols]
+    if all(ers):
+        p = PAPER["er_sweep"]
+        L += ["| ER | paper E_trans (mm) | " + " | ".join(
+            f"{n} E_trans (mm) | {n} E_rot,x (deg)" for n in names) + " |",
+              "|---|---|" + "---|---|" * len(cols)]
+        grid = sorted({round(r["er"], 3) for c in ers for r in c["rows"]})
+        for g in grid:
+            cells = []
+            for c in ers:
+                r = next((r for r in c["rows"] if abs(r["er"] - g) < 1e-6), None)
+                cells.append("n/a | n/a" if r is None else
+                             f"{_f(r['e_trans_mm_mean'])} +- {_f(r['e_trans_mm_sd'])} | "
+                             f"{_f(r['e_rot_x_deg_mean'])} +- {_f(r['e_rot_x_deg_sd'])}")
+            pap = (f"{p['e_trans_mm_at_60'][0]} +- {p['e_trans_mm_at_60'][1]}"
+                   if abs(g - 0.6) < 1e-6 else "")
+            L.append(f"| {g * 100:.0f}% | {pap} | " + " | ".join(cells) + " |")
+        L += ["", "Critical ER: paper " f"{p['critical_er'] * 100:.0f}%; " + "; ".join(
+            f"{n} {c['critical_er'] * 100:.0f}%" for n, c in zip(names, ers)) + ".", ""]
+    sts = [c["starts"] for c in cols]
+    if all(sts):
+        pl = PAPER["localization"]
+        L += ["Random starts, all runs: paper " f"{pl['e_trans_mm'][0]} +- {pl['e_trans_mm'][1]}"
+              f" mm, {pl['e_rot_x_deg'][0]} +- {pl['e_rot_x_deg'][1]} deg; " + "; ".join(
+                  f"{n} {_f(c['e_trans_mm'][0])} +- {_f(c['e_trans_mm'][1])} mm, "
+                  f"{_f(c['e_rot_x_deg'][0])} +- {_f(c['e_rot_x_deg'][1])} deg (any "
+                  f"significant: {c['any_significant']})" for n, c in zip(names, sts)) + ".", ""]
+    effs = [c["eff"] for c in cols]
+    if all(effs) and all("OP" in e["summary"] for e in effs):
+        L += ["OP sweep (pole to pole and whole pivot):", "",
+              "| mode | n | eps (mm) | V | n_whole_pivot | eps_whole_pivot (mm) | "
+              "V_whole_pivot |", "|---|---|---|---|---|---|---|"]
+        for n, e in zip(names, effs):
+            o = e["summary"]["OP"]
+            L.append(f"| {n} | {_f(o['n'][0], 1)} +- {_f(o['n'][1], 1)} | "
+                     f"{_f(o['eps_mm'][0], 1)} +- {_f(o['eps_mm'][1], 1)} | {_f(o['V'][0], 3)} | "
+                     f"{_f(o['n_whole_pivot'][0], 1)} | {_f(o['eps_whole_pivot_mm'][0], 1)} | "
+                     f"{_f(o['V_whole_pivot'][0], 3)} |")
+        L.append("")
+    return L
 
 
 def write_closed_loop_outputs(out_dir, results) -> Path:

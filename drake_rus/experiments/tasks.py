@@ -27,8 +27,12 @@ length along the exploration line (the E-ROI's length along base y, :func:`kidne
 ``fixed`` explores ER x L_m (``controller.kidney_length``, 100 mm: the paper's in-vivo rule,
 III-F).
 
-Every study run is kinematic (:mod:`drake_rus.experiments.kinematic`): probe poses planned
-exactly, no robot dynamics. Runs are deterministic given their dict (seeded starts).
+Mode (``StudyOptions.mode``): ``kinematic`` (default, the fast twin,
+:mod:`drake_rus.experiments.kinematic`: probe poses planned exactly, no robot dynamics) or
+``closed-loop`` (:func:`run_closed_loop_study`: every run is a full closed-loop scan on the
+Drake diagram, ``RunScan``, with the same run record). Closed-loop runs have their own run
+ids (suffix ``__cl``), so both modes' runs can share an output directory. Kinematic runs are
+deterministic given their dict (seeded starts).
 :func:`run_task` executes one run; the batch runner (:func:`drake_rus.batch.run_tasks`
 with :func:`run_task` and :func:`run_id`) executes a list of them through Dask, writing
 each result as it finishes, so an interrupted study resumes. The statistics are in
@@ -51,6 +55,7 @@ from scipy.spatial import cKDTree
 
 from drake_rus import batch
 from drake_rus.anatomy import load_patient
+from drake_rus.control.supervisor import Phase
 from drake_rus.experiments import kinematic as km
 from drake_rus.experiments.analysis import STRATEGY_ORDER
 from drake_rus.localization.localize import RegistrationTemplate, load_registration_template
@@ -71,6 +76,12 @@ ER_UNIT_TEXT = {"kidney": "fraction of the patient's kidney length along the exp
                          "rule, III-F)"}
 # Coverage at which the sweep costs are also compared (matched coverage).
 V_TARGETS = (0.9,)
+# How a study run is executed: the kinematic twin (default, fast) or a closed-loop scan.
+MODES = ("kinematic", "closed-loop")
+# The efficiency strategies a closed-loop scan can run: its pivot is the paper's OP (T* of
+# the registered pose, eq. 20-23). GT-OP (T* of the true pose), NOP (expert placement from
+# the true pose) and SL (a straight line over the whole kidney) have no closed-loop scan.
+CLOSED_LOOP_STRATEGIES = ("OP",)
 
 
 def kidney_length(kp) -> float:
@@ -127,6 +138,7 @@ class StudyOptions:
     seed: int = 0                   # random starts, emulator speckle
     recon_spacing: float = 0.001    # reconstruction grid (m)
     er_unit: str = "kidney"         # ER x the patient's kidney length, or "fixed" (x L_m)
+    mode: str = "kinematic"         # "kinematic" (the twin) or "closed-loop" (RunScan)
 
     def base(self) -> dict:
         return dataclasses.asdict(self)
@@ -166,7 +178,36 @@ def run_id(task: dict) -> str:
         parts.append(f"s{task['start']}")
     if task["study"] == "template":
         parts.append("t-" + re.sub(r"[^A-Za-z0-9.]+", "-", task["template_variant"]))
+    if task.get("mode", "kinematic") == "closed-loop" and task["study"] != "closed-loop":
+        parts.append("cl")
     return "__".join(parts)
+
+
+def check_mode(mode: str) -> str:
+    if mode not in MODES:
+        raise ValueError(f"--mode: expected one of {', '.join(MODES)}, got {mode!r}")
+    return mode
+
+
+def check_strategies(strategies, mode: str = "kinematic") -> tuple:
+    """The efficiency strategies, in the report's order; raises ValueError (naming
+    ``--strategies``) for an unknown one or one the closed-loop scan cannot run."""
+    strategies = [str(s).strip() for s in strategies if str(s).strip()]
+    bad = [s for s in strategies if s not in STRATEGY_ORDER]
+    if bad or not strategies:
+        raise ValueError(f"--strategies: expected a comma list of {', '.join(STRATEGY_ORDER)}, "
+                         f"got {','.join(strategies) or 'nothing'}")
+    if check_mode(mode) == "closed-loop":
+        bad = [s for s in strategies if s not in CLOSED_LOOP_STRATEGIES]
+        if bad:
+            raise ValueError(f"--strategies: {', '.join(bad)} has no closed-loop equivalent (the "
+                             "closed-loop scan pivots only at T* of the registered pose, OP); "
+                             "use --strategies OP or --mode kinematic")
+    return tuple(s for s in STRATEGY_ORDER if s in strategies)
+
+
+def default_strategies(mode: str) -> tuple:
+    return CLOSED_LOOP_STRATEGIES if mode == "closed-loop" else STRATEGY_ORDER
 
 
 def er_sweep_tasks(patients, options: StudyOptions, ers=ER_GRID) -> list[dict]:
@@ -180,10 +221,13 @@ def starts_tasks(patients, options: StudyOptions, er: float, n_starts: int = 5) 
 
 
 def efficiency_tasks(patients, options: StudyOptions, er: float,
-                     export_dir: str | None = None) -> list[dict]:
-    """``export_dir``: write the OP and GT-OP reconstructions there as NRRD."""
+                     export_dir: str | None = None, strategies=None) -> list[dict]:
+    """``export_dir``: write the OP and GT-OP reconstructions there as NRRD. ``strategies``:
+    default all (kinematic) or OP (closed loop, the only one it has)."""
+    strategies = check_strategies(strategies or default_strategies(options.mode), options.mode)
     return [dict(options.base(), study="efficiency", patient=p, er=float(er), start=-1,
-                 export_dir=None if export_dir is None else str(export_dir))
+                 export_dir=None if export_dir is None else str(export_dir),
+                 strategies=list(strategies))
             for p in patients]
 
 
@@ -398,10 +442,111 @@ def run_closed_loop(task: dict) -> dict:
             "closed_loop": closed, "kinematic": kin, "wall_s": time.perf_counter() - t0}
 
 
+def closed_loop_scenario(task: dict, kp, base):
+    """The scenario of a closed-loop study run: ``base`` with the run's ER, localization
+    method and segmenter. ER: with ``er_unit`` "kidney" the exploration travels ER x the
+    patient's kidney length along the exploration line (the controller's reference length
+    L_m set to it, ``exploration_length: fixed``: the simulation knows the truth, as the
+    paper's simulation did), with "fixed" ER x the scenario's L_m; the scan's
+    ``exploration_length: estimated`` is not used, so both modes explore the same travel.
+    A random start (``starts``) lands the probe at the twin's start (x, y)
+    (``controller.start_xy``)."""
+    c = base.controller
+    unit = task.get("er_unit", "fixed")
+    length = kidney_length(kp) if unit == "kidney" else float(c.kidney_length)
+    exploration_travel(task["er"], unit, kidney_length(kp), c.kidney_length)  # checks unit
+    controller = dataclasses.replace(c, exploration_ratio=float(task["er"]),
+                                     exploration_length="fixed", kidney_length=length)
+    start_fraction, x_offset = 0.0, 0.0
+    if task["study"] == "starts":
+        start_fraction, x_offset = random_start(task, kp, c)
+        xy = km.start_xy(kp, start_fraction, c.scan_direction, x_offset)
+        controller = dataclasses.replace(controller, start_xy=[float(xy[0]), float(xy[1])])
+    scenario = dataclasses.replace(
+        base, controller=controller,
+        localization=dataclasses.replace(base.localization, method=task["method"]),
+        imaging=dataclasses.replace(base.imaging, segmenter=task["segmenter"]))
+    return scenario, start_fraction, x_offset
+
+
+def _closed_loop_entry(m: dict) -> dict:
+    """A strategy entry (like :func:`sweep_entry`'s) from a closed-loop scan's metrics."""
+    at = m["at_matched_V"]
+    return {"n": int(m["n_frames"]), "eps_mm": m["eps_mm"], "V": m["volume_ratio"],
+            "n_whole_pivot": int(m["n_whole_pivot"]),
+            "eps_whole_pivot_mm": m["eps_whole_pivot_mm"],
+            "V_whole_pivot": m["volume_ratio_whole_pivot"],
+            "at_V": {k: v["pole_to_pole"] for k, v in at.items()},
+            "at_V_whole_pivot": {k: v["whole_pivot"] for k, v in at.items()},
+            "tilt_cap_legs": list(m["pivot"]["tilt_cap_legs"]), "events": [],
+            "curve_eps_mm": np.round(np.asarray(m["eps_curve_mm"], float), 3).tolist(),
+            "curve_V": np.round(np.asarray(m["V_curve"], float), 5).tolist(),
+            "pole_to_pole": list(m["pivot"]["pole_to_pole_frames"]),
+            "volume_ml": None, "volume_error_pct": None,
+            "volume_note": "closed loop: the scan keeps the masks of only some pivot frames, "
+                           "no reconstruction"}
+
+
+def run_closed_loop_study(task: dict) -> dict:
+    """One study run (er-sweep, starts, efficiency, template) as a full closed-loop scan on
+    the Drake diagram (``RunScan``: MultibodyPlant, controller, contact, the scan's own
+    imaging, localization and OP pivot), with the kinematic run's record (E_trans,
+    E_rot,x, the sweep costs pole to pole and over the whole pivot, V) plus the scan's
+    ``status``, ``reason`` and simulated time. A scan that stops before localizing has
+    E_trans and E_rot,x None."""
+    t0 = time.perf_counter()
+    base = _scenario(task["scenario"], task.get("scenarios_file"), task.get("overrides"))
+    X_BPt = base.patient.X_BPt.GetDeterministicValue()
+    kp = prepared_patient(task["patient"], base.patient.side, base.patient.posture,
+                          float(task["voxel"]), X_BPt)
+    scenario, start_fraction, x_offset = closed_loop_scenario(task, kp, base)
+    variant = task.get("template_variant", "mean")
+    template = template_variant(scenario.localization.template, variant,
+                                str(task["patient"]) if variant == "loo" else "")
+    scan = RunScan(scenario, kp.patient, template, progress=False,
+                   start_fraction=start_fraction)
+    m = ScanMetrics(scan)
+    loc = scan.localization
+    explore = [f for f in scan.frames if f.phase == int(Phase.EXPLORE)]
+    travel = (float(np.linalg.norm(explore[-1].X_BP.translation()[:2]
+                                   - explore[0].X_BP.translation()[:2]) * 1e3)
+              if len(explore) > 1 else 0.0)
+    result = {
+        "run_id": run_id(task), "task": task, "mode": "closed-loop",
+        "status": scan.status, "reason": scan.reason,
+        "patient": task["patient"], "er": task["er"], "start": task["start"],
+        "start_fraction": start_fraction, "x_offset_mm": x_offset * 1e3,
+        "explore_frames": len(explore), "explore_travel_mm": travel,
+        "kidney_length_mm": kidney_length(kp) * 1e3, "er_unit": task.get("er_unit", "fixed"),
+        "points": int(len(scan.partial_cloud_B)),
+        "e_trans_mm": m["e_trans_mm"], "e_rot_x_deg": m["e_rot_x_deg"],
+        "registration_ms": loc.compute_s * 1e3 if loc.result is not None else None,
+        "iterations": None if loc.result is None else int(loc.result.iterations),
+        "localization_note": loc.error or "",
+        "true_volume_ml": kp.kidney_volume * 1e6,
+        "sim_s": scan.sim_s, "scan_wall_s": scan.wall_s,
+        # The scan's pivot (OP) pole to pole and over the whole pivot, whatever the study.
+        "sweep": {k: v for k, v in _closed_loop_entry(m).items()
+                  if k not in ("curve_eps_mm", "curve_V", "events")},
+    }
+    if task["study"] == "template":
+        result["template_variant"] = variant
+        result["template_distance_mm"] = template_distance(template, kp) * 1e3
+    if task["study"] == "efficiency":
+        strategies = check_strategies(task.get("strategies") or CLOSED_LOOP_STRATEGIES,
+                                      "closed-loop")
+        result["strategies"] = {s: _closed_loop_entry(m) for s in strategies}
+    result["wall_s"] = time.perf_counter() - t0
+    return result
+
+
 def run_task(task: dict) -> dict:
-    """Executes one run (kinematic) and returns its JSON-ready result."""
+    """Executes one run (kinematic, or closed loop with ``mode`` "closed-loop") and
+    returns its JSON-ready result."""
     if task["study"] == "closed-loop":
         return run_closed_loop(task)
+    if check_mode(task.get("mode", "kinematic")) == "closed-loop":
+        return run_closed_loop_study(task)
 
     t0 = time.perf_counter()
     scenario = _scenario(task["scenario"], task.get("scenarios_file"), task.get("overrides"))
@@ -442,7 +587,8 @@ def run_task(task: dict) -> dict:
         export = task.get("export_dir")
         result["strategies"] = efficiency_of(
             kp, imager, controller, loc.X_BK, float(task.get("recon_spacing", 0.001)),
-            export_dir=export, name=re.sub(r"[^A-Za-z0-9]+", "-", task["patient"]).strip("-"))
+            export_dir=export, name=re.sub(r"[^A-Za-z0-9]+", "-", task["patient"]).strip("-"),
+            strategies=check_strategies(task.get("strategies") or STRATEGY_ORDER))
     result["wall_s"] = time.perf_counter() - t0
     return result
 
@@ -451,14 +597,14 @@ EXPORT_STRATEGIES = ("OP", "GT-OP")
 
 
 def efficiency_of(kp, imager, controller, X_BK_est, recon_spacing: float, *,
-                  export_dir=None, name: str = "patient") -> dict:
+                  export_dir=None, name: str = "patient", strategies=STRATEGY_ORDER) -> dict:
     """Per strategy: :func:`sweep_entry` (pole-to-pole curves and totals, the whole pivot's
     totals, matched coverage, tilt cap) and the reconstructed kidney volume (mL) from the
     pole-to-pole masks. With
     ``export_dir``, the OP and GT-OP reconstructions are written there as NRRD (kidney
     probability, kidney mask and, for the classical/onnx segmenters, the grey volume)."""
     out = {}
-    for s in STRATEGY_ORDER:
+    for s in strategies:
         sweep = km.strategy_sweep(kp, imager, s, controller, X_BK_est, keep_images=True)
         p2p = sweep.pole_to_pole()
         entry = sweep_entry(kp, sweep, imager.geometry, controller)
