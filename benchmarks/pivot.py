@@ -15,18 +15,16 @@ is reported too (``eps_pretilt_mm``), since it is not a PIVOT frame.
 import argparse
 import json
 import math
-import time
-import traceback
 
 import numpy as np
 
-from drake_rus.anatomy import load_patient
 from drake_rus.control.supervisor import Phase
 from drake_rus.experiments.tasks import expand_patients
 from drake_rus.localization.localize import load_registration_template
 from drake_rus.metrics.sweep import cumulative_eps
-from drake_rus.scan import RunScan, ScanMetrics, Summary
-from drake_rus.scenario import ApplyOverrides, LoadScenario
+from drake_rus.scenario import LoadScenario
+
+from benchmarks._scan_rows import scan_row
 
 STRATEGIES = ("two_leg", "predicted_end")
 FIELDS = ("eps_whole_pivot_mm", "n_whole_pivot", "eps_mm", "n_frames", "volume_ratio",
@@ -46,21 +44,13 @@ def _pretilt_eps_mm(result, depth) -> float:
 
 
 def run_one(spec, strategy, scenario, template, max_sim_time) -> dict:
-    row = {"patient": spec, "strategy": strategy}
-    start = time.perf_counter()
-    try:
-        s = ApplyOverrides(scenario, "{controller: {pivot_strategy: %s}}" % strategy)
-        patient = load_patient(spec, side=s.patient.side, posture=s.patient.posture)
-        result = RunScan(s, patient, template, max_sim_time=max_sim_time, progress=False)
-        summary = Summary(result, ScanMetrics(result))
+    def fill(row, result, summary, s):
         row.update({k: summary.get(k) for k in FIELDS})
-        row.update(status=summary["status"], reason=summary["reason"],
-                   eps_pretilt_mm=_pretilt_eps_mm(result, s.imaging.depth))
-    except Exception as e:   # noqa: BLE001 - a benchmark row, with the traceback kept
-        row.update(status="ERROR", reason=f"{type(e).__name__}: {e}",
-                   traceback=traceback.format_exc(limit=6))
-    row["wall_s"] = round(time.perf_counter() - start, 1)
-    return row
+        row["eps_pretilt_mm"] = _pretilt_eps_mm(result, s.imaging.depth)
+
+    return scan_row({"patient": spec, "strategy": strategy}, spec, scenario,
+                    "{controller: {pivot_strategy: %s}}" % strategy, template, max_sim_time,
+                    fill=fill)
 
 
 def _f(v, spec):

@@ -14,17 +14,15 @@ working on the generator's own world.
 
 import argparse
 import json
-import time
-import traceback
 from pathlib import Path
 
 from tqdm import tqdm
 
-from drake_rus.anatomy import load_patient
 from drake_rus.localization.localize import load_registration_template
 from drake_rus.paths import REPO_ROOT
-from drake_rus.scan import RunScan, ScanMetrics, Summary, WriteScanOutputs
-from drake_rus.scenario import ApplyOverrides, LoadScenario
+from drake_rus.scenario import LoadScenario
+
+from benchmarks._scan_rows import scan_row
 
 DEFAULT_BODIES = [REPO_ROOT.parent / "shared" / "anatomy" / "hubmap_vh_female"]
 FRESH_SEED_BASE = 5_000_000
@@ -36,27 +34,18 @@ def run_one(body, posture: str, scenario, template, out: Path | None,
     """One scan of a body (a path, or a spec like ``seed:N``); never raises (a failure is a
     row with its reason)."""
     name = body.name if isinstance(body, Path) else str(body)
-    row = {"body": name, "posture": posture}
-    start = time.perf_counter()
-    try:
-        s = ApplyOverrides(scenario, "{patient: {posture: %s}}" % posture)
-        patient = load_patient(str(body), side=s.patient.side, posture=posture)
-        result = RunScan(s, patient, template, max_sim_time=max_sim_time, progress=False)
-        summary = Summary(result, ScanMetrics(result))
-        if out is not None:
-            WriteScanOutputs(result, ScanMetrics(result), summary,
-                             out / f"{name.replace(':', '_')}_{posture}")
-        row.update(status=summary["status"], reason=summary["reason"],
-                   e_trans_mm=summary["e_trans_mm"], e_rot_x_deg=summary["e_rot_x_deg"],
+
+    def fill(row, result, summary, s):
+        row.update(e_trans_mm=summary["e_trans_mm"], e_rot_x_deg=summary["e_rot_x_deg"],
                    volume_ratio=summary["volume_ratio"], n_frames=summary["n_frames"],
                    volume_ratio_whole_pivot=summary.get("volume_ratio_whole_pivot"),
                    eps_mm=summary["eps_mm"], depth_preset_m=summary["image_depth_m"],
                    start=summary["start"], sim_s=summary["sim_s"])
-    except Exception as e:   # noqa: BLE001 - a benchmark row, with the traceback kept
-        row.update(status="ERROR", reason=f"{type(e).__name__}: {e}",
-                   traceback=traceback.format_exc(limit=6))
-    row["wall_s"] = round(time.perf_counter() - start, 1)
-    return row
+
+    return scan_row({"body": name, "posture": posture}, str(body), scenario,
+                    "{patient: {posture: %s}}" % posture, template, max_sim_time,
+                    out=None if out is None else out / f"{name.replace(':', '_')}_{posture}",
+                    fill=fill)
 
 
 def _fmt(v, spec):

@@ -250,6 +250,14 @@ def _hold_motion(s: SupervisorState, dt: float) -> SupervisorState:
     return s
 
 
+def _hold_pivot(s: SupervisorState, cfg, dt: float) -> SupervisorState:
+    """Outside a breath-hold during the pivot: the tilt rate ramps down to zero (no jump of
+    the commanded angular velocity) and the pivot holds still."""
+    s.pivot_speed = _ramp(s.pivot_speed, 0.0, cfg.pivot_acceleration * dt)
+    _pivot_advance(s, cfg, dt)
+    return _hold_motion(s, dt)
+
+
 def _start(s: SupervisorState, u: SupervisorInputs, R, p, cfg) -> None:
     """First period: hold the current orientation (or turn o transverse) and tip position,
     or head for ``start_xy``; press to the desired force."""
@@ -403,9 +411,7 @@ def _pretilt(s, u, R, cfg, dt):
                                     f"pre-tilt at {math.degrees(s.pivot_angle):.1f} deg"),)
         return s
     if not u.motion_allowed:
-        s.pivot_speed = _ramp(s.pivot_speed, 0.0, cfg.pivot_acceleration * dt)
-        _pivot_advance(s, cfg, dt)
-        return _hold_motion(s, dt)
+        return _hold_pivot(s, cfg, dt)
     s.paused = False
     gone = _update_visibility(s, u, cfg.visibility_debounce)
     at_tilt = abs(s.pivot_angle) >= cfg.max_pivot_tilt - 1e-9
@@ -465,9 +471,7 @@ def _pivot(s, u, R, p, cfg, dt):
     """a_des rotates about o_des (eq. 23) one way until the kidney leaves the image (or the
     maximum tilt), then back through r3* to the other side; then DONE."""
     if not u.motion_allowed:
-        s.pivot_speed = _ramp(s.pivot_speed, 0.0, cfg.pivot_acceleration * dt)
-        _pivot_advance(s, cfg, dt)
-        return _hold_motion(s, dt)
+        return _hold_pivot(s, cfg, dt)
     s.paused = False
     left = _update_visibility(s, u, cfg.visibility_debounce)
     if u.kidney_visible:
