@@ -69,6 +69,13 @@ def test_legs_and_angles_are_recovered_from_the_poses():
     assert tilt_cap_legs(angles, legs, max_tilt=0.6) == []
     # No tilt at all: one leg.
     assert set(pivot_legs(np.zeros(5))) == {1}
+    # A closed-loop pivot starts with a small residual tilt of the other sign (alignment
+    # error): the legs, hence pole to pole, are the same.
+    noisy = angles.copy()
+    noisy[:2] = -np.sign(angles[5]) * np.deg2rad(0.2)
+    np.testing.assert_array_equal(pivot_legs(noisy), legs)
+    np.testing.assert_array_equal(pole_to_pole_indices(visible, pivot_legs(noisy)),
+                                  pole_to_pole_indices(visible, legs))
 
 
 def test_straight_line_pole_to_pole():

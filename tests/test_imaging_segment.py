@@ -138,6 +138,26 @@ def test_tracked_component_follows_the_kidney_not_the_largest_region():
     assert tracked_component([], kidney_before, 0.05, g, **follow) is None
 
 
+def test_near_region_is_the_reach_around_a_mask_and_reused_only_for_the_same_mask():
+    from drake_rus.imaging.probe import ProbeGeometry
+    from drake_rus.imaging.segment import near_region
+    g = ProbeGeometry.from_config(ImagingConfig())
+    mask = _disc(g.image_shape, (100, 120), 20)
+    near = near_region(mask, g, 0.010)
+    # A pixel is near when its physical distance to the nearest mask pixel is <= reach.
+    edge_col = 120 + 20
+    assert near[100, edge_col + int(0.009 / g.dx)]
+    assert not near[100, edge_col + int(0.012 / g.dx) + 1]
+    assert near[mask].all() and not near[0, 0]
+    # The same mask object: the same result; another mask (even equal): computed afresh.
+    assert near_region(mask, g, 0.010) is near
+    other = _disc(g.image_shape, (180, 60), 10)
+    near_other = near_region(other, g, 0.010)
+    assert near_other[180, 60] and not near_other[100, 120]
+    assert near_region(mask, g, 0.005).sum() < near.sum()
+    assert not near_region(np.zeros(g.image_shape, bool), g, 0.010).any()
+
+
 def test_kidney_track_is_followed_only_once_established():
     from drake_rus.imaging.probe import ProbeGeometry
     from drake_rus.imaging.segment import KidneyTrack, track_prior, track_update

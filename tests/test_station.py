@@ -105,6 +105,24 @@ def test_constant_joint_velocity_is_tracked():
     np.testing.assert_allclose(dq / (t[-1] - 0.4), command, rtol=0.05)
 
 
+def test_command_takes_effect_at_the_next_plant_step():
+    """The station holds each command for one plant step (the robot's command latency), so
+    a command cannot change the contact solve of the step already under way."""
+    scenario = LoadScenario()
+    h = scenario.contact.time_step
+    command = np.full(7, 0.3)
+    station = MakeStation(scenario)
+    simulator = Simulator(station)
+    context = simulator.get_mutable_context()
+    station.GetInputPort("joint_velocity_command").FixValue(context, command)
+    v = station.GetOutputPort("joint_velocity")
+    simulator.AdvanceTo(h)
+    # The first step still ran the initial (zero) command: the arm has not moved.
+    assert np.abs(v.Eval(context)).max() < 1e-3
+    simulator.AdvanceTo(4 * h)
+    assert np.abs(v.Eval(context)).min() > 0.05
+
+
 @pytest.mark.parametrize("model", ["hydroelastic", "point"])
 def test_probe_force_agrees_with_contact_results(model):
     scenario = LoadScenario(scenario_text=f"{{contact: {{model: {model}}}}}")

@@ -196,6 +196,34 @@ def segment_classical(us_image: np.ndarray, geometry: ProbeGeometry,
     return out & geometry.fan_mask
 
 
+_NEAR_CACHE: list = []   # [(prior array, geometry, reach, near)]: the last one computed
+
+
+def near_region(prior_mask: np.ndarray, geometry: ProbeGeometry, reach: float) -> np.ndarray:
+    """Bool (rows, cols): the pixels within ``reach`` (m) of a mask (Euclidean, in physical
+    units, over the mask's bounding box grown by ``reach``). The last result is kept for the
+    same mask object: a frame's segmentation and its track update grow the same prior."""
+    if _NEAR_CACHE:
+        arr, geo, r, near = _NEAR_CACHE[0]
+        if arr is prior_mask and geo is geometry and r == reach:
+            return near
+    prior = np.asarray(prior_mask, bool)
+    rows, cols = np.nonzero(prior)
+    near = np.zeros(prior.shape, bool)
+    if rows.size:
+        dr, dc = int(np.ceil(reach / geometry.dz)) + 1, int(np.ceil(reach / geometry.dx)) + 1
+        box = (slice(max(rows.min() - dr, 0), rows.max() + dr + 1),
+               slice(max(cols.min() - dc, 0), cols.max() + dc + 1))
+        near[box] = ndimage.distance_transform_edt(
+            ~prior[box], sampling=(geometry.dz, geometry.dx)) <= reach
+    near.flags.writeable = False
+    # The mask itself is held, so its id cannot be reused by another array while cached;
+    # a caller that mutates it in place must not expect a fresh result (masks are treated
+    # as immutable here, as KidneyTrack's are).
+    _NEAR_CACHE[:] = [(prior_mask, geometry, reach, near)]
+    return near
+
+
 def tracked_component(components: list[np.ndarray], prior_mask: np.ndarray | None,
                       prior_age: float, geometry: ProbeGeometry, *, max_gap: float,
                       reach: float) -> int | None:
@@ -212,14 +240,7 @@ def tracked_component(components: list[np.ndarray], prior_mask: np.ndarray | Non
     if not components:
         return None
     if prior_mask is not None and np.any(prior_mask) and prior_age <= max_gap:
-        prior = np.asarray(prior_mask, bool)
-        rows, cols = np.nonzero(prior)
-        dr, dc = int(np.ceil(reach / geometry.dz)) + 1, int(np.ceil(reach / geometry.dx)) + 1
-        box = (slice(max(rows.min() - dr, 0), rows.max() + dr + 1),
-               slice(max(cols.min() - dc, 0), cols.max() + dc + 1))
-        near = np.zeros(prior.shape, bool)
-        near[box] = ndimage.distance_transform_edt(
-            ~prior[box], sampling=(geometry.dz, geometry.dx)) <= reach
+        near = near_region(prior_mask, geometry, reach)
         overlap = [int(np.count_nonzero(c & near)) for c in components]
         best = int(np.argmax(overlap))
         return best if overlap[best] > 0 else None

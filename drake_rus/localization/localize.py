@@ -210,6 +210,11 @@ class AdaptiveState:
     sufficient: bool = False
     checks: tuple = ()   # (time s, travel m, change of translation m, of x-axis angle rad)
 
+    # Drake clones abstract state with deepcopy on every update of the localizer; a stored
+    # state is never changed in place (the update works on a dataclasses.replace copy).
+    def __deepcopy__(self, memo):
+        return self
+
 
 def estimate_change(X_a: RigidTransform, X_b: RigidTransform) -> tuple[float, float]:
     """(translation change (m), kidney x-axis angle change (rad)) between two estimates."""

@@ -184,6 +184,14 @@ class TrackingState:
     judged_m: float = math.nan  # latest judged drift (m, see judged_drift)
     limit_m: float = math.nan   # the limit the judged drift was compared with (m)
 
+    # Drake clones abstract state with deepcopy on every update (the frames hold point
+    # arrays); the state is immutable, so clones may share it.
+    def __deepcopy__(self, memo):
+        return self
+
+    def __copy__(self):
+        return self
+
 
 def tracking_update(state: TrackingState, t: float, drift: DriftEstimate | None,
                     config, limits: TrackingLimits | None = None) -> TrackingState:

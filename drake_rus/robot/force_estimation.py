@@ -29,7 +29,8 @@ def estimate_tip_wrench(J_WP: np.ndarray, tau_external: np.ndarray, R_WP: np.nda
     if J_WP.shape != (6, tau.shape[0]):
         raise ValueError(f"J_WP: expected shape (6, {tau.shape[0]}), got {J_WP.shape}")
     # Solve min |J^T F - tau|^2 + damping^2 |F|^2  ->  (J J^T + d^2 I) F = J tau.
-    A = J_WP @ J_WP.T + damping**2 * np.eye(6)
+    A = J_WP @ J_WP.T
+    A.flat[::7] += damping**2
     F_W = np.linalg.solve(A, J_WP @ tau)
     R_PW = np.asarray(R_WP, dtype=float).T
     return np.concatenate([R_PW @ F_W[:3], R_PW @ F_W[3:]])
