@@ -16,7 +16,9 @@ def test_variants_tasks_and_run_ids():
     tasks = st.template_tasks(["test:0", "train:3"], o, 0.6)
     ids = [st.run_id(t) for t in tasks]
     # loo only for the training patient.
-    assert len(ids) == len(set(ids)) == 4 + 5
+    n = len(st.TEMPLATE_VARIANTS)
+    assert len(ids) == len(set(ids)) == (n - 1) + n
+    assert "template__test-0__erk060__t-population-long" in ids
     assert "template__train-3__erk060__t-loo" in ids
     assert "template__test-0__erk060__t-scale-1.1" in ids
     for bad in ("scale", "single:x", "median"):

@@ -57,15 +57,20 @@ _UMASK = os.umask(0o022)
 os.umask(_UMASK)
 
 
+def user_cache_home() -> Path:
+    """``$XDG_CACHE_HOME/drake_rus``, else ``~/.cache/drake_rus``: the project's caches."""
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    base = Path(xdg).expanduser() if xdg else Path.home() / ".cache"
+    return base / "drake_rus"
+
+
 def patient_cache_dir() -> Path:
     """``$DRAKE_RUS_CACHE_DIR``, else ``$XDG_CACHE_HOME/drake_rus/patients``, else
     ``~/.cache/drake_rus/patients`` (not created here)."""
     env = os.environ.get(CACHE_DIR_ENV)
     if env:
         return Path(env).expanduser()
-    xdg = os.environ.get("XDG_CACHE_HOME")
-    base = Path(xdg).expanduser() if xdg else Path.home() / ".cache"
-    return base / "drake_rus" / "patients"
+    return user_cache_home() / "patients"
 
 
 def file_digest(path) -> str:

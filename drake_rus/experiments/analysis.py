@@ -9,7 +9,8 @@
 - :func:`analyze_starts` (III-D, Fig. 9d): pairwise paired t-tests of the random starts
   over patients with Bonferroni correction (5 starts, 10 pairs: p < 0.005).
 - :func:`analyze_template` (beyond the paper): errors against the template's distance from
-  the patient for template variants (mean, scaled, single kidney, leave-one-out).
+  the patient for template variants (mean, scaled, single kidney, leave-one-out, another
+  population's template), generated patients and real bodies apart.
 - :func:`analyze_efficiency` (III-E, Fig. 10): totals per strategy pole to pole (the
   paper's), over the whole pivot and at matched coverage (n and eps to reach V = 0.9), OP
   against the others (paired, Bonferroni over each definition's comparisons), how often the
@@ -20,6 +21,8 @@
 """
 
 from __future__ import annotations
+
+import re
 
 import numpy as np
 from scipy.stats import ttest_rel
@@ -241,39 +244,88 @@ def analyze_efficiency(results: list[dict], alpha: float = 0.05, V_target: float
             "patients": [r["patient"] for r in results]}
 
 
-def analyze_template(results: list[dict]) -> dict:
-    """Template-mismatch study: per template variant the template's distance from the
-    patients' kidneys and both errors (mean, SD), paired t-tests of each variant's errors
-    against the mean template's on the same patients, and over all runs the Pearson
-    correlation and least-squares slope of each error against the template distance."""
-    by = {}
-    for r in results:
-        by.setdefault(r["template_variant"], {})[r["patient"]] = r
-    rows = []
-    ref = by.get("mean", {})
-    for v in sorted(by, key=lambda v: (v != "mean", v)):
-        runs = by[v]
-        vals = list(runs.values())
-        common = sorted(set(runs) & set(ref))
-        row = {"variant": v, "n": len(vals)}
-        for key in ("template_distance_mm", "e_trans_mm", "e_rot_x_deg"):
-            row[f"{key}_mean"], row[f"{key}_sd"] = mean_sd([x[key] for x in vals])
-        for key in ("e_trans_mm", "e_rot_x_deg"):
-            row[f"p_{key}_vs_mean"] = (paired_p([runs[q][key] for q in common],
-                                                [ref[q][key] for q in common])
-                                       if v != "mean" else float("nan"))
-        rows.append(row)
+DISTANCE_BINS_MM = (0.0, 3.0, 4.0, 5.0, 7.0, float("inf"))
+
+
+def template_group(r: dict) -> str:
+    """The group of a template-study run in the tables: ``generated`` (the virtual patients,
+    ``seed:N``/``train:K``/``test:K``) or the real body's folder or file name; ``, decubitus``
+    appended for left-lateral-decubitus runs."""
+    spec = str(r["patient"])
+    kind = r.get("patient_kind") or ("generated" if re.fullmatch(r"(test|train|seed):\d+", spec)
+                                     else "real")
+    name = "generated" if kind == "generated" else spec.rstrip("/").split("/")[-1]
+    return name + (", decubitus" if r.get("posture") == "left_lateral_decubitus" else "")
+
+
+def _trend(results: list[dict]) -> dict:
     d = np.asarray([r["template_distance_mm"] for r in results], float)
     trend = {}
     for key in ("e_trans_mm", "e_rot_x_deg"):
         y = np.asarray([r[key] for r in results], float)
         if len(d) > 2 and np.ptp(d) > 0 and np.ptp(y) > 0:
-            trend[key] = {"r": float(np.corrcoef(d, y)[0, 1]),
-                          "slope_per_mm": float(np.polyfit(d, y, 1)[0])}
+            fit = np.polyfit(d, y, 1)
+            trend[key] = {"r": float(np.corrcoef(d, y)[0, 1]), "slope_per_mm": float(fit[0]),
+                          "intercept": float(fit[1]), "runs": int(len(d))}
         else:
-            trend[key] = {"r": float("nan"), "slope_per_mm": float("nan")}
-    return {"rows": rows, "trend": trend, "patients": sorted({r["patient"] for r in results}),
+            trend[key] = {"r": float("nan"), "slope_per_mm": float("nan"),
+                          "intercept": float("nan"), "runs": int(len(d))}
+    return trend
+
+
+def analyze_template(results: list[dict]) -> dict:
+    """Template-mismatch study: per patient group (:func:`template_group`: the generated
+    patients together, each real body on its own) and template variant the template's
+    distance from the patients' kidneys and both errors (mean, SD), paired t-tests of each
+    variant's errors against the mean template's on the same patients; the Pearson
+    correlation and least-squares line of each error against the template distance over the
+    generated patients' runs (``trend``) and over all runs (``trend_all``); the errors in
+    bins of template distance (``bins``, all runs)."""
+    groups = {}
+    for r in results:
+        groups.setdefault(template_group(r), {}).setdefault(r["template_variant"], {})[
+            r["patient"]] = r
+    rows = []
+    for g in sorted(groups, key=lambda g: (g != "generated", g)):
+        by = groups[g]
+        ref = by.get("mean", {})
+        for v in sorted(by, key=_variant_order):
+            runs = by[v]
+            vals = list(runs.values())
+            common = sorted(set(runs) & set(ref))
+            row = {"group": g, "variant": v, "n": len(vals)}
+            for key in ("template_distance_mm", "e_trans_mm", "e_rot_x_deg"):
+                row[f"{key}_mean"], row[f"{key}_sd"] = mean_sd([x[key] for x in vals])
+            for key in ("e_trans_mm", "e_rot_x_deg"):
+                row[f"p_{key}_vs_mean"] = (paired_p([runs[q][key] for q in common],
+                                                    [ref[q][key] for q in common])
+                                           if v != "mean" else float("nan"))
+            ext = [x.get("template_extent_mm") for x in vals if x.get("template_extent_mm")]
+            row["template_length_mm"] = float(ext[0][0]) if ext else float("nan")
+            rows.append(row)
+    generated = [r for r in results if template_group(r).startswith("generated")]
+    bins = []
+    d = np.asarray([r["template_distance_mm"] for r in results], float)
+    for lo, hi in zip(DISTANCE_BINS_MM[:-1], DISTANCE_BINS_MM[1:]):
+        sel = [r for r, x in zip(results, d) if lo <= x < hi]
+        if not sel:
+            continue
+        b = {"from_mm": lo, "to_mm": hi, "n": len(sel),
+             "real_runs": sum(1 for r in sel if not template_group(r).startswith("generated"))}
+        for key in ("template_distance_mm", "e_trans_mm", "e_rot_x_deg"):
+            b[f"{key}_mean"], b[f"{key}_sd"] = mean_sd([r[key] for r in sel])
+        bins.append(b)
+    return {"rows": rows, "trend": _trend(generated or results), "trend_all": _trend(results),
+            "bins": bins, "groups": list(dict.fromkeys(r["group"] for r in rows)),
+            "patients": sorted({r["patient"] for r in results}),
             "er": sorted({r["er"] for r in results})}
+
+
+def _variant_order(v: str):
+    """mean first, then the scaled, single, leave-one-out and population templates."""
+    order = ("mean", "scale-", "single:", "loo", "population:")
+    k = next((i for i, p in enumerate(order) if v.startswith(p)), len(order))
+    return (k, v)
 
 
 def mean_curve(results: list[dict], strategy: str, x_key: str, grid: np.ndarray) -> np.ndarray:

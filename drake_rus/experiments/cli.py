@@ -14,6 +14,7 @@ for ``paper``, ``report.md`` go to OUT.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -30,9 +31,10 @@ from drake_rus.experiments.report import (
 from drake_rus.experiments.analysis import (
     analyze_efficiency, analyze_er_sweep, analyze_starts)
 from drake_rus.experiments.tasks import (
-    ER_GRID, MODES, TEMPLATE_VARIANTS, StudyOptions, check_strategies, closed_loop_tasks,
+    ER_GRID, MODES, POSTURES, TEMPLATE_VARIANTS, StudyOptions, check_strategies, closed_loop_tasks,
     default_strategies, efficiency_tasks, er_sweep_tasks, expand_patients, load_study_results,
-    run_id, run_task, starts_tasks, template_tasks)
+    population_of_variant, run_id, run_task, starts_tasks, template_tasks)
+from drake_rus.template.population import population_template
 from drake_rus.io_utils import MB, dumps_strict, output_dir, write_text_atomic
 from drake_rus.progress import stderr_is_terminal
 from drake_rus.scenario import LoadScenario
@@ -53,14 +55,16 @@ def add_commands(subparsers) -> None:
              "efficiency": "OP, GT-OP, NOP, SL sweeps: V vs n and eps (Fig. 10), volumes",
              "paper": "all of the above into one report directory with report.md",
              "template": "localization with mismatched templates (mean, scaled, single "
-                         "kidney, leave-one-out) against the template's distance"}
+                         "kidney, leave-one-out, another population's) against the "
+                         "template's distance, generated patients and real bodies"}
     for name, text in helps.items():
         # argparse %-formats help strings (not descriptions): escape the "%" of "100%".
         q = sub.add_parser(name, help=text.replace("%", "%%"), description=text)
         add_scenario_arguments(q)
         q.add_argument("--patients", default="test:0-14",
                        help="comma list: test:0-14, seed:100-120, train:3 or patient paths "
-                            "(default test:0-14)")
+                            "(default test:0-14); study template: each optionally with "
+                            "@decubitus or @supine")
         q.add_argument("--out", default=f"reports/{name}", help=f"output directory "
                                                                 f"(default reports/{name})")
         q.add_argument("--workers", type=int, default=2,
@@ -104,7 +108,13 @@ def add_commands(subparsers) -> None:
         if name == "template":
             q.add_argument("--variants", default=",".join(TEMPLATE_VARIANTS),
                            help="comma list of template variants: mean, scale-S, single:K, "
-                                "loo (training patients only) (default %(default)s)")
+                                "loo (training patients only), population:NAME[:N] (a "
+                                "template built from N (default 20) generated kidneys of "
+                                "another population, cached: NAME base, short, long, slim "
+                                "or length+Xsd) (default %(default)s)")
+            q.add_argument("--posture", default=None, choices=list(POSTURES),
+                           help="lay every patient supine or in left lateral decubitus "
+                                "(default: the scenario's; decubitus runs' ids end in __lld)")
         if name in ("starts", "efficiency", "template"):
             q.add_argument("--er", type=float, default=None,
                            help="exploration ratio (default: the critical ER found by an "
@@ -142,7 +152,8 @@ def _options(args):
                         overrides=args.overrides, segmenter=args.segmenter, method=args.method,
                         voxel=float(args.voxel), seed=int(args.seed), recon_spacing=recon,
                         er_unit=getattr(args, "er_unit", "kidney"),
-                        mode=getattr(args, "mode", "kinematic"))
+                        mode=getattr(args, "mode", "kinematic"),
+                        posture=getattr(args, "posture", None))
 
 
 def _strategies(args, mode):
@@ -206,11 +217,18 @@ def run_study_command(args) -> int:
         patients = expand_patients(args.patients)
     except ValueError as e:
         raise ValueError(f"--patients: {e}") from None
+    if args.study != "template" and any("@" in p for p in patients):
+        raise ValueError("--patients: a posture suffix (@decubitus, @supine) is only read by "
+                         "study template; use --scenario decubitus for the other studies")
     options = _options(args)
     # Fail early (in this process) on a bad scenario or template, not in every worker, and
     # on every argument before the output folder is made.
-    LoadScenario(filename=args.scenarios_file, scenario_name=args.scenario,
-                 scenario_text=args.overrides)
+    scenario = LoadScenario(filename=args.scenarios_file, scenario_name=args.scenario,
+                            scenario_text=args.overrides)
+    if args.study == "template":
+        # Every run's posture in its record and run id (decubitus runs end in __lld).
+        options = dataclasses.replace(options, posture=options.posture
+                                      or scenario.patient.posture)
     if args.study in ("er-sweep", "paper"):
         _ers(args.ers)
     if args.study in ("efficiency", "paper"):
@@ -310,16 +328,32 @@ def _study(args, patients, options, out: Path) -> int:
             f"{k} n {s[k]['n'][0]:.0f} eps {s[k]['eps_mm'][0]:.1f} mm V {s[k]['V'][0]:.3f}"
             for k in STRATEGY_ORDER if k in s), flush=True)
     template_an = None
+    population_builds = {}
     if args.study == "template":
         variants = [v.strip() for v in args.variants.split(",") if v.strip()]
         tasks = template_tasks(patients, options, er, variants)
+        # Population templates: built (or found in the cache) here, once, not in every worker.
+        scenario = LoadScenario(filename=args.scenarios_file, scenario_name=args.scenario,
+                                scenario_text=args.overrides)
+        for v in variants:
+            pop = population_of_variant(v)
+            if pop is not None:
+                t = time.perf_counter()
+                path = population_template(pop[0], n=pop[1], side=scenario.patient.side)
+                population_builds[v] = {"path": str(path), "subjects": pop[1],
+                                        "wall_s": round(time.perf_counter() - t, 2),
+                                        "build_s": _build_seconds(path)}
+                print(f"template {v}: {path} ({population_builds[v]['wall_s']:.1f} s; "
+                      f"built in {population_builds[v]['build_s']} s)", file=sys.stderr,
+                      flush=True)
         t = time.perf_counter()
         go(tasks, "template")
         ran["template"] = time.perf_counter() - t
         template_an = write_template_outputs(
-            dest, usable("template", _of(load_study_results(out, "template"), tasks)))
+            dest, usable("template", _of(load_study_results(out, "template"), tasks)),
+            mode=mode_text)
         print("template: " + "; ".join(
-            f"{r['variant']} d {r['template_distance_mm_mean']:.1f} mm, E_trans "
+            f"{r['group']} {r['variant']} d {r['template_distance_mm_mean']:.1f} mm, E_trans "
             f"{r['e_trans_mm_mean']:.1f} mm, E_rot,x {r['e_rot_x_deg_mean']:.1f} deg"
             for r in template_an["rows"]), flush=True)
     closed = None
@@ -343,6 +377,11 @@ def _study(args, patients, options, out: Path) -> int:
             "mode_text": mode_text, "runs_without_localization": unusable,
             "failed_runs": failed,
             "runs_done": counts["done"], "runs_skipped": counts["skipped"]}
+    if args.study == "template":
+        meta["posture"] = options.posture + (
+            " (per-patient @posture suffixes override)" if any("@" in p for p in patients)
+            else "")
+        meta["population_templates"] = population_builds
     # Keep the history of invocations: a resumed study's wall time covers only what it ran.
     meta_path = dest / f"study_{args.study}.json"
     history = []
@@ -371,6 +410,14 @@ def _study(args, patients, options, out: Path) -> int:
               flush=True)
     print(f"study {args.study}: {wall:.0f} s wall, outputs in {dest}", flush=True)
     return 1 if failed else 0
+
+
+def _build_seconds(path) -> float | None:
+    """The build time a template's metadata records (s), None if it has none."""
+    try:
+        return json.loads(Path(path).with_suffix(".json").read_text()).get("total_seconds")
+    except (OSError, ValueError):
+        return None
 
 
 def _of(results, tasks):

@@ -15,7 +15,7 @@ import numpy as np
 from drake_rus.batch import json_default
 from drake_rus.experiments.analysis import (
     CRITICAL_ER_RULES, PAPER, STRATEGY_ORDER, analyze_efficiency, analyze_er_sweep,
-    analyze_starts, analyze_template, mean_curve)
+    analyze_starts, analyze_template, mean_curve, template_group)
 from drake_rus.experiments.tasks import ER_UNIT_TEXT
 from drake_rus.io_utils import save_figure, write_text_atomic
 from drake_rus.metrics.sweep import MATCHED_V, POLE_TO_POLE, WHOLE_PIVOT
@@ -204,29 +204,72 @@ def write_efficiency_outputs(out_dir, results, mode: str = KINEMATIC) -> dict:
     return analysis
 
 
-def plot_template(results: list[dict], analysis: dict, path) -> Path:
-    """E_trans and E_rot,x against the template's distance from the patient, per variant,
-    with the paper's localization-study mean +- SD (its template vs its test patients)."""
+TEMPLATE_METRICS = ("E_trans = x-y distance (base frame) between the registered and the true "
+                    "kidney canonical-frame origins; E_rot,x = angle between the registered "
+                    "and the true kidney long axes x_k (drake_rus/metrics/core.py, the "
+                    "paper's III-B)")
+TEMPLATE_DISTANCE = ("template distance = symmetric mean nearest-point distance between the "
+                     "template's points and the patient's true kidney surface, both in their "
+                     "canonical frames (eq. 13-14)")
+TEMPLATE_VARIANT_TEXT = {
+    "mean": "the repository's template (mean of 20 generated training kidneys, eq. 15)",
+    "scale-": "the mean template scaled by S",
+    "single:": "training kidney K alone",
+    "loo": "leave-one-out mean (training patients only: the mean of the other 19)",
+    "population:": "a template built the same way from N generated kidneys of another "
+                   "population (drake_rus/template/population.py; base: other people, same "
+                   "statistics; short/long: kidney length -1/+1 SD of Glodny 2009, 108.5 +- "
+                   "12.2 mm; slim: width and thickness -1 SD)",
+}
+
+
+def plot_template(results: list[dict], analysis: dict, path, mode: str = KINEMATIC) -> Path:
+    """E_trans and E_rot,x against the template's distance from the patient, per variant
+    (colour) and patient group (marker: generated patients dots, real bodies stars, in
+    decubitus diamonds), the least-squares line over the generated patients, and the paper's
+    localization-study mean +- SD (its template vs its test patients)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
-    variants = [r["variant"] for r in analysis["rows"]]
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
+    variants = list(dict.fromkeys(r["variant"] for r in analysis["rows"]))
+    colors = {v: plt.cm.tab10(i % 10) for i, v in enumerate(variants)}
     pl = PAPER["localization"]
     for ax, key, label, paper in ((axes[0], "e_trans_mm", "E_trans (mm)", pl["e_trans_mm"]),
                                   (axes[1], "e_rot_x_deg", "E_rot,x (deg)", pl["e_rot_x_deg"])):
         for v in variants:
-            sel = [r for r in results if r["template_variant"] == v]
-            ax.plot([r["template_distance_mm"] for r in sel], [r[key] for r in sel], "o",
-                    ms=4, label=v)
-        ax.axhline(paper[0], color="k", ls="--", lw=1, label="seed paper (mean)")
-        ax.axhspan(max(0.0, paper[0] - paper[1]), paper[0] + paper[1], color="k", alpha=0.06)
+            for g in analysis.get("groups", ["generated"]):
+                sel = [r for r in results if r["template_variant"] == v
+                       and template_group(r) == g]
+                if not sel:
+                    continue
+                real = not g.startswith("generated")
+                lld = real and "decubitus" in g
+                marker = ("D" if lld else "*") if real else "o"
+                ax.plot([r["template_distance_mm"] for r in sel], [r[key] for r in sel],
+                        marker, ms=13 if lld else 11 if real else 4, color=colors[v],
+                        mec=colors[v] if lld or not real else "k",
+                        mfc="none" if lld else colors[v], mew=2 if lld else 1,
+                        label=v if g == "generated" or not any(
+                            template_group(x) == "generated" for x in results) else None)
         t = analysis["trend"][key]
+        if np.isfinite(t["slope_per_mm"]):
+            d = np.asarray([r["template_distance_mm"] for r in results], float)
+            x = np.linspace(0, d.max() * 1.05, 20)
+            ax.plot(x, t["intercept"] + t["slope_per_mm"] * x, "-", color="0.5", lw=1,
+                    label="fit, generated patients")
+        ax.axhline(paper[0], color="k", ls="--", lw=1, label="seed paper (mean +- SD)")
+        ax.axhspan(max(0.0, paper[0] - paper[1]), paper[0] + paper[1], color="k", alpha=0.06)
         ax.set(xlabel="template distance from the patient's kidney (mm)", ylabel=label,
-               title=f"r = {t['r']:.2f}, slope {t['slope_per_mm']:.2f} per mm")
+               title=f"generated patients: r = {t['r']:.2f}, slope {t['slope_per_mm']:.2f} "
+                     "per mm", xlim=(0, None), ylim=(0, None))
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=7)
-    fig.suptitle(f"Template mismatch, {MODE_NOTE}", fontsize=9)
+    axes[0].plot([], [], "*", color="0.5", mec="k", ms=11, label="real body (supine)")
+    if any("decubitus" in g for g in analysis.get("groups", [])):
+        axes[0].plot([], [], "D", color="0.5", mfc="none", mew=2, ms=9,
+                     label="real body, decubitus")
+    axes[0].legend(fontsize=7, ncol=2)
+    fig.suptitle(f"Template mismatch, {mode}", fontsize=9)
     fig.tight_layout()
     return save_figure(fig, path)
 
@@ -237,38 +280,75 @@ def write_template_outputs(out_dir, results, mode: str = KINEMATIC) -> dict:
     analysis["mode"] = mode
     write_csv_atomic(out / "template_runs.csv",
                      [dict(_flat(r), template_variant=r["template_variant"],
-                           template_distance_mm=r["template_distance_mm"]) for r in results])
+                           template_distance_mm=r["template_distance_mm"],
+                           posture=r.get("posture"),
+                           template_length_mm=(r.get("template_extent_mm") or [None])[0],
+                           kidney_length_canonical_mm=(r.get("kidney_extent_mm") or [None])[0])
+                      for r in results])
     write_csv_atomic(out / "template_table.csv", analysis["rows"])
-    plot_template(results, analysis, out / "fig_template_mismatch.png")
+    write_csv_atomic(out / "template_bins.csv", analysis["bins"])
+    plot_template(results, analysis, out / "fig_template_mismatch.png", mode)
     write_text_atomic(out / "template.json", json.dumps(analysis, default=json_default, indent=1))
     return analysis
 
 
 def template_markdown(meta: dict, analysis: dict) -> list[str]:
-    """The template-mismatch section of report.md."""
+    """The template-mismatch section of report.md: per patient group a table of the
+    variants (distance, E_trans, E_rot,x, paired p against the mean template), the errors in
+    bins of template distance, the trend lines and the paper's numbers."""
     pl = PAPER["localization"]
+    mode = meta.get("mode_text", analysis.get("mode", KINEMATIC))
+    variants = list(dict.fromkeys(r["variant"] for r in analysis["rows"]))
+    used = [f"`{v}`" for v in TEMPLATE_VARIANT_TEXT if any(x.startswith(v) for x in variants)]
     L = ["## Template mismatch (beyond the paper, `fig_template_mismatch.png`)", "",
-         provenance(meta, mode=meta.get("mode_text", KINEMATIC), extra="template variants: mean (ours), mean scaled by S, a single "
-                    "training kidney (single:K), leave-one-out mean for training patients "
-                    "(loo); distance = symmetric mean surface distance in the canonical "
-                    "frames"), "",
-         f"ER {', '.join(f'{e * 100:.0f}%' for e in analysis['er'])}; patients: "
-         f"{', '.join(analysis['patients'])}.", "",
-         "| template | runs | distance (mm) | E_trans (mm) | E_rot,x (deg) | p E_trans vs "
-         "mean | p E_rot,x vs mean |", "|---|---|---|---|---|---|---|"]
-    for r in analysis["rows"]:
-        L.append(f"| {r['variant']} | {r['n']} | {_f(r['template_distance_mm_mean'])} +- "
-                 f"{_f(r['template_distance_mm_sd'])} | {_f(r['e_trans_mm_mean'])} +- "
-                 f"{_f(r['e_trans_mm_sd'])} | {_f(r['e_rot_x_deg_mean'])} +- "
-                 f"{_f(r['e_rot_x_deg_sd'])} | {_p(r['p_e_trans_mm_vs_mean'])} | "
-                 f"{_p(r['p_e_rot_x_deg_vs_mean'])} |")
-    t = analysis["trend"]
-    L += ["", f"Over all runs: E_trans against distance r = {_f(t['e_trans_mm']['r'])} "
+         provenance(meta, mode=mode,
+                    extra=f"metrics: {TEMPLATE_METRICS}; {TEMPLATE_DISTANCE}; template "
+                          "variants: " + "; ".join(
+                              f"{k.rstrip(':-')}: {t}" for k, t in TEMPLATE_VARIANT_TEXT.items()
+                              if f"`{k}`" in used)), "",
+         f"ER {', '.join(f'{e * 100:.0f}%' for e in analysis['er'])}; posture "
+         f"{meta.get('posture') or 'the scenario default'}; patients: "
+         f"{', '.join(analysis['patients'])}.", ""]
+    pops = meta.get("population_templates") or {}
+    if pops:
+        L += ["Population templates (built once, then read from the template cache): " + "; ".join(
+            f"`{v}` {b['subjects']} subjects, built in {_f(b.get('build_s'), 1)} s"
+            for v, b in pops.items()) + ".", ""]
+    for g in analysis.get("groups", ["generated"]):
+        rows = [r for r in analysis["rows"] if r.get("group", "generated") == g]
+        title = ("Generated patients" if g.startswith("generated") else f"Real body: {g}")
+        L += [f"**{title}** ({mode.split(' (')[0]}, registration `{meta.get('method', '?')}`, "
+              f"segmenter `{meta.get('segmenter', '?')}`)", "",
+              "| template | runs | template length (mm) | distance (mm) | E_trans (mm) | "
+              "E_rot,x (deg) | p E_trans vs mean | p E_rot,x vs mean |",
+              "|---|---|---|---|---|---|---|---|"]
+        for r in rows:
+            L.append(f"| {r['variant']} | {r['n']} | {_f(r.get('template_length_mm'), 1)} | "
+                     f"{_f(r['template_distance_mm_mean'])} +- "
+                     f"{_f(r['template_distance_mm_sd'])} | {_f(r['e_trans_mm_mean'])} +- "
+                     f"{_f(r['e_trans_mm_sd'])} | {_f(r['e_rot_x_deg_mean'])} +- "
+                     f"{_f(r['e_rot_x_deg_sd'])} | {_p(r['p_e_trans_mm_vs_mean'])} | "
+                     f"{_p(r['p_e_rot_x_deg_vs_mean'])} |")
+        L.append("")
+    if analysis.get("bins"):
+        L += [f"**Errors by template distance** (all runs, {mode.split(' (')[0]})", "",
+              "| distance bin (mm) | runs (real body) | distance (mm) | E_trans (mm) | "
+              "E_rot,x (deg) |", "|---|---|---|---|---|"]
+        for b in analysis["bins"]:
+            hi = "" if not np.isfinite(b["to_mm"]) else f"{b['to_mm']:g}"
+            L.append(f"| {b['from_mm']:g}-{hi} | {b['n']} ({b['real_runs']}) | "
+                     f"{_f(b['template_distance_mm_mean'])} | {_f(b['e_trans_mm_mean'])} +- "
+                     f"{_f(b['e_trans_mm_sd'])} | {_f(b['e_rot_x_deg_mean'])} +- "
+                     f"{_f(b['e_rot_x_deg_sd'])} |")
+        L.append("")
+    t, ta = analysis["trend"], analysis.get("trend_all", analysis["trend"])
+    L += [f"Generated patients' runs: E_trans against distance r = {_f(t['e_trans_mm']['r'])} "
           f"({_f(t['e_trans_mm']['slope_per_mm'])} mm per mm), E_rot,x r = "
-          f"{_f(t['e_rot_x_deg']['r'])} ({_f(t['e_rot_x_deg']['slope_per_mm'])} deg per mm). "
-          f"Paper (its template on its 15 test patients): {pl['e_trans_mm'][0]} +- "
-          f"{pl['e_trans_mm'][1]} mm, {pl['e_rot_x_deg'][0]} +- {pl['e_rot_x_deg'][1]} deg.",
-          ""]
+          f"{_f(t['e_rot_x_deg']['r'])} ({_f(t['e_rot_x_deg']['slope_per_mm'])} deg per mm); "
+          f"all runs: r = {_f(ta['e_trans_mm']['r'])} and {_f(ta['e_rot_x_deg']['r'])}. "
+          f"Paper (its template on its 15 simulated test patients, ER 60%, "
+          f"`docs/facts/paper.md`): {pl['e_trans_mm'][0]} +- {pl['e_trans_mm'][1]} mm, "
+          f"{pl['e_rot_x_deg'][0]} +- {pl['e_rot_x_deg'][1]} deg.", ""]
     return L
 
 

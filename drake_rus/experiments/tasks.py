@@ -18,8 +18,13 @@ Studies (each a list of independent runs; a run is a plain dict, its result a JS
   that differ from the patient by known amounts (:func:`template_variant`): the mean
   template, the mean scaled by 0.9 / 1.1, a single training kidney (``single:K``), and for
   training patients the leave-one-out mean (``loo``, the mean of the other 19 corresponded
-  training shapes); each run records the template's distance from the patient's kidney
-  (:func:`template_distance`), so E_trans and E_rot,x can be read against it.
+  training shapes), and a template built from another population (``population:NAME``,
+  :mod:`drake_rus.template.population`: generated kidneys with other size statistics, e.g.
+  ``long``/``short`` = Glodny's length +-1 SD, built once and cached); each run records
+  the template's distance from the patient's kidney (:func:`template_distance`), so E_trans
+  and E_rot,x can be read against it. A patient may be a real body (a patient path, e.g.
+  the Visible Human female's meshes); ``StudyOptions.posture`` lays every patient supine or
+  in left lateral decubitus.
 
 ER (``StudyOptions.er_unit``): ``kidney`` (default, the paper's simulation, III-C: "the
 fraction of total kidney length traversed by the probe") explores ER x the patient's kidney
@@ -66,6 +71,8 @@ from drake_rus.paths import REPO_ROOT
 from drake_rus.scan import RunScan, ScanMetrics
 from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, LoadScenario
 from drake_rus.template.io import DEFAULT_TEMPLATE_PATH
+from drake_rus.template.population import (DEFAULT_SUBJECTS as POPULATION_SUBJECTS,
+                                           POPULATIONS, parse_population, population_template)
 
 ER_GRID = tuple(round(0.1 * k, 1) for k in range(11))
 # What ER multiplies: the patient's kidney length (the paper's simulation) or L_m.
@@ -101,13 +108,35 @@ def exploration_travel(er: float, unit: str, patient_length: float, L_m: float) 
 
 
 # ------------------------------------------------------------------------------- patients
+POSTURE_SUFFIXES = {"supine": "supine", "decubitus": "left_lateral_decubitus",
+                    "left_lateral_decubitus": "left_lateral_decubitus"}
+
+
+def split_posture(spec: str) -> tuple[str, str | None]:
+    """(patient spec, posture or None) of a spec with an optional ``@supine`` /
+    ``@decubitus`` suffix (the template study lays that patient in that posture)."""
+    head, sep, tail = str(spec).rpartition("@")
+    if not sep:
+        return str(spec), None
+    if tail not in POSTURE_SUFFIXES:
+        raise ValueError(f"patient {spec!r}: unknown posture suffix @{tail} (expected "
+                         "@supine or @decubitus)")
+    return head, POSTURE_SUFFIXES[tail]
+
+
 def expand_patients(text: str) -> list[str]:
     """Patient specs from a comma list of ``test:0-14``, ``seed:100-120``, ``train:3`` or
-    patient paths. Ranges are inclusive."""
+    patient paths, each optionally with ``@supine`` / ``@decubitus`` (the template study's
+    per-patient posture). Ranges are inclusive."""
     specs = []
     for part in str(text).split(","):
         part = part.strip()
         if not part:
+            continue
+        if "@" in part:
+            spec, posture = split_posture(part)
+            suffix = part[len(spec):]
+            specs += [s + suffix for s in expand_patients(spec)]
             continue
         m = re.fullmatch(r"(test|train|seed):(\d+)-(\d+)", part)
         if m:
@@ -139,30 +168,76 @@ class StudyOptions:
     recon_spacing: float = 0.001    # reconstruction grid (m)
     er_unit: str = "kidney"         # ER x the patient's kidney length, or "fixed" (x L_m)
     mode: str = "kinematic"         # "kinematic" (the twin) or "closed-loop" (RunScan)
+    posture: str | None = None      # the patients' posture; None: the scenario's
 
     def base(self) -> dict:
         return dataclasses.asdict(self)
 
 
-TEMPLATE_VARIANTS = ("mean", "scale-0.9", "scale-1.1", "single:0", "loo")
+TEMPLATE_VARIANTS = ("mean", "scale-0.9", "scale-1.1", "single:0", "loo", "population:base",
+                     "population:short", "population:long")
+VARIANT_SYNTAX = ("mean, scale-S (0 < S <= 3), single:K, loo, population:NAME or "
+                  "population:NAME:N (N subjects, default 20; NAME one of "
+                  + ", ".join(POPULATIONS) + " or length+Xsd / length-Xsd)")
+POSTURES = ("supine", "left_lateral_decubitus")
 
 
 def template_tasks(patients, options: StudyOptions, er: float,
                    variants=TEMPLATE_VARIANTS) -> list[dict]:
     """One run per patient and template variant; ``loo`` only for training patients
-    (``train:K``: the template without K); others are not in the template anyway."""
+    (``train:K``: the template without K); others are not in the template anyway. A patient
+    ``SPEC@decubitus`` (``@supine``) is laid in that posture, the others in
+    ``options.posture`` (None: the scenario's)."""
+    variants = list(variants)
+    if not variants:
+        raise ValueError(f"template variant: none given (expected a comma list of "
+                         f"{VARIANT_SYNTAX})")
     for v in variants:
         _check_variant(v)
-    return [dict(options.base(), study="template", patient=p, er=float(er), start=-1,
-                 template_variant=v)
-            for p in patients for v in variants
-            if v != "loo" or re.fullmatch(r"train:\d+", str(p))]
+    if options.posture is not None and options.posture not in POSTURES:
+        raise ValueError(f"posture: expected one of {', '.join(POSTURES)}, got "
+                         f"{options.posture!r}")
+    tasks = []
+    for p in patients:
+        spec, posture = split_posture(p)
+        for v in variants:
+            if v == "loo" and not re.fullmatch(r"train:\d+", spec):
+                continue
+            tasks.append(dict(options.base(), study="template", patient=spec, er=float(er),
+                              start=-1, template_variant=v,
+                              posture=posture or options.posture))
+    return tasks
+
+
+def population_of_variant(v: str) -> tuple[str, int] | None:
+    """(population name, subjects) of a ``population:NAME[:N]`` variant, else None."""
+    m = re.fullmatch(r"population:([^:]+)(?::(\d+))?", str(v))
+    if m is None:
+        return None
+    return m.group(1), int(m.group(2)) if m.group(2) else POPULATION_SUBJECTS
 
 
 def _check_variant(v: str) -> None:
-    if not (v in ("mean", "loo") or re.fullmatch(r"scale-\d+(\.\d+)?", v)
-            or re.fullmatch(r"single:\d+", v)):
-        raise ValueError(f"template variant: expected mean, scale-S, single:K or loo, got {v!r}")
+    """Raises ValueError naming the template variant and what was expected."""
+    v = str(v)
+    m = re.fullmatch(r"scale-(\d+(\.\d+)?)", v)
+    if m and not 0 < float(m.group(1)) <= 3:
+        raise ValueError(f"template variant {v!r}: the scale S must lie in (0, 3]")
+    if v.startswith("population:"):
+        pop = population_of_variant(v)
+        if pop is None:
+            raise ValueError(f"template variant {v!r}: expected population:NAME or "
+                             f"population:NAME:N")
+        try:
+            parse_population(pop[0])
+        except ValueError as e:
+            raise ValueError(f"template variant {v!r}: {e}") from None
+        if not 1 <= pop[1] <= 200:
+            raise ValueError(f"template variant {v!r}: subjects N must lie in 1..200, got "
+                             f"{pop[1]}")
+        return
+    if not (v in ("mean", "loo") or m or re.fullmatch(r"single:\d+", v)):
+        raise ValueError(f"template variant: expected {VARIANT_SYNTAX}, got {v!r}")
 
 
 def run_id(task: dict) -> str:
@@ -177,7 +252,9 @@ def run_id(task: dict) -> str:
     if task["study"] == "starts":
         parts.append(f"s{task['start']}")
     if task["study"] == "template":
-        parts.append("t-" + re.sub(r"[^A-Za-z0-9.]+", "-", task["template_variant"]))
+        parts.append("t-" + re.sub(r"[^A-Za-z0-9.+]+", "-", task["template_variant"]))
+    if task.get("posture") == "left_lateral_decubitus":
+        parts.append("lld")
     if task.get("mode", "kinematic") == "closed-loop" and task["study"] != "closed-loop":
         parts.append("cl")
     return "__".join(parts)
@@ -245,6 +322,17 @@ def _scenario(name, filename, overrides):
                         scenario_text=overrides)
 
 
+def _with_posture(scenario, task: dict):
+    """``scenario`` with the task's patient posture (``posture`` None: unchanged)."""
+    posture = task.get("posture")
+    if posture is None or posture == scenario.patient.posture:
+        return scenario
+    if posture not in POSTURES:
+        raise ValueError(f"posture: expected one of {', '.join(POSTURES)}, got {posture!r}")
+    return dataclasses.replace(scenario,
+                               patient=dataclasses.replace(scenario.patient, posture=posture))
+
+
 @functools.lru_cache(maxsize=2)
 def _template(path):
     return load_registration_template(path)
@@ -263,11 +351,17 @@ def _normals_like(points: np.ndarray, reference_normals: np.ndarray, k: int = 12
 
 
 @functools.lru_cache(maxsize=8)
-def template_variant(path, variant: str, patient: str = ""):
+def template_variant(path, variant: str, patient: str = "", side: str = "right"):
     """The registration template of ``variant`` (see the module doc), from the template file
-    at ``path`` (its corresponded training shapes ``aligned``, subjects train:0..N-1).
-    Variants other than ``mean`` carry no shape modes (rigid registration)."""
+    at ``path`` (its corresponded training shapes ``aligned``, subjects train:0..N-1), or for
+    ``population:NAME[:N]`` the template of that population's ``side`` kidneys (built on
+    first use and cached, :func:`drake_rus.template.population.population_template`).
+    ``mean`` and ``population:*`` carry their own shape modes (used by the ``deformable``
+    method only), the others none (rigid registration)."""
     _check_variant(variant)
+    pop = population_of_variant(variant)
+    if pop is not None:
+        return _template(str(population_template(pop[0], n=pop[1], side=side)))
     base = _template(path)
     if variant == "mean":
         return base
@@ -306,6 +400,24 @@ def template_distance(template, kp) -> float:
     return float(0.5 * (a + b))
 
 
+def patient_kind(spec: str) -> str:
+    """"generated" (seed:N, train:K, test:K) or "real" (a patient file or folder)."""
+    return "generated" if re.fullmatch(r"(test|train|seed):\d+", str(spec)) else "real"
+
+
+def template_record(variant: str, template, kp, posture: str, spec: str) -> dict:
+    """The template study's fields of a run: the variant, the template's distance from the
+    patient's kidney, the template's canonical extents and the kidney's (mm), the patient's
+    kind and posture."""
+    v = np.asarray(kp.patient.kidney_mesh.vertices, float)
+    p_K = kp.X_BK_true.inverse().multiply(kp.X_BPt.multiply(v.T)).T
+    return {"template_variant": variant,
+            "template_distance_mm": template_distance(template, kp) * 1e3,
+            "template_extent_mm": [round(float(x), 2) for x in np.ptp(template.points, 0) * 1e3],
+            "kidney_extent_mm": [round(float(x), 2) for x in np.ptp(p_K, 0) * 1e3],
+            "patient_kind": patient_kind(spec), "posture": posture}
+
+
 _PATIENTS: dict = {}
 
 
@@ -340,8 +452,9 @@ def exploration(task: dict, kp, imager, controller, start_fraction: float, x_off
     """The exploration of ``task``. Runs that differ only in ER share one full (ER 100%)
     exploration per process and take its prefix (identical to exploring less: see
     ``Sweep.prefix``)."""
-    key = (task["patient"], task["voxel"], task["segmenter"], task["seed"], task["scenario"],
-           task.get("scenarios_file"), task.get("overrides"), start_fraction, x_offset)
+    key = (task["patient"], task.get("posture"), task["voxel"], task["segmenter"],
+           task["seed"], task["scenario"], task.get("scenarios_file"), task.get("overrides"),
+           start_fraction, x_offset)
     full = _EXPLORATIONS.get(key)
     if full is None:
         full = km.explore(kp, imager, controller, exploration_ratio=1.0,
@@ -495,14 +608,16 @@ def run_closed_loop_study(task: dict) -> dict:
     ``status``, ``reason`` and simulated time. A scan that stops before localizing has
     E_trans and E_rot,x None."""
     t0 = time.perf_counter()
-    base = _scenario(task["scenario"], task.get("scenarios_file"), task.get("overrides"))
+    base = _with_posture(_scenario(task["scenario"], task.get("scenarios_file"),
+                                   task.get("overrides")), task)
     X_BPt = base.patient.X_BPt.GetDeterministicValue()
     kp = prepared_patient(task["patient"], base.patient.side, base.patient.posture,
                           float(task["voxel"]), X_BPt)
     scenario, start_fraction, x_offset = closed_loop_scenario(task, kp, base)
     variant = task.get("template_variant", "mean")
     template = template_variant(scenario.localization.template, variant,
-                                str(task["patient"]) if variant == "loo" else "")
+                                str(task["patient"]) if variant == "loo" else "",
+                                scenario.patient.side)
     scan = RunScan(scenario, kp.patient, template, progress=False,
                    start_fraction=start_fraction)
     m = ScanMetrics(scan)
@@ -530,8 +645,8 @@ def run_closed_loop_study(task: dict) -> dict:
                   if k not in ("curve_eps_mm", "curve_V", "events")},
     }
     if task["study"] == "template":
-        result["template_variant"] = variant
-        result["template_distance_mm"] = template_distance(template, kp) * 1e3
+        result.update(template_record(variant, template, kp, scenario.patient.posture,
+                                      task["patient"]))
     if task["study"] == "efficiency":
         strategies = check_strategies(task.get("strategies") or CLOSED_LOOP_STRATEGIES,
                                       "closed-loop")
@@ -549,7 +664,8 @@ def run_task(task: dict) -> dict:
         return run_closed_loop_study(task)
 
     t0 = time.perf_counter()
-    scenario = _scenario(task["scenario"], task.get("scenarios_file"), task.get("overrides"))
+    scenario = _with_posture(_scenario(task["scenario"], task.get("scenarios_file"),
+                                       task.get("overrides")), task)
     X_BPt = scenario.patient.X_BPt.GetDeterministicValue()
     kp = prepared_patient(task["patient"], scenario.patient.side, scenario.patient.posture,
                           float(task["voxel"]), X_BPt)
@@ -563,7 +679,8 @@ def run_task(task: dict) -> dict:
     P = sweep.point_cloud()
     variant = task.get("template_variant", "mean")
     template = template_variant(scenario.localization.template, variant,
-                                str(task["patient"]) if variant == "loo" else "")
+                                str(task["patient"]) if variant == "loo" else "",
+                                scenario.patient.side)
     config = dataclasses.replace(scenario.localization, method=task["method"])
     loc = km.localize_cloud(kp, P, template, config, sweep.frames[0].X_BP.translation()[:2])
     result = {
@@ -581,8 +698,8 @@ def run_task(task: dict) -> dict:
         "true_volume_ml": kp.kidney_volume * 1e6,
     }
     if task["study"] == "template":
-        result["template_variant"] = variant
-        result["template_distance_mm"] = template_distance(template, kp) * 1e3
+        result.update(template_record(variant, template, kp, scenario.patient.posture,
+                                      task["patient"]))
     if task["study"] == "efficiency":
         export = task.get("export_dir")
         result["strategies"] = efficiency_of(

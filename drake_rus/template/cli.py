@@ -15,6 +15,7 @@ from drake_rus.io_utils import dumps_strict, save_figure
 from drake_rus.progress import stderr_is_terminal
 from drake_rus.template.builder import build_template, save_template, subject_from_mask
 from drake_rus.template.io import DEFAULT_TEMPLATE_PATH, load_template
+from drake_rus.template.population import parse_population, population_template
 
 
 def subjects_from_cohort(split: str = "train", n: int = 20, voxel_size: float = 0.001,
@@ -99,31 +100,49 @@ def _build(args) -> int:
         raise UserError(f"--out: expected a .npz file name, got {out}")
     t0 = time.time()
     progress = not args.quiet and stderr_is_terminal()
-    subjects = subjects_from_cohort(args.split, args.n, args.voxel_mm / 1000.0,
-                                    side=args.side, progress=progress)
-    t1 = time.time()
-    result = build_template(subjects, n_points=args.points, use_features=not args.no_features,
-                            progress=progress)
+    if args.population:
+        try:
+            parse_population(args.population)
+        except ValueError as e:
+            raise UserError(f"--population: {e}") from None
+        population_template(args.population, n=args.n, side=args.side, n_points=args.points,
+                            voxel=args.voxel_mm / 1000.0, out=out, progress=progress)
+        t = load_template(out)
+        meta = t.meta
+        change = t.convergence.get("change", [])
+        t1 = t0 + meta.get("subject_seconds", 0.0)
+    else:
+        subjects = subjects_from_cohort(args.split, args.n, args.voxel_mm / 1000.0,
+                                        side=args.side, progress=progress)
+        t1 = time.time()
+        result = build_template(subjects, n_points=args.points,
+                                use_features=not args.no_features, progress=progress)
+        extra = {"split": args.split, "side": args.side, "voxel_mm": args.voxel_mm,
+                 "subject_seconds": round(t1 - t0, 2),
+                 "total_seconds": round(time.time() - t0, 2),
+                 "source": "drake-rus virtual cohort (drake_rus.anatomy.generator)"}
+        save_template(result, out, extra)
+        meta, change = dict(result.meta, **extra), result.convergence["change"]
     t2 = time.time()
-    extra = {"split": args.split, "side": args.side, "voxel_mm": args.voxel_mm,
-             "subject_seconds": round(t1 - t0, 2), "total_seconds": round(t2 - t0, 2),
-             "source": "drake-rus virtual cohort (drake_rus.anatomy.generator)"}
-    save_template(result, out, extra)
     png = Path(args.png) if args.png else out.with_name(out.stem + "_convergence.png")
-    plot_convergence(result.convergence, png)
+    template = load_template(out)
+    plot_convergence(template.convergence, png)
     modes_png = out.with_name(out.stem + "_modes.png")
-    plot_template_modes(load_template(out), modes_png)
+    plot_template_modes(template, modes_png)
     summary = {"out": str(out), "convergence_png": str(png), "modes_png": str(modes_png),
-               "n_subjects": result.meta["n_subjects"], "n_points": result.meta["n_points"],
-               "n_modes": result.meta["n_modes"],
-               "explained_pct": [round(100 * f, 1) for f in result.meta["explained"]],
-               "extent_mm": result.meta["extent_mm"],
-               "ransac_used": result.meta["ransac_used"],
-               "ransac_rejected": result.meta["ransac_rejected"],
-               "convergence_change_mm": [None if not np.isfinite(c) else round(c * 1e3, 3)
-                                         for c in result.convergence["change"]],
+               "source": meta.get("split"),
+               "n_subjects": meta["n_subjects"], "n_points": meta["n_points"],
+               "n_modes": meta["n_modes"],
+               "explained_pct": [round(100 * f, 1) for f in meta["explained"]],
+               "extent_mm": meta["extent_mm"],
+               "ransac_used": meta["ransac_used"],
+               "ransac_rejected": meta["ransac_rejected"],
+               "convergence_change_mm": [None if c is None or not np.isfinite(c)
+                                         else round(c * 1e3, 3) for c in change],
                "seconds": {"subjects": round(t1 - t0, 1), "template": round(t2 - t1, 1),
                            "total": round(t2 - t0, 1)}}
+    if "sampled_length_mm" in meta:
+        summary["sampled_length_mm"] = meta["sampled_length_mm"]
     print(dumps_strict(summary, indent=2))
     return 0
 
@@ -161,6 +180,10 @@ def add_commands(subparsers) -> None:
     b.add_argument("--png", default=None, help="convergence plot (default beside --out)")
     b.add_argument("--no-features", action="store_true",
                    help="skip FPFH+RANSAC (ICP from the canonical frames only)")
+    b.add_argument("--population", default=None,
+                   help="build from N generated kidneys of another population instead of the "
+                        "training cohort: base, short, long, slim or length+Xsd (see "
+                        "drake_rus/template/population.py; the study's population:NAME)")
     b.add_argument("--quiet", action="store_true", help="no progress bars")
     b.set_defaults(func=_build, outputs={"out": "file:.npz", "png": "file:.png"})
     i = sub.add_parser("info", help="summary of a template file")
