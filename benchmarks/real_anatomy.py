@@ -8,8 +8,9 @@ reason of a stop, E_trans (mm), E_rot,x (deg), V, the depth preset and window th
 chose. Real bodies are never used for training or tuning; this is how we check the generator
 is not the world. ``--out DIR`` also writes every scan's outputs (summary, pictures).
 ``--fresh-seeds K`` also scans K generated patients never seen before (generator seeds
-5,000,000 + k, outside the training and test cohorts), supine: the default scan must keep
-working on the generator's own world.
+5,000,000 + k, outside the training and test cohorts), supine unless ``--fresh-postures``
+says otherwise (``left_lateral_decubitus``, or both): the default scan must keep working on
+the generator's own world.
 """
 
 import argparse
@@ -63,7 +64,9 @@ def main(argv=None) -> int:
     parser.add_argument("--max-sim-time", type=float, default=120.0)
     parser.add_argument("--out", default=None, help="also write each scan's outputs here")
     parser.add_argument("--fresh-seeds", type=int, default=0,
-                        help="also scan this many never-seen generated patients (supine)")
+                        help="also scan this many never-seen generated patients")
+    parser.add_argument("--fresh-postures", nargs="+", default=["supine"], choices=POSTURES,
+                        help="postures of the fresh generated patients (default: supine)")
     args = parser.parse_args(argv)
     bodies = [Path(p) for p in args.patients]
     missing = [str(p) for p in bodies if not p.exists()]
@@ -78,7 +81,8 @@ def main(argv=None) -> int:
         print(f"--fresh-seeds: expected 0 or more, got {args.fresh_seeds}")
         return 2
     jobs = [(b, p) for b in bodies for p in args.postures]
-    jobs += [(f"seed:{FRESH_SEED_BASE + k}", "supine") for k in range(args.fresh_seeds)]
+    jobs += [(f"seed:{FRESH_SEED_BASE + k}", p) for p in args.fresh_postures
+             for k in range(args.fresh_seeds)]
     for body, posture in tqdm(jobs, desc="real bodies", unit="scan"):
         row = run_one(body, posture, scenario, template, out, args.max_sim_time)
         rows.append(row)
@@ -99,5 +103,8 @@ def main(argv=None) -> int:
             "volume_ratio_whole_pivot", "depth_preset_m", "wall_s")} for r in rows],
         "fresh_seeds_done": sum(r["status"] == "DONE" for r in fresh),
         "fresh_seeds": len(fresh),
+        "fresh_seeds_done_by_posture": {p: sum(r["status"] == "DONE" for r in fresh
+                                               if r["posture"] == p)
+                                        for p in args.fresh_postures},
         "errors": sum(r["status"] == "ERROR" for r in rows)}))
     return 0
