@@ -171,7 +171,7 @@ def test_strategies_on_an_elongated_kidney():
     geometry = km.ProbeGeometry.from_config(IMG)
     imager = km.Imager(kp, IMG)
     res = {}
-    for s in km.STRATEGIES:
+    for s in km.PAPER_STRATEGIES:    # OP-PE: tests/test_kinematic_predicted_end.py
         sweep = km.strategy_sweep(kp, imager, s, CTRL, kp.X_BK_true).pole_to_pole()
         res[s] = km.sweep_curves(kp, sweep, geometry)
         assert np.all(np.diff(res[s]["V"]) >= 0) and np.all(np.diff(res[s]["eps"]) >= 0)

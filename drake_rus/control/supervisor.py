@@ -375,14 +375,49 @@ def _localize(s, u, R, p, cfg, dt):
                  f"p* = ({p_star[0]:.4f}, {p_star[1]:.4f}, {p_star[2]:.4f}) m")
 
 
+def predict_pivot_ends(model: PivotModel, R_BK, p_BK, pivot_point, a0, o,
+                       max_tilt: float) -> tuple:
+    """(theta_plus, theta_minus) (rad): where the template of ``model`` registered at
+    X_BK = (R_BK, p_BK) leaves the image on each side of a pivot about the tip
+    ``pivot_point`` turning the approach ``a0`` about the array ``o``, within +-``max_tilt``
+    (laws.pivot_end_angles with the model's fan). The one prediction of the
+    ``predicted_end`` strategy: the supervisor and the kinematic twin both call it."""
+    return pivot_end_angles(
+        R_BK, p_BK, model.points_K, pivot_point, a0, o,
+        probe_radius=model.probe_radius, half_angle=model.half_angle, depth=model.depth,
+        slab_half_width=model.slab_half_width, max_angle=max_tilt)
+
+
 def predicted_pivot_ends(s: SupervisorState, model: PivotModel, u: SupervisorInputs, p,
                          cfg) -> tuple:
     """(theta_plus, theta_minus) (rad): where the registered template leaves the image on
-    each side of a pivot about the tip ``p`` turning a_des about o_des (laws.pivot_end_angles)."""
-    return pivot_end_angles(
-        u.R_BK, u.p_BK, model.points_K, p, s.a_des, s.o_des,
-        probe_radius=model.probe_radius, half_angle=model.half_angle, depth=model.depth,
-        slab_half_width=model.slab_half_width, max_angle=cfg.max_pivot_tilt)
+    each side of a pivot about the tip ``p`` turning a_des about o_des
+    (:func:`predict_pivot_ends`)."""
+    return predict_pivot_ends(model, u.R_BK, u.p_BK, p, s.a_des, s.o_des, cfg.max_pivot_tilt)
+
+
+def pretilt_plan(ends, margin: float, max_tilt: float) -> tuple:
+    """(side, target) of the predicted_end pre-tilt from the predicted ends
+    (theta_plus, theta_minus): the nearer end's side (+1 on a tie) and its end plus
+    ``margin`` on that side, within +-``max_tilt`` (rad)."""
+    plus, minus = ends
+    side = 1.0 if plus <= -minus else -1.0
+    end = plus if side > 0 else minus
+    return side, float(np.clip(end + side * margin, -max_tilt, max_tilt))
+
+
+def pivot_end_allowed(angle: float, direction: float, legs_done: int, ends=(),
+                      tolerance: float = 0.0) -> bool:
+    """Whether a loss of the kidney (or the tilt cap) may end the current pivot leg at tilt
+    ``angle`` (rad) moving in ``direction`` after ``legs_done`` legs: the first leg always;
+    a later leg only past the start, on its new side; and with predicted ``ends``
+    (predicted_end, its single sweep counted as the second leg) only within ``tolerance``
+    of the predicted other end or beyond."""
+    on_new_side = legs_done == 0 or angle * direction > 0
+    if on_new_side and ends and legs_done == 1:
+        other = ends[0] if direction > 0 else ends[1]
+        on_new_side = abs(angle) >= abs(other) - tolerance - 1e-9
+    return on_new_side
 
 
 def _start_pivot(s, t, message, direction=1.0):
@@ -449,10 +484,8 @@ def _transit(s, u, R, p, cfg, dt):
                                     "two-leg pivot")
             plus, minus = predicted_pivot_ends(s, model, u, p, cfg)
             s.pivot_ends = (plus, minus)
-            s.pretilt_side = 1.0 if plus <= -minus else -1.0
-            end = plus if s.pretilt_side > 0 else minus
-            s.pretilt_target = float(np.clip(end + s.pretilt_side * cfg.pivot_end_margin,
-                                             -cfg.max_pivot_tilt, cfg.max_pivot_tilt))
+            s.pretilt_side, s.pretilt_target = pretilt_plan(
+                s.pivot_ends, cfg.pivot_end_margin, cfg.max_pivot_tilt)
             s.pretilt_stage = 1
             s.events = s.events + ((u.t, "TRANSIT",
                                     f"at p* ({dist * 1e3:.2f} mm); predicted ends "
@@ -476,12 +509,10 @@ def _pivot(s, u, R, p, cfg, dt):
     left = _update_visibility(s, u, cfg.visibility_debounce)
     if u.kidney_visible:
         s.expect_invisible = False
-    # On the second leg, only a loss past the start (on the new side) ends the sweep.
-    on_new_side = s.pivot_legs_done == 0 or s.pivot_angle * s.pivot_direction > 0
-    if on_new_side and s.pivot_ends and s.pivot_legs_done == 1:
-        # predicted_end: the single sweep ends near the predicted other end or beyond.
-        other = s.pivot_ends[0] if s.pivot_direction > 0 else s.pivot_ends[1]
-        on_new_side = abs(s.pivot_angle) >= abs(other) - cfg.pivot_end_tolerance - 1e-9
+    # On the second leg, only a loss past the start (on the new side) ends the sweep;
+    # predicted_end: the single sweep ends near the predicted other end or beyond.
+    on_new_side = pivot_end_allowed(s.pivot_angle, s.pivot_direction, s.pivot_legs_done,
+                                    s.pivot_ends, cfg.pivot_end_tolerance)
     at_tilt = abs(s.pivot_angle) >= cfg.max_pivot_tilt - 1e-9 and on_new_side
     if (left and on_new_side) or at_tilt:
         why = "kidney left the image" if (left and on_new_side) else "maximum tilt"

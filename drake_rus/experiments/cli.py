@@ -52,7 +52,8 @@ def add_commands(subparsers) -> None:
     sub.required = True
     helps = {"er-sweep": "localization error vs exploration ratio 0..100% (Fig. 7d)",
              "starts": "five random exploration starts at the critical ER (Fig. 9d)",
-             "efficiency": "OP, GT-OP, NOP, SL sweeps: V vs n and eps (Fig. 10), volumes",
+             "efficiency": "OP, GT-OP, NOP, SL sweeps: V vs n and eps (Fig. 10), volumes; "
+                           "OP-PE (the predicted-end pivot, beyond the paper)",
              "paper": "all of the above into one report directory with report.md",
              "template": "localization with mismatched templates (mean, scaled, single "
                          "kidney, leave-one-out, another population's) against the "
@@ -97,8 +98,10 @@ def add_commands(subparsers) -> None:
                            help="voxel size (m) of the kidney volume reconstruction "
                                 "(default 0.001)")
             q.add_argument("--strategies", default=None,
-                           help="comma list of OP, GT-OP, NOP, SL (default all in kinematic "
-                                "mode; OP, the only one, in closed-loop mode)")
+                           help="comma list of OP, GT-OP, NOP, SL and OP-PE (OP's pose with "
+                                "the predicted_end pivot, beyond the paper) (default all in "
+                                "kinematic mode; OP in closed-loop mode, which has OP "
+                                "and OP-PE only)")
             q.add_argument("--no-nrrd", action="store_true",
                            help="do not export the OP/GT-OP reconstructions to OUT/volumes "
                                 "as NRRD")
@@ -183,7 +186,8 @@ def _other_mode(out: Path, patients, mode: str, rule: str) -> dict | None:
     for study, key in (("er-sweep", "er"), ("starts", "starts"), ("efficiency", "eff")):
         rs = _usable([r for r in load_study_results(out, study)
                       if r["task"].get("mode", "kinematic") == other and r["patient"] in wanted
-                      and (study == "er-sweep" or (er is not None and abs(r["er"] - er) < 1e-6))])
+                      and (study == "er-sweep" or (er is not None and abs(r["er"] - er) < 1e-6))],
+                     study)
         if not rs:
             continue
         try:
@@ -200,9 +204,12 @@ def _other_mode(out: Path, patients, mode: str, rule: str) -> dict | None:
     return dict(found, mode=CLOSED_LOOP if other == "closed-loop" else KINEMATIC)
 
 
-def _usable(results):
-    """Runs with a localization (a closed-loop scan that stopped before it has none)."""
-    return [r for r in results if r.get("e_trans_mm") is not None]
+def _usable(results, study: str = ""):
+    """Runs with a localization (a closed-loop scan that stopped before it has none); for
+    the efficiency study, closed-loop runs whose scan finished (DONE: a scan that stopped
+    before or during its pivot has no comparable sweep)."""
+    return [r for r in results if r.get("e_trans_mm") is not None
+            and (study != "efficiency" or r.get("status", "DONE") == "DONE")]
 
 
 def _critical_er(out: Path, default: float = 0.6) -> float:
@@ -260,12 +267,14 @@ def _study(args, patients, options, out: Path) -> int:
     unusable = {}
 
     def usable(study, results):
-        ok = _usable(results)
+        ok = _usable(results, study)
         if len(ok) < len(results):
+            kept = {r["run_id"] for r in ok}
             unusable[study] = [f"{r['run_id']}: {r.get('status', '?')} {r.get('reason', '')}"
-                               for r in results if r.get("e_trans_mm") is None]
-            print(f"{study}: {len(results) - len(ok)} run(s) without a localization left "
-                  "out of the analysis", file=sys.stderr, flush=True)
+                               for r in results if r["run_id"] not in kept]
+            print(f"{study}: {len(results) - len(ok)} run(s) without a localization"
+                  + (" or a finished scan" if study == "efficiency" else "")
+                  + " left out of the analysis", file=sys.stderr, flush=True)
         return ok
 
     counts = {"done": 0, "skipped": 0}

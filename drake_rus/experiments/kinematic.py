@@ -21,7 +21,12 @@ the tip's (x, y), ``skin_height_B``); orientation is held exactly.
 - :func:`localize_cloud`: T_k^b from P_local (II-F) with the heuristic fallback at ER 0;
 - :func:`pivot_sweep`: fixed-point pivot about o (eq. 23), one way until the kidney leaves the
   image (or max tilt), then back through the start to the other side (II-G);
-- :func:`strategy_sweep`: OP, GT-OP, NOP, SL (III-E); :func:`sweep_curves`: n, eps, V.
+- :func:`predicted_end_sweep`: the ``predicted_end`` pivot (beyond the seed; the scan's
+  ``controller.pivot_strategy: predicted_end``): tilt without imaging to the end the
+  registered template predicts (the supervisor's own ``predict_pivot_ends`` and
+  ``pretilt_plan``), on while the kidney is still seen, then one sweep to the other end;
+- :func:`strategy_sweep`: OP, GT-OP, NOP, SL (III-E) and OP-PE (OP's pose, predicted-end
+  pivot); :func:`sweep_curves`: n, eps, V.
 """
 
 from __future__ import annotations
@@ -33,8 +38,12 @@ import numpy as np
 from pydrake.math import RigidTransform, RotationMatrix
 
 from drake_rus.control.supervisor import (
+    PivotModel,
     exploration_update,
     optimal_pivot_pose,
+    pivot_end_allowed,
+    predict_pivot_ends,
+    pretilt_plan,
     rodrigues_pivot_update,
 )
 from drake_rus.imaging.emulator import EmulatorModel, emulate
@@ -45,7 +54,7 @@ from drake_rus.imaging.systems import make_segmenter_backend
 from drake_rus.localization.icp import heuristic_initial_rotation
 from drake_rus.localization.localize import body_directions_B, localize
 from drake_rus.metrics.core import CoverageAccumulator, window_steps
-from drake_rus.metrics.sweep import pole_to_pole_indices
+from drake_rus.metrics.sweep import cumulative_eps, pole_to_pole_indices
 from drake_rus.scan.planning import (
     PlanStart,
     R_B_TRANSVERSE,
@@ -54,7 +63,11 @@ from drake_rus.scan.planning import (
     skin_height_B,
 )
 
-STRATEGIES = ("OP", "GT-OP", "NOP", "SL")
+PAPER_STRATEGIES = ("OP", "GT-OP", "NOP", "SL")
+# Strategies beyond the paper's III-E: OP-PE, OP's pivot pose with the predicted_end pivot
+# (controller.pivot_strategy: predicted_end) instead of the paper's two-leg pivot.
+BEYOND_PAPER_STRATEGIES = ("OP-PE",)
+STRATEGIES = PAPER_STRATEGIES + BEYOND_PAPER_STRATEGIES
 MODE = "kinematic"
 
 
@@ -262,6 +275,9 @@ class Sweep:
     travel: np.ndarray | None = None
     leg: np.ndarray | None = None
     events: list = dataclasses.field(default_factory=list)
+    # What happened outside the sweep's frames (predicted_end: the predicted ends, the
+    # pre-tilt's target and end, its check frames and window path).
+    info: dict = dataclasses.field(default_factory=dict)
 
     @property
     def poses(self) -> list:
@@ -360,31 +376,40 @@ def explore(kp: KinematicPatient, imager: Imager, controller, *, exploration_rat
 
 
 def pivot_sweep(kp: KinematicPatient, imager: Imager, R_BPstar, p_xy, *, pivot_rate: float,
-                max_tilt: float, keep_images: bool = False) -> Sweep:
+                max_tilt: float, keep_images: bool = False, start_angle: float = 0.0,
+                direction: float = 1.0, legs=(1, 2), ends=(), end_tolerance: float = 0.0,
+                reset: bool = True) -> Sweep:
     """Fixed-point pivot sweep (II-G, eq. 23) at tip (x, y) = ``p_xy`` on the skin.
 
-    The array o = R_BP*[:, 0] stays fixed; the approach a starts at R_BP*[:, 2] and turns
-    about o by +pivot_rate / frame rate per frame (eq. 23). Leg 1 runs until the kidney,
-    having been seen on this leg, leaves the image, or to ``max_tilt``; leg 2 runs back
-    through the start to the other side under the same rule. (The closed-loop supervisor
-    also ends a leg when the kidney is not seen at all for the debounce time; here an unseen
-    kidney is searched for up to the tilt limit.)
+    The array o = R_BP*[:, 0] stays fixed; the approach a starts at R_BP*[:, 2] (turned by
+    ``start_angle``) and turns about o by ``direction`` x pivot_rate / frame rate per frame
+    (eq. 23). Leg 1 runs until the kidney, having been seen on this leg, leaves the image,
+    or to ``max_tilt``; leg 2 runs back through the start to the other side under the same
+    rule. (The closed-loop supervisor also ends a leg when the kidney is not seen at all for
+    the debounce time; here an unseen kidney is searched for up to the tilt limit.) Which
+    frames may end a leg is the supervisor's rule (``pivot_end_allowed``): ``legs=(2,)``
+    with ``ends`` (predicted ends, rad) and ``end_tolerance`` is the predicted_end
+    strategy's single sweep, from ``start_angle`` (its first frame one step past it).
     """
     o = np.asarray(R_BPstar, float)[:, 0].copy()
     a = np.asarray(R_BPstar, float)[:, 2].copy()
+    angle = float(start_angle)
+    if angle:
+        a = rodrigues_pivot_update(a, o, angle)
     fps = float(imager.imaging.frame_rate_hz)
     dtheta = pivot_rate / fps
     p = np.asarray(p_xy, float).reshape(-1)[:2]
     z = kp.skin(p[0], p[1])
-    imager.reset()
-    frames, angles, legs, events = [], [], [], []
-    angle, direction = 0.0, 1.0
+    if reset:
+        imager.reset()
+    frames, angles, leg_of, events = [], [], [], []
+    direction = float(direction)
 
     def advance(a, angle):
         new_angle = float(np.clip(angle + direction * dtheta, -max_tilt, max_tilt))
         return rodrigues_pivot_update(a, o, new_angle - angle), new_angle
 
-    for leg in (1, 2):
+    for leg in legs:
         seen = False
         if leg == 2:          # the reversal frame is not acquired twice
             a, angle = advance(a, angle)
@@ -393,8 +418,8 @@ def pivot_sweep(kp: KinematicPatient, imager: Imager, R_BPstar, p_xy, *, pivot_r
             frame = imager(RigidTransform(RotationMatrix(R), [p[0], p[1], z]), keep=keep_images)
             frames.append(frame)
             angles.append(angle)
-            legs.append(leg)
-            new_side = leg == 1 or angle * direction > 0
+            leg_of.append(leg)
+            new_side = pivot_end_allowed(angle, direction, leg - 1, ends, end_tolerance)
             seen |= frame.visible
             if seen and not frame.visible and new_side:
                 events.append(f"leg {leg} ended at {math.degrees(angle):.1f} deg: "
@@ -405,7 +430,73 @@ def pivot_sweep(kp: KinematicPatient, imager: Imager, R_BPstar, p_xy, *, pivot_r
                 break
             a, angle = advance(a, angle)
         direction = -direction
-    return Sweep("pivot", frames, angles=np.asarray(angles), leg=np.asarray(legs), events=events)
+    return Sweep("pivot", frames, angles=np.asarray(angles), leg=np.asarray(leg_of),
+                 events=events)
+
+
+def pivot_model_for(template, imaging) -> PivotModel:
+    """The predicted_end strategy's model of the scan (``PivotModelFor``: the template's
+    points and the fan at ``imaging.depth``)."""
+    from drake_rus.scan.diagram import PivotModelFor
+    return PivotModelFor(template, imaging)
+
+
+def predicted_end_sweep(kp: KinematicPatient, imager: Imager, R_BPstar, p_xy, X_BK_estimated,
+                        model: PivotModel, controller, keep_images: bool = False) -> Sweep:
+    """The ``predicted_end`` pivot (beyond the seed; ``controller.pivot_strategy:
+    predicted_end``) at T* = (``R_BPstar``, tip (x, y) ``p_xy`` on the skin), as the
+    supervisor runs it:
+
+    1. the ends where the registered template (``model``, placed at ``X_BK_estimated``)
+       leaves the image on each side (``predict_pivot_ends``, the supervisor's function);
+    2. without imaging, tilt to the nearer end plus ``pivot_end_margin``
+       (``pretilt_plan``); there, tilt on at ``pivot_rate`` while the kidney is still in the
+       image (check frames, the supervisor's TRANSIT: not part of the sweep);
+    3. one sweep back to the other side (the second leg, ``legs`` 2), ended by the kidney
+       leaving the image within ``pivot_end_tolerance`` of the predicted other end or beyond,
+       or by the tilt cap (``pivot_end_allowed``).
+
+    ``Sweep.info`` holds the predicted ends, the pre-tilt's target and end (rad), the check
+    frames and the pre-tilt's own window path (``eps_pretilt``, m, eq. 24 over poses one
+    frame's tilt apart from T* to the sweep's start: the image moves there unrecorded).
+    """
+    c = controller
+    R = np.asarray(R_BPstar, float)
+    o, a0 = R[:, 0].copy(), R[:, 2].copy()
+    p = np.asarray(p_xy, float).reshape(-1)[:2]
+    z = kp.skin(p[0], p[1])
+    tip = np.array([p[0], p[1], z])
+    ends = predict_pivot_ends(model, X_BK_estimated.rotation().matrix(),
+                              X_BK_estimated.translation(), tip, a0, o, c.max_pivot_tilt)
+    side, target = pretilt_plan(ends, c.pivot_end_margin, c.max_pivot_tilt)
+    dtheta = c.pivot_rate / float(imager.imaging.frame_rate_hz)
+
+    def pose(angle):
+        a = rodrigues_pivot_update(a0, o, angle) if angle else a0
+        return RigidTransform(RotationMatrix(np.column_stack([o, np.cross(a, o), a])), tip)
+
+    imager.reset()
+    angle, checks = target, 0
+    while True:      # at the target: tilt on while the kidney is seen (no sweep frames)
+        frame = imager(pose(angle))
+        checks += 1
+        if not frame.visible or abs(angle) >= c.max_pivot_tilt - 1e-9:
+            break
+        angle = float(np.clip(angle + side * dtheta, -c.max_pivot_tilt, c.max_pivot_tilt))
+    steps = max(1, int(math.ceil(abs(angle) / dtheta - 1e-9)))
+    eps_pretilt = float(cumulative_eps([pose(angle * k / steps) for k in range(steps + 1)],
+                                       imager.geometry.depth)[-1])
+    sweep = pivot_sweep(kp, imager, R, p, pivot_rate=c.pivot_rate, max_tilt=c.max_pivot_tilt,
+                        keep_images=keep_images, start_angle=angle, direction=-side, legs=(2,),
+                        ends=ends, end_tolerance=c.pivot_end_tolerance, reset=False)
+    sweep.events.insert(0, f"predicted ends {math.degrees(ends[0]):.1f} / "
+                           f"{math.degrees(ends[1]):.1f} deg; pre-tilt to "
+                           f"{math.degrees(target):.1f} deg, kidney out of the image at "
+                           f"{math.degrees(angle):.1f} deg after {checks} check frame(s)")
+    sweep.info = {"predicted_ends": [float(ends[0]), float(ends[1])],
+                  "pretilt_target": float(target), "pretilt_end": float(angle),
+                  "pretilt_check_frames": int(checks), "eps_pretilt": eps_pretilt}
+    return sweep
 
 
 def nop_pose(R_BK: np.ndarray, p_BK: np.ndarray):
@@ -418,10 +509,12 @@ def nop_pose(R_BK: np.ndarray, p_BK: np.ndarray):
 
 def strategy_sweep(kp: KinematicPatient, imager: Imager, strategy: str, controller,
                    X_BK_estimated: RigidTransform | None = None, keep_images: bool = False,
-                   sl_margin: float = 0.01) -> Sweep:
+                   sl_margin: float = 0.01, pivot_model: PivotModel | None = None) -> Sweep:
     """The sweep of one strategy (III-E):
 
     - ``OP``: pivot at T* of the estimated kidney pose (eq. 20-22);
+    - ``OP-PE`` (beyond the paper): OP's pose with the predicted_end pivot
+      (:func:`predicted_end_sweep`; needs ``pivot_model``, :func:`pivot_model_for`);
     - ``GT-OP``: pivot at T* of the true kidney pose;
     - ``NOP``: pivot with the array along the true kidney's y-axis at the projected true
       centroid (the in-vivo NOP was expert-placed, so ground truth here too);
@@ -429,10 +522,17 @@ def strategy_sweep(kp: KinematicPatient, imager: Imager, strategy: str, controll
       beyond the E-ROI's superior end until the kidney has left the image (ER 100%).
     """
     c = controller
-    if strategy == "OP":
+    if strategy in ("OP", "OP-PE"):
         if X_BK_estimated is None:
-            raise ValueError("strategy OP: needs X_BK_estimated (the registered kidney pose)")
+            raise ValueError(f"strategy {strategy}: needs X_BK_estimated (the registered "
+                             "kidney pose)")
         R, p = optimal_pivot_pose(X_BK_estimated.rotation().matrix(), X_BK_estimated.translation())
+        if strategy == "OP-PE":
+            if pivot_model is None or len(pivot_model.points_K) == 0:
+                raise ValueError("strategy OP-PE: needs pivot_model (the registration "
+                                 "template and fan, pivot_model_for)")
+            return predicted_end_sweep(kp, imager, R, p[:2], X_BK_estimated, pivot_model, c,
+                                       keep_images=keep_images)
     elif strategy == "GT-OP":
         R, p = optimal_pivot_pose(kp.X_BK_true.rotation().matrix(), kp.X_BK_true.translation())
     elif strategy == "NOP":

@@ -101,7 +101,8 @@ def plot_starts(results: list[dict], analysis: dict, path, mode: str = MODE_NOTE
     return save_figure(fig, path)
 
 
-COLORS = {"OP": "tab:red", "GT-OP": "tab:green", "NOP": "tab:blue", "SL": "tab:orange"}
+COLORS = {"OP": "tab:red", "GT-OP": "tab:green", "NOP": "tab:blue", "SL": "tab:orange",
+          "OP-PE": "tab:purple"}
 
 
 def plot_efficiency(results: list[dict], analysis: dict, path, mode: str = MODE_NOTE) -> Path:
@@ -438,7 +439,13 @@ def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict 
              f"{i['wall_s']:.0f} s ({_runs(i)}{_where(i)}; stages "
              + ", ".join(f"{k} {v:.0f} s" for k, v in (i.get("stage_wall_s") or {}).items())
              + ")"
-             for i in meta.get("invocations", [meta])), ""]
+             for i in meta.get("invocations", [meta]))]
+    left_out = meta.get("runs_without_localization") or {}
+    if left_out:
+        L += ["- Runs left out of the analysis (no localization; efficiency: a scan that did "
+              "not finish): " + "; ".join(f"{study}: {', '.join(rs)}"
+                                          for study, rs in left_out.items() if rs) + "."]
+    L += [""]
     if er is not None:
         p = PAPER["er_sweep"]
         kl = er.get("kidney_length_mm")
@@ -518,7 +525,11 @@ def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict 
             for k in STRATEGY_ORDER if k != "SL" and k in s)
         L += ["", f"Tilt cap (a pivot leg ended at the controller's `max_pivot_tilt` instead of "
               f"where the kidney left the image): {caps}.", "",
-              "| definition | comparison | metric | reduction by OP (mean +- SD) | OP lower on | "
+              "Comparisons \"A vs B\": the reduction by A (B - A) and how often A was lower; "
+              "OP against the paper's other strategies (Bonferroni over those), OP-PE (beyond "
+              "the paper: OP's pose, the predicted_end pivot) against OP (its own family).",
+              "",
+              "| definition | comparison | metric | reduction by A (mean +- SD) | A lower on | "
               "p | significant (Bonferroni) |", "|---|---|---|---|---|---|---|"]
         for c in eff["comparisons"]:
             unit_c = " mm" if c["metric"] == "eps_mm" else " frames"
@@ -569,8 +580,10 @@ def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict 
           "exploration, eq. 20-23 pivot), tip on the skin surface; no contact dynamics, "
           "tracking error or tissue compression.",
           "- Exploration starts at the E-ROI's superior end (ER sweep, efficiency) or at a "
-          "seeded random point inside the E-ROI (starts). ER 0% uses the initial alignment "
-          "alone (heuristic rotation, centroid under the start point).",
+          "seeded random point inside the E-ROI (starts), drawn again until the kidney is "
+          "visible at the start and 2 mm around it (the paper's assumption II-A (i)), in both "
+          "modes. ER 0% uses the initial alignment alone (heuristic rotation, centroid under "
+          "the start point), in both modes (III-C).",
           "- The kidney length of the ER is the kidney's extent along the exploration line "
           "(base y, the E-ROI's length): ER 100% explores the whole kidney.",
           "- NOP uses the true kidney pose (the in-vivo NOP was expert-placed); OP the "
@@ -581,8 +594,13 @@ def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict 
           "diagram (`RunScan`: approach, exploration, localization, transit, the OP two-leg "
           "pivot) with the run's ER (ER x the patient's kidney length as the controller's "
           "L_m, `exploration_length: fixed`), start, segmenter and registration; efficiency "
-          "has OP only (GT-OP, NOP and SL have no closed-loop scan) and no volume "
-          "reconstruction.",
+          "has OP and, on request, OP-PE (the predicted_end pivot; GT-OP, NOP and SL have no "
+          "closed-loop scan) and no volume reconstruction. Where the product would refuse "
+          "what the paper measures, the study's scenario (never the product default) follows "
+          "the paper: an exploration planned shorter than the product's "
+          "`min_exploration_travel` registers without that minimum and the acceptance checks; "
+          "a registration the product rejects stops the scan but its errors are recorded; "
+          "runs still without a localization are listed under the run count.",
           "- Kidney volume: masks compounded at 1 mm (nearest-pixel, fan clipping, hole "
           "filling), threshold 0.5, against the kidney mesh's volume.", ""]
     return "\n".join(L)

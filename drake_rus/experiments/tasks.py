@@ -5,9 +5,17 @@ Studies (each a list of independent runs; a run is a plain dict, its result a JS
 - ``er-sweep`` (III-C, Fig. 7d): exploration ratios 0..100% in 10% steps per patient.
 - ``starts`` (III-D, Fig. 9d): at the critical ER, five random starts per patient inside the
   E-ROI (start fraction along y leaving room for the whole ER travel, and an x
-  offset within the middle half of the E-ROI's width).
+  offset within the middle half of the E-ROI's width), drawn again until the kidney is
+  visible at the start (the paper's II-A assumption (i); :func:`start_visibility`), in
+  both modes.
+
+ER 0 is the initial alignment alone (III-C) in both modes. A closed-loop run whose planned
+exploration is shorter than the product's ``min_exploration_travel`` registers it without
+the product's minimum and acceptance checks, as the paper and the twin do
+(:func:`study_localization`, the study's scenario only).
 - ``efficiency`` (III-E, Fig. 10): OP (at T* of the registered pose), GT-OP, NOP and SL per
-  patient: V against n and eps pole to pole (the paper's), the whole pivot's n, eps and V
+  patient, and beyond the paper OP-PE (OP's pose with the predicted_end pivot, the
+  supervisor's prediction; closed loop OP and OP-PE only, each its own scan): V against n and eps pole to pole (the paper's), the whole pivot's n, eps and V
   beside them, n and eps needed to reach V = 0.9, the pivot legs the tilt cap ended
   (:mod:`drake_rus.metrics.sweep`, the same functions the closed-loop scan uses), and the
   kidney volume reconstructed from each sweep's masks
@@ -86,9 +94,22 @@ V_TARGETS = (0.9,)
 # How a study run is executed: the kinematic twin (default, fast) or a closed-loop scan.
 MODES = ("kinematic", "closed-loop")
 # The efficiency strategies a closed-loop scan can run: its pivot is the paper's OP (T* of
-# the registered pose, eq. 20-23). GT-OP (T* of the true pose), NOP (expert placement from
-# the true pose) and SL (a straight line over the whole kidney) have no closed-loop scan.
-CLOSED_LOOP_STRATEGIES = ("OP",)
+# the registered pose, eq. 20-23), with the paper's two-leg pivot or (OP-PE) the
+# predicted_end one. GT-OP (T* of the true pose), NOP (expert placement from the true pose)
+# and SL (a straight line over the whole kidney) have no closed-loop scan.
+CLOSED_LOOP_STRATEGIES = ("OP", "OP-PE")
+# Each closed-loop strategy is the scan with this controller.pivot_strategy (OP-PE, beyond
+# the paper: the predicted_end pivot at the same T*); a closed-loop efficiency study runs
+# OP alone unless asked (--strategies OP,OP-PE: one more scan per patient).
+CLOSED_LOOP_PIVOT = {"OP": "two_leg", "OP-PE": "predicted_end"}
+CLOSED_LOOP_DEFAULT_STRATEGIES = ("OP",)
+# Random starts are drawn where the kidney is visible (the paper's II-A (i)), checked at the
+# start and this far (m) around it (the closed loop lands within 2 mm), at most this often.
+START_VISIBILITY_TOLERANCE = 0.002
+START_MAX_DRAWS = 200
+# A study run below the product's exploration minimum registers unchecked: these limits
+# (m) stand for "no limit" (study_localization).
+RELAXED_LIMIT = 1.0
 
 
 def kidney_length(kp) -> float:
@@ -278,13 +299,14 @@ def check_strategies(strategies, mode: str = "kinematic") -> tuple:
         bad = [s for s in strategies if s not in CLOSED_LOOP_STRATEGIES]
         if bad:
             raise ValueError(f"--strategies: {', '.join(bad)} has no closed-loop equivalent (the "
-                             "closed-loop scan pivots only at T* of the registered pose, OP); "
-                             "use --strategies OP or --mode kinematic")
+                             "closed-loop scan pivots only at T* of the registered pose: OP, "
+                             "or OP-PE with the predicted_end pivot); use --strategies "
+                             "OP,OP-PE or --mode kinematic")
     return tuple(s for s in STRATEGY_ORDER if s in strategies)
 
 
 def default_strategies(mode: str) -> tuple:
-    return CLOSED_LOOP_STRATEGIES if mode == "closed-loop" else STRATEGY_ORDER
+    return CLOSED_LOOP_DEFAULT_STRATEGIES if mode == "closed-loop" else STRATEGY_ORDER
 
 
 def er_sweep_tasks(patients, options: StudyOptions, ers=ER_GRID) -> list[dict]:
@@ -433,16 +455,114 @@ def prepared_patient(spec: str, side: str, posture: str, voxel: float, X_BPt):
     return _PATIENTS[key]
 
 
-def random_start(task: dict, kp, controller) -> tuple[float, float]:
+def random_start(task: dict, kp, controller, visible=None,
+                 max_draws: int = START_MAX_DRAWS) -> tuple[float, float]:
     """(start_fraction, x_offset) of random start ``task['start']`` (deterministic in the
-    study seed, the patient and the start index)."""
+    study seed, the patient and the start index): the start fraction along the E-ROI leaves
+    room for the whole ER travel, the x offset lies within the middle half of its width.
+    With ``visible`` (a callable (x, y) -> bool, e.g. :func:`start_visibility`) draws are
+    repeated, from the same random stream, until the kidney is visible at the start (the
+    paper's assumption II-A (i)); :func:`visible_random_start` also says how many were
+    rejected."""
+    return visible_random_start(task, kp, controller, visible, max_draws)[:2]
+
+
+def visible_random_start(task: dict, kp, controller, visible=None,
+                         max_draws: int = START_MAX_DRAWS) -> tuple[float, float, int]:
+    """:func:`random_start` and the number of draws rejected because ``visible`` said the
+    kidney is not in the image there. Raises ValueError when no draw of ``max_draws`` is
+    visible (the E-ROI shows no kidney where the exploration could start)."""
     rng = np.random.default_rng([int(task["seed"]), zlib.crc32(str(task["patient"]).encode()),
                                  int(task["start"])])
     travel = exploration_travel(task["er"], task.get("er_unit", "fixed"), kidney_length(kp),
                                 controller.kidney_length)
     room = max(0.0, 1.0 - travel / max(kp.roi.length_y, 1e-9))
     width = kp.roi.x_max - kp.roi.x_min
-    return float(rng.uniform(0.0, room)), float(rng.uniform(-0.25, 0.25) * width)
+    for draw in range(max(1, int(max_draws))):
+        sf, xo = float(rng.uniform(0.0, room)), float(rng.uniform(-0.25, 0.25) * width)
+        if visible is None or visible(km.start_xy(kp, sf, controller.scan_direction, xo)):
+            return sf, xo, draw
+    raise ValueError(f"random start {task['start']} of {task['patient']}: the kidney is not "
+                     f"visible at any of {max_draws} drawn starts")
+
+
+def start_visibility(kp, imager, tolerance: float = START_VISIBILITY_TOLERANCE):
+    """A callable (x, y) -> bool: the kidney is visible (the segmenter's read-out, area >=
+    ``imaging.min_kidney_area``) in the transverse frame with the tip on the skin at (x, y)
+    and at (x +- ``tolerance``, y) and (x, y +- ``tolerance``): the paper's assumption II-A
+    (i), "the robot starts where the kidney is visible", kept by the closed-loop scan, which
+    lands within ``transit_position_tolerance`` (2 mm) of its start. The imager's frame
+    counter and temporal prior are restored, so the exploration after it is unchanged."""
+    d = float(tolerance)
+    offsets = ((0.0, 0.0), (d, 0.0), (-d, 0.0), (0.0, d), (0.0, -d))
+
+    def visible(xy) -> bool:
+        index = imager.frame_index
+        try:
+            for dx, dy in offsets:
+                imager.reset()
+                X = km.tip_pose(kp, km.R_B_TRANSVERSE, float(xy[0]) + dx, float(xy[1]) + dy)
+                if not imager(X).visible:
+                    return False
+            return True
+        finally:
+            imager.frame_index = index
+            imager.reset()
+    return visible
+
+
+def study_localization(config, er: float, planned_travel: float):
+    """The localization settings of a closed-loop study run and a note ("" if unchanged).
+
+    The product refuses to localize from an exploration shorter than
+    ``min_exploration_travel`` (15 mm) and rejects registrations that fail its acceptance
+    checks (RMS residual, inlier fraction, centre offset); the paper's registration (II-F)
+    has neither, and its ER sweep (III-C) reports both errors at every ER of its grid. So a
+    study run whose planned exploration (ER x length) is shorter than the product's minimum
+    registers whatever it explored, unchecked, as the paper (and the kinematic twin) do.
+    ER 0 is left alone: it has nothing to register (the study takes the initial alignment,
+    :func:`initial_alignment_record`). Only the study's scenario changes, never the product
+    default."""
+    if er <= 0 or planned_travel >= config.min_exploration_travel - 1e-12:
+        return config, ""
+    relaxed = dataclasses.replace(config, min_exploration_travel=0.0, min_inlier_fraction=0.0,
+                                  max_rms_residual=RELAXED_LIMIT,
+                                  max_rms_residual_deformable=RELAXED_LIMIT,
+                                  max_centroid_offset=RELAXED_LIMIT)
+    return relaxed, (f"planned exploration {planned_travel * 1e3:.1f} mm is below the "
+                     f"product's minimum {config.min_exploration_travel * 1e3:.0f} mm: the "
+                     "study registers it without the product's minimum travel and acceptance "
+                     "checks (the paper has none)")
+
+
+def rejected_registration_record(kp, loc) -> dict:
+    """The errors of a registration the product's acceptance checks rejected (``loc``, the
+    scan's LocalizationOutcome with ``rejected``): the scan stopped, as the product must,
+    but the paper's registration has no such check and its studies report the errors of
+    whatever it registered, so the study records them (the run has no pivot)."""
+    X = loc.rejected.X_BK
+    return {"e_trans_mm": e_trans(X, kp.X_BK_true) * 1e3,
+            "e_rot_x_deg": math.degrees(e_rot_x(X, kp.X_BK_true)),
+            "localization_note": f"the product rejected the registration ({loc.error}); its "
+                                 "errors are recorded (the paper has no acceptance check)"}
+
+
+def initial_alignment_record(kp, scan, start_xy) -> dict:
+    """ER 0 of a closed-loop study run (the paper's III-C: "at ER = 0% ... the localization
+    is purely based on the initial alignment"): E_trans and E_rot,x of the heuristic initial
+    alignment (:func:`drake_rus.experiments.kinematic.heuristic_pose`, the twin's) at the
+    tip's (x, y) where the scan's exploration began (its first EXPLORE frame, else its last
+    frame, else ``start_xy``)."""
+    explore = [f for f in scan.frames if f.phase == int(Phase.EXPLORE)]
+    frames = explore or list(scan.frames)
+    xy = (np.asarray(frames[0 if explore else -1].X_BP.translation()[:2], float) if frames
+          else np.asarray(start_xy, float))
+    X0 = km.heuristic_pose(kp, xy)
+    return {"e_trans_mm": e_trans(X0, kp.X_BK_true) * 1e3,
+            "e_rot_x_deg": math.degrees(e_rot_x(X0, kp.X_BK_true)),
+            "localization_note": "ER 0: initial alignment only (the paper's III-C)"
+                                 + (f"; the scan: {scan.status} {scan.reason}".rstrip()
+                                    if scan.reason else "")}
 
 
 _EXPLORATIONS: dict = {}
@@ -563,23 +683,49 @@ def closed_loop_scenario(task: dict, kp, base):
     paper's simulation did), with "fixed" ER x the scenario's L_m; the scan's
     ``exploration_length: estimated`` is not used, so both modes explore the same travel.
     A random start (``starts``) lands the probe at the twin's start (x, y)
-    (``controller.start_xy``)."""
+    (``controller.start_xy``), drawn where the kidney is visible (:func:`start_visibility`).
+    A run whose planned exploration is below the product's ``min_exploration_travel``
+    registers without the product's minimum and acceptance checks
+    (:func:`study_localization`)."""
+    return closed_loop_setup(task, kp, base)[:3]
+
+
+def closed_loop_setup(task: dict, kp, base):
+    """:func:`closed_loop_scenario` and what the study changed for the run:
+    ``(scenario, start_fraction, x_offset, notes)``, ``notes`` a dict with
+    ``start_rejected_draws`` (random starts drawn where the kidney was not visible,
+    :func:`start_visibility`) and ``study_relaxation`` (:func:`study_localization`)."""
     c = base.controller
     unit = task.get("er_unit", "fixed")
     length = kidney_length(kp) if unit == "kidney" else float(c.kidney_length)
-    exploration_travel(task["er"], unit, kidney_length(kp), c.kidney_length)  # checks unit
+    planned = exploration_travel(task["er"], unit, kidney_length(kp), c.kidney_length)
     controller = dataclasses.replace(c, exploration_ratio=float(task["er"]),
                                      exploration_length="fixed", kidney_length=length)
-    start_fraction, x_offset = 0.0, 0.0
+    start_fraction, x_offset, notes = 0.0, 0.0, {}
     if task["study"] == "starts":
-        start_fraction, x_offset = random_start(task, kp, c)
+        imager = km.Imager(kp, km.imaging_for(kp, base.imaging, base.start), task["segmenter"],
+                           seed=int(task["seed"]))
+        start_fraction, x_offset, rejected = visible_random_start(
+            task, kp, c, start_visibility(kp, imager))
+        notes["start_rejected_draws"] = rejected
         xy = km.start_xy(kp, start_fraction, c.scan_direction, x_offset)
         controller = dataclasses.replace(controller, start_xy=[float(xy[0]), float(xy[1])])
+    localization, relaxation = study_localization(
+        dataclasses.replace(base.localization, method=task["method"]), float(task["er"]),
+        planned)
+    notes["study_relaxation"] = relaxation
     scenario = dataclasses.replace(
-        base, controller=controller,
-        localization=dataclasses.replace(base.localization, method=task["method"]),
+        base, controller=controller, localization=localization,
         imaging=dataclasses.replace(base.imaging, segmenter=task["segmenter"]))
-    return scenario, start_fraction, x_offset
+    return scenario, start_fraction, x_offset, notes
+
+
+def closed_loop_strategy_scenario(scenario, strategy: str):
+    """``scenario`` with the pivot of a closed-loop efficiency strategy
+    (:data:`CLOSED_LOOP_PIVOT`: OP the two-leg pivot, OP-PE the predicted_end one)."""
+    check_strategies([strategy], "closed-loop")
+    return dataclasses.replace(scenario, controller=dataclasses.replace(
+        scenario.controller, pivot_strategy=CLOSED_LOOP_PIVOT[strategy]))
 
 
 def _closed_loop_entry(m: dict) -> dict:
@@ -606,14 +752,17 @@ def run_closed_loop_study(task: dict) -> dict:
     imaging, localization and OP pivot), with the kinematic run's record (E_trans,
     E_rot,x, the sweep costs pole to pole and over the whole pivot, V) plus the scan's
     ``status``, ``reason`` and simulated time. A scan that stops before localizing has
-    E_trans and E_rot,x None."""
+    E_trans and E_rot,x None, except at ER 0, where the paper localizes by the initial
+    alignment alone (:func:`initial_alignment_record`), and after a registration the
+    product's acceptance checks rejected (:func:`rejected_registration_record`). ``start_rejected_draws`` and
+    ``study_relaxation`` say what the study changed (:func:`closed_loop_setup`)."""
     t0 = time.perf_counter()
     base = _with_posture(_scenario(task["scenario"], task.get("scenarios_file"),
                                    task.get("overrides")), task)
     X_BPt = base.patient.X_BPt.GetDeterministicValue()
     kp = prepared_patient(task["patient"], base.patient.side, base.patient.posture,
                           float(task["voxel"]), X_BPt)
-    scenario, start_fraction, x_offset = closed_loop_scenario(task, kp, base)
+    scenario, start_fraction, x_offset, notes = closed_loop_setup(task, kp, base)
     variant = task.get("template_variant", "mean")
     template = template_variant(scenario.localization.template, variant,
                                 str(task["patient"]) if variant == "loo" else "",
@@ -643,14 +792,34 @@ def run_closed_loop_study(task: dict) -> dict:
         # The scan's pivot (OP) pole to pole and over the whole pivot, whatever the study.
         "sweep": {k: v for k, v in _closed_loop_entry(m).items()
                   if k not in ("curve_eps_mm", "curve_V", "events")},
+        **notes,
     }
+    if result["e_trans_mm"] is None and getattr(loc, "rejected", None) is not None:
+        result.update(rejected_registration_record(kp, loc))
+    if float(task["er"]) <= 0:
+        xy = scenario.controller.start_xy or km.start_xy(kp, start_fraction,
+                                                         scenario.controller.scan_direction,
+                                                         x_offset)
+        result.update(initial_alignment_record(kp, scan, xy))
+        result["registration_ms"], result["iterations"] = None, None
     if task["study"] == "template":
         result.update(template_record(variant, template, kp, scenario.patient.posture,
                                       task["patient"]))
     if task["study"] == "efficiency":
-        strategies = check_strategies(task.get("strategies") or CLOSED_LOOP_STRATEGIES,
+        strategies = check_strategies(task.get("strategies") or CLOSED_LOOP_DEFAULT_STRATEGIES,
                                       "closed-loop")
-        result["strategies"] = {s: _closed_loop_entry(m) for s in strategies}
+        result["strategies"] = {}
+        for s in strategies:
+            pivot = CLOSED_LOOP_PIVOT[s]
+            if pivot == scenario.controller.pivot_strategy:
+                result["strategies"][s] = _closed_loop_entry(m)
+                continue
+            other = RunScan(closed_loop_strategy_scenario(scenario, s), kp.patient, template,
+                            progress=False, start_fraction=start_fraction)
+            mo = ScanMetrics(other)
+            result["strategies"][s] = _closed_loop_entry(mo) | {
+                "status": other.status, "reason": other.reason,
+                "e_trans_mm": mo["e_trans_mm"], "e_rot_x_deg": mo["e_rot_x_deg"]}
     result["wall_s"] = time.perf_counter() - t0
     return result
 
@@ -672,9 +841,11 @@ def run_task(task: dict) -> dict:
     controller = scenario.controller
     imager = km.Imager(kp, km.imaging_for(kp, scenario.imaging, scenario.start),
                        task["segmenter"], seed=int(task["seed"]))
-    start_fraction, x_offset = 0.0, 0.0
+    start_fraction, x_offset, rejected = 0.0, 0.0, None
     if task["study"] == "starts":
-        start_fraction, x_offset = random_start(task, kp, controller)
+        # Where the kidney is visible (II-A (i)): the same starts as the closed loop's.
+        start_fraction, x_offset, rejected = visible_random_start(
+            task, kp, controller, start_visibility(kp, imager))
     sweep = exploration(task, kp, imager, controller, start_fraction, x_offset)
     P = sweep.point_cloud()
     variant = task.get("template_variant", "mean")
@@ -682,7 +853,9 @@ def run_task(task: dict) -> dict:
                                 str(task["patient"]) if variant == "loo" else "",
                                 scenario.patient.side)
     config = dataclasses.replace(scenario.localization, method=task["method"])
-    loc = km.localize_cloud(kp, P, template, config, sweep.frames[0].X_BP.translation()[:2])
+    # ER 0: the initial alignment alone, whatever the start frame shows (III-C).
+    loc = km.localize_cloud(kp, P, template, config, sweep.frames[0].X_BP.translation()[:2],
+                            min_points=50 if float(task["er"]) > 0 else math.inf)
     result = {
         "run_id": run_id(task), "task": task, "mode": km.MODE,
         "patient": task["patient"], "er": task["er"], "start": task["start"],
@@ -697,6 +870,8 @@ def run_task(task: dict) -> dict:
         "localization_note": loc.note,
         "true_volume_ml": kp.kidney_volume * 1e6,
     }
+    if rejected is not None:
+        result["start_rejected_draws"] = rejected
     if task["study"] == "template":
         result.update(template_record(variant, template, kp, scenario.patient.posture,
                                       task["patient"]))
@@ -705,7 +880,8 @@ def run_task(task: dict) -> dict:
         result["strategies"] = efficiency_of(
             kp, imager, controller, loc.X_BK, float(task.get("recon_spacing", 0.001)),
             export_dir=export, name=re.sub(r"[^A-Za-z0-9]+", "-", task["patient"]).strip("-"),
-            strategies=check_strategies(task.get("strategies") or STRATEGY_ORDER))
+            strategies=check_strategies(task.get("strategies") or STRATEGY_ORDER),
+            pivot_model=km.pivot_model_for(template, imager.imaging))
     result["wall_s"] = time.perf_counter() - t0
     return result
 
@@ -714,18 +890,30 @@ EXPORT_STRATEGIES = ("OP", "GT-OP")
 
 
 def efficiency_of(kp, imager, controller, X_BK_est, recon_spacing: float, *,
-                  export_dir=None, name: str = "patient", strategies=STRATEGY_ORDER) -> dict:
+                  export_dir=None, name: str = "patient", strategies=STRATEGY_ORDER,
+                  pivot_model=None) -> dict:
     """Per strategy: :func:`sweep_entry` (pole-to-pole curves and totals, the whole pivot's
     totals, matched coverage, tilt cap) and the reconstructed kidney volume (mL) from the
-    pole-to-pole masks. With
+    pole-to-pole masks; OP-PE (the predicted_end pivot, needs ``pivot_model``) also its
+    predicted ends and pre-tilt (``pretilt``: target, end, check frames, window path mm).
+    With
     ``export_dir``, the OP and GT-OP reconstructions are written there as NRRD (kidney
     probability, kidney mask and, for the classical/onnx segmenters, the grey volume)."""
     out = {}
     for s in strategies:
-        sweep = km.strategy_sweep(kp, imager, s, controller, X_BK_est, keep_images=True)
+        sweep = km.strategy_sweep(kp, imager, s, controller, X_BK_est, keep_images=True,
+                                  pivot_model=pivot_model)
         p2p = sweep.pole_to_pole()
         entry = sweep_entry(kp, sweep, imager.geometry, controller)
         entry.update(volume_ml=None, volume_error_pct=None)
+        if sweep.info:
+            i = sweep.info
+            entry["pretilt"] = {
+                "predicted_ends_deg": [math.degrees(x) for x in i["predicted_ends"]],
+                "target_deg": math.degrees(i["pretilt_target"]),
+                "end_deg": math.degrees(i["pretilt_end"]),
+                "check_frames": i["pretilt_check_frames"],
+                "eps_mm": i["eps_pretilt"] * 1e3}
         if p2p.frames:
             try:
                 rec = reconstruct_kidney([f.mask for f in p2p.frames], p2p.poses,
