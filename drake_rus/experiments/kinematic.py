@@ -55,6 +55,7 @@ from drake_rus.localization.icp import heuristic_initial_rotation
 from drake_rus.localization.localize import body_directions_B, localize
 from drake_rus.metrics.core import CoverageAccumulator, window_steps
 from drake_rus.metrics.sweep import cumulative_eps, pole_to_pole_indices
+from drake_rus.scan.diagram import PivotModelFor
 from drake_rus.scan.planning import (
     PlanStart,
     R_B_TRANSVERSE,
@@ -437,7 +438,6 @@ def pivot_sweep(kp: KinematicPatient, imager: Imager, R_BPstar, p_xy, *, pivot_r
 def pivot_model_for(template, imaging) -> PivotModel:
     """The predicted_end strategy's model of the scan (``PivotModelFor``: the template's
     points and the fan at ``imaging.depth``)."""
-    from drake_rus.scan.diagram import PivotModelFor
     return PivotModelFor(template, imaging)
 
 
