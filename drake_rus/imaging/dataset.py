@@ -20,8 +20,11 @@ Training extras (:func:`canvas_frames`, used by ``train_segmenter``): every fram
 depth preset, an emulator with randomised gain, TGC, dynamic range, frequency, interface
 echo and speckle grain (:func:`randomised_emulator`), volumes with a thicker wall
 (:func:`thicken_wall`: more subcutaneous fat, and more tissue between the wall and the
-kidney, so kidneys also lie as deep as in real bodies), and image and mask stored on the
-model's physical canvas (:class:`~drake_rus.imaging.onnx_backend.PhysicalCanvas`).
+kidney, so kidneys also lie as deep as in real bodies), the kidney's context and inside
+randomised (:func:`remove_perirenal_fat`: cortex against soft tissue; :func:`layered_kidney`
+with :func:`draw_kidney_layers`: cortex, continuous medulla and sinus in layers of published
+thickness, as imported kidneys are labelled; :func:`thin_cortex`), and image and mask stored
+on the model's physical canvas (:class:`~drake_rus.imaging.onnx_backend.PhysicalCanvas`).
 """
 
 from __future__ import annotations
@@ -278,6 +281,53 @@ def thin_cortex(volume: LabelVolume, cortex: float = 0.004) -> LabelVolume:
     sub = labels[box]
     sub[(depth > cortex) & (sub == Label.KIDNEY_CORTEX)] = Label.KIDNEY_MEDULLA
     return LabelVolume(labels, volume.voxel_size, volume.X_PtV)
+
+
+def layered_kidney(volume: LabelVolume, cortex: float = 0.0066, parenchyma: float = 0.0154
+                   ) -> LabelVolume:
+    """The volume with its kidneys relabelled in layers by depth below the kidney's surface:
+    cortex up to ``cortex`` (m), a continuous medulla up to ``parenchyma`` (m), sinus deeper;
+    the rule the importer applies to every imported kidney (``anatomy/importers.py``,
+    Glodny 2009 means 6.6 / 15.4 mm; surface meshes resolve no pyramids), where the generator
+    draws discrete pyramids in a thick cortex. Domain randomisation of the kidney's inside
+    (draw the depths with :func:`draw_kidney_layers`); the outline does not change."""
+    if not 0 < cortex < parenchyma:
+        raise ValueError(f"layered_kidney: need 0 < cortex < parenchyma, got {cortex}, "
+                         f"{parenchyma}")
+    kid = is_kidney(volume.labels)
+    idx = np.argwhere(kid)
+    if len(idx) == 0:
+        return volume
+    lo = np.maximum(idx.min(axis=0) - 1, 0)
+    hi = np.minimum(idx.max(axis=0) + 2, volume.labels.shape)
+    box = tuple(slice(a, b) for a, b in zip(lo, hi))
+    k = kid[box]
+    depth = ndimage.distance_transform_edt(k) * volume.voxel_size
+    labels = volume.labels.copy()
+    sub = labels[box]
+    sub[k] = Label.KIDNEY_CORTEX
+    sub[k & (depth >= cortex)] = Label.KIDNEY_MEDULLA
+    sub[k & (depth >= parenchyma)] = Label.KIDNEY_SINUS
+    return LabelVolume(labels, volume.voxel_size, volume.X_PtV)
+
+
+# Published kidney layer thicknesses (docs/facts/anatomy_and_ultrasound.md, Glodny 2009):
+# cortex 6.6 +- 1.9 mm, parenchymal width (right) 15.4 +- 2.8 mm.
+CORTEX_MM = (6.6, 1.9)
+PARENCHYMA_MM = (15.4, 2.8)
+
+
+def draw_kidney_layers(rng: np.random.Generator, clip_cortex=(0.003, 0.011),
+                       min_medulla: float = 0.004, max_parenchyma: float = 0.025
+                       ) -> tuple[float, float]:
+    """(cortex, parenchyma) depths (m) for :func:`layered_kidney`: normal draws around the
+    published means and SDs (:data:`CORTEX_MM`, :data:`PARENCHYMA_MM`), the cortex clipped
+    to ``clip_cortex``, the parenchyma at least ``min_medulla`` deeper than the cortex and at
+    most ``max_parenchyma``."""
+    c = float(np.clip(rng.normal(CORTEX_MM[0], CORTEX_MM[1]) * 1e-3, *clip_cortex))
+    p = float(np.clip(rng.normal(PARENCHYMA_MM[0], PARENCHYMA_MM[1]) * 1e-3,
+                      c + min_medulla, max(max_parenchyma, c + min_medulla)))
+    return c, p
 
 
 def remove_perirenal_fat(volume: LabelVolume, margin: float = 0.015) -> LabelVolume:

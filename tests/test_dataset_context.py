@@ -1,0 +1,144 @@
+"""The segmenter recipe's kidney context and structure randomisation and its time-bounded
+learning-rate schedule (issue 13)."""
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from drake_rus.anatomy.labels import Label, is_kidney
+from drake_rus.imaging.dataset import (CORTEX_MM, PARENCHYMA_MM, draw_kidney_layers,
+                                       layered_kidney)
+from drake_rus.imaging.phantoms import kidney_phantom
+from drake_rus.imaging.train_segmenter import (P_LAYERED, P_NO_PERIRENAL_FAT, P_THIN_CORTEX,
+                                               draw_anatomy, one_cycle_lr, randomised_anatomy,
+                                               schedule_progress, wall_variants)
+
+
+@pytest.fixture(scope="module")
+def phantom():
+    return kidney_phantom(np.random.default_rng(7), shape=(140, 180, 140))
+
+
+def _kidney_depth(vol):
+    kid = is_kidney(vol.labels)
+    return kid, ndimage.distance_transform_edt(kid) * vol.voxel_size
+
+
+def test_layered_kidney_puts_cortex_medulla_and_sinus_in_layers(phantom):
+    vol = phantom.volume
+    kid, depth = _kidney_depth(vol)
+    out = layered_kidney(vol, cortex=0.005, parenchyma=0.012)
+    lab = out.labels
+    # Same outline, nothing outside the kidney touched.
+    assert np.array_equal(is_kidney(lab), kid)
+    assert np.array_equal(lab[~kid], vol.labels[~kid])
+    cortex, med, sinus = (lab == Label.KIDNEY_CORTEX), (lab == Label.KIDNEY_MEDULLA), \
+        (lab == Label.KIDNEY_SINUS)
+    assert cortex.any() and med.any() and sinus.any()
+    assert depth[cortex].max() < 0.005
+    assert depth[med].min() >= 0.005 and depth[med].max() < 0.012
+    assert depth[sinus].min() >= 0.012
+    # The medulla is one continuous shell, not discrete pyramids.
+    _, n = ndimage.label(med)
+    assert n == 1
+    # The input volume is left as it was.
+    assert (vol.labels == Label.KIDNEY_CORTEX).sum() != cortex.sum()
+    with pytest.raises(ValueError):
+        layered_kidney(vol, cortex=0.01, parenchyma=0.005)
+
+
+def test_kidney_layers_follow_the_published_thicknesses():
+    rng = np.random.default_rng(0)
+    draws = np.array([draw_kidney_layers(rng) for _ in range(4000)])
+    c, p = draws[:, 0] * 1e3, draws[:, 1] * 1e3
+    assert abs(np.median(c) - CORTEX_MM[0]) < 0.3
+    assert abs(np.median(p) - PARENCHYMA_MM[0]) < 0.5
+    assert c.min() >= 3.0 - 1e-9 and c.max() <= 11.0 + 1e-9
+    assert (p >= c + 4.0 - 1e-9).all() and p.max() <= 25.0 + 1e-9
+    assert 1.5 < np.std(c) < 2.0
+
+
+def test_draw_anatomy_shares_and_force():
+    rng = np.random.default_rng(1)
+    draws = [draw_anatomy(rng) for _ in range(4000)]
+    no_fat = np.mean([d[0] for d in draws])
+    inside = [d[1] for d in draws]
+    assert abs(no_fat - P_NO_PERIRENAL_FAT) < 0.03
+    assert abs(inside.count("layered") / 4000 - P_LAYERED) < 0.03
+    assert abs(inside.count("thin") / 4000 - P_THIN_CORTEX) < 0.03
+    forced = [draw_anatomy(rng, force=True) for _ in range(500)]
+    assert not any(nf is False and ins == "generator" for nf, ins in forced)
+
+
+def test_randomised_anatomy_removes_fat_and_relabels_the_inside(phantom):
+    vol = phantom.volume
+    kid, _ = _kidney_depth(vol)
+    rng = np.random.default_rng(2)
+    out = randomised_anatomy(vol, rng, True, "layered")
+    assert np.array_equal(is_kidney(out.labels), kid)
+    near = ndimage.distance_transform_edt(~kid) * vol.voxel_size <= 0.010
+    assert (vol.labels[near] == Label.FAT).any()
+    assert not (out.labels[near] == Label.FAT).any()
+    _, n = ndimage.label(out.labels == Label.KIDNEY_MEDULLA)
+    assert n == 1
+    same = randomised_anatomy(vol, rng, False, "generator")
+    assert np.array_equal(same.labels, vol.labels)
+    with pytest.raises(ValueError):
+        randomised_anatomy(vol, rng, False, "pyramids")
+
+
+def test_wall_variants_include_an_imported_like_kidney(phantom):
+    from drake_rus.imaging.evaluation import Source
+    src = Source("phantom:7", "supine", phantom.volume, np.array([0.0, 0.0, 1.0]))
+    variants = wall_variants(src, "supine", np.random.default_rng(3))
+    assert variants[0].volume is phantom.volume
+    imported = variants[2].volume.labels
+    kid = is_kidney(phantom.volume.labels)
+    near = ndimage.distance_transform_edt(~kid) * phantom.volume.voxel_size <= 0.010
+    assert not (imported[near] == Label.FAT).any()
+    _, n = ndimage.label(imported == Label.KIDNEY_MEDULLA)
+    assert n == 1 and variants[2].extra_depth == 0.0
+    assert all(v.extra_depth > 0 for v in variants[3:])
+
+
+def test_one_cycle_lr_shape():
+    lr = 3e-3
+    assert one_cycle_lr(0.0, lr) == pytest.approx(lr / 25)
+    assert one_cycle_lr(0.3, lr) == pytest.approx(lr)
+    assert one_cycle_lr(1.0, lr) == pytest.approx(lr / 25 / 1e4)
+    up = [one_cycle_lr(p, lr) for p in np.linspace(0, 0.3, 20)]
+    down = [one_cycle_lr(p, lr) for p in np.linspace(0.3, 1.0, 50)]
+    assert np.all(np.diff(up) > 0) and np.all(np.diff(down) < 0)
+    assert one_cycle_lr(2.0, lr) == one_cycle_lr(1.0, lr)
+
+
+def test_schedule_progress_follows_the_time_limit():
+    assert schedule_progress(50, 100, 10.0, None) == 0.5
+    assert schedule_progress(50, 100, 80.0, 100.0) == 0.8      # time is further
+    assert schedule_progress(90, 100, 10.0, 100.0) == 0.9      # steps are further
+    assert schedule_progress(10, 100, 500.0, 100.0) == 1.0
+
+
+def test_train_stops_at_the_time_limit_with_an_annealed_schedule():
+    pytest.importorskip("torch")
+    from drake_rus.imaging.train_segmenter import train
+    rng = np.random.default_rng(0)
+    X = rng.integers(0, 255, (8, 32, 32)).astype(np.uint8)
+    Y = np.zeros_like(X)
+    Y[:, 10:20, 10:20] = 255
+    logs = []
+    net = train(X, Y, width=4, epochs=2000, batch=4, time_limit=0.3, log=logs.append,
+                space_to_depth=2)
+    # Ended by the time limit, not by the epoch count (2000 epochs take far longer).
+    assert 1 <= net.epochs_run < 2000
+    assert "schedule ended" in logs[-1]
+
+
+def test_targets_met_needs_every_preset_and_both_postures():
+    from drake_rus.imaging.train_segmenter import targets_met
+    good = {"0.10": 0.86, "0.15": 0.9}
+    assert targets_met(good, {"supine": 0.81, "left_lateral_decubitus": 0.8})["met"]
+    r = targets_met({"0.10": 0.84, "0.15": 0.9}, {"supine": 0.81})
+    assert not r["met"] and r["generated_by_preset"] == {"0.10": False, "0.15": True}
+    assert not targets_met(good, {"supine": 0.79})["met"]
+    assert not targets_met(good, None)["met"]
