@@ -264,19 +264,29 @@ def randomised_emulator(base: EmulatorModel, rng: np.random.Generator,
     return m
 
 
+def _kidney_depth(volume: LabelVolume):
+    """(box, kidney mask in the box, depth (m) below the kidney's surface in the box) over
+    the kidneys' bounding box grown by one voxel; None without kidney voxels."""
+    kid = is_kidney(volume.labels)
+    idx = np.argwhere(kid)
+    if len(idx) == 0:
+        return None
+    lo = np.maximum(idx.min(axis=0) - 1, 0)
+    hi = np.minimum(idx.max(axis=0) + 2, volume.labels.shape)
+    box = tuple(slice(a, b) for a, b in zip(lo, hi))
+    k = kid[box]
+    return box, k, ndimage.distance_transform_edt(k) * volume.voxel_size
+
+
 def thin_cortex(volume: LabelVolume, cortex: float = 0.004) -> LabelVolume:
     """The volume with the kidney's cortex deeper than ``cortex`` (m) below the kidney's
     surface made medulla: a thin cortex over a continuous dark medulla, a kidney structure
     the generator does not make (it draws discrete pyramids in a thick cortex). Domain
     randomisation of the kidney's inside; the kidney's outline does not change."""
-    kid = is_kidney(volume.labels)
-    idx = np.argwhere(kid)
-    if len(idx) == 0:
+    found = _kidney_depth(volume)
+    if found is None:
         return volume
-    lo = np.maximum(idx.min(axis=0) - 1, 0)
-    hi = np.minimum(idx.max(axis=0) + 2, volume.labels.shape)
-    box = tuple(slice(a, b) for a, b in zip(lo, hi))
-    depth = ndimage.distance_transform_edt(kid[box]) * volume.voxel_size
+    box, _, depth = found
     labels = volume.labels.copy()
     sub = labels[box]
     sub[(depth > cortex) & (sub == Label.KIDNEY_CORTEX)] = Label.KIDNEY_MEDULLA
@@ -294,15 +304,10 @@ def layered_kidney(volume: LabelVolume, cortex: float = 0.0066, parenchyma: floa
     if not 0 < cortex < parenchyma:
         raise ValueError(f"layered_kidney: need 0 < cortex < parenchyma, got {cortex}, "
                          f"{parenchyma}")
-    kid = is_kidney(volume.labels)
-    idx = np.argwhere(kid)
-    if len(idx) == 0:
+    found = _kidney_depth(volume)
+    if found is None:
         return volume
-    lo = np.maximum(idx.min(axis=0) - 1, 0)
-    hi = np.minimum(idx.max(axis=0) + 2, volume.labels.shape)
-    box = tuple(slice(a, b) for a, b in zip(lo, hi))
-    k = kid[box]
-    depth = ndimage.distance_transform_edt(k) * volume.voxel_size
+    box, k, depth = found
     labels = volume.labels.copy()
     sub = labels[box]
     sub[k] = Label.KIDNEY_CORTEX
