@@ -746,6 +746,16 @@ def _closed_loop_entry(m: dict) -> dict:
                            "no reconstruction"}
 
 
+def task_scenario_and_patient(task: dict):
+    """(scenario, prepared patient) of a study task: the task's scenario with its overrides
+    and posture, and the patient placed on the bed at that scenario's X_BPt."""
+    scenario = _with_posture(_scenario(task["scenario"], task.get("scenarios_file"),
+                                       task.get("overrides")), task)
+    kp = prepared_patient(task["patient"], scenario.patient.side, scenario.patient.posture,
+                          float(task["voxel"]), scenario.patient.X_BPt.GetDeterministicValue())
+    return scenario, kp
+
+
 def run_closed_loop_study(task: dict) -> dict:
     """One study run (er-sweep, starts, efficiency, template) as a full closed-loop scan on
     the Drake diagram (``RunScan``: MultibodyPlant, controller, contact, the scan's own
@@ -757,11 +767,7 @@ def run_closed_loop_study(task: dict) -> dict:
     product's acceptance checks rejected (:func:`rejected_registration_record`). ``start_rejected_draws`` and
     ``study_relaxation`` say what the study changed (:func:`closed_loop_setup`)."""
     t0 = time.perf_counter()
-    base = _with_posture(_scenario(task["scenario"], task.get("scenarios_file"),
-                                   task.get("overrides")), task)
-    X_BPt = base.patient.X_BPt.GetDeterministicValue()
-    kp = prepared_patient(task["patient"], base.patient.side, base.patient.posture,
-                          float(task["voxel"]), X_BPt)
+    base, kp = task_scenario_and_patient(task)
     scenario, start_fraction, x_offset, notes = closed_loop_setup(task, kp, base)
     variant = task.get("template_variant", "mean")
     template = template_variant(scenario.localization.template, variant,
@@ -833,11 +839,7 @@ def run_task(task: dict) -> dict:
         return run_closed_loop_study(task)
 
     t0 = time.perf_counter()
-    scenario = _with_posture(_scenario(task["scenario"], task.get("scenarios_file"),
-                                       task.get("overrides")), task)
-    X_BPt = scenario.patient.X_BPt.GetDeterministicValue()
-    kp = prepared_patient(task["patient"], scenario.patient.side, scenario.patient.posture,
-                          float(task["voxel"]), X_BPt)
+    scenario, kp = task_scenario_and_patient(task)
     controller = scenario.controller
     imager = km.Imager(kp, km.imaging_for(kp, scenario.imaging, scenario.start),
                        task["segmenter"], seed=int(task["seed"]))
