@@ -16,10 +16,12 @@ from drake_rus.scan.planning import PlanStart, StartPlanError, probe_rotation
 VOXEL = 0.002
 
 
-def box_body(kidney_depth=0.09, blocker=None, size=(0.30, 0.30, 0.24)):
+def box_body(kidney_depth=0.09, blocker=None, size=(0.30, 0.30, 0.24), rib_y=None):
     """A box torso (x across, y along the body, z up; bed at z = 0) with an ellipsoidal
-    kidney ``kidney_depth`` below the top skin, and optionally a slab of ``blocker`` label
-    (bone or gas) right under the skin straight above the kidney. Patient frame = B."""
+    kidney ``kidney_depth`` below the top skin, and optionally a bar of ``blocker`` label
+    (bone or gas) 20-30 mm under the skin straight above the kidney, 30 mm wide across the
+    body and as long as the kidney, or a rib: a bone bar across the whole body 20-30 mm
+    under the skin over ``rib_y`` = (y_min, y_max) (m). Patient frame = B."""
     sx, sy, sz = size
     skin = trimesh.creation.box(extents=size)
     skin.apply_translation([0.0, 0.0, sz / 2])
@@ -35,9 +37,13 @@ def box_body(kidney_depth=0.09, blocker=None, size=(0.30, 0.30, 0.24)):
     inside = (((p - center) / [0.025, 0.05, 0.02]) ** 2).sum(axis=1) <= 1.0
     labels.reshape(-1)[inside] = Label.KIDNEY_CORTEX
     if blocker is not None:
-        slab = (np.abs(p[:, 0]) < 0.03) & (np.abs(p[:, 1]) < 0.07) & (p[:, 2] > sz - 0.03) & (
+        slab = (np.abs(p[:, 0]) < 0.015) & (np.abs(p[:, 1]) < 0.07) & (p[:, 2] > sz - 0.03) & (
             p[:, 2] < sz - 0.02)
         labels.reshape(-1)[slab] = blocker
+    if rib_y is not None:
+        rib = (p[:, 1] >= rib_y[0]) & (p[:, 1] <= rib_y[1]) & (p[:, 2] > sz - 0.03) & (
+            p[:, 2] < sz - 0.02)
+        labels.reshape(-1)[rib] = Label.BONE
     return types.SimpleNamespace(skin_mesh=skin, kidney_mesh=kidney, side="right",
                                  labels=LabelVolume(labels, VOXEL, X_PtV))
 
@@ -71,6 +77,43 @@ def test_bone_or_gas_in_the_straight_path_moves_the_window(blocker):
     assert not vertical.feasible and "bone or gas" in vertical.reason
     assert len(vertical.blockers_B) > 0
     assert blocked.window.blocked_fraction <= StartConfig().max_blocked_fraction
+
+
+def test_a_rib_across_the_sweep_moves_the_start_past_it():
+    """The kidney spans y in [-0.05, 0.05]; a "-y" scan starts near y = 0.04. A rib across
+    the body at y in [0.020, 0.028] shadows the sweep 12 mm after that start: the planner
+    starts past the rib (every tilt meets it), where the whole sweep is clear."""
+    cfg = StartConfig(placement_error=0.0, placement_error_angle_deg=0.0, max_start_shift=0.3)
+    clear = PlanStart(box_body(), X_BPT, ImagingConfig(), cfg, exploration_ratio=0.5)
+    assert clear.window.start_fraction == pytest.approx(0.1)
+    assert clear.window.clear_length == pytest.approx(clear.window.sweep_length)
+    ribbed = PlanStart(box_body(rib_y=(0.020, 0.028)), X_BPT, ImagingConfig(), cfg,
+                       exploration_ratio=0.5)
+    w = ribbed.window
+    assert w.start_fraction > 0.1 + 1e-9
+    assert ribbed.X_start.translation()[1] < 0.020           # past the rib, scanning -y
+    assert w.clear_length == pytest.approx(w.sweep_length) and w.sweep_shadowed == 0.0
+    s = ribbed.summary()
+    assert s["sweep_clear_mm"] == s["sweep_checked_mm"] > 0
+    # The first start's sweep meets the rib: it is clear for less than the minimum.
+    first = evaluate_first_start(box_body(rib_y=(0.020, 0.028)), cfg)
+    assert first.clear_length < cfg.min_clear_sweep and "shadows the kidney" in first.warning
+    assert first.feasible and not ribbed.window.warning
+    # No later start allowed: the planner still gives the window, with the warning said.
+    stuck = PlanStart(box_body(rib_y=(0.020, 0.028)), X_BPT, ImagingConfig(),
+                      StartConfig(placement_error=0.0, placement_error_angle_deg=0.0,
+                                  max_start_shift=0.0), exploration_ratio=0.5)
+    assert stuck.window.start_fraction == pytest.approx(0.1)
+    assert stuck.window.clear_length < cfg.min_clear_sweep
+    assert "10 mm into the sweep" in stuck.summary()["warning"]
+
+
+def evaluate_first_start(body, cfg):
+    from drake_rus.scan.planning import evaluate_windows
+    superior_B = X_BPT.rotation().matrix()[:, 1]
+    kidney_B = X_BPT.multiply(np.asarray(body.kidney_mesh.vertices).T).T
+    return evaluate_windows(body, X_BPT, ImagingConfig(), cfg, 0.0, superior_B, kidney_B,
+                            X_BPT @ body.labels.X_PtV, exploration_ratio=0.5)[0]
 
 
 def test_unreachable_windows_are_refused_with_a_clear_message():
@@ -110,3 +153,36 @@ def test_probe_rotation_is_a_transverse_view():
     tilted = probe_rotation([0.5, 0.0, -np.sqrt(0.75)], [0.0, 1.0, 0.0]).matrix()
     assert abs(tilted[:, 0] @ [0, 1, 0]) < 1e-12          # the array stays across the body
     assert np.linalg.det(tilted) == pytest.approx(1.0)
+
+
+def test_fan_rays_leave_the_curved_face_across_its_width():
+    from drake_rus.scan.planning import fan_rays
+    skin = np.array([0.5, 0.0, 0.2])
+    origins, dirs = fan_rays(skin, [0, 0, -1], [1, 0, 0], 0.05, 40.0, n_rays=9)
+    np.testing.assert_allclose(np.linalg.norm(dirs, axis=1), 1.0)
+    np.testing.assert_allclose(origins[4], skin, atol=1e-12)          # central ray
+    np.testing.assert_allclose(dirs[4], [0, 0, -1], atol=1e-12)
+    apex = skin + np.array([0, 0, 0.05])
+    np.testing.assert_allclose(np.linalg.norm(origins - apex, axis=1), 0.05)
+    # The edge rays leave the face 50 mm x sin(20 deg) = 17.1 mm either side of its centre.
+    assert origins[0, 0] - skin[0] == pytest.approx(-0.05 * np.sin(np.radians(20)))
+    assert origins[-1, 0] - skin[0] == pytest.approx(0.05 * np.sin(np.radians(20)))
+
+
+def test_a_bar_under_one_side_of_the_face_blocks_those_rays_only():
+    """Bone 20-30 mm under the skin only at x > 0.008 (body frame = B): the rays leaving the
+    face's +x side cross it, the central ray and the -x side do not."""
+    from drake_rus.scan.planning import check_view
+    body = box_body()
+    lab = body.labels.labels
+    p = np.indices(lab.shape).reshape(3, -1).T * VOXEL + body.labels.X_PtV.translation()
+    bar = (p[:, 0] > 0.008) & (p[:, 2] > 0.24 - 0.03) & (p[:, 2] < 0.24 - 0.02)
+    lab.reshape(-1)[bar] = Label.BONE
+    X_BV = X_BPT @ body.labels.X_PtV
+    kidney_B = X_BPT.multiply(np.asarray(body.kidney_mesh.vertices).T).T
+    v = check_view(body.labels, X_BV, np.array([0.55, 0.0, 0.24]), np.array([0.0, 0, -1]),
+                   np.array([1.0, 0, 0]), ImagingConfig(), kidney_B, 0.0)
+    assert v.rays_to_kidney > 0 and not v.central_blocked
+    assert 0 < v.blocked_rays < v.rays_to_kidney
+    assert np.all(v.blockers_B[:, 0] > 0.55 + 0.008 - VOXEL)
+    assert v.needed_depth == pytest.approx(0.09 + 0.02, abs=0.003)

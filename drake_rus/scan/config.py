@@ -30,6 +30,19 @@ class StartConfig:
     depth_margin: float = field(default=0.010, metadata={"min": 0.0, "max": 0.1})
     # Largest fraction of the fan's rays towards the kidney that may cross bone or gas.
     max_blocked_fraction: float = field(default=0.25, metadata={"min": 0.0, "max": 1.0})
+    # The exploration sweep is checked for bone and gas shadows in views this far apart
+    # (m): a rib crossing the sweep (ribs 11-12 pass over the kidney's upper third,
+    # docs/facts/anatomy_and_ultrasound.md) shadows the kidney from the
+    # segmenter, and EXPLORE ends where the kidney leaves the image.
+    sweep_check_step: float = field(default=0.005, metadata={"positive": True, "max": 0.05})
+    # A window is usable only if the sweep stays clear of shadows this far from its start
+    # (m; the localizer needs 15 mm of kidney, localization.min_exploration_travel).
+    min_clear_sweep: float = field(default=0.025, metadata={"min": 0.0, "max": 0.2})
+    # Later exploration starts tried when a shadow crosses the sweep (fractions of the
+    # kidney's length beyond start_fraction; a start never so late that the sweep of ER x
+    # the kidney's length would run past 95% of it), like a sonographer sliding past a rib.
+    max_start_shift: float = field(default=0.25, metadata={"min": 0.0, "max": 0.5})
+    start_shift_step: float = field(default=0.05, metadata={"min": 0.0, "max": 0.5})
     # Height of the start pose above the skin along the beam (m); APPROACH lands from there.
     hover: float = field(default=0.015, metadata={"min": 0.0, "max": 0.1})
     # Where exploration starts: this fraction of the kidney's length inside its end.

@@ -114,6 +114,14 @@ class WindowCandidate:
     preset: float | None            # shallowest preset holding the kidney (None: none does)
     reachable: bool | None = None   # None: not checked
     reason: str = ""                # why it was rejected ("" when feasible)
+    # Where exploration starts: this fraction of the kidney's length inside its end.
+    start_fraction: float = 0.1
+    sweep_length: float = 0.0       # the exploration sweep checked (m along the body)
+    clear_length: float = 0.0       # how far into it every view is clear of shadows (m)
+    sweep_shadowed: float = 0.0     # fraction of the sweep's views shadowed by bone or gas
+    # Why a usable window is worse ("" when it is not): a shadow within the placement error
+    # of the start, or across the sweep before ``min_clear_sweep``.
+    warning: str = ""
 
     @property
     def feasible(self) -> bool:
@@ -148,6 +156,11 @@ class StartPlan:
             "needed_depth_mm": round(w.needed_depth * 1000, 1),
             "pivot_depth_needed_mm": round(self.pivot_depth_needed * 1000, 1),
             "blocked_fraction": round(w.blocked_fraction, 3),
+            "start_fraction": round(w.start_fraction, 3),
+            "sweep_checked_mm": round(w.sweep_length * 1000, 1),
+            "sweep_clear_mm": round(w.clear_length * 1000, 1),
+            "sweep_shadowed_fraction": round(w.sweep_shadowed, 3),
+            "warning": w.warning,
             "placement_error_mm": round(float(np.linalg.norm(self.placement_offset_B)) * 1000,
                                         2),
             "placement_error_deg": round(float(np.degrees(self.placement_angle)), 2),
@@ -209,64 +222,190 @@ def _ray_blocked(labels) -> tuple[bool, bool, int]:
     return kidney.any(), False, -1
 
 
-def evaluate_window(patient, X_BPt: RigidTransform, imaging, config, tilt: float,
-                    superior_B, kidney_B, X_BV, start_fraction: float = 0.1,
-                    scan_direction: str = "-y") -> WindowCandidate:
-    """Depth, path and fan clearance of the beam tilted by ``tilt`` (rad) from vertical
-    about the body's long axis, along the exploration line: transverse views at the start
-    (``start_fraction`` of the kidney's length inside the end the scan leaves from), at the
-    kidney's centre and near its other end (``skin_points_B`` in that order)."""
+@dataclasses.dataclass
+class ViewCheck:
+    """The fan of one transverse view along the exploration line (B frame, SI units)."""
+    along: float                    # position along the body's superior axis (m, kidney-centred)
+    skin_B: np.ndarray              # skin entry point of the beam (3,)
+    needed_depth: float             # depth of the kidney's far side in this view (m; 0: none)
+    rays_to_kidney: int             # fan rays that reach the kidney
+    blocked_rays: int               # of those, the ones crossing bone or gas first
+    central_blocked: bool           # the central ray crosses bone or gas before the kidney
+    blockers_B: np.ndarray          # (N, 3) first bone/gas sample of each blocked ray
+
+    def shadowed(self, max_blocked_fraction: float) -> bool:
+        """The kidney cannot be seen in this view: no ray reaches it, the central ray is
+        blocked, or more than ``max_blocked_fraction`` of the rays to it are."""
+        return (self.skin_B is None or self.rays_to_kidney == 0 or self.central_blocked
+                or self.blocked_rays / self.rays_to_kidney > max_blocked_fraction)
+
+
+def fan_rays(skin_B, approach_B, across_B, probe_radius: float, field_of_view_deg: float,
+             n_rays: int = 0):
+    """(origins, directions), each (n_rays, 3): the rays of a curvilinear probe whose face
+    centre touches ``skin_B``, beam along ``approach_B``, array along ``across_B``: rays
+    leave the face arc (radius ``probe_radius`` about the apex behind the face centre) at
+    angles spread over the field of view, so they cross the skin over the face's width."""
+    n = int(n_rays or _FAN_RAYS)
+    a = np.asarray(approach_B, float)
+    o = np.asarray(across_B, float)
+    phi = np.radians(field_of_view_deg) / 2 * np.linspace(-1.0, 1.0, n)
+    d = np.cos(phi)[:, None] * a + np.sin(phi)[:, None] * o
+    apex = np.asarray(skin_B, float) - probe_radius * a
+    return apex + probe_radius * d, d
+
+
+def check_view(volume, X_BV: RigidTransform, skin_B, approach_B, across_B, imaging,
+               kidney_slab_B: np.ndarray, along: float) -> ViewCheck:
+    """Fan clearance and kidney depth of the transverse view entering at ``skin_B`` (None:
+    the beam misses the body): every fan ray (:func:`fan_rays`) sampled every 2 mm to the
+    deepest preset through the label volume; ``kidney_slab_B`` the kidney points near this
+    view (their depth along the beam gives ``needed_depth``)."""
+    if skin_B is None:
+        return ViewCheck(along, None, np.inf, 0, 0, False, np.zeros((0, 3)))
+    origins, dirs = fan_rays(skin_B, approach_B, across_B, imaging.probe_radius,
+                             imaging.field_of_view_deg)
+    length = max(imaging.depth_presets)
+    s = np.arange(0.0, length, _RAY_STEP)
+    p_B = origins[:, None, :] + s[None, :, None] * dirs[:, None, :]          # (K, S, 3)
+    p_V = X_BV.inverse().multiply(p_B.reshape(-1, 3).T).T / volume.voxel_size
+    ijk = np.rint(p_V).astype(int)
+    inside = np.all((ijk >= 0) & (ijk < np.array(volume.shape)), axis=1)
+    labels = np.zeros(len(ijk), np.uint8)
+    labels[inside] = volume.labels[ijk[inside, 0], ijk[inside, 1], ijk[inside, 2]]
+    labels = labels.reshape(len(dirs), len(s))
+    kidney = np.isin(labels, [int(v) for v in KIDNEY_LABELS])
+    blocking = np.isin(labels, BLOCKING_LABELS)
+    reaches = kidney.any(axis=1)
+    first_kidney = np.where(reaches, np.argmax(kidney, axis=1), len(s))
+    before = blocking & (np.arange(len(s))[None, :] < first_kidney[:, None])
+    crossed = before.any(axis=1)
+    blocked = reaches & crossed
+    blockers = p_B[blocked, np.argmax(before[blocked], axis=1)] if blocked.any() else \
+        np.zeros((0, 3))
+    mid = len(dirs) // 2
+    needed = (float(((kidney_slab_B - skin_B) @ approach_B).max()) if len(kidney_slab_B)
+              else 0.0)
+    return ViewCheck(along, np.asarray(skin_B, float), needed, int(reaches.sum()),
+                     int(blocked.sum()), bool(crossed[mid]), blockers)
+
+
+def _window_from_views(tilt: float, a, views: list, start: int, sweep_end: int,
+                       start_zone: list, config, imaging, start_fraction: float,
+                       step: float) -> WindowCandidate:
+    """One candidate: the beam tilt ``tilt`` with exploration starting at view ``start`` and
+    sweeping to view ``sweep_end`` (indices into ``views`` along the scan direction);
+    ``start_zone``: the views within the placement error of the start."""
+    sweep = views[start:sweep_end + 1]
+    mid = sweep[len(sweep) // 2]
+    key = [views[start], mid, sweep[-1]]
+    checked = start_zone + sweep
+    needed = max(v.needed_depth for v in checked) + config.depth_margin
+    at_start = views[start]
+    clear = 0
+    for v in sweep[1:]:
+        if v.shadowed(config.max_blocked_fraction):
+            break
+        clear += 1
+    fitting = [p for p in sorted(imaging.depth_presets) if p >= needed]
+    blockers = [v.blockers_B for v in checked if len(v.blockers_B)]
+    cand = WindowCandidate(
+        float(np.degrees(tilt)), a,
+        np.array([v.skin_B if v.skin_B is not None else np.full(3, np.nan) for v in key]),
+        needed, at_start.blocked_rays / at_start.rays_to_kidney if at_start.rays_to_kidney
+        else 1.0, at_start.central_blocked,
+        np.concatenate(blockers) if blockers else np.zeros((0, 3)),
+        fitting[0] if fitting else None, start_fraction=start_fraction,
+        sweep_length=step * (len(sweep) - 1), clear_length=step * clear,
+        sweep_shadowed=sum(v.shadowed(config.max_blocked_fraction) for v in sweep[1:]) / max(
+            len(sweep) - 1, 1))
+    if any(v.skin_B is None for v in key):
+        cand.reason = "beam misses the body"
+    elif not at_start.rays_to_kidney:
+        cand.reason = "no ray of the fan reaches the kidney"
+    elif not np.isfinite(needed) or cand.preset is None:
+        cand.reason = (f"the kidney's far side lies {needed * 1000:.0f} mm deep (with margin), "
+                       f"beyond the deepest preset {max(imaging.depth_presets) * 1000:.0f} mm")
+    elif at_start.central_blocked:
+        cand.reason = "the central ray crosses bone or gas at the start"
+    elif cand.blocked_fraction > config.max_blocked_fraction:
+        cand.reason = (f"{cand.blocked_fraction:.0%} of the fan's rays to the kidney cross bone "
+                       f"or gas at the start (max {config.max_blocked_fraction:.0%})")
+    # Usable but worse: a shadow within the placement error of the start, or crossing the
+    # sweep early (ranked after the windows without, see window_rank).
+    if any(v.shadowed(config.max_blocked_fraction) for v in start_zone):
+        cand.warning = (f"bone or gas shadows the kidney within the placement error "
+                        f"({config.placement_error * 1000:.0f} mm) of the start")
+    elif cand.clear_length < min(config.min_clear_sweep, cand.sweep_length) - 1e-9:
+        cand.warning = (f"bone or gas shadows the kidney {cand.clear_length * 1000:.0f} mm into "
+                        f"the sweep (want {config.min_clear_sweep * 1000:.0f} mm clear)")
+    return cand
+
+
+def evaluate_windows(patient, X_BPt: RigidTransform, imaging, config, tilt: float,
+                     superior_B, kidney_B, X_BV, start_fraction: float = 0.1,
+                     scan_direction: str = "-y", exploration_ratio: float | None = None
+                     ) -> list:
+    """The candidates of the beam tilted by ``tilt`` (rad) from vertical about the body's
+    long axis, one per exploration start tried (``start_fraction`` of the kidney's length
+    inside the end the scan leaves from, then later starts in ``config.start_shift_step``
+    steps up to ``config.max_start_shift``): transverse views every
+    ``config.sweep_check_step`` along the exploration line give the kidney's depth and the
+    fan's clearance at the start (within the placement error of it) and how far the sweep of
+    ``exploration_ratio`` x the kidney's length (None: to 10% inside the far end) stays
+    clear of bone and gas shadows."""
     a = _rotation_about(superior_B, tilt) @ np.array([0.0, 0.0, -1.0])
     R_BP = probe_rotation(a, superior_B).matrix()
     o = R_BP[:, 0]
     c = kidney_B.mean(axis=0)
     along = (kidney_B - c) @ superior_B
     lo, hi = float(along.min()), float(along.max())
-    skin_points, needed, rays, blocked, central, blockers = [], 0.0, 0, 0, False, []
-    half_fov = np.radians(imaging.field_of_view_deg) / 2
     length = hi - lo
-    first = hi - start_fraction * length if scan_direction == "-y" else lo + start_fraction * length
-    last = lo + 0.1 * length if scan_direction == "-y" else hi - 0.1 * length
-    for s_along in (first, 0.5 * (first + last), last):
+    sign = -1.0 if scan_direction == "-y" else 1.0     # along the superior axis
+    end_near = hi if sign < 0 else lo                   # the end the scan leaves from
+    step = float(config.sweep_check_step)
+    zone = float(config.placement_error)
+    # View positions from the placement error behind the first start to 5% inside the far
+    # end, every ``step``, in scan order.
+    first = end_near + sign * start_fraction * length - sign * zone
+    far = end_near + sign * 0.95 * length
+    n = int(np.floor(abs(far - first) / step + 1e-9)) + 1
+    positions = first + sign * step * np.arange(n)
+    views = []
+    for s_along in positions:
         slab = np.abs(along - s_along) < 0.01
-        target = c + s_along * superior_B
-        if slab.any():
-            target = kidney_B[slab].mean(axis=0)
+        target = kidney_B[slab].mean(axis=0) if slab.any() else c + s_along * superior_B
         skin = _skin_entry(patient.skin_mesh, X_BPt, target, a)
-        if skin is None:
-            return WindowCandidate(np.degrees(tilt), a, np.zeros((3, 3)), np.inf, 1.0, True,
-                                   np.zeros((0, 3)), None, reason="beam misses the body")
-        skin_points.append(skin)
-        if slab.any():
-            needed = max(needed, float(((kidney_B[slab] - skin) @ a).max()))
-        for k, phi in enumerate(np.linspace(-half_fov, half_fov, _FAN_RAYS)):
-            d = np.cos(phi) * a + np.sin(phi) * o
-            labels, p_B = _labels_along(patient.labels, X_BV, skin, d, imaging.depth_presets[-1])
-            hits_kidney, crossed, i = _ray_blocked(labels)
-            if hits_kidney:
-                rays += 1
-                if crossed:
-                    blocked += 1
-                    blockers.append(p_B[i])
-            if k == _FAN_RAYS // 2 and crossed:
-                central = True
-    needed += config.depth_margin
-    fitting = [p for p in sorted(imaging.depth_presets) if p >= needed]
-    cand = WindowCandidate(
-        float(np.degrees(tilt)), a, np.array(skin_points), needed,
-        blocked / rays if rays else 1.0, central,
-        np.array(blockers) if blockers else np.zeros((0, 3)), fitting[0] if fitting else None)
-    if not rays:
-        cand.reason = "no ray of the fan reaches the kidney"
-    elif cand.preset is None:
-        cand.reason = (f"the kidney's far side lies {needed * 1000:.0f} mm deep (with margin), "
-                       f"beyond the deepest preset {max(imaging.depth_presets) * 1000:.0f} mm")
-    elif central:
-        cand.reason = "the central ray crosses bone or gas"
-    elif cand.blocked_fraction > config.max_blocked_fraction:
-        cand.reason = (f"{cand.blocked_fraction:.0%} of the fan's rays to the kidney cross bone "
-                       f"or gas (max {config.max_blocked_fraction:.0%})")
-    return cand
+        views.append(check_view(patient.labels, X_BV, skin, a, o, imaging, kidney_B[slab],
+                                float(s_along)))
+    sweep_fraction = (0.9 - start_fraction if exploration_ratio is None
+                      else float(exploration_ratio))
+    n_zone = int(round(zone / step))
+    out = []
+    shifts = np.arange(0.0, config.max_start_shift + 1e-9, config.start_shift_step) \
+        if config.start_shift_step > 0 else np.zeros(1)
+    for shift in shifts:
+        sf = start_fraction + float(shift)
+        start = n_zone + int(round(shift * length / step))
+        if start >= len(views):
+            break
+        sweep_end = min(start + int(round(sweep_fraction * length / step)), len(views) - 1)
+        if shift > 0 and sf + sweep_fraction > 0.95 + 1e-9:
+            break                    # a later start would run the sweep off the kidney
+        zone_views = views[max(start - n_zone, 0):start + n_zone + 1]
+        out.append(_window_from_views(tilt, a, views, start, sweep_end, zone_views, config,
+                                      imaging, sf, step))
+    return out
+
+
+def window_rank(c: WindowCandidate, preset: float) -> tuple:
+    """Order of feasible windows: without a warning (clear within the placement error of the
+    start and for ``min_clear_sweep`` of the sweep) first, then a sweep clear of shadows for
+    its whole length (a sonographer keeps the kidney in view), then the shallowest preset,
+    the longest clear sweep, the least tilt and the earliest start."""
+    covered = c.clear_length >= c.sweep_length - 1e-9
+    return (bool(c.warning), not covered, preset, -round(c.clear_length, 4), abs(c.tilt_deg),
+            c.start_fraction)
 
 
 def _placement_error(config, seed: int, R_BP: RotationMatrix):
@@ -283,16 +422,26 @@ def _placement_error(config, seed: int, R_BP: RotationMatrix):
 
 def PlanStart(patient, X_BPt: RigidTransform, imaging, config, *, reachable=None,
               seed: int = 0, scan_direction: str = "-y",
-              start_fraction: float | None = None) -> StartPlan:
+              start_fraction: float | None = None,
+              exploration_ratio: float | None = None) -> StartPlan:
     """The start of a scan on ``patient`` lying at ``X_BPt`` (see :mod:`drake_rus.scan.config`).
 
     Tries beam tilts from vertical to ``config.max_tilt_deg`` (both sides, about the body's
-    long axis; the exploration runs along it with the probe's array across the body). A
-    window is feasible when a depth preset holds the kidney along the whole exploration line,
-    the central ray is clear of bone and gas and at most ``max_blocked_fraction`` of the
-    fan's rays to the kidney cross them, and ``reachable(X_BP)`` (e.g. the FR3's IK) accepts
-    the start and end poses. Among feasible windows: the shallowest preset holding both the
-    window and the vertical pivot of eq. 20 over the kidney centroid, then the least tilt.
+    long axis; the exploration runs along it with the probe's array across the body) and,
+    for each, exploration starts from ``start_fraction`` of the kidney's length inside its
+    end to ``config.max_start_shift`` later. Transverse views every
+    ``config.sweep_check_step`` along the exploration line are ray-cast through the label
+    volume with the curvilinear fan (:func:`check_view`). A window is feasible when a depth
+    preset holds the kidney along the whole exploration line, at the start the central ray
+    is clear of bone and gas and at most ``max_blocked_fraction`` of the fan's rays to the
+    kidney cross them, and ``reachable(X_BP)`` (e.g. the FR3's IK) accepts the start, middle
+    and end poses. A feasible window carries a warning when a shadow lies within the
+    placement error of the start or crosses the sweep of ``exploration_ratio`` x the
+    kidney's length before ``config.min_clear_sweep`` (a rib shadow hides the kidney from
+    the segmenter mid-sweep). Among feasible windows (:func:`window_rank`): no warning
+    first, then a sweep clear for its whole length, the shallowest preset holding both the
+    window and the vertical pivot of eq. 20 over the kidney centroid, the longest clear
+    sweep, the least tilt, the earliest start.
     Raises :class:`StartPlanError` naming why no window works.
     """
     superior_B = X_BPt.rotation().matrix()[:, 1]
@@ -302,12 +451,9 @@ def PlanStart(patient, X_BPt: RigidTransform, imaging, config, *, reachable=None
     n = int(np.floor(np.radians(config.max_tilt_deg) / step + 1e-9))
     tilts = sorted({0.0, *(k * step * s for k in range(1, n + 1) for s in (1, -1))}, key=abs)
     sf = config.start_fraction if start_fraction is None else start_fraction
-    candidates = [evaluate_window(patient, X_BPt, imaging, config, t, superior_B, kidney_B,
-                                  X_BV, sf, scan_direction) for t in tilts]
     # The pivot (eq. 20-23) looks straight down over the kidney centroid: its depth too.
-    pivot = evaluate_window(patient, X_BPt, imaging, config, 0.0, superior_B, kidney_B, X_BV)
-    pivot_depth = pivot.needed_depth
-    feasible = [c for c in candidates if c.feasible]
+    pivot_depth = evaluate_windows(patient, X_BPt, imaging, config, 0.0, superior_B,
+                                   kidney_B, X_BV)[0].needed_depth
 
     def overall_preset(c):
         need = max(c.needed_depth, pivot_depth)
@@ -318,8 +464,18 @@ def PlanStart(patient, X_BPt: RigidTransform, imaging, config, *, reachable=None
         R_BP = probe_rotation(c.approach_B, superior_B)
         return RigidTransform(R_BP, c.skin_points_B[k] - config.hover * c.approach_B)
 
-    ranked = sorted((c for c in feasible if overall_preset(c) is not None),
-                    key=lambda c: (overall_preset(c), abs(c.tilt_deg)))
+    def rank(c):
+        return window_rank(c, overall_preset(c))
+
+    # One candidate per tilt: its best start (the first when none is feasible).
+    candidates = []
+    for t in tilts:
+        options = evaluate_windows(patient, X_BPt, imaging, config, t, superior_B, kidney_B,
+                                   X_BV, sf, scan_direction, exploration_ratio)
+        good = [c for c in options if c.feasible and overall_preset(c) is not None]
+        candidates.append(min(good, key=rank) if good else options[0])
+    feasible = [c for c in candidates if c.feasible]
+    ranked = sorted((c for c in feasible if overall_preset(c) is not None), key=rank)
     chosen = None
     for c in ranked:
         if reachable is not None:
@@ -402,11 +558,14 @@ def plot_start_plan(plan: StartPlan, imaging, path, title: str = "") -> None:
     ax.legend(loc="lower right", fontsize=7)
     rows = [(f"{c.tilt_deg:+.0f}", f"{c.needed_depth * 1000:.0f}" if np.isfinite(c.needed_depth)
              else "-", "-" if c.preset is None else f"{c.preset * 1000:.0f}",
-             f"{c.blocked_fraction:.0%}", "chosen" if c is plan.window
+             f"{c.blocked_fraction:.0%}", f"{c.start_fraction:.2f}",
+             f"{c.clear_length * 1000:.0f}/{c.sweep_length * 1000:.0f}",
+             "chosen" if c is plan.window
              else ("ok" if c.feasible else c.reason[:38])) for c in plan.candidates]
     tx.axis("off")
     table = tx.table(cellText=rows, colLabels=["tilt deg", "need mm", "preset", "blocked",
-                                               "verdict"], loc="upper center")
+                                               "start", "clear mm", "verdict"],
+                     loc="upper center")
     table.auto_set_font_size(False)
     table.set_fontsize(7)
     s = plan.summary()
@@ -435,6 +594,8 @@ def DrawStartPlan(meshcat, plan: StartPlan, prefix: str = "start_plan") -> None:
                     Rgba(0.1, 0.6, 1.0, 0.8))
     for k, c in enumerate(x for x in plan.candidates if not x.feasible):
         p = c.skin_points_B[0] if len(c.skin_points_B) else s0
+        if not np.all(np.isfinite(p)):
+            p = s0
         meshcat.SetLine(f"{prefix}/rejected/{k}",
                         np.column_stack([p, p + c.approach_B * 0.08]), 1.0, Rgba(0.9, 0.1, 0.1, 0.7))
         for j, b in enumerate(c.blockers_B[:20]):

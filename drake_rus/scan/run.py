@@ -123,7 +123,8 @@ def PrepareScenario(scenario, patient, start_fraction: float | None = None):
     else:
         plan = PlanStart(patient, X_BPt, scenario.imaging, scenario.start,
                          reachable=_can_reach(plant, tip), seed=scenario.random_seed,
-                         scan_direction=scenario.controller.scan_direction, start_fraction=sf)
+                         scan_direction=scenario.controller.scan_direction, start_fraction=sf,
+                         exploration_ratio=scenario.controller.exploration_ratio)
         X_start = plan.X_start
         scenario = dataclasses.replace(
             scenario, imaging=dataclasses.replace(scenario.imaging, depth=plan.depth_preset))
