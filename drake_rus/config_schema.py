@@ -270,6 +270,17 @@ CROSS_FIELD_RULES = [
     (("hardware_interface.command_rate_hz", "controller.rate_hz"),
      lambda s: s.hardware_interface.command_rate_hz >= s.controller.rate_hz - 1e-9,
      "velocity targets must be sent at least as often as the controller computes them"),
+    (("controller.pivot_pose",),
+     lambda s: len(s.controller.pivot_pose) in (0, 3),
+     "a given pivot pose is [x (m), y (m), yaw (rad)]; [] pivots at T* of the registered "
+     "kidney pose"),
+    (("controller.pivot_pose", "controller.pivot_strategy"),
+     lambda s: not (s.controller.pivot_pose and s.controller.pivot_strategy == "predicted_end"),
+     "the predicted_end pivot predicts the kidney's ends from the registered pose, which a "
+     "scan with a given pivot pose does not make; use pivot_strategy two_leg"),
+    (("controller.pivot_pose", "controller.sweep"),
+     lambda s: not (s.controller.pivot_pose and s.controller.sweep == "line"),
+     "a line sweep has no pivot; give pivot_pose [] or sweep pivot"),
     (("patient.X_BPt.translation",),
      lambda s: float(np.linalg.norm(
          s.patient.X_BPt.GetDeterministicValue().translation())) <= MAX_PATIENT_DISTANCE,

@@ -456,3 +456,114 @@ def test_exploration_ends_at_er_times_the_estimated_length():
     fixed = dataclasses.replace(c, exploration_length="fixed")
     s = _explore_until_localize(fixed, lambda travel: 0.127)
     assert s.travel == pytest.approx(0.05) and "estimated" not in s.events[-1][2]
+
+
+# ------------------------------------------------------------------ given pivot pose
+def test_given_pivot_pose_is_t_star_shaped_and_round_trips():
+    R_BK = RotationMatrix(RollPitchYaw(0.2, -0.3, 2.4)).matrix()
+    p_BK = np.array([0.52, -0.04, 0.03])
+    R_star, p_star = supervisor.optimal_pivot_pose(R_BK, p_BK)
+    given = supervisor.pivot_pose_as_given(R_star, p_star)
+    assert given[:2] == pytest.approx([0.52, -0.04])
+    x_k = R_BK[:, 0]
+    assert given[2] == pytest.approx(math.atan2(x_k[1], x_k[0]))
+    R, p = supervisor.given_pivot_pose(given, z=0.2)
+    np.testing.assert_allclose(R, R_star, atol=1e-12)          # eq. 20-22's T* again
+    np.testing.assert_allclose(p, [0.52, -0.04, 0.2])
+    assert np.linalg.det(R) == pytest.approx(1.0)
+    R, _ = supervisor.given_pivot_pose([0.5, 0.0, math.pi / 2])
+    np.testing.assert_allclose(R[:, 0], [0, 1, 0], atol=1e-12)  # yaw from base x about z
+    np.testing.assert_allclose(R[:, 2], [0, 0, -1])
+    for bad in ([0.5, 0.0], [0.5, math.nan, 0.0], [0.5, 0.0, 1.0, 2.0]):
+        with pytest.raises(ValueError, match="controller.pivot_pose"):
+            supervisor.given_pivot_pose(bad)
+
+
+def test_given_pivot_pose_goes_from_contact_to_transit_and_pivots_there():
+    given = [0.56, 0.02, 0.3]
+    c = cfg(pivot_pose=given, pivot_rate=0.2, max_pivot_tilt=0.3,
+            pivot_strategy="predicted_end")   # refused by the scenario checks; falls back
+    dt = 0.01
+    s = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0, F=0.0), c, dt)
+    assert s.phase == supervisor.Phase.APPROACH
+    s = supervisor.supervisor_step(s, inputs(0.01, F=9.0), c, dt)
+    assert s.phase == supervisor.Phase.TRANSIT                  # no EXPLORE, no LOCALIZE
+    assert "given pivot pose" in s.events[-1][2]
+    R_star, _ = supervisor.given_pivot_pose(given)
+    np.testing.assert_allclose(s.P_des, given[:2])
+    np.testing.assert_allclose(s.a_des, R_star[:, 2])
+    np.testing.assert_allclose(s.o_des, R_star[:, 0])
+    assert s.travel == 0.0
+    # An identity X_BK (an unlocalized localizer's default) is never read.
+    u = inputs(0.02, p=(0.5605, 0.02, 0.1), R=R_star, R_BK=np.eye(3), p_BK=np.zeros(3))
+    s = supervisor.supervisor_step(s, u, c, dt)
+    assert s.phase == supervisor.Phase.PIVOT and "two-leg" in s.events[-1][2]
+    t = 0.02
+    while s.phase == supervisor.Phase.PIVOT and t < 30:
+        t += dt
+        s = supervisor.supervisor_step(s, inputs(t, p=(0.5605, 0.02, 0.1), R=R_star), c, dt)
+    assert s.phase == supervisor.Phase.DONE and len(s.pivot_limits) == 2
+    np.testing.assert_allclose(s.o_des, R_star[:, 0])
+
+
+# ------------------------------------------------------------------ line sweep (SL)
+def test_line_sweep_waits_for_the_kidney_then_ends_when_it_leaves():
+    c = cfg(sweep="line", visibility_debounce=0.1, line_sweep_max_travel=0.2,
+            scan_direction="+y", exploration_ratio=0.05, kidney_length=0.1)
+    dt = 0.01
+    s = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0, visible=False),
+                                   c, dt)
+    s = supervisor.supervisor_step(s, inputs(0.01, visible=False), c, dt)
+    assert s.phase == supervisor.Phase.EXPLORE and s.awaiting_kidney
+    t = 0.01
+    for _ in range(100):          # 1 s beyond the kidney's end: not "left", not required
+        t += dt
+        s = supervisor.supervisor_step(s, inputs(t, p=(0.55, s.P_des[1], 0.1), visible=False,
+                                                 c=0.9), c, dt)
+        assert s.phase == supervisor.Phase.EXPLORE
+        assert not supervisor.segmentation_required(s)
+    assert s.travel == pytest.approx(1.01 * c.scan_speed, abs=1e-9)   # contact came at t 0
+    assert s.P_des[0] == pytest.approx(0.55)       # no centroid, no eq. 17 x correction
+    for visible in [True] * 5 + [False] * 20:      # a glimpse of the pole (0.05 s) ...
+        t += dt
+        s = supervisor.supervisor_step(s, inputs(t, visible=visible), c, dt)
+    assert s.phase == supervisor.Phase.EXPLORE and s.awaiting_kidney   # ... is not "seen"
+    required = []
+    for _ in range(175):          # 1.75 s of kidney: beyond ER x L_m (the pivot's 5 mm)
+        t += dt
+        s = supervisor.supervisor_step(s, inputs(t, p=(0.55, s.P_des[1], 0.1)), c, dt)
+        assert s.phase == supervisor.Phase.EXPLORE
+        required.append(supervisor.segmentation_required(s))
+    # In view once seen for the debounce time (0.1 s), required from then on.
+    assert required.index(True) == 10 and all(required[10:])
+    travel = s.travel
+    assert travel == pytest.approx(3.01 * c.scan_speed, abs=1e-9)
+    for _ in range(9):
+        t += dt
+        s = supervisor.supervisor_step(s, inputs(t, visible=False), c, dt)
+    assert s.phase == supervisor.Phase.EXPLORE      # 0.09 s gone: not yet
+    for _ in range(3):
+        t += dt
+        s = supervisor.supervisor_step(s, inputs(t, visible=False), c, dt)
+    assert s.phase == supervisor.Phase.DONE and "line sweep complete" in s.events[-1][2]
+    assert s.reason == "" and s.travel < travel + 0.15 * c.scan_speed
+
+
+def test_line_sweep_ends_at_its_maximum_travel():
+    c = cfg(sweep="line", line_sweep_max_travel=0.01, scan_direction="-y")
+    dt = 0.01
+
+    def run(visible):
+        s = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0), c, dt)
+        t = 0.0
+        while s.phase in (supervisor.Phase.APPROACH, supervisor.Phase.EXPLORE) and t < 10:
+            t += dt
+            s = supervisor.supervisor_step(s, inputs(t, p=(0.55, s.P_des[1], 0.1),
+                                                     visible=visible), c, dt)
+        return s, t
+    s, t = run(False)
+    assert s.phase == supervisor.Phase.ABORT and "never came into view" in s.reason
+    assert t == pytest.approx(0.01 / c.scan_speed, abs=3 * dt)
+    s, _ = run(True)
+    assert s.phase == supervisor.Phase.DONE and "line_sweep_max_travel" in s.events[-1][2]
+    assert s.P_des[1] == pytest.approx(-0.01, abs=1e-4) and s.travel == pytest.approx(0.01)

@@ -112,10 +112,8 @@ def test_op_pe_needs_a_model_and_runs_in_both_modes():
     with pytest.raises(ValueError, match="OP-PE: needs pivot_model"):
         km.strategy_sweep(kp, km.Imager(kp, IMG), "OP-PE", CTRL, kp.X_BK_true)
     assert "OP-PE" in st.default_strategies("kinematic")
-    assert st.default_strategies("closed-loop") == ("OP",)         # one scan per patient
+    assert "OP-PE" not in st.default_strategies("closed-loop")   # a scan more, on request
     assert st.check_strategies(["OP-PE", "OP"], "closed-loop") == ("OP", "OP-PE")
-    with pytest.raises(ValueError, match="NOP has no closed-loop equivalent"):
-        st.check_strategies(["OP", "NOP"], "closed-loop")
     # Closed loop, OP-PE is the scan with the controller's predicted_end pivot.
     base = LoadScenario()
     assert base.controller.pivot_strategy == "two_leg"

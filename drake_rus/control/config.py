@@ -143,6 +143,27 @@ class ControllerConfig:
     pivot_end_tolerance: float = field(default=0.1, metadata={"min": 0.0, "max": 1.2})
     # Tilt rate (rad/s) of the pre-tilt to the predicted end (no images needed).
     pretilt_rate: float = field(default=0.25, metadata={"positive": True, "max": 1.0})
+    # The pivot pose: [] (the seed) T* of the registered kidney pose (eq. 20-22), after
+    # EXPLORE and LOCALIZE; or a given pose [x (m), y (m), yaw (rad)]: the tip over (x, y)
+    # in the base frame, the array (r1) at angle yaw from the base x-axis about the base
+    # z-axis, the probe pointing straight down (r3 = [0, 0, -1], as in eq. 20-22), e.g. an
+    # operator's placement (the seed's in-vivo GT-OP and NOP were placed by a sonographer,
+    # III-G). With a given pose the scan skips EXPLORE and LOCALIZE: APPROACH lands,
+    # TRANSIT slides and turns to the pose, PIVOT (two_leg) sweeps; summary.json says which
+    # pose the pivot used. Not with pivot_strategy predicted_end (it predicts from the
+    # registered pose) nor with sweep line.
+    pivot_pose: list[float] = field(default_factory=list)
+    # What the scan sweeps: "pivot" (the seed: explore, localize, pivot, II-E..G) or "line"
+    # (the seed's straight-line baseline SL, III-E: "equivalent to setting ER = 100% at
+    # exploration"): the exploration controller (eq. 17) from wherever APPROACH lands
+    # (e.g. start_xy beyond the kidney's end: before the kidney is first seen its absence
+    # neither ends the sweep nor trips the segmentation watchdog) until the kidney has left
+    # the image (visibility_debounce), then DONE; no localization, no pivot. The sweep's
+    # costs (eps, n, V) are then those of the EXPLORE frames.
+    sweep: str = field(default="pivot", metadata={"choices": ["pivot", "line"]})
+    # The line sweep's longest travel (m) along the scan direction: there it ends, DONE if
+    # the kidney was seen, ABORT if it never came into view.
+    line_sweep_max_travel: float = field(default=0.2, metadata={"positive": True, "max": 0.5})
 
 
 @dataclass

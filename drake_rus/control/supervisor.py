@@ -2,6 +2,10 @@
 optimal pivot pose (eq. 20-22) and the Rodrigues pivot sweep (eq. 23), and the state machine
 over them. :class:`Phase` is the project's one list of scan phases.
 
+Beyond the seed's one workflow, the controller config may give the pivot pose
+(``pivot_pose``: no exploration or localization, :func:`given_pivot_pose`) or ask for the
+seed's straight-line baseline (``sweep: line``: eq. 17 over the whole kidney, no pivot).
+
 All vectors are expressed in the robot base frame B (z up; the patient lies along y).
 """
 
@@ -60,6 +64,33 @@ def optimal_pivot_pose(R_BK, p_BK):
     r2 = cross3(r3, r1)
     r2 /= np.linalg.norm(r2)
     return np.column_stack([r1, r2, r3]), np.asarray(p_BK, dtype=float).reshape(3).copy()
+
+
+def given_pivot_pose(pose, z: float = math.nan):
+    """The pivot pose of a given ``controller.pivot_pose`` [x, y, yaw] (m, m, rad), shaped
+    like eq. 20-22's T*: r3 = [0, 0, -1] (probe pointing down), r1 = [cos yaw, sin yaw, 0]
+    (the array), r2 = r3 x r1 (a rotation, as :func:`optimal_pivot_pose`), the tip over
+    (x, y) at height ``z`` (m; informative only: force control sets the tip's height).
+
+    Returns (R_BPstar (3x3), p_star (3,)). Raises ValueError naming controller.pivot_pose
+    unless ``pose`` holds three finite numbers."""
+    values = list(pose) if pose is not None else []
+    if len(values) != 3 or not all(math.isfinite(float(v)) for v in values):
+        raise ValueError(f"controller.pivot_pose: expected [] or [x (m), y (m), yaw (rad)], "
+                         f"three finite numbers, got {values}")
+    x, y, yaw = (float(v) for v in values)
+    r3 = np.array([0.0, 0.0, -1.0])
+    r1 = np.array([math.cos(yaw), math.sin(yaw), 0.0])
+    return np.column_stack([r1, cross3(r3, r1), r3]), np.array([x, y, float(z)])
+
+
+def pivot_pose_as_given(R_BPstar, p_star) -> list[float]:
+    """[x, y, yaw] (m, m, rad) of a pivot pose shaped like T* (probe pointing down, array
+    horizontal): the ``controller.pivot_pose`` that :func:`given_pivot_pose` turns back
+    into it."""
+    R = np.asarray(R_BPstar, dtype=float)
+    p = np.asarray(p_star, dtype=float).reshape(3)
+    return [float(p[0]), float(p[1]), float(math.atan2(R[1, 0], R[0, 0]))]
 
 
 # ----------------------------------------------------------------------------- eq. 23
@@ -148,6 +179,10 @@ class SupervisorState:
     pretilt_stage: int = 0
     pretilt_side: float = 1.0
     pretilt_target: float = 0.0
+    # sweep line: the kidney has not been in the image yet (its absence neither ends the
+    # sweep nor is a segmentation loss); it has been, since visible_since, without a gap.
+    awaiting_kidney: bool = False
+    visible_since: float = math.nan
     paused: bool = False             # exploration/pivot motion held (outside a breath-hold)
     paused_time: float = 0.0         # total time (s) motion was held
     a_star: np.ndarray = dataclasses.field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
@@ -239,7 +274,9 @@ def segmentation_required(s: SupervisorState) -> bool:
     leg that ended because it left the image); drives the safety layer's watchdog."""
     if s.paused:
         return False   # holding still outside a breath-hold: the kidney may drift away
-    return s.phase == Phase.EXPLORE or (s.phase == Phase.PIVOT and not s.expect_invisible)
+    if s.phase == Phase.EXPLORE:
+        return not s.awaiting_kidney   # a line sweep before the kidney first came into view
+    return s.phase == Phase.PIVOT and not s.expect_invisible
 
 
 def _hold_motion(s: SupervisorState, dt: float) -> SupervisorState:
@@ -272,6 +309,7 @@ def _start(s: SupervisorState, u: SupervisorInputs, R, p, cfg) -> None:
             raise ValueError(f"controller.start_xy: expected [] or [x, y] (m), got {start_xy}")
         s.P_des = np.asarray(start_xy, dtype=float)
     s.F_des = float(cfg.desired_force)
+    s.awaiting_kidney = cfg.sweep == "line"
     s.approach_origin = p.copy()
     s.initialised = True
     s.phase_start = u.t
@@ -289,6 +327,13 @@ def _approach(s, u, R, p, cfg, dt):
             s.contact_since = u.t
         if u.t - s.contact_since >= cfg.contact_dwell - 1e-9:
             s.P_des = p[:2].copy()
+            if cfg.pivot_pose:
+                R_star, p_star = given_pivot_pose(cfg.pivot_pose, p[2])
+                return _to_transit(s, u.t, R_star, p_star,
+                                   f"contact at {u.F_z:.2f} N; given pivot pose "
+                                   f"(controller.pivot_pose): p* = ({p_star[0]:.4f}, "
+                                   f"{p_star[1]:.4f}) m, array at "
+                                   f"{math.degrees(cfg.pivot_pose[2]):.1f} deg from base x")
             return _goto(s, Phase.EXPLORE, u.t, f"contact at {u.F_z:.2f} N")
     else:
         s.contact_since = math.nan
@@ -318,11 +363,61 @@ def exploration_target(cfg, kidney_length_estimate: float = math.nan) -> float:
     return cfg.exploration_ratio * L
 
 
+def _advance_exploration(s, u, R, cfg, dt, target: float):
+    """One control period of eq. 17 towards ``target`` m of travel along the scan
+    direction (the x correction from the mask centroid while the kidney is visible)."""
+    sign = 1.0 if cfg.scan_direction == "+y" else -1.0
+    step = min(cfg.scan_speed * dt, target - s.travel)
+    c = u.c_msk if u.kidney_visible else math.nan
+    s.P_des = exploration_update(s.P_des, c, R[:, 0], sign * step / dt, cfg.K_p7, dt)
+    s.travel += step
+    return s
+
+
+def _came_into_view(s: SupervisorState, u: SupervisorInputs, debounce: float) -> bool:
+    """True once the kidney has been in the image for ``debounce`` without a gap (the
+    mirror of :func:`_update_visibility`: a glimpse of a pole's edge does not count)."""
+    if not u.kidney_visible:
+        s.visible_since = math.nan
+        return False
+    if math.isnan(s.visible_since):
+        s.visible_since = u.t
+    return u.t - s.visible_since >= debounce - 1e-9
+
+
+def _line_sweep(s, u, R, p, cfg, dt):
+    """``sweep: line`` (the seed's SL): eq. 17 from wherever APPROACH landed; the kidney
+    comes into view once it has been in the image for visibility_debounce; once it has,
+    and has then left the image for visibility_debounce: DONE. At line_sweep_max_travel it
+    ends too: DONE if the kidney came into view, else ABORT."""
+    if s.awaiting_kidney and _came_into_view(s, u, cfg.visibility_debounce):
+        s.awaiting_kidney = False
+    left = (not s.awaiting_kidney and u.motion_allowed
+            and _update_visibility(s, u, cfg.visibility_debounce))
+    if left:
+        s.P_des = p[:2].copy()
+        return _goto(s, Phase.DONE, u.t, f"line sweep complete: the kidney left the image "
+                                         f"after {s.travel * 1e3:.1f} mm")
+    if s.travel >= cfg.line_sweep_max_travel - 1e-12:
+        s.P_des = p[:2].copy()
+        if s.awaiting_kidney:
+            s.reason = (f"line sweep: the kidney never came into view over "
+                        f"{s.travel * 1e3:.1f} mm (line_sweep_max_travel)")
+            return _goto(s, Phase.ABORT, u.t, s.reason)
+        return _goto(s, Phase.DONE, u.t, f"line sweep ended at line_sweep_max_travel "
+                                         f"{s.travel * 1e3:.1f} mm, the kidney still seen")
+    if not u.motion_allowed:
+        return _hold_motion(s, dt)
+    s.paused = False
+    return _advance_exploration(s, u, R, cfg, dt, cfg.line_sweep_max_travel)
+
+
 def _explore(s, u, R, p, cfg, dt):
     """Constant orientation, eq. 17, until ER L of travel (``exploration_target``: L_m, or
     the patient's estimated kidney length), the kidney has left the image or (adaptive) the
-    pose estimate has settled; then LOCALIZE."""
-    sign = 1.0 if cfg.scan_direction == "+y" else -1.0
+    pose estimate has settled; then LOCALIZE. With ``sweep: line``: :func:`_line_sweep`."""
+    if cfg.sweep == "line":
+        return _line_sweep(s, u, R, p, cfg, dt)
     left = u.motion_allowed and _update_visibility(s, u, cfg.visibility_debounce)
     target = exploration_target(cfg, u.kidney_length_estimate)
     if s.travel >= target - 1e-12:
@@ -343,11 +438,18 @@ def _explore(s, u, R, p, cfg, dt):
     if not u.motion_allowed:
         return _hold_motion(s, dt)
     s.paused = False
-    step = min(cfg.scan_speed * dt, target - s.travel)
-    c = u.c_msk if u.kidney_visible else math.nan
-    s.P_des = exploration_update(s.P_des, c, R[:, 0], sign * step / dt, cfg.K_p7, dt)
-    s.travel += step
-    return s
+    return _advance_exploration(s, u, R, cfg, dt, target)
+
+
+def _to_transit(s, t, R_star, p_star, message: str) -> SupervisorState:
+    """TRANSIT towards the pivot pose (R_star, p_star): a_des = r3*, o_des = r1*, the tip's
+    x-y target p*."""
+    s.a_star = R_star[:, 2].copy()
+    s.a_des = R_star[:, 2].copy()
+    s.o_des = R_star[:, 0].copy()
+    s.p_star = np.asarray(p_star, dtype=float).copy()
+    s.P_des = s.p_star[:2].copy()
+    return _goto(s, Phase.TRANSIT, t, message)
 
 
 def _localize(s, u, R, p, cfg, dt):
@@ -366,13 +468,8 @@ def _localize(s, u, R, p, cfg, dt):
         s.reason = "no finite kidney pose from localization"
         return _goto(s, Phase.ABORT, u.t, s.reason)
     R_star, p_star = optimal_pivot_pose(u.R_BK, u.p_BK)
-    s.a_star = R_star[:, 2].copy()
-    s.a_des = R_star[:, 2].copy()
-    s.o_des = R_star[:, 0].copy()
-    s.p_star = p_star
-    s.P_des = p_star[:2].copy()
-    return _goto(s, Phase.TRANSIT, u.t,
-                 f"p* = ({p_star[0]:.4f}, {p_star[1]:.4f}, {p_star[2]:.4f}) m")
+    return _to_transit(s, u.t, R_star, p_star,
+                       f"p* = ({p_star[0]:.4f}, {p_star[1]:.4f}, {p_star[2]:.4f}) m")
 
 
 def predict_pivot_ends(model: PivotModel, R_BK, p_BK, pivot_point, a0, o,
@@ -479,6 +576,10 @@ def _transit(s, u, R, p, cfg, dt):
         s.pivot_angle = 0.0
         model = u.pivot_model
         if cfg.pivot_strategy == "predicted_end":
+            if cfg.pivot_pose:
+                return _start_pivot(s, u.t, f"at p* ({dist * 1e3:.2f} mm); given pivot pose, "
+                                    "no registered kidney to predict the ends from: two-leg "
+                                    "pivot")
             if model is None or len(model.points_K) == 0:
                 return _start_pivot(s, u.t, f"at p* ({dist * 1e3:.2f} mm); no pivot model: "
                                     "two-leg pivot")
@@ -543,7 +644,8 @@ def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float
     """One control period of the scan state machine (pure: returns a new state).
 
     APPROACH -> EXPLORE -> LOCALIZE -> TRANSIT -> PIVOT -> DONE (each phase's rule is its
-    own function above). ABORT (with reason) from any phase on a safety stop, a non-finite
+    own function above); with a given ``pivot_pose`` APPROACH -> TRANSIT -> PIVOT -> DONE,
+    with ``sweep: line`` APPROACH -> EXPLORE -> DONE. ABORT (with reason) from any phase on a safety stop, a non-finite
     input or pose, a missing kidney pose, a LOCALIZE or TRANSIT timeout, or (TRANSIT, PIVOT)
     a tracking error: the kidney has moved away from its registered pose. The pivot tilt
     rate ramps with pivot_acceleration. While ``motion_allowed`` is False (outside a

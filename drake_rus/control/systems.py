@@ -228,10 +228,16 @@ class ScanSupervisor(LeafSystem):
     phase (1, supervisor.Phase value, e.g. the localizer's trigger); segmentation_required (1, 0/1);
     exploring (1, 0/1: enable of the point-cloud accumulator); abort (1, 0/1);
     supervisor_state (SupervisorState, for logs).
+
+    What the scan does follows the config: the seed's explore-localize-pivot; a given
+    ``pivot_pose`` (APPROACH, TRANSIT, PIVOT: the X_BK input is not read); or ``sweep:
+    line`` (the exploration over the whole kidney, then DONE).
     """
 
     def __init__(self, config):
         super().__init__()
+        if config.pivot_pose:   # a bad given pose fails when the diagram is built
+            supervisor.given_pivot_pose(config.pivot_pose)
         self._cfg = config
         self._dt = 1.0 / config.rate_hz
         self._X = self.DeclareAbstractInputPort("X_BP", AbstractValue.Make(RigidTransform()))

@@ -201,7 +201,7 @@ def analyze_efficiency(results: list[dict], alpha: float = 0.05, V_target: float
     keys = ("n", "eps_mm", "V", "n_whole_pivot", "eps_whole_pivot_mm", "V_whole_pivot",
             "n_at_V", "eps_at_V_mm", "n_at_V_whole_pivot", "eps_at_V_whole_pivot_mm",
             "volume_error_pct")
-    # The strategies every run has (closed-loop runs have OP only), in the report's order.
+    # The strategies every run has (a study may have run only some), in the report's order.
     order = [s for s in STRATEGY_ORDER if results and all(s in r["strategies"] for r in results)]
     per = {s: {k: [] for k in keys} | {"tilt_cap_legs": []} for s in order}
     for r in results:

@@ -8,7 +8,8 @@ Dask:
 an embedded LocalCluster of ``--workers`` processes by default, or ``--scheduler
 tcp://HOST:PORT``. Each run's result is written to OUT/runs/ as it finishes; running the
 same command again resumes (finished runs are skipped). Tables (CSV), figures (PNG) and,
-for ``paper``, ``report.md`` go to OUT.
+for ``paper``, ``efficiency`` and ``template``, ``report.md`` go to OUT (OUT/closed-loop);
+with both modes' runs in OUT, ``paper``'s and ``efficiency``'s put them side by side.
 """
 
 from __future__ import annotations
@@ -52,8 +53,9 @@ def add_commands(subparsers) -> None:
     sub.required = True
     helps = {"er-sweep": "localization error vs exploration ratio 0..100% (Fig. 7d)",
              "starts": "five random exploration starts at the critical ER (Fig. 9d)",
-             "efficiency": "OP, GT-OP, NOP, SL sweeps: V vs n and eps (Fig. 10), volumes; "
-                           "OP-PE (the predicted-end pivot, beyond the paper)",
+             "efficiency": "OP, GT-OP, NOP, SL sweeps: V vs n and eps (Fig. 10), volumes "
+                           "(kinematic); OP-PE (the predicted-end pivot, beyond the paper); "
+                           "report.md",
              "paper": "all of the above into one report directory with report.md",
              "template": "localization with mismatched templates (mean, scaled, single "
                          "kidney, leave-one-out, another population's) against the "
@@ -100,8 +102,9 @@ def add_commands(subparsers) -> None:
             q.add_argument("--strategies", default=None,
                            help="comma list of OP, GT-OP, NOP, SL and OP-PE (OP's pose with "
                                 "the predicted_end pivot, beyond the paper) (default all in "
-                                "kinematic mode; OP in closed-loop mode, which has OP "
-                                "and OP-PE only)")
+                                "kinematic mode; the paper's four in closed-loop mode, one "
+                                "scan each: GT-OP and NOP pivot at a pose the study gives "
+                                "the scan, SL is the scan's line sweep)")
             q.add_argument("--no-nrrd", action="store_true",
                            help="do not export the OP/GT-OP reconstructions to OUT/volumes "
                                 "as NRRD")
@@ -174,13 +177,18 @@ def _mode_dir(out: Path, mode: str) -> Path:
     return out
 
 
-def _other_mode(out: Path, patients, mode: str, rule: str) -> dict | None:
+def _other_mode(out: Path, patients, mode: str, rule: str, study: str = "paper",
+                er: float | None = None) -> dict | None:
     """The other mode's analyses from OUT, if it holds them (for the side-by-side report):
     {"mode", "er", "starts", "eff"}, None for a study it lacks. Its starts and efficiency
-    runs are those at the ER its own paper study used (its critical ER may differ)."""
+    runs are those at the ER its own ``study`` (else its paper study) used (its critical ER
+    may differ), else at ``er``."""
     other = "kinematic" if mode == "closed-loop" else "closed-loop"
-    meta_path = _mode_dir(out, other) / "study_paper.json"
-    er = json.loads(meta_path.read_text()).get("er") if meta_path.exists() else None
+    for name in dict.fromkeys((study, "paper")):
+        meta_path = _mode_dir(out, other) / f"study_{name}.json"
+        if meta_path.exists():
+            er = json.loads(meta_path.read_text()).get("er", er)
+            break
     wanted = set(patients)
     found = {}
     for study, key in (("er-sweep", "er"), ("starts", "starts"), ("efficiency", "eff")):
@@ -206,10 +214,13 @@ def _other_mode(out: Path, patients, mode: str, rule: str) -> dict | None:
 
 def _usable(results, study: str = ""):
     """Runs with a localization (a closed-loop scan that stopped before it has none); for
-    the efficiency study, closed-loop runs whose scan finished (DONE: a scan that stopped
-    before or during its pivot has no comparable sweep)."""
+    the efficiency study, closed-loop runs whose scans all finished (DONE: the run's own
+    scan and each strategy's; a scan that stopped before or during its sweep has no
+    comparable sweep)."""
     return [r for r in results if r.get("e_trans_mm") is not None
-            and (study != "efficiency" or r.get("status", "DONE") == "DONE")]
+            and (study != "efficiency" or (r.get("status", "DONE") == "DONE" and all(
+                e.get("status", "DONE") == "DONE"
+                for e in (r.get("strategies") or {}).values())))]
 
 
 def _critical_er(out: Path, default: float = 0.6) -> float:
@@ -271,6 +282,9 @@ def _study(args, patients, options, out: Path) -> int:
         if len(ok) < len(results):
             kept = {r["run_id"] for r in ok}
             unusable[study] = [f"{r['run_id']}: {r.get('status', '?')} {r.get('reason', '')}"
+                               + "".join(f"; {k} {e.get('status')} {e.get('reason', '')}"
+                                         for k, e in (r.get("strategies") or {}).items()
+                                         if e.get("status", "DONE") != "DONE")
                                for r in results if r["run_id"] not in kept]
             print(f"{study}: {len(results) - len(ok)} run(s) without a localization"
                   + (" or a finished scan" if study == "efficiency" else "")
@@ -409,8 +423,9 @@ def _study(args, patients, options, out: Path) -> int:
         write_text_atomic(dest / "report.md", report_markdown(meta, None, None, None, None,
                                                               template_an))
         print(f"wrote {dest / 'report.md'}", flush=True)
-    if args.study == "paper":
-        compare = _other_mode(out, patients, mode, args.critical_er_rule)
+    if args.study in ("paper", "efficiency"):
+        compare = _other_mode(out, patients, mode, getattr(args, "critical_er_rule", "paper"),
+                              args.study, er)
         write_text_atomic(dest / "report.md",
                           report_markdown(meta, er_an, starts_an, eff_an, closed,
                                           compare=compare))

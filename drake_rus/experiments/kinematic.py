@@ -26,7 +26,9 @@ the tip's (x, y), ``skin_height_B``); orientation is held exactly.
   registered template predicts (the supervisor's own ``predict_pivot_ends`` and
   ``pretilt_plan``), on while the kidney is still seen, then one sweep to the other end;
 - :func:`strategy_sweep`: OP, GT-OP, NOP, SL (III-E) and OP-PE (OP's pose, predicted-end
-  pivot); :func:`sweep_curves`: n, eps, V.
+  pivot); :func:`sweep_curves`: n, eps, V. :func:`strategy_pivot_pose` (each pivot
+  strategy's pose) and :func:`sl_line` (SL's start and travel) are the one definition the
+  closed-loop study gives its scans too.
 """
 
 from __future__ import annotations
@@ -343,8 +345,10 @@ def explore(kp: KinematicPatient, imager: Imager, controller, *, exploration_rat
     1 / frame rate, for ``travel`` m (default ``exploration_ratio`` x
     ``controller.kidney_length``, the ER of III-C). Between frames x is re-centred on the
     kidney with eq. 17 (gain ``controller.K_p7``) from the mask centroid; z follows the skin.
-    With ``stop_when_lost`` the sweep ends once the kidney, having been seen, has been out
-    of the image for ``controller.visibility_debounce`` (the supervisor's rule).
+    With ``stop_when_lost`` the sweep ends once the kidney, having been seen (in the image
+    for ``controller.visibility_debounce`` without a gap: a glimpse of a pole's edge does
+    not count), has been out of the image for the same time (the supervisor's line-sweep
+    rule).
     """
     if not 0.0 <= exploration_ratio <= 1.0:
         raise ValueError(f"exploration_ratio: expected a value in [0, 1], got {exploration_ratio}")
@@ -360,13 +364,14 @@ def explore(kp: KinematicPatient, imager: Imager, controller, *, exploration_rat
     x_p = R.matrix()[:, 0]
     debounce = max(1, int(math.ceil(controller.visibility_debounce * fps - 1e-9)))
     imager.reset()
-    frames, travelled, seen, invisible_run = [], [], False, 0
+    frames, travelled, seen, invisible_run, visible_run = [], [], False, 0, 0
     events = []
     for k in range(n_steps + 1):
         frame = imager(tip_pose(kp, R, P[0], P[1]), keep=keep_images)
         frames.append(frame)
         travelled.append(k * step)
-        seen |= frame.visible
+        visible_run = visible_run + 1 if frame.visible else 0
+        seen |= visible_run > debounce
         invisible_run = 0 if frame.visible else invisible_run + 1
         if stop_when_lost and seen and invisible_run >= debounce:
             events.append(f"kidney left the image after {k * step * 1e3:.1f} mm")
@@ -499,17 +504,66 @@ def predicted_end_sweep(kp: KinematicPatient, imager: Imager, R_BPstar, p_xy, X_
     return sweep
 
 
-def nop_pose(R_BK: np.ndarray, p_BK: np.ndarray):
+# The exploration's array direction in B (the transverse view): NOP's array sign follows it.
+NOP_ARRAY_REFERENCE = np.asarray(R_B_TRANSVERSE.matrix()[:, 0], float)
+
+
+def nop_pose(R_BK: np.ndarray, p_BK: np.ndarray, o_ref=NOP_ARRAY_REFERENCE):
     """Non-optimal pivot pose (III-E, NOP): probe down, array along the kidney's y-axis
-    projected on the horizontal, tip over the kidney centroid. Returns (R_BP, p)."""
+    projected on the horizontal, tip over the kidney centroid. The paper fixes the array's
+    line, not its sign (either sign images the same plane): the sign whose horizontal part
+    points along ``o_ref``'s (default the exploration's transverse array, base x), as a
+    sonographer holds the probe in a transverse view, so the probe turns less than 90 deg
+    from its exploration orientation (a 180 deg turn drives the FR3's wrist, joint 7, into
+    its limit and the closed-loop pivot then stalls). Returns (R_BP, p)."""
     R_BK = np.asarray(R_BK, float)
-    swapped = np.column_stack([R_BK[:, 1], -R_BK[:, 0], R_BK[:, 2]])
+    y, x = R_BK[:, 1], R_BK[:, 0]
+    if float(y[:2] @ np.asarray(o_ref, float).reshape(3)[:2]) < 0:
+        y, x = -y, -x          # a rotation by pi about z_k: the same plane, array flipped
+    swapped = np.column_stack([y, -x, R_BK[:, 2]])
     return optimal_pivot_pose(swapped, p_BK)
+
+
+# SL (III-E): the straight line starts this far (m) beyond the E-ROI's end and may run
+# this much (m) beyond the E-ROI's other end plus the margin before it is stopped.
+SL_MARGIN = 0.01
+SL_EXTRA_TRAVEL = 0.03
+
+
+def strategy_pivot_pose(strategy: str, X_BK_true: RigidTransform,
+                        X_BK_estimated: RigidTransform | None = None):
+    """(R_BP, p) of a pivot strategy's pivot pose (III-E), the one definition both modes
+    use: OP and OP-PE T* of the registered pose ``X_BK_estimated`` (eq. 20-22); GT-OP T*
+    of the true pose; NOP :func:`nop_pose` of the true pose (the in-vivo NOP was
+    expert-placed)."""
+    if strategy in ("OP", "OP-PE"):
+        if X_BK_estimated is None:
+            raise ValueError(f"strategy {strategy}: needs X_BK_estimated (the registered "
+                             "kidney pose)")
+        X = X_BK_estimated
+        return optimal_pivot_pose(X.rotation().matrix(), X.translation())
+    if strategy == "GT-OP":
+        return optimal_pivot_pose(X_BK_true.rotation().matrix(), X_BK_true.translation())
+    if strategy == "NOP":
+        return nop_pose(X_BK_true.rotation().matrix(), X_BK_true.translation())
+    raise ValueError(f"strategy {strategy!r} has no pivot pose (pivot strategies: OP, "
+                     "OP-PE, GT-OP, NOP)")
+
+
+def sl_line(kp: KinematicPatient, scan_direction: str, margin: float = SL_MARGIN):
+    """(start (x, y) in B (m), longest travel (m)) of the SL straight line (III-E): from
+    ``margin`` beyond the E-ROI's end the scan leaves from, over the kidney centroid's x,
+    for at most the E-ROI's length plus twice the margin plus ``SL_EXTRA_TRAVEL`` (it ends
+    once the kidney has left the image)."""
+    sign = 1.0 if scan_direction == "+y" else -1.0
+    start = start_xy(kp, 0.0, scan_direction) - np.array([0.0, sign * margin])
+    return start, float(kp.roi.length_y + 2 * margin + SL_EXTRA_TRAVEL)
 
 
 def strategy_sweep(kp: KinematicPatient, imager: Imager, strategy: str, controller,
                    X_BK_estimated: RigidTransform | None = None, keep_images: bool = False,
-                   sl_margin: float = 0.01, pivot_model: PivotModel | None = None) -> Sweep:
+                   sl_margin: float = SL_MARGIN, pivot_model: PivotModel | None = None
+                   ) -> Sweep:
     """The sweep of one strategy (III-E):
 
     - ``OP``: pivot at T* of the estimated kidney pose (eq. 20-22);
@@ -522,30 +576,21 @@ def strategy_sweep(kp: KinematicPatient, imager: Imager, strategy: str, controll
       beyond the E-ROI's superior end until the kidney has left the image (ER 100%).
     """
     c = controller
-    if strategy in ("OP", "OP-PE"):
-        if X_BK_estimated is None:
-            raise ValueError(f"strategy {strategy}: needs X_BK_estimated (the registered "
-                             "kidney pose)")
-        R, p = optimal_pivot_pose(X_BK_estimated.rotation().matrix(), X_BK_estimated.translation())
-        if strategy == "OP-PE":
-            if pivot_model is None or len(pivot_model.points_K) == 0:
-                raise ValueError("strategy OP-PE: needs pivot_model (the registration "
-                                 "template and fan, pivot_model_for)")
-            return predicted_end_sweep(kp, imager, R, p[:2], X_BK_estimated, pivot_model, c,
-                                       keep_images=keep_images)
-    elif strategy == "GT-OP":
-        R, p = optimal_pivot_pose(kp.X_BK_true.rotation().matrix(), kp.X_BK_true.translation())
-    elif strategy == "NOP":
-        R, p = nop_pose(kp.X_BK_true.rotation().matrix(), kp.X_BK_true.translation())
-    elif strategy == "SL":
-        sign = 1.0 if c.scan_direction == "+y" else -1.0
-        start = start_xy(kp, 0.0, c.scan_direction) - np.array([0.0, sign * sl_margin])
-        sweep = explore(kp, imager, c, exploration_ratio=1.0, travel=kp.roi.length_y
-                        + 2 * sl_margin + 0.03, start=start, keep_images=keep_images)
+    if strategy == "SL":
+        start, travel = sl_line(kp, c.scan_direction, sl_margin)
+        sweep = explore(kp, imager, c, exploration_ratio=1.0, travel=travel, start=start,
+                        keep_images=keep_images)
         sweep.kind = "line"
         return sweep
-    else:
+    if strategy not in STRATEGIES:
         raise ValueError(f"strategy: expected one of {', '.join(STRATEGIES)}, got {strategy!r}")
+    R, p = strategy_pivot_pose(strategy, kp.X_BK_true, X_BK_estimated)
+    if strategy == "OP-PE":
+        if pivot_model is None or len(pivot_model.points_K) == 0:
+            raise ValueError("strategy OP-PE: needs pivot_model (the registration "
+                             "template and fan, pivot_model_for)")
+        return predicted_end_sweep(kp, imager, R, p[:2], X_BK_estimated, pivot_model, c,
+                                   keep_images=keep_images)
     return pivot_sweep(kp, imager, R, p[:2], pivot_rate=c.pivot_rate, max_tilt=c.max_pivot_tilt,
                        keep_images=keep_images)
 

@@ -16,7 +16,8 @@ from drake_rus.batch import json_default
 from drake_rus.experiments.analysis import (
     CRITICAL_ER_RULES, PAPER, STRATEGY_ORDER, analyze_efficiency, analyze_er_sweep,
     analyze_starts, analyze_template, mean_curve, template_group)
-from drake_rus.experiments.tasks import ER_UNIT_TEXT
+from drake_rus.experiments.tasks import (CLOSED_LOOP_STRATEGY_HOW, ER_UNIT_TEXT,
+                                         STRATEGY_TEXT)
 from drake_rus.io_utils import save_figure, write_text_atomic
 from drake_rus.metrics.sweep import MATCHED_V, POLE_TO_POLE, WHOLE_PIVOT
 from drake_rus.tables import write_csv_atomic
@@ -103,6 +104,9 @@ def plot_starts(results: list[dict], analysis: dict, path, mode: str = MODE_NOTE
 
 COLORS = {"OP": "tab:red", "GT-OP": "tab:green", "NOP": "tab:blue", "SL": "tab:orange",
           "OP-PE": "tab:purple"}
+# The figure's legend: each strategy with the pose its sweep used.
+POSE_LABEL = {"OP": "registered T*", "GT-OP": "true T*", "NOP": "true pose, transverse",
+              "SL": "line", "OP-PE": "registered T*, predicted end"}
 
 
 def plot_efficiency(results: list[dict], analysis: dict, path, mode: str = MODE_NOTE) -> Path:
@@ -118,8 +122,11 @@ def plot_efficiency(results: list[dict], analysis: dict, path, mode: str = MODE_
     n_grid = np.linspace(1, n_max, 200)
     e_grid = np.linspace(0, e_max, 200)
     for s in order:
-        axes[0, 0].plot(n_grid, mean_curve(results, s, "n", n_grid), color=COLORS[s], label=s)
-        axes[0, 1].plot(e_grid, mean_curve(results, s, "eps", e_grid), color=COLORS[s], label=s)
+        label = f"{s} ({POSE_LABEL[s]})"
+        axes[0, 0].plot(n_grid, mean_curve(results, s, "n", n_grid), color=COLORS[s],
+                        label=label)
+        axes[0, 1].plot(e_grid, mean_curve(results, s, "eps", e_grid), color=COLORS[s],
+                        label=label)
     axes[0, 0].set(xlabel="US frame count n", ylabel="volume ratio V (mean)",
                    title="(e) V vs n")
     axes[0, 1].set(xlabel="imaging-window path length eps (mm)", ylabel="V (mean)",
@@ -193,6 +200,12 @@ def write_efficiency_outputs(out_dir, results, mode: str = KINEMATIC) -> dict:
                          "eps_at_V_whole_pivot_mm": at_w.get("eps_mm"),
                          "tilt_cap_legs": " ".join(str(x) for x in e.get("tilt_cap_legs") or []),
                          "volume_ml": e["volume_ml"],
+                         "sweep": e.get("sweep", "line" if s == "SL" else "pivot"),
+                         "pivot_pose_from": e.get("pivot_pose_from"),
+                         "pivot_pose": e.get("pivot_pose"),
+                         "given_pivot_pose": " ".join(
+                             f"{v:.6g}" for v in e.get("given_pivot_pose") or []),
+                         "status": e.get("status", r.get("status", "")),
                          "true_volume_ml": r["true_volume_ml"],
                          "volume_error_pct": e["volume_error_pct"],
                          "e_trans_mm": r["e_trans_mm"], "e_rot_x_deg": r["e_rot_x_deg"]})
@@ -386,6 +399,61 @@ def _f(x, nd=2):
     return "n/a" if x is None or (isinstance(x, float) and not np.isfinite(x)) else f"{x:.{nd}f}"
 
 
+# The paper's OP-vs-other eps differences (OP's eps minus the other's, mm; negative: OP
+# shorter), pole to pole, 15 simulated patients (IV-C; docs/facts/paper.md).
+PAPER_OP_MINUS = {"SL": (-PAPER["efficiency"]["eps_reduction_vs_SL_mm"][0],
+                         PAPER["efficiency"]["eps_reduction_vs_SL_mm"][1]),
+                  "NOP": (-PAPER["efficiency"]["eps_reduction_vs_NOP_mm"][0],
+                          PAPER["efficiency"]["eps_reduction_vs_NOP_mm"][1]),
+                  "GT-OP": PAPER["efficiency"]["eps_extra_vs_GT_OP_mm"]}
+
+
+def strategy_lines(strategies, mode_text: str) -> list[str]:
+    """One bullet per strategy: what it sweeps and which pose its pivot used, and in closed
+    loop how the scan got it (the study's wiring)."""
+    closed = mode_text.startswith("closed")
+    return [f"- **{k}**: {STRATEGY_TEXT[k]}"
+            + (f"; closed loop: {CLOSED_LOOP_STRATEGY_HOW[k]}" if closed else "; kinematic: "
+               "planned probe poses") + "." for k in strategies]
+
+
+def _op_minus(eff: dict, other: str, definition: str = "pole_to_pole"):
+    """The comparison row "OP vs ``other``" (eps) of an efficiency analysis, or None."""
+    return next((c for c in eff.get("comparisons", [])
+                 if c["comparison"] == f"OP vs {other}" and c["metric"] == "eps_mm"
+                 and c.get("definition", "pole_to_pole") == definition), None)
+
+
+def _op_minus_cell(c) -> str:
+    if c is None:
+        return "n/a"
+    d = -c["reduction_mean"]
+    return (f"{'n/a' if not np.isfinite(d) else f'{d:+.1f}'} +- {_f(c['reduction_sd'], 1)} "
+            f"(OP lower on "
+            f"{c['op_lower_count']}/{c['patients']}, p {_p(c['p'])})")
+
+
+def paper_comparison_table(names: list[str], effs: list[dict]) -> list[str]:
+    """OP's eps minus each other paper strategy's, pole to pole (the paper's) and over the
+    whole pivot, our modes beside the paper's numbers."""
+    others = [k for k in ("GT-OP", "NOP", "SL") if any(k in e["summary"] for e in effs)]
+    if not others or not all("OP" in e["summary"] for e in effs):
+        return []
+    L = ["OP's eps minus the other strategy's (mm, mean +- SD over patients; negative: OP "
+         "shorter), the paper's comparisons (IV-C):", "",
+         "| comparison | definition | paper | " + " | ".join(names) + " |",
+         "|---|---|---|" + "---|" * len(names)]
+    for k in others:
+        for definition in ("pole_to_pole", "whole_pivot"):
+            pap = PAPER_OP_MINUS.get(k)
+            pcell = (f"{pap[0]:+.2f} +- {pap[1]:.2f}" if pap and definition == "pole_to_pole"
+                     else "-")
+            L.append(f"| OP - {k} | {definition.replace('_', ' ')} | {pcell} | "
+                     + " | ".join(_op_minus_cell(_op_minus(e, k, definition)) for e in effs)
+                     + " |")
+    return L + [""]
+
+
 def _eff_table(L: list, s: dict, n_pat: int, keys: tuple, V_key: str | None, extra=True):
     """Rows of strategy | n | eps | V (| volume) for one metric definition."""
     n_key, e_key = keys
@@ -503,18 +571,24 @@ def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict 
         n_pat = len(eff["patients"])
         tgt = eff.get("V_target", 0.9)
         L += ["## Sweep efficiency (Fig. 10, `fig10_efficiency.png`)", "",
-              provenance(meta, definition=POLE_TO_POLE), "",
+              f"Strategies ({mode.split(' (')[0]}; the same pose definitions in both modes, "
+              "`drake_rus/experiments/kinematic.py` `strategy_pivot_pose`, `sl_line`):", ""]
+        L += strategy_lines(_strategies(eff), mode) + [""]
+        poses = ("strategy poses as listed above (per run and strategy in "
+                 "`efficiency_runs.csv`: sweep, pivot_pose_from, pivot_pose); the ER applies to "
+                 "OP's and OP-PE's exploration only")
+        L += [provenance(meta, definition=POLE_TO_POLE, extra=poses), "",
               "Pole to pole (the paper's eps, n and V):", "",
               "| strategy | n | eps (mm) | V | volume error (%) | abs volume error (%) |",
               "|---|---|---|---|---|---|"]
         _eff_table(L, s, n_pat, ("n", "eps_mm"), "V")
-        L += ["", provenance(meta, definition=WHOLE_PIVOT), "",
+        L += ["", provenance(meta, definition=WHOLE_PIVOT, extra=poses), "",
               "Whole pivot (both legs; for SL the whole line), what the robot spends:", "",
               "| strategy | n_whole_pivot | eps_whole_pivot (mm) | V_whole_pivot |",
               "|---|---|---|---|"]
         _eff_table(L, s, n_pat, ("n_whole_pivot", "eps_whole_pivot_mm"), "V_whole_pivot",
                    extra=False)
-        L += ["", provenance(meta, definition=f"{MATCHED_V} = {tgt:g}"), "",
+        L += ["", provenance(meta, definition=f"{MATCHED_V} = {tgt:g}", extra=poses), "",
               f"At matched coverage (n and eps, pole to pole, to first reach V = {tgt:g}):", "",
               f"| strategy | n to V {tgt:g} | eps to V {tgt:g} (mm) | patients reaching it |",
               "|---|---|---|---|"]
@@ -537,7 +611,8 @@ def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict 
                      f"{c['metric']} | {_f(c['reduction_mean'], 1)} +- "
                      f"{_f(c['reduction_sd'], 1)}{unit_c} | {c['op_lower_count']}/"
                      f"{c['patients']} | {_p(c['p'])} | {c['significant']} |")
-        L += ["", f"Paper (simulation, 15 patients, pole to pole): OP reduced eps by "
+        L += [""] + paper_comparison_table([_mode_label(mode)], [eff])
+        L += [f"Paper (simulation, 15 patients, pole to pole): OP reduced eps by "
               f"{pe['eps_reduction_vs_SL_mm'][0]}"
               f" +- {pe['eps_reduction_vs_SL_mm'][1]} mm against SL and by "
               f"{pe['eps_reduction_vs_NOP_mm'][0]} +- {pe['eps_reduction_vs_NOP_mm'][1]} mm "
@@ -586,16 +661,31 @@ def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict 
           "the start point), in both modes (III-C).",
           "- The kidney length of the ER is the kidney's extent along the exploration line "
           "(base y, the E-ROI's length): ER 100% explores the whole kidney.",
-          "- NOP uses the true kidney pose (the in-vivo NOP was expert-placed); OP the "
-          "registered pose; SL is the exploration controller over the whole kidney.",
+          "- Efficiency strategies, both modes: OP pivots at T* of the registered kidney pose, "
+          "GT-OP at T* of the true pose, NOP with the array along the true kidney's y-axis "
+          "projected on the horizontal (the sign nearest the exploration's transverse array, "
+          "base x), tip over the true centroid (the in-vivo NOP was expert-placed), all with "
+          "the paper's two-leg pivot; SL is the exploration controller (eq. 17) from 10 mm "
+          "beyond the E-ROI's end until the kidney has left the image; OP-PE (beyond the "
+          "paper) OP's pose with the predicted_end pivot.",
           "- V (eq. 25): fraction of the true kidney's 2 mm voxels inside the fan and the "
           "elevational slab of at least one frame (`drake_rus/metrics/core.py`).",
           "- Closed-loop mode (`--mode closed-loop`): each run is a full scan on the Drake "
           "diagram (`RunScan`: approach, exploration, localization, transit, the OP two-leg "
           "pivot) with the run's ER (ER x the patient's kidney length as the controller's "
-          "L_m, `exploration_length: fixed`), start, segmenter and registration; efficiency "
-          "has OP and, on request, OP-PE (the predicted_end pivot; GT-OP, NOP and SL have no "
-          "closed-loop scan) and no volume reconstruction. Where the product would refuse "
+          "L_m, `exploration_length: fixed`), start, segmenter and registration; its E_trans "
+          "and E_rot,x are that scan's. Efficiency: each strategy is its own scan (OP the "
+          "run's scan). The scan never reads the simulation truth: GT-OP's and NOP's pivot "
+          "poses are computed by the study from the true kidney pose and given to the scan "
+          "as a scenario value (`controller.pivot_pose` [x, y, yaw], validated like any "
+          "other; the scan then skips exploration and localization: approach over the "
+          "kidney's middle, transit to the pose, two-leg pivot), and SL is the scan's "
+          "`controller.sweep: line` landing at `controller.start_xy` 10 mm beyond the E-ROI's "
+          "end (its costs are its EXPLORE frames'). Every run records per strategy the pose "
+          "its pivot used (`pivot_pose`: registered, given; `given_pivot_pose`) and its own "
+          "status; a run with any strategy's scan not DONE is left out. OP-PE (the "
+          "predicted_end pivot) runs on request. No volume reconstruction (the scan keeps "
+          "only some masks). Where the product would refuse "
           "what the paper measures, the study's scenario (never the product default) follows "
           "the paper: an exploration planned shorter than the product's "
           "`min_exploration_travel` registers without that minimum and the acceptance checks; "
@@ -617,7 +707,7 @@ def compare_markdown(meta: dict, this: dict, other: dict) -> list[str]:
     L = ["## Kinematic twin and closed loop side by side", "",
          _provenance(meta, mode=" and ".join(c["mode"] for c in cols)),
          ""]
-    ers = [c["er"] for c in cols]
+    ers = [c.get("er") for c in cols]
     if all(ers):
         p = PAPER["er_sweep"]
         L += ["| ER | paper E_trans (mm) | " + " | ".join(
@@ -636,7 +726,7 @@ def compare_markdown(meta: dict, this: dict, other: dict) -> list[str]:
             L.append(f"| {g * 100:.0f}% | {pap} | " + " | ".join(cells) + " |")
         L += ["", "Critical ER: paper " f"{p['critical_er'] * 100:.0f}%; " + "; ".join(
             f"{n} {c['critical_er'] * 100:.0f}%" for n, c in zip(names, ers)) + ".", ""]
-    sts = [c["starts"] for c in cols]
+    sts = [c.get("starts") for c in cols]
     if all(sts):
         pl = PAPER["localization"]
         L += ["Random starts, all runs: paper " f"{pl['e_trans_mm'][0]} +- {pl['e_trans_mm'][1]}"
@@ -644,18 +734,31 @@ def compare_markdown(meta: dict, this: dict, other: dict) -> list[str]:
                   f"{n} {_f(c['e_trans_mm'][0])} +- {_f(c['e_trans_mm'][1])} mm, "
                   f"{_f(c['e_rot_x_deg'][0])} +- {_f(c['e_rot_x_deg'][1])} deg (any "
                   f"significant: {c['any_significant']})" for n, c in zip(names, sts)) + ".", ""]
-    effs = [c["eff"] for c in cols]
-    if all(effs) and all("OP" in e["summary"] for e in effs):
-        L += ["OP sweep (pole to pole and whole pivot):", "",
-              "| mode | n | eps (mm) | V | n_whole_pivot | eps_whole_pivot (mm) | "
-              "V_whole_pivot |", "|---|---|---|---|---|---|---|"]
-        for n, e in zip(names, effs):
-            o = e["summary"]["OP"]
-            L.append(f"| {n} | {_f(o['n'][0], 1)} +- {_f(o['n'][1], 1)} | "
-                     f"{_f(o['eps_mm'][0], 1)} +- {_f(o['eps_mm'][1], 1)} | {_f(o['V'][0], 3)} | "
-                     f"{_f(o['n_whole_pivot'][0], 1)} | {_f(o['eps_whole_pivot_mm'][0], 1)} | "
-                     f"{_f(o['V_whole_pivot'][0], 3)} |")
-        L.append("")
+    effs = [c.get("eff") for c in cols]
+    if all(effs):
+        order = [k for k in STRATEGY_ORDER if any(k in e["summary"] for e in effs)]
+        tgt = effs[0].get("V_target", 0.9)
+        L += ["Efficiency by strategy (mean +- SD over each mode's patients): pole to pole "
+              f"(the paper's n, eps, V), the whole pivot (for SL the whole line) and eps to "
+              f"first reach V {tgt:g}; `-`: the mode did not run it.", "",
+              "| strategy | mode | patients | n | eps (mm) | V | n_whole_pivot | "
+              f"eps_whole_pivot (mm) | V_whole_pivot | eps to V {tgt:g} (mm) |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
+        for k in order:
+            for n, e in zip(names, effs):
+                o = e["summary"].get(k)
+                if o is None:
+                    L.append(f"| {k} | {n} | - | - | - | - | - | - | - | - |")
+                    continue
+                L.append(f"| {k} | {n} | {len(e['patients'])} | {_f(o['n'][0], 1)} +- "
+                         f"{_f(o['n'][1], 1)} | {_f(o['eps_mm'][0], 1)} +- "
+                         f"{_f(o['eps_mm'][1], 1)} | {_f(o['V'][0], 3)} | "
+                         f"{_f(o['n_whole_pivot'][0], 1)} | "
+                         f"{_f(o['eps_whole_pivot_mm'][0], 1)} | {_f(o['V_whole_pivot'][0], 3)} "
+                         f"| {_f(o['eps_at_V_mm'][0], 1)} ({o['reached_V']}/"
+                         f"{len(e['patients'])}) |")
+        L += [""] + strategy_lines(order, CLOSED_LOOP) + [""]
+        L += paper_comparison_table(names, effs)
     return L
 
 

@@ -15,7 +15,10 @@ the product's minimum and acceptance checks, as the paper and the twin do
 (:func:`study_localization`, the study's scenario only).
 - ``efficiency`` (III-E, Fig. 10): OP (at T* of the registered pose), GT-OP, NOP and SL per
   patient, and beyond the paper OP-PE (OP's pose with the predicted_end pivot, the
-  supervisor's prediction; closed loop OP and OP-PE only, each its own scan): V against n and eps pole to pole (the paper's), the whole pivot's n, eps and V
+  supervisor's prediction); closed loop, each strategy is its own scan
+  (:func:`closed_loop_strategy_run`: GT-OP and NOP pivot at a pose the study computes from
+  the true kidney pose and gives the scan as ``controller.pivot_pose``, SL is the scan's
+  ``controller.sweep: line``): V against n and eps pole to pole (the paper's), the whole pivot's n, eps and V
   beside them, n and eps needed to reach V = 0.9, the pivot legs the tilt cap ended
   (:mod:`drake_rus.metrics.sweep`, the same functions the closed-loop scan uses), and the
   kidney volume reconstructed from each sweep's masks
@@ -68,16 +71,16 @@ from scipy.spatial import cKDTree
 
 from drake_rus import batch
 from drake_rus.anatomy import load_patient
-from drake_rus.control.supervisor import Phase
+from drake_rus.control.supervisor import Phase, pivot_pose_as_given
 from drake_rus.experiments import kinematic as km
-from drake_rus.experiments.analysis import STRATEGY_ORDER
+from drake_rus.experiments.analysis import PAPER_STRATEGIES, STRATEGY_ORDER
 from drake_rus.localization.localize import RegistrationTemplate, load_registration_template
 from drake_rus.metrics.core import CoverageAccumulator, e_rot_x, e_trans
 from drake_rus.metrics.reconstruction import compound, reconstruct_kidney, write_nrrd
 from drake_rus.metrics.sweep import sweep_efficiency
 from drake_rus.paths import REPO_ROOT
 from drake_rus.scan import RunScan, ScanMetrics
-from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, LoadScenario
+from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, CheckScenario, LoadScenario
 from drake_rus.template.io import DEFAULT_TEMPLATE_PATH
 from drake_rus.template.population import (DEFAULT_SUBJECTS as POPULATION_SUBJECTS,
                                            POPULATIONS, parse_population, population_template)
@@ -93,16 +96,41 @@ ER_UNIT_TEXT = {"kidney": "fraction of the patient's kidney length along the exp
 V_TARGETS = (0.9,)
 # How a study run is executed: the kinematic twin (default, fast) or a closed-loop scan.
 MODES = ("kinematic", "closed-loop")
-# The efficiency strategies a closed-loop scan can run: its pivot is the paper's OP (T* of
-# the registered pose, eq. 20-23), with the paper's two-leg pivot or (OP-PE) the
-# predicted_end one. GT-OP (T* of the true pose), NOP (expert placement from the true pose)
-# and SL (a straight line over the whole kidney) have no closed-loop scan.
-CLOSED_LOOP_STRATEGIES = ("OP", "OP-PE")
-# Each closed-loop strategy is the scan with this controller.pivot_strategy (OP-PE, beyond
-# the paper: the predicted_end pivot at the same T*); a closed-loop efficiency study runs
-# OP alone unless asked (--strategies OP,OP-PE: one more scan per patient).
-CLOSED_LOOP_PIVOT = {"OP": "two_leg", "OP-PE": "predicted_end"}
-CLOSED_LOOP_DEFAULT_STRATEGIES = ("OP",)
+# What each efficiency strategy sweeps (III-E), the same in both modes.
+STRATEGY_TEXT = {
+    "OP": "two-leg pivot at T* of the registered kidney pose (eq. 20-22)",
+    "GT-OP": "two-leg pivot at T* of the true kidney pose",
+    "NOP": "two-leg pivot with the array along the true kidney's y-axis projected on the "
+           "horizontal, tip over the true centroid (the in-vivo NOP was expert-placed)",
+    "SL": f"straight line (the exploration controller, eq. 17) from "
+          f"{km.SL_MARGIN * 1e3:g} mm beyond the E-ROI's end until the kidney has left the "
+          "image (ER 100%)",
+    "OP-PE": "predicted-end pivot (beyond the paper) at T* of the registered kidney pose",
+}
+# The kidney pose each strategy's pivot pose comes from ("registered" or "true"; SL: None),
+# in both modes.
+POSE_FROM = {"OP": "registered", "OP-PE": "registered", "GT-OP": "true", "NOP": "true",
+             "SL": None}
+# How a closed-loop scan runs each strategy (:func:`closed_loop_strategy_run`): the scan
+# never reads the truth; GT-OP's and NOP's poses reach it as a scenario value the study
+# computes from the true pose, as an operator's placement would.
+CLOSED_LOOP_STRATEGY_HOW = {
+    "OP": "the scan's own exploration, registration and T* (controller.pivot_pose [])",
+    "GT-OP": "the study gives T* of the true pose as controller.pivot_pose (the scan skips "
+             "exploration and localization)",
+    "NOP": "the study gives the NOP pose of the true pose as controller.pivot_pose (the "
+           "scan skips exploration and localization)",
+    "SL": "controller.sweep: line, landing at controller.start_xy "
+          f"{km.SL_MARGIN * 1e3:g} mm beyond the E-ROI's end",
+    "OP-PE": "the scan's own registration and T*, controller.pivot_strategy: predicted_end",
+}
+# Every efficiency strategy has a closed-loop scan; a closed-loop efficiency study runs the
+# paper's four unless asked (OP-PE: --strategies OP,GT-OP,NOP,SL,OP-PE).
+CLOSED_LOOP_STRATEGIES = STRATEGY_ORDER
+CLOSED_LOOP_DEFAULT_STRATEGIES = PAPER_STRATEGIES
+# GT-OP and NOP: the start planner puts the probe over this fraction of the kidney's length
+# (the middle; an operator placing the probe), then TRANSIT slides it to the given pose.
+GIVEN_POSE_START_FRACTION = 0.5
 # Random starts are drawn where the kidney is visible (the paper's II-A (i)), checked at the
 # start and this far (m) around it (the closed loop lands within 2 mm), at most this often.
 START_VISIBILITY_TOLERANCE = 0.002
@@ -289,19 +317,14 @@ def check_mode(mode: str) -> str:
 
 def check_strategies(strategies, mode: str = "kinematic") -> tuple:
     """The efficiency strategies, in the report's order; raises ValueError (naming
-    ``--strategies``) for an unknown one or one the closed-loop scan cannot run."""
+    ``--strategies``) for an unknown one (or ``--mode`` for an unknown mode)."""
     strategies = [str(s).strip() for s in strategies if str(s).strip()]
-    bad = [s for s in strategies if s not in STRATEGY_ORDER]
+    allowed = CLOSED_LOOP_STRATEGIES if check_mode(mode) == "closed-loop" else STRATEGY_ORDER
+    bad = [s for s in strategies if s not in allowed]
     if bad or not strategies:
-        raise ValueError(f"--strategies: expected a comma list of {', '.join(STRATEGY_ORDER)}, "
-                         f"got {','.join(strategies) or 'nothing'}")
-    if check_mode(mode) == "closed-loop":
-        bad = [s for s in strategies if s not in CLOSED_LOOP_STRATEGIES]
-        if bad:
-            raise ValueError(f"--strategies: {', '.join(bad)} has no closed-loop equivalent (the "
-                             "closed-loop scan pivots only at T* of the registered pose: OP, "
-                             "or OP-PE with the predicted_end pivot); use --strategies "
-                             "OP,OP-PE or --mode kinematic")
+        raise ValueError(f"--strategies: expected a comma list of {', '.join(allowed)}, "
+                         f"got {','.join(strategies) or 'nothing'}"
+                         + (f" ({', '.join(bad)} unknown)" if bad else ""))
     return tuple(s for s in STRATEGY_ORDER if s in strategies)
 
 
@@ -322,7 +345,7 @@ def starts_tasks(patients, options: StudyOptions, er: float, n_starts: int = 5) 
 def efficiency_tasks(patients, options: StudyOptions, er: float,
                      export_dir: str | None = None, strategies=None) -> list[dict]:
     """``export_dir``: write the OP and GT-OP reconstructions there as NRRD. ``strategies``:
-    default all (kinematic) or OP (closed loop, the only one it has)."""
+    default all (kinematic) or the paper's four (closed loop, one scan each)."""
     strategies = check_strategies(strategies or default_strategies(options.mode), options.mode)
     return [dict(options.base(), study="efficiency", patient=p, er=float(er), start=-1,
                  export_dir=None if export_dir is None else str(export_dir),
@@ -720,18 +743,84 @@ def closed_loop_setup(task: dict, kp, base):
     return scenario, start_fraction, x_offset, notes
 
 
-def closed_loop_strategy_scenario(scenario, strategy: str):
-    """``scenario`` with the pivot of a closed-loop efficiency strategy
-    (:data:`CLOSED_LOOP_PIVOT`: OP the two-leg pivot, OP-PE the predicted_end one)."""
+@dataclasses.dataclass
+class StrategyScan:
+    """How the closed-loop scan of one efficiency strategy runs: its scenario (validated
+    like any scenario), the start planner's start fraction, and what the run records about
+    the pose (``pivot_pose``: "registered", "given" or None for SL; ``given_pivot_pose``
+    [x m, y m, yaw rad] or None; ``pose_source`` the truth it came from, ``how`` and
+    ``text`` for people)."""
+    scenario: object
+    start_fraction: float
+    pose: dict
+
+
+def closed_loop_strategy_run(scenario, strategy: str, kp=None,
+                             start_fraction: float = 0.0) -> StrategyScan:
+    """The closed-loop scan of efficiency strategy ``strategy`` from the run's ``scenario``
+    (its ER, segmenter, registration) and start fraction:
+
+    - OP: the scan as it is (two-leg pivot at the registered T*, ``pivot_pose`` []);
+    - OP-PE: ``pivot_strategy: predicted_end``;
+    - GT-OP, NOP: ``pivot_pose`` = the strategy's pose from the true kidney pose
+      (:func:`~drake_rus.experiments.kinematic.strategy_pivot_pose`, the twin's), two-leg
+      pivot, ER 0 (the scan skips exploration and localization; the start planner checks
+      no sweep) and the probe's start over the kidney's middle
+      (:data:`GIVEN_POSE_START_FRACTION`);
+    - SL: ``sweep: line`` from ``start_xy`` beyond the E-ROI's end for at most the twin's
+      travel (:func:`~drake_rus.experiments.kinematic.sl_line`), the start planner's start
+      at the E-ROI's end, ER 100% (what the planner's window must hold; the line itself
+      ends where the kidney leaves the image), no kidney-length estimation or adaptive stop
+      (nothing to localize).
+
+    The truth (``kp``, a prepared patient; needed by GT-OP, NOP, SL) enters only as these
+    scenario values, checked by ``CheckScenario``: the scan never reads it."""
     check_strategies([strategy], "closed-loop")
-    return dataclasses.replace(scenario, controller=dataclasses.replace(
-        scenario.controller, pivot_strategy=CLOSED_LOOP_PIVOT[strategy]))
+    c = dataclasses.replace(scenario.controller, pivot_pose=[], sweep="pivot",
+                            pivot_strategy="two_leg")
+    loc = scenario.localization
+    sf = float(start_fraction)
+    pose = {"pivot_pose": "registered", "given_pivot_pose": None, "pose_source": None}
+    if strategy in ("GT-OP", "NOP", "SL") and kp is None:
+        raise ValueError(f"strategy {strategy}: needs the prepared patient (its true kidney "
+                         "pose or E-ROI)")
+    if strategy == "OP-PE":
+        c = dataclasses.replace(c, pivot_strategy="predicted_end")
+    elif strategy in ("GT-OP", "NOP"):
+        given = pivot_pose_as_given(*km.strategy_pivot_pose(strategy, kp.X_BK_true))
+        c = dataclasses.replace(c, pivot_pose=given, exploration_ratio=0.0)
+        sf = GIVEN_POSE_START_FRACTION
+        pose = {"pivot_pose": "given", "given_pivot_pose": given,
+                "pose_source": "the true kidney pose (simulation truth, study only)"}
+    elif strategy == "SL":
+        start, travel = km.sl_line(kp, c.scan_direction)
+        c = dataclasses.replace(c, sweep="line", start_xy=[float(v) for v in start],
+                                line_sweep_max_travel=travel, exploration_ratio=1.0)
+        loc = dataclasses.replace(loc, length_estimation=False, adaptive_exploration=False)
+        sf = 0.0
+        pose = {"pivot_pose": None, "given_pivot_pose": None,
+                "pose_source": "the true kidney's E-ROI (the line's start, study only)"}
+    out = dataclasses.replace(scenario, controller=c, localization=loc)
+    CheckScenario(out)
+    pose.update(pivot_pose_from=POSE_FROM[strategy], how=CLOSED_LOOP_STRATEGY_HOW[strategy],
+                text=STRATEGY_TEXT[strategy])
+    return StrategyScan(out, sf, pose)
+
+
+def closed_loop_strategy_scenario(scenario, strategy: str, kp=None):
+    """The scenario of :func:`closed_loop_strategy_run` (OP the two-leg pivot at the
+    registered T*, OP-PE the predicted_end one, GT-OP and NOP a given pivot pose, SL a
+    line sweep)."""
+    return closed_loop_strategy_run(scenario, strategy, kp).scenario
 
 
 def _closed_loop_entry(m: dict) -> dict:
     """A strategy entry (like :func:`sweep_entry`'s) from a closed-loop scan's metrics."""
     at = m["at_matched_V"]
+    sweep = m.get("sweep") or {}
     return {"n": int(m["n_frames"]), "eps_mm": m["eps_mm"], "V": m["volume_ratio"],
+            "sweep": sweep.get("kind", "pivot"), "pivot_pose": sweep.get("pivot_pose"),
+            "given_pivot_pose": sweep.get("given_pivot_pose"),
             "n_whole_pivot": int(m["n_whole_pivot"]),
             "eps_whole_pivot_mm": m["eps_whole_pivot_mm"],
             "V_whole_pivot": m["volume_ratio_whole_pivot"],
@@ -816,16 +905,17 @@ def run_closed_loop_study(task: dict) -> dict:
                                       "closed-loop")
         result["strategies"] = {}
         for s in strategies:
-            pivot = CLOSED_LOOP_PIVOT[s]
-            if pivot == scenario.controller.pivot_strategy:
-                result["strategies"][s] = _closed_loop_entry(m)
-                continue
-            other = RunScan(closed_loop_strategy_scenario(scenario, s), kp.patient, template,
-                            progress=False, start_fraction=start_fraction)
-            mo = ScanMetrics(other)
-            result["strategies"][s] = _closed_loop_entry(mo) | {
+            run = closed_loop_strategy_run(scenario, s, kp, start_fraction)
+            same = (run.scenario == scenario and run.start_fraction == start_fraction)
+            other = scan if same else RunScan(run.scenario, kp.patient, template,
+                                              progress=False,
+                                              start_fraction=run.start_fraction)
+            mo = m if same else ScanMetrics(other)
+            result["strategies"][s] = _closed_loop_entry(mo) | run.pose | {
                 "status": other.status, "reason": other.reason,
-                "e_trans_mm": mo["e_trans_mm"], "e_rot_x_deg": mo["e_rot_x_deg"]}
+                "e_trans_mm": mo["e_trans_mm"], "e_rot_x_deg": mo["e_rot_x_deg"],
+                "sim_s": other.sim_s, "scan_wall_s": other.wall_s,
+                "scan": "the run's own scan" if same else "its own scan"}
     result["wall_s"] = time.perf_counter() - t0
     return result
 
@@ -907,7 +997,9 @@ def efficiency_of(kp, imager, controller, X_BK_est, recon_spacing: float, *,
                                   pivot_model=pivot_model)
         p2p = sweep.pole_to_pole()
         entry = sweep_entry(kp, sweep, imager.geometry, controller)
-        entry.update(volume_ml=None, volume_error_pct=None)
+        entry.update(volume_ml=None, volume_error_pct=None,
+                     sweep="line" if s == "SL" else "pivot", pivot_pose_from=POSE_FROM[s],
+                     text=STRATEGY_TEXT[s])
         if sweep.info:
             i = sweep.info
             entry["pretilt"] = {

@@ -120,6 +120,9 @@ def _scan(args, scenario, template, out: Path) -> int:
           f"pivot: eps {_r(summary.get('eps_whole_pivot_mm'), 1)} mm, n "
           f"{summary.get('n_whole_pivot')}, V {_r(summary.get('volume_ratio_whole_pivot'), 3)}"
           f" | {summary['sim_s']:.1f} sim s in {summary['wall_s']:.1f} s")
+    sweep = summary.get("sweep") or {}
+    if sweep.get("kind") == "line" or sweep.get("pivot_pose") == "given":
+        print(f"sweep: {sweep['text']}")
     print("wrote " + ", ".join(str(p) for p in written))
     return 0 if summary["status"] == "DONE" else 1
 

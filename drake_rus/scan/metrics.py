@@ -6,9 +6,17 @@ eps (eq. 24, L = the image depth), n and V (eq. 25) **pole to pole** (the paper'
 definition), the **whole pivot**'s n, eps and V (both legs) beside them, n and eps needed to
 reach V = 0.9, and the pivot legs the tilt cap ended. E_trans, E_rot,x and V need the
 simulation truth; without it (hardware) they are None.
+
+The sweep is the PIVOT phase's frames, or with ``controller.sweep: line`` (the seed's
+straight-line baseline) the EXPLORE phase's (a one-way sweep: pole to pole from its first to
+its last frame showing the kidney; "whole pivot" then means the whole line).
+:func:`SweepDescription` says which, and which pose the pivot used (the registered T* or a
+given ``controller.pivot_pose``).
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -20,7 +28,7 @@ from drake_rus.metrics import (
     signed_pivot_angles, sweep_efficiency)
 from drake_rus.scan.run import ScanResult
 
-__all__ = ["METRIC_DEFINITIONS", "ScanMetrics", "Summary", "V_TARGETS"]
+__all__ = ["METRIC_DEFINITIONS", "ScanMetrics", "Summary", "SweepDescription", "V_TARGETS"]
 
 # Coverage levels at which the sweep costs are also compared (matched coverage).
 V_TARGETS = (0.9,)
@@ -30,7 +38,34 @@ METRIC_DEFINITIONS = {
     "at_matched_V": MATCHED_V,
     "volume_ratio_all_frames": "V (eq. 25) over every frame of the scan (exploration too)",
     "eps": "eq. 24, sum of sqrt(|dp|^2 + (L dtheta)^2), L = the image depth",
+    "sweep": "the frames the costs count: the PIVOT phase's, or with controller.sweep: line "
+             "the EXPLORE phase's (then 'whole pivot' is the whole line); sweep.pivot_pose "
+             "says where the pivot pivoted (registered T* or a given controller.pivot_pose)",
 }
+
+
+def SweepDescription(controller) -> dict:
+    """What the scan swept and where it pivoted: ``kind`` "pivot" or "line" (the sweep's
+    phase, PIVOT or EXPLORE); ``pivot_pose`` "registered" (T* of the registered kidney pose,
+    eq. 20-22), "given" (``controller.pivot_pose``, then ``given_pivot_pose`` [x m, y m,
+    yaw rad]) or None (a line); ``pivot_strategy``; ``text``, one line for people."""
+    kind = getattr(controller, "sweep", "pivot")
+    given = [float(v) for v in getattr(controller, "pivot_pose", None) or []]
+    if kind == "line":
+        return {"kind": "line", "phase": "EXPLORE", "pivot_pose": None,
+                "given_pivot_pose": None, "pivot_strategy": None,
+                "text": "straight line (controller.sweep: line): the exploration controller "
+                        "(eq. 17) over the whole kidney, no pivot"}
+    strategy = controller.pivot_strategy
+    if given:
+        text = (f"{strategy} pivot at the given pose (controller.pivot_pose): tip ("
+                f"{given[0] * 1e3:.1f}, {given[1] * 1e3:.1f}) mm, array "
+                f"{math.degrees(given[2]):.1f} deg from base x, probe pointing down; no "
+                "exploration or localization")
+    else:
+        text = f"{strategy} pivot at T* of the registered kidney pose (eq. 20-22)"
+    return {"kind": "pivot", "phase": "PIVOT", "pivot_pose": "given" if given else "registered",
+            "given_pivot_pose": given or None, "pivot_strategy": strategy, "text": text}
 
 
 def _reach_mm(r):
@@ -42,10 +77,13 @@ def ScanMetrics(result: ScanResult) -> dict:
     pole (the paper's) with the whole pivot's beside them."""
     imaging = result.scenario.imaging
     ctrl = result.scenario.controller
-    pivot = [f for f in result.frames if f.phase == Phase.PIVOT]
+    sweep = SweepDescription(ctrl)
+    line = sweep["kind"] == "line"
+    pivot = [f for f in result.frames
+             if f.phase == (Phase.EXPLORE if line else Phase.PIVOT)]
     poses = [f.X_BP for f in pivot]
-    angles = signed_pivot_angles([X.rotation() for X in poses])
-    legs = pivot_legs(angles)
+    angles = None if line else signed_pivot_angles([X.rotation() for X in poses])
+    legs = np.zeros(len(poses), int) if line else pivot_legs(angles)
     truth = result.truth
     coverage = None
     if truth is not None:
@@ -54,11 +92,13 @@ def ScanMetrics(result: ScanResult) -> dict:
         def coverage():
             return CoverageAccumulator(truth.kidney_points_B, truth.voxel_volume,
                                        geometry.in_fan, imaging.elevation_width)
-    eff = sweep_efficiency(poses, [f.visible for f in pivot], imaging.depth, legs=legs,
-                           coverage=coverage, V_targets=V_TARGETS, angles=angles,
-                           max_tilt=ctrl.max_pivot_tilt)
-    ends = [float(np.rad2deg(angles[legs == k][np.argmax(np.abs(angles[legs == k]))]))
-            for k in (1, 2) if np.any(legs == k)]
+    eff = sweep_efficiency(poses, [f.visible for f in pivot], imaging.depth,
+                           legs=None if line else legs, coverage=coverage,
+                           V_targets=V_TARGETS, angles=angles,
+                           max_tilt=None if line else ctrl.max_pivot_tilt)
+    ends = [] if line else [
+        float(np.rad2deg(angles[legs == k][np.argmax(np.abs(angles[legs == k]))]))
+        for k in (1, 2) if np.any(legs == k)]
     metrics = {
         "n_frames": eff["n"], "eps_mm": eff["eps"] * 1000,
         "eps_curve_mm": (eff["eps_curve"] * 1000).tolist(),
@@ -72,6 +112,7 @@ def ScanMetrics(result: ScanResult) -> dict:
         "at_matched_V": {f"{t:g}": {"pole_to_pole": _reach_mm(eff["at_V"][t]),
                                     "whole_pivot": _reach_mm(eff["at_V_whole_pivot"][t])}
                          for t in V_TARGETS},
+        "sweep": sweep,
         "pivot": {"legs": int(legs.max()) if len(legs) else 0,
                   "leg_end_tilt_deg": ends,
                   "tilt_cap_deg": float(np.rad2deg(ctrl.max_pivot_tilt)),
@@ -143,6 +184,7 @@ def Summary(result: ScanResult, metrics: dict) -> dict:
         "volume_ratio_whole_pivot": metrics["volume_ratio_whole_pivot"],
         "volume_ratio_all_frames": metrics["volume_ratio_all_frames"],
         "at_matched_V": metrics["at_matched_V"], "pivot": metrics["pivot"],
+        "sweep": metrics["sweep"],
         "metric_definitions": METRIC_DEFINITIONS,
         "wall_s": result.wall_s, "sim_s": result.sim_s,
         "realtime_rate": result.sim_s / result.wall_s if result.wall_s > 0 else None,

@@ -40,8 +40,13 @@ MAX_REALTIME_LAG = 0.25
 def ExpectedScanTime(scenario) -> float:
     """About how long (simulated s) a scan with ``scenario`` takes when all goes well, for
     the progress bar: landing, the exploration (ER x L_m at v_scan), LOCALIZE, TRANSIT and
-    a pivot through about 1 rad in all (out to both sides of r3*)."""
+    a pivot through about 1 rad in all (out to both sides of r3*); a line sweep (``sweep:
+    line``) its longest travel, a given pivot pose no exploration or localization."""
     c = scenario.controller
+    if getattr(c, "sweep", "pivot") == "line":
+        return 1.5 + c.line_sweep_max_travel / c.scan_speed
+    if getattr(c, "pivot_pose", None):
+        return 1.5 + 2.0 + 1.0 / c.pivot_rate
     explore = c.exploration_ratio * c.kidney_length / c.scan_speed
     return 1.5 + explore + c.localize_hold_time + 0.5 + 2.0 + 1.0 / c.pivot_rate
 
