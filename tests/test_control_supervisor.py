@@ -78,8 +78,10 @@ def test_rodrigues_pivot_update():
 # ------------------------------------------------------------------ supervisor
 def cfg(**kw):
     """The default controller config; contact without a dwell time unless a test sets one
-    (the dwell has its own test)."""
+    (the dwell has its own test), and a probe that need not follow the pivot (these tests
+    hold it still; the follow guard has its own test)."""
     kw.setdefault("contact_dwell", 0.0)
+    kw.setdefault("pivot_follow_limit", 3.2)
     return dataclasses.replace(ControllerConfig(), **kw)
 
 
@@ -567,3 +569,40 @@ def test_line_sweep_ends_at_its_maximum_travel():
     s, _ = run(True)
     assert s.phase == supervisor.Phase.DONE and "line_sweep_max_travel" in s.events[-1][2]
     assert s.P_des[1] == pytest.approx(-0.01, abs=1e-4) and s.travel == pytest.approx(0.01)
+
+
+def test_pivot_follow_error_is_the_angle_to_the_commanded_axis():
+    R = R_DOWN @ RotationMatrix(RollPitchYaw(0.1, 0.0, 0.0)).matrix()   # tilted 0.1 rad
+    assert supervisor.pivot_follow_error(R, R[:, 2]) == pytest.approx(0.0, abs=1e-7)
+    assert supervisor.pivot_follow_error(R_DOWN, R[:, 2]) == pytest.approx(0.1)
+    assert supervisor.pivot_follow_error(R_DOWN, -R_DOWN[:, 2]) == pytest.approx(math.pi)
+
+
+def test_a_probe_that_stops_following_the_pivot_aborts_the_scan():
+    """The probe follows a_des, then sticks (a joint at its limit): ABORT once it has lagged
+    by more than pivot_follow_limit for pivot_follow_time, with the reason; a probe that
+    follows never aborts."""
+    c = cfg(exploration_ratio=0.02, localize_hold_time=0.0, pivot_rate=0.2,
+            max_pivot_tilt=0.5, pivot_follow_limit=0.05, pivot_follow_time=0.5)
+    dt = 0.01
+    s, t, R_star = _to_pivot(c, dt)
+
+    def following(a):
+        x = R_star[:, 0] - (R_star[:, 0] @ a) * a
+        x /= np.linalg.norm(x)
+        return np.column_stack([x, np.cross(a, x), a])
+
+    for _ in range(100):                       # 1 s following: no abort
+        t += dt
+        s = supervisor.supervisor_step(s, inputs(t, R=following(s.a_des)), c, dt)
+        assert s.phase == supervisor.Phase.PIVOT
+    stuck = following(s.a_des)
+    lagging_from = None
+    while s.phase == supervisor.Phase.PIVOT and t < 10:
+        t += dt
+        if lagging_from is None and supervisor.pivot_follow_error(stuck, s.a_des) > 0.05:
+            lagging_from = t
+        s = supervisor.supervisor_step(s, inputs(t, R=stuck), c, dt)
+    assert s.phase == supervisor.Phase.ABORT
+    assert "does not follow the pivot" in s.reason
+    assert t - lagging_from == pytest.approx(0.5, abs=2 * dt)

@@ -120,6 +120,12 @@ class ControllerConfig:
     # Pivot angular rate theta_dot (rad/s) (eq. 23) and maximum tilt from r3* (rad).
     pivot_rate: float = field(default=0.1, metadata={"positive": True, "max": 1.0})
     max_pivot_tilt: float = field(default=0.6, metadata={"positive": True, "max": 1.2})
+    # The probe must follow the pivot: its axis may lag the commanded a_des by more than
+    # pivot_follow_limit (rad) for at most pivot_follow_time (s), else ABORT (a joint held
+    # at its limit would otherwise let the sweep "finish" without imaging). A normal pivot
+    # lags by 0.2 deg at most (test:0, test:3 supine, test:1 decubitus).
+    pivot_follow_limit: float = field(default=0.05, metadata={"positive": True, "max": 3.2})
+    pivot_follow_time: float = field(default=0.5, metadata={"positive": True, "max": 5.0})
     # The tilt rate ramps at this angular acceleration (rad/s^2), so reversals are smooth.
     pivot_acceleration: float = field(default=0.4, metadata={"positive": True})
     # Pivot strategy: "two_leg" (the seed: one way until the kidney leaves, back through

@@ -169,6 +169,7 @@ class SupervisorState:
     pivot_direction: float = 1.0
     pivot_speed: float = 0.0         # signed current tilt rate (rad/s), ramped
     expect_invisible: bool = False   # after a pivot leg ends, until the kidney is seen again
+    lag_since: float = math.nan      # since when the probe lags the pivot (pivot_follow_limit)
     pivot_angle: float = 0.0         # tilt of a_des from r3* about o_des (rad), signed
     pivot_legs_done: int = 0
     pivot_limits: tuple = ()         # tilt angles (rad) where each leg ended
@@ -601,9 +602,30 @@ def _transit(s, u, R, p, cfg, dt):
     return s
 
 
+def pivot_follow_error(R_BP, a_des) -> float:
+    """Angle (rad) between the probe's axis (R_BP's z column) and the commanded a_des."""
+    a = np.asarray(R_BP, dtype=float)[:, 2]
+    d = np.asarray(a_des, dtype=float)
+    c = float(a @ d) / max(float(np.linalg.norm(a) * np.linalg.norm(d)), 1e-12)
+    return math.acos(min(1.0, max(-1.0, c)))
+
+
 def _pivot(s, u, R, p, cfg, dt):
     """a_des rotates about o_des (eq. 23) one way until the kidney leaves the image (or the
-    maximum tilt), then back through r3* to the other side; then DONE."""
+    maximum tilt), then back through r3* to the other side; then DONE. ABORT when the probe
+    lags a_des by more than pivot_follow_limit for pivot_follow_time."""
+    lag = pivot_follow_error(R, s.a_des)
+    if lag <= cfg.pivot_follow_limit:
+        s.lag_since = math.nan
+    else:
+        if math.isnan(s.lag_since):
+            s.lag_since = u.t
+        if u.t - s.lag_since >= cfg.pivot_follow_time - 1e-9:
+            s.reason = (f"the probe does not follow the pivot: its axis lags the commanded "
+                        f"one by {math.degrees(lag):.1f} deg after "
+                        f"{u.t - s.lag_since:.2f} s (limit {math.degrees(cfg.pivot_follow_limit):.1f}"
+                        f" deg; a joint at its limit?)")
+            return _goto(s, Phase.ABORT, u.t, s.reason)
     if not u.motion_allowed:
         return _hold_pivot(s, cfg, dt)
     s.paused = False
