@@ -49,7 +49,7 @@ from drake_rus.localization.localize import (
     thin_cloud,
 )
 from drake_rus.metrics.core import e_rot_x, e_trans
-from drake_rus.scenario import LoadScenario
+from drake_rus.scenario import ApplyOverrides, LoadScenario
 
 PAPER = {
     "source": "seed paper, simulation, 15 CT patients, ER 60% (section IV-B; IV-A for the "
@@ -110,13 +110,16 @@ def explore_estimated(kp, imager, controller, localization, template):
     step = localization.adaptive_period * controller.scan_speed
     estimate, target, checks, stop = float("nan"), exploration_target(controller), [], None
     travel = localization.length_min_travel
+    fit = None     # the latest fit that passed the checks: the next one's warm start
     while travel < min(target, end) - 1e-12:
         P = full.prefix(travel).point_cloud()
         if len(P) >= 50:
-            length, _ = estimate_kidney_length(P, template, localization, kp.superior_B,
-                                               kp.lateral_B)
+            length, result = estimate_kidney_length(
+                P, template, localization, kp.superior_B, kp.lateral_B,
+                warm_start=fit if localization.length_warm_start else None)
             checks.append((travel, length))
             if np.isfinite(length):
+                fit = result
                 estimate = length
                 target = exploration_target(controller, estimate)
                 if target <= travel:       # a shorter kidney than assumed: ends now
@@ -154,13 +157,14 @@ def main(argv=None) -> int:
     ap.add_argument("--voxel", type=float, default=0.002,
                     help="label-volume voxel size in m (default 0.002)")
     ap.add_argument("--scenario", default="default", help="scenario name (default 'default')")
+    ap.add_argument("--set", default="{}", help="scenario overrides (YAML mapping)")
     ap.add_argument("--exploration-length", choices=["fixed", "estimated"], default=None,
                     help="ER x L_m or ER x the estimated kidney length (default: the "
                          "scenario's controller.exploration_length)")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
     specs = parse_patients(args.patients)
-    scenario = LoadScenario(scenario_name=args.scenario)
+    scenario = ApplyOverrides(LoadScenario(scenario_name=args.scenario), args.set)
     controller = dataclasses.replace(
         scenario.controller, exploration_ratio=args.er,
         exploration_length=args.exploration_length or scenario.controller.exploration_length)

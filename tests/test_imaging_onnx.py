@@ -296,3 +296,72 @@ def test_onnx_segmenter_follows_the_kidney_through_the_leaf_system(monkeypatch):
     # Each frame was segmented once (the prior taken from a frame does not re-segment it):
     # 21 frames in 1 s at 20 Hz, plus the one direct call above.
     assert len(calls) == 21 + 1, len(calls)
+
+
+# --- candidate regions worked on their boxes ------------------------------------------------
+
+def _candidates_on_the_whole_grid(seg: OnnxSegmenter, prob: np.ndarray) -> list[np.ndarray]:
+    """The candidate regions computed on the whole model grid and mapped back with the
+    canvas's sparse maps: the reference for the boxed computation."""
+    from drake_rus.imaging.onnx_backend import fill_holes
+    labels, n = ndimage.label(prob > seg.threshold, structure=np.ones((3, 3), bool))
+    if n == 0:
+        return []
+    sizes = np.bincount(labels.ravel())[1:]
+    out = []
+    for k in np.argsort(-sizes, kind="stable"):
+        keep = fill_holes(labels == k + 1)
+        p = np.where(ndimage.binary_dilation(keep), prob, 0.0).astype(np.float32)
+        p[keep & (p <= seg.threshold)] = 1.0
+        mask = (seg.to_image(seg._past_fan(p)) > seg.threshold) & seg.geometry.fan_mask
+        if mask.any():
+            out.append(mask)
+    return out
+
+
+@pytest.mark.parametrize("depth", [0.10, 0.20, 0.30])
+def test_candidates_on_their_boxes_equal_the_whole_grid(depth, monkeypatch):
+    """Regions anywhere on the grid (inside the fan, across its edges, on the canvas's
+    border, with holes, several at once): the masks are those of the whole-grid computation,
+    bit for bit, and so is the window of the back map."""
+    g = ProbeGeometry.from_config(ImagingConfig(depth=depth))
+    seg = OnnxSegmenter.from_config(ImagingConfig(depth=depth, segmenter="onnx"), g)
+    h, w = seg.input_shape[2:]
+    rng = np.random.default_rng(int(depth * 100))
+    r, c = np.ogrid[:h, :w]
+    probs = []
+    for _ in range(12):
+        prob = np.zeros((h, w), np.float32)
+        for _ in range(rng.integers(1, 4)):
+            cr, cc = rng.integers(-5, h + 5), rng.integers(-5, w + 5)
+            rad = rng.integers(2, 15)
+            blob = np.exp(-((r - cr) ** 2 + (c - cc) ** 2) / (2.0 * rad ** 2))
+            prob = np.maximum(prob, (blob * rng.uniform(0.6, 1.0)).astype(np.float32))
+        prob[rng.random((h, w)) < 0.02] = 0.0                      # holes
+        probs.append(prob * seg._canvas_fan(h, w))
+    probs.append(np.ones((h, w), np.float32) * seg._canvas_fan(h, w))  # the whole fan
+    # The same model without its card: the plain resize and bilinear map back.
+    plain = OnnxSegmenter(MODEL, g, input_shape=seg.input_shape, card={})
+    assert plain.canvas is None
+    for prob in probs:
+        monkeypatch.setattr(OnnxSegmenter, "model_probability", lambda self, image: prob)
+        for model in (seg, plain):
+            got = model.candidates(np.zeros(g.image_shape, np.uint8))
+            want = _candidates_on_the_whole_grid(model, prob)
+            assert len(got) == len(want)
+            for a, b in zip(got, want):
+                assert np.array_equal(a, b)
+    # The back map of a window: the whole map's values there, 0 elsewhere.
+    canvas = seg.canvas
+    full = np.zeros((h, w), np.float32)
+    full[10:31, 40:57] = rng.random((21, 17)).astype(np.float32)
+    rows, cols, values = canvas.to_image_window(full[10:31, 40:57], (10, 40), (h, w))
+    whole = canvas.to_image(full)
+    assert np.array_equal(whole[rows, cols], values)
+    outside = np.ones(g.image_shape, bool)
+    outside[rows, cols] = False
+    assert not whole[outside].any()
+    # The forward map sums in the same order as the dense @ sparse product it replaced.
+    image = rng.integers(0, 256, g.image_shape).astype(np.float32)
+    assert np.array_equal(canvas.to_canvas(image),
+                          np.asarray((canvas._rows @ image) @ canvas._cols.T.tocsr()))

@@ -177,3 +177,52 @@ def test_kidney_track_is_followed_only_once_established():
     assert track_update(track, np.zeros(shape, bool), False, 0.6, g, **follow) is track
     jumped = track_update(track, _disc(shape, (220, 60), 20), True, 0.6, g, **follow)
     assert jumped.since == 0.6 and track_prior(jumped, 0.65, 0.5)[0] is None
+
+
+def _boundary_on_the_whole_image(mask):
+    """The inner boundary as computed on the whole image (the reference for the boxed one)."""
+    inner = np.zeros_like(mask)
+    inner[1:-1, 1:-1] = (mask[1:-1, 1:-1] & mask[:-2, 1:-1] & mask[2:, 1:-1]
+                         & mask[1:-1, :-2] & mask[1:-1, 2:])
+    v, u = np.nonzero(mask & ~inner)
+    return np.stack([u, v], axis=1).astype(float)
+
+
+def test_boundary_and_centroid_on_the_mask_box_equal_the_whole_image():
+    from drake_rus.imaging.segment import mask_box
+    rng = np.random.default_rng(3)
+    for k in range(40):
+        m = np.zeros((37, 29), bool)
+        r0, c0 = rng.integers(0, 30), rng.integers(0, 22)
+        m[r0:r0 + rng.integers(1, 12), c0:c0 + rng.integers(1, 12)] = True
+        m &= rng.random(m.shape) < (0.7 if k % 2 else 1.0)     # holes and specks
+        if k % 5 == 0:
+            m[0, :] = m[:, -1] = True                           # on the image's border
+        assert np.array_equal(boundary_pixels(m), _boundary_on_the_whole_image(m))
+        cols = m.sum(axis=0)
+        if cols.sum():
+            assert mask_centroid(m) == float(np.dot(cols, np.arange(m.shape[1]) + 0.5)
+                                             / (cols.sum() * m.shape[1]))
+    assert boundary_pixels(np.zeros((5, 5), bool)).shape == (0, 2)
+    assert mask_box(np.zeros((4, 4), bool)) is None
+    m = np.zeros((10, 12), bool)
+    m[3:5, 0:4] = True
+    assert mask_box(m) == (slice(3, 5), slice(0, 4))
+    assert mask_box(m, 2) == (slice(1, 7), slice(0, 6))
+
+
+def test_tracked_component_shortcut_agrees_with_the_grown_mask():
+    """A lone region touching the last mask is taken without the distance transform; the
+    answer is the one the grown mask gives."""
+    from drake_rus.imaging.probe import ProbeGeometry
+    from drake_rus.imaging.segment import near_region, tracked_component
+    g = ProbeGeometry.from_config(ImagingConfig())
+    shape = g.image_shape
+    follow = dict(max_gap=2.0, reach=0.010)
+    prior = _disc(shape, (100, 120), 20)
+    for centre, radius in (((104, 124), 18), ((100, 150), 6), ((100, 175), 6),
+                           ((30, 30), 5)):
+        region = _disc(shape, centre, radius)
+        grown = near_region(prior.copy(), g, 0.010)
+        expected = 0 if np.any(region & grown) else None
+        assert tracked_component([region], prior, 0.05, g, **follow) == expected, centre

@@ -207,3 +207,53 @@ def test_cycle_detector_needs_a_return_after_an_excursion():
     errors = [1e-6, 2e-6, 3e-6] * 3
     assert _cycle_period(cyc, errors, 8, 1e-4, 1e-11, None) == 3
     assert _cycle_period(cyc, errors, 2, 1e-4, 1e-11, None) == 0     # longer than looked for
+
+
+def test_warm_start_from_a_registration_of_part_of_the_cloud():
+    """A registration of the cloud's first part, then of the whole cloud started from it:
+    as close to the true pose as from the heuristic start, in fewer iterations; with shape
+    modes the weights start from the earlier ones (clipped to 3 standard deviations)."""
+    Q, N, _ = bean_template(3)
+    mode = np.zeros_like(Q)
+    mode[:, 0] = Q[:, 0] / np.abs(Q[:, 0]).max()
+    variances = np.array([0.01 ** 2])
+    X_BK = true_pose((10.0, -6.0, 12.0))
+    K = Q + 0.006 * mode
+    R0 = heuristic_initial_rotation(SUPERIOR_B, LATERAL_B)
+    part = X_BK.multiply(K[K[:, 0] > 0.0].T).T
+    whole = X_BK.multiply(K[K[:, 0] > -0.5 * K[:, 0].max()].T).T
+    kw = dict(shape_modes_K=mode[None], shape_variances=variances)
+    first = register_plane_to_plane(part, Q, N, R0, **kw)
+    cold = register_plane_to_plane(whole, Q, N, R0, **kw)
+    warm = register_plane_to_plane(whole, Q, N, R0, initial_X_BK=first.X_BK,
+                                   initial_shape=first.shape_coefficients, **kw)
+
+    def errors(result):
+        return (np.linalg.norm(result.X_BK.translation() - X_BK.translation()),
+                angle_between(result.X_BK.rotation().matrix(), X_BK.rotation().matrix()))
+
+    assert warm.iterations < cold.iterations
+    (dp_warm, dr_warm), (dp_cold, dr_cold) = errors(warm), errors(cold)
+    assert dp_warm < dp_cold + 2e-4 and dr_warm < dr_cold + np.deg2rad(0.1)
+    assert warm.shape_coefficients[0] == pytest.approx(cold.shape_coefficients[0], abs=5e-4)
+    # Started at the answer, it stops at once.
+    again = register_plane_to_plane(whole, Q, N, R0, initial_X_BK=warm.X_BK,
+                                    initial_shape=warm.shape_coefficients, **kw)
+    assert again.iterations <= 3
+    with pytest.raises(ValueError, match="initial_shape"):
+        register_plane_to_plane(whole, Q, N, R0, initial_shape=np.zeros(2), **kw)
+    # Weights beyond the model's 3 standard deviations start clipped.
+    start = dict(initial_X_BK=warm.X_BK, max_iterations=1, **kw)
+    clipped = register_plane_to_plane(whole, Q, N, R0, initial_shape=[1.0], **start)
+    at_bound = register_plane_to_plane(whole, Q, N, R0, initial_shape=[0.03], **start)
+    assert clipped.errors[0] == at_bound.errors[0]
+
+
+def test_template_tree_finds_the_same_neighbours():
+    from scipy.spatial import cKDTree
+    from drake_rus.localization.icp import _template_tree
+    Q, _, _ = bean_template(3)
+    p = np.random.default_rng(1).normal(scale=0.04, size=(500, 3))
+    d0, j0 = cKDTree(Q).query(p)
+    d1, j1 = _template_tree(Q).query(p)
+    assert np.array_equal(j0, j1) and np.array_equal(d0, d1)

@@ -222,3 +222,44 @@ def test_icp_localizer_kidney_length_estimate_port(template, enabled):
         assert port.Eval(context)[0] == pytest.approx(np.ptp(K[:, 0]), abs=0.004)
     else:
         assert np.isnan(port.Eval(context)[0])
+
+
+@pytest.mark.parametrize("warm", [True, False])
+def test_icp_localizer_length_fits_start_from_the_previous_one(template, warm, monkeypatch):
+    """Every length check after the first that passed starts from that fit's pose and
+    shape weights (``length_warm_start``), and reads the length the heuristic start reads."""
+    from pydrake.systems.analysis import Simulator
+    import drake_rus.localization.localize as localize_module
+    starts = []
+    original = localize_module.register_plane_to_plane
+
+    def spy(*args, **kwargs):
+        starts.append((kwargs.get("initial_X_BK"), kwargs.get("initial_shape")))
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(localize_module, "register_plane_to_plane", spy)
+    shaped, mode = lengthening_template(template)
+    K = template.points + 0.012 * mode
+    X_BK = true_pose((5.0, -4.0, 6.0))
+    P = X_BK.multiply(K[K[:, 0] > K[:, 0].max() - 0.6 * np.ptp(K[:, 0])].T).T
+    config = LocalizationConfig(length_shape_modes=1, length_warm_start=warm,
+                                adaptive_period=0.2, length_min_travel=0.03)
+    system = IcpLocalizer(shaped, config, SUPERIOR_B, LATERAL_B,
+                          localize_phase=int(supervisor.Phase.LOCALIZE),
+                          explore_phase=int(supervisor.Phase.EXPLORE))
+    simulator = Simulator(system)
+    context = simulator.get_mutable_context()
+    system.GetInputPort("phase").FixValue(context, [float(supervisor.Phase.EXPLORE)])
+    system.GetInputPort("point_cloud").FixValue(context, _cloud(P, 0.04))
+    simulator.AdvanceTo(0.1)                                       # the first check
+    state = context.get_abstract_state(system._length).get_value()
+    assert state.fit is not None and len(starts) == 1 and starts[0] == (None, None)
+    simulator.AdvanceTo(0.3)                                       # the second check
+    assert len(starts) == 2
+    if warm:
+        assert starts[1][0] is state.fit.X_BK
+        assert np.array_equal(starts[1][1], state.fit.shape_coefficients)
+    else:
+        assert starts[1] == (None, None)
+    length = system.GetOutputPort("kidney_length_estimate").Eval(context)[0]
+    assert length == pytest.approx(np.ptp(K[:, 0]), abs=0.004)

@@ -16,7 +16,7 @@ from drake_rus.localization.icp import IcpResult
 from drake_rus.localization.localize import LocalizationOutcome, load_registration_template
 from drake_rus.localization.tracking import (
     DriftEstimate, KidneyTrackingMonitor, TrackingLimits, TrackingState, estimate_drift,
-    judged_drift, kidney_in_view, tracking_limits, tracking_update)
+    group_medians, judged_drift, kidney_in_view, tracking_limits, tracking_update)
 
 X_BK = RigidTransform(RollPitchYaw(0.05, -0.1, math.pi / 2 + 0.2), [0.55, 0.02, 0.08])
 
@@ -252,3 +252,26 @@ def test_monitor_passes_a_still_kidney_its_template_misplaces_along_the_axis(tem
     plain = dataclasses.replace(LocalizationConfig(), tracking_axial_allowance=0.0)
     state, _ = _run_monitor(template, along, config=plain)     # the former rule: "moved"
     assert "from its registered pose" in state.error
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_group_medians_are_numpys_medians(seed):
+    """One median per group, as np.median gives it: the middle value of an odd count, the
+    mean of the two middle values of an even one; groups in any order, ties included."""
+    rng = np.random.default_rng(seed)
+    n_groups = int(rng.integers(1, 30))
+    counts = rng.integers(1, 40, n_groups)
+    counts[0], counts[-1] = 1, 2                     # a single value and an even pair
+    groups = np.repeat(np.arange(n_groups), counts)
+    values = rng.normal(size=len(groups))
+    values[rng.random(len(values)) < 0.2] = 0.5      # ties
+    order = rng.permutation(len(groups))             # groups interleaved
+    got = group_medians(values[order], groups[order], n_groups)
+    want = np.array([np.median(values[groups == g]) for g in range(n_groups)])
+    assert np.array_equal(got, want)
+    assert np.count_nonzero(counts % 2) and np.count_nonzero(counts % 2 == 0)
+
+
+def test_group_medians_need_every_group():
+    with pytest.raises(ValueError, match="every group"):
+        group_medians(np.ones(3), np.array([0, 0, 2]), 3)

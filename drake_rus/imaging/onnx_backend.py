@@ -137,16 +137,24 @@ def _area_matrix(centres: np.ndarray, size: float, lo: float, step: float, n_out
     return sps.csr_matrix(ov.astype(np.float32))
 
 
-def _linear_matrix(pos: np.ndarray, n: int):
-    """Sparse (len(pos), n) linear interpolation at continuous indices ``pos`` of n samples
-    (pixel centres at integers); rows more than half a sample outside the grid are 0."""
+def _linear_taps(pos: np.ndarray, n: int):
+    """Linear interpolation at continuous indices ``pos`` of n samples (pixel centres at
+    integers) as two taps per output: (i0, i1, w0, w1) with i0 < i1 (for n >= 2) and float32
+    weights; outputs more than half a sample outside the grid get weights 0."""
     inside = (pos >= -0.5) & (pos <= n - 0.5)
     x = np.clip(pos, 0, n - 1)
     i0 = np.minimum(np.floor(x).astype(np.intp), max(n - 2, 0))
     i1 = np.minimum(i0 + 1, n - 1)
     w = (x - i0) * inside
+    return i0, i1, ((1 - w) * inside).astype(np.float32), w.astype(np.float32)
+
+
+def _linear_matrix(pos: np.ndarray, n: int):
+    """Sparse (len(pos), n) linear interpolation at continuous indices ``pos`` of n samples
+    (pixel centres at integers); rows more than half a sample outside the grid are 0."""
+    i0, i1, w0, w1 = _linear_taps(pos, n)
     rows = np.arange(len(pos))
-    return sps.csr_matrix((np.concatenate([(1 - w) * inside, w]).astype(np.float32),
+    return sps.csr_matrix((np.concatenate([w0, w1]),
                            (np.concatenate([rows, rows]), np.concatenate([i0, i1]))),
                           shape=(len(pos), n))
 
@@ -172,9 +180,12 @@ class PhysicalCanvas:
         self._z = g.z0 + np.arange(g.height_px) * g.dz
         self._x = g.x0 + np.arange(g.width_px) * g.dx
         self._rows = _area_matrix(self._z, g.dz, self.top, self.pixel_size, self.shape[0])
-        self._cols_T = _area_matrix(self._x, g.dx, self.left, self.pixel_size,
-                                    self.shape[1]).T.tocsr()
+        # The column map as (canvas columns, image columns): applied as cols @ tmp.T, which
+        # sums over image columns in the same (ascending) order as tmp @ cols.T, without
+        # scipy's per-call transposes of a dense @ sparse product.
+        self._cols = _area_matrix(self._x, g.dx, self.left, self.pixel_size, self.shape[1])
         self._back: dict = {}
+        self._taps: dict = {}
         #: Canvas pixels at least half covered by the image's fan.
         self.fan_mask = self.to_canvas(g.fan_mask.astype(np.float32)) >= 0.5
         self.fan_mask.flags.writeable = False
@@ -183,7 +194,7 @@ class PhysicalCanvas:
         """float32 (H, W) canvas of an image (rows, cols): the area mean of the image over
         each canvas pixel, 0 where the canvas lies outside the image."""
         img = np.asarray(image, dtype=np.float32)
-        return np.asarray((self._rows @ img) @ self._cols_T, dtype=np.float32)
+        return np.ascontiguousarray((self._cols @ (self._rows @ img).T).T, dtype=np.float32)
 
     def to_image(self, canvas_map: np.ndarray) -> np.ndarray:
         """float32 (rows, cols) image of a map (h, w) over the canvas (the canvas's shape or
@@ -200,6 +211,44 @@ class PhysicalCanvas:
                 _linear_matrix((self._x - self.left) / sx - 0.5, w).T.tocsr())
         rows, cols_T = hit
         return np.asarray((rows @ m) @ cols_T, dtype=np.float32)
+
+    def _back_taps(self, h: int, w: int):
+        """The two-tap bilinear interpolation ``to_image`` applies to a (h, w) map: (rows,
+        cols), each (i0, i1, w0, w1) per image row / column (see ``_linear_taps``)."""
+        hit = self._taps.get((h, w))
+        if hit is None:
+            sz = self.shape[0] * self.pixel_size / h
+            sx = self.shape[1] * self.pixel_size / w
+            hit = self._taps[(h, w)] = (_linear_taps((self._z - self.top) / sz - 0.5, h),
+                                        _linear_taps((self._x - self.left) / sx - 0.5, w))
+        return hit
+
+    def to_image_window(self, window: np.ndarray, origin: tuple[int, int],
+                        map_shape: tuple[int, int]) -> tuple[slice, slice, np.ndarray]:
+        """``to_image`` of a (h, w) = ``map_shape`` map that is 0 outside one window:
+        ``window`` (a, b) is the map at rows ``origin[0] + [0, a)`` and columns
+        ``origin[1] + [0, b)``. Returns (image rows, image columns, float32 values) of the
+        image pixels whose interpolation reaches the window; ``to_image`` of the whole map is
+        0 everywhere else. The values are those of ``to_image`` bit for bit: the same two
+        float32 taps per row and column, summed in the same order as its sparse products
+        (the terms left out are exact zeros)."""
+        m = np.asarray(window, dtype=np.float32)
+        (ri0, ri1, rw0, rw1), (ci0, ci1, cw0, cw1) = self._back_taps(*map_shape)
+        r0, c0 = int(origin[0]), int(origin[1])
+        a, b = m.shape
+        # Taps are non-decreasing along the image: the rows reaching the window are the
+        # contiguous range with i1 >= r0 and i0 < r0 + a (likewise the columns).
+        rows = slice(int(np.searchsorted(ri1, r0)), int(np.searchsorted(ri0, r0 + a)))
+        cols = slice(int(np.searchsorted(ci1, c0)), int(np.searchsorted(ci0, c0 + b)))
+        # The window with a ring of zeros: taps outside it read 0, as they do on the map.
+        padded = np.zeros((a + 2, b + 2), np.float32)
+        padded[1:-1, 1:-1] = m
+        lr0 = np.clip(ri0[rows] - (r0 - 1), 0, a + 1)
+        lr1 = np.clip(ri1[rows] - (r0 - 1), 0, a + 1)
+        lc0 = np.clip(ci0[cols] - (c0 - 1), 0, b + 1)
+        lc1 = np.clip(ci1[cols] - (c0 - 1), 0, b + 1)
+        t = padded[lr0] * rw0[rows, None] + padded[lr1] * rw1[rows, None]
+        return rows, cols, t[:, lc0] * cw0[cols] + t[:, lc1] * cw1[cols]
 
 
 class OnnxSegmenter:
@@ -393,17 +442,46 @@ class OnnxSegmenter:
             return []
         sizes = np.bincount(labels.ravel())[1:]
         order = np.argsort(-sizes, kind="stable")[:1 if largest_only else None]
+        boxes = ndimage.find_objects(labels)
         out = []
         for k in order:
-            keep = fill_holes(labels == k + 1)
-            # Only this component (and a one-pixel margin for the interpolation) survives;
-            # its filled holes count as kidney.
-            p = np.where(ndimage.binary_dilation(keep), prob, 0.0).astype(np.float32)
-            p[keep & (p <= self.threshold)] = 1.0
-            mask = (self.to_image(self._past_fan(p)) > self.threshold) & self.geometry.fan_mask
-            if mask.any():
+            mask = self._region_mask(prob, labels, k + 1, boxes[k])
+            if mask is not None:
                 out.append(mask)
         return out
+
+    def _region_mask(self, prob: np.ndarray, labels: np.ndarray, label: int,
+                     box: tuple[slice, slice]) -> np.ndarray | None:
+        """Bool image mask (rows, cols) of component ``label`` of ``labels`` (its bounding
+        box ``box`` on the model's grid), or None when it vanishes in the mapping back.
+
+        Only this component (and a one-pixel margin for the interpolation) survives; its
+        filled holes count as kidney. The work is done on the component's box grown by two
+        pixels (the margin, then the past-fan dilation), where everything that differs from
+        0 lies: the result is the same, bit for bit, as on the whole grid (hole filling sees
+        the ring around the box as background connected to the border, the dilations see
+        the zeros beyond it)."""
+        h, w = prob.shape
+        r0, r1 = max(box[0].start - 2, 0), min(box[0].stop + 2, h)
+        c0, c1 = max(box[1].start - 2, 0), min(box[1].stop + 2, w)
+        window = (slice(r0, r1), slice(c0, c1))
+        keep = fill_holes(labels[window] == label)
+        p = np.where(ndimage.binary_dilation(keep), prob[window], 0.0).astype(np.float32)
+        p[keep & (p <= self.threshold)] = 1.0
+        if self.canvas is None:
+            full = np.zeros((h, w), np.float32)
+            full[window] = p
+            mask = (self.to_image(full) > self.threshold) & self.geometry.fan_mask
+            return mask if mask.any() else None
+        fan = self._canvas_fan(h, w)[window]
+        p = np.where(fan, p, ndimage.grey_dilation(p, size=(3, 3)))   # as _past_fan
+        rows, cols, values = self.canvas.to_image_window(p, (r0, c0), (h, w))
+        inside = (values > self.threshold) & self.geometry.fan_mask[rows, cols]
+        if not inside.any():
+            return None
+        mask = np.zeros(self.geometry.image_shape, bool)
+        mask[rows, cols] = inside
+        return mask
 
 
 _EIGHT = np.ones((3, 3), bool)

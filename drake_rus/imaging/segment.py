@@ -44,33 +44,71 @@ def mask_centroid(mask: np.ndarray) -> float:
     """Horizontal centroid of a mask in [0, 1] (pixel centres at (u + 0.5) / width); 0.5 for
     an empty mask (no centring correction, eq. 17)."""
     mask = np.asarray(mask, bool)
-    cols = mask.sum(axis=0)
-    n = cols.sum()
-    if n == 0:
+    return _centroid_in_box(mask, mask_box(mask))
+
+
+def _centroid_in_box(mask: np.ndarray, box: tuple[slice, slice] | None) -> float:
+    """``mask_centroid`` from the columns of the mask's box only. Exact: every term
+    count x (u + 0.5) and every partial sum is a multiple of 0.5 far below 2^53, so the sum
+    does not depend on which zero columns it includes or in which order it adds."""
+    if box is None:
         return 0.5
-    return float(np.dot(cols, np.arange(mask.shape[1]) + 0.5) / (n * mask.shape[1]))
+    cols = mask[box].sum(axis=0)
+    n = cols.sum()
+    u = np.arange(box[1].start, box[1].start + len(cols)) + 0.5
+    return float(np.dot(cols, u) / (n * mask.shape[1]))
+
+
+def mask_box(mask: np.ndarray, margin: int = 0) -> tuple[slice, slice] | None:
+    """(rows, cols) slices of a 2-D bool mask's bounding box grown by ``margin`` pixels
+    (clipped to the image); None for an empty mask."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    if rows.size == 0:
+        return None
+    r0, r1 = int(rows[0]), int(rows[-1]) + 1
+    cols = np.flatnonzero(mask[r0:r1].any(axis=0))
+    return _grow((slice(r0, r1), slice(int(cols[0]), int(cols[-1]) + 1)), margin)
 
 
 def boundary_pixels(mask: np.ndarray) -> np.ndarray:
-    """Pixels (N, 2) as (u, v) of the mask's inner boundary (4-connected)."""
+    """Pixels (N, 2) as (u, v) of the mask's inner boundary (4-connected), in row-major
+    order. Pixels on the image's border are boundary."""
     mask = np.asarray(mask, bool)
-    # Erosion by the 4-neighbour cross with a zero border, by array shifts (fast).
-    inner = np.zeros_like(mask)
-    inner[1:-1, 1:-1] = (mask[1:-1, 1:-1] & mask[:-2, 1:-1] & mask[2:, 1:-1]
-                         & mask[1:-1, :-2] & mask[1:-1, 2:])
-    edge = mask & ~inner
+    return _boundary_in_box(mask, mask_box(mask))
+
+
+def _grow(box: tuple[slice, slice], margin: int) -> tuple[slice, slice]:
+    return (slice(max(box[0].start - margin, 0), box[0].stop + margin),
+            slice(max(box[1].start - margin, 0), box[1].stop + margin))
+
+
+def _boundary_in_box(mask: np.ndarray, box: tuple[slice, slice] | None) -> np.ndarray:
+    """``boundary_pixels`` of a mask whose pixels all lie in ``box`` (``mask_box``)."""
+    if box is None:
+        return np.zeros((0, 2))
+    # Worked on the mask's box grown by one pixel: a box side inside the image then lies
+    # on background, a side on the image's border is that border (same result).
+    box = _grow(box, 1)
+    sub = mask[box]
+    # Erosion by the 4-neighbour cross, by array shifts (fast); the image's border pixels
+    # are never inner.
+    inner = np.zeros_like(sub)
+    inner[1:-1, 1:-1] = (sub[1:-1, 1:-1] & sub[:-2, 1:-1] & sub[2:, 1:-1]
+                         & sub[1:-1, :-2] & sub[1:-1, 2:])
+    edge = sub & ~inner
     v, u = np.nonzero(edge)
-    return np.stack([u, v], axis=1).astype(float)
+    return np.stack([u + box[1].start, v + box[0].start], axis=1).astype(float)
 
 
 def read_mask(mask: np.ndarray, geometry: ProbeGeometry, min_area: float) -> MaskReadout:
     """Visible flag, c_msk, area (m^2) and boundary pixels of a kidney mask."""
     mask = np.asarray(mask, bool)
-    area = float(mask.sum()) * geometry.pixel_area
+    area = float(np.count_nonzero(mask)) * geometry.pixel_area
     visible = area >= min_area and area > 0
     if not visible:
         return MaskReadout(False, 0.5, area, np.zeros((0, 2)))
-    return MaskReadout(True, mask_centroid(mask), area, boundary_pixels(mask))
+    box = mask_box(mask)
+    return MaskReadout(True, _centroid_in_box(mask, box), area, _boundary_in_box(mask, box))
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -208,12 +246,12 @@ def near_region(prior_mask: np.ndarray, geometry: ProbeGeometry, reach: float) -
         if arr is prior_mask and geo is geometry and r == reach:
             return near
     prior = np.asarray(prior_mask, bool)
-    rows, cols = np.nonzero(prior)
     near = np.zeros(prior.shape, bool)
-    if rows.size:
+    bbox = mask_box(prior)
+    if bbox is not None:
         dr, dc = int(np.ceil(reach / geometry.dz)) + 1, int(np.ceil(reach / geometry.dx)) + 1
-        box = (slice(max(rows.min() - dr, 0), rows.max() + dr + 1),
-               slice(max(cols.min() - dc, 0), cols.max() + dc + 1))
+        box = (slice(max(bbox[0].start - dr, 0), bbox[0].stop + dr),
+               slice(max(bbox[1].start - dc, 0), bbox[1].stop + dc))
         near[box] = ndimage.distance_transform_edt(
             ~prior[box], sampling=(geometry.dz, geometry.dx)) <= reach
     near.flags.writeable = False
@@ -240,6 +278,10 @@ def tracked_component(components: list[np.ndarray], prior_mask: np.ndarray | Non
     if not components:
         return None
     if prior_mask is not None and np.any(prior_mask) and prior_age <= max_gap:
+        if len(components) == 1 and np.any(components[0] & np.asarray(prior_mask, bool)):
+            # The last mask lies within its own reach: a lone region overlapping it
+            # overlaps the grown mask (no distance transform needed).
+            return 0
         near = near_region(prior_mask, geometry, reach)
         overlap = [int(np.count_nonzero(c & near)) for c in components]
         best = int(np.argmax(overlap))

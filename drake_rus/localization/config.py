@@ -88,6 +88,13 @@ class LocalizationConfig:
     length_min_travel: float = field(default=0.04, metadata={"min": 0.0})
     length_shape_modes: int = field(default=6, metadata={"min": 1})
     length_shape_residual_variance: float = field(default=1e-8, metadata={"positive": True})
+    # Each length fit starts from the previous one that passed the checks (its pose and
+    # shape weights; the first from the heuristic rotation), not from the heuristic start
+    # again: the cloud only grows between checks. Measured against the heuristic start: the
+    # fits take 14-21 iterations instead of 30-42 (test:0); the estimates of the 15 test
+    # patients' kinematic explorations differ by at most 0.3 mm per check (travel by one
+    # frame, E_trans by 0.014 mm), and the closed-loop scans of test:0-4 are identical.
+    length_warm_start: bool = True
     # Kidney tracking after localization (localization/tracking.py, beyond the seed): the
     # frames of the last ``tracking_window`` s of TRANSIT and PIVOT are fitted to the
     # registered template every ``tracking_period`` s, giving the kidney's apparent drift d.

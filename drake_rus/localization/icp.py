@@ -112,6 +112,15 @@ class NearestPointGrid:
         return np.linalg.norm(p - self.points[j], axis=1), j
 
 
+def _template_tree(points: np.ndarray) -> cKDTree:
+    """A kd-tree of template points for one registration's nearest-neighbour queries. With
+    shape modes it is rebuilt every iteration, so it is built with sliding-midpoint splits
+    (``balanced_tree=False``): about half the build time of median splits, queries a few
+    percent slower, and the same nearest neighbours (only the tree's shape differs; a point
+    exactly equidistant from two template points may get the other one)."""
+    return cKDTree(points, balanced_tree=False)
+
+
 def skew(w: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
 
@@ -162,7 +171,8 @@ def register_plane_to_plane(
         shape_modes_K: np.ndarray | None = None, shape_variances: np.ndarray | None = None,
         shape_regularization: float = 1e-6, template_tree=None,
         max_translation_step: float = np.inf, step_tolerance: float = 1e-4,
-        cycle_max_period: int = 32) -> IcpResult:
+        cycle_max_period: int = 32, initial_X_BK: RigidTransform | None = None,
+        initial_shape: np.ndarray | None = None) -> IcpResult:
     """Registers ``P_local_B`` onto the template; returns X_BK and diagnostics.
 
     Args:
@@ -188,6 +198,10 @@ def register_plane_to_plane(
             mean_i r_i^2 / s2 + sum_k b_k^2 / variance_k with s2 = ``shape_regularization``
             (m^2, the residual variance; default (1 mm)^2), each b_k kept within 3 standard
             deviations (deformable registration).
+        initial_X_BK, initial_shape: a warm start: the iteration starts from this pose of K
+            in B (instead of ``R_BK0`` and ``init_translation``) and these mode weights b
+            (instead of 0; clipped to 3 standard deviations), e.g. a previous registration
+            of part of the same cloud.
     """
     P = _check_cloud("P_local_B", P_local_B)
     Q = _check_cloud("template_points_K", template_points_K)
@@ -213,14 +227,29 @@ def register_plane_to_plane(
             raise ValueError("shape_variances: expected one positive variance per mode")
 
     sigma_b = np.sqrt(shape_variances) if n_modes else None
-    R_KB = R_BK0.matrix().T
-    t_KB = -R_KB @ P.mean(axis=0) if init_translation == "centroid" else np.zeros(3)
+    if initial_X_BK is not None:
+        X_KB0 = initial_X_BK.inverse()
+        R_KB, t_KB = X_KB0.rotation().matrix(), X_KB0.translation()
+    else:
+        R_KB = R_BK0.matrix().T
+        t_KB = -R_KB @ P.mean(axis=0) if init_translation == "centroid" else np.zeros(3)
     b = np.zeros(n_modes)
     Q_current = Q
+    if n_modes and initial_shape is not None:
+        b0 = np.asarray(initial_shape, dtype=float).reshape(-1)
+        if b0.shape != (n_modes,):
+            raise ValueError(f"initial_shape: expected {n_modes} mode weights, got "
+                             f"{b0.shape[0]}")
+        b = np.clip(b0, -3 * sigma_b, 3 * sigma_b)
+        Q_current = Q + np.einsum("k,kij->ij", b, shape_modes_K)
     # Correspondences: a NearestPointGrid or kd-tree of the template given by the caller, or
     # a kd-tree built here; with shape modes, a kd-tree of the deformed template, rebuilt
-    # whenever the mode weights change.
-    tree = template_tree if (template_tree is not None and n_modes == 0) else cKDTree(Q)
+    # whenever the mode weights change (sliding-midpoint splits: built in about half the
+    # time of median splits, for the same nearest neighbours).
+    if n_modes:
+        tree = _template_tree(Q_current)
+    else:
+        tree = template_tree if template_tree is not None else cKDTree(Q)
     errors, steps = [], []
     states = []    # (R_KB, t_KB, b) at which errors[k] was measured
     converged = False
@@ -294,7 +323,7 @@ def register_plane_to_plane(
             # Stay within 3 standard deviations of the shape model.
             b = np.clip(b + x[6:], -3 * sigma_b, 3 * sigma_b)
             Q_current = Q + np.einsum("k,kij->ij", b, shape_modes_K)
-            tree = cKDTree(Q_current)
+            tree = _template_tree(Q_current)
     spread_t = spread_r = 0.0
     if cycle is not None:
         # Return the cycle's member with the lowest error (the others are as good a guess
@@ -303,7 +332,7 @@ def register_plane_to_plane(
         R_KB, t_KB, b = states[best]
         if n_modes:
             Q_current = Q + np.einsum("k,kij->ij", b, shape_modes_K)
-            tree = cKDTree(Q_current)
+            tree = _template_tree(Q_current)
         for k in members:
             dp, dr = _pose_distance(states[best], states[k])
             spread_t, spread_r = max(spread_t, dp), max(spread_r, dr)

@@ -83,8 +83,12 @@ def thin_cloud(points: np.ndarray, max_points: int, seed: int = 0) -> np.ndarray
 
 
 def localize(P_local_B: np.ndarray, template: RegistrationTemplate, config: LocalizationConfig,
-             superior_B, lateral_B) -> IcpResult:
-    """T_k^b from the partial cloud with ``config.method`` ("seed" or "deformable")."""
+             superior_B, lateral_B, warm_start: IcpResult | None = None) -> IcpResult:
+    """T_k^b from the partial cloud with ``config.method`` ("seed" or "deformable").
+
+    ``warm_start``: an earlier registration (of part of the same cloud, with the same
+    method and modes) to start from: its pose and, when the mode counts agree, its shape
+    weights, instead of the heuristic rotation and the cloud's centroid."""
     P = thin_cloud(P_local_B, config.max_points)
     R0 = heuristic_initial_rotation(superior_B, lateral_B)
     kwargs = dict(
@@ -92,13 +96,16 @@ def localize(P_local_B: np.ndarray, template: RegistrationTemplate, config: Loca
         error_change_tol=config.error_change_tol, max_iterations=config.max_iterations,
         max_correspondence_distance=config.max_correspondence_distance or np.inf,
         max_translation_step=config.max_translation_step,
-        step_tolerance=config.step_tolerance, cycle_max_period=config.cycle_max_period)
+        step_tolerance=config.step_tolerance, cycle_max_period=config.cycle_max_period,
+        initial_X_BK=None if warm_start is None else warm_start.X_BK)
     if config.method == "deformable" and template.modes is not None and config.shape_modes > 0:
         k = min(config.shape_modes, template.modes.shape[0])
+        b0 = None if warm_start is None else warm_start.shape_coefficients
         return register_plane_to_plane(
             P, template.points, template.normals, R0, shape_modes_K=template.modes[:k],
             shape_variances=template.variances[:k],
-            shape_regularization=config.shape_residual_variance, **kwargs)
+            shape_regularization=config.shape_residual_variance,
+            initial_shape=b0 if b0 is not None and len(b0) == k else None, **kwargs)
     return register_plane_to_plane(P, template.points, template.normals, R0,
                                    template_tree=template.tree, **kwargs)
 
@@ -114,22 +121,25 @@ def kidney_length_of(template: RegistrationTemplate, result: IcpResult) -> float
 
 
 def estimate_kidney_length(P_local_B: np.ndarray, template: RegistrationTemplate,
-                           config: LocalizationConfig, superior_B, lateral_B
+                           config: LocalizationConfig, superior_B, lateral_B,
+                           warm_start: IcpResult | None = None
                            ) -> tuple[float, IcpResult | None]:
     """(length (m), the fit) of the kidney along its long axis from a partial cloud: the
     template's first ``config.length_shape_modes`` shape modes fitted with the pose under
     the weak prior ``config.length_shape_residual_variance``, the length being the fitted
     shape's extent along K's x. NaN (and None) without shape modes in the template (the
-    rigid template's length is the template's, not the kidney's) or when the fit fails the
-    sanity checks. The seen part of a kidney constrains its length only through the shape
-    model (the far pole is not seen); see ``LocalizationConfig`` for how well it works."""
+    rigid template's length is the template's, not the kidney's); NaN (with the fit) when
+    the fit fails the sanity checks. The seen part of a kidney constrains its length only
+    through the shape model (the far pole is not seen); see ``LocalizationConfig`` for how
+    well it works. ``warm_start``: the previous length fit of the growing cloud to start
+    from (``localize``; ``LocalizationConfig.length_warm_start``)."""
     if template.modes is None or config.length_shape_modes < 1:
         return math.nan, None
     k = min(config.length_shape_modes, template.modes.shape[0])
     cfg = dataclasses.replace(config, method="deformable", shape_modes=k,
                               shape_residual_variance=config.length_shape_residual_variance)
     P = np.asarray(P_local_B, dtype=float).reshape(-1, 3)
-    result = localize(P, template, cfg, superior_B, lateral_B)
+    result = localize(P, template, cfg, superior_B, lateral_B, warm_start)
     if check_registration(result, P, cfg):
         return math.nan, result
     return kidney_length_of(template, result), result
@@ -197,6 +207,8 @@ class LengthState:
     last_time: float = -math.inf
     length: float = math.nan     # latest estimate (m); NaN until one passes the checks
     checks: tuple = ()           # ((time s, travel m, length m or NaN), ...)
+    # The latest fit that passed the checks: the next fit's warm start.
+    fit: IcpResult | None = dataclasses.field(default=None, compare=False)
 
     def __deepcopy__(self, memo):   # immutable: clones may share it
         return self
@@ -339,8 +351,9 @@ class IcpLocalizer(LeafSystem):
 
     def _length_check(self, context, state) -> bool:
         """During EXPLORE: every ``adaptive_period`` s (once ``length_min_travel`` has been
-        explored) re-estimate the kidney's length from the cloud so far; a fit that fails
-        the sanity checks keeps the previous estimate. True if a check ran."""
+        explored) re-estimate the kidney's length from the cloud so far, starting from the
+        previous estimate's fit (``length_warm_start``); a fit that fails the sanity checks
+        keeps the previous estimate. True if a check ran."""
         cfg = self._config
         s = context.get_abstract_state(self._length).get_value()
         t = context.get_time()
@@ -350,10 +363,13 @@ class IcpLocalizer(LeafSystem):
         travel = exploration_travel(cloud.poses)
         if travel < cfg.length_min_travel or len(cloud.points) < self._min_points:
             return False
-        length, _ = estimate_kidney_length(cloud.points, self._template, cfg,
-                                           self._superior_B, self._lateral_B)
-        new = LengthState(last_time=t, length=length if math.isfinite(length) else s.length,
-                          checks=s.checks + ((t, travel, length),))
+        length, fit = estimate_kidney_length(
+            cloud.points, self._template, cfg, self._superior_B, self._lateral_B,
+            warm_start=s.fit if cfg.length_warm_start else None)
+        passed = math.isfinite(length)
+        new = LengthState(last_time=t, length=length if passed else s.length,
+                          checks=s.checks + ((t, travel, length),),
+                          fit=fit if passed else s.fit)
         state.get_mutable_abstract_state(self._length).set_value(new)
         return True
 

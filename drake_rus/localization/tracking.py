@@ -66,6 +66,23 @@ class DriftEstimate:
         return float(np.linalg.norm(self.drift_B))
 
 
+def group_medians(values: np.ndarray, groups: np.ndarray, n_groups: int) -> np.ndarray:
+    """(n_groups,) median of ``values`` over each group (``groups``: (N,) ints in
+    [0, n_groups), every group non-empty), as ``np.median`` gives it (the mean of the two
+    middle values for an even count), with one sort instead of one median per group."""
+    values = np.asarray(values, dtype=float).reshape(-1)
+    groups = np.asarray(groups).reshape(-1)
+    order = np.lexsort((values, groups))
+    counts = np.bincount(groups, minlength=n_groups)
+    if np.any(counts == 0):
+        raise ValueError("group_medians: every group needs at least one value")
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    ranked = values[order]
+    low = ranked[start + (counts - 1) // 2]
+    high = ranked[start + counts // 2]
+    return 0.5 * (low + high)
+
+
 def estimate_drift(points_B: np.ndarray, X_BK: RigidTransform, shape_K: np.ndarray,
                    normals_K: np.ndarray, *, tree: cKDTree | None = None,
                    iterations: int = 15, keep_fraction: float = 0.7,
@@ -106,7 +123,7 @@ def estimate_drift(points_B: np.ndarray, X_BK: RigidTransform, shape_K: np.ndarr
         r = np.einsum("ij,ij->i", n, p_K + t - shape_K[idx])
         use = np.ones(len(r), bool)
         if frame_ids is not None:
-            median = np.array([np.median(dist[inverse == f]) for f in range(n_frames)])
+            median = group_medians(dist, inverse, n_frames)
             gate = max(frame_gate_factor * float(np.median(median)), frame_gate_floor)
             use = (median <= gate)[inverse]
             frames_used = int(np.count_nonzero(median <= gate))

@@ -10,6 +10,18 @@ Seven equations, six unknowns: F_W is their (damped) least-squares solution.
 import numpy as np
 
 
+_DAMPING_MATRICES: dict = {}
+
+
+def _damping_matrix(damping: float) -> np.ndarray:
+    """damping^2 I (6 x 6), cached per damping (read-only)."""
+    D = _DAMPING_MATRICES.get(damping)
+    if D is None:
+        D = _DAMPING_MATRICES[damping] = np.eye(6) * damping**2
+        D.flags.writeable = False
+    return D
+
+
 def estimate_tip_wrench(J_WP: np.ndarray, tau_external: np.ndarray, R_WP: np.ndarray,
                         damping: float = 1e-3) -> np.ndarray:
     """Spatial force on the probe from the environment, expressed in P, about P's origin.
@@ -30,7 +42,7 @@ def estimate_tip_wrench(J_WP: np.ndarray, tau_external: np.ndarray, R_WP: np.nda
         raise ValueError(f"J_WP: expected shape (6, {tau.shape[0]}), got {J_WP.shape}")
     # Solve min |J^T F - tau|^2 + damping^2 |F|^2  ->  (J J^T + d^2 I) F = J tau.
     A = J_WP @ J_WP.T
-    A.flat[::7] += damping**2
+    np.add(A, _damping_matrix(damping), out=A)   # one ufunc call (this runs at 100 Hz)
     F_W = np.linalg.solve(A, J_WP @ tau)
     R_PW = np.asarray(R_WP, dtype=float).T
     return np.concatenate([R_PW @ F_W[:3], R_PW @ F_W[3:]])
