@@ -41,6 +41,9 @@ def test_tiny_closed_loop_paper_study(tmp_path, capsys):
         assert 0.9 < e["V"] <= 1 and e["n_whole_pivot"] >= e["n"] > 0, k
         assert e["eps_whole_pivot_mm"] >= e["eps_mm"] > 0, k
         assert e["at_V"]["0.9"]["n"] <= e["n"], k
+        # Reconstructed from the scan's own pole-to-pole masks (V above 0.9: within 15%).
+        assert e["volume_ml"] > 0 and abs(e["volume_error_pct"]) < 15, (k, e["volume_note"])
+        assert "pole-to-pole masks compounded" in e["volume_note"], k
     assert s["OP"]["scan"] == "the run's own scan" and s["OP"]["pivot_pose"] == "registered"
     assert s["OP"]["e_trans_mm"] == eff["e_trans_mm"]
     # GT-OP and NOP pivoted at the pose the study computed from the truth, nothing else.

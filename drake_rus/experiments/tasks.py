@@ -74,6 +74,7 @@ from drake_rus.anatomy import load_patient
 from drake_rus.control.supervisor import Phase, pivot_pose_as_given
 from drake_rus.experiments import kinematic as km
 from drake_rus.experiments.analysis import PAPER_STRATEGIES, STRATEGY_ORDER
+from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.localization.localize import RegistrationTemplate, load_registration_template
 from drake_rus.metrics.core import CoverageAccumulator, e_rot_x, e_trans
 from drake_rus.metrics.reconstruction import compound, reconstruct_kidney, write_nrrd
@@ -831,8 +832,34 @@ def _closed_loop_entry(m: dict) -> dict:
             "curve_V": np.round(np.asarray(m["V_curve"], float), 5).tolist(),
             "pole_to_pole": list(m["pivot"]["pole_to_pole_frames"]),
             "volume_ml": None, "volume_error_pct": None,
-            "volume_note": "closed loop: the scan keeps the masks of only some pivot frames, "
-                           "no reconstruction"}
+            "volume_note": "closed loop: reconstructed in the efficiency study only"}
+
+
+def closed_loop_volume(scan, metrics: dict, kp, spacing: float) -> dict:
+    """The kidney volume reconstructed from a closed-loop scan's pole-to-pole frames (the
+    masks ``RunScan(keep_sweep_masks=True)`` kept, compounded as the kinematic study does:
+    :func:`~drake_rus.metrics.reconstruction.reconstruct_kidney`) against the true kidney's:
+    {volume_ml, volume_error_pct, volume_note}."""
+    line = (metrics.get("sweep") or {}).get("kind") == "line"
+    phase = int(Phase.EXPLORE if line else Phase.PIVOT)
+    frames = [f for f in scan.frames if f.phase == phase]
+    ends = metrics["pivot"]["pole_to_pole_frames"]
+    out = {"volume_ml": None, "volume_error_pct": None}
+    if not ends:
+        return out | {"volume_note": "no pole-to-pole span to reconstruct"}
+    span = frames[ends[0]:ends[1] + 1]
+    masks = [scan.sweep_masks.get(f.frame_index) for f in span]
+    if not span or any(m is None for m in masks):
+        return out | {"volume_note": "the scan kept no masks (RunScan keep_sweep_masks)"}
+    geometry = ProbeGeometry.from_config(scan.scenario.imaging)
+    try:
+        rec = reconstruct_kidney(masks, [f.X_BP for f in span], geometry, spacing=spacing)
+    except ValueError as e:
+        return out | {"volume_note": str(e)}
+    return {"volume_ml": rec["volume_ml"],
+            "volume_error_pct": 100 * (rec["volume_ml"] / (kp.kidney_volume * 1e6) - 1),
+            "volume_note": f"closed loop: {len(span)} pole-to-pole masks compounded at "
+                           f"{spacing * 1e3:g} mm"}
 
 
 def task_scenario_and_patient(task: dict):
@@ -862,8 +889,9 @@ def run_closed_loop_study(task: dict) -> dict:
     template = template_variant(scenario.localization.template, variant,
                                 str(task["patient"]) if variant == "loo" else "",
                                 scenario.patient.side)
+    efficiency = task["study"] == "efficiency"
     scan = RunScan(scenario, kp.patient, template, progress=False,
-                   start_fraction=start_fraction)
+                   start_fraction=start_fraction, keep_sweep_masks=efficiency)
     m = ScanMetrics(scan)
     loc = scan.localization
     explore = [f for f in scan.frames if f.phase == int(Phase.EXPLORE)]
@@ -909,9 +937,11 @@ def run_closed_loop_study(task: dict) -> dict:
             same = (run.scenario == scenario and run.start_fraction == start_fraction)
             other = scan if same else RunScan(run.scenario, kp.patient, template,
                                               progress=False,
-                                              start_fraction=run.start_fraction)
+                                              start_fraction=run.start_fraction,
+                                              keep_sweep_masks=True)
             mo = m if same else ScanMetrics(other)
-            result["strategies"][s] = _closed_loop_entry(mo) | run.pose | {
+            volume = closed_loop_volume(other, mo, kp, float(task.get("recon_spacing", 0.001)))
+            result["strategies"][s] = _closed_loop_entry(mo) | run.pose | volume | {
                 "status": other.status, "reason": other.reason,
                 "e_trans_mm": mo["e_trans_mm"], "e_rot_x_deg": mo["e_rot_x_deg"],
                 "sim_s": other.sim_s, "scan_wall_s": other.wall_s,

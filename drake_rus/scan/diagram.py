@@ -113,9 +113,17 @@ class ScanRecorder(LeafSystem):
         self.DeclarePeriodicPublishEvent(period, 0.5 * period, self._record)
         self.frames: list[FrameRecord] = []
         self.images: list[tuple] = []
+        #: Kidney masks (bool, rows x cols) by frame index, of the phases ``keep_masks`` asks.
+        self.sweep_masks: dict[int, np.ndarray] = {}
+        self._mask_phases: frozenset = frozenset()
         self._keep_every, self._keep_max = keep_every, keep_max
         self._last_index = -1
         self._pivot_count = 0
+
+    def keep_masks(self, phases) -> None:
+        """Also keep the kidney mask of every frame acquired in one of ``phases`` (Phase
+        values) in ``sweep_masks`` (about 64 kB a frame), e.g. for a volume reconstruction."""
+        self._mask_phases = frozenset(int(p) for p in phases)
 
     def _record(self, context):
         us = self._us.Eval(context)
@@ -126,6 +134,8 @@ class ScanRecorder(LeafSystem):
         visible = bool(self._visible.Eval(context)[0] > 0.5)
         self.frames.append(FrameRecord(us.time, us.frame_index, phase, RigidTransform(us.X_BP),
                                        visible, float(self._force.Eval(context)[0])))
+        if phase in self._mask_phases:
+            self.sweep_masks[us.frame_index] = np.array(self._mask.Eval(context).image, bool)
         if phase == Phase.PIVOT:
             if self._pivot_count % self._keep_every == 0 and len(self.images) < self._keep_max:
                 mask = self._mask.Eval(context)

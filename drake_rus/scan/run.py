@@ -94,6 +94,9 @@ class ScanResult:
     # Process CPU time (s) of the simulation loop (wall_s's counterpart, robust to other jobs
     # on the machine; benchmarks report sim_s / cpu_s).
     cpu_s: float = float("nan")
+    # Kidney masks (bool, rows x cols) by frame index of the EXPLORE and PIVOT frames, when
+    # RunScan was asked to keep them (keep_sweep_masks); else empty.
+    sweep_masks: dict = dataclasses.field(default_factory=dict)
 
     @property
     def X_BK_true(self) -> RigidTransform | None:
@@ -196,14 +199,14 @@ def CollectScanResult(scenario, patient_name: str, template, handles: ScanHandle
         phases=phases, frames=list(h.recorder.frames), images=list(h.recorder.images),
         partial_cloud_B=np.array(cloud.points), localization=outcome, X_BK_estimated=X_BK_est,
         registered_template_B=registered, logs=logs, safety_events=events, scenario=scenario,
-        truth=truth,
+        truth=truth, sweep_masks=dict(h.recorder.sweep_masks),
         tracking_drift=h.tracking.state(h.tracking.GetMyContextFromRoot(root_context)).history)
 
 
 def RunScan(scenario, patient, template, *, make_station: Callable = MakeStation,
             meshcat=None, max_sim_time: float = 150.0, progress: bool | None = None,
             start_fraction: float | None = None, monitors: Sequence[ScanMonitor] = (),
-            settle: float = 0.0) -> ScanResult:
+            settle: float = 0.0, keep_sweep_masks: bool = False) -> ScanResult:
     """Runs the closed-loop scan until DONE, ABORT or ``max_sim_time`` (s).
 
     ``patient``: the virtual patient (simulation: plans the start pose and attaches the
@@ -213,7 +216,9 @@ def RunScan(scenario, patient, template, *, make_station: Callable = MakeStation
     velocity on every exit) and is stopped if it falls ``MAX_REALTIME_LAG`` behind the wall
     clock. ``settle`` (s):
     keep simulating this long after the scan ends (monitors still observe), e.g. to check
-    the robot comes to rest; the result describes the scan proper.
+    the robot comes to rest; the result describes the scan proper. ``keep_sweep_masks``:
+    keep every EXPLORE and PIVOT frame's kidney mask (``ScanResult.sweep_masks``, for a
+    volume reconstruction; about 64 kB a frame).
     """
     plan = None
     if patient is not None and not scenario.hardware:
@@ -222,6 +227,8 @@ def RunScan(scenario, patient, template, *, make_station: Callable = MakeStation
         DrawStartPlan(meshcat, plan)
     station = make_station(scenario, meshcat=meshcat, patient=patient)
     builder, h = BuildScanDiagram(scenario, station, template)
+    if keep_sweep_masks:
+        h.recorder.keep_masks((Phase.EXPLORE, Phase.PIVOT))
     truth = (AttachSimulationTruth(builder, station, patient, scenario)
              if patient is not None else None)
     diagram = builder.Build()
