@@ -258,7 +258,8 @@ class Imager:
         if self.backend_name == "onnx":
             self._track = track_update(self._track, mask, readout.visible, t, g,
                                        max_gap=self.imaging.track_gap,
-                                       reach=self.imaging.track_reach)
+                                       reach=self.imaging.track_reach,
+                                       min_overlap=self.imaging.track_min_overlap)
         boundary = (g.pixel_to_B(readout.boundary, X_BP) if len(readout.boundary)
                     else np.zeros((0, 3)))
         return Frame(X_BP=X_BP, visible=bool(readout.visible), centroid=float(readout.centroid),

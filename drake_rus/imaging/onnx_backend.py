@@ -258,12 +258,14 @@ class OnnxSegmenter:
                  input_shape=(1, 1, 128, 128), mean: float = 0.0, std: float = 1.0,
                  output: str = "logits", kidney_channel: int = 0, threshold: float = 0.5,
                  threads: int = 1, field_prefix: str = "imaging.", card: dict | None = None,
-                 track_gap: float = 2.0, track_reach: float = 0.010):
+                 track_gap: float = 2.0, track_reach: float = 0.010,
+                 track_min_overlap: float = 0.5):
         """``card``: the model card's fields (default: read from the ``.json`` next to the
         model); ``pixel_size_mm`` and ``canvas_px`` switch on the physical canvas.
-        ``track_gap`` (s), ``track_reach`` (m): how a kidney seen before is followed (see
-        ``ImagingConfig.track_gap``)."""
+        ``track_gap`` (s), ``track_reach`` (m), ``track_min_overlap``: how a kidney seen
+        before is followed (see ``ImagingConfig.track_gap``)."""
         self.track_gap, self.track_reach = float(track_gap), float(track_reach)
+        self.track_min_overlap = float(track_min_overlap)
         import onnxruntime as ort
         self.geometry = geometry
         self.path = resolve_model_path(str(model_path))
@@ -333,7 +335,8 @@ class OnnxSegmenter:
         return cls(config.onnx_model, geometry, config.onnx_input_shape, config.onnx_input_mean,
                    config.onnx_input_std, config.onnx_output, config.onnx_kidney_channel,
                    config.onnx_threshold, config.onnx_threads,
-                   track_gap=config.track_gap, track_reach=config.track_reach)
+                   track_gap=config.track_gap, track_reach=config.track_reach,
+                   track_min_overlap=config.track_min_overlap)
 
     @property
     def pixel_size_mm(self) -> float | None:
@@ -427,7 +430,8 @@ class OnnxSegmenter:
         if prior_mask is None:
             return regions[0] if regions else np.zeros(self.geometry.image_shape, bool)
         k = tracked_component(regions, prior_mask, prior_age, self.geometry,
-                              max_gap=self.track_gap, reach=self.track_reach)
+                              max_gap=self.track_gap, reach=self.track_reach,
+                              min_overlap=self.track_min_overlap)
         return regions[k] if k is not None else np.zeros(self.geometry.image_shape, bool)
 
     def candidates(self, image: np.ndarray, largest_only: bool = False) -> list[np.ndarray]:

@@ -264,28 +264,39 @@ def near_region(prior_mask: np.ndarray, geometry: ProbeGeometry, reach: float) -
 
 def tracked_component(components: list[np.ndarray], prior_mask: np.ndarray | None,
                       prior_age: float, geometry: ProbeGeometry, *, max_gap: float,
-                      reach: float) -> int | None:
+                      reach: float, min_overlap: float = 0.5) -> int | None:
     """Which candidate region of a frame is the kidney (index into ``components``, None: none).
 
     components: bool masks (rows, cols) of the frame's candidate regions; prior_mask: the
     kidney mask last seen, ``prior_age`` s ago (None: never seen). While the kidney was seen
     within ``max_gap`` s, the kidney is the region overlapping the last mask grown by
-    ``reach`` (m) most, and a region elsewhere is not taken for it: between frames 50 ms
-    apart a kidney section moves a few millimetres, it does not jump across the image (a
-    hypoechoic muscle band or bowel loop that the model also marks is left alone). Else
-    (first sight, or the kidney lost for longer than ``max_gap``): the largest region.
+    ``reach`` (m) most, among the regions that continue it: at least ``min_overlap`` of the
+    region lies in the grown mask, or the region covers at least ``min_overlap`` of the last
+    mask itself (a kidney re-entering the image where it left, at a pivot leg's end, grows
+    past the reach of its last small section). A region elsewhere is not taken for it:
+    between frames 50 ms apart a kidney section moves a few millimetres, it does not jump
+    across the image (a hypoechoic muscle band or bowel loop that the model also marks is
+    left alone, also when its edge touches the grown mask). Else (first sight, or the kidney
+    lost for longer than ``max_gap``): the largest region.
     """
     if not components:
         return None
     if prior_mask is not None and np.any(prior_mask) and prior_age <= max_gap:
-        if len(components) == 1 and np.any(components[0] & np.asarray(prior_mask, bool)):
-            # The last mask lies within its own reach: a lone region overlapping it
-            # overlaps the grown mask (no distance transform needed).
+        prior = np.asarray(prior_mask, bool)
+        prior_area = int(np.count_nonzero(prior))
+        areas = [int(np.count_nonzero(c)) for c in components]
+        cover = [int(np.count_nonzero(c & prior)) for c in components]
+        if len(components) == 1 and cover[0] and (cover[0] >= min_overlap * areas[0]
+                                                  or cover[0] >= min_overlap * prior_area):
+            # It continues the last mask on its own (the mask lies within its own reach):
+            # no distance transform needed.
             return 0
         near = near_region(prior_mask, geometry, reach)
         overlap = [int(np.count_nonzero(c & near)) for c in components]
-        best = int(np.argmax(overlap))
-        return best if overlap[best] > 0 else None
+        ok = [k for k in range(len(components))
+              if overlap[k] > 0 and (overlap[k] >= min_overlap * areas[k]
+                                     or cover[k] >= min_overlap * prior_area)]
+        return max(ok, key=lambda k: overlap[k]) if ok else None
     return int(np.argmax([int(np.count_nonzero(c)) for c in components]))
 
 
@@ -316,13 +327,15 @@ def track_prior(track: KidneyTrack, t: float, confirm: float
 
 
 def track_update(track: KidneyTrack, mask: np.ndarray, visible: bool, t: float,
-                 geometry: ProbeGeometry, *, max_gap: float, reach: float) -> KidneyTrack:
+                 geometry: ProbeGeometry, *, max_gap: float, reach: float,
+                 min_overlap: float = 0.5) -> KidneyTrack:
     """The track after a frame at time t whose kidney mask is ``mask``: unchanged when the
-    kidney is not visible; else this mask, continuing the track when it overlaps the last
-    mask grown by ``reach`` within ``max_gap`` s, a new track otherwise."""
+    kidney is not visible; else this mask, continuing the track when it continues the last
+    mask within ``max_gap`` s (:func:`tracked_component`, ``reach``, ``min_overlap``), a new
+    track otherwise."""
     if not visible:
         return track
     continues = track.mask is not None and tracked_component(
         [np.asarray(mask, bool)], track.mask, t - track.time, geometry, max_gap=max_gap,
-        reach=reach) == 0
+        reach=reach, min_overlap=min_overlap) == 0
     return KidneyTrack(np.asarray(mask, bool), float(t), track.since if continues else float(t))
