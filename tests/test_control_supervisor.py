@@ -92,6 +92,14 @@ def inputs(t, p=(0.55, 0.0, 0.1), F=9.0, visible=True, c=0.5, R=R_DOWN, R_BK=Non
                                  localization_ready=ready)
 
 
+def _unseen(s, t, steps, c, dt):
+    """``steps`` control periods without the kidney in the image; returns (state, time)."""
+    for _ in range(steps):
+        t += dt
+        s = supervisor.supervisor_step(s, inputs(t, visible=False), c, dt)
+    return s, t
+
+
 def test_supervisor_approach_then_explore_distance():
     c = cfg(exploration_ratio=0.2, kidney_length=0.1, scan_direction="+y")
     dt = 0.01
@@ -131,14 +139,9 @@ def test_supervisor_explore_ends_when_kidney_leaves_after_debounce():
     s = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0, F=9.0), c, dt)
     s = supervisor.supervisor_step(s, inputs(0.01), c, dt)
     assert s.phase == supervisor.Phase.EXPLORE
-    t = 0.01
-    for _ in range(9):
-        t += dt
-        s = supervisor.supervisor_step(s, inputs(t, visible=False), c, dt)
+    s, t = _unseen(s, 0.01, 9, c, dt)
     assert s.phase == supervisor.Phase.EXPLORE  # 0.08 s invisible: not yet
-    for _ in range(3):
-        t += dt
-        s = supervisor.supervisor_step(s, inputs(t, visible=False), c, dt)
+    s, t = _unseen(s, t, 3, c, dt)
     assert s.phase == supervisor.Phase.LOCALIZE
     assert "left the image" in s.events[-1][2]
 
@@ -540,13 +543,9 @@ def test_line_sweep_waits_for_the_kidney_then_ends_when_it_leaves():
     assert required.index(True) == 10 and all(required[10:])
     travel = s.travel
     assert travel == pytest.approx(3.01 * c.scan_speed, abs=1e-9)
-    for _ in range(9):
-        t += dt
-        s = supervisor.supervisor_step(s, inputs(t, visible=False), c, dt)
+    s, t = _unseen(s, t, 9, c, dt)
     assert s.phase == supervisor.Phase.EXPLORE      # 0.09 s gone: not yet
-    for _ in range(3):
-        t += dt
-        s = supervisor.supervisor_step(s, inputs(t, visible=False), c, dt)
+    s, t = _unseen(s, t, 3, c, dt)
     assert s.phase == supervisor.Phase.DONE and "line sweep complete" in s.events[-1][2]
     assert s.reason == "" and s.travel < travel + 0.15 * c.scan_speed
 

@@ -197,20 +197,27 @@ def test_kidney_length_estimate_from_a_partial_cloud(template):
     assert np.isnan(estimate_kidney_length(P, template, config, SUPERIOR_B, LATERAL_B)[0])
 
 
-@pytest.mark.parametrize("enabled", [True, False])
-def test_icp_localizer_kidney_length_estimate_port(template, enabled):
+def _length_localizer(template, **config):
+    """An IcpLocalizer on a template that lengthens along its one shape mode, checking the
+    length every 0.2 s from 30 mm of travel; and the 60% of a 12 mm-longer kidney K it
+    sees (P, placed at a known pose). Returns (system, simulator, context, K, P)."""
     from pydrake.systems.analysis import Simulator
     shaped, mode = lengthening_template(template)
     K = template.points + 0.012 * mode
     X_BK = true_pose((5.0, -4.0, 6.0))
     P = X_BK.multiply(K[K[:, 0] > K[:, 0].max() - 0.6 * np.ptp(K[:, 0])].T).T
-    config = LocalizationConfig(length_shape_modes=1, length_estimation=enabled,
-                                adaptive_period=0.2, length_min_travel=0.03)
-    system = IcpLocalizer(shaped, config, SUPERIOR_B, LATERAL_B,
-                          localize_phase=int(supervisor.Phase.LOCALIZE),
+    system = IcpLocalizer(shaped, LocalizationConfig(length_shape_modes=1, adaptive_period=0.2,
+                                                     length_min_travel=0.03, **config),
+                          SUPERIOR_B, LATERAL_B, localize_phase=int(supervisor.Phase.LOCALIZE),
                           explore_phase=int(supervisor.Phase.EXPLORE))
     simulator = Simulator(system)
-    context = simulator.get_mutable_context()
+    return system, simulator, simulator.get_mutable_context(), K, P
+
+
+@pytest.mark.parametrize("enabled", [True, False])
+def test_icp_localizer_kidney_length_estimate_port(template, enabled):
+    system, simulator, context, K, P = _length_localizer(
+        template, length_estimation=enabled)
     port = system.GetOutputPort("kidney_length_estimate")
     system.GetInputPort("phase").FixValue(context, [float(supervisor.Phase.EXPLORE)])
     system.GetInputPort("point_cloud").FixValue(context, _cloud(P, 0.02))
@@ -228,7 +235,6 @@ def test_icp_localizer_kidney_length_estimate_port(template, enabled):
 def test_icp_localizer_length_fits_start_from_the_previous_one(template, warm, monkeypatch):
     """Every length check after the first that passed starts from that fit's pose and
     shape weights (``length_warm_start``), and reads the length the heuristic start reads."""
-    from pydrake.systems.analysis import Simulator
     import drake_rus.localization.localize as localize_module
     starts = []
     original = localize_module.register_plane_to_plane
@@ -238,17 +244,7 @@ def test_icp_localizer_length_fits_start_from_the_previous_one(template, warm, m
         return original(*args, **kwargs)
 
     monkeypatch.setattr(localize_module, "register_plane_to_plane", spy)
-    shaped, mode = lengthening_template(template)
-    K = template.points + 0.012 * mode
-    X_BK = true_pose((5.0, -4.0, 6.0))
-    P = X_BK.multiply(K[K[:, 0] > K[:, 0].max() - 0.6 * np.ptp(K[:, 0])].T).T
-    config = LocalizationConfig(length_shape_modes=1, length_warm_start=warm,
-                                adaptive_period=0.2, length_min_travel=0.03)
-    system = IcpLocalizer(shaped, config, SUPERIOR_B, LATERAL_B,
-                          localize_phase=int(supervisor.Phase.LOCALIZE),
-                          explore_phase=int(supervisor.Phase.EXPLORE))
-    simulator = Simulator(system)
-    context = simulator.get_mutable_context()
+    system, simulator, context, K, P = _length_localizer(template, length_warm_start=warm)
     system.GetInputPort("phase").FixValue(context, [float(supervisor.Phase.EXPLORE)])
     system.GetInputPort("point_cloud").FixValue(context, _cloud(P, 0.04))
     simulator.AdvanceTo(0.1)                                       # the first check
