@@ -186,3 +186,18 @@ def test_a_bar_under_one_side_of_the_face_blocks_those_rays_only():
     assert 0 < v.blocked_rays < v.rays_to_kidney
     assert np.all(v.blockers_B[:, 0] > 0.55 + 0.008 - VOXEL)
     assert v.needed_depth == pytest.approx(0.09 + 0.02, abs=0.003)
+
+
+def test_vertical_depth_preset_ignores_shadows_but_not_depth():
+    """The kinematic twin's depth: the preset holding the kidney under a vertical probe,
+    also where bone over the kidney makes the vertical window unusable for a scan."""
+    from drake_rus.scan.planning import vertical_depth_preset
+    cfg = StartConfig(max_tilt_deg=0.0)
+    blocked = box_body(blocker=Label.BONE)
+    with pytest.raises(StartPlanError, match="bone or gas"):
+        PlanStart(blocked, X_BPT, ImagingConfig(), cfg)
+    assert vertical_depth_preset(blocked, X_BPT, ImagingConfig(), cfg) == 0.15
+    assert vertical_depth_preset(box_body(0.15), X_BPT, ImagingConfig(), cfg) == 0.20
+    with pytest.raises(StartPlanError, match="deepest preset 150 mm"):
+        vertical_depth_preset(box_body(0.15), X_BPT, ImagingConfig(depth_presets=[0.1, 0.15]),
+                              cfg)

@@ -59,11 +59,11 @@ from drake_rus.metrics.core import CoverageAccumulator, window_steps
 from drake_rus.metrics.sweep import cumulative_eps, pole_to_pole_indices
 from drake_rus.scan.diagram import PivotModelFor
 from drake_rus.scan.planning import (
-    PlanStart,
     R_B_TRANSVERSE,
     exploration_roi,
     exploration_start_xy,
     skin_height_B,
+    vertical_depth_preset,
 )
 
 PAPER_STRATEGIES = ("OP", "GT-OP", "NOP", "SL")
@@ -184,14 +184,14 @@ def prepare_patient(patient, X_BPt: RigidTransform, *, coverage_voxel: float = 0
 def imaging_for(kp: "KinematicPatient", imaging, start):
     """The imaging config for this patient, as the closed-loop scan would set it: with the
     window planner (``start.planner: window``) the depth follows the shallowest preset that
-    holds the kidney under the vertical probe of the kinematic sweep (``PlanStart`` with no
-    tilt, reach or placement error); with ``vertical`` the configured depth stays."""
+    holds the kidney under the vertical probe of the kinematic sweep
+    (:func:`~drake_rus.scan.planning.vertical_depth_preset`; the twin's vertical probe
+    images where it is told, so a rib over the vertical window does not stop it); with
+    ``vertical`` the configured depth stays."""
     if start.planner == "vertical":
         return imaging
-    plan = PlanStart(kp.patient, kp.X_BPt, imaging,
-                     dataclasses.replace(start, max_tilt_deg=0.0, placement_error=0.0,
-                                         placement_error_angle_deg=0.0))
-    return dataclasses.replace(imaging, depth=plan.depth_preset)
+    return dataclasses.replace(imaging, depth=vertical_depth_preset(kp.patient, kp.X_BPt,
+                                                                    imaging, start))
 
 
 # ---------------------------------------------------------------------------- imaging

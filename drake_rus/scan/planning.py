@@ -398,6 +398,23 @@ def evaluate_windows(patient, X_BPt: RigidTransform, imaging, config, tilt: floa
     return out
 
 
+def vertical_depth_preset(patient, X_BPt: RigidTransform, imaging, config) -> float:
+    """The shallowest depth preset holding the kidney (far side + ``config.depth_margin``)
+    under a vertical probe anywhere along the exploration line (the kinematic twin's probe;
+    bone and gas shadows are not checked: the twin images where it is told). Raises
+    :class:`StartPlanError` when no preset is deep enough."""
+    superior_B = X_BPt.rotation().matrix()[:, 1]
+    kidney_B = X_BPt.multiply(np.asarray(patient.kidney_mesh.vertices).T).T
+    X_BV = X_BPt @ patient.labels.X_PtV
+    c = evaluate_windows(patient, X_BPt, imaging, config, 0.0, superior_B, kidney_B, X_BV)[0]
+    if c.preset is None:
+        raise StartPlanError(
+            f"start planner: the {patient.side} kidney's far side lies "
+            f"{c.needed_depth * 1000:.0f} mm under a vertical probe (with margin), beyond the "
+            f"deepest preset {max(imaging.depth_presets) * 1000:.0f} mm")
+    return c.preset
+
+
 def window_rank(c: WindowCandidate, preset: float) -> tuple:
     """Order of feasible windows: without a warning (clear within the placement error of the
     start and for ``min_clear_sweep`` of the sweep) first, then a sweep clear of shadows for
