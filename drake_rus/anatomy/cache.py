@@ -94,10 +94,12 @@ def code_digest() -> str:
     return h.hexdigest()
 
 
-@lru_cache(maxsize=1)
-def _library_versions() -> dict:
+@lru_cache(maxsize=8)
+def library_versions(names: tuple = _LIBRARIES) -> dict:
+    """Installed version of each distribution in ``names`` (None when not installed): part
+    of the cache keys, so a library update rebuilds what it may change."""
     out = {}
-    for name in _LIBRARIES:
+    for name in names:
         try:
             out[name] = metadata.version(name)
         except metadata.PackageNotFoundError:
@@ -107,7 +109,7 @@ def _library_versions() -> dict:
 
 def _key(inputs: dict) -> tuple[str, str]:
     doc = json.dumps({"format": FORMAT, "inputs": inputs, "code": code_digest(),
-                      "libraries": _library_versions()}, sort_keys=True)
+                      "libraries": library_versions()}, sort_keys=True)
     return hashlib.sha256(doc.encode()).hexdigest(), doc
 
 

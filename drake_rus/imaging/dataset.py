@@ -264,18 +264,22 @@ def randomised_emulator(base: EmulatorModel, rng: np.random.Generator,
     return m
 
 
-def _kidney_depth(volume: LabelVolume):
-    """(box, kidney mask in the box, depth (m) below the kidney's surface in the box) over
-    the kidneys' bounding box grown by one voxel; None without kidney voxels."""
+def _relabel_by_depth(volume: LabelVolume, relabel) -> LabelVolume:
+    """A copy of ``volume`` whose kidneys ``relabel(sub, kidney, depth)`` relabelled in
+    place: ``sub`` the labels over the kidneys' bounding box grown by one voxel, ``kidney``
+    the kidney mask there and ``depth`` (m) the depth below the kidney's surface. The
+    volume itself without kidney voxels."""
     kid = is_kidney(volume.labels)
     idx = np.argwhere(kid)
     if len(idx) == 0:
-        return None
+        return volume
     lo = np.maximum(idx.min(axis=0) - 1, 0)
     hi = np.minimum(idx.max(axis=0) + 2, volume.labels.shape)
     box = tuple(slice(a, b) for a, b in zip(lo, hi))
     k = kid[box]
-    return box, k, ndimage.distance_transform_edt(k) * volume.voxel_size
+    labels = volume.labels.copy()
+    relabel(labels[box], k, ndimage.distance_transform_edt(k) * volume.voxel_size)
+    return LabelVolume(labels, volume.voxel_size, volume.X_PtV)
 
 
 def thin_cortex(volume: LabelVolume, cortex: float = 0.004) -> LabelVolume:
@@ -283,14 +287,9 @@ def thin_cortex(volume: LabelVolume, cortex: float = 0.004) -> LabelVolume:
     surface made medulla: a thin cortex over a continuous dark medulla, a kidney structure
     the generator does not make (it draws discrete pyramids in a thick cortex). Domain
     randomisation of the kidney's inside; the kidney's outline does not change."""
-    found = _kidney_depth(volume)
-    if found is None:
-        return volume
-    box, _, depth = found
-    labels = volume.labels.copy()
-    sub = labels[box]
-    sub[(depth > cortex) & (sub == Label.KIDNEY_CORTEX)] = Label.KIDNEY_MEDULLA
-    return LabelVolume(labels, volume.voxel_size, volume.X_PtV)
+    def relabel(sub, k, depth):
+        sub[(depth > cortex) & (sub == Label.KIDNEY_CORTEX)] = Label.KIDNEY_MEDULLA
+    return _relabel_by_depth(volume, relabel)
 
 
 def layered_kidney(volume: LabelVolume, cortex: float = 0.0066, parenchyma: float = 0.0154
@@ -304,16 +303,12 @@ def layered_kidney(volume: LabelVolume, cortex: float = 0.0066, parenchyma: floa
     if not 0 < cortex < parenchyma:
         raise ValueError(f"layered_kidney: need 0 < cortex < parenchyma, got {cortex}, "
                          f"{parenchyma}")
-    found = _kidney_depth(volume)
-    if found is None:
-        return volume
-    box, k, depth = found
-    labels = volume.labels.copy()
-    sub = labels[box]
-    sub[k] = Label.KIDNEY_CORTEX
-    sub[k & (depth >= cortex)] = Label.KIDNEY_MEDULLA
-    sub[k & (depth >= parenchyma)] = Label.KIDNEY_SINUS
-    return LabelVolume(labels, volume.voxel_size, volume.X_PtV)
+
+    def relabel(sub, k, depth):
+        sub[k] = Label.KIDNEY_CORTEX
+        sub[k & (depth >= cortex)] = Label.KIDNEY_MEDULLA
+        sub[k & (depth >= parenchyma)] = Label.KIDNEY_SINUS
+    return _relabel_by_depth(volume, relabel)
 
 
 # Published kidney layer thicknesses (docs/facts/anatomy_and_ultrasound.md, Glodny 2009):

@@ -40,13 +40,12 @@ import os
 import re
 import time
 from functools import lru_cache
-from importlib import metadata
 from pathlib import Path
 
 import numpy as np
 from pydrake.math import RigidTransform
 
-from drake_rus.anatomy.cache import CACHE_DIR_ENV, user_cache_home
+from drake_rus.anatomy.cache import CACHE_DIR_ENV, library_versions, user_cache_home
 from drake_rus.anatomy.kidney_shape import KidneyShape, sample_kidney_shape_params
 from drake_rus.template.builder import build_template, save_template, subject_from_mask
 
@@ -175,13 +174,7 @@ def _code_and_libraries() -> dict:
     h = hashlib.sha256()
     for p in _CODE_FILES:
         h.update(p.name.encode() + b"\0" + p.read_bytes() + b"\0")
-    libs = {}
-    for name in _LIBRARIES:
-        try:
-            libs[name] = metadata.version(name)
-        except metadata.PackageNotFoundError:
-            libs[name] = None
-    return {"code": h.hexdigest(), "libraries": libs}
+    return {"code": h.hexdigest(), "libraries": library_versions(_LIBRARIES)}
 
 
 def _inputs(population: Population, n: int, side: str, n_points: int, voxel: float) -> dict:
