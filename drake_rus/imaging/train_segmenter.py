@@ -72,7 +72,10 @@ weights (the same cached data):
 
 Writes ``kidney_unet.onnx`` and ``kidney_unet.json`` (shapes, canvas, normalisation, data,
 augmentation, training time, command). The held-out IoU comes from ``python -m benchmarks
-imaging``; ``--record-benchmark FILE`` (its JSON line) adds it to the card.
+imaging --onnx-model models/segmenter/kidney_unet.onnx``; ``--record-benchmark FILE`` (its
+JSON line) adds it to the card (``--card``, default ``kidney_unet.json`` in ``--out``). The
+scenario runs the int8 model derived from this one
+(:mod:`~drake_rus.imaging.quantize_segmenter`): quantize again after retraining.
 """
 
 from __future__ import annotations
@@ -465,10 +468,19 @@ def export_onnx(net, path: Path, size: int | tuple[int, int]):
 
 def record_benchmark(card_path: Path, bench_json: Path) -> dict:
     """Adds the evaluation of ``python -m benchmarks imaging`` (its JSON line, in a file) to
-    the model card."""
+    the model card ``card_path`` (any model's: the fp32 or the int8 one), replacing its
+    ``evaluation``. A benchmark of another model than the card's (``onnx_model`` vs the
+    card's ``model``), or a file without the JSON line, raises ValueError."""
     card = json.loads(card_path.read_text())
     lines = [ln for ln in bench_json.read_text().splitlines() if ln.startswith("{")]
+    if not lines:
+        raise ValueError(f"record_benchmark: no JSON line in {bench_json}")
     b = json.loads(lines[-1])
+    measured = b.get("onnx_model")
+    if measured and card.get("model") and Path(measured).name != card["model"]:
+        raise ValueError(f"record_benchmark: {bench_json} measured {measured}, but the card "
+                         f"{card_path} is that of {card['model']} (benchmarks imaging "
+                         f"--onnx-model names the model)")
     card["evaluation"] = {
         "iou_by_depth": b.get("iou_by_depth"),
         "iou_by_depth_posture": b.get("iou_by_depth_posture"),
@@ -537,12 +549,19 @@ def main(argv=None) -> int:
     ap.add_argument("--init", metavar="FILE",
                     help="start from this torch state dict (a --save-torch of an earlier run)")
     ap.add_argument("--record-benchmark", metavar="FILE",
-                    help="only add this benchmark output (JSON line) to the card in --out")
+                    help="only add this benchmark output (JSON line) to the card (--card)")
+    ap.add_argument("--card", metavar="FILE", default=None,
+                    help="the card --record-benchmark writes to (default: kidney_unet.json "
+                         "in --out)")
     args = ap.parse_args(argv)
     out = Path(args.out)
     if args.record_benchmark:
-        record_benchmark(out / "kidney_unet.json", Path(args.record_benchmark))
-        print(f"recorded {args.record_benchmark} in {out / 'kidney_unet.json'}")
+        card = Path(args.card) if args.card else out / "kidney_unet.json"
+        try:
+            record_benchmark(card, Path(args.record_benchmark))
+        except (OSError, ValueError) as e:
+            ap.error(f"--record-benchmark: {e}")
+        print(f"recorded {args.record_benchmark} in {card}")
         return 0
     command = ("nice .venv/bin/python -m drake_rus.imaging.train_segmenter "
                + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv)))
