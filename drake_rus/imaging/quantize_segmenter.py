@@ -1,5 +1,5 @@
 """Quantizes the learned kidney segmenter to int8 for faster CPU inference (needs the
-``train`` extra: ``.venv/bin/pip install onnx``).
+``train`` extra: ``.venv/bin/pip install onnx sympy``).
 
 Static post-training quantization with ONNX Runtime: the fp32 model
 (``models/segmenter/kidney_unet.onnx``, the trained master) goes through
@@ -74,11 +74,12 @@ def _quantization_api():
     """(onnxruntime.quantization, quant_pre_process), or ImportError naming the extra."""
     try:
         import onnx  # noqa: F401  (onnxruntime.quantization needs it)
+        import sympy  # noqa: F401  (and its pre-processing's symbolic shape inference)
         from onnxruntime import quantization
         from onnxruntime.quantization.shape_inference import quant_pre_process
     except ImportError as e:
         raise ImportError(f"quantize_segmenter needs the train extra: .venv/bin/pip install "
-                          f"onnx ({e})") from None
+                          f"onnx sympy ({e})") from None
     return quantization, quant_pre_process
 
 

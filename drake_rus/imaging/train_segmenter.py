@@ -62,7 +62,7 @@ The shipped model took two stages (45 + 30 min on one thread of a shared 2-core 
 a run from scratch, then a second one-cycle at a third of the learning rate from its
 weights (the same cached data):
 
-    .venv/bin/pip install torch==2.13.0 onnx
+    .venv/bin/pip install torch==2.13.0 onnx sympy
     nice .venv/bin/python -m drake_rus.imaging.train_segmenter --patients 20 --frames 300 \\
         --epochs 30 --width 16 --time-limit-min 45 --out runs/segmenter_stage1 \\
         --save-torch runs/segmenter_stage1/kidney_unet.pt
