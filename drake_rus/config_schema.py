@@ -281,6 +281,11 @@ CROSS_FIELD_RULES = [
     (("controller.pivot_pose", "controller.sweep"),
      lambda s: not (s.controller.pivot_pose and s.controller.sweep == "line"),
      "a line sweep has no pivot; give pivot_pose [] or sweep pivot"),
+    (("patient.side", "patient.posture"),
+     lambda s: not (s.patient.side == "left" and s.patient.posture == "left_lateral_decubitus"),
+     "left lateral decubitus lays the left kidney against the bed (it turns the right flank "
+     "up for the right kidney); scan the left kidney supine (right lateral decubitus is not "
+     "modelled)"),
     (("patient.X_BPt.translation",),
      lambda s: float(np.linalg.norm(
          s.patient.X_BPt.GetDeterministicValue().translation())) <= MAX_PATIENT_DISTANCE,
