@@ -156,8 +156,9 @@ class FrankyBackend:
         self._robot_time_change = math.nan
         self.watchdog_events: list[WatchdogEvent] = []
         self.command_log: list[tuple[float, np.ndarray]] = []   # (monotonic s, rad/s)
-        # (robot clock s, q rad, velocity sent right after that read rad/s), when tracing.
-        self.trace: list[tuple[float, np.ndarray, np.ndarray]] | None = None
+        # (robot clock s, q rad, velocity sent right after that read rad/s, wall clock of the
+        # read s monotonic), when tracing.
+        self.trace: list[tuple[float, np.ndarray, np.ndarray, float]] | None = None
         self.tau_bias = np.zeros(7)
         self.collision_thresholds: dict | None = None
         self._stop_watchdog = threading.Event()

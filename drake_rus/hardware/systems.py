@@ -128,7 +128,7 @@ class FrankaRobotInterface(LeafSystem):
             sent = self._backend.send(v)
             trace = getattr(self._backend, "trace", None)
             if trace is not None:
-                trace.append((r.robot_time, r.q, np.asarray(sent, float).copy()))
+                trace.append((r.robot_time, r.q, np.asarray(sent, float).copy(), r.wall_time))
         except HardwareFault:
             ds.get_mutable_vector(self._sent).SetZero()
             ds.get_mutable_vector(self._ok).SetFromVector([0.0])
