@@ -122,8 +122,8 @@ def _line_scan(visible):
     return types.SimpleNamespace(
         scenario=scenario, frames=frames, truth=None, X_BK_estimated=None, localization=loc,
         logs={"force": (np.zeros(1), np.zeros((1, 1)))}, status="DONE", reason="",
-        patient="p", wall_s=1.0, sim_s=1.0, phases=[], tracking_drift=(), start_plan=None,
-        safety_events=[])
+        patient="p", wall_s=1.0, sim_s=1.0, phases=[], tracking_drift=(), length_checks=(),
+        start_plan=None, safety_events=[])
 
 
 def test_scan_metrics_of_a_line_sweep_count_its_exploration_frames():

@@ -142,8 +142,8 @@ def test_summary_says_definitions_method_and_segmenter():
     result = types.SimpleNamespace(
         scenario=scenario, frames=frames, truth=None, X_BK_estimated=None, localization=loc,
         logs={"force": (np.zeros(1), np.zeros((1, 1)))}, status="DONE", reason="",
-        patient="p", wall_s=1.0, sim_s=1.0, phases=[], tracking_drift=(), start_plan=None,
-        safety_events=[])
+        patient="p", wall_s=1.0, sim_s=1.0, phases=[], tracking_drift=(), length_checks=(),
+        start_plan=None, safety_events=[])
     s = Summary(result, ScanMetrics(result))
     assert s["n_frames"] == 46 and s["n_whole_pivot"] == 81
     assert s["registration_method"] == scenario.localization.method

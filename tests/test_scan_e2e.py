@@ -33,6 +33,15 @@ def test_scan_on_a_test_patient(tmp_path):
     # The localization produced an estimate in the kidney's neighbourhood.
     assert summary["e_trans_mm"] < 30 and summary["e_rot_x_deg"] < 30
     assert summary["peak_force_n"] < 20.0
+    # The kidney-length estimates that ended EXPLORE (exploration_length: estimated): one a
+    # second once 40 mm are explored, the travel growing, the last a kidney-sized length.
+    checks = summary["kidney_length_checks"]
+    assert len(checks) >= 1 and checks[0]["travel_mm"] >= 40.0 - 1e-6
+    assert all(b["travel_mm"] > a["travel_mm"] and b["time_s"] > a["time_s"]
+               for a, b in zip(checks, checks[1:]))
+    lengths = [c["length_mm"] for c in checks if c["length_mm"] is not None]
+    assert lengths and 70.0 < lengths[-1] < 160.0
+    assert "kidney_length_checks" in summary["metric_definitions"]
     # The start planner chose a window and a depth preset, and the image depth followed it.
     start = summary["start"]
     assert start["planner"] == "window" and start["windows_feasible"] >= 1

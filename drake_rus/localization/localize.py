@@ -349,6 +349,11 @@ class IcpLocalizer(LeafSystem):
             time=context.get_time()))
         return EventStatus.Succeeded()
 
+    def length_checks(self, context) -> tuple:
+        """The kidney-length estimates made during EXPLORE so far: ((time s, probe travel m,
+        estimated length m, NaN where the fit failed its checks), ...)."""
+        return context.get_abstract_state(self._length).get_value().checks
+
     def _length_check(self, context, state) -> bool:
         """During EXPLORE: every ``adaptive_period`` s (once ``length_min_travel`` has been
         explored) re-estimate the kidney's length from the cloud so far, starting from the

@@ -38,6 +38,10 @@ METRIC_DEFINITIONS = {
     "at_matched_V": MATCHED_V,
     "volume_ratio_all_frames": "V (eq. 25) over every frame of the scan (exploration too)",
     "eps": "eq. 24, sum of sqrt(|dp|^2 + (L dtheta)^2), L = the image depth",
+    "kidney_length_checks": "the localizer's kidney-length estimates during EXPLORE (time s, "
+                            "probe travel mm, estimated length mm; null: the fit failed its "
+                            "checks); with exploration_length: estimated, EXPLORE ends at "
+                            "exploration_ratio x the latest estimate",
     "sweep": "the frames the costs count: the PIVOT phase's, or with controller.sweep: line "
              "the EXPLORE phase's (then 'whole pivot' is the whole line); sweep.pivot_pose "
              "says where the pivot pivoted (registered T* or a given controller.pivot_pose)",
@@ -150,6 +154,13 @@ def _mode(scenario) -> str:
             f"{scenario.imaging.frame_rate_hz:.0f} Hz)")
 
 
+def _length_checks(checks) -> list:
+    """The localizer's length checks as JSON rows (mm; None for a failed fit)."""
+    return [{"time_s": round(float(t), 3), "travel_mm": round(float(travel) * 1e3, 1),
+             "length_mm": round(float(length) * 1e3, 1) if math.isfinite(length) else None}
+            for t, travel, length in checks]
+
+
 def _er_unit(controller) -> str:
     """What the scan's ER multiplies (the controller's ``exploration_length``)."""
     L_m = controller.kidney_length * 1000
@@ -199,6 +210,7 @@ def Summary(result: ScanResult, metrics: dict) -> dict:
         "exploration_length": result.scenario.controller.exploration_length,
         "exploration_ratio": result.scenario.controller.exploration_ratio,
         "exploration_ratio_unit": _er_unit(result.scenario.controller),
+        "kidney_length_checks": _length_checks(result.length_checks),
         "image_depth_m": result.scenario.imaging.depth,
         "start": (result.start_plan.summary() if result.start_plan is not None
                   else {"planner": "none" if result.scenario.hardware

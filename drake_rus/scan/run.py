@@ -97,6 +97,9 @@ class ScanResult:
     # Kidney masks (bool, rows x cols) by frame index of the EXPLORE and PIVOT frames, when
     # RunScan was asked to keep them (keep_sweep_masks); else empty.
     sweep_masks: dict = dataclasses.field(default_factory=dict)
+    # The localizer's kidney-length estimates during EXPLORE: ((time s, travel m, length m
+    # or NaN), ...); empty without length estimation.
+    length_checks: tuple = ()
 
     @property
     def X_BK_true(self) -> RigidTransform | None:
@@ -200,7 +203,8 @@ def CollectScanResult(scenario, patient_name: str, template, handles: ScanHandle
         partial_cloud_B=np.array(cloud.points), localization=outcome, X_BK_estimated=X_BK_est,
         registered_template_B=registered, logs=logs, safety_events=events, scenario=scenario,
         truth=truth, sweep_masks=dict(h.recorder.sweep_masks),
-        tracking_drift=h.tracking.state(h.tracking.GetMyContextFromRoot(root_context)).history)
+        tracking_drift=h.tracking.state(h.tracking.GetMyContextFromRoot(root_context)).history,
+        length_checks=h.localizer.length_checks(h.localizer.GetMyContextFromRoot(root_context)))
 
 
 def RunScan(scenario, patient, template, *, make_station: Callable = MakeStation,
