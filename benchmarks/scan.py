@@ -48,6 +48,9 @@ from pydrake.systems.primitives import ConstantVectorSource
 
 from drake_rus.scenario import ApplyOverrides, LoadScenario
 
+# py-spy's sampling rate for the per-system profile (samples per second).
+PROFILE_RATE_HZ = 100
+
 # Issue 16's tolerances.
 FORCE_TARGET_N = 9.0
 FORCE_TOL_N = 0.2
@@ -191,7 +194,12 @@ def profile_run(args) -> dict | None:
         return {"skipped": "py-spy not installed"}
     with tempfile.TemporaryDirectory() as tmp:
         raw = Path(tmp) / "profile.txt"
-        cmd = [spy, "record", "--native", "-r", "200", "-f", "raw", "-o", str(raw), "--",
+        # PROFILE_RATE_HZ samples/s: unwinding native stacks stops the process for
+        # milliseconds per sample; at 200/s a scan took 26 min under py-spy on an AMD EPYC
+        # host (6.8 s unprofiled); at 100/s it takes about 40 s and gives about 4,000
+        # samples in the loop (at 50/s: 10 s, but only 503 samples, shares +-2%).
+        cmd = [spy, "record", "--native", "-r", str(PROFILE_RATE_HZ), "-f", "raw", "-o",
+               str(raw), "--",
                sys.executable, "-m", "benchmarks", "scan", "--patient", args.patient,
                "--scenario", args.scenario, "--set", args.set, "--no-profile",
                "--no-reference"]
