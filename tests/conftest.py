@@ -4,8 +4,16 @@ import pytest
 
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.probe import ProbeGeometry
+from drake_rus.paths import REPO_ROOT
 from drake_rus.robot import MakeControlPlant, TipKinematics
 from drake_rus.scenario import ApplyOverrides, LoadScenario
+
+
+# The Visible Human female (HuBMAP) beside the clone: CI has ../shared next to the
+# repository, a user's checkout does not, and the tests that need her then skip.
+HUBMAP = REPO_ROOT.parent / "shared" / "anatomy" / "hubmap_vh_female"
+needs_hubmap = pytest.mark.skipif(not (HUBMAP / "VH_F_skin.stl").is_file(),
+                                  reason=f"real body not found at {HUBMAP}")
 
 
 @pytest.fixture(scope="session", autouse=True)

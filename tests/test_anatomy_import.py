@@ -12,13 +12,8 @@ from drake_rus.anatomy import (Label, is_kidney, load_patient, patient_from_labe
                                patient_from_meshes)
 from drake_rus.anatomy.generator import generate_patient
 from drake_rus.cli import main as cli_main
-from drake_rus.paths import REPO_ROOT
 
-# Real anatomy beside the clone (CI has ../shared next to the repository; a user's checkout
-# does not, and these tests then skip).
-HUBMAP = REPO_ROOT.parent / "shared" / "anatomy" / "hubmap_vh_female"
-needs_hubmap = pytest.mark.skipif(not (HUBMAP / "VH_F_skin.stl").is_file(),
-                                  reason=f"real body not found at {HUBMAP}")
+from conftest import HUBMAP, needs_hubmap   # the real body beside the clone, or a skip
 
 
 @pytest.fixture(scope="module")

@@ -11,11 +11,8 @@ from drake_rus.anatomy import load_patient, patient_from_label_map
 from drake_rus.anatomy.generator import generate_patient
 from drake_rus.anatomy.rasterize import mask_to_mesh
 from drake_rus.anatomy.trunk import remove_arms, trunk_mask
-from drake_rus.paths import REPO_ROOT
 
-HUBMAP = REPO_ROOT.parent / "shared" / "anatomy" / "hubmap_vh_female"
-needs_hubmap = pytest.mark.skipif(not (HUBMAP / "VH_F_skin.stl").is_file(),
-                                  reason=f"real body not found at {HUBMAP}")
+from conftest import HUBMAP, needs_hubmap
 
 VS = 0.004
 A, B = 0.15, 0.10            # trunk half-width (x) and half-depth (z)

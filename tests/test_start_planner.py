@@ -108,6 +108,50 @@ def test_a_rib_across_the_sweep_moves_the_start_past_it():
     assert "10 mm into the sweep" in stuck.summary()["warning"]
 
 
+def test_a_long_exploration_still_gets_a_start_past_the_rib():
+    """ER 0.7 (the default): the rib at 22-30% of the kidney from its superior end needs a
+    start at 35%. Its sweep would end at 105% of the kidney; it runs to the far pole (95%
+    checked), still covering the paper's 60% (start.min_sweep_fraction), so it is tried and
+    taken. Requiring the whole ER inside 95% (min_sweep_fraction = ER, the old rule) leaves
+    no start past 25%: the window keeps the rib in its sweep, with the warning said."""
+    base = dict(placement_error=0.0, placement_error_angle_deg=0.0, max_start_shift=0.3)
+    body = box_body(rib_y=(0.020, 0.028))
+    plan = PlanStart(body, X_BPT, ImagingConfig(), StartConfig(**base), exploration_ratio=0.7)
+    w = plan.window
+    assert w.start_fraction == pytest.approx(0.35) and not w.warning
+    assert plan.X_start.translation()[1] < 0.020                 # past the rib
+    assert w.sweep_length == pytest.approx(0.06, abs=0.003)      # 35% -> 95% of 100 mm
+    assert w.clear_length == pytest.approx(w.sweep_length)
+    old = PlanStart(body, X_BPT, ImagingConfig(),
+                    StartConfig(**base, min_sweep_fraction=0.7), exploration_ratio=0.7)
+    assert old.window.start_fraction < 0.3 and old.window.warning
+
+
+def test_a_short_clipped_sweep_is_not_preferred_for_being_short():
+    """A later start's sweep, cut at the far pole, is clear more easily than an earlier
+    start's full one. With "covered" meaning min_sweep_fraction of the kidney (60 mm of a
+    100 mm kidney here), a vertical window clear for 65 of its 70 mm ranks before a tilted
+    late start clear for its whole 60 mm (longest clear sweep); without it (the whole sweep
+    must be clear) the late start would win for being short."""
+    from drake_rus.scan.planning import WindowCandidate, window_rank
+
+    def window(tilt, start, sweep, clear, covered):
+        return WindowCandidate(tilt, np.array([0.0, 0.0, -1.0]), np.zeros((3, 3)), 0.12, 0.0,
+                               False, np.zeros((0, 3)), 0.15, start_fraction=start,
+                               sweep_length=sweep, clear_length=clear, covered_length=covered)
+
+    early = window(0.0, 0.10, 0.070, 0.065, 0.060)
+    late = window(20.0, 0.35, 0.060, 0.060, 0.060)
+    assert window_rank(early, 0.15) < window_rank(late, 0.15)
+    early.covered_length = late.covered_length = 0.0          # the whole sweep must be clear
+    assert window_rank(late, 0.15) < window_rank(early, 0.15)
+    # The evaluated windows carry it: on a clear body the earliest start, covered at 60 mm.
+    cfg = StartConfig(placement_error=0.0, placement_error_angle_deg=0.0, max_start_shift=0.3)
+    plan = PlanStart(box_body(), X_BPT, ImagingConfig(), cfg, exploration_ratio=0.7)
+    assert plan.window.start_fraction == pytest.approx(0.1)
+    assert plan.window.covered_length == pytest.approx(0.06, abs=0.003)
+
+
 def evaluate_first_start(body, cfg):
     from drake_rus.scan.planning import evaluate_windows
     superior_B = X_BPT.rotation().matrix()[:, 1]

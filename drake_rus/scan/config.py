@@ -39,10 +39,14 @@ class StartConfig:
     # (m; the localizer needs 15 mm of kidney, localization.min_exploration_travel).
     min_clear_sweep: float = field(default=0.025, metadata={"min": 0.0, "max": 0.2})
     # Later exploration starts tried when a shadow crosses the sweep (fractions of the
-    # kidney's length beyond start_fraction; a start never so late that the sweep of ER x
-    # the kidney's length would run past 95% of it), like a sonographer sliding past a rib.
+    # kidney's length beyond start_fraction), like a sonographer sliding past a rib.
     max_start_shift: float = field(default=0.25, metadata={"min": 0.0, "max": 0.5})
     start_shift_step: float = field(default=0.05, metadata={"min": 0.0, "max": 0.5})
+    # A later start is tried only while the sweep from it to 95% of the kidney still covers
+    # this fraction of the kidney (or ER, if smaller): the paper's critical ER, 60%. A sweep
+    # that reaches the far pole ends there (the kidney leaves the image), with the pole seen.
+    # Before ER 0.7 the bound was ER itself, which at 0.7 left no start past 25%.
+    min_sweep_fraction: float = field(default=0.6, metadata={"min": 0.0, "max": 0.95})
     # Height of the start pose above the skin along the beam (m); APPROACH lands from there.
     hover: float = field(default=0.015, metadata={"min": 0.0, "max": 0.1})
     # Where exploration starts: this fraction of the kidney's length inside its end.

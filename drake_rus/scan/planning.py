@@ -119,6 +119,9 @@ class WindowCandidate:
     sweep_length: float = 0.0       # the exploration sweep checked (m along the body)
     clear_length: float = 0.0       # how far into it every view is clear of shadows (m)
     sweep_shadowed: float = 0.0     # fraction of the sweep's views shadowed by bone or gas
+    # The clear length that counts as a covered sweep (m): the sweep, or
+    # start.min_sweep_fraction of the kidney if shorter (0: the whole sweep).
+    covered_length: float = 0.0
     # Why a usable window is worse ("" when it is not): a shadow within the placement error
     # of the start, or across the sweep before ``min_clear_sweep``.
     warning: str = ""
@@ -390,11 +393,13 @@ def evaluate_windows(patient, X_BPt: RigidTransform, imaging, config, tilt: floa
         if start >= len(views):
             break
         sweep_end = min(start + int(round(sweep_fraction * length / step)), len(views) - 1)
-        if shift > 0 and sf + sweep_fraction > 0.95 + 1e-9:
-            break                    # a later start would run the sweep off the kidney
+        if shift > 0 and sf + min(sweep_fraction, config.min_sweep_fraction) > 0.95 + 1e-9:
+            break                    # a later start would see too little of the kidney
         zone_views = views[max(start - n_zone, 0):start + n_zone + 1]
-        out.append(_window_from_views(tilt, a, views, start, sweep_end, zone_views, config,
-                                      imaging, sf, step))
+        cand = _window_from_views(tilt, a, views, start, sweep_end, zone_views, config,
+                                  imaging, sf, step)
+        cand.covered_length = min(cand.sweep_length, config.min_sweep_fraction * length)
+        out.append(cand)
     return out
 
 
@@ -418,9 +423,12 @@ def vertical_depth_preset(patient, X_BPt: RigidTransform, imaging, config) -> fl
 def window_rank(c: WindowCandidate, preset: float) -> tuple:
     """Order of feasible windows: without a warning (clear within the placement error of the
     start and for ``min_clear_sweep`` of the sweep) first, then a sweep clear of shadows for
-    its whole length (a sonographer keeps the kidney in view), then the shallowest preset,
-    the longest clear sweep, the least tilt and the earliest start."""
-    covered = c.clear_length >= c.sweep_length - 1e-9
+    its whole length, or for ``min_sweep_fraction`` of the kidney if that is shorter (a
+    sonographer keeps the kidney in view; a later start's sweep, cut at the far pole, is
+    not preferred for being short), then the shallowest preset, the longest clear sweep,
+    the least tilt and the earliest start."""
+    needed = c.covered_length if c.covered_length > 0 else c.sweep_length
+    covered = c.clear_length >= needed - 1e-9
     return (bool(c.warning), not covered, preset, -round(c.clear_length, 4), abs(c.tilt_deg),
             c.start_fraction)
 
