@@ -16,9 +16,11 @@ uses (it uses ``train:K``): ``iou_classical`` and ``iou_onnx`` (null if no model
 scenario's depth, supine.
 
 Across depths and postures (the onnx model, one segmenter per depth preset):
-- ``iou_by_depth``: held-out generated patients ``test:0..M-1`` (``--depth-patients``) in both
-  postures, the same ``--depth-views`` views of each imaged at every preset of
-  ``imaging.depth_presets``; per preset the mean IoU, also split by posture;
+- ``iou_by_depth``: held-out generated patients ``test:0..M-1`` (``--depth-patients``, default
+  the whole test split of 15) in both postures, the same ``--depth-views`` views of each
+  imaged at every preset of ``imaging.depth_presets``; per preset the mean IoU, also split by
+  posture; ``iou_by_depth_ci95``: its 95% interval, resampling whole patients-and-postures
+  (their frames are correlated; with 4 patients x 30 views the interval is about +-0.03);
 - ``vh_female``: the real Visible Human female body (``/work/shared/anatomy``, never used in
   training) in both postures, ``--vh-views`` views each, scored against the right kidney at
   the preset a scan would pick (the shallowest holding the kidney below the upper skin,
@@ -40,6 +42,8 @@ import time
 
 import numpy as np
 from tqdm import tqdm
+
+from drake_rus.anatomy.cohort import DEFAULT_COUNTS
 
 
 def _rate(fn, items, repeat: int = 3):
@@ -70,8 +74,9 @@ def main(argv=None) -> int:
     ap.add_argument("--patients", type=int, default=3, help="test patients for the IoU")
     ap.add_argument("--iou-frames", type=int, default=60, help="frames per test patient")
     ap.add_argument("--source", default="test", help="'test' (test:K patients) or 'phantom'")
-    ap.add_argument("--depth-patients", type=int, default=4,
-                    help="held-out patients test:0..M-1 of the per-depth table (0: skip it)")
+    ap.add_argument("--depth-patients", type=int, default=DEFAULT_COUNTS["test"],
+                    help="held-out patients test:0..M-1 of the per-depth table (default: the "
+                         "whole test split; 0: skip it)")
     ap.add_argument("--depth-views", type=int, default=30,
                     help="views per patient and posture in the per-depth table")
     ap.add_argument("--vh-views", type=int, default=60,
@@ -227,7 +232,8 @@ def depth_and_posture_study(cfg, args) -> dict:
 
     print("\nheld-out generated patients " + ", ".join(sorted({s.name for s in sources}))
           + f" ({args.depth_views} views each per posture; IoU over frames with a kidney)")
-    head = f"{'depth':>7} | {'IoU all':>7} | " + " | ".join(f"{p[:12]:>12}" for p in postures)
+    head = (f"{'depth':>7} | {'IoU all':>7} | {'95% interval':>13} | "
+            + " | ".join(f"{p[:12]:>12}" for p in postures))
     print(head + f" | {'frames':>6} | {'FP rate':>7} | {'IoU unshadowed (frames)':>23}")
     print("-" * (len(head) + 45))
     for d in presets:
@@ -236,7 +242,8 @@ def depth_and_posture_study(cfg, args) -> dict:
             continue
         cells = " | ".join(f"{by_depth_posture.get((d, p), {}).get('iou', float('nan')):12.3f}"
                            for p in postures)
-        print(f"{d * 1000:5.0f}mm | {row['iou']:7.3f} | {cells} | "
+        lo, hi = row["iou_ci95"]
+        print(f"{d * 1000:5.0f}mm | {row['iou']:7.3f} | {lo:6.3f}-{hi:6.3f} | {cells} | "
               f"{row['frames_with_kidney']:6d} | {row['false_positive_rate']:7.2f} | "
               f"{row['iou_visible']:15.3f} ({row['frames_visible']:3d})")
 
@@ -247,10 +254,13 @@ def depth_and_posture_study(cfg, args) -> dict:
         "iou_by_depth_posture": {f"{d:.2f}": {p: _round(by_depth_posture[(d, p)]["iou"])
                                               for p in postures if (d, p) in by_depth_posture}
                                  for d in presets},
+        "iou_by_depth_ci95": {f"{d:.2f}": [_round(x) for x in v["iou_ci95"]]
+                              for d, v in sorted(by_depth.items())},
         "iou_by_depth_min": _round(min(v["iou"] for v in by_depth.values())),
         "iou_by_depth_unshadowed": {f"{d:.2f}": _round(v["iou_visible"])
                                     for d, v in sorted(by_depth.items())},
-        "depth_details": {f"{d:.2f}": {k: _round(x) if isinstance(x, float) else x
+        "depth_details": {f"{d:.2f}": {k: _round(x) if isinstance(x, float) else
+                                       [_round(y) for y in x] if isinstance(x, tuple) else x
                                        for k, x in v.items()}
                           for d, v in sorted(by_depth.items())},
         "depth_sources": sorted({s.name for s in sources}),

@@ -142,3 +142,34 @@ def test_targets_met_needs_every_preset_and_both_postures():
     assert not r["met"] and r["generated_by_preset"] == {"0.10": False, "0.15": True}
     assert not targets_met(good, {"supine": 0.79})["met"]
     assert not targets_met(good, None)["met"]
+    # The interval says how sure a pass is, without changing it.
+    r = targets_met(good, {"supine": 0.81}, {"0.10": [0.837, 0.877], "0.15": [0.88, 0.92]})
+    assert r["met"]
+    assert r["generated_interval_above_by_preset"] == {"0.10": False, "0.15": True}
+    assert "generated_interval_above_by_preset" not in targets_met(good, {"supine": 0.81})
+
+
+def test_record_benchmark_replaces_the_measured_figures_and_keeps_the_notes(tmp_path):
+    import json
+
+    from drake_rus.imaging.train_segmenter import record_benchmark
+    card = tmp_path / "kidney_unet.json"
+    card.write_text(json.dumps({"model": "kidney_unet.onnx", "evaluation": {
+        "iou_by_depth": {"0.10": 0.5}, "diagnosis": "a note from another measurement"}}))
+    bench = tmp_path / "bench.log"
+    bench.write_text("table\n" + json.dumps({
+        "onnx_model": "models/segmenter/kidney_unet.onnx",
+        "iou_by_depth": {"0.10": 0.86}, "iou_by_depth_ci95": {"0.10": [0.84, 0.88]},
+        "vh_female_iou": {"supine": 0.81}}) + "\n")
+    e = record_benchmark(card, bench)["evaluation"]
+    assert e["iou_by_depth"] == {"0.10": 0.86} and e["iou_by_depth_ci95"] == {"0.10": [0.84, 0.88]}
+    assert e["diagnosis"] == "a note from another measurement"
+    assert e["targets"]["met"] and not e["targets"]["generated_interval_above_by_preset"]["0.10"]
+    assert json.loads(card.read_text())["evaluation"] == e
+    # Another model's benchmark is refused and the card is left as it was.
+    other = tmp_path / "other.log"
+    other.write_text(json.dumps({"onnx_model": "x/kidney_unet_int8.onnx"}) + "\n")
+    before = card.read_text()
+    with pytest.raises(ValueError, match="kidney_unet_int8.onnx"):
+        record_benchmark(card, other)
+    assert card.read_text() == before

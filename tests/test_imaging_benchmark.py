@@ -21,6 +21,9 @@ def test_benchmark_prints_the_json_last():
     # The per-depth table (one row per preset), the per-preset speed; no VH body here.
     presets = [f"{d:.2f}" for d in ImagingConfig().depth_presets]
     assert sorted(result["iou_by_depth"]) == sorted(presets)
+    for d in presets:      # one phantom: its interval is the point itself
+        lo, hi = result["iou_by_depth_ci95"][d]
+        assert lo <= result["iou_by_depth"][d] + 1e-3 and result["iou_by_depth"][d] <= hi + 1e-3
     assert sorted(result["ms_model_resample"]) == sorted(presets)
     assert all(v > 0 for v in result["ms_model_resample"].values())
     assert result["vh_female_iou"] is None

@@ -13,7 +13,7 @@ from drake_rus.imaging.dataset import (EmulatorBank, Randomisation, ViewSampler,
                                        canvas_frames, make_frames, randomised_emulator,
                                        thicken_wall)
 from drake_rus.imaging.emulator import EmulatorModel, emulate
-from drake_rus.imaging.evaluation import Source, mean_iou, summarise
+from drake_rus.imaging.evaluation import Source, cluster_bootstrap_ci, mean_iou, summarise
 from drake_rus.imaging.phantoms import kidney_phantom
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.imaging.slicing import sample_labels
@@ -161,6 +161,30 @@ def test_summarise_groups_records():
     out = summarise(recs)
     assert out[0.1]["iou"] == 0.8 and out[0.1]["false_positive_rate"] == 1.0
     assert out[0.2]["frames_with_kidney"] == 1 and out[0.2]["frames_without_kidney"] == 0
+    assert out[0.1]["iou_ci95"] == (0.8, 0.8)          # one source: no spread to resample
+
+
+def test_cluster_bootstrap_interval_resamples_whole_sources():
+    rng = np.random.default_rng(3)
+    # 8 sources of 40 frames each: a per-source level (patient effect, sd 0.05) + frame noise.
+    level = 0.85 + 0.05 * rng.standard_normal(8)
+    values = np.concatenate([lv + 0.1 * rng.standard_normal(40) for lv in level])
+    clusters = np.repeat([f"test:{k}" for k in range(8)], 40)
+    lo, hi = cluster_bootstrap_ci(values, clusters)
+    assert lo < values.mean() < hi
+    assert cluster_bootstrap_ci(values, clusters) == (lo, hi)          # deterministic
+    # Treating the 320 frames as independent gives a much narrower interval: the sources
+    # are the unit of evidence.
+    lo_iid, hi_iid = cluster_bootstrap_ci(values, np.arange(values.size))
+    assert (hi - lo) > 1.5 * (hi_iid - lo_iid)
+    # The interval covers about 1.96 standard errors of the per-source means each side.
+    se = level.std(ddof=1) / np.sqrt(8)
+    assert 0.5 * 3.92 * se < hi - lo < 2.0 * 3.92 * se
+    assert np.isnan(cluster_bootstrap_ci([], [])[0])
+    with pytest.raises(ValueError, match="one cluster each"):
+        cluster_bootstrap_ci([0.5, 0.6], ["a"])
+    with pytest.raises(ValueError, match="level"):
+        cluster_bootstrap_ci([0.5], ["a"], level=95)
 
 
 def test_kidney_context_and_structure_randomisation(phantom):

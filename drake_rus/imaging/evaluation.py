@@ -228,20 +228,53 @@ def depth_study(sources: list[Source], segmenters: dict, n_views: int, seed: int
     return records
 
 
+def cluster_bootstrap_ci(values, clusters, level: float = 0.95, n_resamples: int = 2000,
+                         seed: int = 0) -> tuple[float, float]:
+    """Percentile bootstrap interval (``level``) of the mean of ``values`` that resamples
+    whole clusters (``clusters[i]`` names the cluster of ``values[i]``) with replacement.
+
+    The frames of one patient and posture are not independent (one anatomy, one kidney
+    shape): resampling frames would make the interval far too narrow. Deterministic in
+    ``seed``; (nan, nan) without values, (mean, mean) with a single cluster."""
+    values = np.asarray(values, float)
+    if values.ndim != 1 or len(clusters) != len(values):
+        raise ValueError(f"cluster_bootstrap_ci: values must be 1-D with one cluster each, "
+                         f"got {values.shape} values and {len(clusters)} clusters")
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"cluster_bootstrap_ci: level must be in (0, 1), got {level}")
+    if values.size == 0:
+        return float("nan"), float("nan")
+    _, index = np.unique(np.asarray(clusters, object).astype(str), return_inverse=True)
+    sums = np.bincount(index, weights=values)
+    counts = np.bincount(index).astype(float)
+    if len(sums) == 1:
+        m = float(sums[0] / counts[0])
+        return m, m
+    pick = np.random.default_rng(seed).integers(0, len(sums), (n_resamples, len(sums)))
+    means = sums[pick].sum(axis=1) / counts[pick].sum(axis=1)
+    tail = 100.0 * (1.0 - level) / 2.0
+    lo, hi = np.percentile(means, [tail, 100.0 - tail])
+    return float(lo), float(hi)
+
+
 def summarise(records: list[dict], key=lambda r: r["depth"]) -> dict:
-    """{key: {iou, iou_median, frames_with_kidney, frames_without_kidney,
+    """{key: {iou, iou_ci95, iou_median, frames_with_kidney, frames_without_kidney,
     false_positive_rate, iou_visible, frames_visible}} of :func:`depth_study` records grouped
-    by ``key``. ``iou_visible``: over the frames where at least half the kidney is out of
-    acoustic shadow (grey > :data:`VISIBLE_GREY`; the others can hardly be segmented)."""
+    by ``key``. ``iou_ci95``: the 95% interval of the mean IoU, resampling whole views of one
+    source and posture (:func:`cluster_bootstrap_ci`). ``iou_visible``: over the frames where
+    at least half the kidney is out of acoustic shadow (grey > :data:`VISIBLE_GREY`; the
+    others can hardly be segmented)."""
     groups: dict = {}
     for r in records:
         groups.setdefault(key(r), []).append(r)
     out = {}
     for k, rs in groups.items():
         ious = [r["iou"] for r in rs if r["iou"] is not None]
+        clusters = [f"{r.get('source')}|{r.get('posture')}" for r in rs if r["iou"] is not None]
         seen = [r["iou"] for r in rs if r["iou"] is not None and (r.get("visible") or 0) >= 0.5]
         empty = [r for r in rs if r["iou"] is None]
         out[k] = {"iou": float(np.mean(ious)) if ious else float("nan"),
+                  "iou_ci95": cluster_bootstrap_ci(ious, clusters),
                   "iou_median": float(np.median(ious)) if ious else float("nan"),
                   "frames_with_kidney": len(ious), "frames_without_kidney": len(empty),
                   "false_positive_rate": (sum(r["false_positive"] for r in empty) / len(empty)
