@@ -11,7 +11,7 @@ rehearsal runs at ``nice -5`` (its session group too, ``--nice``).
 Scenario overrides for the slow tests (``OVERRIDES``), both findings of the rehearsal on
 this machine: the localizer's kidney-length estimate runs inside the control loop once a
 second during EXPLORE (70-90 ms alone, 130-420 ms on the loaded machine), which stalls the
-real-time loop past ``MAX_REALTIME_LAG`` (0.25 s) and, in the catch-up, past the safety
+real-time loop past ``safety.realtime_lag`` (0.25 s) and, in the catch-up, past the safety
 layer's 50 ms stale-robot-state watchdog (``safety.state_timeout``, in diagram time); so
 the estimate is off and the watchdog at 0.3 s, for the rehearsal and for the in-process
 scan it is compared with.

@@ -199,3 +199,6 @@ class SafetyConfig:
     image_timeout: float = field(default=0.25, metadata={"positive": True})
     state_timeout: float = field(default=0.05, metadata={"positive": True})
     segmentation_timeout: float = field(default=1.0, metadata={"positive": True})
+    # A live (hardware) run that falls this far (s) behind the wall clock is stopped at zero
+    # velocity: its commands would reach the robot late.
+    realtime_lag: float = field(default=0.25, metadata={"positive": True, "max": 2.0})

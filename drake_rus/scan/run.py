@@ -32,11 +32,6 @@ __all__ = ["RunScan", "ExpectedScanTime", "PrepareScenario", "ScanResult", "Scan
            "CollectScanResult", "TERMINAL_PHASES"]
 
 TERMINAL_PHASES = (Phase.DONE, Phase.ABORT)
-# A live (hardware) run that falls this far (s) behind the wall clock is stopped: its
-# commands would reach the robot late.
-MAX_REALTIME_LAG = 0.25
-
-
 def ExpectedScanTime(scenario) -> float:
     """About how long (simulated s) a scan with ``scenario`` takes when all goes well, for
     the progress bar: landing, the exploration (ER x L_m at v_scan), LOCALIZE, TRANSIT and
@@ -217,7 +212,7 @@ def RunScan(scenario, patient, template, *, make_station: Callable = MakeStation
     truth), or None on hardware (the scan starts where the operator placed the probe).
     ``make_station(scenario, meshcat=..., patient=...)`` builds the station; a station that
     can ``stop()`` a real robot runs paced at real time inside a ``HardwareSession`` (zero
-    velocity on every exit) and is stopped if it falls ``MAX_REALTIME_LAG`` behind the wall
+    velocity on every exit) and is stopped if it falls ``safety.realtime_lag`` behind the wall
     clock. ``settle`` (s):
     keep simulating this long after the scan ends (monitors still observe), e.g. to check
     the robot comes to rest; the result describes the scan proper. ``keep_sweep_masks``:
@@ -274,7 +269,7 @@ def RunScan(scenario, patient, template, *, make_station: Callable = MakeStation
     def should_stop(root_context) -> bool:
         if live:
             lag = (time.perf_counter() - start) - root_context.get_time()
-            if lag > MAX_REALTIME_LAG:
+            if lag > scenario.safety.realtime_lag:
                 behind.append(lag)
                 return True
         return phase_now() in TERMINAL_PHASES
@@ -320,6 +315,6 @@ def RunScan(scenario, patient, template, *, make_station: Callable = MakeStation
     elif behind:
         result.status = "ABORT"
         result.reason = (f"the diagram fell {behind[0]:.2f} s behind real time at "
-                         f"{t_end:.2f} s (limit {MAX_REALTIME_LAG:g} s): stopped at zero "
+                         f"{t_end:.2f} s (safety.realtime_lag {scenario.safety.realtime_lag:g} s): stopped at zero "
                          "velocity")
     return result
