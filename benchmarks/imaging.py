@@ -20,7 +20,7 @@ Across depths and postures (the onnx model, one segmenter per depth preset):
   the whole test split of 15) in both postures, the same ``--depth-views`` views of each
   imaged at every preset of ``imaging.depth_presets``; per preset the mean IoU, also split by
   posture; ``iou_by_depth_ci95``: its 95% interval, resampling whole patients-and-postures
-  (their frames are correlated; with 4 patients x 30 views the interval is about +-0.03);
+  (their frames are correlated; with 15 patients x 30 views it is about +-0.02);
 - ``vh_female``: the real Visible Human female body (``/work/shared/anatomy``, never used in
   training) in both postures, ``--vh-views`` views each, scored against the right kidney at
   the preset a scan would pick (the shallowest holding the kidney below the upper skin,
