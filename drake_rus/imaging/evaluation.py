@@ -260,10 +260,10 @@ def cluster_bootstrap_ci(values, clusters, level: float = 0.95, n_resamples: int
 def summarise(records: list[dict], key=lambda r: r["depth"]) -> dict:
     """{key: {iou, iou_ci95, iou_median, frames_with_kidney, frames_without_kidney,
     false_positive_rate, iou_visible, frames_visible}} of :func:`depth_study` records grouped
-    by ``key``. ``iou_ci95``: the 95% interval of the mean IoU, resampling a source-and-posture
-    with all its views at once (:func:`cluster_bootstrap_ci`). ``iou_visible``: over the frames where
-    at least half the kidney is out of acoustic shadow (grey > :data:`VISIBLE_GREY`; the
-    others can hardly be segmented)."""
+    by ``key``. ``iou_ci95``: the 95% interval of the mean IoU, resampling a
+    source-and-posture with all its views at once (:func:`cluster_bootstrap_ci`).
+    ``iou_visible``: over the frames where at least half the kidney is out of acoustic shadow
+    (grey > :data:`VISIBLE_GREY`; the others can hardly be segmented)."""
     groups: dict = {}
     for r in records:
         groups.setdefault(key(r), []).append(r)

@@ -315,6 +315,6 @@ def RunScan(scenario, patient, template, *, make_station: Callable = MakeStation
     elif behind:
         result.status = "ABORT"
         result.reason = (f"the diagram fell {behind[0]:.2f} s behind real time at "
-                         f"{t_end:.2f} s (safety.realtime_lag {scenario.safety.realtime_lag:g} s): stopped at zero "
-                         "velocity")
+                         f"{t_end:.2f} s (safety.realtime_lag {scenario.safety.realtime_lag:g}"
+                         " s): stopped at zero velocity")
     return result
