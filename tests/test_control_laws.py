@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from drake_rus.control import laws
+from drake_rus.control import kernels, laws
 from pydrake.math import RollPitchYaw, RotationMatrix
 
 Q0 = np.array([0.0, 0.15, 0.0, -2.0, 0.0, 2.15, 0.785])
@@ -313,3 +313,51 @@ def test_null_space_diff_ik_equals_the_explicit_pseudo_inverse_and_projector(kin
         J_pinv, N, _ = laws.damped_pseudo_inverse(J, 0.03, 0.03)
         np.testing.assert_allclose(laws.null_space_diff_ik(J, xi, qn), J_pinv @ xi + N @ qn,
                                    atol=1e-10)
+
+
+def test_all_finite_agrees_with_numpy_including_an_overflowing_sum():
+    rng = np.random.default_rng(11)
+    for _ in range(200):
+        x = rng.normal(size=7)
+        if rng.random() < 0.5:
+            x[rng.integers(7)] = rng.choice([np.nan, np.inf, -np.inf])
+        assert laws.all_finite(x) == bool(np.all(np.isfinite(x)))
+    with np.errstate(over="ignore", invalid="ignore"):
+        huge = np.full(7, 1e308)            # every entry finite, the sum overflows to inf
+        assert laws.all_finite(huge)
+        assert not laws.all_finite(np.array([np.inf, -np.inf]))   # inf - inf = nan
+
+
+def test_compiled_damped_svd_matches_numpy(kin):
+    """The compiled kernel's SVD gives numpy's singular values and reassembles J; near a
+    singularity it damps (lambda^2 > 0) and the rank drops."""
+    for J in (kin.jacobian(Q0), kin.jacobian(Q0 + 0.3)):
+        U, Vt, inv, rank, lam2 = kernels.damped_svd(np.ascontiguousarray(J), 0.03, 0.03)
+        s = np.linalg.svd(J, compute_uv=False)
+        np.testing.assert_allclose(inv, 1.0 / s, rtol=1e-12)
+        np.testing.assert_allclose(U * (1.0 / inv) @ Vt[:6], J, atol=1e-12)
+        assert lam2 == 0.0 and rank == 6
+    J = np.zeros((6, 7))
+    J[:5, :5] = np.eye(5)
+    U, Vt, inv, rank, lam2 = kernels.damped_svd(J, 0.03, 0.03)
+    assert rank == 5 and lam2 == pytest.approx(0.03**2)
+    assert inv[-1] == 0.0 and np.all(inv[:5] < 1.0)
+
+
+def test_solve_joint_velocities_kernel_equals_the_numpy_equations(kin):
+    """The compiled IK against eq. 10 written with numpy's pseudo-inverse (away from
+    singularities, where the damping is off) plus the same bounds and scaling."""
+    rng = np.random.default_rng(3)
+    dq_max = np.array([2, 1, 1.5, 1.25, 3, 1.5, 3]) * 0.5
+    for _ in range(20):
+        q = Q0 + rng.uniform(-0.4, 0.4, 7)
+        J = kin.jacobian(q)
+        xi, qn = rng.normal(0, 0.05, 6), rng.normal(0, 0.1, 7)
+        expected = np.linalg.pinv(J) @ xi + (np.eye(7) - np.linalg.pinv(J) @ J) @ qn
+        lo = -np.clip((q - kin.q_min) / 0.1, 0, 1) * dq_max
+        up = np.clip((kin.q_max - q) / 0.1, 0, 1) * dq_max
+        expected = _scale_into_bounds_loop(expected, lo, up)
+        got = laws.solve_joint_velocities(q, xi, kin.jacobian, q_min=kin.q_min,
+                                          q_max=kin.q_max, dq_max=dq_max,
+                                          joint_limit_margin=0.1, qdot_null=qn)
+        np.testing.assert_allclose(got, expected, atol=1e-10)

@@ -125,3 +125,21 @@ def test_limit_command_scales_into_limits(kin):
     qd = np.linalg.pinv(J) @ np.array([0, 0, 0, 0.0, 0.3, 0])
     q = limit_command(qd, J, lim, 0.08)
     assert np.linalg.norm(J[3:] @ q) == pytest.approx(0.08)
+
+
+@pytest.mark.parametrize("field, name", [("q", "q"), ("v", "v"),
+                                         ("qdot_desired", "commanded qdot"),
+                                         ("R_BP", "R_BP"), ("p_BP", "p_BP"), ("J", "J")])
+def test_nan_stop_names_the_non_finite_input(kin, field, name):
+    u = nominal(kin)
+    bad = np.array(getattr(u, field), dtype=float)
+    bad.flat[bad.size // 2] = math.nan
+    _, s = safety_step(SafetyState(), dataclasses.replace(u, **{field: bad}), SafetyConfig())
+    assert s.reason == StopReason.NAN and s.events[0].detail == f"{name} is not finite"
+
+
+def test_safety_step_leaves_the_state_it_was_given_unchanged(kin):
+    before = SafetyState()
+    _, after = safety_step(before, nominal(kin, F_z=25.0), SafetyConfig())
+    assert after.stopped and after is not before
+    assert not before.stopped and before.events == () and before.last_q is None

@@ -605,3 +605,18 @@ def test_a_probe_that_stops_following_the_pivot_aborts_the_scan():
     assert s.phase == supervisor.Phase.ABORT
     assert "does not follow the pivot" in s.reason
     assert t - lagging_from == pytest.approx(0.5, abs=2 * dt)
+
+
+def test_supervisor_state_copy_owns_its_arrays_and_keeps_every_field():
+    s = supervisor.SupervisorState(phase=supervisor.Phase.PIVOT, travel=0.02,
+                                   pivot_limits=(0.1,), reason="x")
+    c = s.copy()
+    for f in dataclasses.fields(s):
+        a, b = getattr(s, f.name), getattr(c, f.name)
+        if isinstance(a, np.ndarray):
+            assert a is not b and np.array_equal(a, b, equal_nan=True), f.name
+            b[...] = 7.0                      # writing the copy leaves the original alone
+            assert not np.array_equal(a, b, equal_nan=True), f.name
+        else:
+            assert a == b or (a != a and b != b), f.name
+    assert type(c) is supervisor.SupervisorState

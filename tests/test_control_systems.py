@@ -143,6 +143,14 @@ def test_scan_supervisor_system_outputs(plant_and_frame):
     sup.GetInputPort("safety_stopped").FixValue(ctx, [1.0])
     sim.AdvanceTo(0.035 + cfg.contact_dwell)
     assert sup.GetOutputPort("abort").Eval(ctx)[0] == 1.0
+    # Every vector output is the state's value (held in discrete state by the update).
+    s = sup.state(ctx)
+    expected = {"a_des": s.a_des, "o_des": s.o_des, "a_des_dot": s.a_des_dot,
+                "P_des": s.P_des, "F_des": [s.F_des], "phase": [float(s.phase)],
+                "segmentation_required": [float(supervisor.segmentation_required(s))],
+                "exploring": [0.0], "abort": [1.0]}
+    for name, value in expected.items():
+        np.testing.assert_array_equal(sup.GetOutputPort(name).Eval(ctx), value, err_msg=name)
 
 
 @pytest.mark.parametrize("estimate, explored", [(None, 0.05), (0.14, 0.07)])

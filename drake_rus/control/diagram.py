@@ -32,7 +32,11 @@ class FrameTime(LeafSystem):
     def __init__(self, model_value: AbstractValue):
         super().__init__()
         self._in = self.DeclareAbstractInputPort("frame", model_value)
-        self.DeclareVectorOutputPort("time", 1, self._calc)
+        # A function of the frame alone: recomputed when a new frame arrives, not every
+        # control period.
+        self.DeclareVectorOutputPort(
+            "time", 1, self._calc,
+            prerequisites_of_calc={self.input_port_ticket(self._in.get_index())})
 
     def _calc(self, context, output):
         frame = self._in.Eval(context)
@@ -50,7 +54,8 @@ class ToVector1(LeafSystem):
         super().__init__()
         self._in = self.DeclareAbstractInputPort("u", model_value)
         self.DeclareVectorOutputPort("y", 1, lambda c, o: o.SetFromVector(
-            [float(np.asarray(self._in.Eval(c), dtype=float).reshape(-1)[0])]))
+            [float(np.asarray(self._in.Eval(c), dtype=float).reshape(-1)[0])]),
+            prerequisites_of_calc={self.input_port_ticket(self._in.get_index())})
 
 
 @dataclasses.dataclass

@@ -10,6 +10,21 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.linalg.lapack import dposv as _posv
+
+from drake_rus.control import kernels
+
+
+def _f64(x) -> np.ndarray:
+    """``x`` as a C-contiguous float64 array (no copy when it already is one)."""
+    return np.ascontiguousarray(x, dtype=np.float64)
+
+
+def all_finite(x: np.ndarray) -> bool:
+    """Every entry of the float array ``x`` is finite. A sum is finite only if every term is
+    (NaN and inf propagate); only a sum that overflows needs the element-wise check. About
+    half the cost of ``np.all(np.isfinite(x))`` on the controller's small arrays."""
+    return math.isfinite(float(x.sum())) or bool(np.isfinite(x).all())
 
 
 def _vec3(x) -> np.ndarray:
@@ -204,12 +219,15 @@ def manipulability_gradient_analytic(J) -> np.ndarray:
     singularity (m = 0)."""
     J = np.asarray(J, dtype=float)
     A = J @ J.T
-    d = float(np.linalg.det(A))
-    if not d > 0.0:
+    # Cholesky A = L L^T (LAPACK's posv, which also solves B = A^-1 J): m = sqrt(det A) =
+    # prod(diag L). Not positive definite (info != 0): J is singular, m = 0.
+    L, B, info = _posv(A, J)                                   # B = A^-1 J  (6, n)
+    if info != 0:
         return np.zeros(J.shape[1])
-    m = math.sqrt(d)
+    m = float(np.prod(np.diag(L)))
+    if not m > 0.0:
+        return np.zeros(J.shape[1])
     dJ = jacobian_derivatives(J)                               # (n, 6, n)
-    B = np.linalg.solve(A, J)                                  # A^-1 J  (6, n)
     # tr(A^-1 dJ_i J^T) = sum_kl (A^-1 J)_kl (dJ_i)_kl  (A symmetric)
     return m * (dJ.reshape(dJ.shape[0], -1) @ B.ravel())
 
@@ -225,24 +243,13 @@ def damped_pseudo_inverse(J, sigma_threshold: float = 0.03, damping_max: float =
 
     Returns (J_pinv (n x 6), N (n x n), lambda).
     """
-    J = np.asarray(J, dtype=float)
-    U, Vt, inv, Vr, lam2 = _damped_svd(J, sigma_threshold, damping_max)
+    J = np.ascontiguousarray(J, dtype=float)
+    U, Vt, inv, rank, lam2 = kernels.damped_svd(J, float(sigma_threshold), float(damping_max))
     m = inv.size
     J_pinv = (Vt[:m].T * inv) @ U[:, :m].T
+    Vr = Vt[:rank]
     N = np.eye(J.shape[1]) - Vr.T @ Vr
     return J_pinv, N, math.sqrt(lam2)
-
-
-def _damped_svd(J: np.ndarray, sigma_threshold: float, damping_max: float):
-    """(U, V^T, damped inverse singular values, the row-space basis V_r, lambda^2) of J, the
-    variable damping of :func:`damped_pseudo_inverse`."""
-    U, s, Vt = np.linalg.svd(J, full_matrices=True)
-    s_min = float(s[-1])
-    lam2 = 0.0
-    if s_min < sigma_threshold:
-        lam2 = damping_max**2 * (1.0 - (s_min / sigma_threshold) ** 2)
-    inv = s / (s**2 + lam2) if lam2 > 0 else np.where(s > 1e-12, 1.0 / np.maximum(s, 1e-300), 0.0)
-    return U, Vt, inv, Vt[:int(np.count_nonzero(s > 1e-9))], lam2
 
 
 def joint_velocity_bounds(q, q_min, q_max, dq_max, margin: float):
@@ -252,26 +259,13 @@ def joint_velocity_bounds(q, q_min, q_max, dq_max, margin: float):
     dq_max down to 0 at the limit (and stays 0 beyond it); away from the limit is always
     allowed. Returns (lower <= 0, upper >= 0).
     """
-    q = np.asarray(q, dtype=float)
-    dq_max = np.asarray(dq_max, dtype=float)
-    up = np.clip((np.asarray(q_max) - q) / margin, 0.0, 1.0) * dq_max
-    lo = -np.clip((q - np.asarray(q_min)) / margin, 0.0, 1.0) * dq_max
-    return lo, up
+    return kernels.joint_velocity_bounds(_f64(q), _f64(q_min), _f64(q_max), _f64(dq_max),
+                                         float(margin))
 
 
 def scale_into_bounds(qdot, lower, upper) -> np.ndarray:
     """Scales qdot uniformly (direction kept) so that lower <= qdot <= upper."""
-    qdot = np.asarray(qdot, dtype=float)
-    lower, upper = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
-    above, below = qdot > upper, qdot < lower
-    if not (above.any() or below.any()):
-        return qdot * 1.0
-    # Per violated joint the largest admissible scale (0 when the bound has the other sign).
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s_hi = np.where(qdot > 0, upper / qdot, 0.0)
-        s_lo = np.where(qdot < 0, lower / qdot, 0.0)
-    s = min(1.0, float(np.min(s_hi[above], initial=1.0)), float(np.min(s_lo[below], initial=1.0)))
-    return qdot * max(s, 0.0)
+    return kernels.scale_into_bounds(_f64(qdot), _f64(lower), _f64(upper))
 
 
 def null_space_diff_ik(J, xi_b, qdot_null, *, sigma_threshold: float = 0.03,
@@ -280,12 +274,8 @@ def null_space_diff_ik(J, xi_b, qdot_null, *, sigma_threshold: float = 0.03,
 
     The same arithmetic as :func:`damped_pseudo_inverse` applied to the two vectors, without
     forming J^+ and N (one SVD, a few matrix-vector products)."""
-    J = np.asarray(J, dtype=float)
-    xi_b = np.asarray(xi_b, dtype=float)
-    qdot_null = np.asarray(qdot_null, dtype=float)
-    U, Vt, inv, Vr, _ = _damped_svd(J, sigma_threshold, damping_max)
-    m = inv.size
-    return Vt[:m].T @ (inv * (U[:, :m].T @ xi_b)) + qdot_null - Vr.T @ (Vr @ qdot_null)
+    return kernels.null_space_diff_ik(_f64(J), _f64(xi_b), _f64(qdot_null),
+                                      float(sigma_threshold), float(damping_max))
 
 
 def solve_joint_velocities(q, xi_b, jacobian, *, q_min, q_max, dq_max,
@@ -299,21 +289,17 @@ def solve_joint_velocities(q, xi_b, jacobian, *, q_min, q_max, dq_max,
     :func:`joint_velocity_bounds` so the probe path keeps its direction while slowing before
     a joint limit. Non-finite input gives zeros.
     """
-    q = np.asarray(q, dtype=float)
-    xi_b = np.asarray(xi_b, dtype=float)
-    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(xi_b))):
+    q = _f64(q)
+    xi_b = _f64(xi_b)
+    if not (all_finite(q) and all_finite(xi_b)):
         return np.zeros_like(q)
     J = jacobian(q)
     if qdot_null is None:
         qdot_null = (K_p6 * manipulability_gradient(q, jacobian, epsilon)
                      if K_p6 > 0 else np.zeros_like(q))
-    qdot = null_space_diff_ik(J, xi_b, qdot_null, sigma_threshold=sigma_threshold,
-                              damping_max=damping_max)
-    lo, up = joint_velocity_bounds(q, q_min, q_max, dq_max, joint_limit_margin)
-    qdot = scale_into_bounds(qdot, lo, up)
-    if not np.all(np.isfinite(qdot)):
-        return np.zeros_like(q)
-    return qdot
+    return kernels.solve_joint_velocities(
+        q, xi_b, _f64(J), _f64(qdot_null), _f64(q_min), _f64(q_max), _f64(dq_max),
+        float(joint_limit_margin), float(sigma_threshold), float(damping_max))
 
 
 # ----------------------------------------------------------------------------- pivot ends

@@ -20,7 +20,7 @@ import math
 
 import numpy as np
 
-from drake_rus.control.laws import damped_pseudo_inverse, scale_into_bounds
+from drake_rus.control.laws import all_finite, damped_pseudo_inverse, scale_into_bounds
 
 LOG = logging.getLogger("drake_rus.control.safety")
 
@@ -86,24 +86,33 @@ class SafetyState:
     def __copy__(self):
         return self
 
+    def replace(self) -> "SafetyState":
+        """A shallow copy (what ``dataclasses.replace(state)`` gives, for a fraction of the
+        cost: this runs every control period). safety_step only rebinds its fields."""
+        new = object.__new__(SafetyState)
+        new.__dict__.update(self.__dict__)
+        return new
+
 
 def check_faults(u: SafetyInputs, s: SafetyState, cfg) -> tuple[str, str] | None:
     """The first fault present in ``u`` as (reason, detail), or None. Also updates the
     watchdog bookkeeping in ``s`` (last joint change, kidney invisible since)."""
-    arrays = {"q": u.q, "v": u.v, "commanded qdot": u.qdot_desired, "R_BP": u.R_BP,
-              "p_BP": u.p_BP, "J": u.J}
-    for name, x in arrays.items():
-        if not np.all(np.isfinite(np.asarray(x, dtype=float))):
-            return StopReason.NAN, f"{name} is not finite"
+    arrays = (("q", u.q), ("v", u.v), ("commanded qdot", u.qdot_desired), ("R_BP", u.R_BP),
+              ("p_BP", u.p_BP), ("J", u.J))
+    # One pass over all of them (this runs every control period); which one, only on a fault.
+    if not all_finite(np.concatenate([np.asarray(x, dtype=float).ravel() for _, x in arrays])):
+        for name, x in arrays:
+            if not np.all(np.isfinite(np.asarray(x, dtype=float))):
+                return StopReason.NAN, f"{name} is not finite"
     if not math.isfinite(u.F_z):
         return StopReason.NAN, "contact force is not finite"
     if not u.robot_ok:
         return StopReason.ROBOT_FAULT, "the station reports robot_ok = 0"
     if u.F_z > cfg.force_ceiling:
         return StopReason.FORCE, f"F_z = {u.F_z:.2f} N > {cfg.force_ceiling:.2f} N"
-    lo, hi = np.asarray(cfg.workspace_min), np.asarray(cfg.workspace_max)
     p = np.asarray(u.p_BP, dtype=float)
-    if np.any(p < lo) or np.any(p > hi):
+    if any(not lo <= x <= hi for x, lo, hi in zip(p.tolist(), cfg.workspace_min,
+                                                  cfg.workspace_max)):
         return StopReason.WORKSPACE, f"p_BP = {np.round(p, 4).tolist()} m outside the box"
     tip_speed = float(np.linalg.norm(np.asarray(u.J)[3:] @ np.asarray(u.v)))
     if tip_speed > cfg.max_tip_speed:
@@ -162,7 +171,7 @@ def safety_step(state: SafetyState, u: SafetyInputs, cfg) -> tuple[np.ndarray, S
     fault the stop latches: the command is zero from this period on, except after a force
     ceiling stop, which retracts along -a for retract_distance / retract_speed seconds.
     """
-    s = dataclasses.replace(state)
+    s = state.replace()
     n = len(u.q)
     if s.stopped:
         if u.t < s.retract_until and np.all(np.isfinite(np.asarray(u.J, dtype=float))):

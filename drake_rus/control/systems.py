@@ -19,7 +19,7 @@ from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import BasicVector, LeafSystem
 
-from drake_rus.control import laws, supervisor
+from drake_rus.control import kernels, laws, supervisor
 from drake_rus.robot import TipKinematics
 from drake_rus.control.safety import SafetyInputs, SafetyState, safety_step
 
@@ -152,6 +152,7 @@ class NullSpaceDiffIK(LeafSystem):
                  kinematics: TipKinematics | None = None):
         super().__init__()
         self._cfg = config
+        kernels.warm_up()   # compile or load the IK kernels now, not in the first period
         # ``kinematics`` may be shared with the safety layer: one FK + Jacobian per tick.
         self._kin = kinematics or TipKinematics(plant, tip_frame)
         self._K_p6 = config.K_p6 if use_null_space else 0.0
@@ -205,6 +206,15 @@ class NullSpaceDiffIK(LeafSystem):
         q = self._q.Eval(context)
         m = laws.manipulability(self._kin.jacobian(q)) if np.all(np.isfinite(q)) else math.nan
         output.SetFromVector([m])
+
+
+def _output_vectors(s: supervisor.SupervisorState) -> dict:
+    """The ScanSupervisor's vector outputs from its state, by port name (all in B)."""
+    return {"a_des": s.a_des, "o_des": s.o_des, "a_des_dot": s.a_des_dot, "P_des": s.P_des,
+            "F_des": [s.F_des], "phase": [float(s.phase)],
+            "segmentation_required": [float(supervisor.segmentation_required(s))],
+            "exploring": [float(s.phase == supervisor.Phase.EXPLORE)],
+            "abort": [float(s.phase == supervisor.Phase.ABORT)]}
 
 
 class ScanSupervisor(LeafSystem):
@@ -261,28 +271,19 @@ class ScanSupervisor(LeafSystem):
         self.DeclarePeriodicUnrestrictedUpdateEvent(self._dt, 0.0, self._update)
         S = lambda ctx: ctx.get_abstract_state(0).get_value()  # noqa: E731
         self._S = S
-        # Every output is a function of the state alone: declared so, they are recomputed
-        # only when the state changes (once per period), not whenever time or an input does.
-        only_state = {self.abstract_state_ticket(self._s)}
-
-        def vector(name, size, calc):
-            self.DeclareVectorOutputPort(name, size, calc, prerequisites_of_calc=only_state)
-
-        vector("a_des", 3, lambda c, o: o.SetFromVector(S(c).a_des))
-        vector("o_des", 3, lambda c, o: o.SetFromVector(S(c).o_des))
-        vector("a_des_dot", 3, lambda c, o: o.SetFromVector(S(c).a_des_dot))
-        vector("P_des", 2, lambda c, o: o.SetFromVector(S(c).P_des))
-        vector("F_des", 1, lambda c, o: o.SetFromVector([S(c).F_des]))
-        vector("phase", 1, lambda c, o: o.SetFromVector([float(S(c).phase)]))
-        vector("segmentation_required", 1,
-               lambda c, o: o.SetFromVector([float(supervisor.segmentation_required(S(c)))]))
-        vector("exploring", 1,
-               lambda c, o: o.SetFromVector([float(S(c).phase == supervisor.Phase.EXPLORE)]))
-        vector("abort", 1,
-               lambda c, o: o.SetFromVector([float(S(c).phase == supervisor.Phase.ABORT)]))
+        # The vector outputs are discrete state, written by the update from the new
+        # SupervisorState (_output_vectors) and exported as state output ports: the
+        # controllers read them every period without a call into Python.
+        self._out = {}
+        for name, value in _output_vectors(supervisor.SupervisorState()).items():
+            self._out[name] = self.DeclareDiscreteState(value)
+            self.DeclareStateOutputPort(name, self._out[name])
+        # The state itself, for logs: a function of the state alone (recomputed only when
+        # the state changes, once per period).
         self.DeclareAbstractOutputPort(
             "supervisor_state", lambda: AbstractValue.Make(supervisor.SupervisorState()),
-            lambda c, o: o.set_value(S(c)), prerequisites_of_calc=only_state)
+            lambda c, o: o.set_value(S(c)),
+            prerequisites_of_calc={self.abstract_state_ticket(self._s)})
 
     def state(self, context) -> supervisor.SupervisorState:
         return context.get_abstract_state(0).get_value()
@@ -312,6 +313,8 @@ class ScanSupervisor(LeafSystem):
                          if self._pivot_model.HasValue(context) else None))
         new = supervisor.supervisor_step(self.state(context), u, self._cfg, self._dt)
         state.get_mutable_abstract_state(0).set_value(new)
+        for name, value in _output_vectors(new).items():
+            state.get_mutable_discrete_state(self._out[name]).set_value(value)
 
 
 class SafetyLayer(LeafSystem):
@@ -333,6 +336,7 @@ class SafetyLayer(LeafSystem):
                  kinematics: TipKinematics | None = None):
         super().__init__()
         self._cfg = safety_config
+        kernels.warm_up()   # the retreat's pseudo-inverse: compiled now, not on a stop
         self._dt = 1.0 / rate_hz
         self._kin = kinematics or TipKinematics(plant, tip_frame)
         n = self._kin.nq

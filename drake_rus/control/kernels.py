@@ -1,0 +1,129 @@
+"""Compiled kernels (numba) of the differential IK's arithmetic (eq. 10-12), run every
+control period.
+
+The laws in :mod:`drake_rus.control.laws` call these; they are the same equations written
+as loops over 6 x 7 arrays, compiled once (``cache=True``: later processes load the machine
+code from ``__pycache__``, or numba's user cache when the package directory is read-only).
+In Python the same arithmetic is a few dozen numpy calls of 1-5 us each, most of it call
+overhead on arrays this small. :func:`warm_up` compiles (or loads) every kernel; the systems
+call it when they are built, so a live run never compiles inside the control loop.
+
+Arguments are float64 arrays (C-contiguous) and floats; the wrappers in ``laws`` convert.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def damped_svd(J, sigma_threshold, damping_max):
+    """(U, V^T, damped inverse singular values, rank, lambda^2) of J (m x n, m <= n): the
+    variable damping of ``laws.damped_pseudo_inverse`` (s / (s^2 + lambda^2) with lambda^2 =
+    damping_max^2 (1 - (s_min / sigma_threshold)^2) below the threshold, else 1 / s, 0 for
+    s <= 1e-12); rank counts s > 1e-9."""
+    U, s, Vt = np.linalg.svd(J)
+    s_min = s[s.size - 1]
+    lam2 = 0.0
+    if s_min < sigma_threshold:
+        lam2 = damping_max * damping_max * (1.0 - (s_min / sigma_threshold) ** 2)
+    inv = np.empty(s.size)
+    rank = 0
+    for i in range(s.size):
+        if lam2 > 0.0:
+            inv[i] = s[i] / (s[i] * s[i] + lam2)
+        elif s[i] > 1e-12:
+            inv[i] = 1.0 / max(s[i], 1e-300)
+        else:
+            inv[i] = 0.0
+        if s[i] > 1e-9:
+            rank += 1
+    return U, Vt, inv, rank, lam2
+
+
+@njit(cache=True)
+def null_space_diff_ik(J, xi_b, qdot_null, sigma_threshold, damping_max):
+    """qdot = J^+ xi_b + (I - V_r V_r^T) qdot_null (eq. 10), with the damped pseudo-inverse
+    from :func:`damped_svd` and the rank-r row space V_r of J."""
+    U, Vt, inv, rank, _ = damped_svd(J, sigma_threshold, damping_max)
+    m, n = J.shape
+    # w = inv * (U^T xi_b); qdot = V_m w
+    w = np.zeros(m)
+    for k in range(m):
+        acc = 0.0
+        for i in range(m):
+            acc += U[i, k] * xi_b[i]
+        w[k] = inv[k] * acc
+    qdot = qdot_null.copy()
+    for k in range(m):
+        for j in range(n):
+            qdot[j] += Vt[k, j] * w[k]
+    # minus V_r (V_r^T qdot_null)
+    for k in range(rank):
+        c = 0.0
+        for j in range(n):
+            c += Vt[k, j] * qdot_null[j]
+        for j in range(n):
+            qdot[j] -= Vt[k, j] * c
+    return qdot
+
+
+@njit(cache=True)
+def joint_velocity_bounds(q, q_min, q_max, dq_max, margin):
+    """(lower <= 0, upper >= 0) per-joint velocity bounds (rad/s): dq_max, ramping linearly
+    to 0 over the last ``margin`` (rad) before a joint limit (towards it only)."""
+    n = q.size
+    lo = np.empty(n)
+    up = np.empty(n)
+    for i in range(n):
+        up[i] = min(max((q_max[i] - q[i]) / margin, 0.0), 1.0) * dq_max[i]
+        lo[i] = -(min(max((q[i] - q_min[i]) / margin, 0.0), 1.0) * dq_max[i])
+    return lo, up
+
+
+@njit(cache=True)
+def scale_into_bounds(qdot, lower, upper):
+    """qdot scaled uniformly (direction kept) into lower <= qdot <= upper: per violated
+    joint the largest admissible scale (0 when its bound has the other sign), the smallest
+    of them, at most 1. A copy of qdot when nothing is violated."""
+    s = 1.0
+    for i in range(qdot.size):
+        v = qdot[i]
+        if v > upper[i]:
+            s = min(s, upper[i] / v if v > 0.0 else 0.0)
+        if v < lower[i]:
+            s = min(s, lower[i] / v if v < 0.0 else 0.0)
+    return qdot * max(s, 0.0)
+
+
+@njit(cache=True)
+def _finite(x):
+    for v in x.flat:
+        if not math.isfinite(v):
+            return False
+    return True
+
+
+@njit(cache=True)
+def solve_joint_velocities(q, xi_b, J, qdot_null, q_min, q_max, dq_max, margin,
+                           sigma_threshold, damping_max):
+    """eq. 10 then the joint-limit margin and speed limits (``laws.solve_joint_velocities``
+    with the Jacobian and the null-space velocity given); zeros for non-finite input."""
+    if not (_finite(q) and _finite(xi_b)):
+        return np.zeros(q.size)
+    qdot = null_space_diff_ik(J, xi_b, qdot_null, sigma_threshold, damping_max)
+    lo, up = joint_velocity_bounds(q, q_min, q_max, dq_max, margin)
+    qdot = scale_into_bounds(qdot, lo, up)
+    if not _finite(qdot):
+        return np.zeros(q.size)
+    return qdot
+
+
+def warm_up() -> None:
+    """Compiles (or loads from the cache) every kernel for the types the laws pass."""
+    J = np.hstack([np.eye(6), np.zeros((6, 1))])
+    q = np.zeros(7)
+    solve_joint_velocities(q, np.zeros(6), J, q, q - 1.0, q + 1.0, q + 1.0, 0.1, 0.03, 0.03)
