@@ -257,3 +257,123 @@ def test_template_tree_finds_the_same_neighbours():
     d0, j0 = cKDTree(Q).query(p)
     d1, j1 = _template_tree(Q).query(p)
     assert np.array_equal(j0, j1) and np.array_equal(d0, d1)
+
+
+# ------------------------------------------------------------------ cost: stopping, kd-trees
+def cKDTree_of(points):
+    """A fresh (balanced) kd-tree: the reference nearest neighbours."""
+    from scipy.spatial import cKDTree
+    return cKDTree(points)
+
+
+def pose_gap(a, b) -> tuple[float, float]:
+    """(translation m, rotation rad) between two registrations' poses."""
+    return (float(np.linalg.norm(a.X_BK.translation() - b.X_BK.translation())),
+            angle_between(a.X_BK.rotation().matrix(), b.X_BK.rotation().matrix()))
+
+
+@pytest.mark.parametrize("modes", [False, True])
+def test_a_converged_registration_stops_early_where_a_longer_run_ends(modes):
+    """The step and error-change tests end a registration once its update is negligible,
+    far below the iteration cap; iterating on until the iterates stop changing at all
+    (tolerances near zero) moves the pose by less than 0.01 mm and 0.001 deg. Started at
+    its own answer, it stops at once."""
+    Q, N, _ = bean_template(3)
+    P_B = true_pose().multiply(Q.T).T + np.random.default_rng(2).normal(
+        scale=2e-4, size=Q.shape)
+    R0 = heuristic_initial_rotation(SUPERIOR_B, LATERAL_B)
+    kw = {}
+    if modes:
+        mode = np.zeros_like(Q)
+        mode[:, 0] = Q[:, 0] / np.abs(Q[:, 0]).max()
+        kw = dict(shape_modes_K=mode[None], shape_variances=np.array([0.01 ** 2]))
+    quick = register_plane_to_plane(P_B, Q, N, R0, **kw)
+    assert quick.stop_reason == "converged" and quick.iterations < 50
+    longer = register_plane_to_plane(P_B, Q, N, R0, step_tolerance=1e-13,
+                                     error_change_tol=1e-30, cycle_max_period=0,
+                                     max_iterations=100, **kw)
+    assert longer.iterations > quick.iterations
+    dp, dr = pose_gap(quick, longer)
+    assert dp < 1e-5 and np.rad2deg(dr) < 1e-3, (dp, np.rad2deg(dr))
+    again = register_plane_to_plane(P_B, Q, N, R0, initial_X_BK=quick.X_BK,
+                                    initial_shape=quick.shape_coefficients, **kw)
+    assert again.stop_reason == "converged" and again.iterations <= 3
+
+
+def test_template_tree_cache_is_keyed_by_content():
+    from drake_rus.localization.icp import _template_tree
+    Q, _, _ = bean_template(3)
+    tree = _template_tree(Q)
+    assert _template_tree(Q.copy()) is tree          # the same points: the same tree
+    moved = Q + np.array([0.001, 0.0, 0.0])
+    other = _template_tree(moved)
+    assert other is not tree and np.array_equal(other.data, moved)
+    # The tree keeps its own copy: changing the caller's array afterwards neither corrupts
+    # it nor returns it for the changed points.
+    scratch = Q.copy() * 1.01
+    first = _template_tree(scratch)
+    scratch[0] += 0.002
+    second = _template_tree(scratch)
+    assert second is not first and np.array_equal(second.data, scratch)
+    assert not np.array_equal(first.data, scratch)
+    p = np.random.default_rng(4).normal(scale=0.03, size=(200, 3))
+    assert np.array_equal(second.query(p)[1], cKDTree_of(scratch).query(p)[1])
+
+
+def test_moving_nearest_is_the_kd_trees_answer_with_fewer_queries():
+    """A cloud moving in steps from 0.02 to 5 mm over a template that deforms (each step's
+    motion bound given): every answer equals a fresh kd-tree's (index and distance), the
+    tree is asked for a fraction of the points and rebuilt only for some steps."""
+    from drake_rus.localization.icp import MovingNearest
+    Q, _, _ = bean_template(3)
+    rng = np.random.default_rng(5)
+    mode = rng.normal(scale=1.0, size=Q.shape) * 0.002
+    x = Q[rng.choice(len(Q), 400, replace=False)] + rng.normal(scale=0.002, size=(400, 3))
+    moving, built, b, shape = MovingNearest(), [], 0.0, Q
+    steps = [2e-5] * 10 + [5e-3] * 3 + [1e-4] * 10
+    for step in steps:
+        x = x + rng.normal(size=3) * step / np.sqrt(3)
+        new_b = b + step / 0.004 * rng.normal()    # template points move ~ step too
+        new_shape = Q + new_b * mode
+        moving.template_moved(np.max(np.linalg.norm(new_shape - shape, axis=1)))
+        b, shape = new_b, new_shape
+        dist, idx = moving.query(x, shape, lambda: built.append(1) or cKDTree_of(shape))
+        d_ref, j_ref = cKDTree_of(shape).query(x)
+        assert np.array_equal(idx, j_ref) and np.array_equal(dist, d_ref)
+    assert moving.queried < 0.5 * len(steps) * len(x)
+    assert len(built) < len(steps)
+
+
+def test_icp_with_moving_nearest_equals_plain_kd_tree_queries(monkeypatch):
+    """The candidate reuse changes nothing: a deformable registration (noisy partial cloud,
+    ending in a cycle) with every correspondence from a fresh kd-tree of the current
+    template gives bit-identical errors, pose and shape weights, while the reuse sends
+    under half of the points to a kd-tree."""
+    from drake_rus.localization import icp
+    Q, N, _ = bean_template(3)
+    rng = np.random.default_rng(0)
+    modes = rng.normal(size=(2,) + Q.shape) * 0.003
+    P_B = true_pose().multiply((Q + 0.004 * modes[0]).T).T[Q[:, 0] > -0.01]
+    P_B = P_B + rng.normal(scale=0.002, size=P_B.shape)
+    R0 = heuristic_initial_rotation(SUPERIOR_B, LATERAL_B)
+    kw = dict(shape_modes_K=modes, shape_variances=np.array([1.0, 0.5]), step_tolerance=1e-6)
+    made = []
+
+    class Counted(icp.MovingNearest):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            made.append(self)
+
+    class Plain(icp.MovingNearest):
+        def query(self, x, points, tree_of):
+            return cKDTree_of(points).query(x)
+
+    monkeypatch.setattr(icp, "MovingNearest", Counted)
+    fast = register_plane_to_plane(P_B, Q, N, R0, **kw)
+    assert made[0].queried < 0.5 * len(P_B) * (fast.iterations + 1)
+    monkeypatch.setattr(icp, "MovingNearest", Plain)
+    plain = register_plane_to_plane(P_B, Q, N, R0, **kw)
+    assert fast.iterations == plain.iterations > 20
+    assert np.array_equal(fast.errors, plain.errors)
+    assert np.array_equal(fast.X_BK.GetAsMatrix4(), plain.X_BK.GetAsMatrix4())
+    assert np.array_equal(fast.shape_coefficients, plain.shape_coefficients)

@@ -275,3 +275,42 @@ def test_group_medians_are_numpys_medians(seed):
 def test_group_medians_need_every_group():
     with pytest.raises(ValueError, match="every group"):
         group_medians(np.ones(3), np.array([0, 0, 2]), 3)
+
+
+def test_estimate_drift_reuses_neighbours_with_the_kd_trees_answer(template, monkeypatch):
+    """The drift fit's nearest neighbours come from MovingNearest: the same drift, residual
+    and frame count, bit for bit, as fresh kd-tree queries every iteration, with under half
+    of the points sent to the tree (the points only slide by the fit's small steps)."""
+    from scipy.spatial import cKDTree
+
+    from drake_rus.localization import icp, tracking
+    rng = np.random.default_rng(7)
+    section = long_axis_slab(template)
+    z_B = X_BK.rotation().matrix()[:, 2]
+    frames = [section + 0.003 * z_B + rng.normal(scale=0.0007, size=section.shape)
+              for _ in range(8)] + [section + 0.05 * z_B] * 2     # two outlier frames
+    P = np.concatenate(frames)
+    ids = np.repeat(np.arange(len(frames)), len(section))
+    tree = cKDTree(template.points)
+    made = []
+
+    class Counted(icp.MovingNearest):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            made.append(self)
+
+    class Plain(icp.MovingNearest):
+        def query(self, x, points, tree_of):
+            return tree_of().query(x)
+
+    args = (P, X_BK, template.points, template.normals)
+    monkeypatch.setattr(tracking, "MovingNearest", Counted)
+    fast = estimate_drift(*args, tree=tree, frame_ids=ids)
+    calls = made[0].calls
+    assert calls >= 10 and made[0].queried < 0.5 * calls * len(P), (calls, made[0].queried)
+    monkeypatch.setattr(tracking, "MovingNearest", Plain)
+    plain = estimate_drift(*args, tree=tree, frame_ids=ids)
+    assert np.array_equal(fast.drift_B, plain.drift_B)
+    assert fast.rms_residual == plain.rms_residual
+    assert (fast.n_frames_used, fast.n_frames) == (plain.n_frames_used, plain.n_frames) == (8, 10)
+    assert fast.magnitude > 0.002

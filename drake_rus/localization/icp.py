@@ -3,8 +3,10 @@
 The partial cloud ``P_local`` (points in the robot base B, from back-projected mask
 boundaries) is registered onto the template (points q_j with normals n_j in the kidney's
 canonical frame K). Each iteration maps the local points into K with the current (R, t) =
-X_KB, finds every point's nearest template point (scipy kd-tree), and minimises the
-plane-to-plane cost of eq. 18,
+X_KB, finds every point's nearest template point (a scipy kd-tree, through
+``MovingNearest``: successive iterations move the cloud little, so most points provably
+keep a nearest neighbour among their previous candidates and skip the tree), and minimises
+the plane-to-plane cost of eq. 18,
 
     sum_i ( n_j^T (R p_i + t - q_j) )^2,
 
@@ -47,6 +49,7 @@ template's origin (``init_translation="centroid"``, the default); ``"zero"`` rep
 seed for comparison.
 """
 
+import collections
 import dataclasses
 
 import numpy as np
@@ -112,13 +115,171 @@ class NearestPointGrid:
         return np.linalg.norm(p - self.points[j], axis=1), j
 
 
+# Content-keyed cache of template kd-trees: (shape, hash of the bytes) -> (points, tree).
+# A hit is confirmed by comparing the points, so a hash collision only costs a rebuild.
+_TREE_CACHE = collections.OrderedDict()
+_TREE_CACHE_SIZE = 8
+
+
 def _template_tree(points: np.ndarray) -> cKDTree:
-    """A kd-tree of template points for one registration's nearest-neighbour queries. With
-    shape modes it is rebuilt every iteration, so it is built with sliding-midpoint splits
-    (``balanced_tree=False``): about half the build time of median splits, queries a few
-    percent slower, and the same nearest neighbours (only the tree's shape differs; a point
-    exactly equidistant from two template points may get the other one)."""
-    return cKDTree(points, balanced_tree=False)
+    """A kd-tree of template points, cached by content (the last ``_TREE_CACHE_SIZE``
+    point sets): the same points give the same tree object, different points a new one.
+    Built with sliding-midpoint splits (``balanced_tree=False``): about half the build time
+    of median splits, queries a few percent slower, and the same nearest neighbours (only the
+    tree's shape differs; a point exactly equidistant from two template points may get the
+    other one). The tree keeps its own copy of the points."""
+    points = np.ascontiguousarray(points, dtype=float)
+    key = (points.shape, hash(points.tobytes()))
+    hit = _TREE_CACHE.get(key)
+    if hit is not None and np.array_equal(hit[0], points):
+        _TREE_CACHE.move_to_end(key)
+        return hit[1]
+    copy = points.copy()
+    tree = cKDTree(copy, balanced_tree=False)
+    _TREE_CACHE[key] = (copy, tree)
+    while len(_TREE_CACHE) > _TREE_CACHE_SIZE:
+        _TREE_CACHE.popitem(last=False)
+    return tree
+
+
+# Safety margin (m) of the candidate test in ``MovingNearest``: far above the rounding
+# error of mm-scale distances (~1e-19 m), far below any real gap between neighbours.
+_CANDIDATE_MARGIN = 1e-12
+
+
+class MovingNearest:
+    """Nearest template point of every point of a cloud that moves a little between calls
+    (the iterations of one registration or drift fit): the kd-tree's answer with a fraction
+    of its work.
+
+    A kd-tree query keeps each point's ``k`` nearest template points and r_k, the distance
+    to the k-th. Once the point has moved by delta and every template point by at most D
+    (``template_moved``), every template point outside the k is at least r_k - delta - D
+    away, so when the nearest of the k candidates (at the current positions) is closer than
+    that, it is the nearest of all. Only the points that fail this test are queried again:
+    first in the last kd-tree built (the same test, its template having moved since by at
+    most the motion since it was built), then, for those that still fail, in a new kd-tree
+    of the current template (``tree_of()``). While the cloud moves by more than about half
+    the typical gap between the first and the k-th candidate per call, most points would
+    fail: such calls query every point's nearest neighbour directly. The neighbours and
+    distances are the kd-tree's (up to exact ties).
+    """
+
+    def __init__(self, k: int = 4, fast_fraction: float = 0.5):
+        if k < 1:
+            raise ValueError(f"k: expected at least 1 candidate, got {k}")
+        self.k = int(k)
+        self.fast_fraction = float(fast_fraction)
+        # Diagnostics: queries answered, points sent to a kd-tree, tree_of() calls.
+        self.calls = 0
+        self.queried = 0
+        self.trees_built = 0
+        self._motion = 0.0      # accumulated bound on the template's motion (m)
+        self._n = (-1, -1)      # (cloud size, template size) of the state below
+        self._stale = True      # candidates unusable (none yet, or skipped by a fast call)
+        self._cand = None       # (M, k) candidate indices per point
+        self._x0 = None         # (M, 3) positions when the candidates were found
+        self._r = None          # (M,) distance to the k-th candidate then (inf: all points)
+        self._m0 = None         # (M,) template motion accumulated then
+        self._gap = None        # (M,) r_k - distance of the nearest then
+        self._x_prev = None     # the previous call's cloud and motion
+        self._motion_prev = 0.0
+        self._tree = None       # the last kd-tree from tree_of() and the motion then
+        self._tree_motion = 0.0
+
+    def template_moved(self, bound: float) -> None:
+        """Every template point moved by at most ``bound`` (m) since the previous call."""
+        self._motion += float(bound)
+
+    def query(self, x: np.ndarray, points: np.ndarray, tree_of) -> tuple[np.ndarray, np.ndarray]:
+        """(distance (m), index) of the nearest row of ``points`` (the template now, (N, 3))
+        to each row of ``x`` (M, 3); ``tree_of()`` returns a kd-tree of ``points`` and is
+        called only when no earlier tree can answer."""
+        x = np.asarray(x, dtype=float)
+        m = len(x)
+        k = min(self.k, len(points))
+        self.calls += 1
+        if self._n != (m, len(points)):
+            self._n, self._stale = (m, len(points)), True
+            self._cand = np.zeros((m, k), dtype=np.intp)
+            self._x0, self._r, self._m0 = np.zeros((m, 3)), np.zeros(m), np.zeros(m)
+            self._gap, self._x_prev = None, None
+        fast = False
+        if self._x_prev is not None and self._gap is not None:
+            step = _norm_rows(x - self._x_prev) + (self._motion - self._motion_prev)
+            fast = np.count_nonzero(self._gap <= 2.0 * step) > self.fast_fraction * m
+        self._x_prev, self._motion_prev = x.copy(), self._motion
+        if fast:
+            self._stale = True
+            self.queried += m
+            return self._fresh_tree(tree_of).query(x)
+        points_t = np.ascontiguousarray(np.asarray(points, dtype=float).T)
+        if self._stale:
+            dist, idx = np.zeros(m), np.zeros(m, dtype=np.intp)
+            rows = np.arange(m)
+            self._stale = False
+        else:
+            dist, idx, ok = self._candidates(x, self._cand, self._r - _norm_rows(x - self._x0)
+                                             - (self._motion - self._m0), points_t)
+            rows = np.flatnonzero(~ok)
+        if rows.size and self._tree is not None and self._tree_motion < self._motion:
+            # The last tree, of the template as it was: the same test on its answer.
+            d, j = self._tree.query(x[rows], k=k)
+            d, j = d.reshape(-1, k), j.reshape(-1, k)
+            r = d[:, -1] if k < len(points) else np.full(len(rows), np.inf)
+            dd, jj, ok = self._candidates(x[rows], j, r - (self._motion - self._tree_motion),
+                                          points_t)
+            self._store(rows[ok], x, j[ok], r[ok], self._tree_motion, dd[ok], dist, jj[ok], idx)
+            rows = rows[~ok]
+        if rows.size:
+            d, j = self._fresh_tree(tree_of).query(x[rows], k=k)
+            d, j = d.reshape(-1, k), j.reshape(-1, k)
+            r = d[:, -1] if k < len(points) else np.full(len(rows), np.inf)
+            self._store(rows, x, j, r, self._motion, d[:, 0], dist, j[:, 0], idx)
+        return dist, idx
+
+    def _fresh_tree(self, tree_of):
+        if self._tree is None or self._tree_motion < self._motion:
+            self._tree, self._tree_motion = tree_of(), self._motion
+            self.trees_built += 1
+        return self._tree
+
+    @staticmethod
+    def _candidates(x, cand, bound, points_t):
+        """(distance, index) of the nearest candidate of each point and whether it is
+        provably the nearest of all (closer than ``bound``). ``points_t``: the template as
+        (3, N) rows; the squares are summed x + y + z, as the kd-tree sums them."""
+        d2 = None
+        for axis in range(3):
+            d = points_t[axis].take(cand)
+            d -= x[:, axis:axis + 1]
+            d *= d
+            if d2 is None:
+                d2 = d
+            else:
+                d2 += d
+        best = d2.argmin(axis=1)
+        rows = np.arange(len(x))
+        dist = np.sqrt(d2[rows, best])
+        return dist, cand[rows, best], dist < bound - _CANDIDATE_MARGIN
+
+    def _store(self, rows, x, cand, r, motion, d_best, dist, j_best, idx):
+        """Keeps the new candidates of ``rows`` and writes their answer into dist, idx."""
+        if not rows.size:
+            return
+        self.queried += rows.size
+        self._cand[rows], self._x0[rows], self._r[rows] = cand, x[rows], r
+        self._m0[rows] = motion
+        if self._gap is None:
+            self._gap = np.full(len(x), np.inf)
+        self._gap[rows] = r - d_best
+        dist[rows], idx[rows] = d_best, j_best
+
+
+def _norm_rows(v: np.ndarray) -> np.ndarray:
+    """Euclidean norm of each row of (M, 3) ``v`` (as np.linalg.norm(v, axis=1) gives it)."""
+    v = v * v
+    return np.sqrt(v[:, 0] + v[:, 1] + v[:, 2])
 
 
 def skew(w: np.ndarray) -> np.ndarray:
@@ -185,6 +346,8 @@ def register_plane_to_plane(
         inlier_distance: residual bound (m) for the inlier fraction diagnostic.
         max_correspondence_distance: pairs farther apart are left out of the solve (m).
         max_translation_step: bound on the norm of each iteration's translation step (m).
+        template_tree: without shape modes, a ``NearestPointGrid`` (approximate table
+            lookup) or a scipy kd-tree of the template; None: a cached kd-tree built here.
         step_tolerance: also stop once an iteration moves the cloud by less than this: every
             rotation component below it (rad) and the translation step below it (m). The
             seed's error-change test alone often never fires on noisy partial clouds (the
@@ -227,6 +390,9 @@ def register_plane_to_plane(
             raise ValueError("shape_variances: expected one positive variance per mode")
 
     sigma_b = np.sqrt(shape_variances) if n_modes else None
+    # Modes as (N, n_modes, 3): the per-point gather of the Jacobian reads contiguous rows
+    # (the same sums as on the (n_modes, N, 3) layout, in half the time).
+    modes_by_point = np.ascontiguousarray(shape_modes_K.transpose(1, 0, 2)) if n_modes else None
     if initial_X_BK is not None:
         X_KB0 = initial_X_BK.inverse()
         R_KB, t_KB = X_KB0.rotation().matrix(), X_KB0.translation()
@@ -242,14 +408,24 @@ def register_plane_to_plane(
                              f"{b0.shape[0]}")
         b = np.clip(b0, -3 * sigma_b, 3 * sigma_b)
         Q_current = Q + np.einsum("k,kij->ij", b, shape_modes_K)
-    # Correspondences: a NearestPointGrid or kd-tree of the template given by the caller, or
-    # a kd-tree built here; with shape modes, a kd-tree of the deformed template, rebuilt
-    # whenever the mode weights change (sliding-midpoint splits: built in about half the
-    # time of median splits, for the same nearest neighbours).
-    if n_modes:
-        tree = _template_tree(Q_current)
+    # Correspondences: a NearestPointGrid given by the caller (a table lookup, approximate),
+    # or exact nearest neighbours from a kd-tree (the caller's, or a cached one of the
+    # current, possibly deformed, template) through MovingNearest, which queries the tree
+    # only for the points whose candidates no longer provably hold their nearest neighbour:
+    # successive iterations move the cloud (and the template) a little.
+    if isinstance(template_tree, NearestPointGrid) and not n_modes:
+        def nearest(p):
+            return template_tree.query(p)[1]
     else:
-        tree = template_tree if template_tree is not None else cKDTree(Q)
+        moving = MovingNearest()
+
+        def tree_of():
+            if not n_modes and template_tree is not None:
+                return template_tree
+            return _template_tree(Q_current)
+
+        def nearest(p):
+            return moving.query(p, Q_current, tree_of)[1]
     errors, steps = [], []
     states = []    # (R_KB, t_KB, b) at which errors[k] was measured
     converged = False
@@ -260,15 +436,16 @@ def register_plane_to_plane(
     iteration = 0
     for iteration in range(1, max_iterations + 1):
         p = P @ R_KB.T + t_KB
-        _, j = tree.query(p)
+        j = nearest(p)
         n = N[j]
         q = Q_current[j]
-        distance = np.linalg.norm(p - q, axis=1)
         residual = np.einsum("ij,ij->i", n, p - q)
-        use = distance <= max_correspondence_distance
-        if use.sum() < 6:
-            use = np.ones_like(use)
-        errors.append(float(np.mean(residual[use] ** 2)))
+        use = None    # every pair
+        if max_correspondence_distance < np.inf:
+            use = np.linalg.norm(p - q, axis=1) <= max_correspondence_distance
+            if use.sum() < 6:
+                use = None
+        errors.append(float(np.mean((residual if use is None else residual[use]) ** 2)))
         states.append((R_KB, t_KB, b))
         period = _cycle_period(states, errors, cycle_max_period, step_tolerance,
                                error_change_tol, sigma_b)
@@ -287,8 +464,8 @@ def register_plane_to_plane(
         A[:, :3] = np.cross(p, n)
         A[:, 3:6] = n
         if n_modes:
-            A[:, 6:] = -np.einsum("ij,kij->ik", n, shape_modes_K[:, j, :])
-        Au, ru = A[use], residual[use]
+            A[:, 6:] = -np.einsum("ij,ikj->ik", n, modes_by_point[j])
+        Au, ru = (A, residual) if use is None else (A[use], residual[use])
         m = len(ru)
         H = Au.T @ Au / m
         g = -Au.T @ ru / m
@@ -322,8 +499,7 @@ def register_plane_to_plane(
         if n_modes:
             # Stay within 3 standard deviations of the shape model.
             b = np.clip(b + x[6:], -3 * sigma_b, 3 * sigma_b)
-            Q_current = Q + np.einsum("k,kij->ij", b, shape_modes_K)
-            tree = _template_tree(Q_current)
+            Q_current = _deformed(Q, b, shape_modes_K, Q_current, moving)
     spread_t = spread_r = 0.0
     if cycle is not None:
         # Return the cycle's member with the lowest error (the others are as good a guess
@@ -331,14 +507,13 @@ def register_plane_to_plane(
         period, best, members = cycle
         R_KB, t_KB, b = states[best]
         if n_modes:
-            Q_current = Q + np.einsum("k,kij->ij", b, shape_modes_K)
-            tree = _template_tree(Q_current)
+            Q_current = _deformed(Q, b, shape_modes_K, Q_current, moving)
         for k in members:
             dp, dr = _pose_distance(states[best], states[k])
             spread_t, spread_r = max(spread_t, dp), max(spread_r, dr)
     # Diagnostics at the final pose.
     p = P @ R_KB.T + t_KB
-    _, j = tree.query(p)
+    j = nearest(p)
     residual = np.einsum("ij,ij->i", N[j], p - Q_current[j])
     A6 = np.column_stack([np.cross(p, N[j]), N[j]])
     dof = max(1, P.shape[0] - 6)
@@ -353,6 +528,14 @@ def register_plane_to_plane(
         shape_coefficients=b if n_modes else None, stop_reason=stop_reason,
         cycle_period=cycle[0] if cycle else 0, cycle_translation_spread=spread_t,
         cycle_rotation_spread=spread_r)
+
+
+def _deformed(Q, b, modes, Q_previous, moving: MovingNearest) -> np.ndarray:
+    """The template deformed by mode weights ``b``; tells ``moving`` how far (at most) its
+    points moved from ``Q_previous``."""
+    Q_new = Q + np.einsum("k,kij->ij", b, modes)
+    moving.template_moved(float(np.sqrt(np.max(np.sum((Q_new - Q_previous) ** 2, axis=1)))))
+    return Q_new
 
 
 # An iterate counts as back where it was m iterations earlier when it is within the

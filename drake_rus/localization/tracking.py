@@ -46,6 +46,7 @@ from scipy.spatial import cKDTree
 from drake_rus.imaging.backprojection import backproject_pixels
 from drake_rus.imaging.frames import BoundaryPixels
 from drake_rus.imaging.probe import ProbeGeometry
+from drake_rus.localization.icp import MovingNearest, _template_tree
 from drake_rus.localization.localize import LocalizationOutcome
 
 __all__ = ["estimate_drift", "kidney_in_view", "DriftEstimate", "TrackingLimits", "tracking_limits",
@@ -72,15 +73,23 @@ def group_medians(values: np.ndarray, groups: np.ndarray, n_groups: int) -> np.n
     middle values for an even count), with one sort instead of one median per group."""
     values = np.asarray(values, dtype=float).reshape(-1)
     groups = np.asarray(groups).reshape(-1)
-    order = np.lexsort((values, groups))
+    return _sorted_group_medians(values, groups, *_middle_ranks(groups, n_groups))
+
+
+def _middle_ranks(groups: np.ndarray, n_groups: int) -> tuple[np.ndarray, np.ndarray]:
+    """(low, high): where each group's two middle values (the same one for an odd count)
+    sit once the values are sorted by group, then value."""
     counts = np.bincount(groups, minlength=n_groups)
     if np.any(counts == 0):
         raise ValueError("group_medians: every group needs at least one value")
     start = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    ranked = values[order]
-    low = ranked[start + (counts - 1) // 2]
-    high = ranked[start + counts // 2]
-    return 0.5 * (low + high)
+    return start + (counts - 1) // 2, start + counts // 2
+
+
+def _sorted_group_medians(values, groups, low, high) -> np.ndarray:
+    """group_medians with the groups' middle ranks (``_middle_ranks``) given."""
+    ranked = values[np.lexsort((values, groups))]
+    return 0.5 * (ranked[low] + ranked[high])
 
 
 def estimate_drift(points_B: np.ndarray, X_BK: RigidTransform, shape_K: np.ndarray,
@@ -103,12 +112,20 @@ def estimate_drift(points_B: np.ndarray, X_BK: RigidTransform, shape_K: np.ndarr
     a segmentation outlier (a muscle band taken for the kidney) in a few: each iteration
     leaves out the frames whose median distance to the template exceeds
     max(``frame_gate_factor`` x the median over frames, ``frame_gate_floor`` m).
+
+    tree: a scipy kd-tree of ``shape_K`` (None: a cached one is built); the iterations ask
+    it only for the points whose earlier candidates no longer provably hold their nearest
+    template point (``MovingNearest``), with the same neighbours as a query every time.
     """
     points_B = np.asarray(points_B, dtype=float).reshape(-1, 3)
     if len(points_B) == 0:
         return DriftEstimate(np.zeros(3), math.nan, 0)
+    shape_K = np.asarray(shape_K, dtype=float)
     if tree is None:
-        tree = cKDTree(shape_K)
+        tree = _template_tree(shape_K)
+    # The points only slide by the small steps of t: most keep provably the same nearest
+    # template point between iterations (MovingNearest: the kd-tree's answer, fewer queries).
+    nearest = MovingNearest()
     X_KB = X_BK.inverse()
     p_K = X_KB.multiply(points_B.T).T
     t = np.zeros(3)
@@ -117,18 +134,21 @@ def estimate_drift(points_B: np.ndarray, X_BK: RigidTransform, shape_K: np.ndarr
     if frame_ids is not None:
         _, inverse = np.unique(np.asarray(frame_ids).reshape(-1), return_inverse=True)
         n_frames = int(inverse.max()) + 1
+        middle = _middle_ranks(inverse, n_frames)    # the frames stay: rank them once
     for _ in range(iterations):
-        dist, idx = tree.query(p_K + t)
+        x = p_K + t
+        dist, idx = nearest.query(x, shape_K, lambda: tree)
         n = normals_K[idx]
-        r = np.einsum("ij,ij->i", n, p_K + t - shape_K[idx])
+        r = np.einsum("ij,ij->i", n, x - shape_K[idx])
         use = np.ones(len(r), bool)
         if frame_ids is not None:
-            median = group_medians(dist, inverse, n_frames)
+            median = _sorted_group_medians(dist, inverse, *middle)
             gate = max(frame_gate_factor * float(np.median(median)), frame_gate_floor)
             use = (median <= gate)[inverse]
             frames_used = int(np.count_nonzero(median <= gate))
-        cutoff = np.quantile(np.abs(r[use]), keep_fraction)
-        keep = use & (np.abs(r) <= cutoff)
+        abs_r = np.abs(r)
+        cutoff = np.quantile(abs_r[use], keep_fraction)
+        keep = use & (abs_r <= cutoff)
         A, b = n[keep], -r[keep]
         rms = float(np.sqrt(np.mean(r[keep] ** 2)))
         H = A.T @ A + regularization * len(A) * np.eye(3)
