@@ -251,7 +251,8 @@ def randomised_emulator(base: EmulatorModel, rng: np.random.Generator,
                 dynamic_range_db=float(rng.uniform(*r.dynamic_range_db)), frequency_mhz=f,
                 interface_gain=float(rng.uniform(*r.interface_gain)))
     for name in ("polar_to_image_index", "scan_conversion", "scan_matrix", "tables",
-                 "compact_codes", "_banks"):
+                 "compact_codes", "_banks", "_polar_index_T", "_scan_csr_T", "_scan_quads",
+                 "_banks_T"):
         object.__setattr__(m, name, getattr(base, name))
     if r.echogenicity:
         # The diffuse-echo table depends only on the sample's own tissue code (low 4 bits).

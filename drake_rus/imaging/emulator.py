@@ -19,6 +19,7 @@ Deterministic: the speckle of frame ``k`` depends only on (seed, k).
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -26,6 +27,8 @@ import numpy as np
 from scipy import ndimage
 
 from drake_rus.anatomy.labels import Label
+from drake_rus.imaging import kernels
+from drake_rus.imaging._ufuncs import clip
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.probe import ProbeGeometry
 
@@ -34,6 +37,8 @@ from drake_rus.imaging.probe import ProbeGeometry
 GEL = 255
 # Look-up index standing for the probe face (gel-coupled: impedance of gel) before sample 0.
 PROBE_LABEL = GEL
+# Smallest echo intensity before log compression (-120 dB): the echo of anechoic samples.
+ECHO_FLOOR = np.float32(1e-12)
 
 
 @dataclass(frozen=True)
@@ -149,7 +154,7 @@ class EmulatorModel:
         i00 = l0 * S + s0
         return i00, wl, ws, np.intp(S)
 
-    @property
+    @cached_property
     def gel_samples(self) -> int:
         return int(min(self.samples_per_line, np.ceil(self.gel_gap / self.sample_spacing)))
 
@@ -166,6 +171,45 @@ class EmulatorModel:
         return sps.csr_matrix((w.ravel().astype(np.float32), (rows, cols)),
                               shape=(g.height_px * g.width_px,
                                      self.scan_lines * self.samples_per_line))
+
+    @cached_property
+    def _polar_index_T(self) -> np.ndarray:
+        """(S, L) ``polar_to_image_index`` transposed: the kernels work in (sample, line)
+        order, the running loss of all lines advancing together."""
+        return np.ascontiguousarray(self.polar_to_image_index.T, dtype=np.int32)
+
+    @cached_property
+    def _scan_csr_T(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``scan_matrix`` for polar images in (sample, line) order, as CSR arrays (indptr,
+        indices, data): the same weights in the same order within each row (so the same
+        sums), column l * S + s moved to s * L + l."""
+        m = self.scan_matrix
+        L, S = self.scan_lines, self.samples_per_line
+        line, sample = np.divmod(m.indices.astype(np.int64), S)
+        return m.indptr, (sample * L + line).astype(m.indices.dtype), m.data
+
+    @cached_property
+    def _scan_quads(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+        """``_scan_csr_T`` as (non-empty rows, first index of each, the 4 index offsets
+        within a row, (n, 4) weights) when every non-empty row has 4 entries at the same
+        offsets (a fan pixel's bilinear weights, as :attr:`scan_matrix` builds them), else
+        None. A third of the CSR arrays' bytes to stream per frame."""
+        indptr, indices, data = self._scan_csr_T
+        counts = np.diff(indptr)
+        rows = np.flatnonzero(counts)
+        if rows.size == 0 or not np.all(counts[rows] == 4) or rows[-1] >= 2 ** 31:
+            return None
+        quads = indices.reshape(-1, 4).astype(np.int64)
+        offsets = quads[0] - quads[0, 0]
+        if not np.array_equal(quads - quads[:, :1], np.broadcast_to(offsets, quads.shape)):
+            return None
+        return (rows.astype(np.int32), quads[:, 0].astype(np.int32), offsets,
+                np.ascontiguousarray(data.reshape(-1, 4), dtype=np.float32))
+
+    @cached_property
+    def _tgc_column(self) -> np.ndarray:
+        """``tgc_db`` as an (S, 1) column, for images in (sample, line) order."""
+        return np.ascontiguousarray(self.tgc_db[:, None])
 
     @cached_property
     def tables(self):
@@ -196,6 +240,33 @@ class EmulatorModel:
         idx = (label_of_code[:, None] << 8 | label_of_code[None, :]).ravel()
         return tuple(np.ascontiguousarray(t[idx]) for t in full)
 
+    @cached_property
+    def _echo_luts(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """``pair_luts`` for :func:`line_db`'s inner loop: (loss, diffuse, specular, smallest
+        positive diffuse echo). Where both the diffuse and the specular echo are 0 the
+        specular table holds ``ECHO_FLOOR``, so that ``diffuse * speckle + specular`` is
+        already at least ``ECHO_FLOOR`` when the smallest positive diffuse echo times the
+        smallest speckle is (the last value is 0 when a positive specular echo lies below
+        the floor: the table cannot stand for the floor then)."""
+        loss, diffuse, spec = self.pair_luts
+        spec_floor = spec.copy()
+        spec_floor[(diffuse == 0) & (spec == 0)] = ECHO_FLOOR
+        positive = diffuse[diffuse > 0]
+        d_min = float(positive.min()) if positive.size else np.inf
+        if np.any((spec > 0) & (spec < ECHO_FLOOR)) or np.any(diffuse < 0) or np.any(spec < 0):
+            d_min = 0.0
+        return loss, diffuse, spec_floor, d_min
+
+    @cached_property
+    def _kernel_tables(self) -> tuple:
+        """The per-line tables of :func:`kernels.echo_and_loss` and the TGC: (codes by label,
+        gel code, probe-face code, gel samples, loss, diffuse and specular pair tables,
+        ``tgc_db``)."""
+        codes = self.compact_codes
+        loss, diffuse, spec = self.pair_luts
+        return (codes, int(codes[GEL]), int(codes[PROBE_LABEL]), self.gel_samples,
+                loss, diffuse, spec, self.tgc_db)
+
     def speckle_bank(self, seed: int) -> np.ndarray:
         """(2L, 2S) speckle intensities (mean 1) for ``seed``; frames take shifted windows."""
         bank = self._banks.get(seed)
@@ -210,6 +281,24 @@ class EmulatorModel:
 
     @cached_property
     def _banks(self) -> dict:
+        return {}
+
+    def _speckle_bank_T(self, seed: int) -> np.ndarray:
+        """``speckle_bank(seed)`` transposed (2S, 2L), C-contiguous."""
+        bank = self._banks_T.get(seed)
+        if bank is None:
+            if len(self._banks_T) > 8:
+                self._banks_T.clear()
+            bank = self._banks_T[seed] = np.ascontiguousarray(self.speckle_bank(seed).T)
+        return bank
+
+    @cached_property
+    def _banks_T(self) -> dict:
+        return {}
+
+    @cached_property
+    def _offsets(self) -> dict:
+        """Speckle window offsets drawn ahead: seed -> (first frame, [(line, sample)])."""
         return {}
 
 
@@ -242,31 +331,122 @@ def line_db(labels_ls: np.ndarray, model: "EmulatorModel", speckle: np.ndarray |
     ``10 log10(diffuse * speckle + specular) - cumulative loss + TGC + gain``: the
     cumulative two-way loss adds interface transmission and attenuation in dB along the line.
     """
-    n_gel = model.gel_samples
-    if n_gel > 0:
-        head = labels_ls[:, :n_gel]
-        leading_air = np.cumprod(head == Label.OUTSIDE, axis=1, dtype=np.uint8).astype(bool)
-        if leading_air.any():
-            labels_ls = labels_ls.copy()
-            labels_ls[:, :n_gel][leading_air] = GEL
-    # Compact label codes (0-15) so the pair tables have 256 entries and stay in L1 cache.
-    cur = np.take(model.compact_codes, labels_ls)
-    pair = np.empty_like(cur)
-    pair[:, 0] = model.compact_codes[PROBE_LABEL] << 4
-    pair[:, 1:] = cur[:, :-1] << 4
+    labels_ls = np.asarray(labels_ls)
+    shape = labels_ls.shape
+    if speckle is not None:
+        speckle = np.broadcast_to(speckle, shape)
+    if (labels_ls.dtype == np.uint8 and labels_ls.ndim == 2 and labels_ls.size < 2 ** 31
+            and shape[1] == model.samples_per_line
+            and (speckle is None or speckle.dtype == np.float32)):
+        # The compiled path (uint8 labels, float32 speckle: the emulator's own types), in
+        # (sample, line) order.
+        index = np.arange(labels_ls.size, dtype=np.int32).reshape(shape[::-1])
+        flat = np.ascontiguousarray(labels_ls.T).reshape(-1)
+        if speckle is not None:
+            speckle = np.ascontiguousarray(speckle.T)
+        echo, cum = _echo_and_loss(flat, index, model, speckle, 0, 0)
+        np.log10(echo, out=echo)
+        db = np.empty(echo.shape, np.float32)
+        kernels.db_level(echo, cum, model._kernel_tables[-1], db)
+        return np.ascontiguousarray(db.T)
+    # Any other types: numpy, in (sample, line) order.
+    speckle_min = None if speckle is None else np.min(speckle)
+    db = _line_db_T(np.array(labels_ls.T, order="C"), model,     # a copy: overwritten
+                    None if speckle is None else speckle.T, speckle_min)
+    return np.ascontiguousarray(db.T)
+
+
+def _echo_and_loss(label_flat: np.ndarray, index: np.ndarray, model: "EmulatorModel",
+                   bank: np.ndarray | None, i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
+    """Echo intensities and running losses (S, L) float32 of the labels ``label_flat[index]``
+    (:func:`kernels.echo_and_loss`), with the speckle window of ``bank`` (2S, 2L) at
+    (sample i, line j)."""
+    codes, gel, probe, n_gel, loss, diffuse, spec, _ = model._kernel_tables
+    echo = np.empty(index.shape, np.float32)
+    cum = np.empty(index.shape, np.float32)
+    use = bank is not None
+    kernels.echo_and_loss(label_flat, index, codes, gel, probe, n_gel, loss, diffuse, spec,
+                          bank if use else _NO_SPECKLE, i, j, use, ECHO_FLOOR, echo, cum)
+    return echo, cum
+
+
+_NO_SPECKLE = np.ones((1, 1), np.float32)
+
+
+def _line_db_T(labels: np.ndarray, model: "EmulatorModel", speckle: np.ndarray | None,
+               speckle_min) -> np.ndarray:
+    """:func:`line_db` of label samples in (sample, line) order (S, L), C-contiguous (and
+    overwritten), with the speckle in the same order (or None) and a lower bound of its
+    values; the result in (S, L) order. The same float32 operations on every sample as
+    along the lines."""
+    cur = _label_codes(labels, model)
+    # Pair codes ``code(prev) << 4 | code``, the probe face before sample 0 (x * 16 is
+    # x << 4 on uint8, and numpy's multiply is vectorised where its shift is not).
+    pair = np.empty(cur.shape, np.uint8)
+    np.multiply(cur[:-1], np.uint8(16), out=pair[1:])
+    pair[0] = model.compact_codes[PROBE_LABEL] << 4
     pair |= cur
-    loss_lut, diffuse_lut, spec_lut = model.pair_luts
-    loss = np.take(loss_lut, pair)
-    echo = np.take(diffuse_lut, pair)
+    pair = pair.astype(np.intp)         # np.take's own index type: no conversion per take
+    loss_lut, diffuse_lut, spec_lut, d_min = model._echo_luts
+    loss, rows = _loss_rows(cur.shape)
+    loss_lut.take(pair, out=loss, mode="clip")      # indices 0-255: 'clip' changes none
+    echo = diffuse_lut.take(pair)
     if speckle is not None:
         echo *= speckle
-    echo += np.take(spec_lut, pair)
-    np.maximum(echo, np.float32(1e-12), out=echo)
+    echo += spec_lut.take(pair)
+    # ``max(echo, ECHO_FLOOR)``: the specular table holds the floor where both echoes are
+    # 0, so the maximum changes nothing when every positive diffuse echo times the speckle
+    # is above it (rounding is monotonic: the smallest product bounds them all); else (or
+    # on NaN) it is taken.
+    sp_min = np.float32(1.0) if speckle is None else speckle_min
+    if not np.float32(d_min) * sp_min >= ECHO_FLOOR:
+        np.maximum(echo, ECHO_FLOOR, out=echo)
     db = np.log10(echo, out=echo)
     db *= np.float32(10.0)
-    db -= np.cumsum(loss, axis=1, out=loss)
-    db += model.tgc_db
+    # The cumulative loss along every line: row s += row s - 1, the additions of cumsum
+    # along a line in the same order (float32 addition commutes), vectorised across the
+    # lines (np.cumsum along an axis is a scalar loop, twice slower on 256 x 128).
+    add = np.add
+    for prev, row in zip(rows, rows[1:]):
+        add(row, prev, row)
+    db -= loss
+    db += model._tgc_column
     return db
+
+
+_SCRATCH = threading.local()
+
+
+def _loss_rows(shape: tuple[int, int]) -> tuple[np.ndarray, list]:
+    """A float32 work array of ``shape`` and the list of its rows, kept per thread: the
+    running loss adds row to row, and making its 256 row views anew for every frame would
+    cost more than the additions."""
+    arrays = getattr(_SCRATCH, "loss", None)
+    if arrays is None:
+        arrays = _SCRATCH.loss = {}
+    hit = arrays.get(shape)
+    if hit is None:
+        if len(arrays) > 4:
+            arrays.clear()
+        buf = np.empty(shape, np.float32)
+        hit = arrays[shape] = (buf, list(buf))
+    return hit
+
+
+def _label_codes(labels: np.ndarray, model: "EmulatorModel") -> np.ndarray:
+    """Compact label codes (0-15, uint8) of label samples (S, L) in (sample, line) order:
+    ``compact_codes`` of the labels, with the air within ``gel_gap`` of the face before any
+    tissue taken as gel. Compact codes keep the pair tables at 256 entries (in L1 cache).
+    ``labels`` may be overwritten (it is when it holds its own codes)."""
+    if labels.dtype == np.uint8 and labels.size and labels.max() < 15:
+        cur = labels     # labels 0-14 are their own codes
+    else:
+        cur = np.take(model.compact_codes, labels)
+    n_gel = model.gel_samples
+    if n_gel > 0:
+        leading_air = np.logical_and.accumulate(labels[:n_gel] == Label.OUTSIDE, axis=0)
+        np.copyto(cur[:n_gel], model.compact_codes[GEL], where=leading_air)
+    return cur
 
 
 def line_intensity(labels_ls: np.ndarray, model: "EmulatorModel", speckle: np.ndarray | None
@@ -277,9 +457,13 @@ def line_intensity(labels_ls: np.ndarray, model: "EmulatorModel", speckle: np.nd
 
 def db_to_grey(db: np.ndarray, dynamic_range_db: float) -> np.ndarray:
     """Echo level (dB) -> grey level in [0, 255] (float32): 0 dB white, -range black."""
-    grey = db + np.float32(dynamic_range_db)
+    return _db_to_grey_inplace(db + np.float32(dynamic_range_db), dynamic_range_db)
+
+
+def _db_to_grey_inplace(grey: np.ndarray, dynamic_range_db: float) -> np.ndarray:
+    """The rest of :func:`db_to_grey` on ``db + dynamic_range_db``, in place."""
     grey *= np.float32(255.0 / dynamic_range_db)
-    return np.clip(grey, 0.0, 255.0, out=grey)
+    return clip(grey, np.float32(0.0), np.float32(255.0), out=grey)
 
 
 def log_compress(intensity: np.ndarray, dynamic_range_db: float) -> np.ndarray:
@@ -295,10 +479,33 @@ def speckle_field(model: EmulatorModel, seed: int, frame_index: int) -> np.ndarr
     frames differ without drawing 32k random numbers per frame.
     """
     bank = model.speckle_bank(int(seed))
-    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, int(frame_index) & 0xFFFFFFFF])
+    i, j = _speckle_offset(model, seed, frame_index)
+    return bank[i:i + model.scan_lines, j:j + model.samples_per_line]
+
+
+def _speckle_offset(model: EmulatorModel, seed: int, frame_index: int) -> tuple[int, int]:
+    """(line, sample) offset of a frame's speckle window in its seed's bank: two draws of a
+    generator seeded with (seed, frame).
+
+    Frames asked for in sequence (a scan) get their offsets drawn ahead, up to 64 frames at
+    a time, the same draws one frame after the other: seeding a generator is a long path of
+    Python and Cython code, about 10 us when it runs repeatedly but ten times that once per
+    frame between simulation steps (the code is out of the caches by then)."""
+    seed, frame_index = int(seed), int(frame_index)
+    first, offsets = model._offsets.get(seed, (0, ()))
+    k = frame_index - first
+    if 0 <= k < len(offsets):
+        return offsets[k]
+    n = min(max(2 * len(offsets), 1), 64) if k == len(offsets) else 1
     L, S = model.scan_lines, model.samples_per_line
-    i, j = rng.integers(0, L + 1), rng.integers(0, S + 1)
-    return bank[i:i + L, j:j + S]
+    offsets = []
+    for f in range(frame_index, frame_index + n):
+        rng = np.random.default_rng([seed & 0xFFFFFFFF, f & 0xFFFFFFFF])
+        offsets.append((rng.integers(0, L + 1), rng.integers(0, S + 1)))
+    if seed not in model._offsets and len(model._offsets) > 8:
+        model._offsets.clear()
+    model._offsets[seed] = (frame_index, offsets)
+    return offsets[0]
 
 
 def emulate(label_image: np.ndarray, model: EmulatorModel, seed: int = 0, frame_index: int = 0
@@ -312,16 +519,66 @@ def emulate(label_image: np.ndarray, model: EmulatorModel, seed: int = 0, frame_
     if label_image.shape != g.image_shape:
         raise ValueError(f"emulate: label image has shape {label_image.shape}, the probe "
                          f"geometry expects {g.image_shape}")
-    labels_ls = np.take(label_image.reshape(-1), model.polar_to_image_index)
-    if labels_ls.dtype != np.uint8:
-        labels_ls = labels_ls.astype(np.uint8)
-    speckle = speckle_field(model, seed, frame_index) if model.speckle else None
-    grey = db_to_grey(line_db(labels_ls, model, speckle), model.dynamic_range_db)
-    return scan_convert(grey, model)
+    flat = label_image.reshape(-1)
+    if flat.dtype != np.uint8:
+        flat = flat.astype(np.uint8)     # as the samples' uint8 cast after the gather
+    bank, i, j = None, 0, 0
+    if model.speckle:
+        bank = model._speckle_bank_T(int(seed))
+        i, j = _speckle_offset(model, seed, frame_index)
+    return _emulate(flat, model, bank, int(j), int(i))
+
+
+def _emulate(label_flat: np.ndarray, model: EmulatorModel, bank: np.ndarray | None, i: int,
+             j: int) -> np.ndarray:
+    """:func:`emulate` of a flat uint8 label image with the speckle window of ``bank`` (2S,
+    2L) at (sample i, line j): the compiled per-line pass, numpy's log10, the compiled grey
+    levels and scan conversion, all in (sample, line) order."""
+    echo, cum = _echo_and_loss(label_flat, model._polar_index_T, model, bank, i, j)
+    np.log10(echo, out=echo)
+    dr, tgc = model.dynamic_range_db, model._kernel_tables[-1]
+    image = np.zeros(model.geometry.image_shape, np.uint8)
+    grey = np.empty(echo.size, np.float32)
+    quads = model._scan_quads
+    if quads is not None:
+        kernels.grey_scan_convert(echo, cum, tgc, np.float32(dr), np.float32(255.0 / dr),
+                                  *quads, grey, image.reshape(-1))
+    else:
+        kernels.grey_levels(echo, cum, tgc, np.float32(dr), np.float32(255.0 / dr), grey)
+        kernels.csr_to_uint8(*model._scan_csr_T, grey, image.reshape(-1))
+    return image
+
+
+def warm_up(model: EmulatorModel, seed: int | None = None) -> None:
+    """Compile or load the emulator's kernels for ``model``'s argument types (writable and
+    read-only label images) and build its tables (and ``seed``'s speckle bank): call at
+    construction, not inside a simulation step."""
+    L, S = model.scan_lines, model.samples_per_line
+    if model.speckle and seed is not None:
+        bank = model._speckle_bank_T(int(seed))
+    else:
+        bank = np.ones((2 * S, 2 * L), np.float32)
+    labels = np.zeros(model.geometry.image_shape, np.uint8).reshape(-1)
+    frozen = labels.view()
+    frozen.flags.writeable = False      # frames carry read-only images (frames.UsFrame)
+    for flat in (labels, frozen):
+        _emulate(flat, model, bank, 0, 0)
+        _emulate(flat, model, None, 0, 0)
+    scan_convert(np.zeros((L, S), np.float32), model)
 
 
 def scan_convert(polar: np.ndarray, model: EmulatorModel) -> np.ndarray:
     """Polar grey image (L, S) -> Cartesian uint8 image (rows, cols), bilinear in the fan."""
-    values = model.scan_matrix @ np.ascontiguousarray(polar, dtype=np.float32).reshape(-1)
-    values += np.float32(0.5)
-    return values.astype(np.uint8).reshape(model.geometry.image_shape)
+    L, S = model.scan_lines, model.samples_per_line
+    x = np.asarray(polar, dtype=np.float32)
+    if x.size != L * S:
+        raise ValueError(f"scan_convert: polar image has {x.size} samples, the model "
+                         f"expects {L} x {S}")
+    x = np.ascontiguousarray(x.reshape(L, S).T).reshape(-1)     # (sample, line) order
+    image = np.zeros(model.geometry.image_shape, np.uint8)
+    quads = model._scan_quads
+    if quads is not None:
+        kernels.quads_to_uint8(*quads, x, image.reshape(-1))
+    else:
+        kernels.csr_to_uint8(*model._scan_csr_T, x, image.reshape(-1))
+    return image

@@ -137,6 +137,12 @@ def _area_matrix(centres: np.ndarray, size: float, lo: float, step: float, n_out
     return sps.csr_matrix(ov.astype(np.float32))
 
 
+def _span(matrix) -> slice:
+    """The rows of a sparse matrix from its first to its last non-empty one."""
+    filled = np.flatnonzero(np.diff(matrix.indptr))
+    return slice(int(filled[0]), int(filled[-1]) + 1) if filled.size else slice(0, 0)
+
+
 def _linear_taps(pos: np.ndarray, n: int):
     """Linear interpolation at continuous indices ``pos`` of n samples (pixel centres at
     integers) as two taps per output: (i0, i1, w0, w1) with i0 < i1 (for n >= 2) and float32
@@ -186,6 +192,12 @@ class PhysicalCanvas:
         self._cols = _area_matrix(self._x, g.dx, self.left, self.pixel_size, self.shape[1])
         self._back: dict = {}
         self._taps: dict = {}
+        # The canvas rows and columns that overlap the image (the others are 0): to_canvas
+        # works on them only, with the same sums in the same order.
+        self._row_span = _span(self._rows)
+        self._col_span = _span(self._cols)
+        self._rows_in = self._rows[self._row_span]
+        self._cols_in = self._cols[self._col_span]
         #: Canvas pixels at least half covered by the image's fan.
         self.fan_mask = self.to_canvas(g.fan_mask.astype(np.float32)) >= 0.5
         self.fan_mask.flags.writeable = False
@@ -194,7 +206,9 @@ class PhysicalCanvas:
         """float32 (H, W) canvas of an image (rows, cols): the area mean of the image over
         each canvas pixel, 0 where the canvas lies outside the image."""
         img = np.asarray(image, dtype=np.float32)
-        return np.ascontiguousarray((self._cols @ (self._rows @ img).T).T, dtype=np.float32)
+        out = np.zeros(self.shape, np.float32)
+        out[self._row_span, self._col_span] = (self._cols_in @ (self._rows_in @ img).T).T
+        return out
 
     def to_image(self, canvas_map: np.ndarray) -> np.ndarray:
         """float32 (rows, cols) image of a map (h, w) over the canvas (the canvas's shape or
@@ -238,17 +252,28 @@ class PhysicalCanvas:
         a, b = m.shape
         # Taps are non-decreasing along the image: the rows reaching the window are the
         # contiguous range with i1 >= r0 and i0 < r0 + a (likewise the columns).
-        rows = slice(int(np.searchsorted(ri1, r0)), int(np.searchsorted(ri0, r0 + a)))
-        cols = slice(int(np.searchsorted(ci1, c0)), int(np.searchsorted(ci0, c0 + b)))
+        rows = slice(int(ri1.searchsorted(r0)), int(ri0.searchsorted(r0 + a)))
+        cols = slice(int(ci1.searchsorted(c0)), int(ci0.searchsorted(c0 + b)))
         # The window with a ring of zeros: taps outside it read 0, as they do on the map.
         padded = np.zeros((a + 2, b + 2), np.float32)
         padded[1:-1, 1:-1] = m
-        lr0 = np.clip(ri0[rows] - (r0 - 1), 0, a + 1)
-        lr1 = np.clip(ri1[rows] - (r0 - 1), 0, a + 1)
-        lc0 = np.clip(ci0[cols] - (c0 - 1), 0, b + 1)
-        lc1 = np.clip(ci1[cols] - (c0 - 1), 0, b + 1)
-        t = padded[lr0] * rw0[rows, None] + padded[lr1] * rw1[rows, None]
-        return rows, cols, t[:, lc0] * cw0[cols] + t[:, lc1] * cw1[cols]
+        # Local tap indices in the padded window. In range without clipping: i1 - 1 <= i0
+        # < i1 (or both 0), so on those rows r0 - 1 <= i0 and i1 <= r0 + a.
+        lr0 = ri0[rows] - (r0 - 1)
+        lr1 = ri1[rows] - (r0 - 1)
+        lc0 = ci0[cols] - (c0 - 1)
+        lc1 = ci1[cols] - (c0 - 1)
+        t = padded.take(lr0, axis=0)
+        t *= rw0[rows, None]
+        t1 = padded.take(lr1, axis=0)
+        t1 *= rw1[rows, None]
+        t += t1
+        values = t[:, lc0]
+        values *= cw0[cols]
+        v1 = t[:, lc1]
+        v1 *= cw1[cols]
+        values += v1
+        return rows, cols, values
 
 
 class OnnxSegmenter:
@@ -346,10 +371,17 @@ class OnnxSegmenter:
     def preprocess(self, image: np.ndarray) -> np.ndarray:
         n, c, h, w = self.input_shape
         if self.canvas is not None:
-            x = self.canvas.to_canvas(image) * np.float32(1.0 / 255.0)
+            x = self.canvas.to_canvas(image)    # a new array: scaled in place below
         else:
-            x = resize_to(np.asarray(image), h, w) * np.float32(1.0 / 255.0)
-        x = (x - np.float32(self.mean)) * np.float32(1.0 / self.std)
+            x = resize_to(np.asarray(image), h, w).astype(np.float32)
+        x *= np.float32(1.0 / 255.0)
+        # (x - mean) / std; subtracting 0 and multiplying by 1 change nothing (skipped).
+        if self.mean != 0.0:
+            x -= np.float32(self.mean)
+        if self.std != 1.0:
+            x *= np.float32(1.0 / self.std)
+        if n == c == 1:
+            return x.reshape(n, c, h, w)
         return np.broadcast_to(x, (n, c, h, w)).astype(np.float32)
 
     def _kidney_map(self, out: np.ndarray) -> np.ndarray:
@@ -372,7 +404,12 @@ class OnnxSegmenter:
         if self.output == "probability":
             return out[0, self.kidney_channel].astype(np.float32)
         if k == 1:
-            return (1.0 / (1.0 + np.exp(-out[0, 0]))).astype(np.float32)
+            # 1 / (1 + exp(-x)) in place, in the output's own precision, then float32.
+            p = np.negative(out[0, 0])
+            np.exp(p, out=p)
+            p += 1.0
+            np.divide(1.0, p, out=p)
+            return p.astype(np.float32, copy=False)
         z = out[0] - out[0].max(axis=0, keepdims=True)
         e = np.exp(z)
         return (e[self.kidney_channel] / e.sum(axis=0)).astype(np.float32)
@@ -407,6 +444,14 @@ class OnnxSegmenter:
             self._fan_at[(h, w)] = hit
         return hit
 
+    def _canvas_outside(self, h: int, w: int) -> np.ndarray:
+        """The canvas pixels outside the fan at a model output resolution (h, w)."""
+        key = ("outside", h, w)
+        hit = self._fan_at.get(key)
+        if hit is None:
+            hit = self._fan_at[key] = ~self._canvas_fan(h, w)
+        return hit
+
     def model_probability(self, image: np.ndarray) -> np.ndarray:
         """Kidney probability at the model's output resolution (on the physical canvas, 0
         outside the image's fan, when the card declares one)."""
@@ -415,9 +460,9 @@ class OnnxSegmenter:
             raise ValueError(f"OnnxSegmenter: image shape {image.shape} != probe image shape "
                              f"{self.geometry.image_shape}")
         out = self.session.run([self.output_name], {self.input_name: self.preprocess(image)})[0]
-        prob = self._kidney_map(out)
+        prob = self._kidney_map(out)     # a new array: zeroed outside the fan in place
         if self.canvas is not None:
-            prob = np.where(self._canvas_fan(*prob.shape), prob, np.float32(0.0))
+            np.copyto(prob, np.float32(0.0), where=self._canvas_outside(*prob.shape))
         return prob
 
     def __call__(self, image: np.ndarray, prior_mask: np.ndarray | None = None,
@@ -441,15 +486,26 @@ class OnnxSegmenter:
         canvas, when there is one), thresholded, in the fan. Regions that vanish in the
         mapping back are dropped."""
         prob = self.model_probability(image)
-        labels, n = ndimage.label(prob > self.threshold, structure=_EIGHT)
-        if n == 0:
+        above = prob > self.threshold
+        # Labelled on the bounding box of the pixels above the threshold: the components,
+        # their raster order (hence their numbers) and sizes are those of the whole grid.
+        crop = _true_box(above)
+        if crop is None:
             return []
+        labels, n = ndimage.label(above[crop], structure=_EIGHT)
+        r0, c0 = crop[0].start, crop[1].start
+        if n == 1:   # the one component is every pixel above the threshold
+            mask = self._component_mask(prob, above[crop], crop)
+            return [] if mask is None else [mask]
         sizes = np.bincount(labels.ravel())[1:]
         order = np.argsort(-sizes, kind="stable")[:1 if largest_only else None]
         boxes = ndimage.find_objects(labels)
         out = []
         for k in order:
-            mask = self._region_mask(prob, labels, k + 1, boxes[k])
+            b = boxes[k]
+            box = (slice(b[0].start + r0, b[0].stop + r0), slice(b[1].start + c0, b[1].stop + c0))
+            # The component's pixels within its own box; _component_mask grows the window.
+            mask = self._component_mask(prob, labels[b] == k + 1, box)
             if mask is not None:
                 out.append(mask)
         return out
@@ -457,7 +513,15 @@ class OnnxSegmenter:
     def _region_mask(self, prob: np.ndarray, labels: np.ndarray, label: int,
                      box: tuple[slice, slice]) -> np.ndarray | None:
         """Bool image mask (rows, cols) of component ``label`` of ``labels`` (its bounding
-        box ``box`` on the model's grid), or None when it vanishes in the mapping back.
+        box ``box`` on the model's grid), or None when it vanishes in the mapping back
+        (:meth:`_component_mask`)."""
+        return self._component_mask(prob, labels[box] == label, box)
+
+    def _component_mask(self, prob: np.ndarray, component: np.ndarray,
+                        box: tuple[slice, slice]) -> np.ndarray | None:
+        """Bool image mask (rows, cols) of one component of the thresholded probability,
+        given as its pixels ``component`` (bool) within its bounding box ``box`` on the
+        model's grid, or None when it vanishes in the mapping back.
 
         Only this component (and a one-pixel margin for the interpolation) survives; its
         filled holes count as kidney. The work is done on the component's box grown by two
@@ -469,8 +533,12 @@ class OnnxSegmenter:
         r0, r1 = max(box[0].start - 2, 0), min(box[0].stop + 2, h)
         c0, c1 = max(box[1].start - 2, 0), min(box[1].stop + 2, w)
         window = (slice(r0, r1), slice(c0, c1))
-        keep = fill_holes(labels[window] == label)
-        p = np.where(ndimage.binary_dilation(keep), prob[window], 0.0).astype(np.float32)
+        keep = np.zeros((r1 - r0, c1 - c0), bool)
+        keep[box[0].start - r0:box[0].stop - r0, box[1].start - c0:box[1].stop - c0] = component
+        keep = fill_holes(keep)
+        # The probability on the component and its 4-neighbours (binary_dilation's cross),
+        # 0 elsewhere; at least just above the threshold on the component itself.
+        p = np.where(_dilate_cross(keep), prob[window], np.float32(0.0))
         p[keep & (p <= self.threshold)] = 1.0
         if self.canvas is None:
             full = np.zeros((h, w), np.float32)
@@ -478,9 +546,11 @@ class OnnxSegmenter:
             mask = (self.to_image(full) > self.threshold) & self.geometry.fan_mask
             return mask if mask.any() else None
         fan = self._canvas_fan(h, w)[window]
-        p = np.where(fan, p, ndimage.grey_dilation(p, size=(3, 3)))   # as _past_fan
+        if not fan.all():       # as _past_fan (nothing to do in the fan's interior)
+            p = np.where(fan, p, _max_3x3(p))
         rows, cols, values = self.canvas.to_image_window(p, (r0, c0), (h, w))
-        inside = (values > self.threshold) & self.geometry.fan_mask[rows, cols]
+        inside = values > self.threshold
+        inside &= self.geometry.fan_mask[rows, cols]
         if not inside.any():
             return None
         mask = np.zeros(self.geometry.image_shape, bool)
@@ -488,13 +558,49 @@ class OnnxSegmenter:
         return mask
 
 
+def _true_box(mask: np.ndarray) -> tuple[slice, slice] | None:
+    """(rows, cols) slices of the bounding box of a 2-D bool mask; None when it is empty."""
+    rows = mask.any(axis=1).nonzero()[0]
+    if rows.size == 0:
+        return None
+    r0, r1 = int(rows[0]), int(rows[-1]) + 1
+    cols = mask[r0:r1].any(axis=0).nonzero()[0]
+    return slice(r0, r1), slice(int(cols[0]), int(cols[-1]) + 1)
+
+
+def _dilate_cross(mask: np.ndarray) -> np.ndarray:
+    """``ndimage.binary_dilation(mask)`` (the 4-neighbour cross, one step, 0 beyond the
+    border) by array shifts."""
+    out = mask.copy()
+    out[1:] |= mask[:-1]
+    out[:-1] |= mask[1:]
+    out[:, 1:] |= mask[:, :-1]
+    out[:, :-1] |= mask[:, 1:]
+    return out
+
+
+def _max_3x3(p: np.ndarray) -> np.ndarray:
+    """``ndimage.grey_dilation(p, size=(3, 3))`` by array shifts: the largest value of each
+    pixel's 3 x 3 neighbourhood within the array (its 'reflect' border repeats the edge
+    pixel, which the neighbourhood holds already). Maxima are exact, so any order gives
+    the same values."""
+    rows = p.copy()
+    np.maximum(rows[1:], p[:-1], out=rows[1:])
+    np.maximum(rows[:-1], p[1:], out=rows[:-1])
+    out = rows.copy()
+    np.maximum(out[:, 1:], rows[:, :-1], out=out[:, 1:])
+    np.maximum(out[:, :-1], rows[:, 1:], out=out[:, :-1])
+    return out
+
+
 _EIGHT = np.ones((3, 3), bool)
+_CROSS = ndimage.generate_binary_structure(2, 1)   # ndimage.label's default structure
 
 
 def fill_holes(mask: np.ndarray) -> np.ndarray:
     """``mask`` with every background region that does not touch the border filled
     (one labelling of the background; faster than iterative hole filling)."""
-    bg, n = ndimage.label(~mask)
+    bg, n = ndimage.label(~mask, structure=_CROSS)
     if n <= 1:
         return mask if n == 1 else np.ones_like(mask)
     border = np.unique(np.concatenate([bg[0], bg[-1], bg[:, 0], bg[:, -1]]))

@@ -29,7 +29,7 @@ def check_pose(X: RigidTransform, name: str = "X_BP") -> RigidTransform:
     if not isinstance(X, RigidTransform):
         raise ValueError(f"{name}: expected a pydrake RigidTransform, got {type(X).__name__}")
     M = X.GetAsMatrix4()
-    if not np.all(np.isfinite(M)):
+    if not np.isfinite(M).all():
         raise ValueError(f"{name}: pose has non-finite entries (NaN or inf):\n{M}")
     return X
 
@@ -65,49 +65,49 @@ class ProbeGeometry:
                    width_px=int(config.image_width_px),
                    elevation_width=config.elevation_width)
 
-    # --- the pixel grid -------------------------------------------------------------------
-    @property
+    # --- the pixel grid (cached: the geometry is immutable) ---------------------------------
+    @cached_property
     def image_shape(self) -> tuple[int, int]:
         """(rows, columns) of the image."""
         return (self.height_px, self.width_px)
 
-    @property
+    @cached_property
     def x_min(self) -> float:
         return -(self.radius + self.depth) * np.sin(self.half_angle)
 
-    @property
+    @cached_property
     def x_max(self) -> float:
         return -self.x_min
 
-    @property
+    @cached_property
     def z_min(self) -> float:
         # The face's corners sit above the face centre.
         return self.radius * np.cos(self.half_angle) - self.radius
 
-    @property
+    @cached_property
     def z_max(self) -> float:
         return self.depth
 
-    @property
+    @cached_property
     def dx(self) -> float:
         """Pixel width along x_P (m)."""
         return (self.x_max - self.x_min) / self.width_px
 
-    @property
+    @cached_property
     def dz(self) -> float:
         """Pixel height along z_P (m)."""
         return (self.z_max - self.z_min) / self.height_px
 
-    @property
+    @cached_property
     def pixel_area(self) -> float:
         return self.dx * self.dz
 
-    @property
+    @cached_property
     def x0(self) -> float:
         """x_P of the centre of column 0."""
         return self.x_min + 0.5 * self.dx
 
-    @property
+    @cached_property
     def z0(self) -> float:
         """z_P of the centre of row 0."""
         return self.z_min + 0.5 * self.dz
@@ -183,6 +183,13 @@ class ProbeGeometry:
         return idx
 
     @cached_property
+    def fan_flat_index32(self) -> np.ndarray:
+        """``fan_flat_index`` as int32 (half the bytes for the slicing kernel to stream)."""
+        idx = self.fan_flat_index.astype(np.int32)
+        idx.flags.writeable = False
+        return idx
+
+    @cached_property
     def fan_p_P(self) -> np.ndarray:
         """(N, 3) positions in P of the fan pixels' centres, in ``fan_flat_index`` order."""
         p = self.pixel_to_P(self._all_uv[self.fan_flat_index])
@@ -205,6 +212,18 @@ class ProbeGeometry:
         x.flags.writeable = False
         z.flags.writeable = False
         return x, z
+
+    @cached_property
+    def fan_rows(self) -> tuple[np.ndarray, np.ndarray]:
+        """(z_P (rows,) float32 of each row's pixel centres, number of fan pixels in each
+        row): the fan pixels are row-major, so ``fan_x_z32``'s z is each row's z repeated
+        that many times."""
+        v = np.arange(self.height_px, dtype=float)
+        z = self.pixel_to_P(np.stack([np.zeros_like(v), v], axis=1))[:, 2].astype(np.float32)
+        counts = np.bincount(self.fan_flat_index // self.width_px, minlength=self.height_px)
+        z.flags.writeable = False
+        counts.flags.writeable = False
+        return z, counts
 
     def column_of_x(self, x: float) -> float:
         return (x - self.x0) / self.dx

@@ -11,6 +11,7 @@ import numpy as np
 from pydrake.math import RigidTransform
 
 from drake_rus.anatomy.labels import Label, LabelVolume
+from drake_rus.imaging import kernels
 from drake_rus.imaging.probe import ProbeGeometry, check_pose
 
 def elevation_offsets(width: float, planes: int) -> np.ndarray:
@@ -95,30 +96,44 @@ def slice_volume(geometry: ProbeGeometry, volume: LabelVolume, X_BV: RigidTransf
     # float32 is ample: its rounding error is about 1e-5 voxel at index 500.
     A = (X_VP.rotation().matrix() / volume.voxel_size).astype(np.float32)
     b = (X_VP.translation() / volume.voxel_size).astype(np.float32)
-    px, pz = geometry.fan_x_z32
+    px = geometry.fan_x_z32[0]
+    z_rows, per_row = geometry.fan_rows
     padded = padded_labels(volume.labels)
+    flat = padded.reshape(-1)
+    shape = np.array(padded.shape, np.int64)
     offsets = elevation_offsets(geometry.elevation_width, planes)
+    image = np.zeros(geometry.image_shape, dtype=np.uint8)
+    index = np.empty(px.size, np.int32 if padded.size < 2 ** 31 else np.int64)
 
-    def plane(y: float) -> np.ndarray:
+    def plane(y: float, out: np.ndarray, dest: np.ndarray) -> None:
+        """The labels of plane y_P = y into ``out[dest]`` (fan pixels in row-major order):
+        :func:`kernels.slice_plane`, per fan pixel ``f = x A[a, 0] + (z A[a, 2] + c[a])``,
+        the bracket once per row (float32)."""
         c = b + np.float32(y) * A[:, 1] + np.float32(1.5)   # + 1.5: see _lookup_padded
-        return _lookup_padded(padded, px * A[0, 0] + (pz * A[0, 2] + c[0]),
-                              px * A[1, 0] + (pz * A[1, 2] + c[1]),
-                              px * A[2, 0] + (pz * A[2, 2] + c[2]), shifted=True)
+        kernels.slice_plane(px, z_rows, per_row, A, c, shape, flat, dest, out, index)
 
     if len(offsets) == 1:
-        values = plane(0.0)
+        plane(0.0, image.reshape(-1), geometry.fan_flat_index32)
+        return image
+    n = px.size
+    stack = np.empty((len(offsets), n), np.uint8)
+    every = np.arange(n, dtype=np.int32)
+    for row, y in zip(stack, offsets):
+        plane(y, row, every)
+    if combine == "max":
+        values = stack.max(axis=0)
     else:
-        stack = np.stack([plane(y) for y in offsets])
-        if combine == "max":
-            values = stack.max(axis=0)
-        else:
-            n = stack.shape[1]
-            counts = np.zeros((int(stack.max()) + 1, n), dtype=np.float32)
-            cols = np.arange(n)
-            for row in stack:
-                counts[row, cols] += 1.0   # (row[c], c) pairs are unique within a plane
-            counts[stack[len(offsets) // 2], cols] += 0.5   # tie-break: central plane
-            values = counts.argmax(axis=0).astype(np.uint8)
-    image = np.zeros(geometry.image_shape, dtype=np.uint8)
-    image.reshape(-1)[geometry.fan_flat_index] = values
+        counts = np.zeros((int(stack.max()) + 1, n), dtype=np.float32)
+        for row in stack:
+            counts[row, every] += 1.0   # (row[c], c) pairs are unique within a plane
+        counts[stack[len(offsets) // 2], every] += 0.5   # tie-break: central plane
+        values = counts.argmax(axis=0).astype(np.uint8)
+    image[geometry.fan_mask] = values     # the fan pixels in row-major order
     return image
+
+
+def warm_up(geometry: ProbeGeometry, volume: LabelVolume, planes: int = 1,
+            combine: str = "majority") -> None:
+    """Pad ``volume`` and compile (or load) the slicing kernel for ``geometry``'s argument
+    types: call at construction, not inside a simulation step."""
+    slice_volume(geometry, volume, RigidTransform(), RigidTransform(), planes, combine)

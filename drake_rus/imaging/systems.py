@@ -24,12 +24,14 @@ from drake_rus.anatomy.labels import LabelVolume
 from drake_rus.imaging.backprojection import accumulate
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.emulator import EmulatorModel, emulate
+from drake_rus.imaging.emulator import warm_up as warm_emulator
 from drake_rus.imaging.frames import BoundaryPixels, PointCloud, UsFrame
 from drake_rus.imaging.onnx_backend import OnnxSegmenter
 from drake_rus.imaging.probe import ProbeGeometry, check_pose
 from drake_rus.imaging.segment import (KidneyTrack, read_mask, segment_classical,
                                        segment_oracle, track_prior, track_update)
 from drake_rus.imaging.slicing import slice_volume
+from drake_rus.imaging.slicing import warm_up as warm_slicer
 
 
 def _frame_key(frame: UsFrame):
@@ -61,6 +63,8 @@ class SliceSensor(LeafSystem):
         self._motion = motion
         self._planes = int(config.elevation_planes)
         self._combine = config.elevation_combine
+        # The padded volume and the compiled kernel, now, not in the first frame.
+        warm_slicer(self._geometry, volume, self._planes, self._combine)
         self._X_BP_port = self.DeclareAbstractInputPort(
             "X_BP", AbstractValue.Make(RigidTransform()))
         empty = UsFrame(np.zeros(self._geometry.image_shape, np.uint8))
@@ -119,8 +123,9 @@ class UltrasoundEmulator(LeafSystem):
             prerequisites_of_calc={self.input_port_ticket(self._in.get_index())})
         self._memo_key = None
         self._memo = empty
-        # Warm the precomputed scan-line geometry now, not inside the first simulation step.
-        _ = self._model.polar_to_image_index, self._model.scan_matrix, self._model.pair_luts
+        # Build the scan-line tables and compile (or load) the kernels now, not inside the
+        # first simulation step.
+        warm_emulator(self._model, self._seed)
 
     def _calc(self, context, output):
         frame = self._in.Eval(context)
