@@ -18,7 +18,10 @@ One run reports, for one test patient on one scenario (default: ``default``):
   child process, native frames included: the plant step, Drake's framework, every Python
   LeafSystem by class); skipped with ``--no-profile`` or when ``py-spy`` is missing;
 - the scan's outcome: status, phases, E_trans, V, and the true contact force (mean and
-  ripple in EXPLORE and PIVOT, landing peak).
+  ripple in EXPLORE and PIVOT, landing peak);
+- with ``--repeat N``, every run's rates (``rtf_scan_runs``, ``rtf_scan_cpu_runs``,
+  ``scan_cpu_s_runs``) and their medians: a shared host's speed moves by a third between
+  runs minutes apart, so one run is one sample.
 
 ``--validate`` instead runs the scan at several plant steps (``--steps``) on several patients
 (``--patients``) and compares every step with the first (the reference, 1 ms) against the
@@ -307,7 +310,12 @@ def main(argv=None) -> int:
     parser.add_argument("--steps", default="0.001,0.002,0.005,0.01")
     parser.add_argument("--patients", default="test:0,test:1,test:2")
     parser.add_argument("--force-log-period", type=float, default=0.005)
+    parser.add_argument("--repeat", type=int, default=1,
+                        help="run the scan this many times; report every run's rates and "
+                             "their median (the host's speed drifts between runs)")
     args = parser.parse_args(argv)
+    if args.repeat < 1:
+        parser.error(f"--repeat: expected a whole number >= 1, got {args.repeat}")
     base = ApplyOverrides(LoadScenario(scenario_name=args.scenario), args.set)
     load_before = os.getloadavg()
     if args.validate:
@@ -327,6 +335,11 @@ def main(argv=None) -> int:
                     "rtf_free_station_cpu": round(free["rtf_cpu"], 3)})
     scan = run_one(base, args.patient)
     out.update(scan)
+    if args.repeat > 1:
+        runs = [scan] + [run_one(base, args.patient) for _ in range(args.repeat - 1)]
+        for key in ("rtf_scan", "rtf_scan_cpu", "scan_cpu_s"):
+            out[f"{key}_runs"] = [r[key] for r in runs]
+            out[f"{key}_median"] = round(float(np.median(out[f"{key}_runs"])), 3)
     if not args.no_reference:
         out["ratio_scan_to_floor"] = round(scan["rtf_scan"] / out["rtf_floor"], 3)
         out["ratio_scan_to_floor_cpu"] = round(scan["rtf_scan_cpu"] / out["rtf_floor_cpu"], 3)
