@@ -46,3 +46,25 @@ def hardware_scenario(fields: dict, extra: str = ""):
                      for k, v in fields.items())
     return ApplyOverrides(LoadScenario(), "{hardware: true, %shardware_interface: {%s}}"
                           % (f"{extra}, " if extra else "", text))
+
+
+@pytest.fixture
+def moving_nearest_doubles():
+    """(Counted, Plain, made): stand-ins for ``icp.MovingNearest`` in A/B tests. Counted is
+    the real one, each instance appended to ``made`` (to read its query counts); Plain
+    answers every query from a fresh kd-tree of the current points (the reference)."""
+    from scipy.spatial import cKDTree
+
+    from drake_rus.localization import icp
+    made = []
+
+    class Counted(icp.MovingNearest):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            made.append(self)
+
+    class Plain(icp.MovingNearest):
+        def query(self, x, points, tree_of):
+            return cKDTree(points).query(x)
+
+    return Counted, Plain, made

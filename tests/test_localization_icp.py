@@ -344,7 +344,8 @@ def test_moving_nearest_is_the_kd_trees_answer_with_fewer_queries():
     assert len(built) < len(steps)
 
 
-def test_icp_with_moving_nearest_equals_plain_kd_tree_queries(monkeypatch):
+def test_icp_with_moving_nearest_equals_plain_kd_tree_queries(monkeypatch,
+                                                              moving_nearest_doubles):
     """The candidate reuse changes nothing: a deformable registration (noisy partial cloud,
     ending in a cycle) with every correspondence from a fresh kd-tree of the current
     template gives bit-identical errors, pose and shape weights, while the reuse sends
@@ -357,16 +358,7 @@ def test_icp_with_moving_nearest_equals_plain_kd_tree_queries(monkeypatch):
     P_B = P_B + rng.normal(scale=0.002, size=P_B.shape)
     R0 = heuristic_initial_rotation(SUPERIOR_B, LATERAL_B)
     kw = dict(shape_modes_K=modes, shape_variances=np.array([1.0, 0.5]), step_tolerance=1e-6)
-    made = []
-
-    class Counted(icp.MovingNearest):
-        def __init__(self, *args, **kwargs):
-            super().__init__(*args, **kwargs)
-            made.append(self)
-
-    class Plain(icp.MovingNearest):
-        def query(self, x, points, tree_of):
-            return cKDTree_of(points).query(x)
+    Counted, Plain, made = moving_nearest_doubles
 
     monkeypatch.setattr(icp, "MovingNearest", Counted)
     fast = register_plane_to_plane(P_B, Q, N, R0, **kw)

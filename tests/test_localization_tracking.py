@@ -277,13 +277,14 @@ def test_group_medians_need_every_group():
         group_medians(np.ones(3), np.array([0, 0, 2]), 3)
 
 
-def test_estimate_drift_reuses_neighbours_with_the_kd_trees_answer(template, monkeypatch):
+def test_estimate_drift_reuses_neighbours_with_the_kd_trees_answer(template, monkeypatch,
+                                                                  moving_nearest_doubles):
     """The drift fit's nearest neighbours come from MovingNearest: the same drift, residual
     and frame count, bit for bit, as fresh kd-tree queries every iteration, with under half
     of the points sent to the tree (the points only slide by the fit's small steps)."""
     from scipy.spatial import cKDTree
 
-    from drake_rus.localization import icp, tracking
+    from drake_rus.localization import tracking
     rng = np.random.default_rng(7)
     section = long_axis_slab(template)
     z_B = X_BK.rotation().matrix()[:, 2]
@@ -292,16 +293,7 @@ def test_estimate_drift_reuses_neighbours_with_the_kd_trees_answer(template, mon
     P = np.concatenate(frames)
     ids = np.repeat(np.arange(len(frames)), len(section))
     tree = cKDTree(template.points)
-    made = []
-
-    class Counted(icp.MovingNearest):
-        def __init__(self, *args, **kwargs):
-            super().__init__(*args, **kwargs)
-            made.append(self)
-
-    class Plain(icp.MovingNearest):
-        def query(self, x, points, tree_of):
-            return tree_of().query(x)
+    Counted, Plain, made = moving_nearest_doubles
 
     args = (P, X_BK, template.points, template.normals)
     monkeypatch.setattr(tracking, "MovingNearest", Counted)
