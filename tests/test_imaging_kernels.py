@@ -226,3 +226,13 @@ def test_warm_up_compiles_every_signature_the_chain_uses(source, model):
     image.flags.writeable = False
     E.emulate(image, model, 5, 9)
     assert [len(k.signatures) for k in kernels] == before
+
+
+def test_line_db_rejects_bad_labels_with_the_expected_form():
+    cfg = ImagingConfig()
+    model = E.EmulatorModel.from_config(cfg, ProbeGeometry.from_config(cfg))
+    S = model.samples_per_line
+    with pytest.raises(ValueError, match=rf"labels_ls: expected \(lines, {S}\)"):
+        E.line_db(np.zeros((4, S + 1), np.uint8), model, None)
+    with pytest.raises(ValueError, match="label values 0-255, got -1..3"):
+        E.line_db(np.array([[3] * S, [-1] * S]), model, None)

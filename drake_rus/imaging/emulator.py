@@ -19,7 +19,6 @@ Deterministic: the speckle of frame ``k`` depends only on (seed, k).
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -207,11 +206,6 @@ class EmulatorModel:
                 np.ascontiguousarray(data.reshape(-1, 4), dtype=np.float32))
 
     @cached_property
-    def _tgc_column(self) -> np.ndarray:
-        """``tgc_db`` as an (S, 1) column, for images in (sample, line) order."""
-        return np.ascontiguousarray(self.tgc_db[:, None])
-
-    @cached_property
     def tables(self):
         return tissue_tables()
 
@@ -239,23 +233,6 @@ class EmulatorModel:
         label_of_code[15] = GEL
         idx = (label_of_code[:, None] << 8 | label_of_code[None, :]).ravel()
         return tuple(np.ascontiguousarray(t[idx]) for t in full)
-
-    @cached_property
-    def _echo_luts(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-        """``pair_luts`` for :func:`line_db`'s inner loop: (loss, diffuse, specular, smallest
-        positive diffuse echo). Where both the diffuse and the specular echo are 0 the
-        specular table holds ``ECHO_FLOOR``, so that ``diffuse * speckle + specular`` is
-        already at least ``ECHO_FLOOR`` when the smallest positive diffuse echo times the
-        smallest speckle is (the last value is 0 when a positive specular echo lies below
-        the floor: the table cannot stand for the floor then)."""
-        loss, diffuse, spec = self.pair_luts
-        spec_floor = spec.copy()
-        spec_floor[(diffuse == 0) & (spec == 0)] = ECHO_FLOOR
-        positive = diffuse[diffuse > 0]
-        d_min = float(positive.min()) if positive.size else np.inf
-        if np.any((spec > 0) & (spec < ECHO_FLOOR)) or np.any(diffuse < 0) or np.any(spec < 0):
-            d_min = 0.0
-        return loss, diffuse, spec_floor, d_min
 
     @cached_property
     def _kernel_tables(self) -> tuple:
@@ -330,29 +307,26 @@ def line_db(labels_ls: np.ndarray, model: "EmulatorModel", speckle: np.ndarray |
 
     ``10 log10(diffuse * speckle + specular) - cumulative loss + TGC + gain``: the
     cumulative two-way loss adds interface transmission and attenuation in dB along the line.
+    Labels are label values 0-255 (any integer type); the speckle (broadcast to (L, S)) is
+    taken as float32, the emulator's own type.
     """
     labels_ls = np.asarray(labels_ls)
     shape = labels_ls.shape
+    if labels_ls.ndim != 2 or shape[1] != model.samples_per_line:
+        raise ValueError(f"labels_ls: expected (lines, {model.samples_per_line}) label "
+                         f"samples, got shape {shape}")
+    if labels_ls.size and (labels_ls.min() < 0 or labels_ls.max() > 255):
+        raise ValueError("labels_ls: expected label values 0-255, got "
+                         f"{labels_ls.min()}..{labels_ls.max()}")
+    # The compiled pass works in (sample, line) order.
+    index = np.arange(labels_ls.size, dtype=np.int32).reshape(shape[::-1])
+    flat = np.ascontiguousarray(labels_ls.T, dtype=np.uint8).reshape(-1)
     if speckle is not None:
-        speckle = np.broadcast_to(speckle, shape)
-    if (labels_ls.dtype == np.uint8 and labels_ls.ndim == 2 and labels_ls.size < 2 ** 31
-            and shape[1] == model.samples_per_line
-            and (speckle is None or speckle.dtype == np.float32)):
-        # The compiled path (uint8 labels, float32 speckle: the emulator's own types), in
-        # (sample, line) order.
-        index = np.arange(labels_ls.size, dtype=np.int32).reshape(shape[::-1])
-        flat = np.ascontiguousarray(labels_ls.T).reshape(-1)
-        if speckle is not None:
-            speckle = np.ascontiguousarray(speckle.T)
-        echo, cum = _echo_and_loss(flat, index, model, speckle, 0, 0)
-        np.log10(echo, out=echo)
-        db = np.empty(echo.shape, np.float32)
-        kernels.db_level(echo, cum, model._kernel_tables[-1], db)
-        return np.ascontiguousarray(db.T)
-    # Any other types: numpy, in (sample, line) order.
-    speckle_min = None if speckle is None else np.min(speckle)
-    db = _line_db_T(np.array(labels_ls.T, order="C"), model,     # a copy: overwritten
-                    None if speckle is None else speckle.T, speckle_min)
+        speckle = np.ascontiguousarray(np.broadcast_to(speckle, shape).T, dtype=np.float32)
+    echo, cum = _echo_and_loss(flat, index, model, speckle, 0, 0)
+    np.log10(echo, out=echo)
+    db = np.empty(echo.shape, np.float32)
+    kernels.db_level(echo, cum, model._kernel_tables[-1], db)
     return np.ascontiguousarray(db.T)
 
 
@@ -371,82 +345,6 @@ def _echo_and_loss(label_flat: np.ndarray, index: np.ndarray, model: "EmulatorMo
 
 
 _NO_SPECKLE = np.ones((1, 1), np.float32)
-
-
-def _line_db_T(labels: np.ndarray, model: "EmulatorModel", speckle: np.ndarray | None,
-               speckle_min) -> np.ndarray:
-    """:func:`line_db` of label samples in (sample, line) order (S, L), C-contiguous (and
-    overwritten), with the speckle in the same order (or None) and a lower bound of its
-    values; the result in (S, L) order. The same float32 operations on every sample as
-    along the lines."""
-    cur = _label_codes(labels, model)
-    # Pair codes ``code(prev) << 4 | code``, the probe face before sample 0 (x * 16 is
-    # x << 4 on uint8, and numpy's multiply is vectorised where its shift is not).
-    pair = np.empty(cur.shape, np.uint8)
-    np.multiply(cur[:-1], np.uint8(16), out=pair[1:])
-    pair[0] = model.compact_codes[PROBE_LABEL] << 4
-    pair |= cur
-    pair = pair.astype(np.intp)         # np.take's own index type: no conversion per take
-    loss_lut, diffuse_lut, spec_lut, d_min = model._echo_luts
-    loss, rows = _loss_rows(cur.shape)
-    loss_lut.take(pair, out=loss, mode="clip")      # indices 0-255: 'clip' changes none
-    echo = diffuse_lut.take(pair)
-    if speckle is not None:
-        echo *= speckle
-    echo += spec_lut.take(pair)
-    # ``max(echo, ECHO_FLOOR)``: the specular table holds the floor where both echoes are
-    # 0, so the maximum changes nothing when every positive diffuse echo times the speckle
-    # is above it (rounding is monotonic: the smallest product bounds them all); else (or
-    # on NaN) it is taken.
-    sp_min = np.float32(1.0) if speckle is None else speckle_min
-    if not np.float32(d_min) * sp_min >= ECHO_FLOOR:
-        np.maximum(echo, ECHO_FLOOR, out=echo)
-    db = np.log10(echo, out=echo)
-    db *= np.float32(10.0)
-    # The cumulative loss along every line: row s += row s - 1, the additions of cumsum
-    # along a line in the same order (float32 addition commutes), vectorised across the
-    # lines (np.cumsum along an axis is a scalar loop, twice slower on 256 x 128).
-    add = np.add
-    for prev, row in zip(rows, rows[1:]):
-        add(row, prev, row)
-    db -= loss
-    db += model._tgc_column
-    return db
-
-
-_SCRATCH = threading.local()
-
-
-def _loss_rows(shape: tuple[int, int]) -> tuple[np.ndarray, list]:
-    """A float32 work array of ``shape`` and the list of its rows, kept per thread: the
-    running loss adds row to row, and making its 256 row views anew for every frame would
-    cost more than the additions."""
-    arrays = getattr(_SCRATCH, "loss", None)
-    if arrays is None:
-        arrays = _SCRATCH.loss = {}
-    hit = arrays.get(shape)
-    if hit is None:
-        if len(arrays) > 4:
-            arrays.clear()
-        buf = np.empty(shape, np.float32)
-        hit = arrays[shape] = (buf, list(buf))
-    return hit
-
-
-def _label_codes(labels: np.ndarray, model: "EmulatorModel") -> np.ndarray:
-    """Compact label codes (0-15, uint8) of label samples (S, L) in (sample, line) order:
-    ``compact_codes`` of the labels, with the air within ``gel_gap`` of the face before any
-    tissue taken as gel. Compact codes keep the pair tables at 256 entries (in L1 cache).
-    ``labels`` may be overwritten (it is when it holds its own codes)."""
-    if labels.dtype == np.uint8 and labels.size and labels.max() < 15:
-        cur = labels     # labels 0-14 are their own codes
-    else:
-        cur = np.take(model.compact_codes, labels)
-    n_gel = model.gel_samples
-    if n_gel > 0:
-        leading_air = np.logical_and.accumulate(labels[:n_gel] == Label.OUTSIDE, axis=0)
-        np.copyto(cur[:n_gel], model.compact_codes[GEL], where=leading_air)
-    return cur
 
 
 def line_intensity(labels_ls: np.ndarray, model: "EmulatorModel", speckle: np.ndarray | None
