@@ -18,7 +18,8 @@ ROOT = Path(__file__).resolve().parents[1] / "drake_rus"
 # (command-line front ends of any package) are in the top layer.
 LAYERS = [
     ("core", ["drake_rus", "drake_rus.config_schema", "drake_rus.paths", "drake_rus.io_utils",
-              "drake_rus.progress", "drake_rus.tables", "drake_rus.control.config",
+              "drake_rus.progress", "drake_rus.provenance", "drake_rus.tables",
+              "drake_rus.control.config",
               "drake_rus.hardware.config", "drake_rus.imaging.config",
               "drake_rus.localization.config", "drake_rus.reliability.config",
               "drake_rus.scan.config",
