@@ -197,7 +197,7 @@ def population_template(population, n: int = DEFAULT_SUBJECTS, side: str = "righ
                         out=None, progress: bool = False) -> Path:
     """The template file of ``population`` (a name or :class:`Population`): from the cache
     when it was built before with the same inputs and code, else built (about 0.5 s per
-    subject plus the registration; see README) and stored. ``out``: write it there instead
+    subject plus the registration; docs/studies.md) and stored. ``out``: write it there instead
     (no cache). Returns the .npz path (a .json with its metadata beside it)."""
     pop = parse_population(population) if isinstance(population, str) else population
     if int(n) < 1:

@@ -1,0 +1,37 @@
+"""The README is a front door: short, and every link in it and in docs/ resolves."""
+
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+LINK = re.compile(r"\]\(([^)\s]+)\)")
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+
+
+def _relative_links(page: Path):
+    text = page.read_text()
+    text = re.sub(r"```.*?```", "", text, flags=re.S)      # code blocks are not links
+    for target in LINK.findall(text):
+        if re.match(r"[a-z]+:", target) or target.startswith("#"):
+            continue                                        # http(s), mailto, anchors
+        yield target.split("#")[0]
+
+
+def test_readme_is_short():
+    lines = (ROOT / "README.md").read_text().count("\n")
+    assert lines < 300, f"README.md has {lines} lines; detail belongs in docs/"
+
+
+@pytest.mark.parametrize("page", PAGES, ids=[str(p.relative_to(ROOT)) for p in PAGES])
+def test_every_relative_link_resolves(page):
+    missing = [t for t in _relative_links(page) if not (page.parent / t).exists()]
+    assert not missing, f"{page.relative_to(ROOT)} links to missing files: {missing}"
+
+
+def test_the_checker_finds_a_broken_link(tmp_path):
+    page = tmp_path / "page.md"
+    page.write_text("[ok](page.md) [broken](nowhere.md) [web](https://drake.mit.edu)\n"
+                    "```\n[in code](not_a_link.md)\n```\n")
+    assert [t for t in _relative_links(page) if not (page.parent / t).exists()] == ["nowhere.md"]
