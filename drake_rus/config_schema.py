@@ -26,6 +26,16 @@ import numpy as np
 from pydrake.common.schema import Transform
 
 
+def schema_transform(*, xyz=(0.0, 0.0, 0.0), rpy_deg=(0.0, 0.0, 0.0)) -> Transform:
+    """A schema ``Transform`` (the YAML form ``{translation: [x, y, z], rotation: !Rpy
+    {deg: [r, p, y]}}``) from a translation (m) and roll-pitch-yaw angles (deg): the one
+    helper for dataclass defaults, keyword arguments only so the order cannot be mixed up."""
+    t = Transform()
+    t.translation = list(xyz)
+    t.set_rotation_rpy_deg(list(rpy_deg))
+    return t
+
+
 class ScenarioError(ValueError):
     """A scenario file, name or field is invalid. The message names which one."""
 

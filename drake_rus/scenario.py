@@ -17,7 +17,7 @@ from pydrake.common.schema import Transform
 from pydrake.common.yaml import yaml_load_file, yaml_load_typed
 
 from drake_rus.anatomy.motion import PatientMotionConfig
-from drake_rus.config_schema import (ScenarioError, check_dataclass_values,
+from drake_rus.config_schema import (ScenarioError, check_dataclass_values, schema_transform,
                                      check_duplicate_keys, check_physical, validate)
 from drake_rus.control.config import ControllerConfig, SafetyConfig
 from drake_rus.hardware.config import HardwareConfig
@@ -37,13 +37,6 @@ DEFAULT_SCENARIOS_FILE = DIAGRAMS_DIR / "default.scenarios.yaml"
 # FR3 joint limits (rad), docs/facts/fr3.md "Limits (current FR3 specification, 2025)".
 FR3_Q_MIN = [-2.9007, -1.8361, -2.9007, -3.0770, -2.8763, 0.4398, -3.0508]
 FR3_Q_MAX = [2.9007, 1.8361, 2.9007, -0.1169, 2.8763, 4.6216, 3.0508]
-
-
-def _transform(xyz=(0.0, 0.0, 0.0), rpy_deg=(0.0, 0.0, 0.0)) -> Transform:
-    t = Transform()
-    t.translation = list(xyz)
-    t.set_rotation_rpy_deg(list(rpy_deg))
-    return t
 
 
 @dataclass
@@ -78,7 +71,7 @@ class ProbeCalibration:
     # Geometry (visual and collision) of the probe, expressed in the tip frame P.
     model: str = "package://drake_rus_models/probe/curvilinear_probe.sdf"
     # Pose of the tip frame P in the flange frame F (m, deg).
-    X_FP: Transform = field(default_factory=lambda: _transform((0.0, 0.0, 0.20)))
+    X_FP: Transform = field(default_factory=lambda: schema_transform(xyz=(0.0, 0.0, 0.20)))
     # Lumped mass of holder + probe + cable strain relief (kg).
     mass: float = field(default=0.55, metadata={"positive": True})
     # Centre of mass in the flange frame F (m).
@@ -105,7 +98,7 @@ class PatientConfig:
     side: str = field(default="right", metadata={"choices": ["right", "left"]})
     posture: str = field(default="supine",
                          metadata={"choices": ["supine", "left_lateral_decubitus"]})
-    X_BPt: Transform = field(default_factory=lambda: _transform((0.55, 0.0, 0.0)))
+    X_BPt: Transform = field(default_factory=lambda: schema_transform(xyz=(0.55, 0.0, 0.0)))
     # Semi-axes (m) of the placeholder torso ellipsoid: left-right, head-foot, front-back.
     placeholder_semi_axes: list[float] = field(
         default_factory=lambda: [0.17, 0.40, 0.12], metadata={"length": 3, "positive": True})

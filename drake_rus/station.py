@@ -5,26 +5,16 @@ ports as the hardware station (``drake_rus.hardware.station``), so the controlle
 are built once and never know which one they drive; ``drake_rus.stations.MakeStation`` picks
 one of the two from ``scenario.hardware`` (the two stations never import each other):
 
-- input ``joint_velocity_command`` (7, rad/s): the FR3 joint-velocity mode; a command takes
-  effect at the plant's next step (one step of command latency, 10 ms by default);
-- output ``joint_position`` (7, rad), ``joint_velocity`` (7, rad/s);
-- output ``X_BP`` (abstract RigidTransform): probe tip frame P in the robot base B, by forward
-  kinematics of our FR3 model plus the scenario's probe calibration;
-- output ``tau_external`` (7, N m): external joint torques (environment on the arm);
-- output ``probe_force`` (6): spatial force ON the probe BY the environment, expressed in P,
-  about P's origin, ordered [tau_x, tau_y, tau_z, f_x, f_y, f_z] (N m, N), estimated from
-  ``tau_external`` through the probe Jacobian: the same formula on hardware. Pressing into
-  the body gives f_z < 0; ``drake_rus.robot.contact_force_along_approach`` returns the
-  paper's F_z > 0;
-- output ``us_image`` (abstract UsFrame: grey image, acquisition time, X_BP, frame index)
-  when a patient is on the bed;
-- output ``breath_hold`` (1: 1 during a breath-hold) when the patient breathes
-  (``patient.motion.breathing``), as a respiratory belt would report it.
-
-Simulation truth (for metrics and tests; never wired into a controller): ``label_image``
-(UsFrame of tissue labels), ``X_BK_true`` (RigidTransform, the kidney's canonical frame in B,
-moving with the patient), ``probe_contact_wrench_true`` (6, same convention as
-``probe_force``, from the plant's contact results), ``contact_results``, ``plant_state``.
+The ports (name, size, unit, frame, which station) are listed once, in
+``drake_rus.station_interface.STATION_PORTS``; the station checks itself against them when
+built. Notes on this station's side of them: a ``joint_velocity_command`` takes effect at the
+plant's next step (one step of command latency, 10 ms by default); ``probe_force`` is
+estimated from ``tau_external`` through the probe Jacobian, the same formula as on hardware
+(pressing into the body gives f_z < 0; ``drake_rus.robot.contact_force_along_approach``
+returns the paper's F_z > 0); ``us_image`` exists when a patient with a label volume is on the
+bed. Simulation truth (``label_image``, ``X_BK_true``, ``probe_contact_wrench_true``,
+``contact_results``, ``plant_state``, ``breath_hold``) is for metrics and tests and is never
+wired into a controller.
 
 Fault injection wraps this station from outside (``drake_rus.reliability.station``): the only
 hook is ``label_image_hook``, a filter on the label frames before the ultrasound emulator.
@@ -48,6 +38,7 @@ from pydrake.systems.primitives import (
     Adder, ConstantValueSource, ConstantVectorSource, Demultiplexer, DiscreteTimeIntegrator,
     Multiplexer, PassThrough, ZeroOrderHold)
 
+from drake_rus.station_interface import CheckStationPorts
 from drake_rus.anatomy import load_patient
 from drake_rus.imaging.chain import AddImagingChain, LabelImageHook
 from drake_rus.patient_body import (
@@ -324,6 +315,7 @@ def MakeSimStation(scenario: Scenario, meshcat: Meshcat | None = None, *, patien
 
     diagram = builder.Build()
     diagram.set_name(name)
+    CheckStationPorts(diagram, "sim")
     return diagram
 
 

@@ -18,7 +18,8 @@ ROOT = Path(__file__).resolve().parents[1] / "drake_rus"
 # (command-line front ends of any package) are in the top layer.
 LAYERS = [
     ("core", ["drake_rus", "drake_rus.config_schema", "drake_rus.paths", "drake_rus.io_utils",
-              "drake_rus.progress", "drake_rus.provenance", "drake_rus.tables",
+              "drake_rus.progress", "drake_rus.provenance", "drake_rus.station_interface",
+              "drake_rus.tables",
               "drake_rus.control.config",
               "drake_rus.hardware.config", "drake_rus.imaging.config",
               "drake_rus.localization.config", "drake_rus.reliability.config",
@@ -30,7 +31,7 @@ LAYERS = [
     ("systems", ["drake_rus.control", "drake_rus.imaging", "drake_rus.localization"]),
     ("stations", ["drake_rus.station", "drake_rus.patient_body", "drake_rus.hardware"]),
     ("dispatch", ["drake_rus.stations"]),
-    ("scan", ["drake_rus.scan", "drake_rus.closed_loop"]),
+    ("scan", ["drake_rus.scan", "drake_rus.closed_loop", "drake_rus.bringup"]),
     ("studies", ["drake_rus.experiments", "drake_rus.reliability", "drake_rus.rehearsal"]),
     ("front", ["drake_rus.cli", "drake_rus.demo", "drake_rus.render"]),
 ]
@@ -219,3 +220,44 @@ def test_the_hidden_import_check_can_fail(tmp_path):
     (pkg / "a.py").write_text("def f():\n    from drake_rus.b import g\n    return g\n")
     (pkg / "b.py").write_text("import numpy\n\ndef g():\n    import scipy\n")
     assert function_level_imports(pkg) == ["drake_rus/a.py:2 from drake_rus.b import g"]
+
+
+def folder_of(module: str) -> str:
+    """The folder node of a module: its package under drake_rus (``drake_rus.anatomy``) or,
+    for a top-level module, the module; qualified by its layer, so that a package's
+    ``config`` (core) and ``cli`` (front) modules are nodes of their own."""
+    parts = module.split(".")
+    base = ".".join(parts[:2]) if len(parts) > 2 or (
+        len(parts) == 2 and (ROOT / parts[1]).is_dir()) else module
+    return f"{base}[{LAYERS[layer_of(module)][0]}]"
+
+
+def folder_graph(graph: dict) -> dict:
+    out: dict = {}
+    for module, targets in graph.items():
+        if module == "drake_rus":
+            continue
+        node = out.setdefault(folder_of(module), set())
+        for target in targets:
+            if target == "drake_rus" or module.startswith(target + "."):
+                continue
+            other = folder_of(target)
+            if other != folder_of(module):
+                node.add(other)
+    return out
+
+
+def test_no_folder_level_import_cycles():
+    assert cycles(folder_graph(import_graph())) == []
+
+
+def test_the_folder_checker_catches_a_cycle_between_folders():
+    """anatomy.patient imports template.io and template.builder imports anatomy.rasterize:
+    no module cycle, but the two folders import each other."""
+    graph = {"drake_rus.anatomy.patient": {"drake_rus.template.io"},
+             "drake_rus.anatomy.rasterize": set(),
+             "drake_rus.template.io": set(),
+             "drake_rus.template.builder": {"drake_rus.anatomy.rasterize"}}
+    assert cycles(graph) == []
+    assert cycles(folder_graph(graph)) == [["drake_rus.anatomy[models]",
+                                            "drake_rus.template[models]"]]

@@ -15,10 +15,11 @@ from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.multibody.tree import JacobianWrtVariable
 from pydrake.systems.analysis import Simulator
 
-from drake_rus.hardware import cli
-from drake_rus.hardware.cli import (
+from drake_rus import bringup
+from drake_rus.bringup import (
     BuildHardwareClosedLoop, MotionResult, RunLatencyCalibration, ScriptedMotion,
     motion_failures)
+from drake_rus.hardware import cli
 from drake_rus.hardware.lcm_sim_driver import SimulatedPandaDriver
 from drake_rus.hardware.station import MakeHardwareStation
 from drake_rus.hardware.systems import ProbeLoadTorque
@@ -86,9 +87,10 @@ def wrench_torque(scenario, F_P):
 
 
 def run_check(monkeypatch, rig, scenario, push=None, **args):
-    """``cli._check`` with the driver following the wall clock; ``push``: the Drake-sign
-    torque the driver reports after the rest period."""
-    real = cli.RunHardware
+    """``bringup.CheckStation`` (as ``hardware check`` reports it) with the driver following
+    the wall clock; ``push``: the Drake-sign torque the driver reports after the rest
+    period."""
+    real = bringup.RunHardware
 
     def with_driver(sim, station, duration, on_step=None, **kw):
         start = time.monotonic()
@@ -100,12 +102,15 @@ def run_check(monkeypatch, rig, scenario, push=None, **args):
             if on_step is not None:
                 on_step()
         return real(sim, station, duration, check_period=0.01, on_step=step)
-    monkeypatch.setattr(cli, "RunHardware", with_driver)
+    monkeypatch.setattr(bringup, "RunHardware", with_driver)
     ns = argparse.Namespace(dry_run=True, duration=0.9, rest=0.3, readout_hz=10.0)
     for k, v in args.items():
         setattr(ns, k, v)
     try:
-        return cli._check(ns, scenario, rig.station)
+        failures = bringup.CheckStation(scenario, rig.station, dry_run=ns.dry_run,
+                                        duration=ns.duration, rest=ns.rest,
+                                        readout_hz=ns.readout_hz)
+        return cli._report("check", failures)
     finally:
         rig.station.close()
 
@@ -155,7 +160,7 @@ def test_check_motion_thresholds(monkeypatch, capsys):
     # The command's exit code follows them.
     scenario = lcm_scenario(dry_run=False)
     rig = Rig(scenario)
-    monkeypatch.setattr(cli, "RunScriptedMotion", lambda *a, **k: bad)
+    monkeypatch.setattr(bringup, "RunScriptedMotion", lambda *a, **k: bad)
     rc = run_check(monkeypatch, rig, scenario, dry_run=False)
     out = capsys.readouterr().out
     assert rc == 1 and "approach error 0.80 deg" in out and "FAILED" in out

@@ -26,7 +26,7 @@ from conftest import hardware_scenario
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
 
-from drake_rus.hardware.cli import BuildHardwareClosedLoop, RunScriptedMotion, ScriptedMotion
+from drake_rus.bringup import BuildHardwareClosedLoop, RunScriptedMotion, ScriptedMotion
 from drake_rus.hardware.station import (HardwareFault, HardwareStation, MakeHardwareStation,
                                         RunHardware)
 from drake_rus.stations import MakeStation

@@ -19,7 +19,8 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import LeafSystem
 
 import drake
-from drake_rus.hardware.cli import BuildHardwareClosedLoop, RunScriptedMotion, ScriptedMotion
+from drake_rus.station_interface import ports_of
+from drake_rus.bringup import BuildHardwareClosedLoop, RunScriptedMotion, ScriptedMotion
 from drake_rus.hardware.lcm_sim_driver import CommandExpiry, SimulatedPandaDriver
 from drake_rus.hardware.station import (HardwareFault, MakeHardwareStation,
                                         RunHardware)
@@ -93,7 +94,10 @@ def test_lcm_station_ports_stamps_tracking_and_torque_sign():
 
     # Same ports and types as the simulated station.
     sim_station = MakeStation(LoadScenario())
-    for name in ("joint_position", "joint_velocity", "X_BP", "tau_external", "probe_force"):
+    both = [p.name for p in ports_of("sim", include_optional=False)
+            if "hardware" in p.stations and p.direction == "out" and p.size is not None]
+    assert both == ["joint_position", "joint_velocity", "tau_external", "probe_force"]
+    for name in both:
         assert st.HasOutputPort(name)
         assert st.GetOutputPort(name).size() == sim_station.GetOutputPort(name).size()
     assert st.get_input_port().get_name() == "joint_velocity_command"

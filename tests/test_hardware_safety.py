@@ -20,7 +20,7 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
 
 from drake_rus.hardware import core, franky_backend
-from drake_rus.hardware.cli import _load_check
+from drake_rus.bringup import load_check as _load_check
 from drake_rus.hardware.config import HardwareConfig
 from drake_rus.hardware.franky_backend import FrankyBackend, HardwareFault
 from drake_rus.hardware.lcm_sim_driver import SimulatedPandaDriver

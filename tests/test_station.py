@@ -15,10 +15,13 @@ from drake_rus.scenario import LoadScenario
 from drake_rus.robot import contact_force_along_approach, estimate_tip_wrench
 from drake_rus.demo import PressDiagram
 from drake_rus.robot import MakeControlPlant
+from drake_rus.station_interface import ports_of
 from drake_rus.stations import MakeStation
 
-STATION_INPUTS = {"joint_velocity_command"}
-STATION_OUTPUTS = {"joint_position", "joint_velocity", "X_BP", "tau_external", "probe_force"}
+# What both stations export (drake_rus.station_interface, the one list of ports).
+STATION_INPUTS = {p.name for p in ports_of("sim") if p.direction == "in"}
+STATION_OUTPUTS = {p.name for p in ports_of("sim", include_optional=False)
+                   if p.direction == "out" and "hardware" in p.stations}
 
 
 def test_estimate_tip_wrench_recovers_a_known_wrench():

@@ -19,7 +19,7 @@ from drake_rus.template.builder import (align_to_reference, build_template, conv
                                         save_template, shape_model, subject_from_mask,
                                         subject_from_mesh)
 from drake_rus.template.io import DEFAULT_TEMPLATE_PATH
-from drake_rus.template.pca import mesh_canonical_frame
+from drake_rus.anatomy.canonical_frame import mesh_canonical_frame
 
 
 def test_mean_shape_is_eq15():

@@ -9,7 +9,7 @@ section, kidney mask) are rebuilt by the same code.
 
 Content addressed: an entry's name is the SHA-256 of its inputs (the patient spec resolved to
 a generator seed or to the bytes of the imported files; side, posture, voxel size, mapping),
-of the source code of :mod:`drake_rus.anatomy` and :mod:`drake_rus.template.pca`, and of the
+of the source code of :mod:`drake_rus.anatomy` (the canonical frame included), and of the
 versions of the libraries that shape the result. Any change gives another name; stale entries
 are never read (delete the folder to reclaim the space).
 
@@ -51,7 +51,6 @@ _TMP_PREFIX = ".tmp-"
 _STALE_TMP_S = 3600.0           # leftovers of crashed writers older than this are removed
 _LIBRARIES = ("numpy", "scipy", "trimesh", "scikit-image", "drake", "SimpleITK", "matplotlib")
 _ANATOMY_DIR = Path(__file__).resolve().parent
-_PCA_FILE = _ANATOMY_DIR.parent / "template" / "pca.py"
 _warned_dirs: set[str] = set()
 _UMASK = os.umask(0o022)
 os.umask(_UMASK)
@@ -84,10 +83,10 @@ def file_digest(path) -> str:
 
 @lru_cache(maxsize=1)
 def code_digest() -> str:
-    """SHA-256 of the source of drake_rus/anatomy/*.py and drake_rus/template/pca.py (the code
-    a patient is built by), read once per process: the code that is running."""
+    """SHA-256 of the source of drake_rus/anatomy/*.py (the code a patient is built by, the
+    canonical frame included), read once per process: the code that is running."""
     h = hashlib.sha256()
-    files = sorted(_ANATOMY_DIR.rglob("*.py")) + [_PCA_FILE]
+    files = sorted(_ANATOMY_DIR.rglob("*.py"))
     for p in files:
         h.update(p.relative_to(_ANATOMY_DIR.parent).as_posix().encode() + b"\0")
         h.update(p.read_bytes() + b"\0")

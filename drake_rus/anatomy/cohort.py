@@ -21,7 +21,7 @@ from drake_rus.anatomy.importers import (LABEL_MAP_SUFFIXES, find_mesh_files,
                                          patient_from_label_map, patient_from_mask_folder,
                                          patient_from_meshes, totalsegmentator_mask_files)
 from drake_rus.anatomy.patient import Patient
-from drake_rus.template.pca import extents_in_frame, mesh_canonical_frame
+from drake_rus.anatomy.canonical_frame import extents_in_frame, mesh_canonical_frame
 
 __all__ = ["TRAIN_OFFSET", "TEST_OFFSET", "DEFAULT_COUNTS", "split_seed", "cohort_seeds",
            "load_patient", "kidney_statistics", "summarize", "cohort_stats"]

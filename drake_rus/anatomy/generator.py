@@ -37,7 +37,7 @@ from drake_rus.anatomy.frames import R_PtBd, check_side_posture, reference_axes_
 from drake_rus.anatomy.kidney_shape import KidneyShape, KidneyShapeParams, sample_kidney_shape_params
 from drake_rus.anatomy.labels import Label, LabelVolume
 from drake_rus.anatomy.patient import Patient
-from drake_rus.template.pca import mesh_canonical_frame, mesh_surface_moments
+from drake_rus.anatomy.canonical_frame import mesh_canonical_frame, mesh_surface_moments
 
 __all__ = ["PatientParams", "sample_patient_params", "generate_patient", "patient_builders",
            "VERTEBRA_Y"]

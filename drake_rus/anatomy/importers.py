@@ -34,7 +34,7 @@ from drake_rus.anatomy.labels import Label, LabelVolume
 from drake_rus.anatomy.patient import Patient
 from drake_rus.anatomy.rasterize import grid_around, mask_to_mesh, rasterize_mesh
 from drake_rus.anatomy.trunk import remove_arms, trunk_mask
-from drake_rus.template.pca import mesh_surface_moments
+from drake_rus.anatomy.canonical_frame import mesh_surface_moments
 
 # crop_body_section (body_section) and mask_to_mesh (rasterize) are re-exported here.
 __all__ = ["patient_from_meshes", "patient_from_label_map", "patient_from_mask_folder",

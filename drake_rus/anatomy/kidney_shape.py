@@ -25,7 +25,7 @@ from dataclasses import dataclass, field, asdict
 import numpy as np
 import trimesh
 
-from drake_rus.template.pca import mesh_canonical_frame, extents_in_frame
+from drake_rus.anatomy.canonical_frame import mesh_canonical_frame, extents_in_frame
 
 __all__ = ["KidneyShapeParams", "KidneyShape", "sample_kidney_shape_params",
            "ICOSPHERE_SUBDIVISIONS"]

@@ -23,7 +23,7 @@ from drake_rus.anatomy.export import export_patient
 from drake_rus.anatomy.frames import R_PtBd, reference_axes_Pt, check_side_posture, transform_mesh
 from drake_rus.anatomy.labels import LabelVolume
 from drake_rus.anatomy.rasterize import mesh_mask_on_aligned_grid
-from drake_rus.template.pca import mesh_canonical_frame, extents_in_frame
+from drake_rus.anatomy.canonical_frame import mesh_canonical_frame, extents_in_frame
 
 __all__ = ["Patient", "vertical_depth", "kidney_metrics"]
 

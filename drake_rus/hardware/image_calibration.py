@@ -33,7 +33,7 @@ from pydrake.common.schema import Transform
 from pydrake.common.yaml import yaml_dump_typed, yaml_load_file, yaml_load_typed
 from pydrake.math import RigidTransform, RotationMatrix
 
-from drake_rus.config_schema import ScenarioError, validate
+from drake_rus.config_schema import ScenarioError, schema_transform, validate
 from drake_rus.hardware.core import check_crop, to_grey
 from drake_rus.robot import MakeControlPlant
 
@@ -46,13 +46,6 @@ __all__ = [
 ]
 
 CALIBRATION_FIELD = "hardware_interface.image_calibration"
-
-
-def _transform(rpy_deg=(0.0, 0.0, 0.0), xyz=(0.0, 0.0, 0.0)) -> Transform:
-    t = Transform()
-    t.translation = list(xyz)
-    t.set_rotation_rpy_deg(list(rpy_deg))
-    return t
 
 
 @dataclass
@@ -80,7 +73,7 @@ class DepthPresetCalibration:
 class ImageCalibration:
     # The picture frame I in the probe frame P (see the module doc). Nominal: rpy
     # [90, 0, 0] deg (x_I = x_P, y_I = z_P), no translation.
-    X_PI: Transform = field(default_factory=lambda: _transform((90.0, 0.0, 0.0)))
+    X_PI: Transform = field(default_factory=lambda: schema_transform(rpy_deg=(90.0, 0.0, 0.0)))
     # The display shows the array reversed: x_I = -x_P.
     mirror_x: bool = False
     # One entry per depth preset.

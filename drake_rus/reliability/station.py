@@ -24,10 +24,12 @@ from pydrake.systems.framework import Diagram, DiagramBuilder
 from drake_rus.reliability.systems import (
     IMAGE_FAULTS, ROBOT_FAULTS, LabelImageFaults, RobotSensorFaults)
 from drake_rus.station import MakeSimStation
+from drake_rus.station_interface import CheckStationPorts, ROBOT_SENSOR_PORTS
 
 __all__ = ["MakeFaultyStation", "WithSensorFaults", "fault_seed", "ROBOT_PORTS"]
 
-ROBOT_PORTS = ("joint_position", "joint_velocity", "X_BP", "probe_force")
+# The robot-sensor ports the faults corrupt: the interface's (drake_rus.station_interface).
+ROBOT_PORTS = ROBOT_SENSOR_PORTS
 
 
 def fault_seed(scenario) -> int:
@@ -68,6 +70,7 @@ def WithSensorFaults(station: Diagram, scenario, name: str = "station") -> Diagr
             builder.ExportOutput(port, port.get_name())
     diagram = builder.Build()
     diagram.set_name(name)
+    CheckStationPorts(diagram, "sim")
     return diagram
 
 

@@ -25,7 +25,7 @@ from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from drake_rus.anatomy.rasterize import mask_to_mesh
-from drake_rus.template.pca import canonical_frame, mesh_canonical_frame
+from drake_rus.anatomy.canonical_frame import canonical_frame, mesh_canonical_frame
 
 __all__ = ["Subject", "subject_from_mask", "subject_from_mesh", "farthest_point_sampling",
            "align_to_reference", "reference_subject", "correspond", "mean_shape", "shape_model",

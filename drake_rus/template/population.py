@@ -66,7 +66,8 @@ DEFAULT_SUBJECTS = 20          # the seed paper's N (II-D)
 DEFAULT_POINTS = 2500          # as the repository's template
 DEFAULT_VOXEL = 0.001          # 1 mm masks, as the repository's template
 _HERE = Path(__file__).resolve().parent
-_CODE_FILES = (_HERE / "population.py", _HERE / "builder.py", _HERE / "pca.py",
+_CODE_FILES = (_HERE / "population.py", _HERE / "builder.py",
+               _HERE.parent / "anatomy" / "canonical_frame.py",
                _HERE.parent / "anatomy" / "kidney_shape.py",
                _HERE.parent / "anatomy" / "rasterize.py")
 _LIBRARIES = ("numpy", "scipy", "open3d", "scikit-image", "trimesh")

@@ -6,7 +6,7 @@ import trimesh
 from pydrake.math import RigidTransform, RotationMatrix
 from scipy.spatial.transform import Rotation
 
-from drake_rus.template.pca import (canonical_frame, covariance_eigen, extents_in_frame,
+from drake_rus.anatomy.canonical_frame import (canonical_frame, covariance_eigen, extents_in_frame,
                                     mesh_canonical_frame, mesh_surface_moments)
 
 
