@@ -91,9 +91,9 @@ def main(argv=None) -> int:
     from pydrake.math import RigidTransform
 
     from drake_rus.imaging.config import ImagingConfig
-    from drake_rus.imaging.dataset import ViewSampler
+    from drake_rus.imaging.training.dataset import ViewSampler
     from drake_rus.imaging.emulator import EmulatorModel, emulate
-    from drake_rus.imaging.evaluation import load_volume, make_source_frames, mean_iou
+    from drake_rus.imaging.training.evaluation import load_volume, make_source_frames, mean_iou
     from drake_rus.imaging.onnx_backend import OnnxSegmenter, resolve_model_path
     from drake_rus.imaging.probe import ProbeGeometry
     from drake_rus.imaging.segment import read_mask, segment_classical
@@ -209,7 +209,7 @@ def depth_and_posture_study(cfg, args) -> dict:
     from pydrake.math import RigidTransform
 
     from drake_rus.imaging.emulator import EmulatorModel, emulate
-    from drake_rus.imaging.evaluation import (POSTURES, VH_FEMALE, depth_study, load_source,
+    from drake_rus.imaging.training.evaluation import (POSTURES, VH_FEMALE, depth_study, load_source,
                                               sample_views, scan_preset, segmenters_by_depth,
                                               summarise)
     from drake_rus.imaging.slicing import slice_volume

@@ -32,7 +32,9 @@ LAYERS = [
     ("stations", ["drake_rus.station", "drake_rus.patient_body", "drake_rus.hardware"]),
     ("dispatch", ["drake_rus.stations"]),
     ("scan", ["drake_rus.scan", "drake_rus.closed_loop", "drake_rus.bringup"]),
-    ("studies", ["drake_rus.experiments", "drake_rus.reliability", "drake_rus.rehearsal"]),
+    # Offline tools (training the segmenter) sit with the studies: the runtime never imports them.
+    ("studies", ["drake_rus.experiments", "drake_rus.reliability", "drake_rus.rehearsal",
+                 "drake_rus.imaging.training"]),
     ("front", ["drake_rus.cli", "drake_rus.demo", "drake_rus.render"]),
 ]
 # Allowed exceptions, each with its reason.

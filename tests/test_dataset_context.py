@@ -6,10 +6,10 @@ import pytest
 from scipy import ndimage
 
 from drake_rus.anatomy.labels import Label, is_kidney
-from drake_rus.imaging.dataset import (CORTEX_MM, PARENCHYMA_MM, draw_kidney_layers,
+from drake_rus.imaging.training.dataset import (CORTEX_MM, PARENCHYMA_MM, draw_kidney_layers,
                                        layered_kidney)
 from drake_rus.imaging.phantoms import kidney_phantom
-from drake_rus.imaging.train_segmenter import (P_LAYERED, P_NO_PERIRENAL_FAT, P_THIN_CORTEX,
+from drake_rus.imaging.training.train_segmenter import (P_LAYERED, P_NO_PERIRENAL_FAT, P_THIN_CORTEX,
                                                draw_anatomy, one_cycle_lr, randomised_anatomy,
                                                schedule_progress, wall_variants)
 
@@ -88,7 +88,7 @@ def test_randomised_anatomy_removes_fat_and_relabels_the_inside(phantom):
 
 
 def test_wall_variants_include_an_imported_like_kidney(phantom):
-    from drake_rus.imaging.evaluation import Source
+    from drake_rus.imaging.training.evaluation import Source
     src = Source("phantom:7", "supine", phantom.volume, np.array([0.0, 0.0, 1.0]))
     variants = wall_variants(src, "supine", np.random.default_rng(3))
     assert variants[0].volume is phantom.volume
@@ -121,7 +121,7 @@ def test_schedule_progress_follows_the_time_limit():
 
 def test_train_stops_at_the_time_limit_with_an_annealed_schedule():
     pytest.importorskip("torch")
-    from drake_rus.imaging.train_segmenter import train
+    from drake_rus.imaging.training.train_segmenter import train
     rng = np.random.default_rng(0)
     X = rng.integers(0, 255, (8, 32, 32)).astype(np.uint8)
     Y = np.zeros_like(X)
@@ -135,7 +135,7 @@ def test_train_stops_at_the_time_limit_with_an_annealed_schedule():
 
 
 def test_targets_met_needs_every_preset_and_both_postures():
-    from drake_rus.imaging.train_segmenter import targets_met
+    from drake_rus.imaging.training.train_segmenter import targets_met
     good = {"0.10": 0.86, "0.15": 0.9}
     assert targets_met(good, {"supine": 0.81, "left_lateral_decubitus": 0.8})["met"]
     r = targets_met({"0.10": 0.84, "0.15": 0.9}, {"supine": 0.81})
@@ -152,7 +152,7 @@ def test_targets_met_needs_every_preset_and_both_postures():
 def test_record_benchmark_replaces_the_measured_figures_and_keeps_the_notes(tmp_path):
     import json
 
-    from drake_rus.imaging.train_segmenter import record_benchmark
+    from drake_rus.imaging.training.train_segmenter import record_benchmark
     card = tmp_path / "kidney_unet.json"
     card.write_text(json.dumps({"model": "kidney_unet.onnx", "evaluation": {
         "iou_by_depth": {"0.10": 0.5}, "diagnosis": "a note from another measurement"}}))

@@ -9,11 +9,11 @@ from pydrake.math import RigidTransform, RotationMatrix
 
 from drake_rus.anatomy.labels import Label, LabelVolume, is_kidney
 from drake_rus.imaging.config import ImagingConfig
-from drake_rus.imaging.dataset import (EmulatorBank, Randomisation, ViewSampler, VolumeVariant,
+from drake_rus.imaging.training.dataset import (EmulatorBank, Randomisation, ViewSampler, VolumeVariant,
                                        canvas_frames, make_frames, randomised_emulator,
                                        thicken_wall)
 from drake_rus.imaging.emulator import EmulatorModel, emulate
-from drake_rus.imaging.evaluation import Source, cluster_bootstrap_ci, mean_iou, summarise
+from drake_rus.imaging.training.evaluation import Source, cluster_bootstrap_ci, mean_iou, summarise
 from drake_rus.imaging.phantoms import kidney_phantom
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.imaging.slicing import sample_labels
@@ -189,7 +189,7 @@ def test_cluster_bootstrap_interval_resamples_whole_sources():
 
 def test_kidney_context_and_structure_randomisation(phantom):
     from scipy import ndimage
-    from drake_rus.imaging.dataset import remove_perirenal_fat, thin_cortex
+    from drake_rus.imaging.training.dataset import remove_perirenal_fat, thin_cortex
     vol = phantom.volume
     kid = is_kidney(vol.labels)
     # A thin cortex: same kidney outline, cortex only within 3 mm of its surface.

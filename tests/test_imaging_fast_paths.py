@@ -112,12 +112,12 @@ def ref_centroid(mask):
 
 @pytest.fixture(scope="module")
 def source():
-    from drake_rus.imaging.evaluation import load_source
+    from drake_rus.imaging.training.evaluation import load_source
     return load_source("test:0", posture="supine")
 
 
 def views(source, n, seed):
-    from drake_rus.imaging.evaluation import sample_views
+    from drake_rus.imaging.training.evaluation import sample_views
     return sample_views(source, n, seed=seed)
 
 

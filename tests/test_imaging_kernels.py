@@ -77,7 +77,7 @@ def ref_slice(g, volume, X_VP, y=0.0):
 
 @pytest.fixture(scope="module")
 def source():
-    from drake_rus.imaging.evaluation import load_source
+    from drake_rus.imaging.training.evaluation import load_source
     return load_source("test:0", posture="supine")
 
 
@@ -152,7 +152,7 @@ def test_emulate_kernels_equal_numpy_on_edge_images(model):
 
 
 def test_emulate_kernels_equal_numpy_on_test0_views(source, model):
-    from drake_rus.imaging.evaluation import sample_views
+    from drake_rus.imaging.training.evaluation import sample_views
     g = model.geometry
     for k, X_VP in enumerate(sample_views(source, 6, seed=3)):
         image = slice_volume(g, source.volume, RigidTransform(), X_VP)
@@ -189,7 +189,7 @@ def test_slice_kernel_equals_numpy(source):
     g = ProbeGeometry.from_config(ImagingConfig(depth=0.16))
     vol = source.volume
     warm_slicer(g, vol)
-    from drake_rus.imaging.evaluation import sample_views
+    from drake_rus.imaging.training.evaluation import sample_views
     poses = sample_views(source, 5, seed=5)
     poses += [RigidTransform(DOWN, [0.05, 0.05, 0.30]),                       # partly out
               RigidTransform(DOWN, [-0.2, 0.1, 0.1]),                         # wholly out

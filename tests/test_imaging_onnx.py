@@ -204,7 +204,7 @@ def test_shipped_model_holds_at_shallow_and_deep_presets():
     the scan's vertical views over the kidney, the array at four angles; the IoU of each
     emulated frame above a floor."""
     from drake_rus.imaging.emulator import EmulatorModel, emulate
-    from drake_rus.imaging.evaluation import centred_views, load_source
+    from drake_rus.imaging.training.evaluation import centred_views, load_source
     from drake_rus.imaging.segment import iou
     from drake_rus.imaging.slicing import slice_volume
     src = load_source("test:0", posture="supine")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from pydrake.math import RigidTransform
 
-from drake_rus.imaging import quantize_segmenter as qs
+from drake_rus.imaging.training import quantize_segmenter as qs
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.onnx_backend import (OnnxSegmenter, card_canvas, read_model_card,
                                             resolve_model_path)
@@ -53,7 +53,7 @@ def test_int8_model_agrees_with_fp32_on_held_out_emulated_frames(geometry):
     masks agree on >= 99% of the fan's pixels and their mean IoU against the true kidney
     differs by <= 0.01. A CPU on which U8S8 saturates (x86 without VNNI) fails here."""
     from drake_rus.imaging.emulator import EmulatorModel, emulate
-    from drake_rus.imaging.evaluation import load_source, sample_views
+    from drake_rus.imaging.training.evaluation import load_source, sample_views
     from drake_rus.imaging.segment import iou
     from drake_rus.imaging.slicing import slice_volume
     src = load_source("test:0", posture="supine")
@@ -175,7 +175,7 @@ def test_a_failed_quantization_leaves_the_old_output_untouched(tmp_path, monkeyp
 def test_calibration_frames_come_from_every_training_source_and_posture(monkeypatch):
     """per_source frames of each (train:K, posture) of the training recipe's data, chosen
     by the seed, scaled to [0, 1]; the recipe is asked for training patients only."""
-    from drake_rus.imaging import train_segmenter
+    from drake_rus.imaging.training import train_segmenter
     asked = {}
 
     def fake_dataset(specs, postures, frames, pixel_size, canvas, top, cache, seed, log=print):

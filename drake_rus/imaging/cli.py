@@ -17,7 +17,7 @@ from drake_rus.anatomy import load_patient
 from drake_rus.anatomy.labels import is_kidney
 from drake_rus.cli import UserError
 from drake_rus.demo import add_scenario_arguments, load_scenario_from_args
-from drake_rus.imaging.dataset import ViewSampler
+from drake_rus.imaging.training.dataset import ViewSampler
 from drake_rus.imaging.emulator import EmulatorModel, emulate
 from drake_rus.imaging.phantoms import kidney_phantom
 from drake_rus.imaging.probe import ProbeGeometry

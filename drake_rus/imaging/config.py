@@ -69,7 +69,7 @@ class ImagingConfig:
     # Minimum kidney area (m^2) for the kidney to count as visible (rejects specks).
     min_kidney_area: float = field(default=1.0e-4, metadata={"min": 0.0})
     # ONNX model file: absolute, or relative to the repository root. The default is the int8
-    # quantization of our fp32 model (drake_rus/imaging/quantize_segmenter.py): 0.84 instead
+    # quantization of our fp32 model (drake_rus/imaging/training/quantize_segmenter.py): 0.84 instead
     # of 1.42 ms per frame (one thread, AVX512-VNNI), the same held-out IoU within 0.002. On
     # an x86 CPU without VNNI its uint8 x int8 products may saturate (tests/
     # test_quantized_segmenter.py then fails): use "models/segmenter/kidney_unet.onnx", the fp32

@@ -2,7 +2,7 @@
 
 Sources: ``phantom:N`` (a synthetic :func:`kidney_phantom`, rng seed N) or any
 ``drake_rus.anatomy.load_patient`` spec (``train:K``, ``test:K``, ``seed:N``, a folder...),
-in either posture. Probe views come from :class:`~drake_rus.imaging.dataset.ViewSampler`
+in either posture. Probe views come from :class:`~drake_rus.imaging.training.dataset.ViewSampler`
 looking down from above the patient (+z of the patient/bed frame), like the seed's probe on
 the bed: through the upper (anterior) skin when supine, through the right flank in left
 lateral decubitus.
@@ -25,7 +25,7 @@ from tqdm import tqdm
 from drake_rus.anatomy import load_patient
 from drake_rus.anatomy.labels import Label, LabelVolume, is_kidney
 from drake_rus.imaging.config import ImagingConfig
-from drake_rus.imaging.dataset import ViewSampler, make_frames
+from drake_rus.imaging.training.dataset import ViewSampler, make_frames
 from drake_rus.imaging.emulator import EmulatorModel, emulate
 from drake_rus.imaging.onnx_backend import OnnxSegmenter
 from drake_rus.imaging.phantoms import kidney_phantom

@@ -10,11 +10,11 @@ the training split only (:func:`calibration_images`: ``--per-source`` random fra
 ``train:K`` patient and posture from the training recipe's cached canvas data; never a
 ``test:K`` patient nor a real body).
 
-    nice .venv/bin/python -m drake_rus.imaging.quantize_segmenter \\
+    nice .venv/bin/python -m drake_rus.imaging.training.quantize_segmenter \\
         --model models/segmenter/kidney_unet.onnx --out models/segmenter/kidney_unet_int8.onnx
     nice .venv/bin/python -m benchmarks imaging \\
         --onnx-model models/segmenter/kidney_unet_int8.onnx --no-progress > bench_int8.log
-    .venv/bin/python -m drake_rus.imaging.quantize_segmenter \\
+    .venv/bin/python -m drake_rus.imaging.training.quantize_segmenter \\
         --out models/segmenter/kidney_unet_int8.onnx --record-benchmark bench_int8.log
 
 Writes the model and its card (``kidney_unet_int8.json``, found by the ONNX backend beside
@@ -51,8 +51,8 @@ from pathlib import Path
 
 import numpy as np
 
-from drake_rus.imaging import train_segmenter
-from drake_rus.imaging.evaluation import POSTURES
+from drake_rus.imaging.training import train_segmenter
+from drake_rus.imaging.training.evaluation import POSTURES
 from drake_rus.imaging.onnx_backend import read_model_card, resolve_model_path
 from drake_rus.paths import REPO_ROOT
 
@@ -239,7 +239,7 @@ def calibration_images(patients: int = 20, frames: int = 300, per_source: int = 
     """float32 (N, H, W) calibration frames (grey / 255 on the canvas): ``per_source``
     frames of each training patient ``train:0..patients-1`` and posture, picked by a numpy
     Generator seeded with ``seed`` from the training recipe's frames
-    (:func:`~drake_rus.imaging.train_segmenter.build_canvas_dataset` with ``frames`` per
+    (:func:`~drake_rus.imaging.training.train_segmenter.build_canvas_dataset` with ``frames`` per
     patient and posture, ``data_seed``, the canvas; read from ``cache`` when there, else
     built and cached, which takes minutes per patient). Training split only: never a
     ``test:K`` patient nor a real body. N = patients x postures x per_source."""
@@ -351,7 +351,7 @@ def main(argv=None) -> int:
         ap.error(f"--per-source: expected 1..--frames ({args.frames}), got {args.per_source}")
     if args.patients < 1:
         ap.error(f"--patients: expected >= 1, got {args.patients}")
-    command = ("nice .venv/bin/python -m drake_rus.imaging.quantize_segmenter "
+    command = ("nice .venv/bin/python -m drake_rus.imaging.training.quantize_segmenter "
                + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv)))
     log = lambda s: print(s, flush=True)
     data_seed = int((fp32_card.get("training") or {}).get("seed", 0))

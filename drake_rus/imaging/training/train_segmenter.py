@@ -7,7 +7,7 @@ frame onto it and back (:class:`~drake_rus.imaging.onnx_backend.PhysicalCanvas`)
 model serves every depth preset. The card (``kidney_unet.json``) declares ``pixel_size_mm``,
 ``canvas_px`` and ``canvas_top_mm``.
 
-Data recipe (:func:`~drake_rus.imaging.dataset.canvas_frames`): training patients only
+Data recipe (:func:`~drake_rus.imaging.training.dataset.canvas_frames`): training patients only
 (``train:K``, never ``test:K``, never a real body), both postures (supine: views down through
 the upper skin; left lateral decubitus: views down through the right flank, which then faces
 up), ``--frames`` views per patient and posture (random kidney point, up to 25 mm lateral
@@ -16,27 +16,27 @@ array rotation; views crossing ribs and gas are kept, with their shadows), each 
 depth preset (150 mm, the scenario's default, and 100 mm, where the kidney is often cut by
 the image's bottom edge, 1.6 times as often as each other). 35% of
 the frames use the scenario's emulator as is; the others are
-randomised (:class:`~drake_rus.imaging.dataset.Randomisation`): gain (-18..-6 dB), TGC
+randomised (:class:`~drake_rus.imaging.training.dataset.Randomisation`): gain (-18..-6 dB), TGC
 (+-10 dB at the image's bottom), dynamic range (42-58 dB), frequency (2.5-5 MHz: attenuation
 against the TGC), interface echo (3-9), tissue echogenicity (x 0.6-1.4 per tissue, cortex
 kept iso- to hypo-echoic to liver), speckle grain (96/128/160 scan lines x 192/256/320
 samples, half of them at the default 128 x 256); every frame has its own speckle. Fat
 thickness is not a generator input (it follows the body-size class: the patients span all
 four); volumes are also rebuilt with a thicker wall
-(:func:`~drake_rus.imaging.dataset.thicken_wall`: 5-25 mm more fat, or 30-60 / 70-120 mm
+(:func:`~drake_rus.imaging.training.dataset.thicken_wall`: 5-25 mm more fat, or 30-60 / 70-120 mm
 more tissue between wall and kidney supine, 20-50 mm in decubitus) so that kidneys lie as
 deep as in real bodies; a thick wall is used only at presets deep enough (extra depth <=
 preset - 70 mm). The kidney's context and structure are randomised per volume
 (:func:`draw_anatomy`, :func:`randomised_anatomy`): no perirenal fat (50%: fat within 10-30
-mm of the kidney becomes soft tissue, :func:`~drake_rus.imaging.dataset.remove_perirenal_fat`,
+mm of the kidney becomes soft tissue, :func:`~drake_rus.imaging.training.dataset.remove_perirenal_fat`,
 so the cortex lies directly against soft tissue, with only the cortex / soft-tissue
 echogenicity step, randomised above, to find its edge), and the kidney's inside by one draw:
 layered (40%: cortex, a continuous medulla and the sinus at depths drawn around the published
 cortex 6.6 +- 1.9 mm and parenchyma 15.4 +- 2.8 mm, Glodny 2009,
-:func:`~drake_rus.imaging.dataset.layered_kidney` /
-:func:`~drake_rus.imaging.dataset.draw_kidney_layers`: the layer rule the importer applies
+:func:`~drake_rus.imaging.training.dataset.layered_kidney` /
+:func:`~drake_rus.imaging.training.dataset.draw_kidney_layers`: the layer rule the importer applies
 to every imported kidney, whose meshes resolve no pyramids), a thin cortex over a continuous
-medulla (15%, :func:`~drake_rus.imaging.dataset.thin_cortex`), else the generator's discrete
+medulla (15%, :func:`~drake_rus.imaging.training.dataset.thin_cortex`), else the generator's discrete
 pyramids. Per patient and posture the variants are: the volume as is, one with at least one
 of these, one with both no perirenal fat and a layered kidney (how an imported body's
 kidney looks), and the thickened volumes with their own draws. (Diagnosis behind this, on
@@ -63,10 +63,10 @@ a run from scratch, then a second one-cycle at a third of the learning rate from
 weights (the same cached data):
 
     .venv/bin/pip install torch==2.13.0 onnx sympy
-    nice .venv/bin/python -m drake_rus.imaging.train_segmenter --patients 20 --frames 300 \\
+    nice .venv/bin/python -m drake_rus.imaging.training.train_segmenter --patients 20 --frames 300 \\
         --epochs 30 --width 16 --time-limit-min 45 --out runs/segmenter_stage1 \\
         --save-torch runs/segmenter_stage1/kidney_unet.pt
-    nice .venv/bin/python -m drake_rus.imaging.train_segmenter --patients 20 --frames 300 \\
+    nice .venv/bin/python -m drake_rus.imaging.training.train_segmenter --patients 20 --frames 300 \\
         --epochs 15 --width 16 --lr 0.001 --time-limit-min 30 \\
         --init runs/segmenter_stage1/kidney_unet.pt --out models/segmenter
 
@@ -75,7 +75,7 @@ augmentation, training time, command). The held-out IoU comes from ``python -m b
 imaging --onnx-model models/segmenter/kidney_unet.onnx``; ``--record-benchmark FILE`` (its
 JSON line) adds it to the card (``--card``, default ``kidney_unet.json`` in ``--out``). The
 scenario runs the int8 model derived from this one
-(:mod:`~drake_rus.imaging.quantize_segmenter`): quantize again after retraining.
+(:mod:`~drake_rus.imaging.training.quantize_segmenter`): quantize again after retraining.
 """
 
 from __future__ import annotations
@@ -91,11 +91,11 @@ from pathlib import Path
 import numpy as np
 
 from drake_rus.imaging.config import ImagingConfig
-from drake_rus.imaging.dataset import (CORTEX_MM, PARENCHYMA_MM, EmulatorBank, Randomisation, VolumeVariant, canvas_frames,
+from drake_rus.imaging.training.dataset import (CORTEX_MM, PARENCHYMA_MM, EmulatorBank, Randomisation, VolumeVariant, canvas_frames,
                                        draw_kidney_layers, layered_kidney,
                                        remove_perirenal_fat, thicken_wall, thin_cortex)
 from drake_rus.imaging.emulator import EmulatorModel
-from drake_rus.imaging.evaluation import POSTURES, load_source, make_source_frames
+from drake_rus.imaging.training.evaluation import POSTURES, load_source, make_source_frames
 from drake_rus.imaging.onnx_backend import resize_to
 from drake_rus.imaging.probe import ProbeGeometry
 
@@ -185,7 +185,7 @@ def draw_anatomy(rng: np.random.Generator, force: bool = False) -> tuple[bool, s
 
 def randomised_anatomy(volume, rng: np.random.Generator, no_fat: bool, inside: str):
     """``volume`` with the kidney's inside made ``inside`` ("layered": depths from
-    :func:`~drake_rus.imaging.dataset.draw_kidney_layers`; "thin": a thin cortex; "generator":
+    :func:`~drake_rus.imaging.training.dataset.draw_kidney_layers`; "thin": a thin cortex; "generator":
     as it is) and, if ``no_fat``, without perirenal fat (margin from :data:`PERIRENAL_MARGIN`)."""
     if inside == "layered":
         volume = layered_kidney(volume, *draw_kidney_layers(rng))
@@ -578,7 +578,7 @@ def main(argv=None) -> int:
             ap.error(f"--record-benchmark: {e}")
         print(f"recorded {args.record_benchmark} in {card}")
         return 0
-    command = ("nice .venv/bin/python -m drake_rus.imaging.train_segmenter "
+    command = ("nice .venv/bin/python -m drake_rus.imaging.training.train_segmenter "
                + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv)))
     postures = [p for p in args.postures.split(",") if p]
     p = args.pixel_size_mm * 1e-3
@@ -681,7 +681,7 @@ def main(argv=None) -> int:
             "train_seconds": train_seconds,
             "data_seconds": round(t - t_data),
             "command": command,
-            "recipe": "drake_rus/imaging/train_segmenter.py, drake_rus/imaging/dataset.py",
+            "recipe": "drake_rus/imaging/training/train_segmenter.py, drake_rus/imaging/training/dataset.py",
         },
     }
     (out / "kidney_unet.json").write_text(json.dumps(meta, indent=2) + "\n")
