@@ -8,7 +8,7 @@
 Images travel as :class:`~drake_rus.imaging.frames.UsFrame` (image + acquisition time + X_BP +
 frame index). Only the SliceSensor samples on a clock (a periodic unrestricted update at
 ``frame_rate_hz``); the emulator and segmenter are direct feedthrough, and compute once per
-new frame (their outputs depend only on their inputs, and a frame's result is memoised).
+new frame: each keeps a frame's result in a Context cache entry, keyed on the frame.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import math
 import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
-from pydrake.systems.framework import EventStatus, LeafSystem
+from pydrake.systems.framework import EventStatus, LeafSystem, ValueProducer
 
 from drake_rus.anatomy.labels import LabelVolume
 from drake_rus.imaging.backprojection import accumulate
@@ -118,27 +118,31 @@ class UltrasoundEmulator(LeafSystem):
         empty = UsFrame(np.zeros(self._model.geometry.image_shape, np.uint8))
         self._empty = empty
         self._in = self.DeclareAbstractInputPort("label_image", AbstractValue.Make(empty))
-        self.DeclareAbstractOutputPort(
-            "us_image", lambda: AbstractValue.Make(empty), self._calc,
+        # The frame's emulated image, kept (in the Context) while the input is the same frame.
+        self._frame_cache = self.DeclareCacheEntry(
+            description="emulated frame (frame key, UsFrame)",
+            value_producer=ValueProducer(allocate=lambda: AbstractValue.Make((None, empty)),
+                                         calc=self._emulate),
             prerequisites_of_calc={self.input_port_ticket(self._in.get_index())})
-        self._memo_key = None
-        self._memo = empty
+        self.DeclareAbstractOutputPort(
+            "us_image", lambda: AbstractValue.Make(empty),
+            lambda c, o: o.set_value(self._frame_cache.Eval(c)[1]),
+            prerequisites_of_calc={self._frame_cache.ticket()})
         # Build the scan-line tables and compile (or load) the kernels now, not inside the
         # first simulation step.
         warm_emulator(self._model, self._seed)
 
-    def _calc(self, context, output):
+    def _emulate(self, context, value):
         frame = self._in.Eval(context)
         if not frame.valid:
-            output.set_value(self._empty)
+            value.set_value((None, self._empty))
             return
         key = _frame_key(frame)
-        if key != self._memo_key:
-            image = emulate(frame.image, self._model, self._seed, frame.frame_index)
-            self._memo = UsFrame(image=image, time=frame.time, X_BP=frame.X_BP,
-                                 frame_index=frame.frame_index)
-            self._memo_key = key
-        output.set_value(self._memo)
+        if value.get_value()[0] == key:      # the same frame re-evaluated upstream: keep it
+            return
+        image = emulate(frame.image, self._model, self._seed, frame.frame_index)
+        value.set_value((key, UsFrame(image=image, time=frame.time, X_BP=frame.X_BP,
+                                      frame_index=frame.frame_index)))
 
 
 def make_segmenter_backend(config: ImagingConfig, geometry: ProbeGeometry):
@@ -203,26 +207,40 @@ class Segmenter(LeafSystem):
             tickets.add(self.abstract_state_ticket(self._prior_index))
             period = 1.0 / config.frame_rate_hz
             self.DeclarePeriodicUnrestrictedUpdateEvent(period, 0.5 * period, self._keep_prior)
+        # The frame's segmentation (mask, read-outs, boundary), kept in the Context while the
+        # frame is the same (see _segment); every output reads it.
+        self._result_cache = self.DeclareCacheEntry(
+            description="segmentation of the current frame (key, result)",
+            value_producer=ValueProducer(allocate=lambda: AbstractValue.Make((None, None)),
+                                         calc=self._segment),
+            prerequisites_of_calc=tickets)
+        result = {self._result_cache.ticket()}
         self.DeclareAbstractOutputPort(
             "kidney_mask", lambda: AbstractValue.Make(self._empty_mask),
-            lambda c, o: o.set_value(self._result(c)[0]), prerequisites_of_calc=tickets)
+            lambda c, o: o.set_value(self._result(c)[0]), prerequisites_of_calc=result)
         self.DeclareVectorOutputPort(
             "kidney_visible", 1, lambda c, o: o.SetAtIndex(0, float(self._result(c)[1].visible)),
-            prerequisites_of_calc=tickets)
+            prerequisites_of_calc=result)
         self.DeclareVectorOutputPort(
             "mask_centroid", 1, lambda c, o: o.SetAtIndex(0, self._result(c)[1].centroid),
-            prerequisites_of_calc=tickets)
+            prerequisites_of_calc=result)
         self.DeclareAbstractOutputPort(
             "boundary_pixels", lambda: AbstractValue.Make(BoundaryPixels(np.zeros((0, 2)))),
-            lambda c, o: o.set_value(self._result(c)[2]), prerequisites_of_calc=tickets)
-        self._memo_key = None
-        self._memo = None
+            lambda c, o: o.set_value(self._result(c)[2]), prerequisites_of_calc=result)
 
     @property
     def geometry(self) -> ProbeGeometry:
         return self._geometry
 
     def _result(self, context):
+        """(mask UsFrame, MaskReadout, BoundaryPixels) of the current frame."""
+        if not self._source.HasValue(context):
+            raise RuntimeError(f"Segmenter ({self._backend_name}): input port "
+                               f"'{self._source.get_name()}' is not connected")
+        return self._result_cache.Eval(context)[1]
+
+    def _segment(self, context, value):
+        memo_key, _ = value.get_value()
         if not self._source.HasValue(context):
             raise RuntimeError(f"Segmenter ({self._backend_name}): input port "
                                f"'{self._source.get_name()}' is not connected")
@@ -235,12 +253,12 @@ class Segmenter(LeafSystem):
         # the frame is segmented once.
         prior_from_frame = (prior.time >= frame.time if self._follows
                             else prior.valid and prior.frame_index >= frame.frame_index)
-        if (self._memo_key is not None and self._memo_key[0] == frame_key
+        if (memo_key is not None and memo_key[0] == frame_key
                 and frame.frame_index >= 0 and prior_from_frame):
-            return self._memo
+            return
         key = (frame_key, id(prior))
-        if key == self._memo_key:
-            return self._memo
+        if key == memo_key:
+            return
         if not frame.valid:
             readout = read_mask(self._empty_mask.image, self._geometry, self._min_area)
             result = (self._empty_mask, readout,
@@ -265,8 +283,7 @@ class Segmenter(LeafSystem):
             result = (mask_frame, readout,
                       BoundaryPixels(readout.boundary, frame.time, frame.X_BP,
                                      frame.frame_index))
-        self._memo_key, self._memo = key, result
-        return result
+        value.set_value((key, result))
 
     def _keep_prior(self, context, state):
         if not self._source.HasValue(context):
