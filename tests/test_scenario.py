@@ -103,3 +103,38 @@ def test_overrides():
     with pytest.raises(ScenarioError, match="'contact.frction'"):
         ApplyOverrides(scenario, "{contact: {frction: 0.4}}")
     assert DEFAULT_SCENARIOS_FILE.is_file()
+
+
+def _leaves(node, path=""):
+    if isinstance(node, dict):
+        for k, v in node.items():
+            yield from _leaves(v, f"{path}.{k}" if path else k)
+    else:
+        yield path, node
+
+
+def test_the_dataclasses_are_the_default_scenario():
+    """Every default is stated once: ``Scenario()`` is what ``--scenario default`` runs."""
+    from pydrake.common.yaml import yaml_dump_typed
+
+    from drake_rus.scenario import Scenario
+    assert yaml_dump_typed(Scenario()) == yaml_dump_typed(LoadScenario())
+
+
+def test_named_scenarios_state_only_their_differences():
+    """A value a named scenario writes must differ from the default it overrides (else it is
+    a second statement of the default, free to drift from it)."""
+    import yaml
+
+    from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, Scenario
+    raw = yaml.safe_load(DEFAULT_SCENARIOS_FILE.read_text())
+    default = Scenario()
+    repeated = []
+    for name, node in raw.items():
+        for path, value in _leaves(node or {}):
+            obj = default
+            for part in path.split("."):
+                obj = getattr(obj, part)
+            if obj == value:
+                repeated.append(f"{name}: {path} = {value!r}")
+    assert not repeated, f"named scenarios repeat defaults: {repeated}"
