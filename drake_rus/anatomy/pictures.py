@@ -8,27 +8,13 @@ from pathlib import Path
 import numpy as np
 
 from drake_rus.anatomy.labels import Label
+from drake_rus.anatomy.tissue_colors import (TISSUE_COLORS, label_image, labels_present,
+                                             rgb, tissue_handles)
 from drake_rus.io_utils import save_figure
-
-# Display colours of the labels (RGB 0-1).
-LABEL_COLORS = {
-    Label.OUTSIDE: (0, 0, 0), Label.SOFT_TISSUE: (0.55, 0.45, 0.45), Label.FAT: (0.95, 0.85, 0.5),
-    Label.MUSCLE: (0.7, 0.2, 0.2), Label.KIDNEY_CORTEX: (0.2, 0.7, 0.3),
-    Label.KIDNEY_MEDULLA: (0.1, 0.4, 0.2), Label.KIDNEY_SINUS: (0.9, 0.95, 0.6),
-    Label.LIVER: (0.5, 0.2, 0.5), Label.BONE: (1, 1, 1), Label.GAS: (0.3, 0.6, 1.0),
-    Label.VESSEL: (0.1, 0.1, 0.6),
-}
 
 
 def _save(fig, path):
     return save_figure(fig, path, dpi=110)
-
-
-def _lut():
-    lut = np.zeros((256, 3))
-    for k, c in LABEL_COLORS.items():
-        lut[int(k)] = c
-    return lut
 
 
 def plot_label_slices(patient, path) -> Path:
@@ -41,19 +27,19 @@ def plot_label_slices(patient, path) -> Path:
     R = lv.X_PtV.rotation().matrix()
     ijk = np.round(R.T @ (c - lv.X_PtV.translation()) / lv.voxel_size).astype(int)
     ijk = np.clip(ijk, 0, np.array(lv.shape) - 1)
-    lut = _lut()
     vs = lv.voxel_size * 1e3
     fig, axes = plt.subplots(1, 3, figsize=(14, 4.8))
     views = [("axial (j = kidney centroid)", lv.labels[:, ijk[1], :], ("i", "k")),
              ("coronal (k = kidney centroid)", lv.labels[:, :, ijk[2]], ("i", "j")),
              ("sagittal (i = kidney centroid)", lv.labels[ijk[0], :, :], ("j", "k"))]
     for ax, (title, sl, (a, b)) in zip(axes, views):
-        ax.imshow(lut[sl.T], origin="lower", extent=[0, sl.shape[0] * vs, 0, sl.shape[1] * vs])
+        ax.imshow(label_image(sl.T), origin="lower", interpolation="nearest",
+                  extent=[0, sl.shape[0] * vs, 0, sl.shape[1] * vs])
         ax.set_title(title, fontsize=9)
         ax.set_xlabel(f"grid {a} (mm)")
         ax.set_ylabel(f"grid {b} (mm)")
-    handles = [plt.Rectangle((0, 0), 1, 1, color=LABEL_COLORS[k]) for k in Label]
-    fig.legend(handles, [k.name.lower() for k in Label], loc="lower center", ncol=6, fontsize=8)
+    present = labels_present(*(sl for _, sl, _ in views))
+    fig.legend(handles=tissue_handles(present), loc="lower center", ncol=6, fontsize=8)
     fig.suptitle(f"{patient.name}: labels ({patient.posture}, {patient.side} kidney; grid axes "
                  f"= Pt axes{' rotated' if patient.posture != 'supine' else ''})", fontsize=10)
     fig.tight_layout(rect=(0, 0.08, 1, 0.95))
@@ -95,10 +81,13 @@ def show_in_meshcat(patient, meshcat, prefix: str = "patient") -> None:
     def tsm(m):
         return TriangleSurfaceMesh([SurfaceTriangle(*map(int, f)) for f in m.faces],
                                    [np.asarray(v, dtype=float) for v in m.vertices])
-    meshcat.SetObject(f"{prefix}/skin", tsm(patient.skin_mesh), Rgba(0.9, 0.75, 0.65, 0.25))
-    meshcat.SetObject(f"{prefix}/kidney", tsm(patient.kidney_mesh), Rgba(0.6, 0.15, 0.15, 1.0))
+    meshcat.SetObject(f"{prefix}/skin", tsm(patient.skin_mesh),
+                      Rgba(*rgb(TISSUE_COLORS[Label.SOFT_TISSUE]), 0.25))
+    meshcat.SetObject(f"{prefix}/kidney", tsm(patient.kidney_mesh),
+                      Rgba(*rgb(TISSUE_COLORS[Label.KIDNEY_CORTEX]), 1.0))
     if patient.liver_mesh is not None:
-        meshcat.SetObject(f"{prefix}/liver", tsm(patient.liver_mesh), Rgba(0.4, 0.1, 0.3, 0.6))
+        meshcat.SetObject(f"{prefix}/liver", tsm(patient.liver_mesh),
+                          Rgba(*rgb(TISSUE_COLORS[Label.LIVER]), 0.6))
     from pydrake.math import RigidTransform, RotationMatrix
     X = patient.X_PtK
     for axis, color, R in (("x", Rgba(1, 0, 0, 1), RotationMatrix.MakeYRotation(np.pi / 2)),

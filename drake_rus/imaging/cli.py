@@ -3,8 +3,9 @@
 For a patient (``--patient test:0``, ``seed:N``, ``phantom:N``, a folder...) and probe poses:
 the transverse view straight down over the kidney centroid (always), ``--pose`` views given in
 the patient frame Pt, and ``--views N`` random views looking at the kidney. Each view is one
-PNG: label image | emulated image | emulated image with the segmenter's mask (green fill) and
-the true kidney outline (yellow); plus ``contact_sheet.png`` with every view's overlay.
+PNG: label image | emulated image | emulated image with the segmenter's mask (filled in the
+kidney's colour) and the true kidney outline, with legends (colours:
+``drake_rus.anatomy.tissue_colors``); plus ``contact_sheet.png`` with every view's overlay.
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ import numpy as np
 
 from drake_rus.anatomy import load_patient
 from drake_rus.anatomy.labels import is_kidney
+from drake_rus.anatomy.tissue_colors import (TRUTH_OUTLINE_COLOR, label_image, labels_present,
+                                             mask_handles, mask_overlay, tissue_handles)
 from drake_rus.cli import UserError
 from drake_rus.demo import add_scenario_arguments, load_scenario_from_args
 from drake_rus.imaging.training.dataset import ViewSampler
@@ -126,22 +129,25 @@ def run_pictures(args) -> int:
         mask = np.asarray(backend(us, labels, None), bool) & g.fan_mask
         truth = is_kidney(labels)
         readout = read_mask(mask, g, cfg.min_kidney_area)
-        rgb = np.repeat(us[..., None], 3, axis=2).astype(float) / 255.0
-        rgb[mask] = 0.6 * rgb[mask] + 0.4 * np.array([0.1, 0.9, 0.2])
+        rgb = mask_overlay(us, mask)
         overlays.append((name, rgb, truth))
-        fig, ax = plt.subplots(1, 3, figsize=(13, 4.6))
-        ax[0].imshow(labels, cmap="tab20", vmin=0, vmax=19, extent=extent,
-                     interpolation="nearest")
+        fig, ax = plt.subplots(1, 3, figsize=(13, 5.4))
+        ax[0].imshow(label_image(labels, g.fan_mask), extent=extent, interpolation="nearest")
         ax[0].set_title("label image")
         ax[1].imshow(us, cmap="gray", vmin=0, vmax=255, extent=extent)
         ax[1].set_title("emulated B-mode")
         ax[2].imshow(rgb, extent=extent)
         if truth.any():
-            ax[2].contour(truth, [0.5], colors="yellow", linewidths=0.8, extent=extent,
-                          origin="upper")
+            ax[2].contour(truth, [0.5], colors=TRUTH_OUTLINE_COLOR, linewidths=0.8,
+                          extent=extent, origin="upper")
         score = iou(mask, truth) if truth.any() else float("nan")
-        ax[2].set_title(f"{cfg.segmenter} mask (green), truth (yellow): IoU {score:.2f}\n"
+        ax[2].set_title(f"{cfg.segmenter} mask, true outline: IoU {score:.2f}\n"
                         f"visible {readout.visible}, c_msk {readout.centroid:.2f}", fontsize=9)
+        ax[0].legend(handles=tissue_handles(labels_present(labels[g.fan_mask])),
+                     loc="upper left", bbox_to_anchor=(0.0, -0.12), ncol=3, fontsize=7,
+                     frameon=False)
+        ax[2].legend(handles=mask_handles(truth=bool(truth.any())), loc="upper left",
+                     bbox_to_anchor=(0.0, -0.12), fontsize=7, frameon=False)
         for a in ax:
             a.set_xlabel("x_P (mm)")
         ax[0].set_ylabel("z_P depth (mm)")
@@ -164,7 +170,8 @@ def run_pictures(args) -> int:
             a.imshow(rgb, extent=extent)
             a.set_title(name, fontsize=9)
         fig.suptitle(f"{args.patient} ({side} kidney), segmenter {cfg.segmenter}")
-        fig.tight_layout()
+        fig.legend(handles=mask_handles(), loc="lower center", fontsize=8, frameon=False)
+        fig.tight_layout(rect=(0, 0.05, 1, 1))
         save_figure(fig, out / "contact_sheet.png", dpi=80)
     # Strict JSON: a view without a kidney has no IoU (null, not NaN).
     write_text_atomic(out / "pictures.json", dumps_strict(

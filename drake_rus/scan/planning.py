@@ -16,6 +16,7 @@ from pydrake.geometry import Rgba, Sphere
 from pydrake.math import RigidTransform, RotationMatrix
 
 from drake_rus.anatomy.labels import KIDNEY_LABELS, Label
+from drake_rus.anatomy.tissue_colors import label_image, labels_present, tissue_handles
 from drake_rus.io_utils import save_figure
 
 # Probe pointing down (z_P = -z_B) with its array across the body (x_P = +x_B): a transverse
@@ -544,43 +545,44 @@ def _plane_labels(volume, X_BV, origin_B, a, o, depth: float, step: float = 0.00
 
 
 def plot_start_plan(plan: StartPlan, imaging, path, title: str = "") -> None:
-    """start_plan.png: the chosen window's image plane (tissue labels), the fan at the chosen
-    depth preset, the central rays of the windows tried (green: feasible, red: rejected) and
-    the bone/gas that blocked them, beside a table of the windows."""
+    """start_plan.png: the chosen window's image plane (tissue labels, the colours of
+    ``drake_rus.anatomy.tissue_colors``), the fan at the chosen depth preset, the central rays
+    of the windows tried (green: usable, orange dashed: rejected) and the bone/gas that
+    shadows the kidney in them (x), beside a table of the windows and the legend."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.colors import ListedColormap
+    from matplotlib.lines import Line2D
     labels, u, v = plan.plane
-    colors = ["#ffffff", "#d9b8a5", "#f3e3a0", "#c98b7b", "#8b1e1e", "#a83232", "#d98c8c",
-              "#7a4b2a", "#f5f5f5", "#202020", "#3050a0"]
-    fig, (ax, tx) = plt.subplots(1, 2, figsize=(12, 5.6),
+    fig, (ax, tx) = plt.subplots(1, 2, figsize=(12, 6.2),
                                  gridspec_kw={"width_ratios": [1.4, 1.0]})
-    ax.imshow(labels, cmap=ListedColormap(colors), vmin=0, vmax=len(colors) - 1,
-              extent=[u[0] * 1e3, u[-1] * 1e3, v[-1] * 1e3, v[0] * 1e3], interpolation="nearest")
+    ax.imshow(label_image(labels), extent=[u[0] * 1e3, u[-1] * 1e3, v[-1] * 1e3, v[0] * 1e3],
+              interpolation="nearest")
     half = np.radians(imaging.field_of_view_deg) / 2
     r, d = imaging.probe_radius, plan.depth_preset
     arc = np.linspace(-half, half, 50)
     # Fan (in this plane, apex r behind the face centre), chosen depth preset.
     ax.plot(np.r_[r * np.sin(arc), (r + d) * np.sin(arc[::-1]), r * np.sin(arc[0])] * 1e3,
             np.r_[r * np.cos(arc) - r, (r + d) * np.cos(arc[::-1]) - r,
-                  r * np.cos(arc[0]) - r] * 1e3, color="tab:blue", lw=1.5,
-            label=f"fan, depth preset {d * 1000:.0f} mm")
+                  r * np.cos(arc[0]) - r] * 1e3, color="tab:blue", lw=1.5)
     origin = plan.window.skin_points_B[0]
     o = plan.X_planned.rotation().matrix()[:, 0]
     a0 = plan.window.approach_B
+    shadows = 0
     for c in plan.candidates:
         end = c.approach_B * min(c.needed_depth if np.isfinite(c.needed_depth) else d, d)
+        chosen = c is plan.window
         ax.plot([0, (end @ o) * 1e3], [0, (end @ a0) * 1e3],
-                color="tab:green" if c.feasible else "tab:red", lw=2.5 if c is plan.window
-                else 0.8, alpha=1.0 if c is plan.window else 0.6)
+                color="tab:green" if c.feasible else "tab:orange",
+                ls="-" if c.feasible else "--", lw=2.5 if chosen else 0.8,
+                alpha=1.0 if chosen else 0.7)
         if len(c.blockers_B):
             b = c.blockers_B - origin
             ax.plot((b @ o) * 1e3, (b @ a0) * 1e3, "x", color="k", ms=4)
+            shadows += len(b)
     ax.set_xlabel("across the beam (mm)")
     ax.set_ylabel("along the chosen beam from the skin (mm)")
     ax.set_title(title or "Start planner: the chosen acoustic window")
-    ax.legend(loc="lower right", fontsize=7)
     rows = [(f"{c.tilt_deg:+.0f}", f"{c.needed_depth * 1000:.0f}" if np.isfinite(c.needed_depth)
              else "-", "-" if c.preset is None else f"{c.preset * 1000:.0f}",
              f"{c.blocked_fraction:.0%}", f"{c.start_fraction:.2f}",
@@ -597,6 +599,25 @@ def plot_start_plan(plan: StartPlan, imaging, path, title: str = "") -> None:
     tx.set_title(f"preset {plan.depth_preset * 1000:.0f} mm, tilt {s['tilt_deg']:+.0f} deg, "
                  f"placement error {s['placement_error_mm']:.1f} mm / "
                  f"{s['placement_error_deg']:.1f} deg", fontsize=9)
+    marks = [Line2D([], [], color="tab:blue", lw=1.5,
+                    label=f"image fan, depth preset {d * 1000:.0f} mm"),
+             Line2D([], [], color="tab:green", lw=2.5, label="chosen window's central ray")]
+    if sum(c.feasible for c in plan.candidates) > 1:
+        marks.append(Line2D([], [], color="tab:green", lw=0.8, label="other usable windows"))
+    if any(not c.feasible for c in plan.candidates):
+        marks.append(Line2D([], [], color="tab:orange", lw=0.8, ls="--",
+                            label="rejected windows (verdict in the table)"))
+    if shadows:
+        marks.append(Line2D([], [], color="k", marker="x", ls="", ms=5,
+                            label="bone or gas shadowing the kidney: where a fan ray\n"
+                                  "meets it before the kidney, in any view along a\n"
+                                  "window's sweep (projected onto this plane)"))
+    lines = tx.legend(handles=marks, loc="upper left", bbox_to_anchor=(0.0, 0.42),
+                      fontsize=7, frameon=False)
+    tx.add_artist(lines)
+    tx.legend(handles=tissue_handles(labels_present(labels)), loc="lower left",
+              bbox_to_anchor=(0.0, 0.0), ncol=3, fontsize=7, title="tissues in the plane",
+              title_fontsize=8, frameon=False)
     fig.tight_layout()
     save_figure(fig, path)
 

@@ -16,12 +16,15 @@ import matplotlib
 import numpy as np
 import trimesh
 
+from drake_rus.anatomy.tissue_colors import mask_handles, mask_overlay
 from drake_rus.control.supervisor import Phase
 from drake_rus.io_utils import atomic_path, save_figure, write_text_atomic
 from drake_rus.scan.planning import plot_start_plan
 
+# Background of each phase in traces.png; every phase has a colour of its own (a white
+# swatch would be blank in the legend).
 PHASE_COLORS = {"APPROACH": "#dddddd", "EXPLORE": "#cfe8ff", "LOCALIZE": "#ffe9b3",
-                "TRANSIT": "#e6d5ff", "PIVOT": "#d4f5d4", "DONE": "#ffffff", "ABORT": "#ffc9c9"}
+                "TRANSIT": "#e6d5ff", "PIVOT": "#d4f5d4", "DONE": "#8fd18f", "ABORT": "#ffc9c9"}
 
 
 def _plt():
@@ -144,7 +147,8 @@ def plot_traces(result, path: Path) -> None:
     axes[2].plot(tm, m, color="tab:purple")
     axes[2].set_ylabel("manipulability")
     axes[2].set_xlabel("time (s)")
-    handles = [plt.Rectangle((0, 0), 1, 1, color=c) for c in PHASE_COLORS.values()]
+    handles = [plt.Rectangle((0, 0), 1, 1, facecolor=c, edgecolor="0.5", lw=0.5, alpha=0.6)
+               for c in PHASE_COLORS.values()]
     fig.legend(handles, PHASE_COLORS.keys(), loc="lower center", ncol=7, fontsize=7)
     fig.suptitle(f"Scan traces: {result.patient} ({result.status})")
     fig.tight_layout(rect=(0, 0.04, 1, 1))
@@ -160,15 +164,12 @@ def plot_frames(result, path: Path, count: int = 6) -> None:
     axes = np.atleast_1d(axes)
     for ax, k in zip(axes, picks):
         t, grey, mask = result.images[k]
-        ax.imshow(grey, cmap="gray", vmin=0, vmax=255)
-        if mask.any():
-            overlay = np.zeros(mask.shape + (4,))
-            overlay[mask] = (0.1, 0.9, 0.2, 0.35)
-            ax.imshow(overlay)
+        ax.imshow(mask_overlay(grey, mask))
         ax.set_title(f"t = {t:.1f} s", fontsize=8)
         ax.axis("off")
-    fig.suptitle("Emulated frames during the pivot, segmentation in green")
-    fig.tight_layout()
+    fig.suptitle("Emulated frames during the pivot")
+    fig.legend(handles=mask_handles(), loc="lower center", fontsize=8, frameon=False)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
     _save(fig, path)
 
 
