@@ -13,8 +13,6 @@ the modes that explain 95% of the variance.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,6 +24,7 @@ from tqdm import tqdm
 
 from drake_rus.anatomy.rasterize import mask_to_mesh
 from drake_rus.anatomy.canonical_frame import canonical_frame, mesh_canonical_frame
+from drake_rus.io_utils import atomic_path
 
 __all__ = ["Subject", "subject_from_mask", "subject_from_mesh", "farthest_point_sampling",
            "align_to_reference", "reference_subject", "correspond", "mean_shape", "shape_model",
@@ -266,14 +265,12 @@ def build_template(subjects: list[Subject], n_points: int = 2500, refine_passes:
 
 
 def save_template(result: TemplateResult, path, extra_meta: dict | None = None) -> Path:
-    """Writes the template npz atomically (temporary file, then rename)."""
+    """Writes the template npz atomically (temporary file, then rename; mode 0644 under the
+    usual umask, like every written file: ``drake_rus.io_utils.atomic_path``)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     meta = dict(result.meta)
     meta.update(extra_meta or {})
-    fd, tmp = tempfile.mkstemp(suffix=".npz", dir=str(path.parent))
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             np.savez_compressed(
                 f, points=result.points.astype(np.float64), normals=result.normals,
@@ -283,10 +280,6 @@ def save_template(result: TemplateResult, path, extra_meta: dict | None = None) 
                 convergence_change=np.asarray(result.convergence["change"]),
                 convergence_to_final=np.asarray(result.convergence["to_final"]),
                 metadata=np.asarray(json.dumps(meta)))
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
     write_metadata_json(path, meta)
     return path
 
@@ -294,8 +287,6 @@ def save_template(result: TemplateResult, path, extra_meta: dict | None = None) 
 def write_metadata_json(npz_path, meta: dict) -> Path:
     """Human-readable copy of the template metadata beside the .npz (same stem, .json)."""
     out = Path(npz_path).with_suffix(".json")
-    fd, tmp = tempfile.mkstemp(suffix=".json", dir=str(out.parent))
-    with os.fdopen(fd, "w") as f:
-        json.dump(meta, f, indent=1)
-    os.replace(tmp, out)
+    with atomic_path(out) as tmp:
+        tmp.write_text(json.dumps(meta, indent=1))
     return out

@@ -79,13 +79,38 @@ def plot_template_modes(template, path: Path, n_modes: int = 3) -> Path:
             ax.set_xlabel("x_k (mm)")
             ax.set_ylabel("y_k (mm)" if row == 0 else "z_k (mm)")
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    tmp.replace(path)
-    return path
+    return save_figure(fig, path, dpi=110)
+
+
+# Where ``template build`` writes by default: a user path beside the other runs, never the
+# template shipped in models/ (``--out`` pointing at a shipped file is refused).
+DEFAULT_BUILD_OUT = Path("runs/template/kidney_template.npz")
+
+
+def shipped_template_files() -> list[Path]:
+    """The files of the shipped template: the .npz and what a build writes beside it."""
+    t = DEFAULT_TEMPLATE_PATH
+    return [t, t.with_suffix(".json"), t.with_name(t.stem + "_convergence.png"),
+            t.with_name(t.stem + "_modes.png")]
+
+
+def build_outputs(out: Path, png) -> dict[str, Path]:
+    """The files ``template build --out OUT [--png PNG]`` writes, by the argument naming each."""
+    return {"--out": out, "--out (metadata)": out.with_suffix(".json"),
+            "--png": Path(png) if png else out.with_name(out.stem + "_convergence.png"),
+            "--out (modes)": out.with_name(out.stem + "_modes.png")}
+
+
+def check_not_shipped(out: Path, png) -> None:
+    """Raises UserError naming the argument when a file the build would write is one of the
+    shipped template's files (models/): a build never replaces the shipped model."""
+    shipped = {f.resolve() for f in shipped_template_files()}
+    for arg, path in build_outputs(out, png).items():
+        if path.resolve() in shipped:
+            raise UserError(
+                f"{arg.split()[0]}: {path} is the template shipped with drake-rus and is never "
+                f"overwritten; build into another file (default {DEFAULT_BUILD_OUT}) and use it "
+                f"with --set \"{{localization: {{template: FILE}}}}\"")
 
 
 def _build(args) -> int:
@@ -98,6 +123,7 @@ def _build(args) -> int:
     out = Path(args.out)
     if out.suffix != ".npz":
         raise UserError(f"--out: expected a .npz file name, got {out}")
+    check_not_shipped(out, args.png)
     t0 = time.time()
     progress = not args.quiet and stderr_is_terminal()
     if args.population:
@@ -143,6 +169,7 @@ def _build(args) -> int:
                            "total": round(t2 - t0, 1)}}
     if "sampled_length_mm" in meta:
         summary["sampled_length_mm"] = meta["sampled_length_mm"]
+    summary["use_with"] = f'--set "{{localization: {{template: {out.resolve()}}}}}"'
     print(dumps_strict(summary, indent=2))
     return 0
 
@@ -174,7 +201,9 @@ def add_commands(subparsers) -> None:
                    help="cohort to build from (default train); the test split is reserved "
                         "for evaluation and refused")
     b.add_argument("--side", default="right", choices=["right", "left"])
-    b.add_argument("--out", default=str(DEFAULT_TEMPLATE_PATH), help="output .npz")
+    b.add_argument("--out", default=str(DEFAULT_BUILD_OUT),
+                   help=f"output .npz (default {DEFAULT_BUILD_OUT}; the shipped "
+                        f"models/{DEFAULT_TEMPLATE_PATH.name} is never overwritten)")
     b.add_argument("--points", type=int, default=2500, help="template vertices (default 2500)")
     b.add_argument("--voxel-mm", type=float, default=1.0, help="mask voxel size (default 1 mm)")
     b.add_argument("--png", default=None, help="convergence plot (default beside --out)")
