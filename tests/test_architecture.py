@@ -19,6 +19,7 @@ ROOT = Path(__file__).resolve().parents[1] / "drake_rus"
 LAYERS = [
     ("core", ["drake_rus", "drake_rus.config_schema", "drake_rus.paths", "drake_rus.io_utils",
               "drake_rus.progress", "drake_rus.provenance", "drake_rus.station_interface",
+              "drake_rus.extras",
               "drake_rus.tables",
               "drake_rus.control.config",
               "drake_rus.hardware.config", "drake_rus.imaging.config",

@@ -34,6 +34,7 @@ from drake_rus.bringup import (
     image_fit_failures, pivot_failures)
 from drake_rus.config_schema import ScenarioError
 from drake_rus.demo import add_scenario_arguments
+from drake_rus.extras import require
 from drake_rus.hardware.calibration import flange_poses_from_joints, pivot_calibration
 from drake_rus.hardware.image_calibration import (
     ImageCalibration, TargetImage, TargetSet, find_point_target, fit_target_set,
@@ -202,7 +203,7 @@ def run_grab(args) -> int:
     if station is None:
         return 2
     try:
-        import cv2
+        cv2 = require("cv2", "hardware grab")
         frame = station.grabber.capture.wait_for(-1, timeout=5.0)
         if frame is None or frame.picture is None:
             print("drake-rus hardware grab: error: no picture within 5 s", file=sys.stderr)

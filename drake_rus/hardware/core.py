@@ -20,6 +20,8 @@ import time
 
 import numpy as np
 
+from drake_rus.extras import require
+
 __all__ = [
     "external_torque_to_drake", "wall_clock_utime", "utime_age", "is_command_fresh",
     "limit_joint_velocity", "guard_command", "watchdog_expired", "check_crop", "crop_image",
@@ -148,7 +150,7 @@ def fit_image(grey: np.ndarray, shape) -> np.ndarray:
     rows, cols = int(shape[0]), int(shape[1])
     if grey.shape == (rows, cols):
         return grey
-    import cv2
+    cv2 = require("cv2", "resampling the ultrasound picture")
     shrinking = grey.shape[0] >= rows and grey.shape[1] >= cols
     return cv2.resize(grey, (cols, rows),
                       interpolation=cv2.INTER_AREA if shrinking else cv2.INTER_LINEAR)

@@ -34,6 +34,7 @@ from pydrake.common.yaml import yaml_dump_typed, yaml_load_file, yaml_load_typed
 from pydrake.math import RigidTransform, RotationMatrix
 
 from drake_rus.config_schema import ScenarioError, schema_transform, validate
+from drake_rus.extras import require
 from drake_rus.hardware.core import check_crop, to_grey
 from drake_rus.robot import MakeControlPlant
 
@@ -185,7 +186,7 @@ class ImageToProbeMap:
 
     # --- resampling ---------------------------------------------------------------------
     def _prepare(self, shape):
-        import cv2
+        cv2 = require("cv2", "the image calibration")
         x, y, w, h = check_crop(self._crop, shape, field_name=f"{CALIBRATION_FIELD} "
                                 f"(depth {self.preset.depth:g} m).crop")
         g = self.geometry
@@ -229,7 +230,7 @@ def find_point_target(picture, crop=(0, 0, 0, 0), radius: int = 12,
     spot, then the intensity-weighted centroid of the pixels within ``radius`` of it that
     are brighter than halfway between the background (median) and the peak. None when the
     peak stands less than ``min_contrast`` grey levels above the background."""
-    import cv2
+    cv2 = require("cv2", "the image calibration")
     a = np.asarray(picture)
     x, y, w, h = check_crop(crop, a.shape)
     grey = to_grey(a[y:y + h, x:x + w]).astype(np.float32)
@@ -410,7 +411,7 @@ def fit_target_set(targets: TargetSet, base_dir, scenario=None) -> TargetFitRepo
     """Finds the target in each picture of ``targets`` and fits the calibration. Pictures
     given with ``q`` need ``targets.target_B`` and ``scenario`` (our FR3 model's FK with the
     scenario's probe calibration). Raises ValueError naming the picture that failed."""
-    import cv2
+    cv2 = require("cv2", "the image calibration")
     base_dir = Path(base_dir)
     if not targets.targets:
         raise ValueError("calibrate-image: the target file lists no pictures (targets: [])")

@@ -44,6 +44,8 @@ import numpy as np
 from pydrake.common.eigen_geometry import Quaternion
 from pydrake.math import RigidTransform, RotationMatrix
 
+from drake_rus.extras import require
+
 LOG = logging.getLogger("drake_rus.hardware")
 
 __all__ = [
@@ -104,7 +106,7 @@ def parse_video_source(text: str, field: str = VIDEO_FIELD) -> VideoSourceSpec:
 def open_video_capture(spec: VideoSourceSpec, field: str = VIDEO_FIELD):
     """An opened ``cv2.VideoCapture`` for ``spec`` (raises ValueError naming ``field``).
     Devices get a one-picture driver buffer where the back-end allows it."""
-    import cv2
+    cv2 = require("cv2", "the ultrasound video capture (hardware_interface.video_source)")
     if spec.kind == "device":
         cap = cv2.VideoCapture(int(spec.value))
         if not cap.isOpened():
@@ -177,7 +179,7 @@ class FrameCapture:
             self._cap = source
         self.file_fps = float("nan")
         if self.spec.kind == "file":
-            import cv2
+            cv2 = require("cv2", "the ultrasound video capture (hardware_interface.video_source)")
             fps = float(self._cap.get(cv2.CAP_PROP_FPS) or 0.0)
             self.file_fps = fps if math.isfinite(fps) and 0.5 <= fps <= 1000.0 else float(
                 fallback_fps)
@@ -211,7 +213,7 @@ class FrameCapture:
 
     # --- the thread -----------------------------------------------------------------
     def _rewind(self):
-        import cv2
+        cv2 = require("cv2", "the ultrasound video capture (hardware_interface.video_source)")
         self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
 
     def _publish(self, picture, capture_time: float) -> None:

@@ -33,6 +33,7 @@ import signal
 import sys
 
 from drake_rus.demo import add_scenario_arguments
+from drake_rus.extras import require
 from drake_rus.rehearsal.core import loopback_only, netns_argv
 from drake_rus.rehearsal.run import RehearsalOptions, RunRehearsal, SimProcessError
 from drake_rus.rehearsal.sim_process import DEFAULT_LCM_URL
@@ -108,6 +109,7 @@ def _reexec_in_netns(args) -> None:
 
 
 def run_rehearse_command(args) -> int:
+    require("cv2", "rehearse (the simulated ultrasound machine's video stream)")
     options = RehearsalOptions(
         patient=args.patient, scenario=args.scenario, scenarios_file=args.scenarios_file,
         overrides=args.overrides, latency_ms=args.latency_ms, drop_status=args.drop_status,

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import yaml
 
+from drake_rus.extras import MissingExtra, require
 from drake_rus.io_utils import write_text_atomic
 from drake_rus.rehearsal.core import loopback_only, raise_priority, scan_overrides, stop_reaction
 from drake_rus.rehearsal.run import RehearsalOptions, SimProcess, SimProcessError
@@ -58,6 +59,7 @@ def RunStopDrill(options: RehearsalOptions, out, *, pivot_after: float = 1.0,
     """The stop drill (module doc). Returns (and writes to ``out``/stop_drill.json) the
     signal's wall time, the scan's exit code, the PIVOT-like state when signalled and
     :func:`drake_rus.rehearsal.core.stop_reaction` at the simulated robot."""
+    require("cv2", "the stop drill (the rehearsal's ultrasound video stream)")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     report: dict = {"network_isolated": loopback_only(), "pivot_after_s": pivot_after}
@@ -146,7 +148,7 @@ def main(argv=None) -> int:
                                nice=args.nice, max_sim_time=args.max_sim_time)
     try:
         report = RunStopDrill(options, args.out, pivot_after=args.pivot_after)
-    except SimProcessError as e:
+    except (SimProcessError, MissingExtra) as e:
         print(f"stop drill: error: {e}", file=sys.stderr)
         return 2
     r = report["reaction_s"]

@@ -21,6 +21,7 @@ import sys
 import time
 from pathlib import Path
 
+from drake_rus.extras import require
 from drake_rus.io_utils import write_text_atomic
 from drake_rus.localization.localize import load_registration_template
 from drake_rus.rehearsal.core import (
@@ -222,7 +223,9 @@ def scan_scenario(options: RehearsalOptions, ready: dict):
 
 
 def RunRehearsal(options: RehearsalOptions, out, *, progress: bool | None = None) -> dict:
-    """Runs the rehearsal (module doc); writes ``out``/rehearsal.json and returns it."""
+    """Runs the rehearsal (module doc); writes ``out``/rehearsal.json and returns it. Raises
+    MissingExtra (nothing written) without OpenCV, which the video stream needs."""
+    require("cv2", "the rehearsal (its ultrasound video stream)")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     report: dict = {"patient": options.patient, "scenario": options.scenario,

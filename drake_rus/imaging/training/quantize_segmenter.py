@@ -51,6 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drake_rus.extras import MissingExtra, require
 from drake_rus.imaging.training import train_segmenter
 from drake_rus.imaging.training.evaluation import POSTURES
 from drake_rus.imaging.onnx_backend import read_model_card, resolve_model_path
@@ -71,15 +72,12 @@ CAVEAT = ("U8S8 (uint8 activations, int8 weights) may saturate on x86-64 CPUs wi
 
 
 def _quantization_api():
-    """(onnxruntime.quantization, quant_pre_process), or ImportError naming the extra."""
-    try:
-        import onnx  # noqa: F401  (onnxruntime.quantization needs it)
-        import sympy  # noqa: F401  (and its pre-processing's symbolic shape inference)
-        from onnxruntime import quantization
-        from onnxruntime.quantization.shape_inference import quant_pre_process
-    except ImportError as e:
-        raise ImportError(f"quantize_segmenter needs the train extra: .venv/bin/pip install "
-                          f"onnx sympy ({e})") from None
+    """(onnxruntime.quantization, quant_pre_process), or MissingExtra (an ImportError)
+    naming the train extra."""
+    require("onnx", "quantize_segmenter (onnxruntime's quantization tools)")
+    require("sympy", "quantize_segmenter (onnxruntime's symbolic shape inference)")
+    from onnxruntime import quantization
+    from onnxruntime.quantization.shape_inference import quant_pre_process
     return quantization, quant_pre_process
 
 
@@ -351,6 +349,11 @@ def main(argv=None) -> int:
         ap.error(f"--per-source: expected 1..--frames ({args.frames}), got {args.per_source}")
     if args.patients < 1:
         ap.error(f"--patients: expected >= 1, got {args.patients}")
+    try:
+        _quantization_api()          # before the calibration frames: the extra is there
+    except MissingExtra as e:
+        print(f"quantize_segmenter: error: {e}", file=sys.stderr)
+        return 2
     command = ("nice .venv/bin/python -m drake_rus.imaging.training.quantize_segmenter "
                + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv)))
     log = lambda s: print(s, flush=True)

@@ -90,6 +90,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drake_rus.extras import MissingExtra, require
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.training.dataset import (CORTEX_MM, PARENCHYMA_MM, EmulatorBank, Randomisation, VolumeVariant, canvas_frames,
                                        draw_kidney_layers, layered_kidney,
@@ -578,6 +579,12 @@ def main(argv=None) -> int:
             ap.error(f"--record-benchmark: {e}")
         print(f"recorded {args.record_benchmark} in {card}")
         return 0
+    if not args.data_only:
+        try:                         # before the data (minutes): training needs the extra
+            require("torch", "train_segmenter")
+        except MissingExtra as e:
+            print(f"train_segmenter: error: {e}", file=sys.stderr)
+            return 2
     command = ("nice .venv/bin/python -m drake_rus.imaging.training.train_segmenter "
                + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv)))
     postures = [p for p in args.postures.split(",") if p]
