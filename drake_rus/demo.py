@@ -58,10 +58,16 @@ def load_scenario_from_args(args):
                         scenario_text=args.overrides)
 
 
+# The address every server of drake-rus listens on: the loopback only (Meshcat, the
+# rehearsal's video stream; `make notebooks` starts JupyterLab on it too).
+LOOPBACK = "127.0.0.1"
+
+
 def MakeMeshcat(port: int | None = None):
-    """A Meshcat server on localhost (no other network)."""
+    """A Meshcat server listening on the loopback only (127.0.0.1; Drake's default "*" is
+    every interface, and "localhost" may resolve to an IPv6 or another address)."""
     params = MeshcatParams()
-    params.host = "localhost"
+    params.host = LOOPBACK
     if port is not None:
         params.port = port
     return Meshcat(params)

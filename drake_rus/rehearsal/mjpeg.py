@@ -21,6 +21,8 @@ import time
 
 import numpy as np
 
+from drake_rus.extras import require
+
 LOG = logging.getLogger("drake_rus.rehearsal")
 
 __all__ = ["FrameBuffer", "MjpegServer", "encode_jpeg", "BOUNDARY"]
@@ -30,7 +32,7 @@ BOUNDARY = "drakerusframe"
 
 def encode_jpeg(image: np.ndarray, quality: int = 90) -> bytes:
     """JPEG bytes of a uint8 grey (rows, cols) or BGR picture (OpenCV)."""
-    import cv2
+    cv2 = require("cv2", "the rehearsal's video stream")
     ok, data = cv2.imencode(".jpg", np.ascontiguousarray(image),
                             [int(cv2.IMWRITE_JPEG_QUALITY), int(quality)])
     if not ok:
@@ -99,8 +101,9 @@ class MjpegServer:
 
     def __init__(self, buffer: FrameBuffer, *, frame_rate_hz: float = 20.0, port: int = 0,
                  host: str = "127.0.0.1", quality: int = 90):
-        if host not in ("127.0.0.1", "localhost", "::1"):
-            raise ValueError(f"MjpegServer: binds the loopback address only, got {host!r}")
+        if host != "127.0.0.1":       # "localhost" may resolve to another address
+            raise ValueError(f"MjpegServer: binds the loopback address 127.0.0.1 only, got "
+                             f"{host!r}")
         self.buffer = buffer
         self.quality = int(quality)
         self.period = 1.0 / float(frame_rate_hz)
