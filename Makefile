@@ -1,13 +1,17 @@
 # drake-rus: the two commands a new user needs.
 #   make demo   set up .venv and run the main job, the autonomous scan (writes runs/demo/)
 #   make test   set up .venv with the test extras, lint (ruff) and run the whole test suite
+#   make notebooks   install the notebooks extra (JupyterLab) and open notebooks/ (127.0.0.1)
 PYTHON ?= python3.11
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.drake_rus_installed
 TEST_STAMP := $(VENV)/.drake_rus_test_installed
+NOTEBOOKS_STAMP := $(VENV)/.drake_rus_notebooks_installed
+# JupyterLab refuses to run as root unless told; the set-up may run as root (system packages).
+JUPYTER_ROOT := $(if $(filter 0,$(shell id -u)),--allow-root,)
 
-.PHONY: demo test lint setup setup-test benchmarks clean
+.PHONY: demo test lint setup setup-test notebooks diagrams benchmarks clean
 
 $(STAMP): pyproject.toml scripts/install_system_deps.sh
 	bash scripts/install_system_deps.sh
@@ -19,6 +23,10 @@ $(STAMP): pyproject.toml scripts/install_system_deps.sh
 $(TEST_STAMP): $(STAMP)
 	$(PY) -m pip install --quiet -e '.[test]'
 	touch $(TEST_STAMP)
+
+$(NOTEBOOKS_STAMP): $(STAMP)
+	$(PY) -m pip install --quiet -e '.[notebooks]'
+	touch $(NOTEBOOKS_STAMP)
 
 setup: $(STAMP)
 
@@ -32,6 +40,13 @@ lint: $(TEST_STAMP)
 
 test: lint
 	$(PY) -m pytest
+
+notebooks: $(NOTEBOOKS_STAMP)
+	$(VENV)/bin/jupyter lab --ip=127.0.0.1 $(JUPYTER_ROOT) notebooks/
+
+# Re-draws the committed diagram pictures (diagrams/*.svg) from the diagrams built now.
+diagrams: $(STAMP)
+	$(VENV)/bin/drake-rus render-diagram --all
 
 benchmarks: $(STAMP)
 	$(PY) -m benchmarks all

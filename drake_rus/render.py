@@ -1,33 +1,77 @@
-"""``drake-rus render-diagram``: draws the station or the whole scan diagram with Graphviz."""
+"""``drake-rus render-diagram``: draws the station or the whole scan diagram with Graphviz.
 
+``--all`` re-draws every picture committed in ``diagrams/`` (``COMMITTED``, each with its
+fixed settings); ``--all --check`` only compares them with the diagrams built now (the
+names of the systems and ports, not the bytes, which depend on Graphviz's version) and exits
+1 naming what a stale picture lacks or shows in excess. ``tests/test_new_user.py`` runs the
+same comparison, so a change to a diagram fails CI until its picture is re-drawn.
+"""
+
+import html
+import re
 import shutil
 import subprocess
+import sys
+from collections import Counter
 from pathlib import Path
 
 from drake_rus.anatomy.cli import load_patient_for
 from drake_rus.cli import UserError
 from drake_rus.demo import add_scenario_arguments, load_scenario_from_args
 from drake_rus.io_utils import atomic_path, check_output_file
+from drake_rus.paths import DIAGRAMS_DIR
 from drake_rus.progress import stderr_is_terminal
 from drake_rus.scan import BuildScanDiagram
 from drake_rus.scan.cli import load_template_for
+from drake_rus.scenario import LoadScenario
 from drake_rus.stations import MakeStation
+
+# The pictures committed in diagrams/ and how each is drawn: (diagram, patient, depth), on
+# the default scenario.
+COMMITTED = {
+    "station.svg": ("station", "test:0", 1),
+    "scan.svg": ("scan", "test:0", 1),
+}
+GRAPHVIZ_MISSING = "Graphviz 'dot' is not installed (apt-get install graphviz)"
 
 
 def add_commands(subparsers) -> None:
     p = subparsers.add_parser("render-diagram",
                               help="draw the station or the scan diagram (SVG or PNG)")
     add_scenario_arguments(p)
-    p.add_argument("--diagram", choices=["station", "scan"], default="station",
-                   help="'station' (the station alone) or 'scan' (station + segmenter, "
-                        "localizer, controller, safety, monitors on a virtual patient)")
+    p.add_argument("--diagram", choices=["station", "scan"], default=None,
+                   help="'station' (the station alone, the default) or 'scan' (station + "
+                        "segmenter, localizer, controller, safety, monitors on a virtual "
+                        "patient)")
     p.add_argument("--patient", default="test:0",
                    help="patient of the simulated scan diagram (default test:0)")
     p.add_argument("--out", default=None,
                    help="output file; .svg or .png (default diagrams/DIAGRAM.svg)")
     p.add_argument("--depth", type=int, default=1,
                    help="subsystem nesting depth to draw (0 or more; default 1)")
+    p.add_argument("--all", action="store_true",
+                   help="re-draw every picture committed in diagrams/ ("
+                        + ", ".join(COMMITTED) + ") with its fixed settings")
+    p.add_argument("--check", action="store_true",
+                   help="with --all: write nothing; exit 1 if a committed picture's systems "
+                        "or ports differ from the diagram built now")
     p.set_defaults(func=run_render, outputs={"out": "file:.svg,.png"})
+
+
+def build_diagram(kind: str, scenario, patient_spec: str = "test:0"):
+    """The station (``kind`` 'station') or the whole scan diagram ('scan') of ``scenario``,
+    built, named as in the pictures."""
+    if kind == "station":
+        return MakeStation(scenario)
+    template = load_template_for(scenario)
+    patient = None if scenario.hardware else load_patient_for(
+        patient_spec, "--patient", side=scenario.patient.side,
+        posture=scenario.patient.posture, progress=stderr_is_terminal())
+    station = MakeStation(scenario, patient=patient)
+    builder, _ = BuildScanDiagram(scenario, station, template)
+    diagram = builder.Build()
+    diagram.set_name("scan")
+    return diagram
 
 
 def render_graphviz(dot_source: str, out: Path) -> Path:
@@ -37,30 +81,76 @@ def render_graphviz(dot_source: str, out: Path) -> Path:
         raise UserError(f"--out: expected a .svg or .png file name, got {out}")
     dot = shutil.which("dot")
     if dot is None:
-        raise UserError("Graphviz 'dot' is not installed (apt-get install graphviz)")
+        raise UserError(GRAPHVIZ_MISSING)
     with atomic_path(out) as tmp:
         subprocess.run([dot, f"-T{fmt}", "-o", str(tmp)], input=dot_source.encode(),
                        check=True, capture_output=True)
     return out
 
 
-def run_render(args) -> int:
+def svg_labels(svg: str) -> Counter:
+    """The texts drawn in a Graphviz SVG (system classes, ``name=...``, port names), counted;
+    the same for any Graphviz version that draws the same diagram."""
+    return Counter(html.unescape(t).strip()
+                   for t in re.findall(r"<text\b[^>]*>([^<]*)</text>", svg) if t.strip())
+
+
+def committed_picture_drift(name: str, scenario=None) -> tuple[Counter, Counter]:
+    """(missing, extra): the labels the diagram built now has that the committed picture
+    ``diagrams/NAME`` lacks, and those the picture shows that the diagram no longer has;
+    both empty when the picture is current. Needs Graphviz."""
+    kind, patient, depth = COMMITTED[name]
+    scenario = scenario if scenario is not None else LoadScenario()
+    dot = shutil.which("dot")
+    if dot is None:
+        raise UserError(GRAPHVIZ_MISSING)
+    source = build_diagram(kind, scenario, patient).GetGraphvizString(max_depth=depth)
+    now = svg_labels(subprocess.run([dot, "-Tsvg"], input=source.encode(), check=True,
+                                    capture_output=True).stdout.decode())
+    path = DIAGRAMS_DIR / name
+    committed = svg_labels(path.read_text()) if path.is_file() else Counter()
+    return now - committed, committed - now
+
+
+def _render_all(args) -> int:
+    if (args.out is not None or args.diagram is not None or args.overrides
+            or args.scenario != "default"):
+        raise UserError("--all: draws the committed pictures with their own settings "
+                        "(diagrams/*.svg, the default scenario); leave out --out, --diagram, "
+                        "--scenario and --set")
     scenario = load_scenario_from_args(args)
-    out = check_output_file(args.out or f"diagrams/{args.diagram}.svg", "--out",
-                            suffixes=(".svg", ".png"))
+    stale = 0
+    for name, (kind, patient, depth) in COMMITTED.items():
+        if args.check:
+            missing, extra = committed_picture_drift(name, scenario)
+            if missing or extra:
+                stale += 1
+                print(f"diagrams/{name} is stale: lacks {sorted(missing) or 'nothing'}; "
+                      f"shows in excess {sorted(extra) or 'nothing'}")
+            else:
+                print(f"diagrams/{name} is current")
+            continue
+        diagram = build_diagram(kind, scenario, patient)
+        out = render_graphviz(diagram.GetGraphvizString(max_depth=depth), DIAGRAMS_DIR / name)
+        print(f"wrote {out}")
+    if stale:
+        print(f"render-diagram: {stale} stale picture(s); re-draw them with "
+              f"'drake-rus render-diagram --all' (or make diagrams)", file=sys.stderr)
+    return 1 if stale else 0
+
+
+def run_render(args) -> int:
     if shutil.which("dot") is None:
-        raise UserError("Graphviz 'dot' is not installed (apt-get install graphviz)")
-    if args.diagram == "station":
-        diagram = MakeStation(scenario)
-    else:
-        template = load_template_for(scenario)
-        patient = None if scenario.hardware else load_patient_for(
-            args.patient, "--patient", side=scenario.patient.side,
-            posture=scenario.patient.posture, progress=stderr_is_terminal())
-        station = MakeStation(scenario, patient=patient)
-        builder, _ = BuildScanDiagram(scenario, station, template)
-        diagram = builder.Build()
-        diagram.set_name("scan")
+        raise UserError(GRAPHVIZ_MISSING)
+    if args.all:
+        return _render_all(args)
+    if args.check:
+        raise UserError("--check: compares the committed pictures; use it with --all")
+    scenario = load_scenario_from_args(args)
+    kind = args.diagram or "station"
+    out = check_output_file(args.out or f"diagrams/{kind}.svg", "--out",
+                            suffixes=(".svg", ".png"))
+    diagram = build_diagram(kind, scenario, args.patient)
     out = render_graphviz(diagram.GetGraphvizString(max_depth=args.depth), out)
     print(f"wrote {out}")
     return 0
