@@ -2,10 +2,10 @@
 
 import numpy as np
 import pytest
-from pydrake.geometry import Meshcat
 
 from drake_rus.anatomy.generator import generate_patient
 from drake_rus.anatomy.pictures import plot_cohort_overview, plot_label_slices, show_in_meshcat
+from drake_rus.demo import MakeMeshcat
 
 
 @pytest.mark.parametrize("posture", ["supine", "left_lateral_decubitus"])
@@ -30,7 +30,7 @@ def test_pictures_are_written(tmp_path):
 
 def test_meshcat_scene():
     p = generate_patient(8)
-    meshcat = Meshcat()
+    meshcat = MakeMeshcat()         # 127.0.0.1, not every interface
     show_in_meshcat(p, meshcat)
     assert meshcat.HasPath("patient/kidney") and meshcat.HasPath("patient/skin")
     assert meshcat.HasPath("patient/X_PtK/x")
