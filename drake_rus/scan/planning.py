@@ -544,6 +544,12 @@ def _plane_labels(volume, X_BV, origin_B, a, o, depth: float, step: float = 0.00
     return labels.reshape(len(v), len(u)), u, v
 
 
+def _short(text: str, n: int = 34) -> str:
+    """``text`` cut to ``n`` characters for a table cell (the whole reason is in
+    summary.json)."""
+    return text if len(text) <= n else text[:n - 3].rstrip() + "..."
+
+
 def plot_start_plan(plan: StartPlan, imaging, path, title: str = "") -> None:
     """start_plan.png: the chosen window's image plane (tissue labels, the colours of
     ``drake_rus.anatomy.tissue_colors``), the fan at the chosen depth preset, the central rays
@@ -552,6 +558,7 @@ def plot_start_plan(plan: StartPlan, imaging, path, title: str = "") -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib import patheffects
     from matplotlib.lines import Line2D
     labels, u, v = plan.plane
     fig, (ax, tx) = plt.subplots(1, 2, figsize=(12, 6.2),
@@ -569,6 +576,7 @@ def plot_start_plan(plan: StartPlan, imaging, path, title: str = "") -> None:
     o = plan.X_planned.rotation().matrix()[:, 0]
     a0 = plan.window.approach_B
     shadows = 0
+    halo = [patheffects.withStroke(linewidth=2.5, foreground="white")]   # visible on gas
     for c in plan.candidates:
         end = c.approach_B * min(c.needed_depth if np.isfinite(c.needed_depth) else d, d)
         chosen = c is plan.window
@@ -578,7 +586,7 @@ def plot_start_plan(plan: StartPlan, imaging, path, title: str = "") -> None:
                 alpha=1.0 if chosen else 0.7)
         if len(c.blockers_B):
             b = c.blockers_B - origin
-            ax.plot((b @ o) * 1e3, (b @ a0) * 1e3, "x", color="k", ms=4)
+            ax.plot((b @ o) * 1e3, (b @ a0) * 1e3, "x", color="k", ms=4, path_effects=halo)
             shadows += len(b)
     ax.set_xlabel("across the beam (mm)")
     ax.set_ylabel("along the chosen beam from the skin (mm)")
@@ -588,13 +596,18 @@ def plot_start_plan(plan: StartPlan, imaging, path, title: str = "") -> None:
              f"{c.blocked_fraction:.0%}", f"{c.start_fraction:.2f}",
              f"{c.clear_length * 1000:.0f}/{c.sweep_length * 1000:.0f}",
              "chosen" if c is plan.window
-             else ("ok" if c.feasible else c.reason[:38])) for c in plan.candidates]
+             else ("ok" if c.feasible else _short(c.reason))) for c in plan.candidates]
     tx.axis("off")
     table = tx.table(cellText=rows, colLabels=["tilt deg", "need mm", "preset", "blocked",
                                                "start", "clear mm", "verdict"],
-                     loc="upper center")
+                     loc="upper center",
+                     colWidths=[0.1, 0.11, 0.1, 0.1, 0.08, 0.12, 0.39])
     table.auto_set_font_size(False)
     table.set_fontsize(7)
+    for (row, col), cell in table.get_celld().items():
+        if col == 6 and row > 0:
+            cell.set_text_props(ha="left")
+            cell.PAD = 0.02
     s = plan.summary()
     tx.set_title(f"preset {plan.depth_preset * 1000:.0f} mm, tilt {s['tilt_deg']:+.0f} deg, "
                  f"placement error {s['placement_error_mm']:.1f} mm / "
@@ -606,9 +619,9 @@ def plot_start_plan(plan: StartPlan, imaging, path, title: str = "") -> None:
         marks.append(Line2D([], [], color="tab:green", lw=0.8, label="other usable windows"))
     if any(not c.feasible for c in plan.candidates):
         marks.append(Line2D([], [], color="tab:orange", lw=0.8, ls="--",
-                            label="rejected windows (verdict in the table)"))
+                            label="rejected windows (why: the table, summary.json)"))
     if shadows:
-        marks.append(Line2D([], [], color="k", marker="x", ls="", ms=5,
+        marks.append(Line2D([], [], color="k", marker="x", ls="", ms=5, path_effects=halo,
                             label="bone or gas shadowing the kidney: where a fan ray\n"
                                   "meets it before the kidney, in any view along a\n"
                                   "window's sweep (projected onto this plane)"))
