@@ -28,6 +28,7 @@ import time
 
 import numpy as np
 
+from drake_rus.extras import install_hint
 from drake_rus.hardware.config import HardwareConfig
 from drake_rus.hardware.core import (
     check_robot_ip, collision_thresholds, external_torque_to_drake, watchdog_expired)
@@ -125,8 +126,8 @@ def _import_franky():
         import franky
     except ImportError as e:
         raise HardwareFault(
-            "field 'hardware_interface.backend': 'franky' needs franky-control "
-            "(pip install 'drake-rus[hardware]'): " + str(e)) from None
+            f"field 'hardware_interface.backend': 'franky' needs franky-control, part of the "
+            f"'hardware' extra: {install_hint('hardware')} ({e})") from None
     return franky
 
 
