@@ -368,11 +368,10 @@ def anatomy_figures(patient, what: str | None = None) -> dict:
 def check_anatomy(patient, what: str | None = None) -> dict:
     """Checks that ``patient`` can exist (module doc) before any simulation; ``what`` names
     it in the error (default: its name and file). Returns the figures (SI); raises
-    :class:`AnatomyError`, one line, at the first failed check. The result is kept on the
-    patient (``patient.anatomy_figures``): a patient is checked once."""
-    cached = getattr(patient, "_anatomy_figures", None)
-    if cached is not None:
-        return cached
+    :class:`AnatomyError`, one line, at the first failed check. The figures are kept in
+    ``patient.anatomy_figures``: a patient is checked once."""
+    if getattr(patient, "anatomy_figures", None) is not None:
+        return patient.anatomy_figures
     fig = anatomy_figures(patient, what)
-    patient._anatomy_figures = fig
+    patient.anatomy_figures = fig
     return fig

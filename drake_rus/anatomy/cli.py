@@ -126,7 +126,29 @@ def patient_info(patient) -> dict:
         info["hilum_angle_deg"] = round(patient.meta["hilum_angle"] * deg, 1)
     if "size_class" in patient.meta:
         info["size_class"] = patient.meta["size_class"]
+    figures = patient.anatomy_figures
+    if figures is not None:
+        info["anatomy_checks"] = anatomy_check_summary(figures)
     return info
+
+
+def anatomy_check_summary(figures: dict) -> dict:
+    """The figures of :func:`~drake_rus.anatomy.checks.check_anatomy` in report units (mm,
+    ml, %), as ``patient info`` prints them."""
+    out = {}
+    for key, value in figures.items():
+        if key in ("kidney_volume", "kidney_imaged_volume"):
+            out[key + "_ml"] = round(value * 1e6, 1)
+        elif key in ("kidney_air_contact", "kidney_in_liver_mesh"):
+            out[key + "_pct"] = round(value * 100, 2)
+        elif key == "kidney_organ_contact":
+            out[key + "_pct"] = {k: round(v * 100, 2) for k, v in value.items()}
+        elif isinstance(value, float):
+            out[key + "_mm"] = round(value * 1e3, 1)
+        else:
+            out[key] = value
+    out["passed"] = True
+    return out
 
 
 def _info(args) -> int:

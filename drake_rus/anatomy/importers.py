@@ -289,12 +289,12 @@ def patient_from_meshes(kidney, skin, *, liver=None, other_kidney=None, side="ri
     return _assemble(name, side, posture, km, sm, lm, om, meta, voxel_size, fat, muscle)
 
 
-def _read_label_map(path: Path, voxel_size: float, body_values=None, check_body=True):
+def _read_label_map(path: Path, voxel_size: float, check_native=None):
     """(labels (i, j, k) resampled to ``voxel_size``, direction D, origin (m), spacing (mm)
-    of the file). With ``check_body``, the body (voxels of ``body_values``, default: every
-    nonzero voxel) must be of human size at the file's spacing
-    (:func:`~drake_rus.anatomy.checks.check_label_map_body_size`), checked before the
-    resampling (a spacing in the wrong unit would make it allocate without bound)."""
+    of the file). ``check_native(array, spacing_mm, sup_axis)`` sees the file's own voxels
+    (array axes k, j, i, their spacing, the axis nearest to superior) before the resampling,
+    which a spacing in the wrong unit would make allocate without bound: it checks that the
+    body is of human size (:func:`~drake_rus.anatomy.checks.check_label_map_body_size`)."""
     import SimpleITK as sitk
     if not path.is_file():
         raise FileNotFoundError(f"label map: file not found: {path}")
@@ -314,12 +314,10 @@ def _read_label_map(path: Path, voxel_size: float, body_values=None, check_body=
             _fail(f"label map {path}: voxel values are not integer labels (dtype {a.dtype})")
         img = sitk.Cast(img, sitk.sitkInt32)
     spacing = np.array(img.GetSpacing())
-    if check_body:
-        native = sitk.GetArrayViewFromImage(img)                     # (k, j, i)
-        body = native != 0 if body_values is None else np.isin(native, list(body_values))
+    if check_native is not None:
         D0 = np.array(img.GetDirection()).reshape(3, 3)
         sup_axis = int(np.argmax(np.abs(D0[2])))                     # grid axis nearest S
-        check_label_map_body_size(body, spacing[::-1], 2 - sup_axis, path)
+        check_native(sitk.GetArrayViewFromImage(img), spacing[::-1], 2 - sup_axis)
     target = voxel_size * 1000.0
     if np.any(np.abs(spacing - target) > 1e-6):
         size = np.round(np.array(img.GetSize()) * spacing / target).astype(int).tolist()
@@ -357,8 +355,21 @@ def patient_from_label_map(path, mapping="totalsegmentator", *, side="right",
         if v not in MAPPING_NAMES:
             _fail(f"mapping: unknown label name {v!r} for value {k}; known names: "
                   f"{', '.join(sorted(MAPPING_NAMES))}")
-    raw, D, origin, spacing = _read_label_map(
-        path, voxel_size, body_values=[k for k, v in mapping.items() if v != "ignore"])
+    target = (f"kidney_{side}", "kidney")
+
+    def check_native(native, spacing_mm, sup_axis):
+        # The body's size, once the map has a kidney and a body inside out or not: a map
+        # without them is named for that after the resampling (it cannot be large).
+        kidney = np.isin(native, [k for k, v in mapping.items() if v in target])
+        if not kidney.any() or not np.isin(native, [k for k, v in mapping.items()
+                                                    if v == "body"]).any():
+            return
+        if all(kidney.take(i, axis=a).any() for a in range(3) for i in (0, -1)):
+            return
+        body = np.isin(native, [k for k, v in mapping.items() if v != "ignore"])
+        check_label_map_body_size(body, spacing_mm, sup_axis, path)
+
+    raw, D, origin, spacing = _read_label_map(path, voxel_size, check_native)
     return _patient_from_raw(raw, D, origin, mapping, path, side=side, posture=posture,
                              name=name or path.name, voxel_size=voxel_size, fat=fat,
                              muscle=muscle, meta={"source": "label_map", "path": str(path),
@@ -418,8 +429,9 @@ def patient_from_mask_folder(directory, *, side="right", posture="supine", name=
     order = body_files + [k for k in files if k not in body_files]
     raw = D = origin = spacing = None
     for key in order:
-        m, D_k, o_k, spacing_k = _read_label_map(files[key], voxel_size,
-                                                 check_body=key == order[0])
+        size_check = (lambda a, sp, sup, f=files[key]: check_label_map_body_size(
+            a != 0, sp, sup, f)) if key == order[0] else None
+        m, D_k, o_k, spacing_k = _read_label_map(files[key], voxel_size, size_check)
         if raw is None:
             raw, D, origin, spacing = np.zeros(m.shape, dtype=np.int32), D_k, o_k, spacing_k
         elif m.shape != raw.shape or not np.allclose(D_k, D) or not np.allclose(o_k, origin):
