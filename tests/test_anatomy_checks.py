@@ -79,7 +79,7 @@ def test_a_kidney_cut_by_the_volume_border_fails_saying_how_much_is_imaged():
 
 def test_a_kidney_inside_the_liver_fails():
     liver = (KIDNEY[0], (0.05, 0.08, 0.035))
-    with pytest.raises(AnatomyError, match=r"the kidney lies inside liver: \d+% of the voxels "
+    with pytest.raises(AnatomyError, match=r"the kidney lies inside the liver: \d+% of the voxels "
                                            r"around it are liver"):
         check_anatomy(_patient(liver_labels=liver))
 

@@ -84,7 +84,7 @@ ANATOMY_CASES = [
      ["cut.nii.gz", "cut by the label volume's edge", "inferior face", "ml of the kidney is "
       "imaged"]),
     ("kidney_inside_the_liver_label", "in_liver",
-     ["in_liver.nii.gz", "the kidney lies inside liver"]),
+     ["in_liver.nii.gz", "the kidney lies inside the liver"]),
     ("kidney_overlapping_the_liver_mesh", "liver_mesh",
      ["liver_mesh", "the kidney overlaps the liver", "liver.stl"]),
     ("label_map_spacing_18_mm_body", "tiny",

@@ -86,7 +86,9 @@ ORGAN_ENCLOSURE_MAX = 0.5
 # ... and at most this share of its volume may lie inside another organ's mesh (two organs
 # segmented separately overlap by a voxel at their contact).
 ORGAN_OVERLAP_MAX = 0.05
-_ORGANS = {Label.LIVER: "liver", Label.BONE: "bone", Label.VESSEL: "a vessel",
+_ORGANS = {Label.LIVER: "liver", Label.BONE: "bone", Label.VESSEL: "vessel",
+           Label.GAS: "gas"}
+_INSIDE = {Label.LIVER: "the liver", Label.BONE: "bone", Label.VESSEL: "a vessel",
            Label.GAS: "bowel gas"}
 
 
@@ -344,7 +346,7 @@ def anatomy_figures(patient, what: str | None = None) -> dict:
     for label, share in sorted(sur["organs"].items(), key=lambda kv: -kv[1]):
         if share > ORGAN_ENCLOSURE_MAX:
             _fail(patient, what,
-                  f"the kidney lies inside {_ORGANS[label]}: {share:.0%} of the voxels around "
+                  f"the kidney lies inside {_INSIDE[label]}: {share:.0%} of the voxels around "
                   f"it are {_ORGANS[label]} (at most {ORGAN_ENCLOSURE_MAX:.0%}; a kidney "
                   f"lies in the retroperitoneum, in its own fat)")
     if patient.liver_mesh is not None:
