@@ -358,8 +358,8 @@ def patient_from_label_map(path, mapping="totalsegmentator", *, side="right",
     target = (f"kidney_{side}", "kidney")
 
     def check_native(native, spacing_mm, sup_axis):
-        # The body's size, once the map has a kidney and a body inside out or not: a map
-        # without them is named for that after the resampling (it cannot be large).
+        # The body's size, for a map with a kidney and a body that is not inside-out; a
+        # map without them (or inverted) gets the error naming that instead.
         kidney = np.isin(native, [k for k, v in mapping.items() if v in target])
         if not kidney.any() or not np.isin(native, [k for k, v in mapping.items()
                                                     if v == "body"]).any():
