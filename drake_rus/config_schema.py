@@ -9,6 +9,7 @@ Field constraints are declared on the dataclass fields themselves with ``metadat
 
 - ``choices``: the allowed values of a string field;
 - ``length``: the exact length of a list field;
+- ``min_length``: the least length of a list field (e.g. a list that must not be empty);
 - ``min`` / ``max``: bounds of a number (or of every element of a list of numbers);
 - ``positive``: the number (or every element) must be > 0.
 """
@@ -89,6 +90,13 @@ def _check_number(path: str, value, meta: dict, integer: bool = False) -> None:
         raise ScenarioError(f"field '{path}': expected a number >= {meta['min']}, got {value!r}")
     if "max" in meta and value > meta["max"]:
         raise ScenarioError(f"field '{path}': expected a number <= {meta['max']}, got {value!r}")
+
+
+def _check_min_length(where: str, values, meta: dict) -> None:
+    n = meta.get("min_length")
+    if n is not None and len(values) < n:
+        raise ScenarioError(f"field '{where}': expected a list of at least {n} value"
+                            f"{'s' if n > 1 else ''}, got {len(values)}")
 
 
 def validate(schema, data, path: str = "", meta: dict | None = None) -> None:
@@ -174,6 +182,7 @@ def validate(schema, data, path: str = "", meta: dict | None = None) -> None:
         if "length" in meta and len(data) != meta["length"]:
             raise ScenarioError(
                 f"field '{where}': expected a list of {meta['length']} values, got {len(data)}")
+        _check_min_length(where, data, meta)
         for i, value in enumerate(data):
             validate(item, value, f"{where}[{i}]", meta)
         return
@@ -208,12 +217,33 @@ def check_dataclass_values(obj, path: str = "") -> None:
             if "length" in meta and len(value) != meta["length"]:
                 raise ScenarioError(
                     f"field '{where}': expected a list of {meta['length']} values, got {len(value)}")
+            _check_min_length(where, value, meta)
             for i, v in enumerate(value):
                 if _is_number(v):
                     _check_number(f"{where}[{i}]", v, meta)
 
 
 # ------------------------------------------------------------------ physical ranges and rules
+# Mesh resolution hints, measured with the press of `benchmarks/station.py` (6 s, 9 N): the
+# settled force is 9.00 +- 0.03 N at every probe hint from 20 mm (default) to 0.5 mm, while
+# the simulation runs 2x slower at 2 mm, 5.6x at 1 mm and 10x at 0.5 mm than at 20 mm (the
+# probe face, a 50 mm-radius arc 20 mm wide, is then ~160 / 310 / 630 facets around; at
+# 1e-6 m one simulated second took 42 s). The placeholder torso (ellipsoid, 0.17 x 0.40 x
+# 0.12 m semi-axes) gives the same force from 6 cm to 5 mm tetrahedra; at 1 cm its mesh takes
+# 3x longer to build than at 6 cm, and it grows with the cube of 1/hint.
+PROBE_HINT_MIN = 0.002
+PROBE_HINT_WHY = ("the probe face is a 50 mm-radius arc 20 mm wide: the contact force is the "
+                  "same from 20 mm to 0.5 mm, and below 2 mm only the contact work grows")
+PATIENT_HINT_MIN = 0.01
+PATIENT_HINT_WHY = ("the placeholder torso is 0.34 x 0.8 x 0.24 m; its contact force is the "
+                    "same from 6 cm to 5 mm tetrahedra, and below 1 cm only its mesh grows "
+                    "(with the cube of 1/hint)")
+# Breathing rates a patient can have (breaths/min), and the longest breath.
+BREATHING_RATE_MIN = 6.0
+BREATHING_RATE_MAX = 30.0
+# The patient's bed surface faces up: z_Pt within this angle (deg) of the base's z (the
+# simulated patient lies on a level bed under gravity along -z_B; the probe comes from above).
+MAX_BED_TILT_DEG = 5.0
 # Every value a scenario may hold is checked against these, after the schema's own bounds
 # (``metadata``): a number outside is refused with the field, the range and the reason. Each
 # rule is stated once, here. field path -> (min, max, unit, why).
@@ -238,6 +268,17 @@ PHYSICAL_RANGES = {
     "imaging.center_frequency_mhz": (0.5, 20.0, "MHz", "diagnostic ultrasound"),
     "hardware_interface.command_rate_hz": (10.0, 1000.0, "Hz",
                                            "velocity targets at most at the FR3's 1 kHz"),
+    # Mesh resolution hints: finer meshes than these only multiply the contact work.
+    "contact.probe_resolution_hint": (PROBE_HINT_MIN, 0.05, "m", PROBE_HINT_WHY),
+    "contact.patient_resolution_hint": (PATIENT_HINT_MIN, 0.2, "m", PATIENT_HINT_WHY),
+    # Breathing (docs/facts/anatomy_and_ultrasound.md, "Respiratory motion").
+    "patient.motion.breathing.amplitude": (
+        0.0, 0.045, "m", "craniocaudal kidney motion is 2.5-30 mm in quiet breathing "
+        "(van Sornsen de Koste 2006) and up to 43 mm from deep inspiration to deep "
+        "expiration (Schwartz 1994)"),
+    "patient.motion.breathing.rate_per_min": (
+        BREATHING_RATE_MIN, BREATHING_RATE_MAX, "breaths/min",
+        "patients breathed 9-27.5 times a minute during 4D-CT (Pham 2013)"),
 }
 
 # Patient placement: the bed lies within this distance (m) of the robot base (the FR3
@@ -296,12 +337,45 @@ CROSS_FIELD_RULES = [
      "left lateral decubitus lays the left kidney against the bed (it turns the right flank "
      "up for the right kidney); scan the left kidney supine (right lateral decubitus is not "
      "modelled)"),
+    (("patient.X_BPt.rotation",),
+     lambda s: _bed_tilt_deg(s) <= MAX_BED_TILT_DEG,
+     f"the bed's surface must face up: z of the patient frame (the bed's normal) within "
+     f"{MAX_BED_TILT_DEG:g} deg of the robot base's z (a patient lies on a level bed, the "
+     f"probe comes from above)"),
+    (("patient.motion.breathing.hold_duration", "patient.motion.breathing.hold_period"),
+     lambda s: not _holds(s) or s.patient.motion.breathing.hold_duration
+     < s.patient.motion.breathing.hold_period,
+     "a breath-hold must end before the next one starts (hold_duration < hold_period; "
+     "hold_period 0 for free breathing only)"),
+    (("patient.motion.breathing.hold_duration", "patient.motion.breathing.hold_period"),
+     lambda s: not _holds(s) or s.patient.motion.breathing.hold_period
+     - s.patient.motion.breathing.hold_duration >= 60.0 / BREATHING_RATE_MAX - 1e-9,
+     f"between breath-holds the patient must breathe at least once: hold_period - "
+     f"hold_duration >= {60.0 / BREATHING_RATE_MAX:g} s (one breath at "
+     f"{BREATHING_RATE_MAX:g} breaths/min, the fastest rate modelled)"),
+    (("patient.motion.breathing.first_hold",),
+     lambda s: not _holds(s) or s.patient.motion.breathing.first_hold == 0.0
+     or s.patient.motion.breathing.first_hold >= 60.0 / BREATHING_RATE_MAX - 1e-9,
+     f"the free breathing before the first hold is at least one breath: first_hold 0 or "
+     f">= {60.0 / BREATHING_RATE_MAX:g} s"),
     (("patient.X_BPt.translation",),
      lambda s: float(np.linalg.norm(
          s.patient.X_BPt.GetDeterministicValue().translation())) <= MAX_PATIENT_DISTANCE,
      f"the patient must lie within {MAX_PATIENT_DISTANCE:g} m of the robot base (the FR3 "
      "reaches 0.855 m)"),
 ]
+
+
+def _bed_tilt_deg(scenario) -> float:
+    """Angle (deg) between the patient frame's z (the bed's normal) and the base's z."""
+    R = scenario.patient.X_BPt.GetDeterministicValue().rotation().matrix()
+    return float(np.degrees(np.arccos(np.clip(R[2, 2], -1.0, 1.0))))
+
+
+def _holds(scenario) -> bool:
+    """The breathing model has breath-holds (hold_period and hold_duration > 0)."""
+    b = scenario.patient.motion.breathing
+    return b.hold_period > 0.0 and b.hold_duration > 0.0
 
 
 def check_physical(scenario) -> None:
@@ -327,13 +401,20 @@ def check_physical(scenario) -> None:
             values = []
             for f in fields:
                 try:
-                    values.append(f"{f} = {_fmt(_value_for_message(scenario, f))}")
+                    v = _value_for_message(scenario, f)
+                    values.append(f"{f} = {v if isinstance(v, _Text) else _fmt(v)}")
                 except AttributeError:
                     pass
             raise ScenarioError(f"field '{fields[0]}': {what}; got {', '.join(values)}")
 
 
+class _Text(str):
+    """A value already written for a message (shown without quotes)."""
+
+
 def _value_for_message(scenario, path: str):
+    if path.endswith("X_BPt.rotation"):
+        return _Text(f"z_Pt at {_bed_tilt_deg(scenario):.1f} deg from z_B")
     if path.endswith("X_BPt.translation"):
         return [round(float(x), 3) for x in
                 scenario.patient.X_BPt.GetDeterministicValue().translation()]

@@ -174,8 +174,12 @@ def ContactSection(patient, contact):
     with the longest half-length in ``contact.patient_section_half_lengths`` whose hull lies
     within ``contact.patient_hull_max_gap`` of the skin over the kidney (else the shortest).
     Returns (hull mesh, half-length m, gap m)."""
+    half_lengths = list(contact.patient_section_half_lengths)
+    if not half_lengths:
+        raise ValueError("field 'contact.patient_section_half_lengths': expected a list of "
+                         "at least 1 half-length (m), got []")
     best = None
-    for half_length in sorted(contact.patient_section_half_lengths, reverse=True):
+    for half_length in sorted(half_lengths, reverse=True):
         hull = ContactHull(patient.torso_section(half_length), contact.patient_hull_vertices)
         gap = hull_gap_over_kidney(patient, hull)
         if best is None or gap < best[2]:

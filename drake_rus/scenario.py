@@ -136,7 +136,7 @@ class ContactConfig:
     # e.g. in left lateral decubitus).
     patient_section_half_lengths: list[float] = field(
         default_factory=lambda: [0.20, 0.15, 0.12, 0.10, 0.08, 0.06],
-        metadata={"positive": True, "max": 0.5})
+        metadata={"positive": True, "max": 0.5, "min_length": 1})
     patient_hull_max_gap: float = field(default=0.004, metadata={"positive": True, "max": 0.05})
     # Hunt-Crossley dissipation (s/m) of the soft body.
     hunt_crossley_dissipation: float = field(default=5.0, metadata={"min": 0.0})

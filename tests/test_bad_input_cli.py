@@ -292,7 +292,15 @@ def test_label_map_folder_spacing_is_named(tmp_path, capsys):
 
 
 def test_one_voxel_kidney_is_named(tmp_path, capsys):
-    path = _label_map(tmp_path / "tiny.nii.gz", 2.0, kidney_voxels=1)
+    import SimpleITK as sitk
+    # A body of human size (300 x 220 mm at 2 mm voxels: a smaller one is named for that).
+    a = np.zeros((20, 120, 160), np.uint8)                    # (k, j, i)
+    a[2:18, 5:115, 5:155] = 200
+    a[10, 60, 40] = 2
+    img = sitk.GetImageFromArray(a)
+    img.SetSpacing([2.0] * 3)
+    path = tmp_path / "tiny.nii.gz"
+    sitk.WriteImage(img, str(path))
     code, err = _run(["patient", "info", str(path)], capsys)
     assert code == 2 and "too small" in err and "Surface level" not in err, err
 

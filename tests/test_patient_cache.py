@@ -67,7 +67,8 @@ def test_cache_dir_resolution(monkeypatch, tmp_path):
 
 
 def test_warm_load_equals_cold_and_fresh(cache_dir, builds, monkeypatch):
-    cold = load_patient("seed:5", voxel_size=VOXEL, progress=False)
+    # Without the anatomy check (which reads the label volume) the volume stays lazy.
+    cold = load_patient("seed:5", voxel_size=VOXEL, progress=False, check=False)
     assert not cold.has_labels                       # still lazy for callers that never ask
     assert len(_entries(cache_dir)) == 1
     cold_labels = cold.labels                        # built now, and stored in the entry
@@ -94,8 +95,8 @@ def test_warm_load_equals_cold_and_fresh(cache_dir, builds, monkeypatch):
 
 
 def test_entry_without_labels_gets_them_on_a_warm_load(cache_dir, builds):
-    load_patient("seed:6", voxel_size=VOXEL, progress=False)      # labels never built
-    warm = load_patient("seed:6", voxel_size=VOXEL, progress=False)
+    load_patient("seed:6", voxel_size=VOXEL, progress=False, check=False)   # no labels
+    warm = load_patient("seed:6", voxel_size=VOXEL, progress=False, check=False)
     assert not warm.has_labels and len(builds) == 1
     labels = warm.labels.labels                      # built from the seed, then stored
     third = load_patient("seed:6", voxel_size=VOXEL, progress=False)

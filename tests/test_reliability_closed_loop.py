@@ -102,15 +102,17 @@ def test_done_fraction_per_fault_type(tmp_path):
 
 
 def test_respiration_aware_exploration_moves_only_during_breath_holds(patient_and_template):
-    """Closed loop, 15 mm breathing with 1.5 s holds every 3 s: the probe travels along the
-    kidney during holds and holds its target (in contact, no watchdog stop) between them."""
+    """Closed loop, 15 mm breathing with 1.5 s holds every 3.5 s (2 s between holds: one
+    breath at 30 breaths/min, the fastest the scenario rules allow): the probe travels along
+    the kidney during holds and holds its target (in contact, no watchdog stop) between
+    them."""
     import numpy as np
 
     from drake_rus.anatomy.motion import breath_hold
     patient, template = patient_and_template
     scenario = LoadScenario(scenario_name="quick", scenario_text=(
         "{patient: {motion: {breathing: {enabled: true, amplitude: 0.015, rate_per_min: 20, "
-        "hold_period: 3.0, hold_duration: 1.5, gate_exploration: true}}}}"))
+        "hold_period: 3.5, hold_duration: 1.5, gate_exploration: true}}}}"))
     result, check = RunFaultyScan(scenario, patient, template, max_sim_time=6.5)
     assert result.status == "TIMEOUT" and not result.safety_events, result.safety_events
     explore = [f for f in result.frames if f.phase == 1]          # EXPLORE

@@ -7,7 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from drake_rus.anatomy.cohort import cohort_seeds, cohort_stats, load_patient
+from drake_rus.anatomy.cohort import (check_regular_path, cohort_seeds, cohort_stats,
+                                      load_patient)
 from drake_rus.anatomy.export import estimated_export_bytes
 from drake_rus.anatomy.generator import generate_patient
 from drake_rus.anatomy.importers import LABEL_MAP_SUFFIXES
@@ -31,8 +32,8 @@ def _user_error(e):
 def _label_map_files(path: Path) -> list[Path]:
     if path.is_dir():
         return [p for p in sorted(path.iterdir())
-                if p.name.lower().endswith(LABEL_MAP_SUFFIXES)][:_MAX_HEADERS]
-    if path.name.lower().endswith(LABEL_MAP_SUFFIXES):
+                if p.is_file() and p.name.lower().endswith(LABEL_MAP_SUFFIXES)][:_MAX_HEADERS]
+    if path.is_file() and path.name.lower().endswith(LABEL_MAP_SUFFIXES):
         return [path]
     return []
 
@@ -68,6 +69,10 @@ def check_patient_spec(spec: str, arg: str = "--patient") -> None:
         return
     path = Path(spec)
     if path.exists():
+        try:
+            check_regular_path(path, arg)
+        except ValueError as e:
+            raise _user_error(e) from None
         check_label_map_spacing(path, arg)
 
 
@@ -122,7 +127,29 @@ def patient_info(patient) -> dict:
         info["hilum_angle_deg"] = round(patient.meta["hilum_angle"] * deg, 1)
     if "size_class" in patient.meta:
         info["size_class"] = patient.meta["size_class"]
+    figures = patient.anatomy_figures
+    if figures is not None:
+        info["anatomy_checks"] = anatomy_check_summary(figures)
     return info
+
+
+def anatomy_check_summary(figures: dict) -> dict:
+    """The figures of :func:`~drake_rus.anatomy.checks.check_anatomy` in report units (mm,
+    ml, %), as ``patient info`` prints them."""
+    out = {}
+    for key, value in figures.items():
+        if key in ("kidney_volume", "kidney_imaged_volume"):
+            out[key + "_ml"] = round(value * 1e6, 1)
+        elif key in ("kidney_air_contact", "kidney_in_liver_mesh"):
+            out[key + "_pct"] = round(value * 100, 2)
+        elif key == "kidney_organ_contact":
+            out[key + "_pct"] = {k: round(v * 100, 2) for k, v in value.items()}
+        elif isinstance(value, float):
+            out[key + "_mm"] = round(value * 1e3, 1)
+        else:
+            out[key] = value
+    out["passed"] = True
+    return out
 
 
 def _info(args) -> int:
@@ -161,11 +188,44 @@ def _show(args) -> int:
     return 0
 
 
+# Largest cohorts: the statistics of 1000 patients pin each mean to 3% of its SD
+# (SD / sqrt(n)), finer than any published figure they are compared with; a full build takes
+# about 1 s a patient (1000: some 20 min), the fast statistics about 0.1 s (20000: some 40
+# min). The overview picture draws at most 100 kidneys (one colour per 20: more is a blur).
+MAX_COHORT = {"full": 1000, "fast": 20000, "png": 100}
+# Seconds per patient, to say up front how long a cohort takes (measured on a laptop core).
+_SECONDS_PER_PATIENT = {"full": 1.0, "fast": 0.1}
+
+
+def check_cohort_count(count, fast: bool, png: bool) -> None:
+    """Refuses a ``--count`` outside 1 .. :data:`MAX_COHORT` (with the reason)."""
+    if count is None:
+        return
+    if count < 1:
+        raise _user_error(f"--count: expected at least 1, got {count}")
+    kind = "fast" if fast else "full"
+    if count > MAX_COHORT[kind]:
+        why = (f"statistics of {MAX_COHORT[kind]} patients pin each mean to "
+               f"{1 / np.sqrt(MAX_COHORT[kind]):.0%} of its SD"
+               + ("" if fast else "; use --fast for up to "
+                  f"{MAX_COHORT['fast']} (kidney statistics without skin meshes)"))
+        raise _user_error(f"--count: at most {MAX_COHORT[kind]} patients"
+                          f"{' with --fast' if fast else ''}, got {count} ({why})")
+    if png and count > MAX_COHORT["png"]:
+        raise _user_error(f"--count: the overview picture (--png) draws at most "
+                          f"{MAX_COHORT['png']} kidneys, got {count}")
+
+
 def _cohort(args) -> int:
-    if args.count is not None and args.count < 1:
-        raise _user_error(f"--count: expected at least 1, got {args.count}")
+    check_cohort_count(args.count, args.fast, bool(args.png))
     t0 = time.time()
     progress = not args.quiet and _tty()
+    n = len(cohort_seeds(args.split, args.count))
+    per = _SECONDS_PER_PATIENT["fast" if (args.fast and not args.png) else "full"]
+    if not args.quiet and n * per > 30:
+        import sys
+        print(f"cohort {args.split}: {n} patients, about {n * per / 60:.0f} min "
+              "(Ctrl-C stops)", file=sys.stderr, flush=True)
     if args.stats or not args.png:
         out = cohort_stats(args.split, args.count, args.side, args.posture, full=not args.fast,
                            progress=progress)

@@ -14,6 +14,7 @@ import trimesh
 from tqdm import tqdm
 
 from drake_rus.anatomy.cache import cached_patient, file_digest
+from drake_rus.anatomy.checks import check_anatomy
 from drake_rus.anatomy.frames import check_side_posture
 from drake_rus.anatomy.generator import (_Layout, generate_patient, patient_builders,
                                          sample_patient_params)
@@ -24,7 +25,7 @@ from drake_rus.anatomy.patient import Patient
 from drake_rus.anatomy.canonical_frame import extents_in_frame, mesh_canonical_frame
 
 __all__ = ["TRAIN_OFFSET", "TEST_OFFSET", "DEFAULT_COUNTS", "split_seed", "cohort_seeds",
-           "load_patient", "kidney_statistics", "summarize", "cohort_stats"]
+           "load_patient", "check_regular_path", "kidney_statistics", "summarize", "cohort_stats"]
 
 TRAIN_OFFSET = 1_000_000
 TEST_OFFSET = 2_000_000
@@ -48,9 +49,21 @@ def cohort_seeds(split: str, count: int | None = None) -> list[int]:
     return [split_seed(split, k) for k in range(count)]
 
 
+def check_regular_path(path: Path, what: str) -> None:
+    """Refuses a path that is neither a regular file nor a directory (a named pipe, a
+    device, a socket) before anything opens it: reading one blocks or never ends."""
+    if path.is_dir() or path.is_file():
+        return
+    kind = ("a named pipe" if path.is_fifo() else "a device" if path.is_char_device()
+            or path.is_block_device() else "a socket" if path.is_socket() else
+            "not a regular file")
+    raise ValueError(f"{what}: {path} is {kind}; expected a patient directory or a "
+                     "label-map file")
+
+
 def load_patient(spec: str, side: str = "right", posture: str = "supine", *,
                  voxel_size: float = 0.001, mapping="totalsegmentator",
-                 progress: bool = True, cache: bool = True) -> Patient:
+                 progress: bool = True, cache: bool = True, check: bool = True) -> Patient:
     """A patient from a spec: ``seed:N``, ``train:K``, ``test:K`` (virtual, deterministic),
     a directory of TotalSegmentator per-structure masks (kidney_right.nii.gz, body.nii.gz,
     ...), a directory of meshes (kidney_right/left, skin, liver by file name, like the HuBMAP
@@ -58,13 +71,20 @@ def load_patient(spec: str, side: str = "right", posture: str = "supine", *,
 
     ``cache``: reuse (and store) the patient in the on-disk patient cache
     (:mod:`drake_rus.anatomy.cache`), its label volume included once built; False builds it
-    afresh and writes nothing."""
+    afresh and writes nothing.
+
+    ``check``: the patient's anatomy must be able to exist
+    (:func:`drake_rus.anatomy.checks.check_anatomy`: the kidney inside the body, wholly in
+    the label volume and in no other organ, body and kidney of human size); an
+    :class:`~drake_rus.anatomy.checks.AnatomyError` names the spec and the failed check.
+    It builds the label volume (kept in the cache)."""
     check_side_posture(side, posture)
     inputs, build, builders = _resolve_spec(str(spec), side, posture, voxel_size, mapping,
                                             progress)
-    if not cache:
-        return build()
-    return cached_patient(inputs, build, builders=builders)
+    patient = build() if not cache else cached_patient(inputs, build, builders=builders)
+    if check:
+        check_anatomy(patient, str(spec))
+    return patient
 
 
 def _mapping_key(mapping):
@@ -94,6 +114,7 @@ def _resolve_spec(spec: str, side: str, posture: str, voxel_size: float, mapping
     if not path.exists():
         raise FileNotFoundError(
             f"patient spec {spec!r}: not seed:N/train:K/test:K and no such file or directory")
+    check_regular_path(path, f"patient spec {spec!r}")
 
     def imported(route, files, build, with_mapping=False):
         inputs = {"kind": route, **common,
@@ -110,7 +131,8 @@ def _resolve_spec(spec: str, side: str, posture: str, voxel_size: float, mapping
                                                              voxel_size=voxel_size))
         found = find_mesh_files(path, side)
         if found["kidney"] is None or found["skin"] is None:
-            maps = [p for p in sorted(path.iterdir()) if p.name.lower().endswith(LABEL_MAP_SUFFIXES)]
+            maps = [p for p in sorted(path.iterdir())
+                    if p.is_file() and p.name.lower().endswith(LABEL_MAP_SUFFIXES)]
             if len(maps) == 1:
                 return imported("label_map", maps,
                                 lambda: patient_from_label_map(maps[0], mapping, side=side,

@@ -29,6 +29,8 @@ from pydrake.math import RigidTransform, RotationMatrix
 from scipy import ndimage
 
 from drake_rus.anatomy.body_section import crop_body_section
+from drake_rus.anatomy.checks import (AIR_CONTACT_MAX, AnatomyError, check_label_map_body_size,
+                                      check_mesh_units)
 from drake_rus.anatomy.frames import R_BdS, R_PtBd, check_side_posture, transform_mesh
 from drake_rus.anatomy.labels import Label, LabelVolume
 from drake_rus.anatomy.patient import Patient
@@ -229,6 +231,10 @@ def _assemble(name, side, posture, kidney_Bd, skin_Bd, liver_Bd, other_Bd, meta,
                    torso_center_Pt=torso_center_Pt, meta=meta)
 
 
+def _name(obj) -> str:
+    return "(a trimesh)" if isinstance(obj, trimesh.Trimesh) else str(obj)
+
+
 def patient_from_meshes(kidney, skin, *, liver=None, other_kidney=None, side="right",
                         posture="supine", axes="LSA", units="auto", name=None,
                         voxel_size=0.001, fat=0.015, muscle=0.012) -> Patient:
@@ -248,6 +254,15 @@ def patient_from_meshes(kidney, skin, *, liver=None, other_kidney=None, side="ri
         scale = 0.001 if units == "mm" else 1.0
     else:
         _fail(f"units: expected 'auto', 'mm' or 'm', got {units!r}")
+    # One unit for all meshes (a kidney in m with the skin in mm would be read as a body
+    # 1.7 km tall), checked before any voxel grid is made.
+    check_mesh_units(float(np.ptp(km.vertices, axis=0).max()),
+                     float(np.ptp(sm.vertices, axis=0).max()), _name(kidney), _name(skin),
+                     scale, units)
+    if lm is not None:
+        check_mesh_units(float(np.ptp(km.vertices, axis=0).max()),
+                         float(np.ptp(lm.vertices, axis=0).max()), _name(kidney),
+                         _name(liver), scale, units, other="liver")
     R = R_BdS(axes)
     X = np.eye(4)
     X[:3, :3] = R * scale
@@ -268,12 +283,18 @@ def patient_from_meshes(kidney, skin, *, liver=None, other_kidney=None, side="ri
     name = name or (Path(kidney).parent.name if not isinstance(kidney, trimesh.Trimesh) else "meshes")
     meta = {"source": "meshes", "kidney": str(kidney) if not isinstance(kidney, trimesh.Trimesh) else "mesh",
             "skin": str(skin) if not isinstance(skin, trimesh.Trimesh) else "mesh",
+            "liver": None if liver is None else _name(liver),
             "axes": axes, "units_scale": scale, "arms_removed": arms,
             "layers": {"fat": fat, "muscle": muscle, "note": "modelling choice (no layers in meshes)"}}
     return _assemble(name, side, posture, km, sm, lm, om, meta, voxel_size, fat, muscle)
 
 
-def _read_label_map(path: Path, voxel_size: float):
+def _read_label_map(path: Path, voxel_size: float, check_native=None):
+    """(labels (i, j, k) resampled to ``voxel_size``, direction D, origin (m), spacing (mm)
+    of the file). ``check_native(array, spacing_mm, sup_axis)`` sees the file's own voxels
+    (array axes k, j, i, their spacing, the axis nearest to superior) before the resampling,
+    which a spacing in the wrong unit would make allocate without bound: it checks that the
+    body is of human size (:func:`~drake_rus.anatomy.checks.check_label_map_body_size`)."""
     import SimpleITK as sitk
     if not path.is_file():
         raise FileNotFoundError(f"label map: file not found: {path}")
@@ -293,6 +314,10 @@ def _read_label_map(path: Path, voxel_size: float):
             _fail(f"label map {path}: voxel values are not integer labels (dtype {a.dtype})")
         img = sitk.Cast(img, sitk.sitkInt32)
     spacing = np.array(img.GetSpacing())
+    if check_native is not None:
+        D0 = np.array(img.GetDirection()).reshape(3, 3)
+        sup_axis = int(np.argmax(np.abs(D0[2])))                     # grid axis nearest S
+        check_native(sitk.GetArrayViewFromImage(img), spacing[::-1], 2 - sup_axis)
     target = voxel_size * 1000.0
     if np.any(np.abs(spacing - target) > 1e-6):
         size = np.round(np.array(img.GetSize()) * spacing / target).astype(int).tolist()
@@ -306,7 +331,7 @@ def _read_label_map(path: Path, voxel_size: float):
         labels = labels[:, :, ::-1]
         origin = origin + D[:, 2] * voxel_size * (labels.shape[2] - 1)
         D[:, 2] *= -1
-    return np.ascontiguousarray(labels), D, origin
+    return np.ascontiguousarray(labels), D, origin, tuple(float(x) for x in spacing)
 
 
 def patient_from_label_map(path, mapping="totalsegmentator", *, side="right",
@@ -330,10 +355,25 @@ def patient_from_label_map(path, mapping="totalsegmentator", *, side="right",
         if v not in MAPPING_NAMES:
             _fail(f"mapping: unknown label name {v!r} for value {k}; known names: "
                   f"{', '.join(sorted(MAPPING_NAMES))}")
-    raw, D, origin = _read_label_map(path, voxel_size)
+    target = (f"kidney_{side}", "kidney")
+
+    def check_native(native, spacing_mm, sup_axis):
+        # The body's size, for a map with a kidney and a body that is not inside-out; a
+        # map without them (or inverted) gets the error naming that instead.
+        kidney = np.isin(native, [k for k, v in mapping.items() if v in target])
+        if not kidney.any() or not np.isin(native, [k for k, v in mapping.items()
+                                                    if v == "body"]).any():
+            return
+        if all(kidney.take(i, axis=a).any() for a in range(3) for i in (0, -1)):
+            return
+        body = np.isin(native, [k for k, v in mapping.items() if v != "ignore"])
+        check_label_map_body_size(body, spacing_mm, sup_axis, path)
+
+    raw, D, origin, spacing = _read_label_map(path, voxel_size, check_native)
     return _patient_from_raw(raw, D, origin, mapping, path, side=side, posture=posture,
                              name=name or path.name, voxel_size=voxel_size, fat=fat,
-                             muscle=muscle, meta={"source": "label_map", "path": str(path)})
+                             muscle=muscle, meta={"source": "label_map", "path": str(path),
+                                                  "spacing_mm": list(spacing)})
 
 
 # TotalSegmentator's per-structure output files (<class>.nii.gz) -> class index, for the
@@ -387,11 +427,13 @@ def patient_from_mask_folder(directory, *, side="right", posture="supine", name=
         _fail(f"mask folder {directory}: no body mask (body.nii.gz or body_trunc.nii.gz from "
               "TotalSegmentator's 'body' task); the skin surface cannot be found without it")
     order = body_files + [k for k in files if k not in body_files]
-    raw = D = origin = None
+    raw = D = origin = spacing = None
     for key in order:
-        m, D_k, o_k = _read_label_map(files[key], voxel_size)
+        size_check = (lambda a, sp, sup, f=files[key]: check_label_map_body_size(
+            a != 0, sp, sup, f)) if key == order[0] else None
+        m, D_k, o_k, spacing_k = _read_label_map(files[key], voxel_size, size_check)
         if raw is None:
-            raw, D, origin = np.zeros(m.shape, dtype=np.int32), D_k, o_k
+            raw, D, origin, spacing = np.zeros(m.shape, dtype=np.int32), D_k, o_k, spacing_k
         elif m.shape != raw.shape or not np.allclose(D_k, D) or not np.allclose(o_k, origin):
             _fail(f"mask folder {directory}: {files[key].name} is not on the same grid as "
                   f"{files[order[0]].name}")
@@ -400,7 +442,19 @@ def patient_from_mask_folder(directory, *, side="right", posture="supine", name=
                              posture=posture, name=name or directory.name,
                              voxel_size=voxel_size, fat=fat, muscle=muscle,
                              meta={"source": "mask_folder", "path": str(directory),
-                                   "files": sorted(files)})
+                                   "files": sorted(files), "spacing_mm": list(spacing)})
+
+
+def _air_around(mask: np.ndarray, body: np.ndarray) -> float:
+    """Share of the voxels one step outside ``mask`` (within the grid) not in ``body``."""
+    idx = np.argwhere(mask)
+    lo = np.maximum(idx.min(axis=0) - 1, 0)
+    hi = idx.max(axis=0) + 2
+    box = tuple(slice(a, b) for a, b in zip(lo, hi))
+    m = mask[box]
+    shell = ndimage.binary_dilation(m) & ~m
+    n = int(shell.sum())
+    return float((shell & ~body[box]).sum() / n) if n else 0.0
 
 
 def _patient_from_raw(raw, D, origin, mapping, path, *, side, posture, name, voxel_size,
@@ -424,9 +478,18 @@ def _patient_from_raw(raw, D, origin, mapping, path, *, side, posture, name, vox
     if all(f.any() for f in faces):
         _fail(f"label map {path}: the {side} kidney touches all six faces of the grid; the "
               "label volume is inside-out (kidney and background swapped?)")
-    body = np.isin(raw, body_vals) | np.isin(raw, [k for k, v in mapping.items()
-                                                   if v not in ("ignore",) and k in present])
+    # The body: every mapped label but the target kidney, holes filled (a kidney inside the
+    # body is such a hole). A kidney that is not wholly inside is refused here, before the
+    # arms are looked for around it (checks.check_anatomy measures the same on the patient).
+    body = np.isin(raw, [k for k, v in mapping.items()
+                         if v != "ignore" and k in present and k not in kid_vals])
     body = ndimage.binary_fill_holes(body)
+    air = _air_around(kidney_mask, body)
+    if air > AIR_CONTACT_MAX:
+        raise AnatomyError(
+            f"label map {path}: the {side} kidney is not inside the body: {air:.1%} of the "
+            f"voxels around it are outside the body label (at most {AIR_CONTACT_MAX:.1%})")
+    body |= kidney_mask
     # The arms off (module docstring): slices normal to the grid axis nearest to superior.
     sup_axis = int(np.argmax(np.abs(D[2])))
     trunk = trunk_mask(body, sup_axis, np.argwhere(kidney_mask).mean(axis=0), voxel_size)

@@ -31,10 +31,16 @@ class BreathingConfig:
     amplitude at end-inspiration). Every hold_period s the patient holds their breath at
     end-expiration for hold_duration s; each hold lands within hold_reproducibility of the
     reference position (a fixed per-hold draw).
+
+    The human ranges of amplitude and rate, and the rules between the fields (a hold ends
+    before the next one starts, with at least one breath between them), are stated once in
+    :data:`drake_rus.config_schema.PHYSICAL_RANGES` and ``CROSS_FIELD_RULES``.
     """
     enabled: bool = False
-    amplitude: float = field(default=0.010, metadata={"min": 0.0, "max": 0.03})
-    rate_per_min: float = field(default=15.0, metadata={"min": 6.0, "max": 30.0})
+    # Peak-to-peak craniocaudal displacement (m).
+    amplitude: float = 0.010
+    # Breaths per minute.
+    rate_per_min: float = 15.0
     # Breath-holds: 0 disables them (free breathing only).
     hold_period: float = field(default=12.0, metadata={"min": 0.0})
     hold_duration: float = field(default=8.0, metadata={"min": 0.0})

@@ -136,6 +136,8 @@ class Patient:
             self.kidney_mesh, x_ref, y_ref)
         self.torso_center_Pt = (None if torso_center_Pt is None
                                 else np.asarray(torso_center_Pt, dtype=float).reshape(3))
+        # The figures of the anatomy checks once they passed (drake_rus.anatomy.checks).
+        self.anatomy_figures: dict | None = None
 
     # --- lazily built parts ----------------------------------------------------------------
     @property

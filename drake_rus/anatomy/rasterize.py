@@ -14,15 +14,20 @@ from pydrake.math import RigidTransform
 from scipy import ndimage
 from skimage import measure
 
-__all__ = ["rasterize_mesh", "mesh_mask_on_aligned_grid", "mask_to_mesh", "grid_around"]
+__all__ = ["rasterize_mesh", "mesh_mask_on_aligned_grid", "mask_to_mesh", "grid_around",
+           "check_grid_size", "MAX_GRID_VOXELS"]
 
 _JITTER = (1e-4 * np.pi, 1e-4 * np.e)
+# Largest grid a mesh is rasterised on (voxels; three bytes each while it is built): 0.8 m
+# cubed at 1 mm, more than any body section needs. A mesh in mm read as m asks for far more.
+MAX_GRID_VOXELS = 512 * 1024 ** 2
 
 
 def rasterize_mesh(mesh, shape, X_PtV: RigidTransform, voxel_size: float,
                    chunk: int = 4_000_000) -> np.ndarray:
     """Boolean mask (shape) of the voxels of grid (X_PtV, voxel_size) inside ``mesh`` (Pt)."""
     nx, ny, nz = (int(s) for s in shape)
+    check_grid_size(shape, voxel_size, "mesh")
     v = X_PtV.inverse().multiply(np.asarray(mesh.vertices, dtype=float).T).T / voxel_size
     tri = v[np.asarray(mesh.faces)]
     x, y, z = tri[:, :, 0], tri[:, :, 1], tri[:, :, 2]
@@ -64,6 +69,17 @@ def rasterize_mesh(mesh, shape, X_PtV: RigidTransform, voxel_size: float,
         start = stop
     parity = np.cumsum(toggles, axis=2, dtype=np.uint8)[:, :, :nz] & 1
     return parity.astype(bool)
+
+
+def check_grid_size(shape, voxel_size: float, what: str) -> None:
+    """Refuses a voxel grid larger than :data:`MAX_GRID_VOXELS` (before allocating it),
+    naming its extent: a mesh in other units than it is read in asks for such grids."""
+    n = float(np.prod(np.asarray(shape, dtype=float)))
+    if n > MAX_GRID_VOXELS:
+        ext = " x ".join(f"{s * voxel_size:.3g}" for s in shape)
+        raise ValueError(f"{what}: a voxel grid of {ext} m at {voxel_size * 1e3:g} mm voxels "
+                         f"({n:.3g} voxels, at most {MAX_GRID_VOXELS:.3g}): the mesh is far "
+                         "larger than a body; check its unit (mm read as m?)")
 
 
 def mesh_mask_on_aligned_grid(mesh, voxel_size: float, margin: float = 0.003):
