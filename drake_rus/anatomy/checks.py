@@ -36,7 +36,7 @@ from scipy import ndimage
 from drake_rus.anatomy.frames import R_PtBd
 from drake_rus.anatomy.labels import Label, LabelVolume, is_kidney
 from drake_rus.anatomy.rasterize import rasterize_mesh
-from drake_rus.template.pca import extents_in_frame
+from drake_rus.anatomy.canonical_frame import extents_in_frame
 
 __all__ = ["AnatomyError", "ANATOMY_RANGES", "AIR_CONTACT_MAX", "ORGAN_ENCLOSURE_MAX",
            "ORGAN_OVERLAP_MAX", "check_anatomy", "anatomy_figures", "kidney_surroundings",
