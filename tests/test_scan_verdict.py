@@ -143,6 +143,8 @@ def test_registration_checks():
     assert check_translation_sd(cov, 0.005).passed
     assert check_translation_sd(np.diag([0] * 3 + [1e-4] * 3), 0.005).passed is False
     assert check_translation_sd(np.full((6, 6), np.inf), 0.005).passed is False
+    assert check_translation_sd(np.full((6, 6), np.nan), 0.005).passed is False
+    assert "0.173 mm" in check_translation_sd(cov, 0.005).detail
 
 
 def test_placement_checks():

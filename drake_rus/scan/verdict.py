@@ -62,8 +62,11 @@ def _na(name: str, unit: str, rule: str, why: str) -> Check:
 
 def _judge(name, value, threshold, unit, rule, what) -> Check:
     ok = value >= threshold if rule == ">=" else value <= threshold
+    # Lengths are stored in m and shown in mm.
+    k, shown = (1e3, " mm") if unit == "m" else (1.0, "" if unit == "fraction" else f" {unit}")
     return Check(name, float(value), float(threshold), unit, rule, bool(ok),
-                 f"{what} {value:.3g} {unit} ({'' if ok else 'not '}{rule} {threshold:.3g})")
+                 f"{what} {value * k:.3g}{shown} ({'' if ok else 'not '}{rule} "
+                 f"{threshold * k:.3g})")
 
 
 # ----------------------------------------------------------------------------- (a) sweep
@@ -121,7 +124,7 @@ def check_template_coverage(surface_B, poses, visible, geometry: ProbeGeometry,
             covered |= _in_slab_and_fan(points, X, geometry, 0.5 * geometry.elevation_width)
     value = float(weights[covered].sum())
     return _judge("template_coverage", value, min_coverage, "fraction", ">=",
-                  "frames showing the kidney swept the registered kidney's volume by")
+                  "fraction of the registered kidney's volume swept by frames showing it:")
 
 
 def imaged_counts(points_B, pivot_point, a0, o, thetas, geometry: ProbeGeometry,
@@ -228,10 +231,8 @@ def check_shape_weights(b, variances, max_sd: float) -> Check:
 def check_translation_sd(covariance, max_sd: float) -> Check:
     """(c) The registration's translation uncertainty (m): the root of the trace of the
     6x6 pose covariance's translation block ([dtheta, dt] order)."""
-    cov = np.asarray(covariance, float).reshape(6, 6)
-    value = math.sqrt(max(0.0, float(np.trace(cov[3:, 3:]))))
-    if not math.isfinite(value):
-        value = math.inf
+    trace = float(np.trace(np.asarray(covariance, float).reshape(6, 6)[3:, 3:]))
+    value = math.sqrt(max(0.0, trace)) if math.isfinite(trace) else math.inf
     return _judge("translation_sd", value, max_sd, "m", "<=",
                   "registration translation uncertainty")
 
