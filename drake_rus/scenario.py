@@ -24,7 +24,7 @@ from drake_rus.hardware.config import HardwareConfig
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.localization.config import LocalizationConfig
 from drake_rus.reliability.config import FaultConfig
-from drake_rus.scan.config import StartConfig
+from drake_rus.scan.config import StartConfig, VerdictConfig
 from drake_rus.paths import DIAGRAMS_DIR
 
 __all__ = [
@@ -159,6 +159,8 @@ class Scenario:
     start: StartConfig = field(default_factory=StartConfig)
     controller: ControllerConfig = field(default_factory=ControllerConfig)
     safety: SafetyConfig = field(default_factory=SafetyConfig)
+    # The scan's checks of its own result before it says DONE (scan/verdict.py).
+    verdict: VerdictConfig = field(default_factory=VerdictConfig)
     # false: simulated station; true: a real FR3 and ultrasound machine.
     hardware: bool = False
     hardware_interface: HardwareConfig = field(default_factory=HardwareConfig)

@@ -173,6 +173,11 @@ class SupervisorState:
     pivot_angle: float = 0.0         # tilt of a_des from r3* about o_des (rad), signed
     pivot_legs_done: int = 0
     pivot_limits: tuple = ()         # tilt angles (rad) where each leg ended
+    # Why each end of the sweep was declared, in order: per pivot leg (one per pivot_limits
+    # entry) "kidney_left" (the segmentation lost the kidney for visibility_debounce) or
+    # "tilt_cap" (max_pivot_tilt reached first); a line sweep's end "kidney_left" or
+    # "max_travel" (line_sweep_max_travel). The scan's verdict reads them.
+    sweep_end_causes: tuple = ()
     # predicted_end strategy: (theta_plus, theta_minus) predicted ends (rad), the pre-tilt
     # stage in TRANSIT (0 none/not yet, 1 tilting to the target, 2 at it: checking the
     # kidney is out of the image) and side (+-1) and target tilt (rad).
@@ -406,6 +411,7 @@ def _line_sweep(s, u, R, p, cfg, dt):
             and _update_visibility(s, u, cfg.visibility_debounce))
     if left:
         s.P_des = p[:2].copy()
+        s.sweep_end_causes = ("kidney_left",)
         return _goto(s, Phase.DONE, u.t, f"line sweep complete: the kidney left the image "
                                          f"after {s.travel * 1e3:.1f} mm")
     if s.travel >= cfg.line_sweep_max_travel - 1e-12:
@@ -414,6 +420,7 @@ def _line_sweep(s, u, R, p, cfg, dt):
             s.reason = (f"line sweep: the kidney never came into view over "
                         f"{s.travel * 1e3:.1f} mm (line_sweep_max_travel)")
             return _goto(s, Phase.ABORT, u.t, s.reason)
+        s.sweep_end_causes = ("max_travel",)
         return _goto(s, Phase.DONE, u.t, f"line sweep ended at line_sweep_max_travel "
                                          f"{s.travel * 1e3:.1f} mm, the kidney still seen")
     if not u.motion_allowed:
@@ -560,6 +567,7 @@ def _pretilt(s, u, R, cfg, dt):
     if gone or at_tilt:
         why = "kidney out of the image" if gone else "maximum tilt"
         s.pivot_limits = (s.pivot_angle,)
+        s.sweep_end_causes = ("kidney_left" if gone else "tilt_cap",)
         s.pivot_legs_done = 1
         s.expect_invisible = True
         return _start_pivot(s, u.t, f"from the predicted end at "
@@ -649,6 +657,8 @@ def _pivot(s, u, R, p, cfg, dt):
     if (left and on_new_side) or at_tilt:
         why = "kidney left the image" if (left and on_new_side) else "maximum tilt"
         s.pivot_limits = s.pivot_limits + (s.pivot_angle,)
+        s.sweep_end_causes = s.sweep_end_causes + (
+            "kidney_left" if (left and on_new_side) else "tilt_cap",)
         s.pivot_legs_done += 1
         s.events = s.events + ((u.t, "PIVOT",
                                 f"leg {s.pivot_legs_done} ended at "

@@ -3,7 +3,19 @@
 land -> EXPLORE (transverse sweep at v_scan with image centring, eq. 17, collecting the partial
 cloud) -> LOCALIZE (template registration, eq. 18-19) -> TRANSIT (slide to the optimal pivot
 pose, eq. 20-22) -> PIVOT (eq. 23, bounded by the segmentation) -> DONE, or ABORT with a
-reason. Writes summary.json, the clouds, plots and a Meshcat recording to --out.
+reason. Before it says DONE the scan checks its own result (summary.json "checks"; the
+scenario's verdict section): the kidney left the image at both ends of the pivot, what the
+segmentation saw agrees with the registered template, and the registration is sound.
+Writes summary.json, the clouds, plots and a Meshcat recording to --out.
+
+status (summary.json) and exit status:
+  DONE         0    the scan finished and passed every check of its result
+  INCOMPLETE   1    it finished, but a check failed (the reason names it and its figure)
+  ABORT        1    stopped on the way: safety stop, localization failed, timeout of a
+                    phase, kidney moved, ... (the reason says which)
+  TIMEOUT      1    still scanning at --max-sim-time
+  INTERRUPTED  130  stopped with Ctrl-C; a partial summary.json only
+  (bad input)  2    a bad argument, scenario field, patient or template: nothing written
 """
 
 import argparse

@@ -42,6 +42,10 @@ METRIC_DEFINITIONS = {
                             "probe travel mm, estimated length mm; null: the fit failed its "
                             "checks); with exploration_length: estimated, EXPLORE ends at "
                             "exploration_ratio x the latest estimate",
+    "checks": "the scan's checks of its own result (scan/verdict.py, thresholds in the "
+              "scenario's verdict section), from what a real station has, never the truth: "
+              "value, threshold and unit, rule (which way passes), passed (null: not "
+              "applicable), detail; a DONE scan with a failed check ends INCOMPLETE",
     "sweep": "the frames the costs count: the PIVOT phase's, or with controller.sweep: line "
              "the EXPLORE phase's (then 'whole pivot' is the whole line); sweep.pivot_pose "
              "says where the pivot pivoted (registered T* or a given controller.pivot_pose)",
@@ -187,6 +191,9 @@ def Summary(result: ScanResult, metrics: dict) -> dict:
     force = result.logs["force"][1][0]
     return {
         "status": result.status, "reason": result.reason, "patient": result.patient,
+        # The scan's checks of its own result (scan/verdict.py): DONE only if none failed.
+        "checks": {c.name: {k: v for k, v in c.as_dict().items() if k != "name"}
+                   for c in getattr(result, "checks", [])},
         "e_trans_mm": metrics["e_trans_mm"], "e_rot_x_deg": metrics["e_rot_x_deg"],
         "eps_mm": metrics["eps_mm"], "n_frames": metrics["n_frames"],
         "volume_ratio": metrics["volume_ratio"],

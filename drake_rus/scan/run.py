@@ -4,7 +4,8 @@
 stand-in for the paper's manual probe placement), builds the station with ``make_station``
 (default ``drake_rus.stations.MakeStation``; a caller may pass a wrapped station, e.g. with
 faults), the scan diagram and the simulation-truth observer, runs it until DONE, ABORT or
-``max_sim_time`` and returns a :class:`ScanResult`. ``monitors`` watch every simulator step.
+``max_sim_time``, checks a DONE result (``scan.verdict``: INCOMPLETE when a check fails) and
+returns a :class:`ScanResult`. ``monitors`` watch every simulator step.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from drake_rus.progress import AdvanceWithProgress
 from drake_rus.robot import IkError, MakeControlPlant, SolveTipPose
 from drake_rus.scan.diagram import BuildScanDiagram, ScanHandles
 from drake_rus.scan.truth import AttachSimulationTruth, SimulationTruth
+from drake_rus.scan.verdict import JudgeScan, Verdict
 from drake_rus.stations import MakeStation
 
 __all__ = ["RunScan", "ExpectedScanTime", "PrepareScenario", "ScanResult", "ScanMonitor",
@@ -66,7 +68,9 @@ class ScanMonitor:
 @dataclasses.dataclass
 class ScanResult:
     """A finished scan: outcome, timing, what was recorded, and the truth if simulated."""
-    status: str                    # "DONE", "ABORT", "TIMEOUT" or "INTERRUPTED" (Ctrl-C)
+    # "DONE", "INCOMPLETE" (ran to its end but failed a check of its result, ``checks``),
+    # "ABORT", "TIMEOUT" or "INTERRUPTED" (Ctrl-C)
+    status: str
     reason: str
     patient: str
     sim_s: float
@@ -95,6 +99,13 @@ class ScanResult:
     # The localizer's kidney-length estimates during EXPLORE: ((time s, travel m, length m
     # or NaN), ...); empty without length estimation.
     length_checks: tuple = ()
+    # The supervisor's account of the sweep's ends: tilt angles (rad, from r3*) where each
+    # pivot leg ended and why each end was declared (SupervisorState.sweep_end_causes).
+    pivot_limits: tuple = ()
+    sweep_end_causes: tuple = ()
+    # The scan's own checks of its result before it may say DONE (scan/verdict.py):
+    # a list of Check; empty when the scan did not reach DONE.
+    checks: list = dataclasses.field(default_factory=list)
 
     @property
     def X_BK_true(self) -> RigidTransform | None:
@@ -199,7 +210,8 @@ def CollectScanResult(scenario, patient_name: str, template, handles: ScanHandle
         registered_template_B=registered, logs=logs, safety_events=events, scenario=scenario,
         truth=truth, sweep_masks=dict(h.recorder.sweep_masks),
         tracking_drift=h.tracking.state(h.tracking.GetMyContextFromRoot(root_context)).history,
-        length_checks=h.localizer.length_checks(h.localizer.GetMyContextFromRoot(root_context)))
+        length_checks=h.localizer.length_checks(h.localizer.GetMyContextFromRoot(root_context)),
+        pivot_limits=tuple(state.pivot_limits), sweep_end_causes=tuple(state.sweep_end_causes))
 
 
 def RunScan(scenario, patient, template, *, make_station: Callable = MakeStation,
@@ -317,4 +329,8 @@ def RunScan(scenario, patient, template, *, make_station: Callable = MakeStation
         result.reason = (f"the diagram fell {behind[0]:.2f} s behind real time at "
                          f"{t_end:.2f} s (safety.realtime_lag {scenario.safety.realtime_lag:g}"
                          " s): stopped at zero velocity")
+    # DONE only if the result passes its own checks (scan/verdict.py; never the truth).
+    result.checks = JudgeScan(result, template)
+    if result.status == "DONE":
+        result.status, result.reason = Verdict(result.checks)
     return result
