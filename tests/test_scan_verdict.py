@@ -290,9 +290,9 @@ def test_patient_rolled_180_deg_is_not_done(test0):
     must not end DONE."""
     from drake_rus.scan import RunScan, ScanMetrics
     patient, template, _ = test0
-    scenario = LoadScenario(scenario_name="quick", scenario_text=(
-        "{patient: {X_BPt: {translation: [0.55, 0, 0], rotation: !Rpy {deg: [180, 0, 0]}}}}"))
     try:
+        scenario = LoadScenario(scenario_name="quick", scenario_text=(
+            "{patient: {X_BPt: {translation: [0.55, 0, 0], rotation: !Rpy {deg: [180, 0, 0]}}}}"))
         result = RunScan(scenario, patient, template, progress=False, max_sim_time=60.0)
     except ValueError as e:      # ScenarioError, StartPlanError, IkError: refused up front
         assert "X_BPt" in str(e) or "patient" in str(e), e
