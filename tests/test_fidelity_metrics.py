@@ -170,11 +170,12 @@ def test_critical_er_rules_on_constructed_tables():
     none = _rows({0.5: False, 0.9: False, 1.0: True})
     assert analysis.critical_er(none, rule="paper") == 1.0
     assert analysis.critical_er(none, rule="strict") == 1.0
-    # A failing rotation error alone fails the ER; a NaN p (too few patients) passes.
+    # A failing rotation error alone fails the ER; a NaN p (too few patients to test)
+    # does not pass (it once did, and one patient gave "critical ER 0%").
     rows = [{"er": 0.3, "p_e_trans": 0.5, "p_e_rot_x": 0.01},
             {"er": 0.6, "p_e_trans": float("nan"), "p_e_rot_x": 0.2},
             {"er": 1.0, "p_e_trans": 1.0, "p_e_rot_x": 1.0}]
-    assert analysis.critical_er(rows, rule="paper") == 0.6
+    assert analysis.critical_er(rows, rule="paper") == 1.0
     with pytest.raises(ValueError, match="rule"):
         analysis.critical_er(rows, rule="lenient")
 

@@ -188,8 +188,11 @@ def test_tiny_paper_study_outputs(tiny_paper):
 def test_study_resumes_without_rerunning(tiny_paper):
     code, out = tiny_paper
     stamps = {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*.json")}
+    # The same settings (the reconstruction grid only changes efficiency runs): nothing
+    # runs again, and the starts run at the er-sweep's critical ER.
     assert main(["study", "starts", "--patients", "test:2", "--starts", "2", "--out", str(out),
-                 "--workers", "0", "--no-progress"]) == 0
+                 "--workers", "0", "--no-progress",
+                 "--set", "{localization: {max_points: 1500}}"]) == 0
     assert {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*.json")} == stamps
 
 

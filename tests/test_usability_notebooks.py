@@ -48,7 +48,7 @@ def test_paper_notebook_draws_a_small_study(tmp_path, monkeypatch):
     """A tiny kinematic er-sweep (one patient, two ERs, coarse voxels), then the notebook."""
     from drake_rus.cli import main
     study = tmp_path / "study"
-    assert main(["study", "er-sweep", "--patients", "test:0", "--ers", "0.3,0.6",
+    assert main(["study", "er-sweep", "--patients", "test:0", "--ers", "0.6,1",
                  "--workers", "0", "--voxel", "0.004", "--out", str(study),
                  "--no-progress"]) == 0
     monkeypatch.setenv("DRAKE_RUS_STUDY_DIR", str(study))

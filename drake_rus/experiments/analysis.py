@@ -5,7 +5,11 @@
   (:func:`critical_er`), rule ``paper`` (default, the seed's IV-A): the smallest ER at which
   neither error differs significantly from ER 100% (p > 0.05); rule ``strict`` (ours, an
   option): the smallest ER from which on EVERY larger ER passes too (guards against a lucky
-  low ER).
+  low ER). Beside it, what a reader needs to weigh it (issue 27): the ER-100% floor, the
+  paired effect size (Cohen's d_z, :func:`cohens_dz`) and the test's power
+  (:func:`paired_t_power`, noncentral t) at each ER, equivalence to ER 100% within a clinical
+  margin (:func:`tost_paired`, two one-sided paired t-tests) and the sample size below which
+  the critical ER is weakly supported (:func:`minimum_patients`, from a power calculation).
 - :func:`analyze_starts` (III-D, Fig. 9d): pairwise paired t-tests of the random starts
   over patients with Bonferroni correction (5 starts, 10 pairs: p < 0.005).
 - :func:`analyze_template` (beyond the paper): errors against the template's distance from
@@ -23,9 +27,12 @@
 
 from __future__ import annotations
 
+import functools
+import math
 import re
 
 import numpy as np
+from scipy import stats
 from scipy.stats import ttest_rel
 
 # Strategies of the efficiency study, in table order: the paper's four (III-E), then ours
@@ -47,6 +54,19 @@ PAPER = {
                    "eps_extra_vs_GT_OP_mm": (11.71, 12.60)},
     "volume_loa": "+-18% limits of agreement, freehand 3-D US vs MRI (Bakker 1999)",
 }
+# The paper's ER study: 15 simulated patients, paired t-tests at alpha 0.05 (III-C, IV-A).
+PAPER_PATIENTS = 15
+ALPHA = 0.05
+# The two errors of the ER sweep: (result key, unit, default clinical equivalence margin).
+# +-5 mm / +-5 deg: the margin the report states (a CLI option, --margin-mm/--margin-deg).
+ERRORS = (("e_trans_mm", "mm", 5.0), ("e_rot_x_deg", "deg", 5.0))
+DEFAULT_MARGINS = {k: m for k, _, m in ERRORS}
+# The minimum sample size of the ER study: the smallest n at which a two-sided paired t-test
+# at ALPHA has MIN_N_POWER power to detect a large paired effect, Cohen's d_z = MIN_N_EFFECT
+# (15 patients: the paper's own number). Below it, "no significant difference" is weak
+# evidence (it would miss even a large effect more often than 1 time in 5).
+MIN_N_EFFECT = 0.8
+MIN_N_POWER = 0.8
 
 
 def paired_p(a, b) -> float:
@@ -69,6 +89,121 @@ def mean_sd(v) -> tuple[float, float]:
     return float(v.mean()), float(v.std(ddof=1)) if len(v) > 1 else 0.0
 
 
+# ------------------------------------------------------------------------------- power
+def cohens_dz(differences) -> float:
+    """Cohen's d_z of paired differences: their mean over their SD (ddof 1). NaN for fewer
+    than two; with zero SD, 0 (all differences zero) or +-inf."""
+    d = np.asarray(differences, float)
+    if len(d) < 2:
+        return float("nan")
+    sd = float(d.std(ddof=1))
+    mean = float(d.mean())
+    if sd == 0 or not np.isfinite(sd):
+        return 0.0 if mean == 0 else math.copysign(math.inf, mean)
+    return mean / sd
+
+
+def paired_t_power(d_z: float, n: int, alpha: float = ALPHA) -> float:
+    """Power of the two-sided paired t-test at ``alpha`` with ``n`` pairs against a true
+    effect ``d_z``: P(|T| > t_(1-alpha/2, n-1)) with T noncentral t, n - 1 degrees of
+    freedom, noncentrality d_z sqrt(n). NaN for n < 2 or a NaN effect; 1 for an infinite
+    one."""
+    if n < 2 or not np.isfinite(alpha) or d_z is None or np.isnan(d_z):
+        return float("nan")
+    if np.isinf(d_z):
+        return 1.0
+    df = n - 1
+    t_crit = stats.t.isf(alpha / 2, df)
+    ncp = abs(float(d_z)) * math.sqrt(n)
+    upper = float(stats.nct.sf(t_crit, df, ncp))
+    # The far tail, P(T < -t_crit) <= P(Z + ncp < 0) = Phi(-ncp): scipy's noncentral t
+    # returns NaN there for large ncp, where it is below that bound anyway.
+    lower = float(stats.nct.cdf(-t_crit, df, ncp))
+    bound = float(stats.norm.cdf(-ncp))
+    lower = min(lower, bound) if np.isfinite(lower) else bound
+    if not np.isfinite(upper):
+        return float("nan")
+    return min(1.0, upper + lower)
+
+
+def paired_n_for_power(d_z: float, power: float = MIN_N_POWER, alpha: float = ALPHA,
+                       n_max: int = 100_000) -> int | None:
+    """The smallest number of pairs n >= 2 at which the two-sided paired t-test at ``alpha``
+    reaches ``power`` against an effect ``d_z`` (None: not within ``n_max``)."""
+    if not (np.isfinite(d_z) and d_z != 0):
+        return 2 if np.isinf(d_z) else None
+    lo, hi = 2, 2
+    while paired_t_power(d_z, hi, alpha) < power:      # power grows with n: bracket, bisect
+        if hi >= n_max:
+            return None
+        lo, hi = hi, min(n_max, hi * 2)
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if paired_t_power(d_z, mid, alpha) >= power:
+            hi = mid
+        else:
+            lo = mid + 1
+    return hi
+
+
+@functools.cache
+def minimum_patients(effect: float = MIN_N_EFFECT, power: float = MIN_N_POWER,
+                     alpha: float = ALPHA) -> int:
+    """The ER study's minimum number of patients (:data:`MIN_N_EFFECT`)."""
+    return paired_n_for_power(effect, power, alpha)
+
+
+def minimum_patients_text() -> str:
+    return (f"{minimum_patients()} patients: the smallest n at which a two-sided paired "
+            f"t-test at alpha {ALPHA:g} has {MIN_N_POWER:.0%} power to detect a large "
+            f"paired effect (Cohen's d_z = {MIN_N_EFFECT:g})")
+
+
+def tost_paired(differences, margin: float, alpha: float = ALPHA) -> dict:
+    """Equivalence of paired measurements within +-``margin`` by two one-sided paired
+    t-tests (TOST): H0 mean difference <= -margin, and >= +margin. ``p`` is the larger of
+    the two one-sided p-values; ``equivalent`` if p < alpha, i.e. the (1 - 2 alpha)
+    confidence interval of the mean difference (``ci``) lies inside (-margin, margin)."""
+    d = np.asarray(differences, float)
+    n = len(d)
+    out = {"margin": float(margin), "n": int(n), "p": float("nan"), "equivalent": False,
+           "ci": (float("nan"), float("nan")), "mean": float("nan")}
+    if n < 2:
+        return out
+    mean, sd = float(d.mean()), float(d.std(ddof=1))
+    out["mean"] = mean
+    if sd == 0:
+        inside = -margin < mean < margin
+        out.update(p=0.0 if inside else 1.0, equivalent=bool(inside), ci=(mean, mean))
+        return out
+    se = sd / math.sqrt(n)
+    df = n - 1
+    p_lower = float(stats.t.sf((mean + margin) / se, df))   # H0: mean <= -margin
+    p_upper = float(stats.t.cdf((mean - margin) / se, df))  # H0: mean >= +margin
+    half = float(stats.t.isf(alpha, df)) * se
+    p = max(p_lower, p_upper)
+    out.update(p=p, equivalent=bool(p < alpha), ci=(mean - half, mean + half))
+    return out
+
+
+def d_z_from_p(p: float, n: int) -> float:
+    """The paired effect size |d_z| that a two-sided paired t-test with ``n`` pairs turns
+    into the p-value ``p``: t_(1-p/2, n-1) / sqrt(n) (e.g. the paper's, from its p)."""
+    return float(stats.t.isf(p / 2, n - 1) / math.sqrt(n))
+
+
+def paper_er_power() -> dict:
+    """The paper's ER test at 60% read back through the t distribution: its p-values with
+    its 15 patients give the observed |d_z| of each error and the power of its test against
+    that effect."""
+    out = {}
+    for key, p in (("e_trans_mm", PAPER["er_sweep"]["p_e_trans_at_60"]),
+                   ("e_rot_x_deg", PAPER["er_sweep"]["p_e_rot_at_60"])):
+        d = d_z_from_p(p, PAPER_PATIENTS)
+        out[key] = {"p": p, "d_z": d, "power": paired_t_power(d, PAPER_PATIENTS)}
+    return out
+
+
 CRITICAL_ER_RULES = {
     "paper": "the smallest ER at which neither E_trans nor E_rot,x differs from ER 100% "
              "(paired t-test, p > alpha): the seed's rule (IV-A)",
@@ -77,47 +212,79 @@ CRITICAL_ER_RULES = {
 }
 
 
+def _testable(row: dict) -> bool:
+    """At least two paired runs and both p-values: a paired test was possible."""
+    return row.get("n", 2) >= 2 and all(np.isfinite(row[k]) for k in ("p_e_trans", "p_e_rot_x"))
+
+
 def _passes(row: dict, alpha: float) -> bool:
-    """Neither error significantly different from the reference (NaN p: too few to test)."""
-    return all(not np.isfinite(row[k]) or row[k] > alpha for k in ("p_e_trans", "p_e_rot_x"))
+    """Neither error significantly different from the reference (and a test was possible:
+    one patient says nothing)."""
+    return _testable(row) and all(row[k] > alpha for k in ("p_e_trans", "p_e_rot_x"))
 
 
-def critical_er(rows: list[dict], alpha: float = 0.05, rule: str = "paper") -> float:
-    """The critical ER of rows (``er``, ``p_e_trans``, ``p_e_rot_x``; any order) under
-    ``rule`` (:data:`CRITICAL_ER_RULES`); the largest ER (the reference) when none passes."""
+def _smallest(rows: list[dict], ok, rule: str) -> float | None:
+    """The smallest ER whose row is ``ok`` (rule "paper") or from which on every row is
+    (rule "strict"); None when there is none."""
+    rows = sorted(rows, key=lambda r: r["er"])
+    if rule == "paper":
+        return next((r["er"] for r in rows if ok(r)), None)
+    found = None
+    for row in reversed(rows):
+        if not ok(row):
+            break
+        found = row["er"]
+    return found
+
+
+def critical_er(rows: list[dict], alpha: float = ALPHA, rule: str = "paper") -> float | None:
+    """The critical ER of rows (``er``, ``n``, ``p_e_trans``, ``p_e_rot_x``; any order) under
+    ``rule`` (:data:`CRITICAL_ER_RULES`): None when no ER can be tested (fewer than two
+    paired runs), else at worst the reference itself."""
     if rule not in CRITICAL_ER_RULES:
         raise ValueError(f"critical-ER rule: expected one of {', '.join(CRITICAL_ER_RULES)}, "
                          f"got {rule!r}")
-    rows = sorted(rows, key=lambda r: r["er"])
     if not rows:
         raise ValueError("critical ER: no rows")
-    if rule == "paper":
-        return next((r["er"] for r in rows if _passes(r, alpha)), rows[-1]["er"])
-    critical = rows[-1]["er"]
-    for row in reversed(rows):
-        if not _passes(row, alpha):
-            break
-        critical = row["er"]
-    return critical
+    return _smallest(rows, lambda r: _passes(r, alpha), rule)
 
 
-def analyze_er_sweep(results: list[dict], alpha: float = 0.05, rule: str = "paper") -> dict:
-    """Per ER: mean/SD of both errors, paired p-values against ER 100%; the critical ER under
-    ``rule`` ("paper" or "strict", :func:`critical_er`) and under both rules."""
+def equivalence_er(rows: list[dict], rule: str = "paper") -> float | None:
+    """The smallest ER equivalent to ER 100% in both errors (TOST within the margins, the
+    rows' ``equivalent_*``) under ``rule`` (as :func:`critical_er`); None if none is."""
+    keys = [f"equivalent_{k}" for k, _, _ in ERRORS]
+    return _smallest(rows, lambda r: all(r.get(k) for k in keys), rule)
+
+
+REFERENCE_ER = 1.0
+
+
+def analyze_er_sweep(results: list[dict], alpha: float = ALPHA, rule: str = "paper",
+                     margins: dict | None = None) -> dict:
+    """Per ER: mean/SD of both errors, paired p-values against the reference ER 100% (the
+    paper's), and per error the paired differences (mean, SD), Cohen's d_z, the power of
+    the paired t-test at ``alpha`` against that effect with that n, and equivalence (TOST)
+    within ``margins`` ({"e_trans_mm": mm, "e_rot_x_deg": deg}, default +-5 / +-5); the
+    critical ER under ``rule`` ("paper" or "strict", :func:`critical_er`) and both rules,
+    the equivalence ER likewise, the ER-100% floor, the number of patients against
+    :func:`minimum_patients`, and the paper's test read back the same way."""
+    margins = dict(DEFAULT_MARGINS, **(margins or {}))
     by = {}
     for r in results:
         by.setdefault(round(r["er"], 3), {})[r["patient"]] = r
     ers = sorted(by)
     if not ers:
         raise ValueError("er-sweep: no results")
-    ref_er = max(ers)
-    ref = by[ref_er]
+    if REFERENCE_ER not in by:
+        raise ValueError("er-sweep: no run at the reference ER 100% (every ER is compared "
+                         "with it); --ers must include 1")
+    ref = by[REFERENCE_ER]
     rows = []
     for er in ers:
         common = sorted(set(by[er]) & set(ref))
         et = [by[er][p]["e_trans_mm"] for p in common]
         erx = [by[er][p]["e_rot_x_deg"] for p in common]
-        rows.append({
+        row = {
             "er": er, "n": len(common),
             "e_trans_mm_mean": mean_sd(et)[0], "e_trans_mm_sd": mean_sd(et)[1],
             "e_rot_x_deg_mean": mean_sd(erx)[0], "e_rot_x_deg_sd": mean_sd(erx)[1],
@@ -125,17 +292,75 @@ def analyze_er_sweep(results: list[dict], alpha: float = 0.05, rule: str = "pape
             "p_e_rot_x": paired_p(erx, [ref[p]["e_rot_x_deg"] for p in common]),
             "registration_ms_mean": mean_sd([by[er][p]["registration_ms"] for p in common])[0],
             "points_mean": mean_sd([by[er][p]["points"] for p in common])[0],
-        })
+        }
+        for key, _, _ in ERRORS:
+            diff = np.asarray([by[er][p][key] - ref[p][key] for p in common], float)
+            dz = cohens_dz(diff)
+            tost = tost_paired(diff, margins[key], alpha)
+            row.update({f"diff_{key}_mean": mean_sd(diff)[0],
+                        f"diff_{key}_sd": mean_sd(diff)[1],
+                        f"dz_{key}": dz, f"power_{key}": paired_t_power(dz, len(common), alpha),
+                        f"tost_p_{key}": tost["p"], f"equivalent_{key}": tost["equivalent"],
+                        f"ci90_{key}_low": tost["ci"][0], f"ci90_{key}_high": tost["ci"][1]})
+        rows.append(row)
     both = {k: critical_er(rows, alpha, k) for k in CRITICAL_ER_RULES}
+    equiv = {k: equivalence_er(rows, k) for k in CRITICAL_ER_RULES}
     units = sorted({str(r.get("er_unit", "fixed")) for r in results})
     lengths = [r["kidney_length_mm"] for r in results if r.get("kidney_length_mm") is not None]
-    return {"rows": rows, "critical_er": both[rule], "rule": rule,
+    reference = next(r for r in rows if r["er"] == REFERENCE_ER)
+    n = reference["n"]
+    minimum = minimum_patients()
+    critical = both[rule]
+    return {"rows": rows, "critical_er": critical, "rule": rule,
             "rule_text": CRITICAL_ER_RULES[rule],
             "critical_er_paper_rule": both["paper"], "critical_er_strict_rule": both["strict"],
-            "first_not_significant_er": both["paper"], "reference_er": ref_er, "alpha": alpha,
+            "first_not_significant_er": both["paper"], "reference_er": REFERENCE_ER,
+            "alpha": alpha,
+            "equivalence_er": equiv[rule], "equivalence_er_paper_rule": equiv["paper"],
+            "equivalence_er_strict_rule": equiv["strict"], "margins": margins,
+            "floor": {key: mean_sd([ref[p][key] for p in ref]) for key, _, _ in ERRORS},
+            "patients": n, "paired_runs_per_er": {f"{r['er']:g}": r["n"] for r in rows},
+            "min_patients": minimum, "min_patients_text": minimum_patients_text(),
+            "below_minimum": bool(n < minimum),
+            "critical_row": next((r for r in rows if r["er"] == critical), None),
+            "paper_power": paper_er_power(),
             "er_unit": units[0] if len(units) == 1 else units,
             "kidney_length_mm": (mean_sd(lengths), float(min(lengths)), float(max(lengths)))
             if lengths else None}
+
+
+def critical_er_summary(an: dict) -> str:
+    """One line for the console: the critical ER with its n, the floor, the effect and
+    power there, and the equivalence ER."""
+    def pct(er):
+        return "not determined" if er is None else f"{er * 100:.0f}%"
+    fl = an["floor"]
+    m = an["margins"]
+    line = (f"critical ER {pct(an['critical_er'])} ({an['rule']} rule; n = {an['patients']} "
+            f"patients, one paired run each per ER against ER 100%); floor at ER 100%: E_trans "
+            f"{fl['e_trans_mm'][0]:.2f} +- {fl['e_trans_mm'][1]:.2f} mm, E_rot,x "
+            f"{fl['e_rot_x_deg'][0]:.2f} +- {fl['e_rot_x_deg'][1]:.2f} deg")
+    row = an.get("critical_row")
+    if row is not None and row["er"] != an["reference_er"]:
+        line += (f"; at {pct(row['er'])}: d_z {row['dz_e_trans_mm']:.2f} / "
+                 f"{row['dz_e_rot_x_deg']:.2f}, power {row['power_e_trans_mm']:.2f} / "
+                 f"{row['power_e_rot_x_deg']:.2f}")
+    line += (f"; equivalent to ER 100% within +-{m['e_trans_mm']:g} mm / "
+             f"+-{m['e_rot_x_deg']:g} deg (TOST) from ER {pct(an['equivalence_er'])}")
+    return line
+
+
+def sample_size_warning(an: dict) -> str | None:
+    """The warning when the ER study has fewer patients than :func:`minimum_patients`."""
+    if not an.get("below_minimum"):
+        return None
+    n = an["patients"]
+    reason = ("a paired test needs at least 2" if n < 2 else
+              f"its power to detect even a large effect (d_z {MIN_N_EFFECT:g}) is "
+              f"{paired_t_power(MIN_N_EFFECT, n):.2f}")
+    return (f"warning: the critical ER rests on {n} patient(s), below the minimum of "
+            f"{an['min_patients']} ({reason}): a 'no significant difference' is weak "
+            "evidence here")
 
 
 def analyze_starts(results: list[dict], alpha: float = 0.05) -> dict:

@@ -5,9 +5,13 @@ with ``--mode closed-loop``, a full closed-loop scan on the Drake diagram (same 
 tables, figures and report in OUT/closed-loop, runs in OUT/runs beside the kinematic ones,
 and ``paper``'s report puts both modes side by side when both are in OUT). Runs go through
 Dask:
-an embedded LocalCluster of ``--workers`` processes by default, or ``--scheduler
-tcp://HOST:PORT``. Each run's result is written to OUT/runs/ as it finishes; running the
-same command again resumes (finished runs are skipped). Tables (CSV), figures (PNG) and,
+an embedded LocalCluster of ``--workers`` processes by default (at most as many as the CPUs
+and memory allow; on 127.0.0.1, no dashboard), or ``--scheduler tcp://HOST:PORT``. Ctrl-C
+ends the study and its workers (exit 130). Each run's result is written to OUT/runs/ as it
+finishes, with its settings key and provenance; running the same command again resumes
+(finished runs with the same settings are skipped; a run of the same name made with other
+settings is set aside under OUT/runs/superseded and run again). Tables and reports take
+their labels from the runs. Tables (CSV), figures (PNG) and,
 for ``paper``, ``efficiency`` and ``template``, ``report.md`` go to OUT (OUT/closed-loop);
 with both modes' runs in OUT, ``paper``'s and ``efficiency``'s put them side by side.
 """
@@ -22,9 +26,11 @@ import sys
 import time
 from pathlib import Path
 
-from drake_rus.batch import result_path, run_tasks
+from drake_rus import batch
+from drake_rus.batch import bound_workers, run_tasks
 from drake_rus.demo import add_scenario_arguments
-from drake_rus.experiments.analysis import STRATEGY_ORDER
+from drake_rus.experiments.analysis import (
+    DEFAULT_MARGINS, STRATEGY_ORDER, critical_er_summary, sample_size_warning)
 from drake_rus.experiments.report import (
     CLOSED_LOOP, KINEMATIC, report_markdown, write_closed_loop_outputs,
     write_efficiency_outputs, write_er_sweep_outputs, write_starts_outputs,
@@ -32,12 +38,14 @@ from drake_rus.experiments.report import (
 from drake_rus.experiments.analysis import (
     analyze_efficiency, analyze_er_sweep, analyze_starts)
 from drake_rus.experiments.tasks import (
-    ER_GRID, MODES, POSTURES, TEMPLATE_VARIANTS, StudyOptions, check_strategies, closed_loop_tasks,
-    default_strategies, efficiency_tasks, er_sweep_tasks, expand_patients, load_study_results,
-    population_of_variant, run_id, run_task, starts_tasks, template_tasks)
+    ER_GRID, MODES, POSTURES, TEMPLATE_VARIANTS, StudyOptions,
+    check_strategies, closed_loop_tasks, default_strategies, efficiency_tasks, er_sweep_tasks,
+    expand_patients, inputs_digest, load_study_results, population_of_variant, results_of,
+    run_id, run_settings, run_task, settings_of, starts_tasks, task_key, template_tasks)
 from drake_rus.template.population import population_template
 from drake_rus.io_utils import MB, dumps_strict, output_dir, write_text_atomic
 from drake_rus.progress import stderr_is_terminal
+from drake_rus.provenance import Provenance
 from drake_rus.scenario import LoadScenario
 
 # About what a study writes (bytes): per-run JSON, tables, figures, NRRD volumes.
@@ -72,7 +80,8 @@ def add_commands(subparsers) -> None:
                                                                 f"(default reports/{name})")
         q.add_argument("--workers", type=int, default=2,
                        help="Dask worker processes of the embedded cluster (default 2; 0 = "
-                            "run in this process)")
+                            "run in this process; capped at the CPUs available and at about "
+                            "1 GB of free memory per worker)")
         q.add_argument("--scheduler", default=None,
                        help="address of an existing Dask scheduler, e.g. tcp://host:8786")
         q.add_argument("--segmenter", default="oracle", choices=["oracle", "classical", "onnx"],
@@ -110,7 +119,15 @@ def add_commands(subparsers) -> None:
                                 "as NRRD")
         if name in ("er-sweep", "paper"):
             q.add_argument("--ers", default=None,
-                           help="comma list of exploration ratios (default 0,0.1,...,1)")
+                           help="comma list of exploration ratios in [0, 1], including the "
+                                "reference 1 (ER 100%%, which every ER is compared with) "
+                                "(default 0,0.1,...,1)")
+            q.add_argument("--margin-mm", type=float, default=DEFAULT_MARGINS["e_trans_mm"],
+                           help="clinical equivalence margin of E_trans against ER 100%% in "
+                                "mm, for the equivalence test (TOST) beside the critical ER "
+                                "(default %(default)g)")
+            q.add_argument("--margin-deg", type=float, default=DEFAULT_MARGINS["e_rot_x_deg"],
+                           help="the same for E_rot,x in degrees (default %(default)g)")
         if name == "template":
             q.add_argument("--variants", default=",".join(TEMPLATE_VARIANTS),
                            help="comma list of template variants: mean, scale-S, single:K, "
@@ -136,16 +153,35 @@ def add_commands(subparsers) -> None:
         q.set_defaults(func=run_study_command, outputs={"out": "dir"})
 
 
+ERS_EXPECTED = ("a non-empty comma list of exploration ratios in [0, 1] that includes the "
+                "reference 1 (ER 100%, which every ER is compared with), e.g. 0,0.3,0.6,1")
+
+
 def _ers(text):
-    if not text:
+    """The ER grid of ``--ers`` (None: the default 0, 0.1, ..., 1), sorted; raises ValueError
+    naming ``--ers`` unless it is a non-empty list of finite numbers in [0, 1] with 1."""
+    if text is None:
         return list(ER_GRID)
     try:
-        ers = sorted({round(float(x), 4) for x in text.split(",") if x.strip()})
+        ers = sorted({round(float(x), 4) for x in str(text).split(",") if x.strip()})
     except ValueError:
-        raise ValueError(f"--ers: expected a comma list of numbers in [0, 1], got {text!r}") from None
-    if not ers or ers[0] < 0 or ers[-1] > 1:
-        raise ValueError(f"--ers: values must lie in [0, 1], got {text!r}")
+        raise ValueError(f"--ers: expected {ERS_EXPECTED}, got {text!r}") from None
+    if not ers or not all(math.isfinite(x) and 0 <= x <= 1 for x in ers) or ers[-1] != 1:
+        raise ValueError(f"--ers: expected {ERS_EXPECTED}, got {text!r}")
     return ers
+
+
+def _margins(args) -> dict:
+    """The clinical equivalence margins of ``--margin-mm`` / ``--margin-deg``."""
+    out = {}
+    for key, flag in (("e_trans_mm", "margin_mm"), ("e_rot_x_deg", "margin_deg")):
+        v = getattr(args, flag, DEFAULT_MARGINS[key])
+        if not (math.isfinite(v) and v > 0):
+            unit = "mm" if key == "e_trans_mm" else "deg"
+            raise ValueError(f"--{flag.replace('_', '-')}: expected a positive margin in "
+                             f"{unit}, got {v}")
+        out[key] = float(v)
+    return out
 
 
 def _options(args):
@@ -177,12 +213,20 @@ def _mode_dir(out: Path, mode: str) -> Path:
     return out
 
 
+def _without(settings: dict, *keys) -> dict:
+    return {k: v for k, v in settings.items() if k not in keys}
+
+
 def _other_mode(out: Path, patients, mode: str, rule: str, study: str = "paper",
-                er: float | None = None) -> dict | None:
+                er: float | None = None, settings: dict | None = None,
+                margins: dict | None = None) -> dict | None:
     """The other mode's analyses from OUT, if it holds them (for the side-by-side report):
-    {"mode", "er", "starts", "eff"}, None for a study it lacks. Its starts and efficiency
-    runs are those at the ER its own ``study`` (else its paper study) used (its critical ER
-    may differ), else at ``er``."""
+    {"mode", "er", "starts", "eff", "settings"}, None for a study it lacks. Its starts and
+    efficiency runs are those at the ER its own ``study`` (else its paper study) used (its
+    critical ER may differ), else at ``er``. Runs of one setting only (:func:`settings_of`):
+    those with this invocation's ``settings`` (but the mode) if OUT holds them, else the
+    only setting OUT holds; with several and none of them this one's, that study is left
+    out, with a message."""
     other = "kinematic" if mode == "closed-loop" else "closed-loop"
     for name in dict.fromkeys((study, "paper")):
         meta_path = _mode_dir(out, other) / f"study_{name}.json"
@@ -191,16 +235,32 @@ def _other_mode(out: Path, patients, mode: str, rule: str, study: str = "paper",
             break
     wanted = set(patients)
     found = {}
+    labels = None
     for study, key in (("er-sweep", "er"), ("starts", "starts"), ("efficiency", "eff")):
         rs = _usable([r for r in load_study_results(out, study)
                       if r["task"].get("mode", "kinematic") == other and r["patient"] in wanted
                       and (study == "er-sweep" or (er is not None and abs(r["er"] - er) < 1e-6))],
                      study)
+        groups = {}
+        for r in rs:
+            groups.setdefault(repr(sorted(_without(run_settings(r), "mode").items())),
+                              []).append(r)
+        mine = None if settings is None else repr(sorted(_without(settings, "mode").items()))
+        if mine in groups:
+            rs = groups[mine]
+        elif len(groups) == 1:
+            rs = next(iter(groups.values()))
+        elif groups:
+            print(f"{study}: the {other} runs in {out} were made with {len(groups)} different "
+                  "settings, none of them this study's: not put side by side",
+                  file=sys.stderr, flush=True)
+            continue
         if not rs:
             continue
         try:
+            labels = settings_of(rs, f"{other} {study}")
             if study == "er-sweep":
-                found[key] = analyze_er_sweep(rs, rule=rule)
+                found[key] = analyze_er_sweep(rs, rule=rule, margins=margins)
             elif study == "starts":
                 found[key] = analyze_starts(rs)
             else:
@@ -209,7 +269,8 @@ def _other_mode(out: Path, patients, mode: str, rule: str, study: str = "paper",
             continue
     if not found:
         return None
-    return dict(found, mode=CLOSED_LOOP if other == "closed-loop" else KINEMATIC)
+    return dict(found, mode=CLOSED_LOOP if other == "closed-loop" else KINEMATIC,
+                settings=labels)
 
 
 def _usable(results, study: str = ""):
@@ -223,11 +284,48 @@ def _usable(results, study: str = ""):
                 for e in (r.get("strategies") or {}).values())))]
 
 
-def _critical_er(out: Path, default: float = 0.6) -> float:
+# The ER of starts, efficiency and template runs when no er-sweep of the same settings says
+# otherwise: the paper's critical ER.
+DEFAULT_ER = 0.6
+
+
+# Settings an er-sweep may differ in from the study that takes its critical ER: the
+# reconstruction grid (efficiency only) and the posture field (the resolved scenario, in
+# inputs_sha256, holds the posture the runs were laid in).
+CRITICAL_ER_FREE = ("recon_spacing", "posture")
+
+
+def _critical_er(out: Path, settings: dict, default: float = DEFAULT_ER) -> float:
+    """The critical ER of the er-sweep in ``out`` (its er_sweep.json) if that sweep was made
+    with ``settings`` (but :data:`CRITICAL_ER_FREE`), else ``default`` (with a message
+    saying why)."""
     path = out / "er_sweep.json"
-    if path.exists():
-        return float(json.loads(path.read_text())["critical_er"])
-    return default
+    if not path.exists():
+        return default
+    try:
+        saved = json.loads(path.read_text())
+    except ValueError:
+        saved = {}
+    if not isinstance(saved.get("settings"), dict) or (
+            _without(saved["settings"], *CRITICAL_ER_FREE)
+            != _without(settings, *CRITICAL_ER_FREE)):
+        print(f"{path} was made with other settings (or records none): its critical ER is "
+              f"not used; ER {default * 100:.0f}% (the paper's critical ER)", file=sys.stderr,
+              flush=True)
+        return default
+    if saved.get("critical_er") is None:
+        print(f"{path}: its critical ER was not determined; ER {default * 100:.0f}% (the "
+              "paper's critical ER)", file=sys.stderr, flush=True)
+        return default
+    return float(saved["critical_er"])
+
+
+def _expected_settings(options) -> dict:
+    """The settings runs of ``options`` record (:func:`run_settings`)."""
+    task = er_sweep_tasks(["test:0"], options, [1.0])[0]
+    return run_settings({"task": task, "inputs_sha256": inputs_digest(
+        task["scenario"], task.get("scenarios_file"), task.get("overrides"),
+        task.get("posture"))})
 
 
 def run_study_command(args) -> int:
@@ -247,8 +345,10 @@ def run_study_command(args) -> int:
         # Every run's posture in its record and run id (decubitus runs end in __lld).
         options = dataclasses.replace(options, posture=options.posture
                                       or scenario.patient.posture)
+    margins = None
     if args.study in ("er-sweep", "paper"):
         _ers(args.ers)
+        margins = _margins(args)
     if args.study in ("efficiency", "paper"):
         _strategies(args, options.mode)
     if args.study == "template":
@@ -260,14 +360,18 @@ def run_study_command(args) -> int:
     er = getattr(args, "er", None)
     if er is not None and not (math.isfinite(er) and 0 <= er <= 1):
         raise ValueError(f"--er: expected a value in [0, 1], got {er}")
+    workers, note = (args.workers, None) if args.scheduler else bound_workers(args.workers)
+    if note:
+        print(note, file=sys.stderr, flush=True)
     with output_dir(args.out, "--out", need_bytes=STUDY_OUTPUT_BYTES,
                     what=f"study {args.study}") as out:
-        return _study(args, patients, options, out)
+        return _study(args, patients, options, out, workers, margins, scenario)
 
 
-def _study(args, patients, options, out: Path) -> int:
+def _study(args, patients, options, out: Path, workers: int, margins: dict | None,
+           scenario) -> int:
     terminal = stderr_is_terminal()
-    run = dict(workers=args.workers, scheduler=args.scheduler,
+    run = dict(workers=workers, scheduler=args.scheduler,
                progress=not args.no_progress and terminal)
     t0 = time.perf_counter()
     failed = []
@@ -276,6 +380,8 @@ def _study(args, patients, options, out: Path) -> int:
     mode_text = CLOSED_LOOP if mode == "closed-loop" else KINEMATIC
     dest = _mode_dir(out, mode)
     unusable = {}
+    used = []              # every run a table below was made from: the report's labels
+    study_argv = list(sys.argv)
 
     def usable(study, results):
         ok = _usable(results, study)
@@ -291,14 +397,33 @@ def _study(args, patients, options, out: Path) -> int:
                   + " left out of the analysis", file=sys.stderr, flush=True)
         return ok
 
-    counts = {"done": 0, "skipped": 0}
+    def runs_of(study, tasks):
+        """This invocation's runs of ``study`` (same ids and settings keys), all of one
+        setting (:func:`settings_of` refuses a mix)."""
+        results = results_of(load_study_results(out, study), tasks)
+        settings_of(results, f"study {study}", study)
+        used.extend(results)
+        return results
+
+    counts = {"done": 0, "skipped": 0, "superseded": 0}
+
+    def stamp(result):
+        # The worker's own command line means nothing: the study's does.
+        if isinstance(result.get("provenance"), dict):
+            result["provenance"]["argv"] = study_argv
 
     def go(tasks, desc):
-        todo = sum(1 for t in tasks if not result_path(out, run_id(t)).exists())
-        where = args.scheduler or (f"{args.workers} workers" if args.workers else
-                                   "this process")
-        print(f"{desc}: {len(tasks)} runs, {len(tasks) - todo} already done, {todo} to run "
-              f"on {where}", file=sys.stderr, flush=True)
+        plan = batch.plan(tasks, out, run_id, task_key)
+        todo = len(plan["todo"])
+        where = args.scheduler or (f"{workers} workers" if workers else "this process")
+        print(f"{desc}: {len(tasks)} runs, {len(tasks) - todo} already done with these "
+              f"settings, {todo} to run on {where}", file=sys.stderr, flush=True)
+        if plan["superseded"]:
+            rid, what = plan["superseded"][0]
+            print(f"{desc}: {len(plan['superseded'])} stored run(s) of the same name were made "
+                  f"with other settings (e.g. {rid}: {what}): set aside under "
+                  f"{batch.runs_dir(out) / batch.SUPERSEDED_DIR} and run again",
+                  file=sys.stderr, flush=True)
         finished = [0]
 
         def line(result):
@@ -307,9 +432,11 @@ def _study(args, patients, options, out: Path) -> int:
             if not run["progress"] and not args.no_progress:
                 print(f"{desc}: run {finished[0]}/{todo} {result.get('run_id', '')} "
                       f"({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
-        status = run_tasks(tasks, run_task, out, run_id, desc=desc, on_result=line, **run)
+        status = run_tasks(tasks, run_task, out, run_id, desc=desc, on_result=line,
+                           task_key=task_key, stamp=stamp, **run)
         counts["done"] += status["done"]
         counts["skipped"] += status["skipped"]
+        counts["superseded"] += len(status["superseded"])
         failed.extend(status["failed"])
         for rid, err in status["failed"]:
             print(f"run {rid} failed: {err}", flush=True)
@@ -321,20 +448,32 @@ def _study(args, patients, options, out: Path) -> int:
         t = time.perf_counter()
         go(tasks, "er-sweep")
         ran["er-sweep"] = time.perf_counter() - t
-        results = usable("er-sweep", _of(load_study_results(out, "er-sweep"), tasks))
+        results = usable("er-sweep", runs_of("er-sweep", tasks))
         er_an = write_er_sweep_outputs(dest, results, rule=args.critical_er_rule,
-                                       mode=mode_text)
-        print(f"er-sweep: critical ER {er_an['critical_er'] * 100:.0f}% "
-              f"({len(results)} runs)", flush=True)
+                                       mode=mode_text, margins=margins,
+                                       settings=_labels(results, options, "er-sweep"))
+        print(f"er-sweep: {critical_er_summary(er_an)} ({len(results)} runs)", flush=True)
+        warning = sample_size_warning(er_an)
+        if warning:
+            print(f"er-sweep: {warning}", file=sys.stderr, flush=True)
     er = getattr(args, "er", None)
     if er is None:
-        er = er_an["critical_er"] if er_an else _critical_er(dest)
+        if er_an is None:
+            er = _critical_er(dest, _expected_settings(options))
+        elif er_an["critical_er"] is None:
+            er = DEFAULT_ER
+            if args.study != "er-sweep":
+                print(f"er-sweep: the critical ER was not determined; the other studies run "
+                      f"at ER {er * 100:.0f}% (the paper's critical ER)", file=sys.stderr,
+                      flush=True)
+        else:
+            er = er_an["critical_er"]
     if args.study in ("starts", "paper"):
         tasks = starts_tasks(patients, options, er, args.starts)
         t = time.perf_counter()
         go(tasks, "starts")
         ran["starts"] = time.perf_counter() - t
-        results = usable("starts", _of(load_study_results(out, "starts"), tasks))
+        results = usable("starts", runs_of("starts", tasks))
         starts_an = write_starts_outputs(dest, results, mode=mode_text)
         print(f"starts at ER {er * 100:.0f}%: any significant difference: "
               f"{starts_an['any_significant']}", flush=True)
@@ -344,7 +483,7 @@ def _study(args, patients, options, out: Path) -> int:
         t = time.perf_counter()
         go(tasks, "efficiency")
         ran["efficiency"] = time.perf_counter() - t
-        results = usable("efficiency", _of(load_study_results(out, "efficiency"), tasks))
+        results = usable("efficiency", runs_of("efficiency", tasks))
         eff_an = write_efficiency_outputs(dest, results, mode=mode_text)
         s = eff_an["summary"]
         print("efficiency (pole to pole): " + "; ".join(
@@ -356,8 +495,6 @@ def _study(args, patients, options, out: Path) -> int:
         variants = [v.strip() for v in args.variants.split(",") if v.strip()]
         tasks = template_tasks(patients, options, er, variants)
         # Population templates: built (or found in the cache) here, once, not in every worker.
-        scenario = LoadScenario(filename=args.scenarios_file, scenario_name=args.scenario,
-                                scenario_text=args.overrides)
         for v in variants:
             pop = population_of_variant(v)
             if pop is not None:
@@ -373,47 +510,57 @@ def _study(args, patients, options, out: Path) -> int:
         go(tasks, "template")
         ran["template"] = time.perf_counter() - t
         template_an = write_template_outputs(
-            dest, usable("template", _of(load_study_results(out, "template"), tasks)),
-            mode=mode_text)
+            dest, usable("template", runs_of("template", tasks)), mode=mode_text)
         print("template: " + "; ".join(
             f"{r['group']} {r['variant']} d {r['template_distance_mm_mean']:.1f} mm, E_trans "
             f"{r['e_trans_mm_mean']:.1f} mm, E_rot,x {r['e_rot_x_deg_mean']:.1f} deg"
             for r in template_an["rows"]), flush=True)
     closed = None
     if args.study == "paper" and args.closed_loop > 0 and mode == "kinematic":
-        scenario = LoadScenario(filename=args.scenarios_file, scenario_name=args.scenario,
-                                scenario_text=args.overrides)
         tasks = closed_loop_tasks(patients[:args.closed_loop], options,
                                   scenario.controller.exploration_ratio)
         t = time.perf_counter()
         go(tasks, "closed-loop")
         ran["closed-loop"] = time.perf_counter() - t
-        closed = _of(load_study_results(out, "closed-loop"), tasks)
+        closed = runs_of("closed-loop", tasks)
         write_closed_loop_outputs(dest, closed)
     wall = time.perf_counter() - t0
-    meta = {"study": args.study, "patients": patients, "segmenter": options.segmenter,
-            "method": options.method, "voxel": options.voxel, "seed": options.seed,
-            "workers": args.workers, "scheduler": args.scheduler, "wall_s": wall,
-            "stage_wall_s": ran, "er": er, "er_unit": options.er_unit,
+    labels = _labels(used, options, args.study)
+    meta = {"study": args.study, "patients": patients, "segmenter": labels["segmenter"],
+            "method": labels["method"], "voxel": labels["voxel"], "seed": labels["seed"],
+            "settings": labels, "settings_from": "runs" if used else "command line (no runs)",
+            "workers": workers, "workers_requested": args.workers,
+            "scheduler": args.scheduler, "wall_s": wall,
+            "stage_wall_s": ran, "er": er, "er_unit": labels["er_unit"],
             "critical_er_rule": getattr(args, "critical_er_rule", None),
+            "equivalence_margins": margins,
             "mode": mode + (" (+ closed-loop check)" if closed else ""),
             "mode_text": mode_text, "runs_without_localization": unusable,
             "failed_runs": failed,
-            "runs_done": counts["done"], "runs_skipped": counts["skipped"]}
+            "runs_done": counts["done"], "runs_skipped": counts["skipped"],
+            "runs_superseded": counts["superseded"],
+            "run_commits": sorted({f"{(r.get('provenance') or {}).get('commit')}"
+                                   + (" (dirty)" if (r.get("provenance") or {}).get("dirty")
+                                      else "") for r in used}),
+            "provenance": Provenance(scenario, scenario_name=args.scenario,
+                                     scenarios_file=args.scenarios_file,
+                                     overrides=args.overrides,
+                                     seeds={"study_seed": options.seed}, argv=study_argv)}
     if args.study == "template":
         meta["posture"] = options.posture + (
             " (per-patient @posture suffixes override)" if any("@" in p for p in patients)
             else "")
         meta["population_templates"] = population_builds
-    # Keep the history of invocations: a resumed study's wall time covers only what it ran.
+    # Keep the history of invocations with these settings: a resumed study's wall time
+    # covers only what it ran (an invocation with other settings starts a new history).
+    meta["settings_sha256"] = batch.content_key(labels)
     meta_path = dest / f"study_{args.study}.json"
     history = []
     if meta_path.exists():
         try:
             old = json.loads(meta_path.read_text())
-            history = old.get("invocations") or ([{k: old.get(k) for k in (
-                "wall_s", "stage_wall_s", "runs_done", "runs_skipped", "workers",
-                "scheduler")}] if "wall_s" in old else [])
+            if old.get("settings_sha256") == meta["settings_sha256"]:
+                history = list(old.get("invocations") or [])
         except (ValueError, AttributeError):
             history = []
     meta["invocations"] = history + [{k: meta[k] for k in (
@@ -423,9 +570,12 @@ def _study(args, patients, options, out: Path) -> int:
         write_text_atomic(dest / "report.md", report_markdown(meta, None, None, None, None,
                                                               template_an))
         print(f"wrote {dest / 'report.md'}", flush=True)
-    if args.study in ("paper", "efficiency"):
-        compare = _other_mode(out, patients, mode, getattr(args, "critical_er_rule", "paper"),
-                              args.study, er)
+    if args.study in ("paper", "efficiency", "er-sweep"):
+        compare = None
+        if args.study != "er-sweep":
+            compare = _other_mode(out, patients, mode, getattr(args, "critical_er_rule",
+                                                               "paper"),
+                                  args.study, er, settings=labels, margins=margins)
         write_text_atomic(dest / "report.md",
                           report_markdown(meta, er_an, starts_an, eff_an, closed,
                                           compare=compare))
@@ -436,15 +586,17 @@ def _study(args, patients, options, out: Path) -> int:
     return 1 if failed else 0
 
 
+def _labels(results: list[dict], options, study: str) -> dict:
+    """The settings to label tables and the report with: the runs' own (all of one setting,
+    :func:`settings_of`), or, with no runs at all, what the command asked for."""
+    if results:
+        return settings_of(results, f"study {study}", study)
+    return _expected_settings(options)
+
+
 def _build_seconds(path) -> float | None:
     """The build time a template's metadata records (s), None if it has none."""
     try:
         return json.loads(Path(path).with_suffix(".json").read_text()).get("total_seconds")
     except (OSError, ValueError):
         return None
-
-
-def _of(results, tasks):
-    """The results that belong to ``tasks`` (OUT may hold other runs)."""
-    wanted = {run_id(t) for t in tasks}
-    return [r for r in results if r["run_id"] in wanted]

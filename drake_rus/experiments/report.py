@@ -14,8 +14,9 @@ import numpy as np
 
 from drake_rus.batch import json_default
 from drake_rus.experiments.analysis import (
-    CRITICAL_ER_RULES, PAPER, STRATEGY_ORDER, analyze_efficiency, analyze_er_sweep,
-    analyze_starts, analyze_template, mean_curve, template_group)
+    CRITICAL_ER_RULES, DEFAULT_MARGINS, PAPER, PAPER_PATIENTS, STRATEGY_ORDER,
+    analyze_efficiency, analyze_er_sweep, analyze_starts, analyze_template, mean_curve,
+    paired_t_power, sample_size_warning, template_group)
 from drake_rus.experiments.tasks import (CLOSED_LOOP_STRATEGY_HOW, ER_UNIT_TEXT,
                                          STRATEGY_TEXT)
 from drake_rus.io_utils import save_figure, write_text_atomic
@@ -67,9 +68,16 @@ def plot_er_sweep(analysis: dict, path, mode: str = MODE_NOTE) -> Path:
         ax.fill_between(er, m - s, m + s, alpha=0.25, label="+- SD")
         ax.errorbar([60], [paper[0]], yerr=[paper[1]], fmt="s", color="k", capsize=4,
                     label="seed paper at ER 60%")
-        ax.axvline(analysis["critical_er"] * 100, color="g", ls="--",
-                   label=f"critical ER {analysis['critical_er'] * 100:.0f}% "
-                         f"({analysis.get('rule', 'strict')} rule)")
+        if analysis["critical_er"] is not None:
+            ax.axvline(analysis["critical_er"] * 100, color="g", ls="--",
+                       label=f"critical ER {analysis['critical_er'] * 100:.0f}% "
+                             f"({analysis.get('rule', 'strict')} rule, n = "
+                             f"{analysis.get('patients', '?')})")
+        if analysis.get("equivalence_er") is not None:
+            margin = (analysis.get("margins") or {}).get(key)
+            ax.axvline(analysis["equivalence_er"] * 100, color="m", ls=":",
+                       label=f"equivalent to ER 100% within +-{margin:g} {unit} (TOST) from "
+                             f"{analysis['equivalence_er'] * 100:.0f}%")
         ax.set_ylabel(f"{'E_trans' if unit == 'mm' else 'E_rot,x'} ({unit})")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7)
@@ -158,12 +166,17 @@ def plot_efficiency(results: list[dict], analysis: dict, path, mode: str = MODE_
     return save_figure(fig, path)
 
 
-def write_er_sweep_outputs(out_dir, results, rule: str = "paper", mode: str = KINEMATIC) -> dict:
+def write_er_sweep_outputs(out_dir, results, rule: str = "paper", mode: str = KINEMATIC,
+                           margins: dict | None = None, settings: dict | None = None) -> dict:
+    """er_sweep_runs.csv, er_sweep_table.csv (per ER: errors, p-values, paired effect
+    sizes, power, equivalence), fig7d_er_sweep.png and er_sweep.json (with ``settings``,
+    the runs' own, so a later study knows what the critical ER was found with)."""
     out = Path(out_dir)
-    analysis = analyze_er_sweep(results, rule=rule)
+    analysis = analyze_er_sweep(results, rule=rule, margins=margins)
     write_csv_atomic(out / "er_sweep_runs.csv", [_flat(r) for r in results])
     write_csv_atomic(out / "er_sweep_table.csv", analysis["rows"])
     analysis["mode"] = mode
+    analysis["settings"] = settings
     plot_er_sweep(analysis, out / "fig7d_er_sweep.png", mode)
     write_text_atomic(out / "er_sweep.json", json.dumps(analysis, default=json_default, indent=1))
     return analysis
@@ -471,6 +484,88 @@ def _eff_table(L: list, s: dict, n_pat: int, keys: tuple, V_key: str | None, ext
         L.append(row)
 
 
+DEFAULT_ER_TEXT = "ER 60%, the paper's critical ER,"
+
+
+def _pct(er) -> str:
+    return "not determined" if er is None else f"{er * 100:.0f}%"
+
+
+def critical_er_markdown(er: dict) -> list[str]:
+    """The critical ER with what it rests on (issue 27): n against the minimum sample size,
+    the ER-100% floor, the paired effect size and power at each ER, equivalence to ER 100%
+    within the clinical margins (TOST), and the paper's test read back the same way."""
+    p = PAPER["er_sweep"]
+    m = er.get("margins") or DEFAULT_MARGINS
+    n = er.get("patients")
+    fl = er.get("floor") or {}
+    alpha = er.get("alpha", 0.05)
+    paper_rule = er.get("critical_er_paper_rule", er.get("first_not_significant_er"))
+    strict_rule = er.get("critical_er_strict_rule", er["critical_er"])
+    L = [f"**Critical ER** (rule `{er.get('rule', 'strict')}`): **ours "
+         f"{_pct(er['critical_er'])}** (n = {n} patients, one paired run each per ER against "
+         f"ER 100%), paper {p['critical_er'] * 100:.0f}% ({PAPER_PATIENTS} patients; p = "
+         f"{p['p_e_trans_at_60']} and {p['p_e_rot_at_60']} at 60%). Under the paper's rule "
+         f"({CRITICAL_ER_RULES['paper']}): {_pct(paper_rule)}; under ours "
+         f"({CRITICAL_ER_RULES['strict']}): {_pct(strict_rule)}.", ""]
+    warning = sample_size_warning(er) if "below_minimum" in er else None
+    if warning:
+        L += [f"> **{warning[0].upper() + warning[1:]}.**", ""]
+    if not fl:
+        return L
+    L += ["What it rests on (the paper's rule compares every ER with ER 100%, so the critical "
+          "ER moves with the floor, the spread of the paired differences and n, the test's "
+          "power, not only with the method; equivalence asks the clinical question instead: "
+          "is the difference within a stated margin?):", "",
+          f"- ER-100% floor (n = {n}): E_trans {_f(fl['e_trans_mm'][0])} +- "
+          f"{_f(fl['e_trans_mm'][1])} mm, E_rot,x {_f(fl['e_rot_x_deg'][0])} +- "
+          f"{_f(fl['e_rot_x_deg'][1])} deg (mean +- SD).",
+          f"- Equivalence to ER 100% (TOST: two one-sided paired t-tests at alpha {alpha:g}, "
+          f"clinical margin +-{m['e_trans_mm']:g} mm / +-{m['e_rot_x_deg']:g} deg, "
+          f"`--margin-mm`/`--margin-deg`): both errors equivalent from ER "
+          f"**{_pct(er.get('equivalence_er_paper_rule'))}** (the smallest such ER; every ER from "
+          f"there on: {_pct(er.get('equivalence_er_strict_rule'))})."]
+    row = er.get("critical_row")
+    if row is not None and n and n >= 2 and row["er"] != er.get("reference_er", 1.0):
+        detect = [paired_t_power(m[k] / row[f"diff_{k}_sd"], row["n"], alpha)
+                  if row[f"diff_{k}_sd"] and row[f"diff_{k}_sd"] > 0 else float("nan")
+                  for k in ("e_trans_mm", "e_rot_x_deg")]
+        L.append(f"- At the critical ER {_pct(row['er'])}: paired effect d_z "
+                 f"{_f(row['dz_e_trans_mm'])} (E_trans) and {_f(row['dz_e_rot_x_deg'])} "
+                 f"(E_rot,x), power of the paired t-test against them "
+                 f"{_f(row['power_e_trans_mm'])} and {_f(row['power_e_rot_x_deg'])}; its power "
+                 f"to detect a difference as large as the margin (with the SD of the paired "
+                 f"differences there): {_f(detect[0])} and {_f(detect[1])}.")
+    pp = er.get("paper_power") or {}
+    row60 = next((r for r in er["rows"] if abs(r["er"] - 0.6) < 1e-6), None)
+    if pp:
+        ours = (f"; ours at 60%: d_z {_f(row60['dz_e_trans_mm'])} and "
+                f"{_f(row60['dz_e_rot_x_deg'])}, power {_f(row60['power_e_trans_mm'])} and "
+                f"{_f(row60['power_e_rot_x_deg'])} (n = {row60['n']})") if row60 else ""
+        L.append(f"- The paper at ER 60% read back through the t distribution: its p = "
+                 f"{pp['e_trans_mm']['p']} and {pp['e_rot_x_deg']['p']} with "
+                 f"{PAPER_PATIENTS} patients are |d_z| {_f(pp['e_trans_mm']['d_z'])} and "
+                 f"{_f(pp['e_rot_x_deg']['d_z'])}, against which its test had a power of "
+                 f"{_f(pp['e_trans_mm']['power'])} and {_f(pp['e_rot_x_deg']['power'])}"
+                 f"{ours}.")
+    L += [f"- Minimum sample size: {er.get('min_patients_text', '')}; this study: {n}.", "",
+          f"Per ER, paired against ER 100% (difference = ER minus ER 100%, mean +- SD; d_z = "
+          f"mean / SD; power of the two-sided paired t-test at alpha {alpha:g} against that "
+          f"d_z with that n; TOST p against the margin, **yes** when equivalent):", "",
+          "| ER | n | dE_trans (mm) | d_z | power | TOST p (+-"
+          f"{m['e_trans_mm']:g} mm) | dE_rot,x (deg) | d_z | power | TOST p (+-"
+          f"{m['e_rot_x_deg']:g} deg) |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in er["rows"]:
+        cells = []
+        for k in ("e_trans_mm", "e_rot_x_deg"):
+            eq = " **yes**" if r.get(f"equivalent_{k}") else ""
+            cells.append(f"{_f(r[f'diff_{k}_mean'])} +- {_f(r[f'diff_{k}_sd'])} | "
+                         f"{_f(r[f'dz_{k}'])} | {_f(r[f'power_{k}'])} | "
+                         f"{_p(r[f'tost_p_{k}'])}{eq}")
+        L.append(f"| {r['er'] * 100:.0f}% | {r['n']} | " + " | ".join(cells) + " |")
+    return L + [""]
+
+
 def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict | None,
                     closed: list | None = None, template: dict | None = None,
                     compare: dict | None = None) -> str:
@@ -492,22 +587,35 @@ def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict 
             if closed else "no closed-loop dynamic runs."),
          f"- Segmenter: `{meta['segmenter']}`; registration (localization method): "
          f"`{meta['method']}`; label voxel {meta['voxel'] * 1e3:.0f} mm; study seed "
-         f"{meta['seed']}.",
+         f"{meta['seed']}" + (" (as the runs themselves record them)"
+                              if meta.get("settings_from") == "runs" else "") + ".",
          f"- ER: {ER_UNIT_TEXT.get(unit, unit)}." + (
              f" Critical-ER rule: `{rule}`, {CRITICAL_ER_RULES[rule]}."
              if rule in CRITICAL_ER_RULES else ""),
          f"- Sweep costs (eps eq. 24, n, V eq. 25; `drake_rus/metrics/sweep.py`, the same "
          f"functions for the kinematic twin and the closed-loop scan): **{POLE_TO_POLE}**; "
          f"beside it, **{WHOLE_PIVOT}**; {MATCHED_V}.",
-         f"- Starts, efficiency and template runs ran at ER "
-         f"{meta.get('er', float('nan')) * 100:.0f}% (the critical ER of this sweep when it "
-         f"ran, unless `--er` was given).",
+         *([] if meta.get("study") == "er-sweep" else [
+             f"- Starts, efficiency and template runs ran at ER "
+             f"{meta.get('er', float('nan')) * 100:.0f}% (the critical ER of this sweep when "
+             f"it ran, unless `--er` was given; {DEFAULT_ER_TEXT} when none was found)."]),
          "- Wall time per invocation (resumed "
          "invocations skip finished runs): " + "; ".join(
              f"{i['wall_s']:.0f} s ({_runs(i)}{_where(i)}; stages "
              + ", ".join(f"{k} {v:.0f} s" for k, v in (i.get("stage_wall_s") or {}).items())
              + ")"
              for i in meta.get("invocations", [meta]))]
+    settings = meta.get("settings") or {}
+    if settings:
+        L += [f"- Scenario `{settings.get('scenario')}`"
+              + (f" with overrides `{settings['overrides']}`" if settings.get("overrides")
+                 else "")
+              + f"; resolved inputs (scenario YAML and template file) sha256 "
+              f"`{str(settings.get('inputs_sha256'))[:12]}`; runs made by commit(s) "
+              + (", ".join(f"`{c[:12]}`" + (" (dirty)" if c.endswith("(dirty)") else "")
+                           for c in meta.get("run_commits") or []) or "n/a")
+              + "; each run's record (OUT/runs) holds its task and provenance (resolved "
+              "scenario, overrides, seeds, package versions)."]
     left_out = meta.get("runs_without_localization") or {}
     if left_out:
         L += ["- Runs left out of the analysis (no localization; efficiency: a scan that did "
@@ -531,13 +639,7 @@ def report_markdown(meta: dict, er: dict | None, starts: dict | None, eff: dict 
                      f"{_f(r['e_rot_x_deg_sd'])} | {_p(r['p_e_trans'])} | "
                      f"{_p(r['p_e_rot_x'])} |")
         row60 = next((r for r in er["rows"] if abs(r["er"] - 0.6) < 1e-6), None)
-        paper_rule = er.get("critical_er_paper_rule", er.get("first_not_significant_er"))
-        strict_rule = er.get("critical_er_strict_rule", er["critical_er"])
-        L += ["", f"Critical ER (rule `{er.get('rule', 'strict')}`): **ours "
-              f"{er['critical_er'] * 100:.0f}%**, paper {p['critical_er'] * 100:.0f}% (p = "
-              f"{p['p_e_trans_at_60']} and {p['p_e_rot_at_60']} at 60%). Under the paper's "
-              f"rule ({CRITICAL_ER_RULES['paper']}): {paper_rule * 100:.0f}%; under ours "
-              f"({CRITICAL_ER_RULES['strict']}): {strict_rule * 100:.0f}%."]
+        L += [""] + critical_er_markdown(er)
         if row60:
             L.append(f"At ER 60%: ours {_f(row60['e_trans_mm_mean'])} +- "
                      f"{_f(row60['e_trans_mm_sd'])} mm, {_f(row60['e_rot_x_deg_mean'])} +- "
@@ -702,13 +804,33 @@ def _mode_label(text: str) -> str:
     return "closed loop" if text.startswith("closed") else "kinematic"
 
 
+def _floor_text(er: dict) -> str:
+    fl = er.get("floor")
+    if not fl:
+        return "n/a"
+    return (f"{_f(fl['e_trans_mm'][0])} +- {_f(fl['e_trans_mm'][1])} mm, "
+            f"{_f(fl['e_rot_x_deg'][0])} +- {_f(fl['e_rot_x_deg'][1])} deg")
+
+
+def _settings_text(settings: dict | None) -> str:
+    if not settings:
+        return ""
+    return (f"segmenter `{settings.get('segmenter')}`, registration `{settings.get('method')}`"
+            f", scenario `{settings.get('scenario')}`")
+
+
 def compare_markdown(meta: dict, this: dict, other: dict) -> list[str]:
     """The two modes side by side with the paper: ER sweep, starts, efficiency (OP)."""
     cols = sorted([this, other], key=lambda d: _mode_label(d["mode"]) != "kinematic")
     names = [_mode_label(c["mode"]) for c in cols]
     L = ["## Kinematic twin and closed loop side by side", "",
-         _provenance(meta, mode=" and ".join(c["mode"] for c in cols)),
-         ""]
+         _provenance(meta, mode=" and ".join(c["mode"] for c in cols)), ""]
+    def but_mode(x):
+        return {k: v for k, v in (x or {}).items() if k != "mode"}
+    if other.get("settings") and but_mode(other["settings"]) != but_mode(meta.get("settings")):
+        L += [f"The {_mode_label(other['mode'])} runs' own settings: "
+              f"{_settings_text(other['settings'])}; this study's: "
+              f"{_settings_text(meta.get('settings'))}.", ""]
     ers = [c.get("er") for c in cols]
     if all(ers):
         p = PAPER["er_sweep"]
@@ -726,8 +848,11 @@ def compare_markdown(meta: dict, this: dict, other: dict) -> list[str]:
             pap = (f"{p['e_trans_mm_at_60'][0]} +- {p['e_trans_mm_at_60'][1]}"
                    if abs(g - 0.6) < 1e-6 else "")
             L.append(f"| {g * 100:.0f}% | {pap} | " + " | ".join(cells) + " |")
-        L += ["", "Critical ER: paper " f"{p['critical_er'] * 100:.0f}%; " + "; ".join(
-            f"{n} {c['critical_er'] * 100:.0f}%" for n, c in zip(names, ers)) + ".", ""]
+        L += ["", "Critical ER: paper " f"{p['critical_er'] * 100:.0f}% ({PAPER_PATIENTS} "
+              "patients); " + "; ".join(
+                  f"{n} {_pct(c['critical_er'])} (n = {c.get('patients', '?')}; ER-100% floor "
+                  f"{_floor_text(c)}; equivalent within the margins from "
+                  f"{_pct(c.get('equivalence_er'))})" for n, c in zip(names, ers)) + ".", ""]
     sts = [c.get("starts") for c in cols]
     if all(sts):
         pl = PAPER["localization"]

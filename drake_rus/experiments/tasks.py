@@ -49,6 +49,16 @@ Mode (``StudyOptions.mode``): ``kinematic`` (default, the fast twin,
 Drake diagram, ``RunScan``, with the same run record). Closed-loop runs have their own run
 ids (suffix ``__cl``), so both modes' runs can share an output directory. Kinematic runs are
 deterministic given their dict (seeded starts).
+
+Resume and labels: a run's settings key (:func:`task_key`) covers its whole task (study,
+patient, ER, start, segmenter, method, voxel, seed, ER unit, mode, posture, scenario name,
+overrides, strategies, template variant...) and the resolved inputs (:func:`inputs_digest`:
+the resolved scenario's YAML and the bytes of the registration template file it names); a
+stored run is reused only with the same key (:mod:`drake_rus.batch`). Every run records its
+task, that key, the digest and a :func:`~drake_rus.provenance.Provenance` (resolved scenario
+YAML, overrides, seeds, package versions, commit), so tables and reports take their labels
+from the runs (:func:`settings_of`), never from the command line, and refuse to put runs of
+different settings in one table (:class:`MixedSettingsError`).
 :func:`run_task` executes one run; the batch runner (:func:`drake_rus.batch.run_tasks`
 with :func:`run_task` and :func:`run_id`) executes a list of them through Dask, writing
 each result as it finishes, so an interrupted study resumes. The statistics are in
@@ -60,6 +70,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
 import math
 import re
 import time
@@ -67,6 +78,7 @@ import zlib
 from pathlib import Path
 
 import numpy as np
+from pydrake.common.yaml import yaml_dump_typed
 from scipy.spatial import cKDTree
 
 from drake_rus import batch
@@ -80,6 +92,7 @@ from drake_rus.metrics.core import CoverageAccumulator, e_rot_x, e_trans
 from drake_rus.metrics.reconstruction import compound, reconstruct_kidney, write_nrrd
 from drake_rus.metrics.sweep import sweep_efficiency
 from drake_rus.paths import REPO_ROOT
+from drake_rus.provenance import Provenance
 from drake_rus.scan import RunScan, ScanMetrics
 from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, CheckScenario, LoadScenario
 from drake_rus.template.io import DEFAULT_TEMPLATE_PATH
@@ -308,6 +321,117 @@ def run_id(task: dict) -> str:
     if task.get("mode", "kinematic") == "closed-loop" and task["study"] != "closed-loop":
         parts.append("cl")
     return "__".join(parts)
+
+
+# Task fields that do not change a run's numbers: where its NRRD volumes go, and where the
+# scenarios file lies (its resolved contents are keyed instead, :func:`inputs_digest`).
+UNKEYED_FIELDS = ("export_dir", "scenarios_file")
+# Fields only some studies read (the reconstruction grid: the efficiency study's volumes).
+STUDY_FIELDS = {"recon_spacing": ("efficiency",)}
+
+
+def _template_file(path) -> Path:
+    """The registration template file a scenario's ``localization.template`` names."""
+    if path is None:
+        return Path(DEFAULT_TEMPLATE_PATH)
+    return Path(path) if str(path).startswith("/") else REPO_ROOT / path
+
+
+def _file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    try:
+        with open(path, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+    except OSError as e:
+        return f"unreadable {path}: {e.strerror or e}"
+    return h.hexdigest()
+
+
+@functools.lru_cache(maxsize=32)
+def inputs_digest(scenario: str, scenarios_file: str | None, overrides: str | None,
+                  posture: str | None) -> str:
+    """SHA-256 (hex) of what a study run reads besides its task: the resolved scenario (its
+    YAML, with the overrides and the task's posture) and the registration template file it
+    names. Two runs with equal tasks and digests are the same run."""
+    sc = _with_posture(_scenario(scenario, scenarios_file, overrides), {"posture": posture})
+    h = hashlib.sha256(yaml_dump_typed(sc).encode())
+    h.update(_file_sha256(_template_file(sc.localization.template)).encode())
+    return h.hexdigest()
+
+
+def task_inputs_digest(task: dict) -> str:
+    return inputs_digest(task["scenario"], task.get("scenarios_file"), task.get("overrides"),
+                         task.get("posture"))
+
+
+def task_key(task: dict) -> str:
+    """The settings key of a study run: SHA-256 of its task (without
+    :data:`UNKEYED_FIELDS`, and without the :data:`STUDY_FIELDS` its study does not read)
+    and :func:`inputs_digest`. A stored run is reused only with the same key."""
+    keyed = {k: v for k, v in task.items() if k not in UNKEYED_FIELDS
+             and task.get("study") in STUDY_FIELDS.get(k, (task.get("study"),))}
+    keyed["inputs_sha256"] = task_inputs_digest(task)
+    return batch.content_key(keyed)
+
+
+def run_provenance(task: dict, scenario=None) -> dict:
+    """The :func:`~drake_rus.provenance.Provenance` record of a study run (resolved scenario
+    with the task's posture, its name, file and overrides, every seed the run draws from)."""
+    if scenario is None:
+        scenario = _with_posture(_scenario(task["scenario"], task.get("scenarios_file"),
+                                           task.get("overrides")), task)
+    seeds = {"study_seed": int(task.get("seed", 0)), "patient": str(task["patient"])}
+    if int(task.get("start", -1)) >= 0:
+        seeds["start"] = int(task["start"])
+    return Provenance(scenario, scenario_name=task["scenario"],
+                      scenarios_file=task.get("scenarios_file") or str(DEFAULT_SCENARIOS_FILE),
+                      overrides=task.get("overrides"), seeds=seeds)
+
+
+# What a table's runs must share (per-run fields, e.g. the patient, ER, start, template
+# variant, may differ); the template study lays patients in their own postures; the
+# efficiency study's runs share their reconstruction grid too.
+SETTINGS = ("mode", "segmenter", "method", "er_unit", "voxel", "seed", "scenario",
+            "overrides", "posture", "inputs_sha256")
+SETTINGS_PER_RUN = {"template": ("posture",)}
+SETTINGS_OF_STUDY = {"efficiency": ("recon_spacing",)}
+
+
+class MixedSettingsError(ValueError):
+    """Runs of different settings were to go into one table."""
+
+
+def run_settings(result: dict) -> dict:
+    """The settings a run was made with, from its own record (its task and the inputs
+    digest it recorded; None where an older run recorded none)."""
+    task = result.get("task") or {}
+    out = {k: task.get(k) for k in SETTINGS if k != "inputs_sha256"}
+    out["mode"] = task.get("mode", "kinematic")
+    out["inputs_sha256"] = result.get("inputs_sha256")
+    return out
+
+
+def settings_of(results: list[dict], what: str = "these runs", study: str = "") -> dict:
+    """The settings the ``results`` share (:func:`run_settings`); raises
+    :class:`MixedSettingsError` naming each setting that differs and how many runs have each
+    value, so a table never mixes them under one label."""
+    skip = SETTINGS_PER_RUN.get(study, ())
+    values = {}
+    for r in results:
+        settings = run_settings(r) | {k: (r.get("task") or {}).get(k)
+                                      for k in SETTINGS_OF_STUDY.get(study, ())}
+        for k, v in settings.items():
+            if k not in skip:
+                values.setdefault(k, {}).setdefault(repr(v), [v, 0])[1] += 1
+    mixed = {k: vs for k, vs in values.items() if len(vs) > 1}
+    if mixed:
+        raise MixedSettingsError(
+            f"{what}: runs of different settings would share one table ("
+            + "; ".join(f"{k}: " + ", ".join(f"{v[0]!r} ({v[1]} runs)" for v in vs.values())
+                        for k, vs in mixed.items())
+            + "); run each setting into its own --out folder")
+    return {k: next(iter(vs.values()))[0] for k, vs in values.items()}
 
 
 def check_mode(mode: str) -> str:
@@ -952,12 +1076,21 @@ def run_closed_loop_study(task: dict) -> dict:
 
 def run_task(task: dict) -> dict:
     """Executes one run (kinematic, or closed loop with ``mode`` "closed-loop") and
-    returns its JSON-ready result."""
+    returns its JSON-ready result, with the inputs it resolved (``inputs_sha256``,
+    :func:`inputs_digest`) and its ``provenance`` (:func:`run_provenance`)."""
     if task["study"] == "closed-loop":
-        return run_closed_loop(task)
-    if check_mode(task.get("mode", "kinematic")) == "closed-loop":
-        return run_closed_loop_study(task)
+        result = run_closed_loop(task)
+    elif check_mode(task.get("mode", "kinematic")) == "closed-loop":
+        result = run_closed_loop_study(task)
+    else:
+        result = run_kinematic_task(task)
+    result["inputs_sha256"] = task_inputs_digest(task)
+    result["provenance"] = run_provenance(task)
+    return result
 
+
+def run_kinematic_task(task: dict) -> dict:
+    """One study run in kinematic mode (the twin)."""
     t0 = time.perf_counter()
     scenario, kp = task_scenario_and_patient(task)
     controller = scenario.controller
@@ -1073,3 +1206,11 @@ def load_study_results(out_dir, study: str | None = None) -> list[dict]:
     if study is None:
         return batch.load_results(out_dir)
     return batch.load_results(out_dir, lambda r: r["task"]["study"] == study)
+
+
+def results_of(results: list[dict], tasks: list[dict]) -> list[dict]:
+    """The results made by exactly ``tasks`` (same run id and settings key; OUT may hold
+    other runs)."""
+    wanted = {run_id(t): task_key(t) for t in tasks}
+    return [r for r in results if wanted.get(r.get("run_id")) is not None
+            and r.get("task_key") == wanted[r["run_id"]]]

@@ -5,19 +5,31 @@ The kidney moves craniocaudally by d(t) (``patient.motion.breathing``); holds ar
 end-expiration (within ``hold_reproducibility``), which is also the reference pose the
 error is measured against. Gating (``gate_exploration``) makes the point-cloud accumulator
 keep only frames acquired during a hold, so the registration sees a still kidney.
+
+Each run's task holds every parameter that changes it (patient, condition, amplitude, rate,
+hold period and duration, scenario and its resolved YAML's SHA-256, seed, time limit), and a
+rerun reuses a stored run only when its task is the same (:mod:`drake_rus.batch`): a run
+with ``--rate 15`` never takes one stored by ``--rate 10``.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import hashlib
 import json
+import math
 from pathlib import Path
 
 import numpy as np
+from pydrake.common.yaml import yaml_dump_typed
 from tqdm import tqdm
 
+from drake_rus.anatomy.motion import BreathingConfig
 from drake_rus.io_utils import save_figure, write_text_atomic
+from drake_rus.provenance import Provenance
 from drake_rus.reliability.campaign import run_campaign
+from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, LoadScenario
 
 CONDITIONS = {
     "no_breathing": "{}",
@@ -30,16 +42,58 @@ CONDITIONS = {
 }
 
 
+def _bounds(name: str) -> tuple[float | None, float | None]:
+    """(min, max) of a BreathingConfig field (its schema metadata)."""
+    f = next(f for f in dataclasses.fields(BreathingConfig) if f.name == name)
+    return f.metadata.get("min"), f.metadata.get("max")
+
+
+def check_breathing_arguments(amplitude: float, rate_per_min: float, hold_period: float,
+                              hold_duration: float) -> None:
+    """Raises ValueError naming the command-line argument unless the breathing parameters
+    can exist: amplitude and rate within the scenario schema's ranges
+    (``patient.motion.breathing``), a positive hold period and a hold shorter than it
+    (the gated condition explores only during holds)."""
+    lo, hi = _bounds("amplitude")
+    if not (math.isfinite(amplitude) and max(lo, 0.0) < amplitude <= hi):
+        raise ValueError(f"--amplitude: expected 0 < amplitude <= {hi:g} m, got {amplitude}")
+    lo, hi = _bounds("rate_per_min")
+    if not (math.isfinite(rate_per_min) and lo <= rate_per_min <= hi):
+        raise ValueError(f"--rate: expected {lo:g}-{hi:g} breaths/min "
+                         f"(patient.motion.breathing.rate_per_min), got {rate_per_min}")
+    if not (math.isfinite(hold_period) and hold_period > 0):
+        raise ValueError(f"--hold-period: expected a positive time in s, got {hold_period}")
+    if not (math.isfinite(hold_duration) and 0 < hold_duration < hold_period):
+        raise ValueError(f"--hold-duration: expected 0 < duration < --hold-period "
+                         f"({hold_period:g} s), got {hold_duration}")
+
+
+def _scenario_sha256(scenario: str, overrides: str) -> str:
+    """SHA-256 of the resolved scenario (YAML) a breathing run loads."""
+    sc = LoadScenario(filename=DEFAULT_SCENARIOS_FILE, scenario_name=scenario,
+                      scenario_text=overrides)
+    return hashlib.sha256(yaml_dump_typed(sc).encode()).hexdigest()
+
+
 def breathing_tasks(patients: list[str], *, amplitude=0.010, rate_per_min=15.0,
                     hold_period=8.0, hold_duration=4.0, scenario="quick",
                     max_sim_time=60.0) -> list[dict]:
+    """Three runs per patient (:data:`CONDITIONS`), each task with every parameter that
+    changes it, its resolved scenario's SHA-256 included (so a stored run is reused only
+    with the same parameters)."""
     params = {"a": amplitude, "r": rate_per_min, "p": hold_period, "h": hold_duration}
+    digests = {name: _scenario_sha256(scenario, text % params)
+               for name, text in CONDITIONS.items()}
     tasks = []
     for i, spec in enumerate(patients):
         for name, text in CONDITIONS.items():
             tasks.append({"run_id": f"{spec.replace(':', '')}_{name}", "index": i,
                           "fault": name, "patient": spec, "scenario": scenario,
                           "scenarios_file": None, "overrides": text % params,
+                          "amplitude": float(amplitude), "rate_per_min": float(rate_per_min),
+                          "hold_period": float(hold_period),
+                          "hold_duration": float(hold_duration),
+                          "scenario_sha256": digests[name],
                           "random_seed": i, "max_sim_time": max_sim_time})
     return tasks
 
@@ -113,8 +167,7 @@ def run_breathing_command(args) -> int:
     patients = [s.strip() for s in args.patients.split(",") if s.strip()]
     if not patients:
         raise ValueError("--patients: expected at least one patient spec")
-    if not 0.0 < args.amplitude <= 0.03:
-        raise ValueError(f"--amplitude: expected 0 < amplitude <= 0.03 m, got {args.amplitude}")
+    check_breathing_arguments(args.amplitude, args.rate, args.hold_period, args.hold_duration)
     if args.workers < 0:
         raise ValueError(f"--workers: expected 0 or more, got {args.workers}")
     tasks = breathing_tasks(patients, amplitude=args.amplitude, rate_per_min=args.rate,
@@ -123,10 +176,20 @@ def run_breathing_command(args) -> int:
                            progress=lambda r: tqdm.write(f"{r['run_id']}: {r['status']} "
                                                          f"e_trans {r.get('e_trans_mm')}"))
     table = compare(results)
+    # The parameters as the runs themselves record them (their tasks).
+    ran = {k: sorted({r["task"].get(k) for r in results if "task" in r}, key=str)
+           for k in ("amplitude", "rate_per_min", "hold_period", "hold_duration")}
     write_text_atomic(Path(args.out) / "breathing.json", json.dumps(
         {"conditions": table, "amplitude_m": args.amplitude, "rate_per_min": args.rate,
          "hold_period_s": args.hold_period, "hold_duration_s": args.hold_duration,
-         "patients": patients}, indent=1))
+         "patients": patients, "runs_recorded": ran,
+         "provenance": Provenance(LoadScenario(filename=DEFAULT_SCENARIOS_FILE,
+                                               scenario_name=tasks[0]["scenario"]),
+                                  scenario_name=tasks[0]["scenario"],
+                                  scenarios_file=str(DEFAULT_SCENARIOS_FILE),
+                                  overrides="per run: each run's task.overrides",
+                                  seeds={t["run_id"]: t["random_seed"] for t in tasks})},
+        indent=1))
     if results:
         plot_comparison(results, Path(args.out) / "breathing.png")
     print(f"{'condition':<20} {'runs':>4} {'DONE':>4} {'mean E_trans [mm]':>18} "
