@@ -41,8 +41,8 @@ def test_key_covers_resolved_inputs_not_paths(tmp_path):
     # Its contents changed (a default the run reads): another run.
     changed = tmp_path / "changed.yaml"
     text = Path(DEFAULT_SCENARIOS_FILE).read_text()
-    changed.write_text(text.replace("default: &default\n", "default: &default\n  random_seed: 7\n",
-                                    1))
+    assert "default: {}\n" in text
+    changed.write_text(text.replace("default: {}\n", "default: {random_seed: 7}\n", 1))
     assert st.task_key(base) != st.task_key(dict(base, scenarios_file=str(changed)))
     # Where NRRD volumes go does not change a run; the reconstruction grid changes only
     # efficiency runs.
