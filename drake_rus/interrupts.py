@@ -26,7 +26,7 @@ import sys
 import threading
 from contextlib import contextmanager
 
-__all__ = ["Interrupted", "handling", "deferred", "importing", "check", "pending",
+__all__ = ["Interrupted", "handling", "deferred", "importing", "check", "note", "pending",
            "exit_status", "signal_of", "signal_text", "install_for_startup"]
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -77,6 +77,13 @@ def exit_status(exc: BaseException | None = None) -> int:
 def pending() -> int | None:
     """The signal received since :func:`handling` began, if any."""
     return _state["signum"]
+
+
+def note(signum: int) -> None:
+    """Records ``signum`` as the signal that stops the command, when another handler (the
+    hardware session's) caught it instead of ours; does nothing outside :func:`handling`."""
+    if _state["installed"] and _state["signum"] is None:
+        _state["signum"] = int(signum)
 
 
 def check() -> None:

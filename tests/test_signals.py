@@ -263,3 +263,20 @@ def test_sigterm_during_the_demo_leaves_an_interrupted_summary(tmp_path, capsys,
     assert summary["provenance"]["command"] == "demo"
     assert summary["provenance"]["arguments"]["duration"] == 0.2
     assert "INTERRUPTED: interrupted by SIGTERM" in capsys.readouterr().out
+
+
+def test_a_signal_caught_by_the_hardware_session_keeps_its_number():
+    """The hardware session raises KeyboardInterrupt('signal 15') from its own handler: the
+    command still reports SIGTERM (143), and outside drake-rus's handling nothing sticks."""
+    e = KeyboardInterrupt(f"signal {int(signal.SIGTERM)}")
+    assert interrupts.signal_of(e) == signal.SIGTERM and interrupts.exit_status(e) == 143
+    assert interrupts.exit_status(KeyboardInterrupt()) == 130
+    interrupts.note(signal.SIGTERM)              # no handling(): not recorded
+    assert interrupts.pending() is None
+    interrupts.check()
+    with interrupts.handling():
+        interrupts.note(signal.SIGTERM)
+        assert interrupts.exit_status() == 143
+        with pytest.raises(interrupts.Interrupted):
+            interrupts.check()
+    assert interrupts.pending() is None

@@ -296,6 +296,7 @@ def RunScan(scenario, patient, template, *, make_station: Callable = MakeStation
             if not (isinstance(e, KeyboardInterrupt) or interrupts.pending() is not None):
                 raise
             interrupted.append(interrupts.signal_of(e))
+            interrupts.note(interrupted[0])      # the exit status follows it
             t_end = context.get_time()
         wall = time.perf_counter() - start
         cpu = time.process_time() - cpu_start
