@@ -187,7 +187,11 @@ def _interrupted(command: str, exc: BaseException | None = None) -> int:
 
 
 def _run(argv: list) -> int:
-    command, args = "drake-rus", None
+    # The command's name for messages before the arguments are parsed (a signal during the
+    # imports): the first argument, if it is a word.
+    args = None
+    command = "drake-rus" + (f" {argv[0]}" if argv and argv[0].replace("-", "").isalpha()
+                             and not argv[0].startswith("-") else "")
     try:
         # The imports of every command module (a few s): a signal is raised at the next
         # import statement (raised inside a module's initialisation, libraries swallow it).
