@@ -158,7 +158,7 @@ def importing():
 def install_for_startup() -> None:
     """Installs the handlers as the program's first act (before its slow imports), in
     deferred mode: a signal before ``main`` runs is recorded and raised by its first
-    checkpoint. For the ``drake-rus`` program only (it stays installed)."""
+    checkpoint. For the ``drake-rus`` program only (until ``main`` ends)."""
     if _state["startup"]:
         return
     _install()
@@ -181,14 +181,12 @@ def handling():
     try:
         yield
     finally:
+        # Python's own handlers again: after the command, a signal acts as it always does
+        # (a hang while the interpreter shuts down stays interruptible).
         _state["deferring"].clear()
-        if startup:
-            # The program ends right after: a late signal is recorded, not raised.
-            _state["deferring"].append(False)
-        else:
-            _state["signum"] = None
-            if installed_here:
-                _uninstall()
+        _state["signum"] = None
+        if installed_here or startup:
+            _uninstall()
 
 
 @contextmanager

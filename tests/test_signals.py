@@ -187,7 +187,9 @@ def _check_left_behind(scan: Scan, signum: int, folder_expected: bool | None) ->
     prov = summary["provenance"]
     assert prov["command"] == "scan" and prov["seeds"]["patient"] == "test:0"
     assert "random_seed" in prov["seeds"] and prov["scenario_yaml"]
-    assert any(line.startswith("INTERRUPTED: ") for line in scan.out_lines), scan.out_lines
+    # (a signal between a print's text and its newline joins the two lines)
+    assert any("INTERRUPTED: interrupted by" in line for line in scan.out_lines), \
+        scan.out_lines
     return summary
 
 
