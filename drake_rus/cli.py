@@ -9,18 +9,33 @@ Before a command runs, ``main`` checks what every command shares: the arguments 
 is needed; see ``drake_rus.io_utils``), the ``PREFLIGHT_CHECKS`` of the command modules (the
 patient spec) and a ``--scheduler`` address. Every
 user error, an OSError included, ends in one line naming the argument or field and exit
-status 2; Ctrl-C in 130.
+status 2. Ctrl-C (SIGINT) and SIGTERM at any moment end the command with 130 and 143
+(``drake_rus.interrupts``; the program installs their handlers before its slow imports).
 """
 
-import argparse
-import importlib
-import math
-import socket
+import os
 import sys
-from urllib.parse import urlparse
 
-from drake_rus.config_schema import ScenarioError
-from drake_rus.io_utils import check_output_dir, check_output_file, describe_os_error
+from drake_rus import interrupts
+
+if __name__ == "__main__" or os.path.basename(
+        getattr(sys.modules.get("__main__"), "__file__", None) or "") == "drake-rus":
+    # The program (``python -m drake_rus.cli`` or the ``drake-rus`` script; not a library
+    # import, nor a worker process that re-imports the script): signals are caught from here.
+    interrupts.install_for_startup()
+if __name__ == "__main__":
+    # Run as ``python -m drake_rus.cli``: this module is drake_rus.cli for the command
+    # modules too (their PREFLIGHT_CHECKS and UserError are this module's, not a copy's).
+    sys.modules.setdefault("drake_rus.cli", sys.modules[__name__])
+
+import argparse  # noqa: E402  (after the signal handlers: start-up can be interrupted)
+import importlib  # noqa: E402
+import math  # noqa: E402
+import socket  # noqa: E402
+from urllib.parse import urlparse  # noqa: E402
+
+from drake_rus.config_schema import ScenarioError  # noqa: E402
+from drake_rus.io_utils import check_output_dir, check_output_file, describe_os_error  # noqa: E402
 
 COMMAND_MODULES = [
     "drake_rus.demo",            # demo: the station demo (pressing probe)
@@ -148,22 +163,59 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# Exit statuses of the command line (docs/cli.md): 0 done, 1 not done (a scan ended ABORT,
+# TIMEOUT, ...), 2 bad input, 128 + the signal (130 Ctrl-C, 143 SIGTERM).
+EXIT_USER_ERROR = 2    # bad input: one line naming the argument or field, nothing written
+EXIT_STATUS_HELP = """exit status (docs/cli.md):
+  0    done (a scan or rehearsal: the scan ended DONE)
+  1    a scan or rehearsal ended otherwise (ABORT, TIMEOUT; the summary says why)
+  2    bad input: one line naming the argument or field; nothing half-written
+  130  stopped by Ctrl-C (SIGINT); 143 stopped by SIGTERM: the output folder, if it
+       exists, holds an INTERRUPTED summary.json, no temporary files and no lock"""
+
+
 def main(argv=None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
+    with interrupts.handling():
+        return _run(argv)
+
+
+def _interrupted(command: str, exc: BaseException | None = None) -> int:
+    print(f"{command}: interrupted by {interrupts.signal_text(interrupts.signal_of(exc))}",
+          file=sys.stderr)
+    return interrupts.exit_status(exc)
+
+
+def _run(argv: list) -> int:
+    # The command's name for messages before the arguments are parsed (a signal during the
+    # imports): the first argument, if it is a word.
+    args = None
+    command = "drake-rus" + (f" {argv[0]}" if argv and argv[0].replace("-", "").isalpha()
+                             and not argv[0].startswith("-") else "")
     try:
+        # The imports of every command module (a few s): a signal is raised at the next
+        # import statement (raised inside a module's initialisation, libraries swallow it).
+        with interrupts.importing():
+            parser = build_parser()
+        args = parser.parse_args(argv)
+        command = f"drake-rus {args.command}"
+        args.argv = ["drake-rus", *argv]
         preflight(args)
-        return int(args.func(args) or 0)
-    except (ScenarioError, UserError, ValueError) as e:
-        print(f"drake-rus {args.command}: error: {e}", file=sys.stderr)
-        return 2
-    except OSError as e:       # FileNotFoundError with a message, a full disk, permissions
-        text = str(e) if e.errno is None else describe_os_error(e, args)
-        print(f"drake-rus {args.command}: error: {text}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"drake-rus {args.command}: interrupted", file=sys.stderr)
-        return 130
+        code = int(args.func(args) or 0)
+        if interrupts.pending() is not None and code != interrupts.exit_status():
+            return _interrupted(command)     # a signal swallowed on the way
+        return code
+    except BaseException as e:
+        if isinstance(e, KeyboardInterrupt) or interrupts.pending() is not None:
+            return _interrupted(command, e)
+        if isinstance(e, (ScenarioError, UserError, ValueError)):
+            print(f"{command}: error: {e}", file=sys.stderr)
+            return EXIT_USER_ERROR
+        if isinstance(e, OSError):  # FileNotFoundError with a message, a full disk, permissions
+            text = str(e) if e.errno is None else describe_os_error(e, args)
+            print(f"{command}: error: {text}", file=sys.stderr)
+            return EXIT_USER_ERROR
+        raise
 
 
 if __name__ == "__main__":

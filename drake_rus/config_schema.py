@@ -421,6 +421,50 @@ def _value_for_message(scenario, path: str):
     return _get(scenario, path)
 
 
+# ------------------------------------------------------------------------ nesting depth
+# How deep scenario YAML may nest (mappings and lists): the schema's deepest field is 5
+# levels (patient.X_BPt.rotation.deg[i]), a scenarios file adds the scenario's name, YAML
+# anchors one more. Deeper text is not a scenario, and parsing it recurses (Python's YAML
+# composer, Drake's loader) until the interpreter's recursion limit.
+MAX_YAML_DEPTH = 16
+
+
+def yaml_depth(text: str) -> tuple[int, int]:
+    """(deepest nesting of mappings and lists, its line) of YAML ``text``, counted on the
+    token stream (no recursion, whatever the depth). Text that does not scan as YAML gives
+    the depth reached before the error (the loader names the error)."""
+    import yaml
+    opening = (yaml.BlockMappingStartToken, yaml.BlockSequenceStartToken,
+               yaml.FlowMappingStartToken, yaml.FlowSequenceStartToken)
+    closing = (yaml.BlockEndToken, yaml.FlowMappingEndToken, yaml.FlowSequenceEndToken)
+    depth = deepest = line = 0
+    try:
+        for token in yaml.scan(text, Loader=yaml.SafeLoader):
+            if isinstance(token, opening):
+                depth += 1
+                if depth > deepest:
+                    deepest, line = depth, token.start_mark.line + 1
+                if deepest > 10 * MAX_YAML_DEPTH:
+                    break
+            elif isinstance(token, closing):
+                depth -= 1
+    except yaml.YAMLError:
+        pass
+    return deepest, line
+
+
+def check_nesting_depth(text: str, where: str, limit: int = MAX_YAML_DEPTH) -> None:
+    """Raises ScenarioError naming ``where`` (``--set``, a file) when YAML ``text`` nests
+    deeper than ``limit`` levels."""
+    if not text:
+        return
+    depth, line = yaml_depth(text)
+    if depth > limit:
+        shown = f"more than {10 * limit}" if depth > 10 * limit else f"{depth}"
+        raise ScenarioError(f"{where}: the YAML nests {shown} levels deep (line {line}); "
+                            f"scenario fields nest at most {limit} levels")
+
+
 # ------------------------------------------------------------------------ duplicate keys
 def check_duplicate_keys(text: str, scenarios_file: bool = False) -> None:
     """Raises ScenarioError naming the field path and line of the first key written twice in

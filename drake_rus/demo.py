@@ -16,25 +16,38 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput
 
+from drake_rus import interrupts
+from drake_rus.cli import EXIT_STATUS_HELP
+from drake_rus.config_schema import check_nesting_depth
 from drake_rus.control.press import PressDriver
 from drake_rus.io_utils import (MB, check_output_file, dumps_strict, output_dir, save_figure,
                                 write_text_atomic)
 from drake_rus.progress import AdvanceWithProgress, SaveMeshcatRecording
+from drake_rus.provenance import Provenance
 from drake_rus.robot import MakeControlPlant
 from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, LoadScenario
 from drake_rus.stations import MakeStation
 
-# About what the demo's Meshcat recording takes on disk (bytes).
+# About what the demo's Meshcat recording takes on disk (bytes): 2.5 MB for the default 6 s
+# (30 frames a second), so 0.5 MB per simulated second with a margin, at least 20 MB.
 DEMO_RECORDING_BYTES = 20 * MB
+DEMO_RECORDING_BYTES_PER_S = MB // 2
+# The longest demo (simulated s): the recording keeps every frame in memory and on disk
+# (0.4-0.5 MB a second: 300 MB at this bound) and the force logs grow with it; a hold of
+# 60 s (the breath-hold protocol's) fits ten times over. Longer holds: a study.
+DEMO_MAX_DURATION = 600.0
 
 
 def add_commands(subparsers) -> None:
     p = subparsers.add_parser(
         "demo", help="the simulated station pressing the probe into the body (Meshcat + plot)",
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+        description=__doc__, epilog=EXIT_STATUS_HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter)
     add_scenario_arguments(p)
     p.add_argument("--out", default="runs/demo", help="output directory (default runs/demo)")
-    p.add_argument("--duration", type=float, default=6.0, help="simulated time in s (default 6)")
+    p.add_argument("--duration", type=float, default=6.0,
+                   help=f"simulated time in s (default 6, at most {DEMO_MAX_DURATION:g}: the "
+                        "recording grows by about 0.5 MB a second)")
     p.add_argument("--force", type=float, default=None,
                    help="desired contact force in N (default: the scenario's controller force)")
     p.add_argument("--meshcat", action="store_true",
@@ -54,6 +67,7 @@ def add_scenario_arguments(parser) -> None:
 
 
 def load_scenario_from_args(args):
+    check_nesting_depth(args.overrides, "--set")
     return LoadScenario(filename=args.scenarios_file, scenario_name=args.scenario,
                         scenario_text=args.overrides)
 
@@ -126,21 +140,53 @@ class PressDiagram:
         return est.sample_times(), -est.data()[5], -tru.data()[5]
 
 
+def demo_recording_bytes(duration: float) -> int:
+    """About what the demo's recording of ``duration`` simulated s takes on disk (bytes)."""
+    return max(DEMO_RECORDING_BYTES, int(DEMO_RECORDING_BYTES_PER_S * duration))
+
+
 def run_demo(args) -> int:
+    if args.duration > DEMO_MAX_DURATION:
+        raise ValueError(f"--duration: expected at most {DEMO_MAX_DURATION:g} s, got "
+                         f"{args.duration:g} (the Meshcat recording keeps every frame, about "
+                         f"0.5 MB per simulated s; a longer hold belongs in a study)")
     scenario = load_scenario_from_args(args)
     desired = scenario.controller.desired_force if args.force is None else args.force
     if not (0 < desired <= scenario.safety.force_ceiling):
         raise ValueError(f"--force: expected 0 < F <= the force ceiling "
                          f"{scenario.safety.force_ceiling} N, got {desired}")
-    need = 2 * MB + (0 if args.record else DEMO_RECORDING_BYTES)
+    recording = demo_recording_bytes(args.duration)
+    need = 2 * MB + (0 if args.record else recording)
     if args.record:
-        check_output_file(args.record, "--record", need_bytes=DEMO_RECORDING_BYTES,
-                          suffixes=(".html",))
-    with output_dir(args.out, "--out", need_bytes=need, what="demo") as out:
-        return _demo(args, scenario, desired, out)
+        check_output_file(args.record, "--record", need_bytes=recording, suffixes=(".html",))
+    provenance = Provenance(scenario, scenario_name=args.scenario,
+                            scenarios_file=args.scenarios_file, overrides=args.overrides,
+                            argv=getattr(args, "argv", None))
+    provenance["command"] = "demo"
+    provenance["arguments"] = {"duration": args.duration, "force": args.force}
+    with output_dir(args.out, "--out", need_bytes=need, what="demo",
+                    argv=getattr(args, "argv", None)) as out:
+        try:
+            return _demo(args, scenario, desired, out, provenance)
+        except BaseException as e:
+            if not (isinstance(e, KeyboardInterrupt) or interrupts.pending() is not None):
+                raise
+            return _demo_interrupted(args, out, provenance, e)
 
 
-def _demo(args, scenario, desired: float, out: Path) -> int:
+def _demo_interrupted(args, out: Path, provenance: dict, exc: BaseException) -> int:
+    """A signal during the demo: an INTERRUPTED summary.json; the exit status (130, 143)."""
+    reason = (f"interrupted by {interrupts.signal_text(interrupts.signal_of(exc))}; the "
+              "outputs are partial")
+    with interrupts.deferred(reraise=False):
+        path = write_text_atomic(out / "summary.json", dumps_strict(
+            {"status": "INTERRUPTED", "reason": reason, "scenario": args.scenario,
+             "provenance": provenance}, indent=2) + "\n")
+    print(f"INTERRUPTED: {reason}; wrote {path}", flush=True)
+    return interrupts.exit_status(exc)
+
+
+def _demo(args, scenario, desired: float, out: Path, provenance: dict | None = None) -> int:
     meshcat = MakeMeshcat()
     if args.meshcat:
         print(f"Meshcat: {meshcat.web_url()}", flush=True)
@@ -175,6 +221,7 @@ def _demo(args, scenario, desired: float, out: Path) -> int:
         "recording": str(record),
         "force_plot": str(out / "force.png"),
     }
+    summary.update(status="DONE", provenance=provenance)
     write_text_atomic(out / "summary.json", dumps_strict(summary, indent=2) + "\n")
     print(f"settled force {summary['settled_force_true_n']:.2f} N (estimated "
           f"{summary['settled_force_estimated_n']:.2f} N, desired {desired:.1f} N); "

@@ -2,14 +2,20 @@
 a folder where a folder is needed, free space) before the work that fills them, and an
 output folder is locked while a run writes into it."""
 
+import datetime
 import errno
 import json
 import math
 import os
+import shlex
 import shutil
+import sys
 import tempfile
-from contextlib import contextmanager
+import uuid
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
+
+from drake_rus import interrupts
 
 MB = 1024 * 1024
 _UMASK = os.umask(0o022)
@@ -27,19 +33,45 @@ class OutputError(ValueError):
 def atomic_path(path: str | Path):
     """Yields a temporary path beside ``path``; renames it onto ``path`` on success.
 
-    On any exception the temporary file is removed and ``path`` is left untouched.
+    On any exception (a signal included) the temporary file is removed and ``path`` is left
+    untouched; an OSError without a file name (a write that fills the disk) is raised again
+    naming ``path``.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        yield Path(tmp)
+    with ExitStack() as stack:
+        # Creating the temporary file and taking charge of it is one step for signals.
+        with interrupts.deferred(reraise=False):
+            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix,
+                                       dir=path.parent)
+            os.close(fd)
+            cleanup = stack.enter_context(_TemporaryFile(tmp))
+        interrupts.check()
+        try:
+            yield Path(tmp)
+        except OSError as e:
+            if e.errno is not None and e.filename in (None, tmp):
+                raise OSError(e.errno, e.strerror or os.strerror(e.errno), str(path)) from e
+            raise
         os.chmod(tmp, FILE_MODE)
         os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+        cleanup.done = True
+
+
+class _TemporaryFile:
+    """Removes a temporary file unless ``done`` (when the block ends by any exception)."""
+
+    def __init__(self, path):
+        self.path, self.done = Path(path), False
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        if not self.done:
+            with interrupts.deferred(reraise=False):
+                self.path.unlink(missing_ok=True)
+        return False
 
 
 def write_text_atomic(path: str | Path, text: str) -> Path:
@@ -176,51 +208,145 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
+def _process_start(pid: int) -> int | None:
+    """When process ``pid`` started (clock ticks since boot, /proc), to tell it from a later
+    process that reuses its number; None where /proc is not available."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return int(f.read().rsplit(")", 1)[1].split()[19])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _lock_record(what: str, argv) -> dict:
+    """What the lock file says about the run holding it."""
+    argv = list(sys.argv if argv is None else argv)
+    if argv and os.path.basename(str(argv[0])) in ("cli.py", "drake-rus"):
+        argv[0] = "drake-rus"
+    pid = os.getpid()
+    return {"pid": pid, "command": what, "argv": [str(a) for a in argv],
+            "started_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(
+                timespec="seconds"),
+            "process_start": _process_start(pid), "token": uuid.uuid4().hex}
+
+
+def read_lock(path) -> dict | None:
+    """The lock record of a folder's lock file (``pid``, ``command``, ``argv``,
+    ``started_utc``; a lock of an older version holds "PID COMMAND"), None if unreadable."""
+    try:
+        text = Path(path).read_text()
+    except OSError:
+        return None
+    try:
+        record = json.loads(text)
+        if isinstance(record, dict) and isinstance(record.get("pid"), int):
+            return record
+    except ValueError:
+        pass
+    words = text.split()
+    if words and words[0].isdigit():
+        return {"pid": int(words[0]), "command": " ".join(words[1:]) or "drake-rus"}
+    return None
+
+
+def _lock_held(record: dict | None) -> bool:
+    """True while the process that wrote the lock ``record`` runs."""
+    if record is None or record["pid"] <= 0 or not _pid_alive(record["pid"]):
+        return False
+    started = record.get("process_start")
+    now = _process_start(record["pid"])
+    return started is None or now is None or started == now
+
+
+def _describe_holder(record: dict) -> str:
+    text = f"drake-rus {record.get('command', '')}".strip() + f", process {record['pid']}"
+    started = record.get("started_utc")
+    if started:
+        try:
+            t = datetime.datetime.fromisoformat(started)
+            ago = (datetime.datetime.now(datetime.timezone.utc) - t).total_seconds()
+            text += (f", started {t.strftime('%Y-%m-%d %H:%M:%S')} UTC "
+                     f"({_duration(ago)} ago)")
+        except (TypeError, ValueError):
+            text += f", started {started}"
+    argv = record.get("argv")
+    if argv:
+        text += ": " + " ".join(shlex.quote(str(a)) for a in argv)
+    return text
+
+
+def _duration(seconds: float) -> str:
+    seconds = max(0, int(seconds))
+    if seconds < 120:
+        return f"{seconds} s"
+    if seconds < 7200:
+        return f"{seconds // 60} min"
+    return f"{seconds // 3600} h {seconds % 3600 // 60} min"
+
+
 @contextmanager
-def output_dir(path, arg: str = "--out", need_bytes: int = 0, what: str = "drake-rus"):
+def output_dir(path, arg: str = "--out", need_bytes: int = 0, what: str = "drake-rus",
+               argv=None):
     """Checks ``path`` (see :func:`check_output_dir`), creates it and holds a lock file in it
     for the duration: a second run into the same folder is refused (OutputError naming
-    ``arg``). On an exception the lock is removed and the folders this call created are
-    removed again if nothing was written into them: no empty output folders."""
+    ``arg`` and the run holding the lock: command, process, start time, its command line
+    ``argv``, default ``sys.argv``). On an exception the lock is removed and the folders this
+    call created are removed again if nothing was written into them: no empty output
+    folders. Signals wait while the lock is taken and released."""
     path = check_output_dir(path, arg, need_bytes)
     created = []
     p = path.absolute()
     while not p.exists():
         created.append(p)
         p = p.parent
+    lock = path / LOCK_NAME
+    record = _lock_record(what, argv)
+    # Every step from taking the lock to releasing it is inside the try, so that a signal at
+    # any moment (raised between the steps, never inside one) releases it.
+    try:
+        with interrupts.deferred(reraise=False):
+            _take_lock(path, lock, record, created, arg)
+        interrupts.check()
+        yield path
+        with interrupts.deferred(reraise=False):
+            _release_lock(lock, record)
+            _remove_empty(created)
+    except BaseException:
+        with interrupts.deferred(reraise=False):
+            _release_lock(lock, record)
+            _remove_empty(created)
+        raise
+
+
+def _take_lock(path: Path, lock: Path, record: dict, created: list, arg: str) -> None:
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise OutputError(f"{arg}: cannot create {path} ({_why(e)})") from None
-    lock = path / LOCK_NAME
     for _ in range(2):
         try:
             fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
         except FileExistsError:
-            try:
-                pid = int(lock.read_text().split()[0])
-            except (OSError, ValueError, IndexError):
-                pid = -1
-            if pid > 0 and _pid_alive(pid):
+            holder = read_lock(lock)
+            if _lock_held(holder):
                 raise OutputError(
-                    f"{arg}: {path} is in use by another run ({what}, process {pid}); wait "
-                    f"for it to finish or choose another {arg}") from None
+                    f"{arg}: {path} is in use by another run ({_describe_holder(holder)}); "
+                    f"wait for it to finish or choose another {arg}") from None
             lock.unlink(missing_ok=True)       # stale: its process is gone
             continue
         except OSError as e:
-            _remove_empty(created)
             raise OutputError(f"{arg}: cannot write in {path} ({_why(e)})") from None
         with os.fdopen(fd, "w") as f:
-            f.write(f"{os.getpid()} {what}\n")
-        break
-    try:
-        yield path
-    except BaseException:
+            f.write(json.dumps(record) + "\n")
+        return
+    raise OutputError(f"{arg}: cannot take the lock {lock} (another run keeps taking it)")
+
+
+def _release_lock(lock: Path, record: dict) -> None:
+    """Removes the lock if it is still this run's (not another's that refused this one)."""
+    held = read_lock(lock)
+    if held is None or held.get("token") == record["token"]:
         lock.unlink(missing_ok=True)
-        _remove_empty(created)
-        raise
-    lock.unlink(missing_ok=True)
-    _remove_empty(created)
 
 
 def _remove_empty(folders) -> None:
@@ -249,9 +375,10 @@ def describe_os_error(e: OSError, args=None) -> str:
     where = getattr(e, "filename", None)
     arg = argument_for_path(args, where) if args is not None else None
     if e.errno == errno.ENOSPC:
-        text = f"no space left on the device writing {where}"
+        text = ("no space left on the device" + (f" writing {where}" if where else
+                                                  " (free some space and run again)"))
     elif e.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
-        text = f"cannot write {where} ({_why(e)})"
+        text = f"cannot write {where} ({_why(e)})" if where else f"cannot write ({_why(e)})"
     else:
         text = f"{_why(e)}: {where}" if where else str(e)
     return f"{arg}: {text}" if arg else text

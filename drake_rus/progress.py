@@ -2,7 +2,9 @@
 
 The bar tells the truth: it counts simulated time towards the run's *expected* length (not
 a time cap), shows the current phase, and when stderr is not a terminal (a log file, CI) it
-is replaced by one line per phase.
+is replaced by one line per phase and, in a long run, a line every ``PROGRESS_LINE_S`` s of
+wall time. A signal (Ctrl-C, SIGTERM) ends the run after the current chunk at the latest
+(``drake_rus.interrupts.check``).
 """
 
 import sys
@@ -11,7 +13,11 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from drake_rus import interrupts
 from drake_rus.io_utils import write_text_atomic
+
+# Without a terminal, a progress line at least this often (s of wall time) in a long run.
+PROGRESS_LINE_S = 30.0
 
 
 def stderr_is_terminal() -> bool:
@@ -44,11 +50,19 @@ def AdvanceWithProgress(simulator, t_final: float, desc: str = "simulating",
         log_phases = disable is None and not terminal
     start = time.perf_counter()
     last = [None]
+    said = [start]             # when the last line was printed (wall clock)
 
     def log(label):
+        now = time.perf_counter()
         if log_phases and label and label != last[0]:
             print(f"{desc}: {label} at {context.get_time() - t0:.1f} sim s "
-                  f"({time.perf_counter() - start:.0f} s wall)", file=sys.stderr, flush=True)
+                  f"({now - start:.0f} s wall)", file=sys.stderr, flush=True)
+            said[0] = now
+        elif log_phases and now - said[0] >= PROGRESS_LINE_S:
+            print(f"{desc}: {context.get_time() - t0:.1f} of {span:.1f} sim s"
+                  f"{' in ' + label if label else ''} ({now - start:.0f} s wall)",
+                  file=sys.stderr, flush=True)
+            said[0] = now
         last[0] = label
 
     with tqdm(total=round(total, 3), desc=desc, unit="sim s",
@@ -67,11 +81,11 @@ def AdvanceWithProgress(simulator, t_final: float, desc: str = "simulating",
             if done > 0.95 * bar.total:      # longer than expected: stretch, never > 100 %
                 bar.total = round(min(span, max(done / 0.95, done + step)), 3)
             bar.update(round(done - bar.n, 6))
-            if on_step is not None:
-                label = on_step(context)
-                log(label)
-                if label:
-                    bar.set_postfix_str(label, refresh=False)
+            interrupts.check()       # a signal whose exception was swallowed on the way
+            label = None if on_step is None else on_step(context)
+            log(label)
+            if label:
+                bar.set_postfix_str(label, refresh=False)
             if should_stop is not None and should_stop(context):
                 break
         bar.total = round(max(context.get_time() - t0, 1e-3), 3)   # the run ends at 100 %

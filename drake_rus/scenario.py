@@ -17,8 +17,9 @@ from pydrake.common.schema import Transform
 from pydrake.common.yaml import yaml_load_file, yaml_load_typed
 
 from drake_rus.anatomy.motion import PatientMotionConfig
-from drake_rus.config_schema import (ScenarioError, check_dataclass_values, schema_transform,
-                                     check_duplicate_keys, check_physical, validate)
+from drake_rus.config_schema import (ScenarioError, check_dataclass_values,
+                                     check_duplicate_keys, check_nesting_depth, check_physical,
+                                     schema_transform, validate)
 from drake_rus.control.config import ControllerConfig, SafetyConfig
 from drake_rus.hardware.config import HardwareConfig
 from drake_rus.imaging.config import ImagingConfig
@@ -181,8 +182,10 @@ def _load_raw(path: Path) -> dict:
         raise ScenarioError(f"scenario file {path} is a folder; expected a YAML file")
     if not path.is_file():
         raise ScenarioError(f"scenario file not found: {path}")
+    text = path.read_text(errors="replace")
+    check_nesting_depth(text, f"scenario file {path}")
     try:
-        check_duplicate_keys(path.read_text(errors="replace"), scenarios_file=True)
+        check_duplicate_keys(text, scenarios_file=True)
     except ScenarioError as e:
         raise ScenarioError(f"{path}: {e}") from None
     try:
@@ -233,6 +236,7 @@ def LoadScenario(*, filename: str | Path = DEFAULT_SCENARIOS_FILE,
 def ApplyOverrides(scenario: Scenario, text: str, context: str = "overrides") -> Scenario:
     """Returns ``scenario`` with the YAML mapping ``text`` merged on top."""
     from pydrake.common.yaml import yaml_load
+    check_nesting_depth(text, context)
     try:
         check_duplicate_keys(text)
     except ScenarioError as e:

@@ -276,6 +276,32 @@ class PhysicalCanvas:
         return rows, cols, values
 
 
+# ONNX Runtime's element type names of the outputs each ``onnx_output`` accepts: scores need
+# a float tensor; labels (class indices) may be integers too.
+_FLOAT_TYPES = ("tensor(float)", "tensor(double)", "tensor(float16)", "tensor(bfloat16)",
+                "tensor(float32)", "tensor(float64)")
+_INTEGER_TYPES = tuple(f"tensor({k}{b})" for k in ("int", "uint") for b in (8, 16, 32, 64))
+
+
+def check_output_type(type_name: str, shape, output: str, where: str, model: str,
+                      field_prefix: str = "imaging.") -> None:
+    """Raises ValueError naming ``where`` (the field that selects the model) when a model's
+    first output cannot be read as ``output`` ("logits", "probability" or "labels"): its
+    element type (``tensor(float)``, ``tensor(int64)``, ...) or rank (3 or 4; symbolic or
+    unknown dimensions pass)."""
+    accepted = _FLOAT_TYPES + (_INTEGER_TYPES if output == "labels" else ())
+    if type_name not in accepted:
+        hint = (" (a model that outputs class indices: set "
+                f"{field_prefix}onnx_output: labels)" if type_name in _INTEGER_TYPES else "")
+        raise ValueError(f"{where}: model {model} outputs {type_name}; "
+                         f"{field_prefix}onnx_output {output!r} expects "
+                         f"{'a float or integer' if output == 'labels' else 'a float'} "
+                         f"tensor{hint}")
+    if isinstance(shape, (list, tuple)) and len(shape) not in (3, 4):
+        raise ValueError(f"{where}: model {model} output has shape {list(shape)}; expected "
+                         "(N, K, h, w) or (N, h, w)")
+
+
 class OnnxSegmenter:
     """A loaded ONNX model; call it on a uint8 grey image to get a bool kidney mask."""
 
@@ -345,7 +371,10 @@ class OnnxSegmenter:
             raise ValueError(f"{where}: model input '{inputs[0].name}' has type "
                              f"{inputs[0].type}; expected a float tensor")
         self.input_name = inputs[0].name
-        self.output_name = self.session.get_outputs()[0].name
+        output = self.session.get_outputs()[0]
+        self.output_name = output.name
+        check_output_type(output.type, output.shape, self.output, where, self.path.name,
+                          field_prefix)
         # Check the output once on a blank image, so a bad model fails here, not mid-run.
         try:
             probe = self.session.run([self.output_name], {self.input_name: np.zeros(
@@ -353,6 +382,8 @@ class OnnxSegmenter:
         except Exception as e:
             raise ValueError(f"{where}: model {self.path.name} fails on an input of shape "
                              f"{list(self.input_shape)}: {e}") from None
+        check_output_type(f"tensor({np.asarray(probe).dtype.name})", list(np.shape(probe)),
+                          self.output, where, self.path.name, field_prefix)
         self._kidney_map(probe)
 
     @classmethod

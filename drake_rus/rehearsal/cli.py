@@ -29,9 +29,10 @@ from __future__ import annotations
 
 import argparse
 import os
-import signal
 import sys
 
+from drake_rus import interrupts
+from drake_rus.cli import EXIT_STATUS_HELP
 from drake_rus.demo import add_scenario_arguments
 from drake_rus.extras import require
 from drake_rus.rehearsal.core import loopback_only, netns_argv
@@ -45,7 +46,8 @@ def add_commands(subparsers) -> None:
     p = subparsers.add_parser(
         "rehearse", help="software-in-the-loop rehearsal of a hardware scan (sim process on "
                          "the real wire protocol)",
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+        description=__doc__, epilog=EXIT_STATUS_HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter)
     add_scenario_arguments(p)
     p.add_argument("--patient", default="test:0",
                    help="virtual patient for the simulated side (default test:0)")
@@ -124,11 +126,8 @@ def run_rehearse_command(args) -> int:
         if args.netns == "auto":
             print("rehearse: not root, running without a private network namespace (LCM "
                   "multicast stays on this host with ttl=0; see --help)", file=sys.stderr)
-    # SIGTERM ends the command like Ctrl-C: the scan's session stops the robot and the
-    # simulated side is stopped on the way out.
-    def interrupt(signum, frame):
-        raise KeyboardInterrupt(f"signal {signum}")
-    signal.signal(signal.SIGTERM, interrupt)
+    # SIGTERM ends the command like Ctrl-C (drake_rus.interrupts, installed by drake-rus):
+    # the scan's session stops the robot and the simulated side is stopped on the way out.
     try:
         report = RunRehearsal(options, args.out)
     except SimProcessError as e:
@@ -155,4 +154,6 @@ def run_rehearse_command(args) -> int:
               f"physics lagged the commands, the rehearsal was less faithful (a busy machine? "
               f"see --nice)", file=sys.stderr)
     print(f"wrote {os.path.join(args.out, 'rehearsal.json')}")
+    if report["status"] == "INTERRUPTED":
+        return interrupts.exit_status()
     return 0 if report["status"] == "DONE" else 1

@@ -21,9 +21,11 @@ import sys
 import time
 from pathlib import Path
 
+from drake_rus import interrupts
 from drake_rus.extras import require
 from drake_rus.io_utils import write_text_atomic
 from drake_rus.localization.localize import load_registration_template
+from drake_rus.provenance import Provenance
 from drake_rus.rehearsal.core import (
     kidney_errors, loopback_only, pose_from_json, raise_priority, scan_overrides)
 from drake_rus.rehearsal.sim_process import DEFAULT_LCM_URL
@@ -35,6 +37,13 @@ from drake_rus.stations import MakeStation
 
 __all__ = ["RehearsalOptions", "SimProcess", "SimProcessError", "RunRehearsal",
            "LagMonitor", "scan_scenario"]
+
+
+# Status rates (Hz) the simulated driver accepts: it ticks the simulation at this rate; the
+# scan side stops the robot when no status arrives for hardware_interface.status_timeout
+# (0.25 s by default, 2.5 ticks at 10 Hz); above 10 kHz a tick (0.1 ms) is shorter than
+# the simulation can keep up with.
+STATUS_RATE_HZ = (10.0, 10000.0)
 
 
 class SimProcessError(RuntimeError):
@@ -78,6 +87,10 @@ class RehearsalOptions:
                                                 and self.expire_sec >= 0):
             raise ValueError(f"--expire-sec: expected a non-negative time, got "
                              f"{self.expire_sec}")
+        lo, hi = STATUS_RATE_HZ
+        if not (math.isfinite(self.rate_hz) and lo <= self.rate_hz <= hi):
+            raise ValueError(f"--status-rate-hz: expected a status rate of {lo:g}-{hi:g} Hz "
+                             f"(the real driver: 1000), got {self.rate_hz:g}")
         if not (self.max_sim_time > 0):
             raise ValueError(f"--max-sim-time: expected a positive time, got "
                              f"{self.max_sim_time}")
@@ -227,6 +240,7 @@ def RunRehearsal(options: RehearsalOptions, out, *, progress: bool | None = None
     MissingExtra (nothing written) without OpenCV, which the video stream needs."""
     require("cv2", "the rehearsal (its ultrasound video stream)")
     out = Path(out)
+    provenance = rehearsal_provenance(options)     # a bad scenario fails before any output
     out.mkdir(parents=True, exist_ok=True)
     report: dict = {"patient": options.patient, "scenario": options.scenario,
                     "faults": {"latency_ms": options.latency_ms,
@@ -234,19 +248,39 @@ def RunRehearsal(options: RehearsalOptions, out, *, progress: bool | None = None
                                "video_delay_ms": options.video_delay_ms,
                                "freeze_video_at": options.freeze_video_at},
                     "network_isolated": loopback_only(), "lcm_url": options.lcm_url}
+    report["provenance"] = provenance
     if options.nice:
         report["priority"] = raise_priority(options.nice)
     sim = SimProcess(out, options)
     try:
         return _rehearse(options, out, report, sim, progress)
     except BaseException as e:             # leave a record of what went wrong
-        report.update({"status": "ERROR", "reason": f"{type(e).__name__}: {e}",
-                       "sim_tail": sim.tail()})
-        write_text_atomic(out / "rehearsal.json",
-                          json.dumps(report, indent=2, default=str) + "\n")
+        with interrupts.deferred(reraise=False):
+            if isinstance(e, KeyboardInterrupt) or interrupts.pending() is not None:
+                report.update({"status": "INTERRUPTED", "reason": "interrupted by "
+                               f"{interrupts.signal_text(interrupts.signal_of(e))}"})
+            else:
+                report.update({"status": "ERROR", "reason": f"{type(e).__name__}: {e}"})
+            report["sim_tail"] = sim.tail()
+            write_text_atomic(out / "rehearsal.json",
+                              json.dumps(report, indent=2, default=str) + "\n")
         raise
     finally:
         sim.stop()
+
+
+def rehearsal_provenance(options: RehearsalOptions, argv=None) -> dict:
+    """rehearsal.json's ``provenance`` (see drake_rus.provenance): the rehearsal's scenario as
+    resolved, its options and seeds (the simulated side's patient and dropped packets)."""
+    scenario = LoadScenario(filename=options.scenarios_file, scenario_name=options.scenario,
+                            scenario_text=options.overrides)
+    record = Provenance(scenario, scenario_name=options.scenario,
+                        scenarios_file=options.scenarios_file, overrides=options.overrides,
+                        seeds={"patient": options.patient, "status_drop_seed": options.seed},
+                        argv=argv)
+    record["command"] = "rehearse"
+    record["arguments"] = dataclasses.asdict(options)
+    return record
 
 
 def _rehearse(options, out: Path, report: dict, sim: SimProcess, progress) -> dict:
@@ -273,7 +307,7 @@ def _rehearse(options, out: Path, report: dict, sim: SimProcess, progress) -> di
         for station in stations:         # the robot connection and the video thread
             station.close()
     metrics = ScanMetrics(result)
-    summary = Summary(result, metrics)
+    summary = Summary(result, metrics, provenance=report.get("provenance"))
     written = WriteScanOutputs(result, metrics, summary, out)
     log = sim.stop()
     if log is None:

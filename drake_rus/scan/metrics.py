@@ -175,8 +175,9 @@ def _er_unit(controller) -> str:
     return f"the fixed kidney length L_m = {L_m:g} mm"
 
 
-def Summary(result: ScanResult, metrics: dict) -> dict:
-    """The JSON summary of a scan (``summary.json``)."""
+def Summary(result: ScanResult, metrics: dict, provenance: dict | None = None) -> dict:
+    """The JSON summary of a scan (``summary.json``); ``provenance``
+    (:func:`drake_rus.provenance.Provenance`): what a rerun needs, kept as given."""
     loc = result.localization
     diag = None
     if loc.result is not None:
@@ -228,4 +229,5 @@ def Summary(result: ScanResult, metrics: dict) -> dict:
         "frames_total": len(result.frames),
         "safety_events": [str(e) for e in result.safety_events],
         "mode": _mode(result.scenario),
+        **({} if provenance is None else {"provenance": provenance}),
     }

@@ -20,6 +20,7 @@ from pydrake.math import RigidTransform
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import EventStatus
 
+from drake_rus import interrupts
 from drake_rus.control.supervisor import Phase
 from drake_rus.hardware.station import HardwareSession
 from drake_rus.scan.planning import DrawStartPlan, PlanStart, exploration_start
@@ -69,7 +70,7 @@ class ScanMonitor:
 class ScanResult:
     """A finished scan: outcome, timing, what was recorded, and the truth if simulated."""
     # "DONE", "INCOMPLETE" (ran to its end but failed a check of its result, ``checks``),
-    # "ABORT", "TIMEOUT" or "INTERRUPTED" (Ctrl-C)
+    # "ABORT", "TIMEOUT" or "INTERRUPTED" (a signal: Ctrl-C or SIGTERM)
     status: str
     reason: str
     patient: str
@@ -300,10 +301,14 @@ def RunScan(scenario, patient, template, *, make_station: Callable = MakeStation
                     stop_at_terminal[0] = False
                     h.terminator.enabled = False
                     simulator.AdvanceTo(t_end + settle)
-        except KeyboardInterrupt:
-            # Ctrl-C (or SIGTERM on hardware): the session has already commanded zero
-            # velocity; collect what there is (status INTERRUPTED).
-            interrupted.append(context.get_time())
+        except BaseException as e:
+            # Ctrl-C or SIGTERM (drake_rus.interrupts; on hardware the session's own
+            # handler): the session has already commanded zero velocity; collect what there
+            # is (status INTERRUPTED). Any other error propagates, unless a signal caused it.
+            if not (isinstance(e, KeyboardInterrupt) or interrupts.pending() is not None):
+                raise
+            interrupted.append(interrupts.signal_of(e))
+            interrupts.note(interrupted[0])      # the exit status follows it
             t_end = context.get_time()
         wall = time.perf_counter() - start
         cpu = time.process_time() - cpu_start
@@ -322,8 +327,9 @@ def RunScan(scenario, patient, template, *, make_station: Callable = MakeStation
     result.start_plan = plan
     if interrupted:
         result.status = "INTERRUPTED"
-        result.reason = (f"interrupted (Ctrl-C) at {t_end:.2f} s of simulated time, in "
-                         f"{phase_now().name}; the outputs are partial")
+        result.reason = (f"interrupted by {interrupts.signal_text(interrupted[0])} at "
+                         f"{t_end:.2f} s of simulated time, in {phase_now().name}; the "
+                         "outputs are partial")
     elif behind:
         result.status = "ABORT"
         result.reason = (f"the diagram fell {behind[0]:.2f} s behind real time at "
