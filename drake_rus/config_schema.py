@@ -76,6 +76,16 @@ def _yaml12_float(value):
     return value
 
 
+def physical(lo: float, hi: float, unit: str, why: str, **schema) -> dict:
+    """Field metadata of a number (or of every number of a list) with a physical range: the
+    bounds, the unit and the reason, stated once, beside the field. Loading refuses a value
+    outside with the field, the range and the reason. ``schema``: other metadata (``length``,
+    ``positive``, ...)."""
+    if not lo < hi:
+        raise ValueError(f"physical range: expected lo < hi, got {lo}, {hi}")
+    return {**schema, "min": lo, "max": hi, "unit": unit, "why": why}
+
+
 def _check_number(path: str, value, meta: dict, integer: bool = False) -> None:
     if integer:
         if not isinstance(value, int) or isinstance(value, bool):
@@ -86,6 +96,11 @@ def _check_number(path: str, value, meta: dict, integer: bool = False) -> None:
         raise ScenarioError(f"field '{path}': expected a finite number, got {value!r}")
     if meta.get("positive") and not value > 0:
         raise ScenarioError(f"field '{path}': expected a number > 0, got {value!r}")
+    if "why" in meta and "min" in meta and not meta["min"] <= value <= meta["max"]:
+        unit = meta["unit"]
+        raise ScenarioError(
+            f"field '{path}': {value:g} {unit} is outside the physical range "
+            f"{meta['min']:g}-{meta['max']:g} {unit} ({meta['why']})".replace("  ", " "))
     if "min" in meta and value < meta["min"]:
         raise ScenarioError(f"field '{path}': expected a number >= {meta['min']}, got {value!r}")
     if "max" in meta and value > meta["max"]:
@@ -221,65 +236,41 @@ def check_dataclass_values(obj, path: str = "") -> None:
             for i, v in enumerate(value):
                 if _is_number(v):
                     _check_number(f"{where}[{i}]", v, meta)
+                    if "element_min" in meta:
+                        lo, hi = meta["element_min"][i], meta["element_max"][i]
+                        if not lo <= v <= hi:
+                            raise ScenarioError(
+                                f"field '{where}[{i}]': {v:g} {meta['unit']} is outside "
+                                f"{meta['element_label']} {i + 1} limits [{lo}, {hi}] "
+                                f"({meta['why']})")
 
 
 # ------------------------------------------------------------------ physical ranges and rules
-# Mesh resolution hints, measured with the press of `benchmarks/station.py` (6 s, 9 N): the
-# settled force is 9.00 +- 0.03 N at every probe hint from 20 mm (default) to 0.5 mm, while
-# the simulation runs 2x slower at 2 mm, 5.6x at 1 mm and 10x at 0.5 mm than at 20 mm (the
-# probe face, a 50 mm-radius arc 20 mm wide, is then ~160 / 310 / 630 facets around; at
-# 1e-6 m one simulated second took 42 s). The placeholder torso (ellipsoid, 0.17 x 0.40 x
-# 0.12 m semi-axes) gives the same force from 6 cm to 5 mm tetrahedra; at 1 cm its mesh takes
-# 3x longer to build than at 6 cm, and it grows with the cube of 1/hint.
-PROBE_HINT_MIN = 0.002
-PROBE_HINT_WHY = ("the probe face is a 50 mm-radius arc 20 mm wide: the contact force is the "
-                  "same from 20 mm to 0.5 mm, and below 2 mm only the contact work grows")
-PATIENT_HINT_MIN = 0.01
-PATIENT_HINT_WHY = ("the placeholder torso is 0.34 x 0.8 x 0.24 m; its contact force is the "
-                    "same from 6 cm to 5 mm tetrahedra, and below 1 cm only its mesh grows "
-                    "(with the cube of 1/hint)")
-# Breathing rates a patient can have (breaths/min), and the longest breath.
+# Each field's physical range, unit and reason are its metadata (:func:`physical`, beside the
+# field); the rules between fields are CROSS_FIELD_RULES below. Each is stated once.
+# Breathing rates a patient can have (breaths/min): the cross-field rule on the holds needs
+# the fastest, the field's range both.
 BREATHING_RATE_MIN = 6.0
 BREATHING_RATE_MAX = 30.0
 # The patient's bed surface faces up: z_Pt within this angle (deg) of the base's z (the
 # simulated patient lies on a level bed under gravity along -z_B; the probe comes from above).
 MAX_BED_TILT_DEG = 5.0
-# Every value a scenario may hold is checked against these, after the schema's own bounds
-# (``metadata``): a number outside is refused with the field, the range and the reason. Each
-# rule is stated once, here. field path -> (min, max, unit, why).
-PHYSICAL_RANGES = {
-    "contact.time_step": (1e-5, 0.01, "s",
-                          "the plant's discrete step (default 10 ms, validated against 1 ms: "
-                          "python -m benchmarks scan --validate); longer steps miss contact"),
-    "contact.hydroelastic_modulus": (1e3, 1e8, "Pa", "soft tissue is about 1e4-1e6 Pa"),
-    "contact.point_stiffness": (10.0, 1e6, "N/m", "soft tissue under a probe"),
-    "contact.friction": (0.0, 2.0, "", "Coulomb friction of gel on skin"),
-    "probe.mass": (0.05, 3.0, "kg", "a probe with its holder; the FR3's rated payload is 3 kg"),
-    "probe.inertia_diagonal": (1e-7, 0.05, "kg m^2", "a hand-held probe and holder"),
-    "probe.p_FCm": (-0.3, 0.3, "m", "the probe's centre of mass near the flange"),
-    "controller.rate_hz": (10.0, 1000.0, "Hz", "the controller runs at most at the FR3's 1 kHz"),
-    "controller.desired_force": (0.0, 30.0, "N", "probe contact forces are a few N to 20 N"),
-    "safety.force_ceiling": (1.0, 50.0, "N", "passive force limiters sit around 20 N"),
-    "imaging.frame_rate_hz": (1.0, 200.0, "Hz", "ultrasound frame rates are 10-100 Hz"),
-    "imaging.depth": (0.03, 0.4, "m", "curvilinear probes image 30-300 mm deep"),
-    "imaging.depth_presets": (0.03, 0.4, "m", "curvilinear probes image 30-300 mm deep"),
-    "imaging.probe_radius": (0.005, 0.2, "m", "convex probe faces are 10-80 mm in radius"),
-    "imaging.elevation_width": (0.0005, 0.05, "m", "elevational beam widths are a few mm"),
-    "imaging.center_frequency_mhz": (0.5, 20.0, "MHz", "diagnostic ultrasound"),
-    "hardware_interface.command_rate_hz": (10.0, 1000.0, "Hz",
-                                           "velocity targets at most at the FR3's 1 kHz"),
-    # Mesh resolution hints: finer meshes than these only multiply the contact work.
-    "contact.probe_resolution_hint": (PROBE_HINT_MIN, 0.05, "m", PROBE_HINT_WHY),
-    "contact.patient_resolution_hint": (PATIENT_HINT_MIN, 0.2, "m", PATIENT_HINT_WHY),
-    # Breathing (docs/facts/anatomy_and_ultrasound.md, "Respiratory motion").
-    "patient.motion.breathing.amplitude": (
-        0.0, 0.045, "m", "craniocaudal kidney motion is 2.5-30 mm in quiet breathing "
-        "(van Sornsen de Koste 2006) and up to 43 mm from deep inspiration to deep "
-        "expiration (Schwartz 1994)"),
-    "patient.motion.breathing.rate_per_min": (
-        BREATHING_RATE_MIN, BREATHING_RATE_MAX, "breaths/min",
-        "patients breathed 9-27.5 times a minute during 4D-CT (Pham 2013)"),
-}
+
+
+def physical_ranges(obj, path: str = "") -> dict:
+    """{field path: (min, max, unit, why)} of every field with a physical range in the
+    dataclass (instance or class) ``obj``, nested sections included."""
+    out = {}
+    for f in dataclasses.fields(obj):
+        where = f"{path}.{f.name}" if path else f.name
+        meta = f.metadata
+        if "why" in meta and "min" in meta:
+            out[where] = (meta["min"], meta["max"], meta["unit"], meta["why"])
+        hint = typing.get_type_hints(obj if isinstance(obj, type) else type(obj))[f.name]
+        if dataclasses.is_dataclass(hint):
+            out.update(physical_ranges(hint, where))
+    return out
+
 
 # Patient placement: the bed lies within this distance (m) of the robot base (the FR3
 # reaches 0.855 m; the bed is beside it).
@@ -379,19 +370,8 @@ def _holds(scenario) -> bool:
 
 
 def check_physical(scenario) -> None:
-    """Checks ``PHYSICAL_RANGES`` and ``CROSS_FIELD_RULES`` on a constructed scenario."""
-    for path, (lo, hi, unit, why) in PHYSICAL_RANGES.items():
-        try:
-            value = _get(scenario, path)
-        except AttributeError:
-            continue
-        values = list(value) if isinstance(value, (list, tuple)) else [value]
-        for i, v in enumerate(values):
-            if _is_number(v) and not lo <= v <= hi:
-                where = f"{path}[{i}]" if isinstance(value, (list, tuple)) else path
-                raise ScenarioError(
-                    f"field '{where}': {v:g} {unit} is outside the physical range "
-                    f"{lo:g}-{hi:g} {unit} ({why})".replace("  ", " "))
+    """Checks ``CROSS_FIELD_RULES`` on a constructed scenario (each field's own range is
+    checked with its metadata, :func:`check_dataclass_values`)."""
     for fields, holds, what in CROSS_FIELD_RULES:
         try:
             ok = holds(scenario)

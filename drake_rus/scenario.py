@@ -19,7 +19,7 @@ from pydrake.common.yaml import yaml_load_file, yaml_load_typed
 from drake_rus.anatomy.motion import PatientMotionConfig
 from drake_rus.config_schema import (ScenarioError, check_dataclass_values,
                                      check_duplicate_keys, check_nesting_depth, check_physical,
-                                     schema_transform, validate)
+                                     physical, schema_transform, validate)
 from drake_rus.control.config import ControllerConfig, SafetyConfig
 from drake_rus.hardware.config import HardwareConfig
 from drake_rus.imaging.config import ImagingConfig
@@ -40,6 +40,20 @@ FR3_Q_MIN = [-2.9007, -1.8361, -2.9007, -3.0770, -2.8763, 0.4398, -3.0508]
 FR3_Q_MAX = [2.9007, 1.8361, 2.9007, -0.1169, 2.8763, 4.6216, 3.0508]
 
 
+# Mesh resolution hints, measured with the press of `benchmarks/station.py` (6 s, 9 N): the
+# settled force is 9.00 +- 0.03 N at every probe hint from 20 mm (default) to 0.5 mm, while
+# the simulation runs 2x slower at 2 mm, 5.6x at 1 mm and 10x at 0.5 mm than at 20 mm (the
+# probe face, a 50 mm-radius arc 20 mm wide, is then ~160 / 310 / 630 facets around; at
+# 1e-6 m one simulated second took 42 s). The placeholder torso (ellipsoid, 0.17 x 0.40 x
+# 0.12 m semi-axes) gives the same force from 6 cm to 5 mm tetrahedra; at 1 cm its mesh takes
+# 3x longer to build than at 6 cm, and it grows with the cube of 1/hint.
+PROBE_HINT_WHY = ("the probe face is a 50 mm-radius arc 20 mm wide: the contact force is the "
+                  "same from 20 mm to 0.5 mm, and below 2 mm only the contact work grows")
+PATIENT_HINT_WHY = ("the placeholder torso is 0.34 x 0.8 x 0.24 m; its contact force is the "
+                    "same from 6 cm to 5 mm tetrahedra, and below 1 cm only its mesh grows "
+                    "(with the cube of 1/hint)")
+
+
 @dataclass
 class RobotConfig:
     """The FR3 arm. The robot base frame B is the world frame (z up)."""
@@ -48,7 +62,9 @@ class RobotConfig:
     # Joint configuration at t = 0 (rad): probe pointing down above the patient placeholder.
     initial_joint_positions: list[float] = field(
         default_factory=lambda: [0.0, 0.15, 0.0, -2.0, 0.0, 2.15, 0.785],
-        metadata={"length": 7})
+        metadata={"length": 7, "element_min": FR3_Q_MIN, "element_max": FR3_Q_MAX,
+                  "element_label": "the FR3 joint", "unit": "rad",
+                  "why": "docs/facts/fr3.md, 'Limits'"})
     # Stiffness (N m/rad) and damping (N m s/rad) of the velocity driver's implicit joint PD,
     # which tracks the integrated velocity command like the FR3's joint-velocity mode.
     driver_kp: list[float] = field(
@@ -74,14 +90,18 @@ class ProbeCalibration:
     # Pose of the tip frame P in the flange frame F (m, deg).
     X_FP: Transform = field(default_factory=lambda: schema_transform(xyz=(0.0, 0.0, 0.20)))
     # Lumped mass of holder + probe + cable strain relief (kg).
-    mass: float = field(default=0.55, metadata={"positive": True})
+    mass: float = field(default=0.55, metadata=physical(
+        0.05, 3.0, "kg", "a probe with its holder; the FR3's rated payload is 3 kg", positive=True))
     # Centre of mass in the flange frame F (m).
     p_FCm: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.09],
-                               metadata={"length": 3})
+                               metadata=physical(
+                                   -0.3, 0.3, "m",
+                                   "the probe's centre of mass near the flange", length=3))
     # Principal moments of inertia about the centre of mass, flange axes (kg m^2).
     inertia_diagonal: list[float] = field(
         default_factory=lambda: [2.2e-3, 2.2e-3, 4.0e-4],
-        metadata={"length": 3, "positive": True})
+        metadata=physical(
+            1e-7, 0.05, "kg m^2", "a hand-held probe and holder", length=3, positive=True))
 
 
 @dataclass
@@ -121,13 +141,19 @@ class ContactConfig:
     # PIVOT mean and ripple, landing peak), E_trans and V match the 1 ms step's (the FR3's
     # 1 kHz; scenario `reference_1ms`) within issue 16's tolerances on test:0-2
     # (`python -m benchmarks scan --validate`).
-    time_step: float = field(default=0.01, metadata={"positive": True})
+    time_step: float = field(default=0.01, metadata=physical(
+        1e-5, 0.01, "s",
+        "the plant's discrete step (default 10 ms, validated against 1 ms: python -m benchmarks "
+        "scan --validate); longer steps miss contact", positive=True))
     # Hydroelastic modulus of the soft body (Pa): soft tissue indents ~1 cm at ~9 N.
-    hydroelastic_modulus: float = field(default=2.0e5, metadata={"positive": True})
+    hydroelastic_modulus: float = field(default=2.0e5, metadata=physical(
+        1e3, 1e8, "Pa", "soft tissue is about 1e4-1e6 Pa", positive=True))
     # Resolution hint of the soft body's tetrahedral mesh (m).
-    patient_resolution_hint: float = field(default=0.06, metadata={"positive": True})
+    patient_resolution_hint: float = field(default=0.06, metadata=physical(
+        0.01, 0.2, "m", PATIENT_HINT_WHY, positive=True))
     # Resolution hint of the rigid probe face mesh (m).
-    probe_resolution_hint: float = field(default=0.02, metadata={"positive": True})
+    probe_resolution_hint: float = field(default=0.02, metadata=physical(
+        0.002, 0.05, "m", PROBE_HINT_WHY, positive=True))
     # Vertices of the convex hull used as a virtual patient's contact body (see
     # patient_body.ContactHull): more is closer to the skin, fewer is faster.
     patient_hull_vertices: int = field(default=300, metadata={"min": 8})
@@ -142,9 +168,11 @@ class ContactConfig:
     # Hunt-Crossley dissipation (s/m) of the soft body.
     hunt_crossley_dissipation: float = field(default=5.0, metadata={"min": 0.0})
     # Point-contact stiffness (N/m) when model == "point".
-    point_stiffness: float = field(default=2000.0, metadata={"positive": True})
+    point_stiffness: float = field(default=2000.0, metadata=physical(
+        10.0, 1e6, "N/m", "soft tissue under a probe", positive=True))
     # Coulomb friction of the gel-coupled probe on skin (static = dynamic).
-    friction: float = field(default=0.2, metadata={"min": 0.0})
+    friction: float = field(default=0.2, metadata=physical(
+        0.0, 2.0, "", "Coulomb friction of gel on skin"))
 
 
 @dataclass
@@ -258,12 +286,6 @@ def CheckScenario(scenario: Scenario) -> None:
     """Checks a constructed scenario: the schema's bounds, the physical ranges and the
     cross-field rules of ``drake_rus.config_schema`` (each stated once there)."""
     check_dataclass_values(scenario)
-    q0 = scenario.robot.initial_joint_positions
-    for i, (q, lo, hi) in enumerate(zip(q0, FR3_Q_MIN, FR3_Q_MAX)):
-        if not lo <= q <= hi:
-            raise ScenarioError(
-                f"field 'robot.initial_joint_positions[{i}]': {q} rad is outside the FR3 "
-                f"joint {i + 1} limits [{lo}, {hi}]")
     check_physical(scenario)
 
 

@@ -75,7 +75,7 @@ FIELD_CASES = [
      ["faults.breathing"]),
     ("random_seed_negative", "s: {random_seed: -1}", ["random_seed"]),
     ("workspace_length", "s: {safety: {workspace_min: [0, 0]}}", ["safety.workspace_min"]),
-    # Physical ranges (config_schema.PHYSICAL_RANGES), issue 17.
+    # Physical ranges (each field's metadata, config_schema.physical), issue 17.
     ("probe_1000_kg", "s: {probe: {mass: 1000}}", ["probe.mass", "0.05-3 kg"]),
     ("probe_feather", "s: {probe: {mass: 0.001}}", ["probe.mass", "physical range"]),
     ("time_step_10_s", "s: {contact: {time_step: 10}}", ["contact.time_step", "0.01 s"]),
@@ -200,9 +200,10 @@ NUMERIC_FIELDS = [
 
 def _in_range(section, name, value) -> bool:
     """Whether the default scenario with ``section.name = value`` is acceptable: the
-    physical range of config_schema.PHYSICAL_RANGES and the cross-field rules it enters."""
-    from drake_rus.config_schema import PHYSICAL_RANGES
-    lo, hi, _, _ = PHYSICAL_RANGES[f"{section}.{name}"]
+    physical range of its field (config_schema.physical_ranges) and the cross-field rules it
+    enters."""
+    from drake_rus.config_schema import physical_ranges
+    lo, hi, _, _ = physical_ranges(Scenario)[f"{section}.{name}"]
     ok = lo <= value <= hi
     if (section, name) == ("contact", "time_step"):      # <= 1 / controller.rate_hz, and
         ok = ok and value <= 0.01 and 20.0 <= 1.0 / value + 1e-9   # one frame per step
@@ -316,9 +317,11 @@ def test_shipped_scenarios_pass_every_rule():
 
 
 def test_every_physical_range_names_a_real_field_and_holds_by_default():
-    from drake_rus.config_schema import CROSS_FIELD_RULES, PHYSICAL_RANGES, _get
+    from drake_rus.config_schema import CROSS_FIELD_RULES, _get, physical_ranges
     s = Scenario()
-    for path, (lo, hi, unit, why) in PHYSICAL_RANGES.items():
+    ranges = physical_ranges(Scenario)
+    assert len(ranges) >= 21
+    for path, (lo, hi, unit, why) in ranges.items():
         value = _get(s, path)
         for v in (value if isinstance(value, list) else [value]):
             assert lo <= v <= hi, (path, v)

@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from drake_rus.config_schema import BREATHING_RATE_MAX, BREATHING_RATE_MIN, physical
+
 __all__ = ["BreathingConfig", "PatientShiftConfig", "PatientMotionConfig", "PatientMotion",
            "breath_hold", "hold_windows", "breathing_displacement", "shift_offset",
            "patient_offset_B"]
@@ -33,14 +35,19 @@ class BreathingConfig:
     reference position (a fixed per-hold draw).
 
     The human ranges of amplitude and rate, and the rules between the fields (a hold ends
-    before the next one starts, with at least one breath between them), are stated once in
-    :data:`drake_rus.config_schema.PHYSICAL_RANGES` and ``CROSS_FIELD_RULES``.
+    before the next one starts, with at least one breath between them), are stated once: the
+    ranges beside the fields below, the rules in ``drake_rus.config_schema.CROSS_FIELD_RULES``.
     """
     enabled: bool = False
     # Peak-to-peak craniocaudal displacement (m).
-    amplitude: float = 0.010
+    amplitude: float = field(default=0.010, metadata=physical(
+        0.0, 0.045, "m",
+        "craniocaudal kidney motion is 2.5-30 mm in quiet breathing (van Sornsen de Koste 2006) "
+        "and up to 43 mm from deep inspiration to deep expiration (Schwartz 1994)"))
     # Breaths per minute.
-    rate_per_min: float = 15.0
+    rate_per_min: float = field(default=15.0, metadata=physical(
+        BREATHING_RATE_MIN, BREATHING_RATE_MAX, "breaths/min",
+        "patients breathed 9-27.5 times a minute during 4D-CT (Pham 2013)"))
     # Breath-holds: 0 disables them (free breathing only).
     hold_period: float = field(default=12.0, metadata={"min": 0.0})
     hold_duration: float = field(default=8.0, metadata={"min": 0.0})

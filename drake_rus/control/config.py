@@ -9,6 +9,8 @@ because the probe touches a person.
 
 from dataclasses import dataclass, field
 
+from drake_rus.config_schema import physical
+
 # docs/facts/fr3.md, "Limits": conservative rectangular joint velocity set (rad/s).
 FR3_DQ_RECTANGULAR = [2.0, 1.0, 1.5, 1.25, 3.0, 1.5, 3.0]
 
@@ -16,9 +18,11 @@ FR3_DQ_RECTANGULAR = [2.0, 1.0, 1.5, 1.25, 3.0, 1.5, 3.0]
 @dataclass
 class ControllerConfig:
     # Controller update rate (Hz); the plant runs at 1 kHz, images at 20 Hz.
-    rate_hz: float = field(default=100.0, metadata={"positive": True, "max": 1000.0})
+    rate_hz: float = field(default=100.0, metadata=physical(
+        10.0, 1000.0, "Hz", "the controller runs at most at the FR3's 1 kHz", positive=True))
     # Desired contact force along the approach vector (N); the seed used 9 N in vivo.
-    desired_force: float = field(default=9.0, metadata={"min": 0.0})
+    desired_force: float = field(default=9.0, metadata=physical(
+        0.0, 30.0, "N", "probe contact forces are a few N to 20 N"))
 
     # --- Orientation alignment (eq. 1-5) ---
     # K_p1 (1/s): approach-vector alignment gain, omega_a = K_p1 (a x a_des) + ... (eq. 2).
@@ -179,7 +183,8 @@ class ControllerConfig:
 @dataclass
 class SafetyConfig:
     # Contact force ceiling (N): passive force limiters sit around 20 N (facts).
-    force_ceiling: float = field(default=20.0, metadata={"positive": True})
+    force_ceiling: float = field(default=20.0, metadata=physical(
+        1.0, 50.0, "N", "passive force limiters sit around 20 N", positive=True))
     # After a force-ceiling stop, retract along -a by this distance (m) at this speed (m/s);
     # 0 disables the retract (a plain stop).
     retract_distance: float = field(default=0.01, metadata={"min": 0.0, "max": 0.05})

@@ -8,6 +8,8 @@ the last line of defence, ours act first.
 
 from dataclasses import dataclass, field
 
+from drake_rus.config_schema import physical
+
 __all__ = ["HardwareConfig", "BACKENDS"]
 
 BACKENDS = ["franky", "lcm"]
@@ -25,7 +27,8 @@ class HardwareConfig:
     dry_run: bool = True
     # Rate (Hz) at which velocity targets are sent; normally the controller's rate_hz. The
     # 1 kHz loop stays in the library (franky) or the driver (lcm).
-    command_rate_hz: float = field(default=200.0, metadata={"positive": True, "max": 1000.0})
+    command_rate_hz: float = field(default=200.0, metadata=physical(
+        10.0, 1000.0, "Hz", "velocity targets at most at the FR3's 1 kHz", positive=True))
     # Client-side joint velocity limits (rad/s): commands are scaled into them (direction
     # kept). Default: 40 % of the FR3 rectangular set.
     max_joint_velocity: list[float] = field(

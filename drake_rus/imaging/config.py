@@ -6,30 +6,36 @@ Units are SI (m, s) unless the field name says otherwise (``_deg``, ``_hz``, ``_
 
 from dataclasses import dataclass, field
 
+from drake_rus.config_schema import physical
+
 
 @dataclass
 class ImagingConfig:
     # Frame rate of the slice sensor / frame grabber (Hz). The seed grabbed frames at 20 fps.
-    frame_rate_hz: float = field(default=20.0, metadata={"positive": True})
+    frame_rate_hz: float = field(default=20.0, metadata=physical(
+        1.0, 200.0, "Hz", "ultrasound frame rates are 10-100 Hz", positive=True))
 
     # --- Curvilinear probe (like the seed's GE C1-6; facts: "Probe") -----------------------
     # Radius of curvature of the transducer face (m). Comparable convex probes: 45-60 mm.
-    probe_radius: float = field(default=0.050, metadata={"positive": True})
+    probe_radius: float = field(default=0.050, metadata=physical(
+        0.005, 0.2, "m", "convex probe faces are 10-80 mm in radius", positive=True))
     # Full opening angle of the fan (deg). Comparable probes span 56-73 deg, but the seed
     # quotes "around 10 cm lateral width at 10 cm depth" for its images, which with a 50 mm
     # radius is a 40 deg fan (2 * 150 mm * sin 20 deg = 103 mm); we follow the seed.
     field_of_view_deg: float = field(default=40.0, metadata={"positive": True, "max": 170.0})
     # Imaging depth from the probe face along each scan line (m). Kidney lies 80-105 mm deep
     # in most generated bodies; real bodies go deeper (147.5 mm in the VH female, supine).
-    depth: float = field(default=0.150, metadata={"positive": True})
+    depth: float = field(default=0.150, metadata=physical(
+        0.03, 0.4, "m", "curvilinear probes image 30-300 mm deep", positive=True))
     # The probe's depth presets (m): the start planner picks the shallowest that holds the
     # whole kidney, and ``depth`` follows it. Curvilinear abdominal probes offer presets up
     # to about 240-300 mm (docs/facts/anatomy_and_ultrasound.md, "Probe").
     depth_presets: list[float] = field(
         default_factory=lambda: [0.10, 0.15, 0.20, 0.25, 0.30],
-        metadata={"positive": True, "max": 0.4})
+        metadata=physical(0.03, 0.4, "m", "curvilinear probes image 30-300 mm deep", positive=True))
     # Elevational (slice) beam width (m): comparable probes 7-14 mm.
-    elevation_width: float = field(default=0.010, metadata={"positive": True})
+    elevation_width: float = field(default=0.010, metadata=physical(
+        0.0005, 0.05, "m", "elevational beam widths are a few mm", positive=True))
     # Number of parallel planes sampled across the elevational width (1 = a thin plane).
     elevation_planes: int = field(default=1, metadata={"min": 1, "max": 15})
     # How the planes' labels combine per pixel: "majority" (most frequent label) or "max"
@@ -44,7 +50,8 @@ class ImagingConfig:
     scan_lines: int = field(default=128, metadata={"min": 8, "max": 2048})
     samples_per_line: int = field(default=256, metadata={"min": 16, "max": 4096})
     # Centre frequency (MHz): C1-6 band about 1.8-5 MHz.
-    center_frequency_mhz: float = field(default=3.5, metadata={"positive": True})
+    center_frequency_mhz: float = field(default=3.5, metadata=physical(
+        0.5, 20.0, "MHz", "diagnostic ultrasound", positive=True))
     # Time-gain compensation (dB/cm/MHz, two-way applied as 2x): compensates average soft
     # tissue attenuation (about 0.5-1.0 dB/cm/MHz in the facts table).
     tgc_db_per_cm_mhz: float = field(default=0.7, metadata={"min": 0.0})
