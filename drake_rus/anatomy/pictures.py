@@ -16,7 +16,8 @@ LABEL_COLORS = {
     Label.MUSCLE: (0.7, 0.2, 0.2), Label.KIDNEY_CORTEX: (0.2, 0.7, 0.3),
     Label.KIDNEY_MEDULLA: (0.1, 0.4, 0.2), Label.KIDNEY_SINUS: (0.9, 0.95, 0.6),
     Label.LIVER: (0.5, 0.2, 0.5), Label.BONE: (1, 1, 1), Label.GAS: (0.3, 0.6, 1.0),
-    Label.VESSEL: (0.1, 0.1, 0.6),
+    Label.VESSEL: (0.1, 0.1, 0.6), Label.TUMOUR: (0.95, 0.35, 0.1),
+    Label.KIDNEY_TUMOUR: (0.95, 0.55, 0.1),
 }
 
 
