@@ -65,7 +65,7 @@ from drake_rus.anatomy.rasterize import rasterize_mesh
 __all__ = ["KIDNEY_VALUE", "TUMOUR_VALUE", "LabelGrid", "KidneyComponent", "FrameEstimate",
            "CTKidneys", "read_label_grid", "kidney_components", "estimate_frame",
            "import_ct_kidneys", "select_kidney", "kidney_fields_A", "KidneyFields",
-           "right_lower_statistic", "largest_concavity", "survey_case", "survey_summary", "MIN_KIDNEY_ML", "LEVEL_TOLERANCE_MM"]
+           "right_lower_statistic", "largest_concavity", "concavities", "survey_case", "survey_summary", "MIN_KIDNEY_ML", "LEVEL_TOLERANCE_MM"]
 
 KIDNEY_VALUE = 1
 TUMOUR_VALUE = 2
@@ -319,17 +319,24 @@ def largest_concavity(hull_of: np.ndarray, solid: np.ndarray, spacing):
     opening) of the convex hull of ``hull_of``'s voxels minus ``solid`` (both boolean, same
     grid of ``spacing`` mm). Returns (centroid as fractional voxel index, volume mL), or
     (None, 0.0)."""
+    found = concavities(hull_of, solid, spacing)
+    return found[0] if found else (None, 0.0)
+
+
+def concavities(hull_of: np.ndarray, solid: np.ndarray, spacing) -> list:
+    """The concavities of :func:`largest_concavity`, largest first: [(centroid as
+    fractional voxel index, volume mL), ...]."""
     from scipy.spatial import ConvexHull, QhullError
     sp = np.asarray(spacing, dtype=float)
     edge = hull_of & ~ndimage.binary_erosion(hull_of)
     # The hull in index units (an affine image of the hull in mm), rasterised by ray parity.
     hp = np.argwhere(edge).astype(float)
     if len(hp) < 8:
-        return None, 0.0
+        return []
     try:
         hull = ConvexHull(hp)
     except QhullError:
-        return None, 0.0
+        return []
     lo = hp.min(axis=0).astype(int)
     hi = hp.max(axis=0).astype(int) + 1
     box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
@@ -340,11 +347,12 @@ def largest_concavity(hull_of: np.ndarray, solid: np.ndarray, spacing):
     deficit = ndimage.binary_opening(deficit)
     lab, n = ndimage.label(deficit)
     if n == 0:
-        return None, 0.0
+        return []
     sizes = np.bincount(lab.ravel())[1:]
-    big = 1 + int(np.argmax(sizes))
-    ml = float(sizes[big - 1]) * float(np.prod(sp)) / 1000.0
-    return np.argwhere(lab == big).mean(axis=0) + lo, ml
+    centres = ndimage.center_of_mass(deficit, lab, range(1, n + 1))
+    voxel_ml = float(np.prod(sp)) / 1000.0
+    return [(np.asarray(centres[i]) + lo, float(sizes[i]) * voxel_ml)
+            for i in np.argsort(sizes)[::-1]]
 
 
 def _hilum_direction(k: KidneyComponent, c: np.ndarray, v1: np.ndarray):

@@ -35,8 +35,8 @@ from pydrake.math import RigidTransform
 from scipy import ndimage
 
 from drake_rus.anatomy.cache import file_digest
-from drake_rus.anatomy.ct_kidney import (CTKidneys, KidneyFields, import_ct_kidneys,
-                                         kidney_fields_A, largest_concavity, read_label_grid,
+from drake_rus.anatomy.ct_kidney import (CTKidneys, KidneyFields, concavities,
+                                         import_ct_kidneys, kidney_fields_A, read_label_grid,
                                          select_kidney)
 from drake_rus.anatomy.frames import check_side_posture
 from drake_rus.anatomy.generator import generate_patient_with_kidney, sample_patient_params
@@ -191,11 +191,13 @@ class VoxelKidneyShape:
         self.extents = 2.0 * self._half
         self.volumes_ml = {"parenchyma": float(parenchyma.sum()) * vs ** 3 * 1e6,
                            "tumour": float(tumour.sum()) * vs ** 3 * 1e6}
-        # The hilum: the largest concavity of the parenchyma's hull (2 mm grid).
+        # The hilum: the largest medial concavity of the parenchyma's hull (2 mm grid).
         step = max(1, int(round(0.002 / vs)))
-        c, _ = largest_concavity(parenchyma[::step, ::step, ::step],
-                                 union[::step, ::step, ::step], [step * vs * 1000.0] * 3)
-        self._hilum = (self._origin + c * step * vs) if c is not None else self._c_K.copy()
+        found = concavities(parenchyma[::step, ::step, ::step], union[::step, ::step, ::step],
+                            [step * vs * 1000.0] * 3)
+        points = [self._origin + c * step * vs for c, _ in found]
+        medial = [p for p in points if (p - self._c_K) @ np.asarray(lateral) < 0]
+        self._hilum = (medial or points or [self._c_K.copy()])[0]
 
     # --- the generator's kidney-shape interface ------------------------------------------
     def _idx(self, p_L):
