@@ -23,7 +23,8 @@ needs_kits = pytest.mark.skipif(not (KITS / "case_00000").is_dir(),
                                 reason=f"KiTS19 label maps not found at {KITS}")
 
 
-def synthetic_ct_case(tumour=True, left=True, spacing=(3.0, 4.0, 3.0), n=(128, 50, 128)):
+def synthetic_ct_case(tumour=True, left=True, spacing=(3.0, 4.0, 3.0), n=(128, 50, 128),
+                      tumour_radius=16.0):
     """A KiTS-style label map with a known pose, on an axial grid whose axes are the
     anatomical frame A (x left, y superior, z anterior; mm): ``(labels, spacing, info)``.
 
@@ -31,7 +32,8 @@ def synthetic_ct_case(tumour=True, left=True, spacing=(3.0, 4.0, 3.0), n=(128, 5
     (long axis 17 deg off craniocaudal with the upper pole medial, 20 deg with the upper
     pole posterior; hilum facing anteromedially 42 deg above the horizontal); the right one
     20 mm lower than the left, both 75 mm from the midline, in the posterior half of the
-    field of view; a 16 mm tumour bulging from the right kidney's lateral border (label 2).
+    field of view; a tumour (radius ``tumour_radius`` mm) bulging from the right kidney's
+    lateral border (label 2).
     ``info``: "origin" (A of voxel 0), "kidneys" {side: (centre, R_AK)}, "inside"
     {name: f(points_A) -> bool} for "right", "left" (kidney+tumour), "tumour"."""
     spacing = np.asarray(spacing, dtype=float)
@@ -66,7 +68,7 @@ def synthetic_ct_case(tumour=True, left=True, spacing=(3.0, 4.0, 3.0), n=(128, 5
         return f
 
     def tumour_f(p):
-        return np.linalg.norm(np.asarray(p, dtype=float) - t_centre, axis=1) <= 16.0
+        return np.linalg.norm(np.asarray(p, dtype=float) - t_centre, axis=1) <= tumour_radius
 
     grids = np.meshgrid(*[np.arange(k) for k in n], indexing="ij")
     pts = origin + spacing * np.column_stack([g.ravel() for g in grids])

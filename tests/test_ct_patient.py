@@ -21,18 +21,22 @@ from conftest import KITS, needs_kits, stored_as, synthetic_ct_case
 VOXEL = 0.002          # coarse, for speed
 
 
-@pytest.fixture(scope="module")
-def ct_file(tmp_path_factory):
-    """The synthetic case written like KiTS (in-plane, in-plane, slices head to foot)."""
-    labels, spacing, info = synthetic_ct_case()
+def _write_like_kits(folder, **case):
+    """A synthetic case written like KiTS (in-plane, in-plane, slices head to foot)."""
+    labels, spacing, info = synthetic_ct_case(**case)
     a, sp, R = stored_as(labels, spacing, (0, 2, 1), (1, 2))
     img = sitk.GetImageFromArray(a)
     img.SetSpacing([float(s) for s in sp[::-1]])
     R_LPS_A = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
     img.SetDirection([float(v) for v in (R_LPS_A @ R[:, ::-1]).ravel()])
-    path = tmp_path_factory.mktemp("ct") / "segmentation.nii.gz"
+    path = folder / "segmentation.nii.gz"
     sitk.WriteImage(img, str(path))
     return path, info
+
+
+@pytest.fixture(scope="module")
+def ct_file(tmp_path_factory):
+    return _write_like_kits(tmp_path_factory.mktemp("ct"))
 
 
 @pytest.fixture(scope="module")
@@ -100,6 +104,17 @@ def test_a_left_kidney_mirrored_into_a_right_patient(ct_file):
                      progress=False, cache=False)
     assert p.meta["ct"]["mirrored"] and p.meta["ct"]["tumour_ml"] == 0.0
     assert p.X_PtK.translation()[0] < 0                   # the patient's right side
+
+
+def test_a_kidney_too_large_for_its_body_is_refused(tmp_path):
+    """A 55 mm tumour makes the kidney about 130 mm wide: no room between the spine and the
+    flank of a normal body (seed 6, half-width 141 mm). A given body is refused with one
+    line; the default body moves on to the next seeds (checked on KiTS case_00008)."""
+    path, _ = _write_like_kits(tmp_path, tumour_radius=55.0)
+    with pytest.raises(ValueError, match=r"segmentation\.nii\.gz: the right kidney \(\d+ mm wide "
+                                         r"with its tumour\) fits none of body 6: .*spine"):
+        load_patient(f"ct:{path}#body=6", side="right", voxel_size=VOXEL, progress=False,
+                     cache=False)
 
 
 def test_spec_errors(ct_file, capsys):

@@ -12,7 +12,9 @@ case folder: ``case_00003`` holds ``segmentation.nii.gz``). Options:
 - ``right`` / ``left``: which CT kidney (default: the scenario's target side,
   ``patient.side``); a kidney of the other side is mirrored through the sagittal plane;
 - ``body=N``: the generator seed of the body (default: derived from the label map's
-  content, ``3000000 + (SHA-256 mod 1000000)``, disjoint from train/test seeds);
+  content, ``3000000 + (SHA-256 mod 1000000)``, disjoint from train/test seeds; if the
+  kidney does not fit between that body's spine and flank, the next of ``CT_BODY_TRIES``
+  seeds);
 - ``kidney=with_tumour|parenchyma``: what "the kidney" is when a tumour bulges from it
   (default ``with_tumour``): the true pose, kidney mask and segmentation target include
   the tumour, or only the parenchyma (the tumour is then a separate tissue beside it). Both
@@ -39,7 +41,8 @@ from drake_rus.anatomy.ct_kidney import (CTKidneys, KidneyFields, concavities,
                                          import_ct_kidneys, kidney_fields_A, read_label_grid,
                                          select_kidney)
 from drake_rus.anatomy.frames import check_side_posture
-from drake_rus.anatomy.generator import generate_patient_with_kidney, sample_patient_params
+from drake_rus.anatomy.generator import (KidneyDoesNotFit, generate_patient_with_kidney,
+                                         sample_patient_params)
 from drake_rus.anatomy.importers import LABEL_MAP_SUFFIXES
 from drake_rus.anatomy.kidney_shape import KidneyShapeParams
 from drake_rus.anatomy.labels import Label
@@ -57,8 +60,10 @@ CT_PREFIX = "ct:"
 KIDNEY_DEFINITIONS = ("with_tumour", "parenchyma")
 DEFAULT_KIDNEY_DEFINITION = "with_tumour"
 POSES = ("ct", "generator")
-# Default body seeds of CT patients: this offset plus the label map's digest mod 10^6.
+# Default body seeds of CT patients: this offset plus the label map's digest mod 10^6; when
+# the kidney (a large tumour) does not fit that body, the next seeds are tried.
 CT_BODY_OFFSET = 3_000_000
+CT_BODY_TRIES = 10
 # Glodny 2009 (facts file): cortex 6.6 mm, parenchyma 15.4 mm (the generator's defaults).
 CORTEX_M = 0.0066
 PARENCHYMA_M = 0.0154
@@ -261,25 +266,33 @@ def build_ct_patient(spec: CTSpec, side: str = "right", posture: str = "supine",
     mirrored = ct_side != side
     fields = kidney_fields_A(kidney, case.frame, voxel=voxel_size, mirror=mirrored)
     shape = VoxelKidneyShape(fields, spec.kidney_definition, side)
-    prm = sample_patient_params(seed, side, posture)
     length, width, thickness = (float(x) for x in shape.extents)
-    prm.kidney = KidneyShapeParams(length=length, width=width, thickness=thickness,
-                                   cortex_thickness=CORTEX_M, parenchyma_thickness=PARENCHYMA_M)
     R_BdL = np.eye(3) if spec.pose == "ct" else None
     meta = {"ct": {
         "path": str(path), "sha256": digest, "ct_side": ct_side, "mirrored": mirrored,
-        "kidney_definition": spec.kidney_definition, "pose": spec.pose, "body_seed": seed,
+        "kidney_definition": spec.kidney_definition, "pose": spec.pose,
         "parenchyma_ml": round(shape.volumes_ml["parenchyma"], 1),
         "tumour_ml": round(shape.volumes_ml["tumour"], 1),
         "frame": case.frame.summary(), "fragments": case.extra,
         "right_minus_left_mm": case.right_minus_left_mm()}}
-    meta = _jsonable(meta)
-    try:
-        return generate_patient_with_kidney(prm, shape, R_BdL=R_BdL,
-                                            name=name or f"ct:{path}", voxel_size=voxel_size,
-                                            progress=progress, meta=meta)
-    except ValueError as e:
-        raise ValueError(f"label map {path}: {e}") from None
+    seeds = [seed] if spec.body_seed is not None else [seed + i for i in range(CT_BODY_TRIES)]
+    for body in seeds:
+        prm = sample_patient_params(body, side, posture)
+        prm.kidney = KidneyShapeParams(length=length, width=width, thickness=thickness,
+                                       cortex_thickness=CORTEX_M,
+                                       parenchyma_thickness=PARENCHYMA_M)
+        meta["ct"]["body_seed"] = body
+        meta["ct"]["body_tries"] = body - seed + 1
+        try:
+            return generate_patient_with_kidney(prm, shape, R_BdL=R_BdL,
+                                                name=name or f"ct:{path}",
+                                                voxel_size=voxel_size, progress=progress,
+                                                meta=_jsonable(meta))
+        except KidneyDoesNotFit as e:
+            why = str(e)
+    tried = f"body {seeds[0]}" if len(seeds) == 1 else f"bodies {seeds[0]}-{seeds[-1]}"
+    raise ValueError(f"label map {path}: the {ct_side} kidney ({width * 1e3:.0f} mm wide with "
+                     f"its tumour) fits none of {tried}: {why}")
 
 
 def kidney_definition_difference(case: CTKidneys, side: str, voxel: float = 0.001) -> dict:

@@ -40,7 +40,7 @@ from drake_rus.anatomy.patient import Patient
 from drake_rus.template.pca import mesh_canonical_frame, mesh_surface_moments
 
 __all__ = ["PatientParams", "sample_patient_params", "generate_patient", "patient_builders",
-           "generate_patient_with_kidney", "VERTEBRA_Y"]
+           "generate_patient_with_kidney", "KidneyDoesNotFit", "VERTEBRA_Y"]
 
 # Levels (m, y_Bd) of vertebral centres relative to L1 (modelling choice: about 27-30 mm per
 # thoracolumbar vertebra + disc).
@@ -51,6 +51,10 @@ VERTEBRAL_BODY_SEMI_AXES = (0.022, 0.016)
 # A kidney given to the generator (generate_patient_with_kidney) keeps at least this much
 # from the vertebral body (modelling choice: the psoas lies between them).
 SPINE_CLEARANCE = 0.005
+
+
+class KidneyDoesNotFit(ValueError):
+    """A given kidney has no room in this body between the spine and the flank."""
 
 
 @dataclass
@@ -170,7 +174,7 @@ class _Layout:
             # laterally, never into the bone. Generated kidneys never do (unchanged).
             spine = custom and self.spine_overlap(v)
             if leaves and spine:
-                raise ValueError(
+                raise KidneyDoesNotFit(
                     f"kidney does not fit this body (seed {prm.seed}): between the spine and "
                     f"the flank there is no room for its {np.ptp(v[:, 0]) * 1e3:.0f} mm "
                     "width; try another body")
