@@ -17,8 +17,8 @@ Which grid axis is which:
 - *slice axis*: of an axial CT, the axis whose spacing and size differ from the other two
   (equal in-plane) is superior-inferior (abstains when no axis stands out);
 - *long axes*: the kidneys' long (first principal) axes run mostly craniocaudally (15-20 deg
-  off in the coronal plane, Moell 1961's "dorsal, cranial and medial to ventral, caudal and
-  lateral"): the grid axis nearest to their mean is superior-inferior;
+  off in the coronal plane; Acta Radiol 1961: from "dorsal, cranial and medial" to "ventral,
+  caudal and lateral"): the grid axis nearest to their mean is superior-inferior;
 - *separation*: two kidneys lie either side of the spine: the axis along which their
   centroids differ most (after superior-inferior) is right-left;
 - *field of view* (one kidney only): a kidney's centroid lies further from the field of
@@ -44,8 +44,10 @@ used). A per-case check is impossible from kidney labels alone; the dataset-leve
 the published right-kidney-lower statistic (McClellan 1956: the left kidney was lower in
 7.1% of 1,500 urograms; :func:`right_lower_statistic`).
 
-A case whose sign cues disagree gets status ``conflict`` (the majority decides, the
-disagreeing cues are listed as a warning); a tie, or an undetermined axis, is an error.
+A kidney whose tumour is at least as large as its parenchyma does not vote on axes or
+signs (its shape no longer follows normal anatomy). A case whose sign cues disagree gets
+status ``conflict`` (the majority decides, the disagreeing cues are listed as a warning); a
+tie, or an undetermined axis, is an error.
 Errors name the file in one line: unreadable, no kidney labels, labels other than 0/1/2,
 the requested kidney missing, a kidney cut by the field of view.
 """
@@ -65,12 +67,13 @@ from drake_rus.anatomy.rasterize import rasterize_mesh
 __all__ = ["KIDNEY_VALUE", "TUMOUR_VALUE", "LabelGrid", "KidneyComponent", "FrameEstimate",
            "CTKidneys", "read_label_grid", "kidney_components", "estimate_frame",
            "import_ct_kidneys", "select_kidney", "kidney_fields_A", "KidneyFields",
-           "right_lower_statistic", "largest_concavity", "concavities", "survey_case", "survey_summary", "MIN_KIDNEY_ML", "LEVEL_TOLERANCE_MM"]
+           "right_lower_statistic", "largest_concavity", "concavities", "survey_case",
+           "survey_summary", "MIN_KIDNEY_ML", "LEVEL_TOLERANCE_MM"]
 
 KIDNEY_VALUE = 1
 TUMOUR_VALUE = 2
 # A connected component of kidney/tumour labels smaller than this is a fragment, not a
-# kidney (the smallest adult kidneys are about 50 mL; Lee 1996: 129 +- 30 mL).
+# kidney (adult kidneys: 129 +- 30 mL, Lee 1996; 20 mL lies beyond 3 SD).
 MIN_KIDNEY_ML = 20.0
 # A kidney whose tumour is at least this large relative to its parenchyma is distorted: its
 # axes and concavities no longer follow normal anatomy, so it does not vote on the frame
