@@ -1,5 +1,6 @@
 """Fixtures shared by the test modules."""
 
+import numpy as np
 import pytest
 
 from drake_rus.imaging.config import ImagingConfig
@@ -14,6 +15,87 @@ from drake_rus.scenario import ApplyOverrides, LoadScenario
 HUBMAP = REPO_ROOT.parent / "shared" / "anatomy" / "hubmap_vh_female"
 needs_hubmap = pytest.mark.skipif(not (HUBMAP / "VH_F_skin.stl").is_file(),
                                   reason=f"real body not found at {HUBMAP}")
+
+
+# KiTS19 CT kidney label maps beside the clone (CC BY-NC-SA: read there, never copied).
+KITS = REPO_ROOT.parent / "shared" / "anatomy" / "kits19"
+needs_kits = pytest.mark.skipif(not (KITS / "case_00000").is_dir(),
+                                reason=f"KiTS19 label maps not found at {KITS}")
+
+
+def synthetic_ct_case(tumour=True, left=True, spacing=(3.0, 4.0, 3.0), n=(128, 50, 128),
+                      tumour_radius=16.0):
+    """A KiTS-style label map with a known pose, on an axial grid whose axes are the
+    anatomical frame A (x left, y superior, z anterior; mm): ``(labels, spacing, info)``.
+
+    Two ellipsoidal kidneys (110 x 56 x 40 mm) with a hilum notch, tilted like real ones
+    (long axis 17 deg off craniocaudal with the upper pole medial, 20 deg with the upper
+    pole posterior; hilum facing anteromedially 42 deg above the horizontal); the right one
+    20 mm lower than the left, both 75 mm from the midline, in the posterior half of the
+    field of view; a tumour (radius ``tumour_radius`` mm) bulging from the right kidney's
+    lateral border (label 2).
+    ``info``: "origin" (A of voxel 0), "kidneys" {side: (centre, R_AK)}, "inside"
+    {name: f(points_A) -> bool} for "right", "left" (kidney+tumour), "tumour"."""
+    spacing = np.asarray(spacing, dtype=float)
+    origin = np.array([-0.5 * (n[0] - 1) * spacing[0], -110.0, -120.0])
+    semi = np.array([55.0, 28.0, 20.0])
+    notch_semi = np.array([20.0, 14.0, 12.0])
+
+    def pose(side):
+        s = -1.0 if side == "right" else 1.0            # side sign in x
+        cor, sag, hil = np.radians([17.0, 20.0, 42.0])
+        u = np.array([-s * np.tan(cor), 1.0, -np.tan(sag)])
+        u /= np.linalg.norm(u)
+        m = np.array([-s * np.cos(hil), 0.0, np.sin(hil)])
+        m -= (m @ u) * u
+        m /= np.linalg.norm(m)
+        R = np.column_stack([u, -m, np.cross(u, -m)])
+        c = np.array([75.0 * s, -20.0 if side == "right" else 0.0, 0.0])
+        return c, R
+
+    poses = {side: pose(side) for side in ("right", "left")}
+    t_c, t_R = poses["right"]
+    t_centre = t_c + t_R @ np.array([15.0, 26.0, 6.0])
+
+    def kidney(side):
+        c, R = poses[side]
+
+        def f(p):
+            q = (np.asarray(p, dtype=float) - c) @ R
+            body = np.sum((q / semi) ** 2, axis=1) <= 1.0
+            notch = np.sum(((q - [0.0, -semi[1], 0.0]) / notch_semi) ** 2, axis=1) <= 1.0
+            return body & ~notch
+        return f
+
+    def tumour_f(p):
+        return np.linalg.norm(np.asarray(p, dtype=float) - t_centre, axis=1) <= tumour_radius
+
+    grids = np.meshgrid(*[np.arange(k) for k in n], indexing="ij")
+    pts = origin + spacing * np.column_stack([g.ravel() for g in grids])
+    labels = np.zeros(len(pts), dtype=np.uint8)
+    labels[kidney("right")(pts)] = 1
+    if left:
+        labels[kidney("left")(pts)] = 1
+    if tumour:
+        labels[tumour_f(pts)] = 2
+    inside = {"right": (lambda p: kidney("right")(p) | (tumour_f(p) if tumour else False)),
+              "left": kidney("left"), "tumour": tumour_f}
+    return labels.reshape(n), spacing, {"origin": origin, "kidneys": poses, "inside": inside,
+                                       "tumour_centre": t_centre}
+
+
+def stored_as(labels, spacing, perm, flips):
+    """``labels`` (axes = A) stored with its axes permuted (``perm``: stored axis g is A
+    axis perm[g]) and the stored axes in ``flips`` reversed: ``(array, spacing, R_AG)``
+    with R_AG the true anatomical-from-grid rotation (directions only)."""
+    a = np.transpose(labels, perm)
+    sp = np.asarray(spacing, dtype=float)[list(perm)]
+    R = np.zeros((3, 3))
+    for g in range(3):
+        R[perm[g], g] = -1.0 if g in flips else 1.0
+    for g in flips:
+        a = np.flip(a, axis=g)
+    return np.ascontiguousarray(a), sp, R
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -9,6 +9,9 @@ import numpy as np
 
 from drake_rus.anatomy.cohort import (check_regular_path, cohort_seeds, cohort_stats,
                                       load_patient)
+from drake_rus.anatomy.ct_kidney import survey_case, survey_summary
+from drake_rus.anatomy.ct_patient import (CT_PREFIX, ct_label_map_path,
+                                          kidney_definition_difference, parse_ct_spec)
 from drake_rus.anatomy.export import estimated_export_bytes
 from drake_rus.anatomy.generator import generate_patient
 from drake_rus.anatomy.importers import LABEL_MAP_SUFFIXES
@@ -62,6 +65,13 @@ def check_patient_spec(spec: str, arg: str = "--patient") -> None:
     """Checks a patient spec before any work: ``phantom:N`` has an integer N, label maps
     have a plausible voxel spacing. Other problems are found by the loader."""
     head, sep, tail = spec.partition(":")
+    if spec.startswith(CT_PREFIX):
+        try:
+            path = ct_label_map_path(parse_ct_spec(spec).path, spec)
+        except (ValueError, FileNotFoundError) as e:
+            raise _user_error(f"{arg}: {e}") from None
+        check_label_map_spacing(path, arg)
+        return
     if sep and head == "phantom":
         if not tail.strip().isdigit():
             raise _user_error(f"{arg}: expected phantom:N with a non-negative integer N, "
@@ -244,9 +254,99 @@ def _cohort(args) -> int:
     return 0
 
 
+def _ct_cases(paths: list[str], limit: int | None) -> list[Path]:
+    """Label maps named by ``paths``: files, case folders (one label map each) or folders
+    of case folders (the KiTS layout ``DIR/case_*/segmentation.nii.gz``), sorted."""
+    out = []
+    for text in paths:
+        p = Path(text)
+        if not p.exists():
+            raise _user_error(f"PATH: no such file or folder: {p}")
+        if p.is_dir() and not any(q.is_file() and q.name.lower().endswith(LABEL_MAP_SUFFIXES)
+                                  for q in p.iterdir()):
+            subs = [q for q in sorted(p.iterdir()) if q.is_dir()]
+            for q in subs:
+                try:
+                    out.append(ct_label_map_path(q))
+                except (ValueError, FileNotFoundError):
+                    continue
+            if not subs:
+                raise _user_error(f"PATH: {p} holds no label map and no case folders")
+        else:
+            try:
+                out.append(ct_label_map_path(p))
+            except ValueError as e:
+                raise _user_error(f"PATH: {e}") from None
+    return out[:limit] if limit else out
+
+
+def _ct_row_text(r: dict) -> str:
+    name = Path(r["source"]).parent.name if Path(r["source"]).name.lower().startswith(
+        "segmentation") else Path(r["source"]).name
+    if "error" in r:
+        return f"{name:<14} error     {r['error']}"
+    f = r["frame"]
+    short = {"slice axis": "sl", "long axes": "la", "separation": "sep", "field of view": "fov",
+             "poles medial": "pm", "poles posterior": "pp", "hilum": "hil",
+             "posterior half": "ph"}
+    cues = " ".join(f"{short.get(k, k)}:{v['agrees']}/{v['disagrees']}/{v['abstains']}"
+                    for k, v in f["cues"].items())
+    kid = " ".join(f"{k['side'][0].upper()}{k['parenchyma_ml']:.0f}+{k['tumour_ml']:.0f}"
+                   f"{'(cut)' if k['cut'] else ''}" for k in r["kidneys"])
+    rl = r.get("right_minus_left_mm")
+    rl_text = "" if rl is None else f" R-L {rl:+.0f} mm"
+    if "definition_dt_mm" in r:
+        rl_text += (f"  kidney with/without tumour: {r['definition_dt_mm']:.1f} mm "
+                    f"{r['definition_rot_deg']:.1f} deg")
+    warn = f"  disagree: {', '.join(f['conflicts'])}" if f["conflicts"] else ""
+    return f"{name:<14} {f['status']:<9} S{f['axes']['superior']} A{f['axes']['anterior']} " \
+           f"L{f['axes']['left']}  {kid}  {cues}{rl_text}{warn}"
+
+
+def _definition_summary(rows: list[dict], side: str) -> dict:
+    done = [r for r in rows if "definition_dt_mm" in r]
+    out = {"side": side, "kidneys": len(done),
+           "skipped": [f"{Path(r['source']).parent.name}: {r.get('extra_error') or r.get('error')}"
+                       for r in rows if "definition_dt_mm" not in r]}
+    for key in ("definition_dt_mm", "definition_rot_deg", "definition_rot_x_deg"):
+        v = np.array([r[key] for r in done], dtype=float)
+        if len(v):
+            out[key[len("definition_"):]] = {
+                "mean": round(float(v.mean()), 2), "median": round(float(np.median(v)), 2),
+                "max": round(float(v.max()), 2)}
+    return out
+
+
+def _ct_frame(args) -> int:
+    if args.limit is not None and args.limit < 1:
+        raise _user_error(f"--limit: expected at least 1, got {args.limit}")
+    files = _ct_cases(args.paths, args.limit)
+    extra = None
+    if args.definitions:
+        def extra(case):
+            return kidney_definition_difference(case, args.definitions)
+    if not files:
+        raise _user_error("PATH: no label maps found")
+    rows = []
+    print("case           status    frame (grid axes)  kidneys (mL parenchyma+tumour)  "
+          "cues agree/disagree/abstain", flush=True)
+    for f in files:
+        r = survey_case(f, extra)
+        rows.append(r)
+        print(_ct_row_text(r), flush=True)
+    summary = survey_summary(rows)
+    if args.definitions:
+        summary["kidney_definitions"] = _definition_summary(rows, args.definitions)
+    if args.json:
+        summary["rows"] = rows
+    print(dumps_strict(summary))
+    return 0
+
+
 def _common(p, spec=True):
     if spec:
-        p.add_argument("spec", help="seed:N, train:K, test:K, a mesh directory or a label map")
+        p.add_argument("spec", help="seed:N, train:K, test:K, ct:PATH[#OPTIONS] (a real CT "
+                                    "kidney), a mesh directory or a label map")
     p.add_argument("--side", default="right", choices=["right", "left"])
     p.add_argument("--posture", default="supine", choices=["supine", "left_lateral_decubitus"])
 
@@ -284,3 +384,13 @@ def add_commands(subparsers) -> None:
     s.add_argument("--voxel-mm", type=float, default=1.0)
     s.add_argument("--meshcat", action="store_true", help="also show in Meshcat until Ctrl-C")
     s.set_defaults(func=_show, outputs={"png": "file:.png"})
+    f = sub.add_parser("ct-frame", help="the patient frame of real CT kidney label maps "
+                                        "(KiTS style), each cue's verdict, usable kidneys")
+    f.add_argument("paths", nargs="+", metavar="PATH",
+                   help="label maps, case folders, or a folder of case folders (KiTS layout)")
+    f.add_argument("--limit", type=int, default=None, help="at most this many cases")
+    f.add_argument("--json", action="store_true", help="every case's full report in the JSON")
+    f.add_argument("--definitions", choices=["right", "left"], default=None,
+                   help="also measure, for this side's kidney, how far the true pose of "
+                        "kidney+tumour lies from that of the parenchyma alone")
+    f.set_defaults(func=_ct_frame)

@@ -15,6 +15,8 @@ from tqdm import tqdm
 
 from drake_rus.anatomy.cache import cached_patient, file_digest
 from drake_rus.anatomy.checks import check_anatomy
+from drake_rus.anatomy.ct_patient import (CT_PREFIX, build_ct_patient, ct_body_seed,
+                                          ct_label_map_path, parse_ct_spec)
 from drake_rus.anatomy.frames import check_side_posture
 from drake_rus.anatomy.generator import (_Layout, generate_patient, patient_builders,
                                          sample_patient_params)
@@ -65,7 +67,8 @@ def load_patient(spec: str, side: str = "right", posture: str = "supine", *,
                  voxel_size: float = 0.001, mapping="totalsegmentator",
                  progress: bool = True, cache: bool = True, check: bool = True) -> Patient:
     """A patient from a spec: ``seed:N``, ``train:K``, ``test:K`` (virtual, deterministic),
-    a directory of TotalSegmentator per-structure masks (kidney_right.nii.gz, body.nii.gz,
+    ``ct:PATH[#OPTIONS]`` (a real CT kidney in a generated body,
+    :mod:`drake_rus.anatomy.ct_patient`), a directory of TotalSegmentator per-structure masks (kidney_right.nii.gz, body.nii.gz,
     ...), a directory of meshes (kidney_right/left, skin, liver by file name, like the HuBMAP
     folder) or a NIfTI/NRRD label map (multi-label, TotalSegmentator indices by default).
 
@@ -99,6 +102,17 @@ def _resolve_spec(spec: str, side: str, posture: str, voxel_size: float, mapping
     generator seed or the bytes of every file the import reads."""
     common = {"spec": spec, "side": side, "posture": posture, "voxel_size": float(voxel_size)}
     head, sep, tail = spec.partition(":")
+    if spec.startswith(CT_PREFIX):
+        ct = parse_ct_spec(spec)
+        path = ct_label_map_path(ct.path, spec)
+        digest = file_digest(path)
+        options = {"ct_side": ct.ct_side or side,
+                   "body_seed": ct.body_seed if ct.body_seed is not None else ct_body_seed(digest),
+                   "kidney_definition": ct.kidney_definition, "pose": ct.pose}
+        return ({"kind": "ct_kidney", **common, "files": {str(path): digest}, "ct": options},
+                lambda: build_ct_patient(ct, side, posture, name=spec, digest=digest,
+                                         voxel_size=voxel_size, progress=progress),
+                None)
     if sep and head in SPLIT_OFFSETS:
         try:
             k = int(tail)

@@ -40,11 +40,21 @@ from drake_rus.anatomy.patient import Patient
 from drake_rus.anatomy.canonical_frame import mesh_canonical_frame, mesh_surface_moments
 
 __all__ = ["PatientParams", "sample_patient_params", "generate_patient", "patient_builders",
-           "VERTEBRA_Y"]
+           "generate_patient_with_kidney", "KidneyDoesNotFit", "VERTEBRA_Y"]
 
 # Levels (m, y_Bd) of vertebral centres relative to L1 (modelling choice: about 27-30 mm per
 # thoracolumbar vertebra + disc).
 VERTEBRA_Y = {"T10": 0.083, "T11": 0.057, "T12": 0.030, "L1": 0.0, "L2": -0.030, "L3": -0.061}
+# Vertebral body (modelling choice): centre this far above the back fat, semi-axes (x, z).
+VERTEBRAL_BODY_Z = 0.083
+VERTEBRAL_BODY_SEMI_AXES = (0.022, 0.016)
+# A kidney given to the generator (generate_patient_with_kidney) keeps at least this much
+# from the vertebral body (modelling choice: the psoas lies between them).
+SPINE_CLEARANCE = 0.005
+
+
+class KidneyDoesNotFit(ValueError):
+    """A given kidney has no room in this body between the spine and the flank."""
 
 
 @dataclass
@@ -116,10 +126,18 @@ def sample_patient_params(seed: int, side: str = "right", posture: str = "supine
 class _Layout:
     """Everything placed in the body frame Bd for one parameter set."""
 
-    def __init__(self, prm: PatientParams):
+    def __init__(self, prm: PatientParams, shape=None, R_BdL=None):
+        """``shape``: the kidney (default: the parametric one of ``prm.kidney``); any object
+        with ``mesh`` and ``inside`` in its frame L, ``hilum_point()``, and optionally
+        ``placement_mesh`` / ``inside_placement`` (the extent that is placed, e.g. kidney and
+        tumour when ``mesh`` is the parenchyma), ``reference_axes`` (superior and lateral in
+        L for the canonical frame, default x_L and y_L) and ``label_codes`` (labels of the
+        kidney region, see :func:`_build_labels`). ``R_BdL``: its orientation in Bd
+        (default: the sampled angles below)."""
         self.prm = prm
         self.s = -1.0 if prm.side == "right" else 1.0       # side sign in x_Bd
-        self.shape = KidneyShape(prm.kidney)
+        custom = shape is not None
+        self.shape = shape if custom else KidneyShape(prm.kidney)
         self.torso = Torso(prm.torso)
         # Orientation. Target canonical axes in Bd: the long axis x_k has the sampled coronal
         # (upper pole medial) and sagittal (upper pole posterior) projection angles; the
@@ -134,33 +152,56 @@ class _Layout:
         m /= np.linalg.norm(m)
         y_k = -m
         R_BdK = np.column_stack([u, y_k, np.cross(u, y_k)])
-        R_LK = mesh_canonical_frame(self.shape.mesh, [1, 0, 0], [0, 1, 0]).rotation().matrix()
-        self.R_BdL = R_BdK @ R_LK.T
-        _, c_L, _ = mesh_surface_moments(self.shape.mesh.vertices, self.shape.mesh.faces)
+        if R_BdL is None:
+            refs = getattr(self.shape, "reference_axes", ([1, 0, 0], [0, 1, 0]))
+            R_LK = mesh_canonical_frame(self.shape.mesh, *refs).rotation().matrix()
+            self.R_BdL = R_BdK @ R_LK.T
+        else:
+            self.R_BdL = np.asarray(R_BdL, dtype=float)
+        placed = getattr(self.shape, "placement_mesh", self.shape.mesh)
+        self._inside_placed = getattr(self.shape, "inside_placement", self.shape.inside)
+        _, c_L, _ = mesh_surface_moments(placed.vertices, placed.faces)
         self.c_L = c_L
         v_rel = (self.R_BdL @ (self.shape.mesh.vertices - c_L).T).T   # about the centroid
+        outer_rel = (self.R_BdL @ (placed.vertices - c_L).T).T
         cx = prm.centroid_x
         cavity = prm.torso.fat + prm.torso.muscle + 0.003
         for _ in range(40):
-            self._place(v_rel, cx)
-            v = self.kidney_vertices_Bd
-            if np.all(self.torso.level(v[:, 0], v[:, 1], v[:, 2], inset=cavity) <= 1.0):
+            self._place(v_rel, outer_rel, cx)
+            v = self.outer_vertices_Bd
+            leaves = not np.all(self.torso.level(v[:, 0], v[:, 1], v[:, 2], inset=cavity) <= 1.0)
+            # A given kidney (e.g. a real one with a tumour) may reach the spine: moved
+            # laterally, never into the bone. Generated kidneys never do (unchanged).
+            spine = custom and self.spine_overlap(v)
+            if leaves and spine:
+                raise KidneyDoesNotFit(
+                    f"kidney does not fit this body (seed {prm.seed}): between the spine and "
+                    f"the flank there is no room for its {np.ptp(v[:, 0]) * 1e3:.0f} mm "
+                    "width; try another body")
+            if not leaves and not spine:
                 break
-            cx -= 0.002
+            cx += 0.002 if spine else -0.002
         self.centroid_x = cx
 
-    def _place(self, v_rel, cx):
+    def spine_overlap(self, v_Bd) -> bool:
+        """Whether points (N, 3) in Bd lie within ``SPINE_CLEARANCE`` of the vertebral body."""
+        a, b = (r + SPINE_CLEARANCE for r in VERTEBRAL_BODY_SEMI_AXES)
+        z_vb = 0.8 * self.prm.torso.fat + VERTEBRAL_BODY_Z
+        return bool(np.any((v_Bd[:, 0] / a) ** 2 + ((v_Bd[:, 2] - z_vb) / b) ** 2 <= 1.0))
+
+    def _place(self, v_rel, outer_rel, cx):
         prm = self.prm
         back_fat = 0.8 * prm.torso.fat
-        z_c = back_fat + prm.torso.muscle + prm.posterior_gap - v_rel[:, 2].min()
+        z_c = back_fat + prm.torso.muscle + prm.posterior_gap - outer_rel[:, 2].min()
         self.p_c = np.array([self.s * cx, prm.centroid_y, z_c])
         self.p_BdL = self.p_c - self.R_BdL @ self.c_L
         self.kidney_vertices_Bd = v_rel + self.p_c
+        self.outer_vertices_Bd = outer_rel + self.p_c
         # Top of the kidney on the vertical line through its centroid (bisection on the
         # analytic inside test).
         zs = np.linspace(z_c, z_c + 0.08, 801)
         pts = np.column_stack([np.full_like(zs, self.p_c[0]), np.full_like(zs, self.p_c[1]), zs])
-        inside = self.inside_kidney_Bd(pts)
+        inside = self._inside_placed(self.L_from_Bd(pts))
         self.kidney_top_z = float(zs[np.nonzero(inside)[0].max()]) if inside.any() else z_c
         # Body height so that the vertical depth above the kidney is the target depth.
         t = self.torso
@@ -225,6 +266,9 @@ def _build_labels(lay: _Layout, voxel_size: float, margin: float, progress: bool
     L = prm.kidney.length
     y_lo = lay.p_c[1] - L / 2 - margin
     y_hi = lay.p_c[1] + L / 2 + margin
+    if hasattr(lay.shape, "label_codes"):       # a given kidney: its own extent along y
+        y_lo = min(y_lo, float(lay.outer_vertices_Bd[:, 1].min()) - margin)
+        y_hi = max(y_hi, float(lay.outer_vertices_Bd[:, 1].max()) + margin)
     ys_probe = np.linspace(y_lo, y_hi, 50)
     A, Zc, Bt = t.section(ys_probe)
     x_max = float(A.max()) + 0.005
@@ -237,7 +281,7 @@ def _build_labels(lay: _Layout, voxel_size: float, margin: float, progress: bool
     zs = origin[2] + vs * np.arange(shape[2])
     wall = tp.fat + tp.muscle
     back_fat = 0.8 * tp.fat
-    z_vb = back_fat + 0.083                     # vertebral body centre (modelling choice)
+    z_vb = back_fat + VERTEBRAL_BODY_Z          # vertebral body centre (modelling choice)
     # Liver: right upper quadrant, over the anterior surface of the right kidney's upper pole.
     y_up_right = (lay.p_c[1] if prm.side == "right" else lay.p_c[1] - 0.027) + L / 2
     lo = prm.liver_offset
@@ -271,7 +315,8 @@ def _build_labels(lay: _Layout, voxel_size: float, margin: float, progress: bool
             ps = ((X - sx * 0.040) ** 2 + (Z - z_vb) ** 2) <= r_ps ** 2
             lab[cavity & (es | ql | ps)] = Label.MUSCLE
         # Spine: vertebral body and posterior arch.
-        vb = (X / 0.022) ** 2 + ((Z - z_vb) / 0.016) ** 2 <= 1
+        vb = ((X / VERTEBRAL_BODY_SEMI_AXES[0]) ** 2
+              + ((Z - z_vb) / VERTEBRAL_BODY_SEMI_AXES[1]) ** 2 <= 1)
         arch = (np.abs(X) <= 0.010) & (Z >= back_fat + 0.012) & (Z <= z_vb - 0.014)
         lab[vb | (arch & (lab > 0))] = Label.BONE
         # Great vessels: aorta left-anterior of the spine, IVC right-anterior.
@@ -301,25 +346,33 @@ def _build_labels(lay: _Layout, voxel_size: float, margin: float, progress: bool
     _stamp(labels, origin, vs, _polyline(np.vstack([h, ivc]), 0.5 * vs), 0.005, Label.VESSEL,
            allowed=[Label.SOFT_TISSUE, Label.FAT, Label.MUSCLE])
     # Kidney with perirenal fat (Gerota's fascia, modelling choice 7 mm) and sub-labels.
-    v = lay.kidney_vertices_Bd
+    v = lay.outer_vertices_Bd
     lo_i = np.maximum(np.floor((v.min(axis=0) - 0.012 - origin) / vs).astype(int), 0)
     hi_i = np.minimum(np.ceil((v.max(axis=0) + 0.012 - origin) / vs).astype(int) + 1,
                       np.array(shape))
     I, J, K = np.meshgrid(*[np.arange(lo_i[a], hi_i[a]) for a in range(3)], indexing="ij")
     P = origin + vs * np.column_stack([I.ravel(), J.ravel(), K.ravel()])
-    f, depth, d = lay.shape.level(lay.L_from_Bd(P), return_direction=True)
     sub = labels[lo_i[0]:hi_i[0], lo_i[1]:hi_i[1], lo_i[2]:hi_i[2]].reshape(-1)
-    peri = (depth > -0.007) & np.isin(sub, [Label.SOFT_TISSUE, Label.LIVER, Label.MUSCLE,
-                                             Label.GAS, Label.VESSEL])
-    sub[peri] = Label.FAT
-    kid = f <= 1.0
-    kp = prm.kidney
-    cortex = depth < kp.cortex_thickness
-    sinus = depth >= kp.parenchyma_thickness
-    pyramids = (np.cos(4.0 * np.pi * d[:, 0]) > -0.35) & (np.abs(d[:, 2]) < 0.85)
-    sub[kid] = Label.KIDNEY_CORTEX
-    sub[kid & ~cortex & ~sinus & pyramids] = Label.KIDNEY_MEDULLA
-    sub[kid & sinus] = Label.KIDNEY_SINUS
+    carved = [Label.SOFT_TISSUE, Label.LIVER, Label.MUSCLE, Label.GAS, Label.VESSEL]
+    if hasattr(lay.shape, "label_codes"):
+        # A given kidney labels its own region (sub-labels, tumour) and its perirenal zone;
+        # everything in the kidney is overwritten (organs carved, bone never reached: the
+        # placement keeps it off the spine).
+        codes, peri_zone = lay.shape.label_codes(lay.L_from_Bd(P))
+        sub[peri_zone & np.isin(sub, carved)] = Label.FAT
+        sub[codes > 0] = codes[codes > 0]
+    else:
+        f, depth, d = lay.shape.level(lay.L_from_Bd(P), return_direction=True)
+        peri = (depth > -0.007) & np.isin(sub, carved)
+        sub[peri] = Label.FAT
+        kid = f <= 1.0
+        kp = prm.kidney
+        cortex = depth < kp.cortex_thickness
+        sinus = depth >= kp.parenchyma_thickness
+        pyramids = (np.cos(4.0 * np.pi * d[:, 0]) > -0.35) & (np.abs(d[:, 2]) < 0.85)
+        sub[kid] = Label.KIDNEY_CORTEX
+        sub[kid & ~cortex & ~sinus & pyramids] = Label.KIDNEY_MEDULLA
+        sub[kid & sinus] = Label.KIDNEY_SINUS
     labels[lo_i[0]:hi_i[0], lo_i[1]:hi_i[1], lo_i[2]:hi_i[2]] = sub.reshape(I.shape)
     X_PtV = _X_PtBd(lay).multiply(RigidTransform(origin))
     return LabelVolume(labels=labels, voxel_size=vs, X_PtV=X_PtV)
@@ -414,3 +467,40 @@ def generate_patient(seed: int, side: str = "right", posture: str = "supine", *,
         name=name or f"seed:{seed}", side=side, posture=posture, kidney_mesh=kidney,
         skin_mesh=skin, meta=meta, X_PtK=X_PtK,
         **_builders(lambda: lay, voxel_size, margin, progress))
+
+
+def generate_patient_with_kidney(prm: PatientParams, shape, *, R_BdL=None, name: str,
+                                 voxel_size: float = 0.001, margin: float = 0.07,
+                                 progress: bool = True, meta: dict | None = None) -> Patient:
+    """The generated body of ``prm`` (e.g. :func:`sample_patient_params`) carrying a given
+    kidney ``shape`` (see :class:`_Layout`; e.g. a real CT kidney,
+    :mod:`drake_rus.anatomy.ct_patient`) instead of its own: placed at the body's kidney
+    position (craniocaudal level, distance from the midline, posterior gap) with the body's
+    depth, oriented by ``R_BdL`` (default: the sampled angles), kept off the spine, and the
+    organs it overlaps carved (perirenal fat, then the kidney's own labels).
+
+    The true pose ``X_PtK`` is the canonical frame of ``shape.mesh`` as placed. The torso
+    section and the kidney mask are the Patient defaults (from the meshes), so the patient
+    rebuilt from its cached meshes is the same; ``meta`` is added to the patient's meta."""
+    check_side_posture(prm.side, prm.posture)
+    lay = _Layout(prm, shape=shape, R_BdL=R_BdL)
+    X_PtBd = _X_PtBd(lay)
+    kidney_Bd = trimesh.Trimesh(lay.kidney_vertices_Bd, shape.mesh.faces, process=False)
+    kidney = transform_mesh(kidney_Bd, X_PtBd)
+    skin = transform_mesh(lay.torso.mesh(spacing=0.01, n_points=128), X_PtBd)
+    X_PtK = mesh_canonical_frame(kidney, *reference_axes_Pt(prm.side, prm.posture))
+    x_k_Bd = X_PtBd.rotation().matrix().T @ X_PtK.rotation().matrix()[:, 0]
+    info = {
+        "source": "generator+kidney",
+        "seed": int(prm.seed),
+        "size_class": prm.torso.size_class,
+        "hilum_angle": lay.hilum_angle_measured(x_k_Bd),
+        "params": prm.to_dict(),
+        "centroid_x_final": lay.centroid_x,
+        "X_PtBd": X_PtBd.GetAsMatrix4().tolist(),
+        **(meta or {}),
+    }
+    label_builder = _builders(lambda: lay, voxel_size, margin, progress)["label_builder"]
+    return Patient(name=name, side=prm.side, posture=prm.posture, kidney_mesh=kidney,
+                   skin_mesh=skin, meta=info, X_PtK=X_PtK, label_builder=label_builder,
+                   torso_center_Pt=X_PtBd.multiply(lay.p_c))

@@ -25,10 +25,18 @@ class Label(IntEnum):
     BONE = 8            # ribs 10-12, spine
     GAS = 9             # bowel gas
     VESSEL = 10         # large vessels (anechoic)
+    # A renal tumour (real CT kidneys, anatomy/ct_patient.py). One tissue, two memberships:
+    # whether it belongs to "the kidney" (the segmentation target and the true pose) is the
+    # patient's kidney definition ("parenchyma": TUMOUR; "with_tumour": KIDNEY_TUMOUR).
+    TUMOUR = 11         # renal tumour, not part of the kidney
+    KIDNEY_TUMOUR = 12  # renal tumour counted as part of the kidney
 
 
 # Every label that belongs to the kidney (the segmentation target).
-KIDNEY_LABELS = (Label.KIDNEY_CORTEX, Label.KIDNEY_MEDULLA, Label.KIDNEY_SINUS)
+KIDNEY_LABELS = (Label.KIDNEY_CORTEX, Label.KIDNEY_MEDULLA, Label.KIDNEY_SINUS,
+                 Label.KIDNEY_TUMOUR)
+# Both tumour labels.
+TUMOUR_LABELS = (Label.TUMOUR, Label.KIDNEY_TUMOUR)
 
 
 def is_kidney(labels: np.ndarray) -> np.ndarray:

@@ -25,6 +25,8 @@ TISSUE_COLORS: dict[Label, str] = {
     Label.BONE: "#c8c8c8",
     Label.GAS: "#262626",
     Label.VESSEL: "#2f4fa8",
+    Label.TUMOUR: "#f08a24",
+    Label.KIDNEY_TUMOUR: "#f5b041",
 }
 TISSUE_NAMES: dict[Label, str] = {
     Label.OUTSIDE: "air (outside the body)",
@@ -38,6 +40,8 @@ TISSUE_NAMES: dict[Label, str] = {
     Label.BONE: "bone",
     Label.GAS: "bowel gas",
     Label.VESSEL: "large vessel",
+    Label.TUMOUR: "renal tumour (not the kidney)",
+    Label.KIDNEY_TUMOUR: "renal tumour (part of the kidney)",
 }
 # The segmenter's kidney mask over a B-mode image: the kidney's colour, translucent.
 KIDNEY_COLOR = TISSUE_COLORS[Label.KIDNEY_CORTEX]

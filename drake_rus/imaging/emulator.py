@@ -63,6 +63,12 @@ TISSUES: dict[int, Tissue] = {
     Label.GAS: Tissue(0.0004, 7.5, 0.0),              # bowel gas: 0.0004 MRayl, 7.5
     # Blood (not in the facts table): about 1.61 MRayl and 0.18 dB/cm/MHz (textbook values).
     Label.VESSEL: Tissue(1.61, 0.18, 0.02),
+    # Renal tumour (renal cell carcinoma; facts: "Renal tumours"): a solid tissue with the
+    # kidney's impedance and attenuation (no published values found), echogenicity between
+    # isoechoic and mildly hyperechoic to the cortex, the commonest classes of tumours over
+    # 3 cm (49% and 33%, Sidhar 2016). Necrosis, cysts and calcification are not modelled.
+    Label.TUMOUR: Tissue(1.62, 1.0, 0.48),
+    Label.KIDNEY_TUMOUR: Tissue(1.62, 1.0, 0.48),
 }
 # Labels missing from the table behave as generic soft tissue.
 _DEFAULT_TISSUE = TISSUES[Label.SOFT_TISSUE]
