@@ -13,7 +13,7 @@ from drake_rus.anatomy.ct_kidney import (LabelGrid, estimate_frame, import_ct_ki
                                          survey_summary)
 from drake_rus.anatomy.ct_patient import VoxelKidneyShape
 from drake_rus.anatomy.rasterize import mask_to_mesh
-from drake_rus.template.pca import mesh_canonical_frame
+from drake_rus.anatomy.canonical_frame import mesh_canonical_frame
 from pydrake.math import RigidTransform
 
 from conftest import KITS, needs_kits, stored_as, synthetic_ct_case

@@ -14,7 +14,7 @@ from drake_rus.anatomy import Label, is_kidney, load_patient
 from drake_rus.anatomy.ct_patient import parse_ct_spec
 from drake_rus.anatomy.rasterize import mask_to_mesh, rasterize_mesh
 from drake_rus.cli import main as cli_main
-from drake_rus.template.pca import mesh_canonical_frame
+from drake_rus.anatomy.canonical_frame import mesh_canonical_frame
 
 from conftest import KITS, needs_kits, stored_as, synthetic_ct_case
 

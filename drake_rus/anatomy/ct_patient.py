@@ -48,7 +48,7 @@ from drake_rus.anatomy.kidney_shape import KidneyShapeParams
 from drake_rus.anatomy.labels import Label
 from drake_rus.anatomy.patient import Patient
 from drake_rus.anatomy.rasterize import mask_to_mesh
-from drake_rus.template.pca import extents_in_frame, mesh_canonical_frame
+from drake_rus.anatomy.canonical_frame import extents_in_frame, mesh_canonical_frame
 
 __all__ = ["CTSpec", "parse_ct_spec", "ct_label_map_path", "ct_body_seed", "VoxelKidneyShape",
            "build_ct_patient", "KIDNEY_DEFINITIONS", "DEFAULT_KIDNEY_DEFINITION", "CT_PREFIX",
