@@ -173,3 +173,35 @@ def test_phase_force_statistics_and_the_scan_summary_force_block():
     result.logs.pop("force_true")
     block = _force_block(result)
     assert block["source"].startswith("estimated") and block["PIVOT"]["mean_n"] == 0.0
+
+
+# ----------------------------------------------------------------------------- diagrams
+# The 60 s holds at 10 ms and 1 ms over the stiffness range are `python -m benchmarks
+# force_loop --hold 60` (docs/force_loop.md); here the shortest runs that show the same: a
+# settled hold, then the linearized one-period map of the held diagram with every pole
+# inside the unit circle (the hold stays still however long it lasts).
+
+@pytest.mark.parametrize("modulus", [5e4, 1e6])
+def test_press_diagram_settles_and_its_hold_is_linearly_stable(modulus):
+    from pydrake.systems.analysis import Simulator
+    from benchmarks.force_loop import _poles, period_map
+    from drake_rus.demo import PressDiagram
+    from drake_rus.scenario import LoadScenario
+    scenario = LoadScenario(scenario_text=f"{{contact: {{hydroelastic_modulus: {modulus}}}}}")
+    press = PressDiagram(scenario)
+    sim = Simulator(press.diagram)
+    sim.Initialize()
+    sim.AdvanceTo(10.005)
+    t, F = press.true_force(sim.get_context())
+    stats = fl.force_statistics(t, F, 9.0, window=4.0)
+    assert stats["settled"] and stats["ripple_n"] <= 0.1, stats
+    J = period_map(press.diagram, sim.get_context().Clone(), 0.01)
+    poles = _poles(np.linalg.eigvals(J), 0.01)
+    assert poles["largest_pole"]["abs"] < 1.0, poles
+
+
+def test_scan_controller_holds_still_at_test0_start():
+    from benchmarks.force_loop import scan_controller_hold
+    from drake_rus.scenario import LoadScenario
+    stats = scan_controller_hold(LoadScenario(), "test:0", 6.0, window=2.0)
+    assert stats["settled"] and stats["ripple_n"] < 0.01, stats
