@@ -212,7 +212,7 @@ def _demo(args, scenario, desired: float, out: Path) -> int:
     state = ("settled" if force["settled"] else
              f"NOT settled (off by up to {force['max_error_n']:.2f} N)")
     print(f"force over the last {window:g} s: mean {force['mean_n']:.3f} N, ripple "
-          f"{force['ripple_n']:.4f} N RMS ({force['peak_to_peak_n']:.4f} N peak to peak), "
+          f"{force['ripple_n']:.2g} N RMS ({force['peak_to_peak_n']:.2g} N peak to peak), "
           f"{state}; desired {desired:.1f} +- {SETTLING_BAND_N:g} N; estimated mean "
           f"{summary['force_estimated_mean_n']:.3f} N; "
           f"{summary['realtime_rate']:.1f}x real time")

@@ -181,23 +181,31 @@ def test_phase_force_statistics_and_the_scan_summary_force_block():
 # settled hold, then the linearized one-period map of the held diagram with every pole
 # inside the unit circle (the hold stays still however long it lasts).
 
-@pytest.mark.parametrize("modulus", [5e4, 1e6])
-def test_press_diagram_settles_and_its_hold_is_linearly_stable(modulus):
+@pytest.mark.parametrize("modulus, h", [(5e4, 0.01), (1e6, 0.01), (2e5, 0.001)])
+def test_press_diagram_settles_and_its_hold_is_linearly_stable(modulus, h):
     from pydrake.systems.analysis import Simulator
     from benchmarks.force_loop import _poles, period_map
     from drake_rus.demo import PressDiagram
     from drake_rus.scenario import LoadScenario
-    scenario = LoadScenario(scenario_text=f"{{contact: {{hydroelastic_modulus: {modulus}}}}}")
+    scenario = LoadScenario(scenario_text=f"{{contact: {{hydroelastic_modulus: {modulus}, "
+                                          f"time_step: {h}}}}}")
     press = PressDiagram(scenario)
     sim = Simulator(press.diagram)
     sim.Initialize()
-    sim.AdvanceTo(10.005)
+    sim.AdvanceTo(10.0 + h / 2)       # just after a controller update (period_map's cut)
     t, F = press.true_force(sim.get_context())
     stats = fl.force_statistics(t, F, 9.0, window=4.0)
     assert stats["settled"] and stats["ripple_n"] <= 0.1, stats
     J = period_map(press.diagram, sim.get_context().Clone(), 0.01)
     poles = _poles(np.linalg.eigvals(J), 0.01)
     assert poles["largest_pole"]["abs"] < 1.0, poles
+
+
+def test_press_diagram_holds_still_for_60_s_at_10_ms():
+    from benchmarks.force_loop import press_hold
+    from drake_rus.scenario import LoadScenario
+    stats = press_hold(LoadScenario(), 60.0, window=50.0)     # settled within 10 s
+    assert stats["settled"] and stats["ripple_n"] <= 0.1 and stats["peak_to_peak_n"] <= 0.01
 
 
 def test_scan_controller_holds_still_at_test0_start():
