@@ -29,3 +29,7 @@ def test_controller_tuning_notebook_runs_and_reports_step_metrics(monkeypatch):
     assert metrics["force_settling_s"] <= 2.0
     assert abs(metrics["force_final_n"] - 9.0) <= 0.5
     assert metrics["tilt_below_1deg_s"] <= 1.5
+    # The margin cell: the configured gains are stable with margin (docs/force_loop.md).
+    margins = [float(x.split()[-1]) for l in outputs.splitlines() if l.startswith("contact ")
+               for x in l.split(",")]
+    assert len(margins) == 6 and min(margins) >= 2.0

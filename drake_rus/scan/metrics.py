@@ -20,6 +20,7 @@ import math
 
 import numpy as np
 
+from drake_rus.control.force_loop import phase_force_statistics
 from drake_rus.control.supervisor import Phase
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.localization.tracking import tracking_limits
@@ -175,6 +176,23 @@ def _er_unit(controller) -> str:
     return f"the fixed kidney length L_m = {L_m:g} mm"
 
 
+def _force_block(result: ScanResult) -> dict:
+    """The contact force per phase: mean and ripple (RMS about the mean, N; EXPLORE after
+    its first 0.5 s, the landing), from the true contact force in simulation, else from the
+    estimated, low-pass filtered force the controller uses (hardware)."""
+    if "force_true" in result.logs:
+        t, wrench = result.logs["force_true"]
+        F, source = -np.asarray(wrench)[5], "true contact force"
+    else:
+        t, F = result.logs["force"][0], result.logs["force"][1][0]
+        source = "estimated contact force, low-pass filtered"
+    stats = phase_force_statistics(t, F, result.phases)
+    return {"source": source,
+            "log_period_s": float(np.median(np.diff(t))) if len(t) > 1 else None,
+            "ripple": "RMS about the phase's mean (its standard deviation)",
+            **{name: {k: round(v, 4) for k, v in row.items()} for name, row in stats.items()}}
+
+
 def Summary(result: ScanResult, metrics: dict, provenance: dict | None = None) -> dict:
     """The JSON summary of a scan (``summary.json``); ``provenance``
     (:func:`drake_rus.provenance.Provenance`): what a rerun needs, kept as given."""
@@ -226,6 +244,7 @@ def Summary(result: ScanResult, metrics: dict, provenance: dict | None = None) -
         "segmenter": result.scenario.imaging.segmenter,
         "registration_method": result.scenario.localization.method,
         "peak_force_n": float(np.max(force)) if len(force) else 0.0,
+        "force": _force_block(result),
         "frames_total": len(result.frames),
         "safety_events": [str(e) for e in result.safety_events],
         "mode": _mode(result.scenario),
