@@ -16,16 +16,17 @@ from pydrake.math import RigidTransform
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import LogVectorOutput
 
-from drake_rus.scan.diagram import LOG_PERIOD
 
 __all__ = ["SimulationTruth", "AttachSimulationTruth", "kidney_voxels_B", "force_trace_stats",
            "FORCE_LOG_PERIOD"]
 
 # Voxel size (m) of the true kidney for the volume ratio V (eq. 25).
 TRUTH_VOXEL = 0.002
-# Period (s) of the true contact-wrench log (read at call time; a validation run may log
-# faster to catch the landing peak).
-FORCE_LOG_PERIOD = LOG_PERIOD
+# Period (s) of the true contact-wrench log (read at call time); None: every plant step
+# (contact.time_step), where the truth is sampled, so a force oscillation up to the step's
+# Nyquist rate shows in the summary's ripple instead of aliasing (a 20 ms log folded a
+# 23 Hz oscillation of the 10 ms loop onto a slow wobble).
+FORCE_LOG_PERIOD: float | None = None
 
 
 @dataclasses.dataclass
@@ -53,8 +54,9 @@ def AttachSimulationTruth(builder: DiagramBuilder, station, patient, scenario,
     X_BPt = scenario.patient.X_BPt.GetDeterministicValue()
     force_log = None
     if station.HasOutputPort("probe_contact_wrench_true"):
+        period = FORCE_LOG_PERIOD or scenario.contact.time_step
         force_log = LogVectorOutput(station.GetOutputPort("probe_contact_wrench_true"),
-                                    builder, FORCE_LOG_PERIOD)
+                                    builder, period)
     return SimulationTruth(patient.X_BK(X_BPt), kidney_voxels_B(patient, X_BPt, voxel_size),
                            voxel_size**3, force_log)
 
