@@ -35,3 +35,19 @@ def test_the_checker_finds_a_broken_link(tmp_path):
     page.write_text("[ok](page.md) [broken](nowhere.md) [web](https://drake.mit.edu)\n"
                     "```\n[in code](not_a_link.md)\n```\n")
     assert [t for t in _relative_links(page) if not (page.parent / t).exists()] == ["nowhere.md"]
+
+
+def test_readme_states_the_bad_input_corpus_count():
+    """The README's corpus count is the number of cases pytest collects from the corpus."""
+    import subprocess
+    import sys
+    m = re.search(r"holds (\d+) cases", (ROOT / "README.md").read_text())
+    assert m, "README.md should state the bad-input corpus count ('holds N cases')"
+    files = sorted(str(p) for p in (ROOT / "tests").glob("test_bad_input_*.py"))
+    out = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q",
+                          "-p", "no:cacheprovider", *files], cwd=ROOT, capture_output=True,
+                         text=True, timeout=300).stdout
+    collected = re.search(r"(\d+) tests? collected", out)
+    assert collected, out[-2000:]
+    assert int(m.group(1)) == int(collected.group(1)), (
+        f"README says {m.group(1)} bad-input cases, pytest collects {collected.group(1)}")
