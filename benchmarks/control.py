@@ -39,7 +39,7 @@ def _station_alone_rtf(scenario, duration: float) -> float | None:
     """Reference measured in the same run: the station pressed and held by the lead's
     minimal C++-light press driver (drake_rus.control.press), no scan controller."""
     try:
-        from drake_rus.demo import PressDiagram
+        from drake_rus.closed_loop import PressDiagram
     except ImportError:
         return None
     press = PressDiagram(scenario)

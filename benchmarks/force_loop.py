@@ -241,7 +241,7 @@ def validate_once(scenario, h: float, gains: dict, t: float,
     poles and gain margin; the reduced model with the arm there (held) and the contact
     stiffness fitted to the diagram's loop transfer: its poles and gain margin."""
     from pydrake.systems.analysis import Simulator
-    from drake_rus.demo import PressDiagram
+    from drake_rus.closed_loop import PressDiagram
     s = _with(_time_step(scenario, h), **gains)
     press = PressDiagram(s, hold_orientation=hold_orientation)
     sim = Simulator(press.diagram)
@@ -322,7 +322,7 @@ def press_hold(scenario, seconds: float, window: float = 10.0) -> dict:
     """The demo's press diagram for ``seconds``: the true force's statistics over the last
     ``window`` s (every plant step)."""
     from pydrake.systems.analysis import Simulator
-    from drake_rus.demo import PressDiagram
+    from drake_rus.closed_loop import PressDiagram
     press = PressDiagram(scenario)
     sim = Simulator(press.diagram)
     sim.Initialize()

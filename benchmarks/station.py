@@ -23,7 +23,7 @@ from pydrake.systems.primitives import Sine
 
 from drake_rus.control.force_loop import force_statistics
 from drake_rus.scenario import ApplyOverrides, LoadScenario
-from drake_rus.demo import PressDiagram
+from drake_rus.closed_loop import PressDiagram
 from drake_rus.stations import MakeStation
 
 

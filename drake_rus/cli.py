@@ -34,8 +34,11 @@ import math  # noqa: E402
 import socket  # noqa: E402
 from urllib.parse import urlparse  # noqa: E402
 
-from drake_rus.config_schema import ScenarioError  # noqa: E402
+from pydrake.geometry import Meshcat, MeshcatParams  # noqa: E402
+
+from drake_rus.config_schema import ScenarioError, check_nesting_depth  # noqa: E402
 from drake_rus.io_utils import check_output_dir, check_output_file, describe_os_error  # noqa: E402
+from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, LoadScenario  # noqa: E402
 
 COMMAND_MODULES = [
     "drake_rus.demo",            # demo: the station demo (pressing probe)
@@ -92,6 +95,37 @@ DEFAULT_OUTPUTS = {
     "rehearse": {"out": "dir"},
     "breathing": {"out": "dir"},
 }
+
+
+# ------------------------------------------------------- helpers shared by the commands
+def add_scenario_arguments(parser) -> None:
+    """--scenario / --scenarios-file / --set, shared by every command that builds a station."""
+    parser.add_argument("--scenario", default="default", help="scenario name (default 'default')")
+    parser.add_argument("--scenarios-file", default=str(DEFAULT_SCENARIOS_FILE),
+                        help="YAML file of named scenarios")
+    parser.add_argument("--set", dest="overrides", default=None, metavar="YAML",
+                        help="YAML overrides, e.g. \"{contact: {model: point}}\"")
+
+
+def load_scenario_from_args(args):
+    check_nesting_depth(args.overrides, "--set")
+    return LoadScenario(filename=args.scenarios_file, scenario_name=args.scenario,
+                        scenario_text=args.overrides)
+
+
+# The address every server of drake-rus listens on: the loopback only (Meshcat, the
+# rehearsal's video stream; `make notebooks` starts JupyterLab on it too).
+LOOPBACK = "127.0.0.1"
+
+
+def MakeMeshcat(port: int | None = None):
+    """A Meshcat server listening on the loopback only (127.0.0.1; Drake's default "*" is
+    every interface, and "localhost" may resolve to an IPv6 or another address)."""
+    params = MeshcatParams()
+    params.host = LOOPBACK
+    if port is not None:
+        params.port = port
+    return Meshcat(params)
 
 
 def _flag(name: str) -> str:

@@ -1,6 +1,7 @@
 """A station and the controller in one closed loop, without the imaging chain's localizer:
 the building block of the controller tests, the tuning notebook, the control benchmark and
-``drake-rus hardware check``.
+``drake-rus hardware check``; and :class:`PressDiagram`, the station pressed by the minimal
+press driver (``drake-rus demo``, the station benchmark, the force-loop tests).
 
 ``BuildClosedLoop`` wires ``drake_rus.control.diagram.AddController`` to any station;
 ``BuildClosedLoopOnPatient`` adds a virtual patient's images and the scenario's segmenter,
@@ -16,10 +17,11 @@ from typing import Callable
 import numpy as np
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import DiagramBuilder
-from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
+from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput, VectorLogSink
 
 from drake_rus.anatomy import load_patient
 from drake_rus.control.diagram import AddController, ControllerParts
+from drake_rus.control.press import PressDriver
 from drake_rus.control.supervisor import Phase
 from drake_rus.imaging.systems import Segmenter
 from drake_rus.robot import MakeControlPlant, SolveTipPose, TipKinematics
@@ -27,7 +29,7 @@ from drake_rus.scenario import ApplyOverrides
 from drake_rus.stations import MakeStation
 
 __all__ = ["ClosedLoop", "BuildClosedLoop", "BuildClosedLoopOnPatient", "AdvanceUntilScanEnds",
-           "SensorHook"]
+           "SensorHook", "PressDiagram"]
 
 # (builder, station, segmenter or None) -> (system whose outputs replace the station's
 # sensor ports, segmenter stand-in or None, the added system): e.g. a fault injector.
@@ -178,3 +180,56 @@ def AdvanceUntilScanEnds(simulator, scan_supervisor, t_max: float, step: float =
     while context.get_time() < t_max and scan_supervisor.state(supervisor_context).phase not in (
             Phase.DONE, Phase.ABORT):
         simulator.AdvanceTo(min(t_max, context.get_time() + step))
+
+
+class PressDiagram:
+    """Station + PressDriver (+ loggers of the estimated and true probe wrench).
+
+    The true wrench is logged at every plant step (cheap: the station samples it there), so
+    an oscillation of the force loop, up to the controller's Nyquist rate, cannot alias
+    into a false steady value; the estimate at every controller period (``log_period``
+    overrides both)."""
+
+    def __init__(self, scenario, meshcat=None, desired_force: float | None = None,
+                 log_period: float | None = None, patient=None, drive: bool = True,
+                 hold_orientation: bool = True):
+        builder = DiagramBuilder()
+        self.station = builder.AddNamedSystem(
+            "station", MakeStation(scenario, meshcat=meshcat, patient=patient))
+        if drive:
+            control_plant, tip_frame = MakeControlPlant(scenario)
+            self.driver = builder.AddNamedSystem(
+                "press_driver", PressDriver(control_plant, tip_frame, scenario.controller,
+                                            desired_force, hold_orientation=hold_orientation))
+            builder.Connect(self.station.GetOutputPort("joint_position"),
+                            self.driver.get_input_port(0))
+            builder.Connect(self.station.GetOutputPort("probe_force"),
+                            self.driver.get_input_port(1))
+            builder.Connect(self.driver.get_output_port(),
+                            self.station.GetInputPort("joint_velocity_command"))
+        else:
+            self.driver = builder.AddNamedSystem("zero_command", ConstantVectorSource(np.zeros(7)))
+            builder.Connect(self.driver.get_output_port(),
+                            self.station.GetInputPort("joint_velocity_command"))
+        self.force_log = LogVectorOutput(
+            self.station.GetOutputPort("probe_force"), builder,
+            log_period or 1.0 / scenario.controller.rate_hz)
+        self.truth_log = LogVectorOutput(
+            self.station.GetOutputPort("probe_contact_wrench_true"), builder,
+            log_period or scenario.contact.time_step)
+        self.diagram = builder.Build()
+        self.diagram.set_name("press_demo")
+
+    def logs(self, root_context):
+        """(times (N,), estimated F_z (N,), true F_z (N,)) in s and N, at the estimate's
+        log times."""
+        est = self.force_log.FindLog(root_context)
+        t_true, F_true = self.true_force(root_context)
+        t = est.sample_times()
+        i = np.clip(np.searchsorted(t_true, t - 1e-9), 0, max(len(t_true) - 1, 0))
+        return t, -est.data()[5], F_true[i] if len(t_true) else np.zeros(len(t))
+
+    def true_force(self, root_context):
+        """(times (N,), true F_z (N,)) in s and N, at every plant step."""
+        tru = self.truth_log.FindLog(root_context)
+        return tru.sample_times(), -tru.data()[5]

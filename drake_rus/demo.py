@@ -14,23 +14,17 @@ from pathlib import Path
 
 import matplotlib
 import numpy as np
-from pydrake.geometry import Meshcat, MeshcatParams
 from pydrake.systems.analysis import Simulator
-from pydrake.systems.framework import DiagramBuilder
-from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput
 
 from drake_rus import interrupts
-from drake_rus.cli import EXIT_STATUS_HELP
-from drake_rus.config_schema import check_nesting_depth
+from drake_rus.closed_loop import PressDiagram
+from drake_rus.cli import (EXIT_STATUS_HELP, MakeMeshcat, add_scenario_arguments,
+                           load_scenario_from_args)
 from drake_rus.control.force_loop import SETTLING_BAND_N, force_statistics
-from drake_rus.control.press import PressDriver
 from drake_rus.io_utils import (MB, check_output_file, dumps_strict, output_dir, save_figure,
                                 write_text_atomic)
 from drake_rus.progress import AdvanceWithProgress, SaveMeshcatRecording
 from drake_rus.provenance import Provenance
-from drake_rus.robot import MakeControlPlant
-from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, LoadScenario
-from drake_rus.stations import MakeStation
 
 # About what the demo's Meshcat recording takes on disk (bytes): 2.5 MB for the default 6 s
 # (30 frames a second), so 0.5 MB per simulated second with a margin, at least 20 MB.
@@ -68,36 +62,6 @@ def add_commands(subparsers) -> None:
     p.set_defaults(func=run_demo, outputs={"out": "dir", "record": "file:.html"})
 
 
-def add_scenario_arguments(parser) -> None:
-    """--scenario / --scenarios-file / --set, shared by every command that builds a station."""
-    parser.add_argument("--scenario", default="default", help="scenario name (default 'default')")
-    parser.add_argument("--scenarios-file", default=str(DEFAULT_SCENARIOS_FILE),
-                        help="YAML file of named scenarios")
-    parser.add_argument("--set", dest="overrides", default=None, metavar="YAML",
-                        help="YAML overrides, e.g. \"{contact: {model: point}}\"")
-
-
-def load_scenario_from_args(args):
-    check_nesting_depth(args.overrides, "--set")
-    return LoadScenario(filename=args.scenarios_file, scenario_name=args.scenario,
-                        scenario_text=args.overrides)
-
-
-# The address every server of drake-rus listens on: the loopback only (Meshcat, the
-# rehearsal's video stream; `make notebooks` starts JupyterLab on it too).
-LOOPBACK = "127.0.0.1"
-
-
-def MakeMeshcat(port: int | None = None):
-    """A Meshcat server listening on the loopback only (127.0.0.1; Drake's default "*" is
-    every interface, and "localhost" may resolve to an IPv6 or another address)."""
-    params = MeshcatParams()
-    params.host = LOOPBACK
-    if port is not None:
-        params.port = port
-    return Meshcat(params)
-
-
 def plot_force(times, F_est, F_true, desired, path: Path, window=None) -> None:
     """Estimated and true F_z over time; ``window`` (start, end s) shades the hold the
     summary's force statistics cover."""
@@ -118,59 +82,6 @@ def plot_force(times, F_est, F_true, desired, path: Path, window=None) -> None:
     ax.legend(loc="lower right", fontsize=8)
     fig.tight_layout()
     save_figure(fig, path, dpi=110)
-
-
-class PressDiagram:
-    """Station + PressDriver (+ loggers of the estimated and true probe wrench).
-
-    The true wrench is logged at every plant step (cheap: the station samples it there), so
-    an oscillation of the force loop, up to the controller's Nyquist rate, cannot alias
-    into a false steady value; the estimate at every controller period (``log_period``
-    overrides both)."""
-
-    def __init__(self, scenario, meshcat=None, desired_force: float | None = None,
-                 log_period: float | None = None, patient=None, drive: bool = True,
-                 hold_orientation: bool = True):
-        builder = DiagramBuilder()
-        self.station = builder.AddNamedSystem(
-            "station", MakeStation(scenario, meshcat=meshcat, patient=patient))
-        if drive:
-            control_plant, tip_frame = MakeControlPlant(scenario)
-            self.driver = builder.AddNamedSystem(
-                "press_driver", PressDriver(control_plant, tip_frame, scenario.controller,
-                                            desired_force, hold_orientation=hold_orientation))
-            builder.Connect(self.station.GetOutputPort("joint_position"),
-                            self.driver.get_input_port(0))
-            builder.Connect(self.station.GetOutputPort("probe_force"),
-                            self.driver.get_input_port(1))
-            builder.Connect(self.driver.get_output_port(),
-                            self.station.GetInputPort("joint_velocity_command"))
-        else:
-            self.driver = builder.AddNamedSystem("zero_command", ConstantVectorSource(np.zeros(7)))
-            builder.Connect(self.driver.get_output_port(),
-                            self.station.GetInputPort("joint_velocity_command"))
-        self.force_log = LogVectorOutput(
-            self.station.GetOutputPort("probe_force"), builder,
-            log_period or 1.0 / scenario.controller.rate_hz)
-        self.truth_log = LogVectorOutput(
-            self.station.GetOutputPort("probe_contact_wrench_true"), builder,
-            log_period or scenario.contact.time_step)
-        self.diagram = builder.Build()
-        self.diagram.set_name("press_demo")
-
-    def logs(self, root_context):
-        """(times (N,), estimated F_z (N,), true F_z (N,)) in s and N, at the estimate's
-        log times."""
-        est = self.force_log.FindLog(root_context)
-        t_true, F_true = self.true_force(root_context)
-        t = est.sample_times()
-        i = np.clip(np.searchsorted(t_true, t - 1e-9), 0, max(len(t_true) - 1, 0))
-        return t, -est.data()[5], F_true[i] if len(t_true) else np.zeros(len(t))
-
-    def true_force(self, root_context):
-        """(times (N,), true F_z (N,)) in s and N, at every plant step."""
-        tru = self.truth_log.FindLog(root_context)
-        return tru.sample_times(), -tru.data()[5]
 
 
 def demo_recording_bytes(duration: float) -> int:

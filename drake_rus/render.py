@@ -17,7 +17,7 @@ from pathlib import Path
 
 from drake_rus.anatomy.cli import load_patient_for
 from drake_rus.cli import UserError
-from drake_rus.demo import add_scenario_arguments, load_scenario_from_args
+from drake_rus.cli import add_scenario_arguments, load_scenario_from_args
 from drake_rus.io_utils import atomic_path, check_output_file
 from drake_rus.paths import DIAGRAMS_DIR
 from drake_rus.progress import stderr_is_terminal

@@ -5,7 +5,7 @@ import pytest
 
 from drake_rus.anatomy.generator import generate_patient
 from drake_rus.anatomy.pictures import plot_cohort_overview, plot_label_slices, show_in_meshcat
-from drake_rus.demo import MakeMeshcat
+from drake_rus.cli import MakeMeshcat
 
 
 @pytest.mark.parametrize("posture", ["supine", "left_lateral_decubitus"])

@@ -185,7 +185,7 @@ def test_phase_force_statistics_and_the_scan_summary_force_block():
 def test_press_diagram_settles_and_its_hold_is_linearly_stable(modulus, h):
     from pydrake.systems.analysis import Simulator
     from benchmarks.force_loop import _poles, period_map
-    from drake_rus.demo import PressDiagram
+    from drake_rus.closed_loop import PressDiagram
     from drake_rus.scenario import LoadScenario
     scenario = LoadScenario(scenario_text=f"{{contact: {{hydroelastic_modulus: {modulus}, "
                                           f"time_step: {h}}}}}")

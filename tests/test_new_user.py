@@ -349,7 +349,7 @@ needs_proc = pytest.mark.skipif(not Path("/proc/net/tcp").exists(), reason="need
 @needs_proc
 def test_meshcat_listens_on_the_loopback_only():
     """Drake's default Meshcat host "*" listens on every interface."""
-    from drake_rus.demo import MakeMeshcat
+    from drake_rus.cli import MakeMeshcat
     meshcat = MakeMeshcat()
     assert listening_addresses(meshcat.port()) == ["127.0.0.1"]
     assert "127.0.0.1" in meshcat.web_url()
@@ -376,5 +376,5 @@ def test_no_server_is_made_outside_the_loopback_helpers():
         for m in re.finditer(r"\b(StartMeshcat|Meshcat|(?:Threading)?HTTPServer|TCPServer)\(",
                              text):
             offenders.append(f"{path.relative_to(REPO_ROOT)}: {m.group(0)}")
-    assert sorted(offenders) == ["drake_rus/demo.py: Meshcat(",
+    assert sorted(offenders) == ["drake_rus/cli.py: Meshcat(",
                                  "drake_rus/rehearsal/mjpeg.py: ThreadingHTTPServer("], offenders

@@ -13,7 +13,7 @@ from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput
 from drake_rus.cli import main as cli_main
 from drake_rus.scenario import LoadScenario
 from drake_rus.robot import contact_force_along_approach, estimate_tip_wrench
-from drake_rus.demo import PressDiagram
+from drake_rus.closed_loop import PressDiagram
 from drake_rus.robot import MakeControlPlant
 from drake_rus.station_interface import ports_of
 from drake_rus.stations import MakeStation

@@ -17,7 +17,7 @@ from drake_rus.anatomy.generator import generate_patient
 from drake_rus.anatomy.importers import LABEL_MAP_SUFFIXES
 from drake_rus.anatomy.pictures import plot_cohort_overview, plot_label_slices, show_in_meshcat
 from drake_rus.cli import PREFLIGHT_CHECKS, UserError
-from drake_rus.demo import MakeMeshcat
+from drake_rus.cli import MakeMeshcat
 from drake_rus.io_utils import check_output_dir, dumps_strict, output_dir
 from drake_rus.template import load_template
 

@@ -28,7 +28,7 @@ from pathlib import Path
 
 from drake_rus import batch
 from drake_rus.batch import bound_workers, run_tasks
-from drake_rus.demo import add_scenario_arguments
+from drake_rus.cli import add_scenario_arguments
 from drake_rus.experiments.analysis import (
     DEFAULT_MARGINS, STRATEGY_ORDER, critical_er_summary, sample_size_warning)
 from drake_rus.experiments.report import (

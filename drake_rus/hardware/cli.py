@@ -33,7 +33,7 @@ from drake_rus.bringup import (
     BuildHardwareClosedLoop, CheckStation, Readout, RecordPivot, RunLatencyCalibration,
     image_fit_failures, pivot_failures)
 from drake_rus.config_schema import ScenarioError
-from drake_rus.demo import add_scenario_arguments
+from drake_rus.cli import add_scenario_arguments
 from drake_rus.extras import require
 from drake_rus.hardware.calibration import flange_poses_from_joints, pivot_calibration
 from drake_rus.hardware.image_calibration import (

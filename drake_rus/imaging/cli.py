@@ -19,7 +19,7 @@ from drake_rus.anatomy.labels import is_kidney
 from drake_rus.anatomy.tissue_colors import (TRUTH_OUTLINE_COLOR, label_image, labels_present,
                                              mask_handles, mask_overlay, tissue_handles)
 from drake_rus.cli import UserError
-from drake_rus.demo import add_scenario_arguments, load_scenario_from_args
+from drake_rus.cli import add_scenario_arguments, load_scenario_from_args
 from drake_rus.imaging.training.dataset import ViewSampler
 from drake_rus.imaging.emulator import EmulatorModel, emulate
 from drake_rus.imaging.phantoms import kidney_phantom

@@ -33,7 +33,7 @@ import sys
 
 from drake_rus import interrupts
 from drake_rus.cli import EXIT_STATUS_HELP
-from drake_rus.demo import add_scenario_arguments
+from drake_rus.cli import add_scenario_arguments
 from drake_rus.extras import require
 from drake_rus.rehearsal.core import loopback_only, netns_argv
 from drake_rus.rehearsal.run import RehearsalOptions, RunRehearsal, SimProcessError

@@ -29,7 +29,7 @@ from drake_rus import interrupts
 from drake_rus.anatomy.cli import check_patient_arguments, load_patient_for
 from drake_rus.cli import EXIT_STATUS_HELP, UserError, check_arguments
 from drake_rus.config_schema import ScenarioError
-from drake_rus.demo import MakeMeshcat, add_scenario_arguments, load_scenario_from_args
+from drake_rus.cli import MakeMeshcat, add_scenario_arguments, load_scenario_from_args
 from drake_rus.imaging.onnx_backend import OnnxSegmenter, resolve_model_path
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.io_utils import MB, check_output_file, dumps_strict, output_dir, write_text_atomic
