@@ -261,10 +261,16 @@ def test_kidney_lost_for_the_second_leg_is_not_done(test0):
     checks this ended DONE (measured: V 0.50 pole to pole, 0.62 whole pivot)."""
     from drake_rus.metrics import CoverageAccumulator
     from drake_rus.reliability.run import RunFaultyScan
-    patient, template, healthy = test0
+    from drake_rus.scan import RunScan
+    patient, template, _ = test0
+    # The oracle segmenter reads the labels the fault removes, so the miss takes effect at
+    # once (the learned one may still follow the kidney's fat outline for a while).
+    oracle = "imaging: {segmenter: oracle}"
+    healthy = RunScan(LoadScenario(scenario_name="quick", scenario_text=f"{{{oracle}}}"),
+                      patient, template, progress=False)
     start = _leg1_reversal_time(healthy) + 0.1
     scenario = LoadScenario(scenario_name="quick", scenario_text=(
-        f"{{faults: {{sensor: [{{kind: segmentation_miss, start: {start:.2f}}}]}}}}"))
+        f"{{{oracle}, faults: {{sensor: [{{kind: segmentation_miss, start: {start:.2f}}}]}}}}"))
     result, _ = RunFaultyScan(scenario, patient, template, max_sim_time=60.0)
     assert result.phases[-1][0] == "DONE"          # the supervisor finished the pivot
     assert result.status == INCOMPLETE, result.reason
