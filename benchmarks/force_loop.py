@@ -68,7 +68,7 @@ def normal_stiffness(scenario, patient=None, force: float = 9.0, step: float = 2
     scene_graph = station.GetSubsystemByName("scene_graph")
     plant_context = plant.GetMyMutableContextFromRoot(context)
     sg_context = scene_graph.GetMyContextFromRoot(context)
-    tip = TipKinematics(*MakeControlPlant(scenario))
+    tip = TipKinematics(*MakeControlPlant(scenario.robot, scenario.probe))
     q_all = plant.GetPositions(plant_context).copy()
     q = q_all[:7].copy()
     a = tip.pose(q).rotation().matrix()[:, 2]
@@ -206,7 +206,7 @@ def _loop_transfer(J, command: np.ndarray, f: np.ndarray, period: float) -> np.n
 
 def _arm_at(scenario, q, held=True):
     from drake_rus.robot import MakeControlPlant, TipKinematics
-    plant, frame = MakeControlPlant(scenario)
+    plant, frame = MakeControlPlant(scenario.robot, scenario.probe)
     tip = TipKinematics(plant, frame)
     c = plant.CreateDefaultContext()
     plant.SetPositions(c, q)

@@ -70,7 +70,7 @@ def floor_rtf(scenario, duration: float = 5.0) -> dict:
     from drake_rus.station import _plant_config
     builder = DiagramBuilder()
     plant, _ = AddMultibodyPlant(_plant_config(scenario), builder)
-    parts = AddFr3AndProbe(plant, scenario)
+    parts = AddFr3AndProbe(plant, scenario.robot, scenario.probe)
     plant.Finalize()
     q0 = np.asarray(scenario.robot.initial_joint_positions, dtype=float)
     desired = builder.AddSystem(ConstantVectorSource(np.concatenate([q0, np.zeros(7)])))

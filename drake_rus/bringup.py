@@ -283,7 +283,7 @@ def load_check(scenario, station) -> list[str]:
     backend = station.backend
     if not hasattr(backend, "rest_tau"):
         return []
-    plant, _ = MakeControlPlant(scenario)
+    plant, _ = MakeControlPlant(scenario.robot, scenario.probe)
     load = ProbeLoadTorque(plant, scenario.probe.mass, scenario.probe.p_FCm)(backend.rest_q)
     verdict = load_declaration(backend.rest_tau, load)
     compensate = scenario.hardware_interface.lcm_compensate_load

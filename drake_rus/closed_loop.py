@@ -140,7 +140,7 @@ def BuildClosedLoopOnPatient(scenario, patient, *, log_period: float | None = 0.
         patient = load_patient(patient, side=scenario.patient.side,
                                posture=scenario.patient.posture, progress=False)
     p_K = patient.X_BK(scenario.patient.X_BPt.GetDeterministicValue()).translation()
-    plant, tip = MakeControlPlant(scenario)
+    plant, tip = MakeControlPlant(scenario.robot, scenario.probe)
     q_initial = np.asarray(scenario.robot.initial_joint_positions, dtype=float)
     R0 = TipKinematics(plant, tip).pose(q_initial).rotation()
     q0 = SolveTipPose(plant, tip, RigidTransform(R0, [p_K[0], p_K[1], p_K[2] + start_height]),
@@ -197,7 +197,7 @@ class PressDiagram:
         self.station = builder.AddNamedSystem(
             "station", MakeStation(scenario, meshcat=meshcat, patient=patient))
         if drive:
-            control_plant, tip_frame = MakeControlPlant(scenario)
+            control_plant, tip_frame = MakeControlPlant(scenario.robot, scenario.probe)
             self.driver = builder.AddNamedSystem(
                 "press_driver", PressDriver(control_plant, tip_frame, scenario.controller,
                                             desired_force, hold_orientation=hold_orientation))

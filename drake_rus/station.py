@@ -184,7 +184,7 @@ def MakeSimStation(scenario: Scenario, meshcat: Meshcat | None = None, *, patien
     builder = DiagramBuilder()
     plant, scene_graph = AddMultibodyPlant(_plant_config(scenario), builder)
     plant.set_name("plant")
-    parts = AddFr3AndProbe(plant, scenario)
+    parts = AddFr3AndProbe(plant, scenario.robot, scenario.probe)
     patient_parts = AddPatientBody(plant, scenario, patient,
                                    moving=patient is not None and motion.moves)
     plant.Finalize()
@@ -211,7 +211,7 @@ def MakeSimStation(scenario: Scenario, meshcat: Meshcat | None = None, *, patien
     scene_graph.collision_filter_manager().Apply(
         CollisionFilterDeclaration().ExcludeWithin(robot_geometries))
 
-    control_plant, tip_frame = MakeControlPlant(scenario)
+    control_plant, tip_frame = MakeControlPlant(scenario.robot, scenario.probe)
     control_plant.set_name("control_plant")
 
     # Velocity driver: q_d = q0 + integral of the command; v_d = command; implicit joint PD

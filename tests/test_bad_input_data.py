@@ -282,7 +282,7 @@ def test_missing_model_file_names_field(section, url):
     from drake_rus.robot import MakeControlPlant
     scenario = ApplyOverrides(Scenario(), f"{{{section}: {{model: '{url}'}}}}")
     with pytest.raises(ScenarioError) as e:
-        MakeControlPlant(scenario)
+        MakeControlPlant(scenario.robot, scenario.probe)
     assert f"field '{section}.model'" in str(e.value) and "does not exist" in str(e.value)
 
 
@@ -292,7 +292,7 @@ def test_malformed_model_file_names_field(tmp_path):
     path.write_text("<robot name='x'><link name='a'></robot>")
     scenario = ApplyOverrides(Scenario(), f"{{robot: {{model: '{path}'}}}}")
     with pytest.raises(ScenarioError, match=r"field 'robot.model'.*broken\.urdf.*XML"):
-        MakeControlPlant(scenario)
+        MakeControlPlant(scenario.robot, scenario.probe)
 
 
 def test_missing_onnx_model_names_field():

@@ -76,7 +76,7 @@ class Rig:
 
 def wrench_torque(scenario, F_P):
     """Drake-sign joint torques of a wrench F_P = (torque, force) on the probe tip in P."""
-    plant, tip = MakeControlPlant(scenario)
+    plant, tip = MakeControlPlant(scenario.robot, scenario.probe)
     c = plant.CreateDefaultContext()
     plant.SetPositions(c, scenario.robot.initial_joint_positions)
     W = plant.world_frame()
@@ -131,7 +131,7 @@ def test_check_dry_run_live_readouts_and_push_test(monkeypatch, capsys):
 
 def test_check_exit_code_names_missed_checks(monkeypatch, capsys):
     scenario = lcm_scenario()
-    plant, _ = MakeControlPlant(scenario)
+    plant, _ = MakeControlPlant(scenario.robot, scenario.probe)
     weight = ProbeLoadTorque(plant, scenario.probe.mass, scenario.probe.p_FCm)(
         scenario.robot.initial_joint_positions)
     # An undeclared probe (5.4 N at rest) and a push that reads f_z > 0 (a sign error).
@@ -186,7 +186,7 @@ def test_calibrate_latency_end_to_end():
     picture is delivered. RunLatencyCalibration recovers LATENCY within one frame period."""
     latency, fps = 0.1, 30.0
     scenario = lcm_scenario(dry_run=False)
-    plant, tip = MakeControlPlant(scenario)
+    plant, tip = MakeControlPlant(scenario.robot, scenario.probe)
     fk = plant.CreateDefaultContext()
     truth_t, truth_X = [], []
 

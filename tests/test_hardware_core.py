@@ -21,7 +21,7 @@ A_MAX = np.full(7, 2.0)
 def test_external_torque_sign_flip_gives_drake_convention():
     # A probe pressed down into a body: the environment pushes the probe up (+z in B).
     scenario = Scenario()
-    plant, tip = MakeControlPlant(scenario)
+    plant, tip = MakeControlPlant(scenario.robot, scenario.probe)
     context = plant.CreateDefaultContext()
     plant.SetPositions(context, scenario.robot.initial_joint_positions)
     from pydrake.multibody.tree import JacobianWrtVariable
@@ -160,7 +160,7 @@ def test_pivot_calibration_from_joint_configurations():
     from pydrake.multibody.inverse_kinematics import InverseKinematics
     from pydrake.solvers import Solve
     scenario = Scenario()
-    plant, tip = MakeControlPlant(scenario)
+    plant, tip = MakeControlPlant(scenario.robot, scenario.probe)
     context = plant.CreateDefaultContext()
     q0 = np.asarray(scenario.robot.initial_joint_positions)
     plant.SetPositions(context, q0)

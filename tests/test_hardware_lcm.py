@@ -79,7 +79,7 @@ class Rig:
 def test_lcm_station_ports_stamps_tracking_and_torque_sign():
     scenario = lcm_scenario()
     # A known wrench on the probe (in P): 6 N pushing back along -z_P and a small torque.
-    plant, tip = MakeControlPlant(scenario)
+    plant, tip = MakeControlPlant(scenario.robot, scenario.probe)
     pc = plant.CreateDefaultContext()
     q0 = np.asarray(scenario.robot.initial_joint_positions)
     plant.SetPositions(pc, q0)

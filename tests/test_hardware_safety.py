@@ -191,7 +191,7 @@ def _rig(scenario, tau_drake):
 @pytest.mark.parametrize("declared_in_desk", [False, True])
 def test_lcm_probe_load(declared_in_desk, capsys):
     base = lcm_scenario()
-    plant, _ = MakeControlPlant(base)
+    plant, _ = MakeControlPlant(base.robot, base.probe)
     q0 = np.asarray(base.robot.initial_joint_positions, float)
     weight = ProbeLoadTorque(plant, base.probe.mass, base.probe.p_FCm)(q0)
     # The robot at rest, nothing touching the probe: an FR3 that does not know the probe
@@ -234,7 +234,7 @@ def test_unaccounted_weight_reads_as_a_pull():
     along the beam) for a probe pointing down, so the force loop would press harder than it
     reads; removed twice it reads as a push (the safe side)."""
     s = Scenario()
-    plant, tip = MakeControlPlant(s)
+    plant, tip = MakeControlPlant(s.robot, s.probe)
     q0 = np.asarray(s.robot.initial_joint_positions, float)
     weight = ProbeLoadTorque(plant, s.probe.mass, s.probe.p_FCm)(q0)
     ctx = plant.CreateDefaultContext()

@@ -47,7 +47,8 @@ def test_roi_and_start_pose():
 
 
 def test_solve_tip_pose_reaches_the_pose():
-    plant, tip = MakeControlPlant(LoadScenario())
+    scenario = LoadScenario()
+    plant, tip = MakeControlPlant(scenario.robot, scenario.probe)
     context = plant.CreateDefaultContext()
     for p in ([0.5, 0.05, 0.3], [0.45, -0.12, 0.22]):
         q = SolveTipPose(plant, tip, RigidTransform(R_B_TRANSVERSE, p))

@@ -52,7 +52,7 @@ def test_station_ports_match_design():
 
 def test_control_plant_tip_matches_station():
     scenario = LoadScenario()
-    plant, tip = MakeControlPlant(scenario)
+    plant, tip = MakeControlPlant(scenario.robot, scenario.probe)
     context = plant.CreateDefaultContext()
     X_BP = tip.CalcPoseInWorld(context)
     station = MakeStation(scenario)
@@ -161,7 +161,7 @@ def test_control_plant_has_no_geometry_the_sim_plant_has():
     """The control plant (FK, Jacobians, gravity) carries no geometry; the simulated
     station's plant has the probe face it presses with."""
     scenario = LoadScenario()
-    plant, _ = MakeControlPlant(scenario)
+    plant, _ = MakeControlPlant(scenario.robot, scenario.probe)
     assert not plant.geometry_source_is_registered()
     assert all(len(plant.GetCollisionGeometriesForBody(plant.get_body(BodyIndex(i)))) == 0
                for i in range(plant.num_bodies()))

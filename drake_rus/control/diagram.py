@@ -86,7 +86,7 @@ def AddController(builder: DiagramBuilder, station, scenario, *, plant=None,
 
     Args:
         plant, tip_frame: the control plant (FR3 + probe) for Jacobians; default
-            ``MakeControlPlant(scenario)``.
+            ``MakeControlPlant(scenario.robot, scenario.probe)``.
         use_supervisor: add the ScanSupervisor and connect its references; if False the
             reference inputs (orientation a_des, o_des, a_des_dot; position P_des; force
             F_des) stay unconnected for the caller (tests, the tuning notebook).
@@ -101,7 +101,7 @@ def AddController(builder: DiagramBuilder, station, scenario, *, plant=None,
     """
     cfg, scfg = scenario.controller, scenario.safety
     if plant is None:
-        plant, tip_frame = MakeControlPlant(scenario)
+        plant, tip_frame = MakeControlPlant(scenario.robot, scenario.probe)
     S = station.GetOutputPort
     # One tip-kinematics object (memoised on q) shared by the IK and the safety layer: one
     # forward kinematics and one Jacobian per control period.

@@ -84,7 +84,7 @@ def pivot_calibration(rotations, translations, min_singular_value: float = 0.05
 def flange_poses_from_joints(scenario, joint_positions):
     """Flange poses (R_BF (N, 3, 3), p_BF (N, 3)) by our FR3 model's forward kinematics for
     joint configurations (N, 7) rad recorded while pivoting."""
-    plant, _ = MakeControlPlant(scenario)
+    plant, _ = MakeControlPlant(scenario.robot, scenario.probe)
     context = plant.CreateDefaultContext()
     flange = plant.GetFrameByName(FLANGE_FRAME)
     rotations, translations = [], []

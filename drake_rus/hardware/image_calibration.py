@@ -436,7 +436,7 @@ def fit_target_set(targets: TargetSet, base_dir, scenario=None) -> TargetFitRepo
                 raise ValueError(f"calibrate-image: {where} gives joint positions q: the "
                                  f"target file needs target_B [x, y, z] (m)")
             if fk is None:
-                plant, tip = MakeControlPlant(scenario)
+                plant, tip = MakeControlPlant(scenario.robot, scenario.probe)
                 fk = (plant, tip, plant.CreateDefaultContext())
             plant, tip, ctx = fk
             plant.SetPositions(ctx, np.asarray(t.q, float))

@@ -133,7 +133,7 @@ def MakeHardwareStation(scenario, meshcat=None, *, lcm=None, lcm_idle=None,
     cfg: HardwareConfig = scenario.hardware_interface
     _check_rates(scenario)
     rate = float(cfg.command_rate_hz)
-    control_plant, tip_frame = MakeControlPlant(scenario)
+    control_plant, tip_frame = MakeControlPlant(scenario.robot, scenario.probe)
     control_plant.set_name("control_plant")
     builder = DiagramBuilder()
 

@@ -97,7 +97,7 @@ class ProbeWeightTorque(LeafSystem):
 
     def __init__(self, scenario):
         super().__init__()
-        plant, _ = MakeControlPlant(scenario)
+        plant, _ = MakeControlPlant(scenario.robot, scenario.probe)
         self._plant = plant             # keep the model alive with its Jacobian helper
         self._load = ProbeLoadTorque(plant, scenario.probe.mass, scenario.probe.p_FCm)
         self._q = self.DeclareVectorInputPort("joint_position", NUM_JOINTS)

@@ -23,7 +23,7 @@ from pydrake.multibody.tree import (
 
 from drake_rus.config_schema import ScenarioError
 from drake_rus.paths import AddDrakeRusPackages
-from drake_rus.scenario import Scenario
+from drake_rus.scenario import ProbeCalibration, RobotConfig
 
 __all__ = ["AddFr3AndProbe", "MakeControlPlant", "RobotAndProbe", "NUM_JOINTS",
            "PROBE_TIP_FRAME", "FLANGE_FRAME", "PROBE_FACE_GEOMETRY"]
@@ -49,8 +49,10 @@ def model_url(model: str) -> str:
     return model if "://" in model else Path(model).resolve().as_uri()
 
 
-def AddFr3AndProbe(plant: MultibodyPlant, scenario: Scenario) -> RobotAndProbe:
-    """Adds the FR3 (base welded to the world) and the calibrated probe to ``plant``.
+def AddFr3AndProbe(plant: MultibodyPlant, robot_config: RobotConfig,
+                   probe_config: ProbeCalibration) -> RobotAndProbe:
+    """Adds the FR3 (base welded to the world, the scenario's ``robot`` section) and the
+    calibrated probe (its ``probe`` section) to ``plant``.
 
     Collision and visual geometry are registered only when ``plant`` is registered as a
     SceneGraph source (the simulated station's plant); a control plant gets none.
@@ -58,24 +60,24 @@ def AddFr3AndProbe(plant: MultibodyPlant, scenario: Scenario) -> RobotAndProbe:
     parser = Parser(plant)
     AddDrakeRusPackages(parser.package_map())
     try:
-        (robot,) = parser.AddModelsFromUrl(model_url(scenario.robot.model))
+        (robot,) = parser.AddModelsFromUrl(model_url(robot_config.model))
     except Exception as e:
-        raise ScenarioError(f"field 'robot.model': cannot load {scenario.robot.model}: {e}")
+        raise ScenarioError(f"field 'robot.model': cannot load {robot_config.model}: {e}")
     plant.WeldFrames(plant.world_frame(), plant.GetFrameByName("fr3_link0", robot))
     parser.SetAutoRenaming(True)
     try:
-        (probe,) = parser.AddModelsFromUrl(model_url(scenario.probe.model))
+        (probe,) = parser.AddModelsFromUrl(model_url(probe_config.model))
     except Exception as e:
-        raise ScenarioError(f"field 'probe.model': cannot load {scenario.probe.model}: {e}")
+        raise ScenarioError(f"field 'probe.model': cannot load {probe_config.model}: {e}")
     flange = plant.GetFrameByName(FLANGE_FRAME, robot)
     probe_body = plant.GetBodyByName("probe", probe)
-    X_FP = scenario.probe.X_FP.GetDeterministicValue()
+    X_FP = probe_config.X_FP.GetDeterministicValue()
     plant.WeldFrames(flange, probe_body.body_frame(), X_FP)
     tip_frame = plant.AddFrame(
         FixedOffsetFrame(PROBE_TIP_FRAME, probe_body.body_frame(), RigidTransform()))
 
     # Lumped holder + probe inertia from the scenario, as its own body welded at the flange.
-    cal = scenario.probe
+    cal = probe_config
     I_Cm_F = RotationalInertia(*cal.inertia_diagonal)
     M_FCm = SpatialInertia.MakeFromCentralInertia(cal.mass, np.asarray(cal.p_FCm), I_Cm_F)
     payload = plant.AddRigidBody("probe_payload", probe, M_FCm)
@@ -84,19 +86,22 @@ def AddFr3AndProbe(plant: MultibodyPlant, scenario: Scenario) -> RobotAndProbe:
     for i in range(NUM_JOINTS):
         actuator = plant.GetJointActuatorByName(f"fr3_motor{i + 1}", robot)
         actuator.set_controller_gains(
-            PdControllerGains(p=scenario.robot.driver_kp[i], d=scenario.robot.driver_kd[i]))
-    for i, q in enumerate(scenario.robot.initial_joint_positions):
+            PdControllerGains(p=robot_config.driver_kp[i], d=robot_config.driver_kd[i]))
+    for i, q in enumerate(robot_config.initial_joint_positions):
         plant.GetJointByName(f"fr3_joint{i + 1}", robot).set_default_angle(q)
     return RobotAndProbe(robot, probe, tip_frame, [probe_body, payload])
 
 
-def MakeControlPlant(scenario: Scenario | None = None) -> tuple[MultibodyPlant, object]:
+def MakeControlPlant(robot_config: RobotConfig | None = None,
+                     probe_config: ProbeCalibration | None = None
+                     ) -> tuple[MultibodyPlant, object]:
     """A continuous plant with only the FR3 and the calibrated probe, for kinematics and
     gravity: no SceneGraph, so no geometry. The same model serves the hardware station (FK for
     ``X_BP``, Jacobians for ``probe_force``), both stations' force estimators and the
-    controllers. ``scenario`` defaults to ``Scenario()``. Returns ``(plant, probe_tip_frame)``.
+    controllers. The scenario's ``robot`` and ``probe`` sections default to the dataclasses'.
+    Returns ``(plant, probe_tip_frame)``.
     """
     plant = MultibodyPlant(time_step=0.0)
-    parts = AddFr3AndProbe(plant, scenario if scenario is not None else Scenario())
+    parts = AddFr3AndProbe(plant, robot_config or RobotConfig(), probe_config or ProbeCalibration())
     plant.Finalize()
     return plant, plant.GetFrameByName(PROBE_TIP_FRAME, parts.probe)

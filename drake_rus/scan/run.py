@@ -131,7 +131,7 @@ def PrepareScenario(scenario, patient, start_fraction: float | None = None):
     ``(scenario, X_start, plan)``; ``plan`` is the :class:`StartPlan` (None for the vertical
     planner). Raises StartPlanError or IkError with a clear message when no start works."""
     X_BPt = scenario.patient.X_BPt.GetDeterministicValue()
-    plant, tip = MakeControlPlant(scenario)
+    plant, tip = MakeControlPlant(scenario.robot, scenario.probe)
     sf = scenario.start.start_fraction if start_fraction is None else start_fraction
     plan = None
     if scenario.start.planner == "vertical":
