@@ -17,7 +17,7 @@ import numpy as np
 
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
-from pydrake.systems.framework import BasicVector, LeafSystem
+from pydrake.systems.framework import BasicVector, LeafSystem, ValueProducer
 
 from drake_rus.control import kernels, laws, supervisor
 from drake_rus.robot import TipKinematics
@@ -87,25 +87,34 @@ class ForcePD(LeafSystem):
         # Unrestricted (not discrete) update so that it runs in the same phase as the safety
         # layer's and the supervisor's: one evaluation of the station's sensors per period.
         self.DeclarePeriodicUnrestrictedUpdateEvent(self._dt, 0.0, self._update)
-        self._memo = (None, None)
-        self.DeclareVectorOutputPort("v_force", 3, self._calc)
+        # The step's (v_force, next state), in the Context: the output and the update of one
+        # period read it, so it is computed once.
+        self._step_cache = self.DeclareCacheEntry(
+            description="force PD step (v_force, next state)",
+            value_producer=ValueProducer(allocate=lambda: AbstractValue.Make((None, None)),
+                                         calc=self._calc_step),
+            prerequisites_of_calc={self.discrete_state_ticket(self._state),
+                                   self.input_port_ticket(self._F.get_index()),
+                                   self.input_port_ticket(self._X.get_index()),
+                                   self.input_port_ticket(self._Fdes.get_index())})
+        self.DeclareVectorOutputPort("v_force", 3, self._calc,
+                                     prerequisites_of_calc={self._step_cache.ticket()})
         self.DeclareStateOutputPort("F_filtered", self._filtered)
 
-    def _step(self, context):
+    def _calc_step(self, context, value):
         s = tuple(context.get_discrete_state(self._state).get_value())
         F = contact_force(self._F.Eval(context))
         F_des = _optional_scalar(self._Fdes, context, self._cfg.desired_force)
         a = _X(self._X, context).rotation().matrix()[:, 2]
-        key = (context.get_time(), s, F, F_des, tuple(a))
-        if self._memo[0] == key:  # output and update in the same period: compute once
-            return self._memo[1]
         if not math.isfinite(F):
-            result = (np.zeros(3), s)
-        else:
-            c = self._cfg
-            result = laws.force_pd_step(s, F, F_des, a, self._dt, self._alpha, c.K_p3, c.K_d1)
-        self._memo = (key, result)
-        return result
+            value.set_value((np.zeros(3), s))
+            return
+        c = self._cfg
+        value.set_value(laws.force_pd_step(s, F, F_des, a, self._dt, self._alpha, c.K_p3,
+                                           c.K_d1))
+
+    def _step(self, context):
+        return self._step_cache.Eval(context)
 
     def _calc(self, context, output):
         output.SetFromVector(self._step(context)[0])
