@@ -8,6 +8,8 @@ reason. Writes summary.json, the clouds, plots and a Meshcat recording to --out.
 
 import argparse
 import dataclasses
+import sys
+import warnings
 from pathlib import Path
 
 from drake_rus.anatomy.cli import load_patient_for
@@ -23,6 +25,7 @@ from drake_rus.scan.metrics import ScanMetrics, Summary
 from drake_rus.scan.planning import StartPlanError
 from drake_rus.scan.report import WriteScanOutputs
 from drake_rus.scan.run import RunScan
+from drake_rus.template.ct import CtTemplateError, resolve_template
 
 # About what a scan writes (bytes): summary, clouds and plots; the Meshcat recording.
 SCAN_OUTPUT_BYTES = 8 * MB
@@ -47,6 +50,11 @@ def add_commands(subparsers) -> None:
     p.add_argument("--seed", type=int, default=None, help="random seed (speckle, noise)")
     p.add_argument("--max-sim-time", type=float, default=150.0,
                    help="give up after this much simulated time in s (default 150)")
+    p.add_argument("--template", default=None, metavar="SPEC",
+                   help="registration template: generated (the shipped template of generated "
+                        "kidneys), real (real CT kidneys of ../shared/anatomy/kits19, built on "
+                        "first use into the cache, without the scanned case), real:DIR, or a "
+                        "template .npz (default: the scenario's localization.template)")
     p.set_defaults(func=run_scan_command, outputs={"out": "dir", "record": "file:.html"})
 
 
@@ -54,6 +62,7 @@ def run_scan_command(args) -> int:
     scenario = load_scenario_from_args(args)
     if args.seed is not None:
         scenario = dataclasses.replace(scenario, random_seed=args.seed)
+    scenario = select_template(scenario, args.template, args.patient)
     template = load_template_for(scenario)
     record = not args.no_record
     need = SCAN_OUTPUT_BYTES + (RECORDING_BYTES if record and not args.record else 0)
@@ -64,6 +73,34 @@ def run_scan_command(args) -> int:
     # fails before writing into it.
     with output_dir(args.out, "--out", need_bytes=need, what="scan") as out:
         return _scan(args, scenario, template, out)
+
+
+def select_template(scenario, spec, patient: str):
+    """The scenario with ``localization.template`` resolved to a file: ``spec`` (--template)
+    or else the scenario's value (:func:`drake_rus.template.ct.resolve_template`). A real
+    template is built without the patient's case; a template file that the patient's case
+    helped build is used with a warning."""
+    value = spec if spec is not None else scenario.localization.template
+    where = "--template" if spec is not None else "field 'localization.template'"
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            path = resolve_template(value, exclude_cases=[patient], log=_stderr_line)
+    except CtTemplateError as e:
+        if spec is not None:
+            raise UserError(f"--template: {e.detail if e.field == 'template' else e}") from None
+        raise ScenarioError(f"{where}: {e}") from None
+    for w in caught:
+        print(f"warning: {w.message}", file=sys.stderr, flush=True)
+    if spec is not None and not path.is_file():
+        raise UserError(f"--template: {path}: no such template file (expected generated, "
+                        f"real, real:DIR or a template .npz)")
+    return dataclasses.replace(scenario, localization=dataclasses.replace(
+        scenario.localization, template=str(path)))
+
+
+def _stderr_line(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
 
 
 def load_template_for(scenario):
