@@ -6,6 +6,7 @@ the cache is keyed on content; the train/test split is enforced; the template is
 written under models/."""
 
 import dataclasses
+import functools
 import json
 import shutil
 import warnings
@@ -107,9 +108,9 @@ def test_template_of_synthetic_kidneys_has_the_known_mean_and_frame_signs():
         tilt = rng.normal(0, 0.2, 3)
         kidneys.append(_synthetic_kidney(i, MEAN_AXES + d, side, R_BdV, spacings[i % 3],
                                          tilt, f"synthetic:{i}:{side}"))
-    subjects = [ct.subject_from_ct_kidney(k, "exclude", mirror=(k.side == "left"))
-                for k in kidneys]
-    result = build_template(subjects, n_points=800, progress=False)
+    subjects = [ct.subject_from_ct_kidney(k, "exclude", voxel=0.0015,
+                                          mirror=(k.side == "left")) for k in kidneys]
+    result = build_template(subjects, n_points=700, progress=False)
     mean = _mean_shape_points()
     # The mean shape's extents along its own canonical axes (the bump tilts them a little).
     X = ct.principal_extents(mean)
@@ -133,11 +134,11 @@ def test_subject_frame_signs_follow_the_body_not_the_grid():
     b = _synthetic_kidney(0, MEAN_AXES, "right", perms[7], (0.002, 0.001, 0.0015),
                           np.array([0.1, -0.2, 0.15]), "b")
     c = _synthetic_kidney(0, MEAN_AXES, "left", perms[3], (0.001,) * 3, np.zeros(3), "c")
-    pa, pb = (ct.subject_from_ct_kidney(k).points for k in (a, b))
-    pc = ct.subject_from_ct_kidney(c, mirror=True).points
+    pa, pb = (ct.subject_from_ct_kidney(k, voxel=0.0015).points for k in (a, b))
+    pc = ct.subject_from_ct_kidney(c, voxel=0.0015, mirror=True).points
     assert ct.template_distance(pa, pb) < 0.0008
     assert ct.template_distance(pa, pc) < 0.0008
-    assert ct.template_distance(pa, ct.subject_from_ct_kidney(c).points) > 0.0015
+    assert ct.template_distance(pa, pc * [1, 1, -1]) > 0.0015
 
 
 # ------------------------------------------------------------ tiny KiTS-layout label maps
@@ -265,6 +266,9 @@ def test_match_cases():
         "case_00003", "case_00004"]
     with pytest.raises(ct.CtTemplateError, match="backwards"):
         ct.match_cases(names, "5-2")
+    # Patient specs: a generated patient has no case; a spec naming a case folder has.
+    assert ct._exclusions(names, ["test:0", "kits:/d/case_00004", "/d/case_00005/seg.nii.gz",
+                                  "7"]) == ["case_00004", "case_00005", "case_00007"]
 
 
 @pytest.fixture(scope="module")
@@ -414,6 +418,30 @@ def test_scan_template_option_errors(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and "--template" in err, err
     assert not (tmp_path / "scan").exists()
+
+
+def test_scan_selects_the_template(ct_dir, builds, monkeypatch, capsys):
+    """The scan's template: a real one is built without the scanned case; a file that the
+    case helped build warns; the scenario field takes the same values; errors name it."""
+    from drake_rus.config_schema import ScenarioError
+    from drake_rus.scan import cli as scan_cli
+    from drake_rus.scenario import LoadScenario
+    monkeypatch.setattr(scan_cli, "resolve_template",
+                        functools.partial(ct.resolve_template, opts=FAST))
+    scenario = LoadScenario()
+    chosen = scan_cli.select_template(scenario, f"real:{ct_dir}", str(ct_dir / "case_00003"))
+    assert "case_00003" not in load_template(chosen.localization.template).meta["cases"]
+    with_3 = ct.ct_template(ct_dir, FAST)
+    scan_cli.select_template(scenario, str(with_3), "kits:case_00003")
+    assert "case_00003 helped build it" in capsys.readouterr().err
+    field = dataclasses.replace(scenario, localization=dataclasses.replace(
+        scenario.localization, template="generated"))
+    assert scan_cli.select_template(field, None, "test:0").localization.template == str(
+        DEFAULT_TEMPLATE_PATH)
+    bad = dataclasses.replace(scenario, localization=dataclasses.replace(
+        scenario.localization, template=f"real:{ct_dir / 'none'}"))
+    with pytest.raises(ScenarioError, match="localization.template.*not found"):
+        scan_cli.select_template(bad, None, "test:0")
 
 
 @pytest.mark.skipif(not (KITS / "case_00139" / "segmentation.nii.gz").is_file(),

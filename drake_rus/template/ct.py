@@ -710,10 +710,17 @@ def ct_template(ct_dir, opts: CtTemplateOptions | None = None, *, exclude=(), ca
     t1 = time.time()
     subjects, frames = [], []
     for s in selected:
-        kidneys = [k for k in source(Path(s["path"])) if k.side == s["side"]]
-        k = kidneys[0]
-        mirror = opts.side == "both" and k.side == "left"
-        subjects.append(subject_from_ct_kidney(k, opts.tumour_policy, opts.voxel, mirror))
+        name = f"{s['case']}:{s['side']}"
+        try:
+            kidneys = [k for k in source(Path(s["path"])) if k.side == s["side"]]
+            if not kidneys:
+                raise ValueError(f"no {s['side']} kidney (the label map changed?)")
+            k = kidneys[0]
+            mirror = opts.side == "both" and k.side == "left"
+            subjects.append(subject_from_ct_kidney(k, opts.tumour_policy, opts.voxel, mirror))
+        except ValueError as e:
+            raise CtTemplateError("folder", f"{ct_dir}: kidney {name}: {e} (leave it out with "
+                                  f"--exclude-cases {s['case']})", "CT folder") from None
         frames.append(k.frame)
         say(f"  {k.name}: {k.volume_ml:.0f} ml, tumour {100 * k.tumour_fraction:.1f}%")
     t2 = time.time()
@@ -826,6 +833,9 @@ def _exclusions(names, cases) -> list[str]:
             hit = match_cases(names, [item])
         except CtTemplateError:
             hit = []
+        if not hit:                  # a patient spec naming a case folder: .../case_00012...
+            token = re.search(r"case_\d+", c)
+            hit = [n for n in names if token and n == token.group(0)]
         out.extend(h for h in hit if h not in out)
     return out
 
