@@ -681,7 +681,7 @@ def ct_template(ct_dir, opts: CtTemplateOptions | None = None, *, exclude=(), ca
             raise CtTemplateError("out", f"expected a .npz file name, got {out}")
         _refuse_models_dir(out)
     say = log or (lambda line: None)
-    ct_dir = Path(ct_dir).expanduser()
+    ct_dir = Path(ct_dir).expanduser().resolve()
     maps = find_label_maps(ct_dir)
     pool, excluded = _pool(maps, exclude, case_list)
     t0 = time.time()
