@@ -37,8 +37,8 @@ from drake_rus.template.ct import (DEFAULT_CT_DIR, MIN_FRAME_MARGIN, CtTemplateO
                                    ct_template,
                                    find_label_maps, kidney_masks, match_cases,
                                    principal_extents, subject_from_ct_kidney, template_distance)
+from drake_rus.template.builder import subject_from_mesh
 from drake_rus.template.io import DEFAULT_TEMPLATE_PATH, load_template
-from drake_rus.template.pca import mesh_canonical_frame
 
 
 def generated_test_kidneys(n: int = 15) -> list[tuple[str, np.ndarray]]:
@@ -46,8 +46,8 @@ def generated_test_kidneys(n: int = 15) -> list[tuple[str, np.ndarray]]:
     out = []
     for k, seed in enumerate(cohort_seeds("test", n)):
         mesh = KidneyShape(sample_patient_params(seed).kidney).mesh
-        X = mesh_canonical_frame(mesh, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
-        out.append((f"test:{k}", X.inverse().multiply(np.asarray(mesh.vertices).T).T))
+        # The shape's local frame: x towards the superior pole, y medial -> lateral.
+        out.append((f"test:{k}", subject_from_mesh(mesh, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]).points))
     return out
 
 

@@ -40,8 +40,9 @@ is scored against a template it built.
 **Cache**: never shipped (the KiTS data are CC BY-NC-SA: nothing derived goes into the
 repository). :func:`ct_template` keeps templates in the template cache
 (:func:`drake_rus.template.population.template_cache_dir`), named by the SHA-256 of the label
-maps used (their bytes), the subjects, the options, the code that builds them and the library
-versions; a per-file survey (which kidneys a label map holds, their tumour fractions) is
+maps used (their bytes), the subjects, the options, the source of the code that builds them
+(this module, the builder, the canonical frame, marching cubes, the kidney source) and the
+library versions; a per-file survey (which kidneys a label map holds, their tumour fractions) is
 cached the same way, so the selection is known without reading every file again.
 """
 
@@ -70,6 +71,7 @@ from drake_rus.anatomy.cache import file_digest, library_versions
 from drake_rus.anatomy.frames import lateral_direction_Bd
 from drake_rus.anatomy.rasterize import mask_to_mesh
 from drake_rus.paths import MODELS_DIR, REPO_ROOT
+from drake_rus.template import builder as builder_module
 from drake_rus.template.builder import Subject, build_template, save_template, subject_from_mesh
 from drake_rus.template.io import DEFAULT_TEMPLATE_PATH, load_template
 from drake_rus.template.population import template_cache_dir
@@ -100,9 +102,6 @@ MIN_LR_ANGLE_DEG = 35.0
 MIN_FRAME_MARGIN = 0.5
 LABEL_MAP_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd")
 FORMAT = 1
-_HERE = Path(__file__).resolve().parent
-_CODE_FILES = (_HERE / "ct.py", _HERE / "builder.py", _HERE / "pca.py",
-               _HERE.parent / "anatomy" / "rasterize.py")
 _LIBRARIES = ("numpy", "scipy", "open3d", "scikit-image", "trimesh", "SimpleITK")
 
 
@@ -463,19 +462,23 @@ class CtTemplateOptions:
                 "n_points": int(self.n_points), "voxel": float(self.voxel)}
 
 
+def _code_files() -> set:
+    """The source files a CT template is made by: this module, the builder, the canonical
+    frame's module and marching cubes' (found through the functions, wherever they live)."""
+    return {_source_file(f) for f in (subject_from_ct_kidney, build_template,
+                                      builder_module.mesh_canonical_frame, mask_to_mesh)}
+
+
 @lru_cache(maxsize=4)
 def _code_key(source_file: str) -> dict:
     h = hashlib.sha256()
-    for p in sorted(set(_CODE_FILES) | {Path(source_file)}):
+    for p in sorted(Path(f) for f in _code_files() | {source_file}):
         h.update(p.name.encode() + b"\0" + p.read_bytes() + b"\0")
     return {"code": h.hexdigest(), "libraries": library_versions(_LIBRARIES)}
 
 
-def _source_file(source: KidneySource) -> str:
-    try:
-        return str(Path(inspect.getsourcefile(source)).resolve())
-    except (TypeError, OSError):
-        return str(_HERE / "ct.py")
+def _source_file(function) -> str:
+    return str(Path(inspect.getsourcefile(function)).resolve())
 
 
 @lru_cache(maxsize=1024)
