@@ -24,6 +24,7 @@ from drake_rus.localization.icp import (
 )
 from drake_rus.paths import REPO_ROOT
 from drake_rus.template import load_template
+from drake_rus.template.ct import is_template_spec, resolve_template
 
 
 @dataclasses.dataclass
@@ -52,9 +53,13 @@ class RegistrationTemplate:
 
 
 def load_registration_template(path: str | None = None) -> RegistrationTemplate:
-    """Loads the kidney template (``models/kidney_template.npz`` by default)."""
+    """Loads the kidney template (``models/kidney_template.npz`` by default); ``generated``,
+    ``real`` and ``real:DIR`` name the shipped template and templates of real CT kidneys
+    (built on first use into the cache, :func:`drake_rus.template.ct.resolve_template`)."""
     resolved = None
-    if path is not None:
+    if is_template_spec(path):
+        resolved = str(resolve_template(path))
+    elif path is not None:
         resolved = path if str(path).startswith("/") else str(REPO_ROOT / path)
     template = load_template(resolved)
     modes = getattr(template, "modes", None)

@@ -23,6 +23,7 @@ import dataclasses
 import hashlib
 import json
 import sys
+import warnings
 from pathlib import Path
 
 from drake_rus import interrupts
@@ -43,6 +44,7 @@ from drake_rus.scan.planning import StartPlanError
 from drake_rus.scan.report import WriteScanOutputs
 from drake_rus.scan.run import RunScan
 from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, ApplyOverrides, CheckScenario, Scenario
+from drake_rus.template.ct import CtTemplateError, resolve_template
 
 # About what a scan writes (bytes): summary, clouds and plots; the Meshcat recording.
 SCAN_OUTPUT_BYTES = 8 * MB
@@ -94,6 +96,11 @@ def add_commands(subparsers) -> None:
     p.add_argument("--rerun", default=None, metavar="SUMMARY",
                    help="repeat the scan recorded in SUMMARY (its summary.json or folder); "
                         "see 'rerun' below")
+    p.add_argument("--template", default=None, metavar="SPEC",
+                   help="registration template: generated (the shipped template of generated "
+                        "kidneys), real (real CT kidneys of ../shared/anatomy/kits19, built on "
+                        "first use into the cache, without the scanned case), real:DIR, or a "
+                        "template .npz (default: the scenario's localization.template)")
     p.set_defaults(func=run_scan_command, outputs={"out": "dir", "record": "file:.html"})
 
 
@@ -218,6 +225,7 @@ def _apply_rerun(args) -> None:
         ("--scenario", args.scenario, "default"),
         ("--scenarios-file", args.scenarios_file, str(DEFAULT_SCENARIOS_FILE)),
         ("--set", args.overrides, None), ("--seed", args.seed, None),
+        ("--template", args.template, None),
         ("--patient", args.patient, DEFAULT_PATIENT),
         ("--max-sim-time", args.max_sim_time, DEFAULT_MAX_SIM_TIME)) if value != default]
     if given:
@@ -279,6 +287,7 @@ def run_scan_command(args) -> int:
         scenario = load_scenario_from_args(args)
         if args.seed is not None:
             scenario = dataclasses.replace(scenario, random_seed=args.seed)
+        scenario = select_template(scenario, args.template, args.patient)
     if args.out is None:
         args.out = "runs/scan"
     template = load_template_for(scenario)
@@ -308,6 +317,34 @@ def check_segmenter(scenario) -> None:
     once, not after the patient and the diagram are built."""
     if scenario.imaging.segmenter == "onnx":
         OnnxSegmenter.from_config(scenario.imaging, ProbeGeometry.from_config(scenario.imaging))
+
+
+def select_template(scenario, spec, patient: str):
+    """The scenario with ``localization.template`` resolved to a file: ``spec`` (--template)
+    or else the scenario's value (:func:`drake_rus.template.ct.resolve_template`). A real
+    template is built without the patient's case; a template file that the patient's case
+    helped build is used with a warning."""
+    value = spec if spec is not None else scenario.localization.template
+    where = "--template" if spec is not None else "field 'localization.template'"
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            path = resolve_template(value, exclude_cases=[patient], log=_stderr_line)
+    except CtTemplateError as e:
+        if spec is not None:
+            raise UserError(f"--template: {e.detail if e.field == 'template' else e}") from None
+        raise ScenarioError(f"{where}: {e}") from None
+    for w in caught:
+        print(f"warning: {w.message}", file=sys.stderr, flush=True)
+    if spec is not None and not path.is_file():
+        raise UserError(f"--template: {path}: no such template file (expected generated, "
+                        f"real, real:DIR or a template .npz)")
+    return dataclasses.replace(scenario, localization=dataclasses.replace(
+        scenario.localization, template=str(path)))
+
+
+def _stderr_line(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
 
 
 def load_template_for(scenario):

@@ -18,7 +18,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import open3d as o3d
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
@@ -74,7 +73,15 @@ def farthest_point_sampling(points: np.ndarray, n: int, start: int = 0) -> np.nd
     return idx
 
 
+def _open3d():
+    """Open3D, imported on first use (about 1-3 s): the scan imports this package (through
+    the template selection) without registering anything."""
+    import open3d
+    return open3d
+
+
 def _pcd(points, normals=None):
+    o3d = _open3d()
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=float)))
     if normals is not None:
         pc.normals = o3d.utility.Vector3dVector(np.asarray(normals, dtype=float))
@@ -92,6 +99,7 @@ def align_to_reference(src_pts, src_nrm, ref_pts, ref_nrm, *, feature_radius=0.0
     then point-to-plane ICP. Because both clouds are already in canonical frames, a global
     result rotating more than ``max_angle`` is treated as a symmetric flip and replaced by
     the identity start. Returns (T, info)."""
+    o3d = _open3d()
     src, ref = _pcd(src_pts, src_nrm), _pcd(ref_pts, ref_nrm)
     reg = o3d.pipelines.registration
     T0 = np.eye(4) if init is None else np.asarray(init, dtype=float)

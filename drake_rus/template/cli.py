@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 
@@ -14,8 +15,10 @@ from drake_rus.cli import UserError
 from drake_rus.io_utils import dumps_strict, save_figure
 from drake_rus.progress import stderr_is_terminal
 from drake_rus.template.builder import build_template, save_template, subject_from_mask
+from drake_rus.template.ct import CtTemplateError, CtTemplateOptions, TUMOUR_POLICIES, ct_template
 from drake_rus.template.io import DEFAULT_TEMPLATE_PATH, load_template
 from drake_rus.template.population import parse_population, population_template
+
 
 
 def subjects_from_cohort(split: str = "train", n: int = 20, voxel_size: float = 0.001,
@@ -120,7 +123,11 @@ def _build(args) -> int:
         raise UserError(f"--points: expected at least 100, got {args.points}")
     if not 0.2 <= args.voxel_mm <= 5:
         raise UserError(f"--voxel-mm: expected 0.2-5 mm, got {args.voxel_mm}")
-    out = Path(args.out)
+    if args.from_ct is not None:
+        return _build_from_ct(args)
+    if args.side == "both":
+        raise UserError("--side both: only for --from-ct (real kidneys, the left mirrored)")
+    out = Path(args.out) if args.out is not None else DEFAULT_BUILD_OUT
     if out.suffix != ".npz":
         raise UserError(f"--out: expected a .npz file name, got {out}")
     check_not_shipped(out, args.png)
@@ -150,6 +157,12 @@ def _build(args) -> int:
         save_template(result, out, extra)
         meta, change = dict(result.meta, **extra), result.convergence["change"]
     t2 = time.time()
+    print(dumps_strict(_summary(args, out, meta, change, t0, t1, t2), indent=2))
+    return 0
+
+
+def _summary(args, out: Path, meta: dict, change, t0: float, t1: float, t2: float) -> dict:
+    """Plots beside ``out`` (convergence, modes) and the build's JSON summary."""
     png = Path(args.png) if args.png else out.with_name(out.stem + "_convergence.png")
     template = load_template(out)
     plot_convergence(template.convergence, png)
@@ -170,8 +183,57 @@ def _build(args) -> int:
     if "sampled_length_mm" in meta:
         summary["sampled_length_mm"] = meta["sampled_length_mm"]
     summary["use_with"] = f'--set "{{localization: {{template: {out.resolve()}}}}}"'
+    if "cases" in meta:
+        summary.update(cases=meta["cases"], excluded_cases=meta["excluded_cases"],
+                       tumour_policy=meta["tumour_policy"], side=meta["side"],
+                       subject_extent_mm=meta["subject_extent_mm"])
+    return summary
+
+
+def _build_from_ct(args) -> int:
+    """``template build --from-ct DIR``: the template of real CT kidneys (seed II-D; see
+    :mod:`drake_rus.template.ct`), into the template cache unless --out says otherwise."""
+    if args.population:
+        raise UserError("--population: not with --from-ct (generated or real kidneys, not both)")
+    if args.case_list is not None and not Path(args.case_list).is_file():
+        raise UserError(f"--case-list: {args.case_list}: file not found")
+    if not Path(args.from_ct).expanduser().is_dir():
+        raise UserError(f"--from-ct: {args.from_ct}: not a folder of CT label maps")
+    # --cases N, else --n (the generated builds' count; default 20, as the seed's N).
+    n = args.cases if args.cases is not None else args.n
+    opts = CtTemplateOptions(n=n, side=args.side, tumour_policy=args.tumour_policy,
+                             max_tumour_fraction=args.max_tumour_fraction,
+                             n_points=args.points, voxel=args.voxel_mm / 1000.0,
+                             strict_n=args.cases is not None or args.n != 20)
+    case_list = None
+    if args.case_list is not None:
+        case_list = [ln.split("#")[0].strip() for ln in
+                     Path(args.case_list).read_text().splitlines()]
+        case_list = [c for c in case_list if c]
+    t0 = time.time()
+    try:
+        out = ct_template(args.from_ct, opts, exclude=args.exclude_cases or (),
+                          case_list=case_list, out=args.out,
+                          progress=not args.quiet and stderr_is_terminal(),
+                          log=None if args.quiet else _stderr_line)
+    except CtTemplateError as e:
+        flag = {"folder": "--from-ct", "n": "--cases", "cases": "--exclude-cases",
+                "case_list": "--case-list", "side": "--side",
+                "tumour_policy": "--tumour-policy",
+                "max_tumour_fraction": "--max-tumour-fraction", "points": "--points",
+                "voxel": "--voxel-mm", "out": "--out"}.get(e.field, "--from-ct")
+        raise UserError(f"{flag}: {e.detail}") from None
+    t1 = time.time()
+    meta = load_template(out).meta
+    summary = _summary(args, out, meta, meta["convergence"]["change"], t0,
+                       t0 + meta.get("survey_seconds", 0.0) + meta.get("subject_seconds", 0.0),
+                       t1)
     print(dumps_strict(summary, indent=2))
     return 0
+
+
+def _stderr_line(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
 
 
 def _info(args) -> int:
@@ -200,10 +262,13 @@ def add_commands(subparsers) -> None:
     b.add_argument("--split", default="train", choices=["train", "seed"],
                    help="cohort to build from (default train); the test split is reserved "
                         "for evaluation and refused")
-    b.add_argument("--side", default="right", choices=["right", "left"])
-    b.add_argument("--out", default=str(DEFAULT_BUILD_OUT),
-                   help=f"output .npz (default {DEFAULT_BUILD_OUT}; the shipped "
-                        f"models/{DEFAULT_TEMPLATE_PATH.name} is never overwritten)")
+    b.add_argument("--side", default="right", choices=["right", "left", "both"],
+                   help="kidney side (default right); both: only with --from-ct, the left "
+                        "kidneys mirrored onto right ones")
+    b.add_argument("--out", default=None,
+                   help=f"output .npz (default {DEFAULT_BUILD_OUT}; with --from-ct the "
+                        f"template cache; the shipped models/{DEFAULT_TEMPLATE_PATH.name} is "
+                        "never overwritten)")
     b.add_argument("--points", type=int, default=2500, help="template vertices (default 2500)")
     b.add_argument("--voxel-mm", type=float, default=1.0, help="mask voxel size (default 1 mm)")
     b.add_argument("--png", default=None, help="convergence plot (default beside --out)")
@@ -213,6 +278,27 @@ def add_commands(subparsers) -> None:
                    help="build from N generated kidneys of another population instead of the "
                         "training cohort: base, short, long, slim or length+Xsd (see "
                         "drake_rus/template/population.py; the study's population:NAME)")
+    ct = b.add_argument_group(
+        "real kidneys", "--from-ct DIR builds the template from CT label maps (KiTS layout "
+        "DIR/case_*/segmentation.nii.gz: 1 kidney, 2 tumour), the seed's II-D on real "
+        "kidneys; see docs/real_kidneys.md. A template of such data (KiTS19: CC BY-NC-SA) "
+        "goes to the cache, never into the repository.")
+    ct.add_argument("--from-ct", default=None, metavar="DIR", help="folder of CT label maps")
+    ct.add_argument("--cases", type=int, default=None, metavar="N",
+                    help="number of kidneys (the seed's N; default --n, 20: fewer with a "
+                         "warning when the folder has fewer eligible ones), taken from the "
+                         "last case backwards so the first cases stay for testing")
+    ct.add_argument("--case-list", default=None, metavar="FILE",
+                    help="cases to use, in order (one name or number per line)")
+    ct.add_argument("--exclude-cases", default=None, metavar="CASES",
+                    help="cases never used (names, numbers, ranges: 0-29,case_00042)")
+    ct.add_argument("--tumour-policy", default="exclude", choices=list(TUMOUR_POLICIES),
+                    help="exclude (default): leave out kidneys whose tumour exceeds "
+                         "--max-tumour-fraction; include: the tumour as part of the kidney; "
+                         "mask: the kidney without its tumour voxels")
+    ct.add_argument("--max-tumour-fraction", type=float, default=0.0, metavar="F",
+                    help="with --tumour-policy exclude: largest tumour share of a kidney's "
+                         "volume kept (default 0: tumour-free kidneys only)")
     b.add_argument("--quiet", action="store_true", help="no progress bars")
     b.set_defaults(func=_build, outputs={"out": "file:.npz", "png": "file:.png"})
     i = sub.add_parser("info", help="summary of a template file")
