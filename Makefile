@@ -37,6 +37,7 @@ demo: $(STAMP)
 
 lint: $(TEST_STAMP)
 	$(VENV)/bin/ruff check drake_rus tests benchmarks models notebooks
+	$(VENV)/bin/ruff format --check drake_rus tests benchmarks models notebooks
 
 test: lint
 	$(PY) -m pytest

@@ -8,8 +8,16 @@ from drake_rus.scan import RunScan, ScanMetrics, Summary, WriteScanOutputs
 from drake_rus.scenario import ApplyOverrides
 
 
-def scan_row(row: dict, body: str, scenario, overrides: str, template, max_sim_time: float,
-             out=None, fill=None) -> dict:
+def scan_row(
+    row: dict,
+    body: str,
+    scenario,
+    overrides: str,
+    template,
+    max_sim_time: float,
+    out=None,
+    fill=None,
+) -> dict:
     """Runs the scan of ``body`` (a patient spec or path) on ``scenario`` with the YAML
     ``overrides`` and adds to ``row``: status, reason, wall_s, then ``fill(row, result,
     summary, scenario)`` (the caller's fields). ``out``: also write the scan's outputs there.
@@ -26,8 +34,11 @@ def scan_row(row: dict, body: str, scenario, overrides: str, template, max_sim_t
         row.update(status=summary["status"], reason=summary["reason"])
         if fill is not None:
             fill(row, result, summary, s)
-    except Exception as e:   # noqa: BLE001 - a benchmark row, with the traceback kept
-        row.update(status="ERROR", reason=f"{type(e).__name__}: {e}",
-                   traceback=traceback.format_exc(limit=6))
+    except Exception as e:  # noqa: BLE001 - a benchmark row, with the traceback kept
+        row.update(
+            status="ERROR",
+            reason=f"{type(e).__name__}: {e}",
+            traceback=traceback.format_exc(limit=6),
+        )
     row["wall_s"] = round(time.perf_counter() - start, 1)
     return row

@@ -19,8 +19,8 @@ import time
 from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.systems.analysis import Simulator
 
-from drake_rus.control import supervisor
 from drake_rus.closed_loop import BuildClosedLoop, BuildClosedLoopOnPatient
+from drake_rus.control import supervisor
 from drake_rus.control.synthetic_view import GeometricKidneyView
 from drake_rus.scenario import ApplyOverrides, LoadScenario
 
@@ -30,8 +30,9 @@ def _closed_loop(scenario, patient: str | None):
     if patient:
         return BuildClosedLoopOnPatient(scenario, patient, log_period=0.05)
     X_BK = RigidTransform(RollPitchYaw(0.1, 0.0, math.radians(105.0)), [0.595, -0.035, 0.035])
-    view = GeometricKidneyView(X_BK, [0.055, 0.03, 0.025],
-                               frame_rate_hz=scenario.imaging.frame_rate_hz)
+    view = GeometricKidneyView(
+        X_BK, [0.055, 0.03, 0.025], frame_rate_hz=scenario.imaging.frame_rate_hz
+    )
     return BuildClosedLoop(scenario, kidney_view=view, log_period=0.05), scenario
 
 
@@ -52,17 +53,22 @@ def _station_alone_rtf(scenario, duration: float) -> float | None:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks control")
-    parser.add_argument("--duration", type=float, default=5.0,
-                        help="simulated seconds of exploration to time")
+    parser.add_argument(
+        "--duration", type=float, default=5.0, help="simulated seconds of exploration to time"
+    )
     parser.add_argument("--scenario", default="default")
-    parser.add_argument("--patient", default="test:0",
-                        help="virtual patient spec for emulated images + the scenario's "
-                             "segmenter (default test:0); 'none' = placeholder torso with the "
-                             "geometric kidney view")
+    parser.add_argument(
+        "--patient",
+        default="test:0",
+        help="virtual patient spec for emulated images + the scenario's "
+        "segmenter (default test:0); 'none' = placeholder torso with the "
+        "geometric kidney view",
+    )
     parser.add_argument("--rate-hz", type=float, default=None, help="controller rate override")
     parser.add_argument("--contact", choices=["hydroelastic", "point"], default=None)
-    parser.add_argument("--no-reference", action="store_true",
-                        help="skip the station-alone reference run")
+    parser.add_argument(
+        "--no-reference", action="store_true", help="skip the station-alone reference run"
+    )
     args = parser.parse_args(argv)
     if args.patient in ("none", ""):
         args.patient = None
@@ -100,17 +106,20 @@ def main(argv=None) -> int:
     figures = {}
     if "phase" in cl.loggers:
         phase_log = cl.loggers["phase"].FindLog(ctx)
-        m = (phase_log.sample_times() >= t_start + 1.0) & \
-            (phase_log.data()[0] == float(supervisor.Phase.EXPLORE))
+        m = (phase_log.sample_times() >= t_start + 1.0) & (
+            phase_log.data()[0] == float(supervisor.Phase.EXPLORE)
+        )
         F = -cl.loggers["probe_force"].FindLog(ctx).data()[5][m]
         c = cl.loggers["mask_centroid"].FindLog(ctx).data()[0][m]
         vis = cl.loggers["kidney_visible"].FindLog(ctx).data()[0][m]
         if m.any():
-            figures = {"force_min_n": round(float(F.min()), 3),
-                       "force_max_n": round(float(F.max()), 3),
-                       "centroid_min": round(float(c.min()), 3),
-                       "centroid_max": round(float(c.max()), 3),
-                       "kidney_visible_fraction": round(float(vis.mean()), 3)}
+            figures = {
+                "force_min_n": round(float(F.min()), 3),
+                "force_max_n": round(float(F.max()), 3),
+                "centroid_min": round(float(c.min()), 3),
+                "centroid_max": round(float(c.max()), 3),
+                "kidney_visible_fraction": round(float(vis.mean()), 3),
+            }
     reference = None if args.no_reference else _station_alone_rtf(scenario, args.duration)
     result = {
         "rtf_exploration": round(args.duration / wall, 3),
@@ -123,14 +132,17 @@ def main(argv=None) -> int:
         "supervisor_events": [f"{t:.2f} {name}: {msg}" for t, name, msg in state.events],
         "controller_rate_hz": scenario.controller.rate_hz,
         "contact_model": scenario.contact.model,
-        "images": "emulated + " + scenario.imaging.segmenter if args.patient
+        "images": "emulated + " + scenario.imaging.segmenter
+        if args.patient
         else "geometric kidney view",
         "approach_wall_s": round(approach_wall, 2),
         "build_s": round(build_s, 2),
         "duration_s": args.duration,
     }
-    print(f"exploration: {args.duration} s simulated in {wall:.2f} s wall "
-          f"(real-time factor {args.duration / wall:.2f})")
+    print(
+        f"exploration: {args.duration} s simulated in {wall:.2f} s wall "
+        f"(real-time factor {args.duration / wall:.2f})"
+    )
     print(json.dumps(result))
     return 0
 

@@ -44,13 +44,13 @@ TAU = 2 * fl.SAP_DEFAULT_RELAXATION_TIME
 
 
 def _with(scenario, **controller):
-    return dataclasses.replace(scenario,
-                               controller=dataclasses.replace(scenario.controller, **controller))
+    return dataclasses.replace(
+        scenario, controller=dataclasses.replace(scenario.controller, **controller)
+    )
 
 
 def _time_step(scenario, h: float):
-    return dataclasses.replace(scenario, contact=dataclasses.replace(scenario.contact,
-                                                                     time_step=h))
+    return dataclasses.replace(scenario, contact=dataclasses.replace(scenario.contact, time_step=h))
 
 
 # ----------------------------------------------------------------------------- stiffness
@@ -60,8 +60,10 @@ def normal_stiffness(scenario, patient=None, force: float = 9.0, step: float = 2
     area, normal to each face), the robot moved along a from the scenario's initial joints
     (above the body) until past ``force``."""
     from pydrake.geometry import HydroelasticContactRepresentation
+
     from drake_rus.robot import MakeControlPlant, TipKinematics
     from drake_rus.station import MakeSimStation
+
     station = MakeSimStation(scenario, patient=patient)
     context = station.CreateDefaultContext()
     plant = station.GetSubsystemByName("plant")
@@ -81,25 +83,29 @@ def normal_stiffness(scenario, patient=None, force: float = 9.0, step: float = 2
         # With fallback: the bed and the probe's housing have no hydroelastic properties
         # (point pairs, not counted: only the face presses at the desired force).
         surfaces, _ = query.ComputeContactSurfacesWithFallback(
-            HydroelasticContactRepresentation.kPolygon)
+            HydroelasticContactRepresentation.kPolygon
+        )
         for s in surfaces:
             mesh, e = s.poly_mesh_W(), s.poly_e_MN()
             for i in range(mesh.num_faces()):
-                F += e.EvaluateCartesian(i, mesh.element_centroid(i)) * mesh.area(i) * \
-                    mesh.face_normal(i)
+                F += (
+                    e.EvaluateCartesian(i, mesh.element_centroid(i))
+                    * mesh.area(i)
+                    * mesh.face_normal(i)
+                )
         return abs(float(F @ a))
 
     def moved(q7, dx):
         return q7 + np.linalg.pinv(tip.jacobian(q7)) @ np.concatenate([np.zeros(3), dx * a])
 
     travel = 0.0
-    while elastic_force(q) == 0.0:             # coarse: 2 mm steps to the first contact
+    while elastic_force(q) == 0.0:  # coarse: 2 mm steps to the first contact
         q, travel = moved(q, 2e-3), travel + 2e-3
         if travel > 0.25:
             raise RuntimeError("the probe met no body within 25 cm of travel")
     q = moved(q, -2e-3)
     xs, Fs, x = [], [], 0.0
-    while not Fs or Fs[-1] < 1.5 * force:      # fine: ``step`` to past the force
+    while not Fs or Fs[-1] < 1.5 * force:  # fine: ``step`` to past the force
         F = elastic_force(q)
         if F > 0.0:
             xs.append(x)
@@ -109,31 +115,36 @@ def normal_stiffness(scenario, patient=None, force: float = 9.0, step: float = 2
             raise RuntimeError(f"no {force} N within 10 cm of indentation")
     xs, Fs = np.asarray(xs) - xs[0], np.asarray(Fs)
     k = fl.stiffness_at_force(xs, Fs, force)
-    return {"stiffness_n_per_m": round(k, 1),
-            "indentation_mm_at_force": round(float(np.interp(force, Fs, xs)) * 1e3, 2)}
+    return {
+        "stiffness_n_per_m": round(k, 1),
+        "indentation_mm_at_force": round(float(np.interp(force, Fs, xs)) * 1e3, 2),
+    }
 
 
 def stiffness_range(scenario, force: float) -> dict:
     from drake_rus.anatomy import load_patient
     from drake_rus.scan.run import PrepareScenario
+
     out, every = {"placeholder": {}, "patients": {}}, []
     for E in MODULI:
-        s = dataclasses.replace(scenario, contact=dataclasses.replace(
-            scenario.contact, hydroelastic_modulus=E))
+        s = dataclasses.replace(
+            scenario, contact=dataclasses.replace(scenario.contact, hydroelastic_modulus=E)
+        )
         row = out["placeholder"][f"{E:g}"] = normal_stiffness(s, None, force)
         every.append(row["stiffness_n_per_m"])
         print(json.dumps({"placeholder_modulus_pa": E, **row}), flush=True)
     for name in PATIENTS + (VISIBLE_HUMAN,):
         try:
             patient = load_patient(name, progress=False)
-        except (OSError, ValueError) as e:   # the VH female needs ../shared
+        except (OSError, ValueError) as e:  # the VH female needs ../shared
             out["patients"][name] = {"error": str(e).splitlines()[0]}
             continue
         s, _, _ = PrepareScenario(scenario, patient)
         row = out["patients"][name] = {}
         for E in (MODULI[0], scenario.contact.hydroelastic_modulus, MODULI[-1]):
-            s_E = dataclasses.replace(s, contact=dataclasses.replace(
-                s.contact, hydroelastic_modulus=E))
+            s_E = dataclasses.replace(
+                s, contact=dataclasses.replace(s.contact, hydroelastic_modulus=E)
+            )
             row[f"{E:g}"] = normal_stiffness(s_E, patient, force)
             every.append(row[f"{E:g}"]["stiffness_n_per_m"])
         print(json.dumps({"patient": name, **row}), flush=True)
@@ -151,7 +162,7 @@ def _set_flat(context, x) -> None:
     s, k = context.get_discrete_state(), 0
     for i in range(s.num_groups()):
         n = s.get_vector(i).size()
-        s.get_mutable_vector(i).SetFromVector(x[k:k + n])
+        s.get_mutable_vector(i).SetFromVector(x[k : k + n])
         k += n
 
 
@@ -170,6 +181,7 @@ def period_map(diagram, context, period: float, eps: float = 1e-7) -> np.ndarray
     """Jacobian of the map of the diagram's discrete state over one ``period`` from
     ``context`` (central differences; ``context``'s time must lie between event times)."""
     from pydrake.systems.analysis import Simulator
+
     x0 = _flat(context)
     t0 = context.get_time()
 
@@ -206,23 +218,31 @@ def _loop_transfer(J, command: np.ndarray, f: np.ndarray, period: float) -> np.n
 
 def _arm_at(scenario, q, held=True):
     from drake_rus.robot import MakeControlPlant, TipKinematics
+
     plant, frame = MakeControlPlant(scenario.robot, scenario.probe)
     tip = TipKinematics(plant, frame)
     c = plant.CreateDefaultContext()
     plant.SetPositions(c, q)
-    return fl.reflect_to_tip(plant.CalcMassMatrix(c), tip.jacobian(q), scenario.robot.driver_kp,
-                             scenario.robot.driver_kd, tip.pose(q).rotation().matrix()[:, 2],
-                             held=held)
+    return fl.reflect_to_tip(
+        plant.CalcMassMatrix(c),
+        tip.jacobian(q),
+        scenario.robot.driver_kp,
+        scenario.robot.driver_kd,
+        tip.pose(q).rotation().matrix()[:, 2],
+        held=held,
+    )
 
 
 def _diagram_gain_margin(J, command, upper: float = 64.0) -> float:
     """The factor on the command's rows (= on K_p3 and K_d1) at which a pole of the
     linearized diagram leaves the unit circle (bisection to 1 %; ``upper`` if none)."""
+
     def stable(beta):
         Jb = J.copy()
         Jb[command] *= beta
         z = np.linalg.eigvals(Jb)
         return np.max(np.abs(z[np.abs(z - 1.0) > 1e-4])) < 1.0
+
     if not stable(1.0):
         return 0.0
     if stable(upper):
@@ -234,14 +254,17 @@ def _diagram_gain_margin(J, command, upper: float = 64.0) -> float:
     return round(lo, 2)
 
 
-def validate_once(scenario, h: float, gains: dict, t: float,
-                  hold_orientation: bool = False) -> dict:
+def validate_once(
+    scenario, h: float, gains: dict, t: float, hold_orientation: bool = False
+) -> dict:
     """The press diagram with ``gains`` at plant step ``h``, linearized over one controller
     period from ``t`` (s; just after a controller update, t = k T + h / 2): its largest
     poles and gain margin; the reduced model with the arm there (held) and the contact
     stiffness fitted to the diagram's loop transfer: its poles and gain margin."""
     from pydrake.systems.analysis import Simulator
+
     from drake_rus.closed_loop import PressDiagram
+
     s = _with(_time_step(scenario, h), **gains)
     press = PressDiagram(s, hold_orientation=hold_orientation)
     sim = Simulator(press.diagram)
@@ -252,14 +275,19 @@ def validate_once(scenario, h: float, gains: dict, t: float,
     context = sim.get_context().Clone()
     J = period_map(press.diagram, context, T)
     q = press.station.GetOutputPort("joint_position").Eval(
-        press.station.GetMyContextFromRoot(context))
+        press.station.GetMyContextFromRoot(context)
+    )
     arm = _arm_at(s, np.asarray(q))
     law = fl.ForceLaw.from_config(s.controller)
-    out = {"time_step_s": h, "linearized_at_s": t, "law": gains,
-           "hold_orientation": hold_orientation,
-           "force_peak_to_peak_last_0.2s_n": float(np.ptp(F[tt >= t - 0.2])),
-           "arm_held": {k: round(v, 1) for k, v in dataclasses.asdict(arm).items()},
-           "diagram": _poles(np.linalg.eigvals(J), T)}
+    out = {
+        "time_step_s": h,
+        "linearized_at_s": t,
+        "law": gains,
+        "hold_orientation": hold_orientation,
+        "force_peak_to_peak_last_0.2s_n": float(np.ptp(F[tt >= t - 0.2])),
+        "arm_held": {k: round(v, 1) for k, v in dataclasses.asdict(arm).items()},
+        "diagram": _poles(np.linalg.eigvals(J), T),
+    }
     if hold_orientation:
         return out
     command = _offsets(press.diagram, context, press.driver, 0)
@@ -267,13 +295,17 @@ def validate_once(scenario, h: float, gains: dict, t: float,
     f = np.linspace(2.0, 0.49 / T, 48)
     L_d = _loop_transfer(J, command, f, T)
     ks = np.logspace(2.5, 6.5, 161)
-    errors = [float(np.mean(np.abs(np.log(fl.loop_transfer(arm, law, k, TAU, h, f) / L_d))**2))
-              for k in ks]
+    errors = [
+        float(np.mean(np.abs(np.log(fl.loop_transfer(arm, law, k, TAU, h, f) / L_d)) ** 2))
+        for k in ks
+    ]
     k_fit = float(ks[int(np.argmin(errors))])
-    out["model"] = {"fitted_stiffness_n_per_m": round(k_fit),
-                    "fit_rms_log_error": round(math.sqrt(min(errors)), 3),
-                    **_poles(fl.closed_loop_poles(arm, law, k_fit, TAU, h), T),
-                    "gain_margin": round(fl.gain_margin(arm, law, k_fit, TAU, h, upper=64.0), 2)}
+    out["model"] = {
+        "fitted_stiffness_n_per_m": round(k_fit),
+        "fit_rms_log_error": round(math.sqrt(min(errors)), 3),
+        **_poles(fl.closed_loop_poles(arm, law, k_fit, TAU, h), T),
+        "gain_margin": round(fl.gain_margin(arm, law, k_fit, TAU, h, upper=64.0), 2),
+    }
     return out
 
 
@@ -296,16 +328,22 @@ def _pole(z, period) -> dict:
 # Where the press diagram is linearized (s, just after a controller update): with the law
 # before issue 32 the probe has just stuck and the oscillation starts; with the configured
 # law the hold has settled.
-VALIDATION_TIMES = {("old", 0.01): 5.005, ("old", 0.001): 5.8005,
-                    ("configured", 0.01): 10.005, ("configured", 0.001): 10.0005}
+VALIDATION_TIMES = {
+    ("old", 0.01): 5.005,
+    ("old", 0.001): 5.8005,
+    ("configured", 0.01): 10.005,
+    ("configured", 0.001): 10.0005,
+}
 
 
 def validate(scenario) -> list:
     rows = []
     for h in (0.01, 0.001):
-        for name, gains, hold in (("old", OLD_PRESS, False),
-                                  ("configured", _configured(scenario), False),
-                                  ("configured", _configured(scenario), True)):
+        for name, gains, hold in (
+            ("old", OLD_PRESS, False),
+            ("configured", _configured(scenario), False),
+            ("configured", _configured(scenario), True),
+        ):
             row = validate_once(scenario, h, gains, VALIDATION_TIMES[(name, h)], hold)
             print(json.dumps(row), flush=True)
             rows.append(row)
@@ -322,36 +360,42 @@ def press_hold(scenario, seconds: float, window: float = 10.0) -> dict:
     """The demo's press diagram for ``seconds``: the true force's statistics over the last
     ``window`` s (every plant step)."""
     from pydrake.systems.analysis import Simulator
+
     from drake_rus.closed_loop import PressDiagram
+
     press = PressDiagram(scenario)
     sim = Simulator(press.diagram)
     sim.Initialize()
     start = time.perf_counter()
     sim.AdvanceTo(seconds)
     t, F = press.true_force(sim.get_context())
-    return {"wall_s": round(time.perf_counter() - start, 1),
-            **fl.force_statistics(t, F, scenario.controller.desired_force, window)}
+    return {
+        "wall_s": round(time.perf_counter() - start, 1),
+        **fl.force_statistics(t, F, scenario.controller.desired_force, window),
+    }
 
 
-def scan_controller_hold(scenario, patient_name: str, seconds: float,
-                         window: float = 10.0) -> dict:
+def scan_controller_hold(scenario, patient_name: str, seconds: float, window: float = 10.0) -> dict:
     """The scan's controller (eq. 1-12 and the safety layer, no supervisor) holding the
     probe still at ``patient_name``'s scan start: the start orientation and tip x, y, the
     desired force; the true force's statistics over the last ``window`` s."""
     from pydrake.systems.analysis import Simulator
     from pydrake.systems.primitives import LogVectorOutput
+
     from drake_rus.anatomy import load_patient
     from drake_rus.closed_loop import BuildClosedLoop
     from drake_rus.scan.run import PrepareScenario
     from drake_rus.stations import MakeStation
+
     patient = load_patient(patient_name, progress=False)
     s, _, _ = PrepareScenario(scenario, patient)
     station = MakeStation(s, patient=patient)
     logs = {}
 
     def log_truth(builder, station_, segmenter):
-        logs["true"] = LogVectorOutput(station_.GetOutputPort("probe_contact_wrench_true"),
-                                       builder, s.contact.time_step)
+        logs["true"] = LogVectorOutput(
+            station_.GetOutputPort("probe_contact_wrench_true"), builder, s.contact.time_step
+        )
         return station_, segmenter, None
 
     loop = BuildClosedLoop(s, station=station, use_supervisor=False, sensor_hook=log_truth)
@@ -360,9 +404,12 @@ def scan_controller_hold(scenario, patient_name: str, seconds: float,
     start = time.perf_counter()
     sim.AdvanceTo(seconds)
     log = logs["true"].FindLog(sim.get_context())
-    return {"wall_s": round(time.perf_counter() - start, 1),
-            **fl.force_statistics(log.sample_times(), -log.data()[5],
-                                  s.controller.desired_force, window)}
+    return {
+        "wall_s": round(time.perf_counter() - start, 1),
+        **fl.force_statistics(
+            log.sample_times(), -log.data()[5], s.controller.desired_force, window
+        ),
+    }
 
 
 def holds(scenario, seconds: float) -> dict:
@@ -372,8 +419,10 @@ def holds(scenario, seconds: float) -> dict:
     out = {}
     for h in (0.01, 0.001):
         s = _time_step(scenario, h)
-        runs = {f"press_E{E:g}": (lambda E=E: press_hold(_modulus(s, E), seconds))
-                for E in (MODULI[0], scenario.contact.hydroelastic_modulus, MODULI[-1])}
+        runs = {
+            f"press_E{E:g}": (lambda E=E: press_hold(_modulus(s, E), seconds))
+            for E in (MODULI[0], scenario.contact.hydroelastic_modulus, MODULI[-1])
+        }
         runs["scan_controller_test0"] = lambda s=s: scan_controller_hold(s, "test:0", seconds)
         for name, run in runs.items():
             key = f"{name}_{h * 1e3:g}ms"
@@ -383,8 +432,9 @@ def holds(scenario, seconds: float) -> dict:
 
 
 def _modulus(scenario, E: float):
-    return dataclasses.replace(scenario, contact=dataclasses.replace(
-        scenario.contact, hydroelastic_modulus=E))
+    return dataclasses.replace(
+        scenario, contact=dataclasses.replace(scenario.contact, hydroelastic_modulus=E)
+    )
 
 
 # ----------------------------------------------------------------------------- plot
@@ -393,6 +443,7 @@ def scan_arms(scenario, patients=("test:0", "test:1", "test:2"), every: int = 50
     from drake_rus.anatomy import load_patient
     from drake_rus.localization.localize import load_registration_template
     from drake_rus.scan import RunScan
+
     template = load_registration_template(scenario.localization.template)
     arms = []
     for name in patients:
@@ -404,17 +455,25 @@ def scan_arms(scenario, patients=("test:0", "test:1", "test:2"), every: int = 50
 
 def worst_margins(arms, law, stiffnesses, h) -> tuple[np.ndarray, np.ndarray]:
     """Per stiffness: the smallest gain margin and the largest pole over ``arms``."""
-    gm = np.array([min(fl.gain_margin(a, law, k, TAU, h, upper=50.0) for a in arms)
-                   for k in stiffnesses])
-    rho = np.array([max(fl.spectral_radius(a, law, k, TAU, h) for a in arms)
-                    for k in stiffnesses])
+    gm = np.array(
+        [min(fl.gain_margin(a, law, k, TAU, h, upper=50.0) for a in arms) for k in stiffnesses]
+    )
+    rho = np.array([max(fl.spectral_radius(a, law, k, TAU, h) for a in arms) for k in stiffnesses])
     return gm, rho
 
 
 # Candidate gains (K_p3, K_d1, cut-off Hz) of the design table in docs/force_loop.md (the
 # configured gains are added when they are not among them).
-CANDIDATES = ((0.004, 0.0, math.inf), (0.006, 5e-5, 5.0), (0.006, 0.0, 3.0), (0.006, 0.0, 2.0),
-              (0.004, 0.0, 2.0), (0.003, 0.0, 2.0), (0.003, 1e-5, 1.5), (0.004, 1e-5, 1.25))
+CANDIDATES = (
+    (0.004, 0.0, math.inf),
+    (0.006, 5e-5, 5.0),
+    (0.006, 0.0, 3.0),
+    (0.006, 0.0, 2.0),
+    (0.004, 0.0, 2.0),
+    (0.003, 0.0, 2.0),
+    (0.003, 1e-5, 1.5),
+    (0.004, 1e-5, 1.25),
+)
 DESIGN_STIFFNESSES = (100.0, 300.0, 1e3, 3e3, 1e4, 3e4, 1e5, 1e6, math.inf)
 DESIGN_TAUS = (0.02, 0.2, 1.0)
 
@@ -433,24 +492,37 @@ def design_table(arms, candidates=CANDIDATES) -> list:
                     for tau in DESIGN_TAUS:
                         gm = min(gm, fl.gain_margin(arm, law, k, tau, h, upper=50.0))
                         zeta = min(zeta, fl.damping_ratio(arm, law, k, tau, h))
-        rows.append({"K_p3": gain, "K_d1": derivative, "cutoff_hz": cutoff,
-                     "worst_gain_margin": round(gm, 2), "worst_damping_ratio": round(zeta, 2),
-                     "meets_criterion": bool(gm >= fl.REQUIRED_GAIN_MARGIN
-                                             and zeta >= fl.REQUIRED_DAMPING_RATIO)})
+        rows.append(
+            {
+                "K_p3": gain,
+                "K_d1": derivative,
+                "cutoff_hz": cutoff,
+                "worst_gain_margin": round(gm, 2),
+                "worst_damping_ratio": round(zeta, 2),
+                "meets_criterion": bool(
+                    gm >= fl.REQUIRED_GAIN_MARGIN and zeta >= fl.REQUIRED_DAMPING_RATIO
+                ),
+            }
+        )
         print(json.dumps(rows[-1]), flush=True)
     return rows
 
 
 def plot_margins(scenario, arms, path, stiffness_band=None) -> dict:
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     from drake_rus.io_utils import save_figure
-    laws = {"press before issue 32 (0.004, no filter)": fl.ForceLaw(0.004),
-            "scan before issue 32 (0.006, 5e-5, 5 Hz)": fl.ForceLaw(0.006, 5e-5, 5.0),
-            "configured (both)": fl.ForceLaw.from_config(scenario.controller)}
+
+    laws = {
+        "press before issue 32 (0.004, no filter)": fl.ForceLaw(0.004),
+        "scan before issue 32 (0.006, 5e-5, 5 Hz)": fl.ForceLaw(0.006, 5e-5, 5.0),
+        "configured (both)": fl.ForceLaw.from_config(scenario.controller),
+    }
     ks = np.append(STIFFNESS_GRID, math.inf)
-    x = np.append(STIFFNESS_GRID, STIFFNESS_GRID[-1] * 3)      # the rigid limit, drawn last
+    x = np.append(STIFFNESS_GRID, STIFFNESS_GRID[-1] * 3)  # the rigid limit, drawn last
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), dpi=110)
     data = {}
     colours = ["tab:red", "tab:orange", "tab:blue"]
@@ -460,12 +532,19 @@ def plot_margins(scenario, arms, path, stiffness_band=None) -> dict:
             label = f"{name}, {h * 1e3:g} ms"
             axes[0].semilogx(x, np.maximum(gm, 1e-2), style, color=colour, label=label)
             axes[1].semilogx(x, rho, style, color=colour, label=label)
-            data[label] = {"min_gain_margin": round(float(gm.min()), 2),
-                           "max_pole": round(float(rho.max()), 4)}
+            data[label] = {
+                "min_gain_margin": round(float(gm.min()), 2),
+                "max_pole": round(float(rho.max()), 4),
+            }
     for ax in axes:
         if stiffness_band is not None:
-            ax.axvspan(*stiffness_band, color="tab:green", alpha=0.12, lw=0,
-                       label="measured normal contact stiffness")
+            ax.axvspan(
+                *stiffness_band,
+                color="tab:green",
+                alpha=0.12,
+                lw=0,
+                label="measured normal contact stiffness",
+            )
         ax.axvline(x[-1], color="k", lw=0.5)
         ax.set_xlabel("contact stiffness dF/dx (N/m); rightmost: rigid limit")
         ax.grid(alpha=0.3, which="both")
@@ -477,8 +556,10 @@ def plot_margins(scenario, arms, path, stiffness_band=None) -> dict:
     axes[1].set_ylabel("largest closed-loop pole |z| per 10 ms")
     axes[1].set_ylim(0.5, 2.5)
     axes[0].legend(fontsize=6.5, loc="lower left")
-    fig.suptitle("Force loop along the approach axis: reduced model, "
-                 f"{len(arms)} arm poses of the scans of test:0-2")
+    fig.suptitle(
+        "Force loop along the approach axis: reduced model, "
+        f"{len(arms)} arm poses of the scans of test:0-2"
+    )
     fig.tight_layout()
     save_figure(fig, path, dpi=110)
     return data
@@ -486,6 +567,7 @@ def plot_margins(scenario, arms, path, stiffness_band=None) -> dict:
 
 def main(argv=None) -> int:
     from drake_rus.scenario import LoadScenario
+
     parser = argparse.ArgumentParser(prog="python -m benchmarks force_loop")
     parser.add_argument("--scenario", default="default")
     parser.add_argument("--stiffness", action="store_true")
@@ -505,8 +587,11 @@ def main(argv=None) -> int:
     if args.hold:
         result["holds"] = holds(scenario, args.hold)
     if args.plot:
-        band = ((result["stiffness"]["min_n_per_m"], result["stiffness"]["max_n_per_m"])
-                if "stiffness" in result else None)
+        band = (
+            (result["stiffness"]["min_n_per_m"], result["stiffness"]["max_n_per_m"])
+            if "stiffness" in result
+            else None
+        )
         arms = scan_arms(scenario)
         result["plot"] = plot_margins(scenario, arms, args.plot, band)
         configured = fl.ForceLaw.from_config(scenario.controller)

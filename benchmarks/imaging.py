@@ -74,38 +74,60 @@ def main(argv=None) -> int:
     ap.add_argument("--patients", type=int, default=3, help="test patients for the IoU")
     ap.add_argument("--iou-frames", type=int, default=60, help="frames per test patient")
     ap.add_argument("--source", default="test", help="'test' (test:K patients) or 'phantom'")
-    ap.add_argument("--depth-patients", type=int, default=DEFAULT_COUNTS["test"],
-                    help="held-out patients test:0..M-1 of the per-depth table (default: the "
-                         "whole test split; 0: skip it)")
-    ap.add_argument("--depth-views", type=int, default=30,
-                    help="views per patient and posture in the per-depth table")
-    ap.add_argument("--vh-views", type=int, default=60,
-                    help="views per posture of the VH female body (0: skip it)")
-    ap.add_argument("--speed-frames", type=int, default=60,
-                    help="frames per preset for the per-preset segmenter speed")
+    ap.add_argument(
+        "--depth-patients",
+        type=int,
+        default=DEFAULT_COUNTS["test"],
+        help="held-out patients test:0..M-1 of the per-depth table (default: the "
+        "whole test split; 0: skip it)",
+    )
+    ap.add_argument(
+        "--depth-views",
+        type=int,
+        default=30,
+        help="views per patient and posture in the per-depth table",
+    )
+    ap.add_argument(
+        "--vh-views",
+        type=int,
+        default=60,
+        help="views per posture of the VH female body (0: skip it)",
+    )
+    ap.add_argument(
+        "--speed-frames",
+        type=int,
+        default=60,
+        help="frames per preset for the per-preset segmenter speed",
+    )
     ap.add_argument("--no-progress", action="store_true", help="no tqdm bars")
-    ap.add_argument("--onnx-model", default=None,
-                    help="ONNX model to measure (default: the scenario's imaging.onnx_model)")
+    ap.add_argument(
+        "--onnx-model",
+        default=None,
+        help="ONNX model to measure (default: the scenario's imaging.onnx_model)",
+    )
     args = ap.parse_args(argv)
 
     from pydrake.math import RigidTransform
 
     from drake_rus.imaging.config import ImagingConfig
-    from drake_rus.imaging.training.dataset import ViewSampler
     from drake_rus.imaging.emulator import EmulatorModel, emulate
-    from drake_rus.imaging.training.evaluation import load_volume, make_source_frames, mean_iou
     from drake_rus.imaging.onnx_backend import OnnxSegmenter, resolve_model_path
     from drake_rus.imaging.probe import ProbeGeometry
     from drake_rus.imaging.segment import read_mask, segment_classical
     from drake_rus.imaging.slicing import slice_volume
+    from drake_rus.imaging.training.dataset import ViewSampler
+    from drake_rus.imaging.training.evaluation import load_volume, make_source_frames, mean_iou
 
     cfg = ImagingConfig()
     if args.onnx_model:
         cfg = ImagingConfig(onnx_model=args.onnx_model)
     g = ProbeGeometry.from_config(cfg)
     model = EmulatorModel.from_config(cfg, g)
-    specs = ([f"test:{k}" for k in range(args.patients)] if args.source == "test"
-             else [f"phantom:{5000 + k}" for k in range(args.patients)])
+    specs = (
+        [f"test:{k}" for k in range(args.patients)]
+        if args.source == "test"
+        else [f"phantom:{5000 + k}" for k in range(args.patients)]
+    )
     t0 = time.perf_counter()
     _stage(f"loading {specs[0]} and making {args.frames} frames for the speed measurements")
     vol, up = load_volume(specs[0])
@@ -118,20 +140,24 @@ def main(argv=None) -> int:
 
     onnx_path = resolve_model_path(cfg.onnx_model)
     onnx = OnnxSegmenter.from_config(cfg, g) if onnx_path.is_file() else None
-    classical = lambda us: segment_classical(us, g, None, cfg.min_kidney_area)
+
+    def classical(us):
+        return segment_classical(us, g, None, cfg.min_kidney_area)
 
     def full(segment):
         def run(i):
             lab = slice_volume(g, vol, X_BV, poses[i])
             us = emulate(lab, model, 0, i)
             read_mask(segment(us), g, cfg.min_kidney_area)
+
         return run
 
     idx = list(range(len(poses)))
     _stage(f"speed: slicing, emulation, segmentation ({len(idx)} frames x 3 repeats each)")
     fps_slice, wall_slice = _rate(lambda i: slice_volume(g, vol, X_BV, poses[i]), idx)
-    fps_se, wall_se = _rate(lambda i: emulate(slice_volume(g, vol, X_BV, poses[i]), model, 0, i),
-                            idx)
+    fps_se, wall_se = _rate(
+        lambda i: emulate(slice_volume(g, vol, X_BV, poses[i]), model, 0, i), idx
+    )
     fps_cl, wall_cl = _rate(full(classical), idx)
     fps_on = wall_on = None
     if onnx is not None:
@@ -149,17 +175,24 @@ def main(argv=None) -> int:
         ious_cl.append(r_cl["iou"])
         if r_on is not None:
             ious_on.append(r_on["iou"])
-        print(f"{spec}: classical IoU {r_cl['iou']:.3f}"
-              + (f", onnx IoU {r_on['iou']:.3f}" if r_on else "")
-              + f" ({r_cl['frames_with_kidney']} frames with kidney)", flush=True)
+        print(
+            f"{spec}: classical IoU {r_cl['iou']:.3f}"
+            + (f", onnx IoU {r_on['iou']:.3f}" if r_on else "")
+            + f" ({r_cl['frames_with_kidney']} frames with kidney)",
+            flush=True,
+        )
 
     depth_part = {}
     if onnx is not None and args.depth_patients > 0 and args.depth_views > 0:
-        _stage(f"per-depth table: {args.depth_patients} patients x 2 postures x "
-               f"{args.depth_views} views per preset")
+        _stage(
+            f"per-depth table: {args.depth_patients} patients x 2 postures x "
+            f"{args.depth_views} views per preset"
+        )
         depth_part = depth_and_posture_study(cfg, args)
 
-    r = lambda x: None if x is None else round(float(x), 3)
+    def r(x):
+        return None if x is None else round(float(x), 3)
+
     result = {
         "fps_slice": r(fps_slice),
         "fps_slice_emulate": r(fps_se),
@@ -171,10 +204,12 @@ def main(argv=None) -> int:
         "fps_full_onnx": r(fps_on),
         "fps_segment_only_onnx": r(seg_only_onnx),
         "fps_segment_only_classical": r(seg_only_classical),
-        "wall_fps_slice": r(wall_slice), "wall_fps_slice_emulate": r(wall_se),
+        "wall_fps_slice": r(wall_slice),
+        "wall_fps_slice_emulate": r(wall_se),
         "wall_fps_full": r(wall_on if wall_on is not None else wall_cl),
         "image_shape": list(g.image_shape),
-        "iou_sources": specs, "iou_frames_per_source": args.iou_frames,
+        "iou_sources": specs,
+        "iou_frames_per_source": args.iou_frames,
         "iou_details": details,
         "onnx_model": str(onnx_path) if onnx is not None else None,
         **depth_part,
@@ -197,7 +232,10 @@ def _segment_speed(segmenters: dict, frames_by_depth: dict) -> tuple[dict, dict]
         images = frames_by_depth[d]
         if not images:
             continue
-        model_only = lambda us: seg.to_image(seg.model_probability(us))
+
+        def model_only(us):
+            return seg.to_image(seg.model_probability(us))
+
         ms_model[d] = 1e3 / _rate(model_only, images)[1]
         ms_seg[d] = 1e3 / _rate(seg, images)[1]
     return ms_model, ms_seg
@@ -209,10 +247,17 @@ def depth_and_posture_study(cfg, args) -> dict:
     from pydrake.math import RigidTransform
 
     from drake_rus.imaging.emulator import EmulatorModel, emulate
-    from drake_rus.imaging.training.evaluation import (POSTURES, VH_FEMALE, depth_study, load_source,
-                                              sample_views, scan_preset, segmenters_by_depth,
-                                              summarise)
     from drake_rus.imaging.slicing import slice_volume
+    from drake_rus.imaging.training.evaluation import (
+        POSTURES,
+        VH_FEMALE,
+        depth_study,
+        load_source,
+        sample_views,
+        scan_preset,
+        segmenters_by_depth,
+        summarise,
+    )
 
     presets = [float(p) for p in cfg.depth_presets]
     progress = not args.no_progress
@@ -222,77 +267,112 @@ def depth_and_posture_study(cfg, args) -> dict:
         specs = [(f"test:{k}", p) for k in range(args.depth_patients) for p in POSTURES]
     else:
         specs = [(f"phantom:{5000 + k}", "supine") for k in range(args.depth_patients)]
-    sources = [load_source(spec, posture=post) for spec, post in
-               tqdm(specs, desc="loading patients", disable=not progress)]
-    records = depth_study(sources, segmenters, args.depth_views, seed=4242, progress=progress,
-                          desc="per-depth IoU")
+    sources = [
+        load_source(spec, posture=post)
+        for spec, post in tqdm(specs, desc="loading patients", disable=not progress)
+    ]
+    records = depth_study(
+        sources, segmenters, args.depth_views, seed=4242, progress=progress, desc="per-depth IoU"
+    )
     by_depth = summarise(records)
     by_depth_posture = summarise(records, key=lambda q: (q["depth"], q["posture"]))
     postures = sorted({q["posture"] for q in records}, key=lambda p: POSTURES.index(p))
 
-    print("\nheld-out generated patients " + ", ".join(sorted({s.name for s in sources}))
-          + f" ({args.depth_views} views each per posture; IoU over frames with a kidney)")
-    head = (f"{'depth':>7} | {'IoU all':>7} | {'95% interval':>13} | "
-            + " | ".join(f"{p[:12]:>12}" for p in postures))
+    print(
+        "\nheld-out generated patients "
+        + ", ".join(sorted({s.name for s in sources}))
+        + f" ({args.depth_views} views each per posture; IoU over frames with a kidney)"
+    )
+    head = f"{'depth':>7} | {'IoU all':>7} | {'95% interval':>13} | " + " | ".join(
+        f"{p[:12]:>12}" for p in postures
+    )
     print(head + f" | {'frames':>6} | {'FP rate':>7} | {'IoU unshadowed (frames)':>23}")
     print("-" * (len(head) + 45))
     for d in presets:
         row = by_depth.get(d)
         if row is None:
             continue
-        cells = " | ".join(f"{by_depth_posture.get((d, p), {}).get('iou', float('nan')):12.3f}"
-                           for p in postures)
+        cells = " | ".join(
+            f"{by_depth_posture.get((d, p), {}).get('iou', float('nan')):12.3f}" for p in postures
+        )
         lo, hi = row["iou_ci95"]
-        print(f"{d * 1000:5.0f}mm | {row['iou']:7.3f} | {lo:6.3f}-{hi:6.3f} | {cells} | "
-              f"{row['frames_with_kidney']:6d} | {row['false_positive_rate']:7.2f} | "
-              f"{row['iou_visible']:15.3f} ({row['frames_visible']:3d})")
+        print(
+            f"{d * 1000:5.0f}mm | {row['iou']:7.3f} | {lo:6.3f}-{hi:6.3f} | {cells} | "
+            f"{row['frames_with_kidney']:6d} | {row['false_positive_rate']:7.2f} | "
+            f"{row['iou_visible']:15.3f} ({row['frames_visible']:3d})"
+        )
 
     out = {
         "pixel_size_mm": seg0.pixel_size_mm,
         "canvas_px": list(seg0.canvas.shape) if seg0.canvas is not None else None,
         "iou_by_depth": {f"{d:.2f}": _round(v["iou"]) for d, v in sorted(by_depth.items())},
-        "iou_by_depth_posture": {f"{d:.2f}": {p: _round(by_depth_posture[(d, p)]["iou"])
-                                              for p in postures if (d, p) in by_depth_posture}
-                                 for d in presets},
-        "iou_by_depth_ci95": {f"{d:.2f}": [_round(x) for x in v["iou_ci95"]]
-                              for d, v in sorted(by_depth.items())},
+        "iou_by_depth_posture": {
+            f"{d:.2f}": {
+                p: _round(by_depth_posture[(d, p)]["iou"])
+                for p in postures
+                if (d, p) in by_depth_posture
+            }
+            for d in presets
+        },
+        "iou_by_depth_ci95": {
+            f"{d:.2f}": [_round(x) for x in v["iou_ci95"]] for d, v in sorted(by_depth.items())
+        },
         "iou_by_depth_min": _round(min(v["iou"] for v in by_depth.values())),
-        "iou_by_depth_unshadowed": {f"{d:.2f}": _round(v["iou_visible"])
-                                    for d, v in sorted(by_depth.items())},
-        "depth_details": {f"{d:.2f}": {k: _round(x) if isinstance(x, float) else
-                                       [_round(y) for y in x] if isinstance(x, tuple) else x
-                                       for k, x in v.items()}
-                          for d, v in sorted(by_depth.items())},
+        "iou_by_depth_unshadowed": {
+            f"{d:.2f}": _round(v["iou_visible"]) for d, v in sorted(by_depth.items())
+        },
+        "depth_details": {
+            f"{d:.2f}": {
+                k: _round(x)
+                if isinstance(x, float)
+                else [_round(y) for y in x]
+                if isinstance(x, tuple)
+                else x
+                for k, x in v.items()
+            }
+            for d, v in sorted(by_depth.items())
+        },
         "depth_sources": sorted({s.name for s in sources}),
         "depth_views": args.depth_views,
     }
 
     vh = {}
     if args.source == "test" and args.vh_views > 0:
-        vh_sources = [load_source(VH_FEMALE, posture=p) for p in
-                      tqdm(POSTURES, desc="loading VH female", disable=not progress)]
-        vh_records = depth_study(vh_sources, segmenters, args.vh_views, seed=99,
-                                 progress=progress, desc="VH female")
+        vh_sources = [
+            load_source(VH_FEMALE, posture=p)
+            for p in tqdm(POSTURES, desc="loading VH female", disable=not progress)
+        ]
+        vh_records = depth_study(
+            vh_sources, segmenters, args.vh_views, seed=99, progress=progress, desc="VH female"
+        )
         by = summarise(vh_records, key=lambda q: (q["posture"], q["depth"]))
         print(f"\nVH female ({args.vh_views} views per posture; right kidney)")
         for src in vh_sources:
             p = src.posture
             preset = scan_preset(src, presets)
             row = by.get((p, preset), {})
-            cells = "  ".join(f"{d * 1000:.0f}mm {by[(p, d)]['iou']:.3f} "
-                              f"({by[(p, d)]['frames_with_kidney']})" for d in presets
-                              if (p, d) in by)
-            print(f"  {p}: scan preset {preset * 1000:.0f} mm (kidney needs "
-                  f"{src.needed_depth() * 1000:.0f} mm): IoU {row.get('iou', float('nan')):.3f} "
-                  f"over {row.get('frames_with_kidney', 0)} frames (unshadowed "
-                  f"{row.get('iou_visible', float('nan')):.3f}); per preset: {cells}")
-            vh[p] = {"preset": preset, "needed_depth": _round(src.needed_depth()),
-                     "iou": _round(row.get("iou")),
-                     "frames_with_kidney": row.get("frames_with_kidney", 0),
-                     "iou_unshadowed": _round(row.get("iou_visible")),
-                     "false_positive_rate": _round(row.get("false_positive_rate")),
-                     "iou_by_depth": {f"{d:.2f}": _round(by[(p, d)]["iou"])
-                                      for d in presets if (p, d) in by}}
+            cells = "  ".join(
+                f"{d * 1000:.0f}mm {by[(p, d)]['iou']:.3f} ({by[(p, d)]['frames_with_kidney']})"
+                for d in presets
+                if (p, d) in by
+            )
+            print(
+                f"  {p}: scan preset {preset * 1000:.0f} mm (kidney needs "
+                f"{src.needed_depth() * 1000:.0f} mm): IoU {row.get('iou', float('nan')):.3f} "
+                f"over {row.get('frames_with_kidney', 0)} frames (unshadowed "
+                f"{row.get('iou_visible', float('nan')):.3f}); per preset: {cells}"
+            )
+            vh[p] = {
+                "preset": preset,
+                "needed_depth": _round(src.needed_depth()),
+                "iou": _round(row.get("iou")),
+                "frames_with_kidney": row.get("frames_with_kidney", 0),
+                "iou_unshadowed": _round(row.get("iou_visible")),
+                "false_positive_rate": _round(row.get("false_positive_rate")),
+                "iou_by_depth": {
+                    f"{d:.2f}": _round(by[(p, d)]["iou"]) for d in presets if (p, d) in by
+                },
+            }
     out["vh_female"] = vh or None
     out["vh_female_iou"] = {p: v["iou"] for p, v in vh.items()} or None
 
@@ -302,13 +382,18 @@ def depth_and_posture_study(cfg, args) -> dict:
     frames_by_depth = {}
     for d, (c, g, _) in segmenters.items():
         model = EmulatorModel.from_config(c, g)
-        frames_by_depth[d] = [emulate(slice_volume(g, src.volume, RigidTransform(), X), model,
-                                      0, i) for i, X in enumerate(poses)]
+        frames_by_depth[d] = [
+            emulate(slice_volume(g, src.volume, RigidTransform(), X), model, 0, i)
+            for i, X in enumerate(poses)
+        ]
     ms_model, ms_seg = _segment_speed(segmenters, frames_by_depth)
-    print("\nsegmenter speed (ms per frame, wall clock, "
-          f"{cfg.onnx_threads} ONNX thread(s)): resampling + model + back-mapping / whole call")
-    print("  " + "  ".join(f"{d * 1000:.0f}mm {ms_model[d]:.2f} / {ms_seg[d]:.2f}"
-                           for d in ms_model))
+    print(
+        "\nsegmenter speed (ms per frame, wall clock, "
+        f"{cfg.onnx_threads} ONNX thread(s)): resampling + model + back-mapping / whole call"
+    )
+    print(
+        "  " + "  ".join(f"{d * 1000:.0f}mm {ms_model[d]:.2f} / {ms_seg[d]:.2f}" for d in ms_model)
+    )
     out["ms_model_resample"] = {f"{d:.2f}": _round(v, 2) for d, v in ms_model.items()}
     out["ms_segment"] = {f"{d:.2f}": _round(v, 2) for d, v in ms_seg.items()}
     out["ms_model_resample_mean"] = _round(float(np.mean(list(ms_model.values()))), 2)

@@ -19,34 +19,44 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from benchmarks._scan_rows import scan_row
 from drake_rus.localization.localize import load_registration_template
 from drake_rus.paths import REPO_ROOT
 from drake_rus.scenario import LoadScenario
-
-from benchmarks._scan_rows import scan_row
 
 DEFAULT_BODIES = [REPO_ROOT.parent / "shared" / "anatomy" / "hubmap_vh_female"]
 FRESH_SEED_BASE = 5_000_000
 POSTURES = ("supine", "left_lateral_decubitus")
 
 
-def run_one(body, posture: str, scenario, template, out: Path | None,
-            max_sim_time: float) -> dict:
+def run_one(body, posture: str, scenario, template, out: Path | None, max_sim_time: float) -> dict:
     """One scan of a body (a path, or a spec like ``seed:N``); never raises (a failure is a
     row with its reason)."""
     name = body.name if isinstance(body, Path) else str(body)
 
     def fill(row, result, summary, s):
-        row.update(e_trans_mm=summary["e_trans_mm"], e_rot_x_deg=summary["e_rot_x_deg"],
-                   volume_ratio=summary["volume_ratio"], n_frames=summary["n_frames"],
-                   volume_ratio_whole_pivot=summary.get("volume_ratio_whole_pivot"),
-                   eps_mm=summary["eps_mm"], depth_preset_m=summary["image_depth_m"],
-                   start=summary["start"], sim_s=summary["sim_s"])
+        row.update(
+            e_trans_mm=summary["e_trans_mm"],
+            e_rot_x_deg=summary["e_rot_x_deg"],
+            volume_ratio=summary["volume_ratio"],
+            n_frames=summary["n_frames"],
+            volume_ratio_whole_pivot=summary.get("volume_ratio_whole_pivot"),
+            eps_mm=summary["eps_mm"],
+            depth_preset_m=summary["image_depth_m"],
+            start=summary["start"],
+            sim_s=summary["sim_s"],
+        )
 
-    return scan_row({"body": name, "posture": posture}, str(body), scenario,
-                    "{patient: {posture: %s}}" % posture, template, max_sim_time,
-                    out=None if out is None else out / f"{name.replace(':', '_')}_{posture}",
-                    fill=fill)
+    return scan_row(
+        {"body": name, "posture": posture},
+        str(body),
+        scenario,
+        "{patient: {posture: %s}}" % posture,
+        template,
+        max_sim_time,
+        out=None if out is None else out / f"{name.replace(':', '_')}_{posture}",
+        fill=fill,
+    )
 
 
 def _fmt(v, spec):
@@ -54,19 +64,31 @@ def _fmt(v, spec):
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks real_anatomy",
-                                     description=__doc__)
-    parser.add_argument("--patients", nargs="+", default=[str(p) for p in DEFAULT_BODIES],
-                        help="real bodies: patient folders or label maps")
+    parser = argparse.ArgumentParser(prog="python -m benchmarks real_anatomy", description=__doc__)
+    parser.add_argument(
+        "--patients",
+        nargs="+",
+        default=[str(p) for p in DEFAULT_BODIES],
+        help="real bodies: patient folders or label maps",
+    )
     parser.add_argument("--postures", nargs="+", default=list(POSTURES), choices=POSTURES)
     parser.add_argument("--scenario", default="default")
     parser.add_argument("--set", dest="overrides", default=None, help="YAML overrides")
     parser.add_argument("--max-sim-time", type=float, default=120.0)
     parser.add_argument("--out", default=None, help="also write each scan's outputs here")
-    parser.add_argument("--fresh-seeds", type=int, default=0,
-                        help="also scan this many never-seen generated patients")
-    parser.add_argument("--fresh-postures", nargs="+", default=["supine"], choices=POSTURES,
-                        help="postures of the fresh generated patients (default: supine)")
+    parser.add_argument(
+        "--fresh-seeds",
+        type=int,
+        default=0,
+        help="also scan this many never-seen generated patients",
+    )
+    parser.add_argument(
+        "--fresh-postures",
+        nargs="+",
+        default=["supine"],
+        choices=POSTURES,
+        help="postures of the fresh generated patients (default: supine)",
+    )
     args = parser.parse_args(argv)
     bodies = [Path(p) for p in args.patients]
     missing = [str(p) for p in bodies if not p.exists()]
@@ -81,30 +103,58 @@ def main(argv=None) -> int:
         print(f"--fresh-seeds: expected 0 or more, got {args.fresh_seeds}")
         return 2
     jobs = [(b, p) for b in bodies for p in args.postures]
-    jobs += [(f"seed:{FRESH_SEED_BASE + k}", p) for p in args.fresh_postures
-             for k in range(args.fresh_seeds)]
+    jobs += [
+        (f"seed:{FRESH_SEED_BASE + k}", p)
+        for p in args.fresh_postures
+        for k in range(args.fresh_seeds)
+    ]
     for body, posture in tqdm(jobs, desc="real bodies", unit="scan"):
         row = run_one(body, posture, scenario, template, out, args.max_sim_time)
         rows.append(row)
         tqdm.write(f"{row['body']} {posture}: {row['status']} {row.get('reason', '')}")
     # V: pole to pole (the paper's); V all: over the whole pivot (both legs).
-    print(f"{'body':28s} {'posture':24s} {'status':7s} {'E_trans mm':>10s} "
-          f"{'E_rot,x deg':>11s} {'V':>6s} {'V all':>6s} {'depth':>6s}  reason")
+    print(
+        f"{'body':28s} {'posture':24s} {'status':7s} {'E_trans mm':>10s} "
+        f"{'E_rot,x deg':>11s} {'V':>6s} {'V all':>6s} {'depth':>6s}  reason"
+    )
     for r in rows:
-        print(f"{r['body']:28s} {r['posture']:24s} {r['status']:7s} "
-              f"{_fmt(r.get('e_trans_mm'), '10.2f')} {_fmt(r.get('e_rot_x_deg'), '11.2f')} "
-              f"{_fmt(r.get('volume_ratio'), '6.3f')} "
-              f"{_fmt(r.get('volume_ratio_whole_pivot'), '6.3f')} "
-              f"{_fmt(r.get('depth_preset_m'), '6.2f')}  {r.get('reason', '')}")
+        print(
+            f"{r['body']:28s} {r['posture']:24s} {r['status']:7s} "
+            f"{_fmt(r.get('e_trans_mm'), '10.2f')} {_fmt(r.get('e_rot_x_deg'), '11.2f')} "
+            f"{_fmt(r.get('volume_ratio'), '6.3f')} "
+            f"{_fmt(r.get('volume_ratio_whole_pivot'), '6.3f')} "
+            f"{_fmt(r.get('depth_preset_m'), '6.2f')}  {r.get('reason', '')}"
+        )
     fresh = [r for r in rows if r["body"].startswith("seed:")]
-    print(json.dumps({
-        "scans": [{k: r.get(k) for k in (
-            "body", "posture", "status", "reason", "e_trans_mm", "e_rot_x_deg", "volume_ratio",
-            "volume_ratio_whole_pivot", "depth_preset_m", "wall_s")} for r in rows],
-        "fresh_seeds_done": sum(r["status"] == "DONE" for r in fresh),
-        "fresh_seeds": len(fresh),
-        "fresh_seeds_done_by_posture": {p: sum(r["status"] == "DONE" for r in fresh
-                                               if r["posture"] == p)
-                                        for p in args.fresh_postures},
-        "errors": sum(r["status"] == "ERROR" for r in rows)}))
+    print(
+        json.dumps(
+            {
+                "scans": [
+                    {
+                        k: r.get(k)
+                        for k in (
+                            "body",
+                            "posture",
+                            "status",
+                            "reason",
+                            "e_trans_mm",
+                            "e_rot_x_deg",
+                            "volume_ratio",
+                            "volume_ratio_whole_pivot",
+                            "depth_preset_m",
+                            "wall_s",
+                        )
+                    }
+                    for r in rows
+                ],
+                "fresh_seeds_done": sum(r["status"] == "DONE" for r in fresh),
+                "fresh_seeds": len(fresh),
+                "fresh_seeds_done_by_posture": {
+                    p: sum(r["status"] == "DONE" for r in fresh if r["posture"] == p)
+                    for p in args.fresh_postures
+                },
+                "errors": sum(r["status"] == "ERROR" for r in rows),
+            }
+        )
+    )
     return 0

@@ -33,11 +33,19 @@ from drake_rus.anatomy.cohort import cohort_seeds
 from drake_rus.anatomy.generator import sample_patient_params
 from drake_rus.anatomy.kidney_shape import KidneyShape
 from drake_rus.io_utils import dumps_strict
-from drake_rus.template.ct import (DEFAULT_CT_DIR, MIN_FRAME_MARGIN, CtTemplateOptions,
-                                   ct_template,
-                                   find_label_maps, kidney_masks, match_cases,
-                                   principal_extents, subject_from_ct_kidney, template_distance)
 from drake_rus.template.builder import subject_from_mesh
+from drake_rus.template.ct import (
+    DEFAULT_CT_DIR,
+    MIN_FRAME_MARGIN,
+    CtTemplateOptions,
+    ct_template,
+    find_label_maps,
+    kidney_masks,
+    match_cases,
+    principal_extents,
+    subject_from_ct_kidney,
+    template_distance,
+)
 from drake_rus.template.io import DEFAULT_TEMPLATE_PATH, load_template
 
 
@@ -65,23 +73,40 @@ def real_test_kidneys(ct_dir: Path, cases, log) -> list[dict]:
             continue
         for k in kidneys:
             margin = k.frame.get("margin", np.inf)
-            why = k.cut or k.anomaly or (
-                f"body frame uncertain (margin {margin:.2f})" if margin < MIN_FRAME_MARGIN
-                else "")
+            why = (
+                k.cut
+                or k.anomaly
+                or (
+                    f"body frame uncertain (margin {margin:.2f})"
+                    if margin < MIN_FRAME_MARGIN
+                    else ""
+                )
+            )
             if why:
                 log(f"  {k.name}: skipped ({why})")
                 continue
             pts = subject_from_ct_kidney(k, "include", mirror=(k.side == "left")).points
-            out.append({"name": k.name, "side": k.side, "points": pts,
-                        "tumour_fraction": k.tumour_fraction, "volume_ml": k.volume_ml})
+            out.append(
+                {
+                    "name": k.name,
+                    "side": k.side,
+                    "points": pts,
+                    "tumour_fraction": k.tumour_fraction,
+                    "volume_ml": k.volume_ml,
+                }
+            )
     return out
 
 
 def _stats(values) -> dict:
     v = np.asarray(values, float)
-    return {"n": int(len(v)), "mean": round(float(v.mean()), 2),
-            "sd": round(float(v.std(ddof=1)), 2) if len(v) > 1 else 0.0,
-            "min": round(float(v.min()), 2), "max": round(float(v.max()), 2)}
+    return {
+        "n": int(len(v)),
+        "mean": round(float(v.mean()), 2),
+        "sd": round(float(v.std(ddof=1)), 2) if len(v) > 1 else 0.0,
+        "min": round(float(v.min()), 2),
+        "max": round(float(v.max()), 2),
+    }
 
 
 def _fmt(s: dict) -> str:
@@ -92,12 +117,17 @@ def plot_convergence_pair(real, generated, path: Path) -> Path:
     """Fig. 3d for both templates: mean per-point distance of the template of the first n
     subjects to that of all N."""
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     from drake_rus.io_utils import save_figure
+
     fig, ax = plt.subplots(figsize=(5.5, 3.6))
-    for t, label, style in ((real, "real CT kidneys", "o-"),
-                            (generated, "generated kidneys (shipped)", "s--")):
+    for t, label, style in (
+        (real, "real CT kidneys", "o-"),
+        (generated, "generated kidneys (shipped)", "s--"),
+    ):
         c = t.convergence
         if c:
             ax.plot(c["n"], np.asarray(c["to_final"]) * 1e3, style, ms=4, label=label)
@@ -112,18 +142,25 @@ def plot_convergence_pair(real, generated, path: Path) -> Path:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks real_template",
-                                     description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--cases", default=str(DEFAULT_CT_DIR),
-                        help="folder of CT label maps (KiTS layout)")
-    parser.add_argument("--test", default="0-39",
-                        help="test cases: never used to build, measured (default 0-39)")
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks real_template",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument(
+        "--cases", default=str(DEFAULT_CT_DIR), help="folder of CT label maps (KiTS layout)"
+    )
+    parser.add_argument(
+        "--test", default="0-39", help="test cases: never used to build, measured (default 0-39)"
+    )
     parser.add_argument("--n", type=int, default=20, help="kidneys in the real template")
     parser.add_argument("--side", default="right", choices=["right", "left", "both"])
-    parser.add_argument("--policies", default="exclude",
-                        help="tumour policies to build and measure, comma-separated "
-                             "(exclude, include, mask; default exclude)")
+    parser.add_argument(
+        "--policies",
+        default="exclude",
+        help="tumour policies to build and measure, comma-separated "
+        "(exclude, include, mask; default exclude)",
+    )
     parser.add_argument("--out", default=None, help="folder for the plots")
     args, _ = parser.parse_known_args(argv)
     ct_dir = Path(args.cases).expanduser()
@@ -148,15 +185,20 @@ def main(argv=None) -> int:
         t = load_template(path)
         templates[f"real:{policy}"] = t
         builds[f"real:{policy}"] = {
-            "path": str(path), "cases": t.meta["cases"], "n_subjects": t.meta["n_subjects"],
-            "build_s_first": t.meta.get("total_seconds"), "this_call_s": round(wall, 1),
+            "path": str(path),
+            "cases": t.meta["cases"],
+            "n_subjects": t.meta["n_subjects"],
+            "build_s_first": t.meta.get("total_seconds"),
+            "this_call_s": round(wall, 1),
             "subject_extent_mm": t.meta.get("subject_extent_mm"),
             "convergence_to_final_mm": [round(v * 1e3, 2) for v in t.convergence["to_final"]],
-            "convergence_change_mm": [None if not np.isfinite(v) else round(v * 1e3, 2)
-                                      for v in t.convergence["change"]],
+            "convergence_change_mm": [
+                None if not np.isfinite(v) else round(v * 1e3, 2) for v in t.convergence["change"]
+            ],
             "n_modes": int(len(t.variances)),
             "mode_sd_mm": [round(float(np.sqrt(v)) * 1e3, 2) for v in t.variances[:5]],
-            "frame_min_margin": t.meta.get("frame", {}).get("min_margin")}
+            "frame_min_margin": t.meta.get("frame", {}).get("min_margin"),
+        }
         used = set(t.meta["cases"]) & set(test)
         if used:
             raise AssertionError(f"test cases {sorted(used)} built the template")
@@ -171,46 +213,75 @@ def main(argv=None) -> int:
         d_healthy = [d for d, k in zip(d_real, real) if k["tumour_fraction"] == 0]
         d_tumour = [d for d, k in zip(d_real, real) if k["tumour_fraction"] > 0]
         d_gen = [template_distance(p, t.points) * 1e3 for _, p in gen]
-        rows[name] = {"extent_mm": (principal_extents(t.points) * 1e3).round(1).tolist(),
-                      "real_kidneys_mm": _stats(d_real),
-                      "real_healthy_mm": _stats(d_healthy) if d_healthy else None,
-                      "real_with_tumour_mm": _stats(d_tumour) if d_tumour else None,
-                      "generated_kidneys_mm": _stats(d_gen),
-                      "per_kidney_mm": {k["name"]: round(d, 2) for k, d in zip(real, d_real)}}
+        rows[name] = {
+            "extent_mm": (principal_extents(t.points) * 1e3).round(1).tolist(),
+            "real_kidneys_mm": _stats(d_real),
+            "real_healthy_mm": _stats(d_healthy) if d_healthy else None,
+            "real_with_tumour_mm": _stats(d_tumour) if d_tumour else None,
+            "generated_kidneys_mm": _stats(d_gen),
+            "per_kidney_mm": {k["name"]: round(d, 2) for k, d in zip(real, d_real)},
+        }
     ext_real = np.array([principal_extents(k["points"]) for k in real]) * 1e3
     ext_gen = np.array([principal_extents(p) for _, p in gen]) * 1e3
     print()
-    print(f"{len(real)} real kidneys of {len(test)} test cases ({sum(k['tumour_fraction'] > 0 for k in real)} "
-          f"with tumour), {len(gen)} generated test kidneys")
-    print(f"real kidneys' extents:      {ext_real.mean(0).round(0)} +- "
-          f"{ext_real.std(0, ddof=1).round(0)} mm")
-    print(f"generated kidneys' extents: {ext_gen.mean(0).round(0)} +- "
-          f"{ext_gen.std(0, ddof=1).round(0)} mm")
+    print(
+        f"{len(real)} real kidneys of {len(test)} test cases "
+        f"({sum(k['tumour_fraction'] > 0 for k in real)} with tumour), "
+        f"{len(gen)} generated test kidneys"
+    )
+    print(
+        f"real kidneys' extents:      {ext_real.mean(0).round(0)} +- "
+        f"{ext_real.std(0, ddof=1).round(0)} mm"
+    )
+    print(
+        f"generated kidneys' extents: {ext_gen.mean(0).round(0)} +- "
+        f"{ext_gen.std(0, ddof=1).round(0)} mm"
+    )
     print(f"{'template':16s} {'extent (mm)':22s} {'real kidneys':36s} {'generated kidneys':36s}")
     for name, r in rows.items():
-        print(f"{name:16s} {str(r['extent_mm']):22s} {_fmt(r['real_kidneys_mm']):36s} "
-              f"{_fmt(r['generated_kidneys_mm']):36s}")
+        print(
+            f"{name:16s} {str(r['extent_mm']):22s} {_fmt(r['real_kidneys_mm']):36s} "
+            f"{_fmt(r['generated_kidneys_mm']):36s}"
+        )
         if r["real_healthy_mm"] and r["real_with_tumour_mm"]:
-            print(f"{'':16s} {'':22s} healthy {_fmt(r['real_healthy_mm'])}; with tumour "
-                  f"{_fmt(r['real_with_tumour_mm'])}")
+            print(
+                f"{'':16s} {'':22s} healthy {_fmt(r['real_healthy_mm'])}; with tumour "
+                f"{_fmt(r['real_with_tumour_mm'])}"
+            )
     for name, b in builds.items():
-        print(f"{name}: {b['n_subjects']} kidneys of {b['cases'][0]}..{b['cases'][-1]}, first "
-              f"build {b['build_s_first']} s; convergence (to all N, mm): "
-              f"{b['convergence_to_final_mm']}")
+        print(
+            f"{name}: {b['n_subjects']} kidneys of {b['cases'][0]}..{b['cases'][-1]}, first "
+            f"build {b['build_s_first']} s; convergence (to all N, mm): "
+            f"{b['convergence_to_final_mm']}"
+        )
     if args.out:
         out = Path(args.out)
         first = next(k for k in templates if k.startswith("real:"))
-        png = plot_convergence_pair(templates[first], generated,
-                                    out / "real_template_convergence.png")
+        png = plot_convergence_pair(
+            templates[first], generated, out / "real_template_convergence.png"
+        )
         print(f"wrote {png}")
-    print(dumps_strict({"ct_dir": str(ct_dir), "test_cases": [test[0], test[-1]],
-                        "n_real_kidneys": len(real), "n_generated_kidneys": len(gen),
-                        "real_extent_mm": {"mean": ext_real.mean(0).round(1).tolist(),
-                                           "sd": ext_real.std(0, ddof=1).round(1).tolist()},
-                        "generated_extent_mm": {"mean": ext_gen.mean(0).round(1).tolist(),
-                                                "sd": ext_gen.std(0, ddof=1).round(1).tolist()},
-                        "templates": rows, "builds": builds,
-                        "measure_s": round(measure_s, 1)}))
+    print(
+        dumps_strict(
+            {
+                "ct_dir": str(ct_dir),
+                "test_cases": [test[0], test[-1]],
+                "n_real_kidneys": len(real),
+                "n_generated_kidneys": len(gen),
+                "real_extent_mm": {
+                    "mean": ext_real.mean(0).round(1).tolist(),
+                    "sd": ext_real.std(0, ddof=1).round(1).tolist(),
+                },
+                "generated_extent_mm": {
+                    "mean": ext_gen.mean(0).round(1).tolist(),
+                    "sd": ext_gen.std(0, ddof=1).round(1).tolist(),
+                },
+                "templates": rows,
+                "builds": builds,
+                "measure_s": round(measure_s, 1),
+            }
+        )
+    )
     return 0
 
 

@@ -68,6 +68,7 @@ def floor_rtf(scenario, duration: float = 5.0) -> dict:
     geometry, no Python systems."""
     from drake_rus.robot import AddFr3AndProbe
     from drake_rus.station import _plant_config
+
     builder = DiagramBuilder()
     plant, _ = AddMultibodyPlant(_plant_config(scenario), builder)
     parts = AddFr3AndProbe(plant, scenario.robot, scenario.probe)
@@ -81,14 +82,17 @@ def floor_rtf(scenario, duration: float = 5.0) -> dict:
     simulator.Initialize()
     start, cpu = time.perf_counter(), time.process_time()
     simulator.AdvanceTo(duration)
-    return {"rtf": duration / (time.perf_counter() - start),
-            "rtf_cpu": duration / (time.process_time() - cpu)}
+    return {
+        "rtf": duration / (time.perf_counter() - start),
+        "rtf_cpu": duration / (time.process_time() - cpu),
+    }
 
 
 def free_station_rtf(scenario, duration: float) -> dict:
     """Real-time rates (wall, CPU) of the simulated station in free motion (benchmarks.
     station's joint-velocity sine, no contact, no controller)."""
     from benchmarks.station import _free_run
+
     cpu = time.process_time()
     out = _free_run(scenario, duration)
     # _free_run times AdvanceTo only; the CPU figure here includes the (small) build.
@@ -99,6 +103,7 @@ def free_station_rtf(scenario, duration: float) -> dict:
 def _load(patient_name, scenario):
     from drake_rus.anatomy import load_patient
     from drake_rus.localization.localize import load_registration_template
+
     patient = load_patient(patient_name)
     _ = patient.labels
     return patient, load_registration_template(scenario.localization.template)
@@ -108,6 +113,7 @@ def run_one(scenario, patient_name: str) -> dict:
     """One scan: rate, set-up time, outcome, metrics and force-trace statistics."""
     from drake_rus.scan import RunScan, ScanMetrics, Summary
     from drake_rus.scan.truth import force_trace_stats
+
     start = time.perf_counter()
     patient, template = _load(patient_name, scenario)
     loaded = time.perf_counter()
@@ -115,9 +121,12 @@ def run_one(scenario, patient_name: str) -> dict:
     total = time.perf_counter() - loaded
     summary = Summary(result, ScanMetrics(result))
     out = {
-        "patient": patient_name, "time_step": scenario.contact.time_step,
-        "status": summary["status"], "reason": result.reason,
-        "scan_sim_s": round(result.sim_s, 3), "scan_wall_s": round(result.wall_s, 3),
+        "patient": patient_name,
+        "time_step": scenario.contact.time_step,
+        "status": summary["status"],
+        "reason": result.reason,
+        "scan_sim_s": round(result.sim_s, 3),
+        "scan_wall_s": round(result.wall_s, 3),
         "rtf_scan": round(result.sim_s / result.wall_s, 3),
         "scan_cpu_s": round(result.cpu_s, 3),
         "rtf_scan_cpu": round(result.sim_s / result.cpu_s, 3),
@@ -125,11 +134,13 @@ def run_one(scenario, patient_name: str) -> dict:
         "phases": {p["phase"]: round(p["duration_s"], 2) for p in summary["phases"]},
         "pivot_frames_pole_to_pole": summary.get("n_frames"),
         "pivot_frames_whole_pivot": summary.get("n_whole_pivot"),
-        "volume_ratio": summary["volume_ratio"], "e_trans_mm": summary["e_trans_mm"],
+        "volume_ratio": summary["volume_ratio"],
+        "e_trans_mm": summary["e_trans_mm"],
         "e_rot_x_deg": summary["e_rot_x_deg"],
     }
-    out.update({k: (None if v is None else round(v, 4))
-                for k, v in force_trace_stats(result).items()})
+    out.update(
+        {k: (None if v is None else round(v, 4)) for k, v in force_trace_stats(result).items()}
+    )
     return out
 
 
@@ -138,6 +149,7 @@ def _leaf_system_classes() -> set:
     import drake_rus.scan.diagram  # noqa: F401  (imports the systems)
     import drake_rus.scan.run  # noqa: F401
     import drake_rus.station  # noqa: F401
+
     names, todo = set(), [LeafSystem]
     while todo:
         cls = todo.pop()
@@ -149,9 +161,16 @@ def _leaf_system_classes() -> set:
 
 
 PLANT = "plant step and contact solves (native)"
-_PLANT_FRAMES = ("MultibodyPlant<double>::CalcStep", "DiscreteUpdateManager",
-                 "CompliantContactManager", "SapDriver", "ContactResults",
-                 "GeometryContactData", "ContactSurface", "PointPairPenetration")
+_PLANT_FRAMES = (
+    "MultibodyPlant<double>::CalcStep",
+    "DiscreteUpdateManager",
+    "CompliantContactManager",
+    "SapDriver",
+    "ContactResults",
+    "GeometryContactData",
+    "ContactSurface",
+    "PointPairPenetration",
+)
 
 
 def summarise_profile(raw_path: Path, classes: set) -> dict:
@@ -185,9 +204,10 @@ def summarise_profile(raw_path: Path, classes: set) -> dict:
         if owner is None:
             owner = "Drake framework (events, caches, C++ systems, loggers)"
         shares[owner] += n
-    return {"loop_samples": loop,
-            "share_percent": {k: round(100.0 * v / max(loop, 1), 1)
-                              for k, v in shares.most_common()}}
+    return {
+        "loop_samples": loop,
+        "share_percent": {k: round(100.0 * v / max(loop, 1), 1) for k, v in shares.most_common()},
+    }
 
 
 def profile_run(args) -> dict | None:
@@ -201,11 +221,30 @@ def profile_run(args) -> dict | None:
         # milliseconds per sample; at 200/s a scan took 26 min under py-spy on an AMD EPYC
         # host (6.8 s unprofiled); at 100/s it takes about 40 s and gives about 4,000
         # samples in the loop (at 50/s: 10 s, but only 503 samples, shares +-2%).
-        cmd = [spy, "record", "--native", "-r", str(PROFILE_RATE_HZ), "-f", "raw", "-o",
-               str(raw), "--",
-               sys.executable, "-m", "benchmarks", "scan", "--patient", args.patient,
-               "--scenario", args.scenario, "--set", args.set, "--no-profile",
-               "--no-reference"]
+        cmd = [
+            spy,
+            "record",
+            "--native",
+            "-r",
+            str(PROFILE_RATE_HZ),
+            "-f",
+            "raw",
+            "-o",
+            str(raw),
+            "--",
+            sys.executable,
+            "-m",
+            "benchmarks",
+            "scan",
+            "--patient",
+            args.patient,
+            "--scenario",
+            args.scenario,
+            "--set",
+            args.set,
+            "--no-profile",
+            "--no-reference",
+        ]
         proc = subprocess.run(cmd, capture_output=True, text=True)
         if proc.returncode != 0 or not raw.exists():
             return {"skipped": f"py-spy failed: {proc.stderr.strip()[-300:]}"}
@@ -217,14 +256,14 @@ def cli_start_time(patient: str, scenario: str, overrides: str) -> dict:
     progress bar's first line on stderr), in a fresh process; the run is then stopped."""
     exe = Path(sys.executable).parent / "drake-rus"
     with tempfile.TemporaryDirectory() as tmp:
-        cmd = [str(exe), "scan", "--patient", patient, "--scenario", scenario,
-               "--out", tmp]
+        cmd = [str(exe), "scan", "--patient", patient, "--scenario", scenario, "--out", tmp]
         if overrides and overrides != "{}":
             cmd += ["--set", overrides]
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         start = time.perf_counter()
-        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                                env=env, text=True, bufsize=1)
+        proc = subprocess.Popen(
+            cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, text=True, bufsize=1
+        )
         first = None
         buffer = ""
         while True:
@@ -239,24 +278,32 @@ def cli_start_time(patient: str, scenario: str, overrides: str) -> dict:
                 break
         proc.kill()
         proc.wait()
-    return {"cli_first_step_s": None if first is None else round(first, 2),
-            "cli_stderr_tail": None if first is not None else buffer[-300:]}
+    return {
+        "cli_first_step_s": None if first is None else round(first, 2),
+        "cli_stderr_tail": None if first is not None else buffer[-300:],
+    }
 
 
 def check_against_reference(row: dict, ref: dict) -> dict:
     """Issue 16's tolerances for one run against the 1 ms reference run."""
+
     def close(value, target, tol):
         return value is not None and abs(value - target) <= tol
+
     checks = {
         "explore_force": close(row["explore_mean_n"], FORCE_TARGET_N, FORCE_TOL_N)
-        and row["explore_ripple_n"] is not None and row["explore_ripple_n"] <= FORCE_TOL_N,
+        and row["explore_ripple_n"] is not None
+        and row["explore_ripple_n"] <= FORCE_TOL_N,
         "pivot_force": close(row["pivot_mean_n"], FORCE_TARGET_N, FORCE_TOL_N)
-        and row["pivot_ripple_n"] is not None and row["pivot_ripple_n"] <= FORCE_TOL_N,
+        and row["pivot_ripple_n"] is not None
+        and row["pivot_ripple_n"] <= FORCE_TOL_N,
         "landing_peak": row["landing_peak_n"] is not None
         and row["landing_peak_n"] < LANDING_PEAK_MAX_N,
-        "e_trans": row["e_trans_mm"] is not None and ref["e_trans_mm"] is not None
+        "e_trans": row["e_trans_mm"] is not None
+        and ref["e_trans_mm"] is not None
         and abs(row["e_trans_mm"] - ref["e_trans_mm"]) <= E_TRANS_TOL_MM,
-        "volume_ratio": row["volume_ratio"] is not None and ref["volume_ratio"] is not None
+        "volume_ratio": row["volume_ratio"] is not None
+        and ref["volume_ratio"] is not None
         and abs(row["volume_ratio"] - ref["volume_ratio"]) <= V_TOL,
         "status": row["status"] == ref["status"],
     }
@@ -267,7 +314,8 @@ def check_against_reference(row: dict, ref: dict) -> dict:
 def validate(args, base) -> dict:
     """Every step of ``--steps`` on every patient of ``--patients``, against the first step."""
     from drake_rus.scan import truth
-    truth.FORCE_LOG_PERIOD = args.force_log_period   # fine enough for the landing peak
+
+    truth.FORCE_LOG_PERIOD = args.force_log_period  # fine enough for the landing peak
     steps = [float(s) for s in args.steps.split(",")]
     rows = []
     verdict = {}
@@ -281,17 +329,23 @@ def validate(args, base) -> dict:
                 ref = row
             row["checks"] = check_against_reference(row, ref)
             if ref is not row:
-                row["d_e_trans_mm"] = (None if row["e_trans_mm"] is None or ref["e_trans_mm"]
-                                       is None else round(row["e_trans_mm"]
-                                                          - ref["e_trans_mm"], 3))
-                row["d_volume_ratio"] = (None if row["volume_ratio"] is None or
-                                         ref["volume_ratio"] is None else
-                                         round(row["volume_ratio"] - ref["volume_ratio"], 4))
+                row["d_e_trans_mm"] = (
+                    None
+                    if row["e_trans_mm"] is None or ref["e_trans_mm"] is None
+                    else round(row["e_trans_mm"] - ref["e_trans_mm"], 3)
+                )
+                row["d_volume_ratio"] = (
+                    None
+                    if row["volume_ratio"] is None or ref["volume_ratio"] is None
+                    else round(row["volume_ratio"] - ref["volume_ratio"], 4)
+                )
             print(json.dumps(row), flush=True)
             rows.append(row)
             verdict.setdefault(step, []).append(row["checks"]["all"])
-    return {"validate": rows, "steps_passing_all_patients":
-            [s for s, ok in verdict.items() if all(ok)]}
+    return {
+        "validate": rows,
+        "steps_passing_all_patients": [s for s, ok in verdict.items() if all(ok)],
+    }
 
 
 def main(argv=None) -> int:
@@ -299,20 +353,34 @@ def main(argv=None) -> int:
     parser.add_argument("--patient", default="test:0")
     parser.add_argument("--scenario", default="default")
     parser.add_argument("--set", default="{}", help="scenario overrides (YAML mapping)")
-    parser.add_argument("--no-profile", action="store_true",
-                        help="skip the per-system profile (a second run under py-spy)")
-    parser.add_argument("--no-reference", action="store_true",
-                        help="skip the floor and free-station reference runs")
-    parser.add_argument("--cli-start", action="store_true",
-                        help="also time `drake-rus scan` to its first simulated step")
-    parser.add_argument("--validate", action="store_true",
-                        help="compare plant steps (--steps) on --patients with the first")
+    parser.add_argument(
+        "--no-profile",
+        action="store_true",
+        help="skip the per-system profile (a second run under py-spy)",
+    )
+    parser.add_argument(
+        "--no-reference", action="store_true", help="skip the floor and free-station reference runs"
+    )
+    parser.add_argument(
+        "--cli-start",
+        action="store_true",
+        help="also time `drake-rus scan` to its first simulated step",
+    )
+    parser.add_argument(
+        "--validate",
+        action="store_true",
+        help="compare plant steps (--steps) on --patients with the first",
+    )
     parser.add_argument("--steps", default="0.001,0.002,0.005,0.01")
     parser.add_argument("--patients", default="test:0,test:1,test:2")
     parser.add_argument("--force-log-period", type=float, default=0.005)
-    parser.add_argument("--repeat", type=int, default=1,
-                        help="run the scan this many times; report every run's rates and "
-                             "their median (the host's speed drifts between runs)")
+    parser.add_argument(
+        "--repeat",
+        type=int,
+        default=1,
+        help="run the scan this many times; report every run's rates and "
+        "their median (the host's speed drifts between runs)",
+    )
     args = parser.parse_args(argv)
     if args.repeat < 1:
         parser.error(f"--repeat: expected a whole number >= 1, got {args.repeat}")
@@ -324,15 +392,18 @@ def main(argv=None) -> int:
         out["load_after"] = [round(x, 2) for x in os.getloadavg()]
         print(json.dumps(out))
         return 0
-    out = {"scenario": args.scenario, "overrides": args.set,
-           "time_step": base.contact.time_step}
+    out = {"scenario": args.scenario, "overrides": args.set, "time_step": base.contact.time_step}
     if not args.no_reference:
         floor = floor_rtf(base, 20.0)
         free = free_station_rtf(base, 20.0)
-        out.update({"rtf_floor": round(floor["rtf"], 3),
-                    "rtf_floor_cpu": round(floor["rtf_cpu"], 3),
-                    "rtf_free_station": round(free["rtf"], 3),
-                    "rtf_free_station_cpu": round(free["rtf_cpu"], 3)})
+        out.update(
+            {
+                "rtf_floor": round(floor["rtf"], 3),
+                "rtf_floor_cpu": round(floor["rtf_cpu"], 3),
+                "rtf_free_station": round(free["rtf"], 3),
+                "rtf_free_station_cpu": round(free["rtf_cpu"], 3),
+            }
+        )
     scan = run_one(base, args.patient)
     out.update(scan)
     if args.repeat > 1:
@@ -343,8 +414,7 @@ def main(argv=None) -> int:
     if not args.no_reference:
         out["ratio_scan_to_floor"] = round(scan["rtf_scan"] / out["rtf_floor"], 3)
         out["ratio_scan_to_floor_cpu"] = round(scan["rtf_scan_cpu"] / out["rtf_floor_cpu"], 3)
-        out["ratio_scan_to_free_station"] = round(scan["rtf_scan"] / out["rtf_free_station"],
-                                                  3)
+        out["ratio_scan_to_free_station"] = round(scan["rtf_scan"] / out["rtf_free_station"], 3)
     if args.cli_start:
         out.update(cli_start_time(args.patient, args.scenario, args.set))
     if not args.no_profile:

@@ -21,9 +21,9 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import Sine
 
+from drake_rus.closed_loop import PressDiagram
 from drake_rus.control.force_loop import force_statistics
 from drake_rus.scenario import ApplyOverrides, LoadScenario
-from drake_rus.closed_loop import PressDiagram
 from drake_rus.stations import MakeStation
 
 
@@ -43,10 +43,15 @@ def _press_run(scenario, duration: float) -> dict:
     error = float(np.mean(np.abs(F_est[hold] - F_true[hold]))) if hold.any() else None
     t_true, F_all = press.true_force(simulator.get_context())
     stats = force_statistics(t_true, F_all, scenario.controller.desired_force, duration / 2)
-    return {"rtf": duration / wall, "force_error_n": error,
-            "final_force_n": float(F_true[-1]), "contact_fraction": float(contact.mean()),
-            "hold_mean_n": stats["mean_n"], "hold_ripple_n": stats["ripple_n"],
-            "settled": stats["settled"]}
+    return {
+        "rtf": duration / wall,
+        "force_error_n": error,
+        "final_force_n": float(F_true[-1]),
+        "contact_fraction": float(contact.mean()),
+        "hold_mean_n": stats["mean_n"],
+        "hold_ripple_n": stats["ripple_n"],
+        "settled": stats["settled"],
+    }
 
 
 def _free_run(scenario, duration: float) -> dict:
@@ -67,8 +72,9 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks station")
     parser.add_argument("--duration", type=float, default=10.0, help="simulated seconds per run")
     parser.add_argument("--scenario", default="default")
-    parser.add_argument("--sweep", action="store_true",
-                        help="also time a grid of patient/probe resolution hints")
+    parser.add_argument(
+        "--sweep", action="store_true", help="also time a grid of patient/probe resolution hints"
+    )
     args = parser.parse_args(argv)
     scenario = LoadScenario(scenario_name=args.scenario)
     hydro = _press_run(ApplyOverrides(scenario, "{contact: {model: hydroelastic}}"), args.duration)
@@ -86,7 +92,8 @@ def main(argv=None) -> int:
         "final_force_point_n": round(point["final_force_n"], 3),
         "hold_ripple_hydroelastic_n": hydro["hold_ripple_n"],
         "hold_ripple_point_n": point["hold_ripple_n"],
-        "settled_hydroelastic": hydro["settled"], "settled_point": point["settled"],
+        "settled_hydroelastic": hydro["settled"],
+        "settled_point": point["settled"],
         "patient_resolution_hint_m": scenario.contact.patient_resolution_hint,
         "probe_resolution_hint_m": scenario.contact.probe_resolution_hint,
         "discrete_contact_approximation": scenario.contact.discrete_contact_approximation,
@@ -96,13 +103,20 @@ def main(argv=None) -> int:
         sweep = []
         for patient_hint in (0.03, 0.06, 0.1):
             for probe_hint in (0.01, 0.02, 0.03):
-                s = ApplyOverrides(scenario, "{contact: {model: hydroelastic, "
-                                   f"patient_resolution_hint: {patient_hint}, "
-                                   f"probe_resolution_hint: {probe_hint}}}}}")
+                s = ApplyOverrides(
+                    scenario,
+                    "{contact: {model: hydroelastic, "
+                    f"patient_resolution_hint: {patient_hint}, "
+                    f"probe_resolution_hint: {probe_hint}}}}}",
+                )
                 r = _press_run(s, min(args.duration, 5.0))
-                row = {"patient_hint": patient_hint, "probe_hint": probe_hint,
-                       "rtf": round(r["rtf"], 2), "ratio_to_free": round(r["rtf"] / free["rtf"], 3),
-                       "force_error_n": r["force_error_n"]}
+                row = {
+                    "patient_hint": patient_hint,
+                    "probe_hint": probe_hint,
+                    "rtf": round(r["rtf"], 2),
+                    "ratio_to_free": round(r["rtf"] / free["rtf"], 3),
+                    "force_error_n": r["force_error_n"],
+                }
                 print(json.dumps(row), flush=True)
                 sweep.append(row)
         result["sweep"] = sweep

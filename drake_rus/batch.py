@@ -58,7 +58,7 @@ def result_path(out_dir, run_id: str) -> Path:
 
 def json_default(o):
     """``json.dumps`` default: numpy scalars and arrays as plain Python values."""
-    if isinstance(o, np.generic):      # numpy scalars: int, float, bool
+    if isinstance(o, np.generic):  # numpy scalars: int, float, bool
         return o.item()
     if isinstance(o, np.ndarray):
         return o.tolist()
@@ -76,8 +76,7 @@ def content_key(obj) -> str:
 
 def save_result(out_dir, run_id: str, result: dict) -> Path:
     """Writes one run's result (atomically) to its file under ``out_dir``."""
-    return write_text_atomic(result_path(out_dir, run_id),
-                             json.dumps(result, default=json_default))
+    return write_text_atomic(result_path(out_dir, run_id), json.dumps(result, default=json_default))
 
 
 def load_results(out_dir, where: Callable[[dict], bool] | None = None) -> list[dict]:
@@ -106,8 +105,10 @@ def differences(old: dict | None, new: dict, limit: int = 4) -> str:
         return "no settings recorded"
     keys = [k for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k)]
     text = ", ".join(f"{k} {old.get(k)!r} -> {new.get(k)!r}" for k in keys[:limit])
-    return (text + (f" (+{len(keys) - limit} more)" if len(keys) > limit else "")
-            or "the resolved inputs (scenario or template file contents)")
+    return (
+        text + (f" (+{len(keys) - limit} more)" if len(keys) > limit else "")
+        or "the resolved inputs (scenario or template file contents)"
+    )
 
 
 def superseded_path(out_dir, run_id: str, key: str | None) -> Path:
@@ -115,8 +116,12 @@ def superseded_path(out_dir, run_id: str, key: str | None) -> Path:
     return runs_dir(out_dir) / SUPERSEDED_DIR / f"{run_id}__{(key or 'nokey')[:16]}.json"
 
 
-def plan(tasks: list[dict], out_dir, task_id: Callable[[dict], str],
-         task_key: Callable[[dict], str] = content_key) -> dict:
+def plan(
+    tasks: list[dict],
+    out_dir,
+    task_id: Callable[[dict], str],
+    task_key: Callable[[dict], str] = content_key,
+) -> dict:
     """Which ``tasks`` a batch under ``out_dir`` reuses and which it runs (nothing is moved):
     {"todo": [task], "reused": int, "superseded": [(run_id, what differs)],
     "restorable": [run_id]} (superseded: a stored run of the same id with other settings;
@@ -134,13 +139,14 @@ def plan(tasks: list[dict], out_dir, task_id: Callable[[dict], str],
             except (OSError, ValueError, AttributeError):
                 old = None
             superseded.append((rid, differences(old, t)))
-        if superseded_path(out_dir, rid, key).exists() and _stored_key(
-                superseded_path(out_dir, rid, key)) == key:
+        if (
+            superseded_path(out_dir, rid, key).exists()
+            and _stored_key(superseded_path(out_dir, rid, key)) == key
+        ):
             restorable.append(rid)
             continue
         todo.append(t)
-    return {"todo": todo, "reused": reused, "superseded": superseded,
-            "restorable": restorable}
+    return {"todo": todo, "reused": reused, "superseded": superseded, "restorable": restorable}
 
 
 def _set_aside(out_dir, tasks, task_id, task_key) -> tuple[list[dict], int, list]:
@@ -180,8 +186,9 @@ def available_memory_bytes() -> int | None:
     return None
 
 
-def bound_workers(requested: int, memory_per_worker: int | None = WORKER_MEMORY_BYTES,
-                  arg: str = "--workers") -> tuple[int, str | None]:
+def bound_workers(
+    requested: int, memory_per_worker: int | None = WORKER_MEMORY_BYTES, arg: str = "--workers"
+) -> tuple[int, str | None]:
     """(workers, note): ``requested`` embedded worker processes, capped at the CPUs this
     process may use and at the available memory over ``memory_per_worker`` (bytes; None:
     memory not considered); ``note`` says why when it capped (one line), else None. 0 (run
@@ -197,15 +204,21 @@ def bound_workers(requested: int, memory_per_worker: int | None = WORKER_MEMORY_
     if memory is not None:
         fit = max(1, int(memory // memory_per_worker))
         if fit < cap:
-            cap, why = fit, (f"{memory / 2**30:.1f} GB of memory available, about "
-                             f"{memory_per_worker / 2**30:.1f} GB per worker")
+            cap, why = (
+                fit,
+                (
+                    f"{memory / 2**30:.1f} GB of memory available, about "
+                    f"{memory_per_worker / 2**30:.1f} GB per worker"
+                ),
+            )
     if requested <= cap:
         return requested, None
     return cap, f"{arg} {requested}: capped at {cap} ({why})"
 
 
 def _descendants() -> list:
-    import psutil                       # a dependency of distributed
+    import psutil  # a dependency of distributed
+
     try:
         return psutil.Process().children(recursive=True)
     except psutil.Error:
@@ -216,6 +229,7 @@ def _stop(processes) -> None:
     """Ends ``processes`` (psutil.Process objects this batch started): SIGTERM, then SIGKILL
     after ``STOP_GRACE_S``."""
     import psutil
+
     live = []
     for p in processes:
         try:
@@ -242,7 +256,7 @@ def _started_by_us(before: set) -> list:
         try:
             if "resource_tracker" in " ".join(p.cmdline()):
                 continue
-        except Exception:                # noqa: BLE001 - gone or unreadable: still ours
+        except Exception:  # noqa: BLE001 - gone or unreadable: still ours
             pass
         out.append(p)
     return out
@@ -254,18 +268,26 @@ def dask_setup(worker) -> None:
     only the batch's own process, which ends the workers itself (no tracebacks from them)."""
     try:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
-    except ValueError:                   # not the main thread: leave it
+    except ValueError:  # not the main thread: leave it
         pass
 
 
 # ------------------------------------------------------------------------------- run
-def run_tasks(tasks: list[dict], run: Callable[[dict], dict], out_dir,
-              task_id: Callable[[dict], str], *, workers: int = 2,
-              scheduler: str | None = None, progress: bool = True, desc: str = "runs",
-              on_result: Callable[[dict], object] | None = None,
-              task_key: Callable[[dict], str] = content_key,
-              stamp: Callable[[dict], object] | None = None,
-              memory_per_worker: int | None = WORKER_MEMORY_BYTES) -> dict:
+def run_tasks(
+    tasks: list[dict],
+    run: Callable[[dict], dict],
+    out_dir,
+    task_id: Callable[[dict], str],
+    *,
+    workers: int = 2,
+    scheduler: str | None = None,
+    progress: bool = True,
+    desc: str = "runs",
+    on_result: Callable[[dict], object] | None = None,
+    task_key: Callable[[dict], str] = content_key,
+    stamp: Callable[[dict], object] | None = None,
+    memory_per_worker: int | None = WORKER_MEMORY_BYTES,
+) -> dict:
     """Runs the ``tasks`` without a result of the same settings under ``out_dir/runs`` and
     writes each result (atomically, as ``task_id(task)``.json, with ``task_key(task)`` as
     its ``task_key``) as it finishes.
@@ -284,8 +306,14 @@ def run_tasks(tasks: list[dict], run: Callable[[dict], dict], out_dir,
     runs_dir(out_dir).mkdir(parents=True, exist_ok=True)
     todo, skipped, superseded = _set_aside(out_dir, tasks, task_id, task_key)
     failed = []
-    bar = tqdm(total=len(tasks), initial=skipped, desc=desc, unit="run", disable=not progress,
-               dynamic_ncols=True)
+    bar = tqdm(
+        total=len(tasks),
+        initial=skipped,
+        desc=desc,
+        unit="run",
+        disable=not progress,
+        dynamic_ncols=True,
+    )
 
     def save(task, result):
         result = dict(result)
@@ -298,8 +326,12 @@ def run_tasks(tasks: list[dict], run: Callable[[dict], dict], out_dir,
             on_result(result)
 
     def status():
-        return {"done": len(todo) - len(failed), "skipped": skipped, "failed": failed,
-                "superseded": superseded}
+        return {
+            "done": len(todo) - len(failed),
+            "skipped": skipped,
+            "failed": failed,
+            "superseded": superseded,
+        }
 
     try:
         if not todo:
@@ -308,7 +340,7 @@ def run_tasks(tasks: list[dict], run: Callable[[dict], dict], out_dir,
             for task in todo:
                 try:
                     save(task, run(task))
-                except Exception as e:    # noqa: BLE001 - report, keep going
+                except Exception as e:  # noqa: BLE001 - report, keep going
                     failed.append((task_id(task), f"{type(e).__name__}: {e}"))
             return status()
         if scheduler is None:
@@ -321,9 +353,9 @@ def run_tasks(tasks: list[dict], run: Callable[[dict], dict], out_dir,
         bar.close()
 
 
-def _run_on_dask(todo, run, task_id, save, failed, *, workers: int,
-                 scheduler: str | None) -> None:
+def _run_on_dask(todo, run, task_id, save, failed, *, workers: int, scheduler: str | None) -> None:
     from distributed import Client, LocalCluster, as_completed  # heavy, optional
+
     before = {p.pid for p in _descendants()}
     clusters_before = _clusters()
     cluster = client = None
@@ -334,32 +366,35 @@ def _run_on_dask(todo, run, task_id, save, failed, *, workers: int,
                 os.environ.setdefault(var, "1")
             # No dashboard; the scheduler's own HTTP server (health checks) on a free
             # localhost port (Dask's default, 8787, may be taken by another cluster).
-            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                   host=LOCAL_HOST, dashboard_address=None,
-                                   worker_dashboard_address=None, silence_logs=logging.ERROR,
-                                   scheduler_kwargs={"dashboard": False,
-                                                     "dashboard_address": f"{LOCAL_HOST}:0"},
-                                   preload=["drake_rus.batch"])
+            cluster = LocalCluster(
+                n_workers=workers,
+                threads_per_worker=1,
+                processes=True,
+                host=LOCAL_HOST,
+                dashboard_address=None,
+                worker_dashboard_address=None,
+                silence_logs=logging.ERROR,
+                scheduler_kwargs={"dashboard": False, "dashboard_address": f"{LOCAL_HOST}:0"},
+                preload=["drake_rus.batch"],
+            )
             client = Client(cluster)
         else:
             client = Client(scheduler)
         # Submitted in task order: a caller listing tasks patient-major makes a worker tend
         # to get the same patient's runs (its caches).
-        futures = {client.submit(run, t, pure=False, key=f"run-{task_id(t)}"): t
-                   for t in todo}
+        futures = {client.submit(run, t, pure=False, key=f"run-{task_id(t)}"): t for t in todo}
         for fut in as_completed(futures):
             task = futures[fut]
             try:
                 result = fut.result()
-            except Exception as e:    # noqa: BLE001
+            except Exception as e:  # noqa: BLE001
                 failed.append((task_id(task), f"{type(e).__name__}: {e}"))
                 continue
             save(task, result)
         clean = True
     finally:
         if not clean:
-            _interrupted_cleanup(client, cluster, before, clusters_before,
-                                 local=scheduler is None)
+            _interrupted_cleanup(client, cluster, before, clusters_before, local=scheduler is None)
         else:
             for closer in (client, cluster):
                 if closer is not None:
@@ -370,6 +405,7 @@ def _clusters() -> set:
     """Dask's live cluster objects of this process (to forget the batch's own)."""
     try:
         from distributed.deploy.spec import SpecCluster
+
         return set(SpecCluster._instances)
     except (ImportError, AttributeError):
         return set()
@@ -378,20 +414,20 @@ def _clusters() -> set:
 def _forget_cluster(cluster) -> None:
     try:
         from distributed.deploy.spec import SpecCluster
+
         SpecCluster._instances.discard(cluster)
     except (ImportError, AttributeError):
         pass
 
 
-def _interrupted_cleanup(client, cluster, before: set, clusters_before: set,
-                         local: bool) -> None:
+def _interrupted_cleanup(client, cluster, before: set, clusters_before: set, local: bool) -> None:
     """After Ctrl-C (or an error) in a Dask batch: a second Ctrl-C is held off while the
     embedded cluster's worker processes are ended at once (not after their runs) and the
     client and cluster closed, with Dask's shutdown chatter (closed connections) kept off
     the console."""
     try:
         previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    except ValueError:                   # not the main thread
+    except ValueError:  # not the main thread
         previous = None
     try:
         for name in ("distributed", "tornado", "asyncio"):
@@ -403,14 +439,14 @@ def _interrupted_cleanup(client, cluster, before: set, clusters_before: set,
                 continue
             try:
                 closer.close(timeout=0.5)
-            except Exception:             # noqa: BLE001 - already torn down
+            except Exception:  # noqa: BLE001 - already torn down
                 pass
         # Dask's exit handler would close them again and wait up to 10 s for the (dead)
         # workers: they are closed as far as this batch is concerned.
         for c in _clusters() - clusters_before:
             _forget_cluster(c)
         if local:
-            _stop(_started_by_us(before))   # a worker the nanny restarted meanwhile
+            _stop(_started_by_us(before))  # a worker the nanny restarted meanwhile
     finally:
         if previous is not None:
             signal.signal(signal.SIGINT, previous)

@@ -26,17 +26,32 @@ from pydrake.systems.analysis import Simulator
 
 from drake_rus.closed_loop import BuildClosedLoop
 from drake_rus.hardware.core import load_declaration, period_statistics
+from drake_rus.hardware.image_calibration import find_point_target
 from drake_rus.hardware.station import RunHardware
 from drake_rus.hardware.systems import ProbeLoadTorque
 from drake_rus.hardware.video import estimate_video_latency
-from drake_rus.hardware.image_calibration import find_point_target
 from drake_rus.robot import MakeControlPlant
 
-__all__ = ["ScriptedMotion", "MotionResult", "BuildHardwareClosedLoop", "RunScriptedMotion",
-           "Readout", "motion_failures", "LatencyCalibration", "RunLatencyCalibration",
-           "CheckStation", "RecordPivot", "pivot_failures", "image_fit_failures",
-           "timing_report", "video_checks", "load_check", "push_checks",
-           "APPROACH_TOLERANCE_DEG", "TIP_TOLERANCE_M"]
+__all__ = [
+    "ScriptedMotion",
+    "MotionResult",
+    "BuildHardwareClosedLoop",
+    "RunScriptedMotion",
+    "Readout",
+    "motion_failures",
+    "LatencyCalibration",
+    "RunLatencyCalibration",
+    "CheckStation",
+    "RecordPivot",
+    "pivot_failures",
+    "image_fit_failures",
+    "timing_report",
+    "video_checks",
+    "load_check",
+    "push_checks",
+    "APPROACH_TOLERANCE_DEG",
+    "TIP_TOLERANCE_M",
+]
 
 # docs/hardware_bringup.md, step 5: after the scripted motion, errors below these.
 APPROACH_TOLERANCE_DEG = 0.5
@@ -63,6 +78,7 @@ class ScriptedMotion:
     ``settle_angle`` / ``settle_distance`` > 0 the run ends early, after the slide started,
     once the approach vector is within ``settle_angle`` (rad) and the tip within
     ``settle_distance`` (m, base x-y) of their targets; ``duration`` bounds it."""
+
     t_orientation: float = 0.3
     angle: float = math.radians(5.0)
     t_slide: float = 2.0
@@ -76,6 +92,7 @@ class ScriptedMotion:
 class MotionResult:
     """What the scripted motion did: start / end tip pose and the targets; joint positions
     (rad) at start and end; the safety layer's events; frames grabbed."""
+
     X_BP_start: object
     X_BP_end: object
     a_target: np.ndarray
@@ -115,8 +132,9 @@ def scenario_for_motion(scenario):
 def BuildHardwareClosedLoop(scenario, station):
     """The controller + safety layer (``BuildClosedLoop``, supervisor off, force control
     off) on ``station``."""
-    return BuildClosedLoop(scenario_for_motion(scenario), station=station,
-                           use_supervisor=False, log_period=None)
+    return BuildClosedLoop(
+        scenario_for_motion(scenario), station=station, use_supervisor=False, log_period=None
+    )
 
 
 def motion_failures(result: MotionResult, motion: ScriptedMotion | None = None) -> list[str]:
@@ -129,16 +147,25 @@ def motion_failures(result: MotionResult, motion: ScriptedMotion | None = None) 
     if approach >= APPROACH_TOLERANCE_DEG:
         out.append(f"approach error {approach:.2f} deg >= {APPROACH_TOLERANCE_DEG} deg")
     if result.position_error_xy >= TIP_TOLERANCE_M:
-        out.append(f"tip x-y error {1e3 * result.position_error_xy:.2f} mm >= "
-                   f"{1e3 * TIP_TOLERANCE_M:.1f} mm")
+        out.append(
+            f"tip x-y error {1e3 * result.position_error_xy:.2f} mm >= "
+            f"{1e3 * TIP_TOLERANCE_M:.1f} mm"
+        )
     if motion is not None and motion.settle_angle > 0 and result.end_time >= motion.duration:
         out.append(f"did not settle within {motion.duration:g} s")
     return out
 
 
-def RunScriptedMotion(loop, station, motion: ScriptedMotion, *, realtime_rate: float = 1.0,
-                      check_period: float = 0.05, on_step=None,
-                      context_out: dict | None = None) -> MotionResult:
+def RunScriptedMotion(
+    loop,
+    station,
+    motion: ScriptedMotion,
+    *,
+    realtime_rate: float = 1.0,
+    check_period: float = 0.05,
+    on_step=None,
+    context_out: dict | None = None,
+) -> MotionResult:
     """Runs ``motion`` on the closed loop (from :func:`BuildHardwareClosedLoop`) inside a
     hardware session (zero velocity at the end, on any exception or fault). ``on_step()``
     runs after every ``check_period`` s; ``context_out["root"]`` receives the root
@@ -173,19 +200,36 @@ def RunScriptedMotion(loop, station, motion: ScriptedMotion, *, realtime_rate: f
             return False
         X = station.GetOutputPort("X_BP").Eval(st_ctx)
         a = X.rotation().matrix()[:, 2]
-        return (np.arccos(np.clip(a @ a_target, -1, 1)) < motion.settle_angle
-                and np.linalg.norm(X.translation()[:2] - p_target) < motion.settle_distance)
+        return (
+            np.arccos(np.clip(a @ a_target, -1, 1)) < motion.settle_angle
+            and np.linalg.norm(X.translation()[:2] - p_target) < motion.settle_distance
+        )
 
     simulator.Initialize()
-    end = RunHardware(simulator, station, motion.duration, check_period=check_period,
-                      realtime_rate=realtime_rate, on_step=step, until=settled)
+    end = RunHardware(
+        simulator,
+        station,
+        motion.duration,
+        check_period=check_period,
+        realtime_rate=realtime_rate,
+        on_step=step,
+        until=settled,
+    )
     safety_ctx = loop.parts.safety.GetMyContextFromRoot(root)
     events = loop.parts.safety.GetOutputPort("safety_events").Eval(safety_ctx)
     frame = station.GetOutputPort("us_image").Eval(st_ctx)
-    return MotionResult(X0, RigidTransform(station.GetOutputPort("X_BP").Eval(st_ctx)), a_target, o_target,
-                        p_target, q0,
-                        np.array(station.GetOutputPort("joint_position").Eval(st_ctx)),
-                        tuple(events), int(frame.frame_index) + 1, end)
+    return MotionResult(
+        X0,
+        RigidTransform(station.GetOutputPort("X_BP").Eval(st_ctx)),
+        a_target,
+        o_target,
+        p_target,
+        q0,
+        np.array(station.GetOutputPort("joint_position").Eval(st_ctx)),
+        tuple(events),
+        int(frame.frame_index) + 1,
+        end,
+    )
 
 
 class Readout:
@@ -211,9 +255,15 @@ class Readout:
         q = np.array(st.GetOutputPort("joint_position").Eval(ctx))
         F = np.array(st.GetOutputPort("probe_force").Eval(ctx))
         X = st.GetOutputPort("X_BP").Eval(ctx)
-        sample = {"wall": time.monotonic() - self._start, "t": ctx.get_time(), "q": q,
-                  "f": F[3:6].copy(), "p_BP": X.translation().copy(),
-                  "fps": math.nan, "age": math.nan}
+        sample = {
+            "wall": time.monotonic() - self._start,
+            "t": ctx.get_time(),
+            "q": q,
+            "f": F[3:6].copy(),
+            "p_BP": X.translation().copy(),
+            "fps": math.nan,
+            "age": math.nan,
+        }
         capture = getattr(st.grabber, "capture", None)
         if capture is not None:
             stats = capture.stats()
@@ -228,30 +278,43 @@ class Readout:
             return
         self._next = max(self._next + self.period, now)
         self.samples.append(sample)
-        video = (f"video {sample['fps']:5.1f} fps, age {1e3 * sample['age']:4.0f} ms"
-                 if math.isfinite(sample["age"]) else "no video")
-        print(f"{self.prefix}t={sample['t']:6.2f} s  q=["
-              + " ".join(f"{v:+.3f}" for v in sample["q"]) + "] rad  f=["
-              + " ".join(f"{v:+5.1f}" for v in sample["f"]) + f"] N |f|="
-              f"{np.linalg.norm(sample['f']):4.1f} N  {video}", file=self.out, flush=True)
+        video = (
+            f"video {sample['fps']:5.1f} fps, age {1e3 * sample['age']:4.0f} ms"
+            if math.isfinite(sample["age"])
+            else "no video"
+        )
+        print(
+            f"{self.prefix}t={sample['t']:6.2f} s  q=["
+            + " ".join(f"{v:+.3f}" for v in sample["q"])
+            + "] rad  f=["
+            + " ".join(f"{v:+5.1f}" for v in sample["f"])
+            + f"] N |f|="
+            f"{np.linalg.norm(sample['f']):4.1f} N  {video}",
+            file=self.out,
+            flush=True,
+        )
 
 
 def timing_report(station, config) -> tuple[str, list[str]]:
     """The control loop's tick timing (wall clock) and the watchdog checks on it."""
-    ticks = list(station.grabber.tick_times)[5:]      # skip the start-up ticks
+    ticks = list(station.grabber.tick_times)[5:]  # skip the start-up ticks
     st = period_statistics(ticks)
     if not st["count"]:
         return "control loop: no ticks", []
-    line = (f"control loop: {st['count']} periods, mean {1e3 * st['mean']:.2f} ms, p99 "
-            f"{1e3 * st['p99']:.1f} ms, p99.9 {1e3 * st['p999']:.1f} ms, max "
-            f"{1e3 * st['max']:.1f} ms (command_timeout {1e3 * config.command_timeout:.0f} ms, "
-            f"status_timeout {1e3 * config.status_timeout:.0f} ms)")
+    line = (
+        f"control loop: {st['count']} periods, mean {1e3 * st['mean']:.2f} ms, p99 "
+        f"{1e3 * st['p99']:.1f} ms, p99.9 {1e3 * st['p999']:.1f} ms, max "
+        f"{1e3 * st['max']:.1f} ms (command_timeout {1e3 * config.command_timeout:.0f} ms, "
+        f"status_timeout {1e3 * config.status_timeout:.0f} ms)"
+    )
     failures = []
     if st["max"] > config.command_timeout:
-        failures.append(f"the control loop stalled {1e3 * st['max']:.0f} ms, longer than "
-                        f"hardware_interface.command_timeout ({1e3 * config.command_timeout:.0f}"
-                        f" ms): commands would expire mid-motion (raise it, or use the "
-                        f"real-time PC)")
+        failures.append(
+            f"the control loop stalled {1e3 * st['max']:.0f} ms, longer than "
+            f"hardware_interface.command_timeout ({1e3 * config.command_timeout:.0f}"
+            f" ms): commands would expire mid-motion (raise it, or use the "
+            f"real-time PC)"
+        )
     return line, failures
 
 
@@ -261,18 +324,24 @@ def video_checks(scenario, station, readout: Readout) -> list[str]:
         return []
     stats = capture.stats()
     failures = []
-    print(f"video: {stats.frames} frames, {stats.frame_rate_hz:.1f} fps, newest "
-          f"{1e3 * stats.age:.0f} ms old, {stats.failures} read failures, video_latency "
-          f"{1e3 * station.grabber.video_latency:.0f} ms")
+    print(
+        f"video: {stats.frames} frames, {stats.frame_rate_hz:.1f} fps, newest "
+        f"{1e3 * stats.age:.0f} ms old, {stats.failures} read failures, video_latency "
+        f"{1e3 * station.grabber.video_latency:.0f} ms"
+    )
     want = FRAME_RATE_FRACTION * scenario.imaging.frame_rate_hz
     if stats.frame_rate_hz < want:
-        failures.append(f"video frame rate {stats.frame_rate_hz:.1f} fps < {want:.0f} fps "
-                        f"({FRAME_RATE_FRACTION:.0%} of imaging.frame_rate_hz)")
+        failures.append(
+            f"video frame rate {stats.frame_rate_hz:.1f} fps < {want:.0f} fps "
+            f"({FRAME_RATE_FRACTION:.0%} of imaging.frame_rate_hz)"
+        )
     age = stats.age + station.grabber.video_latency
     if age > scenario.safety.image_timeout:
-        failures.append(f"frames are {1e3 * age:.0f} ms old (age + video_latency) > "
-                        f"safety.image_timeout {1e3 * scenario.safety.image_timeout:.0f} ms: "
-                        f"the stale-image watchdog would stop the robot")
+        failures.append(
+            f"frames are {1e3 * age:.0f} ms old (age + video_latency) > "
+            f"safety.image_timeout {1e3 * scenario.safety.image_timeout:.0f} ms: "
+            f"the stale-image watchdog would stop the robot"
+        )
     if stats.error:
         failures.append(f"video: {stats.error}")
     return failures
@@ -287,15 +356,21 @@ def load_check(scenario, station) -> list[str]:
     load = ProbeLoadTorque(plant, scenario.probe.mass, scenario.probe.p_FCm)(backend.rest_q)
     verdict = load_declaration(backend.rest_tau, load)
     compensate = scenario.hardware_interface.lcm_compensate_load
-    print(f"probe load: the external torques at rest look {verdict} (the probe's weight is "
-          f"{np.linalg.norm(load):.2f} N m in joint space; lcm_compensate_load: "
-          f"{str(compensate).lower()})")
+    print(
+        f"probe load: the external torques at rest look {verdict} (the probe's weight is "
+        f"{np.linalg.norm(load):.2f} N m in joint space; lcm_compensate_load: "
+        f"{str(compensate).lower()})"
+    )
     if verdict == "undeclared" and not compensate:
-        return ["the robot does not know the probe's weight: enter the probe holder in Desk "
-                "as the end effector, or set hardware_interface.lcm_compensate_load: true"]
+        return [
+            "the robot does not know the probe's weight: enter the probe holder in Desk "
+            "as the end effector, or set hardware_interface.lcm_compensate_load: true"
+        ]
     if verdict == "declared" and compensate:
-        return ["the probe's weight is removed twice (Desk knows it and "
-                "lcm_compensate_load is true): set lcm_compensate_load: false"]
+        return [
+            "the probe's weight is removed twice (Desk knows it and "
+            "lcm_compensate_load is true): set lcm_compensate_load: false"
+        ]
     return []
 
 
@@ -308,25 +383,39 @@ def push_checks(readout: Readout, rest: float) -> list[str]:
         worst = float(np.max(quiet))
         print(f"push test: |probe_force| at rest (first {rest:g} s) up to {worst:.2f} N")
         if worst > REST_FORCE_N:
-            failures.append(f"probe_force at rest {worst:.2f} N > {REST_FORCE_N:g} N (check "
-                            f"the probe's mass / centre of mass, set_load or "
-                            f"lcm_compensate_load, tau_external_bias_duration)")
-    pushes = [(np.linalg.norm(f), f) for w, _, f in readout.forces
-              if w > rest and np.linalg.norm(f) >= PUSH_FORCE_N]
+            failures.append(
+                f"probe_force at rest {worst:.2f} N > {REST_FORCE_N:g} N (check "
+                f"the probe's mass / centre of mass, set_load or "
+                f"lcm_compensate_load, tau_external_bias_duration)"
+            )
+    pushes = [
+        (np.linalg.norm(f), f)
+        for w, _, f in readout.forces
+        if w > rest and np.linalg.norm(f) >= PUSH_FORCE_N
+    ]
     if pushes:
         _, f = max(pushes, key=lambda x: x[0])
         print(f"push test: strongest push f = [{f[0]:+.1f} {f[1]:+.1f} {f[2]:+.1f}] N")
         if f[2] >= 0:
-            failures.append(f"a push on the probe face gave f_z = {f[2]:+.1f} N >= 0: the "
-                            f"external torque sign is wrong (or the push was not along the "
-                            f"probe's axis)")
+            failures.append(
+                f"a push on the probe face gave f_z = {f[2]:+.1f} N >= 0: the "
+                f"external torque sign is wrong (or the push was not along the "
+                f"probe's axis)"
+            )
     else:
         print(f"push test: no push seen (|f| < {PUSH_FORCE_N:g} N after the first {rest:g} s)")
     return failures
 
 
-def CheckStation(scenario, station, *, dry_run: bool = True, duration: float = 2.0,
-                 rest: float = 1.0, readout_hz: float = 4.0) -> list[str]:
+def CheckStation(
+    scenario,
+    station,
+    *,
+    dry_run: bool = True,
+    duration: float = 2.0,
+    rest: float = 1.0,
+    readout_hz: float = 4.0,
+) -> list[str]:
     """The bring-up check of docs/hardware_bringup.md on a connected ``station``: read-outs,
     the probe-load check, and either a dry run of ``duration`` s (the push test after
     ``rest`` s hands off, video and loop-timing checks) or, with ``dry_run`` False, the
@@ -341,12 +430,16 @@ def CheckStation(scenario, station, *, dry_run: bool = True, duration: float = 2
     print(f"probe tip p_BP = {np.array2string(X.translation(), precision=4)} m")
     thresholds = getattr(station.backend, "collision_thresholds", None)
     if thresholds is not None:
+
         def fmt(v):
             return "[" + ", ".join(f"{float(x):g}" for x in v) + "]"
-        print(f"FR3 collision thresholds (contact / collision): joints "
-              f"{fmt(thresholds['lower_torque'])} / {fmt(thresholds['upper_torque'])} N m, "
-              f"wrench {fmt(thresholds['lower_force'])} / {fmt(thresholds['upper_force'])} "
-              f"(N, N m)")
+
+        print(
+            f"FR3 collision thresholds (contact / collision): joints "
+            f"{fmt(thresholds['lower_torque'])} / {fmt(thresholds['upper_torque'])} N m, "
+            f"wrench {fmt(thresholds['lower_force'])} / {fmt(thresholds['upper_force'])} "
+            f"(N, N m)"
+        )
     failures = load_check(scenario, station)
     if dry_run:
         simulator = Simulator(station)
@@ -354,8 +447,9 @@ def CheckStation(scenario, station, *, dry_run: bool = True, duration: float = 2
         station.get_input_port().FixValue(sc, np.zeros(7))
         readout = Readout(station, sc, readout_hz)
         if duration > rest:
-            print(f"hands off the probe for {rest:g} s, then push its face along its "
-                  f"axis (push test)")
+            print(
+                f"hands off the probe for {rest:g} s, then push its face along its axis (push test)"
+            )
         simulator.Initialize()
         RunHardware(simulator, station, duration, on_step=readout.step)
         F = station.GetOutputPort("probe_force").Eval(sc)
@@ -370,20 +464,22 @@ def CheckStation(scenario, station, *, dry_run: bool = True, duration: float = 2
         print("dry run: no motion was commanded")
         return failures
     loop = BuildHardwareClosedLoop(scenario, station)
-    motion = ScriptedMotion(duration=15.0, settle_angle=math.radians(0.5),
-                            settle_distance=1.5e-3)
+    motion = ScriptedMotion(duration=15.0, settle_angle=math.radians(0.5), settle_distance=1.5e-3)
     holder = {}
 
     def on_step():
         if "readout" not in holder:
-            holder["readout"] = Readout(station, station.GetMyContextFromRoot(holder["root"]),
-                                        readout_hz)
+            holder["readout"] = Readout(
+                station, station.GetMyContextFromRoot(holder["root"]), readout_hz
+            )
         holder["readout"].step()
 
     result = RunScriptedMotion(loop, station, motion, on_step=on_step, context_out=holder)
-    print(f"approach error {math.degrees(result.approach_error):.2f} deg, tip x-y error "
-          f"{1e3 * result.position_error_xy:.1f} mm, safety events: "
-          f"{[e.reason for e in result.safety_events] or 'none'}")
+    print(
+        f"approach error {math.degrees(result.approach_error):.2f} deg, tip x-y error "
+        f"{1e3 * result.position_error_xy:.1f} mm, safety events: "
+        f"{[e.reason for e in result.safety_events] or 'none'}"
+    )
     failures += motion_failures(result, motion)
     if "readout" in holder:
         failures += video_checks(scenario, station, holder["readout"])
@@ -399,9 +495,11 @@ def pivot_failures(cal) -> list[str]:
         failures.append(f"RMS residual {1e3 * cal.rms:.2f} mm > {1e3 * PIVOT_RMS_M:.1f} mm")
     if cal.residuals.max() > PIVOT_MAX_M:
         worst = np.argsort(cal.residuals)[::-1][:3]
-        failures.append(f"largest residual {1e3 * cal.residuals.max():.2f} mm > "
-                        f"{1e3 * PIVOT_MAX_M:.1f} mm (samples {list(map(int, worst))}: the tip "
-                        f"left the divot?)")
+        failures.append(
+            f"largest residual {1e3 * cal.residuals.max():.2f} mm > "
+            f"{1e3 * PIVOT_MAX_M:.1f} mm (samples {list(map(int, worst))}: the tip "
+            f"left the divot?)"
+        )
     return failures
 
 
@@ -413,7 +511,9 @@ def image_fit_failures(fit) -> list[str]:
     if fit.max_residual_mm > IMAGE_MAX_MM:
         failures.append(f"largest residual {fit.max_residual_mm:.2f} mm > {IMAGE_MAX_MM} mm")
     if abs(fit.skew_deg) > IMAGE_SKEW_DEG:
-        failures.append(f"picture axes skewed by {fit.skew_deg:+.2f} deg (> {IMAGE_SKEW_DEG:g} deg)")
+        failures.append(
+            f"picture axes skewed by {fit.skew_deg:+.2f} deg (> {IMAGE_SKEW_DEG:g} deg)"
+        )
     return failures
 
 
@@ -442,6 +542,7 @@ def RecordPivot(station, duration: float, rate_hz: float, readout_hz: float = 4.
 class LatencyCalibration:
     """The latency estimate and its raw data: pose times (s, monotonic), tip positions
     (m), frame capture times (s), target image positions (px, NaN where not found)."""
+
     estimate: object
     pose_times: np.ndarray
     positions: np.ndarray
@@ -449,11 +550,20 @@ class LatencyCalibration:
     targets: np.ndarray
 
 
-def RunLatencyCalibration(loop, station, *, amplitude: float = 0.01, period: float = 2.0,
-                          cycles: float = 4.0, max_latency: float = 0.5,
-                          realtime_rate: float = 1.0, check_period: float = 0.05,
-                          on_step=None, min_contrast: float = 30.0,
-                          context_out: dict | None = None) -> LatencyCalibration:
+def RunLatencyCalibration(
+    loop,
+    station,
+    *,
+    amplitude: float = 0.01,
+    period: float = 2.0,
+    cycles: float = 4.0,
+    max_latency: float = 0.5,
+    realtime_rate: float = 1.0,
+    check_period: float = 0.05,
+    on_step=None,
+    min_contrast: float = 30.0,
+    context_out: dict | None = None,
+) -> LatencyCalibration:
     """Moves the probe tip sinusoidally (``amplitude`` m, ``period`` s, ``cycles``) along
     its array direction projected on the base x-y plane, through the closed loop from
     :func:`BuildHardwareClosedLoop` (orientation held, force control off), records the
@@ -471,12 +581,14 @@ def RunLatencyCalibration(loop, station, *, amplitude: float = 0.01, period: flo
     X0 = RigidTransform(station.GetOutputPort("X_BP").Eval(st_ctx))
     d = X0.rotation().matrix()[:2, 0]
     if np.linalg.norm(d) < 0.5:
-        raise ValueError("calibrate-latency: the probe's array is not horizontal enough to "
-                         "slide along it; tilt the probe towards vertical")
+        raise ValueError(
+            "calibrate-latency: the probe's array is not horizontal enough to "
+            "slide along it; tilt the probe towards vertical"
+        )
     d = d / np.linalg.norm(d)
     p0 = X0.translation()[:2].copy()
     grabber.pose_log, grabber.frame_log = [], []
-    t_start = 0.5                                        # let the loop settle first
+    t_start = 0.5  # let the loop settle first
 
     def step():
         t = root.get_time()
@@ -487,16 +599,28 @@ def RunLatencyCalibration(loop, station, *, amplitude: float = 0.01, period: flo
 
     try:
         simulator.Initialize()
-        RunHardware(simulator, station, t_start + cycles * period, check_period=check_period,
-                    realtime_rate=realtime_rate, on_step=step)
+        RunHardware(
+            simulator,
+            station,
+            t_start + cycles * period,
+            check_period=check_period,
+            realtime_rate=realtime_rate,
+            on_step=step,
+        )
         poses, frames = grabber.pose_log, grabber.frame_log
     finally:
         grabber.pose_log, grabber.frame_log = None, None
     pose_times = np.array([m for m, _ in poses])
     positions = np.array([X.translation() for _, X in poses])
     frame_times = np.array([m for m, _ in frames])
-    targets = np.array([find_point_target(f.image, min_contrast=min_contrast) or
-                        (math.nan, math.nan) for _, f in frames], float).reshape(-1, 2)
-    estimate = estimate_video_latency(pose_times, positions, frame_times, targets,
-                                      max_latency=max_latency)
+    targets = np.array(
+        [
+            find_point_target(f.image, min_contrast=min_contrast) or (math.nan, math.nan)
+            for _, f in frames
+        ],
+        float,
+    ).reshape(-1, 2)
+    estimate = estimate_video_latency(
+        pose_times, positions, frame_times, targets, max_latency=max_latency
+    )
     return LatencyCalibration(estimate, pose_times, positions, frame_times, targets)

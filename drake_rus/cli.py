@@ -18,8 +18,10 @@ import sys
 
 from drake_rus import interrupts
 
-if __name__ == "__main__" or os.path.basename(
-        getattr(sys.modules.get("__main__"), "__file__", None) or "") == "drake-rus":
+if (
+    __name__ == "__main__"
+    or os.path.basename(getattr(sys.modules.get("__main__"), "__file__", None) or "") == "drake-rus"
+):
     # The program (``python -m drake_rus.cli`` or the ``drake-rus`` script; not a library
     # import, nor a worker process that re-imports the script): signals are caught from here.
     interrupts.install_for_startup()
@@ -41,16 +43,16 @@ from drake_rus.io_utils import check_output_dir, check_output_file, describe_os_
 from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, LoadScenario  # noqa: E402
 
 COMMAND_MODULES = [
-    "drake_rus.demo",            # demo: the station demo (pressing probe)
-    "drake_rus.render",          # render-diagram: station diagram picture
-    "drake_rus.hardware.cli",    # hardware check: connect, dry run, scripted motion
+    "drake_rus.demo",  # demo: the station demo (pressing probe)
+    "drake_rus.render",  # render-diagram: station diagram picture
+    "drake_rus.hardware.cli",  # hardware check: connect, dry run, scripted motion
     "drake_rus.anatomy.cli",
     "drake_rus.template.cli",
     "drake_rus.imaging.cli",
-    "drake_rus.scan.cli",        # scan: the full autonomous scan
+    "drake_rus.scan.cli",  # scan: the full autonomous scan
     "drake_rus.experiments.cli",  # study: the seed paper's studies (kinematic, Dask)
     "drake_rus.reliability.cli",  # campaign: randomised faulty scans (safety figures)
-    "drake_rus.rehearsal.cli",   # rehearse: software-in-the-loop rehearsal on the wire
+    "drake_rus.rehearsal.cli",  # rehearse: software-in-the-loop rehearsal on the wire
 ]
 
 # How long a --scheduler address may take to accept a connection (s) before the command
@@ -79,8 +81,7 @@ ARGUMENT_RULES = {
     "n": (lambda v: v >= 1, "at least 1 subject"),
     "voxel_mm": (lambda v: _finite(v) and 0.1 <= v <= 10.0, "a voxel size of 0.1-10 mm"),
     "voxel": (lambda v: _finite(v) and 0.0 < v <= 0.01, "a voxel size in m, 0 < v <= 0.01"),
-    "recon_spacing": (lambda v: _finite(v) and 0.0 < v <= 0.01,
-                      "a voxel size in m, 0 < v <= 0.01"),
+    "recon_spacing": (lambda v: _finite(v) and 0.0 < v <= 0.01, "a voxel size in m, 0 < v <= 0.01"),
     "max_sim_time": (lambda v: _finite(v) and v > 0, "a positive time in s"),
     "duration": (lambda v: _finite(v) and v > 0, "a positive time in s"),
 }
@@ -101,16 +102,23 @@ DEFAULT_OUTPUTS = {
 def add_scenario_arguments(parser) -> None:
     """--scenario / --scenarios-file / --set, shared by every command that builds a station."""
     parser.add_argument("--scenario", default="default", help="scenario name (default 'default')")
-    parser.add_argument("--scenarios-file", default=str(DEFAULT_SCENARIOS_FILE),
-                        help="YAML file of named scenarios")
-    parser.add_argument("--set", dest="overrides", default=None, metavar="YAML",
-                        help="YAML overrides, e.g. \"{contact: {model: point}}\"")
+    parser.add_argument(
+        "--scenarios-file", default=str(DEFAULT_SCENARIOS_FILE), help="YAML file of named scenarios"
+    )
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        default=None,
+        metavar="YAML",
+        help='YAML overrides, e.g. "{contact: {model: point}}"',
+    )
 
 
 def load_scenario_from_args(args):
     check_nesting_depth(args.overrides, "--set")
-    return LoadScenario(filename=args.scenarios_file, scenario_name=args.scenario,
-                        scenario_text=args.overrides)
+    return LoadScenario(
+        filename=args.scenarios_file, scenario_name=args.scenario, scenario_text=args.overrides
+    )
 
 
 # The address every server of drake-rus listens on: the loopback only (Meshcat, the
@@ -153,8 +161,9 @@ def check_outputs(args) -> None:
         if kind == "dir":
             check_output_dir(value, _flag(name))
         else:
-            check_output_file(value, _flag(name),
-                              suffixes=tuple(suffixes.split(",")) if suffixes else ())
+            check_output_file(
+                value, _flag(name), suffixes=tuple(suffixes.split(",")) if suffixes else ()
+            )
 
 
 def check_scheduler(address: str, timeout: float = SCHEDULER_TIMEOUT_S) -> None:
@@ -172,8 +181,9 @@ def check_scheduler(address: str, timeout: float = SCHEDULER_TIMEOUT_S) -> None:
             pass
     except OSError as e:
         why = "timed out" if isinstance(e, TimeoutError) else (e.strerror or str(e))
-        raise UserError(f"--scheduler: no Dask scheduler answers at {address} within "
-                        f"{timeout:g} s ({why})") from None
+        raise UserError(
+            f"--scheduler: no Dask scheduler answers at {address} within {timeout:g} s ({why})"
+        ) from None
 
 
 def preflight(args) -> None:
@@ -189,7 +199,8 @@ def preflight(args) -> None:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="drake-rus",
-        description="Autonomous robotic kidney ultrasound as a Drake systems diagram.")
+        description="Autonomous robotic kidney ultrasound as a Drake systems diagram.",
+    )
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     subparsers.required = True
     for name in COMMAND_MODULES:
@@ -199,7 +210,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 # Exit statuses of the command line (docs/cli.md): 0 done, 1 not done (a scan ended ABORT,
 # TIMEOUT, ...), 2 bad input, 128 + the signal (130 Ctrl-C, 143 SIGTERM).
-EXIT_USER_ERROR = 2    # bad input: one line naming the argument or field, nothing written
+EXIT_USER_ERROR = 2  # bad input: one line naming the argument or field, nothing written
 EXIT_STATUS_HELP = """exit status (docs/cli.md):
   0    done (a scan or rehearsal: the scan ended DONE)
   1    a scan or rehearsal ended otherwise (ABORT, TIMEOUT; the summary says why)
@@ -215,8 +226,10 @@ def main(argv=None) -> int:
 
 
 def _interrupted(command: str, exc: BaseException | None = None) -> int:
-    print(f"{command}: interrupted by {interrupts.signal_text(interrupts.signal_of(exc))}",
-          file=sys.stderr)
+    print(
+        f"{command}: interrupted by {interrupts.signal_text(interrupts.signal_of(exc))}",
+        file=sys.stderr,
+    )
     return interrupts.exit_status(exc)
 
 
@@ -224,8 +237,11 @@ def _run(argv: list) -> int:
     # The command's name for messages before the arguments are parsed (a signal during the
     # imports): the first argument, if it is a word.
     args = None
-    command = "drake-rus" + (f" {argv[0]}" if argv and argv[0].replace("-", "").isalpha()
-                             and not argv[0].startswith("-") else "")
+    command = "drake-rus" + (
+        f" {argv[0]}"
+        if argv and argv[0].replace("-", "").isalpha() and not argv[0].startswith("-")
+        else ""
+    )
     try:
         # The imports of every command module (a few s): a signal is raised at the next
         # import statement (raised inside a module's initialisation, libraries swallow it).
@@ -237,7 +253,7 @@ def _run(argv: list) -> int:
         preflight(args)
         code = int(args.func(args) or 0)
         if interrupts.pending() is not None and code != interrupts.exit_status():
-            return _interrupted(command)     # a signal swallowed on the way
+            return _interrupted(command)  # a signal swallowed on the way
         return code
     except BaseException as e:
         if isinstance(e, KeyboardInterrupt) or interrupts.pending() is not None:

@@ -28,8 +28,14 @@ from drake_rus.robot import MakeControlPlant, SolveTipPose, TipKinematics
 from drake_rus.scenario import ApplyOverrides
 from drake_rus.stations import MakeStation
 
-__all__ = ["ClosedLoop", "BuildClosedLoop", "BuildClosedLoopOnPatient", "AdvanceUntilScanEnds",
-           "SensorHook", "PressDiagram"]
+__all__ = [
+    "ClosedLoop",
+    "BuildClosedLoop",
+    "BuildClosedLoopOnPatient",
+    "AdvanceUntilScanEnds",
+    "SensorHook",
+    "PressDiagram",
+]
 
 # (builder, station, segmenter or None) -> (system whose outputs replace the station's
 # sensor ports, segmenter stand-in or None, the added system): e.g. a fault injector.
@@ -39,12 +45,13 @@ SensorHook = Callable[[DiagramBuilder, object, object], tuple]
 @dataclasses.dataclass
 class ClosedLoop:
     """A built station + controller diagram and handles to its parts."""
+
     diagram: object
     station: object
     parts: ControllerParts
-    injector: object | None   # what ``sensor_hook`` added, if anything
-    references: dict          # name -> ConstantVectorSource when the supervisor is off
-    loggers: dict             # name -> VectorLogSink
+    injector: object | None  # what ``sensor_hook`` added, if anything
+    references: dict  # name -> ConstantVectorSource when the supervisor is off
+    loggers: dict  # name -> VectorLogSink
 
     def reference_value(self, context, name):
         """The mutable value of a constant reference source (a_des, o_des, a_des_dot, P_des,
@@ -62,10 +69,19 @@ def _add_loggers(builder, ports: dict, period: float) -> dict:
     return loggers
 
 
-def BuildClosedLoop(scenario, *, meshcat=None, station=None, use_supervisor: bool = True,
-                    use_null_space: bool = True, sensor_hook: SensorHook | None = None,
-                    segmenter=None, kidney_pose_port=None, kidney_view=None,
-                    log_period: float | None = None) -> ClosedLoop:
+def BuildClosedLoop(
+    scenario,
+    *,
+    meshcat=None,
+    station=None,
+    use_supervisor: bool = True,
+    use_null_space: bool = True,
+    sensor_hook: SensorHook | None = None,
+    segmenter=None,
+    kidney_pose_port=None,
+    kidney_view=None,
+    log_period: float | None = None,
+) -> ClosedLoop:
     """Station + controller + safety in one diagram (tests, notebook, benchmark).
 
     ``station`` defaults to ``MakeStation(scenario)``. ``sensor_hook`` inserts a system
@@ -89,31 +105,46 @@ def BuildClosedLoop(scenario, *, meshcat=None, station=None, use_supervisor: boo
     sensors, injector = station, None
     if sensor_hook is not None:
         sensors, segmenter, injector = sensor_hook(builder, station, segmenter)
-    parts = AddController(builder, sensors, scenario, use_supervisor=use_supervisor,
-                          use_null_space=use_null_space, segmenter=segmenter,
-                          kidney_pose_port=kidney_pose_port, connect_command=False)
-    builder.Connect(parts.safety.GetOutputPort("joint_velocity_command"),
-                    station.GetInputPort("joint_velocity_command"))
+    parts = AddController(
+        builder,
+        sensors,
+        scenario,
+        use_supervisor=use_supervisor,
+        use_null_space=use_null_space,
+        segmenter=segmenter,
+        kidney_pose_port=kidney_pose_port,
+        connect_command=False,
+    )
+    builder.Connect(
+        parts.safety.GetOutputPort("joint_velocity_command"),
+        station.GetInputPort("joint_velocity_command"),
+    )
     refs = {}
     if not use_supervisor:
         X0 = station.GetOutputPort("X_BP").Eval(station.CreateDefaultContext())
         R0, p0 = X0.rotation().matrix(), X0.translation()
-        values = {"a_des": (parts.orientation, R0[:, 2]), "o_des": (parts.orientation, R0[:, 0]),
-                  "a_des_dot": (parts.orientation, np.zeros(3)),
-                  "P_des": (parts.position, p0[:2]),
-                  "F_des": (parts.force, [scenario.controller.desired_force])}
+        values = {
+            "a_des": (parts.orientation, R0[:, 2]),
+            "o_des": (parts.orientation, R0[:, 0]),
+            "a_des_dot": (parts.orientation, np.zeros(3)),
+            "P_des": (parts.position, p0[:2]),
+            "F_des": (parts.force, [scenario.controller.desired_force]),
+        }
         for name, (sys, value) in values.items():
-            src = builder.AddNamedSystem(f"reference_{name}",
-                                         ConstantVectorSource(np.asarray(value, float)))
+            src = builder.AddNamedSystem(
+                f"reference_{name}", ConstantVectorSource(np.asarray(value, float))
+            )
             builder.Connect(src.get_output_port(), sys.GetInputPort(name))
             refs[name] = src
     loggers = {}
     if log_period:
-        ports = {"command": parts.safety.GetOutputPort("joint_velocity_command"),
-                 "q": station.GetOutputPort("joint_position"),
-                 "probe_force": station.GetOutputPort("probe_force"),
-                 "F_filtered": parts.force.GetOutputPort("F_filtered"),
-                 "stopped": parts.safety.GetOutputPort("stopped")}
+        ports = {
+            "command": parts.safety.GetOutputPort("joint_velocity_command"),
+            "q": station.GetOutputPort("joint_position"),
+            "probe_force": station.GetOutputPort("probe_force"),
+            "F_filtered": parts.force.GetOutputPort("F_filtered"),
+            "stopped": parts.safety.GetOutputPort("stopped"),
+        }
         if parts.supervisor is not None:
             ports["phase"] = parts.supervisor.GetOutputPort("phase")
             ports["P_des"] = parts.supervisor.GetOutputPort("P_des")
@@ -125,8 +156,9 @@ def BuildClosedLoop(scenario, *, meshcat=None, station=None, use_supervisor: boo
     return ClosedLoop(diagram, station, parts, injector, refs, loggers)
 
 
-def BuildClosedLoopOnPatient(scenario, patient, *, log_period: float | None = 0.05,
-                             start_height: float = 0.22, meshcat=None):
+def BuildClosedLoopOnPatient(
+    scenario, patient, *, log_period: float | None = 0.05, start_height: float = 0.22, meshcat=None
+):
     """Station with a virtual patient's emulated images + the scenario's Segmenter +
     controller + safety; the supervisor's LOCALIZE reads the station's ``X_BK_true``
     (ground-truth stand-in). The robot starts ``start_height`` (m) above the kidney centre,
@@ -137,19 +169,23 @@ def BuildClosedLoopOnPatient(scenario, patient, *, log_period: float | None = 0.
     Returns (ClosedLoop, the scenario actually used).
     """
     if isinstance(patient, str):
-        patient = load_patient(patient, side=scenario.patient.side,
-                               posture=scenario.patient.posture, progress=False)
+        patient = load_patient(
+            patient, side=scenario.patient.side, posture=scenario.patient.posture, progress=False
+        )
     p_K = patient.X_BK(scenario.patient.X_BPt.GetDeterministicValue()).translation()
     plant, tip = MakeControlPlant(scenario.robot, scenario.probe)
     q_initial = np.asarray(scenario.robot.initial_joint_positions, dtype=float)
     R0 = TipKinematics(plant, tip).pose(q_initial).rotation()
-    q0 = SolveTipPose(plant, tip, RigidTransform(R0, [p_K[0], p_K[1], p_K[2] + start_height]),
-                      q_nominal=q_initial)
+    q0 = SolveTipPose(
+        plant, tip, RigidTransform(R0, [p_K[0], p_K[1], p_K[2] + start_height]), q_nominal=q_initial
+    )
     # It starts higher above the skin than an operator's placement: allow that approach.
     travel = max(scenario.controller.approach_max_travel, start_height)
-    scenario = ApplyOverrides(scenario, "{robot: {initial_joint_positions: [%s]}, "
-                              "controller: {approach_max_travel: %.3f}}"
-                              % (", ".join(f"{v:.6f}" for v in q0), travel))
+    scenario = ApplyOverrides(
+        scenario,
+        "{robot: {initial_joint_positions: [%s]}, "
+        "controller: {approach_max_travel: %.3f}}" % (", ".join(f"{v:.6f}" for v in q0), travel),
+    )
     scenario.controller.start_xy = [float(v) for v in p_K[:2]]
     station = MakeStation(scenario, meshcat=meshcat, patient=patient)
 
@@ -158,17 +194,28 @@ def BuildClosedLoopOnPatient(scenario, patient, *, log_period: float | None = 0.
     segmenter = builder.AddNamedSystem("segmenter", Segmenter(scenario.imaging))
     for name in ("us_image", "label_image"):
         builder.Connect(station.GetOutputPort(name), segmenter.GetInputPort(name))
-    parts = AddController(builder, station, scenario, plant=plant, tip_frame=tip,
-                          segmenter=segmenter,
-                          kidney_pose_port=station.GetOutputPort("X_BK_true"))
+    parts = AddController(
+        builder,
+        station,
+        scenario,
+        plant=plant,
+        tip_frame=tip,
+        segmenter=segmenter,
+        kidney_pose_port=station.GetOutputPort("X_BK_true"),
+    )
     loggers = {}
     if log_period:
-        loggers = _add_loggers(builder, {
-            "probe_force": station.GetOutputPort("probe_force"),
-            "q": station.GetOutputPort("joint_position"),
-            "mask_centroid": segmenter.GetOutputPort("mask_centroid"),
-            "kidney_visible": segmenter.GetOutputPort("kidney_visible"),
-            "phase": parts.supervisor.GetOutputPort("phase")}, log_period)
+        loggers = _add_loggers(
+            builder,
+            {
+                "probe_force": station.GetOutputPort("probe_force"),
+                "q": station.GetOutputPort("joint_position"),
+                "mask_centroid": segmenter.GetOutputPort("mask_centroid"),
+                "kidney_visible": segmenter.GetOutputPort("kidney_visible"),
+                "phase": parts.supervisor.GetOutputPort("phase"),
+            },
+            log_period,
+        )
     return ClosedLoop(builder.Build(), station, parts, None, {}, loggers), scenario
 
 
@@ -178,7 +225,9 @@ def AdvanceUntilScanEnds(simulator, scan_supervisor, t_max: float, step: float =
     context = simulator.get_mutable_context()
     supervisor_context = scan_supervisor.GetMyContextFromRoot(context)
     while context.get_time() < t_max and scan_supervisor.state(supervisor_context).phase not in (
-            Phase.DONE, Phase.ABORT):
+        Phase.DONE,
+        Phase.ABORT,
+    ):
         simulator.AdvanceTo(min(t_max, context.get_time() + step))
 
 
@@ -190,33 +239,56 @@ class PressDiagram:
     into a false steady value; the estimate at every controller period (``log_period``
     overrides both)."""
 
-    def __init__(self, scenario, meshcat=None, desired_force: float | None = None,
-                 log_period: float | None = None, patient=None, drive: bool = True,
-                 hold_orientation: bool = True):
+    def __init__(
+        self,
+        scenario,
+        meshcat=None,
+        desired_force: float | None = None,
+        log_period: float | None = None,
+        patient=None,
+        drive: bool = True,
+        hold_orientation: bool = True,
+    ):
         builder = DiagramBuilder()
         self.station = builder.AddNamedSystem(
-            "station", MakeStation(scenario, meshcat=meshcat, patient=patient))
+            "station", MakeStation(scenario, meshcat=meshcat, patient=patient)
+        )
         if drive:
             control_plant, tip_frame = MakeControlPlant(scenario.robot, scenario.probe)
             self.driver = builder.AddNamedSystem(
-                "press_driver", PressDriver(control_plant, tip_frame, scenario.controller,
-                                            desired_force, hold_orientation=hold_orientation))
-            builder.Connect(self.station.GetOutputPort("joint_position"),
-                            self.driver.get_input_port(0))
-            builder.Connect(self.station.GetOutputPort("probe_force"),
-                            self.driver.get_input_port(1))
-            builder.Connect(self.driver.get_output_port(),
-                            self.station.GetInputPort("joint_velocity_command"))
+                "press_driver",
+                PressDriver(
+                    control_plant,
+                    tip_frame,
+                    scenario.controller,
+                    desired_force,
+                    hold_orientation=hold_orientation,
+                ),
+            )
+            builder.Connect(
+                self.station.GetOutputPort("joint_position"), self.driver.get_input_port(0)
+            )
+            builder.Connect(
+                self.station.GetOutputPort("probe_force"), self.driver.get_input_port(1)
+            )
+            builder.Connect(
+                self.driver.get_output_port(), self.station.GetInputPort("joint_velocity_command")
+            )
         else:
             self.driver = builder.AddNamedSystem("zero_command", ConstantVectorSource(np.zeros(7)))
-            builder.Connect(self.driver.get_output_port(),
-                            self.station.GetInputPort("joint_velocity_command"))
+            builder.Connect(
+                self.driver.get_output_port(), self.station.GetInputPort("joint_velocity_command")
+            )
         self.force_log = LogVectorOutput(
-            self.station.GetOutputPort("probe_force"), builder,
-            log_period or 1.0 / scenario.controller.rate_hz)
+            self.station.GetOutputPort("probe_force"),
+            builder,
+            log_period or 1.0 / scenario.controller.rate_hz,
+        )
         self.truth_log = LogVectorOutput(
-            self.station.GetOutputPort("probe_contact_wrench_true"), builder,
-            log_period or scenario.contact.time_step)
+            self.station.GetOutputPort("probe_contact_wrench_true"),
+            builder,
+            log_period or scenario.contact.time_step,
+        )
         self.diagram = builder.Build()
         self.diagram.set_name("press_demo")
 

@@ -23,7 +23,6 @@ import types
 import typing
 
 import numpy as np
-
 from pydrake.common.schema import Transform
 
 
@@ -100,7 +99,8 @@ def _check_number(path: str, value, meta: dict, integer: bool = False) -> None:
         unit = meta["unit"]
         raise ScenarioError(
             f"field '{path}': {value:g} {unit} is outside the physical range "
-            f"{meta['min']:g}-{meta['max']:g} {unit} ({meta['why']})".replace("  ", " "))
+            f"{meta['min']:g}-{meta['max']:g} {unit} ({meta['why']})".replace("  ", " ")
+        )
     if "min" in meta and value < meta["min"]:
         raise ScenarioError(f"field '{path}': expected a number >= {meta['min']}, got {value!r}")
     if "max" in meta and value > meta["max"]:
@@ -110,8 +110,10 @@ def _check_number(path: str, value, meta: dict, integer: bool = False) -> None:
 def _check_min_length(where: str, values, meta: dict) -> None:
     n = meta.get("min_length")
     if n is not None and len(values) < n:
-        raise ScenarioError(f"field '{where}': expected a list of at least {n} value"
-                            f"{'s' if n > 1 else ''}, got {len(values)}")
+        raise ScenarioError(
+            f"field '{where}': expected a list of at least {n} value"
+            f"{'s' if n > 1 else ''}, got {len(values)}"
+        )
 
 
 def validate(schema, data, path: str = "", meta: dict | None = None) -> None:
@@ -128,15 +130,15 @@ def validate(schema, data, path: str = "", meta: dict | None = None) -> None:
         return  # Drake's own variants; leave to yaml_load_typed.
     if dataclasses.is_dataclass(schema):
         if not isinstance(data, dict):
-            raise ScenarioError(
-                f"field '{where}': expected {_type_name(schema)}, got {data!r}")
+            raise ScenarioError(f"field '{where}': expected {_type_name(schema)}, got {data!r}")
         fields = {f.name: f for f in dataclasses.fields(schema)}
         for key, value in data.items():
             if key not in fields:
                 known = ", ".join(sorted(fields))
                 raise ScenarioError(
                     f"field '{path + '.' if path else ''}{key}' is not a known field of "
-                    f"{schema.__name__}; known fields: {known}")
+                    f"{schema.__name__}; known fields: {known}"
+                )
             f = fields[key]
             hint = typing.get_type_hints(schema)[key]
             validate(hint, value, f"{path}.{key}" if path else key, dict(f.metadata))
@@ -149,28 +151,38 @@ def validate(schema, data, path: str = "", meta: dict | None = None) -> None:
         if extra:
             raise ScenarioError(
                 f"field '{where}.{sorted(extra)[0]}' is not a known field of Transform; "
-                f"known fields: {', '.join(sorted(allowed))}")
+                f"known fields: {', '.join(sorted(allowed))}"
+            )
         if "translation" in data:
             t = data["translation"]
-            if (not isinstance(t, list) or len(t) != 3
-                    or not all(_is_number(v) and math.isfinite(v) for v in t)):
+            if (
+                not isinstance(t, list)
+                or len(t) != 3
+                or not all(_is_number(v) and math.isfinite(v) for v in t)
+            ):
                 raise ScenarioError(
                     f"field '{where}.translation': expected a list of 3 finite numbers (m), "
-                    f"got {t!r}")
+                    f"got {t!r}"
+                )
         rotation = data.get("rotation")
         if isinstance(rotation, dict):
             for key, n in (("deg", 3), ("axis", 3)):
                 if key in rotation:
                     v = rotation[key]
-                    if (not isinstance(v, list) or len(v) != n
-                            or not all(_is_number(x) and math.isfinite(x) for x in v)):
+                    if (
+                        not isinstance(v, list)
+                        or len(v) != n
+                        or not all(_is_number(x) and math.isfinite(x) for x in v)
+                    ):
                         raise ScenarioError(
                             f"field '{where}.rotation.{key}': expected a list of {n} finite "
-                            f"numbers, got {v!r}")
+                            f"numbers, got {v!r}"
+                        )
         elif rotation is not None:
             raise ScenarioError(
                 f"field '{where}.rotation': expected !Rpy {{deg: [r, p, y]}} or "
-                f"!AngleAxis {{angle_deg: a, axis: [x, y, z]}}, got {rotation!r}")
+                f"!AngleAxis {{angle_deg: a, axis: [x, y, z]}}, got {rotation!r}"
+            )
         return
     if schema is bool:
         if not isinstance(data, bool):
@@ -188,7 +200,8 @@ def validate(schema, data, path: str = "", meta: dict | None = None) -> None:
         choices = meta.get("choices")
         if choices and data not in choices:
             raise ScenarioError(
-                f"field '{where}': expected one of {', '.join(map(repr, choices))}, got {data!r}")
+                f"field '{where}': expected one of {', '.join(map(repr, choices))}, got {data!r}"
+            )
         return
     if origin is list:
         (item,) = typing.get_args(schema)
@@ -196,7 +209,8 @@ def validate(schema, data, path: str = "", meta: dict | None = None) -> None:
             raise ScenarioError(f"field '{where}': expected {_type_name(schema)}, got {data!r}")
         if "length" in meta and len(data) != meta["length"]:
             raise ScenarioError(
-                f"field '{where}': expected a list of {meta['length']} values, got {len(data)}")
+                f"field '{where}': expected a list of {meta['length']} values, got {len(data)}"
+            )
         _check_min_length(where, data, meta)
         for i, value in enumerate(data):
             validate(item, value, f"{where}[{i}]", meta)
@@ -223,15 +237,19 @@ def check_dataclass_values(obj, path: str = "") -> None:
         elif isinstance(value, bool):
             continue
         elif _is_number(value):
-            _check_number(where, value, meta, integer=isinstance(value, int) and f.type in (int, "int"))
+            _check_number(
+                where, value, meta, integer=isinstance(value, int) and f.type in (int, "int")
+            )
         elif isinstance(value, str) and meta.get("choices") and value not in meta["choices"]:
             raise ScenarioError(
                 f"field '{where}': expected one of {', '.join(map(repr, meta['choices']))}, "
-                f"got {value!r}")
+                f"got {value!r}"
+            )
         elif isinstance(value, (list, tuple)):
             if "length" in meta and len(value) != meta["length"]:
                 raise ScenarioError(
-                    f"field '{where}': expected a list of {meta['length']} values, got {len(value)}")
+                    f"field '{where}': expected a list of {meta['length']} values, got {len(value)}"
+                )
             _check_min_length(where, value, meta)
             for i, v in enumerate(value):
                 if _is_number(v):
@@ -242,7 +260,8 @@ def check_dataclass_values(obj, path: str = "") -> None:
                             raise ScenarioError(
                                 f"field '{where}[{i}]': {v:g} {meta['unit']} is outside "
                                 f"{meta['element_label']} {i + 1} limits [{lo}, {hi}] "
-                                f"({meta['why']})")
+                                f"({meta['why']})"
+                            )
 
 
 # ------------------------------------------------------------------ physical ranges and rules
@@ -290,70 +309,112 @@ def _fmt(v) -> str:
 # Rules between fields: (fields, holds(scenario) -> bool, what must hold). The first field
 # is the one named in the error.
 CROSS_FIELD_RULES = [
-    (("controller.desired_force", "safety.force_ceiling"),
-     lambda s: s.controller.desired_force < s.safety.force_ceiling,
-     "the desired force must be below the safety force ceiling (or every scan ends in a "
-     "safety stop)"),
-    (("contact.time_step", "controller.rate_hz"),
-     lambda s: s.contact.time_step <= 1.0 / s.controller.rate_hz + 1e-12,
-     "the plant must step at least once per controller period"),
-    (("imaging.frame_rate_hz", "contact.time_step"),
-     lambda s: s.imaging.frame_rate_hz <= 1.0 / s.contact.time_step + 1e-9,
-     "at most one ultrasound frame per plant step"),
-    (("controller.max_tip_speed", "safety.command_tip_speed"),
-     lambda s: s.controller.max_tip_speed <= s.safety.command_tip_speed,
-     "the controller's tip speed must fit within the safety layer's command clamp"),
-    (("safety.command_tip_speed", "safety.max_tip_speed"),
-     lambda s: s.safety.command_tip_speed <= s.safety.max_tip_speed,
-     "the commanded tip speed must be below the speed that stops the robot"),
-    (("safety.workspace_min", "safety.workspace_max"),
-     lambda s: all(lo < hi for lo, hi in zip(s.safety.workspace_min, s.safety.workspace_max)),
-     "every workspace minimum must be below its maximum"),
-    (("hardware_interface.command_rate_hz", "controller.rate_hz"),
-     lambda s: s.hardware_interface.command_rate_hz >= s.controller.rate_hz - 1e-9,
-     "velocity targets must be sent at least as often as the controller computes them"),
-    (("controller.pivot_pose",),
-     lambda s: len(s.controller.pivot_pose) in (0, 3),
-     "a given pivot pose is [x (m), y (m), yaw (rad)]; [] pivots at T* of the registered "
-     "kidney pose"),
-    (("controller.pivot_pose", "controller.pivot_strategy"),
-     lambda s: not (s.controller.pivot_pose and s.controller.pivot_strategy == "predicted_end"),
-     "the predicted_end pivot predicts the kidney's ends from the registered pose, which a "
-     "scan with a given pivot pose does not make; use pivot_strategy two_leg"),
-    (("controller.pivot_pose", "controller.sweep"),
-     lambda s: not (s.controller.pivot_pose and s.controller.sweep == "line"),
-     "a line sweep has no pivot; give pivot_pose [] or sweep pivot"),
-    (("patient.side", "patient.posture"),
-     lambda s: not (s.patient.side == "left" and s.patient.posture == "left_lateral_decubitus"),
-     "left lateral decubitus lays the left kidney against the bed (it turns the right flank "
-     "up for the right kidney); scan the left kidney supine (right lateral decubitus is not "
-     "modelled)"),
-    (("patient.X_BPt.rotation",),
-     lambda s: _bed_tilt_deg(s) <= MAX_BED_TILT_DEG,
-     f"the bed's surface must face up: z of the patient frame (the bed's normal) within "
-     f"{MAX_BED_TILT_DEG:g} deg of the robot base's z (a patient lies on a level bed, the "
-     f"probe comes from above)"),
-    (("patient.motion.breathing.hold_duration", "patient.motion.breathing.hold_period"),
-     lambda s: not _holds(s) or s.patient.motion.breathing.hold_duration
-     < s.patient.motion.breathing.hold_period,
-     "a breath-hold must end before the next one starts (hold_duration < hold_period; "
-     "hold_period 0 for free breathing only)"),
-    (("patient.motion.breathing.hold_duration", "patient.motion.breathing.hold_period"),
-     lambda s: not _holds(s) or s.patient.motion.breathing.hold_period
-     - s.patient.motion.breathing.hold_duration >= 60.0 / BREATHING_RATE_MAX - 1e-9,
-     f"between breath-holds the patient must breathe at least once: hold_period - "
-     f"hold_duration >= {60.0 / BREATHING_RATE_MAX:g} s (one breath at "
-     f"{BREATHING_RATE_MAX:g} breaths/min, the fastest rate modelled)"),
-    (("patient.motion.breathing.first_hold",),
-     lambda s: not _holds(s) or s.patient.motion.breathing.first_hold == 0.0
-     or s.patient.motion.breathing.first_hold >= 60.0 / BREATHING_RATE_MAX - 1e-9,
-     f"the free breathing before the first hold is at least one breath: first_hold 0 or "
-     f">= {60.0 / BREATHING_RATE_MAX:g} s"),
-    (("patient.X_BPt.translation",),
-     lambda s: float(np.linalg.norm(
-         s.patient.X_BPt.GetDeterministicValue().translation())) <= MAX_PATIENT_DISTANCE,
-     f"the patient must lie within {MAX_PATIENT_DISTANCE:g} m of the robot base (the FR3 "
-     "reaches 0.855 m)"),
+    (
+        ("controller.desired_force", "safety.force_ceiling"),
+        lambda s: s.controller.desired_force < s.safety.force_ceiling,
+        "the desired force must be below the safety force ceiling (or every scan ends in a "
+        "safety stop)",
+    ),
+    (
+        ("contact.time_step", "controller.rate_hz"),
+        lambda s: s.contact.time_step <= 1.0 / s.controller.rate_hz + 1e-12,
+        "the plant must step at least once per controller period",
+    ),
+    (
+        ("imaging.frame_rate_hz", "contact.time_step"),
+        lambda s: s.imaging.frame_rate_hz <= 1.0 / s.contact.time_step + 1e-9,
+        "at most one ultrasound frame per plant step",
+    ),
+    (
+        ("controller.max_tip_speed", "safety.command_tip_speed"),
+        lambda s: s.controller.max_tip_speed <= s.safety.command_tip_speed,
+        "the controller's tip speed must fit within the safety layer's command clamp",
+    ),
+    (
+        ("safety.command_tip_speed", "safety.max_tip_speed"),
+        lambda s: s.safety.command_tip_speed <= s.safety.max_tip_speed,
+        "the commanded tip speed must be below the speed that stops the robot",
+    ),
+    (
+        ("safety.workspace_min", "safety.workspace_max"),
+        lambda s: all(lo < hi for lo, hi in zip(s.safety.workspace_min, s.safety.workspace_max)),
+        "every workspace minimum must be below its maximum",
+    ),
+    (
+        ("hardware_interface.command_rate_hz", "controller.rate_hz"),
+        lambda s: s.hardware_interface.command_rate_hz >= s.controller.rate_hz - 1e-9,
+        "velocity targets must be sent at least as often as the controller computes them",
+    ),
+    (
+        ("controller.pivot_pose",),
+        lambda s: len(s.controller.pivot_pose) in (0, 3),
+        "a given pivot pose is [x (m), y (m), yaw (rad)]; [] pivots at T* of the registered "
+        "kidney pose",
+    ),
+    (
+        ("controller.pivot_pose", "controller.pivot_strategy"),
+        lambda s: not (s.controller.pivot_pose and s.controller.pivot_strategy == "predicted_end"),
+        "the predicted_end pivot predicts the kidney's ends from the registered pose, which a "
+        "scan with a given pivot pose does not make; use pivot_strategy two_leg",
+    ),
+    (
+        ("controller.pivot_pose", "controller.sweep"),
+        lambda s: not (s.controller.pivot_pose and s.controller.sweep == "line"),
+        "a line sweep has no pivot; give pivot_pose [] or sweep pivot",
+    ),
+    (
+        ("patient.side", "patient.posture"),
+        lambda s: not (s.patient.side == "left" and s.patient.posture == "left_lateral_decubitus"),
+        "left lateral decubitus lays the left kidney against the bed (it turns the right flank "
+        "up for the right kidney); scan the left kidney supine (right lateral decubitus is not "
+        "modelled)",
+    ),
+    (
+        ("patient.X_BPt.rotation",),
+        lambda s: _bed_tilt_deg(s) <= MAX_BED_TILT_DEG,
+        f"the bed's surface must face up: z of the patient frame (the bed's normal) within "
+        f"{MAX_BED_TILT_DEG:g} deg of the robot base's z (a patient lies on a level bed, the "
+        f"probe comes from above)",
+    ),
+    (
+        ("patient.motion.breathing.hold_duration", "patient.motion.breathing.hold_period"),
+        lambda s: (
+            not _holds(s)
+            or s.patient.motion.breathing.hold_duration < s.patient.motion.breathing.hold_period
+        ),
+        "a breath-hold must end before the next one starts (hold_duration < hold_period; "
+        "hold_period 0 for free breathing only)",
+    ),
+    (
+        ("patient.motion.breathing.hold_duration", "patient.motion.breathing.hold_period"),
+        lambda s: (
+            not _holds(s)
+            or s.patient.motion.breathing.hold_period - s.patient.motion.breathing.hold_duration
+            >= 60.0 / BREATHING_RATE_MAX - 1e-9
+        ),
+        f"between breath-holds the patient must breathe at least once: hold_period - "
+        f"hold_duration >= {60.0 / BREATHING_RATE_MAX:g} s (one breath at "
+        f"{BREATHING_RATE_MAX:g} breaths/min, the fastest rate modelled)",
+    ),
+    (
+        ("patient.motion.breathing.first_hold",),
+        lambda s: (
+            not _holds(s)
+            or s.patient.motion.breathing.first_hold == 0.0
+            or s.patient.motion.breathing.first_hold >= 60.0 / BREATHING_RATE_MAX - 1e-9
+        ),
+        f"the free breathing before the first hold is at least one breath: first_hold 0 or "
+        f">= {60.0 / BREATHING_RATE_MAX:g} s",
+    ),
+    (
+        ("patient.X_BPt.translation",),
+        lambda s: (
+            float(np.linalg.norm(s.patient.X_BPt.GetDeterministicValue().translation()))
+            <= MAX_PATIENT_DISTANCE
+        ),
+        f"the patient must lie within {MAX_PATIENT_DISTANCE:g} m of the robot base (the FR3 "
+        "reaches 0.855 m)",
+    ),
 ]
 
 
@@ -396,8 +457,9 @@ def _value_for_message(scenario, path: str):
     if path.endswith("X_BPt.rotation"):
         return _Text(f"z_Pt at {_bed_tilt_deg(scenario):.1f} deg from z_B")
     if path.endswith("X_BPt.translation"):
-        return [round(float(x), 3) for x in
-                scenario.patient.X_BPt.GetDeterministicValue().translation()]
+        return [
+            round(float(x), 3) for x in scenario.patient.X_BPt.GetDeterministicValue().translation()
+        ]
     return _get(scenario, path)
 
 
@@ -414,8 +476,13 @@ def yaml_depth(text: str) -> tuple[int, int]:
     token stream (no recursion, whatever the depth). Text that does not scan as YAML gives
     the depth reached before the error (the loader names the error)."""
     import yaml
-    opening = (yaml.BlockMappingStartToken, yaml.BlockSequenceStartToken,
-               yaml.FlowMappingStartToken, yaml.FlowSequenceStartToken)
+
+    opening = (
+        yaml.BlockMappingStartToken,
+        yaml.BlockSequenceStartToken,
+        yaml.FlowMappingStartToken,
+        yaml.FlowSequenceStartToken,
+    )
     closing = (yaml.BlockEndToken, yaml.FlowMappingEndToken, yaml.FlowSequenceEndToken)
     depth = deepest = line = 0
     try:
@@ -441,8 +508,10 @@ def check_nesting_depth(text: str, where: str, limit: int = MAX_YAML_DEPTH) -> N
     depth, line = yaml_depth(text)
     if depth > limit:
         shown = f"more than {10 * limit}" if depth > 10 * limit else f"{depth}"
-        raise ScenarioError(f"{where}: the YAML nests {shown} levels deep (line {line}); "
-                            f"scenario fields nest at most {limit} levels")
+        raise ScenarioError(
+            f"{where}: the YAML nests {shown} levels deep (line {line}); "
+            f"scenario fields nest at most {limit} levels"
+        )
 
 
 # ------------------------------------------------------------------------ duplicate keys
@@ -453,6 +522,7 @@ def check_duplicate_keys(text: str, scenarios_file: bool = False) -> None:
     (``<<: *anchor``) and what they bring in may be overridden, as YAML intends. Text that is
     not YAML is left to the loader's own error."""
     import yaml
+
     try:
         root = yaml.compose(text, Loader=yaml.SafeLoader)
     except yaml.YAMLError:
@@ -477,10 +547,11 @@ def check_duplicate_keys(text: str, scenarios_file: bool = False) -> None:
                             raise ScenarioError(f"scenario '{key}' is given twice ({lines})")
                         if scenarios_file:
                             name, _, field = where.partition(".")
-                            raise ScenarioError(f"scenario '{name}': field '{field}' is "
-                                                f"given twice ({lines}); remove one")
-                        raise ScenarioError(
-                            f"field '{where}' is given twice ({lines}); remove one")
+                            raise ScenarioError(
+                                f"scenario '{name}': field '{field}' is "
+                                f"given twice ({lines}); remove one"
+                            )
+                        raise ScenarioError(f"field '{where}' is given twice ({lines}); remove one")
                     keys[key] = key_node.start_mark.line + 1
                     walk(value_node, where)
         elif isinstance(node, yaml.SequenceNode):

@@ -32,8 +32,10 @@ def install_hint(extra: str) -> str:
 
 def missing_extra_message(module: str, needed_by: str) -> str:
     extra, what = EXTRAS[module]
-    return (f"{needed_by} needs {what} (module {module}), part of the '{extra}' extra: "
-            f"{install_hint(extra)}")
+    return (
+        f"{needed_by} needs {what} (module {module}), part of the '{extra}' extra: "
+        f"{install_hint(extra)}"
+    )
 
 
 def require(module: str, needed_by: str):

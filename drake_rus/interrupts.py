@@ -26,15 +26,25 @@ import sys
 import threading
 from contextlib import contextmanager
 
-__all__ = ["Interrupted", "handling", "deferred", "importing", "check", "note", "pending",
-           "exit_status", "signal_of", "signal_text", "install_for_startup"]
+__all__ = [
+    "Interrupted",
+    "handling",
+    "deferred",
+    "importing",
+    "check",
+    "note",
+    "pending",
+    "exit_status",
+    "signal_of",
+    "signal_text",
+    "install_for_startup",
+]
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 # signum: the first signal received; deferring: one entry per open deferred block (its
 # ``insist``), innermost last.
-_state = {"signum": None, "deferring": [], "installed": False, "previous": {},
-          "startup": False}
+_state = {"signum": None, "deferring": [], "installed": False, "previous": {}, "startup": False}
 
 
 class Interrupted(KeyboardInterrupt):
@@ -99,7 +109,7 @@ def _handler(signum, frame):
         _state["signum"] = signum
     deferring = _state["deferring"]
     if deferring and (first or not deferring[-1]):
-        return                      # recorded; raised when the deferred block ends
+        return  # recorded; raised when the deferred block ends
     raise Interrupted(_state["signum"])
 
 
@@ -172,7 +182,7 @@ def handling():
     the previous ones afterwards. A signal received before, during start-up, counts."""
     startup = _state["startup"]
     _state["startup"] = False
-    if startup:                      # install_for_startup's deferral ends here
+    if startup:  # install_for_startup's deferral ends here
         _state["deferring"].clear()
     else:
         _state["signum"] = None

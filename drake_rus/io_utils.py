@@ -42,8 +42,7 @@ def atomic_path(path: str | Path):
     with ExitStack() as stack:
         # Creating the temporary file and taking charge of it is one step for signals.
         with interrupts.deferred(reraise=False):
-            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix,
-                                       dir=path.parent)
+            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
             os.close(fd)
             cleanup = stack.enter_context(_TemporaryFile(tmp))
         interrupts.check()
@@ -92,6 +91,7 @@ def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
 def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
     """Saves a matplotlib figure as PNG atomically and closes it."""
     import matplotlib.pyplot as plt
+
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=dpi)
     plt.close(fig)
@@ -115,7 +115,7 @@ def dumps_strict(obj, **kwargs) -> str:
     and arrays through ``default``, if given, are converted first)."""
     default = kwargs.pop("default", None)
     if default is not None:
-        obj = json.loads(json.dumps(obj, default=default))   # numpy -> Python values
+        obj = json.loads(json.dumps(obj, default=default))  # numpy -> Python values
     return json.dumps(_finite_or_none(obj), allow_nan=False, **kwargs)
 
 
@@ -126,7 +126,7 @@ def strict_json_text(text: str) -> str:
     try:
         obj = json.loads(text, parse_constant=lambda c: bad.append(c))
     except ValueError:
-        return text          # not JSON at all: the caller's business
+        return text  # not JSON at all: the caller's business
     if not bad:
         return text
     return json.dumps(_finite_or_none(obj), indent=2, allow_nan=False) + "\n"
@@ -167,7 +167,8 @@ def _check_folder_writable(folder: Path, arg: str, need_bytes: int) -> None:
         if free < need_bytes:
             raise OutputError(
                 f"{arg}: not enough free space in {folder}: {free / MB:.1f} MB free, this "
-                f"run writes about {need_bytes / MB:.0f} MB")
+                f"run writes about {need_bytes / MB:.0f} MB"
+            )
 
 
 def check_output_dir(path, arg: str = "--out", need_bytes: int = 0) -> Path:
@@ -182,8 +183,7 @@ def check_output_dir(path, arg: str = "--out", need_bytes: int = 0) -> Path:
     return path
 
 
-def check_output_file(path, arg: str, need_bytes: int = 0,
-                      suffixes: tuple[str, ...] = ()) -> Path:
+def check_output_file(path, arg: str, need_bytes: int = 0, suffixes: tuple[str, ...] = ()) -> Path:
     """Checks, without creating anything, that ``path`` can be written as a file (not a
     folder; its folder writable, ``need_bytes`` free; a suffix among ``suffixes``)."""
     path = Path(path)
@@ -192,8 +192,9 @@ def check_output_file(path, arg: str, need_bytes: int = 0,
     if path.is_dir():
         raise OutputError(f"{arg}: {path} is a folder; expected a file name")
     if suffixes and not any(str(path).lower().endswith(s) for s in suffixes):
-        raise OutputError(f"{arg}: expected a file name ending in {' or '.join(suffixes)}, "
-                          f"got {path}")
+        raise OutputError(
+            f"{arg}: expected a file name ending in {' or '.join(suffixes)}, got {path}"
+        )
     _check_folder_writable(_existing_ancestor(path.parent), arg, need_bytes)
     return path
 
@@ -224,10 +225,14 @@ def _lock_record(what: str, argv) -> dict:
     if argv and os.path.basename(str(argv[0])) in ("cli.py", "drake-rus"):
         argv[0] = "drake-rus"
     pid = os.getpid()
-    return {"pid": pid, "command": what, "argv": [str(a) for a in argv],
-            "started_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(
-                timespec="seconds"),
-            "process_start": _process_start(pid), "token": uuid.uuid4().hex}
+    return {
+        "pid": pid,
+        "command": what,
+        "argv": [str(a) for a in argv],
+        "started_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "process_start": _process_start(pid),
+        "token": uuid.uuid4().hex,
+    }
 
 
 def read_lock(path) -> dict | None:
@@ -265,8 +270,7 @@ def _describe_holder(record: dict) -> str:
         try:
             t = datetime.datetime.fromisoformat(started)
             ago = (datetime.datetime.now(datetime.timezone.utc) - t).total_seconds()
-            text += (f", started {t.strftime('%Y-%m-%d %H:%M:%S')} UTC "
-                     f"({_duration(ago)} ago)")
+            text += f", started {t.strftime('%Y-%m-%d %H:%M:%S')} UTC ({_duration(ago)} ago)"
         except (TypeError, ValueError):
             text += f", started {started}"
     argv = record.get("argv")
@@ -285,8 +289,7 @@ def _duration(seconds: float) -> str:
 
 
 @contextmanager
-def output_dir(path, arg: str = "--out", need_bytes: int = 0, what: str = "drake-rus",
-               argv=None):
+def output_dir(path, arg: str = "--out", need_bytes: int = 0, what: str = "drake-rus", argv=None):
     """Checks ``path`` (see :func:`check_output_dir`), creates it and holds a lock file in it
     for the duration: a second run into the same folder is refused (OutputError naming
     ``arg`` and the run holding the lock: command, process, start time, its command line
@@ -331,8 +334,9 @@ def _take_lock(path: Path, lock: Path, record: dict, created: list, arg: str) ->
             if _lock_held(holder):
                 raise OutputError(
                     f"{arg}: {path} is in use by another run ({_describe_holder(holder)}); "
-                    f"wait for it to finish or choose another {arg}") from None
-            lock.unlink(missing_ok=True)       # stale: its process is gone
+                    f"wait for it to finish or choose another {arg}"
+                ) from None
+            lock.unlink(missing_ok=True)  # stale: its process is gone
             continue
         except OSError as e:
             raise OutputError(f"{arg}: cannot write in {path} ({_why(e)})") from None
@@ -350,7 +354,7 @@ def _release_lock(lock: Path, record: dict) -> None:
 
 
 def _remove_empty(folders) -> None:
-    for f in folders:                  # deepest first
+    for f in folders:  # deepest first
         try:
             f.rmdir()
         except OSError:
@@ -375,8 +379,9 @@ def describe_os_error(e: OSError, args=None) -> str:
     where = getattr(e, "filename", None)
     arg = argument_for_path(args, where) if args is not None else None
     if e.errno == errno.ENOSPC:
-        text = ("no space left on the device" + (f" writing {where}" if where else
-                                                  " (free some space and run again)"))
+        text = "no space left on the device" + (
+            f" writing {where}" if where else " (free some space and run again)"
+        )
     elif e.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
         text = f"cannot write {where} ({_why(e)})" if where else f"cannot write ({_why(e)})"
     else:

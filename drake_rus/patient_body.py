@@ -25,8 +25,13 @@ import numpy as np
 import trimesh
 from pydrake.common.value import AbstractValue
 from pydrake.geometry import (
-    AddCompliantHydroelasticProperties, AddContactMaterial, Convex, Ellipsoid, Mesh,
-    ProximityProperties)
+    AddCompliantHydroelasticProperties,
+    AddContactMaterial,
+    Convex,
+    Ellipsoid,
+    Mesh,
+    ProximityProperties,
+)
 from pydrake.math import RigidTransform
 from pydrake.multibody.plant import CoulombFriction, MultibodyPlant
 from pydrake.multibody.tree import PdControllerGains, PrismaticJoint, SpatialInertia
@@ -37,8 +42,17 @@ from drake_rus.anatomy.motion import PatientMotion
 from drake_rus.io_utils import write_text_atomic
 from drake_rus.scenario import Scenario
 
-__all__ = ["AddPatientBody", "ContactHull", "ContactSection", "hull_gap_over_kidney", "AddPatientMotionDriver", "PatientMotionFor",
-           "MovingPose", "BreathHoldSignal", "PatientMotionDesiredState"]
+__all__ = [
+    "AddPatientBody",
+    "ContactHull",
+    "ContactSection",
+    "hull_gap_over_kidney",
+    "AddPatientMotionDriver",
+    "PatientMotionFor",
+    "MovingPose",
+    "BreathHoldSignal",
+    "PatientMotionDesiredState",
+]
 
 LOG = logging.getLogger("drake_rus.patient_body")
 
@@ -67,14 +81,24 @@ def _patient_properties(scenario: Scenario) -> ProximityProperties:
     contact = scenario.contact
     props = ProximityProperties()
     AddCompliantHydroelasticProperties(
-        contact.patient_resolution_hint, contact.hydroelastic_modulus, props)
-    AddContactMaterial(contact.hunt_crossley_dissipation, contact.point_stiffness,
-                       CoulombFriction(contact.friction, contact.friction), props)
+        contact.patient_resolution_hint, contact.hydroelastic_modulus, props
+    )
+    AddContactMaterial(
+        contact.hunt_crossley_dissipation,
+        contact.point_stiffness,
+        CoulombFriction(contact.friction, contact.friction),
+        props,
+    )
     return props
 
 
-def AddPatientBody(plant: MultibodyPlant, scenario: Scenario, patient=None,
-                   mesh_dir: Path | None = None, moving: bool = False) -> dict:
+def AddPatientBody(
+    plant: MultibodyPlant,
+    scenario: Scenario,
+    patient=None,
+    mesh_dir: Path | None = None,
+    moving: bool = False,
+) -> dict:
     """Adds the patient's body surface as a soft (compliant) body welded to the world, or
     with ``moving`` on a body driven along base x, y, z (``added["instance"]`` is then its
     model instance; drive it with :func:`AddPatientMotionDriver`).
@@ -95,22 +119,27 @@ def AddPatientBody(plant: MultibodyPlant, scenario: Scenario, patient=None,
         a, b, c = scenario.patient.placeholder_semi_axes
         shape = Ellipsoid(a, b, c)
         added["collision"] = plant.RegisterCollisionGeometry(
-            body, X_BPt, shape, "patient_body", props)
-        plant.RegisterVisualGeometry(body, X_BPt, shape, "patient_body_visual",
-                                     np.array([0.93, 0.78, 0.68, 0.55]))
+            body, X_BPt, shape, "patient_body", props
+        )
+        plant.RegisterVisualGeometry(
+            body, X_BPt, shape, "patient_body_visual", np.array([0.93, 0.78, 0.68, 0.55])
+        )
         return added
     mesh_dir = Path(mesh_dir) if mesh_dir else Path(tempfile.gettempdir()) / "drake_rus_meshes"
     torso, half_length, gap = ContactSection(patient, scenario.contact)
     added["section_half_length"], added["hull_gap"] = half_length, gap
     torso_path = _mesh_file(torso, mesh_dir, "torso_section")
     added["collision"] = plant.RegisterCollisionGeometry(
-        body, X_BPt, Convex(str(torso_path)), "patient_body", props)
+        body, X_BPt, Convex(str(torso_path)), "patient_body", props
+    )
     skin_path = _mesh_file(patient.skin_mesh, mesh_dir, "skin")
-    plant.RegisterVisualGeometry(body, X_BPt, Mesh(str(skin_path)), "patient_skin_visual",
-                                 np.array([0.93, 0.78, 0.68, 0.35]))
+    plant.RegisterVisualGeometry(
+        body, X_BPt, Mesh(str(skin_path)), "patient_skin_visual", np.array([0.93, 0.78, 0.68, 0.35])
+    )
     kidney_path = _mesh_file(patient.kidney_mesh, mesh_dir, "kidney")
-    plant.RegisterVisualGeometry(body, X_BPt, Mesh(str(kidney_path)), "kidney_visual",
-                                 np.array([0.7, 0.15, 0.15, 0.9]))
+    plant.RegisterVisualGeometry(
+        body, X_BPt, Mesh(str(kidney_path)), "kidney_visual", np.array([0.7, 0.15, 0.15, 0.9])
+    )
     added["files"] = [torso_path, skin_path, kidney_path]
     return added
 
@@ -134,10 +163,14 @@ def _AddMovingPatientBody(plant: MultibodyPlant):
     for axis, name in zip(np.eye(3), "xyz"):
         last = name == "z"
         mass = PATIENT_MASS if last else 0.1
-        body = plant.AddRigidBody("patient_torso" if last else f"patient_slider_{name}",
-                                  instance, SpatialInertia.SolidSphereWithMass(mass, 0.1))
-        joint = plant.AddJoint(PrismaticJoint(f"patient_{name}", parent.body_frame(),
-                                              body.body_frame(), axis))
+        body = plant.AddRigidBody(
+            "patient_torso" if last else f"patient_slider_{name}",
+            instance,
+            SpatialInertia.SolidSphereWithMass(mass, 0.1),
+        )
+        joint = plant.AddJoint(
+            PrismaticJoint(f"patient_{name}", parent.body_frame(), body.body_frame(), axis)
+        )
         actuator = plant.AddJointActuator(f"patient_{name}", joint, effort_limit=1.0e4)
         actuator.set_controller_gains(PdControllerGains(p=PATIENT_KP, d=PATIENT_KD))
         parent = body
@@ -151,8 +184,10 @@ def hull_gap_over_kidney(patient, hull, samples: int = 9, width: float = 0.02) -
     kidney. 0 when the hull follows the skin there."""
     v = np.asarray(patient.kidney_mesh.vertices)
     c = v.mean(axis=0)
-    xs, ys = np.meshgrid(np.linspace(c[0] - width / 2, c[0] + width / 2, 3),
-                         np.linspace(v[:, 1].min(), v[:, 1].max(), samples))
+    xs, ys = np.meshgrid(
+        np.linspace(c[0] - width / 2, c[0] + width / 2, 3),
+        np.linspace(v[:, 1].min(), v[:, 1].max(), samples),
+    )
     top = max(float(patient.skin_mesh.bounds[1, 2]), float(hull.bounds[1, 2])) + 1.0
     origins = np.column_stack([xs.ravel(), ys.ravel(), np.full(xs.size, top)])
     down = np.tile([0.0, 0.0, -1.0], (len(origins), 1))
@@ -176,8 +211,10 @@ def ContactSection(patient, contact):
     Returns (hull mesh, half-length m, gap m)."""
     half_lengths = list(contact.patient_section_half_lengths)
     if not half_lengths:
-        raise ValueError("field 'contact.patient_section_half_lengths': expected a list of "
-                         "at least 1 half-length (m), got []")
+        raise ValueError(
+            "field 'contact.patient_section_half_lengths': expected a list of "
+            "at least 1 half-length (m), got []"
+        )
     best = None
     for half_length in sorted(half_lengths, reverse=True):
         hull = ContactHull(patient.torso_section(half_length), contact.patient_hull_vertices)
@@ -186,9 +223,13 @@ def ContactSection(patient, contact):
             best = (hull, half_length, gap)
         if gap <= contact.patient_hull_max_gap:
             return hull, half_length, gap
-    LOG.warning("the patient's contact hull lies %.1f mm above the skin over the kidney even "
-                "with a %.0f mm torso section (contact.patient_hull_max_gap %.1f mm)",
-                best[2] * 1000, best[1] * 2000, contact.patient_hull_max_gap * 1000)
+    LOG.warning(
+        "the patient's contact hull lies %.1f mm above the skin over the kidney even "
+        "with a %.0f mm torso section (contact.patient_hull_max_gap %.1f mm)",
+        best[2] * 1000,
+        best[1] * 2000,
+        contact.patient_hull_max_gap * 1000,
+    )
     return best
 
 
@@ -222,10 +263,13 @@ class MovingPose(LeafSystem):
         self._X0 = RigidTransform(X0)
         self._motion = motion
         self.DeclareAbstractOutputPort(
-            "X", lambda: AbstractValue.Make(RigidTransform()),
-            lambda c, o: o.set_value(RigidTransform(self._motion.offset_B(c.get_time()))
-                                     @ self._X0),
-            prerequisites_of_calc={self.time_ticket()})
+            "X",
+            lambda: AbstractValue.Make(RigidTransform()),
+            lambda c, o: o.set_value(
+                RigidTransform(self._motion.offset_B(c.get_time())) @ self._X0
+            ),
+            prerequisites_of_calc={self.time_ticket()},
+        )
 
 
 class PatientMotionDesiredState(LeafSystem):
@@ -236,10 +280,15 @@ class PatientMotionDesiredState(LeafSystem):
         super().__init__()
         self._motion = motion
         self.DeclareVectorOutputPort(
-            "desired_state", 6,
-            lambda c, o: o.SetFromVector(np.concatenate([
-                self._motion.offset_B(c.get_time()), self._motion.velocity_B(c.get_time())])),
-            prerequisites_of_calc={self.time_ticket()})
+            "desired_state",
+            6,
+            lambda c, o: o.SetFromVector(
+                np.concatenate(
+                    [self._motion.offset_B(c.get_time()), self._motion.velocity_B(c.get_time())]
+                )
+            ),
+            prerequisites_of_calc={self.time_ticket()},
+        )
 
 
 class BreathHoldSignal(LeafSystem):
@@ -250,19 +299,21 @@ class BreathHoldSignal(LeafSystem):
         super().__init__()
         self._motion = motion
         self.DeclareVectorOutputPort(
-            "breath_hold", 1,
+            "breath_hold",
+            1,
             lambda c, o: o.SetAtIndex(0, float(self._motion.breath_hold(c.get_time()))),
-            prerequisites_of_calc={self.time_ticket()})
+            prerequisites_of_calc={self.time_ticket()},
+        )
 
 
-def AddPatientMotionDriver(builder: DiagramBuilder, plant: MultibodyPlant,
-                           motion: PatientMotion, instance) -> None:
+def AddPatientMotionDriver(
+    builder: DiagramBuilder, plant: MultibodyPlant, motion: PatientMotion, instance
+) -> None:
     """Drives the moving patient body: desired state = the patient displacement of the
     imaging chain (the same PatientMotion), gravity fed forward."""
     desired = builder.AddNamedSystem("patient_motion", PatientMotionDesiredState(motion))
     builder.Connect(desired.get_output_port(), plant.get_desired_state_input_port(instance))
     mass = sum(plant.get_body(b).default_mass() for b in plant.GetBodyIndices(instance))
     g = float(np.linalg.norm(plant.gravity_field().gravity_vector()))
-    weight = builder.AddNamedSystem("patient_weight",
-                                    ConstantVectorSource([0.0, 0.0, mass * g]))
+    weight = builder.AddNamedSystem("patient_weight", ConstantVectorSource([0.0, 0.0, mass * g]))
     builder.Connect(weight.get_output_port(), plant.get_actuation_input_port(instance))

@@ -27,10 +27,17 @@ def stderr_is_terminal() -> bool:
         return False
 
 
-def AdvanceWithProgress(simulator, t_final: float, desc: str = "simulating",
-                        step: float = 0.1, disable: bool | None = None, on_step=None,
-                        should_stop=None, expected: float | None = None,
-                        log_phases: bool | None = None) -> None:
+def AdvanceWithProgress(
+    simulator,
+    t_final: float,
+    desc: str = "simulating",
+    step: float = 0.1,
+    disable: bool | None = None,
+    on_step=None,
+    should_stop=None,
+    expected: float | None = None,
+    log_phases: bool | None = None,
+) -> None:
     """Advances ``simulator`` to ``t_final`` (s, a cap) in ``step`` chunks with a tqdm bar.
 
     ``on_step(context)`` is called after each chunk and returns a label (e.g. the phase),
@@ -50,25 +57,35 @@ def AdvanceWithProgress(simulator, t_final: float, desc: str = "simulating",
         log_phases = disable is None and not terminal
     start = time.perf_counter()
     last = [None]
-    said = [start]             # when the last line was printed (wall clock)
+    said = [start]  # when the last line was printed (wall clock)
 
     def log(label):
         now = time.perf_counter()
         if log_phases and label and label != last[0]:
-            print(f"{desc}: {label} at {context.get_time() - t0:.1f} sim s "
-                  f"({now - start:.0f} s wall)", file=sys.stderr, flush=True)
+            print(
+                f"{desc}: {label} at {context.get_time() - t0:.1f} sim s "
+                f"({now - start:.0f} s wall)",
+                file=sys.stderr,
+                flush=True,
+            )
             said[0] = now
         elif log_phases and now - said[0] >= PROGRESS_LINE_S:
-            print(f"{desc}: {context.get_time() - t0:.1f} of {span:.1f} sim s"
-                  f"{' in ' + label if label else ''} ({now - start:.0f} s wall)",
-                  file=sys.stderr, flush=True)
+            print(
+                f"{desc}: {context.get_time() - t0:.1f} of {span:.1f} sim s"
+                f"{' in ' + label if label else ''} ({now - start:.0f} s wall)",
+                file=sys.stderr,
+                flush=True,
+            )
             said[0] = now
         last[0] = label
 
-    with tqdm(total=round(total, 3), desc=desc, unit="sim s",
-              disable=(not terminal) if disable is None else disable,
-              bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} sim s [{elapsed}<{remaining}]"
-                         "{postfix}") as bar:
+    with tqdm(
+        total=round(total, 3),
+        desc=desc,
+        unit="sim s",
+        disable=(not terminal) if disable is None else disable,
+        bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} sim s [{elapsed}<{remaining}]{postfix}",
+    ) as bar:
         if on_step is not None:
             label = on_step(context)
             log(label)
@@ -78,17 +95,17 @@ def AdvanceWithProgress(simulator, t_final: float, desc: str = "simulating",
             t_next = min(t_final, context.get_time() + step)
             simulator.AdvanceTo(t_next)
             done = context.get_time() - t0
-            if done > 0.95 * bar.total:      # longer than expected: stretch, never > 100 %
+            if done > 0.95 * bar.total:  # longer than expected: stretch, never > 100 %
                 bar.total = round(min(span, max(done / 0.95, done + step)), 3)
             bar.update(round(done - bar.n, 6))
-            interrupts.check()       # a signal whose exception was swallowed on the way
+            interrupts.check()  # a signal whose exception was swallowed on the way
             label = None if on_step is None else on_step(context)
             log(label)
             if label:
                 bar.set_postfix_str(label, refresh=False)
             if should_stop is not None and should_stop(context):
                 break
-        bar.total = round(max(context.get_time() - t0, 1e-3), 3)   # the run ends at 100 %
+        bar.total = round(max(context.get_time() - t0, 1e-3), 3)  # the run ends at 100 %
         bar.n = bar.total
         bar.refresh()
 

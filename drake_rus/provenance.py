@@ -18,8 +18,18 @@ from drake_rus.paths import REPO_ROOT
 
 # The packages whose versions can change a run's numbers (simulation, geometry, imaging,
 # registration, compiled kernels).
-RESULT_PACKAGES = ("drake", "numpy", "scipy", "open3d", "trimesh", "onnxruntime", "numba",
-                   "scikit-image", "SimpleITK", "pynrrd")
+RESULT_PACKAGES = (
+    "drake",
+    "numpy",
+    "scipy",
+    "open3d",
+    "trimesh",
+    "onnxruntime",
+    "numba",
+    "scikit-image",
+    "SimpleITK",
+    "pynrrd",
+)
 
 
 def package_versions(names=RESULT_PACKAGES) -> dict:
@@ -42,22 +52,37 @@ def project_commit() -> dict:
     if not (REPO_ROOT / ".git").exists():
         return {"commit": None, "dirty": None}
     try:
-        sha = subprocess.run(["git", "-C", str(REPO_ROOT), "rev-parse", "HEAD"],
-                             capture_output=True, text=True, timeout=5)
+        sha = subprocess.run(
+            ["git", "-C", str(REPO_ROOT), "rev-parse", "HEAD"],
+            capture_output=True,
+            text=True,
+            timeout=5,
+        )
         status = subprocess.run(
             ["git", "-C", str(REPO_ROOT), "status", "--porcelain", "--untracked-files=no"],
-            capture_output=True, text=True, timeout=5)
+            capture_output=True,
+            text=True,
+            timeout=5,
+        )
     except (OSError, subprocess.SubprocessError):
         return {"commit": None, "dirty": None}
     if sha.returncode != 0:
         return {"commit": None, "dirty": None}
-    return {"commit": sha.stdout.strip() or None,
-            "dirty": bool(status.stdout.strip()) if status.returncode == 0 else None}
+    return {
+        "commit": sha.stdout.strip() or None,
+        "dirty": bool(status.stdout.strip()) if status.returncode == 0 else None,
+    }
 
 
-def Provenance(scenario=None, *, scenario_name: str | None = None,
-               scenarios_file: str | None = None, overrides: str | None = None,
-               seeds: dict | None = None, argv: list[str] | None = None) -> dict:
+def Provenance(
+    scenario=None,
+    *,
+    scenario_name: str | None = None,
+    scenarios_file: str | None = None,
+    overrides: str | None = None,
+    seeds: dict | None = None,
+    argv: list[str] | None = None,
+) -> dict:
     """The record that lets a run be repeated.
 
     ``scenario``: the resolved ``Scenario`` (stored whole as YAML, so a rerun needs neither
@@ -66,8 +91,7 @@ def Provenance(scenario=None, *, scenario_name: str | None = None,
     random number ({"random_seed": 0, "patient": "test:0", ...}); ``argv`` the command line.
     """
     record = {
-        "created_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(
-            timespec="seconds"),
+        "created_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "argv": list(sys.argv if argv is None else argv),
         "scenario_name": scenario_name,
         "scenarios_file": None if scenarios_file is None else str(scenarios_file),
@@ -81,6 +105,7 @@ def Provenance(scenario=None, *, scenario_name: str | None = None,
     if scenario is not None:
         # Imported here: provenance is a core helper below the scenario layer.
         from pydrake.common.yaml import yaml_dump_typed
+
         record["scenario_yaml"] = yaml_dump_typed(scenario)
         record["seeds"].setdefault("random_seed", int(scenario.random_seed))
     return record

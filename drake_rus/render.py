@@ -16,8 +16,7 @@ from collections import Counter
 from pathlib import Path
 
 from drake_rus.anatomy.cli import load_patient_for
-from drake_rus.cli import UserError
-from drake_rus.cli import add_scenario_arguments, load_scenario_from_args
+from drake_rus.cli import UserError, add_scenario_arguments, load_scenario_from_args
 from drake_rus.io_utils import atomic_path, check_output_file
 from drake_rus.paths import DIAGRAMS_DIR
 from drake_rus.progress import stderr_is_terminal
@@ -36,25 +35,43 @@ GRAPHVIZ_MISSING = "Graphviz 'dot' is not installed (apt-get install graphviz)"
 
 
 def add_commands(subparsers) -> None:
-    p = subparsers.add_parser("render-diagram",
-                              help="draw the station or the scan diagram (SVG or PNG)")
+    p = subparsers.add_parser(
+        "render-diagram", help="draw the station or the scan diagram (SVG or PNG)"
+    )
     add_scenario_arguments(p)
-    p.add_argument("--diagram", choices=["station", "scan"], default=None,
-                   help="'station' (the station alone, the default) or 'scan' (station + "
-                        "segmenter, localizer, controller, safety, monitors on a virtual "
-                        "patient)")
-    p.add_argument("--patient", default="test:0",
-                   help="patient of the simulated scan diagram (default test:0)")
-    p.add_argument("--out", default=None,
-                   help="output file; .svg or .png (default diagrams/DIAGRAM.svg)")
-    p.add_argument("--depth", type=int, default=1,
-                   help="subsystem nesting depth to draw (0 or more; default 1)")
-    p.add_argument("--all", action="store_true",
-                   help="re-draw every picture committed in diagrams/ ("
-                        + ", ".join(COMMITTED) + ") with its fixed settings")
-    p.add_argument("--check", action="store_true",
-                   help="with --all: write nothing; exit 1 if a committed picture's systems "
-                        "or ports differ from the diagram built now")
+    p.add_argument(
+        "--diagram",
+        choices=["station", "scan"],
+        default=None,
+        help="'station' (the station alone, the default) or 'scan' (station + "
+        "segmenter, localizer, controller, safety, monitors on a virtual "
+        "patient)",
+    )
+    p.add_argument(
+        "--patient", default="test:0", help="patient of the simulated scan diagram (default test:0)"
+    )
+    p.add_argument(
+        "--out", default=None, help="output file; .svg or .png (default diagrams/DIAGRAM.svg)"
+    )
+    p.add_argument(
+        "--depth",
+        type=int,
+        default=1,
+        help="subsystem nesting depth to draw (0 or more; default 1)",
+    )
+    p.add_argument(
+        "--all",
+        action="store_true",
+        help="re-draw every picture committed in diagrams/ ("
+        + ", ".join(COMMITTED)
+        + ") with its fixed settings",
+    )
+    p.add_argument(
+        "--check",
+        action="store_true",
+        help="with --all: write nothing; exit 1 if a committed picture's systems "
+        "or ports differ from the diagram built now",
+    )
     p.set_defaults(func=run_render, outputs={"out": "file:.svg,.png"})
 
 
@@ -64,9 +81,17 @@ def build_diagram(kind: str, scenario, patient_spec: str = "test:0"):
     if kind == "station":
         return MakeStation(scenario)
     template = load_template_for(scenario)
-    patient = None if scenario.hardware else load_patient_for(
-        patient_spec, "--patient", side=scenario.patient.side,
-        posture=scenario.patient.posture, progress=stderr_is_terminal())
+    patient = (
+        None
+        if scenario.hardware
+        else load_patient_for(
+            patient_spec,
+            "--patient",
+            side=scenario.patient.side,
+            posture=scenario.patient.posture,
+            progress=stderr_is_terminal(),
+        )
+    )
     station = MakeStation(scenario, patient=patient)
     builder, _ = BuildScanDiagram(scenario, station, template)
     diagram = builder.Build()
@@ -83,16 +108,23 @@ def render_graphviz(dot_source: str, out: Path) -> Path:
     if dot is None:
         raise UserError(GRAPHVIZ_MISSING)
     with atomic_path(out) as tmp:
-        subprocess.run([dot, f"-T{fmt}", "-o", str(tmp)], input=dot_source.encode(),
-                       check=True, capture_output=True)
+        subprocess.run(
+            [dot, f"-T{fmt}", "-o", str(tmp)],
+            input=dot_source.encode(),
+            check=True,
+            capture_output=True,
+        )
     return out
 
 
 def svg_labels(svg: str) -> Counter:
     """The texts drawn in a Graphviz SVG (system classes, ``name=...``, port names), counted;
     the same for any Graphviz version that draws the same diagram."""
-    return Counter(html.unescape(t).strip()
-                   for t in re.findall(r"<text\b[^>]*>([^<]*)</text>", svg) if t.strip())
+    return Counter(
+        html.unescape(t).strip()
+        for t in re.findall(r"<text\b[^>]*>([^<]*)</text>", svg)
+        if t.strip()
+    )
 
 
 def committed_picture_drift(name: str, scenario=None) -> tuple[Counter, Counter]:
@@ -105,19 +137,28 @@ def committed_picture_drift(name: str, scenario=None) -> tuple[Counter, Counter]
     if dot is None:
         raise UserError(GRAPHVIZ_MISSING)
     source = build_diagram(kind, scenario, patient).GetGraphvizString(max_depth=depth)
-    now = svg_labels(subprocess.run([dot, "-Tsvg"], input=source.encode(), check=True,
-                                    capture_output=True).stdout.decode())
+    now = svg_labels(
+        subprocess.run(
+            [dot, "-Tsvg"], input=source.encode(), check=True, capture_output=True
+        ).stdout.decode()
+    )
     path = DIAGRAMS_DIR / name
     committed = svg_labels(path.read_text()) if path.is_file() else Counter()
     return now - committed, committed - now
 
 
 def _render_all(args) -> int:
-    if (args.out is not None or args.diagram is not None or args.overrides
-            or args.scenario != "default"):
-        raise UserError("--all: draws the committed pictures with their own settings "
-                        "(diagrams/*.svg, the default scenario); leave out --out, --diagram, "
-                        "--scenario and --set")
+    if (
+        args.out is not None
+        or args.diagram is not None
+        or args.overrides
+        or args.scenario != "default"
+    ):
+        raise UserError(
+            "--all: draws the committed pictures with their own settings "
+            "(diagrams/*.svg, the default scenario); leave out --out, --diagram, "
+            "--scenario and --set"
+        )
     scenario = load_scenario_from_args(args)
     stale = 0
     for name, (kind, patient, depth) in COMMITTED.items():
@@ -125,8 +166,10 @@ def _render_all(args) -> int:
             missing, extra = committed_picture_drift(name, scenario)
             if missing or extra:
                 stale += 1
-                print(f"diagrams/{name} is stale: lacks {sorted(missing) or 'nothing'}; "
-                      f"shows in excess {sorted(extra) or 'nothing'}")
+                print(
+                    f"diagrams/{name} is stale: lacks {sorted(missing) or 'nothing'}; "
+                    f"shows in excess {sorted(extra) or 'nothing'}"
+                )
             else:
                 print(f"diagrams/{name} is current")
             continue
@@ -134,8 +177,11 @@ def _render_all(args) -> int:
         out = render_graphviz(diagram.GetGraphvizString(max_depth=depth), DIAGRAMS_DIR / name)
         print(f"wrote {out}")
     if stale:
-        print(f"render-diagram: {stale} stale picture(s); re-draw them with "
-              f"'drake-rus render-diagram --all' (or make diagrams)", file=sys.stderr)
+        print(
+            f"render-diagram: {stale} stale picture(s); re-draw them with "
+            f"'drake-rus render-diagram --all' (or make diagrams)",
+            file=sys.stderr,
+        )
     return 1 if stale else 0
 
 
@@ -148,8 +194,7 @@ def run_render(args) -> int:
         raise UserError("--check: compares the committed pictures; use it with --all")
     scenario = load_scenario_from_args(args)
     kind = args.diagram or "station"
-    out = check_output_file(args.out or f"diagrams/{kind}.svg", "--out",
-                            suffixes=(".svg", ".png"))
+    out = check_output_file(args.out or f"diagrams/{kind}.svg", "--out", suffixes=(".svg", ".png"))
     diagram = build_diagram(kind, scenario, args.patient)
     out = render_graphviz(diagram.GetGraphvizString(max_depth=args.depth), out)
     print(f"wrote {out}")

@@ -17,20 +17,34 @@ from pydrake.common.schema import Transform
 from pydrake.common.yaml import yaml_load_file, yaml_load_typed
 
 from drake_rus.anatomy.motion import PatientMotionConfig
-from drake_rus.config_schema import (ScenarioError, check_dataclass_values,
-                                     check_duplicate_keys, check_nesting_depth, check_physical,
-                                     physical, schema_transform, validate)
+from drake_rus.config_schema import (
+    ScenarioError,
+    check_dataclass_values,
+    check_duplicate_keys,
+    check_nesting_depth,
+    check_physical,
+    physical,
+    schema_transform,
+    validate,
+)
 from drake_rus.control.config import ControllerConfig, SafetyConfig
 from drake_rus.hardware.config import HardwareConfig
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.localization.config import LocalizationConfig
+from drake_rus.paths import DIAGRAMS_DIR
 from drake_rus.reliability.config import FaultConfig
 from drake_rus.scan.config import StartConfig, VerdictConfig
-from drake_rus.paths import DIAGRAMS_DIR
 
 __all__ = [
-    "ContactConfig", "PatientConfig", "ProbeCalibration", "RobotConfig", "Scenario",
-    "ScenarioError", "LoadScenario", "ListScenarios", "DEFAULT_SCENARIOS_FILE",
+    "ContactConfig",
+    "PatientConfig",
+    "ProbeCalibration",
+    "RobotConfig",
+    "Scenario",
+    "ScenarioError",
+    "LoadScenario",
+    "ListScenarios",
+    "DEFAULT_SCENARIOS_FILE",
 ]
 
 DEFAULT_SCENARIOS_FILE = DIAGRAMS_DIR / "default.scenarios.yaml"
@@ -47,32 +61,45 @@ FR3_Q_MAX = [2.9007, 1.8361, 2.9007, -0.1169, 2.8763, 4.6216, 3.0508]
 # 1e-6 m one simulated second took 42 s). The placeholder torso (ellipsoid, 0.17 x 0.40 x
 # 0.12 m semi-axes) gives the same force from 6 cm to 5 mm tetrahedra; at 1 cm its mesh takes
 # 3x longer to build than at 6 cm, and it grows with the cube of 1/hint.
-PROBE_HINT_WHY = ("the probe face is a 50 mm-radius arc 20 mm wide: the contact force is the "
-                  "same from 20 mm to 0.5 mm, and below 2 mm only the contact work grows")
-PATIENT_HINT_WHY = ("the placeholder torso is 0.34 x 0.8 x 0.24 m; its contact force is the "
-                    "same from 6 cm to 5 mm tetrahedra, and below 1 cm only its mesh grows "
-                    "(with the cube of 1/hint)")
+PROBE_HINT_WHY = (
+    "the probe face is a 50 mm-radius arc 20 mm wide: the contact force is the "
+    "same from 20 mm to 0.5 mm, and below 2 mm only the contact work grows"
+)
+PATIENT_HINT_WHY = (
+    "the placeholder torso is 0.34 x 0.8 x 0.24 m; its contact force is the "
+    "same from 6 cm to 5 mm tetrahedra, and below 1 cm only its mesh grows "
+    "(with the cube of 1/hint)"
+)
 
 
 @dataclass
 class RobotConfig:
     """The FR3 arm. The robot base frame B is the world frame (z up)."""
+
     # Model file, as a package:// URL resolved through models/package.xml.
     model: str = "package://drake_rus_models/fr3/fr3.urdf"
     # Joint configuration at t = 0 (rad): probe pointing down above the patient placeholder.
     initial_joint_positions: list[float] = field(
         default_factory=lambda: [0.0, 0.15, 0.0, -2.0, 0.0, 2.15, 0.785],
-        metadata={"length": 7, "element_min": FR3_Q_MIN, "element_max": FR3_Q_MAX,
-                  "element_label": "the FR3 joint", "unit": "rad",
-                  "why": "docs/facts/fr3.md, 'Limits'"})
+        metadata={
+            "length": 7,
+            "element_min": FR3_Q_MIN,
+            "element_max": FR3_Q_MAX,
+            "element_label": "the FR3 joint",
+            "unit": "rad",
+            "why": "docs/facts/fr3.md, 'Limits'",
+        },
+    )
     # Stiffness (N m/rad) and damping (N m s/rad) of the velocity driver's implicit joint PD,
     # which tracks the integrated velocity command like the FR3's joint-velocity mode.
     driver_kp: list[float] = field(
         default_factory=lambda: [3000.0, 3000.0, 3000.0, 3000.0, 800.0, 800.0, 400.0],
-        metadata={"length": 7, "positive": True})
+        metadata={"length": 7, "positive": True},
+    )
     driver_kd: list[float] = field(
         default_factory=lambda: [120.0, 120.0, 120.0, 120.0, 30.0, 30.0, 15.0],
-        metadata={"length": 7, "min": 0.0})
+        metadata={"length": 7, "min": 0.0},
+    )
     # Compensate gravity in the driver (the real robot does so in velocity mode).
     gravity_compensation: bool = True
 
@@ -85,23 +112,34 @@ class ProbeCalibration:
     the body), x_P along the transducer array (docs/design.md). On hardware these numbers come
     from pivot calibration and the holder's CAD; they live here, never in code.
     """
+
     # Geometry (visual and collision) of the probe, expressed in the tip frame P.
     model: str = "package://drake_rus_models/probe/curvilinear_probe.sdf"
     # Pose of the tip frame P in the flange frame F (m, deg).
     X_FP: Transform = field(default_factory=lambda: schema_transform(xyz=(0.0, 0.0, 0.20)))
     # Lumped mass of holder + probe + cable strain relief (kg).
-    mass: float = field(default=0.55, metadata=physical(
-        0.05, 3.0, "kg", "a probe with its holder; the FR3's rated payload is 3 kg", positive=True))
+    mass: float = field(
+        default=0.55,
+        metadata=physical(
+            0.05,
+            3.0,
+            "kg",
+            "a probe with its holder; the FR3's rated payload is 3 kg",
+            positive=True,
+        ),
+    )
     # Centre of mass in the flange frame F (m).
-    p_FCm: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.09],
-                               metadata=physical(
-                                   -0.3, 0.3, "m",
-                                   "the probe's centre of mass near the flange", length=3))
+    p_FCm: list[float] = field(
+        default_factory=lambda: [0.0, 0.0, 0.09],
+        metadata=physical(-0.3, 0.3, "m", "the probe's centre of mass near the flange", length=3),
+    )
     # Principal moments of inertia about the centre of mass, flange axes (kg m^2).
     inertia_diagonal: list[float] = field(
         default_factory=lambda: [2.2e-3, 2.2e-3, 4.0e-4],
         metadata=physical(
-            1e-7, 0.05, "kg m^2", "a hand-held probe and holder", length=3, positive=True))
+            1e-7, 0.05, "kg m^2", "a hand-held probe and holder", length=3, positive=True
+        ),
+    )
 
 
 @dataclass
@@ -113,16 +151,19 @@ class PatientConfig:
     by ``X_BPt``; with the default the patient lies along the base y-axis, their right side
     towards the robot.
     """
+
     # "placeholder" (a soft ellipsoidal torso), or a virtual/real patient once available.
     source: str = "placeholder"
     # Which kidney is the scan's target.
     side: str = field(default="right", metadata={"choices": ["right", "left"]})
-    posture: str = field(default="supine",
-                         metadata={"choices": ["supine", "left_lateral_decubitus"]})
+    posture: str = field(
+        default="supine", metadata={"choices": ["supine", "left_lateral_decubitus"]}
+    )
     X_BPt: Transform = field(default_factory=lambda: schema_transform(xyz=(0.55, 0.0, 0.0)))
     # Semi-axes (m) of the placeholder torso ellipsoid: left-right, head-foot, front-back.
     placeholder_semi_axes: list[float] = field(
-        default_factory=lambda: [0.17, 0.40, 0.12], metadata={"length": 3, "positive": True})
+        default_factory=lambda: [0.17, 0.40, 0.12], metadata={"length": 3, "positive": True}
+    )
     # How the patient moves during the scan: breathing, a rigid shift (simulation; off by
     # default). The station moves the imaged anatomy, the true kidney pose and the contact
     # body together (drake_rus.anatomy.motion).
@@ -132,28 +173,41 @@ class PatientConfig:
 @dataclass
 class ContactConfig:
     """Plant time step and the probe-body contact model."""
+
     # "hydroelastic": compliant patient, rigid probe (point contact for the other pairs);
     # "point": point contact everywhere (faster, cruder force distribution).
     model: str = field(default="hydroelastic", metadata={"choices": ["hydroelastic", "point"]})
     discrete_contact_approximation: str = field(
-        default="sap", metadata={"choices": ["sap", "tamsi", "similar", "lagged"]})
+        default="sap", metadata={"choices": ["sap", "tamsi", "similar", "lagged"]}
+    )
     # Discrete plant period (s). 10 ms: the fastest step whose force trace (EXPLORE and
     # PIVOT mean and ripple, landing peak), E_trans and V match the 1 ms step's (the FR3's
     # 1 kHz; scenario `reference_1ms`) within issue 16's tolerances on test:0-2
     # (`python -m benchmarks scan --validate`).
-    time_step: float = field(default=0.01, metadata=physical(
-        1e-5, 0.01, "s",
-        "the plant's discrete step (default 10 ms, validated against 1 ms: python -m benchmarks "
-        "scan --validate); longer steps miss contact", positive=True))
+    time_step: float = field(
+        default=0.01,
+        metadata=physical(
+            1e-5,
+            0.01,
+            "s",
+            "the plant's discrete step (default 10 ms, validated against 1 ms: "
+            "python -m benchmarks scan --validate); longer steps miss contact",
+            positive=True,
+        ),
+    )
     # Hydroelastic modulus of the soft body (Pa): soft tissue indents ~1 cm at ~9 N.
-    hydroelastic_modulus: float = field(default=2.0e5, metadata=physical(
-        1e3, 1e8, "Pa", "soft tissue is about 1e4-1e6 Pa", positive=True))
+    hydroelastic_modulus: float = field(
+        default=2.0e5,
+        metadata=physical(1e3, 1e8, "Pa", "soft tissue is about 1e4-1e6 Pa", positive=True),
+    )
     # Resolution hint of the soft body's tetrahedral mesh (m).
-    patient_resolution_hint: float = field(default=0.06, metadata=physical(
-        0.01, 0.2, "m", PATIENT_HINT_WHY, positive=True))
+    patient_resolution_hint: float = field(
+        default=0.06, metadata=physical(0.01, 0.2, "m", PATIENT_HINT_WHY, positive=True)
+    )
     # Resolution hint of the rigid probe face mesh (m).
-    probe_resolution_hint: float = field(default=0.02, metadata=physical(
-        0.002, 0.05, "m", PROBE_HINT_WHY, positive=True))
+    probe_resolution_hint: float = field(
+        default=0.02, metadata=physical(0.002, 0.05, "m", PROBE_HINT_WHY, positive=True)
+    )
     # Vertices of the convex hull used as a virtual patient's contact body (see
     # patient_body.ContactHull): more is closer to the skin, fewer is faster.
     patient_hull_vertices: int = field(default=300, metadata={"min": 8})
@@ -163,21 +217,26 @@ class ContactConfig:
     # e.g. in left lateral decubitus).
     patient_section_half_lengths: list[float] = field(
         default_factory=lambda: [0.20, 0.15, 0.12, 0.10, 0.08, 0.06],
-        metadata={"positive": True, "max": 0.5, "min_length": 1})
+        metadata={"positive": True, "max": 0.5, "min_length": 1},
+    )
     patient_hull_max_gap: float = field(default=0.004, metadata={"positive": True, "max": 0.05})
     # Hunt-Crossley dissipation (s/m) of the soft body.
     hunt_crossley_dissipation: float = field(default=5.0, metadata={"min": 0.0})
     # Point-contact stiffness (N/m) when model == "point".
-    point_stiffness: float = field(default=2000.0, metadata=physical(
-        10.0, 1e6, "N/m", "soft tissue under a probe", positive=True))
+    point_stiffness: float = field(
+        default=2000.0,
+        metadata=physical(10.0, 1e6, "N/m", "soft tissue under a probe", positive=True),
+    )
     # Coulomb friction of the gel-coupled probe on skin (static = dynamic).
-    friction: float = field(default=0.2, metadata=physical(
-        0.0, 2.0, "", "Coulomb friction of gel on skin"))
+    friction: float = field(
+        default=0.2, metadata=physical(0.0, 2.0, "", "Coulomb friction of gel on skin")
+    )
 
 
 @dataclass
 class Scenario:
     """A whole run: robot, probe, patient, contact, imaging, controller, safety."""
+
     robot: RobotConfig = field(default_factory=RobotConfig)
     probe: ProbeCalibration = field(default_factory=ProbeCalibration)
     patient: PatientConfig = field(default_factory=PatientConfig)
@@ -222,13 +281,17 @@ def _load_raw(path: Path) -> dict:
         raise ScenarioError(f"scenario file {path} is not valid YAML: {e}") from None
     if not isinstance(raw, dict) or not raw:
         raise ScenarioError(
-            f"scenario file {path} must map scenario names to scenarios, got {type(raw).__name__}")
+            f"scenario file {path} must map scenario names to scenarios, got {type(raw).__name__}"
+        )
     return raw
 
 
-def LoadScenario(*, filename: str | Path = DEFAULT_SCENARIOS_FILE,
-                 scenario_name: str = "default",
-                 scenario_text: str | None = None) -> Scenario:
+def LoadScenario(
+    *,
+    filename: str | Path = DEFAULT_SCENARIOS_FILE,
+    scenario_name: str = "default",
+    scenario_text: str | None = None,
+) -> Scenario:
     """Loads the scenario ``scenario_name`` from ``filename`` (plus optional YAML overrides).
 
     ``scenario_text`` is YAML merged on top, e.g. ``"{contact: {model: point}}"``.
@@ -238,7 +301,8 @@ def LoadScenario(*, filename: str | Path = DEFAULT_SCENARIOS_FILE,
     raw = _load_raw(path)
     if scenario_name not in raw:
         raise ScenarioError(
-            f"scenario '{scenario_name}' is not in {path}; available: {', '.join(raw)}")
+            f"scenario '{scenario_name}' is not in {path}; available: {', '.join(raw)}"
+        )
     context = f"{path}: scenario '{scenario_name}'"
     node = raw[scenario_name]
     if node is None:
@@ -248,8 +312,9 @@ def LoadScenario(*, filename: str | Path = DEFAULT_SCENARIOS_FILE,
     except ScenarioError as e:
         raise ScenarioError(f"{context}: {e}") from None
     try:
-        scenario = yaml_load_typed(schema=Scenario, filename=str(path), child_name=scenario_name,
-                                   defaults=Scenario())
+        scenario = yaml_load_typed(
+            schema=Scenario, filename=str(path), child_name=scenario_name, defaults=Scenario()
+        )
     except Exception as e:
         raise ScenarioError(f"{context}: {e}") from None
     if scenario_text:
@@ -264,6 +329,7 @@ def LoadScenario(*, filename: str | Path = DEFAULT_SCENARIOS_FILE,
 def ApplyOverrides(scenario: Scenario, text: str, context: str = "overrides") -> Scenario:
     """Returns ``scenario`` with the YAML mapping ``text`` merged on top."""
     from pydrake.common.yaml import yaml_load
+
     check_nesting_depth(text, context)
     try:
         check_duplicate_keys(text)
@@ -292,6 +358,7 @@ def CheckScenario(scenario: Scenario) -> None:
 def ScenarioToYaml(scenario: Scenario) -> str:
     """The scenario as YAML (for run logs)."""
     from pydrake.common.yaml import yaml_dump_typed
+
     return yaml_dump_typed(scenario)
 
 

@@ -25,28 +25,59 @@ from __future__ import annotations
 import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.geometry import (
-    AddContactMaterial, AddRigidHydroelasticProperties, CollisionFilterDeclaration,
-    GeometrySet, Meshcat, MeshcatVisualizer, MeshcatVisualizerParams, ProximityProperties,
-    Role, RoleAssign)
+    AddContactMaterial,
+    AddRigidHydroelasticProperties,
+    CollisionFilterDeclaration,
+    GeometrySet,
+    Meshcat,
+    MeshcatVisualizer,
+    MeshcatVisualizerParams,
+    ProximityProperties,
+    Role,
+    RoleAssign,
+)
 from pydrake.math import RigidTransform
 from pydrake.multibody.meshcat import ContactVisualizer, ContactVisualizerParams
 from pydrake.multibody.plant import (
-    AddMultibodyPlant, ContactResults, CoulombFriction, MultibodyPlant, MultibodyPlantConfig)
+    AddMultibodyPlant,
+    ContactResults,
+    CoulombFriction,
+    MultibodyPlant,
+    MultibodyPlantConfig,
+)
 from pydrake.systems.controllers import InverseDynamics
 from pydrake.systems.framework import Diagram, DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import (
-    Adder, ConstantValueSource, ConstantVectorSource, Demultiplexer, DiscreteTimeIntegrator,
-    Multiplexer, PassThrough, ZeroOrderHold)
+    Adder,
+    ConstantValueSource,
+    ConstantVectorSource,
+    Demultiplexer,
+    DiscreteTimeIntegrator,
+    Multiplexer,
+    PassThrough,
+    ZeroOrderHold,
+)
 
-from drake_rus.station_interface import CheckStationPorts
 from drake_rus.anatomy import load_patient
 from drake_rus.imaging.chain import AddImagingChain, LabelImageHook
 from drake_rus.patient_body import (
-    AddPatientBody, AddPatientMotionDriver, BreathHoldSignal, MovingPose, PatientMotionFor)
+    AddPatientBody,
+    AddPatientMotionDriver,
+    BreathHoldSignal,
+    MovingPose,
+    PatientMotionFor,
+)
 from drake_rus.robot import (
-    NUM_JOINTS, PROBE_FACE_GEOMETRY, AddFr3AndProbe, MakeControlPlant, ProbeForceEstimator,
-    ProbePoseFromJoints, TipKinematics)
+    NUM_JOINTS,
+    PROBE_FACE_GEOMETRY,
+    AddFr3AndProbe,
+    MakeControlPlant,
+    ProbeForceEstimator,
+    ProbePoseFromJoints,
+    TipKinematics,
+)
 from drake_rus.scenario import CheckScenario, Scenario
+from drake_rus.station_interface import CheckStationPorts
 
 __all__ = ["MakeSimStation", "ProbeContactWrench", "LoadScenarioPatient"]
 
@@ -65,22 +96,35 @@ class ProbeContactWrench(LeafSystem):
     more contact solve per read (measured: a quarter of the scan's solves for a 50 Hz log).
     """
 
-    def __init__(self, plant: MultibodyPlant, probe_body_indices, geometry_frames: dict,
-                 sample_period: float | None = None):
+    def __init__(
+        self,
+        plant: MultibodyPlant,
+        probe_body_indices,
+        geometry_frames: dict,
+        sample_period: float | None = None,
+    ):
         super().__init__()
         self._plant = plant
         self._bodies = set(int(i) for i in probe_body_indices)
         # GeometryId -> is it on the probe (looked up once, not per contact per call).
-        self._on_probe = {g: int(plant.GetBodyFromFrameId(f).index()) in self._bodies
-                          for g, f in geometry_frames.items()}
-        results = self.DeclareAbstractInputPort("contact_results",
-                                                AbstractValue.Make(ContactResults()))
+        self._on_probe = {
+            g: int(plant.GetBodyFromFrameId(f).index()) in self._bodies
+            for g, f in geometry_frames.items()
+        }
+        results = self.DeclareAbstractInputPort(
+            "contact_results", AbstractValue.Make(ContactResults())
+        )
         X = self.DeclareAbstractInputPort("X_BP", AbstractValue.Make(RigidTransform()))
         if sample_period is None:
             self.DeclareVectorOutputPort(
-                "probe_contact_wrench_true", 6, self._calc,
-                prerequisites_of_calc={self.input_port_ticket(results.get_index()),
-                                       self.input_port_ticket(X.get_index())})
+                "probe_contact_wrench_true",
+                6,
+                self._calc,
+                prerequisites_of_calc={
+                    self.input_port_ticket(results.get_index()),
+                    self.input_port_ticket(X.get_index()),
+                },
+            )
         else:
             state = self.DeclareDiscreteState(6)
             self.DeclarePeriodicDiscreteUpdateEvent(float(sample_period), 0.0, self._sample)
@@ -102,10 +146,14 @@ class ProbeContactWrench(LeafSystem):
         def accumulate(f_W, p_WC, sign):
             nonlocal torque_W, force_W
             force_W += sign * f_W
-            r = p_WC - p_WP   # the cross product r x f written out (np.cross is slow here)
-            torque_W += sign * np.array([r[1] * f_W[2] - r[2] * f_W[1],
-                                         r[2] * f_W[0] - r[0] * f_W[2],
-                                         r[0] * f_W[1] - r[1] * f_W[0]])
+            r = p_WC - p_WP  # the cross product r x f written out (np.cross is slow here)
+            torque_W += sign * np.array(
+                [
+                    r[1] * f_W[2] - r[2] * f_W[1],
+                    r[2] * f_W[0] - r[0] * f_W[2],
+                    r[0] * f_W[1] - r[1] * f_W[0],
+                ]
+            )
 
         for i in range(results.num_point_pair_contacts()):
             info = results.point_pair_contact_info(i)
@@ -136,8 +184,9 @@ def _probe_face_properties(scenario: Scenario) -> ProximityProperties:
     contact = scenario.contact
     props = ProximityProperties()
     AddRigidHydroelasticProperties(contact.probe_resolution_hint, props)
-    AddContactMaterial(friction=CoulombFriction(contact.friction, contact.friction),
-                       properties=props)
+    AddContactMaterial(
+        friction=CoulombFriction(contact.friction, contact.friction), properties=props
+    )
     return props
 
 
@@ -146,8 +195,7 @@ def _plant_config(scenario: Scenario) -> MultibodyPlantConfig:
     return MultibodyPlantConfig(
         time_step=contact.time_step,
         discrete_contact_approximation=contact.discrete_contact_approximation,
-        contact_model="hydroelastic_with_fallback" if contact.model == "hydroelastic"
-        else "point",
+        contact_model="hydroelastic_with_fallback" if contact.model == "hydroelastic" else "point",
         penetration_allowance=0.002,
         # Unsampled: the contact forces the robot senses (tau_external, hence probe_force)
         # are those of the current state, not of the step that led to it. On a 5-10 ms step
@@ -167,9 +215,14 @@ def LoadScenarioPatient(scenario: Scenario):
     return load_patient(source, side=scenario.patient.side, posture=scenario.patient.posture)
 
 
-def MakeSimStation(scenario: Scenario, meshcat: Meshcat | None = None, *, patient=None,
-                   name: str = "station",
-                   label_image_hook: LabelImageHook | None = None) -> Diagram:
+def MakeSimStation(
+    scenario: Scenario,
+    meshcat: Meshcat | None = None,
+    *,
+    patient=None,
+    name: str = "station",
+    label_image_hook: LabelImageHook | None = None,
+) -> Diagram:
     """Simulated station: discrete SAP plant (FR3 + probe + soft patient), velocity driver,
     force estimator and, with a patient, the imaging chain (see the module doc).
 
@@ -185,8 +238,9 @@ def MakeSimStation(scenario: Scenario, meshcat: Meshcat | None = None, *, patien
     plant, scene_graph = AddMultibodyPlant(_plant_config(scenario), builder)
     plant.set_name("plant")
     parts = AddFr3AndProbe(plant, scenario.robot, scenario.probe)
-    patient_parts = AddPatientBody(plant, scenario, patient,
-                                   moving=patient is not None and motion.moves)
+    patient_parts = AddPatientBody(
+        plant, scenario, patient, moving=patient is not None and motion.moves
+    )
     plant.Finalize()
 
     # Probe contact: the face is rigid hydroelastic at the scenario's resolution, all probe
@@ -199,9 +253,10 @@ def MakeSimStation(scenario: Scenario, meshcat: Meshcat | None = None, *, patien
                 props = _probe_face_properties(scenario)
             else:
                 props = ProximityProperties()
-                AddContactMaterial(friction=CoulombFriction(scenario.contact.friction,
-                                                            scenario.contact.friction),
-                                   properties=props)
+                AddContactMaterial(
+                    friction=CoulombFriction(scenario.contact.friction, scenario.contact.friction),
+                    properties=props,
+                )
             scene_graph.AssignRole(source_id, geometry_id, props, RoleAssign.kReplace)
     # The arm and probe never collide with themselves (the FR3 guards that on its own).
     robot_bodies = plant.GetBodyIndices(parts.robot) + plant.GetBodyIndices(parts.probe)
@@ -209,7 +264,8 @@ def MakeSimStation(scenario: Scenario, meshcat: Meshcat | None = None, *, patien
     for index in robot_bodies:
         robot_geometries.Add(plant.GetCollisionGeometriesForBody(plant.get_body(index)))
     scene_graph.collision_filter_manager().Apply(
-        CollisionFilterDeclaration().ExcludeWithin(robot_geometries))
+        CollisionFilterDeclaration().ExcludeWithin(robot_geometries)
+    )
 
     control_plant, tip_frame = MakeControlPlant(scenario.robot, scenario.probe)
     control_plant.set_name("control_plant")
@@ -224,52 +280,67 @@ def MakeSimStation(scenario: Scenario, meshcat: Meshcat | None = None, *, patien
     q0 = np.asarray(scenario.robot.initial_joint_positions, dtype=float)
     command_in = builder.AddNamedSystem("joint_velocity_command", PassThrough(NUM_JOINTS))
     command = builder.AddNamedSystem(
-        "command_hold", ZeroOrderHold(scenario.contact.time_step, NUM_JOINTS))
+        "command_hold", ZeroOrderHold(scenario.contact.time_step, NUM_JOINTS)
+    )
     builder.Connect(command_in.get_output_port(), command.get_input_port())
     integrator = builder.AddNamedSystem(
-        "command_integrator", DiscreteTimeIntegrator(NUM_JOINTS, scenario.contact.time_step))
+        "command_integrator", DiscreteTimeIntegrator(NUM_JOINTS, scenario.contact.time_step)
+    )
     q0_source = builder.AddNamedSystem("q0", ConstantVectorSource(q0))
     q_desired = builder.AddNamedSystem("q_desired", Adder(2, NUM_JOINTS))
-    desired_state = builder.AddNamedSystem(
-        "desired_state", Multiplexer([NUM_JOINTS, NUM_JOINTS]))
+    desired_state = builder.AddNamedSystem("desired_state", Multiplexer([NUM_JOINTS, NUM_JOINTS]))
     builder.Connect(command.get_output_port(), integrator.get_input_port())
     builder.Connect(integrator.get_output_port(), q_desired.get_input_port(0))
     builder.Connect(q0_source.get_output_port(), q_desired.get_input_port(1))
     builder.Connect(q_desired.get_output_port(), desired_state.get_input_port(0))
     builder.Connect(command.get_output_port(), desired_state.get_input_port(1))
-    builder.Connect(desired_state.get_output_port(),
-                    plant.get_desired_state_input_port(parts.robot))
+    builder.Connect(
+        desired_state.get_output_port(), plant.get_desired_state_input_port(parts.robot)
+    )
     if scenario.robot.gravity_compensation:
         gravity = builder.AddNamedSystem(
             "gravity_compensation",
-            InverseDynamics(control_plant, InverseDynamics.InverseDynamicsMode.kGravityCompensation))
-        builder.Connect(plant.get_state_output_port(parts.robot),
-                        gravity.get_input_port_estimated_state())
-        builder.Connect(gravity.get_output_port_generalized_force(),
-                        plant.get_actuation_input_port(parts.robot))
+            InverseDynamics(
+                control_plant, InverseDynamics.InverseDynamicsMode.kGravityCompensation
+            ),
+        )
+        builder.Connect(
+            plant.get_state_output_port(parts.robot), gravity.get_input_port_estimated_state()
+        )
+        builder.Connect(
+            gravity.get_output_port_generalized_force(), plant.get_actuation_input_port(parts.robot)
+        )
     else:
-        zero = builder.AddNamedSystem("zero_feedforward",
-                                      ConstantVectorSource(np.zeros(NUM_JOINTS)))
+        zero = builder.AddNamedSystem(
+            "zero_feedforward", ConstantVectorSource(np.zeros(NUM_JOINTS))
+        )
         builder.Connect(zero.get_output_port(), plant.get_actuation_input_port(parts.robot))
 
     state_split = builder.AddNamedSystem("robot_state", Demultiplexer([NUM_JOINTS, NUM_JOINTS]))
     builder.Connect(plant.get_state_output_port(parts.robot), state_split.get_input_port())
     # One tip-kinematics object (memoised on q) for the pose and the force estimate.
     tip_kinematics = TipKinematics(control_plant, tip_frame)
-    fk = builder.AddNamedSystem("probe_pose", ProbePoseFromJoints(control_plant, tip_frame,
-                                                                   tip_kinematics))
+    fk = builder.AddNamedSystem(
+        "probe_pose", ProbePoseFromJoints(control_plant, tip_frame, tip_kinematics)
+    )
     builder.Connect(state_split.get_output_port(0), fk.get_input_port(0))
     estimator = builder.AddNamedSystem(
-        "probe_force_estimator", ProbeForceEstimator(control_plant, tip_frame, tip_kinematics))
+        "probe_force_estimator", ProbeForceEstimator(control_plant, tip_frame, tip_kinematics)
+    )
     builder.Connect(state_split.get_output_port(0), estimator.get_input_port(0))
-    builder.Connect(plant.get_generalized_contact_forces_output_port(parts.robot),
-                    estimator.get_input_port(1))
+    builder.Connect(
+        plant.get_generalized_contact_forces_output_port(parts.robot), estimator.get_input_port(1)
+    )
 
     truth = builder.AddNamedSystem(
         "probe_contact_truth",
-        ProbeContactWrench(plant, [b.index() for b in parts.probe_bodies],
-                           _geometry_frame_map(plant, scene_graph),
-                           sample_period=scenario.contact.time_step))
+        ProbeContactWrench(
+            plant,
+            [b.index() for b in parts.probe_bodies],
+            _geometry_frame_map(plant, scene_graph),
+            sample_period=scenario.contact.time_step,
+        ),
+    )
     builder.Connect(plant.get_contact_results_output_port(), truth.get_input_port(0))
     builder.Connect(fk.get_output_port(), truth.get_input_port(1))
 
@@ -277,15 +348,24 @@ def MakeSimStation(scenario: Scenario, meshcat: Meshcat | None = None, *, patien
         X_BPt = scenario.patient.X_BPt.GetDeterministicValue()
         volume = patient.labels
         chain = AddImagingChain(
-            builder, scenario.imaging, volume, X_BPt @ volume.X_PtV, fk.get_output_port(),
-            seed=scenario.random_seed, motion=motion if motion.moves else None,
-            label_image_hook=label_image_hook)
+            builder,
+            scenario.imaging,
+            volume,
+            X_BPt @ volume.X_PtV,
+            fk.get_output_port(),
+            seed=scenario.random_seed,
+            motion=motion if motion.moves else None,
+            label_image_hook=label_image_hook,
+        )
         builder.ExportOutput(chain.us_image, "us_image")
         builder.ExportOutput(chain.label_image, "label_image")
         X_BK = patient.X_BK(X_BPt)
         kidney_pose = builder.AddNamedSystem(
-            "X_BK_true", MovingPose(X_BK, motion) if motion.moves
-            else ConstantValueSource(AbstractValue.Make(X_BK)))
+            "X_BK_true",
+            MovingPose(X_BK, motion)
+            if motion.moves
+            else ConstantValueSource(AbstractValue.Make(X_BK)),
+        )
         builder.ExportOutput(kidney_pose.get_output_port(), "X_BK_true")
         if "instance" in patient_parts:
             AddPatientMotionDriver(builder, plant, motion, patient_parts["instance"])
@@ -295,18 +375,25 @@ def MakeSimStation(scenario: Scenario, meshcat: Meshcat | None = None, *, patien
 
     if meshcat is not None:
         MeshcatVisualizer.AddToBuilder(
-            builder, scene_graph, meshcat,
-            MeshcatVisualizerParams(role=Role.kIllustration, prefix="station"))
+            builder,
+            scene_graph,
+            meshcat,
+            MeshcatVisualizerParams(role=Role.kIllustration, prefix="station"),
+        )
         ContactVisualizer.AddToBuilder(
-            builder, plant, meshcat,
-            ContactVisualizerParams(newtons_per_meter=200.0, newton_meters_per_meter=20.0))
+            builder,
+            plant,
+            meshcat,
+            ContactVisualizerParams(newtons_per_meter=200.0, newton_meters_per_meter=20.0),
+        )
 
     builder.ExportInput(command_in.get_input_port(), "joint_velocity_command")
     builder.ExportOutput(state_split.get_output_port(0), "joint_position")
     builder.ExportOutput(state_split.get_output_port(1), "joint_velocity")
     builder.ExportOutput(fk.get_output_port(), "X_BP")
-    builder.ExportOutput(plant.get_generalized_contact_forces_output_port(parts.robot),
-                         "tau_external")
+    builder.ExportOutput(
+        plant.get_generalized_contact_forces_output_port(parts.robot), "tau_external"
+    )
     builder.ExportOutput(estimator.get_output_port(), "probe_force")
     # Ground truth, simulation only.
     builder.ExportOutput(truth.get_output_port(), "probe_contact_wrench_true")

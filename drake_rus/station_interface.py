@@ -21,9 +21,17 @@ from pathlib import Path
 
 from pydrake.systems.framework import PortDataType
 
-__all__ = ["StationPort", "STATION_PORTS", "ports_of", "port", "ROBOT_SENSOR_PORTS",
-           "CheckStationPorts", "StationInterfaceError", "port_table_markdown",
-           "update_port_table"]
+__all__ = [
+    "StationPort",
+    "STATION_PORTS",
+    "ports_of",
+    "port",
+    "ROBOT_SENSOR_PORTS",
+    "CheckStationPorts",
+    "StationInterfaceError",
+    "port_table_markdown",
+    "update_port_table",
+]
 
 SIM, HARDWARE = "sim", "hardware"
 
@@ -38,8 +46,9 @@ class StationPort:
     ``command``, ``robot`` (what the robot senses; fault injection may corrupt these),
     ``imaging``, ``truth`` (simulation ground truth: never wired into a controller) or
     ``hardware`` (the real robot's own status)."""
+
     name: str
-    direction: str                    # "in" or "out"
+    direction: str  # "in" or "out"
     size: int | None
     unit: str
     frame: str
@@ -62,52 +71,151 @@ class StationPort:
 
 
 STATION_PORTS: tuple[StationPort, ...] = (
-    StationPort("joint_velocity_command", "in", 7, "rad/s", "joints",
-                "the FR3's joint-velocity mode", "command"),
+    StationPort(
+        "joint_velocity_command",
+        "in",
+        7,
+        "rad/s",
+        "joints",
+        "the FR3's joint-velocity mode",
+        "command",
+    ),
     StationPort("joint_position", "out", 7, "rad", "joints", "measured joints", "robot"),
     StationPort("joint_velocity", "out", 7, "rad/s", "joints", "measured joint rates", "robot"),
-    StationPort("X_BP", "out", None, "m", "P in B",
-                "probe tip pose: forward kinematics of our FR3 model plus the scenario's probe "
-                "calibration", "robot", value_type="RigidTransform"),
-    StationPort("tau_external", "out", 7, "N m", "joints",
-                "external joint torques, Drake's sign: on the arm by the environment", "robot"),
-    StationPort("probe_force", "out", 6, "N m, N", "P, about P's origin",
-                "[tau; f] on the probe by the environment, estimated from tau_external "
-                "through the tip Jacobian (the same function in both stations)", "robot"),
-    StationPort("us_image", "out", None, "grey levels, s", "image plane of P",
-                "the ultrasound frame: uint8 image, capture time, the X_BP it was taken at, "
-                "frame_index (-1: no frame yet)", "imaging", value_type="UsFrame",
-                condition="the patient has a label volume (not the placeholder torso)",
-                conditional_on=(SIM,)),
-    StationPort("label_image", "out", None, "tissue labels", "image plane of P",
-                "tissue labels of the same slice; read only by the oracle segmenter",
-                "truth", value_type="UsFrame", stations=(SIM,),
-                condition="the patient has a label volume"),
-    StationPort("X_BK_true", "out", None, "m", "K in B",
-                "the true canonical kidney frame, for metrics", "truth",
-                value_type="RigidTransform", stations=(SIM,),
-                condition="the patient has a label volume"),
-    StationPort("probe_contact_wrench_true", "out", 6, "N m, N", "P, about P's origin",
-                "the plant's contact forces on the probe bodies", "truth", stations=(SIM,)),
-    StationPort("contact_results", "out", None, "", "", "the plant's contact results",
-                "truth", value_type="ContactResults", stations=(SIM,)),
-    StationPort("plant_state", "out", -1, "m, rad, m/s, rad/s", "",
-                "the whole plant state (its size depends on the patient's body)", "truth",
-                stations=(SIM,)),
-    StationPort("breath_hold", "out", 1, "1", "",
-                "1 during a breath-hold of a patient who breathes with holds", "truth",
-                stations=(SIM,), condition="patient.motion.breathing.enabled"),
-    StationPort("commanded_velocity", "out", 7, "rad/s", "joints",
-                "what was actually sent after the client-side guard", "hardware",
-                stations=(HARDWARE,)),
-    StationPort("robot_ok", "out", 1, "1", "",
-                "0 once the robot or its connection has failed", "hardware",
-                stations=(HARDWARE,)),
+    StationPort(
+        "X_BP",
+        "out",
+        None,
+        "m",
+        "P in B",
+        "probe tip pose: forward kinematics of our FR3 model plus the scenario's probe calibration",
+        "robot",
+        value_type="RigidTransform",
+    ),
+    StationPort(
+        "tau_external",
+        "out",
+        7,
+        "N m",
+        "joints",
+        "external joint torques, Drake's sign: on the arm by the environment",
+        "robot",
+    ),
+    StationPort(
+        "probe_force",
+        "out",
+        6,
+        "N m, N",
+        "P, about P's origin",
+        "[tau; f] on the probe by the environment, estimated from tau_external "
+        "through the tip Jacobian (the same function in both stations)",
+        "robot",
+    ),
+    StationPort(
+        "us_image",
+        "out",
+        None,
+        "grey levels, s",
+        "image plane of P",
+        "the ultrasound frame: uint8 image, capture time, the X_BP it was taken at, "
+        "frame_index (-1: no frame yet)",
+        "imaging",
+        value_type="UsFrame",
+        condition="the patient has a label volume (not the placeholder torso)",
+        conditional_on=(SIM,),
+    ),
+    StationPort(
+        "label_image",
+        "out",
+        None,
+        "tissue labels",
+        "image plane of P",
+        "tissue labels of the same slice; read only by the oracle segmenter",
+        "truth",
+        value_type="UsFrame",
+        stations=(SIM,),
+        condition="the patient has a label volume",
+    ),
+    StationPort(
+        "X_BK_true",
+        "out",
+        None,
+        "m",
+        "K in B",
+        "the true canonical kidney frame, for metrics",
+        "truth",
+        value_type="RigidTransform",
+        stations=(SIM,),
+        condition="the patient has a label volume",
+    ),
+    StationPort(
+        "probe_contact_wrench_true",
+        "out",
+        6,
+        "N m, N",
+        "P, about P's origin",
+        "the plant's contact forces on the probe bodies",
+        "truth",
+        stations=(SIM,),
+    ),
+    StationPort(
+        "contact_results",
+        "out",
+        None,
+        "",
+        "",
+        "the plant's contact results",
+        "truth",
+        value_type="ContactResults",
+        stations=(SIM,),
+    ),
+    StationPort(
+        "plant_state",
+        "out",
+        -1,
+        "m, rad, m/s, rad/s",
+        "",
+        "the whole plant state (its size depends on the patient's body)",
+        "truth",
+        stations=(SIM,),
+    ),
+    StationPort(
+        "breath_hold",
+        "out",
+        1,
+        "1",
+        "",
+        "1 during a breath-hold of a patient who breathes with holds",
+        "truth",
+        stations=(SIM,),
+        condition="patient.motion.breathing.enabled",
+    ),
+    StationPort(
+        "commanded_velocity",
+        "out",
+        7,
+        "rad/s",
+        "joints",
+        "what was actually sent after the client-side guard",
+        "hardware",
+        stations=(HARDWARE,),
+    ),
+    StationPort(
+        "robot_ok",
+        "out",
+        1,
+        "1",
+        "",
+        "0 once the robot or its connection has failed",
+        "hardware",
+        stations=(HARDWARE,),
+    ),
 )
 
 # What the robot senses, in the order the fault injection wraps them.
-ROBOT_SENSOR_PORTS = tuple(p.name for p in STATION_PORTS
-                           if p.group == "robot" and p.name != "tau_external")
+ROBOT_SENSOR_PORTS = tuple(
+    p.name for p in STATION_PORTS if p.group == "robot" and p.name != "tau_external"
+)
 
 
 class StationInterfaceError(ValueError):
@@ -118,8 +226,11 @@ def ports_of(station_kind: str, *, include_optional: bool = True) -> tuple[Stati
     """The ports a ``station_kind`` ('sim' or 'hardware') station exports."""
     if station_kind not in (SIM, HARDWARE):
         raise ValueError(f"station kind: expected 'sim' or 'hardware', got {station_kind!r}")
-    return tuple(p for p in STATION_PORTS if station_kind in p.stations
-                 and (include_optional or not p.optional_on(station_kind)))
+    return tuple(
+        p
+        for p in STATION_PORTS
+        if station_kind in p.stations and (include_optional or not p.optional_on(station_kind))
+    )
 
 
 def port(name: str) -> StationPort:
@@ -127,8 +238,9 @@ def port(name: str) -> StationPort:
     for p in STATION_PORTS:
         if p.name == name:
             return p
-    raise KeyError(f"'{name}' is not a station port; ports: "
-                   f"{', '.join(p.name for p in STATION_PORTS)}")
+    raise KeyError(
+        f"'{name}' is not a station port; ports: {', '.join(p.name for p in STATION_PORTS)}"
+    )
 
 
 def _value_type_name(system_port) -> str:
@@ -167,26 +279,37 @@ def CheckStationPorts(station, station_kind: str) -> None:
             if not is_vector:
                 problems.append(f"'{name}' is abstract, the interface says {spec.kind()}")
             elif spec.size >= 0 and system_port.size() != spec.size:
-                problems.append(f"'{name}' has size {system_port.size()}, the interface says "
-                                f"{spec.size}")
+                problems.append(
+                    f"'{name}' has size {system_port.size()}, the interface says {spec.size}"
+                )
         else:
             if is_vector:
                 problems.append(f"'{name}' is a vector, the interface says {spec.kind()}")
             elif _value_type_name(system_port) != spec.value_type:
-                problems.append(f"'{name}' carries {_value_type_name(system_port)}, the "
-                                f"interface says {spec.value_type}")
+                problems.append(
+                    f"'{name}' carries {_value_type_name(system_port)}, the "
+                    f"interface says {spec.value_type}"
+                )
     for name in found:
         if name not in expected:
-            problems.append(f"'{name}' is not a {station_kind} station port of the interface "
-                            "(drake_rus/station_interface.py)")
+            problems.append(
+                f"'{name}' is not a {station_kind} station port of the interface "
+                "(drake_rus/station_interface.py)"
+            )
     if problems:
-        raise StationInterfaceError(f"{station_kind} station '{station.get_name()}': "
-                                    + "; ".join(problems))
+        raise StationInterfaceError(
+            f"{station_kind} station '{station.get_name()}': " + "; ".join(problems)
+        )
 
 
 def _availability(p: StationPort) -> str:
-    where = ("both" if set(p.stations) == {SIM, HARDWARE}
-             else "sim only" if p.stations == (SIM,) else "hardware only")
+    where = (
+        "both"
+        if set(p.stations) == {SIM, HARDWARE}
+        else "sim only"
+        if p.stations == (SIM,)
+        else "hardware only"
+    )
     if not p.condition:
         return where
     on = "" if p.conditional_on is None else f" ({', '.join(p.conditional_on)})"
@@ -195,12 +318,16 @@ def _availability(p: StationPort) -> str:
 
 def port_table_markdown() -> str:
     """The port table of docs/design.md, generated from :data:`STATION_PORTS`."""
-    lines = ["| port | dir | type, size | unit | frame | stations | meaning |",
-             "|---|---|---|---|---|---|---|"]
+    lines = [
+        "| port | dir | type, size | unit | frame | stations | meaning |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for p in STATION_PORTS:
         kind = "vector (plant size)" if p.size == -1 else p.kind()
-        lines.append(f"| `{p.name}` | {p.direction} | {kind} | {p.unit or '-'} | "
-                     f"{p.frame or '-'} | {_availability(p)} | {p.meaning} |")
+        lines.append(
+            f"| `{p.name}` | {p.direction} | {kind} | {p.unit or '-'} | "
+            f"{p.frame or '-'} | {_availability(p)} | {p.meaning} |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -216,8 +343,9 @@ def update_port_table(text: str) -> str:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m drake_rus.station_interface",
-                                     description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m drake_rus.station_interface", description=__doc__.split("\n\n")[0]
+    )
     parser.add_argument("--update", metavar="FILE", help="rewrite the table in FILE")
     args = parser.parse_args(argv)
     if args.update:

@@ -18,8 +18,9 @@ from drake_rus.station import MakeSimStation
 __all__ = ["MakeStation"]
 
 
-def MakeStation(scenario: Scenario, meshcat: Meshcat | None = None, *, patient=None,
-                name: str = "station") -> Diagram:
+def MakeStation(
+    scenario: Scenario, meshcat: Meshcat | None = None, *, patient=None, name: str = "station"
+) -> Diagram:
     """The station for ``scenario.hardware``: simulated (false) or the real robot (true).
 
     ``patient`` applies to simulation only (the real patient lies on the real bed)."""

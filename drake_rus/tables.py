@@ -9,8 +9,14 @@ from pathlib import Path
 from drake_rus.io_utils import write_text_atomic
 
 
-def write_csv_atomic(path, rows: list[dict], fieldnames: list[str] | None = None, *,
-                     float_format: str | None = ".6g", extrasaction: str = "raise") -> Path:
+def write_csv_atomic(
+    path,
+    rows: list[dict],
+    fieldnames: list[str] | None = None,
+    *,
+    float_format: str | None = ".6g",
+    extrasaction: str = "raise",
+) -> Path:
     """Writes ``rows`` (dicts) as CSV to ``path``, atomically; returns the path.
 
     ``fieldnames``: the columns, in order (default: the first row's keys; no rows and no
@@ -26,7 +32,9 @@ def write_csv_atomic(path, rows: list[dict], fieldnames: list[str] | None = None
         w.writeheader()
         for r in rows:
             if float_format is not None:
-                r = {k: (format(v, float_format) if isinstance(v, float) else v)
-                     for k, v in r.items()}
+                r = {
+                    k: (format(v, float_format) if isinstance(v, float) else v)
+                    for k, v in r.items()
+                }
             w.writerow(r)
     return write_text_atomic(path, buf.getvalue())

@@ -9,22 +9,24 @@ from drake_rus.paths import REPO_ROOT
 from drake_rus.robot import MakeControlPlant, TipKinematics
 from drake_rus.scenario import ApplyOverrides, LoadScenario
 
-
 # The Visible Human female (HuBMAP) beside the clone: CI has ../shared next to the
 # repository, a user's checkout does not, and the tests that need her then skip.
 HUBMAP = REPO_ROOT.parent / "shared" / "anatomy" / "hubmap_vh_female"
-needs_hubmap = pytest.mark.skipif(not (HUBMAP / "VH_F_skin.stl").is_file(),
-                                  reason=f"real body not found at {HUBMAP}")
+needs_hubmap = pytest.mark.skipif(
+    not (HUBMAP / "VH_F_skin.stl").is_file(), reason=f"real body not found at {HUBMAP}"
+)
 
 
 # KiTS19 CT kidney label maps beside the clone (CC BY-NC-SA: read there, never copied).
 KITS = REPO_ROOT.parent / "shared" / "anatomy" / "kits19"
-needs_kits = pytest.mark.skipif(not (KITS / "case_00000").is_dir(),
-                                reason=f"KiTS19 label maps not found at {KITS}")
+needs_kits = pytest.mark.skipif(
+    not (KITS / "case_00000").is_dir(), reason=f"KiTS19 label maps not found at {KITS}"
+)
 
 
-def synthetic_ct_case(tumour=True, left=True, spacing=(3.0, 4.0, 3.0), n=(128, 50, 128),
-                      tumour_radius=16.0):
+def synthetic_ct_case(
+    tumour=True, left=True, spacing=(3.0, 4.0, 3.0), n=(128, 50, 128), tumour_radius=16.0
+):
     """A KiTS-style label map with a known pose, on an axial grid whose axes are the
     anatomical frame A (x left, y superior, z anterior; mm): ``(labels, spacing, info)``.
 
@@ -42,7 +44,7 @@ def synthetic_ct_case(tumour=True, left=True, spacing=(3.0, 4.0, 3.0), n=(128, 5
     notch_semi = np.array([20.0, 14.0, 12.0])
 
     def pose(side):
-        s = -1.0 if side == "right" else 1.0            # side sign in x
+        s = -1.0 if side == "right" else 1.0  # side sign in x
         cor, sag, hil = np.radians([17.0, 20.0, 42.0])
         u = np.array([-s * np.tan(cor), 1.0, -np.tan(sag)])
         u /= np.linalg.norm(u)
@@ -65,6 +67,7 @@ def synthetic_ct_case(tumour=True, left=True, spacing=(3.0, 4.0, 3.0), n=(128, 5
             body = np.sum((q / semi) ** 2, axis=1) <= 1.0
             notch = np.sum(((q - [0.0, -semi[1], 0.0]) / notch_semi) ** 2, axis=1) <= 1.0
             return body & ~notch
+
         return f
 
     def tumour_f(p):
@@ -78,10 +81,16 @@ def synthetic_ct_case(tumour=True, left=True, spacing=(3.0, 4.0, 3.0), n=(128, 5
         labels[kidney("left")(pts)] = 1
     if tumour:
         labels[tumour_f(pts)] = 2
-    inside = {"right": (lambda p: kidney("right")(p) | (tumour_f(p) if tumour else False)),
-              "left": kidney("left"), "tumour": tumour_f}
-    return labels.reshape(n), spacing, {"origin": origin, "kidneys": poses, "inside": inside,
-                                       "tumour_centre": t_centre}
+    inside = {
+        "right": (lambda p: kidney("right")(p) | (tumour_f(p) if tumour else False)),
+        "left": kidney("left"),
+        "tumour": tumour_f,
+    }
+    return (
+        labels.reshape(n),
+        spacing,
+        {"origin": origin, "kidneys": poses, "inside": inside, "tumour_centre": t_centre},
+    )
 
 
 def stored_as(labels, spacing, perm, flips):
@@ -124,10 +133,13 @@ def hardware_scenario(fields: dict, extra: str = ""):
     """The default scenario with ``hardware: true`` and ``hardware_interface`` set to
     ``fields`` (booleans written as YAML), plus ``extra`` top-level YAML (e.g. a safety
     section), for the hardware-station tests."""
-    text = ", ".join(f"{k}: {str(v).lower() if isinstance(v, bool) else v}"
-                     for k, v in fields.items())
-    return ApplyOverrides(LoadScenario(), "{hardware: true, %shardware_interface: {%s}}"
-                          % (f"{extra}, " if extra else "", text))
+    text = ", ".join(
+        f"{k}: {str(v).lower() if isinstance(v, bool) else v}" for k, v in fields.items()
+    )
+    return ApplyOverrides(
+        LoadScenario(),
+        "{hardware: true, %shardware_interface: {%s}}" % (f"{extra}, " if extra else "", text),
+    )
 
 
 @pytest.fixture
@@ -138,6 +150,7 @@ def moving_nearest_doubles():
     from scipy.spatial import cKDTree
 
     from drake_rus.localization import icp
+
     made = []
 
     class Counted(icp.MovingNearest):

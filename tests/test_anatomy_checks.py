@@ -8,23 +8,30 @@ import trimesh
 from pydrake.math import RigidTransform
 
 from drake_rus.anatomy import Label, LabelVolume, Patient, load_patient
-from drake_rus.anatomy.checks import (AnatomyError, check_anatomy, check_label_map_body_size,
-                                      check_mesh_units, kidney_surroundings)
+from drake_rus.anatomy.checks import (
+    AnatomyError,
+    check_anatomy,
+    check_label_map_body_size,
+    check_mesh_units,
+    kidney_surroundings,
+)
 from drake_rus.anatomy.rasterize import MAX_GRID_VOXELS, rasterize_mesh
 
 VS = 0.002
-SKIN = ((0.0, 0.0, 0.11), (0.15, 0.30, 0.11))        # centre, semi-axes (m): 300 x 220 mm
-KIDNEY = ((-0.06, 0.0, 0.07), (0.028, 0.055, 0.02))   # right kidney, 110 mm long
+SKIN = ((0.0, 0.0, 0.11), (0.15, 0.30, 0.11))  # centre, semi-axes (m): 300 x 220 mm
+KIDNEY = ((-0.06, 0.0, 0.07), (0.028, 0.055, 0.02))  # right kidney, 110 mm long
 
 
 def _ellipsoid(center, semi):
     m = trimesh.creation.icosphere(subdivisions=3)
-    return trimesh.Trimesh(m.vertices * np.asarray(semi) + np.asarray(center), m.faces,
-                           process=False)
+    return trimesh.Trimesh(
+        m.vertices * np.asarray(semi) + np.asarray(center), m.faces, process=False
+    )
 
 
-def _patient(kidney=KIDNEY, *, y_range=(-0.15, 0.15), liver_labels=None, liver_mesh=None,
-             scale=1.0):
+def _patient(
+    kidney=KIDNEY, *, y_range=(-0.15, 0.15), liver_labels=None, liver_mesh=None, scale=1.0
+):
     """A supine synthetic patient (Pt: x left, y superior, z up): soft tissue inside the
     skin, kidney cortex inside the kidney, liver (label) inside ``liver_labels`` (centre,
     semi-axes) around the kidney; everything scaled by ``scale``."""
@@ -42,9 +49,15 @@ def _patient(kidney=KIDNEY, *, y_range=(-0.15, 0.15), liver_labels=None, liver_m
     if liver_labels is not None:
         labels[rasterize_mesh(_ellipsoid(*liver_labels), shape, X_PtV, vs) & body] = Label.LIVER
     labels[rasterize_mesh(kid, shape, X_PtV, vs)] = Label.KIDNEY_CORTEX
-    return Patient(name="synthetic", side="right", posture="supine", kidney_mesh=kid,
-                   skin_mesh=skin, liver_mesh=liver_mesh,
-                   labels=LabelVolume(labels=labels, voxel_size=vs, X_PtV=X_PtV))
+    return Patient(
+        name="synthetic",
+        side="right",
+        posture="supine",
+        kidney_mesh=kid,
+        skin_mesh=skin,
+        liver_mesh=liver_mesh,
+        labels=LabelVolume(labels=labels, voxel_size=vs, X_PtV=X_PtV),
+    )
 
 
 def test_a_kidney_inside_the_body_passes_with_its_figures():
@@ -54,20 +67,24 @@ def test_a_kidney_inside_the_body_passes_with_its_figures():
     assert fig["kidney_length"] == pytest.approx(0.110, abs=0.002)
     assert fig["kidney_air_contact"] == 0.0 and fig["kidney_border_voxels"] == 0
     assert fig["kidney_organ_contact"] == {}
-    assert fig["kidney_imaged_volume"] == pytest.approx(4 / 3 * np.pi * 0.028 * 0.055 * 0.02,
-                                                        rel=0.1)
+    assert fig["kidney_imaged_volume"] == pytest.approx(
+        4 / 3 * np.pi * 0.028 * 0.055 * 0.02, rel=0.1
+    )
     # The kidney's top is 90 mm above the bed, the skin above it about 211 mm.
     assert fig["depth_vertical"] == pytest.approx(0.121, abs=0.004)
 
 
 def test_a_kidney_poking_out_of_the_skin_fails():
-    with pytest.raises(AnatomyError, match=r"patient synthetic: the kidney is not inside the "
-                                           r"body: \d+\.\d% of the voxels around it are air"):
+    with pytest.raises(
+        AnatomyError,
+        match=r"patient synthetic: the kidney is not inside the "
+        r"body: \d+\.\d% of the voxels around it are air",
+    ):
         check_anatomy(_patient(((-0.13, 0.0, 0.07), KIDNEY[1])))
 
 
 def test_a_kidney_cut_by_the_volume_border_fails_saying_how_much_is_imaged():
-    p = _patient(y_range=(0.0, 0.15))           # the grid starts at the kidney's middle
+    p = _patient(y_range=(0.0, 0.15))  # the grid starts at the kidney's middle
     with pytest.raises(AnatomyError, match="cut by the label volume's edge") as e:
         check_anatomy(p)
     text = str(e.value)
@@ -79,8 +96,11 @@ def test_a_kidney_cut_by_the_volume_border_fails_saying_how_much_is_imaged():
 
 def test_a_kidney_inside_the_liver_fails():
     liver = (KIDNEY[0], (0.05, 0.08, 0.035))
-    with pytest.raises(AnatomyError, match=r"the kidney lies inside the liver: \d+% of the voxels "
-                                           r"around it are liver"):
+    with pytest.raises(
+        AnatomyError,
+        match=r"the kidney lies inside the liver: \d+% of the voxels "
+        r"around it are liver",
+    ):
         check_anatomy(_patient(liver_labels=liver))
 
 
@@ -95,8 +115,11 @@ def test_a_kidney_overlapping_a_liver_mesh_fails_and_a_touching_one_passes():
 
 
 def test_a_body_18_mm_wide_fails():
-    with pytest.raises(AnatomyError, match=r"body width \(left-right, at the kidney's level\) "
-                                           r"18(\.\d+)? mm is outside 180-800 mm"):
+    with pytest.raises(
+        AnatomyError,
+        match=r"body width \(left-right, at the kidney's level\) "
+        r"18(\.\d+)? mm is outside 180-800 mm",
+    ):
         check_anatomy(_patient(scale=0.06))
 
 
@@ -113,40 +136,48 @@ def test_kidney_surroundings_name_the_faces_and_skip_the_other_kidney():
     lv = LabelVolume(labels=lab, voxel_size=VS, X_PtV=p.labels.X_PtV)
     sur = kidney_surroundings(lv, p.kidney_mesh.bounds, np.eye(3))
     assert sur["border_faces"] == ["superior"]
-    assert sur["border_voxels"] == pytest.approx(np.pi * 14 * 10, rel=0.15)   # its cut face
+    assert sur["border_voxels"] == pytest.approx(np.pi * 14 * 10, rel=0.15)  # its cut face
 
 
 def test_mesh_units_name_the_files_and_their_units():
-    with pytest.raises(AnatomyError, match=r"skin mesh skin\.stl: 1652 across against the "
-                                           r"kidney mesh kidney\.stl's 0\.1125.*the kidney "
-                                           r"mesh seems to be in m and the skin mesh in mm"):
+    with pytest.raises(
+        AnatomyError,
+        match=r"skin mesh skin\.stl: 1652 across against the "
+        r"kidney mesh kidney\.stl's 0\.1125.*the kidney "
+        r"mesh seems to be in m and the skin mesh in mm",
+    ):
         check_mesh_units(0.1125, 1652.0, "kidney.stl", "skin.stl", 1.0, "auto")
-    with pytest.raises(AnatomyError, match="kidney mesh seems to be in mm and the skin mesh "
-                                           "in m"):
+    with pytest.raises(AnatomyError, match="kidney mesh seems to be in mm and the skin mesh in m"):
         check_mesh_units(112.5, 1.652, "kidney.stl", "skin.stl", 1e-3, "auto")
     with pytest.raises(AnatomyError, match=r"1\.09 times the kidney, a body is 1\.5-60 times"):
         check_mesh_units(0.11, 0.12, "kidney.stl", "skin.stl", 1.0, "m")
-    check_mesh_units(112.5, 1652.0, "kidney.stl", "skin.stl", 1e-3, "auto")   # the VH female
+    check_mesh_units(112.5, 1652.0, "kidney.stl", "skin.stl", 1e-3, "auto")  # the VH female
     check_mesh_units(112.5, 230.0, "kidney.stl", "liver.stl", 1e-3, "auto", other="liver")
 
 
 def test_label_map_spacing_giving_an_18_mm_body_names_the_spacing():
     body = np.zeros((200, 150, 60), bool)
-    body[10:190, 10:140, :] = True                 # 180 x 130 voxels across
-    check_label_map_body_size(body, (1.6, 1.6, 3.0), 2, "seg.nii.gz")   # 288 x 208 mm
-    with pytest.raises(AnatomyError, match=r"label map seg\.nii\.gz: with its voxel spacing "
-                                           r"\(0\.1, 0\.1, 0\.1\) mm the body is 18 mm wide"):
+    body[10:190, 10:140, :] = True  # 180 x 130 voxels across
+    check_label_map_body_size(body, (1.6, 1.6, 3.0), 2, "seg.nii.gz")  # 288 x 208 mm
+    with pytest.raises(
+        AnatomyError,
+        match=r"label map seg\.nii\.gz: with its voxel spacing "
+        r"\(0\.1, 0\.1, 0\.1\) mm the body is 18 mm wide",
+    ):
         check_label_map_body_size(body, (0.1, 0.1, 0.1), 2, "seg.nii.gz")
     with pytest.raises(AnatomyError, match="the body is 1.8e\\+04 mm wide"):
         check_label_map_body_size(body, (100.0, 100.0, 100.0), 2, "seg.nii.gz")
 
 
 def test_rasterising_a_grid_larger_than_any_body_is_refused_before_allocating():
-    sphere = _ellipsoid((0, 0, 0), (1000.0, 1000.0, 1000.0))     # a "body" in mm read as m
+    sphere = _ellipsoid((0, 0, 0), (1000.0, 1000.0, 1000.0))  # a "body" in mm read as m
     shape = (2_000_000, 2_000_000, 2_000_000)
     assert np.prod(np.array(shape, float)) > MAX_GRID_VOXELS
-    with pytest.raises(ValueError, match=r"voxel grid of 2e\+03 x 2e\+03 x 2e\+03 m .*mm "
-                                         r"read as m"):
+    with pytest.raises(
+        ValueError,
+        match=r"voxel grid of 2e\+03 x 2e\+03 x 2e\+03 m .*mm "
+        r"read as m",
+    ):
         rasterize_mesh(sphere, shape, RigidTransform([-1000.0] * 3), 0.001)
 
 

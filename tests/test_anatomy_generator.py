@@ -7,8 +7,13 @@ import trimesh
 
 from drake_rus.anatomy import Label, Patient, is_kidney, load_patient
 from drake_rus.anatomy.body import BODY_SIZES
-from drake_rus.anatomy.cohort import (TEST_OFFSET, TRAIN_OFFSET, cohort_seeds,
-                                      kidney_statistics, summarize)
+from drake_rus.anatomy.cohort import (
+    TEST_OFFSET,
+    TRAIN_OFFSET,
+    cohort_seeds,
+    kidney_statistics,
+    summarize,
+)
 from drake_rus.anatomy.generator import generate_patient
 from drake_rus.anatomy.kidney_shape import KidneyShape, sample_kidney_shape_params
 
@@ -116,8 +121,10 @@ def test_depth_range_over_cohort(stats200):
     # kidney is 147.5 mm below the front skin supine (`drake-rus patient info`).
     assert 85.0 <= 100.0 * np.mean(d < 0.1475) <= 98.0
     # Depth grows with body size.
-    means = [np.mean([r["depth_vertical"] for r in stats200 if r["size_class"] == c])
-             for c in ("lean", "normal", "overweight", "obese")]
+    means = [
+        np.mean([r["depth_vertical"] for r in stats200 if r["size_class"] == c])
+        for c in ("lean", "normal", "overweight", "obese")
+    ]
     assert np.all(np.diff(means) > 0)
 
 
@@ -138,7 +145,7 @@ def test_canonical_frame_follows_sign_rules():
         for side, lateral in (("right", [-1, 0, 0]), ("left", [1, 0, 0])):
             p = generate_patient(seed, side=side)
             R = p.X_PtK.rotation().matrix()
-            assert R[1, 0] > 0.8                      # x_k superior (+y_Pt)
+            assert R[1, 0] > 0.8  # x_k superior (+y_Pt)
             assert R[:, 1] @ np.array(lateral) > 0.5  # y_k medial -> lateral
             # Right kidney on the patient's right = towards the robot (-x_Pt).
             assert np.sign(p.X_PtK.translation()[0]) == (-1 if side == "right" else 1)
@@ -151,11 +158,11 @@ def test_left_lateral_decubitus_turns_right_flank_up():
     sup = generate_patient(3)
     lld = generate_patient(3, posture="left_lateral_decubitus")
     R = lld.X_PtK.rotation().matrix()
-    assert R[:, 1] @ np.array([0, 0, 1.0]) > 0.5      # lateral (right flank) is up
-    assert lld.skin_mesh.bounds[0, 2] == pytest.approx(0.0, abs=0.03)   # lies on the bed
+    assert R[:, 1] @ np.array([0, 0, 1.0]) > 0.5  # lateral (right flank) is up
+    assert lld.skin_mesh.bounds[0, 2] == pytest.approx(0.0, abs=0.03)  # lies on the bed
     ml, ms = lld.metrics(), sup.metrics()
     assert ml["length"] == pytest.approx(ms["length"])
-    assert ml["depth_vertical"] < ms["depth_vertical"]   # flank is closer than anterior
+    assert ml["depth_vertical"] < ms["depth_vertical"]  # flank is closer than anterior
     assert 0.02 < ml["depth_vertical"] < 0.09
 
 
@@ -165,11 +172,22 @@ def test_label_volume_contents():
     lab = lv.labels
     assert lab.dtype == np.uint8 and lv.voxel_size == 0.002
     counts = np.bincount(lab.ravel(), minlength=len(Label))
-    for name in ("OUTSIDE", "SOFT_TISSUE", "FAT", "MUSCLE", "KIDNEY_CORTEX",
-                 "KIDNEY_MEDULLA", "KIDNEY_SINUS", "LIVER", "BONE", "GAS", "VESSEL"):
+    for name in (
+        "OUTSIDE",
+        "SOFT_TISSUE",
+        "FAT",
+        "MUSCLE",
+        "KIDNEY_CORTEX",
+        "KIDNEY_MEDULLA",
+        "KIDNEY_SINUS",
+        "LIVER",
+        "BONE",
+        "GAS",
+        "VESSEL",
+    ):
         assert counts[Label[name]] > 0, name
     # Kidney voxel volume matches the mesh volume (2 mm voxels).
-    kid_vol = is_kidney(lab).sum() * lv.voxel_size ** 3
+    kid_vol = is_kidney(lab).sum() * lv.voxel_size**3
     assert kid_vol == pytest.approx(p.kidney_mesh.volume, rel=0.08)
     # Kidney voxels lie inside the kidney mesh (voxel centres in Pt).
     ijk = np.argwhere(is_kidney(lab))[::97]
@@ -184,6 +202,7 @@ def test_label_volume_contents():
     # Ribs 10-12 with intercostal gaps: on the patient's right, lateral to the kidney, the
     # bone label splits into separate ribs.
     from scipy import ndimage
+
     x = lv.X_PtV.translation()[0] + lv.voxel_size * np.arange(lab.shape[0])
     lateral = lab[x < p.X_PtK.translation()[0] - 0.03] == Label.BONE
     _, n_ribs = ndimage.label(lateral)
@@ -192,8 +211,10 @@ def test_label_volume_contents():
     R = p.X_PtK.rotation().matrix()
     up = p.X_PtK.translation() + 0.35 * p.metrics()["length"] * R[:, 0]
     col = np.array([[up[0], up[1], z] for z in np.arange(up[2], up[2] + 0.1, 0.002)])
-    ijk = np.round(np.linalg.solve(lv.X_PtV.rotation().matrix(),
-                                   (col - lv.X_PtV.translation()).T).T / lv.voxel_size).astype(int)
+    ijk = np.round(
+        np.linalg.solve(lv.X_PtV.rotation().matrix(), (col - lv.X_PtV.translation()).T).T
+        / lv.voxel_size
+    ).astype(int)
     ok = np.all((ijk >= 0) & (ijk < lab.shape), axis=1)
     assert np.any(lab[tuple(ijk[ok].T)] == Label.LIVER)
 

@@ -7,13 +7,17 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 import trimesh
+from conftest import HUBMAP, needs_hubmap  # the real body beside the clone, or a skip
 
-from drake_rus.anatomy import (Label, is_kidney, load_patient, patient_from_label_map,
-                               patient_from_meshes)
+from drake_rus.anatomy import (
+    Label,
+    is_kidney,
+    load_patient,
+    patient_from_label_map,
+    patient_from_meshes,
+)
 from drake_rus.anatomy.generator import generate_patient
 from drake_rus.cli import main as cli_main
-
-from conftest import HUBMAP, needs_hubmap   # the real body beside the clone, or a skip
 
 
 @pytest.fixture(scope="module")
@@ -50,9 +54,14 @@ def test_mesh_patient_labels_and_torso(mesh_dir):
     p = patient_from_meshes(d / "case_kidney_right.stl", d / "case_skin.stl", voxel_size=0.003)
     lv = p.labels
     kid = is_kidney(lv.labels)
-    assert kid.sum() * lv.voxel_size ** 3 == pytest.approx(p.kidney_mesh.volume, rel=0.12)
-    for lab in (Label.FAT, Label.MUSCLE, Label.SOFT_TISSUE, Label.KIDNEY_CORTEX,
-                Label.KIDNEY_SINUS):
+    assert kid.sum() * lv.voxel_size**3 == pytest.approx(p.kidney_mesh.volume, rel=0.12)
+    for lab in (
+        Label.FAT,
+        Label.MUSCLE,
+        Label.SOFT_TISSUE,
+        Label.KIDNEY_CORTEX,
+        Label.KIDNEY_SINUS,
+    ):
         assert (lv.labels == lab).any(), lab.name
     t = p.torso_section(0.08)
     assert t.is_watertight
@@ -65,8 +74,8 @@ def test_bad_meshes_give_clear_errors(tmp_path, mesh_dir):
         patient_from_meshes(tmp_path / "none.stl", d / "case_skin.stl")
     sphere = trimesh.creation.icosphere(subdivisions=2, radius=30.0)
     keep = np.ones(len(sphere.faces), bool)
-    keep[sphere.vertex_faces[0][sphere.vertex_faces[0] >= 0]] = False   # a hole around vertex 0
-    keep[sphere.vertex_faces[5][sphere.vertex_faces[5] >= 0]] = False   # and another
+    keep[sphere.vertex_faces[0][sphere.vertex_faces[0] >= 0]] = False  # a hole around vertex 0
+    keep[sphere.vertex_faces[5][sphere.vertex_faces[5] >= 0]] = False  # and another
     box = trimesh.Trimesh(sphere.vertices, sphere.faces[keep])
     open_path = tmp_path / "open.stl"
     box.export(open_path)
@@ -93,8 +102,8 @@ def _synthetic_label_volume():
     """A TotalSegmentator-like map in LPS (i: left, j: posterior, k: superior), 2 mm voxels:
     body ellipse (200), right kidney (2), liver (5)."""
     n = (160, 120, 80)
-    I, J, K = np.meshgrid(*[np.arange(s) for s in n], indexing="ij")
-    x, y, z = (I - 80) * 2.0, (J - 60) * 2.0, (K - 40) * 2.0     # mm, LPS
+    ii, jj, kk = np.meshgrid(*[np.arange(s) for s in n], indexing="ij")
+    x, y, z = (ii - 80) * 2.0, (jj - 60) * 2.0, (kk - 40) * 2.0  # mm, LPS
     lab = np.zeros(n, np.uint8)
     lab[(x / 150) ** 2 + (y / 100) ** 2 <= 1] = 200
     # right kidney: patient's right = -x (LPS), posterior = +y
@@ -116,9 +125,9 @@ def test_from_label_map(tmp_path, suffix):
     assert m["length"] == pytest.approx(0.110, abs=0.006)
     assert m["volume"] == pytest.approx(4 / 3 * np.pi * 0.028 * 0.020 * 0.055, rel=0.08)
     R = p.X_PtK.rotation().matrix()
-    assert abs(R[1, 0]) > 0.99 and R[1, 0] > 0                # x_k superior
-    assert R[:, 1] @ np.array([-1.0, 0, 0]) > 0                # y_k towards patient's right
-    assert p.X_PtK.translation()[0] < -0.05                   # right kidney towards robot
+    assert abs(R[1, 0]) > 0.99 and R[1, 0] > 0  # x_k superior
+    assert R[:, 1] @ np.array([-1.0, 0, 0]) > 0  # y_k towards patient's right
+    assert p.X_PtK.translation()[0] < -0.05  # right kidney towards robot
     # Posterior kidney: the back (bed) is below it.
     assert 0.02 < p.X_PtK.translation()[2] < 0.08
     lv = p.labels
@@ -134,8 +143,9 @@ def test_totalsegmentator_mask_folder(tmp_path):
     d.mkdir()
     for name, value in (("body", 200), ("kidney_right", 2), ("liver", 5)):
         m = (lab > 0) if name == "body" else (lab == value)
-        _write_label_map(d / f"{name}.nii.gz", m.astype(np.uint8), (2.0, 2.0, 2.0),
-                         (-160.0, -120.0, -80.0))
+        _write_label_map(
+            d / f"{name}.nii.gz", m.astype(np.uint8), (2.0, 2.0, 2.0), (-160.0, -120.0, -80.0)
+        )
     (d / "notes.txt").write_text("ignored")
     p = load_patient(str(d), voxel_size=0.002)
     assert p.meta["source"] == "mask_folder"
@@ -172,14 +182,19 @@ def test_export_and_reimport(tmp_path):
     p = generate_patient(3, voxel_size=0.003, progress=False)
     paths = p.export(tmp_path / "out", "nifti")
     names = sorted(x.name for x in paths)
-    assert names == ["seed_3_info.json", "seed_3_kidney.stl", "seed_3_labels.nii.gz",
-                     "seed_3_skin.stl"]
+    assert names == [
+        "seed_3_info.json",
+        "seed_3_kidney.stl",
+        "seed_3_labels.nii.gz",
+        "seed_3_skin.stl",
+    ]
     assert not [x for x in (tmp_path / "out").iterdir() if "tmp" in x.name]
     img = sitk.ReadImage(str(tmp_path / "out" / "seed_3_labels.nii.gz"))
     arr = sitk.GetArrayFromImage(img).transpose(2, 1, 0)
     np.testing.assert_array_equal(arr, p.labels.labels)
-    np.testing.assert_allclose(np.array(img.GetOrigin()) / 1000, p.labels.X_PtV.translation(),
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        np.array(img.GetOrigin()) / 1000, p.labels.X_PtV.translation(), atol=1e-6
+    )
     k = trimesh.load(tmp_path / "out" / "seed_3_kidney.stl")
     assert k.volume * 1e-9 == pytest.approx(p.kidney_mesh.volume, rel=1e-6)
     with pytest.raises(ValueError, match="format"):
@@ -189,17 +204,18 @@ def test_export_and_reimport(tmp_path):
 @needs_hubmap
 def test_hubmap_real_body_imports():
     from drake_rus.anatomy.cli import patient_info
+
     p = load_patient(str(HUBMAP))
     m = p.metrics()
-    assert 0.110 <= m["length"] <= 0.140                      # issue: plausible 110-140 mm
-    assert m["volume"] == pytest.approx(196e-6, rel=0.05)      # README: 196 mL
+    assert 0.110 <= m["length"] <= 0.140  # issue: plausible 110-140 mm
+    assert m["volume"] == pytest.approx(196e-6, rel=0.05)  # README: 196 mL
     assert p.skin_mesh.is_watertight and p.kidney_mesh.is_watertight
     R = p.X_PtK.rotation().matrix()
-    assert R[1, 0] > 0.7 and R[0, 1] < 0                      # superior; lateral = -x (right)
-    assert p.X_PtK.translation()[0] < -0.03                   # right kidney towards the robot
+    assert R[1, 0] > 0.7 and R[0, 1] < 0  # superior; lateral = -x (right)
+    assert p.X_PtK.translation()[0] < -0.03  # right kidney towards the robot
     assert 0.06 < m["depth_vertical"] < 0.2 and m["depth_min"] > 0.02
     assert p.liver_mesh is not None
-    info = patient_info(p)                                    # what `patient info` prints
+    info = patient_info(p)  # what `patient info` prints
     assert 110 <= info["length_mm"] <= 140
     assert set(info["X_PtK"]) == {"p_mm", "x_k", "y_k", "z_k"}
 
@@ -221,8 +237,22 @@ def test_cli_cohort_stats_small(capsys):
 
 def test_cli_patient_export(tmp_path, capsys):
     out = tmp_path / "exp"
-    assert cli_main(["patient", "export", "seed:2", "--out", str(out), "--voxel-mm", "4",
-                     "--format", "nrrd"]) == 0
+    assert (
+        cli_main(
+            [
+                "patient",
+                "export",
+                "seed:2",
+                "--out",
+                str(out),
+                "--voxel-mm",
+                "4",
+                "--format",
+                "nrrd",
+            ]
+        )
+        == 0
+    )
     written = json.loads(capsys.readouterr().out)["written"]
     assert any(w.endswith("seed_2_labels.nrrd") for w in written)
     img = sitk.ReadImage(str(out / "seed_2_labels.nrrd"))

@@ -13,7 +13,7 @@ def test_kidney_mask_matches_mesh(posture):
     p = generate_patient(6, posture=posture)
     mask, X_PtV = p.kidney_mask(0.0015)
     vs = 0.0015
-    assert mask.sum() * vs ** 3 == pytest.approx(p.kidney_mesh.volume, rel=0.03)
+    assert mask.sum() * vs**3 == pytest.approx(p.kidney_mesh.volume, rel=0.03)
     c = X_PtV.multiply((np.argwhere(mask) * vs).T).T.mean(axis=0)
     # Volume centroid and surface centroid of a kidney differ by a few mm at most.
     assert np.linalg.norm(c - p.X_PtK.translation()) < 0.005
@@ -30,7 +30,7 @@ def test_pictures_are_written(tmp_path):
 
 def test_meshcat_scene():
     p = generate_patient(8)
-    meshcat = MakeMeshcat()         # 127.0.0.1, not every interface
+    meshcat = MakeMeshcat()  # 127.0.0.1, not every interface
     show_in_meshcat(p, meshcat)
     assert meshcat.HasPath("patient/kidney") and meshcat.HasPath("patient/skin")
     assert meshcat.HasPath("patient/X_PtK/x")

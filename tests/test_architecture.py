@@ -17,26 +17,53 @@ ROOT = Path(__file__).resolve().parents[1] / "drake_rus"
 # Lowest first. A module's layer is that of the longest prefix listed; ``*.cli`` modules
 # (command-line front ends of any package) are in the top layer.
 LAYERS = [
-    ("core", ["drake_rus", "drake_rus.config_schema", "drake_rus.paths", "drake_rus.io_utils",
-              "drake_rus.progress", "drake_rus.provenance", "drake_rus.station_interface",
-              "drake_rus.extras",
-              "drake_rus.tables",
-              "drake_rus.control.config",
-              "drake_rus.hardware.config", "drake_rus.imaging.config",
-              "drake_rus.localization.config", "drake_rus.reliability.config",
-              "drake_rus.scan.config",
-              "drake_rus.anatomy.motion",
-              "drake_rus.interrupts"]),
+    (
+        "core",
+        [
+            "drake_rus",
+            "drake_rus.config_schema",
+            "drake_rus.paths",
+            "drake_rus.io_utils",
+            "drake_rus.progress",
+            "drake_rus.provenance",
+            "drake_rus.station_interface",
+            "drake_rus.extras",
+            "drake_rus.tables",
+            "drake_rus.control.config",
+            "drake_rus.hardware.config",
+            "drake_rus.imaging.config",
+            "drake_rus.localization.config",
+            "drake_rus.reliability.config",
+            "drake_rus.scan.config",
+            "drake_rus.anatomy.motion",
+            "drake_rus.interrupts",
+        ],
+    ),
     ("scenario", ["drake_rus.scenario"]),
-    ("models", ["drake_rus.robot", "drake_rus.anatomy", "drake_rus.template",
-                "drake_rus.metrics", "drake_rus.batch"]),
+    (
+        "models",
+        [
+            "drake_rus.robot",
+            "drake_rus.anatomy",
+            "drake_rus.template",
+            "drake_rus.metrics",
+            "drake_rus.batch",
+        ],
+    ),
     ("systems", ["drake_rus.control", "drake_rus.imaging", "drake_rus.localization"]),
     ("stations", ["drake_rus.station", "drake_rus.patient_body", "drake_rus.hardware"]),
     ("dispatch", ["drake_rus.stations"]),
     ("scan", ["drake_rus.scan", "drake_rus.closed_loop", "drake_rus.bringup"]),
     # Offline tools (training the segmenter) sit with the studies: the runtime never imports them.
-    ("studies", ["drake_rus.experiments", "drake_rus.reliability", "drake_rus.rehearsal",
-                 "drake_rus.imaging.training"]),
+    (
+        "studies",
+        [
+            "drake_rus.experiments",
+            "drake_rus.reliability",
+            "drake_rus.rehearsal",
+            "drake_rus.imaging.training",
+        ],
+    ),
     ("front", ["drake_rus.cli", "drake_rus.demo", "drake_rus.render"]),
 ]
 # Allowed exceptions, each with its reason.
@@ -99,19 +126,22 @@ def violations(graph: dict) -> list[str]:
     for module, targets in graph.items():
         for target in sorted(targets):
             if target == "drake_rus" or module.startswith(target + "."):
-                continue   # a package's own __init__ (re-exports) is not an arrow up
+                continue  # a package's own __init__ (re-exports) is not an arrow up
             if (module, target) in ALLOWED:
                 continue
             if layer_of(target) > layer_of(module):
-                out.append(f"{module} ({LAYERS[layer_of(module)][0]}) imports {target} "
-                           f"({LAYERS[layer_of(target)][0]}): a higher layer")
+                out.append(
+                    f"{module} ({LAYERS[layer_of(module)][0]}) imports {target} "
+                    f"({LAYERS[layer_of(target)][0]}): a higher layer"
+                )
             if target.startswith("drake_rus.reliability") and not (
-                    module.startswith("drake_rus.reliability") or layer_of(module) ==
-                    len(LAYERS) - 1):
+                module.startswith("drake_rus.reliability") or layer_of(module) == len(LAYERS) - 1
+            ):
                 out.append(f"{module} imports fault injection {target}")
             hardware = ("drake_rus.hardware", "drake_rus.station")
             if (module.startswith(hardware[0]) and target == hardware[1]) or (
-                    module == hardware[1] and target.startswith(hardware[0])):
+                module == hardware[1] and target.startswith(hardware[0])
+            ):
                 out.append(f"{module} imports {target}: the stations never import each other")
     return out
 
@@ -184,16 +214,22 @@ def test_the_checker_catches_bad_arrows(tmp_path):
         (pkg / rel).write_text(text)
     graph = import_graph(pkg)
     found = "\n".join(violations(graph))
-    assert ("drake_rus.station imports drake_rus.hardware.station: the stations never "
-            "import each other") in found
+    assert (
+        "drake_rus.station imports drake_rus.hardware.station: the stations never import each other"
+    ) in found
     assert "drake_rus.control.laws (systems) imports drake_rus.scan.run" in found
     assert "drake_rus.scan.run imports fault injection drake_rus.reliability.faults" in found
     assert ["drake_rus.scan.diagram", "drake_rus.scan.run"] in cycles(graph)
 
 
-@pytest.mark.parametrize("module,layer", [("drake_rus.anatomy.cli", "front"),
-                                          ("drake_rus.robot.model", "models"),
-                                          ("drake_rus.scan.run", "scan")])
+@pytest.mark.parametrize(
+    "module,layer",
+    [
+        ("drake_rus.anatomy.cli", "front"),
+        ("drake_rus.robot.model", "models"),
+        ("drake_rus.scan.run", "scan"),
+    ],
+)
 def test_layer_assignment(module, layer):
     assert LAYERS[layer_of(module)][0] == layer
 
@@ -203,11 +239,17 @@ def function_level_imports(root: Path = ROOT) -> list[str]:
     out = []
     for path in sorted(root.rglob("*.py")):
         for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, ast.ImportFrom) and node.col_offset > 0 and (
-                    node.level or (node.module or "").startswith("drake_rus")):
+            if (
+                isinstance(node, ast.ImportFrom)
+                and node.col_offset > 0
+                and (node.level or (node.module or "").startswith("drake_rus"))
+            ):
                 out.append(f"{path.relative_to(root.parent)}:{node.lineno} {ast.unparse(node)}")
-            elif isinstance(node, ast.Import) and node.col_offset > 0 and any(
-                    a.name.startswith("drake_rus") for a in node.names):
+            elif (
+                isinstance(node, ast.Import)
+                and node.col_offset > 0
+                and any(a.name.startswith("drake_rus") for a in node.names)
+            ):
                 out.append(f"{path.relative_to(root.parent)}:{node.lineno} {ast.unparse(node)}")
     return out
 
@@ -231,8 +273,11 @@ def folder_of(module: str) -> str:
     for a top-level module, the module; qualified by its layer, so that a package's
     ``config`` (core) and ``cli`` (front) modules are nodes of their own."""
     parts = module.split(".")
-    base = ".".join(parts[:2]) if len(parts) > 2 or (
-        len(parts) == 2 and (ROOT / parts[1]).is_dir()) else module
+    base = (
+        ".".join(parts[:2])
+        if len(parts) > 2 or (len(parts) == 2 and (ROOT / parts[1]).is_dir())
+        else module
+    )
     return f"{base}[{LAYERS[layer_of(module)][0]}]"
 
 
@@ -258,10 +303,13 @@ def test_no_folder_level_import_cycles():
 def test_the_folder_checker_catches_a_cycle_between_folders():
     """anatomy.patient imports template.io and template.builder imports anatomy.rasterize:
     no module cycle, but the two folders import each other."""
-    graph = {"drake_rus.anatomy.patient": {"drake_rus.template.io"},
-             "drake_rus.anatomy.rasterize": set(),
-             "drake_rus.template.io": set(),
-             "drake_rus.template.builder": {"drake_rus.anatomy.rasterize"}}
+    graph = {
+        "drake_rus.anatomy.patient": {"drake_rus.template.io"},
+        "drake_rus.anatomy.rasterize": set(),
+        "drake_rus.template.io": set(),
+        "drake_rus.template.builder": {"drake_rus.anatomy.rasterize"},
+    }
     assert cycles(graph) == []
-    assert cycles(folder_graph(graph)) == [["drake_rus.anatomy[models]",
-                                            "drake_rus.template[models]"]]
+    assert cycles(folder_graph(graph)) == [
+        ["drake_rus.anatomy[models]", "drake_rus.template[models]"]
+    ]

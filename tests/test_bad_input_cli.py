@@ -36,8 +36,18 @@ def test_campaign_bad_arguments(tmp_path, capsys, case, args, words):
 
 
 def test_campaign_missing_scenarios_file(tmp_path, capsys):
-    code, err = _run(["campaign", "--runs", "1", "--out", str(tmp_path / "c"),
-                      "--scenarios-file", str(tmp_path / "none.yaml")], capsys)
+    code, err = _run(
+        [
+            "campaign",
+            "--runs",
+            "1",
+            "--out",
+            str(tmp_path / "c"),
+            "--scenarios-file",
+            str(tmp_path / "none.yaml"),
+        ],
+        capsys,
+    )
     assert code == 2 and "none.yaml" in err and not (tmp_path / "c").exists()
 
 
@@ -48,12 +58,16 @@ def test_campaign_out_is_a_file(tmp_path, capsys):
     assert code == 2 and "--out" in err and target.read_text() == "keep me"
 
 
-@pytest.mark.parametrize("argv,word", [
-    (["campaign", "--runs", "abc", "--out", "x"], "--runs"),
-    (["campaign", "--out", "x"], "--runs"),
-    (["campaign", "--runs", "3"], "--out"),
-    (["scan", "--seed", "one"], "--seed"),
-], ids=["non_integer_runs", "missing_runs", "missing_out", "non_integer_seed"])
+@pytest.mark.parametrize(
+    "argv,word",
+    [
+        (["campaign", "--runs", "abc", "--out", "x"], "--runs"),
+        (["campaign", "--out", "x"], "--runs"),
+        (["campaign", "--runs", "3"], "--out"),
+        (["scan", "--seed", "one"], "--seed"),
+    ],
+    ids=["non_integer_runs", "missing_runs", "missing_out", "non_integer_seed"],
+)
 def test_argparse_errors_name_the_argument(capsys, argv, word):
     with pytest.raises(SystemExit) as e:
         main(argv)
@@ -68,8 +82,11 @@ SCAN_CASES = [
     ("unknown_scenario", ["--scenario", "nope"], ["'nope'"]),
     ("bad_override", ["--set", "{contact: {time_step: -1}}"], ["contact.time_step"]),
     ("bad_override_yaml", ["--set", "{contact: ["], ["YAML"]),
-    ("missing_template", ["--set", "{localization: {template: /nonexistent/t.npz}}"],
-     ["localization.template", "t.npz"]),
+    (
+        "missing_template",
+        ["--set", "{localization: {template: /nonexistent/t.npz}}"],
+        ["localization.template", "t.npz"],
+    ),
     ("unknown_patient", ["--patient", "nobody:1", "--no-record"], ["nobody:1"]),
 ]
 
@@ -111,6 +128,7 @@ def readonly_dir(tmp_path, monkeypatch):
         if str(os.path.abspath(path)).startswith(str(folder)):
             raise OSError(errno.EROFS, "Read-only file system", str(path))
         return real_probe(path)
+
     monkeypatch.setattr(io_utils, "_probe_write", probe)
     folder.chmod(0o555)
     yield folder
@@ -166,8 +184,7 @@ def test_scan_record_needs_html(tmp_path, capsys):
 
 def test_scan_record_in_a_readonly_folder(tmp_path, readonly_dir, capsys):
     out = tmp_path / "scan"
-    code, err = _run(["scan", "--out", str(out), "--record", str(readonly_dir / "r.html")],
-                     capsys)
+    code, err = _run(["scan", "--out", str(out), "--record", str(readonly_dir / "r.html")], capsys)
     assert code == 2 and "--record" in err, err
     assert not out.exists()
 
@@ -182,7 +199,7 @@ def test_scan_busy_out_is_refused(tmp_path, capsys):
     """Two scans into the same --out: the second is refused while the first holds it."""
     out = tmp_path / "scan"
     out.mkdir()
-    (out / io_utils.LOCK_NAME).write_text(f"{os.getppid()} scan\n")   # a live process
+    (out / io_utils.LOCK_NAME).write_text(f"{os.getppid()} scan\n")  # a live process
     code, err = _run(["scan", "--out", str(out), "--no-record"], capsys)
     assert code == 2 and "--out" in err and "in use" in err, err
     assert sorted(p.name for p in out.iterdir()) == [io_utils.LOCK_NAME]
@@ -190,28 +207,49 @@ def test_scan_busy_out_is_refused(tmp_path, capsys):
 
 def test_scan_patient_100_m_away(tmp_path, capsys):
     out = tmp_path / "scan"
-    code, err = _run(["scan", "--out", str(out), "--no-record", "--set",
-                      "{patient: {X_BPt: {translation: [100, 0, 0]}}}"], capsys)
+    code, err = _run(
+        [
+            "scan",
+            "--out",
+            str(out),
+            "--no-record",
+            "--set",
+            "{patient: {X_BPt: {translation: [100, 0, 0]}}}",
+        ],
+        capsys,
+    )
     assert code == 2 and "patient.X_BPt" in err and "1.5 m" in err, err
     assert not out.exists()
 
 
 def test_scan_template_is_a_folder(tmp_path, capsys):
     out = tmp_path / "scan"
-    code, err = _run(["scan", "--out", str(out), "--no-record", "--set",
-                      f"{{localization: {{template: '{tmp_path}'}}}}"], capsys)
+    code, err = _run(
+        [
+            "scan",
+            "--out",
+            str(out),
+            "--no-record",
+            "--set",
+            f"{{localization: {{template: '{tmp_path}'}}}}",
+        ],
+        capsys,
+    )
     assert code == 2 and "localization.template" in err and "folder" in err, err
     assert not out.exists()
 
 
-@pytest.mark.parametrize("text,field", [
-    ("{probe: {mass: 1000}}", "probe.mass"),
-    ("{contact: {time_step: 10}}", "contact.time_step"),
-    ("{controller: {desired_force: 25}}", "controller.desired_force"),
-    ("{imaging: {frame_rate_hz: 1e9}}", "imaging.frame_rate_hz"),
-    ("{contact: {model: point, model: hydroelastic}}", "contact.model"),
-], ids=["probe_1000_kg", "time_step_10", "force_above_ceiling", "frame_rate_1e9",
-        "duplicate_key"])
+@pytest.mark.parametrize(
+    "text,field",
+    [
+        ("{probe: {mass: 1000}}", "probe.mass"),
+        ("{contact: {time_step: 10}}", "contact.time_step"),
+        ("{controller: {desired_force: 25}}", "controller.desired_force"),
+        ("{imaging: {frame_rate_hz: 1e9}}", "imaging.frame_rate_hz"),
+        ("{contact: {model: point, model: hydroelastic}}", "contact.model"),
+    ],
+    ids=["probe_1000_kg", "time_step_10", "force_above_ceiling", "frame_rate_1e9", "duplicate_key"],
+)
 def test_scan_unphysical_override(tmp_path, capsys, text, field):
     out = tmp_path / "scan"
     code, err = _run(["scan", "--out", str(out), "--no-record", "--set", text], capsys)
@@ -222,8 +260,11 @@ def test_scan_unphysical_override(tmp_path, capsys, text, field):
 @pytest.mark.parametrize("value", ["0", "-1", "1000"])
 @pytest.mark.parametrize("action", ["info", "export", "show"])
 def test_patient_voxel_mm(tmp_path, capsys, action, value):
-    extra = {"info": [], "export": ["--out", str(tmp_path / "exp")],
-             "show": ["--png", str(tmp_path / "s.png")]}[action]
+    extra = {
+        "info": [],
+        "export": ["--out", str(tmp_path / "exp")],
+        "show": ["--png", str(tmp_path / "s.png")],
+    }[action]
     code, err = _run(["patient", action, "test:0", "--voxel-mm", value, *extra], capsys)
     assert code == 2 and "--voxel-mm" in err and "0.1-10 mm" in err, err
     assert not any(tmp_path.iterdir())
@@ -255,6 +296,7 @@ def test_patient_show_png_is_a_folder(tmp_path, capsys):
 
 def _label_map(path, spacing_mm, kidney_voxels=None):
     import SimpleITK as sitk
+
     a = np.zeros((40, 40, 40), np.uint8)
     a[5:35, 5:35, 5:35] = 200
     if kidney_voxels is None:
@@ -267,10 +309,14 @@ def _label_map(path, spacing_mm, kidney_voxels=None):
     return path
 
 
-@pytest.mark.parametrize("spacing,words", [
-    (100.0, ["spacing", "100", "0.1-10 mm"]),
-    (0.002, ["spacing", "in metres"]),
-], ids=["spacing_100_mm", "spacing_in_metres"])
+@pytest.mark.parametrize(
+    "spacing,words",
+    [
+        (100.0, ["spacing", "100", "0.1-10 mm"]),
+        (0.002, ["spacing", "in metres"]),
+    ],
+    ids=["spacing_100_mm", "spacing_in_metres"],
+)
 def test_label_map_spacing_is_named(tmp_path, capsys, spacing, words):
     path = _label_map(tmp_path / "map.nii.gz", spacing)
     code, err = _run(["patient", "info", str(path)], capsys)
@@ -293,8 +339,9 @@ def test_label_map_folder_spacing_is_named(tmp_path, capsys):
 
 def test_one_voxel_kidney_is_named(tmp_path, capsys):
     import SimpleITK as sitk
+
     # A body of human size (300 x 220 mm at 2 mm voxels: a smaller one is named for that).
-    a = np.zeros((20, 120, 160), np.uint8)                    # (k, j, i)
+    a = np.zeros((20, 120, 160), np.uint8)  # (k, j, i)
     a[2:18, 5:115, 5:155] = 200
     a[10, 60, 40] = 2
     img = sitk.GetImageFromArray(a)
@@ -342,28 +389,45 @@ def test_template_info_path_is_a_folder(tmp_path, capsys):
 
 
 def test_template_build_out_in_readonly_folder(readonly_dir, capsys):
-    code, err = _run(["template", "build", "--n", "2", "--out", str(readonly_dir / "t.npz")],
-                     capsys)
+    code, err = _run(
+        ["template", "build", "--n", "2", "--out", str(readonly_dir / "t.npz")], capsys
+    )
     assert code == 2 and "--out" in err, err
 
 
-@pytest.mark.parametrize("study,args,word", [
-    ("starts", ["--starts", "0"], "--starts"),
-    ("starts", ["--starts", "-3"], "--starts"),
-    ("er-sweep", ["--ers", "0.2,3"], "--ers"),
-    ("er-sweep", ["--ers", "a,b"], "--ers"),
-    ("efficiency", ["--er", "2"], "--er"),
-    ("efficiency", ["--er", "nan"], "--er"),
-    ("er-sweep", ["--voxel", "0"], "--voxel"),
-    ("er-sweep", ["--voxel", "1"], "--voxel"),
-    ("efficiency", ["--recon-spacing", "-0.001"], "--recon-spacing"),
-    ("er-sweep", ["--workers", "-1"], "--workers"),
-    ("er-sweep", ["--seed", "-1"], "--seed"),
-    ("er-sweep", ["--set", "{controller: {desired_force: 25}}"], "controller.desired_force"),
-    ("er-sweep", ["--scenario", "nope"], "'nope'"),
-], ids=["starts_0", "starts_negative", "ers_above_1", "ers_not_numbers", "er_2", "er_nan",
-        "voxel_0", "voxel_1_m", "recon_negative", "workers_negative", "seed_negative",
-        "force_above_ceiling", "unknown_scenario"])
+@pytest.mark.parametrize(
+    "study,args,word",
+    [
+        ("starts", ["--starts", "0"], "--starts"),
+        ("starts", ["--starts", "-3"], "--starts"),
+        ("er-sweep", ["--ers", "0.2,3"], "--ers"),
+        ("er-sweep", ["--ers", "a,b"], "--ers"),
+        ("efficiency", ["--er", "2"], "--er"),
+        ("efficiency", ["--er", "nan"], "--er"),
+        ("er-sweep", ["--voxel", "0"], "--voxel"),
+        ("er-sweep", ["--voxel", "1"], "--voxel"),
+        ("efficiency", ["--recon-spacing", "-0.001"], "--recon-spacing"),
+        ("er-sweep", ["--workers", "-1"], "--workers"),
+        ("er-sweep", ["--seed", "-1"], "--seed"),
+        ("er-sweep", ["--set", "{controller: {desired_force: 25}}"], "controller.desired_force"),
+        ("er-sweep", ["--scenario", "nope"], "'nope'"),
+    ],
+    ids=[
+        "starts_0",
+        "starts_negative",
+        "ers_above_1",
+        "ers_not_numbers",
+        "er_2",
+        "er_nan",
+        "voxel_0",
+        "voxel_1_m",
+        "recon_negative",
+        "workers_negative",
+        "seed_negative",
+        "force_above_ceiling",
+        "unknown_scenario",
+    ],
+)
 def test_study_bad_arguments_leave_no_folder(tmp_path, capsys, study, args, word):
     out = tmp_path / "study"
     code, err = _run(["study", study, "--patients", "test:0", "--out", str(out), *args], capsys)
@@ -371,24 +435,30 @@ def test_study_bad_arguments_leave_no_folder(tmp_path, capsys, study, args, word
     assert not out.exists()
 
 
-@pytest.mark.parametrize("command", [["study", "er-sweep", "--patients", "test:0"],
-                                     ["campaign", "--runs", "1"]], ids=["study", "campaign"])
+@pytest.mark.parametrize(
+    "command",
+    [["study", "er-sweep", "--patients", "test:0"], ["campaign", "--runs", "1"]],
+    ids=["study", "campaign"],
+)
 def test_unreachable_scheduler_fails_fast(tmp_path, capsys, command):
     import socket
-    with socket.socket() as s:            # a port with nobody listening
+
+    with socket.socket() as s:  # a port with nobody listening
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     out = tmp_path / "o"
     start = time.perf_counter()
-    code, err = _run([*command, "--out", str(out), "--scheduler", f"tcp://127.0.0.1:{port}"],
-                     capsys)
+    code, err = _run(
+        [*command, "--out", str(out), "--scheduler", f"tcp://127.0.0.1:{port}"], capsys
+    )
     assert time.perf_counter() - start < 10.0
     assert code == 2 and "--scheduler" in err and not out.exists(), err
 
 
 def test_malformed_scheduler_address(tmp_path, capsys):
-    code, err = _run(["study", "er-sweep", "--out", str(tmp_path / "o"), "--scheduler",
-                      "tcp://nohost"], capsys)
+    code, err = _run(
+        ["study", "er-sweep", "--out", str(tmp_path / "o"), "--scheduler", "tcp://nohost"], capsys
+    )
     assert code == 2 and "--scheduler" in err and "tcp://HOST:PORT" in err, err
 
 
@@ -451,9 +521,9 @@ def test_os_error_inside_a_command_is_one_line(tmp_path, capsys, monkeypatch):
 
     def boom(*a, **k):
         raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "t.npz"))
+
     monkeypatch.setattr(tcli, "subjects_from_cohort", boom)
-    code, err = _run(["template", "build", "--n", "2", "--out", str(tmp_path / "t.npz")],
-                     capsys)
+    code, err = _run(["template", "build", "--n", "2", "--out", str(tmp_path / "t.npz")], capsys)
     assert code == 2 and "--out" in err and "no space left" in err, err
     assert err.count("\n") == 1 and "Traceback" not in err
 
@@ -472,7 +542,18 @@ def test_scan_patient_out_of_reach_is_one_line(tmp_path, capsys):
     """A bed inside the 1.5 m rule but out of the FR3's reach: the start planner's reason,
     naming --patient and patient.X_BPt, before any simulation."""
     out = tmp_path / "scan"
-    code, err = _run(["scan", "--patient", "test:0", "--out", str(out), "--no-record", "--set",
-                      "{patient: {X_BPt: {translation: [1.4, 0.0, 0.0]}}}"], capsys)
+    code, err = _run(
+        [
+            "scan",
+            "--patient",
+            "test:0",
+            "--out",
+            str(out),
+            "--no-record",
+            "--set",
+            "{patient: {X_BPt: {translation: [1.4, 0.0, 0.0]}}}",
+        ],
+        capsys,
+    )
     assert code == 2 and "--patient" in err and "patient.X_BPt" in err and "reach" in err, err
     assert not out.exists()

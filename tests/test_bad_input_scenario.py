@@ -24,19 +24,34 @@ FIELD_CASES = [
     ("string_for_number", "s: {contact: {time_step: fast}}", ["contact.time_step", "number"]),
     ("negative_time_step", "s: {contact: {time_step: -0.001}}", ["contact.time_step", "> 0"]),
     ("zero_time_step", "s: {contact: {time_step: 0}}", ["contact.time_step"]),
-    ("nan_modulus", "s: {contact: {hydroelastic_modulus: .nan}}",
-     ["contact.hydroelastic_modulus", "finite"]),
-    ("inf_modulus", "s: {contact: {hydroelastic_modulus: .inf}}",
-     ["contact.hydroelastic_modulus", "finite"]),
+    (
+        "nan_modulus",
+        "s: {contact: {hydroelastic_modulus: .nan}}",
+        ["contact.hydroelastic_modulus", "finite"],
+    ),
+    (
+        "inf_modulus",
+        "s: {contact: {hydroelastic_modulus: .inf}}",
+        ["contact.hydroelastic_modulus", "finite"],
+    ),
     ("bad_choice", "s: {contact: {model: jelly}}", ["contact.model", "jelly"]),
     ("bad_side", "s: {patient: {side: middle}}", ["patient.side", "middle"]),
     ("bad_posture", "s: {patient: {posture: standing}}", ["patient.posture"]),
-    ("short_joint_list", "s: {robot: {initial_joint_positions: [0, 0, 0, -2, 0, 2]}}",
-     ["robot.initial_joint_positions", "7"]),
-    ("joint_string", "s: {robot: {initial_joint_positions: [0, 0, 0, x, 0, 2, 0]}}",
-     ["robot.initial_joint_positions[3]"]),
-    ("joint_out_of_limits", "s: {robot: {initial_joint_positions: [0, 0, 0, 0.5, 0, 2, 0]}}",
-     ["robot.initial_joint_positions[3]", "limits"]),
+    (
+        "short_joint_list",
+        "s: {robot: {initial_joint_positions: [0, 0, 0, -2, 0, 2]}}",
+        ["robot.initial_joint_positions", "7"],
+    ),
+    (
+        "joint_string",
+        "s: {robot: {initial_joint_positions: [0, 0, 0, x, 0, 2, 0]}}",
+        ["robot.initial_joint_positions[3]"],
+    ),
+    (
+        "joint_out_of_limits",
+        "s: {robot: {initial_joint_positions: [0, 0, 0, 0.5, 0, 2, 0]}}",
+        ["robot.initial_joint_positions[3]", "limits"],
+    ),
     ("bool_for_number", "s: {safety: {force_ceiling: true}}", ["safety.force_ceiling"]),
     ("zero_force_ceiling", "s: {safety: {force_ceiling: 0}}", ["safety.force_ceiling"]),
     ("number_for_bool", "s: {hardware: 1}", ["hardware", "true or false"]),
@@ -44,35 +59,63 @@ FIELD_CASES = [
     ("list_for_section", "s: {contact: [1, 2]}", ["contact"]),
     ("float_for_int", "s: {random_seed: 1.5}", ["random_seed", "integer"]),
     ("negative_seed", "s: {random_seed: -1}", ["random_seed"]),
-    ("bad_translation", "s: {patient: {X_BPt: {translation: [0.5, 0]}}}",
-     ["patient.X_BPt.translation"]),
-    ("nan_translation", "s: {probe: {X_FP: {translation: [0, 0, .nan]}}}",
-     ["probe.X_FP.translation"]),
+    (
+        "bad_translation",
+        "s: {patient: {X_BPt: {translation: [0.5, 0]}}}",
+        ["patient.X_BPt.translation"],
+    ),
+    (
+        "nan_translation",
+        "s: {probe: {X_FP: {translation: [0, 0, .nan]}}}",
+        ["probe.X_FP.translation"],
+    ),
     ("bad_rotation", "s: {probe: {X_FP: {rotation: 45}}}", ["probe.X_FP.rotation"]),
-    ("bad_rpy_length", "s: {probe: {X_FP: {rotation: !Rpy {deg: [0, 0]}}}}",
-     ["probe.X_FP.rotation.deg"]),
+    (
+        "bad_rpy_length",
+        "s: {probe: {X_FP: {rotation: !Rpy {deg: [0, 0]}}}}",
+        ["probe.X_FP.rotation.deg"],
+    ),
     ("unknown_transform_key", "s: {probe: {X_FP: {scale: 2}}}", ["probe.X_FP.scale"]),
     ("negative_probe_mass", "s: {probe: {mass: -0.5}}", ["probe.mass"]),
-    ("negative_inertia", "s: {probe: {inertia_diagonal: [0.001, -0.001, 0.001]}}",
-     ["probe.inertia_diagonal[1]"]),
+    (
+        "negative_inertia",
+        "s: {probe: {inertia_diagonal: [0.001, -0.001, 0.001]}}",
+        ["probe.inertia_diagonal[1]"],
+    ),
     ("bad_segmenter_type", "s: {imaging: {segmenter: 3}}", ["imaging.segmenter"]),
     ("fault_kind", "s: {faults: {sensor: [{kind: gremlins}]}}", ["faults.sensor[0].kind"]),
     ("fault_not_list", "s: {faults: {sensor: {kind: force_spike}}}", ["faults.sensor"]),
-    ("fault_unknown_key", "s: {faults: {sensor: [{kind: force_spike, strength: 3}]}}",
-     ["faults.sensor[0].strength"]),
-    ("fault_negative_start", "s: {faults: {sensor: [{kind: force_bias, start: -1}]}}",
-     ["faults.sensor[0].start"]),
-    ("breathing_amplitude",
-     "s: {patient: {motion: {breathing: {enabled: true, amplitude: 0.2}}}}",
-     ["patient.motion.breathing.amplitude"]),
-    ("breathing_rate", "s: {patient: {motion: {breathing: {rate_per_min: 90}}}}",
-     ["patient.motion.breathing.rate_per_min"]),
-    ("shift_too_big", "s: {patient: {motion: {shift: {offset: [0, 0.05, 0]}}}}",
-     ["patient.motion.shift.offset[1]"]),
-    ("shift_wrong_length", "s: {patient: {motion: {shift: {offset: [0, 0.01]}}}}",
-     ["patient.motion.shift.offset"]),
-    ("old_breathing_place", "s: {faults: {breathing: {enabled: true}}}",
-     ["faults.breathing"]),
+    (
+        "fault_unknown_key",
+        "s: {faults: {sensor: [{kind: force_spike, strength: 3}]}}",
+        ["faults.sensor[0].strength"],
+    ),
+    (
+        "fault_negative_start",
+        "s: {faults: {sensor: [{kind: force_bias, start: -1}]}}",
+        ["faults.sensor[0].start"],
+    ),
+    (
+        "breathing_amplitude",
+        "s: {patient: {motion: {breathing: {enabled: true, amplitude: 0.2}}}}",
+        ["patient.motion.breathing.amplitude"],
+    ),
+    (
+        "breathing_rate",
+        "s: {patient: {motion: {breathing: {rate_per_min: 90}}}}",
+        ["patient.motion.breathing.rate_per_min"],
+    ),
+    (
+        "shift_too_big",
+        "s: {patient: {motion: {shift: {offset: [0, 0.05, 0]}}}}",
+        ["patient.motion.shift.offset[1]"],
+    ),
+    (
+        "shift_wrong_length",
+        "s: {patient: {motion: {shift: {offset: [0, 0.01]}}}}",
+        ["patient.motion.shift.offset"],
+    ),
+    ("old_breathing_place", "s: {faults: {breathing: {enabled: true}}}", ["faults.breathing"]),
     ("random_seed_negative", "s: {random_seed: -1}", ["random_seed"]),
     ("workspace_length", "s: {safety: {workspace_min: [0, 0]}}", ["safety.workspace_min"]),
     # Physical ranges (each field's metadata, config_schema.physical), issue 17.
@@ -84,53 +127,104 @@ FIELD_CASES = [
     ("frame_rate_tiny", "s: {imaging: {frame_rate_hz: 0.01}}", ["imaging.frame_rate_hz"]),
     ("depth_2_m", "s: {imaging: {depth: 2.0}}", ["imaging.depth", "0.03-0.4 m"]),
     ("depth_1_mm", "s: {imaging: {depth: 0.001}}", ["imaging.depth"]),
-    ("preset_1_mm", "s: {imaging: {depth_presets: [0.001, 0.15]}}",
-     ["imaging.depth_presets[0]"]),
+    ("preset_1_mm", "s: {imaging: {depth_presets: [0.001, 0.15]}}", ["imaging.depth_presets[0]"]),
     ("probe_radius_1_m", "s: {imaging: {probe_radius: 1.0}}", ["imaging.probe_radius"]),
-    ("inertia_1000", "s: {probe: {inertia_diagonal: [1000, 0.001, 0.001]}}",
-     ["probe.inertia_diagonal[0]"]),
+    (
+        "inertia_1000",
+        "s: {probe: {inertia_diagonal: [1000, 0.001, 0.001]}}",
+        ["probe.inertia_diagonal[0]"],
+    ),
     ("com_2_m", "s: {probe: {p_FCm: [0, 0, 2.0]}}", ["probe.p_FCm[2]"]),
     ("modulus_1_pa", "s: {contact: {hydroelastic_modulus: 1}}", ["contact.hydroelastic_modulus"]),
     ("friction_5", "s: {contact: {friction: 5}}", ["contact.friction"]),
     ("controller_rate_1_hz", "s: {controller: {rate_hz: 1}}", ["controller.rate_hz"]),
     ("force_ceiling_500", "s: {safety: {force_ceiling: 500}}", ["safety.force_ceiling"]),
-    ("command_rate_5_hz", "s: {hardware_interface: {command_rate_hz: 5}}",
-     ["hardware_interface.command_rate_hz"]),
-    ("frequency_100_mhz", "s: {imaging: {center_frequency_mhz: 100}}",
-     ["imaging.center_frequency_mhz"]),
+    (
+        "command_rate_5_hz",
+        "s: {hardware_interface: {command_rate_hz: 5}}",
+        ["hardware_interface.command_rate_hz"],
+    ),
+    (
+        "frequency_100_mhz",
+        "s: {imaging: {center_frequency_mhz: 100}}",
+        ["imaging.center_frequency_mhz"],
+    ),
     # Cross-field rules (config_schema.CROSS_FIELD_RULES).
-    ("force_above_ceiling", "s: {controller: {desired_force: 25}}",
-     ["controller.desired_force", "safety.force_ceiling = 20"]),
-    ("force_equal_ceiling", "s: {controller: {desired_force: 12}, safety: {force_ceiling: 12}}",
-     ["controller.desired_force", "below"]),
-    ("time_step_slower_than_controller",
-     "s: {contact: {time_step: 0.008}, controller: {rate_hz: 200}}",
-     ["contact.time_step", "controller.rate_hz = 200"]),
-    ("frames_faster_than_plant", "s: {contact: {time_step: 0.01}, imaging: {frame_rate_hz: 150}}",
-     ["imaging.frame_rate_hz", "contact.time_step"]),
-    ("tip_speed_above_clamp", "s: {controller: {max_tip_speed: 0.1}}",
-     ["controller.max_tip_speed", "safety.command_tip_speed"]),
-    ("clamp_above_stop", "s: {safety: {command_tip_speed: 0.2}}",
-     ["safety.command_tip_speed", "safety.max_tip_speed"]),
-    ("workspace_inverted", "s: {safety: {workspace_min: [0.9, -0.5, -0.05]}}",
-     ["safety.workspace_min", "below its maximum"]),
-    ("command_rate_below_controller",
-     "s: {hardware_interface: {command_rate_hz: 50}}",
-     ["hardware_interface.command_rate_hz", "controller.rate_hz"]),
-    ("left_kidney_against_the_bed",
-     "s: {patient: {side: left, posture: left_lateral_decubitus}}",
-     ["patient.side", "left kidney against the bed", "patient.posture = 'left_lateral_decubitus'"]),
-    ("patient_100_m_away", "s: {patient: {X_BPt: {translation: [100, 0, 0]}}}",
-     ["patient.X_BPt.translation", "1.5 m"]),
-    ("patient_below_floor", "s: {patient: {X_BPt: {translation: [0.5, 0, -3]}}}",
-     ["patient.X_BPt.translation"]),
+    (
+        "force_above_ceiling",
+        "s: {controller: {desired_force: 25}}",
+        ["controller.desired_force", "safety.force_ceiling = 20"],
+    ),
+    (
+        "force_equal_ceiling",
+        "s: {controller: {desired_force: 12}, safety: {force_ceiling: 12}}",
+        ["controller.desired_force", "below"],
+    ),
+    (
+        "time_step_slower_than_controller",
+        "s: {contact: {time_step: 0.008}, controller: {rate_hz: 200}}",
+        ["contact.time_step", "controller.rate_hz = 200"],
+    ),
+    (
+        "frames_faster_than_plant",
+        "s: {contact: {time_step: 0.01}, imaging: {frame_rate_hz: 150}}",
+        ["imaging.frame_rate_hz", "contact.time_step"],
+    ),
+    (
+        "tip_speed_above_clamp",
+        "s: {controller: {max_tip_speed: 0.1}}",
+        ["controller.max_tip_speed", "safety.command_tip_speed"],
+    ),
+    (
+        "clamp_above_stop",
+        "s: {safety: {command_tip_speed: 0.2}}",
+        ["safety.command_tip_speed", "safety.max_tip_speed"],
+    ),
+    (
+        "workspace_inverted",
+        "s: {safety: {workspace_min: [0.9, -0.5, -0.05]}}",
+        ["safety.workspace_min", "below its maximum"],
+    ),
+    (
+        "command_rate_below_controller",
+        "s: {hardware_interface: {command_rate_hz: 50}}",
+        ["hardware_interface.command_rate_hz", "controller.rate_hz"],
+    ),
+    (
+        "left_kidney_against_the_bed",
+        "s: {patient: {side: left, posture: left_lateral_decubitus}}",
+        [
+            "patient.side",
+            "left kidney against the bed",
+            "patient.posture = 'left_lateral_decubitus'",
+        ],
+    ),
+    (
+        "patient_100_m_away",
+        "s: {patient: {X_BPt: {translation: [100, 0, 0]}}}",
+        ["patient.X_BPt.translation", "1.5 m"],
+    ),
+    (
+        "patient_below_floor",
+        "s: {patient: {X_BPt: {translation: [0.5, 0, -3]}}}",
+        ["patient.X_BPt.translation"],
+    ),
     # Duplicate keys: YAML loaders keep the last one silently.
-    ("duplicate_top_key", "s: {contact: {model: point}, contact: {model: hydroelastic}}",
-     ["'contact'", "twice"]),
-    ("duplicate_nested_key", "s:\n  probe:\n    mass: 0.5\n    mass: 0.6\n",
-     ["probe.mass", "twice", "lines 3 and 4"]),
-    ("duplicate_in_list_item", "s: {faults: {sensor: [{kind: force_spike, kind: force_bias}]}}",
-     ["faults.sensor[0].kind", "twice"]),
+    (
+        "duplicate_top_key",
+        "s: {contact: {model: point}, contact: {model: hydroelastic}}",
+        ["'contact'", "twice"],
+    ),
+    (
+        "duplicate_nested_key",
+        "s:\n  probe:\n    mass: 0.5\n    mass: 0.6\n",
+        ["probe.mass", "twice", "lines 3 and 4"],
+    ),
+    (
+        "duplicate_in_list_item",
+        "s: {faults: {sensor: [{kind: force_spike, kind: force_bias}]}}",
+        ["faults.sensor[0].kind", "twice"],
+    ),
 ]
 
 
@@ -159,8 +253,9 @@ FILE_CASES = [
 @pytest.mark.parametrize("case_id,text,words", FILE_CASES, ids=[c[0] for c in FILE_CASES])
 def test_bad_scenario_file_is_named(tmp_path, case_id, text, words):
     path = tmp_path / "bad.scenarios.yaml"
-    path.write_text(text, errors="surrogateescape") if "\x00" not in text else \
-        path.write_bytes(text.encode("latin-1"))
+    path.write_text(text, errors="surrogateescape") if "\x00" not in text else path.write_bytes(
+        text.encode("latin-1")
+    )
     with pytest.raises(ScenarioError) as e:
         LoadScenario(filename=path, scenario_name="s")
     for word in words:
@@ -191,9 +286,12 @@ def test_bad_overrides_name_the_field():
 # Numeric leaf fields of the scenario with their constraint; any value outside it must be
 # rejected with the field named, any value inside accepted.
 NUMERIC_FIELDS = [
-    ("contact", "time_step", "range"), ("contact", "hydroelastic_modulus", "range"),
-    ("contact", "friction", "range"), ("safety", "force_ceiling", "range"),
-    ("safety", "image_timeout", "positive"), ("probe", "mass", "range"),
+    ("contact", "time_step", "range"),
+    ("contact", "hydroelastic_modulus", "range"),
+    ("contact", "friction", "range"),
+    ("safety", "force_ceiling", "range"),
+    ("safety", "image_timeout", "positive"),
+    ("probe", "mass", "range"),
     ("faults", "seed", "nonneg_int"),
 ]
 
@@ -203,22 +301,31 @@ def _in_range(section, name, value) -> bool:
     physical range of its field (config_schema.physical_ranges) and the cross-field rules it
     enters."""
     from drake_rus.config_schema import physical_ranges
+
     lo, hi, _, _ = physical_ranges(Scenario)[f"{section}.{name}"]
     ok = lo <= value <= hi
-    if (section, name) == ("contact", "time_step"):      # <= 1 / controller.rate_hz, and
-        ok = ok and value <= 0.01 and 20.0 <= 1.0 / value + 1e-9   # one frame per step
-    if (section, name) == ("safety", "force_ceiling"):   # above the desired 9 N
+    if (section, name) == ("contact", "time_step"):  # <= 1 / controller.rate_hz, and
+        ok = ok and value <= 0.01 and 20.0 <= 1.0 / value + 1e-9  # one frame per step
+    if (section, name) == ("safety", "force_ceiling"):  # above the desired 9 N
         ok = ok and value > 9.0
     return ok
 
+
 _bad_scalar = st.one_of(
-    st.text(st.characters(whitelist_categories=("L", "N", "P", "Zs")), min_size=1, max_size=8)
-    .filter(lambda s: s.strip() and s.strip()[0].isalpha()),
-    st.just(float("nan")), st.just(float("inf")), st.just(float("-inf")),
-    st.lists(st.integers(), max_size=3), st.booleans())
+    st.text(
+        st.characters(whitelist_categories=("L", "N", "P", "Zs")), min_size=1, max_size=8
+    ).filter(lambda s: s.strip() and s.strip()[0].isalpha()),
+    st.just(float("nan")),
+    st.just(float("inf")),
+    st.just(float("-inf")),
+    st.lists(st.integers(), max_size=3),
+    st.booleans(),
+)
 
 
-@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
 @given(field=st.sampled_from(NUMERIC_FIELDS), value=_bad_scalar)
 def test_property_bad_numeric_value_names_field(tmp_path, field, value):
     section, name, _ = field
@@ -235,15 +342,22 @@ def test_property_bad_numeric_value_names_field(tmp_path, field, value):
     assert f"{section}.{name}" in str(e.value), str(e.value)
 
 
-@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(field=st.sampled_from(NUMERIC_FIELDS),
-       value=st.floats(min_value=-1e6, max_value=1e6, allow_nan=False))
+@settings(
+    max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    field=st.sampled_from(NUMERIC_FIELDS),
+    value=st.floats(min_value=-1e6, max_value=1e6, allow_nan=False),
+)
 def test_property_numbers_accepted_iff_in_range(tmp_path, field, value):
     section, name, rule = field
     if rule == "nonneg_int":
         value = int(value)
-    ok = {"positive": value > 0, "nonneg_int": value >= 0,
-          "range": rule == "range" and _in_range(section, name, value)}[rule]
+    ok = {
+        "positive": value > 0,
+        "nonneg_int": value >= 0,
+        "range": rule == "range" and _in_range(section, name, value),
+    }[rule]
     if ok:
         scenario, _ = _load(tmp_path, f"s: {{{section}: {{{name}: {value!r}}}}}")
         assert getattr(getattr(scenario, section), name) == pytest.approx(value)
@@ -255,12 +369,28 @@ def test_property_numbers_accepted_iff_in_range(tmp_path, field, value):
 _identifier = st.from_regex(r"[a-z][a-z_]{0,12}", fullmatch=True)
 
 
-@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(section=st.sampled_from(["robot", "probe", "patient", "contact", "imaging",
-                                "localization", "controller", "safety", "faults"]),
-       key=_identifier)
+@settings(
+    max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    section=st.sampled_from(
+        [
+            "robot",
+            "probe",
+            "patient",
+            "contact",
+            "imaging",
+            "localization",
+            "controller",
+            "safety",
+            "faults",
+        ]
+    ),
+    key=_identifier,
+)
 def test_property_unknown_keys_are_named(tmp_path, section, key):
     import dataclasses
+
     known = {f.name for f in dataclasses.fields(getattr(Scenario(), section))}
     if key in known:
         return
@@ -269,15 +399,21 @@ def test_property_unknown_keys_are_named(tmp_path, section, key):
     assert f"{section}.{key}" in str(e.value)
 
 
-@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(st.recursive(st.one_of(st.none(), st.booleans(), st.integers(), st.text(max_size=5)),
-                    lambda c: st.one_of(st.lists(c, max_size=3),
-                                        st.dictionaries(_identifier, c, max_size=3)),
-                    max_leaves=8))
+@settings(
+    max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    st.recursive(
+        st.one_of(st.none(), st.booleans(), st.integers(), st.text(max_size=5)),
+        lambda c: st.one_of(st.lists(c, max_size=3), st.dictionaries(_identifier, c, max_size=3)),
+        max_leaves=8,
+    )
+)
 def test_property_adversarial_structures_never_crash(tmp_path, node):
     """Arbitrary nested YAML as a whole scenario: a valid Scenario or a ScenarioError; never
     another exception."""
     import yaml
+
     path = tmp_path / "adv.scenarios.yaml"
     path.write_text(yaml.safe_dump({"s": node}))
     try:
@@ -289,8 +425,9 @@ def test_property_adversarial_structures_never_crash(tmp_path, node):
 def test_scientific_notation_without_dot_is_a_number(tmp_path):
     """1e-3 is a number in YAML 1.2 and for Drake's loader (it used to be rejected as the
     string '1e-3'); a negative one is still checked against the field's bound."""
-    scenario, _ = _load(tmp_path, "s: {contact: {time_step: 1e-3}, "
-                                  "probe: {inertia_diagonal: [1e-3, 2e-3, 1e-4]}}")
+    scenario, _ = _load(
+        tmp_path, "s: {contact: {time_step: 1e-3}, probe: {inertia_diagonal: [1e-3, 2e-3, 1e-4]}}"
+    )
     assert scenario.contact.time_step == 0.001
     assert scenario.probe.inertia_diagonal == [0.001, 0.002, 0.0001]
     with pytest.raises(ScenarioError, match=r"contact\.time_step.*> 0"):
@@ -305,25 +442,30 @@ def test_duplicate_key_in_overrides_is_named():
 
 def test_merge_keys_may_be_overridden(tmp_path):
     """`<<: *anchor` then the same key is YAML's override, not a duplicate."""
-    scenario, _ = _load(tmp_path, "a: &a\n  contact: &c\n    model: point\n"
-                                  "s:\n  <<: *a\n  contact:\n    <<: *c\n    model: hydroelastic\n")
+    scenario, _ = _load(
+        tmp_path,
+        "a: &a\n  contact: &c\n    model: point\n"
+        "s:\n  <<: *a\n  contact:\n    <<: *c\n    model: hydroelastic\n",
+    )
     assert scenario.contact.model == "hydroelastic"
 
 
 def test_shipped_scenarios_pass_every_rule():
     from drake_rus.scenario import ListScenarios
+
     for name in ListScenarios():
         LoadScenario(scenario_name=name)
 
 
 def test_every_physical_range_names_a_real_field_and_holds_by_default():
     from drake_rus.config_schema import CROSS_FIELD_RULES, _get, physical_ranges
+
     s = Scenario()
     ranges = physical_ranges(Scenario)
     assert len(ranges) >= 21
     for path, (lo, hi, unit, why) in ranges.items():
         value = _get(s, path)
-        for v in (value if isinstance(value, list) else [value]):
+        for v in value if isinstance(value, list) else [value]:
             assert lo <= v <= hi, (path, v)
         assert lo < hi and why
     for fields, holds, what in CROSS_FIELD_RULES:

@@ -12,9 +12,9 @@ def _run(argv, capsys):
 
 
 ERS_CASES = [
-    ("empty", ""),                  # was: the default grid, "critical ER 0%"
+    ("empty", ""),  # was: the default grid, "critical ER 0%"
     ("only_commas", ",,"),
-    ("no_reference", "0.5"),        # was: 0.5 made the reference, "critical ER 50%"
+    ("no_reference", "0.5"),  # was: 0.5 made the reference, "critical ER 50%"
     ("no_reference_grid", "0,0.3,0.6,0.9"),
     ("nan", "nan,1"),
     ("inf", "0.5,inf,1"),
@@ -28,37 +28,52 @@ ERS_CASES = [
 @pytest.mark.parametrize("case,ers", ERS_CASES, ids=[c[0] for c in ERS_CASES])
 def test_ers_must_be_a_grid_with_the_reference(tmp_path, capsys, study, case, ers):
     out = tmp_path / "study"
-    code, err = _run(["study", study, "--patients", "test:0", f"--ers={ers}", "--out", str(out),
-                      "--workers", "0", "--no-progress"], capsys)
+    code, err = _run(
+        [
+            "study",
+            study,
+            "--patients",
+            "test:0",
+            f"--ers={ers}",
+            "--out",
+            str(out),
+            "--workers",
+            "0",
+            "--no-progress",
+        ],
+        capsys,
+    )
     assert code == 2, err
     assert err.startswith("drake-rus study: error: --ers: expected a non-empty comma list")
     assert "includes the reference 1" in err and err.count("\n") == 1, err
     assert not out.exists()
 
 
-MARGIN_CASES = [("zero_mm", ["--margin-mm", "0"], "--margin-mm"),
-                ("negative_mm", ["--margin-mm", "-5"], "--margin-mm"),
-                ("nan_deg", ["--margin-deg", "nan"], "--margin-deg"),
-                ("inf_deg", ["--margin-deg", "inf"], "--margin-deg")]
+MARGIN_CASES = [
+    ("zero_mm", ["--margin-mm", "0"], "--margin-mm"),
+    ("negative_mm", ["--margin-mm", "-5"], "--margin-mm"),
+    ("nan_deg", ["--margin-deg", "nan"], "--margin-deg"),
+    ("inf_deg", ["--margin-deg", "inf"], "--margin-deg"),
+]
 
 
 @pytest.mark.parametrize("case,args,flag", MARGIN_CASES, ids=[c[0] for c in MARGIN_CASES])
 def test_equivalence_margin_must_be_positive(tmp_path, capsys, case, args, flag):
     out = tmp_path / "study"
-    code, err = _run(["study", "er-sweep", "--patients", "test:0", "--out", str(out), *args],
-                     capsys)
+    code, err = _run(
+        ["study", "er-sweep", "--patients", "test:0", "--out", str(out), *args], capsys
+    )
     assert code == 2 and f"error: {flag}: expected a positive margin" in err, err
     assert err.count("\n") == 1 and not out.exists()
 
 
 BREATHING_CASES = [
-    ("rate_zero", ["--rate", "0"], "--rate"),   # was: failed runs a --rate 15 rerun reused
+    ("rate_zero", ["--rate", "0"], "--rate"),  # was: failed runs a --rate 15 rerun reused
     ("rate_high", ["--rate", "100"], "--rate"),
     ("rate_nan", ["--rate", "nan"], "--rate"),
     ("amplitude_zero", ["--amplitude", "0"], "--amplitude"),
     ("hold_period_zero", ["--hold-period", "0"], "--hold-period"),
-    ("hold_longer_than_period", ["--hold-period", "8", "--hold-duration", "9"],
-     "--hold-duration"),
+    ("hold_longer_than_period", ["--hold-period", "8", "--hold-duration", "9"], "--hold-duration"),
     ("hold_zero", ["--hold-duration", "0"], "--hold-duration"),
 ]
 
@@ -66,8 +81,9 @@ BREATHING_CASES = [
 @pytest.mark.parametrize("case,args,flag", BREATHING_CASES, ids=[c[0] for c in BREATHING_CASES])
 def test_breathing_parameters_must_exist(tmp_path, capsys, case, args, flag):
     out = tmp_path / "breathing"
-    code, err = _run(["breathing", "--patients", "test:0", "--out", str(out), "--workers", "0",
-                      *args], capsys)
+    code, err = _run(
+        ["breathing", "--patients", "test:0", "--out", str(out), "--workers", "0", *args], capsys
+    )
     assert code == 2, err
     assert err.startswith(f"drake-rus breathing: error: {flag}: expected"), err
     assert err.count("\n") == 1 and not out.exists()
@@ -75,6 +91,7 @@ def test_breathing_parameters_must_exist(tmp_path, capsys, case, args, flag):
 
 def test_negative_workers_named(tmp_path, capsys):
     out = tmp_path / "study"
-    code, err = _run(["study", "er-sweep", "--patients", "test:0", "--workers", "-3",
-                      "--out", str(out)], capsys)
+    code, err = _run(
+        ["study", "er-sweep", "--patients", "test:0", "--workers", "-3", "--out", str(out)], capsys
+    )
     assert code == 2 and "--workers" in err and not out.exists()

@@ -19,8 +19,11 @@ def _shipped():
 
 def _few(a):
     a = dict(a)
-    a["points"], a["normals"], a["modes"] = (a["points"][:50], a["normals"][:50],
-                                             a["modes"][:, :50])
+    a["points"], a["normals"], a["modes"] = (
+        a["points"][:50],
+        a["normals"][:50],
+        a["modes"][:, :50],
+    )
     return a
 
 
@@ -29,6 +32,7 @@ def _set(field, fn):
         a = dict(a)
         a[field] = fn(np.array(a[field]))
         return a
+
     return change
 
 
@@ -37,6 +41,7 @@ def _rows(field, rows, value):
         x = x.astype(float)
         x[rows] = value
         return x
+
     return _set(field, fn)
 
 
@@ -45,15 +50,22 @@ def _scale_rows(field, rows, factor):
         x = x.astype(float)
         x[rows] = x[rows] * factor
         return x
+
     return _set(field, fn)
 
 
 # (id, change of the shipped arrays, words the message must contain)
 CASES = [
-    ("zero_normals", _set("normals", np.zeros_like),
-     ["'normals'", "2500 of 2500 are not unit vectors", "|n| = 0"]),
-    ("some_long_normals", _scale_rows("normals", slice(0, 12), 2.0),
-     ["'normals'", "12 of 2500 are not unit vectors", "|n| = 2"]),
+    (
+        "zero_normals",
+        _set("normals", np.zeros_like),
+        ["'normals'", "2500 of 2500 are not unit vectors", "|n| = 0"],
+    ),
+    (
+        "some_long_normals",
+        _scale_rows("normals", slice(0, 12), 2.0),
+        ["'normals'", "12 of 2500 are not unit vectors", "|n| = 2"],
+    ),
     ("nan_normals", _rows("normals", 5, np.nan), ["'normals'", "1 of 2500 rows", "NaN"]),
     ("inf_points", _rows("points", [3, 7], np.inf), ["'points'", "2 of 2500 rows", "inf"]),
     ("points_in_mm", _set("points", lambda p: p * 1000.0), ["'points'", "metres"]),
@@ -69,8 +81,11 @@ CASES = [
     ("variance_count", _set("variances", lambda v: v[:4]), ["'variances'", "(6,)"]),
     ("modes_shape", _set("modes", lambda m: m[:, :2000]), ["'modes'", "(k, M, 3)"]),
     ("modes_not_unit", _scale_rows("modes", 1, 3.0), ["'modes'", "mode 1: 3"]),
-    ("nan_modes", _set("modes", lambda m: np.where(np.arange(m.size).reshape(m.shape) == 7,
-                                                   np.nan, m)), ["'modes'", "NaN"]),
+    (
+        "nan_modes",
+        _set("modes", lambda m: np.where(np.arange(m.size).reshape(m.shape) == 7, np.nan, m)),
+        ["'modes'", "NaN"],
+    ),
 ]
 
 
@@ -89,12 +104,22 @@ def _write(tmp_path, arrays, name="bad_template.npz"):
 def test_bad_template_refused_by_the_scan(tmp_path, capsys, shipped, case, change, words):
     path = _write(tmp_path, change(shipped))
     out = tmp_path / "scan"
-    code = main(["scan", "--patient", "test:0", "--out", str(out), "--no-record",
-                 "--set", f"{{localization: {{template: '{path}'}}}}"])
+    code = main(
+        [
+            "scan",
+            "--patient",
+            "test:0",
+            "--out",
+            str(out),
+            "--no-record",
+            "--set",
+            f"{{localization: {{template: '{path}'}}}}",
+        ]
+    )
     err = capsys.readouterr().err
     assert code == 2, err
     lines = err.strip().splitlines()
-    assert len(lines) == 1, err                       # one line, no traceback
+    assert len(lines) == 1, err  # one line, no traceback
     assert lines[0].startswith("drake-rus scan: error:")
     for w in ["localization.template", "bad_template.npz", *words]:
         assert w in lines[0], (w, lines[0])

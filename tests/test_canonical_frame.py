@@ -6,8 +6,13 @@ import trimesh
 from pydrake.math import RigidTransform, RotationMatrix
 from scipy.spatial.transform import Rotation
 
-from drake_rus.anatomy.canonical_frame import (canonical_frame, covariance_eigen, extents_in_frame,
-                                    mesh_canonical_frame, mesh_surface_moments)
+from drake_rus.anatomy.canonical_frame import (
+    canonical_frame,
+    covariance_eigen,
+    extents_in_frame,
+    mesh_canonical_frame,
+    mesh_surface_moments,
+)
 
 
 def _ellipsoid_points(rng, n=4000, axes=(0.055, 0.029, 0.019)):
@@ -21,7 +26,7 @@ def test_covariance_matches_eq13():
     p = rng.standard_normal((500, 3)) * [3.0, 2.0, 1.0]
     c, evals, V = covariance_eigen(p)
     np.testing.assert_allclose(c, p.mean(axis=0))
-    C = np.cov(p.T)                     # 1/(M-1) normalisation, like eq. 13
+    C = np.cov(p.T)  # 1/(M-1) normalisation, like eq. 13
     np.testing.assert_allclose(V @ np.diag(evals) @ V.T, C, atol=1e-12)
     assert evals[0] >= evals[1] >= evals[2]
 
@@ -29,7 +34,7 @@ def test_covariance_matches_eq13():
 @pytest.mark.parametrize("trial", range(25))
 def test_sign_rules_under_random_rotations(trial):
     rng = np.random.default_rng(100 + trial)
-    p_K = _ellipsoid_points(rng)       # x long, y mid, z short in the true frame K
+    p_K = _ellipsoid_points(rng)  # x long, y mid, z short in the true frame K
     R = Rotation.random(random_state=trial).as_matrix()
     t = rng.uniform(-0.5, 0.5, 3)
     p_S = p_K @ R.T + t
@@ -38,8 +43,8 @@ def test_sign_rules_under_random_rotations(trial):
     y_ref = R[:, 1] + 0.6 * rng.uniform(-1, 1, 3) * 0.5
     X_SK = canonical_frame(p_S, x_ref, y_ref)
     Rk = X_SK.rotation().matrix()
-    assert Rk[:, 0] @ x_ref > 0                 # x_k = sgn(v1 . x_ref) v1
-    assert Rk[:, 1] @ y_ref > 0                 # y_k = sgn(v2 . y_ref) v2
+    assert Rk[:, 0] @ x_ref > 0  # x_k = sgn(v1 . x_ref) v1
+    assert Rk[:, 1] @ y_ref > 0  # y_k = sgn(v2 . y_ref) v2
     np.testing.assert_allclose(np.cross(Rk[:, 0], Rk[:, 1]), Rk[:, 2], atol=1e-12)
     np.testing.assert_allclose(Rk.T @ Rk, np.eye(3), atol=1e-12)
     assert np.linalg.det(Rk) == pytest.approx(1.0)
@@ -61,7 +66,9 @@ def test_flipped_references_flip_axes():
 def test_mesh_surface_moments_match_dense_sampling():
     m = trimesh.creation.icosphere(subdivisions=3)
     m.vertices *= [0.05, 0.03, 0.02]
-    m.apply_transform(RigidTransform(RotationMatrix.MakeZRotation(0.4), [0.1, -0.2, 0.3]).GetAsMatrix4())
+    m.apply_transform(
+        RigidTransform(RotationMatrix.MakeZRotation(0.4), [0.1, -0.2, 0.3]).GetAsMatrix4()
+    )
     area, c, C = mesh_surface_moments(m.vertices, m.faces)
     assert area == pytest.approx(m.area)
     pts, _ = trimesh.sample.sample_surface(m, 400000, seed=3)

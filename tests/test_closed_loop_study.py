@@ -15,12 +15,31 @@ from drake_rus.scenario import LoadScenario
 
 def test_tiny_closed_loop_paper_study(tmp_path, capsys):
     out = tmp_path / "study"
-    code = main(["study", "paper", "--patients", "test:1", "--scenario", "quick",
-                 "--ers", "0.6,1", "--starts", "1", "--mode", "closed-loop", "--workers", "0",
-                 "--no-progress", "--no-nrrd", "--out", str(out)])
+    code = main(
+        [
+            "study",
+            "paper",
+            "--patients",
+            "test:1",
+            "--scenario",
+            "quick",
+            "--ers",
+            "0.6,1",
+            "--starts",
+            "1",
+            "--mode",
+            "closed-loop",
+            "--workers",
+            "0",
+            "--no-progress",
+            "--no-nrrd",
+            "--out",
+            str(out),
+        ]
+    )
     assert code == 0, capsys.readouterr()
     runs = sorted((out / "runs").glob("*.json"))
-    assert len(runs) == 4   # ER 60% and 100%, one start, one efficiency run
+    assert len(runs) == 4  # ER 60% and 100%, one start, one efficiency run
     records = [json.loads(p.read_text()) for p in runs]
     assert {r["task"]["study"] for r in records} == {"er-sweep", "starts", "efficiency"}
     for r in records:
@@ -48,13 +67,14 @@ def test_tiny_closed_loop_paper_study(tmp_path, capsys):
     assert s["OP"]["e_trans_mm"] == eff["e_trans_mm"]
     # GT-OP and NOP pivoted at the pose the study computed from the truth, nothing else.
     quick = LoadScenario(scenario_name="quick").patient
-    kp = st.prepared_patient("test:1", quick.side, quick.posture, 0.002,
-                             quick.X_BPt.GetDeterministicValue())
+    kp = st.prepared_patient(
+        "test:1", quick.side, quick.posture, 0.002, quick.X_BPt.GetDeterministicValue()
+    )
     for k in ("GT-OP", "NOP"):
-        assert s[k]["pivot_pose"] == "given" and s[k]["e_trans_mm"] is None   # no registration
+        assert s[k]["pivot_pose"] == "given" and s[k]["e_trans_mm"] is None  # no registration
         want = supervisor.pivot_pose_as_given(*km.strategy_pivot_pose(k, kp.X_BK_true))
         assert s[k]["given_pivot_pose"] == pytest.approx(want)
-        assert s[k]["sim_s"] < s["OP"]["sim_s"]                   # no exploration
+        assert s[k]["sim_s"] < s["OP"]["sim_s"]  # no exploration
     # NOP sweeps the transverse planes: more frames and path than the long-axis pivots; SL
     # is a line (no pivot pose), the longest in frames.
     assert s["NOP"]["n"] > 1.4 * s["GT-OP"]["n"] and s["NOP"]["eps_mm"] > s["GT-OP"]["eps_mm"]
@@ -62,8 +82,14 @@ def test_tiny_closed_loop_paper_study(tmp_path, capsys):
     assert s["SL"]["n"] > 2 * s["OP"]["n"]
     # Tables, figures and report in OUT/closed-loop, each saying the mode.
     d = out / "closed-loop"
-    for name in ("fig7d_er_sweep.png", "fig9d_starts.png", "fig10_efficiency.png",
-                 "er_sweep.json", "efficiency_runs.csv", "report.md"):
+    for name in (
+        "fig7d_er_sweep.png",
+        "fig9d_starts.png",
+        "fig10_efficiency.png",
+        "er_sweep.json",
+        "efficiency_runs.csv",
+        "report.md",
+    ):
         assert (d / name).exists(), name
     report = (d / "report.md").read_text()
     assert "mode: closed loop (Drake diagram" in report
@@ -77,8 +103,22 @@ def test_tiny_closed_loop_paper_study(tmp_path, capsys):
 
 def test_closed_loop_refuses_unknown_strategies(tmp_path, capsys):
     out = tmp_path / "study"
-    code = main(["study", "efficiency", "--patients", "test:1", "--mode", "closed-loop",
-                 "--strategies", "OP,NOPE", "--workers", "0", "--out", str(out)])
+    code = main(
+        [
+            "study",
+            "efficiency",
+            "--patients",
+            "test:1",
+            "--mode",
+            "closed-loop",
+            "--strategies",
+            "OP,NOPE",
+            "--workers",
+            "0",
+            "--out",
+            str(out),
+        ]
+    )
     err = capsys.readouterr().err
     assert code == 2
     assert "--strategies: expected a comma list of OP, GT-OP, NOP, SL, OP-PE" in err

@@ -4,9 +4,9 @@ import math
 
 import numpy as np
 import pytest
+from pydrake.math import RollPitchYaw, RotationMatrix
 
 from drake_rus.control import kernels, laws
-from pydrake.math import RollPitchYaw, RotationMatrix
 
 Q0 = np.array([0.0, 0.15, 0.0, -2.0, 0.0, 2.15, 0.785])
 
@@ -139,8 +139,9 @@ def test_position_p():
 def test_assemble_twist_orders_and_saturates():
     xi = laws.assemble_twist([0.1, 0, 0], [0.01, 0, 0], [0, 0, -0.02])
     np.testing.assert_allclose(xi, [0.1, 0, 0, 0.01, 0, -0.02])
-    xi = laws.assemble_twist([3.0, 4.0, 0], [0.3, 0, 0], [0, 0, 0.4], max_tip_speed=0.05,
-                             max_angular_speed=0.5)
+    xi = laws.assemble_twist(
+        [3.0, 4.0, 0], [0.3, 0, 0], [0, 0, 0.4], max_tip_speed=0.05, max_angular_speed=0.5
+    )
     np.testing.assert_allclose(np.linalg.norm(xi[:3]), 0.5)
     np.testing.assert_allclose(np.linalg.norm(xi[3:]), 0.05)
     np.testing.assert_allclose(xi[3:] / 0.05, [0.6, 0, 0.8])  # direction kept
@@ -159,8 +160,9 @@ def test_manipulability_gradient_matches_central_difference(kin):
     for i in range(7):
         dq = np.zeros(7)
         dq[i] = 1e-5
-        c = (laws.manipulability(kin.jacobian(Q0 + dq))
-             - laws.manipulability(kin.jacobian(Q0 - dq))) / 2e-5
+        c = (
+            laws.manipulability(kin.jacobian(Q0 + dq)) - laws.manipulability(kin.jacobian(Q0 - dq))
+        ) / 2e-5
         assert g[i] == pytest.approx(c, abs=1e-4)
     assert np.linalg.norm(g) > 1e-3
 
@@ -211,14 +213,30 @@ def test_solve_joint_velocities_respects_limits(kin):
     xi = np.array([0, 0, 0, 0.0, 0.0, -2.0])  # far too fast on purpose
     dq_max = np.array([2, 1, 1.5, 1.25, 3, 1.5, 3]) * 0.5
     qdot = laws.solve_joint_velocities(
-        Q0, xi, kin.jacobian, K_p6=1.0, epsilon=1e-4, q_min=kin.q_min, q_max=kin.q_max,
-        dq_max=dq_max, joint_limit_margin=0.1)
+        Q0,
+        xi,
+        kin.jacobian,
+        K_p6=1.0,
+        epsilon=1e-4,
+        q_min=kin.q_min,
+        q_max=kin.q_max,
+        dq_max=dq_max,
+        joint_limit_margin=0.1,
+    )
     assert np.all(np.abs(qdot) <= dq_max + 1e-12)
     v = kin.jacobian(Q0) @ qdot
     assert v[5] < 0 and abs(v[3]) < 1e-3 * abs(v[5]) + 1e-9
     bad = laws.solve_joint_velocities(
-        Q0 * np.nan, xi, kin.jacobian, K_p6=1.0, epsilon=1e-4, q_min=kin.q_min,
-        q_max=kin.q_max, dq_max=dq_max, joint_limit_margin=0.1)
+        Q0 * np.nan,
+        xi,
+        kin.jacobian,
+        K_p6=1.0,
+        epsilon=1e-4,
+        q_min=kin.q_min,
+        q_max=kin.q_max,
+        dq_max=dq_max,
+        joint_limit_margin=0.1,
+    )
     np.testing.assert_array_equal(bad, 0)
 
 
@@ -235,11 +253,20 @@ def test_null_space_gradient_raises_manipulability(kin):
         for k in range(300):
             xi = np.array([0, 0, 0, 0.0, 0.08, 0.0])  # slide 24 cm along y
             qdot = laws.solve_joint_velocities(
-                q, xi, kin.jacobian, K_p6=K_p6, epsilon=1e-4, q_min=kin.q_min,
-                q_max=kin.q_max, dq_max=np.full(7, 2.0), joint_limit_margin=0.1)
+                q,
+                xi,
+                kin.jacobian,
+                K_p6=K_p6,
+                epsilon=1e-4,
+                q_min=kin.q_min,
+                q_max=kin.q_max,
+                dq_max=np.full(7, 2.0),
+                joint_limit_margin=0.1,
+            )
             q = q + qdot * dt
             ms.append(laws.manipulability(kin.jacobian(q)))
         return min(ms)
+
     m_with, m_without = run(5.0), run(0.0)
     assert m_with > m_without * 1.1
 
@@ -259,9 +286,16 @@ def test_manipulability_gradient_analytic_matches_finite_differences(kin):
     rng = np.random.default_rng(4)
     for q in (Q0, Q0 + rng.uniform(-0.5, 0.5, 7), Q0 + rng.uniform(-0.5, 0.5, 7)):
         analytic = laws.manipulability_gradient_analytic(kin.jacobian(q))
-        central = np.array([
-            (laws.manipulability(kin.jacobian(q + 1e-6 * e))
-             - laws.manipulability(kin.jacobian(q - 1e-6 * e))) / 2e-6 for e in np.eye(7)])
+        central = np.array(
+            [
+                (
+                    laws.manipulability(kin.jacobian(q + 1e-6 * e))
+                    - laws.manipulability(kin.jacobian(q - 1e-6 * e))
+                )
+                / 2e-6
+                for e in np.eye(7)
+            ]
+        )
         assert np.allclose(analytic, central, atol=1e-8, rtol=1e-6)
 
 
@@ -296,9 +330,9 @@ def test_scale_into_bounds_matches_the_per_joint_rule():
 def test_tip_kinematics_memoises_on_q(kin):
     q2 = Q0 + 0.1
     J0 = kin.jacobian(Q0)
-    assert kin.jacobian(Q0.copy()) is J0            # same q: the same evaluation
+    assert kin.jacobian(Q0.copy()) is J0  # same q: the same evaluation
     J2 = kin.jacobian(q2)
-    assert not np.allclose(J2, J0)                  # another q: recomputed
+    assert not np.allclose(J2, J0)  # another q: recomputed
     X2 = kin.pose(q2)
     np.testing.assert_allclose(kin.jacobian(Q0), J0)
     assert not np.allclose(kin.pose(Q0).translation(), X2.translation())
@@ -307,12 +341,13 @@ def test_tip_kinematics_memoises_on_q(kin):
 def test_null_space_diff_ik_equals_the_explicit_pseudo_inverse_and_projector(kin):
     rng = np.random.default_rng(6)
     singular = kin.jacobian(Q0).copy()
-    singular[:, 3] = singular[:, 2]          # a rank-deficient J takes the damped branch
+    singular[:, 3] = singular[:, 2]  # a rank-deficient J takes the damped branch
     for J in (kin.jacobian(Q0), kin.jacobian(Q0 + rng.uniform(-0.5, 0.5, 7)), singular):
         xi, qn = rng.normal(size=6), rng.normal(size=7)
         J_pinv, N, _ = laws.damped_pseudo_inverse(J, 0.03, 0.03)
-        np.testing.assert_allclose(laws.null_space_diff_ik(J, xi, qn), J_pinv @ xi + N @ qn,
-                                   atol=1e-10)
+        np.testing.assert_allclose(
+            laws.null_space_diff_ik(J, xi, qn), J_pinv @ xi + N @ qn, atol=1e-10
+        )
 
 
 def test_all_finite_agrees_with_numpy_including_an_overflowing_sum():
@@ -323,9 +358,9 @@ def test_all_finite_agrees_with_numpy_including_an_overflowing_sum():
             x[rng.integers(7)] = rng.choice([np.nan, np.inf, -np.inf])
         assert laws.all_finite(x) == bool(np.all(np.isfinite(x)))
     with np.errstate(over="ignore", invalid="ignore"):
-        huge = np.full(7, 1e308)            # every entry finite, the sum overflows to inf
+        huge = np.full(7, 1e308)  # every entry finite, the sum overflows to inf
         assert laws.all_finite(huge)
-        assert not laws.all_finite(np.array([np.inf, -np.inf]))   # inf - inf = nan
+        assert not laws.all_finite(np.array([np.inf, -np.inf]))  # inf - inf = nan
 
 
 def test_compiled_damped_svd_matches_numpy(kin):
@@ -357,7 +392,14 @@ def test_solve_joint_velocities_kernel_equals_the_numpy_equations(kin):
         lo = -np.clip((q - kin.q_min) / 0.1, 0, 1) * dq_max
         up = np.clip((kin.q_max - q) / 0.1, 0, 1) * dq_max
         expected = _scale_into_bounds_loop(expected, lo, up)
-        got = laws.solve_joint_velocities(q, xi, kin.jacobian, q_min=kin.q_min,
-                                          q_max=kin.q_max, dq_max=dq_max,
-                                          joint_limit_margin=0.1, qdot_null=qn)
+        got = laws.solve_joint_velocities(
+            q,
+            xi,
+            kin.jacobian,
+            q_min=kin.q_min,
+            q_max=kin.q_max,
+            dq_max=dq_max,
+            joint_limit_margin=0.1,
+            qdot_null=qn,
+        )
         np.testing.assert_allclose(got, expected, atol=1e-10)

@@ -5,19 +5,20 @@
 
 import numpy as np
 import pytest
-
 from pydrake.systems.analysis import Simulator
 
-from drake_rus.control import supervisor
 from drake_rus.closed_loop import AdvanceUntilScanEnds, BuildClosedLoopOnPatient
+from drake_rus.control import supervisor
 from drake_rus.scenario import LoadScenario
 
 pytestmark = pytest.mark.slow
 
 
 def test_full_scan_on_a_virtual_patient_with_emulated_images_and_segmenter():
-    s = LoadScenario(scenario_text="{patient: {source: 'test:0'}, imaging: {segmenter: oracle}, "
-                                   "controller: {exploration_ratio: 0.3, pivot_rate: 0.15}}")
+    s = LoadScenario(
+        scenario_text="{patient: {source: 'test:0'}, imaging: {segmenter: oracle}, "
+        "controller: {exploration_ratio: 0.3, pivot_rate: 0.15}}"
+    )
     cl, s = BuildClosedLoopOnPatient(s, "test:0", log_period=0.05)
     sim = Simulator(cl.diagram)
     ctx = sim.get_mutable_context()
@@ -28,8 +29,16 @@ def test_full_scan_on_a_virtual_patient_with_emulated_images_and_segmenter():
     print("\nsupervisor events:", *st.events, sep="\n  ")
     safety = cl.parts.safety.safety_state(cl.parts.safety.GetMyContextFromRoot(ctx))
     assert not safety.events
-    assert [e[1] for e in st.events] == ["APPROACH", "EXPLORE", "LOCALIZE", "TRANSIT", "PIVOT",
-                                         "PIVOT", "PIVOT", "DONE"]
+    assert [e[1] for e in st.events] == [
+        "APPROACH",
+        "EXPLORE",
+        "LOCALIZE",
+        "TRANSIT",
+        "PIVOT",
+        "PIVOT",
+        "PIVOT",
+        "DONE",
+    ]
     L = {k: v.FindLog(ctx) for k, v in cl.loggers.items()}
     t = L["phase"].sample_times()
     phase = L["phase"].data()[0]
@@ -42,11 +51,13 @@ def test_full_scan_on_a_virtual_patient_with_emulated_images_and_segmenter():
     kin = cl.parts.ik.kinematics
     p = np.array([kin.pose(q).translation() for q in L["q"].data().T])
     d = np.linalg.norm(p[pivot, :2] - st.p_star[:2], axis=1)
-    print(f"EXPLORE: kidney visible {vis[explore].mean():.2f}, centroid "
-          f"{c[explore].min():.3f}-{c[explore].max():.3f}, F {F[explore].min():.2f}-"
-          f"{F[explore].max():.2f} N; PIVOT: tip within {d.max() * 1e3:.2f} mm of p*, legs "
-          f"{np.degrees(st.pivot_limits[0]):.1f} / {np.degrees(st.pivot_limits[1]):.1f} deg, "
-          f"F {F[pivot].min():.2f}-{F[pivot].max():.2f} N")
+    print(
+        f"EXPLORE: kidney visible {vis[explore].mean():.2f}, centroid "
+        f"{c[explore].min():.3f}-{c[explore].max():.3f}, F {F[explore].min():.2f}-"
+        f"{F[explore].max():.2f} N; PIVOT: tip within {d.max() * 1e3:.2f} mm of p*, legs "
+        f"{np.degrees(st.pivot_limits[0]):.1f} / {np.degrees(st.pivot_limits[1]):.1f} deg, "
+        f"F {F[pivot].min():.2f}-{F[pivot].max():.2f} N"
+    )
     assert np.all(vis[explore] == 1.0)
     assert np.all(np.abs(c[explore] - 0.5) <= 0.1)
     assert np.all(np.abs(F[explore] - 9.0) <= 0.5)

@@ -7,17 +7,31 @@ import numpy as np
 import pytest
 
 from drake_rus.control.config import SafetyConfig
-from drake_rus.control.safety import (SafetyInputs, SafetyState, StopReason, limit_command,
-                                      safety_step)
+from drake_rus.control.safety import (
+    SafetyInputs,
+    SafetyState,
+    StopReason,
+    limit_command,
+    safety_step,
+)
 
 Q0 = np.array([0.0, 0.15, 0.0, -2.0, 0.0, 2.15, 0.785])
 
 
 def nominal(kin, t=1.0, **kw):
     X = kin.pose(Q0)
-    u = SafetyInputs(t=t, q=Q0 + 1e-3 * t, v=np.full(7, 0.01), qdot_desired=np.full(7, 0.02),
-                     R_BP=X.rotation().matrix(), p_BP=X.translation(), F_z=9.0,
-                     J=kin.jacobian(Q0), image_time=t - 0.02, kidney_visible=True)
+    u = SafetyInputs(
+        t=t,
+        q=Q0 + 1e-3 * t,
+        v=np.full(7, 0.01),
+        qdot_desired=np.full(7, 0.02),
+        R_BP=X.rotation().matrix(),
+        p_BP=X.translation(),
+        F_z=9.0,
+        J=kin.jacobian(Q0),
+        image_time=t - 0.02,
+        kidney_visible=True,
+    )
     return dataclasses.replace(u, **kw)
 
 
@@ -27,18 +41,21 @@ def test_nominal_passes_command(kin):
     np.testing.assert_allclose(cmd, 0.02)
 
 
-@pytest.mark.parametrize("fault, reason", [
-    (dict(F_z=25.0), StopReason.FORCE),
-    (dict(F_z=math.nan), StopReason.NAN),
-    (dict(p_BP=np.array([0.5, 0.0, math.nan])), StopReason.NAN),
-    (dict(qdot_desired=np.array([0, 0, math.inf, 0, 0, 0, 0])), StopReason.NAN),
-    (dict(p_BP=np.array([0.55, 0.6, 0.2])), StopReason.WORKSPACE),
-    (dict(p_BP=np.array([0.55, 0.0, -0.2])), StopReason.WORKSPACE),
-    (dict(v=np.array([0, 0, 0, 0, 0, 0, 3.5])), StopReason.JOINT_SPEED),
-    (dict(image_time=0.5), StopReason.STALE_IMAGE),
-    (dict(supervisor_abort=True, supervisor_reason="x"), StopReason.SUPERVISOR_ABORT),
-    (dict(robot_ok=False), StopReason.ROBOT_FAULT),
-])
+@pytest.mark.parametrize(
+    "fault, reason",
+    [
+        (dict(F_z=25.0), StopReason.FORCE),
+        (dict(F_z=math.nan), StopReason.NAN),
+        (dict(p_BP=np.array([0.5, 0.0, math.nan])), StopReason.NAN),
+        (dict(qdot_desired=np.array([0, 0, math.inf, 0, 0, 0, 0])), StopReason.NAN),
+        (dict(p_BP=np.array([0.55, 0.6, 0.2])), StopReason.WORKSPACE),
+        (dict(p_BP=np.array([0.55, 0.0, -0.2])), StopReason.WORKSPACE),
+        (dict(v=np.array([0, 0, 0, 0, 0, 0, 3.5])), StopReason.JOINT_SPEED),
+        (dict(image_time=0.5), StopReason.STALE_IMAGE),
+        (dict(supervisor_abort=True, supervisor_reason="x"), StopReason.SUPERVISOR_ABORT),
+        (dict(robot_ok=False), StopReason.ROBOT_FAULT),
+    ],
+)
 def test_each_fault_stops_in_the_same_period(kin, fault, reason):
     cfg = SafetyConfig(retract_distance=0.0)
     u = nominal(kin, **fault)
@@ -88,8 +105,7 @@ def test_stale_state_watchdog(kin):
     # Frozen joints with a zero command are not a fault (holding still).
     s = SafetyState()
     for k in range(30):
-        _, s = safety_step(s, nominal(kin, t=1.0 + 0.005 * k, q=q, qdot_desired=np.zeros(7)),
-                           cfg)
+        _, s = safety_step(s, nominal(kin, t=1.0 + 0.005 * k, q=q, qdot_desired=np.zeros(7)), cfg)
     assert not s.stopped
 
 
@@ -97,8 +113,11 @@ def test_segmentation_lost_timeout_only_when_required(kin):
     cfg = SafetyConfig(segmentation_timeout=0.2)
     s = SafetyState()
     for k in range(100):
-        _, s = safety_step(s, nominal(kin, t=1.0 + 0.01 * k, kidney_visible=False,
-                                      segmentation_required=False), cfg)
+        _, s = safety_step(
+            s,
+            nominal(kin, t=1.0 + 0.01 * k, kidney_visible=False, segmentation_required=False),
+            cfg,
+        )
     assert not s.stopped
     s = SafetyState()
     t = 1.0
@@ -111,8 +130,7 @@ def test_segmentation_lost_timeout_only_when_required(kin):
     # A brief loss that recovers resets the timer.
     s = SafetyState()
     for k in range(100):
-        _, s = safety_step(s, nominal(kin, t=1.0 + 0.01 * k, kidney_visible=(k % 15 != 0)),
-                           cfg)
+        _, s = safety_step(s, nominal(kin, t=1.0 + 0.01 * k, kidney_visible=(k % 15 != 0)), cfg)
     assert not s.stopped
 
 
@@ -127,9 +145,17 @@ def test_limit_command_scales_into_limits(kin):
     assert np.linalg.norm(J[3:] @ q) == pytest.approx(0.08)
 
 
-@pytest.mark.parametrize("field, name", [("q", "q"), ("v", "v"),
-                                         ("qdot_desired", "commanded qdot"),
-                                         ("R_BP", "R_BP"), ("p_BP", "p_BP"), ("J", "J")])
+@pytest.mark.parametrize(
+    "field, name",
+    [
+        ("q", "q"),
+        ("v", "v"),
+        ("qdot_desired", "commanded qdot"),
+        ("R_BP", "R_BP"),
+        ("p_BP", "p_BP"),
+        ("J", "J"),
+    ],
+)
 def test_nan_stop_names_the_non_finite_input(kin, field, name):
     u = nominal(kin)
     bad = np.array(getattr(u, field), dtype=float)

@@ -8,17 +8,15 @@ import math
 
 import numpy as np
 import pytest
-
 from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.systems.analysis import Simulator
 
-from drake_rus.control import supervisor
-from drake_rus.control.laws import manipulability
 from drake_rus.closed_loop import AdvanceUntilScanEnds, BuildClosedLoop
-from drake_rus.reliability.injector import BuildClosedLoopWithFault
-from drake_rus.control.laws import angle_between
+from drake_rus.control import supervisor
+from drake_rus.control.laws import angle_between, manipulability
 from drake_rus.control.safety import StopReason
 from drake_rus.control.synthetic_view import GeometricKidneyView
+from drake_rus.reliability.injector import BuildClosedLoopWithFault
 from drake_rus.scenario import LoadScenario
 
 pytestmark = pytest.mark.slow
@@ -55,10 +53,10 @@ def full_scan():
     """APPROACH -> EXPLORE (30 mm) -> LOCALIZE -> TRANSIT -> PIVOT -> DONE on the station."""
     # The default joint pose hovers about 0.1 m above the placeholder torso, higher than an
     # operator's placement: allow that approach.
-    s = scenario("{controller: {exploration_ratio: 0.3, pivot_rate: 0.15, "
-                 "approach_max_travel: 0.2}}")
-    view = GeometricKidneyView(X_BK_TRUE, KIDNEY_SEMI_AXES,
-                               frame_rate_hz=s.imaging.frame_rate_hz)
+    s = scenario(
+        "{controller: {exploration_ratio: 0.3, pivot_rate: 0.15, approach_max_travel: 0.2}}"
+    )
+    view = GeometricKidneyView(X_BK_TRUE, KIDNEY_SEMI_AXES, frame_rate_hz=s.imaging.frame_rate_hz)
     cl = BuildClosedLoop(s, kidney_view=view, log_period=0.01)
     sim = Simulator(cl.diagram)
     ctx = sim.get_mutable_context()
@@ -70,8 +68,9 @@ def full_scan():
     safety_events = cl.parts.safety.safety_state(cl.parts.safety.GetMyContextFromRoot(ctx)).events
     print("\nsupervisor events:", *state.events, sep="\n  ")
     p = tip_positions(cl, L["q"].data())
-    return dict(s=s, cl=cl, L=L, state=state, safety_events=safety_events, p=p,
-                t=L["q"].sample_times())
+    return dict(
+        s=s, cl=cl, L=L, state=state, safety_events=safety_events, p=p, t=L["q"].sample_times()
+    )
 
 
 def _phase_times(state, name):
@@ -82,8 +81,16 @@ def _phase_times(state, name):
 def test_full_scan_runs_through_every_phase_without_a_safety_stop(full_scan):
     state = full_scan["state"]
     names = [e[1] for e in state.events]
-    assert names == ["APPROACH", "EXPLORE", "LOCALIZE", "TRANSIT", "PIVOT", "PIVOT", "PIVOT",
-                     "DONE"], state.events
+    assert names == [
+        "APPROACH",
+        "EXPLORE",
+        "LOCALIZE",
+        "TRANSIT",
+        "PIVOT",
+        "PIVOT",
+        "PIVOT",
+        "DONE",
+    ], state.events
     assert not full_scan["safety_events"]
 
 
@@ -100,8 +107,10 @@ def test_force_settles_within_2_s_of_touching_and_holds_while_exploring(full_sca
     err = np.abs(F[window] - 9.0)
     outside = np.abs(F - 9.0) > 0.5
     last_out = t[np.nonzero(outside & (t <= t_end))[0][-1]]
-    print(f"\ntouch at {t_touch:.2f} s; settled (9 +- 0.5 N for good) "
-          f"{last_out - t_touch:.2f} s later; max |F - 9| while exploring {err.max():.3f} N")
+    print(
+        f"\ntouch at {t_touch:.2f} s; settled (9 +- 0.5 N for good) "
+        f"{last_out - t_touch:.2f} s later; max |F - 9| while exploring {err.max():.3f} N"
+    )
     assert err.max() <= 0.5
     assert last_out - t_touch <= 2.0
 
@@ -116,9 +125,11 @@ def test_exploration_speed_and_mask_centring(full_scan):
     v_inst = np.abs(p[m][k:, 1] - p[m][:-k, 1]) / (tq[m][k:] - tq[m][:-k])
     c = L["mask_centroid"].data()[0][m]
     vis = L["kidney_visible"].data()[0][m]
-    print(f"\nexploration: v_y = {vy * 1e3:.3f} mm/s; |v_y| over 1 s windows "
-          f"{v_inst.min() * 1e3:.2f}-{v_inst.max() * 1e3:.2f} mm/s; mask centroid "
-          f"{c.min():.3f}-{c.max():.3f}")
+    print(
+        f"\nexploration: v_y = {vy * 1e3:.3f} mm/s; |v_y| over 1 s windows "
+        f"{v_inst.min() * 1e3:.2f}-{v_inst.max() * 1e3:.2f} mm/s; mask centroid "
+        f"{c.min():.3f}-{c.max():.3f}"
+    )
     assert abs(abs(vy) - s.controller.scan_speed) <= 0.0005
     assert np.sign(vy) == (1 if s.controller.scan_direction == "+y" else -1)
     assert np.all(np.abs(v_inst - 0.005) <= 0.0005)
@@ -133,9 +144,11 @@ def test_pivot_keeps_tip_at_p_star_and_ends_on_both_sides(full_scan):
     d = np.linalg.norm(p[m, :2] - state.p_star[:2], axis=1)
     F = -L["probe_force"].data()[5][m]
     legs = [e for e in state.events if e[1] == "PIVOT" and "leg" in e[2]]
-    print(f"\npivot: tip within {d.max() * 1e3:.2f} mm of p* (xy); legs ended at "
-          f"{np.degrees(state.pivot_limits[0]):.1f} and {np.degrees(state.pivot_limits[1]):.1f}"
-          f" deg; F {F.min():.2f}-{F.max():.2f} N")
+    print(
+        f"\npivot: tip within {d.max() * 1e3:.2f} mm of p* (xy); legs ended at "
+        f"{np.degrees(state.pivot_limits[0]):.1f} and {np.degrees(state.pivot_limits[1]):.1f}"
+        f" deg; F {F.min():.2f}-{F.max():.2f} N"
+    )
     assert d.max() <= 0.002
     assert len(legs) == 2 and all("kidney left the image" in e[2] for e in legs)
     assert state.pivot_limits[0] * state.pivot_limits[1] < 0  # one leg each side
@@ -149,10 +162,16 @@ def test_orientation_error_below_1_deg_within_2_s_after_20_deg_step():
     sim = Simulator(cl.diagram)
     ctx = sim.get_mutable_context()
     sim.AdvanceTo(2.5)  # in contact and settled
-    a0 = np.array(cl.references["a_des"].get_output_port().Eval(
-        cl.references["a_des"].GetMyContextFromRoot(ctx)))
-    o0 = np.array(cl.references["o_des"].get_output_port().Eval(
-        cl.references["o_des"].GetMyContextFromRoot(ctx)))
+    a0 = np.array(
+        cl.references["a_des"]
+        .get_output_port()
+        .Eval(cl.references["a_des"].GetMyContextFromRoot(ctx))
+    )
+    o0 = np.array(
+        cl.references["o_des"]
+        .get_output_port()
+        .Eval(cl.references["o_des"].GetMyContextFromRoot(ctx))
+    )
     a1 = supervisor.rodrigues_pivot_update(a0, o0, math.radians(20.0))  # tilt 20 deg about o
     cl.reference_value(ctx, "a_des").set_value(a1)
     sim.AdvanceTo(4.5)
@@ -164,12 +183,15 @@ def test_orientation_error_below_1_deg_within_2_s_after_20_deg_step():
         if tk < 2.5:
             continue
         R = kin.pose(q).rotation().matrix()
-        errs.append((tk, math.degrees(angle_between(R[:, 2], a1)),
-                     math.degrees(angle_between(R[:, 0], o0))))
+        errs.append(
+            (tk, math.degrees(angle_between(R[:, 2], a1)), math.degrees(angle_between(R[:, 0], o0)))
+        )
     errs = np.array(errs)
-    print(f"\napproach error {errs[0, 1]:.2f} deg at the step, {errs[-1, 1]:.3f} deg 2 s later; "
-          f"o error {errs[-1, 2]:.3f} deg; first below 1 deg after "
-          f"{errs[np.argmax(errs[:, 1] < 1.0), 0] - 2.5:.2f} s")
+    print(
+        f"\napproach error {errs[0, 1]:.2f} deg at the step, {errs[-1, 1]:.3f} deg 2 s later; "
+        f"o error {errs[-1, 2]:.3f} deg; first below 1 deg after "
+        f"{errs[np.argmax(errs[:, 1] < 1.0), 0] - 2.5:.2f} s"
+    )
     assert errs[0, 1] > 19.0
     assert errs[-1, 1] < 1.0 and errs[-1, 2] < 1.0
     F = -L["probe_force"].data()[5][L["probe_force"].sample_times() > 4.0]
@@ -178,14 +200,18 @@ def test_orientation_error_below_1_deg_within_2_s_after_20_deg_step():
 
 def _min_manipulability(use_null_space):
     q_start = [0.4, 0.15, -1.0, -2.0, 0.6, 2.15, 0.785]
-    s = scenario("{robot: {initial_joint_positions: [%s]}, controller: {desired_force: 0.0}}"
-                 % ", ".join(map(str, q_start)))
-    cl = BuildClosedLoop(s, use_supervisor=False, use_null_space=use_null_space,
-                         log_period=0.02)
+    s = scenario(
+        "{robot: {initial_joint_positions: [%s]}, controller: {desired_force: 0.0}}"
+        % ", ".join(map(str, q_start))
+    )
+    cl = BuildClosedLoop(s, use_supervisor=False, use_null_space=use_null_space, log_period=0.02)
     sim = Simulator(cl.diagram)
     ctx = sim.get_mutable_context()
-    P0 = np.array(cl.references["P_des"].get_output_port().Eval(
-        cl.references["P_des"].GetMyContextFromRoot(ctx)))
+    P0 = np.array(
+        cl.references["P_des"]
+        .get_output_port()
+        .Eval(cl.references["P_des"].GetMyContextFromRoot(ctx))
+    )
     # A long motion in free space: 20 cm along +y, 1 cm per step every 0.2 s.
     for k in range(20):
         cl.reference_value(ctx, "P_des").set_value(P0 + [0.0, 0.01 * (k + 1)])
@@ -201,8 +227,10 @@ def _min_manipulability(use_null_space):
 def test_null_space_term_keeps_manipulability_higher_along_long_motion():
     m_with, dy_with = _min_manipulability(True)
     m_without, dy_without = _min_manipulability(False)
-    print(f"\nmin manipulability over a 20 cm slide: with null space {m_with:.4f}, "
-          f"without {m_without:.4f}")
+    print(
+        f"\nmin manipulability over a 20 cm slide: with null space {m_with:.4f}, "
+        f"without {m_without:.4f}"
+    )
     assert dy_with > 0.18 and dy_without > 0.18  # both performed the motion
     assert m_with > 1.05 * m_without
 
@@ -210,17 +238,25 @@ def test_null_space_term_keeps_manipulability_higher_along_long_motion():
 T_FAULT = 0.3023  # between two control ticks
 
 
-@pytest.mark.parametrize("fault, reason, extra", [
-    ("force_spike", StopReason.FORCE, "{safety: {retract_distance: 0.0}}"),
-    ("frozen_image", StopReason.STALE_IMAGE, "{safety: {image_timeout: 0.1}}"),
-    ("nan_pose", StopReason.NAN, ""),
-    ("segmentation_loss", StopReason.SEGMENTATION_LOST, "{safety: {segmentation_timeout: 0.1}}"),
-    ("frozen_state", StopReason.STALE_STATE, ""),
-])
+@pytest.mark.parametrize(
+    "fault, reason, extra",
+    [
+        ("force_spike", StopReason.FORCE, "{safety: {retract_distance: 0.0}}"),
+        ("frozen_image", StopReason.STALE_IMAGE, "{safety: {image_timeout: 0.1}}"),
+        ("nan_pose", StopReason.NAN, ""),
+        (
+            "segmentation_loss",
+            StopReason.SEGMENTATION_LOST,
+            "{safety: {segmentation_timeout: 0.1}}",
+        ),
+        ("frozen_state", StopReason.STALE_STATE, ""),
+    ],
+)
 def test_safety_stop_on_injected_fault(fault, reason, extra):
     s = scenario(extra)
-    cl = BuildClosedLoopWithFault(s, fault, T_FAULT, use_supervisor=False,
-                         log_period=1.0 / s.controller.rate_hz)
+    cl = BuildClosedLoopWithFault(
+        s, fault, T_FAULT, use_supervisor=False, log_period=1.0 / s.controller.rate_hz
+    )
     sim = Simulator(cl.diagram)
     ctx = sim.get_mutable_context()
     sim.AdvanceTo(T_FAULT + 0.4)
@@ -228,14 +264,18 @@ def test_safety_stop_on_injected_fault(fault, reason, extra):
     assert st.stopped and len(st.events) == 1, st.events
     ev = st.events[0]
     assert ev.reason == reason
-    timeouts = {"frozen_image": s.safety.image_timeout,
-                "segmentation_loss": s.safety.segmentation_timeout,
-                "frozen_state": s.safety.state_timeout}
+    timeouts = {
+        "frozen_image": s.safety.image_timeout,
+        "segmentation_loss": s.safety.segmentation_timeout,
+        "frozen_state": s.safety.state_timeout,
+    }
     t_detectable = T_FAULT + timeouts.get(fault, 0.0)
     period = 1.0 / s.controller.rate_hz
     latency = ev.time - t_detectable
-    print(f"\n{fault}: stop '{ev.reason}' ({ev.detail}) at {ev.time:.4f} s, "
-          f"{latency * 1e3:.2f} ms after it became detectable")
+    print(
+        f"\n{fault}: stop '{ev.reason}' ({ev.detail}) at {ev.time:.4f} s, "
+        f"{latency * 1e3:.2f} ms after it became detectable"
+    )
     assert -1e-9 <= latency <= period + 1e-9
     L = logs(cl, ctx)
     t, cmd = L["command"].sample_times(), L["command"].data()
@@ -249,8 +289,9 @@ def test_safety_stop_on_injected_fault(fault, reason, extra):
 
 def test_force_ceiling_stop_retracts_then_zero():
     s = scenario("{safety: {retract_distance: 0.004, retract_speed: 0.02}}")
-    cl = BuildClosedLoopWithFault(s, "force_spike", T_FAULT, use_supervisor=False,
-                         log_period=1.0 / s.controller.rate_hz)
+    cl = BuildClosedLoopWithFault(
+        s, "force_spike", T_FAULT, use_supervisor=False, log_period=1.0 / s.controller.rate_hz
+    )
     sim = Simulator(cl.diagram)
     ctx = sim.get_mutable_context()
     sim.AdvanceTo(T_FAULT + 0.5)
@@ -291,8 +332,10 @@ def test_workspace_exit_stops():
     z = np.array([kin.pose(qk).translation()[2] for qk in q.T])
     crossed = t[int(np.argmax(z < z_min))]
     latency = st.events[0].time - crossed
-    print(f"\nworkspace exit at {crossed:.4f} s, stop at {st.events[0].time:.4f} s "
-          f"(latency {latency * 1e3:.2f} ms); overshoot {(z_min - z.min()) * 1e3:.2f} mm")
+    print(
+        f"\nworkspace exit at {crossed:.4f} s, stop at {st.events[0].time:.4f} s "
+        f"(latency {latency * 1e3:.2f} ms); overshoot {(z_min - z.min()) * 1e3:.2f} mm"
+    )
     assert latency <= 1.0 / s.controller.rate_hz + 1e-9
     assert np.all(cmd[:, t > st.events[0].time + 1e-9] == 0.0)
     assert z_min - z.min() < 0.002

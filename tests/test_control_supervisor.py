@@ -5,11 +5,11 @@ import math
 
 import numpy as np
 import pytest
+from pydrake.math import RollPitchYaw, RotationMatrix
 
 from drake_rus.control import supervisor
 from drake_rus.control.config import ControllerConfig
 from drake_rus.control.laws import angle_between
-from pydrake.math import RollPitchYaw, RotationMatrix
 
 R_DOWN = np.diag([1.0, -1.0, -1.0])  # x_P = +x_B, z_P = -z_B
 
@@ -71,8 +71,9 @@ def test_rodrigues_pivot_update():
     assert angle_between(ak, a) == pytest.approx(0.5)
     # The rate vector of eq. 2's feed-forward matches the finite difference.
     rate = supervisor.pivot_rate_vector(a, o, -1.0, 0.2)
-    np.testing.assert_allclose(rate, (supervisor.rodrigues_pivot_update(a, o, -0.2e-6) - a) / 1e-6,
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        rate, (supervisor.rodrigues_pivot_update(a, o, -0.2e-6) - a) / 1e-6, atol=1e-6
+    )
 
 
 # ------------------------------------------------------------------ supervisor
@@ -85,11 +86,20 @@ def cfg(**kw):
     return dataclasses.replace(ControllerConfig(), **kw)
 
 
-def inputs(t, p=(0.55, 0.0, 0.1), F=9.0, visible=True, c=0.5, R=R_DOWN, R_BK=None,
-           p_BK=None, ready=True):
-    return supervisor.SupervisorInputs(t=t, R_BP=np.asarray(R), p_BP=np.asarray(p, float), F_z=F,
-                                 kidney_visible=visible, c_msk=c, R_BK=R_BK, p_BK=p_BK,
-                                 localization_ready=ready)
+def inputs(
+    t, p=(0.55, 0.0, 0.1), F=9.0, visible=True, c=0.5, R=R_DOWN, R_BK=None, p_BK=None, ready=True
+):
+    return supervisor.SupervisorInputs(
+        t=t,
+        R_BP=np.asarray(R),
+        p_BP=np.asarray(p, float),
+        F_z=F,
+        kidney_visible=visible,
+        c_msk=c,
+        R_BK=R_BK,
+        p_BK=p_BK,
+        localization_ready=ready,
+    )
 
 
 def _unseen(s, t, steps, c, dt):
@@ -130,7 +140,9 @@ def test_supervisor_approach_to_start_xy():
     s = supervisor.supervisor_step(s, inputs(0.02, p=(0.5005, 0.02, 0.1), F=9.0), c, dt)
     assert s.phase == supervisor.Phase.EXPLORE
     with pytest.raises(ValueError, match="start_xy"):
-        supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0), cfg(start_xy=[0.5]), dt)
+        supervisor.supervisor_step(
+            supervisor.SupervisorState(), inputs(0.0), cfg(start_xy=[0.5]), dt
+        )
 
 
 def test_supervisor_explore_ends_when_kidney_leaves_after_debounce():
@@ -177,8 +189,13 @@ def run_to_localize(c, dt=0.01):
 
 
 def test_supervisor_localize_transit_pivot_done():
-    c = cfg(exploration_ratio=0.05, localize_hold_time=0.2, pivot_rate=0.2,
-            max_pivot_tilt=0.6, visibility_debounce=0.05)
+    c = cfg(
+        exploration_ratio=0.05,
+        localize_hold_time=0.2,
+        pivot_rate=0.2,
+        max_pivot_tilt=0.6,
+        visibility_debounce=0.05,
+    )
     dt = 0.01
     s, t = run_to_localize(c, dt)
     assert s.phase == supervisor.Phase.LOCALIZE
@@ -210,8 +227,9 @@ def test_supervisor_localize_transit_pivot_done():
     while s.phase == supervisor.Phase.PIVOT and t < 60:
         t += dt
         vis = -0.2 < s.pivot_angle < 0.3
-        s = supervisor.supervisor_step(s, inputs(t, p=(0.5705, 0.03, 0.1), R=R_star, visible=vis),
-                                 c, dt)
+        s = supervisor.supervisor_step(
+            s, inputs(t, p=(0.5705, 0.03, 0.1), R=R_star, visible=vis), c, dt
+        )
         tilts.append(s.pivot_angle)
         required.append((vis, supervisor.segmentation_required(s)))
         a_dots.append(s.a_des_dot)
@@ -227,8 +245,7 @@ def test_supervisor_localize_transit_pivot_done():
     # The rate never jumps by more than pivot_acceleration dt per period.
     speeds = np.diff(tilts[:-1]) / dt  # (the last entry is DONE)
     assert np.abs(np.diff(speeds)).max() <= c.pivot_acceleration * dt + 1e-9
-    assert angle_between(s.a_des, R_star[:, 2]) == pytest.approx(abs(s.pivot_limits[1]),
-                                                                 abs=0.01)
+    assert angle_between(s.a_des, R_star[:, 2]) == pytest.approx(abs(s.pivot_limits[1]), abs=0.01)
     assert max(np.linalg.norm(a) for a in a_dots) == pytest.approx(0.2)
     # The kidney is required except while coming back from the first leg's end.
     assert any(not r for v, r in required) and all(r for v, r in required if v)
@@ -268,11 +285,13 @@ def test_supervisor_aborts_with_reason():
     bad = supervisor.supervisor_step(s, inputs(0.01, p=(math.nan, 0, 0)), c, dt)
     assert bad.phase == supervisor.Phase.ABORT and "non-finite" in bad.reason
     s, t = run_to_localize(c, dt)
-    waiting = supervisor.supervisor_step(s, inputs(t + dt, R_BK=np.eye(3), p_BK=[0.6, 0.1, 0],
-                                             ready=False), c, dt)
+    waiting = supervisor.supervisor_step(
+        s, inputs(t + dt, R_BK=np.eye(3), p_BK=[0.6, 0.1, 0], ready=False), c, dt
+    )
     assert waiting.phase == supervisor.Phase.LOCALIZE
-    late = supervisor.supervisor_step(waiting, inputs(t + c.localize_timeout + 1.0, ready=False),
-                                c, dt)
+    late = supervisor.supervisor_step(
+        waiting, inputs(t + c.localize_timeout + 1.0, ready=False), c, dt
+    )
     assert late.phase == supervisor.Phase.ABORT and "LOCALIZE timeout" in late.reason
     nopose = supervisor.supervisor_step(s, inputs(t + dt, R_BK=None), c, dt)
     assert nopose.phase == supervisor.Phase.ABORT and "kidney pose" in nopose.reason
@@ -280,8 +299,9 @@ def test_supervisor_aborts_with_reason():
     assert s.phase == supervisor.Phase.TRANSIT
     s = supervisor.supervisor_step(s, inputs(t + 1.0), c, dt)
     assert s.phase == supervisor.Phase.ABORT and "timeout" in s.reason
-    stopped = supervisor.supervisor_step(supervisor.SupervisorState(), dataclasses.replace(
-        inputs(0.0), safety_stopped=True), c, dt)
+    stopped = supervisor.supervisor_step(
+        supervisor.SupervisorState(), dataclasses.replace(inputs(0.0), safety_stopped=True), c, dt
+    )
     assert stopped.phase == supervisor.Phase.ABORT and stopped.reason == "safety stop"
     # ABORT and DONE are terminal.
     s2 = supervisor.supervisor_step(s, inputs(t + 2.0), c, dt)
@@ -302,12 +322,12 @@ def test_supervisor_exploration_holds_still_outside_breath_holds():
     s = supervisor.supervisor_step(s, inputs(0.01), c, dt)
     assert s.phase == supervisor.Phase.EXPLORE
     t = 0.01
-    for _ in range(50):                      # 0.5 s of travel in a hold
+    for _ in range(50):  # 0.5 s of travel in a hold
         t += dt
         s = supervisor.supervisor_step(s, gated(t, True), c, dt)
     travel, P = s.travel, s.P_des.copy()
-    assert travel == pytest.approx(51 * 0.005 * dt)   # the EXPLORE entry step moves too
-    for _ in range(100):                     # 1 s of breathing: kidney gone from the image
+    assert travel == pytest.approx(51 * 0.005 * dt)  # the EXPLORE entry step moves too
+    for _ in range(100):  # 1 s of breathing: kidney gone from the image
         t += dt
         s = supervisor.supervisor_step(s, gated(t, False, visible=False), c, dt)
         assert s.phase == supervisor.Phase.EXPLORE and s.paused
@@ -316,7 +336,7 @@ def test_supervisor_exploration_holds_still_outside_breath_holds():
     np.testing.assert_array_equal(s.P_des, P)
     assert s.paused_time == pytest.approx(1.0)
     t += dt
-    s = supervisor.supervisor_step(s, gated(t, True), c, dt)   # the next hold
+    s = supervisor.supervisor_step(s, gated(t, True), c, dt)  # the next hold
     assert not s.paused and supervisor.segmentation_required(s)
     assert s.travel > travel
     while s.phase == supervisor.Phase.EXPLORE and t < 60:
@@ -347,8 +367,13 @@ def _to_pivot(c, dt=0.01):
 
 
 def test_supervisor_pivot_ramps_to_rest_outside_breath_holds_and_resumes():
-    c = cfg(exploration_ratio=0.02, localize_hold_time=0.0, pivot_rate=0.2,
-            max_pivot_tilt=0.5, visibility_debounce=0.05)
+    c = cfg(
+        exploration_ratio=0.02,
+        localize_hold_time=0.0,
+        pivot_rate=0.2,
+        max_pivot_tilt=0.5,
+        visibility_debounce=0.05,
+    )
     dt = 0.01
     s, t, R = _to_pivot(c, dt)
     for _ in range(100):
@@ -357,14 +382,14 @@ def test_supervisor_pivot_ramps_to_rest_outside_breath_holds_and_resumes():
     angle = s.pivot_angle
     assert s.pivot_speed == pytest.approx(0.2)
     speeds = []
-    for _ in range(200):                     # 2 s outside a hold, kidney not visible
+    for _ in range(200):  # 2 s outside a hold, kidney not visible
         t += dt
         s = supervisor.supervisor_step(s, gated(t, False, R=R, visible=False), c, dt)
         speeds.append(s.pivot_speed)
         assert s.phase == supervisor.Phase.PIVOT and s.pivot_legs_done == 0
     assert speeds[-1] == 0.0
     assert np.all(np.abs(np.diff([0.2] + speeds)) <= c.pivot_acceleration * dt + 1e-12)
-    ramp = 0.2**2 / (2 * c.pivot_acceleration)          # the stopping distance
+    ramp = 0.2**2 / (2 * c.pivot_acceleration)  # the stopping distance
     assert s.pivot_angle == pytest.approx(angle + ramp, abs=0.2 * dt + 1e-6)
     held = s.pivot_angle
     t += dt
@@ -383,7 +408,9 @@ def test_supervisor_aborts_when_the_kidney_moved_after_localization():
     assert s.reason == "kidney moved: drift 12 mm"
     # Before localization a tracking error has no meaning and is ignored.
     s2 = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0), c, dt)
-    s2 = supervisor.supervisor_step(s2, dataclasses.replace(inputs(0.01), tracking_error="x"), c, dt)
+    s2 = supervisor.supervisor_step(
+        s2, dataclasses.replace(inputs(0.01), tracking_error="x"), c, dt
+    )
     assert s2.phase == supervisor.Phase.EXPLORE
 
 
@@ -393,7 +420,7 @@ def test_approach_without_contact_aborts_after_the_travel_limit():
     c, dt = cfg(approach_max_travel=0.05), 0.01
     s = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0, F=0.0), c, dt)
     s = supervisor.supervisor_step(s, inputs(0.5, p=(0.5, 0.0, 0.07), F=0.0), c, dt)
-    assert s.phase == supervisor.Phase.APPROACH                  # 30 mm down: keep going
+    assert s.phase == supervisor.Phase.APPROACH  # 30 mm down: keep going
     s = supervisor.supervisor_step(s, inputs(1.0, p=(0.5, 0.0, 0.045), F=0.0), c, dt)
     assert s.phase == supervisor.Phase.ABORT
     assert s.reason.startswith("no contact") and "55 mm" in s.reason
@@ -408,22 +435,26 @@ def test_contact_needs_the_force_held_for_the_dwell_time():
     must stay at contact_fraction F_des for contact_dwell."""
     c, dt = cfg(contact_dwell=0.2), 0.01
     s = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0, F=0.0), c, dt)
-    s = supervisor.supervisor_step(s, inputs(0.10, F=9.0), c, dt)      # spike ...
-    s = supervisor.supervisor_step(s, inputs(0.15, F=1.0), c, dt)      # ... gone
+    s = supervisor.supervisor_step(s, inputs(0.10, F=9.0), c, dt)  # spike ...
+    s = supervisor.supervisor_step(s, inputs(0.15, F=1.0), c, dt)  # ... gone
     s = supervisor.supervisor_step(s, inputs(0.20, F=9.0), c, dt)
     s = supervisor.supervisor_step(s, inputs(0.35, F=9.0), c, dt)
-    assert s.phase == supervisor.Phase.APPROACH                          # 0.15 s held
+    assert s.phase == supervisor.Phase.APPROACH  # 0.15 s held
     s = supervisor.supervisor_step(s, inputs(0.41, F=8.0), c, dt)
-    assert s.phase == supervisor.Phase.EXPLORE                           # 0.21 s held
+    assert s.phase == supervisor.Phase.EXPLORE  # 0.21 s held
 
 
 # ------------------------------------------------------------------ exploration length
 def test_exploration_target_rule():
     fixed = cfg(exploration_ratio=0.6, kidney_length=0.1, exploration_length="fixed")
     assert supervisor.exploration_target(fixed, 0.127) == pytest.approx(0.06)
-    est = cfg(exploration_ratio=0.6, kidney_length=0.1, exploration_length="estimated",
-              exploration_length_factor=1.5)
-    assert supervisor.exploration_target(est, math.nan) == pytest.approx(0.06)   # not known
+    est = cfg(
+        exploration_ratio=0.6,
+        kidney_length=0.1,
+        exploration_length="estimated",
+        exploration_length_factor=1.5,
+    )
+    assert supervisor.exploration_target(est, math.nan) == pytest.approx(0.06)  # not known
     assert supervisor.exploration_target(est) == pytest.approx(0.06)
     assert supervisor.exploration_target(est, 0.127) == pytest.approx(0.6 * 0.127)
     assert supervisor.exploration_target(est, 0.088) == pytest.approx(0.6 * 0.088)
@@ -440,8 +471,9 @@ def _explore_until_localize(c, estimate, t_max=20.0):
     t = 0.0
     while s.phase == supervisor.Phase.EXPLORE and t < t_max:
         t += dt
-        u = dataclasses.replace(inputs(t, p=(0.55, s.P_des[1], 0.1)),
-                                kidney_length_estimate=estimate(s.travel))
+        u = dataclasses.replace(
+            inputs(t, p=(0.55, s.P_des[1], 0.1)), kidney_length_estimate=estimate(s.travel)
+        )
         s = supervisor.supervisor_step(s, u, c, dt)
     return s
 
@@ -473,7 +505,7 @@ def test_given_pivot_pose_is_t_star_shaped_and_round_trips():
     x_k = R_BK[:, 0]
     assert given[2] == pytest.approx(math.atan2(x_k[1], x_k[0]))
     R, p = supervisor.given_pivot_pose(given, z=0.2)
-    np.testing.assert_allclose(R, R_star, atol=1e-12)          # eq. 20-22's T* again
+    np.testing.assert_allclose(R, R_star, atol=1e-12)  # eq. 20-22's T* again
     np.testing.assert_allclose(p, [0.52, -0.04, 0.2])
     assert np.linalg.det(R) == pytest.approx(1.0)
     R, _ = supervisor.given_pivot_pose([0.5, 0.0, math.pi / 2])
@@ -486,13 +518,14 @@ def test_given_pivot_pose_is_t_star_shaped_and_round_trips():
 
 def test_given_pivot_pose_goes_from_contact_to_transit_and_pivots_there():
     given = [0.56, 0.02, 0.3]
-    c = cfg(pivot_pose=given, pivot_rate=0.2, max_pivot_tilt=0.3,
-            pivot_strategy="predicted_end")   # refused by the scenario checks; falls back
+    c = cfg(
+        pivot_pose=given, pivot_rate=0.2, max_pivot_tilt=0.3, pivot_strategy="predicted_end"
+    )  # refused by the scenario checks; falls back
     dt = 0.01
     s = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0, F=0.0), c, dt)
     assert s.phase == supervisor.Phase.APPROACH
     s = supervisor.supervisor_step(s, inputs(0.01, F=9.0), c, dt)
-    assert s.phase == supervisor.Phase.TRANSIT                  # no EXPLORE, no LOCALIZE
+    assert s.phase == supervisor.Phase.TRANSIT  # no EXPLORE, no LOCALIZE
     assert "given pivot pose" in s.events[-1][2]
     R_star, _ = supervisor.given_pivot_pose(given)
     np.testing.assert_allclose(s.P_des, given[:2])
@@ -513,28 +546,34 @@ def test_given_pivot_pose_goes_from_contact_to_transit_and_pivots_there():
 
 # ------------------------------------------------------------------ line sweep (SL)
 def test_line_sweep_waits_for_the_kidney_then_ends_when_it_leaves():
-    c = cfg(sweep="line", visibility_debounce=0.1, line_sweep_max_travel=0.2,
-            scan_direction="+y", exploration_ratio=0.05, kidney_length=0.1)
+    c = cfg(
+        sweep="line",
+        visibility_debounce=0.1,
+        line_sweep_max_travel=0.2,
+        scan_direction="+y",
+        exploration_ratio=0.05,
+        kidney_length=0.1,
+    )
     dt = 0.01
-    s = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0, visible=False),
-                                   c, dt)
+    s = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0, visible=False), c, dt)
     s = supervisor.supervisor_step(s, inputs(0.01, visible=False), c, dt)
     assert s.phase == supervisor.Phase.EXPLORE and s.awaiting_kidney
     t = 0.01
-    for _ in range(100):          # 1 s beyond the kidney's end: not "left", not required
+    for _ in range(100):  # 1 s beyond the kidney's end: not "left", not required
         t += dt
-        s = supervisor.supervisor_step(s, inputs(t, p=(0.55, s.P_des[1], 0.1), visible=False,
-                                                 c=0.9), c, dt)
+        s = supervisor.supervisor_step(
+            s, inputs(t, p=(0.55, s.P_des[1], 0.1), visible=False, c=0.9), c, dt
+        )
         assert s.phase == supervisor.Phase.EXPLORE
         assert not supervisor.segmentation_required(s)
-    assert s.travel == pytest.approx(1.01 * c.scan_speed, abs=1e-9)   # contact came at t 0
-    assert s.P_des[0] == pytest.approx(0.55)       # no centroid, no eq. 17 x correction
-    for visible in [True] * 5 + [False] * 20:      # a glimpse of the pole (0.05 s) ...
+    assert s.travel == pytest.approx(1.01 * c.scan_speed, abs=1e-9)  # contact came at t 0
+    assert s.P_des[0] == pytest.approx(0.55)  # no centroid, no eq. 17 x correction
+    for visible in [True] * 5 + [False] * 20:  # a glimpse of the pole (0.05 s) ...
         t += dt
         s = supervisor.supervisor_step(s, inputs(t, visible=visible), c, dt)
-    assert s.phase == supervisor.Phase.EXPLORE and s.awaiting_kidney   # ... is not "seen"
+    assert s.phase == supervisor.Phase.EXPLORE and s.awaiting_kidney  # ... is not "seen"
     required = []
-    for _ in range(175):          # 1.75 s of kidney: beyond ER x L_m (the pivot's 5 mm)
+    for _ in range(175):  # 1.75 s of kidney: beyond ER x L_m (the pivot's 5 mm)
         t += dt
         s = supervisor.supervisor_step(s, inputs(t, p=(0.55, s.P_des[1], 0.1)), c, dt)
         assert s.phase == supervisor.Phase.EXPLORE
@@ -544,7 +583,7 @@ def test_line_sweep_waits_for_the_kidney_then_ends_when_it_leaves():
     travel = s.travel
     assert travel == pytest.approx(3.01 * c.scan_speed, abs=1e-9)
     s, t = _unseen(s, t, 9, c, dt)
-    assert s.phase == supervisor.Phase.EXPLORE      # 0.09 s gone: not yet
+    assert s.phase == supervisor.Phase.EXPLORE  # 0.09 s gone: not yet
     s, t = _unseen(s, t, 3, c, dt)
     assert s.phase == supervisor.Phase.DONE and "line sweep complete" in s.events[-1][2]
     assert s.reason == "" and s.travel < travel + 0.15 * c.scan_speed
@@ -559,9 +598,11 @@ def test_line_sweep_ends_at_its_maximum_travel():
         t = 0.0
         while s.phase in (supervisor.Phase.APPROACH, supervisor.Phase.EXPLORE) and t < 10:
             t += dt
-            s = supervisor.supervisor_step(s, inputs(t, p=(0.55, s.P_des[1], 0.1),
-                                                     visible=visible), c, dt)
+            s = supervisor.supervisor_step(
+                s, inputs(t, p=(0.55, s.P_des[1], 0.1), visible=visible), c, dt
+            )
         return s, t
+
     s, t = run(False)
     assert s.phase == supervisor.Phase.ABORT and "never came into view" in s.reason
     assert t == pytest.approx(0.01 / c.scan_speed, abs=3 * dt)
@@ -571,7 +612,7 @@ def test_line_sweep_ends_at_its_maximum_travel():
 
 
 def test_pivot_follow_error_is_the_angle_to_the_commanded_axis():
-    R = R_DOWN @ RotationMatrix(RollPitchYaw(0.1, 0.0, 0.0)).matrix()   # tilted 0.1 rad
+    R = R_DOWN @ RotationMatrix(RollPitchYaw(0.1, 0.0, 0.0)).matrix()  # tilted 0.1 rad
     assert supervisor.pivot_follow_error(R, R[:, 2]) == pytest.approx(0.0, abs=1e-7)
     assert supervisor.pivot_follow_error(R_DOWN, R[:, 2]) == pytest.approx(0.1)
     assert supervisor.pivot_follow_error(R_DOWN, -R_DOWN[:, 2]) == pytest.approx(math.pi)
@@ -581,8 +622,14 @@ def test_a_probe_that_stops_following_the_pivot_aborts_the_scan():
     """The probe follows a_des, then sticks (a joint at its limit): ABORT once it has lagged
     by more than pivot_follow_limit for pivot_follow_time, with the reason; a probe that
     follows never aborts."""
-    c = cfg(exploration_ratio=0.02, localize_hold_time=0.0, pivot_rate=0.2,
-            max_pivot_tilt=0.5, pivot_follow_limit=0.05, pivot_follow_time=0.5)
+    c = cfg(
+        exploration_ratio=0.02,
+        localize_hold_time=0.0,
+        pivot_rate=0.2,
+        max_pivot_tilt=0.5,
+        pivot_follow_limit=0.05,
+        pivot_follow_time=0.5,
+    )
     dt = 0.01
     s, t, R_star = _to_pivot(c, dt)
 
@@ -591,7 +638,7 @@ def test_a_probe_that_stops_following_the_pivot_aborts_the_scan():
         x /= np.linalg.norm(x)
         return np.column_stack([x, np.cross(a, x), a])
 
-    for _ in range(100):                       # 1 s following: no abort
+    for _ in range(100):  # 1 s following: no abort
         t += dt
         s = supervisor.supervisor_step(s, inputs(t, R=following(s.a_des)), c, dt)
         assert s.phase == supervisor.Phase.PIVOT
@@ -608,14 +655,15 @@ def test_a_probe_that_stops_following_the_pivot_aborts_the_scan():
 
 
 def test_supervisor_state_copy_owns_its_arrays_and_keeps_every_field():
-    s = supervisor.SupervisorState(phase=supervisor.Phase.PIVOT, travel=0.02,
-                                   pivot_limits=(0.1,), reason="x")
+    s = supervisor.SupervisorState(
+        phase=supervisor.Phase.PIVOT, travel=0.02, pivot_limits=(0.1,), reason="x"
+    )
     c = s.copy()
     for f in dataclasses.fields(s):
         a, b = getattr(s, f.name), getattr(c, f.name)
         if isinstance(a, np.ndarray):
             assert a is not b and np.array_equal(a, b, equal_nan=True), f.name
-            b[...] = 7.0                      # writing the copy leaves the original alone
+            b[...] = 7.0  # writing the copy leaves the original alone
             assert not np.array_equal(a, b, equal_nan=True), f.name
         else:
             assert a == b or (a != a and b != b), f.name

@@ -4,7 +4,6 @@ import math
 
 import numpy as np
 import pytest
-
 from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
@@ -12,11 +11,18 @@ from pydrake.systems.primitives import ConstantVectorSource
 
 from drake_rus.control import laws, supervisor
 from drake_rus.control.config import ControllerConfig, SafetyConfig
+from drake_rus.control.synthetic_view import GeometricKidneyView, kidney_section
+from drake_rus.control.systems import (
+    ForcePD,
+    NullSpaceDiffIK,
+    OrientationAlignment,
+    PositionP,
+    SafetyLayer,
+    ScanSupervisor,
+    contact_force,
+)
 from drake_rus.reliability.injector import FaultInjector
 from drake_rus.robot import MakeControlPlant, SolveTipPose, TipKinematics
-from drake_rus.control.synthetic_view import GeometricKidneyView, kidney_section
-from drake_rus.control.systems import (ForcePD, NullSpaceDiffIK, OrientationAlignment,
-                                       PositionP, SafetyLayer, ScanSupervisor, contact_force)
 
 Q0 = np.array([0.0, 0.15, 0.0, -2.0, 0.0, 2.15, 0.785])
 X_TILT = RigidTransform(RollPitchYaw(math.pi + 0.2, 0.1, 0.3), [0.55, 0.02, 0.11])
@@ -40,8 +46,9 @@ def test_orientation_alignment_system_matches_eq_1_5():
     sys.GetInputPort("a_des").FixValue(ctx, a_des)
     sys.GetInputPort("o_des").FixValue(ctx, o_des)
     sys.GetInputPort("a_des_dot").FixValue(ctx, adot)
-    expected = laws.orientation_alignment(X_TILT.rotation().matrix(), a_des, o_des, adot,
-                                          cfg.K_p1, cfg.K_p11, cfg.K_p2)
+    expected = laws.orientation_alignment(
+        X_TILT.rotation().matrix(), a_des, o_des, adot, cfg.K_p1, cfg.K_p11, cfg.K_p2
+    )
     np.testing.assert_allclose(sys.GetOutputPort("omega_BP").Eval(ctx), expected)
 
 
@@ -51,8 +58,9 @@ def test_position_p_system_matches_eq_7():
     ctx = sys.CreateDefaultContext()
     sys.GetInputPort("X_BP").FixValue(ctx, X_TILT)
     sys.GetInputPort("P_des").FixValue(ctx, [0.56, 0.0])
-    np.testing.assert_allclose(sys.GetOutputPort("v_position").Eval(ctx),
-                               [cfg.K_p4 * 0.01, cfg.K_p5 * -0.02, 0.0])
+    np.testing.assert_allclose(
+        sys.GetOutputPort("v_position").Eval(ctx), [cfg.K_p4 * 0.01, cfg.K_p5 * -0.02, 0.0]
+    )
 
 
 def test_force_pd_system_filters_at_the_control_rate():
@@ -65,14 +73,16 @@ def test_force_pd_system_filters_at_the_control_rate():
     sim = Simulator(diagram)
     ctx = sim.get_mutable_context()
     pd_ctx = pd.GetMyContextFromRoot(ctx)
-    pd.GetInputPort("X_BP").FixValue(pd_ctx, RigidTransform(RotationMatrix.MakeXRotation(math.pi),
-                                                          [0.5, 0, 0.1]))
+    pd.GetInputPort("X_BP").FixValue(
+        pd_ctx, RigidTransform(RotationMatrix.MakeXRotation(math.pi), [0.5, 0, 0.1])
+    )
     sim.AdvanceTo(0.5)
     F_f = pd.GetOutputPort("F_filtered").Eval(pd_ctx)[0]
     assert F_f == pytest.approx(4.0)  # seeded with the measurement, constant input
     v = pd.GetOutputPort("v_force").Eval(pd_ctx)
-    np.testing.assert_allclose(v, cfg.K_p3 * (cfg.desired_force - 4.0) * np.array([0, 0, -1]),
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        v, cfg.K_p3 * (cfg.desired_force - 4.0) * np.array([0, 0, -1]), atol=1e-12
+    )
     pd.GetInputPort("F_des").FixValue(pd_ctx, [2.0])
     v = pd.GetOutputPort("v_force").Eval(pd_ctx)
     assert v[2] > 0  # too much force: back out of the body (+z)
@@ -90,10 +100,10 @@ def test_null_space_diff_ik_system_tracks_twist(plant_and_frame):
     qdot = ik.GetOutputPort("joint_velocity_desired").Eval(ctx)
     J = TipKinematics(plant, frame).jacobian(Q0)
     np.testing.assert_allclose(J @ qdot, [0, 0.05, 0, 0.005, 0, -0.01], atol=1e-9)
-    np.testing.assert_allclose(ik.GetOutputPort("V_BP_desired").Eval(ctx),
-                               [0, 0.05, 0, 0.005, 0, -0.01])
-    assert ik.GetOutputPort("manipulability").Eval(ctx)[0] == pytest.approx(
-        laws.manipulability(J))
+    np.testing.assert_allclose(
+        ik.GetOutputPort("V_BP_desired").Eval(ctx), [0, 0.05, 0, 0.005, 0, -0.01]
+    )
+    assert ik.GetOutputPort("manipulability").Eval(ctx)[0] == pytest.approx(laws.manipulability(J))
 
 
 def test_safety_layer_system_holds_command_and_stops(plant_and_frame):
@@ -145,10 +155,17 @@ def test_scan_supervisor_system_outputs(plant_and_frame):
     assert sup.GetOutputPort("abort").Eval(ctx)[0] == 1.0
     # Every vector output is the state's value (held in discrete state by the update).
     s = sup.state(ctx)
-    expected = {"a_des": s.a_des, "o_des": s.o_des, "a_des_dot": s.a_des_dot,
-                "P_des": s.P_des, "F_des": [s.F_des], "phase": [float(s.phase)],
-                "segmentation_required": [float(supervisor.segmentation_required(s))],
-                "exploring": [0.0], "abort": [1.0]}
+    expected = {
+        "a_des": s.a_des,
+        "o_des": s.o_des,
+        "a_des_dot": s.a_des_dot,
+        "P_des": s.P_des,
+        "F_des": [s.F_des],
+        "phase": [float(s.phase)],
+        "segmentation_required": [float(supervisor.segmentation_required(s))],
+        "exploring": [0.0],
+        "abort": [1.0],
+    }
     for name, value in expected.items():
         np.testing.assert_array_equal(sup.GetOutputPort(name).Eval(ctx), value, err_msg=name)
 
@@ -158,8 +175,10 @@ def test_scan_supervisor_kidney_length_estimate_input(estimate, explored):
     """Unconnected, the estimate is NaN (EXPLORE ends at ER x L_m); connected, EXPLORE ends
     at ER x the estimate (``exploration_length: estimated``)."""
     import dataclasses
-    cfg = dataclasses.replace(ControllerConfig(), exploration_ratio=0.5, kidney_length=0.1,
-                              exploration_length="estimated")
+
+    cfg = dataclasses.replace(
+        ControllerConfig(), exploration_ratio=0.5, kidney_length=0.1, exploration_length="estimated"
+    )
     sup = ScanSupervisor(cfg)
     sim = Simulator(sup)
     ctx = sim.get_mutable_context()
@@ -170,7 +189,7 @@ def test_scan_supervisor_kidney_length_estimate_input(estimate, explored):
         sup.GetInputPort("kidney_length_estimate").FixValue(ctx, [estimate])
     s = supervisor.SupervisorState()
     s.initialised, s.phase, s.P_des = True, supervisor.Phase.EXPLORE, np.array([0.55, 0.0])
-    s.travel = 0.0495                          # just short of 50 mm
+    s.travel = 0.0495  # just short of 50 mm
     ctx.get_mutable_abstract_state(0).set_value(s)
     sim.AdvanceTo(0.5)
     state = sup.state(ctx)
@@ -179,7 +198,7 @@ def test_scan_supervisor_kidney_length_estimate_input(estimate, explored):
         assert state.travel == pytest.approx(explored)
     else:
         assert state.phase == supervisor.Phase.EXPLORE and state.travel < explored
-        sim.AdvanceTo(0.0205 / cfg.scan_speed + 0.2)             # 20.5 mm more at v_scan
+        sim.AdvanceTo(0.0205 / cfg.scan_speed + 0.2)  # 20.5 mm more at v_scan
         assert sup.state(ctx).phase == supervisor.Phase.LOCALIZE
         assert sup.state(ctx).travel == pytest.approx(explored)
         assert "estimated kidney length 140 mm" in sup.state(ctx).events[-1][2]
@@ -223,5 +242,9 @@ def test_joints_for_tip_position(plant_and_frame):
     target = kin.pose(Q0).translation() + [0.05, -0.05, 0.1]
     q = SolveTipPose(plant, frame, RigidTransform(kin.pose(Q0).rotation(), target), q_nominal=Q0)
     np.testing.assert_allclose(kin.pose(q).translation(), target, atol=1e-4)
-    assert laws.angle_between(kin.pose(q).rotation().matrix()[:, 2],
-                              kin.pose(Q0).rotation().matrix()[:, 2]) < 1e-3
+    assert (
+        laws.angle_between(
+            kin.pose(q).rotation().matrix()[:, 2], kin.pose(Q0).rotation().matrix()[:, 2]
+        )
+        < 1e-3
+    )

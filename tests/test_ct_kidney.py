@@ -6,22 +6,35 @@ without ../shared)."""
 import numpy as np
 import pytest
 import SimpleITK as sitk
-
-from drake_rus.anatomy.ct_kidney import (LabelGrid, estimate_frame, import_ct_kidneys,
-                                         kidney_components, kidney_fields_A, read_label_grid,
-                                         right_lower_statistic, select_kidney, survey_case,
-                                         survey_summary)
-from drake_rus.anatomy.ct_patient import VoxelKidneyShape
-from drake_rus.anatomy.rasterize import mask_to_mesh
-from drake_rus.anatomy.canonical_frame import mesh_canonical_frame
+from conftest import KITS, needs_kits, stored_as, synthetic_ct_case
 from pydrake.math import RigidTransform
 
-from conftest import KITS, needs_kits, stored_as, synthetic_ct_case
+from drake_rus.anatomy.canonical_frame import mesh_canonical_frame
+from drake_rus.anatomy.ct_kidney import (
+    LabelGrid,
+    estimate_frame,
+    import_ct_kidneys,
+    kidney_components,
+    kidney_fields_A,
+    read_label_grid,
+    right_lower_statistic,
+    select_kidney,
+    survey_case,
+    survey_summary,
+)
+from drake_rus.anatomy.ct_patient import VoxelKidneyShape
+from drake_rus.anatomy.rasterize import mask_to_mesh
 
 # Stored layouts: (A axis of each stored axis, stored axes reversed). The KiTS one is
 # (x, z, y) with z and y reversed: in-plane, in-plane, slices from the head down.
-LAYOUTS = [((0, 1, 2), ()), ((0, 2, 1), (1, 2)), ((2, 0, 1), (1,)), ((1, 2, 0), (0, 2)),
-           ((2, 1, 0), (0, 1, 2)), ((1, 0, 2), ())]
+LAYOUTS = [
+    ((0, 1, 2), ()),
+    ((0, 2, 1), (1, 2)),
+    ((2, 0, 1), (1,)),
+    ((1, 2, 0), (0, 2)),
+    ((2, 1, 0), (0, 1, 2)),
+    ((1, 0, 2), ()),
+]
 
 
 @pytest.fixture(scope="module")
@@ -57,8 +70,15 @@ def test_frame_and_sides_from_anatomy_in_any_stored_layout(case, perm, flips):
     # The right kidney lies 20 mm lower than the left.
     assert ct.right_minus_left_mm() == pytest.approx(-20.0, abs=3.0)
     verdicts = {c["cue"]: c["verdict"] for c in ct.frame.cues}
-    for cue in ("slice axis", "long axes", "separation", "poles medial", "poles posterior",
-                "hilum", "posterior half"):
+    for cue in (
+        "slice axis",
+        "long axes",
+        "separation",
+        "poles medial",
+        "poles posterior",
+        "hilum",
+        "posterior half",
+    ):
         assert verdicts[cue] == "agrees", cue
 
 
@@ -74,9 +94,9 @@ def test_right_and_left_follow_the_grid_handedness(case):
 
 def test_file_round_trip_ignores_the_headers_axis_labels(case, tmp_path):
     labels, spacing, _ = case
-    a, sp, R = stored_as(labels, spacing, (0, 2, 1), (1, 2))          # KiTS-like
+    a, sp, R = stored_as(labels, spacing, (0, 2, 1), (1, 2))  # KiTS-like
     right_header = read_label_grid(_write(tmp_path / "a.nii.gz", a, sp, R))
-    assert right_header.handedness == round(np.linalg.det(R)) == -1     # as in KiTS
+    assert right_header.handedness == round(np.linalg.det(R)) == -1  # as in KiTS
     np.testing.assert_array_equal(right_header.header_R_AG, R)
     # A header whose axes are all wrong (a proper rotation: the handedness is kept).
     lie = np.array([[0.0, 1, 0], [0, 0, 1], [1, 0, 0]])
@@ -111,16 +131,19 @@ def test_kidney_pose_and_tumour_survive_the_resampling(case):
     # The known shape on a fine grid in the synthetic frame.
     lo, hi = np.array([-150.0, -90.0, -60.0]), np.array([0.0, 50.0, 60.0])
     step = 1.0
-    g = np.meshgrid(*[np.arange(l, h, step) for l, h in zip(lo, hi)], indexing="ij")
+    g = np.meshgrid(*[np.arange(a, b, step) for a, b in zip(lo, hi)], indexing="ij")
     pts = np.column_stack([x.ravel() for x in g])
     fine = info["inside"]["right"](pts).reshape(g[0].shape)
     truth = mask_to_mesh(fine, RigidTransform(lo / 1000.0), step / 1000.0)
     X0 = mesh_canonical_frame(truth, *refs)
     d = np.linalg.norm(X.translation() + shift - X0.translation())
-    ang = np.degrees(np.arccos(np.clip((np.trace(X.rotation().matrix().T
-                                                  @ X0.rotation().matrix()) - 1) / 2, -1, 1)))
+    ang = np.degrees(
+        np.arccos(
+            np.clip((np.trace(X.rotation().matrix().T @ X0.rotation().matrix()) - 1) / 2, -1, 1)
+        )
+    )
     assert d < 0.0015 and ang < 3.0, (d, ang)
-    tumour_ml = 4.0 / 3.0 * np.pi * 16.0 ** 3 / 1000.0
+    tumour_ml = 4.0 / 3.0 * np.pi * 16.0**3 / 1000.0
     # Most of the sphere lies outside the kidney (it bulges): at least half is tumour.
     assert 0.5 * tumour_ml < shape.volumes_ml["tumour"] < 1.1 * tumour_ml
     assert shape.volumes_ml["parenchyma"] == pytest.approx(k.parenchyma_ml, rel=0.15)
@@ -152,8 +175,11 @@ def test_one_line_errors_name_the_file(case, tmp_path):
     cut = labels[:, :38, :]
     ct = import_ct_kidneys(LabelGrid(np.ascontiguousarray(cut), spacing, 1, "cut.nii.gz"))
     assert select_kidney(ct, "right") is not None
-    with pytest.raises(ValueError, match=r"cut\.nii\.gz: the left kidney is cut by the field "
-                                         r"of view \(.*axis 1 high"):
+    with pytest.raises(
+        ValueError,
+        match=r"cut\.nii\.gz: the left kidney is cut by the field "
+        r"of view \(.*axis 1 high",
+    ):
         select_kidney(ct, "left")
 
 
@@ -182,6 +208,6 @@ def test_real_kits_cases_have_an_agreed_frame():
         assert r["frame"]["status"] == "agree", r["frame"]
         assert r["header_agrees"] == {"left": True, "superior": True, "anterior": True}
         assert r["usable"] == {"right": "ok", "left": "ok"}
-        assert r["right_minus_left_mm"] < -10.0           # the right kidney lower
+        assert r["right_minus_left_mm"] < -10.0  # the right kidney lower
     s = survey_summary(rows)
     assert s["status"]["agree"] == 2 and s["right_lower"]["right_lower"] == 2

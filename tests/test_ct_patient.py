@@ -8,17 +8,16 @@ import json
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from conftest import KITS, needs_kits, stored_as, synthetic_ct_case
 from pydrake.math import RigidTransform
 
 from drake_rus.anatomy import Label, is_kidney, load_patient
+from drake_rus.anatomy.canonical_frame import mesh_canonical_frame
 from drake_rus.anatomy.ct_patient import parse_ct_spec
 from drake_rus.anatomy.rasterize import mask_to_mesh, rasterize_mesh
 from drake_rus.cli import main as cli_main
-from drake_rus.anatomy.canonical_frame import mesh_canonical_frame
 
-from conftest import KITS, needs_kits, stored_as, synthetic_ct_case
-
-VOXEL = 0.002          # coarse, for speed
+VOXEL = 0.002  # coarse, for speed
 
 
 def _write_like_kits(folder, **case):
@@ -42,9 +41,16 @@ def ct_file(tmp_path_factory):
 @pytest.fixture(scope="module")
 def patients(ct_file):
     path, _ = ct_file
-    return {d: load_patient(f"ct:{path.parent}#body=5,kidney={d}", side="right",
-                            voxel_size=VOXEL, progress=False, cache=False)
-            for d in ("with_tumour", "parenchyma")}
+    return {
+        d: load_patient(
+            f"ct:{path.parent}#body=5,kidney={d}",
+            side="right",
+            voxel_size=VOXEL,
+            progress=False,
+            cache=False,
+        )
+        for d in ("with_tumour", "parenchyma")
+    }
 
 
 def _angle_deg(R1, R2):
@@ -60,18 +66,20 @@ def test_real_kidney_in_a_generated_body(patients, ct_file):
     counts = np.bincount(lv.labels.ravel(), minlength=16)
     assert counts[Label.KIDNEY_TUMOUR] > 0 and counts[Label.TUMOUR] == 0
     # The tumour outside the ellipsoid (most of the 16 mm sphere), in mL.
-    tumour_ml = counts[Label.KIDNEY_TUMOUR] * VOXEL ** 3 * 1e6
+    tumour_ml = counts[Label.KIDNEY_TUMOUR] * VOXEL**3 * 1e6
     assert 0.5 * 17.2 < tumour_ml < 1.2 * 17.2
     # The truth pose: the canonical frame of the placed kidney, whose tilt is the CT's
     # (supine, pose=ct: the CT's anatomical axes are the patient's).
     X = p.X_PtK
-    assert np.allclose(X.GetAsMatrix4(), mesh_canonical_frame(
-        p.kidney_mesh, *p.reference_axes()).GetAsMatrix4())
+    assert np.allclose(
+        X.GetAsMatrix4(), mesh_canonical_frame(p.kidney_mesh, *p.reference_axes()).GetAsMatrix4()
+    )
     lo, hi, step = np.array([-150.0, -90.0, -60.0]), np.array([0.0, 50.0, 60.0]), 1.0
     g = np.meshgrid(*[np.arange(a, b, step) for a, b in zip(lo, hi)], indexing="ij")
     fine = info["inside"]["right"](np.column_stack([x.ravel() for x in g])).reshape(g[0].shape)
-    truth = mesh_canonical_frame(mask_to_mesh(fine, RigidTransform(lo / 1000), step / 1000),
-                                 *p.reference_axes())
+    truth = mesh_canonical_frame(
+        mask_to_mesh(fine, RigidTransform(lo / 1000), step / 1000), *p.reference_axes()
+    )
     assert _angle_deg(X.rotation().matrix(), truth.rotation().matrix()) < 4.0
     # The label volume's kidney is the kidney mesh; nothing else sits inside it.
     kid = is_kidney(lv.labels)
@@ -91,19 +99,20 @@ def test_the_two_kidney_definitions_differ_only_in_membership(patients):
     assert (lb == Label.TUMOUR).sum() == (la == Label.KIDNEY_TUMOUR).sum() > 0
     assert not (lb == Label.KIDNEY_TUMOUR).any()
     same = np.where(lb == Label.TUMOUR, Label.KIDNEY_TUMOUR, lb)
-    np.testing.assert_array_equal(same, la)               # same body, same images
+    np.testing.assert_array_equal(same, la)  # same body, same images
     assert b.kidney_mesh.volume < a.kidney_mesh.volume
     d = np.linalg.norm(a.X_PtK.translation() - b.X_PtK.translation())
-    assert d > 0.0005                                      # the tumour moves the centroid
+    assert d > 0.0005  # the tumour moves the centroid
     assert a.meta["ct"]["kidney_definition"] == "with_tumour"
 
 
 def test_a_left_kidney_mirrored_into_a_right_patient(ct_file):
     path, _ = ct_file
-    p = load_patient(f"ct:{path}#left,body=5", side="right", voxel_size=VOXEL,
-                     progress=False, cache=False)
+    p = load_patient(
+        f"ct:{path}#left,body=5", side="right", voxel_size=VOXEL, progress=False, cache=False
+    )
     assert p.meta["ct"]["mirrored"] and p.meta["ct"]["tumour_ml"] == 0.0
-    assert p.X_PtK.translation()[0] < 0                   # the patient's right side
+    assert p.X_PtK.translation()[0] < 0  # the patient's right side
 
 
 def test_a_kidney_too_large_for_its_body_is_refused(tmp_path):
@@ -111,19 +120,25 @@ def test_a_kidney_too_large_for_its_body_is_refused(tmp_path):
     flank of a normal body (seed 6, half-width 141 mm). A given body is refused with one
     line; the default body moves on to the next seeds (checked on KiTS case_00008)."""
     path, _ = _write_like_kits(tmp_path, tumour_radius=55.0)
-    with pytest.raises(ValueError, match=r"segmentation\.nii\.gz: the right kidney \(\d+ mm wide "
-                                         r"with its tumour\) fits none of body 6: .*spine"):
-        load_patient(f"ct:{path}#body=6", side="right", voxel_size=VOXEL, progress=False,
-                     cache=False)
+    with pytest.raises(
+        ValueError,
+        match=r"segmentation\.nii\.gz: the right kidney \(\d+ mm wide "
+        r"with its tumour\) fits none of body 6: .*spine",
+    ):
+        load_patient(
+            f"ct:{path}#body=6", side="right", voxel_size=VOXEL, progress=False, cache=False
+        )
 
 
 def test_spec_errors(ct_file, capsys):
     path, _ = ct_file
     assert parse_ct_spec(f"ct:{path}#left,kidney=parenchyma,pose=generator").pose == "generator"
-    for spec, message in ((f"ct:{path}#up", "unknown option 'up'"),
-                          (f"ct:{path}#body=x", "body=N needs a non-negative integer"),
-                          (f"ct:{path}#kidney=cortex", "kidney= expects one of"),
-                          ("ct:", "no path")):
+    for spec, message in (
+        (f"ct:{path}#up", "unknown option 'up'"),
+        (f"ct:{path}#body=x", "body=N needs a non-negative integer"),
+        (f"ct:{path}#kidney=cortex", "kidney= expects one of"),
+        ("ct:", "no path"),
+    ):
         with pytest.raises(ValueError, match=message):
             parse_ct_spec(spec)
     code = cli_main(["patient", "info", f"ct:{path.parent}/nowhere.nii.gz"])

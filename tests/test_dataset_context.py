@@ -6,12 +6,23 @@ import pytest
 from scipy import ndimage
 
 from drake_rus.anatomy.labels import Label, is_kidney
-from drake_rus.imaging.training.dataset import (CORTEX_MM, PARENCHYMA_MM, draw_kidney_layers,
-                                       layered_kidney)
 from drake_rus.imaging.phantoms import kidney_phantom
-from drake_rus.imaging.training.train_segmenter import (P_LAYERED, P_NO_PERIRENAL_FAT, P_THIN_CORTEX,
-                                               draw_anatomy, one_cycle_lr, randomised_anatomy,
-                                               schedule_progress, wall_variants)
+from drake_rus.imaging.training.dataset import (
+    CORTEX_MM,
+    PARENCHYMA_MM,
+    draw_kidney_layers,
+    layered_kidney,
+)
+from drake_rus.imaging.training.train_segmenter import (
+    P_LAYERED,
+    P_NO_PERIRENAL_FAT,
+    P_THIN_CORTEX,
+    draw_anatomy,
+    one_cycle_lr,
+    randomised_anatomy,
+    schedule_progress,
+    wall_variants,
+)
 
 
 @pytest.fixture(scope="module")
@@ -32,8 +43,11 @@ def test_layered_kidney_puts_cortex_medulla_and_sinus_in_layers(phantom):
     # Same outline, nothing outside the kidney touched.
     assert np.array_equal(is_kidney(lab), kid)
     assert np.array_equal(lab[~kid], vol.labels[~kid])
-    cortex, med, sinus = (lab == Label.KIDNEY_CORTEX), (lab == Label.KIDNEY_MEDULLA), \
-        (lab == Label.KIDNEY_SINUS)
+    cortex, med, sinus = (
+        (lab == Label.KIDNEY_CORTEX),
+        (lab == Label.KIDNEY_MEDULLA),
+        (lab == Label.KIDNEY_SINUS),
+    )
     assert cortex.any() and med.any() and sinus.any()
     assert depth[cortex].max() < 0.005
     assert depth[med].min() >= 0.005 and depth[med].max() < 0.012
@@ -89,6 +103,7 @@ def test_randomised_anatomy_removes_fat_and_relabels_the_inside(phantom):
 
 def test_wall_variants_include_an_imported_like_kidney(phantom):
     from drake_rus.imaging.training.evaluation import Source
+
     src = Source("phantom:7", "supine", phantom.volume, np.array([0.0, 0.0, 1.0]))
     variants = wall_variants(src, "supine", np.random.default_rng(3))
     assert variants[0].volume is phantom.volume
@@ -114,21 +129,23 @@ def test_one_cycle_lr_shape():
 
 def test_schedule_progress_follows_the_time_limit():
     assert schedule_progress(50, 100, 10.0, None) == 0.5
-    assert schedule_progress(50, 100, 80.0, 100.0) == 0.8      # time is further
-    assert schedule_progress(90, 100, 10.0, 100.0) == 0.9      # steps are further
+    assert schedule_progress(50, 100, 80.0, 100.0) == 0.8  # time is further
+    assert schedule_progress(90, 100, 10.0, 100.0) == 0.9  # steps are further
     assert schedule_progress(10, 100, 500.0, 100.0) == 1.0
 
 
 def test_train_stops_at_the_time_limit_with_an_annealed_schedule():
     pytest.importorskip("torch")
     from drake_rus.imaging.training.train_segmenter import train
+
     rng = np.random.default_rng(0)
     X = rng.integers(0, 255, (8, 32, 32)).astype(np.uint8)
     Y = np.zeros_like(X)
     Y[:, 10:20, 10:20] = 255
     logs = []
-    net = train(X, Y, width=4, epochs=2000, batch=4, time_limit=0.3, log=logs.append,
-                space_to_depth=2)
+    net = train(
+        X, Y, width=4, epochs=2000, batch=4, time_limit=0.3, log=logs.append, space_to_depth=2
+    )
     # Ended by the time limit, not by the epoch count (2000 epochs take far longer).
     assert 1 <= net.epochs_run < 2000
     assert "schedule ended" in logs[-1]
@@ -136,6 +153,7 @@ def test_train_stops_at_the_time_limit_with_an_annealed_schedule():
 
 def test_targets_met_needs_every_preset_and_both_postures():
     from drake_rus.imaging.training.train_segmenter import targets_met
+
     good = {"0.10": 0.86, "0.15": 0.9}
     assert targets_met(good, {"supine": 0.81, "left_lateral_decubitus": 0.8})["met"]
     r = targets_met({"0.10": 0.84, "0.15": 0.9}, {"supine": 0.81})
@@ -153,14 +171,32 @@ def test_record_benchmark_replaces_the_measured_figures_and_keeps_the_notes(tmp_
     import json
 
     from drake_rus.imaging.training.train_segmenter import record_benchmark
+
     card = tmp_path / "kidney_unet.json"
-    card.write_text(json.dumps({"model": "kidney_unet.onnx", "evaluation": {
-        "iou_by_depth": {"0.10": 0.5}, "diagnosis": "a note from another measurement"}}))
+    card.write_text(
+        json.dumps(
+            {
+                "model": "kidney_unet.onnx",
+                "evaluation": {
+                    "iou_by_depth": {"0.10": 0.5},
+                    "diagnosis": "a note from another measurement",
+                },
+            }
+        )
+    )
     bench = tmp_path / "bench.log"
-    bench.write_text("table\n" + json.dumps({
-        "onnx_model": "models/segmenter/kidney_unet.onnx",
-        "iou_by_depth": {"0.10": 0.86}, "iou_by_depth_ci95": {"0.10": [0.84, 0.88]},
-        "vh_female_iou": {"supine": 0.81}}) + "\n")
+    bench.write_text(
+        "table\n"
+        + json.dumps(
+            {
+                "onnx_model": "models/segmenter/kidney_unet.onnx",
+                "iou_by_depth": {"0.10": 0.86},
+                "iou_by_depth_ci95": {"0.10": [0.84, 0.88]},
+                "vh_female_iou": {"supine": 0.81},
+            }
+        )
+        + "\n"
+    )
     e = record_benchmark(card, bench)["evaluation"]
     assert e["iou_by_depth"] == {"0.10": 0.86} and e["iou_by_depth_ci95"] == {"0.10": [0.84, 0.88]}
     assert e["diagnosis"] == "a note from another measurement"

@@ -12,10 +12,10 @@ PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
 
 def _relative_links(page: Path):
     text = page.read_text()
-    text = re.sub(r"```.*?```", "", text, flags=re.S)      # code blocks are not links
+    text = re.sub(r"```.*?```", "", text, flags=re.S)  # code blocks are not links
     for target in LINK.findall(text):
         if re.match(r"[a-z]+:", target) or target.startswith("#"):
-            continue                                        # http(s), mailto, anchors
+            continue  # http(s), mailto, anchors
         yield target.split("#")[0]
 
 
@@ -32,8 +32,10 @@ def test_every_relative_link_resolves(page):
 
 def test_the_checker_finds_a_broken_link(tmp_path):
     page = tmp_path / "page.md"
-    page.write_text("[ok](page.md) [broken](nowhere.md) [web](https://drake.mit.edu)\n"
-                    "```\n[in code](not_a_link.md)\n```\n")
+    page.write_text(
+        "[ok](page.md) [broken](nowhere.md) [web](https://drake.mit.edu)\n"
+        "```\n[in code](not_a_link.md)\n```\n"
+    )
     assert [t for t in _relative_links(page) if not (page.parent / t).exists()] == ["nowhere.md"]
 
 
@@ -41,13 +43,19 @@ def test_readme_states_the_bad_input_corpus_count():
     """The README's corpus count is the number of cases pytest collects from the corpus."""
     import subprocess
     import sys
+
     m = re.search(r"holds (\d+) cases", (ROOT / "README.md").read_text())
     assert m, "README.md should state the bad-input corpus count ('holds N cases')"
     files = sorted(str(p) for p in (ROOT / "tests").glob("test_bad_input_*.py"))
-    out = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q",
-                          "-p", "no:cacheprovider", *files], cwd=ROOT, capture_output=True,
-                         text=True, timeout=300).stdout
+    out = subprocess.run(
+        [sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider", *files],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    ).stdout
     collected = re.search(r"(\d+) tests? collected", out)
     assert collected, out[-2000:]
     assert int(m.group(1)) == int(collected.group(1)), (
-        f"README says {m.group(1)} bad-input cases, pytest collects {collected.group(1)}")
+        f"README says {m.group(1)} bad-input cases, pytest collects {collected.group(1)}"
+    )

@@ -14,14 +14,19 @@ from drake_rus.control.supervisor import Phase
 from drake_rus.experiments import analysis
 from drake_rus.experiments.report import report_markdown
 from drake_rus.metrics import (
-    pivot_legs, pole_to_pole_indices, signed_pivot_angles, sweep_efficiency, tilt_cap_legs,
-    to_reach)
+    pivot_legs,
+    pole_to_pole_indices,
+    signed_pivot_angles,
+    sweep_efficiency,
+    tilt_cap_legs,
+    to_reach,
+)
 from drake_rus.scan.diagram import FrameRecord
 from drake_rus.scan.metrics import ScanMetrics, Summary
 from drake_rus.scenario import LoadScenario
 
-STEP = 0.01          # rad per frame
-L = 0.15             # image depth (m)
+STEP = 0.01  # rad per frame
+L = 0.15  # image depth (m)
 # The kidney is in the image from -25 to +20 steps of tilt; leg 1 goes out to +25 steps (five
 # past the pole, where it is lost), leg 2 back through the start to -30 steps.
 LEG1 = list(range(0, 26))
@@ -30,7 +35,7 @@ LEG2 = list(range(24, -31, -1))
 
 def _pose(k: int, p=(0.5, 0.1, 0.2)) -> RigidTransform:
     """The probe pivoted k steps about its array axis x_B from straight down."""
-    R0 = np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])     # x_P = x_B, z_P = -z_B
+    R0 = np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])  # x_P = x_B, z_P = -z_B
     R = RotationMatrix.MakeXRotation(k * STEP).matrix() @ R0
     return RigidTransform(RotationMatrix(R), list(p))
 
@@ -63,8 +68,9 @@ def test_legs_and_angles_are_recovered_from_the_poses():
     np.testing.assert_array_equal(pivot_legs(angles), legs)
     # Either sign convention of the axis gives the same legs.
     np.testing.assert_array_equal(pivot_legs(-angles), legs)
-    np.testing.assert_array_equal(pole_to_pole_indices(visible, pivot_legs(angles)),
-                                  pole_to_pole_indices(visible, legs))
+    np.testing.assert_array_equal(
+        pole_to_pole_indices(visible, pivot_legs(angles)), pole_to_pole_indices(visible, legs)
+    )
     assert tilt_cap_legs(angles, legs, max_tilt=30 * STEP) == [2]
     assert tilt_cap_legs(angles, legs, max_tilt=0.6) == []
     # No tilt at all: one leg.
@@ -74,8 +80,9 @@ def test_legs_and_angles_are_recovered_from_the_poses():
     noisy = angles.copy()
     noisy[:2] = -np.sign(angles[5]) * np.deg2rad(0.2)
     np.testing.assert_array_equal(pivot_legs(noisy), legs)
-    np.testing.assert_array_equal(pole_to_pole_indices(visible, pivot_legs(noisy)),
-                                  pole_to_pole_indices(visible, legs))
+    np.testing.assert_array_equal(
+        pole_to_pole_indices(visible, pivot_legs(noisy)), pole_to_pole_indices(visible, legs)
+    )
 
 
 def test_straight_line_pole_to_pole():
@@ -115,35 +122,58 @@ def test_scan_metrics_of_the_closed_loop_use_the_same_definition():
     """``ScanMetrics`` on a recorded pivot (legs not recorded: found from the poses)."""
     ks, poses, visible, _ = _pivot()
     scenario = LoadScenario()
-    frames = [FrameRecord(0.1 * i, i, int(Phase.EXPLORE), _pose(0, (0.5, 0.2 - 0.001 * i, 0.2)),
-                          True, 5.0) for i in range(10)]
-    frames += [FrameRecord(1 + 0.05 * i, 10 + i, int(Phase.PIVOT), X, bool(v), 5.0)
-               for i, (X, v) in enumerate(zip(poses, visible))]
-    result = types.SimpleNamespace(scenario=scenario, frames=frames, truth=None,
-                                   X_BK_estimated=None)
+    frames = [
+        FrameRecord(
+            0.1 * i, i, int(Phase.EXPLORE), _pose(0, (0.5, 0.2 - 0.001 * i, 0.2)), True, 5.0
+        )
+        for i in range(10)
+    ]
+    frames += [
+        FrameRecord(1 + 0.05 * i, 10 + i, int(Phase.PIVOT), X, bool(v), 5.0)
+        for i, (X, v) in enumerate(zip(poses, visible))
+    ]
+    result = types.SimpleNamespace(
+        scenario=scenario, frames=frames, truth=None, X_BK_estimated=None
+    )
     m = ScanMetrics(result)
     L_scan = scenario.imaging.depth
     assert m["n_frames"] == 46 and m["eps_mm"] == pytest.approx(45 * STEP * L_scan * 1e3)
     assert m["n_whole_pivot"] == 81
     assert m["eps_whole_pivot_mm"] == pytest.approx(80 * STEP * L_scan * 1e3)
     assert m["pivot"]["legs"] == 2
-    assert m["pivot"]["leg_end_tilt_deg"] == pytest.approx([math.degrees(25 * STEP),
-                                                            -math.degrees(30 * STEP)], abs=1e-6)
-    assert m["pivot"]["tilt_cap_legs"] == []       # the default cap is 0.6 rad
+    assert m["pivot"]["leg_end_tilt_deg"] == pytest.approx(
+        [math.degrees(25 * STEP), -math.degrees(30 * STEP)], abs=1e-6
+    )
+    assert m["pivot"]["tilt_cap_legs"] == []  # the default cap is 0.6 rad
     assert m["volume_ratio"] is None and m["at_matched_V"]["0.9"]["pole_to_pole"] is None
 
 
 def test_summary_says_definitions_method_and_segmenter():
     ks, poses, visible, _ = _pivot()
     scenario = LoadScenario()
-    frames = [FrameRecord(0.05 * i, i, int(Phase.PIVOT), X, bool(v), 5.0)
-              for i, (X, v) in enumerate(zip(poses, visible))]
+    frames = [
+        FrameRecord(0.05 * i, i, int(Phase.PIVOT), X, bool(v), 5.0)
+        for i, (X, v) in enumerate(zip(poses, visible))
+    ]
     loc = types.SimpleNamespace(result=None, error="", n_points=0, compute_s=0.0)
     result = types.SimpleNamespace(
-        scenario=scenario, frames=frames, truth=None, X_BK_estimated=None, localization=loc,
-        logs={"force": (np.zeros(1), np.zeros((1, 1)))}, status="DONE", reason="",
-        patient="p", wall_s=1.0, sim_s=1.0, phases=[], tracking_drift=(), length_checks=(),
-        start_plan=None, safety_events=[])
+        scenario=scenario,
+        frames=frames,
+        truth=None,
+        X_BK_estimated=None,
+        localization=loc,
+        logs={"force": (np.zeros(1), np.zeros((1, 1)))},
+        status="DONE",
+        reason="",
+        patient="p",
+        wall_s=1.0,
+        sim_s=1.0,
+        phases=[],
+        tracking_drift=(),
+        length_checks=(),
+        start_plan=None,
+        safety_events=[],
+    )
     s = Summary(result, ScanMetrics(result))
     assert s["n_frames"] == 46 and s["n_whole_pivot"] == 81
     assert s["registration_method"] == scenario.localization.method
@@ -155,8 +185,10 @@ def test_summary_says_definitions_method_and_segmenter():
 
 def _rows(passing: dict):
     """ER rows whose p-values pass (p = 0.5) or fail (p = 0.001) as ``passing`` says."""
-    return [{"er": er, "p_e_trans": 0.5 if ok else 0.001, "p_e_rot_x": 0.5}
-            for er, ok in passing.items()]
+    return [
+        {"er": er, "p_e_trans": 0.5 if ok else 0.001, "p_e_rot_x": 0.5}
+        for er, ok in passing.items()
+    ]
 
 
 def test_critical_er_rules_on_constructed_tables():
@@ -172,9 +204,11 @@ def test_critical_er_rules_on_constructed_tables():
     assert analysis.critical_er(none, rule="strict") == 1.0
     # A failing rotation error alone fails the ER; a NaN p (too few patients to test)
     # does not pass (it once did, and one patient gave "critical ER 0%").
-    rows = [{"er": 0.3, "p_e_trans": 0.5, "p_e_rot_x": 0.01},
-            {"er": 0.6, "p_e_trans": float("nan"), "p_e_rot_x": 0.2},
-            {"er": 1.0, "p_e_trans": 1.0, "p_e_rot_x": 1.0}]
+    rows = [
+        {"er": 0.3, "p_e_trans": 0.5, "p_e_rot_x": 0.01},
+        {"er": 0.6, "p_e_trans": float("nan"), "p_e_rot_x": 0.2},
+        {"er": 1.0, "p_e_trans": 1.0, "p_e_rot_x": 1.0},
+    ]
     assert analysis.critical_er(rows, rule="paper") == 1.0
     with pytest.raises(ValueError, match="rule"):
         analysis.critical_er(rows, rule="lenient")
@@ -182,17 +216,34 @@ def test_critical_er_rules_on_constructed_tables():
 
 def _eff(patient, op_n, nop_n, nop_reaches=True):
     def entry(n, whole, reach):
-        return {"n": n, "eps_mm": 0.75 * n, "V": 0.95, "n_whole_pivot": whole,
-                "eps_whole_pivot_mm": 0.75 * whole, "V_whole_pivot": 0.97,
-                "at_V": {"0.9": {"n": n - 5, "eps_mm": 0.75 * (n - 5)} if reach else None},
-                "at_V_whole_pivot": {"0.9": None}, "tilt_cap_legs": [1] if n == nop_n else [],
-                "curve_V": [0.95], "curve_eps_mm": [0.0], "volume_error_pct": 1.0,
-                "volume_ml": 100.0}
-    return {"patient": patient, "true_volume_ml": 99.0, "e_trans_mm": 3.0, "e_rot_x_deg": 3.0,
-            "strategies": {"OP": entry(op_n, op_n + 40, True),
-                           "GT-OP": entry(op_n, op_n + 40, True),
-                           "NOP": entry(nop_n, nop_n + 80, nop_reaches),
-                           "SL": entry(300, 300, True)}}
+        return {
+            "n": n,
+            "eps_mm": 0.75 * n,
+            "V": 0.95,
+            "n_whole_pivot": whole,
+            "eps_whole_pivot_mm": 0.75 * whole,
+            "V_whole_pivot": 0.97,
+            "at_V": {"0.9": {"n": n - 5, "eps_mm": 0.75 * (n - 5)} if reach else None},
+            "at_V_whole_pivot": {"0.9": None},
+            "tilt_cap_legs": [1] if n == nop_n else [],
+            "curve_V": [0.95],
+            "curve_eps_mm": [0.0],
+            "volume_error_pct": 1.0,
+            "volume_ml": 100.0,
+        }
+
+    return {
+        "patient": patient,
+        "true_volume_ml": 99.0,
+        "e_trans_mm": 3.0,
+        "e_rot_x_deg": 3.0,
+        "strategies": {
+            "OP": entry(op_n, op_n + 40, True),
+            "GT-OP": entry(op_n, op_n + 40, True),
+            "NOP": entry(nop_n, nop_n + 80, nop_reaches),
+            "SL": entry(300, 300, True),
+        },
+    }
 
 
 def test_efficiency_definitions_matched_coverage_and_tilt_cap():
@@ -200,11 +251,13 @@ def test_efficiency_definitions_matched_coverage_and_tilt_cap():
     an = analysis.analyze_efficiency(res)
     c = {(x["definition"], x["comparison"], x["metric"]): x for x in an["comparisons"]}
     assert c[("pole_to_pole", "OP vs NOP", "n")]["reduction_mean"] == pytest.approx(
-        np.mean([70 + k for k in range(5)]))
+        np.mean([70 + k for k in range(5)])
+    )
     assert c[("whole_pivot", "OP vs NOP", "n")]["reduction_mean"] == pytest.approx(
-        np.mean([110 + k for k in range(5)]))
+        np.mean([110 + k for k in range(5)])
+    )
     at = c[("at_V0.9", "OP vs NOP", "n")]
-    assert at["patients"] == 4          # test:0's NOP never reaches V 0.9
+    assert at["patients"] == 4  # test:0's NOP never reaches V 0.9
     assert at["reduction_mean"] == pytest.approx(np.mean([70 + k for k in range(1, 5)]))
     s = an["summary"]
     assert s["NOP"]["reached_V"] == 4 and s["OP"]["reached_V"] == 5
@@ -222,15 +275,33 @@ def test_efficiency_definitions_matched_coverage_and_tilt_cap():
 def test_report_says_what_produced_every_figure():
     res = [_eff(f"test:{k}", 80 + k, 150 + 2 * k) for k in range(3)]
     eff = analysis.analyze_efficiency(res)
-    er_results = [{"patient": f"test:{k}", "er": er, "e_trans_mm": 3.0 + k + (er < 0.5),
-                   "e_rot_x_deg": 3.0 + k, "registration_ms": 1.0, "points": 10,
-                   "er_unit": "kidney", "kidney_length_mm": 100.0 + 10 * k}
-                  for k in range(3) for er in (0.3, 0.6, 1.0)]
+    er_results = [
+        {
+            "patient": f"test:{k}",
+            "er": er,
+            "e_trans_mm": 3.0 + k + (er < 0.5),
+            "e_rot_x_deg": 3.0 + k,
+            "registration_ms": 1.0,
+            "points": 10,
+            "er_unit": "kidney",
+            "kidney_length_mm": 100.0 + 10 * k,
+        }
+        for k in range(3)
+        for er in (0.3, 0.6, 1.0)
+    ]
     er = analysis.analyze_er_sweep(er_results)
     assert er["rule"] == "paper" and er["er_unit"] == "kidney"
-    meta = {"patients": ["test:0", "test:1", "test:2"], "segmenter": "oracle", "method": "seed",
-            "voxel": 0.002, "seed": 0, "er": 0.6, "er_unit": "kidney",
-            "critical_er_rule": "paper", "wall_s": 1.0}
+    meta = {
+        "patients": ["test:0", "test:1", "test:2"],
+        "segmenter": "oracle",
+        "method": "seed",
+        "voxel": 0.002,
+        "seed": 0,
+        "er": 0.6,
+        "er_unit": "kidney",
+        "critical_er_rule": "paper",
+        "wall_s": 1.0,
+    }
     text = report_markdown(meta, er, None, eff, None)
     blocks = [b for b in text.split("\n## ")[1:] if not b.startswith("Method notes")]
     assert len(blocks) == 2

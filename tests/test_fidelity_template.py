@@ -45,10 +45,18 @@ def test_template_variants_geometry():
 
 
 def test_analyze_template_trend():
-    res = [{"patient": f"test:{k}", "er": 0.6, "template_variant": v,
-            "template_distance_mm": d + 0.1 * k, "e_trans_mm": 2 * (d + 0.1 * k) + 1,
-            "e_rot_x_deg": 3.0 + k}
-           for k in range(4) for v, d in (("mean", 2.0), ("scale-0.9", 6.0))]
+    res = [
+        {
+            "patient": f"test:{k}",
+            "er": 0.6,
+            "template_variant": v,
+            "template_distance_mm": d + 0.1 * k,
+            "e_trans_mm": 2 * (d + 0.1 * k) + 1,
+            "e_rot_x_deg": 3.0 + k,
+        }
+        for k in range(4)
+        for v, d in (("mean", 2.0), ("scale-0.9", 6.0))
+    ]
     an = analysis.analyze_template(res)
     assert [r["variant"] for r in an["rows"]] == ["mean", "scale-0.9"]
     assert an["trend"]["e_trans_mm"]["slope_per_mm"] == pytest.approx(2.0)
@@ -57,9 +65,25 @@ def test_analyze_template_trend():
 
 
 def test_tiny_template_study(tmp_path):
-    code = main(["study", "template", "--patients", "test:2", "--variants",
-                 "mean,scale-0.9", "--er", "0.6", "--out", str(tmp_path), "--workers", "0",
-                 "--no-progress", "--set", "{localization: {max_points: 1500}}"])
+    code = main(
+        [
+            "study",
+            "template",
+            "--patients",
+            "test:2",
+            "--variants",
+            "mean,scale-0.9",
+            "--er",
+            "0.6",
+            "--out",
+            str(tmp_path),
+            "--workers",
+            "0",
+            "--no-progress",
+            "--set",
+            "{localization: {max_points: 1500}}",
+        ]
+    )
     assert code == 0
     runs = st.load_study_results(tmp_path, "template")
     d = {r["template_variant"]: r["template_distance_mm"] for r in runs}
@@ -69,5 +93,20 @@ def test_tiny_template_study(tmp_path):
     report = (tmp_path / "report.md").read_text()
     assert "## Template mismatch" in report and "registration: `seed`" in report
     assert (tmp_path / "fig_template_mismatch.png").stat().st_size > 0
-    assert main(["study", "template", "--patients", "test:2", "--variants", "bogus",
-                 "--workers", "0", "--out", str(tmp_path / "x")]) == 2
+    assert (
+        main(
+            [
+                "study",
+                "template",
+                "--patients",
+                "test:2",
+                "--variants",
+                "bogus",
+                "--workers",
+                "0",
+                "--out",
+                str(tmp_path / "x"),
+            ]
+        )
+        == 2
+    )

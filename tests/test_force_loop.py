@@ -30,7 +30,7 @@ def test_rigid_limit_matches_the_closed_form_polynomial():
     got = z[np.abs(z) > 1e-9]
     for root in list(expected) + [TAU / (h + TAU)]:
         assert np.min(np.abs(got - root)) < 1e-9
-    assert np.max(np.abs(expected)) > 1.0          # this gain is unstable on a rigid contact
+    assert np.max(np.abs(expected)) > 1.0  # this gain is unstable on a rigid contact
 
 
 def test_soft_contact_pole_is_the_series_stiffness_integrator():
@@ -150,12 +150,18 @@ def test_force_statistics_ripple_and_settled():
 
 def test_phase_force_statistics_and_the_scan_summary_force_block():
     import types
+
     from drake_rus.scan.metrics import _force_block
+
     t = np.arange(0.0, 10.0, 0.01)
     F = np.where(t <= 4.0 + 1e-9, 9.0 + 0.05 * np.sin(2 * np.pi * 2 * t), 8.0)
-    F[(t >= 2.0) & (t < 2.5)] = 20.0                     # the landing, skipped in EXPLORE
-    phases = [("APPROACH", 0.0, 2.0), ("EXPLORE", 2.0, 4.0), ("LOCALIZE", 4.0, 5.0),
-              ("PIVOT", 5.0, 9.0)]
+    F[(t >= 2.0) & (t < 2.5)] = 20.0  # the landing, skipped in EXPLORE
+    phases = [
+        ("APPROACH", 0.0, 2.0),
+        ("EXPLORE", 2.0, 4.0),
+        ("LOCALIZE", 4.0, 5.0),
+        ("PIVOT", 5.0, 9.0),
+    ]
     stats = fl.phase_force_statistics(t, F, phases)
     assert set(stats) == {"EXPLORE", "LOCALIZE", "PIVOT"}
     assert stats["EXPLORE"]["mean_n"] == pytest.approx(9.0, abs=0.01)
@@ -164,8 +170,9 @@ def test_phase_force_statistics_and_the_scan_summary_force_block():
     # The summary's block reads the true force (simulation) when there is one ...
     wrench = np.zeros((6, t.size))
     wrench[5] = -F
-    result = types.SimpleNamespace(logs={"force_true": (t, wrench),
-                                         "force": (t, np.zeros((1, t.size)))}, phases=phases)
+    result = types.SimpleNamespace(
+        logs={"force_true": (t, wrench), "force": (t, np.zeros((1, t.size)))}, phases=phases
+    )
     block = _force_block(result)
     assert block["source"] == "true contact force" and block["log_period_s"] == pytest.approx(0.01)
     assert block["EXPLORE"]["mean_n"] == pytest.approx(9.0, abs=0.01)
@@ -181,18 +188,22 @@ def test_phase_force_statistics_and_the_scan_summary_force_block():
 # settled hold, then the linearized one-period map of the held diagram with every pole
 # inside the unit circle (the hold stays still however long it lasts).
 
+
 @pytest.mark.parametrize("modulus, h", [(5e4, 0.01), (1e6, 0.01), (2e5, 0.001)])
 def test_press_diagram_settles_and_its_hold_is_linearly_stable(modulus, h):
     from pydrake.systems.analysis import Simulator
+
     from benchmarks.force_loop import _poles, period_map
     from drake_rus.closed_loop import PressDiagram
     from drake_rus.scenario import LoadScenario
-    scenario = LoadScenario(scenario_text=f"{{contact: {{hydroelastic_modulus: {modulus}, "
-                                          f"time_step: {h}}}}}")
+
+    scenario = LoadScenario(
+        scenario_text=f"{{contact: {{hydroelastic_modulus: {modulus}, time_step: {h}}}}}"
+    )
     press = PressDiagram(scenario)
     sim = Simulator(press.diagram)
     sim.Initialize()
-    sim.AdvanceTo(10.0 + h / 2)       # just after a controller update (period_map's cut)
+    sim.AdvanceTo(10.0 + h / 2)  # just after a controller update (period_map's cut)
     t, F = press.true_force(sim.get_context())
     stats = fl.force_statistics(t, F, 9.0, window=4.0)
     assert stats["settled"] and stats["ripple_n"] <= 0.1, stats
@@ -204,12 +215,14 @@ def test_press_diagram_settles_and_its_hold_is_linearly_stable(modulus, h):
 def test_press_diagram_holds_still_for_60_s_at_10_ms():
     from benchmarks.force_loop import press_hold
     from drake_rus.scenario import LoadScenario
-    stats = press_hold(LoadScenario(), 60.0, window=50.0)     # settled within 10 s
+
+    stats = press_hold(LoadScenario(), 60.0, window=50.0)  # settled within 10 s
     assert stats["settled"] and stats["ripple_n"] <= 0.1 and stats["peak_to_peak_n"] <= 0.01
 
 
 def test_scan_controller_holds_still_at_test0_start():
     from benchmarks.force_loop import scan_controller_hold
     from drake_rus.scenario import LoadScenario
+
     stats = scan_controller_hold(LoadScenario(), "test:0", 6.0, window=2.0)
     assert stats["settled"] and stats["ripple_n"] < 0.01, stats

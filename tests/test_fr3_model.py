@@ -6,7 +6,7 @@ from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import MultibodyPlant
 
-from drake_rus.paths import AddDrakeRusPackages, MODELS_DIR
+from drake_rus.paths import MODELS_DIR, AddDrakeRusPackages
 
 frankik = pytest.importorskip("frankik", reason="frankik is in the test extra")
 
@@ -33,8 +33,9 @@ def hand_tcp(plant, context, q):
     """Our flange * Rz(-pi/4) * tz(0.1034): the hand TCP that frankik.fk returns."""
     plant.SetPositions(context, q)
     X_WF = plant.GetFrameByName("fr3_link8").CalcPoseInWorld(context)
-    X_FH = RigidTransform(RotationMatrix.MakeZRotation(-np.pi / 4), [0, 0, 0]) @ \
-        RigidTransform([0, 0, 0.1034])
+    X_FH = RigidTransform(RotationMatrix.MakeZRotation(-np.pi / 4), [0, 0, 0]) @ RigidTransform(
+        [0, 0, 0.1034]
+    )
     return X_WF @ X_FH
 
 
@@ -47,12 +48,15 @@ def test_forward_kinematics_matches_frankik(fr3):
         q = rng.uniform(Q_MIN, Q_MAX)
         X_ours = hand_tcp(plant, context, q)
         X_ref = frankik.fk(q)
-        worst_position = max(worst_position,
-                             np.linalg.norm(X_ours.translation() - X_ref[:3, 3]))
+        worst_position = max(worst_position, np.linalg.norm(X_ours.translation() - X_ref[:3, 3]))
         R_err = X_ours.rotation().matrix().T @ X_ref[:3, :3]
         # atan2 form: accurate for tiny angles, unlike arccos of the trace.
-        skew = np.array([R_err[2, 1] - R_err[1, 2], R_err[0, 2] - R_err[2, 0],
-                         R_err[1, 0] - R_err[0, 1]]) / 2
+        skew = (
+            np.array(
+                [R_err[2, 1] - R_err[1, 2], R_err[0, 2] - R_err[2, 0], R_err[1, 0] - R_err[0, 1]]
+            )
+            / 2
+        )
         angle = np.arctan2(np.linalg.norm(skew), (np.trace(R_err) - 1) / 2)
         worst_angle = max(worst_angle, angle)
     assert worst_position < 1e-9
@@ -81,9 +85,12 @@ def test_limits_and_inertials(fr3):
 
 def test_committed_urdf_is_generated():
     import importlib.util
+
     spec = importlib.util.spec_from_file_location(
-        "generate_fr3_urdf", MODELS_DIR / "fr3" / "generate_fr3_urdf.py")
+        "generate_fr3_urdf", MODELS_DIR / "fr3" / "generate_fr3_urdf.py"
+    )
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    assert (MODELS_DIR / "fr3" / "fr3.urdf").read_text() == module.build_urdf(), \
+    assert (MODELS_DIR / "fr3" / "fr3.urdf").read_text() == module.build_urdf(), (
         "models/fr3/fr3.urdf is stale: run python models/fr3/generate_fr3_urdf.py"
+    )

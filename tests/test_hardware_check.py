@@ -17,8 +17,12 @@ from pydrake.systems.analysis import Simulator
 
 from drake_rus import bringup
 from drake_rus.bringup import (
-    BuildHardwareClosedLoop, MotionResult, RunLatencyCalibration, ScriptedMotion,
-    motion_failures)
+    BuildHardwareClosedLoop,
+    MotionResult,
+    RunLatencyCalibration,
+    ScriptedMotion,
+    motion_failures,
+)
 from drake_rus.hardware import cli
 from drake_rus.hardware.lcm_sim_driver import SimulatedPandaDriver
 from drake_rus.hardware.station import MakeHardwareStation
@@ -31,11 +35,17 @@ pytestmark = pytest.mark.timeout(180)
 
 
 def lcm_scenario(**hw):
-    fields = {"backend": "lcm", "dry_run": True, "tau_external_bias_duration": 0.0,
-              "connect_timeout": 5.0, "status_timeout": 1.0, "command_timeout": 1.0,
-              # The simulated robot reports no probe weight: as if the probe were entered
-              # in Desk (lcm_compensate_load must then be off).
-              "lcm_compensate_load": False}
+    fields = {
+        "backend": "lcm",
+        "dry_run": True,
+        "tau_external_bias_duration": 0.0,
+        "connect_timeout": 5.0,
+        "status_timeout": 1.0,
+        "command_timeout": 1.0,
+        # The simulated robot reports no probe weight: as if the probe were entered
+        # in Desk (lcm_compensate_load must then be off).
+        "lcm_compensate_load": False,
+    }
     fields.update(hw)
     return hardware_scenario(fields)
 
@@ -47,12 +57,14 @@ class Rig:
     def __init__(self, scenario, tau_drake=None, video=None, **station_kwargs):
         self.lcm = DrakeLcm("memq://")
         self.q0 = np.asarray(scenario.robot.initial_joint_positions, float)
-        self.driver = SimulatedPandaDriver(self.lcm, self.q0, command_expiry=1.0,
-                                           tau_external_drake=tau_drake)
+        self.driver = SimulatedPandaDriver(
+            self.lcm, self.q0, command_expiry=1.0, tau_external_drake=tau_drake
+        )
         self.dsim = Simulator(self.driver)
         self.dsim.Initialize()
-        self.station = MakeHardwareStation(scenario, lcm=self.lcm, lcm_idle=self.step,
-                                           video=video, **station_kwargs)
+        self.station = MakeHardwareStation(
+            scenario, lcm=self.lcm, lcm_idle=self.step, video=video, **station_kwargs
+        )
         self._offset = None
 
     def step(self, dt=0.005):
@@ -67,8 +79,9 @@ class Rig:
 
     def set_tau(self, tau_drake):
         src = self.driver.tau_source
-        src.get_mutable_source_value(src.GetMyMutableContextFromRoot(
-            self.dsim.get_context())).SetFromVector(tau_drake)
+        src.get_mutable_source_value(
+            src.GetMyMutableContextFromRoot(self.dsim.get_context())
+        ).SetFromVector(tau_drake)
 
     def q(self):
         return self.driver.GetOutputPort("position").Eval(self.dsim.get_context())
@@ -101,15 +114,22 @@ def run_check(monkeypatch, rig, scenario, push=None, **args):
                 rig.set_tau(push)
             if on_step is not None:
                 on_step()
+
         return real(sim, station, duration, check_period=0.01, on_step=step)
+
     monkeypatch.setattr(bringup, "RunHardware", with_driver)
     ns = argparse.Namespace(dry_run=True, duration=0.9, rest=0.3, readout_hz=10.0)
     for k, v in args.items():
         setattr(ns, k, v)
     try:
-        failures = bringup.CheckStation(scenario, rig.station, dry_run=ns.dry_run,
-                                        duration=ns.duration, rest=ns.rest,
-                                        readout_hz=ns.readout_hz)
+        failures = bringup.CheckStation(
+            scenario,
+            rig.station,
+            dry_run=ns.dry_run,
+            duration=ns.duration,
+            rest=ns.rest,
+            readout_hz=ns.readout_hz,
+        )
         return cli._report("check", failures)
     finally:
         rig.station.close()
@@ -117,11 +137,11 @@ def run_check(monkeypatch, rig, scenario, push=None, **args):
 
 def test_check_dry_run_live_readouts_and_push_test(monkeypatch, capsys):
     scenario = lcm_scenario()
-    push = wrench_torque(scenario, [0, 0, 0, 0, 0, -6.0])     # the face pushed back: f_z < 0
+    push = wrench_torque(scenario, [0, 0, 0, 0, 0, -6.0])  # the face pushed back: f_z < 0
     rc = run_check(monkeypatch, Rig(scenario), scenario, push=push)
     out = capsys.readouterr().out
     lines = [ln for ln in out.splitlines() if ln.startswith("t=")]
-    assert len(lines) >= 6, out                              # ~10 read-outs a second
+    assert len(lines) >= 6, out  # ~10 read-outs a second
     assert "q=[" in lines[0] and "|f|=" in lines[0] and "no video" in lines[0]
     assert "push test: strongest push f = [" in out and "-6.0] N" in out
     assert "control loop:" in out and "dry run: no motion was commanded" in out
@@ -133,7 +153,8 @@ def test_check_exit_code_names_missed_checks(monkeypatch, capsys):
     scenario = lcm_scenario()
     plant, _ = MakeControlPlant(scenario.robot, scenario.probe)
     weight = ProbeLoadTorque(plant, scenario.probe.mass, scenario.probe.p_FCm)(
-        scenario.robot.initial_joint_positions)
+        scenario.robot.initial_joint_positions
+    )
     # An undeclared probe (5.4 N at rest) and a push that reads f_z > 0 (a sign error).
     wrong_sign = weight + wrench_torque(scenario, [0, 0, 0, 0, 0, +6.0])
     rc = run_check(monkeypatch, Rig(scenario, tau_drake=weight), scenario, push=wrong_sign)
@@ -147,12 +168,32 @@ def test_check_exit_code_names_missed_checks(monkeypatch, capsys):
 
 def test_check_motion_thresholds(monkeypatch, capsys):
     X0 = RigidTransform()
-    good = MotionResult(X0, X0, np.array([0, 0, 1.0]), np.array([1.0, 0, 0]), np.zeros(2),
-                        np.zeros(7), np.zeros(7), (), 10, 3.0)
+    good = MotionResult(
+        X0,
+        X0,
+        np.array([0, 0, 1.0]),
+        np.array([1.0, 0, 0]),
+        np.zeros(2),
+        np.zeros(7),
+        np.zeros(7),
+        (),
+        10,
+        3.0,
+    )
     assert motion_failures(good, ScriptedMotion(duration=15.0, settle_angle=0.01)) == []
     tilted = RigidTransform(RotationMatrix.MakeXRotation(math.radians(0.8)), np.zeros(3))
-    bad = MotionResult(X0, tilted, np.array([0, 0, 1.0]), np.array([1.0, 0, 0]),
-                       np.array([0.0, 0.002]), np.zeros(7), np.zeros(7), (), 10, 15.0)
+    bad = MotionResult(
+        X0,
+        tilted,
+        np.array([0, 0, 1.0]),
+        np.array([1.0, 0, 0]),
+        np.array([0.0, 0.002]),
+        np.zeros(7),
+        np.zeros(7),
+        (),
+        10,
+        15.0,
+    )
     failures = motion_failures(bad, ScriptedMotion(duration=15.0, settle_angle=0.01))
     assert any("approach error 0.80 deg >= 0.5 deg" in f for f in failures)
     assert any("tip x-y error 2.00 mm >= 1.5 mm" in f for f in failures)
@@ -169,9 +210,16 @@ def test_check_motion_thresholds(monkeypatch, capsys):
 def test_check_unreachable_robot_message_timing(capsys):
     pytest.importorskip("franky", reason="franky-control is not installed")
     from drake_rus.cli import main
+
     start = time.monotonic()
-    rc = main(["hardware", "check", "--set",
-               "{hardware_interface: {robot_ip: 127.0.0.9, connect_timeout: 0.5}}"])
+    rc = main(
+        [
+            "hardware",
+            "check",
+            "--set",
+            "{hardware_interface: {robot_ip: 127.0.0.9, connect_timeout: 0.5}}",
+        ]
+    )
     spent = time.monotonic() - start
     err = capsys.readouterr().err
     assert rc == 2
@@ -198,7 +246,7 @@ def test_calibrate_latency_end_to_end():
 
     plant.SetPositions(fk, scenario.robot.initial_joint_positions)
     X0 = tip.CalcPoseInWorld(fk)
-    p_target_B = X0.multiply([0.0, 0.0, 0.06])              # 6 cm below the probe face
+    p_target_B = X0.multiply([0.0, 0.0, 0.06])  # 6 cm below the probe face
 
     def render(t):
         X = true_pose(t)
@@ -220,25 +268,40 @@ def test_calibrate_latency_end_to_end():
 
     try:
         loop = BuildHardwareClosedLoop(scenario, station)
-        result = RunLatencyCalibration(loop, station, amplitude=0.01, period=1.2, cycles=2.5,
-                                       max_latency=0.4, check_period=0.005, on_step=follow)
+        result = RunLatencyCalibration(
+            loop,
+            station,
+            amplitude=0.01,
+            period=1.2,
+            cycles=2.5,
+            max_latency=0.4,
+            check_period=0.005,
+            on_step=follow,
+        )
     finally:
         station.close()
     est = result.estimate
     error = abs(est.latency - latency)
     moved = np.ptp(result.positions @ X0.rotation().matrix()[:, 0])
-    print(f"\n[latency e2e] true {1e3 * latency:.0f} ms, estimated {1e3 * est.latency:.1f} ms "
-          f"(error {1e3 * error:.1f} ms, {est.frames} frames at {fps:g} fps, correlation "
-          f"{est.correlation:+.3f}, probe moved {1e3 * moved:.1f} mm)")
+    print(
+        f"\n[latency e2e] true {1e3 * latency:.0f} ms, estimated {1e3 * est.latency:.1f} ms "
+        f"(error {1e3 * error:.1f} ms, {est.frames} frames at {fps:g} fps, correlation "
+        f"{est.correlation:+.3f}, probe moved {1e3 * moved:.1f} mm)"
+    )
     assert moved > 0.005
     assert error < 1.0 / fps
 
 
 def _cli_args(tmp_path, **extra):
     from drake_rus.scenario import DEFAULT_SCENARIOS_FILE
-    ns = argparse.Namespace(scenarios_file=str(DEFAULT_SCENARIOS_FILE), scenario="default",
-                            overrides="{hardware_interface: {video_source: '0'}}",
-                            recover=False, readout_hz=10.0)
+
+    ns = argparse.Namespace(
+        scenarios_file=str(DEFAULT_SCENARIOS_FILE),
+        scenario="default",
+        overrides="{hardware_interface: {video_source: '0'}}",
+        recover=False,
+        readout_hz=10.0,
+    )
     for k, v in extra.items():
         setattr(ns, k, v)
     return ns
@@ -255,6 +318,7 @@ def test_grab_saves_pictures_and_joints_for_calibrate_image(monkeypatch, tmp_pat
     # (asked for by grab) reaches it.
     def make(scenario, **kw):
         return Rig(lcm_scenario(), video=SyntheticVideo(dot, 30.0), **kw).station
+
     monkeypatch.setattr(cli, "MakeHardwareStation", make)
     out = tmp_path / "grabs"
     for _ in range(2):
@@ -271,10 +335,10 @@ def test_grab_saves_pictures_and_joints_for_calibrate_image(monkeypatch, tmp_pat
 def test_pivot_command_refuses_a_probe_that_did_not_pivot(monkeypatch, tmp_path, capsys):
     def make(scenario, **kw):
         return Rig(lcm_scenario()).station
+
     monkeypatch.setattr(cli, "MakeHardwareStation", make)
     csv = tmp_path / "q.csv"
-    rc = cli.run_pivot(_cli_args(tmp_path, duration=0.5, rate=20.0, save=str(csv),
-                                 overrides=None))
+    rc = cli.run_pivot(_cli_args(tmp_path, duration=0.5, rate=20.0, save=str(csv), overrides=None))
     captured = capsys.readouterr()
     assert rc == 1
     assert "do not rotate enough" in captured.err

@@ -10,9 +10,8 @@ from pydrake.math import RollPitchYaw, RotationMatrix
 
 from drake_rus.hardware import core
 from drake_rus.hardware.calibration import flange_poses_from_joints, pivot_calibration
+from drake_rus.robot import MakeControlPlant, estimate_tip_wrench
 from drake_rus.scenario import ApplyOverrides, Scenario, ScenarioError
-from drake_rus.robot import estimate_tip_wrench
-from drake_rus.robot import MakeControlPlant
 
 V_MAX = np.array([0.8, 0.4, 0.6, 0.5, 1.2, 0.6, 1.2])
 A_MAX = np.full(7, 2.0)
@@ -25,12 +24,12 @@ def test_external_torque_sign_flip_gives_drake_convention():
     context = plant.CreateDefaultContext()
     plant.SetPositions(context, scenario.robot.initial_joint_positions)
     from pydrake.multibody.tree import JacobianWrtVariable
+
     W = plant.world_frame()
-    J = plant.CalcJacobianSpatialVelocity(context, JacobianWrtVariable.kV, tip, np.zeros(3),
-                                          W, W)
+    J = plant.CalcJacobianSpatialVelocity(context, JacobianWrtVariable.kV, tip, np.zeros(3), W, W)
     F_env_on_probe_W = np.array([0, 0, 0, 0, 0, 8.0])
-    tau_drake = J.T @ F_env_on_probe_W               # Drake: environment on the arm
-    tau_libfranka = -tau_drake                        # libfranka: robot on environment
+    tau_drake = J.T @ F_env_on_probe_W  # Drake: environment on the arm
+    tau_libfranka = -tau_drake  # libfranka: robot on environment
     tau = core.external_torque_to_drake(tau_libfranka)
     np.testing.assert_allclose(tau, tau_drake)
     R_WP = tip.CalcPoseInWorld(context).rotation().matrix()
@@ -66,13 +65,13 @@ def test_guard_command_limits_acceleration_and_zeroes_on_faults():
     prev = np.zeros(7)
     desired = np.array([0.3, 0, 0, 0, 0, 0, -0.3])
     out = core.guard_command(desired, prev, dt, V_MAX, A_MAX)
-    np.testing.assert_allclose(out, [0.01, 0, 0, 0, 0, 0, -0.01])   # a_max dt = 0.01
+    np.testing.assert_allclose(out, [0.01, 0, 0, 0, 0, 0, -0.01])  # a_max dt = 0.01
     steps = 0
     while not np.allclose(out, desired):
         out = core.guard_command(desired, out, dt, V_MAX, A_MAX)
         steps += 1
         assert np.all(np.abs(out) <= V_MAX + 1e-12)
-    assert steps == 29                                                  # 0.3 / 0.01 - 1
+    assert steps == 29  # 0.3 / 0.01 - 1
     # Disabled (dry run, stop, fault) or non-finite: zero at once.
     assert not np.any(core.guard_command(desired, out, dt, V_MAX, A_MAX, enabled=False))
     bad = desired.copy()
@@ -83,7 +82,8 @@ def test_guard_command_limits_acceleration_and_zeroes_on_faults():
     # A non-finite previous command counts as rest.
     np.testing.assert_allclose(
         core.guard_command(desired, np.full(7, math.nan), dt, V_MAX, A_MAX),
-        [0.01, 0, 0, 0, 0, 0, -0.01])
+        [0.01, 0, 0, 0, 0, 0, -0.01],
+    )
 
 
 def test_watchdog_expired():
@@ -94,7 +94,7 @@ def test_watchdog_expired():
 
 def test_crop_and_grey_and_fit():
     picture = np.zeros((240, 320, 3), np.uint8)
-    picture[40:200, 60:260] = (10, 200, 30)   # BGR
+    picture[40:200, 60:260] = (10, 200, 30)  # BGR
     assert core.check_crop([0, 0, 0, 0], picture.shape) == (0, 0, 320, 240)
     cropped = core.crop_image(picture, [60, 40, 200, 160])
     assert cropped.shape == (160, 200, 3)
@@ -104,8 +104,11 @@ def test_crop_and_grey_and_fit():
     fitted = core.fit_image(grey, (256, 256))
     assert fitted.shape == (256, 256) and fitted.dtype == np.uint8
     assert core.fit_image(grey, (160, 200)) is grey
-    for bad, what in (([300, 0, 40, 40], "reaches past"), ([0, 0, 0, 10], "width"),
-                      ([0, 0, 10], "x, y, width, height")):
+    for bad, what in (
+        ([300, 0, 40, 40], "reaches past"),
+        ([0, 0, 0, 10], "width"),
+        ([0, 0, 10], "x, y, width, height"),
+    ):
         with pytest.raises(ValueError, match="hardware_interface.video_crop") as e:
             core.check_crop(bad, picture.shape)
         assert what in str(e.value)
@@ -127,8 +130,9 @@ def test_pivot_calibration_recovers_tip_and_pivot():
     p_BT = np.array([0.55, 0.05, 0.12])
     rotations, translations = [], []
     for _ in range(12):
-        rpy = RollPitchYaw(np.pi + rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5),
-                           rng.uniform(-np.pi, np.pi))
+        rpy = RollPitchYaw(
+            np.pi + rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5), rng.uniform(-np.pi, np.pi)
+        )
         R = RotationMatrix(rpy).matrix()
         rotations.append(R)
         translations.append(p_BT - R @ p_FT + rng.normal(0, 2e-4, 3))  # 0.2 mm noise
@@ -159,6 +163,7 @@ def test_pivot_calibration_from_joint_configurations():
     back to the scenario's tip offset."""
     from pydrake.multibody.inverse_kinematics import InverseKinematics
     from pydrake.solvers import Solve
+
     scenario = Scenario()
     plant, tip = MakeControlPlant(scenario.robot, scenario.probe)
     context = plant.CreateDefaultContext()
@@ -169,8 +174,13 @@ def test_pivot_calibration_from_joint_configurations():
     for ax, ay in ((0, 0), (0.3, 0), (-0.3, 0), (0, 0.3), (0, -0.3), (0.2, 0.2)):
         ik = InverseKinematics(plant)
         R_target = X_BT0.rotation() @ RotationMatrix(RollPitchYaw(ax, ay, 0.0))
-        ik.AddPositionConstraint(tip, np.zeros(3), plant.world_frame(),
-                                 X_BT0.translation() - 1e-6, X_BT0.translation() + 1e-6)
+        ik.AddPositionConstraint(
+            tip,
+            np.zeros(3),
+            plant.world_frame(),
+            X_BT0.translation() - 1e-6,
+            X_BT0.translation() + 1e-6,
+        )
         ik.AddOrientationConstraint(plant.world_frame(), R_target, tip, RotationMatrix(), 1e-4)
         ik.prog().SetInitialGuess(ik.q(), q0)
         result = Solve(ik.prog())
@@ -185,21 +195,27 @@ def test_pivot_calibration_from_joint_configurations():
 
 def test_hardware_config_validation_names_fields():
     s = Scenario()
-    for text, field in (("{hardware_interface: {backend: ros}}", "backend"),
-                        ("{hardware_interface: {max_joint_velocity: [1, 2]}}",
-                         "max_joint_velocity"),
-                        ("{hardware_interface: {max_joint_acceleration: [20,1,1,1,1,1,1]}}",
-                         "max_joint_acceleration"),
-                        ("{hardware_interface: {command_timeout: 0}}", "command_timeout"),
-                        ("{hardware_interface: {video_crop: [0, 0, -1, 4]}}", "video_crop"),
-                        ("{hardware_interface: {robot_ipp: 1.2.3.4}}", "robot_ipp")):
+    for text, field in (
+        ("{hardware_interface: {backend: ros}}", "backend"),
+        ("{hardware_interface: {max_joint_velocity: [1, 2]}}", "max_joint_velocity"),
+        (
+            "{hardware_interface: {max_joint_acceleration: [20,1,1,1,1,1,1]}}",
+            "max_joint_acceleration",
+        ),
+        ("{hardware_interface: {command_timeout: 0}}", "command_timeout"),
+        ("{hardware_interface: {video_crop: [0, 0, -1, 4]}}", "video_crop"),
+        ("{hardware_interface: {robot_ipp: 1.2.3.4}}", "robot_ipp"),
+    ):
         with pytest.raises(ScenarioError, match=f"hardware_interface.{field}"):
             ApplyOverrides(s, text)
-    ok = ApplyOverrides(s, "{hardware: true, hardware_interface: {backend: lcm, "
-                           "video_crop: [10, 20, 300, 200], dry_run: false}}")
+    ok = ApplyOverrides(
+        s,
+        "{hardware: true, hardware_interface: {backend: lcm, "
+        "video_crop: [10, 20, 300, 200], dry_run: false}}",
+    )
     assert ok.hardware_interface.backend == "lcm" and not ok.hardware_interface.dry_run
     assert ok.hardware_interface.video_crop == [10, 20, 300, 200]
-    assert Scenario().hardware_interface.dry_run   # safe default: never moves
+    assert Scenario().hardware_interface.dry_run  # safe default: never moves
 
 
 def test_command_guard_system_limits_latches_and_dry_runs():
@@ -207,6 +223,7 @@ def test_command_guard_system_limits_latches_and_dry_runs():
 
     from drake_rus.hardware.config import HardwareConfig
     from drake_rus.hardware.systems import CommandGuard
+
     guard = CommandGuard(HardwareConfig(dry_run=False), rate_hz=200.0)
     sim = Simulator(guard)
     ctx = sim.get_context()
@@ -224,7 +241,7 @@ def test_command_guard_system_limits_latches_and_dry_runs():
     assert not np.any(out.Eval(ctx))
     sim.AdvanceTo(1.01)
     guard.GetInputPort("robot_ok").FixValue(ctx, [1.0])
-    assert not np.any(out.Eval(ctx))                     # a fault latches the stop
+    assert not np.any(out.Eval(ctx))  # a fault latches the stop
     assert guard.GetOutputPort("stopped").Eval(ctx)[0] == 1.0
     dry = CommandGuard(HardwareConfig(dry_run=True), rate_hz=200.0)
     dctx = dry.CreateDefaultContext()

@@ -27,8 +27,12 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
 
 from drake_rus.bringup import BuildHardwareClosedLoop, RunScriptedMotion, ScriptedMotion
-from drake_rus.hardware.station import (HardwareFault, HardwareStation, MakeHardwareStation,
-                                        RunHardware)
+from drake_rus.hardware.station import (
+    HardwareFault,
+    HardwareStation,
+    MakeHardwareStation,
+    RunHardware,
+)
 from drake_rus.stations import MakeStation
 
 pytestmark = pytest.mark.timeout(240)
@@ -48,7 +52,7 @@ FRANKY_SIM = _franky_sim_executable()
 if FRANKY_SIM is None:
     pytest.skip("franky-sim is not installed (pip install franky-sim)", allow_module_level=True)
 
-CROP = [40, 20, 240, 200]         # x, y, width, height of the sector in the 320 x 240 video
+CROP = [40, 20, 240, 200]  # x, y, width, height of the sector in the 320 x 240 video
 N_FRAMES = 30
 
 
@@ -60,7 +64,10 @@ class FrankySim:
         self.log = open(os.devnull, "w")
         self.process = subprocess.Popen(
             [FRANKY_SIM, "-s", "mujoco", "--hostname", host],
-            stdout=self.log, stderr=subprocess.STDOUT, start_new_session=True)
+            stdout=self.log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
         deadline = time.monotonic() + timeout
         while True:
             if self.process.poll() is not None:
@@ -71,8 +78,7 @@ class FrankySim:
             except OSError:
                 if time.monotonic() > deadline:
                     self.kill()
-                    raise RuntimeError(f"franky-sim did not listen on {host}:1337 in "
-                                       f"{timeout:g} s")
+                    raise RuntimeError(f"franky-sim did not listen on {host}:1337 in {timeout:g} s")
                 time.sleep(0.2)
 
     def kill(self):
@@ -99,7 +105,7 @@ def video_file(tmp_path_factory):
     for k in range(N_FRAMES):
         picture = np.full((240, 320, 3), 255, np.uint8)
         x, y, w, h = CROP
-        picture[y:y + h, x:x + w] = 40 + 5 * k
+        picture[y : y + h, x : x + w] = 40 + 5 * k
         # A dark "kidney" ellipse moving across the sector.
         cv2.ellipse(picture, (x + 60 + 4 * k, y + 100), (30, 18), 0, 0, 360, (10, 10, 10), -1)
         writer.write(picture)
@@ -108,11 +114,17 @@ def video_file(tmp_path_factory):
 
 
 def franky_scenario(host, video=None, **hw):
-    fields = {"backend": "franky", "robot_ip": host, "dry_run": False,
-              "connect_timeout": 60.0, "command_timeout": 0.1, "status_timeout": 0.5,
-              # franky-sim's MuJoCo arm carries no probe: declaring the probe's load makes
-              # its gravity model disagree with its physics (the arm then sags).
-              "set_load": False}
+    fields = {
+        "backend": "franky",
+        "robot_ip": host,
+        "dry_run": False,
+        "connect_timeout": 60.0,
+        "command_timeout": 0.1,
+        "status_timeout": 0.5,
+        # franky-sim's MuJoCo arm carries no probe: declaring the probe's load makes
+        # its gravity model disagree with its physics (the arm then sags).
+        "set_load": False,
+    }
     if video is not None:
         fields.update(video_source=f"'{video}'", video_crop=CROP)
     fields.update(hw)
@@ -123,42 +135,59 @@ def franky_scenario(host, video=None, **hw):
     # so the image watchdog is the `hardware` scenario's (0.35 s: video latency plus a busy
     # PC's jitter; the default 0.25 s, for emulated frames, tripped at 0.255 s in two CI
     # runs on one host). Everything else in the safety layer is unchanged.
-    return hardware_scenario(fields, "safety: {state_timeout: 0.5, image_timeout: 0.35, "
-                                     "realtime_lag: 0.5}")
+    return hardware_scenario(
+        fields, "safety: {state_timeout: 0.5, image_timeout: 0.35, realtime_lag: 0.5}"
+    )
 
 
 def test_franky_sim_scripted_motion_and_frame_grabber(franky_sim, video_file):
     scenario = franky_scenario(franky_sim.host, video_file)
-    station = MakeStation(scenario)             # dispatches on scenario.hardware
+    station = MakeStation(scenario)  # dispatches on scenario.hardware
     assert isinstance(station, HardwareStation)
     try:
         station.backend.trace = []
         loop = BuildHardwareClosedLoop(scenario, station)
-        frames = []   # (index, stamp, mean, max, shape, seen at) of every new us_image frame
+        frames = []  # (index, stamp, mean, max, shape, seen at) of every new us_image frame
 
         def log_frames():
             root = sim_context["root"]
             f = station.GetOutputPort("us_image").Eval(station.GetMyContextFromRoot(root))
             if f.valid and (not frames or frames[-1][0] != f.frame_index):
-                frames.append((f.frame_index, f.time, float(f.image.mean()),
-                               int(f.image.max()), f.image.shape, root.get_time()))
+                frames.append(
+                    (
+                        f.frame_index,
+                        f.time,
+                        float(f.image.mean()),
+                        int(f.image.max()),
+                        f.image.shape,
+                        root.get_time(),
+                    )
+                )
 
         sim_context = {}
         # franky-sim's clock runs at 0.2-1x the wall clock here: run until settled (bounded).
-        motion = ScriptedMotion(t_orientation=0.3, t_slide=1.5, duration=40.0,
-                                settle_angle=math.radians(0.5), settle_distance=1.5e-3)
+        motion = ScriptedMotion(
+            t_orientation=0.3,
+            t_slide=1.5,
+            duration=40.0,
+            settle_angle=math.radians(0.5),
+            settle_distance=1.5e-3,
+        )
         wall = time.monotonic()
-        result = RunScriptedMotion(loop, station, motion, check_period=0.025,
-                                   on_step=log_frames, context_out=sim_context)
+        result = RunScriptedMotion(
+            loop, station, motion, check_period=0.025, on_step=log_frames, context_out=sim_context
+        )
         wall = time.monotonic() - wall
         trace = station.backend.trace
     finally:
         station.close()
 
     dy = result.X_BP_end.translation()[1] - result.X_BP_start.translation()[1]
-    print(f"\n[franky e2e] approach error {math.degrees(result.approach_error):.2f} deg, "
-          f"x-y error {1e3 * result.position_error_xy:.2f} mm, dy {1e3 * dy:.2f} mm, "
-          f"p_end {result.X_BP_end.translation()}, target {result.p_target_xy}")
+    print(
+        f"\n[franky e2e] approach error {math.degrees(result.approach_error):.2f} deg, "
+        f"x-y error {1e3 * result.position_error_xy:.2f} mm, dy {1e3 * dy:.2f} mm, "
+        f"p_end {result.X_BP_end.translation()}, target {result.p_target_xy}"
+    )
     # The controller reached both targets through the real protocol, with no safety stop.
     assert result.safety_events == (), result.safety_events
     assert math.degrees(result.approach_error) < 0.5
@@ -183,9 +212,11 @@ def test_franky_sim_scripted_motion_and_frame_grabber(franky_sim, video_file):
     assert np.sum(np.diff(t)[live]) >= 0.8 * (t[-1] - t[0]), (stale.sum(), t[-1] - t[0])
     predicted = np.sum((sent[:-1] * np.diff(t)[:, None])[live], axis=0)
     actual = np.sum(np.diff(q, axis=0)[live], axis=0)
-    print(f"[franky e2e] {stale.sum()} stale of {stale.size} command intervals; joint "
-          f"displacement read back {np.round(actual, 4)} rad, integral of the commands sent "
-          f"{np.round(predicted, 4)} rad")
+    print(
+        f"[franky e2e] {stale.sum()} stale of {stale.size} command intervals; joint "
+        f"displacement read back {np.round(actual, 4)} rad, integral of the commands sent "
+        f"{np.round(predicted, 4)} rad"
+    )
     moving = np.abs(predicted) > 0.003
     assert moving.sum() >= 3, predicted
     err = np.abs(actual - predicted)
@@ -206,15 +237,17 @@ def test_franky_sim_scripted_motion_and_frame_grabber(franky_sim, video_file):
     for index, stamp, mean, peak, shape, seen in frames:
         assert shape == (scenario.imaging.image_height_px, scenario.imaging.image_width_px)
         assert 0.0 <= seen - stamp < 0.25
-        assert peak < 250                                # the white surround is cropped off
+        assert peak < 250  # the white surround is cropped off
         level = 40 + 5 * (index % N_FRAMES)
-        assert abs(mean - level) < 12                    # the sector's grey level
-    print(f"\n[franky e2e] {wall:.1f} s wall for {result.end_time:.2f} s; approach error "
-          f"{math.degrees(result.approach_error):.2f} deg; x-y error "
-          f"{1e3 * result.position_error_xy:.2f} mm; dy {1e3 * dy:.2f} mm; robot clock "
-          f"{t[-1] - t[0]:.2f} s; |dq - integral of commands| max {err.max():.4f} rad over "
-          f"{np.abs(predicted).max():.3f} rad; {len(frames)} frames; watchdog events "
-          f"{len(station.backend.watchdog_events)}")
+        assert abs(mean - level) < 12  # the sector's grey level
+    print(
+        f"\n[franky e2e] {wall:.1f} s wall for {result.end_time:.2f} s; approach error "
+        f"{math.degrees(result.approach_error):.2f} deg; x-y error "
+        f"{1e3 * result.position_error_xy:.2f} mm; dy {1e3 * dy:.2f} mm; robot clock "
+        f"{t[-1] - t[0]:.2f} s; |dq - integral of commands| max {err.max():.4f} rad over "
+        f"{np.abs(predicted).max():.3f} rad; {len(frames)} frames; watchdog events "
+        f"{len(station.backend.watchdog_events)}"
+    )
 
 
 def _wait_for_rest(backend, timeout=3.0):
@@ -242,9 +275,9 @@ def test_franky_stale_command_watchdog(franky_sim):
         sim.Initialize()
         sim.AdvanceTo(0.5)
         last = station.backend.command_log[-1]
-        assert np.abs(last[1]).max() > 0.2                     # moving when frozen
-        before = len(station.backend.watchdog_events)          # (a loaded CPU may add some)
-        time.sleep(0.5)                                        # frozen: nothing sent
+        assert np.abs(last[1]).max() > 0.2  # moving when frozen
+        before = len(station.backend.watchdog_events)  # (a loaded CPU may add some)
+        time.sleep(0.5)  # frozen: nothing sent
         events = station.backend.watchdog_events[before:]
         assert len(events) == 1
         latency = events[0].latency
@@ -254,8 +287,10 @@ def test_franky_stale_command_watchdog(franky_sim):
         assert not np.any(station.backend.last_sent)
     finally:
         station.close()
-    print(f"\n[franky stale] watchdog zeroed the command {1e3 * latency:.1f} ms after the "
-          f"last one (timeout 50 ms)")
+    print(
+        f"\n[franky stale] watchdog zeroed the command {1e3 * latency:.1f} ms after the "
+        f"last one (timeout 50 ms)"
+    )
 
 
 class Boom(LeafSystem):
@@ -316,8 +351,10 @@ def test_franky_lost_connection_ends_at_zero():
         station.close()
     finally:
         server.kill()
-    print(f"\n[franky lost] connection loss detected {1e3 * detected:.0f} ms after the "
-          f"simulator was killed")
+    print(
+        f"\n[franky lost] connection loss detected {1e3 * detected:.0f} ms after the "
+        f"simulator was killed"
+    )
 
 
 def test_franky_dry_run_reads_and_never_commands(franky_sim):
@@ -336,8 +373,7 @@ def test_franky_dry_run_reads_and_never_commands(franky_sim):
         RunHardware(sim, station, 0.5)
         assert station.backend.command_log == []
         assert not np.any(station.GetOutputPort("commanded_velocity").Eval(ctx))
-        np.testing.assert_allclose(station.GetOutputPort("joint_position").Eval(ctx), q0,
-                                   atol=2e-3)
+        np.testing.assert_allclose(station.GetOutputPort("joint_position").Eval(ctx), q0, atol=2e-3)
     finally:
         station.close()
 
@@ -351,15 +387,33 @@ def test_bad_robot_address_and_video_are_clear_errors(tmp_path):
 
 def test_cli_hardware_check(franky_sim, capsys):
     from drake_rus.cli import main
-    overrides = ("{hardware_interface: {robot_ip: %s, connect_timeout: 30, "
-                 "status_timeout: 0.5, set_load: false}}" % franky_sim.host)
-    rc = main(["hardware", "check", "--dry-run", "--duration", "0.6", "--rest", "0.6",
-               "--readout-hz", "10", "--set", overrides])
+
+    overrides = (
+        "{hardware_interface: {robot_ip: %s, connect_timeout: 30, "
+        "status_timeout: 0.5, set_load: false}}" % franky_sim.host
+    )
+    rc = main(
+        [
+            "hardware",
+            "check",
+            "--dry-run",
+            "--duration",
+            "0.6",
+            "--rest",
+            "0.6",
+            "--readout-hz",
+            "10",
+            "--set",
+            overrides,
+        ]
+    )
     out = capsys.readouterr().out
     assert "connected (franky)" in out and "dry run: no motion was commanded" in out
-    assert "FR3 collision thresholds (contact / collision): joints [10, 10, 9, 9, 8, 7, 6] / " \
-        "[20, 20, 18, 18, 16, 14, 12] N m, wrench [10, 10, 10, 2, 2, 2] / [18, 18, 18, 4, 4, 4]" \
+    assert (
+        "FR3 collision thresholds (contact / collision): joints [10, 10, 9, 9, 8, 7, 6] / "
+        "[20, 20, 18, 18, 16, 14, 12] N m, wrench [10, 10, 10, 2, 2, 2] / [18, 18, 18, 4, 4, 4]"
         in out
+    )
     assert any(line.startswith("t=") and "q=[" in line for line in out.splitlines())
     assert "push test:" in out and "control loop:" in out
     # franky-sim's force estimate at rest is not the FR3's (its MuJoCo arm carries no probe
@@ -367,14 +421,24 @@ def test_cli_hardware_check(franky_sim, capsys):
     failures = [ln for ln in out.splitlines() if ln.startswith("  - ")]
     assert rc == (1 if failures else 0), out
     assert all("probe_force at rest" in f or "control loop stalled" in f for f in failures), out
-    assert main(["hardware", "check", "--set",
-                 "{hardware_interface: {robot_ip: 127.0.0.9, connect_timeout: 0.5}}"]) == 2
+    assert (
+        main(
+            [
+                "hardware",
+                "check",
+                "--set",
+                "{hardware_interface: {robot_ip: 127.0.0.9, connect_timeout: 0.5}}",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert "cannot connect to the FR3 at '127.0.0.9'" in err and "after 0.5 s" in err
 
 
 def test_call_within_times_out_and_passes_results_and_errors():
     from drake_rus.hardware.franky_backend import call_within
+
     assert call_within(lambda: 7, 1.0) == 7
     with pytest.raises(KeyError):
         call_within(lambda: {}["x"], 1.0)
@@ -389,6 +453,7 @@ def test_a_silent_peer_on_the_fci_port_fails_within_connect_timeout():
     would hold franky.Robot() for about a minute): the station gives up within
     connect_timeout, naming the field."""
     from drake_rus.hardware.franky_backend import FCI_PORT
+
     host = "127.0.0.7"
     server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)

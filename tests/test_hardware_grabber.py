@@ -21,8 +21,8 @@ cv2 = pytest.importorskip("cv2", reason="opencv-python-headless is not installed
 
 pytestmark = pytest.mark.timeout(120)
 
-SHAPE = (128, 96)       # rows, cols of the probe's image
-RATE = 200.0            # the control rate the grabber ticks at
+SHAPE = (128, 96)  # rows, cols of the probe's image
+RATE = 200.0  # the control rate the grabber ticks at
 
 
 def write_video(path, n, size=(200, 160), levels=None, fps=20.0):
@@ -43,8 +43,10 @@ class MovingPose(LeafSystem):
     def __init__(self):
         super().__init__()
         self.DeclareAbstractOutputPort(
-            "X_BP", lambda: AbstractValue.Make(RigidTransform()),
-            lambda c, o: o.set_value(RigidTransform([c.get_time(), 0.0, 0.0])))
+            "X_BP",
+            lambda: AbstractValue.Make(RigidTransform()),
+            lambda c, o: o.set_value(RigidTransform([c.get_time(), 0.0, 0.0])),
+        )
 
 
 def rig(grabber):
@@ -73,21 +75,25 @@ def run_and_collect(sim, grabber, ctx, duration, step=0.005):
 def test_replay_crop_stamp_pose_and_loop(tmp_path):
     path = write_video(tmp_path / "v.avi", 5)
     latency = 0.08
-    cfg = HardwareConfig(video_source=str(path), video_crop=[20, 10, 160, 140],
-                         video_loop=True, video_latency=latency)
+    cfg = HardwareConfig(
+        video_source=str(path),
+        video_crop=[20, 10, 160, 140],
+        video_loop=True,
+        video_latency=latency,
+    )
     g = FrameGrabber(cfg, SHAPE, RATE)
     try:
         sim, ctx = rig(g)
         frames, _ = run_and_collect(sim, g, ctx, 1.2)
     finally:
         g.release()
-    assert len(frames) >= 15                              # 20 fps in real time
+    assert len(frames) >= 15  # 20 fps in real time
     indices = [f.frame_index for _, f in frames]
     assert indices == sorted(indices) and len(set(indices)) == len(indices)
     for t_seen, f in frames:
         assert f.image.shape == SHAPE and f.image.dtype == np.uint8
-        assert f.image.max() < 200                        # the 250 surround is cropped off
-        assert abs(f.image.mean() - (30 + 10 * (f.frame_index % 5))) < 6   # file order, looped
+        assert f.image.max() < 200  # the 250 surround is cropped off
+        assert abs(f.image.mean() - (30 + 10 * (f.frame_index % 5))) < 6  # file order, looped
         # Stamped with the acquisition instant: latency (plus at most a few ticks) before the
         # grabber saw it; the pose is the one of that instant.
         assert latency - 1e-9 <= t_seen - f.time <= latency + 0.06
@@ -116,8 +122,7 @@ def test_grabber_never_blocks_on_a_slow_source():
 
 def test_end_of_file_without_loop_keeps_the_last_frame(tmp_path):
     path = write_video(tmp_path / "v.avi", 2)
-    cfg = HardwareConfig(video_source=str(path), video_crop=[20, 10, 160, 140],
-                         video_loop=False)
+    cfg = HardwareConfig(video_source=str(path), video_crop=[20, 10, 160, 140], video_loop=False)
     g = FrameGrabber(cfg, SHAPE, RATE)
     try:
         sim, ctx = rig(g)
@@ -145,8 +150,10 @@ def test_no_source_gives_unstamped_blank_frames_and_still_records_poses():
 
 def test_clear_errors(tmp_path):
     def make(source, crop=(20, 10, 160, 140)):
-        return FrameGrabber(HardwareConfig(video_source=str(source), video_crop=list(crop)),
-                            SHAPE, RATE)
+        return FrameGrabber(
+            HardwareConfig(video_source=str(source), video_crop=list(crop)), SHAPE, RATE
+        )
+
     with pytest.raises(ValueError, match="video file not found: .*missing.avi"):
         make(tmp_path / "missing.avi")
     not_video = tmp_path / "notes.avi"

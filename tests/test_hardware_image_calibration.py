@@ -13,9 +13,20 @@ from pydrake.systems.analysis import Simulator
 
 from drake_rus.config_schema import ScenarioError
 from drake_rus.hardware.image_calibration import (
-    DepthPresetCalibration, ImageCalibration, ImageToProbeMap, TargetImage, TargetSet,
-    find_point_target, fit_image_calibration, fit_target_set, load_image_calibration,
-    preset_for_depth, save_image_calibration, targets_in_probe_frame, with_preset)
+    DepthPresetCalibration,
+    ImageCalibration,
+    ImageToProbeMap,
+    TargetImage,
+    TargetSet,
+    find_point_target,
+    fit_image_calibration,
+    fit_target_set,
+    load_image_calibration,
+    preset_for_depth,
+    save_image_calibration,
+    targets_in_probe_frame,
+    with_preset,
+)
 from drake_rus.hardware.lcm_sim_driver import SimulatedPandaDriver
 from drake_rus.hardware.station import MakeHardwareStation, RunHardware
 from drake_rus.hardware.video import SyntheticVideo
@@ -26,14 +37,19 @@ cv2 = pytest.importorskip("cv2", reason="opencv-python-headless is not installed
 
 pytestmark = pytest.mark.timeout(120)
 
-PICTURE = (480, 640)           # rows, cols of the grabbed picture
-CROP = [100, 30, 440, 430]     # the sector in it
+PICTURE = (480, 640)  # rows, cols of the grabbed picture
+CROP = [100, 30, 440, 430]  # the sector in it
 
 
 def true_calibration(depth=0.15, angle_deg=1.5, mirror=False):
-    cal = with_preset(ImageCalibration(), DepthPresetCalibration(
-        depth=depth, crop=list(CROP), mm_per_pixel=[0.36, 0.38], origin_px=[321.5, 52.0]),
-        angle_deg=angle_deg, mirror_x=mirror)
+    cal = with_preset(
+        ImageCalibration(),
+        DepthPresetCalibration(
+            depth=depth, crop=list(CROP), mm_per_pixel=[0.36, 0.38], origin_px=[321.5, 52.0]
+        ),
+        angle_deg=angle_deg,
+        mirror_x=mirror,
+    )
     return cal
 
 
@@ -44,10 +60,10 @@ def target_grid():
 
 
 def dot_picture(col, row, shape=PICTURE, sigma=1.6):
-    rr, cc = np.mgrid[0:shape[0], 0:shape[1]]
+    rr, cc = np.mgrid[0 : shape[0], 0 : shape[1]]
     grey = 15 + 230 * np.exp(-((cc - col) ** 2 + (rr - row) ** 2) / (2 * sigma**2))
     picture = np.repeat(grey.astype(np.uint8)[:, :, None], 3, axis=2)
-    picture[:20, :] = 255            # the machine's menu bar, outside the crop
+    picture[:20, :] = 255  # the machine's menu bar, outside the crop
     return picture
 
 
@@ -75,25 +91,32 @@ def test_fit_recovers_scale_origin_angle_from_point_targets(tmp_path, mirror):
     cal = true_calibration(mirror=mirror)
     path, pixels = write_targets(tmp_path, cal, target_grid(), noise_px=0.15)
     from drake_rus.hardware.image_calibration import load_target_set
+
     report = fit_target_set(load_target_set(path), tmp_path)
     fit = report.fit
-    np.testing.assert_allclose(report.pixels, pixels, atol=0.5)      # targets found
+    np.testing.assert_allclose(report.pixels, pixels, atol=0.5)  # targets found
     np.testing.assert_allclose(fit.mm_per_pixel, [0.36, 0.38], rtol=3e-3)
     np.testing.assert_allclose(fit.origin_px, [321.5, 52.0], atol=0.6)
     assert fit.angle_deg == pytest.approx(1.5, abs=0.1)
     assert fit.mirror_x == mirror and abs(fit.skew_deg) < 0.2
     assert fit.rms_mm < 0.15 and len(fit.residuals_mm) == 12
     # The fitted calibration maps the targets back onto their pixels.
-    refit = with_preset(ImageCalibration(), fit.preset(0.15, CROP), angle_deg=fit.angle_deg,
-                        mirror_x=fit.mirror_x)
+    refit = with_preset(
+        ImageCalibration(), fit.preset(0.15, CROP), angle_deg=fit.angle_deg, mirror_x=fit.mirror_x
+    )
     m = ImageToProbeMap(refit, refit.presets[0], geometry())
     np.testing.assert_allclose(m.P_to_picture(target_grid()), pixels, atol=0.6)
-    np.testing.assert_allclose(m.picture_to_P(m.P_to_picture(target_grid()))[:, [0, 2]],
-                               target_grid()[:, [0, 2]], atol=1e-12)
-    print(f"\n[image cal] mirror {mirror}: {fit.mm_per_pixel[0]:.4f} x "
-          f"{fit.mm_per_pixel[1]:.4f} mm/px (true 0.36 x 0.38), origin "
-          f"({fit.origin_px[0]:.2f}, {fit.origin_px[1]:.2f}) (true 321.5, 52.0), angle "
-          f"{fit.angle_deg:.3f} deg (true 1.5), RMS {fit.rms_mm:.3f} mm")
+    np.testing.assert_allclose(
+        m.picture_to_P(m.P_to_picture(target_grid()))[:, [0, 2]],
+        target_grid()[:, [0, 2]],
+        atol=1e-12,
+    )
+    print(
+        f"\n[image cal] mirror {mirror}: {fit.mm_per_pixel[0]:.4f} x "
+        f"{fit.mm_per_pixel[1]:.4f} mm/px (true 0.36 x 0.38), origin "
+        f"({fit.origin_px[0]:.2f}, {fit.origin_px[1]:.2f}) (true 321.5, 52.0), angle "
+        f"{fit.angle_deg:.3f} deg (true 1.5), RMS {fit.rms_mm:.3f} mm"
+    )
 
 
 def test_degenerate_input_is_refused_with_a_clear_message(tmp_path):
@@ -117,6 +140,7 @@ def test_degenerate_input_is_refused_with_a_clear_message(tmp_path):
     path, _ = write_targets(tmp_path, cal, grid[:4])
     cv2.imwrite(str(tmp_path / "t02.png"), np.full(PICTURE + (3,), 40, np.uint8))
     from drake_rus.hardware.image_calibration import load_target_set
+
     with pytest.raises(ValueError, match=r"targets\[2\] \(t02.png\): no point target"):
         fit_target_set(load_target_set(path), tmp_path)
 
@@ -128,8 +152,11 @@ def test_calibration_file_round_trip_and_errors(tmp_path):
     back = load_image_calibration(path)
     assert [p.depth for p in back.presets] == [0.15, 0.2]
     assert back.presets[0].mm_per_pixel == [0.36, 0.38]
-    np.testing.assert_allclose(back.X_PI.GetDeterministicValue().GetAsMatrix4(),
-                               cal.X_PI.GetDeterministicValue().GetAsMatrix4(), atol=1e-12)
+    np.testing.assert_allclose(
+        back.X_PI.GetDeterministicValue().GetAsMatrix4(),
+        cal.X_PI.GetDeterministicValue().GetAsMatrix4(),
+        atol=1e-12,
+    )
     with pytest.raises(ScenarioError, match=r"no entry for imaging.depth 0.3 m .*0.15, 0.2"):
         preset_for_depth(back, 0.3, source=str(path))
     path.write_text("presets:\n- {depth: 0.15, mm_per_pixel: [0.3]}\n")
@@ -155,19 +182,22 @@ def test_map_puts_targets_on_the_probe_grid():
     # Nothing outside the crop (the menu bar) reaches the image.
     assert m(np.full(PICTURE + (3,), 255, np.uint8)).max() == 255
     blank = np.zeros(PICTURE + (3,), np.uint8)
-    blank[:CROP[1]] = 255
+    blank[: CROP[1]] = 255
     assert m(blank).max() == 0
 
 
 def test_targets_in_probe_frame():
     from pydrake.math import RigidTransform, RotationMatrix
+
     X = RigidTransform(RotationMatrix.MakeXRotation(math.pi), [0.5, 0.0, 0.3])
-    np.testing.assert_allclose(targets_in_probe_frame([X], [0.51, 0.0, 0.2])[0],
-                               [0.01, 0.0, 0.1], atol=1e-12)
+    np.testing.assert_allclose(
+        targets_in_probe_frame([X], [0.51, 0.0, 0.2])[0], [0.01, 0.0, 0.1], atol=1e-12
+    )
 
 
 def test_cli_calibrate_image_writes_merges_and_refuses(tmp_path, capsys):
     from drake_rus.cli import main
+
     path, _ = write_targets(tmp_path, true_calibration(), target_grid(), noise_px=0.1)
     out = tmp_path / "image_calibration.yaml"
     assert main(["hardware", "calibrate-image", str(path), "--out", str(out)]) == 0
@@ -178,9 +208,13 @@ def test_cli_calibrate_image_writes_merges_and_refuses(tmp_path, capsys):
     # Another preset merges into the same file.
     deeper = tmp_path / "deep"
     deeper.mkdir()
-    cal30 = with_preset(ImageCalibration(), DepthPresetCalibration(
-        depth=0.3, crop=list(CROP), mm_per_pixel=[0.7, 0.72], origin_px=[321.0, 50.0]),
-        angle_deg=1.5)
+    cal30 = with_preset(
+        ImageCalibration(),
+        DepthPresetCalibration(
+            depth=0.3, crop=list(CROP), mm_per_pixel=[0.7, 0.72], origin_px=[321.0, 50.0]
+        ),
+        angle_deg=1.5,
+    )
     grid30 = target_grid() * [1, 1, 2]
     path30, _ = write_targets(deeper, cal30, grid30, depth=0.3)
     assert main(["hardware", "calibrate-image", str(path30), "--out", str(out)]) == 0
@@ -212,10 +246,14 @@ def test_station_maps_pictures_with_the_entry_for_imaging_depth(tmp_path):
     p_target = np.array([[0.012, 0.0, 0.09]])
     col, row = ImageToProbeMap(cal, cal.presets[0], geometry()).P_to_picture(p_target)[0]
     picture = dot_picture(col, row, sigma=3.0)
-    scenario = ApplyOverrides(LoadScenario(), (
-        "{hardware: true, imaging: {depth: 0.15}, hardware_interface: {backend: lcm, "
-        "tau_external_bias_duration: 0.0, connect_timeout: 5.0, status_timeout: 1.0, "
-        "image_calibration: '%s'}}" % cal_path))
+    scenario = ApplyOverrides(
+        LoadScenario(),
+        (
+            "{hardware: true, imaging: {depth: 0.15}, hardware_interface: {backend: lcm, "
+            "tau_external_bias_duration: 0.0, connect_timeout: 5.0, status_timeout: 1.0, "
+            "image_calibration: '%s'}}" % cal_path
+        ),
+    )
     lcm = DrakeLcm("memq://")
     driver = SimulatedPandaDriver(lcm, scenario.robot.initial_joint_positions)
     dsim = Simulator(driver)
@@ -223,8 +261,10 @@ def test_station_maps_pictures_with_the_entry_for_imaging_depth(tmp_path):
 
     def step():
         dsim.AdvanceTo(dsim.get_context().get_time() + 0.005)
-    station = MakeHardwareStation(scenario, lcm=lcm, lcm_idle=step,
-                                  video=SyntheticVideo(lambda t: picture, 30.0))
+
+    station = MakeHardwareStation(
+        scenario, lcm=lcm, lcm_idle=step, video=SyntheticVideo(lambda t: picture, 30.0)
+    )
     try:
         sim = Simulator(station)
         ctx = station.GetMyContextFromRoot(sim.get_context())

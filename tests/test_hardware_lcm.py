@@ -9,6 +9,7 @@ diagrams share one DrakeLcm and are stepped in lockstep in this thread.
 import math
 import time
 
+import drake
 import numpy as np
 import pytest
 from conftest import hardware_scenario
@@ -18,29 +19,32 @@ from pydrake.multibody.tree import JacobianWrtVariable
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import LeafSystem
 
-import drake
-from drake_rus.station_interface import ports_of
 from drake_rus.bringup import BuildHardwareClosedLoop, RunScriptedMotion, ScriptedMotion
 from drake_rus.hardware.lcm_sim_driver import CommandExpiry, SimulatedPandaDriver
-from drake_rus.hardware.station import (HardwareFault, MakeHardwareStation,
-                                        RunHardware)
+from drake_rus.hardware.station import HardwareFault, MakeHardwareStation, RunHardware
 from drake_rus.imaging.frames import UsFrame
-from drake_rus.scenario import LoadScenario
 from drake_rus.robot import MakeControlPlant
+from drake_rus.scenario import LoadScenario
+from drake_rus.station_interface import ports_of
 from drake_rus.stations import MakeStation
 
-EXPIRY = 0.25       # s, the simulated driver's command expiry (generous: shared CPU)
-STEP = 0.005        # s, lockstep chunk (one control period at 200 Hz)
+EXPIRY = 0.25  # s, the simulated driver's command expiry (generous: shared CPU)
+STEP = 0.005  # s, lockstep chunk (one control period at 200 Hz)
 
 pytestmark = pytest.mark.timeout(300)
 
 
 def lcm_scenario(**hw):
-    fields = {"backend": "lcm", "dry_run": False, "tau_external_bias_duration": 0.0,
-              "connect_timeout": 5.0, "status_timeout": 0.5,
-              # The simulated robot reports no probe weight: as if the probe were entered
-              # in Desk (lcm_compensate_load must then be off).
-              "lcm_compensate_load": False}
+    fields = {
+        "backend": "lcm",
+        "dry_run": False,
+        "tau_external_bias_duration": 0.0,
+        "connect_timeout": 5.0,
+        "status_timeout": 0.5,
+        # The simulated robot reports no probe weight: as if the probe were entered
+        # in Desk (lcm_compensate_load must then be off).
+        "lcm_compensate_load": False,
+    }
     fields.update(hw)
     return hardware_scenario(fields)
 
@@ -51,12 +55,15 @@ class Rig:
     def __init__(self, scenario, tau_external_drake=None):
         self.scenario = scenario
         self.lcm = DrakeLcm("memq://")
-        self.wire = []          # (wall time s, lcmt_panda_command) as published
-        self.lcm.Subscribe("PANDA_COMMAND", lambda data: self.wire.append(
-            (time.time(), drake.lcmt_panda_command.decode(data))))
+        self.wire = []  # (wall time s, lcmt_panda_command) as published
+        self.lcm.Subscribe(
+            "PANDA_COMMAND",
+            lambda data: self.wire.append((time.time(), drake.lcmt_panda_command.decode(data))),
+        )
         self.q0 = np.asarray(scenario.robot.initial_joint_positions, float)
-        self.driver = SimulatedPandaDriver(self.lcm, self.q0, command_expiry=EXPIRY,
-                                           tau_external_drake=tau_external_drake)
+        self.driver = SimulatedPandaDriver(
+            self.lcm, self.q0, command_expiry=EXPIRY, tau_external_drake=tau_external_drake
+        )
         self.dsim = Simulator(self.driver)
         self.dsim.Initialize()
         self.station = MakeHardwareStation(scenario, lcm=self.lcm, lcm_idle=self.step_driver)
@@ -94,8 +101,11 @@ def test_lcm_station_ports_stamps_tracking_and_torque_sign():
 
     # Same ports and types as the simulated station.
     sim_station = MakeStation(LoadScenario())
-    both = [p.name for p in ports_of("sim", include_optional=False)
-            if "hardware" in p.stations and p.direction == "out" and p.size is not None]
+    both = [
+        p.name
+        for p in ports_of("sim", include_optional=False)
+        if "hardware" in p.stations and p.direction == "out" and p.size is not None
+    ]
     assert both == ["joint_position", "joint_velocity", "tau_external", "probe_force"]
     for name in both:
         assert st.HasOutputPort(name)
@@ -131,27 +141,32 @@ def test_lcm_station_ports_stamps_tracking_and_torque_sign():
     # 1 s at v_cmd, less the ramp (v / a_max / 2 at 2 rad/s^2) and 1-3 periods of latency.
     lag = v_cmd**2 / (2 * 2.0) + 3 * STEP * np.abs(v_cmd)
     assert np.all(np.abs(moved - v_cmd * 1.0) <= lag + 1e-9), (moved, v_cmd)
-    np.testing.assert_allclose(st.GetOutputPort("joint_position").Eval(ctx), rig.driver_q(),
-                               atol=np.abs(v_cmd).max() * 4 * STEP + 1e-12)   # status latency
+    np.testing.assert_allclose(
+        st.GetOutputPort("joint_position").Eval(ctx),
+        rig.driver_q(),
+        atol=np.abs(v_cmd).max() * 4 * STEP + 1e-12,
+    )  # status latency
     # Torque sign: the driver publishes -tau_drake; the station exports tau_drake, and the
     # probe force estimate recovers the wrench (q moved a little: tolerance).
-    np.testing.assert_allclose(st.GetOutputPort("tau_external").Eval(ctx), tau_drake,
-                               atol=1e-9)
+    np.testing.assert_allclose(st.GetOutputPort("tau_external").Eval(ctx), tau_drake, atol=1e-9)
     F_est = st.GetOutputPort("probe_force").Eval(ctx)
     assert F_est[5] == pytest.approx(-6.0, abs=0.6)
     assert st.GetOutputPort("robot_ok").Eval(ctx)[0] == 1.0
     # After the session: zero velocity on the wire.
     assert rig.pump()[-1][1].joint_velocity == tuple([0.0] * 7)
-    print(f"\n[lcm] {len(cmds)} commands in {wall_end - wall_start:.2f} s wall; "
-          f"max command age at the driver "
-          f"{1e3 * max(abs(t - m.utime * 1e-6) for t, m in cmds):.2f} ms; "
-          f"joint displacement error {np.abs(moved - v_cmd).max():.2e} rad")
+    print(
+        f"\n[lcm] {len(cmds)} commands in {wall_end - wall_start:.2f} s wall; "
+        f"max command age at the driver "
+        f"{1e3 * max(abs(t - m.utime * 1e-6) for t, m in cmds):.2f} ms; "
+        f"joint displacement error {np.abs(moved - v_cmd).max():.2e} rad"
+    )
 
 
 def test_simulation_time_stamps_would_be_dropped_by_the_driver():
     """Why the stamper exists: PandaCommandSender stamps context time, which the driver
     (and our simulated one) never accepts."""
     from pydrake.manipulation import PandaCommandSender, PandaControlMode
+
     sender = PandaCommandSender(7, PandaControlMode.kVelocity)
     sc = sender.CreateDefaultContext()
     sc.SetTime(2.0)
@@ -161,6 +176,7 @@ def test_simulation_time_stamps_would_be_dropped_by_the_driver():
     expiry.get_input_port().FixValue(ec, sender.get_output_port().EvalAbstract(sc))
     out = expiry.get_output_port().EvalAbstract(ec)
     import pydrake.systems.lcm as L
+
     msg = drake.lcmt_panda_command.decode(L._Serializer_[drake.lcmt_panda_command]().Serialize(out))
     assert msg.joint_velocity == tuple([0.0] * 7)
     assert expiry.log[-1][1] == 2_000_000 and not expiry.log[-1][3]
@@ -170,20 +186,23 @@ def test_lcm_scripted_motion_with_unchanged_controller_and_safety():
     rig = Rig(lcm_scenario())
     loop = BuildHardwareClosedLoop(rig.scenario, rig.station)
     motion = ScriptedMotion(t_orientation=0.2, t_slide=1.2, duration=3.0)
-    result = RunScriptedMotion(loop, rig.station, motion, realtime_rate=0.0,
-                               check_period=STEP, on_step=rig.step_driver)
+    result = RunScriptedMotion(
+        loop, rig.station, motion, realtime_rate=0.0, check_period=STEP, on_step=rig.step_driver
+    )
     assert result.safety_events == ()
     assert math.degrees(result.approach_error) < 0.5
     assert math.degrees(result.orientation_error) < 0.5
     assert result.position_error_xy < 1e-3
     dy = result.X_BP_end.translation()[1] - result.X_BP_start.translation()[1]
     assert dy == pytest.approx(0.02, abs=1e-3)
-    assert np.abs(result.q_end - result.q_start).max() > 0.02   # the joints moved
+    assert np.abs(result.q_end - result.q_start).max() > 0.02  # the joints moved
     np.testing.assert_allclose(result.q_end, rig.driver_q(), atol=1e-3)
     assert rig.pump()[-1][1].joint_velocity == tuple([0.0] * 7)
     assert all(fresh for *_, fresh in rig.driver.expiry.log)
-    print(f"\n[lcm motion] approach error {math.degrees(result.approach_error):.3f} deg, "
-          f"x-y error {1e3 * result.position_error_xy:.2f} mm, dy {1e3 * dy:.2f} mm")
+    print(
+        f"\n[lcm motion] approach error {math.degrees(result.approach_error):.3f} deg, "
+        f"x-y error {1e3 * result.position_error_xy:.2f} mm, dy {1e3 * dy:.2f} mm"
+    )
 
 
 def test_stale_command_stops_the_driver():
@@ -211,13 +230,15 @@ def test_stale_command_stops_the_driver():
         time.sleep(0.002)
     assert stopped_at is not None, "the driver kept a stale command"
     latency = stopped_at - t_last
-    assert latency >= EXPIRY - 0.05      # stamped at publish, tapped a little later
+    assert latency >= EXPIRY - 0.05  # stamped at publish, tapped a little later
     q_stop = rig.driver_q().copy()
     for _ in range(20):
         rig.step_driver()
     np.testing.assert_array_equal(rig.driver_q(), q_stop)
-    print(f"\n[lcm stale] driver zeroed the command {1e3 * latency:.1f} ms after the last "
-          f"one (expiry {1e3 * EXPIRY:.0f} ms)")
+    print(
+        f"\n[lcm stale] driver zeroed the command {1e3 * latency:.1f} ms after the last "
+        f"one (expiry {1e3 * EXPIRY:.0f} ms)"
+    )
 
 
 def test_lost_connection_ends_at_zero_command():
@@ -233,7 +254,7 @@ def test_lost_connection_ends_at_zero_command():
         if sim.get_context().get_time() < 0.3:
             rig.step_driver()
         else:
-            t_wall.setdefault("lost", time.time())   # the driver stops answering
+            t_wall.setdefault("lost", time.time())  # the driver stops answering
             time.sleep(0.002)
 
     with pytest.raises(HardwareFault, match="robot state lost"):
@@ -246,8 +267,10 @@ def test_lost_connection_ends_at_zero_command():
     wire = rig.pump()
     assert all(m.joint_velocity == tuple([0.0] * 7) for _, m in wire[-3:])
     assert all(abs(t - m.utime * 1e-6) < EXPIRY for t, m in wire[-3:])
-    print(f"\n[lcm lost] fault detected {1e3 * (detected - t_wall['lost']):.0f} ms after the "
-          f"last status (status_timeout 300 ms)")
+    print(
+        f"\n[lcm lost] fault detected {1e3 * (detected - t_wall['lost']):.0f} ms after the "
+        f"last status (status_timeout 300 ms)"
+    )
 
 
 class Boom(LeafSystem):
@@ -268,6 +291,7 @@ def test_exception_ends_at_zero_command(error):
     rig = Rig(lcm_scenario())
     st = rig.station
     from pydrake.systems.framework import DiagramBuilder
+
     b = DiagramBuilder()
     b.AddSystem(st)
     b.AddSystem(Boom(0.2, error))
@@ -311,6 +335,7 @@ def test_sigterm_ends_at_zero_command():
     sends zero velocity."""
     import os
     import signal
+
     rig = Rig(lcm_scenario())
     st = rig.station
     sim = Simulator(st)
@@ -326,7 +351,7 @@ def test_sigterm_ends_at_zero_command():
     previous = signal.getsignal(signal.SIGTERM)
     with pytest.raises(KeyboardInterrupt):
         RunHardware(sim, st, 2.0, check_period=STEP, realtime_rate=0.0, on_step=step)
-    assert signal.getsignal(signal.SIGTERM) is previous      # handler restored
+    assert signal.getsignal(signal.SIGTERM) is previous  # handler restored
     assert rig.pump()[-1][1].joint_velocity == tuple([0.0] * 7)
     for _ in range(3):
         rig.step_driver()

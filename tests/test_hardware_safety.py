@@ -19,8 +19,8 @@ from pydrake.multibody.tree import JacobianWrtVariable
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
 
-from drake_rus.hardware import core, franky_backend
 from drake_rus.bringup import load_check as _load_check
+from drake_rus.hardware import core, franky_backend
 from drake_rus.hardware.config import HardwareConfig
 from drake_rus.hardware.franky_backend import FrankyBackend, HardwareFault
 from drake_rus.hardware.lcm_sim_driver import SimulatedPandaDriver
@@ -60,9 +60,14 @@ class FakeRobot:
         self.calls = []
         self.relative_dynamics_factor = 1.0
         self.state = types.SimpleNamespace(
-            q=np.zeros(7), dq=np.zeros(7), tau_ext_hat_filtered=np.zeros(7), dq_d=np.zeros(7),
-            time=_Time(), robot_mode=_Mode("Reflex" if FakeRobot.errors else "Idle"),
-            current_errors=_FakeErrors(FakeRobot.errors))
+            q=np.zeros(7),
+            dq=np.zeros(7),
+            tau_ext_hat_filtered=np.zeros(7),
+            dq_d=np.zeros(7),
+            time=_Time(),
+            robot_mode=_Mode("Reflex" if FakeRobot.errors else "Idle"),
+            current_errors=_FakeErrors(FakeRobot.errors),
+        )
         FakeRobot.instances.append(self)
 
     def set_collision_behavior(self, *args):
@@ -83,13 +88,15 @@ class FakeRobot:
 
 @pytest.fixture
 def fake_franky(monkeypatch):
-    module = types.SimpleNamespace(Robot=FakeRobot,
-                                   RealtimeConfig=types.SimpleNamespace(Ignore=0),
-                                   IncompatibleVersionException=type("Incompatible",
-                                                                     (Exception,), {}))
+    module = types.SimpleNamespace(
+        Robot=FakeRobot,
+        RealtimeConfig=types.SimpleNamespace(Ignore=0),
+        IncompatibleVersionException=type("Incompatible", (Exception,), {}),
+    )
     monkeypatch.setattr(franky_backend, "_import_franky", lambda: module)
-    monkeypatch.setattr(franky_backend, "wait_for_port", lambda host, port, timeout:
-                        (True, 0.0, ""))
+    monkeypatch.setattr(
+        franky_backend, "wait_for_port", lambda host, port, timeout: (True, 0.0, "")
+    )
     FakeRobot.instances.clear()
     FakeRobot.errors = ()
     yield FakeRobot
@@ -159,19 +166,29 @@ def test_unreachable_robot_reports_the_time_actually_spent():
     pytest.importorskip("franky", reason="franky-control is not installed")
     cfg = HardwareConfig(robot_ip="127.0.0.3", connect_timeout=0.6)
     start = time.monotonic()
-    with pytest.raises(HardwareFault, match=r"no answer on 127\.0\.0\.3:1337.*after 0\.[67] s "
-                                            r"\(hardware_interface\.connect_timeout 0\.6 s\)"):
+    with pytest.raises(
+        HardwareFault,
+        match=r"no answer on 127\.0\.0\.3:1337.*after 0\.[67] s "
+        r"\(hardware_interface\.connect_timeout 0\.6 s\)",
+    ):
         FrankyBackend(cfg)
     assert time.monotonic() - start < 2.0
 
 
 # --- LCM route -------------------------------------------------------------------------------
 def lcm_scenario(**hw):
-    fields = {"backend": "lcm", "dry_run": True, "tau_external_bias_duration": 0.0,
-              "connect_timeout": 5.0, "status_timeout": 0.25, "lcm_compensate_load": False}
+    fields = {
+        "backend": "lcm",
+        "dry_run": True,
+        "tau_external_bias_duration": 0.0,
+        "connect_timeout": 5.0,
+        "status_timeout": 0.25,
+        "lcm_compensate_load": False,
+    }
     fields.update(hw)
-    text = ", ".join(f"{k}: {str(v).lower() if isinstance(v, bool) else v}"
-                     for k, v in fields.items())
+    text = ", ".join(
+        f"{k}: {str(v).lower() if isinstance(v, bool) else v}" for k, v in fields.items()
+    )
     return ApplyOverrides(LoadScenario(), "{hardware: true, hardware_interface: {%s}}" % text)
 
 
@@ -184,6 +201,7 @@ def _rig(scenario, tau_drake):
 
     def step(dt=0.005):
         dsim.AdvanceTo(dsim.get_context().get_time() + dt)
+
     station = MakeHardwareStation(scenario, lcm=lcm, lcm_idle=step)
     return station, step
 
@@ -206,8 +224,7 @@ def test_lcm_probe_load(declared_in_desk, capsys):
             ctx = station.GetMyContextFromRoot(sim.get_context())
             station.get_input_port().FixValue(ctx, np.zeros(7))
             sim.Initialize()
-            RunHardware(sim, station, 0.05, check_period=0.005, realtime_rate=0.0,
-                        on_step=step)
+            RunHardware(sim, station, 0.05, check_period=0.005, realtime_rate=0.0, on_step=step)
             forces[compensate] = np.array(station.GetOutputPort("probe_force").Eval(ctx))[3:]
             failures = _load_check(scenario, station)
         finally:
@@ -215,18 +232,20 @@ def test_lcm_probe_load(declared_in_desk, capsys):
         out = capsys.readouterr().out
         verdict = "declared" if declared_in_desk else "undeclared"
         assert f"look {verdict}" in out
-        if declared_in_desk == compensate:       # Desk knows it and we remove it too, or
-            assert failures, out                 # nobody accounts for it: both refused
+        if declared_in_desk == compensate:  # Desk knows it and we remove it too, or
+            assert failures, out  # nobody accounts for it: both refused
         else:
             assert failures == []
     m_g = base.probe.mass * 9.81
     right = forces[not declared_in_desk]
     wrong = forces[declared_in_desk]
-    assert np.linalg.norm(right) < 0.05                       # no phantom contact force
+    assert np.linalg.norm(right) < 0.05  # no phantom contact force
     assert np.linalg.norm(wrong) == pytest.approx(m_g, rel=0.05)
-    print(f"\n[load] declared in Desk: {declared_in_desk}: |f| {np.linalg.norm(right):.3f} N "
-          f"with the right setting, {np.linalg.norm(wrong):.2f} N with the wrong one "
-          f"(probe weight {m_g:.2f} N)")
+    print(
+        f"\n[load] declared in Desk: {declared_in_desk}: |f| {np.linalg.norm(right):.3f} N "
+        f"with the right setting, {np.linalg.norm(wrong):.2f} N with the wrong one "
+        f"(probe weight {m_g:.2f} N)"
+    )
 
 
 def test_unaccounted_weight_reads_as_a_pull():
@@ -252,7 +271,7 @@ def test_load_declaration_verdicts():
     assert core.load_declaration(np.zeros(7) + 0.1, w) == "declared"
     assert core.load_declaration(w + 0.1, w) == "undeclared"
     assert core.load_declaration(0.5 * w, w) == "unclear"
-    assert core.load_declaration(w, 0.01 * w) == "unclear"       # too light to tell
+    assert core.load_declaration(w, 0.01 * w) == "unclear"  # too light to tell
 
 
 class Stall(LeafSystem):
@@ -278,7 +297,7 @@ def test_own_stall_is_not_a_lost_robot():
     station, step = _rig(scenario, np.zeros(7))
     try:
         b = DiagramBuilder()
-        stall = b.AddSystem(Stall(0.2, 0.4))        # added first: its update runs first
+        stall = b.AddSystem(Stall(0.2, 0.4))  # added first: its update runs first
         b.AddSystem(station)
         sim = Simulator(b.Build())
         ctx = station.GetMyContextFromRoot(sim.get_context())
@@ -293,12 +312,14 @@ def test_own_stall_is_not_a_lost_robot():
             while last[0] < now:
                 step()
                 last[0] += 0.005
-        RunHardware(sim, station, 0.5, check_period=0.005, realtime_rate=0.0,
-                    on_step=driver_in_real_time)
+
+        RunHardware(
+            sim, station, 0.5, check_period=0.005, realtime_rate=0.0, on_step=driver_in_real_time
+        )
         assert stall.done
         assert station.GetOutputPort("robot_ok").Eval(ctx)[0] == 1.0
         gaps = station.grabber.tick_gaps()
-        assert gaps.max() > 0.35                     # the stall was seen by the station
+        assert gaps.max() > 0.35  # the stall was seen by the station
         # The driver stops for real: detected after status_timeout.
         with pytest.raises(HardwareFault, match="robot state lost"):
             RunHardware(sim, station, 2.0, check_period=0.005, realtime_rate=1.0)

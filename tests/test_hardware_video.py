@@ -13,9 +13,17 @@ import pytest
 from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
 
 from drake_rus.hardware.video import (
-    DiagramClock, FrameCapture, PoseHistory, SyntheticVideo, estimate_video_latency,
-    interpolate_pose, monotonic_to_diagram_time, motion_signal, parse_video_source,
-    quaternion_slerp)
+    DiagramClock,
+    FrameCapture,
+    PoseHistory,
+    SyntheticVideo,
+    estimate_video_latency,
+    interpolate_pose,
+    monotonic_to_diagram_time,
+    motion_signal,
+    parse_video_source,
+    quaternion_slerp,
+)
 
 cv2 = pytest.importorskip("cv2", reason="opencv-python-headless is not installed")
 
@@ -30,13 +38,15 @@ def test_parse_video_source(tmp_path):
     assert parse_video_source("rtsp://10.0.0.5/live").kind == "url"
     f = tmp_path / "v.avi"
     f.write_bytes(b"x")
-    assert parse_video_source(str(f)) .kind == "file" and not parse_video_source(str(f)).live
-    for bad, message in (("ftp://host/v.mjpg", "unsupported URL scheme 'ftp'"),
-                         ("file:///tmp/v.avi", "unsupported URL scheme 'file'"),
-                         ("http:///stream", "names no host"),
-                         ("http://host:99999/x", "bad URL"),
-                         (str(tmp_path / "missing.avi"), "video file not found"),
-                         ("", "empty video source")):
+    assert parse_video_source(str(f)).kind == "file" and not parse_video_source(str(f)).live
+    for bad, message in (
+        ("ftp://host/v.mjpg", "unsupported URL scheme 'ftp'"),
+        ("file:///tmp/v.avi", "unsupported URL scheme 'file'"),
+        ("http:///stream", "names no host"),
+        ("http://host:99999/x", "bad URL"),
+        (str(tmp_path / "missing.avi"), "video file not found"),
+        ("", "empty video source"),
+    ):
         with pytest.raises(ValueError, match=f"hardware_interface.video_source.*{message}"):
             parse_video_source(bad)
 
@@ -48,6 +58,7 @@ def test_slerp_and_pose_interpolation():
     q1 = R1.ToQuaternion().wxyz()
     half = quaternion_slerp(q0, q1, 0.5)
     from pydrake.common.eigen_geometry import Quaternion
+
     angle = RollPitchYaw(RotationMatrix(Quaternion(half))).yaw_angle()
     assert math.degrees(angle) == pytest.approx(45.0, abs=1e-9)
     # Shorter arc: q and -q are the same rotation.
@@ -57,18 +68,19 @@ def test_slerp_and_pose_interpolation():
     pp, qq, where = interpolate_pose(times, p, [q0, q1], 0.25)
     np.testing.assert_allclose(pp, [0.25, 0.5, 0.75])
     assert where == "inside"
-    assert math.degrees(RollPitchYaw(RotationMatrix(Quaternion(qq))).yaw_angle()) == \
-        pytest.approx(22.5, abs=1e-9)
+    assert math.degrees(RollPitchYaw(RotationMatrix(Quaternion(qq))).yaw_angle()) == pytest.approx(
+        22.5, abs=1e-9
+    )
     assert interpolate_pose(times, p, [q0, q1], -1.0)[2] == "before"
     assert interpolate_pose(times, p, [q0, q1], 2.0)[2] == "after"
     np.testing.assert_allclose(interpolate_pose(times, p, [q0, q1], 2.0)[0], p[1])
 
-    h = PoseHistory(duration=1.0, rate_hz=10.0)          # capacity 12
+    h = PoseHistory(duration=1.0, rate_hz=10.0)  # capacity 12
     assert h.pose_at(0.0)[1] == "empty"
-    for k in range(30):                                   # wraps around
+    for k in range(30):  # wraps around
         t = 0.1 * k
         h.append(t, RigidTransform(RotationMatrix.MakeZRotation(0.1 * t), [t, 0, 0]))
-    h.append(2.9, RigidTransform())                      # not newer: ignored
+    h.append(2.9, RigidTransform())  # not newer: ignored
     assert len(h) == 12
     lo, hi = h.span()
     assert lo == pytest.approx(1.8) and hi == pytest.approx(2.9)
@@ -80,12 +92,13 @@ def test_slerp_and_pose_interpolation():
 
 
 def test_diagram_clock_mapping():
-    mono = [10.0, 10.005, 10.5, 10.5005]     # a 0.5 s stall of our loop
+    mono = [10.0, 10.005, 10.5, 10.5005]  # a 0.5 s stall of our loop
     diag = [1.000, 1.005, 1.010, 1.015]
     assert monotonic_to_diagram_time(mono, diag, 10.0025) == pytest.approx(1.0025)
     assert monotonic_to_diagram_time(mono, diag, 10.25) == pytest.approx(
-        1.005 + 0.005 * 0.245 / 0.495)
-    assert monotonic_to_diagram_time(mono, diag, 9.9) == pytest.approx(0.9)     # slope 1
+        1.005 + 0.005 * 0.245 / 0.495
+    )
+    assert monotonic_to_diagram_time(mono, diag, 9.9) == pytest.approx(0.9)  # slope 1
     assert monotonic_to_diagram_time(mono, diag, 10.6005) == pytest.approx(1.115)
     c = DiagramClock(duration=1.0, rate_hz=100.0)
     assert math.isnan(c.to_diagram(0.0))
@@ -103,23 +116,27 @@ def test_estimate_video_latency_on_synthetic_signals():
     rng = np.random.default_rng(0)
     latency = 0.0735
     pose_t = np.arange(0.0, 6.0, 0.005)
-    poses = np.stack([0.4 + _sinusoid(pose_t), np.full_like(pose_t, 0.1),
-                      np.full_like(pose_t, 0.2)], axis=1)
+    poses = np.stack(
+        [0.4 + _sinusoid(pose_t), np.full_like(pose_t, 0.1), np.full_like(pose_t, 0.2)], axis=1
+    )
     frame_t = np.arange(0.6, 6.0, 1 / 30) + rng.uniform(0, 0.002, size=162)
     # The image moves against the probe, 2000 px/m, 0.3 px of detection noise; 5 % lost.
-    signal = np.stack([80.0 - 2000.0 * _sinusoid(frame_t - latency),
-                       40.0 + rng.normal(0, 0.3, frame_t.size)], axis=1)
+    signal = np.stack(
+        [80.0 - 2000.0 * _sinusoid(frame_t - latency), 40.0 + rng.normal(0, 0.3, frame_t.size)],
+        axis=1,
+    )
     signal[:, 0] += rng.normal(0, 0.3, frame_t.size)
     signal[rng.random(frame_t.size) < 0.05] = np.nan
     est = estimate_video_latency(pose_t, poses, frame_t, signal)
     assert est.latency == pytest.approx(latency, abs=0.002)
-    assert est.correlation < -0.99                        # the image moves the other way
+    assert est.correlation < -0.99  # the image moves the other way
     # RigidTransforms and a 1-D signal work too.
-    est2 = estimate_video_latency(pose_t, [RigidTransform(p) for p in poses], frame_t,
-                                  signal[:, 0])
+    est2 = estimate_video_latency(pose_t, [RigidTransform(p) for p in poses], frame_t, signal[:, 0])
     assert est2.latency == pytest.approx(latency, abs=0.002)
-    print(f"\n[latency] synthetic arrays: true {1e3 * latency:.1f} ms, estimated "
-          f"{1e3 * est.latency:.2f} ms")
+    print(
+        f"\n[latency] synthetic arrays: true {1e3 * latency:.1f} ms, estimated "
+        f"{1e3 * est.latency:.2f} ms"
+    )
 
 
 def test_estimate_video_latency_refuses_bad_recordings():
@@ -135,7 +152,7 @@ def test_estimate_video_latency_refuses_bad_recordings():
     noise = np.random.default_rng(1).normal(size=ft.size)
     with pytest.raises(ValueError, match="does not follow the probe motion"):
         estimate_video_latency(t, moving, ft, noise)
-    fast = _sinusoid(t, period=0.3)          # repeats within max_latency: ambiguous
+    fast = _sinusoid(t, period=0.3)  # repeats within max_latency: ambiguous
     with pytest.raises(ValueError, match="ambiguous|end of the range"):
         estimate_video_latency(t, fast, ft, _sinusoid(ft - 0.05, period=0.3))
     assert motion_signal(np.zeros((3, 2))).shape == (3,)
@@ -143,8 +160,8 @@ def test_estimate_video_latency_refuses_bad_recordings():
 
 # --- the capture thread ------------------------------------------------------------------
 def _dot_picture(col, row=40.0, shape=(96, 160)):
-    rr, cc = np.mgrid[0:shape[0], 0:shape[1]]
-    img = 20 + 220 * np.exp(-((cc - col) ** 2 + (rr - row) ** 2) / (2 * 2.5 ** 2))
+    rr, cc = np.mgrid[0 : shape[0], 0 : shape[1]]
+    img = 20 + 220 * np.exp(-((cc - col) ** 2 + (rr - row) ** 2) / (2 * 2.5**2))
     return np.repeat(img.astype(np.uint8)[:, :, None], 3, axis=2)
 
 
@@ -160,8 +177,8 @@ def test_capture_thread_drains_a_live_source_and_never_blocks():
             time.sleep(0.2)
             t0 = time.perf_counter()
             f = cap.latest()
-            assert time.perf_counter() - t0 < 0.01            # no blocking on the source
-            assert time.monotonic() - f.capture_time < 0.1    # the newest, not a queued one
+            assert time.perf_counter() - t0 < 0.01  # no blocking on the source
+            assert time.monotonic() - f.capture_time < 0.1  # the newest, not a queued one
         stats = cap.stats()
         assert stats.frames >= 15 and 20.0 < stats.frame_rate_hz < 36.0
         assert f.counter == stats.frames - 1 or f.counter == stats.frames - 2
@@ -185,9 +202,9 @@ def test_capture_thread_replays_a_file_at_its_own_rate(tmp_path):
             seen.append(f)
             f = cap.wait_for(f.counter, 2.0)
         times = np.array([x.capture_time for x in seen])
-        assert np.median(np.diff(times)) == pytest.approx(0.04, abs=0.01)   # real time
+        assert np.median(np.diff(times)) == pytest.approx(0.04, abs=0.01)  # real time
         levels = [int(round(x.image.mean() / 20)) for x in seen]
-        assert levels == [(x.counter % 10) for x in seen]                   # looped, in order
+        assert levels == [(x.counter % 10) for x in seen]  # looped, in order
     finally:
         cap.close()
     once = FrameCapture(str(path), process=lambda p: p[:, :, 0].copy(), loop=False)
@@ -222,16 +239,19 @@ def _mjpeg_server(fps=25.0, lifetime=20.0):
                 while not stop.is_set() and time.monotonic() - start < lifetime:
                     ok, jpg = cv2.imencode(".jpg", _dot_picture(10 + (k * 7) % 140))
                     data = jpg.tobytes()
-                    self.wfile.write(b"--frame\r\nContent-Type: image/jpeg\r\n"
-                                     b"Content-Length: %d\r\n\r\n" % len(data) + data + b"\r\n")
+                    self.wfile.write(
+                        b"--frame\r\nContent-Type: image/jpeg\r\n"
+                        b"Content-Length: %d\r\n\r\n" % len(data) + data + b"\r\n"
+                    )
                     k += 1
                     stop.wait(max(0.0, start + k / fps - time.monotonic()))
             except (BrokenPipeError, ConnectionResetError):
                 pass
 
     server = _Mjpeg(("127.0.0.1", 0), Handler)
-    thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.05},
-                              daemon=True)
+    thread = threading.Thread(
+        target=server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True
+    )
     thread.start()
     timer = threading.Timer(lifetime, stop.set)
     timer.daemon = True
@@ -242,6 +262,7 @@ def _mjpeg_server(fps=25.0, lifetime=20.0):
         timer.cancel()
         server.shutdown()
         server.server_close()
+
     return f"http://127.0.0.1:{server.server_address[1]}/stream.mjpg", shutdown
 
 
@@ -269,7 +290,7 @@ def test_latency_recovered_from_a_synthetic_source():
     latency, fps, period = 0.12, 30.0, 1.2
     t0 = time.monotonic()
 
-    def probe_x(t):           # the probe's position (m) at monotonic time t
+    def probe_x(t):  # the probe's position (m) at monotonic time t
         return 0.01 * math.sin(2 * math.pi * (t - t0) / period)
 
     video = SyntheticVideo(lambda t: _dot_picture(80 - 3000 * probe_x(t)), fps, latency)
@@ -290,10 +311,13 @@ def test_latency_recovered_from_a_synthetic_source():
     finally:
         cap.close()
     from drake_rus.hardware.image_calibration import find_point_target
+
     targets = np.array([find_point_target(f.image) for f in frames], float)
     est = estimate_video_latency(pose_t, poses, [f.capture_time for f in frames], targets)
     error = abs(est.latency - latency)
-    print(f"\n[latency] synthetic source at {fps:g} fps: true {1e3 * latency:.0f} ms, "
-          f"estimated {1e3 * est.latency:.1f} ms (error {1e3 * error:.1f} ms, "
-          f"{est.frames} frames, correlation {est.correlation:+.3f})")
+    print(
+        f"\n[latency] synthetic source at {fps:g} fps: true {1e3 * latency:.0f} ms, "
+        f"estimated {1e3 * est.latency:.1f} ms (error {1e3 * error:.1f} ms, "
+        f"{est.frames} frames, correlation {est.correlation:+.3f})"
+    )
     assert error < 1.0 / fps

@@ -4,19 +4,25 @@ import json
 
 import numpy as np
 import pytest
-
 from pydrake.math import RigidTransform, RotationMatrix
 
 from drake_rus.anatomy.labels import Label, LabelVolume, is_kidney
 from drake_rus.imaging.config import ImagingConfig
-from drake_rus.imaging.training.dataset import (EmulatorBank, Randomisation, ViewSampler, VolumeVariant,
-                                       canvas_frames, make_frames, randomised_emulator,
-                                       thicken_wall)
 from drake_rus.imaging.emulator import EmulatorModel, emulate
-from drake_rus.imaging.training.evaluation import Source, cluster_bootstrap_ci, mean_iou, summarise
 from drake_rus.imaging.phantoms import kidney_phantom
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.imaging.slicing import sample_labels
+from drake_rus.imaging.training.dataset import (
+    EmulatorBank,
+    Randomisation,
+    ViewSampler,
+    VolumeVariant,
+    canvas_frames,
+    make_frames,
+    randomised_emulator,
+    thicken_wall,
+)
+from drake_rus.imaging.training.evaluation import Source, cluster_bootstrap_ci, mean_iou, summarise
 
 
 @pytest.fixture(scope="module")
@@ -40,11 +46,13 @@ def test_views_sit_on_the_skin_and_look_inwards(phantom):
 
 
 def test_frames_mostly_see_the_kidney_and_iou_counts(phantom):
-    cfg = ImagingConfig(image_height_px=128, image_width_px=128, scan_lines=64,
-                        samples_per_line=128)
+    cfg = ImagingConfig(
+        image_height_px=128, image_width_px=128, scan_lines=64, samples_per_line=128
+    )
     g = ProbeGeometry.from_config(cfg)
-    frames = make_frames(phantom.volume, [0, 0, 1], EmulatorModel.from_config(cfg, g), 12,
-                         np.random.default_rng(1))
+    frames = make_frames(
+        phantom.volume, [0, 0, 1], EmulatorModel.from_config(cfg, g), 12, np.random.default_rng(1)
+    )
     assert len(frames) == 12
     seen = [m.sum() * g.pixel_area >= 1e-4 for _, m, *_ in frames]
     assert np.mean(seen) > 0.6
@@ -57,19 +65,37 @@ def test_frames_mostly_see_the_kidney_and_iou_counts(phantom):
 
 def test_pictures_command_writes_pngs(tmp_path):
     from drake_rus.cli import main
+
     out = tmp_path / "pics"
-    rc = main(["imaging-pictures", "--patient", "phantom:2", "--segmenter", "oracle",
-               "--views", "1", "--pose", "0.08,0.1,0.15,180,0,0", "--out", str(out)])
+    rc = main(
+        [
+            "imaging-pictures",
+            "--patient",
+            "phantom:2",
+            "--segmenter",
+            "oracle",
+            "--views",
+            "1",
+            "--pose",
+            "0.08,0.1,0.15,180,0,0",
+            "--out",
+            str(out),
+        ]
+    )
     assert rc == 0
     # Strict JSON: NaN/Infinity (a view without a kidney has no IoU) would fail here.
-    summary = json.loads((out / "pictures.json").read_text(),
-                         parse_constant=lambda c: pytest.fail(f"pictures.json holds {c}"))
+    summary = json.loads(
+        (out / "pictures.json").read_text(),
+        parse_constant=lambda c: pytest.fail(f"pictures.json holds {c}"),
+    )
     assert [v["view"] for v in summary["views"]] == ["centred", "pose0", "view0"]
     assert summary["views"][0]["visible"] and summary["views"][0]["iou"] == 1.0
     assert (out / "contact_sheet.png").stat().st_size > 1000
     assert (out / "00_centred.png").is_file()
-    assert main(["imaging-pictures", "--patient", "phantom:2", "--pose", "1,2,3",
-                 "--out", str(out)]) == 2
+    assert (
+        main(["imaging-pictures", "--patient", "phantom:2", "--pose", "1,2,3", "--out", str(out)])
+        == 2
+    )
 
 
 def _kidney_centroid_Pt(vol: LabelVolume) -> np.ndarray:
@@ -95,8 +121,7 @@ def test_thicken_wall_puts_the_kidney_deeper_and_keeps_it(phantom):
         assert thick.labels.size > v.labels.size
         # The kidney keeps its voxels and its place in the patient frame ...
         assert is_kidney(thick.labels).sum() == is_kidney(v.labels).sum()
-        np.testing.assert_allclose(_kidney_centroid_Pt(thick), _kidney_centroid_Pt(v),
-                                   atol=1e-9)
+        np.testing.assert_allclose(_kidney_centroid_Pt(thick), _kidney_centroid_Pt(v), atol=1e-9)
         # ... and lies 30 mm deeper below the upper skin, under 10 mm more fat.
         after = Source("p", "supine", thick, up).needed_depth(0.0)
         assert after - before == pytest.approx(0.030, abs=1.5e-3)
@@ -107,20 +132,28 @@ def test_thicken_wall_puts_the_kidney_deeper_and_keeps_it(phantom):
 
 
 def test_free_views_mostly_miss_the_kidney(phantom):
-    cfg = ImagingConfig(image_height_px=128, image_width_px=128, scan_lines=64,
-                        samples_per_line=128)
+    cfg = ImagingConfig(
+        image_height_px=128, image_width_px=128, scan_lines=64, samples_per_line=128
+    )
     g = ProbeGeometry.from_config(cfg)
     up = np.array([0.0, 0.0, 1.0])
     sampler = ViewSampler(phantom.volume, up, free_fraction=1.0, free_offset=(0.07, 0.09))
-    frames = make_frames(phantom.volume, up, EmulatorModel.from_config(cfg, g), 12,
-                         np.random.default_rng(2), sampler=sampler)
+    frames = make_frames(
+        phantom.volume,
+        up,
+        EmulatorModel.from_config(cfg, g),
+        12,
+        np.random.default_rng(2),
+        sampler=sampler,
+    )
     seen = [m.sum() * g.pixel_area >= 1e-4 for _, m, *_ in frames]
     assert len(frames) == 12 and np.mean(seen) < 0.5
 
 
 def test_randomised_emulator_shares_the_geometry_and_varies_the_image():
-    bank = EmulatorBank(ImagingConfig(image_height_px=128, image_width_px=128, scan_lines=64,
-                                      samples_per_line=128))
+    bank = EmulatorBank(
+        ImagingConfig(image_height_px=128, image_width_px=128, scan_lines=64, samples_per_line=128)
+    )
     base = bank.get(0.15)
     assert bank.get(0.15) is base and bank.get(0.20) is not base
     assert bank.get(0.15, 32).scan_lines == 32
@@ -134,13 +167,23 @@ def test_randomised_emulator_shares_the_geometry_and_varies_the_image():
 
 
 def test_canvas_frames_are_on_the_physical_canvas(phantom):
-    cfg = ImagingConfig(image_height_px=128, image_width_px=128, scan_lines=64,
-                        samples_per_line=128)
+    cfg = ImagingConfig(
+        image_height_px=128, image_width_px=128, scan_lines=64, samples_per_line=128
+    )
     up = np.array([0.0, 0.0, 1.0])
     thick = thicken_wall(phantom.volume, up, fat=0.01)
     variants = [VolumeVariant(phantom.volume, up), VolumeVariant(thick, up, extra_depth=0.01)]
-    d = canvas_frames(variants, [0.10, 0.20], 6, np.random.default_rng(0), EmulatorBank(cfg),
-                      0.0048, (64, 56), -0.004, Randomisation())
+    d = canvas_frames(
+        variants,
+        [0.10, 0.20],
+        6,
+        np.random.default_rng(0),
+        EmulatorBank(cfg),
+        0.0048,
+        (64, 56),
+        -0.004,
+        Randomisation(),
+    )
     assert d["image"].shape == (6, 64, 56) and d["kidney"].shape == (6, 64, 56)
     assert set(d["depth"].tolist()) <= {np.float32(0.10), np.float32(0.20)}
     k = d["kidney"].astype(np.float32)
@@ -148,20 +191,24 @@ def test_canvas_frames_are_on_the_physical_canvas(phantom):
     assert (d["kidney_px"] > 0).sum() >= 3
     # Kidney area on the canvas (mm^2) = kidney pixels x the image's pixel area.
     for i in range(6):
-        g = ProbeGeometry.from_config(ImagingConfig(
-            depth=float(d["depth"][i]), image_height_px=128, image_width_px=128))
-        assert k[i].sum() * 4.8 ** 2 == pytest.approx(d["kidney_px"][i] * g.pixel_area * 1e6,
-                                                        rel=0.02, abs=1.0)
+        g = ProbeGeometry.from_config(
+            ImagingConfig(depth=float(d["depth"][i]), image_height_px=128, image_width_px=128)
+        )
+        assert k[i].sum() * 4.8**2 == pytest.approx(
+            d["kidney_px"][i] * g.pixel_area * 1e6, rel=0.02, abs=1.0
+        )
 
 
 def test_summarise_groups_records():
-    recs = [{"depth": 0.1, "posture": "supine", "iou": 0.8, "false_positive": False},
-            {"depth": 0.1, "posture": "supine", "iou": None, "false_positive": True},
-            {"depth": 0.2, "posture": "supine", "iou": 0.6, "false_positive": False}]
+    recs = [
+        {"depth": 0.1, "posture": "supine", "iou": 0.8, "false_positive": False},
+        {"depth": 0.1, "posture": "supine", "iou": None, "false_positive": True},
+        {"depth": 0.2, "posture": "supine", "iou": 0.6, "false_positive": False},
+    ]
     out = summarise(recs)
     assert out[0.1]["iou"] == 0.8 and out[0.1]["false_positive_rate"] == 1.0
     assert out[0.2]["frames_with_kidney"] == 1 and out[0.2]["frames_without_kidney"] == 0
-    assert out[0.1]["iou_ci95"] == (0.8, 0.8)          # one source: no spread to resample
+    assert out[0.1]["iou_ci95"] == (0.8, 0.8)  # one source: no spread to resample
 
 
 def test_cluster_bootstrap_interval_resamples_whole_sources():
@@ -172,7 +219,7 @@ def test_cluster_bootstrap_interval_resamples_whole_sources():
     clusters = np.repeat([f"test:{k}" for k in range(8)], 40)
     lo, hi = cluster_bootstrap_ci(values, clusters)
     assert lo < values.mean() < hi
-    assert cluster_bootstrap_ci(values, clusters) == (lo, hi)          # deterministic
+    assert cluster_bootstrap_ci(values, clusters) == (lo, hi)  # deterministic
     # Treating the 320 frames as independent gives a much narrower interval: the sources
     # are the unit of evidence.
     lo_iid, hi_iid = cluster_bootstrap_ci(values, np.arange(values.size))
@@ -189,7 +236,9 @@ def test_cluster_bootstrap_interval_resamples_whole_sources():
 
 def test_kidney_context_and_structure_randomisation(phantom):
     from scipy import ndimage
+
     from drake_rus.imaging.training.dataset import remove_perirenal_fat, thin_cortex
+
     vol = phantom.volume
     kid = is_kidney(vol.labels)
     # A thin cortex: same kidney outline, cortex only within 3 mm of its surface.

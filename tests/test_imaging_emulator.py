@@ -10,7 +10,7 @@ from drake_rus.imaging.emulator import EmulatorModel, emulate
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.imaging.slicing import slice_volume
 
-DOWN = RotationMatrix(np.diag([1.0, -1.0, -1.0]))   # z_P = -z_B, x_P = x_B
+DOWN = RotationMatrix(np.diag([1.0, -1.0, -1.0]))  # z_P = -z_B, x_P = x_B
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +53,10 @@ def test_rib_shadow_is_behind_not_in_front(model):
     beside = column_band(g, 0.020, 0.032) | column_band(g, -0.032, -0.020)
     front = row_band(g, 0.008, 0.026)
     behind = row_band(g, 0.050, 0.120)
-    m = lambda r, c: img[np.ix_(r, c)][g.fan_mask[np.ix_(r, c)]].mean()
+
+    def m(r, c):
+        return img[np.ix_(r, c)][g.fan_mask[np.ix_(r, c)]].mean()
+
     # In front of the rib: same brightness as beside it (within 15%).
     assert m(front, under) == pytest.approx(m(front, beside), rel=0.15)
     # Behind it: a strong shadow (under a fifth of the brightness beside it).
@@ -77,14 +80,16 @@ def test_gas_casts_a_complete_shadow(model):
 
 def test_attenuation_and_tgc(model):
     import dataclasses
+
     g = model.geometry
-    labels, _ = slab_image(model, Label.SOFT_TISSUE, 1.0, 1.0, 0.0)   # homogeneous
+    labels, _ = slab_image(model, Label.SOFT_TISSUE, 1.0, 1.0, 0.0)  # homogeneous
     centre = column_band(g, -0.01, 0.01)
     shallow, deep = row_band(g, 0.02, 0.04), row_band(g, 0.11, 0.13)
     img = emulate(labels, model, 0, 0).astype(float)
     # TGC matched to soft tissue (0.7 dB/cm/MHz): no net fall-off with depth.
-    assert img[np.ix_(deep, centre)].mean() == pytest.approx(img[np.ix_(shallow, centre)].mean(),
-                                                             rel=0.08)
+    assert img[np.ix_(deep, centre)].mean() == pytest.approx(
+        img[np.ix_(shallow, centre)].mean(), rel=0.08
+    )
     # Without TGC the image darkens with depth: 2 x 0.7 x 3.5 dB/cm over 9 cm = 44 dB.
     no_tgc = dataclasses.replace(model, tgc_db_per_cm_mhz=0.0)
     img2 = emulate(labels, no_tgc, 0, 0).astype(float)
@@ -96,19 +101,31 @@ def test_attenuation_and_tgc(model):
 def test_echogenicity_ordering(model):
     g = model.geometry
     means = {}
-    for label in (Label.KIDNEY_SINUS, Label.LIVER, Label.KIDNEY_CORTEX, Label.KIDNEY_MEDULLA,
-                  Label.VESSEL):
+    for label in (
+        Label.KIDNEY_SINUS,
+        Label.LIVER,
+        Label.KIDNEY_CORTEX,
+        Label.KIDNEY_MEDULLA,
+        Label.VESSEL,
+    ):
         img = np.zeros(g.image_shape, np.uint8)
         img[g.fan_mask] = label
-        out = emulate(img, dataclasses_replace(model, tgc_db_per_cm_mhz=model.tgc_db_per_cm_mhz),
-                      0, 0).astype(float)
+        out = emulate(
+            img, dataclasses_replace(model, tgc_db_per_cm_mhz=model.tgc_db_per_cm_mhz), 0, 0
+        ).astype(float)
         means[label] = out[np.ix_(row_band(g, 0.01, 0.03), column_band(g, -0.01, 0.01))].mean()
-    assert (means[Label.KIDNEY_SINUS] > means[Label.LIVER] > means[Label.KIDNEY_CORTEX]
-            > means[Label.KIDNEY_MEDULLA] > means[Label.VESSEL])
+    assert (
+        means[Label.KIDNEY_SINUS]
+        > means[Label.LIVER]
+        > means[Label.KIDNEY_CORTEX]
+        > means[Label.KIDNEY_MEDULLA]
+        > means[Label.VESSEL]
+    )
 
 
 def dataclasses_replace(obj, **kw):
     import dataclasses
+
     return dataclasses.replace(obj, **kw)
 
 
@@ -125,7 +142,7 @@ def test_deterministic_per_seed_and_frame(model):
 
 def test_probe_in_air_sees_nothing(model):
     g = model.geometry
-    img = np.zeros(g.image_shape, np.uint8)   # all OUTSIDE (air) in the fan
+    img = np.zeros(g.image_shape, np.uint8)  # all OUTSIDE (air) in the fan
     out = emulate(img, model, 0, 0)
     assert out[row_band(g, 0.01, 0.15)].max() <= 2
 

@@ -18,14 +18,20 @@ from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.frames import BoundaryPixels, PointCloud
 from drake_rus.imaging.onnx_backend import OnnxSegmenter, _dilate_cross, _max_3x3, _true_box
 from drake_rus.imaging.probe import ProbeGeometry
-from drake_rus.imaging.segment import (boundary_pixels, mask_box, mask_centroid, read_mask,
-                                       tracked_component)
+from drake_rus.imaging.segment import (
+    boundary_pixels,
+    mask_box,
+    mask_centroid,
+    read_mask,
+    tracked_component,
+)
 from drake_rus.imaging.slicing import _lookup_padded, padded_labels, slice_volume
 
 DOWN = RotationMatrix(np.diag([1.0, -1.0, -1.0]))
 
 
 # --- references: the computations before the fast paths ----------------------------------
+
 
 def ref_slice(g, volume, X_BV, X_BP, y=0.0):
     """One plane of ``slice_volume``: every fan pixel's voxel coordinates, then the padded
@@ -35,9 +41,13 @@ def ref_slice(g, volume, X_BV, X_BP, y=0.0):
     b = (X_VP.translation() / volume.voxel_size).astype(np.float32)
     px, pz = g.fan_x_z32
     c = b + np.float32(y) * A[:, 1] + np.float32(1.5)
-    return _lookup_padded(padded_labels(volume.labels), px * A[0, 0] + (pz * A[0, 2] + c[0]),
-                          px * A[1, 0] + (pz * A[1, 2] + c[1]),
-                          px * A[2, 0] + (pz * A[2, 2] + c[2]), shifted=True)
+    return _lookup_padded(
+        padded_labels(volume.labels),
+        px * A[0, 0] + (pz * A[0, 2] + c[0]),
+        px * A[1, 0] + (pz * A[1, 2] + c[1]),
+        px * A[2, 0] + (pz * A[2, 2] + c[2]),
+        shifted=True,
+    )
 
 
 def ref_line_db(labels_ls, model, speckle):
@@ -72,7 +82,7 @@ def ref_speckle(model, seed, frame):
     rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, int(frame) & 0xFFFFFFFF])
     L, S = model.scan_lines, model.samples_per_line
     i, j = rng.integers(0, L + 1), rng.integers(0, S + 1)
-    return model.speckle_bank(seed)[i:i + L, j:j + S]
+    return model.speckle_bank(seed)[i : i + L, j : j + S]
 
 
 def ref_emulate(label_image, model, seed, frame):
@@ -95,8 +105,7 @@ def ref_mask_box(mask):
 
 
 def ref_boundary(mask):
-    inner = ndimage.binary_erosion(mask, ndimage.generate_binary_structure(2, 1),
-                                   border_value=0)
+    inner = ndimage.binary_erosion(mask, ndimage.generate_binary_structure(2, 1), border_value=0)
     v, u = np.nonzero(mask & ~inner)
     return np.stack([u, v], axis=1).astype(float)
 
@@ -110,14 +119,17 @@ def ref_centroid(mask):
 
 # --- realistic frames: views of test:0 ---------------------------------------------------
 
+
 @pytest.fixture(scope="module")
 def source():
     from drake_rus.imaging.training.evaluation import load_source
+
     return load_source("test:0", posture="supine")
 
 
 def views(source, n, seed):
     from drake_rus.imaging.training.evaluation import sample_views
+
     return sample_views(source, n, seed=seed)
 
 
@@ -126,20 +138,23 @@ def test_slice_volume_equals_the_per_pixel_lookup(source, depth):
     g = ProbeGeometry.from_config(ImagingConfig(depth=depth))
     z, per_row = g.fan_rows
     assert np.array_equal(np.repeat(z, per_row), g.fan_x_z32[1])
-    I = RigidTransform()
+    X_id = RigidTransform()
     poses = views(source, 6, seed=1)
     # Views partly or wholly outside the volume (clipped onto the air border).
-    poses += [RigidTransform(DOWN, [0.05, 0.05, 0.30]), RigidTransform(DOWN, [-0.2, 0.1, 0.1]),
-              RigidTransform(RotationMatrix.MakeXRotation(0.7), [0.1, 0.3, 0.05])]
+    poses += [
+        RigidTransform(DOWN, [0.05, 0.05, 0.30]),
+        RigidTransform(DOWN, [-0.2, 0.1, 0.1]),
+        RigidTransform(RotationMatrix.MakeXRotation(0.7), [0.1, 0.3, 0.05]),
+    ]
     for X_VP in poses:
-        image = slice_volume(g, source.volume, I, X_VP)
+        image = slice_volume(g, source.volume, X_id, X_VP)
         want = np.zeros(g.image_shape, np.uint8)
-        want.reshape(-1)[g.fan_flat_index] = ref_slice(g, source.volume, I, X_VP)
+        want.reshape(-1)[g.fan_flat_index] = ref_slice(g, source.volume, X_id, X_VP)
         assert np.array_equal(image, want)
     # Several planes across the beam width, combined by their maximum.
     X_VP = poses[0]
-    got = slice_volume(g, source.volume, I, X_VP, planes=3, combine="max")
-    planes = [ref_slice(g, source.volume, I, X_VP, y) for y in (-0.005, 0.0, 0.005)]
+    got = slice_volume(g, source.volume, X_id, X_VP, planes=3, combine="max")
+    planes = [ref_slice(g, source.volume, X_id, X_VP, y) for y in (-0.005, 0.0, 0.005)]
     want = np.zeros(g.image_shape, np.uint8)
     want.reshape(-1)[g.fan_flat_index] = np.max(planes, axis=0)
     assert np.array_equal(got, want)
@@ -150,13 +165,13 @@ def test_emulate_equals_the_line_by_line_emulation(source, depth, lines, samples
     cfg = ImagingConfig(depth=depth, scan_lines=lines, samples_per_line=samples)
     g = ProbeGeometry.from_config(cfg)
     model = E.EmulatorModel.from_config(cfg, g)
-    I = RigidTransform()
+    X_id = RigidTransform()
     poses = views(source, 8, seed=2)
     # The first probe lifted 4 mm off the skin: air under most of the face (the gel rule).
     X = poses[0]
     lift = 0.004 * X.rotation().matrix()[:, 2]
     poses.append(RigidTransform(X.rotation(), X.translation() - lift))
-    labels = [slice_volume(g, source.volume, I, X_VP) for X_VP in poses]
+    labels = [slice_volume(g, source.volume, X_id, X_VP) for X_VP in poses]
     for k, image in enumerate(labels):
         assert np.array_equal(E.emulate(image, model, 7, k), ref_emulate(image, model, 7, k))
     plain = E.EmulatorModel.from_config(replace(cfg, speckle=False), g)
@@ -170,14 +185,19 @@ def test_line_db_equals_the_line_by_line_computation(source):
     image = slice_volume(g, source.volume, RigidTransform(), views(source, 1, seed=4)[0])
     labels = np.take(image.reshape(-1), model.polar_to_image_index).astype(np.uint8)
     speckle = E.speckle_field(model, 3, 11)
-    for lab, sp in [(labels, speckle), (labels, None), (labels, speckle.astype(np.float64)),
-                    (labels.astype(np.int64), speckle), (labels[3:9], speckle[3:9]),
-                    (np.asfortranarray(labels), speckle)]:
+    for lab, sp in [
+        (labels, speckle),
+        (labels, None),
+        (labels, speckle.astype(np.float64)),
+        (labels.astype(np.int64), speckle),
+        (labels[3:9], speckle[3:9]),
+        (np.asfortranarray(labels), speckle),
+    ]:
         before = lab.copy()
         got = E.line_db(lab, model, sp)
         assert got.dtype == np.float32 and got.flags.c_contiguous
         assert np.array_equal(got, ref_line_db(lab, model, sp))
-        assert np.array_equal(lab, before)        # the caller's labels are left alone
+        assert np.array_equal(lab, before)  # the caller's labels are left alone
     # Labels outside the compact codes (gel, others as soft tissue), air before tissue.
     odd = labels.copy()
     odd[::5, 40:60] = E.GEL
@@ -190,16 +210,16 @@ def test_line_db_equals_the_line_by_line_computation(source):
 
 
 def test_speckle_is_the_same_in_any_frame_order():
-    cfg = ImagingConfig(image_height_px=64, image_width_px=64, scan_lines=32,
-                        samples_per_line=64)
+    cfg = ImagingConfig(image_height_px=64, image_width_px=64, scan_lines=32, samples_per_line=64)
     model = E.EmulatorModel.from_config(cfg)
-    frames = list(range(150)) + [7, 3, 149, 500, 2 ** 33 + 5, 150, 151, 0]
+    frames = list(range(150)) + [7, 3, 149, 500, 2**33 + 5, 150, 151, 0]
     for f in frames:
         for seed in (0, 9):
             assert np.array_equal(E.speckle_field(model, seed, f), ref_speckle(model, seed, f))
     fresh = E.EmulatorModel.from_config(cfg)
-    labels = np.full(cfg.image_height_px * cfg.image_width_px, Label.SOFT_TISSUE,
-                     np.uint8).reshape(64, 64)
+    labels = np.full(cfg.image_height_px * cfg.image_width_px, Label.SOFT_TISSUE, np.uint8).reshape(
+        64, 64
+    )
     for f in (40, 2, 41, 42):
         assert np.array_equal(E.emulate(labels, fresh, 9, f), E.emulate(labels, model, 9, f))
 
@@ -223,14 +243,14 @@ def test_segmenter_preprocessing_and_probability_equal_their_definitions(source)
         assert np.array_equal(seg._kidney_map(out), sigmoid)
         assert np.array_equal(seg.model_probability(us), np.where(fan, sigmoid, 0.0))
     logits = np.array([[[[-200.0, -30.0, -1e-3, 0.0, 1e-3, 30.0, 200.0]]]], np.float32)
-    with np.errstate(over="ignore"):      # exp(200) is inf: the probability 0, as before
-        assert np.array_equal(seg._kidney_map(logits),
-                              (1.0 / (1.0 + np.exp(-logits[0, 0]))).astype(np.float32))
+    with np.errstate(over="ignore"):  # exp(200) is inf: the probability 0, as before
+        assert np.array_equal(
+            seg._kidney_map(logits), (1.0 / (1.0 + np.exp(-logits[0, 0]))).astype(np.float32)
+        )
     # A normalisation other than (0, 1): (x - mean) / std as before.
     other = OnnxSegmenter(seg.path, g, seg.input_shape, mean=0.3, std=0.7)
     x = canvas.to_canvas(us) * np.float32(1.0 / 255.0)
-    assert np.array_equal(other.preprocess(us)[0, 0],
-                          (x - np.float32(0.3)) * np.float32(1.0 / 0.7))
+    assert np.array_equal(other.preprocess(us)[0, 0], (x - np.float32(0.3)) * np.float32(1.0 / 0.7))
 
 
 def test_mask_helpers_equal_scipy_and_the_plain_definitions():
@@ -239,12 +259,12 @@ def test_mask_helpers_equal_scipy_and_the_plain_definitions():
     for shape in [(256, 256), (64, 96), (37, 45), (8, 8), (1, 16), (16, 1), (3, 3)]:
         masks += [np.zeros(shape, bool), np.ones(shape, bool), rng.random(shape) < 0.3]
         blob = np.zeros(shape, bool)
-        blob[shape[0] // 3:2 * shape[0] // 3 + 1, shape[1] // 4:shape[1] // 2 + 1] = True
+        blob[shape[0] // 3 : 2 * shape[0] // 3 + 1, shape[1] // 4 : shape[1] // 2 + 1] = True
         masks.append(blob)
         corner = np.zeros(shape, bool)
         corner[-1, -1] = True
         masks.append(corner)
-    masks.append((rng.random((256, 512)) < 0.001)[:, ::2])      # not contiguous
+    masks.append((rng.random((256, 512)) < 0.001)[:, ::2])  # not contiguous
     for m in masks:
         assert _true_box(m) == ref_mask_box(m)
         assert mask_box(m) == ref_mask_box(m)
@@ -269,7 +289,7 @@ def test_tracked_component_follows_only_a_recent_nonempty_prior(geometry):
     b[100:105, 100:105] = True
     kw = dict(max_gap=1.0, reach=0.01)
     assert tracked_component([b, a], a, 0.5, geometry, **kw) == 1
-    for age in (2.0, np.nan):       # too old, or unknown: the largest region
+    for age in (2.0, np.nan):  # too old, or unknown: the largest region
         assert tracked_component([b, a], a, age, geometry, **kw) == 1
         assert tracked_component([a, b], a, age, geometry, **kw) == 0
     assert tracked_component([b, a], np.zeros_like(a), 0.5, geometry, **kw) == 1
@@ -277,9 +297,15 @@ def test_tracked_component_follows_only_a_recent_nonempty_prior(geometry):
 
 def test_accumulated_clouds_are_the_concatenation_and_stay_as_they_were(geometry):
     rng = np.random.default_rng(2)
-    frames = [BoundaryPixels(rng.integers(0, 256, (int(rng.integers(0, 400)), 2)), 0.05 * k,
-                             RigidTransform(RotationMatrix.MakeZRotation(0.1 * k),
-                                            [0.01 * k, 0.0, 0.3]), k) for k in range(40)]
+    frames = [
+        BoundaryPixels(
+            rng.integers(0, 256, (int(rng.integers(0, 400)), 2)),
+            0.05 * k,
+            RigidTransform(RotationMatrix.MakeZRotation(0.1 * k), [0.01 * k, 0.0, 0.3]),
+            k,
+        )
+        for k in range(40)
+    ]
     clouds = [PointCloud()]
     for f in frames:
         clouds.append(accumulate(clouds[-1], f, geometry))
@@ -291,8 +317,12 @@ def test_accumulated_clouds_are_the_concatenation_and_stay_as_they_were(geometry
     for c, w in zip(clouds, want):
         assert np.array_equal(c.points, w)
         assert not c.points.flags.writeable
-    assert np.array_equal(branch.points, np.concatenate(
-        [want[10], backproject_pixels(geometry, frames[30].pixels, frames[30].X_BP)]))
+    assert np.array_equal(
+        branch.points,
+        np.concatenate(
+            [want[10], backproject_pixels(geometry, frames[30].pixels, frames[30].X_BP)]
+        ),
+    )
     assert clouds[-1].frame_count == 40 and len(clouds[-1].poses) == 40
     # A cloud built from any points (not a growth buffer's) still accumulates.
     own = PointCloud(points=np.ones((5, 3)), frame_count=1)
@@ -305,5 +335,6 @@ def test_label_volume_sampling_is_unchanged():
     got = slice_volume(g, vol, RigidTransform(), RigidTransform(DOWN, [0.01, 0.01, 0.035]))
     want = np.zeros(g.image_shape, np.uint8)
     want.reshape(-1)[g.fan_flat_index] = ref_slice(
-        g, vol, RigidTransform(), RigidTransform(DOWN, [0.01, 0.01, 0.035]))
+        g, vol, RigidTransform(), RigidTransform(DOWN, [0.01, 0.01, 0.035])
+    )
     assert np.array_equal(got, want) and got.any()

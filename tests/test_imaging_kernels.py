@@ -21,6 +21,7 @@ DOWN = RotationMatrix(np.diag([1.0, -1.0, -1.0]))
 
 # --- numpy references ---------------------------------------------------------------------
 
+
 def ref_line_db(labels_ls, model, speckle):
     """Echo level (L, S) along each line: compact codes with the gel rule, pair tables,
     np.cumsum of the losses along the line, numpy's log10."""
@@ -75,9 +76,11 @@ def ref_slice(g, volume, X_VP, y=0.0):
 
 # --- inputs -------------------------------------------------------------------------------
 
+
 @pytest.fixture(scope="module")
 def source():
     from drake_rus.imaging.training.evaluation import load_source
+
     return load_source("test:0", posture="supine")
 
 
@@ -93,8 +96,17 @@ def edge_labels(model, rng):
     """(L, S) uint8 label lines: realistic layers, then whole lines of air (probe off the
     body), gas, bone, gel, labels without a table entry, air gaps after tissue."""
     L, S = model.scan_lines, model.samples_per_line
-    layers = [Label.OUTSIDE, Label.SOFT_TISSUE, Label.FAT, Label.MUSCLE, Label.KIDNEY_CORTEX,
-              Label.KIDNEY_MEDULLA, Label.KIDNEY_SINUS, Label.VESSEL, Label.LIVER]
+    layers = [
+        Label.OUTSIDE,
+        Label.SOFT_TISSUE,
+        Label.FAT,
+        Label.MUSCLE,
+        Label.KIDNEY_CORTEX,
+        Label.KIDNEY_MEDULLA,
+        Label.KIDNEY_SINUS,
+        Label.VESSEL,
+        Label.LIVER,
+    ]
     lab = np.empty((L, S), np.uint8)
     for ln in range(L):
         cuts = np.sort(rng.integers(0, S, 6))
@@ -124,18 +136,21 @@ def test_line_db_kernel_equals_numpy_on_edge_lines(model):
     # A single line, and air-only lines (no tissue at all: gel, then air to the end).
     for part in (lab[:1], lab[5:6], np.zeros_like(lab)):
         sp = speckle[: len(part)]
-        assert np.array_equal(E.line_db(part, model, sp).view(np.uint32),
-                              ref_line_db(part, model, sp).view(np.uint32))
+        assert np.array_equal(
+            E.line_db(part, model, sp).view(np.uint32), ref_line_db(part, model, sp).view(np.uint32)
+        )
 
 
 def test_emulate_kernels_equal_numpy_on_edge_images(model):
     g = model.geometry
     rng = np.random.default_rng(1)
-    images = [np.zeros(g.image_shape, np.uint8),                      # nothing under the probe
-              np.full(g.image_shape, Label.GAS, np.uint8),
-              np.full(g.image_shape, Label.BONE, np.uint8),
-              rng.integers(0, 16, g.image_shape).astype(np.uint8),
-              rng.choice([0, 1, 8, 9, 200, 255], g.image_shape).astype(np.uint8)]
+    images = [
+        np.zeros(g.image_shape, np.uint8),  # nothing under the probe
+        np.full(g.image_shape, Label.GAS, np.uint8),
+        np.full(g.image_shape, Label.BONE, np.uint8),
+        rng.integers(0, 16, g.image_shape).astype(np.uint8),
+        rng.choice([0, 1, 8, 9, 200, 255], g.image_shape).astype(np.uint8),
+    ]
     layered = np.full(g.image_shape, Label.SOFT_TISSUE, np.uint8)
     layered[:6] = Label.OUTSIDE
     layered[60:64] = Label.BONE
@@ -153,24 +168,31 @@ def test_emulate_kernels_equal_numpy_on_edge_images(model):
 
 def test_emulate_kernels_equal_numpy_on_test0_views(source, model):
     from drake_rus.imaging.training.evaluation import sample_views
+
     g = model.geometry
     for k, X_VP in enumerate(sample_views(source, 6, seed=3)):
         image = slice_volume(g, source.volume, RigidTransform(), X_VP)
         assert np.array_equal(E.emulate(image, model, 2, k), ref_emulate(image, model, 2, k))
         labels = image.reshape(-1)[model.polar_to_image_index]
         sp = E.speckle_field(model, 2, k)
-        assert np.array_equal(E.line_db(labels, model, sp).view(np.uint32),
-                              ref_line_db(labels, model, sp).view(np.uint32))
+        assert np.array_equal(
+            E.line_db(labels, model, sp).view(np.uint32),
+            ref_line_db(labels, model, sp).view(np.uint32),
+        )
 
 
 def test_scan_convert_kernel_equals_scipy(model):
     rng = np.random.default_rng(2)
     L, S = model.scan_lines, model.samples_per_line
-    for grey in (rng.random((L, S)) * 255, np.zeros((L, S)), np.full((L, S), 255.0),
-                 rng.choice([0.0, 254.5, 255.0], (L, S))):
+    for grey in (
+        rng.random((L, S)) * 255,
+        np.zeros((L, S)),
+        np.full((L, S), 255.0),
+        rng.choice([0.0, 254.5, 255.0], (L, S)),
+    ):
         grey = grey.astype(np.float32)
         assert np.array_equal(E.scan_convert(grey, model), ref_scan_convert(grey, model))
-    assert model._scan_quads is not None        # the fixed-length path is the one in use
+    assert model._scan_quads is not None  # the fixed-length path is the one in use
 
 
 def test_generic_csr_kernel_equals_scipy():
@@ -190,12 +212,15 @@ def test_slice_kernel_equals_numpy(source):
     vol = source.volume
     warm_slicer(g, vol)
     from drake_rus.imaging.training.evaluation import sample_views
+
     poses = sample_views(source, 5, seed=5)
-    poses += [RigidTransform(DOWN, [0.05, 0.05, 0.30]),                       # partly out
-              RigidTransform(DOWN, [-0.2, 0.1, 0.1]),                         # wholly out
-              RigidTransform(RotationMatrix.MakeXRotation(0.7), [0.1, 0.3, 0.05]),
-              RigidTransform(DOWN, [1e7, -1e7, 3e7]),        # beyond int32 voxel indices
-              RigidTransform(DOWN, [-1e7, 0.0, 0.0])]
+    poses += [
+        RigidTransform(DOWN, [0.05, 0.05, 0.30]),  # partly out
+        RigidTransform(DOWN, [-0.2, 0.1, 0.1]),  # wholly out
+        RigidTransform(RotationMatrix.MakeXRotation(0.7), [0.1, 0.3, 0.05]),
+        RigidTransform(DOWN, [1e7, -1e7, 3e7]),  # beyond int32 voxel indices
+        RigidTransform(DOWN, [-1e7, 0.0, 0.0]),
+    ]
     for X_VP in poses:
         got = slice_volume(g, vol, RigidTransform(), X_VP)
         assert np.array_equal(got, ref_slice(g, vol, X_VP))
@@ -205,13 +230,14 @@ def test_slice_kernel_equals_numpy(source):
 
 
 def test_slice_kernel_on_a_tiny_volume_seen_from_every_side():
-    g = ProbeGeometry.from_config(ImagingConfig(image_height_px=48, image_width_px=40,
-                                                depth=0.05))
+    g = ProbeGeometry.from_config(ImagingConfig(image_height_px=48, image_width_px=40, depth=0.05))
     labels = np.random.default_rng(6).integers(1, 12, (7, 5, 9)).astype(np.uint8)
     vol = LabelVolume(labels, 0.004)
-    for X_VP in (RigidTransform(DOWN, [0.01, 0.01, 0.03]),
-                 RigidTransform(RotationMatrix.MakeYRotation(2.0), [0.0, 0.01, 0.0]),
-                 RigidTransform(RotationMatrix.MakeZRotation(0.4) @ DOWN, [0.02, -0.01, 0.05])):
+    for X_VP in (
+        RigidTransform(DOWN, [0.01, 0.01, 0.03]),
+        RigidTransform(RotationMatrix.MakeYRotation(2.0), [0.0, 0.01, 0.0]),
+        RigidTransform(RotationMatrix.MakeZRotation(0.4) @ DOWN, [0.02, -0.01, 0.05]),
+    ):
         got = slice_volume(g, vol, RigidTransform(), X_VP)
         assert np.array_equal(got, ref_slice(g, vol, X_VP))
 

@@ -5,15 +5,22 @@ import shutil
 
 import numpy as np
 import pytest
-from scipy import ndimage
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
+from scipy import ndimage
 
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.frames import UsFrame
-from drake_rus.imaging.onnx_backend import (OnnxSegmenter, PhysicalCanvas, card_canvas,
-                                            largest_component, read_model_card, resize_to,
-                                            resolve_model_path, upsample_to)
+from drake_rus.imaging.onnx_backend import (
+    OnnxSegmenter,
+    PhysicalCanvas,
+    card_canvas,
+    largest_component,
+    read_model_card,
+    resize_to,
+    resolve_model_path,
+    upsample_to,
+)
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.imaging.systems import Segmenter
 
@@ -85,15 +92,18 @@ def test_shipped_model_matches_its_json_and_the_default_scenario(geometry):
 
 def test_shipped_model_segments_an_emulated_kidney(geometry):
     from pydrake.math import RotationMatrix
+
     from drake_rus.anatomy.labels import is_kidney
     from drake_rus.imaging.emulator import EmulatorModel, emulate
     from drake_rus.imaging.phantoms import kidney_phantom
     from drake_rus.imaging.segment import iou
     from drake_rus.imaging.slicing import slice_volume
+
     ph = kidney_phantom(None, shape=(140, 180, 140), rib=False, gas=False)
     c = ph.X_VK.translation()
-    X_BP = RigidTransform(RotationMatrix(np.diag([1.0, -1.0, -1.0])),
-                          [c[0], c[1], ph.skin_z - 0.003])
+    X_BP = RigidTransform(
+        RotationMatrix(np.diag([1.0, -1.0, -1.0])), [c[0], c[1], ph.skin_z - 0.003]
+    )
     labels = slice_volume(geometry, ph.volume, RigidTransform(), X_BP)
     us = emulate(labels, EmulatorModel.from_config(CFG, geometry), 0, 0)
     seg = OnnxSegmenter.from_config(CFG, geometry)
@@ -117,7 +127,9 @@ def test_segmenter_system_with_a_bad_model_fails_at_construction(tmp_path):
 
 def test_fill_holes_matches_scipy():
     from scipy import ndimage
+
     from drake_rus.imaging.onnx_backend import fill_holes
+
     rng = np.random.default_rng(0)
     for _ in range(50):
         m = ndimage.binary_opening(rng.random((40, 40)) < 0.6)
@@ -125,6 +137,7 @@ def test_fill_holes_matches_scipy():
 
 
 # --- physical pixel size ------------------------------------------------------------------------
+
 
 def _disc(g: ProbeGeometry, x: float, z: float, r: float) -> np.ndarray:
     p = g.pixel_to_P(g._all_uv)
@@ -142,7 +155,7 @@ def test_a_disc_keeps_its_physical_size_on_the_canvas_and_back():
         disc = _disc(g, 0.012, 0.055, 0.020)
         on_canvas = c.to_canvas(disc.astype(np.float32))
         # Area preserved (the canvas holds the area fraction per pixel).
-        assert on_canvas.sum() * 2.4 ** 2 == pytest.approx(np.pi * 20.0 ** 2, rel=0.01)
+        assert on_canvas.sum() * 2.4**2 == pytest.approx(np.pi * 20.0**2, rel=0.01)
         back = c.to_image(on_canvas) > 0.5
         ring = ndimage.binary_dilation(disc, iterations=1) & ~ndimage.binary_erosion(disc)
         assert not (back ^ disc)[~ring].any(), "more than a pixel off the disc's edge"
@@ -151,7 +164,7 @@ def test_a_disc_keeps_its_physical_size_on_the_canvas_and_back():
         # Pixels outside the image (below 100 mm) are zero padding; the fan is inside.
         assert c.fan_mask.any() and not c.fan_mask[-1].any()
     a, b = canvases
-    assert (a ^ b).sum() <= 0.1 * a.sum()          # the same canvas pixels, up to the edge
+    assert (a ^ b).sum() <= 0.1 * a.sum()  # the same canvas pixels, up to the edge
     assert (a & b).sum() / (a | b).sum() > 0.9
     # A grey image maps to the same canvas grey, whatever the depth.
     for depth in (0.10, 0.30):
@@ -164,11 +177,11 @@ def test_a_disc_keeps_its_physical_size_on_the_canvas_and_back():
 
 def test_card_fields_are_read_and_a_missing_field_falls_back(geometry, tmp_path):
     assert card_canvas({}) is None
-    assert card_canvas({"pixel_size_mm": 2.4}) is None           # no canvas_px
-    assert card_canvas({"canvas_px": [128, 112]}) is None        # no pixel size
+    assert card_canvas({"pixel_size_mm": 2.4}) is None  # no canvas_px
+    assert card_canvas({"canvas_px": [128, 112]}) is None  # no pixel size
     spec = card_canvas({"pixel_size_mm": 2.4, "canvas_px": [128, 112]})
     assert spec["pixel_size"] == pytest.approx(0.0024) and spec["shape"] == (128, 112)
-    assert spec["top"] is None                                   # default: the image's top
+    assert spec["top"] is None  # default: the image's top
     assert PhysicalCanvas(geometry, 0.0024, (128, 112)).top == pytest.approx(geometry.z_min)
     with pytest.raises(ValueError, match="pixel_size_mm"):
         card_canvas({"pixel_size_mm": -1, "canvas_px": [128, 112]})
@@ -184,8 +197,9 @@ def test_card_fields_are_read_and_a_missing_field_falls_back(geometry, tmp_path)
     legacy = OnnxSegmenter(bare, geometry, input_shape=shape)
     assert legacy.canvas is None and legacy.pixel_size_mm is None
     img = np.random.default_rng(0).integers(0, 255, geometry.image_shape).astype(np.uint8)
-    np.testing.assert_allclose(legacy.preprocess(img)[0, 0],
-                               resize_to(img, *shape[2:]) / 255.0, atol=1e-6)
+    np.testing.assert_allclose(
+        legacy.preprocess(img)[0, 0], resize_to(img, *shape[2:]) / 255.0, atol=1e-6
+    )
     # No card at all: the same; a broken card is named.
     bare.with_suffix(".json").unlink()
     assert OnnxSegmenter(bare, geometry, input_shape=shape).canvas is None
@@ -193,8 +207,7 @@ def test_card_fields_are_read_and_a_missing_field_falls_back(geometry, tmp_path)
     with pytest.raises(ValueError, match="bare.json"):
         OnnxSegmenter(bare, geometry, input_shape=shape)
     # A card whose canvas the model does not take is named too.
-    bare.with_suffix(".json").write_text(json.dumps({"pixel_size_mm": 2.4,
-                                                     "canvas_px": [96, 96]}))
+    bare.with_suffix(".json").write_text(json.dumps({"pixel_size_mm": 2.4, "canvas_px": [96, 96]}))
     with pytest.raises(ValueError, match="canvas_px"):
         OnnxSegmenter(bare, geometry)
 
@@ -204,9 +217,10 @@ def test_shipped_model_holds_at_shallow_and_deep_presets():
     the scan's vertical views over the kidney, the array at four angles; the IoU of each
     emulated frame above a floor."""
     from drake_rus.imaging.emulator import EmulatorModel, emulate
-    from drake_rus.imaging.training.evaluation import centred_views, load_source
     from drake_rus.imaging.segment import iou
     from drake_rus.imaging.slicing import slice_volume
+    from drake_rus.imaging.training.evaluation import centred_views, load_source
+
     src = load_source("test:0", posture="supine")
     poses = centred_views(src, (0.0, 45.0, 90.0, 135.0))
     for depth in (0.10, 0.25):
@@ -236,8 +250,8 @@ def test_onnx_segmenter_follows_the_kidney_through_the_leaf_system(monkeypatch):
     seg = OnnxSegmenter.from_config(cfg, system_geometry)
     h, w = seg.input_shape[2:]
     r, c = np.ogrid[:h, :w]
-    kidney = ((r - 40) ** 2 + (c - w // 2) ** 2 <= 8 ** 2).astype(np.float32)
-    band = ((r - 75) ** 2 + (c - w // 2 + 5) ** 2 <= 14 ** 2).astype(np.float32)
+    kidney = ((r - 40) ** 2 + (c - w // 2) ** 2 <= 8**2).astype(np.float32)
+    band = ((r - 75) ** 2 + (c - w // 2 + 5) ** 2 <= 14**2).astype(np.float32)
 
     calls = []
 
@@ -251,12 +265,13 @@ def test_onnx_segmenter_follows_the_kidney_through_the_leaf_system(monkeypatch):
 
     class Frames(LeafSystem):
         """One UsFrame per imaging period: kidney for 0.2 s, both until 0.4 s, then band."""
+
         def __init__(self):
             super().__init__()
             self.made = {}
             self.DeclareAbstractOutputPort(
-                "us", lambda: AbstractValue.Make(UsFrame(np.zeros((1, 1), np.uint8))),
-                self._calc)
+                "us", lambda: AbstractValue.Make(UsFrame(np.zeros((1, 1), np.uint8))), self._calc
+            )
 
         def _calc(self, context, out):
             # Frame k from t = k / rate on, the same object while it lasts (like the slice
@@ -264,8 +279,12 @@ def test_onnx_segmenter_follows_the_kidney_through_the_leaf_system(monkeypatch):
             k = int(np.floor(context.get_time() * cfg.frame_rate_hz + 1e-9))
             what = 1 if k < 4 else (2 if k < 8 else 3)
             if k not in self.made:
-                self.made[k] = UsFrame(np.full(system_geometry.image_shape, what, np.uint8),
-                                       k / cfg.frame_rate_hz, RigidTransform(), k)
+                self.made[k] = UsFrame(
+                    np.full(system_geometry.image_shape, what, np.uint8),
+                    k / cfg.frame_rate_hz,
+                    RigidTransform(),
+                    k,
+                )
             out.set_value(self.made[k])
 
     builder = DiagramBuilder()
@@ -287,11 +306,11 @@ def test_onnx_segmenter_follows_the_kidney_through_the_leaf_system(monkeypatch):
 
     first = mask_at(0.1)
     assert first.any()
-    both = mask_at(0.3)                   # the band is larger; the kidney is kept
+    both = mask_at(0.3)  # the band is larger; the kidney is kept
     assert np.array_equal(both, first)
-    assert not mask_at(0.5).any()         # band alone, 0.15 s after the kidney: none
+    assert not mask_at(0.5).any()  # band alone, 0.15 s after the kidney: none
     assert system.GetOutputPort("kidney_visible").Eval(ctx)[0] == 0.0
-    late = mask_at(1.0)                   # more than track_gap later: the band
+    late = mask_at(1.0)  # more than track_gap later: the band
     assert np.array_equal(late, unseen)
     # Each frame was segmented once (the prior taken from a frame does not re-segment it):
     # 21 frames in 1 s at 20 Hz, plus the one direct call above.
@@ -300,10 +319,12 @@ def test_onnx_segmenter_follows_the_kidney_through_the_leaf_system(monkeypatch):
 
 # --- candidate regions worked on their boxes ------------------------------------------------
 
+
 def _candidates_on_the_whole_grid(seg: OnnxSegmenter, prob: np.ndarray) -> list[np.ndarray]:
     """The candidate regions computed on the whole model grid and mapped back with the
     canvas's sparse maps: the reference for the boxed computation."""
     from drake_rus.imaging.onnx_backend import fill_holes
+
     labels, n = ndimage.label(prob > seg.threshold, structure=np.ones((3, 3), bool))
     if n == 0:
         return []
@@ -335,9 +356,9 @@ def test_candidates_on_their_boxes_equal_the_whole_grid(depth, monkeypatch):
         for _ in range(rng.integers(1, 4)):
             cr, cc = rng.integers(-5, h + 5), rng.integers(-5, w + 5)
             rad = rng.integers(2, 15)
-            blob = np.exp(-((r - cr) ** 2 + (c - cc) ** 2) / (2.0 * rad ** 2))
+            blob = np.exp(-((r - cr) ** 2 + (c - cc) ** 2) / (2.0 * rad**2))
             prob = np.maximum(prob, (blob * rng.uniform(0.6, 1.0)).astype(np.float32))
-        prob[rng.random((h, w)) < 0.02] = 0.0                      # holes
+        prob[rng.random((h, w)) < 0.02] = 0.0  # holes
         probs.append(prob * seg._canvas_fan(h, w))
     probs.append(np.ones((h, w), np.float32) * seg._canvas_fan(h, w))  # the whole fan
     # The same model without its card: the plain resize and bilinear map back.
@@ -363,5 +384,6 @@ def test_candidates_on_their_boxes_equal_the_whole_grid(depth, monkeypatch):
     assert not whole[outside].any()
     # The forward map sums in the same order as the dense @ sparse product it replaced.
     image = rng.integers(0, 256, g.image_shape).astype(np.float32)
-    assert np.array_equal(canvas.to_canvas(image),
-                          np.asarray((canvas._rows @ image) @ canvas._cols.T.tocsr()))
+    assert np.array_equal(
+        canvas.to_canvas(image), np.asarray((canvas._rows @ image) @ canvas._cols.T.tocsr())
+    )

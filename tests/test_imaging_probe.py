@@ -20,10 +20,12 @@ def test_pixel_P_round_trip_is_exact(geometry):
     np.testing.assert_allclose(geometry.P_to_pixel(p_P), uv, atol=1e-9)
     # Integer pixels land on the pixel-centre grid.
     p = geometry.pixel_to_P([[0, 0], [geometry.width_px - 1, geometry.height_px - 1]])
-    np.testing.assert_allclose(p[0, [0, 2]], [geometry.x_min + geometry.dx / 2,
-                                              geometry.z_min + geometry.dz / 2])
-    np.testing.assert_allclose(p[1, [0, 2]], [geometry.x_max - geometry.dx / 2,
-                                              geometry.z_max - geometry.dz / 2])
+    np.testing.assert_allclose(
+        p[0, [0, 2]], [geometry.x_min + geometry.dx / 2, geometry.z_min + geometry.dz / 2]
+    )
+    np.testing.assert_allclose(
+        p[1, [0, 2]], [geometry.x_max - geometry.dx / 2, geometry.z_max - geometry.dz / 2]
+    )
 
 
 def test_pixel_B_round_trip_is_exact(geometry):
@@ -72,7 +74,7 @@ def test_fan_mask(geometry):
     assert not m[0, 0] and not m[0, -1] and not m[-1, 0]
     area = m.sum() * geometry.pixel_area
     R, D, a = geometry.radius, geometry.depth, geometry.half_angle
-    assert area == pytest.approx(a * ((R + D) ** 2 - R ** 2), rel=0.02)
+    assert area == pytest.approx(a * ((R + D) ** 2 - R**2), rel=0.02)
 
 
 def test_bad_pose_is_named():
@@ -85,10 +87,13 @@ def test_bad_pose_is_named():
 
 def test_scenario_defaults_validate():
     from drake_rus.config_schema import check_dataclass_values
+
     check_dataclass_values(ImagingConfig())
     from drake_rus.scenario import LoadScenario
+
     s = LoadScenario(scenario_text="{imaging: {segmenter: classical, probe_radius: 0.06}}")
     assert s.imaging.segmenter == "classical" and s.imaging.probe_radius == 0.06
     from drake_rus.config_schema import ScenarioError
+
     with pytest.raises(ScenarioError, match="imaging.segmenter"):
         LoadScenario(scenario_text="{imaging: {segmenter: magic}}")

@@ -10,11 +10,17 @@ from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.emulator import EmulatorModel, emulate
 from drake_rus.imaging.frames import BoundaryPixels, PointCloud
 from drake_rus.imaging.phantoms import kidney_phantom
-from drake_rus.imaging.segment import (boundary_pixels, iou, mask_centroid, read_mask,
-                                       segment_classical, segment_oracle)
+from drake_rus.imaging.segment import (
+    boundary_pixels,
+    iou,
+    mask_centroid,
+    read_mask,
+    segment_classical,
+    segment_oracle,
+)
 from drake_rus.imaging.slicing import slice_volume
 
-DOWN = RotationMatrix(np.diag([1.0, -1.0, -1.0]))   # z_P = -z_B (looking down), x_P = x_B
+DOWN = RotationMatrix(np.diag([1.0, -1.0, -1.0]))  # z_P = -z_B (looking down), x_P = x_B
 
 
 @pytest.fixture(scope="module")
@@ -34,15 +40,16 @@ def test_mask_centroid_and_boundary():
     sq = np.zeros((10, 10), bool)
     sq[2:7, 3:8] = True
     b = boundary_pixels(sq)
-    assert len(b) == 16                     # perimeter of a 5x5 square
-    assert set(map(tuple, b.astype(int))) == {(u, v) for v in range(2, 7) for u in range(3, 8)
-                                             if v in (2, 6) or u in (3, 7)}
+    assert len(b) == 16  # perimeter of a 5x5 square
+    assert set(map(tuple, b.astype(int))) == {
+        (u, v) for v in range(2, 7) for u in range(3, 8) if v in (2, 6) or u in (3, 7)
+    }
 
 
 def test_read_mask_visibility(geometry):
     m = np.zeros(geometry.image_shape, bool)
     n_px = int(np.ceil(1.0e-4 / geometry.pixel_area))
-    m.reshape(-1)[geometry.fan_flat_index[:n_px - 1]] = True
+    m.reshape(-1)[geometry.fan_flat_index[: n_px - 1]] = True
     assert not read_mask(m, geometry, 1.0e-4).visible
     m.reshape(-1)[geometry.fan_flat_index[n_px - 1]] = True
     r = read_mask(m, geometry, 1.0e-4)
@@ -53,7 +60,7 @@ def test_read_mask_visibility(geometry):
 
 def test_backprojected_boundary_lies_on_the_kidney_surface(geometry, phantom):
     c = phantom.X_VK.translation()
-    X_BV = RigidTransform([0.2, -0.1, -0.3])   # any placement of the volume in B
+    X_BV = RigidTransform([0.2, -0.1, -0.3])  # any placement of the volume in B
     dists = []
     cloud = PointCloud()
     # A transverse sweep: x_P across the body, steps of 10 mm along the body axis y.
@@ -69,11 +76,12 @@ def test_backprojected_boundary_lies_on_the_kidney_surface(geometry, phantom):
         dists.append(phantom.kidney_surface_distance(p_Vb))
         cloud = accumulate(cloud, BoundaryPixels(px, 0.05 * k, X_BP, k), geometry)
     d = np.concatenate(dists)
-    assert d.mean() < 0.001          # 1 mm voxels: boundary within a pixel of the surface
+    assert d.mean() < 0.001  # 1 mm voxels: boundary within a pixel of the surface
     assert np.percentile(d, 95) < 0.0015
     assert cloud.frame_count == 9 and len(cloud.points) == len(d)
-    assert cloud.poses[3].IsExactlyEqualTo(X_BV.multiply(
-        RigidTransform(DOWN, [c[0], c[1] - 0.01, phantom.skin_z - 0.003])))
+    assert cloud.poses[3].IsExactlyEqualTo(
+        X_BV.multiply(RigidTransform(DOWN, [c[0], c[1] - 0.01, phantom.skin_z - 0.003]))
+    )
 
 
 def test_classical_finds_the_kidney_on_an_emulated_frame(geometry):
@@ -87,19 +95,21 @@ def test_classical_finds_the_kidney_on_an_emulated_frame(geometry):
     gt = labels >= Label.KIDNEY_CORTEX
     gt &= labels <= Label.KIDNEY_SINUS
     pred = segment_classical(us, geometry)
-    assert iou(pred, gt) > 0.25     # the classical backend is weak (see README), not blind
+    assert iou(pred, gt) > 0.25  # the classical backend is weak (see README), not blind
     # Temporal prior: with two candidate blobs, the one overlapping the previous mask wins.
     img = np.full(geometry.image_shape, 150, np.uint8)
     img[~geometry.fan_mask] = 0
     v, u = np.mgrid[0:256, 0:256]
-    blob_a = (u - 100) ** 2 + (v - 120) ** 2 < 20 ** 2
-    blob_b = (u - 160) ** 2 + (v - 170) ** 2 < 24 ** 2
-    img[blob_a | blob_b] = 100    # hypoechoic (anechoic, below 0.45 x median, is excluded)
+    blob_a = (u - 100) ** 2 + (v - 120) ** 2 < 20**2
+    blob_b = (u - 160) ** 2 + (v - 170) ** 2 < 24**2
+    img[blob_a | blob_b] = 100  # hypoechoic (anechoic, below 0.45 x median, is excluded)
+
     def picks(mask, blob, other):
         return (mask & blob).sum() > 0.9 * blob.sum() and not (mask & other).any()
+
     assert picks(segment_classical(img, geometry, prev_mask=blob_a), blob_a, blob_b)
     assert picks(segment_classical(img, geometry, prev_mask=blob_b), blob_b, blob_a)
-    assert picks(segment_classical(img, geometry), blob_b, blob_a)   # larger one by default
+    assert picks(segment_classical(img, geometry), blob_b, blob_a)  # larger one by default
 
 
 def test_iou():
@@ -112,18 +122,19 @@ def test_iou():
 
 
 def _disc(shape, centre, radius):
-    r, c = np.ogrid[:shape[0], :shape[1]]
-    return (r - centre[0]) ** 2 + (c - centre[1]) ** 2 <= radius ** 2
+    r, c = np.ogrid[: shape[0], : shape[1]]
+    return (r - centre[0]) ** 2 + (c - centre[1]) ** 2 <= radius**2
 
 
 def test_tracked_component_follows_the_kidney_not_the_largest_region():
     from drake_rus.imaging.probe import ProbeGeometry
     from drake_rus.imaging.segment import tracked_component
+
     g = ProbeGeometry.from_config(ImagingConfig())
     shape = g.image_shape
     kidney_before = _disc(shape, (100, 120), 20)
-    kidney_now = _disc(shape, (104, 124), 18)       # moved 4 px (about 2.5 mm)
-    band = _disc(shape, (220, 60), 35)             # larger, far from the kidney
+    kidney_now = _disc(shape, (104, 124), 18)  # moved 4 px (about 2.5 mm)
+    band = _disc(shape, (220, 60), 35)  # larger, far from the kidney
     regions = [band, kidney_now]
     follow = dict(max_gap=2.0, reach=0.010)
     assert tracked_component(regions, kidney_before, 0.05, g, **follow) == 1
@@ -133,7 +144,7 @@ def test_tracked_component_follows_the_kidney_not_the_largest_region():
     assert tracked_component([band], kidney_before, 2.5, g, **follow) == 0
     assert tracked_component(regions, None, np.inf, g, **follow) == 0
     # A region within reach of the last mask (not overlapping it) continues it.
-    near = _disc(shape, (100, 120 + 20 + 8), 6)   # 8 px = about 5 mm beyond the old edge
+    near = _disc(shape, (100, 120 + 20 + 8), 6)  # 8 px = about 5 mm beyond the old edge
     assert tracked_component([band, near], kidney_before, 0.05, g, **follow) == 1
     assert tracked_component([], kidney_before, 0.05, g, **follow) is None
 
@@ -141,6 +152,7 @@ def test_tracked_component_follows_the_kidney_not_the_largest_region():
 def test_near_region_is_the_reach_around_a_mask_and_reused_only_for_the_same_mask():
     from drake_rus.imaging.probe import ProbeGeometry
     from drake_rus.imaging.segment import near_region
+
     g = ProbeGeometry.from_config(ImagingConfig())
     mask = _disc(g.image_shape, (100, 120), 20)
     near = near_region(mask, g, 0.010)
@@ -161,6 +173,7 @@ def test_near_region_is_the_reach_around_a_mask_and_reused_only_for_the_same_mas
 def test_kidney_track_is_followed_only_once_established():
     from drake_rus.imaging.probe import ProbeGeometry
     from drake_rus.imaging.segment import KidneyTrack, track_prior, track_update
+
     g = ProbeGeometry.from_config(ImagingConfig())
     shape = g.image_shape
     follow = dict(max_gap=2.0, reach=0.010)
@@ -168,8 +181,9 @@ def test_kidney_track_is_followed_only_once_established():
     assert track_prior(track, 0.0, 0.5) == (None, np.inf)
     # Seen at 0.0, continued (moved 3 px) every 0.05 s: established after 0.5 s.
     for k in range(11):
-        track = track_update(track, _disc(shape, (100, 120 + k * 0.3), 20), True, 0.05 * k,
-                             g, **follow)
+        track = track_update(
+            track, _disc(shape, (100, 120 + k * 0.3), 20), True, 0.05 * k, g, **follow
+        )
         prior, age = track_prior(track, 0.05 * k + 0.05, 0.5)
         assert (prior is None) == (k < 10), k
     assert track.since == 0.0 and age == pytest.approx(0.05)
@@ -182,27 +196,30 @@ def test_kidney_track_is_followed_only_once_established():
 def _boundary_on_the_whole_image(mask):
     """The inner boundary as computed on the whole image (the reference for the boxed one)."""
     inner = np.zeros_like(mask)
-    inner[1:-1, 1:-1] = (mask[1:-1, 1:-1] & mask[:-2, 1:-1] & mask[2:, 1:-1]
-                         & mask[1:-1, :-2] & mask[1:-1, 2:])
+    inner[1:-1, 1:-1] = (
+        mask[1:-1, 1:-1] & mask[:-2, 1:-1] & mask[2:, 1:-1] & mask[1:-1, :-2] & mask[1:-1, 2:]
+    )
     v, u = np.nonzero(mask & ~inner)
     return np.stack([u, v], axis=1).astype(float)
 
 
 def test_boundary_and_centroid_on_the_mask_box_equal_the_whole_image():
     from drake_rus.imaging.segment import mask_box
+
     rng = np.random.default_rng(3)
     for k in range(40):
         m = np.zeros((37, 29), bool)
         r0, c0 = rng.integers(0, 30), rng.integers(0, 22)
-        m[r0:r0 + rng.integers(1, 12), c0:c0 + rng.integers(1, 12)] = True
-        m &= rng.random(m.shape) < (0.7 if k % 2 else 1.0)     # holes and specks
+        m[r0 : r0 + rng.integers(1, 12), c0 : c0 + rng.integers(1, 12)] = True
+        m &= rng.random(m.shape) < (0.7 if k % 2 else 1.0)  # holes and specks
         if k % 5 == 0:
-            m[0, :] = m[:, -1] = True                           # on the image's border
+            m[0, :] = m[:, -1] = True  # on the image's border
         assert np.array_equal(boundary_pixels(m), _boundary_on_the_whole_image(m))
         cols = m.sum(axis=0)
         if cols.sum():
-            assert mask_centroid(m) == float(np.dot(cols, np.arange(m.shape[1]) + 0.5)
-                                             / (cols.sum() * m.shape[1]))
+            assert mask_centroid(m) == float(
+                np.dot(cols, np.arange(m.shape[1]) + 0.5) / (cols.sum() * m.shape[1])
+            )
     assert boundary_pixels(np.zeros((5, 5), bool)).shape == (0, 2)
     assert mask_box(np.zeros((4, 4), bool)) is None
     m = np.zeros((10, 12), bool)
@@ -216,18 +233,17 @@ def test_tracked_component_shortcut_agrees_with_the_grown_mask():
     answer is the one the grown mask gives."""
     from drake_rus.imaging.probe import ProbeGeometry
     from drake_rus.imaging.segment import near_region, tracked_component
+
     g = ProbeGeometry.from_config(ImagingConfig())
     shape = g.image_shape
     follow = dict(max_gap=2.0, reach=0.010)
     prior = _disc(shape, (100, 120), 20)
-    for centre, radius in (((104, 124), 18), ((100, 150), 6), ((100, 175), 6),
-                           ((30, 30), 5)):
+    for centre, radius in (((104, 124), 18), ((100, 150), 6), ((100, 175), 6), ((30, 30), 5)):
         region = _disc(shape, centre, radius)
         grown = near_region(prior.copy(), g, 0.010)
         inside = np.count_nonzero(region & grown)
         covers = np.count_nonzero(region & prior) >= 0.5 * np.count_nonzero(prior)
-        expected = 0 if inside and (inside >= 0.5 * np.count_nonzero(region) or covers) \
-            else None
+        expected = 0 if inside and (inside >= 0.5 * np.count_nonzero(region) or covers) else None
         assert tracked_component([region], prior, 0.05, g, **follow) == expected, centre
 
 
@@ -236,13 +252,13 @@ def test_a_region_that_only_touches_the_grown_mask_is_not_the_kidney():
     reach (the pivot's end, seed 5,000,007 in decubitus) is not taken for the kidney; a
     region mostly within the reach is, and with min_overlap 0 any overlap is enough."""
     from drake_rus.imaging.probe import ProbeGeometry
-    from drake_rus.imaging.segment import KidneyTrack, near_region, track_update, \
-        tracked_component
+    from drake_rus.imaging.segment import KidneyTrack, near_region, track_update, tracked_component
+
     g = ProbeGeometry.from_config(ImagingConfig())
     shape = g.image_shape
     follow = dict(max_gap=2.0, reach=0.010)
     kidney = _disc(shape, (150, 128), 12)
-    top = _disc(shape, (95, 128), 30)            # its lower edge reaches into the reach
+    top = _disc(shape, (95, 128), 30)  # its lower edge reaches into the reach
     grown = near_region(kidney.copy(), g, 0.010)
     fraction = np.count_nonzero(top & grown) / np.count_nonzero(top)
     assert 0 < fraction < 0.2

@@ -9,7 +9,7 @@ from drake_rus.imaging.phantoms import box_volume, sphere_volume
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.imaging.slicing import slice_volume
 
-H = 0.001                     # voxel size (m)
+H = 0.001  # voxel size (m)
 HALF_DIAG = np.sqrt(3) / 2 * H  # farthest a point can be from its nearest voxel centre
 
 
@@ -24,8 +24,9 @@ def probe_looking_at(target_B, depth, rpy):
     return RigidTransform(R, np.asarray(target_B) - depth * R.matrix()[:, 2])
 
 
-@pytest.mark.parametrize("rpy,offset", [((0.3, -0.2, 0.9), 0.0), ((2.5, 0.4, -1.2), 0.012),
-                                        ((np.pi, 0.0, 0.0), -0.017)])
+@pytest.mark.parametrize(
+    "rpy,offset", [((0.3, -0.2, 0.9), 0.0), ((2.5, 0.4, -1.2), 0.012), ((np.pi, 0.0, 0.0), -0.017)]
+)
 def test_sphere_cross_section_is_the_analytic_disc(geometry, rpy, offset):
     c_V, r = np.array([0.045, 0.05, 0.04]), 0.02
     vol = sphere_volume(shape=(90, 100, 80), voxel_size=H, center=c_V, radius=r)
@@ -33,8 +34,9 @@ def test_sphere_cross_section_is_the_analytic_disc(geometry, rpy, offset):
     c_B = X_BV.multiply(c_V)
     X_BP = probe_looking_at(c_B, 0.07, rpy)
     # Shift the plane along y_P: the disc's radius is sqrt(r^2 - offset^2).
-    X_BP = RigidTransform(X_BP.rotation(), X_BP.translation()
-                          + offset * X_BP.rotation().matrix()[:, 1])
+    X_BP = RigidTransform(
+        X_BP.rotation(), X_BP.translation() + offset * X_BP.rotation().matrix()[:, 1]
+    )
     img = slice_volume(geometry, vol, X_BV, X_BP)
     v, u, p_B = fan_points_B(geometry, X_BP)
     dist = np.linalg.norm(p_B - c_B, axis=1)
@@ -44,7 +46,7 @@ def test_sphere_cross_section_is_the_analytic_disc(geometry, rpy, offset):
     assert np.array_equal(inside[clear], (dist < r)[clear])
     # Area of the disc within 3%.
     area = inside.sum() * geometry.pixel_area
-    assert area == pytest.approx(np.pi * (r ** 2 - offset ** 2), rel=0.03)
+    assert area == pytest.approx(np.pi * (r**2 - offset**2), rel=0.03)
     # Nothing outside the fan.
     assert not img[~geometry.fan_mask].any()
 
@@ -78,7 +80,7 @@ def test_outside_the_volume_is_air(geometry):
 def test_elevational_planes(geometry):
     # A 2 mm slab of gas parallel to the image plane, 4 mm off it (along y_P = y_B).
     labels = np.full((100, 40, 80), Label.SOFT_TISSUE, np.uint8)
-    labels[:, 23:25, :] = Label.GAS          # y in [23, 24] mm; the plane is at y = 19 mm
+    labels[:, 23:25, :] = Label.GAS  # y in [23, 24] mm; the plane is at y = 19 mm
     vol = LabelVolume(labels=labels, voxel_size=H)
     # x_P = x_B, y_P = -y_B, z_P = -z_B (looking down), the plane at y = 19 mm.
     X_BP = RigidTransform(RotationMatrix(np.diag([1.0, -1.0, -1.0])), [0.05, 0.019, 0.075])

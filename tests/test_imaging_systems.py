@@ -11,18 +11,28 @@ from pydrake.systems.primitives import ConstantValueSource
 from drake_rus.anatomy.labels import Label
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.phantoms import sphere_volume
-from drake_rus.imaging.systems import (PointCloudAccumulator, Segmenter, SliceSensor,
-                                       UltrasoundEmulator)
+from drake_rus.imaging.systems import (
+    PointCloudAccumulator,
+    Segmenter,
+    SliceSensor,
+    UltrasoundEmulator,
+)
 
 DOWN = RotationMatrix(np.diag([1.0, -1.0, -1.0]))
 
 
 def build(X_BP, config=None, with_accumulator=True):
-    config = config or ImagingConfig(image_height_px=128, image_width_px=128, scan_lines=64,
-                                     samples_per_line=128, segmenter="oracle")
+    config = config or ImagingConfig(
+        image_height_px=128,
+        image_width_px=128,
+        scan_lines=64,
+        samples_per_line=128,
+        segmenter="oracle",
+    )
     # Sphere of kidney cortex 20 mm radius, centre 60 mm under the probe, 15 mm to +x_P.
-    vol = sphere_volume(shape=(120, 60, 120), center=(0.075, 0.03, 0.04), radius=0.02,
-                        label=Label.KIDNEY_CORTEX)
+    vol = sphere_volume(
+        shape=(120, 60, 120), center=(0.075, 0.03, 0.04), radius=0.02, label=Label.KIDNEY_CORTEX
+    )
     X_BV = RigidTransform([-0.06, -0.03, -0.10])
     b = DiagramBuilder()
     src = b.AddSystem(ConstantValueSource(AbstractValue.Make(X_BP)))
@@ -79,8 +89,13 @@ def test_pipeline_samples_at_frame_rate_and_stamps_frames():
 
 
 def test_accumulator_enable_and_reset():
-    config = ImagingConfig(image_height_px=64, image_width_px=64, scan_lines=32,
-                           samples_per_line=64, segmenter="oracle")
+    config = ImagingConfig(
+        image_height_px=64,
+        image_width_px=64,
+        scan_lines=32,
+        samples_per_line=64,
+        segmenter="oracle",
+    )
     X_BP = RigidTransform(DOWN, [0.0, 0.0, 0.0])
     diagram, sensor, emu, seg, acc = build(X_BP, config)
     ctx = diagram.CreateDefaultContext()

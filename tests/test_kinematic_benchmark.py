@@ -11,8 +11,20 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def test_localization_benchmark_one_patient():
     proc = subprocess.run(
-        [sys.executable, "-m", "benchmarks", "localization", "--patients", "test:7",
-         "--no-progress"], cwd=ROOT, capture_output=True, text=True, timeout=600)
+        [
+            sys.executable,
+            "-m",
+            "benchmarks",
+            "localization",
+            "--patients",
+            "test:7",
+            "--no-progress",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     last = proc.stdout.strip().splitlines()[-1]
     out = json.loads(last)

@@ -15,7 +15,7 @@ from drake_rus.imaging.config import ImagingConfig
 from drake_rus.localization.config import LocalizationConfig
 
 VOXEL = 0.002
-SKIN_Z = 0.20                      # body top in Pt (m)
+SKIN_Z = 0.20  # body top in Pt (m)
 CENTRE = np.array([0.0, 0.0, 0.11])  # kidney centre in Pt: 90 mm under the skin
 SEMI = np.array([0.025, 0.055, 0.020])  # semi-axes along x_Pt, y_Pt (long), z_Pt
 X_BPT = RigidTransform([0.5, 0.0, 0.0])
@@ -43,8 +43,9 @@ class SyntheticPatient:
         # right kidney, supine), z = x cross y.
         x_k = self.R @ np.array([0.0, 1.0, 0.0])
         y_k = self.R @ np.array([-1.0, 0.0, 0.0])
-        self.X_PtK = RigidTransform(RotationMatrix(np.column_stack([x_k, y_k, np.cross(x_k, y_k)])),
-                                    self.centre)
+        self.X_PtK = RigidTransform(
+            RotationMatrix(np.column_stack([x_k, y_k, np.cross(x_k, y_k)])), self.centre
+        )
         self._labels = None
 
     def inside(self, p_Pt):
@@ -103,9 +104,9 @@ def test_exploration_frames_travel_and_boundary_on_the_kidney():
     assert len(sweep.frames) == round(0.5 * CTRL.kidney_length / step) + 1
     assert sweep.travel[-1] == pytest.approx(0.5 * CTRL.kidney_length)
     ys = np.array([X.translation()[1] for X in sweep.poses])
-    assert np.all(np.diff(ys) < 0)                      # "-y": superior to inferior
-    assert ys[0] == pytest.approx(kp.roi.y_max)         # starts at the E-ROI's end
-    for X in sweep.poses:                              # tip on the skin, pointing down
+    assert np.all(np.diff(ys) < 0)  # "-y": superior to inferior
+    assert ys[0] == pytest.approx(kp.roi.y_max)  # starts at the E-ROI's end
+    for X in sweep.poses:  # tip on the skin, pointing down
         assert X.translation()[2] == pytest.approx(SKIN_Z)
         np.testing.assert_allclose(X.rotation().matrix()[:, 2], [0, 0, -1], atol=1e-12)
     P = sweep.point_cloud()
@@ -125,7 +126,7 @@ def test_exploration_recentres_x_with_eq17():
     sweep = km.explore(kp, imager, CTRL, exploration_ratio=0.8, x_offset=off)
     xs = np.array([X.translation()[0] for X in sweep.poses]) - kp.roi.centroid_B[0]
     assert xs[0] == pytest.approx(off)
-    assert abs(xs[-1]) < 0.5 * off                       # pulled back over the kidney
+    assert abs(xs[-1]) < 0.5 * off  # pulled back over the kidney
     assert np.all(np.diff(xs[np.isfinite(xs)]) <= 1e-12)  # monotonically, no overshoot
 
 
@@ -146,8 +147,9 @@ def test_exploration_ratio_is_checked():
 def test_pivot_sweep_fixed_tip_and_array_eq23():
     kp = synthetic()
     R, p = km.optimal_pivot_pose(kp.X_BK_true.rotation().matrix(), kp.X_BK_true.translation())
-    sweep = km.pivot_sweep(kp, km.Imager(kp, IMG), R, p[:2], pivot_rate=CTRL.pivot_rate,
-                           max_tilt=CTRL.max_pivot_tilt)
+    sweep = km.pivot_sweep(
+        kp, km.Imager(kp, IMG), R, p[:2], pivot_rate=CTRL.pivot_rate, max_tilt=CTRL.max_pivot_tilt
+    )
     step = CTRL.pivot_rate / IMG.frame_rate_hz
     o = R[:, 0]
     for X in sweep.poses:
@@ -171,7 +173,7 @@ def test_strategies_on_an_elongated_kidney():
     geometry = km.ProbeGeometry.from_config(IMG)
     imager = km.Imager(kp, IMG)
     res = {}
-    for s in km.PAPER_STRATEGIES:    # OP-PE: tests/test_kinematic_predicted_end.py
+    for s in km.PAPER_STRATEGIES:  # OP-PE: tests/test_kinematic_predicted_end.py
         sweep = km.strategy_sweep(kp, imager, s, CTRL, kp.X_BK_true).pole_to_pole()
         res[s] = km.sweep_curves(kp, sweep, geometry)
         assert np.all(np.diff(res[s]["V"]) >= 0) and np.all(np.diff(res[s]["eps"]) >= 0)
@@ -224,20 +226,23 @@ def test_classical_segmenter_is_selectable():
 @pytest.fixture(scope="module")
 def patient0():
     from drake_rus.anatomy import load_patient
+
     return km.prepare_patient(load_patient("test:0", voxel_size=0.002, progress=False), X_BPT)
 
 
 def test_generated_patient_exploration_localization_and_gt_op(patient0):
     from drake_rus.localization.localize import load_registration_template
     from drake_rus.metrics.core import e_rot_x, e_trans
+
     kp = patient0
     imager = km.Imager(kp, IMG)
     sweep = km.explore(kp, imager, CTRL, exploration_ratio=0.6)
     P = sweep.point_cloud()
     assert sweep.visible.mean() > 0.8 and len(P) > 1000
     cfg = LocalizationConfig(method="seed", max_points=1500)
-    loc = km.localize_cloud(kp, P, load_registration_template(), cfg,
-                            sweep.frames[0].X_BP.translation()[:2])
+    loc = km.localize_cloud(
+        kp, P, load_registration_template(), cfg, sweep.frames[0].X_BP.translation()[:2]
+    )
     # A partial, 60% cloud of a generated kidney on the mean template: the seed reports
     # 8.73 +- 6.93 mm and 12.86 +- 20.86 deg; a generous bound that still catches a failure.
     assert e_trans(loc.X_BK, kp.X_BK_true) < 0.025
@@ -262,6 +267,7 @@ def test_er_in_units_of_the_patients_kidney_length():
     """ER x the kidney's length along the exploration line (the paper's simulation), or x
     L_m (the fixed variant), on an ellipsoid kidney 2 x 55 mm long along y."""
     from drake_rus.experiments import tasks as st
+
     kp = synthetic()
     length = st.kidney_length(kp)
     assert length == pytest.approx(2 * SEMI[1], abs=0.001)
@@ -272,8 +278,15 @@ def test_er_in_units_of_the_patients_kidney_length():
     step = CTRL.scan_speed / IMG.frame_rate_hz
     imager = km.Imager(kp, IMG)
     for unit, travel in (("kidney", 0.6 * length), ("fixed", 0.06)):
-        task = {"patient": f"synthetic-{unit}", "voxel": VOXEL, "segmenter": "oracle",
-                "seed": 0, "scenario": "default", "er": 0.6, "er_unit": unit}
+        task = {
+            "patient": f"synthetic-{unit}",
+            "voxel": VOXEL,
+            "segmenter": "oracle",
+            "seed": 0,
+            "scenario": "default",
+            "er": 0.6,
+            "er_unit": unit,
+        }
         sweep = st.exploration(task, kp, imager, CTRL, 0.0, 0.0)
         assert travel - step < sweep.travel[-1] <= travel + 1e-9
     # ER 100% in kidney units explores past the fixed 100 mm: the whole 110 mm kidney.
@@ -287,6 +300,7 @@ def test_kinematic_pivot_and_closed_loop_definitions_agree():
     sweep's own legs, so both modes measure pole to pole alike."""
     from drake_rus.experiments import tasks as st
     from drake_rus.metrics import pivot_legs, signed_pivot_angles
+
     kp = synthetic()
     imager = km.Imager(kp, IMG)
     sweep = km.strategy_sweep(kp, imager, "GT-OP", CTRL)
@@ -303,6 +317,10 @@ def test_kinematic_pivot_and_closed_loop_definitions_agree():
     at = entry["at_V"]["0.9"]
     assert at is not None and at["n"] <= entry["n"] and at["eps_mm"] <= entry["eps_mm"]
     assert entry["tilt_cap_legs"] == []
-    capped = st.sweep_entry(kp, km.strategy_sweep(kp, imager, "GT-OP", dataclasses.replace(
-        CTRL, max_pivot_tilt=0.1)), imager.geometry, dataclasses.replace(CTRL, max_pivot_tilt=0.1))
+    capped = st.sweep_entry(
+        kp,
+        km.strategy_sweep(kp, imager, "GT-OP", dataclasses.replace(CTRL, max_pivot_tilt=0.1)),
+        imager.geometry,
+        dataclasses.replace(CTRL, max_pivot_tilt=0.1),
+    )
     assert capped["tilt_cap_legs"] == [1, 2]

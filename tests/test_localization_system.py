@@ -14,8 +14,12 @@ from drake_rus.imaging.frames import PointCloud
 from drake_rus.localization.config import LocalizationConfig
 from drake_rus.localization.icp import heuristic_initial_rotation, register_plane_to_plane
 from drake_rus.localization.localize import (
-    IcpLocalizer, RegistrationTemplate, check_registration, estimate_kidney_length,
-    exploration_travel)
+    IcpLocalizer,
+    RegistrationTemplate,
+    check_registration,
+    estimate_kidney_length,
+    exploration_travel,
+)
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_localization_icp import LATERAL_B, SUPERIOR_B, bean_template, true_pose  # noqa: E402
@@ -40,8 +44,9 @@ def test_check_registration_accepts_good_and_rejects_bad(template):
     R0 = heuristic_initial_rotation(SUPERIOR_B, LATERAL_B)
     good = register_plane_to_plane(P, template.points, template.normals, R0)
     assert check_registration(good, P, config) == ""
-    far = dataclasses.replace(good, X_BK=RigidTransform(good.X_BK.rotation(),
-                                                        good.X_BK.translation() + [0.3, 0, 0]))
+    far = dataclasses.replace(
+        good, X_BK=RigidTransform(good.X_BK.rotation(), good.X_BK.translation() + [0.3, 0, 0])
+    )
     assert "from the explored points" in check_registration(far, P, config)
     sloppy = dataclasses.replace(good, inlier_fraction=0.1)
     assert "only 10%" in check_registration(sloppy, P, config)
@@ -53,24 +58,32 @@ def test_translation_step_is_bounded(template):
     # One thin cross-section: degenerate along the long axis. Steps stay bounded.
     X_BK, P = partial_cloud(template, 0.05)
     R0 = heuristic_initial_rotation(SUPERIOR_B, LATERAL_B)
-    r = register_plane_to_plane(P, template.points, template.normals, R0,
-                                max_translation_step=0.005, max_iterations=30)
+    r = register_plane_to_plane(
+        P, template.points, template.normals, R0, max_translation_step=0.005, max_iterations=30
+    )
     assert np.linalg.norm(r.X_BK.translation() - P.mean(axis=0)) <= 30 * 0.005 + 0.06
 
 
 def _cloud(points, travel_m):
     poses = tuple(RigidTransform([0.5, -travel_m * k / 9, 0.2]) for k in range(10))
-    return PointCloud(points=points, frame_count=10, poses=poses,
-                      times=tuple(0.05 * k for k in range(10)))
+    return PointCloud(
+        points=points, frame_count=10, poses=poses, times=tuple(0.05 * k for k in range(10))
+    )
 
 
 @pytest.mark.parametrize("travel, expect_pose", [(0.04, True), (0.005, False)])
 def test_icp_localizer_system(template, travel, expect_pose):
     X_BK, P = partial_cloud(template)
     phase = supervisor.Phase.LOCALIZE
-    system = IcpLocalizer(template, LocalizationConfig(method="seed"), SUPERIOR_B, LATERAL_B,
-                          localize_phase=int(phase))
+    system = IcpLocalizer(
+        template,
+        LocalizationConfig(method="seed"),
+        SUPERIOR_B,
+        LATERAL_B,
+        localize_phase=int(phase),
+    )
     from pydrake.systems.analysis import Simulator
+
     simulator = Simulator(system)
     context = simulator.get_mutable_context()
     system.GetInputPort("point_cloud").FixValue(context, _cloud(P, travel))
@@ -101,9 +114,16 @@ def test_supervisor_aborts_on_localization_error():
     s.initialised = True
     s.phase = supervisor.Phase.LOCALIZE
     s.phase_start = 1.0
-    u = supervisor.SupervisorInputs(t=1.2, R_BP=np.diag([1.0, -1, -1]), p_BP=np.array([0.5, 0, 0.2]),
-                              F_z=9.0, kidney_visible=True, c_msk=0.5, localization_ready=False,
-                              localization_error="only 3 kidney boundary points were explored")
+    u = supervisor.SupervisorInputs(
+        t=1.2,
+        R_BP=np.diag([1.0, -1, -1]),
+        p_BP=np.array([0.5, 0, 0.2]),
+        F_z=9.0,
+        kidney_visible=True,
+        c_msk=0.5,
+        localization_ready=False,
+        localization_error="only 3 kidney boundary points were explored",
+    )
     s = supervisor.supervisor_step(s, u, ControllerConfig(), 0.01)
     assert s.phase == supervisor.Phase.ABORT
     assert "localization failed: only 3 kidney" in s.reason
@@ -112,11 +132,18 @@ def test_supervisor_aborts_on_localization_error():
 @pytest.mark.parametrize("enabled", [True, False])
 def test_adaptive_exploration_flags_a_settled_estimate(template, enabled):
     from pydrake.systems.analysis import Simulator
+
     X_BK, P = partial_cloud(template)
     config = LocalizationConfig(method="seed", adaptive_exploration=enabled, adaptive_period=0.2)
-    system = IcpLocalizer(template, config, SUPERIOR_B, LATERAL_B,
-                          localize_phase=int(supervisor.Phase.LOCALIZE),
-                          explore_phase=int(supervisor.Phase.EXPLORE), kidney_length=0.1)
+    system = IcpLocalizer(
+        template,
+        config,
+        SUPERIOR_B,
+        LATERAL_B,
+        localize_phase=int(supervisor.Phase.LOCALIZE),
+        explore_phase=int(supervisor.Phase.EXPLORE),
+        kidney_length=0.1,
+    )
     simulator = Simulator(system)
     context = simulator.get_mutable_context()
     system.GetInputPort("point_cloud").FixValue(context, _cloud(P, 0.04))
@@ -132,9 +159,15 @@ def test_supervisor_ends_exploration_when_sufficient():
     s.initialised = True
     s.phase = supervisor.Phase.EXPLORE
     s.P_des = np.array([0.5, 0.0])
-    u = supervisor.SupervisorInputs(t=2.0, R_BP=np.diag([1.0, -1, -1]), p_BP=np.array([0.5, 0, 0.2]),
-                              F_z=9.0, kidney_visible=True, c_msk=0.5,
-                              exploration_sufficient=True)
+    u = supervisor.SupervisorInputs(
+        t=2.0,
+        R_BP=np.diag([1.0, -1, -1]),
+        p_BP=np.array([0.5, 0, 0.2]),
+        F_z=9.0,
+        kidney_visible=True,
+        c_msk=0.5,
+        exploration_sufficient=True,
+    )
     s = supervisor.supervisor_step(s, u, ControllerConfig(), 0.01)
     assert s.phase == supervisor.Phase.LOCALIZE
     assert "adaptive" in s.events[-1][2]
@@ -145,12 +178,14 @@ def test_rms_bound_depends_on_the_method(template):
     5.6 mm on the VH female's kidneys); the deformable fit absorbs part of it."""
     config = LocalizationConfig()
     X_BK, P = partial_cloud(template)
-    good = register_plane_to_plane(P, template.points, template.normals,
-                                   heuristic_initial_rotation(SUPERIOR_B, LATERAL_B))
+    good = register_plane_to_plane(
+        P, template.points, template.normals, heuristic_initial_rotation(SUPERIOR_B, LATERAL_B)
+    )
     rigid = dataclasses.replace(good, rms_residual=0.0055)
     assert check_registration(rigid, P, config) == ""
     assert "RMS residual 6.5 mm > 6.0 mm" in check_registration(
-        dataclasses.replace(rigid, rms_residual=0.0065), P, config)
+        dataclasses.replace(rigid, rms_residual=0.0065), P, config
+    )
     deformable = dataclasses.replace(rigid, shape_coefficients=np.zeros(3))
     assert "RMS residual 5.5 mm > 5.0 mm" in check_registration(deformable, P, config)
 
@@ -160,17 +195,25 @@ def test_localizer_needs_the_kidney_seen_along_the_body(template):
     too little of it to register."""
     X_BK, P = partial_cloud(template)
     y = P @ SUPERIOR_B
-    P = P[np.abs(y - np.median(y)) < 0.002]                     # a 4 mm band of the kidney
-    system = IcpLocalizer(template, LocalizationConfig(method="seed"), SUPERIOR_B, LATERAL_B,
-                          localize_phase=int(supervisor.Phase.LOCALIZE), min_points=10)
+    P = P[np.abs(y - np.median(y)) < 0.002]  # a 4 mm band of the kidney
+    system = IcpLocalizer(
+        template,
+        LocalizationConfig(method="seed"),
+        SUPERIOR_B,
+        LATERAL_B,
+        localize_phase=int(supervisor.Phase.LOCALIZE),
+        min_points=10,
+    )
     from pydrake.systems.analysis import Simulator
+
     simulator = Simulator(system)
     context = simulator.get_mutable_context()
     system.GetInputPort("point_cloud").FixValue(context, _cloud(P, 0.04))
     system.GetInputPort("phase").FixValue(context, [float(supervisor.Phase.LOCALIZE)])
     simulator.AdvanceTo(0.1)
     assert "the kidney was seen over only" in system.GetOutputPort("localization_error").Eval(
-        context)
+        context
+    )
 
 
 def lengthening_template(template):
@@ -178,19 +221,19 @@ def lengthening_template(template):
     Q = template.points
     mode = np.zeros_like(Q)
     mode[:, 0] = Q[:, 0] / np.abs(Q[:, 0]).max()
-    return RegistrationTemplate(Q, template.normals, mode[None], np.array([0.01 ** 2])), mode
+    return RegistrationTemplate(Q, template.normals, mode[None], np.array([0.01**2])), mode
 
 
 def test_kidney_length_estimate_from_a_partial_cloud(template):
     shaped, mode = lengthening_template(template)
-    b_true = 0.012                                                # 24 mm longer
+    b_true = 0.012  # 24 mm longer
     X_BK = true_pose((5.0, -4.0, 6.0))
     K = template.points + b_true * mode
-    seen = K[:, 0] > K[:, 0].max() - 0.6 * np.ptp(K[:, 0])       # 60% from the upper pole
+    seen = K[:, 0] > K[:, 0].max() - 0.6 * np.ptp(K[:, 0])  # 60% from the upper pole
     P = X_BK.multiply(K[seen].T).T
     config = LocalizationConfig(length_shape_modes=1)
     length, result = estimate_kidney_length(P, shaped, config, SUPERIOR_B, LATERAL_B)
-    assert np.ptp(template.points[:, 0]) + 0.02 < length          # longer than the template
+    assert np.ptp(template.points[:, 0]) + 0.02 < length  # longer than the template
     assert length == pytest.approx(np.ptp(K[:, 0]), abs=0.004)
     assert result.shape_coefficients is not None
     # Without shape modes the template's own length says nothing about the kidney.
@@ -202,27 +245,33 @@ def _length_localizer(template, **config):
     length every 0.2 s from 30 mm of travel; and the 60% of a 12 mm-longer kidney K it
     sees (P, placed at a known pose). Returns (system, simulator, context, K, P)."""
     from pydrake.systems.analysis import Simulator
+
     shaped, mode = lengthening_template(template)
     K = template.points + 0.012 * mode
     X_BK = true_pose((5.0, -4.0, 6.0))
     P = X_BK.multiply(K[K[:, 0] > K[:, 0].max() - 0.6 * np.ptp(K[:, 0])].T).T
-    system = IcpLocalizer(shaped, LocalizationConfig(length_shape_modes=1, adaptive_period=0.2,
-                                                     length_min_travel=0.03, **config),
-                          SUPERIOR_B, LATERAL_B, localize_phase=int(supervisor.Phase.LOCALIZE),
-                          explore_phase=int(supervisor.Phase.EXPLORE))
+    system = IcpLocalizer(
+        shaped,
+        LocalizationConfig(
+            length_shape_modes=1, adaptive_period=0.2, length_min_travel=0.03, **config
+        ),
+        SUPERIOR_B,
+        LATERAL_B,
+        localize_phase=int(supervisor.Phase.LOCALIZE),
+        explore_phase=int(supervisor.Phase.EXPLORE),
+    )
     simulator = Simulator(system)
     return system, simulator, simulator.get_mutable_context(), K, P
 
 
 @pytest.mark.parametrize("enabled", [True, False])
 def test_icp_localizer_kidney_length_estimate_port(template, enabled):
-    system, simulator, context, K, P = _length_localizer(
-        template, length_estimation=enabled)
+    system, simulator, context, K, P = _length_localizer(template, length_estimation=enabled)
     port = system.GetOutputPort("kidney_length_estimate")
     system.GetInputPort("phase").FixValue(context, [float(supervisor.Phase.EXPLORE)])
     system.GetInputPort("point_cloud").FixValue(context, _cloud(P, 0.02))
     simulator.AdvanceTo(0.3)
-    assert np.isnan(port.Eval(context)[0])                        # 20 mm explored: not yet
+    assert np.isnan(port.Eval(context)[0])  # 20 mm explored: not yet
     system.GetInputPort("point_cloud").FixValue(context, _cloud(P, 0.04))
     simulator.AdvanceTo(0.6)
     if enabled:
@@ -236,6 +285,7 @@ def test_icp_localizer_length_fits_start_from_the_previous_one(template, warm, m
     """Every length check after the first that passed starts from that fit's pose and
     shape weights (``length_warm_start``), and reads the length the heuristic start reads."""
     import drake_rus.localization.localize as localize_module
+
     starts = []
     original = localize_module.register_plane_to_plane
 
@@ -247,10 +297,10 @@ def test_icp_localizer_length_fits_start_from_the_previous_one(template, warm, m
     system, simulator, context, K, P = _length_localizer(template, length_warm_start=warm)
     system.GetInputPort("phase").FixValue(context, [float(supervisor.Phase.EXPLORE)])
     system.GetInputPort("point_cloud").FixValue(context, _cloud(P, 0.04))
-    simulator.AdvanceTo(0.1)                                       # the first check
+    simulator.AdvanceTo(0.1)  # the first check
     state = context.get_abstract_state(system._length).get_value()
     assert state.fit is not None and len(starts) == 1 and starts[0] == (None, None)
-    simulator.AdvanceTo(0.3)                                       # the second check
+    simulator.AdvanceTo(0.3)  # the second check
     assert len(starts) == 2
     if warm:
         assert starts[1][0] is state.fit.X_BK

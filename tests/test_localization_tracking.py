@@ -15,8 +15,17 @@ from drake_rus.localization.config import LocalizationConfig
 from drake_rus.localization.icp import IcpResult
 from drake_rus.localization.localize import LocalizationOutcome, load_registration_template
 from drake_rus.localization.tracking import (
-    DriftEstimate, KidneyTrackingMonitor, TrackingLimits, TrackingState, estimate_drift,
-    group_medians, judged_drift, kidney_in_view, tracking_limits, tracking_update)
+    DriftEstimate,
+    KidneyTrackingMonitor,
+    TrackingLimits,
+    TrackingState,
+    estimate_drift,
+    group_medians,
+    judged_drift,
+    kidney_in_view,
+    tracking_limits,
+    tracking_update,
+)
 
 X_BK = RigidTransform(RollPitchYaw(0.05, -0.1, math.pi / 2 + 0.2), [0.55, 0.02, 0.08])
 
@@ -32,8 +41,9 @@ def long_axis_slab(template, half_width=0.004):
     return X_BK.multiply(Q[np.abs(Q[:, 1]) < half_width].T).T
 
 
-@pytest.mark.parametrize("shift_mm", [[0.0, 0.0, 0.0], [0.0, 12.0, 0.0], [8.0, 0.0, 3.0],
-                                      [-5.0, 9.0, -2.0]])
+@pytest.mark.parametrize(
+    "shift_mm", [[0.0, 0.0, 0.0], [0.0, 12.0, 0.0], [8.0, 0.0, 3.0], [-5.0, 9.0, -2.0]]
+)
 def test_estimate_drift_recovers_a_shift_of_the_seen_points(template, shift_mm):
     rng = np.random.default_rng(3)
     P = long_axis_slab(template) + np.asarray(shift_mm) / 1000
@@ -44,15 +54,16 @@ def test_estimate_drift_recovers_a_shift_of_the_seen_points(template, shift_mm):
     # only weakly seen by a single slab, the regularisation keeps it small.
     y_K = X_BK.rotation().matrix()[:, 1]
     in_plane = lambda v: v - (v @ y_K) * y_K  # noqa: E731
-    np.testing.assert_allclose(in_plane(d.drift_B) * 1000, in_plane(np.asarray(shift_mm, float)),
-                               atol=1.5)
+    np.testing.assert_allclose(
+        in_plane(d.drift_B) * 1000, in_plane(np.asarray(shift_mm, float)), atol=1.5
+    )
     assert d.rms_residual < 0.002
 
 
 def test_estimate_drift_ignores_points_off_the_surface(template):
     """A fan edge cutting the kidney adds boundary points inside it: trimmed away."""
     P = long_axis_slab(template)
-    inside = X_BK.multiply((0.5 * template.points[::10]).T).T   # well inside the kidney
+    inside = X_BK.multiply((0.5 * template.points[::10]).T).T  # well inside the kidney
     P = np.concatenate([P, inside[: len(P) // 5]])
     assert estimate_drift(P, X_BK, template.points, template.normals).magnitude < 0.002
 
@@ -67,14 +78,14 @@ def test_tracking_update_latches_after_successive_confirmations():
     big = DriftEstimate(np.array([0.0, 0.010, 0.0]), 0.001, 100)
     small = DriftEstimate(np.array([0.0, 0.002, 0.0]), 0.001, 100)
     s = tracking_update(TrackingState(), 1.0, big, cfg)
-    assert s.exceed_count == 1 and not s.error            # one check is not enough
+    assert s.exceed_count == 1 and not s.error  # one check is not enough
     s = tracking_update(s, 1.5, small, cfg)
-    assert s.exceed_count == 0 and not s.error            # ... and a good one resets
+    assert s.exceed_count == 0 and not s.error  # ... and a good one resets
     s = tracking_update(tracking_update(s, 2.0, big, cfg), 2.5, big, cfg)
     assert "10.0 mm" in s.error and "limit 7.0 mm" in s.error
     assert [round(d, 3) for _, d in s.history] == [0.01, 0.002, 0.01, 0.01]
     latched = tracking_update(s, 3.0, small, cfg)
-    assert latched.error == s.error                       # latched
+    assert latched.error == s.error  # latched
     assert tracking_update(TrackingState(), 1.0, None, cfg).last_check == 1.0
 
 
@@ -92,8 +103,13 @@ def test_estimate_drift_leaves_out_outlier_frames_but_not_a_shift(template):
     assert fooled.magnitude > 0.004
     assert kept.magnitude < 0.0015 and (kept.n_frames_used, kept.n_frames) == (6, 10)
     shift = 0.012 * z_B
-    moved = estimate_drift(np.concatenate([section + shift] * 8), X_BK, template.points,
-                           template.normals, frame_ids=np.repeat(np.arange(8), len(section)))
+    moved = estimate_drift(
+        np.concatenate([section + shift] * 8),
+        X_BK,
+        template.points,
+        template.normals,
+        frame_ids=np.repeat(np.arange(8), len(section)),
+    )
     assert moved.n_frames_used == 8
     np.testing.assert_allclose(moved.drift_B, shift, atol=0.002)
 
@@ -112,8 +128,17 @@ def test_kidney_in_view_counts_the_registered_surface_in_the_image(template):
     assert kidney_in_view(shape_B, beside, geometry, 0.003) == 0
 
 
-def _run_monitor(template, shift_B, *, phase=4, motion_allowed=None, duration=2.0,
-                 config=None, outlier=None, view_offset_K=(0.0, 0.0, 0.0)):
+def _run_monitor(
+    template,
+    shift_B,
+    *,
+    phase=4,
+    motion_allowed=None,
+    duration=2.0,
+    config=None,
+    outlier=None,
+    view_offset_K=(0.0, 0.0, 0.0),
+):
     """Runs the monitor on synthetic long-axis frames of a kidney displaced by shift_B (m):
     the template's section through its x-z plane, seen by a probe whose image plane is
     that plane, one frame per imaging period."""
@@ -126,23 +151,36 @@ def _run_monitor(template, shift_B, *, phase=4, motion_allowed=None, duration=2.
     config = config or LocalizationConfig()
     builder = DiagramBuilder()
     monitor = builder.AddSystem(KidneyTrackingMonitor(template, config, imaging, [4]))
-    result = IcpResult(X_BK=X_BK, iterations=1, converged=True, rms_residual=0.001,
-                       inlier_fraction=1.0, covariance=np.eye(6), errors=np.zeros(1),
-                       max_rotation_steps=np.zeros(1))
-    outcome = builder.AddSystem(ConstantValueSource(AbstractValue.Make(
-        LocalizationOutcome(result=result, time=0.0))))
+    result = IcpResult(
+        X_BK=X_BK,
+        iterations=1,
+        converged=True,
+        rms_residual=0.001,
+        inlier_fraction=1.0,
+        covariance=np.eye(6),
+        errors=np.zeros(1),
+        max_rotation_steps=np.zeros(1),
+    )
+    outcome = builder.AddSystem(
+        ConstantValueSource(AbstractValue.Make(LocalizationOutcome(result=result, time=0.0)))
+    )
     builder.Connect(outcome.get_output_port(), monitor.GetInputPort("localization"))
-    builder.Connect(builder.AddSystem(ConstantVectorSource([phase])).get_output_port(),
-                    monitor.GetInputPort("phase"))
+    builder.Connect(
+        builder.AddSystem(ConstantVectorSource([phase])).get_output_port(),
+        monitor.GetInputPort("phase"),
+    )
     if motion_allowed is not None:
-        builder.Connect(builder.AddSystem(ConstantVectorSource([motion_allowed]))
-                        .get_output_port(), monitor.GetInputPort("motion_allowed"))
+        builder.Connect(
+            builder.AddSystem(ConstantVectorSource([motion_allowed])).get_output_port(),
+            monitor.GetInputPort("motion_allowed"),
+        )
     sim = Simulator(builder.Build())
     mctx = monitor.GetMyContextFromRoot(sim.get_mutable_context())
     # Image plane = the kidney's x-z plane: P's x along K's x, P's z (depth) along -K's z.
     R_KP = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
-    X_BP = X_BK.multiply(RigidTransform(RotationMatrix(R_KP),
-                                        np.add([0.0, 0.0, 0.06], view_offset_K)))
+    X_BP = X_BK.multiply(
+        RigidTransform(RotationMatrix(R_KP), np.add([0.0, 0.0, 0.06], view_offset_K))
+    )
     section = long_axis_slab(template, 0.0015) + np.asarray(shift_B)
     pixels, _ = geometry.B_to_pixel(section, X_BP)
     period = 1.0 / imaging.frame_rate_hz
@@ -152,7 +190,8 @@ def _run_monitor(template, shift_B, *, phase=4, motion_allowed=None, duration=2.
             # A region 60 mm deeper in the image than the kidney's section.
             px = pixels + [0.0, 0.06 / geometry.dz]
         monitor.GetInputPort("boundary_pixels").FixValue(
-            mctx, BoundaryPixels(px, k * period, X_BP, k))
+            mctx, BoundaryPixels(px, k * period, X_BP, k)
+        )
         sim.AdvanceTo((k + 1) * period)
     return monitor.state(mctx), monitor.GetOutputPort("kidney_drift").Eval(mctx)[0]
 
@@ -164,7 +203,7 @@ def test_monitor_passes_a_kidney_that_stayed(template):
 
 
 def test_monitor_reports_a_kidney_that_moved_across(template):
-    lateral = X_BK.rotation().matrix()[:, 2] * 0.02      # 20 mm along the kidney's z
+    lateral = X_BK.rotation().matrix()[:, 2] * 0.02  # 20 mm along the kidney's z
     state, drift = _run_monitor(template, lateral)
     assert "from its registered pose" in state.error and "limit 15.0 mm" in state.error
     assert drift == pytest.approx(0.02, abs=0.003)
@@ -181,14 +220,15 @@ def test_monitor_is_not_fooled_by_a_few_outlier_frames(template):
 def test_monitor_skips_views_the_registered_kidney_does_not_cross(template):
     """Past the registered pole (the view 120 mm along the long axis) whatever the
     segmenter marks is not compared: no check, no error (compared, it reads 60 mm)."""
-    state, drift = _run_monitor(template, [0.0, 0.0, 0.0], view_offset_K=(0.12, 0.0, 0.0),
-                                outlier=lambda k: True)
+    state, drift = _run_monitor(
+        template, [0.0, 0.0, 0.0], view_offset_K=(0.12, 0.0, 0.0), outlier=lambda k: True
+    )
     assert state.error == "" and state.frames == () and math.isnan(drift)
 
 
 def test_monitor_ignores_frames_outside_its_phases_and_breath_holds(template):
     lateral = X_BK.rotation().matrix()[:, 2] * 0.02
-    state, drift = _run_monitor(template, lateral, phase=1)       # EXPLORE: not checked
+    state, drift = _run_monitor(template, lateral, phase=1)  # EXPLORE: not checked
     assert state.error == "" and state.history == () and math.isnan(drift)
     state, _ = _run_monitor(template, lateral, motion_allowed=0.0)  # outside a hold
     assert state.error == "" and state.frames == ()
@@ -198,19 +238,27 @@ def test_monitor_ignores_frames_outside_its_phases_and_breath_holds(template):
 
 
 def _result(rms=0.001):
-    return IcpResult(X_BK=X_BK, iterations=1, converged=True, rms_residual=rms,
-                     inlier_fraction=1.0, covariance=np.eye(6), errors=np.zeros(1),
-                     max_rotation_steps=np.zeros(1))
+    return IcpResult(
+        X_BK=X_BK,
+        iterations=1,
+        converged=True,
+        rms_residual=rms,
+        inlier_fraction=1.0,
+        covariance=np.eye(6),
+        errors=np.zeros(1),
+        max_rotation_steps=np.zeros(1),
+    )
 
 
 def test_judged_drift_allows_the_registrations_axial_uncertainty():
     lim = TrackingLimits(0.015, 0.015, np.array([0.0, 1.0, 0.0]))
-    assert judged_drift([0.0, 0.014, 0.0], lim) == 0.0           # within the allowance
+    assert judged_drift([0.0, 0.014, 0.0], lim) == 0.0  # within the allowance
     assert judged_drift([0.0, -0.020, 0.0], lim) == pytest.approx(0.005)
     assert judged_drift([0.012, 0.020, 0.0], lim) == pytest.approx(math.hypot(0.012, 0.005))
     # Without an axis the whole drift counts (the plain limit).
     assert judged_drift([0.012, 0.020, 0.0], TrackingLimits(0.015)) == pytest.approx(
-        math.hypot(0.012, 0.020))
+        math.hypot(0.012, 0.020)
+    )
 
 
 def test_tracking_limits_follow_the_registration():
@@ -230,10 +278,11 @@ def test_tracking_update_judges_with_the_limits():
     cfg = LocalizationConfig(tracking_confirmations=2)
     lim = TrackingLimits(0.015, 0.015, np.array([0.0, 1.0, 0.0]))
     along = DriftEstimate(np.array([0.0, 0.025, 0.0]), 0.001, 100)
-    s = tracking_update(tracking_update(TrackingState(), 1.0, along, cfg, lim), 1.5, along,
-                        cfg, lim)
+    s = tracking_update(
+        tracking_update(TrackingState(), 1.0, along, cfg, lim), 1.5, along, cfg, lim
+    )
     assert s.error == "" and s.judged_m == pytest.approx(0.010) and s.limit_m == 0.015
-    assert s.drift_m == pytest.approx(0.025)                    # the apparent drift itself
+    assert s.drift_m == pytest.approx(0.025)  # the apparent drift itself
     across = DriftEstimate(np.array([0.016, 0.025, 0.0]), 0.001, 100)
     s = tracking_update(tracking_update(s, 2.0, across, cfg, lim), 2.5, across, cfg, lim)
     assert "25.0 mm of it along the kidney's long axis, where 15 mm are allowed" in s.error
@@ -246,11 +295,11 @@ def test_monitor_passes_a_still_kidney_its_template_misplaces_along_the_axis(tem
     kidney's axis (half the length difference) although nothing moved: not motion."""
     along = X_BK.rotation().matrix()[:, 0] * 0.018
     state, drift = _run_monitor(template, along)
-    assert drift == pytest.approx(0.018, abs=0.004)            # the apparent drift ...
-    assert state.error == "" and state.judged_m < 0.006        # ... within the allowance
+    assert drift == pytest.approx(0.018, abs=0.004)  # the apparent drift ...
+    assert state.error == "" and state.judged_m < 0.006  # ... within the allowance
     assert state.limit_m == pytest.approx(0.015)
     plain = dataclasses.replace(LocalizationConfig(), tracking_axial_allowance=0.0)
-    state, _ = _run_monitor(template, along, config=plain)     # the former rule: "moved"
+    state, _ = _run_monitor(template, along, config=plain)  # the former rule: "moved"
     assert "from its registered pose" in state.error
 
 
@@ -261,11 +310,11 @@ def test_group_medians_are_numpys_medians(seed):
     rng = np.random.default_rng(seed)
     n_groups = int(rng.integers(1, 30))
     counts = rng.integers(1, 40, n_groups)
-    counts[0], counts[-1] = 1, 2                     # a single value and an even pair
+    counts[0], counts[-1] = 1, 2  # a single value and an even pair
     groups = np.repeat(np.arange(n_groups), counts)
     values = rng.normal(size=len(groups))
-    values[rng.random(len(values)) < 0.2] = 0.5      # ties
-    order = rng.permutation(len(groups))             # groups interleaved
+    values[rng.random(len(values)) < 0.2] = 0.5  # ties
+    order = rng.permutation(len(groups))  # groups interleaved
     got = group_medians(values[order], groups[order], n_groups)
     want = np.array([np.median(values[groups == g]) for g in range(n_groups)])
     assert np.array_equal(got, want)
@@ -277,19 +326,22 @@ def test_group_medians_need_every_group():
         group_medians(np.ones(3), np.array([0, 0, 2]), 3)
 
 
-def test_estimate_drift_reuses_neighbours_with_the_kd_trees_answer(template, monkeypatch,
-                                                                  moving_nearest_doubles):
+def test_estimate_drift_reuses_neighbours_with_the_kd_trees_answer(
+    template, monkeypatch, moving_nearest_doubles
+):
     """The drift fit's nearest neighbours come from MovingNearest: the same drift, residual
     and frame count, bit for bit, as fresh kd-tree queries every iteration, with under half
     of the points sent to the tree (the points only slide by the fit's small steps)."""
     from scipy.spatial import cKDTree
 
     from drake_rus.localization import tracking
+
     rng = np.random.default_rng(7)
     section = long_axis_slab(template)
     z_B = X_BK.rotation().matrix()[:, 2]
-    frames = [section + 0.003 * z_B + rng.normal(scale=0.0007, size=section.shape)
-              for _ in range(8)] + [section + 0.05 * z_B] * 2     # two outlier frames
+    frames = [
+        section + 0.003 * z_B + rng.normal(scale=0.0007, size=section.shape) for _ in range(8)
+    ] + [section + 0.05 * z_B] * 2  # two outlier frames
     P = np.concatenate(frames)
     ids = np.repeat(np.arange(len(frames)), len(section))
     tree = cKDTree(template.points)

@@ -23,9 +23,16 @@ import numpy as np
 import pytest
 
 from drake_rus.anatomy.labels import Label
-from drake_rus.anatomy.tissue_colors import (KIDNEY_COLOR, MASK_ALPHA, NO_IMAGE_COLOR,
-                                             TISSUE_COLORS, TISSUE_NAMES, label_image,
-                                             labels_present, rgb)
+from drake_rus.anatomy.tissue_colors import (
+    KIDNEY_COLOR,
+    MASK_ALPHA,
+    NO_IMAGE_COLOR,
+    TISSUE_COLORS,
+    TISSUE_NAMES,
+    label_image,
+    labels_present,
+    rgb,
+)
 from drake_rus.cli import build_parser, main
 from drake_rus.extras import EXTRAS, MissingExtra, require
 from drake_rus.paths import REPO_ROOT
@@ -58,7 +65,7 @@ def shown_commands(text: str) -> list[str]:
             continue
         text = re.sub(r"\s+\[[^\]]*\]", "", text).strip()
         text = re.sub(r"^(nice|sudo)\s+", "", text).replace(".venv/bin/", "")
-        text = re.sub(r"\s*>\s*\S+$", "", text)                 # > bench.log
+        text = re.sub(r"\s*>\s*\S+$", "", text)  # > bench.log
         if text.startswith(("drake-rus ", "python -m ", "pip ", "make ")):
             out.append(text)
     return out
@@ -69,12 +76,13 @@ def test_every_command_the_docs_show_parses():
     renamed command or flag fails here), each ``python -m X`` names a module that exists,
     each extra exists, and no ``template build`` shown writes over the shipped template."""
     from drake_rus.template.cli import check_not_shipped
+
     commands = [c for page in DOC_PAGES for c in shown_commands(page.read_text())]
     assert sum(c.startswith("drake-rus ") for c in commands) >= 20
     parser = build_parser()
     benchmarks = [p.stem for p in (REPO_ROOT / "benchmarks").glob("[a-z]*.py")]
     for command in commands:
-        argv = ["2" if a == "N" else a for a in shlex.split(command)]   # a placeholder
+        argv = ["2" if a == "N" else a for a in shlex.split(command)]  # a placeholder
         if argv[0] == "drake-rus":
             try:
                 args = parser.parse_args(argv[1:])
@@ -94,12 +102,13 @@ def test_every_command_the_docs_show_parses():
 def test_rehearse_without_opencv_names_the_extra(tmp_path, capsys, monkeypatch):
     """The base install (make demo) has no OpenCV: rehearse and the stop drill say in one
     line which extra installs it, exit status 2, and write nothing."""
-    monkeypatch.setitem(sys.modules, "cv2", None)           # import cv2 -> ImportError
+    monkeypatch.setitem(sys.modules, "cv2", None)  # import cv2 -> ImportError
     assert main(["rehearse", "--out", str(tmp_path / "r"), "--netns", "no"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "Traceback" not in err, err
     assert "OpenCV" in err and "pip install -e '.[hardware]'" in err, err
     from drake_rus.rehearsal.drill import main as drill
+
     assert drill(["--out", str(tmp_path / "d")]) == 2
     assert "pip install -e '.[hardware]'" in capsys.readouterr().err
     assert not (tmp_path / "r").exists() and not (tmp_path / "d").exists()
@@ -122,20 +131,33 @@ def _digest(path: Path) -> str:
 
 def test_template_build_defaults_to_a_user_path():
     from drake_rus.template.cli import DEFAULT_BUILD_OUT
+
     args = build_parser().parse_args(["template", "build"])
-    assert args.out is None            # generated kidneys: DEFAULT_BUILD_OUT; --from-ct: cache
+    assert args.out is None  # generated kidneys: DEFAULT_BUILD_OUT; --from-ct: cache
     out = DEFAULT_BUILD_OUT
     assert not out.is_absolute() and out.parts[0] == "runs" and out.suffix == ".npz"
     assert (REPO_ROOT / out).resolve() != DEFAULT_TEMPLATE_PATH.resolve()
 
 
-@pytest.mark.parametrize("flags,arg", [
-    (["--out", str(DEFAULT_TEMPLATE_PATH)], "--out"),
-    (["--out", str(DEFAULT_TEMPLATE_PATH.parent / ".." / "models" / "kidney_template.npz")],
-     "--out"),
-    (["--out", "OUT", "--png",
-      str(DEFAULT_TEMPLATE_PATH.with_name("kidney_template_convergence.png"))], "--png"),
-])
+@pytest.mark.parametrize(
+    "flags,arg",
+    [
+        (["--out", str(DEFAULT_TEMPLATE_PATH)], "--out"),
+        (
+            ["--out", str(DEFAULT_TEMPLATE_PATH.parent / ".." / "models" / "kidney_template.npz")],
+            "--out",
+        ),
+        (
+            [
+                "--out",
+                "OUT",
+                "--png",
+                str(DEFAULT_TEMPLATE_PATH.with_name("kidney_template_convergence.png")),
+            ],
+            "--png",
+        ),
+    ],
+)
 def test_template_build_never_writes_over_the_shipped_model(flags, arg, tmp_path, capsys):
     shipped = {p: _digest(p) for p in DEFAULT_TEMPLATE_PATH.parent.glob("kidney_template*")}
     flags = [str(tmp_path / "t.npz") if f == "OUT" else f for f in flags]
@@ -152,12 +174,27 @@ def test_template_build_writes_every_file_0644(tmp_path, capsys):
     umask = os.umask(0o022)
     os.umask(umask)
     out = tmp_path / "t.npz"
-    assert main(["template", "build", "--n", "3", "--points", "300", "--voxel-mm", "2",
-                 "--out", str(out), "--quiet"]) == 0
-    assert str(out.resolve()) in capsys.readouterr().out       # how to use it
+    assert (
+        main(
+            [
+                "template",
+                "build",
+                "--n",
+                "3",
+                "--points",
+                "300",
+                "--voxel-mm",
+                "2",
+                "--out",
+                str(out),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
+    assert str(out.resolve()) in capsys.readouterr().out  # how to use it
     written = sorted(tmp_path.iterdir())
-    assert [p.name for p in written] == ["t.json", "t.npz", "t_convergence.png",
-                                         "t_modes.png"]
+    assert [p.name for p in written] == ["t.json", "t.npz", "t_convergence.png", "t_modes.png"]
     for p in written:
         assert stat.S_IMODE(p.stat().st_mode) == 0o666 & ~umask, p
 
@@ -169,16 +206,21 @@ def test_notebooks_extra_and_make_target():
     assert any(r.startswith("ipykernel") for r in extra)
     if shutil.which("make") is None:
         pytest.skip("make is not installed")
-    dry = subprocess.run(["make", "-n", "-C", str(REPO_ROOT), "notebooks",
-                          "VENV=/nonexistent/venv"], capture_output=True, text=True, check=True)
+    dry = subprocess.run(
+        ["make", "-n", "-C", str(REPO_ROOT), "notebooks", "VENV=/nonexistent/venv"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     assert "pip install --quiet -e '.[notebooks]'" in dry.stdout
     assert re.search(r"jupyter lab --ip=127\.0\.0\.1 .*notebooks/", dry.stdout), dry.stdout
     assert "make notebooks" in README
 
 
 # ------------------------------------------------------------------ diagram pictures
-needs_graphviz = pytest.mark.skipif(shutil.which("dot") is None,
-                                    reason="Graphviz 'dot' is not installed")
+needs_graphviz = pytest.mark.skipif(
+    shutil.which("dot") is None, reason="Graphviz 'dot' is not installed"
+)
 
 
 @needs_graphviz
@@ -186,17 +228,20 @@ def test_committed_diagram_pictures_are_current():
     """The systems and ports in diagrams/*.svg are those of the diagrams built now; re-draw
     with `drake-rus render-diagram --all` (make diagrams) when this fails."""
     from drake_rus.render import COMMITTED, committed_picture_drift
+
     assert set(COMMITTED) == {p.name for p in (REPO_ROOT / "diagrams").glob("*.svg")}
     for name in COMMITTED:
         missing, extra = committed_picture_drift(name)
         assert not missing and not extra, (
             f"diagrams/{name} is stale: lacks {sorted(missing)}, shows {sorted(extra)} in "
-            f"excess; run drake-rus render-diagram --all")
+            f"excess; run drake-rus render-diagram --all"
+        )
 
 
 @needs_graphviz
 def test_a_stale_picture_is_found(tmp_path, monkeypatch):
     import drake_rus.render as render
+
     svg = (REPO_ROOT / "diagrams" / "station.svg").read_text()
     hold = re.search(r"<text[^>]*>name=command_hold</text>", svg)
     assert hold is not None
@@ -219,8 +264,7 @@ def _map_colours(*extra) -> set:
 
 
 def _legend_texts(fig) -> set:
-    return {t.get_text() for leg in fig.findobj(matplotlib.legend.Legend)
-            for t in leg.get_texts()}
+    return {t.get_text() for leg in fig.findobj(matplotlib.legend.Legend) for t in leg.get_texts()}
 
 
 def _capture(monkeypatch, module) -> list:
@@ -229,6 +273,7 @@ def _capture(monkeypatch, module) -> list:
     def keep(fig, path, dpi=110):
         figures.append(fig)
         return Path(path)
+
     monkeypatch.setattr(module, "save_figure", keep)
     return figures
 
@@ -240,18 +285,19 @@ def test_one_colour_per_tissue():
     image = label_image(labels, where=np.r_[np.ones(len(Label), bool), True][None, :])
     for k, label in enumerate(Label):
         np.testing.assert_allclose(image[0, k], rgb(TISSUE_COLORS[label]))
-    np.testing.assert_allclose(image[0, -1], (1.0, 0.0, 1.0))     # unknown label: magenta
+    np.testing.assert_allclose(image[0, -1], (1.0, 0.0, 1.0))  # unknown label: magenta
     outside = label_image(labels, where=np.zeros(labels.shape, bool))
     np.testing.assert_allclose(outside[0, 0], rgb(NO_IMAGE_COLOR))
 
 
 def test_start_plan_picture_has_the_tissue_legend_and_explains_the_marks(monkeypatch):
+    from test_start_planner import X_BPT, box_body
+
     import drake_rus.scan.planning as planning
     from drake_rus.imaging.config import ImagingConfig
     from drake_rus.scan.config import StartConfig
-    from test_start_planner import X_BPT, box_body
-    plan = planning.PlanStart(box_body(blocker=Label.BONE), X_BPT, ImagingConfig(),
-                              StartConfig())
+
+    plan = planning.PlanStart(box_body(blocker=Label.BONE), X_BPT, ImagingConfig(), StartConfig())
     figures = _capture(monkeypatch, planning)
     planning.plot_start_plan(plan, ImagingConfig(), "unused.png")
     fig = figures[0]
@@ -268,6 +314,7 @@ def test_start_plan_picture_has_the_tissue_legend_and_explains_the_marks(monkeyp
 def test_label_slices_use_the_tissue_map(monkeypatch):
     import drake_rus.anatomy.pictures as pictures
     from drake_rus.anatomy.generator import generate_patient
+
     figures = _capture(monkeypatch, pictures)
     pictures.plot_label_slices(generate_patient(8, voxel_size=0.004, progress=False), "x.png")
     fig = figures[0]
@@ -278,6 +325,7 @@ def test_label_slices_use_the_tissue_map(monkeypatch):
 
 def test_pivot_frames_show_the_mask_in_the_kidney_colour(monkeypatch):
     import drake_rus.scan.report as report
+
     grey = np.full((40, 50), 100, np.uint8)
     mask = np.zeros_like(grey, bool)
     mask[10:20, 10:30] = True
@@ -295,6 +343,7 @@ def test_every_phase_swatch_shows():
     """traces.png's legend: DONE was white on white (a blank swatch)."""
     from drake_rus.control.supervisor import Phase
     from drake_rus.scan.report import PHASE_COLORS
+
     assert {p.name for p in Phase} <= set(PHASE_COLORS)
     colours = [c.lower() for c in PHASE_COLORS.values()]
     assert "#ffffff" not in colours and len(set(colours)) == len(colours)
@@ -302,14 +351,29 @@ def test_every_phase_swatch_shows():
 
 def test_imaging_pictures_use_the_tissue_map(tmp_path, monkeypatch):
     import drake_rus.imaging.cli as icli
+
     figures = _capture(monkeypatch, icli)
-    assert main(["imaging-pictures", "--patient", "phantom:1", "--views", "0",
-                 "--segmenter", "oracle", "--out", str(tmp_path)]) == 0
+    assert (
+        main(
+            [
+                "imaging-pictures",
+                "--patient",
+                "phantom:1",
+                "--views",
+                "0",
+                "--segmenter",
+                "oracle",
+                "--out",
+                str(tmp_path),
+            ]
+        )
+        == 0
+    )
     view = figures[0]
     assert _colours(view.axes[0].get_images()[0].get_array()) <= _map_colours(NO_IMAGE_COLOR)
     texts = _legend_texts(view)
     assert {"kidney cortex", "kidney: the segmenter's mask", "kidney: true outline"} <= texts
-    assert "kidney: the segmenter's mask" in _legend_texts(figures[-1])     # contact sheet
+    assert "kidney: the segmenter's mask" in _legend_texts(figures[-1])  # contact sheet
 
 
 # ------------------------------------------------------------------ servers
@@ -338,10 +402,10 @@ def listening_addresses(port: int) -> list[str]:
             address, port_hex = f[1].split(":")
             if f[3] != "0A" or int(port_hex, 16) != port or f[9] not in mine:
                 continue
-            words = [struct.pack("<I", int(address[i:i + 8], 16))
-                     for i in range(0, len(address), 8)]
-            out.append(socket.inet_ntop(socket.AF_INET6 if v6 else socket.AF_INET,
-                                        b"".join(words)))
+            words = [
+                struct.pack("<I", int(address[i : i + 8], 16)) for i in range(0, len(address), 8)
+            ]
+            out.append(socket.inet_ntop(socket.AF_INET6 if v6 else socket.AF_INET, b"".join(words)))
     return out
 
 
@@ -352,6 +416,7 @@ needs_proc = pytest.mark.skipif(not Path("/proc/net/tcp").exists(), reason="need
 def test_meshcat_listens_on_the_loopback_only():
     """Drake's default Meshcat host "*" listens on every interface."""
     from drake_rus.cli import MakeMeshcat
+
     meshcat = MakeMeshcat()
     assert listening_addresses(meshcat.port()) == ["127.0.0.1"]
     assert "127.0.0.1" in meshcat.web_url()
@@ -360,6 +425,7 @@ def test_meshcat_listens_on_the_loopback_only():
 @needs_proc
 def test_rehearsal_video_listens_on_the_loopback_only():
     from drake_rus.rehearsal.mjpeg import FrameBuffer, MjpegServer
+
     with MjpegServer(FrameBuffer()) as server:
         assert listening_addresses(server.port) == ["127.0.0.1"]
     for host in ("localhost", "0.0.0.0", "::1"):
@@ -375,8 +441,11 @@ def test_no_server_is_made_outside_the_loopback_helpers():
     offenders = []
     for path in sources:
         text = path.read_text()
-        for m in re.finditer(r"\b(StartMeshcat|Meshcat|(?:Threading)?HTTPServer|TCPServer)\(",
-                             text):
+        for m in re.finditer(
+            r"\b(StartMeshcat|Meshcat|(?:Threading)?HTTPServer|TCPServer)\(", text
+        ):
             offenders.append(f"{path.relative_to(REPO_ROOT)}: {m.group(0)}")
-    assert sorted(offenders) == ["drake_rus/cli.py: Meshcat(",
-                                 "drake_rus/rehearsal/mjpeg.py: ThreadingHTTPServer("], offenders
+    assert sorted(offenders) == [
+        "drake_rus/cli.py: Meshcat(",
+        "drake_rus/rehearsal/mjpeg.py: ThreadingHTTPServer(",
+    ], offenders

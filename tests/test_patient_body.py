@@ -18,9 +18,12 @@ def waisted_body(waist_drop=0.03):
     theta = np.linspace(0, 2 * np.pi, 48, endpoint=False)
     rings = []
     for yk in y:
-        height = 0.12 - waist_drop * np.exp(-(yk / 0.15) ** 2)
-        rings.append(np.column_stack([0.15 * np.cos(theta), np.full_like(theta, yk),
-                                      0.12 + height * np.sin(theta)]))
+        height = 0.12 - waist_drop * np.exp(-((yk / 0.15) ** 2))
+        rings.append(
+            np.column_stack(
+                [0.15 * np.cos(theta), np.full_like(theta, yk), 0.12 + height * np.sin(theta)]
+            )
+        )
     v = np.vstack(rings)
     faces = []
     n = len(theta)
@@ -41,6 +44,7 @@ def waisted_body(waist_drop=0.03):
 
     def torso_section(half_length):
         return crop_body_section(skin, np.zeros(3), half_length)
+
     return types.SimpleNamespace(skin_mesh=skin, kidney_mesh=kidney, torso_section=torso_section)
 
 
@@ -59,7 +63,7 @@ def test_contact_section_takes_the_longest_section_within_the_gap():
     assert half_length < 0.20 and gap <= 0.004
     longer = [h for h in contact.patient_section_half_lengths if h > half_length]
     body = waisted_body(0.015)
-    for h in longer:            # every longer section bridges the waist more than allowed
+    for h in longer:  # every longer section bridges the waist more than allowed
         assert hull_gap_over_kidney(body, ContactHull(body.torso_section(h), 300)) > 0.004
 
 

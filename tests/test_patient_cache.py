@@ -12,7 +12,7 @@ from drake_rus.anatomy import cache as cache_mod
 from drake_rus.anatomy import cohort, generator, load_patient
 from drake_rus.anatomy.cache import CACHE_DIR_ENV, entry_path, patient_cache_dir
 
-VOXEL = 0.004          # coarse label volumes keep these tests fast
+VOXEL = 0.004  # coarse label volumes keep these tests fast
 
 
 @pytest.fixture
@@ -31,6 +31,7 @@ def builds(monkeypatch):
     def counting(*args, **kwargs):
         calls.append(args)
         return real(*args, **kwargs)
+
     monkeypatch.setattr(cohort, "generate_patient", counting)
     return calls
 
@@ -51,8 +52,7 @@ def assert_same_patient(p, q, labels=True):
         assert p.labels.labels.dtype == q.labels.labels.dtype
         np.testing.assert_array_equal(p.labels.labels, q.labels.labels)
         assert p.labels.voxel_size == q.labels.voxel_size
-        np.testing.assert_array_equal(p.labels.X_PtV.GetAsMatrix4(),
-                                      q.labels.X_PtV.GetAsMatrix4())
+        np.testing.assert_array_equal(p.labels.X_PtV.GetAsMatrix4(), q.labels.X_PtV.GetAsMatrix4())
 
 
 def test_cache_dir_resolution(monkeypatch, tmp_path):
@@ -69,14 +69,15 @@ def test_cache_dir_resolution(monkeypatch, tmp_path):
 def test_warm_load_equals_cold_and_fresh(cache_dir, builds, monkeypatch):
     # Without the anatomy check (which reads the label volume) the volume stays lazy.
     cold = load_patient("seed:5", voxel_size=VOXEL, progress=False, check=False)
-    assert not cold.has_labels                       # still lazy for callers that never ask
+    assert not cold.has_labels  # still lazy for callers that never ask
     assert len(_entries(cache_dir)) == 1
-    cold_labels = cold.labels                        # built now, and stored in the entry
+    cold_labels = cold.labels  # built now, and stored in the entry
     assert len(builds) == 1
 
     # A warm load neither runs the generator nor builds labels: they come from the entry.
     def no_labels(*a, **k):
         raise AssertionError("label volume rebuilt on a warm load")
+
     with monkeypatch.context() as m:
         m.setattr(generator, "_build_labels", no_labels)
         warm = load_patient("seed:5", voxel_size=VOXEL, progress=False)
@@ -86,30 +87,39 @@ def test_warm_load_equals_cold_and_fresh(cache_dir, builds, monkeypatch):
     assert_same_patient(warm, cold)
     assert_same_patient(warm, fresh)
     # The lazily built parts of a cached patient are the generator's.
-    np.testing.assert_array_equal(warm.torso_section(0.12).vertices,
-                                  fresh.torso_section(0.12).vertices)
+    np.testing.assert_array_equal(
+        warm.torso_section(0.12).vertices, fresh.torso_section(0.12).vertices
+    )
     (m1, X1), (m2, X2) = warm.kidney_mask(0.003), fresh.kidney_mask(0.003)
     np.testing.assert_array_equal(m1, m2)
     np.testing.assert_array_equal(X1.GetAsMatrix4(), X2.GetAsMatrix4())
-    assert len(_entries(cache_dir)) == 1             # no temporary files left
+    assert len(_entries(cache_dir)) == 1  # no temporary files left
 
 
 def test_entry_without_labels_gets_them_on_a_warm_load(cache_dir, builds):
-    load_patient("seed:6", voxel_size=VOXEL, progress=False, check=False)   # no labels
+    load_patient("seed:6", voxel_size=VOXEL, progress=False, check=False)  # no labels
     warm = load_patient("seed:6", voxel_size=VOXEL, progress=False, check=False)
     assert not warm.has_labels and len(builds) == 1
-    labels = warm.labels.labels                      # built from the seed, then stored
+    labels = warm.labels.labels  # built from the seed, then stored
     third = load_patient("seed:6", voxel_size=VOXEL, progress=False)
     assert third.has_labels and len(builds) == 1
     np.testing.assert_array_equal(third.labels.labels, labels)
-    assert_same_patient(third, load_patient("seed:6", voxel_size=VOXEL, cache=False,
-                                            progress=False))
+    assert_same_patient(
+        third, load_patient("seed:6", voxel_size=VOXEL, cache=False, progress=False)
+    )
 
 
-@pytest.mark.parametrize("change", [
-    {"spec": "seed:8"}, {"posture": "left_lateral_decubitus"}, {"voxel_size": 0.005},
-    {"side": "left"}, {"spec": "seed:0000007"}], ids=["seed", "posture", "voxel", "side",
-                                                       "spec_spelling"])
+@pytest.mark.parametrize(
+    "change",
+    [
+        {"spec": "seed:8"},
+        {"posture": "left_lateral_decubitus"},
+        {"voxel_size": 0.005},
+        {"side": "left"},
+        {"spec": "seed:0000007"},
+    ],
+    ids=["seed", "posture", "voxel", "side", "spec_spelling"],
+)
 def test_changed_key_input_misses(cache_dir, builds, change):
     base = {"spec": "seed:7", "voxel_size": VOXEL}
     load_patient(**base, progress=False)
@@ -134,8 +144,16 @@ def test_code_change_misses(cache_dir, builds, monkeypatch):
 def test_corrupt_entry_is_rebuilt(cache_dir, builds, caplog, damage):
     ref = load_patient("seed:9", voxel_size=VOXEL, progress=False)
     ref.labels
-    path = entry_path({"kind": "generator", "seed": 9, "spec": "seed:9", "side": "right",
-                       "posture": "supine", "voxel_size": VOXEL})
+    path = entry_path(
+        {
+            "kind": "generator",
+            "seed": 9,
+            "spec": "seed:9",
+            "side": "right",
+            "posture": "supine",
+            "voxel_size": VOXEL,
+        }
+    )
     assert path.is_file()
     data = path.read_bytes()
     if damage == "truncate":
@@ -144,7 +162,7 @@ def test_corrupt_entry_is_rebuilt(cache_dir, builds, caplog, damage):
         path.write_bytes(b"\x00 not a cache entry" * 100)
     elif damage == "empty":
         path.write_bytes(b"")
-    else:       # a valid entry of another patient under this name
+    else:  # a valid entry of another patient under this name
         load_patient("seed:10", voxel_size=VOXEL, progress=False)
         other = next(p for p in cache_dir.iterdir() if p != path)
         path.write_bytes(other.read_bytes())
@@ -154,19 +172,23 @@ def test_corrupt_entry_is_rebuilt(cache_dir, builds, caplog, damage):
     assert len(builds) == n + 1
     warnings = [r for r in caplog.records if "unreadable entry" in r.getMessage()]
     assert len(warnings) == 1 and "\n" not in warnings[0].getMessage()
-    assert_same_patient(p, ref)                      # builds (and stores) the labels again
-    again = load_patient("seed:9", voxel_size=VOXEL, progress=False)   # the entry is good
+    assert_same_patient(p, ref)  # builds (and stores) the labels again
+    again = load_patient("seed:9", voxel_size=VOXEL, progress=False)  # the entry is good
     assert len(builds) == n + 1 and again.has_labels
     assert_same_patient(again, ref)
 
 
 def test_failed_write_leaves_no_entry(cache_dir, builds, monkeypatch, caplog):
     """A writer that dies half-way leaves no entry (and no temporary file) behind."""
+
     def crash(f, **arrays):
         f.write(b"PK\x03\x04 half an entry")
         raise OSError(28, "No space left on device")
-    with monkeypatch.context() as m, \
-            caplog.at_level(logging.WARNING, logger="drake_rus.anatomy.cache"):
+
+    with (
+        monkeypatch.context() as m,
+        caplog.at_level(logging.WARNING, logger="drake_rus.anatomy.cache"),
+    ):
         m.setattr(cache_mod.np, "savez_compressed", crash)
         p = load_patient("seed:11", voxel_size=VOXEL, progress=False)
         p.labels
@@ -196,6 +218,7 @@ def test_unusable_cache_dir_does_not_fail(tmp_path, monkeypatch, caplog, where):
 def test_unwritable_cache_dir_does_not_fail(cache_dir, monkeypatch, caplog):
     def denied(*a, **k):
         raise PermissionError(13, "Permission denied")
+
     monkeypatch.setattr(cache_mod.tempfile, "mkstemp", denied)
     with caplog.at_level(logging.WARNING, logger="drake_rus.anatomy.cache"):
         p = load_patient("seed:12", voxel_size=VOXEL, progress=False)
@@ -209,14 +232,14 @@ def test_cache_false_writes_nothing(cache_dir, builds):
     assert not cache_dir.exists()
     load_patient("seed:13", voxel_size=VOXEL, progress=False)
     load_patient("seed:13", voxel_size=VOXEL, progress=False, cache=False)
-    assert len(builds) == 3                          # cache=False never reads either
+    assert len(builds) == 3  # cache=False never reads either
 
 
 def _write_label_map(path):
     """A small TotalSegmentator-like map (4 mm voxels, LPS): body 200, right kidney 2."""
     n = (80, 60, 40)
-    I, J, K = np.meshgrid(*[np.arange(s) for s in n], indexing="ij")
-    x, y, z = (I - 40) * 4.0, (J - 30) * 4.0, (K - 20) * 4.0
+    ii, jj, kk = np.meshgrid(*[np.arange(s) for s in n], indexing="ij")
+    x, y, z = (ii - 40) * 4.0, (jj - 30) * 4.0, (kk - 20) * 4.0
     lab = np.zeros(n, np.uint8)
     lab[(x / 150) ** 2 + (y / 100) ** 2 <= 1] = 200
     lab[((x + 75) / 28) ** 2 + ((y - 40) / 20) ** 2 + (z / 55) ** 2 <= 1] = 2
@@ -235,6 +258,7 @@ def test_imported_patient_keyed_by_file_bytes(cache_dir, tmp_path, monkeypatch):
     def counting(*a, **k):
         calls.append(a)
         return real(*a, **k)
+
     monkeypatch.setattr(cohort, "patient_from_label_map", counting)
     cold = load_patient(str(path), voxel_size=VOXEL)
     cold.labels
@@ -242,8 +266,9 @@ def test_imported_patient_keyed_by_file_bytes(cache_dir, tmp_path, monkeypatch):
     assert len(calls) == 1 and warm.has_labels
     assert_same_patient(warm, cold)
     np.testing.assert_array_equal(warm.torso_center_Pt, cold.torso_center_Pt)
-    np.testing.assert_array_equal(warm.torso_section(0.05).vertices,
-                                  cold.torso_section(0.05).vertices)
+    np.testing.assert_array_equal(
+        warm.torso_section(0.05).vertices, cold.torso_section(0.05).vertices
+    )
     assert_same_patient(warm, load_patient(str(path), voxel_size=VOXEL, cache=False))
     assert len(calls) == 2
     # Same size and modification time, other bytes: a miss.

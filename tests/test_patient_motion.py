@@ -21,8 +21,14 @@ from drake_rus.stations import MakeStation
 
 
 def test_breathing_amplitude_rate_and_holds():
-    cfg = BreathingConfig(enabled=True, amplitude=0.012, rate_per_min=15.0, hold_period=12.0,
-                          hold_duration=8.0, hold_reproducibility=0.003)
+    cfg = BreathingConfig(
+        enabled=True,
+        amplitude=0.012,
+        rate_per_min=15.0,
+        hold_period=12.0,
+        hold_duration=8.0,
+        hold_reproducibility=0.003,
+    )
     t = np.arange(0.0, 60.0, 0.001)
     d = np.array([M.breathing_displacement(x, cfg, seed=3) for x in t])
     hold = np.array([M.breath_hold(x, cfg) for x in t])
@@ -57,13 +63,19 @@ def test_slice_sensor_sees_the_kidney_move_with_the_patient(geometry):
     """A kidney block moved 10 mm caudally by breathing appears 10 mm further along the
     probe's x axis (the probe's array along the body's head-foot axis)."""
     labels = np.full((80, 80, 240), Label.SOFT_TISSUE, np.uint8)
-    labels[30:50, 35:45, 40:160] = Label.KIDNEY_CORTEX    # x in [30, 50) mm
+    labels[30:50, 35:45, 40:160] = Label.KIDNEY_CORTEX  # x in [30, 50) mm
     volume = LabelVolume(labels, 0.001)
     # Probe at the grid's centre top, beam down (-z_B), array along +x_B; up = -x_B, so
     # d > 0 (caudal) moves the kidney along +x_B.
     X_BP = RigidTransform(RotationMatrix(np.diag([1.0, -1.0, -1.0])), [0.040, 0.040, 0.230])
-    motion = M.PatientMotion(M.PatientMotionConfig(breathing=BreathingConfig(
-        enabled=True, amplitude=0.01, rate_per_min=15.0, hold_period=0.0)), [-1.0, 0.0, 0.0])
+    motion = M.PatientMotion(
+        M.PatientMotionConfig(
+            breathing=BreathingConfig(
+                enabled=True, amplitude=0.01, rate_per_min=15.0, hold_period=0.0
+            )
+        ),
+        [-1.0, 0.0, 0.0],
+    )
     sensor = SliceSensor(ImagingConfig(), volume, RigidTransform(), motion)
     simulator = Simulator(sensor)
     ctx = simulator.get_mutable_context()
@@ -76,14 +88,15 @@ def test_slice_sensor_sees_the_kidney_move_with_the_patient(geometry):
         assert frame.time == pytest.approx(t)
         return np.nonzero(is_kidney(frame.image).any(axis=0))[0].mean()
 
-    c0, c1 = kidney_columns(0.0), kidney_columns(2.0)     # d = 0, then d = 10 mm
+    c0, c1 = kidney_columns(0.0), kidney_columns(2.0)  # d = 0, then d = 10 mm
     assert (c1 - c0) * geometry.dx == pytest.approx(0.010, abs=0.0015)
     X0 = RigidTransform([0.1, 0.2, 0.3])
     pose = MovingPose(X0, motion)
     pctx = pose.CreateDefaultContext()
     pctx.SetTime(2.0)
-    np.testing.assert_allclose(pose.get_output_port().Eval(pctx).translation(),
-                               [0.11, 0.2, 0.3], atol=1e-12)
+    np.testing.assert_allclose(
+        pose.get_output_port().Eval(pctx).translation(), [0.11, 0.2, 0.3], atol=1e-12
+    )
 
 
 def test_patient_contact_body_moves_with_breathing_and_shift():
@@ -93,10 +106,14 @@ def test_patient_contact_body_moves_with_breathing_and_shift():
     patient = load_patient("test:0", progress=False)
     still = MakeStation(LoadScenario(scenario_name="quick"), patient=patient)
     assert not still.GetSubsystemByName("plant").HasModelInstanceNamed("patient")
-    scenario = LoadScenario(scenario_name="quick", scenario_text=(
-        "{patient: {motion: {breathing: {enabled: true, amplitude: 0.02, rate_per_min: 20, "
-        "hold_period: 0}, shift: {enabled: true, time: 0.6, offset: [0.01, 0.0, "
-        "0.005], ramp: 0.3}}}}"))
+    scenario = LoadScenario(
+        scenario_name="quick",
+        scenario_text=(
+            "{patient: {motion: {breathing: {enabled: true, amplitude: 0.02, rate_per_min: 20, "
+            "hold_period: 0}, shift: {enabled: true, time: 0.6, offset: [0.01, 0.0, "
+            "0.005], ramp: 0.3}}}}"
+        ),
+    )
     station = MakeStation(scenario, patient=patient)
     plant = station.GetSubsystemByName("plant")
     assert plant.HasModelInstanceNamed("patient")
@@ -108,11 +125,11 @@ def test_patient_contact_body_moves_with_breathing_and_shift():
     for t in (0.5, 1.2):
         simulator.AdvanceTo(t)
         x = station.GetOutputPort("plant_state").Eval(context)
-        q_patient = x[7:len(x) // 2]
+        q_patient = x[7 : len(x) // 2]
         want = motion.offset_B(t)
         assert np.linalg.norm(want) > 0.004
         np.testing.assert_allclose(q_patient, want, atol=0.001)
         moved.append(q_patient)
-    assert moved[1][0] == pytest.approx(0.01, abs=0.001)        # the shift along x
+    assert moved[1][0] == pytest.approx(0.01, abs=0.001)  # the shift along x
     # A breathing patient's station reports breath-holds; a still one's does not.
     assert station.HasOutputPort("breath_hold") and not still.HasOutputPort("breath_hold")

@@ -5,19 +5,23 @@ import pytest
 import trimesh
 from pydrake.math import RigidTransform
 
+from drake_rus.robot import IkError, MakeControlPlant, SolveTipPose
 from drake_rus.scan.planning import (
-    R_B_TRANSVERSE, exploration_roi, exploration_start, skin_height_B)
+    R_B_TRANSVERSE,
+    exploration_roi,
+    exploration_start,
+    skin_height_B,
+)
 from drake_rus.scenario import LoadScenario
-from drake_rus.robot import IkError, SolveTipPose
-from drake_rus.robot import MakeControlPlant
 
 
 class BoxPatient:
     """A stand-in patient: a box body 0.2 m tall and an ellipsoid 'kidney' inside it."""
 
     def __init__(self):
-        self.skin_mesh = trimesh.creation.box(extents=[0.3, 0.6, 0.2],
-                                              transform=np.diag([1, 1, 1, 1.0]))
+        self.skin_mesh = trimesh.creation.box(
+            extents=[0.3, 0.6, 0.2], transform=np.diag([1, 1, 1, 1.0])
+        )
         self.skin_mesh.apply_translation([0, 0, 0.1])
         kidney = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
         kidney.apply_scale([0.03, 0.055, 0.02])
@@ -37,8 +41,9 @@ def test_roi_and_start_pose():
     assert roi.y_min == pytest.approx(-0.035, abs=2e-3)
     assert skin_height_B(patient, X_BPt, 0.5, 0.0) == pytest.approx(0.2)
     X = exploration_start(patient, X_BPt, scan_direction="-y", start_fraction=0.1, hover=0.01)
-    np.testing.assert_allclose(X.translation(), [0.5, roi.y_max - 0.1 * roi.length_y, 0.21],
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        X.translation(), [0.5, roi.y_max - 0.1 * roi.length_y, 0.21], atol=1e-6
+    )
     np.testing.assert_allclose(X.rotation().matrix(), R_B_TRANSVERSE.matrix())
     with pytest.raises(ValueError, match="no body surface"):
         skin_height_B(patient, X_BPt, 2.0, 0.0)

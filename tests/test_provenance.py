@@ -7,11 +7,16 @@ from drake_rus.scenario import LoadScenario, Scenario
 
 
 def test_record_holds_the_resolved_scenario_and_seeds():
-    scenario = LoadScenario(scenario_name="default",
-                            scenario_text="{controller: {scan_speed: 0.004}, random_seed: 7}")
-    record = Provenance(scenario, scenario_name="default",
-                        overrides="{controller: {scan_speed: 0.004}, random_seed: 7}",
-                        seeds={"patient": "test:0"}, argv=["drake-rus", "scan"])
+    scenario = LoadScenario(
+        scenario_name="default", scenario_text="{controller: {scan_speed: 0.004}, random_seed: 7}"
+    )
+    record = Provenance(
+        scenario,
+        scenario_name="default",
+        overrides="{controller: {scan_speed: 0.004}, random_seed: 7}",
+        seeds={"patient": "test:0"},
+        argv=["drake-rus", "scan"],
+    )
     assert record["seeds"] == {"patient": "test:0", "random_seed": 7}
     assert record["argv"] == ["drake-rus", "scan"]
     assert record["overrides"].startswith("{controller")

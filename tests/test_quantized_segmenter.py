@@ -9,10 +9,14 @@ import numpy as np
 import pytest
 from pydrake.math import RigidTransform
 
-from drake_rus.imaging.training import quantize_segmenter as qs
 from drake_rus.imaging.config import ImagingConfig
-from drake_rus.imaging.onnx_backend import (OnnxSegmenter, card_canvas, read_model_card,
-                                            resolve_model_path)
+from drake_rus.imaging.onnx_backend import (
+    OnnxSegmenter,
+    card_canvas,
+    read_model_card,
+    resolve_model_path,
+)
+from drake_rus.imaging.training import quantize_segmenter as qs
 
 CFG = ImagingConfig(segmenter="onnx")
 INT8 = resolve_model_path(CFG.onnx_model)
@@ -26,10 +30,15 @@ def test_the_default_model_is_the_int8_one_derived_from_the_shipped_fp32_model()
     q = card["quantization"]
     # Re-quantize after retraining: the int8 model must come from the fp32 model shipped.
     assert q["source_model"] == FP32.name and q["source_sha256"] == qs.sha256(FP32)
-    assert q["calibration_sources"] and all(s.startswith("train:")
-                                            for s in q["calibration_sources"])
+    assert q["calibration_sources"] and all(
+        s.startswith("train:") for s in q["calibration_sources"]
+    )
     assert (q["format"], q["activation_type"], q["weight_type"], q["reduce_range"]) == (
-        "QDQ", "QUInt8", "QInt8", False)
+        "QDQ",
+        "QUInt8",
+        "QInt8",
+        False,
+    )
     assert FP32.name in q["fallback"]
 
 
@@ -53,9 +62,10 @@ def test_int8_model_agrees_with_fp32_on_held_out_emulated_frames(geometry):
     masks agree on >= 99% of the fan's pixels and their mean IoU against the true kidney
     differs by <= 0.01. A CPU on which U8S8 saturates (x86 without VNNI) fails here."""
     from drake_rus.imaging.emulator import EmulatorModel, emulate
-    from drake_rus.imaging.training.evaluation import load_source, sample_views
     from drake_rus.imaging.segment import iou
     from drake_rus.imaging.slicing import slice_volume
+    from drake_rus.imaging.training.evaluation import load_source, sample_views
+
     src = load_source("test:0", posture="supine")
     model = EmulatorModel.from_config(CFG, geometry)
     int8 = OnnxSegmenter.from_config(CFG, geometry)
@@ -73,29 +83,38 @@ def test_int8_model_agrees_with_fp32_on_held_out_emulated_frames(geometry):
             ious.append((iou(a, gt), iou(b, gt)))
     assert len(ious) >= 10
     fp32_iou, int8_iou = np.mean(ious, axis=0)
-    hint = (f"(CPU with VNNI: {qs.cpu_has_vnni()}; without it U8S8 may saturate: set "
-            f"imaging.onnx_model: {qs.DEFAULT_MODEL})")
+    hint = (
+        f"(CPU with VNNI: {qs.cpu_has_vnni()}; without it U8S8 may saturate: set "
+        f"imaging.onnx_model: {qs.DEFAULT_MODEL})"
+    )
     assert agree / total >= 0.99, f"mask agreement {agree / total:.4f} {hint}"
     assert abs(int8_iou - fp32_iou) <= 0.01, f"IoU {int8_iou:.3f} vs {fp32_iou:.3f} {hint}"
 
 
 # --- the quantizer on a small synthetic model --------------------------------------------
 
+
 def _tiny_model(path, size=16):
     """Conv(1 -> 4, 3x3) -> Relu -> Conv(4 -> 1, 3x3), float32 input (1, 1, size, size)."""
     onnx = pytest.importorskip("onnx")
     from onnx import TensorProto, helper, numpy_helper
+
     rng = np.random.default_rng(0)
     w1 = rng.normal(0, 0.5, (4, 1, 3, 3)).astype(np.float32)
     w2 = rng.normal(0, 0.5, (1, 4, 3, 3)).astype(np.float32)
-    nodes = [helper.make_node("Conv", ["image", "w1"], ["h"], pads=[1, 1, 1, 1]),
-             helper.make_node("Relu", ["h"], ["r"]),
-             helper.make_node("Conv", ["r", "w2"], ["logits"], pads=[1, 1, 1, 1])]
+    nodes = [
+        helper.make_node("Conv", ["image", "w1"], ["h"], pads=[1, 1, 1, 1]),
+        helper.make_node("Relu", ["h"], ["r"]),
+        helper.make_node("Conv", ["r", "w2"], ["logits"], pads=[1, 1, 1, 1]),
+    ]
     shape = [1, 1, size, size]
     graph = helper.make_graph(
-        nodes, "tiny", [helper.make_tensor_value_info("image", TensorProto.FLOAT, shape)],
+        nodes,
+        "tiny",
+        [helper.make_tensor_value_info("image", TensorProto.FLOAT, shape)],
         [helper.make_tensor_value_info("logits", TensorProto.FLOAT, shape)],
-        [numpy_helper.from_array(w1, "w1"), numpy_helper.from_array(w2, "w2")])
+        [numpy_helper.from_array(w1, "w1"), numpy_helper.from_array(w2, "w2")],
+    )
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
     model.ir_version = 8
     onnx.checker.check_model(model)
@@ -114,7 +133,7 @@ def test_quantizing_a_small_model_keeps_its_outputs(tmp_path):
     rng = np.random.default_rng(1)
     assert qs.quantize_segmenter(src, out, rng.random((32, 16, 16), np.float32)) == out
     ops = {n.op_type for n in onnx.load(str(out)).graph.node}
-    assert {"QuantizeLinear", "DequantizeLinear", "Conv"} <= ops      # QDQ format
+    assert {"QuantizeLinear", "DequantizeLinear", "Conv"} <= ops  # QDQ format
     x = rng.random((8, 16, 16), np.float32)
     ref, got = qs.run_model(src, x), qs.run_model(out, x)
     assert ref.shape == got.shape == (8, 1, 16, 16)
@@ -123,14 +142,17 @@ def test_quantizing_a_small_model_keeps_its_outputs(tmp_path):
     assert _leftovers(tmp_path, {"tiny.onnx", "tiny_int8.onnx"}) == []
 
 
-@pytest.mark.parametrize("images, match", [
-    (np.zeros((4, 8, 8), np.float32), r"calibration_images: frames of 8 x 8 px .* 16 x 16"),
-    (np.zeros((16, 16), np.float32), r"calibration_images: expected shape \(N, 16, 16\)"),
-    (np.zeros((0, 16, 16), np.float32), r"calibration_images: no frames"),
-    (np.full((2, 16, 16), np.nan, np.float32), r"calibration_images: 512 non-finite"),
-    (np.full((2, 16, 16), 200.0, np.float32), r"calibration_images: .*divided by 255"),
-    ("not frames", r"calibration_images: expected a float array"),
-])
+@pytest.mark.parametrize(
+    "images, match",
+    [
+        (np.zeros((4, 8, 8), np.float32), r"calibration_images: frames of 8 x 8 px .* 16 x 16"),
+        (np.zeros((16, 16), np.float32), r"calibration_images: expected shape \(N, 16, 16\)"),
+        (np.zeros((0, 16, 16), np.float32), r"calibration_images: no frames"),
+        (np.full((2, 16, 16), np.nan, np.float32), r"calibration_images: 512 non-finite"),
+        (np.full((2, 16, 16), 200.0, np.float32), r"calibration_images: .*divided by 255"),
+        ("not frames", r"calibration_images: expected a float array"),
+    ],
+)
 def test_bad_calibration_input_is_refused_and_nothing_is_written(tmp_path, images, match):
     pytest.importorskip("onnx")
     src = _tiny_model(tmp_path / "tiny.onnx")
@@ -156,6 +178,7 @@ def test_bad_model_and_output_paths_are_named(tmp_path):
 def test_a_failed_quantization_leaves_the_old_output_untouched(tmp_path, monkeypatch):
     pytest.importorskip("onnx")
     from onnxruntime import quantization
+
     src = _tiny_model(tmp_path / "tiny.onnx")
     out = tmp_path / "tiny_int8.onnx"
     out.write_bytes(b"the previous model")
@@ -176,15 +199,18 @@ def test_calibration_frames_come_from_every_training_source_and_posture(monkeypa
     """per_source frames of each (train:K, posture) of the training recipe's data, chosen
     by the seed, scaled to [0, 1]; the recipe is asked for training patients only."""
     from drake_rus.imaging.training import train_segmenter
+
     asked = {}
 
     def fake_dataset(specs, postures, frames, pixel_size, canvas, top, cache, seed, log=print):
         asked.update(specs=specs, frames=frames, seed=seed, canvas=canvas)
         n = len(specs) * len(postures) * frames
-        return {"image": (np.arange(n) % 256).astype(np.uint8)[:, None, None]
-                * np.ones((1,) + canvas, np.uint8),
-                "source": np.repeat(np.arange(len(specs)), len(postures) * frames),
-                "posture": np.tile(np.repeat(np.arange(len(postures)), frames), len(specs))}
+        return {
+            "image": (np.arange(n) % 256).astype(np.uint8)[:, None, None]
+            * np.ones((1,) + canvas, np.uint8),
+            "source": np.repeat(np.arange(len(specs)), len(postures) * frames),
+            "posture": np.tile(np.repeat(np.arange(len(postures)), frames), len(specs)),
+        }
 
     monkeypatch.setattr(train_segmenter, "build_canvas_dataset", fake_dataset)
     # 3 patients x 2 postures x 40 frames: each frame's grey level is its index (< 256).
@@ -206,22 +232,55 @@ def test_calibration_frames_come_from_every_training_source_and_posture(monkeypa
 def test_cli_writes_the_int8_card_and_records_its_benchmark(tmp_path, monkeypatch, capsys):
     pytest.importorskip("onnx")
     src = _tiny_model(tmp_path / "tiny.onnx")
-    fp32_card = {"model": "tiny.onnx", "pixel_size_mm": 2.4, "canvas_px": [16, 16],
-                 "canvas_top_mm": -4.0, "scenario": {"onnx_model": str(src)},
-                 "training": {"seed": 0}, "evaluation": {"iou_by_depth": {"0.15": 0.9}}}
+    fp32_card = {
+        "model": "tiny.onnx",
+        "pixel_size_mm": 2.4,
+        "canvas_px": [16, 16],
+        "canvas_top_mm": -4.0,
+        "scenario": {"onnx_model": str(src)},
+        "training": {"seed": 0},
+        "evaluation": {"iou_by_depth": {"0.15": 0.9}},
+    }
     src.with_suffix(".json").write_text(json.dumps(fp32_card))
     calls = []
 
-    def frames(patients, frames, per_source, seed, cache, postures, pixel_size_mm, canvas_px,
-               canvas_top_mm, data_seed, log=print):
+    def frames(
+        patients,
+        frames,
+        per_source,
+        seed,
+        cache,
+        postures,
+        pixel_size_mm,
+        canvas_px,
+        canvas_top_mm,
+        data_seed,
+        log=print,
+    ):
         calls.append((patients, per_source, seed, canvas_px))
-        return np.random.default_rng(seed).random((patients * 2 * per_source,) + canvas_px,
-                                                  np.float32)
+        return np.random.default_rng(seed).random(
+            (patients * 2 * per_source,) + canvas_px, np.float32
+        )
 
     monkeypatch.setattr(qs, "calibration_images", frames)
     out = tmp_path / "tiny_int8.onnx"
-    assert qs.main(["--model", str(src), "--out", str(out), "--patients", "2",
-                    "--per-source", "3", "--seed", "4"]) == 0
+    assert (
+        qs.main(
+            [
+                "--model",
+                str(src),
+                "--out",
+                str(out),
+                "--patients",
+                "2",
+                "--per-source",
+                "3",
+                "--seed",
+                "4",
+            ]
+        )
+        == 0
+    )
     assert calls == [(2, 3, 4, (16, 16))]
     card = read_model_card(out)
     assert card["model"] == "tiny_int8.onnx" and "evaluation" not in card
@@ -231,11 +290,12 @@ def test_cli_writes_the_int8_card_and_records_its_benchmark(tmp_path, monkeypatc
     assert q["calibration_frames"] == 12 and q["calibration_seed"] == 4
     assert q["calibration_sources"] == ["train:0", "train:1"]
     assert q["source_sha256"] == qs.sha256(src) and "--seed 4" in q["command"]
-    assert oct(out.with_suffix(".json").stat().st_mode & 0o077) != "0o0"   # not 0600
+    assert oct(out.with_suffix(".json").stat().st_mode & 0o077) != "0o0"  # not 0600
     # The benchmark of this model is recorded in its card; one of another model is refused.
     bench = tmp_path / "bench.log"
-    bench.write_text("text\n" + json.dumps({"onnx_model": str(out),
-                                            "iou_by_depth": {"0.15": 0.9}}) + "\n")
+    bench.write_text(
+        "text\n" + json.dumps({"onnx_model": str(out), "iou_by_depth": {"0.15": 0.9}}) + "\n"
+    )
     assert qs.main(["--out", str(out), "--record-benchmark", str(bench)]) == 0
     assert read_model_card(out)["evaluation"]["iou_by_depth"] == {"0.15": 0.9}
     bench.write_text(json.dumps({"onnx_model": str(src)}) + "\n")

@@ -10,13 +10,12 @@ without ../shared beside the clone.
 
 import math
 
+from conftest import HUBMAP, needs_hubmap
 
 from drake_rus.anatomy import load_patient
 from drake_rus.localization.localize import load_registration_template
 from drake_rus.scan import RunScan, ScanMetrics, Summary
 from drake_rus.scenario import ApplyOverrides, LoadScenario
-
-from conftest import HUBMAP, needs_hubmap
 
 
 @needs_hubmap

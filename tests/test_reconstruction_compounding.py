@@ -7,23 +7,31 @@ from pydrake.math import RigidTransform, RotationMatrix
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.metrics.reconstruction import (
-    VoxelGrid, compound, fill_holes, grid_around, kidney_mask_from, mask_volume_ml,
-    reconstruct_kidney, write_nrrd)
+    VoxelGrid,
+    compound,
+    fill_holes,
+    grid_around,
+    kidney_mask_from,
+    mask_volume_ml,
+    reconstruct_kidney,
+    write_nrrd,
+)
 
 G = ProbeGeometry.from_config(ImagingConfig(image_height_px=128, image_width_px=128))
-CENTRE = np.array([0.0, 0.0, -0.08])   # sphere centre in B, 80 mm under the probe face
+CENTRE = np.array([0.0, 0.0, -0.08])  # sphere centre in B, 80 mm under the probe face
 RADIUS = 0.025
 
 
 def sphere_masks(poses):
     """Exact masks of the sphere in each frame's image plane."""
-    v, u = np.mgrid[0:G.height_px, 0:G.width_px]
+    v, u = np.mgrid[0 : G.height_px, 0 : G.width_px]
     uv = np.stack([u.ravel(), v.ravel()], 1).astype(float)
     out = []
     for X in poses:
         p = G.pixel_to_B(uv, X)
-        out.append((np.linalg.norm(p - CENTRE, axis=1) <= RADIUS).reshape(G.image_shape)
-                   & G.fan_mask)
+        out.append(
+            (np.linalg.norm(p - CENTRE, axis=1) <= RADIUS).reshape(G.image_shape) & G.fan_mask
+        )
     return out
 
 
@@ -37,23 +45,23 @@ def line_poses(step=0.0005):
 def test_sphere_volume_from_a_dense_sweep():
     poses = line_poses()
     result = reconstruct_kidney(sphere_masks(poses), poses, G, spacing=0.001)
-    true_ml = 4 / 3 * np.pi * RADIUS ** 3 * 1e6
+    true_ml = 4 / 3 * np.pi * RADIUS**3 * 1e6
     assert result["volume_ml"] == pytest.approx(true_ml, rel=0.03)
 
 
 def test_sparse_sweep_needs_hole_filling():
-    poses = line_poses(step=0.0025)       # 2.5 mm between frames, 1 mm voxels
+    poses = line_poses(step=0.0025)  # 2.5 mm between frames, 1 mm voxels
     masks = sphere_masks(poses)
     grid = grid_around(np.array([CENTRE - RADIUS, CENTRE + RADIUS]), 0.001)
     raw = compound(masks, poses, G, grid, fill_iterations=0)
     filled = compound(masks, poses, G, grid, fill_iterations=2)
-    true_ml = 4 / 3 * np.pi * RADIUS ** 3 * 1e6
+    true_ml = 4 / 3 * np.pi * RADIUS**3 * 1e6
     v_raw = mask_volume_ml(np.nan_to_num(raw.values) >= 0.5, grid)
     v_fill = mask_volume_ml(kidney_mask_from(filled), grid)
-    assert v_raw < 0.6 * true_ml                     # gaps between the slices
+    assert v_raw < 0.6 * true_ml  # gaps between the slices
     assert v_fill == pytest.approx(true_ml, rel=0.05)
     assert filled.filled.any() and not raw.filled.any()
-    assert np.all(filled.hits[filled.filled] == 0)   # only unhit voxels are filled
+    assert np.all(filled.hits[filled.filled] == 0)  # only unhit voxels are filled
 
 
 def test_fan_clipping_pastes_only_fan_pixels():
@@ -95,11 +103,12 @@ def test_fill_holes_grows_kernels():
     assert np.isclose(out[2, 3, 3], 2.0) and np.isnan(out[0, 0, 0])
     out, filled = fill_holes(v, 2)
     # The second pass (5^3 kernel) grows from the first pass's 3^3 block: 1 + 2 voxels.
-    assert np.isclose(out[0, 0, 0], 2.0) and filled.sum() == 7 ** 3 - 1
+    assert np.isclose(out[0, 0, 0], 2.0) and filled.sum() == 7**3 - 1
 
 
 def test_nrrd_export_roundtrip(tmp_path):
     import nrrd
+
     grid = VoxelGrid(np.array([0.4, -0.1, 0.05]), 0.002, (4, 5, 6))
     vol = np.random.default_rng(0).random(grid.shape).astype(np.float32)
     vol[0, 0, 0] = np.nan
@@ -112,6 +121,6 @@ def test_nrrd_export_roundtrip(tmp_path):
     np.testing.assert_allclose(header["space origin"], [400.0, -100.0, 50.0])
     write_nrrd(tmp_path / "mask.nrrd", vol > 0.5, grid)
     assert nrrd.read(str(tmp_path / "mask.nrrd"))[0].dtype == np.uint8
-    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]   # no temp files
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temp files
     with pytest.raises(ValueError, match="shape"):
         write_nrrd(tmp_path / "bad.nrrd", vol[:2], grid)

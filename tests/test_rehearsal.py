@@ -26,24 +26,31 @@ import sys
 import threading
 import time
 
+import drake
 import numpy as np
 import pytest
 from pydrake.lcm import DrakeLcm
 from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.systems.analysis import Simulator
 
-import drake
 from drake_rus.anatomy import load_patient
-from drake_rus.hardware.lcm_sim_driver import (
-    DRIVER_EXPIRE_SEC, CommandExpiry, SimulatedPandaDriver)
+from drake_rus.hardware.lcm_sim_driver import DRIVER_EXPIRE_SEC, CommandExpiry, SimulatedPandaDriver
+from drake_rus.localization.localize import load_registration_template
 from drake_rus.rehearsal.core import (
-    NETNS_SETUP, PivotDetector, age_statistics, kidney_errors, netns_argv, pose_from_json,
-    pose_to_json, scan_overrides, stop_reaction)
+    NETNS_SETUP,
+    PivotDetector,
+    age_statistics,
+    kidney_errors,
+    netns_argv,
+    pose_from_json,
+    pose_to_json,
+    scan_overrides,
+    stop_reaction,
+)
 from drake_rus.rehearsal.drill import merge_overrides
 from drake_rus.rehearsal.mjpeg import FrameBuffer, MjpegServer
 from drake_rus.rehearsal.sim import WireFaults
 from drake_rus.rehearsal.sim_process import sequence_gaps
-from drake_rus.localization.localize import load_registration_template
 from drake_rus.scan import RunScan, ScanMetrics, Summary
 from drake_rus.scenario import LoadScenario
 
@@ -62,11 +69,11 @@ def test_frame_buffer_delay_and_freeze():
     assert buf.current() is None
     buf.push(b"a", 100.0)
     buf.push(b"b", 100.05)
-    assert buf.current(100.05)[1] == b"a"       # nothing old enough yet: the first
+    assert buf.current(100.05)[1] == b"a"  # nothing old enough yet: the first
     assert buf.current(100.16)[1] == b"b"
     buf.freeze(100.2)
     assert not buf.push(b"c", 100.3)
-    assert buf.current(101.0)[1] == b"b"          # frozen: the last picture, forever
+    assert buf.current(101.0)[1] == b"b"  # frozen: the last picture, forever
     with pytest.raises(ValueError):
         FrameBuffer(delay=-1)
 
@@ -89,10 +96,10 @@ def test_mjpeg_stream_reads_in_opencv():
                 times.append(time.monotonic())
             assert picture.shape[:2] == (96, 128)
             grey = picture[:, :, 0].astype(int)
-            assert abs(grey[30, 45] - 200) < 8 and grey[80, 100] < 8     # JPEG, lossy
+            assert abs(grey[30, 45] - 200) < 8 and grey[80, 100] < 8  # JPEG, lossy
         finally:
             cap.release()
-        assert 12.0 < 5 / (times[-1] - times[0]) < 40.0        # paced near 20 Hz
+        assert 12.0 < 5 / (times[-1] - times[0]) < 40.0  # paced near 20 Hz
     with pytest.raises(ValueError, match="loopback"):
         MjpegServer(FrameBuffer(), host="0.0.0.0")
 
@@ -101,6 +108,7 @@ def test_command_expiry_latency():
     """A command reaches the robot ``latency`` s after it arrived; a fresh command stays
     in force until it is older than the expiry."""
     import pydrake.systems.lcm as lcm_systems
+
     ser = lcm_systems._Serializer_[drake.lcmt_panda_command]()
     expiry = CommandExpiry(expiry=0.3, latency=0.05)
     ctx = expiry.CreateDefaultContext()
@@ -114,11 +122,11 @@ def test_command_expiry_latency():
     expiry.get_input_port().FixValue(ctx, value)
 
     def out(t):
-        ctx.SetTime(t)                 # a new time: the output is recomputed
+        ctx.SetTime(t)  # a new time: the output is recomputed
         raw = ser.Serialize(expiry.get_output_port().EvalAbstract(ctx))
         return drake.lcmt_panda_command.decode(raw).joint_velocity
 
-    assert out(0.001) == tuple([0.0] * 7)          # arrived, not yet at the robot
+    assert out(0.001) == tuple([0.0] * 7)  # arrived, not yet at the robot
     time.sleep(0.06)
     assert out(0.002) == tuple([0.1] * 7)
     assert len(expiry.received) == 1 and len(expiry.log) == 1
@@ -138,7 +146,7 @@ def test_simulated_driver_drops_statuses():
     pub = driver.publisher
     assert pub.published + pub.dropped == 201
     assert 60 < pub.dropped < 140
-    assert len(got) >= 1        # memq keeps the newest: at least one arrived
+    assert len(got) >= 1  # memq keeps the newest: at least one arrived
 
 
 def test_pure_helpers():
@@ -148,8 +156,13 @@ def test_pure_helpers():
     assert age_statistics([])["median_ms"] is None
     # A stop at t = 10: commands until 9.99, zeros from 10.004; speeds decay.
     commands = [(9.98, 0.2), (9.99, 0.2), (10.004, 0.0), (10.005, 0.0)]
-    speeds = [(9.995, 0.2, 0.2), (10.005, 0.1, 0.0), (10.01, 0.005, 0.0),
-              (10.05, 0.0005, 0.0), (10.06, 0.0002, 0.0)]
+    speeds = [
+        (9.995, 0.2, 0.2),
+        (10.005, 0.1, 0.0),
+        (10.01, 0.005, 0.0),
+        (10.05, 0.0005, 0.0),
+        (10.06, 0.0002, 0.0),
+    ]
     r = stop_reaction(10.0, commands, speeds)
     assert r["last_moving_command"] == pytest.approx(-0.01)
     assert r["first_zero_command"] == pytest.approx(0.004)
@@ -163,16 +176,20 @@ def test_pure_helpers():
         t = 0.02 * k
         X = RigidTransform(RollPitchYaw(0.2 * t, 0, 0), [0.5, 0.0, 0.1])
         held = det.update(t, X, 9.0)
-    assert held == pytest.approx(1.18, abs=0.03)        # since its first window began
-    assert det.update(1.2, RigidTransform([0.5, 0.01, 0.1]), 9.0) == 0.0   # slid: not
+    assert held == pytest.approx(1.18, abs=0.03)  # since its first window began
+    assert det.update(1.2, RigidTransform([0.5, 0.01, 0.1]), 9.0) == 0.0  # slid: not
     # Sequence gaps per sender.
     arrivals = [(0, 0, 0, "a", 1), (0, 0, 0, "a", 2), (0, 0, 0, "a", 5), (0, 0, 0, "b", 9)]
     assert sequence_gaps(arrivals) == 2
     assert sequence_gaps([(0, 0, 0, "", -1)]) is None
     # The scan side's overrides and merging.
-    ready = {"lcm_url": "udpm://239.255.76.67:7667?ttl=0", "command_channel": "PANDA_COMMAND",
-             "status_channel": "PANDA_STATUS", "video_url": "http://127.0.0.1:1/stream.mjpg",
-             "depth": 0.16}
+    ready = {
+        "lcm_url": "udpm://239.255.76.67:7667?ttl=0",
+        "command_channel": "PANDA_COMMAND",
+        "status_channel": "PANDA_STATUS",
+        "video_url": "http://127.0.0.1:1/stream.mjpg",
+        "depth": 0.16,
+    }
     o = json.loads(scan_overrides(ready))
     assert o["hardware"] is True and o["imaging"]["depth"] == 0.16
     assert o["hardware_interface"]["backend"] == "lcm"
@@ -195,8 +212,9 @@ def _netns_problem():
     if shutil.which("unshare") is None or shutil.which("ip") is None:
         return "unshare or ip not found"
     try:
-        r = subprocess.run(["unshare", "-n", "bash", "-c", NETNS_SETUP], capture_output=True,
-                           timeout=30)
+        r = subprocess.run(
+            ["unshare", "-n", "bash", "-c", NETNS_SETUP], capture_output=True, timeout=30
+        )
     except (OSError, subprocess.TimeoutExpired) as e:
         return f"unshare -n failed: {e}"
     if r.returncode != 0:
@@ -212,15 +230,23 @@ def run_isolated(argv, log_path, timeout):
         pytest.skip(problem)
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     with open(log_path, "wb") as log:
-        p = subprocess.Popen(netns_argv(argv), stdout=log, stderr=subprocess.STDOUT,
-                             stdin=subprocess.DEVNULL, start_new_session=True, env=env)
+        p = subprocess.Popen(
+            netns_argv(argv),
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,
+            env=env,
+        )
         try:
             code = p.wait(timeout)
         except subprocess.TimeoutExpired:
             p.kill()
             p.wait(10)
-            raise AssertionError(f"{argv[:4]} did not finish in {timeout} s:\n"
-                                 f"{log_path.read_text(errors='replace')[-3000:]}")
+            raise AssertionError(
+                f"{argv[:4]} did not finish in {timeout} s:\n"
+                f"{log_path.read_text(errors='replace')[-3000:]}"
+            )
     return code, log_path.read_text(errors="replace")
 
 
@@ -229,9 +255,27 @@ def test_rehearsal_end_to_end(tmp_path):
     out = tmp_path / "rehearsal"
     t0 = time.monotonic()
     code, text = run_isolated(
-        [sys.executable, "-m", "drake_rus.cli", "rehearse", "--patient", PATIENT,
-         "--scenario", SCENARIO, "--set", OVERRIDES, "--nice", str(NICE), "--out", str(out),
-         "--max-sim-time", "60"], tmp_path / "rehearse.log", timeout=300)
+        [
+            sys.executable,
+            "-m",
+            "drake_rus.cli",
+            "rehearse",
+            "--patient",
+            PATIENT,
+            "--scenario",
+            SCENARIO,
+            "--set",
+            OVERRIDES,
+            "--nice",
+            str(NICE),
+            "--out",
+            str(out),
+            "--max-sim-time",
+            "60",
+        ],
+        tmp_path / "rehearse.log",
+        timeout=300,
+    )
     wall_rehearsal = time.monotonic() - t0
     report = json.loads((out / "rehearsal.json").read_text())
     assert code == 0 and report["status"] == "DONE", (report.get("reason"), text[-3000:])
@@ -244,16 +288,17 @@ def test_rehearsal_end_to_end(tmp_path):
     assert cmd["sequence_gaps"] == 0 and len(cmd["senders"]) == 1
     assert cmd["count"] == cmd["age_ms"]["count"]
     sim_s = report["realtime"]["scan"]["sim_s"]
-    assert cmd["count"] >= 0.9 * sim_s * 100             # >= the 100 Hz controller rate
+    assert cmd["count"] >= 0.9 * sim_s * 100  # >= the 100 Hz controller rate
     log = json.loads((out / "sim_log.json").read_text())
     assert [a[2] for a in log["arrival_trace"][-3:]] == [0.0, 0.0, 0.0]
-    assert cmd["age_ms"]["max_ms"] < 1e3 * DRIVER_EXPIRE_SEC       # fresh on arrival
+    assert cmd["age_ms"]["max_ms"] < 1e3 * DRIVER_EXPIRE_SEC  # fresh on arrival
     assert np.abs(report["joint_velocity_end_at_sim"]).max() < 1e-3
     # The same patient's scan in this process on the simulated station, same scenario (and
     # so the same start plan and depth preset).
     scenario = LoadScenario(scenario_name=SCENARIO, scenario_text=OVERRIDES)
-    patient = load_patient(PATIENT, side=scenario.patient.side,
-                           posture=scenario.patient.posture, progress=False)
+    patient = load_patient(
+        PATIENT, side=scenario.patient.side, posture=scenario.patient.posture, progress=False
+    )
     template = load_registration_template(scenario.localization.template)
     t1 = time.monotonic()
     result = RunScan(scenario, patient, template, max_sim_time=60.0, progress=False)
@@ -262,21 +307,25 @@ def test_rehearsal_end_to_end(tmp_path):
     assert summary["status"] == "DONE", summary["reason"]
     assert summary["image_depth_m"] == pytest.approx(report["depth"])
     assert abs(report["e_trans_mm"] - summary["e_trans_mm"]) <= 3.0, (
-        report["e_trans_mm"], summary["e_trans_mm"])
+        report["e_trans_mm"],
+        summary["e_trans_mm"],
+    )
     rt = report["realtime"]
-    print(f"\n[rehearsal] E_trans {report['e_trans_mm']:.2f} mm (in-process "
-          f"{summary['e_trans_mm']:.2f} mm), E_rot,x {report['e_rot_x_deg']:.2f} deg "
-          f"(in-process {summary['e_rot_x_deg']:.2f} deg); {cmd['count']} commands, age at "
-          f"the driver median {cmd['age_ms']['median_ms']:.3f} ms max "
-          f"{cmd['age_ms']['max_ms']:.2f} ms, at the robot (next tick) median "
-          f"{cmd['age_at_robot_ms']['median_ms']:.2f} ms max "
-          f"{cmd['age_at_robot_ms']['max_ms']:.2f} ms; real-time margin: scan "
-          f"{rt['scan']['margin']:.2f}x per CPU s (max lag {1e3 * rt['scan']['max_lag_s']:.0f}"
-          f" ms), sim {rt['sim']['cpu_margin']:.2f}x per CPU s, {rt['sim']['margin']:.2f}x "
-          f"when running (max lag {1e3 * rt['sim']['max_lag_s']:.0f} ms, late ticks "
-          f"{rt['sim']['late_ticks']}/{rt['sim']['ticks']}); true force peak "
-          f"{report['force_true_peak_n']:.2f} N (estimated {report['force_estimated_peak_n']:.2f}"
-          f" N); wall: rehearsal {wall_rehearsal:.0f} s, in-process scan {wall_inprocess:.0f} s")
+    print(
+        f"\n[rehearsal] E_trans {report['e_trans_mm']:.2f} mm (in-process "
+        f"{summary['e_trans_mm']:.2f} mm), E_rot,x {report['e_rot_x_deg']:.2f} deg "
+        f"(in-process {summary['e_rot_x_deg']:.2f} deg); {cmd['count']} commands, age at "
+        f"the driver median {cmd['age_ms']['median_ms']:.3f} ms max "
+        f"{cmd['age_ms']['max_ms']:.2f} ms, at the robot (next tick) median "
+        f"{cmd['age_at_robot_ms']['median_ms']:.2f} ms max "
+        f"{cmd['age_at_robot_ms']['max_ms']:.2f} ms; real-time margin: scan "
+        f"{rt['scan']['margin']:.2f}x per CPU s (max lag {1e3 * rt['scan']['max_lag_s']:.0f}"
+        f" ms), sim {rt['sim']['cpu_margin']:.2f}x per CPU s, {rt['sim']['margin']:.2f}x "
+        f"when running (max lag {1e3 * rt['sim']['max_lag_s']:.0f} ms, late ticks "
+        f"{rt['sim']['late_ticks']}/{rt['sim']['ticks']}); true force peak "
+        f"{report['force_true_peak_n']:.2f} N (estimated {report['force_estimated_peak_n']:.2f}"
+        f" N); wall: rehearsal {wall_rehearsal:.0f} s, in-process scan {wall_inprocess:.0f} s"
+    )
 
 
 @pytest.mark.slow
@@ -284,32 +333,53 @@ def test_sigterm_mid_pivot_stops_the_robot_within_100_ms(tmp_path):
     out = tmp_path / "drill"
     t0 = time.monotonic()
     code, text = run_isolated(
-        [sys.executable, "-m", "drake_rus.rehearsal.drill", "--out", str(out), "--patient",
-         PATIENT, "--scenario", SCENARIO, "--set", OVERRIDES, "--nice", str(NICE),
-         "--pivot-after", "1.0"], tmp_path / "drill.log", timeout=300)
+        [
+            sys.executable,
+            "-m",
+            "drake_rus.rehearsal.drill",
+            "--out",
+            str(out),
+            "--patient",
+            PATIENT,
+            "--scenario",
+            SCENARIO,
+            "--set",
+            OVERRIDES,
+            "--nice",
+            str(NICE),
+            "--pivot-after",
+            "1.0",
+        ],
+        tmp_path / "drill.log",
+        timeout=300,
+    )
     wall = time.monotonic() - t0
     assert code == 0, text[-3000:]
     report = json.loads((out / "stop_drill.json").read_text())
     assert report["network_isolated"]
-    assert report["live_at_signal"]["pivot_like_s"] >= 1.0         # signalled mid-PIVOT
-    assert report["live_at_signal"]["force_true_n"] > 2.0          # in contact
+    assert report["live_at_signal"]["pivot_like_s"] >= 1.0  # signalled mid-PIVOT
+    assert report["live_at_signal"]["force_true_n"] > 2.0  # in contact
     r = report["reaction_s"]
-    assert r["speed_at_signal"] > 0.05                             # the robot was moving
+    assert r["speed_at_signal"] > 0.05  # the robot was moving
     assert r["first_zero_command"] is not None and r["first_zero_command"] < 0.1
     assert r["command_zero"] is not None and r["command_zero"] < 0.1
     assert r["at_rest"]["0.01"] is not None and r["at_rest"]["0.01"] < 0.1
     assert np.abs(report["joint_velocity_end_at_sim"]).max() < 1e-3
     scan_log = (out / "scan.out").read_text(errors="replace")
-    assert "zero velocity" in scan_log                             # the session's stop
+    assert "zero velocity" in scan_log  # the session's stop
+
     def ms(x):
         return "never" if x is None else f"{1e3 * x:.1f} ms"
-    print(f"\n[stop drill] SIGTERM at scan time {report['scan_time_at_signal_s']:.2f} s, "
-          f"PIVOT-like for {report['live_at_signal']['pivot_like_s']:.2f} s, joints at "
-          f"{r['speed_at_signal']:.3f} rad/s; last moving command "
-          f"{ms(r['last_moving_command'])}, first zero command {ms(r['first_zero_command'])},"
-          f" applied command zero {ms(r['command_zero'])}, |v| < 0.01 rad/s "
-          f"{ms(r['at_rest']['0.01'])}, |v| < 0.001 rad/s {ms(r['at_rest']['0.001'])} after "
-          f"the signal; scan exit code {report['scan_exit_code']}; wall {wall:.0f} s")
+
+    print(
+        f"\n[stop drill] SIGTERM at scan time {report['scan_time_at_signal_s']:.2f} s, "
+        f"PIVOT-like for {report['live_at_signal']['pivot_like_s']:.2f} s, joints at "
+        f"{r['speed_at_signal']:.3f} rad/s; last moving command "
+        f"{ms(r['last_moving_command'])}, first zero command {ms(r['first_zero_command'])},"
+        f" applied command zero {ms(r['command_zero'])}, |v| < 0.01 rad/s "
+        f"{ms(r['at_rest']['0.01'])}, |v| < 0.001 rad/s {ms(r['at_rest']['0.001'])} after "
+        f"the signal; scan exit code {report['scan_exit_code']}; wall {wall:.0f} s"
+    )
 
 
 def test_threads_do_not_leak():

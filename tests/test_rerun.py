@@ -18,9 +18,22 @@ def test_a_rerun_repeats_the_scan_exactly(tmp_path, capsys):
     first = tmp_path / "first"
     # A quick scan with an override and a seed, so that the rerun must take both from the
     # summary (neither is given again).
-    code = main(["scan", "--patient", "test:0", "--scenario", "quick", "--no-record",
-                 "--seed", "3", "--set", "{controller: {pivot_rate: 0.25}}",
-                 "--out", str(first)])
+    code = main(
+        [
+            "scan",
+            "--patient",
+            "test:0",
+            "--scenario",
+            "quick",
+            "--no-record",
+            "--seed",
+            "3",
+            "--set",
+            "{controller: {pivot_rate: 0.25}}",
+            "--out",
+            str(first),
+        ]
+    )
     recorded = json.loads((first / "summary.json").read_text())
     assert code == 0 and recorded["status"] == "DONE", recorded["reason"]
     prov = recorded["provenance"]
@@ -45,8 +58,17 @@ def test_a_rerun_repeats_the_scan_exactly(tmp_path, capsys):
     assert len(warnings) == 1 and warnings[0].startswith("drake-rus scan: warning: --rerun:")
     assert "commit 000000000000 -> now" in warnings[0] and "numpy 0.0.1 -> now" in warnings[0]
 
-    for key in ("e_trans_mm", "e_rot_x_deg", "volume_ratio", "volume_ratio_whole_pivot",
-                "eps_mm", "n_frames", "sim_s", "peak_force_n", "frames_total"):
+    for key in (
+        "e_trans_mm",
+        "e_rot_x_deg",
+        "volume_ratio",
+        "volume_ratio_whole_pivot",
+        "eps_mm",
+        "n_frames",
+        "sim_s",
+        "peak_force_n",
+        "frames_total",
+    ):
         assert again[key] == recorded[key], key
     assert again["phases"] == recorded["phases"]
     assert again["start"] == recorded["start"]

@@ -20,8 +20,20 @@ def test_phase_is():
 @pytest.mark.slow
 def test_scan_on_a_test_patient(tmp_path):
     out = tmp_path / "scan"
-    code = cli_main(["scan", "--patient", "test:1", "--scenario", "quick", "--out", str(out),
-                     "--no-record", "--max-sim-time", "90"])
+    code = cli_main(
+        [
+            "scan",
+            "--patient",
+            "test:1",
+            "--scenario",
+            "quick",
+            "--out",
+            str(out),
+            "--no-record",
+            "--max-sim-time",
+            "90",
+        ]
+    )
     summary = json.loads((out / "summary.json").read_text())
     assert code == 0, summary
     assert summary["status"] == "DONE", summary["reason"]
@@ -37,8 +49,10 @@ def test_scan_on_a_test_patient(tmp_path):
     # second once 40 mm are explored, the travel growing, the last a kidney-sized length.
     checks = summary["kidney_length_checks"]
     assert len(checks) >= 1 and checks[0]["travel_mm"] >= 40.0 - 1e-6
-    assert all(b["travel_mm"] > a["travel_mm"] and b["time_s"] > a["time_s"]
-               for a, b in zip(checks, checks[1:]))
+    assert all(
+        b["travel_mm"] > a["travel_mm"] and b["time_s"] > a["time_s"]
+        for a, b in zip(checks, checks[1:])
+    )
     lengths = [c["length_mm"] for c in checks if c["length_mm"] is not None]
     assert lengths and 70.0 < lengths[-1] < 160.0
     assert "kidney_length_checks" in summary["metric_definitions"]
@@ -48,17 +62,38 @@ def test_scan_on_a_test_patient(tmp_path):
     assert summary["image_depth_m"] == start["depth_preset_m"]
     assert start["depth_preset_m"] * 1000 >= start["needed_depth_mm"]
     assert start["placement_error_mm"] == pytest.approx(5.0)
-    for name in ("partial_cloud.ply", "registered_template.ply", "registration.png",
-                 "coverage.png", "traces.png", "pivot_frames.png", "start_plan.png"):
+    for name in (
+        "partial_cloud.ply",
+        "registered_template.ply",
+        "registration.png",
+        "coverage.png",
+        "traces.png",
+        "pivot_frames.png",
+        "start_plan.png",
+    ):
         assert (out / name).stat().st_size > 0, name
 
 
 def test_scan_bad_input_is_a_clear_error(tmp_path, capsys):
-    assert cli_main(["scan", "--patient", "test:0", "--out", str(tmp_path),
-                     "--max-sim-time", "-1"]) == 2
+    assert (
+        cli_main(["scan", "--patient", "test:0", "--out", str(tmp_path), "--max-sim-time", "-1"])
+        == 2
+    )
     assert "--max-sim-time" in capsys.readouterr().err
-    assert cli_main(["scan", "--patient", "test:0", "--out", str(tmp_path),
-                     "--set", "{localization: {method: magic}}"]) == 2
+    assert (
+        cli_main(
+            [
+                "scan",
+                "--patient",
+                "test:0",
+                "--out",
+                str(tmp_path),
+                "--set",
+                "{localization: {method: magic}}",
+            ]
+        )
+        == 2
+    )
     assert "'localization.method'" in capsys.readouterr().err
     assert not (tmp_path / "summary.json").exists()
 
@@ -67,9 +102,22 @@ def test_predicted_end_pivot_through_the_cli(tmp_path):
     """controller.pivot_strategy predicted_end reaches the scan diagram's supervisor (the
     template and fan on its pivot_model input): the pivot is one sweep, not two legs."""
     out = tmp_path / "scan"
-    code = cli_main(["scan", "--patient", "test:1", "--scenario", "quick", "--out", str(out),
-                     "--no-record", "--max-sim-time", "90", "--set",
-                     "{controller: {pivot_strategy: predicted_end}}"])
+    code = cli_main(
+        [
+            "scan",
+            "--patient",
+            "test:1",
+            "--scenario",
+            "quick",
+            "--out",
+            str(out),
+            "--no-record",
+            "--max-sim-time",
+            "90",
+            "--set",
+            "{controller: {pivot_strategy: predicted_end}}",
+        ]
+    )
     summary = json.loads((out / "summary.json").read_text())
     assert code == 0 and summary["status"] == "DONE", summary["reason"]
     assert summary["pivot"]["legs"] == 1 and summary["volume_ratio"] > 0.9

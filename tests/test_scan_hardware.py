@@ -21,7 +21,7 @@ def test_hardware_scan_in_free_air_aborts_no_contact_at_rest(franky_sim, video_f
     assert result.reason.startswith("no contact"), result.reason
     assert summary["mode"].startswith("hardware: FR3 at 127.0.0.1")
     assert str(video_file) in summary["mode"]
-    assert summary["e_trans_mm"] is None and summary["volume_ratio"] is None   # no truth
+    assert summary["e_trans_mm"] is None and summary["volume_ratio"] is None  # no truth
     # Paced at real time: the wall clock kept up with the simulated time.
     assert result.wall_s >= 0.9 * result.sim_s
     # After the stop the joints do not move: the last 0.3 s of logged positions are still.

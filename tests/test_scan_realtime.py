@@ -16,8 +16,8 @@ from drake_rus.scan import RunScan, ScanMonitor
 from drake_rus.scenario import ApplyOverrides, LoadScenario
 from drake_rus.stations import MakeStation
 
-STALL_AT = 0.8      # simulated s
-STALL_FOR = 0.6     # wall s
+STALL_AT = 0.8  # simulated s
+STALL_FOR = 0.6  # wall s
 
 
 class StallOnce(ScanMonitor):
@@ -34,7 +34,8 @@ class StallOnce(ScanMonitor):
 def patient_and_template():
     scenario = LoadScenario()
     return load_patient("test:0", progress=False), load_registration_template(
-        scenario.localization.template)
+        scenario.localization.template
+    )
 
 
 def _run_live(lag: float, patient, template, max_sim_time: float):
@@ -46,8 +47,15 @@ def _run_live(lag: float, patient, template, max_sim_time: float):
         station.stop = lambda: stops.append(time.perf_counter())
         return station
 
-    result = RunScan(scenario, patient, template, make_station=make_live_station,
-                     max_sim_time=max_sim_time, progress=False, monitors=[StallOnce()])
+    result = RunScan(
+        scenario,
+        patient,
+        template,
+        make_station=make_live_station,
+        max_sim_time=max_sim_time,
+        progress=False,
+        monitors=[StallOnce()],
+    )
     return result, stops
 
 
@@ -55,8 +63,8 @@ def test_a_live_run_that_falls_behind_real_time_is_stopped(patient_and_template)
     result, stops = _run_live(0.3, *patient_and_template, max_sim_time=3.0)
     assert result.status == "ABORT", (result.status, result.reason)
     assert "behind real time" in result.reason and "safety.realtime_lag 0.3 s" in result.reason
-    assert STALL_AT <= result.sim_s < STALL_AT + 0.2        # stopped right after the stall
-    assert len(stops) == 1                                  # the session's zero velocity
+    assert STALL_AT <= result.sim_s < STALL_AT + 0.2  # stopped right after the stall
+    assert len(stops) == 1  # the session's zero velocity
     # Paced at real time until then: the wall clock kept up with the simulated time.
     assert result.wall_s >= 0.9 * result.sim_s
 

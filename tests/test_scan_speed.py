@@ -15,7 +15,7 @@ from drake_rus.paths import REPO_ROOT
 from drake_rus.scan.diagram import ScanTerminator
 from drake_rus.scan.truth import force_trace_stats
 
-if str(REPO_ROOT) not in sys.path:   # benchmarks/ lives next to the package, not in it
+if str(REPO_ROOT) not in sys.path:  # benchmarks/ lives next to the package, not in it
     sys.path.insert(0, str(REPO_ROOT))
 from benchmarks.scan import PLANT, summarise_profile  # noqa: E402
 
@@ -46,14 +46,20 @@ def test_terminator_lets_other_phases_and_a_disabled_terminator_run_on():
 def test_force_trace_stats_per_phase_and_landing_peak():
     t = np.arange(0.0, 10.0, 0.005)
     F = np.full_like(t, 9.0)
-    F[(t > 1.0) & (t < 1.2)] = 11.0                       # landing overshoot
-    F[(t >= 6.0)] += 0.1 * np.sin(2 * np.pi * 3 * t[t >= 6.0])   # pivot ripple
+    F[(t > 1.0) & (t < 1.2)] = 11.0  # landing overshoot
+    F[(t >= 6.0)] += 0.1 * np.sin(2 * np.pi * 3 * t[t >= 6.0])  # pivot ripple
     wrench = np.zeros((6, len(t)))
     wrench[5] = -F
     result = types.SimpleNamespace(
         logs={"force_true": (t, wrench)},
-        phases=[("APPROACH", 0.0, 1.0), ("EXPLORE", 1.0, 5.0), ("LOCALIZE", 5.0, 6.0),
-                ("PIVOT", 6.0, 10.0), ("DONE", 10.0, 10.0)])
+        phases=[
+            ("APPROACH", 0.0, 1.0),
+            ("EXPLORE", 1.0, 5.0),
+            ("LOCALIZE", 5.0, 6.0),
+            ("PIVOT", 6.0, 10.0),
+            ("DONE", 10.0, 10.0),
+        ],
+    )
     stats = force_trace_stats(result)
     assert stats["landing_peak_n"] == 11.0
     assert abs(stats["explore_mean_n"] - 9.0) < 1e-9 and stats["explore_ripple_n"] < 1e-9
@@ -65,14 +71,19 @@ def test_force_trace_stats_per_phase_and_landing_peak():
 def test_profile_summary_attributes_samples_to_systems_and_the_plant(tmp_path):
     raw = tmp_path / "raw.txt"
     loop = "main;drake::systems::Simulator<double>::AdvanceTo"
-    raw.write_text("\n".join([
-        f"{loop};SafetyLayer._update (x.py:1);Segmenter._result (y.py:2) 6",
-        f"{loop};SafetyLayer._update (x.py:1) 2",
-        f"{loop};ProbeForceEstimator._calc (s.py:3);"
-        "drake::multibody::internal::SapDriver<double>::CalcContactSolverResults 3",
-        f"{loop};drake::systems::VectorLogSink<double>::WriteToLog 1",
-        "main;import_stuff 50",
-    ]) + "\n")
+    raw.write_text(
+        "\n".join(
+            [
+                f"{loop};SafetyLayer._update (x.py:1);Segmenter._result (y.py:2) 6",
+                f"{loop};SafetyLayer._update (x.py:1) 2",
+                f"{loop};ProbeForceEstimator._calc (s.py:3);"
+                "drake::multibody::internal::SapDriver<double>::CalcContactSolverResults 3",
+                f"{loop};drake::systems::VectorLogSink<double>::WriteToLog 1",
+                "main;import_stuff 50",
+            ]
+        )
+        + "\n"
+    )
     out = summarise_profile(raw, {"SafetyLayer", "Segmenter", "ProbeForceEstimator"})
     assert out["loop_samples"] == 12
     shares = out["share_percent"]
@@ -85,6 +96,7 @@ def test_benchmark_repeat_reports_every_run_and_the_median(monkeypatch, capsys):
     import json
 
     import benchmarks.scan as bench
+
     rates = iter([5.0, 7.0, 6.0])
 
     def fake_run_one(scenario, patient):
@@ -95,5 +107,5 @@ def test_benchmark_repeat_reports_every_run_and_the_median(monkeypatch, capsys):
     assert bench.main(["--no-profile", "--no-reference", "--repeat", "3"]) == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert out["rtf_scan_cpu_runs"] == [5.0, 7.0, 6.0] and out["rtf_scan_cpu_median"] == 6.0
-    assert out["rtf_scan_cpu"] == 5.0          # the first run's full record stays
+    assert out["rtf_scan_cpu"] == 5.0  # the first run's full record stays
     assert out["scan_cpu_s_median"] == round(29.0 / 6.0, 3)

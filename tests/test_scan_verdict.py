@@ -12,9 +12,21 @@ from pydrake.math import RigidTransform, RotationMatrix
 
 from drake_rus.control.supervisor import Phase
 from drake_rus.scan.verdict import (
-    INCOMPLETE, Check, JudgeScan, Verdict, check_axis_direction, check_kidney_depth,
-    check_pole_offsets, check_rms_residual, check_shape_weights, check_sweep_ends,
-    check_template_coverage, check_translation_sd, imaged_counts, template_volume_sample)
+    INCOMPLETE,
+    Check,
+    JudgeScan,
+    Verdict,
+    check_axis_direction,
+    check_kidney_depth,
+    check_pole_offsets,
+    check_rms_residual,
+    check_shape_weights,
+    check_sweep_ends,
+    check_template_coverage,
+    check_translation_sd,
+    imaged_counts,
+    template_volume_sample,
+)
 from drake_rus.scenario import LoadScenario
 
 # The synthetic scene: the probe tip on the skin at P0 pointing straight down, the array
@@ -23,7 +35,7 @@ from drake_rus.scenario import LoadScenario
 # its long axis along the array.
 P0 = np.array([0.55, 0.0, 0.25])
 A0 = np.array([0.0, 0.0, -1.0])
-O = np.array([0.0, 1.0, 0.0])
+O_AXIS = np.array([0.0, 1.0, 0.0])
 DEPTH = 0.10
 R_BK = np.column_stack([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 
@@ -32,9 +44,8 @@ def ellipsoid_surface(n=2500, semi=(0.055, 0.03, 0.02)):
     """Points (n, 3) in K on an ellipsoid (a Fibonacci sphere stretched)."""
     k = np.arange(n) + 0.5
     phi = np.arccos(1 - 2 * k / n)
-    theta = math.pi * (1 + 5 ** 0.5) * k
-    unit = np.column_stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi),
-                            np.cos(phi)])
+    theta = math.pi * (1 + 5**0.5) * k
+    unit = np.column_stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)])
     return unit * np.asarray(semi)
 
 
@@ -47,8 +58,8 @@ def kidney_B(offset=(0.0, 0.0, 0.0)):
 
 
 def pose_at(theta):
-    a = A0 * math.cos(theta) + np.cross(O, A0) * math.sin(theta)
-    R = np.column_stack([O, np.cross(a, O), a])
+    a = A0 * math.cos(theta) + np.cross(O_AXIS, A0) * math.sin(theta)
+    R = np.column_stack([O_AXIS, np.cross(a, O_AXIS), a])
     return RigidTransform(RotationMatrix(R), P0)
 
 
@@ -56,9 +67,15 @@ def two_leg_pivot(geometry, kidney, step_deg=0.5, cap_deg=None):
     """(poses, visible) of a two-leg pivot over ``kidney`` (points in B): out on the
     positive side until 4 frames miss the kidney (or to ``cap_deg``), back through the start
     to the negative side likewise; visible where >= 10 kidney points are imaged."""
+
     def seen(theta):
-        return imaged_counts(kidney, P0, A0, O, [theta], geometry,
-                             0.5 * geometry.elevation_width)[0] >= 10
+        return (
+            imaged_counts(
+                kidney, P0, A0, O_AXIS, [theta], geometry, 0.5 * geometry.elevation_width
+            )[0]
+            >= 10
+        )
+
     angles, step = [0.0], math.radians(step_deg)
     for direction in (1.0, -1.0):
         misses = 0
@@ -76,7 +93,7 @@ def test_sweep_ends():
     assert check_sweep_ends(("kidney_left", "kidney_left"), "pivot").passed
     capped = check_sweep_ends(("kidney_left", "tilt_cap"), "pivot")
     assert capped.passed is False and capped.value == 1 and "end 2: tilt cap" in capped.detail
-    assert check_sweep_ends(("kidney_left",), "pivot").passed is False      # one leg only
+    assert check_sweep_ends(("kidney_left",), "pivot").passed is False  # one leg only
     assert check_sweep_ends((), "pivot").passed is False
     assert check_sweep_ends(("kidney_left",), "line").passed
     assert check_sweep_ends(("max_travel",), "line").passed is False
@@ -115,8 +132,9 @@ def test_a_leg_cut_short_shows_as_a_pole_offset(geometry):
     miss), which the supervisor takes for the pole."""
     kidney = kidney_B()
     poses, visible = two_leg_pivot(geometry, kidney)
-    angles = np.array([math.atan2(-p.rotation().matrix()[0, 2], -p.rotation().matrix()[2, 2])
-                       for p in poses])
+    angles = np.array(
+        [math.atan2(-p.rotation().matrix()[0, 2], -p.rotation().matrix()[2, 2]) for p in poses]
+    )
     visible = [v and not (a < math.radians(-5)) for v, a in zip(visible, angles)]
     pole = check_pole_offsets(kidney, poses, visible, geometry, 0.02, 10)
     assert pole.passed is False and "negative side" in pole.detail, pole.detail
@@ -135,11 +153,11 @@ def test_registration_checks():
     assert check_rms_residual(0.006, 0.005, 1e-4).passed is False
     degenerate = check_rms_residual(0.0, 0.005, 1e-4)
     assert degenerate.passed is False and "degenerate" in degenerate.detail
-    var = np.array([4e-4, 1e-4])                          # SDs 20 mm and 10 mm
+    var = np.array([4e-4, 1e-4])  # SDs 20 mm and 10 mm
     assert check_shape_weights([0.02, -0.02], var, 3.0).value == pytest.approx(2.0)
     far = check_shape_weights([0.0, 0.035], var, 3.0)
     assert far.passed is False and "mode 1" in far.detail
-    cov = np.diag([1e-6] * 3 + [1e-8] * 3)                  # 0.17 mm
+    cov = np.diag([1e-6] * 3 + [1e-8] * 3)  # 0.17 mm
     assert check_translation_sd(cov, 0.005).passed
     assert check_translation_sd(np.diag([0] * 3 + [1e-4] * 3), 0.005).passed is False
     assert check_translation_sd(np.full((6, 6), np.inf), 0.005).passed is False
@@ -149,7 +167,7 @@ def test_registration_checks():
 
 def test_placement_checks():
     assert check_kidney_depth(P_BK, P0, A0, 0.02, 0.15).passed
-    above = check_kidney_depth(P0 - DEPTH * A0, P0, A0, 0.02, 0.15)     # above the face
+    above = check_kidney_depth(P0 - DEPTH * A0, P0, A0, 0.02, 0.15)  # above the face
     assert above.passed is False and above.value == pytest.approx(-DEPTH)
     assert check_kidney_depth(P0 + 0.2 * A0, P0, A0, 0.02, 0.15).passed is False
     up = np.array([0.0, 1.0, 0.0])
@@ -159,17 +177,33 @@ def test_placement_checks():
 
 
 # -------------------------------------------------------------------- the whole verdict
-def _result(poses, visible, registered_B, causes=("kidney_left", "kidney_left"), rms=0.0015,
-            b=(0.01, -0.005, 0.0), X_BK=None):
-    frames = [types.SimpleNamespace(phase=int(Phase.PIVOT), X_BP=X, visible=v, time=0.05 * i)
-              for i, (X, v) in enumerate(zip(poses, visible))]
+def _result(
+    poses,
+    visible,
+    registered_B,
+    causes=("kidney_left", "kidney_left"),
+    rms=0.0015,
+    b=(0.01, -0.005, 0.0),
+    X_BK=None,
+):
+    frames = [
+        types.SimpleNamespace(phase=int(Phase.PIVOT), X_BP=X, visible=v, time=0.05 * i)
+        for i, (X, v) in enumerate(zip(poses, visible))
+    ]
     fit = types.SimpleNamespace(
-        X_BK=X_BK or RigidTransform(RotationMatrix(R_BK), P_BK), rms_residual=rms,
-        inlier_fraction=0.95, shape_coefficients=np.array(b),
-        covariance=np.diag([1e-6] * 3 + [1e-8] * 3))
+        X_BK=X_BK or RigidTransform(RotationMatrix(R_BK), P_BK),
+        rms_residual=rms,
+        inlier_fraction=0.95,
+        shape_coefficients=np.array(b),
+        covariance=np.diag([1e-6] * 3 + [1e-8] * 3),
+    )
     return types.SimpleNamespace(
-        scenario=LoadScenario(), frames=frames, sweep_end_causes=tuple(causes),
-        localization=types.SimpleNamespace(result=fit), registered_template_B=registered_B)
+        scenario=LoadScenario(),
+        frames=frames,
+        sweep_end_causes=tuple(causes),
+        localization=types.SimpleNamespace(result=fit),
+        registered_template_B=registered_B,
+    )
 
 
 TEMPLATE = types.SimpleNamespace(variances=np.array([6.4e-3, 2.8e-3, 1.5e-3]))
@@ -180,15 +214,24 @@ def test_verdict_good_scan_is_done(geometry):
     checks = JudgeScan(_result(poses, visible, kidney_B()), TEMPLATE)
     assert Verdict(checks) == ("DONE", ""), [c.detail for c in checks if not c.passed]
     assert {c.name for c in checks} == {
-        "sweep_ends", "pole_offsets", "template_coverage", "rms_residual", "inlier_fraction",
-        "shape_weights", "translation_sd", "kidney_depth", "axis_direction"}
+        "sweep_ends",
+        "pole_offsets",
+        "template_coverage",
+        "rms_residual",
+        "inlier_fraction",
+        "shape_weights",
+        "translation_sd",
+        "kidney_depth",
+        "axis_direction",
+    }
     assert all(c.passed for c in checks)
 
 
 def test_verdict_tilt_cap_is_not_done(geometry):
     poses, visible = two_leg_pivot(geometry, kidney_B(), cap_deg=8.0)
-    status, reason = Verdict(JudgeScan(
-        _result(poses, visible, kidney_B(), causes=("tilt_cap", "tilt_cap")), TEMPLATE))
+    status, reason = Verdict(
+        JudgeScan(_result(poses, visible, kidney_B(), causes=("tilt_cap", "tilt_cap")), TEMPLATE)
+    )
     assert status == INCOMPLETE and "sweep_ends" in reason and "tilt cap" in reason
 
 
@@ -213,8 +256,15 @@ def test_verdict_without_registration_judges_the_sweep_only(geometry):
 
 def test_check_as_dict_is_json_ready():
     c = Check("x", 1.0, 2.0, "m", "<=", True, "fine")
-    assert c.as_dict() == {"name": "x", "value": 1.0, "threshold": 2.0, "unit": "m",
-                           "rule": "<=", "passed": True, "detail": "fine"}
+    assert c.as_dict() == {
+        "name": "x",
+        "value": 1.0,
+        "threshold": 2.0,
+        "unit": "m",
+        "rule": "<=",
+        "passed": True,
+        "detail": "fine",
+    }
 
 
 # -------------------------------------------------------------- diagram-level scans
@@ -225,6 +275,7 @@ def test0():
     from drake_rus.anatomy import load_patient
     from drake_rus.localization.localize import load_registration_template
     from drake_rus.scan import RunScan
+
     scenario = LoadScenario(scenario_name="quick")
     patient = load_patient("test:0", progress=False)
     template = load_registration_template(scenario.localization.template)
@@ -234,6 +285,7 @@ def test0():
 @pytest.mark.slow
 def test_healthy_scan_passes_its_checks(test0):
     from drake_rus.scan import ScanMetrics, Summary
+
     _, _, result = test0
     summary = Summary(result, ScanMetrics(result))
     assert summary["status"] == "DONE", summary["reason"]
@@ -247,6 +299,7 @@ def _leg1_reversal_time(result):
     """When the pivot's first leg reversed (its largest tilt): the kidney had left the
     image there and is next seen on the way back."""
     from drake_rus.metrics import pivot_legs, signed_pivot_angles
+
     frames = [f for f in result.frames if f.phase == Phase.PIVOT]
     angles = signed_pivot_angles([f.X_BP.rotation() for f in frames])
     leg1 = np.flatnonzero(pivot_legs(angles) == 1)
@@ -262,22 +315,35 @@ def test_kidney_lost_for_the_second_leg_is_not_done(test0):
     from drake_rus.metrics import CoverageAccumulator
     from drake_rus.reliability.run import RunFaultyScan
     from drake_rus.scan import RunScan
+
     patient, template, _ = test0
     # The oracle segmenter reads the labels the fault removes, so the miss takes effect at
     # once (the learned one may still follow the kidney's fat outline for a while).
     oracle = "imaging: {segmenter: oracle}"
-    healthy = RunScan(LoadScenario(scenario_name="quick", scenario_text=f"{{{oracle}}}"),
-                      patient, template, progress=False)
+    healthy = RunScan(
+        LoadScenario(scenario_name="quick", scenario_text=f"{{{oracle}}}"),
+        patient,
+        template,
+        progress=False,
+    )
     start = _leg1_reversal_time(healthy) + 0.1
-    scenario = LoadScenario(scenario_name="quick", scenario_text=(
-        f"{{{oracle}, faults: {{sensor: [{{kind: segmentation_miss, start: {start:.2f}}}]}}}}"))
+    scenario = LoadScenario(
+        scenario_name="quick",
+        scenario_text=(
+            f"{{{oracle}, faults: {{sensor: [{{kind: segmentation_miss, start: {start:.2f}}}]}}}}"
+        ),
+    )
     result, _ = RunFaultyScan(scenario, patient, template, max_sim_time=60.0)
-    assert result.phases[-1][0] == "DONE"          # the supervisor finished the pivot
+    assert result.phases[-1][0] == "DONE"  # the supervisor finished the pivot
     assert result.status == INCOMPLETE, result.reason
     assert "pole_offsets" in result.reason and "template_coverage" in result.reason
     # The truth agrees: the pivot imaged much less of the kidney than the healthy one.
-    cover = CoverageAccumulator(result.truth.kidney_points_B, result.truth.voxel_volume,
-                                _fan(scenario), scenario.imaging.elevation_width)
+    cover = CoverageAccumulator(
+        result.truth.kidney_points_B,
+        result.truth.voxel_volume,
+        _fan(scenario),
+        scenario.imaging.elevation_width,
+    )
     for f in result.frames:
         if f.phase == Phase.PIVOT:
             cover.add_frame(f.X_BP)
@@ -286,6 +352,7 @@ def test_kidney_lost_for_the_second_leg_is_not_done(test0):
 
 def _fan(scenario):
     from drake_rus.imaging.probe import ProbeGeometry
+
     return ProbeGeometry.from_config(scenario.imaging).in_fan
 
 
@@ -295,12 +362,17 @@ def test_patient_rolled_180_deg_is_not_done(test0):
     with E_trans 18 mm and V 0.093. Refused up front (an impossible placement) or run, it
     must not end DONE."""
     from drake_rus.scan import RunScan, ScanMetrics
+
     patient, template, _ = test0
     try:
-        scenario = LoadScenario(scenario_name="quick", scenario_text=(
-            "{patient: {X_BPt: {translation: [0.55, 0, 0], rotation: !Rpy {deg: [180, 0, 0]}}}}"))
+        scenario = LoadScenario(
+            scenario_name="quick",
+            scenario_text=(
+                "{patient: {X_BPt: {translation: [0.55, 0, 0], rotation: !Rpy {deg: [180, 0, 0]}}}}"
+            ),
+        )
         result = RunScan(scenario, patient, template, progress=False, max_sim_time=60.0)
-    except ValueError as e:      # ScenarioError, StartPlanError, IkError: refused up front
+    except ValueError as e:  # ScenarioError, StartPlanError, IkError: refused up front
         assert "X_BPt" in str(e) or "patient" in str(e), e
         return
     assert result.status != "DONE", result.reason

@@ -5,8 +5,13 @@ import textwrap
 import pytest
 
 from drake_rus.scenario import (
-    ApplyOverrides, DEFAULT_SCENARIOS_FILE, ListScenarios, LoadScenario, Scenario,
-    ScenarioError)
+    DEFAULT_SCENARIOS_FILE,
+    ApplyOverrides,
+    ListScenarios,
+    LoadScenario,
+    Scenario,
+    ScenarioError,
+)
 
 
 def test_default_file_scenarios_load():
@@ -28,7 +33,9 @@ def _write(tmp_path, text):
 
 
 def test_anchors_and_merges(tmp_path):
-    path = _write(tmp_path, """
+    path = _write(
+        tmp_path,
+        """
         base: &base
           probe: &probe
             mass: 0.8
@@ -38,7 +45,8 @@ def test_anchors_and_merges(tmp_path):
           probe:
             <<: *probe
             p_FCm: [0.0, 0.0, 0.1]
-        """)
+        """,
+    )
     derived = LoadScenario(filename=path, scenario_name="derived")
     assert derived.probe.mass == 0.8
     assert derived.probe.p_FCm == [0.0, 0.0, 0.1]
@@ -47,26 +55,38 @@ def test_anchors_and_merges(tmp_path):
     assert derived.contact.time_step == Scenario().contact.time_step
 
 
-@pytest.mark.parametrize("text, field, expected", [
-    ("contact: {modle: point}", "contact.modle", "not a known field of ContactConfig"),
-    ("contact: {model: pointy}", "contact.model", "expected one of 'hydroelastic', 'point'"),
-    ("contact: {time_step: fast}", "contact.time_step", "expected a number"),
-    ("contact: {time_step: -0.001}", "contact.time_step", "> 0"),
-    ("hardware: 3", "hardware", "expected true or false"),
-    ("robot: {initial_joint_positions: [0, 0, 0]}", "robot.initial_joint_positions",
-     "list of 7 values"),
-    ("robot: {initial_joint_positions: [0, 0, 0, -2, 0, 2, 9]}",
-     "robot.initial_joint_positions[6]", "outside the FR3 joint 7 limits"),
-    ("robot: {driver_kp: [1, 1, 1, 1, 1, 1, 0]}", "robot.driver_kp[6]", "> 0"),
-    ("probe: {X_FP: {translation: [0, 0]}}", "probe.X_FP.translation", "3 finite numbers"),
-    ("probe: {X_FP: {rotation: !Rpy {deg: [0, 0]}}}", "probe.X_FP.rotation.deg",
-     "3 finite numbers"),
-    ("probe: {X_FP: {shift: [0, 0, 1]}}", "probe.X_FP.shift", "not a known field"),
-    ("probe: {mass: .nan}", "probe.mass", "finite"),
-    ("patient: {side: middle}", "patient.side", "expected one of"),
-    ("probe: 3", "probe", "expected a mapping"),
-    ("robott: {}", "robott", "not a known field of Scenario"),
-])
+@pytest.mark.parametrize(
+    "text, field, expected",
+    [
+        ("contact: {modle: point}", "contact.modle", "not a known field of ContactConfig"),
+        ("contact: {model: pointy}", "contact.model", "expected one of 'hydroelastic', 'point'"),
+        ("contact: {time_step: fast}", "contact.time_step", "expected a number"),
+        ("contact: {time_step: -0.001}", "contact.time_step", "> 0"),
+        ("hardware: 3", "hardware", "expected true or false"),
+        (
+            "robot: {initial_joint_positions: [0, 0, 0]}",
+            "robot.initial_joint_positions",
+            "list of 7 values",
+        ),
+        (
+            "robot: {initial_joint_positions: [0, 0, 0, -2, 0, 2, 9]}",
+            "robot.initial_joint_positions[6]",
+            "outside the FR3 joint 7 limits",
+        ),
+        ("robot: {driver_kp: [1, 1, 1, 1, 1, 1, 0]}", "robot.driver_kp[6]", "> 0"),
+        ("probe: {X_FP: {translation: [0, 0]}}", "probe.X_FP.translation", "3 finite numbers"),
+        (
+            "probe: {X_FP: {rotation: !Rpy {deg: [0, 0]}}}",
+            "probe.X_FP.rotation.deg",
+            "3 finite numbers",
+        ),
+        ("probe: {X_FP: {shift: [0, 0, 1]}}", "probe.X_FP.shift", "not a known field"),
+        ("probe: {mass: .nan}", "probe.mass", "finite"),
+        ("patient: {side: middle}", "patient.side", "expected one of"),
+        ("probe: 3", "probe", "expected a mapping"),
+        ("robott: {}", "robott", "not a known field of Scenario"),
+    ],
+)
 def test_bad_field_names_the_field(tmp_path, text, field, expected):
     path = _write(tmp_path, f"bad:\n  {text}\n")
     with pytest.raises(ScenarioError) as info:
@@ -118,6 +138,7 @@ def test_the_dataclasses_are_the_default_scenario():
     from pydrake.common.yaml import yaml_dump_typed
 
     from drake_rus.scenario import Scenario
+
     assert yaml_dump_typed(Scenario()) == yaml_dump_typed(LoadScenario())
 
 
@@ -127,6 +148,7 @@ def test_named_scenarios_state_only_their_differences():
     import yaml
 
     from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, Scenario
+
     raw = yaml.safe_load(DEFAULT_SCENARIOS_FILE.read_text())
     default = Scenario()
     repeated = []

@@ -23,8 +23,10 @@ from drake_rus import interrupts
 from drake_rus.io_utils import LOCK_NAME, atomic_path, write_text_atomic
 
 REPO = Path(__file__).resolve().parents[1]
-linux_only = pytest.mark.skipif(not Path("/proc/self/status").exists(),
-                                reason="needs /proc to see when the handlers are installed")
+linux_only = pytest.mark.skipif(
+    not Path("/proc/self/status").exists(),
+    reason="needs /proc to see when the handlers are installed",
+)
 
 
 # ------------------------------------------------------------------------ in this process
@@ -33,7 +35,7 @@ def test_a_signal_raises_interrupted_and_names_itself():
     with interrupts.handling():
         with pytest.raises(interrupts.Interrupted) as caught:
             os.kill(os.getpid(), signal.SIGTERM)
-            time.sleep(1.0)               # the handler runs at the next bytecode
+            time.sleep(1.0)  # the handler runs at the next bytecode
         assert caught.value.signum == signal.SIGTERM
         assert interrupts.exit_status(caught.value) == 143
         assert interrupts.signal_text(signal.SIGINT) == "SIGINT (Ctrl-C)"
@@ -48,7 +50,7 @@ def test_a_swallowed_signal_comes_back_at_the_next_check():
             os.kill(os.getpid(), signal.SIGINT)
             time.sleep(1.0)
         except KeyboardInterrupt:
-            pass                          # a library that swallows it
+            pass  # a library that swallows it
         with pytest.raises(interrupts.Interrupted):
             interrupts.check()
         assert interrupts.exit_status() == 130
@@ -63,7 +65,7 @@ def test_deferred_blocks_hold_the_signal_until_they_end():
                 time.sleep(0.2)
                 done.append("the whole block ran")
         assert done == ["the whole block ran"]
-        with interrupts.deferred(reraise=False):     # cleanup: recorded, not raised
+        with interrupts.deferred(reraise=False):  # cleanup: recorded, not raised
             os.kill(os.getpid(), signal.SIGTERM)
             time.sleep(0.2)
 
@@ -78,11 +80,11 @@ def test_an_import_is_a_checkpoint_while_importing(tmp_path, monkeypatch):
         with pytest.raises(interrupts.Interrupted):
             with interrupts.importing():
                 os.kill(os.getpid(), signal.SIGINT)
-                time.sleep(0.2)   # the handler only records it here
+                time.sleep(0.2)  # the handler only records it here
                 try:
                     import drake_rus_test_mod_a  # noqa: F401
                 except BaseException:
-                    pass          # like trimesh's guarded optional imports
+                    pass  # like trimesh's guarded optional imports
                 import drake_rus_test_mod_b  # noqa: F401
     assert "drake_rus_test_mod_b" not in sys.modules
 
@@ -106,6 +108,7 @@ def cached_patient():
     """test:0 with its label volume in the session's patient cache, so that the processes
     below reach the simulation in a few seconds."""
     from drake_rus.anatomy.cli import load_patient_for
+
     patient = load_patient_for("test:0", progress=False)
     assert patient.labels is not None
     return "test:0"
@@ -115,18 +118,39 @@ class Scan:
     """``python -m drake_rus.cli scan`` in a child process, its stderr lines collected."""
 
     def __init__(self, out: Path, *extra: str):
-        env = dict(os.environ, PYTHONUNBUFFERED="1",
-                   PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
+        env = dict(
+            os.environ,
+            PYTHONUNBUFFERED="1",
+            PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]),
+        )
         self.out = out
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "drake_rus.cli", "scan", "--scenario", "quick",
-             "--patient", "test:0", "--no-record", "--out", str(out), *extra],
-            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO)
+            [
+                sys.executable,
+                "-m",
+                "drake_rus.cli",
+                "scan",
+                "--scenario",
+                "quick",
+                "--patient",
+                "test:0",
+                "--no-record",
+                "--out",
+                str(out),
+                *extra,
+            ],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=REPO,
+        )
         self.err: list[str] = []
         self.out_lines: list[str] = []
-        self._readers = [threading.Thread(target=self._read, args=(s, lines), daemon=True)
-                         for s, lines in ((self.process.stderr, self.err),
-                                          (self.process.stdout, self.out_lines))]
+        self._readers = [
+            threading.Thread(target=self._read, args=(s, lines), daemon=True)
+            for s, lines in ((self.process.stderr, self.err), (self.process.stdout, self.out_lines))
+        ]
         for r in self._readers:
             r.start()
 
@@ -139,8 +163,10 @@ class Scan:
         deadline = time.monotonic() + timeout
         while not ready():
             if self.process.poll() is not None:
-                raise AssertionError(f"the scan ended ({self.process.returncode}) before "
-                                     f"{what}:\n" + "\n".join(self.err[-20:]))
+                raise AssertionError(
+                    f"the scan ended ({self.process.returncode}) before "
+                    f"{what}:\n" + "\n".join(self.err[-20:])
+                )
             if time.monotonic() > deadline:
                 self.process.kill()
                 raise AssertionError(f"no {what} within {timeout} s")
@@ -152,8 +178,9 @@ class Scan:
             status = Path(f"/proc/{self.process.pid}/status").read_text()
         except OSError:
             return False
-        caught = int(next(l.split()[1] for l in status.splitlines()
-                          if l.startswith("SigCgt:")), 16)
+        caught = int(
+            next(ln.split()[1] for ln in status.splitlines() if ln.startswith("SigCgt:")), 16
+        )
         return bool(caught & (1 << (signal.SIGTERM - 1)))
 
     def stop_with(self, signum: int) -> int:
@@ -175,8 +202,9 @@ def _check_left_behind(scan: Scan, signum: int, folder_expected: bool | None) ->
     if folder_expected is not None:
         assert out.exists() == folder_expected, (folder_expected, scan.err[-5:])
     if not out.exists():
-        assert scan.err and scan.err[-1].endswith(f"interrupted by "
-                                                  f"{interrupts.signal_text(signum)}"), scan.err
+        assert scan.err and scan.err[-1].endswith(
+            f"interrupted by {interrupts.signal_text(signum)}"
+        ), scan.err
         return None
     hidden = [p.name for p in out.iterdir() if p.name.startswith(".") or p.suffix == ".tmp"]
     assert hidden == [], f"left behind: {hidden}"
@@ -188,8 +216,7 @@ def _check_left_behind(scan: Scan, signum: int, folder_expected: bool | None) ->
     assert prov["command"] == "scan" and prov["seeds"]["patient"] == "test:0"
     assert "random_seed" in prov["seeds"] and prov["scenario_yaml"]
     # (a signal between a print's text and its newline joins the two lines)
-    assert any("INTERRUPTED: interrupted by" in line for line in scan.out_lines), \
-        scan.out_lines
+    assert any("INTERRUPTED: interrupted by" in line for line in scan.out_lines), scan.out_lines
     return summary
 
 
@@ -222,8 +249,7 @@ def test_signal_during_the_simulation(tmp_path, cached_patient, signum):
     """A signal during EXPLORE: the partial summary of the scan so far (its phases, the
     simulated time reached), only summary.json in --out."""
     scan = Scan(tmp_path / "scan")
-    scan.wait_until(lambda: any(l.startswith("scan: EXPLORE") for l in scan.err),
-                    "EXPLORE phase")
+    scan.wait_until(lambda: any(ln.startswith("scan: EXPLORE") for ln in scan.err), "EXPLORE phase")
     assert scan.stop_with(signum) == 128 + signum
     summary = _check_left_behind(scan, signum, folder_expected=True)
     assert summary["sim_s"] >= 1.0 and summary["phases"][0]["phase"] == "APPROACH"
@@ -239,13 +265,11 @@ def test_sigterm_while_the_outputs_are_written(tmp_path, cached_patient):
     scan.wait_until(lambda: (scan.out / "summary.json").exists(), "summary.json")
     assert scan.stop_with(signal.SIGTERM) == 143
     summary = _check_left_behind(scan, signal.SIGTERM, folder_expected=True)
-    assert summary["scan_status"] == "TIMEOUT" and "while writing the outputs" in \
-        summary["reason"]
+    assert summary["scan_status"] == "TIMEOUT" and "while writing the outputs" in summary["reason"]
     assert summary["phases"] and summary["sim_s"] == pytest.approx(2.0, abs=0.3)
 
 
-def test_sigterm_during_the_demo_leaves_an_interrupted_summary(tmp_path, capsys,
-                                                               monkeypatch):
+def test_sigterm_during_the_demo_leaves_an_interrupted_summary(tmp_path, capsys, monkeypatch):
     """The demo (no scan): SIGTERM while it presses -> 143, an INTERRUPTED summary with the
     provenance, no recording or plot half-written, no lock."""
     import drake_rus.demo as demo
@@ -254,8 +278,9 @@ def test_sigterm_during_the_demo_leaves_an_interrupted_summary(tmp_path, capsys,
     def pressed_then_stopped(simulator, t_final, **kwargs):
         simulator.AdvanceTo(0.02)
         os.kill(os.getpid(), signal.SIGTERM)
-        time.sleep(5.0)                      # the handler raises here
+        time.sleep(5.0)  # the handler raises here
         raise AssertionError("the signal did not stop the demo")
+
     monkeypatch.setattr(demo, "AdvanceWithProgress", pressed_then_stopped)
     out = tmp_path / "demo"
     assert main(["demo", "--duration", "0.2", "--out", str(out)]) == 143
@@ -273,7 +298,7 @@ def test_a_signal_caught_by_the_hardware_session_keeps_its_number():
     e = KeyboardInterrupt(f"signal {int(signal.SIGTERM)}")
     assert interrupts.signal_of(e) == signal.SIGTERM and interrupts.exit_status(e) == 143
     assert interrupts.exit_status(KeyboardInterrupt()) == 130
-    interrupts.note(signal.SIGTERM)              # no handling(): not recorded
+    interrupts.note(signal.SIGTERM)  # no handling(): not recorded
     assert interrupts.pending() is None
     interrupts.check()
     with interrupts.handling():

@@ -37,23 +37,36 @@ def box_body(kidney_depth=0.09, blocker=None, size=(0.30, 0.30, 0.24), rib_y=Non
     inside = (((p - center) / [0.025, 0.05, 0.02]) ** 2).sum(axis=1) <= 1.0
     labels.reshape(-1)[inside] = Label.KIDNEY_CORTEX
     if blocker is not None:
-        slab = (np.abs(p[:, 0]) < 0.015) & (np.abs(p[:, 1]) < 0.07) & (p[:, 2] > sz - 0.03) & (
-            p[:, 2] < sz - 0.02)
+        slab = (
+            (np.abs(p[:, 0]) < 0.015)
+            & (np.abs(p[:, 1]) < 0.07)
+            & (p[:, 2] > sz - 0.03)
+            & (p[:, 2] < sz - 0.02)
+        )
         labels.reshape(-1)[slab] = blocker
     if rib_y is not None:
-        rib = (p[:, 1] >= rib_y[0]) & (p[:, 1] <= rib_y[1]) & (p[:, 2] > sz - 0.03) & (
-            p[:, 2] < sz - 0.02)
+        rib = (
+            (p[:, 1] >= rib_y[0])
+            & (p[:, 1] <= rib_y[1])
+            & (p[:, 2] > sz - 0.03)
+            & (p[:, 2] < sz - 0.02)
+        )
         labels.reshape(-1)[rib] = Label.BONE
-    return types.SimpleNamespace(skin_mesh=skin, kidney_mesh=kidney, side="right",
-                                 labels=LabelVolume(labels, VOXEL, X_PtV))
+    return types.SimpleNamespace(
+        skin_mesh=skin, kidney_mesh=kidney, side="right", labels=LabelVolume(labels, VOXEL, X_PtV)
+    )
 
 
 X_BPT = RigidTransform([0.55, 0.0, 0.0])
 
 
 def test_clear_body_gets_the_vertical_window_and_the_shallowest_preset():
-    plan = PlanStart(box_body(0.09), X_BPT, ImagingConfig(), StartConfig(placement_error=0.0,
-                     placement_error_angle_deg=0.0))
+    plan = PlanStart(
+        box_body(0.09),
+        X_BPT,
+        ImagingConfig(),
+        StartConfig(placement_error=0.0, placement_error_angle_deg=0.0),
+    )
     assert plan.window.tilt_deg == 0.0
     np.testing.assert_allclose(plan.window.approach_B, [0, 0, -1], atol=1e-12)
     # Kidney far side 0.09 + 0.02 m below the skin, + 10 mm margin -> the 150 mm preset.
@@ -87,11 +100,12 @@ def test_a_rib_across_the_sweep_moves_the_start_past_it():
     clear = PlanStart(box_body(), X_BPT, ImagingConfig(), cfg, exploration_ratio=0.5)
     assert clear.window.start_fraction == pytest.approx(0.1)
     assert clear.window.clear_length == pytest.approx(clear.window.sweep_length)
-    ribbed = PlanStart(box_body(rib_y=(0.020, 0.028)), X_BPT, ImagingConfig(), cfg,
-                       exploration_ratio=0.5)
+    ribbed = PlanStart(
+        box_body(rib_y=(0.020, 0.028)), X_BPT, ImagingConfig(), cfg, exploration_ratio=0.5
+    )
     w = ribbed.window
     assert w.start_fraction > 0.1 + 1e-9
-    assert ribbed.X_start.translation()[1] < 0.020           # past the rib, scanning -y
+    assert ribbed.X_start.translation()[1] < 0.020  # past the rib, scanning -y
     assert w.clear_length == pytest.approx(w.sweep_length) and w.sweep_shadowed == 0.0
     s = ribbed.summary()
     assert s["sweep_clear_mm"] == s["sweep_checked_mm"] > 0
@@ -100,9 +114,13 @@ def test_a_rib_across_the_sweep_moves_the_start_past_it():
     assert first.clear_length < cfg.min_clear_sweep and "shadows the kidney" in first.warning
     assert first.feasible and not ribbed.window.warning
     # No later start allowed: the planner still gives the window, with the warning said.
-    stuck = PlanStart(box_body(rib_y=(0.020, 0.028)), X_BPT, ImagingConfig(),
-                      StartConfig(placement_error=0.0, placement_error_angle_deg=0.0,
-                                  max_start_shift=0.0), exploration_ratio=0.5)
+    stuck = PlanStart(
+        box_body(rib_y=(0.020, 0.028)),
+        X_BPT,
+        ImagingConfig(),
+        StartConfig(placement_error=0.0, placement_error_angle_deg=0.0, max_start_shift=0.0),
+        exploration_ratio=0.5,
+    )
     assert stuck.window.start_fraction == pytest.approx(0.1)
     assert stuck.window.clear_length < cfg.min_clear_sweep
     assert "10 mm into the sweep" in stuck.summary()["warning"]
@@ -119,11 +137,16 @@ def test_a_long_exploration_still_gets_a_start_past_the_rib():
     plan = PlanStart(body, X_BPT, ImagingConfig(), StartConfig(**base), exploration_ratio=0.7)
     w = plan.window
     assert w.start_fraction == pytest.approx(0.35) and not w.warning
-    assert plan.X_start.translation()[1] < 0.020                 # past the rib
-    assert w.sweep_length == pytest.approx(0.06, abs=0.003)      # 35% -> 95% of 100 mm
+    assert plan.X_start.translation()[1] < 0.020  # past the rib
+    assert w.sweep_length == pytest.approx(0.06, abs=0.003)  # 35% -> 95% of 100 mm
     assert w.clear_length == pytest.approx(w.sweep_length)
-    old = PlanStart(body, X_BPT, ImagingConfig(),
-                    StartConfig(**base, min_sweep_fraction=0.7), exploration_ratio=0.7)
+    old = PlanStart(
+        body,
+        X_BPT,
+        ImagingConfig(),
+        StartConfig(**base, min_sweep_fraction=0.7),
+        exploration_ratio=0.7,
+    )
     assert old.window.start_fraction < 0.3 and old.window.warning
 
 
@@ -136,14 +159,25 @@ def test_a_short_clipped_sweep_is_not_preferred_for_being_short():
     from drake_rus.scan.planning import WindowCandidate, window_rank
 
     def window(tilt, start, sweep, clear, covered):
-        return WindowCandidate(tilt, np.array([0.0, 0.0, -1.0]), np.zeros((3, 3)), 0.12, 0.0,
-                               False, np.zeros((0, 3)), 0.15, start_fraction=start,
-                               sweep_length=sweep, clear_length=clear, covered_length=covered)
+        return WindowCandidate(
+            tilt,
+            np.array([0.0, 0.0, -1.0]),
+            np.zeros((3, 3)),
+            0.12,
+            0.0,
+            False,
+            np.zeros((0, 3)),
+            0.15,
+            start_fraction=start,
+            sweep_length=sweep,
+            clear_length=clear,
+            covered_length=covered,
+        )
 
     early = window(0.0, 0.10, 0.070, 0.065, 0.060)
     late = window(20.0, 0.35, 0.060, 0.060, 0.060)
     assert window_rank(early, 0.15) < window_rank(late, 0.15)
-    early.covered_length = late.covered_length = 0.0          # the whole sweep must be clear
+    early.covered_length = late.covered_length = 0.0  # the whole sweep must be clear
     assert window_rank(late, 0.15) < window_rank(early, 0.15)
     # The evaluated windows carry it: on a clear body the earliest start, covered at 60 mm.
     cfg = StartConfig(placement_error=0.0, placement_error_angle_deg=0.0, max_start_shift=0.3)
@@ -154,18 +188,33 @@ def test_a_short_clipped_sweep_is_not_preferred_for_being_short():
 
 def evaluate_first_start(body, cfg):
     from drake_rus.scan.planning import evaluate_windows
+
     superior_B = X_BPT.rotation().matrix()[:, 1]
     kidney_B = X_BPT.multiply(np.asarray(body.kidney_mesh.vertices).T).T
-    return evaluate_windows(body, X_BPT, ImagingConfig(), cfg, 0.0, superior_B, kidney_B,
-                            X_BPT @ body.labels.X_PtV, exploration_ratio=0.5)[0]
+    return evaluate_windows(
+        body,
+        X_BPT,
+        ImagingConfig(),
+        cfg,
+        0.0,
+        superior_B,
+        kidney_B,
+        X_BPT @ body.labels.X_PtV,
+        exploration_ratio=0.5,
+    )[0]
 
 
 def test_unreachable_windows_are_refused_with_a_clear_message():
     with pytest.raises(StartPlanError, match="cannot reach"):
         PlanStart(box_body(), X_BPT, ImagingConfig(), StartConfig(), reachable=lambda X: False)
     # Only tilted windows reachable: the planner takes one of them.
-    plan = PlanStart(box_body(), X_BPT, ImagingConfig(), StartConfig(),
-                     reachable=lambda X: X.rotation().matrix()[2, 2] > -0.999)
+    plan = PlanStart(
+        box_body(),
+        X_BPT,
+        ImagingConfig(),
+        StartConfig(),
+        reachable=lambda X: X.rotation().matrix()[2, 2] > -0.999,
+    )
     assert abs(plan.window.tilt_deg) > 0.0
 
 
@@ -182,7 +231,7 @@ def test_placement_error_has_the_configured_size_and_is_seeded():
     c = PlanStart(box_body(), X_BPT, ImagingConfig(), cfg, seed=2)
     offset = a.X_start.translation() - a.X_planned.translation()
     assert np.linalg.norm(offset) == pytest.approx(0.005)
-    assert abs(offset @ a.window.approach_B) < 1e-9          # across the beam
+    assert abs(offset @ a.window.approach_B) < 1e-9  # across the beam
     angle = a.X_start.rotation().inverse().multiply(a.X_planned.rotation()).ToAngleAxis().angle()
     assert angle == pytest.approx(np.radians(3.0))
     np.testing.assert_allclose(a.X_start.GetAsMatrix4(), b.X_start.GetAsMatrix4())
@@ -195,16 +244,17 @@ def test_probe_rotation_is_a_transverse_view():
     R = probe_rotation([0.0, 0.0, -1.0], [0.0, 1.0, 0.0]).matrix()
     np.testing.assert_allclose(R, np.diag([1.0, -1.0, -1.0]), atol=1e-12)
     tilted = probe_rotation([0.5, 0.0, -np.sqrt(0.75)], [0.0, 1.0, 0.0]).matrix()
-    assert abs(tilted[:, 0] @ [0, 1, 0]) < 1e-12          # the array stays across the body
+    assert abs(tilted[:, 0] @ [0, 1, 0]) < 1e-12  # the array stays across the body
     assert np.linalg.det(tilted) == pytest.approx(1.0)
 
 
 def test_fan_rays_leave_the_curved_face_across_its_width():
     from drake_rus.scan.planning import fan_rays
+
     skin = np.array([0.5, 0.0, 0.2])
     origins, dirs = fan_rays(skin, [0, 0, -1], [1, 0, 0], 0.05, 40.0, n_rays=9)
     np.testing.assert_allclose(np.linalg.norm(dirs, axis=1), 1.0)
-    np.testing.assert_allclose(origins[4], skin, atol=1e-12)          # central ray
+    np.testing.assert_allclose(origins[4], skin, atol=1e-12)  # central ray
     np.testing.assert_allclose(dirs[4], [0, 0, -1], atol=1e-12)
     apex = skin + np.array([0, 0, 0.05])
     np.testing.assert_allclose(np.linalg.norm(origins - apex, axis=1), 0.05)
@@ -217,6 +267,7 @@ def test_a_bar_under_one_side_of_the_face_blocks_those_rays_only():
     """Bone 20-30 mm under the skin only at x > 0.008 (body frame = B): the rays leaving the
     face's +x side cross it, the central ray and the -x side do not."""
     from drake_rus.scan.planning import check_view
+
     body = box_body()
     lab = body.labels.labels
     p = np.indices(lab.shape).reshape(3, -1).T * VOXEL + body.labels.X_PtV.translation()
@@ -224,8 +275,16 @@ def test_a_bar_under_one_side_of_the_face_blocks_those_rays_only():
     lab.reshape(-1)[bar] = Label.BONE
     X_BV = X_BPT @ body.labels.X_PtV
     kidney_B = X_BPT.multiply(np.asarray(body.kidney_mesh.vertices).T).T
-    v = check_view(body.labels, X_BV, np.array([0.55, 0.0, 0.24]), np.array([0.0, 0, -1]),
-                   np.array([1.0, 0, 0]), ImagingConfig(), kidney_B, 0.0)
+    v = check_view(
+        body.labels,
+        X_BV,
+        np.array([0.55, 0.0, 0.24]),
+        np.array([0.0, 0, -1]),
+        np.array([1.0, 0, 0]),
+        ImagingConfig(),
+        kidney_B,
+        0.0,
+    )
     assert v.rays_to_kidney > 0 and not v.central_blocked
     assert 0 < v.blocked_rays < v.rays_to_kidney
     assert np.all(v.blockers_B[:, 0] > 0.55 + 0.008 - VOXEL)
@@ -236,6 +295,7 @@ def test_vertical_depth_preset_ignores_shadows_but_not_depth():
     """The kinematic twin's depth: the preset holding the kidney under a vertical probe,
     also where bone over the kidney makes the vertical window unusable for a scan."""
     from drake_rus.scan.planning import vertical_depth_preset
+
     cfg = StartConfig(max_tilt_deg=0.0)
     blocked = box_body(blocker=Label.BONE)
     with pytest.raises(StartPlanError, match="bone or gas"):
@@ -243,5 +303,4 @@ def test_vertical_depth_preset_ignores_shadows_but_not_depth():
     assert vertical_depth_preset(blocked, X_BPT, ImagingConfig(), cfg) == 0.15
     assert vertical_depth_preset(box_body(0.15), X_BPT, ImagingConfig(), cfg) == 0.20
     with pytest.raises(StartPlanError, match="deepest preset 150 mm"):
-        vertical_depth_preset(box_body(0.15), X_BPT, ImagingConfig(depth_presets=[0.1, 0.15]),
-                              cfg)
+        vertical_depth_preset(box_body(0.15), X_BPT, ImagingConfig(depth_presets=[0.1, 0.15]), cfg)

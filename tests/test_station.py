@@ -4,24 +4,26 @@ import json
 
 import numpy as np
 import pytest
-from pydrake.multibody.tree import BodyIndex
 from pydrake.math import RigidTransform
+from pydrake.multibody.tree import BodyIndex
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput
 
 from drake_rus.cli import main as cli_main
-from drake_rus.scenario import LoadScenario
-from drake_rus.robot import contact_force_along_approach, estimate_tip_wrench
 from drake_rus.closed_loop import PressDiagram
-from drake_rus.robot import MakeControlPlant
+from drake_rus.robot import MakeControlPlant, contact_force_along_approach, estimate_tip_wrench
+from drake_rus.scenario import LoadScenario
 from drake_rus.station_interface import ports_of
 from drake_rus.stations import MakeStation
 
 # What both stations export (drake_rus.station_interface, the one list of ports).
 STATION_INPUTS = {p.name for p in ports_of("sim") if p.direction == "in"}
-STATION_OUTPUTS = {p.name for p in ports_of("sim", include_optional=False)
-                   if p.direction == "out" and "hardware" in p.stations}
+STATION_OUTPUTS = {
+    p.name
+    for p in ports_of("sim", include_optional=False)
+    if p.direction == "out" and "hardware" in p.stations
+}
 
 
 def test_estimate_tip_wrench_recovers_a_known_wrench():
@@ -34,8 +36,7 @@ def test_estimate_tip_wrench_recovers_a_known_wrench():
         F_P = rng.normal(size=6) * [0.5, 0.5, 0.5, 5, 5, 20]
         F_W = np.concatenate([R_WP @ F_P[:3], R_WP @ F_P[3:]])
         tau = J.T @ F_W
-        np.testing.assert_allclose(estimate_tip_wrench(J, tau, R_WP, damping=1e-9), F_P,
-                                   atol=1e-6)
+        np.testing.assert_allclose(estimate_tip_wrench(J, tau, R_WP, damping=1e-9), F_P, atol=1e-6)
     assert contact_force_along_approach([0, 0, 0, 0, 0, -9.0]) == 9.0
     with pytest.raises(ValueError, match="J_WP: expected shape"):
         estimate_tip_wrench(np.zeros((6, 6)), np.zeros(7), np.eye(3))
@@ -146,11 +147,16 @@ def test_make_station_dispatches_on_the_hardware_flag(monkeypatch, hardware):
     """MakeStation builds the simulated station for hardware: false and the hardware station
     for hardware: true, passing the scenario through; nothing else chooses."""
     import drake_rus.stations as stations
+
     calls = []
-    monkeypatch.setattr(stations, "MakeSimStation",
-                        lambda scenario, **kw: calls.append(("sim", scenario)) or "sim")
-    monkeypatch.setattr(stations, "MakeHardwareStation",
-                        lambda scenario, **kw: calls.append(("hw", scenario)) or "hw")
+    monkeypatch.setattr(
+        stations, "MakeSimStation", lambda scenario, **kw: calls.append(("sim", scenario)) or "sim"
+    )
+    monkeypatch.setattr(
+        stations,
+        "MakeHardwareStation",
+        lambda scenario, **kw: calls.append(("hw", scenario)) or "hw",
+    )
     scenario = LoadScenario(scenario_name="hardware" if hardware else "default")
     assert scenario.hardware == hardware
     assert stations.MakeStation(scenario) == ("hw" if hardware else "sim")
@@ -163,8 +169,10 @@ def test_control_plant_has_no_geometry_the_sim_plant_has():
     scenario = LoadScenario()
     plant, _ = MakeControlPlant(scenario.robot, scenario.probe)
     assert not plant.geometry_source_is_registered()
-    assert all(len(plant.GetCollisionGeometriesForBody(plant.get_body(BodyIndex(i)))) == 0
-               for i in range(plant.num_bodies()))
+    assert all(
+        len(plant.GetCollisionGeometriesForBody(plant.get_body(BodyIndex(i)))) == 0
+        for i in range(plant.num_bodies())
+    )
     sim_plant = MakeStation(scenario).GetSubsystemByName("plant")
     probe = sim_plant.GetBodyByName("probe")
     assert len(sim_plant.GetCollisionGeometriesForBody(probe)) > 0
@@ -187,8 +195,9 @@ def test_demo_writes_recording_plot_and_summary(tmp_path):
 
 
 def test_demo_bad_input_is_a_clear_error(tmp_path, capsys):
-    assert cli_main(["demo", "--out", str(tmp_path / "x"), "--set",
-                     "{contact: {modle: point}}"]) == 2
+    assert (
+        cli_main(["demo", "--out", str(tmp_path / "x"), "--set", "{contact: {modle: point}}"]) == 2
+    )
     assert "field 'contact.modle'" in capsys.readouterr().err
     assert cli_main(["demo", "--out", str(tmp_path / "y"), "--force", "50"]) == 2
     assert "--force" in capsys.readouterr().err

@@ -10,8 +10,14 @@ from drake_rus.anatomy import load_patient
 from drake_rus.paths import REPO_ROOT
 from drake_rus.scenario import LoadScenario
 from drake_rus.station_interface import (
-    ROBOT_SENSOR_PORTS, STATION_PORTS, CheckStationPorts, StationInterfaceError, port,
-    ports_of, update_port_table)
+    ROBOT_SENSOR_PORTS,
+    STATION_PORTS,
+    CheckStationPorts,
+    StationInterfaceError,
+    port,
+    ports_of,
+    update_port_table,
+)
 from drake_rus.stations import MakeStation
 
 
@@ -19,12 +25,13 @@ def test_docs_port_table_is_generated_from_the_interface():
     text = (REPO_ROOT / "docs" / "design.md").read_text()
     assert update_port_table(text) == text, (
         "docs/design.md's port table is stale: run "
-        "`python -m drake_rus.station_interface --update docs/design.md`")
+        "`python -m drake_rus.station_interface --update docs/design.md`"
+    )
 
 
 def test_sim_station_matches_the_interface_with_and_without_a_patient():
     scenario = LoadScenario()
-    CheckStationPorts(MakeStation(scenario), "sim")                 # placeholder torso
+    CheckStationPorts(MakeStation(scenario), "sim")  # placeholder torso
     patient = load_patient("test:0", voxel_size=0.004, progress=False)
     station = MakeStation(scenario, patient=patient)
     CheckStationPorts(station, "sim")
@@ -45,8 +52,9 @@ def _fake_station(names_sizes, inputs=(("joint_velocity_command", 7),)):
 
 
 def test_a_station_that_strays_is_refused_naming_each_difference():
-    station = _fake_station([("joint_position", 7), ("joint_velocity", 6), ("X_BP", 3),
-                             ("surprise", 1)])
+    station = _fake_station(
+        [("joint_position", 7), ("joint_velocity", 6), ("X_BP", 3), ("surprise", 1)]
+    )
     with pytest.raises(StationInterfaceError) as e:
         CheckStationPorts(station, "hardware")
     text = str(e.value)

@@ -29,8 +29,11 @@ def test_expand_patients():
 
 def test_tasks_and_run_ids_are_unique_and_deterministic():
     o = st.StudyOptions()
-    tasks = (st.er_sweep_tasks(["test:0", "test:1"], o) + st.starts_tasks(["test:0"], o, 0.6)
-             + st.efficiency_tasks(["seed:5", "../x/y"], o, 0.6))
+    tasks = (
+        st.er_sweep_tasks(["test:0", "test:1"], o)
+        + st.starts_tasks(["test:0"], o, 0.6)
+        + st.efficiency_tasks(["seed:5", "../x/y"], o, 0.6)
+    )
     ids = [st.run_id(t) for t in tasks]
     assert len(set(ids)) == len(ids) == 22 + 5 + 2
     # ER in units of the patient's kidney length (the default) is "erk"; of L_m "er".
@@ -51,10 +54,16 @@ def _er_results(rng, n=12):
             # Below ER 1: +-0.2 alternating over patients (zero mean difference at ER >=
             # 0.6, so those p-values are exactly 1; no chance significance).
             wobble = 0.0 if er == 1.0 else 0.2 * (-1) ** k
-            out.append({"patient": f"test:{k}", "er": er,
-                        "e_trans_mm": base_t + bump + wobble,
-                        "e_rot_x_deg": base_r + bump - wobble,
-                        "registration_ms": 10.0, "points": 100})
+            out.append(
+                {
+                    "patient": f"test:{k}",
+                    "er": er,
+                    "e_trans_mm": base_t + bump + wobble,
+                    "e_rot_x_deg": base_r + bump - wobble,
+                    "registration_ms": 10.0,
+                    "points": 100,
+                }
+            )
     return out
 
 
@@ -69,7 +78,7 @@ def test_er_sweep_critical_er_and_paired_tests():
 
 def test_er_sweep_critical_er_needs_every_larger_er_to_agree():
     res = _er_results(np.random.default_rng(1))
-    for r in res:                       # ER 0.8 is worse than 100%: the critical ER is 0.9
+    for r in res:  # ER 0.8 is worse than 100%: the critical ER is 0.9
         if r["er"] == 0.8:
             r["e_trans_mm"] += 10 + float(np.random.default_rng(len(r["patient"])).normal())
     an = analysis.analyze_er_sweep(res, rule="strict")
@@ -83,9 +92,17 @@ def test_er_sweep_critical_er_needs_every_larger_er_to_agree():
 
 def test_starts_bonferroni():
     rng = np.random.default_rng(2)
-    res = [{"patient": f"test:{k}", "start": s, "er": 0.6,
+    res = [
+        {
+            "patient": f"test:{k}",
+            "start": s,
+            "er": 0.6,
             "e_trans_mm": 4 + rng.normal(0, 1) + (5.0 if s == 4 else 0.0),
-            "e_rot_x_deg": 4 + rng.normal(0, 1)} for k in range(15) for s in range(5)]
+            "e_rot_x_deg": 4 + rng.normal(0, 1),
+        }
+        for k in range(15)
+        for s in range(5)
+    ]
     an = analysis.analyze_starts(res)
     assert an["bonferroni_threshold"] == pytest.approx(0.005)
     assert len(an["tests"]) == 10
@@ -98,19 +115,41 @@ def test_starts_bonferroni():
 def _eff_result(patient, n_op, n_nop):
     def entry(n, step):
         V = np.minimum(1.0, np.arange(1, n + 1) / n)
-        return {"n": n, "eps_mm": (n - 1) * step, "V": 1.0, "curve_V": V.tolist(),
-                "curve_eps_mm": (np.arange(n) * step).tolist(), "volume_error_pct": 2.0,
-                "n_full": n, "eps_full_mm": (n - 1) * step, "V_full": 1.0, "volume_ml": 100.0}
-    return {"patient": patient, "e_trans_mm": 3.0, "e_rot_x_deg": 3.0, "true_volume_ml": 98.0,
-            "strategies": {"OP": entry(n_op, 0.75), "GT-OP": entry(n_op - 5, 0.75),
-                           "NOP": entry(n_nop, 0.75), "SL": entry(400, 0.25)}}
+        return {
+            "n": n,
+            "eps_mm": (n - 1) * step,
+            "V": 1.0,
+            "curve_V": V.tolist(),
+            "curve_eps_mm": (np.arange(n) * step).tolist(),
+            "volume_error_pct": 2.0,
+            "n_full": n,
+            "eps_full_mm": (n - 1) * step,
+            "V_full": 1.0,
+            "volume_ml": 100.0,
+        }
+
+    return {
+        "patient": patient,
+        "e_trans_mm": 3.0,
+        "e_rot_x_deg": 3.0,
+        "true_volume_ml": 98.0,
+        "strategies": {
+            "OP": entry(n_op, 0.75),
+            "GT-OP": entry(n_op - 5, 0.75),
+            "NOP": entry(n_nop, 0.75),
+            "SL": entry(400, 0.25),
+        },
+    }
 
 
 def test_efficiency_reductions_and_mean_curves():
     res = [_eff_result(f"test:{k}", 100 + k, 200 + 3 * k) for k in range(6)]
     an = analysis.analyze_efficiency(res)
-    c = {(x["comparison"], x["metric"]): x for x in an["comparisons"]
-         if x["definition"] == "pole_to_pole"}
+    c = {
+        (x["comparison"], x["metric"]): x
+        for x in an["comparisons"]
+        if x["definition"] == "pole_to_pole"
+    }
     nop = c[("OP vs NOP", "n")]
     assert nop["reduction_mean"] == pytest.approx(np.mean([100 + 2 * k for k in range(6)]))
     assert nop["op_lower_count"] == 6 and nop["significant"]
@@ -131,13 +170,16 @@ def test_runner_writes_each_run_and_resumes(tmp_path):
             raise RuntimeError("boom")
         return {"run_id": st.run_id(task), "task": task, "value": len(calls)}
 
-    tasks = st.er_sweep_tasks(["test:0", "test:1", "test:2"], st.StudyOptions(er_unit="fixed"),
-                              [0.5])
+    tasks = st.er_sweep_tasks(
+        ["test:0", "test:1", "test:2"], st.StudyOptions(er_unit="fixed"), [0.5]
+    )
     status = batch.run_tasks(tasks, fake, tmp_path, st.run_id, workers=0, progress=False)
     assert status["done"] == 2 and status["failed"][0][0] == "er-sweep__test-2__er050"
     assert "boom" in status["failed"][0][1]
     assert sorted(p.name for p in (tmp_path / "runs").iterdir()) == [
-        "er-sweep__test-0__er050.json", "er-sweep__test-1__er050.json"]
+        "er-sweep__test-0__er050.json",
+        "er-sweep__test-1__er050.json",
+    ]
     # Resume: only the failed run is tried again.
     calls.clear()
     status = batch.run_tasks(tasks, fake, tmp_path, st.run_id, workers=0, progress=False)
@@ -150,18 +192,45 @@ def tiny_paper(tmp_path_factory):
     """A real (tiny) paper study through the CLI: one patient, two ERs, two starts, the
     efficiency sweeps, run on an embedded Dask cluster of one worker."""
     out = tmp_path_factory.mktemp("paper")
-    code = main(["study", "paper", "--patients", "test:2", "--ers", "0.6,1", "--starts", "2",
-                 "--out", str(out), "--workers", "1", "--no-progress", "--recon-spacing",
-                 "0.002", "--set", "{localization: {max_points: 1500}}", "--closed-loop", "1"])
+    code = main(
+        [
+            "study",
+            "paper",
+            "--patients",
+            "test:2",
+            "--ers",
+            "0.6,1",
+            "--starts",
+            "2",
+            "--out",
+            str(out),
+            "--workers",
+            "1",
+            "--no-progress",
+            "--recon-spacing",
+            "0.002",
+            "--set",
+            "{localization: {max_points: 1500}}",
+            "--closed-loop",
+            "1",
+        ]
+    )
     return code, out
 
 
 def test_tiny_paper_study_outputs(tiny_paper):
     code, out = tiny_paper
     assert code == 0
-    for name in ("report.md", "fig7d_er_sweep.png", "fig9d_starts.png", "fig10_efficiency.png",
-                 "er_sweep_table.csv", "starts_tests.csv", "efficiency_runs.csv",
-                 "study_paper.json"):
+    for name in (
+        "report.md",
+        "fig7d_er_sweep.png",
+        "fig9d_starts.png",
+        "fig10_efficiency.png",
+        "er_sweep_table.csv",
+        "starts_tests.csv",
+        "efficiency_runs.csv",
+        "study_paper.json",
+    ):
         assert (out / name).stat().st_size > 0, name
     assert len(list((out / "runs").glob("*.json"))) == 2 + 2 + 1 + 1
     meta = json.loads((out / "study_paper.json").read_text())
@@ -175,8 +244,10 @@ def test_tiny_paper_study_outputs(tiny_paper):
     s = eff["strategies"]
     assert s["GT-OP"]["V"] > 0.9 and s["GT-OP"]["n"] < s["NOP"]["n"]
     assert abs(s["GT-OP"]["volume_error_pct"]) < 5.0
-    assert sorted(s["GT-OP"]["nrrd"]) == ["test-2__GT-OP__kidney_mask.nrrd",
-                                          "test-2__GT-OP__kidney_probability.nrrd"]
+    assert sorted(s["GT-OP"]["nrrd"]) == [
+        "test-2__GT-OP__kidney_mask.nrrd",
+        "test-2__GT-OP__kidney_probability.nrrd",
+    ]
     mask, header = nrrd.read(str(out / "volumes" / "test-2__GT-OP__kidney_mask.nrrd"))
     ml = mask.sum() * float(np.prod(np.diag(header["space directions"]))) / 1000.0
     assert ml == pytest.approx(s["GT-OP"]["volume_ml"], rel=1e-6)
@@ -190,9 +261,26 @@ def test_study_resumes_without_rerunning(tiny_paper):
     stamps = {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*.json")}
     # The same settings (the reconstruction grid only changes efficiency runs): nothing
     # runs again, and the starts run at the er-sweep's critical ER.
-    assert main(["study", "starts", "--patients", "test:2", "--starts", "2", "--out", str(out),
-                 "--workers", "0", "--no-progress",
-                 "--set", "{localization: {max_points: 1500}}"]) == 0
+    assert (
+        main(
+            [
+                "study",
+                "starts",
+                "--patients",
+                "test:2",
+                "--starts",
+                "2",
+                "--out",
+                str(out),
+                "--workers",
+                "0",
+                "--no-progress",
+                "--set",
+                "{localization: {max_points: 1500}}",
+            ]
+        )
+        == 0
+    )
     assert {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*.json")} == stamps
 
 
@@ -202,18 +290,24 @@ def test_reproduce_paper_notebook_runs_on_the_tiny_study(tiny_paper, tmp_path, m
     monkeypatch.setenv("DRAKE_RUS_FIG_DIR", str(tmp_path))
     monkeypatch.setenv("MPLBACKEND", "Agg")
     nb = nbformat.read(NOTEBOOK, as_version=4)
-    NotebookClient(nb, timeout=300, kernel_name="python3",
-                   resources={"metadata": {"path": str(NOTEBOOK.parent)}}).execute()
+    NotebookClient(
+        nb,
+        timeout=300,
+        kernel_name="python3",
+        resources={"metadata": {"path": str(NOTEBOOK.parent)}},
+    ).execute()
     for name in ("fig7d_er_sweep.png", "fig9d_starts.png", "fig10_efficiency.png"):
         assert (tmp_path / name).stat().st_size > 0
-    text = "".join(o.get("text", "") for c in nb.cells if c.cell_type == "code"
-                   for o in c.get("outputs", []))
+    text = "".join(
+        o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
+    )
     assert "OP vs NOP" in text
 
 
 def test_cli_errors_are_named(capsys):
     assert main(["study", "er-sweep", "--patients", "nonsense", "--workers", "0"]) == 2
     assert "--patients" in capsys.readouterr().err
-    assert main(["study", "er-sweep", "--patients", "test:0", "--ers", "0.5,2",
-                 "--workers", "0"]) == 2
+    assert (
+        main(["study", "er-sweep", "--patients", "test:0", "--ers", "0.5,2", "--workers", "0"]) == 2
+    )
     assert "--ers" in capsys.readouterr().err

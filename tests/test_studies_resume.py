@@ -20,16 +20,25 @@ def _task(**kw):
     return st.er_sweep_tasks(["test:0"], st.StudyOptions(**kw), [0.6])[0]
 
 
-@pytest.mark.parametrize("change", [
-    {"segmenter": "classical"}, {"method": "deformable"}, {"seed": 1}, {"voxel": 0.003},
-    {"er_unit": "fixed"}, {"mode": "closed-loop"}, {"scenario": "quick"},
-    {"overrides": "{localization: {max_points: 1500}}"},
-    {"posture": "left_lateral_decubitus"}])
+@pytest.mark.parametrize(
+    "change",
+    [
+        {"segmenter": "classical"},
+        {"method": "deformable"},
+        {"seed": 1},
+        {"voxel": 0.003},
+        {"er_unit": "fixed"},
+        {"mode": "closed-loop"},
+        {"scenario": "quick"},
+        {"overrides": "{localization: {max_points: 1500}}"},
+        {"posture": "left_lateral_decubitus"},
+    ],
+)
 def test_every_setting_changes_the_key_but_not_the_run_id(change):
     base, other = _task(), _task(**change)
     assert st.task_key(base) != st.task_key(other)
     if "mode" not in change and "er_unit" not in change and "posture" not in change:
-        assert st.run_id(base) == st.run_id(other)     # same file name: the key decides
+        assert st.run_id(base) == st.run_id(other)  # same file name: the key decides
 
 
 def test_key_covers_resolved_inputs_not_paths(tmp_path):
@@ -73,8 +82,9 @@ def test_batch_sets_aside_other_settings_and_takes_them_back(tmp_path):
         return {"run_id": st.run_id(task), "task": task, "value": task["segmenter"]}
 
     oracle = st.er_sweep_tasks(["test:0", "test:1"], st.StudyOptions(), [0.6])
-    classical = st.er_sweep_tasks(["test:0", "test:1"], st.StudyOptions(segmenter="classical"),
-                                  [0.6])
+    classical = st.er_sweep_tasks(
+        ["test:0", "test:1"], st.StudyOptions(segmenter="classical"), [0.6]
+    )
     kw = dict(workers=0, progress=False, task_key=st.task_key)
     assert batch.run_tasks(oracle, fake, tmp_path, st.run_id, **kw)["done"] == 2
     status = batch.run_tasks(classical, fake, tmp_path, st.run_id, **kw)
@@ -109,7 +119,7 @@ def test_breathing_runs_are_keyed_on_their_parameters(tmp_path):
         ran.append(task["run_id"])
         return {"run_id": task["run_id"], "task": task, "rate": task["rate_per_min"]}
 
-    ident = lambda t: t["run_id"]   # noqa: E731
+    ident = lambda t: t["run_id"]  # noqa: E731
     batch.run_tasks(slow, fake, tmp_path, ident, workers=0, progress=False)
     ran.clear()
     status = batch.run_tasks(fast, fake, tmp_path, ident, workers=0, progress=False)
@@ -122,37 +132,62 @@ def test_settings_of_refuses_a_mix():
     a = {"task": _task(), "inputs_sha256": "x"}
     b = {"task": _task(segmenter="classical"), "inputs_sha256": "x"}
     assert st.settings_of([a, a])["segmenter"] == "oracle"
-    with pytest.raises(st.MixedSettingsError, match=r"segmenter: 'oracle' \(2 runs\), "
-                                                     r"'classical' \(1 runs\)"):
+    with pytest.raises(
+        st.MixedSettingsError,
+        match=r"segmenter: 'oracle' \(2 runs\), "
+        r"'classical' \(1 runs\)",
+    ):
         st.settings_of([a, a, b], "er-sweep")
 
 
 def _fake_run(calls):
     """A stand-in for run_task (workers 0 runs it in this process): errors that depend on
     the task's segmenter, ER and patient, and the record a real run carries."""
+
     def run(task):
         calls.append(st.run_id(task))
         k = int(task["patient"].split(":")[1])
         bump = 10.0 if task["segmenter"] == "classical" else 0.0
         e = 1.0 + 0.1 * k + bump + (6.0 + 0.7 * k) * (1.0 - task["er"])
-        return {"run_id": st.run_id(task), "task": task, "mode": "kinematic",
-                "patient": task["patient"], "er": task["er"], "start": task["start"],
-                "er_unit": task["er_unit"], "kidney_length_mm": 110.0, "points": 100,
-                "e_trans_mm": e, "e_rot_x_deg": e + 0.5, "registration_ms": 1.0,
-                "inputs_sha256": st.task_inputs_digest(task)}
+        return {
+            "run_id": st.run_id(task),
+            "task": task,
+            "mode": "kinematic",
+            "patient": task["patient"],
+            "er": task["er"],
+            "start": task["start"],
+            "er_unit": task["er_unit"],
+            "kidney_length_mm": 110.0,
+            "points": 100,
+            "e_trans_mm": e,
+            "e_rot_x_deg": e + 0.5,
+            "registration_ms": 1.0,
+            "inputs_sha256": st.task_inputs_digest(task),
+        }
+
     return run
 
 
-def test_rerun_with_other_settings_runs_again_and_labels_from_runs(tmp_path, capsys,
-                                                                   monkeypatch):
+def test_rerun_with_other_settings_runs_again_and_labels_from_runs(tmp_path, capsys, monkeypatch):
     """The observed case: er-sweep with oracle/seed, then --segmenter classical --method
     deformable. Before: "4 already done", labelled classical/deformable. Now: all run again,
     labelled by the runs; back to oracle/seed: nothing runs."""
     calls = []
     monkeypatch.setattr(study_cli, "run_task", _fake_run(calls))
     out = tmp_path / "sweep"
-    argv = ["study", "er-sweep", "--patients", "test:0-2", "--ers", "0.6,1", "--workers", "0",
-            "--no-progress", "--out", str(out)]
+    argv = [
+        "study",
+        "er-sweep",
+        "--patients",
+        "test:0-2",
+        "--ers",
+        "0.6,1",
+        "--workers",
+        "0",
+        "--no-progress",
+        "--out",
+        str(out),
+    ]
     assert main(argv) == 0
     capsys.readouterr()
     calls.clear()
@@ -163,13 +198,14 @@ def test_rerun_with_other_settings_runs_again_and_labels_from_runs(tmp_path, cap
     assert "6 stored run(s) of the same name were made with other settings" in err
     runs = batch.load_results(out)
     assert {(r["task"]["segmenter"], r["task"]["method"]) for r in runs} == {
-        ("classical", "deformable")}
+        ("classical", "deformable")
+    }
     saved = json.loads((out / "er_sweep.json").read_text())
     assert saved["settings"]["segmenter"] == "classical"
-    assert saved["floor"]["e_trans_mm"][0] > 10          # the classical runs' values
+    assert saved["floor"]["e_trans_mm"][0] > 10  # the classical runs' values
     meta = json.loads((out / "study_er-sweep.json").read_text())
     assert meta["settings_from"] == "runs" and meta["method"] == "deformable"
-    assert len(meta["invocations"]) == 1                  # a new history for new settings
+    assert len(meta["invocations"]) == 1  # a new history for new settings
     report = (out / "report.md").read_text()
     assert "Segmenter: `classical`" in report and "`deformable`" in report
     assert "ER-100% floor (n = 3)" in report and "TOST" in report
@@ -182,9 +218,26 @@ def test_critical_er_of_other_settings_is_not_used(tmp_path, capsys, monkeypatch
     calls = []
     monkeypatch.setattr(study_cli, "run_task", _fake_run(calls))
     out = tmp_path / "sweep"
-    assert main(["study", "er-sweep", "--patients", "test:0-3", "--ers", "0.6,0.9,1",
-                 "--segmenter", "classical", "--workers", "0", "--no-progress",
-                 "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "study",
+                "er-sweep",
+                "--patients",
+                "test:0-3",
+                "--ers",
+                "0.6,0.9,1",
+                "--segmenter",
+                "classical",
+                "--workers",
+                "0",
+                "--no-progress",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
     classical = study_cli._expected_settings(st.StudyOptions(segmenter="classical"))
     oracle = study_cli._expected_settings(st.StudyOptions())
@@ -198,8 +251,19 @@ def test_other_mode_side_by_side_only_of_one_setting(tmp_path, capsys, monkeypat
     calls = []
     monkeypatch.setattr(study_cli, "run_task", _fake_run(calls))
     out = tmp_path / "both"
-    common = ["study", "er-sweep", "--ers", "0.6,1", "--mode", "closed-loop", "--workers", "0",
-              "--no-progress", "--out", str(out)]
+    common = [
+        "study",
+        "er-sweep",
+        "--ers",
+        "0.6,1",
+        "--mode",
+        "closed-loop",
+        "--workers",
+        "0",
+        "--no-progress",
+        "--out",
+        str(out),
+    ]
     assert main(common + ["--patients", "test:0-2"]) == 0
     assert main(common + ["--patients", "test:3-5", "--segmenter", "classical"]) == 0
     capsys.readouterr()
@@ -222,6 +286,6 @@ def test_a_run_records_its_provenance_and_repeats_from_its_record():
     assert "random_seed" in p["seeds"] and p["packages"]["numpy"]
     assert "commit" in p and p["scenario_name"] == "default"
     assert r["inputs_sha256"] == st.task_inputs_digest(task)
-    again = st.run_task(json.loads(json.dumps(r["task"])))     # the record's own task
+    again = st.run_task(json.loads(json.dumps(r["task"])))  # the record's own task
     assert again["e_trans_mm"] == r["e_trans_mm"] and math.isfinite(r["e_trans_mm"])
     assert again["e_rot_x_deg"] == r["e_rot_x_deg"]

@@ -57,7 +57,7 @@ def test_minimum_sample_size_is_a_power_calculation():
     assert n == 15
     assert an.paired_t_power(an.MIN_N_EFFECT, n - 1) < an.MIN_N_POWER
     assert an.paired_t_power(an.MIN_N_EFFECT, n) >= an.MIN_N_POWER
-    assert an.paired_n_for_power(0.5) == 34        # G*Power: 34 pairs for d_z 0.5
+    assert an.paired_n_for_power(0.5) == 34  # G*Power: 34 pairs for d_z 0.5
     assert an.paired_n_for_power(0.0) is None
     assert "15 patients" in an.minimum_patients_text()
 
@@ -82,10 +82,10 @@ def test_tost_size_at_the_margin_by_simulation():
     # A true difference on the margin is declared equivalent at most alpha of the time
     # (about alpha), well inside it almost always.
     rng = np.random.default_rng(3)
-    on = np.mean([an.tost_paired(rng.normal(5.0, 3.0, 15), 5.0)["equivalent"]
-                  for _ in range(2000)])
-    inside = np.mean([an.tost_paired(rng.normal(0.5, 3.0, 15), 5.0)["equivalent"]
-                      for _ in range(500)])
+    on = np.mean([an.tost_paired(rng.normal(5.0, 3.0, 15), 5.0)["equivalent"] for _ in range(2000)])
+    inside = np.mean(
+        [an.tost_paired(rng.normal(0.5, 3.0, 15), 5.0)["equivalent"] for _ in range(500)]
+    )
     assert on <= 0.05 + 3 * math.sqrt(0.05 * 0.95 / 2000)
     assert inside > 0.9
 
@@ -112,10 +112,16 @@ def _sweep(floor_sd, n, shift=3.0, seed=0, ers=(0.6, 1.0)):
         ref_t, ref_r = 1.3 + abs(rng.normal(0, floor_sd)), 1.5 + abs(rng.normal(0, floor_sd))
         for er in ers:
             d = 0.0 if er == 1.0 else shift
-            out.append({"patient": f"test:{k}", "er": er,
-                        "e_trans_mm": ref_t + d + (0 if er == 1.0 else rng.normal(0, floor_sd)),
-                        "e_rot_x_deg": ref_r + d + (0 if er == 1.0 else rng.normal(0, floor_sd)),
-                        "registration_ms": 1.0, "points": 10})
+            out.append(
+                {
+                    "patient": f"test:{k}",
+                    "er": er,
+                    "e_trans_mm": ref_t + d + (0 if er == 1.0 else rng.normal(0, floor_sd)),
+                    "e_rot_x_deg": ref_r + d + (0 if er == 1.0 else rng.normal(0, floor_sd)),
+                    "registration_ms": 1.0,
+                    "points": 10,
+                }
+            )
     return out
 
 
@@ -133,7 +139,8 @@ def test_a_tight_floor_makes_the_same_difference_significant():
     assert t60["equivalent_e_trans_mm"] and t60["equivalent_e_rot_x_deg"]
     assert tight["equivalence_er"] == 0.6
     assert tight["floor"]["e_trans_mm"][0] == pytest.approx(
-        np.mean([r["e_trans_mm"] for r in _sweep(0.5, 15) if r["er"] == 1.0]))
+        np.mean([r["e_trans_mm"] for r in _sweep(0.5, 15) if r["er"] == 1.0])
+    )
     assert tight["patients"] == 15 and not tight["below_minimum"]
     assert an.sample_size_warning(tight) is None
 

@@ -29,7 +29,7 @@ def test_bound_workers_caps_at_cpus_and_memory(monkeypatch):
     assert n == 2 and "capped at 2" in note and "2.5 GB of memory available" in note
     assert batch.bound_workers(0) == (0, None)
     monkeypatch.setattr(batch, "available_memory_bytes", lambda: 1 << 20)
-    assert batch.bound_workers(4)[0] == 1          # at least one worker
+    assert batch.bound_workers(4)[0] == 1  # at least one worker
     with pytest.raises(ValueError, match="--workers: expected 0 or more"):
         batch.bound_workers(-1)
     assert batch.available_cpus() >= 1
@@ -54,8 +54,9 @@ def test_local_cluster_listens_on_localhost_only(tmp_path):
         seen.extend(_listening([me] + me.children(recursive=True)))
 
     tasks = [{"id": "a"}, {"id": "b"}]
-    status = batch.run_tasks(tasks, dict, tmp_path, lambda t: t["id"], workers=1,
-                             progress=False, on_result=look)
+    status = batch.run_tasks(
+        tasks, dict, tmp_path, lambda t: t["id"], workers=1, progress=False, on_result=look
+    )
     assert status["done"] == 2 and seen
     assert {a.ip for a in seen} == {"127.0.0.1"}, seen
     assert len(batch.load_results(tmp_path)) == 2
@@ -95,14 +96,33 @@ def test_ctrl_c_ends_the_study_and_its_workers(tmp_path):
     (tmp_path / "slow_run.py").write_text(SLOW_RUN)
     (tmp_path / "study.py").write_text(STUDY)
     out = tmp_path / "study"
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
-        [str(tmp_path), str(ROOT), os.environ.get("PYTHONPATH", "")]))
+    env = dict(
+        os.environ,
+        PYTHONPATH=os.pathsep.join([str(tmp_path), str(ROOT), os.environ.get("PYTHONPATH", "")]),
+    )
     proc = subprocess.Popen(
-        [sys.executable, str(tmp_path / "study.py"), "study", "er-sweep", "--patients",
-         "test:0-2", "--ers", "0.6,1", "--workers", "100000", "--out", str(out)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=str(tmp_path),
+        [
+            sys.executable,
+            str(tmp_path / "study.py"),
+            "study",
+            "er-sweep",
+            "--patients",
+            "test:0-2",
+            "--ers",
+            "0.6,1",
+            "--workers",
+            "100000",
+            "--out",
+            str(out),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        cwd=str(tmp_path),
         start_new_session=True,
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     err_lines, rest = [], ""
     try:
         # Wait until the first run has finished: the workers are up and busy.
@@ -133,4 +153,4 @@ def test_ctrl_c_ends_the_study_and_its_workers(tmp_path):
     assert "Traceback" not in stderr, stderr
     runs = sorted((out / "runs").glob("*.json"))
     assert [p.name for p in runs] == ["er-sweep__test-0__erk100.json"]
-    assert json.loads(runs[0].read_text())["e_trans_mm"] == 1.0      # a whole file
+    assert json.loads(runs[0].read_text())["e_trans_mm"] == 1.0  # a whole file

@@ -10,16 +10,24 @@ from pydrake.math import RigidTransform, RotationMatrix
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from drake_rus.anatomy.canonical_frame import mesh_canonical_frame
 from drake_rus.anatomy.kidney_shape import KidneyShape, sample_kidney_shape_params
 from drake_rus.anatomy.rasterize import mesh_mask_on_aligned_grid
 from drake_rus.cli import main as cli_main
 from drake_rus.template import load_template
-from drake_rus.template.builder import (align_to_reference, build_template, convergence,
-                                        correspond, farthest_point_sampling, mean_shape,
-                                        save_template, shape_model, subject_from_mask,
-                                        subject_from_mesh)
+from drake_rus.template.builder import (
+    align_to_reference,
+    build_template,
+    convergence,
+    correspond,
+    farthest_point_sampling,
+    mean_shape,
+    save_template,
+    shape_model,
+    subject_from_mask,
+    subject_from_mesh,
+)
 from drake_rus.template.io import DEFAULT_TEMPLATE_PATH
-from drake_rus.anatomy.canonical_frame import mesh_canonical_frame
 
 
 def test_mean_shape_is_eq15():
@@ -33,10 +41,15 @@ def test_mean_shape_is_eq15():
 def test_shape_model_recovers_planted_modes():
     rng = np.random.default_rng(1)
     base = rng.standard_normal((50, 3))
-    m1 = rng.standard_normal((50, 3)); m1 /= np.linalg.norm(m1)
-    m2 = rng.standard_normal((50, 3)); m2 -= (m2.ravel() @ m1.ravel()) * m1; m2 /= np.linalg.norm(m2)
+    m1 = rng.standard_normal((50, 3))
+    m1 /= np.linalg.norm(m1)
+    m2 = rng.standard_normal((50, 3))
+    m2 -= (m2.ravel() @ m1.ravel()) * m1
+    m2 /= np.linalg.norm(m2)
     b = rng.standard_normal((40, 2)) * [3.0, 1.0]
-    shapes = base + b[:, :1, None] * m1 + b[:, 1:, None] * m2 + 1e-3 * rng.standard_normal((40, 50, 3))
+    shapes = (
+        base + b[:, :1, None] * m1 + b[:, 1:, None] * m2 + 1e-3 * rng.standard_normal((40, 50, 3))
+    )
     mean, modes, var, frac = shape_model(shapes, keep=0.95)
     assert len(var) == 2
     assert abs(modes[0].ravel() @ m1.ravel()) > 0.99
@@ -71,7 +84,7 @@ def test_alignment_recovers_known_transform():
     ref_p, ref_n = sub.points[idx], sub.normals[idx]
     R = Rotation.from_rotvec([0.08, -0.05, 0.1]).as_matrix()
     t = np.array([0.004, -0.003, 0.002])
-    src_p = (ref_p - t) @ R          # ref = R src + t
+    src_p = (ref_p - t) @ R  # ref = R src + t
     src_n = ref_n @ R
     T, info = align_to_reference(src_p, src_n, ref_p, ref_n, use_features=True, seed=0)
     np.testing.assert_allclose(T[:3, :3], R, atol=2e-3)
@@ -98,7 +111,9 @@ def test_template_reproduces_known_correspondence_mean():
         shape = KidneyShape(sample_kidney_shape_params(rng))
         m = shape.mesh.copy()
         R = Rotation.random(random_state=i).as_matrix()
-        m.apply_transform(RigidTransform(RotationMatrix(R), rng.uniform(-0.2, 0.2, 3)).GetAsMatrix4())
+        m.apply_transform(
+            RigidTransform(RotationMatrix(R), rng.uniform(-0.2, 0.2, 3)).GetAsMatrix4()
+        )
         x_ref, y_ref = R[:, 0], R[:, 1]
         X_SK = mesh_canonical_frame(m, x_ref, y_ref)
         truth.append(X_SK.inverse().multiply(m.vertices.T).T)
@@ -106,7 +121,8 @@ def test_template_reproduces_known_correspondence_mean():
         subjects.append(subject_from_mask(mask, X_SV, 0.001, x_ref, y_ref, name=str(i)))
     true_mean = trimesh.Trimesh(np.mean(truth, axis=0), shape.mesh.faces, process=False)
     true_mean.apply_transform(
-        mesh_canonical_frame(true_mean, [1, 0, 0], [0, 1, 0]).inverse().GetAsMatrix4())
+        mesh_canonical_frame(true_mean, [1, 0, 0], [0, 1, 0]).inverse().GetAsMatrix4()
+    )
     res = build_template(subjects, n_points=1500, progress=False)
     # No registration between template and truth: both in their canonical frames.
     _, d, _ = trimesh.proximity.closest_point(true_mean, res.points)
@@ -121,11 +137,15 @@ def test_template_reproduces_known_correspondence_mean():
 
 def test_save_load_round_trip(tmp_path):
     rng = np.random.default_rng(4)
-    subjects = [subject_from_mesh(KidneyShape(sample_kidney_shape_params(rng)).mesh,
-                                  [1, 0, 0], [0, 1, 0], name=str(i)) for i in range(3)]
+    subjects = [
+        subject_from_mesh(
+            KidneyShape(sample_kidney_shape_params(rng)).mesh, [1, 0, 0], [0, 1, 0], name=str(i)
+        )
+        for i in range(3)
+    ]
     res = build_template(subjects, n_points=400, refine_passes=1, progress=False)
     out = save_template(res, tmp_path / "t.npz", {"note": "test"})
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["t.json", "t.npz"]   # no temporaries
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["t.json", "t.npz"]  # no temporaries
     assert json.loads((tmp_path / "t.json").read_text())["note"] == "test"
     t = load_template(out)
     np.testing.assert_allclose(t.points, res.points)
@@ -159,8 +179,21 @@ def test_shipped_template():
 
 def test_cli_template_build_small(tmp_path, capsys):
     out = tmp_path / "t.npz"
-    rc = cli_main(["template", "build", "--n", "3", "--points", "300", "--voxel-mm", "2",
-                   "--out", str(out), "--quiet"])
+    rc = cli_main(
+        [
+            "template",
+            "build",
+            "--n",
+            "3",
+            "--points",
+            "300",
+            "--voxel-mm",
+            "2",
+            "--out",
+            str(out),
+            "--quiet",
+        ]
+    )
     assert rc == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["n_subjects"] == 3 and out.is_file()

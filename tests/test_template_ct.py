@@ -29,7 +29,7 @@ KITS = REPO_ROOT.parent / "shared" / "anatomy" / "kits19"
 # The mean kidney: an ellipsoid (semi-axes, m) with a bump at its superior-lateral-anterior
 # octant, so every sign of the canonical frame shows.
 MEAN_AXES = np.array([0.055, 0.030, 0.020])
-BUMP = (np.array([0.55, 0.6, 0.55]), 0.012)      # centre in units of the semi-axes, radius m
+BUMP = (np.array([0.55, 0.6, 0.55]), 0.012)  # centre in units of the semi-axes, radius m
 # Deviations of the subjects' semi-axes (m), symmetric about zero: their mean is MEAN_AXES.
 # (Larger spreads shorten the mean: kNN correspondence cannot reach the pole of a kidney
 # longer than the reference by more than its pole's radius of curvature, ~7 mm; 4 kidneys
@@ -72,18 +72,26 @@ def _synthetic_kidney(k, axes, side, R_BdV, spacing, tilt, name):
     n = np.ceil(2 * half / np.asarray(spacing)).astype(int) + 1
     idx = np.indices(n).reshape(3, -1).T
     p_V = idx * spacing - half
-    p_K = (p_V @ R_BdV.T) @ R_BdK                    # V -> Bd -> K
-    if side == "left":                               # mirror image of a right kidney
+    p_K = (p_V @ R_BdV.T) @ R_BdK  # V -> Bd -> K
+    if side == "left":  # mirror image of a right kidney
         p_K[:, 2] *= -1
     mask = _inside_K(p_K, axes).reshape(n)
     X_BdV = RigidTransform(RotationMatrix(R_BdV), R_BdV @ -half)
-    return ct.CtKidney(name=name, case=f"case_{k:05d}", side=side, kidney=mask,
-                       tumour=np.zeros_like(mask), spacing=tuple(spacing), X_BdV=X_BdV)
+    return ct.CtKidney(
+        name=name,
+        case=f"case_{k:05d}",
+        side=side,
+        kidney=mask,
+        tumour=np.zeros_like(mask),
+        spacing=tuple(spacing),
+        X_BdV=X_BdV,
+    )
 
 
 def _mean_shape_points(step=0.0005):
     """Surface-ish samples of the mean kidney in its canonical frame (boundary voxels)."""
     from scipy import ndimage
+
     r = MEAN_AXES.max() + BUMP[1] + 0.003
     g = np.arange(-r, r, step)
     P = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
@@ -106,16 +114,21 @@ def test_template_of_synthetic_kidneys_has_the_known_mean_and_frame_signs():
         side = ("right", "left")[i % 2]
         R_BdV = perms[int(rng.integers(len(perms)))]
         tilt = rng.normal(0, 0.2, 3)
-        kidneys.append(_synthetic_kidney(i, MEAN_AXES + d, side, R_BdV, spacings[i % 3],
-                                         tilt, f"synthetic:{i}:{side}"))
-    subjects = [ct.subject_from_ct_kidney(k, "exclude", voxel=0.0015,
-                                          mirror=(k.side == "left")) for k in kidneys]
+        kidneys.append(
+            _synthetic_kidney(
+                i, MEAN_AXES + d, side, R_BdV, spacings[i % 3], tilt, f"synthetic:{i}:{side}"
+            )
+        )
+    subjects = [
+        ct.subject_from_ct_kidney(k, "exclude", voxel=0.0015, mirror=(k.side == "left"))
+        for k in kidneys
+    ]
     result = build_template(subjects, n_points=700, progress=False)
     mean = _mean_shape_points()
     # The mean shape's extents along its own canonical axes (the bump tilts them a little).
     X = ct.principal_extents(mean)
     np.testing.assert_allclose(np.ptp(result.points, axis=0), X, atol=0.0015)
-    assert ct.template_distance(result.points, mean) < 0.002     # 800 points: ~1.2 mm floor
+    assert ct.template_distance(result.points, mean) < 0.002  # 800 points: ~1.2 mm floor
     # The bump's apex (10 mm from the mean shape rotated 180 deg about any axis) is on the
     # template: x_k superior, y_k lateral, z_k anterior (of a right kidney).
     apex = mean[np.argmax(np.sum((mean / MEAN_AXES) ** 2, axis=1))]
@@ -131,8 +144,9 @@ def test_subject_frame_signs_follow_the_body_not_the_grid():
     points (x_k superior, y_k lateral); a left kidney mirrored is the right one."""
     perms = _proper_signed_permutations()
     a = _synthetic_kidney(0, MEAN_AXES, "right", perms[0], (0.001,) * 3, np.zeros(3), "a")
-    b = _synthetic_kidney(0, MEAN_AXES, "right", perms[7], (0.002, 0.001, 0.0015),
-                          np.array([0.1, -0.2, 0.15]), "b")
+    b = _synthetic_kidney(
+        0, MEAN_AXES, "right", perms[7], (0.002, 0.001, 0.0015), np.array([0.1, -0.2, 0.15]), "b"
+    )
     c = _synthetic_kidney(0, MEAN_AXES, "left", perms[3], (0.001,) * 3, np.zeros(3), "c")
     pa, pb = (ct.subject_from_ct_kidney(k, voxel=0.0015).points for k in (a, b))
     pc = ct.subject_from_ct_kidney(c, voxel=0.0015, mirror=True).points
@@ -142,18 +156,27 @@ def test_subject_frame_signs_follow_the_body_not_the_grid():
 
 
 # ------------------------------------------------------------ tiny KiTS-layout label maps
-def _kits_label_map(path, *, spacing=(0.003, 0.0025, 0.0025), shape=(70, 120, 120),
-                    tumour_right=0.0, right_axes=MEAN_AXES, left_axes=MEAN_AXES,
-                    flip=(False, False, False), missing=None):
+def _kits_label_map(
+    path,
+    *,
+    spacing=(0.003, 0.0025, 0.0025),
+    shape=(70, 120, 120),
+    tumour_right=0.0,
+    right_axes=MEAN_AXES,
+    left_axes=MEAN_AXES,
+    flip=(False, False, False),
+    missing=None,
+):
     """Writes a KiTS-style label map: array (slice, row, column) with the slice index running
     inferiorly, the row posteriorly, the column to the patient's left (``flip`` reverses the
     slice, row and column axes). Two kidneys posterior of the centre, upper poles medial and
     posterior (lower poles lateral and anterior), a hilum notch facing anteromedially; a
     tumour ball on the right kidney of ``tumour_right`` of its volume."""
     import SimpleITK as sitk
+
     sp = np.asarray(spacing)
     idx = np.indices(shape).reshape(3, -1).T
-    p = idx * sp - (np.array(shape) - 1) * sp / 2        # centred, in (slice, row, column)
+    p = idx * sp - (np.array(shape) - 1) * sp / 2  # centred, in (slice, row, column)
     # Bd (x left, y superior, z anterior) of each voxel.
     P = np.column_stack([p[:, 2], -p[:, 0], -p[:, 1]])
     labels = np.zeros(len(P), np.uint8)
@@ -164,21 +187,25 @@ def _kits_label_map(path, *, spacing=(0.003, 0.0025, 0.0025), shape=(70, 120, 12
         centre = np.array([0.075 * lat, 0.0, -0.045])
         # Upper pole 12 deg medial, 20 deg posterior.
         tilt = Rotation.from_rotvec([np.radians(-20), 0, 0]) * Rotation.from_rotvec(
-            [0, 0, np.radians(12 * lat)])
-        R = tilt.as_matrix() @ np.column_stack([[0, 1.0, 0], [lat, 0, 0],
-                                                 np.cross([0, 1.0, 0], [lat, 0, 0])])
-        q = (P - centre) @ R                               # in the kidney's frame
+            [0, 0, np.radians(12 * lat)]
+        )
+        R = tilt.as_matrix() @ np.column_stack(
+            [[0, 1.0, 0], [lat, 0, 0], np.cross([0, 1.0, 0], [lat, 0, 0])]
+        )
+        q = (P - centre) @ R  # in the kidney's frame
         ell = np.sum((q / axes) ** 2, axis=1) <= 1.0
         # Hilum: a notch on the medial side, a little anterior (+z for the right kidney's
         # frame is anterior; the left kidney's z points posteriorly).
         z_ant = 1.0 if side == "right" else -1.0
-        notch = np.linalg.norm(q - np.array([0, -axes[1], 0.35 * axes[2] * z_ant]),
-                               axis=1) <= 0.45 * axes[1]
+        notch = (
+            np.linalg.norm(q - np.array([0, -axes[1], 0.35 * axes[2] * z_ant]), axis=1)
+            <= 0.45 * axes[1]
+        )
         inside = ell & ~notch
         labels[inside] = 1
         if side == "right" and tumour_right > 0:
             rad = (tumour_right * 4 / 3 * np.pi * np.prod(axes) * 3 / (4 * np.pi)) ** (1 / 3)
-            c = centre + R @ np.array([0, axes[1], 0])      # on the lateral border
+            c = centre + R @ np.array([0, axes[1], 0])  # on the lateral border
             labels[np.linalg.norm(P - c, axis=1) <= rad] = 2
     arr = labels.reshape(shape)
     if flip[0]:
@@ -194,15 +221,17 @@ def _kits_label_map(path, *, spacing=(0.003, 0.0025, 0.0025), shape=(70, 120, 12
     return path
 
 
-@pytest.mark.parametrize("flip", [(False, False, False), (True, False, True),
-                                  (False, True, True), (True, True, False)])
+@pytest.mark.parametrize(
+    "flip", [(False, False, False), (True, False, True), (False, True, True), (True, True, False)]
+)
 def test_kits_adapter_finds_the_body_axes_and_sides(tmp_path, flip):
     """Whichever way the axes are stored (rotated by 180 deg about any of them), the adapter
     finds superior, posterior and left from the kidneys' anatomy, names the kidneys by side,
     and measures the tumour. (A volume stored as a mirror image, one axis reversed, cannot
     be told from kidneys alone: see drake_rus.template.ct._kits_frame.)"""
-    path = _kits_label_map(tmp_path / "case_00001" / "segmentation.nii.gz", flip=flip,
-                           tumour_right=0.15)
+    path = _kits_label_map(
+        tmp_path / "case_00001" / "segmentation.nii.gz", flip=flip, tumour_right=0.15
+    )
     kidneys = {k.side: k for k in ct.kidney_masks(path)}
     assert set(kidneys) == {"right", "left"}
     rec = kidneys["right"].frame
@@ -216,8 +245,7 @@ def test_kits_adapter_finds_the_body_axes_and_sides(tmp_path, flip):
         assert k.cut == "" and k.anomaly == ""
     # In Bd the right kidney lies right of the left one (x_Bd to the patient's left) and the
     # kidneys' superior poles are superior (y_Bd).
-    c = {s: k.X_BdV.multiply((np.argwhere(k.kidney) * k.spacing).T) for s, k in
-         kidneys.items()}
+    c = {s: k.X_BdV.multiply((np.argwhere(k.kidney) * k.spacing).T) for s, k in kidneys.items()}
     assert c["right"].mean(axis=1)[0] < c["left"].mean(axis=1)[0]
     mid = 0.5 * (c["right"].mean(axis=1)[0] + c["left"].mean(axis=1)[0])
     for s, p in c.items():
@@ -233,8 +261,9 @@ def test_kits_adapter_errors_name_the_file(tmp_path):
     bad.write_bytes(b"not an image")
     with pytest.raises(ValueError, match="case_00009.*cannot read"):
         ct.kidney_masks(bad)
-    empty = _kits_label_map(tmp_path / "case_00010" / "segmentation.nii.gz",
-                            missing="right", right_axes=MEAN_AXES)
+    empty = _kits_label_map(
+        tmp_path / "case_00010" / "segmentation.nii.gz", missing="right", right_axes=MEAN_AXES
+    )
     assert [k.side for k in ct.kidney_masks(empty)] == ["left"]
     with pytest.raises(ValueError, match="not found"):
         ct.kidney_masks(tmp_path / "nothing.nii.gz")
@@ -243,10 +272,11 @@ def test_kits_adapter_errors_name_the_file(tmp_path):
 def test_kits_adapter_flags_fused_kidneys(tmp_path):
     """One labelled piece lying across the body (a horseshoe kidney) is no template subject."""
     import SimpleITK as sitk
+
     shape, sp = (50, 100, 120), np.array([0.004, 0.003, 0.003])
     p = np.indices(shape).reshape(3, -1).T * sp - (np.array(shape) - 1) * sp / 2
-    q = (p - [0.0, 0.04, 0.0]) / [0.03, 0.025, 0.11]          # long along the column axis
-    arr = (np.sum(q ** 2, axis=1) <= 1).astype(np.uint8).reshape(shape)
+    q = (p - [0.0, 0.04, 0.0]) / [0.03, 0.025, 0.11]  # long along the column axis
+    arr = (np.sum(q**2, axis=1) <= 1).astype(np.uint8).reshape(shape)
     img = sitk.GetImageFromArray(np.ascontiguousarray(arr.transpose(2, 1, 0)))
     img.SetSpacing(tuple(float(s) * 1000 for s in sp))
     path = tmp_path / "case_00001" / "segmentation.nii.gz"
@@ -254,29 +284,44 @@ def test_kits_adapter_flags_fused_kidneys(tmp_path):
     sitk.WriteImage(img, str(path))
     (kidney,) = ct.kidney_masks(path)
     assert "fused or horseshoe" in kidney.anomaly
-    assert ct._eligible({"cut": "", "anomaly": kidney.anomaly, "tumour_fraction": 0.0},
-                        ct.CtTemplateOptions()) == kidney.anomaly
+    assert (
+        ct._eligible(
+            {"cut": "", "anomaly": kidney.anomaly, "tumour_fraction": 0.0}, ct.CtTemplateOptions()
+        )
+        == kidney.anomaly
+    )
 
 
 def test_match_cases():
     names = [f"case_{k:05d}" for k in range(12)]
     assert ct.match_cases(names, "0-2, case_00007 5") == [
-        "case_00000", "case_00001", "case_00002", "case_00007", "case_00005"]
+        "case_00000",
+        "case_00001",
+        "case_00002",
+        "case_00007",
+        "case_00005",
+    ]
     assert ct.match_cases(names, ["3", "/x/case_00004/segmentation.nii.gz"]) == [
-        "case_00003", "case_00004"]
+        "case_00003",
+        "case_00004",
+    ]
     with pytest.raises(ct.CtTemplateError, match="backwards"):
         ct.match_cases(names, "5-2")
     # Patient specs: a generated patient has no case; a spec naming a case folder has.
-    assert ct._exclusions(names, ["test:0", "kits:/d/case_00004", "/d/case_00005/seg.nii.gz",
-                                  "7"]) == ["case_00004", "case_00005", "case_00007"]
+    assert ct._exclusions(
+        names, ["test:0", "kits:/d/case_00004", "/d/case_00005/seg.nii.gz", "7"]
+    ) == ["case_00004", "case_00005", "case_00007"]
 
 
 @pytest.fixture(scope="module")
 def _ct_dir_pristine(tmp_path_factory):
     d = tmp_path_factory.mktemp("kits")
     for k, tumour in enumerate((0.0, 0.0, 0.15, 0.0)):
-        _kits_label_map(d / f"case_{k:05d}" / "segmentation.nii.gz", tumour_right=tumour,
-                        right_axes=MEAN_AXES * (1 + 0.05 * (k - 1.5)))
+        _kits_label_map(
+            d / f"case_{k:05d}" / "segmentation.nii.gz",
+            tumour_right=tumour,
+            right_axes=MEAN_AXES * (1 + 0.05 * (k - 1.5)),
+        )
     return d
 
 
@@ -295,6 +340,7 @@ def builds(monkeypatch):
     def counting(subjects, **kw):
         calls.append([s.name for s in subjects])
         return real(subjects, **kw)
+
     monkeypatch.setattr(ct, "build_template", counting)
     return calls
 
@@ -310,8 +356,7 @@ def test_ct_template_cache_split_and_selection(ct_dir, builds):
     assert len(builds) == 1 and builds[0] == ["case_00003:right", "case_00001:right"]
     meta = load_template(p1).meta
     assert meta["cases"] == ["case_00001", "case_00003"]
-    assert [s["why"] for s in meta["skipped"] if s["case"] == "case_00002"][0].startswith(
-        "tumour")
+    assert [s["why"] for s in meta["skipped"] if s["case"] == "case_00002"][0].startswith("tumour")
     assert str(p1).startswith(str(ct.template_cache_dir())) and p1.with_suffix(".json").is_file()
     assert ct.ct_template(ct_dir, FAST) == p1 and len(builds) == 1
     # Excluding an unused case: the same kidneys, the same template.
@@ -324,19 +369,26 @@ def test_ct_template_cache_split_and_selection(ct_dir, builds):
     surveys = {c: ct.survey_label_map(p) for c, p in maps}
     selected, _ = ct.select_kidneys(maps[::-1], surveys, FAST)
     assert ct.ct_template_path(selected, FAST) == p1
-    for other in (dataclasses.replace(FAST, n_points=320), dataclasses.replace(FAST, side="both"),
-                  dataclasses.replace(FAST, tumour_policy="mask")):
+    for other in (
+        dataclasses.replace(FAST, n_points=320),
+        dataclasses.replace(FAST, side="both"),
+        dataclasses.replace(FAST, tumour_policy="mask"),
+    ):
         assert ct.ct_template_path(selected, other) != p1
     # The tumour policy "include" takes the tumour-bearing kidney; "both" the left ones too.
     include = dataclasses.replace(FAST, tumour_policy="include")
-    assert [(s["case"], s["side"]) for s in ct.select_kidneys(maps[::-1], surveys, include)[0]
-            ] == [("case_00003", "right"), ("case_00002", "right")]
+    assert [(s["case"], s["side"]) for s in ct.select_kidneys(maps[::-1], surveys, include)[0]] == [
+        ("case_00003", "right"),
+        ("case_00002", "right"),
+    ]
     both = dataclasses.replace(FAST, n=3, side="both")
-    assert [(s["case"], s["side"]) for s in ct.select_kidneys(maps[::-1], surveys, both)[0]
-            ] == [("case_00003", "right"), ("case_00003", "left"), ("case_00002", "left")]
+    assert [(s["case"], s["side"]) for s in ct.select_kidneys(maps[::-1], surveys, both)[0]] == [
+        ("case_00003", "right"),
+        ("case_00003", "left"),
+        ("case_00002", "left"),
+    ]
     # A used label map changes: rebuilt.
-    _kits_label_map(ct_dir / "case_00003" / "segmentation.nii.gz",
-                    right_axes=MEAN_AXES * 1.1)
+    _kits_label_map(ct_dir / "case_00003" / "segmentation.nii.gz", right_axes=MEAN_AXES * 1.1)
     p4 = ct.ct_template(ct_dir, FAST)
     assert p4 != p1 and len(builds) == 3
 
@@ -348,7 +400,7 @@ def test_split_is_checked(ct_dir, builds):
     seg3 = ct_dir / "case_00003" / "segmentation.nii.gz"
     assert ct.split_warnings(p, ["case_00000"]) == []
     assert len(ct.split_warnings(p, ["case_00003"])) == 1
-    assert len(ct.split_warnings(p, [str(seg3)])) == 1          # by the file's digest
+    assert len(ct.split_warnings(p, [str(seg3)])) == 1  # by the file's digest
     copy = ct_dir.parent / "elsewhere" / "mine.nii.gz"
     copy.parent.mkdir()
     copy.write_bytes(seg3.read_bytes())
@@ -383,10 +435,27 @@ def test_too_few_kidneys(ct_dir, builds):
 
 def test_cli_builds_from_ct_and_refuses_models(ct_dir, tmp_path, capsys, builds):
     out = tmp_path / "t" / "real.npz"
-    code = cli_main(["template", "build", "--from-ct", str(ct_dir), "--cases", "2",
-                     "--side", "both", "--points", "300", "--exclude-cases", "3",
-                     "--voxel-mm", "2",
-                     "--out", str(out), "--quiet"])
+    code = cli_main(
+        [
+            "template",
+            "build",
+            "--from-ct",
+            str(ct_dir),
+            "--cases",
+            "2",
+            "--side",
+            "both",
+            "--points",
+            "300",
+            "--exclude-cases",
+            "3",
+            "--voxel-mm",
+            "2",
+            "--out",
+            str(out),
+            "--quiet",
+        ]
+    )
     assert code == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["n_subjects"] == 2 and out.is_file()
@@ -396,25 +465,27 @@ def test_cli_builds_from_ct_and_refuses_models(ct_dir, tmp_path, capsys, builds)
     # One case, both kidneys (the left mirrored onto a right one).
     assert builds[-1] == ["case_00002:left (mirrored)", "case_00001:right"]
     for bad in (str(DEFAULT_TEMPLATE_PATH), str(REPO_ROOT / "models" / "real.npz")):
-        code = cli_main(["template", "build", "--from-ct", str(ct_dir), "--out", bad,
-                         "--quiet"])
+        code = cli_main(["template", "build", "--from-ct", str(ct_dir), "--out", bad, "--quiet"])
         err = capsys.readouterr().err
         assert code == 2 and "models/" in err and "never shipped" in err, err
     code = cli_main(["template", "build", "--from-ct", str(tmp_path / "nope"), "--quiet"])
     assert code == 2 and "--from-ct" in capsys.readouterr().err
-    code = cli_main(["template", "build", "--side", "both", "--quiet",
-                     "--out", str(tmp_path / "g.npz")])
+    code = cli_main(
+        ["template", "build", "--side", "both", "--quiet", "--out", str(tmp_path / "g.npz")]
+    )
     assert code == 2 and "--side both" in capsys.readouterr().err
 
 
 def test_scan_template_option_errors(tmp_path, capsys):
     """--template on the scan: a bad value stops before any work, naming --template."""
-    code = cli_main(["scan", "--template", f"real:{tmp_path / 'none'}", "--out",
-                     str(tmp_path / "scan")])
+    code = cli_main(
+        ["scan", "--template", f"real:{tmp_path / 'none'}", "--out", str(tmp_path / "scan")]
+    )
     err = capsys.readouterr().err
     assert code == 2 and "--template" in err and "not found" in err, err
-    code = cli_main(["scan", "--template", str(tmp_path / "missing.npz"), "--out",
-                     str(tmp_path / "scan")])
+    code = cli_main(
+        ["scan", "--template", str(tmp_path / "missing.npz"), "--out", str(tmp_path / "scan")]
+    )
     err = capsys.readouterr().err
     assert code == 2 and "--template" in err, err
     assert not (tmp_path / "scan").exists()
@@ -426,26 +497,34 @@ def test_scan_selects_the_template(ct_dir, builds, monkeypatch, capsys):
     from drake_rus.config_schema import ScenarioError
     from drake_rus.scan import cli as scan_cli
     from drake_rus.scenario import LoadScenario
-    monkeypatch.setattr(scan_cli, "resolve_template",
-                        functools.partial(ct.resolve_template, opts=FAST))
+
+    monkeypatch.setattr(
+        scan_cli, "resolve_template", functools.partial(ct.resolve_template, opts=FAST)
+    )
     scenario = LoadScenario()
     chosen = scan_cli.select_template(scenario, f"real:{ct_dir}", str(ct_dir / "case_00003"))
     assert "case_00003" not in load_template(chosen.localization.template).meta["cases"]
     with_3 = ct.ct_template(ct_dir, FAST)
     scan_cli.select_template(scenario, str(with_3), "kits:case_00003")
     assert "case_00003 helped build it" in capsys.readouterr().err
-    field = dataclasses.replace(scenario, localization=dataclasses.replace(
-        scenario.localization, template="generated"))
+    field = dataclasses.replace(
+        scenario, localization=dataclasses.replace(scenario.localization, template="generated")
+    )
     assert scan_cli.select_template(field, None, "test:0").localization.template == str(
-        DEFAULT_TEMPLATE_PATH)
-    bad = dataclasses.replace(scenario, localization=dataclasses.replace(
-        scenario.localization, template=f"real:{ct_dir / 'none'}"))
+        DEFAULT_TEMPLATE_PATH
+    )
+    bad = dataclasses.replace(
+        scenario,
+        localization=dataclasses.replace(scenario.localization, template=f"real:{ct_dir / 'none'}"),
+    )
     with pytest.raises(ScenarioError, match="localization.template.*not found"):
         scan_cli.select_template(bad, None, "test:0")
 
 
-@pytest.mark.skipif(not (KITS / "case_00139" / "segmentation.nii.gz").is_file(),
-                    reason=f"KiTS19 label maps not found at {KITS}")
+@pytest.mark.skipif(
+    not (KITS / "case_00139" / "segmentation.nii.gz").is_file(),
+    reason=f"KiTS19 label maps not found at {KITS}",
+)
 def test_real_kits_case_frame():
     """A real KiTS case: two kidneys, the slice axis inferior and the row axis posterior
     (the dataset's layout), every cue agreeing."""
@@ -453,5 +532,8 @@ def test_real_kits_case_frame():
     assert sorted(k.side for k in kidneys) == ["left", "right"]
     rec = kidneys[0].frame
     assert (rec["slice_axis"], rec["row_axis"], rec["column_axis"]) == (
-        "inferior", "posterior", "left")
+        "inferior",
+        "posterior",
+        "left",
+    )
     assert all(v > 0 for v in rec["cues"].values())

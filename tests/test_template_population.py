@@ -29,8 +29,7 @@ def _length_mm(template) -> float:
 
 
 def test_population_shape_params_shift_by_one_glodny_sd():
-    base, long, short, slim = (pop.parse_population(n) for n in ("base", "long", "short",
-                                                                   "slim"))
+    base, long, short, slim = (pop.parse_population(n) for n in ("base", "long", "short", "slim"))
     for k in range(5):
         b, lo, sh, sl = (pop.population_shape_params(p, k) for p in (base, long, short, slim))
         # The same person, 12.2 mm (Glodny 2009's SD) longer / shorter, with the allometry.
@@ -42,8 +41,11 @@ def test_population_shape_params_shift_by_one_glodny_sd():
         assert lo.bend == b.bend and lo.lobulation == b.lobulation
     # Other people than the training cohort: not the generator's train:0 kidney.
     from drake_rus.anatomy.generator import sample_patient_params
-    assert sample_patient_params(1_000_000).kidney.length != pop.population_shape_params(
-        base, 0).length
+
+    assert (
+        sample_patient_params(1_000_000).kidney.length
+        != pop.population_shape_params(base, 0).length
+    )
     assert pop.parse_population("length-2sd").length_shift() == pytest.approx(-0.0244)
 
 
@@ -70,18 +72,22 @@ def test_population_template_size_and_cache(template_cache):
     assert pop.population_template_path("long", n=4) != path
     # Unit normals, outward like the mean template's (same canonical frame).
     np.testing.assert_allclose(np.linalg.norm(long.normals, axis=1), 1.0, atol=1e-6)
-    _, idx = __import__("scipy.spatial", fromlist=["cKDTree"]).cKDTree(mean.points).query(
-        long.points)
+    _, idx = (
+        __import__("scipy.spatial", fromlist=["cKDTree"]).cKDTree(mean.points).query(long.points)
+    )
     assert np.mean(np.sum(long.normals * mean.normals[idx], axis=1)) > 0.8
 
 
-@pytest.mark.parametrize("variant, words", [
-    ("population:huge", ["template variant 'population:huge'", "population", "long"]),
-    ("population:long:0", ["template variant 'population:long:0'", "subjects"]),
-    ("population:", ["template variant 'population:'", "population:NAME"]),
-    ("scale-0", ["template variant 'scale-0'", "scale"]),
-    ("median", ["template variant", "population:NAME", "'median'"]),
-])
+@pytest.mark.parametrize(
+    "variant, words",
+    [
+        ("population:huge", ["template variant 'population:huge'", "population", "long"]),
+        ("population:long:0", ["template variant 'population:long:0'", "subjects"]),
+        ("population:", ["template variant 'population:'", "population:NAME"]),
+        ("scale-0", ["template variant 'scale-0'", "scale"]),
+        ("median", ["template variant", "population:NAME", "'median'"]),
+    ],
+)
 def test_bad_variant_is_named(variant, words):
     with pytest.raises(ValueError) as e:
         st.template_tasks(["test:0"], st.StudyOptions(), 0.6, [variant])
@@ -90,16 +96,57 @@ def test_bad_variant_is_named(variant, words):
 
 
 def test_bad_variant_and_posture_on_the_command_line(tmp_path, capsys):
-    assert main(["study", "template", "--patients", "test:0", "--variants",
-                 "mean,population:huge", "--workers", "0", "--out", str(tmp_path / "a")]) == 2
+    assert (
+        main(
+            [
+                "study",
+                "template",
+                "--patients",
+                "test:0",
+                "--variants",
+                "mean,population:huge",
+                "--workers",
+                "0",
+                "--out",
+                str(tmp_path / "a"),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert "--variants" in err and "population:huge" in err
-    assert main(["study", "template", "--patients", "test:0@sideways", "--workers", "0",
-                 "--out", str(tmp_path / "b")]) == 2
+    assert (
+        main(
+            [
+                "study",
+                "template",
+                "--patients",
+                "test:0@sideways",
+                "--workers",
+                "0",
+                "--out",
+                str(tmp_path / "b"),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert "--patients" in err and "@sideways" in err
-    assert main(["study", "starts", "--patients", "test:0@decubitus", "--workers", "0",
-                 "--out", str(tmp_path / "c")]) == 2
+    assert (
+        main(
+            [
+                "study",
+                "starts",
+                "--patients",
+                "test:0@decubitus",
+                "--workers",
+                "0",
+                "--out",
+                str(tmp_path / "c"),
+            ]
+        )
+        == 2
+    )
     assert "only read by study template" in capsys.readouterr().err
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
 
@@ -107,14 +154,18 @@ def test_bad_variant_and_posture_on_the_command_line(tmp_path, capsys):
 def test_real_body_tasks_posture_and_run_ids():
     patients = st.expand_patients(f"test:0-1,{VH},{VH}@decubitus")
     assert patients == ["test:0", "test:1", VH, VH + "@decubitus"]
-    tasks = st.template_tasks(patients, st.StudyOptions(posture="supine"), 0.6,
-                              ["mean", "population:long", "loo"])
+    tasks = st.template_tasks(
+        patients, st.StudyOptions(posture="supine"), 0.6, ["mean", "population:long", "loo"]
+    )
     real = [t for t in tasks if t["patient"] == VH]
     # loo is for training patients only; the real body gets mean and population, both
     # postures, with distinct run ids.
     assert sorted((t["template_variant"], t["posture"]) for t in real) == [
-        ("mean", "left_lateral_decubitus"), ("mean", "supine"),
-        ("population:long", "left_lateral_decubitus"), ("population:long", "supine")]
+        ("mean", "left_lateral_decubitus"),
+        ("mean", "supine"),
+        ("population:long", "left_lateral_decubitus"),
+        ("population:long", "supine"),
+    ]
     ids = [st.run_id(t) for t in tasks]
     assert len(ids) == len(set(ids)) == 8
     assert any(i.endswith("shared-anatomy-hubmap-vh-female__erk060__t-mean__lld") for i in ids)
@@ -124,6 +175,7 @@ def test_real_body_tasks_posture_and_run_ids():
 @pytest.fixture(scope="module")
 def vh_female():
     from drake_rus.anatomy import load_patient
+
     return load_patient(VH, voxel_size=0.002, progress=False)
 
 
@@ -132,6 +184,7 @@ def test_template_distance_on_the_real_kidney(vh_female):
     docs/facts) in its canonical frame, the mean template about 5 mm from it, a template
     further off in size further away (the record the study plots)."""
     from drake_rus.scenario import LoadScenario
+
     X_BPt = LoadScenario().patient.X_BPt.GetDeterministicValue()
     kp = types.SimpleNamespace(patient=vh_female, X_BPt=X_BPt, X_BK_true=vh_female.X_BK(X_BPt))
     rec = st.template_record("mean", st.template_variant(None, "mean"), kp, "supine", VH)
@@ -139,17 +192,35 @@ def test_template_distance_on_the_real_kidney(vh_female):
     assert rec["kidney_extent_mm"][0] == pytest.approx(112.5, abs=1.5)
     assert rec["template_extent_mm"][0] == pytest.approx(106.7, abs=0.5)
     assert 3.0 < rec["template_distance_mm"] < 7.0
-    small = st.template_record("scale-0.8", st.template_variant(None, "scale-0.8"), kp,
-                               "supine", VH)
+    small = st.template_record(
+        "scale-0.8", st.template_variant(None, "scale-0.8"), kp, "supine", VH
+    )
     assert small["template_distance_mm"] > rec["template_distance_mm"] + 2.0
     # The analysis puts the real body in its own group beside the generated patients.
-    runs = [dict(rec, patient=VH, er=0.6, e_trans_mm=7.8, e_rot_x_deg=16.0),
-            dict(small, patient=VH, er=0.6, e_trans_mm=12.0, e_rot_x_deg=22.0),
-            dict(rec, patient=VH, er=0.6, e_trans_mm=9.0, e_rot_x_deg=30.0,
-                 posture="left_lateral_decubitus")]
-    runs += [{"patient": f"test:{k}", "er": 0.6, "template_variant": v,
-              "template_distance_mm": d + 0.1 * k, "e_trans_mm": d + k, "e_rot_x_deg": 2.0 + k}
-             for k in range(3) for v, d in (("mean", 2.0), ("population:long", 3.0))]
+    runs = [
+        dict(rec, patient=VH, er=0.6, e_trans_mm=7.8, e_rot_x_deg=16.0),
+        dict(small, patient=VH, er=0.6, e_trans_mm=12.0, e_rot_x_deg=22.0),
+        dict(
+            rec,
+            patient=VH,
+            er=0.6,
+            e_trans_mm=9.0,
+            e_rot_x_deg=30.0,
+            posture="left_lateral_decubitus",
+        ),
+    ]
+    runs += [
+        {
+            "patient": f"test:{k}",
+            "er": 0.6,
+            "template_variant": v,
+            "template_distance_mm": d + 0.1 * k,
+            "e_trans_mm": d + k,
+            "e_rot_x_deg": 2.0 + k,
+        }
+        for k in range(3)
+        for v, d in (("mean", 2.0), ("population:long", 3.0))
+    ]
     an = analysis.analyze_template(runs)
     assert an["groups"] == ["generated", "hubmap_vh_female", "hubmap_vh_female, decubitus"]
     real_rows = [r for r in an["rows"] if r["group"] == "hubmap_vh_female"]
@@ -163,15 +234,35 @@ def test_template_distance_on_the_real_kidney(vh_female):
 
 def test_cli_template_build_population(tmp_path, capsys):
     out = tmp_path / "long.npz"
-    assert main(["template", "build", "--population", "long", "--n", "2", "--points", "300",
-                 "--voxel-mm", "2", "--out", str(out), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "template",
+                "build",
+                "--population",
+                "long",
+                "--n",
+                "2",
+                "--points",
+                "300",
+                "--voxel-mm",
+                "2",
+                "--out",
+                str(out),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     import json
+
     summary = json.loads(capsys.readouterr().out)
     assert summary["n_subjects"] == 2 and summary["source"] == "population:long"
     # The sampled lengths: the first two population kidneys, each 12.2 mm longer.
     base = [pop.population_shape_params(pop.POPULATIONS["base"], k).length for k in (0, 1)]
-    assert summary["sampled_length_mm"]["mean"] == pytest.approx(np.mean(base) * 1e3 + 12.2,
-                                                                 abs=0.01)
+    assert summary["sampled_length_mm"]["mean"] == pytest.approx(
+        np.mean(base) * 1e3 + 12.2, abs=0.01
+    )
     assert (tmp_path / "long_convergence.png").is_file()
     assert main(["template", "build", "--population", "huge", "--out", str(out)]) == 2
     err = capsys.readouterr().err

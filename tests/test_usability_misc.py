@@ -13,6 +13,7 @@ from drake_rus.scenario import ApplyOverrides, LoadScenario
 
 def test_default_scenario_has_no_rate_warning(caplog):
     from drake_rus.hardware.station import _check_rates
+
     with caplog.at_level(logging.WARNING):
         _check_rates(LoadScenario(scenario_name="hardware"))
         _check_rates(LoadScenario())
@@ -21,6 +22,7 @@ def test_default_scenario_has_no_rate_warning(caplog):
 
 def test_odd_command_rate_still_warns(caplog):
     from drake_rus.hardware.station import _check_rates
+
     scenario = ApplyOverrides(LoadScenario(), "{hardware_interface: {command_rate_hz: 150}}")
     with caplog.at_level(logging.WARNING):
         _check_rates(scenario)
@@ -41,16 +43,43 @@ def test_scheduler_address_form(address):
         check_scheduler(address, timeout=0.5)
 
 
-@pytest.mark.parametrize("name,value", [
-    ("views", -2), ("starts", 0), ("depth", -1), ("voxel_mm", 0.0), ("voxel_mm", float("nan")),
-    ("voxel", 0.5), ("max_sim_time", float("inf")), ("duration", 0.0), ("workers", -1),
-    ("runs", 0), ("count", 0), ("n", 0), ("seed", -5)])
+@pytest.mark.parametrize(
+    "name,value",
+    [
+        ("views", -2),
+        ("starts", 0),
+        ("depth", -1),
+        ("voxel_mm", 0.0),
+        ("voxel_mm", float("nan")),
+        ("voxel", 0.5),
+        ("max_sim_time", float("inf")),
+        ("duration", 0.0),
+        ("workers", -1),
+        ("runs", 0),
+        ("count", 0),
+        ("n", 0),
+        ("seed", -5),
+    ],
+)
 def test_argument_rules_name_the_flag(name, value):
     with pytest.raises(UserError, match="--" + name.replace("_", "-")):
         check_arguments(SimpleNamespace(**{name: value}))
 
 
 def test_argument_rules_accept_the_defaults():
-    check_arguments(SimpleNamespace(views=3, starts=5, depth=1, voxel_mm=1.0, voxel=0.002,
-                                    max_sim_time=150.0, duration=6.0, workers=2, runs=1,
-                                    count=None, n=20, seed=0))
+    check_arguments(
+        SimpleNamespace(
+            views=3,
+            starts=5,
+            depth=1,
+            voxel_mm=1.0,
+            voxel=0.002,
+            max_sim_time=150.0,
+            duration=6.0,
+            workers=2,
+            runs=1,
+            count=None,
+            n=20,
+            seed=0,
+        )
+    )

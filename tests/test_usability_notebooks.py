@@ -14,14 +14,20 @@ pytestmark = pytest.mark.slow
 
 def _execute(name: str) -> nbformat.NotebookNode:
     nb = nbformat.read(NOTEBOOKS / name, as_version=4)
-    NotebookClient(nb, timeout=600, kernel_name="python3",
-                   resources={"metadata": {"path": str(NOTEBOOKS)}}).execute()
+    NotebookClient(
+        nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(NOTEBOOKS)}}
+    ).execute()
     return nb
 
 
 def _outputs(nb, kind: str) -> list:
-    return [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
-            if kind in o.get("data", {})]
+    return [
+        o
+        for c in nb.cells
+        if c.cell_type == "code"
+        for o in c.get("outputs", [])
+        if kind in o.get("data", {})
+    ]
 
 
 def test_controller_notebook_shows_its_figures(monkeypatch):
@@ -41,19 +47,37 @@ def test_paper_notebook_without_a_study_guides_the_user(tmp_path, monkeypatch):
     text = "".join(o["data"]["text/markdown"] for o in _outputs(nb, "text/markdown"))
     assert "No study results" in text and "drake-rus study" in text
     assert not _outputs(nb, "image/png")
-    assert not study.exists()          # nothing created beside a missing study
+    assert not study.exists()  # nothing created beside a missing study
 
 
 def test_paper_notebook_draws_a_small_study(tmp_path, monkeypatch):
     """A tiny kinematic er-sweep (one patient, two ERs, coarse voxels), then the notebook."""
     from drake_rus.cli import main
+
     study = tmp_path / "study"
-    assert main(["study", "er-sweep", "--patients", "test:0", "--ers", "0.6,1",
-                 "--workers", "0", "--voxel", "0.004", "--out", str(study),
-                 "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "study",
+                "er-sweep",
+                "--patients",
+                "test:0",
+                "--ers",
+                "0.6,1",
+                "--workers",
+                "0",
+                "--voxel",
+                "0.004",
+                "--out",
+                str(study),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     monkeypatch.setenv("DRAKE_RUS_STUDY_DIR", str(study))
     nb = _execute("reproduce_paper.ipynb")
-    assert len(_outputs(nb, "image/png")) >= 1          # Fig. 7d
+    assert len(_outputs(nb, "image/png")) >= 1  # Fig. 7d
     text = "".join(o["data"]["text/markdown"] for o in _outputs(nb, "text/markdown"))
     assert "no runs of starts, efficiency" in text
     assert (study / "notebook" / "fig7d_er_sweep.png").stat().st_size > 0

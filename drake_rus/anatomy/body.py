@@ -10,7 +10,7 @@ Cross-section at level y: a two-part superellipse centred at (0, Zc(y)):
 (subcutaneous fat, then the muscle wall) are the same superellipse inset by their thickness.
 """
 
-from dataclasses import dataclass, asdict
+from dataclasses import asdict, dataclass
 
 import numpy as np
 import trimesh
@@ -27,27 +27,27 @@ __all__ = ["TorsoParams", "Torso", "BODY_SIZES"]
 # female measures 147.5 mm (inside the obese range). The class ranges are a modelling choice.
 BODY_SIZES = {
     #            P(class) half-width(m) fat(m)  vertical kidney depth range (m)
-    "lean":       (0.17, 0.138, 0.008, (0.075, 0.095)),
-    "normal":     (0.40, 0.150, 0.015, (0.085, 0.112)),
+    "lean": (0.17, 0.138, 0.008, (0.075, 0.095)),
+    "normal": (0.40, 0.150, 0.015, (0.085, 0.112)),
     "overweight": (0.27, 0.165, 0.025, (0.098, 0.130)),
-    "obese":      (0.16, 0.182, 0.036, (0.118, 0.165)),
+    "obese": (0.16, 0.182, 0.036, (0.118, 0.165)),
 }
 
 
 @dataclass
 class TorsoParams:
     size_class: str = "normal"
-    half_width: float = 0.150      # A at the L1 level (m)
-    height: float = 0.220          # H = anteroposterior thickness at the L1 level (m)
-    back_ratio: float = 0.45       # Zc / H
+    half_width: float = 0.150  # A at the L1 level (m)
+    height: float = 0.220  # H = anteroposterior thickness at the L1 level (m)
+    back_ratio: float = 0.45  # Zc / H
     n_top: float = 2.3
     n_back: float = 4.0
-    fat: float = 0.015             # subcutaneous fat thickness (m)
-    muscle: float = 0.012          # abdominal wall muscle thickness (m)
-    width_slope: float = 0.05      # relative widening towards the chest
-    width_curv: float = 0.03       # relative widening at both ends (chest, pelvis)
+    fat: float = 0.015  # subcutaneous fat thickness (m)
+    muscle: float = 0.012  # abdominal wall muscle thickness (m)
+    width_slope: float = 0.05  # relative widening towards the chest
+    width_curv: float = 0.03  # relative widening at both ends (chest, pelvis)
     height_slope: float = 0.02
-    y_min: float = -0.30           # torso extent along the body (m)
+    y_min: float = -0.30  # torso extent along the body (m)
     y_max: float = 0.30
 
 
@@ -60,8 +60,9 @@ class Torso:
         """(A, Zc, B_top) at level(s) y."""
         p = self.p
         y = np.asarray(y, dtype=float)
-        A = p.half_width * (1.0 + p.width_slope * np.tanh((y - 0.05) / 0.10)
-                            + p.width_curv * (y / 0.3) ** 2)
+        A = p.half_width * (
+            1.0 + p.width_slope * np.tanh((y - 0.05) / 0.10) + p.width_curv * (y / 0.3) ** 2
+        )
         H = p.height * (1.0 + p.height_slope * np.tanh((y - 0.05) / 0.10))
         Zc = p.back_ratio * H
         return A, Zc, H - Zc
@@ -83,7 +84,7 @@ class Torso:
         """Height of the (inset) anterior surface above the bed at (x, y)."""
         A, Zc, Bt = self.section(y)
         u = np.clip(np.abs(x) / (A - inset), 0.0, 1.0)
-        return Zc + (Bt - inset) * (1.0 - u ** self.p.n_top) ** (1.0 / self.p.n_top)
+        return Zc + (Bt - inset) * (1.0 - u**self.p.n_top) ** (1.0 / self.p.n_top)
 
     def ring(self, y, n_points=96, inset=0.0):
         """Points (n, 3) around the (inset) outline at level y, counter-clockwise in x-z."""

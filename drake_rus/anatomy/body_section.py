@@ -50,5 +50,6 @@ def crop_body_section(skin_mesh, center_Pt, half_length_m, voxel_size=0.005, det
         if lab2[ci, ck] > 0:
             keep = lab2 == lab2[ci, ck]
         body[:, j, :] = keep
-    return mask_to_mesh(body, X_PtV, voxel_size, sigma_vox=0.7, keep_point=c,
-                        what="skin mesh (torso section)")
+    return mask_to_mesh(
+        body, X_PtV, voxel_size, sigma_vox=0.7, keep_point=c, what="skin mesh (torso section)"
+    )

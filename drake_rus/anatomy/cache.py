@@ -1,4 +1,5 @@
-"""On-disk cache of generated and imported patients (used by :func:`~drake_rus.anatomy.load_patient`).
+"""On-disk cache of generated and imported patients (used by
+:func:`~drake_rus.anatomy.load_patient`).
 
 Building a patient's 1 mm label volume takes seconds (generated) to tens of seconds (imported
 meshes); every scan of ``test:0`` built the same one again. An entry holds what a
@@ -39,16 +40,22 @@ from pydrake.math import RigidTransform
 from drake_rus.anatomy.labels import LabelVolume
 from drake_rus.anatomy.patient import Patient
 
-__all__ = ["CACHE_DIR_ENV", "patient_cache_dir", "cached_patient", "file_digest",
-           "code_digest", "entry_path"]
+__all__ = [
+    "CACHE_DIR_ENV",
+    "patient_cache_dir",
+    "cached_patient",
+    "file_digest",
+    "code_digest",
+    "entry_path",
+]
 
 log = logging.getLogger(__name__)
 
 CACHE_DIR_ENV = "DRAKE_RUS_CACHE_DIR"
-FORMAT = 1                      # bump when the entry layout changes
+FORMAT = 1  # bump when the entry layout changes
 _SUFFIX = ".npz"
 _TMP_PREFIX = ".tmp-"
-_STALE_TMP_S = 3600.0           # leftovers of crashed writers older than this are removed
+_STALE_TMP_S = 3600.0  # leftovers of crashed writers older than this are removed
 _LIBRARIES = ("numpy", "scipy", "trimesh", "scikit-image", "drake", "SimpleITK", "matplotlib")
 _ANATOMY_DIR = Path(__file__).resolve().parent
 _warned_dirs: set[str] = set()
@@ -107,8 +114,15 @@ def library_versions(names: tuple = _LIBRARIES) -> dict:
 
 
 def _key(inputs: dict) -> tuple[str, str]:
-    doc = json.dumps({"format": FORMAT, "inputs": inputs, "code": code_digest(),
-                      "libraries": library_versions()}, sort_keys=True)
+    doc = json.dumps(
+        {
+            "format": FORMAT,
+            "inputs": inputs,
+            "code": code_digest(),
+            "libraries": library_versions(),
+        },
+        sort_keys=True,
+    )
     return hashlib.sha256(doc.encode()).hexdigest(), doc
 
 
@@ -124,8 +138,14 @@ def _parts(patient: Patient, key: str, inputs: dict) -> dict:
     meta_json = json.dumps(patient.meta, sort_keys=True)
     if json.loads(meta_json) != patient.meta:
         raise TypeError("the patient's meta does not survive JSON (tuples or numpy values)")
-    header = {"format": FORMAT, "key": key, "inputs": inputs, "name": patient.name,
-              "side": patient.side, "posture": patient.posture}
+    header = {
+        "format": FORMAT,
+        "key": key,
+        "inputs": inputs,
+        "name": patient.name,
+        "side": patient.side,
+        "posture": patient.posture,
+    }
     arrays = {
         "header": np.array(json.dumps(header, sort_keys=True)),
         "meta": np.array(meta_json),
@@ -144,9 +164,11 @@ def _parts(patient: Patient, key: str, inputs: dict) -> dict:
 
 
 def _label_arrays(lv: LabelVolume) -> dict:
-    return {"labels": np.ascontiguousarray(lv.labels),
-            "labels_X_PtV": lv.X_PtV.GetAsMatrix4(),
-            "labels_voxel_size": np.array(float(lv.voxel_size))}
+    return {
+        "labels": np.ascontiguousarray(lv.labels),
+        "labels_X_PtV": lv.X_PtV.GetAsMatrix4(),
+        "labels_voxel_size": np.array(float(lv.voxel_size)),
+    }
 
 
 def _write(path: Path, arrays: dict) -> bool:
@@ -157,19 +179,23 @@ def _write(path: Path, arrays: dict) -> bool:
     try:
         folder.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=_TMP_PREFIX, suffix=_SUFFIX, dir=str(folder))
-        os.chmod(tmp, 0o666 & ~_UMASK)         # like any other file (mkstemp gives 0600)
+        os.chmod(tmp, 0o666 & ~_UMASK)  # like any other file (mkstemp gives 0600)
         with os.fdopen(fd, "wb") as f:
             np.savez_compressed(f, **arrays)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
         tmp = None
-    except Exception as e:          # unwritable folder, disk full, ...: never an error
+    except Exception as e:  # unwritable folder, disk full, ...: never an error
         if str(folder) not in _warned_dirs:
             _warned_dirs.add(str(folder))
             why = getattr(e, "strerror", None) or (str(e).strip().splitlines() or [""])[0]
-            log.warning("patient cache: cannot write to %s (%s: %s); going on without the "
-                        "cache", folder, type(e).__name__, why)
+            log.warning(
+                "patient cache: cannot write to %s (%s: %s); going on without the cache",
+                folder,
+                type(e).__name__,
+                why,
+            )
         return False
     finally:
         if tmp is not None:
@@ -205,25 +231,36 @@ def _read(path: Path, key: str, inputs: dict, builders: dict) -> tuple[Patient, 
     """The Patient of an entry and the entry's arrays without labels; raises on anything
     unexpected (the caller ignores the entry then)."""
     with np.load(path, allow_pickle=False) as z:
-        arrays = {k: z[k] for k in z.files}          # reads (and CRC-checks) every member
+        arrays = {k: z[k] for k in z.files}  # reads (and CRC-checks) every member
     header = json.loads(str(arrays["header"]))
-    if header.get("format") != FORMAT or header.get("key") != key \
-            or header.get("inputs") != json.loads(json.dumps(inputs)):
+    if (
+        header.get("format") != FORMAT
+        or header.get("key") != key
+        or header.get("inputs") != json.loads(json.dumps(inputs))
+    ):
         raise ValueError("the entry is not the one of this key")
     meta = json.loads(str(arrays["meta"]))
     labels = None
     if "labels" in arrays:
-        labels = LabelVolume(labels=arrays["labels"],
-                             voxel_size=float(arrays["labels_voxel_size"]),
-                             X_PtV=RigidTransform(arrays["labels_X_PtV"]))
+        labels = LabelVolume(
+            labels=arrays["labels"],
+            voxel_size=float(arrays["labels_voxel_size"]),
+            X_PtV=RigidTransform(arrays["labels_X_PtV"]),
+        )
     z = arrays
     patient = Patient(
-        name=header["name"], side=header["side"], posture=header["posture"],
-        kidney_mesh=_mesh(z, "kidney"), skin_mesh=_mesh(z, "skin"),
+        name=header["name"],
+        side=header["side"],
+        posture=header["posture"],
+        kidney_mesh=_mesh(z, "kidney"),
+        skin_mesh=_mesh(z, "skin"),
         liver_mesh=_mesh(z, "liver") if "liver_vertices" in z else None,
-        meta=meta, X_PtK=RigidTransform(z["X_PtK"]),
+        meta=meta,
+        X_PtK=RigidTransform(z["X_PtK"]),
         torso_center_Pt=z.get("torso_center_Pt"),
-        labels=labels, **builders)
+        labels=labels,
+        **builders,
+    )
     base = {k: v for k, v in arrays.items() if not k.startswith("labels")}
     return patient, base
 
@@ -232,14 +269,17 @@ def _store_labels_when_built(patient: Patient, path: Path, base: dict) -> None:
     def store(lv: LabelVolume) -> None:
         try:
             _write(path, {**base, **_label_arrays(lv)})
-        except Exception as e:      # the cache never breaks a patient
-            log.warning("patient cache: could not store the label volume of %s (%s)",
-                        patient.name, e)
+        except Exception as e:  # the cache never breaks a patient
+            log.warning(
+                "patient cache: could not store the label volume of %s (%s)", patient.name, e
+            )
+
     patient.on_labels_built(store)
 
 
-def cached_patient(inputs: dict, build: Callable[[], Patient], *,
-                   builders: Callable[[], dict] | None = None) -> Patient:
+def cached_patient(
+    inputs: dict, build: Callable[[], Patient], *, builders: Callable[[], dict] | None = None
+) -> Patient:
     """The patient of ``inputs`` (a JSON-able dict naming everything the patient depends on
     besides the code) from the cache, else ``build()`` stored in it.
 
@@ -263,8 +303,12 @@ def cached_patient(inputs: dict, build: Callable[[], Patient], *,
             patient, base = _read(path, key, inputs, extra)
         except Exception as e:
             first = (str(e).strip().splitlines() or [""])[0]
-            log.warning("patient cache: ignoring unreadable entry %s (%s: %s); rebuilding it",
-                        path, type(e).__name__, first)
+            log.warning(
+                "patient cache: ignoring unreadable entry %s (%s: %s); rebuilding it",
+                path,
+                type(e).__name__,
+                first,
+            )
         else:
             if not patient.has_labels:
                 _store_labels_when_built(patient, path, base)

@@ -19,8 +19,12 @@ import numpy as np
 from pydrake.math import RigidTransform, RotationMatrix
 
 __all__ = [
-    "canonical_frame", "canonical_frame_from_moments", "covariance_eigen",
-    "mesh_surface_moments", "mesh_canonical_frame", "extents_in_frame",
+    "canonical_frame",
+    "canonical_frame_from_moments",
+    "covariance_eigen",
+    "mesh_surface_moments",
+    "mesh_canonical_frame",
+    "extents_in_frame",
 ]
 
 
@@ -59,7 +63,7 @@ def _signed_basis(v1, v2, x_ref, y_ref) -> np.ndarray:
     y_k = s2 * v2
     z_k = np.cross(x_k, y_k)
     z_k /= np.linalg.norm(z_k)
-    y_k = np.cross(z_k, x_k)           # re-orthonormalise y_k
+    y_k = np.cross(z_k, x_k)  # re-orthonormalise y_k
     x_k = x_k / np.linalg.norm(x_k)
     y_k = y_k / np.linalg.norm(y_k)
     return np.column_stack([x_k, y_k, z_k])
@@ -71,8 +75,9 @@ def canonical_frame_from_moments(centroid, evecs, x_ref, y_ref) -> RigidTransfor
     return RigidTransform(RotationMatrix(R), np.asarray(centroid, dtype=float))
 
 
-def canonical_frame(points: np.ndarray, x_ref, y_ref,
-                    weights: np.ndarray | None = None) -> RigidTransform:
+def canonical_frame(
+    points: np.ndarray, x_ref, y_ref, weights: np.ndarray | None = None
+) -> RigidTransform:
     """Pose X_SK of the canonical kidney frame K in the points' frame S (eq. 13-14).
 
     ``x_ref``: the body's inferior -> superior direction in S; ``y_ref``: the kidney's

@@ -33,15 +33,25 @@ import numpy as np
 from pydrake.math import RigidTransform
 from scipy import ndimage
 
+from drake_rus.anatomy.canonical_frame import extents_in_frame
 from drake_rus.anatomy.frames import R_PtBd
 from drake_rus.anatomy.labels import Label, LabelVolume, is_kidney
 from drake_rus.anatomy.rasterize import rasterize_mesh
-from drake_rus.anatomy.canonical_frame import extents_in_frame
 
-__all__ = ["AnatomyError", "ANATOMY_RANGES", "AIR_CONTACT_MAX", "ORGAN_ENCLOSURE_MAX",
-           "ORGAN_OVERLAP_MAX", "check_anatomy", "anatomy_figures", "kidney_surroundings",
-           "body_section_size", "check_mesh_units", "check_label_map_body_size",
-           "describe_patient"]
+__all__ = [
+    "AnatomyError",
+    "ANATOMY_RANGES",
+    "AIR_CONTACT_MAX",
+    "ORGAN_ENCLOSURE_MAX",
+    "ORGAN_OVERLAP_MAX",
+    "check_anatomy",
+    "anatomy_figures",
+    "kidney_surroundings",
+    "body_section_size",
+    "check_mesh_units",
+    "check_label_map_body_size",
+    "describe_patient",
+]
 
 
 class AnatomyError(ValueError):
@@ -51,29 +61,60 @@ class AnatomyError(ValueError):
 # Figure -> (min, max, unit shown, scale from SI to the unit, why). Published values:
 # docs/facts/anatomy_and_ultrasound.md, section "Checks on every patient".
 ANATOMY_RANGES = {
-    "kidney_length": (0.050, 0.250, "mm", 1e3,
-                      "adult kidneys are 108.5 +- 12.2 mm long (Glodny 2009); tumour "
-                      "kidneys of KiTS19 reach about 200 mm"),
-    "kidney_width": (0.025, 0.180, "mm", 1e3,
-                     "adult kidneys are 58 mm wide, 10-90th percentile 51-64 mm "
-                     "(Emamian 1993)"),
-    "kidney_thickness": (0.015, 0.160, "mm", 1e3,
-                         "adult kidneys are about 30-45 mm thick"),
-    "kidney_volume": (20e-6, 1500e-6, "ml", 1e6,
-                      "adult kidneys hold 129 +- 30 ml (Lee 1996); tumour kidneys of "
-                      "KiTS19 up to about 1 l"),
-    "body_width": (0.180, 0.800, "mm", 1e3,
-                   "adult trunks at the kidneys are about 260-380 mm wide"),
-    "body_depth": (0.120, 0.600, "mm", 1e3,
-                   "adult trunks at the kidneys are about 180-300 mm deep (sagittal "
-                   "abdominal diameter under 25 cm at normal weight, over 30 cm in "
-                   "obesity)"),
-    "depth_vertical": (0.015, 0.320, "mm", 1e3,
-                       "CT skin-to-kidney distances are 78-108 mm on average with SDs of "
-                       "12-30 mm (lithotripsy series)"),
-    "depth_min": (0.008, 0.300, "mm", 1e3,
-                  "skin, subcutaneous fat and the muscle wall lie between the kidney and "
-                  "the skin"),
+    "kidney_length": (
+        0.050,
+        0.250,
+        "mm",
+        1e3,
+        "adult kidneys are 108.5 +- 12.2 mm long (Glodny 2009); tumour "
+        "kidneys of KiTS19 reach about 200 mm",
+    ),
+    "kidney_width": (
+        0.025,
+        0.180,
+        "mm",
+        1e3,
+        "adult kidneys are 58 mm wide, 10-90th percentile 51-64 mm (Emamian 1993)",
+    ),
+    "kidney_thickness": (0.015, 0.160, "mm", 1e3, "adult kidneys are about 30-45 mm thick"),
+    "kidney_volume": (
+        20e-6,
+        1500e-6,
+        "ml",
+        1e6,
+        "adult kidneys hold 129 +- 30 ml (Lee 1996); tumour kidneys of KiTS19 up to about 1 l",
+    ),
+    "body_width": (
+        0.180,
+        0.800,
+        "mm",
+        1e3,
+        "adult trunks at the kidneys are about 260-380 mm wide",
+    ),
+    "body_depth": (
+        0.120,
+        0.600,
+        "mm",
+        1e3,
+        "adult trunks at the kidneys are about 180-300 mm deep (sagittal "
+        "abdominal diameter under 25 cm at normal weight, over 30 cm in "
+        "obesity)",
+    ),
+    "depth_vertical": (
+        0.015,
+        0.320,
+        "mm",
+        1e3,
+        "CT skin-to-kidney distances are 78-108 mm on average with SDs of "
+        "12-30 mm (lithotripsy series)",
+    ),
+    "depth_min": (
+        0.008,
+        0.300,
+        "mm",
+        1e3,
+        "skin, subcutaneous fat and the muscle wall lie between the kidney and the skin",
+    ),
 }
 
 # The kidney inside the body: at most this share of the voxels around it may be air (the
@@ -86,10 +127,13 @@ ORGAN_ENCLOSURE_MAX = 0.5
 # ... and at most this share of its volume may lie inside another organ's mesh (two organs
 # segmented separately overlap by a voxel at their contact).
 ORGAN_OVERLAP_MAX = 0.05
-_ORGANS = {Label.LIVER: "liver", Label.BONE: "bone", Label.VESSEL: "vessel",
-           Label.GAS: "gas"}
-_INSIDE = {Label.LIVER: "the liver", Label.BONE: "bone", Label.VESSEL: "a vessel",
-           Label.GAS: "bowel gas"}
+_ORGANS = {Label.LIVER: "liver", Label.BONE: "bone", Label.VESSEL: "vessel", Label.GAS: "gas"}
+_INSIDE = {
+    Label.LIVER: "the liver",
+    Label.BONE: "bone",
+    Label.VESSEL: "a vessel",
+    Label.GAS: "bowel gas",
+}
 
 
 def describe_patient(patient) -> str:
@@ -108,8 +152,12 @@ def _check_range(patient, what, key: str, value: float, label: str, extra: str =
     lo, hi, unit, scale, why = ANATOMY_RANGES[key]
     if not (np.isfinite(value) and lo <= value <= hi):
         shown = f"{value * scale:.4g}" if np.isfinite(value) else "not measurable"
-        _fail(patient, what, f"{label} {shown} {unit} is outside {lo * scale:g}-{hi * scale:g} "
-                             f"{unit} ({why}){extra}")
+        _fail(
+            patient,
+            what,
+            f"{label} {shown} {unit} is outside {lo * scale:g}-{hi * scale:g} "
+            f"{unit} ({why}){extra}",
+        )
 
 
 # --- pure measurements ---------------------------------------------------------------------
@@ -130,30 +178,35 @@ def body_section_size(skin_mesh, point_Pt, posture: str) -> tuple[float, float]:
         xz = pts[:, [0, 2]]
         area = abs(0.5 * np.sum(xz[:-1, 0] * xz[1:, 1] - xz[1:, 0] * xz[:-1, 1]))
         inside = _point_in_polygon(xz, (p[0], p[2]))
-        key = (inside, area if not inside else -area)   # the smallest loop containing p
+        key = (inside, area if not inside else -area)  # the smallest loop containing p
         if best is None or key > best[0]:
             best = (key, pts)
     if best is None:
         return 0.0, 0.0
-    p_Bd = best[1] @ R          # rows: R^T p_Pt
+    p_Bd = best[1] @ R  # rows: R^T p_Pt
     return float(np.ptp(p_Bd[:, 0])), float(np.ptp(p_Bd[:, 2]))
 
 
 def _point_in_polygon(xz: np.ndarray, q) -> bool:
     x, z = xz[:, 0], xz[:, 1]
     x2, z2 = np.roll(x, -1), np.roll(z, -1)
-    cross = ((z > q[1]) != (z2 > q[1]))
+    cross = (z > q[1]) != (z2 > q[1])
     with np.errstate(divide="ignore", invalid="ignore"):
         xi = x + (q[1] - z) * (x2 - x) / (z2 - z)
     return bool(np.count_nonzero(cross & (q[0] < xi)) % 2)
 
 
-_FACE_NAMES = {(0, 1): "left", (0, -1): "right", (1, 1): "superior", (1, -1): "inferior",
-               (2, 1): "anterior", (2, -1): "posterior"}
+_FACE_NAMES = {
+    (0, 1): "left",
+    (0, -1): "right",
+    (1, 1): "superior",
+    (1, -1): "inferior",
+    (2, 1): "anterior",
+    (2, -1): "posterior",
+}
 
 
-def kidney_surroundings(volume: LabelVolume, bounds_Pt, R_BdPt=None,
-                        margin: float = 0.02) -> dict:
+def kidney_surroundings(volume: LabelVolume, bounds_Pt, R_BdPt=None, margin: float = 0.02) -> dict:
     """What lies around the target kidney in a label volume: the kidney component nearest to
     the centre of ``bounds_Pt`` (lo, hi corners in Pt of the kidney, e.g. its mesh's bounds;
     only the grid within ``margin`` of them is read). Returns ``voxels`` and ``volume``
@@ -165,14 +218,28 @@ def kidney_surroundings(volume: LabelVolume, bounds_Pt, R_BdPt=None,
     vs = float(volume.voxel_size)
     shape = np.array(lab.shape)
     lo_Pt, hi_Pt = (np.asarray(b, dtype=float) for b in bounds_Pt)
-    corners = np.array([[x, y, z] for x in (lo_Pt[0], hi_Pt[0]) for y in (lo_Pt[1], hi_Pt[1])
-                        for z in (lo_Pt[2], hi_Pt[2])])
+    corners = np.array(
+        [
+            [x, y, z]
+            for x in (lo_Pt[0], hi_Pt[0])
+            for y in (lo_Pt[1], hi_Pt[1])
+            for z in (lo_Pt[2], hi_Pt[2])
+        ]
+    )
     c_V = volume.X_PtV.inverse().multiply(corners.T).T / vs
     m = margin / vs
     lo = np.clip(np.floor(c_V.min(axis=0) - m).astype(int), 0, shape)
     hi = np.clip(np.ceil(c_V.max(axis=0) + m).astype(int) + 1, 0, shape)
-    empty = {"voxels": 0, "volume": 0.0, "shell": 0, "air": 0.0, "organs": {},
-             "border_voxels": 0, "border_area": 0.0, "border_faces": []}
+    empty = {
+        "voxels": 0,
+        "volume": 0.0,
+        "shell": 0,
+        "air": 0.0,
+        "organs": {},
+        "border_voxels": 0,
+        "border_area": 0.0,
+        "border_faces": [],
+    }
     if np.any(hi <= lo):
         return empty
     box = tuple(slice(a, b) for a, b in zip(lo, hi))
@@ -207,10 +274,16 @@ def kidney_surroundings(volume: LabelVolume, bounds_Pt, R_BdPt=None,
             n_Bd = R_BdV[:, axis] * (1.0 if end else -1.0)
             a = int(np.argmax(np.abs(n_Bd)))
             faces.append(_FACE_NAMES[(a, 1 if n_Bd[a] > 0 else -1)])
-    return {"voxels": int(kid.sum()), "volume": float(kid.sum()) * vs ** 3, "shell": n_shell,
-            "air": float(share[Label.OUTSIDE]), "organs": organs,
-            "border_voxels": int(border.sum()), "border_area": float(border.sum()) * vs ** 2,
-            "border_faces": faces}
+    return {
+        "voxels": int(kid.sum()),
+        "volume": float(kid.sum()) * vs**3,
+        "shell": n_shell,
+        "air": float(share[Label.OUTSIDE]),
+        "organs": organs,
+        "border_voxels": int(border.sum()),
+        "border_area": float(border.sum()) * vs**2,
+        "border_faces": faces,
+    }
 
 
 def mesh_overlap(kidney_mesh, organ_mesh, voxel_size: float = 0.002) -> float:
@@ -242,8 +315,15 @@ def _unit_guess(extent: float, expected: tuple) -> str | None:
     return None
 
 
-def check_mesh_units(kidney_extent: float, other_extent: float, kidney_file: str,
-                     other_file: str, scale: float, units: str, other: str = "skin") -> None:
+def check_mesh_units(
+    kidney_extent: float,
+    other_extent: float,
+    kidney_file: str,
+    other_file: str,
+    scale: float,
+    units: str,
+    other: str = "skin",
+) -> None:
     """Refuses a kidney mesh and the ``other`` mesh ("skin" or "liver") in different units
     (a kidney 1000 times smaller or larger than the body, or a body the size of a kidney),
     naming the files and the unit each seems to be in. Extents are the meshes' largest
@@ -251,8 +331,11 @@ def check_mesh_units(kidney_extent: float, other_extent: float, kidney_file: str
     k_m, o_m = kidney_extent * scale, other_extent * scale
     ratio = other_extent / kidney_extent if kidney_extent > 0 else float("inf")
     lo_r, hi_r = _RATIO_TO_KIDNEY[other]
-    if lo_r <= ratio <= hi_r and _EXTENTS["kidney"][0] <= k_m <= _EXTENTS["kidney"][1] \
-            and _EXTENTS[other][0] <= o_m <= _EXTENTS[other][1]:
+    if (
+        lo_r <= ratio <= hi_r
+        and _EXTENTS["kidney"][0] <= k_m <= _EXTENTS["kidney"][1]
+        and _EXTENTS[other][0] <= o_m <= _EXTENTS[other][1]
+    ):
         return
     k_unit = _unit_guess(kidney_extent, _EXTENTS["kidney"])
     o_unit = _unit_guess(other_extent, _EXTENTS[other])
@@ -267,7 +350,8 @@ def check_mesh_units(kidney_extent: float, other_extent: float, kidney_file: str
         f"{other} mesh {other_file}: {other_extent:.4g} across against the kidney mesh "
         f"{kidney_file}'s {kidney_extent:.4g} (file units): {ratio:.3g} times the kidney, "
         f"{what} is {lo_r:g}-{hi_r:g} times (units={units!r} reads them as {o_m:.4g} m and "
-        f"{k_m:.4g} m){hint}")
+        f"{k_m:.4g} m){hint}"
+    )
 
 
 def check_label_map_body_size(body: np.ndarray, spacing_mm, sup_axis: int, path) -> None:
@@ -290,12 +374,14 @@ def check_label_map_body_size(body: np.ndarray, spacing_mm, sup_axis: int, path)
     elif not lo_d <= depth <= hi_d:
         problems.append(f"{depth * 1e3:.4g} mm deep (expected {lo_d * 1e3:g}-{hi_d * 1e3:g} mm)")
     elif length > _EXTENTS["skin"][1]:
-        problems.append(f"{length * 1e3:.4g} mm long (a body is at most "
-                        f"{_EXTENTS['skin'][1] * 1e3:g} mm)")
+        problems.append(
+            f"{length * 1e3:.4g} mm long (a body is at most {_EXTENTS['skin'][1] * 1e3:g} mm)"
+        )
     if problems:
         raise AnatomyError(
             f"label map {path}: with its voxel spacing ({shown}) mm the body is "
-            f"{problems[0]}; {why_w}: is the spacing in mm?")
+            f"{problems[0]}; {why_w}: is the spacing in mm?"
+        )
 
 
 # --- the check of a patient ----------------------------------------------------------------
@@ -309,12 +395,22 @@ def anatomy_figures(patient, what: str | None = None) -> dict:
     width, depth = body_section_size(patient.skin_mesh, centroid, patient.posture)
     fig["body_width"], fig["body_depth"] = width, depth
     spacing = patient.meta.get("spacing_mm")
-    hint = (f"; the label map's voxel spacing is "
-            f"{', '.join(f'{s:g}' for s in spacing)} mm") if spacing else ""
-    _check_range(patient, what, "body_width", width,
-                 "body width (left-right, at the kidney's level)", hint)
-    _check_range(patient, what, "body_depth", depth,
-                 "body depth (front to back, at the kidney's level)", hint)
+    hint = (
+        (f"; the label map's voxel spacing is {', '.join(f'{s:g}' for s in spacing)} mm")
+        if spacing
+        else ""
+    )
+    _check_range(
+        patient, what, "body_width", width, "body width (left-right, at the kidney's level)", hint
+    )
+    _check_range(
+        patient,
+        what,
+        "body_depth",
+        depth,
+        "body depth (front to back, at the kidney's level)",
+        hint,
+    )
     ext = extents_in_frame(patient.kidney_mesh.vertices, patient.X_PtK)
     fig["kidney_length"], fig["kidney_width"], fig["kidney_thickness"] = map(float, ext)
     fig["kidney_volume"] = float(patient.kidney_mesh.volume)
@@ -323,8 +419,7 @@ def anatomy_figures(patient, what: str | None = None) -> dict:
     _check_range(patient, what, "kidney_width", fig["kidney_width"], "kidney width")
     _check_range(patient, what, "kidney_thickness", fig["kidney_thickness"], "kidney thickness")
     # The label volume: air and organs around the kidney, the volume's border.
-    sur = kidney_surroundings(patient.labels, patient.kidney_mesh.bounds,
-                              R_PtBd(patient.posture).T)
+    sur = kidney_surroundings(patient.labels, patient.kidney_mesh.bounds, R_PtBd(patient.posture).T)
     fig["kidney_air_contact"] = sur["air"]
     fig["kidney_border_voxels"] = sur["border_voxels"]
     fig["kidney_imaged_volume"] = sur["volume"]
@@ -332,38 +427,50 @@ def anatomy_figures(patient, what: str | None = None) -> dict:
     if sur["voxels"] == 0:
         _fail(patient, what, "no kidney voxel in the label volume")
     if sur["air"] > AIR_CONTACT_MAX:
-        _fail(patient, what,
-              f"the kidney is not inside the body: {sur['air']:.1%} of the voxels around it "
-              f"are air, outside the skin (at most {AIR_CONTACT_MAX:.1%}); check the "
-              f"kidney's position and the files' axes")
+        _fail(
+            patient,
+            what,
+            f"the kidney is not inside the body: {sur['air']:.1%} of the voxels around it "
+            f"are air, outside the skin (at most {AIR_CONTACT_MAX:.1%}); check the "
+            f"kidney's position and the files' axes",
+        )
     if sur["border_voxels"] > 0:
         faces = "/".join(dict.fromkeys(sur["border_faces"])) or "a"
-        _fail(patient, what,
-              f"the kidney is cut by the label volume's edge: {sur['border_voxels']} kidney "
-              f"voxels ({sur['border_area'] * 1e4:.3g} cm2) lie on its {faces} face, only "
-              f"{sur['volume'] * 1e6:.0f} ml of the kidney is imaged (a whole kidney holds "
-              f"129 +- 30 ml, Lee 1996); use a volume that contains the whole kidney")
+        _fail(
+            patient,
+            what,
+            f"the kidney is cut by the label volume's edge: {sur['border_voxels']} kidney "
+            f"voxels ({sur['border_area'] * 1e4:.3g} cm2) lie on its {faces} face, only "
+            f"{sur['volume'] * 1e6:.0f} ml of the kidney is imaged (a whole kidney holds "
+            f"129 +- 30 ml, Lee 1996); use a volume that contains the whole kidney",
+        )
     for label, share in sorted(sur["organs"].items(), key=lambda kv: -kv[1]):
         if share > ORGAN_ENCLOSURE_MAX:
-            _fail(patient, what,
-                  f"the kidney lies inside {_INSIDE[label]}: {share:.0%} of the voxels around "
-                  f"it are {_ORGANS[label]} (at most {ORGAN_ENCLOSURE_MAX:.0%}; a kidney "
-                  f"lies in the retroperitoneum, in its own fat)")
+            _fail(
+                patient,
+                what,
+                f"the kidney lies inside {_INSIDE[label]}: {share:.0%} of the voxels around "
+                f"it are {_ORGANS[label]} (at most {ORGAN_ENCLOSURE_MAX:.0%}; a kidney "
+                f"lies in the retroperitoneum, in its own fat)",
+            )
     if patient.liver_mesh is not None:
         overlap = mesh_overlap(patient.kidney_mesh, patient.liver_mesh)
         fig["kidney_in_liver_mesh"] = overlap
         if overlap > ORGAN_OVERLAP_MAX:
             src = patient.meta.get("liver") or "the liver mesh"
-            _fail(patient, what,
-                  f"the kidney overlaps the liver: {overlap:.0%} of its volume "
-                  f"({overlap * fig['kidney_volume'] * 1e6:.0f} ml) lies inside {src} "
-                  f"(at most {ORGAN_OVERLAP_MAX:.0%})")
+            _fail(
+                patient,
+                what,
+                f"the kidney overlaps the liver: {overlap:.0%} of its volume "
+                f"({overlap * fig['kidney_volume'] * 1e6:.0f} ml) lies inside {src} "
+                f"(at most {ORGAN_OVERLAP_MAX:.0%})",
+            )
     m = patient.metrics()
     fig["depth_vertical"], fig["depth_min"] = float(m["depth_vertical"]), float(m["depth_min"])
-    _check_range(patient, what, "depth_min", fig["depth_min"],
-                 "shortest skin-to-kidney distance")
-    _check_range(patient, what, "depth_vertical", fig["depth_vertical"],
-                 "kidney depth below the upper skin")
+    _check_range(patient, what, "depth_min", fig["depth_min"], "shortest skin-to-kidney distance")
+    _check_range(
+        patient, what, "depth_vertical", fig["depth_vertical"], "kidney depth below the upper skin"
+    )
     return fig
 
 

@@ -7,17 +7,19 @@ from pathlib import Path
 
 import numpy as np
 
-from drake_rus.anatomy.cohort import (check_regular_path, cohort_seeds, cohort_stats,
-                                      load_patient)
+from drake_rus.anatomy.cohort import check_regular_path, cohort_seeds, cohort_stats, load_patient
 from drake_rus.anatomy.ct_kidney import survey_case, survey_summary
-from drake_rus.anatomy.ct_patient import (CT_PREFIX, ct_label_map_path,
-                                          kidney_definition_difference, parse_ct_spec)
+from drake_rus.anatomy.ct_patient import (
+    CT_PREFIX,
+    ct_label_map_path,
+    kidney_definition_difference,
+    parse_ct_spec,
+)
 from drake_rus.anatomy.export import estimated_export_bytes
 from drake_rus.anatomy.generator import generate_patient
 from drake_rus.anatomy.importers import LABEL_MAP_SUFFIXES
 from drake_rus.anatomy.pictures import plot_cohort_overview, plot_label_slices, show_in_meshcat
-from drake_rus.cli import PREFLIGHT_CHECKS, UserError
-from drake_rus.cli import MakeMeshcat
+from drake_rus.cli import PREFLIGHT_CHECKS, MakeMeshcat, UserError
 from drake_rus.io_utils import check_output_dir, dumps_strict, output_dir
 from drake_rus.template import load_template
 
@@ -34,8 +36,11 @@ def _user_error(e):
 
 def _label_map_files(path: Path) -> list[Path]:
     if path.is_dir():
-        return [p for p in sorted(path.iterdir())
-                if p.is_file() and p.name.lower().endswith(LABEL_MAP_SUFFIXES)][:_MAX_HEADERS]
+        return [
+            p
+            for p in sorted(path.iterdir())
+            if p.is_file() and p.name.lower().endswith(LABEL_MAP_SUFFIXES)
+        ][:_MAX_HEADERS]
     if path.is_file() and path.name.lower().endswith(LABEL_MAP_SUFFIXES):
         return [path]
     return []
@@ -45,6 +50,7 @@ def check_label_map_spacing(path: Path, arg: str) -> None:
     """Raises a user error naming ``arg`` if a label map's voxel spacing (read from its
     header, not its voxels) is outside ``LABEL_MAP_SPACING_MM``."""
     import SimpleITK as sitk
+
     lo, hi = LABEL_MAP_SPACING_MM
     for f in _label_map_files(path):
         reader = sitk.ImageFileReader()
@@ -52,13 +58,15 @@ def check_label_map_spacing(path: Path, arg: str) -> None:
         try:
             reader.ReadImageInformation()
         except RuntimeError:
-            continue                  # unreadable: the importer names it
+            continue  # unreadable: the importer names it
         spacing = reader.GetSpacing()
         if not all(np.isfinite(spacing)) or not all(lo <= s <= hi for s in spacing):
             shown = ", ".join(f"{s:g}" for s in spacing)
             hint = " (in metres? label maps are read in mm)" if max(spacing) < lo else ""
-            raise _user_error(f"{arg}: label map {f}: voxel spacing ({shown}) mm is outside "
-                              f"{lo:g}-{hi:g} mm{hint}")
+            raise _user_error(
+                f"{arg}: label map {f}: voxel spacing ({shown}) mm is outside "
+                f"{lo:g}-{hi:g} mm{hint}"
+            )
 
 
 def check_patient_spec(spec: str, arg: str = "--patient") -> None:
@@ -74,8 +82,9 @@ def check_patient_spec(spec: str, arg: str = "--patient") -> None:
         return
     if sep and head == "phantom":
         if not tail.strip().isdigit():
-            raise _user_error(f"{arg}: expected phantom:N with a non-negative integer N, "
-                              f"got {spec!r}")
+            raise _user_error(
+                f"{arg}: expected phantom:N with a non-negative integer N, got {spec!r}"
+            )
         return
     path = Path(spec)
     if path.exists():
@@ -101,18 +110,27 @@ def load_patient_for(spec: str, arg: str = "--patient", **kwargs):
     except ValueError as e:
         text = str(e)
         if "Surface level" in text or "marching" in text.lower():
-            text = (f"patient {spec!r}: the kidney label is too small to make a surface of "
-                    f"(a few voxels at most); check the label values and the mapping")
+            text = (
+                f"patient {spec!r}: the kidney label is too small to make a surface of "
+                f"(a few voxels at most); check the label values and the mapping"
+            )
         raise _user_error(f"{arg}: {text}") from None
 
 
 def _load(args):
-    return load_patient_for(args.spec, "patient spec", side=args.side, posture=args.posture,
-                            voxel_size=args.voxel_mm / 1000.0, progress=_tty())
+    return load_patient_for(
+        args.spec,
+        "patient spec",
+        side=args.side,
+        posture=args.posture,
+        voxel_size=args.voxel_mm / 1000.0,
+        progress=_tty(),
+    )
 
 
 def _tty() -> bool:
     import sys
+
     return sys.stderr.isatty()
 
 
@@ -121,13 +139,20 @@ def patient_info(patient) -> dict:
     R = patient.X_PtK.rotation().matrix()
     deg = 180.0 / np.pi
     info = {
-        "name": patient.name, "source": patient.meta.get("source"), "side": patient.side,
+        "name": patient.name,
+        "source": patient.meta.get("source"),
+        "side": patient.side,
         "posture": patient.posture,
-        "X_PtK": {"p_mm": (patient.X_PtK.translation() * 1e3).round(1).tolist(),
-                  "x_k": R[:, 0].round(4).tolist(), "y_k": R[:, 1].round(4).tolist(),
-                  "z_k": R[:, 2].round(4).tolist()},
-        "length_mm": round(m["length"] * 1e3, 1), "width_mm": round(m["width"] * 1e3, 1),
-        "thickness_mm": round(m["thickness"] * 1e3, 1), "volume_ml": round(m["volume"] * 1e6, 1),
+        "X_PtK": {
+            "p_mm": (patient.X_PtK.translation() * 1e3).round(1).tolist(),
+            "x_k": R[:, 0].round(4).tolist(),
+            "y_k": R[:, 1].round(4).tolist(),
+            "z_k": R[:, 2].round(4).tolist(),
+        },
+        "length_mm": round(m["length"] * 1e3, 1),
+        "width_mm": round(m["width"] * 1e3, 1),
+        "thickness_mm": round(m["thickness"] * 1e3, 1),
+        "volume_ml": round(m["volume"] * 1e6, 1),
         "depth_below_upper_skin_mm": round(m["depth_vertical"] * 1e3, 1),
         "shortest_skin_distance_mm": round(m["depth_min"] * 1e3, 1),
         "coronal_angle_deg": round(m["coronal_angle"] * deg, 1),
@@ -215,15 +240,25 @@ def check_cohort_count(count, fast: bool, png: bool) -> None:
         raise _user_error(f"--count: expected at least 1, got {count}")
     kind = "fast" if fast else "full"
     if count > MAX_COHORT[kind]:
-        why = (f"statistics of {MAX_COHORT[kind]} patients pin each mean to "
-               f"{1 / np.sqrt(MAX_COHORT[kind]):.0%} of its SD"
-               + ("" if fast else "; use --fast for up to "
-                  f"{MAX_COHORT['fast']} (kidney statistics without skin meshes)"))
-        raise _user_error(f"--count: at most {MAX_COHORT[kind]} patients"
-                          f"{' with --fast' if fast else ''}, got {count} ({why})")
+        why = (
+            f"statistics of {MAX_COHORT[kind]} patients pin each mean to "
+            f"{1 / np.sqrt(MAX_COHORT[kind]):.0%} of its SD"
+            + (
+                ""
+                if fast
+                else "; use --fast for up to "
+                f"{MAX_COHORT['fast']} (kidney statistics without skin meshes)"
+            )
+        )
+        raise _user_error(
+            f"--count: at most {MAX_COHORT[kind]} patients"
+            f"{' with --fast' if fast else ''}, got {count} ({why})"
+        )
     if png and count > MAX_COHORT["png"]:
-        raise _user_error(f"--count: the overview picture (--png) draws at most "
-                          f"{MAX_COHORT['png']} kidneys, got {count}")
+        raise _user_error(
+            f"--count: the overview picture (--png) draws at most "
+            f"{MAX_COHORT['png']} kidneys, got {count}"
+        )
 
 
 def _cohort(args) -> int:
@@ -234,11 +269,16 @@ def _cohort(args) -> int:
     per = _SECONDS_PER_PATIENT["fast" if (args.fast and not args.png) else "full"]
     if not args.quiet and n * per > 30:
         import sys
-        print(f"cohort {args.split}: {n} patients, about {n * per / 60:.0f} min "
-              "(Ctrl-C stops)", file=sys.stderr, flush=True)
+
+        print(
+            f"cohort {args.split}: {n} patients, about {n * per / 60:.0f} min (Ctrl-C stops)",
+            file=sys.stderr,
+            flush=True,
+        )
     if args.stats or not args.png:
-        out = cohort_stats(args.split, args.count, args.side, args.posture, full=not args.fast,
-                           progress=progress)
+        out = cohort_stats(
+            args.split, args.count, args.side, args.posture, full=not args.fast, progress=progress
+        )
         out["seconds"] = round(time.time() - t0, 1)
         print(dumps_strict(out, indent=2))
     if args.png:
@@ -247,8 +287,10 @@ def _cohort(args) -> int:
             template = load_template()
         except (FileNotFoundError, ValueError):
             pass
-        pats = [generate_patient(s, args.side, args.posture, progress=False)
-                for s in cohort_seeds(args.split, args.count)]
+        pats = [
+            generate_patient(s, args.side, args.posture, progress=False)
+            for s in cohort_seeds(args.split, args.count)
+        ]
         plot_cohort_overview(pats, args.png, template)
         print(dumps_strict({"overview_png": args.png}))
     return 0
@@ -262,8 +304,9 @@ def _ct_cases(paths: list[str], limit: int | None) -> list[Path]:
         p = Path(text)
         if not p.exists():
             raise _user_error(f"PATH: no such file or folder: {p}")
-        if p.is_dir() and not any(q.is_file() and q.name.lower().endswith(LABEL_MAP_SUFFIXES)
-                                  for q in p.iterdir()):
+        if p.is_dir() and not any(
+            q.is_file() and q.name.lower().endswith(LABEL_MAP_SUFFIXES) for q in p.iterdir()
+        ):
             subs = [q for q in sorted(p.iterdir()) if q.is_dir()]
             for q in subs:
                 try:
@@ -281,39 +324,66 @@ def _ct_cases(paths: list[str], limit: int | None) -> list[Path]:
 
 
 def _ct_row_text(r: dict) -> str:
-    name = Path(r["source"]).parent.name if Path(r["source"]).name.lower().startswith(
-        "segmentation") else Path(r["source"]).name
+    name = (
+        Path(r["source"]).parent.name
+        if Path(r["source"]).name.lower().startswith("segmentation")
+        else Path(r["source"]).name
+    )
     if "error" in r:
         return f"{name:<14} error     {r['error']}"
     f = r["frame"]
-    short = {"slice axis": "sl", "long axes": "la", "separation": "sep", "field of view": "fov",
-             "poles medial": "pm", "poles posterior": "pp", "hilum": "hil",
-             "posterior half": "ph"}
-    cues = " ".join(f"{short.get(k, k)}:{v['agrees']}/{v['disagrees']}/{v['abstains']}"
-                    for k, v in f["cues"].items())
-    kid = " ".join(f"{k['side'][0].upper()}{k['parenchyma_ml']:.0f}+{k['tumour_ml']:.0f}"
-                   f"{'(cut)' if k['cut'] else ''}" for k in r["kidneys"])
+    short = {
+        "slice axis": "sl",
+        "long axes": "la",
+        "separation": "sep",
+        "field of view": "fov",
+        "poles medial": "pm",
+        "poles posterior": "pp",
+        "hilum": "hil",
+        "posterior half": "ph",
+    }
+    cues = " ".join(
+        f"{short.get(k, k)}:{v['agrees']}/{v['disagrees']}/{v['abstains']}"
+        for k, v in f["cues"].items()
+    )
+    kid = " ".join(
+        f"{k['side'][0].upper()}{k['parenchyma_ml']:.0f}+{k['tumour_ml']:.0f}"
+        f"{'(cut)' if k['cut'] else ''}"
+        for k in r["kidneys"]
+    )
     rl = r.get("right_minus_left_mm")
     rl_text = "" if rl is None else f" R-L {rl:+.0f} mm"
     if "definition_dt_mm" in r:
-        rl_text += (f"  kidney with/without tumour: {r['definition_dt_mm']:.1f} mm "
-                    f"{r['definition_rot_deg']:.1f} deg")
+        rl_text += (
+            f"  kidney with/without tumour: {r['definition_dt_mm']:.1f} mm "
+            f"{r['definition_rot_deg']:.1f} deg"
+        )
     warn = f"  disagree: {', '.join(f['conflicts'])}" if f["conflicts"] else ""
-    return f"{name:<14} {f['status']:<9} S{f['axes']['superior']} A{f['axes']['anterior']} " \
-           f"L{f['axes']['left']}  {kid}  {cues}{rl_text}{warn}"
+    return (
+        f"{name:<14} {f['status']:<9} S{f['axes']['superior']} A{f['axes']['anterior']} "
+        f"L{f['axes']['left']}  {kid}  {cues}{rl_text}{warn}"
+    )
 
 
 def _definition_summary(rows: list[dict], side: str) -> dict:
     done = [r for r in rows if "definition_dt_mm" in r]
-    out = {"side": side, "kidneys": len(done),
-           "skipped": [f"{Path(r['source']).parent.name}: {r.get('extra_error') or r.get('error')}"
-                       for r in rows if "definition_dt_mm" not in r]}
+    out = {
+        "side": side,
+        "kidneys": len(done),
+        "skipped": [
+            f"{Path(r['source']).parent.name}: {r.get('extra_error') or r.get('error')}"
+            for r in rows
+            if "definition_dt_mm" not in r
+        ],
+    }
     for key in ("definition_dt_mm", "definition_rot_deg", "definition_rot_x_deg"):
         v = np.array([r[key] for r in done], dtype=float)
         if len(v):
-            out[key[len("definition_"):]] = {
-                "mean": round(float(v.mean()), 2), "median": round(float(np.median(v)), 2),
-                "max": round(float(v.max()), 2)}
+            out[key[len("definition_") :]] = {
+                "mean": round(float(v.mean()), 2),
+                "median": round(float(np.median(v)), 2),
+                "max": round(float(v.max()), 2),
+            }
     return out
 
 
@@ -323,13 +393,18 @@ def _ct_frame(args) -> int:
     files = _ct_cases(args.paths, args.limit)
     extra = None
     if args.definitions:
+
         def extra(case):
             return kidney_definition_difference(case, args.definitions)
+
     if not files:
         raise _user_error("PATH: no label maps found")
     rows = []
-    print("case           status    frame (grid axes)  kidneys (mL parenchyma+tumour)  "
-          "cues agree/disagree/abstain", flush=True)
+    print(
+        "case           status    frame (grid axes)  kidneys (mL parenchyma+tumour)  "
+        "cues agree/disagree/abstain",
+        flush=True,
+    )
     for f in files:
         r = survey_case(f, extra)
         rows.append(r)
@@ -345,8 +420,11 @@ def _ct_frame(args) -> int:
 
 def _common(p, spec=True):
     if spec:
-        p.add_argument("spec", help="seed:N, train:K, test:K, ct:PATH[#OPTIONS] (a real CT "
-                                    "kidney), a mesh directory or a label map")
+        p.add_argument(
+            "spec",
+            help="seed:N, train:K, test:K, ct:PATH[#OPTIONS] (a real CT "
+            "kidney), a mesh directory or a label map",
+        )
     p.add_argument("--side", default="right", choices=["right", "left"])
     p.add_argument("--posture", default="supine", choices=["supine", "left_lateral_decubitus"])
 
@@ -358,8 +436,11 @@ def add_commands(subparsers) -> None:
     c.add_argument("--split", default="test", choices=["train", "test"])
     c.add_argument("--count", type=int, default=None, help="patients (default 20 train, 15 test)")
     c.add_argument("--stats", action="store_true", help="print summary statistics as JSON")
-    c.add_argument("--fast", action="store_true",
-                   help="statistics without skin meshes (depth from the analytic body)")
+    c.add_argument(
+        "--fast",
+        action="store_true",
+        help="statistics without skin meshes (depth from the analytic body)",
+    )
     c.add_argument("--png", default=None, help="write a canonical-frame overview picture")
     c.add_argument("--quiet", action="store_true")
     _common(c, spec=False)
@@ -384,13 +465,24 @@ def add_commands(subparsers) -> None:
     s.add_argument("--voxel-mm", type=float, default=1.0)
     s.add_argument("--meshcat", action="store_true", help="also show in Meshcat until Ctrl-C")
     s.set_defaults(func=_show, outputs={"png": "file:.png"})
-    f = sub.add_parser("ct-frame", help="the patient frame of real CT kidney label maps "
-                                        "(KiTS style), each cue's verdict, usable kidneys")
-    f.add_argument("paths", nargs="+", metavar="PATH",
-                   help="label maps, case folders, or a folder of case folders (KiTS layout)")
+    f = sub.add_parser(
+        "ct-frame",
+        help="the patient frame of real CT kidney label maps "
+        "(KiTS style), each cue's verdict, usable kidneys",
+    )
+    f.add_argument(
+        "paths",
+        nargs="+",
+        metavar="PATH",
+        help="label maps, case folders, or a folder of case folders (KiTS layout)",
+    )
     f.add_argument("--limit", type=int, default=None, help="at most this many cases")
     f.add_argument("--json", action="store_true", help="every case's full report in the JSON")
-    f.add_argument("--definitions", choices=["right", "left"], default=None,
-                   help="also measure, for this side's kidney, how far the true pose of "
-                        "kidney+tumour lies from that of the parenchyma alone")
+    f.add_argument(
+        "--definitions",
+        choices=["right", "left"],
+        default=None,
+        help="also measure, for this side's kidney, how far the true pose of "
+        "kidney+tumour lies from that of the parenchyma alone",
+    )
     f.set_defaults(func=_ct_frame)

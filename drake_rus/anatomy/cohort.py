@@ -14,20 +14,44 @@ import trimesh
 from tqdm import tqdm
 
 from drake_rus.anatomy.cache import cached_patient, file_digest
-from drake_rus.anatomy.checks import check_anatomy
-from drake_rus.anatomy.ct_patient import (CT_PREFIX, build_ct_patient, ct_body_seed,
-                                          ct_label_map_path, parse_ct_spec)
-from drake_rus.anatomy.frames import check_side_posture
-from drake_rus.anatomy.generator import (_Layout, generate_patient, patient_builders,
-                                         sample_patient_params)
-from drake_rus.anatomy.importers import (LABEL_MAP_SUFFIXES, find_mesh_files,
-                                         patient_from_label_map, patient_from_mask_folder,
-                                         patient_from_meshes, totalsegmentator_mask_files)
-from drake_rus.anatomy.patient import Patient
 from drake_rus.anatomy.canonical_frame import extents_in_frame, mesh_canonical_frame
+from drake_rus.anatomy.checks import check_anatomy
+from drake_rus.anatomy.ct_patient import (
+    CT_PREFIX,
+    build_ct_patient,
+    ct_body_seed,
+    ct_label_map_path,
+    parse_ct_spec,
+)
+from drake_rus.anatomy.frames import check_side_posture
+from drake_rus.anatomy.generator import (
+    _Layout,
+    generate_patient,
+    patient_builders,
+    sample_patient_params,
+)
+from drake_rus.anatomy.importers import (
+    LABEL_MAP_SUFFIXES,
+    find_mesh_files,
+    patient_from_label_map,
+    patient_from_mask_folder,
+    patient_from_meshes,
+    totalsegmentator_mask_files,
+)
+from drake_rus.anatomy.patient import Patient
 
-__all__ = ["TRAIN_OFFSET", "TEST_OFFSET", "DEFAULT_COUNTS", "split_seed", "cohort_seeds",
-           "load_patient", "check_regular_path", "kidney_statistics", "summarize", "cohort_stats"]
+__all__ = [
+    "TRAIN_OFFSET",
+    "TEST_OFFSET",
+    "DEFAULT_COUNTS",
+    "split_seed",
+    "cohort_seeds",
+    "load_patient",
+    "check_regular_path",
+    "kidney_statistics",
+    "summarize",
+    "cohort_stats",
+]
 
 TRAIN_OFFSET = 1_000_000
 TEST_OFFSET = 2_000_000
@@ -56,19 +80,33 @@ def check_regular_path(path: Path, what: str) -> None:
     device, a socket) before anything opens it: reading one blocks or never ends."""
     if path.is_dir() or path.is_file():
         return
-    kind = ("a named pipe" if path.is_fifo() else "a device" if path.is_char_device()
-            or path.is_block_device() else "a socket" if path.is_socket() else
-            "not a regular file")
-    raise ValueError(f"{what}: {path} is {kind}; expected a patient directory or a "
-                     "label-map file")
+    kind = (
+        "a named pipe"
+        if path.is_fifo()
+        else "a device"
+        if path.is_char_device() or path.is_block_device()
+        else "a socket"
+        if path.is_socket()
+        else "not a regular file"
+    )
+    raise ValueError(f"{what}: {path} is {kind}; expected a patient directory or a label-map file")
 
 
-def load_patient(spec: str, side: str = "right", posture: str = "supine", *,
-                 voxel_size: float = 0.001, mapping="totalsegmentator",
-                 progress: bool = True, cache: bool = True, check: bool = True) -> Patient:
+def load_patient(
+    spec: str,
+    side: str = "right",
+    posture: str = "supine",
+    *,
+    voxel_size: float = 0.001,
+    mapping="totalsegmentator",
+    progress: bool = True,
+    cache: bool = True,
+    check: bool = True,
+) -> Patient:
     """A patient from a spec: ``seed:N``, ``train:K``, ``test:K`` (virtual, deterministic),
     ``ct:PATH[#OPTIONS]`` (a real CT kidney in a generated body,
-    :mod:`drake_rus.anatomy.ct_patient`), a directory of TotalSegmentator per-structure masks (kidney_right.nii.gz, body.nii.gz,
+    :mod:`drake_rus.anatomy.ct_patient`), a directory of TotalSegmentator per-structure masks
+    (kidney_right.nii.gz, body.nii.gz,
     ...), a directory of meshes (kidney_right/left, skin, liver by file name, like the HuBMAP
     folder) or a NIfTI/NRRD label map (multi-label, TotalSegmentator indices by default).
 
@@ -82,8 +120,7 @@ def load_patient(spec: str, side: str = "right", posture: str = "supine", *,
     :class:`~drake_rus.anatomy.checks.AnatomyError` names the spec and the failed check.
     It builds the label volume (kept in the cache)."""
     check_side_posture(side, posture)
-    inputs, build, builders = _resolve_spec(str(spec), side, posture, voxel_size, mapping,
-                                            progress)
+    inputs, build, builders = _resolve_spec(str(spec), side, posture, voxel_size, mapping, progress)
     patient = build() if not cache else cached_patient(inputs, build, builders=builders)
     if check:
         check_anatomy(patient, str(spec))
@@ -96,8 +133,7 @@ def _mapping_key(mapping):
     return sorted([int(k), str(v).lower()] for k, v in dict(mapping).items())
 
 
-def _resolve_spec(spec: str, side: str, posture: str, voxel_size: float, mapping,
-                  progress: bool):
+def _resolve_spec(spec: str, side: str, posture: str, voxel_size: float, mapping, progress: bool):
     """(cache inputs, build(), builders() or None) of a patient spec: the inputs name the
     generator seed or the bytes of every file the import reads."""
     common = {"spec": spec, "side": side, "posture": posture, "voxel_size": float(voxel_size)}
@@ -106,33 +142,49 @@ def _resolve_spec(spec: str, side: str, posture: str, voxel_size: float, mapping
         ct = parse_ct_spec(spec)
         path = ct_label_map_path(ct.path, spec)
         digest = file_digest(path)
-        options = {"ct_side": ct.ct_side or side,
-                   "body_seed": ct.body_seed if ct.body_seed is not None else ct_body_seed(digest),
-                   "kidney_definition": ct.kidney_definition, "pose": ct.pose}
-        return ({"kind": "ct_kidney", **common, "files": {str(path): digest}, "ct": options},
-                lambda: build_ct_patient(ct, side, posture, name=spec, digest=digest,
-                                         voxel_size=voxel_size, progress=progress),
-                None)
+        options = {
+            "ct_side": ct.ct_side or side,
+            "body_seed": ct.body_seed if ct.body_seed is not None else ct_body_seed(digest),
+            "kidney_definition": ct.kidney_definition,
+            "pose": ct.pose,
+        }
+        return (
+            {"kind": "ct_kidney", **common, "files": {str(path): digest}, "ct": options},
+            lambda: build_ct_patient(
+                ct,
+                side,
+                posture,
+                name=spec,
+                digest=digest,
+                voxel_size=voxel_size,
+                progress=progress,
+            ),
+            None,
+        )
     if sep and head in SPLIT_OFFSETS:
         try:
             k = int(tail)
         except ValueError:
-            raise ValueError(f"patient spec {spec!r}: expected an integer after '{head}:'") from None
+            raise ValueError(
+                f"patient spec {spec!r}: expected an integer after '{head}:'"
+            ) from None
         seed = split_seed(head, k)
-        return ({"kind": "generator", "seed": seed, **common},
-                lambda: generate_patient(seed, side, posture, name=spec, voxel_size=voxel_size,
-                                         progress=progress),
-                lambda: patient_builders(seed, side, posture, voxel_size=voxel_size,
-                                         progress=progress))
+        return (
+            {"kind": "generator", "seed": seed, **common},
+            lambda: generate_patient(
+                seed, side, posture, name=spec, voxel_size=voxel_size, progress=progress
+            ),
+            lambda: patient_builders(seed, side, posture, voxel_size=voxel_size, progress=progress),
+        )
     path = Path(spec)
     if not path.exists():
         raise FileNotFoundError(
-            f"patient spec {spec!r}: not seed:N/train:K/test:K and no such file or directory")
+            f"patient spec {spec!r}: not seed:N/train:K/test:K and no such file or directory"
+        )
     check_regular_path(path, f"patient spec {spec!r}")
 
     def imported(route, files, build, with_mapping=False):
-        inputs = {"kind": route, **common,
-                  "files": {str(p): file_digest(p) for p in files}}
+        inputs = {"kind": route, **common, "files": {str(p): file_digest(p) for p in files}}
         if with_mapping:
             inputs["mapping"] = _mapping_key(mapping)
         return inputs, build, None
@@ -140,36 +192,62 @@ def _resolve_spec(spec: str, side: str, posture: str, voxel_size: float, mapping
     if path.is_dir():
         masks = totalsegmentator_mask_files(path)
         if f"kidney_{side}" in masks:
-            return imported("mask_folder", masks.values(),
-                            lambda: patient_from_mask_folder(path, side=side, posture=posture,
-                                                             voxel_size=voxel_size))
+            return imported(
+                "mask_folder",
+                masks.values(),
+                lambda: patient_from_mask_folder(
+                    path, side=side, posture=posture, voxel_size=voxel_size
+                ),
+            )
         found = find_mesh_files(path, side)
         if found["kidney"] is None or found["skin"] is None:
-            maps = [p for p in sorted(path.iterdir())
-                    if p.is_file() and p.name.lower().endswith(LABEL_MAP_SUFFIXES)]
+            maps = [
+                p
+                for p in sorted(path.iterdir())
+                if p.is_file() and p.name.lower().endswith(LABEL_MAP_SUFFIXES)
+            ]
             if len(maps) == 1:
-                return imported("label_map", maps,
-                                lambda: patient_from_label_map(maps[0], mapping, side=side,
-                                                               posture=posture,
-                                                               voxel_size=voxel_size),
-                                with_mapping=True)
+                return imported(
+                    "label_map",
+                    maps,
+                    lambda: patient_from_label_map(
+                        maps[0], mapping, side=side, posture=posture, voxel_size=voxel_size
+                    ),
+                    with_mapping=True,
+                )
             missing = [k for k in ("kidney", "skin") if found[k] is None]
-            raise ValueError(f"patient directory {path}: no {' and no '.join(missing)} mesh "
-                             f"found (expected file names containing 'kidney' and '{side}', "
-                             "and 'skin'), and not exactly one label map")
-        return imported("meshes", [p for p in found.values() if p is not None],
-                        lambda: patient_from_meshes(found["kidney"], found["skin"],
-                                                    liver=found["liver"],
-                                                    other_kidney=found["other_kidney"],
-                                                    side=side, posture=posture, name=path.name,
-                                                    voxel_size=voxel_size))
+            raise ValueError(
+                f"patient directory {path}: no {' and no '.join(missing)} mesh "
+                f"found (expected file names containing 'kidney' and '{side}', "
+                "and 'skin'), and not exactly one label map"
+            )
+        return imported(
+            "meshes",
+            [p for p in found.values() if p is not None],
+            lambda: patient_from_meshes(
+                found["kidney"],
+                found["skin"],
+                liver=found["liver"],
+                other_kidney=found["other_kidney"],
+                side=side,
+                posture=posture,
+                name=path.name,
+                voxel_size=voxel_size,
+            ),
+        )
     if path.name.lower().endswith(LABEL_MAP_SUFFIXES):
-        return imported("label_map", [path],
-                        lambda: patient_from_label_map(path, mapping, side=side, posture=posture,
-                                                       voxel_size=voxel_size),
-                        with_mapping=True)
-    raise ValueError(f"patient spec {spec!r}: unknown file type (label maps: "
-                     f"{', '.join(LABEL_MAP_SUFFIXES)}; meshes: give their directory)")
+        return imported(
+            "label_map",
+            [path],
+            lambda: patient_from_label_map(
+                path, mapping, side=side, posture=posture, voxel_size=voxel_size
+            ),
+            with_mapping=True,
+        )
+    raise ValueError(
+        f"patient spec {spec!r}: unknown file type (label maps: "
+        f"{', '.join(LABEL_MAP_SUFFIXES)}; meshes: give their directory)"
+    )
 
 
 def kidney_statistics(seed: int, side: str = "right", posture: str = "supine") -> dict:
@@ -185,14 +263,17 @@ def kidney_statistics(seed: int, side: str = "right", posture: str = "supine") -
     x_k = X.rotation().matrix()[:, 0]
     depth = float(lay.torso.top_z(lay.p_c[0], lay.p_c[1]) - lay.kidney_top_z)
     out = {
-        "seed": int(seed), "size_class": prm.torso.size_class,
-        "length": float(ext[0]), "width": float(ext[1]), "thickness": float(ext[2]),
+        "seed": int(seed),
+        "size_class": prm.torso.size_class,
+        "length": float(ext[0]),
+        "width": float(ext[1]),
+        "thickness": float(ext[2]),
         "volume": float(mesh.volume),
         "hilum_angle": lay.hilum_angle_measured(x_k),
         "coronal_angle": float(np.arctan2(abs(x_k[0]), x_k[1])),
         "sagittal_angle": float(np.arctan2(-x_k[2], x_k[1])),
     }
-    if posture == "supine":    # the analytic upper surface is the anterior one
+    if posture == "supine":  # the analytic upper surface is the anterior one
         out["depth_vertical"] = depth
     return out
 
@@ -209,12 +290,17 @@ REFERENCE = {
     "depth_vertical_mm": "75-165 by body size (modelling choice; CT skin-to-kidney 100 +- 25-30)",
 }
 
-_UNITS = {"length": ("length_mm", 1e3), "width": ("width_mm", 1e3),
-          "thickness": ("thickness_mm", 1e3), "volume": ("volume_ml", 1e6),
-          "hilum_angle": ("hilum_angle_deg", 180 / np.pi),
-          "coronal_angle": ("coronal_angle_deg", 180 / np.pi),
-          "sagittal_angle": ("sagittal_angle_deg", 180 / np.pi),
-          "depth_vertical": ("depth_vertical_mm", 1e3), "depth_min": ("depth_min_mm", 1e3)}
+_UNITS = {
+    "length": ("length_mm", 1e3),
+    "width": ("width_mm", 1e3),
+    "thickness": ("thickness_mm", 1e3),
+    "volume": ("volume_ml", 1e6),
+    "hilum_angle": ("hilum_angle_deg", 180 / np.pi),
+    "coronal_angle": ("coronal_angle_deg", 180 / np.pi),
+    "sagittal_angle": ("sagittal_angle_deg", 180 / np.pi),
+    "depth_vertical": ("depth_vertical_mm", 1e3),
+    "depth_min": ("depth_min_mm", 1e3),
+}
 
 
 def summarize(rows: list[dict], side: str = "right", posture: str = "supine") -> dict:
@@ -225,9 +311,12 @@ def summarize(rows: list[dict], side: str = "right", posture: str = "supine") ->
         if len(vals) == 0:
             continue
         ref = REFERENCE.get(name)
-        out[name] = {"mean": round(float(vals.mean()), 2),
-                     "sd": round(float(vals.std(ddof=1)) if len(vals) > 1 else 0.0, 2),
-                     "min": round(float(vals.min()), 2), "max": round(float(vals.max()), 2)}
+        out[name] = {
+            "mean": round(float(vals.mean()), 2),
+            "sd": round(float(vals.std(ddof=1)) if len(vals) > 1 else 0.0, 2),
+            "min": round(float(vals.min()), 2),
+            "max": round(float(vals.max()), 2),
+        }
         if name == "depth_vertical_mm" and posture != "supine":
             ref = "less than supine: through the upper (right) flank; no published range"
         if ref is not None:
@@ -238,8 +327,14 @@ def summarize(rows: list[dict], side: str = "right", posture: str = "supine") ->
     return out
 
 
-def cohort_stats(split: str, count: int | None = None, side: str = "right",
-                 posture: str = "supine", full: bool = True, progress: bool = True) -> dict:
+def cohort_stats(
+    split: str,
+    count: int | None = None,
+    side: str = "right",
+    posture: str = "supine",
+    full: bool = True,
+    progress: bool = True,
+) -> dict:
     """Summary statistics of a cohort. ``full``: build each Patient (meshes, exact depths
     through the meshes, shortest skin distance); else the fast per-seed statistics."""
     seeds = cohort_seeds(split, count)
@@ -252,5 +347,11 @@ def cohort_stats(split: str, count: int | None = None, side: str = "right",
         else:
             row = kidney_statistics(seed, side, posture)
         rows.append(row)
-    return {"split": split, "count": len(seeds), "side": side, "posture": posture,
-            "seeds": [seeds[0], seeds[-1]], "statistics": summarize(rows, side, posture)}
+    return {
+        "split": split,
+        "count": len(seeds),
+        "side": side,
+        "posture": posture,
+        "seeds": [seeds[0], seeds[-1]],
+        "statistics": summarize(rows, side, posture),
+    }

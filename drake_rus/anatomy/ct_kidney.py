@@ -64,11 +64,28 @@ from scipy import ndimage
 
 from drake_rus.anatomy.rasterize import rasterize_mesh
 
-__all__ = ["KIDNEY_VALUE", "TUMOUR_VALUE", "LabelGrid", "KidneyComponent", "FrameEstimate",
-           "CTKidneys", "read_label_grid", "kidney_components", "estimate_frame",
-           "import_ct_kidneys", "select_kidney", "kidney_fields_A", "KidneyFields",
-           "right_lower_statistic", "largest_concavity", "concavities", "survey_case",
-           "survey_summary", "MIN_KIDNEY_ML", "LEVEL_TOLERANCE_MM"]
+__all__ = [
+    "KIDNEY_VALUE",
+    "TUMOUR_VALUE",
+    "LabelGrid",
+    "KidneyComponent",
+    "FrameEstimate",
+    "CTKidneys",
+    "read_label_grid",
+    "kidney_components",
+    "estimate_frame",
+    "import_ct_kidneys",
+    "select_kidney",
+    "kidney_fields_A",
+    "KidneyFields",
+    "right_lower_statistic",
+    "largest_concavity",
+    "concavities",
+    "survey_case",
+    "survey_summary",
+    "MIN_KIDNEY_ML",
+    "LEVEL_TOLERANCE_MM",
+]
 
 KIDNEY_VALUE = 1
 TUMOUR_VALUE = 2
@@ -107,6 +124,7 @@ class LabelGrid:
     """A label map as read: ``labels`` (uint8, numpy axis order), ``spacing`` (mm, per
     array axis), ``handedness`` (+1/-1: the chirality of the array axes in the patient, from
     the sign of the header's direction-matrix determinant) and where it came from."""
+
     labels: np.ndarray
     spacing: np.ndarray
     handedness: int
@@ -119,6 +137,7 @@ class LabelGrid:
 def read_label_grid(path) -> LabelGrid:
     """Reads a KiTS-style label map (any SimpleITK-readable 3-D file). Errors name the file."""
     import SimpleITK as sitk
+
     path = Path(path)
     where = f"label map {path}"
     if not path.is_file():
@@ -130,8 +149,10 @@ def read_label_grid(path) -> LabelGrid:
     if img.GetDimension() != 3:
         _fail(f"{where}: expected a 3-D label map, got {img.GetDimension()}-D")
     if img.GetNumberOfComponentsPerPixel() != 1:
-        _fail(f"{where}: expected one label per voxel, got "
-              f"{img.GetNumberOfComponentsPerPixel()} components")
+        _fail(
+            f"{where}: expected one label per voxel, got "
+            f"{img.GetNumberOfComponentsPerPixel()} components"
+        )
     spacing = np.array(img.GetSpacing(), dtype=float)[::-1]
     if not (np.all(np.isfinite(spacing)) and np.all(spacing > 0)):
         _fail(f"{where}: voxel spacing {tuple(spacing[::-1])} is not positive")
@@ -151,8 +172,13 @@ def read_label_grid(path) -> LabelGrid:
     for g in range(3):
         a = int(np.argmax(np.abs(M[:, g])))
         header[a, g] = np.sign(M[a, g])
-    return LabelGrid(labels=labels, spacing=spacing, handedness=handedness, source=str(path),
-                     header_R_AG=header if abs(abs(np.linalg.det(header)) - 1) < 1e-9 else None)
+    return LabelGrid(
+        labels=labels,
+        spacing=spacing,
+        handedness=handedness,
+        source=str(path),
+        header_R_AG=header if abs(abs(np.linalg.det(header)) - 1) < 1e-9 else None,
+    )
 
 
 def _as_label_array(a: np.ndarray, where: str) -> np.ndarray:
@@ -162,16 +188,21 @@ def _as_label_array(a: np.ndarray, where: str) -> np.ndarray:
                 _fail(f"{where}: voxel values are not integer labels (dtype {a.dtype})")
         lo, hi = float(a.min()), float(a.max())
         if lo < 0 or hi > 255:
-            _fail(f"{where}: labels other than 0/1/2 (found values {lo:g} to {hi:g}); "
-                  "expected a KiTS-style map: 0 background, 1 kidney, 2 tumour")
+            _fail(
+                f"{where}: labels other than 0/1/2 (found values {lo:g} to {hi:g}); "
+                "expected a KiTS-style map: 0 background, 1 kidney, 2 tumour"
+            )
         a = a.astype(np.uint8)
     high = a > TUMOUR_VALUE
-    other = ([int(v) for v in np.flatnonzero(np.bincount(a[high], minlength=256))]
-             if high.any() else [])
+    other = (
+        [int(v) for v in np.flatnonzero(np.bincount(a[high], minlength=256))] if high.any() else []
+    )
     if other:
         shown = ", ".join(str(v) for v in other[:6]) + (", ..." if len(other) > 6 else "")
-        _fail(f"{where}: labels other than 0/1/2 (found {shown}); expected a KiTS-style map: "
-              "0 background, 1 kidney, 2 tumour")
+        _fail(
+            f"{where}: labels other than 0/1/2 (found {shown}); expected a KiTS-style map: "
+            "0 background, 1 kidney, 2 tumour"
+        )
     if not a.any():
         _fail(f"{where}: no kidney labels (no voxel is 1 or 2)")
     return a
@@ -184,6 +215,7 @@ class KidneyComponent:
     grid. ``labels`` (uint8, 0 outside this kidney) starts at voxel ``lo`` of the full grid;
     ``touches``: the grid faces it lies on ("axis 0 low", ...), i.e. cut by the field of
     view."""
+
     labels: np.ndarray
     lo: np.ndarray
     spacing: np.ndarray
@@ -206,7 +238,7 @@ class KidneyComponent:
         """Voxel centres (N, 3) in G (mm) of the parenchyma, the tumour or both ("all")."""
         if which == "parenchyma":
             m = self.labels == KIDNEY_VALUE
-            if m.sum() < 10:            # a kidney replaced by its tumour: use everything
+            if m.sum() < 10:  # a kidney replaced by its tumour: use everything
                 m = self.labels > 0
         elif which == "tumour":
             m = self.labels == TUMOUR_VALUE
@@ -233,7 +265,7 @@ def kidney_components(grid: LabelGrid) -> tuple[list[KidneyComponent], dict]:
     nz = [np.flatnonzero(a.any(axis=tuple(x for x in range(3) if x != ax))) for ax in range(3)]
     lo = np.array([n[0] for n in nz])
     hi = np.array([n[-1] + 1 for n in nz])
-    sub = a[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+    sub = a[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
     comp, n = ndimage.label(sub > 0, structure=np.ones((3, 3, 3), dtype=bool))
     voxel_ml = float(np.prod(grid.spacing)) / 1000.0
     sizes = np.bincount(comp.ravel(), minlength=n + 1)
@@ -250,8 +282,10 @@ def kidney_components(grid: LabelGrid) -> tuple[list[KidneyComponent], dict]:
             left_out[0] += 1
             left_out[1] += ml
     if not kidneys:
-        _fail(f"label map {grid.source}: no kidney labels (no connected kidney of at least "
-              f"{MIN_KIDNEY_ML:g} mL; {n} fragment(s), {sizes[1:].sum() * voxel_ml:.1f} mL)")
+        _fail(
+            f"label map {grid.source}: no kidney labels (no connected kidney of at least "
+            f"{MIN_KIDNEY_ML:g} mL; {n} fragment(s), {sizes[1:].sum() * voxel_ml:.1f} mL)"
+        )
     centroids = {}
     for k in kidneys + tumours if tumours else []:
         box = slices[k - 1]
@@ -270,17 +304,22 @@ def kidney_components(grid: LabelGrid) -> tuple[list[KidneyComponent], dict]:
         labels = np.where(keep, sub[box], 0).astype(np.uint8)
         g_lo = lo + b_lo
         g_hi = lo + b_hi
-        touches = [f"axis {ax} {end}" for ax in range(3)
-                   for end, hit in (("low", g_lo[ax] == 0), ("high", g_hi[ax] == a.shape[ax]))
-                   if hit]
-        out.append(KidneyComponent(labels=labels, lo=g_lo, spacing=grid.spacing.copy(),
-                                   touches=touches))
+        touches = [
+            f"axis {ax} {end}"
+            for ax in range(3)
+            for end, hit in (("low", g_lo[ax] == 0), ("high", g_hi[ax] == a.shape[ax]))
+            if hit
+        ]
+        out.append(
+            KidneyComponent(labels=labels, lo=g_lo, spacing=grid.spacing.copy(), touches=touches)
+        )
     out.sort(key=lambda c: -(c.labels > 0).sum())
     extra = {"fragments": left_out[0], "fragments_ml": round(left_out[1], 2)}
     if len(out) > 2:
         extra["extra_kidney_components"] = len(out) - 2
-        extra["extra_kidney_ml"] = round(sum(float((c.labels > 0).sum()) * c.voxel_ml
-                                             for c in out[2:]), 1)
+        extra["extra_kidney_ml"] = round(
+            sum(float((c.labels > 0).sum()) * c.voxel_ml for c in out[2:]), 1
+        )
         out = out[:2]
     return out, extra
 
@@ -295,6 +334,7 @@ class FrameEstimate:
     per cue and kidney ({"cue", "kidney", "verdict": agrees/disagrees/abstains, "value",
     "note"}); ``status``: "agree" (no cue disagrees) or "conflict" (the majority decided;
     ``conflicts`` lists the disagreeing cues); ``sides``: "right"/"left" per kidney."""
+
     R_AG: np.ndarray
     axes: dict
     cues: list
@@ -308,8 +348,13 @@ class FrameEstimate:
         for c in self.cues:
             counts.setdefault(c["cue"], {"agrees": 0, "disagrees": 0, "abstains": 0})
             counts[c["cue"]][c["verdict"]] += 1
-        return {"status": self.status, "axes": self.axes, "sides": self.sides,
-                "cues": counts, "conflicts": self.conflicts}
+        return {
+            "status": self.status,
+            "axes": self.axes,
+            "sides": self.sides,
+            "cues": counts,
+            "conflicts": self.conflicts,
+        }
 
 
 def _unit(v):
@@ -330,6 +375,7 @@ def concavities(hull_of: np.ndarray, solid: np.ndarray, spacing) -> list:
     """The concavities of :func:`largest_concavity`, largest first: [(centroid as
     fractional voxel index, volume mL), ...]."""
     from scipy.spatial import ConvexHull, QhullError
+
     sp = np.asarray(spacing, dtype=float)
     edge = hull_of & ~ndimage.binary_erosion(hull_of)
     # The hull in index units (an affine image of the hull in mm), rasterised by ray parity.
@@ -354,8 +400,9 @@ def concavities(hull_of: np.ndarray, solid: np.ndarray, spacing) -> list:
     sizes = np.bincount(lab.ravel())[1:]
     centres = ndimage.center_of_mass(deficit, lab, range(1, n + 1))
     voxel_ml = float(np.prod(sp)) / 1000.0
-    return [(np.asarray(centres[i]) + lo, float(sizes[i]) * voxel_ml)
-            for i in np.argsort(sizes)[::-1]]
+    return [
+        (np.asarray(centres[i]) + lo, float(sizes[i]) * voxel_ml) for i in np.argsort(sizes)[::-1]
+    ]
 
 
 def _hilum_direction(k: KidneyComponent, c: np.ndarray, v1: np.ndarray):
@@ -367,8 +414,8 @@ def _hilum_direction(k: KidneyComponent, c: np.ndarray, v1: np.ndarray):
     if par.sum() < 50:
         return None, 0.0
     step = np.maximum(1, np.round(_HILUM_GRID_MM / k.spacing).astype(int))
-    par_s = par[::step[0], ::step[1], ::step[2]]
-    solid_s = (k.labels > 0)[::step[0], ::step[1], ::step[2]]
+    par_s = par[:: step[0], :: step[1], :: step[2]]
+    solid_s = (k.labels > 0)[:: step[0], :: step[1], :: step[2]]
     sp = k.spacing * step
     centroid, ml = largest_concavity(par_s, solid_s, sp)
     if centroid is None or ml < _MIN_HILUM_ML:
@@ -383,12 +430,14 @@ def _hilum_direction(k: KidneyComponent, c: np.ndarray, v1: np.ndarray):
 def _vote(cues, cue, kidney, value, prediction, note=""):
     """A cue's prediction: a dict of sign constraints ({"S": +1} means the +SI grid axis is
     superior; {"SA": +1} means the S and A signs are equal), or None (abstains)."""
-    cues.append({"cue": cue, "kidney": kidney, "value": value, "prediction": prediction,
-                 "note": note})
+    cues.append(
+        {"cue": cue, "kidney": kidney, "value": value, "prediction": prediction, "note": note}
+    )
 
 
-def estimate_frame(components: list[KidneyComponent], shape, spacing, handedness: int,
-                   source: str = "label map") -> FrameEstimate:
+def estimate_frame(
+    components: list[KidneyComponent], shape, spacing, handedness: int, source: str = "label map"
+) -> FrameEstimate:
     """The anatomical frame of a grid of ``shape`` and ``spacing`` (mm) holding the kidney
     ``components``; ``handedness`` is the grid's chirality in the patient (+1: right-handed).
     Pure: no file is read. Raises ValueError (naming ``source``) when an axis cannot be
@@ -408,10 +457,14 @@ def estimate_frame(components: list[KidneyComponent], shape, spacing, handedness
     slice_axis = None
     for ax in range(3):
         o = [b for b in range(3) if b != ax]
-        same = (abs(spacing[o[0]] - spacing[o[1]]) <= _SAME_SPACING * spacing[o].max()
-                and shape[o[0]] == shape[o[1]])
-        differs = (abs(spacing[ax] - spacing[o[0]]) > _SAME_SPACING * spacing[o].max()
-                   or shape[ax] != shape[o[0]])
+        same = (
+            abs(spacing[o[0]] - spacing[o[1]]) <= _SAME_SPACING * spacing[o].max()
+            and shape[o[0]] == shape[o[1]]
+        )
+        differs = (
+            abs(spacing[ax] - spacing[o[0]]) > _SAME_SPACING * spacing[o].max()
+            or shape[ax] != shape[o[0]]
+        )
         if same and differs:
             slice_axis = ax
     distorted = [k.tumour_ml >= DISTORTED_TUMOUR_RATIO * k.parenchyma_ml for k in ks]
@@ -419,20 +472,36 @@ def estimate_frame(components: list[KidneyComponent], shape, spacing, handedness
     mean_abs = np.mean([np.abs(v1s[i]) for i in voters], axis=0)
     order = np.argsort(mean_abs)[::-1]
     long_axis = int(order[0]) if mean_abs[order[0]] - mean_abs[order[1]] >= 0.2 else None
-    axis_notes.append({"cue": "slice axis", "axis": slice_axis,
-                       "note": ("odd spacing/size: " + ", ".join(
-                           f"{spacing[a]:.2f} mm x {shape[a]}" for a in range(3)))})
-    axis_notes.append({"cue": "long axes", "axis": long_axis,
-                       "note": "mean |long axis| per grid axis " +
-                               ", ".join(f"{m:.2f}" for m in mean_abs)})
+    axis_notes.append(
+        {
+            "cue": "slice axis",
+            "axis": slice_axis,
+            "note": (
+                "odd spacing/size: "
+                + ", ".join(f"{spacing[a]:.2f} mm x {shape[a]}" for a in range(3))
+            ),
+        }
+    )
+    axis_notes.append(
+        {
+            "cue": "long axes",
+            "axis": long_axis,
+            "note": "mean |long axis| per grid axis " + ", ".join(f"{m:.2f}" for m in mean_abs),
+        }
+    )
     if slice_axis is not None and long_axis is not None and slice_axis != long_axis:
-        _fail(f"{source}: superior-inferior axis undetermined: the slice axis is grid axis "
-              f"{slice_axis} but the kidneys' long axes run along grid axis {long_axis} "
-              "(a coronal or sagittal acquisition, a horseshoe kidney?)")
+        _fail(
+            f"{source}: superior-inferior axis undetermined: the slice axis is grid axis "
+            f"{slice_axis} but the kidneys' long axes run along grid axis {long_axis} "
+            "(a coronal or sagittal acquisition, a horseshoe kidney?)"
+        )
     si = slice_axis if slice_axis is not None else long_axis
     if si is None:
-        _fail(f"{source}: superior-inferior axis undetermined: no slice axis (isotropic "
-              f"grid) and the kidneys' long axes are oblique ({', '.join(f'{m:.2f}' for m in mean_abs)})")
+        _fail(
+            f"{source}: superior-inferior axis undetermined: no slice axis (isotropic "
+            f"grid) and the kidneys' long axes are oblique "
+            f"({', '.join(f'{m:.2f}' for m in mean_abs)})"
+        )
 
     # 2. Right-left axis among the other two.
     rest = [a for a in range(3) if a != si]
@@ -440,20 +509,32 @@ def estimate_frame(components: list[KidneyComponent], shape, spacing, handedness
     if len(ks) == 2:
         d = np.abs(cents[0] - cents[1])
         lr = rest[int(np.argmax(d[rest]))]
-        axis_notes.append({"cue": "separation", "axis": lr,
-                           "note": f"centroids {d[rest[0]]:.0f} / {d[rest[1]]:.0f} mm apart "
-                                   f"along grid axes {rest[0]} / {rest[1]}"})
+        axis_notes.append(
+            {
+                "cue": "separation",
+                "axis": lr,
+                "note": f"centroids {d[rest[0]]:.0f} / {d[rest[1]]:.0f} mm apart "
+                f"along grid axes {rest[0]} / {rest[1]}",
+            }
+        )
         if d[lr] < 1.5 * d[[a for a in rest if a != lr][0]] or d[lr] < 40.0:
-            _fail(f"{source}: right-left axis undetermined: the two kidneys lie "
-                  f"{d[rest[0]]:.0f} and {d[rest[1]]:.0f} mm apart along grid axes "
-                  f"{rest[0]} and {rest[1]}")
+            _fail(
+                f"{source}: right-left axis undetermined: the two kidneys lie "
+                f"{d[rest[0]]:.0f} and {d[rest[1]]:.0f} mm apart along grid axes "
+                f"{rest[0]} and {rest[1]}"
+            )
         midline = 0.5 * (cents[0] + cents[1])
     else:
         off = np.abs(cents[0] - centre)
         lr = rest[int(np.argmax(off[rest]))]
-        axis_notes.append({"cue": "field of view", "axis": lr,
-                           "note": f"one kidney {off[rest[0]]:.0f} / {off[rest[1]]:.0f} mm "
-                                   f"from the centre along grid axes {rest[0]} / {rest[1]}"})
+        axis_notes.append(
+            {
+                "cue": "field of view",
+                "axis": lr,
+                "note": f"one kidney {off[rest[0]]:.0f} / {off[rest[1]]:.0f} mm "
+                f"from the centre along grid axes {rest[0]} / {rest[1]}",
+            }
+        )
         midline = centre.copy()
     ap = [a for a in rest if a != lr][0]
 
@@ -463,11 +544,17 @@ def estimate_frame(components: list[KidneyComponent], shape, spacing, handedness
     for i, k in enumerate(ks):
         if distorted[i]:
             for cue in ("poles medial", "poles posterior", "hilum"):
-                _vote(cues, cue, names[i], None, None,
-                      f"distorted by its tumour ({k.tumour_ml:.0f} mL, parenchyma "
-                      f"{k.parenchyma_ml:.0f} mL)")
+                _vote(
+                    cues,
+                    cue,
+                    names[i],
+                    None,
+                    None,
+                    f"distorted by its tumour ({k.tumour_ml:.0f} mL, parenchyma "
+                    f"{k.parenchyma_ml:.0f} mL)",
+                )
             continue
-        v = v1s[i] * (1.0 if v1s[i][si] >= 0 else -1.0)       # oriented along +SI grid
+        v = v1s[i] * (1.0 if v1s[i][si] >= 0 else -1.0)  # oriented along +SI grid
         lat = 1.0 if cents[i][lr] - midline[lr] >= 0 else -1.0  # +LR grid is lateral?
         if len(ks) == 1 and abs(cents[i][lr] - midline[lr]) < 20.0:
             lat = 0.0
@@ -476,18 +563,40 @@ def estimate_frame(components: list[KidneyComponent], shape, spacing, handedness
         # Poles medial: moving along +SI the axis goes lateral -> +SI is inferior.
         slope = lat * v[lr]
         if lat == 0.0 or coronal < _MIN_TILT_DEG:
-            _vote(cues, "poles medial", names[i], round(float(coronal), 1), None,
-                  "coronal tilt too small or kidney on the midline")
+            _vote(
+                cues,
+                "poles medial",
+                names[i],
+                round(float(coronal), 1),
+                None,
+                "coronal tilt too small or kidney on the midline",
+            )
         else:
-            _vote(cues, "poles medial", names[i], round(float(coronal), 1),
-                  {"S": -1 if slope > 0 else 1})
+            _vote(
+                cues,
+                "poles medial",
+                names[i],
+                round(float(coronal), 1),
+                {"S": -1 if slope > 0 else 1},
+            )
         # Poles posterior: superior is posterior: sS * v[ap] * sA < 0.
         if sagittal < _MIN_TILT_DEG:
-            _vote(cues, "poles posterior", names[i], round(float(sagittal), 1), None,
-                  "sagittal tilt too small")
+            _vote(
+                cues,
+                "poles posterior",
+                names[i],
+                round(float(sagittal), 1),
+                None,
+                "sagittal tilt too small",
+            )
         else:
-            _vote(cues, "poles posterior", names[i], round(float(sagittal), 1),
-                  {"SA": -1 if v[ap] > 0 else 1})
+            _vote(
+                cues,
+                "poles posterior",
+                names[i],
+                round(float(sagittal), 1),
+                {"SA": -1 if v[ap] > 0 else 1},
+            )
         # Hilum: anteromedial.
         h, h_ml = _hilum_direction(k, cents[i], _unit(v1s[i]))
         if h is None:
@@ -496,41 +605,70 @@ def estimate_frame(components: list[KidneyComponent], shape, spacing, handedness
             medial = -lat * h[lr] if lat != 0.0 else 0.0
             elev = np.degrees(np.arctan2(abs(h[ap]), max(medial, 1e-9)))
             if lat != 0.0 and medial <= 0:
-                _vote(cues, "hilum", names[i], round(float(h_ml), 1), None,
-                      "largest concavity is not medial (not the hilum)")
+                _vote(
+                    cues,
+                    "hilum",
+                    names[i],
+                    round(float(h_ml), 1),
+                    None,
+                    "largest concavity is not medial (not the hilum)",
+                )
             elif lat != 0.0 and elev < _MIN_HILUM_ELEVATION_DEG:
-                _vote(cues, "hilum", names[i], round(float(elev), 1), None,
-                      "hilum nearly horizontal")
+                _vote(
+                    cues, "hilum", names[i], round(float(elev), 1), None, "hilum nearly horizontal"
+                )
             else:
-                _vote(cues, "hilum", names[i], round(float(elev), 1) if lat else None,
-                      {"A": 1 if h[ap] > 0 else -1},
-                      f"concavity {h_ml:.1f} mL")
+                _vote(
+                    cues,
+                    "hilum",
+                    names[i],
+                    round(float(elev), 1) if lat else None,
+                    {"A": 1 if h[ap] > 0 else -1},
+                    f"concavity {h_ml:.1f} mL",
+                )
     off_ap = float(np.mean([c[ap] for c in cents]) - centre[ap])
     if abs(off_ap) < _MIN_POSTERIOR_MM:
-        _vote(cues, "posterior half", "all", round(off_ap, 1), None,
-              "kidneys near the field of view's centre")
+        _vote(
+            cues,
+            "posterior half",
+            "all",
+            round(off_ap, 1),
+            None,
+            "kidneys near the field of view's centre",
+        )
     else:
         _vote(cues, "posterior half", "all", round(off_ap, 1), {"A": -1 if off_ap > 0 else 1})
 
     def agrees(pred, sS, sA):
         val = {"S": sS, "A": sA, "SA": sS * sA}
         return all(val[key] == s for key, s in pred.items())
+
     scores = {}
     for sS in (1, -1):
         for sA in (1, -1):
-            scores[(sS, sA)] = sum((1 if agrees(c["prediction"], sS, sA) else -1)
-                                   for c in cues if c["prediction"] is not None)
+            scores[(sS, sA)] = sum(
+                (1 if agrees(c["prediction"], sS, sA) else -1)
+                for c in cues
+                if c["prediction"] is not None
+            )
     ranked = sorted(scores.items(), key=lambda kv: -kv[1])
     (best, s_best), (_, s_next) = ranked[0], ranked[1]
     if s_best == s_next:
+
         def support(h):
-            return ", ".join(f"{c['cue']} ({c['kidney']})" for c in cues
-                             if c["prediction"] is not None and agrees(c["prediction"], *h))
+            return ", ".join(
+                f"{c['cue']} ({c['kidney']})"
+                for c in cues
+                if c["prediction"] is not None and agrees(c["prediction"], *h)
+            )
+
         (h1, _), (h2, _) = ranked[0], ranked[1]
-        _fail(f"{source}: patient frame undetermined: the anatomical cues tie between "
-              f"superior {'+' if h1[0] > 0 else '-'}{si}/anterior {'+' if h1[1] > 0 else '-'}{ap} "
-              f"({support(h1) or 'none'}) and superior {'+' if h2[0] > 0 else '-'}{si}/anterior "
-              f"{'+' if h2[1] > 0 else '-'}{ap} ({support(h2) or 'none'})")
+        _fail(
+            f"{source}: patient frame undetermined: the anatomical cues tie between "
+            f"superior {'+' if h1[0] > 0 else '-'}{si}/anterior {'+' if h1[1] > 0 else '-'}{ap} "
+            f"({support(h1) or 'none'}) and superior {'+' if h2[0] > 0 else '-'}{si}/anterior "
+            f"{'+' if h2[1] > 0 else '-'}{ap} ({support(h2) or 'none'})"
+        )
     sS, sA = best
     conflicts = []
     for c in cues:
@@ -547,7 +685,7 @@ def estimate_frame(components: list[KidneyComponent], shape, spacing, handedness
     e_A = np.zeros(3)
     e_A[ap] = sA
     e_L = handedness * np.cross(e_S, e_A)
-    R_GA = np.column_stack([e_L, e_S, e_A])          # columns: anatomical axes in G
+    R_GA = np.column_stack([e_L, e_S, e_A])  # columns: anatomical axes in G
     R_AG = R_GA.T
     sides = []
     for c in cents:
@@ -557,26 +695,48 @@ def estimate_frame(components: list[KidneyComponent], shape, spacing, handedness
         _fail(f"{source}: both kidneys on one side of the midline")
     decided = {"slice axis": si, "long axes": si, "separation": lr, "field of view": lr}
     for note in axis_notes[::-1]:
-        verdict = ("abstains" if note["axis"] is None else
-                   "agrees" if note["axis"] == decided[note["cue"]] else "disagrees")
-        cues.insert(0, {"cue": note["cue"], "kidney": "all", "value": note["axis"],
-                        "verdict": verdict, "note": note["note"]})
-    axes = {"superior": f"{'+' if sS > 0 else '-'}{si}",
-            "anterior": f"{'+' if sA > 0 else '-'}{ap}",
-            "left": f"{'+' if e_L[lr] > 0 else '-'}{lr}"}
-    return FrameEstimate(R_AG=R_AG, axes=axes, cues=cues,
-                         status="conflict" if conflicts else "agree", conflicts=conflicts,
-                         sides=sides, handedness=int(handedness))
+        verdict = (
+            "abstains"
+            if note["axis"] is None
+            else "agrees"
+            if note["axis"] == decided[note["cue"]]
+            else "disagrees"
+        )
+        cues.insert(
+            0,
+            {
+                "cue": note["cue"],
+                "kidney": "all",
+                "value": note["axis"],
+                "verdict": verdict,
+                "note": note["note"],
+            },
+        )
+    axes = {
+        "superior": f"{'+' if sS > 0 else '-'}{si}",
+        "anterior": f"{'+' if sA > 0 else '-'}{ap}",
+        "left": f"{'+' if e_L[lr] > 0 else '-'}{lr}",
+    }
+    return FrameEstimate(
+        R_AG=R_AG,
+        axes=axes,
+        cues=cues,
+        status="conflict" if conflicts else "agree",
+        conflicts=conflicts,
+        sides=sides,
+        handedness=int(handedness),
+    )
 
 
 # --- a case ------------------------------------------------------------------------------
 @dataclass
 class CTKidneys:
     """The kidneys of one label map in its established frame."""
+
     source: str
     grid_shape: tuple
     spacing: np.ndarray
-    kidneys: list            # KidneyComponent, with .side set
+    kidneys: list  # KidneyComponent, with .side set
     frame: FrameEstimate
     extra: dict
 
@@ -586,17 +746,27 @@ class CTKidneys:
     def right_minus_left_mm(self) -> float | None:
         """Superior-inferior height of the right kidney's parenchyma centroid above the
         left's (mm; negative: the right kidney lies lower); None without both kidneys."""
-        r, l = self.by_side("right"), self.by_side("left")
-        if r is None or l is None:
+        right, left = self.by_side("right"), self.by_side("left")
+        if right is None or left is None:
             return None
         e_S = self.frame.R_AG[1]
-        return float((r.principal_axes()[0] - l.principal_axes()[0]) @ e_S)
+        return float((right.principal_axes()[0] - left.principal_axes()[0]) @ e_S)
 
     def report(self) -> dict:
-        out = {"source": self.source, "frame": self.frame.summary(),
-               "kidneys": [{"side": k.side, "parenchyma_ml": round(k.parenchyma_ml, 1),
-                            "tumour_ml": round(k.tumour_ml, 1), "cut": k.touches}
-                           for k in self.kidneys], **self.extra}
+        out = {
+            "source": self.source,
+            "frame": self.frame.summary(),
+            "kidneys": [
+                {
+                    "side": k.side,
+                    "parenchyma_ml": round(k.parenchyma_ml, 1),
+                    "tumour_ml": round(k.tumour_ml, 1),
+                    "cut": k.touches,
+                }
+                for k in self.kidneys
+            ],
+            **self.extra,
+        }
         d = self.right_minus_left_mm()
         if d is not None:
             out["right_minus_left_mm"] = round(d, 1)
@@ -606,12 +776,19 @@ class CTKidneys:
 def import_ct_kidneys(grid: LabelGrid) -> CTKidneys:
     """Kidneys and frame of a label grid (see the module docstring)."""
     comps, extra = kidney_components(grid)
-    frame = estimate_frame(comps, grid.labels.shape, grid.spacing, grid.handedness,
-                           source=f"label map {grid.source}")
+    frame = estimate_frame(
+        comps, grid.labels.shape, grid.spacing, grid.handedness, source=f"label map {grid.source}"
+    )
     for k, s in zip(comps, frame.sides):
         k.side = s
-    return CTKidneys(source=grid.source, grid_shape=tuple(grid.labels.shape),
-                     spacing=grid.spacing, kidneys=comps, frame=frame, extra=extra)
+    return CTKidneys(
+        source=grid.source,
+        grid_shape=tuple(grid.labels.shape),
+        spacing=grid.spacing,
+        kidneys=comps,
+        frame=frame,
+        extra=extra,
+    )
 
 
 def select_kidney(case: CTKidneys, side: str) -> KidneyComponent:
@@ -622,11 +799,12 @@ def select_kidney(case: CTKidneys, side: str) -> KidneyComponent:
     k = case.by_side(side)
     if k is None:
         present = ", ".join(x.side for x in case.kidneys)
-        _fail(f"label map {case.source}: no {side} kidney (found: {present}; after a "
-              f"nephrectomy?)")
+        _fail(f"label map {case.source}: no {side} kidney (found: {present}; after a nephrectomy?)")
     if k.touches:
-        _fail(f"label map {case.source}: the {side} kidney is cut by the field of view "
-              f"(kidney voxels on the volume's border: {', '.join(k.touches)})")
+        _fail(
+            f"label map {case.source}: the {side} kidney is cut by the field of view "
+            f"(kidney voxels on the volume's border: {', '.join(k.touches)})"
+        )
     return k
 
 
@@ -639,10 +817,15 @@ def right_lower_statistic(differences_mm, tolerance_mm: float = LEVEL_TOLERANCE_
     higher = int((d > tolerance_mm).sum())
     level = int(len(d) - lower - higher)
     share = lower / (lower + higher) if lower + higher else None
-    return {"cases": int(len(d)), "right_lower": lower, "level": level, "right_higher": higher,
-            "right_lower_share_of_unequal": None if share is None else round(share, 3),
-            "median_right_minus_left_mm": None if len(d) == 0 else round(float(np.median(d)), 1),
-            "tolerance_mm": tolerance_mm}
+    return {
+        "cases": int(len(d)),
+        "right_lower": lower,
+        "level": level,
+        "right_higher": higher,
+        "right_lower_share_of_unequal": None if share is None else round(share, 3),
+        "median_right_minus_left_mm": None if len(d) == 0 else round(float(np.median(d)), 1),
+        "tolerance_mm": tolerance_mm,
+    }
 
 
 # --- resampling into the anatomical frame -----------------------------------------------------
@@ -651,6 +834,7 @@ class KidneyFields:
     """A kidney on an isotropic grid in A (origin ``origin_A`` (m), ``voxel`` (m), axes of
     A): the signed distance (m, > 0 inside) to the surface of kidney and tumour
     (``sdf_union``) and the tumour label of the nearest CT voxel (``tumour``, bool)."""
+
     origin_A: np.ndarray
     voxel: float
     sdf_union: np.ndarray
@@ -669,8 +853,13 @@ def _sdf(mask: np.ndarray, spacing) -> np.ndarray:
     return (inside - outside).astype(np.float32)
 
 
-def kidney_fields_A(k: KidneyComponent, frame: FrameEstimate, voxel: float = 0.001,
-                    mirror: bool = False, margin: float = 0.004) -> KidneyFields:
+def kidney_fields_A(
+    k: KidneyComponent,
+    frame: FrameEstimate,
+    voxel: float = 0.001,
+    mirror: bool = False,
+    margin: float = 0.004,
+) -> KidneyFields:
     """Resamples a kidney into A on an isotropic grid of ``voxel`` (m): the signed distance
     to the kidney+tumour surface is interpolated linearly (shape-based interpolation across
     thick slices; axes sampled finer than half the voxel are thinned first), the tumour
@@ -678,15 +867,15 @@ def kidney_fields_A(k: KidneyComponent, frame: FrameEstimate, voxel: float = 0.0
     to use a left kidney as a right one or vice versa."""
     pad = 2
     stride = np.maximum(1, np.floor(voxel * 1000.0 / (2.0 * k.spacing)).astype(int))
-    lab = k.labels[::stride[0], ::stride[1], ::stride[2]]
+    lab = k.labels[:: stride[0], :: stride[1], :: stride[2]]
     sp_mm = k.spacing * stride
     union = np.pad(lab > 0, pad)
     tumour_G = np.pad(lab == TUMOUR_VALUE, pad)
     sdf_G = _sdf(union, sp_mm)
-    lo_G = k.lo * k.spacing - pad * sp_mm                # mm, G, of padded voxel (0,0,0)
+    lo_G = k.lo * k.spacing - pad * sp_mm  # mm, G, of padded voxel (0,0,0)
     n_G = np.array(union.shape)
     R = frame.R_AG * (np.array([-1.0, 1.0, 1.0])[:, None] if mirror else 1.0)
-    corners = np.array([[i, j, l] for i in (0, 1) for j in (0, 1) for l in (0, 1)]) * (n_G - 1)
+    corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)]) * (n_G - 1)
     c_A = (R @ ((corners * sp_mm + lo_G).T)).T / 1000.0
     lo_A = c_A.min(axis=0) - margin
     hi_A = c_A.max(axis=0) + margin
@@ -696,11 +885,11 @@ def kidney_fields_A(k: KidneyComponent, frame: FrameEstimate, voxel: float = 0.0
     idx = (((R.T @ (p_A * 1000.0).T).T - lo_G) / sp_mm).T
     far = -float(np.max(n_G * sp_mm))
     sdf = ndimage.map_coordinates(sdf_G, idx, order=1, mode="constant", cval=far)
-    tum = ndimage.map_coordinates(tumour_G.astype(np.uint8), idx, order=0, mode="constant",
-                                  cval=0)
+    tum = ndimage.map_coordinates(tumour_G.astype(np.uint8), idx, order=0, mode="constant", cval=0)
     sdf = (sdf.reshape(tuple(n_A)) / 1000.0).astype(np.float32)
-    return KidneyFields(origin_A=lo_A, voxel=voxel, sdf_union=sdf,
-                        tumour=(tum.reshape(tuple(n_A)) > 0) & (sdf > 0))
+    return KidneyFields(
+        origin_A=lo_A, voxel=voxel, sdf_union=sdf, tumour=(tum.reshape(tuple(n_A)) > 0) & (sdf > 0)
+    )
 
 
 # --- surveys of many cases ----------------------------------------------------------------
@@ -712,8 +901,9 @@ def survey_case(grid_or_path, extra=None) -> dict:
     ``"extra_error"``)."""
     source = getattr(grid_or_path, "source", str(grid_or_path))
     try:
-        grid = (grid_or_path if isinstance(grid_or_path, LabelGrid)
-                else read_label_grid(grid_or_path))
+        grid = (
+            grid_or_path if isinstance(grid_or_path, LabelGrid) else read_label_grid(grid_or_path)
+        )
         case = import_ct_kidneys(grid)
     except (ValueError, FileNotFoundError) as e:
         return {"source": source, "error": str(e)}
@@ -721,13 +911,15 @@ def survey_case(grid_or_path, extra=None) -> dict:
     if grid.header_R_AG is not None:
         out["header_agrees"] = {
             name: bool(np.allclose(grid.header_R_AG[row], case.frame.R_AG[row]))
-            for row, name in enumerate(("left", "superior", "anterior"))}
-    out["cue_verdicts"] = [{k: c[k] for k in ("cue", "kidney", "verdict", "value")}
-                           for c in case.frame.cues]
+            for row, name in enumerate(("left", "superior", "anterior"))
+        }
+    out["cue_verdicts"] = [
+        {k: c[k] for k in ("cue", "kidney", "verdict", "value")} for c in case.frame.cues
+    ]
     usable = {}
     for side in ("right", "left"):
         k = case.by_side(side)
-        usable[side] = ("missing" if k is None else "cut" if k.touches else "ok")
+        usable[side] = "missing" if k is None else "cut" if k.touches else "ok"
     out["usable"] = usable
     if extra is not None:
         try:
@@ -760,7 +952,14 @@ def survey_summary(rows: list[dict]) -> dict:
         for axis, same in r.get("header_agrees", {}).items():
             header.setdefault(axis, {"agrees": 0, "disagrees": 0})
             header[axis]["agrees" if same else "disagrees"] += 1
-    return {"cases": len(rows), "status": status, "cues": cues, "usable": usable,
-            "errors": errors, "header_axes_vs_anatomy": header,
-            "right_lower": right_lower_statistic(
-                [r.get("right_minus_left_mm") for r in rows if "error" not in r])}
+    return {
+        "cases": len(rows),
+        "status": status,
+        "cues": cues,
+        "usable": usable,
+        "errors": errors,
+        "header_axes_vs_anatomy": header,
+        "right_lower": right_lower_statistic(
+            [r.get("right_minus_left_mm") for r in rows if "error" not in r]
+        ),
+    }

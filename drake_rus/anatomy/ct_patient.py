@@ -37,22 +37,41 @@ from pydrake.math import RigidTransform
 from scipy import ndimage
 
 from drake_rus.anatomy.cache import file_digest
-from drake_rus.anatomy.ct_kidney import (CTKidneys, KidneyFields, concavities,
-                                         import_ct_kidneys, kidney_fields_A, read_label_grid,
-                                         select_kidney)
+from drake_rus.anatomy.canonical_frame import extents_in_frame, mesh_canonical_frame
+from drake_rus.anatomy.ct_kidney import (
+    CTKidneys,
+    KidneyFields,
+    concavities,
+    import_ct_kidneys,
+    kidney_fields_A,
+    read_label_grid,
+    select_kidney,
+)
 from drake_rus.anatomy.frames import check_side_posture
-from drake_rus.anatomy.generator import (KidneyDoesNotFit, generate_patient_with_kidney,
-                                         sample_patient_params)
+from drake_rus.anatomy.generator import (
+    KidneyDoesNotFit,
+    generate_patient_with_kidney,
+    sample_patient_params,
+)
 from drake_rus.anatomy.importers import LABEL_MAP_SUFFIXES
 from drake_rus.anatomy.kidney_shape import KidneyShapeParams
 from drake_rus.anatomy.labels import Label
 from drake_rus.anatomy.patient import Patient
 from drake_rus.anatomy.rasterize import mask_to_mesh
-from drake_rus.anatomy.canonical_frame import extents_in_frame, mesh_canonical_frame
 
-__all__ = ["CTSpec", "parse_ct_spec", "ct_label_map_path", "ct_body_seed", "VoxelKidneyShape",
-           "build_ct_patient", "KIDNEY_DEFINITIONS", "DEFAULT_KIDNEY_DEFINITION", "CT_PREFIX",
-           "CT_BODY_OFFSET", "kidney_definition_difference"]
+__all__ = [
+    "CTSpec",
+    "parse_ct_spec",
+    "ct_label_map_path",
+    "ct_body_seed",
+    "VoxelKidneyShape",
+    "build_ct_patient",
+    "KIDNEY_DEFINITIONS",
+    "DEFAULT_KIDNEY_DEFINITION",
+    "CT_PREFIX",
+    "CT_BODY_OFFSET",
+    "kidney_definition_difference",
+]
 
 log = logging.getLogger(__name__)
 
@@ -69,15 +88,17 @@ CORTEX_M = 0.0066
 PARENCHYMA_M = 0.0154
 # Perirenal fat around the kidney (Gerota's fascia; the generator's 7 mm).
 PERIRENAL_M = 0.007
-_SMOOTH_VOX = 1.0            # Gaussian smoothing (voxels) before the surface, like mask_to_mesh
+_SMOOTH_VOX = 1.0  # Gaussian smoothing (voxels) before the surface, like mask_to_mesh
 _PAD = 2
-_FORM = ("expected ct:PATH[#right|#left][,body=N][,kidney=with_tumour|parenchyma]"
-         "[,pose=ct|generator]")
+_FORM = (
+    "expected ct:PATH[#right|#left][,body=N][,kidney=with_tumour|parenchyma][,pose=ct|generator]"
+)
 
 
 @dataclass(frozen=True)
 class CTSpec:
     """A parsed ``ct:`` spec; None fields take their defaults at build time."""
+
     path: Path
     ct_side: str | None = None
     body_seed: int | None = None
@@ -89,7 +110,7 @@ def parse_ct_spec(spec: str) -> CTSpec:
     """Parses ``ct:PATH[#OPTIONS]`` (module docstring); errors name the spec."""
     if not spec.startswith(CT_PREFIX):
         raise ValueError(f"patient spec {spec!r}: {_FORM}")
-    body = spec[len(CT_PREFIX):]
+    body = spec[len(CT_PREFIX) :]
     path_text, sep, opts = body.rpartition("#") if "#" in body else (body, "", "")
     if not path_text.strip():
         raise ValueError(f"patient spec {spec!r}: no path; {_FORM}")
@@ -103,18 +124,23 @@ def parse_ct_spec(spec: str) -> CTSpec:
             raise ValueError(f"patient spec {spec!r}: unknown option {raw!r}; {_FORM}")
         if key == "body":
             if not value.isdigit():
-                raise ValueError(f"patient spec {spec!r}: body=N needs a non-negative integer "
-                                 f"seed, got {value!r}")
+                raise ValueError(
+                    f"patient spec {spec!r}: body=N needs a non-negative integer "
+                    f"seed, got {value!r}"
+                )
             fields["body_seed"] = int(value)
         elif key == "kidney":
             if value not in KIDNEY_DEFINITIONS:
-                raise ValueError(f"patient spec {spec!r}: kidney= expects one of "
-                                 f"{', '.join(KIDNEY_DEFINITIONS)}, got {value!r}")
+                raise ValueError(
+                    f"patient spec {spec!r}: kidney= expects one of "
+                    f"{', '.join(KIDNEY_DEFINITIONS)}, got {value!r}"
+                )
             fields["kidney_definition"] = value
         elif key == "pose":
             if value not in POSES:
-                raise ValueError(f"patient spec {spec!r}: pose= expects one of "
-                                 f"{', '.join(POSES)}, got {value!r}")
+                raise ValueError(
+                    f"patient spec {spec!r}: pose= expects one of {', '.join(POSES)}, got {value!r}"
+                )
             fields["pose"] = value
         else:
             raise ValueError(f"patient spec {spec!r}: unknown option {key!r}; {_FORM}")
@@ -127,19 +153,25 @@ def ct_label_map_path(path: Path, spec: str = "") -> Path:
     where = f"patient spec {spec!r}" if spec else f"CT label map {path}"
     if path.is_file():
         if not path.name.lower().endswith(LABEL_MAP_SUFFIXES):
-            raise ValueError(f"{where}: {path.name} is not a label map "
-                             f"({', '.join(LABEL_MAP_SUFFIXES)})")
+            raise ValueError(
+                f"{where}: {path.name} is not a label map ({', '.join(LABEL_MAP_SUFFIXES)})"
+            )
         return path
     if path.is_dir():
-        maps = [p for p in sorted(path.iterdir())
-                if p.is_file() and p.name.lower().endswith(LABEL_MAP_SUFFIXES)]
+        maps = [
+            p
+            for p in sorted(path.iterdir())
+            if p.is_file() and p.name.lower().endswith(LABEL_MAP_SUFFIXES)
+        ]
         seg = [p for p in maps if p.name.lower().startswith("segmentation")]
         if len(maps) == 1:
             return maps[0]
         if len(seg) == 1:
             return seg[0]
-        raise ValueError(f"{where}: folder {path} holds {len(maps)} label maps; expected one "
-                         "(or one named segmentation.*)")
+        raise ValueError(
+            f"{where}: folder {path} holds {len(maps)} label maps; expected one "
+            "(or one named segmentation.*)"
+        )
     raise FileNotFoundError(f"{where}: no such file or folder: {path}")
 
 
@@ -161,8 +193,9 @@ class VoxelKidneyShape:
 
     def __init__(self, fields: KidneyFields, definition: str, side: str):
         if definition not in KIDNEY_DEFINITIONS:
-            raise ValueError(f"kidney definition: expected one of {KIDNEY_DEFINITIONS}, got "
-                             f"{definition!r}")
+            raise ValueError(
+                f"kidney definition: expected one of {KIDNEY_DEFINITIONS}, got {definition!r}"
+            )
         self.definition = definition
         self.side = side
         vs = float(fields.voxel)
@@ -176,12 +209,15 @@ class VoxelKidneyShape:
         body = union if definition == "with_tumour" else parenchyma
         X = RigidTransform(self._origin)
         self.mesh = mask_to_mesh(body, X, vs, sigma_vox=_SMOOTH_VOX, what="CT kidney")
-        self.placement_mesh = (self.mesh if definition == "with_tumour" else
-                               mask_to_mesh(union, X, vs, sigma_vox=_SMOOTH_VOX,
-                                            what="CT kidney and tumour"))
+        self.placement_mesh = (
+            self.mesh
+            if definition == "with_tumour"
+            else mask_to_mesh(union, X, vs, sigma_vox=_SMOOTH_VOX, what="CT kidney and tumour")
+        )
 
         def smooth(m):
             return ndimage.gaussian_filter(np.pad(m.astype(np.float32), _PAD), _SMOOTH_VOX)
+
         self._phi_body = smooth(body)
         self._phi_union = self._phi_body if definition == "with_tumour" else smooth(union)
         self._tumour = np.pad(tumour, _PAD)
@@ -194,12 +230,17 @@ class VoxelKidneyShape:
         self._c_K = X_LK.translation()
         self._half = 0.5 * extents_in_frame(self.placement_mesh.vertices, X_LK)
         self.extents = 2.0 * self._half
-        self.volumes_ml = {"parenchyma": float(parenchyma.sum()) * vs ** 3 * 1e6,
-                           "tumour": float(tumour.sum()) * vs ** 3 * 1e6}
+        self.volumes_ml = {
+            "parenchyma": float(parenchyma.sum()) * vs**3 * 1e6,
+            "tumour": float(tumour.sum()) * vs**3 * 1e6,
+        }
         # The hilum: the largest medial concavity of the parenchyma's hull (2 mm grid).
         step = max(1, int(round(0.002 / vs)))
-        found = concavities(parenchyma[::step, ::step, ::step], union[::step, ::step, ::step],
-                            [step * vs * 1000.0] * 3)
+        found = concavities(
+            parenchyma[::step, ::step, ::step],
+            union[::step, ::step, ::step],
+            [step * vs * 1000.0] * 3,
+        )
         points = [self._origin + c * step * vs for c, _ in found]
         medial = [p for p in points if (p - self._c_K) @ np.asarray(lateral) < 0]
         self._hilum = (medial or points or [self._c_K.copy()])[0]
@@ -209,8 +250,9 @@ class VoxelKidneyShape:
         return ((np.asarray(p_L, dtype=float) - self._origin) / self._vs + _PAD).T
 
     def _sample(self, field, p_L, order=1, cval=0.0):
-        return ndimage.map_coordinates(field, self._idx(p_L), order=order, mode="constant",
-                                       cval=cval)
+        return ndimage.map_coordinates(
+            field, self._idx(p_L), order=order, mode="constant", cval=cval
+        )
 
     def inside(self, p_L) -> np.ndarray:
         """Points (N, 3) in L inside "the kidney" (the definition's surface)."""
@@ -241,16 +283,22 @@ class VoxelKidneyShape:
         codes = np.full(len(q), int(Label.KIDNEY_CORTEX), np.uint8)
         codes[(depth >= CORTEX_M) & (depth < PARENCHYMA_M) & pyramids] = Label.KIDNEY_MEDULLA
         codes[depth >= PARENCHYMA_M] = Label.KIDNEY_SINUS
-        codes[tumour] = (Label.KIDNEY_TUMOUR if self.definition == "with_tumour"
-                         else Label.TUMOUR)
+        codes[tumour] = Label.KIDNEY_TUMOUR if self.definition == "with_tumour" else Label.TUMOUR
         out[inside] = codes
         peri = self._sample(self._sdf, p_L, cval=-1.0) > -PERIRENAL_M
         return out, peri | inside
 
 
-def build_ct_patient(spec: CTSpec, side: str = "right", posture: str = "supine", *,
-                     name: str | None = None, digest: str | None = None,
-                     voxel_size: float = 0.001, progress: bool = True) -> Patient:
+def build_ct_patient(
+    spec: CTSpec,
+    side: str = "right",
+    posture: str = "supine",
+    *,
+    name: str | None = None,
+    digest: str | None = None,
+    voxel_size: float = 0.001,
+    progress: bool = True,
+) -> Patient:
     """The patient of a ``ct:`` spec (see the module docstring); ``side`` is the target
     side of the patient (the scenario's ``patient.side``)."""
     check_side_posture(side, posture)
@@ -260,39 +308,61 @@ def build_ct_patient(spec: CTSpec, side: str = "right", posture: str = "supine",
     ct_side = spec.ct_side or side
     case = import_ct_kidneys(read_label_grid(path))
     if case.frame.status != "agree":
-        log.warning("label map %s: the frame cues disagree (%s); the majority decided",
-                    path, ", ".join(case.frame.conflicts))
+        log.warning(
+            "label map %s: the frame cues disagree (%s); the majority decided",
+            path,
+            ", ".join(case.frame.conflicts),
+        )
     kidney = select_kidney(case, ct_side)
     mirrored = ct_side != side
     fields = kidney_fields_A(kidney, case.frame, voxel=voxel_size, mirror=mirrored)
     shape = VoxelKidneyShape(fields, spec.kidney_definition, side)
     length, width, thickness = (float(x) for x in shape.extents)
     R_BdL = np.eye(3) if spec.pose == "ct" else None
-    meta = {"ct": {
-        "path": str(path), "sha256": digest, "ct_side": ct_side, "mirrored": mirrored,
-        "kidney_definition": spec.kidney_definition, "pose": spec.pose,
-        "parenchyma_ml": round(shape.volumes_ml["parenchyma"], 1),
-        "tumour_ml": round(shape.volumes_ml["tumour"], 1),
-        "frame": case.frame.summary(), "fragments": case.extra,
-        "right_minus_left_mm": case.right_minus_left_mm()}}
+    meta = {
+        "ct": {
+            "path": str(path),
+            "sha256": digest,
+            "ct_side": ct_side,
+            "mirrored": mirrored,
+            "kidney_definition": spec.kidney_definition,
+            "pose": spec.pose,
+            "parenchyma_ml": round(shape.volumes_ml["parenchyma"], 1),
+            "tumour_ml": round(shape.volumes_ml["tumour"], 1),
+            "frame": case.frame.summary(),
+            "fragments": case.extra,
+            "right_minus_left_mm": case.right_minus_left_mm(),
+        }
+    }
     seeds = [seed] if spec.body_seed is not None else [seed + i for i in range(CT_BODY_TRIES)]
     for body in seeds:
         prm = sample_patient_params(body, side, posture)
-        prm.kidney = KidneyShapeParams(length=length, width=width, thickness=thickness,
-                                       cortex_thickness=CORTEX_M,
-                                       parenchyma_thickness=PARENCHYMA_M)
+        prm.kidney = KidneyShapeParams(
+            length=length,
+            width=width,
+            thickness=thickness,
+            cortex_thickness=CORTEX_M,
+            parenchyma_thickness=PARENCHYMA_M,
+        )
         meta["ct"]["body_seed"] = body
         meta["ct"]["body_tries"] = body - seed + 1
         try:
-            return generate_patient_with_kidney(prm, shape, R_BdL=R_BdL,
-                                                name=name or f"ct:{path}",
-                                                voxel_size=voxel_size, progress=progress,
-                                                meta=_jsonable(meta))
+            return generate_patient_with_kidney(
+                prm,
+                shape,
+                R_BdL=R_BdL,
+                name=name or f"ct:{path}",
+                voxel_size=voxel_size,
+                progress=progress,
+                meta=_jsonable(meta),
+            )
         except KidneyDoesNotFit as e:
             why = str(e)
     tried = f"body {seeds[0]}" if len(seeds) == 1 else f"bodies {seeds[0]}-{seeds[-1]}"
-    raise ValueError(f"label map {path}: the {ct_side} kidney ({width * 1e3:.0f} mm wide with "
-                     f"its tumour) fits none of {tried}: {why}")
+    raise ValueError(
+        f"label map {path}: the {ct_side} kidney ({width * 1e3:.0f} mm wide with "
+        f"its tumour) fits none of {tried}: {why}"
+    )
 
 
 def kidney_definition_difference(case: CTKidneys, side: str, voxel: float = 0.001) -> dict:
@@ -310,14 +380,18 @@ def kidney_definition_difference(case: CTKidneys, side: str, voxel: float = 0.00
     a, b = (frames[d] for d in KIDNEY_DEFINITIONS)
     Ra, Rb = a.rotation().matrix(), b.rotation().matrix()
     cos = np.clip((np.trace(Ra.T @ Rb) - 1.0) / 2.0, -1.0, 1.0)
-    return {"definition_dt_mm": round(float(np.linalg.norm(a.translation() - b.translation()))
-                                      * 1e3, 2),
-            "definition_rot_deg": round(float(np.degrees(np.arccos(cos))), 2),
-            "definition_rot_x_deg": round(float(np.degrees(np.arccos(
-                np.clip(Ra[:, 0] @ Rb[:, 0], -1.0, 1.0)))), 2),
-            "definition_side": side,
-            "definition_tumour_ml": round(volumes["tumour"], 1),
-            "definition_parenchyma_ml": round(volumes["parenchyma"], 1)}
+    return {
+        "definition_dt_mm": round(
+            float(np.linalg.norm(a.translation() - b.translation())) * 1e3, 2
+        ),
+        "definition_rot_deg": round(float(np.degrees(np.arccos(cos))), 2),
+        "definition_rot_x_deg": round(
+            float(np.degrees(np.arccos(np.clip(Ra[:, 0] @ Rb[:, 0], -1.0, 1.0)))), 2
+        ),
+        "definition_side": side,
+        "definition_tumour_ml": round(volumes["tumour"], 1),
+        "definition_parenchyma_ml": round(volumes["parenchyma"], 1),
+    }
 
 
 def _jsonable(x):

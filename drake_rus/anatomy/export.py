@@ -22,8 +22,10 @@ from drake_rus.io_utils import FILE_MODE, dumps_strict
 
 # What the NRRD header says about the frame (a key/value pair; the space is not LPS).
 NRRD_SPACE = "3D-right-handed"
-FRAME_TEXT = ("patient frame Pt (bed frame): x across the bed away from the robot, "
-              "y towards the head, z up; mm")
+FRAME_TEXT = (
+    "patient frame Pt (bed frame): x across the bed away from the robot, "
+    "y towards the head, z up; mm"
+)
 
 FORMATS = {"nrrd": ".nrrd", "nifti": ".nii.gz"}
 
@@ -45,6 +47,7 @@ def _atomic(path: Path, write):
 
 def write_label_volume(volume, path) -> Path:
     import SimpleITK as sitk
+
     path = Path(path)
     img = sitk.GetImageFromArray(np.ascontiguousarray(volume.labels.transpose(2, 1, 0)))
     img.SetSpacing([volume.voxel_size * 1000.0] * 3)
@@ -55,6 +58,7 @@ def write_label_volume(volume, path) -> Path:
         sitk.WriteImage(img, tmp, True)
         if path.name.lower().endswith(".nrrd"):
             _relabel_nrrd_space(tmp)
+
     return _atomic(path, write)
 
 
@@ -63,8 +67,11 @@ def _relabel_nrrd_space(path) -> None:
     ``3D-right-handed`` and adds the frame as a key/value pair (header text only)."""
     data = Path(path).read_bytes()
     end = data.index(b"\n\n")
-    lines = [line for line in data[:end].decode("ascii").split("\n")
-             if not line.startswith("drake_rus_frame:=")]
+    lines = [
+        line
+        for line in data[:end].decode("ascii").split("\n")
+        if not line.startswith("drake_rus_frame:=")
+    ]
     lines = [f"space: {NRRD_SPACE}" if line.startswith("space:") else line for line in lines]
     lines.append(f"drake_rus_frame:={FRAME_TEXT}")
     Path(path).write_bytes("\n".join(lines).encode("ascii") + data[end:])
@@ -100,14 +107,18 @@ def export_patient(patient, out_dir, fmt: str = "nrrd") -> list[Path]:
     if patient.liver_mesh is not None:
         paths.append(write_mesh_mm(patient.liver_mesh, out / f"{stem}_liver.stl"))
     X_PtK = patient.X_PtK.GetAsMatrix4()
-    X_PtK[:3, 3] *= 1000.0          # mm, like the volume and the meshes
-    info = {"name": patient.name, "side": patient.side, "posture": patient.posture,
-            "units": "mm", "frame": FRAME_TEXT,
-            "nrrd_space": f"{NRRD_SPACE} (the Pt frame above; not LPS)",
-            "labels": {l.name: int(l) for l in Label},
-            "X_PtK": X_PtK.round(6).tolist(),
-            "X_PtK_note": "kidney frame in Pt, 4x4 homogeneous, translation in mm"}
+    X_PtK[:3, 3] *= 1000.0  # mm, like the volume and the meshes
+    info = {
+        "name": patient.name,
+        "side": patient.side,
+        "posture": patient.posture,
+        "units": "mm",
+        "frame": FRAME_TEXT,
+        "nrrd_space": f"{NRRD_SPACE} (the Pt frame above; not LPS)",
+        "labels": {lab.name: int(lab) for lab in Label},
+        "X_PtK": X_PtK.round(6).tolist(),
+        "X_PtK_note": "kidney frame in Pt, 4x4 homogeneous, translation in mm",
+    }
     p = out / f"{stem}_info.json"
-    paths.append(_atomic(p, lambda tmp: Path(tmp).write_text(dumps_strict(info, indent=2)
-                                                             + "\n")))
+    paths.append(_atomic(p, lambda tmp: Path(tmp).write_text(dumps_strict(info, indent=2) + "\n")))
     return paths

@@ -19,8 +19,14 @@ from pydrake.math import RigidTransform, RotationMatrix
 POSTURES = ("supine", "left_lateral_decubitus")
 SIDES = ("right", "left")
 
-_AXIS = {"L": (1, 0, 0), "R": (-1, 0, 0), "S": (0, 1, 0), "I": (0, -1, 0),
-         "A": (0, 0, 1), "P": (0, 0, -1)}
+_AXIS = {
+    "L": (1, 0, 0),
+    "R": (-1, 0, 0),
+    "S": (0, 1, 0),
+    "I": (0, -1, 0),
+    "A": (0, 0, 1),
+    "P": (0, 0, -1),
+}
 
 
 def check_side_posture(side: str, posture: str) -> None:

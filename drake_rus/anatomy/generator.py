@@ -25,7 +25,7 @@ modelling choice. Placement (body frame Bd, see :mod:`drake_rus.anatomy.body`):
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, asdict
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import trimesh
@@ -33,14 +33,25 @@ from pydrake.math import RigidTransform, RotationMatrix
 from tqdm import tqdm
 
 from drake_rus.anatomy.body import BODY_SIZES, Torso, TorsoParams
+from drake_rus.anatomy.canonical_frame import mesh_canonical_frame, mesh_surface_moments
 from drake_rus.anatomy.frames import R_PtBd, check_side_posture, reference_axes_Pt, transform_mesh
-from drake_rus.anatomy.kidney_shape import KidneyShape, KidneyShapeParams, sample_kidney_shape_params
+from drake_rus.anatomy.kidney_shape import (
+    KidneyShape,
+    KidneyShapeParams,
+    sample_kidney_shape_params,
+)
 from drake_rus.anatomy.labels import Label, LabelVolume
 from drake_rus.anatomy.patient import Patient
-from drake_rus.anatomy.canonical_frame import mesh_canonical_frame, mesh_surface_moments
 
-__all__ = ["PatientParams", "sample_patient_params", "generate_patient", "patient_builders",
-           "generate_patient_with_kidney", "KidneyDoesNotFit", "VERTEBRA_Y"]
+__all__ = [
+    "PatientParams",
+    "sample_patient_params",
+    "generate_patient",
+    "patient_builders",
+    "generate_patient_with_kidney",
+    "KidneyDoesNotFit",
+    "VERTEBRA_Y",
+]
 
 # Levels (m, y_Bd) of vertebral centres relative to L1 (modelling choice: about 27-30 mm per
 # thoracolumbar vertebra + disc).
@@ -64,15 +75,15 @@ class PatientParams:
     posture: str
     torso: TorsoParams
     kidney: KidneyShapeParams
-    hilum_angle: float            # rad, axial rotation of the hilum towards anterior
-    coronal_angle: float          # rad, upper pole medial
-    sagittal_angle: float         # rad, upper pole posterior
-    centroid_x: float             # |x| of the kidney centroid from the midline (m)
-    centroid_y: float             # y_Bd of the kidney centroid (m)
-    posterior_gap: float          # kidney bottom above the back fat (m)
-    depth_target: float           # vertical skin-to-kidney depth (m)
-    ribs: list = field(default_factory=list)        # (name, y0, theta_span, drop, radius)
-    gas: list = field(default_factory=list)         # (dx, dy, dz, radius) relative placement
+    hilum_angle: float  # rad, axial rotation of the hilum towards anterior
+    coronal_angle: float  # rad, upper pole medial
+    sagittal_angle: float  # rad, upper pole posterior
+    centroid_x: float  # |x| of the kidney centroid from the midline (m)
+    centroid_y: float  # y_Bd of the kidney centroid (m)
+    posterior_gap: float  # kidney bottom above the back fat (m)
+    depth_target: float  # vertical skin-to-kidney depth (m)
+    ribs: list = field(default_factory=list)  # (name, y0, theta_span, drop, radius)
+    gas: list = field(default_factory=list)  # (dx, dy, dz, radius) relative placement
     liver_offset: list = field(default_factory=lambda: [0.0, 0.0, 0.0])
 
     def to_dict(self) -> dict:
@@ -105,22 +116,49 @@ def sample_patient_params(seed: int, side: str = "right", posture: str = "supine
     gap = float(np.clip(rng.normal(0.035, 0.005), 0.025, 0.048))
     depth = float(rng.uniform(*depth_range))
     ribs = []
-    for name, span, drop in (("rib_12", 1.00, 0.030), ("rib_11", 1.45, 0.050),
-                             ("rib_10", 2.10, 0.075)):
+    for name, span, drop in (
+        ("rib_12", 1.00, 0.030),
+        ("rib_11", 1.45, 0.050),
+        ("rib_10", 2.10, 0.075),
+    ):
         level = {"rib_12": "T12", "rib_11": "T11", "rib_10": "T10"}[name]
-        ribs.append([name, float(VERTEBRA_Y[level] + rng.normal(0, 0.004)),
-                     float(span + rng.normal(0, 0.08)), float(drop * rng.uniform(0.85, 1.15)),
-                     float(rng.uniform(0.0050, 0.0062))])
-    gas = [[0.035, 0.010, 0.030, float(rng.uniform(0.010, 0.017))]]   # hepatic/splenic flexure
+        ribs.append(
+            [
+                name,
+                float(VERTEBRA_Y[level] + rng.normal(0, 0.004)),
+                float(span + rng.normal(0, 0.08)),
+                float(drop * rng.uniform(0.85, 1.15)),
+                float(rng.uniform(0.0050, 0.0062)),
+            ]
+        )
+    gas = [[0.035, 0.010, 0.030, float(rng.uniform(0.010, 0.017))]]  # hepatic/splenic flexure
     for _ in range(int(rng.integers(2, 5))):
-        gas.append([float(rng.uniform(0.05, 0.13)), float(rng.uniform(-0.10, 0.0)),
-                    float(rng.uniform(0.04, 0.08)), float(rng.uniform(0.006, 0.014))])
+        gas.append(
+            [
+                float(rng.uniform(0.05, 0.13)),
+                float(rng.uniform(-0.10, 0.0)),
+                float(rng.uniform(0.04, 0.08)),
+                float(rng.uniform(0.006, 0.014)),
+            ]
+        )
     liver = [float(rng.normal(0, 0.008)), float(rng.normal(0, 0.008)), float(rng.normal(0, 0.005))]
-    return PatientParams(seed=int(seed), side=side, posture=posture, torso=torso, kidney=kidney,
-                         hilum_angle=float(hilum), coronal_angle=float(coronal),
-                         sagittal_angle=float(sagittal), centroid_x=cx, centroid_y=cy,
-                         posterior_gap=gap, depth_target=depth, ribs=ribs, gas=gas,
-                         liver_offset=liver)
+    return PatientParams(
+        seed=int(seed),
+        side=side,
+        posture=posture,
+        torso=torso,
+        kidney=kidney,
+        hilum_angle=float(hilum),
+        coronal_angle=float(coronal),
+        sagittal_angle=float(sagittal),
+        centroid_x=cx,
+        centroid_y=cy,
+        posterior_gap=gap,
+        depth_target=depth,
+        ribs=ribs,
+        gas=gas,
+        liver_offset=liver,
+    )
 
 
 class _Layout:
@@ -135,7 +173,7 @@ class _Layout:
         kidney region, see :func:`_build_labels`). ``R_BdL``: its orientation in Bd
         (default: the sampled angles below)."""
         self.prm = prm
-        self.s = -1.0 if prm.side == "right" else 1.0       # side sign in x_Bd
+        self.s = -1.0 if prm.side == "right" else 1.0  # side sign in x_Bd
         custom = shape is not None
         self.shape = shape if custom else KidneyShape(prm.kidney)
         self.torso = Torso(prm.torso)
@@ -162,7 +200,7 @@ class _Layout:
         self._inside_placed = getattr(self.shape, "inside_placement", self.shape.inside)
         _, c_L, _ = mesh_surface_moments(placed.vertices, placed.faces)
         self.c_L = c_L
-        v_rel = (self.R_BdL @ (self.shape.mesh.vertices - c_L).T).T   # about the centroid
+        v_rel = (self.R_BdL @ (self.shape.mesh.vertices - c_L).T).T  # about the centroid
         outer_rel = (self.R_BdL @ (placed.vertices - c_L).T).T
         cx = prm.centroid_x
         cavity = prm.torso.fat + prm.torso.muscle + 0.003
@@ -177,7 +215,8 @@ class _Layout:
                 raise KidneyDoesNotFit(
                     f"kidney does not fit this body (seed {prm.seed}): between the spine and "
                     f"the flank there is no room for its {np.ptp(v[:, 0]) * 1e3:.0f} mm "
-                    "width; try another body")
+                    "width; try another body"
+                )
             if not leaves and not spine:
                 break
             cx += 0.002 if spine else -0.002
@@ -207,7 +246,7 @@ class _Layout:
         t = self.torso
         A, Zc, Bt = t.section(self.p_c[1])
         f = (1.0 - (abs(self.p_c[0]) / A) ** prm.torso.n_top) ** (1.0 / prm.torso.n_top)
-        hy = (1.0 + prm.torso.height_slope * np.tanh((self.p_c[1] - 0.05) / 0.10))
+        hy = 1.0 + prm.torso.height_slope * np.tanh((self.p_c[1] - 0.05) / 0.10)
         rho = prm.torso.back_ratio
         target = self.kidney_top_z + prm.depth_target
         prm.torso.height = float(target / (hy * (rho + (1 - rho) * f)))
@@ -234,8 +273,8 @@ class _Layout:
 
 def _ball_offsets(radius_vox: float) -> np.ndarray:
     r = int(np.ceil(radius_vox))
-    g = np.mgrid[-r:r + 1, -r:r + 1, -r:r + 1].reshape(3, -1).T
-    return g[(g ** 2).sum(axis=1) <= radius_vox ** 2]
+    g = np.mgrid[-r : r + 1, -r : r + 1, -r : r + 1].reshape(3, -1).T
+    return g[(g**2).sum(axis=1) <= radius_vox**2]
 
 
 def _stamp(labels, origin, vs, centers, radius, value, allowed=None):
@@ -266,7 +305,7 @@ def _build_labels(lay: _Layout, voxel_size: float, margin: float, progress: bool
     L = prm.kidney.length
     y_lo = lay.p_c[1] - L / 2 - margin
     y_hi = lay.p_c[1] + L / 2 + margin
-    if hasattr(lay.shape, "label_codes"):       # a given kidney: its own extent along y
+    if hasattr(lay.shape, "label_codes"):  # a given kidney: its own extent along y
         y_lo = min(y_lo, float(lay.outer_vertices_Bd[:, 1].min()) - margin)
         y_hi = max(y_hi, float(lay.outer_vertices_Bd[:, 1].max()) + margin)
     ys_probe = np.linspace(y_lo, y_hi, 50)
@@ -274,24 +313,29 @@ def _build_labels(lay: _Layout, voxel_size: float, margin: float, progress: bool
     x_max = float(A.max()) + 0.005
     z_max = float((Zc + Bt).max()) + 0.005
     origin = np.array([-x_max, y_lo, -0.003])
-    shape = (int(np.ceil(2 * x_max / vs)) + 1, int(np.ceil((y_hi - y_lo) / vs)) + 1,
-             int(np.ceil((z_max + 0.003) / vs)) + 1)
+    shape = (
+        int(np.ceil(2 * x_max / vs)) + 1,
+        int(np.ceil((y_hi - y_lo) / vs)) + 1,
+        int(np.ceil((z_max + 0.003) / vs)) + 1,
+    )
     labels = np.zeros(shape, dtype=np.uint8)
     xs = origin[0] + vs * np.arange(shape[0])
     zs = origin[2] + vs * np.arange(shape[2])
     wall = tp.fat + tp.muscle
     back_fat = 0.8 * tp.fat
-    z_vb = back_fat + VERTEBRAL_BODY_Z          # vertebral body centre (modelling choice)
+    z_vb = back_fat + VERTEBRAL_BODY_Z  # vertebral body centre (modelling choice)
     # Liver: right upper quadrant, over the anterior surface of the right kidney's upper pole.
     y_up_right = (lay.p_c[1] if prm.side == "right" else lay.p_c[1] - 0.027) + L / 2
     lo = prm.liver_offset
-    liver_c = np.array([-0.055 + lo[0], y_up_right + 0.045 + lo[1], lay.kidney_top_z + 0.055 + lo[2]])
+    liver_c = np.array(
+        [-0.055 + lo[0], y_up_right + 0.045 + lo[1], lay.kidney_top_z + 0.055 + lo[2]]
+    )
     liver_r = np.array([0.105, 0.090, 0.068])
     gas = []
     for k, (dx, dy, dz, r) in enumerate(prm.gas):
-        if k == 0:      # colonic flexure: anterior, medial and inferior to the lower pole
+        if k == 0:  # colonic flexure: anterior, medial and inferior to the lower pole
             c = np.array([lay.p_c[0] - lay.s * dx, lay.p_c[1] - L / 2 + dy, lay.kidney_top_z + dz])
-        else:           # small bowel gas in the anterior mid-abdomen
+        else:  # small bowel gas in the anterior mid-abdomen
             c = np.array([lay.s * (0.02 - dx) + lay.s * 0.06, -0.02 + dy, dz + 0.06])
         gas.append((c, r))
     chunk = 8
@@ -312,22 +356,26 @@ def _build_labels(lay: _Layout, voxel_size: float, margin: float, progress: bool
             es = ((X - sx * 0.042) / 0.032) ** 2 + ((Z - back_fat - 0.036) / 0.030) ** 2 <= 1
             ql = ((X - sx * 0.078) / 0.022) ** 2 + ((Z - back_fat - 0.030) / 0.013) ** 2 <= 1
             r_ps = 0.010 + 0.12 * np.clip(-Y, 0, 0.1)
-            ps = ((X - sx * 0.040) ** 2 + (Z - z_vb) ** 2) <= r_ps ** 2
+            ps = ((X - sx * 0.040) ** 2 + (Z - z_vb) ** 2) <= r_ps**2
             lab[cavity & (es | ql | ps)] = Label.MUSCLE
         # Spine: vertebral body and posterior arch.
-        vb = ((X / VERTEBRAL_BODY_SEMI_AXES[0]) ** 2
-              + ((Z - z_vb) / VERTEBRAL_BODY_SEMI_AXES[1]) ** 2 <= 1)
+        vb = (X / VERTEBRAL_BODY_SEMI_AXES[0]) ** 2 + (
+            (Z - z_vb) / VERTEBRAL_BODY_SEMI_AXES[1]
+        ) ** 2 <= 1
         arch = (np.abs(X) <= 0.010) & (Z >= back_fat + 0.012) & (Z <= z_vb - 0.014)
         lab[vb | (arch & (lab > 0))] = Label.BONE
         # Great vessels: aorta left-anterior of the spine, IVC right-anterior.
-        ao = (X - 0.018) ** 2 + (Z - z_vb - 0.030) ** 2 <= 0.011 ** 2
+        ao = (X - 0.018) ** 2 + (Z - z_vb - 0.030) ** 2 <= 0.011**2
         ivc = ((X + 0.024) / 0.013) ** 2 + ((Z - z_vb - 0.027) / 0.009) ** 2 <= 1
         lab[cavity & (ao | ivc)] = Label.VESSEL
-        liv = (((X - liver_c[0]) / liver_r[0]) ** 2 + ((Y - liver_c[1]) / liver_r[1]) ** 2
-               + ((Z - liver_c[2]) / liver_r[2]) ** 2) <= 1
+        liv = (
+            ((X - liver_c[0]) / liver_r[0]) ** 2
+            + ((Y - liver_c[1]) / liver_r[1]) ** 2
+            + ((Z - liver_c[2]) / liver_r[2]) ** 2
+        ) <= 1
         lab[liv & (lab == Label.SOFT_TISSUE)] = Label.LIVER
         for c, r in gas:
-            g = (X - c[0]) ** 2 + (Y - c[1]) ** 2 + (Z - c[2]) ** 2 <= r ** 2
+            g = (X - c[0]) ** 2 + (Y - c[1]) ** 2 + (Z - c[2]) ** 2 <= r**2
             lab[g & (lab == Label.SOFT_TISSUE)] = Label.GAS
         labels[:, j0:j1, :] = lab
     # Ribs 10-12 on both sides: tubes along the inset outline, descending laterally.
@@ -335,24 +383,43 @@ def _build_labels(lay: _Layout, voxel_size: float, margin: float, progress: bool
         for name, y0, span, drop, radius in prm.ribs:
             th = np.linspace(-np.pi / 2 + 0.25, -np.pi / 2 + 0.25 + span, 200)
             u = (th - th[0]) / (th[-1] - th[0])
-            yy = y0 - drop * u ** 1.2
-            pts = np.vstack([t.outline_point(yy[i], th[i], sx, inset=tp.fat + 0.5 * tp.muscle)
-                             for i in range(len(th))])
-            _stamp(labels, origin, vs, _polyline(pts, 0.5 * vs), radius, Label.BONE,
-                   allowed=[Label.FAT, Label.MUSCLE, Label.SOFT_TISSUE, Label.LIVER])
+            yy = y0 - drop * u**1.2
+            pts = np.vstack(
+                [
+                    t.outline_point(yy[i], th[i], sx, inset=tp.fat + 0.5 * tp.muscle)
+                    for i in range(len(th))
+                ]
+            )
+            _stamp(
+                labels,
+                origin,
+                vs,
+                _polyline(pts, 0.5 * vs),
+                radius,
+                Label.BONE,
+                allowed=[Label.FAT, Label.MUSCLE, Label.SOFT_TISSUE, Label.LIVER],
+            )
     # Renal vein: hilum -> IVC at the hilum's level.
     h = lay.R_BdL @ lay.shape.hilum_point() + lay.p_BdL
     ivc = np.array([-0.024, h[1], z_vb + 0.027])
-    _stamp(labels, origin, vs, _polyline(np.vstack([h, ivc]), 0.5 * vs), 0.005, Label.VESSEL,
-           allowed=[Label.SOFT_TISSUE, Label.FAT, Label.MUSCLE])
+    _stamp(
+        labels,
+        origin,
+        vs,
+        _polyline(np.vstack([h, ivc]), 0.5 * vs),
+        0.005,
+        Label.VESSEL,
+        allowed=[Label.SOFT_TISSUE, Label.FAT, Label.MUSCLE],
+    )
     # Kidney with perirenal fat (Gerota's fascia, modelling choice 7 mm) and sub-labels.
     v = lay.outer_vertices_Bd
     lo_i = np.maximum(np.floor((v.min(axis=0) - 0.012 - origin) / vs).astype(int), 0)
-    hi_i = np.minimum(np.ceil((v.max(axis=0) + 0.012 - origin) / vs).astype(int) + 1,
-                      np.array(shape))
-    I, J, K = np.meshgrid(*[np.arange(lo_i[a], hi_i[a]) for a in range(3)], indexing="ij")
-    P = origin + vs * np.column_stack([I.ravel(), J.ravel(), K.ravel()])
-    sub = labels[lo_i[0]:hi_i[0], lo_i[1]:hi_i[1], lo_i[2]:hi_i[2]].reshape(-1)
+    hi_i = np.minimum(
+        np.ceil((v.max(axis=0) + 0.012 - origin) / vs).astype(int) + 1, np.array(shape)
+    )
+    ii, jj, kk = np.meshgrid(*[np.arange(lo_i[a], hi_i[a]) for a in range(3)], indexing="ij")
+    P = origin + vs * np.column_stack([ii.ravel(), jj.ravel(), kk.ravel()])
+    sub = labels[lo_i[0] : hi_i[0], lo_i[1] : hi_i[1], lo_i[2] : hi_i[2]].reshape(-1)
     carved = [Label.SOFT_TISSUE, Label.LIVER, Label.MUSCLE, Label.GAS, Label.VESSEL]
     if hasattr(lay.shape, "label_codes"):
         # A given kidney labels its own region (sub-labels, tumour) and its perirenal zone;
@@ -373,7 +440,7 @@ def _build_labels(lay: _Layout, voxel_size: float, margin: float, progress: bool
         sub[kid] = Label.KIDNEY_CORTEX
         sub[kid & ~cortex & ~sinus & pyramids] = Label.KIDNEY_MEDULLA
         sub[kid & sinus] = Label.KIDNEY_SINUS
-    labels[lo_i[0]:hi_i[0], lo_i[1]:hi_i[1], lo_i[2]:hi_i[2]] = sub.reshape(I.shape)
+    labels[lo_i[0] : hi_i[0], lo_i[1] : hi_i[1], lo_i[2] : hi_i[2]] = sub.reshape(ii.shape)
     X_PtV = _X_PtBd(lay).multiply(RigidTransform(origin))
     return LabelVolume(labels=labels, voxel_size=vs, X_PtV=X_PtV)
 
@@ -394,17 +461,19 @@ def _kidney_mask_builder(lay: _Layout, X_PtBd: RigidTransform):
         v_Pt = lay.kidney_vertices_Bd @ R.T + X_PtBd.translation()
         lo = v_Pt.min(axis=0) - 3 * voxel_size
         shape = np.ceil((v_Pt.max(axis=0) + 3 * voxel_size - lo) / voxel_size).astype(int) + 1
-        I, J, K = np.meshgrid(*[np.arange(n) for n in shape], indexing="ij")
-        P_Pt = lo + voxel_size * np.column_stack([I.ravel(), J.ravel(), K.ravel()])
+        ii, jj, kk = np.meshgrid(*[np.arange(n) for n in shape], indexing="ij")
+        P_Pt = lo + voxel_size * np.column_stack([ii.ravel(), jj.ravel(), kk.ravel()])
         P_Bd = (P_Pt - X_PtBd.translation()) @ R
         mask = lay.inside_kidney_Bd(P_Bd).reshape(tuple(shape))
         return mask, RigidTransform(lo)
+
     return build
 
 
 def _builders(layout, voxel_size: float, margin: float, progress: bool) -> dict:
     """The lazily built parts of a generated patient (Patient's label, torso and kidney mask
     builders) from ``layout()``, which returns the patient's :class:`_Layout`."""
+
     def label_builder():
         return _build_labels(layout(), voxel_size, margin, progress)
 
@@ -418,13 +487,22 @@ def _builders(layout, voxel_size: float, margin: float, progress: bool) -> dict:
         lay = layout()
         return _kidney_mask_builder(lay, _X_PtBd(lay))(vs)
 
-    return {"label_builder": label_builder, "torso_builder": torso_builder,
-            "kidney_mask_builder": kidney_mask_builder}
+    return {
+        "label_builder": label_builder,
+        "torso_builder": torso_builder,
+        "kidney_mask_builder": kidney_mask_builder,
+    }
 
 
-def patient_builders(seed: int, side: str = "right", posture: str = "supine", *,
-                     voxel_size: float = 0.001, margin: float = 0.07,
-                     progress: bool = True) -> dict:
+def patient_builders(
+    seed: int,
+    side: str = "right",
+    posture: str = "supine",
+    *,
+    voxel_size: float = 0.001,
+    margin: float = 0.07,
+    progress: bool = True,
+) -> dict:
     """The builders (``label_builder``, ``torso_builder``, ``kidney_mask_builder``) that
     :func:`generate_patient` gives its Patient, for a Patient rebuilt from stored meshes (the
     patient cache): the body layout is recomputed from the seed on first use (about 30 ms)."""
@@ -435,12 +513,20 @@ def patient_builders(seed: int, side: str = "right", posture: str = "supine", *,
         if not holder:
             holder.append(_Layout(sample_patient_params(seed, side, posture)))
         return holder[0]
+
     return _builders(layout, voxel_size, margin, progress)
 
 
-def generate_patient(seed: int, side: str = "right", posture: str = "supine", *,
-                     name: str | None = None, voxel_size: float = 0.001, margin: float = 0.07,
-                     progress: bool = True) -> Patient:
+def generate_patient(
+    seed: int,
+    side: str = "right",
+    posture: str = "supine",
+    *,
+    name: str | None = None,
+    voxel_size: float = 0.001,
+    margin: float = 0.07,
+    progress: bool = True,
+) -> Patient:
     """The virtual patient of ``seed`` (deterministic). The label volume (``voxel_size``
     voxels, covering the torso cross-section and the kidney's length plus ``margin`` on each
     side along the body) is built on first access of ``patient.labels``."""
@@ -456,22 +542,35 @@ def generate_patient(seed: int, side: str = "right", posture: str = "supine", *,
         "source": "generator",
         "seed": int(seed),
         "size_class": prm.torso.size_class,
-        "hilum_angle": lay.hilum_angle_measured(
-            X_PtBd.rotation().matrix().T @ patient_X_PtK_x),
+        "hilum_angle": lay.hilum_angle_measured(X_PtBd.rotation().matrix().T @ patient_X_PtK_x),
         "params": prm.to_dict(),
         "centroid_x_final": lay.centroid_x,
         "X_PtBd": X_PtBd.GetAsMatrix4().tolist(),
         "hilum_vertex": lay.shape.hilum_vertex(),
     }
     return Patient(
-        name=name or f"seed:{seed}", side=side, posture=posture, kidney_mesh=kidney,
-        skin_mesh=skin, meta=meta, X_PtK=X_PtK,
-        **_builders(lambda: lay, voxel_size, margin, progress))
+        name=name or f"seed:{seed}",
+        side=side,
+        posture=posture,
+        kidney_mesh=kidney,
+        skin_mesh=skin,
+        meta=meta,
+        X_PtK=X_PtK,
+        **_builders(lambda: lay, voxel_size, margin, progress),
+    )
 
 
-def generate_patient_with_kidney(prm: PatientParams, shape, *, R_BdL=None, name: str,
-                                 voxel_size: float = 0.001, margin: float = 0.07,
-                                 progress: bool = True, meta: dict | None = None) -> Patient:
+def generate_patient_with_kidney(
+    prm: PatientParams,
+    shape,
+    *,
+    R_BdL=None,
+    name: str,
+    voxel_size: float = 0.001,
+    margin: float = 0.07,
+    progress: bool = True,
+    meta: dict | None = None,
+) -> Patient:
     """The generated body of ``prm`` (e.g. :func:`sample_patient_params`) carrying a given
     kidney ``shape`` (see :class:`_Layout`; e.g. a real CT kidney,
     :mod:`drake_rus.anatomy.ct_patient`) instead of its own: placed at the body's kidney
@@ -501,6 +600,14 @@ def generate_patient_with_kidney(prm: PatientParams, shape, *, R_BdL=None, name:
         **(meta or {}),
     }
     label_builder = _builders(lambda: lay, voxel_size, margin, progress)["label_builder"]
-    return Patient(name=name, side=prm.side, posture=prm.posture, kidney_mesh=kidney,
-                   skin_mesh=skin, meta=info, X_PtK=X_PtK, label_builder=label_builder,
-                   torso_center_Pt=X_PtBd.multiply(lay.p_c))
+    return Patient(
+        name=name,
+        side=prm.side,
+        posture=prm.posture,
+        kidney_mesh=kidney,
+        skin_mesh=skin,
+        meta=info,
+        X_PtK=X_PtK,
+        label_builder=label_builder,
+        torso_center_Pt=X_PtBd.multiply(lay.p_c),
+    )

@@ -29,44 +29,78 @@ from pydrake.math import RigidTransform, RotationMatrix
 from scipy import ndimage
 
 from drake_rus.anatomy.body_section import crop_body_section
-from drake_rus.anatomy.checks import (AIR_CONTACT_MAX, AnatomyError, check_label_map_body_size,
-                                      check_mesh_units)
+from drake_rus.anatomy.canonical_frame import mesh_surface_moments
+from drake_rus.anatomy.checks import (
+    AIR_CONTACT_MAX,
+    AnatomyError,
+    check_label_map_body_size,
+    check_mesh_units,
+)
 from drake_rus.anatomy.frames import R_BdS, R_PtBd, check_side_posture, transform_mesh
 from drake_rus.anatomy.labels import Label, LabelVolume
 from drake_rus.anatomy.patient import Patient
 from drake_rus.anatomy.rasterize import grid_around, mask_to_mesh, rasterize_mesh
 from drake_rus.anatomy.trunk import remove_arms, trunk_mask
-from drake_rus.anatomy.canonical_frame import mesh_surface_moments
 
 # crop_body_section (body_section) and mask_to_mesh (rasterize) are re-exported here.
-__all__ = ["patient_from_meshes", "patient_from_label_map", "patient_from_mask_folder",
-           "crop_body_section", "mask_to_mesh", "TOTALSEGMENTATOR_MAPPING", "MAPPING_NAMES",
-           "find_mesh_files", "totalsegmentator_mask_files", "LABEL_MAP_SUFFIXES",
-           "MESH_SUFFIXES"]
+__all__ = [
+    "patient_from_meshes",
+    "patient_from_label_map",
+    "patient_from_mask_folder",
+    "crop_body_section",
+    "mask_to_mesh",
+    "TOTALSEGMENTATOR_MAPPING",
+    "MAPPING_NAMES",
+    "find_mesh_files",
+    "totalsegmentator_mask_files",
+    "LABEL_MAP_SUFFIXES",
+    "MESH_SUFFIXES",
+]
 
 MESH_SUFFIXES = (".stl", ".obj", ".ply", ".off", ".glb")
 LABEL_MAP_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd")
 
 # Names a mapping may use, and the label each becomes (kidneys decided by side).
 MAPPING_NAMES = {
-    "body": Label.SOFT_TISSUE, "soft_tissue": Label.SOFT_TISSUE, "fat": Label.FAT,
-    "muscle": Label.MUSCLE, "liver": Label.LIVER, "bone": Label.BONE, "rib": Label.BONE,
-    "gas": Label.GAS, "vessel": Label.VESSEL, "kidney": Label.KIDNEY_CORTEX,
-    "kidney_right": Label.KIDNEY_CORTEX, "kidney_left": Label.KIDNEY_CORTEX,
-    "kidney_cortex": Label.KIDNEY_CORTEX, "kidney_medulla": Label.KIDNEY_MEDULLA,
-    "kidney_sinus": Label.KIDNEY_SINUS, "ignore": None,
+    "body": Label.SOFT_TISSUE,
+    "soft_tissue": Label.SOFT_TISSUE,
+    "fat": Label.FAT,
+    "muscle": Label.MUSCLE,
+    "liver": Label.LIVER,
+    "bone": Label.BONE,
+    "rib": Label.BONE,
+    "gas": Label.GAS,
+    "vessel": Label.VESSEL,
+    "kidney": Label.KIDNEY_CORTEX,
+    "kidney_right": Label.KIDNEY_CORTEX,
+    "kidney_left": Label.KIDNEY_CORTEX,
+    "kidney_cortex": Label.KIDNEY_CORTEX,
+    "kidney_medulla": Label.KIDNEY_MEDULLA,
+    "kidney_sinus": Label.KIDNEY_SINUS,
+    "ignore": None,
 }
 
 # TotalSegmentator v2, task 'total' class indices (the package's class map), for the labels
 # the ultrasound scene needs. TotalSegmentator has no whole-body label in this task: merge
 # its 'body' task output in as value 200 (or give your own mapping with a 'body' entry).
 TOTALSEGMENTATOR_MAPPING = {
-    2: "kidney_right", 3: "kidney_left", 5: "liver", 23: "kidney_left", 24: "kidney_right",
-    18: "gas", 19: "soft_tissue", 20: "gas",            # bowel: small bowel, duodenum, colon
-    52: "vessel", 63: "vessel", 64: "vessel",           # aorta, IVC, portal/splenic vein
-    86: "muscle", 87: "muscle", 88: "muscle", 89: "muscle",   # autochthon, iliopsoas
-    **{v: "bone" for v in range(25, 51)},               # sacrum, vertebrae
-    **{v: "rib" for v in range(92, 118)},               # ribs 1-12 both sides, sternum, cartilage
+    2: "kidney_right",
+    3: "kidney_left",
+    5: "liver",
+    23: "kidney_left",
+    24: "kidney_right",
+    18: "gas",
+    19: "soft_tissue",
+    20: "gas",  # bowel: small bowel, duodenum, colon
+    52: "vessel",
+    63: "vessel",
+    64: "vessel",  # aorta, IVC, portal/splenic vein
+    86: "muscle",
+    87: "muscle",
+    88: "muscle",
+    89: "muscle",  # autochthon, iliopsoas
+    **{v: "bone" for v in range(25, 51)},  # sacrum, vertebrae
+    **{v: "rib" for v in range(92, 118)},  # ribs 1-12 both sides, sternum, cartilage
     200: "body",
 }
 
@@ -95,8 +129,10 @@ def load_mesh(obj, what: str) -> trimesh.Trimesh:
         m.merge_vertices()
         trimesh.repair.fill_holes(m)
     if not m.is_watertight:
-        _fail(f"{where}: the mesh is not watertight (holes or non-manifold edges); "
-              "a closed solid surface is needed (e.g. the *_solid.stl files)")
+        _fail(
+            f"{where}: the mesh is not watertight (holes or non-manifold edges); "
+            "a closed solid surface is needed (e.g. the *_solid.stl files)"
+        )
     faces = np.asarray(m.faces)
     if m.volume < 0:
         faces = faces[:, ::-1]
@@ -105,8 +141,11 @@ def load_mesh(obj, what: str) -> trimesh.Trimesh:
 
 def find_mesh_files(directory: Path, side: str) -> dict:
     """Kidney/skin/liver mesh files in a directory, by name (e.g. the HuBMAP folder)."""
-    files = [p for p in sorted(Path(directory).iterdir())
-             if p.is_file() and p.name.lower().endswith(MESH_SUFFIXES[:-1])]
+    files = [
+        p
+        for p in sorted(Path(directory).iterdir())
+        if p.is_file() and p.name.lower().endswith(MESH_SUFFIXES[:-1])
+    ]
 
     def pick(*keys, avoid=()):
         for p in files:
@@ -114,6 +153,7 @@ def find_mesh_files(directory: Path, side: str) -> dict:
             if all(k in n for k in keys) and not any(a in n for a in avoid):
                 return p
         return None
+
     other = "left" if side == "right" else "right"
     return {
         "kidney": pick("kidney", side) or pick("kidney", f"_{side[0]}", avoid=(other,)),
@@ -136,8 +176,10 @@ def _torso_loop(skin_Bd: trimesh.Trimesh, p: np.ndarray):
             if best is None or area < best[0]:
                 best = (area, xz)
     if best is None:
-        _fail("skin mesh: the kidney is not inside the body surface at its own level "
-              "(check the axes/units of the meshes)")
+        _fail(
+            "skin mesh: the kidney is not inside the body surface at its own level "
+            "(check the axes/units of the meshes)"
+        )
     return best[1]
 
 
@@ -147,13 +189,14 @@ def _X_PtBd(skin_Bd, kidney_centroid_Bd, posture) -> RigidTransform:
     R = R_PtBd(posture)
     if posture == "supine":
         p = -np.array([0.5 * (xz[:, 0].min() + xz[:, 0].max()), y0, xz[:, 1].min()])
-    else:   # left flank (max x_Bd) on the bed, centre of the section above the origin
+    else:  # left flank (max x_Bd) on the bed, centre of the section above the origin
         p = np.array([-0.5 * (xz[:, 1].min() + xz[:, 1].max()), -y0, xz[:, 0].max()])
     return RigidTransform(RotationMatrix(R), p)
 
 
-def _wall_layers(body: np.ndarray, voxel_size: float, fat: float, muscle: float,
-                 axis: int = 1) -> np.ndarray:
+def _wall_layers(
+    body: np.ndarray, voxel_size: float, fat: float, muscle: float, axis: int = 1
+) -> np.ndarray:
     """Depth (m) below the skin measured in-plane (slices normal to ``axis``) for body voxels."""
     depth = np.zeros(body.shape, dtype=np.float32)
     for j in range(body.shape[axis]):
@@ -169,9 +212,9 @@ def _kidney_sublabels(labels, kidney_mask, voxel_size, cortex=0.0066, parenchyma
     idx = np.argwhere(kidney_mask)
     lo = np.maximum(idx.min(axis=0) - 2, 0)
     hi = idx.max(axis=0) + 3
-    sub = kidney_mask[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+    sub = kidney_mask[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
     depth = ndimage.distance_transform_edt(sub) * voxel_size
-    lab = labels[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+    lab = labels[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
     lab[sub] = Label.KIDNEY_CORTEX
     lab[sub & (depth >= parenchyma)] = Label.KIDNEY_SINUS
     # Medulla: between cortex and sinus (pyramids are not resolved in surface meshes).
@@ -199,8 +242,20 @@ def _mesh_labels(kidney, skin_section, liver, other_kidney, voxel_size, fat, mus
     return LabelVolume(labels=labels, voxel_size=voxel_size, X_PtV=X_PtV)
 
 
-def _assemble(name, side, posture, kidney_Bd, skin_Bd, liver_Bd, other_Bd, meta,
-              voxel_size, fat, muscle, label_volume_Bd=None) -> Patient:
+def _assemble(
+    name,
+    side,
+    posture,
+    kidney_Bd,
+    skin_Bd,
+    liver_Bd,
+    other_Bd,
+    meta,
+    voxel_size,
+    fat,
+    muscle,
+    label_volume_Bd=None,
+) -> Patient:
     _, c, _ = mesh_surface_moments(kidney_Bd.vertices, kidney_Bd.faces)
     X_PtBd = _X_PtBd(skin_Bd, c, posture)
     kidney = transform_mesh(kidney_Bd, X_PtBd)
@@ -218,26 +273,48 @@ def _assemble(name, side, posture, kidney_Bd, skin_Bd, liver_Bd, other_Bd, meta,
         def label_builder():
             return LabelVolume(labels=labels_Bd, voxel_size=vs, X_PtV=X_PtBd.multiply(X_BdV))
     else:
+
         def label_builder():
             extent = float(np.ptp(kidney.vertices[:, 1])) / 2 + 0.07
-            return _mesh_labels(kidney, torso_builder_fine(extent), liver, other, voxel_size,
-                                fat, muscle)
+            return _mesh_labels(
+                kidney, torso_builder_fine(extent), liver, other, voxel_size, fat, muscle
+            )
 
         def torso_builder_fine(h):
             return crop_body_section(skin, torso_center_Pt, h, voxel_size=max(voxel_size, 0.002))
 
-    return Patient(name=name, side=side, posture=posture, kidney_mesh=kidney, skin_mesh=skin,
-                   liver_mesh=liver, label_builder=label_builder,
-                   torso_center_Pt=torso_center_Pt, meta=meta)
+    return Patient(
+        name=name,
+        side=side,
+        posture=posture,
+        kidney_mesh=kidney,
+        skin_mesh=skin,
+        liver_mesh=liver,
+        label_builder=label_builder,
+        torso_center_Pt=torso_center_Pt,
+        meta=meta,
+    )
 
 
 def _name(obj) -> str:
     return "(a trimesh)" if isinstance(obj, trimesh.Trimesh) else str(obj)
 
 
-def patient_from_meshes(kidney, skin, *, liver=None, other_kidney=None, side="right",
-                        posture="supine", axes="LSA", units="auto", name=None,
-                        voxel_size=0.001, fat=0.015, muscle=0.012) -> Patient:
+def patient_from_meshes(
+    kidney,
+    skin,
+    *,
+    liver=None,
+    other_kidney=None,
+    side="right",
+    posture="supine",
+    axes="LSA",
+    units="auto",
+    name=None,
+    voxel_size=0.001,
+    fat=0.015,
+    muscle=0.012,
+) -> Patient:
     """A patient from surface meshes (STL/OBJ/PLY paths or trimesh objects) given in a
     body-fixed frame whose axes point to the anatomical directions ``axes`` (default
     "LSA": +x left, +y superior, +z anterior, the glTF/HuBMAP body frame). ``units``: "mm",
@@ -256,13 +333,24 @@ def patient_from_meshes(kidney, skin, *, liver=None, other_kidney=None, side="ri
         _fail(f"units: expected 'auto', 'mm' or 'm', got {units!r}")
     # One unit for all meshes (a kidney in m with the skin in mm would be read as a body
     # 1.7 km tall), checked before any voxel grid is made.
-    check_mesh_units(float(np.ptp(km.vertices, axis=0).max()),
-                     float(np.ptp(sm.vertices, axis=0).max()), _name(kidney), _name(skin),
-                     scale, units)
+    check_mesh_units(
+        float(np.ptp(km.vertices, axis=0).max()),
+        float(np.ptp(sm.vertices, axis=0).max()),
+        _name(kidney),
+        _name(skin),
+        scale,
+        units,
+    )
     if lm is not None:
-        check_mesh_units(float(np.ptp(km.vertices, axis=0).max()),
-                         float(np.ptp(lm.vertices, axis=0).max()), _name(kidney),
-                         _name(liver), scale, units, other="liver")
+        check_mesh_units(
+            float(np.ptp(km.vertices, axis=0).max()),
+            float(np.ptp(lm.vertices, axis=0).max()),
+            _name(kidney),
+            _name(liver),
+            scale,
+            units,
+            other="liver",
+        )
     R = R_BdS(axes)
     X = np.eye(4)
     X[:3, :3] = R * scale
@@ -273,19 +361,29 @@ def patient_from_meshes(kidney, skin, *, liver=None, other_kidney=None, side="ri
         m = m.copy()
         m.apply_transform(X)
         return m
+
     km, sm, lm, om = to_Bd(km), to_Bd(sm), to_Bd(lm), to_Bd(om)
     ext = float(np.ptp(km.vertices, axis=0).max())
     if not 0.03 < ext < 0.3:
-        _fail(f"kidney mesh: largest extent {ext * 1e3:.0f} mm after unit conversion "
-              f"(units={units!r}); expected a kidney of 30-300 mm")
+        _fail(
+            f"kidney mesh: largest extent {ext * 1e3:.0f} mm after unit conversion "
+            f"(units={units!r}); expected a kidney of 30-300 mm"
+        )
     _, c_kidney, _ = mesh_surface_moments(km.vertices, km.faces)
     sm, arms = remove_arms(sm, c_kidney)
-    name = name or (Path(kidney).parent.name if not isinstance(kidney, trimesh.Trimesh) else "meshes")
-    meta = {"source": "meshes", "kidney": str(kidney) if not isinstance(kidney, trimesh.Trimesh) else "mesh",
-            "skin": str(skin) if not isinstance(skin, trimesh.Trimesh) else "mesh",
-            "liver": None if liver is None else _name(liver),
-            "axes": axes, "units_scale": scale, "arms_removed": arms,
-            "layers": {"fat": fat, "muscle": muscle, "note": "modelling choice (no layers in meshes)"}}
+    name = name or (
+        Path(kidney).parent.name if not isinstance(kidney, trimesh.Trimesh) else "meshes"
+    )
+    meta = {
+        "source": "meshes",
+        "kidney": str(kidney) if not isinstance(kidney, trimesh.Trimesh) else "mesh",
+        "skin": str(skin) if not isinstance(skin, trimesh.Trimesh) else "mesh",
+        "liver": None if liver is None else _name(liver),
+        "axes": axes,
+        "units_scale": scale,
+        "arms_removed": arms,
+        "layers": {"fat": fat, "muscle": muscle, "note": "modelling choice (no layers in meshes)"},
+    }
     return _assemble(name, side, posture, km, sm, lm, om, meta, voxel_size, fat, muscle)
 
 
@@ -296,6 +394,7 @@ def _read_label_map(path: Path, voxel_size: float, check_native=None):
     which a spacing in the wrong unit would make allocate without bound: it checks that the
     body is of human size (:func:`~drake_rus.anatomy.checks.check_label_map_body_size`)."""
     import SimpleITK as sitk
+
     if not path.is_file():
         raise FileNotFoundError(f"label map: file not found: {path}")
     try:
@@ -305,8 +404,10 @@ def _read_label_map(path: Path, voxel_size: float, check_native=None):
     if img.GetDimension() != 3:
         _fail(f"label map {path}: expected a 3-D image, got {img.GetDimension()}-D")
     if img.GetNumberOfComponentsPerPixel() != 1:
-        _fail(f"label map {path}: expected one label per voxel, got "
-              f"{img.GetNumberOfComponentsPerPixel()} components")
+        _fail(
+            f"label map {path}: expected one label per voxel, got "
+            f"{img.GetNumberOfComponentsPerPixel()} components"
+        )
     arr = sitk.GetArrayViewFromImage(img)
     if not np.issubdtype(arr.dtype, np.integer):
         a = np.asarray(arr)
@@ -316,27 +417,43 @@ def _read_label_map(path: Path, voxel_size: float, check_native=None):
     spacing = np.array(img.GetSpacing())
     if check_native is not None:
         D0 = np.array(img.GetDirection()).reshape(3, 3)
-        sup_axis = int(np.argmax(np.abs(D0[2])))                     # grid axis nearest S
+        sup_axis = int(np.argmax(np.abs(D0[2])))  # grid axis nearest S
         check_native(sitk.GetArrayViewFromImage(img), spacing[::-1], 2 - sup_axis)
     target = voxel_size * 1000.0
     if np.any(np.abs(spacing - target) > 1e-6):
         size = np.round(np.array(img.GetSize()) * spacing / target).astype(int).tolist()
-        img = sitk.Resample(img, size, sitk.Transform(), sitk.sitkNearestNeighbor,
-                            img.GetOrigin(), [target] * 3, img.GetDirection(), 0,
-                            img.GetPixelID())
-    labels = sitk.GetArrayFromImage(img).transpose(2, 1, 0)     # (i, j, k)
-    D = np.array(img.GetDirection()).reshape(3, 3)               # columns: index axes in LPS
+        img = sitk.Resample(
+            img,
+            size,
+            sitk.Transform(),
+            sitk.sitkNearestNeighbor,
+            img.GetOrigin(),
+            [target] * 3,
+            img.GetDirection(),
+            0,
+            img.GetPixelID(),
+        )
+    labels = sitk.GetArrayFromImage(img).transpose(2, 1, 0)  # (i, j, k)
+    D = np.array(img.GetDirection()).reshape(3, 3)  # columns: index axes in LPS
     origin = np.array(img.GetOrigin()) / 1000.0
-    if np.linalg.det(D) < 0:                                     # make the grid right-handed
+    if np.linalg.det(D) < 0:  # make the grid right-handed
         labels = labels[:, :, ::-1]
         origin = origin + D[:, 2] * voxel_size * (labels.shape[2] - 1)
         D[:, 2] *= -1
     return np.ascontiguousarray(labels), D, origin, tuple(float(x) for x in spacing)
 
 
-def patient_from_label_map(path, mapping="totalsegmentator", *, side="right",
-                           posture="supine", name=None, voxel_size=0.001,
-                           fat=0.015, muscle=0.012) -> Patient:
+def patient_from_label_map(
+    path,
+    mapping="totalsegmentator",
+    *,
+    side="right",
+    posture="supine",
+    name=None,
+    voxel_size=0.001,
+    fat=0.015,
+    muscle=0.012,
+) -> Patient:
     """A patient from a NIfTI/NRRD (any SimpleITK-readable) integer label map.
 
     ``mapping``: "totalsegmentator" (v2 'total' class indices; needs a body label from
@@ -347,22 +464,28 @@ def patient_from_label_map(path, mapping="totalsegmentator", *, side="right",
     path = Path(path)
     if isinstance(mapping, str):
         if mapping.lower() != "totalsegmentator":
-            _fail(f"mapping: unknown preset {mapping!r}; use 'totalsegmentator' or a dict "
-                  "{label value: name}")
+            _fail(
+                f"mapping: unknown preset {mapping!r}; use 'totalsegmentator' or a dict "
+                "{label value: name}"
+            )
         mapping = TOTALSEGMENTATOR_MAPPING
     mapping = {int(k): str(v).lower() for k, v in dict(mapping).items()}
     for k, v in mapping.items():
         if v not in MAPPING_NAMES:
-            _fail(f"mapping: unknown label name {v!r} for value {k}; known names: "
-                  f"{', '.join(sorted(MAPPING_NAMES))}")
+            _fail(
+                f"mapping: unknown label name {v!r} for value {k}; known names: "
+                f"{', '.join(sorted(MAPPING_NAMES))}"
+            )
     target = (f"kidney_{side}", "kidney")
 
     def check_native(native, spacing_mm, sup_axis):
         # The body's size, for a map with a kidney and a body that is not inside-out; a
         # map without them (or inverted) gets the error naming that instead.
         kidney = np.isin(native, [k for k, v in mapping.items() if v in target])
-        if not kidney.any() or not np.isin(native, [k for k, v in mapping.items()
-                                                    if v == "body"]).any():
+        if (
+            not kidney.any()
+            or not np.isin(native, [k for k, v in mapping.items() if v == "body"]).any()
+        ):
             return
         if all(kidney.take(i, axis=a).any() for a in range(3) for i in (0, -1)):
             return
@@ -370,26 +493,80 @@ def patient_from_label_map(path, mapping="totalsegmentator", *, side="right",
         check_label_map_body_size(body, spacing_mm, sup_axis, path)
 
     raw, D, origin, spacing = _read_label_map(path, voxel_size, check_native)
-    return _patient_from_raw(raw, D, origin, mapping, path, side=side, posture=posture,
-                             name=name or path.name, voxel_size=voxel_size, fat=fat,
-                             muscle=muscle, meta={"source": "label_map", "path": str(path),
-                                                  "spacing_mm": list(spacing)})
+    return _patient_from_raw(
+        raw,
+        D,
+        origin,
+        mapping,
+        path,
+        side=side,
+        posture=posture,
+        name=name or path.name,
+        voxel_size=voxel_size,
+        fat=fat,
+        muscle=muscle,
+        meta={"source": "label_map", "path": str(path), "spacing_mm": list(spacing)},
+    )
 
 
 # TotalSegmentator's per-structure output files (<class>.nii.gz) -> class index, for the
 # classes in TOTALSEGMENTATOR_MAPPING; the 'body' task's body / body_trunc become 200.
 TOTALSEGMENTATOR_FILES = {
-    "kidney_right": 2, "kidney_left": 3, "liver": 5, "small_bowel": 18, "duodenum": 19,
-    "colon": 20, "kidney_cyst_left": 23, "kidney_cyst_right": 24, "sacrum": 25,
-    "aorta": 52, "inferior_vena_cava": 63, "portal_vein_and_splenic_vein": 64,
-    "autochthon_left": 86, "autochthon_right": 87, "iliopsoas_left": 88, "iliopsoas_right": 89,
-    **{f"vertebrae_{v}": 26 + i for i, v in enumerate(
-        ["S1", "L5", "L4", "L3", "L2", "L1", "T12", "T11", "T10", "T9", "T8", "T7", "T6", "T5",
-         "T4", "T3", "T2", "T1", "C7", "C6", "C5", "C4", "C3", "C2", "C1"])},
+    "kidney_right": 2,
+    "kidney_left": 3,
+    "liver": 5,
+    "small_bowel": 18,
+    "duodenum": 19,
+    "colon": 20,
+    "kidney_cyst_left": 23,
+    "kidney_cyst_right": 24,
+    "sacrum": 25,
+    "aorta": 52,
+    "inferior_vena_cava": 63,
+    "portal_vein_and_splenic_vein": 64,
+    "autochthon_left": 86,
+    "autochthon_right": 87,
+    "iliopsoas_left": 88,
+    "iliopsoas_right": 89,
+    **{
+        f"vertebrae_{v}": 26 + i
+        for i, v in enumerate(
+            [
+                "S1",
+                "L5",
+                "L4",
+                "L3",
+                "L2",
+                "L1",
+                "T12",
+                "T11",
+                "T10",
+                "T9",
+                "T8",
+                "T7",
+                "T6",
+                "T5",
+                "T4",
+                "T3",
+                "T2",
+                "T1",
+                "C7",
+                "C6",
+                "C5",
+                "C4",
+                "C3",
+                "C2",
+                "C1",
+            ]
+        )
+    },
     **{f"rib_left_{i}": 91 + i for i in range(1, 13)},
     **{f"rib_right_{i}": 103 + i for i in range(1, 13)},
-    "sternum": 116, "costal_cartilages": 117,
-    "body": 200, "body_trunc": 200, "skin": 200,
+    "sternum": 116,
+    "costal_cartilages": 117,
+    "body": 200,
+    "body_trunc": 200,
+    "skin": 200,
 }
 
 
@@ -412,8 +589,16 @@ def totalsegmentator_mask_files(directory: Path) -> dict:
     return out
 
 
-def patient_from_mask_folder(directory, *, side="right", posture="supine", name=None,
-                             voxel_size=0.001, fat=0.015, muscle=0.012) -> Patient:
+def patient_from_mask_folder(
+    directory,
+    *,
+    side="right",
+    posture="supine",
+    name=None,
+    voxel_size=0.001,
+    fat=0.015,
+    muscle=0.012,
+) -> Patient:
     """A patient from TotalSegmentator's default output: one binary mask per structure
     (kidney_right.nii.gz, liver.nii.gz, rib_right_11.nii.gz, ...) plus the body mask of its
     'body' task (body.nii.gz or body_trunc.nii.gz). All masks must share one grid."""
@@ -424,25 +609,46 @@ def patient_from_mask_folder(directory, *, side="right", posture="supine", name=
         _fail(f"mask folder {directory}: no kidney_{side} mask (kidney_{side}.nii.gz)")
     body_files = [k for k in ("body", "body_trunc", "skin") if k in files]
     if not body_files:
-        _fail(f"mask folder {directory}: no body mask (body.nii.gz or body_trunc.nii.gz from "
-              "TotalSegmentator's 'body' task); the skin surface cannot be found without it")
+        _fail(
+            f"mask folder {directory}: no body mask (body.nii.gz or body_trunc.nii.gz from "
+            "TotalSegmentator's 'body' task); the skin surface cannot be found without it"
+        )
     order = body_files + [k for k in files if k not in body_files]
     raw = D = origin = spacing = None
     for key in order:
-        size_check = (lambda a, sp, sup, f=files[key]: check_label_map_body_size(
-            a != 0, sp, sup, f)) if key == order[0] else None
+        size_check = (
+            (lambda a, sp, sup, f=files[key]: check_label_map_body_size(a != 0, sp, sup, f))
+            if key == order[0]
+            else None
+        )
         m, D_k, o_k, spacing_k = _read_label_map(files[key], voxel_size, size_check)
         if raw is None:
             raw, D, origin, spacing = np.zeros(m.shape, dtype=np.int32), D_k, o_k, spacing_k
         elif m.shape != raw.shape or not np.allclose(D_k, D) or not np.allclose(o_k, origin):
-            _fail(f"mask folder {directory}: {files[key].name} is not on the same grid as "
-                  f"{files[order[0]].name}")
+            _fail(
+                f"mask folder {directory}: {files[key].name} is not on the same grid as "
+                f"{files[order[0]].name}"
+            )
         raw[m > 0] = TOTALSEGMENTATOR_FILES[key]
-    return _patient_from_raw(raw, D, origin, TOTALSEGMENTATOR_MAPPING, directory, side=side,
-                             posture=posture, name=name or directory.name,
-                             voxel_size=voxel_size, fat=fat, muscle=muscle,
-                             meta={"source": "mask_folder", "path": str(directory),
-                                   "files": sorted(files), "spacing_mm": list(spacing)})
+    return _patient_from_raw(
+        raw,
+        D,
+        origin,
+        TOTALSEGMENTATOR_MAPPING,
+        directory,
+        side=side,
+        posture=posture,
+        name=name or directory.name,
+        voxel_size=voxel_size,
+        fat=fat,
+        muscle=muscle,
+        meta={
+            "source": "mask_folder",
+            "path": str(directory),
+            "files": sorted(files),
+            "spacing_mm": list(spacing),
+        },
+    )
 
 
 def _air_around(mask: np.ndarray, body: np.ndarray) -> float:
@@ -457,44 +663,61 @@ def _air_around(mask: np.ndarray, body: np.ndarray) -> float:
     return float((shell & ~body[box]).sum() / n) if n else 0.0
 
 
-def _patient_from_raw(raw, D, origin, mapping, path, *, side, posture, name, voxel_size,
-                      fat, muscle, meta) -> Patient:
+def _patient_from_raw(
+    raw, D, origin, mapping, path, *, side, posture, name, voxel_size, fat, muscle, meta
+) -> Patient:
     present = set(np.unique(raw).tolist()) - {0}
     if not present:
         _fail(f"label map {path}: empty (no nonzero labels)")
     target_names = (f"kidney_{side}", "kidney")
     kid_vals = [k for k, v in mapping.items() if v in target_names and k in present]
     if not kid_vals:
-        _fail(f"label map {path}: no voxels of the {side} kidney (values mapped to "
-              f"{' or '.join(target_names)}: "
-              f"{[k for k, v in mapping.items() if v in target_names] or 'none'})")
+        _fail(
+            f"label map {path}: no voxels of the {side} kidney (values mapped to "
+            f"{' or '.join(target_names)}: "
+            f"{[k for k, v in mapping.items() if v in target_names] or 'none'})"
+        )
     body_vals = [k for k, v in mapping.items() if v == "body" and k in present]
     if not body_vals:
-        _fail(f"label map {path}: no body label (a value mapped to 'body'); the skin surface "
-              "cannot be found without it (TotalSegmentator: merge the 'body' task as 200)")
+        _fail(
+            f"label map {path}: no body label (a value mapped to 'body'); the skin surface "
+            "cannot be found without it (TotalSegmentator: merge the 'body' task as 200)"
+        )
     kidney_mask = np.isin(raw, kid_vals)
-    faces = [kidney_mask[0], kidney_mask[-1], kidney_mask[:, 0], kidney_mask[:, -1],
-             kidney_mask[:, :, 0], kidney_mask[:, :, -1]]
+    faces = [
+        kidney_mask[0],
+        kidney_mask[-1],
+        kidney_mask[:, 0],
+        kidney_mask[:, -1],
+        kidney_mask[:, :, 0],
+        kidney_mask[:, :, -1],
+    ]
     if all(f.any() for f in faces):
-        _fail(f"label map {path}: the {side} kidney touches all six faces of the grid; the "
-              "label volume is inside-out (kidney and background swapped?)")
+        _fail(
+            f"label map {path}: the {side} kidney touches all six faces of the grid; the "
+            "label volume is inside-out (kidney and background swapped?)"
+        )
     # The body: every mapped label but the target kidney, holes filled (a kidney inside the
     # body is such a hole). A kidney that is not wholly inside is refused here, before the
     # arms are looked for around it (checks.check_anatomy measures the same on the patient).
-    body = np.isin(raw, [k for k, v in mapping.items()
-                         if v != "ignore" and k in present and k not in kid_vals])
+    body = np.isin(
+        raw, [k for k, v in mapping.items() if v != "ignore" and k in present and k not in kid_vals]
+    )
     body = ndimage.binary_fill_holes(body)
     air = _air_around(kidney_mask, body)
     if air > AIR_CONTACT_MAX:
         raise AnatomyError(
             f"label map {path}: the {side} kidney is not inside the body: {air:.1%} of the "
-            f"voxels around it are outside the body label (at most {AIR_CONTACT_MAX:.1%})")
+            f"voxels around it are outside the body label (at most {AIR_CONTACT_MAX:.1%})"
+        )
     body |= kidney_mask
     # The arms off (module docstring): slices normal to the grid axis nearest to superior.
     sup_axis = int(np.argmax(np.abs(D[2])))
     trunk = trunk_mask(body, sup_axis, np.argwhere(kidney_mask).mean(axis=0), voxel_size)
-    arms = {"method": "axial-slice trunk tracking (anatomy/trunk.py)",
-            "removed_volume_l": round(float((body & ~trunk).sum()) * voxel_size ** 3 * 1e3, 3)}
+    arms = {
+        "method": "axial-slice trunk tracking (anatomy/trunk.py)",
+        "removed_volume_l": round(float((body & ~trunk).sum()) * voxel_size**3 * 1e3, 3),
+    }
     body = trunk
     labels = np.zeros(raw.shape, dtype=np.uint8)
     labels[body] = Label.SOFT_TISSUE
@@ -503,8 +726,12 @@ def _patient_from_raw(raw, D, origin, mapping, path, *, side, posture, name, vox
     labels[body & (depth <= fat)] = Label.FAT
     for k, v in mapping.items():
         lab = MAPPING_NAMES[v]
-        if k in present and lab is not None and v not in ("body", "soft_tissue") \
-                and k not in kid_vals:
+        if (
+            k in present
+            and lab is not None
+            and v not in ("body", "soft_tissue")
+            and k not in kid_vals
+        ):
             labels[(raw == k) & body] = lab
     if not any(v in ("kidney_medulla", "kidney_sinus") for v in mapping.values()):
         _kidney_sublabels(labels, kidney_mask, voxel_size)
@@ -516,13 +743,34 @@ def _patient_from_raw(raw, D, origin, mapping, path, *, side, posture, name, vox
     kidney_Bd = mask_to_mesh(kidney_mask, X_BdV, voxel_size, sigma_vox=1.0, what=f"{path}: kidney")
     coarse = max(1, int(round(0.003 / voxel_size)))
     body_c = body[::coarse, ::coarse, ::coarse]
-    skin_Bd = mask_to_mesh(body_c, X_BdV, voxel_size * coarse, sigma_vox=0.7,
-                           keep_point=None, what=f"{path}: body")
+    skin_Bd = mask_to_mesh(
+        body_c, X_BdV, voxel_size * coarse, sigma_vox=0.7, keep_point=None, what=f"{path}: body"
+    )
     liver_vals = [k for k, v in mapping.items() if v == "liver" and k in present]
-    liver_Bd = (mask_to_mesh(np.isin(raw, liver_vals), X_BdV, voxel_size, what=f"{path}: liver")
-                if liver_vals else None)
+    liver_Bd = (
+        mask_to_mesh(np.isin(raw, liver_vals), X_BdV, voxel_size, what=f"{path}: liver")
+        if liver_vals
+        else None
+    )
     meta = dict(meta)
-    meta.update({"mapping_values_present": sorted(present), "arms_removed": arms,
-                 "layers": {"fat": fat, "muscle": muscle, "note": "modelling choice"}})
-    return _assemble(name, side, posture, kidney_Bd, skin_Bd, liver_Bd, None, meta,
-                     voxel_size, fat, muscle, label_volume_Bd=(labels, X_BdV, voxel_size))
+    meta.update(
+        {
+            "mapping_values_present": sorted(present),
+            "arms_removed": arms,
+            "layers": {"fat": fat, "muscle": muscle, "note": "modelling choice"},
+        }
+    )
+    return _assemble(
+        name,
+        side,
+        posture,
+        kidney_Bd,
+        skin_Bd,
+        liver_Bd,
+        None,
+        meta,
+        voxel_size,
+        fat,
+        muscle,
+        label_volume_Bd=(labels, X_BdV, voxel_size),
+    )

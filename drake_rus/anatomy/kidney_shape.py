@@ -20,36 +20,41 @@ inside (the label volume uses it; no mesh voxelisation needed) and how deep it l
 gives the cortex / medulla / sinus sub-labels.
 """
 
-from dataclasses import dataclass, field, asdict
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import trimesh
 
-from drake_rus.anatomy.canonical_frame import mesh_canonical_frame, extents_in_frame
+from drake_rus.anatomy.canonical_frame import extents_in_frame, mesh_canonical_frame
 
-__all__ = ["KidneyShapeParams", "KidneyShape", "sample_kidney_shape_params",
-           "ICOSPHERE_SUBDIVISIONS"]
+__all__ = [
+    "KidneyShapeParams",
+    "KidneyShape",
+    "sample_kidney_shape_params",
+    "ICOSPHERE_SUBDIVISIONS",
+]
 
-ICOSPHERE_SUBDIVISIONS = 5   # 10242 vertices; chord error < 0.1 mm on a 110 mm kidney
+ICOSPHERE_SUBDIVISIONS = 5  # 10242 vertices; chord error < 0.1 mm on a 110 mm kidney
 _N_LOBES = 7
 
 
 @dataclass
 class KidneyShapeParams:
     """Shape parameters, SI units (m). Defaults: an average adult kidney."""
+
     # Glodny 2009 (CT, 1,040 adults): length right 108.5 +- 12.2 mm, left 111.3 +- 12.6 mm.
     length: float = 0.1085
     # Emamian 1993 (US, 665 volunteers): width 58 mm (10th-90th percentile 51-64 mm).
     width: float = 0.058
     # Textbook anteroposterior thickness about 30-45 mm (no SD published).
     thickness: float = 0.040
-    hilum_depth: float = 0.45        # notch depth as a fraction of the local radius
-    hilum_sigma_x: float = 0.28      # notch half-extent along the long axis (unit-sphere units)
-    hilum_sigma_z: float = 0.45      # notch half-extent front-back
-    hilum_offset_x: float = -0.03    # notch centre along the long axis (unit-sphere units)
-    bend: float = 0.18               # kappa: pole shift medially as a fraction of b
-    pole_width_asym: float = 0.06    # alpha: > 0 upper pole broader
-    pole_length_asym: float = 0.03   # beta: > 0 upper half longer
+    hilum_depth: float = 0.45  # notch depth as a fraction of the local radius
+    hilum_sigma_x: float = 0.28  # notch half-extent along the long axis (unit-sphere units)
+    hilum_sigma_z: float = 0.45  # notch half-extent front-back
+    hilum_offset_x: float = -0.03  # notch centre along the long axis (unit-sphere units)
+    bend: float = 0.18  # kappa: pole shift medially as a fraction of b
+    pole_width_asym: float = 0.06  # alpha: > 0 upper pole broader
+    pole_length_asym: float = 0.03  # beta: > 0 upper half longer
     lobulation: list = field(default_factory=lambda: [0.0] * _N_LOBES)
     # Glodny 2009: cortex 6.6 +- 1.9 mm; parenchymal width 15.4 +- 2.8 mm (right).
     cortex_thickness: float = 0.0066
@@ -73,9 +78,8 @@ def sample_kidney_shape_params(rng: np.random.Generator, side: str = "right") ->
         width = 0.058 + 0.08 * (length - mean_len) + 0.0045 * z[0]
         # Thickness 30-45 mm (textbook): mean 39 mm, SD 3.5 mm.
         thickness = 0.039 + 0.03 * (length - mean_len) + 0.0035 * z[1]
-        approx_volume = 0.48 * length * width * thickness   # bean ~ 0.92 x ellipsoid
-        if (width >= thickness + 0.010 and thickness >= 0.028
-                and 83e-6 <= approx_volume <= 230e-6):
+        approx_volume = 0.48 * length * width * thickness  # bean ~ 0.92 x ellipsoid
+        if width >= thickness + 0.010 and thickness >= 0.028 and 83e-6 <= approx_volume <= 230e-6:
             break
     p = KidneyShapeParams(length=float(length), width=float(width), thickness=float(thickness))
     p.hilum_depth = float(rng.uniform(0.45, 0.65))
@@ -87,8 +91,9 @@ def sample_kidney_shape_params(rng: np.random.Generator, side: str = "right") ->
     p.pole_length_asym = float(rng.uniform(-0.05, 0.08))
     p.lobulation = [float(v) for v in rng.normal(0.0, 0.018, _N_LOBES)]
     p.cortex_thickness = float(np.clip(rng.normal(0.0066, 0.0019), 0.004, 0.010))
-    p.parenchyma_thickness = float(np.clip(rng.normal(0.0154, 0.0028),
-                                           p.cortex_thickness + 0.005, 0.022))
+    p.parenchyma_thickness = float(
+        np.clip(rng.normal(0.0154, 0.0028), p.cortex_thickness + 0.005, 0.022)
+    )
     return p
 
 
@@ -104,8 +109,17 @@ def _icosphere(subdivisions: int) -> trimesh.Trimesh:
 def _lobe_basis(d: np.ndarray) -> np.ndarray:
     """Low-order real harmonics (N, 7) on unit vectors d: gentle, lobulated shape variation."""
     x, y, z = d[:, 0], d[:, 1], d[:, 2]
-    return np.column_stack([x * y, y * z, x * z, x * x - y * y, 1.5 * z * z - 0.5,
-                            x * (5 * z * z - 1) * 0.5, y * (5 * x * x - 1) * 0.5])
+    return np.column_stack(
+        [
+            x * y,
+            y * z,
+            x * z,
+            x * x - y * y,
+            1.5 * z * z - 0.5,
+            x * (5 * z * z - 1) * 0.5,
+            y * (5 * x * x - 1) * 0.5,
+        ]
+    )
 
 
 class KidneyShape:
@@ -136,9 +150,14 @@ class KidneyShape:
     def radius(self, d: np.ndarray) -> np.ndarray:
         """Star-shaped radius r(d) on unit vectors d (N, 3)."""
         p = self.params
-        dent = p.hilum_depth * np.exp(-0.5 * (((d[:, 0] - p.hilum_offset_x) / p.hilum_sigma_x) ** 2
-                                              + (d[:, 2] / p.hilum_sigma_z) ** 2))
-        medial = 1.0 / (1.0 + np.exp(12.0 * d[:, 1]))   # ~1 on the medial side (y < 0)
+        dent = p.hilum_depth * np.exp(
+            -0.5
+            * (
+                ((d[:, 0] - p.hilum_offset_x) / p.hilum_sigma_x) ** 2
+                + (d[:, 2] / p.hilum_sigma_z) ** 2
+            )
+        )
+        medial = 1.0 / (1.0 + np.exp(12.0 * d[:, 1]))  # ~1 on the medial side (y < 0)
         lob = 1.0 + _lobe_basis(d) @ np.asarray(p.lobulation)
         return (1.0 - dent * medial) * lob
 

@@ -19,9 +19,17 @@ import numpy as np
 
 from drake_rus.config_schema import BREATHING_RATE_MAX, BREATHING_RATE_MIN, physical
 
-__all__ = ["BreathingConfig", "PatientShiftConfig", "PatientMotionConfig", "PatientMotion",
-           "breath_hold", "hold_windows", "breathing_displacement", "shift_offset",
-           "patient_offset_B"]
+__all__ = [
+    "BreathingConfig",
+    "PatientShiftConfig",
+    "PatientMotionConfig",
+    "PatientMotion",
+    "breath_hold",
+    "hold_windows",
+    "breathing_displacement",
+    "shift_offset",
+    "patient_offset_B",
+]
 
 
 @dataclass
@@ -38,16 +46,30 @@ class BreathingConfig:
     before the next one starts, with at least one breath between them), are stated once: the
     ranges beside the fields below, the rules in ``drake_rus.config_schema.CROSS_FIELD_RULES``.
     """
+
     enabled: bool = False
     # Peak-to-peak craniocaudal displacement (m).
-    amplitude: float = field(default=0.010, metadata=physical(
-        0.0, 0.045, "m",
-        "craniocaudal kidney motion is 2.5-30 mm in quiet breathing (van Sornsen de Koste 2006) "
-        "and up to 43 mm from deep inspiration to deep expiration (Schwartz 1994)"))
+    amplitude: float = field(
+        default=0.010,
+        metadata=physical(
+            0.0,
+            0.045,
+            "m",
+            "craniocaudal kidney motion is 2.5-30 mm in quiet breathing "
+            "(van Sornsen de Koste 2006) and up to 43 mm from deep inspiration to deep "
+            "expiration (Schwartz 1994)",
+        ),
+    )
     # Breaths per minute.
-    rate_per_min: float = field(default=15.0, metadata=physical(
-        BREATHING_RATE_MIN, BREATHING_RATE_MAX, "breaths/min",
-        "patients breathed 9-27.5 times a minute during 4D-CT (Pham 2013)"))
+    rate_per_min: float = field(
+        default=15.0,
+        metadata=physical(
+            BREATHING_RATE_MIN,
+            BREATHING_RATE_MAX,
+            "breaths/min",
+            "patients breathed 9-27.5 times a minute during 4D-CT (Pham 2013)",
+        ),
+    )
     # Breath-holds: 0 disables them (free breathing only).
     hold_period: float = field(default=12.0, metadata={"min": 0.0})
     hold_duration: float = field(default=8.0, metadata={"min": 0.0})
@@ -65,16 +87,19 @@ class PatientShiftConfig:
     """The patient shifts rigidly by ``offset`` (m, in the robot base frame) at ``time``,
     ramped over ``ramp`` s. The label volume, the true kidney pose and the contact body all
     move (the station puts the torso on driven joints when the patient moves)."""
+
     enabled: bool = False
     time: float = field(default=10.0, metadata={"min": 0.0})
-    offset: list[float] = field(default_factory=lambda: [0.0, 0.01, 0.0],
-                                metadata={"length": 3, "min": -0.02, "max": 0.02})
+    offset: list[float] = field(
+        default_factory=lambda: [0.0, 0.01, 0.0], metadata={"length": 3, "min": -0.02, "max": 0.02}
+    )
     ramp: float = field(default=0.5, metadata={"positive": True})
 
 
 @dataclass
 class PatientMotionConfig:
     """How the patient moves during the scan (simulation; off by default)."""
+
     breathing: BreathingConfig = field(default_factory=BreathingConfig)
     shift: PatientShiftConfig = field(default_factory=PatientShiftConfig)
     # Seed of the breath-hold draws; combined with the scenario's random_seed.
@@ -140,8 +165,7 @@ def breathing_displacement(t: float, cfg: BreathingConfig, seed: int = 0) -> flo
     if t < cfg.first_hold:
         # Free breathing before the first hold, ending at end-expiration when it starts.
         n = max(1, round(cfg.first_hold * f))
-        return A * 0.5 * (1.0 - math.cos(2.0 * math.pi * n * (cfg.first_hold - t)
-                                         / cfg.first_hold))
+        return A * 0.5 * (1.0 - math.cos(2.0 * math.pi * n * (cfg.first_hold - t) / cfg.first_hold))
     k = int((t - cfg.first_hold) // period)
     phase = (t - cfg.first_hold) - k * period
     if phase < duration:
@@ -162,8 +186,13 @@ def shift_offset(t: float, cfg: PatientShiftConfig) -> np.ndarray:
     return s * np.asarray(cfg.offset, dtype=float)
 
 
-def patient_offset_B(t: float, breathing: BreathingConfig, shift: PatientShiftConfig,
-                     superior_B: np.ndarray, seed: int = 0) -> np.ndarray:
+def patient_offset_B(
+    t: float,
+    breathing: BreathingConfig,
+    shift: PatientShiftConfig,
+    superior_B: np.ndarray,
+    seed: int = 0,
+) -> np.ndarray:
     """Total displacement (m, base frame) of the imaged anatomy at time t."""
     d = breathing_displacement(t, breathing, seed)
     return -d * np.asarray(superior_B, dtype=float) + shift_offset(t, shift)
@@ -183,8 +212,9 @@ class PatientMotion:
         return self.config.moves
 
     def offset_B(self, t: float) -> np.ndarray:
-        return patient_offset_B(t, self.config.breathing, self.config.shift,
-                                self.superior_B, self.seed)
+        return patient_offset_B(
+            t, self.config.breathing, self.config.shift, self.superior_B, self.seed
+        )
 
     def velocity_B(self, t: float, h: float = 1e-4) -> np.ndarray:
         """d offset_B / dt (m/s) by a central difference (one-sided at t = 0)."""

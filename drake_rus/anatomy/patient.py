@@ -19,11 +19,11 @@ from pydrake.math import RigidTransform
 from scipy.spatial import cKDTree
 
 from drake_rus.anatomy.body_section import crop_body_section
+from drake_rus.anatomy.canonical_frame import extents_in_frame, mesh_canonical_frame
 from drake_rus.anatomy.export import export_patient
-from drake_rus.anatomy.frames import R_PtBd, reference_axes_Pt, check_side_posture, transform_mesh
+from drake_rus.anatomy.frames import R_PtBd, check_side_posture, reference_axes_Pt, transform_mesh
 from drake_rus.anatomy.labels import LabelVolume
 from drake_rus.anatomy.rasterize import mesh_mask_on_aligned_grid
-from drake_rus.anatomy.canonical_frame import mesh_canonical_frame, extents_in_frame
 
 __all__ = ["Patient", "vertical_depth", "kidney_metrics"]
 
@@ -38,8 +38,7 @@ def _check_mesh(mesh, what: str) -> trimesh.Trimesh:
     return mesh
 
 
-def vertical_depth(kidney_mesh: trimesh.Trimesh, skin_mesh: trimesh.Trimesh,
-                   point=None) -> float:
+def vertical_depth(kidney_mesh: trimesh.Trimesh, skin_mesh: trimesh.Trimesh, point=None) -> float:
     """Depth (m) of the kidney below the upper skin surface, along the vertical (-z_Pt) line
     through ``point`` (default: the kidney's surface centroid): top skin hit minus top kidney
     hit. This is what a probe on the upper surface pointing straight down must see through."""
@@ -74,24 +73,29 @@ def _min_distance_to_surface(points: np.ndarray, mesh: trimesh.Trimesh, n_exact:
     return best
 
 
-def kidney_metrics(kidney_mesh, skin_mesh, X_PtK: RigidTransform, posture: str,
-                   upper_body_mesh=None) -> dict:
+def kidney_metrics(
+    kidney_mesh, skin_mesh, X_PtK: RigidTransform, posture: str, upper_body_mesh=None
+) -> dict:
     """Length, width, thickness (canonical extents), volume, depths and axis angles (SI)."""
     ext = extents_in_frame(kidney_mesh.vertices, X_PtK)
     R = X_PtK.rotation().matrix()
     x_k = R[:, 0]
     # Angles of the long axis in the body frame (supine reference pose).
     x_Bd = R_PtBd(posture).T @ x_k
-    coronal = np.arctan2(abs(x_Bd[0]), x_Bd[1])     # off craniocaudal, in the coronal plane
-    sagittal = np.arctan2(-x_Bd[2], x_Bd[1])         # > 0: upper pole posterior
+    coronal = np.arctan2(abs(x_Bd[0]), x_Bd[1])  # off craniocaudal, in the coronal plane
+    sagittal = np.arctan2(-x_Bd[2], x_Bd[1])  # > 0: upper pole posterior
     dist = _min_distance_to_surface(kidney_mesh.vertices, skin_mesh)
     return {
-        "length": float(ext[0]), "width": float(ext[1]), "thickness": float(ext[2]),
+        "length": float(ext[0]),
+        "width": float(ext[1]),
+        "thickness": float(ext[2]),
         "volume": float(kidney_mesh.volume),
         "depth_vertical": vertical_depth(
-            kidney_mesh, skin_mesh if upper_body_mesh is None else upper_body_mesh),
+            kidney_mesh, skin_mesh if upper_body_mesh is None else upper_body_mesh
+        ),
         "depth_min": dist,
-        "coronal_angle": float(coronal), "sagittal_angle": float(sagittal),
+        "coronal_angle": float(coronal),
+        "sagittal_angle": float(sagittal),
         "centroid_Pt": X_PtK.translation().tolist(),
     }
 
@@ -108,13 +112,23 @@ class Patient:
     ``torso_center_Pt`` (default: the kidney frame's origin), see :meth:`torso_section`.
     """
 
-    def __init__(self, *, name: str, side: str, posture: str, kidney_mesh, skin_mesh,
-                 labels: LabelVolume | None = None,
-                 label_builder: Callable[[], LabelVolume] | None = None,
-                 torso_builder: Callable[[float], trimesh.Trimesh] | None = None,
-                 kidney_mask_builder: Callable[[float], tuple] | None = None,
-                 liver_mesh=None, meta: dict | None = None, X_PtK: RigidTransform | None = None,
-                 torso_center_Pt=None):
+    def __init__(
+        self,
+        *,
+        name: str,
+        side: str,
+        posture: str,
+        kidney_mesh,
+        skin_mesh,
+        labels: LabelVolume | None = None,
+        label_builder: Callable[[], LabelVolume] | None = None,
+        torso_builder: Callable[[float], trimesh.Trimesh] | None = None,
+        kidney_mask_builder: Callable[[float], tuple] | None = None,
+        liver_mesh=None,
+        meta: dict | None = None,
+        X_PtK: RigidTransform | None = None,
+        torso_center_Pt=None,
+    ):
         check_side_posture(side, posture)
         self.name = name
         self.side = side
@@ -132,10 +146,12 @@ class Patient:
         self._label_listeners: list[Callable[[LabelVolume], None]] = []
         self._torso_sections: dict[float, trimesh.Trimesh] = {}
         x_ref, y_ref = reference_axes_Pt(side, posture)
-        self.X_PtK = X_PtK if X_PtK is not None else mesh_canonical_frame(
-            self.kidney_mesh, x_ref, y_ref)
-        self.torso_center_Pt = (None if torso_center_Pt is None
-                                else np.asarray(torso_center_Pt, dtype=float).reshape(3))
+        self.X_PtK = (
+            X_PtK if X_PtK is not None else mesh_canonical_frame(self.kidney_mesh, x_ref, y_ref)
+        )
+        self.torso_center_Pt = (
+            None if torso_center_Pt is None else np.asarray(torso_center_Pt, dtype=float).reshape(3)
+        )
         # The figures of the anatomy checks once they passed (drake_rus.anatomy.checks).
         self.anatomy_figures: dict | None = None
 
@@ -176,10 +192,12 @@ class Patient:
         if self._torso_builder is not None:
             return self._torso_builder(half_length_m)
         if half_length_m not in self._torso_sections:
-            center = (self.X_PtK.translation() if self.torso_center_Pt is None
-                      else self.torso_center_Pt)
-            self._torso_sections[half_length_m] = crop_body_section(self.skin_mesh, center,
-                                                                    half_length_m)
+            center = (
+                self.X_PtK.translation() if self.torso_center_Pt is None else self.torso_center_Pt
+            )
+            self._torso_sections[half_length_m] = crop_body_section(
+                self.skin_mesh, center, half_length_m
+            )
         return self._torso_sections[half_length_m]
 
     def kidney_mask(self, voxel_size: float = 0.001):
@@ -191,15 +209,16 @@ class Patient:
 
     def metrics(self) -> dict:
         """Kidney length, width, thickness, volume, depths below the skin surface ``skin_mesh``
-    (vertical: :func:`vertical_depth`; shortest distance), long-axis angles (SI)."""
+        (vertical: :func:`vertical_depth`; shortest distance), long-axis angles (SI)."""
         if "_metrics" not in self.__dict__:
             # The vertical depth is measured to the torso around the kidney (arms excluded: on
             # a real body lying on its side the upper arm rests on the flank); the shortest
             # distance to the whole skin (the torso section has artificial flat caps).
             half = float(np.ptp(self.kidney_mesh.vertices[:, 1])) / 2 + 0.03
             body = self.torso_section(half)
-            self._metrics = kidney_metrics(self.kidney_mesh, self.skin_mesh, self.X_PtK,
-                                           self.posture, upper_body_mesh=body)
+            self._metrics = kidney_metrics(
+                self.kidney_mesh, self.skin_mesh, self.X_PtK, self.posture, upper_body_mesh=body
+            )
             for key in ("hilum_angle",):
                 if key in self.meta:
                     self._metrics[key] = self.meta[key]

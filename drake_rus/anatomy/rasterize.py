@@ -14,17 +14,24 @@ from pydrake.math import RigidTransform
 from scipy import ndimage
 from skimage import measure
 
-__all__ = ["rasterize_mesh", "mesh_mask_on_aligned_grid", "mask_to_mesh", "grid_around",
-           "check_grid_size", "MAX_GRID_VOXELS"]
+__all__ = [
+    "rasterize_mesh",
+    "mesh_mask_on_aligned_grid",
+    "mask_to_mesh",
+    "grid_around",
+    "check_grid_size",
+    "MAX_GRID_VOXELS",
+]
 
 _JITTER = (1e-4 * np.pi, 1e-4 * np.e)
 # Largest grid a mesh is rasterised on (voxels; three bytes each while it is built): 0.8 m
 # cubed at 1 mm, more than any body section needs. A mesh in mm read as m asks for far more.
-MAX_GRID_VOXELS = 512 * 1024 ** 2
+MAX_GRID_VOXELS = 512 * 1024**2
 
 
-def rasterize_mesh(mesh, shape, X_PtV: RigidTransform, voxel_size: float,
-                   chunk: int = 4_000_000) -> np.ndarray:
+def rasterize_mesh(
+    mesh, shape, X_PtV: RigidTransform, voxel_size: float, chunk: int = 4_000_000
+) -> np.ndarray:
     """Boolean mask (shape) of the voxels of grid (X_PtV, voxel_size) inside ``mesh`` (Pt)."""
     nx, ny, nz = (int(s) for s in shape)
     check_grid_size(shape, voxel_size, "mesh")
@@ -77,9 +84,11 @@ def check_grid_size(shape, voxel_size: float, what: str) -> None:
     n = float(np.prod(np.asarray(shape, dtype=float)))
     if n > MAX_GRID_VOXELS:
         ext = " x ".join(f"{s * voxel_size:.3g}" for s in shape)
-        raise ValueError(f"{what}: a voxel grid of {ext} m at {voxel_size * 1e3:g} mm voxels "
-                         f"({n:.3g} voxels, at most {MAX_GRID_VOXELS:.3g}): the mesh is far "
-                         "larger than a body; check its unit (mm read as m?)")
+        raise ValueError(
+            f"{what}: a voxel grid of {ext} m at {voxel_size * 1e3:g} mm voxels "
+            f"({n:.3g} voxels, at most {MAX_GRID_VOXELS:.3g}): the mesh is far "
+            "larger than a body; check its unit (mm read as m?)"
+        )
 
 
 def mesh_mask_on_aligned_grid(mesh, voxel_size: float, margin: float = 0.003):
@@ -99,8 +108,14 @@ def grid_around(bounds, voxel_size: float):
     return shape, RigidTransform(lo)
 
 
-def mask_to_mesh(mask: np.ndarray, X_PtV: RigidTransform, voxel_size: float,
-                 sigma_vox: float = 1.0, keep_point=None, what: str = "mask") -> trimesh.Trimesh:
+def mask_to_mesh(
+    mask: np.ndarray,
+    X_PtV: RigidTransform,
+    voxel_size: float,
+    sigma_vox: float = 1.0,
+    keep_point=None,
+    what: str = "mask",
+) -> trimesh.Trimesh:
     """Watertight surface of a binary mask (marching cubes on a smoothed, padded mask).
     ``keep_point`` (Pt): keep the connected component containing it (else the largest)."""
     if not mask.any():

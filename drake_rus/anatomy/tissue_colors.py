@@ -55,7 +55,7 @@ NO_IMAGE_COLOR = "#f0f0f0"
 def rgb(color: str) -> tuple[float, float, float]:
     """(r, g, b) in 0-1 of a ``#rrggbb`` colour."""
     c = color.lstrip("#")
-    return tuple(int(c[k:k + 2], 16) / 255.0 for k in (0, 2, 4))
+    return tuple(int(c[k : k + 2], 16) / 255.0 for k in (0, 2, 4))
 
 
 def label_lut() -> np.ndarray:
@@ -98,17 +98,34 @@ def tissue_handles(labels=None) -> list:
     """Legend handles (matplotlib patches, with an edge so white shows) of ``labels`` (all
     labels if None)."""
     from matplotlib.patches import Patch
-    return [Patch(facecolor=TISSUE_COLORS[label], edgecolor="0.4", linewidth=0.5,
-                  label=TISSUE_NAMES[label]) for label in (labels or list(Label))]
+
+    return [
+        Patch(
+            facecolor=TISSUE_COLORS[label],
+            edgecolor="0.4",
+            linewidth=0.5,
+            label=TISSUE_NAMES[label],
+        )
+        for label in (labels or list(Label))
+    ]
 
 
 def mask_handles(truth: bool = False) -> list:
     """Legend handles of the segmenter's kidney mask and, if ``truth``, the true outline."""
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
-    handles = [Patch(facecolor=KIDNEY_COLOR, alpha=MASK_ALPHA, edgecolor="0.4",
-                     linewidth=0.5, label="kidney: the segmenter's mask")]
+
+    handles = [
+        Patch(
+            facecolor=KIDNEY_COLOR,
+            alpha=MASK_ALPHA,
+            edgecolor="0.4",
+            linewidth=0.5,
+            label="kidney: the segmenter's mask",
+        )
+    ]
     if truth:
-        handles.append(Line2D([], [], color=TRUTH_OUTLINE_COLOR, lw=1.2,
-                              label="kidney: true outline"))
+        handles.append(
+            Line2D([], [], color=TRUTH_OUTLINE_COLOR, lw=1.2, label="kidney: true outline")
+        )
     return handles

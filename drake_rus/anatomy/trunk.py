@@ -70,12 +70,12 @@ def _seed_slice(sl: np.ndarray, seed: tuple, r: float) -> np.ndarray:
     if n == 0:
         raise ValueError("trunk: the body has no voxel in the kidney's axial slice")
     seed_comp = comp[seed]
-    if seed_comp == 0:                    # kidney centroid just outside: nearest component
+    if seed_comp == 0:  # kidney centroid just outside: nearest component
         _, idx = ndimage.distance_transform_edt(comp == 0, return_indices=True)
         seed_comp = comp[idx[0][seed], idx[1][seed]]
     out = np.where(sl, OTHER, 0).astype(np.uint8)
     own = comp == seed_comp
-    core = ndimage.distance_transform_edt(np.pad(own, 1))[1:-1, 1:-1] > r   # disk erosion
+    core = ndimage.distance_transform_edt(np.pad(own, 1))[1:-1, 1:-1] > r  # disk erosion
     core_lab, n_core = ndimage.label(core)
     if n_core <= 1:
         out[own] = TRUNK
@@ -90,8 +90,11 @@ def _seed_slice(sl: np.ndarray, seed: tuple, r: float) -> np.ndarray:
     out[own & (near == trunk_core)] = TRUNK
     # A pixel that went to the trunk core but is cut off from it by an arm's share stays other.
     t_lab, _ = ndimage.label(out == TRUNK)
-    keep = t_lab[seed] if t_lab[seed] > 0 else (np.bincount(t_lab[t_lab > 0]).argmax()
-                                                if (t_lab > 0).any() else 0)
+    keep = (
+        t_lab[seed]
+        if t_lab[seed] > 0
+        else (np.bincount(t_lab[t_lab > 0]).argmax() if (t_lab > 0).any() else 0)
+    )
     out[(out == TRUNK) & (t_lab != keep)] = OTHER
     return out
 
@@ -118,15 +121,17 @@ def _propagate(sl: np.ndarray, prev: np.ndarray) -> np.ndarray:
     return out
 
 
-def trunk_mask(body: np.ndarray, axis: int, seed_index, voxel_size: float,
-               detach_m: float = 0.030) -> np.ndarray:
+def trunk_mask(
+    body: np.ndarray, axis: int, seed_index, voxel_size: float, detach_m: float = 0.030
+) -> np.ndarray:
     """The trunk (without the arms) of a boolean body mask; slices normal to index ``axis``
     (the body's superior axis), ``seed_index`` (i, j, k) a voxel of the trunk at the target
     kidney's level (its centroid). See the module docstring for the method."""
     body = np.asarray(body, dtype=bool)
     b = np.moveaxis(body, axis, 0)
-    seed = np.clip(np.round(np.asarray(seed_index, dtype=float)).astype(int), 0,
-                   np.array(body.shape) - 1)
+    seed = np.clip(
+        np.round(np.asarray(seed_index, dtype=float)).astype(int), 0, np.array(body.shape) - 1
+    )
     s0 = int(seed[axis])
     seed2 = tuple(int(v) for a, v in enumerate(seed) if a != axis)
     lab = np.zeros(b.shape, dtype=np.uint8)
@@ -146,8 +151,14 @@ def trunk_mask(body: np.ndarray, axis: int, seed_index, voxel_size: float,
     return np.moveaxis(trunk, 0, axis)
 
 
-def remove_arms(skin_Bd: trimesh.Trimesh, kidney_centroid_Bd, *, voxel_size: float = 0.004,
-                detach_m: float = 0.030, min_removed_m3: float = 20e-6):
+def remove_arms(
+    skin_Bd: trimesh.Trimesh,
+    kidney_centroid_Bd,
+    *,
+    voxel_size: float = 0.004,
+    detach_m: float = 0.030,
+    min_removed_m3: float = 20e-6,
+):
     """The skin surface (Bd, m) without the arms, and a report dict. The surface is
     re-surfaced from ``voxel_size`` voxels when more than ``min_removed_m3`` of the body was
     removed; otherwise the input mesh is returned unchanged (a body without arms)."""
@@ -156,16 +167,23 @@ def remove_arms(skin_Bd: trimesh.Trimesh, kidney_centroid_Bd, *, voxel_size: flo
     body = rasterize_mesh(skin_Bd, shape, X_BdV, voxel_size)
     seed = (np.asarray(kidney_centroid_Bd, dtype=float) - X_BdV.translation()) / voxel_size
     trunk = trunk_mask(body, 1, seed, voxel_size, detach_m)
-    removed = float((body & ~trunk).sum()) * voxel_size ** 3
-    report = {"method": "axial-slice trunk tracking (anatomy/trunk.py)",
-              "voxel_size": voxel_size, "detach_m": detach_m,
-              "removed_volume_l": round(removed * 1e3, 3)}
+    removed = float((body & ~trunk).sum()) * voxel_size**3
+    report = {
+        "method": "axial-slice trunk tracking (anatomy/trunk.py)",
+        "voxel_size": voxel_size,
+        "detach_m": detach_m,
+        "removed_volume_l": round(removed * 1e3, 3),
+    }
     if removed <= min_removed_m3:
         report["resurfaced"] = False
         return skin_Bd, report
-    mesh = mask_to_mesh(trunk, X_BdV, voxel_size, sigma_vox=0.7,
-                        keep_point=np.asarray(kidney_centroid_Bd, dtype=float),
-                        what="skin mesh (trunk without the arms)")
+    mesh = mask_to_mesh(
+        trunk,
+        X_BdV,
+        voxel_size,
+        sigma_vox=0.7,
+        keep_point=np.asarray(kidney_centroid_Bd, dtype=float),
+        what="skin mesh (trunk without the arms)",
+    )
     report["resurfaced"] = True
     return mesh, report
-

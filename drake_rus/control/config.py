@@ -18,11 +18,16 @@ FR3_DQ_RECTANGULAR = [2.0, 1.0, 1.5, 1.25, 3.0, 1.5, 3.0]
 @dataclass
 class ControllerConfig:
     # Controller update rate (Hz); the plant runs at 1 kHz, images at 20 Hz.
-    rate_hz: float = field(default=100.0, metadata=physical(
-        10.0, 1000.0, "Hz", "the controller runs at most at the FR3's 1 kHz", positive=True))
+    rate_hz: float = field(
+        default=100.0,
+        metadata=physical(
+            10.0, 1000.0, "Hz", "the controller runs at most at the FR3's 1 kHz", positive=True
+        ),
+    )
     # Desired contact force along the approach vector (N); the seed used 9 N in vivo.
-    desired_force: float = field(default=9.0, metadata=physical(
-        0.0, 30.0, "N", "probe contact forces are a few N to 20 N"))
+    desired_force: float = field(
+        default=9.0, metadata=physical(0.0, 30.0, "N", "probe contact forces are a few N to 20 N")
+    )
 
     # --- Orientation alignment (eq. 1-5) ---
     # K_p1 (1/s): approach-vector alignment gain, omega_a = K_p1 (a x a_des) + ... (eq. 2).
@@ -68,10 +73,12 @@ class ControllerConfig:
     # damped (Nakamura/Chiaverini variable damping), with at most singular_damping_max.
     singular_value_threshold: float = field(default=0.03, metadata={"positive": True})
     singular_damping_max: float = field(default=0.03, metadata={"min": 0.0})
-    # Joint velocity limits (rad/s) of the command: half the FR3 rectangular set (docs/facts/fr3.md).
+    # Joint velocity limits (rad/s) of the command: half the FR3 rectangular set
+    # (docs/facts/fr3.md).
     joint_velocity_limits: list[float] = field(
         default_factory=lambda: [0.5 * v for v in FR3_DQ_RECTANGULAR],
-        metadata={"length": 7, "positive": True})
+        metadata={"length": 7, "positive": True},
+    )
     # Within this distance (rad) of a joint limit the velocity towards it ramps down to zero.
     joint_limit_margin: float = field(default=0.1, metadata={"positive": True})
     # Twist saturation: tip speed (m/s; FR3 limit 3.0) and angular speed (rad/s; FR3 2.5).
@@ -84,8 +91,9 @@ class ControllerConfig:
     # Probe orientation during APPROACH and EXPLORE: "hold" keeps the start orientation (the
     # seed's manual placement); "transverse" turns the array o onto the base x-axis (across
     # the patient, a transverse image) about the current approach vector.
-    explore_orientation: str = field(default="transverse",
-                                     metadata={"choices": ["hold", "transverse"]})
+    explore_orientation: str = field(
+        default="transverse", metadata={"choices": ["hold", "transverse"]}
+    )
     # Where APPROACH lands the probe: tip (x, y) in the base frame (m); empty = straight down
     # from the start pose. The seed places the probe by hand where the kidney is visible.
     start_xy: list[float] = field(default_factory=list)
@@ -110,8 +118,9 @@ class ControllerConfig:
     # (deformable) and 4.61 -> 4.35 mm (seed), at most 1.1 mm worse on one patient, travel
     # 56-78 mm instead of 60 mm (mean 64.6 mm); the VH female's 136 mm left kidney 20.0 ->
     # 14.8 mm.
-    exploration_length: str = field(default="estimated",
-                                    metadata={"choices": ["fixed", "estimated"]})
+    exploration_length: str = field(
+        default="estimated", metadata={"choices": ["fixed", "estimated"]}
+    )
     exploration_length_factor: float = field(default=1.5, metadata={"min": 1.0, "max": 3.0})
     # Contact is "made" when the filtered force reaches this fraction of desired_force.
     contact_fraction: float = field(default=0.8, metadata={"positive": True, "max": 1.0})
@@ -153,8 +162,9 @@ class ControllerConfig:
     # leaving the image past the predicted other end (less pivot_end_tolerance) or the
     # maximum tilt. Needs the ScanSupervisor's pivot_model input (template and fan);
     # without it the pivot is two_leg.
-    pivot_strategy: str = field(default="two_leg",
-                                metadata={"choices": ["two_leg", "predicted_end"]})
+    pivot_strategy: str = field(
+        default="two_leg", metadata={"choices": ["two_leg", "predicted_end"]}
+    )
     # Tilt (rad) beyond the predicted end where the pre-tilt stops. The prediction is
     # already conservative (a template point within half the elevational width of the plane
     # counts as imaged) and the pre-tilt tilts on while the kidney is seen, so no margin is
@@ -192,8 +202,10 @@ class ControllerConfig:
 @dataclass
 class SafetyConfig:
     # Contact force ceiling (N): passive force limiters sit around 20 N (facts).
-    force_ceiling: float = field(default=20.0, metadata=physical(
-        1.0, 50.0, "N", "passive force limiters sit around 20 N", positive=True))
+    force_ceiling: float = field(
+        default=20.0,
+        metadata=physical(1.0, 50.0, "N", "passive force limiters sit around 20 N", positive=True),
+    )
     # After a force-ceiling stop, retract along -a by this distance (m) at this speed (m/s);
     # 0 disables the retract (a plain stop).
     retract_distance: float = field(default=0.01, metadata={"min": 0.0, "max": 0.05})
@@ -205,13 +217,15 @@ class SafetyConfig:
     # Joint velocity limits (rad/s) of the command (the FR3 rectangular set, docs/facts/fr3.md):
     # commands are scaled into them; a measured velocity beyond them stops the robot.
     joint_velocity_limits: list[float] = field(
-        default_factory=lambda: list(FR3_DQ_RECTANGULAR),
-        metadata={"length": 7, "positive": True})
+        default_factory=lambda: list(FR3_DQ_RECTANGULAR), metadata={"length": 7, "positive": True}
+    )
     # Workspace box of the probe tip in the base frame (m): [x, y, z] min and max.
-    workspace_min: list[float] = field(default_factory=lambda: [0.2, -0.5, -0.05],
-                                       metadata={"length": 3})
-    workspace_max: list[float] = field(default_factory=lambda: [0.9, 0.5, 0.7],
-                                       metadata={"length": 3})
+    workspace_min: list[float] = field(
+        default_factory=lambda: [0.2, -0.5, -0.05], metadata={"length": 3}
+    )
+    workspace_max: list[float] = field(
+        default_factory=lambda: [0.9, 0.5, 0.7], metadata={"length": 3}
+    )
     # Watchdogs (s): newest image older than this; robot state unchanged this long while
     # motion is commanded; kidney invisible this long while the supervisor needs it.
     image_timeout: float = field(default=0.25, metadata={"positive": True})

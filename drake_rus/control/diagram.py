@@ -15,12 +15,17 @@ import dataclasses
 import math
 
 import numpy as np
-
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import DiagramBuilder, LeafSystem, PortDataType
 
-from drake_rus.control.systems import (ForcePD, NullSpaceDiffIK, OrientationAlignment,
-                                       PositionP, SafetyLayer, ScanSupervisor)
+from drake_rus.control.systems import (
+    ForcePD,
+    NullSpaceDiffIK,
+    OrientationAlignment,
+    PositionP,
+    SafetyLayer,
+    ScanSupervisor,
+)
 from drake_rus.robot import MakeControlPlant, TipKinematics
 
 
@@ -35,8 +40,11 @@ class FrameTime(LeafSystem):
         # A function of the frame alone: recomputed when a new frame arrives, not every
         # control period.
         self.DeclareVectorOutputPort(
-            "time", 1, self._calc,
-            prerequisites_of_calc={self.input_port_ticket(self._in.get_index())})
+            "time",
+            1,
+            self._calc,
+            prerequisites_of_calc={self.input_port_ticket(self._in.get_index())},
+        )
 
     def _calc(self, context, output):
         frame = self._in.Eval(context)
@@ -53,14 +61,20 @@ class ToVector1(LeafSystem):
     def __init__(self, model_value: AbstractValue):
         super().__init__()
         self._in = self.DeclareAbstractInputPort("u", model_value)
-        self.DeclareVectorOutputPort("y", 1, lambda c, o: o.SetFromVector(
-            [float(np.asarray(self._in.Eval(c), dtype=float).reshape(-1)[0])]),
-            prerequisites_of_calc={self.input_port_ticket(self._in.get_index())})
+        self.DeclareVectorOutputPort(
+            "y",
+            1,
+            lambda c, o: o.SetFromVector(
+                [float(np.asarray(self._in.Eval(c), dtype=float).reshape(-1)[0])]
+            ),
+            prerequisites_of_calc={self.input_port_ticket(self._in.get_index())},
+        )
 
 
 @dataclasses.dataclass
 class ControllerParts:
     """The systems AddController added (ports are documented on each class)."""
+
     orientation: OrientationAlignment
     force: ForcePD
     position: PositionP
@@ -78,10 +92,21 @@ def _vector1(builder, port):
     return adapter.get_output_port()
 
 
-def AddController(builder: DiagramBuilder, station, scenario, *, plant=None,
-                  tip_frame=None, use_supervisor: bool = True, use_null_space: bool = True,
-                  segmenter=None, kidney_pose_port=None, localization_ready_port=None,
-                  image_port=None, connect_command: bool = True) -> ControllerParts:
+def AddController(
+    builder: DiagramBuilder,
+    station,
+    scenario,
+    *,
+    plant=None,
+    tip_frame=None,
+    use_supervisor: bool = True,
+    use_null_space: bool = True,
+    segmenter=None,
+    kidney_pose_port=None,
+    localization_ready_port=None,
+    image_port=None,
+    connect_command: bool = True,
+) -> ControllerParts:
     """Adds controller + safety layer wired to ``station`` (a system in ``builder``).
 
     Args:
@@ -109,11 +134,13 @@ def AddController(builder: DiagramBuilder, station, scenario, *, plant=None,
     orientation = builder.AddNamedSystem("orientation_alignment", OrientationAlignment(cfg))
     force = builder.AddNamedSystem("force_pd", ForcePD(cfg))
     position = builder.AddNamedSystem("position_p", PositionP(cfg))
-    ik = builder.AddNamedSystem("null_space_diff_ik",
-                                NullSpaceDiffIK(plant, tip_frame, cfg, use_null_space,
-                                                kinematics=kinematics))
-    safety = builder.AddNamedSystem("safety", SafetyLayer(plant, tip_frame, scfg, cfg.rate_hz,
-                                                          kinematics=kinematics))
+    ik = builder.AddNamedSystem(
+        "null_space_diff_ik",
+        NullSpaceDiffIK(plant, tip_frame, cfg, use_null_space, kinematics=kinematics),
+    )
+    safety = builder.AddNamedSystem(
+        "safety", SafetyLayer(plant, tip_frame, scfg, cfg.rate_hz, kinematics=kinematics)
+    )
 
     for sys in (orientation, force, position):
         builder.Connect(S("X_BP"), sys.GetInputPort("X_BP"))
@@ -123,8 +150,9 @@ def AddController(builder: DiagramBuilder, station, scenario, *, plant=None,
     builder.Connect(force.GetOutputPort("v_force"), ik.GetInputPort("v_force"))
     builder.Connect(position.GetOutputPort("v_position"), ik.GetInputPort("v_position"))
 
-    builder.Connect(ik.GetOutputPort("joint_velocity_desired"),
-                    safety.GetInputPort("joint_velocity_desired"))
+    builder.Connect(
+        ik.GetOutputPort("joint_velocity_desired"), safety.GetInputPort("joint_velocity_desired")
+    )
     for name in ("joint_position", "joint_velocity", "X_BP", "probe_force"):
         builder.Connect(S(name), safety.GetInputPort(name))
     if image_port is None:
@@ -151,8 +179,10 @@ def AddController(builder: DiagramBuilder, station, scenario, *, plant=None,
             builder.Connect(supervisor.GetOutputPort(name), orientation.GetInputPort(name))
         builder.Connect(supervisor.GetOutputPort("P_des"), position.GetInputPort("P_des"))
         builder.Connect(supervisor.GetOutputPort("F_des"), force.GetInputPort("F_des"))
-        builder.Connect(supervisor.GetOutputPort("segmentation_required"),
-                        safety.GetInputPort("segmentation_required"))
+        builder.Connect(
+            supervisor.GetOutputPort("segmentation_required"),
+            safety.GetInputPort("segmentation_required"),
+        )
         builder.Connect(supervisor.GetOutputPort("abort"), safety.GetInputPort("supervisor_abort"))
         builder.Connect(safety.GetOutputPort("stopped"), supervisor.GetInputPort("safety_stopped"))
         if kidney_pose_port is not None:
@@ -167,6 +197,8 @@ def AddController(builder: DiagramBuilder, station, scenario, *, plant=None,
             builder.Connect(visible, supervisor.GetInputPort("kidney_visible"))
             builder.Connect(centroid, supervisor.GetInputPort("mask_centroid"))
     if connect_command:
-        builder.Connect(safety.GetOutputPort("joint_velocity_command"),
-                        station.GetInputPort("joint_velocity_command"))
+        builder.Connect(
+            safety.GetOutputPort("joint_velocity_command"),
+            station.GetInputPort("joint_velocity_command"),
+        )
     return ControllerParts(orientation, force, position, ik, safety, supervisor)

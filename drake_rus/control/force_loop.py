@@ -59,6 +59,7 @@ SETTLING_BAND_N = 0.1
 class AxialArm:
     """The arm and its velocity driver seen at the tip along a: effective mass (kg), PD
     stiffness (N/m) and PD damping (N s/m)."""
+
     mass: float
     stiffness: float
     damping: float
@@ -68,6 +69,7 @@ class AxialArm:
 class ForceLaw:
     """Eq. 6 as the controller runs it: gain K_p3 ((m/s)/N), derivative gain K_d1
     ((m/s)/(N/s)), low-pass cut-off (Hz; ``math.inf`` = no filter), period (s)."""
+
     gain: float
     derivative: float = 0.0
     cutoff_hz: float = math.inf
@@ -81,13 +83,16 @@ class ForceLaw:
     @classmethod
     def from_config(cls, controller) -> "ForceLaw":
         """The law a ``ControllerConfig`` runs (K_p3, K_d1, force_filter_cutoff_hz, rate_hz)."""
-        return cls(controller.K_p3, controller.K_d1, controller.force_filter_cutoff_hz,
-                   1.0 / controller.rate_hz)
+        return cls(
+            controller.K_p3,
+            controller.K_d1,
+            controller.force_filter_cutoff_hz,
+            1.0 / controller.rate_hz,
+        )
 
     def scaled(self, factor: float) -> "ForceLaw":
         """The same law with both gains multiplied by ``factor``."""
-        return ForceLaw(self.gain * factor, self.derivative * factor, self.cutoff_hz,
-                        self.period)
+        return ForceLaw(self.gain * factor, self.derivative * factor, self.cutoff_hz, self.period)
 
 
 def reflect_to_tip(M, J, Kp, Kd, a, held: bool = True) -> AxialArm:
@@ -109,9 +114,11 @@ def reflect_to_tip(M, J, Kp, Kd, a, held: bool = True) -> AxialArm:
         Q = J @ inverse_gain @ J.T
         return float(e @ np.linalg.solve(Q, e)) if held else 1.0 / float(e @ Q @ e)
 
-    return AxialArm(mass=along(np.linalg.inv(np.asarray(M, dtype=float))),
-                    stiffness=along(np.diag(1.0 / np.asarray(Kp, dtype=float))),
-                    damping=along(np.diag(1.0 / np.asarray(Kd, dtype=float))))
+    return AxialArm(
+        mass=along(np.linalg.inv(np.asarray(M, dtype=float))),
+        stiffness=along(np.diag(1.0 / np.asarray(Kp, dtype=float))),
+        damping=along(np.diag(1.0 / np.asarray(Kd, dtype=float))),
+    )
 
 
 def plant_step(arm: AxialArm, k: float, tau: float, h: float) -> tuple[np.ndarray, np.ndarray]:
@@ -129,8 +136,12 @@ def plant_step(arm: AxialArm, k: float, tau: float, h: float) -> tuple[np.ndarra
         inv_den, r, c = 1.0 / den, k / den, k * (h + tau) / den
     # v+ row (times den): [-h (K + k), m, h K, h D]; with k = inf, v+ = 0 (x stays put).
     v_row = np.zeros(len(STATE))
-    v_row[[_X, _V, _XD, _VD]] = [-h * K * inv_den - h * r, m * inv_den, h * K * inv_den,
-                                 h * D * inv_den]
+    v_row[[_X, _V, _XD, _VD]] = [
+        -h * K * inv_den - h * r,
+        m * inv_den,
+        h * K * inv_den,
+        h * D * inv_den,
+    ]
     x_row = h * v_row
     x_row[_X] += 1.0
     # F = k x + k (h + tau) v+ = k x (base / den) + c (m v + h K (x_d - x) + h D v_d).
@@ -141,14 +152,15 @@ def plant_step(arm: AxialArm, k: float, tau: float, h: float) -> tuple[np.ndarra
     F_row[_VD] = c * h * D
     S = np.eye(len(STATE))
     S[_X], S[_V] = x_row, v_row
-    S[_XD, _VD] = h                  # the integrator: x_d += h v_d (before the hold changes)
+    S[_XD, _VD] = h  # the integrator: x_d += h v_d (before the hold changes)
     S[_VD] = 0.0
-    S[_VD, _U] = 1.0                 # the hold takes the controller's command
+    S[_VD, _U] = 1.0  # the hold takes the controller's command
     return S, F_row
 
 
-def open_loop(arm: AxialArm, law: ForceLaw, k: float, tau: float, h: float
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def open_loop(
+    arm: AxialArm, law: ForceLaw, k: float, tau: float, h: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The loop over one controller period cut at the command: (A, b, c) with the state map
     x+ = A x + b w when the controller's new command is an outside input w, and c the row
     giving the command the controller computes, w = c x (7 x 7, 7, 7). The controller's
@@ -159,14 +171,15 @@ def open_loop(arm: AxialArm, law: ForceLaw, k: float, tau: float, h: float
     steps = law.period / h
     n = int(round(steps))
     if n < 1 or abs(steps - n) > 1e-9 * max(1.0, steps):
-        raise ValueError(f"the controller period {law.period} s is not a whole number of "
-                         f"plant steps {h} s")
+        raise ValueError(
+            f"the controller period {law.period} s is not a whole number of plant steps {h} s"
+        )
     S, F_row = plant_step(arm, k, tau, h)
     alpha, T = law.alpha, law.period
     # The controller's new states from the state at the period's start.
     F_f = alpha * F_row
     F_f[_FF] += 1.0 - alpha
-    e_new = -F_f                                  # e = F_des - F_f (deviations)
+    e_new = -F_f  # e = F_des - F_f (deviations)
     e_prev = np.zeros(len(STATE))
     e_prev[_E] = 1.0
     c = law.gain * e_new + law.derivative * (e_new - e_prev) / T
@@ -180,16 +193,16 @@ def open_loop(arm: AxialArm, law: ForceLaw, k: float, tau: float, h: float
     return A, b, c
 
 
-def closed_loop_matrix(arm: AxialArm, law: ForceLaw, k: float, tau: float, h: float
-                       ) -> np.ndarray:
+def closed_loop_matrix(arm: AxialArm, law: ForceLaw, k: float, tau: float, h: float) -> np.ndarray:
     """The map of the reduced model's state over one controller period (7 x 7; see
     :func:`open_loop`)."""
     A, b, c = open_loop(arm, law, k, tau, h)
     return A + np.outer(b, c)
 
 
-def loop_transfer(arm: AxialArm, law: ForceLaw, k: float, tau: float, h: float,
-                  frequencies_hz) -> np.ndarray:
+def loop_transfer(
+    arm: AxialArm, law: ForceLaw, k: float, tau: float, h: float, frequencies_hz
+) -> np.ndarray:
     """L(z) = c (z I - A)^-1 b of :func:`open_loop` at z = exp(j 2 pi f T): the closed loop's
     poles are the roots of 1 - L(z) (positive feedback: the law's sign is in c)."""
     A, b, c = open_loop(arm, law, k, tau, h)
@@ -198,8 +211,7 @@ def loop_transfer(arm: AxialArm, law: ForceLaw, k: float, tau: float, h: float,
     return np.array([c @ np.linalg.solve(zi * eye - A, b) for zi in z])
 
 
-def closed_loop_poles(arm: AxialArm, law: ForceLaw, k: float, tau: float, h: float
-                      ) -> np.ndarray:
+def closed_loop_poles(arm: AxialArm, law: ForceLaw, k: float, tau: float, h: float) -> np.ndarray:
     """Eigenvalues of :func:`closed_loop_matrix` (per controller period), largest first,
     without the structural zeros of the states a law does not use."""
     z = np.linalg.eigvals(closed_loop_matrix(arm, law, k, tau, h))
@@ -229,12 +241,15 @@ def damping_ratio(arm: AxialArm, law: ForceLaw, k: float, tau: float, h: float) 
     return float(np.min(-s.real / np.abs(s)))
 
 
-def gain_margin(arm: AxialArm, law: ForceLaw, k: float, tau: float, h: float,
-                upper: float = 1000.0) -> float:
+def gain_margin(
+    arm: AxialArm, law: ForceLaw, k: float, tau: float, h: float, upper: float = 1000.0
+) -> float:
     """The factor by which both gains of ``law`` can grow before a pole leaves the unit
     circle (bisection to 0.1 %); ``upper`` when still stable there, 0 when unstable now."""
+
     def stable(factor: float) -> bool:
         return spectral_radius(arm, law.scaled(factor), k, tau, h) < 1.0
+
     if not stable(1.0):
         return 0.0
     if stable(upper):
@@ -252,8 +267,14 @@ def stiffness_sweep(arm: AxialArm, law: ForceLaw, stiffnesses, tau: float, h: fl
     rows = []
     for k in stiffnesses:
         z = closed_loop_poles(arm, law, k, tau, h)[0]
-        rows.append((float(k), float(abs(z)), pole_frequency_hz(z, law.period),
-                     gain_margin(arm, law, k, tau, h)))
+        rows.append(
+            (
+                float(k),
+                float(abs(z)),
+                pole_frequency_hz(z, law.period),
+                gain_margin(arm, law, k, tau, h),
+            )
+        )
     return rows
 
 
@@ -263,8 +284,10 @@ def stiffness_at_force(indentations, forces, force: float) -> float:
     x = np.asarray(indentations, dtype=float)
     F = np.asarray(forces, dtype=float)
     if x.shape != F.shape or x.size < 2:
-        raise ValueError("indentations and forces: expected two equal-length arrays of at "
-                         f"least 2 samples, got shapes {x.shape} and {F.shape}")
+        raise ValueError(
+            "indentations and forces: expected two equal-length arrays of at "
+            f"least 2 samples, got shapes {x.shape} and {F.shape}"
+        )
     if not (np.all(np.diff(x) > 0) and np.all(np.diff(F) > 0)):
         raise ValueError("indentations and forces: expected both increasing")
     if not F[0] <= force <= F[-1]:
@@ -273,8 +296,9 @@ def stiffness_at_force(indentations, forces, force: float) -> float:
     return float((F[i] - F[i - 1]) / (x[i] - x[i - 1]))
 
 
-def force_statistics(times, forces, desired: float, window: float,
-                     band: float = SETTLING_BAND_N) -> dict:
+def force_statistics(
+    times, forces, desired: float, window: float, band: float = SETTLING_BAND_N
+) -> dict:
     """The contact force over the last ``window`` s of a log (s, N): ``mean_n``,
     ``ripple_n`` (the RMS about the mean, i.e. the standard deviation, the same definition
     as the scan's force statistics), ``peak_to_peak_n``, ``max_error_n`` (largest
@@ -283,21 +307,32 @@ def force_statistics(times, forces, desired: float, window: float,
     the force at least at the controller's rate, or an oscillation aliases away."""
     t = np.asarray(times, dtype=float)
     F = np.asarray(forces, dtype=float)
-    out = {"window_s": float(window), "mean_n": None, "ripple_n": None, "peak_to_peak_n": None,
-           "max_error_n": None, "settled": False}
+    out = {
+        "window_s": float(window),
+        "mean_n": None,
+        "ripple_n": None,
+        "peak_to_peak_n": None,
+        "max_error_n": None,
+        "settled": False,
+    }
     if t.size == 0:
         return out
     sel = t >= t[-1] - window
     F = F[sel]
     error = float(np.max(np.abs(F - desired)))
-    out.update(mean_n=float(F.mean()), ripple_n=float(F.std()),
-               peak_to_peak_n=float(np.ptp(F)), max_error_n=error,
-               settled=bool(error <= band))
+    out.update(
+        mean_n=float(F.mean()),
+        ripple_n=float(F.std()),
+        peak_to_peak_n=float(np.ptp(F)),
+        max_error_n=error,
+        settled=bool(error <= band),
+    )
     return out
 
 
-def phase_force_statistics(times, forces, phases, names=("EXPLORE", "LOCALIZE", "PIVOT"),
-                           settle: float = 0.5) -> dict:
+def phase_force_statistics(
+    times, forces, phases, names=("EXPLORE", "LOCALIZE", "PIVOT"), settle: float = 0.5
+) -> dict:
     """Mean and ripple (RMS about the mean, N) of the force in each of ``phases`` ((name,
     start s, end s) rows) named in ``names``: {name: {"mean_n", "ripple_n"}}; EXPLORE skips
     its first ``settle`` s (the landing), as the scan's force statistics do. A phase that

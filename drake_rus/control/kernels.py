@@ -108,8 +108,9 @@ def _finite(x):
 
 
 @njit(cache=True)
-def solve_joint_velocities(q, xi_b, J, qdot_null, q_min, q_max, dq_max, margin,
-                           sigma_threshold, damping_max):
+def solve_joint_velocities(
+    q, xi_b, J, qdot_null, q_min, q_max, dq_max, margin, sigma_threshold, damping_max
+):
     """eq. 10 then the joint-limit margin and speed limits (``laws.solve_joint_velocities``
     with the Jacobian and the null-space velocity given); zeros for non-finite input."""
     if not (_finite(q) and _finite(xi_b)):

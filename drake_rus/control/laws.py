@@ -36,8 +36,9 @@ def _vec3(x) -> np.ndarray:
 
 def cross3(u, v) -> np.ndarray:
     """u x v for 3-vectors (numpy's cross is ~20x slower on tiny arrays)."""
-    return np.array([u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2],
-                     u[0] * v[1] - u[1] * v[0]])
+    return np.array(
+        [u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]]
+    )
 
 
 # ----------------------------------------------------------------------------- orientation
@@ -63,16 +64,18 @@ def orientation_vector_alignment(o_curr, o_des, a_curr, K_p2: float) -> np.ndarr
     return K_p2 * float(e_o @ a) * a
 
 
-def orientation_alignment(R_BP, a_des, o_des, a_des_dot, K_p1: float, K_p11: float,
-                          K_p2: float) -> np.ndarray:
+def orientation_alignment(
+    R_BP, a_des, o_des, a_des_dot, K_p1: float, K_p11: float, K_p2: float
+) -> np.ndarray:
     """omega_total = omega_a + omega_o (eq. 5), from the tip rotation R_BP (3x3).
 
     a_curr = R_BP[:, 2] (z_P), o_curr = R_BP[:, 0] (x_P).
     """
     R = np.asarray(R_BP, dtype=float)
     a, o = R[:, 2], R[:, 0]
-    return (approach_alignment(a, a_des, a_des_dot, K_p1, K_p11)
-            + orientation_vector_alignment(o, o_des, a, K_p2))
+    return approach_alignment(a, a_des, a_des_dot, K_p1, K_p11) + orientation_vector_alignment(
+        o, o_des, a, K_p2
+    )
 
 
 def angle_between(u, v) -> float:
@@ -93,8 +96,9 @@ def lowpass_update(y_prev: float, x: float, alpha: float) -> float:
     return y_prev + alpha * (x - y_prev)
 
 
-def force_pd(F_des: float, F_filtered: float, error_rate: float, a_curr, K_p3: float,
-             K_d1: float) -> np.ndarray:
+def force_pd(
+    F_des: float, F_filtered: float, error_rate: float, a_curr, K_p3: float, K_d1: float
+) -> np.ndarray:
     """Linear velocity (m/s, in B) along a that regulates the contact force (eq. 6).
 
     v_z = [K_p3 (F_des - F_z) + K_d1 d/dt(F_des - F_z)] a_curr, with F_z the low-pass
@@ -104,8 +108,16 @@ def force_pd(F_des: float, F_filtered: float, error_rate: float, a_curr, K_p3: f
     return (K_p3 * (F_des - F_filtered) + K_d1 * error_rate) * _vec3(a_curr)
 
 
-def force_pd_step(state, F_measured: float, F_des: float, a_curr, dt: float, alpha: float,
-                  K_p3: float, K_d1: float):
+def force_pd_step(
+    state,
+    F_measured: float,
+    F_des: float,
+    a_curr,
+    dt: float,
+    alpha: float,
+    K_p3: float,
+    K_d1: float,
+):
     """One controller period of eq. 6 with filter and derivative on the filtered signal.
 
     ``state`` = (F_filtered, e_prev, initialised). Returns (v_z (3,), new_state). The first
@@ -134,8 +146,13 @@ def position_p(P_des_xy, p_BP, K_p4: float, K_p5: float) -> np.ndarray:
     return np.array([K_p4 * (P_des_xy[0] - p[0]), K_p5 * (P_des_xy[1] - p[1]), 0.0])
 
 
-def assemble_twist(omega_total, v_position, v_force, max_tip_speed: float = math.inf,
-                   max_angular_speed: float = math.inf) -> np.ndarray:
+def assemble_twist(
+    omega_total,
+    v_position,
+    v_force,
+    max_tip_speed: float = math.inf,
+    max_angular_speed: float = math.inf,
+) -> np.ndarray:
     """Task twist xi_b = [omega_total; v_total] (eq. 8-9), saturated.
 
     v_total = [v_x, v_y, 0] + v_z: eq. 8 stacks v_x, v_y (eq. 7) with the force velocity
@@ -197,16 +214,16 @@ def jacobian_derivatives(J) -> np.ndarray:
     frame's origin (by v_i), so d(column j)/dq_i = [0; z_j x v_i].
     """
     J = np.asarray(J, dtype=float)
-    z, v = J[:3], J[3:]                                       # (3, n) each
+    z, v = J[:3], J[3:]  # (3, n) each
     n = J.shape[1]
     # S[i] = [z_i]x, the cross-product matrix of joint i's axis: S[i] @ w = z_i x w.
     S = np.zeros((n, 3, 3))
     S[:, 0, 1], S[:, 0, 2], S[:, 1, 2] = -z[2], z[1], -z[0]
     S[:, 1, 0], S[:, 2, 0], S[:, 2, 1] = z[2], -z[1], z[0]
-    zz = S @ z                                                # [i] = z_i x z_j (3, n)
-    zv = S @ v                                                # [i] = z_i x v_j
-    later = zv.transpose(2, 1, 0)                             # [i][:, j] = z_j x v_i
-    upper = _upper_mask(n)                                    # i <= j
+    zz = S @ z  # [i] = z_i x z_j (3, n)
+    zv = S @ v  # [i] = z_i x v_j
+    later = zv.transpose(2, 1, 0)  # [i][:, j] = z_j x v_i
+    upper = _upper_mask(n)  # i <= j
     dw = np.where(upper, zz, 0.0)
     dv = np.where(upper, zv, later)
     return np.concatenate([dw, dv], axis=1)
@@ -221,13 +238,13 @@ def manipulability_gradient_analytic(J) -> np.ndarray:
     A = J @ J.T
     # Cholesky A = L L^T (LAPACK's posv, which also solves B = A^-1 J): m = sqrt(det A) =
     # prod(diag L). Not positive definite (info != 0): J is singular, m = 0.
-    L, B, info = _posv(A, J)                                   # B = A^-1 J  (6, n)
+    L, B, info = _posv(A, J)  # B = A^-1 J  (6, n)
     if info != 0:
         return np.zeros(J.shape[1])
     m = float(np.prod(np.diag(L)))
     if not m > 0.0:
         return np.zeros(J.shape[1])
-    dJ = jacobian_derivatives(J)                               # (n, 6, n)
+    dJ = jacobian_derivatives(J)  # (n, 6, n)
     # tr(A^-1 dJ_i J^T) = sum_kl (A^-1 J)_kl (dJ_i)_kl  (A symmetric)
     return m * (dJ.reshape(dJ.shape[0], -1) @ B.ravel())
 
@@ -259,8 +276,9 @@ def joint_velocity_bounds(q, q_min, q_max, dq_max, margin: float):
     dq_max down to 0 at the limit (and stays 0 beyond it); away from the limit is always
     allowed. Returns (lower <= 0, upper >= 0).
     """
-    return kernels.joint_velocity_bounds(_f64(q), _f64(q_min), _f64(q_max), _f64(dq_max),
-                                         float(margin))
+    return kernels.joint_velocity_bounds(
+        _f64(q), _f64(q_min), _f64(q_max), _f64(dq_max), float(margin)
+    )
 
 
 def scale_into_bounds(qdot, lower, upper) -> np.ndarray:
@@ -268,20 +286,33 @@ def scale_into_bounds(qdot, lower, upper) -> np.ndarray:
     return kernels.scale_into_bounds(_f64(qdot), _f64(lower), _f64(upper))
 
 
-def null_space_diff_ik(J, xi_b, qdot_null, *, sigma_threshold: float = 0.03,
-                       damping_max: float = 0.03) -> np.ndarray:
+def null_space_diff_ik(
+    J, xi_b, qdot_null, *, sigma_threshold: float = 0.03, damping_max: float = 0.03
+) -> np.ndarray:
     """qdot = J^+ xi_b + (I - J^+ J) qdot_null (eq. 10) with the damped pseudo-inverse.
 
     The same arithmetic as :func:`damped_pseudo_inverse` applied to the two vectors, without
     forming J^+ and N (one SVD, a few matrix-vector products)."""
-    return kernels.null_space_diff_ik(_f64(J), _f64(xi_b), _f64(qdot_null),
-                                      float(sigma_threshold), float(damping_max))
+    return kernels.null_space_diff_ik(
+        _f64(J), _f64(xi_b), _f64(qdot_null), float(sigma_threshold), float(damping_max)
+    )
 
 
-def solve_joint_velocities(q, xi_b, jacobian, *, q_min, q_max, dq_max,
-                           joint_limit_margin: float, K_p6: float = 0.0, epsilon: float = 1e-4,
-                           qdot_null=None, sigma_threshold: float = 0.03,
-                           damping_max: float = 0.03) -> np.ndarray:
+def solve_joint_velocities(
+    q,
+    xi_b,
+    jacobian,
+    *,
+    q_min,
+    q_max,
+    dq_max,
+    joint_limit_margin: float,
+    K_p6: float = 0.0,
+    epsilon: float = 1e-4,
+    qdot_null=None,
+    sigma_threshold: float = 0.03,
+    damping_max: float = 0.03,
+) -> np.ndarray:
     """The whole differential IK: eq. 10-12 then the joint-limit margin and speed limits.
 
     qdot_null = K_p6 grad m(q) (eq. 11-12) unless given precomputed; qdot from eq. 10;
@@ -295,17 +326,39 @@ def solve_joint_velocities(q, xi_b, jacobian, *, q_min, q_max, dq_max,
         return np.zeros_like(q)
     J = jacobian(q)
     if qdot_null is None:
-        qdot_null = (K_p6 * manipulability_gradient(q, jacobian, epsilon)
-                     if K_p6 > 0 else np.zeros_like(q))
+        qdot_null = (
+            K_p6 * manipulability_gradient(q, jacobian, epsilon) if K_p6 > 0 else np.zeros_like(q)
+        )
     return kernels.solve_joint_velocities(
-        q, xi_b, _f64(J), _f64(qdot_null), _f64(q_min), _f64(q_max), _f64(dq_max),
-        float(joint_limit_margin), float(sigma_threshold), float(damping_max))
+        q,
+        xi_b,
+        _f64(J),
+        _f64(qdot_null),
+        _f64(q_min),
+        _f64(q_max),
+        _f64(dq_max),
+        float(joint_limit_margin),
+        float(sigma_threshold),
+        float(damping_max),
+    )
 
 
 # ----------------------------------------------------------------------------- pivot ends
-def pivot_end_angles(R_BK, p_BK, points_K, pivot_point, a0, o, *, probe_radius: float,
-                     half_angle: float, depth: float, slab_half_width: float,
-                     max_angle: float, step: float = math.radians(0.25)) -> tuple:
+def pivot_end_angles(
+    R_BK,
+    p_BK,
+    points_K,
+    pivot_point,
+    a0,
+    o,
+    *,
+    probe_radius: float,
+    half_angle: float,
+    depth: float,
+    slab_half_width: float,
+    max_angle: float,
+    step: float = math.radians(0.25),
+) -> tuple:
     """Predicted tilt angles (rad) where the kidney leaves the image on each side of a pivot
     (beyond the seed; its pivot is eq. 23).
 
@@ -326,24 +379,31 @@ def pivot_end_angles(R_BK, p_BK, points_K, pivot_point, a0, o, *, probe_radius: 
     a0 = np.asarray(a0, float).reshape(3)
     a0 = a0 - float(a0 @ o) * o
     a0 = a0 / np.linalg.norm(a0)
-    b0 = np.cross(o, a0)                     # a(theta) = a0 cos + b0 sin
-    q = (np.asarray(points_K, float).reshape(-1, 3) @ np.asarray(R_BK, float).T
-         + np.asarray(p_BK, float).reshape(3) - np.asarray(pivot_point, float).reshape(3))
-    x = q @ o                                # along the array: unchanged by the tilt
+    b0 = np.cross(o, a0)  # a(theta) = a0 cos + b0 sin
+    q = (
+        np.asarray(points_K, float).reshape(-1, 3) @ np.asarray(R_BK, float).T
+        + np.asarray(p_BK, float).reshape(3)
+        - np.asarray(pivot_point, float).reshape(3)
+    )
+    x = q @ o  # along the array: unchanged by the tilt
     qa, qb = q @ a0, q @ b0
     n = max(1, int(math.ceil(max_angle / step)))
     ends = []
     for side in (1.0, -1.0):
-        th = side * np.linspace(0.0, max_angle, n + 1)           # (T,)
+        th = side * np.linspace(0.0, max_angle, n + 1)  # (T,)
         c, s = np.cos(th)[:, None], np.sin(th)[:, None]
-        z = qa[None, :] * c + qb[None, :] * s                    # along a(theta)
+        z = qa[None, :] * c + qb[None, :] * s  # along a(theta)
         # y_P = (a x o) . q with a x o = a0 sin - b0 cos:
         y = qa[None, :] * s - qb[None, :] * c
         zc = z + probe_radius
         line = np.arctan2(x[None, :], zc)
         d = np.hypot(x[None, :], zc) - probe_radius
-        seen = ((np.abs(y) <= slab_half_width) & (np.abs(line) <= half_angle)
-                & (d >= 0.0) & (d <= depth)).any(axis=1)
+        seen = (
+            (np.abs(y) <= slab_half_width)
+            & (np.abs(line) <= half_angle)
+            & (d >= 0.0)
+            & (d <= depth)
+        ).any(axis=1)
         idx = np.flatnonzero(seen)
         ends.append(float(th[idx[-1]]) if len(idx) else 0.0)
     return ends[0], ends[1]

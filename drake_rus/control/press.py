@@ -19,8 +19,9 @@ from drake_rus.control import laws
 from drake_rus.robot import TipKinematics, contact_force_along_approach
 
 
-def press_joint_velocity(J_WP: np.ndarray, omega_W: np.ndarray, v_W: np.ndarray,
-                         damping: float = 1e-2) -> np.ndarray:
+def press_joint_velocity(
+    J_WP: np.ndarray, omega_W: np.ndarray, v_W: np.ndarray, damping: float = 1e-2
+) -> np.ndarray:
     """Joint velocities (7) giving the tip the twist [omega_W; v_W] (rad/s, m/s, in W).
 
     ``J_WP``: 6x7 spatial-velocity Jacobian of the tip [w; v] in W. Uses a damped
@@ -42,14 +43,22 @@ class PressDriver(LeafSystem):
     angular velocity instead (the driver before issue 32; for the force-loop validation).
     """
 
-    def __init__(self, control_plant, tip_frame, controller, desired_force: float | None = None,
-                 max_speed: float = 0.03, start_time: float = 0.0,
-                 hold_orientation: bool = True):
+    def __init__(
+        self,
+        control_plant,
+        tip_frame,
+        controller,
+        desired_force: float | None = None,
+        max_speed: float = 0.03,
+        start_time: float = 0.0,
+        hold_orientation: bool = True,
+    ):
         super().__init__()
         self._tip = TipKinematics(control_plant, tip_frame)
         self._cfg = controller
-        self._desired_force = (controller.desired_force if desired_force is None
-                               else float(desired_force))
+        self._desired_force = (
+            controller.desired_force if desired_force is None else float(desired_force)
+        )
         self._dt = 1.0 / controller.rate_hz
         self._alpha = laws.lowpass_alpha(self._dt, controller.force_filter_cutoff_hz)
         self._max_speed = max_speed
@@ -58,8 +67,8 @@ class PressDriver(LeafSystem):
         self.DeclareVectorInputPort("joint_position", 7)
         self.DeclareVectorInputPort("probe_force", 6)
         self._command = self.DeclareDiscreteState(7)
-        self._force = self.DeclareDiscreteState(3)       # (F_filtered, e_prev, initialised)
-        self._start = self.DeclareDiscreteState(7)       # (a_0, o_0, captured)
+        self._force = self.DeclareDiscreteState(3)  # (F_filtered, e_prev, initialised)
+        self._start = self.DeclareDiscreteState(7)  # (a_0, o_0, captured)
         self.DeclarePeriodicDiscreteUpdateEvent(self._dt, 0.0, self._update)
         self.DeclareStateOutputPort("joint_velocity_command", self._command)
 
@@ -76,14 +85,25 @@ class PressDriver(LeafSystem):
         if start[6] < 0.5:
             start = np.concatenate([a, o, [1.0]])
         v, force_state = laws.force_pd_step(
-            tuple(context.get_discrete_state(self._force).get_value()), F_z,
-            self._desired_force, a, self._dt, self._alpha, c.K_p3, c.K_d1)
+            tuple(context.get_discrete_state(self._force).get_value()),
+            F_z,
+            self._desired_force,
+            a,
+            self._dt,
+            self._alpha,
+            c.K_p3,
+            c.K_d1,
+        )
         v = np.clip(float(v @ a), -self._max_speed, self._max_speed) * a
-        omega = (laws.orientation_alignment(R, start[:3], start[3:6], np.zeros(3), c.K_p1,
-                                            0.0, c.K_p2)
-                 if self._hold_orientation else np.zeros(3))
+        omega = (
+            laws.orientation_alignment(R, start[:3], start[3:6], np.zeros(3), c.K_p1, 0.0, c.K_p2)
+            if self._hold_orientation
+            else np.zeros(3)
+        )
         discrete_state.get_mutable_vector(self._command).SetFromVector(
-            press_joint_velocity(self._tip.jacobian(q), omega, v))
+            press_joint_velocity(self._tip.jacobian(q), omega, v)
+        )
         discrete_state.get_mutable_vector(self._force).SetFromVector(
-            np.asarray(force_state, dtype=float))
+            np.asarray(force_state, dtype=float)
+        )
         discrete_state.get_mutable_vector(self._start).SetFromVector(start)

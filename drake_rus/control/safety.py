@@ -27,6 +27,7 @@ LOG = logging.getLogger("drake_rus.control.safety")
 
 class StopReason:
     """Reason codes of safety stops (strings in the run log)."""
+
     NAN = "non-finite value"
     FORCE = "force ceiling"
     WORKSPACE = "workspace exit"
@@ -42,6 +43,7 @@ class StopReason:
 @dataclasses.dataclass(frozen=True)
 class SafetyEvent:
     """One entry of the run log."""
+
     time: float
     reason: str
     detail: str
@@ -50,20 +52,21 @@ class SafetyEvent:
 @dataclasses.dataclass
 class SafetyInputs:
     """Everything one safety check reads (base frame B, SI units). NaN = not available."""
+
     t: float
     q: np.ndarray
     v: np.ndarray
     qdot_desired: np.ndarray
     R_BP: np.ndarray
     p_BP: np.ndarray
-    F_z: float                          # contact force along a (N), positive pressing
-    J: np.ndarray                       # 6x7 tip Jacobian [w; v] in B
-    image_time: float = math.nan        # time stamp (s) of the newest image; NaN: no images
+    F_z: float  # contact force along a (N), positive pressing
+    J: np.ndarray  # 6x7 tip Jacobian [w; v] in B
+    image_time: float = math.nan  # time stamp (s) of the newest image; NaN: no images
     kidney_visible: bool | None = None  # None: no segmenter connected
     segmentation_required: bool = True
     supervisor_abort: bool = False
     supervisor_reason: str = ""
-    robot_ok: bool = True               # the hardware station's robot_ok (True in sim)
+    robot_ok: bool = True  # the hardware station's robot_ok (True in sim)
 
 
 @dataclasses.dataclass
@@ -97,8 +100,14 @@ class SafetyState:
 def check_faults(u: SafetyInputs, s: SafetyState, cfg) -> tuple[str, str] | None:
     """The first fault present in ``u`` as (reason, detail), or None. Also updates the
     watchdog bookkeeping in ``s`` (last joint change, kidney invisible since)."""
-    arrays = (("q", u.q), ("v", u.v), ("commanded qdot", u.qdot_desired), ("R_BP", u.R_BP),
-              ("p_BP", u.p_BP), ("J", u.J))
+    arrays = (
+        ("q", u.q),
+        ("v", u.v),
+        ("commanded qdot", u.qdot_desired),
+        ("R_BP", u.R_BP),
+        ("p_BP", u.p_BP),
+        ("J", u.J),
+    )
     # One pass over all of them (this runs every control period); which one, only on a fault.
     if not all_finite(np.concatenate([np.asarray(x, dtype=float).ravel() for _, x in arrays])):
         for name, x in arrays:
@@ -111,8 +120,9 @@ def check_faults(u: SafetyInputs, s: SafetyState, cfg) -> tuple[str, str] | None
     if u.F_z > cfg.force_ceiling:
         return StopReason.FORCE, f"F_z = {u.F_z:.2f} N > {cfg.force_ceiling:.2f} N"
     p = np.asarray(u.p_BP, dtype=float)
-    if any(not lo <= x <= hi for x, lo, hi in zip(p.tolist(), cfg.workspace_min,
-                                                  cfg.workspace_max)):
+    if any(
+        not lo <= x <= hi for x, lo, hi in zip(p.tolist(), cfg.workspace_min, cfg.workspace_max)
+    ):
         return StopReason.WORKSPACE, f"p_BP = {np.round(p, 4).tolist()} m outside the box"
     tip_speed = float(np.linalg.norm(np.asarray(u.J)[3:] @ np.asarray(u.v)))
     if tip_speed > cfg.max_tip_speed:
@@ -127,16 +137,19 @@ def check_faults(u: SafetyInputs, s: SafetyState, cfg) -> tuple[str, str] | None
     if s.last_q is None or np.any(q != s.last_q):
         s.last_q = q.copy()
         s.last_q_change = u.t
-    elif (np.linalg.norm(u.qdot_desired) > 1e-6
-          and u.t - s.last_q_change >= cfg.state_timeout - 1e-9):
+    elif (
+        np.linalg.norm(u.qdot_desired) > 1e-6 and u.t - s.last_q_change >= cfg.state_timeout - 1e-9
+    ):
         return StopReason.STALE_STATE, (
-            f"joint positions unchanged for {u.t - s.last_q_change:.3f} s while moving")
+            f"joint positions unchanged for {u.t - s.last_q_change:.3f} s while moving"
+        )
     if u.kidney_visible is not None and u.segmentation_required and not u.kidney_visible:
         if math.isnan(s.invisible_since):
             s.invisible_since = u.t
         if u.t - s.invisible_since >= cfg.segmentation_timeout - 1e-9:
             return StopReason.SEGMENTATION_LOST, (
-                f"kidney invisible for {u.t - s.invisible_since:.3f} s")
+                f"kidney invisible for {u.t - s.invisible_since:.3f} s"
+            )
     else:
         s.invisible_since = math.nan
     if u.supervisor_abort:
@@ -175,13 +188,18 @@ def safety_step(state: SafetyState, u: SafetyInputs, cfg) -> tuple[np.ndarray, S
     n = len(u.q)
     if s.stopped:
         if u.t < s.retract_until and np.all(np.isfinite(np.asarray(u.J, dtype=float))):
-            return limit_command(retract_velocity(u.J, s.retract_direction, cfg.retract_speed),
-                                 u.J, cfg.joint_velocity_limits, cfg.command_tip_speed), s
+            return limit_command(
+                retract_velocity(u.J, s.retract_direction, cfg.retract_speed),
+                u.J,
+                cfg.joint_velocity_limits,
+                cfg.command_tip_speed,
+            ), s
         return np.zeros(n), s
     fault = check_faults(u, s, cfg)
     if fault is None:
-        return limit_command(u.qdot_desired, u.J, cfg.joint_velocity_limits,
-                             cfg.command_tip_speed), s
+        return limit_command(
+            u.qdot_desired, u.J, cfg.joint_velocity_limits, cfg.command_tip_speed
+        ), s
     reason, detail = fault
     s.stopped = True
     s.reason = reason
@@ -191,6 +209,10 @@ def safety_step(state: SafetyState, u: SafetyInputs, cfg) -> tuple[np.ndarray, S
     if reason == StopReason.FORCE and cfg.retract_distance > 0:
         s.retract_direction = -np.asarray(u.R_BP, dtype=float)[:, 2]
         s.retract_until = u.t + cfg.retract_distance / cfg.retract_speed
-        return limit_command(retract_velocity(u.J, s.retract_direction, cfg.retract_speed),
-                             u.J, cfg.joint_velocity_limits, cfg.command_tip_speed), s
+        return limit_command(
+            retract_velocity(u.J, s.retract_direction, cfg.retract_speed),
+            u.J,
+            cfg.joint_velocity_limits,
+            cfg.command_tip_speed,
+        ), s
     return np.zeros(n), s

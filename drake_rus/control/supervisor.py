@@ -21,8 +21,9 @@ from drake_rus.control.laws import angle_between, cross3, pivot_end_angles
 
 
 # ----------------------------------------------------------------------------- eq. 17
-def exploration_update(P_des_xy, c_msk: float, x_p, v_scan_y: float, K_p7: float,
-                       dt: float) -> np.ndarray:
+def exploration_update(
+    P_des_xy, c_msk: float, x_p, v_scan_y: float, K_p7: float, dt: float
+) -> np.ndarray:
     """Desired tip (x, y) one control interval later during exploration (eq. 17).
 
     P_x(t+dt) = P_x(t) + (delta_msk dt)(x_p . [1, 0, 0]), delta_msk = K_p7 (c_msk - 0.5);
@@ -76,8 +77,10 @@ def given_pivot_pose(pose, z: float = math.nan):
     unless ``pose`` holds three finite numbers."""
     values = list(pose) if pose is not None else []
     if len(values) != 3 or not all(math.isfinite(float(v)) for v in values):
-        raise ValueError(f"controller.pivot_pose: expected [] or [x (m), y (m), yaw (rad)], "
-                         f"three finite numbers, got {values}")
+        raise ValueError(
+            f"controller.pivot_pose: expected [] or [x (m), y (m), yaw (rad)], "
+            f"three finite numbers, got {values}"
+        )
     x, y, yaw = (float(v) for v in values)
     r3 = np.array([0.0, 0.0, -1.0])
     r1 = np.array([math.cos(yaw), math.sin(yaw), 0.0])
@@ -130,6 +133,7 @@ def transverse_orientation(a, o_curr) -> np.ndarray:
 # ----------------------------------------------------------------------------- supervisor
 class Phase(enum.IntEnum):
     """Scan phases. APPROACH (press until contact) precedes the seed's EXPLORE."""
+
     APPROACH = 0
     EXPLORE = 1
     LOCALIZE = 2
@@ -143,19 +147,21 @@ class Phase(enum.IntEnum):
 class PivotModel:
     """What the ``predicted_end`` pivot strategy needs to predict where the kidney leaves the
     image: the registration template's points in K (m) and the probe's fan (m, rad)."""
+
     points_K: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3)))
     probe_radius: float = 0.05
     half_angle: float = math.radians(20.0)
     depth: float = 0.15
     slab_half_width: float = 0.005
 
-    def __deepcopy__(self, memo):   # never changed in place: clones may share it
+    def __deepcopy__(self, memo):  # never changed in place: clones may share it
         return self
 
 
 @dataclasses.dataclass
 class SupervisorState:
     """Everything the ScanSupervisor remembers between control periods."""
+
     phase: Phase = Phase.APPROACH
     a_des: np.ndarray = dataclasses.field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
     o_des: np.ndarray = dataclasses.field(default_factory=lambda: np.array([1.0, 0.0, 0.0]))
@@ -164,15 +170,15 @@ class SupervisorState:
     F_des: float = 0.0
     initialised: bool = False
     phase_start: float = 0.0
-    travel: float = 0.0              # exploration travel along y (m)
+    travel: float = 0.0  # exploration travel along y (m)
     invisible_since: float = math.nan  # time the kidney was last seen to disappear
     pivot_direction: float = 1.0
-    pivot_speed: float = 0.0         # signed current tilt rate (rad/s), ramped
-    expect_invisible: bool = False   # after a pivot leg ends, until the kidney is seen again
-    lag_since: float = math.nan      # since when the probe lags the pivot (pivot_follow_limit)
-    pivot_angle: float = 0.0         # tilt of a_des from r3* about o_des (rad), signed
+    pivot_speed: float = 0.0  # signed current tilt rate (rad/s), ramped
+    expect_invisible: bool = False  # after a pivot leg ends, until the kidney is seen again
+    lag_since: float = math.nan  # since when the probe lags the pivot (pivot_follow_limit)
+    pivot_angle: float = 0.0  # tilt of a_des from r3* about o_des (rad), signed
     pivot_legs_done: int = 0
-    pivot_limits: tuple = ()         # tilt angles (rad) where each leg ended
+    pivot_limits: tuple = ()  # tilt angles (rad) where each leg ended
     # Why each end of the sweep was declared, in order: per pivot leg (one per pivot_limits
     # entry) "kidney_left" (the segmentation lost the kidney for visibility_debounce) or
     # "tilt_cap" (max_pivot_tilt reached first); a line sweep's end "kidney_left" or
@@ -189,14 +195,14 @@ class SupervisorState:
     # sweep nor is a segmentation loss); it has been, since visible_since, without a gap.
     awaiting_kidney: bool = False
     visible_since: float = math.nan
-    paused: bool = False             # exploration/pivot motion held (outside a breath-hold)
-    paused_time: float = 0.0         # total time (s) motion was held
+    paused: bool = False  # exploration/pivot motion held (outside a breath-hold)
+    paused_time: float = 0.0  # total time (s) motion was held
     a_star: np.ndarray = dataclasses.field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
     approach_origin: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, math.nan))
     contact_since: float = math.nan  # APPROACH: when the force last reached contact
     p_star: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, math.nan))
     reason: str = ""
-    events: tuple = ()               # (time, phase name, message) transitions
+    events: tuple = ()  # (time, phase name, message) transitions
 
     # Drake clones abstract state values with deepcopy on every update; states are never
     # mutated in place (supervisor_step works on a copy), so clones may share them.
@@ -219,24 +225,28 @@ class SupervisorState:
 
 
 # SupervisorState's array fields (copied by SupervisorState.copy; the rest are immutable).
-_ARRAY_FIELDS = tuple(f.name for f in dataclasses.fields(SupervisorState)
-                      if isinstance(getattr(SupervisorState(), f.name), np.ndarray))
+_ARRAY_FIELDS = tuple(
+    f.name
+    for f in dataclasses.fields(SupervisorState)
+    if isinstance(getattr(SupervisorState(), f.name), np.ndarray)
+)
 
 
 @dataclasses.dataclass
 class SupervisorInputs:
     """What the supervisor reads each period (base frame B, SI units)."""
+
     t: float
     R_BP: np.ndarray
     p_BP: np.ndarray
-    F_z: float                 # contact force along a (N), positive pressing
+    F_z: float  # contact force along a (N), positive pressing
     kidney_visible: bool
-    c_msk: float               # horizontal mask centroid in [0, 1] (NaN when no mask)
-    R_BK: np.ndarray | None = None   # kidney pose estimate (localizer or ground truth)
+    c_msk: float  # horizontal mask centroid in [0, 1] (NaN when no mask)
+    R_BK: np.ndarray | None = None  # kidney pose estimate (localizer or ground truth)
     p_BK: np.ndarray | None = None
     localization_ready: bool = True
-    safety_stopped: bool = False     # the safety layer has stopped the robot
-    localization_error: str = ""     # why the localizer could not give a pose ("" = none)
+    safety_stopped: bool = False  # the safety layer has stopped the robot
+    localization_error: str = ""  # why the localizer could not give a pose ("" = none)
     exploration_sufficient: bool = False  # adaptive exploration: the estimate has settled
     # Respiration gating: False outside breath-holds; exploration travel and the pivot tilt
     # then hold still (force control keeps contact) until the next hold.
@@ -255,7 +265,7 @@ def _goto(s: SupervisorState, phase: Phase, t: float, message: str) -> Superviso
     s.phase = phase
     s.phase_start = t
     s.invisible_since = math.nan
-    s.paused = False     # a pause belongs to the phase that held still
+    s.paused = False  # a pause belongs to the phase that held still
     s.events = s.events + ((t, phase.name, message),)
     return s
 
@@ -276,8 +286,9 @@ def _ramp(x: float, target: float, step: float) -> float:
 
 def _pivot_advance(s: SupervisorState, cfg, dt: float) -> None:
     """Rotates a_des about o_des by pivot_speed dt (eq. 23), within +-max_pivot_tilt."""
-    new_angle = float(np.clip(s.pivot_angle + s.pivot_speed * dt, -cfg.max_pivot_tilt,
-                              cfg.max_pivot_tilt))
+    new_angle = float(
+        np.clip(s.pivot_angle + s.pivot_speed * dt, -cfg.max_pivot_tilt, cfg.max_pivot_tilt)
+    )
     dtheta = new_angle - s.pivot_angle
     s.a_des = rodrigues_pivot_update(s.a_des, s.o_des, dtheta)
     s.pivot_angle = new_angle
@@ -288,9 +299,9 @@ def segmentation_required(s: SupervisorState) -> bool:
     """Whether the kidney must be visible now (EXPLORE; PIVOT except while returning from a
     leg that ended because it left the image); drives the safety layer's watchdog."""
     if s.paused:
-        return False   # holding still outside a breath-hold: the kidney may drift away
+        return False  # holding still outside a breath-hold: the kidney may drift away
     if s.phase == Phase.EXPLORE:
-        return not s.awaiting_kidney   # a line sweep before the kidney first came into view
+        return not s.awaiting_kidney  # a line sweep before the kidney first came into view
     return s.phase == Phase.PIVOT and not s.expect_invisible
 
 
@@ -344,22 +355,28 @@ def _approach(s, u, R, p, cfg, dt):
             s.P_des = p[:2].copy()
             if cfg.pivot_pose:
                 R_star, p_star = given_pivot_pose(cfg.pivot_pose, p[2])
-                return _to_transit(s, u.t, R_star, p_star,
-                                   f"contact at {u.F_z:.2f} N; given pivot pose "
-                                   f"(controller.pivot_pose): p* = ({p_star[0]:.4f}, "
-                                   f"{p_star[1]:.4f}) m, array at "
-                                   f"{math.degrees(cfg.pivot_pose[2]):.1f} deg from base x")
+                return _to_transit(
+                    s,
+                    u.t,
+                    R_star,
+                    p_star,
+                    f"contact at {u.F_z:.2f} N; given pivot pose "
+                    f"(controller.pivot_pose): p* = ({p_star[0]:.4f}, "
+                    f"{p_star[1]:.4f}) m, array at "
+                    f"{math.degrees(cfg.pivot_pose[2]):.1f} deg from base x",
+                )
             return _goto(s, Phase.EXPLORE, u.t, f"contact at {u.F_z:.2f} N")
     else:
         s.contact_since = math.nan
     travel = float((p - s.approach_origin) @ s.a_des)
     if travel > cfg.approach_max_travel:
-        s.reason = (f"no contact: the probe moved {travel * 1e3:.0f} mm along its beam "
-                    f"without reaching {cfg.contact_fraction * cfg.desired_force:.1f} N")
+        s.reason = (
+            f"no contact: the probe moved {travel * 1e3:.0f} mm along its beam "
+            f"without reaching {cfg.contact_fraction * cfg.desired_force:.1f} N"
+        )
         return _goto(s, Phase.ABORT, u.t, s.reason)
     if u.t - s.phase_start > cfg.approach_timeout:
-        s.reason = (f"no contact after {cfg.approach_timeout:.0f} s of APPROACH "
-                    f"({u.F_z:.2f} N)")
+        s.reason = f"no contact after {cfg.approach_timeout:.0f} s of APPROACH ({u.F_z:.2f} N)"
         return _goto(s, Phase.ABORT, u.t, s.reason)
     return s
 
@@ -407,22 +424,36 @@ def _line_sweep(s, u, R, p, cfg, dt):
     ends too: DONE if the kidney came into view, else ABORT."""
     if s.awaiting_kidney and _came_into_view(s, u, cfg.visibility_debounce):
         s.awaiting_kidney = False
-    left = (not s.awaiting_kidney and u.motion_allowed
-            and _update_visibility(s, u, cfg.visibility_debounce))
+    left = (
+        not s.awaiting_kidney
+        and u.motion_allowed
+        and _update_visibility(s, u, cfg.visibility_debounce)
+    )
     if left:
         s.P_des = p[:2].copy()
         s.sweep_end_causes = ("kidney_left",)
-        return _goto(s, Phase.DONE, u.t, f"line sweep complete: the kidney left the image "
-                                         f"after {s.travel * 1e3:.1f} mm")
+        return _goto(
+            s,
+            Phase.DONE,
+            u.t,
+            f"line sweep complete: the kidney left the image after {s.travel * 1e3:.1f} mm",
+        )
     if s.travel >= cfg.line_sweep_max_travel - 1e-12:
         s.P_des = p[:2].copy()
         if s.awaiting_kidney:
-            s.reason = (f"line sweep: the kidney never came into view over "
-                        f"{s.travel * 1e3:.1f} mm (line_sweep_max_travel)")
+            s.reason = (
+                f"line sweep: the kidney never came into view over "
+                f"{s.travel * 1e3:.1f} mm (line_sweep_max_travel)"
+            )
             return _goto(s, Phase.ABORT, u.t, s.reason)
         s.sweep_end_causes = ("max_travel",)
-        return _goto(s, Phase.DONE, u.t, f"line sweep ended at line_sweep_max_travel "
-                                         f"{s.travel * 1e3:.1f} mm, the kidney still seen")
+        return _goto(
+            s,
+            Phase.DONE,
+            u.t,
+            f"line sweep ended at line_sweep_max_travel "
+            f"{s.travel * 1e3:.1f} mm, the kidney still seen",
+        )
     if not u.motion_allowed:
         return _hold_motion(s, dt)
     s.paused = False
@@ -441,17 +472,22 @@ def _explore(s, u, R, p, cfg, dt):
         s.P_des = p[:2].copy()
         how = ""
         if cfg.exploration_length == "estimated" and math.isfinite(u.kidney_length_estimate):
-            how = (f" (ER {cfg.exploration_ratio:g} x the estimated kidney length "
-                   f"{u.kidney_length_estimate * 1e3:.0f} mm)")
+            how = (
+                f" (ER {cfg.exploration_ratio:g} x the estimated kidney length "
+                f"{u.kidney_length_estimate * 1e3:.0f} mm)"
+            )
         return _goto(s, Phase.LOCALIZE, u.t, f"explored {s.travel * 1e3:.1f} mm{how}")
     if left:
         s.P_des = p[:2].copy()
-        return _goto(s, Phase.LOCALIZE, u.t,
-                     f"kidney left the image after {s.travel * 1e3:.1f} mm")
+        return _goto(s, Phase.LOCALIZE, u.t, f"kidney left the image after {s.travel * 1e3:.1f} mm")
     if u.exploration_sufficient:
         s.P_des = p[:2].copy()
-        return _goto(s, Phase.LOCALIZE, u.t,
-                     f"pose estimate settled after {s.travel * 1e3:.1f} mm (adaptive)")
+        return _goto(
+            s,
+            Phase.LOCALIZE,
+            u.t,
+            f"pose estimate settled after {s.travel * 1e3:.1f} mm (adaptive)",
+        )
     if not u.motion_allowed:
         return _hold_motion(s, dt)
     s.paused = False
@@ -480,30 +516,43 @@ def _localize(s, u, R, p, cfg, dt):
             s.reason = f"LOCALIZE timeout: no kidney pose after {cfg.localize_timeout:.1f} s"
             return _goto(s, Phase.ABORT, u.t, s.reason)
         return s
-    if u.R_BK is None or u.p_BK is None or not (
-            np.all(np.isfinite(u.R_BK)) and np.all(np.isfinite(u.p_BK))):
+    if (
+        u.R_BK is None
+        or u.p_BK is None
+        or not (np.all(np.isfinite(u.R_BK)) and np.all(np.isfinite(u.p_BK)))
+    ):
         s.reason = "no finite kidney pose from localization"
         return _goto(s, Phase.ABORT, u.t, s.reason)
     R_star, p_star = optimal_pivot_pose(u.R_BK, u.p_BK)
-    return _to_transit(s, u.t, R_star, p_star,
-                       f"p* = ({p_star[0]:.4f}, {p_star[1]:.4f}, {p_star[2]:.4f}) m")
+    return _to_transit(
+        s, u.t, R_star, p_star, f"p* = ({p_star[0]:.4f}, {p_star[1]:.4f}, {p_star[2]:.4f}) m"
+    )
 
 
-def predict_pivot_ends(model: PivotModel, R_BK, p_BK, pivot_point, a0, o,
-                       max_tilt: float) -> tuple:
+def predict_pivot_ends(model: PivotModel, R_BK, p_BK, pivot_point, a0, o, max_tilt: float) -> tuple:
     """(theta_plus, theta_minus) (rad): where the template of ``model`` registered at
     X_BK = (R_BK, p_BK) leaves the image on each side of a pivot about the tip
     ``pivot_point`` turning the approach ``a0`` about the array ``o``, within +-``max_tilt``
     (laws.pivot_end_angles with the model's fan). The one prediction of the
     ``predicted_end`` strategy: the supervisor and the kinematic twin both call it."""
     return pivot_end_angles(
-        R_BK, p_BK, model.points_K, pivot_point, a0, o,
-        probe_radius=model.probe_radius, half_angle=model.half_angle, depth=model.depth,
-        slab_half_width=model.slab_half_width, max_angle=max_tilt)
+        R_BK,
+        p_BK,
+        model.points_K,
+        pivot_point,
+        a0,
+        o,
+        probe_radius=model.probe_radius,
+        half_angle=model.half_angle,
+        depth=model.depth,
+        slab_half_width=model.slab_half_width,
+        max_angle=max_tilt,
+    )
 
 
-def predicted_pivot_ends(s: SupervisorState, model: PivotModel, u: SupervisorInputs, p,
-                         cfg) -> tuple:
+def predicted_pivot_ends(
+    s: SupervisorState, model: PivotModel, u: SupervisorInputs, p, cfg
+) -> tuple:
     """(theta_plus, theta_minus) (rad): where the registered template leaves the image on
     each side of a pivot about the tip ``p`` turning a_des about o_des
     (:func:`predict_pivot_ends`)."""
@@ -520,8 +569,9 @@ def pretilt_plan(ends, margin: float, max_tilt: float) -> tuple:
     return side, float(np.clip(end + side * margin, -max_tilt, max_tilt))
 
 
-def pivot_end_allowed(angle: float, direction: float, legs_done: int, ends=(),
-                      tolerance: float = 0.0) -> bool:
+def pivot_end_allowed(
+    angle: float, direction: float, legs_done: int, ends=(), tolerance: float = 0.0
+) -> bool:
     """Whether a loss of the kidney (or the tilt cap) may end the current pivot leg at tilt
     ``angle`` (rad) moving in ``direction`` after ``legs_done`` legs: the first leg always;
     a later leg only past the start, on its new side; and with predicted ``ends``
@@ -556,8 +606,9 @@ def _pretilt(s, u, R, cfg, dt):
         if remaining <= 1e-6 and angle_between(R[:, 2], s.a_des) <= cfg.transit_angle_tolerance:
             s.pretilt_stage = 2
             s.invisible_since = math.nan
-            s.events = s.events + ((u.t, "TRANSIT",
-                                    f"pre-tilt at {math.degrees(s.pivot_angle):.1f} deg"),)
+            s.events = s.events + (
+                (u.t, "TRANSIT", f"pre-tilt at {math.degrees(s.pivot_angle):.1f} deg"),
+            )
         return s
     if not u.motion_allowed:
         return _hold_pivot(s, cfg, dt)
@@ -570,8 +621,12 @@ def _pretilt(s, u, R, cfg, dt):
         s.sweep_end_causes = ("kidney_left" if gone else "tilt_cap",)
         s.pivot_legs_done = 1
         s.expect_invisible = True
-        return _start_pivot(s, u.t, f"from the predicted end at "
-                            f"{math.degrees(s.pivot_angle):.1f} deg ({why})", -side)
+        return _start_pivot(
+            s,
+            u.t,
+            f"from the predicted end at {math.degrees(s.pivot_angle):.1f} deg ({why})",
+            -side,
+        )
     target = side * cfg.pivot_rate if u.kidney_visible else 0.0
     s.pivot_speed = _ramp(s.pivot_speed, target, cfg.pivot_acceleration * dt)
     _pivot_advance(s, cfg, dt)
@@ -595,22 +650,33 @@ def _transit(s, u, R, p, cfg, dt):
         model = u.pivot_model
         if cfg.pivot_strategy == "predicted_end":
             if cfg.pivot_pose:
-                return _start_pivot(s, u.t, f"at p* ({dist * 1e3:.2f} mm); given pivot pose, "
-                                    "no registered kidney to predict the ends from: two-leg "
-                                    "pivot")
+                return _start_pivot(
+                    s,
+                    u.t,
+                    f"at p* ({dist * 1e3:.2f} mm); given pivot pose, "
+                    "no registered kidney to predict the ends from: two-leg "
+                    "pivot",
+                )
             if model is None or len(model.points_K) == 0:
-                return _start_pivot(s, u.t, f"at p* ({dist * 1e3:.2f} mm); no pivot model: "
-                                    "two-leg pivot")
+                return _start_pivot(
+                    s, u.t, f"at p* ({dist * 1e3:.2f} mm); no pivot model: two-leg pivot"
+                )
             plus, minus = predicted_pivot_ends(s, model, u, p, cfg)
             s.pivot_ends = (plus, minus)
             s.pretilt_side, s.pretilt_target = pretilt_plan(
-                s.pivot_ends, cfg.pivot_end_margin, cfg.max_pivot_tilt)
+                s.pivot_ends, cfg.pivot_end_margin, cfg.max_pivot_tilt
+            )
             s.pretilt_stage = 1
-            s.events = s.events + ((u.t, "TRANSIT",
-                                    f"at p* ({dist * 1e3:.2f} mm); predicted ends "
-                                    f"{math.degrees(plus):.1f} / {math.degrees(minus):.1f} "
-                                    f"deg: pre-tilt to "
-                                    f"{math.degrees(s.pretilt_target):.1f} deg"),)
+            s.events = s.events + (
+                (
+                    u.t,
+                    "TRANSIT",
+                    f"at p* ({dist * 1e3:.2f} mm); predicted ends "
+                    f"{math.degrees(plus):.1f} / {math.degrees(minus):.1f} "
+                    f"deg: pre-tilt to "
+                    f"{math.degrees(s.pretilt_target):.1f} deg",
+                ),
+            )
             return s
         return _start_pivot(s, u.t, f"at p* ({dist * 1e3:.2f} mm)")
     if u.t - s.phase_start > cfg.transit_timeout:
@@ -638,10 +704,12 @@ def _pivot(s, u, R, p, cfg, dt):
         if math.isnan(s.lag_since):
             s.lag_since = u.t
         if u.t - s.lag_since >= cfg.pivot_follow_time - 1e-9:
-            s.reason = (f"the probe does not follow the pivot: its axis lags the commanded "
-                        f"one by {math.degrees(lag):.1f} deg after "
-                        f"{u.t - s.lag_since:.2f} s (limit {math.degrees(cfg.pivot_follow_limit):.1f}"
-                        f" deg; a joint at its limit?)")
+            s.reason = (
+                f"the probe does not follow the pivot: its axis lags the commanded "
+                f"one by {math.degrees(lag):.1f} deg after "
+                f"{u.t - s.lag_since:.2f} s (limit {math.degrees(cfg.pivot_follow_limit):.1f}"
+                f" deg; a joint at its limit?)"
+            )
             return _goto(s, Phase.ABORT, u.t, s.reason)
     if not u.motion_allowed:
         return _hold_pivot(s, cfg, dt)
@@ -651,18 +719,24 @@ def _pivot(s, u, R, p, cfg, dt):
         s.expect_invisible = False
     # On the second leg, only a loss past the start (on the new side) ends the sweep;
     # predicted_end: the single sweep ends near the predicted other end or beyond.
-    on_new_side = pivot_end_allowed(s.pivot_angle, s.pivot_direction, s.pivot_legs_done,
-                                    s.pivot_ends, cfg.pivot_end_tolerance)
+    on_new_side = pivot_end_allowed(
+        s.pivot_angle, s.pivot_direction, s.pivot_legs_done, s.pivot_ends, cfg.pivot_end_tolerance
+    )
     at_tilt = abs(s.pivot_angle) >= cfg.max_pivot_tilt - 1e-9 and on_new_side
     if (left and on_new_side) or at_tilt:
         why = "kidney left the image" if (left and on_new_side) else "maximum tilt"
         s.pivot_limits = s.pivot_limits + (s.pivot_angle,)
         s.sweep_end_causes = s.sweep_end_causes + (
-            "kidney_left" if (left and on_new_side) else "tilt_cap",)
+            "kidney_left" if (left and on_new_side) else "tilt_cap",
+        )
         s.pivot_legs_done += 1
-        s.events = s.events + ((u.t, "PIVOT",
-                                f"leg {s.pivot_legs_done} ended at "
-                                f"{math.degrees(s.pivot_angle):.1f} deg: {why}"),)
+        s.events = s.events + (
+            (
+                u.t,
+                "PIVOT",
+                f"leg {s.pivot_legs_done} ended at {math.degrees(s.pivot_angle):.1f} deg: {why}",
+            ),
+        )
         if s.pivot_legs_done >= 2:
             return _goto(s, Phase.DONE, u.t, "pivot sweep complete")
         s.pivot_direction = -s.pivot_direction
@@ -670,23 +744,29 @@ def _pivot(s, u, R, p, cfg, dt):
         s.expect_invisible = True
     # The tilt rate ramps (pivot_acceleration) to +-pivot_rate: a reversal is smooth, not a
     # jump of the commanded angular velocity (which presses the probe edge in).
-    s.pivot_speed = _ramp(s.pivot_speed, s.pivot_direction * cfg.pivot_rate,
-                          cfg.pivot_acceleration * dt)
+    s.pivot_speed = _ramp(
+        s.pivot_speed, s.pivot_direction * cfg.pivot_rate, cfg.pivot_acceleration * dt
+    )
     _pivot_advance(s, cfg, dt)
     return s
 
 
-_PHASE_STEP = {Phase.APPROACH: _approach, Phase.EXPLORE: _explore,
-               Phase.LOCALIZE: _localize, Phase.TRANSIT: _transit, Phase.PIVOT: _pivot}
+_PHASE_STEP = {
+    Phase.APPROACH: _approach,
+    Phase.EXPLORE: _explore,
+    Phase.LOCALIZE: _localize,
+    Phase.TRANSIT: _transit,
+    Phase.PIVOT: _pivot,
+}
 
 
-def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float
-                    ) -> SupervisorState:
+def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float) -> SupervisorState:
     """One control period of the scan state machine (pure: returns a new state).
 
     APPROACH -> EXPLORE -> LOCALIZE -> TRANSIT -> PIVOT -> DONE (each phase's rule is its
     own function above); with a given ``pivot_pose`` APPROACH -> TRANSIT -> PIVOT -> DONE,
-    with ``sweep: line`` APPROACH -> EXPLORE -> DONE. ABORT (with reason) from any phase on a safety stop, a non-finite
+    with ``sweep: line`` APPROACH -> EXPLORE -> DONE. ABORT (with reason) from any phase on a
+    safety stop, a non-finite
     input or pose, a missing kidney pose, a LOCALIZE or TRANSIT timeout, or (TRANSIT, PIVOT)
     a tracking error: the kidney has moved away from its registered pose. The pivot tilt
     rate ramps with pivot_acceleration. While ``motion_allowed`` is False (outside a

@@ -12,14 +12,21 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import LeafSystem
 
 
-def kidney_section(X_BP: RigidTransform, X_BK: RigidTransform, semi_axes, *, depth=0.15,
-                   radius=0.05, half_angle=math.radians(20.0), n=64):
+def kidney_section(
+    X_BP: RigidTransform,
+    X_BK: RigidTransform,
+    semi_axes,
+    *,
+    depth=0.15,
+    radius=0.05,
+    half_angle=math.radians(20.0),
+    n=64,
+):
     """Cut of the ellipsoid (centre and axes X_BK, semi-axes in m) by the image plane of
     the probe at X_BP. Returns (area (m^2), c_msk in [0, 1], or NaN when empty)."""
     u_max = (radius + depth) * math.sin(half_angle)
@@ -28,10 +35,9 @@ def kidney_section(X_BP: RigidTransform, X_BK: RigidTransform, semi_axes, *, dep
     U, W = np.meshgrid(u, w)
     in_fan = np.abs(U) <= (radius + W) * math.sin(half_angle)
     R = X_BP.rotation().matrix()
-    pts = (X_BP.translation()[:, None] + np.outer(R[:, 0], U.ravel())
-           + np.outer(R[:, 2], W.ravel()))
+    pts = X_BP.translation()[:, None] + np.outer(R[:, 0], U.ravel()) + np.outer(R[:, 2], W.ravel())
     p_K = X_BK.inverse().multiply(pts)
-    inside = (np.sum((p_K / np.asarray(semi_axes, float)[:, None]) ** 2, axis=0) <= 1.0)
+    inside = np.sum((p_K / np.asarray(semi_axes, float)[:, None]) ** 2, axis=0) <= 1.0
     inside &= in_fan.ravel()
     cell = (u[1] - u[0]) * (w[1] - w[0])
     area = float(inside.sum()) * cell
@@ -49,8 +55,14 @@ class GeometricKidneyView(LeafSystem):
     true kidney pose, the ground-truth stand-in for localization).
     """
 
-    def __init__(self, X_BK: RigidTransform, semi_axes, frame_rate_hz: float = 20.0,
-                 min_area: float = 1.0e-4, **fan):
+    def __init__(
+        self,
+        X_BK: RigidTransform,
+        semi_axes,
+        frame_rate_hz: float = 20.0,
+        min_area: float = 1.0e-4,
+        **fan,
+    ):
         super().__init__()
         self._X_BK, self._axes, self._min_area, self._fan = X_BK, semi_axes, min_area, fan
         self._X = self.DeclareAbstractInputPort("X_BP", AbstractValue.Make(RigidTransform()))
@@ -59,13 +71,20 @@ class GeometricKidneyView(LeafSystem):
         self.DeclareInitializationDiscreteUpdateEvent(self._sample)
         self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._sample)
         self.DeclareVectorOutputPort(
-            "kidney_visible", 1,
-            lambda c, o: o.SetFromVector([c.get_discrete_state(self._s).get_value()[0]]))
+            "kidney_visible",
+            1,
+            lambda c, o: o.SetFromVector([c.get_discrete_state(self._s).get_value()[0]]),
+        )
         self.DeclareVectorOutputPort(
-            "mask_centroid", 1,
-            lambda c, o: o.SetFromVector([c.get_discrete_state(self._s).get_value()[1]]))
-        self.DeclareAbstractOutputPort("X_BK", lambda: AbstractValue.Make(RigidTransform()),
-                                       lambda c, o: o.set_value(self._X_BK))
+            "mask_centroid",
+            1,
+            lambda c, o: o.SetFromVector([c.get_discrete_state(self._s).get_value()[1]]),
+        )
+        self.DeclareAbstractOutputPort(
+            "X_BK",
+            lambda: AbstractValue.Make(RigidTransform()),
+            lambda c, o: o.set_value(self._X_BK),
+        )
 
     def _sample(self, context, discrete_state):
         area, c = kidney_section(self._X.Eval(context), self._X_BK, self._axes, **self._fan)

@@ -14,14 +14,13 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import BasicVector, LeafSystem, ValueProducer
 
 from drake_rus.control import kernels, laws, supervisor
-from drake_rus.robot import TipKinematics
 from drake_rus.control.safety import SafetyInputs, SafetyState, safety_step
+from drake_rus.robot import TipKinematics
 
 
 def contact_force(probe_force) -> float:
@@ -60,8 +59,11 @@ class OrientationAlignment(LeafSystem):
         c = self._cfg
         R = _X(self._X, context).rotation().matrix()
         adot = self._adot.Eval(context) if self._adot.HasValue(context) else np.zeros(3)
-        output.SetFromVector(laws.orientation_alignment(
-            R, self._a.Eval(context), self._o.Eval(context), adot, c.K_p1, c.K_p11, c.K_p2))
+        output.SetFromVector(
+            laws.orientation_alignment(
+                R, self._a.Eval(context), self._o.Eval(context), adot, c.K_p1, c.K_p11, c.K_p2
+            )
+        )
 
 
 class ForcePD(LeafSystem):
@@ -91,14 +93,19 @@ class ForcePD(LeafSystem):
         # period read it, so it is computed once.
         self._step_cache = self.DeclareCacheEntry(
             description="force PD step (v_force, next state)",
-            value_producer=ValueProducer(allocate=lambda: AbstractValue.Make((None, None)),
-                                         calc=self._calc_step),
-            prerequisites_of_calc={self.discrete_state_ticket(self._state),
-                                   self.input_port_ticket(self._F.get_index()),
-                                   self.input_port_ticket(self._X.get_index()),
-                                   self.input_port_ticket(self._Fdes.get_index())})
-        self.DeclareVectorOutputPort("v_force", 3, self._calc,
-                                     prerequisites_of_calc={self._step_cache.ticket()})
+            value_producer=ValueProducer(
+                allocate=lambda: AbstractValue.Make((None, None)), calc=self._calc_step
+            ),
+            prerequisites_of_calc={
+                self.discrete_state_ticket(self._state),
+                self.input_port_ticket(self._F.get_index()),
+                self.input_port_ticket(self._X.get_index()),
+                self.input_port_ticket(self._Fdes.get_index()),
+            },
+        )
+        self.DeclareVectorOutputPort(
+            "v_force", 3, self._calc, prerequisites_of_calc={self._step_cache.ticket()}
+        )
         self.DeclareStateOutputPort("F_filtered", self._filtered)
 
     def _calc_step(self, context, value):
@@ -110,8 +117,7 @@ class ForcePD(LeafSystem):
             value.set_value((np.zeros(3), s))
             return
         c = self._cfg
-        value.set_value(laws.force_pd_step(s, F, F_des, a, self._dt, self._alpha, c.K_p3,
-                                           c.K_d1))
+        value.set_value(laws.force_pd_step(s, F, F_des, a, self._dt, self._alpha, c.K_p3, c.K_d1))
 
     def _step(self, context):
         return self._step_cache.Eval(context)
@@ -141,8 +147,9 @@ class PositionP(LeafSystem):
 
     def _calc(self, context, output):
         p = _X(self._X, context).translation()
-        output.SetFromVector(laws.position_p(self._P.Eval(context), p, self._cfg.K_p4,
-                                             self._cfg.K_p5))
+        output.SetFromVector(
+            laws.position_p(self._P.Eval(context), p, self._cfg.K_p4, self._cfg.K_p5)
+        )
 
 
 class NullSpaceDiffIK(LeafSystem):
@@ -157,11 +164,17 @@ class NullSpaceDiffIK(LeafSystem):
     manipulability (1, at the measured q).
     """
 
-    def __init__(self, plant, tip_frame, config, use_null_space: bool = True,
-                 kinematics: TipKinematics | None = None):
+    def __init__(
+        self,
+        plant,
+        tip_frame,
+        config,
+        use_null_space: bool = True,
+        kinematics: TipKinematics | None = None,
+    ):
         super().__init__()
         self._cfg = config
-        kernels.warm_up()   # compile or load the IK kernels now, not in the first period
+        kernels.warm_up()  # compile or load the IK kernels now, not in the first period
         # ``kinematics`` may be shared with the safety layer: one FK + Jacobian per tick.
         self._kin = kinematics or TipKinematics(plant, tip_frame)
         self._K_p6 = config.K_p6 if use_null_space else 0.0
@@ -180,12 +193,16 @@ class NullSpaceDiffIK(LeafSystem):
         if self._K_p6 > 0:
             self.DeclareInitializationUnrestrictedUpdateEvent(self._update_null)
             self.DeclarePeriodicUnrestrictedUpdateEvent(
-                config.null_space_period, 0.0, self._update_null)
+                config.null_space_period, 0.0, self._update_null
+            )
 
     def _update_null(self, context, state):
         q = np.asarray(self._q.Eval(context), dtype=float)
-        g = (laws.manipulability_gradient_analytic(self._kin.jacobian(q))
-             if np.all(np.isfinite(q)) else np.zeros_like(q))
+        g = (
+            laws.manipulability_gradient_analytic(self._kin.jacobian(q))
+            if np.all(np.isfinite(q))
+            else np.zeros_like(q)
+        )
         state.get_mutable_discrete_state(self._null).set_value(self._K_p6 * g)
 
     @property
@@ -195,8 +212,13 @@ class NullSpaceDiffIK(LeafSystem):
 
     def twist(self, context) -> np.ndarray:
         c = self._cfg
-        return laws.assemble_twist(self._w.Eval(context), self._vp.Eval(context),
-                                   self._vf.Eval(context), c.max_tip_speed, c.max_angular_speed)
+        return laws.assemble_twist(
+            self._w.Eval(context),
+            self._vp.Eval(context),
+            self._vf.Eval(context),
+            c.max_tip_speed,
+            c.max_angular_speed,
+        )
 
     def _calc_twist(self, context, output):
         output.SetFromVector(self.twist(context))
@@ -204,11 +226,17 @@ class NullSpaceDiffIK(LeafSystem):
     def _calc_qdot(self, context, output):
         c, k = self._cfg, self._kin
         qdot = laws.solve_joint_velocities(
-            self._q.Eval(context), self.twist(context), k.jacobian,
+            self._q.Eval(context),
+            self.twist(context),
+            k.jacobian,
             qdot_null=context.get_discrete_state(self._null).get_value(),
-            q_min=k.q_min, q_max=k.q_max,
-            dq_max=c.joint_velocity_limits, joint_limit_margin=c.joint_limit_margin,
-            sigma_threshold=c.singular_value_threshold, damping_max=c.singular_damping_max)
+            q_min=k.q_min,
+            q_max=k.q_max,
+            dq_max=c.joint_velocity_limits,
+            joint_limit_margin=c.joint_limit_margin,
+            sigma_threshold=c.singular_value_threshold,
+            damping_max=c.singular_damping_max,
+        )
         output.SetFromVector(qdot)
 
     def _calc_m(self, context, output):
@@ -219,11 +247,17 @@ class NullSpaceDiffIK(LeafSystem):
 
 def _output_vectors(s: supervisor.SupervisorState) -> dict:
     """The ScanSupervisor's vector outputs from its state, by port name (all in B)."""
-    return {"a_des": s.a_des, "o_des": s.o_des, "a_des_dot": s.a_des_dot, "P_des": s.P_des,
-            "F_des": [s.F_des], "phase": [float(s.phase)],
-            "segmentation_required": [float(supervisor.segmentation_required(s))],
-            "exploring": [float(s.phase == supervisor.Phase.EXPLORE)],
-            "abort": [float(s.phase == supervisor.Phase.ABORT)]}
+    return {
+        "a_des": s.a_des,
+        "o_des": s.o_des,
+        "a_des_dot": s.a_des_dot,
+        "P_des": s.P_des,
+        "F_des": [s.F_des],
+        "phase": [float(s.phase)],
+        "segmentation_required": [float(supervisor.segmentation_required(s))],
+        "exploring": [float(s.phase == supervisor.Phase.EXPLORE)],
+        "abort": [float(s.phase == supervisor.Phase.ABORT)],
+    }
 
 
 class ScanSupervisor(LeafSystem):
@@ -255,7 +289,7 @@ class ScanSupervisor(LeafSystem):
 
     def __init__(self, config):
         super().__init__()
-        if config.pivot_pose:   # a bad given pose fails when the diagram is built
+        if config.pivot_pose:  # a bad given pose fails when the diagram is built
             supervisor.given_pivot_pose(config.pivot_pose)
         self._cfg = config
         self._dt = 1.0 / config.rate_hz
@@ -267,15 +301,17 @@ class ScanSupervisor(LeafSystem):
         self._ready = self.DeclareVectorInputPort("localization_ready", 1)
         self._stopped = self.DeclareVectorInputPort("safety_stopped", 1)
         # Optional: the localizer's reason for giving no pose (abstract str; "" = none).
-        self._loc_error = self.DeclareAbstractInputPort("localization_error",
-                                                        AbstractValue.Make(""))
+        self._loc_error = self.DeclareAbstractInputPort(
+            "localization_error", AbstractValue.Make("")
+        )
         # Optional: adaptive exploration's "estimate has settled" flag (1-vector).
         self._sufficient = self.DeclareVectorInputPort("exploration_sufficient", 1)
         self._motion = self.DeclareVectorInputPort("motion_allowed", 1)
         self._tracking = self.DeclareAbstractInputPort("tracking_error", AbstractValue.Make(""))
         self._length = self.DeclareVectorInputPort("kidney_length_estimate", 1)
         self._pivot_model = self.DeclareAbstractInputPort(
-            "pivot_model", AbstractValue.Make(supervisor.PivotModel()))
+            "pivot_model", AbstractValue.Make(supervisor.PivotModel())
+        )
         self._s = self.DeclareAbstractState(AbstractValue.Make(supervisor.SupervisorState()))
         self.DeclarePeriodicUnrestrictedUpdateEvent(self._dt, 0.0, self._update)
         S = lambda ctx: ctx.get_abstract_state(0).get_value()  # noqa: E731
@@ -290,9 +326,11 @@ class ScanSupervisor(LeafSystem):
         # The state itself, for logs: a function of the state alone (recomputed only when
         # the state changes, once per period).
         self.DeclareAbstractOutputPort(
-            "supervisor_state", lambda: AbstractValue.Make(supervisor.SupervisorState()),
+            "supervisor_state",
+            lambda: AbstractValue.Make(supervisor.SupervisorState()),
             lambda c, o: o.set_value(S(c)),
-            prerequisites_of_calc={self.abstract_state_ticket(self._s)})
+            prerequisites_of_calc={self.abstract_state_ticket(self._s)},
+        )
 
     def state(self, context) -> supervisor.SupervisorState:
         return context.get_abstract_state(0).get_value()
@@ -305,21 +343,29 @@ class ScanSupervisor(LeafSystem):
             R_BK, p_BK = X_BK.rotation().matrix(), X_BK.translation()
         c = _optional_scalar(self._c, context, 0.5)
         u = supervisor.SupervisorInputs(
-            t=context.get_time(), R_BP=X.rotation().matrix(), p_BP=X.translation(),
+            t=context.get_time(),
+            R_BP=X.rotation().matrix(),
+            p_BP=X.translation(),
             F_z=float(self._F.Eval(context)[0]),
             kidney_visible=_optional_scalar(self._vis, context, 1.0) > 0.5,
-            c_msk=c, R_BK=R_BK, p_BK=p_BK,
+            c_msk=c,
+            R_BK=R_BK,
+            p_BK=p_BK,
             localization_ready=_optional_scalar(self._ready, context, 1.0) > 0.5,
             safety_stopped=_optional_scalar(self._stopped, context, 0.0) > 0.5,
-            localization_error=(self._loc_error.Eval(context)
-                                if self._loc_error.HasValue(context) else ""),
+            localization_error=(
+                self._loc_error.Eval(context) if self._loc_error.HasValue(context) else ""
+            ),
             exploration_sufficient=_optional_scalar(self._sufficient, context, 0.0) > 0.5,
             motion_allowed=_optional_scalar(self._motion, context, 1.0) > 0.5,
-            tracking_error=(self._tracking.Eval(context)
-                            if self._tracking.HasValue(context) else ""),
+            tracking_error=(
+                self._tracking.Eval(context) if self._tracking.HasValue(context) else ""
+            ),
             kidney_length_estimate=_optional_scalar(self._length, context, math.nan),
-            pivot_model=(self._pivot_model.Eval(context)
-                         if self._pivot_model.HasValue(context) else None))
+            pivot_model=(
+                self._pivot_model.Eval(context) if self._pivot_model.HasValue(context) else None
+            ),
+        )
         new = supervisor.supervisor_step(self.state(context), u, self._cfg, self._dt)
         state.get_mutable_abstract_state(0).set_value(new)
         for name, value in _output_vectors(new).items():
@@ -341,11 +387,17 @@ class SafetyLayer(LeafSystem):
     safety_events (tuple of SafetyEvent).
     """
 
-    def __init__(self, plant, tip_frame, safety_config, rate_hz: float,
-                 kinematics: TipKinematics | None = None):
+    def __init__(
+        self,
+        plant,
+        tip_frame,
+        safety_config,
+        rate_hz: float,
+        kinematics: TipKinematics | None = None,
+    ):
         super().__init__()
         self._cfg = safety_config
-        kernels.warm_up()   # the retreat's pseudo-inverse: compiled now, not on a stop
+        kernels.warm_up()  # the retreat's pseudo-inverse: compiled now, not on a stop
         self._dt = 1.0 / rate_hz
         self._kin = kinematics or TipKinematics(plant, tip_frame)
         n = self._kin.nq
@@ -366,8 +418,10 @@ class SafetyLayer(LeafSystem):
         self.DeclareStateOutputPort("joint_velocity_command", self._cmd)
         self.DeclareStateOutputPort("stopped", self._stopped)
         self.DeclareAbstractOutputPort(
-            "safety_events", lambda: AbstractValue.Make(()),
-            lambda c, o: o.set_value(c.get_abstract_state(0).get_value().events))
+            "safety_events",
+            lambda: AbstractValue.Make(()),
+            lambda c, o: o.set_value(c.get_abstract_state(0).get_value().events),
+        )
 
     def safety_state(self, context) -> SafetyState:
         return context.get_abstract_state(0).get_value()
@@ -375,20 +429,23 @@ class SafetyLayer(LeafSystem):
     def _update(self, context, state):
         q = np.asarray(self._q.Eval(context), dtype=float)
         X = _X(self._X, context)
-        J = (self._kin.jacobian(q) if np.all(np.isfinite(q))
-             else np.full((6, q.size), math.nan))
-        visible = (bool(self._vis.Eval(context)[0] > 0.5) if self._vis.HasValue(context)
-                   else None)
+        J = self._kin.jacobian(q) if np.all(np.isfinite(q)) else np.full((6, q.size), math.nan)
+        visible = bool(self._vis.Eval(context)[0] > 0.5) if self._vis.HasValue(context) else None
         u = SafetyInputs(
-            t=context.get_time(), q=q, v=np.asarray(self._v.Eval(context), dtype=float),
+            t=context.get_time(),
+            q=q,
+            v=np.asarray(self._v.Eval(context), dtype=float),
             qdot_desired=np.asarray(self._qd.Eval(context), dtype=float),
-            R_BP=X.rotation().matrix(), p_BP=X.translation(),
-            F_z=contact_force(self._F.Eval(context)), J=J,
+            R_BP=X.rotation().matrix(),
+            p_BP=X.translation(),
+            F_z=contact_force(self._F.Eval(context)),
+            J=J,
             image_time=_optional_scalar(self._img, context, math.nan),
             kidney_visible=visible,
             segmentation_required=_optional_scalar(self._req, context, 1.0) > 0.5,
             supervisor_abort=_optional_scalar(self._abort, context, 0.0) > 0.5,
-            robot_ok=_optional_scalar(self._ok, context, 1.0) > 0.5)
+            robot_ok=_optional_scalar(self._ok, context, 1.0) > 0.5,
+        )
         cmd, new = safety_step(self.safety_state(context), u, self._cfg)
         state.get_mutable_discrete_state(self._cmd).set_value(cmd)
         state.get_mutable_discrete_state(self._stopped).set_value([float(new.stopped)])

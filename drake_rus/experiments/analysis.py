@@ -44,14 +44,21 @@ STRATEGY_ORDER = PAPER_STRATEGIES + BEYOND_PAPER_STRATEGIES
 COMPARED_WITH = {"OP-PE": "OP"}
 # The seed paper's numbers.
 PAPER = {
-    "er_sweep": {"critical_er": 0.6, "p_e_trans_at_60": 0.0744, "p_e_rot_at_60": 0.3523,
-                 "e_trans_mm_at_60": (10.81, 7.08), "e_rot_x_deg_at_60": (11.58, 7.61)},
+    "er_sweep": {
+        "critical_er": 0.6,
+        "p_e_trans_at_60": 0.0744,
+        "p_e_rot_at_60": 0.3523,
+        "e_trans_mm_at_60": (10.81, 7.08),
+        "e_rot_x_deg_at_60": (11.58, 7.61),
+    },
     "localization": {"e_trans_mm": (8.73, 6.93), "e_rot_x_deg": (12.86, 20.86)},
     "starts": "no significant difference between the five starts (10 paired t-tests, "
-              "Bonferroni p > 0.005) in either error",
-    "efficiency": {"eps_reduction_vs_SL_mm": (1.71, 29.62),
-                   "eps_reduction_vs_NOP_mm": (24.66, 21.50),
-                   "eps_extra_vs_GT_OP_mm": (11.71, 12.60)},
+    "Bonferroni p > 0.005) in either error",
+    "efficiency": {
+        "eps_reduction_vs_SL_mm": (1.71, 29.62),
+        "eps_reduction_vs_NOP_mm": (24.66, 21.50),
+        "eps_extra_vs_GT_OP_mm": (11.71, 12.60),
+    },
     "volume_loa": "+-18% limits of agreement, freehand 3-D US vs MRI (Bakker 1999)",
 }
 # The paper's ER study: 15 simulated patients, paired t-tests at alpha 0.05 (III-C, IV-A).
@@ -126,14 +133,15 @@ def paired_t_power(d_z: float, n: int, alpha: float = ALPHA) -> float:
     return min(1.0, upper + lower)
 
 
-def paired_n_for_power(d_z: float, power: float = MIN_N_POWER, alpha: float = ALPHA,
-                       n_max: int = 100_000) -> int | None:
+def paired_n_for_power(
+    d_z: float, power: float = MIN_N_POWER, alpha: float = ALPHA, n_max: int = 100_000
+) -> int | None:
     """The smallest number of pairs n >= 2 at which the two-sided paired t-test at ``alpha``
     reaches ``power`` against an effect ``d_z`` (None: not within ``n_max``)."""
     if not (np.isfinite(d_z) and d_z != 0):
         return 2 if np.isinf(d_z) else None
     lo, hi = 2, 2
-    while paired_t_power(d_z, hi, alpha) < power:      # power grows with n: bracket, bisect
+    while paired_t_power(d_z, hi, alpha) < power:  # power grows with n: bracket, bisect
         if hi >= n_max:
             return None
         lo, hi = hi, min(n_max, hi * 2)
@@ -147,16 +155,19 @@ def paired_n_for_power(d_z: float, power: float = MIN_N_POWER, alpha: float = AL
 
 
 @functools.cache
-def minimum_patients(effect: float = MIN_N_EFFECT, power: float = MIN_N_POWER,
-                     alpha: float = ALPHA) -> int:
+def minimum_patients(
+    effect: float = MIN_N_EFFECT, power: float = MIN_N_POWER, alpha: float = ALPHA
+) -> int:
     """The ER study's minimum number of patients (:data:`MIN_N_EFFECT`)."""
     return paired_n_for_power(effect, power, alpha)
 
 
 def minimum_patients_text() -> str:
-    return (f"{minimum_patients()} patients: the smallest n at which a two-sided paired "
-            f"t-test at alpha {ALPHA:g} has {MIN_N_POWER:.0%} power to detect a large "
-            f"paired effect (Cohen's d_z = {MIN_N_EFFECT:g})")
+    return (
+        f"{minimum_patients()} patients: the smallest n at which a two-sided paired "
+        f"t-test at alpha {ALPHA:g} has {MIN_N_POWER:.0%} power to detect a large "
+        f"paired effect (Cohen's d_z = {MIN_N_EFFECT:g})"
+    )
 
 
 def tost_paired(differences, margin: float, alpha: float = ALPHA) -> dict:
@@ -166,8 +177,14 @@ def tost_paired(differences, margin: float, alpha: float = ALPHA) -> dict:
     confidence interval of the mean difference (``ci``) lies inside (-margin, margin)."""
     d = np.asarray(differences, float)
     n = len(d)
-    out = {"margin": float(margin), "n": int(n), "p": float("nan"), "equivalent": False,
-           "ci": (float("nan"), float("nan")), "mean": float("nan")}
+    out = {
+        "margin": float(margin),
+        "n": int(n),
+        "p": float("nan"),
+        "equivalent": False,
+        "ci": (float("nan"), float("nan")),
+        "mean": float("nan"),
+    }
     if n < 2:
         return out
     mean, sd = float(d.mean()), float(d.std(ddof=1))
@@ -178,7 +195,7 @@ def tost_paired(differences, margin: float, alpha: float = ALPHA) -> dict:
         return out
     se = sd / math.sqrt(n)
     df = n - 1
-    p_lower = float(stats.t.sf((mean + margin) / se, df))   # H0: mean <= -margin
+    p_lower = float(stats.t.sf((mean + margin) / se, df))  # H0: mean <= -margin
     p_upper = float(stats.t.cdf((mean - margin) / se, df))  # H0: mean >= +margin
     half = float(stats.t.isf(alpha, df)) * se
     p = max(p_lower, p_upper)
@@ -197,8 +214,10 @@ def paper_er_power() -> dict:
     its 15 patients give the observed |d_z| of each error and the power of its test against
     that effect."""
     out = {}
-    for key, p in (("e_trans_mm", PAPER["er_sweep"]["p_e_trans_at_60"]),
-                   ("e_rot_x_deg", PAPER["er_sweep"]["p_e_rot_at_60"])):
+    for key, p in (
+        ("e_trans_mm", PAPER["er_sweep"]["p_e_trans_at_60"]),
+        ("e_rot_x_deg", PAPER["er_sweep"]["p_e_rot_at_60"]),
+    ):
         d = d_z_from_p(p, PAPER_PATIENTS)
         out[key] = {"p": p, "d_z": d, "power": paired_t_power(d, PAPER_PATIENTS)}
     return out
@@ -206,9 +225,9 @@ def paper_er_power() -> dict:
 
 CRITICAL_ER_RULES = {
     "paper": "the smallest ER at which neither E_trans nor E_rot,x differs from ER 100% "
-             "(paired t-test, p > alpha): the seed's rule (IV-A)",
+    "(paired t-test, p > alpha): the seed's rule (IV-A)",
     "strict": "the smallest ER from which on every ER (it and all larger) differs from ER "
-              "100% in neither error (p > alpha): ours, stricter",
+    "100% in neither error (p > alpha): ours, stricter",
 }
 
 
@@ -242,8 +261,9 @@ def critical_er(rows: list[dict], alpha: float = ALPHA, rule: str = "paper") -> 
     ``rule`` (:data:`CRITICAL_ER_RULES`): None when no ER can be tested (fewer than two
     paired runs), else at worst the reference itself."""
     if rule not in CRITICAL_ER_RULES:
-        raise ValueError(f"critical-ER rule: expected one of {', '.join(CRITICAL_ER_RULES)}, "
-                         f"got {rule!r}")
+        raise ValueError(
+            f"critical-ER rule: expected one of {', '.join(CRITICAL_ER_RULES)}, got {rule!r}"
+        )
     if not rows:
         raise ValueError("critical ER: no rows")
     return _smallest(rows, lambda r: _passes(r, alpha), rule)
@@ -259,8 +279,9 @@ def equivalence_er(rows: list[dict], rule: str = "paper") -> float | None:
 REFERENCE_ER = 1.0
 
 
-def analyze_er_sweep(results: list[dict], alpha: float = ALPHA, rule: str = "paper",
-                     margins: dict | None = None) -> dict:
+def analyze_er_sweep(
+    results: list[dict], alpha: float = ALPHA, rule: str = "paper", margins: dict | None = None
+) -> dict:
     """Per ER: mean/SD of both errors, paired p-values against the reference ER 100% (the
     paper's), and per error the paired differences (mean, SD), Cohen's d_z, the power of
     the paired t-test at ``alpha`` against that effect with that n, and equivalence (TOST)
@@ -276,8 +297,10 @@ def analyze_er_sweep(results: list[dict], alpha: float = ALPHA, rule: str = "pap
     if not ers:
         raise ValueError("er-sweep: no results")
     if REFERENCE_ER not in by:
-        raise ValueError("er-sweep: no run at the reference ER 100% (every ER is compared "
-                         "with it); --ers must include 1")
+        raise ValueError(
+            "er-sweep: no run at the reference ER 100% (every ER is compared "
+            "with it); --ers must include 1"
+        )
     ref = by[REFERENCE_ER]
     rows = []
     for er in ers:
@@ -285,9 +308,12 @@ def analyze_er_sweep(results: list[dict], alpha: float = ALPHA, rule: str = "pap
         et = [by[er][p]["e_trans_mm"] for p in common]
         erx = [by[er][p]["e_rot_x_deg"] for p in common]
         row = {
-            "er": er, "n": len(common),
-            "e_trans_mm_mean": mean_sd(et)[0], "e_trans_mm_sd": mean_sd(et)[1],
-            "e_rot_x_deg_mean": mean_sd(erx)[0], "e_rot_x_deg_sd": mean_sd(erx)[1],
+            "er": er,
+            "n": len(common),
+            "e_trans_mm_mean": mean_sd(et)[0],
+            "e_trans_mm_sd": mean_sd(et)[1],
+            "e_rot_x_deg_mean": mean_sd(erx)[0],
+            "e_rot_x_deg_sd": mean_sd(erx)[1],
             "p_e_trans": paired_p(et, [ref[p]["e_trans_mm"] for p in common]),
             "p_e_rot_x": paired_p(erx, [ref[p]["e_rot_x_deg"] for p in common]),
             "registration_ms_mean": mean_sd([by[er][p]["registration_ms"] for p in common])[0],
@@ -297,11 +323,18 @@ def analyze_er_sweep(results: list[dict], alpha: float = ALPHA, rule: str = "pap
             diff = np.asarray([by[er][p][key] - ref[p][key] for p in common], float)
             dz = cohens_dz(diff)
             tost = tost_paired(diff, margins[key], alpha)
-            row.update({f"diff_{key}_mean": mean_sd(diff)[0],
-                        f"diff_{key}_sd": mean_sd(diff)[1],
-                        f"dz_{key}": dz, f"power_{key}": paired_t_power(dz, len(common), alpha),
-                        f"tost_p_{key}": tost["p"], f"equivalent_{key}": tost["equivalent"],
-                        f"ci90_{key}_low": tost["ci"][0], f"ci90_{key}_high": tost["ci"][1]})
+            row.update(
+                {
+                    f"diff_{key}_mean": mean_sd(diff)[0],
+                    f"diff_{key}_sd": mean_sd(diff)[1],
+                    f"dz_{key}": dz,
+                    f"power_{key}": paired_t_power(dz, len(common), alpha),
+                    f"tost_p_{key}": tost["p"],
+                    f"equivalent_{key}": tost["equivalent"],
+                    f"ci90_{key}_low": tost["ci"][0],
+                    f"ci90_{key}_high": tost["ci"][1],
+                }
+            )
         rows.append(row)
     both = {k: critical_er(rows, alpha, k) for k in CRITICAL_ER_RULES}
     equiv = {k: equivalence_er(rows, k) for k in CRITICAL_ER_RULES}
@@ -311,42 +344,61 @@ def analyze_er_sweep(results: list[dict], alpha: float = ALPHA, rule: str = "pap
     n = reference["n"]
     minimum = minimum_patients()
     critical = both[rule]
-    return {"rows": rows, "critical_er": critical, "rule": rule,
-            "rule_text": CRITICAL_ER_RULES[rule],
-            "critical_er_paper_rule": both["paper"], "critical_er_strict_rule": both["strict"],
-            "first_not_significant_er": both["paper"], "reference_er": REFERENCE_ER,
-            "alpha": alpha,
-            "equivalence_er": equiv[rule], "equivalence_er_paper_rule": equiv["paper"],
-            "equivalence_er_strict_rule": equiv["strict"], "margins": margins,
-            "floor": {key: mean_sd([ref[p][key] for p in ref]) for key, _, _ in ERRORS},
-            "patients": n, "paired_runs_per_er": {f"{r['er']:g}": r["n"] for r in rows},
-            "min_patients": minimum, "min_patients_text": minimum_patients_text(),
-            "below_minimum": bool(n < minimum),
-            "critical_row": next((r for r in rows if r["er"] == critical), None),
-            "paper_power": paper_er_power(),
-            "er_unit": units[0] if len(units) == 1 else units,
-            "kidney_length_mm": (mean_sd(lengths), float(min(lengths)), float(max(lengths)))
-            if lengths else None}
+    return {
+        "rows": rows,
+        "critical_er": critical,
+        "rule": rule,
+        "rule_text": CRITICAL_ER_RULES[rule],
+        "critical_er_paper_rule": both["paper"],
+        "critical_er_strict_rule": both["strict"],
+        "first_not_significant_er": both["paper"],
+        "reference_er": REFERENCE_ER,
+        "alpha": alpha,
+        "equivalence_er": equiv[rule],
+        "equivalence_er_paper_rule": equiv["paper"],
+        "equivalence_er_strict_rule": equiv["strict"],
+        "margins": margins,
+        "floor": {key: mean_sd([ref[p][key] for p in ref]) for key, _, _ in ERRORS},
+        "patients": n,
+        "paired_runs_per_er": {f"{r['er']:g}": r["n"] for r in rows},
+        "min_patients": minimum,
+        "min_patients_text": minimum_patients_text(),
+        "below_minimum": bool(n < minimum),
+        "critical_row": next((r for r in rows if r["er"] == critical), None),
+        "paper_power": paper_er_power(),
+        "er_unit": units[0] if len(units) == 1 else units,
+        "kidney_length_mm": (mean_sd(lengths), float(min(lengths)), float(max(lengths)))
+        if lengths
+        else None,
+    }
 
 
 def critical_er_summary(an: dict) -> str:
     """One line for the console: the critical ER with its n, the floor, the effect and
     power there, and the equivalence ER."""
+
     def pct(er):
         return "not determined" if er is None else f"{er * 100:.0f}%"
+
     fl = an["floor"]
     m = an["margins"]
-    line = (f"critical ER {pct(an['critical_er'])} ({an['rule']} rule; n = {an['patients']} "
-            f"patients, one paired run each per ER against ER 100%); floor at ER 100%: E_trans "
-            f"{fl['e_trans_mm'][0]:.2f} +- {fl['e_trans_mm'][1]:.2f} mm, E_rot,x "
-            f"{fl['e_rot_x_deg'][0]:.2f} +- {fl['e_rot_x_deg'][1]:.2f} deg")
+    line = (
+        f"critical ER {pct(an['critical_er'])} ({an['rule']} rule; n = {an['patients']} "
+        f"patients, one paired run each per ER against ER 100%); floor at ER 100%: E_trans "
+        f"{fl['e_trans_mm'][0]:.2f} +- {fl['e_trans_mm'][1]:.2f} mm, E_rot,x "
+        f"{fl['e_rot_x_deg'][0]:.2f} +- {fl['e_rot_x_deg'][1]:.2f} deg"
+    )
     row = an.get("critical_row")
     if row is not None and row["er"] != an["reference_er"]:
-        line += (f"; at {pct(row['er'])}: d_z {row['dz_e_trans_mm']:.2f} / "
-                 f"{row['dz_e_rot_x_deg']:.2f}, power {row['power_e_trans_mm']:.2f} / "
-                 f"{row['power_e_rot_x_deg']:.2f}")
-    line += (f"; equivalent to ER 100% within +-{m['e_trans_mm']:g} mm / "
-             f"+-{m['e_rot_x_deg']:g} deg (TOST) from ER {pct(an['equivalence_er'])}")
+        line += (
+            f"; at {pct(row['er'])}: d_z {row['dz_e_trans_mm']:.2f} / "
+            f"{row['dz_e_rot_x_deg']:.2f}, power {row['power_e_trans_mm']:.2f} / "
+            f"{row['power_e_rot_x_deg']:.2f}"
+        )
+    line += (
+        f"; equivalent to ER 100% within +-{m['e_trans_mm']:g} mm / "
+        f"+-{m['e_rot_x_deg']:g} deg (TOST) from ER {pct(an['equivalence_er'])}"
+    )
     return line
 
 
@@ -355,12 +407,17 @@ def sample_size_warning(an: dict) -> str | None:
     if not an.get("below_minimum"):
         return None
     n = an["patients"]
-    reason = ("a paired test needs at least 2" if n < 2 else
-              f"its power to detect even a large effect (d_z {MIN_N_EFFECT:g}) is "
-              f"{paired_t_power(MIN_N_EFFECT, n):.2f}")
-    return (f"warning: the critical ER rests on {n} patient(s), below the minimum of "
-            f"{an['min_patients']} ({reason}): a 'no significant difference' is weak "
-            "evidence here")
+    reason = (
+        "a paired test needs at least 2"
+        if n < 2
+        else f"its power to detect even a large effect (d_z {MIN_N_EFFECT:g}) is "
+        f"{paired_t_power(MIN_N_EFFECT, n):.2f}"
+    )
+    return (
+        f"warning: the critical ER rests on {n} patient(s), below the minimum of "
+        f"{an['min_patients']} ({reason}): a 'no significant difference' is weak "
+        "evidence here"
+    )
 
 
 def analyze_starts(results: list[dict], alpha: float = 0.05) -> dict:
@@ -369,7 +426,7 @@ def analyze_starts(results: list[dict], alpha: float = 0.05) -> dict:
     for r in results:
         by.setdefault(int(r["start"]), {})[r["patient"]] = r
     starts = sorted(by)
-    pairs = [(a, b) for i, a in enumerate(starts) for b in starts[i + 1:]]
+    pairs = [(a, b) for i, a in enumerate(starts) for b in starts[i + 1 :]]
     m = max(1, len(pairs))
     tests = []
     for a, b in pairs:
@@ -383,17 +440,27 @@ def analyze_starts(results: list[dict], alpha: float = 0.05) -> dict:
     per_start = []
     for s in starts:
         vals = list(by[s].values())
-        per_start.append({"start": s, "n": len(vals),
-                          "e_trans_mm_mean": mean_sd([v["e_trans_mm"] for v in vals])[0],
-                          "e_trans_mm_sd": mean_sd([v["e_trans_mm"] for v in vals])[1],
-                          "e_rot_x_deg_mean": mean_sd([v["e_rot_x_deg"] for v in vals])[0],
-                          "e_rot_x_deg_sd": mean_sd([v["e_rot_x_deg"] for v in vals])[1]})
+        per_start.append(
+            {
+                "start": s,
+                "n": len(vals),
+                "e_trans_mm_mean": mean_sd([v["e_trans_mm"] for v in vals])[0],
+                "e_trans_mm_sd": mean_sd([v["e_trans_mm"] for v in vals])[1],
+                "e_rot_x_deg_mean": mean_sd([v["e_rot_x_deg"] for v in vals])[0],
+                "e_rot_x_deg_sd": mean_sd([v["e_rot_x_deg"] for v in vals])[1],
+            }
+        )
     allv = [r for r in results]
-    return {"per_start": per_start, "tests": tests, "bonferroni_threshold": alpha / m,
-            "any_significant": any(t["significant_e_trans_mm"] or t["significant_e_rot_x_deg"]
-                                   for t in tests),
-            "e_trans_mm": mean_sd([r["e_trans_mm"] for r in allv]),
-            "e_rot_x_deg": mean_sd([r["e_rot_x_deg"] for r in allv])}
+    return {
+        "per_start": per_start,
+        "tests": tests,
+        "bonferroni_threshold": alpha / m,
+        "any_significant": any(
+            t["significant_e_trans_mm"] or t["significant_e_rot_x_deg"] for t in tests
+        ),
+        "e_trans_mm": mean_sd([r["e_trans_mm"] for r in allv]),
+        "e_rot_x_deg": mean_sd([r["e_rot_x_deg"] for r in allv]),
+    }
 
 
 # Metric keys of a strategy entry per definition (module ``drake_rus.metrics.sweep``).
@@ -406,8 +473,11 @@ EFFICIENCY_DEFINITIONS = {
 def _entry_value(e: dict, key: str):
     """A strategy entry's value; the whole pivot's under its old name (``*_full``) in runs
     written before the definitions were named."""
-    old = {"n_whole_pivot": "n_full", "eps_whole_pivot_mm": "eps_full_mm",
-           "V_whole_pivot": "V_full"}
+    old = {
+        "n_whole_pivot": "n_full",
+        "eps_whole_pivot_mm": "eps_full_mm",
+        "V_whole_pivot": "V_full",
+    }
     return e.get(key, e.get(old.get(key, key)))
 
 
@@ -423,17 +493,34 @@ def analyze_efficiency(results: list[dict], alpha: float = 0.05, V_target: float
     comparisons), tilt-cap counts, volume errors."""
     results = sorted(results, key=lambda r: r["patient"])
     tgt = f"{V_target:g}"
-    keys = ("n", "eps_mm", "V", "n_whole_pivot", "eps_whole_pivot_mm", "V_whole_pivot",
-            "n_at_V", "eps_at_V_mm", "n_at_V_whole_pivot", "eps_at_V_whole_pivot_mm",
-            "volume_error_pct")
+    keys = (
+        "n",
+        "eps_mm",
+        "V",
+        "n_whole_pivot",
+        "eps_whole_pivot_mm",
+        "V_whole_pivot",
+        "n_at_V",
+        "eps_at_V_mm",
+        "n_at_V_whole_pivot",
+        "eps_at_V_whole_pivot_mm",
+        "volume_error_pct",
+    )
     # The strategies every run has (a study may have run only some), in the report's order.
     order = [s for s in STRATEGY_ORDER if results and all(s in r["strategies"] for r in results)]
     per = {s: {k: [] for k in keys} | {"tilt_cap_legs": []} for s in order}
     for r in results:
         for s in order:
             e = r["strategies"][s]
-            for k in ("n", "eps_mm", "V", "n_whole_pivot", "eps_whole_pivot_mm",
-                      "V_whole_pivot", "volume_error_pct"):
+            for k in (
+                "n",
+                "eps_mm",
+                "V",
+                "n_whole_pivot",
+                "eps_whole_pivot_mm",
+                "V_whole_pivot",
+                "volume_error_pct",
+            ):
                 per[s][k].append(_entry_value(e, k))
             per[s]["n_at_V"].append(_at(e, tgt, "at_V", "n"))
             per[s]["eps_at_V_mm"].append(_at(e, tgt, "at_V", "eps_mm"))
@@ -449,13 +536,17 @@ def analyze_efficiency(results: list[dict], alpha: float = 0.05, V_target: float
         summary[s]["reached_V"] = int(sum(x is not None for x in per[s]["n_at_V"]))
         summary[s]["tilt_cap_patients"] = int(sum(bool(x) for x in per[s]["tilt_cap_legs"]))
         summary[s]["tilt_cap_leg_counts"] = {
-            str(leg): int(sum(leg in x for x in per[s]["tilt_cap_legs"])) for leg in (1, 2)}
+            str(leg): int(sum(leg in x for x in per[s]["tilt_cap_legs"])) for leg in (1, 2)
+        }
     # The paper's family: OP against the paper's other strategies (Bonferroni over them);
     # beyond it, each of ours against the strategy it replaces (its own family).
     others = [s for s in order if s != "OP" and s in PAPER_STRATEGIES] if "OP" in order else []
     pairs_of = [("OP", s, max(1, 2 * len(others))) for s in others]
-    pairs_of += [(s, COMPARED_WITH[s], 2) for s in order
-                 if s in BEYOND_PAPER_STRATEGIES and COMPARED_WITH[s] in order]
+    pairs_of += [
+        (s, COMPARED_WITH[s], 2)
+        for s in order
+        if s in BEYOND_PAPER_STRATEGIES and COMPARED_WITH[s] in order
+    ]
     m = max(1, 2 * len(others))
     families = dict(EFFICIENCY_DEFINITIONS)
     families[f"at_V{tgt}"] = ("n_at_V", "eps_at_V_mm")
@@ -463,23 +554,37 @@ def analyze_efficiency(results: list[dict], alpha: float = 0.05, V_target: float
     for definition, metric_keys in families.items():
         for ours, s, m_family in pairs_of:
             for key in metric_keys:
-                pairs = [(a, b) for a, b in zip(per[ours][key], per[s][key])
-                         if a is not None and b is not None]
+                pairs = [
+                    (a, b)
+                    for a, b in zip(per[ours][key], per[s][key])
+                    if a is not None and b is not None
+                ]
                 a = np.asarray([x for x, _ in pairs], float)
                 b = np.asarray([y for _, y in pairs], float)
                 p = paired_p(a, b)
-                comparisons.append({
-                    "definition": definition, "comparison": f"{ours} vs {s}",
-                    "metric": "n" if key.startswith("n") else "eps_mm",
-                    "reduction_mean": float(np.mean(b - a)) if len(a) else float("nan"),
-                    "reduction_sd": float(np.std(b - a, ddof=1)) if len(a) > 1 else 0.0,
-                    # how often the first-named strategy was lower (OP in the paper's pairs)
-                    "op_lower_count": int(np.sum(a < b)), "patients": int(len(a)),
-                    "p": p, "bonferroni_threshold": alpha / m_family,
-                    "significant": bool(np.isfinite(p) and p < alpha / m_family)})
-    return {"per_patient": per, "summary": summary, "comparisons": comparisons,
-            "bonferroni_threshold": alpha / m, "V_target": V_target,
-            "patients": [r["patient"] for r in results]}
+                comparisons.append(
+                    {
+                        "definition": definition,
+                        "comparison": f"{ours} vs {s}",
+                        "metric": "n" if key.startswith("n") else "eps_mm",
+                        "reduction_mean": float(np.mean(b - a)) if len(a) else float("nan"),
+                        "reduction_sd": float(np.std(b - a, ddof=1)) if len(a) > 1 else 0.0,
+                        # how often the first-named strategy was lower (OP in the paper's pairs)
+                        "op_lower_count": int(np.sum(a < b)),
+                        "patients": int(len(a)),
+                        "p": p,
+                        "bonferroni_threshold": alpha / m_family,
+                        "significant": bool(np.isfinite(p) and p < alpha / m_family),
+                    }
+                )
+    return {
+        "per_patient": per,
+        "summary": summary,
+        "comparisons": comparisons,
+        "bonferroni_threshold": alpha / m,
+        "V_target": V_target,
+        "patients": [r["patient"] for r in results],
+    }
 
 
 DISTANCE_BINS_MM = (0.0, 3.0, 4.0, 5.0, 7.0, float("inf"))
@@ -490,8 +595,9 @@ def template_group(r: dict) -> str:
     ``seed:N``/``train:K``/``test:K``) or the real body's folder or file name; ``, decubitus``
     appended for left-lateral-decubitus runs."""
     spec = str(r["patient"])
-    kind = r.get("patient_kind") or ("generated" if re.fullmatch(r"(test|train|seed):\d+", spec)
-                                     else "real")
+    kind = r.get("patient_kind") or (
+        "generated" if re.fullmatch(r"(test|train|seed):\d+", spec) else "real"
+    )
     name = "generated" if kind == "generated" else spec.rstrip("/").split("/")[-1]
     return name + (", decubitus" if r.get("posture") == "left_lateral_decubitus" else "")
 
@@ -503,11 +609,19 @@ def _trend(results: list[dict]) -> dict:
         y = np.asarray([r[key] for r in results], float)
         if len(d) > 2 and np.ptp(d) > 0 and np.ptp(y) > 0:
             fit = np.polyfit(d, y, 1)
-            trend[key] = {"r": float(np.corrcoef(d, y)[0, 1]), "slope_per_mm": float(fit[0]),
-                          "intercept": float(fit[1]), "runs": int(len(d))}
+            trend[key] = {
+                "r": float(np.corrcoef(d, y)[0, 1]),
+                "slope_per_mm": float(fit[0]),
+                "intercept": float(fit[1]),
+                "runs": int(len(d)),
+            }
         else:
-            trend[key] = {"r": float("nan"), "slope_per_mm": float("nan"),
-                          "intercept": float("nan"), "runs": int(len(d))}
+            trend[key] = {
+                "r": float("nan"),
+                "slope_per_mm": float("nan"),
+                "intercept": float("nan"),
+                "runs": int(len(d)),
+            }
     return trend
 
 
@@ -522,7 +636,8 @@ def analyze_template(results: list[dict]) -> dict:
     groups = {}
     for r in results:
         groups.setdefault(template_group(r), {}).setdefault(r["template_variant"], {})[
-            r["patient"]] = r
+            r["patient"]
+        ] = r
     rows = []
     for g in sorted(groups, key=lambda g: (g != "generated", g)):
         by = groups[g]
@@ -535,9 +650,11 @@ def analyze_template(results: list[dict]) -> dict:
             for key in ("template_distance_mm", "e_trans_mm", "e_rot_x_deg"):
                 row[f"{key}_mean"], row[f"{key}_sd"] = mean_sd([x[key] for x in vals])
             for key in ("e_trans_mm", "e_rot_x_deg"):
-                row[f"p_{key}_vs_mean"] = (paired_p([runs[q][key] for q in common],
-                                                    [ref[q][key] for q in common])
-                                           if v != "mean" else float("nan"))
+                row[f"p_{key}_vs_mean"] = (
+                    paired_p([runs[q][key] for q in common], [ref[q][key] for q in common])
+                    if v != "mean"
+                    else float("nan")
+                )
             ext = [x.get("template_extent_mm") for x in vals if x.get("template_extent_mm")]
             row["template_length_mm"] = float(ext[0][0]) if ext else float("nan")
             rows.append(row)
@@ -548,15 +665,24 @@ def analyze_template(results: list[dict]) -> dict:
         sel = [r for r, x in zip(results, d) if lo <= x < hi]
         if not sel:
             continue
-        b = {"from_mm": lo, "to_mm": hi, "n": len(sel),
-             "real_runs": sum(1 for r in sel if not template_group(r).startswith("generated"))}
+        b = {
+            "from_mm": lo,
+            "to_mm": hi,
+            "n": len(sel),
+            "real_runs": sum(1 for r in sel if not template_group(r).startswith("generated")),
+        }
         for key in ("template_distance_mm", "e_trans_mm", "e_rot_x_deg"):
             b[f"{key}_mean"], b[f"{key}_sd"] = mean_sd([r[key] for r in sel])
         bins.append(b)
-    return {"rows": rows, "trend": _trend(generated or results), "trend_all": _trend(results),
-            "bins": bins, "groups": list(dict.fromkeys(r["group"] for r in rows)),
-            "patients": sorted({r["patient"] for r in results}),
-            "er": sorted({r["er"] for r in results})}
+    return {
+        "rows": rows,
+        "trend": _trend(generated or results),
+        "trend_all": _trend(results),
+        "bins": bins,
+        "groups": list(dict.fromkeys(r["group"] for r in rows)),
+        "patients": sorted({r["patient"] for r in results}),
+        "er": sorted({r["er"] for r in results}),
+    }
 
 
 def _variant_order(v: str):
@@ -576,8 +702,10 @@ def mean_curve(results: list[dict], strategy: str, x_key: str, grid: np.ndarray)
         if len(V) == 0:
             curves.append(np.zeros_like(grid))
             continue
-        x = np.arange(1, len(V) + 1, dtype=float) if x_key == "n" else np.asarray(
-            e["curve_eps_mm"], float)
+        x = (
+            np.arange(1, len(V) + 1, dtype=float)
+            if x_key == "n"
+            else np.asarray(e["curve_eps_mm"], float)
+        )
         curves.append(np.interp(grid, x, V, left=0.0, right=V[-1]))
     return np.mean(curves, axis=0) if curves else np.zeros_like(grid)
-

@@ -30,131 +30,235 @@ from drake_rus import batch
 from drake_rus.batch import bound_workers, run_tasks
 from drake_rus.cli import add_scenario_arguments
 from drake_rus.experiments.analysis import (
-    DEFAULT_MARGINS, STRATEGY_ORDER, critical_er_summary, sample_size_warning)
+    DEFAULT_MARGINS,
+    STRATEGY_ORDER,
+    analyze_efficiency,
+    analyze_er_sweep,
+    analyze_starts,
+    critical_er_summary,
+    sample_size_warning,
+)
 from drake_rus.experiments.report import (
-    CLOSED_LOOP, KINEMATIC, report_markdown, write_closed_loop_outputs,
-    write_efficiency_outputs, write_er_sweep_outputs, write_starts_outputs,
-    write_template_outputs)
-from drake_rus.experiments.analysis import (
-    analyze_efficiency, analyze_er_sweep, analyze_starts)
+    CLOSED_LOOP,
+    KINEMATIC,
+    report_markdown,
+    write_closed_loop_outputs,
+    write_efficiency_outputs,
+    write_er_sweep_outputs,
+    write_starts_outputs,
+    write_template_outputs,
+)
 from drake_rus.experiments.tasks import (
-    ER_GRID, MODES, POSTURES, TEMPLATE_VARIANTS, StudyOptions,
-    check_strategies, closed_loop_tasks, default_strategies, efficiency_tasks, er_sweep_tasks,
-    expand_patients, inputs_digest, load_study_results, population_of_variant, results_of,
-    run_id, run_settings, run_task, settings_of, starts_tasks, task_key, template_tasks)
-from drake_rus.template.population import population_template
+    ER_GRID,
+    MODES,
+    POSTURES,
+    TEMPLATE_VARIANTS,
+    StudyOptions,
+    check_strategies,
+    closed_loop_tasks,
+    default_strategies,
+    efficiency_tasks,
+    er_sweep_tasks,
+    expand_patients,
+    inputs_digest,
+    load_study_results,
+    population_of_variant,
+    results_of,
+    run_id,
+    run_settings,
+    run_task,
+    settings_of,
+    starts_tasks,
+    task_key,
+    template_tasks,
+)
 from drake_rus.io_utils import MB, dumps_strict, output_dir, write_text_atomic
 from drake_rus.progress import stderr_is_terminal
 from drake_rus.provenance import Provenance
 from drake_rus.scenario import LoadScenario
+from drake_rus.template.population import population_template
 
 # About what a study writes (bytes): per-run JSON, tables, figures, NRRD volumes.
 STUDY_OUTPUT_BYTES = 50 * MB
 
 
 def add_commands(subparsers) -> None:
-    p = subparsers.add_parser("study", help="the seed paper's studies (kinematic or closed "
-                                            "loop, Dask)",
-                              description=__doc__,
-                              formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = subparsers.add_parser(
+        "study",
+        help="the seed paper's studies (kinematic or closed loop, Dask)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     sub = p.add_subparsers(dest="study", metavar="STUDY")
     sub.required = True
-    helps = {"er-sweep": "localization error vs exploration ratio 0..100% (Fig. 7d)",
-             "starts": "five random exploration starts at the critical ER (Fig. 9d)",
-             "efficiency": "OP, GT-OP, NOP, SL sweeps: V vs n and eps (Fig. 10), volumes "
-                           "(kinematic); OP-PE (the predicted-end pivot, beyond the paper); "
-                           "report.md",
-             "paper": "all of the above into one report directory with report.md",
-             "template": "localization with mismatched templates (mean, scaled, single "
-                         "kidney, leave-one-out, another population's) against the "
-                         "template's distance, generated patients and real bodies"}
+    helps = {
+        "er-sweep": "localization error vs exploration ratio 0..100% (Fig. 7d)",
+        "starts": "five random exploration starts at the critical ER (Fig. 9d)",
+        "efficiency": "OP, GT-OP, NOP, SL sweeps: V vs n and eps (Fig. 10), volumes "
+        "(kinematic); OP-PE (the predicted-end pivot, beyond the paper); "
+        "report.md",
+        "paper": "all of the above into one report directory with report.md",
+        "template": "localization with mismatched templates (mean, scaled, single "
+        "kidney, leave-one-out, another population's) against the "
+        "template's distance, generated patients and real bodies",
+    }
     for name, text in helps.items():
         # argparse %-formats help strings (not descriptions): escape the "%" of "100%".
         q = sub.add_parser(name, help=text.replace("%", "%%"), description=text)
         add_scenario_arguments(q)
-        q.add_argument("--patients", default="test:0-14",
-                       help="comma list: test:0-14, seed:100-120, train:3 or patient paths "
-                            "(default test:0-14); study template: each optionally with "
-                            "@decubitus or @supine")
-        q.add_argument("--out", default=f"reports/{name}", help=f"output directory "
-                                                                f"(default reports/{name})")
-        q.add_argument("--workers", type=int, default=2,
-                       help="Dask worker processes of the embedded cluster (default 2; 0 = "
-                            "run in this process; capped at the CPUs available and at about "
-                            "1 GB of free memory per worker)")
-        q.add_argument("--scheduler", default=None,
-                       help="address of an existing Dask scheduler, e.g. tcp://host:8786")
-        q.add_argument("--segmenter", default="oracle", choices=["oracle", "classical", "onnx"],
-                       help="segmentation of the kinematic frames (default oracle, as the "
-                            "seed's simulation)")
-        q.add_argument("--method", default="seed", choices=["seed", "deformable"],
-                       help="localization method (default seed, the paper's)")
+        q.add_argument(
+            "--patients",
+            default="test:0-14",
+            help="comma list: test:0-14, seed:100-120, train:3 or patient paths "
+            "(default test:0-14); study template: each optionally with "
+            "@decubitus or @supine",
+        )
+        q.add_argument(
+            "--out", default=f"reports/{name}", help=f"output directory (default reports/{name})"
+        )
+        q.add_argument(
+            "--workers",
+            type=int,
+            default=2,
+            help="Dask worker processes of the embedded cluster (default 2; 0 = "
+            "run in this process; capped at the CPUs available and at about "
+            "1 GB of free memory per worker)",
+        )
+        q.add_argument(
+            "--scheduler",
+            default=None,
+            help="address of an existing Dask scheduler, e.g. tcp://host:8786",
+        )
+        q.add_argument(
+            "--segmenter",
+            default="oracle",
+            choices=["oracle", "classical", "onnx"],
+            help="segmentation of the kinematic frames (default oracle, as the seed's simulation)",
+        )
+        q.add_argument(
+            "--method",
+            default="seed",
+            choices=["seed", "deformable"],
+            help="localization method (default seed, the paper's)",
+        )
         q.add_argument("--seed", type=int, default=0, help="study seed (random starts)")
-        q.add_argument("--mode", default="kinematic", choices=list(MODES),
-                       help="kinematic: the fast twin (planned probe poses, default); "
-                            "closed-loop: every run a full closed-loop scan on the Drake "
-                            "diagram (outputs in OUT/closed-loop)")
-        q.add_argument("--er-unit", default="kidney", choices=["kidney", "fixed"],
-                       help="what ER multiplies: the patient's kidney length (default, the "
-                            "paper's simulation) or the fixed L_m = 100 mm (its in-vivo rule)")
+        q.add_argument(
+            "--mode",
+            default="kinematic",
+            choices=list(MODES),
+            help="kinematic: the fast twin (planned probe poses, default); "
+            "closed-loop: every run a full closed-loop scan on the Drake "
+            "diagram (outputs in OUT/closed-loop)",
+        )
+        q.add_argument(
+            "--er-unit",
+            default="kidney",
+            choices=["kidney", "fixed"],
+            help="what ER multiplies: the patient's kidney length (default, the "
+            "paper's simulation) or the fixed L_m = 100 mm (its in-vivo rule)",
+        )
         if name in ("er-sweep", "paper"):
-            q.add_argument("--critical-er-rule", default="paper", choices=["paper", "strict"],
-                           help="critical ER: the smallest ER not significantly different "
-                                "from 100%% (paper, default) or the smallest from which on "
-                                "every larger ER is not either (strict)")
-        q.add_argument("--voxel", type=float, default=0.002,
-                       help="label-volume voxel size in m (default 0.002)")
+            q.add_argument(
+                "--critical-er-rule",
+                default="paper",
+                choices=["paper", "strict"],
+                help="critical ER: the smallest ER not significantly different "
+                "from 100%% (paper, default) or the smallest from which on "
+                "every larger ER is not either (strict)",
+            )
+        q.add_argument(
+            "--voxel",
+            type=float,
+            default=0.002,
+            help="label-volume voxel size in m (default 0.002)",
+        )
         if name in ("efficiency", "paper"):
-            q.add_argument("--recon-spacing", type=float, default=0.001,
-                           help="voxel size (m) of the kidney volume reconstruction "
-                                "(default 0.001)")
-            q.add_argument("--strategies", default=None,
-                           help="comma list of OP, GT-OP, NOP, SL and OP-PE (OP's pose with "
-                                "the predicted_end pivot, beyond the paper) (default all in "
-                                "kinematic mode; the paper's four in closed-loop mode, one "
-                                "scan each: GT-OP and NOP pivot at a pose the study gives "
-                                "the scan, SL is the scan's line sweep)")
-            q.add_argument("--no-nrrd", action="store_true",
-                           help="do not export the OP/GT-OP reconstructions to OUT/volumes "
-                                "as NRRD")
+            q.add_argument(
+                "--recon-spacing",
+                type=float,
+                default=0.001,
+                help="voxel size (m) of the kidney volume reconstruction (default 0.001)",
+            )
+            q.add_argument(
+                "--strategies",
+                default=None,
+                help="comma list of OP, GT-OP, NOP, SL and OP-PE (OP's pose with "
+                "the predicted_end pivot, beyond the paper) (default all in "
+                "kinematic mode; the paper's four in closed-loop mode, one "
+                "scan each: GT-OP and NOP pivot at a pose the study gives "
+                "the scan, SL is the scan's line sweep)",
+            )
+            q.add_argument(
+                "--no-nrrd",
+                action="store_true",
+                help="do not export the OP/GT-OP reconstructions to OUT/volumes as NRRD",
+            )
         if name in ("er-sweep", "paper"):
-            q.add_argument("--ers", default=None,
-                           help="comma list of exploration ratios in [0, 1], including the "
-                                "reference 1 (ER 100%%, which every ER is compared with) "
-                                "(default 0,0.1,...,1)")
-            q.add_argument("--margin-mm", type=float, default=DEFAULT_MARGINS["e_trans_mm"],
-                           help="clinical equivalence margin of E_trans against ER 100%% in "
-                                "mm, for the equivalence test (TOST) beside the critical ER "
-                                "(default %(default)g)")
-            q.add_argument("--margin-deg", type=float, default=DEFAULT_MARGINS["e_rot_x_deg"],
-                           help="the same for E_rot,x in degrees (default %(default)g)")
+            q.add_argument(
+                "--ers",
+                default=None,
+                help="comma list of exploration ratios in [0, 1], including the "
+                "reference 1 (ER 100%%, which every ER is compared with) "
+                "(default 0,0.1,...,1)",
+            )
+            q.add_argument(
+                "--margin-mm",
+                type=float,
+                default=DEFAULT_MARGINS["e_trans_mm"],
+                help="clinical equivalence margin of E_trans against ER 100%% in "
+                "mm, for the equivalence test (TOST) beside the critical ER "
+                "(default %(default)g)",
+            )
+            q.add_argument(
+                "--margin-deg",
+                type=float,
+                default=DEFAULT_MARGINS["e_rot_x_deg"],
+                help="the same for E_rot,x in degrees (default %(default)g)",
+            )
         if name == "template":
-            q.add_argument("--variants", default=",".join(TEMPLATE_VARIANTS),
-                           help="comma list of template variants: mean, scale-S, single:K, "
-                                "loo (training patients only), population:NAME[:N] (a "
-                                "template built from N (default 20) generated kidneys of "
-                                "another population, cached: NAME base, short, long, slim "
-                                "or length+Xsd) (default %(default)s)")
-            q.add_argument("--posture", default=None, choices=list(POSTURES),
-                           help="lay every patient supine or in left lateral decubitus "
-                                "(default: the scenario's; decubitus runs' ids end in __lld)")
+            q.add_argument(
+                "--variants",
+                default=",".join(TEMPLATE_VARIANTS),
+                help="comma list of template variants: mean, scale-S, single:K, "
+                "loo (training patients only), population:NAME[:N] (a "
+                "template built from N (default 20) generated kidneys of "
+                "another population, cached: NAME base, short, long, slim "
+                "or length+Xsd) (default %(default)s)",
+            )
+            q.add_argument(
+                "--posture",
+                default=None,
+                choices=list(POSTURES),
+                help="lay every patient supine or in left lateral decubitus "
+                "(default: the scenario's; decubitus runs' ids end in __lld)",
+            )
         if name in ("starts", "efficiency", "template"):
-            q.add_argument("--er", type=float, default=None,
-                           help="exploration ratio (default: the critical ER found by an "
-                                "er-sweep in OUT, else 0.6)")
+            q.add_argument(
+                "--er",
+                type=float,
+                default=None,
+                help="exploration ratio (default: the critical ER found by an "
+                "er-sweep in OUT, else 0.6)",
+            )
         if name in ("starts", "paper"):
             q.add_argument("--starts", type=int, default=5, help="random starts (default 5)")
         if name == "paper":
-            q.add_argument("--closed-loop", type=int, default=3,
-                           help="closed-loop dynamic scans (first N patients, at the "
-                                "scenario's ER) beside their kinematic twins (default 3; 0 "
-                                "skips)")
+            q.add_argument(
+                "--closed-loop",
+                type=int,
+                default=3,
+                help="closed-loop dynamic scans (first N patients, at the "
+                "scenario's ER) beside their kinematic twins (default 3; 0 "
+                "skips)",
+            )
         q.add_argument("--no-progress", action="store_true", help="no progress bar")
         q.set_defaults(func=run_study_command, outputs={"out": "dir"})
 
 
-ERS_EXPECTED = ("a non-empty comma list of exploration ratios in [0, 1] that includes the "
-                "reference 1 (ER 100%, which every ER is compared with), e.g. 0,0.3,0.6,1")
+ERS_EXPECTED = (
+    "a non-empty comma list of exploration ratios in [0, 1] that includes the "
+    "reference 1 (ER 100%, which every ER is compared with), e.g. 0,0.3,0.6,1"
+)
 
 
 def _ers(text):
@@ -178,8 +282,9 @@ def _margins(args) -> dict:
         v = getattr(args, flag, DEFAULT_MARGINS[key])
         if not (math.isfinite(v) and v > 0):
             unit = "mm" if key == "e_trans_mm" else "deg"
-            raise ValueError(f"--{flag.replace('_', '-')}: expected a positive margin in "
-                             f"{unit}, got {v}")
+            raise ValueError(
+                f"--{flag.replace('_', '-')}: expected a positive margin in {unit}, got {v}"
+            )
         out[key] = float(v)
     return out
 
@@ -190,12 +295,19 @@ def _options(args):
     recon = float(getattr(args, "recon_spacing", 0.001))
     if not recon > 0:
         raise ValueError(f"--recon-spacing: expected a positive size in m, got {recon}")
-    return StudyOptions(scenario=args.scenario, scenarios_file=args.scenarios_file,
-                        overrides=args.overrides, segmenter=args.segmenter, method=args.method,
-                        voxel=float(args.voxel), seed=int(args.seed), recon_spacing=recon,
-                        er_unit=getattr(args, "er_unit", "kidney"),
-                        mode=getattr(args, "mode", "kinematic"),
-                        posture=getattr(args, "posture", None))
+    return StudyOptions(
+        scenario=args.scenario,
+        scenarios_file=args.scenarios_file,
+        overrides=args.overrides,
+        segmenter=args.segmenter,
+        method=args.method,
+        voxel=float(args.voxel),
+        seed=int(args.seed),
+        recon_spacing=recon,
+        er_unit=getattr(args, "er_unit", "kidney"),
+        mode=getattr(args, "mode", "kinematic"),
+        posture=getattr(args, "posture", None),
+    )
 
 
 def _strategies(args, mode):
@@ -217,9 +329,16 @@ def _without(settings: dict, *keys) -> dict:
     return {k: v for k, v in settings.items() if k not in keys}
 
 
-def _other_mode(out: Path, patients, mode: str, rule: str, study: str = "paper",
-                er: float | None = None, settings: dict | None = None,
-                margins: dict | None = None) -> dict | None:
+def _other_mode(
+    out: Path,
+    patients,
+    mode: str,
+    rule: str,
+    study: str = "paper",
+    er: float | None = None,
+    settings: dict | None = None,
+    margins: dict | None = None,
+) -> dict | None:
     """The other mode's analyses from OUT, if it holds them (for the side-by-side report):
     {"mode", "er", "starts", "eff", "settings"}, None for a study it lacks. Its starts and
     efficiency runs are those at the ER its own ``study`` (else its paper study) used (its
@@ -237,23 +356,31 @@ def _other_mode(out: Path, patients, mode: str, rule: str, study: str = "paper",
     found = {}
     labels = None
     for study, key in (("er-sweep", "er"), ("starts", "starts"), ("efficiency", "eff")):
-        rs = _usable([r for r in load_study_results(out, study)
-                      if r["task"].get("mode", "kinematic") == other and r["patient"] in wanted
-                      and (study == "er-sweep" or (er is not None and abs(r["er"] - er) < 1e-6))],
-                     study)
+        rs = _usable(
+            [
+                r
+                for r in load_study_results(out, study)
+                if r["task"].get("mode", "kinematic") == other
+                and r["patient"] in wanted
+                and (study == "er-sweep" or (er is not None and abs(r["er"] - er) < 1e-6))
+            ],
+            study,
+        )
         groups = {}
         for r in rs:
-            groups.setdefault(repr(sorted(_without(run_settings(r), "mode").items())),
-                              []).append(r)
+            groups.setdefault(repr(sorted(_without(run_settings(r), "mode").items())), []).append(r)
         mine = None if settings is None else repr(sorted(_without(settings, "mode").items()))
         if mine in groups:
             rs = groups[mine]
         elif len(groups) == 1:
             rs = next(iter(groups.values()))
         elif groups:
-            print(f"{study}: the {other} runs in {out} were made with {len(groups)} different "
-                  "settings, none of them this study's: not put side by side",
-                  file=sys.stderr, flush=True)
+            print(
+                f"{study}: the {other} runs in {out} were made with {len(groups)} different "
+                "settings, none of them this study's: not put side by side",
+                file=sys.stderr,
+                flush=True,
+            )
             continue
         if not rs:
             continue
@@ -269,8 +396,7 @@ def _other_mode(out: Path, patients, mode: str, rule: str, study: str = "paper",
             continue
     if not found:
         return None
-    return dict(found, mode=CLOSED_LOOP if other == "closed-loop" else KINEMATIC,
-                settings=labels)
+    return dict(found, mode=CLOSED_LOOP if other == "closed-loop" else KINEMATIC, settings=labels)
 
 
 def _usable(results, study: str = ""):
@@ -278,10 +404,20 @@ def _usable(results, study: str = ""):
     the efficiency study, closed-loop runs whose scans all finished (DONE: the run's own
     scan and each strategy's; a scan that stopped before or during its sweep has no
     comparable sweep)."""
-    return [r for r in results if r.get("e_trans_mm") is not None
-            and (study != "efficiency" or (r.get("status", "DONE") == "DONE" and all(
-                e.get("status", "DONE") == "DONE"
-                for e in (r.get("strategies") or {}).values())))]
+    return [
+        r
+        for r in results
+        if r.get("e_trans_mm") is not None
+        and (
+            study != "efficiency"
+            or (
+                r.get("status", "DONE") == "DONE"
+                and all(
+                    e.get("status", "DONE") == "DONE" for e in (r.get("strategies") or {}).values()
+                )
+            )
+        )
+    ]
 
 
 # The ER of starts, efficiency and template runs when no er-sweep of the same settings says
@@ -307,15 +443,22 @@ def _critical_er(out: Path, settings: dict, default: float = DEFAULT_ER) -> floa
     except ValueError:
         saved = {}
     if not isinstance(saved.get("settings"), dict) or (
-            _without(saved["settings"], *CRITICAL_ER_FREE)
-            != _without(settings, *CRITICAL_ER_FREE)):
-        print(f"{path} was made with other settings (or records none): its critical ER is "
-              f"not used; ER {default * 100:.0f}% (the paper's critical ER)", file=sys.stderr,
-              flush=True)
+        _without(saved["settings"], *CRITICAL_ER_FREE) != _without(settings, *CRITICAL_ER_FREE)
+    ):
+        print(
+            f"{path} was made with other settings (or records none): its critical ER is "
+            f"not used; ER {default * 100:.0f}% (the paper's critical ER)",
+            file=sys.stderr,
+            flush=True,
+        )
         return default
     if saved.get("critical_er") is None:
-        print(f"{path}: its critical ER was not determined; ER {default * 100:.0f}% (the "
-              "paper's critical ER)", file=sys.stderr, flush=True)
+        print(
+            f"{path}: its critical ER was not determined; ER {default * 100:.0f}% (the "
+            "paper's critical ER)",
+            file=sys.stderr,
+            flush=True,
+        )
         return default
     return float(saved["critical_er"])
 
@@ -323,9 +466,17 @@ def _critical_er(out: Path, settings: dict, default: float = DEFAULT_ER) -> floa
 def _expected_settings(options) -> dict:
     """The settings runs of ``options`` record (:func:`run_settings`)."""
     task = er_sweep_tasks(["test:0"], options, [1.0])[0]
-    return run_settings({"task": task, "inputs_sha256": inputs_digest(
-        task["scenario"], task.get("scenarios_file"), task.get("overrides"),
-        task.get("posture"))})
+    return run_settings(
+        {
+            "task": task,
+            "inputs_sha256": inputs_digest(
+                task["scenario"],
+                task.get("scenarios_file"),
+                task.get("overrides"),
+                task.get("posture"),
+            ),
+        }
+    )
 
 
 def run_study_command(args) -> int:
@@ -334,17 +485,19 @@ def run_study_command(args) -> int:
     except ValueError as e:
         raise ValueError(f"--patients: {e}") from None
     if args.study != "template" and any("@" in p for p in patients):
-        raise ValueError("--patients: a posture suffix (@decubitus, @supine) is only read by "
-                         "study template; use --scenario decubitus for the other studies")
+        raise ValueError(
+            "--patients: a posture suffix (@decubitus, @supine) is only read by "
+            "study template; use --scenario decubitus for the other studies"
+        )
     options = _options(args)
     # Fail early (in this process) on a bad scenario or template, not in every worker, and
     # on every argument before the output folder is made.
-    scenario = LoadScenario(filename=args.scenarios_file, scenario_name=args.scenario,
-                            scenario_text=args.overrides)
+    scenario = LoadScenario(
+        filename=args.scenarios_file, scenario_name=args.scenario, scenario_text=args.overrides
+    )
     if args.study == "template":
         # Every run's posture in its record and run id (decubitus runs end in __lld).
-        options = dataclasses.replace(options, posture=options.posture
-                                      or scenario.patient.posture)
+        options = dataclasses.replace(options, posture=options.posture or scenario.patient.posture)
     margins = None
     if args.study in ("er-sweep", "paper"):
         _ers(args.ers)
@@ -353,8 +506,9 @@ def run_study_command(args) -> int:
         _strategies(args, options.mode)
     if args.study == "template":
         try:
-            template_tasks([], options, 0.6, [v.strip() for v in args.variants.split(",")
-                                              if v.strip()])
+            template_tasks(
+                [], options, 0.6, [v.strip() for v in args.variants.split(",") if v.strip()]
+            )
         except ValueError as e:
             raise ValueError(f"--variants: {e}") from None
     er = getattr(args, "er", None)
@@ -363,16 +517,17 @@ def run_study_command(args) -> int:
     workers, note = (args.workers, None) if args.scheduler else bound_workers(args.workers)
     if note:
         print(note, file=sys.stderr, flush=True)
-    with output_dir(args.out, "--out", need_bytes=STUDY_OUTPUT_BYTES,
-                    what=f"study {args.study}") as out:
+    with output_dir(
+        args.out, "--out", need_bytes=STUDY_OUTPUT_BYTES, what=f"study {args.study}"
+    ) as out:
         return _study(args, patients, options, out, workers, margins, scenario)
 
 
-def _study(args, patients, options, out: Path, workers: int, margins: dict | None,
-           scenario) -> int:
+def _study(args, patients, options, out: Path, workers: int, margins: dict | None, scenario) -> int:
     terminal = stderr_is_terminal()
-    run = dict(workers=workers, scheduler=args.scheduler,
-               progress=not args.no_progress and terminal)
+    run = dict(
+        workers=workers, scheduler=args.scheduler, progress=not args.no_progress and terminal
+    )
     t0 = time.perf_counter()
     failed = []
     er_an = starts_an = eff_an = None
@@ -380,21 +535,30 @@ def _study(args, patients, options, out: Path, workers: int, margins: dict | Non
     mode_text = CLOSED_LOOP if mode == "closed-loop" else KINEMATIC
     dest = _mode_dir(out, mode)
     unusable = {}
-    used = []              # every run a table below was made from: the report's labels
+    used = []  # every run a table below was made from: the report's labels
     study_argv = list(sys.argv)
 
     def usable(study, results):
         ok = _usable(results, study)
         if len(ok) < len(results):
             kept = {r["run_id"] for r in ok}
-            unusable[study] = [f"{r['run_id']}: {r.get('status', '?')} {r.get('reason', '')}"
-                               + "".join(f"; {k} {e.get('status')} {e.get('reason', '')}"
-                                         for k, e in (r.get("strategies") or {}).items()
-                                         if e.get("status", "DONE") != "DONE")
-                               for r in results if r["run_id"] not in kept]
-            print(f"{study}: {len(results) - len(ok)} run(s) without a localization"
-                  + (" or a finished scan" if study == "efficiency" else "")
-                  + " left out of the analysis", file=sys.stderr, flush=True)
+            unusable[study] = [
+                f"{r['run_id']}: {r.get('status', '?')} {r.get('reason', '')}"
+                + "".join(
+                    f"; {k} {e.get('status')} {e.get('reason', '')}"
+                    for k, e in (r.get("strategies") or {}).items()
+                    if e.get("status", "DONE") != "DONE"
+                )
+                for r in results
+                if r["run_id"] not in kept
+            ]
+            print(
+                f"{study}: {len(results) - len(ok)} run(s) without a localization"
+                + (" or a finished scan" if study == "efficiency" else "")
+                + " left out of the analysis",
+                file=sys.stderr,
+                flush=True,
+            )
         return ok
 
     def runs_of(study, tasks):
@@ -416,24 +580,45 @@ def _study(args, patients, options, out: Path, workers: int, margins: dict | Non
         plan = batch.plan(tasks, out, run_id, task_key)
         todo = len(plan["todo"])
         where = args.scheduler or (f"{workers} workers" if workers else "this process")
-        print(f"{desc}: {len(tasks)} runs, {len(tasks) - todo} already done with these "
-              f"settings, {todo} to run on {where}", file=sys.stderr, flush=True)
+        print(
+            f"{desc}: {len(tasks)} runs, {len(tasks) - todo} already done with these "
+            f"settings, {todo} to run on {where}",
+            file=sys.stderr,
+            flush=True,
+        )
         if plan["superseded"]:
             rid, what = plan["superseded"][0]
-            print(f"{desc}: {len(plan['superseded'])} stored run(s) of the same name were made "
-                  f"with other settings (e.g. {rid}: {what}): set aside under "
-                  f"{batch.runs_dir(out) / batch.SUPERSEDED_DIR} and run again",
-                  file=sys.stderr, flush=True)
+            print(
+                f"{desc}: {len(plan['superseded'])} stored run(s) of the same name were made "
+                f"with other settings (e.g. {rid}: {what}): set aside under "
+                f"{batch.runs_dir(out) / batch.SUPERSEDED_DIR} and run again",
+                file=sys.stderr,
+                flush=True,
+            )
         finished = [0]
 
         def line(result):
             # Per-run progress as lines when the bar is off (a log file) or not wanted.
             finished[0] += 1
             if not run["progress"] and not args.no_progress:
-                print(f"{desc}: run {finished[0]}/{todo} {result.get('run_id', '')} "
-                      f"({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
-        status = run_tasks(tasks, run_task, out, run_id, desc=desc, on_result=line,
-                           task_key=task_key, stamp=stamp, **run)
+                print(
+                    f"{desc}: run {finished[0]}/{todo} {result.get('run_id', '')} "
+                    f"({time.perf_counter() - t0:.0f} s)",
+                    file=sys.stderr,
+                    flush=True,
+                )
+
+        status = run_tasks(
+            tasks,
+            run_task,
+            out,
+            run_id,
+            desc=desc,
+            on_result=line,
+            task_key=task_key,
+            stamp=stamp,
+            **run,
+        )
         counts["done"] += status["done"]
         counts["skipped"] += status["skipped"]
         counts["superseded"] += len(status["superseded"])
@@ -449,9 +634,14 @@ def _study(args, patients, options, out: Path, workers: int, margins: dict | Non
         go(tasks, "er-sweep")
         ran["er-sweep"] = time.perf_counter() - t
         results = usable("er-sweep", runs_of("er-sweep", tasks))
-        er_an = write_er_sweep_outputs(dest, results, rule=args.critical_er_rule,
-                                       mode=mode_text, margins=margins,
-                                       settings=_labels(results, options, "er-sweep"))
+        er_an = write_er_sweep_outputs(
+            dest,
+            results,
+            rule=args.critical_er_rule,
+            mode=mode_text,
+            margins=margins,
+            settings=_labels(results, options, "er-sweep"),
+        )
         print(f"er-sweep: {critical_er_summary(er_an)} ({len(results)} runs)", flush=True)
         warning = sample_size_warning(er_an)
         if warning:
@@ -463,9 +653,12 @@ def _study(args, patients, options, out: Path, workers: int, margins: dict | Non
         elif er_an["critical_er"] is None:
             er = DEFAULT_ER
             if args.study != "er-sweep":
-                print(f"er-sweep: the critical ER was not determined; the other studies run "
-                      f"at ER {er * 100:.0f}% (the paper's critical ER)", file=sys.stderr,
-                      flush=True)
+                print(
+                    f"er-sweep: the critical ER was not determined; the other studies run "
+                    f"at ER {er * 100:.0f}% (the paper's critical ER)",
+                    file=sys.stderr,
+                    flush=True,
+                )
         else:
             er = er_an["critical_er"]
     if args.study in ("starts", "paper"):
@@ -475,8 +668,11 @@ def _study(args, patients, options, out: Path, workers: int, margins: dict | Non
         ran["starts"] = time.perf_counter() - t
         results = usable("starts", runs_of("starts", tasks))
         starts_an = write_starts_outputs(dest, results, mode=mode_text)
-        print(f"starts at ER {er * 100:.0f}%: any significant difference: "
-              f"{starts_an['any_significant']}", flush=True)
+        print(
+            f"starts at ER {er * 100:.0f}%: any significant difference: "
+            f"{starts_an['any_significant']}",
+            flush=True,
+        )
     if args.study in ("efficiency", "paper"):
         export = None if args.no_nrrd else (out / "volumes").resolve()
         tasks = efficiency_tasks(patients, options, er, export, _strategies(args, mode))
@@ -486,9 +682,15 @@ def _study(args, patients, options, out: Path, workers: int, margins: dict | Non
         results = usable("efficiency", runs_of("efficiency", tasks))
         eff_an = write_efficiency_outputs(dest, results, mode=mode_text)
         s = eff_an["summary"]
-        print("efficiency (pole to pole): " + "; ".join(
-            f"{k} n {s[k]['n'][0]:.0f} eps {s[k]['eps_mm'][0]:.1f} mm V {s[k]['V'][0]:.3f}"
-            for k in STRATEGY_ORDER if k in s), flush=True)
+        print(
+            "efficiency (pole to pole): "
+            + "; ".join(
+                f"{k} n {s[k]['n'][0]:.0f} eps {s[k]['eps_mm'][0]:.1f} mm V {s[k]['V'][0]:.3f}"
+                for k in STRATEGY_ORDER
+                if k in s
+            ),
+            flush=True,
+        )
     template_an = None
     population_builds = {}
     if args.study == "template":
@@ -500,25 +702,38 @@ def _study(args, patients, options, out: Path, workers: int, margins: dict | Non
             if pop is not None:
                 t = time.perf_counter()
                 path = population_template(pop[0], n=pop[1], side=scenario.patient.side)
-                population_builds[v] = {"path": str(path), "subjects": pop[1],
-                                        "wall_s": round(time.perf_counter() - t, 2),
-                                        "build_s": _build_seconds(path)}
-                print(f"template {v}: {path} ({population_builds[v]['wall_s']:.1f} s; "
-                      f"built in {population_builds[v]['build_s']} s)", file=sys.stderr,
-                      flush=True)
+                population_builds[v] = {
+                    "path": str(path),
+                    "subjects": pop[1],
+                    "wall_s": round(time.perf_counter() - t, 2),
+                    "build_s": _build_seconds(path),
+                }
+                print(
+                    f"template {v}: {path} ({population_builds[v]['wall_s']:.1f} s; "
+                    f"built in {population_builds[v]['build_s']} s)",
+                    file=sys.stderr,
+                    flush=True,
+                )
         t = time.perf_counter()
         go(tasks, "template")
         ran["template"] = time.perf_counter() - t
         template_an = write_template_outputs(
-            dest, usable("template", runs_of("template", tasks)), mode=mode_text)
-        print("template: " + "; ".join(
-            f"{r['group']} {r['variant']} d {r['template_distance_mm_mean']:.1f} mm, E_trans "
-            f"{r['e_trans_mm_mean']:.1f} mm, E_rot,x {r['e_rot_x_deg_mean']:.1f} deg"
-            for r in template_an["rows"]), flush=True)
+            dest, usable("template", runs_of("template", tasks)), mode=mode_text
+        )
+        print(
+            "template: "
+            + "; ".join(
+                f"{r['group']} {r['variant']} d {r['template_distance_mm_mean']:.1f} mm, E_trans "
+                f"{r['e_trans_mm_mean']:.1f} mm, E_rot,x {r['e_rot_x_deg_mean']:.1f} deg"
+                for r in template_an["rows"]
+            ),
+            flush=True,
+        )
     closed = None
     if args.study == "paper" and args.closed_loop > 0 and mode == "kinematic":
-        tasks = closed_loop_tasks(patients[:args.closed_loop], options,
-                                  scenario.controller.exploration_ratio)
+        tasks = closed_loop_tasks(
+            patients[: args.closed_loop], options, scenario.controller.exploration_ratio
+        )
         t = time.perf_counter()
         go(tasks, "closed-loop")
         ran["closed-loop"] = time.perf_counter() - t
@@ -526,30 +741,51 @@ def _study(args, patients, options, out: Path, workers: int, margins: dict | Non
         write_closed_loop_outputs(dest, closed)
     wall = time.perf_counter() - t0
     labels = _labels(used, options, args.study)
-    meta = {"study": args.study, "patients": patients, "segmenter": labels["segmenter"],
-            "method": labels["method"], "voxel": labels["voxel"], "seed": labels["seed"],
-            "settings": labels, "settings_from": "runs" if used else "command line (no runs)",
-            "workers": workers, "workers_requested": args.workers,
-            "scheduler": args.scheduler, "wall_s": wall,
-            "stage_wall_s": ran, "er": er, "er_unit": labels["er_unit"],
-            "critical_er_rule": getattr(args, "critical_er_rule", None),
-            "equivalence_margins": margins,
-            "mode": mode + (" (+ closed-loop check)" if closed else ""),
-            "mode_text": mode_text, "runs_without_localization": unusable,
-            "failed_runs": failed,
-            "runs_done": counts["done"], "runs_skipped": counts["skipped"],
-            "runs_superseded": counts["superseded"],
-            "run_commits": sorted({f"{(r.get('provenance') or {}).get('commit')}"
-                                   + (" (dirty)" if (r.get("provenance") or {}).get("dirty")
-                                      else "") for r in used}),
-            "provenance": Provenance(scenario, scenario_name=args.scenario,
-                                     scenarios_file=args.scenarios_file,
-                                     overrides=args.overrides,
-                                     seeds={"study_seed": options.seed}, argv=study_argv)}
+    meta = {
+        "study": args.study,
+        "patients": patients,
+        "segmenter": labels["segmenter"],
+        "method": labels["method"],
+        "voxel": labels["voxel"],
+        "seed": labels["seed"],
+        "settings": labels,
+        "settings_from": "runs" if used else "command line (no runs)",
+        "workers": workers,
+        "workers_requested": args.workers,
+        "scheduler": args.scheduler,
+        "wall_s": wall,
+        "stage_wall_s": ran,
+        "er": er,
+        "er_unit": labels["er_unit"],
+        "critical_er_rule": getattr(args, "critical_er_rule", None),
+        "equivalence_margins": margins,
+        "mode": mode + (" (+ closed-loop check)" if closed else ""),
+        "mode_text": mode_text,
+        "runs_without_localization": unusable,
+        "failed_runs": failed,
+        "runs_done": counts["done"],
+        "runs_skipped": counts["skipped"],
+        "runs_superseded": counts["superseded"],
+        "run_commits": sorted(
+            {
+                f"{(r.get('provenance') or {}).get('commit')}"
+                + (" (dirty)" if (r.get("provenance") or {}).get("dirty") else "")
+                for r in used
+            }
+        ),
+        "provenance": Provenance(
+            scenario,
+            scenario_name=args.scenario,
+            scenarios_file=args.scenarios_file,
+            overrides=args.overrides,
+            seeds={"study_seed": options.seed},
+            argv=study_argv,
+        ),
+    }
     if args.study == "template":
         meta["posture"] = options.posture + (
-            " (per-patient @posture suffixes override)" if any("@" in p for p in patients)
-            else "")
+            " (per-patient @posture suffixes override)" if any("@" in p for p in patients) else ""
+        )
         meta["population_templates"] = population_builds
     # Keep the history of invocations with these settings: a resumed study's wall time
     # covers only what it ran (an invocation with other settings starts a new history).
@@ -563,25 +799,40 @@ def _study(args, patients, options, out: Path, workers: int, margins: dict | Non
                 history = list(old.get("invocations") or [])
         except (ValueError, AttributeError):
             history = []
-    meta["invocations"] = history + [{k: meta[k] for k in (
-        "wall_s", "stage_wall_s", "runs_done", "runs_skipped", "workers", "scheduler")}]
+    meta["invocations"] = history + [
+        {
+            k: meta[k]
+            for k in ("wall_s", "stage_wall_s", "runs_done", "runs_skipped", "workers", "scheduler")
+        }
+    ]
     write_text_atomic(meta_path, dumps_strict(meta, indent=1))
     if args.study == "template":
-        write_text_atomic(dest / "report.md", report_markdown(meta, None, None, None, None,
-                                                              template_an))
+        write_text_atomic(
+            dest / "report.md", report_markdown(meta, None, None, None, None, template_an)
+        )
         print(f"wrote {dest / 'report.md'}", flush=True)
     if args.study in ("paper", "efficiency", "er-sweep"):
         compare = None
         if args.study != "er-sweep":
-            compare = _other_mode(out, patients, mode, getattr(args, "critical_er_rule",
-                                                               "paper"),
-                                  args.study, er, settings=labels, margins=margins)
-        write_text_atomic(dest / "report.md",
-                          report_markdown(meta, er_an, starts_an, eff_an, closed,
-                                          compare=compare))
-        print(f"wrote {dest / 'report.md'}"
-              + (" (with the other mode's runs of OUT side by side)" if compare else ""),
-              flush=True)
+            compare = _other_mode(
+                out,
+                patients,
+                mode,
+                getattr(args, "critical_er_rule", "paper"),
+                args.study,
+                er,
+                settings=labels,
+                margins=margins,
+            )
+        write_text_atomic(
+            dest / "report.md",
+            report_markdown(meta, er_an, starts_an, eff_an, closed, compare=compare),
+        )
+        print(
+            f"wrote {dest / 'report.md'}"
+            + (" (with the other mode's runs of OUT side by side)" if compare else ""),
+            flush=True,
+        )
     print(f"study {args.study}: {wall:.0f} s wall, outputs in {dest}", flush=True)
     return 1 if failed else 0
 

@@ -90,8 +90,9 @@ class SkinHeightMap:
         self.xs = np.arange(x_range[0], x_range[1] + 0.5 * spacing, spacing)
         self.ys = np.arange(y_range[0], y_range[1] + 0.5 * spacing, spacing)
         gx, gy = np.meshgrid(self.xs, self.ys, indexing="ij")
-        self.z = skin_heights_B(patient, X_BPt, np.column_stack([gx.ravel(), gy.ravel()])
-                                ).reshape(gx.shape)
+        self.z = skin_heights_B(patient, X_BPt, np.column_stack([gx.ravel(), gy.ravel()])).reshape(
+            gx.shape
+        )
         self.spacing = float(spacing)
 
     def __call__(self, x: float, y: float) -> float:
@@ -99,11 +100,15 @@ class SkinHeightMap:
         fy = (y - self.ys[0]) / self.spacing
         i, j = int(math.floor(fx)), int(math.floor(fy))
         if 0 <= i < len(self.xs) - 1 and 0 <= j < len(self.ys) - 1:
-            c = self.z[i:i + 2, j:j + 2]
+            c = self.z[i : i + 2, j : j + 2]
             if np.all(np.isfinite(c)):
                 a, b = fx - i, fy - j
-                return float((1 - a) * (1 - b) * c[0, 0] + a * (1 - b) * c[1, 0]
-                             + (1 - a) * b * c[0, 1] + a * b * c[1, 1])
+                return float(
+                    (1 - a) * (1 - b) * c[0, 0]
+                    + a * (1 - b) * c[1, 0]
+                    + (1 - a) * b * c[0, 1]
+                    + a * b * c[1, 1]
+                )
         return skin_height_B(self._patient, self._X_BPt, x, y)
 
 
@@ -116,7 +121,8 @@ def skin_heights_B(patient, X_BPt: RigidTransform, xy_B: np.ndarray) -> np.ndarr
     origins = origins_B @ X_PtB.rotation().matrix().T + X_PtB.translation()
     direction = X_PtB.rotation().multiply(np.array([0.0, 0.0, -1.0]))
     hits, ray, _ = patient.skin_mesh.ray.intersects_location(
-        origins, np.repeat(direction[None], len(xy), axis=0), multiple_hits=True)
+        origins, np.repeat(direction[None], len(xy), axis=0), multiple_hits=True
+    )
     z = np.full(len(xy), -np.inf)
     if len(hits):
         hits_B = np.asarray(hits) @ X_BPt.rotation().matrix().T + X_BPt.translation()
@@ -129,14 +135,15 @@ def skin_heights_B(patient, X_BPt: RigidTransform, xy_B: np.ndarray) -> np.ndarr
 @dataclasses.dataclass
 class KinematicPatient:
     """What kinematic runs need of one patient placed at ``X_BPt``."""
+
     patient: object
     X_BPt: RigidTransform
-    X_BV: RigidTransform            # label volume grid in B
+    X_BV: RigidTransform  # label volume grid in B
     X_BK_true: RigidTransform
-    roi: object                     # ExplorationRoi
+    roi: object  # ExplorationRoi
     skin: SkinHeightMap
-    kidney_points_B: np.ndarray     # (N, 3) centres of the true kidney's voxels (m)
-    voxel_size: float               # of kidney_points_B (m)
+    kidney_points_B: np.ndarray  # (N, 3) centres of the true kidney's voxels (m)
+    voxel_size: float  # of kidney_points_B (m)
     superior_B: np.ndarray
     lateral_B: np.ndarray
 
@@ -146,7 +153,7 @@ class KinematicPatient:
 
     @property
     def voxel_volume(self) -> float:
-        return self.voxel_size ** 3
+        return self.voxel_size**3
 
     @property
     def kidney_volume(self) -> float:
@@ -162,23 +169,36 @@ def kidney_voxels_B(patient, X_BPt: RigidTransform, voxel_size: float) -> np.nda
     return X_BPt.multiply(p_Pt.T).T
 
 
-def prepare_patient(patient, X_BPt: RigidTransform, *, coverage_voxel: float = 0.002,
-                    skin_margin: float = 0.07, skin_spacing: float = 0.002) -> KinematicPatient:
+def prepare_patient(
+    patient,
+    X_BPt: RigidTransform,
+    *,
+    coverage_voxel: float = 0.002,
+    skin_margin: float = 0.07,
+    skin_spacing: float = 0.002,
+) -> KinematicPatient:
     """Builds (once) the label volume, skin height map and true kidney voxels of ``patient``."""
     if not isinstance(X_BPt, RigidTransform):
         raise ValueError(f"X_BPt: expected a RigidTransform, got {type(X_BPt).__name__}")
     volume = patient.labels
     roi = exploration_roi(patient, X_BPt)
     m = float(skin_margin)
-    skin = SkinHeightMap(patient, X_BPt, (roi.x_min - m, roi.x_max + m),
-                         (roi.y_min - m, roi.y_max + m), skin_spacing)
+    skin = SkinHeightMap(
+        patient, X_BPt, (roi.x_min - m, roi.x_max + m), (roi.y_min - m, roi.y_max + m), skin_spacing
+    )
     superior_B, lateral_B = body_directions_B(X_BPt, patient.side, patient.posture)
     return KinematicPatient(
-        patient=patient, X_BPt=X_BPt, X_BV=X_BPt.multiply(volume.X_PtV),
-        X_BK_true=patient.X_BK(X_BPt), roi=roi, skin=skin,
+        patient=patient,
+        X_BPt=X_BPt,
+        X_BV=X_BPt.multiply(volume.X_PtV),
+        X_BK_true=patient.X_BK(X_BPt),
+        roi=roi,
+        skin=skin,
         kidney_points_B=kidney_voxels_B(patient, X_BPt, coverage_voxel),
-        voxel_size=float(coverage_voxel), superior_B=np.asarray(superior_B, float),
-        lateral_B=np.asarray(lateral_B, float))
+        voxel_size=float(coverage_voxel),
+        superior_B=np.asarray(superior_B, float),
+        lateral_B=np.asarray(lateral_B, float),
+    )
 
 
 def imaging_for(kp: "KinematicPatient", imaging, start):
@@ -190,19 +210,21 @@ def imaging_for(kp: "KinematicPatient", imaging, start):
     ``vertical`` the configured depth stays."""
     if start.planner == "vertical":
         return imaging
-    return dataclasses.replace(imaging, depth=vertical_depth_preset(kp.patient, kp.X_BPt,
-                                                                    imaging, start))
+    return dataclasses.replace(
+        imaging, depth=vertical_depth_preset(kp.patient, kp.X_BPt, imaging, start)
+    )
 
 
 # ---------------------------------------------------------------------------- imaging
 @dataclasses.dataclass
 class Frame:
     """One acquired frame: probe pose, the read-outs and (optionally) the images."""
+
     X_BP: RigidTransform
     visible: bool
-    centroid: float                 # c_msk in [0, 1]
-    area: float                     # mask area (m^2)
-    boundary_B: np.ndarray          # (N, 3) back-projected boundary points (m)
+    centroid: float  # c_msk in [0, 1]
+    area: float  # mask area (m^2)
+    boundary_B: np.ndarray  # (N, 3) back-projected boundary points (m)
     mask: np.ndarray | None = None
     image: np.ndarray | None = None  # grey image (classical/onnx) if kept
 
@@ -216,8 +238,9 @@ class Imager:
     prior), or None for ``imaging.segmenter``. ``seed`` fixes the emulator's speckle.
     """
 
-    def __init__(self, kp: KinematicPatient, imaging, segmenter: str | None = "oracle",
-                 seed: int = 0):
+    def __init__(
+        self, kp: KinematicPatient, imaging, segmenter: str | None = "oracle", seed: int = 0
+    ):
         self.kp = kp
         self.imaging = dataclasses.replace(imaging, segmenter=segmenter or imaging.segmenter)
         self.geometry = ProbeGeometry.from_config(self.imaging)
@@ -238,8 +261,14 @@ class Imager:
 
     def __call__(self, X_BP: RigidTransform, keep: bool = False) -> Frame:
         g = self.geometry
-        labels = slice_volume(g, self.kp.volume, self.kp.X_BV, X_BP,
-                              int(self.imaging.elevation_planes), self.imaging.elevation_combine)
+        labels = slice_volume(
+            g,
+            self.kp.volume,
+            self.kp.X_BV,
+            X_BP,
+            int(self.imaging.elevation_planes),
+            self.imaging.elevation_combine,
+        )
         us = None
         if self._model is not None:
             us = emulate(labels, self._model, self.seed, self.frame_index)
@@ -256,15 +285,28 @@ class Imager:
         readout = read_mask(mask, g, self.imaging.min_kidney_area)
         self._prev = mask if readout.visible else None
         if self.backend_name == "onnx":
-            self._track = track_update(self._track, mask, readout.visible, t, g,
-                                       max_gap=self.imaging.track_gap,
-                                       reach=self.imaging.track_reach,
-                                       min_overlap=self.imaging.track_min_overlap)
-        boundary = (g.pixel_to_B(readout.boundary, X_BP) if len(readout.boundary)
-                    else np.zeros((0, 3)))
-        return Frame(X_BP=X_BP, visible=bool(readout.visible), centroid=float(readout.centroid),
-                     area=float(readout.area), boundary_B=boundary,
-                     mask=mask if keep else None, image=us if keep else None)
+            self._track = track_update(
+                self._track,
+                mask,
+                readout.visible,
+                t,
+                g,
+                max_gap=self.imaging.track_gap,
+                reach=self.imaging.track_reach,
+                min_overlap=self.imaging.track_min_overlap,
+            )
+        boundary = (
+            g.pixel_to_B(readout.boundary, X_BP) if len(readout.boundary) else np.zeros((0, 3))
+        )
+        return Frame(
+            X_BP=X_BP,
+            visible=bool(readout.visible),
+            centroid=float(readout.centroid),
+            area=float(readout.area),
+            boundary_B=boundary,
+            mask=mask if keep else None,
+            image=us if keep else None,
+        )
 
 
 # ---------------------------------------------------------------------------- sweeps
@@ -273,6 +315,7 @@ class Sweep:
     """Frames of one probe motion, in acquisition order; ``kind`` "explore", "line" or
     "pivot"; ``angles`` (rad, pivot tilt from r3*) or ``travel`` (m, along y) per frame;
     ``leg`` (pivot: 1 or 2) per frame; ``events`` human-readable notes."""
+
     kind: str
     frames: list
     angles: np.ndarray | None = None
@@ -303,17 +346,25 @@ class Sweep:
         if self.travel is None:
             raise ValueError("prefix: only an exploration sweep (with travel) has a prefix")
         k = int(np.searchsorted(self.travel, travel + 1e-9, side="right"))
-        return dataclasses.replace(self, frames=self.frames[:k], travel=self.travel[:k],
-                                   events=list(self.events) if k == len(self.frames) else [])
+        return dataclasses.replace(
+            self,
+            frames=self.frames[:k],
+            travel=self.travel[:k],
+            events=list(self.events) if k == len(self.frames) else [],
+        )
 
     def pole_to_pole(self) -> "Sweep":
         """The part that images the kidney from one pole to the other: for a pivot, the
         second leg; then from its first to its last frame with the kidney visible (what
         the seed records, III-E). Empty if the kidney was never visible."""
-        sel = pole_to_pole_indices(self.visible, self.leg)   # the one definition
-        return dataclasses.replace(self, frames=[self.frames[i] for i in sel],
-                                   angles=_take(self.angles, sel), travel=_take(self.travel, sel),
-                                   leg=_take(self.leg, sel))
+        sel = pole_to_pole_indices(self.visible, self.leg)  # the one definition
+        return dataclasses.replace(
+            self,
+            frames=[self.frames[i] for i in sel],
+            angles=_take(self.angles, sel),
+            travel=_take(self.travel, sel),
+            leg=_take(self.leg, sel),
+        )
 
 
 def _take(a, idx):
@@ -326,8 +377,12 @@ def tip_pose(kp: KinematicPatient, R_BP, x: float, y: float) -> RigidTransform:
     return RigidTransform(R, [x, y, kp.skin(x, y)])
 
 
-def start_xy(kp: KinematicPatient, start_fraction: float = 0.0, scan_direction: str = "-y",
-             x_offset: float = 0.0) -> np.ndarray:
+def start_xy(
+    kp: KinematicPatient,
+    start_fraction: float = 0.0,
+    scan_direction: str = "-y",
+    x_offset: float = 0.0,
+) -> np.ndarray:
     """Exploration start (x, y) (III-C, ``exploration_start``): over the kidney centroid's x
     (+ ``x_offset``), at the E-ROI end the scan leaves from, ``start_fraction`` of the
     E-ROI's length inside it."""
@@ -335,10 +390,19 @@ def start_xy(kp: KinematicPatient, start_fraction: float = 0.0, scan_direction: 
     return np.array([x + x_offset, y])
 
 
-def explore(kp: KinematicPatient, imager: Imager, controller, *, exploration_ratio: float,
-            start_fraction: float = 0.0, x_offset: float = 0.0, travel: float | None = None,
-            stop_when_lost: bool = True, keep_images: bool = False,
-            start: np.ndarray | None = None) -> Sweep:
+def explore(
+    kp: KinematicPatient,
+    imager: Imager,
+    controller,
+    *,
+    exploration_ratio: float,
+    start_fraction: float = 0.0,
+    x_offset: float = 0.0,
+    travel: float | None = None,
+    stop_when_lost: bool = True,
+    keep_images: bool = False,
+    start: np.ndarray | None = None,
+) -> Sweep:
     """Transverse straight-line sweep (II-E): the seed's exploration in kinematic mode.
 
     The tip starts at ``start`` (x, y) or :func:`start_xy` and advances along
@@ -359,8 +423,11 @@ def explore(kp: KinematicPatient, imager: Imager, controller, *, exploration_rat
     target = exploration_ratio * controller.kidney_length if travel is None else float(travel)
     step = controller.scan_speed * dt
     n_steps = int(math.floor(target / step + 1e-9))
-    P = (start_xy(kp, start_fraction, controller.scan_direction, x_offset) if start is None
-         else np.asarray(start, float).reshape(2).copy())
+    P = (
+        start_xy(kp, start_fraction, controller.scan_direction, x_offset)
+        if start is None
+        else np.asarray(start, float).reshape(2).copy()
+    )
     R = R_B_TRANSVERSE
     x_p = R.matrix()[:, 0]
     debounce = max(1, int(math.ceil(controller.visibility_debounce * fps - 1e-9)))
@@ -382,10 +449,22 @@ def explore(kp: KinematicPatient, imager: Imager, controller, *, exploration_rat
     return Sweep("explore", frames, travel=np.asarray(travelled), events=events)
 
 
-def pivot_sweep(kp: KinematicPatient, imager: Imager, R_BPstar, p_xy, *, pivot_rate: float,
-                max_tilt: float, keep_images: bool = False, start_angle: float = 0.0,
-                direction: float = 1.0, legs=(1, 2), ends=(), end_tolerance: float = 0.0,
-                reset: bool = True) -> Sweep:
+def pivot_sweep(
+    kp: KinematicPatient,
+    imager: Imager,
+    R_BPstar,
+    p_xy,
+    *,
+    pivot_rate: float,
+    max_tilt: float,
+    keep_images: bool = False,
+    start_angle: float = 0.0,
+    direction: float = 1.0,
+    legs=(1, 2),
+    ends=(),
+    end_tolerance: float = 0.0,
+    reset: bool = True,
+) -> Sweep:
     """Fixed-point pivot sweep (II-G, eq. 23) at tip (x, y) = ``p_xy`` on the skin.
 
     The array o = R_BP*[:, 0] stays fixed; the approach a starts at R_BP*[:, 2] (turned by
@@ -418,7 +497,7 @@ def pivot_sweep(kp: KinematicPatient, imager: Imager, R_BPstar, p_xy, *, pivot_r
 
     for leg in legs:
         seen = False
-        if leg == 2:          # the reversal frame is not acquired twice
+        if leg == 2:  # the reversal frame is not acquired twice
             a, angle = advance(a, angle)
         while True:
             R = np.column_stack([o, np.cross(a, o), a])
@@ -429,16 +508,16 @@ def pivot_sweep(kp: KinematicPatient, imager: Imager, R_BPstar, p_xy, *, pivot_r
             new_side = pivot_end_allowed(angle, direction, leg - 1, ends, end_tolerance)
             seen |= frame.visible
             if seen and not frame.visible and new_side:
-                events.append(f"leg {leg} ended at {math.degrees(angle):.1f} deg: "
-                              "kidney left the image")
+                events.append(
+                    f"leg {leg} ended at {math.degrees(angle):.1f} deg: kidney left the image"
+                )
                 break
             if abs(angle) >= max_tilt - 1e-9 and new_side:
                 events.append(f"leg {leg} ended at {math.degrees(angle):.1f} deg: maximum tilt")
                 break
             a, angle = advance(a, angle)
         direction = -direction
-    return Sweep("pivot", frames, angles=np.asarray(angles), leg=np.asarray(leg_of),
-                 events=events)
+    return Sweep("pivot", frames, angles=np.asarray(angles), leg=np.asarray(leg_of), events=events)
 
 
 def pivot_model_for(template, imaging) -> PivotModel:
@@ -447,8 +526,16 @@ def pivot_model_for(template, imaging) -> PivotModel:
     return PivotModelFor(template, imaging)
 
 
-def predicted_end_sweep(kp: KinematicPatient, imager: Imager, R_BPstar, p_xy, X_BK_estimated,
-                        model: PivotModel, controller, keep_images: bool = False) -> Sweep:
+def predicted_end_sweep(
+    kp: KinematicPatient,
+    imager: Imager,
+    R_BPstar,
+    p_xy,
+    X_BK_estimated,
+    model: PivotModel,
+    controller,
+    keep_images: bool = False,
+) -> Sweep:
     """The ``predicted_end`` pivot (beyond the seed; ``controller.pivot_strategy:
     predicted_end``) at T* = (``R_BPstar``, tip (x, y) ``p_xy`` on the skin), as the
     supervisor runs it:
@@ -472,8 +559,15 @@ def predicted_end_sweep(kp: KinematicPatient, imager: Imager, R_BPstar, p_xy, X_
     p = np.asarray(p_xy, float).reshape(-1)[:2]
     z = kp.skin(p[0], p[1])
     tip = np.array([p[0], p[1], z])
-    ends = predict_pivot_ends(model, X_BK_estimated.rotation().matrix(),
-                              X_BK_estimated.translation(), tip, a0, o, c.max_pivot_tilt)
+    ends = predict_pivot_ends(
+        model,
+        X_BK_estimated.rotation().matrix(),
+        X_BK_estimated.translation(),
+        tip,
+        a0,
+        o,
+        c.max_pivot_tilt,
+    )
     side, target = pretilt_plan(ends, c.pivot_end_margin, c.max_pivot_tilt)
     dtheta = c.pivot_rate / float(imager.imaging.frame_rate_hz)
 
@@ -483,25 +577,47 @@ def predicted_end_sweep(kp: KinematicPatient, imager: Imager, R_BPstar, p_xy, X_
 
     imager.reset()
     angle, checks = target, 0
-    while True:      # at the target: tilt on while the kidney is seen (no sweep frames)
+    while True:  # at the target: tilt on while the kidney is seen (no sweep frames)
         frame = imager(pose(angle))
         checks += 1
         if not frame.visible or abs(angle) >= c.max_pivot_tilt - 1e-9:
             break
         angle = float(np.clip(angle + side * dtheta, -c.max_pivot_tilt, c.max_pivot_tilt))
     steps = max(1, int(math.ceil(abs(angle) / dtheta - 1e-9)))
-    eps_pretilt = float(cumulative_eps([pose(angle * k / steps) for k in range(steps + 1)],
-                                       imager.geometry.depth)[-1])
-    sweep = pivot_sweep(kp, imager, R, p, pivot_rate=c.pivot_rate, max_tilt=c.max_pivot_tilt,
-                        keep_images=keep_images, start_angle=angle, direction=-side, legs=(2,),
-                        ends=ends, end_tolerance=c.pivot_end_tolerance, reset=False)
-    sweep.events.insert(0, f"predicted ends {math.degrees(ends[0]):.1f} / "
-                           f"{math.degrees(ends[1]):.1f} deg; pre-tilt to "
-                           f"{math.degrees(target):.1f} deg, kidney out of the image at "
-                           f"{math.degrees(angle):.1f} deg after {checks} check frame(s)")
-    sweep.info = {"predicted_ends": [float(ends[0]), float(ends[1])],
-                  "pretilt_target": float(target), "pretilt_end": float(angle),
-                  "pretilt_check_frames": int(checks), "eps_pretilt": eps_pretilt}
+    eps_pretilt = float(
+        cumulative_eps([pose(angle * k / steps) for k in range(steps + 1)], imager.geometry.depth)[
+            -1
+        ]
+    )
+    sweep = pivot_sweep(
+        kp,
+        imager,
+        R,
+        p,
+        pivot_rate=c.pivot_rate,
+        max_tilt=c.max_pivot_tilt,
+        keep_images=keep_images,
+        start_angle=angle,
+        direction=-side,
+        legs=(2,),
+        ends=ends,
+        end_tolerance=c.pivot_end_tolerance,
+        reset=False,
+    )
+    sweep.events.insert(
+        0,
+        f"predicted ends {math.degrees(ends[0]):.1f} / "
+        f"{math.degrees(ends[1]):.1f} deg; pre-tilt to "
+        f"{math.degrees(target):.1f} deg, kidney out of the image at "
+        f"{math.degrees(angle):.1f} deg after {checks} check frame(s)",
+    )
+    sweep.info = {
+        "predicted_ends": [float(ends[0]), float(ends[1])],
+        "pretilt_target": float(target),
+        "pretilt_end": float(angle),
+        "pretilt_check_frames": int(checks),
+        "eps_pretilt": eps_pretilt,
+    }
     return sweep
 
 
@@ -520,7 +636,7 @@ def nop_pose(R_BK: np.ndarray, p_BK: np.ndarray, o_ref=NOP_ARRAY_REFERENCE):
     R_BK = np.asarray(R_BK, float)
     y, x = R_BK[:, 1], R_BK[:, 0]
     if float(y[:2] @ np.asarray(o_ref, float).reshape(3)[:2]) < 0:
-        y, x = -y, -x          # a rotation by pi about z_k: the same plane, array flipped
+        y, x = -y, -x  # a rotation by pi about z_k: the same plane, array flipped
     swapped = np.column_stack([y, -x, R_BK[:, 2]])
     return optimal_pivot_pose(swapped, p_BK)
 
@@ -531,24 +647,27 @@ SL_MARGIN = 0.01
 SL_EXTRA_TRAVEL = 0.03
 
 
-def strategy_pivot_pose(strategy: str, X_BK_true: RigidTransform,
-                        X_BK_estimated: RigidTransform | None = None):
+def strategy_pivot_pose(
+    strategy: str, X_BK_true: RigidTransform, X_BK_estimated: RigidTransform | None = None
+):
     """(R_BP, p) of a pivot strategy's pivot pose (III-E), the one definition both modes
     use: OP and OP-PE T* of the registered pose ``X_BK_estimated`` (eq. 20-22); GT-OP T*
     of the true pose; NOP :func:`nop_pose` of the true pose (the in-vivo NOP was
     expert-placed)."""
     if strategy in ("OP", "OP-PE"):
         if X_BK_estimated is None:
-            raise ValueError(f"strategy {strategy}: needs X_BK_estimated (the registered "
-                             "kidney pose)")
+            raise ValueError(
+                f"strategy {strategy}: needs X_BK_estimated (the registered kidney pose)"
+            )
         X = X_BK_estimated
         return optimal_pivot_pose(X.rotation().matrix(), X.translation())
     if strategy == "GT-OP":
         return optimal_pivot_pose(X_BK_true.rotation().matrix(), X_BK_true.translation())
     if strategy == "NOP":
         return nop_pose(X_BK_true.rotation().matrix(), X_BK_true.translation())
-    raise ValueError(f"strategy {strategy!r} has no pivot pose (pivot strategies: OP, "
-                     "OP-PE, GT-OP, NOP)")
+    raise ValueError(
+        f"strategy {strategy!r} has no pivot pose (pivot strategies: OP, OP-PE, GT-OP, NOP)"
+    )
 
 
 def sl_line(kp: KinematicPatient, scan_direction: str, margin: float = SL_MARGIN):
@@ -561,10 +680,16 @@ def sl_line(kp: KinematicPatient, scan_direction: str, margin: float = SL_MARGIN
     return start, float(kp.roi.length_y + 2 * margin + SL_EXTRA_TRAVEL)
 
 
-def strategy_sweep(kp: KinematicPatient, imager: Imager, strategy: str, controller,
-                   X_BK_estimated: RigidTransform | None = None, keep_images: bool = False,
-                   sl_margin: float = SL_MARGIN, pivot_model: PivotModel | None = None
-                   ) -> Sweep:
+def strategy_sweep(
+    kp: KinematicPatient,
+    imager: Imager,
+    strategy: str,
+    controller,
+    X_BK_estimated: RigidTransform | None = None,
+    keep_images: bool = False,
+    sl_margin: float = SL_MARGIN,
+    pivot_model: PivotModel | None = None,
+) -> Sweep:
     """The sweep of one strategy (III-E):
 
     - ``OP``: pivot at T* of the estimated kidney pose (eq. 20-22);
@@ -579,8 +704,15 @@ def strategy_sweep(kp: KinematicPatient, imager: Imager, strategy: str, controll
     c = controller
     if strategy == "SL":
         start, travel = sl_line(kp, c.scan_direction, sl_margin)
-        sweep = explore(kp, imager, c, exploration_ratio=1.0, travel=travel, start=start,
-                        keep_images=keep_images)
+        sweep = explore(
+            kp,
+            imager,
+            c,
+            exploration_ratio=1.0,
+            travel=travel,
+            start=start,
+            keep_images=keep_images,
+        )
         sweep.kind = "line"
         return sweep
     if strategy not in STRATEGIES:
@@ -588,12 +720,22 @@ def strategy_sweep(kp: KinematicPatient, imager: Imager, strategy: str, controll
     R, p = strategy_pivot_pose(strategy, kp.X_BK_true, X_BK_estimated)
     if strategy == "OP-PE":
         if pivot_model is None or len(pivot_model.points_K) == 0:
-            raise ValueError("strategy OP-PE: needs pivot_model (the registration "
-                             "template and fan, pivot_model_for)")
-        return predicted_end_sweep(kp, imager, R, p[:2], X_BK_estimated, pivot_model, c,
-                                   keep_images=keep_images)
-    return pivot_sweep(kp, imager, R, p[:2], pivot_rate=c.pivot_rate, max_tilt=c.max_pivot_tilt,
-                       keep_images=keep_images)
+            raise ValueError(
+                "strategy OP-PE: needs pivot_model (the registration "
+                "template and fan, pivot_model_for)"
+            )
+        return predicted_end_sweep(
+            kp, imager, R, p[:2], X_BK_estimated, pivot_model, c, keep_images=keep_images
+        )
+    return pivot_sweep(
+        kp,
+        imager,
+        R,
+        p[:2],
+        pivot_rate=c.pivot_rate,
+        max_tilt=c.max_pivot_tilt,
+        keep_images=keep_images,
+    )
 
 
 # ---------------------------------------------------------------------------- localization
@@ -602,7 +744,7 @@ class Localization:
     X_BK: RigidTransform
     n_points: int
     compute_s: float
-    result: object | None     # IcpResult, None for the heuristic fallback
+    result: object | None  # IcpResult, None for the heuristic fallback
     note: str = ""
 
 
@@ -614,34 +756,55 @@ def heuristic_pose(kp: KinematicPatient, p_xy, depth: float = 0.09) -> RigidTran
     return RigidTransform(R0, [x, y, kp.skin(x, y) - depth])
 
 
-def localize_cloud(kp: KinematicPatient, P_local_B: np.ndarray, template, config,
-                   fallback_xy, min_points: int = 50) -> Localization:
+def localize_cloud(
+    kp: KinematicPatient, P_local_B: np.ndarray, template, config, fallback_xy, min_points: int = 50
+) -> Localization:
     """T_k^b from the explored cloud (II-F, ``localize``), or the heuristic initial alignment
     at ``fallback_xy`` when fewer than ``min_points`` points were explored."""
     import time
+
     P = np.asarray(P_local_B, float).reshape(-1, 3)
     if len(P) < min_points:
-        return Localization(heuristic_pose(kp, fallback_xy), len(P), 0.0, None,
-                            f"only {len(P)} boundary points: initial alignment only")
+        return Localization(
+            heuristic_pose(kp, fallback_xy),
+            len(P),
+            0.0,
+            None,
+            f"only {len(P)} boundary points: initial alignment only",
+        )
     t = time.perf_counter()
     result = localize(P, template, config, kp.superior_B, kp.lateral_B)
     return Localization(result.X_BK, len(P), time.perf_counter() - t, result)
 
 
 # ---------------------------------------------------------------------------- metrics
-def sweep_curves(kp: KinematicPatient, sweep: Sweep, geometry: ProbeGeometry,
-                 image_depth: float | None = None) -> dict:
+def sweep_curves(
+    kp: KinematicPatient, sweep: Sweep, geometry: ProbeGeometry, image_depth: float | None = None
+) -> dict:
     """n, cumulative eps (m, eq. 24) and V (eq. 25) frame by frame of ``sweep`` (use
     ``sweep.pole_to_pole()`` for the seed's curves). Keys: n (1..N), eps (N,), V (N,),
     n_frames, eps_total, V_final."""
     L = geometry.depth if image_depth is None else image_depth
     poses = sweep.poses
     if not poses:
-        return {"n": np.zeros(0, int), "eps": np.zeros(0), "V": np.zeros(0), "n_frames": 0,
-                "eps_total": 0.0, "V_final": 0.0}
-    acc = CoverageAccumulator(kp.kidney_points_B, kp.voxel_volume, geometry.in_fan,
-                              geometry.elevation_width)
+        return {
+            "n": np.zeros(0, int),
+            "eps": np.zeros(0),
+            "V": np.zeros(0),
+            "n_frames": 0,
+            "eps_total": 0.0,
+            "V_final": 0.0,
+        }
+    acc = CoverageAccumulator(
+        kp.kidney_points_B, kp.voxel_volume, geometry.in_fan, geometry.elevation_width
+    )
     V = np.asarray([acc.add_frame(X) for X in poses])
     eps = np.concatenate([[0.0], np.cumsum(window_steps(poses, L))])
-    return {"n": np.arange(1, len(poses) + 1), "eps": eps, "V": V, "n_frames": len(poses),
-            "eps_total": float(eps[-1]), "V_final": float(V[-1])}
+    return {
+        "n": np.arange(1, len(poses) + 1),
+        "eps": eps,
+        "V": V,
+        "n_frames": len(poses),
+        "eps_total": float(eps[-1]),
+        "V_final": float(V[-1]),
+    }

@@ -18,7 +18,8 @@ the product's minimum and acceptance checks, as the paper and the twin do
   supervisor's prediction); closed loop, each strategy is its own scan
   (:func:`closed_loop_strategy_run`: GT-OP and NOP pivot at a pose the study computes from
   the true kidney pose and gives the scan as ``controller.pivot_pose``, SL is the scan's
-  ``controller.sweep: line``): V against n and eps pole to pole (the paper's), the whole pivot's n, eps and V
+  ``controller.sweep: line``): V against n and eps pole to pole (the paper's), the whole pivot's
+  n, eps and V
   beside them, n and eps needed to reach V = 0.9, the pivot legs the tilt cap ended
   (:mod:`drake_rus.metrics.sweep`, the same functions the closed-loop scan uses), and the
   kidney volume reconstructed from each sweep's masks
@@ -96,16 +97,17 @@ from drake_rus.provenance import Provenance
 from drake_rus.scan import RunScan, ScanMetrics
 from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, CheckScenario, LoadScenario
 from drake_rus.template.io import DEFAULT_TEMPLATE_PATH
-from drake_rus.template.population import (DEFAULT_SUBJECTS as POPULATION_SUBJECTS,
-                                           POPULATIONS, parse_population, population_template)
+from drake_rus.template.population import DEFAULT_SUBJECTS as POPULATION_SUBJECTS
+from drake_rus.template.population import POPULATIONS, parse_population, population_template
 
 ER_GRID = tuple(round(0.1 * k, 1) for k in range(11))
 # What ER multiplies: the patient's kidney length (the paper's simulation) or L_m.
 ER_UNITS = ("kidney", "fixed")
-ER_UNIT_TEXT = {"kidney": "fraction of the patient's kidney length along the exploration line "
-                          "(the paper's simulation, III-C)",
-                "fixed": "fraction of the fixed length L_m = 100 mm (the paper's in-vivo "
-                         "rule, III-F)"}
+ER_UNIT_TEXT = {
+    "kidney": "fraction of the patient's kidney length along the exploration line "
+    "(the paper's simulation, III-C)",
+    "fixed": "fraction of the fixed length L_m = 100 mm (the paper's in-vivo rule, III-F)",
+}
 # Coverage at which the sweep costs are also compared (matched coverage).
 V_TARGETS = (0.9,)
 # How a study run is executed: the kinematic twin (default, fast) or a closed-loop scan.
@@ -115,27 +117,26 @@ STRATEGY_TEXT = {
     "OP": "two-leg pivot at T* of the registered kidney pose (eq. 20-22)",
     "GT-OP": "two-leg pivot at T* of the true kidney pose",
     "NOP": "two-leg pivot with the array along the true kidney's y-axis projected on the "
-           "horizontal, tip over the true centroid (the in-vivo NOP was expert-placed)",
+    "horizontal, tip over the true centroid (the in-vivo NOP was expert-placed)",
     "SL": f"straight line (the exploration controller, eq. 17) from "
-          f"{km.SL_MARGIN * 1e3:g} mm beyond the E-ROI's end until the kidney has left the "
-          "image (ER 100%)",
+    f"{km.SL_MARGIN * 1e3:g} mm beyond the E-ROI's end until the kidney has left the "
+    "image (ER 100%)",
     "OP-PE": "predicted-end pivot (beyond the paper) at T* of the registered kidney pose",
 }
 # The kidney pose each strategy's pivot pose comes from ("registered" or "true"; SL: None),
 # in both modes.
-POSE_FROM = {"OP": "registered", "OP-PE": "registered", "GT-OP": "true", "NOP": "true",
-             "SL": None}
+POSE_FROM = {"OP": "registered", "OP-PE": "registered", "GT-OP": "true", "NOP": "true", "SL": None}
 # How a closed-loop scan runs each strategy (:func:`closed_loop_strategy_run`): the scan
 # never reads the truth; GT-OP's and NOP's poses reach it as a scenario value the study
 # computes from the true pose, as an operator's placement would.
 CLOSED_LOOP_STRATEGY_HOW = {
     "OP": "the scan's own exploration, registration and T* (controller.pivot_pose [])",
     "GT-OP": "the study gives T* of the true pose as controller.pivot_pose (the scan skips "
-             "exploration and localization)",
+    "exploration and localization)",
     "NOP": "the study gives the NOP pose of the true pose as controller.pivot_pose (the "
-           "scan skips exploration and localization)",
+    "scan skips exploration and localization)",
     "SL": "controller.sweep: line, landing at controller.start_xy "
-          f"{km.SL_MARGIN * 1e3:g} mm beyond the E-ROI's end",
+    f"{km.SL_MARGIN * 1e3:g} mm beyond the E-ROI's end",
     "OP-PE": "the scan's own registration and T*, controller.pivot_strategy: predicted_end",
 }
 # Every efficiency strategy has a closed-loop scan; a closed-loop efficiency study runs the
@@ -171,8 +172,11 @@ def exploration_travel(er: float, unit: str, patient_length: float, L_m: float) 
 
 
 # ------------------------------------------------------------------------------- patients
-POSTURE_SUFFIXES = {"supine": "supine", "decubitus": "left_lateral_decubitus",
-                    "left_lateral_decubitus": "left_lateral_decubitus"}
+POSTURE_SUFFIXES = {
+    "supine": "supine",
+    "decubitus": "left_lateral_decubitus",
+    "left_lateral_decubitus": "left_lateral_decubitus",
+}
 
 
 def split_posture(spec: str) -> tuple[str, str | None]:
@@ -182,8 +186,9 @@ def split_posture(spec: str) -> tuple[str, str | None]:
     if not sep:
         return str(spec), None
     if tail not in POSTURE_SUFFIXES:
-        raise ValueError(f"patient {spec!r}: unknown posture suffix @{tail} (expected "
-                         "@supine or @decubitus)")
+        raise ValueError(
+            f"patient {spec!r}: unknown posture suffix @{tail} (expected @supine or @decubitus)"
+        )
     return head, POSTURE_SUFFIXES[tail]
 
 
@@ -198,7 +203,7 @@ def expand_patients(text: str) -> list[str]:
             continue
         if "@" in part:
             spec, posture = split_posture(part)
-            suffix = part[len(spec):]
+            suffix = part[len(spec) :]
             specs += [s + suffix for s in expand_patients(spec)]
             continue
         m = re.fullmatch(r"(test|train|seed):(\d+)-(\d+)", part)
@@ -210,8 +215,10 @@ def expand_patients(text: str) -> list[str]:
         elif re.fullmatch(r"(test|train|seed):\d+", part) or "/" in part or "." in part:
             specs.append(part)
         else:
-            raise ValueError(f"--patients: cannot read {part!r} (expected test:0-14, "
-                             "seed:100-120, train:3 or a patient path)")
+            raise ValueError(
+                f"--patients: cannot read {part!r} (expected test:0-14, "
+                "seed:100-120, train:3 or a patient path)"
+            )
     if not specs:
         raise ValueError("--patients: no patients given")
     return specs
@@ -221,54 +228,75 @@ def expand_patients(text: str) -> list[str]:
 @dataclasses.dataclass(frozen=True)
 class StudyOptions:
     """What every run of a study shares."""
+
     scenario: str = "default"
     scenarios_file: str | None = None
     overrides: str | None = None
     segmenter: str = "oracle"
-    method: str = "seed"            # localization method of the runs (the seed's by default)
-    voxel: float = 0.002            # label-volume voxel size (m)
-    seed: int = 0                   # random starts, emulator speckle
-    recon_spacing: float = 0.001    # reconstruction grid (m)
-    er_unit: str = "kidney"         # ER x the patient's kidney length, or "fixed" (x L_m)
-    mode: str = "kinematic"         # "kinematic" (the twin) or "closed-loop" (RunScan)
-    posture: str | None = None      # the patients' posture; None: the scenario's
+    method: str = "seed"  # localization method of the runs (the seed's by default)
+    voxel: float = 0.002  # label-volume voxel size (m)
+    seed: int = 0  # random starts, emulator speckle
+    recon_spacing: float = 0.001  # reconstruction grid (m)
+    er_unit: str = "kidney"  # ER x the patient's kidney length, or "fixed" (x L_m)
+    mode: str = "kinematic"  # "kinematic" (the twin) or "closed-loop" (RunScan)
+    posture: str | None = None  # the patients' posture; None: the scenario's
 
     def base(self) -> dict:
         return dataclasses.asdict(self)
 
 
-TEMPLATE_VARIANTS = ("mean", "scale-0.9", "scale-1.1", "single:0", "loo", "population:base",
-                     "population:short", "population:long")
-VARIANT_SYNTAX = ("mean, scale-S (0 < S <= 3), single:K, loo, population:NAME or "
-                  "population:NAME:N (N subjects, default 20; NAME one of "
-                  + ", ".join(POPULATIONS) + " or length+Xsd / length-Xsd)")
+TEMPLATE_VARIANTS = (
+    "mean",
+    "scale-0.9",
+    "scale-1.1",
+    "single:0",
+    "loo",
+    "population:base",
+    "population:short",
+    "population:long",
+)
+VARIANT_SYNTAX = (
+    "mean, scale-S (0 < S <= 3), single:K, loo, population:NAME or "
+    "population:NAME:N (N subjects, default 20; NAME one of "
+    + ", ".join(POPULATIONS)
+    + " or length+Xsd / length-Xsd)"
+)
 POSTURES = ("supine", "left_lateral_decubitus")
 
 
-def template_tasks(patients, options: StudyOptions, er: float,
-                   variants=TEMPLATE_VARIANTS) -> list[dict]:
+def template_tasks(
+    patients, options: StudyOptions, er: float, variants=TEMPLATE_VARIANTS
+) -> list[dict]:
     """One run per patient and template variant; ``loo`` only for training patients
     (``train:K``: the template without K); others are not in the template anyway. A patient
     ``SPEC@decubitus`` (``@supine``) is laid in that posture, the others in
     ``options.posture`` (None: the scenario's)."""
     variants = list(variants)
     if not variants:
-        raise ValueError(f"template variant: none given (expected a comma list of "
-                         f"{VARIANT_SYNTAX})")
+        raise ValueError(
+            f"template variant: none given (expected a comma list of {VARIANT_SYNTAX})"
+        )
     for v in variants:
         _check_variant(v)
     if options.posture is not None and options.posture not in POSTURES:
-        raise ValueError(f"posture: expected one of {', '.join(POSTURES)}, got "
-                         f"{options.posture!r}")
+        raise ValueError(f"posture: expected one of {', '.join(POSTURES)}, got {options.posture!r}")
     tasks = []
     for p in patients:
         spec, posture = split_posture(p)
         for v in variants:
             if v == "loo" and not re.fullmatch(r"train:\d+", spec):
                 continue
-            tasks.append(dict(options.base(), study="template", patient=spec, er=float(er),
-                              start=-1, template_variant=v,
-                              posture=posture or options.posture))
+            tasks.append(
+                dict(
+                    options.base(),
+                    study="template",
+                    patient=spec,
+                    er=float(er),
+                    start=-1,
+                    template_variant=v,
+                    posture=posture or options.posture,
+                )
+            )
     return tasks
 
 
@@ -289,15 +317,15 @@ def _check_variant(v: str) -> None:
     if v.startswith("population:"):
         pop = population_of_variant(v)
         if pop is None:
-            raise ValueError(f"template variant {v!r}: expected population:NAME or "
-                             f"population:NAME:N")
+            raise ValueError(
+                f"template variant {v!r}: expected population:NAME or population:NAME:N"
+            )
         try:
             parse_population(pop[0])
         except ValueError as e:
             raise ValueError(f"template variant {v!r}: {e}") from None
         if not 1 <= pop[1] <= 200:
-            raise ValueError(f"template variant {v!r}: subjects N must lie in 1..200, got "
-                             f"{pop[1]}")
+            raise ValueError(f"template variant {v!r}: subjects N must lie in 1..200, got {pop[1]}")
         return
     if not (v in ("mean", "loo") or m or re.fullmatch(r"single:\d+", v)):
         raise ValueError(f"template variant: expected {VARIANT_SYNTAX}, got {v!r}")
@@ -349,8 +377,9 @@ def _file_sha256(path: Path) -> str:
 
 
 @functools.lru_cache(maxsize=32)
-def inputs_digest(scenario: str, scenarios_file: str | None, overrides: str | None,
-                  posture: str | None) -> str:
+def inputs_digest(
+    scenario: str, scenarios_file: str | None, overrides: str | None, posture: str | None
+) -> str:
     """SHA-256 (hex) of what a study run reads besides its task: the resolved scenario (its
     YAML, with the overrides and the task's posture) and the registration template file it
     names. Two runs with equal tasks and digests are the same run."""
@@ -361,16 +390,21 @@ def inputs_digest(scenario: str, scenarios_file: str | None, overrides: str | No
 
 
 def task_inputs_digest(task: dict) -> str:
-    return inputs_digest(task["scenario"], task.get("scenarios_file"), task.get("overrides"),
-                         task.get("posture"))
+    return inputs_digest(
+        task["scenario"], task.get("scenarios_file"), task.get("overrides"), task.get("posture")
+    )
 
 
 def task_key(task: dict) -> str:
     """The settings key of a study run: SHA-256 of its task (without
     :data:`UNKEYED_FIELDS`, and without the :data:`STUDY_FIELDS` its study does not read)
     and :func:`inputs_digest`. A stored run is reused only with the same key."""
-    keyed = {k: v for k, v in task.items() if k not in UNKEYED_FIELDS
-             and task.get("study") in STUDY_FIELDS.get(k, (task.get("study"),))}
+    keyed = {
+        k: v
+        for k, v in task.items()
+        if k not in UNKEYED_FIELDS
+        and task.get("study") in STUDY_FIELDS.get(k, (task.get("study"),))
+    }
     keyed["inputs_sha256"] = task_inputs_digest(task)
     return batch.content_key(keyed)
 
@@ -379,21 +413,36 @@ def run_provenance(task: dict, scenario=None) -> dict:
     """The :func:`~drake_rus.provenance.Provenance` record of a study run (resolved scenario
     with the task's posture, its name, file and overrides, every seed the run draws from)."""
     if scenario is None:
-        scenario = _with_posture(_scenario(task["scenario"], task.get("scenarios_file"),
-                                           task.get("overrides")), task)
+        scenario = _with_posture(
+            _scenario(task["scenario"], task.get("scenarios_file"), task.get("overrides")), task
+        )
     seeds = {"study_seed": int(task.get("seed", 0)), "patient": str(task["patient"])}
     if int(task.get("start", -1)) >= 0:
         seeds["start"] = int(task["start"])
-    return Provenance(scenario, scenario_name=task["scenario"],
-                      scenarios_file=task.get("scenarios_file") or str(DEFAULT_SCENARIOS_FILE),
-                      overrides=task.get("overrides"), seeds=seeds)
+    return Provenance(
+        scenario,
+        scenario_name=task["scenario"],
+        scenarios_file=task.get("scenarios_file") or str(DEFAULT_SCENARIOS_FILE),
+        overrides=task.get("overrides"),
+        seeds=seeds,
+    )
 
 
 # What a table's runs must share (per-run fields, e.g. the patient, ER, start, template
 # variant, may differ); the template study lays patients in their own postures; the
 # efficiency study's runs share their reconstruction grid too.
-SETTINGS = ("mode", "segmenter", "method", "er_unit", "voxel", "seed", "scenario",
-            "overrides", "posture", "inputs_sha256")
+SETTINGS = (
+    "mode",
+    "segmenter",
+    "method",
+    "er_unit",
+    "voxel",
+    "seed",
+    "scenario",
+    "overrides",
+    "posture",
+    "inputs_sha256",
+)
 SETTINGS_PER_RUN = {"template": ("posture",)}
 SETTINGS_OF_STUDY = {"efficiency": ("recon_spacing",)}
 
@@ -419,8 +468,9 @@ def settings_of(results: list[dict], what: str = "these runs", study: str = "") 
     skip = SETTINGS_PER_RUN.get(study, ())
     values = {}
     for r in results:
-        settings = run_settings(r) | {k: (r.get("task") or {}).get(k)
-                                      for k in SETTINGS_OF_STUDY.get(study, ())}
+        settings = run_settings(r) | {
+            k: (r.get("task") or {}).get(k) for k in SETTINGS_OF_STUDY.get(study, ())
+        }
         for k, v in settings.items():
             if k not in skip:
                 values.setdefault(k, {}).setdefault(repr(v), [v, 0])[1] += 1
@@ -428,9 +478,12 @@ def settings_of(results: list[dict], what: str = "these runs", study: str = "") 
     if mixed:
         raise MixedSettingsError(
             f"{what}: runs of different settings would share one table ("
-            + "; ".join(f"{k}: " + ", ".join(f"{v[0]!r} ({v[1]} runs)" for v in vs.values())
-                        for k, vs in mixed.items())
-            + "); run each setting into its own --out folder")
+            + "; ".join(
+                f"{k}: " + ", ".join(f"{v[0]!r} ({v[1]} runs)" for v in vs.values())
+                for k, vs in mixed.items()
+            )
+            + "); run each setting into its own --out folder"
+        )
     return {k: next(iter(vs.values()))[0] for k, vs in values.items()}
 
 
@@ -447,9 +500,11 @@ def check_strategies(strategies, mode: str = "kinematic") -> tuple:
     allowed = CLOSED_LOOP_STRATEGIES if check_mode(mode) == "closed-loop" else STRATEGY_ORDER
     bad = [s for s in strategies if s not in allowed]
     if bad or not strategies:
-        raise ValueError(f"--strategies: expected a comma list of {', '.join(allowed)}, "
-                         f"got {','.join(strategies) or 'nothing'}"
-                         + (f" ({', '.join(bad)} unknown)" if bad else ""))
+        raise ValueError(
+            f"--strategies: expected a comma list of {', '.join(allowed)}, "
+            f"got {','.join(strategies) or 'nothing'}"
+            + (f" ({', '.join(bad)} unknown)" if bad else "")
+        )
     return tuple(s for s in STRATEGY_ORDER if s in strategies)
 
 
@@ -458,38 +513,64 @@ def default_strategies(mode: str) -> tuple:
 
 
 def er_sweep_tasks(patients, options: StudyOptions, ers=ER_GRID) -> list[dict]:
-    return [dict(options.base(), study="er-sweep", patient=p, er=float(er), start=-1)
-            for p in patients for er in ers]
+    return [
+        dict(options.base(), study="er-sweep", patient=p, er=float(er), start=-1)
+        for p in patients
+        for er in ers
+    ]
 
 
 def starts_tasks(patients, options: StudyOptions, er: float, n_starts: int = 5) -> list[dict]:
-    return [dict(options.base(), study="starts", patient=p, er=float(er), start=k)
-            for p in patients for k in range(n_starts)]
+    return [
+        dict(options.base(), study="starts", patient=p, er=float(er), start=k)
+        for p in patients
+        for k in range(n_starts)
+    ]
 
 
-def efficiency_tasks(patients, options: StudyOptions, er: float,
-                     export_dir: str | None = None, strategies=None) -> list[dict]:
+def efficiency_tasks(
+    patients, options: StudyOptions, er: float, export_dir: str | None = None, strategies=None
+) -> list[dict]:
     """``export_dir``: write the OP and GT-OP reconstructions there as NRRD. ``strategies``:
     default all (kinematic) or the paper's four (closed loop, one scan each)."""
     strategies = check_strategies(strategies or default_strategies(options.mode), options.mode)
-    return [dict(options.base(), study="efficiency", patient=p, er=float(er), start=-1,
-                 export_dir=None if export_dir is None else str(export_dir),
-                 strategies=list(strategies))
-            for p in patients]
+    return [
+        dict(
+            options.base(),
+            study="efficiency",
+            patient=p,
+            er=float(er),
+            start=-1,
+            export_dir=None if export_dir is None else str(export_dir),
+            strategies=list(strategies),
+        )
+        for p in patients
+    ]
 
 
-def closed_loop_tasks(patients, options: StudyOptions, er: float,
-                      start_fraction: float = 0.1) -> list[dict]:
+def closed_loop_tasks(
+    patients, options: StudyOptions, er: float, start_fraction: float = 0.1
+) -> list[dict]:
     """A few closed-loop dynamic scans (``RunScan``) with their kinematic twins."""
-    return [dict(options.base(), study="closed-loop", patient=p, er=float(er), start=-1,
-                 start_fraction=float(start_fraction)) for p in patients]
+    return [
+        dict(
+            options.base(),
+            study="closed-loop",
+            patient=p,
+            er=float(er),
+            start=-1,
+            start_fraction=float(start_fraction),
+        )
+        for p in patients
+    ]
 
 
 # ------------------------------------------------------------------------------- one run
 @functools.lru_cache(maxsize=4)
 def _scenario(name, filename, overrides):
-    return LoadScenario(filename=filename or DEFAULT_SCENARIOS_FILE, scenario_name=name,
-                        scenario_text=overrides)
+    return LoadScenario(
+        filename=filename or DEFAULT_SCENARIOS_FILE, scenario_name=name, scenario_text=overrides
+    )
 
 
 def _with_posture(scenario, task: dict):
@@ -499,8 +580,9 @@ def _with_posture(scenario, task: dict):
         return scenario
     if posture not in POSTURES:
         raise ValueError(f"posture: expected one of {', '.join(POSTURES)}, got {posture!r}")
-    return dataclasses.replace(scenario,
-                               patient=dataclasses.replace(scenario.patient, posture=posture))
+    return dataclasses.replace(
+        scenario, patient=dataclasses.replace(scenario.patient, posture=posture)
+    )
 
 
 @functools.lru_cache(maxsize=2)
@@ -515,8 +597,10 @@ def _normals_like(points: np.ndarray, reference_normals: np.ndarray, k: int = 12
     q = points[nb] - points[nb].mean(axis=1, keepdims=True)
     _, _, vt = np.linalg.svd(q, full_matrices=False)
     n = vt[:, -1, :]
-    n *= np.sign(np.sum(n * reference_normals, axis=1))[:, None] + (
-        np.sum(n * reference_normals, axis=1) == 0)[:, None]
+    n *= (
+        np.sign(np.sum(n * reference_normals, axis=1))[:, None]
+        + (np.sum(n * reference_normals, axis=1) == 0)[:, None]
+    )
     return n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
@@ -538,21 +622,26 @@ def template_variant(path, variant: str, patient: str = "", side: str = "right")
     if variant.startswith("scale-"):
         f = float(variant.split("-", 1)[1])
         return RegistrationTemplate(base.points * f, base.normals)
-    file = DEFAULT_TEMPLATE_PATH if path is None else (
-        path if str(path).startswith("/") else REPO_ROOT / path)
+    file = (
+        DEFAULT_TEMPLATE_PATH
+        if path is None
+        else (path if str(path).startswith("/") else REPO_ROOT / path)
+    )
     with np.load(file) as z:
         aligned = np.asarray(z["aligned"], float)
     if variant.startswith("single:"):
         k = int(variant.split(":")[1])
         if not 0 <= k < len(aligned):
-            raise ValueError(f"template variant {variant}: the template has {len(aligned)} "
-                             "training shapes")
+            raise ValueError(
+                f"template variant {variant}: the template has {len(aligned)} training shapes"
+            )
         pts = aligned[k]
-    else:   # loo
+    else:  # loo
         m = re.fullmatch(r"train:(\d+)", str(patient))
         if m is None:
-            raise ValueError(f"template variant loo: only for training patients (train:K), "
-                             f"got {patient!r}")
+            raise ValueError(
+                f"template variant loo: only for training patients (train:K), got {patient!r}"
+            )
         k = int(m.group(1))
         pts = np.delete(aligned, k, axis=0).mean(axis=0) if k < len(aligned) else aligned.mean(0)
     pts = pts - pts.mean(axis=0)
@@ -571,7 +660,7 @@ def template_distance(template, kp) -> float:
 
 
 def patient_kind(spec: str) -> str:
-    """"generated" (seed:N, train:K, test:K) or "real" (a patient file or folder)."""
+    """ "generated" (seed:N, train:K, test:K) or "real" (a patient file or folder)."""
     return "generated" if re.fullmatch(r"(test|train|seed):\d+", str(spec)) else "real"
 
 
@@ -581,11 +670,14 @@ def template_record(variant: str, template, kp, posture: str, spec: str) -> dict
     kind and posture."""
     v = np.asarray(kp.patient.kidney_mesh.vertices, float)
     p_K = kp.X_BK_true.inverse().multiply(kp.X_BPt.multiply(v.T)).T
-    return {"template_variant": variant,
-            "template_distance_mm": template_distance(template, kp) * 1e3,
-            "template_extent_mm": [round(float(x), 2) for x in np.ptp(template.points, 0) * 1e3],
-            "kidney_extent_mm": [round(float(x), 2) for x in np.ptp(p_K, 0) * 1e3],
-            "patient_kind": patient_kind(spec), "posture": posture}
+    return {
+        "template_variant": variant,
+        "template_distance_mm": template_distance(template, kp) * 1e3,
+        "template_extent_mm": [round(float(x), 2) for x in np.ptp(template.points, 0) * 1e3],
+        "kidney_extent_mm": [round(float(x), 2) for x in np.ptp(p_K, 0) * 1e3],
+        "patient_kind": patient_kind(spec),
+        "posture": posture,
+    }
 
 
 _PATIENTS: dict = {}
@@ -597,14 +689,14 @@ def prepared_patient(spec: str, side: str, posture: str, voxel: float, X_BPt):
     if key not in _PATIENTS:
         if len(_PATIENTS) >= 16:
             _PATIENTS.pop(next(iter(_PATIENTS)))
-        patient = load_patient(spec, side=side, posture=posture, voxel_size=voxel,
-                               progress=False)
+        patient = load_patient(spec, side=side, posture=posture, voxel_size=voxel, progress=False)
         _PATIENTS[key] = km.prepare_patient(patient, X_BPt)
     return _PATIENTS[key]
 
 
-def random_start(task: dict, kp, controller, visible=None,
-                 max_draws: int = START_MAX_DRAWS) -> tuple[float, float]:
+def random_start(
+    task: dict, kp, controller, visible=None, max_draws: int = START_MAX_DRAWS
+) -> tuple[float, float]:
     """(start_fraction, x_offset) of random start ``task['start']`` (deterministic in the
     study seed, the patient and the start index): the start fraction along the E-ROI leaves
     room for the whole ER travel, the x offset lies within the middle half of its width.
@@ -615,23 +707,28 @@ def random_start(task: dict, kp, controller, visible=None,
     return visible_random_start(task, kp, controller, visible, max_draws)[:2]
 
 
-def visible_random_start(task: dict, kp, controller, visible=None,
-                         max_draws: int = START_MAX_DRAWS) -> tuple[float, float, int]:
+def visible_random_start(
+    task: dict, kp, controller, visible=None, max_draws: int = START_MAX_DRAWS
+) -> tuple[float, float, int]:
     """:func:`random_start` and the number of draws rejected because ``visible`` said the
     kidney is not in the image there. Raises ValueError when no draw of ``max_draws`` is
     visible (the E-ROI shows no kidney where the exploration could start)."""
-    rng = np.random.default_rng([int(task["seed"]), zlib.crc32(str(task["patient"]).encode()),
-                                 int(task["start"])])
-    travel = exploration_travel(task["er"], task.get("er_unit", "fixed"), kidney_length(kp),
-                                controller.kidney_length)
+    rng = np.random.default_rng(
+        [int(task["seed"]), zlib.crc32(str(task["patient"]).encode()), int(task["start"])]
+    )
+    travel = exploration_travel(
+        task["er"], task.get("er_unit", "fixed"), kidney_length(kp), controller.kidney_length
+    )
     room = max(0.0, 1.0 - travel / max(kp.roi.length_y, 1e-9))
     width = kp.roi.x_max - kp.roi.x_min
     for draw in range(max(1, int(max_draws))):
         sf, xo = float(rng.uniform(0.0, room)), float(rng.uniform(-0.25, 0.25) * width)
         if visible is None or visible(km.start_xy(kp, sf, controller.scan_direction, xo)):
             return sf, xo, draw
-    raise ValueError(f"random start {task['start']} of {task['patient']}: the kidney is not "
-                     f"visible at any of {max_draws} drawn starts")
+    raise ValueError(
+        f"random start {task['start']} of {task['patient']}: the kidney is not "
+        f"visible at any of {max_draws} drawn starts"
+    )
 
 
 def start_visibility(kp, imager, tolerance: float = START_VISIBILITY_TOLERANCE):
@@ -656,6 +753,7 @@ def start_visibility(kp, imager, tolerance: float = START_VISIBILITY_TOLERANCE):
         finally:
             imager.frame_index = index
             imager.reset()
+
     return visible
 
 
@@ -673,14 +771,20 @@ def study_localization(config, er: float, planned_travel: float):
     default."""
     if er <= 0 or planned_travel >= config.min_exploration_travel - 1e-12:
         return config, ""
-    relaxed = dataclasses.replace(config, min_exploration_travel=0.0, min_inlier_fraction=0.0,
-                                  max_rms_residual=RELAXED_LIMIT,
-                                  max_rms_residual_deformable=RELAXED_LIMIT,
-                                  max_centroid_offset=RELAXED_LIMIT)
-    return relaxed, (f"planned exploration {planned_travel * 1e3:.1f} mm is below the "
-                     f"product's minimum {config.min_exploration_travel * 1e3:.0f} mm: the "
-                     "study registers it without the product's minimum travel and acceptance "
-                     "checks (the paper has none)")
+    relaxed = dataclasses.replace(
+        config,
+        min_exploration_travel=0.0,
+        min_inlier_fraction=0.0,
+        max_rms_residual=RELAXED_LIMIT,
+        max_rms_residual_deformable=RELAXED_LIMIT,
+        max_centroid_offset=RELAXED_LIMIT,
+    )
+    return relaxed, (
+        f"planned exploration {planned_travel * 1e3:.1f} mm is below the "
+        f"product's minimum {config.min_exploration_travel * 1e3:.0f} mm: the "
+        "study registers it without the product's minimum travel and acceptance "
+        "checks (the paper has none)"
+    )
 
 
 def rejected_registration_record(kp, loc) -> dict:
@@ -689,10 +793,12 @@ def rejected_registration_record(kp, loc) -> dict:
     but the paper's registration has no such check and its studies report the errors of
     whatever it registered, so the study records them (the run has no pivot)."""
     X = loc.rejected.X_BK
-    return {"e_trans_mm": e_trans(X, kp.X_BK_true) * 1e3,
-            "e_rot_x_deg": math.degrees(e_rot_x(X, kp.X_BK_true)),
-            "localization_note": f"the product rejected the registration ({loc.error}); its "
-                                 "errors are recorded (the paper has no acceptance check)"}
+    return {
+        "e_trans_mm": e_trans(X, kp.X_BK_true) * 1e3,
+        "e_rot_x_deg": math.degrees(e_rot_x(X, kp.X_BK_true)),
+        "localization_note": f"the product rejected the registration ({loc.error}); its "
+        "errors are recorded (the paper has no acceptance check)",
+    }
 
 
 def initial_alignment_record(kp, scan, start_xy) -> dict:
@@ -703,14 +809,18 @@ def initial_alignment_record(kp, scan, start_xy) -> dict:
     frame, else ``start_xy``)."""
     explore = [f for f in scan.frames if f.phase == int(Phase.EXPLORE)]
     frames = explore or list(scan.frames)
-    xy = (np.asarray(frames[0 if explore else -1].X_BP.translation()[:2], float) if frames
-          else np.asarray(start_xy, float))
+    xy = (
+        np.asarray(frames[0 if explore else -1].X_BP.translation()[:2], float)
+        if frames
+        else np.asarray(start_xy, float)
+    )
     X0 = km.heuristic_pose(kp, xy)
-    return {"e_trans_mm": e_trans(X0, kp.X_BK_true) * 1e3,
-            "e_rot_x_deg": math.degrees(e_rot_x(X0, kp.X_BK_true)),
-            "localization_note": "ER 0: initial alignment only (the paper's III-C)"
-                                 + (f"; the scan: {scan.status} {scan.reason}".rstrip()
-                                    if scan.reason else "")}
+    return {
+        "e_trans_mm": e_trans(X0, kp.X_BK_true) * 1e3,
+        "e_rot_x_deg": math.degrees(e_rot_x(X0, kp.X_BK_true)),
+        "localization_note": "ER 0: initial alignment only (the paper's III-C)"
+        + (f"; the scan: {scan.status} {scan.reason}".rstrip() if scan.reason else ""),
+    }
 
 
 _EXPLORATIONS: dict = {}
@@ -720,19 +830,37 @@ def exploration(task: dict, kp, imager, controller, start_fraction: float, x_off
     """The exploration of ``task``. Runs that differ only in ER share one full (ER 100%)
     exploration per process and take its prefix (identical to exploring less: see
     ``Sweep.prefix``)."""
-    key = (task["patient"], task.get("posture"), task["voxel"], task["segmenter"],
-           task["seed"], task["scenario"], task.get("scenarios_file"), task.get("overrides"),
-           start_fraction, x_offset)
+    key = (
+        task["patient"],
+        task.get("posture"),
+        task["voxel"],
+        task["segmenter"],
+        task["seed"],
+        task["scenario"],
+        task.get("scenarios_file"),
+        task.get("overrides"),
+        start_fraction,
+        x_offset,
+    )
     full = _EXPLORATIONS.get(key)
     if full is None:
-        full = km.explore(kp, imager, controller, exploration_ratio=1.0,
-                          start_fraction=start_fraction, x_offset=x_offset,
-                          travel=max(kidney_length(kp), controller.kidney_length))
+        full = km.explore(
+            kp,
+            imager,
+            controller,
+            exploration_ratio=1.0,
+            start_fraction=start_fraction,
+            x_offset=x_offset,
+            travel=max(kidney_length(kp), controller.kidney_length),
+        )
         if len(_EXPLORATIONS) >= 16:
             _EXPLORATIONS.pop(next(iter(_EXPLORATIONS)))
         _EXPLORATIONS[key] = full
-    return full.prefix(exploration_travel(task["er"], task.get("er_unit", "fixed"),
-                                          kidney_length(kp), controller.kidney_length))
+    return full.prefix(
+        exploration_travel(
+            task["er"], task.get("er_unit", "fixed"), kidney_length(kp), controller.kidney_length
+        )
+    )
 
 
 def _reach(r):
@@ -746,24 +874,38 @@ def sweep_entry(kp, sweep, geometry, controller) -> dict:
     ``V_whole_pivot``), n and eps to reach V (``at_V``, pole to pole; ``at_V_whole_pivot``),
     and the pivot legs ended by the tilt cap (``tilt_cap_legs``). Also returns the
     pole-to-pole curves (``curve_eps_mm``, ``curve_V``) and the sweep's events."""
+
     def coverage():
-        return CoverageAccumulator(kp.kidney_points_B, kp.voxel_volume, geometry.in_fan,
-                                   geometry.elevation_width)
-    eff = sweep_efficiency(sweep.poses, sweep.visible, geometry.depth, legs=sweep.leg,
-                           coverage=coverage, V_targets=V_TARGETS, angles=sweep.angles,
-                           max_tilt=controller.max_pivot_tilt if sweep.angles is not None
-                           else None)
+        return CoverageAccumulator(
+            kp.kidney_points_B, kp.voxel_volume, geometry.in_fan, geometry.elevation_width
+        )
+
+    eff = sweep_efficiency(
+        sweep.poses,
+        sweep.visible,
+        geometry.depth,
+        legs=sweep.leg,
+        coverage=coverage,
+        V_targets=V_TARGETS,
+        angles=sweep.angles,
+        max_tilt=controller.max_pivot_tilt if sweep.angles is not None else None,
+    )
     return {
-        "n": int(eff["n"]), "eps_mm": eff["eps"] * 1e3, "V": eff["V"],
+        "n": int(eff["n"]),
+        "eps_mm": eff["eps"] * 1e3,
+        "V": eff["V"],
         "n_whole_pivot": int(eff["n_whole_pivot"]),
-        "eps_whole_pivot_mm": eff["eps_whole_pivot"] * 1e3, "V_whole_pivot": eff["V_whole_pivot"],
+        "eps_whole_pivot_mm": eff["eps_whole_pivot"] * 1e3,
+        "V_whole_pivot": eff["V_whole_pivot"],
         "at_V": {f"{t:g}": _reach(eff["at_V"][t]) for t in V_TARGETS},
         "at_V_whole_pivot": {f"{t:g}": _reach(eff["at_V_whole_pivot"][t]) for t in V_TARGETS},
-        "tilt_cap_legs": list(eff["tilt_cap_legs"]), "events": list(sweep.events),
+        "tilt_cap_legs": list(eff["tilt_cap_legs"]),
+        "events": list(sweep.events),
         "curve_eps_mm": np.round(eff["eps_curve"] * 1e3, 3).tolist(),
         "curve_V": np.round(eff["V_curve"], 5).tolist(),
         "pole_to_pole": [int(i) for i in eff["pole_to_pole"][[0, -1]]]
-        if len(eff["pole_to_pole"]) else [],
+        if len(eff["pole_to_pole"])
+        else [],
     }
 
 
@@ -777,50 +919,96 @@ def run_closed_loop(task: dict) -> dict:
     t0 = time.perf_counter()
     base = _scenario(task["scenario"], task.get("scenarios_file"), task.get("overrides"))
     scenario = dataclasses.replace(
-        base, controller=dataclasses.replace(base.controller, exploration_ratio=task["er"]),
+        base,
+        controller=dataclasses.replace(base.controller, exploration_ratio=task["er"]),
         localization=dataclasses.replace(base.localization, method=task["method"]),
-        imaging=dataclasses.replace(base.imaging, segmenter=task["segmenter"]))
+        imaging=dataclasses.replace(base.imaging, segmenter=task["segmenter"]),
+    )
     X_BPt = scenario.patient.X_BPt.GetDeterministicValue()
-    kp = prepared_patient(task["patient"], scenario.patient.side, scenario.patient.posture,
-                          float(task["voxel"]), X_BPt)
+    kp = prepared_patient(
+        task["patient"],
+        scenario.patient.side,
+        scenario.patient.posture,
+        float(task["voxel"]),
+        X_BPt,
+    )
     template = _template(scenario.localization.template)
-    scan = RunScan(scenario, kp.patient, template, progress=False,
-                   start_fraction=float(task["start_fraction"]))
+    scan = RunScan(
+        scenario, kp.patient, template, progress=False, start_fraction=float(task["start_fraction"])
+    )
     m = ScanMetrics(scan)
     at = m["at_matched_V"]
-    closed = {"status": scan.status, "reason": scan.reason, "e_trans_mm": m["e_trans_mm"],
-              "e_rot_x_deg": m["e_rot_x_deg"], "n": m["n_frames"], "eps_mm": m["eps_mm"],
-              "V": m["volume_ratio"], "n_whole_pivot": m["n_whole_pivot"],
-              "eps_whole_pivot_mm": m["eps_whole_pivot_mm"],
-              "V_whole_pivot": m["volume_ratio_whole_pivot"],
-              "at_V": {k: v["pole_to_pole"] for k, v in at.items()},
-              "at_V_whole_pivot": {k: v["whole_pivot"] for k, v in at.items()},
-              "tilt_cap_legs": m["pivot"]["tilt_cap_legs"],
-              "er_unit": getattr(scenario.controller, "exploration_length", "fixed"),
-              "sim_s": scan.sim_s, "wall_s": scan.wall_s,
-              "mode": "closed-loop dynamic simulation"}
+    closed = {
+        "status": scan.status,
+        "reason": scan.reason,
+        "e_trans_mm": m["e_trans_mm"],
+        "e_rot_x_deg": m["e_rot_x_deg"],
+        "n": m["n_frames"],
+        "eps_mm": m["eps_mm"],
+        "V": m["volume_ratio"],
+        "n_whole_pivot": m["n_whole_pivot"],
+        "eps_whole_pivot_mm": m["eps_whole_pivot_mm"],
+        "V_whole_pivot": m["volume_ratio_whole_pivot"],
+        "at_V": {k: v["pole_to_pole"] for k, v in at.items()},
+        "at_V_whole_pivot": {k: v["whole_pivot"] for k, v in at.items()},
+        "tilt_cap_legs": m["pivot"]["tilt_cap_legs"],
+        "er_unit": getattr(scenario.controller, "exploration_length", "fixed"),
+        "sim_s": scan.sim_s,
+        "wall_s": scan.wall_s,
+        "mode": "closed-loop dynamic simulation",
+    }
     t1 = time.perf_counter()
-    imager = km.Imager(kp, km.imaging_for(kp, scenario.imaging, scenario.start),
-                       task["segmenter"], seed=int(task["seed"]))
-    sweep = km.explore(kp, imager, scenario.controller, exploration_ratio=task["er"],
-                       start_fraction=float(task["start_fraction"]),
-                       travel=exploration_travel(task["er"], task.get("er_unit", "fixed"),
-                                                 kidney_length(kp),
-                                                 scenario.controller.kidney_length))
-    loc = km.localize_cloud(kp, sweep.point_cloud(), template, scenario.localization,
-                            sweep.frames[0].X_BP.translation()[:2])
+    imager = km.Imager(
+        kp,
+        km.imaging_for(kp, scenario.imaging, scenario.start),
+        task["segmenter"],
+        seed=int(task["seed"]),
+    )
+    sweep = km.explore(
+        kp,
+        imager,
+        scenario.controller,
+        exploration_ratio=task["er"],
+        start_fraction=float(task["start_fraction"]),
+        travel=exploration_travel(
+            task["er"],
+            task.get("er_unit", "fixed"),
+            kidney_length(kp),
+            scenario.controller.kidney_length,
+        ),
+    )
+    loc = km.localize_cloud(
+        kp,
+        sweep.point_cloud(),
+        template,
+        scenario.localization,
+        sweep.frames[0].X_BP.translation()[:2],
+    )
     op = km.strategy_sweep(kp, imager, "OP", scenario.controller, loc.X_BK)
     kin = sweep_entry(kp, op, imager.geometry, scenario.controller)
     for k in ("curve_eps_mm", "curve_V", "events", "pole_to_pole"):
         kin.pop(k)
-    kin.update({"e_trans_mm": e_trans(loc.X_BK, kp.X_BK_true) * 1e3,
-                "e_rot_x_deg": math.degrees(e_rot_x(loc.X_BK, kp.X_BK_true)),
-                "er_unit": task.get("er_unit", "fixed"),
-                "wall_s": time.perf_counter() - t1, "mode": km.MODE})
-    return {"run_id": run_id(task), "task": task, "mode": "closed-loop + kinematic twin",
-            "patient": task["patient"], "er": task["er"], "start": -1,
-            "kidney_length_mm": kidney_length(kp) * 1e3,
-            "closed_loop": closed, "kinematic": kin, "wall_s": time.perf_counter() - t0}
+    kin.update(
+        {
+            "e_trans_mm": e_trans(loc.X_BK, kp.X_BK_true) * 1e3,
+            "e_rot_x_deg": math.degrees(e_rot_x(loc.X_BK, kp.X_BK_true)),
+            "er_unit": task.get("er_unit", "fixed"),
+            "wall_s": time.perf_counter() - t1,
+            "mode": km.MODE,
+        }
+    )
+    return {
+        "run_id": run_id(task),
+        "task": task,
+        "mode": "closed-loop + kinematic twin",
+        "patient": task["patient"],
+        "er": task["er"],
+        "start": -1,
+        "kidney_length_mm": kidney_length(kp) * 1e3,
+        "closed_loop": closed,
+        "kinematic": kin,
+        "wall_s": time.perf_counter() - t0,
+    }
 
 
 def closed_loop_scenario(task: dict, kp, base):
@@ -847,24 +1035,33 @@ def closed_loop_setup(task: dict, kp, base):
     unit = task.get("er_unit", "fixed")
     length = kidney_length(kp) if unit == "kidney" else float(c.kidney_length)
     planned = exploration_travel(task["er"], unit, kidney_length(kp), c.kidney_length)
-    controller = dataclasses.replace(c, exploration_ratio=float(task["er"]),
-                                     exploration_length="fixed", kidney_length=length)
+    controller = dataclasses.replace(
+        c, exploration_ratio=float(task["er"]), exploration_length="fixed", kidney_length=length
+    )
     start_fraction, x_offset, notes = 0.0, 0.0, {}
     if task["study"] == "starts":
-        imager = km.Imager(kp, km.imaging_for(kp, base.imaging, base.start), task["segmenter"],
-                           seed=int(task["seed"]))
+        imager = km.Imager(
+            kp,
+            km.imaging_for(kp, base.imaging, base.start),
+            task["segmenter"],
+            seed=int(task["seed"]),
+        )
         start_fraction, x_offset, rejected = visible_random_start(
-            task, kp, c, start_visibility(kp, imager))
+            task, kp, c, start_visibility(kp, imager)
+        )
         notes["start_rejected_draws"] = rejected
         xy = km.start_xy(kp, start_fraction, c.scan_direction, x_offset)
         controller = dataclasses.replace(controller, start_xy=[float(xy[0]), float(xy[1])])
     localization, relaxation = study_localization(
-        dataclasses.replace(base.localization, method=task["method"]), float(task["er"]),
-        planned)
+        dataclasses.replace(base.localization, method=task["method"]), float(task["er"]), planned
+    )
     notes["study_relaxation"] = relaxation
     scenario = dataclasses.replace(
-        base, controller=controller, localization=localization,
-        imaging=dataclasses.replace(base.imaging, segmenter=task["segmenter"]))
+        base,
+        controller=controller,
+        localization=localization,
+        imaging=dataclasses.replace(base.imaging, segmenter=task["segmenter"]),
+    )
     return scenario, start_fraction, x_offset, notes
 
 
@@ -875,13 +1072,15 @@ class StrategyScan:
     the pose (``pivot_pose``: "registered", "given" or None for SL; ``given_pivot_pose``
     [x m, y m, yaw rad] or None; ``pose_source`` the truth it came from, ``how`` and
     ``text`` for people)."""
+
     scenario: object
     start_fraction: float
     pose: dict
 
 
-def closed_loop_strategy_run(scenario, strategy: str, kp=None,
-                             start_fraction: float = 0.0) -> StrategyScan:
+def closed_loop_strategy_run(
+    scenario, strategy: str, kp=None, start_fraction: float = 0.0
+) -> StrategyScan:
     """The closed-loop scan of efficiency strategy ``strategy`` from the run's ``scenario``
     (its ER, segmenter, registration) and start fraction:
 
@@ -901,34 +1100,50 @@ def closed_loop_strategy_run(scenario, strategy: str, kp=None,
     The truth (``kp``, a prepared patient; needed by GT-OP, NOP, SL) enters only as these
     scenario values, checked by ``CheckScenario``: the scan never reads it."""
     check_strategies([strategy], "closed-loop")
-    c = dataclasses.replace(scenario.controller, pivot_pose=[], sweep="pivot",
-                            pivot_strategy="two_leg")
+    c = dataclasses.replace(
+        scenario.controller, pivot_pose=[], sweep="pivot", pivot_strategy="two_leg"
+    )
     loc = scenario.localization
     sf = float(start_fraction)
     pose = {"pivot_pose": "registered", "given_pivot_pose": None, "pose_source": None}
     if strategy in ("GT-OP", "NOP", "SL") and kp is None:
-        raise ValueError(f"strategy {strategy}: needs the prepared patient (its true kidney "
-                         "pose or E-ROI)")
+        raise ValueError(
+            f"strategy {strategy}: needs the prepared patient (its true kidney pose or E-ROI)"
+        )
     if strategy == "OP-PE":
         c = dataclasses.replace(c, pivot_strategy="predicted_end")
     elif strategy in ("GT-OP", "NOP"):
         given = pivot_pose_as_given(*km.strategy_pivot_pose(strategy, kp.X_BK_true))
         c = dataclasses.replace(c, pivot_pose=given, exploration_ratio=0.0)
         sf = GIVEN_POSE_START_FRACTION
-        pose = {"pivot_pose": "given", "given_pivot_pose": given,
-                "pose_source": "the true kidney pose (simulation truth, study only)"}
+        pose = {
+            "pivot_pose": "given",
+            "given_pivot_pose": given,
+            "pose_source": "the true kidney pose (simulation truth, study only)",
+        }
     elif strategy == "SL":
         start, travel = km.sl_line(kp, c.scan_direction)
-        c = dataclasses.replace(c, sweep="line", start_xy=[float(v) for v in start],
-                                line_sweep_max_travel=travel, exploration_ratio=1.0)
+        c = dataclasses.replace(
+            c,
+            sweep="line",
+            start_xy=[float(v) for v in start],
+            line_sweep_max_travel=travel,
+            exploration_ratio=1.0,
+        )
         loc = dataclasses.replace(loc, length_estimation=False, adaptive_exploration=False)
         sf = 0.0
-        pose = {"pivot_pose": None, "given_pivot_pose": None,
-                "pose_source": "the true kidney's E-ROI (the line's start, study only)"}
+        pose = {
+            "pivot_pose": None,
+            "given_pivot_pose": None,
+            "pose_source": "the true kidney's E-ROI (the line's start, study only)",
+        }
     out = dataclasses.replace(scenario, controller=c, localization=loc)
     CheckScenario(out)
-    pose.update(pivot_pose_from=POSE_FROM[strategy], how=CLOSED_LOOP_STRATEGY_HOW[strategy],
-                text=STRATEGY_TEXT[strategy])
+    pose.update(
+        pivot_pose_from=POSE_FROM[strategy],
+        how=CLOSED_LOOP_STRATEGY_HOW[strategy],
+        text=STRATEGY_TEXT[strategy],
+    )
     return StrategyScan(out, sf, pose)
 
 
@@ -943,20 +1158,27 @@ def _closed_loop_entry(m: dict) -> dict:
     """A strategy entry (like :func:`sweep_entry`'s) from a closed-loop scan's metrics."""
     at = m["at_matched_V"]
     sweep = m.get("sweep") or {}
-    return {"n": int(m["n_frames"]), "eps_mm": m["eps_mm"], "V": m["volume_ratio"],
-            "sweep": sweep.get("kind", "pivot"), "pivot_pose": sweep.get("pivot_pose"),
-            "given_pivot_pose": sweep.get("given_pivot_pose"),
-            "n_whole_pivot": int(m["n_whole_pivot"]),
-            "eps_whole_pivot_mm": m["eps_whole_pivot_mm"],
-            "V_whole_pivot": m["volume_ratio_whole_pivot"],
-            "at_V": {k: v["pole_to_pole"] for k, v in at.items()},
-            "at_V_whole_pivot": {k: v["whole_pivot"] for k, v in at.items()},
-            "tilt_cap_legs": list(m["pivot"]["tilt_cap_legs"]), "events": [],
-            "curve_eps_mm": np.round(np.asarray(m["eps_curve_mm"], float), 3).tolist(),
-            "curve_V": np.round(np.asarray(m["V_curve"], float), 5).tolist(),
-            "pole_to_pole": list(m["pivot"]["pole_to_pole_frames"]),
-            "volume_ml": None, "volume_error_pct": None,
-            "volume_note": "closed loop: reconstructed in the efficiency study only"}
+    return {
+        "n": int(m["n_frames"]),
+        "eps_mm": m["eps_mm"],
+        "V": m["volume_ratio"],
+        "sweep": sweep.get("kind", "pivot"),
+        "pivot_pose": sweep.get("pivot_pose"),
+        "given_pivot_pose": sweep.get("given_pivot_pose"),
+        "n_whole_pivot": int(m["n_whole_pivot"]),
+        "eps_whole_pivot_mm": m["eps_whole_pivot_mm"],
+        "V_whole_pivot": m["volume_ratio_whole_pivot"],
+        "at_V": {k: v["pole_to_pole"] for k, v in at.items()},
+        "at_V_whole_pivot": {k: v["whole_pivot"] for k, v in at.items()},
+        "tilt_cap_legs": list(m["pivot"]["tilt_cap_legs"]),
+        "events": [],
+        "curve_eps_mm": np.round(np.asarray(m["eps_curve_mm"], float), 3).tolist(),
+        "curve_V": np.round(np.asarray(m["V_curve"], float), 5).tolist(),
+        "pole_to_pole": list(m["pivot"]["pole_to_pole_frames"]),
+        "volume_ml": None,
+        "volume_error_pct": None,
+        "volume_note": "closed loop: reconstructed in the efficiency study only",
+    }
 
 
 def closed_loop_volume(scan, metrics: dict, kp, spacing: float) -> dict:
@@ -971,7 +1193,7 @@ def closed_loop_volume(scan, metrics: dict, kp, spacing: float) -> dict:
     out = {"volume_ml": None, "volume_error_pct": None}
     if not ends:
         return out | {"volume_note": "no pole-to-pole span to reconstruct"}
-    span = frames[ends[0]:ends[1] + 1]
+    span = frames[ends[0] : ends[1] + 1]
     masks = [scan.sweep_masks.get(f.frame_index) for f in span]
     if not span or any(m is None for m in masks):
         return out | {"volume_note": "the scan kept no masks (RunScan keep_sweep_masks)"}
@@ -980,19 +1202,27 @@ def closed_loop_volume(scan, metrics: dict, kp, spacing: float) -> dict:
         rec = reconstruct_kidney(masks, [f.X_BP for f in span], geometry, spacing=spacing)
     except ValueError as e:
         return out | {"volume_note": str(e)}
-    return {"volume_ml": rec["volume_ml"],
-            "volume_error_pct": 100 * (rec["volume_ml"] / (kp.kidney_volume * 1e6) - 1),
-            "volume_note": f"closed loop: {len(span)} pole-to-pole masks compounded at "
-                           f"{spacing * 1e3:g} mm"}
+    return {
+        "volume_ml": rec["volume_ml"],
+        "volume_error_pct": 100 * (rec["volume_ml"] / (kp.kidney_volume * 1e6) - 1),
+        "volume_note": f"closed loop: {len(span)} pole-to-pole masks compounded at "
+        f"{spacing * 1e3:g} mm",
+    }
 
 
 def task_scenario_and_patient(task: dict):
     """(scenario, prepared patient) of a study task: the task's scenario with its overrides
     and posture, and the patient placed on the bed at that scenario's X_BPt."""
-    scenario = _with_posture(_scenario(task["scenario"], task.get("scenarios_file"),
-                                       task.get("overrides")), task)
-    kp = prepared_patient(task["patient"], scenario.patient.side, scenario.patient.posture,
-                          float(task["voxel"]), scenario.patient.X_BPt.GetDeterministicValue())
+    scenario = _with_posture(
+        _scenario(task["scenario"], task.get("scenarios_file"), task.get("overrides")), task
+    )
+    kp = prepared_patient(
+        task["patient"],
+        scenario.patient.side,
+        scenario.patient.posture,
+        float(task["voxel"]),
+        scenario.patient.X_BPt.GetDeterministicValue(),
+    )
     return scenario, kp
 
 
@@ -1004,72 +1234,119 @@ def run_closed_loop_study(task: dict) -> dict:
     ``status``, ``reason`` and simulated time. A scan that stops before localizing has
     E_trans and E_rot,x None, except at ER 0, where the paper localizes by the initial
     alignment alone (:func:`initial_alignment_record`), and after a registration the
-    product's acceptance checks rejected (:func:`rejected_registration_record`). ``start_rejected_draws`` and
+    product's acceptance checks rejected (:func:`rejected_registration_record`).
+    ``start_rejected_draws`` and
     ``study_relaxation`` say what the study changed (:func:`closed_loop_setup`)."""
     t0 = time.perf_counter()
     base, kp = task_scenario_and_patient(task)
     scenario, start_fraction, x_offset, notes = closed_loop_setup(task, kp, base)
     variant = task.get("template_variant", "mean")
-    template = template_variant(scenario.localization.template, variant,
-                                str(task["patient"]) if variant == "loo" else "",
-                                scenario.patient.side)
+    template = template_variant(
+        scenario.localization.template,
+        variant,
+        str(task["patient"]) if variant == "loo" else "",
+        scenario.patient.side,
+    )
     efficiency = task["study"] == "efficiency"
-    scan = RunScan(scenario, kp.patient, template, progress=False,
-                   start_fraction=start_fraction, keep_sweep_masks=efficiency)
+    scan = RunScan(
+        scenario,
+        kp.patient,
+        template,
+        progress=False,
+        start_fraction=start_fraction,
+        keep_sweep_masks=efficiency,
+    )
     m = ScanMetrics(scan)
     loc = scan.localization
     explore = [f for f in scan.frames if f.phase == int(Phase.EXPLORE)]
-    travel = (float(np.linalg.norm(explore[-1].X_BP.translation()[:2]
-                                   - explore[0].X_BP.translation()[:2]) * 1e3)
-              if len(explore) > 1 else 0.0)
+    travel = (
+        float(
+            np.linalg.norm(explore[-1].X_BP.translation()[:2] - explore[0].X_BP.translation()[:2])
+            * 1e3
+        )
+        if len(explore) > 1
+        else 0.0
+    )
     result = {
-        "run_id": run_id(task), "task": task, "mode": "closed-loop",
-        "status": scan.status, "reason": scan.reason,
-        "patient": task["patient"], "er": task["er"], "start": task["start"],
-        "start_fraction": start_fraction, "x_offset_mm": x_offset * 1e3,
-        "explore_frames": len(explore), "explore_travel_mm": travel,
-        "kidney_length_mm": kidney_length(kp) * 1e3, "er_unit": task.get("er_unit", "fixed"),
+        "run_id": run_id(task),
+        "task": task,
+        "mode": "closed-loop",
+        "status": scan.status,
+        "reason": scan.reason,
+        "patient": task["patient"],
+        "er": task["er"],
+        "start": task["start"],
+        "start_fraction": start_fraction,
+        "x_offset_mm": x_offset * 1e3,
+        "explore_frames": len(explore),
+        "explore_travel_mm": travel,
+        "kidney_length_mm": kidney_length(kp) * 1e3,
+        "er_unit": task.get("er_unit", "fixed"),
         "points": int(len(scan.partial_cloud_B)),
-        "e_trans_mm": m["e_trans_mm"], "e_rot_x_deg": m["e_rot_x_deg"],
+        "e_trans_mm": m["e_trans_mm"],
+        "e_rot_x_deg": m["e_rot_x_deg"],
         "registration_ms": loc.compute_s * 1e3 if loc.result is not None else None,
         "iterations": None if loc.result is None else int(loc.result.iterations),
         "localization_note": loc.error or "",
         "true_volume_ml": kp.kidney_volume * 1e6,
-        "sim_s": scan.sim_s, "scan_wall_s": scan.wall_s,
+        "sim_s": scan.sim_s,
+        "scan_wall_s": scan.wall_s,
         # The scan's pivot (OP) pole to pole and over the whole pivot, whatever the study.
-        "sweep": {k: v for k, v in _closed_loop_entry(m).items()
-                  if k not in ("curve_eps_mm", "curve_V", "events")},
+        "sweep": {
+            k: v
+            for k, v in _closed_loop_entry(m).items()
+            if k not in ("curve_eps_mm", "curve_V", "events")
+        },
         **notes,
     }
     if result["e_trans_mm"] is None and getattr(loc, "rejected", None) is not None:
         result.update(rejected_registration_record(kp, loc))
     if float(task["er"]) <= 0:
-        xy = scenario.controller.start_xy or km.start_xy(kp, start_fraction,
-                                                         scenario.controller.scan_direction,
-                                                         x_offset)
+        xy = scenario.controller.start_xy or km.start_xy(
+            kp, start_fraction, scenario.controller.scan_direction, x_offset
+        )
         result.update(initial_alignment_record(kp, scan, xy))
         result["registration_ms"], result["iterations"] = None, None
     if task["study"] == "template":
-        result.update(template_record(variant, template, kp, scenario.patient.posture,
-                                      task["patient"]))
+        result.update(
+            template_record(variant, template, kp, scenario.patient.posture, task["patient"])
+        )
     if task["study"] == "efficiency":
-        strategies = check_strategies(task.get("strategies") or CLOSED_LOOP_DEFAULT_STRATEGIES,
-                                      "closed-loop")
+        strategies = check_strategies(
+            task.get("strategies") or CLOSED_LOOP_DEFAULT_STRATEGIES, "closed-loop"
+        )
         result["strategies"] = {}
         for s in strategies:
             run = closed_loop_strategy_run(scenario, s, kp, start_fraction)
-            same = (run.scenario == scenario and run.start_fraction == start_fraction)
-            other = scan if same else RunScan(run.scenario, kp.patient, template,
-                                              progress=False,
-                                              start_fraction=run.start_fraction,
-                                              keep_sweep_masks=True)
+            same = run.scenario == scenario and run.start_fraction == start_fraction
+            other = (
+                scan
+                if same
+                else RunScan(
+                    run.scenario,
+                    kp.patient,
+                    template,
+                    progress=False,
+                    start_fraction=run.start_fraction,
+                    keep_sweep_masks=True,
+                )
+            )
             mo = m if same else ScanMetrics(other)
             volume = closed_loop_volume(other, mo, kp, float(task.get("recon_spacing", 0.001)))
-            result["strategies"][s] = _closed_loop_entry(mo) | run.pose | volume | {
-                "status": other.status, "reason": other.reason,
-                "e_trans_mm": mo["e_trans_mm"], "e_rot_x_deg": mo["e_rot_x_deg"],
-                "sim_s": other.sim_s, "scan_wall_s": other.wall_s,
-                "scan": "the run's own scan" if same else "its own scan"}
+            result["strategies"][s] = (
+                _closed_loop_entry(mo)
+                | run.pose
+                | volume
+                | {
+                    "status": other.status,
+                    "reason": other.reason,
+                    "e_trans_mm": mo["e_trans_mm"],
+                    "e_rot_x_deg": mo["e_rot_x_deg"],
+                    "sim_s": other.sim_s,
+                    "scan_wall_s": other.wall_s,
+                    "scan": "the run's own scan" if same else "its own scan",
+                }
+            )
     result["wall_s"] = time.perf_counter() - t0
     return result
 
@@ -1094,29 +1371,50 @@ def run_kinematic_task(task: dict) -> dict:
     t0 = time.perf_counter()
     scenario, kp = task_scenario_and_patient(task)
     controller = scenario.controller
-    imager = km.Imager(kp, km.imaging_for(kp, scenario.imaging, scenario.start),
-                       task["segmenter"], seed=int(task["seed"]))
+    imager = km.Imager(
+        kp,
+        km.imaging_for(kp, scenario.imaging, scenario.start),
+        task["segmenter"],
+        seed=int(task["seed"]),
+    )
     start_fraction, x_offset, rejected = 0.0, 0.0, None
     if task["study"] == "starts":
         # Where the kidney is visible (II-A (i)): the same starts as the closed loop's.
         start_fraction, x_offset, rejected = visible_random_start(
-            task, kp, controller, start_visibility(kp, imager))
+            task, kp, controller, start_visibility(kp, imager)
+        )
     sweep = exploration(task, kp, imager, controller, start_fraction, x_offset)
     P = sweep.point_cloud()
     variant = task.get("template_variant", "mean")
-    template = template_variant(scenario.localization.template, variant,
-                                str(task["patient"]) if variant == "loo" else "",
-                                scenario.patient.side)
+    template = template_variant(
+        scenario.localization.template,
+        variant,
+        str(task["patient"]) if variant == "loo" else "",
+        scenario.patient.side,
+    )
     config = dataclasses.replace(scenario.localization, method=task["method"])
     # ER 0: the initial alignment alone, whatever the start frame shows (III-C).
-    loc = km.localize_cloud(kp, P, template, config, sweep.frames[0].X_BP.translation()[:2],
-                            min_points=50 if float(task["er"]) > 0 else math.inf)
+    loc = km.localize_cloud(
+        kp,
+        P,
+        template,
+        config,
+        sweep.frames[0].X_BP.translation()[:2],
+        min_points=50 if float(task["er"]) > 0 else math.inf,
+    )
     result = {
-        "run_id": run_id(task), "task": task, "mode": km.MODE,
-        "patient": task["patient"], "er": task["er"], "start": task["start"],
-        "start_fraction": start_fraction, "x_offset_mm": x_offset * 1e3,
-        "explore_frames": len(sweep.frames), "explore_travel_mm": float(sweep.travel[-1] * 1e3),
-        "kidney_length_mm": kidney_length(kp) * 1e3, "er_unit": task.get("er_unit", "fixed"),
+        "run_id": run_id(task),
+        "task": task,
+        "mode": km.MODE,
+        "patient": task["patient"],
+        "er": task["er"],
+        "start": task["start"],
+        "start_fraction": start_fraction,
+        "x_offset_mm": x_offset * 1e3,
+        "explore_frames": len(sweep.frames),
+        "explore_travel_mm": float(sweep.travel[-1] * 1e3),
+        "kidney_length_mm": kidney_length(kp) * 1e3,
+        "er_unit": task.get("er_unit", "fixed"),
         "points": int(len(P)),
         "e_trans_mm": e_trans(loc.X_BK, kp.X_BK_true) * 1e3,
         "e_rot_x_deg": math.degrees(e_rot_x(loc.X_BK, kp.X_BK_true)),
@@ -1128,15 +1426,22 @@ def run_kinematic_task(task: dict) -> dict:
     if rejected is not None:
         result["start_rejected_draws"] = rejected
     if task["study"] == "template":
-        result.update(template_record(variant, template, kp, scenario.patient.posture,
-                                      task["patient"]))
+        result.update(
+            template_record(variant, template, kp, scenario.patient.posture, task["patient"])
+        )
     if task["study"] == "efficiency":
         export = task.get("export_dir")
         result["strategies"] = efficiency_of(
-            kp, imager, controller, loc.X_BK, float(task.get("recon_spacing", 0.001)),
-            export_dir=export, name=re.sub(r"[^A-Za-z0-9]+", "-", task["patient"]).strip("-"),
+            kp,
+            imager,
+            controller,
+            loc.X_BK,
+            float(task.get("recon_spacing", 0.001)),
+            export_dir=export,
+            name=re.sub(r"[^A-Za-z0-9]+", "-", task["patient"]).strip("-"),
             strategies=check_strategies(task.get("strategies") or STRATEGY_ORDER),
-            pivot_model=km.pivot_model_for(template, imager.imaging))
+            pivot_model=km.pivot_model_for(template, imager.imaging),
+        )
     result["wall_s"] = time.perf_counter() - t0
     return result
 
@@ -1144,9 +1449,18 @@ def run_kinematic_task(task: dict) -> dict:
 EXPORT_STRATEGIES = ("OP", "GT-OP")
 
 
-def efficiency_of(kp, imager, controller, X_BK_est, recon_spacing: float, *,
-                  export_dir=None, name: str = "patient", strategies=STRATEGY_ORDER,
-                  pivot_model=None) -> dict:
+def efficiency_of(
+    kp,
+    imager,
+    controller,
+    X_BK_est,
+    recon_spacing: float,
+    *,
+    export_dir=None,
+    name: str = "patient",
+    strategies=STRATEGY_ORDER,
+    pivot_model=None,
+) -> dict:
     """Per strategy: :func:`sweep_entry` (pole-to-pole curves and totals, the whole pivot's
     totals, matched coverage, tilt cap) and the reconstructed kidney volume (mL) from the
     pole-to-pole masks; OP-PE (the predicted_end pivot, needs ``pivot_model``) also its
@@ -1156,13 +1470,18 @@ def efficiency_of(kp, imager, controller, X_BK_est, recon_spacing: float, *,
     probability, kidney mask and, for the classical/onnx segmenters, the grey volume)."""
     out = {}
     for s in strategies:
-        sweep = km.strategy_sweep(kp, imager, s, controller, X_BK_est, keep_images=True,
-                                  pivot_model=pivot_model)
+        sweep = km.strategy_sweep(
+            kp, imager, s, controller, X_BK_est, keep_images=True, pivot_model=pivot_model
+        )
         p2p = sweep.pole_to_pole()
         entry = sweep_entry(kp, sweep, imager.geometry, controller)
-        entry.update(volume_ml=None, volume_error_pct=None,
-                     sweep="line" if s == "SL" else "pivot", pivot_pose_from=POSE_FROM[s],
-                     text=STRATEGY_TEXT[s])
+        entry.update(
+            volume_ml=None,
+            volume_error_pct=None,
+            sweep="line" if s == "SL" else "pivot",
+            pivot_pose_from=POSE_FROM[s],
+            text=STRATEGY_TEXT[s],
+        )
         if sweep.info:
             i = sweep.info
             entry["pretilt"] = {
@@ -1170,34 +1489,43 @@ def efficiency_of(kp, imager, controller, X_BK_est, recon_spacing: float, *,
                 "target_deg": math.degrees(i["pretilt_target"]),
                 "end_deg": math.degrees(i["pretilt_end"]),
                 "check_frames": i["pretilt_check_frames"],
-                "eps_mm": i["eps_pretilt"] * 1e3}
+                "eps_mm": i["eps_pretilt"] * 1e3,
+            }
         if p2p.frames:
             try:
-                rec = reconstruct_kidney([f.mask for f in p2p.frames], p2p.poses,
-                                         imager.geometry, spacing=recon_spacing)
+                rec = reconstruct_kidney(
+                    [f.mask for f in p2p.frames], p2p.poses, imager.geometry, spacing=recon_spacing
+                )
                 entry["volume_ml"] = rec["volume_ml"]
-                entry["volume_error_pct"] = 100 * (rec["volume_ml"] / (kp.kidney_volume * 1e6)
-                                                   - 1)
+                entry["volume_error_pct"] = 100 * (rec["volume_ml"] / (kp.kidney_volume * 1e6) - 1)
                 if export_dir is not None and s in EXPORT_STRATEGIES:
                     d = Path(export_dir)
                     tag = f"{name}__{s}"
-                    note = (f"drake-rus {s} sweep of {name}, kinematic mode; axes = robot base "
-                            "frame x, y, z (mm)")
-                    write_nrrd(d / f"{tag}__kidney_probability.nrrd",
-                               rec["reconstruction"].values, rec["grid"], description=note)
-                    write_nrrd(d / f"{tag}__kidney_mask.nrrd", rec["mask"], rec["grid"],
-                               description=note)
+                    note = (
+                        f"drake-rus {s} sweep of {name}, kinematic mode; axes = robot base "
+                        "frame x, y, z (mm)"
+                    )
+                    write_nrrd(
+                        d / f"{tag}__kidney_probability.nrrd",
+                        rec["reconstruction"].values,
+                        rec["grid"],
+                        description=note,
+                    )
+                    write_nrrd(
+                        d / f"{tag}__kidney_mask.nrrd", rec["mask"], rec["grid"], description=note
+                    )
                     if all(f.image is not None for f in p2p.frames):
-                        grey = compound([f.image for f in p2p.frames], p2p.poses,
-                                        imager.geometry, rec["grid"])
-                        write_nrrd(d / f"{tag}__grey.nrrd", grey.values, rec["grid"],
-                                   description=note)
+                        grey = compound(
+                            [f.image for f in p2p.frames], p2p.poses, imager.geometry, rec["grid"]
+                        )
+                        write_nrrd(
+                            d / f"{tag}__grey.nrrd", grey.values, rec["grid"], description=note
+                        )
                     entry["nrrd"] = sorted(str(p.name) for p in d.glob(f"{tag}__*.nrrd"))
             except ValueError as e:
                 entry["volume_note"] = str(e)
         out[s] = entry
     return out
-
 
 
 # ------------------------------------------------------------------------------- results
@@ -1212,5 +1540,8 @@ def results_of(results: list[dict], tasks: list[dict]) -> list[dict]:
     """The results made by exactly ``tasks`` (same run id and settings key; OUT may hold
     other runs)."""
     wanted = {run_id(t): task_key(t) for t in tasks}
-    return [r for r in results if wanted.get(r.get("run_id")) is not None
-            and r.get("task_key") == wanted[r["run_id"]]]
+    return [
+        r
+        for r in results
+        if wanted.get(r.get("run_id")) is not None and r.get("task_key") == wanted[r["run_id"]]
+    ]

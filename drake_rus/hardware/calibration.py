@@ -28,6 +28,7 @@ class PivotCalibration:
     """Result: tip offset in the flange frame (m), pivot point in the base (m), residual
     distance of every pose's tip prediction from the pivot (m), their RMS (m), and the
     smallest singular value of the stacked system (poor rotation diversity when small)."""
+
     p_FT: np.ndarray
     p_BT: np.ndarray
     residuals: np.ndarray
@@ -35,8 +36,9 @@ class PivotCalibration:
     conditioning: float
 
 
-def pivot_calibration(rotations, translations, min_singular_value: float = 0.05
-                      ) -> PivotCalibration:
+def pivot_calibration(
+    rotations, translations, min_singular_value: float = 0.05
+) -> PivotCalibration:
     """Least-squares pivot calibration from flange poses.
 
     Args:
@@ -52,8 +54,9 @@ def pivot_calibration(rotations, translations, min_singular_value: float = 0.05
     if R.ndim != 3 or R.shape[1:] != (3, 3):
         raise ValueError(f"pivot_calibration: rotations must be (N, 3, 3), got {R.shape}")
     if t.shape != (R.shape[0], 3):
-        raise ValueError(f"pivot_calibration: translations must be ({R.shape[0]}, 3), got "
-                         f"{t.shape}")
+        raise ValueError(
+            f"pivot_calibration: translations must be ({R.shape[0]}, 3), got {t.shape}"
+        )
     n = R.shape[0]
     if n < 3:
         raise ValueError(f"pivot_calibration: needs at least 3 poses, got {n}")
@@ -61,8 +64,10 @@ def pivot_calibration(rotations, translations, min_singular_value: float = 0.05
         raise ValueError("pivot_calibration: non-finite pose")
     orth = np.abs(np.einsum("nij,nkj->nik", R, R) - np.eye(3)).max()
     if orth > 1e-6 or np.any(np.linalg.det(R) < 0):
-        raise ValueError(f"pivot_calibration: rotations are not proper rotation matrices "
-                         f"(orthogonality error {orth:.2e})")
+        raise ValueError(
+            f"pivot_calibration: rotations are not proper rotation matrices "
+            f"(orthogonality error {orth:.2e})"
+        )
     A = np.zeros((3 * n, 6))
     A[:, :3] = R.reshape(3 * n, 3)
     A[:, 3:] = -np.tile(np.eye(3), (n, 1))
@@ -73,12 +78,14 @@ def pivot_calibration(rotations, translations, min_singular_value: float = 0.05
         raise ValueError(
             f"pivot_calibration: the {n} poses do not rotate enough about the pivot "
             f"(smallest singular value {conditioning:.3g} < {min_singular_value}); tilt the "
-            f"probe by 20-40 degrees about two different axes")
+            f"probe by 20-40 degrees about two different axes"
+        )
     x, *_ = np.linalg.lstsq(A, b, rcond=None)
     p_FT, p_BT = x[:3], x[3:]
     residuals = np.linalg.norm(np.einsum("nij,j->ni", R, p_FT) + t - p_BT, axis=1)
-    return PivotCalibration(p_FT, p_BT, residuals, float(np.sqrt(np.mean(residuals**2))),
-                            conditioning)
+    return PivotCalibration(
+        p_FT, p_BT, residuals, float(np.sqrt(np.mean(residuals**2))), conditioning
+    )
 
 
 def flange_poses_from_joints(scenario, joint_positions):

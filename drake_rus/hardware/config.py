@@ -27,17 +27,22 @@ class HardwareConfig:
     dry_run: bool = True
     # Rate (Hz) at which velocity targets are sent; normally the controller's rate_hz. The
     # 1 kHz loop stays in the library (franky) or the driver (lcm).
-    command_rate_hz: float = field(default=200.0, metadata=physical(
-        10.0, 1000.0, "Hz", "velocity targets at most at the FR3's 1 kHz", positive=True))
+    command_rate_hz: float = field(
+        default=200.0,
+        metadata=physical(
+            10.0, 1000.0, "Hz", "velocity targets at most at the FR3's 1 kHz", positive=True
+        ),
+    )
     # Client-side joint velocity limits (rad/s): commands are scaled into them (direction
     # kept). Default: 40 % of the FR3 rectangular set.
     max_joint_velocity: list[float] = field(
         default_factory=lambda: [0.8, 0.4, 0.6, 0.5, 1.2, 0.6, 1.2],
-        metadata={"length": 7, "positive": True, "max": 3.0})
+        metadata={"length": 7, "positive": True, "max": 3.0},
+    )
     # Client-side joint acceleration limits (rad/s^2) on the command (FR3: 10 rad/s^2).
     max_joint_acceleration: list[float] = field(
-        default_factory=lambda: [2.0] * 7,
-        metadata={"length": 7, "positive": True, "max": 10.0})
+        default_factory=lambda: [2.0] * 7, metadata={"length": 7, "positive": True, "max": 10.0}
+    )
     # Command watchdog (s): no fresh command from the diagram for this long -> zero velocity
     # (franky: each target expires after this long inside the library as well; LCM: run
     # drake-franka-driver with --expire_sec equal to this). Sized for a busy 2-core PC:
@@ -54,8 +59,7 @@ class HardwareConfig:
     # Connection attempts (s) before giving up at start.
     connect_timeout: float = field(default=10.0, metadata={"positive": True})
     # franky's global relative dynamics factor in (0, 1] (its Ruckig limits on the targets).
-    relative_dynamics_factor: float = field(default=0.2, metadata={"positive": True,
-                                                                   "max": 1.0})
+    relative_dynamics_factor: float = field(default=0.2, metadata={"positive": True, "max": 1.0})
     # Tell libfranka the probe holder's load (scenario probe.mass, p_FCm, inertia_diagonal)
     # at connection, so its external torque estimate excludes the probe's weight (franky).
     set_load: bool = True
@@ -88,28 +92,33 @@ class HardwareConfig:
     # and the Cartesian thresholds below guard the probe face.
     contact_torque_thresholds: list[float] = field(
         default_factory=lambda: [10.0, 10.0, 9.0, 9.0, 8.0, 7.0, 6.0],
-        metadata={"length": 7, "positive": True, "max": 100.0})
+        metadata={"length": 7, "positive": True, "max": 100.0},
+    )
     collision_torque_thresholds: list[float] = field(
         default_factory=lambda: [20.0, 20.0, 18.0, 18.0, 16.0, 14.0, 12.0],
-        metadata={"length": 7, "positive": True, "max": 100.0})
+        metadata={"length": 7, "positive": True, "max": 100.0},
+    )
     # Cartesian thresholds on the wrench estimate at the stiffness frame K (the flange
     # unless an end effector is set in Desk): [fx, fy, fz] (N), [mx, my, mz] (N m). Collision
     # forces sit below the safety layer's 20 N force ceiling (safety.force_ceiling); the
     # moments allow 18 N at the probe tip 0.2 m from the flange (3.6 N m).
     contact_force_thresholds: list[float] = field(
         default_factory=lambda: [10.0, 10.0, 10.0, 2.0, 2.0, 2.0],
-        metadata={"length": 6, "positive": True, "max": 100.0})
+        metadata={"length": 6, "positive": True, "max": 100.0},
+    )
     collision_force_thresholds: list[float] = field(
         default_factory=lambda: [18.0, 18.0, 18.0, 4.0, 4.0, 4.0],
-        metadata={"length": 6, "positive": True, "max": 100.0})
+        metadata={"length": 6, "positive": True, "max": 100.0},
+    )
     # A robot that stopped with a reflex (or the user stop) has errors pending and refuses
     # motion until they are reset (libfranka automaticErrorRecovery, franky
     # recover_from_errors). "operator": never reset by the software; connecting to a robot
     # with errors pending is a HardwareFault that says what to do (the operator checks the
     # patient and the probe, then runs `drake-rus hardware check --recover` or resets in
     # Desk). "at_connect": reset at connection, logged. Never reset during a run.
-    error_recovery: str = field(default="operator",
-                                metadata={"choices": ["operator", "at_connect"]})
+    error_recovery: str = field(
+        default="operator", metadata={"choices": ["operator", "at_connect"]}
+    )
 
     # --- Frame grabber (the ultrasound machine's video output) ---
     # The video source: a capture device index ("0", "1", ...), a video file path (replayed
@@ -123,8 +132,9 @@ class HardwareConfig:
     # Crop rectangle of the ultrasound sector in the grabbed picture (pixels): [x, y, width,
     # height] with (x, y) the top-left corner; width = height = 0 keeps the whole picture.
     # Used only without image_calibration (the calibration file has a crop per depth).
-    video_crop: list[int] = field(default_factory=lambda: [0, 0, 0, 0],
-                                  metadata={"length": 4, "min": 0})
+    video_crop: list[int] = field(
+        default_factory=lambda: [0, 0, 0, 0], metadata={"length": 4, "min": 0}
+    )
     # Image calibration file (YAML, drake_rus/hardware/image_calibration.py; written by
     # `drake-rus hardware calibrate-image`): per depth preset the crop, mm per pixel and the
     # pixel of the probe-face centre, plus the image-to-probe transform. The entry for

@@ -23,10 +23,22 @@ import numpy as np
 from drake_rus.extras import require
 
 __all__ = [
-    "external_torque_to_drake", "wall_clock_utime", "utime_age", "is_command_fresh",
-    "limit_joint_velocity", "guard_command", "watchdog_expired", "check_crop", "crop_image",
-    "to_grey", "fit_image", "check_robot_ip", "weight_torque", "load_declaration",
-    "collision_thresholds", "period_statistics",
+    "external_torque_to_drake",
+    "wall_clock_utime",
+    "utime_age",
+    "is_command_fresh",
+    "limit_joint_velocity",
+    "guard_command",
+    "watchdog_expired",
+    "check_crop",
+    "crop_image",
+    "to_grey",
+    "fit_image",
+    "check_robot_ip",
+    "weight_torque",
+    "load_declaration",
+    "collision_thresholds",
+    "period_statistics",
 ]
 
 
@@ -68,8 +80,9 @@ def limit_joint_velocity(v, v_max) -> np.ndarray:
     return v / ratio if ratio > 1.0 else v.copy()
 
 
-def guard_command(v_desired, v_previous, dt: float, v_max, a_max, *, enabled: bool = True
-                  ) -> np.ndarray:
+def guard_command(
+    v_desired, v_previous, dt: float, v_max, a_max, *, enabled: bool = True
+) -> np.ndarray:
     """The velocity (rad/s) actually sent to the robot this period.
 
     Zero when ``enabled`` is false (dry run, stopped, fault) or when ``v_desired`` has a
@@ -110,11 +123,14 @@ def check_crop(crop, shape, field_name: str = "hardware_interface.video_crop") -
     if w == 0 and h == 0 and x == 0 and y == 0:
         return 0, 0, cols, rows
     if min(x, y) < 0 or w <= 0 or h <= 0:
-        raise ValueError(f"field '{field_name}': {list(crop)} needs x, y >= 0 and width, "
-                         f"height > 0 (pixels)")
+        raise ValueError(
+            f"field '{field_name}': {list(crop)} needs x, y >= 0 and width, height > 0 (pixels)"
+        )
     if x + w > cols or y + h > rows:
-        raise ValueError(f"field '{field_name}': {list(crop)} reaches past the grabbed "
-                         f"picture of {cols} x {rows} pixels (width x height)")
+        raise ValueError(
+            f"field '{field_name}': {list(crop)} reaches past the grabbed "
+            f"picture of {cols} x {rows} pixels (width x height)"
+        )
     return x, y, w, h
 
 
@@ -122,7 +138,7 @@ def crop_image(image: np.ndarray, crop) -> np.ndarray:
     """The part [y:y+h, x:x+w] of ``image`` for a crop rectangle [x, y, w, h] (see
     :func:`check_crop`)."""
     x, y, w, h = check_crop(crop, np.shape(image))
-    return np.asarray(image)[y:y + h, x:x + w]
+    return np.asarray(image)[y : y + h, x : x + w]
 
 
 def to_grey(image: np.ndarray) -> np.ndarray:
@@ -137,8 +153,9 @@ def to_grey(image: np.ndarray) -> np.ndarray:
         b, g, r = (a[:, :, i].astype(float) for i in range(3))
         a = 0.114 * b + 0.587 * g + 0.299 * r
     elif a.ndim != 2:
-        raise ValueError(f"to_grey: expected an image (rows, cols[, channels]), got shape "
-                         f"{a.shape}")
+        raise ValueError(
+            f"to_grey: expected an image (rows, cols[, channels]), got shape {a.shape}"
+        )
     if a.dtype != np.uint8:
         a = np.clip(np.rint(a), 0, 255).astype(np.uint8)
     return a
@@ -152,14 +169,16 @@ def fit_image(grey: np.ndarray, shape) -> np.ndarray:
         return grey
     cv2 = require("cv2", "resampling the ultrasound picture")
     shrinking = grey.shape[0] >= rows and grey.shape[1] >= cols
-    return cv2.resize(grey, (cols, rows),
-                      interpolation=cv2.INTER_AREA if shrinking else cv2.INTER_LINEAR)
+    return cv2.resize(
+        grey, (cols, rows), interpolation=cv2.INTER_AREA if shrinking else cv2.INTER_LINEAR
+    )
 
 
 def check_robot_ip(robot_ip: str, field_name: str = "hardware_interface.robot_ip") -> str:
     """A robot address: an IPv4 address or a host name. Raises ValueError naming the field."""
     import ipaddress
     import re
+
     text = str(robot_ip).strip()
     if not text:
         raise ValueError(f"field '{field_name}': empty robot address")
@@ -167,13 +186,16 @@ def check_robot_ip(robot_ip: str, field_name: str = "hardware_interface.robot_ip
         try:
             ipaddress.IPv4Address(text)
         except ValueError:
-            raise ValueError(f"field '{field_name}': {robot_ip!r} is not an IPv4 address"
-                             ) from None
+            raise ValueError(f"field '{field_name}': {robot_ip!r} is not an IPv4 address") from None
         return text
-    if not re.fullmatch(r"[A-Za-z0-9]([A-Za-z0-9-]*[A-Za-z0-9])?"
-                        r"(\.[A-Za-z0-9]([A-Za-z0-9-]*[A-Za-z0-9])?)*", text):
-        raise ValueError(f"field '{field_name}': {robot_ip!r} is neither an IPv4 address nor "
-                         f"a host name")
+    if not re.fullmatch(
+        r"[A-Za-z0-9]([A-Za-z0-9-]*[A-Za-z0-9])?"
+        r"(\.[A-Za-z0-9]([A-Za-z0-9-]*[A-Za-z0-9])?)*",
+        text,
+    ):
+        raise ValueError(
+            f"field '{field_name}': {robot_ip!r} is neither an IPv4 address nor a host name"
+        )
     return text
 
 
@@ -214,18 +236,26 @@ def collision_thresholds(config) -> dict:
         lower = np.asarray(getattr(config, f"contact_{kind}_thresholds"), float)
         upper = np.asarray(getattr(config, f"collision_{kind}_thresholds"), float)
         if lower.shape != (n,) or upper.shape != (n,):
-            raise ValueError(f"field 'hardware_interface.contact_{kind}_thresholds': expected "
-                             f"{n} values")
-        if not (np.all(np.isfinite(lower)) and np.all(np.isfinite(upper))
-                and np.all(lower > 0) and np.all(upper > 0)):
-            raise ValueError(f"field 'hardware_interface.collision_{kind}_thresholds': "
-                             f"thresholds must be finite and positive")
+            raise ValueError(
+                f"field 'hardware_interface.contact_{kind}_thresholds': expected {n} values"
+            )
+        if not (
+            np.all(np.isfinite(lower))
+            and np.all(np.isfinite(upper))
+            and np.all(lower > 0)
+            and np.all(upper > 0)
+        ):
+            raise ValueError(
+                f"field 'hardware_interface.collision_{kind}_thresholds': "
+                f"thresholds must be finite and positive"
+            )
         if np.any(lower > upper):
             i = int(np.argmax(lower > upper))
             raise ValueError(
                 f"field 'hardware_interface.contact_{kind}_thresholds': entry {i} "
                 f"({lower[i]:g}) is above collision_{kind}_thresholds[{i}] ({upper[i]:g}): a "
-                f"contact must be flagged before the robot stops")
+                f"contact must be flagged before the robot stops"
+            )
         out[f"lower_{kind}"], out[f"upper_{kind}"] = lower, upper
     return out
 
@@ -236,8 +266,21 @@ def period_statistics(times) -> dict:
     t = np.asarray(times, float)
     gaps = np.diff(t) if t.size > 1 else np.zeros(0)
     if gaps.size == 0:
-        return {"count": 0, "mean": math.nan, "std": math.nan, "p50": math.nan,
-                "p99": math.nan, "p999": math.nan, "max": math.nan}
-    return {"count": int(gaps.size), "mean": float(gaps.mean()), "std": float(gaps.std()),
-            "p50": float(np.percentile(gaps, 50)), "p99": float(np.percentile(gaps, 99)),
-            "p999": float(np.percentile(gaps, 99.9)), "max": float(gaps.max())}
+        return {
+            "count": 0,
+            "mean": math.nan,
+            "std": math.nan,
+            "p50": math.nan,
+            "p99": math.nan,
+            "p999": math.nan,
+            "max": math.nan,
+        }
+    return {
+        "count": int(gaps.size),
+        "mean": float(gaps.mean()),
+        "std": float(gaps.std()),
+        "p50": float(np.percentile(gaps, 50)),
+        "p99": float(np.percentile(gaps, 99)),
+        "p999": float(np.percentile(gaps, 99.9)),
+        "max": float(gaps.max()),
+    }

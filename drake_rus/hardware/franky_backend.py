@@ -31,14 +31,25 @@ import numpy as np
 from drake_rus.extras import install_hint
 from drake_rus.hardware.config import HardwareConfig
 from drake_rus.hardware.core import (
-    check_robot_ip, collision_thresholds, external_torque_to_drake, watchdog_expired)
+    check_robot_ip,
+    collision_thresholds,
+    external_torque_to_drake,
+    watchdog_expired,
+)
 
 LOG = logging.getLogger("drake_rus.hardware")
 
-__all__ = ["HardwareFault", "RobotReading", "WatchdogEvent", "FrankyBackend", "FCI_PORT",
-           "robot_error_names", "wait_for_port"]
+__all__ = [
+    "HardwareFault",
+    "RobotReading",
+    "WatchdogEvent",
+    "FrankyBackend",
+    "FCI_PORT",
+    "robot_error_names",
+    "wait_for_port",
+]
 
-FCI_PORT = 1337         # libfranka's command port on the robot's control box
+FCI_PORT = 1337  # libfranka's command port on the robot's control box
 
 
 def robot_error_names(errors) -> list[str]:
@@ -51,8 +62,11 @@ def robot_error_names(errors) -> list[str]:
         return [] if not errors else [str(errors)]
     if not any(flags):
         return []
-    names = sorted(n for n in dir(type(errors)) if not n.startswith("_")
-                   and isinstance(getattr(type(errors), n, None), property))
+    names = sorted(
+        n
+        for n in dir(type(errors))
+        if not n.startswith("_") and isinstance(getattr(type(errors), n, None), property)
+    )
     active = [n for n in names if getattr(errors, n, False) is True]
     return active or [repr(errors)]
 
@@ -105,6 +119,7 @@ class RobotReading:
     Drake's sign (N m, on the arm by the environment), wall-clock time of the read (s,
     ``time.monotonic``), the robot's own clock (s) and the velocity its controller is
     currently commanded (libfranka ``dq_d``, rad/s)."""
+
     q: np.ndarray
     v: np.ndarray
     tau_external: np.ndarray
@@ -117,6 +132,7 @@ class RobotReading:
 class WatchdogEvent:
     """The watchdog zeroed the command: at ``wall_time`` (s, monotonic), ``latency`` (s)
     after the last fresh command."""
+
     wall_time: float
     latency: float
 
@@ -127,7 +143,8 @@ def _import_franky():
     except ImportError as e:
         raise HardwareFault(
             f"field 'hardware_interface.backend': 'franky' needs franky-control, part of the "
-            f"'hardware' extra: {install_hint('hardware')} ({e})") from None
+            f"'hardware' extra: {install_hint('hardware')} ({e})"
+        ) from None
     return franky
 
 
@@ -156,7 +173,7 @@ class FrankyBackend:
         self._robot_time = math.nan
         self._robot_time_change = math.nan
         self.watchdog_events: list[WatchdogEvent] = []
-        self.command_log: list[tuple[float, np.ndarray]] = []   # (monotonic s, rad/s)
+        self.command_log: list[tuple[float, np.ndarray]] = []  # (monotonic s, rad/s)
         # (robot clock s, q rad, velocity sent right after that read rad/s, wall clock of the
         # read s monotonic), when tracing.
         self.trace: list[tuple[float, np.ndarray, np.ndarray, float]] | None = None
@@ -169,8 +186,9 @@ class FrankyBackend:
         self._configure_collision()
         self._configure_load()
         self._estimate_bias()
-        self._watchdog = threading.Thread(target=self._watchdog_loop, name="drake_rus_watchdog",
-                                          daemon=True)
+        self._watchdog = threading.Thread(
+            target=self._watchdog_loop, name="drake_rus_watchdog", daemon=True
+        )
         self._watchdog.start()
 
     # --- connection -------------------------------------------------------------------
@@ -190,30 +208,40 @@ class FrankyBackend:
                 # as long as connect_timeout allows.
                 left = max(cfg.connect_timeout - (time.monotonic() - start), 0.5)
                 robot = call_within(
-                    lambda: franky.Robot(host, realtime_config=franky.RealtimeConfig.Ignore),
-                    left)
+                    lambda: franky.Robot(host, realtime_config=franky.RealtimeConfig.Ignore), left
+                )
                 break
             except TimeoutError:
                 last_error = f"no handshake on {host}:{FCI_PORT} (a peer accepts, never answers)"
                 break
             except Exception as e:  # NetworkException, IncompatibleVersionException, ...
                 last_error = f"{type(e).__name__}: {e}"
-                if (isinstance(e, getattr(franky, "IncompatibleVersionException", ()))
-                        or time.monotonic() - start > cfg.connect_timeout):
+                if (
+                    isinstance(e, getattr(franky, "IncompatibleVersionException", ()))
+                    or time.monotonic() - start > cfg.connect_timeout
+                ):
                     break
                 time.sleep(0.2)
         if robot is None:
             elapsed = time.monotonic() - start
-            where = (f"no answer on {host}:{FCI_PORT} (libfranka's FCI port)" if not reachable
-                     else "the connection was refused")
+            where = (
+                f"no answer on {host}:{FCI_PORT} (libfranka's FCI port)"
+                if not reachable
+                else "the connection was refused"
+            )
             raise HardwareFault(
                 f"field 'hardware_interface.robot_ip': cannot connect to the FR3 at {host!r}: "
                 f"{where} after {elapsed:.1f} s (hardware_interface.connect_timeout "
-                f"{cfg.connect_timeout:g} s): {last_error or 'no error reported'}")
+                f"{cfg.connect_timeout:g} s): {last_error or 'no error reported'}"
+            )
         robot.relative_dynamics_factor = float(cfg.relative_dynamics_factor)
         self._robot = robot
-        LOG.info("connected to the FR3 at %s in %.1f s (dry run: %s)", host,
-                 time.monotonic() - start, self.dry_run)
+        LOG.info(
+            "connected to the FR3 at %s in %.1f s (dry run: %s)",
+            host,
+            time.monotonic() - start,
+            self.dry_run,
+        )
 
     def _check_errors(self):
         """A robot with errors pending (a reflex, the user stop) refuses motion. Reset it
@@ -231,26 +259,34 @@ class FrankyBackend:
                 f"FR3 at {self.config.robot_ip}: errors pending ({what}). Check the patient "
                 f"and the probe (lift it in guiding mode if it still presses), then reset: "
                 f"`drake-rus hardware check --recover`, or Desk's error acknowledgement "
-                f"(hardware_interface.error_recovery: operator)")
-        LOG.warning("FR3 at %s: errors pending (%s): automatic error recovery "
-                    "(hardware_interface.error_recovery: at_connect)", self.config.robot_ip,
-                    what)
+                f"(hardware_interface.error_recovery: operator)"
+            )
+        LOG.warning(
+            "FR3 at %s: errors pending (%s): automatic error recovery "
+            "(hardware_interface.error_recovery: at_connect)",
+            self.config.robot_ip,
+            what,
+        )
         try:
             with self._lock:
                 recovered = self._robot.recover_from_errors()
         except Exception as e:
-            raise HardwareFault(f"FR3 at {self.config.robot_ip}: error recovery failed: "
-                                f"{type(e).__name__}: {e}") from None
+            raise HardwareFault(
+                f"FR3 at {self.config.robot_ip}: error recovery failed: {type(e).__name__}: {e}"
+            ) from None
         if recovered is False:
-            raise HardwareFault(f"FR3 at {self.config.robot_ip}: error recovery failed "
-                                f"({what}); reset in Desk")
+            raise HardwareFault(
+                f"FR3 at {self.config.robot_ip}: error recovery failed ({what}); reset in Desk"
+            )
 
     def _configure_collision(self):
         """The FR3's own contact / collision thresholds (libfranka setCollisionBehavior,
         the same while accelerating and at constant velocity)."""
         if not self.config.set_collision_behavior:
-            LOG.warning("hardware_interface.set_collision_behavior is false: the robot keeps "
-                        "its previous collision thresholds (franky's default: 20 N m, 30 N)")
+            LOG.warning(
+                "hardware_interface.set_collision_behavior is false: the robot keeps "
+                "its previous collision thresholds (franky's default: 20 N m, 30 N)"
+            )
             return
         try:
             t = collision_thresholds(self.config)
@@ -258,15 +294,21 @@ class FrankyBackend:
             raise HardwareFault(str(e)) from None
         try:
             with self._lock:
-                self._robot.set_collision_behavior(t["lower_torque"], t["upper_torque"],
-                                                   t["lower_force"], t["upper_force"])
+                self._robot.set_collision_behavior(
+                    t["lower_torque"], t["upper_torque"], t["lower_force"], t["upper_force"]
+                )
         except Exception as e:
-            raise HardwareFault(f"FR3 at {self.config.robot_ip}: set_collision_behavior "
-                                f"(hardware_interface.contact_/collision_*_thresholds) failed: "
-                                f"{type(e).__name__}: {e}") from None
+            raise HardwareFault(
+                f"FR3 at {self.config.robot_ip}: set_collision_behavior "
+                f"(hardware_interface.contact_/collision_*_thresholds) failed: "
+                f"{type(e).__name__}: {e}"
+            ) from None
         self.collision_thresholds = t
-        LOG.info("FR3 collision thresholds: joints %s N m, wrench %s (N, N m)",
-                 [float(x) for x in t["upper_torque"]], [float(x) for x in t["upper_force"]])
+        LOG.info(
+            "FR3 collision thresholds: joints %s N m, wrench %s (N, N m)",
+            [float(x) for x in t["upper_torque"]],
+            [float(x) for x in t["upper_force"]],
+        )
 
     def _configure_load(self):
         if not (self.config.set_load and self._load is not None):
@@ -275,13 +317,18 @@ class FrankyBackend:
         inertia = np.asarray(inertia, float).reshape(3, 3)
         try:
             with self._lock:
-                self._robot.set_load(float(mass), [float(x) for x in p_FC],
-                                     [float(x) for x in inertia.flatten(order="F")])
+                self._robot.set_load(
+                    float(mass),
+                    [float(x) for x in p_FC],
+                    [float(x) for x in inertia.flatten(order="F")],
+                )
         except Exception as e:
-            raise HardwareFault(f"FR3 at {self.config.robot_ip}: set_load (scenario probe.mass, "
-                                f"probe.p_FCm, probe.inertia_diagonal) failed: "
-                                f"{type(e).__name__}: {e}") from None
-        time.sleep(0.05)    # let the estimate settle on the new load
+            raise HardwareFault(
+                f"FR3 at {self.config.robot_ip}: set_load (scenario probe.mass, "
+                f"probe.p_FCm, probe.inertia_diagonal) failed: "
+                f"{type(e).__name__}: {e}"
+            ) from None
+        time.sleep(0.05)  # let the estimate settle on the new load
 
     def _estimate_bias(self):
         duration = float(self.config.tau_external_bias_duration)
@@ -314,11 +361,17 @@ class FrankyBackend:
                 self._set_fault(
                     f"FR3 at {self.config.robot_ip}: robot state not updated for "
                     f"{now - self._robot_time_change:.3f} s (hardware_interface.status_timeout"
-                    f" {self.config.status_timeout:g} s): connection lost")
+                    f" {self.config.status_timeout:g} s): connection lost"
+                )
                 raise HardwareFault(self._fault)
-        return RobotReading(np.array(state.q, float), np.array(state.dq, float),
-                            external_torque_to_drake(state.tau_ext_hat_filtered),
-                            now, robot_time, np.array(state.dq_d, float))
+        return RobotReading(
+            np.array(state.q, float),
+            np.array(state.dq, float),
+            external_torque_to_drake(state.tau_ext_hat_filtered),
+            now,
+            robot_time,
+            np.array(state.dq_d, float),
+        )
 
     def read(self) -> RobotReading:
         """The robot state now; external torques with the start-up bias removed."""
@@ -338,7 +391,7 @@ class FrankyBackend:
                 self._last_sent = v
                 return v
             if not np.any(v) and not np.any(self._last_sent):
-                return v    # at rest and asked to stay: start no motion
+                return v  # at rest and asked to stay: start no motion
             self._move(v)
             self.command_log.append((now, v.copy()))
             return v
@@ -347,8 +400,9 @@ class FrankyBackend:
         franky = self._franky
         ms = max(1, int(round(self.config.command_timeout * 1000.0)))
         try:
-            self._robot.move(franky.JointVelocityMotion(v, duration=franky.Duration(ms)),
-                             asynchronous=True)
+            self._robot.move(
+                franky.JointVelocityMotion(v, duration=franky.Duration(ms)), asynchronous=True
+            )
             self._moving = True
             self._last_sent = v.copy()
         except Exception as e:
@@ -376,12 +430,13 @@ class FrankyBackend:
         while not self._stop_watchdog.wait(period):
             with self._lock:
                 now = time.monotonic()
-                if (np.any(self._last_sent)
-                        and watchdog_expired(now, self._last_command_time,
-                                             self.config.command_timeout)):
+                if np.any(self._last_sent) and watchdog_expired(
+                    now, self._last_command_time, self.config.command_timeout
+                ):
                     latency = now - self._last_command_time
-                    LOG.warning("command watchdog: no fresh command for %.3f s: zero velocity",
-                                latency)
+                    LOG.warning(
+                        "command watchdog: no fresh command for %.3f s: zero velocity", latency
+                    )
                     self.watchdog_events.append(WatchdogEvent(now, latency))
                     try:
                         if not self._fault:

@@ -22,7 +22,6 @@ docs/hardware_bringup.md), ``drake-rus hardware calibrate-image`` runs it on a t
 (:class:`TargetSet`).
 """
 
-
 import dataclasses
 import math
 from dataclasses import dataclass, field
@@ -39,10 +38,21 @@ from drake_rus.hardware.core import check_crop, to_grey
 from drake_rus.robot import MakeControlPlant
 
 __all__ = [
-    "DepthPresetCalibration", "ImageCalibration", "TargetImage", "TargetSet",
-    "load_image_calibration", "save_image_calibration", "preset_for_depth",
-    "ImageToProbeMap", "find_point_target", "ImageFit", "fit_image_calibration",
-    "targets_in_probe_frame", "load_target_set", "TargetFitReport", "fit_target_set",
+    "DepthPresetCalibration",
+    "ImageCalibration",
+    "TargetImage",
+    "TargetSet",
+    "load_image_calibration",
+    "save_image_calibration",
+    "preset_for_depth",
+    "ImageToProbeMap",
+    "find_point_target",
+    "ImageFit",
+    "fit_image_calibration",
+    "targets_in_probe_frame",
+    "load_target_set",
+    "TargetFitReport",
+    "fit_target_set",
     "with_preset",
 ]
 
@@ -55,15 +65,14 @@ class DepthPresetCalibration:
     depth: float = field(default=0.15, metadata={"positive": True, "max": 0.4})
     # The sector's rectangle in the grabbed picture: [x, y, width, height] (pixels); all
     # zeros: the whole picture.
-    crop: list[int] = field(default_factory=lambda: [0, 0, 0, 0],
-                            metadata={"length": 4, "min": 0})
+    crop: list[int] = field(default_factory=lambda: [0, 0, 0, 0], metadata={"length": 4, "min": 0})
     # Size of one grabbed pixel (mm) along the picture's columns (x) and rows (y).
-    mm_per_pixel: list[float] = field(default_factory=lambda: [0.3, 0.3],
-                                      metadata={"length": 2, "positive": True})
+    mm_per_pixel: list[float] = field(
+        default_factory=lambda: [0.3, 0.3], metadata={"length": 2, "positive": True}
+    )
     # The probe-face centre (origin of P) in the picture: [column, row] (pixels, continuous,
     # pixel centres at integers).
-    origin_px: list[float] = field(default_factory=lambda: [0.0, 0.0],
-                                   metadata={"length": 2})
+    origin_px: list[float] = field(default_factory=lambda: [0.0, 0.0], metadata={"length": 2})
     # Written by calibrate-image (informative): targets used, RMS and largest residual (mm).
     targets: int = field(default=0, metadata={"min": 0})
     rms_mm: float = field(default=0.0, metadata={"min": 0.0})
@@ -94,8 +103,9 @@ def load_image_calibration(path, field_name: str = CALIBRATION_FIELD) -> ImageCa
         raise ScenarioError(f"{where}: not valid YAML: {e}") from None
     try:
         validate(ImageCalibration, raw or {})
-        cal = yaml_load_typed(schema=ImageCalibration, filename=str(path),
-                              defaults=ImageCalibration())
+        cal = yaml_load_typed(
+            schema=ImageCalibration, filename=str(path), defaults=ImageCalibration()
+        )
     except ScenarioError as e:
         raise ScenarioError(f"{where}: {e}") from None
     except Exception as e:
@@ -112,24 +122,32 @@ def save_image_calibration(cal: ImageCalibration, path) -> None:
     Path(path).write_text(
         "# Image-to-probe calibration (drake_rus/hardware/image_calibration.py); written by\n"
         "# `drake-rus hardware calibrate-image`. Lengths: mm per pixel; pixels: [column, row].\n"
-        + yaml_dump_typed(cal))
+        + yaml_dump_typed(cal)
+    )
 
 
-def preset_for_depth(cal: ImageCalibration, depth: float, source: str = "",
-                     field_name: str = CALIBRATION_FIELD) -> DepthPresetCalibration:
+def preset_for_depth(
+    cal: ImageCalibration, depth: float, source: str = "", field_name: str = CALIBRATION_FIELD
+) -> DepthPresetCalibration:
     """The entry for ``depth`` (m); a ScenarioError listing the entries if there is none."""
     for p in cal.presets:
         if abs(p.depth - depth) < 1e-6:
             return p
     have = ", ".join(f"{p.depth:g}" for p in cal.presets) or "none"
-    raise ScenarioError(f"field '{field_name}': {source or 'the calibration'} has no entry for "
-                        f"imaging.depth {depth:g} m (entries for: {have} m); run "
-                        f"`drake-rus hardware calibrate-image` at this depth preset")
+    raise ScenarioError(
+        f"field '{field_name}': {source or 'the calibration'} has no entry for "
+        f"imaging.depth {depth:g} m (entries for: {have} m); run "
+        f"`drake-rus hardware calibrate-image` at this depth preset"
+    )
 
 
-def with_preset(cal: ImageCalibration, preset: DepthPresetCalibration, *,
-                angle_deg: float | None = None, mirror_x: bool | None = None
-                ) -> ImageCalibration:
+def with_preset(
+    cal: ImageCalibration,
+    preset: DepthPresetCalibration,
+    *,
+    angle_deg: float | None = None,
+    mirror_x: bool | None = None,
+) -> ImageCalibration:
     """``cal`` with ``preset`` added (replacing an entry for the same depth) and, if given,
     the in-plane angle (deg, rotation of I about z_I from nominal) and mirror set."""
     presets = [p for p in cal.presets if abs(p.depth - preset.depth) >= 1e-6] + [preset]
@@ -137,10 +155,15 @@ def with_preset(cal: ImageCalibration, preset: DepthPresetCalibration, *,
     if angle_deg is not None:
         old = X_PI.GetDeterministicValue()
         R = RotationMatrix.MakeXRotation(math.pi / 2) @ RotationMatrix.MakeZRotation(
-            math.radians(angle_deg))
+            math.radians(angle_deg)
+        )
         X_PI = Transform(RigidTransform(R, old.translation()))
-    return dataclasses.replace(cal, presets=sorted(presets, key=lambda p: p.depth), X_PI=X_PI,
-                               mirror_x=cal.mirror_x if mirror_x is None else bool(mirror_x))
+    return dataclasses.replace(
+        cal,
+        presets=sorted(presets, key=lambda p: p.depth),
+        X_PI=X_PI,
+        mirror_x=cal.mirror_x if mirror_x is None else bool(mirror_x),
+    )
 
 
 class ImageToProbeMap:
@@ -152,8 +175,9 @@ class ImageToProbeMap:
     the grid's) is sampled there bilinearly (OpenCV ``remap``). Grid pixels outside the crop
     are 0."""
 
-    def __init__(self, cal: ImageCalibration, preset: DepthPresetCalibration, geometry,
-                 picture_shape=None):
+    def __init__(
+        self, cal: ImageCalibration, preset: DepthPresetCalibration, geometry, picture_shape=None
+    ):
         self.geometry = geometry
         self.preset = preset
         self.mirror = -1.0 if cal.mirror_x else 1.0
@@ -171,7 +195,7 @@ class ImageToProbeMap:
         """Points (N, 3) in P (m) -> picture (column, row) (N, 2); y_I is dropped."""
         p = np.asarray(p_P, float).reshape(-1, 3)
         R = self.X_PI.rotation().matrix()
-        p_I = (p - self.X_PI.translation()) @ R          # rows: R^T (p - t)
+        p_I = (p - self.X_PI.translation()) @ R  # rows: R^T (p - t)
         col = self._c0 + self.mirror * 1e3 * p_I[:, 0] / self._sx
         row = self._r0 + 1e3 * p_I[:, 1] / self._sy
         return np.stack([col, row], axis=1)
@@ -187,20 +211,22 @@ class ImageToProbeMap:
     # --- resampling ---------------------------------------------------------------------
     def _prepare(self, shape):
         cv2 = require("cv2", "the image calibration")
-        x, y, w, h = check_crop(self._crop, shape, field_name=f"{CALIBRATION_FIELD} "
-                                f"(depth {self.preset.depth:g} m).crop")
+        x, y, w, h = check_crop(
+            self._crop,
+            shape,
+            field_name=f"{CALIBRATION_FIELD} (depth {self.preset.depth:g} m).crop",
+        )
         g = self.geometry
         # Shrink the crop when a grid pixel spans more than 1.5 picture pixels.
         fx = min(1.0, 1.5 * self._sx / (1e3 * g.dx))
         fy = min(1.0, 1.5 * self._sy / (1e3 * g.dz))
         small = (max(2, int(round(w * fx))), max(2, int(round(h * fy))))
-        v, u = np.mgrid[0:g.height_px, 0:g.width_px]
+        v, u = np.mgrid[0 : g.height_px, 0 : g.width_px]
         uv = np.stack([u.ravel(), v.ravel()], axis=1).astype(float)
         cols_rows = self.P_to_picture(g.pixel_to_P(uv))
         map_x = ((cols_rows[:, 0] - x + 0.5) * small[0] / w - 0.5).reshape(g.image_shape)
         map_y = ((cols_rows[:, 1] - y + 0.5) * small[1] / h - 0.5).reshape(g.image_shape)
-        self._maps = (cv2, (x, y, w, h), small, map_x.astype(np.float32),
-                      map_y.astype(np.float32))
+        self._maps = (cv2, (x, y, w, h), small, map_x.astype(np.float32), map_y.astype(np.float32))
         self._picture_shape = tuple(shape[:2])
 
     def __call__(self, picture) -> np.ndarray:
@@ -208,21 +234,24 @@ class ImageToProbeMap:
         if self._maps is None or tuple(picture.shape[:2]) != self._picture_shape:
             self._prepare(picture.shape)
         cv2, (x, y, w, h), small, map_x, map_y = self._maps
-        part = picture[y:y + h, x:x + w]
+        part = picture[y : y + h, x : x + w]
         if part.ndim == 3 and part.shape[2] in (3, 4):
-            grey = cv2.cvtColor(np.ascontiguousarray(part),
-                                cv2.COLOR_BGR2GRAY if part.shape[2] == 3 else
-                                cv2.COLOR_BGRA2GRAY)
+            grey = cv2.cvtColor(
+                np.ascontiguousarray(part),
+                cv2.COLOR_BGR2GRAY if part.shape[2] == 3 else cv2.COLOR_BGRA2GRAY,
+            )
         else:
             grey = to_grey(part)
         if small != (w, h):
             grey = cv2.resize(grey, small, interpolation=cv2.INTER_AREA)
-        return cv2.remap(grey, map_x, map_y, cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        return cv2.remap(
+            grey, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+        )
 
 
-def find_point_target(picture, crop=(0, 0, 0, 0), radius: int = 12,
-                      min_contrast: float = 30.0, blur_px: float = 2.0):
+def find_point_target(
+    picture, crop=(0, 0, 0, 0), radius: int = 12, min_contrast: float = 30.0, blur_px: float = 2.0
+):
     """The image position (column, row) of a bright point target (a wire's or a bead's
     echo) in a grabbed picture, or None when there is none.
 
@@ -233,7 +262,7 @@ def find_point_target(picture, crop=(0, 0, 0, 0), radius: int = 12,
     cv2 = require("cv2", "the image calibration")
     a = np.asarray(picture)
     x, y, w, h = check_crop(crop, a.shape)
-    grey = to_grey(a[y:y + h, x:x + w]).astype(np.float32)
+    grey = to_grey(a[y : y + h, x : x + w]).astype(np.float32)
     if blur_px > 0:
         grey = cv2.GaussianBlur(grey, (0, 0), blur_px)
     background = float(np.median(grey))
@@ -257,6 +286,7 @@ class ImageFit:
     """A fitted calibration: mm per pixel [x, y], origin [column, row] (px), in-plane angle
     (deg, I rotated about z_I from nominal), mirror, skew (deg: how far the fitted picture
     axes are from perpendicular), residual distance per target (mm), their RMS and max."""
+
     mm_per_pixel: tuple
     origin_px: tuple
     angle_deg: float
@@ -268,22 +298,27 @@ class ImageFit:
 
     def preset(self, depth: float, crop) -> DepthPresetCalibration:
         return DepthPresetCalibration(
-            depth=float(depth), crop=[int(c) for c in crop],
+            depth=float(depth),
+            crop=[int(c) for c in crop],
             mm_per_pixel=[float(v) for v in self.mm_per_pixel],
-            origin_px=[float(v) for v in self.origin_px], targets=len(self.residuals_mm),
-            rms_mm=float(self.rms_mm), max_residual_mm=float(self.max_residual_mm))
+            origin_px=[float(v) for v in self.origin_px],
+            targets=len(self.residuals_mm),
+            rms_mm=float(self.rms_mm),
+            max_residual_mm=float(self.max_residual_mm),
+        )
 
 
 def _model(params, pixels, mirror):
     sx, sy, theta, c0, r0 = params
     d = pixels - np.array([c0, r0])
-    xi, yi = mirror * sx * d[:, 0], sy * d[:, 1]          # mm in I
+    xi, yi = mirror * sx * d[:, 0], sy * d[:, 1]  # mm in I
     ct, st = math.cos(theta), math.sin(theta)
-    return np.stack([ct * xi - st * yi, st * xi + ct * yi], axis=1)   # (x_P, z_P) mm
+    return np.stack([ct * xi - st * yi, st * xi + ct * yi], axis=1)  # (x_P, z_P) mm
 
 
-def fit_image_calibration(pixels, p_P, *, min_spread_px: float = 10.0,
-                          min_spread_mm: float = 2.0) -> ImageFit:
+def fit_image_calibration(
+    pixels, p_P, *, min_spread_px: float = 10.0, min_spread_mm: float = 2.0
+) -> ImageFit:
     """Least-squares fit of the picture-to-probe map to point targets.
 
     Args:
@@ -303,24 +338,31 @@ def fit_image_calibration(pixels, p_P, *, min_spread_px: float = 10.0,
     if c.ndim != 2 or c.shape[1] != 2:
         raise ValueError(f"fit_image_calibration: pixels must be (N, 2), got {c.shape}")
     if p.ndim != 2 or p.shape[1] not in (2, 3) or p.shape[0] != c.shape[0]:
-        raise ValueError(f"fit_image_calibration: target positions must be ({c.shape[0]}, 3) "
-                         f"or ({c.shape[0]}, 2), got {p.shape}")
+        raise ValueError(
+            f"fit_image_calibration: target positions must be ({c.shape[0]}, 3) "
+            f"or ({c.shape[0]}, 2), got {p.shape}"
+        )
     n = c.shape[0]
     if n < 3:
-        raise ValueError(f"fit_image_calibration: needs at least 3 target images, got {n} "
-                         f"(6 or more, spread across the sector and in depth, recommended)")
-    xz = 1e3 * (p[:, [0, 2]] if p.shape[1] == 3 else p)          # mm
+        raise ValueError(
+            f"fit_image_calibration: needs at least 3 target images, got {n} "
+            f"(6 or more, spread across the sector and in depth, recommended)"
+        )
+    xz = 1e3 * (p[:, [0, 2]] if p.shape[1] == 3 else p)  # mm
     if not (np.all(np.isfinite(c)) and np.all(np.isfinite(xz))):
         raise ValueError("fit_image_calibration: non-finite pixel or target position")
-    for name, pts, least, unit in (("picture", c, min_spread_px, "px"),
-                                   ("probe frame", xz, min_spread_mm, "mm")):
+    for name, pts, least, unit in (
+        ("picture", c, min_spread_px, "px"),
+        ("probe frame", xz, min_spread_mm, "mm"),
+    ):
         spread = np.linalg.svd(pts - pts.mean(axis=0), compute_uv=False) / math.sqrt(n)
         if spread[-1] < least:
             raise ValueError(
                 f"fit_image_calibration: the targets lie on a line (or one spot) in the "
                 f"{name} (spread {spread[0]:.1f} {unit} along it, {spread[-1]:.2f} {unit} "
                 f"across < {least:g} {unit}): place the target at different depths AND "
-                f"lateral positions")
+                f"lateral positions"
+            )
     # Affine start: xz = A c + b.
     M = np.column_stack([c, np.ones(n)])
     coef, *_ = np.linalg.lstsq(M, xz, rcond=None)
@@ -339,15 +381,26 @@ def fit_image_calibration(pixels, p_P, *, min_spread_px: float = 10.0,
     x0 = np.array([sx, sy, theta, origin[0], origin[1]])
     if n >= 4:
         from scipy.optimize import least_squares
+
         sol = least_squares(lambda q: (_model(q, c, mirror) - xz).ravel(), x0, method="lm")
         x0 = sol.x
     residuals = np.linalg.norm(_model(x0, c, mirror) - xz, axis=1)
     sx, sy, theta, c0, r0 = (float(v) for v in x0)
     if sx <= 0 or sy <= 0:
-        raise ValueError("fit_image_calibration: the fit gave a non-positive scale; check the "
-                         "target positions' units (m) and the pictures' order")
-    return ImageFit((sx, sy), (c0, r0), math.degrees(theta), mirror < 0, skew, residuals,
-                    float(np.sqrt(np.mean(residuals**2))), float(residuals.max()))
+        raise ValueError(
+            "fit_image_calibration: the fit gave a non-positive scale; check the "
+            "target positions' units (m) and the pictures' order"
+        )
+    return ImageFit(
+        (sx, sy),
+        (c0, r0),
+        math.degrees(theta),
+        mirror < 0,
+        skew,
+        residuals,
+        float(np.sqrt(np.mean(residuals**2))),
+        float(residuals.max()),
+    )
 
 
 def targets_in_probe_frame(X_BP_list, p_B_target) -> np.ndarray:
@@ -373,8 +426,7 @@ class TargetSet:
     # The depth preset (m) the pictures were taken at.
     depth: float = field(default=0.15, metadata={"positive": True, "max": 0.4})
     # The sector's rectangle [x, y, width, height] in the pictures (pixels; zeros: all).
-    crop: list[int] = field(default_factory=lambda: [0, 0, 0, 0],
-                            metadata={"length": 4, "min": 0})
+    crop: list[int] = field(default_factory=lambda: [0, 0, 0, 0], metadata={"length": 4, "min": 0})
     # The target's position in the base frame (m), for pictures given with q: touch the
     # target with the pivot-calibrated probe tip and read p_BP (`hardware check --dry-run`).
     target_B: list[float] = field(default_factory=list)
@@ -401,6 +453,7 @@ def load_target_set(path) -> TargetSet:
 class TargetFitReport:
     """What :func:`fit_target_set` did: the fit, each image's name, target pixel and
     position in P (m)."""
+
     fit: ImageFit
     names: list
     pixels: np.ndarray
@@ -423,18 +476,23 @@ def fit_target_set(targets: TargetSet, base_dir, scenario=None) -> TargetFitRepo
         picture = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if picture is None:
             raise ValueError(f"calibrate-image: {where}: cannot read the picture {path}")
-        found = find_point_target(picture, targets.crop, targets.search_radius_px,
-                                  targets.min_contrast)
+        found = find_point_target(
+            picture, targets.crop, targets.search_radius_px, targets.min_contrast
+        )
         if found is None:
-            raise ValueError(f"calibrate-image: {where}: no point target (nothing "
-                             f"{targets.min_contrast:g} grey levels above the background "
-                             f"inside the crop {list(targets.crop)})")
+            raise ValueError(
+                f"calibrate-image: {where}: no point target (nothing "
+                f"{targets.min_contrast:g} grey levels above the background "
+                f"inside the crop {list(targets.crop)})"
+            )
         if len(t.p_P) == 3:
             p = np.asarray(t.p_P, float)
         elif len(t.q) == 7:
             if len(targets.target_B) != 3 or scenario is None:
-                raise ValueError(f"calibrate-image: {where} gives joint positions q: the "
-                                 f"target file needs target_B [x, y, z] (m)")
+                raise ValueError(
+                    f"calibrate-image: {where} gives joint positions q: the "
+                    f"target file needs target_B [x, y, z] (m)"
+                )
             if fk is None:
                 plant, tip = MakeControlPlant(scenario.robot, scenario.probe)
                 fk = (plant, tip, plant.CreateDefaultContext())
@@ -442,8 +500,9 @@ def fit_target_set(targets: TargetSet, base_dir, scenario=None) -> TargetFitRepo
             plant.SetPositions(ctx, np.asarray(t.q, float))
             p = targets_in_probe_frame([tip.CalcPoseInWorld(ctx)], targets.target_B)[0]
         else:
-            raise ValueError(f"calibrate-image: {where}: give p_P (3 values, m) or q (7 "
-                             f"joint positions, rad)")
+            raise ValueError(
+                f"calibrate-image: {where}: give p_P (3 values, m) or q (7 joint positions, rad)"
+            )
         pixels.append(found)
         p_P.append(p)
         names.append(t.image)

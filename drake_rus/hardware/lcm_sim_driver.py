@@ -33,8 +33,15 @@ from drake_rus.hardware.core import is_command_fresh, wall_clock_utime
 from drake_rus.hardware.systems import WallClockStamper
 from drake_rus.robot.model import NUM_JOINTS
 
-__all__ = ["SimulatedPandaDriver", "CommandExpiry", "SimulatedJoints", "LossyLcmPublisher",
-           "AddSimulatedDriverWire", "DriverWire", "DRIVER_EXPIRE_SEC"]
+__all__ = [
+    "SimulatedPandaDriver",
+    "CommandExpiry",
+    "SimulatedJoints",
+    "LossyLcmPublisher",
+    "AddSimulatedDriverWire",
+    "DriverWire",
+    "DRIVER_EXPIRE_SEC",
+]
 
 # drake-franka-driver's --expire_sec default (s).
 DRIVER_EXPIRE_SEC = 0.1
@@ -54,6 +61,7 @@ class CommandExpiry(LeafSystem):
         super().__init__()
         import drake
         import pydrake.systems.lcm as lcm_systems
+
         self._type = drake.lcmt_panda_command
         self._ser = lcm_systems._Serializer_[drake.lcmt_panda_command]()
         self._expiry = float(expiry)
@@ -61,14 +69,20 @@ class CommandExpiry(LeafSystem):
         self.log: list[tuple[float, int, np.ndarray, bool]] = []
         self.received: list[tuple[float, int]] = []
         self._last_utime = None
-        self._pending: collections.deque = collections.deque()   # (arrival, msg)
+        self._pending: collections.deque = collections.deque()  # (arrival, msg)
         self._active = None
-        self._in = self.DeclareAbstractInputPort("lcmt_panda_command_in",
-                                                 self._ser.CreateDefaultValue())
+        self._in = self.DeclareAbstractInputPort(
+            "lcmt_panda_command_in", self._ser.CreateDefaultValue()
+        )
         self.DeclareAbstractOutputPort(
-            "lcmt_panda_command", lambda: self._ser.CreateDefaultValue(), self._calc,
-            prerequisites_of_calc={self.time_ticket(),
-                                   self.input_port_ticket(self._in.get_index())})
+            "lcmt_panda_command",
+            lambda: self._ser.CreateDefaultValue(),
+            self._calc,
+            prerequisites_of_calc={
+                self.time_ticket(),
+                self.input_port_ticket(self._in.get_index()),
+            },
+        )
 
     def _calc(self, context, output):
         msg = self._type.decode(self._ser.Serialize(self._in.EvalAbstract(context)))
@@ -79,9 +93,14 @@ class CommandExpiry(LeafSystem):
             self._pending.append((now, msg))
         while self._pending and self._pending[0][0] + self._latency <= now:
             self._active = self._pending.popleft()[1]
-            self.log.append((now, int(self._active.utime),
-                             np.array(self._active.joint_velocity),
-                             is_command_fresh(self._active.utime, now, self._expiry)))
+            self.log.append(
+                (
+                    now,
+                    int(self._active.utime),
+                    np.array(self._active.joint_velocity),
+                    is_command_fresh(self._active.utime, now, self._expiry),
+                )
+            )
         active = self._active
         if active is None or not is_command_fresh(active.utime, now, self._expiry):
             active = self._type()
@@ -119,19 +138,27 @@ class LossyLcmPublisher(LeafSystem):
     publish, dropping each message with probability ``drop_probability`` (a lossy wire;
     seeded by ``seed``). Counts ``published`` and ``dropped``."""
 
-    def __init__(self, lcm, channel: str, lcm_type, period: float, *,
-                 drop_probability: float = 0.0, seed: int = 0):
+    def __init__(
+        self,
+        lcm,
+        channel: str,
+        lcm_type,
+        period: float,
+        *,
+        drop_probability: float = 0.0,
+        seed: int = 0,
+    ):
         super().__init__()
         if not 0.0 <= drop_probability <= 1.0:
-            raise ValueError(f"drop_probability: expected a probability in [0, 1], got "
-                             f"{drop_probability}")
+            raise ValueError(
+                f"drop_probability: expected a probability in [0, 1], got {drop_probability}"
+            )
         self._lcm, self._channel = lcm, channel
         self._p = float(drop_probability)
         self._rng = np.random.default_rng(seed)
         self.published = 0
         self.dropped = 0
-        self._in = self.DeclareAbstractInputPort(lcm_type.__name__,
-                                                 AbstractValue.Make(lcm_type()))
+        self._in = self.DeclareAbstractInputPort(lcm_type.__name__, AbstractValue.Make(lcm_type()))
         self.DeclarePeriodicPublishEvent(float(period), 0.0, self._publish)
         self.DeclareForcedPublishEvent(self._publish)
 
@@ -148,18 +175,28 @@ class DriverWire:
     """What :func:`AddSimulatedDriverWire` added: ``velocity`` (the accepted joint-velocity
     command, an OutputPort for the robot's input), the ``expiry`` system (its command logs),
     the ``receiver`` and the status ``publisher`` (its counts)."""
+
     velocity: object
     expiry: CommandExpiry
     receiver: object
     publisher: LossyLcmPublisher
 
 
-def AddSimulatedDriverWire(builder: DiagramBuilder, lcm, *, position, velocity,
-                           tau_external_drake, rate_hz: float = 200.0,
-                           command_expiry: float = DRIVER_EXPIRE_SEC,
-                           command_latency: float = 0.0, status_drop_probability: float = 0.0,
-                           seed: int = 0, command_channel: str = "PANDA_COMMAND",
-                           status_channel: str = "PANDA_STATUS") -> DriverWire:
+def AddSimulatedDriverWire(
+    builder: DiagramBuilder,
+    lcm,
+    *,
+    position,
+    velocity,
+    tau_external_drake,
+    rate_hz: float = 200.0,
+    command_expiry: float = DRIVER_EXPIRE_SEC,
+    command_latency: float = 0.0,
+    status_drop_probability: float = 0.0,
+    seed: int = 0,
+    command_channel: str = "PANDA_COMMAND",
+    status_channel: str = "PANDA_STATUS",
+) -> DriverWire:
     """Adds drake-franka-driver's wire side (velocity mode) to ``builder`` around a simulated
     robot whose joint ``position`` (7, rad), ``velocity`` (7, rad/s) and
     ``tau_external_drake`` (7, N m, Drake's sign) are OutputPorts in ``builder``: the
@@ -169,17 +206,25 @@ def AddSimulatedDriverWire(builder: DiagramBuilder, lcm, *, position, velocity,
     the driver's sign, each status dropped with ``status_drop_probability``. Connect the
     returned ``velocity`` port to the robot's joint-velocity input."""
     import drake
-    from pydrake.manipulation import (PandaCommandReceiver, PandaControlMode,
-                                      PandaStatusSender)
+    from pydrake.manipulation import PandaCommandReceiver, PandaControlMode, PandaStatusSender
     from pydrake.systems.lcm import LcmInterfaceSystem, LcmSubscriberSystem
+
     builder.AddNamedSystem("lcm", LcmInterfaceSystem(lcm))
-    sub = builder.AddNamedSystem("command_subscriber", LcmSubscriberSystem.Make(
-        channel=command_channel, lcm_type=drake.lcmt_panda_command, lcm=lcm,
-        use_cpp_serializer=True))
-    expiry = builder.AddNamedSystem("command_expiry",
-                                    CommandExpiry(command_expiry, command_latency))
+    sub = builder.AddNamedSystem(
+        "command_subscriber",
+        LcmSubscriberSystem.Make(
+            channel=command_channel,
+            lcm_type=drake.lcmt_panda_command,
+            lcm=lcm,
+            use_cpp_serializer=True,
+        ),
+    )
+    expiry = builder.AddNamedSystem(
+        "command_expiry", CommandExpiry(command_expiry, command_latency)
+    )
     receiver = builder.AddNamedSystem(
-        "command_receiver", PandaCommandReceiver(NUM_JOINTS, PandaControlMode.kVelocity))
+        "command_receiver", PandaCommandReceiver(NUM_JOINTS, PandaControlMode.kVelocity)
+    )
     builder.Connect(sub.get_output_port(), expiry.get_input_port())
     builder.Connect(expiry.get_output_port(), receiver.GetInputPort("lcmt_panda_command"))
     builder.Connect(position, receiver.GetInputPort("position_measured"))
@@ -194,14 +239,25 @@ def AddSimulatedDriverWire(builder: DiagramBuilder, lcm, *, position, velocity,
     builder.Connect(receiver.GetOutputPort("velocity"), status.GetInputPort("velocity_commanded"))
     builder.Connect(zero.get_output_port(), status.GetInputPort("torque_commanded"))
     builder.Connect(flip.get_output_port(), status.GetInputPort("torque_external"))
-    stamper = builder.AddNamedSystem("wall_clock_stamper", WallClockStamper(drake.lcmt_panda_status))
+    stamper = builder.AddNamedSystem(
+        "wall_clock_stamper", WallClockStamper(drake.lcmt_panda_status)
+    )
     builder.Connect(status.get_output_port(), stamper.get_input_port())
-    pub = builder.AddNamedSystem("status_publisher", LossyLcmPublisher(
-        lcm, status_channel, drake.lcmt_panda_status, 1.0 / rate_hz,
-        drop_probability=status_drop_probability, seed=seed))
+    pub = builder.AddNamedSystem(
+        "status_publisher",
+        LossyLcmPublisher(
+            lcm,
+            status_channel,
+            drake.lcmt_panda_status,
+            1.0 / rate_hz,
+            drop_probability=status_drop_probability,
+            seed=seed,
+        ),
+    )
     builder.Connect(stamper.get_output_port(), pub.get_input_port())
-    return DriverWire(velocity=receiver.GetOutputPort("velocity"), expiry=expiry,
-                      receiver=receiver, publisher=pub)
+    return DriverWire(
+        velocity=receiver.GetOutputPort("velocity"), expiry=expiry, receiver=receiver, publisher=pub
+    )
 
 
 class SimulatedPandaDriver(Diagram):
@@ -209,23 +265,43 @@ class SimulatedPandaDriver(Diagram):
     next to the station's (both pump the same DrakeLcm). ``q0`` (rad): start positions;
     ``tau_external_drake`` (7, N m, Drake's sign): the external torque to report."""
 
-    def __init__(self, lcm, q0, *, rate_hz: float = 200.0, command_expiry: float = 0.1,
-                 tau_external_drake=None, command_channel: str = "PANDA_COMMAND",
-                 status_channel: str = "PANDA_STATUS", command_latency: float = 0.0,
-                 status_drop_probability: float = 0.0, seed: int = 0):
+    def __init__(
+        self,
+        lcm,
+        q0,
+        *,
+        rate_hz: float = 200.0,
+        command_expiry: float = 0.1,
+        tau_external_drake=None,
+        command_channel: str = "PANDA_COMMAND",
+        status_channel: str = "PANDA_STATUS",
+        command_latency: float = 0.0,
+        status_drop_probability: float = 0.0,
+        seed: int = 0,
+    ):
         super().__init__()
         b = DiagramBuilder()
         joints = b.AddNamedSystem("joints", SimulatedJoints(q0, 1.0 / rate_hz))
-        tau = np.zeros(NUM_JOINTS) if tau_external_drake is None else np.asarray(
-            tau_external_drake, float)
+        tau = (
+            np.zeros(NUM_JOINTS)
+            if tau_external_drake is None
+            else np.asarray(tau_external_drake, float)
+        )
         self.tau_source = b.AddNamedSystem("external_torque", ConstantVectorSource(tau))
         wire = AddSimulatedDriverWire(
-            b, lcm, position=joints.GetOutputPort("position"),
+            b,
+            lcm,
+            position=joints.GetOutputPort("position"),
             velocity=joints.GetOutputPort("velocity_measured"),
-            tau_external_drake=self.tau_source.get_output_port(), rate_hz=rate_hz,
-            command_expiry=command_expiry, command_latency=command_latency,
-            status_drop_probability=status_drop_probability, seed=seed,
-            command_channel=command_channel, status_channel=status_channel)
+            tau_external_drake=self.tau_source.get_output_port(),
+            rate_hz=rate_hz,
+            command_expiry=command_expiry,
+            command_latency=command_latency,
+            status_drop_probability=status_drop_probability,
+            seed=seed,
+            command_channel=command_channel,
+            status_channel=status_channel,
+        )
         b.Connect(wire.velocity, joints.GetInputPort("velocity"))
         b.ExportOutput(joints.GetOutputPort("position"), "position")
         b.ExportOutput(joints.GetOutputPort("velocity_measured"), "velocity")

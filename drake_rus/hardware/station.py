@@ -1,7 +1,8 @@
 """The hardware station: the simulated station's ports, on a real FR3 and ultrasound machine.
 
 ``MakeHardwareStation(scenario, meshcat=None)`` returns a :class:`HardwareStation` (a Diagram)
-exporting what the simulated station (``drake_rus.station.MakeSimStation``) exports, so the controller and safety layer are built the
+exporting what the simulated station (``drake_rus.station.MakeSimStation``) exports, so the
+controller and safety layer are built the
 same way on both (docs/design.md):
 
 The ports (name, size, unit, frame, which station) are listed once, in
@@ -41,20 +42,34 @@ from pydrake.systems.primitives import PassThrough
 from drake_rus.config_schema import ScenarioError
 from drake_rus.hardware.config import HardwareConfig
 from drake_rus.hardware.franky_backend import FrankyBackend, HardwareFault
-from drake_rus.hardware.lcm_backend import AddLcmBackend, LcmBackend, wait_for_panda_status
 from drake_rus.hardware.image_calibration import (
-    ImageToProbeMap, load_image_calibration, preset_for_depth)
+    ImageToProbeMap,
+    load_image_calibration,
+    preset_for_depth,
+)
+from drake_rus.hardware.lcm_backend import AddLcmBackend, LcmBackend, wait_for_panda_status
 from drake_rus.hardware.systems import (
-    CommandGuard, FrameGrabber, FrankaRobotInterface, ProbeLoadTorque)
+    CommandGuard,
+    FrameGrabber,
+    FrankaRobotInterface,
+    ProbeLoadTorque,
+)
 from drake_rus.imaging.probe import ProbeGeometry
+from drake_rus.robot import NUM_JOINTS, MakeControlPlant, ProbeForceEstimator, ProbePoseFromJoints
 from drake_rus.station_interface import CheckStationPorts
-from drake_rus.robot import (
-    NUM_JOINTS, MakeControlPlant, ProbeForceEstimator, ProbePoseFromJoints)
 
 LOG = logging.getLogger("drake_rus.hardware")
 
-__all__ = ["MakeHardwareStation", "HardwareStation", "HardwareSession", "RunHardware",
-           "HardwareFault", "LcmBackend", "wait_for_panda_status", "picture_processing"]
+__all__ = [
+    "MakeHardwareStation",
+    "HardwareStation",
+    "HardwareSession",
+    "RunHardware",
+    "HardwareFault",
+    "LcmBackend",
+    "wait_for_panda_status",
+    "picture_processing",
+]
 # LcmBackend and wait_for_panda_status live in drake_rus.hardware.lcm_backend (re-exported
 # here for the station's users), as FrankyBackend lives in franky_backend.
 
@@ -92,9 +107,12 @@ def _check_rates(scenario) -> None:
     cfg = scenario.hardware_interface
     ratio = cfg.command_rate_hz / scenario.controller.rate_hz
     if abs(ratio - round(ratio)) > 1e-6 or round(ratio) < 1:
-        LOG.warning("hardware_interface.command_rate_hz (%g Hz) is not a whole multiple of "
-                    "controller.rate_hz (%g Hz)", cfg.command_rate_hz,
-                    scenario.controller.rate_hz)
+        LOG.warning(
+            "hardware_interface.command_rate_hz (%g Hz) is not a whole multiple of "
+            "controller.rate_hz (%g Hz)",
+            cfg.command_rate_hz,
+            scenario.controller.rate_hz,
+        )
 
 
 def picture_processing(scenario):
@@ -105,9 +123,11 @@ def picture_processing(scenario):
     cfg = scenario.hardware_interface
     if not cfg.image_calibration.strip():
         if cfg.video_source.strip():
-            LOG.warning("hardware_interface.image_calibration is empty: frames are the crop "
-                        "stretched to the image size, not metric (docs/hardware_bringup.md, "
-                        "step 3a)")
+            LOG.warning(
+                "hardware_interface.image_calibration is empty: frames are the crop "
+                "stretched to the image size, not metric (docs/hardware_bringup.md, "
+                "step 3a)"
+            )
         return None
     path = cfg.image_calibration.strip()
     cal = load_image_calibration(path)
@@ -115,9 +135,16 @@ def picture_processing(scenario):
     return ImageToProbeMap(cal, preset, ProbeGeometry.from_config(scenario.imaging))
 
 
-def MakeHardwareStation(scenario, meshcat=None, *, lcm=None, lcm_idle=None,
-                        name: str = "station", video=None,
-                        keep_raw_pictures: bool = False) -> HardwareStation:
+def MakeHardwareStation(
+    scenario,
+    meshcat=None,
+    *,
+    lcm=None,
+    lcm_idle=None,
+    name: str = "station",
+    video=None,
+    keep_raw_pictures: bool = False,
+) -> HardwareStation:
     """The station on the real robot (``scenario.hardware: true``); see the module doc.
 
     Connects at once (raises HardwareFault naming the field when the robot or the driver
@@ -143,16 +170,25 @@ def MakeHardwareStation(scenario, meshcat=None, *, lcm=None, lcm_idle=None,
 
     # Grabber first: a bad video source, crop or calibration fails before we touch the robot.
     image_shape = (scenario.imaging.image_height_px, scenario.imaging.image_width_px)
-    grabber = FrameGrabber(cfg, image_shape, rate, process=picture_processing(scenario),
-                           source=video, keep_raw=keep_raw_pictures)
+    grabber = FrameGrabber(
+        cfg,
+        image_shape,
+        rate,
+        process=picture_processing(scenario),
+        source=video,
+        keep_raw=keep_raw_pictures,
+    )
     probe = scenario.probe
     try:
         if cfg.backend == "franky":
-            backend = FrankyBackend(cfg, load=(probe.mass, list(probe.p_FCm),
-                                               np.diag(probe.inertia_diagonal)))
+            backend = FrankyBackend(
+                cfg, load=(probe.mass, list(probe.p_FCm), np.diag(probe.inertia_diagonal))
+            )
             robot = builder.AddNamedSystem("franka", FrankaRobotInterface(backend, rate))
-            builder.Connect(guard.GetOutputPort("joint_velocity_sent"),
-                            robot.GetInputPort("joint_velocity_sent"))
+            builder.Connect(
+                guard.GetOutputPort("joint_velocity_sent"),
+                robot.GetInputPort("joint_velocity_sent"),
+            )
             builder.Connect(robot.GetOutputPort("robot_ok"), guard.GetInputPort("robot_ok"))
             q_port = robot.GetOutputPort("joint_position")
             v_port = robot.GetOutputPort("joint_velocity")
@@ -161,14 +197,19 @@ def MakeHardwareStation(scenario, meshcat=None, *, lcm=None, lcm_idle=None,
             ok_port = robot.GetOutputPort("robot_ok")
             time_port = robot.GetOutputPort("state_time")
         elif cfg.backend == "lcm":
-            load_torque = (ProbeLoadTorque(control_plant, probe.mass, probe.p_FCm)
-                           if cfg.lcm_compensate_load else None)
+            load_torque = (
+                ProbeLoadTorque(control_plant, probe.mass, probe.p_FCm)
+                if cfg.lcm_compensate_load
+                else None
+            )
             backend = LcmBackend(cfg, lcm, lcm_idle, load_torque=load_torque)
             q_port, v_port, tau_port, sent_port, ok_port, time_port = AddLcmBackend(
-                builder, backend, guard, rate, control_plant, probe)
+                builder, backend, guard, rate, control_plant, probe
+            )
         else:
-            raise ScenarioError(f"field 'hardware_interface.backend': unknown backend "
-                                f"{cfg.backend!r}")
+            raise ScenarioError(
+                f"field 'hardware_interface.backend': unknown backend {cfg.backend!r}"
+            )
     except BaseException:
         grabber.release()
         raise
@@ -179,7 +220,8 @@ def MakeHardwareStation(scenario, meshcat=None, *, lcm=None, lcm_idle=None,
     builder.Connect(fk.get_output_port(), grabber.GetInputPort("X_BP"))
     builder.Connect(time_port, grabber.GetInputPort("state_time"))
     estimator = builder.AddNamedSystem(
-        "probe_force_estimator", ProbeForceEstimator(control_plant, tip_frame))
+        "probe_force_estimator", ProbeForceEstimator(control_plant, tip_frame)
+    )
     builder.Connect(q_port, estimator.get_input_port(0))
     builder.Connect(tau_port, estimator.get_input_port(1))
 
@@ -214,8 +256,10 @@ class HardwareSession:
 
     def __enter__(self):
         if threading.current_thread() is threading.main_thread():
+
             def interrupt(signum, frame):
                 raise KeyboardInterrupt(f"signal {signum}")
+
             for sig in (signal.SIGINT, signal.SIGTERM):
                 self._previous[sig] = signal.signal(sig, interrupt)
         return self
@@ -235,9 +279,16 @@ class HardwareSession:
         return False
 
 
-def RunHardware(simulator, station: HardwareStation, duration: float, *,
-                check_period: float = 0.05, realtime_rate: float = 1.0,
-                on_step=None, until=None) -> float:
+def RunHardware(
+    simulator,
+    station: HardwareStation,
+    duration: float,
+    *,
+    check_period: float = 0.05,
+    realtime_rate: float = 1.0,
+    on_step=None,
+    until=None,
+) -> float:
     """Advances ``simulator`` (whose diagram contains ``station``) by ``duration`` s at
     ``realtime_rate`` (0: as fast as possible) inside a :class:`HardwareSession`, in
     chunks of ``check_period`` s, calling ``on_step()`` after each and ending early when

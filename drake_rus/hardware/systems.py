@@ -30,8 +30,15 @@ from pydrake.systems.framework import EventStatus, LeafSystem
 
 from drake_rus.hardware.config import HardwareConfig
 from drake_rus.hardware.core import (
-    crop_image, external_torque_to_drake, fit_image, guard_command, to_grey, wall_clock_utime,
-    watchdog_expired, weight_torque)
+    crop_image,
+    external_torque_to_drake,
+    fit_image,
+    guard_command,
+    to_grey,
+    wall_clock_utime,
+    watchdog_expired,
+    weight_torque,
+)
 from drake_rus.hardware.franky_backend import HardwareFault
 from drake_rus.hardware.video import DiagramClock, FrameCapture, PoseHistory
 from drake_rus.imaging.frames import UsFrame
@@ -67,11 +74,15 @@ class CommandGuard(LeafSystem):
         stopped = context.get_discrete_state(self._stopped).get_value()[0] > 0.5
         ok = (not self._ok.HasValue(context)) or self._ok.Eval(context)[0] > 0.5
         stopped = stopped or not ok
-        desired = (self._cmd.Eval(context) if self._cmd.HasValue(context)
-                   else np.zeros(NUM_JOINTS))
-        v = guard_command(desired, context.get_discrete_state(self._prev).get_value(),
-                          self._dt, self._v_max, self._a_max,
-                          enabled=not (self._dry_run or stopped))
+        desired = self._cmd.Eval(context) if self._cmd.HasValue(context) else np.zeros(NUM_JOINTS)
+        v = guard_command(
+            desired,
+            context.get_discrete_state(self._prev).get_value(),
+            self._dt,
+            self._v_max,
+            self._a_max,
+            enabled=not (self._dry_run or stopped),
+        )
         return v, stopped
 
     def _calc(self, context, output):
@@ -148,9 +159,16 @@ class _StatusRecord:
 
     __slots__ = ("data", "utime", "arrival", "ok", "last_tick", "quiet_ticks", "state_time")
 
-    def __init__(self, data: bytes, utime: int, arrival: float, ok: bool = True,
-                 last_tick: float = math.nan, quiet_ticks: int = 0,
-                 state_time: float = math.nan):
+    def __init__(
+        self,
+        data: bytes,
+        utime: int,
+        arrival: float,
+        ok: bool = True,
+        last_tick: float = math.nan,
+        quiet_ticks: int = 0,
+        state_time: float = math.nan,
+    ):
         self.data, self.utime, self.arrival, self.ok = data, utime, arrival, ok
         self.last_tick, self.quiet_ticks = last_tick, quiet_ticks
         self.state_time = state_time
@@ -172,11 +190,17 @@ class PandaStatusLatch(LeafSystem):
     history's stamp.
     """
 
-    def __init__(self, first_status_bytes: bytes, status_timeout: float, rate_hz: float,
-                 min_quiet_ticks: int = 3):
+    def __init__(
+        self,
+        first_status_bytes: bytes,
+        status_timeout: float,
+        rate_hz: float,
+        min_quiet_ticks: int = 3,
+    ):
         super().__init__()
         import drake
         import pydrake.systems.lcm as lcm_systems
+
         self._msg_type = drake.lcmt_panda_status
         self._serializer = lcm_systems._Serializer_[drake.lcmt_panda_status]()
         self._timeout = float(status_timeout)
@@ -184,21 +208,34 @@ class PandaStatusLatch(LeafSystem):
         first = self._msg_type.decode(first_status_bytes)
         model = self._serializer.CreateDefaultValue()
         self._in = self.DeclareAbstractInputPort("lcmt_panda_status_in", model)
-        self._record = self.DeclareAbstractState(AbstractValue.Make(
-            _StatusRecord(first_status_bytes, int(first.utime), math.nan)))
+        self._record = self.DeclareAbstractState(
+            AbstractValue.Make(_StatusRecord(first_status_bytes, int(first.utime), math.nan))
+        )
         self.DeclarePeriodicUnrestrictedUpdateEvent(1.0 / float(rate_hz), 0.0, self._update)
         self.DeclareAbstractOutputPort(
-            "lcmt_panda_status", lambda: self._serializer.CreateDefaultValue(), self._calc,
-            prerequisites_of_calc={self.abstract_state_ticket(self._record)})
+            "lcmt_panda_status",
+            lambda: self._serializer.CreateDefaultValue(),
+            self._calc,
+            prerequisites_of_calc={self.abstract_state_ticket(self._record)},
+        )
         self.DeclareVectorOutputPort(
-            "robot_ok", 1, lambda c, o: o.SetFromVector([float(self._rec(c).ok)]),
-            prerequisites_of_calc={self.abstract_state_ticket(self._record)})
+            "robot_ok",
+            1,
+            lambda c, o: o.SetFromVector([float(self._rec(c).ok)]),
+            prerequisites_of_calc={self.abstract_state_ticket(self._record)},
+        )
         self.DeclareVectorOutputPort(
-            "status_utime", 1, lambda c, o: o.SetFromVector([self._rec(c).utime * 1e-6]),
-            prerequisites_of_calc={self.abstract_state_ticket(self._record)})
+            "status_utime",
+            1,
+            lambda c, o: o.SetFromVector([self._rec(c).utime * 1e-6]),
+            prerequisites_of_calc={self.abstract_state_ticket(self._record)},
+        )
         self.DeclareVectorOutputPort(
-            "state_time", 1, lambda c, o: o.SetFromVector([self._rec(c).state_time]),
-            prerequisites_of_calc={self.abstract_state_ticket(self._record)})
+            "state_time",
+            1,
+            lambda c, o: o.SetFromVector([self._rec(c).state_time]),
+            prerequisites_of_calc={self.abstract_state_ticket(self._record)},
+        )
 
     def _rec(self, context) -> _StatusRecord:
         return context.get_abstract_state(self._record).get_value()
@@ -209,11 +246,11 @@ class PandaStatusLatch(LeafSystem):
     def _update(self, context, state):
         rec = self._rec(context)
         now = time.monotonic()
-        arrival = now if math.isnan(rec.arrival) else rec.arrival   # watchdog starts now
+        arrival = now if math.isnan(rec.arrival) else rec.arrival  # watchdog starts now
         data, utime, state_time = rec.data, rec.utime, rec.state_time
         quiet = rec.quiet_ticks + 1
         if math.isfinite(rec.last_tick) and now - rec.last_tick > 0.5 * self._timeout:
-            quiet = 0       # our own stall: the robot gets a few ticks to show it is alive
+            quiet = 0  # our own stall: the robot gets a few ticks to show it is alive
         if self._in.HasValue(context):
             raw = self._serializer.Serialize(self._in.EvalAbstract(context))
             msg = self._msg_type.decode(raw)
@@ -226,7 +263,8 @@ class PandaStatusLatch(LeafSystem):
         if rec.ok and not ok:
             LOG.error("robot state lost: no new lcmt_panda_status for %.3f s", now - arrival)
         state.get_mutable_abstract_state(self._record).set_value(
-            _StatusRecord(data, utime, arrival, ok, now, quiet, state_time))
+            _StatusRecord(data, utime, arrival, ok, now, quiet, state_time)
+        )
 
 
 class WallClockStamper(LeafSystem):
@@ -238,15 +276,22 @@ class WallClockStamper(LeafSystem):
     def __init__(self, lcm_type):
         super().__init__()
         import pydrake.systems.lcm as lcm_systems
+
         self._msg_type = lcm_type
         self._serializer = lcm_systems._Serializer_[lcm_type]()
         name = lcm_type.__name__
         self._in = self.DeclareAbstractInputPort(
-            f"{name}_in", self._serializer.CreateDefaultValue())
+            f"{name}_in", self._serializer.CreateDefaultValue()
+        )
         self.DeclareAbstractOutputPort(
-            name, lambda: AbstractValue.Make(self._msg_type()), self._calc,
-            prerequisites_of_calc={self.time_ticket(),
-                                   self.input_port_ticket(self._in.get_index())})
+            name,
+            lambda: AbstractValue.Make(self._msg_type()),
+            self._calc,
+            prerequisites_of_calc={
+                self.time_ticket(),
+                self.input_port_ticket(self._in.get_index()),
+            },
+        )
 
     def _calc(self, context, output):
         msg = self._msg_type.decode(self._serializer.Serialize(self._in.EvalAbstract(context)))
@@ -257,6 +302,7 @@ class WallClockStamper(LeafSystem):
 def WallClockCommandStamper() -> WallClockStamper:
     """:class:`WallClockStamper` for ``lcmt_panda_command``."""
     import drake
+
     return WallClockStamper(drake.lcmt_panda_command)
 
 
@@ -268,8 +314,11 @@ class ExternalTorqueToDrake(LeafSystem):
         super().__init__()
         self._bias = np.zeros(NUM_JOINTS) if bias is None else np.asarray(bias, float)
         self._in = self.DeclareVectorInputPort("torque_external", NUM_JOINTS)
-        self.DeclareVectorOutputPort("tau_external", NUM_JOINTS, lambda c, o: o.SetFromVector(
-            external_torque_to_drake(self._in.Eval(c)) - self._bias))
+        self.DeclareVectorOutputPort(
+            "tau_external",
+            NUM_JOINTS,
+            lambda c, o: o.SetFromVector(external_torque_to_drake(self._in.Eval(c)) - self._bias),
+        )
 
 
 class ProbeLoadCompensation(LeafSystem):
@@ -287,8 +336,13 @@ class ProbeLoadCompensation(LeafSystem):
         self._load = ProbeLoadTorque(plant, mass, p_FCm)
         self._q = self.DeclareVectorInputPort("joint_position", NUM_JOINTS)
         self._tau = self.DeclareVectorInputPort("tau_external", NUM_JOINTS)
-        self.DeclareVectorOutputPort("tau_external", NUM_JOINTS, lambda c, o: o.SetFromVector(
-            np.asarray(self._tau.Eval(c), float) - self._load(self._q.Eval(c))))
+        self.DeclareVectorOutputPort(
+            "tau_external",
+            NUM_JOINTS,
+            lambda c, o: o.SetFromVector(
+                np.asarray(self._tau.Eval(c), float) - self._load(self._q.Eval(c))
+            ),
+        )
 
 
 class ProbeLoadTorque:
@@ -297,6 +351,7 @@ class ProbeLoadTorque:
 
     def __init__(self, plant, mass: float, p_FCm):
         from pydrake.multibody.tree import JacobianWrtVariable
+
         self._plant = plant
         self._context = plant.CreateDefaultContext()
         self._flange = plant.GetFrameByName(FLANGE_FRAME)
@@ -309,7 +364,8 @@ class ProbeLoadTorque:
         self._plant.SetPositions(self._context, np.asarray(q, float))
         W = self._plant.world_frame()
         J = self._plant.CalcJacobianTranslationalVelocity(
-            self._context, self._wrt, self._flange, self._p, W, W)
+            self._context, self._wrt, self._flange, self._p, W, W
+        )
         return weight_torque(J, self._mass, self._g)
 
 
@@ -338,7 +394,8 @@ class FrameGrabber(LeafSystem):
     frame_index)`` with ``X_BP`` the history at ``capture_time - video_latency`` and
     ``time`` the diagram time of that instant; ``frame_index`` is the capture counter (gaps:
     frames never seen). A picture whose instant is older than the pose history (the first
-    ones at start-up) is not used: its pose is unknown. A frozen or unplugged source leaves the last frame, whose stamp
+    ones at start-up) is not used: its pose is unknown. A frozen or unplugged source leaves the
+    last frame, whose stamp
     ages: the safety layer's stale-image watchdog stops the robot. Without a source the
     output is a blank frame stamped NaN.
 
@@ -346,15 +403,25 @@ class FrameGrabber(LeafSystem):
     ``frame_log`` gets (capture time s, UsFrame) for every frame emitted.
     """
 
-    def __init__(self, config: HardwareConfig, image_shape, rate_hz: float, *,
-                 process=None, source=None, keep_raw: bool = False):
+    def __init__(
+        self,
+        config: HardwareConfig,
+        image_shape,
+        rate_hz: float,
+        *,
+        process=None,
+        source=None,
+        keep_raw: bool = False,
+    ):
         super().__init__()
         self._shape = (int(image_shape[0]), int(image_shape[1]))
         self._latency = float(config.video_latency)
         self._period = 1.0 / float(rate_hz)
         if self._latency + 0.5 > float(config.pose_history):
-            raise ValueError(f"field 'hardware_interface.pose_history': {config.pose_history:g}"
-                             f" s must exceed video_latency ({self._latency:g} s) by 0.5 s")
+            raise ValueError(
+                f"field 'hardware_interface.pose_history': {config.pose_history:g}"
+                f" s must exceed video_latency ({self._latency:g} s) by 0.5 s"
+            )
         self.history = PoseHistory(config.pose_history, rate_hz)
         self.clock = DiagramClock(config.pose_history, rate_hz)
         self.tick_times = collections.deque(maxlen=int(60.0 * rate_hz))
@@ -372,14 +439,17 @@ class FrameGrabber(LeafSystem):
         if source is not None:
             if process is None:
                 process = default_picture_processing(config.video_crop, self._shape)
-            self.capture = FrameCapture(source, process=self._checked(process),
-                                        loop=config.video_loop, keep_raw=keep_raw)
+            self.capture = FrameCapture(
+                source, process=self._checked(process), loop=config.video_loop, keep_raw=keep_raw
+            )
         self.DeclareInitializationUnrestrictedUpdateEvent(self._tick)
         self.DeclarePeriodicUnrestrictedUpdateEvent(self._period, 0.0, self._tick)
         self.DeclareAbstractOutputPort(
-            "us_image", lambda: AbstractValue.Make(empty),
+            "us_image",
+            lambda: AbstractValue.Make(empty),
             lambda c, o: o.set_value(c.get_abstract_state(self._frame).get_value()),
-            prerequisites_of_calc={self.abstract_state_ticket(self._frame)})
+            prerequisites_of_calc={self.abstract_state_ticket(self._frame)},
+        )
 
     def _checked(self, process):
         shape = self._shape
@@ -387,9 +457,12 @@ class FrameGrabber(LeafSystem):
         def run(picture):
             image = np.asarray(process(picture))
             if image.shape != shape or image.dtype != np.uint8:
-                raise ValueError(f"frame grabber: processed picture is {image.shape} "
-                                 f"{image.dtype}, expected {shape} uint8")
+                raise ValueError(
+                    f"frame grabber: processed picture is {image.shape} "
+                    f"{image.dtype}, expected {shape} uint8"
+                )
             return image
+
         return run
 
     @property
@@ -423,8 +496,12 @@ class FrameGrabber(LeafSystem):
                 self._skipped = newest.counter
                 self.frames_before_history += 1
             return EventStatus.DidNothing()
-        frame = UsFrame(image=newest.image, time=self.clock.to_diagram(instant), X_BP=X_BP,
-                        frame_index=newest.counter)
+        frame = UsFrame(
+            image=newest.image,
+            time=self.clock.to_diagram(instant),
+            X_BP=X_BP,
+            frame_index=newest.counter,
+        )
         if self.frame_log is not None:
             self.frame_log.append((newest.capture_time, frame))
         state.get_mutable_abstract_state(self._frame).set_value(frame)

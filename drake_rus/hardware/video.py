@@ -49,10 +49,22 @@ from drake_rus.extras import require
 LOG = logging.getLogger("drake_rus.hardware")
 
 __all__ = [
-    "URL_SCHEMES", "VideoSourceSpec", "parse_video_source", "open_video_capture",
-    "CapturedFrame", "CaptureStats", "FrameCapture", "SyntheticVideo",
-    "quaternion_slerp", "interpolate_pose", "monotonic_to_diagram_time", "PoseHistory",
-    "DiagramClock", "LatencyEstimate", "estimate_video_latency", "motion_signal",
+    "URL_SCHEMES",
+    "VideoSourceSpec",
+    "parse_video_source",
+    "open_video_capture",
+    "CapturedFrame",
+    "CaptureStats",
+    "FrameCapture",
+    "SyntheticVideo",
+    "quaternion_slerp",
+    "interpolate_pose",
+    "monotonic_to_diagram_time",
+    "PoseHistory",
+    "DiagramClock",
+    "LatencyEstimate",
+    "estimate_video_latency",
+    "motion_signal",
 ]
 
 VIDEO_FIELD = "hardware_interface.video_source"
@@ -65,6 +77,7 @@ URL_SCHEMES = ("http", "https", "rtsp", "rtsps", "rtp", "rtmp", "udp", "tcp")
 class VideoSourceSpec:
     """A parsed video source: ``kind`` "device" (``value`` an int index), "file" (a path)
     or "url"."""
+
     kind: str
     value: object
 
@@ -87,9 +100,11 @@ def parse_video_source(text: str, field: str = VIDEO_FIELD) -> VideoSourceSpec:
         parts = urllib.parse.urlsplit(source)
         scheme = parts.scheme.lower()
         if scheme not in URL_SCHEMES:
-            raise ValueError(f"field '{field}': unsupported URL scheme {parts.scheme!r} in "
-                             f"{source!r}; use one of {', '.join(URL_SCHEMES)}, a capture "
-                             f"device index or a video file path")
+            raise ValueError(
+                f"field '{field}': unsupported URL scheme {parts.scheme!r} in "
+                f"{source!r}; use one of {', '.join(URL_SCHEMES)}, a capture "
+                f"device index or a video file path"
+            )
         try:
             host, port = parts.hostname, parts.port
         except ValueError as e:
@@ -130,6 +145,7 @@ class CapturedFrame:
     ``capture_time`` (s, monotonic, when the source delivered it), ``counter`` (0 for the
     first picture delivered, +1 for each one after; never reset) and, if kept, the raw
     ``picture``."""
+
     image: np.ndarray
     capture_time: float
     counter: int
@@ -140,6 +156,7 @@ class CapturedFrame:
 class CaptureStats:
     """Frames delivered, read failures, frame rate over the last ~2 s (Hz), age of the
     newest frame (s), whether the thread runs, whether a file ended, the last error."""
+
     frames: int
     failures: int
     frame_rate_hz: float
@@ -161,10 +178,19 @@ class FrameCapture:
     in the constructor, so a bad source or crop fails at once (ValueError naming the field).
     """
 
-    def __init__(self, source, *, process: Callable | None = None, loop: bool = True,
-                 keep_raw: bool = False, fallback_fps: float = 20.0,
-                 reopen_after: float = 1.0, clock: Callable[[], float] = time.monotonic,
-                 field: str = VIDEO_FIELD, start: bool = True):
+    def __init__(
+        self,
+        source,
+        *,
+        process: Callable | None = None,
+        loop: bool = True,
+        keep_raw: bool = False,
+        fallback_fps: float = 20.0,
+        reopen_after: float = 1.0,
+        clock: Callable[[], float] = time.monotonic,
+        field: str = VIDEO_FIELD,
+        start: bool = True,
+    ):
         self._process = process if process is not None else (lambda p: p)
         self._loop = bool(loop)
         self._keep_raw = bool(keep_raw)
@@ -181,8 +207,9 @@ class FrameCapture:
         if self.spec.kind == "file":
             cv2 = require("cv2", "the ultrasound video capture (hardware_interface.video_source)")
             fps = float(self._cap.get(cv2.CAP_PROP_FPS) or 0.0)
-            self.file_fps = fps if math.isfinite(fps) and 0.5 <= fps <= 1000.0 else float(
-                fallback_fps)
+            self.file_fps = (
+                fps if math.isfinite(fps) and 0.5 <= fps <= 1000.0 else float(fallback_fps)
+            )
         ok, picture = self._cap.read()
         if not ok or picture is None:
             self._cap.release()
@@ -194,8 +221,10 @@ class FrameCapture:
             raise
         except Exception as e:
             self._cap.release()
-            raise ValueError(f"field '{field}': cannot process a picture from "
-                             f"{self.spec.value}: {type(e).__name__}: {e}") from None
+            raise ValueError(
+                f"field '{field}': cannot process a picture from "
+                f"{self.spec.value}: {type(e).__name__}: {e}"
+            ) from None
         if self.spec.kind == "file":
             self._rewind()
         self._first = None if self.spec.kind == "file" else (picture, self._clock())
@@ -219,7 +248,7 @@ class FrameCapture:
     def _publish(self, picture, capture_time: float) -> None:
         try:
             image = self._process(picture)
-        except Exception as e:   # a bad picture: count it, keep the previous frame
+        except Exception as e:  # a bad picture: count it, keep the previous frame
             with self._lock:
                 self._failures += 1
                 if self._error is None:
@@ -228,8 +257,9 @@ class FrameCapture:
             return
         image = np.asarray(image)
         image.flags.writeable = False
-        frame = CapturedFrame(image, float(capture_time), self._counter,
-                              picture if self._keep_raw else None)
+        frame = CapturedFrame(
+            image, float(capture_time), self._counter, picture if self._keep_raw else None
+        )
         with self._lock:
             self._latest = frame
             self._counter += 1
@@ -273,7 +303,7 @@ class FrameCapture:
             delay = due - self._clock()
             if delay > 0 and self._stop.wait(delay):
                 return
-            if delay < -period:         # fell behind (a loaded machine): skip ahead
+            if delay < -period:  # fell behind (a loaded machine): skip ahead
                 start += -delay
             self._publish(picture, self._clock())
             k += 1
@@ -295,8 +325,11 @@ class FrameCapture:
                 self._failures += 1
             failing_since = now if failing_since is None else failing_since
             if self.spec.kind in ("device", "url") and now - failing_since > self._reopen_after:
-                LOG.warning("video: no picture from %s for %.1f s: re-opening",
-                            self.spec.value, now - failing_since)
+                LOG.warning(
+                    "video: no picture from %s for %.1f s: re-opening",
+                    self.spec.value,
+                    now - failing_since,
+                )
                 try:
                     self._cap.release()
                     self._cap = open_video_capture(self.spec, self._field)
@@ -329,11 +362,21 @@ class FrameCapture:
         now = self._clock() if now is None else now
         with self._lock:
             times = [t for t in self._times if t >= now - 2.0]
-            rate = ((len(times) - 1) / (times[-1] - times[0])
-                    if len(times) >= 3 and times[-1] > times[0] else 0.0)
+            rate = (
+                (len(times) - 1) / (times[-1] - times[0])
+                if len(times) >= 3 and times[-1] > times[0]
+                else 0.0
+            )
             age = now - self._latest.capture_time if self._latest is not None else math.inf
-            return CaptureStats(self._counter, self._failures, rate, age,
-                                self._thread.is_alive(), self._ended, self._error)
+            return CaptureStats(
+                self._counter,
+                self._failures,
+                rate,
+                age,
+                self._thread.is_alive(),
+                self._ended,
+                self._error,
+            )
 
     def close(self) -> None:
         """Stops the thread and releases the source (idempotent)."""
@@ -365,8 +408,13 @@ class SyntheticVideo:
     ``render(t_k - latency)``: the scene as it was ``latency`` s before the picture is
     delivered (s, monotonic clock)."""
 
-    def __init__(self, render: Callable[[float], np.ndarray], frame_rate_hz: float = 30.0,
-                 latency: float = 0.0, clock: Callable[[], float] = time.monotonic):
+    def __init__(
+        self,
+        render: Callable[[float], np.ndarray],
+        frame_rate_hz: float = 30.0,
+        latency: float = 0.0,
+        clock: Callable[[], float] = time.monotonic,
+    ):
         self._render = render
         self._period = 1.0 / float(frame_rate_hz)
         self.latency = float(latency)
@@ -382,7 +430,7 @@ class SyntheticVideo:
         if self._start is None:
             self._start = now
         due = self._start + self._k * self._period
-        if due < now - self._period:             # fell behind: the next slot from now
+        if due < now - self._period:  # fell behind: the next slot from now
             self._k = int(math.ceil((now - self._start) / self._period))
             due = self._start + self._k * self._period
         if due > now and self._released.wait(due - now):
@@ -459,14 +507,14 @@ class _Ring:
     def __init__(self, capacity: int, width: int):
         self._data = np.full((max(int(capacity), 2), width), np.nan)
         self._n = 0
-        self._head = 0          # next row to write
+        self._head = 0  # next row to write
 
     def __len__(self):
         return self._n
 
     def append(self, row) -> bool:
         if self._n and row[0] <= self._data[(self._head - 1) % len(self._data), 0]:
-            return False        # not newer than the last sample: ignored
+            return False  # not newer than the last sample: ignored
         self._data[self._head] = row
         self._head = (self._head + 1) % len(self._data)
         self._n = min(self._n + 1, len(self._data))
@@ -474,7 +522,7 @@ class _Ring:
 
     def ordered(self) -> np.ndarray:
         if self._n < len(self._data):
-            return self._data[:self._n].copy()
+            return self._data[: self._n].copy()
         return np.roll(self._data, -self._head, axis=0)
 
     def last(self) -> np.ndarray | None:
@@ -494,8 +542,9 @@ class PoseHistory:
     def append(self, t: float, X_BP: RigidTransform) -> bool:
         """Adds a sample; one not newer than the last is ignored (returns False)."""
         q = X_BP.rotation().ToQuaternion()
-        return self._ring.append(np.concatenate([[t], X_BP.translation(),
-                                                 [q.w(), q.x(), q.y(), q.z()]]))
+        return self._ring.append(
+            np.concatenate([[t], X_BP.translation(), [q.w(), q.x(), q.y(), q.z()]])
+        )
 
     def span(self) -> tuple[float, float]:
         rows = self._ring.ordered()
@@ -543,6 +592,7 @@ class LatencyEstimate:
     ``correlation``: the normalised correlation of image and probe motion at that lag (its
     sign says whether the image moves with or against the probe); ``frames`` used; the
     correlation curve ``lags`` (s) -> ``scores``."""
+
     latency: float
     correlation: float
     frames: int
@@ -570,10 +620,17 @@ def motion_signal(values) -> np.ndarray:
     return out
 
 
-def estimate_video_latency(pose_times, poses, frame_times, frame_signal, *,
-                           max_latency: float = 0.5, resolution: float = 0.001,
-                           min_correlation: float = 0.9, min_frames: int = 20
-                           ) -> LatencyEstimate:
+def estimate_video_latency(
+    pose_times,
+    poses,
+    frame_times,
+    frame_signal,
+    *,
+    max_latency: float = 0.5,
+    resolution: float = 0.001,
+    min_correlation: float = 0.9,
+    min_frames: int = 20,
+) -> LatencyEstimate:
     """The video latency from a recording of the probe moving over a point target.
 
     Args:
@@ -598,11 +655,15 @@ def estimate_video_latency(pose_times, poses, frame_times, frame_signal, *,
     ft = np.asarray(frame_times, float).ravel()
     fs = motion_signal(frame_signal)
     if pt.shape[0] != ps.shape[0] or pt.shape[0] < 4:
-        raise ValueError(f"estimate_video_latency: {pt.shape[0]} pose times for "
-                         f"{ps.shape[0]} poses (need matching arrays of at least 4)")
+        raise ValueError(
+            f"estimate_video_latency: {pt.shape[0]} pose times for "
+            f"{ps.shape[0]} poses (need matching arrays of at least 4)"
+        )
     if ft.shape[0] != fs.shape[0]:
-        raise ValueError(f"estimate_video_latency: {ft.shape[0]} frame times for "
-                         f"{fs.shape[0]} frame signal values")
+        raise ValueError(
+            f"estimate_video_latency: {ft.shape[0]} frame times for "
+            f"{fs.shape[0]} frame signal values"
+        )
     if not (max_latency > 0 and resolution > 0):
         raise ValueError("estimate_video_latency: max_latency and resolution must be > 0")
     if np.any(np.diff(pt) <= 0):
@@ -618,7 +679,8 @@ def estimate_video_latency(pose_times, poses, frame_times, frame_signal, *,
             f"estimate_video_latency: only {n} frames with the target found inside the pose "
             f"recording (less max_latency {max_latency:g} s at its start); need "
             f"{min_frames}: record longer, or check that the target is in view "
-            f"({int(found.sum())} of {len(fs)} frames found it)")
+            f"({int(found.sum())} of {len(fs)} frames found it)"
+        )
     ft, fs = ft[usable], fs[usable]
     moving = ps[(pt >= ft[0] - max_latency) & (pt <= ft[-1])]
     if not np.all(np.isfinite(ps)) or np.ptp(moving) <= 1e-9:
@@ -640,20 +702,28 @@ def estimate_video_latency(pose_times, poses, frame_times, frame_signal, *,
             f"estimate_video_latency: the image motion does not follow the probe motion "
             f"(best |correlation| {abs(best):.2f} < {min_correlation:g} at a lag of "
             f"{1e3 * lags[k]:.0f} ms): is the target found in every frame, and did the probe "
-            f"move across the image plane?")
+            f"move across the image plane?"
+        )
     if k == len(lags) - 1 and len(lags) > 2:
-        raise ValueError(f"estimate_video_latency: the best lag is at the end of the range "
-                         f"({max_latency:g} s): raise max_latency")
+        raise ValueError(
+            f"estimate_video_latency: the best lag is at the end of the range "
+            f"({max_latency:g} s): raise max_latency"
+        )
     # Another local maximum almost as good, far from this one: a period too short.
     frame_gap = np.median(np.diff(ft)) if len(ft) > 1 else resolution
     for j in range(1, len(lags) - 1):
-        if (abs(j - k) * resolution > 2 * frame_gap and magnitude[j] >= magnitude[j - 1]
-                and magnitude[j] >= magnitude[j + 1]
-                and magnitude[j] > magnitude[k] - 0.02 and np.sign(scores[j]) == np.sign(best)):
+        if (
+            abs(j - k) * resolution > 2 * frame_gap
+            and magnitude[j] >= magnitude[j - 1]
+            and magnitude[j] >= magnitude[j + 1]
+            and magnitude[j] > magnitude[k] - 0.02
+            and np.sign(scores[j]) == np.sign(best)
+        ):
             raise ValueError(
                 f"estimate_video_latency: ambiguous: lags {1e3 * lags[k]:.0f} ms and "
                 f"{1e3 * lags[j]:.0f} ms fit equally well; use a motion period longer than "
-                f"twice max_latency")
+                f"twice max_latency"
+            )
     latency = float(lags[k])
     if 0 < k < len(lags) - 1:
         a, b, c = magnitude[k - 1], magnitude[k], magnitude[k + 1]

@@ -9,7 +9,7 @@ import numpy as np
 
 try:
     from numpy._core.umath import clip
-except ImportError:   # numpy < 2
+except ImportError:  # numpy < 2
     try:
         from numpy.core.umath import clip
     except ImportError:

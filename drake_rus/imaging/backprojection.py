@@ -16,14 +16,19 @@ from drake_rus.imaging.frames import BoundaryPixels, PointCloud
 from drake_rus.imaging.probe import ProbeGeometry, check_pose
 
 
-def backproject_pixels(geometry: ProbeGeometry, pixels: np.ndarray, X_BP: RigidTransform
-                       ) -> np.ndarray:
+def backproject_pixels(
+    geometry: ProbeGeometry, pixels: np.ndarray, X_BP: RigidTransform
+) -> np.ndarray:
     """Points (N, 3) in B (m) of pixels (N, 2) as (u, v) acquired at probe pose X_BP."""
     return geometry.pixel_to_B(pixels, check_pose(X_BP, "X_BP"))
 
 
-def accumulate(cloud: PointCloud, boundary: BoundaryPixels, geometry: ProbeGeometry,
-               max_points_per_frame: int = 0) -> PointCloud:
+def accumulate(
+    cloud: PointCloud,
+    boundary: BoundaryPixels,
+    geometry: ProbeGeometry,
+    max_points_per_frame: int = 0,
+) -> PointCloud:
     """``cloud`` plus the back-projected boundary of one frame (a new PointCloud).
 
     ``max_points_per_frame`` > 0 keeps an evenly strided subset of each frame's boundary.
@@ -31,7 +36,7 @@ def accumulate(cloud: PointCloud, boundary: BoundaryPixels, geometry: ProbeGeome
     A frame with a non-finite pose (NaN or inf) is dropped.
     """
     if not np.isfinite(boundary.X_BP.GetAsMatrix4()).all():
-        return cloud    # a frame whose pose is not finite cannot be placed in B: dropped
+        return cloud  # a frame whose pose is not finite cannot be placed in B: dropped
     px = boundary.pixels
     if max_points_per_frame > 0 and len(px) > max_points_per_frame:
         px = px[np.linspace(0, len(px) - 1, max_points_per_frame).astype(int)]
@@ -42,8 +47,12 @@ def accumulate(cloud: PointCloud, boundary: BoundaryPixels, geometry: ProbeGeome
     else:
         new = backproject_pixels(geometry, px, X_BP)
     points = _append(cloud.points, new) if len(new) else cloud.points
-    return PointCloud(points=points, frame_count=cloud.frame_count + 1,
-                      poses=cloud.poses + (boundary.X_BP,), times=cloud.times + (boundary.time,))
+    return PointCloud(
+        points=points,
+        frame_count=cloud.frame_count + 1,
+        poses=cloud.poses + (boundary.X_BP,),
+        times=cloud.times + (boundary.time,),
+    )
 
 
 # Growth buffers of accumulated clouds: id(buffer) -> (weak reference, rows filled, address
@@ -65,12 +74,17 @@ def _append(points: np.ndarray, new: np.ndarray) -> np.ndarray:
     n, k = len(points), len(new)
     buf = points.base
     entry = _GROWING.get(id(buf)) if isinstance(buf, np.ndarray) else None
-    if not (entry is not None and entry[0]() is buf and entry[1] == n and len(buf) >= n + k
-            and points.ctypes.data == entry[2]):
+    if not (
+        entry is not None
+        and entry[0]() is buf
+        and entry[1] == n
+        and len(buf) >= n + k
+        and points.ctypes.data == entry[2]
+    ):
         buf = np.empty((max(2 * (n + k), 1024), 3))
         buf[:n] = points
         ref = weakref.ref(buf, lambda r, key=id(buf): _forget(key, r))
         entry = (ref, n, buf.ctypes.data)
-    buf[n:n + k] = new
+    buf[n : n + k] = new
     _GROWING[id(buf)] = (entry[0], n + k, entry[2])
-    return buf[:n + k]
+    return buf[: n + k]

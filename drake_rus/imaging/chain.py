@@ -31,16 +31,24 @@ LabelImageHook = Callable[[DiagramBuilder, OutputPort], OutputPort]
 class ImagingChain:
     """Ports of the imaging chain: ``us_image`` (UsFrame, grey uint8) and ``label_image``
     (UsFrame, tissue labels: what the emulator was given, after any hook)."""
+
     sensor: SliceSensor
     emulator: UltrasoundEmulator
     us_image: OutputPort
     label_image: OutputPort
 
 
-def AddImagingChain(builder: DiagramBuilder, config: ImagingConfig, volume: LabelVolume,
-                    X_BV: RigidTransform, X_BP_port: OutputPort, *, seed: int = 0,
-                    motion=None, label_image_hook: LabelImageHook | None = None
-                    ) -> ImagingChain:
+def AddImagingChain(
+    builder: DiagramBuilder,
+    config: ImagingConfig,
+    volume: LabelVolume,
+    X_BV: RigidTransform,
+    X_BP_port: OutputPort,
+    *,
+    seed: int = 0,
+    motion=None,
+    label_image_hook: LabelImageHook | None = None,
+) -> ImagingChain:
     """Adds slice sensor -> [hook] -> emulator to ``builder``.
 
     Args:

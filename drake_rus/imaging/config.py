@@ -12,30 +12,41 @@ from drake_rus.config_schema import physical
 @dataclass
 class ImagingConfig:
     # Frame rate of the slice sensor / frame grabber (Hz). The seed grabbed frames at 20 fps.
-    frame_rate_hz: float = field(default=20.0, metadata=physical(
-        1.0, 200.0, "Hz", "ultrasound frame rates are 10-100 Hz", positive=True))
+    frame_rate_hz: float = field(
+        default=20.0,
+        metadata=physical(1.0, 200.0, "Hz", "ultrasound frame rates are 10-100 Hz", positive=True),
+    )
 
     # --- Curvilinear probe (like the seed's GE C1-6; facts: "Probe") -----------------------
     # Radius of curvature of the transducer face (m). Comparable convex probes: 45-60 mm.
-    probe_radius: float = field(default=0.050, metadata=physical(
-        0.005, 0.2, "m", "convex probe faces are 10-80 mm in radius", positive=True))
+    probe_radius: float = field(
+        default=0.050,
+        metadata=physical(
+            0.005, 0.2, "m", "convex probe faces are 10-80 mm in radius", positive=True
+        ),
+    )
     # Full opening angle of the fan (deg). Comparable probes span 56-73 deg, but the seed
     # quotes "around 10 cm lateral width at 10 cm depth" for its images, which with a 50 mm
     # radius is a 40 deg fan (2 * 150 mm * sin 20 deg = 103 mm); we follow the seed.
     field_of_view_deg: float = field(default=40.0, metadata={"positive": True, "max": 170.0})
     # Imaging depth from the probe face along each scan line (m). Kidney lies 80-105 mm deep
     # in most generated bodies; real bodies go deeper (147.5 mm in the VH female, supine).
-    depth: float = field(default=0.150, metadata=physical(
-        0.03, 0.4, "m", "curvilinear probes image 30-300 mm deep", positive=True))
+    depth: float = field(
+        default=0.150,
+        metadata=physical(0.03, 0.4, "m", "curvilinear probes image 30-300 mm deep", positive=True),
+    )
     # The probe's depth presets (m): the start planner picks the shallowest that holds the
     # whole kidney, and ``depth`` follows it. Curvilinear abdominal probes offer presets up
     # to about 240-300 mm (docs/facts/anatomy_and_ultrasound.md, "Probe").
     depth_presets: list[float] = field(
         default_factory=lambda: [0.10, 0.15, 0.20, 0.25, 0.30],
-        metadata=physical(0.03, 0.4, "m", "curvilinear probes image 30-300 mm deep", positive=True))
+        metadata=physical(0.03, 0.4, "m", "curvilinear probes image 30-300 mm deep", positive=True),
+    )
     # Elevational (slice) beam width (m): comparable probes 7-14 mm.
-    elevation_width: float = field(default=0.010, metadata=physical(
-        0.0005, 0.05, "m", "elevational beam widths are a few mm", positive=True))
+    elevation_width: float = field(
+        default=0.010,
+        metadata=physical(0.0005, 0.05, "m", "elevational beam widths are a few mm", positive=True),
+    )
     # Number of parallel planes sampled across the elevational width (1 = a thin plane).
     elevation_planes: int = field(default=1, metadata={"min": 1, "max": 15})
     # How the planes' labels combine per pixel: "majority" (most frequent label) or "max"
@@ -50,8 +61,9 @@ class ImagingConfig:
     scan_lines: int = field(default=128, metadata={"min": 8, "max": 2048})
     samples_per_line: int = field(default=256, metadata={"min": 16, "max": 4096})
     # Centre frequency (MHz): C1-6 band about 1.8-5 MHz.
-    center_frequency_mhz: float = field(default=3.5, metadata=physical(
-        0.5, 20.0, "MHz", "diagnostic ultrasound", positive=True))
+    center_frequency_mhz: float = field(
+        default=3.5, metadata=physical(0.5, 20.0, "MHz", "diagnostic ultrasound", positive=True)
+    )
     # Time-gain compensation (dB/cm/MHz, two-way applied as 2x): compensates average soft
     # tissue attenuation (about 0.5-1.0 dB/cm/MHz in the facts table).
     tgc_db_per_cm_mhz: float = field(default=0.7, metadata={"min": 0.0})
@@ -76,7 +88,8 @@ class ImagingConfig:
     # Minimum kidney area (m^2) for the kidney to count as visible (rejects specks).
     min_kidney_area: float = field(default=1.0e-4, metadata={"min": 0.0})
     # ONNX model file: absolute, or relative to the repository root. The default is the int8
-    # quantization of our fp32 model (drake_rus/imaging/training/quantize_segmenter.py): 0.84 instead
+    # quantization of our fp32 model (drake_rus/imaging/training/quantize_segmenter.py): 0.84
+    # instead
     # of 1.42 ms per frame (one thread, AVX512-VNNI), the same held-out IoU within 0.002. On
     # an x86 CPU without VNNI its uint8 x int8 products may saturate (tests/
     # test_quantized_segmenter.py then fails): use "models/segmenter/kidney_unet.onnx", the fp32
@@ -84,14 +97,16 @@ class ImagingConfig:
     onnx_model: str = "models/segmenter/kidney_unet_int8.onnx"
     # Model input shape (N, C, H, W); N may be 1. The grey image (0-255) is resized to H x W,
     # scaled to [0, 1], then normalised as (x - mean) / std, and repeated over C channels.
-    onnx_input_shape: list[int] = field(default_factory=lambda: [1, 1, 64, 64],
-                                        metadata={"length": 4, "positive": True})
+    onnx_input_shape: list[int] = field(
+        default_factory=lambda: [1, 1, 64, 64], metadata={"length": 4, "positive": True}
+    )
     onnx_input_mean: float = 0.0
     onnx_input_std: float = field(default=1.0, metadata={"positive": True})
     # What the model outputs: "logits" (sigmoid applied here), "probability" (in [0, 1]) or
     # "labels" (argmax over channels == onnx_kidney_channel).
-    onnx_output: str = field(default="logits",
-                             metadata={"choices": ["logits", "probability", "labels"]})
+    onnx_output: str = field(
+        default="logits", metadata={"choices": ["logits", "probability", "labels"]}
+    )
     # Which output channel is the kidney (for multi-channel outputs).
     onnx_kidney_channel: int = field(default=0, metadata={"min": 0})
     # Threshold on the kidney probability.

@@ -42,25 +42,25 @@ ECHO_FLOOR = np.float32(1e-12)
 
 @dataclass(frozen=True)
 class Tissue:
-    impedance: float       # MRayl
-    attenuation: float     # dB/cm/MHz
-    echogenicity: float    # relative backscatter amplitude (1 = brightest parenchyma)
+    impedance: float  # MRayl
+    attenuation: float  # dB/cm/MHz
+    echogenicity: float  # relative backscatter amplitude (1 = brightest parenchyma)
 
 
 # Tissue table by label (facts: "Tissue acoustics"; echogenicity from the facts' ordering:
 # sinus fat brightest, cortex iso- to hypo-echoic to liver, pyramids darker, vessels
 # anechoic).
 TISSUES: dict[int, Tissue] = {
-    Label.OUTSIDE: Tissue(0.0004, 7.5, 0.0),          # air, like bowel gas
-    Label.SOFT_TISSUE: Tissue(1.63, 0.7, 0.50),       # generic soft tissue (liver-like)
-    Label.FAT: Tissue(1.38, 0.63, 0.70),              # fat: 1.38 MRayl, 0.63 dB/cm/MHz
-    Label.MUSCLE: Tissue(1.70, 1.2, 0.35),            # muscle: 1.70 MRayl, 1.0-1.4
-    Label.KIDNEY_CORTEX: Tissue(1.62, 1.0, 0.40),     # kidney: 1.62 MRayl, 1.0
-    Label.KIDNEY_MEDULLA: Tissue(1.62, 1.0, 0.18),    # pyramids: darker than cortex
-    Label.KIDNEY_SINUS: Tissue(1.38, 0.63, 1.00),     # sinus fat: fat's acoustics, brightest
-    Label.LIVER: Tissue(1.65, 0.6, 0.50),             # liver: 1.65 MRayl, 0.5-0.7
-    Label.BONE: Tissue(7.8, 10.0, 0.30),              # rib: 7.8 MRayl, 5-15 dB/cm/MHz
-    Label.GAS: Tissue(0.0004, 7.5, 0.0),              # bowel gas: 0.0004 MRayl, 7.5
+    Label.OUTSIDE: Tissue(0.0004, 7.5, 0.0),  # air, like bowel gas
+    Label.SOFT_TISSUE: Tissue(1.63, 0.7, 0.50),  # generic soft tissue (liver-like)
+    Label.FAT: Tissue(1.38, 0.63, 0.70),  # fat: 1.38 MRayl, 0.63 dB/cm/MHz
+    Label.MUSCLE: Tissue(1.70, 1.2, 0.35),  # muscle: 1.70 MRayl, 1.0-1.4
+    Label.KIDNEY_CORTEX: Tissue(1.62, 1.0, 0.40),  # kidney: 1.62 MRayl, 1.0
+    Label.KIDNEY_MEDULLA: Tissue(1.62, 1.0, 0.18),  # pyramids: darker than cortex
+    Label.KIDNEY_SINUS: Tissue(1.38, 0.63, 1.00),  # sinus fat: fat's acoustics, brightest
+    Label.LIVER: Tissue(1.65, 0.6, 0.50),  # liver: 1.65 MRayl, 0.5-0.7
+    Label.BONE: Tissue(7.8, 10.0, 0.30),  # rib: 7.8 MRayl, 5-15 dB/cm/MHz
+    Label.GAS: Tissue(0.0004, 7.5, 0.0),  # bowel gas: 0.0004 MRayl, 7.5
     # Blood (not in the facts table): about 1.61 MRayl and 0.18 dB/cm/MHz (textbook values).
     Label.VESSEL: Tissue(1.61, 0.18, 0.02),
     # Renal tumour (renal cell carcinoma; facts: "Renal tumours"): a solid tissue with the
@@ -89,6 +89,7 @@ def tissue_tables() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 @dataclass(frozen=True)
 class EmulatorModel:
     """Precomputed scan-line geometry and tissue tables for :func:`emulate`."""
+
     geometry: ProbeGeometry
     scan_lines: int = 128
     samples_per_line: int = 256
@@ -101,18 +102,21 @@ class EmulatorModel:
     gel_gap: float = 0.005
 
     @classmethod
-    def from_config(cls, config: ImagingConfig, geometry: ProbeGeometry | None = None
-                    ) -> "EmulatorModel":
-        return cls(geometry=geometry or ProbeGeometry.from_config(config),
-                   scan_lines=int(config.scan_lines),
-                   samples_per_line=int(config.samples_per_line),
-                   frequency_mhz=config.center_frequency_mhz,
-                   tgc_db_per_cm_mhz=config.tgc_db_per_cm_mhz,
-                   dynamic_range_db=config.dynamic_range_db,
-                   gain_db=config.gain_db,
-                   speckle=config.speckle,
-                   interface_gain=config.interface_gain,
-                   gel_gap=config.gel_gap)
+    def from_config(
+        cls, config: ImagingConfig, geometry: ProbeGeometry | None = None
+    ) -> "EmulatorModel":
+        return cls(
+            geometry=geometry or ProbeGeometry.from_config(config),
+            scan_lines=int(config.scan_lines),
+            samples_per_line=int(config.samples_per_line),
+            frequency_mhz=config.center_frequency_mhz,
+            tgc_db_per_cm_mhz=config.tgc_db_per_cm_mhz,
+            dynamic_range_db=config.dynamic_range_db,
+            gain_db=config.gain_db,
+            speckle=config.speckle,
+            interface_gain=config.interface_gain,
+            gel_gap=config.gel_gap,
+        )
 
     @property
     def line_angles(self) -> np.ndarray:
@@ -140,7 +144,8 @@ class EmulatorModel:
         # Samples whose nearest pixel centre falls just outside the fan take the nearest fan
         # pixel instead (else the fan's edge would read as air and cast a false shadow).
         rows, cols = ndimage.distance_transform_edt(
-            ~g.fan_mask, return_distances=False, return_indices=True)
+            ~g.fan_mask, return_distances=False, return_indices=True
+        )
         flat = rows[v, u] * g.width_px + cols[v, u]
         return flat.reshape(self.scan_lines, self.samples_per_line).astype(np.int32)
 
@@ -168,14 +173,16 @@ class EmulatorModel:
         """Sparse (rows * cols, L * S) bilinear interpolation matrix of the scan conversion;
         rows of pixels outside the fan are empty (they come out 0)."""
         import scipy.sparse as sps
+
         g = self.geometry
         i00, wl, ws, S = self.scan_conversion
         rows = np.repeat(g.fan_flat_index, 4)
         cols = np.stack([i00, i00 + 1, i00 + S, i00 + S + 1], axis=1).ravel()
         w = np.stack([(1 - wl) * (1 - ws), (1 - wl) * ws, wl * (1 - ws), wl * ws], axis=1)
-        return sps.csr_matrix((w.ravel().astype(np.float32), (rows, cols)),
-                              shape=(g.height_px * g.width_px,
-                                     self.scan_lines * self.samples_per_line))
+        return sps.csr_matrix(
+            (w.ravel().astype(np.float32), (rows, cols)),
+            shape=(g.height_px * g.width_px, self.scan_lines * self.samples_per_line),
+        )
 
     @cached_property
     def _polar_index_T(self) -> np.ndarray:
@@ -202,14 +209,18 @@ class EmulatorModel:
         indptr, indices, data = self._scan_csr_T
         counts = np.diff(indptr)
         rows = np.flatnonzero(counts)
-        if rows.size == 0 or not np.all(counts[rows] == 4) or rows[-1] >= 2 ** 31:
+        if rows.size == 0 or not np.all(counts[rows] == 4) or rows[-1] >= 2**31:
             return None
         quads = indices.reshape(-1, 4).astype(np.int64)
         offsets = quads[0] - quads[0, 0]
         if not np.array_equal(quads - quads[:, :1], np.broadcast_to(offsets, quads.shape)):
             return None
-        return (rows.astype(np.int32), quads[:, 0].astype(np.int32), offsets,
-                np.ascontiguousarray(data.reshape(-1, 4), dtype=np.float32))
+        return (
+            rows.astype(np.int32),
+            quads[:, 0].astype(np.int32),
+            offsets,
+            np.ascontiguousarray(data.reshape(-1, 4), dtype=np.float32),
+        )
 
     @cached_property
     def tables(self):
@@ -219,8 +230,9 @@ class EmulatorModel:
     def tgc_db(self) -> np.ndarray:
         """(S,) time-gain compensation (dB, two-way) plus the overall gain at every depth."""
         d_cm = self.sample_depths * 100.0
-        return (2.0 * self.frequency_mhz * self.tgc_db_per_cm_mhz * d_cm
-                + self.gain_db).astype(np.float32)
+        return (2.0 * self.frequency_mhz * self.tgc_db_per_cm_mhz * d_cm + self.gain_db).astype(
+            np.float32
+        )
 
     @cached_property
     def compact_codes(self) -> np.ndarray:
@@ -247,16 +259,25 @@ class EmulatorModel:
         ``tgc_db``)."""
         codes = self.compact_codes
         loss, diffuse, spec = self.pair_luts
-        return (codes, int(codes[GEL]), int(codes[PROBE_LABEL]), self.gel_samples,
-                loss, diffuse, spec, self.tgc_db)
+        return (
+            codes,
+            int(codes[GEL]),
+            int(codes[PROBE_LABEL]),
+            self.gel_samples,
+            loss,
+            diffuse,
+            spec,
+            self.tgc_db,
+        )
 
     def speckle_bank(self, seed: int) -> np.ndarray:
         """(2L, 2S) speckle intensities (mean 1) for ``seed``; frames take shifted windows."""
         bank = self._banks.get(seed)
         if bank is None:
             rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, 0x5EC1E])
-            bank = rng.standard_exponential((2 * self.scan_lines, 2 * self.samples_per_line),
-                                            dtype=np.float32)
+            bank = rng.standard_exponential(
+                (2 * self.scan_lines, 2 * self.samples_per_line), dtype=np.float32
+            )
             if len(self._banks) > 8:
                 self._banks.clear()
             self._banks[seed] = bank
@@ -303,12 +324,16 @@ def pair_tables(model: "EmulatorModel") -> tuple[np.ndarray, np.ndarray, np.ndar
     loss = -10.0 * np.log10(t2) + 2.0 * model.frequency_mhz * ds_cm * a[None, :]
     diffuse = np.broadcast_to(e[None, :].astype(np.float64) ** 2, (256, 256))
     spec = (model.interface_gain * r) ** 2 / t2
-    as32 = lambda x: np.ascontiguousarray(x, dtype=np.float32).reshape(-1)
+
+    def as32(x):
+        return np.ascontiguousarray(x, dtype=np.float32).reshape(-1)
+
     return as32(loss), as32(diffuse), as32(spec)
 
 
-def line_db(labels_ls: np.ndarray, model: "EmulatorModel", speckle: np.ndarray | None
-            ) -> np.ndarray:
+def line_db(
+    labels_ls: np.ndarray, model: "EmulatorModel", speckle: np.ndarray | None
+) -> np.ndarray:
     """Echo level (dB re the brightest parenchyma, float32) of label samples (L, S).
 
     ``10 log10(diffuse * speckle + specular) - cumulative loss + TGC + gain``: the
@@ -319,11 +344,14 @@ def line_db(labels_ls: np.ndarray, model: "EmulatorModel", speckle: np.ndarray |
     labels_ls = np.asarray(labels_ls)
     shape = labels_ls.shape
     if labels_ls.ndim != 2 or shape[1] != model.samples_per_line:
-        raise ValueError(f"labels_ls: expected (lines, {model.samples_per_line}) label "
-                         f"samples, got shape {shape}")
+        raise ValueError(
+            f"labels_ls: expected (lines, {model.samples_per_line}) label "
+            f"samples, got shape {shape}"
+        )
     if labels_ls.size and (labels_ls.min() < 0 or labels_ls.max() > 255):
-        raise ValueError("labels_ls: expected label values 0-255, got "
-                         f"{labels_ls.min()}..{labels_ls.max()}")
+        raise ValueError(
+            f"labels_ls: expected label values 0-255, got {labels_ls.min()}..{labels_ls.max()}"
+        )
     # The compiled pass works in (sample, line) order.
     index = np.arange(labels_ls.size, dtype=np.int32).reshape(shape[::-1])
     flat = np.ascontiguousarray(labels_ls.T, dtype=np.uint8).reshape(-1)
@@ -336,8 +364,14 @@ def line_db(labels_ls: np.ndarray, model: "EmulatorModel", speckle: np.ndarray |
     return np.ascontiguousarray(db.T)
 
 
-def _echo_and_loss(label_flat: np.ndarray, index: np.ndarray, model: "EmulatorModel",
-                   bank: np.ndarray | None, i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
+def _echo_and_loss(
+    label_flat: np.ndarray,
+    index: np.ndarray,
+    model: "EmulatorModel",
+    bank: np.ndarray | None,
+    i: int,
+    j: int,
+) -> tuple[np.ndarray, np.ndarray]:
     """Echo intensities and running losses (S, L) float32 of the labels ``label_flat[index]``
     (:func:`kernels.echo_and_loss`), with the speckle window of ``bank`` (2S, 2L) at
     (sample i, line j)."""
@@ -345,16 +379,33 @@ def _echo_and_loss(label_flat: np.ndarray, index: np.ndarray, model: "EmulatorMo
     echo = np.empty(index.shape, np.float32)
     cum = np.empty(index.shape, np.float32)
     use = bank is not None
-    kernels.echo_and_loss(label_flat, index, codes, gel, probe, n_gel, loss, diffuse, spec,
-                          bank if use else _NO_SPECKLE, i, j, use, ECHO_FLOOR, echo, cum)
+    kernels.echo_and_loss(
+        label_flat,
+        index,
+        codes,
+        gel,
+        probe,
+        n_gel,
+        loss,
+        diffuse,
+        spec,
+        bank if use else _NO_SPECKLE,
+        i,
+        j,
+        use,
+        ECHO_FLOOR,
+        echo,
+        cum,
+    )
     return echo, cum
 
 
 _NO_SPECKLE = np.ones((1, 1), np.float32)
 
 
-def line_intensity(labels_ls: np.ndarray, model: "EmulatorModel", speckle: np.ndarray | None
-                   ) -> np.ndarray:
+def line_intensity(
+    labels_ls: np.ndarray, model: "EmulatorModel", speckle: np.ndarray | None
+) -> np.ndarray:
     """Echo intensity (L, S) (linear, before log compression) of label samples (L, S)."""
     return np.power(np.float32(10.0), line_db(labels_ls, model, speckle) / np.float32(10.0))
 
@@ -384,7 +435,7 @@ def speckle_field(model: EmulatorModel, seed: int, frame_index: int) -> np.ndarr
     """
     bank = model.speckle_bank(int(seed))
     i, j = _speckle_offset(model, seed, frame_index)
-    return bank[i:i + model.scan_lines, j:j + model.samples_per_line]
+    return bank[i : i + model.scan_lines, j : j + model.samples_per_line]
 
 
 def _speckle_offset(model: EmulatorModel, seed: int, frame_index: int) -> tuple[int, int]:
@@ -412,8 +463,9 @@ def _speckle_offset(model: EmulatorModel, seed: int, frame_index: int) -> tuple[
     return offsets[0]
 
 
-def emulate(label_image: np.ndarray, model: EmulatorModel, seed: int = 0, frame_index: int = 0
-            ) -> np.ndarray:
+def emulate(
+    label_image: np.ndarray, model: EmulatorModel, seed: int = 0, frame_index: int = 0
+) -> np.ndarray:
     """Emulated B-mode image (rows, cols) uint8 of a label image (rows, cols).
 
     Deterministic in (label_image, seed, frame_index). Pixels outside the fan are 0.
@@ -421,11 +473,13 @@ def emulate(label_image: np.ndarray, model: EmulatorModel, seed: int = 0, frame_
     g = model.geometry
     label_image = np.asarray(label_image)
     if label_image.shape != g.image_shape:
-        raise ValueError(f"emulate: label image has shape {label_image.shape}, the probe "
-                         f"geometry expects {g.image_shape}")
+        raise ValueError(
+            f"emulate: label image has shape {label_image.shape}, the probe "
+            f"geometry expects {g.image_shape}"
+        )
     flat = label_image.reshape(-1)
     if flat.dtype != np.uint8:
-        flat = flat.astype(np.uint8)     # as the samples' uint8 cast after the gather
+        flat = flat.astype(np.uint8)  # as the samples' uint8 cast after the gather
     bank, i, j = None, 0, 0
     if model.speckle:
         bank = model._speckle_bank_T(int(seed))
@@ -433,8 +487,9 @@ def emulate(label_image: np.ndarray, model: EmulatorModel, seed: int = 0, frame_
     return _emulate(flat, model, bank, int(j), int(i))
 
 
-def _emulate(label_flat: np.ndarray, model: EmulatorModel, bank: np.ndarray | None, i: int,
-             j: int) -> np.ndarray:
+def _emulate(
+    label_flat: np.ndarray, model: EmulatorModel, bank: np.ndarray | None, i: int, j: int
+) -> np.ndarray:
     """:func:`emulate` of a flat uint8 label image with the speckle window of ``bank`` (2S,
     2L) at (sample i, line j): the compiled per-line pass, numpy's log10, the compiled grey
     levels and scan conversion, all in (sample, line) order."""
@@ -445,8 +500,9 @@ def _emulate(label_flat: np.ndarray, model: EmulatorModel, bank: np.ndarray | No
     grey = np.empty(echo.size, np.float32)
     quads = model._scan_quads
     if quads is not None:
-        kernels.grey_scan_convert(echo, cum, tgc, np.float32(dr), np.float32(255.0 / dr),
-                                  *quads, grey, image.reshape(-1))
+        kernels.grey_scan_convert(
+            echo, cum, tgc, np.float32(dr), np.float32(255.0 / dr), *quads, grey, image.reshape(-1)
+        )
     else:
         kernels.grey_levels(echo, cum, tgc, np.float32(dr), np.float32(255.0 / dr), grey)
         kernels.csr_to_uint8(*model._scan_csr_T, grey, image.reshape(-1))
@@ -464,7 +520,7 @@ def warm_up(model: EmulatorModel, seed: int | None = None) -> None:
         bank = np.ones((2 * S, 2 * L), np.float32)
     labels = np.zeros(model.geometry.image_shape, np.uint8).reshape(-1)
     frozen = labels.view()
-    frozen.flags.writeable = False      # frames carry read-only images (frames.UsFrame)
+    frozen.flags.writeable = False  # frames carry read-only images (frames.UsFrame)
     for flat in (labels, frozen):
         _emulate(flat, model, bank, 0, 0)
         _emulate(flat, model, None, 0, 0)
@@ -476,9 +532,10 @@ def scan_convert(polar: np.ndarray, model: EmulatorModel) -> np.ndarray:
     L, S = model.scan_lines, model.samples_per_line
     x = np.asarray(polar, dtype=np.float32)
     if x.size != L * S:
-        raise ValueError(f"scan_convert: polar image has {x.size} samples, the model "
-                         f"expects {L} x {S}")
-    x = np.ascontiguousarray(x.reshape(L, S).T).reshape(-1)     # (sample, line) order
+        raise ValueError(
+            f"scan_convert: polar image has {x.size} samples, the model expects {L} x {S}"
+        )
+    x = np.ascontiguousarray(x.reshape(L, S).T).reshape(-1)  # (sample, line) order
     image = np.zeros(model.geometry.image_shape, np.uint8)
     quads = model._scan_quads
     if quads is not None:

@@ -29,6 +29,7 @@ class UsFrame:
     Used for label images (uint8 tissue labels), ultrasound images (uint8 grey) and masks
     (bool).
     """
+
     image: np.ndarray
     time: float = 0.0
     X_BP: RigidTransform = field(default_factory=RigidTransform)
@@ -45,13 +46,14 @@ class UsFrame:
         return self
 
     def __deepcopy__(self, memo):
-        return self   # immutable: sharing is safe and saves copying the image every step
+        return self  # immutable: sharing is safe and saves copying the image every step
 
 
 @dataclass(frozen=True)
 class BoundaryPixels:
     """Kidney-mask boundary pixels of one frame: ``pixels`` (N, 2) as (column u, row v),
     with the frame's acquisition time (s), probe pose X_BP and index."""
+
     pixels: np.ndarray
     time: float = 0.0
     X_BP: RigidTransform = field(default_factory=RigidTransform)
@@ -71,6 +73,7 @@ class BoundaryPixels:
 class PointCloud:
     """An accumulated point cloud ``points`` (N, 3) in the base frame B (m), the number of
     frames that contributed, and the probe poses X_BP (and times, s) of those frames."""
+
     points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     frame_count: int = 0
     poses: tuple = ()

@@ -22,9 +22,24 @@ _INT32_LIMIT = np.float32(2147483648.0)
 
 
 @njit(cache=True, nogil=True)
-def echo_and_loss(label_flat, polar_index, codes_lut, gel_code, probe_code, n_gel,
-                  loss_lut, diffuse_lut, spec_lut, speckle, sp_s, sp_l, use_speckle,
-                  echo_floor, echo, cum_loss):
+def echo_and_loss(
+    label_flat,
+    polar_index,
+    codes_lut,
+    gel_code,
+    probe_code,
+    n_gel,
+    loss_lut,
+    diffuse_lut,
+    spec_lut,
+    speckle,
+    sp_s,
+    sp_l,
+    use_speckle,
+    echo_floor,
+    echo,
+    cum_loss,
+):
     """Per sample, in (sample, line) order (S, L): the echo intensity ``max(diffuse *
     speckle + specular, floor)`` and the running two-way loss (dB) along its line, float32.
 
@@ -63,7 +78,7 @@ def echo_and_loss(label_flat, polar_index, codes_lut, gel_code, probe_code, n_ge
             if use_speckle:
                 e = e * speckle[sp_s + s, sp_l + ln]
             e = e + spec_lut[pair]
-            if e < echo_floor:       # np.maximum: NaN stays NaN
+            if e < echo_floor:  # np.maximum: NaN stays NaN
                 e = echo_floor
             echo[s, ln] = e
 
@@ -129,7 +144,7 @@ def grey_levels(log_echo, cum_loss, tgc, dynamic_range, scale, grey):
         row = s * n_lines
         for ln in range(n_lines):
             g = (((log_echo[s, ln] * ten - cum_loss[s, ln]) + t) + dynamic_range) * scale
-            if g < lo:           # the clip ufunc: NaN stays NaN
+            if g < lo:  # the clip ufunc: NaN stays NaN
                 g = lo
             elif g > hi:
                 g = hi
@@ -137,8 +152,9 @@ def grey_levels(log_echo, cum_loss, tgc, dynamic_range, scale, grey):
 
 
 @njit(cache=True, nogil=True)
-def grey_scan_convert(log_echo, cum_loss, tgc, dynamic_range, scale, rows, first, offsets,
-                      data, grey, out):
+def grey_scan_convert(
+    log_echo, cum_loss, tgc, dynamic_range, scale, rows, first, offsets, data, grey, out
+):
     """:func:`grey_levels` then their scan conversion :func:`quads_to_uint8` into ``out``
     (rows * cols,), zeros outside the fan."""
     grey_levels(log_echo, cum_loss, tgc, dynamic_range, scale, grey)
@@ -175,7 +191,7 @@ def slice_plane(px, z_rows, per_row, A, c, shape, flat, dest, out, index):
             f0 = x * a0 + t0
             f1 = x * a1 + t1
             f2 = x * a2 + t2
-            f0 = f0 if f0 > zero else zero       # NaN -> 0
+            f0 = f0 if f0 > zero else zero  # NaN -> 0
             f1 = f1 if f1 > zero else zero
             f2 = f2 if f2 > zero else zero
             f0 = f0 if f0 < h0 else h0

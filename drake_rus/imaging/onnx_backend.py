@@ -6,7 +6,8 @@ H x W (block mean when the sizes divide, else nearest), scaled to [0, 1], normal
 ``(x - onnx_input_mean) / onnx_input_std`` and repeated over C channels. The first output is
 (N, K, h, w) or (N, h, w): ``logits`` (a sigmoid is applied; with K > 1 a softmax over K),
 ``probability`` or ``labels`` (integer class per pixel, or K scores to argmax); channel
-(or class index) ``onnx_kidney_channel`` is the kidney. The kidney probability is resized back to the image (bilinear) and thresholded.
+(or class index) ``onnx_kidney_channel`` is the kidney. The kidney probability is resized back to
+the image (bilinear) and thresholded.
 
 Physical pixel size (model card): when the JSON card next to the model (same name, ``.json``)
 declares ``pixel_size_mm`` (p) and ``canvas_px`` ([H, W]), the model sees every frame at that
@@ -84,7 +85,7 @@ def upsample_to(prob: np.ndarray, H: int, W: int) -> np.ndarray:
         hit = _INTERP_CACHE[key] = (r0, r1, wr[:, None], c0, c1, wc[None, :])
     r0, r1, wr, c0, c1, wc = hit
     p = prob.astype(np.float32, copy=False)
-    rows = p[r0] + (p[r1] - p[r0]) * wr              # (H, w)
+    rows = p[r0] + (p[r1] - p[r0]) * wr  # (H, w)
     return rows[:, c0] + (rows[:, c1] - rows[:, c0]) * wc
 
 
@@ -97,8 +98,7 @@ def read_model_card(model_path: str | Path) -> dict:
     try:
         data = json.loads(card.read_text())
     except (OSError, ValueError) as e:
-        raise ValueError(f"imaging.onnx_model: model card {card} is not valid JSON: {e}"
-                         ) from None
+        raise ValueError(f"imaging.onnx_model: model card {card} is not valid JSON: {e}") from None
     if not isinstance(data, dict):
         raise ValueError(f"imaging.onnx_model: model card {card} is not a JSON object")
     return data
@@ -116,12 +116,16 @@ def card_canvas(card: dict, where: str = "model card") -> dict | None:
         top = card.get("canvas_top_mm")
         top = None if top is None else float(top) * 1e-3
     except (TypeError, ValueError):
-        raise ValueError(f"{where}: pixel_size_mm must be a number, canvas_px two integers "
-                         f"and canvas_top_mm a number; got {card.get('pixel_size_mm')!r}, "
-                         f"{card.get('canvas_px')!r}, {card.get('canvas_top_mm')!r}") from None
+        raise ValueError(
+            f"{where}: pixel_size_mm must be a number, canvas_px two integers "
+            f"and canvas_top_mm a number; got {card.get('pixel_size_mm')!r}, "
+            f"{card.get('canvas_px')!r}, {card.get('canvas_top_mm')!r}"
+        ) from None
     if not (np.isfinite(p) and p > 0) or len(shape) != 2 or min(shape) < 2:
-        raise ValueError(f"{where}: expected pixel_size_mm > 0 and canvas_px [H, W] of at "
-                         f"least 2 pixels, got {card['pixel_size_mm']!r}, {card['canvas_px']!r}")
+        raise ValueError(
+            f"{where}: expected pixel_size_mm > 0 and canvas_px [H, W] of at "
+            f"least 2 pixels, got {card['pixel_size_mm']!r}, {card['canvas_px']!r}"
+        )
     return {"pixel_size": p * 1e-3, "shape": shape, "top": top}
 
 
@@ -132,8 +136,14 @@ def _area_matrix(centres: np.ndarray, size: float, lo: float, step: float, n_out
     (zero padding)."""
     edges = lo + np.arange(n_out + 1) * step
     a, b = centres - 0.5 * size, centres + 0.5 * size
-    ov = np.clip(np.minimum(b[None, :], edges[1:, None])
-                 - np.maximum(a[None, :], edges[:-1, None]), 0.0, None) / step
+    ov = (
+        np.clip(
+            np.minimum(b[None, :], edges[1:, None]) - np.maximum(a[None, :], edges[:-1, None]),
+            0.0,
+            None,
+        )
+        / step
+    )
     return sps.csr_matrix(ov.astype(np.float32))
 
 
@@ -160,9 +170,10 @@ def _linear_matrix(pos: np.ndarray, n: int):
     (pixel centres at integers); rows more than half a sample outside the grid are 0."""
     i0, i1, w0, w1 = _linear_taps(pos, n)
     rows = np.arange(len(pos))
-    return sps.csr_matrix((np.concatenate([w0, w1]),
-                           (np.concatenate([rows, rows]), np.concatenate([i0, i1]))),
-                          shape=(len(pos), n))
+    return sps.csr_matrix(
+        (np.concatenate([w0, w1]), (np.concatenate([rows, rows]), np.concatenate([i0, i1]))),
+        shape=(len(pos), n),
+    )
 
 
 class PhysicalCanvas:
@@ -175,8 +186,13 @@ class PhysicalCanvas:
     geometry (sparse, not dense BLAS, whose thread pool costs more than the work here).
     """
 
-    def __init__(self, geometry: ProbeGeometry, pixel_size: float, shape: tuple[int, int],
-                 top: float | None = None):
+    def __init__(
+        self,
+        geometry: ProbeGeometry,
+        pixel_size: float,
+        shape: tuple[int, int],
+        top: float | None = None,
+    ):
         g = geometry
         self.geometry = g
         self.pixel_size = float(pixel_size)
@@ -222,7 +238,8 @@ class PhysicalCanvas:
             sx = self.shape[1] * self.pixel_size / w
             hit = self._back[(h, w)] = (
                 _linear_matrix((self._z - self.top) / sz - 0.5, h),
-                _linear_matrix((self._x - self.left) / sx - 0.5, w).T.tocsr())
+                _linear_matrix((self._x - self.left) / sx - 0.5, w).T.tocsr(),
+            )
         rows, cols_T = hit
         return np.asarray((rows @ m) @ cols_T, dtype=np.float32)
 
@@ -233,12 +250,15 @@ class PhysicalCanvas:
         if hit is None:
             sz = self.shape[0] * self.pixel_size / h
             sx = self.shape[1] * self.pixel_size / w
-            hit = self._taps[(h, w)] = (_linear_taps((self._z - self.top) / sz - 0.5, h),
-                                        _linear_taps((self._x - self.left) / sx - 0.5, w))
+            hit = self._taps[(h, w)] = (
+                _linear_taps((self._z - self.top) / sz - 0.5, h),
+                _linear_taps((self._x - self.left) / sx - 0.5, w),
+            )
         return hit
 
-    def to_image_window(self, window: np.ndarray, origin: tuple[int, int],
-                        map_shape: tuple[int, int]) -> tuple[slice, slice, np.ndarray]:
+    def to_image_window(
+        self, window: np.ndarray, origin: tuple[int, int], map_shape: tuple[int, int]
+    ) -> tuple[slice, slice, np.ndarray]:
         """``to_image`` of a (h, w) = ``map_shape`` map that is 0 outside one window:
         ``window`` (a, b) is the map at rows ``origin[0] + [0, a)`` and columns
         ``origin[1] + [0, b)``. Returns (image rows, image columns, float32 values) of the
@@ -278,39 +298,64 @@ class PhysicalCanvas:
 
 # ONNX Runtime's element type names of the outputs each ``onnx_output`` accepts: scores need
 # a float tensor; labels (class indices) may be integers too.
-_FLOAT_TYPES = ("tensor(float)", "tensor(double)", "tensor(float16)", "tensor(bfloat16)",
-                "tensor(float32)", "tensor(float64)")
+_FLOAT_TYPES = (
+    "tensor(float)",
+    "tensor(double)",
+    "tensor(float16)",
+    "tensor(bfloat16)",
+    "tensor(float32)",
+    "tensor(float64)",
+)
 _INTEGER_TYPES = tuple(f"tensor({k}{b})" for k in ("int", "uint") for b in (8, 16, 32, 64))
 
 
-def check_output_type(type_name: str, shape, output: str, where: str, model: str,
-                      field_prefix: str = "imaging.") -> None:
+def check_output_type(
+    type_name: str, shape, output: str, where: str, model: str, field_prefix: str = "imaging."
+) -> None:
     """Raises ValueError naming ``where`` (the field that selects the model) when a model's
     first output cannot be read as ``output`` ("logits", "probability" or "labels"): its
     element type (``tensor(float)``, ``tensor(int64)``, ...) or rank (3 or 4; symbolic or
     unknown dimensions pass)."""
     accepted = _FLOAT_TYPES + (_INTEGER_TYPES if output == "labels" else ())
     if type_name not in accepted:
-        hint = (" (a model that outputs class indices: set "
-                f"{field_prefix}onnx_output: labels)" if type_name in _INTEGER_TYPES else "")
-        raise ValueError(f"{where}: model {model} outputs {type_name}; "
-                         f"{field_prefix}onnx_output {output!r} expects "
-                         f"{'a float or integer' if output == 'labels' else 'a float'} "
-                         f"tensor{hint}")
+        hint = (
+            f" (a model that outputs class indices: set {field_prefix}onnx_output: labels)"
+            if type_name in _INTEGER_TYPES
+            else ""
+        )
+        raise ValueError(
+            f"{where}: model {model} outputs {type_name}; "
+            f"{field_prefix}onnx_output {output!r} expects "
+            f"{'a float or integer' if output == 'labels' else 'a float'} "
+            f"tensor{hint}"
+        )
     if isinstance(shape, (list, tuple)) and len(shape) not in (3, 4):
-        raise ValueError(f"{where}: model {model} output has shape {list(shape)}; expected "
-                         "(N, K, h, w) or (N, h, w)")
+        raise ValueError(
+            f"{where}: model {model} output has shape {list(shape)}; expected "
+            "(N, K, h, w) or (N, h, w)"
+        )
 
 
 class OnnxSegmenter:
     """A loaded ONNX model; call it on a uint8 grey image to get a bool kidney mask."""
 
-    def __init__(self, model_path: str | Path, geometry: ProbeGeometry,
-                 input_shape=(1, 1, 128, 128), mean: float = 0.0, std: float = 1.0,
-                 output: str = "logits", kidney_channel: int = 0, threshold: float = 0.5,
-                 threads: int = 1, field_prefix: str = "imaging.", card: dict | None = None,
-                 track_gap: float = 2.0, track_reach: float = 0.010,
-                 track_min_overlap: float = 0.5):
+    def __init__(
+        self,
+        model_path: str | Path,
+        geometry: ProbeGeometry,
+        input_shape=(1, 1, 128, 128),
+        mean: float = 0.0,
+        std: float = 1.0,
+        output: str = "logits",
+        kidney_channel: int = 0,
+        threshold: float = 0.5,
+        threads: int = 1,
+        field_prefix: str = "imaging.",
+        card: dict | None = None,
+        track_gap: float = 2.0,
+        track_reach: float = 0.010,
+        track_min_overlap: float = 0.5,
+    ):
         """``card``: the model card's fields (default: read from the ``.json`` next to the
         model); ``pixel_size_mm`` and ``canvas_px`` switch on the physical canvas.
         ``track_gap`` (s), ``track_reach`` (m), ``track_min_overlap``: how a kidney seen
@@ -318,14 +363,17 @@ class OnnxSegmenter:
         self.track_gap, self.track_reach = float(track_gap), float(track_reach)
         self.track_min_overlap = float(track_min_overlap)
         import onnxruntime as ort
+
         self.geometry = geometry
         self.path = resolve_model_path(str(model_path))
         where = f"{field_prefix}onnx_model"
         if not self.path.is_file():
             raise ValueError(f"{where}: ONNX model file not found: {self.path}")
         if len(input_shape) != 4 or not all(int(d) > 0 for d in input_shape):
-            raise ValueError(f"{field_prefix}onnx_input_shape: expected 4 positive sizes "
-                             f"(N, C, H, W), got {list(input_shape)}")
+            raise ValueError(
+                f"{field_prefix}onnx_input_shape: expected 4 positive sizes "
+                f"(N, C, H, W), got {list(input_shape)}"
+            )
         self.input_shape = tuple(int(d) for d in input_shape)
         card_name = self.path.with_suffix(".json").name
         self.card = read_model_card(self.path) if card is None else dict(card)
@@ -333,13 +381,14 @@ class OnnxSegmenter:
         #: The physical canvas (None: the plain resize of the whole image to H x W).
         self.canvas = None
         if spec is not None:
-            self.canvas = PhysicalCanvas(geometry, spec["pixel_size"], spec["shape"],
-                                         spec["top"])
+            self.canvas = PhysicalCanvas(geometry, spec["pixel_size"], spec["shape"], spec["top"])
             self.input_shape = self.input_shape[:2] + self.canvas.shape
         self._fan_at: dict = {}
         if output not in ("logits", "probability", "labels"):
-            raise ValueError(f"{field_prefix}onnx_output: expected 'logits', 'probability' "
-                             f"or 'labels', got {output!r}")
+            raise ValueError(
+                f"{field_prefix}onnx_output: expected 'logits', 'probability' "
+                f"or 'labels', got {output!r}"
+            )
         self.mean, self.std, self.output = float(mean), float(std), output
         self.kidney_channel, self.threshold = int(kidney_channel), float(threshold)
         options = ort.SessionOptions()
@@ -347,52 +396,79 @@ class OnnxSegmenter:
         options.inter_op_num_threads = 1
         options.log_severity_level = 3
         try:
-            self.session = ort.InferenceSession(str(self.path), sess_options=options,
-                                                providers=["CPUExecutionProvider"])
+            self.session = ort.InferenceSession(
+                str(self.path), sess_options=options, providers=["CPUExecutionProvider"]
+            )
         except Exception as e:  # onnxruntime raises its own Fail/InvalidGraph types
             raise ValueError(f"{where}: cannot load ONNX model {self.path}: {e}") from None
         inputs = self.session.get_inputs()
         if len(inputs) != 1:
-            raise ValueError(f"{where}: model {self.path.name} has {len(inputs)} inputs; "
-                             f"expected one image input")
+            raise ValueError(
+                f"{where}: model {self.path.name} has {len(inputs)} inputs; "
+                f"expected one image input"
+            )
         declared = inputs[0].shape
-        if len(declared) != 4 or any(isinstance(d, int) and d != want
-                                     for d, want in zip(declared, self.input_shape)):
+        if len(declared) != 4 or any(
+            isinstance(d, int) and d != want for d, want in zip(declared, self.input_shape)
+        ):
             if self.canvas is not None:
                 raise ValueError(
                     f"{where}: model card {card_name} declares canvas_px "
                     f"{list(self.canvas.shape)} (input {list(self.input_shape)} with N, C from "
                     f"{field_prefix}onnx_input_shape) but model {self.path.name} input "
-                    f"'{inputs[0].name}' has shape {declared}")
+                    f"'{inputs[0].name}' has shape {declared}"
+                )
             raise ValueError(
                 f"{field_prefix}onnx_input_shape: the scenario names {list(self.input_shape)} "
-                f"but model {self.path.name} input '{inputs[0].name}' has shape {declared}")
+                f"but model {self.path.name} input '{inputs[0].name}' has shape {declared}"
+            )
         if "float" not in inputs[0].type:
-            raise ValueError(f"{where}: model input '{inputs[0].name}' has type "
-                             f"{inputs[0].type}; expected a float tensor")
+            raise ValueError(
+                f"{where}: model input '{inputs[0].name}' has type "
+                f"{inputs[0].type}; expected a float tensor"
+            )
         self.input_name = inputs[0].name
         output = self.session.get_outputs()[0]
         self.output_name = output.name
-        check_output_type(output.type, output.shape, self.output, where, self.path.name,
-                          field_prefix)
+        check_output_type(
+            output.type, output.shape, self.output, where, self.path.name, field_prefix
+        )
         # Check the output once on a blank image, so a bad model fails here, not mid-run.
         try:
-            probe = self.session.run([self.output_name], {self.input_name: np.zeros(
-                self.input_shape, np.float32)})[0]
+            probe = self.session.run(
+                [self.output_name], {self.input_name: np.zeros(self.input_shape, np.float32)}
+            )[0]
         except Exception as e:
-            raise ValueError(f"{where}: model {self.path.name} fails on an input of shape "
-                             f"{list(self.input_shape)}: {e}") from None
-        check_output_type(f"tensor({np.asarray(probe).dtype.name})", list(np.shape(probe)),
-                          self.output, where, self.path.name, field_prefix)
+            raise ValueError(
+                f"{where}: model {self.path.name} fails on an input of shape "
+                f"{list(self.input_shape)}: {e}"
+            ) from None
+        check_output_type(
+            f"tensor({np.asarray(probe).dtype.name})",
+            list(np.shape(probe)),
+            self.output,
+            where,
+            self.path.name,
+            field_prefix,
+        )
         self._kidney_map(probe)
 
     @classmethod
     def from_config(cls, config: ImagingConfig, geometry: ProbeGeometry) -> "OnnxSegmenter":
-        return cls(config.onnx_model, geometry, config.onnx_input_shape, config.onnx_input_mean,
-                   config.onnx_input_std, config.onnx_output, config.onnx_kidney_channel,
-                   config.onnx_threshold, config.onnx_threads,
-                   track_gap=config.track_gap, track_reach=config.track_reach,
-                   track_min_overlap=config.track_min_overlap)
+        return cls(
+            config.onnx_model,
+            geometry,
+            config.onnx_input_shape,
+            config.onnx_input_mean,
+            config.onnx_input_std,
+            config.onnx_output,
+            config.onnx_kidney_channel,
+            config.onnx_threshold,
+            config.onnx_threads,
+            track_gap=config.track_gap,
+            track_reach=config.track_reach,
+            track_min_overlap=config.track_min_overlap,
+        )
 
     @property
     def pixel_size_mm(self) -> float | None:
@@ -402,7 +478,7 @@ class OnnxSegmenter:
     def preprocess(self, image: np.ndarray) -> np.ndarray:
         n, c, h, w = self.input_shape
         if self.canvas is not None:
-            x = self.canvas.to_canvas(image)    # a new array: scaled in place below
+            x = self.canvas.to_canvas(image)  # a new array: scaled in place below
         else:
             x = resize_to(np.asarray(image), h, w).astype(np.float32)
         x *= np.float32(1.0 / 255.0)
@@ -421,8 +497,10 @@ class OnnxSegmenter:
         if out.ndim == 3:
             out = out[:, None]
         if out.ndim != 4:
-            raise ValueError(f"imaging.onnx_model: model {self.path.name} output has shape "
-                             f"{list(out.shape)}; expected (N, K, h, w) or (N, h, w)")
+            raise ValueError(
+                f"imaging.onnx_model: model {self.path.name} output has shape "
+                f"{list(out.shape)}; expected (N, K, h, w) or (N, h, w)"
+            )
         k = out.shape[1]
         if self.output == "labels":
             # One channel of class indices, or K score channels (argmax); kidney class index
@@ -430,8 +508,10 @@ class OnnxSegmenter:
             lab = np.rint(out[0, 0]) if k == 1 else np.argmax(out[0], axis=0)
             return (lab == self.kidney_channel).astype(np.float32)
         if self.kidney_channel >= k:
-            raise ValueError(f"imaging.onnx_kidney_channel: {self.kidney_channel} but model "
-                             f"{self.path.name} outputs {k} channel(s)")
+            raise ValueError(
+                f"imaging.onnx_kidney_channel: {self.kidney_channel} but model "
+                f"{self.path.name} outputs {k} channel(s)"
+            )
         if self.output == "probability":
             return out[0, self.kidney_channel].astype(np.float32)
         if k == 1:
@@ -488,16 +568,19 @@ class OnnxSegmenter:
         outside the image's fan, when the card declares one)."""
         image = np.asarray(image)
         if image.shape != self.geometry.image_shape:
-            raise ValueError(f"OnnxSegmenter: image shape {image.shape} != probe image shape "
-                             f"{self.geometry.image_shape}")
+            raise ValueError(
+                f"OnnxSegmenter: image shape {image.shape} != probe image shape "
+                f"{self.geometry.image_shape}"
+            )
         out = self.session.run([self.output_name], {self.input_name: self.preprocess(image)})[0]
-        prob = self._kidney_map(out)     # a new array: zeroed outside the fan in place
+        prob = self._kidney_map(out)  # a new array: zeroed outside the fan in place
         if self.canvas is not None:
             np.copyto(prob, np.float32(0.0), where=self._canvas_outside(*prob.shape))
         return prob
 
-    def __call__(self, image: np.ndarray, prior_mask: np.ndarray | None = None,
-                 prior_age: float = math.inf) -> np.ndarray:
+    def __call__(
+        self, image: np.ndarray, prior_mask: np.ndarray | None = None, prior_age: float = math.inf
+    ) -> np.ndarray:
         """Bool kidney mask (rows, cols) of a uint8 grey image: without a prior, the largest
         candidate region; with the kidney mask last seen ``prior_age`` s ago, the region
         that continues it (:func:`~drake_rus.imaging.segment.tracked_component`, with the
@@ -505,9 +588,15 @@ class OnnxSegmenter:
         regions = self.candidates(image, largest_only=prior_mask is None)
         if prior_mask is None:
             return regions[0] if regions else np.zeros(self.geometry.image_shape, bool)
-        k = tracked_component(regions, prior_mask, prior_age, self.geometry,
-                              max_gap=self.track_gap, reach=self.track_reach,
-                              min_overlap=self.track_min_overlap)
+        k = tracked_component(
+            regions,
+            prior_mask,
+            prior_age,
+            self.geometry,
+            max_gap=self.track_gap,
+            reach=self.track_reach,
+            min_overlap=self.track_min_overlap,
+        )
         return regions[k] if k is not None else np.zeros(self.geometry.image_shape, bool)
 
     def candidates(self, image: np.ndarray, largest_only: bool = False) -> list[np.ndarray]:
@@ -525,11 +614,11 @@ class OnnxSegmenter:
             return []
         labels, n = ndimage.label(above[crop], structure=_EIGHT)
         r0, c0 = crop[0].start, crop[1].start
-        if n == 1:   # the one component is every pixel above the threshold
+        if n == 1:  # the one component is every pixel above the threshold
             mask = self._component_mask(prob, above[crop], crop)
             return [] if mask is None else [mask]
         sizes = np.bincount(labels.ravel())[1:]
-        order = np.argsort(-sizes, kind="stable")[:1 if largest_only else None]
+        order = np.argsort(-sizes, kind="stable")[: 1 if largest_only else None]
         boxes = ndimage.find_objects(labels)
         out = []
         for k in order:
@@ -541,15 +630,17 @@ class OnnxSegmenter:
                 out.append(mask)
         return out
 
-    def _region_mask(self, prob: np.ndarray, labels: np.ndarray, label: int,
-                     box: tuple[slice, slice]) -> np.ndarray | None:
+    def _region_mask(
+        self, prob: np.ndarray, labels: np.ndarray, label: int, box: tuple[slice, slice]
+    ) -> np.ndarray | None:
         """Bool image mask (rows, cols) of component ``label`` of ``labels`` (its bounding
         box ``box`` on the model's grid), or None when it vanishes in the mapping back
         (:meth:`_component_mask`)."""
         return self._component_mask(prob, labels[box] == label, box)
 
-    def _component_mask(self, prob: np.ndarray, component: np.ndarray,
-                        box: tuple[slice, slice]) -> np.ndarray | None:
+    def _component_mask(
+        self, prob: np.ndarray, component: np.ndarray, box: tuple[slice, slice]
+    ) -> np.ndarray | None:
         """Bool image mask (rows, cols) of one component of the thresholded probability,
         given as its pixels ``component`` (bool) within its bounding box ``box`` on the
         model's grid, or None when it vanishes in the mapping back.
@@ -565,7 +656,7 @@ class OnnxSegmenter:
         c0, c1 = max(box[1].start - 2, 0), min(box[1].stop + 2, w)
         window = (slice(r0, r1), slice(c0, c1))
         keep = np.zeros((r1 - r0, c1 - c0), bool)
-        keep[box[0].start - r0:box[0].stop - r0, box[1].start - c0:box[1].stop - c0] = component
+        keep[box[0].start - r0 : box[0].stop - r0, box[1].start - c0 : box[1].stop - c0] = component
         keep = fill_holes(keep)
         # The probability on the component and its 4-neighbours (binary_dilation's cross),
         # 0 elsewhere; at least just above the threshold on the component itself.
@@ -577,7 +668,7 @@ class OnnxSegmenter:
             mask = (self.to_image(full) > self.threshold) & self.geometry.fan_mask
             return mask if mask.any() else None
         fan = self._canvas_fan(h, w)[window]
-        if not fan.all():       # as _past_fan (nothing to do in the fan's interior)
+        if not fan.all():  # as _past_fan (nothing to do in the fan's interior)
             p = np.where(fan, p, _max_3x3(p))
         rows, cols, values = self.canvas.to_image_window(p, (r0, c0), (h, w))
         inside = values > self.threshold
@@ -625,7 +716,7 @@ def _max_3x3(p: np.ndarray) -> np.ndarray:
 
 
 _EIGHT = np.ones((3, 3), bool)
-_CROSS = ndimage.generate_binary_structure(2, 1)   # ndimage.label's default structure
+_CROSS = ndimage.generate_binary_structure(2, 1)  # ndimage.label's default structure
 
 
 def fill_holes(mask: np.ndarray) -> np.ndarray:

@@ -37,12 +37,13 @@ def check_pose(X: RigidTransform, name: str = "X_BP") -> RigidTransform:
 @dataclass(frozen=True)
 class ProbeGeometry:
     """Fan geometry and pixel grid of a curvilinear probe (all lengths in m, angles in rad)."""
-    radius: float            # radius of curvature of the array (m)
-    half_angle: float        # half the fan opening angle (rad)
-    depth: float             # imaging depth along each scan line (m)
-    height_px: int           # image rows (along z_P)
-    width_px: int            # image columns (along x_P)
-    elevation_width: float = 0.010   # elevational beam width (m)
+
+    radius: float  # radius of curvature of the array (m)
+    half_angle: float  # half the fan opening angle (rad)
+    depth: float  # imaging depth along each scan line (m)
+    height_px: int  # image rows (along z_P)
+    width_px: int  # image columns (along x_P)
+    elevation_width: float = 0.010  # elevational beam width (m)
 
     def __post_init__(self):
         for name in ("radius", "half_angle", "depth", "elevation_width"):
@@ -51,19 +52,22 @@ class ProbeGeometry:
                 raise ValueError(f"ProbeGeometry.{name}: expected a positive number, got {v}")
         if not self.half_angle < np.pi / 2:
             raise ValueError(
-                f"ProbeGeometry.half_angle: expected < 90 deg, got {np.degrees(self.half_angle)}")
+                f"ProbeGeometry.half_angle: expected < 90 deg, got {np.degrees(self.half_angle)}"
+            )
         for name in ("height_px", "width_px"):
             if int(getattr(self, name)) < 2:
                 raise ValueError(f"ProbeGeometry.{name}: expected at least 2 pixels")
 
     @classmethod
     def from_config(cls, config: ImagingConfig) -> "ProbeGeometry":
-        return cls(radius=config.probe_radius,
-                   half_angle=np.radians(config.field_of_view_deg) / 2,
-                   depth=config.depth,
-                   height_px=int(config.image_height_px),
-                   width_px=int(config.image_width_px),
-                   elevation_width=config.elevation_width)
+        return cls(
+            radius=config.probe_radius,
+            half_angle=np.radians(config.field_of_view_deg) / 2,
+            depth=config.depth,
+            height_px=int(config.image_height_px),
+            width_px=int(config.image_width_px),
+            elevation_width=config.elevation_width,
+        )
 
     # --- the pixel grid (cached: the geometry is immutable) ---------------------------------
     @cached_property
@@ -152,10 +156,13 @@ class ProbeGeometry:
 
     def polar_to_P(self, theta: np.ndarray, d: np.ndarray) -> np.ndarray:
         """Scan-line angle (rad) and depth (m) -> points (N, 3) in P."""
-        theta, d = np.broadcast_arrays(np.asarray(theta, float).ravel(), np.asarray(d, float).ravel())
+        theta, d = np.broadcast_arrays(
+            np.asarray(theta, float).ravel(), np.asarray(d, float).ravel()
+        )
         r = self.radius + d
-        return np.stack([r * np.sin(theta), np.zeros_like(r), r * np.cos(theta) - self.radius],
-                        axis=1)
+        return np.stack(
+            [r * np.sin(theta), np.zeros_like(r), r * np.cos(theta) - self.radius], axis=1
+        )
 
     def in_fan(self, p_P: np.ndarray) -> np.ndarray:
         """Whether points (N, 3) in P lie inside the fan (in-plane test)."""
@@ -172,7 +179,7 @@ class ProbeGeometry:
 
     @cached_property
     def _all_uv(self) -> np.ndarray:
-        v, u = np.mgrid[0:self.height_px, 0:self.width_px]
+        v, u = np.mgrid[0 : self.height_px, 0 : self.width_px]
         return np.stack([u.ravel(), v.ravel()], axis=1).astype(float)
 
     @cached_property

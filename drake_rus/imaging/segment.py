@@ -35,9 +35,9 @@ def segment_oracle(label_image: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True)
 class MaskReadout:
     visible: bool
-    centroid: float          # c_msk in [0, 1] across the image width; 0.5 when not visible
-    area: float              # m^2
-    boundary: np.ndarray     # (N, 2) boundary pixels (u, v)
+    centroid: float  # c_msk in [0, 1] across the image width; 0.5 when not visible
+    area: float  # m^2
+    boundary: np.ndarray  # (N, 2) boundary pixels (u, v)
 
 
 def mask_centroid(mask: np.ndarray) -> float:
@@ -91,8 +91,10 @@ def boundary_pixels(mask: np.ndarray) -> np.ndarray:
 
 
 def _grow(box: tuple[slice, slice], margin: int) -> tuple[slice, slice]:
-    return (slice(max(box[0].start - margin, 0), box[0].stop + margin),
-            slice(max(box[1].start - margin, 0), box[1].stop + margin))
+    return (
+        slice(max(box[0].start - margin, 0), box[0].stop + margin),
+        slice(max(box[1].start - margin, 0), box[1].stop + margin),
+    )
 
 
 def _boundary_in_box(mask: np.ndarray, box: tuple[slice, slice] | None) -> np.ndarray:
@@ -144,7 +146,7 @@ def iou(a: np.ndarray, b: np.ndarray) -> float:
 def _block_mean(image: np.ndarray, f: int) -> np.ndarray:
     h, w = image.shape
     h2, w2 = h // f, w // f
-    return image[:h2 * f, :w2 * f].reshape(h2, f, w2, f).mean(axis=(1, 3), dtype=np.float32)
+    return image[: h2 * f, : w2 * f].reshape(h2, f, w2, f).mean(axis=(1, 3), dtype=np.float32)
 
 
 _FAN_CACHE: dict = {}
@@ -164,10 +166,17 @@ def _half_res_fan(geometry: ProbeGeometry) -> tuple[np.ndarray, np.ndarray]:
     return hit
 
 
-def segment_classical(us_image: np.ndarray, geometry: ProbeGeometry,
-                      prev_mask: np.ndarray | None = None, min_area: float = 1.0e-4,
-                      strong: float = 0.9, weak: float = 1.0, grow_m: float = 0.008,
-                      reject_edge: bool = False, floor: float = 0.45) -> np.ndarray:
+def segment_classical(
+    us_image: np.ndarray,
+    geometry: ProbeGeometry,
+    prev_mask: np.ndarray | None = None,
+    min_area: float = 1.0e-4,
+    strong: float = 0.9,
+    weak: float = 1.0,
+    grow_m: float = 0.008,
+    reject_edge: bool = False,
+    floor: float = 0.45,
+) -> np.ndarray:
     """Kidney mask (bool, rows x cols) of an emulated/real B-mode image, no learning.
 
     1. 2x2 block mean then a 5x5 box mean: despeckle at half resolution;
@@ -184,8 +193,10 @@ def segment_classical(us_image: np.ndarray, geometry: ProbeGeometry,
     """
     img = np.asarray(us_image)
     if img.shape != geometry.image_shape:
-        raise ValueError(f"segment_classical: image shape {img.shape} != probe image shape "
-                         f"{geometry.image_shape}")
+        raise ValueError(
+            f"segment_classical: image shape {img.shape} != probe image shape "
+            f"{geometry.image_shape}"
+        )
     f = 2
     small = _block_mean(img.astype(np.float32), f)
     fan, edge, fan_any, fan_weight = _half_res_fan(geometry)
@@ -236,7 +247,7 @@ def segment_classical(us_image: np.ndarray, geometry: ProbeGeometry,
             inside_mean = small[r0:r1, c0:c1][comp_i].mean()
             ring_vals = small[r0:r1, c0:c1][ring & fan[r0:r1, c0:c1]]
             if len(ring_vals) < 0.5 * ring.sum():
-                continue          # mostly outside the fan: an edge artefact
+                continue  # mostly outside the fan: an edge artefact
             contrast = max(ring_vals.mean() - inside_mean, 0.0) / ref
             box = (sl[0].stop - sl[0].start) * (sl[1].stop - sl[1].start)
             score[i] = np.sqrt(areas[i]) * (comp_i.sum() / box) * contrast
@@ -252,11 +263,11 @@ def segment_classical(us_image: np.ndarray, geometry: ProbeGeometry,
     comp = ndimage.binary_fill_holes(comp)
     full = np.repeat(np.repeat(comp, f, axis=0), f, axis=1)
     out = np.zeros(geometry.image_shape, bool)
-    out[:full.shape[0], :full.shape[1]] = full
+    out[: full.shape[0], : full.shape[1]] = full
     return out & geometry.fan_mask
 
 
-_NEAR_CACHE: list = []   # [(prior array, geometry, reach, near)]: the last one computed
+_NEAR_CACHE: list = []  # [(prior array, geometry, reach, near)]: the last one computed
 
 
 def near_region(prior_mask: np.ndarray, geometry: ProbeGeometry, reach: float) -> np.ndarray:
@@ -272,10 +283,14 @@ def near_region(prior_mask: np.ndarray, geometry: ProbeGeometry, reach: float) -
     bbox = mask_box(prior)
     if bbox is not None:
         dr, dc = int(np.ceil(reach / geometry.dz)) + 1, int(np.ceil(reach / geometry.dx)) + 1
-        box = (slice(max(bbox[0].start - dr, 0), bbox[0].stop + dr),
-               slice(max(bbox[1].start - dc, 0), bbox[1].stop + dc))
-        near[box] = ndimage.distance_transform_edt(
-            ~prior[box], sampling=(geometry.dz, geometry.dx)) <= reach
+        box = (
+            slice(max(bbox[0].start - dr, 0), bbox[0].stop + dr),
+            slice(max(bbox[1].start - dc, 0), bbox[1].stop + dc),
+        )
+        near[box] = (
+            ndimage.distance_transform_edt(~prior[box], sampling=(geometry.dz, geometry.dx))
+            <= reach
+        )
     near.flags.writeable = False
     # The mask itself is held, so its id cannot be reused by another array while cached;
     # a caller that mutates it in place must not expect a fresh result (masks are treated
@@ -284,9 +299,16 @@ def near_region(prior_mask: np.ndarray, geometry: ProbeGeometry, reach: float) -
     return near
 
 
-def tracked_component(components: list[np.ndarray], prior_mask: np.ndarray | None,
-                      prior_age: float, geometry: ProbeGeometry, *, max_gap: float,
-                      reach: float, min_overlap: float = 0.5) -> int | None:
+def tracked_component(
+    components: list[np.ndarray],
+    prior_mask: np.ndarray | None,
+    prior_age: float,
+    geometry: ProbeGeometry,
+    *,
+    max_gap: float,
+    reach: float,
+    min_overlap: float = 0.5,
+) -> int | None:
     """Which candidate region of a frame is the kidney (index into ``components``, None: none).
 
     components: bool masks (rows, cols) of the frame's candidate regions; prior_mask: the
@@ -309,16 +331,22 @@ def tracked_component(components: list[np.ndarray], prior_mask: np.ndarray | Non
     if prior_area:
         areas = [int(np.count_nonzero(c)) for c in components]
         cover = [int(np.count_nonzero(c & prior)) for c in components]
-        if len(components) == 1 and cover[0] and (cover[0] >= min_overlap * areas[0]
-                                                  or cover[0] >= min_overlap * prior_area):
+        if (
+            len(components) == 1
+            and cover[0]
+            and (cover[0] >= min_overlap * areas[0] or cover[0] >= min_overlap * prior_area)
+        ):
             # It continues the last mask on its own (the mask lies within its own reach):
             # no distance transform needed.
             return 0
         near = near_region(prior_mask, geometry, reach)
         overlap = [int(np.count_nonzero(c & near)) for c in components]
-        ok = [k for k in range(len(components))
-              if overlap[k] > 0 and (overlap[k] >= min_overlap * areas[k]
-                                     or cover[k] >= min_overlap * prior_area)]
+        ok = [
+            k
+            for k in range(len(components))
+            if overlap[k] > 0
+            and (overlap[k] >= min_overlap * areas[k] or cover[k] >= min_overlap * prior_area)
+        ]
         return max(ok, key=lambda k: overlap[k]) if ok else None
     return int(np.argmax([int(np.count_nonzero(c)) for c in components]))
 
@@ -328,6 +356,7 @@ class KidneyTrack:
     """The kidney followed across frames: its last visible mask (rows, cols), the time (s)
     of that frame, and since when (s) it has been followed without a jump (a region that
     did not continue the previous one starts a new track)."""
+
     mask: np.ndarray | None = None
     time: float = -math.inf
     since: float = math.inf
@@ -336,11 +365,10 @@ class KidneyTrack:
         return self
 
     def __deepcopy__(self, memo):
-        return self   # immutable
+        return self  # immutable
 
 
-def track_prior(track: KidneyTrack, t: float, confirm: float
-                ) -> tuple[np.ndarray | None, float]:
+def track_prior(track: KidneyTrack, t: float, confirm: float) -> tuple[np.ndarray | None, float]:
     """(prior mask, its age in s) to follow at time t, or (None, inf) while the track is not
     established: followed for less than ``confirm`` s (the first sights while the probe lands
     may be a region that is not the kidney; following it would hide the kidney)."""
@@ -349,16 +377,34 @@ def track_prior(track: KidneyTrack, t: float, confirm: float
     return track.mask, t - track.time
 
 
-def track_update(track: KidneyTrack, mask: np.ndarray, visible: bool, t: float,
-                 geometry: ProbeGeometry, *, max_gap: float, reach: float,
-                 min_overlap: float = 0.5) -> KidneyTrack:
+def track_update(
+    track: KidneyTrack,
+    mask: np.ndarray,
+    visible: bool,
+    t: float,
+    geometry: ProbeGeometry,
+    *,
+    max_gap: float,
+    reach: float,
+    min_overlap: float = 0.5,
+) -> KidneyTrack:
     """The track after a frame at time t whose kidney mask is ``mask``: unchanged when the
     kidney is not visible; else this mask, continuing the track when it continues the last
     mask within ``max_gap`` s (:func:`tracked_component`, ``reach``, ``min_overlap``), a new
     track otherwise."""
     if not visible:
         return track
-    continues = track.mask is not None and tracked_component(
-        [np.asarray(mask, bool)], track.mask, t - track.time, geometry, max_gap=max_gap,
-        reach=reach, min_overlap=min_overlap) == 0
+    continues = (
+        track.mask is not None
+        and tracked_component(
+            [np.asarray(mask, bool)],
+            track.mask,
+            t - track.time,
+            geometry,
+            max_gap=max_gap,
+            reach=reach,
+            min_overlap=min_overlap,
+        )
+        == 0
+    )
     return KidneyTrack(np.asarray(mask, bool), float(t), track.since if continues else float(t))

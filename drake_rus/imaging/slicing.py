@@ -14,6 +14,7 @@ from drake_rus.anatomy.labels import Label, LabelVolume
 from drake_rus.imaging import kernels
 from drake_rus.imaging.probe import ProbeGeometry, check_pose
 
+
 def elevation_offsets(width: float, planes: int) -> np.ndarray:
     """y_P offsets (m) of ``planes`` parallel planes spread evenly across ``width`` (centred)."""
     if planes <= 1:
@@ -21,8 +22,9 @@ def elevation_offsets(width: float, planes: int) -> np.ndarray:
     return np.linspace(-width / 2, width / 2, planes)
 
 
-def sample_labels(volume: LabelVolume, p_V: np.ndarray, outside: int = int(Label.OUTSIDE)
-                  ) -> np.ndarray:
+def sample_labels(
+    volume: LabelVolume, p_V: np.ndarray, outside: int = int(Label.OUTSIDE)
+) -> np.ndarray:
     """Nearest-voxel labels at points ``p_V`` (N, 3) given in the grid frame V (m)."""
     f = np.asarray(p_V, dtype=float) / volume.voxel_size
     return _lookup(volume.labels, f, outside)
@@ -51,8 +53,9 @@ def padded_labels(labels: np.ndarray, outside: int = int(Label.OUTSIDE)) -> np.n
     return padded
 
 
-def _lookup_padded(padded: np.ndarray, fi: np.ndarray, fj: np.ndarray, fk: np.ndarray,
-                   shifted: bool = False) -> np.ndarray:
+def _lookup_padded(
+    padded: np.ndarray, fi: np.ndarray, fj: np.ndarray, fk: np.ndarray, shifted: bool = False
+) -> np.ndarray:
     """Nearest labels at voxel coordinates (fi, fj, fk) of the unpadded grid.
 
     Index in the padded grid = round(f) + 1 = trunc(f + 1.5) for f > -1.5; any f below
@@ -61,7 +64,7 @@ def _lookup_padded(padded: np.ndarray, fi: np.ndarray, fj: np.ndarray, fk: np.nd
     added the 1.5.
     """
     m0, m1, m2 = padded.shape
-    itype = np.int32 if padded.size < 2 ** 31 else np.intp
+    itype = np.int32 if padded.size < 2**31 else np.intp
     if shifted:
         i, j, k = fi.astype(itype), fj.astype(itype), fk.astype(itype)
     else:
@@ -78,9 +81,14 @@ def _lookup_padded(padded: np.ndarray, fi: np.ndarray, fj: np.ndarray, fk: np.nd
     return np.take(padded.reshape(-1), i)
 
 
-def slice_volume(geometry: ProbeGeometry, volume: LabelVolume, X_BV: RigidTransform,
-                 X_BP: RigidTransform, planes: int = 1, combine: str = "majority"
-                 ) -> np.ndarray:
+def slice_volume(
+    geometry: ProbeGeometry,
+    volume: LabelVolume,
+    X_BV: RigidTransform,
+    X_BP: RigidTransform,
+    planes: int = 1,
+    combine: str = "majority",
+) -> np.ndarray:
     """Label image (rows, cols) uint8 of ``volume`` cut by the probe's image plane.
 
     ``X_BV``: pose of the volume's grid frame V in the base B; ``X_BP``: probe tip pose in B.
@@ -103,13 +111,13 @@ def slice_volume(geometry: ProbeGeometry, volume: LabelVolume, X_BV: RigidTransf
     shape = np.array(padded.shape, np.int64)
     offsets = elevation_offsets(geometry.elevation_width, planes)
     image = np.zeros(geometry.image_shape, dtype=np.uint8)
-    index = np.empty(px.size, np.int32 if padded.size < 2 ** 31 else np.int64)
+    index = np.empty(px.size, np.int32 if padded.size < 2**31 else np.int64)
 
     def plane(y: float, out: np.ndarray, dest: np.ndarray) -> None:
         """The labels of plane y_P = y into ``out[dest]`` (fan pixels in row-major order):
         :func:`kernels.slice_plane`, per fan pixel ``f = x A[a, 0] + (z A[a, 2] + c[a])``,
         the bracket once per row (float32)."""
-        c = b + np.float32(y) * A[:, 1] + np.float32(1.5)   # + 1.5: see _lookup_padded
+        c = b + np.float32(y) * A[:, 1] + np.float32(1.5)  # + 1.5: see _lookup_padded
         kernels.slice_plane(px, z_rows, per_row, A, c, shape, flat, dest, out, index)
 
     if len(offsets) == 1:
@@ -125,15 +133,16 @@ def slice_volume(geometry: ProbeGeometry, volume: LabelVolume, X_BV: RigidTransf
     else:
         counts = np.zeros((int(stack.max()) + 1, n), dtype=np.float32)
         for row in stack:
-            counts[row, every] += 1.0   # (row[c], c) pairs are unique within a plane
-        counts[stack[len(offsets) // 2], every] += 0.5   # tie-break: central plane
+            counts[row, every] += 1.0  # (row[c], c) pairs are unique within a plane
+        counts[stack[len(offsets) // 2], every] += 0.5  # tie-break: central plane
         values = counts.argmax(axis=0).astype(np.uint8)
-    image[geometry.fan_mask] = values     # the fan pixels in row-major order
+    image[geometry.fan_mask] = values  # the fan pixels in row-major order
     return image
 
 
-def warm_up(geometry: ProbeGeometry, volume: LabelVolume, planes: int = 1,
-            combine: str = "majority") -> None:
+def warm_up(
+    geometry: ProbeGeometry, volume: LabelVolume, planes: int = 1, combine: str = "majority"
+) -> None:
     """Pad ``volume`` and compile (or load) the slicing kernel for ``geometry``'s argument
     types: call at construction, not inside a simulation step."""
     slice_volume(geometry, volume, RigidTransform(), RigidTransform(), planes, combine)

@@ -28,8 +28,14 @@ from drake_rus.imaging.emulator import warm_up as warm_emulator
 from drake_rus.imaging.frames import BoundaryPixels, PointCloud, UsFrame
 from drake_rus.imaging.onnx_backend import OnnxSegmenter
 from drake_rus.imaging.probe import ProbeGeometry, check_pose
-from drake_rus.imaging.segment import (KidneyTrack, read_mask, segment_classical,
-                                       segment_oracle, track_prior, track_update)
+from drake_rus.imaging.segment import (
+    KidneyTrack,
+    read_mask,
+    segment_classical,
+    segment_oracle,
+    track_prior,
+    track_update,
+)
 from drake_rus.imaging.slicing import slice_volume
 from drake_rus.imaging.slicing import warm_up as warm_slicer
 
@@ -51,12 +57,14 @@ class SliceSensor(LeafSystem):
     breathing or shifting patient moves under the probe.
     """
 
-    def __init__(self, config: ImagingConfig, volume: LabelVolume, X_BV: RigidTransform,
-                 motion=None):
+    def __init__(
+        self, config: ImagingConfig, volume: LabelVolume, X_BV: RigidTransform, motion=None
+    ):
         super().__init__()
         if not isinstance(volume, LabelVolume):
-            raise ValueError(f"SliceSensor: volume must be a LabelVolume, got "
-                             f"{type(volume).__name__}")
+            raise ValueError(
+                f"SliceSensor: volume must be a LabelVolume, got {type(volume).__name__}"
+            )
         self._geometry = ProbeGeometry.from_config(config)
         self._volume = volume
         self._X_BV = check_pose(X_BV, "SliceSensor X_BV (pose of the volume grid in B)")
@@ -66,15 +74,19 @@ class SliceSensor(LeafSystem):
         # The padded volume and the compiled kernel, now, not in the first frame.
         warm_slicer(self._geometry, volume, self._planes, self._combine)
         self._X_BP_port = self.DeclareAbstractInputPort(
-            "X_BP", AbstractValue.Make(RigidTransform()))
+            "X_BP", AbstractValue.Make(RigidTransform())
+        )
         empty = UsFrame(np.zeros(self._geometry.image_shape, np.uint8))
         self._state_index = self.DeclareAbstractState(AbstractValue.Make(empty))
         period = 1.0 / config.frame_rate_hz
         self.DeclareInitializationUnrestrictedUpdateEvent(self._acquire)
         self.DeclarePeriodicUnrestrictedUpdateEvent(period, period, self._acquire)
         self.DeclareAbstractOutputPort(
-            "label_image", lambda: AbstractValue.Make(empty), self._calc_label_image,
-            prerequisites_of_calc={self.abstract_state_ticket(self._state_index)})
+            "label_image",
+            lambda: AbstractValue.Make(empty),
+            self._calc_label_image,
+            prerequisites_of_calc={self.abstract_state_ticket(self._state_index)},
+        )
 
     @property
     def geometry(self) -> ProbeGeometry:
@@ -92,10 +104,20 @@ class SliceSensor(LeafSystem):
         X_BP = self._X_BP_port.Eval(context)
         check_pose(X_BP, f"SliceSensor input 'X_BP' at t = {context.get_time():.4f} s")
         previous = context.get_abstract_state(self._state_index).get_value()
-        image = slice_volume(self._geometry, self._volume, self.X_BV(context.get_time()), X_BP,
-                             self._planes, self._combine)
-        frame = UsFrame(image=image, time=context.get_time(), X_BP=RigidTransform(X_BP),
-                        frame_index=previous.frame_index + 1)
+        image = slice_volume(
+            self._geometry,
+            self._volume,
+            self.X_BV(context.get_time()),
+            X_BP,
+            self._planes,
+            self._combine,
+        )
+        frame = UsFrame(
+            image=image,
+            time=context.get_time(),
+            X_BP=RigidTransform(X_BP),
+            frame_index=previous.frame_index + 1,
+        )
         state.get_mutable_abstract_state(self._state_index).set_value(frame)
         return EventStatus.Succeeded()
 
@@ -121,13 +143,17 @@ class UltrasoundEmulator(LeafSystem):
         # The frame's emulated image, kept (in the Context) while the input is the same frame.
         self._frame_cache = self.DeclareCacheEntry(
             description="emulated frame (frame key, UsFrame)",
-            value_producer=ValueProducer(allocate=lambda: AbstractValue.Make((None, empty)),
-                                         calc=self._emulate),
-            prerequisites_of_calc={self.input_port_ticket(self._in.get_index())})
+            value_producer=ValueProducer(
+                allocate=lambda: AbstractValue.Make((None, empty)), calc=self._emulate
+            ),
+            prerequisites_of_calc={self.input_port_ticket(self._in.get_index())},
+        )
         self.DeclareAbstractOutputPort(
-            "us_image", lambda: AbstractValue.Make(empty),
+            "us_image",
+            lambda: AbstractValue.Make(empty),
             lambda c, o: o.set_value(self._frame_cache.Eval(c)[1]),
-            prerequisites_of_calc={self._frame_cache.ticket()})
+            prerequisites_of_calc={self._frame_cache.ticket()},
+        )
         # Build the scan-line tables and compile (or load) the kernels now, not inside the
         # first simulation step.
         warm_emulator(self._model, self._seed)
@@ -138,11 +164,17 @@ class UltrasoundEmulator(LeafSystem):
             value.set_value((None, self._empty))
             return
         key = _frame_key(frame)
-        if value.get_value()[0] == key:      # the same frame re-evaluated upstream: keep it
+        if value.get_value()[0] == key:  # the same frame re-evaluated upstream: keep it
             return
         image = emulate(frame.image, self._model, self._seed, frame.frame_index)
-        value.set_value((key, UsFrame(image=image, time=frame.time, X_BP=frame.X_BP,
-                                      frame_index=frame.frame_index)))
+        value.set_value(
+            (
+                key,
+                UsFrame(
+                    image=image, time=frame.time, X_BP=frame.X_BP, frame_index=frame.frame_index
+                ),
+            )
+        )
 
 
 def make_segmenter_backend(config: ImagingConfig, geometry: ProbeGeometry):
@@ -155,13 +187,15 @@ def make_segmenter_backend(config: ImagingConfig, geometry: ProbeGeometry):
         return lambda us, labels, prev, age=math.inf: segment_oracle(labels)
     if backend == "classical":
         min_area = config.min_kidney_area
-        return lambda us, labels, prev, age=math.inf: segment_classical(us, geometry, prev,
-                                                                         min_area)
+        return lambda us, labels, prev, age=math.inf: segment_classical(
+            us, geometry, prev, min_area
+        )
     if backend == "onnx":
         model = OnnxSegmenter.from_config(config, geometry)
         return lambda us, labels, prev, age=math.inf: model(us, prev, age)
-    raise ValueError(f"imaging.segmenter: unknown backend {backend!r}; expected 'oracle', "
-                     f"'classical' or 'onnx'")
+    raise ValueError(
+        f"imaging.segmenter: unknown backend {backend!r}; expected 'oracle', 'classical' or 'onnx'"
+    )
 
 
 class Segmenter(LeafSystem):
@@ -197,11 +231,13 @@ class Segmenter(LeafSystem):
         # The classical prior is the previous frame's mask; the onnx backend follows a
         # KidneyTrack (the last visible kidney, kept while the kidney is not seen).
         self._follows = self._backend_name == "onnx"
-        self._track_config = dict(max_gap=config.track_gap, reach=config.track_reach,
-                                  min_overlap=config.track_min_overlap)
+        self._track_config = dict(
+            max_gap=config.track_gap, reach=config.track_reach, min_overlap=config.track_min_overlap
+        )
         self._track_confirm = config.track_confirm
-        self._prior_index = self.DeclareAbstractState(AbstractValue.Make(
-            KidneyTrack() if self._follows else self._empty_mask))
+        self._prior_index = self.DeclareAbstractState(
+            AbstractValue.Make(KidneyTrack() if self._follows else self._empty_mask)
+        )
         tickets = {self.input_port_ticket(self._source.get_index())}
         if self._uses_prior:
             tickets.add(self.abstract_state_ticket(self._prior_index))
@@ -211,22 +247,36 @@ class Segmenter(LeafSystem):
         # frame is the same (see _segment); every output reads it.
         self._result_cache = self.DeclareCacheEntry(
             description="segmentation of the current frame (key, result)",
-            value_producer=ValueProducer(allocate=lambda: AbstractValue.Make((None, None)),
-                                         calc=self._segment),
-            prerequisites_of_calc=tickets)
+            value_producer=ValueProducer(
+                allocate=lambda: AbstractValue.Make((None, None)), calc=self._segment
+            ),
+            prerequisites_of_calc=tickets,
+        )
         result = {self._result_cache.ticket()}
         self.DeclareAbstractOutputPort(
-            "kidney_mask", lambda: AbstractValue.Make(self._empty_mask),
-            lambda c, o: o.set_value(self._result(c)[0]), prerequisites_of_calc=result)
+            "kidney_mask",
+            lambda: AbstractValue.Make(self._empty_mask),
+            lambda c, o: o.set_value(self._result(c)[0]),
+            prerequisites_of_calc=result,
+        )
         self.DeclareVectorOutputPort(
-            "kidney_visible", 1, lambda c, o: o.SetAtIndex(0, float(self._result(c)[1].visible)),
-            prerequisites_of_calc=result)
+            "kidney_visible",
+            1,
+            lambda c, o: o.SetAtIndex(0, float(self._result(c)[1].visible)),
+            prerequisites_of_calc=result,
+        )
         self.DeclareVectorOutputPort(
-            "mask_centroid", 1, lambda c, o: o.SetAtIndex(0, self._result(c)[1].centroid),
-            prerequisites_of_calc=result)
+            "mask_centroid",
+            1,
+            lambda c, o: o.SetAtIndex(0, self._result(c)[1].centroid),
+            prerequisites_of_calc=result,
+        )
         self.DeclareAbstractOutputPort(
-            "boundary_pixels", lambda: AbstractValue.Make(BoundaryPixels(np.zeros((0, 2)))),
-            lambda c, o: o.set_value(self._result(c)[2]), prerequisites_of_calc=result)
+            "boundary_pixels",
+            lambda: AbstractValue.Make(BoundaryPixels(np.zeros((0, 2)))),
+            lambda c, o: o.set_value(self._result(c)[2]),
+            prerequisites_of_calc=result,
+        )
 
     @property
     def geometry(self) -> ProbeGeometry:
@@ -235,40 +285,58 @@ class Segmenter(LeafSystem):
     def _result(self, context):
         """(mask UsFrame, MaskReadout, BoundaryPixels) of the current frame."""
         if not self._source.HasValue(context):
-            raise RuntimeError(f"Segmenter ({self._backend_name}): input port "
-                               f"'{self._source.get_name()}' is not connected")
+            raise RuntimeError(
+                f"Segmenter ({self._backend_name}): input port "
+                f"'{self._source.get_name()}' is not connected"
+            )
         return self._result_cache.Eval(context)[1]
 
     def _segment(self, context, value):
         memo_key, _ = value.get_value()
         if not self._source.HasValue(context):
-            raise RuntimeError(f"Segmenter ({self._backend_name}): input port "
-                               f"'{self._source.get_name()}' is not connected")
+            raise RuntimeError(
+                f"Segmenter ({self._backend_name}): input port "
+                f"'{self._source.get_name()}' is not connected"
+            )
         frame = self._source.Eval(context)
-        prior = (context.get_abstract_state(self._prior_index).get_value()
-                 if self._uses_prior else self._empty_mask)
+        prior = (
+            context.get_abstract_state(self._prior_index).get_value()
+            if self._uses_prior
+            else self._empty_mask
+        )
         frame_key = _frame_key(frame)
         # A prior taken from this very frame (the update event after it ran) must not change
         # the frame's segmentation: the controller and the point cloud see one result, and
         # the frame is segmented once.
-        prior_from_frame = (prior.time >= frame.time if self._follows
-                            else prior.valid and prior.frame_index >= frame.frame_index)
-        if (memo_key is not None and memo_key[0] == frame_key
-                and frame.frame_index >= 0 and prior_from_frame):
+        prior_from_frame = (
+            prior.time >= frame.time
+            if self._follows
+            else prior.valid and prior.frame_index >= frame.frame_index
+        )
+        if (
+            memo_key is not None
+            and memo_key[0] == frame_key
+            and frame.frame_index >= 0
+            and prior_from_frame
+        ):
             return
         key = (frame_key, id(prior))
         if key == memo_key:
             return
         if not frame.valid:
             readout = read_mask(self._empty_mask.image, self._geometry, self._min_area)
-            result = (self._empty_mask, readout,
-                      BoundaryPixels(np.zeros((0, 2)), frame.time, frame.X_BP, -1))
+            result = (
+                self._empty_mask,
+                readout,
+                BoundaryPixels(np.zeros((0, 2)), frame.time, frame.X_BP, -1),
+            )
         else:
             if frame.image.shape != self._geometry.image_shape:
                 raise ValueError(
                     f"Segmenter: input '{self._source.get_name()}' has shape "
                     f"{frame.image.shape}, expected {self._geometry.image_shape} (imaging.image_"
-                    f"height_px x image_width_px)")
+                    f"height_px x image_width_px)"
+                )
             us = frame.image if self._source is self._us else None
             labels = frame.image if self._source is self._labels else None
             if self._follows:
@@ -276,13 +344,14 @@ class Segmenter(LeafSystem):
             else:
                 prev = prior.image if prior.valid else None
                 age = frame.time - prior.time if prior.valid else math.inf
-            mask = (np.asarray(self._backend(us, labels, prev, age), bool)
-                    & self._geometry.fan_mask)
+            mask = np.asarray(self._backend(us, labels, prev, age), bool) & self._geometry.fan_mask
             readout = read_mask(mask, self._geometry, self._min_area)
             mask_frame = UsFrame(mask, frame.time, frame.X_BP, frame.frame_index)
-            result = (mask_frame, readout,
-                      BoundaryPixels(readout.boundary, frame.time, frame.X_BP,
-                                     frame.frame_index))
+            result = (
+                mask_frame,
+                readout,
+                BoundaryPixels(readout.boundary, frame.time, frame.X_BP, frame.frame_index),
+            )
         value.set_value((key, result))
 
     def _keep_prior(self, context, state):
@@ -293,8 +362,14 @@ class Segmenter(LeafSystem):
             return EventStatus.DidNothing()
         if self._follows:
             track = context.get_abstract_state(self._prior_index).get_value()
-            new = track_update(track, mask_frame.image, readout.visible, mask_frame.time,
-                               self._geometry, **self._track_config)
+            new = track_update(
+                track,
+                mask_frame.image,
+                readout.visible,
+                mask_frame.time,
+                self._geometry,
+                **self._track_config,
+            )
             if new is not track:
                 state.get_mutable_abstract_state(self._prior_index).set_value(new)
         else:
@@ -318,7 +393,8 @@ class PointCloudAccumulator(LeafSystem):
         self._geometry = ProbeGeometry.from_config(config)
         self._max_points = int(max_points_per_frame)
         self._boundary = self.DeclareAbstractInputPort(
-            "boundary_pixels", AbstractValue.Make(BoundaryPixels(np.zeros((0, 2)))))
+            "boundary_pixels", AbstractValue.Make(BoundaryPixels(np.zeros((0, 2))))
+        )
         self._enable = self.DeclareVectorInputPort("enable", 1)
         self._reset = self.DeclareVectorInputPort("reset", 1)
         self._cloud_index = self.DeclareAbstractState(AbstractValue.Make(PointCloud()))
@@ -327,14 +403,19 @@ class PointCloudAccumulator(LeafSystem):
         period = 1.0 / config.frame_rate_hz
         self.DeclarePeriodicUnrestrictedUpdateEvent(period, 0.5 * period, self._update)
         self.DeclareAbstractOutputPort(
-            "point_cloud", lambda: AbstractValue.Make(PointCloud()),
+            "point_cloud",
+            lambda: AbstractValue.Make(PointCloud()),
             lambda c, o: o.set_value(c.get_abstract_state(self._cloud_index).get_value()),
-            prerequisites_of_calc={self.abstract_state_ticket(self._cloud_index)})
+            prerequisites_of_calc={self.abstract_state_ticket(self._cloud_index)},
+        )
         self.DeclareVectorOutputPort(
-            "frame_count", 1,
+            "frame_count",
+            1,
             lambda c, o: o.SetAtIndex(
-                0, c.get_abstract_state(self._cloud_index).get_value().frame_count),
-            prerequisites_of_calc={self.abstract_state_ticket(self._cloud_index)})
+                0, c.get_abstract_state(self._cloud_index).get_value().frame_count
+            ),
+            prerequisites_of_calc={self.abstract_state_ticket(self._cloud_index)},
+        )
 
     def _flag(self, port, context, default: bool) -> bool:
         if not port.HasValue(context):
@@ -353,6 +434,7 @@ class PointCloudAccumulator(LeafSystem):
             return EventStatus.DidNothing()
         cloud = context.get_abstract_state(self._cloud_index).get_value()
         state.get_mutable_abstract_state(self._cloud_index).set_value(
-            accumulate(cloud, boundary, self._geometry, self._max_points))
+            accumulate(cloud, boundary, self._geometry, self._max_points)
+        )
         state.get_mutable_abstract_state(self._last_index).set_value(boundary.frame_index)
         return EventStatus.Succeeded()

@@ -60,20 +60,21 @@ from scipy.spatial import cKDTree
 @dataclasses.dataclass
 class IcpResult:
     """Registration result and diagnostics."""
-    X_BK: RigidTransform           # estimated kidney canonical frame in the base (T_k^b)
+
+    X_BK: RigidTransform  # estimated kidney canonical frame in the base (T_k^b)
     iterations: int
-    converged: bool                # stopped on the error-change or step test (not a cycle,
-                                   # not the cap)
-    rms_residual: float            # RMS plane-to-plane residual at the end (m)
-    inlier_fraction: float         # points within ``inlier_distance`` of their match
-    covariance: np.ndarray         # 6x6 covariance of [dtheta (rad), dt (m)] in K
-    errors: np.ndarray             # mean squared projection error per iteration (m^2)
+    converged: bool  # stopped on the error-change or step test (not a cycle,
+    # not the cap)
+    rms_residual: float  # RMS plane-to-plane residual at the end (m)
+    inlier_fraction: float  # points within ``inlier_distance`` of their match
+    covariance: np.ndarray  # 6x6 covariance of [dtheta (rad), dt (m)] in K
+    errors: np.ndarray  # mean squared projection error per iteration (m^2)
     max_rotation_steps: np.ndarray  # max |dtheta component| applied per iteration (rad)
     shape_coefficients: np.ndarray | None = None  # deformable fit: mode weights b
     # Why the iteration ended: "converged" (error change or step below tolerance), "cycle"
     # (the iterates returned to an earlier one: a limit cycle) or "iteration cap".
     stop_reason: str = ""
-    cycle_period: int = 0               # iterations per cycle (0: no cycle)
+    cycle_period: int = 0  # iterations per cycle (0: no cycle)
     # Largest distance between the returned pose and the other members of the cycle:
     # kidney centre (m) and rotation (rad); 0 without a cycle.
     cycle_translation_spread: float = 0.0
@@ -96,8 +97,9 @@ class NearestPointGrid:
         self.tree = cKDTree(self.points)
         self.spacing = float(spacing)
         self.origin = self.points.min(axis=0) - margin
-        self.shape = np.ceil((self.points.max(axis=0) + margin - self.origin)
-                             / spacing).astype(int) + 1
+        self.shape = (
+            np.ceil((self.points.max(axis=0) + margin - self.origin) / spacing).astype(int) + 1
+        )
         axes = [self.origin[k] + spacing * np.arange(self.shape[k]) for k in range(3)]
         centres = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
         _, index = self.tree.query(centres, workers=-1)
@@ -174,17 +176,17 @@ class MovingNearest:
         self.calls = 0
         self.queried = 0
         self.trees_built = 0
-        self._motion = 0.0      # accumulated bound on the template's motion (m)
-        self._n = (-1, -1)      # (cloud size, template size) of the state below
-        self._stale = True      # candidates unusable (none yet, or skipped by a fast call)
-        self._cand = None       # (M, k) candidate indices per point
-        self._x0 = None         # (M, 3) positions when the candidates were found
-        self._r = None          # (M,) distance to the k-th candidate then (inf: all points)
-        self._m0 = None         # (M,) template motion accumulated then
-        self._gap = None        # (M,) r_k - distance of the nearest then
-        self._x_prev = None     # the previous call's cloud and motion
+        self._motion = 0.0  # accumulated bound on the template's motion (m)
+        self._n = (-1, -1)  # (cloud size, template size) of the state below
+        self._stale = True  # candidates unusable (none yet, or skipped by a fast call)
+        self._cand = None  # (M, k) candidate indices per point
+        self._x0 = None  # (M, 3) positions when the candidates were found
+        self._r = None  # (M,) distance to the k-th candidate then (inf: all points)
+        self._m0 = None  # (M,) template motion accumulated then
+        self._gap = None  # (M,) r_k - distance of the nearest then
+        self._x_prev = None  # the previous call's cloud and motion
         self._motion_prev = 0.0
-        self._tree = None       # the last kd-tree from tree_of() and the motion then
+        self._tree = None  # the last kd-tree from tree_of() and the motion then
         self._tree_motion = 0.0
 
     def template_moved(self, bound: float) -> None:
@@ -219,16 +221,21 @@ class MovingNearest:
             rows = np.arange(m)
             self._stale = False
         else:
-            dist, idx, ok = self._candidates(x, self._cand, self._r - _norm_rows(x - self._x0)
-                                             - (self._motion - self._m0), points_t)
+            dist, idx, ok = self._candidates(
+                x,
+                self._cand,
+                self._r - _norm_rows(x - self._x0) - (self._motion - self._m0),
+                points_t,
+            )
             rows = np.flatnonzero(~ok)
         if rows.size and self._tree is not None and self._tree_motion < self._motion:
             # The last tree, of the template as it was: the same test on its answer.
             d, j = self._tree.query(x[rows], k=k)
             d, j = d.reshape(-1, k), j.reshape(-1, k)
             r = d[:, -1] if k < len(points) else np.full(len(rows), np.inf)
-            dd, jj, ok = self._candidates(x[rows], j, r - (self._motion - self._tree_motion),
-                                          points_t)
+            dd, jj, ok = self._candidates(
+                x[rows], j, r - (self._motion - self._tree_motion), points_t
+            )
             self._store(rows[ok], x, j[ok], r[ok], self._tree_motion, dd[ok], dist, jj[ok], idx)
             rows = rows[~ok]
         if rows.size:
@@ -252,7 +259,7 @@ class MovingNearest:
         d2 = None
         for axis in range(3):
             d = points_t[axis].take(cand)
-            d -= x[:, axis:axis + 1]
+            d -= x[:, axis : axis + 1]
             d *= d
             if d2 is None:
                 d2 = d
@@ -317,23 +324,36 @@ def heuristic_initial_rotation(superior_B, lateral_B) -> RotationMatrix:
 def _check_cloud(name: str, points) -> np.ndarray:
     points = np.asarray(points, dtype=float)
     if points.ndim != 2 or points.shape[1] != 3:
-        raise ValueError(f"{name}: expected an (N, 3) array of points in m, got shape "
-                         f"{points.shape}")
+        raise ValueError(
+            f"{name}: expected an (N, 3) array of points in m, got shape {points.shape}"
+        )
     if not np.all(np.isfinite(points)):
         raise ValueError(f"{name}: contains NaN or infinite coordinates")
     return points
 
 
 def register_plane_to_plane(
-        P_local_B, template_points_K, template_normals_K, R_BK0: RotationMatrix, *,
-        init_translation: str = "centroid", theta_max: float = np.deg2rad(2.0),
-        error_change_tol: float = 1e-11, max_iterations: int = 200,
-        inlier_distance: float = 0.003, max_correspondence_distance: float = np.inf,
-        shape_modes_K: np.ndarray | None = None, shape_variances: np.ndarray | None = None,
-        shape_regularization: float = 1e-6, template_tree=None,
-        max_translation_step: float = np.inf, step_tolerance: float = 1e-4,
-        cycle_max_period: int = 32, initial_X_BK: RigidTransform | None = None,
-        initial_shape: np.ndarray | None = None) -> IcpResult:
+    P_local_B,
+    template_points_K,
+    template_normals_K,
+    R_BK0: RotationMatrix,
+    *,
+    init_translation: str = "centroid",
+    theta_max: float = np.deg2rad(2.0),
+    error_change_tol: float = 1e-11,
+    max_iterations: int = 200,
+    inlier_distance: float = 0.003,
+    max_correspondence_distance: float = np.inf,
+    shape_modes_K: np.ndarray | None = None,
+    shape_variances: np.ndarray | None = None,
+    shape_regularization: float = 1e-6,
+    template_tree=None,
+    max_translation_step: float = np.inf,
+    step_tolerance: float = 1e-4,
+    cycle_max_period: int = 32,
+    initial_X_BK: RigidTransform | None = None,
+    initial_shape: np.ndarray | None = None,
+) -> IcpResult:
     """Registers ``P_local_B`` onto the template; returns X_BK and diagnostics.
 
     Args:
@@ -374,16 +394,18 @@ def register_plane_to_plane(
     if N.shape != Q.shape:
         raise ValueError(f"template_normals_K: expected shape {Q.shape}, got {N.shape}")
     if init_translation not in ("centroid", "zero"):
-        raise ValueError(f"init_translation: expected 'centroid' or 'zero', got "
-                         f"{init_translation!r}")
+        raise ValueError(
+            f"init_translation: expected 'centroid' or 'zero', got {init_translation!r}"
+        )
     if not theta_max > 0:
         raise ValueError(f"theta_max: expected a positive angle in rad, got {theta_max}")
     n_modes = 0
     if shape_modes_K is not None:
         shape_modes_K = np.asarray(shape_modes_K, dtype=float)
         if shape_modes_K.ndim != 3 or shape_modes_K.shape[1:] != Q.shape:
-            raise ValueError(f"shape_modes_K: expected (n_modes, {Q.shape[0]}, 3), got "
-                             f"{shape_modes_K.shape}")
+            raise ValueError(
+                f"shape_modes_K: expected (n_modes, {Q.shape[0]}, 3), got {shape_modes_K.shape}"
+            )
         n_modes = shape_modes_K.shape[0]
         shape_variances = np.asarray(shape_variances, dtype=float)
         if shape_variances.shape != (n_modes,) or np.any(shape_variances <= 0):
@@ -404,8 +426,7 @@ def register_plane_to_plane(
     if n_modes and initial_shape is not None:
         b0 = np.asarray(initial_shape, dtype=float).reshape(-1)
         if b0.shape != (n_modes,):
-            raise ValueError(f"initial_shape: expected {n_modes} mode weights, got "
-                             f"{b0.shape[0]}")
+            raise ValueError(f"initial_shape: expected {n_modes} mode weights, got {b0.shape[0]}")
         b = np.clip(b0, -3 * sigma_b, 3 * sigma_b)
         Q_current = Q + np.einsum("k,kij->ij", b, shape_modes_K)
     # Correspondences: a NearestPointGrid given by the caller (a table lookup, approximate),
@@ -414,6 +435,7 @@ def register_plane_to_plane(
     # only for the points whose candidates no longer provably hold their nearest neighbour:
     # successive iterations move the cloud (and the template) a little.
     if isinstance(template_tree, NearestPointGrid) and not n_modes:
+
         def nearest(p):
             return template_tree.query(p)[1]
     else:
@@ -426,11 +448,12 @@ def register_plane_to_plane(
 
         def nearest(p):
             return moving.query(p, Q_current, tree_of)[1]
+
     errors, steps = [], []
-    states = []    # (R_KB, t_KB, b) at which errors[k] was measured
+    states = []  # (R_KB, t_KB, b) at which errors[k] was measured
     converged = False
     stop_reason = "iteration cap"
-    cycle = None   # (period, index of the returned member) once a cycle is found
+    cycle = None  # (period, index of the returned member) once a cycle is found
     A = np.zeros((P.shape[0], 6 + n_modes))
     residual = np.zeros(P.shape[0])
     iteration = 0
@@ -440,15 +463,16 @@ def register_plane_to_plane(
         n = N[j]
         q = Q_current[j]
         residual = np.einsum("ij,ij->i", n, p - q)
-        use = None    # every pair
+        use = None  # every pair
         if max_correspondence_distance < np.inf:
             use = np.linalg.norm(p - q, axis=1) <= max_correspondence_distance
             if use.sum() < 6:
                 use = None
         errors.append(float(np.mean((residual if use is None else residual[use]) ** 2)))
         states.append((R_KB, t_KB, b))
-        period = _cycle_period(states, errors, cycle_max_period, step_tolerance,
-                               error_change_tol, sigma_b)
+        period = _cycle_period(
+            states, errors, cycle_max_period, step_tolerance, error_change_tol, sigma_b
+        )
         if period:
             members = range(len(states) - period, len(states))
             best = min(members, key=lambda k: errors[k])
@@ -491,8 +515,11 @@ def register_plane_to_plane(
         dR = rotation_from_vector(dtheta)
         R_KB = dR @ R_KB
         t_KB = dR @ t_KB + dt
-        if steps[-1] < step_tolerance and np.linalg.norm(dt) < step_tolerance and (
-                not n_modes or np.all(np.abs(x[6:]) < step_tolerance * np.sqrt(shape_variances))):
+        if (
+            steps[-1] < step_tolerance
+            and np.linalg.norm(dt) < step_tolerance
+            and (not n_modes or np.all(np.abs(x[6:]) < step_tolerance * np.sqrt(shape_variances)))
+        ):
             converged = True
             stop_reason = "converged"
             break
@@ -521,13 +548,20 @@ def register_plane_to_plane(
     covariance = sigma2 * np.linalg.pinv(A6.T @ A6)
     X_KB = RigidTransform(RotationMatrix(_orthonormalize(R_KB)), t_KB)
     return IcpResult(
-        X_BK=X_KB.inverse(), iterations=iteration, converged=converged,
+        X_BK=X_KB.inverse(),
+        iterations=iteration,
+        converged=converged,
         rms_residual=float(np.sqrt(np.mean(residual**2))),
         inlier_fraction=float(np.mean(np.abs(residual) < inlier_distance)),
-        covariance=covariance, errors=np.asarray(errors), max_rotation_steps=np.asarray(steps),
-        shape_coefficients=b if n_modes else None, stop_reason=stop_reason,
-        cycle_period=cycle[0] if cycle else 0, cycle_translation_spread=spread_t,
-        cycle_rotation_spread=spread_r)
+        covariance=covariance,
+        errors=np.asarray(errors),
+        max_rotation_steps=np.asarray(steps),
+        shape_coefficients=b if n_modes else None,
+        stop_reason=stop_reason,
+        cycle_period=cycle[0] if cycle else 0,
+        cycle_translation_spread=spread_t,
+        cycle_rotation_spread=spread_r,
+    )
 
 
 def _deformed(Q, b, modes, Q_previous, moving: MovingNearest) -> np.ndarray:
@@ -557,13 +591,13 @@ def _state_distance(a, c, sigma_b) -> float:
     """One number for "how far apart" (the step test's units: m, rad, and standard
     deviations of the shape weights, all compared with the same tolerance)."""
     dp, dr = _pose_distance(a, c)
-    db = float(np.max(np.abs(a[2] - c[2]) / sigma_b)) if sigma_b is not None and len(a[2]) \
-        else 0.0
+    db = float(np.max(np.abs(a[2] - c[2]) / sigma_b)) if sigma_b is not None and len(a[2]) else 0.0
     return max(dp, dr, db)
 
 
-def _cycle_period(states, errors, max_period: int, tolerance: float, error_tol: float,
-                  sigma_b) -> int:
+def _cycle_period(
+    states, errors, max_period: int, tolerance: float, error_tol: float, sigma_b
+) -> int:
     """The period m (2..max_period) of a cycle the newest iterate closes, or 0: it is
     back within ``tolerance`` (and its error within ``error_tol``) of the iterate m back,
     after the iterates in between moved at least ``_CYCLE_EXCURSION_FACTOR`` times as far
@@ -577,8 +611,7 @@ def _cycle_period(states, errors, max_period: int, tolerance: float, error_tol: 
         back = _state_distance(states[k], states[k - m], sigma_b)
         if back >= tolerance:
             continue
-        excursion = max(_state_distance(states[k], states[k - i], sigma_b)
-                        for i in range(1, m))
+        excursion = max(_state_distance(states[k], states[k - i], sigma_b) for i in range(1, m))
         if excursion >= tolerance and excursion >= _CYCLE_EXCURSION_FACTOR * back:
             return m
     return 0

@@ -30,9 +30,10 @@ from drake_rus.template.ct import is_template_spec, resolve_template
 @dataclasses.dataclass
 class RegistrationTemplate:
     """Template points/normals in the canonical frame K (m) and its shape modes."""
-    points: np.ndarray                 # (N, 3)
-    normals: np.ndarray                # (N, 3) unit outward normals
-    modes: np.ndarray | None = None    # (n_modes, N, 3) displacement fields (m per unit b)
+
+    points: np.ndarray  # (N, 3)
+    normals: np.ndarray  # (N, 3) unit outward normals
+    modes: np.ndarray | None = None  # (n_modes, N, 3) displacement fields (m per unit b)
     variances: np.ndarray | None = None  # (n_modes,) variances of the mode weights
 
     def __post_init__(self):
@@ -87,8 +88,14 @@ def thin_cloud(points: np.ndarray, max_points: int, seed: int = 0) -> np.ndarray
     return points[np.sort(rng.choice(len(points), max_points, replace=False))]
 
 
-def localize(P_local_B: np.ndarray, template: RegistrationTemplate, config: LocalizationConfig,
-             superior_B, lateral_B, warm_start: IcpResult | None = None) -> IcpResult:
+def localize(
+    P_local_B: np.ndarray,
+    template: RegistrationTemplate,
+    config: LocalizationConfig,
+    superior_B,
+    lateral_B,
+    warm_start: IcpResult | None = None,
+) -> IcpResult:
     """T_k^b from the partial cloud with ``config.method`` ("seed" or "deformable").
 
     ``warm_start``: an earlier registration (of part of the same cloud, with the same
@@ -97,22 +104,33 @@ def localize(P_local_B: np.ndarray, template: RegistrationTemplate, config: Loca
     P = thin_cloud(P_local_B, config.max_points)
     R0 = heuristic_initial_rotation(superior_B, lateral_B)
     kwargs = dict(
-        init_translation=config.init_translation, theta_max=np.deg2rad(config.theta_max_deg),
-        error_change_tol=config.error_change_tol, max_iterations=config.max_iterations,
+        init_translation=config.init_translation,
+        theta_max=np.deg2rad(config.theta_max_deg),
+        error_change_tol=config.error_change_tol,
+        max_iterations=config.max_iterations,
         max_correspondence_distance=config.max_correspondence_distance or np.inf,
         max_translation_step=config.max_translation_step,
-        step_tolerance=config.step_tolerance, cycle_max_period=config.cycle_max_period,
-        initial_X_BK=None if warm_start is None else warm_start.X_BK)
+        step_tolerance=config.step_tolerance,
+        cycle_max_period=config.cycle_max_period,
+        initial_X_BK=None if warm_start is None else warm_start.X_BK,
+    )
     if config.method == "deformable" and template.modes is not None and config.shape_modes > 0:
         k = min(config.shape_modes, template.modes.shape[0])
         b0 = None if warm_start is None else warm_start.shape_coefficients
         return register_plane_to_plane(
-            P, template.points, template.normals, R0, shape_modes_K=template.modes[:k],
+            P,
+            template.points,
+            template.normals,
+            R0,
+            shape_modes_K=template.modes[:k],
             shape_variances=template.variances[:k],
             shape_regularization=config.shape_residual_variance,
-            initial_shape=b0 if b0 is not None and len(b0) == k else None, **kwargs)
-    return register_plane_to_plane(P, template.points, template.normals, R0,
-                                   template_tree=template.tree, **kwargs)
+            initial_shape=b0 if b0 is not None and len(b0) == k else None,
+            **kwargs,
+        )
+    return register_plane_to_plane(
+        P, template.points, template.normals, R0, template_tree=template.tree, **kwargs
+    )
 
 
 def kidney_length_of(template: RegistrationTemplate, result: IcpResult) -> float:
@@ -121,14 +139,18 @@ def kidney_length_of(template: RegistrationTemplate, result: IcpResult) -> float
     shape = template.points
     b = result.shape_coefficients
     if b is not None and template.modes is not None:
-        shape = shape + np.einsum("k,kij->ij", b, template.modes[:len(b)])
+        shape = shape + np.einsum("k,kij->ij", b, template.modes[: len(b)])
     return float(np.ptp(shape[:, 0]))
 
 
-def estimate_kidney_length(P_local_B: np.ndarray, template: RegistrationTemplate,
-                           config: LocalizationConfig, superior_B, lateral_B,
-                           warm_start: IcpResult | None = None
-                           ) -> tuple[float, IcpResult | None]:
+def estimate_kidney_length(
+    P_local_B: np.ndarray,
+    template: RegistrationTemplate,
+    config: LocalizationConfig,
+    superior_B,
+    lateral_B,
+    warm_start: IcpResult | None = None,
+) -> tuple[float, IcpResult | None]:
     """(length (m), the fit) of the kidney along its long axis from a partial cloud: the
     template's first ``config.length_shape_modes`` shape modes fitted with the pose under
     the weak prior ``config.length_shape_residual_variance``, the length being the fitted
@@ -141,8 +163,12 @@ def estimate_kidney_length(P_local_B: np.ndarray, template: RegistrationTemplate
     if template.modes is None or config.length_shape_modes < 1:
         return math.nan, None
     k = min(config.length_shape_modes, template.modes.shape[0])
-    cfg = dataclasses.replace(config, method="deformable", shape_modes=k,
-                              shape_residual_variance=config.length_shape_residual_variance)
+    cfg = dataclasses.replace(
+        config,
+        method="deformable",
+        shape_modes=k,
+        shape_residual_variance=config.length_shape_residual_variance,
+    )
     P = np.asarray(P_local_B, dtype=float).reshape(-1, 3)
     result = localize(P, template, cfg, superior_B, lateral_B, warm_start)
     if check_registration(result, P, cfg):
@@ -168,36 +194,45 @@ def exploration_travel(poses) -> float:
     return float(np.max(np.linalg.norm(p - p[0], axis=1)))
 
 
-def check_registration(result: IcpResult, P_local_B: np.ndarray,
-                       config: LocalizationConfig) -> str:
+def check_registration(result: IcpResult, P_local_B: np.ndarray, config: LocalizationConfig) -> str:
     """Why the estimate must not be used ('' when it passes the sanity checks)."""
     if not np.all(np.isfinite(result.X_BK.GetAsMatrix4())):
         return "registration produced a non-finite pose"
     if result.inlier_fraction < config.min_inlier_fraction:
-        return (f"registration rejected: only {100 * result.inlier_fraction:.0f}% of the "
-                f"explored points lie within 3 mm of the registered template "
-                f"(need {100 * config.min_inlier_fraction:.0f}%)")
+        return (
+            f"registration rejected: only {100 * result.inlier_fraction:.0f}% of the "
+            f"explored points lie within 3 mm of the registered template "
+            f"(need {100 * config.min_inlier_fraction:.0f}%)"
+        )
     # The deformable fit absorbs part of the kidney's shape difference: its own bound.
-    max_rms = (config.max_rms_residual_deformable if result.shape_coefficients is not None
-               else config.max_rms_residual)
+    max_rms = (
+        config.max_rms_residual_deformable
+        if result.shape_coefficients is not None
+        else config.max_rms_residual
+    )
     if result.rms_residual > max_rms:
-        return (f"registration rejected: RMS residual {1000 * result.rms_residual:.1f} mm "
-                f"> {1000 * max_rms:.1f} mm")
+        return (
+            f"registration rejected: RMS residual {1000 * result.rms_residual:.1f} mm "
+            f"> {1000 * max_rms:.1f} mm"
+        )
     offset = np.linalg.norm(result.X_BK.translation() - np.mean(P_local_B, axis=0))
     if offset > config.max_centroid_offset:
-        return (f"registration rejected: the estimated kidney centre is {1000 * offset:.0f} mm "
-                f"from the explored points (limit {1000 * config.max_centroid_offset:.0f} mm)")
+        return (
+            f"registration rejected: the estimated kidney centre is {1000 * offset:.0f} mm "
+            f"from the explored points (limit {1000 * config.max_centroid_offset:.0f} mm)"
+        )
     return ""
 
 
 @dataclasses.dataclass
 class LocalizationOutcome:
     """What the localizer produced: the estimate, diagnostics and its compute time."""
+
     result: IcpResult | None = None
     n_points: int = 0
     compute_s: float = 0.0
-    time: float = -1.0       # simulation time (s) the estimate was made
-    error: str = ""          # why no estimate (too few points, rejected registration, ...)
+    time: float = -1.0  # simulation time (s) the estimate was made
+    error: str = ""  # why no estimate (too few points, rejected registration, ...)
     rejected: IcpResult | None = None  # a registration that failed the sanity checks
 
     # Drake clones abstract state with deepcopy on every update of the localizer (20 Hz);
@@ -209,23 +244,25 @@ class LocalizationOutcome:
 @dataclasses.dataclass(frozen=True)
 class LengthState:
     """Kidney length estimates during exploration (beyond the seed)."""
+
     last_time: float = -math.inf
-    length: float = math.nan     # latest estimate (m); NaN until one passes the checks
-    checks: tuple = ()           # ((time s, travel m, length m or NaN), ...)
+    length: float = math.nan  # latest estimate (m); NaN until one passes the checks
+    checks: tuple = ()  # ((time s, travel m, length m or NaN), ...)
     # The latest fit that passed the checks: the next fit's warm start.
     fit: IcpResult | None = dataclasses.field(default=None, compare=False)
 
-    def __deepcopy__(self, memo):   # immutable: clones may share it
+    def __deepcopy__(self, memo):  # immutable: clones may share it
         return self
 
 
 @dataclasses.dataclass
 class AdaptiveState:
     """Interim estimates of adaptive exploration (beyond the seed)."""
+
     last_time: float = -np.inf
     last_X_BK: RigidTransform | None = None
     sufficient: bool = False
-    checks: tuple = ()   # (time s, travel m, change of translation m, of x-axis angle rad)
+    checks: tuple = ()  # (time s, travel m, change of translation m, of x-axis angle rad)
 
     # Drake clones abstract state with deepcopy on every update of the localizer; a stored
     # state is never changed in place (the update works on a dataclasses.replace copy).
@@ -255,10 +292,18 @@ class IcpLocalizer(LeafSystem):
     explored (``length_estimation``); NaN until known).
     """
 
-    def __init__(self, template: RegistrationTemplate, config: LocalizationConfig,
-                 superior_B, lateral_B, localize_phase: int, rate_hz: float = 20.0,
-                 min_points: int = 50, explore_phase: int | None = None,
-                 kidney_length: float = 0.10):
+    def __init__(
+        self,
+        template: RegistrationTemplate,
+        config: LocalizationConfig,
+        superior_B,
+        lateral_B,
+        localize_phase: int,
+        rate_hz: float = 20.0,
+        min_points: int = 50,
+        explore_phase: int | None = None,
+        kidney_length: float = 0.10,
+    ):
         super().__init__()
         self._template = template
         self._config = config
@@ -270,42 +315,56 @@ class IcpLocalizer(LeafSystem):
         self._min_points = min_points
         self._cloud = self.DeclareAbstractInputPort("point_cloud", AbstractValue.Make(PointCloud()))
         self._phase_port = self.DeclareVectorInputPort("phase", 1)
-        initial = RigidTransform(heuristic_initial_rotation(self._superior_B, self._lateral_B),
-                                 np.zeros(3))
+        initial = RigidTransform(
+            heuristic_initial_rotation(self._superior_B, self._lateral_B), np.zeros(3)
+        )
         self._X = self.DeclareAbstractState(AbstractValue.Make(initial))
         self._outcome = self.DeclareAbstractState(AbstractValue.Make(LocalizationOutcome()))
         # Adaptive exploration: (time of the last interim estimate, its X_BK or None,
         # sufficient flag, list of (travel m, dtranslation m, dangle rad) per check).
-        self._adaptive = self.DeclareAbstractState(
-            AbstractValue.Make(AdaptiveState()))
+        self._adaptive = self.DeclareAbstractState(AbstractValue.Make(AdaptiveState()))
         self._length = self.DeclareAbstractState(AbstractValue.Make(LengthState()))
         self.DeclarePeriodicUnrestrictedUpdateEvent(1.0 / rate_hz, 0.0, self._update)
         self.DeclareAbstractOutputPort(
-            "X_BK", lambda: AbstractValue.Make(RigidTransform()),
+            "X_BK",
+            lambda: AbstractValue.Make(RigidTransform()),
             lambda c, o: o.set_value(c.get_abstract_state(self._X).get_value()),
-            prerequisites_of_calc={self.abstract_state_ticket(self._X)})
+            prerequisites_of_calc={self.abstract_state_ticket(self._X)},
+        )
         self.DeclareVectorOutputPort(
-            "localization_ready", 1,
-            lambda c, o: o.SetAtIndex(0, float(
-                c.get_abstract_state(self._outcome).get_value().result is not None)),
-            prerequisites_of_calc={self.abstract_state_ticket(self._outcome)})
+            "localization_ready",
+            1,
+            lambda c, o: o.SetAtIndex(
+                0, float(c.get_abstract_state(self._outcome).get_value().result is not None)
+            ),
+            prerequisites_of_calc={self.abstract_state_ticket(self._outcome)},
+        )
         self.DeclareVectorOutputPort(
-            "exploration_sufficient", 1,
-            lambda c, o: o.SetAtIndex(0, float(
-                c.get_abstract_state(self._adaptive).get_value().sufficient)),
-            prerequisites_of_calc={self.abstract_state_ticket(self._adaptive)})
+            "exploration_sufficient",
+            1,
+            lambda c, o: o.SetAtIndex(
+                0, float(c.get_abstract_state(self._adaptive).get_value().sufficient)
+            ),
+            prerequisites_of_calc={self.abstract_state_ticket(self._adaptive)},
+        )
         self.DeclareVectorOutputPort(
-            "kidney_length_estimate", 1,
+            "kidney_length_estimate",
+            1,
             lambda c, o: o.SetAtIndex(0, c.get_abstract_state(self._length).get_value().length),
-            prerequisites_of_calc={self.abstract_state_ticket(self._length)})
+            prerequisites_of_calc={self.abstract_state_ticket(self._length)},
+        )
         self.DeclareAbstractOutputPort(
-            "localization_error", lambda: AbstractValue.Make(""),
+            "localization_error",
+            lambda: AbstractValue.Make(""),
             lambda c, o: o.set_value(c.get_abstract_state(self._outcome).get_value().error),
-            prerequisites_of_calc={self.abstract_state_ticket(self._outcome)})
+            prerequisites_of_calc={self.abstract_state_ticket(self._outcome)},
+        )
         self.DeclareAbstractOutputPort(
-            "localization", lambda: AbstractValue.Make(LocalizationOutcome()),
+            "localization",
+            lambda: AbstractValue.Make(LocalizationOutcome()),
             lambda c, o: o.set_value(c.get_abstract_state(self._outcome).get_value()),
-            prerequisites_of_calc={self.abstract_state_ticket(self._outcome)})
+            prerequisites_of_calc={self.abstract_state_ticket(self._outcome)},
+        )
 
     def _update(self, context, state):
         outcome = context.get_abstract_state(self._outcome).get_value()
@@ -326,32 +385,45 @@ class IcpLocalizer(LeafSystem):
         points = cloud.points
         # The probe's travel, and how far along the body the kidney was actually seen (a
         # frame without kidney still counts for the travel).
-        travel = min(exploration_travel(cloud.poses),
-                     kidney_extent_along(points, self._superior_B))
+        travel = min(exploration_travel(cloud.poses), kidney_extent_along(points, self._superior_B))
         error = ""
         if len(points) < self._min_points:
-            error = (f"only {len(points)} kidney boundary points were explored "
-                     f"(need {self._min_points})")
+            error = (
+                f"only {len(points)} kidney boundary points were explored (need {self._min_points})"
+            )
         elif travel < self._config.min_exploration_travel:
-            error = (f"the kidney was seen over only {1000 * travel:.1f} mm of exploration "
-                     f"(need {1000 * self._config.min_exploration_travel:.0f} mm)")
+            error = (
+                f"the kidney was seen over only {1000 * travel:.1f} mm of exploration "
+                f"(need {1000 * self._config.min_exploration_travel:.0f} mm)"
+            )
         if error:
-            state.get_mutable_abstract_state(self._outcome).set_value(LocalizationOutcome(
-                n_points=len(points), time=context.get_time(), error=error))
+            state.get_mutable_abstract_state(self._outcome).set_value(
+                LocalizationOutcome(n_points=len(points), time=context.get_time(), error=error)
+            )
             return EventStatus.Succeeded()
         start = time.perf_counter()
-        result = localize(points, self._template, self._config, self._superior_B,
-                          self._lateral_B)
+        result = localize(points, self._template, self._config, self._superior_B, self._lateral_B)
         error = check_registration(result, points, self._config)
         if error:
-            state.get_mutable_abstract_state(self._outcome).set_value(LocalizationOutcome(
-                n_points=len(points), compute_s=time.perf_counter() - start,
-                time=context.get_time(), error=error, rejected=result))
+            state.get_mutable_abstract_state(self._outcome).set_value(
+                LocalizationOutcome(
+                    n_points=len(points),
+                    compute_s=time.perf_counter() - start,
+                    time=context.get_time(),
+                    error=error,
+                    rejected=result,
+                )
+            )
             return EventStatus.Succeeded()
         state.get_mutable_abstract_state(self._X).set_value(result.X_BK)
-        state.get_mutable_abstract_state(self._outcome).set_value(LocalizationOutcome(
-            result=result, n_points=len(points), compute_s=time.perf_counter() - start,
-            time=context.get_time()))
+        state.get_mutable_abstract_state(self._outcome).set_value(
+            LocalizationOutcome(
+                result=result,
+                n_points=len(points),
+                compute_s=time.perf_counter() - start,
+                time=context.get_time(),
+            )
+        )
         return EventStatus.Succeeded()
 
     def length_checks(self, context) -> tuple:
@@ -374,12 +446,20 @@ class IcpLocalizer(LeafSystem):
         if travel < cfg.length_min_travel or len(cloud.points) < self._min_points:
             return False
         length, fit = estimate_kidney_length(
-            cloud.points, self._template, cfg, self._superior_B, self._lateral_B,
-            warm_start=s.fit if cfg.length_warm_start else None)
+            cloud.points,
+            self._template,
+            cfg,
+            self._superior_B,
+            self._lateral_B,
+            warm_start=s.fit if cfg.length_warm_start else None,
+        )
         passed = math.isfinite(length)
-        new = LengthState(last_time=t, length=length if passed else s.length,
-                          checks=s.checks + ((t, travel, length),),
-                          fit=fit if passed else s.fit)
+        new = LengthState(
+            last_time=t,
+            length=length if passed else s.length,
+            checks=s.checks + ((t, travel, length),),
+            fit=fit if passed else s.fit,
+        )
         state.get_mutable_abstract_state(self._length).set_value(new)
         return True
 
@@ -393,8 +473,10 @@ class IcpLocalizer(LeafSystem):
             return EventStatus.DidNothing()
         cloud = self._cloud.Eval(context)
         travel = exploration_travel(cloud.poses)
-        if travel < cfg.adaptive_min_ratio * self._kidney_length or \
-                len(cloud.points) < self._min_points:
+        if (
+            travel < cfg.adaptive_min_ratio * self._kidney_length
+            or len(cloud.points) < self._min_points
+        ):
             return EventStatus.DidNothing()
         result = localize(cloud.points, self._template, cfg, self._superior_B, self._lateral_B)
         new = dataclasses.replace(a, last_time=t)
@@ -404,8 +486,9 @@ class IcpLocalizer(LeafSystem):
             if a.last_X_BK is not None:
                 dp, dangle = estimate_change(a.last_X_BK, result.X_BK)
                 new.checks = a.checks + ((t, travel, dp, dangle),)
-                new.sufficient = (dp < cfg.adaptive_translation_tol and
-                                  dangle < np.deg2rad(cfg.adaptive_rotation_tol_deg))
+                new.sufficient = dp < cfg.adaptive_translation_tol and dangle < np.deg2rad(
+                    cfg.adaptive_rotation_tol_deg
+                )
             new.last_X_BK = result.X_BK
         state.get_mutable_abstract_state(self._adaptive).set_value(new)
         return EventStatus.Succeeded()

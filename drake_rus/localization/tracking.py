@@ -49,17 +49,27 @@ from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.localization.icp import MovingNearest, _template_tree
 from drake_rus.localization.localize import LocalizationOutcome
 
-__all__ = ["estimate_drift", "kidney_in_view", "DriftEstimate", "TrackingLimits", "tracking_limits",
-           "judged_drift", "TrackingState", "tracking_update", "KidneyTrackingMonitor"]
+__all__ = [
+    "estimate_drift",
+    "kidney_in_view",
+    "DriftEstimate",
+    "TrackingLimits",
+    "tracking_limits",
+    "judged_drift",
+    "TrackingState",
+    "tracking_update",
+    "KidneyTrackingMonitor",
+]
 
 
 @dataclasses.dataclass(frozen=True)
 class DriftEstimate:
     """The kidney's apparent displacement since localization."""
-    drift_B: np.ndarray        # (3,) m, in the base frame
-    rms_residual: float        # m, point-to-plane residual of the kept pairs after the fit
+
+    drift_B: np.ndarray  # (3,) m, in the base frame
+    rms_residual: float  # m, point-to-plane residual of the kept pairs after the fit
     n_points: int
-    n_frames_used: int = 0     # frames kept by the consensus gate (0: frames not given)
+    n_frames_used: int = 0  # frames kept by the consensus gate (0: frames not given)
     n_frames: int = 0
 
     @property
@@ -92,12 +102,20 @@ def _sorted_group_medians(values, groups, low, high) -> np.ndarray:
     return 0.5 * (ranked[low] + ranked[high])
 
 
-def estimate_drift(points_B: np.ndarray, X_BK: RigidTransform, shape_K: np.ndarray,
-                   normals_K: np.ndarray, *, tree: cKDTree | None = None,
-                   iterations: int = 15, keep_fraction: float = 0.7,
-                   regularization: float = 0.05, frame_ids: np.ndarray | None = None,
-                   frame_gate_factor: float = 3.0, frame_gate_floor: float = 0.010
-                   ) -> DriftEstimate:
+def estimate_drift(
+    points_B: np.ndarray,
+    X_BK: RigidTransform,
+    shape_K: np.ndarray,
+    normals_K: np.ndarray,
+    *,
+    tree: cKDTree | None = None,
+    iterations: int = 15,
+    keep_fraction: float = 0.7,
+    regularization: float = 0.05,
+    frame_ids: np.ndarray | None = None,
+    frame_gate_factor: float = 3.0,
+    frame_gate_floor: float = 0.010,
+) -> DriftEstimate:
     """Translation (m, frame B) that moves the registered template onto ``points_B``.
 
     points_B (N, 3): kidney boundary points seen after localization (m, B); X_BK: the
@@ -134,7 +152,7 @@ def estimate_drift(points_B: np.ndarray, X_BK: RigidTransform, shape_K: np.ndarr
     if frame_ids is not None:
         _, inverse = np.unique(np.asarray(frame_ids).reshape(-1), return_inverse=True)
         n_frames = int(inverse.max()) + 1
-        middle = _middle_ranks(inverse, n_frames)    # the frames stay: rank them once
+        middle = _middle_ranks(inverse, n_frames)  # the frames stay: rank them once
     for _ in range(iterations):
         x = p_K + t
         dist, idx = nearest.query(x, shape_K, lambda: tree)
@@ -161,14 +179,16 @@ def estimate_drift(points_B: np.ndarray, X_BK: RigidTransform, shape_K: np.ndarr
     return DriftEstimate(drift_B, rms, len(points_B), frames_used, n_frames)
 
 
-def kidney_in_view(shape_B: np.ndarray, X_BP: RigidTransform, geometry: ProbeGeometry,
-                   slab: float) -> int:
+def kidney_in_view(
+    shape_B: np.ndarray, X_BP: RigidTransform, geometry: ProbeGeometry, slab: float
+) -> int:
     """How many points of the registered kidney surface ``shape_B`` (M, 3; m, B) lie in the
     image of a probe at X_BP: within ``slab`` (m) of the image plane and inside the fan.
     Where the registered kidney does not cross the view (past its registered pole, or the
     fan beside it), a segmented region cannot be compared with it."""
     p_P = (np.asarray(shape_B, float).reshape(-1, 3) - X_BP.translation()) @ (
-        X_BP.rotation().matrix())
+        X_BP.rotation().matrix()
+    )
     near = np.abs(p_P[:, 1]) <= slab
     return int(np.count_nonzero(geometry.in_fan(p_P[near]))) if near.any() else 0
 
@@ -178,6 +198,7 @@ class TrackingLimits:
     """How a drift is judged for one registration: ``limit`` (m) on the judged drift, the
     ``axial_allowance`` (m) along ``axis_B`` (the registered long axis in B, unit; None:
     the whole drift is judged)."""
+
     limit: float
     axial_allowance: float = 0.0
     axis_B: np.ndarray | None = None
@@ -211,15 +232,16 @@ def judged_drift(drift_B: np.ndarray, limits: TrackingLimits) -> float:
 @dataclasses.dataclass(frozen=True)
 class TrackingState:
     """The monitor's memory: recent post-localization frames and the check history."""
-    frames: tuple = ()          # ((time s, points (N, 3) in B), ...) within the window
-    last_index: int = -1        # index of the newest frame taken
+
+    frames: tuple = ()  # ((time s, points (N, 3) in B), ...) within the window
+    last_index: int = -1  # index of the newest frame taken
     last_check: float = -math.inf
-    exceed_count: int = 0       # successive checks above the drift limit
-    drift_m: float = math.nan   # latest drift magnitude (m)
-    history: tuple = ()         # ((time s, drift m), ...) of every check
-    error: str = ""             # latched once the kidney is judged to have moved
+    exceed_count: int = 0  # successive checks above the drift limit
+    drift_m: float = math.nan  # latest drift magnitude (m)
+    history: tuple = ()  # ((time s, drift m), ...) of every check
+    error: str = ""  # latched once the kidney is judged to have moved
     judged_m: float = math.nan  # latest judged drift (m, see judged_drift)
-    limit_m: float = math.nan   # the limit the judged drift was compared with (m)
+    limit_m: float = math.nan  # the limit the judged drift was compared with (m)
 
     # Drake clones abstract state with deepcopy on every update (the frames hold point
     # arrays); the state is immutable, so clones may share it.
@@ -230,8 +252,13 @@ class TrackingState:
         return self
 
 
-def tracking_update(state: TrackingState, t: float, drift: DriftEstimate | None,
-                    config, limits: TrackingLimits | None = None) -> TrackingState:
+def tracking_update(
+    state: TrackingState,
+    t: float,
+    drift: DriftEstimate | None,
+    config,
+    limits: TrackingLimits | None = None,
+) -> TrackingState:
     """One check: records the drift at time t and latches an error after
     ``tracking_confirmations`` successive judged drifts above the limit (``limits``, by
     default the plain ``tracking_max_drift`` on the whole drift)."""
@@ -247,15 +274,26 @@ def tracking_update(state: TrackingState, t: float, drift: DriftEstimate | None,
         judged_how = ""
         if limits.axis_B is not None:
             along = float(drift.drift_B @ limits.axis_B)
-            judged_how = (f"{along * 1000:.1f} mm of it along the kidney's long axis, where "
-                          f"{limits.axial_allowance * 1000:.0f} mm are allowed for the "
-                          f"registration's uncertainty: judged {judged * 1000:.1f} mm; ")
-        error = (f"the frames since localization put the kidney {d * 1000:.1f} mm "
-                 f"from its registered pose ({judged_how}drift [{v[0]:.1f}, {v[1]:.1f}, "
-                 f"{v[2]:.1f}] mm in B; limit {limits.limit * 1000:.1f} mm)")
-    return dataclasses.replace(state, last_check=t, exceed_count=count, drift_m=d,
-                               history=state.history + ((t, d),), error=error,
-                               judged_m=judged, limit_m=limits.limit)
+            judged_how = (
+                f"{along * 1000:.1f} mm of it along the kidney's long axis, where "
+                f"{limits.axial_allowance * 1000:.0f} mm are allowed for the "
+                f"registration's uncertainty: judged {judged * 1000:.1f} mm; "
+            )
+        error = (
+            f"the frames since localization put the kidney {d * 1000:.1f} mm "
+            f"from its registered pose ({judged_how}drift [{v[0]:.1f}, {v[1]:.1f}, "
+            f"{v[2]:.1f}] mm in B; limit {limits.limit * 1000:.1f} mm)"
+        )
+    return dataclasses.replace(
+        state,
+        last_check=t,
+        exceed_count=count,
+        drift_m=d,
+        history=state.history + ((t, d),),
+        error=error,
+        judged_m=judged,
+        limit_m=limits.limit,
+    )
 
 
 class KidneyTrackingMonitor(LeafSystem):
@@ -283,9 +321,11 @@ class KidneyTrackingMonitor(LeafSystem):
         self._shape = None
         self._shape_B = None
         self._boundary = self.DeclareAbstractInputPort(
-            "boundary_pixels", AbstractValue.Make(BoundaryPixels(np.zeros((0, 2)))))
+            "boundary_pixels", AbstractValue.Make(BoundaryPixels(np.zeros((0, 2))))
+        )
         self._outcome = self.DeclareAbstractInputPort(
-            "localization", AbstractValue.Make(LocalizationOutcome()))
+            "localization", AbstractValue.Make(LocalizationOutcome())
+        )
         self._phase = self.DeclareVectorInputPort("phase", 1)
         self._motion = self.DeclareVectorInputPort("motion_allowed", 1)
         self._state = self.DeclareAbstractState(AbstractValue.Make(TrackingState()))
@@ -293,13 +333,17 @@ class KidneyTrackingMonitor(LeafSystem):
         self.DeclarePeriodicUnrestrictedUpdateEvent(period, 0.5 * period, self._update)
         ticket = {self.abstract_state_ticket(self._state)}
         self.DeclareAbstractOutputPort(
-            "tracking_error", lambda: AbstractValue.Make(""),
+            "tracking_error",
+            lambda: AbstractValue.Make(""),
             lambda c, o: o.set_value(c.get_abstract_state(self._state).get_value().error),
-            prerequisites_of_calc=ticket)
+            prerequisites_of_calc=ticket,
+        )
         self.DeclareVectorOutputPort(
-            "kidney_drift", 1,
+            "kidney_drift",
+            1,
             lambda c, o: o.SetAtIndex(0, c.get_abstract_state(self._state).get_value().drift_m),
-            prerequisites_of_calc=ticket)
+            prerequisites_of_calc=ticket,
+        )
 
     def state(self, context) -> TrackingState:
         return context.get_abstract_state(self._state).get_value()
@@ -311,7 +355,7 @@ class KidneyTrackingMonitor(LeafSystem):
             shape = self._template.points
             b = outcome.result.shape_coefficients
             if b is not None and self._template.modes is not None:
-                shape = shape + np.einsum("k,kij->ij", b, self._template.modes[:len(b)])
+                shape = shape + np.einsum("k,kij->ij", b, self._template.modes[: len(b)])
             self._tree_key, self._shape, self._tree = key, shape, cKDTree(shape)
             self._shape_B = outcome.result.X_BK.multiply(shape.T).T
         return self._tree, self._shape, self._shape_B
@@ -332,11 +376,17 @@ class KidneyTrackingMonitor(LeafSystem):
         boundary = self._boundary.Eval(context)
         new_index = s.last_index
         tree, shape, shape_B = self._registered_shape(outcome)
-        if (allowed and boundary.frame_index > s.last_index and len(boundary.pixels)
-                and np.all(np.isfinite(boundary.X_BP.GetAsMatrix4()))):
+        if (
+            allowed
+            and boundary.frame_index > s.last_index
+            and len(boundary.pixels)
+            and np.all(np.isfinite(boundary.X_BP.GetAsMatrix4()))
+        ):
             new_index = boundary.frame_index
-            if kidney_in_view(shape_B, boundary.X_BP, self._geometry,
-                              cfg.tracking_view_slab) >= cfg.tracking_min_view_points:
+            if (
+                kidney_in_view(shape_B, boundary.X_BP, self._geometry, cfg.tracking_view_slab)
+                >= cfg.tracking_min_view_points
+            ):
                 points = backproject_pixels(self._geometry, boundary.pixels, boundary.X_BP)
                 frames = frames + ((boundary.time, points),)
         s = dataclasses.replace(s, frames=frames, last_index=new_index)
@@ -348,10 +398,16 @@ class KidneyTrackingMonitor(LeafSystem):
                 if len(points) > cfg.tracking_max_points:
                     pick = np.linspace(0, len(points) - 1, cfg.tracking_max_points).astype(int)
                     points, ids = points[pick], ids[pick]
-                drift = estimate_drift(points, outcome.result.X_BK, shape,
-                                       self._template.normals, tree=tree, frame_ids=ids,
-                                       frame_gate_factor=cfg.tracking_frame_gate_factor,
-                                       frame_gate_floor=cfg.tracking_frame_gate_floor)
+                drift = estimate_drift(
+                    points,
+                    outcome.result.X_BK,
+                    shape,
+                    self._template.normals,
+                    tree=tree,
+                    frame_ids=ids,
+                    frame_gate_factor=cfg.tracking_frame_gate_factor,
+                    frame_gate_floor=cfg.tracking_frame_gate_floor,
+                )
             s = tracking_update(s, t, drift, cfg, tracking_limits(outcome.result, cfg))
         state.get_mutable_abstract_state(self._state).set_value(s)
         return EventStatus.Succeeded()

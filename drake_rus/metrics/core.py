@@ -69,8 +69,9 @@ class CoverageAccumulator:
     thickness (m).
     """
 
-    def __init__(self, kidney_points_B: np.ndarray, voxel_volume: float, in_fan,
-                 elevation_width: float):
+    def __init__(
+        self, kidney_points_B: np.ndarray, voxel_volume: float, in_fan, elevation_width: float
+    ):
         self.points = np.asarray(kidney_points_B, dtype=float)
         if self.points.ndim != 2 or self.points.shape[1] != 3 or len(self.points) == 0:
             raise ValueError("kidney_points_B: expected a non-empty (N, 3) array of points")

@@ -36,23 +36,27 @@ MODES = ("mean", "max", "latest")
 @dataclasses.dataclass(frozen=True)
 class VoxelGrid:
     """Axis-aligned grid in B: voxel (i, j, k) centred at ``origin + spacing * (i, j, k)``."""
-    origin: np.ndarray     # (3,) m
-    spacing: float         # m
+
+    origin: np.ndarray  # (3,) m
+    spacing: float  # m
     shape: tuple
 
     def __post_init__(self):
         if not (np.isfinite(self.spacing) and self.spacing > 0):
-            raise ValueError(f"VoxelGrid.spacing: expected a positive size in m, got "
-                             f"{self.spacing}")
+            raise ValueError(
+                f"VoxelGrid.spacing: expected a positive size in m, got {self.spacing}"
+            )
         if len(self.shape) != 3 or min(self.shape) < 1:
             raise ValueError(f"VoxelGrid.shape: expected three positive sizes, got {self.shape}")
         if int(np.prod(self.shape)) > 200_000_000:
-            raise ValueError(f"VoxelGrid.shape: {self.shape} is too many voxels; use a "
-                             "coarser spacing or a smaller box")
+            raise ValueError(
+                f"VoxelGrid.shape: {self.shape} is too many voxels; use a "
+                "coarser spacing or a smaller box"
+            )
 
     @property
     def voxel_volume(self) -> float:
-        return self.spacing ** 3
+        return self.spacing**3
 
     def centres(self, ijk: np.ndarray) -> np.ndarray:
         return np.asarray(self.origin) + self.spacing * np.asarray(ijk, float)
@@ -73,6 +77,7 @@ def grid_around(points_B: np.ndarray, spacing: float, margin: float = 0.01) -> V
 class Reconstruction:
     """Compounded volume: ``values`` (float32, NaN where unknown), ``hits`` (pixels pasted
     per voxel before hole filling), ``filled`` (voxels set by hole filling)."""
+
     grid: VoxelGrid
     values: np.ndarray
     hits: np.ndarray
@@ -83,8 +88,16 @@ class Reconstruction:
         return np.isfinite(self.values)
 
 
-def compound(images, poses, geometry, grid: VoxelGrid, *, mode: str = "mean",
-             fill_iterations: int = 2, pixel_stride: int = 1) -> Reconstruction:
+def compound(
+    images,
+    poses,
+    geometry,
+    grid: VoxelGrid,
+    *,
+    mode: str = "mean",
+    fill_iterations: int = 2,
+    pixel_stride: int = 1,
+) -> Reconstruction:
     """Pastes fan pixels of ``images`` (each rows x cols, any numeric/bool) taken at probe
     poses ``poses`` (RigidTransform X_BP) into ``grid`` (nearest voxel), then fills holes.
 
@@ -99,16 +112,17 @@ def compound(images, poses, geometry, grid: VoxelGrid, *, mode: str = "mean",
     n = int(np.prod(shape))
     acc = np.zeros(n, np.float64)
     cnt = np.zeros(n, np.int32)
-    fan_idx = geometry.fan_flat_index[::max(1, int(pixel_stride))]
-    p_P = geometry.fan_p_P[::max(1, int(pixel_stride))]
+    fan_idx = geometry.fan_flat_index[:: max(1, int(pixel_stride))]
+    p_P = geometry.fan_p_P[:: max(1, int(pixel_stride))]
     origin = np.asarray(grid.origin, float)
     dims = np.asarray(shape)
     batch_flat, batch_v = [], []
     for k, (image, X_BP) in enumerate(zip(images, poses)):
         image = np.asarray(image)
         if image.shape != geometry.image_shape:
-            raise ValueError(f"images[{k}]: shape {image.shape} != the probe image shape "
-                             f"{geometry.image_shape}")
+            raise ValueError(
+                f"images[{k}]: shape {image.shape} != the probe image shape {geometry.image_shape}"
+            )
         if not isinstance(X_BP, RigidTransform):
             raise ValueError(f"poses[{k}]: expected a RigidTransform X_BP")
         values = image.reshape(-1)[fan_idx].astype(np.float64)
@@ -117,7 +131,7 @@ def compound(images, poses, geometry, grid: VoxelGrid, *, mode: str = "mean",
         ok = np.all((ijk >= 0) & (ijk < dims), axis=1)
         flat = np.ravel_multi_index(ijk[ok].T, shape)
         v = values[ok]
-        if mode == "mean":      # batched: one bincount per ~1e6 pasted pixels
+        if mode == "mean":  # batched: one bincount per ~1e6 pasted pixels
             batch_flat.append(flat)
             batch_v.append(v)
             if sum(len(b) for b in batch_flat) > 1_000_000 or k == len(images) - 1:
@@ -130,7 +144,7 @@ def compound(images, poses, geometry, grid: VoxelGrid, *, mode: str = "mean",
             first = cnt[flat] == 0
             acc[flat[first]] = -np.inf
             np.maximum.at(acc, flat, v)
-        else:   # latest: within a frame the last pixel written wins
+        else:  # latest: within a frame the last pixel written wins
             acc[flat] = v
         np.add.at(cnt, flat, 1)
     hits = cnt.reshape(shape)
@@ -176,9 +190,16 @@ def mask_volume_ml(mask: np.ndarray, grid: VoxelGrid) -> float:
     return float(np.count_nonzero(mask)) * grid.voxel_volume * 1e6
 
 
-def reconstruct_kidney(masks, poses, geometry, *, spacing: float = 0.001,
-                       margin: float = 0.01, fill_iterations: int = 2,
-                       points_B: np.ndarray | None = None) -> dict:
+def reconstruct_kidney(
+    masks,
+    poses,
+    geometry,
+    *,
+    spacing: float = 0.001,
+    margin: float = 0.01,
+    fill_iterations: int = 2,
+    points_B: np.ndarray | None = None,
+) -> dict:
     """Compounds kidney masks into a volume and measures the kidney (mL).
 
     The grid covers the back-projected mask pixels (``points_B``, default: computed from the
@@ -195,11 +216,21 @@ def reconstruct_kidney(masks, poses, geometry, *, spacing: float = 0.001,
             raise ValueError("masks: no kidney pixel in any frame; nothing to reconstruct")
         points_B = np.concatenate(pts)
     grid = grid_around(points_B, spacing, margin)
-    rec = compound([np.asarray(m, np.float32) for m in masks], poses, geometry, grid,
-                   mode="mean", fill_iterations=fill_iterations)
+    rec = compound(
+        [np.asarray(m, np.float32) for m in masks],
+        poses,
+        geometry,
+        grid,
+        mode="mean",
+        fill_iterations=fill_iterations,
+    )
     mask = kidney_mask_from(rec)
-    return {"reconstruction": rec, "mask": mask, "volume_ml": mask_volume_ml(mask, grid),
-            "grid": grid}
+    return {
+        "reconstruction": rec,
+        "mask": mask,
+        "volume_ml": mask_volume_ml(mask, grid),
+        "grid": grid,
+    }
 
 
 def write_nrrd(path, volume: np.ndarray, grid: VoxelGrid, *, description: str = "") -> None:
@@ -210,6 +241,7 @@ def write_nrrd(path, volume: np.ndarray, grid: VoxelGrid, *, description: str = 
     is written as 0 for float volumes.
     """
     import nrrd
+
     data = np.asarray(volume)
     if data.shape != tuple(grid.shape):
         raise ValueError(f"volume: shape {data.shape} != grid shape {grid.shape}")

@@ -28,17 +28,32 @@ import numpy as np
 
 from drake_rus.metrics.core import window_steps
 
-POLE_TO_POLE = ("pole to pole (the paper's eps, n, V, III-E): the pivot's second leg from its "
-                "first to its last frame showing the kidney (a straight line: its first to its "
-                "last frame showing the kidney)")
-WHOLE_PIVOT = ("whole pivot: every frame of the sweep, both pivot legs (out to one end, back "
-               "through the start, to the other end)")
-MATCHED_V = ("at matched coverage: pole-to-pole n and eps (from the span's first frame) needed "
-             "to first reach V")
+POLE_TO_POLE = (
+    "pole to pole (the paper's eps, n, V, III-E): the pivot's second leg from its "
+    "first to its last frame showing the kidney (a straight line: its first to its "
+    "last frame showing the kidney)"
+)
+WHOLE_PIVOT = (
+    "whole pivot: every frame of the sweep, both pivot legs (out to one end, back "
+    "through the start, to the other end)"
+)
+MATCHED_V = (
+    "at matched coverage: pole-to-pole n and eps (from the span's first frame) needed "
+    "to first reach V"
+)
 
-__all__ = ["MATCHED_V", "POLE_TO_POLE", "WHOLE_PIVOT", "cumulative_eps", "pivot_legs",
-           "pole_to_pole_indices", "signed_pivot_angles", "sweep_efficiency",
-           "tilt_cap_legs", "to_reach"]
+__all__ = [
+    "MATCHED_V",
+    "POLE_TO_POLE",
+    "WHOLE_PIVOT",
+    "cumulative_eps",
+    "pivot_legs",
+    "pole_to_pole_indices",
+    "signed_pivot_angles",
+    "sweep_efficiency",
+    "tilt_cap_legs",
+    "to_reach",
+]
 
 
 def signed_pivot_angles(R_BP_list, o: np.ndarray | None = None) -> np.ndarray:
@@ -72,7 +87,7 @@ def pivot_legs(angles, tol: float = 1e-9, direction_fraction: float = 0.25) -> n
     moved = np.flatnonzero(np.abs(th) > max(tol, direction_fraction * np.max(np.abs(th))))
     direction = np.sign(th[moved[0]])
     turn = int(np.argmax(direction * th))
-    legs[turn + 1:] = 2
+    legs[turn + 1 :] = 2
     return legs
 
 
@@ -121,8 +136,17 @@ def tilt_cap_legs(angles, legs, max_tilt: float, tol: float = np.deg2rad(0.5)) -
     return out
 
 
-def sweep_efficiency(poses, visible, image_depth: float, *, legs=None, coverage=None,
-                     V_targets=(0.9,), angles=None, max_tilt: float | None = None) -> dict:
+def sweep_efficiency(
+    poses,
+    visible,
+    image_depth: float,
+    *,
+    legs=None,
+    coverage=None,
+    V_targets=(0.9,),
+    angles=None,
+    max_tilt: float | None = None,
+) -> dict:
     """The sweep-cost metrics of one sweep (module docstring), SI units (m, rad).
 
     ``poses``: RigidTransform per acquired frame in order; ``visible``: kidney seen in each;
@@ -137,8 +161,7 @@ def sweep_efficiency(poses, visible, image_depth: float, *, legs=None, coverage=
     poses = list(poses)
     visible = np.asarray(visible, bool)
     if len(visible) != len(poses):
-        raise ValueError(f"visible: expected {len(poses)} flags (one per pose), got "
-                         f"{len(visible)}")
+        raise ValueError(f"visible: expected {len(poses)} flags (one per pose), got {len(visible)}")
     if legs is None and angles is not None:
         legs = pivot_legs(angles)
     idx = pole_to_pole_indices(visible, legs)
@@ -153,21 +176,29 @@ def sweep_efficiency(poses, visible, image_depth: float, *, legs=None, coverage=
         V_whole = np.asarray([acc.add_frame(X) for X in poses])
     targets = tuple(float(t) for t in V_targets)
     out = {
-        "n": len(p2p), "eps": float(eps_curve[-1]) if len(p2p) else 0.0,
+        "n": len(p2p),
+        "eps": float(eps_curve[-1]) if len(p2p) else 0.0,
         "V": (float(V_curve[-1]) if len(V_curve) else 0.0) if V_curve is not None else None,
-        "eps_curve": eps_curve, "V_curve": V_curve, "pole_to_pole": idx,
+        "eps_curve": eps_curve,
+        "V_curve": V_curve,
+        "pole_to_pole": idx,
         "n_whole_pivot": len(poses),
         "eps_whole_pivot": float(eps_whole[-1]) if poses else 0.0,
-        "V_whole_pivot": ((float(V_whole[-1]) if len(V_whole) else 0.0)
-                          if V_whole is not None else None),
-        "eps_whole_pivot_curve": eps_whole, "V_whole_pivot_curve": V_whole,
-        "at_V": {t: (to_reach(V_curve, eps_curve, t) if V_curve is not None else None)
-                 for t in targets},
-        "at_V_whole_pivot": {t: (to_reach(V_whole, eps_whole, t) if V_whole is not None
-                                 else None) for t in targets},
+        "V_whole_pivot": (
+            (float(V_whole[-1]) if len(V_whole) else 0.0) if V_whole is not None else None
+        ),
+        "eps_whole_pivot_curve": eps_whole,
+        "V_whole_pivot_curve": V_whole,
+        "at_V": {
+            t: (to_reach(V_curve, eps_curve, t) if V_curve is not None else None) for t in targets
+        },
+        "at_V_whole_pivot": {
+            t: (to_reach(V_whole, eps_whole, t) if V_whole is not None else None) for t in targets
+        },
         "tilt_cap_legs": [],
     }
     if angles is not None and max_tilt is not None:
         out["tilt_cap_legs"] = tilt_cap_legs(
-            angles, legs if legs is not None else np.ones(len(poses), int), max_tilt)
+            angles, legs if legs is not None else np.ones(len(poses), int), max_tilt
+        )
     return out

@@ -13,7 +13,8 @@ Networking: nothing talks to any address but the loopback. The video binds 127.0
 multicast with ttl=0 stays on the host, and to keep it off every interface the rehearsal
 runs in a private network namespace with only the loopback, multicast routed over it:
 
-    unshare -n bash -c 'ip link set lo up && ip route add 224.0.0.0/4 dev lo && drake-rus rehearse ...'
+    unshare -n bash -c 'ip link set lo up && ip route add 224.0.0.0/4 dev lo \\
+        && drake-rus rehearse ...'
 
 With --netns auto (default) the command does this by itself when run as root and not yet
 isolated; --netns no runs where it is (multicast then uses the host's multicast route,
@@ -32,8 +33,7 @@ import os
 import sys
 
 from drake_rus import interrupts
-from drake_rus.cli import EXIT_STATUS_HELP
-from drake_rus.cli import add_scenario_arguments
+from drake_rus.cli import EXIT_STATUS_HELP, add_scenario_arguments
 from drake_rus.extras import require
 from drake_rus.rehearsal.core import loopback_only, netns_argv
 from drake_rus.rehearsal.run import RehearsalOptions, RunRehearsal, SimProcessError
@@ -44,53 +44,108 @@ NETNS_ENV = "DRAKE_RUS_REHEARSAL_NETNS"
 
 def add_commands(subparsers) -> None:
     p = subparsers.add_parser(
-        "rehearse", help="software-in-the-loop rehearsal of a hardware scan (sim process on "
-                         "the real wire protocol)",
-        description=__doc__, epilog=EXIT_STATUS_HELP,
-        formatter_class=argparse.RawDescriptionHelpFormatter)
+        "rehearse",
+        help="software-in-the-loop rehearsal of a hardware scan (sim process on "
+        "the real wire protocol)",
+        description=__doc__,
+        epilog=EXIT_STATUS_HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     add_scenario_arguments(p)
-    p.add_argument("--patient", default="test:0",
-                   help="virtual patient for the simulated side (default test:0)")
+    p.add_argument(
+        "--patient",
+        default="test:0",
+        help="virtual patient for the simulated side (default test:0)",
+    )
     p.add_argument("--out", default="runs/rehearsal", help="output directory")
-    p.add_argument("--latency-ms", type=float, default=0.0,
-                   help="added command latency at the robot (ms)")
-    p.add_argument("--drop-status", type=float, default=0.0,
-                   help="probability of dropping each status packet")
-    p.add_argument("--video-delay-ms", type=float, default=0.0,
-                   help="delay of the video output (ms)")
-    p.add_argument("--freeze-video-at", type=float, default=None, metavar="T",
-                   help="freeze the picture T s after the robot's first command (the stream "
-                        "keeps flowing, like the machine's freeze key)")
-    p.add_argument("--expire-sec", type=float, default=None,
-                   help="the simulated driver's command expiry (s; default "
-                        "drake-franka-driver's 0.1)")
-    p.add_argument("--status-rate-hz", type=float, default=200.0,
-                   help="status rate and simulation tick of the simulated driver (Hz)")
-    p.add_argument("--declared-load", action="store_true",
-                   help="the probe is entered in Desk: the robot's torques exclude its weight "
-                        "(the scan side then sets lcm_compensate_load: false)")
+    p.add_argument(
+        "--latency-ms", type=float, default=0.0, help="added command latency at the robot (ms)"
+    )
+    p.add_argument(
+        "--drop-status", type=float, default=0.0, help="probability of dropping each status packet"
+    )
+    p.add_argument(
+        "--video-delay-ms", type=float, default=0.0, help="delay of the video output (ms)"
+    )
+    p.add_argument(
+        "--freeze-video-at",
+        type=float,
+        default=None,
+        metavar="T",
+        help="freeze the picture T s after the robot's first command (the stream "
+        "keeps flowing, like the machine's freeze key)",
+    )
+    p.add_argument(
+        "--expire-sec",
+        type=float,
+        default=None,
+        help="the simulated driver's command expiry (s; default drake-franka-driver's 0.1)",
+    )
+    p.add_argument(
+        "--status-rate-hz",
+        type=float,
+        default=200.0,
+        help="status rate and simulation tick of the simulated driver (Hz)",
+    )
+    p.add_argument(
+        "--declared-load",
+        action="store_true",
+        help="the probe is entered in Desk: the robot's torques exclude its weight "
+        "(the scan side then sets lcm_compensate_load: false)",
+    )
     p.add_argument("--lcm-url", default=DEFAULT_LCM_URL)
     p.add_argument("--seed", type=int, default=0, help="seed of the dropped packets")
-    p.add_argument("--max-sim-time", type=float, default=150.0,
-                   help="give up after this much scan time (s)")
-    p.add_argument("--nice", type=int, default=0,
-                   help="scheduling priority of both processes and their sessions (-20..19; "
-                        "below 0 needs root): on a shared machine whose other sessions keep "
-                        "the cores busy, e.g. -5 keeps the rehearsal at real time")
-    p.add_argument("--netns", choices=["auto", "yes", "no"], default="auto",
-                   help="run in a private network namespace (see above; default auto)")
+    p.add_argument(
+        "--max-sim-time", type=float, default=150.0, help="give up after this much scan time (s)"
+    )
+    p.add_argument(
+        "--nice",
+        type=int,
+        default=0,
+        help="scheduling priority of both processes and their sessions (-20..19; "
+        "below 0 needs root): on a shared machine whose other sessions keep "
+        "the cores busy, e.g. -5 keeps the rehearsal at real time",
+    )
+    p.add_argument(
+        "--netns",
+        choices=["auto", "yes", "no"],
+        default="auto",
+        help="run in a private network namespace (see above; default auto)",
+    )
     p.set_defaults(func=run_rehearse_command)
 
 
 def _argv(args) -> list[str]:
     """The command line that reproduces ``args`` (for the re-exec in a namespace)."""
-    argv = ["rehearse", "--scenario", args.scenario, "--scenarios-file", args.scenarios_file,
-            "--patient", args.patient, "--out", args.out, "--latency-ms", repr(args.latency_ms),
-            "--drop-status", repr(args.drop_status), "--video-delay-ms",
-            repr(args.video_delay_ms), "--status-rate-hz", repr(args.status_rate_hz),
-            "--lcm-url", args.lcm_url, "--seed", str(args.seed),
-            "--max-sim-time", repr(args.max_sim_time), "--nice", str(args.nice),
-            "--netns", "no"]
+    argv = [
+        "rehearse",
+        "--scenario",
+        args.scenario,
+        "--scenarios-file",
+        args.scenarios_file,
+        "--patient",
+        args.patient,
+        "--out",
+        args.out,
+        "--latency-ms",
+        repr(args.latency_ms),
+        "--drop-status",
+        repr(args.drop_status),
+        "--video-delay-ms",
+        repr(args.video_delay_ms),
+        "--status-rate-hz",
+        repr(args.status_rate_hz),
+        "--lcm-url",
+        args.lcm_url,
+        "--seed",
+        str(args.seed),
+        "--max-sim-time",
+        repr(args.max_sim_time),
+        "--nice",
+        str(args.nice),
+        "--netns",
+        "no",
+    ]
     if args.overrides:
         argv += ["--set", args.overrides]
     if args.freeze_video_at is not None:
@@ -113,19 +168,32 @@ def _reexec_in_netns(args) -> None:
 def run_rehearse_command(args) -> int:
     require("cv2", "rehearse (the simulated ultrasound machine's video stream)")
     options = RehearsalOptions(
-        patient=args.patient, scenario=args.scenario, scenarios_file=args.scenarios_file,
-        overrides=args.overrides, latency_ms=args.latency_ms, drop_status=args.drop_status,
-        video_delay_ms=args.video_delay_ms, freeze_video_at=args.freeze_video_at,
-        expire_sec=args.expire_sec, rate_hz=args.status_rate_hz, lcm_url=args.lcm_url,
-        declared_load=args.declared_load, seed=args.seed, max_sim_time=args.max_sim_time,
-        nice=args.nice)
+        patient=args.patient,
+        scenario=args.scenario,
+        scenarios_file=args.scenarios_file,
+        overrides=args.overrides,
+        latency_ms=args.latency_ms,
+        drop_status=args.drop_status,
+        video_delay_ms=args.video_delay_ms,
+        freeze_video_at=args.freeze_video_at,
+        expire_sec=args.expire_sec,
+        rate_hz=args.status_rate_hz,
+        lcm_url=args.lcm_url,
+        declared_load=args.declared_load,
+        seed=args.seed,
+        max_sim_time=args.max_sim_time,
+        nice=args.nice,
+    )
     isolated = loopback_only()
     if not isolated and os.environ.get(NETNS_ENV) != "1":
         if args.netns == "yes" or (args.netns == "auto" and os.geteuid() == 0):
-            _reexec_in_netns(args)          # does not return
+            _reexec_in_netns(args)  # does not return
         if args.netns == "auto":
-            print("rehearse: not root, running without a private network namespace (LCM "
-                  "multicast stays on this host with ttl=0; see --help)", file=sys.stderr)
+            print(
+                "rehearse: not root, running without a private network namespace (LCM "
+                "multicast stays on this host with ttl=0; see --help)",
+                file=sys.stderr,
+            )
     # SIGTERM ends the command like Ctrl-C (drake_rus.interrupts, installed by drake-rus):
     # the scan's session stops the robot and the simulated side is stopped on the way out.
     try:
@@ -139,20 +207,25 @@ def run_rehearse_command(args) -> int:
     def f(x, digits=2):
         return "n/a" if x is None else f"{x:.{digits}f}"
 
-    print(f"{report['status']}{': ' + report['reason'] if report['status'] != 'DONE' else ''}"
-          f" | E_trans {f(report['e_trans_mm'])} mm, E_rot,x {f(report['e_rot_x_deg'])} deg"
-          f" | commands at the robot: {cmd['count']} (lost "
-          f"{report['commands_at_sim']['sequence_gaps']}), age median {f(cmd['median_ms'])} "
-          f"ms, max {f(cmd['max_ms'])} ms | real time: scan {f(rt['scan']['margin'])}x per "
-          f"CPU s, max lag {f(1e3 * rt['scan']['max_lag_s'], 0)} ms; sim "
-          f"{f(rt['sim']['cpu_margin'])}x per CPU s ({f(rt['sim']['margin'])}x when running), "
-          f"max lag {f(1e3 * rt['sim']['max_lag_s'], 0)} ms")
+    print(
+        f"{report['status']}{': ' + report['reason'] if report['status'] != 'DONE' else ''}"
+        f" | E_trans {f(report['e_trans_mm'])} mm, E_rot,x {f(report['e_rot_x_deg'])} deg"
+        f" | commands at the robot: {cmd['count']} (lost "
+        f"{report['commands_at_sim']['sequence_gaps']}), age median {f(cmd['median_ms'])} "
+        f"ms, max {f(cmd['max_ms'])} ms | real time: scan {f(rt['scan']['margin'])}x per "
+        f"CPU s, max lag {f(1e3 * rt['scan']['max_lag_s'], 0)} ms; sim "
+        f"{f(rt['sim']['cpu_margin'])}x per CPU s ({f(rt['sim']['margin'])}x when running), "
+        f"max lag {f(1e3 * rt['sim']['max_lag_s'], 0)} ms"
+    )
     lag = rt["sim"]["max_lag_s"]
     if lag > 0.1:
-        print(f"rehearse: warning: the simulated robot fell up to {lag:.2f} s behind the wall "
-              f"clock ({rt['sim']['late_ticks']} of {rt['sim']['ticks']} ticks late): its "
-              f"physics lagged the commands, the rehearsal was less faithful (a busy machine? "
-              f"see --nice)", file=sys.stderr)
+        print(
+            f"rehearse: warning: the simulated robot fell up to {lag:.2f} s behind the wall "
+            f"clock ({rt['sim']['late_ticks']} of {rt['sim']['ticks']} ticks late): its "
+            f"physics lagged the commands, the rehearsal was less faithful (a busy machine? "
+            f"see --nice)",
+            file=sys.stderr,
+        )
     print(f"wrote {os.path.join(args.out, 'rehearsal.json')}")
     if report["status"] == "INTERRUPTED":
         return interrupts.exit_status()

@@ -25,8 +25,16 @@ from drake_rus.metrics import e_rot_x, e_trans
 from drake_rus.metrics.core import geodesic_angle
 
 __all__ = [
-    "age_statistics", "stop_reaction", "PivotDetector", "scan_overrides", "pose_to_json",
-    "pose_from_json", "kidney_errors", "loopback_only", "NETNS_SETUP", "netns_argv",
+    "age_statistics",
+    "stop_reaction",
+    "PivotDetector",
+    "scan_overrides",
+    "pose_to_json",
+    "pose_from_json",
+    "kidney_errors",
+    "loopback_only",
+    "NETNS_SETUP",
+    "netns_argv",
     "raise_priority",
 ]
 
@@ -40,13 +48,16 @@ def age_statistics(ages_s) -> dict:
     a = np.asarray([x for x in ages_s if math.isfinite(x)], float)
     if a.size == 0:
         return {"count": 0, "median_ms": None, "p95_ms": None, "max_ms": None, "min_ms": None}
-    return {"count": int(a.size), "median_ms": float(np.median(a) * 1e3),
-            "p95_ms": float(np.percentile(a, 95) * 1e3), "max_ms": float(a.max() * 1e3),
-            "min_ms": float(a.min() * 1e3)}
+    return {
+        "count": int(a.size),
+        "median_ms": float(np.median(a) * 1e3),
+        "p95_ms": float(np.percentile(a, 95) * 1e3),
+        "max_ms": float(a.max() * 1e3),
+        "min_ms": float(a.min() * 1e3),
+    }
 
 
-def stop_reaction(t_signal: float, commands, speeds, *,
-                  rest_speeds=(1e-2, 1e-3)) -> dict:
+def stop_reaction(t_signal: float, commands, speeds, *, rest_speeds=(1e-2, 1e-3)) -> dict:
     """How fast the simulated robot stopped after a stop signal at wall time ``t_signal`` (s).
 
     ``commands``: [(wall time s it arrived at the robot, max |v| commanded rad/s)], in
@@ -56,8 +67,13 @@ def stop_reaction(t_signal: float, commands, speeds, *,
     ``first_zero_command`` (the first zero command after the signal), ``command_zero`` (the
     applied command zero for good), ``at_rest`` {threshold rad/s: the max |joint velocity|
     below it for good}; and ``speed_at_signal`` (rad/s)."""
-    out = {"last_moving_command": None, "first_zero_command": None, "command_zero": None,
-           "at_rest": {}, "speed_at_signal": None}
+    out = {
+        "last_moving_command": None,
+        "first_zero_command": None,
+        "command_zero": None,
+        "at_rest": {},
+        "speed_at_signal": None,
+    }
     moving = [t for t, v in commands if v > 0.0]
     if moving:
         out["last_moving_command"] = moving[-1] - t_signal
@@ -87,8 +103,14 @@ class PivotDetector:
     probe turns at ``rate_range`` rad/s, over a ``window`` s. ``update`` returns how long
     (s) the motion has been PIVOT-like without a break (0 when it is not)."""
 
-    def __init__(self, *, window: float = 0.2, max_tip_speed: float = 0.002,
-                 rate_range=(0.08, 0.4), min_force: float = 2.0):
+    def __init__(
+        self,
+        *,
+        window: float = 0.2,
+        max_tip_speed: float = 0.002,
+        rate_range=(0.08, 0.4),
+        min_force: float = 2.0,
+    ):
         self.window = float(window)
         self.max_tip_speed = float(max_tip_speed)
         self.rate_range = (float(rate_range[0]), float(rate_range[1]))
@@ -99,7 +121,7 @@ class PivotDetector:
         self.turn_rate = math.nan
 
     def update(self, t: float, X_BP: RigidTransform, force: float) -> float:
-        self._samples.append((float(t), RigidTransform(X_BP)))   # a copy: ports reuse theirs
+        self._samples.append((float(t), RigidTransform(X_BP)))  # a copy: ports reuse theirs
         while len(self._samples) > 2 and self._samples[1][0] <= t - self.window:
             self._samples.pop(0)
         t0, X0 = self._samples[0]
@@ -108,8 +130,11 @@ class PivotDetector:
             return 0.0 if self._since is None else t - self._since
         self.tip_speed = float(np.linalg.norm(X_BP.translation() - X0.translation()) / dt)
         self.turn_rate = geodesic_angle(X0.rotation().matrix(), X_BP.rotation().matrix()) / dt
-        pivoting = (force >= self.min_force and self.tip_speed <= self.max_tip_speed
-                    and self.rate_range[0] <= self.turn_rate <= self.rate_range[1])
+        pivoting = (
+            force >= self.min_force
+            and self.tip_speed <= self.max_tip_speed
+            and self.rate_range[0] <= self.turn_rate <= self.rate_range[1]
+        )
         if not pivoting:
             self._since = None
             return 0.0
@@ -122,18 +147,25 @@ def scan_overrides(ready: dict, *, compensate_load: bool = True) -> str:
     """The scan side's scenario overrides (YAML) for a simulated robot that announced
     ``ready`` (its ``lcm_url``, channels, ``video_url`` and the depth preset ``depth`` the
     operator sets on the machine): the hardware station on the LCM route, moving."""
-    hw = {"backend": "lcm", "lcm_url": ready["lcm_url"],
-          "lcm_command_channel": ready["command_channel"],
-          "lcm_status_channel": ready["status_channel"],
-          "video_source": ready["video_url"], "dry_run": False,
-          "lcm_compensate_load": bool(compensate_load)}
-    return json.dumps({"hardware": True, "imaging": {"depth": float(ready["depth"])},
-                       "hardware_interface": hw})
+    hw = {
+        "backend": "lcm",
+        "lcm_url": ready["lcm_url"],
+        "lcm_command_channel": ready["command_channel"],
+        "lcm_status_channel": ready["status_channel"],
+        "video_source": ready["video_url"],
+        "dry_run": False,
+        "lcm_compensate_load": bool(compensate_load),
+    }
+    return json.dumps(
+        {"hardware": True, "imaging": {"depth": float(ready["depth"])}, "hardware_interface": hw}
+    )
 
 
 def pose_to_json(X: RigidTransform) -> dict:
-    return {"translation": [float(v) for v in X.translation()],
-            "rotation": [[float(v) for v in row] for row in X.rotation().matrix()]}
+    return {
+        "translation": [float(v) for v in X.translation()],
+        "rotation": [[float(v) for v in row] for row in X.rotation().matrix()],
+    }
 
 
 def pose_from_json(d: dict) -> RigidTransform:
@@ -146,8 +178,10 @@ def kidney_errors(X_BK_estimated: RigidTransform | None, X_BK_true: RigidTransfo
     without an estimate)."""
     if X_BK_estimated is None:
         return {"e_trans_mm": None, "e_rot_x_deg": None}
-    return {"e_trans_mm": e_trans(X_BK_estimated, X_BK_true) * 1e3,
-            "e_rot_x_deg": math.degrees(e_rot_x(X_BK_estimated, X_BK_true))}
+    return {
+        "e_trans_mm": e_trans(X_BK_estimated, X_BK_true) * 1e3,
+        "e_rot_x_deg": math.degrees(e_rot_x(X_BK_estimated, X_BK_true)),
+    }
 
 
 def loopback_only() -> bool:
@@ -164,8 +198,7 @@ def loopback_only() -> bool:
 def netns_argv(argv: list[str]) -> list[str]:
     """``argv`` run in a new private network namespace with only the loopback, multicast
     routed over it (needs root, or unprivileged user namespaces)."""
-    return ["unshare", "-n", "bash", "-c", NETNS_SETUP + ' && exec "$@"', "drake-rus-netns",
-            *argv]
+    return ["unshare", "-n", "bash", "-c", NETNS_SETUP + ' && exec "$@"', "drake-rus-netns", *argv]
 
 
 def raise_priority(nice: int) -> str:
@@ -186,5 +219,5 @@ def raise_priority(nice: int) -> str:
         Path("/proc/self/autogroup").write_text(f"{int(nice)}\n")
         done.append("session group too")
     except OSError:
-        pass                      # no autogroup scheduling: the process nice is enough
+        pass  # no autogroup scheduling: the process nice is enough
     return ", ".join(done)

@@ -38,12 +38,13 @@ __all__ = ["RunStopDrill", "merge_overrides"]
 def merge_overrides(*texts) -> str:
     """One YAML mapping (as JSON) from several override mappings, later ones winning
     (nested mappings merged)."""
+
     def merge(a: dict, b: dict) -> dict:
         out = dict(a)
         for k, v in b.items():
-            out[k] = merge(out[k], v) if isinstance(v, dict) and isinstance(
-                out.get(k), dict) else v
+            out[k] = merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
         return out
+
     result: dict = {}
     for text in texts:
         if text:
@@ -54,8 +55,14 @@ def merge_overrides(*texts) -> str:
     return json.dumps(result)
 
 
-def RunStopDrill(options: RehearsalOptions, out, *, pivot_after: float = 1.0,
-                 wait_limit: float = 120.0, after_signal: float = 1.0) -> dict:
+def RunStopDrill(
+    options: RehearsalOptions,
+    out,
+    *,
+    pivot_after: float = 1.0,
+    wait_limit: float = 120.0,
+    after_signal: float = 1.0,
+) -> dict:
     """The stop drill (module doc). Returns (and writes to ``out``/stop_drill.json) the
     signal's wall time, the scan's exit code, the PIVOT-like state when signalled and
     :func:`drake_rus.rehearsal.core.stop_reaction` at the simulated robot."""
@@ -70,21 +77,38 @@ def RunStopDrill(options: RehearsalOptions, out, *, pivot_after: float = 1.0,
     try:
         with SimProcess(out, options) as sim:
             ready = sim.start()
-            overrides = merge_overrides(options.overrides, scan_overrides(
-                ready, compensate_load=not options.declared_load))
-            argv = [sys.executable, "-m", "drake_rus.cli", "scan", "--scenario",
-                    options.scenario, "--scenarios-file", str(options.scenarios_file),
-                    "--set", overrides, "--no-record", "--out", str(out / "scan"),
-                    "--max-sim-time", repr(float(options.max_sim_time))]
+            overrides = merge_overrides(
+                options.overrides, scan_overrides(ready, compensate_load=not options.declared_load)
+            )
+            argv = [
+                sys.executable,
+                "-m",
+                "drake_rus.cli",
+                "scan",
+                "--scenario",
+                options.scenario,
+                "--scenarios-file",
+                str(options.scenarios_file),
+                "--set",
+                overrides,
+                "--no-record",
+                "--out",
+                str(out / "scan"),
+                "--max-sim-time",
+                repr(float(options.max_sim_time)),
+            ]
             # In this session (its scheduling group, see raise_priority); signalled by pid.
-            scan = subprocess.Popen(argv, stdout=scan_out, stderr=subprocess.STDOUT,
-                                    stdin=subprocess.DEVNULL)
+            scan = subprocess.Popen(
+                argv, stdout=scan_out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL
+            )
             deadline = time.monotonic() + wait_limit
             live = None
             while time.monotonic() < deadline:
                 if scan.poll() is not None:
-                    raise SimProcessError(f"the scan ended (code {scan.returncode}) before "
-                                          f"the robot pivoted:\n{_tail(out / 'scan.out')}")
+                    raise SimProcessError(
+                        f"the scan ended (code {scan.returncode}) before "
+                        f"the robot pivoted:\n{_tail(out / 'scan.out')}"
+                    )
                 if not sim.alive():
                     raise SimProcessError(f"the simulated robot died:\n{sim.tail()}")
                 live = sim.live()
@@ -92,15 +116,16 @@ def RunStopDrill(options: RehearsalOptions, out, *, pivot_after: float = 1.0,
                     break
                 time.sleep(0.02)
             else:
-                raise SimProcessError(f"no PIVOT-like motion within {wait_limit:g} s (last "
-                                      f"live state {live})")
+                raise SimProcessError(
+                    f"no PIVOT-like motion within {wait_limit:g} s (last live state {live})"
+                )
             t_signal = time.time()
             scan.send_signal(signal.SIGTERM)
             try:
                 code = scan.wait(15.0)
             except subprocess.TimeoutExpired:
                 code = None
-            time.sleep(after_signal)          # let the robot settle, on the record
+            time.sleep(after_signal)  # let the robot settle, on the record
             log = sim.stop()
         if log is None:
             raise SimProcessError(f"the simulated robot wrote no log:\n{sim.tail()}")
@@ -111,13 +136,18 @@ def RunStopDrill(options: RehearsalOptions, out, *, pivot_after: float = 1.0,
         scan_out.close()
     commands = [(a[0], a[2]) for a in log["arrival_trace"]]
     reaction = stop_reaction(t_signal, commands, log["speed_trace"])
-    report.update({
-        "signal_wall": t_signal, "scan_exit_code": code,
-        "scan_time_at_signal_s": live.get("sim_t"), "live_at_signal": live,
-        "reaction_s": reaction, "commands_at_sim": log["commands"],
-        "joint_velocity_end_at_sim": log["joint_velocity_end"],
-        "realtime_sim": log["realtime"],
-    })
+    report.update(
+        {
+            "signal_wall": t_signal,
+            "scan_exit_code": code,
+            "scan_time_at_signal_s": live.get("sim_t"),
+            "live_at_signal": live,
+            "reaction_s": reaction,
+            "commands_at_sim": log["commands"],
+            "joint_velocity_end_at_sim": log["joint_velocity_end"],
+            "realtime_sim": log["realtime"],
+        }
+    )
     write_text_atomic(out / "stop_drill.json", json.dumps(report, indent=2) + "\n")
     return report
 
@@ -130,22 +160,33 @@ def _tail(path: Path, lines: int = 20) -> str:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m drake_rus.rehearsal.drill",
-                                description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="python -m drake_rus.rehearsal.drill",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--out", required=True)
     p.add_argument("--patient", default="test:0")
     p.add_argument("--scenario", default="quick")
     p.add_argument("--scenarios-file", default=str(DEFAULT_SCENARIOS_FILE))
     p.add_argument("--set", dest="overrides", default=None)
-    p.add_argument("--pivot-after", type=float, default=1.0,
-                   help="seconds of PIVOT-like motion before the signal")
+    p.add_argument(
+        "--pivot-after",
+        type=float,
+        default=1.0,
+        help="seconds of PIVOT-like motion before the signal",
+    )
     p.add_argument("--nice", type=int, default=0)
     p.add_argument("--max-sim-time", type=float, default=60.0)
     args = p.parse_args(argv)
-    options = RehearsalOptions(patient=args.patient, scenario=args.scenario,
-                               scenarios_file=args.scenarios_file, overrides=args.overrides,
-                               nice=args.nice, max_sim_time=args.max_sim_time)
+    options = RehearsalOptions(
+        patient=args.patient,
+        scenario=args.scenario,
+        scenarios_file=args.scenarios_file,
+        overrides=args.overrides,
+        nice=args.nice,
+        max_sim_time=args.max_sim_time,
+    )
     try:
         report = RunStopDrill(options, args.out, pivot_after=args.pivot_after)
     except (SimProcessError, MissingExtra) as e:
@@ -155,12 +196,15 @@ def main(argv=None) -> int:
 
     def ms(x):
         return "never" if x is None else f"{1e3 * x:.1f} ms"
+
     rest = ", ".join(f"|v| < {k} rad/s {ms(v)}" for k, v in r["at_rest"].items())
-    print(f"stop drill: SIGTERM at scan time {report['scan_time_at_signal_s']:.2f} s "
-          f"(PIVOT-like for {report['live_at_signal']['pivot_like_s']:.2f} s, joints at "
-          f"{r['speed_at_signal']:.3f} rad/s); scan exit code {report['scan_exit_code']}; at "
-          f"the robot after the signal: first zero command {ms(r['first_zero_command'])}, "
-          f"applied command zero {ms(r['command_zero'])}, {rest}")
+    print(
+        f"stop drill: SIGTERM at scan time {report['scan_time_at_signal_s']:.2f} s "
+        f"(PIVOT-like for {report['live_at_signal']['pivot_like_s']:.2f} s, joints at "
+        f"{r['speed_at_signal']:.3f} rad/s); scan exit code {report['scan_exit_code']}; at "
+        f"the robot after the signal: first zero command {ms(r['first_zero_command'])}, "
+        f"applied command zero {ms(r['command_zero'])}, {rest}"
+    )
     return 0
 
 

@@ -33,11 +33,11 @@ BOUNDARY = "drakerusframe"
 def encode_jpeg(image: np.ndarray, quality: int = 90) -> bytes:
     """JPEG bytes of a uint8 grey (rows, cols) or BGR picture (OpenCV)."""
     cv2 = require("cv2", "the rehearsal's video stream")
-    ok, data = cv2.imencode(".jpg", np.ascontiguousarray(image),
-                            [int(cv2.IMWRITE_JPEG_QUALITY), int(quality)])
+    ok, data = cv2.imencode(
+        ".jpg", np.ascontiguousarray(image), [int(cv2.IMWRITE_JPEG_QUALITY), int(quality)]
+    )
     if not ok:
-        raise ValueError(f"encode_jpeg: OpenCV cannot encode a picture of shape "
-                         f"{np.shape(image)}")
+        raise ValueError(f"encode_jpeg: OpenCV cannot encode a picture of shape {np.shape(image)}")
     return data.tobytes()
 
 
@@ -55,7 +55,7 @@ class FrameBuffer:
         self.delay = float(delay)
         self._clock = clock
         self._lock = threading.Lock()
-        self._frames: collections.deque = collections.deque()   # (stamp, sequence, jpeg)
+        self._frames: collections.deque = collections.deque()  # (stamp, sequence, jpeg)
         self._sequence = 0
         self.frozen_at: float | None = None
         self.pushed = 0
@@ -99,11 +99,19 @@ class MjpegServer:
     port; see ``port`` after construction), sending the buffer's picture every
     1 / ``frame_rate_hz`` s to each client. ``close()`` stops it (idempotent)."""
 
-    def __init__(self, buffer: FrameBuffer, *, frame_rate_hz: float = 20.0, port: int = 0,
-                 host: str = "127.0.0.1", quality: int = 90):
-        if host != "127.0.0.1":       # "localhost" may resolve to another address
-            raise ValueError(f"MjpegServer: binds the loopback address 127.0.0.1 only, got "
-                             f"{host!r}")
+    def __init__(
+        self,
+        buffer: FrameBuffer,
+        *,
+        frame_rate_hz: float = 20.0,
+        port: int = 0,
+        host: str = "127.0.0.1",
+        quality: int = 90,
+    ):
+        if host != "127.0.0.1":  # "localhost" may resolve to another address
+            raise ValueError(
+                f"MjpegServer: binds the loopback address 127.0.0.1 only, got {host!r}"
+            )
         self.buffer = buffer
         self.quality = int(quality)
         self.period = 1.0 / float(frame_rate_hz)
@@ -115,7 +123,7 @@ class MjpegServer:
         class Handler(http.server.BaseHTTPRequestHandler):
             protocol_version = "HTTP/1.0"
 
-            def log_message(self, fmt, *args):      # quiet
+            def log_message(self, fmt, *args):  # quiet
                 LOG.debug("mjpeg %s: " + fmt, self.client_address, *args)
 
             def do_GET(self):
@@ -131,9 +139,12 @@ class MjpegServer:
         self._httpd.daemon_threads = True
         self.host = host
         self.port = int(self._httpd.server_address[1])
-        self._thread = threading.Thread(target=self._httpd.serve_forever,
-                                        kwargs={"poll_interval": 0.1},
-                                        name="drake_rus_mjpeg", daemon=True)
+        self._thread = threading.Thread(
+            target=self._httpd.serve_forever,
+            kwargs={"poll_interval": 0.1},
+            name="drake_rus_mjpeg",
+            daemon=True,
+        )
         self._thread.start()
 
     @property
@@ -181,18 +192,23 @@ class MjpegServer:
                 frame = self.buffer.current()
                 data = frame[1]
                 handler.wfile.write(
-                    (f"--{BOUNDARY}\r\nContent-Type: image/jpeg\r\nContent-Length: "
-                     f"{len(data)}\r\n\r\n").encode() + data + b"\r\n")
+                    (
+                        f"--{BOUNDARY}\r\nContent-Type: image/jpeg\r\nContent-Length: "
+                        f"{len(data)}\r\n\r\n"
+                    ).encode()
+                    + data
+                    + b"\r\n"
+                )
                 handler.wfile.flush()
                 self.sent += 1
                 next_time += self.period
                 delay = next_time - time.monotonic()
-                if delay < -self.period:        # fell behind: do not burst
+                if delay < -self.period:  # fell behind: do not burst
                     next_time = time.monotonic()
                 elif delay > 0:
                     self.stop_event.wait(delay)
         except (BrokenPipeError, ConnectionResetError, ConnectionAbortedError, OSError):
-            pass                                # the client went away
+            pass  # the client went away
 
     def close(self) -> None:
         if self.stop_event.is_set():

@@ -27,7 +27,12 @@ from drake_rus.io_utils import write_text_atomic
 from drake_rus.localization.localize import load_registration_template
 from drake_rus.provenance import Provenance
 from drake_rus.rehearsal.core import (
-    kidney_errors, loopback_only, pose_from_json, raise_priority, scan_overrides)
+    kidney_errors,
+    loopback_only,
+    pose_from_json,
+    raise_priority,
+    scan_overrides,
+)
 from drake_rus.rehearsal.sim_process import DEFAULT_LCM_URL
 from drake_rus.scan.metrics import ScanMetrics, Summary
 from drake_rus.scan.report import WriteScanOutputs
@@ -35,8 +40,14 @@ from drake_rus.scan.run import RunScan, ScanMonitor
 from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, ApplyOverrides, LoadScenario
 from drake_rus.stations import MakeStation
 
-__all__ = ["RehearsalOptions", "SimProcess", "SimProcessError", "RunRehearsal",
-           "LagMonitor", "scan_scenario"]
+__all__ = [
+    "RehearsalOptions",
+    "SimProcess",
+    "SimProcessError",
+    "RunRehearsal",
+    "LagMonitor",
+    "scan_scenario",
+]
 
 
 # Status rates (Hz) the simulated driver accepts: it ticks the simulation at this rate; the
@@ -53,6 +64,7 @@ class SimProcessError(RuntimeError):
 @dataclasses.dataclass
 class RehearsalOptions:
     """What to rehearse (see ``drake-rus rehearse --help``)."""
+
     patient: str = "test:0"
     scenario: str = "default"
     scenarios_file: str = str(DEFAULT_SCENARIOS_FILE)
@@ -75,25 +87,29 @@ class RehearsalOptions:
         for name in ("latency_ms", "video_delay_ms"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
-                raise ValueError(f"--{name.replace('_', '-')}: expected a non-negative time, "
-                                 f"got {v}")
+                raise ValueError(
+                    f"--{name.replace('_', '-')}: expected a non-negative time, got {v}"
+                )
         if not 0.0 <= self.drop_status <= 1.0:
-            raise ValueError(f"--drop-status: expected a probability in [0, 1], got "
-                             f"{self.drop_status}")
+            raise ValueError(
+                f"--drop-status: expected a probability in [0, 1], got {self.drop_status}"
+            )
         if self.freeze_video_at is not None and not self.freeze_video_at >= 0:
-            raise ValueError(f"--freeze-video-at: expected a time >= 0 s, got "
-                             f"{self.freeze_video_at}")
-        if self.expire_sec is not None and not (math.isfinite(self.expire_sec)
-                                                and self.expire_sec >= 0):
-            raise ValueError(f"--expire-sec: expected a non-negative time, got "
-                             f"{self.expire_sec}")
+            raise ValueError(
+                f"--freeze-video-at: expected a time >= 0 s, got {self.freeze_video_at}"
+            )
+        if self.expire_sec is not None and not (
+            math.isfinite(self.expire_sec) and self.expire_sec >= 0
+        ):
+            raise ValueError(f"--expire-sec: expected a non-negative time, got {self.expire_sec}")
         lo, hi = STATUS_RATE_HZ
         if not (math.isfinite(self.rate_hz) and lo <= self.rate_hz <= hi):
-            raise ValueError(f"--status-rate-hz: expected a status rate of {lo:g}-{hi:g} Hz "
-                             f"(the real driver: 1000), got {self.rate_hz:g}")
+            raise ValueError(
+                f"--status-rate-hz: expected a status rate of {lo:g}-{hi:g} Hz "
+                f"(the real driver: 1000), got {self.rate_hz:g}"
+            )
         if not (self.max_sim_time > 0):
-            raise ValueError(f"--max-sim-time: expected a positive time, got "
-                             f"{self.max_sim_time}")
+            raise ValueError(f"--max-sim-time: expected a positive time, got {self.max_sim_time}")
 
 
 class SimProcess:
@@ -116,16 +132,41 @@ class SimProcess:
 
     def argv(self) -> list[str]:
         o = self.options
-        argv = [sys.executable, "-m", "drake_rus.rehearsal.sim_process",
-                "--patient", o.patient, "--scenario", o.scenario,
-                "--scenarios-file", str(o.scenarios_file), "--lcm-url", o.lcm_url,
-                "--rate-hz", repr(float(o.rate_hz)), "--latency-ms", repr(float(o.latency_ms)),
-                "--drop-status", repr(float(o.drop_status)),
-                "--video-delay-ms", repr(float(o.video_delay_ms)), "--seed", str(o.seed),
-                "--ready", str(self.ready_path), "--log", str(self.log_path),
-                "--live", str(self.live_path), "--stop-file", str(self.stop_path),
-                "--parent-pid", str(os.getpid()),
-                "--max-wall", repr(float(o.ready_timeout + 3 * o.max_sim_time + 120.0))]
+        argv = [
+            sys.executable,
+            "-m",
+            "drake_rus.rehearsal.sim_process",
+            "--patient",
+            o.patient,
+            "--scenario",
+            o.scenario,
+            "--scenarios-file",
+            str(o.scenarios_file),
+            "--lcm-url",
+            o.lcm_url,
+            "--rate-hz",
+            repr(float(o.rate_hz)),
+            "--latency-ms",
+            repr(float(o.latency_ms)),
+            "--drop-status",
+            repr(float(o.drop_status)),
+            "--video-delay-ms",
+            repr(float(o.video_delay_ms)),
+            "--seed",
+            str(o.seed),
+            "--ready",
+            str(self.ready_path),
+            "--log",
+            str(self.log_path),
+            "--live",
+            str(self.live_path),
+            "--stop-file",
+            str(self.stop_path),
+            "--parent-pid",
+            str(os.getpid()),
+            "--max-wall",
+            repr(float(o.ready_timeout + 3 * o.max_sim_time + 120.0)),
+        ]
         if o.overrides:
             argv += ["--set", o.overrides]
         if o.freeze_video_at is not None:
@@ -147,19 +188,28 @@ class SimProcess:
         try:
             # Its own session: the terminal's Ctrl-C reaches only this process, which stops
             # the scan at zero velocity first and then the child.
-            self.process = subprocess.Popen(self.argv(), stdout=out, stderr=subprocess.STDOUT,
-                                            stdin=subprocess.DEVNULL, start_new_session=True)
+            self.process = subprocess.Popen(
+                self.argv(),
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                start_new_session=True,
+            )
         finally:
             out.close()
         deadline = time.monotonic() + self.options.ready_timeout
         while not self.ready_path.exists():
             if self.process.poll() is not None:
-                raise SimProcessError(f"the simulated robot's process ended with code "
-                                      f"{self.process.returncode} before it was ready:\n"
-                                      f"{self.tail()}")
+                raise SimProcessError(
+                    f"the simulated robot's process ended with code "
+                    f"{self.process.returncode} before it was ready:\n"
+                    f"{self.tail()}"
+                )
             if time.monotonic() > deadline:
-                raise SimProcessError(f"the simulated robot was not ready within "
-                                      f"{self.options.ready_timeout:g} s:\n{self.tail()}")
+                raise SimProcessError(
+                    f"the simulated robot was not ready within "
+                    f"{self.options.ready_timeout:g} s:\n{self.tail()}"
+                )
             time.sleep(0.05)
         self.ready = json.loads(self.ready_path.read_text())
         return self.ready
@@ -229,10 +279,16 @@ class LagMonitor(ScanMonitor):
 def scan_scenario(options: RehearsalOptions, ready: dict):
     """The scan side's scenario: the rehearsal's scenario on the hardware station, LCM route,
     at the depth preset the simulated machine runs (as the operator sets it)."""
-    scenario = LoadScenario(filename=options.scenarios_file, scenario_name=options.scenario,
-                            scenario_text=options.overrides)
-    return ApplyOverrides(scenario, scan_overrides(
-        ready, compensate_load=not options.declared_load), "rehearsal scan side")
+    scenario = LoadScenario(
+        filename=options.scenarios_file,
+        scenario_name=options.scenario,
+        scenario_text=options.overrides,
+    )
+    return ApplyOverrides(
+        scenario,
+        scan_overrides(ready, compensate_load=not options.declared_load),
+        "rehearsal scan side",
+    )
 
 
 def RunRehearsal(options: RehearsalOptions, out, *, progress: bool | None = None) -> dict:
@@ -240,30 +296,42 @@ def RunRehearsal(options: RehearsalOptions, out, *, progress: bool | None = None
     MissingExtra (nothing written) without OpenCV, which the video stream needs."""
     require("cv2", "the rehearsal (its ultrasound video stream)")
     out = Path(out)
-    provenance = rehearsal_provenance(options)     # a bad scenario fails before any output
+    provenance = rehearsal_provenance(options)  # a bad scenario fails before any output
     out.mkdir(parents=True, exist_ok=True)
-    report: dict = {"patient": options.patient, "scenario": options.scenario,
-                    "faults": {"latency_ms": options.latency_ms,
-                               "drop_status": options.drop_status,
-                               "video_delay_ms": options.video_delay_ms,
-                               "freeze_video_at": options.freeze_video_at},
-                    "network_isolated": loopback_only(), "lcm_url": options.lcm_url}
+    report: dict = {
+        "patient": options.patient,
+        "scenario": options.scenario,
+        "faults": {
+            "latency_ms": options.latency_ms,
+            "drop_status": options.drop_status,
+            "video_delay_ms": options.video_delay_ms,
+            "freeze_video_at": options.freeze_video_at,
+        },
+        "network_isolated": loopback_only(),
+        "lcm_url": options.lcm_url,
+    }
     report["provenance"] = provenance
     if options.nice:
         report["priority"] = raise_priority(options.nice)
     sim = SimProcess(out, options)
     try:
         return _rehearse(options, out, report, sim, progress)
-    except BaseException as e:             # leave a record of what went wrong
+    except BaseException as e:  # leave a record of what went wrong
         with interrupts.deferred(reraise=False):
             if isinstance(e, KeyboardInterrupt) or interrupts.pending() is not None:
-                report.update({"status": "INTERRUPTED", "reason": "interrupted by "
-                               f"{interrupts.signal_text(interrupts.signal_of(e))}"})
+                report.update(
+                    {
+                        "status": "INTERRUPTED",
+                        "reason": "interrupted by "
+                        f"{interrupts.signal_text(interrupts.signal_of(e))}",
+                    }
+                )
             else:
                 report.update({"status": "ERROR", "reason": f"{type(e).__name__}: {e}"})
             report["sim_tail"] = sim.tail()
-            write_text_atomic(out / "rehearsal.json",
-                              json.dumps(report, indent=2, default=str) + "\n")
+            write_text_atomic(
+                out / "rehearsal.json", json.dumps(report, indent=2, default=str) + "\n"
+            )
         raise
     finally:
         sim.stop()
@@ -272,12 +340,19 @@ def RunRehearsal(options: RehearsalOptions, out, *, progress: bool | None = None
 def rehearsal_provenance(options: RehearsalOptions, argv=None) -> dict:
     """rehearsal.json's ``provenance`` (see drake_rus.provenance): the rehearsal's scenario as
     resolved, its options and seeds (the simulated side's patient and dropped packets)."""
-    scenario = LoadScenario(filename=options.scenarios_file, scenario_name=options.scenario,
-                            scenario_text=options.overrides)
-    record = Provenance(scenario, scenario_name=options.scenario,
-                        scenarios_file=options.scenarios_file, overrides=options.overrides,
-                        seeds={"patient": options.patient, "status_drop_seed": options.seed},
-                        argv=argv)
+    scenario = LoadScenario(
+        filename=options.scenarios_file,
+        scenario_name=options.scenario,
+        scenario_text=options.overrides,
+    )
+    record = Provenance(
+        scenario,
+        scenario_name=options.scenario,
+        scenarios_file=options.scenarios_file,
+        overrides=options.overrides,
+        seeds={"patient": options.patient, "status_drop_seed": options.seed},
+        argv=argv,
+    )
     record["command"] = "rehearse"
     record["arguments"] = dataclasses.asdict(options)
     return record
@@ -286,25 +361,34 @@ def rehearsal_provenance(options: RehearsalOptions, argv=None) -> dict:
 def _rehearse(options, out: Path, report: dict, sim: SimProcess, progress) -> dict:
     """RunRehearsal's body (the caller stops ``sim`` whatever happens)."""
     ready = sim.start()
-    print(f"rehearse: simulated robot ready (pid {ready['pid']}): LCM {ready['lcm_url']}, "
-          f"video {ready['video_url']}, depth preset {ready['depth']:g} m", flush=True)
+    print(
+        f"rehearse: simulated robot ready (pid {ready['pid']}): LCM {ready['lcm_url']}, "
+        f"video {ready['video_url']}, depth preset {ready['depth']:g} m",
+        flush=True,
+    )
     scenario = scan_scenario(options, ready)
     template = load_registration_template(scenario.localization.template)
     lag = LagMonitor()
     stations = []
 
-    def make_station(scenario, **kwargs):    # MakeStation, keeping a handle to close it
+    def make_station(scenario, **kwargs):  # MakeStation, keeping a handle to close it
         stations.append(MakeStation(scenario, **kwargs))
         return stations[-1]
 
     cpu0 = time.process_time()
     try:
-        result = RunScan(scenario, None, template, make_station=make_station,
-                         max_sim_time=options.max_sim_time, progress=progress,
-                         monitors=[lag])
+        result = RunScan(
+            scenario,
+            None,
+            template,
+            make_station=make_station,
+            max_sim_time=options.max_sim_time,
+            progress=progress,
+            monitors=[lag],
+        )
     finally:
         cpu = time.process_time() - cpu0
-        for station in stations:         # the robot connection and the video thread
+        for station in stations:  # the robot connection and the video thread
             station.close()
     metrics = ScanMetrics(result)
     summary = Summary(result, metrics, provenance=report.get("provenance"))
@@ -314,28 +398,51 @@ def _rehearse(options, out: Path, report: dict, sim: SimProcess, progress) -> di
         raise SimProcessError(f"the simulated robot wrote no log:\n{sim.tail()}")
     X_true = pose_from_json(log["X_BK_true"])
     errors = kidney_errors(result.X_BK_estimated, X_true)
-    report.update({
-        "status": result.status, "reason": result.reason, **errors,
-        "X_BK_estimated": (None if result.X_BK_estimated is None else
-                           {"translation": result.X_BK_estimated.translation().tolist(),
-                            "rotation": result.X_BK_estimated.rotation().matrix().tolist()}),
-        "X_BK_true": log["X_BK_true"],
-        "kidney_moved_mm": 1e3 * float(sum(
-            (a - b) ** 2 for a, b in zip(log["X_BK_true"]["translation"],
-                                         log["X_BK_true_start"]["translation"])) ** 0.5),
-        "depth": ready["depth"], "phases": summary["phases"],
-        "force_true_peak_n": log["force_true_peak_n"],
-        "force_estimated_peak_n": summary["peak_force_n"],
-        "safety_events": summary["safety_events"],
-        "commands_at_sim": log["commands"],
-        "joint_velocity_end_at_sim": log["joint_velocity_end"],
-        "status_packets": log["status"], "video": log["video"],
-        "realtime": {
-            "scan": {"sim_s": result.sim_s, "wall_s": result.wall_s, "cpu_s": cpu,
-                     "margin": result.sim_s / cpu if cpu > 0 else None,
-                     "max_lag_s": lag.max_lag},
-            "sim": log["realtime"]},
-        "outputs": [str(p) for p in written] + [str(sim.log_path)],
-    })
+    report.update(
+        {
+            "status": result.status,
+            "reason": result.reason,
+            **errors,
+            "X_BK_estimated": (
+                None
+                if result.X_BK_estimated is None
+                else {
+                    "translation": result.X_BK_estimated.translation().tolist(),
+                    "rotation": result.X_BK_estimated.rotation().matrix().tolist(),
+                }
+            ),
+            "X_BK_true": log["X_BK_true"],
+            "kidney_moved_mm": 1e3
+            * float(
+                sum(
+                    (a - b) ** 2
+                    for a, b in zip(
+                        log["X_BK_true"]["translation"], log["X_BK_true_start"]["translation"]
+                    )
+                )
+                ** 0.5
+            ),
+            "depth": ready["depth"],
+            "phases": summary["phases"],
+            "force_true_peak_n": log["force_true_peak_n"],
+            "force_estimated_peak_n": summary["peak_force_n"],
+            "safety_events": summary["safety_events"],
+            "commands_at_sim": log["commands"],
+            "joint_velocity_end_at_sim": log["joint_velocity_end"],
+            "status_packets": log["status"],
+            "video": log["video"],
+            "realtime": {
+                "scan": {
+                    "sim_s": result.sim_s,
+                    "wall_s": result.wall_s,
+                    "cpu_s": cpu,
+                    "margin": result.sim_s / cpu if cpu > 0 else None,
+                    "max_lag_s": lag.max_lag,
+                },
+                "sim": log["realtime"],
+            },
+            "outputs": [str(p) for p in written] + [str(sim.log_path)],
+        }
+    )
     write_text_atomic(out / "rehearsal.json", json.dumps(report, indent=2, default=str) + "\n")
     return report

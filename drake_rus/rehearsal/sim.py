@@ -50,6 +50,7 @@ class WireFaults:
     the video output shows each picture this much later; ``freeze_video_at`` (s after the
     robot's first command, None: never): the picture freezes (the stream keeps flowing,
     like the machine's freeze key)."""
+
     command_latency: float = 0.0
     status_drop: float = 0.0
     video_delay: float = 0.0
@@ -61,11 +62,11 @@ class WireFaults:
             if not (math.isfinite(value) and value >= 0.0):
                 raise ValueError(f"{name}: expected a non-negative time in s, got {value}")
         if not 0.0 <= self.status_drop <= 1.0:
-            raise ValueError(f"status_drop: expected a probability in [0, 1], got "
-                             f"{self.status_drop}")
+            raise ValueError(
+                f"status_drop: expected a probability in [0, 1], got {self.status_drop}"
+            )
         if self.freeze_video_at is not None and not self.freeze_video_at >= 0.0:
-            raise ValueError(f"freeze_video_at: expected a time >= 0 s, got "
-                             f"{self.freeze_video_at}")
+            raise ValueError(f"freeze_video_at: expected a time >= 0 s, got {self.freeze_video_at}")
 
 
 class VideoTap(LeafSystem):
@@ -77,8 +78,9 @@ class VideoTap(LeafSystem):
         self._on_frame = on_frame
         self._last = -1
         self.frames = 0
-        self._in = self.DeclareAbstractInputPort("us_image", AbstractValue.Make(
-            UsFrame(np.zeros((1, 1), np.uint8))))
+        self._in = self.DeclareAbstractInputPort(
+            "us_image", AbstractValue.Make(UsFrame(np.zeros((1, 1), np.uint8)))
+        )
         self.DeclarePeriodicPublishEvent(float(period), 0.0, self._publish)
         self.DeclareForcedPublishEvent(self._publish)
 
@@ -98,19 +100,33 @@ class ProbeWeightTorque(LeafSystem):
     def __init__(self, scenario):
         super().__init__()
         plant, _ = MakeControlPlant(scenario.robot, scenario.probe)
-        self._plant = plant             # keep the model alive with its Jacobian helper
+        self._plant = plant  # keep the model alive with its Jacobian helper
         self._load = ProbeLoadTorque(plant, scenario.probe.mass, scenario.probe.p_FCm)
         self._q = self.DeclareVectorInputPort("joint_position", NUM_JOINTS)
         self._tau = self.DeclareVectorInputPort("tau_external", NUM_JOINTS)
-        self.DeclareVectorOutputPort("tau_external", NUM_JOINTS, lambda c, o: o.SetFromVector(
-            np.asarray(self._tau.Eval(c), float) + self._load(self._q.Eval(c))))
+        self.DeclareVectorOutputPort(
+            "tau_external",
+            NUM_JOINTS,
+            lambda c, o: o.SetFromVector(
+                np.asarray(self._tau.Eval(c), float) + self._load(self._q.Eval(c))
+            ),
+        )
 
 
-def BuildRehearsalSim(scenario, patient, lcm, *, on_frame: Callable, faults: WireFaults,
-                      rate_hz: float = 200.0, expire_sec: float = DRIVER_EXPIRE_SEC,
-                      undeclared_load: bool = True, seed: int = 0,
-                      command_channel: str = "PANDA_COMMAND",
-                      status_channel: str = "PANDA_STATUS"):
+def BuildRehearsalSim(
+    scenario,
+    patient,
+    lcm,
+    *,
+    on_frame: Callable,
+    faults: WireFaults,
+    rate_hz: float = 200.0,
+    expire_sec: float = DRIVER_EXPIRE_SEC,
+    undeclared_load: bool = True,
+    seed: int = 0,
+    command_channel: str = "PANDA_COMMAND",
+    status_channel: str = "PANDA_STATUS",
+):
     """The rehearsal's simulated robot, patient and machine as one Diagram; returns
     ``(diagram, station, wire)`` (see the module doc). ``scenario``: the simulated scenario
     already prepared for the scan's start (``drake_rus.scan.run.PrepareScenario``)."""
@@ -119,19 +135,29 @@ def BuildRehearsalSim(scenario, patient, lcm, *, on_frame: Callable, faults: Wir
     tau = station.GetOutputPort("tau_external")
     if undeclared_load:
         weight = builder.AddNamedSystem("probe_weight", ProbeWeightTorque(scenario))
-        builder.Connect(station.GetOutputPort("joint_position"),
-                        weight.GetInputPort("joint_position"))
+        builder.Connect(
+            station.GetOutputPort("joint_position"), weight.GetInputPort("joint_position")
+        )
         builder.Connect(tau, weight.GetInputPort("tau_external"))
         tau = weight.GetOutputPort("tau_external")
     wire = AddSimulatedDriverWire(
-        builder, lcm, position=station.GetOutputPort("joint_position"),
-        velocity=station.GetOutputPort("joint_velocity"), tau_external_drake=tau,
-        rate_hz=rate_hz, command_expiry=expire_sec, command_latency=faults.command_latency,
-        status_drop_probability=faults.status_drop, seed=seed,
-        command_channel=command_channel, status_channel=status_channel)
+        builder,
+        lcm,
+        position=station.GetOutputPort("joint_position"),
+        velocity=station.GetOutputPort("joint_velocity"),
+        tau_external_drake=tau,
+        rate_hz=rate_hz,
+        command_expiry=expire_sec,
+        command_latency=faults.command_latency,
+        status_drop_probability=faults.status_drop,
+        seed=seed,
+        command_channel=command_channel,
+        status_channel=status_channel,
+    )
     builder.Connect(wire.velocity, station.GetInputPort("joint_velocity_command"))
-    tap = builder.AddNamedSystem("video_tap", VideoTap(
-        1.0 / scenario.imaging.frame_rate_hz, on_frame))
+    tap = builder.AddNamedSystem(
+        "video_tap", VideoTap(1.0 / scenario.imaging.frame_rate_hz, on_frame)
+    )
     builder.Connect(station.GetOutputPort("us_image"), tap.get_input_port())
     diagram = builder.Build()
     diagram.set_name("rehearsal_sim")
@@ -146,6 +172,7 @@ class RunStats:
     s per busy s, how many times real time the simulation ran when it ran (on a loaded
     machine this includes waiting for a core); ``cpu_margin``: simulated s per CPU s, the
     same with a core to itself."""
+
     sim_s: float = 0.0
     wall_s: float = 0.0
     busy_s: float = 0.0
@@ -170,8 +197,18 @@ class RehearsalSim:
     1 / ``rate_hz`` s paced to the wall clock. Records the applied command and joint speeds
     per tick, the true contact force peak and the PIVOT-like motion (for drills)."""
 
-    def __init__(self, diagram, station, wire, lcm, *, rate_hz: float, frame_period: float,
-                 command_channel: str = "PANDA_COMMAND", lcm_url: str | None = None):
+    def __init__(
+        self,
+        diagram,
+        station,
+        wire,
+        lcm,
+        *,
+        rate_hz: float,
+        frame_period: float,
+        command_channel: str = "PANDA_COMMAND",
+        lcm_url: str | None = None,
+    ):
         self.diagram, self.station, self.wire, self.lcm = diagram, station, wire, lcm
         self.period = 1.0 / float(rate_hz)
         self.frame_period = float(frame_period)
@@ -179,20 +216,23 @@ class RehearsalSim:
         self.context = self.simulator.get_mutable_context()
         self.station_context = station.GetMyContextFromRoot(self.context)
         self.first_command_wall: float | None = None
-        self.t_first_command: float | None = None       # simulated time then (s)
+        self.t_first_command: float | None = None  # simulated time then (s)
         self.arrivals: list[tuple] = []
         import drake
+
         self._command_type = drake.lcmt_panda_command
         # Every command with its arrival time: a wire tap on udpm://, else a subscription.
         self.tap = None
         if lcm_url is not None and lcm_url.startswith("udpm://"):
-            self.tap = LcmUdpmTap(lcm_url, command_channel,
-                                  on_packet=lambda t, sender, seq, data: self._on_command(
-                                      data, t, sender, seq))
+            self.tap = LcmUdpmTap(
+                lcm_url,
+                command_channel,
+                on_packet=lambda t, sender, seq, data: self._on_command(data, t, sender, seq),
+            )
         else:
             self.lcm.Subscribe(command_channel, self._on_command)
         self.stats = RunStats()
-        self.speeds: list[tuple[float, float, float]] = []     # wall, max|v|, max|v cmd|
+        self.speeds: list[tuple[float, float, float]] = []  # wall, max|v|, max|v cmd|
         self.force_peak = 0.0
         self.force_peak_time = math.nan
         self.pivot = PivotDetector()
@@ -205,14 +245,15 @@ class RehearsalSim:
         self._tap = diagram.GetSubsystemByName("video_tap")
         self._publisher = wire.publisher
 
-    def _on_command(self, data: bytes, now: float | None = None, sender: str = "",
-                    seq: int = -1) -> None:
+    def _on_command(
+        self, data: bytes, now: float | None = None, sender: str = "", seq: int = -1
+    ) -> None:
         """Every command as it arrives (before the driver's subscriber keeps only the
         newest): wall time s, utime us, max |v| rad/s, sender, LCM sequence number."""
         now = time.time() if now is None else now
         try:
             msg = self._command_type.decode(data)
-        except Exception:           # not a panda command: the driver would ignore it too
+        except Exception:  # not a panda command: the driver would ignore it too
             return
         vmax = max((abs(v) for v in msg.joint_velocity), default=0.0)
         self.arrivals.append((now, int(msg.utime), float(vmax), sender, int(seq)))
@@ -230,8 +271,10 @@ class RehearsalSim:
             self.simulator.AdvanceTo(self.context.get_time() + self.frame_period / 5)
             self._tap.ForcedPublish(tap_context)
         if self._tap.frames == 0:
-            raise RuntimeError(f"the simulated station produced no ultrasound picture in "
-                               f"{max_time:g} s: does the patient have a label volume?")
+            raise RuntimeError(
+                f"the simulated station produced no ultrasound picture in "
+                f"{max_time:g} s: does the patient have a label volume?"
+            )
 
     def hold(self, should_stop: Callable[[], bool]) -> None:
         """Until the first command (or ``should_stop()``): a status every period, no
@@ -245,8 +288,9 @@ class RehearsalSim:
         """Per tick: joint speeds and the applied command; with ``truth``, also the true
         contact force (its peak) and PIVOT-like motion."""
         v = np.asarray(self._port("joint_velocity"))
-        v_cmd = np.asarray(self.wire.velocity.Eval(
-            self.wire.receiver.GetMyContextFromRoot(self.context)))
+        v_cmd = np.asarray(
+            self.wire.velocity.Eval(self.wire.receiver.GetMyContextFromRoot(self.context))
+        )
         self.speeds.append((time.time(), float(np.abs(v).max()), float(np.abs(v_cmd).max())))
         if not truth:
             return
@@ -255,11 +299,23 @@ class RehearsalSim:
             self.force_peak, self.force_peak_time = force, self.context.get_time()
         self.pivot_like_s = self.pivot.update(self.context.get_time(), self._port("X_BP"), force)
         self.force_now = force
-        self.motion.append((self.context.get_time(), self.pivot.tip_speed,
-                            self.pivot.turn_rate, force, self.pivot_like_s))
+        self.motion.append(
+            (
+                self.context.get_time(),
+                self.pivot.tip_speed,
+                self.pivot.turn_rate,
+                force,
+                self.pivot_like_s,
+            )
+        )
 
-    def run(self, should_stop: Callable[[], bool], every: Callable | None = None,
-            every_period: float = 0.2, truth_every: int = 4) -> RunStats:
+    def run(
+        self,
+        should_stop: Callable[[], bool],
+        every: Callable | None = None,
+        every_period: float = 0.2,
+        truth_every: int = 4,
+    ) -> RunStats:
         """Steps at real time from the first command until ``should_stop()``; observes
         the truth every ``truth_every`` ticks; calls ``every()`` about every
         ``every_period`` s of wall time."""
@@ -317,5 +373,6 @@ class RehearsalSim:
         return np.asarray(self._port("joint_velocity"), float).copy()
 
     def applied_command(self) -> np.ndarray:
-        return np.asarray(self.wire.velocity.Eval(
-            self.wire.receiver.GetMyContextFromRoot(self.context)), float).copy()
+        return np.asarray(
+            self.wire.velocity.Eval(self.wire.receiver.GetMyContextFromRoot(self.context)), float
+        ).copy()

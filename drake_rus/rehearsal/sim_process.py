@@ -56,9 +56,11 @@ DEFAULT_LCM_URL = "udpm://239.255.76.67:7667?ttl=0"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m drake_rus.rehearsal.sim_process",
-                                description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="python -m drake_rus.rehearsal.sim_process",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--patient", default="test:0")
     p.add_argument("--scenario", default="default")
     p.add_argument("--scenarios-file", default=str(DEFAULT_SCENARIOS_FILE))
@@ -66,13 +68,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lcm-url", default=DEFAULT_LCM_URL)
     p.add_argument("--command-channel", default="PANDA_COMMAND")
     p.add_argument("--status-channel", default="PANDA_STATUS")
-    p.add_argument("--rate-hz", type=float, default=200.0,
-                   help="status rate and simulation tick (Hz; the real driver: 1000)")
-    p.add_argument("--expire-sec", type=float, default=DRIVER_EXPIRE_SEC,
-                   help="command expiry (s; drake-franka-driver's --expire_sec, default 0.1)")
-    p.add_argument("--declared-load", action="store_true",
-                   help="report external torques without the probe's weight (as if the "
-                        "probe were entered in Desk); default: the weight is in them")
+    p.add_argument(
+        "--rate-hz",
+        type=float,
+        default=200.0,
+        help="status rate and simulation tick (Hz; the real driver: 1000)",
+    )
+    p.add_argument(
+        "--expire-sec",
+        type=float,
+        default=DRIVER_EXPIRE_SEC,
+        help="command expiry (s; drake-franka-driver's --expire_sec, default 0.1)",
+    )
+    p.add_argument(
+        "--declared-load",
+        action="store_true",
+        help="report external torques without the probe's weight (as if the "
+        "probe were entered in Desk); default: the weight is in them",
+    )
     p.add_argument("--latency-ms", type=float, default=0.0)
     p.add_argument("--drop-status", type=float, default=0.0)
     p.add_argument("--video-delay-ms", type=float, default=0.0)
@@ -84,10 +97,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--live", default=None, help="JSON rewritten ~10 times a second")
     p.add_argument("--stop-file", default=None)
     p.add_argument("--parent-pid", type=int, default=None)
-    p.add_argument("--nice", type=int, default=0,
-                   help="scheduling priority of this process and its session (below 0: root)")
-    p.add_argument("--max-wall", type=float, default=900.0,
-                   help="stop after this many s of wall time whatever happens")
+    p.add_argument(
+        "--nice",
+        type=int,
+        default=0,
+        help="scheduling priority of this process and its session (below 0: root)",
+    )
+    p.add_argument(
+        "--max-wall",
+        type=float,
+        default=900.0,
+        help="stop after this many s of wall time whatever happens",
+    )
     return p
 
 
@@ -110,7 +131,7 @@ class StopFlag:
         if self.reason is not None:
             return True
         now = time.monotonic()
-        if now >= self._next_check:         # file system and process checks at 20 Hz
+        if now >= self._next_check:  # file system and process checks at 20 Hz
             self._next_check = now + 0.05
             if self._stop_file is not None and self._stop_file.exists():
                 self.set("stop file")
@@ -129,63 +150,106 @@ def main(argv=None) -> int:
         signal.signal(sig, lambda signum, frame: stop.set(signal.Signals(signum).name))
     if args.nice:
         print(f"sim: {raise_priority(args.nice)}", flush=True)
-    faults = WireFaults(command_latency=args.latency_ms * 1e-3, status_drop=args.drop_status,
-                        video_delay=args.video_delay_ms * 1e-3,
-                        freeze_video_at=args.freeze_video_at)
+    faults = WireFaults(
+        command_latency=args.latency_ms * 1e-3,
+        status_drop=args.drop_status,
+        video_delay=args.video_delay_ms * 1e-3,
+        freeze_video_at=args.freeze_video_at,
+    )
     t_start = time.time()
-    scenario = LoadScenario(filename=args.scenarios_file, scenario_name=args.scenario,
-                            scenario_text=args.overrides)
+    scenario = LoadScenario(
+        filename=args.scenarios_file, scenario_name=args.scenario, scenario_text=args.overrides
+    )
     scenario = ApplyOverrides(scenario, "{hardware: false}", "rehearsal sim")
-    patient = load_patient(args.patient, side=scenario.patient.side,
-                           posture=scenario.patient.posture, progress=False)
+    patient = load_patient(
+        args.patient, side=scenario.patient.side, posture=scenario.patient.posture, progress=False
+    )
     scenario, X_start, plan = PrepareScenario(scenario, patient)
     lcm = DrakeLcm(args.lcm_url)
-    server = MjpegServer(FrameBuffer(faults.video_delay),
-                         frame_rate_hz=scenario.imaging.frame_rate_hz, port=args.video_port)
+    server = MjpegServer(
+        FrameBuffer(faults.video_delay),
+        frame_rate_hz=scenario.imaging.frame_rate_hz,
+        port=args.video_port,
+    )
     holder = {}
 
     def on_frame(image, t):
         sim = holder.get("sim")
         t0 = getattr(sim, "t_first_command", None) if sim is not None else None
-        if (faults.freeze_video_at is not None and t0 is not None
-                and t - t0 >= faults.freeze_video_at):
+        if (
+            faults.freeze_video_at is not None
+            and t0 is not None
+            and t - t0 >= faults.freeze_video_at
+        ):
             server.buffer.freeze()
             return
         server.push(image)
 
     try:
         diagram, station, wire = BuildRehearsalSim(
-            scenario, patient, lcm, on_frame=on_frame, faults=faults, rate_hz=args.rate_hz,
-            expire_sec=args.expire_sec, undeclared_load=not args.declared_load, seed=args.seed,
-            command_channel=args.command_channel, status_channel=args.status_channel)
-        sim = RehearsalSim(diagram, station, wire, lcm, rate_hz=args.rate_hz,
-                           frame_period=1.0 / scenario.imaging.frame_rate_hz,
-                           command_channel=args.command_channel, lcm_url=args.lcm_url)
+            scenario,
+            patient,
+            lcm,
+            on_frame=on_frame,
+            faults=faults,
+            rate_hz=args.rate_hz,
+            expire_sec=args.expire_sec,
+            undeclared_load=not args.declared_load,
+            seed=args.seed,
+            command_channel=args.command_channel,
+            status_channel=args.status_channel,
+        )
+        sim = RehearsalSim(
+            diagram,
+            station,
+            wire,
+            lcm,
+            rate_hz=args.rate_hz,
+            frame_period=1.0 / scenario.imaging.frame_rate_hz,
+            command_channel=args.command_channel,
+            lcm_url=args.lcm_url,
+        )
         holder["sim"] = sim
         sim.prime()
         X_BK_start = sim.kidney_pose()
         ready = {
-            "pid": os.getpid(), "lcm_url": args.lcm_url,
-            "command_channel": args.command_channel, "status_channel": args.status_channel,
-            "video_url": server.url, "depth": float(scenario.imaging.depth),
+            "pid": os.getpid(),
+            "lcm_url": args.lcm_url,
+            "command_channel": args.command_channel,
+            "status_channel": args.status_channel,
+            "video_url": server.url,
+            "depth": float(scenario.imaging.depth),
             "q0": [float(v) for v in scenario.robot.initial_joint_positions],
-            "X_BP_start": pose_to_json(X_start), "patient": patient.name,
+            "X_BP_start": pose_to_json(X_start),
+            "patient": patient.name,
             "start_plan": plan.summary() if plan is not None else None,
             "setup_s": time.time() - t_start,
         }
         write_text_atomic(args.ready, json.dumps(ready, indent=2, default=str) + "\n")
-        print(f"sim: ready in {ready['setup_s']:.1f} s: LCM {args.lcm_url}, video "
-              f"{server.url}, depth {scenario.imaging.depth:g} m", flush=True)
+        print(
+            f"sim: ready in {ready['setup_s']:.1f} s: LCM {args.lcm_url}, video "
+            f"{server.url}, depth {scenario.imaging.depth:g} m",
+            flush=True,
+        )
 
         sim.hold(stop)
 
         def live():
             if args.live:
-                write_text_atomic(args.live, json.dumps({
-                    "wall": time.time(), "sim_t": sim.context.get_time() - sim.t_first_command,
-                    "first_command_wall": sim.first_command_wall,
-                    "pivot_like_s": sim.pivot_like_s, "force_true_n": sim.force_now,
-                    "tip_speed": sim.pivot.tip_speed, "turn_rate": sim.pivot.turn_rate}))
+                write_text_atomic(
+                    args.live,
+                    json.dumps(
+                        {
+                            "wall": time.time(),
+                            "sim_t": sim.context.get_time() - sim.t_first_command,
+                            "first_command_wall": sim.first_command_wall,
+                            "pivot_like_s": sim.pivot_like_s,
+                            "force_true_n": sim.force_now,
+                            "tip_speed": sim.pivot.tip_speed,
+                            "turn_rate": sim.pivot.turn_rate,
+                        }
+                    ),
+                )
 
         stats = sim.run(stop, every=live) if not stop() else sim.stats
     finally:
@@ -195,10 +259,12 @@ def main(argv=None) -> int:
     log = sim_log(args, scenario, faults, sim, stats, stop, server, X_BK_start)
     write_text_atomic(args.log, json.dumps(log, indent=1, default=_json_default) + "\n")
     c = log["commands"]["age_ms"]
-    print(f"sim: stopped ({stop.reason}); {log['commands']['count']} commands, age median "
-          f"{_fmt(c['median_ms'])} ms, max {_fmt(c['max_ms'])} ms; real-time margin "
-          f"{_fmt(log['realtime']['margin'])}x, max lag {1e3 * stats.max_lag_s:.1f} ms",
-          flush=True)
+    print(
+        f"sim: stopped ({stop.reason}); {log['commands']['count']} commands, age median "
+        f"{_fmt(c['median_ms'])} ms, max {_fmt(c['max_ms'])} ms; real-time margin "
+        f"{_fmt(log['realtime']['margin'])}x, max lag {1e3 * stats.max_lag_s:.1f} ms",
+        flush=True,
+    )
     return 0
 
 
@@ -221,8 +287,9 @@ def sequence_gaps(arrivals) -> int | None:
         if a[4] < 0:
             return None
         by_sender.setdefault(a[3], []).append(a[4])
-    return int(sum(max(0, b - a - 1) for seqs in by_sender.values()
-                   for a, b in zip(seqs[:-1], seqs[1:])))
+    return int(
+        sum(max(0, b - a - 1) for seqs in by_sender.values() for a, b in zip(seqs[:-1], seqs[1:]))
+    )
 
 
 def sim_log(args, scenario, faults, sim, stats, stop, server, X_BK_start) -> dict:
@@ -232,7 +299,8 @@ def sim_log(args, scenario, faults, sim, stats, stop, server, X_BK_start) -> dic
     applied_ages = [now - utime * 1e-6 for now, utime, _, _ in expiry.log]
     X_BK = sim.kidney_pose()
     return {
-        "patient": args.patient, "scenario": args.scenario,
+        "patient": args.patient,
+        "scenario": args.scenario,
         "depth": float(scenario.imaging.depth),
         "stop": {"reason": stop.reason, "wall": stop.wall},
         "first_command_wall": sim.first_command_wall,
@@ -254,29 +322,42 @@ def sim_log(args, scenario, faults, sim, stats, stop, server, X_BK_start) -> dic
         "X_BK_true": pose_to_json(X_BK),
         "X_BK_true_start": pose_to_json(X_BK_start),
         "force_true_peak_n": sim.force_peak,
-        "force_true_peak_sim_s": (sim.force_peak_time - (sim.t_first_command or 0.0)
-                                  if math.isfinite(sim.force_peak_time) else None),
+        "force_true_peak_sim_s": (
+            sim.force_peak_time - (sim.t_first_command or 0.0)
+            if math.isfinite(sim.force_peak_time)
+            else None
+        ),
         "joint_velocity_end": sim.joint_velocity().tolist(),
         "applied_command_end": sim.applied_command().tolist(),
         "realtime": stats.as_dict(),
-        "status": {"published": sim.wire.publisher.published,
-                   "dropped": sim.wire.publisher.dropped, "rate_hz": args.rate_hz},
-        "video": {"url": server.url, "pictures": server.buffer.pushed,
-                  "parts_sent": server.sent, "clients": server.clients,
-                  "frozen_at_wall": server.buffer.frozen_at},
+        "status": {
+            "published": sim.wire.publisher.published,
+            "dropped": sim.wire.publisher.dropped,
+            "rate_hz": args.rate_hz,
+        },
+        "video": {
+            "url": server.url,
+            "pictures": server.buffer.pushed,
+            "parts_sent": server.sent,
+            "clients": server.clients,
+            "frozen_at_wall": server.buffer.frozen_at,
+        },
         "faults": dataclasses.asdict(faults),
         "undeclared_load": not args.declared_load,
         # Per command reaching the robot: wall time s, utime s, max |v| (rad/s), fresh.
-        "command_trace": [[round(now, 6), round(utime * 1e-6, 6),
-                           float(np.abs(v).max()), bool(fresh)]
-                          for now, utime, v, fresh in expiry.log],
+        "command_trace": [
+            [round(now, 6), round(utime * 1e-6, 6), float(np.abs(v).max()), bool(fresh)]
+            for now, utime, v, fresh in expiry.log
+        ],
         # Per command arriving at the driver: wall time s, utime s, max |v| (rad/s).
         "arrival_trace": [[round(a[0], 6), round(a[1] * 1e-6, 6), a[2]] for a in arrivals],
         # Per truth sample (sim s since the first command, tip speed m/s, turn rate rad/s,
         # true force N, PIVOT-like s).
-        "motion_trace": [[round(t - (sim.t_first_command or 0.0), 4)] + [
-            None if not math.isfinite(x) else round(x, 5) for x in rest]
-            for t, *rest in sim.motion],
+        "motion_trace": [
+            [round(t - (sim.t_first_command or 0.0), 4)]
+            + [None if not math.isfinite(x) else round(x, 5) for x in rest]
+            for t, *rest in sim.motion
+        ],
         # Per simulation tick: wall time s, max |joint velocity|, max |applied command|.
         "speed_trace": [[round(t, 6), round(v, 7), round(c, 7)] for t, v, c in sim.speeds],
     }

@@ -22,7 +22,7 @@ import urllib.parse
 
 __all__ = ["LcmUdpmTap", "parse_udpm_url", "decode_lcm_packet"]
 
-_MAGIC_SHORT = 0x4C433032      # "LC02"
+_MAGIC_SHORT = 0x4C433032  # "LC02"
 _SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
 
 
@@ -45,7 +45,7 @@ def decode_lcm_packet(data: bytes):
     end = data.find(b"\0", 8)
     if end < 0:
         return None
-    return data[8:end].decode("utf-8", "replace"), seq, data[end + 1:]
+    return data[8:end].decode("utf-8", "replace"), seq, data[end + 1 :]
 
 
 class LcmUdpmTap:
@@ -69,8 +69,11 @@ class LcmUdpmTap:
             except OSError:
                 pass
         s.bind(("", port))
-        s.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP,
-                     struct.pack("4s4s", socket.inet_aton(group), socket.inet_aton("0.0.0.0")))
+        s.setsockopt(
+            socket.IPPROTO_IP,
+            socket.IP_ADD_MEMBERSHIP,
+            struct.pack("4s4s", socket.inet_aton(group), socket.inet_aton("0.0.0.0")),
+        )
         s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
         s.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
         s.settimeout(0.1)

@@ -13,9 +13,21 @@ from dataclasses import dataclass, field
 __all__ = ["FaultConfig", "SensorFaultConfig", "FAULT_KINDS"]
 
 # Sensor fault kinds (SensorFaultConfig.kind).
-FAULT_KINDS = ["none", "image_dropout", "frozen_image", "segmentation_miss",
-               "segmentation_false_positive", "force_spike", "force_bias", "joint_state_delay",
-               "nan_joint_position", "nan_joint_velocity", "nan_force", "nan_pose", "nan_image"]
+FAULT_KINDS = [
+    "none",
+    "image_dropout",
+    "frozen_image",
+    "segmentation_miss",
+    "segmentation_false_positive",
+    "force_spike",
+    "force_bias",
+    "joint_state_delay",
+    "nan_joint_position",
+    "nan_joint_velocity",
+    "nan_force",
+    "nan_pose",
+    "nan_image",
+]
 
 
 @dataclass
@@ -34,6 +46,7 @@ class SensorFaultConfig:
       nan_*                    NaN in the joint positions, velocities, force, probe pose or
                                image.
     """
+
     kind: str = field(default="none", metadata={"choices": FAULT_KINDS})
     start: float = field(default=5.0, metadata={"min": 0.0})
     # Duration (s); a large value means "to the end of the run".
@@ -51,6 +64,7 @@ class SensorFaultConfig:
 @dataclass
 class FaultConfig:
     """Sensor faults injected into the simulated station by ``drake_rus.reliability``."""
+
     sensor: list[SensorFaultConfig] = field(default_factory=list)
     # Seed of the fault draws (which frames drop); combined with random_seed.
     seed: int = field(default=0, metadata={"min": 0})

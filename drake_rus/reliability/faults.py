@@ -9,14 +9,12 @@ inputs and the time.
 
 from __future__ import annotations
 
-
 import numpy as np
 
 from drake_rus.anatomy.labels import KIDNEY_LABELS, Label
 from drake_rus.reliability.config import SensorFaultConfig
 
-__all__ = ["fault_active", "frame_affected", "force_offset", "remove_kidney",
-           "add_false_kidney"]
+__all__ = ["fault_active", "frame_affected", "force_offset", "remove_kidney", "add_false_kidney"]
 
 
 def fault_active(t: float, f: SensorFaultConfig) -> bool:
@@ -51,8 +49,9 @@ def remove_kidney(labels: np.ndarray) -> np.ndarray:
     return out
 
 
-def add_false_kidney(labels: np.ndarray, fan_mask: np.ndarray, frame_index: int,
-                     seed: int) -> np.ndarray:
+def add_false_kidney(
+    labels: np.ndarray, fan_mask: np.ndarray, frame_index: int, seed: int
+) -> np.ndarray:
     """A label image with a kidney-like ellipse painted at a random place inside the fan
     (a segmentation false positive). The ellipse is ~1/4 of the image wide."""
     out = np.array(labels, copy=True)

@@ -12,15 +12,13 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import LeafSystem
 
 from drake_rus.closed_loop import BuildClosedLoop
 
-FAULTS = ("none", "force_spike", "frozen_image", "nan_pose", "segmentation_loss",
-          "frozen_state")
+FAULTS = ("none", "force_spike", "frozen_image", "nan_pose", "segmentation_loss", "frozen_state")
 
 
 class _Frame:
@@ -44,8 +42,14 @@ class FaultInjector(LeafSystem):
     value before t_fault).
     """
 
-    def __init__(self, fault: str = "none", t_fault: float = math.inf,
-                 spike_force: float = 30.0, frame_rate_hz: float = 20.0, n: int = 7):
+    def __init__(
+        self,
+        fault: str = "none",
+        t_fault: float = math.inf,
+        spike_force: float = 30.0,
+        frame_rate_hz: float = 20.0,
+        n: int = 7,
+    ):
         super().__init__()
         if fault not in FAULTS:
             raise ValueError(f"fault: expected one of {FAULTS}, got {fault!r}")
@@ -63,16 +67,24 @@ class FaultInjector(LeafSystem):
             self._q_last = self.DeclareDiscreteState(n)
             self.DeclarePeriodicDiscreteUpdateEvent(1e-3, 0.0, self._sample_q)
         self.DeclareVectorOutputPort("joint_position", n, self._calc_q)
-        self.DeclareVectorOutputPort("joint_velocity", n,
-                                     lambda c, o: o.SetFromVector(self._v.Eval(c)))
-        self.DeclareAbstractOutputPort("X_BP", lambda: AbstractValue.Make(RigidTransform()),
-                                       self._calc_X)
+        self.DeclareVectorOutputPort(
+            "joint_velocity", n, lambda c, o: o.SetFromVector(self._v.Eval(c))
+        )
+        self.DeclareAbstractOutputPort(
+            "X_BP", lambda: AbstractValue.Make(RigidTransform()), self._calc_X
+        )
         self.DeclareVectorOutputPort("probe_force", 6, self._calc_F)
         self.DeclareVectorOutputPort("kidney_visible", 1, self._calc_vis)
-        self.DeclareVectorOutputPort("mask_centroid", 1, lambda c, o: o.SetFromVector(
-            [float(self._c.Eval(c)[0]) if self._c.HasValue(c) else 0.5]))
-        self.DeclareAbstractOutputPort("us_image", lambda: AbstractValue.Make(_Frame(0.0)),
-                                       self._calc_image)
+        self.DeclareVectorOutputPort(
+            "mask_centroid",
+            1,
+            lambda c, o: o.SetFromVector(
+                [float(self._c.Eval(c)[0]) if self._c.HasValue(c) else 0.5]
+            ),
+        )
+        self.DeclareAbstractOutputPort(
+            "us_image", lambda: AbstractValue.Make(_Frame(0.0)), self._calc_image
+        )
 
     def _active(self, context, kind: str) -> bool:
         return self.fault == kind and context.get_time() >= self.t_fault
@@ -118,25 +130,33 @@ def ConnectFaultInjector(builder, station, injector: FaultInjector, segmenter=No
     for name in ("joint_position", "joint_velocity", "X_BP", "probe_force"):
         builder.Connect(station.GetOutputPort(name), injector.GetInputPort(name))
     if segmenter is not None:
-        builder.Connect(segmenter.GetOutputPort("kidney_visible"),
-                        injector.GetInputPort("kidney_visible"))
-        builder.Connect(segmenter.GetOutputPort("mask_centroid"),
-                        injector.GetInputPort("mask_centroid"))
+        builder.Connect(
+            segmenter.GetOutputPort("kidney_visible"), injector.GetInputPort("kidney_visible")
+        )
+        builder.Connect(
+            segmenter.GetOutputPort("mask_centroid"), injector.GetInputPort("mask_centroid")
+        )
 
 
 def FaultInjectorHook(fault: str, t_fault: float, frame_rate_hz: float = 20.0):
     """A ``sensor_hook`` for :func:`drake_rus.closed_loop.BuildClosedLoop` that puts a
     :class:`FaultInjector` (``fault`` from ``t_fault`` s on) between the station and the
     controller."""
+
     def hook(builder, station, segmenter):
         injector = builder.AddNamedSystem(
-            "fault_injector", FaultInjector(fault, t_fault, frame_rate_hz=frame_rate_hz))
+            "fault_injector", FaultInjector(fault, t_fault, frame_rate_hz=frame_rate_hz)
+        )
         ConnectFaultInjector(builder, station, injector, segmenter)
         return injector, injector, injector
+
     return hook
 
 
 def BuildClosedLoopWithFault(scenario, fault: str, t_fault: float, **kwargs):
     """``BuildClosedLoop`` with a :class:`FaultInjector` (``fault`` from ``t_fault`` s)."""
-    return BuildClosedLoop(scenario, sensor_hook=FaultInjectorHook(
-        fault, t_fault, scenario.imaging.frame_rate_hz), **kwargs)
+    return BuildClosedLoop(
+        scenario,
+        sensor_hook=FaultInjectorHook(fault, t_fault, scenario.imaging.frame_rate_hz),
+        **kwargs,
+    )

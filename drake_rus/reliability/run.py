@@ -29,6 +29,7 @@ REST_SPEED = 0.02
 @dataclasses.dataclass
 class ForceWatch:
     """Running statistics of the true contact force F_z (N, pressing positive)."""
+
     ceiling: float
     peak: float = 0.0
     time_above: float = 0.0
@@ -70,31 +71,39 @@ class SafetyWatch(ScanMonitor):
         self._wrench = self._station.GetOutputPort("probe_contact_wrench_true")
 
     def observe(self, root_context) -> None:
-        self.watch.add(root_context.get_time(),
-                       -float(self._wrench.Eval(self._station_context)[5]))
+        self.watch.add(root_context.get_time(), -float(self._wrench.Eval(self._station_context)[5]))
 
     def finish(self, root_context) -> None:
         x = np.asarray(self._station.GetOutputPort("plant_state").Eval(self._station_context))
         # [q (robot first, then a moving patient's joints), v (likewise)]
-        v = x[len(x) // 2:][:NUM_JOINTS]
+        v = x[len(x) // 2 :][:NUM_JOINTS]
         safety_context = self._safety.GetMyContextFromRoot(root_context)
-        cmd = np.asarray(self._safety.GetOutputPort("joint_velocity_command").Eval(
-            safety_context))
+        cmd = np.asarray(self._safety.GetOutputPort("joint_velocity_command").Eval(safety_context))
         stopped = bool(self._safety.GetOutputPort("stopped").Eval(safety_context)[0])
         w = self.watch
         self.check = {
-            "peak_force_n": w.peak, "time_above_ceiling_s": w.time_above,
-            "longest_above_ceiling_s": w.longest_above, "force_violation": w.violation,
+            "peak_force_n": w.peak,
+            "time_above_ceiling_s": w.time_above,
+            "longest_above_ceiling_s": w.longest_above,
+            "force_violation": w.violation,
             "final_joint_speed": float(np.max(np.abs(v))) if v.size else 0.0,
             "final_command_norm": float(np.linalg.norm(cmd)),
             "safety_stopped": stopped,
             "at_rest": bool(np.max(np.abs(v)) < REST_SPEED and np.linalg.norm(cmd) == 0.0)
-            if stopped else None,
+            if stopped
+            else None,
         }
 
 
-def RunFaultyScan(scenario, patient, template, *, max_sim_time: float = 150.0,
-                  settle: float | None = None, start_fraction: float | None = None):
+def RunFaultyScan(
+    scenario,
+    patient,
+    template,
+    *,
+    max_sim_time: float = 150.0,
+    settle: float | None = None,
+    start_fraction: float | None = None,
+):
     """Runs one scan on the faulty station (``MakeFaultyStation``) under a
     :class:`SafetyWatch`; returns (ScanResult, safety dict). ``settle`` (s) defaults to the
     force-stop retract time plus 0.3 s."""
@@ -102,9 +111,17 @@ def RunFaultyScan(scenario, patient, template, *, max_sim_time: float = 150.0,
         cfg = scenario.safety
         settle = cfg.retract_distance / cfg.retract_speed + 0.3
     watch = SafetyWatch(scenario.safety.force_ceiling)
-    result = RunScan(scenario, patient, template, make_station=MakeFaultyStation,
-                     max_sim_time=max_sim_time, progress=False, start_fraction=start_fraction,
-                     monitors=[watch], settle=settle)
+    result = RunScan(
+        scenario,
+        patient,
+        template,
+        make_station=MakeFaultyStation,
+        max_sim_time=max_sim_time,
+        progress=False,
+        start_fraction=start_fraction,
+        monitors=[watch],
+        settle=settle,
+    )
     return result, watch.check
 
 

@@ -22,9 +22,13 @@ from __future__ import annotations
 from pydrake.systems.framework import Diagram, DiagramBuilder
 
 from drake_rus.reliability.systems import (
-    IMAGE_FAULTS, ROBOT_FAULTS, LabelImageFaults, RobotSensorFaults)
+    IMAGE_FAULTS,
+    ROBOT_FAULTS,
+    LabelImageFaults,
+    RobotSensorFaults,
+)
 from drake_rus.station import MakeSimStation
-from drake_rus.station_interface import CheckStationPorts, ROBOT_SENSOR_PORTS
+from drake_rus.station_interface import ROBOT_SENSOR_PORTS, CheckStationPorts
 
 __all__ = ["MakeFaultyStation", "WithSensorFaults", "fault_seed", "ROBOT_PORTS"]
 
@@ -42,10 +46,13 @@ def _image_fault_hook(scenario):
         return None
 
     def hook(builder, label_image):
-        faults = builder.AddNamedSystem("label_image_faults", LabelImageFaults(
-            scenario.imaging, scenario.faults, fault_seed(scenario)))
+        faults = builder.AddNamedSystem(
+            "label_image_faults",
+            LabelImageFaults(scenario.imaging, scenario.faults, fault_seed(scenario)),
+        )
         builder.Connect(label_image, faults.GetInputPort("label_image"))
         return faults.GetOutputPort("label_image")
+
     return hook
 
 
@@ -74,9 +81,13 @@ def WithSensorFaults(station: Diagram, scenario, name: str = "station") -> Diagr
     return diagram
 
 
-def MakeFaultyStation(scenario, meshcat=None, *, patient=None, name: str = "station"
-                      ) -> Diagram:
+def MakeFaultyStation(scenario, meshcat=None, *, patient=None, name: str = "station") -> Diagram:
     """The simulated station with ``scenario.faults`` injected (see the module doc)."""
-    station = MakeSimStation(scenario, meshcat=meshcat, patient=patient, name=name,
-                             label_image_hook=_image_fault_hook(scenario))
+    station = MakeSimStation(
+        scenario,
+        meshcat=meshcat,
+        patient=patient,
+        name=name,
+        label_image_hook=_image_fault_hook(scenario),
+    )
     return WithSensorFaults(station, scenario, name)

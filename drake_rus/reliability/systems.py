@@ -22,10 +22,22 @@ from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.reliability import faults as F
 from drake_rus.reliability.config import FaultConfig
 
-IMAGE_FAULTS = ("image_dropout", "frozen_image", "segmentation_miss",
-                "segmentation_false_positive", "nan_image")
-ROBOT_FAULTS = ("force_spike", "force_bias", "joint_state_delay", "nan_joint_position",
-                "nan_joint_velocity", "nan_force", "nan_pose")
+IMAGE_FAULTS = (
+    "image_dropout",
+    "frozen_image",
+    "segmentation_miss",
+    "segmentation_false_positive",
+    "nan_image",
+)
+ROBOT_FAULTS = (
+    "force_spike",
+    "force_bias",
+    "joint_state_delay",
+    "nan_joint_position",
+    "nan_joint_velocity",
+    "nan_force",
+    "nan_pose",
+)
 
 
 class LabelImageFaults(LeafSystem):
@@ -50,33 +62,46 @@ class LabelImageFaults(LeafSystem):
         period = 1.0 / config.frame_rate_hz
         self.DeclarePeriodicUnrestrictedUpdateEvent(period, 0.5 * period, self._remember)
         self.DeclareAbstractOutputPort(
-            "label_image", lambda: AbstractValue.Make(empty), self._calc,
-            prerequisites_of_calc={self.input_port_ticket(self._in.get_index()),
-                                   self.abstract_state_ticket(self._last)})
+            "label_image",
+            lambda: AbstractValue.Make(empty),
+            self._calc,
+            prerequisites_of_calc={
+                self.input_port_ticket(self._in.get_index()),
+                self.abstract_state_ticket(self._last),
+            },
+        )
         self._memo_key, self._memo = None, None
 
     def _apply(self, frame: UsFrame, last: UsFrame) -> UsFrame:
         if not frame.valid:
             return frame
         for f in self._faults:
-            if not (F.fault_active(frame.time, f)
-                    and F.frame_affected(frame.frame_index, f, self._seed)):
+            if not (
+                F.fault_active(frame.time, f) and F.frame_affected(frame.frame_index, f, self._seed)
+            ):
                 continue
             if f.kind == "image_dropout" and last.valid:
                 return last
             if f.kind == "frozen_image" and last.valid:
                 frame = UsFrame(last.image, frame.time, frame.X_BP, frame.frame_index)
             elif f.kind == "segmentation_miss":
-                frame = UsFrame(F.remove_kidney(frame.image), frame.time, frame.X_BP,
-                                frame.frame_index)
+                frame = UsFrame(
+                    F.remove_kidney(frame.image), frame.time, frame.X_BP, frame.frame_index
+                )
             elif f.kind == "segmentation_false_positive":
-                frame = UsFrame(F.add_false_kidney(frame.image, self._fan, frame.frame_index,
-                                                   self._seed),
-                                frame.time, frame.X_BP, frame.frame_index)
+                frame = UsFrame(
+                    F.add_false_kidney(frame.image, self._fan, frame.frame_index, self._seed),
+                    frame.time,
+                    frame.X_BP,
+                    frame.frame_index,
+                )
             elif f.kind == "nan_image":
-                frame = UsFrame(frame.image, frame.time,
-                                RigidTransform(frame.X_BP.rotation(), np.full(3, math.nan)),
-                                frame.frame_index)
+                frame = UsFrame(
+                    frame.image,
+                    frame.time,
+                    RigidTransform(frame.X_BP.rotation(), np.full(3, math.nan)),
+                    frame.frame_index,
+                )
         return frame
 
     def _output(self, context) -> UsFrame:
@@ -122,8 +147,9 @@ class RobotSensorFaults(LeafSystem):
             self.DeclarePeriodicDiscreteUpdateEvent(sample_period, 0.0, self._sample)
         self.DeclareVectorOutputPort("joint_position", n, self._calc_q)
         self.DeclareVectorOutputPort("joint_velocity", n, self._calc_v)
-        self.DeclareAbstractOutputPort("X_BP", lambda: AbstractValue.Make(RigidTransform()),
-                                       self._calc_X)
+        self.DeclareAbstractOutputPort(
+            "X_BP", lambda: AbstractValue.Make(RigidTransform()), self._calc_X
+        )
         self.DeclareVectorOutputPort("probe_force", 6, self._calc_F)
 
     def _active(self, t, kind):
@@ -133,8 +159,7 @@ class RobotSensorFaults(LeafSystem):
         buf = np.array(context.get_discrete_state(0).get_value())
         width = 2 * self._n
         hist = buf[:-1].reshape(self._slots, width)
-        hist = np.vstack([hist[1:], np.concatenate([self._q.Eval(context),
-                                                    self._v.Eval(context)])])
+        hist = np.vstack([hist[1:], np.concatenate([self._q.Eval(context), self._v.Eval(context)])])
         filled = min(buf[-1] + 1, self._slots)
         discrete_state.set_value(0, np.concatenate([hist.ravel(), [filled]]))
 
@@ -148,7 +173,7 @@ class RobotSensorFaults(LeafSystem):
             return None
         hist = np.asarray(buf[:-1]).reshape(self._slots, 2 * self._n)
         row = hist[self._slots - filled] if filled < self._slots else hist[0]
-        return row[:self._n], row[self._n:]
+        return row[: self._n], row[self._n :]
 
     def _calc_q(self, context, output):
         delayed = self._delayed(context)

@@ -10,7 +10,6 @@ Seven equations, six unknowns: F_W is their (damped) least-squares solution.
 import numpy as np
 from scipy.linalg.lapack import dposv as _posv
 
-
 _DAMPING_MATRICES: dict = {}
 
 
@@ -23,8 +22,9 @@ def _damping_matrix(damping: float) -> np.ndarray:
     return D
 
 
-def estimate_tip_wrench(J_WP: np.ndarray, tau_external: np.ndarray, R_WP: np.ndarray,
-                        damping: float = 1e-3) -> np.ndarray:
+def estimate_tip_wrench(
+    J_WP: np.ndarray, tau_external: np.ndarray, R_WP: np.ndarray, damping: float = 1e-3
+) -> np.ndarray:
     """Spatial force on the probe from the environment, expressed in P, about P's origin.
 
     Args:
@@ -43,7 +43,7 @@ def estimate_tip_wrench(J_WP: np.ndarray, tau_external: np.ndarray, R_WP: np.nda
         raise ValueError(f"J_WP: expected shape (6, {tau.shape[0]}), got {J_WP.shape}")
     # Solve min |J^T F - tau|^2 + damping^2 |F|^2  ->  (J J^T + d^2 I) F = J tau.
     A = J_WP @ J_WP.T
-    np.add(A, _damping_matrix(damping), out=A)   # one ufunc call (this runs at 100 Hz)
+    np.add(A, _damping_matrix(damping), out=A)  # one ufunc call (this runs at 100 Hz)
     # A is symmetric positive definite: LAPACK's Cholesky solve, called directly (numpy's
     # solve wrapper costs three times the solve at this size); anything else, numpy's.
     _, F_W, info = _posv(A, J_WP @ tau)

@@ -15,8 +15,14 @@ class IkError(ValueError):
     ValueError: the pose asked for, e.g. a patient placed out of reach, is the cause)."""
 
 
-def SolveTipPose(control_plant, tip_frame, X_BP: RigidTransform, q_nominal=None,
-                 position_tolerance: float = 1e-4, angle_tolerance: float = 1e-3) -> np.ndarray:
+def SolveTipPose(
+    control_plant,
+    tip_frame,
+    X_BP: RigidTransform,
+    q_nominal=None,
+    position_tolerance: float = 1e-4,
+    angle_tolerance: float = 1e-3,
+) -> np.ndarray:
     """Joint positions (7, rad) putting the probe tip frame at ``X_BP``.
 
     Solves a small nonlinear program: tip position within ``position_tolerance`` (m) and
@@ -27,17 +33,21 @@ def SolveTipPose(control_plant, tip_frame, X_BP: RigidTransform, q_nominal=None,
     ik = InverseKinematics(control_plant)
     world = control_plant.world_frame()
     p = X_BP.translation()
-    ik.AddPositionConstraint(tip_frame, np.zeros(3), world, p - position_tolerance,
-                             p + position_tolerance)
-    ik.AddOrientationConstraint(tip_frame, RotationMatrix(), world,
-                                X_BP.rotation(), angle_tolerance)
+    ik.AddPositionConstraint(
+        tip_frame, np.zeros(3), world, p - position_tolerance, p + position_tolerance
+    )
+    ik.AddOrientationConstraint(
+        tip_frame, RotationMatrix(), world, X_BP.rotation(), angle_tolerance
+    )
     q = ik.q()
     prog = ik.get_mutable_prog()
     prog.AddQuadraticErrorCost(np.eye(len(q_nominal)), q_nominal, q)
     prog.SetInitialGuess(q, q_nominal)
     result = Solve(prog)
     if not result.is_success():
-        raise IkError(f"no FR3 configuration puts the probe tip at p = {np.round(p, 4)} m "
-                      f"with the requested orientation (solver: "
-                      f"{result.get_solution_result()})")
+        raise IkError(
+            f"no FR3 configuration puts the probe tip at p = {np.round(p, 4)} m "
+            f"with the requested orientation (solver: "
+            f"{result.get_solution_result()})"
+        )
     return result.GetSolution(q)

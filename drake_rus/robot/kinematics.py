@@ -51,7 +51,8 @@ class TipKinematics:
         if self._J is None:
             W = self.plant.world_frame()
             self._J = self.plant.CalcJacobianSpatialVelocity(
-                self.context, JacobianWrtVariable.kV, self.frame, np.zeros(3), W, W)
+                self.context, JacobianWrtVariable.kV, self.frame, np.zeros(3), W, W
+            )
         return self._J
 
     def pose(self, q) -> RigidTransform:

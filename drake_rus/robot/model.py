@@ -19,14 +19,25 @@ from pydrake.math import RigidTransform
 from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.multibody.tree import (
-    FixedOffsetFrame, PdControllerGains, RotationalInertia, SpatialInertia)
+    FixedOffsetFrame,
+    PdControllerGains,
+    RotationalInertia,
+    SpatialInertia,
+)
 
 from drake_rus.config_schema import ScenarioError
 from drake_rus.paths import AddDrakeRusPackages
 from drake_rus.scenario import ProbeCalibration, RobotConfig
 
-__all__ = ["AddFr3AndProbe", "MakeControlPlant", "RobotAndProbe", "NUM_JOINTS",
-           "PROBE_TIP_FRAME", "FLANGE_FRAME", "PROBE_FACE_GEOMETRY"]
+__all__ = [
+    "AddFr3AndProbe",
+    "MakeControlPlant",
+    "RobotAndProbe",
+    "NUM_JOINTS",
+    "PROBE_TIP_FRAME",
+    "FLANGE_FRAME",
+    "PROBE_FACE_GEOMETRY",
+]
 
 # The FR3 has seven revolute joints (docs/facts/fr3.md).
 NUM_JOINTS = 7
@@ -38,10 +49,11 @@ PROBE_FACE_GEOMETRY = "face_collision"
 @dataclasses.dataclass
 class RobotAndProbe:
     """What ``AddFr3AndProbe`` added."""
-    robot: object          # ModelInstanceIndex of the FR3
-    probe: object          # ModelInstanceIndex of the probe
-    tip_frame: object      # Frame P (probe tip)
-    probe_bodies: list     # bodies rigidly attached to the flange (probe + payload)
+
+    robot: object  # ModelInstanceIndex of the FR3
+    probe: object  # ModelInstanceIndex of the probe
+    tip_frame: object  # Frame P (probe tip)
+    probe_bodies: list  # bodies rigidly attached to the flange (probe + payload)
 
 
 def model_url(model: str) -> str:
@@ -49,8 +61,9 @@ def model_url(model: str) -> str:
     return model if "://" in model else Path(model).resolve().as_uri()
 
 
-def AddFr3AndProbe(plant: MultibodyPlant, robot_config: RobotConfig,
-                   probe_config: ProbeCalibration) -> RobotAndProbe:
+def AddFr3AndProbe(
+    plant: MultibodyPlant, robot_config: RobotConfig, probe_config: ProbeCalibration
+) -> RobotAndProbe:
     """Adds the FR3 (base welded to the world, the scenario's ``robot`` section) and the
     calibrated probe (its ``probe`` section) to ``plant``.
 
@@ -74,7 +87,8 @@ def AddFr3AndProbe(plant: MultibodyPlant, robot_config: RobotConfig,
     X_FP = probe_config.X_FP.GetDeterministicValue()
     plant.WeldFrames(flange, probe_body.body_frame(), X_FP)
     tip_frame = plant.AddFrame(
-        FixedOffsetFrame(PROBE_TIP_FRAME, probe_body.body_frame(), RigidTransform()))
+        FixedOffsetFrame(PROBE_TIP_FRAME, probe_body.body_frame(), RigidTransform())
+    )
 
     # Lumped holder + probe inertia from the scenario, as its own body welded at the flange.
     cal = probe_config
@@ -86,15 +100,16 @@ def AddFr3AndProbe(plant: MultibodyPlant, robot_config: RobotConfig,
     for i in range(NUM_JOINTS):
         actuator = plant.GetJointActuatorByName(f"fr3_motor{i + 1}", robot)
         actuator.set_controller_gains(
-            PdControllerGains(p=robot_config.driver_kp[i], d=robot_config.driver_kd[i]))
+            PdControllerGains(p=robot_config.driver_kp[i], d=robot_config.driver_kd[i])
+        )
     for i, q in enumerate(robot_config.initial_joint_positions):
         plant.GetJointByName(f"fr3_joint{i + 1}", robot).set_default_angle(q)
     return RobotAndProbe(robot, probe, tip_frame, [probe_body, payload])
 
 
-def MakeControlPlant(robot_config: RobotConfig | None = None,
-                     probe_config: ProbeCalibration | None = None
-                     ) -> tuple[MultibodyPlant, object]:
+def MakeControlPlant(
+    robot_config: RobotConfig | None = None, probe_config: ProbeCalibration | None = None
+) -> tuple[MultibodyPlant, object]:
     """A continuous plant with only the FR3 and the calibrated probe, for kinematics and
     gravity: no SceneGraph, so no geometry. The same model serves the hardware station (FK for
     ``X_BP``, Jacobians for ``probe_force``), both stations' force estimators and the

@@ -24,17 +24,21 @@ class ProbePoseFromJoints(LeafSystem):
     frame P in the robot base B (m).
     """
 
-    def __init__(self, control_plant: MultibodyPlant, tip_frame,
-                 kinematics: TipKinematics | None = None):
+    def __init__(
+        self, control_plant: MultibodyPlant, tip_frame, kinematics: TipKinematics | None = None
+    ):
         super().__init__()
         self._tip = kinematics or TipKinematics(control_plant, tip_frame)
         q = self.DeclareVectorInputPort("joint_position", NUM_JOINTS)
         # Depends on q only (not on time or other sources): recomputed when q changes.
         self.DeclareAbstractOutputPort(
-            "X_BP", lambda: AbstractValue.Make(RigidTransform()),
+            "X_BP",
+            lambda: AbstractValue.Make(RigidTransform()),
             lambda context, output: output.set_value(
-                self._tip.pose(self.get_input_port(0).Eval(context))),
-            prerequisites_of_calc={self.input_port_ticket(q.get_index())})
+                self._tip.pose(self.get_input_port(0).Eval(context))
+            ),
+            prerequisites_of_calc={self.input_port_ticket(q.get_index())},
+        )
 
 
 class ProbeForceEstimator(LeafSystem):
@@ -44,16 +48,22 @@ class ProbeForceEstimator(LeafSystem):
     (6): spatial force on the probe by the environment, in P about P's origin (N m, N).
     """
 
-    def __init__(self, control_plant: MultibodyPlant, tip_frame,
-                 kinematics: TipKinematics | None = None):
+    def __init__(
+        self, control_plant: MultibodyPlant, tip_frame, kinematics: TipKinematics | None = None
+    ):
         super().__init__()
         self._tip = kinematics or TipKinematics(control_plant, tip_frame)
         q = self.DeclareVectorInputPort("joint_position", NUM_JOINTS)
         tau = self.DeclareVectorInputPort("tau_external", NUM_JOINTS)
         self.DeclareVectorOutputPort(
-            "probe_force", 6, self._calc,
-            prerequisites_of_calc={self.input_port_ticket(q.get_index()),
-                                   self.input_port_ticket(tau.get_index())})
+            "probe_force",
+            6,
+            self._calc,
+            prerequisites_of_calc={
+                self.input_port_ticket(q.get_index()),
+                self.input_port_ticket(tau.get_index()),
+            },
+        )
 
     def _calc(self, context, output):
         q = self.get_input_port(0).Eval(context)

@@ -12,11 +12,21 @@ The names below load on first use, so the light ``drake_rus.scan.config`` (the s
 import importlib
 
 _EXPORTS = {
-    "BuildScanDiagram": "diagram", "ScanHandles": "diagram", "PhaseIs": "diagram",
-    "FrameRecord": "diagram", "ScanMetrics": "metrics", "Summary": "metrics",
-    "WriteScanOutputs": "report", "RunScan": "run", "PrepareScenario": "run",
-    "ScanResult": "run", "ScanMonitor": "run", "CollectScanResult": "run",
-    "TERMINAL_PHASES": "run", "SimulationTruth": "truth", "StartPlan": "planning",
+    "BuildScanDiagram": "diagram",
+    "ScanHandles": "diagram",
+    "PhaseIs": "diagram",
+    "FrameRecord": "diagram",
+    "ScanMetrics": "metrics",
+    "Summary": "metrics",
+    "WriteScanOutputs": "report",
+    "RunScan": "run",
+    "PrepareScenario": "run",
+    "ScanResult": "run",
+    "ScanMonitor": "run",
+    "CollectScanResult": "run",
+    "TERMINAL_PHASES": "run",
+    "SimulationTruth": "truth",
+    "StartPlan": "planning",
     "PlanStart": "planning",
 }
 

@@ -28,9 +28,15 @@ from pathlib import Path
 
 from drake_rus import interrupts
 from drake_rus.anatomy.cli import check_patient_arguments, load_patient_for
-from drake_rus.cli import EXIT_STATUS_HELP, UserError, check_arguments
+from drake_rus.cli import (
+    EXIT_STATUS_HELP,
+    MakeMeshcat,
+    UserError,
+    add_scenario_arguments,
+    check_arguments,
+    load_scenario_from_args,
+)
 from drake_rus.config_schema import ScenarioError
-from drake_rus.cli import MakeMeshcat, add_scenario_arguments, load_scenario_from_args
 from drake_rus.imaging.onnx_backend import OnnxSegmenter, resolve_model_path
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.io_utils import MB, check_output_file, dumps_strict, output_dir, write_text_atomic
@@ -54,16 +60,16 @@ DEFAULT_MAX_SIM_TIME = 150.0
 # What each recorded seed seeds (summary.json: provenance.seeds; metric_definitions-like).
 SEED_USES = {
     "random_seed": "scenario.random_seed (after --seed): the emulator's speckle (frame k from "
-                   "(random_seed, k)), the start planner's placement-error draw (with "
-                   "start.placement_seed) and the breath-hold draws (with patient.motion.seed)",
+    "(random_seed, k)), the start planner's placement-error draw (with "
+    "start.placement_seed) and the breath-hold draws (with patient.motion.seed)",
     "seed_argument": "--seed as given (null: the scenario's random_seed)",
     "start_placement_seed": "start.placement_seed: the operator's placement error",
     "patient_motion_seed": "patient.motion.seed: where each breath-hold lands",
     "patient": "the patient spec (--patient)",
     "patient_generator_seed": "the anatomy generator's seed of a seed:/train:/test: patient "
-                              "(null: an imported patient, see provenance.inputs)",
+    "(null: an imported patient, see provenance.inputs)",
     "cloud_thinning": "localization: the fixed seed of the partial cloud's thinning to "
-                      "localization.max_points",
+    "localization.max_points",
 }
 
 RERUN_HELP = """rerun:
@@ -76,31 +82,51 @@ RERUN_HELP = """rerun:
 
 def add_commands(subparsers) -> None:
     p = subparsers.add_parser(
-        "scan", help="the full autonomous kidney scan on a virtual (or real) patient",
-        description=__doc__, epilog=RERUN_HELP + "\n\n" + EXIT_STATUS_HELP,
-        formatter_class=argparse.RawDescriptionHelpFormatter)
+        "scan",
+        help="the full autonomous kidney scan on a virtual (or real) patient",
+        description=__doc__,
+        epilog=RERUN_HELP + "\n\n" + EXIT_STATUS_HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     add_scenario_arguments(p)
-    p.add_argument("--patient", default=DEFAULT_PATIENT,
-                   help="test:K or train:K (cohort member), seed:N (any generator seed), or a "
-                        "patient directory/file (default test:0)")
+    p.add_argument(
+        "--patient",
+        default=DEFAULT_PATIENT,
+        help="test:K or train:K (cohort member), seed:N (any generator seed), or a "
+        "patient directory/file (default test:0)",
+    )
     p.add_argument("--out", default=None, help="output directory (default runs/scan)")
     p.add_argument("--meshcat", action="store_true", help="live Meshcat (URL printed)")
-    p.add_argument("--record", default=None,
-                   help="Meshcat recording file (default OUT/scan.html)")
+    p.add_argument("--record", default=None, help="Meshcat recording file (default OUT/scan.html)")
     p.add_argument("--no-record", action="store_true", help="skip the Meshcat recording")
-    p.add_argument("--seed", type=int, default=None,
-                   help="random seed (speckle, the start's placement error, breath-holds; "
-                        "default the scenario's random_seed)")
-    p.add_argument("--max-sim-time", type=float, default=DEFAULT_MAX_SIM_TIME,
-                   help="give up after this much simulated time in s (default 150)")
-    p.add_argument("--rerun", default=None, metavar="SUMMARY",
-                   help="repeat the scan recorded in SUMMARY (its summary.json or folder); "
-                        "see 'rerun' below")
-    p.add_argument("--template", default=None, metavar="SPEC",
-                   help="registration template: generated (the shipped template of generated "
-                        "kidneys), real (real CT kidneys of ../shared/anatomy/kits19, built on "
-                        "first use into the cache, without the scanned case), real:DIR, or a "
-                        "template .npz (default: the scenario's localization.template)")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help="random seed (speckle, the start's placement error, breath-holds; "
+        "default the scenario's random_seed)",
+    )
+    p.add_argument(
+        "--max-sim-time",
+        type=float,
+        default=DEFAULT_MAX_SIM_TIME,
+        help="give up after this much simulated time in s (default 150)",
+    )
+    p.add_argument(
+        "--rerun",
+        default=None,
+        metavar="SUMMARY",
+        help="repeat the scan recorded in SUMMARY (its summary.json or folder); see 'rerun' below",
+    )
+    p.add_argument(
+        "--template",
+        default=None,
+        metavar="SPEC",
+        help="registration template: generated (the shipped template of generated "
+        "kidneys), real (real CT kidneys of ../shared/anatomy/kits19, built on "
+        "first use into the cache, without the scanned case), real:DIR, or a "
+        "template .npz (default: the scenario's localization.template)",
+    )
     p.set_defaults(func=run_scan_command, outputs={"out": "dir", "record": "file:.html"})
 
 
@@ -126,7 +152,8 @@ def input_files(scenario, patient_spec: str | None) -> dict:
     files = {}
     template = scenario.localization.template
     files["localization.template"] = _file_record(
-        Path(template) if str(template).startswith("/") else REPO_ROOT / template)
+        Path(template) if str(template).startswith("/") else REPO_ROOT / template
+    )
     if scenario.imaging.segmenter == "onnx":
         model = resolve_model_path(scenario.imaging.onnx_model)
         files["imaging.onnx_model"] = _file_record(model)
@@ -148,17 +175,25 @@ def scan_provenance(args, scenario) -> dict:
     (completed with the patient's once loaded), versions, commit, input files and the
     arguments a rerun needs."""
     rerun = getattr(args, "rerun_record", None)
-    record = Provenance(scenario, scenario_name=args.scenario,
-                        scenarios_file=args.scenarios_file, overrides=args.overrides,
-                        seeds=scan_seeds(scenario, args, None),
-                        argv=getattr(args, "argv", None))
+    record = Provenance(
+        scenario,
+        scenario_name=args.scenario,
+        scenarios_file=args.scenarios_file,
+        overrides=args.overrides,
+        seeds=scan_seeds(scenario, args, None),
+        argv=getattr(args, "argv", None),
+    )
     if rerun is not None:
         for key in ("scenario_name", "scenarios_file", "overrides"):
             record[key] = rerun["provenance"].get(key)
         record["rerun_of"] = rerun["path"]
     record["command"] = "scan"
-    record["arguments"] = {"patient": args.patient, "max_sim_time": args.max_sim_time,
-                           "seed": args.seed, "record": not args.no_record}
+    record["arguments"] = {
+        "patient": args.patient,
+        "max_sim_time": args.max_sim_time,
+        "seed": args.seed,
+        "record": not args.no_record,
+    }
     record["inputs"] = input_files(scenario, args.patient)
     record["seed_uses"] = SEED_USES
     return record
@@ -167,13 +202,17 @@ def scan_provenance(args, scenario) -> dict:
 def scan_seeds(scenario, args, patient) -> dict:
     """Every seed of a scan's random draws (see SEED_USES)."""
     meta = getattr(patient, "meta", None) or {}
-    return {"random_seed": int(scenario.random_seed), "seed_argument": args.seed,
-            "start_placement_seed": int(scenario.start.placement_seed),
-            "patient_motion_seed": int(scenario.patient.motion.seed),
-            "patient": None if scenario.hardware else args.patient,
-            "patient_generator_seed": (int(meta["seed"]) if meta.get("source") == "generator"
-                                       else None),
-            "cloud_thinning": 0}
+    return {
+        "random_seed": int(scenario.random_seed),
+        "seed_argument": args.seed,
+        "start_placement_seed": int(scenario.start.placement_seed),
+        "patient_motion_seed": int(scenario.patient.motion.seed),
+        "patient": None if scenario.hardware else args.patient,
+        "patient_generator_seed": (
+            int(meta["seed"]) if meta.get("source") == "generator" else None
+        ),
+        "cloud_thinning": 0,
+    }
 
 
 def read_rerun(spec: str) -> dict:
@@ -187,33 +226,41 @@ def read_rerun(spec: str) -> dict:
     try:
         summary = json.loads(path.read_text(errors="replace"))
     except (OSError, ValueError) as e:
-        raise UserError(f"--rerun: {path} is not a drake-rus scan summary (not JSON: {e})"
-                        ) from None
+        raise UserError(
+            f"--rerun: {path} is not a drake-rus scan summary (not JSON: {e})"
+        ) from None
     if not isinstance(summary, dict) or "status" not in summary:
         raise UserError(f"--rerun: {path} is not a drake-rus scan summary (no 'status')")
     prov = summary.get("provenance")
     if not isinstance(prov, dict) or not isinstance(prov.get("scenario_yaml"), str):
-        raise UserError(f"--rerun: {path} records no provenance (a summary of an older "
-                        "drake-rus, or not a scan's); it cannot be repeated")
+        raise UserError(
+            f"--rerun: {path} records no provenance (a summary of an older "
+            "drake-rus, or not a scan's); it cannot be repeated"
+        )
     if prov.get("command", "scan") != "scan" or not isinstance(prov.get("arguments"), dict):
-        raise UserError(f"--rerun: {path} is the summary of 'drake-rus {prov.get('command')}'"
-                        "; scan --rerun repeats scans")
+        raise UserError(
+            f"--rerun: {path} is the summary of 'drake-rus {prov.get('command')}'"
+            "; scan --rerun repeats scans"
+        )
     arguments = prov["arguments"]
     patient, max_sim_time = arguments.get("patient"), arguments.get("max_sim_time")
     if not isinstance(patient, str) or not isinstance(max_sim_time, (int, float)):
-        raise UserError(f"--rerun: {path}: provenance.arguments lacks the patient or "
-                        "max_sim_time")
+        raise UserError(f"--rerun: {path}: provenance.arguments lacks the patient or max_sim_time")
     try:
-        scenario = ApplyOverrides(Scenario(), prov["scenario_yaml"],
-                                  context=f"--rerun: {path}: provenance.scenario_yaml")
+        scenario = ApplyOverrides(
+            Scenario(), prov["scenario_yaml"], context=f"--rerun: {path}: provenance.scenario_yaml"
+        )
         CheckScenario(scenario)
     except ScenarioError as e:
         text = str(e)
-        raise UserError(text if text.startswith("--rerun") else f"--rerun: {path}: {text}"
-                        ) from None
+        raise UserError(
+            text if text.startswith("--rerun") else f"--rerun: {path}: {text}"
+        ) from None
     if scenario.hardware:
-        raise UserError(f"--rerun: {path} records a run on hardware (hardware: true); a rerun "
-                        "repeats simulated runs only")
+        raise UserError(
+            f"--rerun: {path} records a run on hardware (hardware: true); a rerun "
+            "repeats simulated runs only"
+        )
     return {"path": str(path), "summary": summary, "provenance": prov, "scenario": scenario}
 
 
@@ -221,17 +268,25 @@ def _apply_rerun(args) -> None:
     """Fills ``args`` from ``--rerun`` (patient, --max-sim-time, --out default) after
     refusing arguments that would change the run; checks them as preflight checks given
     ones; warns (one line) when software or inputs differ from the recorded run's."""
-    given = [flag for flag, value, default in (
-        ("--scenario", args.scenario, "default"),
-        ("--scenarios-file", args.scenarios_file, str(DEFAULT_SCENARIOS_FILE)),
-        ("--set", args.overrides, None), ("--seed", args.seed, None),
-        ("--template", args.template, None),
-        ("--patient", args.patient, DEFAULT_PATIENT),
-        ("--max-sim-time", args.max_sim_time, DEFAULT_MAX_SIM_TIME)) if value != default]
+    given = [
+        flag
+        for flag, value, default in (
+            ("--scenario", args.scenario, "default"),
+            ("--scenarios-file", args.scenarios_file, str(DEFAULT_SCENARIOS_FILE)),
+            ("--set", args.overrides, None),
+            ("--seed", args.seed, None),
+            ("--template", args.template, None),
+            ("--patient", args.patient, DEFAULT_PATIENT),
+            ("--max-sim-time", args.max_sim_time, DEFAULT_MAX_SIM_TIME),
+        )
+        if value != default
+    ]
     if given:
-        raise UserError(f"--rerun: repeats the recorded run as it was; {', '.join(given)} "
-                        "cannot be given with it (only --out, --record, --no-record, "
-                        "--meshcat)")
+        raise UserError(
+            f"--rerun: repeats the recorded run as it was; {', '.join(given)} "
+            "cannot be given with it (only --out, --record, --no-record, "
+            "--meshcat)"
+        )
     rerun = read_rerun(args.rerun)
     arguments = rerun["provenance"]["arguments"]
     args.patient = arguments["patient"]
@@ -242,16 +297,22 @@ def _apply_rerun(args) -> None:
     if args.out is None:
         args.out = str(recorded_dir / "rerun")
     if Path(args.out).resolve() == recorded_dir.resolve():
-        raise UserError(f"--out: {args.out} holds the recorded run; the rerun would overwrite "
-                        "it (choose another --out)")
+        raise UserError(
+            f"--out: {args.out} holds the recorded run; the rerun would overwrite "
+            "it (choose another --out)"
+        )
     check_arguments(args)
     check_patient_arguments(args)
-    differences = rerun_differences(rerun["provenance"],
-                                    Provenance(None, argv=[]),
-                                    input_files(rerun["scenario"], args.patient))
+    differences = rerun_differences(
+        rerun["provenance"], Provenance(None, argv=[]), input_files(rerun["scenario"], args.patient)
+    )
     if differences:
-        print(f"drake-rus scan: warning: --rerun: {rerun['path']} was recorded with "
-              f"{'; '.join(differences)}: the results may differ", file=sys.stderr, flush=True)
+        print(
+            f"drake-rus scan: warning: --rerun: {rerun['path']} was recorded with "
+            f"{'; '.join(differences)}: the results may differ",
+            file=sys.stderr,
+            flush=True,
+        )
 
 
 def rerun_differences(recorded: dict, now: dict, files: dict) -> list[str]:
@@ -262,8 +323,11 @@ def rerun_differences(recorded: dict, now: dict, files: dict) -> list[str]:
     if a != b:
         out.append(f"commit {(a or 'unknown')[:12]} -> now {(b or 'unknown')[:12]}")
     if recorded.get("dirty") or now.get("dirty"):
-        out.append("uncommitted changes" + (" (then)" if recorded.get("dirty") else "")
-                   + (" (now)" if now.get("dirty") else ""))
+        out.append(
+            "uncommitted changes"
+            + (" (then)" if recorded.get("dirty") else "")
+            + (" (now)" if now.get("dirty") else "")
+        )
     if recorded.get("python") != now.get("python"):
         out.append(f"Python {recorded.get('python')} -> now {now.get('python')}")
     old, new = recorded.get("packages") or {}, now.get("packages") or {}
@@ -296,12 +360,12 @@ def run_scan_command(args) -> int:
     record = not args.no_record
     need = SCAN_OUTPUT_BYTES + (RECORDING_BYTES if record and not args.record else 0)
     if record and args.record:
-        check_output_file(args.record, "--record", need_bytes=RECORDING_BYTES,
-                          suffixes=(".html",))
+        check_output_file(args.record, "--record", need_bytes=RECORDING_BYTES, suffixes=(".html",))
     # The output folder is checked and locked before any work, and removed again if the run
     # fails before writing into it. A signal from here on leaves an INTERRUPTED summary.
-    with output_dir(args.out, "--out", need_bytes=need, what="scan",
-                    argv=getattr(args, "argv", None)) as out:
+    with output_dir(
+        args.out, "--out", need_bytes=need, what="scan", argv=getattr(args, "argv", None)
+    ) as out:
         run = _ScanRun(args, scenario, template, out, provenance)
         try:
             return run.go()
@@ -337,10 +401,13 @@ def select_template(scenario, spec, patient: str):
     for w in caught:
         print(f"warning: {w.message}", file=sys.stderr, flush=True)
     if spec is not None and not path.is_file():
-        raise UserError(f"--template: {path}: no such template file (expected generated, "
-                        f"real, real:DIR or a template .npz)")
-    return dataclasses.replace(scenario, localization=dataclasses.replace(
-        scenario.localization, template=str(path)))
+        raise UserError(
+            f"--template: {path}: no such template file (expected generated, "
+            f"real, real:DIR or a template .npz)"
+        )
+    return dataclasses.replace(
+        scenario, localization=dataclasses.replace(scenario.localization, template=str(path))
+    )
 
 
 def _stderr_line(line: str) -> None:
@@ -351,13 +418,16 @@ def load_template_for(scenario):
     """The scenario's registration template; errors name ``localization.template``."""
     path = scenario.localization.template
     if path and (REPO_ROOT / path).is_dir():
-        raise ScenarioError(f"field 'localization.template': {REPO_ROOT / path} is a folder; "
-                            "expected a template .npz file")
+        raise ScenarioError(
+            f"field 'localization.template': {REPO_ROOT / path} is a folder; "
+            "expected a template .npz file"
+        )
     try:
         return load_registration_template(path)
     except FileNotFoundError as e:
         raise FileNotFoundError(
-            f"localization.template: {e} (build one with 'drake-rus template build')") from None
+            f"localization.template: {e} (build one with 'drake-rus template build')"
+        ) from None
     except ValueError as e:
         raise ScenarioError(f"field 'localization.template': {e}") from None
 
@@ -375,11 +445,15 @@ class _ScanRun:
     def go(self) -> int:
         args, scenario = self.args, self.scenario
         patient = None
-        if not scenario.hardware:    # on hardware the patient is the one on the bed
+        if not scenario.hardware:  # on hardware the patient is the one on the bed
             print(f"patient {args.patient}: loading ...", flush=True)
-            patient = load_patient_for(args.patient, "--patient", side=scenario.patient.side,
-                                       posture=scenario.patient.posture,
-                                       progress=stderr_is_terminal())
+            patient = load_patient_for(
+                args.patient,
+                "--patient",
+                side=scenario.patient.side,
+                posture=scenario.patient.posture,
+                progress=stderr_is_terminal(),
+            )
         self.provenance["seeds"] = scan_seeds(scenario, args, patient)
         self.stage = "start-up (start plan, diagram)"
         meshcat = None
@@ -389,19 +463,22 @@ class _ScanRun:
                 print(f"Meshcat: {meshcat.web_url()}", flush=True)
             meshcat.StartRecording(frames_per_second=20.0)
         try:
-            result = RunScan(scenario, patient, self.template, meshcat=meshcat,
-                             max_sim_time=args.max_sim_time)
+            result = RunScan(
+                scenario, patient, self.template, meshcat=meshcat, max_sim_time=args.max_sim_time
+            )
         except (IkError, StartPlanError) as e:
-            raise UserError(f"--patient {args.patient} (patient.X_BPt, start): no start pose: "
-                            f"{e}") from None
+            raise UserError(
+                f"--patient {args.patient} (patient.X_BPt, start): no start pose: {e}"
+            ) from None
         self.stage = "collecting the results"
         metrics = ScanMetrics(result)
         summary = Summary(result, metrics, provenance=self.provenance)
         if result.status == "INTERRUPTED":
             # A signal during the simulation: write the partial summary only (a few ms).
             with interrupts.deferred(reraise=False):
-                path = write_text_atomic(self.out / "summary.json",
-                                         dumps_strict(summary, indent=2, default=str) + "\n")
+                path = write_text_atomic(
+                    self.out / "summary.json", dumps_strict(summary, indent=2, default=str) + "\n"
+                )
             print(f"INTERRUPTED: {summary['reason']}; wrote {path}", flush=True)
             return interrupts.exit_status()
         self.summary = summary
@@ -411,16 +488,18 @@ class _ScanRun:
             record = Path(args.record) if args.record else self.out / "scan.html"
             SaveMeshcatRecording(meshcat, record)
             written.append(record)
-        interrupts.check()           # a signal swallowed while writing
+        interrupts.check()  # a signal swallowed while writing
         e_t, e_r, V = summary["e_trans_mm"], summary["e_rot_x_deg"], summary["volume_ratio"]
-        print(f"{summary['status']}"
-              f"{': ' + summary['reason'] if summary['status'] != 'DONE' else ''}"
-              f" | E_trans {_r(e_t, 2)} mm, E_rot,x {_r(e_r, 2)} deg | pole to pole: eps "
-              f"{_r(summary['eps_mm'], 1)} mm, n {summary['n_frames']}, V {_r(V, 3)} | whole "
-              f"pivot: eps {_r(summary.get('eps_whole_pivot_mm'), 1)} mm, n "
-              f"{summary.get('n_whole_pivot')}, V "
-              f"{_r(summary.get('volume_ratio_whole_pivot'), 3)}"
-              f" | {summary['sim_s']:.1f} sim s in {summary['wall_s']:.1f} s")
+        print(
+            f"{summary['status']}"
+            f"{': ' + summary['reason'] if summary['status'] != 'DONE' else ''}"
+            f" | E_trans {_r(e_t, 2)} mm, E_rot,x {_r(e_r, 2)} deg | pole to pole: eps "
+            f"{_r(summary['eps_mm'], 1)} mm, n {summary['n_frames']}, V {_r(V, 3)} | whole "
+            f"pivot: eps {_r(summary.get('eps_whole_pivot_mm'), 1)} mm, n "
+            f"{summary.get('n_whole_pivot')}, V "
+            f"{_r(summary.get('volume_ratio_whole_pivot'), 3)}"
+            f" | {summary['sim_s']:.1f} sim s in {summary['wall_s']:.1f} s"
+        )
         sweep = summary.get("sweep") or {}
         if sweep.get("kind") == "line" or sweep.get("pivot_pose") == "given":
             print(f"sweep: {sweep['text']}")
@@ -435,17 +514,23 @@ class _ScanRun:
             if self.summary is not None:
                 summary = dict(self.summary)
                 summary.update(
-                    status="INTERRUPTED", scan_status=self.summary["status"],
+                    status="INTERRUPTED",
+                    scan_status=self.summary["status"],
                     scan_reason=self.summary["reason"],
                     reason=f"{how} while writing the outputs (the scan itself ended "
-                           f"{self.summary['status']}); the outputs are partial")
+                    f"{self.summary['status']}); the outputs are partial",
+                )
             else:
-                summary = {"status": "INTERRUPTED",
-                           "reason": f"{how} during {self.stage}; no scan ran",
-                           "patient": self.args.patient, "stage": self.stage,
-                           "provenance": self.provenance}
-            path = write_text_atomic(self.out / "summary.json",
-                                     dumps_strict(summary, indent=2, default=str) + "\n")
+                summary = {
+                    "status": "INTERRUPTED",
+                    "reason": f"{how} during {self.stage}; no scan ran",
+                    "patient": self.args.patient,
+                    "stage": self.stage,
+                    "provenance": self.provenance,
+                }
+            path = write_text_atomic(
+                self.out / "summary.json", dumps_strict(summary, indent=2, default=str) + "\n"
+            )
         print(f"INTERRUPTED: {summary['reason']}; wrote {path}", flush=True)
         return interrupts.exit_status(exc)
 

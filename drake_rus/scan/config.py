@@ -68,6 +68,7 @@ class VerdictConfig:
     check named. The registration's RMS residual and inlier fraction are judged against the
     localizer's own bounds (``localization.max_rms_residual[_deformable]``,
     ``min_inlier_fraction``). SI units (m, rad) unless a name says ``_deg``."""
+
     # Figures below: "healthy" is the default scan on test:0-9 supine, the Visible Human
     # female (right kidney supine and decubitus, left supine), the quick scenario on
     # test:0-1 and seed_method on test:0-3, all DONE with true V 0.91-1.00; "wrong" the

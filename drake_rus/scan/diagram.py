@@ -30,9 +30,16 @@ from drake_rus.imaging.systems import PointCloudAccumulator, Segmenter
 from drake_rus.localization.localize import IcpLocalizer, body_directions_B
 from drake_rus.localization.tracking import KidneyTrackingMonitor
 
-__all__ = ["BuildScanDiagram", "ScanHandles", "PhaseIs", "And2", "ScanRecorder",
-           "ScanTerminator",
-           "FrameRecord", "LOG_PERIOD"]
+__all__ = [
+    "BuildScanDiagram",
+    "ScanHandles",
+    "PhaseIs",
+    "And2",
+    "ScanRecorder",
+    "ScanTerminator",
+    "FrameRecord",
+    "LOG_PERIOD",
+]
 
 # Period (s) of the scan's loggers (phase, force, a_des, manipulability, q).
 LOG_PERIOD = 0.02
@@ -46,8 +53,12 @@ class PhaseIs(LeafSystem):
         self._value = int(phase_value)
         self.DeclareVectorInputPort("phase", 1)
         self.DeclareVectorOutputPort(
-            "value", 1, lambda c, o: o.SetAtIndex(
-                0, float(int(round(self.get_input_port(0).Eval(c)[0])) == self._value)))
+            "value",
+            1,
+            lambda c, o: o.SetAtIndex(
+                0, float(int(round(self.get_input_port(0).Eval(c)[0])) == self._value)
+            ),
+        )
 
 
 class And2(LeafSystem):
@@ -58,8 +69,10 @@ class And2(LeafSystem):
         a = self.DeclareVectorInputPort("a", 1)
         b = self.DeclareVectorInputPort("b", 1)
         self.DeclareVectorOutputPort(
-            "value", 1, lambda c, o: o.SetAtIndex(
-                0, float(a.Eval(c)[0] > 0.5 and b.Eval(c)[0] > 0.5)))
+            "value",
+            1,
+            lambda c, o: o.SetAtIndex(0, float(a.Eval(c)[0] > 0.5 and b.Eval(c)[0] > 0.5)),
+        )
 
 
 class ScanTerminator(LeafSystem):
@@ -86,6 +99,7 @@ class ScanTerminator(LeafSystem):
 class FrameRecord:
     """One acquired frame as the scan saw it: capture time (s), frame index, supervisor
     phase, probe pose X_BP, kidney visible, filtered contact force F_z (N)."""
+
     time: float
     frame_index: int
     phase: int
@@ -132,8 +146,16 @@ class ScanRecorder(LeafSystem):
         self._last_index = us.frame_index
         phase = int(round(self._phase.Eval(context)[0]))
         visible = bool(self._visible.Eval(context)[0] > 0.5)
-        self.frames.append(FrameRecord(us.time, us.frame_index, phase, RigidTransform(us.X_BP),
-                                       visible, float(self._force.Eval(context)[0])))
+        self.frames.append(
+            FrameRecord(
+                us.time,
+                us.frame_index,
+                phase,
+                RigidTransform(us.X_BP),
+                visible,
+                float(self._force.Eval(context)[0]),
+            )
+        )
         if phase in self._mask_phases:
             self.sweep_masks[us.frame_index] = np.array(self._mask.Eval(context).image, bool)
         if phase == Phase.PIVOT:
@@ -147,15 +169,16 @@ class ScanRecorder(LeafSystem):
 @dataclasses.dataclass
 class ScanHandles:
     """The systems of a scan diagram, for reading their state after (or during) a run."""
+
     station: object
     segmenter: Segmenter
     accumulator: PointCloudAccumulator
     localizer: IcpLocalizer
     supervisor: object
     recorder: ScanRecorder
-    parts: object                 # ControllerParts
+    parts: object  # ControllerParts
     tracking: KidneyTrackingMonitor
-    logs: dict                    # name -> VectorLogSink
+    logs: dict  # name -> VectorLogSink
     terminator: ScanTerminator | None = None
 
     def __getitem__(self, name):  # handles["supervisor"] reads like a dict
@@ -168,8 +191,10 @@ def _breath_hold_port(scenario, station):
     if not scenario.patient.motion.breathing.gate_exploration:
         return None
     if not station.HasOutputPort("breath_hold"):
-        raise ScenarioError("field 'patient.motion.breathing.gate_exploration': the station "
-                            "has no 'breath_hold' output to gate on")
+        raise ScenarioError(
+            "field 'patient.motion.breathing.gate_exploration': the station "
+            "has no 'breath_hold' output to gate on"
+        )
     return station.GetOutputPort("breath_hold")
 
 
@@ -177,10 +202,13 @@ def PivotModelFor(template, imaging) -> PivotModel:
     """The supervisor's pivot model: the registration template's points in K (m) and the
     fan of the probe at the scan's depth (m, rad), with half the elevational beam width as
     the image slab."""
-    return PivotModel(points_K=np.asarray(template.points, float),
-                      probe_radius=imaging.probe_radius,
-                      half_angle=math.radians(imaging.field_of_view_deg) / 2,
-                      depth=imaging.depth, slab_half_width=imaging.elevation_width / 2)
+    return PivotModel(
+        points_K=np.asarray(template.points, float),
+        probe_radius=imaging.probe_radius,
+        half_angle=math.radians(imaging.field_of_view_deg) / 2,
+        depth=imaging.depth,
+        slab_half_width=imaging.elevation_width / 2,
+    )
 
 
 def BuildScanDiagram(scenario, station, template, *, builder: DiagramBuilder | None = None):
@@ -193,39 +221,64 @@ def BuildScanDiagram(scenario, station, template, *, builder: DiagramBuilder | N
     builder.Connect(station.GetOutputPort("us_image"), segmenter.GetInputPort("us_image"))
     if scenario.imaging.segmenter == "oracle":
         if not station.HasOutputPort("label_image"):
-            raise ScenarioError("field 'imaging.segmenter': 'oracle' reads the simulated "
-                                "station's label_image, which this station does not have; "
-                                "use 'onnx' or 'classical'")
-        builder.Connect(station.GetOutputPort("label_image"),
-                        segmenter.GetInputPort("label_image"))
-    accumulator = builder.AddNamedSystem("point_cloud_accumulator",
-                                         PointCloudAccumulator(scenario.imaging))
-    builder.Connect(segmenter.GetOutputPort("boundary_pixels"),
-                    accumulator.GetInputPort("boundary_pixels"))
+            raise ScenarioError(
+                "field 'imaging.segmenter': 'oracle' reads the simulated "
+                "station's label_image, which this station does not have; "
+                "use 'onnx' or 'classical'"
+            )
+        builder.Connect(station.GetOutputPort("label_image"), segmenter.GetInputPort("label_image"))
+    accumulator = builder.AddNamedSystem(
+        "point_cloud_accumulator", PointCloudAccumulator(scenario.imaging)
+    )
+    builder.Connect(
+        segmenter.GetOutputPort("boundary_pixels"), accumulator.GetInputPort("boundary_pixels")
+    )
     X_BPt = scenario.patient.X_BPt.GetDeterministicValue()
-    superior_B, lateral_B = body_directions_B(X_BPt, scenario.patient.side,
-                                              scenario.patient.posture)
-    localizer = builder.AddNamedSystem("icp_localizer", IcpLocalizer(
-        template, scenario.localization, superior_B, lateral_B,
-        localize_phase=int(Phase.LOCALIZE), rate_hz=scenario.imaging.frame_rate_hz,
-        explore_phase=int(Phase.EXPLORE), kidney_length=scenario.controller.kidney_length))
+    superior_B, lateral_B = body_directions_B(
+        X_BPt, scenario.patient.side, scenario.patient.posture
+    )
+    localizer = builder.AddNamedSystem(
+        "icp_localizer",
+        IcpLocalizer(
+            template,
+            scenario.localization,
+            superior_B,
+            lateral_B,
+            localize_phase=int(Phase.LOCALIZE),
+            rate_hz=scenario.imaging.frame_rate_hz,
+            explore_phase=int(Phase.EXPLORE),
+            kidney_length=scenario.controller.kidney_length,
+        ),
+    )
     builder.Connect(accumulator.GetOutputPort("point_cloud"), localizer.GetInputPort("point_cloud"))
-    parts = AddController(builder, station, scenario, segmenter=segmenter,
-                          kidney_pose_port=localizer.GetOutputPort("X_BK"),
-                          localization_ready_port=localizer.GetOutputPort("localization_ready"))
+    parts = AddController(
+        builder,
+        station,
+        scenario,
+        segmenter=segmenter,
+        kidney_pose_port=localizer.GetOutputPort("X_BK"),
+        localization_ready_port=localizer.GetOutputPort("localization_ready"),
+    )
     supervisor = parts.supervisor
     phase = supervisor.GetOutputPort("phase")
     builder.Connect(phase, localizer.GetInputPort("phase"))
-    builder.Connect(localizer.GetOutputPort("localization_error"),
-                    supervisor.GetInputPort("localization_error"))
-    builder.Connect(localizer.GetOutputPort("exploration_sufficient"),
-                    supervisor.GetInputPort("exploration_sufficient"))
-    builder.Connect(localizer.GetOutputPort("kidney_length_estimate"),
-                    supervisor.GetInputPort("kidney_length_estimate"))
+    builder.Connect(
+        localizer.GetOutputPort("localization_error"), supervisor.GetInputPort("localization_error")
+    )
+    builder.Connect(
+        localizer.GetOutputPort("exploration_sufficient"),
+        supervisor.GetInputPort("exploration_sufficient"),
+    )
+    builder.Connect(
+        localizer.GetOutputPort("kidney_length_estimate"),
+        supervisor.GetInputPort("kidney_length_estimate"),
+    )
     # What the predicted_end pivot strategy predicts the kidney's ends from (unused by the
     # paper's two-leg pivot): the template in K and the probe's fan.
-    model = builder.AddNamedSystem("pivot_model", ConstantValueSource(AbstractValue.Make(
-        PivotModelFor(template, scenario.imaging))))
+    model = builder.AddNamedSystem(
+        "pivot_model",
+        ConstantValueSource(AbstractValue.Make(PivotModelFor(template, scenario.imaging))),
+    )
     builder.Connect(model.get_output_port(0), supervisor.GetInputPort("pivot_model"))
     exploring = builder.AddNamedSystem("exploring", PhaseIs(Phase.EXPLORE))
     builder.Connect(phase, exploring.get_input_port(0))
@@ -239,15 +292,23 @@ def BuildScanDiagram(scenario, station, template, *, builder: DiagramBuilder | N
         builder.Connect(hold, gate.GetInputPort("b"))
         enable = gate.GetOutputPort("value")
     builder.Connect(enable, accumulator.GetInputPort("enable"))
-    tracking = builder.AddNamedSystem("kidney_tracking_monitor", KidneyTrackingMonitor(
-        template, scenario.localization, scenario.imaging,
-        check_phases=[int(Phase.TRANSIT), int(Phase.PIVOT)]))
-    builder.Connect(segmenter.GetOutputPort("boundary_pixels"),
-                    tracking.GetInputPort("boundary_pixels"))
+    tracking = builder.AddNamedSystem(
+        "kidney_tracking_monitor",
+        KidneyTrackingMonitor(
+            template,
+            scenario.localization,
+            scenario.imaging,
+            check_phases=[int(Phase.TRANSIT), int(Phase.PIVOT)],
+        ),
+    )
+    builder.Connect(
+        segmenter.GetOutputPort("boundary_pixels"), tracking.GetInputPort("boundary_pixels")
+    )
     builder.Connect(localizer.GetOutputPort("localization"), tracking.GetInputPort("localization"))
     builder.Connect(phase, tracking.GetInputPort("phase"))
-    builder.Connect(tracking.GetOutputPort("tracking_error"),
-                    supervisor.GetInputPort("tracking_error"))
+    builder.Connect(
+        tracking.GetOutputPort("tracking_error"), supervisor.GetInputPort("tracking_error")
+    )
     if hold is not None:
         builder.Connect(hold, supervisor.GetInputPort("motion_allowed"))
         builder.Connect(hold, tracking.GetInputPort("motion_allowed"))
@@ -256,22 +317,34 @@ def BuildScanDiagram(scenario, station, template, *, builder: DiagramBuilder | N
     builder.Connect(station.GetOutputPort("us_image"), recorder.GetInputPort("us_image"))
     builder.Connect(segmenter.GetOutputPort("kidney_mask"), recorder.GetInputPort("kidney_mask"))
     builder.Connect(phase, recorder.GetInputPort("phase"))
-    builder.Connect(segmenter.GetOutputPort("kidney_visible"),
-                    recorder.GetInputPort("kidney_visible"))
+    builder.Connect(
+        segmenter.GetOutputPort("kidney_visible"), recorder.GetInputPort("kidney_visible")
+    )
     builder.Connect(parts.force.GetOutputPort("F_filtered"), recorder.GetInputPort("contact_force"))
 
     logs = {
         "phase": LogVectorOutput(phase, builder, LOG_PERIOD),
         "force": LogVectorOutput(parts.force.GetOutputPort("F_filtered"), builder, LOG_PERIOD),
         "a_des": LogVectorOutput(supervisor.GetOutputPort("a_des"), builder, LOG_PERIOD),
-        "manipulability": LogVectorOutput(parts.ik.GetOutputPort("manipulability"), builder,
-                                          LOG_PERIOD),
+        "manipulability": LogVectorOutput(
+            parts.ik.GetOutputPort("manipulability"), builder, LOG_PERIOD
+        ),
         "q": LogVectorOutput(station.GetOutputPort("joint_position"), builder, LOG_PERIOD),
     }
-    terminator = builder.AddNamedSystem("scan_terminator", ScanTerminator(
-        (Phase.DONE, Phase.ABORT), 1.0 / scenario.controller.rate_hz))
+    terminator = builder.AddNamedSystem(
+        "scan_terminator",
+        ScanTerminator((Phase.DONE, Phase.ABORT), 1.0 / scenario.controller.rate_hz),
+    )
     builder.Connect(phase, terminator.get_input_port(0))
-    return builder, ScanHandles(station=station, segmenter=segmenter, accumulator=accumulator,
-                                localizer=localizer, supervisor=supervisor, recorder=recorder,
-                                parts=parts, tracking=tracking, logs=logs,
-                                terminator=terminator)
+    return builder, ScanHandles(
+        station=station,
+        segmenter=segmenter,
+        accumulator=accumulator,
+        localizer=localizer,
+        supervisor=supervisor,
+        recorder=recorder,
+        parts=parts,
+        tracking=tracking,
+        logs=logs,
+        terminator=terminator,
+    )

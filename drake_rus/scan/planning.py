@@ -27,6 +27,7 @@ R_B_TRANSVERSE = RotationMatrix(np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.
 @dataclasses.dataclass
 class ExplorationRoi:
     """The kidney's x-y bounding box in the base frame (m) and its centroid."""
+
     x_min: float
     x_max: float
     y_min: float
@@ -43,8 +44,7 @@ def exploration_roi(patient, X_BPt: RigidTransform) -> ExplorationRoi:
     v = patient.kidney_mesh.vertices
     p_B = v @ X_BPt.rotation().matrix().T + X_BPt.translation()
     lo, hi = p_B.min(axis=0), p_B.max(axis=0)
-    return ExplorationRoi(lo[0], hi[0], lo[1], hi[1],
-                          patient.X_BK(X_BPt).translation().copy())
+    return ExplorationRoi(lo[0], hi[0], lo[1], hi[1], patient.X_BK(X_BPt).translation().copy())
 
 
 def skin_height_B(patient, X_BPt: RigidTransform, x: float, y: float) -> float:
@@ -56,14 +56,17 @@ def skin_height_B(patient, X_BPt: RigidTransform, x: float, y: float) -> float:
     direction = X_PtB.rotation().multiply(np.array([0.0, 0.0, -1.0]))
     hits, _, _ = mesh.ray.intersects_location([origin], [direction])
     if len(hits) == 0:
-        raise ValueError(f"no body surface below (x, y) = ({x:.3f}, {y:.3f}) m in the base "
-                         "frame: is the patient placed under the robot (patient.X_BPt)?")
+        raise ValueError(
+            f"no body surface below (x, y) = ({x:.3f}, {y:.3f}) m in the base "
+            "frame: is the patient placed under the robot (patient.X_BPt)?"
+        )
     hits_B = X_BPt.multiply(np.asarray(hits).T).T
     return float(hits_B[:, 2].max())
 
 
-def exploration_start_xy(roi: ExplorationRoi, scan_direction: str = "-y",
-                         start_fraction: float = 0.0) -> tuple[float, float]:
+def exploration_start_xy(
+    roi: ExplorationRoi, scan_direction: str = "-y", start_fraction: float = 0.0
+) -> tuple[float, float]:
     """(x, y) of the exploration start: over the kidney centroid's x, at the E-ROI's end the
     scan leaves from, ``start_fraction`` of the E-ROI's length inside it."""
     if scan_direction == "-y":
@@ -75,16 +78,21 @@ def exploration_start_xy(roi: ExplorationRoi, scan_direction: str = "-y",
     return float(roi.centroid_B[0]), float(y)
 
 
-def exploration_start(patient, X_BPt: RigidTransform, *, scan_direction: str = "-y",
-                      start_fraction: float = 0.0, hover: float = 0.015) -> RigidTransform:
+def exploration_start(
+    patient,
+    X_BPt: RigidTransform,
+    *,
+    scan_direction: str = "-y",
+    start_fraction: float = 0.0,
+    hover: float = 0.015,
+) -> RigidTransform:
     """Tip pose (transverse view, pointing down) ``hover`` m above the skin at the start.
 
     The start lies over the kidney centroid's x, at the E-ROI's end the scan leaves from
     (its superior end for a "-y" scan when the head is at +y), moved into the E-ROI by
     ``start_fraction`` of its length (0: at the pole; randomised starts use more).
     """
-    x, y = exploration_start_xy(exploration_roi(patient, X_BPt), scan_direction,
-                                start_fraction)
+    x, y = exploration_start_xy(exploration_roi(patient, X_BPt), scan_direction, start_fraction)
     z = skin_height_B(patient, X_BPt, x, y) + hover
     return RigidTransform(R_B_TRANSVERSE, [x, y, z])
 
@@ -105,21 +113,22 @@ class StartPlanError(ValueError):
 @dataclasses.dataclass
 class WindowCandidate:
     """One beam direction tried by the planner (B frame, SI units)."""
-    tilt_deg: float                 # signed tilt from vertical about the body's long axis
-    approach_B: np.ndarray          # beam direction a (into the body)
-    skin_points_B: np.ndarray       # (3, 3) skin entry points along the exploration line
-    needed_depth: float             # image depth that holds the whole kidney (m, + margin)
-    blocked_fraction: float         # of the fan's rays reaching the kidney, crossed bone/gas
-    central_blocked: bool           # the central ray crosses bone or gas somewhere
-    blockers_B: np.ndarray          # (N, 3) first bone/gas sample of each blocked ray
-    preset: float | None            # shallowest preset holding the kidney (None: none does)
-    reachable: bool | None = None   # None: not checked
-    reason: str = ""                # why it was rejected ("" when feasible)
+
+    tilt_deg: float  # signed tilt from vertical about the body's long axis
+    approach_B: np.ndarray  # beam direction a (into the body)
+    skin_points_B: np.ndarray  # (3, 3) skin entry points along the exploration line
+    needed_depth: float  # image depth that holds the whole kidney (m, + margin)
+    blocked_fraction: float  # of the fan's rays reaching the kidney, crossed bone/gas
+    central_blocked: bool  # the central ray crosses bone or gas somewhere
+    blockers_B: np.ndarray  # (N, 3) first bone/gas sample of each blocked ray
+    preset: float | None  # shallowest preset holding the kidney (None: none does)
+    reachable: bool | None = None  # None: not checked
+    reason: str = ""  # why it was rejected ("" when feasible)
     # Where exploration starts: this fraction of the kidney's length inside its end.
     start_fraction: float = 0.1
-    sweep_length: float = 0.0       # the exploration sweep checked (m along the body)
-    clear_length: float = 0.0       # how far into it every view is clear of shadows (m)
-    sweep_shadowed: float = 0.0     # fraction of the sweep's views shadowed by bone or gas
+    sweep_length: float = 0.0  # the exploration sweep checked (m along the body)
+    clear_length: float = 0.0  # how far into it every view is clear of shadows (m)
+    sweep_shadowed: float = 0.0  # fraction of the sweep's views shadowed by bone or gas
     # The clear length that counts as a covered sweep (m): the sweep, or
     # start.min_sweep_fraction of the kidney if shorter (0: the whole sweep).
     covered_length: float = 0.0
@@ -136,14 +145,15 @@ class WindowCandidate:
 class StartPlan:
     """The planner's choice: the start pose (after the placement error), the planned pose
     (before it), the depth preset, the chosen window and every window it tried."""
+
     X_start: RigidTransform
     X_planned: RigidTransform
     depth_preset: float
     window: WindowCandidate
     candidates: list
-    placement_offset_B: np.ndarray   # (3,) position error applied (m)
-    placement_angle: float           # tilt error applied (rad)
-    pivot_depth_needed: float        # depth the vertical pivot (eq. 20) needs (m)
+    placement_offset_B: np.ndarray  # (3,) position error applied (m)
+    placement_angle: float  # tilt error applied (rad)
+    pivot_depth_needed: float  # depth the vertical pivot (eq. 20) needs (m)
     # Labels on the chosen window's image plane (rows along the beam from the planned skin
     # point, columns across it), for the picture: (labels (H, W) uint8, u (W,) m, v (H,) m).
     plane: tuple = ()
@@ -165,8 +175,7 @@ class StartPlan:
             "sweep_clear_mm": round(w.clear_length * 1000, 1),
             "sweep_shadowed_fraction": round(w.sweep_shadowed, 3),
             "warning": w.warning,
-            "placement_error_mm": round(float(np.linalg.norm(self.placement_offset_B)) * 1000,
-                                        2),
+            "placement_error_mm": round(float(np.linalg.norm(self.placement_offset_B)) * 1000, 2),
             "placement_error_deg": round(float(np.degrees(self.placement_angle)), 2),
             "windows_tried": len(self.candidates),
             "windows_feasible": sum(c.feasible for c in self.candidates),
@@ -174,8 +183,7 @@ class StartPlan:
 
 
 def _rotation_about(axis, angle: float) -> np.ndarray:
-    return RotationMatrix(AngleAxis(angle, np.asarray(axis, float) / np.linalg.norm(axis))
-                          ).matrix()
+    return RotationMatrix(AngleAxis(angle, np.asarray(axis, float) / np.linalg.norm(axis))).matrix()
 
 
 def probe_rotation(approach_B, superior_B) -> RotationMatrix:
@@ -229,23 +237,29 @@ def _ray_blocked(labels) -> tuple[bool, bool, int]:
 @dataclasses.dataclass
 class ViewCheck:
     """The fan of one transverse view along the exploration line (B frame, SI units)."""
-    along: float                    # position along the body's superior axis (m, kidney-centred)
-    skin_B: np.ndarray              # skin entry point of the beam (3,)
-    needed_depth: float             # depth of the kidney's far side in this view (m; 0: none)
-    rays_to_kidney: int             # fan rays that reach the kidney
-    blocked_rays: int               # of those, the ones crossing bone or gas first
-    central_blocked: bool           # the central ray crosses bone or gas before the kidney
-    blockers_B: np.ndarray          # (N, 3) first bone/gas sample of each blocked ray
+
+    along: float  # position along the body's superior axis (m, kidney-centred)
+    skin_B: np.ndarray  # skin entry point of the beam (3,)
+    needed_depth: float  # depth of the kidney's far side in this view (m; 0: none)
+    rays_to_kidney: int  # fan rays that reach the kidney
+    blocked_rays: int  # of those, the ones crossing bone or gas first
+    central_blocked: bool  # the central ray crosses bone or gas before the kidney
+    blockers_B: np.ndarray  # (N, 3) first bone/gas sample of each blocked ray
 
     def shadowed(self, max_blocked_fraction: float) -> bool:
         """The kidney cannot be seen in this view: no ray reaches it, the central ray is
         blocked, or more than ``max_blocked_fraction`` of the rays to it are."""
-        return (self.skin_B is None or self.rays_to_kidney == 0 or self.central_blocked
-                or self.blocked_rays / self.rays_to_kidney > max_blocked_fraction)
+        return (
+            self.skin_B is None
+            or self.rays_to_kidney == 0
+            or self.central_blocked
+            or self.blocked_rays / self.rays_to_kidney > max_blocked_fraction
+        )
 
 
-def fan_rays(skin_B, approach_B, across_B, probe_radius: float, field_of_view_deg: float,
-             n_rays: int = 0):
+def fan_rays(
+    skin_B, approach_B, across_B, probe_radius: float, field_of_view_deg: float, n_rays: int = 0
+):
     """(origins, directions), each (n_rays, 3): the rays of a curvilinear probe whose face
     centre touches ``skin_B``, beam along ``approach_B``, array along ``across_B``: rays
     leave the face arc (radius ``probe_radius`` about the apex behind the face centre) at
@@ -259,19 +273,28 @@ def fan_rays(skin_B, approach_B, across_B, probe_radius: float, field_of_view_de
     return apex + probe_radius * d, d
 
 
-def check_view(volume, X_BV: RigidTransform, skin_B, approach_B, across_B, imaging,
-               kidney_slab_B: np.ndarray, along: float) -> ViewCheck:
+def check_view(
+    volume,
+    X_BV: RigidTransform,
+    skin_B,
+    approach_B,
+    across_B,
+    imaging,
+    kidney_slab_B: np.ndarray,
+    along: float,
+) -> ViewCheck:
     """Fan clearance and kidney depth of the transverse view entering at ``skin_B`` (None:
     the beam misses the body): every fan ray (:func:`fan_rays`) sampled every 2 mm to the
     deepest preset through the label volume; ``kidney_slab_B`` the kidney points near this
     view (their depth along the beam gives ``needed_depth``)."""
     if skin_B is None:
         return ViewCheck(along, None, np.inf, 0, 0, False, np.zeros((0, 3)))
-    origins, dirs = fan_rays(skin_B, approach_B, across_B, imaging.probe_radius,
-                             imaging.field_of_view_deg)
+    origins, dirs = fan_rays(
+        skin_B, approach_B, across_B, imaging.probe_radius, imaging.field_of_view_deg
+    )
     length = max(imaging.depth_presets)
     s = np.arange(0.0, length, _RAY_STEP)
-    p_B = origins[:, None, :] + s[None, :, None] * dirs[:, None, :]          # (K, S, 3)
+    p_B = origins[:, None, :] + s[None, :, None] * dirs[:, None, :]  # (K, S, 3)
     p_V = X_BV.inverse().multiply(p_B.reshape(-1, 3).T).T / volume.voxel_size
     ijk = np.rint(p_V).astype(int)
     inside = np.all((ijk >= 0) & (ijk < np.array(volume.shape)), axis=1)
@@ -285,22 +308,38 @@ def check_view(volume, X_BV: RigidTransform, skin_B, approach_B, across_B, imagi
     before = blocking & (np.arange(len(s))[None, :] < first_kidney[:, None])
     crossed = before.any(axis=1)
     blocked = reaches & crossed
-    blockers = p_B[blocked, np.argmax(before[blocked], axis=1)] if blocked.any() else \
-        np.zeros((0, 3))
+    blockers = (
+        p_B[blocked, np.argmax(before[blocked], axis=1)] if blocked.any() else np.zeros((0, 3))
+    )
     mid = len(dirs) // 2
-    needed = (float(((kidney_slab_B - skin_B) @ approach_B).max()) if len(kidney_slab_B)
-              else 0.0)
-    return ViewCheck(along, np.asarray(skin_B, float), needed, int(reaches.sum()),
-                     int(blocked.sum()), bool(crossed[mid]), blockers)
+    needed = float(((kidney_slab_B - skin_B) @ approach_B).max()) if len(kidney_slab_B) else 0.0
+    return ViewCheck(
+        along,
+        np.asarray(skin_B, float),
+        needed,
+        int(reaches.sum()),
+        int(blocked.sum()),
+        bool(crossed[mid]),
+        blockers,
+    )
 
 
-def _window_from_views(tilt: float, a, views: list, start: int, sweep_end: int,
-                       start_zone: list, config, imaging, start_fraction: float,
-                       step: float) -> WindowCandidate:
+def _window_from_views(
+    tilt: float,
+    a,
+    views: list,
+    start: int,
+    sweep_end: int,
+    start_zone: list,
+    config,
+    imaging,
+    start_fraction: float,
+    step: float,
+) -> WindowCandidate:
     """One candidate: the beam tilt ``tilt`` with exploration starting at view ``start`` and
     sweeping to view ``sweep_end`` (indices into ``views`` along the scan direction);
     ``start_zone``: the views within the placement error of the start."""
-    sweep = views[start:sweep_end + 1]
+    sweep = views[start : sweep_end + 1]
     mid = sweep[len(sweep) // 2]
     key = [views[start], mid, sweep[-1]]
     checked = start_zone + sweep
@@ -314,42 +353,64 @@ def _window_from_views(tilt: float, a, views: list, start: int, sweep_end: int,
     fitting = [p for p in sorted(imaging.depth_presets) if p >= needed]
     blockers = [v.blockers_B for v in checked if len(v.blockers_B)]
     cand = WindowCandidate(
-        float(np.degrees(tilt)), a,
+        float(np.degrees(tilt)),
+        a,
         np.array([v.skin_B if v.skin_B is not None else np.full(3, np.nan) for v in key]),
-        needed, at_start.blocked_rays / at_start.rays_to_kidney if at_start.rays_to_kidney
-        else 1.0, at_start.central_blocked,
+        needed,
+        at_start.blocked_rays / at_start.rays_to_kidney if at_start.rays_to_kidney else 1.0,
+        at_start.central_blocked,
         np.concatenate(blockers) if blockers else np.zeros((0, 3)),
-        fitting[0] if fitting else None, start_fraction=start_fraction,
-        sweep_length=step * (len(sweep) - 1), clear_length=step * clear,
-        sweep_shadowed=sum(v.shadowed(config.max_blocked_fraction) for v in sweep[1:]) / max(
-            len(sweep) - 1, 1))
+        fitting[0] if fitting else None,
+        start_fraction=start_fraction,
+        sweep_length=step * (len(sweep) - 1),
+        clear_length=step * clear,
+        sweep_shadowed=sum(v.shadowed(config.max_blocked_fraction) for v in sweep[1:])
+        / max(len(sweep) - 1, 1),
+    )
     if any(v.skin_B is None for v in key):
         cand.reason = "beam misses the body"
     elif not at_start.rays_to_kidney:
         cand.reason = "no ray of the fan reaches the kidney"
     elif not np.isfinite(needed) or cand.preset is None:
-        cand.reason = (f"the kidney's far side lies {needed * 1000:.0f} mm deep (with margin), "
-                       f"beyond the deepest preset {max(imaging.depth_presets) * 1000:.0f} mm")
+        cand.reason = (
+            f"the kidney's far side lies {needed * 1000:.0f} mm deep (with margin), "
+            f"beyond the deepest preset {max(imaging.depth_presets) * 1000:.0f} mm"
+        )
     elif at_start.central_blocked:
         cand.reason = "the central ray crosses bone or gas at the start"
     elif cand.blocked_fraction > config.max_blocked_fraction:
-        cand.reason = (f"{cand.blocked_fraction:.0%} of the fan's rays to the kidney cross bone "
-                       f"or gas at the start (max {config.max_blocked_fraction:.0%})")
+        cand.reason = (
+            f"{cand.blocked_fraction:.0%} of the fan's rays to the kidney cross bone "
+            f"or gas at the start (max {config.max_blocked_fraction:.0%})"
+        )
     # Usable but worse: a shadow within the placement error of the start, or crossing the
     # sweep early (ranked after the windows without, see window_rank).
     if any(v.shadowed(config.max_blocked_fraction) for v in start_zone):
-        cand.warning = (f"bone or gas shadows the kidney within the placement error "
-                        f"({config.placement_error * 1000:.0f} mm) of the start")
+        cand.warning = (
+            f"bone or gas shadows the kidney within the placement error "
+            f"({config.placement_error * 1000:.0f} mm) of the start"
+        )
     elif cand.clear_length < min(config.min_clear_sweep, cand.sweep_length) - 1e-9:
-        cand.warning = (f"bone or gas shadows the kidney {cand.clear_length * 1000:.0f} mm into "
-                        f"the sweep (want {config.min_clear_sweep * 1000:.0f} mm clear)")
+        cand.warning = (
+            f"bone or gas shadows the kidney {cand.clear_length * 1000:.0f} mm into "
+            f"the sweep (want {config.min_clear_sweep * 1000:.0f} mm clear)"
+        )
     return cand
 
 
-def evaluate_windows(patient, X_BPt: RigidTransform, imaging, config, tilt: float,
-                     superior_B, kidney_B, X_BV, start_fraction: float = 0.1,
-                     scan_direction: str = "-y", exploration_ratio: float | None = None
-                     ) -> list:
+def evaluate_windows(
+    patient,
+    X_BPt: RigidTransform,
+    imaging,
+    config,
+    tilt: float,
+    superior_B,
+    kidney_B,
+    X_BV,
+    start_fraction: float = 0.1,
+    scan_direction: str = "-y",
+    exploration_ratio: float | None = None,
+) -> list:
     """The candidates of the beam tilted by ``tilt`` (rad) from vertical about the body's
     long axis, one per exploration start tried (``start_fraction`` of the kidney's length
     inside the end the scan leaves from, then later starts in ``config.start_shift_step``
@@ -365,8 +426,8 @@ def evaluate_windows(patient, X_BPt: RigidTransform, imaging, config, tilt: floa
     along = (kidney_B - c) @ superior_B
     lo, hi = float(along.min()), float(along.max())
     length = hi - lo
-    sign = -1.0 if scan_direction == "-y" else 1.0     # along the superior axis
-    end_near = hi if sign < 0 else lo                   # the end the scan leaves from
+    sign = -1.0 if scan_direction == "-y" else 1.0  # along the superior axis
+    end_near = hi if sign < 0 else lo  # the end the scan leaves from
     step = float(config.sweep_check_step)
     zone = float(config.placement_error)
     # View positions from the placement error behind the first start to 5% inside the far
@@ -380,14 +441,17 @@ def evaluate_windows(patient, X_BPt: RigidTransform, imaging, config, tilt: floa
         slab = np.abs(along - s_along) < 0.01
         target = kidney_B[slab].mean(axis=0) if slab.any() else c + s_along * superior_B
         skin = _skin_entry(patient.skin_mesh, X_BPt, target, a)
-        views.append(check_view(patient.labels, X_BV, skin, a, o, imaging, kidney_B[slab],
-                                float(s_along)))
-    sweep_fraction = (0.9 - start_fraction if exploration_ratio is None
-                      else float(exploration_ratio))
+        views.append(
+            check_view(patient.labels, X_BV, skin, a, o, imaging, kidney_B[slab], float(s_along))
+        )
+    sweep_fraction = 0.9 - start_fraction if exploration_ratio is None else float(exploration_ratio)
     n_zone = int(round(zone / step))
     out = []
-    shifts = np.arange(0.0, config.max_start_shift + 1e-9, config.start_shift_step) \
-        if config.start_shift_step > 0 else np.zeros(1)
+    shifts = (
+        np.arange(0.0, config.max_start_shift + 1e-9, config.start_shift_step)
+        if config.start_shift_step > 0
+        else np.zeros(1)
+    )
     for shift in shifts:
         sf = start_fraction + float(shift)
         start = n_zone + int(round(shift * length / step))
@@ -395,10 +459,11 @@ def evaluate_windows(patient, X_BPt: RigidTransform, imaging, config, tilt: floa
             break
         sweep_end = min(start + int(round(sweep_fraction * length / step)), len(views) - 1)
         if shift > 0 and sf + min(sweep_fraction, config.min_sweep_fraction) > 0.95 + 1e-9:
-            break                    # a later start would see too little of the kidney
-        zone_views = views[max(start - n_zone, 0):start + n_zone + 1]
-        cand = _window_from_views(tilt, a, views, start, sweep_end, zone_views, config,
-                                  imaging, sf, step)
+            break  # a later start would see too little of the kidney
+        zone_views = views[max(start - n_zone, 0) : start + n_zone + 1]
+        cand = _window_from_views(
+            tilt, a, views, start, sweep_end, zone_views, config, imaging, sf, step
+        )
         cand.covered_length = min(cand.sweep_length, config.min_sweep_fraction * length)
         out.append(cand)
     return out
@@ -417,7 +482,8 @@ def vertical_depth_preset(patient, X_BPt: RigidTransform, imaging, config) -> fl
         raise StartPlanError(
             f"start planner: the {patient.side} kidney's far side lies "
             f"{c.needed_depth * 1000:.0f} mm under a vertical probe (with margin), beyond the "
-            f"deepest preset {max(imaging.depth_presets) * 1000:.0f} mm")
+            f"deepest preset {max(imaging.depth_presets) * 1000:.0f} mm"
+        )
     return c.preset
 
 
@@ -430,8 +496,14 @@ def window_rank(c: WindowCandidate, preset: float) -> tuple:
     the least tilt and the earliest start."""
     needed = c.covered_length if c.covered_length > 0 else c.sweep_length
     covered = c.clear_length >= needed - 1e-9
-    return (bool(c.warning), not covered, preset, -round(c.clear_length, 4), abs(c.tilt_deg),
-            c.start_fraction)
+    return (
+        bool(c.warning),
+        not covered,
+        preset,
+        -round(c.clear_length, 4),
+        abs(c.tilt_deg),
+        c.start_fraction,
+    )
 
 
 def _placement_error(config, seed: int, R_BP: RotationMatrix):
@@ -446,10 +518,18 @@ def _placement_error(config, seed: int, R_BP: RotationMatrix):
     return offset, angle, RotationMatrix(AngleAxis(angle, axis))
 
 
-def PlanStart(patient, X_BPt: RigidTransform, imaging, config, *, reachable=None,
-              seed: int = 0, scan_direction: str = "-y",
-              start_fraction: float | None = None,
-              exploration_ratio: float | None = None) -> StartPlan:
+def PlanStart(
+    patient,
+    X_BPt: RigidTransform,
+    imaging,
+    config,
+    *,
+    reachable=None,
+    seed: int = 0,
+    scan_direction: str = "-y",
+    start_fraction: float | None = None,
+    exploration_ratio: float | None = None,
+) -> StartPlan:
     """The start of a scan on ``patient`` lying at ``X_BPt`` (see :mod:`drake_rus.scan.config`).
 
     Tries beam tilts from vertical to ``config.max_tilt_deg`` (both sides, about the body's
@@ -478,8 +558,9 @@ def PlanStart(patient, X_BPt: RigidTransform, imaging, config, *, reachable=None
     tilts = sorted({0.0, *(k * step * s for k in range(1, n + 1) for s in (1, -1))}, key=abs)
     sf = config.start_fraction if start_fraction is None else start_fraction
     # The pivot (eq. 20-23) looks straight down over the kidney centroid: its depth too.
-    pivot_depth = evaluate_windows(patient, X_BPt, imaging, config, 0.0, superior_B,
-                                   kidney_B, X_BV)[0].needed_depth
+    pivot_depth = evaluate_windows(
+        patient, X_BPt, imaging, config, 0.0, superior_B, kidney_B, X_BV
+    )[0].needed_depth
 
     def overall_preset(c):
         need = max(c.needed_depth, pivot_depth)
@@ -496,8 +577,19 @@ def PlanStart(patient, X_BPt: RigidTransform, imaging, config, *, reachable=None
     # One candidate per tilt: its best start (the first when none is feasible).
     candidates = []
     for t in tilts:
-        options = evaluate_windows(patient, X_BPt, imaging, config, t, superior_B, kidney_B,
-                                   X_BV, sf, scan_direction, exploration_ratio)
+        options = evaluate_windows(
+            patient,
+            X_BPt,
+            imaging,
+            config,
+            t,
+            superior_B,
+            kidney_B,
+            X_BV,
+            sf,
+            scan_direction,
+            exploration_ratio,
+        )
         good = [c for c in options if c.feasible and overall_preset(c) is not None]
         candidates.append(min(good, key=rank) if good else options[0])
     feasible = [c for c in candidates if c.feasible]
@@ -514,19 +606,36 @@ def PlanStart(patient, X_BPt: RigidTransform, imaging, config, *, reachable=None
     if chosen is None:
         reasons = sorted({c.reason for c in candidates if c.reason})
         if feasible and not ranked:
-            reasons.append(f"the vertical pivot needs {pivot_depth * 1000:.0f} mm, beyond the "
-                           f"deepest preset {max(imaging.depth_presets) * 1000:.0f} mm")
+            reasons.append(
+                f"the vertical pivot needs {pivot_depth * 1000:.0f} mm, beyond the "
+                f"deepest preset {max(imaging.depth_presets) * 1000:.0f} mm"
+            )
         raise StartPlanError(
             f"start planner: no acoustic window to the {patient.side} kidney within "
-            f"{config.max_tilt_deg:g} deg of vertical: " + "; ".join(reasons))
+            f"{config.max_tilt_deg:g} deg of vertical: " + "; ".join(reasons)
+        )
     X_planned = pose(chosen, 0)
     offset, angle, R_err = _placement_error(config, seed, X_planned.rotation())
     X_start = RigidTransform(R_err @ X_planned.rotation(), X_planned.translation() + offset)
-    plane = _plane_labels(patient.labels, X_BV, chosen.skin_points_B[0],
-                          chosen.approach_B, X_planned.rotation().matrix()[:, 0],
-                          max(imaging.depth_presets))
-    return StartPlan(X_start, X_planned, overall_preset(chosen), chosen, candidates, offset,
-                     angle, pivot_depth, plane)
+    plane = _plane_labels(
+        patient.labels,
+        X_BV,
+        chosen.skin_points_B[0],
+        chosen.approach_B,
+        X_planned.rotation().matrix()[:, 0],
+        max(imaging.depth_presets),
+    )
+    return StartPlan(
+        X_start,
+        X_planned,
+        overall_preset(chosen),
+        chosen,
+        candidates,
+        offset,
+        angle,
+        pivot_depth,
+        plane,
+    )
 
 
 def _plane_labels(volume, X_BV, origin_B, a, o, depth: float, step: float = 0.0015):
@@ -534,8 +643,11 @@ def _plane_labels(volume, X_BV, origin_B, a, o, depth: float, step: float = 0.00
     (rows, from 20 mm outside the skin to ``depth``)."""
     u = np.arange(-0.6 * depth, 0.6 * depth, step)
     v = np.arange(-0.02, depth, step)
-    P = (np.asarray(origin_B)[None, None, :] + v[:, None, None] * np.asarray(a)[None, None, :]
-         + u[None, :, None] * np.asarray(o)[None, None, :])
+    P = (
+        np.asarray(origin_B)[None, None, :]
+        + v[:, None, None] * np.asarray(a)[None, None, :]
+        + u[None, :, None] * np.asarray(o)[None, None, :]
+    )
     p_V = X_BV.inverse().multiply(P.reshape(-1, 3).T).T / volume.voxel_size
     ijk = np.rint(p_V).astype(int)
     inside = np.all((ijk >= 0) & (ijk < np.array(volume.shape)), axis=1)
@@ -547,7 +659,7 @@ def _plane_labels(volume, X_BV, origin_B, a, o, depth: float, step: float = 0.00
 def _short(text: str, n: int = 34) -> str:
     """``text`` cut to ``n`` characters for a table cell (the whole reason is in
     summary.json)."""
-    return text if len(text) <= n else text[:n - 3].rstrip() + "..."
+    return text if len(text) <= n else text[: n - 3].rstrip() + "..."
 
 
 def plot_start_plan(plan: StartPlan, imaging, path, title: str = "") -> None:
@@ -556,34 +668,45 @@ def plot_start_plan(plan: StartPlan, imaging, path, title: str = "") -> None:
     of the windows tried (green: usable, orange dashed: rejected) and the bone/gas that
     shadows the kidney in them (x), beside a table of the windows and the legend."""
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib import patheffects
     from matplotlib.lines import Line2D
+
     labels, u, v = plan.plane
-    fig, (ax, tx) = plt.subplots(1, 2, figsize=(12, 6.2),
-                                 gridspec_kw={"width_ratios": [1.4, 1.0]})
-    ax.imshow(label_image(labels), extent=[u[0] * 1e3, u[-1] * 1e3, v[-1] * 1e3, v[0] * 1e3],
-              interpolation="nearest")
+    fig, (ax, tx) = plt.subplots(1, 2, figsize=(12, 6.2), gridspec_kw={"width_ratios": [1.4, 1.0]})
+    ax.imshow(
+        label_image(labels),
+        extent=[u[0] * 1e3, u[-1] * 1e3, v[-1] * 1e3, v[0] * 1e3],
+        interpolation="nearest",
+    )
     half = np.radians(imaging.field_of_view_deg) / 2
     r, d = imaging.probe_radius, plan.depth_preset
     arc = np.linspace(-half, half, 50)
     # Fan (in this plane, apex r behind the face centre), chosen depth preset.
-    ax.plot(np.r_[r * np.sin(arc), (r + d) * np.sin(arc[::-1]), r * np.sin(arc[0])] * 1e3,
-            np.r_[r * np.cos(arc) - r, (r + d) * np.cos(arc[::-1]) - r,
-                  r * np.cos(arc[0]) - r] * 1e3, color="tab:blue", lw=1.5)
+    ax.plot(
+        np.r_[r * np.sin(arc), (r + d) * np.sin(arc[::-1]), r * np.sin(arc[0])] * 1e3,
+        np.r_[r * np.cos(arc) - r, (r + d) * np.cos(arc[::-1]) - r, r * np.cos(arc[0]) - r] * 1e3,
+        color="tab:blue",
+        lw=1.5,
+    )
     origin = plan.window.skin_points_B[0]
     o = plan.X_planned.rotation().matrix()[:, 0]
     a0 = plan.window.approach_B
     shadows = 0
-    halo = [patheffects.withStroke(linewidth=2.5, foreground="white")]   # visible on gas
+    halo = [patheffects.withStroke(linewidth=2.5, foreground="white")]  # visible on gas
     for c in plan.candidates:
         end = c.approach_B * min(c.needed_depth if np.isfinite(c.needed_depth) else d, d)
         chosen = c is plan.window
-        ax.plot([0, (end @ o) * 1e3], [0, (end @ a0) * 1e3],
-                color="tab:green" if c.feasible else "tab:orange",
-                ls="-" if c.feasible else "--", lw=2.5 if chosen else 0.8,
-                alpha=1.0 if chosen else 0.7)
+        ax.plot(
+            [0, (end @ o) * 1e3],
+            [0, (end @ a0) * 1e3],
+            color="tab:green" if c.feasible else "tab:orange",
+            ls="-" if c.feasible else "--",
+            lw=2.5 if chosen else 0.8,
+            alpha=1.0 if chosen else 0.7,
+        )
         if len(c.blockers_B):
             b = c.blockers_B - origin
             ax.plot((b @ o) * 1e3, (b @ a0) * 1e3, "x", color="k", ms=4, path_effects=halo)
@@ -591,17 +714,25 @@ def plot_start_plan(plan: StartPlan, imaging, path, title: str = "") -> None:
     ax.set_xlabel("across the beam (mm)")
     ax.set_ylabel("along the chosen beam from the skin (mm)")
     ax.set_title(title or "Start planner: the chosen acoustic window")
-    rows = [(f"{c.tilt_deg:+.0f}", f"{c.needed_depth * 1000:.0f}" if np.isfinite(c.needed_depth)
-             else "-", "-" if c.preset is None else f"{c.preset * 1000:.0f}",
-             f"{c.blocked_fraction:.0%}", f"{c.start_fraction:.2f}",
-             f"{c.clear_length * 1000:.0f}/{c.sweep_length * 1000:.0f}",
-             "chosen" if c is plan.window
-             else ("ok" if c.feasible else _short(c.reason))) for c in plan.candidates]
+    rows = [
+        (
+            f"{c.tilt_deg:+.0f}",
+            f"{c.needed_depth * 1000:.0f}" if np.isfinite(c.needed_depth) else "-",
+            "-" if c.preset is None else f"{c.preset * 1000:.0f}",
+            f"{c.blocked_fraction:.0%}",
+            f"{c.start_fraction:.2f}",
+            f"{c.clear_length * 1000:.0f}/{c.sweep_length * 1000:.0f}",
+            "chosen" if c is plan.window else ("ok" if c.feasible else _short(c.reason)),
+        )
+        for c in plan.candidates
+    ]
     tx.axis("off")
-    table = tx.table(cellText=rows, colLabels=["tilt deg", "need mm", "preset", "blocked",
-                                               "start", "clear mm", "verdict"],
-                     loc="upper center",
-                     colWidths=[0.1, 0.11, 0.1, 0.1, 0.08, 0.12, 0.39])
+    table = tx.table(
+        cellText=rows,
+        colLabels=["tilt deg", "need mm", "preset", "blocked", "start", "clear mm", "verdict"],
+        loc="upper center",
+        colWidths=[0.1, 0.11, 0.1, 0.1, 0.08, 0.12, 0.39],
+    )
     table.auto_set_font_size(False)
     table.set_fontsize(7)
     for (row, col), cell in table.get_celld().items():
@@ -609,28 +740,60 @@ def plot_start_plan(plan: StartPlan, imaging, path, title: str = "") -> None:
             cell.set_text_props(ha="left")
             cell.PAD = 0.02
     s = plan.summary()
-    tx.set_title(f"preset {plan.depth_preset * 1000:.0f} mm, tilt {s['tilt_deg']:+.0f} deg, "
-                 f"placement error {s['placement_error_mm']:.1f} mm / "
-                 f"{s['placement_error_deg']:.1f} deg", fontsize=9)
-    marks = [Line2D([], [], color="tab:blue", lw=1.5,
-                    label=f"image fan, depth preset {d * 1000:.0f} mm"),
-             Line2D([], [], color="tab:green", lw=2.5, label="chosen window's central ray")]
+    tx.set_title(
+        f"preset {plan.depth_preset * 1000:.0f} mm, tilt {s['tilt_deg']:+.0f} deg, "
+        f"placement error {s['placement_error_mm']:.1f} mm / "
+        f"{s['placement_error_deg']:.1f} deg",
+        fontsize=9,
+    )
+    marks = [
+        Line2D(
+            [], [], color="tab:blue", lw=1.5, label=f"image fan, depth preset {d * 1000:.0f} mm"
+        ),
+        Line2D([], [], color="tab:green", lw=2.5, label="chosen window's central ray"),
+    ]
     if sum(c.feasible for c in plan.candidates) > 1:
         marks.append(Line2D([], [], color="tab:green", lw=0.8, label="other usable windows"))
     if any(not c.feasible for c in plan.candidates):
-        marks.append(Line2D([], [], color="tab:orange", lw=0.8, ls="--",
-                            label="rejected windows (why: the table, summary.json)"))
+        marks.append(
+            Line2D(
+                [],
+                [],
+                color="tab:orange",
+                lw=0.8,
+                ls="--",
+                label="rejected windows (why: the table, summary.json)",
+            )
+        )
     if shadows:
-        marks.append(Line2D([], [], color="k", marker="x", ls="", ms=5, path_effects=halo,
-                            label="bone or gas shadowing the kidney: where a fan ray\n"
-                                  "meets it before the kidney, in any view along a\n"
-                                  "window's sweep (projected onto this plane)"))
-    lines = tx.legend(handles=marks, loc="upper left", bbox_to_anchor=(0.0, 0.42),
-                      fontsize=7, frameon=False)
+        marks.append(
+            Line2D(
+                [],
+                [],
+                color="k",
+                marker="x",
+                ls="",
+                ms=5,
+                path_effects=halo,
+                label="bone or gas shadowing the kidney: where a fan ray\n"
+                "meets it before the kidney, in any view along a\n"
+                "window's sweep (projected onto this plane)",
+            )
+        )
+    lines = tx.legend(
+        handles=marks, loc="upper left", bbox_to_anchor=(0.0, 0.42), fontsize=7, frameon=False
+    )
     tx.add_artist(lines)
-    tx.legend(handles=tissue_handles(labels_present(labels)), loc="lower left",
-              bbox_to_anchor=(0.0, 0.0), ncol=3, fontsize=7, title="tissues in the plane",
-              title_fontsize=8, frameon=False)
+    tx.legend(
+        handles=tissue_handles(labels_present(labels)),
+        loc="lower left",
+        bbox_to_anchor=(0.0, 0.0),
+        ncol=3,
+        fontsize=7,
+        title="tissues in the plane",
+        title_fontsize=8,
+        frameon=False,
+    )
     fig.tight_layout()
     save_figure(fig, path)
 
@@ -643,21 +806,31 @@ def DrawStartPlan(meshcat, plan: StartPlan, prefix: str = "start_plan") -> None:
     s0 = w.skin_points_B[0]
     meshcat.SetObject(f"{prefix}/skin_point", Sphere(0.006), Rgba(0.1, 0.4, 1.0, 1.0))
     meshcat.SetTransform(f"{prefix}/skin_point", RigidTransform(s0))
-    meshcat.SetLine(f"{prefix}/beam", np.column_stack([s0, s0 + w.approach_B * w.needed_depth]),
-                    3.0, Rgba(0.1, 0.4, 1.0, 1.0))
+    meshcat.SetLine(
+        f"{prefix}/beam",
+        np.column_stack([s0, s0 + w.approach_B * w.needed_depth]),
+        3.0,
+        Rgba(0.1, 0.4, 1.0, 1.0),
+    )
     o = plan.X_planned.rotation().matrix()[:, 0]
     half = np.radians(20.0)
-    fan = [s0 + plan.depth_preset * (np.cos(t) * w.approach_B + np.sin(t) * o)
-           for t in np.linspace(-half, half, 21)]
-    meshcat.SetLine(f"{prefix}/fan", np.column_stack([s0, *fan, s0]), 1.5,
-                    Rgba(0.1, 0.6, 1.0, 0.8))
+    fan = [
+        s0 + plan.depth_preset * (np.cos(t) * w.approach_B + np.sin(t) * o)
+        for t in np.linspace(-half, half, 21)
+    ]
+    meshcat.SetLine(f"{prefix}/fan", np.column_stack([s0, *fan, s0]), 1.5, Rgba(0.1, 0.6, 1.0, 0.8))
     for k, c in enumerate(x for x in plan.candidates if not x.feasible):
         p = c.skin_points_B[0] if len(c.skin_points_B) else s0
         if not np.all(np.isfinite(p)):
             p = s0
-        meshcat.SetLine(f"{prefix}/rejected/{k}",
-                        np.column_stack([p, p + c.approach_B * 0.08]), 1.0, Rgba(0.9, 0.1, 0.1, 0.7))
+        meshcat.SetLine(
+            f"{prefix}/rejected/{k}",
+            np.column_stack([p, p + c.approach_B * 0.08]),
+            1.0,
+            Rgba(0.9, 0.1, 0.1, 0.7),
+        )
         for j, b in enumerate(c.blockers_B[:20]):
-            meshcat.SetObject(f"{prefix}/rejected/{k}/blocker_{j}", Sphere(0.003),
-                              Rgba(0.1, 0.1, 0.1, 1.0))
+            meshcat.SetObject(
+                f"{prefix}/rejected/{k}/blocker_{j}", Sphere(0.003), Rgba(0.1, 0.1, 0.1, 1.0)
+            )
             meshcat.SetTransform(f"{prefix}/rejected/{k}/blocker_{j}", RigidTransform(b))

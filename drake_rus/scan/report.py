@@ -23,13 +23,21 @@ from drake_rus.scan.planning import plot_start_plan
 
 # Background of each phase in traces.png; every phase has a colour of its own (a white
 # swatch would be blank in the legend).
-PHASE_COLORS = {"APPROACH": "#dddddd", "EXPLORE": "#cfe8ff", "LOCALIZE": "#ffe9b3",
-                "TRANSIT": "#e6d5ff", "PIVOT": "#d4f5d4", "DONE": "#8fd18f", "ABORT": "#ffc9c9"}
+PHASE_COLORS = {
+    "APPROACH": "#dddddd",
+    "EXPLORE": "#cfe8ff",
+    "LOCALIZE": "#ffe9b3",
+    "TRANSIT": "#e6d5ff",
+    "PIVOT": "#d4f5d4",
+    "DONE": "#8fd18f",
+    "ABORT": "#ffc9c9",
+}
 
 
 def _plt():
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     return plt
 
 
@@ -45,9 +53,11 @@ def write_ply(path: Path, points: np.ndarray) -> None:
 def plot_registration(result, path: Path) -> None:
     plt = _plt()
     fig, axes = plt.subplots(1, 3, figsize=(12, 4.2))
-    views = [(0, 1, "x (mm)", "y (mm)", "top view (x-y)"),
-             (1, 2, "y (mm)", "z (mm)", "side view (y-z)"),
-             (0, 2, "x (mm)", "z (mm)", "front view (x-z)")]
+    views = [
+        (0, 1, "x (mm)", "y (mm)", "top view (x-y)"),
+        (1, 2, "y (mm)", "z (mm)", "side view (y-z)"),
+        (0, 2, "x (mm)", "z (mm)", "front view (x-z)"),
+    ]
     true_shape = result.truth.kidney_points_B if result.truth is not None else np.zeros((0, 3))
     for ax, (i, j, xl, yl, title) in zip(axes, views):
         if len(true_shape):
@@ -55,8 +65,14 @@ def plot_registration(result, path: Path) -> None:
             ax.scatter(sub[:, i] * 1e3, sub[:, j] * 1e3, s=1, c="#bbbbbb", label="true kidney")
         if result.registered_template_B is not None:
             t = result.registered_template_B
-            ax.scatter(t[:, i] * 1e3, t[:, j] * 1e3, s=1, c="tab:red", alpha=0.5,
-                       label="registered template")
+            ax.scatter(
+                t[:, i] * 1e3,
+                t[:, j] * 1e3,
+                s=1,
+                c="tab:red",
+                alpha=0.5,
+                label="registered template",
+            )
         c = result.partial_cloud_B
         if len(c):
             c = c[:: max(1, len(c) // 3000)]
@@ -76,13 +92,14 @@ def plot_coverage(result, metrics: dict, path: Path) -> None:
     fig, axes = plt.subplots(1, 3, figsize=(13, 4))
     # Pole to pole (the paper's eps, n, V) and the whole pivot (both legs) beside it.
     for key_V, key_eps, label, style in (
-            ("V_whole_pivot_curve", "eps_whole_pivot_curve_mm", "whole pivot (both legs)", ":"),
-            ("V_curve", "eps_curve_mm", "pole to pole (paper)", "-")):
+        ("V_whole_pivot_curve", "eps_whole_pivot_curve_mm", "whole pivot (both legs)", ":"),
+        ("V_curve", "eps_curve_mm", "pole to pole (paper)", "-"),
+    ):
         V = np.asarray(metrics.get(key_V) or [])
         eps = np.asarray(metrics.get(key_eps) or [])
         if len(V):
             axes[0].plot(np.arange(1, len(V) + 1), V, style, color="tab:green", label=label)
-            axes[1].plot(eps[:len(V)], V, style, color="tab:green", label=label)
+            axes[1].plot(eps[: len(V)], V, style, color="tab:green", label=label)
     axes[0].set_xlabel("frames during the pivot, n")
     axes[0].set_ylabel("volume reconstruction ratio V")
     axes[0].set_ylim(0, 1.05)
@@ -92,7 +109,11 @@ def plot_coverage(result, metrics: dict, path: Path) -> None:
     axes[1].set_ylabel("V")
     axes[1].set_ylim(0, 1.05)
     axes[1].grid(alpha=0.3)
-    p = np.array([f.X_BP.translation() for f in result.frames]) if result.frames else np.zeros((0, 3))
+    p = (
+        np.array([f.X_BP.translation() for f in result.frames])
+        if result.frames
+        else np.zeros((0, 3))
+    )
     phases = np.array([f.phase for f in result.frames])
     for phase in Phase:
         sel = phases == int(phase)
@@ -104,10 +125,17 @@ def plot_coverage(result, metrics: dict, path: Path) -> None:
     axes[2].set_aspect("equal", adjustable="datalim")
     axes[2].legend(fontsize=7)
     V_text = "unknown" if metrics["volume_ratio"] is None else f"{metrics['volume_ratio']:.3f}"
-    whole = (f"; whole pivot n = {metrics['n_whole_pivot']}, eps = "
-             f"{metrics['eps_whole_pivot_mm']:.1f} mm" if "n_whole_pivot" in metrics else "")
-    fig.suptitle(f"Coverage pole to pole (paper): V = {V_text}, n = {metrics['n_frames']} "
-                 f"frames, eps = {metrics['eps_mm']:.1f} mm{whole}", fontsize=9)
+    whole = (
+        f"; whole pivot n = {metrics['n_whole_pivot']}, eps = "
+        f"{metrics['eps_whole_pivot_mm']:.1f} mm"
+        if "n_whole_pivot" in metrics
+        else ""
+    )
+    fig.suptitle(
+        f"Coverage pole to pole (paper): V = {V_text}, n = {metrics['n_frames']} "
+        f"frames, eps = {metrics['eps_mm']:.1f} mm{whole}",
+        fontsize=9,
+    )
     fig.tight_layout()
     _save(fig, path)
 
@@ -122,21 +150,25 @@ def plot_traces(result, path: Path) -> None:
     fig, axes = plt.subplots(3, 1, figsize=(10, 7.5), sharex=True)
     t, F = result.logs["force"][0], result.logs["force"][1][0]
     _shade_phases(axes[0], result.phases)
-    if "force_true" in result.logs:   # simulation truth
+    if "force_true" in result.logs:  # simulation truth
         tt, Ft = result.logs["force_true"][0], -result.logs["force_true"][1][5]
         axes[0].plot(tt, Ft, color="tab:gray", lw=1.5, label="true contact force")
     axes[0].plot(t, F, color="tab:blue", lw=1, label="estimated, filtered")
-    axes[0].axhline(result.scenario.controller.desired_force, ls=":", color="tab:red",
-                    label="desired")
-    axes[0].axhline(result.scenario.safety.force_ceiling, ls="--", color="darkred", lw=0.8,
-                    label="ceiling")
+    axes[0].axhline(
+        result.scenario.controller.desired_force, ls=":", color="tab:red", label="desired"
+    )
+    axes[0].axhline(
+        result.scenario.safety.force_ceiling, ls="--", color="darkred", lw=0.8, label="ceiling"
+    )
     axes[0].set_ylabel("F_z (N)")
     axes[0].legend(fontsize=7, loc="upper right")
     ta, a = result.logs["a_des"][0], result.logs["a_des"][1]
     tilt = np.degrees(np.arccos(np.clip(-a[2], -1, 1)))
     frames_t = [f.time for f in result.frames]
-    actual = [np.degrees(np.arccos(np.clip(-f.X_BP.rotation().matrix()[2, 2], -1, 1)))
-              for f in result.frames]
+    actual = [
+        np.degrees(np.arccos(np.clip(-f.X_BP.rotation().matrix()[2, 2], -1, 1)))
+        for f in result.frames
+    ]
     _shade_phases(axes[1], result.phases)
     axes[1].plot(ta, tilt, color="tab:orange", label="desired tilt of a from vertical")
     axes[1].plot(frames_t, actual, ".", ms=2, color="k", label="actual")
@@ -147,8 +179,10 @@ def plot_traces(result, path: Path) -> None:
     axes[2].plot(tm, m, color="tab:purple")
     axes[2].set_ylabel("manipulability")
     axes[2].set_xlabel("time (s)")
-    handles = [plt.Rectangle((0, 0), 1, 1, facecolor=c, edgecolor="0.5", lw=0.5, alpha=0.6)
-               for c in PHASE_COLORS.values()]
+    handles = [
+        plt.Rectangle((0, 0), 1, 1, facecolor=c, edgecolor="0.5", lw=0.5, alpha=0.6)
+        for c in PHASE_COLORS.values()
+    ]
     fig.legend(handles, PHASE_COLORS.keys(), loc="lower center", ncol=7, fontsize=7)
     fig.suptitle(f"Scan traces: {result.patient} ({result.status})")
     fig.tight_layout(rect=(0, 0.04, 1, 1))
@@ -186,13 +220,19 @@ def WriteScanOutputs(result, metrics: dict, summary: dict, out: Path) -> list[Pa
         write_ply(out / "registered_template.ply", result.registered_template_B)
         written.append(out / "registered_template.ply")
     if result.start_plan is not None:
-        plot_start_plan(result.start_plan, result.scenario.imaging, out / "start_plan.png",
-                        title=f"Start planner: {result.patient}")
+        plot_start_plan(
+            result.start_plan,
+            result.scenario.imaging,
+            out / "start_plan.png",
+            title=f"Start planner: {result.patient}",
+        )
         written.append(out / "start_plan.png")
-    for name, fn in (("registration.png", lambda p: plot_registration(result, p)),
-                     ("coverage.png", lambda p: plot_coverage(result, metrics, p)),
-                     ("traces.png", lambda p: plot_traces(result, p)),
-                     ("pivot_frames.png", lambda p: plot_frames(result, p))):
+    for name, fn in (
+        ("registration.png", lambda p: plot_registration(result, p)),
+        ("coverage.png", lambda p: plot_coverage(result, metrics, p)),
+        ("traces.png", lambda p: plot_traces(result, p)),
+        ("pivot_frames.png", lambda p: plot_frames(result, p)),
+    ):
         fn(out / name)
         if (out / name).exists():
             written.append(out / name)

@@ -23,18 +23,27 @@ from pydrake.systems.framework import EventStatus
 from drake_rus import interrupts
 from drake_rus.control.supervisor import Phase
 from drake_rus.hardware.station import HardwareSession
-from drake_rus.scan.planning import DrawStartPlan, PlanStart, exploration_start
 from drake_rus.progress import AdvanceWithProgress
 from drake_rus.robot import IkError, MakeControlPlant, SolveTipPose
 from drake_rus.scan.diagram import BuildScanDiagram, ScanHandles
+from drake_rus.scan.planning import DrawStartPlan, PlanStart, exploration_start
 from drake_rus.scan.truth import AttachSimulationTruth, SimulationTruth
 from drake_rus.scan.verdict import JudgeScan, Verdict
 from drake_rus.stations import MakeStation
 
-__all__ = ["RunScan", "ExpectedScanTime", "PrepareScenario", "ScanResult", "ScanMonitor",
-           "CollectScanResult", "TERMINAL_PHASES"]
+__all__ = [
+    "RunScan",
+    "ExpectedScanTime",
+    "PrepareScenario",
+    "ScanResult",
+    "ScanMonitor",
+    "CollectScanResult",
+    "TERMINAL_PHASES",
+]
 
 TERMINAL_PHASES = (Phase.DONE, Phase.ABORT)
+
+
 def ExpectedScanTime(scenario) -> float:
     """About how long (simulated s) a scan with ``scenario`` takes when all goes well, for
     the progress bar: landing, the exploration (ER x L_m at v_scan), LOCALIZE, TRANSIT and
@@ -69,6 +78,7 @@ class ScanMonitor:
 @dataclasses.dataclass
 class ScanResult:
     """A finished scan: outcome, timing, what was recorded, and the truth if simulated."""
+
     # "DONE", "INCOMPLETE" (ran to its end but failed a check of its result, ``checks``),
     # "ABORT", "TIMEOUT" or "INTERRUPTED" (a signal: Ctrl-C or SIGTERM)
     status: str
@@ -76,14 +86,14 @@ class ScanResult:
     patient: str
     sim_s: float
     wall_s: float
-    phases: list                   # [(name, start s, end s)]
-    frames: list                   # FrameRecord per acquired frame
-    images: list                   # (time, grey, mask) of some PIVOT frames
+    phases: list  # [(name, start s, end s)]
+    frames: list  # FrameRecord per acquired frame
+    images: list  # (time, grey, mask) of some PIVOT frames
     partial_cloud_B: np.ndarray
-    localization: object           # LocalizationOutcome
+    localization: object  # LocalizationOutcome
     X_BK_estimated: RigidTransform | None
     registered_template_B: np.ndarray | None
-    logs: dict                     # name -> (times, data)
+    logs: dict  # name -> (times, data)
     safety_events: list
     scenario: object
     truth: SimulationTruth | None = None
@@ -120,6 +130,7 @@ def _can_reach(plant, tip):
         except IkError:
             return False
         return True
+
     return reachable
 
 
@@ -135,17 +146,29 @@ def PrepareScenario(scenario, patient, start_fraction: float | None = None):
     sf = scenario.start.start_fraction if start_fraction is None else start_fraction
     plan = None
     if scenario.start.planner == "vertical":
-        X_start = exploration_start(patient, X_BPt,
-                                    scan_direction=scenario.controller.scan_direction,
-                                    start_fraction=sf, hover=scenario.start.hover)
+        X_start = exploration_start(
+            patient,
+            X_BPt,
+            scan_direction=scenario.controller.scan_direction,
+            start_fraction=sf,
+            hover=scenario.start.hover,
+        )
     else:
-        plan = PlanStart(patient, X_BPt, scenario.imaging, scenario.start,
-                         reachable=_can_reach(plant, tip), seed=scenario.random_seed,
-                         scan_direction=scenario.controller.scan_direction, start_fraction=sf,
-                         exploration_ratio=scenario.controller.exploration_ratio)
+        plan = PlanStart(
+            patient,
+            X_BPt,
+            scenario.imaging,
+            scenario.start,
+            reachable=_can_reach(plant, tip),
+            seed=scenario.random_seed,
+            scan_direction=scenario.controller.scan_direction,
+            start_fraction=sf,
+            exploration_ratio=scenario.controller.exploration_ratio,
+        )
         X_start = plan.X_start
         scenario = dataclasses.replace(
-            scenario, imaging=dataclasses.replace(scenario.imaging, depth=plan.depth_preset))
+            scenario, imaging=dataclasses.replace(scenario.imaging, depth=plan.depth_preset)
+        )
     q0 = SolveTipPose(plant, tip, X_start)
     robot = dataclasses.replace(scenario.robot, initial_joint_positions=[float(v) for v in q0])
     return dataclasses.replace(scenario, robot=robot), X_start, plan
@@ -157,32 +180,46 @@ def _phase_intervals(times, phases, end_time: float, final_phase: str) -> list:
     start = 0
     for k in range(1, len(phases) + 1):
         if k == len(phases) or phases[k] != phases[start]:
-            out.append((Phase(phases[start]).name, float(times[start]),
-                        float(times[k] if k < len(times) else end_time)))
+            out.append(
+                (
+                    Phase(phases[start]).name,
+                    float(times[start]),
+                    float(times[k] if k < len(times) else end_time),
+                )
+            )
             start = k
     if not out or out[-1][0] != final_phase:
         out.append((final_phase, end_time, end_time))
     return out
 
 
-def CollectScanResult(scenario, patient_name: str, template, handles: ScanHandles,
-                      truth: SimulationTruth | None, root_context, wall: float,
-                      end_time: float | None = None) -> ScanResult:
+def CollectScanResult(
+    scenario,
+    patient_name: str,
+    template,
+    handles: ScanHandles,
+    truth: SimulationTruth | None,
+    root_context,
+    wall: float,
+    end_time: float | None = None,
+) -> ScanResult:
     """The ScanResult of a finished run; ``end_time`` (s): when the scan proper ended, if the
     simulator ran on after it (default: the context's time)."""
     h = handles
     now = root_context.get_time()
     t_end = now if end_time is None else end_time
     state = h.supervisor.GetOutputPort("supervisor_state").Eval(
-        h.supervisor.GetMyContextFromRoot(root_context))
+        h.supervisor.GetMyContextFromRoot(root_context)
+    )
     phase = Phase(int(state.phase)).name
     status = phase if phase in ("DONE", "ABORT") else "TIMEOUT"
     reason = state.events[-1][2] if status == "ABORT" and state.events else ""
     if status == "TIMEOUT":
         reason = f"still in {phase} after {t_end:.1f} s of simulated time"
     safety = h.parts.safety
-    events = list(safety.GetOutputPort("safety_events").Eval(
-        safety.GetMyContextFromRoot(root_context)))
+    events = list(
+        safety.GetOutputPort("safety_events").Eval(safety.GetMyContextFromRoot(root_context))
+    )
     logs = {}
     for name, logger in h.logs.items():
         log = logger.FindLog(root_context)
@@ -193,32 +230,58 @@ def CollectScanResult(scenario, patient_name: str, template, handles: ScanHandle
     t, ph = logs["phase"][0], logs["phase"][1][0].round().astype(int)
     phases = _phase_intervals(t, ph, now, phase)
     outcome = h.localizer.GetOutputPort("localization").Eval(
-        h.localizer.GetMyContextFromRoot(root_context))
+        h.localizer.GetMyContextFromRoot(root_context)
+    )
     cloud = h.accumulator.GetOutputPort("point_cloud").Eval(
-        h.accumulator.GetMyContextFromRoot(root_context))
+        h.accumulator.GetMyContextFromRoot(root_context)
+    )
     X_BK_est, registered = None, None
     if outcome.result is not None:
         X_BK_est = outcome.result.X_BK
         shape = template.points
         if outcome.result.shape_coefficients is not None:
             b = outcome.result.shape_coefficients
-            shape = template.points + np.einsum("k,kij->ij", b, template.modes[:len(b)])
+            shape = template.points + np.einsum("k,kij->ij", b, template.modes[: len(b)])
         registered = X_BK_est.multiply(shape.T).T
     return ScanResult(
-        status=status, reason=reason, patient=patient_name, sim_s=now, wall_s=wall,
-        phases=phases, frames=list(h.recorder.frames), images=list(h.recorder.images),
-        partial_cloud_B=np.array(cloud.points), localization=outcome, X_BK_estimated=X_BK_est,
-        registered_template_B=registered, logs=logs, safety_events=events, scenario=scenario,
-        truth=truth, sweep_masks=dict(h.recorder.sweep_masks),
+        status=status,
+        reason=reason,
+        patient=patient_name,
+        sim_s=now,
+        wall_s=wall,
+        phases=phases,
+        frames=list(h.recorder.frames),
+        images=list(h.recorder.images),
+        partial_cloud_B=np.array(cloud.points),
+        localization=outcome,
+        X_BK_estimated=X_BK_est,
+        registered_template_B=registered,
+        logs=logs,
+        safety_events=events,
+        scenario=scenario,
+        truth=truth,
+        sweep_masks=dict(h.recorder.sweep_masks),
         tracking_drift=h.tracking.state(h.tracking.GetMyContextFromRoot(root_context)).history,
         length_checks=h.localizer.length_checks(h.localizer.GetMyContextFromRoot(root_context)),
-        pivot_limits=tuple(state.pivot_limits), sweep_end_causes=tuple(state.sweep_end_causes))
+        pivot_limits=tuple(state.pivot_limits),
+        sweep_end_causes=tuple(state.sweep_end_causes),
+    )
 
 
-def RunScan(scenario, patient, template, *, make_station: Callable = MakeStation,
-            meshcat=None, max_sim_time: float = 150.0, progress: bool | None = None,
-            start_fraction: float | None = None, monitors: Sequence[ScanMonitor] = (),
-            settle: float = 0.0, keep_sweep_masks: bool = False) -> ScanResult:
+def RunScan(
+    scenario,
+    patient,
+    template,
+    *,
+    make_station: Callable = MakeStation,
+    meshcat=None,
+    max_sim_time: float = 150.0,
+    progress: bool | None = None,
+    start_fraction: float | None = None,
+    monitors: Sequence[ScanMonitor] = (),
+    settle: float = 0.0,
+    keep_sweep_masks: bool = False,
+) -> ScanResult:
     """Runs the closed-loop scan until DONE, ABORT or ``max_sim_time`` (s).
 
     ``patient``: the virtual patient (simulation: plans the start pose and attaches the
@@ -241,8 +304,9 @@ def RunScan(scenario, patient, template, *, make_station: Callable = MakeStation
     builder, h = BuildScanDiagram(scenario, station, template)
     if keep_sweep_masks:
         h.recorder.keep_masks((Phase.EXPLORE, Phase.PIVOT))
-    truth = (AttachSimulationTruth(builder, station, patient, scenario)
-             if patient is not None else None)
+    truth = (
+        AttachSimulationTruth(builder, station, patient, scenario) if patient is not None else None
+    )
     diagram = builder.Build()
     diagram.set_name("scan")
     simulator = Simulator(diagram)
@@ -289,13 +353,17 @@ def RunScan(scenario, patient, template, *, make_station: Callable = MakeStation
 
     try:
         try:
-            with (HardwareSession(station) if live else contextlib.nullcontext()):
-                AdvanceWithProgress(simulator, max_sim_time, desc="scan",
-                                    step=0.1 if live else 0.25,
-                                    disable=None if progress is None else not progress,
-                                    on_step=lambda c: phase_now().name,
-                                    should_stop=should_stop,
-                                    expected=ExpectedScanTime(scenario))
+            with HardwareSession(station) if live else contextlib.nullcontext():
+                AdvanceWithProgress(
+                    simulator,
+                    max_sim_time,
+                    desc="scan",
+                    step=0.1 if live else 0.25,
+                    disable=None if progress is None else not progress,
+                    on_step=lambda c: phase_now().name,
+                    should_stop=should_stop,
+                    expected=ExpectedScanTime(scenario),
+                )
                 t_end = context.get_time()
                 if settle > 0.0 and not behind:
                     stop_at_terminal[0] = False
@@ -308,15 +376,16 @@ def RunScan(scenario, patient, template, *, make_station: Callable = MakeStation
             if not (isinstance(e, KeyboardInterrupt) or interrupts.pending() is not None):
                 raise
             interrupted.append(interrupts.signal_of(e))
-            interrupts.note(interrupted[0])      # the exit status follows it
+            interrupts.note(interrupted[0])  # the exit status follows it
             t_end = context.get_time()
         wall = time.perf_counter() - start
         cpu = time.process_time() - cpu_start
         for m in monitors:
             m.finish(context)
         name = patient.name if patient is not None else "patient on the bed"
-        result = CollectScanResult(scenario, name, template, h, truth, context, wall,
-                                   end_time=t_end)
+        result = CollectScanResult(
+            scenario, name, template, h, truth, context, wall, end_time=t_end
+        )
     finally:
         # A live station holds a robot connection and a video capture thread: release them
         # once the robot is at rest (the session already commanded zero velocity).
@@ -327,14 +396,18 @@ def RunScan(scenario, patient, template, *, make_station: Callable = MakeStation
     result.start_plan = plan
     if interrupted:
         result.status = "INTERRUPTED"
-        result.reason = (f"interrupted by {interrupts.signal_text(interrupted[0])} at "
-                         f"{t_end:.2f} s of simulated time, in {phase_now().name}; the "
-                         "outputs are partial")
+        result.reason = (
+            f"interrupted by {interrupts.signal_text(interrupted[0])} at "
+            f"{t_end:.2f} s of simulated time, in {phase_now().name}; the "
+            "outputs are partial"
+        )
     elif behind:
         result.status = "ABORT"
-        result.reason = (f"the diagram fell {behind[0]:.2f} s behind real time at "
-                         f"{t_end:.2f} s (safety.realtime_lag {scenario.safety.realtime_lag:g}"
-                         " s): stopped at zero velocity")
+        result.reason = (
+            f"the diagram fell {behind[0]:.2f} s behind real time at "
+            f"{t_end:.2f} s (safety.realtime_lag {scenario.safety.realtime_lag:g}"
+            " s): stopped at zero velocity"
+        )
     # DONE only if the result passes its own checks (scan/verdict.py; never the truth).
     result.checks = JudgeScan(result, template)
     if result.status == "DONE":

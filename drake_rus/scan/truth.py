@@ -16,9 +16,13 @@ from pydrake.math import RigidTransform
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import LogVectorOutput
 
-
-__all__ = ["SimulationTruth", "AttachSimulationTruth", "kidney_voxels_B", "force_trace_stats",
-           "FORCE_LOG_PERIOD"]
+__all__ = [
+    "SimulationTruth",
+    "AttachSimulationTruth",
+    "kidney_voxels_B",
+    "force_trace_stats",
+    "FORCE_LOG_PERIOD",
+]
 
 # Voxel size (m) of the true kidney for the volume ratio V (eq. 25).
 TRUTH_VOXEL = 0.002
@@ -33,6 +37,7 @@ FORCE_LOG_PERIOD: float | None = None
 class SimulationTruth:
     """The true kidney frame K in B at the start of the scan, the true kidney's voxel centres
     in B (m) and their volume (m^3 each), and the logger of the true contact wrench."""
+
     X_BK: RigidTransform
     kidney_points_B: np.ndarray
     voxel_volume: float
@@ -47,18 +52,21 @@ def kidney_voxels_B(patient, X_BPt: RigidTransform, voxel_size: float) -> np.nda
     return X_BPt.multiply(p_Pt.T).T
 
 
-def AttachSimulationTruth(builder: DiagramBuilder, station, patient, scenario,
-                          voxel_size: float = TRUTH_VOXEL) -> SimulationTruth:
+def AttachSimulationTruth(
+    builder: DiagramBuilder, station, patient, scenario, voxel_size: float = TRUTH_VOXEL
+) -> SimulationTruth:
     """The truth of ``patient`` on the bed at ``scenario.patient.X_BPt``, with a logger of the
     station's true contact wrench added to ``builder`` when the station has one."""
     X_BPt = scenario.patient.X_BPt.GetDeterministicValue()
     force_log = None
     if station.HasOutputPort("probe_contact_wrench_true"):
         period = FORCE_LOG_PERIOD or scenario.contact.time_step
-        force_log = LogVectorOutput(station.GetOutputPort("probe_contact_wrench_true"),
-                                    builder, period)
-    return SimulationTruth(patient.X_BK(X_BPt), kidney_voxels_B(patient, X_BPt, voxel_size),
-                           voxel_size**3, force_log)
+        force_log = LogVectorOutput(
+            station.GetOutputPort("probe_contact_wrench_true"), builder, period
+        )
+    return SimulationTruth(
+        patient.X_BK(X_BPt), kidney_voxels_B(patient, X_BPt, voxel_size), voxel_size**3, force_log
+    )
 
 
 def force_trace_stats(result, settle: float = 0.5, landing_window: float = 1.0) -> dict:
@@ -67,8 +75,13 @@ def force_trace_stats(result, settle: float = 0.5, landing_window: float = 1.0) 
     ``settle`` s, the landing) and in PIVOT, and the landing peak (the largest force before
     EXPLORE started plus ``landing_window`` s). Values are None when the phase did not occur
     or the scan has no truth log."""
-    out = {"explore_mean_n": None, "explore_ripple_n": None, "pivot_mean_n": None,
-           "pivot_ripple_n": None, "landing_peak_n": None}
+    out = {
+        "explore_mean_n": None,
+        "explore_ripple_n": None,
+        "pivot_mean_n": None,
+        "pivot_ripple_n": None,
+        "landing_peak_n": None,
+    }
     if "force_true" not in result.logs:
         return out
     t, wrench = result.logs["force_true"]

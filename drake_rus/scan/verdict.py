@@ -29,11 +29,23 @@ from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.localization.localize import body_directions_B
 from drake_rus.metrics import signed_pivot_angles
 
-__all__ = ["Check", "INCOMPLETE", "JudgeScan", "Verdict", "check_axis_direction",
-           "check_inlier_fraction", "check_kidney_depth", "check_pole_offsets",
-           "check_rms_residual", "check_shape_weights", "check_sweep_ends",
-           "check_template_coverage", "check_translation_sd", "imaged_counts",
-           "template_volume_sample"]
+__all__ = [
+    "Check",
+    "INCOMPLETE",
+    "JudgeScan",
+    "Verdict",
+    "check_axis_direction",
+    "check_inlier_fraction",
+    "check_kidney_depth",
+    "check_pole_offsets",
+    "check_rms_residual",
+    "check_shape_weights",
+    "check_sweep_ends",
+    "check_template_coverage",
+    "check_translation_sd",
+    "imaged_counts",
+    "template_volume_sample",
+]
 
 # The status of a scan that ran to its end but whose result failed a check.
 INCOMPLETE = "INCOMPLETE"
@@ -44,6 +56,7 @@ class Check:
     """One check of a scan's result: ``value`` against ``threshold`` (both in ``unit``;
     ``rule`` says which way passes, e.g. ">="), ``passed`` (None: not applicable to this
     scan, e.g. no registration on a line sweep), ``detail`` one line for people."""
+
     name: str
     value: float | None
     threshold: float | None
@@ -64,9 +77,15 @@ def _judge(name, value, threshold, unit, rule, what) -> Check:
     ok = value >= threshold if rule == ">=" else value <= threshold
     # Lengths are stored in m and shown in mm.
     k, shown = (1e3, " mm") if unit == "m" else (1.0, "" if unit == "fraction" else f" {unit}")
-    return Check(name, float(value), float(threshold), unit, rule, bool(ok),
-                 f"{what} {value * k:.3g}{shown} ({'' if ok else 'not '}{rule} "
-                 f"{threshold * k:.3g})")
+    return Check(
+        name,
+        float(value),
+        float(threshold),
+        unit,
+        rule,
+        bool(ok),
+        f"{what} {value * k:.3g}{shown} ({'' if ok else 'not '}{rule} {threshold * k:.3g})",
+    )
 
 
 # ----------------------------------------------------------------------------- (a) sweep
@@ -79,11 +98,14 @@ def check_sweep_ends(causes, kind: str) -> Check:
     causes = list(causes)
     left = sum(c == "kidney_left" for c in causes)
     ok = len(causes) >= needed and left >= needed
-    other = [f"end {i + 1}: {c.replace('_', ' ')}" for i, c in enumerate(causes)
-             if c != "kidney_left"]
-    detail = (f"the kidney left the image at {left} of the {needed} sweep ends"
-              + (f" ({', '.join(other)})" if other else "")
-              + ("" if len(causes) >= needed else f"; only {len(causes)} ended"))
+    other = [
+        f"end {i + 1}: {c.replace('_', ' ')}" for i, c in enumerate(causes) if c != "kidney_left"
+    ]
+    detail = (
+        f"the kidney left the image at {left} of the {needed} sweep ends"
+        + (f" ({', '.join(other)})" if other else "")
+        + ("" if len(causes) >= needed else f"; only {len(causes)} ended")
+    )
     return Check("sweep_ends", float(left), float(needed), "ends", ">=", ok, detail)
 
 
@@ -97,7 +119,7 @@ def template_volume_sample(surface_B: np.ndarray, layers: int = 10):
     c = surface.mean(axis=0)
     scales = np.arange(1, layers + 1) / layers
     points = np.concatenate([c + s * (surface - c) for s in scales])
-    weights = np.repeat(scales ** 2, len(surface))
+    weights = np.repeat(scales**2, len(surface))
     return points, weights / weights.sum()
 
 
@@ -111,8 +133,9 @@ def _in_slab_and_fan(points_B, X_BP, geometry: ProbeGeometry, slab_half_width: f
     return inside
 
 
-def check_template_coverage(surface_B, poses, visible, geometry: ProbeGeometry,
-                            min_coverage: float) -> Check:
+def check_template_coverage(
+    surface_B, poses, visible, geometry: ProbeGeometry, min_coverage: float
+) -> Check:
     """(b) Fraction of the registered kidney's volume (:func:`template_volume_sample` of
     ``surface_B``) inside the slab (the elevational beam width) and fan of some sweep frame
     that showed the kidney (``poses``: X_BP per frame, ``visible`` its flag): how much of
@@ -123,12 +146,19 @@ def check_template_coverage(surface_B, poses, visible, geometry: ProbeGeometry,
         if v:
             covered |= _in_slab_and_fan(points, X, geometry, 0.5 * geometry.elevation_width)
     value = float(weights[covered].sum())
-    return _judge("template_coverage", value, min_coverage, "fraction", ">=",
-                  "fraction of the registered kidney's volume swept by frames showing it:")
+    return _judge(
+        "template_coverage",
+        value,
+        min_coverage,
+        "fraction",
+        ">=",
+        "fraction of the registered kidney's volume swept by frames showing it:",
+    )
 
 
-def imaged_counts(points_B, pivot_point, a0, o, thetas, geometry: ProbeGeometry,
-                  slab_half_width: float) -> np.ndarray:
+def imaged_counts(
+    points_B, pivot_point, a0, o, thetas, geometry: ProbeGeometry, slab_half_width: float
+) -> np.ndarray:
     """How many of ``points_B`` (N, 3) a probe with its tip at ``pivot_point`` images when
     its approach ``a0`` is turned by each of ``thetas`` (rad) about the array ``o`` (eq. 23;
     the geometry of laws.pivot_end_angles, both signs at once): points within
@@ -148,14 +178,25 @@ def imaged_counts(points_B, pivot_point, a0, o, thetas, geometry: ProbeGeometry,
     zc = z + geometry.radius
     line = np.arctan2(np.broadcast_to(x, zc.shape), zc)
     d = np.hypot(x, zc) - geometry.radius
-    seen = ((np.abs(y) <= slab_half_width) & (np.abs(line) <= geometry.half_angle)
-            & (d >= 0.0) & (d <= geometry.depth))
+    seen = (
+        (np.abs(y) <= slab_half_width)
+        & (np.abs(line) <= geometry.half_angle)
+        & (d >= 0.0)
+        & (d <= geometry.depth)
+    )
     return seen.sum(axis=1)
 
 
-def check_pole_offsets(surface_B, poses, visible, geometry: ProbeGeometry, max_offset: float,
-                       min_points: int = 1, angle_range: float = 1.2,
-                       step: float = math.radians(0.25)) -> Check:
+def check_pole_offsets(
+    surface_B,
+    poses,
+    visible,
+    geometry: ProbeGeometry,
+    max_offset: float,
+    min_points: int = 1,
+    angle_range: float = 1.2,
+    step: float = math.radians(0.25),
+) -> Check:
     """(b) Where the pivot saw the kidney against where the registered template predicts
     it: the sweep's tilt angles (about the first frame's array axis, from its approach)
     of the first and last frames showing the kidney, against the tilts at which at least
@@ -166,34 +207,62 @@ def check_pole_offsets(surface_B, poses, visible, geometry: ProbeGeometry, max_o
     poses = list(poses)
     visible = np.asarray(visible, bool)
     if not visible.any():
-        return Check("pole_offsets", None, float(max_offset), "m", "<=", False,
-                     "the kidney was never seen during the sweep")
-    M0 = np.asarray(poses[0].GetAsMatrix4() if hasattr(poses[0], "GetAsMatrix4")
-                    else poses[0], float)
+        return Check(
+            "pole_offsets",
+            None,
+            float(max_offset),
+            "m",
+            "<=",
+            False,
+            "the kidney was never seen during the sweep",
+        )
+    M0 = np.asarray(
+        poses[0].GetAsMatrix4() if hasattr(poses[0], "GetAsMatrix4") else poses[0], float
+    )
     p0, o, a0 = M0[:3, 3], M0[:3, 0], M0[:3, 2]
-    angles = signed_pivot_angles([np.asarray(X.GetAsMatrix4() if hasattr(X, "GetAsMatrix4")
-                                             else X, float)[:3, :3] for X in poses])
+    angles = signed_pivot_angles(
+        [
+            np.asarray(X.GetAsMatrix4() if hasattr(X, "GetAsMatrix4") else X, float)[:3, :3]
+            for X in poses
+        ]
+    )
     surface = np.asarray(surface_B, float).reshape(-1, 3)
     depth = float((surface.mean(axis=0) - p0) @ a0)
     grid = np.arange(-angle_range, angle_range + 0.5 * step, step)
-    counts = imaged_counts(surface, p0, o=o, a0=a0, thetas=grid, geometry=geometry,
-                           slab_half_width=0.5 * geometry.elevation_width)
+    counts = imaged_counts(
+        surface,
+        p0,
+        o=o,
+        a0=a0,
+        thetas=grid,
+        geometry=geometry,
+        slab_half_width=0.5 * geometry.elevation_width,
+    )
     in_view = grid[counts >= min_points]
     seen = (float(angles[visible].min()), float(angles[visible].max()))
     if len(in_view) == 0 or depth <= 0:
-        return Check("pole_offsets", None, float(max_offset), "m", "<=", False,
-                     "the registered kidney is never in view of the pivot")
+        return Check(
+            "pole_offsets",
+            None,
+            float(max_offset),
+            "m",
+            "<=",
+            False,
+            "the registered kidney is never in view of the pivot",
+        )
     predicted = (float(in_view.min()), float(in_view.max()))
     offsets = [abs(depth * (math.tan(s) - math.tan(p))) for s, p in zip(seen, predicted)]
     worst = int(np.argmax(offsets))
     value = offsets[worst]
     ok = value <= max_offset
     side = ("negative", "positive")[worst]
-    detail = (f"the kidney was seen from {math.degrees(seen[0]):.1f} to "
-              f"{math.degrees(seen[1]):.1f} deg of tilt, the registered template predicts "
-              f"{math.degrees(predicted[0]):.1f} to {math.degrees(predicted[1]):.1f} deg: "
-              f"{value * 1e3:.1f} mm apart at its depth ({depth * 1e3:.0f} mm) on the "
-              f"{side} side ({'' if ok else 'not '}<= {max_offset * 1e3:.3g} mm)")
+    detail = (
+        f"the kidney was seen from {math.degrees(seen[0]):.1f} to "
+        f"{math.degrees(seen[1]):.1f} deg of tilt, the registered template predicts "
+        f"{math.degrees(predicted[0]):.1f} to {math.degrees(predicted[1]):.1f} deg: "
+        f"{value * 1e3:.1f} mm apart at its depth ({depth * 1e3:.0f} mm) on the "
+        f"{side} side ({'' if ok else 'not '}<= {max_offset * 1e3:.3g} mm)"
+    )
     return Check("pole_offsets", float(value), float(max_offset), "m", "<=", ok, detail)
 
 
@@ -204,27 +273,41 @@ def check_rms_residual(rms: float, max_rms: float, min_rms: float = 0.0) -> Chec
     measured anything leaves at least their quantization (a degenerate template, e.g. with
     all-zero normals, leaves exactly 0)."""
     if rms < min_rms:
-        return Check("rms_residual", float(rms), float(min_rms), "m", ">=", False,
-                     f"registration RMS residual {rms * 1e3:.3g} mm, below the boundary "
-                     f"pixels' quantization ({min_rms * 1e3:.3g} mm): a degenerate fit")
+        return Check(
+            "rms_residual",
+            float(rms),
+            float(min_rms),
+            "m",
+            ">=",
+            False,
+            f"registration RMS residual {rms * 1e3:.3g} mm, below the boundary "
+            f"pixels' quantization ({min_rms * 1e3:.3g} mm): a degenerate fit",
+        )
     return _judge("rms_residual", rms, max_rms, "m", "<=", "registration RMS residual")
 
 
 def check_inlier_fraction(fraction: float, min_fraction: float) -> Check:
     """(c) Fraction of the explored points within 3 mm of the registered template."""
-    return _judge("inlier_fraction", fraction, min_fraction, "fraction", ">=",
-                  "explored points near the registered template:")
+    return _judge(
+        "inlier_fraction",
+        fraction,
+        min_fraction,
+        "fraction",
+        ">=",
+        "explored points near the registered template:",
+    )
 
 
 def check_shape_weights(b, variances, max_sd: float) -> Check:
     """(c) The deformable registration's shape-mode weights within ``max_sd`` standard
     deviations of the template's cohort; value: the largest |b_k| / sqrt(variance_k)."""
     b = np.asarray(b, float).reshape(-1)
-    sd = np.sqrt(np.asarray(variances, float).reshape(-1)[:len(b)])
+    sd = np.sqrt(np.asarray(variances, float).reshape(-1)[: len(b)])
     z = np.abs(b) / sd
     k = int(np.argmax(z))
-    check = _judge("shape_weights", float(z[k]), max_sd, "SD", "<=",
-                   f"largest shape-mode weight (mode {k})")
+    check = _judge(
+        "shape_weights", float(z[k]), max_sd, "SD", "<=", f"largest shape-mode weight (mode {k})"
+    )
     return check
 
 
@@ -233,8 +316,9 @@ def check_translation_sd(covariance, max_sd: float) -> Check:
     6x6 pose covariance's translation block ([dtheta, dt] order)."""
     trace = float(np.trace(np.asarray(covariance, float).reshape(6, 6)[3:, 3:]))
     value = math.sqrt(max(0.0, trace)) if math.isfinite(trace) else math.inf
-    return _judge("translation_sd", value, max_sd, "m", "<=",
-                  "registration translation uncertainty")
+    return _judge(
+        "translation_sd", value, max_sd, "m", "<=", "registration translation uncertainty"
+    )
 
 
 def check_kidney_depth(p_BK, pivot_point, a0, min_depth: float, max_depth: float) -> Check:
@@ -244,11 +328,17 @@ def check_kidney_depth(p_BK, pivot_point, a0, min_depth: float, max_depth: float
     a = np.asarray(a0, float) / np.linalg.norm(a0)
     depth = float((np.asarray(p_BK, float) - np.asarray(pivot_point, float)) @ a)
     ok = min_depth <= depth <= max_depth
-    return Check("kidney_depth", depth, float(max_depth if depth > max_depth else min_depth),
-                 "m", "<=" if depth > max_depth else ">=", ok,
-                 f"registered kidney centre {depth * 1e3:.0f} mm below the probe face "
-                 f"({'' if ok else 'not '}within {min_depth * 1e3:.0f}-{max_depth * 1e3:.0f}"
-                 " mm)")
+    return Check(
+        "kidney_depth",
+        depth,
+        float(max_depth if depth > max_depth else min_depth),
+        "m",
+        "<=" if depth > max_depth else ">=",
+        ok,
+        f"registered kidney centre {depth * 1e3:.0f} mm below the probe face "
+        f"({'' if ok else 'not '}within {min_depth * 1e3:.0f}-{max_depth * 1e3:.0f}"
+        " mm)",
+    )
 
 
 def check_axis_direction(x_K_B, superior_B, max_angle: float) -> Check:
@@ -257,8 +347,14 @@ def check_axis_direction(x_K_B, superior_B, max_angle: float) -> Check:
     x = np.asarray(x_K_B, float) / np.linalg.norm(x_K_B)
     u = np.asarray(superior_B, float) / np.linalg.norm(superior_B)
     angle = math.degrees(math.atan2(np.linalg.norm(np.cross(x, u)), float(x @ u)))
-    return _judge("axis_direction", angle, math.degrees(max_angle), "deg", "<=",
-                  "registered long axis from the body's superior direction:")
+    return _judge(
+        "axis_direction",
+        angle,
+        math.degrees(max_angle),
+        "deg",
+        "<=",
+        "registered long axis from the body's superior direction:",
+    )
 
 
 # -------------------------------------------------------------------------- the scan
@@ -280,32 +376,51 @@ def JudgeScan(result, template) -> list[Check]:
     poses = [f.X_BP for f in frames]
     visible = [bool(f.visible) for f in frames]
     loc = result.localization.result if result.localization is not None else None
-    names = ("pole_offsets", "template_coverage", "rms_residual", "inlier_fraction",
-             "shape_weights", "translation_sd", "kidney_depth", "axis_direction")
+    names = (
+        "pole_offsets",
+        "template_coverage",
+        "rms_residual",
+        "inlier_fraction",
+        "shape_weights",
+        "translation_sd",
+        "kidney_depth",
+        "axis_direction",
+    )
     units = ("m", "fraction", "m", "fraction", "SD", "m", "m", "deg")
     rules = ("<=", ">=", "<=", ">=", "<=", "<=", ">=", "<=")
     if loc is None or result.registered_template_B is None:
-        why = ("a line sweep has no registration" if kind == "line" else
-               "the pivot pose was given (controller.pivot_pose), no registration"
-               if getattr(sc.controller, "pivot_pose", None) else "no registration")
+        why = (
+            "a line sweep has no registration"
+            if kind == "line"
+            else "the pivot pose was given (controller.pivot_pose), no registration"
+            if getattr(sc.controller, "pivot_pose", None)
+            else "no registration"
+        )
         return checks + [_na(n, u, r, why) for n, u, r in zip(names, units, rules)]
     geometry = ProbeGeometry.from_config(sc.imaging)
     surface = np.asarray(result.registered_template_B, float)
     if frames:
         min_points = max(1, math.ceil(cfg.view_min_fraction * len(surface) - 1e-9))
-        checks.append(check_pole_offsets(surface, poses, visible, geometry,
-                                         cfg.max_pole_offset, min_points))
-        checks.append(check_template_coverage(surface, poses, visible, geometry,
-                                              cfg.min_template_coverage))
+        checks.append(
+            check_pole_offsets(surface, poses, visible, geometry, cfg.max_pole_offset, min_points)
+        )
+        checks.append(
+            check_template_coverage(surface, poses, visible, geometry, cfg.min_template_coverage)
+        )
     else:
-        checks += [Check(n, None, None, u, r, False, "no sweep frames")
-                   for n, u, r in zip(names[:2], units[:2], rules[:2])]
+        checks += [
+            Check(n, None, None, u, r, False, "no sweep frames")
+            for n, u, r in zip(names[:2], units[:2], rules[:2])
+        ]
     lc = sc.localization
     b = loc.shape_coefficients
-    checks.append(check_rms_residual(
-        loc.rms_residual, lc.max_rms_residual_deformable if b is not None
-        else lc.max_rms_residual,
-        cfg.min_rms_residual_pixels * min(geometry.dx, geometry.dz)))
+    checks.append(
+        check_rms_residual(
+            loc.rms_residual,
+            lc.max_rms_residual_deformable if b is not None else lc.max_rms_residual,
+            cfg.min_rms_residual_pixels * min(geometry.dx, geometry.dz),
+        )
+    )
     checks.append(check_inlier_fraction(loc.inlier_fraction, lc.min_inlier_fraction))
     if b is not None and len(b) and template.variances is not None:
         checks.append(check_shape_weights(b, template.variances, cfg.max_shape_sd))
@@ -315,14 +430,21 @@ def JudgeScan(result, template) -> list[Check]:
     X_BK = loc.X_BK
     if frames:
         M0 = frames[0].X_BP.GetAsMatrix4()
-        checks.append(check_kidney_depth(X_BK.translation(), M0[:3, 3], M0[:3, 2],
-                                         cfg.min_kidney_depth, sc.imaging.depth))
+        checks.append(
+            check_kidney_depth(
+                X_BK.translation(), M0[:3, 3], M0[:3, 2], cfg.min_kidney_depth, sc.imaging.depth
+            )
+        )
     else:
         checks.append(Check("kidney_depth", None, None, "m", ">=", False, "no sweep frames"))
-    superior_B, _ = body_directions_B(sc.patient.X_BPt.GetDeterministicValue(),
-                                      sc.patient.side, sc.patient.posture)
-    checks.append(check_axis_direction(X_BK.rotation().matrix()[:, 0], superior_B,
-                                       math.radians(cfg.max_axis_angle_deg)))
+    superior_B, _ = body_directions_B(
+        sc.patient.X_BPt.GetDeterministicValue(), sc.patient.side, sc.patient.posture
+    )
+    checks.append(
+        check_axis_direction(
+            X_BK.rotation().matrix()[:, 0], superior_B, math.radians(cfg.max_axis_angle_deg)
+        )
+    )
     return checks
 
 

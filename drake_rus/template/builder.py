@@ -4,7 +4,8 @@ Per subject: kidney mask -> marching cubes surface -> canonical frame by PCA wit
 rules (eq. 13-14) -> surface expressed in its canonical frame -> farthest-point resampling.
 Across subjects: feature-based alignment to a reference, the subject of median size (FPFH +
 RANSAC, then point-to-plane ICP; Open3D, the pipeline of the seed's ref. [34]), kNN
-re-indexing so vertex j corresponds across subjects, mean shape (eq. 15). Two refinement passes re-align every subject to the
+re-indexing so vertex j corresponds across subjects, mean shape (eq. 15). Two refinement passes
+re-align every subject to the
 current mean (generalised Procrustes, rigid). The template is finally expressed in its own
 canonical frame. The corresponded shapes also give a statistical shape model: PCA, keeping
 the modes that explain 95% of the variance.
@@ -21,13 +22,25 @@ import numpy as np
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
-from drake_rus.anatomy.rasterize import mask_to_mesh
 from drake_rus.anatomy.canonical_frame import canonical_frame, mesh_canonical_frame
+from drake_rus.anatomy.rasterize import mask_to_mesh
 from drake_rus.io_utils import atomic_path
 
-__all__ = ["Subject", "subject_from_mask", "subject_from_mesh", "farthest_point_sampling",
-           "align_to_reference", "reference_subject", "correspond", "mean_shape", "shape_model",
-           "convergence", "build_template", "TemplateResult", "save_template"]
+__all__ = [
+    "Subject",
+    "subject_from_mask",
+    "subject_from_mesh",
+    "farthest_point_sampling",
+    "align_to_reference",
+    "reference_subject",
+    "correspond",
+    "mean_shape",
+    "shape_model",
+    "convergence",
+    "build_template",
+    "TemplateResult",
+    "save_template",
+]
 
 FORMAT_VERSION = 1
 
@@ -35,10 +48,11 @@ FORMAT_VERSION = 1
 @dataclass
 class Subject:
     """One kidney surface in its own canonical frame K_i (m)."""
+
     name: str
-    points: np.ndarray         # dense surface points (vertices of the MC mesh), (P, 3)
-    normals: np.ndarray        # outward unit normals, (P, 3)
-    X_SK: object = None        # canonical frame in the source frame S (RigidTransform)
+    points: np.ndarray  # dense surface points (vertices of the MC mesh), (P, 3)
+    normals: np.ndarray  # outward unit normals, (P, 3)
+    X_SK: object = None  # canonical frame in the source frame S (RigidTransform)
     volume: float = float("nan")
 
 
@@ -52,8 +66,15 @@ def subject_from_mesh(mesh, x_ref, y_ref, name: str = "subject") -> Subject:
     return Subject(name=name, points=pts, normals=nrm, X_SK=X_SK, volume=float(mesh.volume))
 
 
-def subject_from_mask(mask: np.ndarray, X_SV, voxel_size: float, x_ref, y_ref,
-                      name: str = "subject", sigma_vox: float = 1.0) -> Subject:
+def subject_from_mask(
+    mask: np.ndarray,
+    X_SV,
+    voxel_size: float,
+    x_ref,
+    y_ref,
+    name: str = "subject",
+    sigma_vox: float = 1.0,
+) -> Subject:
     """Marching cubes on a (lightly smoothed) kidney mask, then :func:`subject_from_mesh`."""
     mesh = mask_to_mesh(mask, X_SV, voxel_size, sigma_vox=sigma_vox, what=f"{name}: kidney mask")
     return subject_from_mesh(mesh, x_ref, y_ref, name)
@@ -77,6 +98,7 @@ def _open3d():
     """Open3D, imported on first use (about 1-3 s): the scan imports this package (through
     the template selection) without registering anything."""
     import open3d
+
     return open3d
 
 
@@ -92,9 +114,19 @@ def _rotation_angle(T: np.ndarray) -> float:
     return float(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1, 1)))
 
 
-def align_to_reference(src_pts, src_nrm, ref_pts, ref_nrm, *, feature_radius=0.012,
-                       max_corr=0.005, use_features=True, init=None, max_angle=np.radians(30),
-                       seed=0):
+def align_to_reference(
+    src_pts,
+    src_nrm,
+    ref_pts,
+    ref_nrm,
+    *,
+    feature_radius=0.012,
+    max_corr=0.005,
+    use_features=True,
+    init=None,
+    max_angle=np.radians(30),
+    seed=0,
+):
     """Rigid T (4x4) mapping the source cloud onto the reference: FPFH + RANSAC (global),
     then point-to-plane ICP. Because both clouds are already in canonical frames, a global
     result rotating more than ``max_angle`` is treated as a symmetric flip and replaced by
@@ -110,23 +142,42 @@ def align_to_reference(src_pts, src_nrm, ref_pts, ref_nrm, *, feature_radius=0.0
         f_src = reg.compute_fpfh_feature(src, param)
         f_ref = reg.compute_fpfh_feature(ref, param)
         result = reg.registration_ransac_based_on_feature_matching(
-            src, ref, f_src, f_ref, True, 2 * max_corr,
-            reg.TransformationEstimationPointToPoint(False), 3,
-            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
-             reg.CorrespondenceCheckerBasedOnDistance(2 * max_corr)],
-            reg.RANSACConvergenceCriteria(20000, 0.999))
+            src,
+            ref,
+            f_src,
+            f_ref,
+            True,
+            2 * max_corr,
+            reg.TransformationEstimationPointToPoint(False),
+            3,
+            [
+                reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+                reg.CorrespondenceCheckerBasedOnDistance(2 * max_corr),
+            ],
+            reg.RANSACConvergenceCriteria(20000, 0.999),
+        )
         T = np.asarray(result.transformation)
         if _rotation_angle(T) <= max_angle and np.linalg.norm(T[:3, 3]) < 0.03:
             T0 = T
             info["ransac"] = True
         else:
             info["ransac_rejected"] = True
-    icp = reg.registration_icp(src, ref, 2 * max_corr, T0,
-                               reg.TransformationEstimationPointToPlane(),
-                               reg.ICPConvergenceCriteria(max_iteration=60))
-    icp = reg.registration_icp(src, ref, max_corr, icp.transformation,
-                               reg.TransformationEstimationPointToPlane(),
-                               reg.ICPConvergenceCriteria(max_iteration=60))
+    icp = reg.registration_icp(
+        src,
+        ref,
+        2 * max_corr,
+        T0,
+        reg.TransformationEstimationPointToPlane(),
+        reg.ICPConvergenceCriteria(max_iteration=60),
+    )
+    icp = reg.registration_icp(
+        src,
+        ref,
+        max_corr,
+        icp.transformation,
+        reg.TransformationEstimationPointToPlane(),
+        reg.ICPConvergenceCriteria(max_iteration=60),
+    )
     info["fitness"] = float(icp.fitness)
     info["rmse"] = float(icp.inlier_rmse)
     return np.asarray(icp.transformation), info
@@ -157,7 +208,7 @@ def shape_model(aligned: np.ndarray, keep: float = 0.95):
     if n < 2:
         return mean, np.zeros((0,) + mean.shape), np.zeros(0), np.zeros(0)
     _, s, Vt = np.linalg.svd(X, full_matrices=False)
-    var = s ** 2 / (n - 1)
+    var = s**2 / (n - 1)
     frac = var / var.sum() if var.sum() > 0 else np.zeros_like(var)
     k = int(np.searchsorted(np.cumsum(frac), keep - 1e-12) + 1)
     k = min(k, len(var))
@@ -170,8 +221,9 @@ def convergence(aligned: np.ndarray) -> dict:
     a = np.asarray(aligned, dtype=float)
     n = len(a)
     running = np.cumsum(a, axis=0) / np.arange(1, n + 1)[:, None, None]
-    change = [float("nan")] + [float(np.linalg.norm(running[k] - running[k - 1], axis=1).mean())
-                               for k in range(1, n)]
+    change = [float("nan")] + [
+        float(np.linalg.norm(running[k] - running[k - 1], axis=1).mean()) for k in range(1, n)
+    ]
     to_final = [float(np.linalg.norm(running[k] - running[-1], axis=1).mean()) for k in range(n)]
     return {"n": list(range(1, n + 1)), "change": change, "to_final": to_final}
 
@@ -180,7 +232,7 @@ def convergence(aligned: np.ndarray) -> dict:
 class TemplateResult:
     points: np.ndarray
     normals: np.ndarray
-    aligned: np.ndarray            # (N, M, 3) corresponded shapes in the template frame
+    aligned: np.ndarray  # (N, M, 3) corresponded shapes in the template frame
     modes: np.ndarray
     variances: np.ndarray
     explained: np.ndarray
@@ -196,9 +248,15 @@ def reference_subject(subjects: list[Subject]) -> int:
     return int(np.argmin(np.linalg.norm((ext - med) / med, axis=1)))
 
 
-def build_template(subjects: list[Subject], n_points: int = 2500, refine_passes: int = 2,
-                   use_features: bool = True, seed: int = 0, progress: bool = True,
-                   keep_variance: float = 0.95) -> TemplateResult:
+def build_template(
+    subjects: list[Subject],
+    n_points: int = 2500,
+    refine_passes: int = 2,
+    use_features: bool = True,
+    seed: int = 0,
+    progress: bool = True,
+    keep_variance: float = 0.95,
+) -> TemplateResult:
     """The template pipeline on subjects already in their canonical frames (see module doc)."""
     if len(subjects) < 1:
         raise ValueError("build_template: no subjects")
@@ -216,10 +274,15 @@ def build_template(subjects: list[Subject], n_points: int = 2500, refine_passes:
     transforms = [np.eye(4) for _ in subjects]
     infos = [{} for _ in subjects]
     # Global feature-based alignment of every subject to the reference.
-    for i in tqdm([i for i in range(len(subjects)) if i != ref],
-                  desc="template: FPFH+RANSAC+ICP", disable=not progress, leave=False):
+    for i in tqdm(
+        [i for i in range(len(subjects)) if i != ref],
+        desc="template: FPFH+RANSAC+ICP",
+        disable=not progress,
+        leave=False,
+    ):
         transforms[i], infos[i] = align_to_reference(
-            fps[i][0], fps[i][1], ref_pts, ref_nrm, use_features=use_features, seed=seed + i)
+            fps[i][0], fps[i][1], ref_pts, ref_nrm, use_features=use_features, seed=seed + i
+        )
 
     def gather(ref):
         shapes, normals = [], []
@@ -238,8 +301,9 @@ def build_template(subjects: list[Subject], n_points: int = 2500, refine_passes:
         mean_n = normals.mean(axis=0)
         mean_n /= np.linalg.norm(mean_n, axis=1, keepdims=True)
         for i in range(len(subjects)):
-            T, _ = align_to_reference(fps[i][0], fps[i][1], mean, mean_n, use_features=False,
-                                      init=transforms[i])
+            T, _ = align_to_reference(
+                fps[i][0], fps[i][1], mean, mean_n, use_features=False, init=transforms[i]
+            )
             transforms[i] = T
         aligned, normals = gather(mean)
         mean = mean_shape(aligned)
@@ -256,20 +320,31 @@ def build_template(subjects: list[Subject], n_points: int = 2500, refine_passes:
     meta = {
         "format_version": FORMAT_VERSION,
         "equations": "seed II-D eq. 13-15",
-        "n_subjects": len(subjects), "n_points": int(len(mean)),
+        "n_subjects": len(subjects),
+        "n_points": int(len(mean)),
         "subjects": [s.name for s in subjects],
         "reference": subjects[ref].name,
         "volumes_ml": [round(s.volume * 1e6, 2) for s in subjects],
         "ransac_used": int(sum(1 for i in infos if i.get("ransac"))),
         "ransac_rejected": int(sum(1 for i in infos if i.get("ransac_rejected"))),
-        "refine_passes": refine_passes, "keep_variance": keep_variance,
-        "n_modes": int(len(var)), "explained": [float(f) for f in frac],
+        "refine_passes": refine_passes,
+        "keep_variance": keep_variance,
+        "n_modes": int(len(var)),
+        "explained": [float(f) for f in frac],
         "convergence": conv,
         "extent_mm": (np.ptp(mean, axis=0) * 1e3).round(2).tolist(),
         "build_seconds": round(time.time() - t0, 2),
     }
-    return TemplateResult(points=mean, normals=mean_n, aligned=aligned, modes=modes,
-                          variances=var, explained=frac, convergence=conv, meta=meta)
+    return TemplateResult(
+        points=mean,
+        normals=mean_n,
+        aligned=aligned,
+        modes=modes,
+        variances=var,
+        explained=frac,
+        convergence=conv,
+        meta=meta,
+    )
 
 
 def save_template(result: TemplateResult, path, extra_meta: dict | None = None) -> Path:
@@ -281,13 +356,19 @@ def save_template(result: TemplateResult, path, extra_meta: dict | None = None) 
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             np.savez_compressed(
-                f, points=result.points.astype(np.float64), normals=result.normals,
-                mean_shape=result.points, modes=result.modes, variances=result.variances,
-                explained=result.explained, aligned=result.aligned.astype(np.float32),
+                f,
+                points=result.points.astype(np.float64),
+                normals=result.normals,
+                mean_shape=result.points,
+                modes=result.modes,
+                variances=result.variances,
+                explained=result.explained,
+                aligned=result.aligned.astype(np.float32),
                 convergence_n=np.asarray(result.convergence["n"]),
                 convergence_change=np.asarray(result.convergence["change"]),
                 convergence_to_final=np.asarray(result.convergence["to_final"]),
-                metadata=np.asarray(json.dumps(meta)))
+                metadata=np.asarray(json.dumps(meta)),
+            )
     write_metadata_json(path, meta)
     return path
 

@@ -76,18 +76,38 @@ from drake_rus.template.builder import Subject, build_template, save_template, s
 from drake_rus.template.io import DEFAULT_TEMPLATE_PATH, load_template
 from drake_rus.template.population import template_cache_dir
 
-__all__ = ["CtKidney", "kidney_masks", "find_label_maps", "match_cases", "case_name_of",
-           "TUMOUR_POLICIES", "SIDES", "CtTemplateOptions", "survey_label_map",
-           "select_kidneys", "kidney_surface", "subject_from_ct_kidney", "ct_template",
-           "ct_template_path", "resolve_template", "is_template_spec", "split_warnings",
-           "TemplateSplitWarning", "canonical_kidney_points", "template_distance",
-           "principal_extents", "label_map_digest", "DEFAULT_CT_DIR", "DEFAULT_SUBJECTS",
-           "CtTemplateError"]
+__all__ = [
+    "CtKidney",
+    "kidney_masks",
+    "find_label_maps",
+    "match_cases",
+    "case_name_of",
+    "TUMOUR_POLICIES",
+    "SIDES",
+    "CtTemplateOptions",
+    "survey_label_map",
+    "select_kidneys",
+    "kidney_surface",
+    "subject_from_ct_kidney",
+    "ct_template",
+    "ct_template_path",
+    "resolve_template",
+    "is_template_spec",
+    "split_warnings",
+    "TemplateSplitWarning",
+    "canonical_kidney_points",
+    "template_distance",
+    "principal_extents",
+    "label_map_digest",
+    "DEFAULT_CT_DIR",
+    "DEFAULT_SUBJECTS",
+    "CtTemplateError",
+]
 
 DEFAULT_CT_DIR = REPO_ROOT.parent / "shared" / "anatomy" / "kits19"
-DEFAULT_SUBJECTS = 20            # the seed's N (II-D)
-DEFAULT_POINTS = 2500            # as the shipped template
-DEFAULT_VOXEL = 0.001            # 1 mm isotropic masks, as the shipped template
+DEFAULT_SUBJECTS = 20  # the seed's N (II-D)
+DEFAULT_POINTS = 2500  # as the shipped template
+DEFAULT_VOXEL = 0.001  # 1 mm isotropic masks, as the shipped template
 TUMOUR_POLICIES = ("exclude", "include", "mask")
 SIDES = ("right", "left", "both")
 # Connected label pieces smaller than this are not kidneys (segmentation fragments).
@@ -127,7 +147,9 @@ class CtKidney:
     anterior). ``kidney`` and ``tumour`` are boolean masks (I, J, K) on the voxel grid V:
     voxel (i, j, k) is centred at ``X_BdV * (i*sx, j*sy, k*sz)`` with ``spacing`` (sx, sy,
     sz) in m. ``cut``: why the kidney is cut by the field of view ("" when it is whole);
-    ``anomaly``: why it is not one normal kidney's shape ("" when it is). ``frame``: how the body frame was established (the source's own record)."""
+    ``anomaly``: why it is not one normal kidney's shape ("" when it is). ``frame``: how the body
+    frame was established (the source's own record)."""
+
     name: str
     case: str
     side: str
@@ -164,6 +186,7 @@ def kidney_masks(path) -> list[CtKidney]:
 def _read_label_map(path: Path):
     """(labels (I, J, K) uint8 in the file's storage order, spacing (3,) m)."""
     import SimpleITK as sitk
+
     if not path.is_file():
         raise ValueError(f"label map {path}: file not found")
     try:
@@ -173,14 +196,16 @@ def _read_label_map(path: Path):
         raise ValueError(f"label map {path}: cannot read it ({why})") from None
     if img.GetDimension() != 3 or img.GetNumberOfComponentsPerPixel() != 1:
         raise ValueError(f"label map {path}: expected a 3-D image of integer labels")
-    arr = sitk.GetArrayFromImage(img).transpose(2, 1, 0)       # (i, j, k): storage order
+    arr = sitk.GetArrayFromImage(img).transpose(2, 1, 0)  # (i, j, k): storage order
     if arr.dtype.kind not in "iu":
         if not np.all(np.isfinite(arr)) or np.any(arr != np.round(arr)):
             raise ValueError(f"label map {path}: voxel values are not integer labels")
     values = np.unique(arr[::4, ::4, ::4])
     if np.any((values < 0) | (values > 2)):
-        raise ValueError(f"label map {path}: expected labels 0 (background), 1 (kidney), 2 "
-                         f"(tumour), found {values[(values < 0) | (values > 2)][:5].tolist()}")
+        raise ValueError(
+            f"label map {path}: expected labels 0 (background), 1 (kidney), 2 "
+            f"(tumour), found {values[(values < 0) | (values > 2)][:5].tolist()}"
+        )
     spacing = np.array(img.GetSpacing(), dtype=float) / 1000.0
     if not np.all(np.isfinite(spacing) & (spacing > 0)):
         raise ValueError(f"label map {path}: voxel spacing {spacing * 1e3} mm is not positive")
@@ -192,7 +217,7 @@ def _hilum_direction(sub: np.ndarray, origin_ijk, spacing, centroid, v1) -> np.n
     its largest concavity (the convex hull minus the kidney, on a ~2 mm grid): the renal
     sinus opening, i.e. the hilum. Component along the long axis ``v1`` removed."""
     stride = np.maximum(1, np.round(0.002 / spacing)).astype(int)
-    g = sub[::stride[0], ::stride[1], ::stride[2]]
+    g = sub[:: stride[0], :: stride[1], :: stride[2]]
     if g.sum() < 10:
         return np.zeros(3)
     gi = np.indices(g.shape).reshape(3, -1).T
@@ -200,7 +225,7 @@ def _hilum_direction(sub: np.ndarray, origin_ijk, spacing, centroid, v1) -> np.n
     inside = g.ravel()
     try:
         hull = Delaunay(gp[inside][ConvexHull(gp[inside]).vertices])
-    except Exception:        # a flat or degenerate piece: no hilum cue
+    except Exception:  # a flat or degenerate piece: no hilum cue
         return np.zeros(3)
     deficit = ((hull.find_simplex(gp) >= 0) & ~inside).reshape(g.shape)
     lab, n = ndimage.label(deficit)
@@ -251,31 +276,36 @@ def _kits_frame(pieces, shape, spacing) -> tuple[np.ndarray, dict]:
         div = float(w @ [lat * p["v1"][2] for lat, p in zip(lateral, pieces)])
         # A concavity that does not face the other kidney is not the hilum (a tumour's
         # notch, a malrotated kidney): it does not vote.
-        w_hilum = w * np.array([float(-lat * p["hilum"][2] > 0)
-                                for lat, p in zip(lateral, pieces)])
+        w_hilum = w * np.array([float(-lat * p["hilum"][2] > 0) for lat, p in zip(lateral, pieces)])
     hilum_row = float(w_hilum @ [p["hilum"][1] for p in pieces])
-    cues = {"lower_pole_anterior": float(np.clip(-v1row / 0.15, -1, 1)),
-            "posterior_of_centre": float(np.clip(post / 0.02, -1, 1)),
-            "hilum_anterior": float(np.clip(-hilum_row / 0.3, -1, 1)),
-            "lower_poles_lateral": float(np.clip(div / 0.2, -1, 1))}
+    cues = {
+        "lower_pole_anterior": float(np.clip(-v1row / 0.15, -1, 1)),
+        "posterior_of_centre": float(np.clip(post / 0.02, -1, 1)),
+        "hilum_anterior": float(np.clip(-hilum_row / 0.3, -1, 1)),
+        "lower_poles_lateral": float(np.clip(div / 0.2, -1, 1)),
+    }
     scores = {}
     for s in (1, -1):
         for r in (1, -1):
-            scores[(s, r)] = (s * r * cues["lower_pole_anterior"]
-                              + r * (cues["posterior_of_centre"] + cues["hilum_anterior"])
-                              + 0.5 * s * cues["lower_poles_lateral"])
+            scores[(s, r)] = (
+                s * r * cues["lower_pole_anterior"]
+                + r * (cues["posterior_of_centre"] + cues["hilum_anterior"])
+                + 0.5 * s * cues["lower_poles_lateral"]
+            )
     ranked = sorted(scores, key=scores.get, reverse=True)
     s, r = ranked[0]
-    e_i = s * np.array([0.0, -1.0, 0.0])          # +slice: inferior when s = +1
-    e_j = r * np.array([0.0, 0.0, -1.0])          # +row: posterior when r = +1
+    e_i = s * np.array([0.0, -1.0, 0.0])  # +slice: inferior when s = +1
+    e_j = r * np.array([0.0, 0.0, -1.0])  # +row: posterior when r = +1
     R = np.column_stack([e_i, e_j, np.cross(e_i, e_j)])
-    record = {"method": "kits-layout adapter: array (slice, row, column); directions from "
-                        "anatomy (drake_rus.template.ct._kits_frame)",
-              "slice_axis": "inferior" if s > 0 else "superior",
-              "row_axis": "posterior" if r > 0 else "anterior",
-              "column_axis": "left" if s * r > 0 else "right",
-              "cues": {k: round(v, 3) for k, v in cues.items()},
-              "margin": round(float(scores[ranked[0]] - scores[ranked[1]]), 3)}
+    record = {
+        "method": "kits-layout adapter: array (slice, row, column); directions from "
+        "anatomy (drake_rus.template.ct._kits_frame)",
+        "slice_axis": "inferior" if s > 0 else "superior",
+        "row_axis": "posterior" if r > 0 else "anterior",
+        "column_axis": "left" if s * r > 0 else "right",
+        "cues": {k: round(v, 3) for k, v in cues.items()},
+        "margin": round(float(scores[ranked[0]] - scores[ranked[1]]), 3),
+    }
     return R, record
 
 
@@ -304,8 +334,10 @@ def _kits_layout_kidneys(path: Path) -> list[CtKidney]:
     sizes = np.array([np.count_nonzero(lab[o] == k + 1) for k, o in enumerate(objects)])
     order = [int(k) for k in np.argsort(sizes)[::-1][:2] if sizes[k] * voxel_ml >= MIN_KIDNEY_ML]
     if not order:
-        raise ValueError(f"label map {path}: no kidney of at least {MIN_KIDNEY_ML:g} ml "
-                         f"(largest labelled piece {sizes.max() * voxel_ml:.1f} ml)")
+        raise ValueError(
+            f"label map {path}: no kidney of at least {MIN_KIDNEY_ML:g} ml "
+            f"(largest labelled piece {sizes.max() * voxel_ml:.1f} ml)"
+        )
     pieces = []
     for k in order:
         o = objects[k]
@@ -316,16 +348,27 @@ def _kits_layout_kidneys(path: Path) -> list[CtKidney]:
         c = p.mean(axis=0)
         step = max(1, len(p) // 200_000)
         _, V = np.linalg.eigh(np.cov((p[::step] - c).T))
-        v1 = V[:, -1] * (np.sign(V[0, -1]) or 1.0)        # along +slice
+        v1 = V[:, -1] * (np.sign(V[0, -1]) or 1.0)  # along +slice
         stop = start + np.array(sub.shape)
         touches = [ax for ax in range(3) if start[ax] == 0 or stop[ax] == labels.shape[ax]]
         sub_labels = np.where(sub, crop[o], 0)
         n_tumour = int(np.count_nonzero(sub_labels == 2))
         lr_deg = float(np.degrees(np.arccos(min(1.0, abs(v1[2])))))
-        pieces.append({"k": k, "o": o, "sub": sub, "labels": sub_labels, "start": start,
-                       "centroid": c, "v1": v1, "tumour_fraction": n_tumour / len(p),
-                       "hilum": _hilum_direction(sub, start, spacing, c, v1),
-                       "touches": touches, "lr_deg": lr_deg})
+        pieces.append(
+            {
+                "k": k,
+                "o": o,
+                "sub": sub,
+                "labels": sub_labels,
+                "start": start,
+                "centroid": c,
+                "v1": v1,
+                "tumour_fraction": n_tumour / len(p),
+                "hilum": _hilum_direction(sub, start, spacing, c, v1),
+                "touches": touches,
+                "lr_deg": lr_deg,
+            }
+        )
     R, record = _kits_frame(pieces, labels.shape, spacing)
     x_Bd = [float(R[0] @ p["centroid"]) for p in pieces]
     if len(pieces) == 2:
@@ -335,23 +378,38 @@ def _kits_layout_kidneys(path: Path) -> list[CtKidney]:
     case = case_name_of(path)
     out = []
     for p, x in zip(pieces, x_Bd):
-        side = "left" if x > mid else "right"       # x_Bd points to the patient's left
+        side = "left" if x > mid else "right"  # x_Bd points to the patient's left
         axes = {0: "slice", 1: "row", 2: "column"}
         cut = ""
         if p["touches"]:
-            cut = ("touches the edge of the volume along the "
-                   + " and ".join(axes[a] for a in p["touches"]) + " axis")
+            cut = (
+                "touches the edge of the volume along the "
+                + " and ".join(axes[a] for a in p["touches"])
+                + " axis"
+            )
         anomaly = ""
         if p["lr_deg"] < MIN_LR_ANGLE_DEG:
-            anomaly = (f"long axis {p['lr_deg']:.0f} deg from the left-right axis (a kidney's "
-                       f"is at least {MIN_LR_ANGLE_DEG:g}): fused or horseshoe kidneys, or a "
-                       f"tumour larger than the kidney")
+            anomaly = (
+                f"long axis {p['lr_deg']:.0f} deg from the left-right axis (a kidney's "
+                f"is at least {MIN_LR_ANGLE_DEG:g}): fused or horseshoe kidneys, or a "
+                f"tumour larger than the kidney"
+            )
         X_BdV = RigidTransform(RotationMatrix(R), R @ (p["start"] * spacing))
-        out.append(CtKidney(name=f"{case}:{side}", case=case, side=side,
-                            kidney=p["labels"] == 1, tumour=p["labels"] == 2,
-                            spacing=tuple(float(s) for s in spacing), X_BdV=X_BdV, cut=cut,
-                            anomaly=anomaly, frame=record))
-    if len(out) == 2 and out[0].side == out[1].side:      # cannot happen with two pieces
+        out.append(
+            CtKidney(
+                name=f"{case}:{side}",
+                case=case,
+                side=side,
+                kidney=p["labels"] == 1,
+                tumour=p["labels"] == 2,
+                spacing=tuple(float(s) for s in spacing),
+                X_BdV=X_BdV,
+                cut=cut,
+                anomaly=anomaly,
+                frame=record,
+            )
+        )
+    if len(out) == 2 and out[0].side == out[1].side:  # cannot happen with two pieces
         raise ValueError(f"label map {path}: both kidneys on the {out[0].side} side")
     return out
 
@@ -388,8 +446,12 @@ def find_label_maps(ct_dir) -> list[tuple[str, Path]]:
             if f.is_file() and f.name.lower().endswith(LABEL_MAP_SUFFIXES):
                 found[case_name_of(f)] = f
     if not found:
-        raise CtTemplateError("folder", f"{d}: no label maps (expected DIR/case_*/"
-                              f"segmentation.nii.gz, or label map files in DIR)", "CT folder")
+        raise CtTemplateError(
+            "folder",
+            f"{d}: no label maps (expected DIR/case_*/"
+            f"segmentation.nii.gz, or label map files in DIR)",
+            "CT folder",
+        )
     return sorted(found.items())
 
 
@@ -403,8 +465,9 @@ def match_cases(names, spec) -> list[str]:
     ranges of them (``0-29``, ``5``, ``case_00005``), separated by commas or spaces; a list
     of such items also works. Raises CtTemplateError for an item that selects nothing
     or is malformed."""
-    items = spec if isinstance(spec, (list, tuple, set, frozenset)) else re.split(r"[,\s]+",
-                                                                                   str(spec))
+    items = (
+        spec if isinstance(spec, (list, tuple, set, frozenset)) else re.split(r"[,\s]+", str(spec))
+    )
     names = list(names)
     chosen = []
     for item in (str(i).strip() for i in items):
@@ -421,8 +484,9 @@ def match_cases(names, spec) -> list[str]:
         else:
             hit = [n for n in names if n == item or n == case_name_of(item)]
         if not hit and not re.fullmatch(r"[\w.\-]+", item):
-            raise CtTemplateError("cases", f"{item!r} is not a case name, number or range "
-                                  f"(e.g. case_00005, 5, 0-29)")
+            raise CtTemplateError(
+                "cases", f"{item!r} is not a case name, number or range (e.g. case_00005, 5, 0-29)"
+            )
         chosen.extend(h for h in hit if h not in chosen)
     return chosen
 
@@ -430,43 +494,59 @@ def match_cases(names, spec) -> list[str]:
 @dataclass(frozen=True)
 class CtTemplateOptions:
     """What a CT template is built from (with the cases): see the module doc."""
+
     n: int = DEFAULT_SUBJECTS
     side: str = "right"
     tumour_policy: str = "exclude"
     max_tumour_fraction: float = 0.0
     n_points: int = DEFAULT_POINTS
     voxel: float = DEFAULT_VOXEL
-    strict_n: bool = False          # True: fewer than n eligible kidneys is an error
+    strict_n: bool = False  # True: fewer than n eligible kidneys is an error
 
     def check(self) -> None:
         if int(self.n) < 1:
             raise CtTemplateError("n", f"expected at least 1 kidney, got {self.n}", "kidneys")
         if self.side not in SIDES:
-            raise CtTemplateError("side", f"expected one of {', '.join(SIDES)}, got "
-                                          f"{self.side!r}")
+            raise CtTemplateError("side", f"expected one of {', '.join(SIDES)}, got {self.side!r}")
         if self.tumour_policy not in TUMOUR_POLICIES:
-            raise CtTemplateError("tumour_policy", f"expected one of "
-                                  f"{', '.join(TUMOUR_POLICIES)}, got {self.tumour_policy!r}")
+            raise CtTemplateError(
+                "tumour_policy",
+                f"expected one of {', '.join(TUMOUR_POLICIES)}, got {self.tumour_policy!r}",
+            )
         if not 0.0 <= float(self.max_tumour_fraction) <= 1.0:
-            raise CtTemplateError("max_tumour_fraction",
-                                  f"expected 0-1, got {self.max_tumour_fraction}")
+            raise CtTemplateError(
+                "max_tumour_fraction", f"expected 0-1, got {self.max_tumour_fraction}"
+            )
         if int(self.n_points) < 100:
             raise CtTemplateError("points", f"expected at least 100, got {self.n_points}")
         if not 0.0002 <= float(self.voxel) <= 0.005:
             raise CtTemplateError("voxel", f"expected 0.2-5 mm, got {self.voxel * 1e3:g} mm")
 
     def key(self) -> dict:
-        return {"n": int(self.n), "side": self.side, "tumour_policy": self.tumour_policy,
-                "max_tumour_fraction": float(self.max_tumour_fraction)
-                if self.tumour_policy == "exclude" else None,
-                "n_points": int(self.n_points), "voxel": float(self.voxel)}
+        return {
+            "n": int(self.n),
+            "side": self.side,
+            "tumour_policy": self.tumour_policy,
+            "max_tumour_fraction": float(self.max_tumour_fraction)
+            if self.tumour_policy == "exclude"
+            else None,
+            "n_points": int(self.n_points),
+            "voxel": float(self.voxel),
+        }
 
 
 def _code_files() -> set:
     """The source files a CT template is made by: this module, the builder, the canonical
     frame's module and marching cubes' (found through the functions, wherever they live)."""
-    return {_source_file(f) for f in (subject_from_ct_kidney, build_template,
-                                      builder_module.mesh_canonical_frame, mask_to_mesh)}
+    return {
+        _source_file(f)
+        for f in (
+            subject_from_ct_kidney,
+            build_template,
+            builder_module.mesh_canonical_frame,
+            mask_to_mesh,
+        )
+    }
 
 
 @lru_cache(maxsize=4)
@@ -510,8 +590,9 @@ def survey_label_map(path, source: KidneySource = kidney_masks) -> dict:
     code (one small JSON file per label map in the template cache's ``ct-survey``)."""
     path = Path(path)
     digest = label_map_digest(path)
-    key = hashlib.sha256(json.dumps({"file": digest, **_code_key(_source_file(source))},
-                                    sort_keys=True).encode()).hexdigest()
+    key = hashlib.sha256(
+        json.dumps({"file": digest, **_code_key(_source_file(source))}, sort_keys=True).encode()
+    ).hexdigest()
     cache = template_cache_dir() / "ct-survey" / f"{key[:32]}.json"
     if cache.is_file():
         try:
@@ -523,10 +604,16 @@ def survey_label_map(path, source: KidneySource = kidney_masks) -> dict:
     doc = {"digest": digest, "case": case_name_of(path), "kidneys": []}
     try:
         for k in source(path):
-            doc["kidneys"].append({"side": k.side, "volume_ml": round(k.volume_ml, 2),
-                                   "tumour_fraction": round(k.tumour_fraction, 4),
-                                   "cut": k.cut, "anomaly": k.anomaly,
-                                   "frame": k.frame})
+            doc["kidneys"].append(
+                {
+                    "side": k.side,
+                    "volume_ml": round(k.volume_ml, 2),
+                    "tumour_fraction": round(k.tumour_fraction, 4),
+                    "cut": k.cut,
+                    "anomaly": k.anomaly,
+                    "frame": k.frame,
+                }
+            )
     except ValueError as e:
         doc["error"] = str(e)
     _write_json_atomic(cache, doc)
@@ -541,11 +628,15 @@ def _eligible(info: dict, opts: CtTemplateOptions) -> str:
         return info["anomaly"]
     margin = (info.get("frame") or {}).get("margin", np.inf)
     if margin < MIN_FRAME_MARGIN:
-        return (f"body frame uncertain (the anatomical cues' margin {margin:.2f} < "
-                f"{MIN_FRAME_MARGIN:g})")
+        return (
+            f"body frame uncertain (the anatomical cues' margin {margin:.2f} < "
+            f"{MIN_FRAME_MARGIN:g})"
+        )
     if opts.tumour_policy == "exclude" and info["tumour_fraction"] > opts.max_tumour_fraction:
-        return (f"tumour {100 * info['tumour_fraction']:.1f}% of the kidney (policy exclude, "
-                f"max {100 * opts.max_tumour_fraction:g}%)")
+        return (
+            f"tumour {100 * info['tumour_fraction']:.1f}% of the kidney (policy exclude, "
+            f"max {100 * opts.max_tumour_fraction:g}%)"
+        )
     return ""
 
 
@@ -571,18 +662,23 @@ def select_kidneys(pool, surveys: dict, opts: CtTemplateOptions):
             if why:
                 skipped.append({"case": case, "side": side, "why": why})
                 continue
-            selected.append({"case": case, "side": side, "path": str(path),
-                             "digest": doc["digest"],
-                             "tumour_fraction": info[0]["tumour_fraction"],
-                             "volume_ml": info[0]["volume_ml"]})
+            selected.append(
+                {
+                    "case": case,
+                    "side": side,
+                    "path": str(path),
+                    "digest": doc["digest"],
+                    "tumour_fraction": info[0]["tumour_fraction"],
+                    "volume_ml": info[0]["volume_ml"],
+                }
+            )
         if len(selected) >= opts.n:
             break
     return selected, skipped
 
 
 # ---------------------------------------------------------------- one kidney -> subject
-def kidney_surface(kidney: CtKidney, tumour_policy: str = "exclude",
-                   voxel: float = DEFAULT_VOXEL):
+def kidney_surface(kidney: CtKidney, tumour_policy: str = "exclude", voxel: float = DEFAULT_VOXEL):
     """The kidney's watertight surface in Bd (m): its mask (with the tumour, or without it
     for ``mask``) -> signed distance on the CT grid -> linear interpolation onto a ``voxel``
     isotropic grid (shape-based interpolation between thick slices) -> marching cubes."""
@@ -599,8 +695,9 @@ def kidney_surface(kidney: CtKidney, tumour_policy: str = "exclude",
     sp = np.asarray(kidney.spacing, dtype=float)
     pad = 2
     mp = np.pad(m, pad)
-    sdf = (ndimage.distance_transform_edt(~mp, sampling=sp)
-           - ndimage.distance_transform_edt(mp, sampling=sp))
+    sdf = ndimage.distance_transform_edt(~mp, sampling=sp) - ndimage.distance_transform_edt(
+        mp, sampling=sp
+    )
     extent = (np.array(mp.shape) - 1) * sp
     n_iso = np.floor(extent / voxel).astype(int) + 1
     axes = [np.arange(k) * voxel / s for k, s in zip(n_iso, sp)]
@@ -610,18 +707,28 @@ def kidney_surface(kidney: CtKidney, tumour_policy: str = "exclude",
     return mask_to_mesh(iso, X_BdIso, voxel, sigma_vox=1.0, what=f"{kidney.name}: kidney mask")
 
 
-def subject_from_ct_kidney(kidney: CtKidney, tumour_policy: str = "exclude",
-                           voxel: float = DEFAULT_VOXEL, mirror: bool = False) -> Subject:
+def subject_from_ct_kidney(
+    kidney: CtKidney,
+    tumour_policy: str = "exclude",
+    voxel: float = DEFAULT_VOXEL,
+    mirror: bool = False,
+) -> Subject:
     """A template subject (surface in its canonical frame, eq. 13-14 with x_ref the body's
     superior and y_ref the kidney's lateral direction); ``mirror``: reflected through the
     sagittal plane (z_k -> -z_k), a left kidney made a right one."""
     mesh = kidney_surface(kidney, tumour_policy, voxel)
-    s = subject_from_mesh(mesh, [0.0, 1.0, 0.0], lateral_direction_Bd(kidney.side),
-                          name=kidney.name)
+    s = subject_from_mesh(
+        mesh, [0.0, 1.0, 0.0], lateral_direction_Bd(kidney.side), name=kidney.name
+    )
     if mirror:
         flip = np.array([1.0, 1.0, -1.0])
-        s = Subject(name=f"{kidney.name} (mirrored)", points=s.points * flip,
-                    normals=s.normals * flip, X_SK=None, volume=s.volume)
+        s = Subject(
+            name=f"{kidney.name} (mirrored)",
+            points=s.points * flip,
+            normals=s.normals * flip,
+            X_SK=None,
+            volume=s.volume,
+        )
     return s
 
 
@@ -639,18 +746,22 @@ def _pool(maps, exclude, case_list) -> tuple[list, list]:
         if not order:
             raise CtTemplateError("case_list", f"selects none of the {len(names)} cases")
     else:
-        order = names[::-1]           # the last cases first: the first ones stay for testing
+        order = names[::-1]  # the last cases first: the first ones stay for testing
     return [(c, by_name[c]) for c in order if c not in excluded], excluded
 
 
 def _inputs(selected, opts, source) -> dict:
-    return {"format": FORMAT, "subjects": [(s["case"], s["side"], s["digest"])
-                                           for s in selected],
-            "options": opts.key(), **_code_key(_source_file(source))}
+    return {
+        "format": FORMAT,
+        "subjects": [(s["case"], s["side"], s["digest"]) for s in selected],
+        "options": opts.key(),
+        **_code_key(_source_file(source)),
+    }
 
 
-def ct_template_path(selected, opts: CtTemplateOptions,
-                     source: KidneySource = kidney_masks) -> Path:
+def ct_template_path(
+    selected, opts: CtTemplateOptions, source: KidneySource = kidney_masks
+) -> Path:
     """The cache file of a template built from ``selected`` kidneys with ``opts``."""
     doc = json.dumps(_inputs(selected, opts, source), sort_keys=True)
     return template_cache_dir() / f"ct-{hashlib.sha256(doc.encode()).hexdigest()[:24]}.npz"
@@ -662,14 +773,25 @@ def _refuse_models_dir(out: Path) -> None:
     except OSError:
         inside = False
     if inside or out.resolve() == DEFAULT_TEMPLATE_PATH.resolve():
-        raise CtTemplateError("out", f"{out} is in the repository's models/ folder; a template "
-                              f"from CT data (CC BY-NC-SA) is never shipped: write it to the "
-                              f"cache (the default) or elsewhere")
+        raise CtTemplateError(
+            "out",
+            f"{out} is in the repository's models/ folder; a template "
+            f"from CT data (CC BY-NC-SA) is never shipped: write it to the "
+            f"cache (the default) or elsewhere",
+        )
 
 
-def ct_template(ct_dir, opts: CtTemplateOptions | None = None, *, exclude=(), case_list=None,
-                out=None, progress: bool = False, source: KidneySource = kidney_masks,
-                log=None) -> Path:
+def ct_template(
+    ct_dir,
+    opts: CtTemplateOptions | None = None,
+    *,
+    exclude=(),
+    case_list=None,
+    out=None,
+    progress: bool = False,
+    source: KidneySource = kidney_masks,
+    log=None,
+) -> Path:
     """The template of the CT kidneys in ``ct_dir`` (see the module doc): from the cache when
     it was built before from the same kidneys, options and code, else built and stored
     (``out``: written there instead, never under models/). ``exclude``: cases never used
@@ -689,7 +811,7 @@ def ct_template(ct_dir, opts: CtTemplateOptions | None = None, *, exclude=(), ca
     pool, excluded = _pool(maps, exclude, case_list)
     t0 = time.time()
     surveys, selected, skipped = {}, [], []
-    for case, path in pool:          # survey only as far as the selection needs
+    for case, path in pool:  # survey only as far as the selection needs
         if case not in surveys:
             surveys[case] = survey_label_map(path, source)
         selected, skipped = select_kidneys([p for p in pool if p[0] in surveys], surveys, opts)
@@ -697,19 +819,26 @@ def ct_template(ct_dir, opts: CtTemplateOptions | None = None, *, exclude=(), ca
             break
     t_survey = time.time() - t0
     if not selected:
-        raise CtTemplateError("folder", f"{ct_dir}: no eligible kidney among {len(pool)} "
-                              f"cases ({_skip_summary(skipped)})", "CT folder")
+        raise CtTemplateError(
+            "folder",
+            f"{ct_dir}: no eligible kidney among {len(pool)} cases ({_skip_summary(skipped)})",
+            "CT folder",
+        )
     if len(selected) < opts.n:
-        msg = (f"{len(selected)} eligible {opts.side} kidneys of the {opts.n} asked for in "
-               f"{ct_dir} ({_skip_summary(skipped)})")
+        msg = (
+            f"{len(selected)} eligible {opts.side} kidneys of the {opts.n} asked for in "
+            f"{ct_dir} ({_skip_summary(skipped)})"
+        )
         if opts.strict_n:
             raise CtTemplateError("n", msg, "kidneys")
         warnings.warn(msg + f"; building from {len(selected)}", stacklevel=2)
     path = out if out is not None else ct_template_path(selected, opts, source)
     if out is None and path.is_file():
         return path
-    say(f"CT template: building from {len(selected)} kidneys of {ct_dir} (first use; "
-        f"cached in {path.parent}) ...")
+    say(
+        f"CT template: building from {len(selected)} kidneys of {ct_dir} (first use; "
+        f"cached in {path.parent}) ..."
+    )
     t1 = time.time()
     subjects, frames = [], []
     for s in selected:
@@ -722,8 +851,11 @@ def ct_template(ct_dir, opts: CtTemplateOptions | None = None, *, exclude=(), ca
             mirror = opts.side == "both" and k.side == "left"
             subjects.append(subject_from_ct_kidney(k, opts.tumour_policy, opts.voxel, mirror))
         except ValueError as e:
-            raise CtTemplateError("folder", f"{ct_dir}: kidney {name}: {e} (leave it out with "
-                                  f"--exclude-cases {s['case']})", "CT folder") from None
+            raise CtTemplateError(
+                "folder",
+                f"{ct_dir}: kidney {name}: {e} (leave it out with --exclude-cases {s['case']})",
+                "CT folder",
+            ) from None
         frames.append(k.frame)
         say(f"  {k.name}: {k.volume_ml:.0f} ml, tumour {100 * k.tumour_fraction:.1f}%")
     t2 = time.time()
@@ -731,26 +863,36 @@ def ct_template(ct_dir, opts: CtTemplateOptions | None = None, *, exclude=(), ca
     t3 = time.time()
     ext = np.array([np.ptp(s.points, axis=0) for s in subjects]) * 1e3
     extra = {
-        "split": f"ct:{ct_dir}", "source": "CT label maps (seed II-D on real kidneys; "
-                                           "drake_rus.template.ct)",
-        "ct_dir": str(ct_dir), "side": opts.side, "mirrored_left": opts.side == "both",
+        "split": f"ct:{ct_dir}",
+        "source": "CT label maps (seed II-D on real kidneys; drake_rus.template.ct)",
+        "ct_dir": str(ct_dir),
+        "side": opts.side,
+        "mirrored_left": opts.side == "both",
         "tumour_policy": opts.tumour_policy,
         "max_tumour_fraction": opts.max_tumour_fraction
-        if opts.tumour_policy == "exclude" else None,
-        "voxel_mm": opts.voxel * 1e3, "n_requested": int(opts.n),
+        if opts.tumour_policy == "exclude"
+        else None,
+        "voxel_mm": opts.voxel * 1e3,
+        "n_requested": int(opts.n),
         "cases": sorted({s["case"] for s in selected}),
-        "subjects_used": [{k: s[k] for k in ("case", "side", "digest", "tumour_fraction",
-                                              "volume_ml")} for s in selected],
-        "excluded_cases": excluded, "case_order": "case list" if case_list is not None
-        else "last case first",
+        "subjects_used": [
+            {k: s[k] for k in ("case", "side", "digest", "tumour_fraction", "volume_ml")}
+            for s in selected
+        ],
+        "excluded_cases": excluded,
+        "case_order": "case list" if case_list is not None else "last case first",
         "skipped": skipped,
-        "subject_extent_mm": {"mean": ext.mean(axis=0).round(2).tolist(),
-                              "sd": ext.std(axis=0, ddof=1).round(2).tolist()
-                              if len(ext) > 1 else [0.0, 0.0, 0.0]},
-        "frame": {"method": frames[0].get("method") if frames else None,
-                  "min_margin": min((f.get("margin", np.inf) for f in frames), default=None)},
+        "subject_extent_mm": {
+            "mean": ext.mean(axis=0).round(2).tolist(),
+            "sd": ext.std(axis=0, ddof=1).round(2).tolist() if len(ext) > 1 else [0.0, 0.0, 0.0],
+        },
+        "frame": {
+            "method": frames[0].get("method") if frames else None,
+            "min_margin": min((f.get("margin", np.inf) for f in frames), default=None),
+        },
         "licence": "derived from CC BY-NC-SA data: keep out of the repository",
-        "survey_seconds": round(t_survey, 2), "subject_seconds": round(t2 - t1, 2),
+        "survey_seconds": round(t_survey, 2),
+        "subject_seconds": round(t2 - t1, 2),
         "total_seconds": round(t3 - t0, 2),
     }
     try:
@@ -759,8 +901,10 @@ def ct_template(ct_dir, opts: CtTemplateOptions | None = None, *, exclude=(), ca
         if out is not None:
             raise
         tmp = Path(tempfile.mkdtemp(prefix="drake_rus_template_")) / path.name
-        print(f"warning: template cache {path.parent} not writable ({e}); using {tmp}",
-              file=sys.stderr)
+        print(
+            f"warning: template cache {path.parent} not writable ({e}); using {tmp}",
+            file=sys.stderr,
+        )
         save_template(result, tmp, extra)
         return tmp
     return path
@@ -786,8 +930,14 @@ def is_template_spec(value) -> bool:
     return isinstance(value, str) and _SPEC.fullmatch(value.strip()) is not None
 
 
-def resolve_template(spec, exclude_cases=(), *, opts: CtTemplateOptions | None = None,
-                     progress: bool = False, log=None) -> Path:
+def resolve_template(
+    spec,
+    exclude_cases=(),
+    *,
+    opts: CtTemplateOptions | None = None,
+    progress: bool = False,
+    log=None,
+) -> Path:
     """The template file that ``spec`` names, for scans, benchmarks and studies:
 
     - None, ``""`` or ``generated``: the shipped template of generated kidneys
@@ -829,14 +979,14 @@ def _exclusions(names, cases) -> list[str]:
     """Case names among ``names`` that ``cases`` (names, numbers, ranges, paths) selects;
     items that select nothing are ignored (a generated patient has no case)."""
     out = []
-    for c in ([cases] if isinstance(cases, (str, Path)) else list(cases or ())):
+    for c in [cases] if isinstance(cases, (str, Path)) else list(cases or ()):
         c = str(c)
         item = case_name_of(c) if ("/" in c or c.lower().endswith(LABEL_MAP_SUFFIXES)) else c
         try:
             hit = match_cases(names, [item])
         except CtTemplateError:
             hit = []
-        if not hit:                  # a patient spec naming a case folder: .../case_00012...
+        if not hit:  # a patient spec naming a case folder: .../case_00012...
             token = re.search(r"case_\d+", c)
             hit = [n for n in names if token and n == token.group(0)]
         out.extend(h for h in hit if h not in out)
@@ -864,7 +1014,7 @@ def split_warnings(template, cases) -> list[str]:
     names = {u["case"] for u in used}
     digests = {u["digest"]: u["case"] for u in used}
     out = []
-    for c in ([cases] if isinstance(cases, (str, Path)) else list(cases or ())):
+    for c in [cases] if isinstance(cases, (str, Path)) else list(cases or ()):
         c = str(c)
         hit = None
         p = Path(c).expanduser()
@@ -881,15 +1031,21 @@ def split_warnings(template, cases) -> list[str]:
             name = token.group(0) if token else c
             hit = name if name in names else None
         if hit is not None:
-            out.append(f"template {meta.get('ct_dir', '')}: case {hit} helped build it "
-                       f"(its subjects: {len(used)}); scoring {c} against it is not a test "
-                       f"on an unseen kidney")
+            out.append(
+                f"template {meta.get('ct_dir', '')}: case {hit} helped build it "
+                f"(its subjects: {len(used)}); scoring {c} against it is not a test "
+                f"on an unseen kidney"
+            )
     return out
 
 
 # ------------------------------------------------------------------------ measurements
-def canonical_kidney_points(kidney: CtKidney, tumour_policy: str = "include",
-                            voxel: float = DEFAULT_VOXEL, mirror: bool = False) -> np.ndarray:
+def canonical_kidney_points(
+    kidney: CtKidney,
+    tumour_policy: str = "include",
+    voxel: float = DEFAULT_VOXEL,
+    mirror: bool = False,
+) -> np.ndarray:
     """The kidney's surface points (marching-cubes vertices) in its canonical frame K (m)."""
     return subject_from_ct_kidney(kidney, tumour_policy, voxel, mirror).points
 
@@ -909,4 +1065,3 @@ def principal_extents(points: np.ndarray) -> np.ndarray:
     c = p.mean(axis=0)
     _, V = np.linalg.eigh(np.cov((p - c).T))
     return np.ptp((p - c) @ V[:, ::-1], axis=0)
-

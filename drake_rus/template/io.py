@@ -38,6 +38,7 @@ class Template:
     ``modes`` (k, M, 3) unit-norm shape modes with ``variances`` (k,) in m^2 (95% of the
     cohort's variance): a shape is ``points + sum_i b_i modes[i]``, b_i ~ N(0, variances[i]).
     """
+
     points: np.ndarray
     normals: np.ndarray
     modes: np.ndarray
@@ -49,7 +50,9 @@ class Template:
         """Template deformed by mode coefficients b (m), (M, 3)."""
         b = np.asarray(coefficients, dtype=float)
         if b.shape != (len(self.variances),):
-            raise ValueError(f"coefficients: expected shape ({len(self.variances)},), got {b.shape}")
+            raise ValueError(
+                f"coefficients: expected shape ({len(self.variances)},), got {b.shape}"
+            )
         return self.points + np.tensordot(b, self.modes, axes=1)
 
     def shape_sd(self, sds) -> np.ndarray:
@@ -70,16 +73,22 @@ def check_template_arrays(points, normals, modes, variances) -> str:
     less than the kidney's length (RMS); k = 0 (no modes) allowed."""
     points, normals = np.asarray(points), np.asarray(normals)
     modes, variances = np.asarray(modes), np.asarray(variances)
-    for name, a in (("points", points), ("normals", normals), ("modes", modes),
-                    ("variances", variances)):
+    for name, a in (
+        ("points", points),
+        ("normals", normals),
+        ("modes", modes),
+        ("variances", variances),
+    ):
         if not _numeric(a):
             return f"field '{name}': expected numbers, got an array of {a.dtype}"
     if points.ndim != 2 or points.shape[1] != 3:
         return f"field 'points': expected an (M, 3) array, got shape {points.shape}"
     m = len(points)
     if normals.shape != points.shape:
-        return (f"field 'normals': expected an (M, 3) array matching 'points' {points.shape}, "
-                f"got shape {normals.shape}")
+        return (
+            f"field 'normals': expected an (M, 3) array matching 'points' {points.shape}, "
+            f"got shape {normals.shape}"
+        )
     for name, a in (("points", points), ("normals", normals)):
         bad = ~np.all(np.isfinite(a), axis=1)
         if bad.any():
@@ -90,28 +99,35 @@ def check_template_arrays(points, normals, modes, variances) -> str:
     off = np.abs(norms - 1.0) > UNIT_TOLERANCE
     if off.any():
         worst = norms[off][np.argmax(np.abs(norms[off] - 1.0))]
-        return (f"field 'normals': {int(off.sum())} of {m} are not unit vectors (|n| = "
-                f"{worst:.3g}); expected |n| within {UNIT_TOLERANCE:g} of 1")
+        return (
+            f"field 'normals': {int(off.sum())} of {m} are not unit vectors (|n| = "
+            f"{worst:.3g}); expected |n| within {UNIT_TOLERANCE:g} of 1"
+        )
     p = points.astype(float)
     length = float(np.ptp(p[:, 0]))
     lo, hi = KIDNEY_LENGTH_RANGE
     if not lo <= length <= hi:
-        return (f"field 'points': long-axis (x_K) extent {length:.4g}; expected a kidney in "
-                f"metres, {lo:g}-{hi:g} m")
+        return (
+            f"field 'points': long-axis (x_K) extent {length:.4g}; expected a kidney in "
+            f"metres, {lo:g}-{hi:g} m"
+        )
     offset = float(np.linalg.norm(p.mean(axis=0)))
     if offset > MAX_CENTROID_OFFSET_FRACTION * length:
-        return (f"field 'points': the points' centroid is {offset * 1e3:.1f} mm from K's "
-                f"origin; expected the template centred on it (within "
-                f"{MAX_CENTROID_OFFSET_FRACTION * length * 1e3:.1f} mm)")
+        return (
+            f"field 'points': the points' centroid is {offset * 1e3:.1f} mm from K's "
+            f"origin; expected the template centred on it (within "
+            f"{MAX_CENTROID_OFFSET_FRACTION * length * 1e3:.1f} mm)"
+        )
     if modes.size == 0 and variances.size == 0:
         return ""
     if modes.ndim != 3 or modes.shape[1:] != points.shape:
-        return (f"field 'modes': expected a (k, M, 3) array with M = {m}, got shape "
-                f"{modes.shape}")
+        return f"field 'modes': expected a (k, M, 3) array with M = {m}, got shape {modes.shape}"
     k = len(modes)
     if variances.shape != (k,):
-        return (f"field 'variances': expected one variance per mode, shape ({k},), got "
-                f"{variances.shape}")
+        return (
+            f"field 'variances': expected one variance per mode, shape ({k},), got "
+            f"{variances.shape}"
+        )
     bad = ~np.all(np.isfinite(modes.reshape(k, -1)), axis=1)
     if bad.any():
         return f"field 'modes': {int(bad.sum())} of {k} modes contain NaN or inf"
@@ -119,20 +135,26 @@ def check_template_arrays(points, normals, modes, variances) -> str:
     off = np.abs(mode_norms - 1.0) > UNIT_TOLERANCE
     if off.any():
         i = int(np.flatnonzero(off)[0])
-        return (f"field 'modes': {int(off.sum())} of {k} are not unit-norm (mode {i}: "
-                f"{mode_norms[i]:.3g}); expected norm within {UNIT_TOLERANCE:g} of 1")
+        return (
+            f"field 'modes': {int(off.sum())} of {k} are not unit-norm (mode {i}: "
+            f"{mode_norms[i]:.3g}); expected norm within {UNIT_TOLERANCE:g} of 1"
+        )
     v = variances.astype(float)
     bad = ~(np.isfinite(v) & (v > 0))
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
-        return (f"field 'variances': {int(bad.sum())} of {k} are not positive finite numbers "
-                f"(variance {i}: {v[i]:g}); expected m^2 > 0")
+        return (
+            f"field 'variances': {int(bad.sum())} of {k} are not positive finite numbers "
+            f"(variance {i}: {v[i]:g}); expected m^2 > 0"
+        )
     rms = np.sqrt(v / m)
     if np.any(rms > length):
         i = int(np.argmax(rms))
-        return (f"field 'variances': one standard deviation of mode {i} moves the points by "
-                f"{rms[i]:.3g} m RMS, more than the kidney's length ({length:.3g} m); expected "
-                f"m^2")
+        return (
+            f"field 'variances': one standard deviation of mode {i} moves the points by "
+            f"{rms[i]:.3g} m RMS, more than the kidney's length ({length:.3g} m); expected "
+            f"m^2"
+        )
     return ""
 
 
@@ -141,7 +163,8 @@ def load_template(path=None) -> Template:
     path = Path(path) if path is not None else DEFAULT_TEMPLATE_PATH
     if not path.is_file():
         raise FileNotFoundError(
-            f"kidney template not found: {path} (build it: drake-rus template build)")
+            f"kidney template not found: {path} (build it: drake-rus template build)"
+        )
     try:
         with np.load(path, allow_pickle=False) as z:
             missing = [k for k in _REQUIRED if k not in z.files]
@@ -156,15 +179,24 @@ def load_template(path=None) -> Template:
         meta = json.loads(str(data["metadata"]))
     except json.JSONDecodeError as e:
         raise ValueError(f"kidney template {path}: 'metadata' is not valid JSON ({e})") from None
-    problem = check_template_arrays(data["points"], data["normals"], data["modes"],
-                                    data["variances"])
+    problem = check_template_arrays(
+        data["points"], data["normals"], data["modes"], data["variances"]
+    )
     if problem:
         raise ValueError(f"kidney template {path}: {problem}")
     pts, nrm = data["points"].astype(float), data["normals"].astype(float)
     conv = {}
     if "convergence_n" in data:
-        conv = {"n": data["convergence_n"].tolist(), "change": data["convergence_change"].tolist(),
-                "to_final": data["convergence_to_final"].tolist()}
-    return Template(points=pts, normals=nrm, modes=data["modes"].astype(float),
-                    variances=data["variances"].astype(float),
-                    meta=meta, convergence=conv)
+        conv = {
+            "n": data["convergence_n"].tolist(),
+            "change": data["convergence_change"].tolist(),
+            "to_final": data["convergence_to_final"].tolist(),
+        }
+    return Template(
+        points=pts,
+        normals=nrm,
+        modes=data["modes"].astype(float),
+        variances=data["variances"].astype(float),
+        meta=meta,
+        convergence=conv,
+    )

@@ -49,9 +49,18 @@ from drake_rus.anatomy.cache import CACHE_DIR_ENV, library_versions, user_cache_
 from drake_rus.anatomy.kidney_shape import KidneyShape, sample_kidney_shape_params
 from drake_rus.template.builder import build_template, save_template, subject_from_mask
 
-__all__ = ["Population", "POPULATIONS", "POPULATION_OFFSET", "GLODNY_LENGTH_SD",
-           "parse_population", "population_shape_params", "population_subjects",
-           "template_cache_dir", "population_template_path", "population_template"]
+__all__ = [
+    "Population",
+    "POPULATIONS",
+    "POPULATION_OFFSET",
+    "GLODNY_LENGTH_SD",
+    "parse_population",
+    "population_shape_params",
+    "population_subjects",
+    "template_cache_dir",
+    "population_template_path",
+    "population_template",
+]
 
 # Seeds of population subjects: beyond train (1e6+K) and test (2e6+K).
 POPULATION_OFFSET = 3_000_000
@@ -62,20 +71,24 @@ THICKNESS_SD = 0.0035
 # The sampler's allometry: width and thickness change per unit of length.
 WIDTH_PER_LENGTH = 0.08
 THICKNESS_PER_LENGTH = 0.03
-DEFAULT_SUBJECTS = 20          # the seed paper's N (II-D)
-DEFAULT_POINTS = 2500          # as the repository's template
-DEFAULT_VOXEL = 0.001          # 1 mm masks, as the repository's template
+DEFAULT_SUBJECTS = 20  # the seed paper's N (II-D)
+DEFAULT_POINTS = 2500  # as the repository's template
+DEFAULT_VOXEL = 0.001  # 1 mm masks, as the repository's template
 _HERE = Path(__file__).resolve().parent
-_CODE_FILES = (_HERE / "population.py", _HERE / "builder.py",
-               _HERE.parent / "anatomy" / "canonical_frame.py",
-               _HERE.parent / "anatomy" / "kidney_shape.py",
-               _HERE.parent / "anatomy" / "rasterize.py")
+_CODE_FILES = (
+    _HERE / "population.py",
+    _HERE / "builder.py",
+    _HERE.parent / "anatomy" / "canonical_frame.py",
+    _HERE.parent / "anatomy" / "kidney_shape.py",
+    _HERE.parent / "anatomy" / "rasterize.py",
+)
 _LIBRARIES = ("numpy", "scipy", "open3d", "scikit-image", "trimesh")
 
 
 @dataclasses.dataclass(frozen=True)
 class Population:
     """A kidney population: the generator's sampler with shifted statistics (in SDs)."""
+
     name: str
     length_shift_sd: float = 0.0
     width_shift_sd: float = 0.0
@@ -88,17 +101,29 @@ class Population:
 
 
 POPULATIONS = {
-    "base": Population("base", description="other people from the same statistics (Glodny "
-                                           "2009 length 108.5 +- 12.2 mm): sampling only"),
-    "short": Population("short", length_shift_sd=-1.0,
-                        description="kidney length 1 SD (12.2 mm) shorter than Glodny 2009, "
-                                    "mean 96.3 mm; width/thickness by the allometry"),
-    "long": Population("long", length_shift_sd=+1.0,
-                       description="kidney length 1 SD (12.2 mm) longer than Glodny 2009, "
-                                   "mean 120.7 mm; width/thickness by the allometry"),
-    "slim": Population("slim", width_shift_sd=-1.0, thickness_shift_sd=-1.0,
-                       description="width 4.5 mm and thickness 3.5 mm (1 SD each) smaller "
-                                   "at the published length"),
+    "base": Population(
+        "base",
+        description="other people from the same statistics (Glodny "
+        "2009 length 108.5 +- 12.2 mm): sampling only",
+    ),
+    "short": Population(
+        "short",
+        length_shift_sd=-1.0,
+        description="kidney length 1 SD (12.2 mm) shorter than Glodny 2009, "
+        "mean 96.3 mm; width/thickness by the allometry",
+    ),
+    "long": Population(
+        "long",
+        length_shift_sd=+1.0,
+        description="kidney length 1 SD (12.2 mm) longer than Glodny 2009, "
+        "mean 120.7 mm; width/thickness by the allometry",
+    ),
+    "slim": Population(
+        "slim",
+        width_shift_sd=-1.0,
+        thickness_shift_sd=-1.0,
+        description="width 4.5 mm and thickness 3.5 mm (1 SD each) smaller at the published length",
+    ),
 }
 _CUSTOM = re.compile(r"length([+-]\d+(\.\d+)?)sd")
 
@@ -113,10 +138,13 @@ def parse_population(name: str) -> Population:
     if m:
         x = float(m.group(1))
         if 0 < abs(x) <= 3:
-            return Population(name, length_shift_sd=x,
-                              description=f"kidney length {x:+g} SD of Glodny 2009")
-    raise ValueError(f"population: expected one of {', '.join(POPULATIONS)} or length+Xsd / "
-                     f"length-Xsd (X up to 3), got {name!r}")
+            return Population(
+                name, length_shift_sd=x, description=f"kidney length {x:+g} SD of Glodny 2009"
+            )
+    raise ValueError(
+        f"population: expected one of {', '.join(POPULATIONS)} or length+Xsd / "
+        f"length-Xsd (X up to 3), got {name!r}"
+    )
 
 
 def population_shape_params(population: Population, k: int, side: str = "right"):
@@ -127,12 +155,15 @@ def population_shape_params(population: Population, k: int, side: str = "right")
     dl = population.length_shift(side)
     p.length = float(p.length + dl)
     p.width = float(p.width + WIDTH_PER_LENGTH * dl + population.width_shift_sd * WIDTH_SD)
-    p.thickness = float(p.thickness + THICKNESS_PER_LENGTH * dl
-                        + population.thickness_shift_sd * THICKNESS_SD)
+    p.thickness = float(
+        p.thickness + THICKNESS_PER_LENGTH * dl + population.thickness_shift_sd * THICKNESS_SD
+    )
     if not (p.length > 0.05 and p.width > p.thickness > 0.015):
-        raise ValueError(f"population {population.name}: subject {k} has an impossible kidney "
-                         f"({p.length * 1e3:.1f} x {p.width * 1e3:.1f} x "
-                         f"{p.thickness * 1e3:.1f} mm)")
+        raise ValueError(
+            f"population {population.name}: subject {k} has an impossible kidney "
+            f"({p.length * 1e3:.1f} x {p.width * 1e3:.1f} x "
+            f"{p.thickness * 1e3:.1f} mm)"
+        )
     return p
 
 
@@ -146,8 +177,12 @@ def _shape_mask(shape: KidneyShape, voxel: float):
     return mask, RigidTransform(lo)
 
 
-def population_subjects(population: Population, n: int = DEFAULT_SUBJECTS,
-                        side: str = "right", voxel: float = DEFAULT_VOXEL) -> list:
+def population_subjects(
+    population: Population,
+    n: int = DEFAULT_SUBJECTS,
+    side: str = "right",
+    voxel: float = DEFAULT_VOXEL,
+) -> list:
     """The population's template subjects: per kidney a ``voxel`` mask (like a CT
     segmentation), marching cubes, canonical frame (eq. 13-14; x_ref = the shape's long axis
     towards the superior pole, y_ref = medial -> lateral, as in the generator)."""
@@ -155,8 +190,14 @@ def population_subjects(population: Population, n: int = DEFAULT_SUBJECTS,
     for k in range(int(n)):
         shape = KidneyShape(population_shape_params(population, k, side))
         mask, X_LV = _shape_mask(shape, voxel)
-        s = subject_from_mask(mask, X_LV, voxel, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0],
-                              name=f"population:{population.name}:{k}")
+        s = subject_from_mask(
+            mask,
+            X_LV,
+            voxel,
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0],
+            name=f"population:{population.name}:{k}",
+        )
         subjects.append(s)
     return subjects
 
@@ -179,13 +220,25 @@ def _code_and_libraries() -> dict:
 
 
 def _inputs(population: Population, n: int, side: str, n_points: int, voxel: float) -> dict:
-    return {"format": 1, "population": dataclasses.asdict(population) | {"description": ""},
-            "n": int(n), "side": side, "n_points": int(n_points), "voxel": float(voxel),
-            "seed_offset": POPULATION_OFFSET, **_code_and_libraries()}
+    return {
+        "format": 1,
+        "population": dataclasses.asdict(population) | {"description": ""},
+        "n": int(n),
+        "side": side,
+        "n_points": int(n_points),
+        "voxel": float(voxel),
+        "seed_offset": POPULATION_OFFSET,
+        **_code_and_libraries(),
+    }
 
 
-def population_template_path(population, n: int = DEFAULT_SUBJECTS, side: str = "right",
-                             n_points: int = DEFAULT_POINTS, voxel: float = DEFAULT_VOXEL) -> Path:
+def population_template_path(
+    population,
+    n: int = DEFAULT_SUBJECTS,
+    side: str = "right",
+    n_points: int = DEFAULT_POINTS,
+    voxel: float = DEFAULT_VOXEL,
+) -> Path:
     """Where the cached template of ``population`` (a name or :class:`Population`) lives."""
     pop = parse_population(population) if isinstance(population, str) else population
     doc = json.dumps(_inputs(pop, n, side, n_points, voxel), sort_keys=True)
@@ -193,9 +246,15 @@ def population_template_path(population, n: int = DEFAULT_SUBJECTS, side: str = 
     return template_cache_dir() / f"population-{pop.name}-{digest[:24]}.npz"
 
 
-def population_template(population, n: int = DEFAULT_SUBJECTS, side: str = "right",
-                        n_points: int = DEFAULT_POINTS, voxel: float = DEFAULT_VOXEL,
-                        out=None, progress: bool = False) -> Path:
+def population_template(
+    population,
+    n: int = DEFAULT_SUBJECTS,
+    side: str = "right",
+    n_points: int = DEFAULT_POINTS,
+    voxel: float = DEFAULT_VOXEL,
+    out=None,
+    progress: bool = False,
+) -> Path:
     """The template file of ``population`` (a name or :class:`Population`): from the cache
     when it was built before with the same inputs and code, else built (about 0.5 s per
     subject plus the registration; docs/studies.md) and stored. ``out``: write it there instead
@@ -203,8 +262,7 @@ def population_template(population, n: int = DEFAULT_SUBJECTS, side: str = "righ
     pop = parse_population(population) if isinstance(population, str) else population
     if int(n) < 1:
         raise ValueError(f"population template: expected at least 1 subject, got {n}")
-    path = Path(out) if out is not None else population_template_path(pop, n, side, n_points,
-                                                                       voxel)
+    path = Path(out) if out is not None else population_template_path(pop, n, side, n_points, voxel)
     if out is None and path.is_file():
         return path
     t0 = time.time()
@@ -213,15 +271,21 @@ def population_template(population, n: int = DEFAULT_SUBJECTS, side: str = "righ
     result = build_template(subjects, n_points=n_points, progress=progress)
     t2 = time.time()
     lengths = [population_shape_params(pop, k, side).length for k in range(int(n))]
-    extra = {"split": f"population:{pop.name}", "side": side, "voxel_mm": voxel * 1e3,
-             "population": dataclasses.asdict(pop),
-             "sampled_length_mm": {"mean": round(float(np.mean(lengths)) * 1e3, 2),
-                                   "sd": round(float(np.std(lengths, ddof=1)) * 1e3, 2)
-                                   if len(lengths) > 1 else 0.0},
-             "seeds": [POPULATION_OFFSET, POPULATION_OFFSET + int(n) - 1],
-             "subject_seconds": round(t1 - t0, 2), "total_seconds": round(t2 - t0, 2),
-             "source": "drake-rus kidney-shape sampler with shifted statistics "
-                       "(drake_rus.template.population)"}
+    extra = {
+        "split": f"population:{pop.name}",
+        "side": side,
+        "voxel_mm": voxel * 1e3,
+        "population": dataclasses.asdict(pop),
+        "sampled_length_mm": {
+            "mean": round(float(np.mean(lengths)) * 1e3, 2),
+            "sd": round(float(np.std(lengths, ddof=1)) * 1e3, 2) if len(lengths) > 1 else 0.0,
+        },
+        "seeds": [POPULATION_OFFSET, POPULATION_OFFSET + int(n) - 1],
+        "subject_seconds": round(t1 - t0, 2),
+        "total_seconds": round(t2 - t0, 2),
+        "source": "drake-rus kidney-shape sampler with shifted statistics "
+        "(drake_rus.template.population)",
+    }
     try:
         save_template(result, path, extra)
     except OSError as e:
@@ -230,9 +294,12 @@ def population_template(population, n: int = DEFAULT_SUBJECTS, side: str = "righ
         # A cache folder that cannot be written: keep the template in a temporary file.
         import sys
         import tempfile
+
         tmp = Path(tempfile.mkdtemp(prefix="drake_rus_template_")) / path.name
-        print(f"warning: template cache {path.parent} not writable ({e}); using {tmp}",
-              file=sys.stderr)
+        print(
+            f"warning: template cache {path.parent} not writable ({e}); using {tmp}",
+            file=sys.stderr,
+        )
         save_template(result, tmp, extra)
         return tmp
     return path

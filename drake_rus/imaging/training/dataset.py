@@ -46,15 +46,16 @@ from drake_rus.imaging.slicing import sample_labels, slice_volume
 @dataclass
 class ViewSampler:
     """Samples probe poses X_VP (in the volume's grid frame V) that look at the kidney."""
+
     volume: LabelVolume
-    approach_V: np.ndarray            # unit vector from the kidney towards the skin, in V
+    approach_V: np.ndarray  # unit vector from the kidney towards the skin, in V
     tilt_deg: float = 25.0
-    lateral_jitter: float = 0.025     # m
-    far_fraction: float = 0.15        # share of views offset up to far_jitter (may miss)
-    far_jitter: float = 0.07          # m
-    indent: float = 0.004             # m, face pressed into the skin
-    max_depth: float = 0.16           # m, give up if no skin within this distance
-    free_fraction: float = 0.0        # share of views aimed free_offset away (kidney-free)
+    lateral_jitter: float = 0.025  # m
+    far_fraction: float = 0.15  # share of views offset up to far_jitter (may miss)
+    far_jitter: float = 0.07  # m
+    indent: float = 0.004  # m, face pressed into the skin
+    max_depth: float = 0.16  # m, give up if no skin within this distance
+    free_fraction: float = 0.0  # share of views aimed free_offset away (kidney-free)
     free_offset: tuple = (0.08, 0.16)  # m, range of that offset across the beam
     targets_V: np.ndarray | None = field(default=None, repr=False)  # (N, 3) aim points in V
 
@@ -105,8 +106,9 @@ class ViewSampler:
                 if sample_labels(self.volume, target[None])[0] == Label.OUTSIDE:
                     continue
             else:
-                jitter = (self.far_jitter if rng.random() < self.far_fraction
-                          else self.lateral_jitter)
+                jitter = (
+                    self.far_jitter if rng.random() < self.far_fraction else self.lateral_jitter
+                )
                 target = target + rng.uniform(0, jitter) * w
             skin = self._skin_along(target, u)
             if skin is None:
@@ -120,9 +122,18 @@ class ViewSampler:
         return None
 
 
-def make_frames(volume: LabelVolume, approach_V: np.ndarray, model: EmulatorModel, n: int,
-                rng: np.random.Generator, seed: int = 0, first_index: int = 0,
-                planes: int = 1, combine: str = "majority", sampler: ViewSampler | None = None):
+def make_frames(
+    volume: LabelVolume,
+    approach_V: np.ndarray,
+    model: EmulatorModel,
+    n: int,
+    rng: np.random.Generator,
+    seed: int = 0,
+    first_index: int = 0,
+    planes: int = 1,
+    combine: str = "majority",
+    sampler: ViewSampler | None = None,
+):
     """``n`` (emulated image uint8, kidney mask bool, label image uint8, X_VP) tuples
     (``sampler``: default ``ViewSampler(volume, approach_V)``)."""
     sampler = sampler or ViewSampler(volume, approach_V)
@@ -148,8 +159,9 @@ def make_frames(volume: LabelVolume, approach_V: np.ndarray, model: EmulatorMode
 _WALL = (Label.OUTSIDE, Label.FAT, Label.MUSCLE, Label.BONE)
 
 
-def thicken_wall(volume: LabelVolume, up_V, fat: float = 0.0, inner: float = 0.0,
-                 chunk: int = 8192) -> LabelVolume:
+def thicken_wall(
+    volume: LabelVolume, up_V, fat: float = 0.0, inner: float = 0.0, chunk: int = 8192
+) -> LabelVolume:
     """The volume with a thicker wall under the upper skin (``up_V``, a grid axis within
     18 deg): ``fat`` (m) more subcutaneous fat on top of every column of voxels along up,
     and ``inner`` (m) more soft tissue between the wall (fat, muscle, bone) and what lies
@@ -174,17 +186,17 @@ def thicken_wall(volume: LabelVolume, up_V, fat: float = 0.0, inner: float = 0.0
     if not positive:
         L = L[..., ::-1]
     shape = L.shape
-    cols = L.reshape(-1, shape[-1])           # bottom first: index grows towards the skin
+    cols = L.reshape(-1, shape[-1])  # bottom first: index grows towards the skin
     Z, T = shape[-1], tf + ti
     out = np.empty((cols.shape[0], Z + T), volume.labels.dtype)
     o = np.arange(Z + T)[None, :]
     wall_lut = np.zeros(256, bool)
     wall_lut[list(_WALL)] = True
     for a in range(0, cols.shape[0], chunk):
-        u = cols[a:a + chunk]
+        u = cols[a : a + chunk]
         tissue = u != Label.OUTSIDE
         has = tissue.any(axis=1)
-        top = Z - 1 - np.argmax(tissue[:, ::-1], axis=1)        # topmost tissue voxel
+        top = Z - 1 - np.argmax(tissue[:, ::-1], axis=1)  # topmost tissue voxel
         inside = ~wall_lut[u]
         has_in = inside.any(axis=1)
         hc = np.where(has_in, Z - np.argmax(inside[:, ::-1], axis=1), 0)[:, None]
@@ -198,7 +210,7 @@ def thicken_wall(volume: LabelVolume, up_V, fat: float = 0.0, inner: float = 0.0
         fat_zone = above & (o <= top + ti + tf) & has[:, None]
         col = np.where(above, int(Label.OUTSIDE), col)
         col = np.where(fat_zone, int(Label.FAT), col)
-        out[a:a + chunk] = col
+        out[a : a + chunk] = col
     out = out.reshape(shape[:-1] + (Z + T,))
     if not positive:
         out = out[..., ::-1]
@@ -215,52 +227,72 @@ def thicken_wall(volume: LabelVolume, up_V, fat: float = 0.0, inner: float = 0.0
 @dataclass(frozen=True)
 class Randomisation:
     """Ranges of the per-frame domain randomisation (uniform unless said otherwise)."""
-    gain_db: tuple = (-18.0, -6.0)              # scenario default -12
+
+    gain_db: tuple = (-18.0, -6.0)  # scenario default -12
     # TGC slope: the default 0.7 dB/cm/MHz, changed by this many dB at the image's bottom (a
     # fixed range in dB whatever the depth and frequency, like the TGC sliders of a scanner).
     tgc_bottom_db: tuple = (-10.0, 10.0)
-    dynamic_range_db: tuple = (42.0, 58.0)      # default 50
-    frequency_mhz: tuple = (2.5, 5.0)           # default 3.5 (attenuation vs TGC)
-    interface_gain: tuple = (3.0, 9.0)          # default 6
-    scan_lines: tuple = (96, 128, 160)          # speckle grain across the beam (default 128)
-    samples_per_line: tuple = (192, 256, 320)   # speckle grain along it (default 256)
-    nominal_grain: float = 0.5                  # share of frames at the default grain
-    speckle_seeds: int = 64                     # speckle banks drawn from
+    dynamic_range_db: tuple = (42.0, 58.0)  # default 50
+    frequency_mhz: tuple = (2.5, 5.0)  # default 3.5 (attenuation vs TGC)
+    interface_gain: tuple = (3.0, 9.0)  # default 6
+    scan_lines: tuple = (96, 128, 160)  # speckle grain across the beam (default 128)
+    samples_per_line: tuple = (192, 256, 320)  # speckle grain along it (default 256)
+    nominal_grain: float = 0.5  # share of frames at the default grain
+    speckle_seeds: int = 64  # speckle banks drawn from
     # Echogenicity (backscatter amplitude) of each tissue times a factor in this range, so
     # the model cannot rely on one brightness order of kidney and surroundings (real bodies
     # differ: no bright perirenal fat rim in the VH female, for one).
     # The ranges keep the cortex about iso- to hypo-echoic to liver and soft tissue.
     echogenicity: tuple = (
-        (int(Label.SOFT_TISSUE), 0.85, 1.3), (int(Label.FAT), 0.6, 1.2),
-        (int(Label.MUSCLE), 0.7, 1.3), (int(Label.LIVER), 0.85, 1.3),
-        (int(Label.KIDNEY_CORTEX), 0.75, 1.1), (int(Label.KIDNEY_MEDULLA), 0.6, 1.4),
-        (int(Label.KIDNEY_SINUS), 0.8, 1.1))
+        (int(Label.SOFT_TISSUE), 0.85, 1.3),
+        (int(Label.FAT), 0.6, 1.2),
+        (int(Label.MUSCLE), 0.7, 1.3),
+        (int(Label.LIVER), 0.85, 1.3),
+        (int(Label.KIDNEY_CORTEX), 0.75, 1.1),
+        (int(Label.KIDNEY_MEDULLA), 0.6, 1.4),
+        (int(Label.KIDNEY_SINUS), 0.8, 1.1),
+    )
     # Share of frames made with the scenario's emulator as is (no randomisation at all).
     nominal: float = 0.35
 
 
-def randomised_emulator(base: EmulatorModel, rng: np.random.Generator,
-                        r: Randomisation = Randomisation()) -> EmulatorModel:
+def randomised_emulator(
+    base: EmulatorModel, rng: np.random.Generator, r: Randomisation = Randomisation()
+) -> EmulatorModel:
     """``base`` with randomised gain, TGC, dynamic range, frequency and interface echo (the
     TGC offset relative to ``base``'s); the geometry's precomputed tables (scan lines, scan
     conversion, speckle banks) are shared."""
     f = float(rng.uniform(*r.frequency_mhz))
     depth_cm = 100.0 * base.geometry.depth
     tgc = base.tgc_db_per_cm_mhz + float(rng.uniform(*r.tgc_bottom_db)) / (2 * f * depth_cm)
-    m = replace(base, gain_db=float(rng.uniform(*r.gain_db)), tgc_db_per_cm_mhz=max(0.0, tgc),
-                dynamic_range_db=float(rng.uniform(*r.dynamic_range_db)), frequency_mhz=f,
-                interface_gain=float(rng.uniform(*r.interface_gain)))
-    for name in ("polar_to_image_index", "scan_conversion", "scan_matrix", "tables",
-                 "compact_codes", "_banks", "_polar_index_T", "_scan_csr_T", "_scan_quads",
-                 "_banks_T"):
+    m = replace(
+        base,
+        gain_db=float(rng.uniform(*r.gain_db)),
+        tgc_db_per_cm_mhz=max(0.0, tgc),
+        dynamic_range_db=float(rng.uniform(*r.dynamic_range_db)),
+        frequency_mhz=f,
+        interface_gain=float(rng.uniform(*r.interface_gain)),
+    )
+    for name in (
+        "polar_to_image_index",
+        "scan_conversion",
+        "scan_matrix",
+        "tables",
+        "compact_codes",
+        "_banks",
+        "_polar_index_T",
+        "_scan_csr_T",
+        "_scan_quads",
+        "_banks_T",
+    ):
         object.__setattr__(m, name, getattr(base, name))
     if r.echogenicity:
         # The diffuse-echo table depends only on the sample's own tissue code (low 4 bits).
         loss, diffuse, spec = m.pair_luts
-        e = np.sqrt(diffuse[:16]).astype(np.float64)        # echogenicity per code
+        e = np.sqrt(diffuse[:16]).astype(np.float64)  # echogenicity per code
         for label, lo, hi in r.echogenicity:
             e[int(label)] *= rng.uniform(lo, hi)
-        diffuse = np.ascontiguousarray((e ** 2)[np.arange(256) & 15], dtype=np.float32)
+        diffuse = np.ascontiguousarray((e**2)[np.arange(256) & 15], dtype=np.float32)
         object.__setattr__(m, "pair_luts", (loss, diffuse, spec))
     return m
 
@@ -288,13 +320,16 @@ def thin_cortex(volume: LabelVolume, cortex: float = 0.004) -> LabelVolume:
     surface made medulla: a thin cortex over a continuous dark medulla, a kidney structure
     the generator does not make (it draws discrete pyramids in a thick cortex). Domain
     randomisation of the kidney's inside; the kidney's outline does not change."""
+
     def relabel(sub, k, depth):
         sub[(depth > cortex) & (sub == Label.KIDNEY_CORTEX)] = Label.KIDNEY_MEDULLA
+
     return _relabel_by_depth(volume, relabel)
 
 
-def layered_kidney(volume: LabelVolume, cortex: float = 0.0066, parenchyma: float = 0.0154
-                   ) -> LabelVolume:
+def layered_kidney(
+    volume: LabelVolume, cortex: float = 0.0066, parenchyma: float = 0.0154
+) -> LabelVolume:
     """The volume with its kidneys relabelled in layers by depth below the kidney's surface:
     cortex up to ``cortex`` (m), a continuous medulla up to ``parenchyma`` (m), sinus deeper;
     the rule the importer applies to every imported kidney (``anatomy/importers.py``,
@@ -302,13 +337,15 @@ def layered_kidney(volume: LabelVolume, cortex: float = 0.0066, parenchyma: floa
     draws discrete pyramids in a thick cortex. Domain randomisation of the kidney's inside
     (draw the depths with :func:`draw_kidney_layers`); the outline does not change."""
     if not 0 < cortex < parenchyma:
-        raise ValueError(f"layered_kidney: need 0 < cortex < parenchyma, got {cortex}, "
-                         f"{parenchyma}")
+        raise ValueError(
+            f"layered_kidney: need 0 < cortex < parenchyma, got {cortex}, {parenchyma}"
+        )
 
     def relabel(sub, k, depth):
         sub[k] = Label.KIDNEY_CORTEX
         sub[k & (depth >= cortex)] = Label.KIDNEY_MEDULLA
         sub[k & (depth >= parenchyma)] = Label.KIDNEY_SINUS
+
     return _relabel_by_depth(volume, relabel)
 
 
@@ -318,16 +355,24 @@ CORTEX_MM = (6.6, 1.9)
 PARENCHYMA_MM = (15.4, 2.8)
 
 
-def draw_kidney_layers(rng: np.random.Generator, clip_cortex=(0.003, 0.011),
-                       min_medulla: float = 0.004, max_parenchyma: float = 0.025
-                       ) -> tuple[float, float]:
+def draw_kidney_layers(
+    rng: np.random.Generator,
+    clip_cortex=(0.003, 0.011),
+    min_medulla: float = 0.004,
+    max_parenchyma: float = 0.025,
+) -> tuple[float, float]:
     """(cortex, parenchyma) depths (m) for :func:`layered_kidney`: normal draws around the
     published means and SDs (:data:`CORTEX_MM`, :data:`PARENCHYMA_MM`), the cortex clipped
     to ``clip_cortex``, the parenchyma at least ``min_medulla`` deeper than the cortex and at
     most ``max_parenchyma``."""
     c = float(np.clip(rng.normal(CORTEX_MM[0], CORTEX_MM[1]) * 1e-3, *clip_cortex))
-    p = float(np.clip(rng.normal(PARENCHYMA_MM[0], PARENCHYMA_MM[1]) * 1e-3,
-                      c + min_medulla, max(max_parenchyma, c + min_medulla)))
+    p = float(
+        np.clip(
+            rng.normal(PARENCHYMA_MM[0], PARENCHYMA_MM[1]) * 1e-3,
+            c + min_medulla,
+            max(max_parenchyma, c + min_medulla),
+        )
+    )
     return c, p
 
 
@@ -357,11 +402,15 @@ class EmulatorBank:
         self.config = config or ImagingConfig()
         self._models: dict = {}
 
-    def get(self, depth: float, lines: int | None = None, samples: int | None = None
-            ) -> EmulatorModel:
+    def get(
+        self, depth: float, lines: int | None = None, samples: int | None = None
+    ) -> EmulatorModel:
         c = self.config
-        key = (round(float(depth), 6), int(lines or c.scan_lines),
-               int(samples or c.samples_per_line))
+        key = (
+            round(float(depth), 6),
+            int(lines or c.scan_lines),
+            int(samples or c.samples_per_line),
+        )
         m = self._models.get(key)
         if m is None:
             cfg = replace(c, depth=key[0], scan_lines=key[1], samples_per_line=key[2])
@@ -372,9 +421,10 @@ class EmulatorBank:
 @dataclass
 class VolumeVariant:
     """A (possibly thickened) volume of one patient and posture, with its view sampler."""
+
     volume: LabelVolume
     approach_V: np.ndarray
-    extra_depth: float = 0.0        # m the kidney was moved down (fat + inner)
+    extra_depth: float = 0.0  # m the kidney was moved down (fat + inner)
     fat: float = 0.0
     inner: float = 0.0
     sampler_kw: dict = field(default_factory=dict)
@@ -383,14 +433,22 @@ class VolumeVariant:
         self.sampler = ViewSampler(self.volume, self.approach_V, **self.sampler_kw)
 
 
-def canvas_frames(variants: list[VolumeVariant], presets: list[float], n: int,
-                  rng: np.random.Generator, bank: EmulatorBank, pixel_size: float,
-                  canvas_shape: tuple[int, int], canvas_top: float | None,
-                  randomisation: Randomisation | None = Randomisation(),
-                  max_extra=lambda depth: max(0.0, depth - 0.10) + 0.03,
-                  preset_weights=None) -> dict:
+def canvas_frames(
+    variants: list[VolumeVariant],
+    presets: list[float],
+    n: int,
+    rng: np.random.Generator,
+    bank: EmulatorBank,
+    pixel_size: float,
+    canvas_shape: tuple[int, int],
+    canvas_top: float | None,
+    randomisation: Randomisation | None = Randomisation(),
+    max_extra=lambda depth: max(0.0, depth - 0.10) + 0.03,
+    preset_weights=None,
+) -> dict:
     """``n`` randomised training frames on the physical canvas: for each, a depth preset
-    (over ``presets``, with ``preset_weights`` or uniform), a volume variant whose ``extra_depth`` is at most
+    (over ``presets``, with ``preset_weights`` or uniform), a volume variant whose ``extra_depth``
+    is at most
     ``max_extra(depth)`` (so thick walls come with the deep presets), a view, a randomised
     emulator (``randomisation`` None: the scenario's, at every frame; else a share
     ``randomisation.nominal`` of frames with the scenario's) and a random speckle seed.
@@ -424,8 +482,9 @@ def canvas_frames(variants: list[VolumeVariant], presets: list[float], n: int,
             continue
         nominal = r is None or rng.random() < r.nominal
         if not nominal and rng.random() >= r.nominal_grain:
-            base = bank.get(depth, int(rng.choice(r.scan_lines)),
-                            int(rng.choice(r.samples_per_line)))
+            base = bank.get(
+                depth, int(rng.choice(r.scan_lines)), int(rng.choice(r.samples_per_line))
+            )
         else:
             base = bank.get(depth)
         model = base if nominal else randomised_emulator(base, rng, r)
@@ -441,5 +500,10 @@ def canvas_frames(variants: list[VolumeVariant], presets: list[float], n: int,
         masks[k] = canvas.to_canvas(kid.astype(np.float32))
         depth_of[k], variant_of[k], kidney_px[k] = depth, vi, int(kid.sum())
         k += 1
-    return {"image": images, "kidney": masks, "depth": depth_of, "variant": variant_of,
-            "kidney_px": kidney_px}
+    return {
+        "image": images,
+        "kidney": masks,
+        "depth": depth_of,
+        "variant": variant_of,
+        "kidney_px": kidney_px,
+    }

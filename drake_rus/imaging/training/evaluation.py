@@ -25,13 +25,13 @@ from tqdm import tqdm
 from drake_rus.anatomy import load_patient
 from drake_rus.anatomy.labels import Label, LabelVolume, is_kidney
 from drake_rus.imaging.config import ImagingConfig
-from drake_rus.imaging.training.dataset import ViewSampler, make_frames
 from drake_rus.imaging.emulator import EmulatorModel, emulate
 from drake_rus.imaging.onnx_backend import OnnxSegmenter
 from drake_rus.imaging.phantoms import kidney_phantom
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.imaging.segment import iou
 from drake_rus.imaging.slicing import sample_labels, slice_volume
+from drake_rus.imaging.training.dataset import ViewSampler, make_frames
 
 POSTURES = ("supine", "left_lateral_decubitus")
 VH_FEMALE = "/work/shared/anatomy/hubmap_vh_female"
@@ -39,8 +39,9 @@ VH_FEMALE = "/work/shared/anatomy/hubmap_vh_female"
 VISIBLE_GREY = 8
 
 
-def load_volume(spec: str, side: str = "right", posture: str = "supine"
-                ) -> tuple[LabelVolume, np.ndarray]:
+def load_volume(
+    spec: str, side: str = "right", posture: str = "supine"
+) -> tuple[LabelVolume, np.ndarray]:
     """(label volume, unit approach direction in the volume's grid frame V) for a source."""
     src = load_source(spec, side, posture, target=False)
     return src.volume, src.up_V
@@ -49,11 +50,12 @@ def load_volume(spec: str, side: str = "right", posture: str = "supine"
 @dataclass
 class Source:
     """A labelled volume to image: where "up" is, and the target kidney's voxels."""
+
     name: str
     posture: str
     volume: LabelVolume
     up_V: np.ndarray
-    target: LabelVolume | None = field(default=None, repr=False)   # 1 = target kidney
+    target: LabelVolume | None = field(default=None, repr=False)  # 1 = target kidney
     size_class: str | None = None
 
     @property
@@ -63,8 +65,9 @@ class Source:
             return None
         return np.argwhere(self.target.labels > 0) * self.volume.voxel_size
 
-    def kidney_mask(self, labels: np.ndarray, geometry: ProbeGeometry,
-                    X_VP: RigidTransform) -> np.ndarray:
+    def kidney_mask(
+        self, labels: np.ndarray, geometry: ProbeGeometry, X_VP: RigidTransform
+    ) -> np.ndarray:
         """Ground truth of a slice: the target kidney (every kidney label if no target)."""
         if self.target is None:
             return is_kidney(labels)
@@ -74,8 +77,11 @@ class Source:
         """Depth (m) a probe on the upper skin above the target kidney's centroid, looking
         straight down, needs to hold the whole kidney (plus ``margin``), like the start
         planner's vertical pivot."""
-        p = self.target_V if self.target is not None else (
-            np.argwhere(is_kidney(self.volume.labels)) * self.volume.voxel_size)
+        p = (
+            self.target_V
+            if self.target is not None
+            else (np.argwhere(is_kidney(self.volume.labels)) * self.volume.voxel_size)
+        )
         up = self.up_V
         c = p.mean(axis=0)
         s = np.arange(0.0, 0.6, 0.5 * self.volume.voxel_size)
@@ -106,8 +112,9 @@ def _target_component(patient) -> LabelVolume | None:
     return LabelVolume((comp == best).astype(np.uint8), vol.voxel_size, vol.X_PtV)
 
 
-def load_source(spec: str, side: str = "right", posture: str = "supine",
-                target: bool = True) -> Source:
+def load_source(
+    spec: str, side: str = "right", posture: str = "supine", target: bool = True
+) -> Source:
     """A :class:`Source` by spec (see the module doc)."""
     head, _, tail = spec.partition(":")
     if head == "phantom":
@@ -117,12 +124,24 @@ def load_source(spec: str, side: str = "right", posture: str = "supine",
     vol = patient.labels
     # Up from the bed (+z_Pt) expressed in V.
     up_V = np.asarray(vol.X_PtV.rotation().inverse().multiply(np.array([0.0, 0.0, 1.0])))
-    return Source(spec, posture, vol, up_V, _target_component(patient) if target else None,
-                  patient.meta.get("size_class"))
+    return Source(
+        spec,
+        posture,
+        vol,
+        up_V,
+        _target_component(patient) if target else None,
+        patient.meta.get("size_class"),
+    )
 
 
-def make_source_frames(spec: str, model: EmulatorModel, n: int, seed: int = 0,
-                       side: str = "right", posture: str = "supine"):
+def make_source_frames(
+    spec: str,
+    model: EmulatorModel,
+    n: int,
+    seed: int = 0,
+    side: str = "right",
+    posture: str = "supine",
+):
     """``n`` (us, mask, labels, X_VP) frames of one source, deterministic in ``seed``."""
     vol, up = load_volume(spec, side, posture)
     return make_frames(vol, up, model, n, np.random.default_rng(seed), seed=seed)
@@ -139,19 +158,25 @@ def mean_iou(segment, frames, geometry, min_area: float = 1.0e-4) -> dict:
         else:
             n_empty += 1
             false_pos += int(pred.sum() * geometry.pixel_area >= min_area)
-    return {"iou": float(np.mean(ious)) if ious else float("nan"),
-            "iou_median": float(np.median(ious)) if ious else float("nan"),
-            "frames_with_kidney": len(ious), "frames_without_kidney": n_empty,
-            "false_positive_rate": false_pos / n_empty if n_empty else 0.0}
+    return {
+        "iou": float(np.mean(ious)) if ious else float("nan"),
+        "iou_median": float(np.median(ious)) if ious else float("nan"),
+        "frames_with_kidney": len(ious),
+        "frames_without_kidney": n_empty,
+        "false_positive_rate": false_pos / n_empty if n_empty else 0.0,
+    }
 
 
 # --- across depth presets and postures --------------------------------------------------------
 
-def sample_views(source: Source, n: int, seed: int, max_depth: float = 0.40, **kw
-                 ) -> list[RigidTransform]:
+
+def sample_views(
+    source: Source, n: int, seed: int, max_depth: float = 0.40, **kw
+) -> list[RigidTransform]:
     """``n`` probe poses X_VP looking down at the source's target kidney (deterministic)."""
-    sampler = ViewSampler(source.volume, source.up_V, max_depth=max_depth,
-                          targets_V=source.target_V, **kw)
+    sampler = ViewSampler(
+        source.volume, source.up_V, max_depth=max_depth, targets_V=source.target_V, **kw
+    )
     rng = np.random.default_rng(seed)
     poses: list[RigidTransform] = []
     for _ in range(5 * n):
@@ -163,13 +188,17 @@ def sample_views(source: Source, n: int, seed: int, max_depth: float = 0.40, **k
     return poses
 
 
-def centred_views(source: Source, angles_deg=(0.0, 60.0, 120.0), indent: float = 0.004
-                  ) -> list[RigidTransform]:
+def centred_views(
+    source: Source, angles_deg=(0.0, 60.0, 120.0), indent: float = 0.004
+) -> list[RigidTransform]:
     """Probe poses X_VP straight down (against ``up_V``) over the target kidney's centroid,
     the face on the skin pressed ``indent`` in, the array turned by each of ``angles_deg``
     about the beam: the start of a scan's vertical pivot."""
-    p = source.target_V if source.target is not None else (
-        np.argwhere(is_kidney(source.volume.labels)) * source.volume.voxel_size)
+    p = (
+        source.target_V
+        if source.target is not None
+        else (np.argwhere(is_kidney(source.volume.labels)) * source.volume.voxel_size)
+    )
     u = source.up_V / np.linalg.norm(source.up_V)
     c = p.mean(axis=0)
     h = source.volume.voxel_size
@@ -183,8 +212,9 @@ def centred_views(source: Source, angles_deg=(0.0, 60.0, 120.0), indent: float =
     for a in np.radians(np.asarray(angles_deg, float)):
         x = np.cos(a) * e1 + np.sin(a) * e2
         z = -u
-        poses.append(RigidTransform(RotationMatrix(np.column_stack([x, np.cross(z, x), z])),
-                                    origin))
+        poses.append(
+            RigidTransform(RotationMatrix(np.column_stack([x, np.cross(z, x), z])), origin)
+        )
     return poses
 
 
@@ -199,8 +229,14 @@ def segmenters_by_depth(presets, config: ImagingConfig | None = None) -> dict:
     return out
 
 
-def depth_study(sources: list[Source], segmenters: dict, n_views: int, seed: int = 0,
-                progress: bool = True, desc: str = "frames") -> list[dict]:
+def depth_study(
+    sources: list[Source],
+    segmenters: dict,
+    n_views: int,
+    seed: int = 0,
+    progress: bool = True,
+    desc: str = "frames",
+) -> list[dict]:
     """Per-frame records ``{source, posture, depth, iou (None if no kidney), false_positive}``
     of each source's ``n_views`` views (the same poses at every depth) segmented by
     ``segmenters`` ({depth: (config, geometry, segment)}, see :func:`segmenters_by_depth`).
@@ -218,18 +254,24 @@ def depth_study(sources: list[Source], segmenters: dict, n_views: int, seed: int
                     gt = src.kidney_mask(labels, g, X_VP)
                     pred = np.asarray(segment(us), bool)
                     has = gt.sum() * g.pixel_area >= cfg.min_kidney_area
-                    records.append({
-                        "source": src.name, "posture": src.posture, "depth": depth,
-                        "iou": iou(pred, gt) if has else None,
-                        "visible": float(np.mean(us[gt] > VISIBLE_GREY)) if has else None,
-                        "false_positive": (not has) and bool(
-                            pred.sum() * g.pixel_area >= cfg.min_kidney_area)})
+                    records.append(
+                        {
+                            "source": src.name,
+                            "posture": src.posture,
+                            "depth": depth,
+                            "iou": iou(pred, gt) if has else None,
+                            "visible": float(np.mean(us[gt] > VISIBLE_GREY)) if has else None,
+                            "false_positive": (not has)
+                            and bool(pred.sum() * g.pixel_area >= cfg.min_kidney_area),
+                        }
+                    )
                     bar.update()
     return records
 
 
-def cluster_bootstrap_ci(values, clusters, level: float = 0.95, n_resamples: int = 2000,
-                         seed: int = 0) -> tuple[float, float]:
+def cluster_bootstrap_ci(
+    values, clusters, level: float = 0.95, n_resamples: int = 2000, seed: int = 0
+) -> tuple[float, float]:
     """Percentile bootstrap interval (``level``) of the mean of ``values`` that resamples
     whole clusters (``clusters[i]`` names the cluster of ``values[i]``) with replacement.
 
@@ -238,8 +280,10 @@ def cluster_bootstrap_ci(values, clusters, level: float = 0.95, n_resamples: int
     ``seed``; (nan, nan) without values, (mean, mean) with a single cluster."""
     values = np.asarray(values, float)
     if values.ndim != 1 or len(clusters) != len(values):
-        raise ValueError(f"cluster_bootstrap_ci: values must be 1-D with one cluster each, "
-                         f"got {values.shape} values and {len(clusters)} clusters")
+        raise ValueError(
+            f"cluster_bootstrap_ci: values must be 1-D with one cluster each, "
+            f"got {values.shape} values and {len(clusters)} clusters"
+        )
     if not 0.0 < level < 1.0:
         raise ValueError(f"cluster_bootstrap_ci: level must be in (0, 1), got {level}")
     if values.size == 0:
@@ -273,14 +317,18 @@ def summarise(records: list[dict], key=lambda r: r["depth"]) -> dict:
         clusters = [f"{r.get('source')}|{r.get('posture')}" for r in rs if r["iou"] is not None]
         seen = [r["iou"] for r in rs if r["iou"] is not None and (r.get("visible") or 0) >= 0.5]
         empty = [r for r in rs if r["iou"] is None]
-        out[k] = {"iou": float(np.mean(ious)) if ious else float("nan"),
-                  "iou_ci95": cluster_bootstrap_ci(ious, clusters),
-                  "iou_median": float(np.median(ious)) if ious else float("nan"),
-                  "frames_with_kidney": len(ious), "frames_without_kidney": len(empty),
-                  "false_positive_rate": (sum(r["false_positive"] for r in empty) / len(empty)
-                                          if empty else 0.0),
-                  "iou_visible": float(np.mean(seen)) if seen else float("nan"),
-                  "frames_visible": len(seen)}
+        out[k] = {
+            "iou": float(np.mean(ious)) if ious else float("nan"),
+            "iou_ci95": cluster_bootstrap_ci(ious, clusters),
+            "iou_median": float(np.median(ious)) if ious else float("nan"),
+            "frames_with_kidney": len(ious),
+            "frames_without_kidney": len(empty),
+            "false_positive_rate": (
+                sum(r["false_positive"] for r in empty) / len(empty) if empty else 0.0
+            ),
+            "iou_visible": float(np.mean(seen)) if seen else float("nan"),
+            "frames_visible": len(seen),
+        }
     return out
 
 

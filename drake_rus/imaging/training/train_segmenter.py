@@ -28,7 +28,8 @@ more tissue between wall and kidney supine, 20-50 mm in decubitus) so that kidne
 deep as in real bodies; a thick wall is used only at presets deep enough (extra depth <=
 preset - 70 mm). The kidney's context and structure are randomised per volume
 (:func:`draw_anatomy`, :func:`randomised_anatomy`): no perirenal fat (50%: fat within 10-30
-mm of the kidney becomes soft tissue, :func:`~drake_rus.imaging.training.dataset.remove_perirenal_fat`,
+mm of the kidney becomes soft tissue,
+:func:`~drake_rus.imaging.training.dataset.remove_perirenal_fat`,
 so the cortex lies directly against soft tissue, with only the cortex / soft-tissue
 echogenicity step, randomised above, to find its edge), and the kidney's inside by one draw:
 layered (40%: cortex, a continuous medulla and the sinus at depths drawn around the published
@@ -36,7 +37,8 @@ cortex 6.6 +- 1.9 mm and parenchyma 15.4 +- 2.8 mm, Glodny 2009,
 :func:`~drake_rus.imaging.training.dataset.layered_kidney` /
 :func:`~drake_rus.imaging.training.dataset.draw_kidney_layers`: the layer rule the importer applies
 to every imported kidney, whose meshes resolve no pyramids), a thin cortex over a continuous
-medulla (15%, :func:`~drake_rus.imaging.training.dataset.thin_cortex`), else the generator's discrete
+medulla (15%, :func:`~drake_rus.imaging.training.dataset.thin_cortex`), else the generator's
+discrete
 pyramids. Per patient and posture the variants are: the volume as is, one with at least one
 of these, one with both no perirenal fat and a layered kidney (how an imported body's
 kidney looks), and the thickened volumes with their own draws. (Diagnosis behind this, on
@@ -63,11 +65,12 @@ a run from scratch, then a second one-cycle at a third of the learning rate from
 weights (the same cached data):
 
     .venv/bin/pip install torch==2.13.0 onnx sympy
-    nice .venv/bin/python -m drake_rus.imaging.training.train_segmenter --patients 20 --frames 300 \\
-        --epochs 30 --width 16 --time-limit-min 45 --out runs/segmenter_stage1 \\
+    nice .venv/bin/python -m drake_rus.imaging.training.train_segmenter \\
+        --patients 20 --frames 300 --epochs 30 --width 16 --time-limit-min 45 \\
+        --out runs/segmenter_stage1 \\
         --save-torch runs/segmenter_stage1/kidney_unet.pt
-    nice .venv/bin/python -m drake_rus.imaging.training.train_segmenter --patients 20 --frames 300 \\
-        --epochs 15 --width 16 --lr 0.001 --time-limit-min 30 \\
+    nice .venv/bin/python -m drake_rus.imaging.training.train_segmenter \\
+        --patients 20 --frames 300 --epochs 15 --width 16 --lr 0.001 --time-limit-min 30 \\
         --init runs/segmenter_stage1/kidney_unet.pt --out models/segmenter
 
 Writes ``kidney_unet.onnx`` and ``kidney_unet.json`` (shapes, canvas, normalisation, data,
@@ -92,21 +95,41 @@ import numpy as np
 
 from drake_rus.extras import MissingExtra, require
 from drake_rus.imaging.config import ImagingConfig
-from drake_rus.imaging.training.dataset import (CORTEX_MM, PARENCHYMA_MM, EmulatorBank, Randomisation, VolumeVariant, canvas_frames,
-                                       draw_kidney_layers, layered_kidney,
-                                       remove_perirenal_fat, thicken_wall, thin_cortex)
 from drake_rus.imaging.emulator import EmulatorModel
-from drake_rus.imaging.training.evaluation import POSTURES, load_source, make_source_frames
 from drake_rus.imaging.onnx_backend import resize_to
 from drake_rus.imaging.probe import ProbeGeometry
+from drake_rus.imaging.training.dataset import (
+    CORTEX_MM,
+    PARENCHYMA_MM,
+    EmulatorBank,
+    Randomisation,
+    VolumeVariant,
+    canvas_frames,
+    draw_kidney_layers,
+    layered_kidney,
+    remove_perirenal_fat,
+    thicken_wall,
+    thin_cortex,
+)
+from drake_rus.imaging.training.evaluation import POSTURES, load_source, make_source_frames
 
 # View sampling of the training frames.
-SAMPLER = {"tilt_deg": 30.0, "lateral_jitter": 0.025, "far_fraction": 0.15, "far_jitter": 0.07,
-           "free_fraction": 0.10, "free_offset": (0.08, 0.16), "max_depth": 0.45}
+SAMPLER = {
+    "tilt_deg": 30.0,
+    "lateral_jitter": 0.025,
+    "far_fraction": 0.15,
+    "far_jitter": 0.07,
+    "free_fraction": 0.10,
+    "free_offset": (0.08, 0.16),
+    "max_depth": 0.45,
+}
 # Wall thickening per posture: (fat range, inner range) in m per extra volume.
 WALL_VARIANTS = {
-    "supine": [((0.005, 0.025), (0.0, 0.0)), ((0.0, 0.015), (0.030, 0.060)),
-               ((0.0, 0.015), (0.070, 0.120))],
+    "supine": [
+        ((0.005, 0.025), (0.0, 0.0)),
+        ((0.0, 0.015), (0.030, 0.060)),
+        ((0.0, 0.015), (0.070, 0.120)),
+    ],
     "left_lateral_decubitus": [((0.005, 0.025), (0.0, 0.0)), ((0.010, 0.020), (0.020, 0.050))],
 }
 
@@ -136,13 +159,20 @@ def reduce_frames(frames, size: int):
     """(images float32 (N, size, size) in [0, 1], masks float32 (N, size, size)): the plain
     resize of the first model (kept for models without a physical canvas)."""
     X = np.stack([resize_to(us, size, size) / 255.0 for us, *_ in frames]).astype(np.float32)
-    Y = np.stack([resize_to(m.astype(np.float32), size, size) > 0.5
-                  for _, m, *_ in frames]).astype(np.float32)
+    Y = np.stack([resize_to(m.astype(np.float32), size, size) > 0.5 for _, m, *_ in frames]).astype(
+        np.float32
+    )
     return X, Y
 
 
-def build_dataset(sources: list[str], frames_per_source: int, size: int, cache: Path | None,
-                  seed: int = 0, config: ImagingConfig | None = None):
+def build_dataset(
+    sources: list[str],
+    frames_per_source: int,
+    size: int,
+    cache: Path | None,
+    seed: int = 0,
+    config: ImagingConfig | None = None,
+):
     """The first model's data (150 mm, supine, default emulator, plain resize), cached as .npz
     per source."""
     config = config or ImagingConfig()
@@ -175,8 +205,9 @@ def draw_anatomy(rng: np.random.Generator, force: bool = False) -> tuple[bool, s
     (:data:`P_LAYERED`, :data:`P_THIN_CORTEX`); ``force``: not both left as they are."""
     no_fat = bool(rng.random() < P_NO_PERIRENAL_FAT)
     u = rng.random()
-    inside = ("layered" if u < P_LAYERED else
-              "thin" if u < P_LAYERED + P_THIN_CORTEX else "generator")
+    inside = (
+        "layered" if u < P_LAYERED else "thin" if u < P_LAYERED + P_THIN_CORTEX else "generator"
+    )
     if force and not no_fat and inside == "generator":
         no_fat = bool(rng.random() < 0.5)
         if not no_fat:
@@ -186,7 +217,8 @@ def draw_anatomy(rng: np.random.Generator, force: bool = False) -> tuple[bool, s
 
 def randomised_anatomy(volume, rng: np.random.Generator, no_fat: bool, inside: str):
     """``volume`` with the kidney's inside made ``inside`` ("layered": depths from
-    :func:`~drake_rus.imaging.training.dataset.draw_kidney_layers`; "thin": a thin cortex; "generator":
+    :func:`~drake_rus.imaging.training.dataset.draw_kidney_layers`; "thin": a thin cortex;
+    "generator":
     as it is) and, if ``no_fat``, without perirenal fat (margin from :data:`PERIRENAL_MARGIN`)."""
     if inside == "layered":
         volume = layered_kidney(volume, *draw_kidney_layers(rng))
@@ -211,23 +243,35 @@ def wall_variants(source, posture: str, rng: np.random.Generator) -> list[Volume
     thickened versions (:data:`WALL_VARIANTS`) of the volume with its context and structure
     randomised again."""
     kw = {"sampler_kw": dict(SAMPLER)}
-    out = [VolumeVariant(source.volume, source.up_V, **kw),
-           VolumeVariant(_randomised_anatomy(source.volume, rng, force=True), source.up_V, **kw),
-           VolumeVariant(randomised_anatomy(source.volume, rng, True, "layered"), source.up_V,
-                         **kw)]
+    out = [
+        VolumeVariant(source.volume, source.up_V, **kw),
+        VolumeVariant(_randomised_anatomy(source.volume, rng, force=True), source.up_V, **kw),
+        VolumeVariant(randomised_anatomy(source.volume, rng, True, "layered"), source.up_V, **kw),
+    ]
     for fat_range, inner_range in WALL_VARIANTS[posture]:
         fat, inner = float(rng.uniform(*fat_range)), float(rng.uniform(*inner_range))
-        vol = thicken_wall(_randomised_anatomy(source.volume, rng), source.up_V, fat=fat,
-                           inner=inner)
-        out.append(VolumeVariant(vol, source.up_V, extra_depth=fat + inner, fat=fat,
-                                 inner=inner, **kw))
+        vol = thicken_wall(
+            _randomised_anatomy(source.volume, rng), source.up_V, fat=fat, inner=inner
+        )
+        out.append(
+            VolumeVariant(vol, source.up_V, extra_depth=fat + inner, fat=fat, inner=inner, **kw)
+        )
     return out
 
 
-def build_canvas_dataset(specs: list[str], postures, frames: int, pixel_size: float,
-                         canvas: tuple[int, int], canvas_top: float, cache: Path | None,
-                         seed: int = 0, config: ImagingConfig | None = None,
-                         log=print, randomised: bool = True) -> dict:
+def build_canvas_dataset(
+    specs: list[str],
+    postures,
+    frames: int,
+    pixel_size: float,
+    canvas: tuple[int, int],
+    canvas_top: float,
+    cache: Path | None,
+    seed: int = 0,
+    config: ImagingConfig | None = None,
+    log=print,
+    randomised: bool = True,
+) -> dict:
     """Canvas frames of every (spec, posture): uint8 images (N, H, W) grey, uint8 masks
     (kidney area fraction x 255), depth, posture index, source index; cached per source.
     ``randomised`` False: the scenario's emulator and the volume as it is (validation)."""
@@ -235,8 +279,10 @@ def build_canvas_dataset(specs: list[str], postures, frames: int, pixel_size: fl
     presets = [float(p) for p in config.depth_presets]
     bank = EmulatorBank(config)
     parts = []
-    tag = (f"v5_{frames}_{pixel_size * 1e3:g}mm_{canvas[0]}x{canvas[1]}_{canvas_top * 1e3:g}_"
-           f"{'-'.join(f'{p:g}' for p in presets)}_{seed}{'' if randomised else '_nominal'}")
+    tag = (
+        f"v5_{frames}_{pixel_size * 1e3:g}mm_{canvas[0]}x{canvas[1]}_{canvas_top * 1e3:g}_"
+        f"{'-'.join(f'{p:g}' for p in presets)}_{seed}{'' if randomised else '_nominal'}"
+    )
     for i, spec in enumerate(specs):
         for j, posture in enumerate(postures):
             if spec.startswith("phantom:") and posture != "supine":
@@ -253,27 +299,43 @@ def build_canvas_dataset(specs: list[str], postures, frames: int, pixel_size: fl
             t = time.time()
             rng = np.random.default_rng([seed, i, j, 77])
             src = load_source(spec, posture=posture, target=False)
-            variants = (wall_variants(src, posture, rng) if randomised else
-                        [VolumeVariant(src.volume, src.up_V, sampler_kw=dict(SAMPLER))])
-            d = canvas_frames(variants, presets, frames, rng, bank, pixel_size, canvas,
-                              canvas_top, Randomisation() if randomised else None,
-                              max_extra=max_extra_depth,
-                              preset_weights=[PRESET_WEIGHTS.get(q, 1.0) if randomised else 1.0
-                                              for q in presets])
-            out = {"image": np.clip(np.rint(d["image"].astype(np.float32)), 0, 255
-                                    ).astype(np.uint8),
-                   "kidney": np.rint(d["kidney"].astype(np.float32) * 255).astype(np.uint8),
-                   "depth": d["depth"], "kidney_px": d["kidney_px"],
-                   "extra_depth": np.array([variants[v].extra_depth for v in d["variant"]],
-                                           np.float32),
-                   "posture": np.full(frames, j, np.int8)}
+            variants = (
+                wall_variants(src, posture, rng)
+                if randomised
+                else [VolumeVariant(src.volume, src.up_V, sampler_kw=dict(SAMPLER))]
+            )
+            d = canvas_frames(
+                variants,
+                presets,
+                frames,
+                rng,
+                bank,
+                pixel_size,
+                canvas,
+                canvas_top,
+                Randomisation() if randomised else None,
+                max_extra=max_extra_depth,
+                preset_weights=[PRESET_WEIGHTS.get(q, 1.0) if randomised else 1.0 for q in presets],
+            )
+            out = {
+                "image": np.clip(np.rint(d["image"].astype(np.float32)), 0, 255).astype(np.uint8),
+                "kidney": np.rint(d["kidney"].astype(np.float32) * 255).astype(np.uint8),
+                "depth": d["depth"],
+                "kidney_px": d["kidney_px"],
+                "extra_depth": np.array(
+                    [variants[v].extra_depth for v in d["variant"]], np.float32
+                ),
+                "posture": np.full(frames, j, np.int8),
+            }
             if path is not None:
                 np.savez_compressed(path, **out)
             out["source"] = np.full(frames, i, np.int16)
             parts.append(out)
-            log(f"data {spec} {posture}: {frames} frames in {time.time() - t:.0f} s "
+            log(
+                f"data {spec} {posture}: {frames} frames in {time.time() - t:.0f} s "
                 f"(kidney in {np.mean(out['kidney_px'] > 0):.0%}; size class "
-                f"{src.size_class})")
+                f"{src.size_class})"
+            )
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
@@ -288,8 +350,11 @@ def make_unet(width: int = 8, lite: bool = False, space_to_depth: int = 1):
     def block(cin, cout, convs=2):
         layers = []
         for k in range(convs):
-            layers += [nn.Conv2d(cin if k == 0 else cout, cout, 3, padding=1, bias=False),
-                       nn.BatchNorm2d(cout), nn.ReLU(inplace=True)]
+            layers += [
+                nn.Conv2d(cin if k == 0 else cout, cout, 3, padding=1, bias=False),
+                nn.BatchNorm2d(cout),
+                nn.ReLU(inplace=True),
+            ]
         return nn.Sequential(*layers)
 
     full_res_convs = 1 if lite else 2
@@ -333,8 +398,13 @@ def _canvas_iou(logits: np.ndarray, target: np.ndarray) -> np.ndarray:
     return np.where(t.sum((1, 2, 3)) > 0, inter / np.maximum(union, 1), np.nan)
 
 
-def one_cycle_lr(progress: float, max_lr: float, pct_start: float = 0.3,
-                 div_factor: float = 25.0, final_div_factor: float = 1e4) -> float:
+def one_cycle_lr(
+    progress: float,
+    max_lr: float,
+    pct_start: float = 0.3,
+    div_factor: float = 25.0,
+    final_div_factor: float = 1e4,
+) -> float:
     """Learning rate at ``progress`` (0..1) of a one-cycle schedule (torch's OneCycleLR
     shape: cosine up from max_lr / div_factor to max_lr over ``pct_start``, cosine down to
     max_lr / div_factor / final_div_factor at 1)."""
@@ -357,9 +427,22 @@ def schedule_progress(step: int, steps: int, elapsed: float, time_limit: float |
     return min(p, 1.0)
 
 
-def train(X, Y, width: int, epochs: int, batch: int = 16, lr: float = 3e-3, seed: int = 0,
-          threads: int = 1, log=print, lite: bool = False, space_to_depth: int = 1,
-          val=None, time_limit: float | None = None, init: str | Path | None = None):
+def train(
+    X,
+    Y,
+    width: int,
+    epochs: int,
+    batch: int = 16,
+    lr: float = 3e-3,
+    seed: int = 0,
+    threads: int = 1,
+    log=print,
+    lite: bool = False,
+    space_to_depth: int = 1,
+    val=None,
+    time_limit: float | None = None,
+    init: str | Path | None = None,
+):
     """Trains on X (N, H, W) grey and Y (N, H, W) kidney targets in [0, 1] (float32, or
     uint8 / 255). ``val``: (X, Y, groups) checked after each epoch (canvas IoU per group).
     ``time_limit`` (s): the one-cycle schedule (:func:`one_cycle_lr`) follows the larger of
@@ -367,6 +450,7 @@ def train(X, Y, width: int, epochs: int, batch: int = 16, lr: float = 3e-3, seed
     the end, after ``epochs`` or at the time limit. ``init``: a state dict (``--save-torch``
     of an earlier run) to start from."""
     import torch
+
     torch.manual_seed(seed)
     torch.set_num_threads(threads)
     net = make_unet(width, lite, space_to_depth)
@@ -392,7 +476,7 @@ def train(X, Y, width: int, epochs: int, batch: int = 16, lr: float = 3e-3, seed
                 break
             for group in opt.param_groups:
                 group["lr"] = one_cycle_lr(progress, lr)
-            idx = np.sort(order[k:k + batch])
+            idx = np.sort(order[k : k + batch])
             x = torch.from_numpy(X[idx][:, None].astype(np.float32) * scale)
             y = torch.from_numpy(Y[idx][:, None].astype(np.float32) * yscale)
             flip = torch.from_numpy(rng.random(len(idx)) < 0.5)
@@ -413,9 +497,11 @@ def train(X, Y, width: int, epochs: int, batch: int = 16, lr: float = 3e-3, seed
             step += 1
             total += loss.item() * len(idx)
             n_seen += len(idx)
-        msg = (f"epoch {epoch + 1}/{epochs}: loss {total / max(n_seen, 1):.4f} "
-               f"({time.time() - t0:.0f} s, {n_seen} frames, schedule "
-               f"{schedule_progress(step, steps, time.time() - t_start, time_limit):.0%})")
+        msg = (
+            f"epoch {epoch + 1}/{epochs}: loss {total / max(n_seen, 1):.4f} "
+            f"({time.time() - t0:.0f} s, {n_seen} frames, schedule "
+            f"{schedule_progress(step, steps, time.time() - t_start, time_limit):.0%})"
+        )
         if val is not None:
             msg += " | val IoU " + validate(net, *val)
         log(msg)
@@ -430,15 +516,17 @@ def train(X, Y, width: int, epochs: int, batch: int = 16, lr: float = 3e-3, seed
 def validate(net, X, Y, groups, batch: int = 64) -> str:
     """Canvas IoU of ``net`` on (X, Y) per group label, as text."""
     import torch
+
     net.eval()
     scale = np.float32(1 / 255.0) if X.dtype == np.uint8 else np.float32(1.0)
     yscale = np.float32(1 / 255.0) if Y.dtype == np.uint8 else np.float32(1.0)
     ious = []
     with torch.no_grad():
         for k in range(0, len(X), batch):
-            x = torch.from_numpy(X[k:k + batch][:, None].astype(np.float32) * scale)
-            ious.append(_canvas_iou(net(x).numpy(),
-                                    Y[k:k + batch][:, None].astype(np.float32) * yscale))
+            x = torch.from_numpy(X[k : k + batch][:, None].astype(np.float32) * scale)
+            ious.append(
+                _canvas_iou(net(x).numpy(), Y[k : k + batch][:, None].astype(np.float32) * yscale)
+            )
     ious = np.concatenate(ious)
     net.train()
     parts = []
@@ -450,21 +538,32 @@ def validate(net, X, Y, groups, batch: int = 64) -> str:
 
 def export_onnx(net, path: Path, size: int | tuple[int, int]):
     import torch
+
     h, w = (size, size) if np.isscalar(size) else size
     path.parent.mkdir(parents=True, exist_ok=True)
     dummy = torch.zeros(1, 1, h, w)
-    torch.onnx.export(net, dummy, str(path), input_names=["image"], output_names=["logits"],
-                      opset_version=17, dynamo=False)
+    torch.onnx.export(
+        net,
+        dummy,
+        str(path),
+        input_names=["image"],
+        output_names=["logits"],
+        opset_version=17,
+        dynamo=False,
+    )
     # ONNX Runtime must agree with torch on a random frame.
     import onnxruntime as ort
+
     x = np.random.default_rng(0).random((1, 1, h, w)).astype(np.float32)
     with torch.no_grad():
         ref = net(torch.from_numpy(x)).numpy()
     got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(
-        None, {"image": x})[0]
+        None, {"image": x}
+    )[0]
     if not np.allclose(ref, got, atol=1e-3):
-        raise RuntimeError(f"export_onnx: ONNX Runtime differs from torch by "
-                           f"{np.abs(ref - got).max():.2e}")
+        raise RuntimeError(
+            f"export_onnx: ONNX Runtime differs from torch by {np.abs(ref - got).max():.2e}"
+        )
 
 
 def record_benchmark(card_path: Path, bench_json: Path) -> dict:
@@ -481,9 +580,11 @@ def record_benchmark(card_path: Path, bench_json: Path) -> dict:
     b = json.loads(lines[-1])
     measured = b.get("onnx_model")
     if measured and card.get("model") and Path(measured).name != card["model"]:
-        raise ValueError(f"record_benchmark: {bench_json} measured {measured}, but the card "
-                         f"{card_path} is that of {card['model']} (benchmarks imaging "
-                         f"--onnx-model names the model)")
+        raise ValueError(
+            f"record_benchmark: {bench_json} measured {measured}, but the card "
+            f"{card_path} is that of {card['model']} (benchmarks imaging "
+            f"--onnx-model names the model)"
+        )
     card["evaluation"] = {
         **(card.get("evaluation") or {}),
         "iou_by_depth": b.get("iou_by_depth"),
@@ -496,14 +597,16 @@ def record_benchmark(card_path: Path, bench_json: Path) -> dict:
         "vh_female": b.get("vh_female"),
         "iou_onnx_150mm_supine": b.get("iou_onnx"),
         "iou_onnx_150mm_supine_sources": b.get("iou_sources"),
-        "iou_onnx_150mm_supine_details": {k: v.get("onnx") for k, v in
-                                          (b.get("iou_details") or {}).items()},
+        "iou_onnx_150mm_supine_details": {
+            k: v.get("onnx") for k, v in (b.get("iou_details") or {}).items()
+        },
         "ms_model_resample": b.get("ms_model_resample"),
         "ms_segment": b.get("ms_segment"),
         "load_average": b.get("load_average"),
         "measured_by": "python -m benchmarks imaging",
-        "targets": targets_met(b.get("iou_by_depth"), b.get("vh_female_iou"),
-                               b.get("iou_by_depth_ci95")),
+        "targets": targets_met(
+            b.get("iou_by_depth"), b.get("vh_female_iou"), b.get("iou_by_depth_ci95")
+        ),
     }
     card_path.write_text(json.dumps(card, indent=2) + "\n")
     return card
@@ -515,8 +618,9 @@ TARGET_IOU_GENERATED = 0.85
 TARGET_IOU_VH = 0.8
 
 
-def targets_met(iou_by_depth: dict | None, vh_iou: dict | None,
-                iou_ci95: dict | None = None) -> dict:
+def targets_met(
+    iou_by_depth: dict | None, vh_iou: dict | None, iou_ci95: dict | None = None
+) -> dict:
     """{thresholds, per-preset and per-posture pass / fail, met} of the issue-13 targets for
     a benchmark's ``iou_by_depth`` ({preset: IoU}) and ``vh_female_iou`` ({posture: IoU}).
     ``met`` judges the means; with ``iou_ci95`` ({preset: [low, high]}, the benchmark's 95%
@@ -525,13 +629,18 @@ def targets_met(iou_by_depth: dict | None, vh_iou: dict | None,
     sure the pass is)."""
     gen = {k: v is not None and v >= TARGET_IOU_GENERATED for k, v in (iou_by_depth or {}).items()}
     vh = {k: v is not None and v >= TARGET_IOU_VH for k, v in (vh_iou or {}).items()}
-    out = {"iou_every_preset_generated": TARGET_IOU_GENERATED, "iou_vh_female": TARGET_IOU_VH,
-           "generated_by_preset": gen, "vh_female_by_posture": vh,
-           "met": bool(gen) and bool(vh) and all(gen.values()) and all(vh.values())}
+    out = {
+        "iou_every_preset_generated": TARGET_IOU_GENERATED,
+        "iou_vh_female": TARGET_IOU_VH,
+        "generated_by_preset": gen,
+        "vh_female_by_posture": vh,
+        "met": bool(gen) and bool(vh) and all(gen.values()) and all(vh.values()),
+    }
     if iou_ci95:
         out["generated_interval_above_by_preset"] = {
             k: v is not None and v[0] is not None and v[0] >= TARGET_IOU_GENERATED
-            for k, v in iou_ci95.items()}
+            for k, v in iou_ci95.items()
+        }
     return out
 
 
@@ -541,8 +650,12 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=300, help="frames per patient and posture")
     ap.add_argument("--postures", default=",".join(POSTURES))
     ap.add_argument("--phantoms", type=int, default=0, help="also N synthetic phantoms")
-    ap.add_argument("--val-patients", type=int, default=2,
-                    help="training-split patients train:N..N+V-1 kept for validation")
+    ap.add_argument(
+        "--val-patients",
+        type=int,
+        default=2,
+        help="training-split patients train:N..N+V-1 kept for validation",
+    )
     ap.add_argument("--val-frames", type=int, default=100)
     ap.add_argument("--pixel-size-mm", type=float, default=2.4)
     ap.add_argument("--canvas", type=int, nargs=2, default=[128, 112], metavar=("H", "W"))
@@ -551,24 +664,43 @@ def main(argv=None) -> int:
     ap.add_argument("--space-to-depth", type=int, default=2)
     ap.add_argument("--epochs", type=int, default=20)
     ap.add_argument("--lr", type=float, default=3e-3)
-    ap.add_argument("--lite", action="store_true",
-                    help="one convolution per first-level block (faster inference)")
+    ap.add_argument(
+        "--lite",
+        action="store_true",
+        help="one convolution per first-level block (faster inference)",
+    )
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--time-limit-min", type=float, default=None,
-                    help="stop training after the epoch that passes this many minutes")
+    ap.add_argument(
+        "--time-limit-min",
+        type=float,
+        default=None,
+        help="stop training after the epoch that passes this many minutes",
+    )
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--cache", default="/tmp/drake_rus_segmenter_data/canvas")
     ap.add_argument("--out", default="models/segmenter")
     ap.add_argument("--data-only", action="store_true")
-    ap.add_argument("--save-torch", metavar="FILE",
-                    help="also save the trained torch state dict here (for --init)")
-    ap.add_argument("--init", metavar="FILE",
-                    help="start from this torch state dict (a --save-torch of an earlier run)")
-    ap.add_argument("--record-benchmark", metavar="FILE",
-                    help="only add this benchmark output (JSON line) to the card (--card)")
-    ap.add_argument("--card", metavar="FILE", default=None,
-                    help="the card --record-benchmark writes to (default: kidney_unet.json "
-                         "in --out)")
+    ap.add_argument(
+        "--save-torch",
+        metavar="FILE",
+        help="also save the trained torch state dict here (for --init)",
+    )
+    ap.add_argument(
+        "--init",
+        metavar="FILE",
+        help="start from this torch state dict (a --save-torch of an earlier run)",
+    )
+    ap.add_argument(
+        "--record-benchmark",
+        metavar="FILE",
+        help="only add this benchmark output (JSON line) to the card (--card)",
+    )
+    ap.add_argument(
+        "--card",
+        metavar="FILE",
+        default=None,
+        help="the card --record-benchmark writes to (default: kidney_unet.json in --out)",
+    )
     args = ap.parse_args(argv)
     out = Path(args.out)
     if args.record_benchmark:
@@ -580,50 +712,83 @@ def main(argv=None) -> int:
         print(f"recorded {args.record_benchmark} in {card}")
         return 0
     if not args.data_only:
-        try:                         # before the data (minutes): training needs the extra
+        try:  # before the data (minutes): training needs the extra
             require("torch", "train_segmenter")
         except MissingExtra as e:
             print(f"train_segmenter: error: {e}", file=sys.stderr)
             return 2
-    command = ("nice .venv/bin/python -m drake_rus.imaging.training.train_segmenter "
-               + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv)))
+    command = "nice .venv/bin/python -m drake_rus.imaging.training.train_segmenter " + " ".join(
+        shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv)
+    )
     postures = [p for p in args.postures.split(",") if p]
     p = args.pixel_size_mm * 1e-3
     canvas = tuple(args.canvas)
     top = args.canvas_top_mm * 1e-3
     f = args.space_to_depth
     if canvas[0] % (8 * f) or canvas[1] % (8 * f):
-        ap.error(f"--canvas: both sizes must be multiples of {8 * f} (3 poolings after a "
-                 f"{f} x {f} space-to-depth)")
+        ap.error(
+            f"--canvas: both sizes must be multiples of {8 * f} (3 poolings after a "
+            f"{f} x {f} space-to-depth)"
+        )
     specs = [f"train:{k}" for k in range(args.patients)]
     specs += [f"phantom:{1000 + k}" for k in range(args.phantoms)]
     cache = Path(args.cache)
-    log = lambda s: print(s, flush=True)
+
+    def log(s):
+        return print(s, flush=True)
+
     t_data = time.time()
-    data = build_canvas_dataset(specs, postures, args.frames, p, canvas, top, cache,
-                                args.seed, log=log)
+    data = build_canvas_dataset(
+        specs, postures, args.frames, p, canvas, top, cache, args.seed, log=log
+    )
     val_specs = [f"train:{args.patients + k}" for k in range(args.val_patients)]
     val = None
     if val_specs:
-        v = build_canvas_dataset(val_specs, postures, args.val_frames, p, canvas, top, cache,
-                                 args.seed + 1, log=log, randomised=False)
+        v = build_canvas_dataset(
+            val_specs,
+            postures,
+            args.val_frames,
+            p,
+            canvas,
+            top,
+            cache,
+            args.seed + 1,
+            log=log,
+            randomised=False,
+        )
         groups = [f"{d * 1000:.0f}" for d in v["depth"]]
         val = (v["image"], v["kidney"], groups)
     has_kidney = data["kidney_px"] > 0
-    log(f"dataset: {len(data['image'])} frames ({time.time() - t_data:.0f} s), kidney in "
+    log(
+        f"dataset: {len(data['image'])} frames ({time.time() - t_data:.0f} s), kidney in "
         f"{has_kidney.mean():.0%}; per depth: "
-        + ", ".join(f"{d * 1000:.0f} mm {np.sum(data['depth'] == d)}"
-                    for d in sorted(set(data["depth"].tolist()))))
+        + ", ".join(
+            f"{d * 1000:.0f} mm {np.sum(data['depth'] == d)}"
+            for d in sorted(set(data["depth"].tolist()))
+        )
+    )
     if args.data_only:
         return 0
     t = time.time()
-    net = train(data["image"], data["kidney"], args.width, args.epochs, lr=args.lr,
-                threads=args.threads, log=log, lite=args.lite, space_to_depth=f, val=val,
-                seed=args.seed, init=args.init,
-                time_limit=None if args.time_limit_min is None else 60 * args.time_limit_min)
+    net = train(
+        data["image"],
+        data["kidney"],
+        args.width,
+        args.epochs,
+        lr=args.lr,
+        threads=args.threads,
+        log=log,
+        lite=args.lite,
+        space_to_depth=f,
+        val=val,
+        seed=args.seed,
+        init=args.init,
+        time_limit=None if args.time_limit_min is None else 60 * args.time_limit_min,
+    )
     train_seconds = round(time.time() - t)
     if args.save_torch:
         import torch
+
         Path(args.save_torch).parent.mkdir(parents=True, exist_ok=True)
         torch.save(net.state_dict(), args.save_torch)
     onnx_path = out / "kidney_unet.onnx"
@@ -635,65 +800,105 @@ def main(argv=None) -> int:
         "pixel_size_mm": args.pixel_size_mm,
         "canvas_px": list(canvas),
         "canvas_top_mm": args.canvas_top_mm,
-        "canvas": (f"{canvas[0]} x {canvas[1]} px of {args.pixel_size_mm} mm = "
-                   f"{canvas[0] * args.pixel_size_mm:.0f} mm deep from z_P = "
-                   f"{args.canvas_top_mm} mm x {canvas[1] * args.pixel_size_mm:.0f} mm wide, "
-                   "centred on the beam axis; the backend area-averages each frame onto it "
-                   "(0 outside the image) and maps the probability back bilinearly"),
-        "input": {"name": "image", "shape": shape, "dtype": "float32",
-                  "normalisation": "grey / 255 (mean 0, std 1) on the physical canvas"},
+        "canvas": (
+            f"{canvas[0]} x {canvas[1]} px of {args.pixel_size_mm} mm = "
+            f"{canvas[0] * args.pixel_size_mm:.0f} mm deep from z_P = "
+            f"{args.canvas_top_mm} mm x {canvas[1] * args.pixel_size_mm:.0f} mm wide, "
+            "centred on the beam axis; the backend area-averages each frame onto it "
+            "(0 outside the image) and maps the probability back bilinearly"
+        ),
+        "input": {
+            "name": "image",
+            "shape": shape,
+            "dtype": "float32",
+            "normalisation": "grey / 255 (mean 0, std 1) on the physical canvas",
+        },
         "output": {"name": "logits", "shape": shape, "kind": "logits", "kidney_channel": 0},
-        "scenario": {"segmenter": "onnx", "onnx_model": str(onnx_path),
-                     "onnx_input_shape": shape, "onnx_input_mean": 0.0,
-                     "onnx_input_std": 1.0, "onnx_output": "logits",
-                     "note": "N and C come from onnx_input_shape; H and W from canvas_px"},
-        "architecture": {"kind": "U-Net behind a space-to-depth stem", "width": args.width,
-                         "space_to_depth": f, "lite": args.lite, "poolings": 3,
-                         "parameters": int(n_params)},
+        "scenario": {
+            "segmenter": "onnx",
+            "onnx_model": str(onnx_path),
+            "onnx_input_shape": shape,
+            "onnx_input_mean": 0.0,
+            "onnx_input_std": 1.0,
+            "onnx_output": "logits",
+            "note": "N and C come from onnx_input_shape; H and W from canvas_px",
+        },
+        "architecture": {
+            "kind": "U-Net behind a space-to-depth stem",
+            "width": args.width,
+            "space_to_depth": f,
+            "lite": args.lite,
+            "poolings": 3,
+            "parameters": int(n_params),
+        },
         "training": {
-            "sources": specs, "postures": postures, "frames_per_source_and_posture":
-                args.frames, "frames": int(len(data["image"])),
+            "sources": specs,
+            "postures": postures,
+            "frames_per_source_and_posture": args.frames,
+            "frames": int(len(data["image"])),
             "frames_with_kidney": float(round(has_kidney.mean(), 3)),
-            "validation_sources": val_specs, "depth_presets": list(ImagingConfig().depth_presets),
+            "validation_sources": val_specs,
+            "depth_presets": list(ImagingConfig().depth_presets),
             "views": SAMPLER,
-            "wall_variants_m": {k: [list(map(list, v)) for v in vs]
-                                for k, vs in WALL_VARIANTS.items()},
+            "wall_variants_m": {
+                k: [list(map(list, v)) for v in vs] for k, vs in WALL_VARIANTS.items()
+            },
             "wall_variant_rule": "extra depth <= preset - 0.10 m + 0.03 m",
             "preset_weights": {f"{k:g}": v for k, v in PRESET_WEIGHTS.items()},
             "kidney_context_and_structure": {
-                "no_perirenal_fat": {"probability": P_NO_PERIRENAL_FAT,
-                                     "margin_m": PERIRENAL_MARGIN},
-                "layered_kidney": {"probability": P_LAYERED,
-                                   "cortex_mm_mean_sd": CORTEX_MM,
-                                   "parenchyma_mm_mean_sd": PARENCHYMA_MM,
-                                   "source": "Glodny 2009 (docs/facts/anatomy_and_ultrasound.md);"
-                                             " the importer's layer rule for imported kidneys"},
+                "no_perirenal_fat": {
+                    "probability": P_NO_PERIRENAL_FAT,
+                    "margin_m": PERIRENAL_MARGIN,
+                },
+                "layered_kidney": {
+                    "probability": P_LAYERED,
+                    "cortex_mm_mean_sd": CORTEX_MM,
+                    "parenchyma_mm_mean_sd": PARENCHYMA_MM,
+                    "source": "Glodny 2009 (docs/facts/anatomy_and_ultrasound.md);"
+                    " the importer's layer rule for imported kidneys",
+                },
                 "thin_cortex": {"probability": P_THIN_CORTEX, "cortex_m": THIN_CORTEX},
-                "rule": ("per patient and posture: the volume as is, one with at least one of "
-                         "these, one without perirenal fat and with a layered kidney, and each "
-                         "thickened volume with the fat by its coin and the inside by one draw "
-                         "(layered / thin / the generator's pyramids)")},
+                "rule": (
+                    "per patient and posture: the volume as is, one with at least one of "
+                    "these, one without perirenal fat and with a layered kidney, and each "
+                    "thickened volume with the fat by its coin and the inside by one draw "
+                    "(layered / thin / the generator's pyramids)"
+                ),
+            },
             "validation": "train:N.. patients, volume as is, scenario emulator, canvas IoU",
             "randomisation": asdict(Randomisation()),
             "augmentation": "left-right flip; grey x U(0.85, 1.15) + U(-0.05, 0.05) in the fan",
-            "fat_thickness": ("not a generator input (set by the body-size class); training "
-                              "patients span lean, normal, overweight and obese; plus "
-                              "thicken_wall volumes"),
+            "fat_thickness": (
+                "not a generator input (set by the body-size class); training "
+                "patients span lean, normal, overweight and obese; plus "
+                "thicken_wall volumes"
+            ),
             "loss": "BCE + soft Dice on the canvas kidney area fraction",
-            "epochs": args.epochs, "epochs_run": int(getattr(net, "epochs_run", args.epochs)),
-            "schedule": ("one-cycle (cosine, 30% warm-up, AdamW) over the larger of step and "
-                         "time progress: a time limit ends the run at the schedule's end"),
-            "time_limit_min": args.time_limit_min, "init": args.init,
-            "lr": args.lr, "seed": args.seed, "threads": args.threads,
+            "epochs": args.epochs,
+            "epochs_run": int(getattr(net, "epochs_run", args.epochs)),
+            "schedule": (
+                "one-cycle (cosine, 30% warm-up, AdamW) over the larger of step and "
+                "time progress: a time limit ends the run at the schedule's end"
+            ),
+            "time_limit_min": args.time_limit_min,
+            "init": args.init,
+            "lr": args.lr,
+            "seed": args.seed,
+            "threads": args.threads,
             "train_seconds": train_seconds,
             "data_seconds": round(t - t_data),
             "command": command,
-            "recipe": "drake_rus/imaging/training/train_segmenter.py, drake_rus/imaging/training/dataset.py",
+            "recipe": (
+                "drake_rus/imaging/training/train_segmenter.py, "
+                "drake_rus/imaging/training/dataset.py"
+            ),
         },
     }
     (out / "kidney_unet.json").write_text(json.dumps(meta, indent=2) + "\n")
-    log(f"wrote {onnx_path} ({onnx_path.stat().st_size / 1e3:.0f} kB, {n_params} parameters), "
-        f"trained in {train_seconds} s")
+    log(
+        f"wrote {onnx_path} ({onnx_path.stat().st_size / 1e3:.0f} kB, {n_params} parameters), "
+        f"trained in {train_seconds} s"
+    )
     return 0
 
 
