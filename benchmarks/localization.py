@@ -41,7 +41,7 @@ from tqdm import tqdm
 from drake_rus.anatomy import load_patient
 from drake_rus.control.supervisor import exploration_target
 from drake_rus.experiments import kinematic as km
-from drake_rus.experiments.tasks import expand_patients
+from drake_rus.experiments.specs import expand_patients
 from drake_rus.localization.icp import heuristic_initial_rotation
 from drake_rus.localization.localize import (
     estimate_kidney_length,

@@ -21,7 +21,7 @@ import numpy as np
 
 from benchmarks._scan_rows import scan_row
 from drake_rus.control.supervisor import Phase
-from drake_rus.experiments.tasks import expand_patients
+from drake_rus.experiments.specs import expand_patients
 from drake_rus.localization.localize import load_registration_template
 from drake_rus.metrics.sweep import cumulative_eps
 from drake_rus.scenario import LoadScenario

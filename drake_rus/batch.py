@@ -1,7 +1,8 @@
 """The project's one batch runner: independent runs through Dask, one JSON file per run.
 
-A batch is a list of task dicts and a function ``run(task) -> dict`` (module-level, so
-that Dask can pickle it by reference). Each run's result is written atomically to
+A batch is a list of tasks (dicts, or picklable objects with a ``to_dict()`` such as the
+studies' typed tasks) and a function ``run(task) -> dict`` (module-level, so that Dask can
+pickle it by reference). Each run's result is written atomically to
 ``OUT/runs/<id>.json`` as it finishes, ``<id>`` given by the caller's id function, with the
 task's settings key (``task_key``: a hash of everything that changes the run, by default the
 whole task, :func:`content_key`). An interrupted batch resumes: running it again skips every
@@ -21,6 +22,7 @@ This module sits low in the package: it knows nothing of studies, campaigns or s
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import logging
@@ -56,8 +58,16 @@ def result_path(out_dir, run_id: str) -> Path:
     return runs_dir(out_dir) / f"{run_id}.json"
 
 
+def task_dict(task) -> dict:
+    """A task as a dict: itself, or its ``to_dict()`` (a typed task)."""
+    return task.to_dict() if hasattr(task, "to_dict") else task
+
+
 def json_default(o):
-    """``json.dumps`` default: numpy scalars and arrays as plain Python values."""
+    """``json.dumps`` default: numpy scalars and arrays as plain Python values, typed tasks
+    as their ``to_dict()``."""
+    if dataclasses.is_dataclass(o) and hasattr(o, "to_dict"):
+        return o.to_dict()
     if isinstance(o, np.generic):  # numpy scalars: int, float, bool
         return o.item()
     if isinstance(o, np.ndarray):
@@ -138,7 +148,7 @@ def plan(
                 old = json.loads(path.read_text()).get("task")
             except (OSError, ValueError, AttributeError):
                 old = None
-            superseded.append((rid, differences(old, t)))
+            superseded.append((rid, differences(old, task_dict(t))))
         if (
             superseded_path(out_dir, rid, key).exists()
             and _stored_key(superseded_path(out_dir, rid, key)) == key

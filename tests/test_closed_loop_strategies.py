@@ -16,8 +16,8 @@ from test_kinematic_core import synthetic
 from drake_rus.config_schema import ScenarioError
 from drake_rus.control import supervisor
 from drake_rus.control.supervisor import Phase
+from drake_rus.experiments import closed_loop_runs, specs
 from drake_rus.experiments import kinematic as km
-from drake_rus.experiments import tasks as st
 from drake_rus.experiments.report import report_markdown
 from drake_rus.scan.diagram import FrameRecord
 from drake_rus.scan.metrics import ScanMetrics, Summary, SweepDescription
@@ -25,18 +25,18 @@ from drake_rus.scenario import ApplyOverrides, CheckScenario, LoadScenario
 
 
 def test_every_strategy_has_a_closed_loop_scan_and_unknown_ones_are_named():
-    assert st.check_strategies(["SL", "NOP", "OP", "GT-OP", "OP-PE"], "closed-loop") == (
+    assert specs.check_strategies(["SL", "NOP", "OP", "GT-OP", "OP-PE"], "closed-loop") == (
         "OP",
         "GT-OP",
         "NOP",
         "SL",
         "OP-PE",
     )
-    assert st.default_strategies("closed-loop") == ("OP", "GT-OP", "NOP", "SL")
+    assert specs.default_strategies("closed-loop") == ("OP", "GT-OP", "NOP", "SL")
     with pytest.raises(ValueError, match=r"--strategies: expected .*GT-OP.*\(XY unknown\)"):
-        st.check_strategies(["OP", "XY"], "closed-loop")
+        specs.check_strategies(["OP", "XY"], "closed-loop")
     with pytest.raises(ValueError, match="--mode"):
-        st.check_strategies(["OP"], "dynamic")
+        specs.check_strategies(["OP"], "dynamic")
 
 
 def test_given_pose_and_line_sweep_are_scenario_values_checked_like_any_other():
@@ -65,14 +65,14 @@ def test_closed_loop_strategy_scans_use_the_twins_poses():
     kp = synthetic(yaw=0.3)
     base = LoadScenario()
     X = kp.X_BK_true
-    op = st.closed_loop_strategy_run(base, "OP", kp, 0.1)
+    op = closed_loop_runs.closed_loop_strategy_run(base, "OP", kp, 0.1)
     assert op.scenario == base and op.start_fraction == 0.1  # the run's own scan
     assert op.pose["pivot_pose"] == "registered" and op.pose["pivot_pose_from"] == "registered"
     for name, pose in (
         ("GT-OP", km.optimal_pivot_pose(X.rotation().matrix(), X.translation())),
         ("NOP", km.nop_pose(X.rotation().matrix(), X.translation())),
     ):
-        run = st.closed_loop_strategy_run(base, name, kp, 0.1)
+        run = closed_loop_runs.closed_loop_strategy_run(base, name, kp, 0.1)
         c = run.scenario.controller
         assert c.pivot_pose == pytest.approx(supervisor.pivot_pose_as_given(*pose))
         assert c.pivot_strategy == "two_leg" and c.sweep == "pivot"
@@ -82,7 +82,7 @@ def test_closed_loop_strategy_scans_use_the_twins_poses():
         np.testing.assert_allclose(p, pose[1], atol=1e-12)
         assert run.pose["pivot_pose"] == "given" and run.pose["pivot_pose_from"] == "true"
         assert run.pose["given_pivot_pose"] == c.pivot_pose
-        assert run.start_fraction == st.GIVEN_POSE_START_FRACTION
+        assert run.start_fraction == closed_loop_runs.GIVEN_POSE_START_FRACTION
         # Only the controller's pose changed; the product default is untouched.
         assert run.scenario == dataclasses.replace(
             base,
@@ -93,13 +93,14 @@ def test_closed_loop_strategy_scans_use_the_twins_poses():
     assert LoadScenario().controller.pivot_pose == []
     # GT-OP's array lies along the kidney's long axis, NOP's across it (the plane turned
     # by 90 deg), both tips over the true centroid.
-    gt = st.closed_loop_strategy_run(base, "GT-OP", kp).scenario.controller.pivot_pose
-    nop = st.closed_loop_strategy_run(base, "NOP", kp).scenario.controller.pivot_pose
+    run = closed_loop_runs.closed_loop_strategy_run
+    gt = run(base, "GT-OP", kp).scenario.controller.pivot_pose
+    nop = run(base, "NOP", kp).scenario.controller.pivot_pose
     assert gt[2] == pytest.approx(math.pi / 2 + 0.3)
     assert abs(math.remainder(nop[2] - gt[2], math.pi)) == pytest.approx(math.pi / 2)
     assert gt[:2] == nop[:2] == pytest.approx(list(X.translation()[:2]))
     # SL: the line starts where the twin's does and may travel as far.
-    sl = st.closed_loop_strategy_run(base, "SL", kp, 0.1)
+    sl = closed_loop_runs.closed_loop_strategy_run(base, "SL", kp, 0.1)
     start, travel = km.sl_line(kp, base.controller.scan_direction)
     assert sl.scenario.controller.sweep == "line" and sl.scenario.controller.pivot_pose == []
     assert sl.scenario.controller.start_xy == pytest.approx(list(start))
@@ -113,7 +114,7 @@ def test_closed_loop_strategy_scans_use_the_twins_poses():
     assert sl.scenario.controller.exploration_ratio == 1.0  # the paper: ER 100%
     assert sl.pose["pivot_pose"] is None
     with pytest.raises(ValueError, match="GT-OP: needs the prepared patient"):
-        st.closed_loop_strategy_run(base, "GT-OP", None)
+        closed_loop_runs.closed_loop_strategy_run(base, "GT-OP", None)
 
 
 def test_nop_array_sign_follows_the_exploration_array():

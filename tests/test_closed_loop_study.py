@@ -9,7 +9,7 @@ import pytest
 from drake_rus.cli import main
 from drake_rus.control import supervisor
 from drake_rus.experiments import kinematic as km
-from drake_rus.experiments import tasks as st
+from drake_rus.experiments import patients as run_patients
 from drake_rus.scenario import LoadScenario
 
 
@@ -67,7 +67,7 @@ def test_tiny_closed_loop_paper_study(tmp_path, capsys):
     assert s["OP"]["e_trans_mm"] == eff["e_trans_mm"]
     # GT-OP and NOP pivoted at the pose the study computed from the truth, nothing else.
     quick = LoadScenario(scenario_name="quick").patient
-    kp = st.prepared_patient(
+    kp = run_patients.prepared_patient(
         "test:1", quick.side, quick.posture, 0.002, quick.X_BPt.GetDeterministicValue()
     )
     for k in ("GT-OP", "NOP"):

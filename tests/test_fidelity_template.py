@@ -7,31 +7,31 @@ import numpy as np
 import pytest
 
 from drake_rus.cli import main
-from drake_rus.experiments import analysis
-from drake_rus.experiments import tasks as st
+from drake_rus.experiments import analysis, keys, specs, templates
+from drake_rus.experiments import results as study_results
 
 
 def test_variants_tasks_and_run_ids():
-    o = st.StudyOptions()
-    tasks = st.template_tasks(["test:0", "train:3"], o, 0.6)
-    ids = [st.run_id(t) for t in tasks]
+    o = specs.StudyOptions()
+    tasks = specs.template_tasks(["test:0", "train:3"], o, 0.6)
+    ids = [keys.run_id(t) for t in tasks]
     # loo only for the training patient.
-    n = len(st.TEMPLATE_VARIANTS)
+    n = len(specs.TEMPLATE_VARIANTS)
     assert len(ids) == len(set(ids)) == (n - 1) + n
     assert "template__test-0__erk060__t-population-long" in ids
     assert "template__train-3__erk060__t-loo" in ids
     assert "template__test-0__erk060__t-scale-1.1" in ids
     for bad in ("scale", "single:x", "median"):
         with pytest.raises(ValueError, match="template variant"):
-            st.template_tasks(["test:0"], o, 0.6, [bad])
+            specs.template_tasks(["test:0"], o, 0.6, [bad])
 
 
 def test_template_variants_geometry():
-    mean = st.template_variant(None, "mean")
-    big = st.template_variant(None, "scale-1.1")
+    mean = templates.template_variant(None, "mean")
+    big = templates.template_variant(None, "scale-1.1")
     np.testing.assert_allclose(big.points, 1.1 * mean.points)
-    single = st.template_variant(None, "single:0")
-    loo = st.template_variant(None, "loo", "train:3")
+    single = templates.template_variant(None, "single:0")
+    loo = templates.template_variant(None, "loo", "train:3")
     for t in (single, loo):
         assert t.points.shape == mean.points.shape and t.modes is None
         np.testing.assert_allclose(np.linalg.norm(t.normals, axis=1), 1.0)
@@ -41,7 +41,7 @@ def test_template_variants_geometry():
     # The leave-one-out mean is close to the mean (19 of its 20 shapes).
     assert np.mean(np.linalg.norm(loo.points - mean.points, axis=1)) < 0.002
     with pytest.raises(ValueError, match="loo"):
-        st.template_variant(None, "loo", "test:0")
+        templates.template_variant(None, "loo", "test:0")
 
 
 def test_analyze_template_trend():
@@ -85,7 +85,7 @@ def test_tiny_template_study(tmp_path):
         ]
     )
     assert code == 0
-    runs = st.load_study_results(tmp_path, "template")
+    runs = study_results.load_study_results(tmp_path, "template")
     d = {r["template_variant"]: r["template_distance_mm"] for r in runs}
     assert d["scale-0.9"] > d["mean"] > 0
     table = json.loads((tmp_path / "template.json").read_text())

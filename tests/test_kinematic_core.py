@@ -11,6 +11,9 @@ from pydrake.math import RigidTransform, RotationMatrix
 from drake_rus.anatomy.labels import Label, LabelVolume
 from drake_rus.control.config import ControllerConfig
 from drake_rus.experiments import kinematic as km
+from drake_rus.experiments import kinematic_runs
+from drake_rus.experiments import patients as run_patients
+from drake_rus.experiments.specs import StudyTask
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.localization.config import LocalizationConfig
 
@@ -266,39 +269,32 @@ def test_prefix_of_a_long_exploration_is_the_short_exploration():
 def test_er_in_units_of_the_patients_kidney_length():
     """ER x the kidney's length along the exploration line (the paper's simulation), or x
     L_m (the fixed variant), on an ellipsoid kidney 2 x 55 mm long along y."""
-    from drake_rus.experiments import tasks as st
-
     kp = synthetic()
-    length = st.kidney_length(kp)
+    length = run_patients.kidney_length(kp)
     assert length == pytest.approx(2 * SEMI[1], abs=0.001)
-    assert st.exploration_travel(0.6, "kidney", length, 0.1) == pytest.approx(0.6 * length)
-    assert st.exploration_travel(0.6, "fixed", length, 0.1) == pytest.approx(0.06)
+    assert run_patients.exploration_travel(0.6, "kidney", length, 0.1) == pytest.approx(
+        0.6 * length
+    )
+    assert run_patients.exploration_travel(0.6, "fixed", length, 0.1) == pytest.approx(0.06)
     with pytest.raises(ValueError, match="er_unit"):
-        st.exploration_travel(0.6, "inches", length, 0.1)
+        run_patients.exploration_travel(0.6, "inches", length, 0.1)
     step = CTRL.scan_speed / IMG.frame_rate_hz
     imager = km.Imager(kp, IMG)
     for unit, travel in (("kidney", 0.6 * length), ("fixed", 0.06)):
-        task = {
-            "patient": f"synthetic-{unit}",
-            "voxel": VOXEL,
-            "segmenter": "oracle",
-            "seed": 0,
-            "scenario": "default",
-            "er": 0.6,
-            "er_unit": unit,
-        }
-        sweep = st.exploration(task, kp, imager, CTRL, 0.0, 0.0)
+        task = StudyTask(
+            study="er-sweep", patient=f"synthetic-{unit}", voxel=VOXEL, er=0.6, er_unit=unit
+        )
+        sweep = kinematic_runs.exploration(task, kp, imager, CTRL, 0.0, 0.0)
         assert travel - step < sweep.travel[-1] <= travel + 1e-9
     # ER 100% in kidney units explores past the fixed 100 mm: the whole 110 mm kidney.
-    task = dict(task, er=1.0, er_unit="kidney", patient="synthetic-full")
-    full = st.exploration(task, kp, imager, CTRL, 0.0, 0.0)
+    task = dataclasses.replace(task, er=1.0, er_unit="kidney", patient="synthetic-full")
+    full = kinematic_runs.exploration(task, kp, imager, CTRL, 0.0, 0.0)
     assert full.travel[-1] > CTRL.kidney_length
 
 
 def test_kinematic_pivot_and_closed_loop_definitions_agree():
     """The legs found from the poses (what the closed-loop scan does) are the kinematic
     sweep's own legs, so both modes measure pole to pole alike."""
-    from drake_rus.experiments import tasks as st
     from drake_rus.metrics import pivot_legs, signed_pivot_angles
 
     kp = synthetic()
@@ -307,7 +303,7 @@ def test_kinematic_pivot_and_closed_loop_definitions_agree():
     angles = signed_pivot_angles([X.rotation() for X in sweep.poses])
     np.testing.assert_allclose(np.abs(angles), np.abs(sweep.angles), atol=1e-9)
     np.testing.assert_array_equal(pivot_legs(angles), sweep.leg)
-    entry = st.sweep_entry(kp, sweep, imager.geometry, CTRL)
+    entry = kinematic_runs.sweep_entry(kp, sweep, imager.geometry, CTRL)
     curves = km.sweep_curves(kp, sweep.pole_to_pole(), imager.geometry)
     whole = km.sweep_curves(kp, sweep, imager.geometry)
     assert entry["n"] == curves["n_frames"] < entry["n_whole_pivot"] == whole["n_frames"]
@@ -317,10 +313,8 @@ def test_kinematic_pivot_and_closed_loop_definitions_agree():
     at = entry["at_V"]["0.9"]
     assert at is not None and at["n"] <= entry["n"] and at["eps_mm"] <= entry["eps_mm"]
     assert entry["tilt_cap_legs"] == []
-    capped = st.sweep_entry(
-        kp,
-        km.strategy_sweep(kp, imager, "GT-OP", dataclasses.replace(CTRL, max_pivot_tilt=0.1)),
-        imager.geometry,
-        dataclasses.replace(CTRL, max_pivot_tilt=0.1),
+    capped_ctrl = dataclasses.replace(CTRL, max_pivot_tilt=0.1)
+    capped = kinematic_runs.sweep_entry(
+        kp, km.strategy_sweep(kp, imager, "GT-OP", capped_ctrl), imager.geometry, capped_ctrl
     )
     assert capped["tilt_cap_legs"] == [1, 2]

@@ -13,8 +13,9 @@ from test_kinematic_core import CTRL, IMG, SEMI, synthetic
 
 from drake_rus.control import supervisor
 from drake_rus.control.supervisor import Phase
+from drake_rus.experiments import closed_loop_runs, kinematic_runs, specs
 from drake_rus.experiments import kinematic as km
-from drake_rus.experiments import tasks as st
+from drake_rus.experiments import patients as run_patients
 from drake_rus.experiments.analysis import analyze_efficiency
 from drake_rus.localization.config import LocalizationConfig
 from drake_rus.metrics.core import e_trans
@@ -35,7 +36,7 @@ def model():
 
 
 def _entry(kp, sweep):
-    return st.sweep_entry(kp, sweep, km.ProbeGeometry.from_config(IMG), CTRL)
+    return kinematic_runs.sweep_entry(kp, sweep, km.ProbeGeometry.from_config(IMG), CTRL)
 
 
 def test_predicted_end_sweep_starts_at_the_predicted_end_and_costs_less():
@@ -121,16 +122,16 @@ def test_op_pe_needs_a_model_and_runs_in_both_modes():
     kp = synthetic()
     with pytest.raises(ValueError, match="OP-PE: needs pivot_model"):
         km.strategy_sweep(kp, km.Imager(kp, IMG), "OP-PE", CTRL, kp.X_BK_true)
-    assert "OP-PE" in st.default_strategies("kinematic")
-    assert "OP-PE" not in st.default_strategies("closed-loop")  # a scan more, on request
-    assert st.check_strategies(["OP-PE", "OP"], "closed-loop") == ("OP", "OP-PE")
+    assert "OP-PE" in specs.default_strategies("kinematic")
+    assert "OP-PE" not in specs.default_strategies("closed-loop")  # a scan more, on request
+    assert specs.check_strategies(["OP-PE", "OP"], "closed-loop") == ("OP", "OP-PE")
     # Closed loop, OP-PE is the scan with the controller's predicted_end pivot.
     base = LoadScenario()
     assert base.controller.pivot_strategy == "two_leg"
-    sc = st.closed_loop_strategy_scenario(base, "OP-PE")
+    sc = closed_loop_runs.closed_loop_strategy_scenario(base, "OP-PE")
     assert sc.controller.pivot_strategy == "predicted_end"
     assert sc.controller == dataclasses.replace(base.controller, pivot_strategy="predicted_end")
-    assert st.closed_loop_strategy_scenario(sc, "OP").controller == base.controller
+    assert closed_loop_runs.closed_loop_strategy_scenario(sc, "OP").controller == base.controller
 
 
 def test_op_pe_is_compared_with_op_outside_the_papers_family():
@@ -178,57 +179,54 @@ def test_op_pe_is_compared_with_op_outside_the_papers_family():
 def test_study_relaxes_the_product_minimums_only_below_them():
     product = LocalizationConfig()
     assert product.min_exploration_travel == pytest.approx(0.015)
-    cfg, note = st.study_localization(product, 0.1, 0.009)
+    cfg, note = closed_loop_runs.study_localization(product, 0.1, 0.009)
     assert cfg.min_exploration_travel == 0.0 and cfg.min_inlier_fraction == 0.0
     assert cfg.max_rms_residual >= 1.0 and cfg.max_centroid_offset >= 1.0
     assert "below the product's minimum 15 mm" in note
     assert product.min_exploration_travel == pytest.approx(0.015)  # untouched
-    assert st.study_localization(product, 0.2, 0.018) == (product, "")
-    assert st.study_localization(product, 0.0, 0.0) == (product, "")  # ER 0: nothing to register
+    assert closed_loop_runs.study_localization(product, 0.2, 0.018) == (product, "")
+    # ER 0: nothing to register.
+    assert closed_loop_runs.study_localization(product, 0.0, 0.0) == (product, "")
 
 
 def test_closed_loop_setup_changes_the_study_scenario_not_the_default():
     kp = synthetic()
     base = LoadScenario()
-    task = dict(
-        st.StudyOptions(mode="closed-loop").base(),
-        study="er-sweep",
-        patient="synthetic",
-        er=0.1,
-        start=-1,
-    )
-    scenario, sf, xo, notes = st.closed_loop_setup(task, kp, base)
+    task = specs.StudyTask(mode="closed-loop", study="er-sweep", patient="synthetic", er=0.1)
+    scenario, sf, xo, notes = closed_loop_runs.closed_loop_setup(task, kp, base)
     assert scenario.localization.min_exploration_travel == 0.0 and notes["study_relaxation"]
     assert base.localization.min_exploration_travel == pytest.approx(0.015)
     assert LoadScenario().localization.min_exploration_travel == pytest.approx(0.015)
-    scenario, *_, notes = st.closed_loop_setup(dict(task, er=0.6), kp, base)
+    scenario, *_, notes = closed_loop_runs.closed_loop_setup(
+        dataclasses.replace(task, er=0.6), kp, base
+    )
     assert scenario.localization == dataclasses.replace(base.localization, method="seed")
     assert notes["study_relaxation"] == ""
 
 
 def test_random_starts_are_redrawn_until_the_kidney_is_visible():
     kp = synthetic()
-    task = dict(st.StudyOptions().base(), study="starts", patient="synthetic", er=0.6, start=2)
-    first = st.random_start(task, kp, CTRL)
-    assert st.random_start(task, kp, CTRL) == first  # deterministic
+    task = specs.StudyTask(study="starts", patient="synthetic", er=0.6, start=2)
+    first = run_patients.random_start(task, kp, CTRL)
+    assert run_patients.random_start(task, kp, CTRL) == first  # deterministic
     seen = []
 
     def visible(xy):
         seen.append(tuple(xy))
         return len(seen) > 3
 
-    sf, xo, rejected = st.visible_random_start(task, kp, CTRL, visible)
+    sf, xo, rejected = run_patients.visible_random_start(task, kp, CTRL, visible)
     assert rejected == 3 and (sf, xo) != first
     np.testing.assert_allclose(seen[-1], km.start_xy(kp, sf, CTRL.scan_direction, xo))
-    assert st.random_start(task, kp, CTRL, lambda xy: True) == first
+    assert run_patients.random_start(task, kp, CTRL, lambda xy: True) == first
     with pytest.raises(ValueError, match="not visible at any of 5"):
-        st.visible_random_start(task, kp, CTRL, lambda xy: False, max_draws=5)
+        run_patients.visible_random_start(task, kp, CTRL, lambda xy: False, max_draws=5)
 
 
 def test_start_visibility_on_the_synthetic_kidney():
     kp = synthetic()
     imager = km.Imager(kp, IMG)
-    visible = st.start_visibility(kp, imager)
+    visible = run_patients.start_visibility(kp, imager)
     centre = kp.X_BK_true.translation()
     assert visible(centre[:2])
     assert not visible([centre[0], centre[1] + SEMI[1] + 0.001])  # just past the pole
@@ -250,12 +248,12 @@ def test_er0_is_the_initial_alignment_in_both_modes():
             types.SimpleNamespace(phase=int(Phase.EXPLORE), X_BP=pose),
         ],
     )
-    rec = st.initial_alignment_record(kp, scan, [0.0, 0.0])
+    rec = closed_loop_runs.initial_alignment_record(kp, scan, [0.0, 0.0])
     X0 = km.heuristic_pose(kp, xy)
     assert rec["e_trans_mm"] == pytest.approx(e_trans(X0, kp.X_BK_true) * 1e3)
     assert rec["localization_note"].startswith("ER 0: initial alignment only")
     # No frames at all: at the start.
-    rec = st.initial_alignment_record(
+    rec = closed_loop_runs.initial_alignment_record(
         kp, types.SimpleNamespace(status="ABORT", reason="", frames=[]), xy
     )
     assert rec["e_trans_mm"] == pytest.approx(e_trans(X0, kp.X_BK_true) * 1e3)
@@ -274,7 +272,7 @@ def test_a_rejected_registration_is_measured_but_not_swept():
         rejected=types.SimpleNamespace(X_BK=X),
         error="registration rejected: only 18% of the explored points",
     )
-    rec = st.rejected_registration_record(kp, loc)
+    rec = closed_loop_runs.rejected_registration_record(kp, loc)
     assert rec["e_trans_mm"] == pytest.approx(4.0, abs=1e-9)
     assert "the paper has no acceptance check" in rec["localization_note"]
     runs = [

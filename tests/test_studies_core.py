@@ -12,36 +12,36 @@ from nbclient import NotebookClient
 
 from drake_rus import batch
 from drake_rus.cli import main
-from drake_rus.experiments import analysis
-from drake_rus.experiments import tasks as st
+from drake_rus.experiments import analysis, keys, specs
+from drake_rus.experiments import results as study_results
 
 NOTEBOOK = Path(__file__).resolve().parent.parent / "notebooks" / "reproduce_paper.ipynb"
 
 
 def test_expand_patients():
-    assert st.expand_patients("test:0-2") == ["test:0", "test:1", "test:2"]
-    assert st.expand_patients("seed:7, train:3,test:1-1") == ["seed:7", "train:3", "test:1"]
-    assert st.expand_patients("../shared/anatomy/body") == ["../shared/anatomy/body"]
+    assert specs.expand_patients("test:0-2") == ["test:0", "test:1", "test:2"]
+    assert specs.expand_patients("seed:7, train:3,test:1-1") == ["seed:7", "train:3", "test:1"]
+    assert specs.expand_patients("../shared/anatomy/body") == ["../shared/anatomy/body"]
     for bad in ("test:3-1", "bogus", ""):
         with pytest.raises(ValueError, match="--patients"):
-            st.expand_patients(bad)
+            specs.expand_patients(bad)
 
 
 def test_tasks_and_run_ids_are_unique_and_deterministic():
-    o = st.StudyOptions()
+    o = specs.StudyOptions()
     tasks = (
-        st.er_sweep_tasks(["test:0", "test:1"], o)
-        + st.starts_tasks(["test:0"], o, 0.6)
-        + st.efficiency_tasks(["seed:5", "../x/y"], o, 0.6)
+        specs.er_sweep_tasks(["test:0", "test:1"], o)
+        + specs.starts_tasks(["test:0"], o, 0.6)
+        + specs.efficiency_tasks(["seed:5", "../x/y"], o, 0.6)
     )
-    ids = [st.run_id(t) for t in tasks]
+    ids = [keys.run_id(t) for t in tasks]
     assert len(set(ids)) == len(ids) == 22 + 5 + 2
     # ER in units of the patient's kidney length (the default) is "erk"; of L_m "er".
     assert "er-sweep__test-0__erk060" in ids and "starts__test-0__erk060__s4" in ids
-    fixed = st.er_sweep_tasks(["test:0"], st.StudyOptions(er_unit="fixed"), [0.6])
-    assert st.run_id(fixed[0]) == "er-sweep__test-0__er060"
+    fixed = specs.er_sweep_tasks(["test:0"], specs.StudyOptions(er_unit="fixed"), [0.6])
+    assert keys.run_id(fixed[0]) == "er-sweep__test-0__er060"
     assert all("/" not in i and ":" not in i for i in ids)
-    assert len(st.ER_GRID) == 11 and st.ER_GRID[0] == 0.0 and st.ER_GRID[-1] == 1.0
+    assert len(specs.ER_GRID) == 11 and specs.ER_GRID[0] == 0.0 and specs.ER_GRID[-1] == 1.0
 
 
 def _er_results(rng, n=12):
@@ -49,7 +49,7 @@ def _er_results(rng, n=12):
     out = []
     for k in range(n):
         base_t, base_r = rng.uniform(2, 6), rng.uniform(2, 6)
-        for er in st.ER_GRID:
+        for er in specs.ER_GRID:
             bump = 0.0 if er >= 0.6 else 30.0 * (0.6 - er)
             # Below ER 1: +-0.2 alternating over patients (zero mean difference at ER >=
             # 0.6, so those p-values are exactly 1; no chance significance).
@@ -165,15 +165,15 @@ def test_runner_writes_each_run_and_resumes(tmp_path):
     calls = []
 
     def fake(task):
-        calls.append(task["patient"])
-        if task["patient"] == "test:2":
+        calls.append(task.patient)
+        if task.patient == "test:2":
             raise RuntimeError("boom")
-        return {"run_id": st.run_id(task), "task": task, "value": len(calls)}
+        return {"run_id": keys.run_id(task), "task": task.to_dict(), "value": len(calls)}
 
-    tasks = st.er_sweep_tasks(
-        ["test:0", "test:1", "test:2"], st.StudyOptions(er_unit="fixed"), [0.5]
+    tasks = specs.er_sweep_tasks(
+        ["test:0", "test:1", "test:2"], specs.StudyOptions(er_unit="fixed"), [0.5]
     )
-    status = batch.run_tasks(tasks, fake, tmp_path, st.run_id, workers=0, progress=False)
+    status = batch.run_tasks(tasks, fake, tmp_path, keys.run_id, workers=0, progress=False)
     assert status["done"] == 2 and status["failed"][0][0] == "er-sweep__test-2__er050"
     assert "boom" in status["failed"][0][1]
     assert sorted(p.name for p in (tmp_path / "runs").iterdir()) == [
@@ -182,9 +182,9 @@ def test_runner_writes_each_run_and_resumes(tmp_path):
     ]
     # Resume: only the failed run is tried again.
     calls.clear()
-    status = batch.run_tasks(tasks, fake, tmp_path, st.run_id, workers=0, progress=False)
+    status = batch.run_tasks(tasks, fake, tmp_path, keys.run_id, workers=0, progress=False)
     assert calls == ["test:2"] and status["skipped"] == 2
-    assert len(st.load_study_results(tmp_path, "er-sweep")) == 2
+    assert len(study_results.load_study_results(tmp_path, "er-sweep")) == 2
 
 
 @pytest.fixture(scope="module")
@@ -236,11 +236,11 @@ def test_tiny_paper_study_outputs(tiny_paper):
     meta = json.loads((out / "study_paper.json").read_text())
     assert meta["mode"].startswith("kinematic") and meta["failed_runs"] == []
     # The closed-loop check: one dynamic scan beside its kinematic twin.
-    closed = st.load_study_results(out, "closed-loop")
+    closed = study_results.load_study_results(out, "closed-loop")
     assert len(closed) == 1 and closed[0]["closed_loop"]["status"] == "DONE"
     assert closed[0]["closed_loop"]["V"] > 0.9 and closed[0]["kinematic"]["V"] > 0.9
     assert (out / "closed_loop.csv").stat().st_size > 0
-    eff = st.load_study_results(out, "efficiency")[0]
+    eff = study_results.load_study_results(out, "efficiency")[0]
     s = eff["strategies"]
     assert s["GT-OP"]["V"] > 0.9 and s["GT-OP"]["n"] < s["NOP"]["n"]
     assert abs(s["GT-OP"]["volume_error_pct"]) < 5.0

@@ -1,6 +1,7 @@
 """Study resume keyed on every setting that changes a run, labels from the runs themselves,
 and provenance in every run (issue 32 "Studies that mislabel", "Not reproducible")."""
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -10,14 +11,16 @@ import pytest
 from drake_rus import batch
 from drake_rus.cli import main
 from drake_rus.experiments import cli as study_cli
-from drake_rus.experiments import tasks as st
+from drake_rus.experiments import keys, specs
+from drake_rus.experiments import results as study_results
+from drake_rus.experiments.tasks import run_task
 from drake_rus.reliability import breathing
 from drake_rus.scenario import DEFAULT_SCENARIOS_FILE
 
 
 # ------------------------------------------------------------------------------- the key
 def _task(**kw):
-    return st.er_sweep_tasks(["test:0"], st.StudyOptions(**kw), [0.6])[0]
+    return specs.er_sweep_tasks(["test:0"], specs.StudyOptions(**kw), [0.6])[0]
 
 
 @pytest.mark.parametrize(
@@ -36,9 +39,9 @@ def _task(**kw):
 )
 def test_every_setting_changes_the_key_but_not_the_run_id(change):
     base, other = _task(), _task(**change)
-    assert st.task_key(base) != st.task_key(other)
+    assert keys.task_key(base) != keys.task_key(other)
     if "mode" not in change and "er_unit" not in change and "posture" not in change:
-        assert st.run_id(base) == st.run_id(other)  # same file name: the key decides
+        assert keys.run_id(base) == keys.run_id(other)  # same file name: the key decides
 
 
 def test_key_covers_resolved_inputs_not_paths(tmp_path):
@@ -46,30 +49,32 @@ def test_key_covers_resolved_inputs_not_paths(tmp_path):
     # The same scenarios file elsewhere: the same run (paths are not keyed, contents are).
     copy = tmp_path / "same.yaml"
     copy.write_text(Path(DEFAULT_SCENARIOS_FILE).read_text())
-    assert st.task_key(base) == st.task_key(dict(base, scenarios_file=str(copy)))
+    assert keys.task_key(base) == keys.task_key(dataclasses.replace(base, scenarios_file=str(copy)))
     # Its contents changed (a default the run reads): another run.
     changed = tmp_path / "changed.yaml"
     text = Path(DEFAULT_SCENARIOS_FILE).read_text()
     assert "default: {}\n" in text
     changed.write_text(text.replace("default: {}\n", "default: {random_seed: 7}\n", 1))
-    assert st.task_key(base) != st.task_key(dict(base, scenarios_file=str(changed)))
+    assert keys.task_key(base) != keys.task_key(
+        dataclasses.replace(base, scenarios_file=str(changed))
+    )
     # Where NRRD volumes go does not change a run; the reconstruction grid changes only
     # efficiency runs.
-    o = st.StudyOptions()
-    eff = st.efficiency_tasks(["test:0"], o, 0.6, "/tmp/a")[0]
-    assert st.task_key(eff) == st.task_key(dict(eff, export_dir="/elsewhere"))
-    assert st.task_key(eff) != st.task_key(dict(eff, recon_spacing=0.002))
-    assert st.task_key(base) == st.task_key(dict(base, recon_spacing=0.002))
+    o = specs.StudyOptions()
+    eff = specs.efficiency_tasks(["test:0"], o, 0.6, "/tmp/a")[0]
+    assert keys.task_key(eff) == keys.task_key(dataclasses.replace(eff, export_dir="/elsewhere"))
+    assert keys.task_key(eff) != keys.task_key(dataclasses.replace(eff, recon_spacing=0.002))
+    assert keys.task_key(base) == keys.task_key(dataclasses.replace(base, recon_spacing=0.002))
 
 
 def test_template_file_contents_are_keyed(tmp_path):
     base = _task()
-    src = st._template_file(None)
+    src = keys.template_file(None)
     a, b = tmp_path / "a.npz", tmp_path / "b.npz"
     a.write_bytes(src.read_bytes())
     b.write_bytes(src.read_bytes() + b"\0")
-    ka = st.task_key(dict(base, overrides=f"{{localization: {{template: {a}}}}}"))
-    kb = st.task_key(dict(base, overrides=f"{{localization: {{template: {b}}}}}"))
+    ka = keys.task_key(dataclasses.replace(base, overrides=f"{{localization: {{template: {a}}}}}"))
+    kb = keys.task_key(dataclasses.replace(base, overrides=f"{{localization: {{template: {b}}}}}"))
     assert ka != kb
 
 
@@ -78,16 +83,16 @@ def test_batch_sets_aside_other_settings_and_takes_them_back(tmp_path):
     calls = []
 
     def fake(task):
-        calls.append(task["segmenter"])
-        return {"run_id": st.run_id(task), "task": task, "value": task["segmenter"]}
+        calls.append(task.segmenter)
+        return {"run_id": keys.run_id(task), "task": task.to_dict(), "value": task.segmenter}
 
-    oracle = st.er_sweep_tasks(["test:0", "test:1"], st.StudyOptions(), [0.6])
-    classical = st.er_sweep_tasks(
-        ["test:0", "test:1"], st.StudyOptions(segmenter="classical"), [0.6]
+    oracle = specs.er_sweep_tasks(["test:0", "test:1"], specs.StudyOptions(), [0.6])
+    classical = specs.er_sweep_tasks(
+        ["test:0", "test:1"], specs.StudyOptions(segmenter="classical"), [0.6]
     )
-    kw = dict(workers=0, progress=False, task_key=st.task_key)
-    assert batch.run_tasks(oracle, fake, tmp_path, st.run_id, **kw)["done"] == 2
-    status = batch.run_tasks(classical, fake, tmp_path, st.run_id, **kw)
+    kw = dict(workers=0, progress=False, task_key=keys.task_key)
+    assert batch.run_tasks(oracle, fake, tmp_path, keys.run_id, **kw)["done"] == 2
+    status = batch.run_tasks(classical, fake, tmp_path, keys.run_id, **kw)
     assert status["done"] == 2 and status["skipped"] == 0
     assert len(status["superseded"]) == 2
     assert "segmenter 'oracle' -> 'classical'" in status["superseded"][0][1]
@@ -95,16 +100,21 @@ def test_batch_sets_aside_other_settings_and_takes_them_back(tmp_path):
     assert len(list((tmp_path / "runs" / "superseded").glob("*.json"))) == 2
     # Back to the first settings: taken back from runs/superseded, nothing runs.
     calls.clear()
-    status = batch.run_tasks(oracle, fake, tmp_path, st.run_id, **kw)
+    status = batch.run_tasks(oracle, fake, tmp_path, keys.run_id, **kw)
     assert calls == [] and status["skipped"] == 2
     assert {r["value"] for r in batch.load_results(tmp_path)} == {"oracle"}
-    assert all(r["task_key"] == st.task_key(r["task"]) for r in batch.load_results(tmp_path))
+    assert all(
+        r["task_key"] == keys.task_key(specs.StudyTask.from_dict(r["task"]))
+        for r in batch.load_results(tmp_path)
+    )
 
 
 def test_a_stored_run_without_a_key_is_not_reused(tmp_path):
     task = _task()
-    batch.save_result(tmp_path, st.run_id(task), {"run_id": st.run_id(task), "task": task})
-    plan = batch.plan([task], tmp_path, st.run_id, st.task_key)
+    batch.save_result(
+        tmp_path, keys.run_id(task), {"run_id": keys.run_id(task), "task": task.to_dict()}
+    )
+    plan = batch.plan([task], tmp_path, keys.run_id, keys.task_key)
     assert len(plan["todo"]) == 1 and plan["superseded"]
 
 
@@ -129,15 +139,14 @@ def test_breathing_runs_are_keyed_on_their_parameters(tmp_path):
 
 # ------------------------------------------------------------------------------- labels
 def test_settings_of_refuses_a_mix():
-    a = {"task": _task(), "inputs_sha256": "x"}
-    b = {"task": _task(segmenter="classical"), "inputs_sha256": "x"}
-    assert st.settings_of([a, a])["segmenter"] == "oracle"
+    a = {"task": _task().to_dict(), "inputs_sha256": "x"}
+    b = {"task": _task(segmenter="classical").to_dict(), "inputs_sha256": "x"}
+    assert study_results.settings_of([a, a])["segmenter"] == "oracle"
     with pytest.raises(
-        st.MixedSettingsError,
-        match=r"segmenter: 'oracle' \(2 runs\), "
-        r"'classical' \(1 runs\)",
+        study_results.MixedSettingsError,
+        match=r"segmenter: 'oracle' \(2 runs\), 'classical' \(1 runs\)",
     ):
-        st.settings_of([a, a, b], "er-sweep")
+        study_results.settings_of([a, a, b], "er-sweep")
 
 
 def _fake_run(calls):
@@ -145,24 +154,24 @@ def _fake_run(calls):
     the task's segmenter, ER and patient, and the record a real run carries."""
 
     def run(task):
-        calls.append(st.run_id(task))
-        k = int(task["patient"].split(":")[1])
-        bump = 10.0 if task["segmenter"] == "classical" else 0.0
-        e = 1.0 + 0.1 * k + bump + (6.0 + 0.7 * k) * (1.0 - task["er"])
+        calls.append(keys.run_id(task))
+        k = int(task.patient.split(":")[1])
+        bump = 10.0 if task.segmenter == "classical" else 0.0
+        e = 1.0 + 0.1 * k + bump + (6.0 + 0.7 * k) * (1.0 - task.er)
         return {
-            "run_id": st.run_id(task),
-            "task": task,
+            "run_id": keys.run_id(task),
+            "task": task.to_dict(),
             "mode": "kinematic",
-            "patient": task["patient"],
-            "er": task["er"],
-            "start": task["start"],
-            "er_unit": task["er_unit"],
+            "patient": task.patient,
+            "er": task.er,
+            "start": task.start,
+            "er_unit": task.er_unit,
             "kidney_length_mm": 110.0,
             "points": 100,
             "e_trans_mm": e,
             "e_rot_x_deg": e + 0.5,
             "registration_ms": 1.0,
-            "inputs_sha256": st.task_inputs_digest(task),
+            "inputs_sha256": keys.task_inputs_digest(task),
         }
 
     return run
@@ -239,8 +248,8 @@ def test_critical_er_of_other_settings_is_not_used(tmp_path, capsys, monkeypatch
         == 0
     )
     capsys.readouterr()
-    classical = study_cli._expected_settings(st.StudyOptions(segmenter="classical"))
-    oracle = study_cli._expected_settings(st.StudyOptions())
+    classical = study_cli._expected_settings(specs.StudyOptions(segmenter="classical"))
+    oracle = study_cli._expected_settings(specs.StudyOptions())
     found = json.loads((out / "er_sweep.json").read_text())["critical_er"]
     assert study_cli._critical_er(out, classical) == found
     assert study_cli._critical_er(out, oracle) == study_cli.DEFAULT_ER
@@ -268,24 +277,25 @@ def test_other_mode_side_by_side_only_of_one_setting(tmp_path, capsys, monkeypat
     assert main(common + ["--patients", "test:3-5", "--segmenter", "classical"]) == 0
     capsys.readouterr()
     patients = [f"test:{k}" for k in range(6)]
-    oracle = study_cli._expected_settings(st.StudyOptions())
+    oracle = study_cli._expected_settings(specs.StudyOptions())
     got = study_cli._other_mode(out, patients, "kinematic", "paper", settings=oracle)
     assert got["settings"]["segmenter"] == "oracle" and got["er"]["patients"] == 3
-    onnx = study_cli._expected_settings(st.StudyOptions(segmenter="onnx"))
+    onnx = study_cli._expected_settings(specs.StudyOptions(segmenter="onnx"))
     assert study_cli._other_mode(out, patients, "kinematic", "paper", settings=onnx) is None
     assert "2 different settings" in capsys.readouterr().err
 
 
 # ------------------------------------------------------------------------------- provenance
 def test_a_run_records_its_provenance_and_repeats_from_its_record():
-    task = st.er_sweep_tasks(["test:0"], st.StudyOptions(), [1.0])[0]
-    r = st.run_task(task)
+    task = specs.er_sweep_tasks(["test:0"], specs.StudyOptions(), [1.0])[0]
+    r = run_task(task)
     p = r["provenance"]
     assert "scenario_yaml" in p and "localization" in p["scenario_yaml"]
     assert p["seeds"]["study_seed"] == 0 and p["seeds"]["patient"] == "test:0"
     assert "random_seed" in p["seeds"] and p["packages"]["numpy"]
     assert "commit" in p and p["scenario_name"] == "default"
-    assert r["inputs_sha256"] == st.task_inputs_digest(task)
-    again = st.run_task(json.loads(json.dumps(r["task"])))  # the record's own task
+    assert r["inputs_sha256"] == keys.task_inputs_digest(task)
+    # The record's own task, through JSON.
+    again = run_task(specs.StudyTask.from_dict(json.loads(json.dumps(r["task"]))))
     assert again["e_trans_mm"] == r["e_trans_mm"] and math.isfinite(r["e_trans_mm"])
     assert again["e_rot_x_deg"] == r["e_rot_x_deg"]

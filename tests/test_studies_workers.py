@@ -68,10 +68,10 @@ SLOW_RUN = """
 import time
 
 def run(task):
-    if not (task["patient"] == "test:0" and task["er"] == 1.0):
+    if not (task.patient == "test:0" and task.er == 1.0):
         time.sleep(60)
-    return {"run_id": f"{task['patient']}-{task['er']}", "task": task,
-            "patient": task["patient"], "er": task["er"], "e_trans_mm": 1.0,
+    return {"run_id": f"{task.patient}-{task.er}", "task": task.to_dict(),
+            "patient": task.patient, "er": task.er, "e_trans_mm": 1.0,
             "e_rot_x_deg": 1.0}
 """
 # The study command with that stand-in (imports under the main guard: the workers import

@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 
 from drake_rus.cli import main
-from drake_rus.experiments import analysis
-from drake_rus.experiments import tasks as st
+from drake_rus.experiments import analysis, keys, specs, templates
 from drake_rus.paths import REPO_ROOT
 from drake_rus.template import population as pop
 
@@ -53,12 +52,12 @@ def test_population_template_size_and_cache(template_cache):
     """population:long's template is about one SD (12.2 mm) longer than the same people's
     (population:base) and than the repository's mean template (108.5 mm kidneys); it is
     built once and then read from the cache."""
-    mean = st.template_variant(None, "mean")
-    long = st.template_variant(None, "population:long:3")
+    mean = templates.template_variant(None, "mean")
+    long = templates.template_variant(None, "population:long:3")
     path = pop.population_template_path("long", n=3)
     assert path.parent == template_cache and path.is_file()
     assert path.with_suffix(".json").is_file()
-    base = st.template_variant(None, "population:base:3")
+    base = templates.template_variant(None, "population:base:3")
     shift = _length_mm(long) - _length_mm(base)
     assert shift == pytest.approx(12.2, abs=2.0)
     # Against the repository's template: the shift plus the 3-person sample's offset.
@@ -90,7 +89,7 @@ def test_population_template_size_and_cache(template_cache):
 )
 def test_bad_variant_is_named(variant, words):
     with pytest.raises(ValueError) as e:
-        st.template_tasks(["test:0"], st.StudyOptions(), 0.6, [variant])
+        specs.template_tasks(["test:0"], specs.StudyOptions(), 0.6, [variant])
     for w in words:
         assert w in str(e.value)
 
@@ -152,24 +151,24 @@ def test_bad_variant_and_posture_on_the_command_line(tmp_path, capsys):
 
 
 def test_real_body_tasks_posture_and_run_ids():
-    patients = st.expand_patients(f"test:0-1,{VH},{VH}@decubitus")
+    patients = specs.expand_patients(f"test:0-1,{VH},{VH}@decubitus")
     assert patients == ["test:0", "test:1", VH, VH + "@decubitus"]
-    tasks = st.template_tasks(
-        patients, st.StudyOptions(posture="supine"), 0.6, ["mean", "population:long", "loo"]
+    tasks = specs.template_tasks(
+        patients, specs.StudyOptions(posture="supine"), 0.6, ["mean", "population:long", "loo"]
     )
-    real = [t for t in tasks if t["patient"] == VH]
+    real = [t for t in tasks if t.patient == VH]
     # loo is for training patients only; the real body gets mean and population, both
     # postures, with distinct run ids.
-    assert sorted((t["template_variant"], t["posture"]) for t in real) == [
+    assert sorted((t.template_variant, t.posture) for t in real) == [
         ("mean", "left_lateral_decubitus"),
         ("mean", "supine"),
         ("population:long", "left_lateral_decubitus"),
         ("population:long", "supine"),
     ]
-    ids = [st.run_id(t) for t in tasks]
+    ids = [keys.run_id(t) for t in tasks]
     assert len(ids) == len(set(ids)) == 8
     assert any(i.endswith("shared-anatomy-hubmap-vh-female__erk060__t-mean__lld") for i in ids)
-    assert st.patient_kind(VH) == "real" and st.patient_kind("train:3") == "generated"
+    assert specs.patient_kind(VH) == "real" and specs.patient_kind("train:3") == "generated"
 
 
 @pytest.fixture(scope="module")
@@ -187,13 +186,15 @@ def test_template_distance_on_the_real_kidney(vh_female):
 
     X_BPt = LoadScenario().patient.X_BPt.GetDeterministicValue()
     kp = types.SimpleNamespace(patient=vh_female, X_BPt=X_BPt, X_BK_true=vh_female.X_BK(X_BPt))
-    rec = st.template_record("mean", st.template_variant(None, "mean"), kp, "supine", VH)
+    rec = templates.template_record(
+        "mean", templates.template_variant(None, "mean"), kp, "supine", VH
+    )
     assert rec["patient_kind"] == "real" and rec["posture"] == "supine"
     assert rec["kidney_extent_mm"][0] == pytest.approx(112.5, abs=1.5)
     assert rec["template_extent_mm"][0] == pytest.approx(106.7, abs=0.5)
     assert 3.0 < rec["template_distance_mm"] < 7.0
-    small = st.template_record(
-        "scale-0.8", st.template_variant(None, "scale-0.8"), kp, "supine", VH
+    small = templates.template_record(
+        "scale-0.8", templates.template_variant(None, "scale-0.8"), kp, "supine", VH
     )
     assert small["template_distance_mm"] > rec["template_distance_mm"] + 2.0
     # The analysis puts the real body in its own group beside the generated patients.

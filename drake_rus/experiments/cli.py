@@ -38,6 +38,7 @@ from drake_rus.experiments.analysis import (
     critical_er_summary,
     sample_size_warning,
 )
+from drake_rus.experiments.keys import run_id, task_inputs_digest, task_key
 from drake_rus.experiments.report import (
     CLOSED_LOOP,
     KINEMATIC,
@@ -48,7 +49,8 @@ from drake_rus.experiments.report import (
     write_starts_outputs,
     write_template_outputs,
 )
-from drake_rus.experiments.tasks import (
+from drake_rus.experiments.results import load_study_results, results_of, run_settings, settings_of
+from drake_rus.experiments.specs import (
     ER_GRID,
     MODES,
     POSTURES,
@@ -60,18 +62,11 @@ from drake_rus.experiments.tasks import (
     efficiency_tasks,
     er_sweep_tasks,
     expand_patients,
-    inputs_digest,
-    load_study_results,
     population_of_variant,
-    results_of,
-    run_id,
-    run_settings,
-    run_task,
-    settings_of,
     starts_tasks,
-    task_key,
     template_tasks,
 )
+from drake_rus.experiments.tasks import run_task
 from drake_rus.io_utils import MB, dumps_strict, output_dir, write_text_atomic
 from drake_rus.progress import stderr_is_terminal
 from drake_rus.provenance import Provenance
@@ -109,9 +104,10 @@ def add_commands(subparsers) -> None:
         q.add_argument(
             "--patients",
             default="test:0-14",
-            help="comma list: test:0-14, seed:100-120, train:3 or patient paths "
-            "(default test:0-14); study template: each optionally with "
-            "@decubitus or @supine",
+            help="comma (or semicolon) list: test:0-14, seed:100-120, train:3, "
+            "ct:PATH[#OPTIONS] or patient paths (default test:0-14); a "
+            "ct: spec's own commas (ct:PATH#left,body=7) do not separate; "
+            "study template: each optionally with @decubitus or @supine",
         )
         q.add_argument(
             "--out", default=f"reports/{name}", help=f"output directory (default reports/{name})"
@@ -466,24 +462,15 @@ def _critical_er(out: Path, settings: dict, default: float = DEFAULT_ER) -> floa
 def _expected_settings(options) -> dict:
     """The settings runs of ``options`` record (:func:`run_settings`)."""
     task = er_sweep_tasks(["test:0"], options, [1.0])[0]
-    return run_settings(
-        {
-            "task": task,
-            "inputs_sha256": inputs_digest(
-                task["scenario"],
-                task.get("scenarios_file"),
-                task.get("overrides"),
-                task.get("posture"),
-            ),
-        }
-    )
+    return run_settings({"task": task.to_dict(), "inputs_sha256": task_inputs_digest(task)})
 
 
 def run_study_command(args) -> int:
     try:
         patients = expand_patients(args.patients)
     except ValueError as e:
-        raise ValueError(f"--patients: {e}") from None
+        text = str(e)
+        raise ValueError(text if text.startswith("--patients") else f"--patients: {text}") from None
     if args.study != "template" and any("@" in p for p in patients):
         raise ValueError(
             "--patients: a posture suffix (@decubitus, @supine) is only read by "

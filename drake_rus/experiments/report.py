@@ -28,7 +28,7 @@ from drake_rus.experiments.analysis import (
     sample_size_warning,
     template_group,
 )
-from drake_rus.experiments.tasks import CLOSED_LOOP_STRATEGY_HOW, ER_UNIT_TEXT, STRATEGY_TEXT
+from drake_rus.experiments.specs import CLOSED_LOOP_STRATEGY_HOW, ER_UNIT_TEXT, STRATEGY_TEXT
 from drake_rus.io_utils import save_figure, write_text_atomic
 from drake_rus.metrics.sweep import MATCHED_V, POLE_TO_POLE, WHOLE_PIVOT
 from drake_rus.tables import write_csv_atomic
@@ -60,9 +60,6 @@ def provenance(
     if extra:
         parts.append(extra)
     return "*Produced by " + "; ".join(parts) + ".*"
-
-
-_provenance = provenance
 
 
 def _strategies(analysis: dict) -> list:
@@ -801,13 +798,42 @@ def report_markdown(
 ) -> str:
     """report.md: our numbers beside the seed paper's for each table and figure, each with
     the mode, registration method, segmenter, ER unit and metric definition that produced
-    it. ``compare``: the other mode's analyses of the same runs ({"mode", "er", "starts",
-    "eff"}), put side by side with these and the paper's."""
-    mode = meta.get("mode_text", KINEMATIC)
+    it (one section per analysis given). ``compare``: the other mode's analyses of the same
+    runs ({"mode", "er", "starts", "eff"}), put side by side with these and the paper's."""
+    L = header_markdown(meta, er, closed)
+    if er is not None:
+        L += er_sweep_markdown(meta, er)
+    if starts is not None:
+        L += starts_markdown(meta, starts)
+    if eff is not None:
+        L += efficiency_markdown(meta, eff)
+    if closed:
+        L += closed_loop_check_markdown(meta, closed)
+    if compare:
+        L += compare_markdown(
+            meta, {"mode": _report_mode(meta), "er": er, "starts": starts, "eff": eff}, compare
+        )
+    if template is not None:
+        L += template_markdown(meta, template)
+    L += method_notes_markdown()
+    return "\n".join(L)
 
-    def provenance(meta, **kw):  # every section of this report: the run's mode
-        return _provenance(meta, **({"mode": mode} | kw))
 
+def _report_mode(meta: dict) -> str:
+    """The mode of the report's runs (every section's unless it says otherwise)."""
+    return meta.get("mode_text", KINEMATIC)
+
+
+def _section_provenance(meta: dict, **kw) -> str:
+    """:func:`provenance` in the report's mode unless ``mode`` is given."""
+    return provenance(meta, **({"mode": _report_mode(meta)} | kw))
+
+
+def header_markdown(meta: dict, er: dict | None, closed: list | None) -> list[str]:
+    """The report's title and what every table rests on: patients, mode, segmenter and
+    registration, ER unit and critical-ER rule, metric definitions, the runs' ER, wall
+    times, scenario and inputs digest, and the runs left out."""
+    mode = _report_mode(meta)
     unit = meta.get("er_unit", "fixed")
     rule = meta.get("critical_er_rule", (er or {}).get("rule", "paper"))
     L = [
@@ -878,213 +904,224 @@ def report_markdown(
             + "; ".join(f"{study}: {', '.join(rs)}" for study, rs in left_out.items() if rs)
             + "."
         ]
-    L += [""]
-    if er is not None:
-        p = PAPER["er_sweep"]
-        kl = er.get("kidney_length_mm")
+    return L + [""]
+
+
+def er_sweep_markdown(meta: dict, er: dict) -> list[str]:
+    """The ER sweep (Fig. 7d): errors per ER with paired p against ER 100%, the critical ER
+    with what it rests on (:func:`critical_er_markdown`) and the paper's ER 60%."""
+    p = PAPER["er_sweep"]
+    kl = er.get("kidney_length_mm")
+    L = [
+        "## Exploration ratio vs localization (Fig. 7d, `fig7d_er_sweep.png`)",
+        "",
+        _section_provenance(
+            meta, er_unit=er.get("er_unit") if isinstance(er.get("er_unit"), str) else None
+        ),
+        "",
+    ]
+    if kl:
         L += [
-            "## Exploration ratio vs localization (Fig. 7d, `fig7d_er_sweep.png`)",
-            "",
-            provenance(
-                meta, er_unit=er.get("er_unit") if isinstance(er.get("er_unit"), str) else None
-            ),
+            f"Kidney length along the exploration line: {_f(kl[0][0], 1)} +- "
+            f"{_f(kl[0][1], 1)} mm ({_f(kl[1], 1)}-{_f(kl[2], 1)} mm); L_m = 100 mm.",
             "",
         ]
-        if kl:
-            L += [
-                f"Kidney length along the exploration line: {_f(kl[0][0], 1)} +- "
-                f"{_f(kl[0][1], 1)} mm ({_f(kl[1], 1)}-{_f(kl[2], 1)} mm); L_m = 100 mm.",
-                "",
-            ]
-        L += [
-            "| ER | E_trans (mm) | E_rot,x (deg) | p (E_trans vs 100%) | p (E_rot,x vs 100%) |",
-            "|---|---|---|---|---|",
-        ]
-        for r in er["rows"]:
-            L.append(
-                f"| {r['er'] * 100:.0f}% | {_f(r['e_trans_mm_mean'])} +- "
-                f"{_f(r['e_trans_mm_sd'])} | {_f(r['e_rot_x_deg_mean'])} +- "
-                f"{_f(r['e_rot_x_deg_sd'])} | {_p(r['p_e_trans'])} | "
-                f"{_p(r['p_e_rot_x'])} |"
-            )
-        row60 = next((r for r in er["rows"] if abs(r["er"] - 0.6) < 1e-6), None)
-        L += [""] + critical_er_markdown(er)
-        if row60:
-            L.append(
-                f"At ER 60%: ours {_f(row60['e_trans_mm_mean'])} +- "
-                f"{_f(row60['e_trans_mm_sd'])} mm, {_f(row60['e_rot_x_deg_mean'])} +- "
-                f"{_f(row60['e_rot_x_deg_sd'])} deg; paper {p['e_trans_mm_at_60'][0]} +- "
-                f"{p['e_trans_mm_at_60'][1]} mm, {p['e_rot_x_deg_at_60'][0]} +- "
-                f"{p['e_rot_x_deg_at_60'][1]} deg."
-            )
-        L.append("")
-    if starts is not None:
-        pl = PAPER["localization"]
-        L += [
-            "## Random exploration starts (Fig. 9d, `fig9d_starts.png`)",
-            "",
-            provenance(meta),
-            "",
-            f"All runs: E_trans {_f(starts['e_trans_mm'][0])} +- {_f(starts['e_trans_mm'][1])}"
-            f" mm, E_rot,x {_f(starts['e_rot_x_deg'][0])} +- {_f(starts['e_rot_x_deg'][1])} "
-            f"deg (paper, 15 patients x 5 starts: {pl['e_trans_mm'][0]} +- "
-            f"{pl['e_trans_mm'][1]} mm, {pl['e_rot_x_deg'][0]} +- {pl['e_rot_x_deg'][1]} deg).",
-            "",
-            "| start | E_trans (mm) | E_rot,x (deg) |",
-            "|---|---|---|",
-        ]
-        for r in starts["per_start"]:
-            L.append(
-                f"| {r['start'] + 1} | {_f(r['e_trans_mm_mean'])} +- {_f(r['e_trans_mm_sd'])}"
-                f" | {_f(r['e_rot_x_deg_mean'])} +- {_f(r['e_rot_x_deg_sd'])} |"
-            )
-        n_sig = sum(
-            t["significant_e_trans_mm"] + t["significant_e_rot_x_deg"] for t in starts["tests"]
-        )
-        pmin = min(
-            [min(t["p_e_trans_mm"], t["p_e_rot_x_deg"]) for t in starts["tests"]] or [float("nan")]
-        )
-        L += [
-            "",
-            f"Pairwise paired t-tests ({len(starts['tests'])} pairs x 2 errors, "
-            f"Bonferroni threshold p < {starts['bonferroni_threshold']:.4f}): "
-            f"**{n_sig} significant** (smallest p = {_p(pmin)}). Paper: "
-            f"{PAPER['starts']}.",
-            "",
-        ]
-    if eff is not None:
-        s = eff["summary"]
-        pe = PAPER["efficiency"]
-        n_pat = len(eff["patients"])
-        tgt = eff.get("V_target", 0.9)
-        L += [
-            "## Sweep efficiency (Fig. 10, `fig10_efficiency.png`)",
-            "",
-            f"Strategies ({mode.split(' (')[0]}; the same pose definitions in both modes, "
-            "`drake_rus/experiments/kinematic.py` `strategy_pivot_pose`, `sl_line`):",
-            "",
-        ]
-        L += strategy_lines(_strategies(eff), mode) + [""]
-        poses = (
-            "strategy poses as listed above (per run and strategy in "
-            "`efficiency_runs.csv`: sweep, pivot_pose_from, pivot_pose); the ER applies to "
-            "OP's and OP-PE's exploration only"
-        )
-        L += [
-            provenance(meta, definition=POLE_TO_POLE, extra=poses),
-            "",
-            "Pole to pole (the paper's eps, n and V):",
-            "",
-            "| strategy | n | eps (mm) | V | volume error (%) | abs volume error (%) |",
-            "|---|---|---|---|---|---|",
-        ]
-        _eff_table(L, s, n_pat, ("n", "eps_mm"), "V")
-        L += [
-            "",
-            provenance(meta, definition=WHOLE_PIVOT, extra=poses),
-            "",
-            "Whole pivot (both legs; for SL the whole line), what the robot spends:",
-            "",
-            "| strategy | n_whole_pivot | eps_whole_pivot (mm) | V_whole_pivot |",
-            "|---|---|---|---|",
-        ]
-        _eff_table(
-            L, s, n_pat, ("n_whole_pivot", "eps_whole_pivot_mm"), "V_whole_pivot", extra=False
-        )
-        L += [
-            "",
-            provenance(meta, definition=f"{MATCHED_V} = {tgt:g}", extra=poses),
-            "",
-            f"At matched coverage (n and eps, pole to pole, to first reach V = {tgt:g}):",
-            "",
-            f"| strategy | n to V {tgt:g} | eps to V {tgt:g} (mm) | patients reaching it |",
-            "|---|---|---|---|",
-        ]
-        _eff_table(L, s, n_pat, ("n_at_V", "eps_at_V_mm"), None, extra=False)
-        caps = "; ".join(
-            f"{k} on {s[k]['tilt_cap_patients']}/{n_pat} patients (leg 1: "
-            f"{s[k]['tilt_cap_leg_counts']['1']}, leg 2: {s[k]['tilt_cap_leg_counts']['2']})"
-            for k in STRATEGY_ORDER
-            if k != "SL" and k in s
-        )
-        L += [
-            "",
-            f"Tilt cap (a pivot leg ended at the controller's `max_pivot_tilt` instead of "
-            f"where the kidney left the image): {caps}.",
-            "",
-            'Comparisons "A vs B": the reduction by A (B - A) and how often A was lower; '
-            "OP against the paper's other strategies (Bonferroni over those), OP-PE (beyond "
-            "the paper: OP's pose, the predicted_end pivot) against OP (its own family).",
-            "",
-            "| definition | comparison | metric | reduction by A (mean +- SD) | A lower on | "
-            "p | significant (Bonferroni) |",
-            "|---|---|---|---|---|---|---|",
-        ]
-        for c in eff["comparisons"]:
-            unit_c = " mm" if c["metric"] == "eps_mm" else " frames"
-            L.append(
-                f"| {c.get('definition', 'pole_to_pole')} | {c['comparison']} | "
-                f"{c['metric']} | {_f(c['reduction_mean'], 1)} +- "
-                f"{_f(c['reduction_sd'], 1)}{unit_c} | {c['op_lower_count']}/"
-                f"{c['patients']} | {_p(c['p'])} | {c['significant']} |"
-            )
-        L += [""] + paper_comparison_table([_mode_label(mode)], [eff])
-        L += [
-            f"Paper (simulation, 15 patients, pole to pole): OP reduced eps by "
-            f"{pe['eps_reduction_vs_SL_mm'][0]}"
-            f" +- {pe['eps_reduction_vs_SL_mm'][1]} mm against SL and by "
-            f"{pe['eps_reduction_vs_NOP_mm'][0]} +- {pe['eps_reduction_vs_NOP_mm'][1]} mm "
-            f"against NOP; localization error cost {pe['eps_extra_vs_GT_OP_mm'][0]} +- "
-            f"{pe['eps_extra_vs_GT_OP_mm'][1]} mm against GT-OP. Volume: "
-            f"{PAPER['volume_loa']}; our target: GT-OP within 5%.",
-            "",
-        ]
-    if closed:
-        cl_unit = closed[0]["closed_loop"].get("er_unit", "fixed")
-        cl_unit_text = (
-            "fraction of the kidney length the closed loop estimates from its "
-            "explored cloud (controller `exploration_length: estimated`)"
-            if cl_unit == "estimated"
-            else ER_UNIT_TEXT["fixed"]
-        )
-        L += [
-            "## Closed-loop check (a few dynamic scans beside their kinematic twins)",
-            "",
-            provenance(
-                meta,
-                mode=f"{CLOSED_LOOP} and its {KINEMATIC}",
-                definition=f"{POLE_TO_POLE} (n, eps, V); {WHOLE_PIVOT} (n_whole, "
-                "eps_whole, V_whole)",
-                extra=f"closed-loop ER: {cl_unit_text}",
-            ),
-            "",
-            "Same patient, start (10% into the E-ROI), ER, segmenter and localization; OP pivot.",
-            "",
-            "| patient | mode | status | E_trans (mm) | E_rot,x (deg) | n | eps (mm) | V | "
-            "n_whole | eps_whole (mm) | V_whole | tilt cap legs | wall (s) |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
-        ]
-        for r in closed:
-            for label, c in (("closed-loop", r["closed_loop"]), ("kinematic", r["kinematic"])):
-                wall = (
-                    f"{_f(c['wall_s'], 0)} (sim {_f(c['sim_s'], 1)} s)"
-                    if "sim_s" in c
-                    else _f(c["wall_s"], 0)
-                )
-                caps = " ".join(str(x) for x in c.get("tilt_cap_legs") or []) or "-"
-                L.append(
-                    f"| {r['patient']} | {label} | {c.get('status', '-')} | "
-                    f"{_f(c['e_trans_mm'])} | {_f(c['e_rot_x_deg'])} | {c['n']} | "
-                    f"{_f(c['eps_mm'], 1)} | {_f(c['V'], 3)} | "
-                    f"{c.get('n_whole_pivot', '-')} | {_f(c.get('eps_whole_pivot_mm'), 1)} | "
-                    f"{_f(c.get('V_whole_pivot'), 3)} | {caps} | {wall} |"
-                )
-        L.append("")
-    if compare:
-        L += compare_markdown(meta, {"mode": mode, "er": er, "starts": starts, "eff": eff}, compare)
-    if template is not None:
-        L += template_markdown(meta, template)
     L += [
+        "| ER | E_trans (mm) | E_rot,x (deg) | p (E_trans vs 100%) | p (E_rot,x vs 100%) |",
+        "|---|---|---|---|---|",
+    ]
+    for r in er["rows"]:
+        L.append(
+            f"| {r['er'] * 100:.0f}% | {_f(r['e_trans_mm_mean'])} +- "
+            f"{_f(r['e_trans_mm_sd'])} | {_f(r['e_rot_x_deg_mean'])} +- "
+            f"{_f(r['e_rot_x_deg_sd'])} | {_p(r['p_e_trans'])} | "
+            f"{_p(r['p_e_rot_x'])} |"
+        )
+    row60 = next((r for r in er["rows"] if abs(r["er"] - 0.6) < 1e-6), None)
+    L += [""] + critical_er_markdown(er)
+    if row60:
+        L.append(
+            f"At ER 60%: ours {_f(row60['e_trans_mm_mean'])} +- "
+            f"{_f(row60['e_trans_mm_sd'])} mm, {_f(row60['e_rot_x_deg_mean'])} +- "
+            f"{_f(row60['e_rot_x_deg_sd'])} deg; paper {p['e_trans_mm_at_60'][0]} +- "
+            f"{p['e_trans_mm_at_60'][1]} mm, {p['e_rot_x_deg_at_60'][0]} +- "
+            f"{p['e_rot_x_deg_at_60'][1]} deg."
+        )
+    return L + [""]
+
+
+def starts_markdown(meta: dict, starts: dict) -> list[str]:
+    """The random starts (Fig. 9d): errors over all runs and per start, and the pairwise
+    tests against Bonferroni's threshold, beside the paper's."""
+    pl = PAPER["localization"]
+    L = [
+        "## Random exploration starts (Fig. 9d, `fig9d_starts.png`)",
+        "",
+        _section_provenance(meta),
+        "",
+        f"All runs: E_trans {_f(starts['e_trans_mm'][0])} +- {_f(starts['e_trans_mm'][1])}"
+        f" mm, E_rot,x {_f(starts['e_rot_x_deg'][0])} +- {_f(starts['e_rot_x_deg'][1])} "
+        f"deg (paper, 15 patients x 5 starts: {pl['e_trans_mm'][0]} +- "
+        f"{pl['e_trans_mm'][1]} mm, {pl['e_rot_x_deg'][0]} +- {pl['e_rot_x_deg'][1]} deg).",
+        "",
+        "| start | E_trans (mm) | E_rot,x (deg) |",
+        "|---|---|---|",
+    ]
+    for r in starts["per_start"]:
+        L.append(
+            f"| {r['start'] + 1} | {_f(r['e_trans_mm_mean'])} +- {_f(r['e_trans_mm_sd'])}"
+            f" | {_f(r['e_rot_x_deg_mean'])} +- {_f(r['e_rot_x_deg_sd'])} |"
+        )
+    n_sig = sum(t["significant_e_trans_mm"] + t["significant_e_rot_x_deg"] for t in starts["tests"])
+    pmin = min(
+        [min(t["p_e_trans_mm"], t["p_e_rot_x_deg"]) for t in starts["tests"]] or [float("nan")]
+    )
+    return L + [
+        "",
+        f"Pairwise paired t-tests ({len(starts['tests'])} pairs x 2 errors, "
+        f"Bonferroni threshold p < {starts['bonferroni_threshold']:.4f}): "
+        f"**{n_sig} significant** (smallest p = {_p(pmin)}). Paper: "
+        f"{PAPER['starts']}.",
+        "",
+    ]
+
+
+def efficiency_markdown(meta: dict, eff: dict) -> list[str]:
+    """The sweep efficiency (Fig. 10): the strategies, their costs pole to pole, over the
+    whole pivot and at matched coverage, the tilt cap, the comparisons and the paper's."""
+    mode = _report_mode(meta)
+    s = eff["summary"]
+    pe = PAPER["efficiency"]
+    n_pat = len(eff["patients"])
+    tgt = eff.get("V_target", 0.9)
+    L = [
+        "## Sweep efficiency (Fig. 10, `fig10_efficiency.png`)",
+        "",
+        f"Strategies ({mode.split(' (')[0]}; the same pose definitions in both modes, "
+        "`drake_rus/experiments/kinematic.py` `strategy_pivot_pose`, `sl_line`):",
+        "",
+    ]
+    L += strategy_lines(_strategies(eff), mode) + [""]
+    poses = (
+        "strategy poses as listed above (per run and strategy in "
+        "`efficiency_runs.csv`: sweep, pivot_pose_from, pivot_pose); the ER applies to "
+        "OP's and OP-PE's exploration only"
+    )
+    L += [
+        _section_provenance(meta, definition=POLE_TO_POLE, extra=poses),
+        "",
+        "Pole to pole (the paper's eps, n and V):",
+        "",
+        "| strategy | n | eps (mm) | V | volume error (%) | abs volume error (%) |",
+        "|---|---|---|---|---|---|",
+    ]
+    _eff_table(L, s, n_pat, ("n", "eps_mm"), "V")
+    L += [
+        "",
+        _section_provenance(meta, definition=WHOLE_PIVOT, extra=poses),
+        "",
+        "Whole pivot (both legs; for SL the whole line), what the robot spends:",
+        "",
+        "| strategy | n_whole_pivot | eps_whole_pivot (mm) | V_whole_pivot |",
+        "|---|---|---|---|",
+    ]
+    _eff_table(L, s, n_pat, ("n_whole_pivot", "eps_whole_pivot_mm"), "V_whole_pivot", extra=False)
+    L += [
+        "",
+        _section_provenance(meta, definition=f"{MATCHED_V} = {tgt:g}", extra=poses),
+        "",
+        f"At matched coverage (n and eps, pole to pole, to first reach V = {tgt:g}):",
+        "",
+        f"| strategy | n to V {tgt:g} | eps to V {tgt:g} (mm) | patients reaching it |",
+        "|---|---|---|---|",
+    ]
+    _eff_table(L, s, n_pat, ("n_at_V", "eps_at_V_mm"), None, extra=False)
+    caps = "; ".join(
+        f"{k} on {s[k]['tilt_cap_patients']}/{n_pat} patients (leg 1: "
+        f"{s[k]['tilt_cap_leg_counts']['1']}, leg 2: {s[k]['tilt_cap_leg_counts']['2']})"
+        for k in STRATEGY_ORDER
+        if k != "SL" and k in s
+    )
+    L += [
+        "",
+        f"Tilt cap (a pivot leg ended at the controller's `max_pivot_tilt` instead of "
+        f"where the kidney left the image): {caps}.",
+        "",
+        'Comparisons "A vs B": the reduction by A (B - A) and how often A was lower; '
+        "OP against the paper's other strategies (Bonferroni over those), OP-PE (beyond "
+        "the paper: OP's pose, the predicted_end pivot) against OP (its own family).",
+        "",
+        "| definition | comparison | metric | reduction by A (mean +- SD) | A lower on | "
+        "p | significant (Bonferroni) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for c in eff["comparisons"]:
+        unit_c = " mm" if c["metric"] == "eps_mm" else " frames"
+        L.append(
+            f"| {c.get('definition', 'pole_to_pole')} | {c['comparison']} | "
+            f"{c['metric']} | {_f(c['reduction_mean'], 1)} +- "
+            f"{_f(c['reduction_sd'], 1)}{unit_c} | {c['op_lower_count']}/"
+            f"{c['patients']} | {_p(c['p'])} | {c['significant']} |"
+        )
+    L += [""] + paper_comparison_table([_mode_label(mode)], [eff])
+    return L + [
+        f"Paper (simulation, 15 patients, pole to pole): OP reduced eps by "
+        f"{pe['eps_reduction_vs_SL_mm'][0]}"
+        f" +- {pe['eps_reduction_vs_SL_mm'][1]} mm against SL and by "
+        f"{pe['eps_reduction_vs_NOP_mm'][0]} +- {pe['eps_reduction_vs_NOP_mm'][1]} mm "
+        f"against NOP; localization error cost {pe['eps_extra_vs_GT_OP_mm'][0]} +- "
+        f"{pe['eps_extra_vs_GT_OP_mm'][1]} mm against GT-OP. Volume: "
+        f"{PAPER['volume_loa']}; our target: GT-OP within 5%.",
+        "",
+    ]
+
+
+def closed_loop_check_markdown(meta: dict, closed: list) -> list[str]:
+    """The paper study's closed-loop check: each dynamic scan beside its kinematic twin."""
+    cl_unit = closed[0]["closed_loop"].get("er_unit", "fixed")
+    cl_unit_text = (
+        "fraction of the kidney length the closed loop estimates from its "
+        "explored cloud (controller `exploration_length: estimated`)"
+        if cl_unit == "estimated"
+        else ER_UNIT_TEXT["fixed"]
+    )
+    L = [
+        "## Closed-loop check (a few dynamic scans beside their kinematic twins)",
+        "",
+        _section_provenance(
+            meta,
+            mode=f"{CLOSED_LOOP} and its {KINEMATIC}",
+            definition=f"{POLE_TO_POLE} (n, eps, V); {WHOLE_PIVOT} (n_whole, eps_whole, V_whole)",
+            extra=f"closed-loop ER: {cl_unit_text}",
+        ),
+        "",
+        "Same patient, start (10% into the E-ROI), ER, segmenter and localization; OP pivot.",
+        "",
+        "| patient | mode | status | E_trans (mm) | E_rot,x (deg) | n | eps (mm) | V | "
+        "n_whole | eps_whole (mm) | V_whole | tilt cap legs | wall (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in closed:
+        for label, c in (("closed-loop", r["closed_loop"]), ("kinematic", r["kinematic"])):
+            wall = (
+                f"{_f(c['wall_s'], 0)} (sim {_f(c['sim_s'], 1)} s)"
+                if "sim_s" in c
+                else _f(c["wall_s"], 0)
+            )
+            caps = " ".join(str(x) for x in c.get("tilt_cap_legs") or []) or "-"
+            L.append(
+                f"| {r['patient']} | {label} | {c.get('status', '-')} | "
+                f"{_f(c['e_trans_mm'])} | {_f(c['e_rot_x_deg'])} | {c['n']} | "
+                f"{_f(c['eps_mm'], 1)} | {_f(c['V'], 3)} | "
+                f"{c.get('n_whole_pivot', '-')} | {_f(c.get('eps_whole_pivot_mm'), 1)} | "
+                f"{_f(c.get('V_whole_pivot'), 3)} | {caps} | {wall} |"
+            )
+    return L + [""]
+
+
+def method_notes_markdown() -> list[str]:
+    """The report's closing notes: how the runs were made (both modes)."""
+    return [
         "## Method notes",
         "",
         "- Kinematic runs place the probe exactly where the controller laws ask (eq. 17 "
@@ -1133,7 +1170,6 @@ def report_markdown(
         "filling), threshold 0.5, against the kidney mesh's volume.",
         "",
     ]
-    return "\n".join(L)
 
 
 def _mode_label(text: str) -> str:
@@ -1166,7 +1202,7 @@ def compare_markdown(meta: dict, this: dict, other: dict) -> list[str]:
     L = [
         "## Kinematic twin and closed loop side by side",
         "",
-        _provenance(meta, mode=" and ".join(c["mode"] for c in cols)),
+        provenance(meta, mode=" and ".join(c["mode"] for c in cols)),
         "",
     ]
 

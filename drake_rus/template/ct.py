@@ -1053,7 +1053,7 @@ def canonical_kidney_points(
 def template_distance(points_K: np.ndarray, template_points: np.ndarray) -> float:
     """Symmetric mean nearest-neighbour distance (m) between a kidney's surface points and a
     template's points, both in their canonical frames (principal axes, no scaling, no ICP):
-    the measure of the template study (``drake_rus.experiments.tasks.template_distance``)."""
+    the measure of the template study (``drake_rus.experiments.templates.template_distance``)."""
     a = cKDTree(points_K).query(template_points)[0].mean()
     b = cKDTree(template_points).query(points_K)[0].mean()
     return float(0.5 * (a + b))
