@@ -1,8 +1,10 @@
 """The default scan on real CT kidneys (``python -m benchmarks real_kidneys --cases DIR
-[--limit N] [--template generated|real] [--side right|left] [--workers N] [--out DIR]``).
+[--limit N] [--template generated|real] [--side right|left] [--workers N] [--offset K]
+[--out DIR]``).
 
 For every case under DIR (KiTS layout: ``DIR/case_*/segmentation.nii.gz``, labels 0
-background, 1 kidney, 2 tumour; cases in sorted order, the first ``--limit``), a patient
+background, 1 kidney, 2 tumour; cases in sorted order, the first ``--limit`` after
+skipping ``--offset``), a patient
 carrying that case's kidney (``ct:CASE#SIDE``: the real kidney with its tumour in a generated
 body, :mod:`drake_rus.anatomy.ct_patient`; the right kidney by default) is scanned by the
 product's default closed-loop scan (default scenario: start planner, learned segmenter,
@@ -58,9 +60,10 @@ ROW_KEYS = (
 )
 
 
-def find_cases(ct_dir: Path, limit: int | None) -> list[tuple[str, Path]]:
-    """(case name, label map) of the KiTS-layout folder, sorted, the first ``limit``."""
-    maps = find_label_maps(ct_dir)
+def find_cases(ct_dir: Path, limit: int | None, offset: int = 0) -> list[tuple[str, Path]]:
+    """(case name, label map) of the KiTS-layout folder, sorted; from the ``offset``-th,
+    the first ``limit``."""
+    maps = find_label_maps(ct_dir)[offset:]
     return maps[:limit] if limit else maps
 
 
@@ -144,7 +147,10 @@ def _round(v):
 
 
 def _fmt(v, spec):
-    return "-" if v is None else format(v, spec)
+    if v is None:
+        width = spec.split(".")[0]
+        return format("-", f">{width}") if width else "-"
+    return format(v, spec)
 
 
 def print_table(rows, file=sys.stdout) -> None:
@@ -170,6 +176,9 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--cases", required=True, help="folder DIR/case_*/segmentation.nii.gz")
     parser.add_argument("--limit", type=int, default=None, help="the first N cases")
+    parser.add_argument(
+        "--offset", type=int, default=0, help="skip the first K cases (held-out runs)"
+    )
     parser.add_argument("--template", default="generated", choices=TEMPLATES)
     parser.add_argument("--side", default="right", choices=SIDES)
     parser.add_argument("--workers", type=int, default=2, help="scan processes (0: this one)")
@@ -180,6 +189,9 @@ def main(argv=None) -> int:
     if args.limit is not None and args.limit < 1:
         print(f"--limit: expected 1 or more cases, got {args.limit}", file=sys.stderr)
         return 2
+    if args.offset < 0:
+        print(f"--offset: expected 0 or more cases, got {args.offset}", file=sys.stderr)
+        return 2
     try:
         workers, note = bound_workers(args.workers)
     except ValueError as e:
@@ -188,9 +200,12 @@ def main(argv=None) -> int:
     if note:
         print(note, file=sys.stderr)
     try:
-        cases = find_cases(ct_dir, args.limit)
+        cases = find_cases(ct_dir, args.limit, args.offset)
     except CtTemplateError as e:
         print(f"--cases: {e}", file=sys.stderr)
+        return 2
+    if not cases:
+        print(f"--offset: {args.offset} skips every case of {ct_dir}", file=sys.stderr)
         return 2
     t0 = time.time()
     template_info = {"spec": args.template}

@@ -94,6 +94,15 @@ def test_benchmark_json_on_two_tiny_cases(cases, scans, capsys):
     assert list(doc)[-1] == "rows"
 
 
+def test_benchmark_offset(cases, scans, capsys):
+    """--offset skips the first cases (held-out runs), in sorted order."""
+    assert real_kidneys.main(["--cases", str(cases), "--offset", "2", "--workers", "0"]) == 0
+    doc = _json(capsys)
+    assert [r["case"] for r in doc["rows"]] == ["case_00002"] and doc["done"] == 1
+    assert real_kidneys.main(["--cases", str(cases), "--offset", "3", "--workers", "0"]) == 2
+    assert "--offset" in capsys.readouterr().err
+
+
 def test_benchmark_left_side_and_totals(cases, scans, capsys):
     """--side left scans the left kidneys (every case has one); the totals are over the
     DONE scans in case order."""
@@ -130,3 +139,5 @@ def test_benchmark_bad_input(tmp_path, capsys):
     assert "--limit" in capsys.readouterr().err
     assert real_kidneys.main(["--cases", str(tmp_path), "--workers", "-1"]) == 2
     assert "--workers" in capsys.readouterr().err
+    assert real_kidneys.main(["--cases", str(tmp_path), "--offset", "-1"]) == 2
+    assert "--offset" in capsys.readouterr().err
