@@ -318,3 +318,22 @@ def test_a_tiny_study_on_a_ct_patient_with_two_templates(kits, tmp_path, capsys)
     assert "kinematic, generated template, ORACLE segmenter" in text
     assert "Critical ER and what it rests on, side by side" in text
     assert "| patients n | 15 | 1 | 1 |" in text
+
+
+def test_a_study_whose_runs_are_all_left_out_writes_no_tables(tmp_path, capsys, monkeypatch):
+    """Every closed-loop efficiency run left out (here: no localization): one message, no
+    crash while plotting nothing (it happened with the learned segmenter on a quick
+    scenario)."""
+    calls = []
+    fake = _fake_run(calls)
+    monkeypatch.setattr(study_cli, "run_task", lambda t: fake(t) | {"e_trans_mm": None})
+    out = tmp_path / "none"
+    argv = ["efficiency", "--patients", "test:0", "--mode", "closed-loop", "--er", "0.6"]
+    assert _study(*argv, "--out", str(out)) == 0
+    err = capsys.readouterr().err
+    assert "no run to analyse (every one left out): no efficiency tables" in err
+    assert not (out / "closed-loop" / "efficiency_runs.csv").exists()
+    assert (
+        "efficiency: efficiency__test-0__erk060__cl"
+        in (out / "closed-loop" / "report.md").read_text()
+    )

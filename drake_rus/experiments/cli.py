@@ -570,6 +570,7 @@ def _other_columns(
             except (ValueError, KeyError, ZeroDivisionError):
                 continue
             found.setdefault("template_info", pick[0].get("template"))
+            found.setdefault("status", {})[name] = _status_counts(pick)
         if not found or "er" not in found and "starts" not in found and "eff" not in found:
             continue
         columns.append(
@@ -581,6 +582,16 @@ def _other_columns(
             )
         )
     return columns
+
+
+def _status_counts(results) -> dict:
+    """How many of a study's closed-loop scans ended in each status ({} for kinematic
+    runs, which have none)."""
+    out = {}
+    for r in results:
+        if r.get("status"):
+            out[r["status"]] = out.get(r["status"], 0) + 1
+    return dict(sorted(out.items(), key=lambda kv: (kv[0] != "DONE", kv[0])))
 
 
 def _usable(results, study: str = ""):
@@ -867,17 +878,24 @@ def _study(
         go(tasks, "starts")
         ran["starts"] = time.perf_counter() - t
         results = usable("starts", runs_of("starts", tasks))
-        starts_an = write_starts_outputs(
-            dest,
-            results,
-            mode=mode_text,
-            note=note_of(results, _labels(results, options, "starts", patients)),
-        )
-        print(
-            f"starts at ER {er * 100:.0f}%: any significant difference: "
-            f"{starts_an['any_significant']}",
-            flush=True,
-        )
+        if not results:
+            print(
+                "starts: no run to analyse (every one left out): no starts tables",
+                file=sys.stderr,
+                flush=True,
+            )
+        else:
+            starts_an = write_starts_outputs(
+                dest,
+                results,
+                mode=mode_text,
+                note=note_of(results, _labels(results, options, "starts", patients)),
+            )
+            print(
+                f"starts at ER {er * 100:.0f}%: any significant difference: "
+                f"{starts_an['any_significant']}",
+                flush=True,
+            )
     if args.study in ("efficiency", "paper"):
         export = None if args.no_nrrd else (out / "volumes").resolve()
         tasks = efficiency_tasks(patients, options, er, export, _strategies(args, mode))
@@ -885,22 +903,29 @@ def _study(
         go(tasks, "efficiency")
         ran["efficiency"] = time.perf_counter() - t
         results = usable("efficiency", runs_of("efficiency", tasks))
-        eff_an = write_efficiency_outputs(
-            dest,
-            results,
-            mode=mode_text,
-            note=note_of(results, _labels(results, options, "efficiency", patients)),
-        )
-        s = eff_an["summary"]
-        print(
-            "efficiency (pole to pole): "
-            + "; ".join(
-                f"{k} n {s[k]['n'][0]:.0f} eps {s[k]['eps_mm'][0]:.1f} mm V {s[k]['V'][0]:.3f}"
-                for k in STRATEGY_ORDER
-                if k in s
-            ),
-            flush=True,
-        )
+        if not results:
+            print(
+                "efficiency: no run to analyse (every one left out): no efficiency tables",
+                file=sys.stderr,
+                flush=True,
+            )
+        else:
+            eff_an = write_efficiency_outputs(
+                dest,
+                results,
+                mode=mode_text,
+                note=note_of(results, _labels(results, options, "efficiency", patients)),
+            )
+            s = eff_an["summary"]
+            print(
+                "efficiency (pole to pole): "
+                + "; ".join(
+                    f"{k} n {s[k]['n'][0]:.0f} eps {s[k]['eps_mm'][0]:.1f} mm V {s[k]['V'][0]:.3f}"
+                    for k in STRATEGY_ORDER
+                    if k in s
+                ),
+                flush=True,
+            )
     template_an = None
     population_builds = {}
     if args.study == "template":
@@ -1005,6 +1030,12 @@ def _study(
         (r["template"] for r in used if isinstance(r.get("template"), dict)),
         template_info(options.template, options.template_file or scenario.localization.template),
     )
+    meta["run_status"] = {}
+    for r in used:
+        study = (r.get("task") or {}).get("study", "?")
+        if r.get("status"):
+            meta["run_status"].setdefault(study, []).append(r)
+    meta["run_status"] = {k: _status_counts(v) for k, v in meta["run_status"].items()}
     meta["ct_cases_left_out"] = (cohort or {}).get("ct_cases_left_out", [])
     meta["patients_in_template"] = (cohort or {}).get("template_cases", [])
     if args.study == "template":

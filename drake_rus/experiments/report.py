@@ -888,6 +888,7 @@ def report_markdown(
             "eff": eff,
             "settings": meta.get("settings"),
             "template_info": meta.get("template"),
+            "status": meta.get("run_status") or {},
         }
         L += compare_markdown(meta, this, compare if isinstance(compare, list) else [compare])
     if template is not None:
@@ -983,6 +984,14 @@ def header_markdown(meta: dict, er: dict | None, closed: list | None) -> list[st
             )
             + "; each run's record (OUT/runs) holds its task and provenance (resolved "
             "scenario, overrides, seeds, package versions)."
+        ]
+    run_status = meta.get("run_status") or {}
+    if run_status:
+        L += [
+            "- Closed-loop scans by status: "
+            + "; ".join(f"{k} {_status_text(v)}" for k, v in run_status.items())
+            + " (a registration the product rejected stops the scan ABORT, its errors are "
+            "recorded and analysed, as the paper has no acceptance check)."
         ]
     ct_out = meta.get("ct_cases_left_out") or []
     if ct_out:
@@ -1317,7 +1326,14 @@ def _settings_text(settings: dict | None) -> str:
     )
 
 
-def critical_er_columns(names: list[str], ers: list[dict]) -> list[str]:
+def _status_text(counts: dict | None) -> str:
+    """Closed-loop scans by status ("DONE 8, ABORT 1"), "-" for kinematic runs."""
+    return ", ".join(f"{k} {n}" for k, n in (counts or {}).items()) or "-"
+
+
+def critical_er_columns(
+    names: list[str], ers: list[dict], status: list[dict] | None = None
+) -> list[str]:
     """The critical-ER block side by side: per column (and the paper's) the critical ER,
     n, the ER-100% floor, the paired effect size and power at the critical ER, and the
     equivalence ER within the margins."""
@@ -1359,6 +1375,14 @@ def critical_er_columns(names: list[str], ers: list[dict]) -> list[str]:
             [_pct(e.get("equivalence_er")) for e in ers],
         ),
     ]
+    if status and any(status):
+        rows.append(
+            (
+                "closed-loop scans by status (errors of rejected registrations recorded)",
+                "-",
+                [_status_text(x) for x in status],
+            )
+        )
     L = [
         "Critical ER and what it rests on, side by side:",
         "",
@@ -1461,7 +1485,8 @@ def compare_markdown(meta: dict, this: dict, others: list[dict]) -> list[str]:
                 else ""
             )
             L.append(f"| {g * 100:.0f}% | {pap} | " + " | ".join(cells) + " |")
-        L += [""] + critical_er_columns(er_names, ers)
+        er_status = [(c.get("status") or {}).get("er-sweep") for c in cols if c.get("er")]
+        L += [""] + critical_er_columns(er_names, ers, er_status)
     st_names = [n for n, c in zip(names, cols) if c.get("starts")]
     sts = [c["starts"] for c in cols if c.get("starts")]
     if len(sts) >= 2:
