@@ -5,6 +5,7 @@ the LeafSystem the scan supervisor triggers in its LOCALIZE phase.
 """
 
 import dataclasses
+import functools
 import math
 
 import numpy as np
@@ -23,7 +24,7 @@ from drake_rus.localization.icp import (
     register_plane_to_plane,
 )
 from drake_rus.paths import REPO_ROOT
-from drake_rus.template import load_template
+from drake_rus.template import DEFAULT_TEMPLATE_PATH, load_template
 from drake_rus.template.ct import is_template_spec, resolve_template
 
 
@@ -44,6 +45,15 @@ class RegistrationTemplate:
             self.modes = modes.reshape(modes.shape[0], -1, 3)
             self.variances = np.asarray(self.variances, dtype=float).reshape(-1)
         self._grid = None
+
+    def unexplained_sd(self, k: int) -> float:
+        """Per-point RMS deviation (m) of the template's own subjects from it that its first
+        ``k`` shape modes do not explain: sqrt(sum of the variances beyond k / points).
+        The variances of the stored modes only (a template keeps the modes that explain 95%
+        of its subjects' variance); 0 without modes."""
+        if self.variances is None or len(self.variances) <= k:
+            return 0.0
+        return float(np.sqrt(np.sum(self.variances[k:]) / len(self.points)))
 
     @property
     def tree(self) -> NearestPointGrid:
@@ -171,7 +181,7 @@ def estimate_kidney_length(
     )
     P = np.asarray(P_local_B, dtype=float).reshape(-1, 3)
     result = localize(P, template, cfg, superior_B, lateral_B, warm_start)
-    if check_registration(result, P, cfg):
+    if check_registration(result, P, cfg, template):
         return math.nan, result
     return kidney_length_of(template, result), result
 
@@ -194,8 +204,39 @@ def exploration_travel(poses) -> float:
     return float(np.max(np.linalg.norm(p - p[0], axis=1)))
 
 
-def check_registration(result: IcpResult, P_local_B: np.ndarray, config: LocalizationConfig) -> str:
-    """Why the estimate must not be used ('' when it passes the sanity checks)."""
+@functools.lru_cache(maxsize=1)
+def _shipped_template() -> RegistrationTemplate:
+    return load_registration_template(str(DEFAULT_TEMPLATE_PATH))
+
+
+def max_rms_residual(
+    config: LocalizationConfig, template: RegistrationTemplate | None, deformable: bool
+) -> float:
+    """The registration's RMS-residual gate (m) for ``template``: the config's gate
+    (``max_rms_residual_deformable`` for a fit with shape modes, else ``max_rms_residual``),
+    measured on the shipped template, widened by the shape variability that ``template``'s
+    own subjects show beyond the modes fitted and the shipped template's do not:
+    sqrt(gate^2 + z^2 max(0, s_T^2 - s_shipped^2)), s the unexplained per-point SD
+    (:meth:`RegistrationTemplate.unexplained_sd`), z = ``rms_shape_allowance_sd``. A kidney
+    of ``template``'s population at z SD of its unexplained shape leaves that much more
+    residual; the shipped template keeps the measured gate exactly."""
+    gate = config.max_rms_residual_deformable if deformable else config.max_rms_residual
+    z = config.rms_shape_allowance_sd
+    if z <= 0 or not isinstance(template, RegistrationTemplate) or template.variances is None:
+        return gate
+    k = min(config.shape_modes, len(template.variances)) if deformable else 0
+    excess = template.unexplained_sd(k) ** 2 - _shipped_template().unexplained_sd(k) ** 2
+    return float(np.sqrt(gate**2 + z**2 * max(0.0, excess)))
+
+
+def check_registration(
+    result: IcpResult,
+    P_local_B: np.ndarray,
+    config: LocalizationConfig,
+    template: RegistrationTemplate | None = None,
+) -> str:
+    """Why the estimate must not be used ('' when it passes the sanity checks); the RMS
+    gate is :func:`max_rms_residual` for ``template`` (the config's own without it)."""
     if not np.all(np.isfinite(result.X_BK.GetAsMatrix4())):
         return "registration produced a non-finite pose"
     if result.inlier_fraction < config.min_inlier_fraction:
@@ -205,11 +246,7 @@ def check_registration(result: IcpResult, P_local_B: np.ndarray, config: Localiz
             f"(need {100 * config.min_inlier_fraction:.0f}%)"
         )
     # The deformable fit absorbs part of the kidney's shape difference: its own bound.
-    max_rms = (
-        config.max_rms_residual_deformable
-        if result.shape_coefficients is not None
-        else config.max_rms_residual
-    )
+    max_rms = max_rms_residual(config, template, result.shape_coefficients is not None)
     if result.rms_residual > max_rms:
         return (
             f"registration rejected: RMS residual {1000 * result.rms_residual:.1f} mm "
@@ -235,7 +272,7 @@ def register_cloud(
     and :func:`check_registration`, the LOCALIZE registration and the adaptive checks as one
     call (an executor job)."""
     result = localize(P_local_B, template, config, superior_B, lateral_B)
-    return result, check_registration(result, P_local_B, config)
+    return result, check_registration(result, P_local_B, config, template)
 
 
 def prepared_template(template: RegistrationTemplate) -> RegistrationTemplate:
