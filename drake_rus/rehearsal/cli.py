@@ -51,7 +51,9 @@ def add_commands(subparsers) -> None:
         epilog=EXIT_STATUS_HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    add_scenario_arguments(p)
+    # The rehearsal rehearses the hardware scan: the shipped scenario of a real robot (its
+    # watchdogs), unless another is named.
+    add_scenario_arguments(p, default="hardware")
     p.add_argument(
         "--patient",
         default="test:0",
