@@ -46,6 +46,7 @@ from drake_rus.rehearsal.core import (
 )
 from drake_rus.rehearsal.drill import merge_overrides
 from drake_rus.rehearsal.mjpeg import FrameBuffer, MjpegServer
+from drake_rus.rehearsal.run import CpuLoad
 from drake_rus.rehearsal.sim import WireFaults
 from drake_rus.rehearsal.sim_process import sequence_gaps
 from drake_rus.scan import RunScan, ScanMetrics, Summary
@@ -389,3 +390,26 @@ def test_threads_do_not_leak():
     """The fast tests leave no rehearsal thread behind (servers closed)."""
     names = [t.name for t in threading.enumerate()]
     assert not any(n.startswith("drake_rus_mjpeg") for n in names), names
+
+
+def test_cpu_load_spins_in_sessions_of_its_own_and_ends():
+    """--cpu-load's busy processes: each spins (its CPU time grows) in a session of its own,
+    like another program; leaving the context ends them all."""
+
+    def cpu_ticks(pid):
+        fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+        return int(fields[11]) + int(fields[12])  # utime + stime
+
+    with CpuLoad(2) as load:
+        assert len(load.pids) == 2
+        for pid in load.pids:
+            assert os.getsid(pid) == pid
+        first = {pid: cpu_ticks(pid) for pid in load.pids}
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline and not all(
+            cpu_ticks(pid) > first[pid] + 5 for pid in load.pids
+        ):
+            time.sleep(0.1)
+        assert all(cpu_ticks(pid) > first[pid] + 5 for pid in load.pids)
+        processes = list(load.processes)
+    assert all(p.poll() is not None for p in processes)
