@@ -230,6 +230,7 @@ def plot_loop_timing(result, path: Path) -> None:
         ax.plot(t[: len(values)], values, ".", ms=1.5, color="k")
         ax.axhline(tick_ms, ls=":", color="tab:blue", lw=1, label=f"tick {tick_ms:g} ms")
         ax.set_yscale("symlog", linthresh=1.0)
+        ax.set_ylim(bottom=0.0)  # times are never negative
         ax.set_ylabel(label)
         s = timing[f"{key}_ms"]
         ax.set_title(
