@@ -247,6 +247,25 @@ def run_isolated(argv, log_path, timeout):
     return code, log_path.read_text(errors="replace")
 
 
+def skip_if_overloaded_by_others(report):
+    """A machine that other jobs load beyond twice its CPUs cannot run the rehearsal at real
+    time, and the scan must then stop, at zero velocity, naming the overload: that is checked
+    and the rest skipped. On a machine that is not (the rehearsal's own processes load 2
+    CPUs about 2) an overload stop fails the test like any other."""
+    reason = report.get("reason") or ""
+    loop = (report.get("realtime") or {}).get("scan", {}).get("loop") or {}
+    load = loop.get("load_average") or {}
+    if report.get("status") != "ABORT" or "the computer is overloaded" not in reason:
+        return
+    if not load.get("1min", 0.0) > 2.0 * (load.get("cpus") or 1):
+        return
+    assert np.abs(report["joint_velocity_end_at_sim"]).max() < 1e-3, reason  # at rest
+    pytest.skip(
+        f"machine overloaded by other jobs (load average {load['1min']:.1f} on "
+        f"{load['cpus']} CPUs): the scan stopped at zero velocity naming it ({reason[:90]})"
+    )
+
+
 @pytest.mark.slow
 def test_rehearsal_end_to_end(tmp_path):
     out = tmp_path / "rehearsal"
@@ -273,6 +292,7 @@ def test_rehearsal_end_to_end(tmp_path):
     )
     wall_rehearsal = time.monotonic() - t0
     report = json.loads((out / "rehearsal.json").read_text())
+    skip_if_overloaded_by_others(report)
     assert code == 0 and report["status"] == "DONE", (report.get("reason"), text[-3000:])
     assert report["network_isolated"]
     for name in ("summary.json", "sim_log.json", "partial_cloud.ply", "registration.png"):
