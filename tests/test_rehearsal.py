@@ -378,6 +378,16 @@ def test_sigterm_mid_pivot_stops_the_robot_within_100_ms(tmp_path):
         timeout=300,
     )
     wall = time.monotonic() - t0
+    if code != 0 and "the computer is overloaded" in text:
+        # The scan stopped by itself before the signal: only a machine loaded by other jobs
+        # excuses it (see skip_if_overloaded_by_others), and then at zero velocity.
+        load, cpus = os.getloadavg()[0], os.cpu_count() or 1
+        if load > 2.0 * cpus:
+            assert "zero velocity" in text, text[-3000:]  # the session stopped the robot
+            pytest.skip(
+                f"machine overloaded by other jobs (load average {load:.1f} on {cpus} "
+                "CPUs): the scan stopped at zero velocity naming it before the signal"
+            )
     assert code == 0, text[-3000:]
     report = json.loads((out / "stop_drill.json").read_text())
     assert report["network_isolated"]
