@@ -25,11 +25,12 @@ from drake_rus.imaging.backprojection import accumulate
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.emulator import EmulatorModel, emulate
 from drake_rus.imaging.emulator import warm_up as warm_emulator
-from drake_rus.imaging.frames import BoundaryPixels, PointCloud, UsFrame
+from drake_rus.imaging.frames import BoundaryPixels, KidneySurface, PointCloud, UsFrame
 from drake_rus.imaging.onnx_backend import OnnxSegmenter
 from drake_rus.imaging.probe import ProbeGeometry, check_pose
 from drake_rus.imaging.segment import (
     KidneyTrack,
+    predicted_section,
     read_mask,
     segment_classical,
     segment_oracle,
@@ -178,21 +179,24 @@ class UltrasoundEmulator(LeafSystem):
 
 
 def make_segmenter_backend(config: ImagingConfig, geometry: ProbeGeometry):
-    """A callable ``(us_image, label_image, prev_mask, prev_age=inf) -> mask`` for
-    ``config.segmenter``: ``prev_mask`` is the classical backend's temporal prior, or the
-    kidney last seen ``prev_age`` s ago that the onnx backend follows (None: none).
-    Raises ValueError naming the field when the backend cannot be built (e.g. a bad model)."""
+    """A callable ``(us_image, label_image, prev_mask, prev_age=inf, section=None) -> mask``
+    for ``config.segmenter``: ``prev_mask`` is the classical backend's temporal prior, or the
+    kidney last seen ``prev_age`` s ago that the onnx backend follows (None: none);
+    ``section`` the registered template's predicted section of this frame (bool; None: no
+    prediction), which the onnx backend follows too and the classical one takes as its prior
+    when it has no previous mask. Raises ValueError naming the field when the backend
+    cannot be built (e.g. a bad model)."""
     backend = config.segmenter
     if backend == "oracle":
-        return lambda us, labels, prev, age=math.inf: segment_oracle(labels)
+        return lambda us, labels, prev, age=math.inf, section=None: segment_oracle(labels)
     if backend == "classical":
         min_area = config.min_kidney_area
-        return lambda us, labels, prev, age=math.inf: segment_classical(
-            us, geometry, prev, min_area
+        return lambda us, labels, prev, age=math.inf, section=None: segment_classical(
+            us, geometry, prev if prev is not None else section, min_area
         )
     if backend == "onnx":
         model = OnnxSegmenter.from_config(config, geometry)
-        return lambda us, labels, prev, age=math.inf: model(us, prev, age)
+        return lambda us, labels, prev, age=math.inf, section=None: model(us, prev, age, section)
     raise ValueError(
         f"imaging.segmenter: unknown backend {backend!r}; expected 'oracle', 'classical' or 'onnx'"
     )
@@ -202,7 +206,12 @@ class Segmenter(LeafSystem):
     """Kidney segmentation of the current frame and the read-outs the controller uses.
 
     Inputs: ``us_image`` (abstract UsFrame, uint8 grey) for the ``classical`` and ``onnx``
-    backends; ``label_image`` (abstract UsFrame, uint8 labels) for the ``oracle`` backend.
+    backends; ``label_image`` (abstract UsFrame, uint8 labels) for the ``oracle`` backend;
+    ``kidney_surface`` (abstract KidneySurface, optional: the registered template's surface
+    in B after localization), from which each frame's predicted section
+    (:func:`~drake_rus.imaging.segment.predicted_section`, at the frame's X_BP, slab half the
+    elevational beam width) is the tracker's prior: the kidney is found again where the
+    template puts it, after a pivot leg's end or any loss.
     Outputs (all for the latest frame):
       ``kidney_mask`` (abstract UsFrame, bool mask, with the frame's time, X_BP, index);
       ``kidney_visible`` (1-vector, 1.0 when the mask area >= ``min_kidney_area``, else 0.0);
@@ -226,6 +235,10 @@ class Segmenter(LeafSystem):
         self._empty_mask = UsFrame(np.zeros(shape, bool))
         self._us = self.DeclareAbstractInputPort("us_image", AbstractValue.Make(empty))
         self._labels = self.DeclareAbstractInputPort("label_image", AbstractValue.Make(empty))
+        self._surface = self.DeclareAbstractInputPort(
+            "kidney_surface", AbstractValue.Make(KidneySurface())
+        )
+        self._slab = 0.5 * config.elevation_width
         self._source = self._labels if self._backend_name == "oracle" else self._us
         self._uses_prior = self._backend_name in ("classical", "onnx")
         # The classical prior is the previous frame's mask; the onnx backend follows a
@@ -238,7 +251,10 @@ class Segmenter(LeafSystem):
         self._prior_index = self.DeclareAbstractState(
             AbstractValue.Make(KidneyTrack() if self._follows else self._empty_mask)
         )
-        tickets = {self.input_port_ticket(self._source.get_index())}
+        tickets = {
+            self.input_port_ticket(self._source.get_index()),
+            self.input_port_ticket(self._surface.get_index()),
+        }
         if self._uses_prior:
             tickets.add(self.abstract_state_ticket(self._prior_index))
             period = 1.0 / config.frame_rate_hz
@@ -305,6 +321,9 @@ class Segmenter(LeafSystem):
             else self._empty_mask
         )
         frame_key = _frame_key(frame)
+        surface = self._surface.Eval(context) if self._surface.HasValue(context) else None
+        if surface is not None and not surface.valid:
+            surface = None
         # A prior taken from this very frame (the update event after it ran) must not change
         # the frame's segmentation: the controller and the point cloud see one result, and
         # the frame is segmented once.
@@ -320,7 +339,11 @@ class Segmenter(LeafSystem):
             and prior_from_frame
         ):
             return
-        key = (frame_key, id(prior))
+        key = (
+            frame_key,
+            id(prior),
+            None if surface is None else (surface.time, len(surface.points_B)),
+        )
         if key == memo_key:
             return
         if not frame.valid:
@@ -344,7 +367,13 @@ class Segmenter(LeafSystem):
             else:
                 prev = prior.image if prior.valid else None
                 age = frame.time - prior.time if prior.valid else math.inf
-            mask = np.asarray(self._backend(us, labels, prev, age), bool) & self._geometry.fan_mask
+            section = None
+            if surface is not None and self._uses_prior:
+                section = predicted_section(
+                    surface.points_B, frame.X_BP, self._geometry, self._slab
+                )
+            mask = self._backend(us, labels, prev, age, section)
+            mask = np.asarray(mask, bool) & self._geometry.fan_mask
             readout = read_mask(mask, self._geometry, self._min_area)
             mask_frame = UsFrame(mask, frame.time, frame.X_BP, frame.frame_index)
             result = (

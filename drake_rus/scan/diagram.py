@@ -1,6 +1,7 @@
 """The scan diagram (seed Fig. 2) on ANY station: only the ports both stations export.
 
     station.us_image -> Segmenter -> PointCloudAccumulator (while EXPLOREing) -> IcpLocalizer
+    IcpLocalizer -> RegisteredKidneySurface -> Segmenter (the template's section: its prior)
     station.{joint_position, joint_velocity, X_BP, probe_force} -> controller + safety
     ScanSupervisor phases: APPROACH -> EXPLORE -> LOCALIZE -> TRANSIT -> PIVOT -> DONE | ABORT
     KidneyTrackingMonitor (after LOCALIZE), ScanRecorder (every frame), loggers
@@ -28,7 +29,7 @@ from drake_rus.control.supervisor import Phase, PivotModel
 from drake_rus.imaging.frames import UsFrame
 from drake_rus.imaging.systems import PointCloudAccumulator, Segmenter
 from drake_rus.localization.localize import IcpLocalizer, body_directions_B
-from drake_rus.localization.tracking import KidneyTrackingMonitor
+from drake_rus.localization.tracking import KidneyTrackingMonitor, RegisteredKidneySurface
 
 __all__ = [
     "BuildScanDiagram",
@@ -201,13 +202,15 @@ def _breath_hold_port(scenario, station):
 def PivotModelFor(template, imaging) -> PivotModel:
     """The supervisor's pivot model: the registration template's points in K (m) and the
     fan of the probe at the scan's depth (m, rad), with half the elevational beam width as
-    the image slab."""
+    the image slab and the segmenter's visibility threshold (m^2) as the smallest section
+    that puts the kidney in view."""
     return PivotModel(
         points_K=np.asarray(template.points, float),
         probe_radius=imaging.probe_radius,
         half_angle=math.radians(imaging.field_of_view_deg) / 2,
         depth=imaging.depth,
         slab_half_width=imaging.elevation_width / 2,
+        min_section_area=imaging.min_kidney_area,
     )
 
 
@@ -251,6 +254,13 @@ def BuildScanDiagram(scenario, station, template, *, builder: DiagramBuilder | N
         ),
     )
     builder.Connect(accumulator.GetOutputPort("point_cloud"), localizer.GetInputPort("point_cloud"))
+    # After localization, the registered template's section in each frame is the
+    # segmenter's prior (the kidney found again after a pivot leg's end or any loss).
+    surface = builder.AddNamedSystem("registered_surface", RegisteredKidneySurface(template))
+    builder.Connect(localizer.GetOutputPort("localization"), surface.GetInputPort("localization"))
+    builder.Connect(
+        surface.GetOutputPort("kidney_surface"), segmenter.GetInputPort("kidney_surface")
+    )
     parts = AddController(
         builder,
         station,
@@ -273,8 +283,9 @@ def BuildScanDiagram(scenario, station, template, *, builder: DiagramBuilder | N
         localizer.GetOutputPort("kidney_length_estimate"),
         supervisor.GetInputPort("kidney_length_estimate"),
     )
-    # What the predicted_end pivot strategy predicts the kidney's ends from (unused by the
-    # paper's two-leg pivot): the template in K and the probe's fan.
+    # The template in K and the probe's fan: what the predicted_end pivot strategy predicts
+    # the kidney's ends from, and what tells an expected absence of the kidney from a loss
+    # in PIVOT (supervisor.absence_expected).
     model = builder.AddNamedSystem(
         "pivot_model",
         ConstantValueSource(AbstractValue.Make(PivotModelFor(template, scenario.imaging))),
