@@ -131,6 +131,10 @@ class ScanRecorder(LeafSystem):
         #: Kidney masks (bool, rows x cols) by frame index, of the phases ``keep_masks`` asks.
         self.sweep_masks: dict[int, np.ndarray] = {}
         self._mask_phases: frozenset = frozenset()
+        #: With ``keep_frames``: (us_image UsFrame, kidney_mask UsFrame, phase, visible) of
+        #: every frame (the frames are immutable: kept, not copied).
+        self.kept_frames: list[tuple] = []
+        self._keep_all = False
         self._keep_every, self._keep_max = keep_every, keep_max
         self._last_index = -1
         self._pivot_count = 0
@@ -139,6 +143,11 @@ class ScanRecorder(LeafSystem):
         """Also keep the kidney mask of every frame acquired in one of ``phases`` (Phase
         values) in ``sweep_masks`` (about 64 kB a frame), e.g. for a volume reconstruction."""
         self._mask_phases = frozenset(int(p) for p in phases)
+
+    def keep_frames(self) -> None:
+        """Also keep every frame's grey image and kidney mask with its phase and visible flag
+        (``kept_frames``, about 128 kB a frame), e.g. for ``scan --save-frames``."""
+        self._keep_all = True
 
     def _record(self, context):
         us = self._us.Eval(context)
@@ -159,6 +168,8 @@ class ScanRecorder(LeafSystem):
         )
         if phase in self._mask_phases:
             self.sweep_masks[us.frame_index] = np.array(self._mask.Eval(context).image, bool)
+        if self._keep_all:
+            self.kept_frames.append((us, self._mask.Eval(context), phase, visible))
         if phase == Phase.PIVOT:
             if self._pivot_count % self._keep_every == 0 and len(self.images) < self._keep_max:
                 mask = self._mask.Eval(context)

@@ -23,6 +23,7 @@ from pydrake.systems.framework import EventStatus
 from drake_rus import interrupts
 from drake_rus.control.supervisor import Phase
 from drake_rus.hardware.station import HardwareSession
+from drake_rus.imaging.annotated import SavedFrame
 from drake_rus.progress import AdvanceWithProgress
 from drake_rus.robot import IkError, MakeControlPlant, SolveTipPose
 from drake_rus.scan.diagram import BuildScanDiagram, ScanHandles
@@ -117,6 +118,9 @@ class ScanResult:
     # The scan's own checks of its result before it may say DONE (scan/verdict.py):
     # a list of Check; empty when the scan did not reach DONE.
     checks: list = dataclasses.field(default_factory=list)
+    # Every frame's grey image and kidney mask (imaging.annotated.SavedFrame), when RunScan
+    # was asked to keep them (keep_frames); else empty.
+    saved_frames: list = dataclasses.field(default_factory=list)
 
     @property
     def X_BK_true(self) -> RigidTransform | None:
@@ -281,6 +285,7 @@ def RunScan(
     monitors: Sequence[ScanMonitor] = (),
     settle: float = 0.0,
     keep_sweep_masks: bool = False,
+    keep_frames: bool = False,
 ) -> ScanResult:
     """Runs the closed-loop scan until DONE, ABORT or ``max_sim_time`` (s).
 
@@ -293,7 +298,9 @@ def RunScan(
     keep simulating this long after the scan ends (monitors still observe), e.g. to check
     the robot comes to rest; the result describes the scan proper. ``keep_sweep_masks``:
     keep every EXPLORE and PIVOT frame's kidney mask (``ScanResult.sweep_masks``, for a
-    volume reconstruction; about 64 kB a frame).
+    volume reconstruction; about 64 kB a frame). ``keep_frames``: keep every frame's grey
+    image, kidney mask, pose, time and phase (``ScanResult.saved_frames``, for ``scan
+    --save-frames``; about 128 kB a frame).
     """
     plan = None
     if patient is not None and not scenario.hardware:
@@ -304,6 +311,8 @@ def RunScan(
     builder, h = BuildScanDiagram(scenario, station, template)
     if keep_sweep_masks:
         h.recorder.keep_masks((Phase.EXPLORE, Phase.PIVOT))
+    if keep_frames:
+        h.recorder.keep_frames()
     truth = (
         AttachSimulationTruth(builder, station, patient, scenario) if patient is not None else None
     )
@@ -393,6 +402,12 @@ def RunScan(
             station.close()
     result.sim_s = t_end
     result.cpu_s = cpu
+    result.saved_frames = [
+        SavedFrame(
+            us.image, mask.image, us.time, us.frame_index, Phase(phase).name, visible, us.X_BP
+        )
+        for us, mask, phase, visible in h.recorder.kept_frames
+    ]
     result.start_plan = plan
     if interrupted:
         result.status = "INTERRUPTED"
