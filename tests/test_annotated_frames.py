@@ -163,3 +163,31 @@ def test_the_command_line_refuses_a_bad_folder_in_one_line_and_writes_nothing(tm
     assert not out.exists()
     ok = _cli("segmenter", "check-frames", "--frames", str(make_folder(tmp_path / "good")))
     assert ok.returncode == 0 and "4 frames (4 with the kidney)" in ok.stdout
+
+
+def test_fine_tuning_writes_a_model_a_scenario_selects(tmp_path):
+    pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    from drake_rus.imaging.annotated import read_annotated_frames
+    from drake_rus.imaging.config import ImagingConfig
+    from drake_rus.imaging.systems import Segmenter
+    from drake_rus.imaging.training.fine_tune import fine_tune, held_out_split
+    from drake_rus.scenario import ApplyOverrides, Scenario
+
+    assert [x.tolist() for x in held_out_split(10, 0.2)] == [list(range(8)), [8, 9]]
+    with pytest.raises(ValueError):
+        held_out_split(1, 0.2)
+    frames = read_annotated_frames(make_folder(tmp_path / "frames", n=5), SHAPE)
+    card = fine_tune(frames, ImagingConfig(), tmp_path / "model", epochs=1, log=lambda s: None)
+    ev = card["evaluation"]
+    assert ev["before_model"] == "kidney_unet_int8.onnx"
+    assert 0.0 <= ev["held_out_iou_before"] <= 1.0 and 0.0 <= ev["held_out_iou_after"] <= 1.0
+    assert card["fine_tuning"]["held_out_frames"] == ["f04"]
+    assert card["fine_tuned_from"]["model"].endswith("kidney_unet.onnx")
+    model = tmp_path / "model" / "kidney_unet_finetuned.onnx"
+    assert model.is_file() and model.with_suffix(".json").is_file()
+    assert not any(p.name.endswith(".partial") for p in tmp_path.iterdir())
+    # imaging.onnx_model selects it; the card beside it gives the physical canvas.
+    scenario = ApplyOverrides(Scenario(), "{imaging: {onnx_model: %s}}" % model)
+    seg = Segmenter(scenario.imaging)
+    assert seg.GetInputPort("kidney_surface") is not None

@@ -272,3 +272,37 @@ def test_the_watchdog_is_armed_where_the_template_puts_the_kidney_in_view():
     assert back and all(back)
     # Where the template puts the kidney out of view: never required.
     assert all(not armed for _, _, armed, area in rows if area < 1e-4)
+
+
+def test_the_benchmark_says_whether_the_kidney_was_in_view_when_segmentation_was_lost():
+    from types import SimpleNamespace
+
+    from benchmarks._scan_rows import segmentation_lost_in_view
+    from drake_rus.control.safety import SafetyEvent, StopReason
+    from drake_rus.scan.diagram import FrameRecord
+    from drake_rus.scenario import Scenario
+
+    scenario = Scenario()
+    depth = scenario.imaging.depth
+    # True kidney voxels (2 mm) of an ellipsoid 90 mm under the probe at the origin.
+    g = np.mgrid[-0.03:0.03:0.002, -0.016:0.016:0.002, -0.012:0.012:0.002].reshape(3, -1).T
+    inside = ((g / [A, B, C]) ** 2).sum(axis=1) <= 1
+    truth = SimpleNamespace(kidney_points_B=g[inside] + [0, 0, DEPTH], voxel_volume=0.002**3)
+
+    def result(dy):
+        frames = [
+            FrameRecord(t, k, 4, RigidTransform([0.0, dy, 0.0]), False, 9.0)
+            for k, t in enumerate(np.arange(0.0, 2.0, 0.05))
+        ]
+        events = [SafetyEvent(1.9, StopReason.SEGMENTATION_LOST, "kidney invisible")]
+        return SimpleNamespace(safety_events=events, truth=truth, frames=frames, scenario=scenario)
+
+    assert depth > DEPTH + C
+    seen = segmentation_lost_in_view(result(0.0))
+    assert seen["in_view"] and seen["frames"] in (20, 21)  # the last second's frames
+    assert seen["frames_in_view"] == seen["frames"]
+    away = segmentation_lost_in_view(result(0.05))  # the plane 50 mm beside the kidney
+    assert not away["in_view"] and away["frames_in_view"] == 0
+    ok = result(0.0)
+    ok.safety_events = []
+    assert segmentation_lost_in_view(ok) is None

@@ -262,10 +262,12 @@ def _png_bytes(arr: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def frame_rows(frames, depth: float) -> list[dict]:
-    """The ``frames.csv`` rows of saved frames (names by frame index, 6 digits)."""
+def frame_rows(frames, depth) -> list[dict]:
+    """The ``frames.csv`` rows of saved frames (names by frame index, 6 digits); ``depth``
+    (m): the imaging depth of every frame, or one per frame."""
+    depths = np.broadcast_to(np.asarray(depth, float), (len(frames),))
     rows = []
-    for f in frames:
+    for f, depth in zip(frames, depths):
         q = f.X_BP.rotation().ToQuaternion()
         p = f.X_BP.translation()
         rows.append(
@@ -283,10 +285,11 @@ def frame_rows(frames, depth: float) -> list[dict]:
     return rows
 
 
-def write_annotated_frames(folder, frames, depth: float) -> Path:
+def write_annotated_frames(folder, frames, depth) -> Path:
     """Writes saved frames (:class:`SavedFrame`) as a folder in the layout of this module:
     ``images/``, ``capsule/`` (the segmenter's mask, 1 inside, ready to correct in an
-    annotation tool) and ``frames.csv`` (kidney = the segmenter's visible flag). The folder
+    annotation tool) and ``frames.csv`` (kidney = the segmenter's visible flag; ``depth``
+    (m): one for all frames or one per frame). The folder
     is filled under a temporary name and renamed when whole; an existing non-empty folder is
     refused (FramesError)."""
     root = Path(folder)

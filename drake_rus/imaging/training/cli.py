@@ -46,6 +46,13 @@ def add_commands(subparsers) -> None:
         default=0.2,
         help="share of the frames (the last by name) kept aside to measure the IoU",
     )
+    ft.add_argument(
+        "--held-out",
+        default=None,
+        metavar="DIR",
+        help="measure the IoU on this folder of annotated frames instead (all of --frames "
+        "are then trained on)",
+    )
     ft.add_argument("--epochs", type=int, default=40, help="passes over the training frames")
     ft.add_argument("--lr", type=float, default=5e-4, help="peak learning rate (one-cycle)")
     ft.add_argument("--batch", type=int, default=8, help="frames per step")
@@ -79,13 +86,13 @@ def _frames_arguments(p) -> None:
     )
 
 
-def _read(args, scenario):
+def _read(args, scenario, folder=None):
     depth = args.depth_m if args.depth_m is not None else scenario.imaging.depth
     if not (0.03 <= depth <= 0.4):
         raise UserError(f"--depth-m: expected an imaging depth in m (0.03-0.4), got {depth:g}")
     shape = (scenario.imaging.image_height_px, scenario.imaging.image_width_px)
     try:
-        return read_annotated_frames(args.frames, shape, depth)
+        return read_annotated_frames(args.frames if folder is None else folder, shape, depth)
     except FramesError as e:
         raise UserError(str(e)) from None
 
@@ -119,7 +126,8 @@ def run_fine_tune(args) -> int:
     if not 0.0 < args.holdout < 1.0:
         raise UserError(f"--holdout: expected a share between 0 and 1, got {args.holdout}")
     frames = _read(args, scenario)
-    if len(frames) < 2:
+    held_out = None if args.held_out is None else _read(args, scenario, args.held_out)
+    if len(frames) < 2 and held_out is None:
         raise UserError(f"--frames: {args.frames} holds 1 frame; fine-tuning needs at least 2")
     source = trainable_source(scenario.imaging.onnx_model)
     if not source.is_file():
@@ -140,6 +148,8 @@ def run_fine_tune(args) -> int:
             name=args.name,
             command="drake-rus " + " ".join(shlex.quote(a) for a in argv),
             frames_source=str(Path(args.frames).resolve()),
+            held_out=held_out,
+            held_out_source=None if args.held_out is None else str(Path(args.held_out).resolve()),
             log=lambda line: print(line, flush=True),
         )
     except ValueError as e:

@@ -140,22 +140,33 @@ def fine_tune(
     name: str = "kidney_unet_finetuned",
     command: str = "",
     frames_source: str = "",
+    held_out: AnnotatedFrames | None = None,
+    held_out_source: str = "",
     log=print,
 ) -> dict:
     """Fine-tunes the scenario's model (``config.onnx_model``; an int8 model's fp32 source)
     on ``frames`` (the first 1 - ``holdout``; the rest held out), writes
-    ``out/NAME.onnx`` and its card ``out/NAME.json`` and returns the card. The card's
-    ``evaluation`` holds the held-out IoU of the scenario's model before and of the new one
-    after."""
+    ``out/NAME.onnx`` and its card ``out/NAME.json`` and returns the card. ``held_out``:
+    frames of their own to measure on (every frame of ``frames`` is then trained on). The
+    card's ``evaluation`` holds the held-out IoU of the scenario's model before and of the
+    new one after."""
     scenario_model = resolve_model_path(config.onnx_model)
     source = trainable_source(scenario_model)
     card = read_model_card(source)
-    train_idx, held_idx = held_out_split(len(frames), holdout)
-    train_frames, held = frames.subset(train_idx), frames.subset(held_idx)
+    if held_out is None:
+        train_idx, held_idx = held_out_split(len(frames), holdout)
+        held = frames.subset(held_idx)
+        held_names = [frames.names[i] for i in held_idx]
+        rule = f"the last {holdout:.0%} of the frames by name"
+    else:
+        train_idx, held = np.arange(len(frames)), held_out
+        held_names = list(held_out.names)
+        rule = f"the frames of {held_out_source or 'a folder of their own'}"
+    train_frames = frames.subset(train_idx)
     if not held.kidney.any():
         raise ValueError(
-            f"--holdout: the {len(held)} held-out frames (the last by name) show no kidney: "
-            "nothing to measure the IoU on; hold out more frames"
+            f"the {len(held)} held-out frames show no kidney: nothing to measure the IoU "
+            "on; hold out more frames (--holdout) or give --held-out frames with the kidney"
         )
     log(f"held-out IoU of {scenario_model.name} (before) on {len(held)} frames ...")
     before = frames_iou(scenario_model, held, config)
@@ -189,8 +200,8 @@ def fine_tune(
     new["fine_tuning"] = {
         "frames": frames_source,
         "training_frames": [frames.names[i] for i in train_idx],
-        "held_out_frames": [frames.names[i] for i in held_idx],
-        "holdout_rule": f"the last {holdout:.0%} of the frames by name",
+        "held_out_frames": held_names,
+        "holdout_rule": rule,
         "epochs": epochs,
         "lr": lr,
         "batch": batch,
