@@ -306,3 +306,79 @@ def test_the_benchmark_says_whether_the_kidney_was_in_view_when_segmentation_was
     ok = result(0.0)
     ok.safety_events = []
     assert segmentation_lost_in_view(ok) is None
+
+
+# ------------------------------------------- the prior in every executor mode (Segmenter)
+def _two_kidney_like_regions():
+    """(config, geometry, frame, surface, left, right): a grey frame with two dark discs,
+    the left one larger (the classical segmenter's pick without a prior), and a registered
+    surface (a sphere) whose section in the frame is the right one."""
+    from drake_rus.imaging.frames import KidneySurface, UsFrame
+
+    cfg = ImagingConfig(segmenter="classical")
+    g = ProbeGeometry.from_config(cfg)
+    v, u = np.mgrid[0 : g.height_px, 0 : g.width_px]
+
+    def disc(cu, cv, r):
+        return ((u - cu) ** 2 + (v - cv) ** 2 <= r * r) & g.fan_mask
+
+    left, right = disc(80, 120, 26), disc(175, 120, 20)
+    image = np.where(g.fan_mask, 150, 0).astype(np.uint8)
+    image[left | right] = 80
+    centre = g.pixel_to_P(np.array([[175.0, 120.0]]))[0]  # X_BP = I: P is B
+    surface = KidneySurface(ellipsoid_points(*(3 * [20 * g.dx])) + centre, time=0.0)
+    frame = UsFrame(image, time=0.0, X_BP=RigidTransform(), frame_index=0)
+    return cfg, g, frame, surface, left, right
+
+
+def _segment_once(cfg, frame, surface, executor):
+    """The Segmenter's mask of ``frame`` (direct, or hosted by ``executor``), with the
+    ``kidney_surface`` input given ``surface`` (None: unconnected)."""
+    import time
+
+    from pydrake.systems.analysis import Simulator
+
+    from drake_rus.imaging.systems import Segmenter
+
+    seg = Segmenter(cfg, executor=executor, poll_period=0.01)
+    if executor is not None and executor.mode == "worker":
+        executor.warm_up()
+    sim = Simulator(seg)
+    ctx = sim.get_mutable_context()
+    seg.GetInputPort("us_image").FixValue(ctx, frame)
+    if surface is not None:
+        seg.GetInputPort("kidney_surface").FixValue(ctx, surface)
+    sim.Initialize()
+    deadline = time.monotonic() + 120.0  # a bound on a hung worker, not a speed check
+    while time.monotonic() < deadline:
+        mask = seg.GetOutputPort("kidney_mask").Eval(ctx)
+        if mask.frame_index == frame.frame_index:
+            return mask.image
+        sim.AdvanceTo(ctx.get_time() + 0.01)
+        if executor is not None and executor.mode == "worker":
+            time.sleep(0.01)
+    raise AssertionError("the frame was never segmented")
+
+
+@pytest.mark.parametrize("mode", ["direct", "inline", "worker"])
+def test_the_template_prior_reaches_the_segmentation_wherever_it_runs(mode):
+    """The registered surface goes with the frame to where it is segmented (in the loop, an
+    inline executor, a worker process): the region the template puts the kidney in is
+    taken, not the larger one beside it that is taken without a template."""
+    from drake_rus.executor import InlineExecutor, WorkerExecutor
+
+    cfg, g, frame, surface, left, right = _two_kidney_like_regions()
+    executors = {
+        "direct": lambda: None,
+        "inline": lambda: InlineExecutor(0.05),
+        "worker": lambda: WorkerExecutor(nice=0, lanes=("frames",)),
+    }
+    ex = executors[mode]()
+    try:
+        without = _segment_once(cfg, frame, None, ex)
+        with_prior = _segment_once(cfg, frame, surface, ex)
+    finally:
+        if ex is not None:
+            ex.close()
+    assert (without & left).sum() > 0.8 * left.sum() and not (without & right).any()
+    assert (with_prior & right).sum() > 0.8 * right.sum() and not (with_prior & left).any()
