@@ -3,7 +3,12 @@
 import time
 import traceback
 
+import numpy as np
+
 from drake_rus.anatomy import load_patient
+from drake_rus.control.safety import StopReason
+from drake_rus.imaging.probe import ProbeGeometry
+from drake_rus.localization.tracking import kidney_in_view
 from drake_rus.scan import RunScan, ScanMetrics, Summary, WriteScanOutputs
 from drake_rus.scenario import ApplyOverrides
 
@@ -36,6 +41,9 @@ def scan_row(
         if out is not None:
             WriteScanOutputs(result, metrics, summary, out)
         row.update(status=summary["status"], reason=summary["reason"])
+        lost = segmentation_lost_in_view(result)
+        if lost is not None:
+            row["segmentation_lost_in_view"] = lost
         if fill is not None:
             fill(row, result, summary, s)
     except Exception as e:  # noqa: BLE001 - a benchmark row, with the traceback kept
@@ -46,3 +54,30 @@ def scan_row(
         )
     row["wall_s"] = round(time.perf_counter() - start, 1)
     return row
+
+
+def segmentation_lost_in_view(result, share: float = 0.5) -> dict | None:
+    """For a scan the safety layer stopped on "segmentation lost": whether the true kidney
+    was in the image meanwhile (simulation truth, benchmarks only): over the frames of the
+    watchdog's window before the stop, the share whose image held a true kidney section of
+    at least ``imaging.min_kidney_area`` (true kidney voxels within half a voxel of the
+    image plane, inside the fan). ``{"in_view": share of frames >= ``share``, "frames",
+    "frames_in_view"}``; None when the scan did not stop that way or has no truth."""
+    events = [e for e in result.safety_events if e.reason == StopReason.SEGMENTATION_LOST]
+    if not events or result.truth is None:
+        return None
+    stop = events[0].time
+    window = result.scenario.safety.segmentation_timeout
+    frames = [f for f in result.frames if stop - window <= f.time <= stop]
+    if not frames:
+        return None
+    imaging = result.scenario.imaging
+    geometry = ProbeGeometry.from_config(imaging)
+    voxel = round(float(np.cbrt(result.truth.voxel_volume)), 6)
+    need = imaging.min_kidney_area / voxel**2
+    seen = [
+        kidney_in_view(result.truth.kidney_points_B, f.X_BP, geometry, 0.5 * voxel) >= need
+        for f in frames
+    ]
+    n = int(sum(seen))
+    return {"in_view": n >= share * len(frames), "frames": len(frames), "frames_in_view": n}

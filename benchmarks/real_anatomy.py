@@ -5,8 +5,11 @@ registration, pivot) in the closed-loop simulation on every real body given (def
 Visible Human female in ``../shared/anatomy/hubmap_vh_female``), supine and in left lateral
 decubitus, and prints a table and, last, one JSON line: per body and posture the status, the
 reason of a stop, E_trans (mm), E_rot,x (deg), V, the depth preset and window the planner
-chose. Real bodies are never used for training or tuning; this is how we check the generator
-is not the world. ``--out DIR`` also writes every scan's outputs (summary, pictures).
+chose; a safety stop on "segmentation lost" says in how many frames of the watchdog's
+window the true kidney was in the image (``segmentation_lost_in_view``: a loss, not an
+expected absence; the JSON counts them). Real bodies are never used for training or
+tuning; this is how we check the generator is not the world. ``--out DIR`` also writes
+every scan's outputs (summary, pictures).
 ``--fresh-seeds K`` also scans K generated patients never seen before (generator seeds
 5,000,000 + k, outside the training and test cohorts), supine unless ``--fresh-postures``
 says otherwise (``left_lateral_decubitus``, or both): the default scan must keep working on
@@ -118,6 +121,12 @@ def main(argv=None) -> int:
         f"{'E_rot,x deg':>11s} {'V':>6s} {'V all':>6s} {'depth':>6s}  reason"
     )
     for r in rows:
+        lost = r.get("segmentation_lost_in_view")
+        if lost is not None:
+            r["reason"] = (
+                f"{r.get('reason', '')} [segmentation lost with the kidney in view in "
+                f"{lost['frames_in_view']} of {lost['frames']} frames]"
+            )
         print(
             f"{r['body']:28s} {r['posture']:24s} {r['status']:7s} "
             f"{_fmt(r.get('e_trans_mm'), '10.2f')} {_fmt(r.get('e_rot_x_deg'), '11.2f')} "
@@ -143,6 +152,7 @@ def main(argv=None) -> int:
                             "volume_ratio_whole_pivot",
                             "depth_preset_m",
                             "wall_s",
+                            "segmentation_lost_in_view",
                         )
                     }
                     for r in rows
@@ -154,6 +164,14 @@ def main(argv=None) -> int:
                     for p in args.fresh_postures
                 },
                 "errors": sum(r["status"] == "ERROR" for r in rows),
+                # Safety stops on "segmentation lost" while the true kidney was in the image
+                # (a loss, not an expected absence): should be none.
+                "segmentation_lost_in_view": sum(
+                    bool((r.get("segmentation_lost_in_view") or {}).get("in_view")) for r in rows
+                ),
+                "segmentation_lost": sum(
+                    r.get("segmentation_lost_in_view") is not None for r in rows
+                ),
             }
         )
     )

@@ -49,6 +49,7 @@ COMMAND_MODULES = [
     "drake_rus.anatomy.cli",
     "drake_rus.template.cli",
     "drake_rus.imaging.cli",
+    "drake_rus.imaging.training.cli",  # segmenter: fine-tune on your own frames
     "drake_rus.scan.cli",  # scan: the full autonomous scan
     "drake_rus.experiments.cli",  # study: the seed paper's studies (kinematic, Dask)
     "drake_rus.reliability.cli",  # campaign: randomised faulty scans (safety figures)

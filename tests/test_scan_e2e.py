@@ -121,3 +121,45 @@ def test_predicted_end_pivot_through_the_cli(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert code == 0 and summary["status"] == "DONE", summary["reason"]
     assert summary["pivot"]["legs"] == 1 and summary["volume_ratio"] > 0.9
+
+
+@pytest.mark.slow
+def test_scan_save_frames_writes_a_folder_that_imports_again(tmp_path):
+    """``scan --save-frames``: every frame of the scan (here its first 2 s), with the
+    segmenter's mask, pose and time, in the annotated-frames layout that fine-tuning reads."""
+    import numpy as np
+
+    from drake_rus.imaging.annotated import read_annotated_frames
+    from drake_rus.scenario import Scenario
+
+    out, frames_dir = tmp_path / "scan", tmp_path / "frames"
+    cli_main(
+        [
+            "scan",
+            "--patient",
+            "test:0",
+            "--out",
+            str(out),
+            "--no-record",
+            "--max-sim-time",
+            "2",
+            "--save-frames",
+            str(frames_dir),
+        ]
+    )
+    summary = json.loads((out / "summary.json").read_text())
+    imaging = Scenario().imaging
+    frames = read_annotated_frames(frames_dir, (imaging.image_height_px, imaging.image_width_px))
+    rate = imaging.frame_rate_hz
+    assert abs(len(frames.names) - (2.0 * rate + 1)) <= 2  # every frame, at the frame rate
+    assert frames.names == sorted(frames.names)
+    np.testing.assert_allclose(frames.depth, summary["image_depth_m"])
+    times = np.array([float(r["time_s"]) for r in frames.rows])
+    np.testing.assert_allclose(np.diff(times), 1.0 / rate, atol=1e-6)
+    assert {r["phase"] for r in frames.rows} <= {"APPROACH", "EXPLORE"}
+    # A mask is the kidney flag: no mask pixel in a frame marked kidney-free.
+    for mask, kidney in zip(frames.masks, frames.kidney):
+        assert kidney or not mask.any()
+    # The probe pose is recorded (unit quaternion, a position in front of the robot).
+    q = np.array([[float(r[f"q_BP_{c}"]) for c in "wxyz"] for r in frames.rows])
+    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-5)

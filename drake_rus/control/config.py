@@ -174,6 +174,16 @@ class ControllerConfig:
     # On the single sweep, a loss of the kidney ends it only this close (rad) to the
     # predicted other end or beyond (the prediction's error on test patients: 0.1-4.7 deg).
     pivot_end_tolerance: float = field(default=0.1, metadata={"min": 0.0, "max": 1.2})
+    # The "segmentation lost" stop in PIVOT tells an expected absence from a loss with the
+    # registered template's predicted section in the image (supervisor.absence_expected):
+    # where the template puts the kidney out of view (past a pivot end) its absence is
+    # expected; after a leg's end it stays expected until the kidney is seen again or the
+    # template's section is back to this share of its section at the pivot's start (the
+    # probe has turned back over the kidney). Not 0: the template (108 mm) overhangs the
+    # pole of a kidney 20-30 mm shorter where the leg ended, and the return leg spends up
+    # to 0.8 s decelerating, reversing and coming back to that pole; not 1: a loss near the
+    # start would never count.
+    reacquire_share: float = field(default=0.5, metadata={"positive": True, "max": 1.0})
     # Tilt rate (rad/s) of the pre-tilt to the predicted end (no images needed).
     pretilt_rate: float = field(default=0.25, metadata={"positive": True, "max": 1.0})
     # The pivot pose: [] (the seed) T* of the registered kidney pose (eq. 20-22), after

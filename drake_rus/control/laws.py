@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 from scipy.linalg.lapack import dposv as _posv
+from scipy.spatial import ConvexHull, QhullError
 
 from drake_rus.control import kernels
 
@@ -407,3 +408,43 @@ def pivot_end_angles(
         idx = np.flatnonzero(seen)
         ends.append(float(th[idx[-1]]) if len(idx) else 0.0)
     return ends[0], ends[1]
+
+
+def template_section_area(
+    R_BK,
+    p_BK,
+    points_K,
+    R_BP,
+    p_BP,
+    *,
+    probe_radius: float,
+    half_angle: float,
+    depth: float,
+    slab_half_width: float,
+) -> float:
+    """Area (m^2) of the registered template's section in the image of a probe at (R_BP,
+    p_BP): the convex hull, in the image plane, of the template points (``points_K``, in K,
+    placed by X_BK = (R_BK, p_BK)) that are imaged (within ``slab_half_width`` of the plane
+    and inside the curvilinear fan, as :func:`pivot_end_angles` counts them). 0 when fewer
+    than 3 points are imaged or they span no area: the template puts the kidney out of
+    view."""
+    R_BP = np.asarray(R_BP, float)
+    q = (
+        np.asarray(points_K, float).reshape(-1, 3) @ np.asarray(R_BK, float).T
+        + np.asarray(p_BK, float).reshape(3)
+        - np.asarray(p_BP, float).reshape(3)
+    ) @ R_BP  # in P
+    zc = q[:, 2] + probe_radius
+    d = np.hypot(q[:, 0], zc) - probe_radius
+    seen = (
+        (np.abs(q[:, 1]) <= slab_half_width)
+        & (np.abs(np.arctan2(q[:, 0], zc)) <= half_angle)
+        & (d >= 0.0)
+        & (d <= depth)
+    )
+    if np.count_nonzero(seen) < 3:
+        return 0.0
+    try:
+        return float(ConvexHull(q[seen][:, [0, 2]]).volume)  # a 2-D hull's volume is its area
+    except QhullError:
+        return 0.0

@@ -17,7 +17,12 @@ import math
 
 import numpy as np
 
-from drake_rus.control.laws import angle_between, cross3, pivot_end_angles
+from drake_rus.control.laws import (
+    angle_between,
+    cross3,
+    pivot_end_angles,
+    template_section_area,
+)
 
 
 # ----------------------------------------------------------------------------- eq. 17
@@ -153,6 +158,9 @@ class PivotModel:
     half_angle: float = math.radians(20.0)
     depth: float = 0.15
     slab_half_width: float = 0.005
+    # A predicted section smaller than this (m^2) puts the kidney out of view: the
+    # segmenter's own visibility threshold (imaging.min_kidney_area).
+    min_section_area: float = 1.0e-4
 
     def __deepcopy__(self, memo):  # never changed in place: clones may share it
         return self
@@ -175,6 +183,12 @@ class SupervisorState:
     pivot_direction: float = 1.0
     pivot_speed: float = 0.0  # signed current tilt rate (rad/s), ramped
     expect_invisible: bool = False  # after a pivot leg ends, until the kidney is seen again
+    # The registered template's predicted section (m^2) in the current image during PIVOT
+    # (NaN: no prediction), and at the pivot's start (the reference of its share).
+    section_area: float = math.nan
+    section_reference: float = math.nan
+    # PIVOT: the kidney's absence is expected now (absence_expected), not a loss.
+    kidney_absence_expected: bool = False
     lag_since: float = math.nan  # since when the probe lags the pivot (pivot_follow_limit)
     pivot_angle: float = 0.0  # tilt of a_des from r3* about o_des (rad), signed
     pivot_legs_done: int = 0
@@ -295,14 +309,65 @@ def _pivot_advance(s: SupervisorState, cfg, dt: float) -> None:
     s.a_des_dot = pivot_rate_vector(s.a_des, s.o_des, 1.0, dtheta / dt)
 
 
+def absence_expected(
+    after_leg_end: bool,
+    section_area: float,
+    section_reference: float,
+    min_area: float,
+    well_in_view: float,
+) -> bool:
+    """Whether the kidney's absence from the image is expected, not a loss of it.
+
+    ``after_leg_end``: a pivot leg has ended (the kidney left the image) and the kidney has
+    not been seen since. ``section_area`` (m^2): the registered template's predicted section
+    in the current image, ``section_reference`` (m^2) that at the pivot's start (NaN: no
+    registered template, e.g. a given pivot pose). With a prediction, absence is expected
+    where the template puts the kidney out of view (section below ``min_area``: past a
+    pivot end), and after a leg's end until the section is back to ``well_in_view`` of the
+    reference (the probe has turned back over the kidney: not finding it there is a loss;
+    until then the template, one length for every kidney, may overhang a shorter kidney's
+    pole). Without a prediction: after a leg's end until the kidney is seen again."""
+    if not (math.isfinite(section_area) and math.isfinite(section_reference)):
+        return after_leg_end
+    if section_area < min_area:
+        return True
+    return after_leg_end and section_area < well_in_view * section_reference
+
+
 def segmentation_required(s: SupervisorState) -> bool:
-    """Whether the kidney must be visible now (EXPLORE; PIVOT except while returning from a
-    leg that ended because it left the image); drives the safety layer's watchdog."""
+    """Whether the kidney must be visible now (EXPLORE; PIVOT except where its absence is
+    expected, :func:`absence_expected`, updated every PIVOT period); drives the safety
+    layer's watchdog."""
     if s.paused:
         return False  # holding still outside a breath-hold: the kidney may drift away
     if s.phase == Phase.EXPLORE:
         return not s.awaiting_kidney  # a line sweep before the kidney first came into view
-    return s.phase == Phase.PIVOT and not s.expect_invisible
+    return s.phase == Phase.PIVOT and not s.kidney_absence_expected
+
+
+def section_in_view(model: PivotModel | None, u: SupervisorInputs, R, p) -> float:
+    """The registered template's predicted section (m^2) in the image of the probe at (R,
+    p) (:func:`~drake_rus.control.laws.template_section_area` with the pivot model's fan);
+    NaN without a pivot model or a finite kidney pose."""
+    if (
+        model is None
+        or len(model.points_K) == 0
+        or u.R_BK is None
+        or u.p_BK is None
+        or not (np.all(np.isfinite(u.R_BK)) and np.all(np.isfinite(u.p_BK)))
+    ):
+        return math.nan
+    return template_section_area(
+        u.R_BK,
+        u.p_BK,
+        model.points_K,
+        R,
+        p,
+        probe_radius=model.probe_radius,
+        half_angle=model.half_angle,
+        depth=model.depth,
+        slab_half_width=model.slab_half_width,
+    )
 
 
 def _hold_motion(s: SupervisorState, dt: float) -> SupervisorState:
@@ -648,6 +713,8 @@ def _transit(s, u, R, p, cfg, dt):
         s.pivot_speed = 0.0
         s.pivot_angle = 0.0
         model = u.pivot_model
+        # The template's section at the pivot's start: the reference of absence_expected.
+        s.section_reference = section_in_view(model, u, R, p)
         if cfg.pivot_strategy == "predicted_end":
             if cfg.pivot_pose:
                 return _start_pivot(
@@ -683,6 +750,20 @@ def _transit(s, u, R, p, cfg, dt):
         s.reason = f"TRANSIT timeout: {dist * 1e3:.1f} mm from p*"
         return _goto(s, Phase.ABORT, u.t, s.reason)
     return s
+
+
+def _update_absence(s: SupervisorState, u: SupervisorInputs, R, p, cfg) -> None:
+    """PIVOT: the template's section in the current image and whether the kidney's absence
+    is expected now (absence_expected with ``reacquire_share``)."""
+    model = u.pivot_model
+    s.section_area = section_in_view(model, u, R, p)
+    s.kidney_absence_expected = absence_expected(
+        s.expect_invisible,
+        s.section_area,
+        s.section_reference,
+        model.min_section_area if model is not None else 0.0,
+        cfg.reacquire_share,
+    )
 
 
 def pivot_follow_error(R_BP, a_des) -> float:
@@ -723,6 +804,7 @@ def _pivot(s, u, R, p, cfg, dt):
         s.pivot_angle, s.pivot_direction, s.pivot_legs_done, s.pivot_ends, cfg.pivot_end_tolerance
     )
     at_tilt = abs(s.pivot_angle) >= cfg.max_pivot_tilt - 1e-9 and on_new_side
+    _update_absence(s, u, R, p, cfg)
     if (left and on_new_side) or at_tilt:
         why = "kidney left the image" if (left and on_new_side) else "maximum tilt"
         s.pivot_limits = s.pivot_limits + (s.pivot_angle,)
@@ -742,6 +824,7 @@ def _pivot(s, u, R, p, cfg, dt):
         s.pivot_direction = -s.pivot_direction
         s.invisible_since = math.nan
         s.expect_invisible = True
+        _update_absence(s, u, R, p, cfg)
     # The tilt rate ramps (pivot_acceleration) to +-pivot_rate: a reversal is smooth, not a
     # jump of the commanded angular velocity (which presses the probe edge in).
     s.pivot_speed = _ramp(

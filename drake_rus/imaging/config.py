@@ -141,5 +141,17 @@ class ImagingConfig:
     # a region taken in the first frame and followed hid the kidney for the whole
     # exploration).
     track_confirm: float = field(default=0.5, metadata={"min": 0.0})
+    # After localization the registered template predicts the kidney's section in every
+    # frame (segment.predicted_section; the Segmenter's ``kidney_surface`` input): a region
+    # with at least ``track_min_overlap`` of its area within that section grown by this
+    # distance (m) agrees with the template, and is taken for the kidney even when it does
+    # not continue the last mask (the kidney found again after a pivot leg's end or any
+    # loss). 15 mm: the registration's error on the generated and real bodies is 0.3-4.4
+    # mm across the long axis (docs/results), and the template's length differs from the
+    # kidney's by up to 16 mm along it (localization/tracking.py), half of it at each pole.
+    track_section_reach: float = field(
+        default=0.015,
+        metadata=physical(0.0, 0.1, "m", "registration errors are millimetres"),
+    )
     # ONNX Runtime intra-op threads (1 leaves the other cores to the simulation).
     onnx_threads: int = field(default=1, metadata={"min": 1, "max": 64})

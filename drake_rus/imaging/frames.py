@@ -87,3 +87,29 @@ class PointCloud:
 
     def __deepcopy__(self, memo):
         return self
+
+
+@dataclass(frozen=True)
+class KidneySurface:
+    """The registered kidney's surface: ``points_B`` (N, 3) in the base frame B (m), the
+    registration template's points in K (with its fitted shape modes) mapped by the
+    localizer's X_BK, and the time (s) of that registration. Empty (no points) before
+    localization: the Segmenter then predicts nothing."""
+
+    points_B: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    time: float = float("nan")
+
+    def __post_init__(self):
+        object.__setattr__(
+            self, "points_B", _freeze(np.asarray(self.points_B, float).reshape(-1, 3))
+        )
+
+    @property
+    def valid(self) -> bool:
+        return len(self.points_B) >= 3
+
+    def __copy__(self):
+        return self
+
+    def __deepcopy__(self, memo):
+        return self

@@ -355,13 +355,16 @@ class OnnxSegmenter:
         track_gap: float = 2.0,
         track_reach: float = 0.010,
         track_min_overlap: float = 0.5,
+        track_section_reach: float = 0.015,
     ):
         """``card``: the model card's fields (default: read from the ``.json`` next to the
         model); ``pixel_size_mm`` and ``canvas_px`` switch on the physical canvas.
-        ``track_gap`` (s), ``track_reach`` (m), ``track_min_overlap``: how a kidney seen
-        before is followed (see ``ImagingConfig.track_gap``)."""
+        ``track_gap`` (s), ``track_reach`` (m), ``track_min_overlap``,
+        ``track_section_reach`` (m): how a kidney seen before, or predicted by the
+        registered template, is followed (see ``ImagingConfig.track_gap``)."""
         self.track_gap, self.track_reach = float(track_gap), float(track_reach)
         self.track_min_overlap = float(track_min_overlap)
+        self.track_section_reach = float(track_section_reach)
         import onnxruntime as ort
 
         self.geometry = geometry
@@ -468,6 +471,7 @@ class OnnxSegmenter:
             track_gap=config.track_gap,
             track_reach=config.track_reach,
             track_min_overlap=config.track_min_overlap,
+            track_section_reach=config.track_section_reach,
         )
 
     @property
@@ -579,14 +583,23 @@ class OnnxSegmenter:
         return prob
 
     def __call__(
-        self, image: np.ndarray, prior_mask: np.ndarray | None = None, prior_age: float = math.inf
+        self,
+        image: np.ndarray,
+        prior_mask: np.ndarray | None = None,
+        prior_age: float = math.inf,
+        section: np.ndarray | None = None,
     ) -> np.ndarray:
         """Bool kidney mask (rows, cols) of a uint8 grey image: without a prior, the largest
-        candidate region; with the kidney mask last seen ``prior_age`` s ago, the region
-        that continues it (:func:`~drake_rus.imaging.segment.tracked_component`, with the
-        ``track_gap`` and ``track_reach`` this segmenter was built with)."""
-        regions = self.candidates(image, largest_only=prior_mask is None)
-        if prior_mask is None:
+        candidate region; with the kidney mask last seen ``prior_age`` s ago and / or the
+        registered template's predicted ``section`` (bool, rows x cols), the region that
+        continues it or agrees with the template
+        (:func:`~drake_rus.imaging.segment.tracked_component`, with the ``track_gap``,
+        ``track_reach``, ``track_min_overlap`` and ``track_section_reach`` this segmenter
+        was built with)."""
+        if section is not None and not np.any(section):
+            section = None
+        regions = self.candidates(image, largest_only=prior_mask is None and section is None)
+        if prior_mask is None and section is None:
             return regions[0] if regions else np.zeros(self.geometry.image_shape, bool)
         k = tracked_component(
             regions,
@@ -596,6 +609,8 @@ class OnnxSegmenter:
             max_gap=self.track_gap,
             reach=self.track_reach,
             min_overlap=self.track_min_overlap,
+            section=section,
+            section_reach=self.track_section_reach,
         )
         return regions[k] if k is not None else np.zeros(self.geometry.image_shape, bool)
 

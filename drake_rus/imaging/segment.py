@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
+from scipy.spatial import ConvexHull, QhullError
 
 from drake_rus.anatomy.labels import is_kidney
 from drake_rus.imaging.probe import ProbeGeometry
@@ -267,15 +268,17 @@ def segment_classical(
     return out & geometry.fan_mask
 
 
-_NEAR_CACHE: list = []  # [(prior array, geometry, reach, near)]: the last one computed
+# [(mask array, geometry, reach, near)]: the last two computed (a frame grows its last
+# kidney mask and, after localization, the template's predicted section).
+_NEAR_CACHE: list = []
 
 
 def near_region(prior_mask: np.ndarray, geometry: ProbeGeometry, reach: float) -> np.ndarray:
     """Bool (rows, cols): the pixels within ``reach`` (m) of a mask (Euclidean, in physical
-    units, over the mask's bounding box grown by ``reach``). The last result is kept for the
-    same mask object: a frame's segmentation and its track update grow the same prior."""
-    if _NEAR_CACHE:
-        arr, geo, r, near = _NEAR_CACHE[0]
+    units, over the mask's bounding box grown by ``reach``). The last two results are kept
+    for the same mask objects: a frame's segmentation and its track update grow the same
+    prior (and the template's predicted section is grown in between)."""
+    for arr, geo, r, near in _NEAR_CACHE:
         if arr is prior_mask and geo is geometry and r == reach:
             return near
     prior = np.asarray(prior_mask, bool)
@@ -295,8 +298,45 @@ def near_region(prior_mask: np.ndarray, geometry: ProbeGeometry, reach: float) -
     # The mask itself is held, so its id cannot be reused by another array while cached;
     # a caller that mutates it in place must not expect a fresh result (masks are treated
     # as immutable here, as KidneyTrack's are).
-    _NEAR_CACHE[:] = [(prior_mask, geometry, reach, near)]
+    _NEAR_CACHE[:] = [(prior_mask, geometry, reach, near)] + _NEAR_CACHE[:1]
     return near
+
+
+def predicted_section(
+    points_B: np.ndarray, X_BP, geometry: ProbeGeometry, slab: float
+) -> np.ndarray:
+    """Bool (rows, cols): where the registered kidney crosses the image of a probe at X_BP.
+
+    points_B (N, 3): the registered template's surface in B (m: the template's points in K
+    mapped by the localizer's X_BK). The points within ``slab`` (m) of the image plane
+    (|y_P|, half the elevational beam width) are projected onto it; the section is their
+    convex hull (a kidney's sections are near convex; a hull also closes the section where
+    the slab holds few points), within the fan. Empty when fewer than 3 points lie in the
+    slab or they span no area."""
+    out = np.zeros(geometry.image_shape, bool)
+    p = np.asarray(points_B, float).reshape(-1, 3)
+    if len(p) < 3:
+        return out
+    p_P = (p - X_BP.translation()) @ X_BP.rotation().matrix()
+    near = np.abs(p_P[:, 1]) <= slab
+    if np.count_nonzero(near) < 3:
+        return out
+    uv = geometry.P_to_pixel(p_P[near])
+    lo = np.maximum(np.floor(uv.min(axis=0)).astype(int), 0)
+    size = [geometry.width_px, geometry.height_px]
+    hi = np.minimum(np.ceil(uv.max(axis=0)).astype(int) + 1, size)
+    if np.any(hi <= lo):
+        return out
+    try:
+        hull = ConvexHull(uv)
+    except QhullError:
+        return out  # the points lie on a line: no area
+    v, u = np.mgrid[lo[1] : hi[1], lo[0] : hi[0]]
+    inside = np.ones(u.shape, bool)
+    for a, b, c in hull.equations:  # a u + b v + c <= 0 inside
+        inside &= a * u + b * v + c <= 1e-9
+    out[lo[1] : hi[1], lo[0] : hi[0]] = inside
+    return out & geometry.fan_mask
 
 
 def tracked_component(
@@ -308,6 +348,8 @@ def tracked_component(
     max_gap: float,
     reach: float,
     min_overlap: float = 0.5,
+    section: np.ndarray | None = None,
+    section_reach: float = 0.015,
 ) -> int | None:
     """Which candidate region of a frame is the kidney (index into ``components``, None: none).
 
@@ -322,12 +364,38 @@ def tracked_component(
     across the image (a hypoechoic muscle band or bowel loop that the model also marks is
     left alone, also when its edge touches the grown mask). Else (first sight, or the kidney
     lost for longer than ``max_gap``): the largest region.
+
+    section: after localization, where the registered template puts the kidney in this
+    image (:func:`predicted_section`; None or empty: no prediction, the rules above). The
+    regions that agree with it (at least ``min_overlap`` of the region within the section
+    grown by ``section_reach`` m, the registration's error) are preferred: a region that
+    both continues the last mask and agrees; else the agreeing region overlapping the
+    section most, also when the last mask is older than ``max_gap`` or was a region that
+    does not agree (the kidney found again after a pivot leg or any loss); else a region
+    that continues the last mask (the kidney beyond the template's end: the template is
+    one length, 108 mm, kidneys 88-140 mm); else none (a region elsewhere, while the
+    template puts the kidney in view, is not the kidney).
     """
     if not components:
         return None
+    agree = _agreeing(components, section, geometry, section_reach, min_overlap)
     followed = prior_mask is not None and prior_age <= max_gap
     prior = np.asarray(prior_mask, bool) if followed else None
     prior_area = 0 if prior is None else int(np.count_nonzero(prior))
+    if agree is not None:
+        cont = (
+            _continuing(components, prior_mask, prior, prior_area, geometry, reach, min_overlap)
+            if prior_area
+            else {}
+        )
+        both = [k for k in cont if k in agree]
+        if both:
+            return max(both, key=lambda k: cont[k])
+        if agree:
+            return max(agree, key=lambda k: agree[k])
+        if cont:
+            return max(cont, key=lambda k: cont[k])
+        return None
     if prior_area:
         areas = [int(np.count_nonzero(c)) for c in components]
         cover = [int(np.count_nonzero(c & prior)) for c in components]
@@ -349,6 +417,38 @@ def tracked_component(
         ]
         return max(ok, key=lambda k: overlap[k]) if ok else None
     return int(np.argmax([int(np.count_nonzero(c)) for c in components]))
+
+
+def _continuing(components, prior_mask, prior, prior_area, geometry, reach, min_overlap) -> dict:
+    """{index: overlap with the last mask grown by ``reach``} of the regions that continue
+    the last mask (the rule of :func:`tracked_component`)."""
+    areas = [int(np.count_nonzero(c)) for c in components]
+    cover = [int(np.count_nonzero(c & prior)) for c in components]
+    near = near_region(prior_mask, geometry, reach)
+    overlap = [int(np.count_nonzero(c & near)) for c in components]
+    return {
+        k: overlap[k]
+        for k in range(len(components))
+        if overlap[k] > 0
+        and (overlap[k] >= min_overlap * areas[k] or cover[k] >= min_overlap * prior_area)
+    }
+
+
+def _agreeing(components, section, geometry, reach, min_overlap) -> dict | None:
+    """{index: pixels in the section} of the regions with at least ``min_overlap`` of
+    their area within ``section`` grown by ``reach`` (m); None without a section."""
+    if section is None:
+        return None
+    section = np.asarray(section, bool)
+    if not section.any():
+        return None
+    near = near_region(section, geometry, reach)
+    out = {}
+    for k, c in enumerate(components):
+        area = int(np.count_nonzero(c))
+        if area and np.count_nonzero(c & near) >= min_overlap * area:
+            out[k] = int(np.count_nonzero(c & section))
+    return out
 
 
 @dataclass(frozen=True)

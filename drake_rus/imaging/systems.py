@@ -26,11 +26,12 @@ from drake_rus.imaging.backprojection import accumulate
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.emulator import EmulatorModel, emulate
 from drake_rus.imaging.emulator import warm_up as warm_emulator
-from drake_rus.imaging.frames import BoundaryPixels, PointCloud, UsFrame
+from drake_rus.imaging.frames import BoundaryPixels, KidneySurface, PointCloud, UsFrame
 from drake_rus.imaging.onnx_backend import OnnxSegmenter
 from drake_rus.imaging.probe import ProbeGeometry, check_pose
 from drake_rus.imaging.segment import (
     KidneyTrack,
+    predicted_section,
     read_mask,
     segment_classical,
     segment_oracle,
@@ -189,21 +190,24 @@ class UltrasoundEmulator(LeafSystem):
 
 
 def make_segmenter_backend(config: ImagingConfig, geometry: ProbeGeometry):
-    """A callable ``(us_image, label_image, prev_mask, prev_age=inf) -> mask`` for
-    ``config.segmenter``: ``prev_mask`` is the classical backend's temporal prior, or the
-    kidney last seen ``prev_age`` s ago that the onnx backend follows (None: none).
-    Raises ValueError naming the field when the backend cannot be built (e.g. a bad model)."""
+    """A callable ``(us_image, label_image, prev_mask, prev_age=inf, section=None) -> mask``
+    for ``config.segmenter``: ``prev_mask`` is the classical backend's temporal prior, or the
+    kidney last seen ``prev_age`` s ago that the onnx backend follows (None: none);
+    ``section`` the registered template's predicted section of this frame (bool; None: no
+    prediction), which the onnx backend follows too and the classical one takes as its prior
+    when it has no previous mask. Raises ValueError naming the field when the backend
+    cannot be built (e.g. a bad model)."""
     backend = config.segmenter
     if backend == "oracle":
-        return lambda us, labels, prev, age=math.inf: segment_oracle(labels)
+        return lambda us, labels, prev, age=math.inf, section=None: segment_oracle(labels)
     if backend == "classical":
         min_area = config.min_kidney_area
-        return lambda us, labels, prev, age=math.inf: segment_classical(
-            us, geometry, prev, min_area
+        return lambda us, labels, prev, age=math.inf, section=None: segment_classical(
+            us, geometry, prev if prev is not None else section, min_area
         )
     if backend == "onnx":
         model = OnnxSegmenter.from_config(config, geometry)
-        return lambda us, labels, prev, age=math.inf: model(us, prev, age)
+        return lambda us, labels, prev, age=math.inf, section=None: model(us, prev, age, section)
     raise ValueError(
         f"imaging.segmenter: unknown backend {backend!r}; expected 'oracle', 'classical' or 'onnx'"
     )
@@ -220,14 +224,21 @@ def segment_frame(
     uses_prior: bool,
     track_confirm: float,
     source: str,
+    surface_points: np.ndarray | None = None,
+    slab: float = 0.0,
 ):
     """(mask UsFrame, MaskReadout, BoundaryPixels) of one frame: the Segmenter's work,
     wherever it runs (in the control loop's thread or a worker process).
 
-    ``backend(us, labels, prev, age)``: :func:`make_segmenter_backend`; ``frame``: the
-    source frame (grey for the classical and onnx backends, labels for the oracle, said by
-    ``source``: the port's name); ``prior``: the Segmenter's prior state (a KidneyTrack when
-    it ``follows`` the kidney, else the previous mask frame when it ``uses_prior``)."""
+    ``backend(us, labels, prev, age, section)``: :func:`make_segmenter_backend`; ``frame``:
+    the source frame (grey for the classical and onnx backends, labels for the oracle, said
+    by ``source``: the port's name); ``prior``: the Segmenter's prior state (a KidneyTrack
+    when it ``follows`` the kidney, else the previous mask frame when it ``uses_prior``);
+    ``surface_points`` (N, 3; m, B): the registered template's surface (None: no
+    localization yet), whose section in the frame's image plane (:func:`predicted_section`,
+    points within ``slab`` m of it) is the backend's ``section`` prior. The section is cut
+    here, with the segmentation (in the worker when one hosts it), not in the control loop.
+    """
     if not frame.valid:
         empty = np.zeros(geometry.image_shape, bool)
         return (
@@ -249,7 +260,10 @@ def segment_frame(
         prev, age = prior.image, frame.time - prior.time
     else:
         prev, age = None, math.inf
-    mask = np.asarray(backend(us, labels, prev, age), bool) & geometry.fan_mask
+    section = None
+    if surface_points is not None and (follows or uses_prior):
+        section = predicted_section(surface_points, frame.X_BP, geometry, slab)
+    mask = np.asarray(backend(us, labels, prev, age, section), bool) & geometry.fan_mask
     readout = read_mask(mask, geometry, min_area)
     return (
         UsFrame(mask, frame.time, frame.X_BP, frame.frame_index),
@@ -263,7 +277,7 @@ def warm_segmenter_backend(config: ImagingConfig, geometry: ProbeGeometry):
     its own backend before the scan starts)."""
     backend = make_segmenter_backend(config, geometry)
     blank = np.zeros(geometry.image_shape, np.uint8)
-    backend(blank, blank, None, math.inf)
+    backend(blank, blank, None, math.inf, None)
     return backend
 
 
@@ -271,7 +285,13 @@ class Segmenter(LeafSystem):
     """Kidney segmentation of the current frame and the read-outs the controller uses.
 
     Inputs: ``us_image`` (abstract UsFrame, uint8 grey) for the ``classical`` and ``onnx``
-    backends; ``label_image`` (abstract UsFrame, uint8 labels) for the ``oracle`` backend.
+    backends; ``label_image`` (abstract UsFrame, uint8 labels) for the ``oracle`` backend;
+    ``kidney_surface`` (abstract KidneySurface, optional: the registered template's surface
+    in B after localization), from which each frame's predicted section
+    (:func:`~drake_rus.imaging.segment.predicted_section`, at the frame's X_BP, slab half the
+    elevational beam width) is the tracker's prior: the kidney is found again where the
+    template puts it, after a pivot leg's end or any loss. The surface goes with the frame
+    to wherever the segmentation runs; the section is cut there.
     Outputs (all for the latest frame segmented):
       ``kidney_mask`` (abstract UsFrame, bool mask, with the frame's time, X_BP, index);
       ``kidney_visible`` (1-vector, 1.0 when the mask area >= ``min_kidney_area``, else 0.0);
@@ -306,6 +326,10 @@ class Segmenter(LeafSystem):
         self._empty_mask = UsFrame(np.zeros(shape, bool))
         self._us = self.DeclareAbstractInputPort("us_image", AbstractValue.Make(empty))
         self._labels = self.DeclareAbstractInputPort("label_image", AbstractValue.Make(empty))
+        self._surface = self.DeclareAbstractInputPort(
+            "kidney_surface", AbstractValue.Make(KidneySurface())
+        )
+        self._slab = 0.5 * config.elevation_width
         self._source = self._labels if self._backend_name == "oracle" else self._us
         self._uses_prior = self._backend_name in ("classical", "onnx")
         # The classical prior is the previous frame's mask; the onnx backend follows a
@@ -352,7 +376,7 @@ class Segmenter(LeafSystem):
     def geometry(self) -> ProbeGeometry:
         return self._geometry
 
-    def _work(self, frame: UsFrame, prior):
+    def _work(self, frame: UsFrame, prior, surface: KidneySurface | None):
         """The arguments of :func:`segment_frame` after the backend and geometry."""
         return (
             self._min_area,
@@ -363,7 +387,16 @@ class Segmenter(LeafSystem):
             uses_prior=self._uses_prior,
             track_confirm=self._track_confirm,
             source=self._source.get_name(),
+            surface_points=None if surface is None else surface.points_B,
+            slab=self._slab,
         )
+
+    def _surface_now(self, context) -> KidneySurface | None:
+        """The registered template's surface, or None (unconnected, or no estimate yet)."""
+        if not self._uses_prior or not self._surface.HasValue(context):
+            return None
+        surface = self._surface.Eval(context)
+        return surface if surface.valid else None
 
     def _check_connected(self, context):
         if not self._source.HasValue(context):
@@ -390,7 +423,10 @@ class Segmenter(LeafSystem):
 
     # --- direct feedthrough ---------------------------------------------------------------
     def _declare_direct(self, config):
-        tickets = {self.input_port_ticket(self._source.get_index())}
+        tickets = {
+            self.input_port_ticket(self._source.get_index()),
+            self.input_port_ticket(self._surface.get_index()),
+        }
         if self._uses_prior:
             tickets.add(self.abstract_state_ticket(self._prior_index))
             period = 1.0 / config.frame_rate_hz
@@ -423,6 +459,7 @@ class Segmenter(LeafSystem):
             else self._empty_mask
         )
         frame_key = _frame_key(frame)
+        surface = self._surface_now(context)
         # A prior taken from this very frame (the update event after it ran) must not change
         # the frame's segmentation: the controller and the point cloud see one result, and
         # the frame is segmented once.
@@ -438,10 +475,14 @@ class Segmenter(LeafSystem):
             and prior_from_frame
         ):
             return
-        key = (frame_key, id(prior))
+        key = (
+            frame_key,
+            id(prior),
+            None if surface is None else (surface.time, len(surface.points_B)),
+        )
         if key == memo_key:
             return
-        args, kwargs = self._work(frame, prior)
+        args, kwargs = self._work(frame, prior, surface)
         value.set_value((key, segment_frame(self._backend, self._geometry, *args, **kwargs)))
 
     def _keep_prior(self, context, state):
@@ -512,7 +553,9 @@ class Segmenter(LeafSystem):
             else:
                 # A frame that waited and was overtaken by this newer one was never segmented.
                 self.frames_skipped += h.waiting is not None and h.waiting != key
-                args, kwargs = self._work(frame, new_prior if self._uses_prior else None)
+                args, kwargs = self._work(
+                    frame, new_prior if self._uses_prior else None, self._surface_now(context)
+                )
                 ticket = self._executor.submit(
                     "frames",
                     _segment_job,

@@ -45,7 +45,7 @@ from scipy.spatial import cKDTree
 
 from drake_rus.executor import InlineExecutor
 from drake_rus.imaging.backprojection import backproject_pixels
-from drake_rus.imaging.frames import BoundaryPixels
+from drake_rus.imaging.frames import BoundaryPixels, KidneySurface
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.localization.icp import MovingNearest, _template_tree
 from drake_rus.localization.localize import LocalizationOutcome
@@ -60,6 +60,8 @@ __all__ = [
     "TrackingState",
     "tracking_update",
     "KidneyTrackingMonitor",
+    "registered_shape_K",
+    "RegisteredKidneySurface",
     "drift_fit",
     "registered_tree",
 ]
@@ -180,6 +182,16 @@ def estimate_drift(
     # p_K + t lies on the template: the kidney sits at -t in K relative to its estimate.
     drift_B = -(X_BK.rotation().matrix() @ t)
     return DriftEstimate(drift_B, rms, len(points_B), frames_used, n_frames)
+
+
+def registered_shape_K(template, result) -> np.ndarray:
+    """(M, 3) the registration template's points in K (m) with the shape modes the
+    registration ``result`` fitted (its ``shape_coefficients``; none: the mean shape)."""
+    shape = np.asarray(template.points, float)
+    b = getattr(result, "shape_coefficients", None)
+    if b is not None and template.modes is not None:
+        shape = shape + np.einsum("k,kij->ij", b, template.modes[: len(b)])
+    return shape
 
 
 def kidney_in_view(
@@ -394,10 +406,7 @@ class KidneyTrackingMonitor(LeafSystem):
         """(shape_K, shape_B) of the registered template, cached per estimate."""
         key = (outcome.time, id(outcome.result))
         if key != self._shape_key:
-            shape = self._template.points
-            b = outcome.result.shape_coefficients
-            if b is not None and self._template.modes is not None:
-                shape = shape + np.einsum("k,kij->ij", b, self._template.modes[: len(b)])
+            shape = registered_shape_K(self._template, outcome.result)
             self._shape_key, self._shape = key, shape
             self._shape_B = outcome.result.X_BK.multiply(shape.T).T
         return self._shape, self._shape_B
@@ -471,3 +480,37 @@ class KidneyTrackingMonitor(LeafSystem):
         return tracking_update(
             s, done.t_request, done.value, self._cfg, tracking_limits(outcome.result, self._cfg)
         )
+
+
+class RegisteredKidneySurface(LeafSystem):
+    """The registered kidney's surface in B, for the Segmenter's template prior.
+
+    Input ``localization`` (abstract LocalizationOutcome from IcpLocalizer). Output
+    ``kidney_surface`` (abstract KidneySurface): the template's points in K with the fitted
+    shape modes (:func:`registered_shape_K`) mapped by the estimate's X_BK (m, in B), with
+    the estimate's time (s); empty while there is no estimate. Computed once per estimate."""
+
+    def __init__(self, template):
+        super().__init__()
+        self._template = template
+        self._outcome = self.DeclareAbstractInputPort(
+            "localization", AbstractValue.Make(LocalizationOutcome())
+        )
+        self._cache = [None, KidneySurface()]  # (estimate key, surface)
+        self.DeclareAbstractOutputPort(
+            "kidney_surface", lambda: AbstractValue.Make(KidneySurface()), self._calc
+        )
+
+    def _calc(self, context, output):
+        outcome = self._outcome.Eval(context)
+        if outcome.result is None:
+            output.set_value(KidneySurface())
+            return
+        key = (outcome.time, id(outcome.result))
+        if key != self._cache[0]:
+            shape = registered_shape_K(self._template, outcome.result)
+            self._cache[:] = [
+                key,
+                KidneySurface(outcome.result.X_BK.multiply(shape.T).T, outcome.time),
+            ]
+        output.set_value(self._cache[1])

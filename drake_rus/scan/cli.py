@@ -37,6 +37,7 @@ from drake_rus.cli import (
     load_scenario_from_args,
 )
 from drake_rus.config_schema import ScenarioError
+from drake_rus.imaging.annotated import write_annotated_frames
 from drake_rus.imaging.onnx_backend import OnnxSegmenter, resolve_model_path
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.io_utils import MB, check_output_file, dumps_strict, output_dir, write_text_atomic
@@ -127,7 +128,19 @@ def add_commands(subparsers) -> None:
         "first use into the cache, without the scanned case), real:DIR, or a "
         "template .npz (default: the scenario's localization.template)",
     )
-    p.set_defaults(func=run_scan_command, outputs={"out": "dir", "record": "file:.html"})
+    p.add_argument(
+        "--save-frames",
+        default=None,
+        metavar="DIR",
+        help="also write every frame (grey image, the segmenter's kidney mask, probe pose, "
+        "time) to DIR in the Open Kidney Ultrasound Data Set's mask layout, ready to "
+        "annotate and to fine-tune on (docs/imaging.md, 'Bring your own frames'); DIR "
+        "must not exist or be empty",
+    )
+    p.set_defaults(
+        func=run_scan_command,
+        outputs={"out": "dir", "record": "file:.html", "save_frames": "dir"},
+    )
 
 
 # ------------------------------------------------------------------------ reproducibility
@@ -356,6 +369,10 @@ def run_scan_command(args) -> int:
         args.out = "runs/scan"
     template = load_template_for(scenario)
     check_segmenter(scenario)
+    if args.save_frames is not None:
+        frames_dir = Path(args.save_frames)
+        if frames_dir.exists() and any(frames_dir.iterdir()):
+            raise UserError(f"--save-frames: {frames_dir} is not empty; give a new folder")
     provenance = scan_provenance(args, scenario)
     record = not args.no_record
     need = SCAN_OUTPUT_BYTES + (RECORDING_BYTES if record and not args.record else 0)
@@ -464,7 +481,12 @@ class _ScanRun:
             meshcat.StartRecording(frames_per_second=20.0)
         try:
             result = RunScan(
-                scenario, patient, self.template, meshcat=meshcat, max_sim_time=args.max_sim_time
+                scenario,
+                patient,
+                self.template,
+                meshcat=meshcat,
+                max_sim_time=args.max_sim_time,
+                keep_frames=args.save_frames is not None,
             )
         except (IkError, StartPlanError) as e:
             raise UserError(
@@ -488,6 +510,12 @@ class _ScanRun:
             record = Path(args.record) if args.record else self.out / "scan.html"
             SaveMeshcatRecording(meshcat, record)
             written.append(record)
+        if args.save_frames is not None:
+            written.append(
+                write_annotated_frames(
+                    args.save_frames, result.saved_frames, result.scenario.imaging.depth
+                )
+            )
         interrupts.check()  # a signal swallowed while writing
         e_t, e_r, V = summary["e_trans_mm"], summary["e_rot_x_deg"], summary["volume_ratio"]
         print(

@@ -1,6 +1,7 @@
 """The scan diagram (seed Fig. 2) on ANY station: only the ports both stations export.
 
     station.us_image -> Segmenter -> PointCloudAccumulator (while EXPLOREing) -> IcpLocalizer
+    IcpLocalizer -> RegisteredKidneySurface -> Segmenter (the template's section: its prior)
     station.{joint_position, joint_velocity, X_BP, probe_force} -> controller + safety
     ScanSupervisor phases: APPROACH -> EXPLORE -> LOCALIZE -> TRANSIT -> PIVOT -> DONE | ABORT
     KidneyTrackingMonitor (after LOCALIZE), ScanRecorder (every frame), loggers
@@ -29,7 +30,7 @@ from drake_rus.executor import MakeExecutor
 from drake_rus.imaging.frames import UsFrame
 from drake_rus.imaging.systems import PointCloudAccumulator, Segmenter
 from drake_rus.localization.localize import IcpLocalizer, body_directions_B
-from drake_rus.localization.tracking import KidneyTrackingMonitor
+from drake_rus.localization.tracking import KidneyTrackingMonitor, RegisteredKidneySurface
 
 __all__ = [
     "BuildScanDiagram",
@@ -131,6 +132,10 @@ class ScanRecorder(LeafSystem):
         #: Kidney masks (bool, rows x cols) by frame index, of the phases ``keep_masks`` asks.
         self.sweep_masks: dict[int, np.ndarray] = {}
         self._mask_phases: frozenset = frozenset()
+        #: With ``keep_frames``: (us_image UsFrame, kidney_mask UsFrame, phase, visible) of
+        #: every frame (the frames are immutable: kept, not copied).
+        self.kept_frames: list[tuple] = []
+        self._keep_all = False
         self._keep_every, self._keep_max = keep_every, keep_max
         self._last_index = -1
         self._pivot_count = 0
@@ -139,6 +144,11 @@ class ScanRecorder(LeafSystem):
         """Also keep the kidney mask of every frame acquired in one of ``phases`` (Phase
         values) in ``sweep_masks`` (about 64 kB a frame), e.g. for a volume reconstruction."""
         self._mask_phases = frozenset(int(p) for p in phases)
+
+    def keep_frames(self) -> None:
+        """Also keep every frame's grey image and kidney mask with its phase and visible flag
+        (``kept_frames``, about 128 kB a frame), e.g. for ``scan --save-frames``."""
+        self._keep_all = True
 
     def _record(self, context):
         us = self._us.Eval(context)
@@ -159,6 +169,8 @@ class ScanRecorder(LeafSystem):
         )
         if phase in self._mask_phases:
             self.sweep_masks[us.frame_index] = np.array(self._mask.Eval(context).image, bool)
+        if self._keep_all:
+            self.kept_frames.append((us, self._mask.Eval(context), phase, visible))
         if phase == Phase.PIVOT:
             if self._pivot_count % self._keep_every == 0 and len(self.images) < self._keep_max:
                 mask = self._mask.Eval(context)
@@ -203,13 +215,15 @@ def _breath_hold_port(scenario, station):
 def PivotModelFor(template, imaging) -> PivotModel:
     """The supervisor's pivot model: the registration template's points in K (m) and the
     fan of the probe at the scan's depth (m, rad), with half the elevational beam width as
-    the image slab."""
+    the image slab and the segmenter's visibility threshold (m^2) as the smallest section
+    that puts the kidney in view."""
     return PivotModel(
         points_K=np.asarray(template.points, float),
         probe_radius=imaging.probe_radius,
         half_angle=math.radians(imaging.field_of_view_deg) / 2,
         depth=imaging.depth,
         slab_half_width=imaging.elevation_width / 2,
+        min_section_area=imaging.min_kidney_area,
     )
 
 
@@ -265,6 +279,13 @@ def BuildScanDiagram(
         ),
     )
     builder.Connect(accumulator.GetOutputPort("point_cloud"), localizer.GetInputPort("point_cloud"))
+    # After localization, the registered template's section in each frame is the
+    # segmenter's prior (the kidney found again after a pivot leg's end or any loss).
+    surface = builder.AddNamedSystem("registered_surface", RegisteredKidneySurface(template))
+    builder.Connect(localizer.GetOutputPort("localization"), surface.GetInputPort("localization"))
+    builder.Connect(
+        surface.GetOutputPort("kidney_surface"), segmenter.GetInputPort("kidney_surface")
+    )
     parts = AddController(
         builder,
         station,
@@ -287,8 +308,9 @@ def BuildScanDiagram(
         localizer.GetOutputPort("kidney_length_estimate"),
         supervisor.GetInputPort("kidney_length_estimate"),
     )
-    # What the predicted_end pivot strategy predicts the kidney's ends from (unused by the
-    # paper's two-leg pivot): the template in K and the probe's fan.
+    # The template in K and the probe's fan: what the predicted_end pivot strategy predicts
+    # the kidney's ends from, and what tells an expected absence of the kidney from a loss
+    # in PIVOT (supervisor.absence_expected).
     model = builder.AddNamedSystem(
         "pivot_model",
         ConstantValueSource(AbstractValue.Make(PivotModelFor(template, scenario.imaging))),

@@ -28,6 +28,7 @@ from drake_rus.control.safety import StopReason
 from drake_rus.control.supervisor import Phase
 from drake_rus.executor import MakeExecutor
 from drake_rus.hardware.station import HardwareSession
+from drake_rus.imaging.annotated import SavedFrame
 from drake_rus.progress import AdvanceWithProgress
 from drake_rus.robot import IkError, MakeControlPlant, SolveTipPose
 from drake_rus.scan.diagram import BuildScanDiagram, ScanHandles
@@ -123,6 +124,9 @@ class ScanResult:
     # The scan's own checks of its result before it may say DONE (scan/verdict.py):
     # a list of Check; empty when the scan did not reach DONE.
     checks: list = dataclasses.field(default_factory=list)
+    # Every frame's grey image and kidney mask (imaging.annotated.SavedFrame), when RunScan
+    # was asked to keep them (keep_frames); else empty.
+    saved_frames: list = dataclasses.field(default_factory=list)
     # A live run's loop timing (scan.pacing.loop_statistics: per-tick compute time and lag,
     # slips, load average) and its per-tick trace (t, compute, lag arrays, s); None when
     # the run was not paced at real time.
@@ -300,6 +304,7 @@ def RunScan(
     monitors: Sequence[ScanMonitor] = (),
     settle: float = 0.0,
     keep_sweep_masks: bool = False,
+    keep_frames: bool = False,
     make_executor: Callable = MakeExecutor,
 ) -> ScanResult:
     """Runs the closed-loop scan until DONE, ABORT or ``max_sim_time`` (s).
@@ -313,7 +318,9 @@ def RunScan(
     keep simulating this long after the scan ends (monitors still observe), e.g. to check
     the robot comes to rest; the result describes the scan proper. ``keep_sweep_masks``:
     keep every EXPLORE and PIVOT frame's kidney mask (``ScanResult.sweep_masks``, for a
-    volume reconstruction; about 64 kB a frame).
+    volume reconstruction; about 64 kB a frame). ``keep_frames``: keep every frame's grey
+    image, kidney mask, pose, time and phase (``ScanResult.saved_frames``, for ``scan
+    --save-frames``; about 128 kB a frame).
 
     A live run is paced tick by tick (``scan.pacing.RealtimePacer``: per-tick compute time
     and lag in ``ScanResult.loop_timing``; stopped at zero velocity, ABORT naming the
@@ -353,6 +360,7 @@ def RunScan(
             monitors=monitors,
             settle=settle,
             keep_sweep_masks=keep_sweep_masks,
+            keep_frames=keep_frames,
         )
     finally:
         executor.close()
@@ -398,6 +406,7 @@ def _run(
     monitors,
     settle,
     keep_sweep_masks,
+    keep_frames,
 ) -> ScanResult:
     """RunScan's body once the station and the executor exist (the caller closes the
     executor)."""
@@ -408,6 +417,8 @@ def _run(
         raise
     if keep_sweep_masks:
         h.recorder.keep_masks((Phase.EXPLORE, Phase.PIVOT))
+    if keep_frames:
+        h.recorder.keep_frames()
     truth = (
         AttachSimulationTruth(builder, station, patient, scenario) if patient is not None else None
     )
@@ -498,6 +509,12 @@ def _run(
         _close(station, live)
     result.sim_s = t_end
     result.cpu_s = cpu
+    result.saved_frames = [
+        SavedFrame(
+            us.image, mask.image, us.time, us.frame_index, Phase(phase).name, visible, us.X_BP
+        )
+        for us, mask, phase, visible in h.recorder.kept_frames
+    ]
     result.start_plan = plan
     result.perception = {
         "execution": executor.mode,

@@ -428,6 +428,7 @@ class VolumeVariant:
     fat: float = 0.0
     inner: float = 0.0
     sampler_kw: dict = field(default_factory=dict)
+    weight: float = 1.0  # how often its views are drawn, relative to the other variants
 
     def __post_init__(self):
         self.sampler = ViewSampler(self.volume, self.approach_V, **self.sampler_kw)
@@ -448,8 +449,8 @@ def canvas_frames(
 ) -> dict:
     """``n`` randomised training frames on the physical canvas: for each, a depth preset
     (over ``presets``, with ``preset_weights`` or uniform), a volume variant whose ``extra_depth``
-    is at most
-    ``max_extra(depth)`` (so thick walls come with the deep presets), a view, a randomised
+    is at most ``max_extra(depth)`` (so thick walls come with the deep presets; drawn by the
+    variants' ``weight``), a view, a randomised
     emulator (``randomisation`` None: the scenario's, at every frame; else a share
     ``randomisation.nominal`` of frames with the scenario's) and a random speckle seed.
 
@@ -475,7 +476,11 @@ def canvas_frames(
             raise RuntimeError(f"canvas_frames: only {k} of {n} views found")
         depth = float(presets[rng.choice(len(presets), p=pw)])
         allowed = [i for i, v in enumerate(variants) if v.extra_depth <= max_extra(depth)]
-        vi = allowed[rng.integers(len(allowed))] if allowed else 0
+        if not allowed:
+            vi = 0
+        else:
+            w = np.array([variants[i].weight for i in allowed], float)
+            vi = allowed[rng.choice(len(allowed), p=w / w.sum())]
         v = variants[vi]
         X_VP = v.sampler.sample(rng)
         if X_VP is None:

@@ -96,7 +96,7 @@ import numpy as np
 from drake_rus.extras import MissingExtra, require
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.emulator import EmulatorModel
-from drake_rus.imaging.onnx_backend import resize_to
+from drake_rus.imaging.onnx_backend import read_model_card, resize_to
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.imaging.training.dataset import (
     CORTEX_MM,
@@ -140,13 +140,24 @@ WALL_VARIANTS = {
 # around the published 6.6 +- 1.9 / 15.4 +- 2.8 mm, dataset.draw_kidney_layers, the rule the
 # importer applies to imported kidneys), a thin cortex (P_THIN_CORTEX: THIN_CORTEX m over a
 # continuous medulla), else the generator's pyramids.
-P_NO_PERIRENAL_FAT = 0.5
+P_NO_PERIRENAL_FAT = 0.6
 PERIRENAL_MARGIN = (0.010, 0.030)
-P_LAYERED = 0.4
+P_LAYERED = 0.45
 P_THIN_CORTEX = 0.15
 # Depth presets are drawn with these weights (by preset order): the scenario's default
-# 150 mm and the shallowest 100 mm (kidney cut by the image's bottom edge) more often.
-PRESET_WEIGHTS = {0.10: 1.6, 0.15: 1.6}
+# 150 mm 1.6 times and the shallowest 100 mm (kidney cut by the image's bottom edge) 2.2
+# times as often as each other.
+PRESET_WEIGHTS = {0.10: 2.2, 0.15: 1.6}
+# The imported-like variant (no perirenal fat, a layered kidney: the cortex against soft
+# tissue, how the VH female's kidney and every imported kidney look) is drawn this many
+# times as often as each other variant. Measured on the previous model (validation patients
+# train:20-21, 30 views per preset and posture): 0.90 on the volumes as they are, 0.84 on
+# their imported-like versions (supine 0.82), the VH female 0.80 / 0.83.
+IMPORTED_LIKE_WEIGHT = 2.0
+# Share of training frames given a synthetic acoustic shadow (add_shadow): views whose
+# kidney lies partly under a rib or gas shadow score lowest (test split, 100 mm: frames with
+# under half the kidney out of shadow average 0.46), and the kidney goes on under it.
+P_SHADOW = 0.2
 THIN_CORTEX = (0.003, 0.006)
 
 
@@ -246,12 +257,17 @@ def wall_variants(source, posture: str, rng: np.random.Generator) -> list[Volume
     out = [
         VolumeVariant(source.volume, source.up_V, **kw),
         VolumeVariant(_randomised_anatomy(source.volume, rng, force=True), source.up_V, **kw),
-        VolumeVariant(randomised_anatomy(source.volume, rng, True, "layered"), source.up_V, **kw),
+        VolumeVariant(
+            randomised_anatomy(source.volume, rng, True, "layered"),
+            source.up_V,
+            weight=IMPORTED_LIKE_WEIGHT,
+            **kw,
+        ),
     ]
     for fat_range, inner_range in WALL_VARIANTS[posture]:
         fat, inner = float(rng.uniform(*fat_range)), float(rng.uniform(*inner_range))
         vol = thicken_wall(
-            _randomised_anatomy(source.volume, rng), source.up_V, fat=fat, inner=inner
+            _randomised_anatomy(source.volume, rng, force=True), source.up_V, fat=fat, inner=inner
         )
         out.append(
             VolumeVariant(vol, source.up_V, extra_depth=fat + inner, fat=fat, inner=inner, **kw)
@@ -280,7 +296,7 @@ def build_canvas_dataset(
     bank = EmulatorBank(config)
     parts = []
     tag = (
-        f"v5_{frames}_{pixel_size * 1e3:g}mm_{canvas[0]}x{canvas[1]}_{canvas_top * 1e3:g}_"
+        f"v6_{frames}_{pixel_size * 1e3:g}mm_{canvas[0]}x{canvas[1]}_{canvas_top * 1e3:g}_"
         f"{'-'.join(f'{p:g}' for p in presets)}_{seed}{'' if randomised else '_nominal'}"
     )
     for i, spec in enumerate(specs):
@@ -339,22 +355,23 @@ def build_canvas_dataset(
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
-def make_unet(width: int = 8, lite: bool = False, space_to_depth: int = 1):
+def make_unet(width: int = 8, lite: bool = False, space_to_depth: int = 1, norm: bool = True):
     """A small U-Net; ``lite``: one convolution (not two) in the full-resolution blocks;
     ``space_to_depth`` f > 1: the input is rearranged into f x f channels at 1/f resolution
     and the f x f output channels back (pixel shuffle), so the U-Net runs at 1/f resolution
-    but predicts every input pixel."""
+    but predicts every input pixel. ``norm`` False: convolutions with a bias and no batch
+    normalisation, the form the ONNX export folds the normalisation into (the network
+    :func:`unet_from_onnx` loads an exported model into, to fine-tune it)."""
     import torch
     from torch import nn
 
     def block(cin, cout, convs=2):
         layers = []
         for k in range(convs):
-            layers += [
-                nn.Conv2d(cin if k == 0 else cout, cout, 3, padding=1, bias=False),
-                nn.BatchNorm2d(cout),
-                nn.ReLU(inplace=True),
-            ]
+            layers += [nn.Conv2d(cin if k == 0 else cout, cout, 3, padding=1, bias=not norm)]
+            if norm:
+                layers += [nn.BatchNorm2d(cout)]
+            layers += [nn.ReLU(inplace=True)]
         return nn.Sequential(*layers)
 
     full_res_convs = 1 if lite else 2
@@ -386,6 +403,124 @@ def make_unet(width: int = 8, lite: bool = False, space_to_depth: int = 1):
             return nn.functional.pixel_shuffle(out, f) if f > 1 else out
 
     return UNet(width)
+
+
+def conv_modules(net) -> list:
+    """The network's convolutions in the order its forward pass runs them (the order of
+    the Conv nodes of its ONNX export)."""
+    from torch import nn
+
+    order = ["e1", "e2", "e3", "b", "d3", "d2", "d1", "head"]
+    convs = []
+    for name in order:
+        part = getattr(net, name)
+        convs += [m for m in part.modules() if isinstance(m, nn.Conv2d)]
+    return convs
+
+
+def unet_from_onnx(path: str | Path, architecture: dict):
+    """A torch U-Net (:func:`make_unet` with ``norm`` False) holding the weights of an
+    ONNX model exported by :func:`export_onnx` (batch normalisation folded into the
+    convolutions), to fine-tune it. ``architecture``: the model card's (``width``,
+    ``space_to_depth``, ``lite``). Raises ValueError naming the file when the model is not
+    that network: another number or shape of convolutions, or outputs that differ from
+    ONNX Runtime's on a test input."""
+    import onnx
+    import onnxruntime as ort
+    import torch
+    from onnx import numpy_helper
+
+    path = Path(path)
+    try:
+        width = int(architecture["width"])
+        f = int(architecture.get("space_to_depth", 1))
+        lite = bool(architecture.get("lite", False))
+    except (KeyError, TypeError, ValueError):
+        raise ValueError(
+            f"{path.name}: its card's architecture must give width, space_to_depth "
+            f"and lite (a U-Net of train_segmenter); got {architecture!r}"
+        ) from None
+    net = make_unet(width, lite, f, norm=False)
+    model = onnx.load(str(path))
+    init = {t.name: numpy_helper.to_array(t) for t in model.graph.initializer}
+    nodes = [n for n in model.graph.node if n.op_type == "Conv"]
+    convs = conv_modules(net)
+    if len(nodes) != len(convs):
+        raise ValueError(
+            f"{path.name}: {len(nodes)} convolutions, but a width-{width} U-Net of "
+            f"train_segmenter has {len(convs)}: not a model this tool can fine-tune"
+        )
+    with torch.no_grad():
+        for node, conv in zip(nodes, convs):
+            w = init.get(node.input[1])
+            b = init.get(node.input[2]) if len(node.input) > 2 else None
+            if w is None or tuple(w.shape) != tuple(conv.weight.shape):
+                raise ValueError(
+                    f"{path.name}: convolution {node.name!r} has weights "
+                    f"{None if w is None else list(w.shape)}, expected "
+                    f"{list(conv.weight.shape)}: not a model this tool can fine-tune"
+                )
+            conv.weight.copy_(torch.from_numpy(np.array(w, np.float32)))
+            conv.bias.copy_(
+                torch.from_numpy(np.zeros(w.shape[0], np.float32) if b is None else np.array(b))
+            )
+    net.eval()
+    shape = [d.dim_value or 1 for d in model.graph.input[0].type.tensor_type.shape.dim]
+    x = np.random.default_rng(0).random(shape).astype(np.float32)
+    ref = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(
+        None, {model.graph.input[0].name: x}
+    )[0]
+    with torch.no_grad():
+        got = net(torch.from_numpy(x)).numpy()
+    if got.shape != ref.shape or not np.allclose(got, ref, atol=1e-3):
+        raise ValueError(
+            f"{path.name}: the U-Net rebuilt from its weights does not reproduce it "
+            f"(largest difference {np.abs(got - ref).max() if got.shape == ref.shape else 'shape'}"
+            "): not a model this tool can fine-tune"
+        )
+    return net
+
+
+def canvas_polar(
+    pixel_size: float, shape: tuple[int, int], top: float, probe_radius: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(angle rad, radius m) of every canvas pixel's centre about the convex probe's centre
+    of curvature (``probe_radius`` m above the face centre, on the beam axis): the polar
+    coordinates of the scan lines (angle) and of depth along them (radius)."""
+    H, W = shape
+    z = top + (np.arange(H) + 0.5) * pixel_size + probe_radius
+    x = (np.arange(W) + 0.5 - W / 2) * pixel_size
+    zz, xx = np.meshgrid(z, x, indexing="ij")
+    return np.arctan2(xx, zz).astype(np.float32), np.hypot(xx, zz).astype(np.float32)
+
+
+def add_shadow(
+    image: np.ndarray,
+    theta: np.ndarray,
+    rho: np.ndarray,
+    rng: np.random.Generator,
+    probe_radius: float,
+    half_angle: float,
+    width_deg=(4.0, 14.0),
+    start=(0.015, 0.08),
+    floor=(0.0, 0.25),
+) -> np.ndarray:
+    """A copy of a canvas image (H, W; grey in [0, 1], 0 outside the fan) with an acoustic
+    shadow: the scan lines of a random wedge (``width_deg``, within the fan of
+    ``half_angle`` rad) dimmed to a ``floor`` fraction of their grey from a random depth
+    (``start``, m below the face) down, under a bright echo at that depth, as a rib or
+    bowel gas casts one. The kidney's mask is unchanged: the kidney goes on under the
+    shadow (augmentation of the training frames)."""
+    w = np.radians(rng.uniform(*width_deg))
+    centre = rng.uniform(-half_angle, half_angle)
+    r0 = probe_radius + rng.uniform(*start)
+    wedge = np.abs(theta - centre) <= 0.5 * w
+    below = wedge & (rho >= r0)
+    out = image.copy()
+    out[below] *= np.float32(rng.uniform(*floor))
+    edge = wedge & (rho >= r0 - 0.003) & (rho < r0) & (image > 0)
+    out[edge] = np.clip(out[edge] * 1.6 + 0.15, 0.0, 1.0)
+    return out
 
 
 def _canvas_iou(logits: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -442,20 +577,26 @@ def train(
     val=None,
     time_limit: float | None = None,
     init: str | Path | None = None,
+    net=None,
+    shadow=None,
 ):
     """Trains on X (N, H, W) grey and Y (N, H, W) kidney targets in [0, 1] (float32, or
     uint8 / 255). ``val``: (X, Y, groups) checked after each epoch (canvas IoU per group).
     ``time_limit`` (s): the one-cycle schedule (:func:`one_cycle_lr`) follows the larger of
     step and time progress (:func:`schedule_progress`), and training ends when it reaches
     the end, after ``epochs`` or at the time limit. ``init``: a state dict (``--save-torch``
-    of an earlier run) to start from."""
+    of an earlier run) to start from; ``net``: a network to train on instead (e.g.
+    :func:`unet_from_onnx`). ``shadow``: (probability, theta, rho, probe_radius,
+    half_angle): that share of frames gets an :func:`add_shadow` on the canvas's polar
+    grid (theta, rho from :func:`canvas_polar`)."""
     import torch
 
     torch.manual_seed(seed)
     torch.set_num_threads(threads)
-    net = make_unet(width, lite, space_to_depth)
-    if init is not None:
-        net.load_state_dict(torch.load(str(init), map_location="cpu"))
+    if net is None:
+        net = make_unet(width, lite, space_to_depth)
+        if init is not None:
+            net.load_state_dict(torch.load(str(init), map_location="cpu"))
     opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
     steps = epochs * int(np.ceil(len(X) / batch))
     step = 0
@@ -477,7 +618,12 @@ def train(
             for group in opt.param_groups:
                 group["lr"] = one_cycle_lr(progress, lr)
             idx = np.sort(order[k : k + batch])
-            x = torch.from_numpy(X[idx][:, None].astype(np.float32) * scale)
+            xb = X[idx].astype(np.float32) * scale
+            if shadow is not None:
+                p_shadow, theta, rho, radius, half = shadow
+                for i in np.flatnonzero(rng.random(len(idx)) < p_shadow):
+                    xb[i] = add_shadow(xb[i], theta, rho, rng, radius, half)
+            x = torch.from_numpy(xb[:, None])
             y = torch.from_numpy(Y[idx][:, None].astype(np.float32) * yscale)
             flip = torch.from_numpy(rng.random(len(idx)) < 0.5)
             x[flip] = x[flip].flip(-1)
@@ -688,7 +834,15 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--init",
         metavar="FILE",
-        help="start from this torch state dict (a --save-torch of an earlier run)",
+        help="start from this torch state dict (a --save-torch of an earlier run) or ONNX "
+        "model of this tool (its card beside it gives the architecture; the network is then "
+        "trained without batch normalisation, which the export folded away)",
+    )
+    ap.add_argument(
+        "--shadow",
+        type=float,
+        default=P_SHADOW,
+        help="share of training frames given a synthetic acoustic shadow",
     )
     ap.add_argument(
         "--record-benchmark",
@@ -770,6 +924,20 @@ def main(argv=None) -> int:
     if args.data_only:
         return 0
     t = time.time()
+    start_net = None
+    if args.init and Path(args.init).suffix == ".onnx":
+        card = read_model_card(args.init)
+        try:
+            start_net = unet_from_onnx(args.init, card.get("architecture") or {})
+        except (OSError, ValueError) as e:
+            ap.error(f"--init: {e}")
+        if card.get("canvas_px") != list(canvas) or card.get("pixel_size_mm") != args.pixel_size_mm:
+            ap.error(
+                f"--init: {args.init} works on a canvas of {card.get('canvas_px')} px of "
+                f"{card.get('pixel_size_mm')} mm, not {list(canvas)} of {args.pixel_size_mm}"
+            )
+    polar = canvas_polar(p, canvas, top, ImagingConfig().probe_radius)
+    half_angle = np.radians(ImagingConfig().field_of_view_deg) / 2
     net = train(
         data["image"],
         data["kidney"],
@@ -782,7 +950,11 @@ def main(argv=None) -> int:
         space_to_depth=f,
         val=val,
         seed=args.seed,
-        init=args.init,
+        init=None if start_net is not None else args.init,
+        net=start_net,
+        shadow=(args.shadow, *polar, ImagingConfig().probe_radius, half_angle)
+        if args.shadow > 0
+        else None,
         time_limit=None if args.time_limit_min is None else 60 * args.time_limit_min,
     )
     train_seconds = round(time.time() - t)
@@ -825,6 +997,7 @@ def main(argv=None) -> int:
         },
         "architecture": {
             "kind": "U-Net behind a space-to-depth stem",
+            "batch_norm": start_net is None,
             "width": args.width,
             "space_to_depth": f,
             "lite": args.lite,
@@ -867,7 +1040,13 @@ def main(argv=None) -> int:
             },
             "validation": "train:N.. patients, volume as is, scenario emulator, canvas IoU",
             "randomisation": asdict(Randomisation()),
-            "augmentation": "left-right flip; grey x U(0.85, 1.15) + U(-0.05, 0.05) in the fan",
+            "augmentation": (
+                "left-right flip; grey x U(0.85, 1.15) + U(-0.05, 0.05) in the fan; "
+                f"a synthetic acoustic shadow on {args.shadow:.0%} of frames (add_shadow: a "
+                "4-14 deg wedge of scan lines dimmed to 0-25% from 15-80 mm below the face, "
+                "under a bright echo; the mask unchanged)"
+            ),
+            "variant_weights": {"imported_like": IMPORTED_LIKE_WEIGHT, "others": 1.0},
             "fat_thickness": (
                 "not a generator input (set by the body-size class); training "
                 "patients span lean, normal, overweight and obese; plus "

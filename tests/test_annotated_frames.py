@@ -1,0 +1,193 @@
+"""Issue 31: bringing one's own frames. A folder of annotated frames in the Open Kidney
+Ultrasound Data Set's mask layout is imported; ``scan --save-frames`` writes one that
+imports again; bad folders get one line and exit status 2, and nothing is written."""
+
+import csv
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from PIL import Image
+from pydrake.common.eigen_geometry import Quaternion
+from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
+
+from drake_rus.imaging.annotated import (
+    FramesError,
+    SavedFrame,
+    read_annotated_frames,
+    write_annotated_frames,
+)
+from drake_rus.paths import REPO_ROOT
+
+SHAPE = (256, 256)
+
+
+def _png(path, arr):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.asarray(arr, np.uint8)).save(path)
+
+
+def _frame(k):
+    rng = np.random.default_rng(k)
+    img = rng.integers(0, 255, SHAPE).astype(np.uint8)
+    mask = np.zeros(SHAPE, np.uint8)
+    mask[100 + k : 140 + k, 90:170] = 1  # the data set's capsule masks hold 1
+    return img, mask
+
+
+def make_folder(root, n=4, table=True, empty=()):
+    for k in range(n):
+        img, mask = _frame(k)
+        if k in empty:
+            mask[:] = 0
+        _png(root / "images" / f"f{k:02d}.png", img)
+        _png(root / "capsule" / f"f{k:02d}.png", mask)
+    if table:
+        with open(root / "frames.csv", "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["name", "kidney", "depth_m"])
+            for k in range(n):
+                w.writerow([f"f{k:02d}", 0 if k in empty else 1, 0.2])
+    return root
+
+
+def test_a_folder_in_the_open_kidney_layout_is_imported(tmp_path):
+    root = make_folder(tmp_path / "frames", empty=(3,))
+    # The data set's second mask (inner regions) may sit beside: not read.
+    _png(root / "regions" / "f00.png", np.full(SHAPE, 2))
+    f = read_annotated_frames(root, SHAPE)
+    assert f.names == ["f00", "f01", "f02", "f03"]
+    assert f.images.shape == (4,) + SHAPE and f.images.dtype == np.uint8
+    for k in range(3):
+        img, mask = _frame(k)
+        np.testing.assert_array_equal(f.images[k], img)
+        np.testing.assert_array_equal(f.masks[k], mask > 0)
+    assert f.kidney.tolist() == [True, True, True, False]
+    np.testing.assert_allclose(f.depth, 0.2)
+    # Masks saved as 0/255 (other tools) read the same; no table: the depth is given.
+    plain = tmp_path / "plain"
+    img, mask = _frame(0)
+    _png(plain / "images" / "a.png", np.stack([img] * 3, axis=-1))  # colour: made grey
+    _png(plain / "capsule" / "a.png", mask * 255)
+    g = read_annotated_frames(plain, SHAPE, depth=0.15)
+    np.testing.assert_array_equal(g.masks[0], mask > 0)
+    assert g.depth[0] == 0.15 and g.images[0].shape == SHAPE
+
+
+@pytest.mark.parametrize(
+    "spoil, expected",
+    [
+        (lambda r: (r / "capsule" / "f01.png").unlink(), "no mask"),
+        (lambda r: _png(r / "capsule" / "f01.png", np.ones((128, 128))), "a mask has its image"),
+        (lambda r: _png(r / "capsule" / "f02.png", np.zeros(SHAPE)), "no kidney pixel"),
+        (lambda r: (r / "images" / "notes.txt").write_text("hello"), "not a PNG image"),
+        (lambda r: (r / "images" / "f01.png").write_text("not a picture"), "not a readable PNG"),
+        (
+            lambda r: [_png(r / d / "f01.png", np.ones((200, 256))) for d in ("images", "capsule")],
+            "on the probe's image grid, 256 x 256",
+        ),
+        (lambda r: (r / "frames.csv").write_text("name,kidney\nf00,maybe\n"), "must be 0 or 1"),
+    ],
+)
+def test_bad_folders_get_one_line(tmp_path, spoil, expected):
+    root = make_folder(tmp_path / "frames")
+    spoil(root)
+    with pytest.raises(FramesError) as e:
+        read_annotated_frames(root, SHAPE)
+    text = str(e.value)
+    assert "\n" not in text
+    assert expected in text
+
+
+def test_an_empty_mask_needs_the_frame_marked_kidney_free(tmp_path):
+    root = make_folder(tmp_path / "frames", table=False, empty=(1,))
+    with pytest.raises(FramesError, match="no kidney pixel"):
+        read_annotated_frames(root, SHAPE, depth=0.15)
+    with pytest.raises(FramesError, match="no imaging depth"):
+        read_annotated_frames(make_folder(tmp_path / "nodepth", table=False), SHAPE)
+
+
+def test_saved_frames_import_again(tmp_path):
+    frames = []
+    for k in range(5):
+        img, mask = _frame(k)
+        X = RigidTransform(RollPitchYaw(0.1 * k, 3.0, 0.2), [0.5, 0.01 * k, 0.2])
+        frames.append(
+            SavedFrame(img, mask > 0 if k != 2 else mask * 0, 0.05 * k, 10 + k, "PIVOT", k != 2, X)
+        )
+    out = write_annotated_frames(tmp_path / "saved", frames, depth=0.25)
+    f = read_annotated_frames(out, SHAPE)
+    assert f.names == [f"{10 + k:06d}" for k in range(5)]
+    assert f.kidney.tolist() == [True, True, False, True, True]
+    np.testing.assert_allclose(f.depth, 0.25)
+    for k in range(5):
+        np.testing.assert_array_equal(f.images[k], frames[k].image)
+        np.testing.assert_array_equal(f.masks[k], np.asarray(frames[k].mask, bool))
+        row = f.rows[k]
+        p = [float(row[c]) for c in ("p_BP_x_m", "p_BP_y_m", "p_BP_z_m")]
+        q = [float(row[c]) for c in ("q_BP_w", "q_BP_x", "q_BP_y", "q_BP_z")]
+        np.testing.assert_allclose(p, frames[k].X_BP.translation(), atol=1e-6)
+        R = RotationMatrix(Quaternion(np.array(q) / np.linalg.norm(q))).matrix()
+        np.testing.assert_allclose(R, frames[k].X_BP.rotation().matrix(), atol=1e-6)
+        assert float(row["time_s"]) == pytest.approx(0.05 * k) and row["phase"] == "PIVOT"
+    # Never into a folder that holds something; nothing half-written is left behind.
+    with pytest.raises(FramesError, match="not an empty folder"):
+        write_annotated_frames(out, frames, depth=0.25)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["saved"]
+
+
+def _cli(*args):
+    return subprocess.run(
+        [sys.executable, "-m", "drake_rus.cli", *args],
+        capture_output=True,
+        text=True,
+        cwd=REPO_ROOT,
+        timeout=300,
+    )
+
+
+def test_the_command_line_refuses_a_bad_folder_in_one_line_and_writes_nothing(tmp_path):
+    root = make_folder(tmp_path / "frames")
+    _png(root / "capsule" / "f01.png", np.ones((100, 100)))
+    out = tmp_path / "model"
+    for cmd in (
+        ["segmenter", "fine-tune", "--frames", str(root), "--out", str(out)],
+        ["segmenter", "check-frames", "--frames", str(root)],
+    ):
+        r = _cli(*cmd)
+        assert r.returncode == 2, r.stderr
+        lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+        assert len(lines) == 1 and "capsule/f01.png" in lines[0], r.stderr
+        assert "Traceback" not in r.stderr
+    assert not out.exists()
+    ok = _cli("segmenter", "check-frames", "--frames", str(make_folder(tmp_path / "good")))
+    assert ok.returncode == 0 and "4 frames (4 with the kidney)" in ok.stdout
+
+
+def test_fine_tuning_writes_a_model_a_scenario_selects(tmp_path):
+    pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    from drake_rus.imaging.annotated import read_annotated_frames
+    from drake_rus.imaging.config import ImagingConfig
+    from drake_rus.imaging.systems import Segmenter
+    from drake_rus.imaging.training.fine_tune import fine_tune, held_out_split
+    from drake_rus.scenario import ApplyOverrides, Scenario
+
+    assert [x.tolist() for x in held_out_split(10, 0.2)] == [list(range(8)), [8, 9]]
+    with pytest.raises(ValueError):
+        held_out_split(1, 0.2)
+    frames = read_annotated_frames(make_folder(tmp_path / "frames", n=5), SHAPE)
+    card = fine_tune(frames, ImagingConfig(), tmp_path / "model", epochs=1, log=lambda s: None)
+    ev = card["evaluation"]
+    assert ev["before_model"] == "kidney_unet_int8.onnx"
+    assert 0.0 <= ev["held_out_iou_before"] <= 1.0 and 0.0 <= ev["held_out_iou_after"] <= 1.0
+    assert card["fine_tuning"]["held_out_frames"] == ["f04"]
+    assert card["fine_tuned_from"]["model"].endswith("kidney_unet.onnx")
+    model = tmp_path / "model" / "kidney_unet_finetuned.onnx"
+    assert model.is_file() and model.with_suffix(".json").is_file()
+    assert not any(p.name.endswith(".partial") for p in tmp_path.iterdir())
+    # imaging.onnx_model selects it; the card beside it gives the physical canvas.
+    scenario = ApplyOverrides(Scenario(), "{imaging: {onnx_model: %s}}" % model)
+    seg = Segmenter(scenario.imaging)
+    assert seg.GetInputPort("kidney_surface") is not None
