@@ -805,10 +805,16 @@ def critical_er_markdown(er: dict) -> list[str]:
             else float("nan")
             for k in ("e_trans_mm", "e_rot_x_deg")
         ]
+        better = min(row["dz_e_trans_mm"], row["dz_e_rot_x_deg"]) < 0
         where = (
             f"The critical ER is ER 100% itself; at the ER below it, {_pct(row['er'])}, which "
-            f"differs (p = {_p(row['p_e_trans'])} and {_p(row['p_e_rot_x'])}; a negative d_z: "
-            f"smaller errors than at ER 100%, a difference to the paper's two-sided test too)"
+            f"differs (p = {_p(row['p_e_trans'])} and {_p(row['p_e_rot_x'])}"
+            + (
+                "; a negative d_z: smaller errors than at ER 100%, a difference to the "
+                "paper's two-sided test too)"
+                if better
+                else ")"
+            )
             if below
             else f"At the critical ER {_pct(row['er'])}"
         )
