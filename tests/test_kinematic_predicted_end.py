@@ -223,6 +223,25 @@ def test_random_starts_are_redrawn_until_the_kidney_is_visible():
         run_patients.visible_random_start(task, kp, CTRL, lambda xy: False, max_draws=5)
 
 
+def test_random_starts_at_er_100_have_room_to_see_the_kidney():
+    """At ER 100% the travel leaves no room: the starts may lie up to START_MIN_ROOM into
+    the E-ROI, where the pole is in view (every draw failed on real CT kidneys whose
+    critical ER came out 100%)."""
+    kp = synthetic()
+    task = specs.StudyTask(study="starts", patient="synthetic", er=1.0, start=0)
+    starts = [
+        run_patients.random_start(dataclasses.replace(task, start=k), kp, CTRL) for k in range(5)
+    ]
+    assert all(0 <= sf <= run_patients.START_MIN_ROOM for sf, _ in starts)
+    assert len({sf for sf, _ in starts}) == 5
+    visible = run_patients.start_visibility(kp, km.Imager(kp, IMG))
+    sf, _, _ = run_patients.visible_random_start(task, kp, CTRL, visible)
+    assert 0 < sf <= run_patients.START_MIN_ROOM
+    # With room to spare the rule is the paper's: the whole travel fits.
+    sf, _ = run_patients.random_start(dataclasses.replace(task, er=0.6), kp, CTRL)
+    assert 0 <= sf <= 0.4 + 1e-9
+
+
 def test_start_visibility_on_the_synthetic_kidney():
     kp = synthetic()
     imager = km.Imager(kp, IMG)

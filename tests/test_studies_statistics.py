@@ -170,3 +170,26 @@ def test_margins_change_equivalence_only():
     assert loose["critical_er"] == strict["critical_er"]
     assert loose["equivalence_er"] == 0.6 and strict["equivalence_er"] == 1.0
     assert strict["margins"] == {"e_trans_mm": 1.0, "e_rot_x_deg": 1.0}
+
+
+def test_a_critical_er_of_100_is_explained_by_the_er_below():
+    """When ER 90% differs from ER 100% (here: smaller errors, which the paper's two-sided
+    test counts too) the critical ER is 100% itself, whose comparison with itself says
+    nothing: the console, the report and the side-by-side table give the ER below's d_z and
+    power instead (on real CT kidneys the kinematic study's critical ER came out 100%)."""
+    from drake_rus.experiments import report
+
+    sweep = an.analyze_er_sweep(_sweep(0.5, 15, shift=-1.0, ers=(0.6, 0.9, 1.0)))
+    assert sweep["critical_er"] == 1.0
+    row, below = an.critical_evidence_row(sweep)
+    assert below and row["er"] == 0.9
+    assert row["dz_e_trans_mm"] < -1 and row["p_e_trans"] < 0.05
+    assert "at 90% (the ER below, which differs): d_z -" in an.critical_er_summary(sweep)
+    text = "\n".join(report.critical_er_markdown(sweep))
+    assert "The critical ER is ER 100% itself; at the ER below it, 90%" in text
+    cols = "\n".join(report.critical_er_columns(["a"], [sweep]))
+    assert "(at 90%, the ER below)" in cols
+    # A critical ER below 100% keeps its own row.
+    other = an.analyze_er_sweep(_sweep(0.5, 15, shift=0.0, ers=(0.6, 0.9, 1.0)))
+    row, below = an.critical_evidence_row(other)
+    assert not below and row["er"] == other["critical_er"] < 1.0

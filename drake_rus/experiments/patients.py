@@ -9,8 +9,9 @@
   :func:`kidney_length`); ``fixed`` explores ER x L_m (``controller.kidney_length``,
   100 mm: the paper's in-vivo rule, III-F): :func:`exploration_travel`.
 - Random starts (the ``starts`` study, III-D): five per patient inside the E-ROI (start
-  fraction along y leaving room for the whole ER travel, and an x offset within the middle
-  half of the E-ROI's width), drawn again until the kidney is visible at the start (the
+  fraction along y leaving room for the whole ER travel, at least
+  :data:`START_MIN_ROOM`, and an x offset within the middle half of the E-ROI's width),
+  drawn again until the kidney is visible at the start (the
   paper's II-A assumption (i), :func:`start_visibility`): :func:`visible_random_start`.
 """
 
@@ -29,6 +30,12 @@ from drake_rus.experiments.specs import ER_UNITS, StudyTask
 # start and this far (m) around it (the closed loop lands within 2 mm), at most this often.
 START_VISIBILITY_TOLERANCE = 0.002
 START_MAX_DRAWS = 200
+# The least room (fraction of the E-ROI's length) random starts are drawn in. At ER 100%
+# the travel leaves none: every start would lie on the E-ROI's end, where the pole is not
+# yet in view (the paper's II-A (i) cannot hold; a starts study at a critical ER of 100%
+# failed on every draw). The start may then lie up to this far into the E-ROI and the
+# exploration runs as far past the other pole, where it sees no more kidney.
+START_MIN_ROOM = 0.1
 
 
 def kidney_length(kp) -> float:
@@ -80,7 +87,9 @@ def random_start(
 ) -> tuple[float, float]:
     """(start_fraction, x_offset) of random start ``task.start`` (deterministic in the
     study seed, the patient and the start index): the start fraction along the E-ROI leaves
-    room for the whole ER travel, the x offset lies within the middle half of its width.
+    room for the whole ER travel (at least :data:`START_MIN_ROOM`: at ER 100% a start may
+    lie that far in, the travel running as far past the far pole), the x offset lies within
+    the middle half of its width.
     With ``visible`` (a callable (x, y) -> bool, e.g. :func:`start_visibility`) draws are
     repeated, from the same random stream, until the kidney is visible at the start (the
     paper's assumption II-A (i)); :func:`visible_random_start` also says how many were
@@ -98,7 +107,7 @@ def visible_random_start(
         [int(task.seed), zlib.crc32(str(task.patient).encode()), int(task.start)]
     )
     travel = exploration_travel(task.er, task.er_unit, kidney_length(kp), controller.kidney_length)
-    room = max(0.0, 1.0 - travel / max(kp.roi.length_y, 1e-9))
+    room = max(START_MIN_ROOM, 1.0 - travel / max(kp.roi.length_y, 1e-9))
     width = kp.roi.x_max - kp.roi.x_min
     for draw in range(max(1, int(max_draws))):
         sf, xo = float(rng.uniform(0.0, room)), float(rng.uniform(-0.25, 0.25) * width)

@@ -24,6 +24,7 @@ from drake_rus.experiments.analysis import (
     analyze_er_sweep,
     analyze_starts,
     analyze_template,
+    critical_evidence_row,
     group_kind,
     mean_curve,
     paired_t_power,
@@ -796,16 +797,29 @@ def critical_er_markdown(er: dict) -> list[str]:
         f"**{_pct(er.get('equivalence_er_paper_rule'))}** (the smallest such ER; every ER from "
         f"there on: {_pct(er.get('equivalence_er_strict_rule'))}).",
     ]
-    row = er.get("critical_row")
-    if row is not None and n and n >= 2 and row["er"] != er.get("reference_er", 1.0):
+    row, below = critical_evidence_row(er)
+    if row is not None and n and n >= 2:
         detect = [
             paired_t_power(m[k] / row[f"diff_{k}_sd"], row["n"], alpha)
             if row[f"diff_{k}_sd"] and row[f"diff_{k}_sd"] > 0
             else float("nan")
             for k in ("e_trans_mm", "e_rot_x_deg")
         ]
+        better = min(row["dz_e_trans_mm"], row["dz_e_rot_x_deg"]) < 0
+        where = (
+            f"The critical ER is ER 100% itself; at the ER below it, {_pct(row['er'])}, which "
+            f"differs (p = {_p(row['p_e_trans'])} and {_p(row['p_e_rot_x'])}"
+            + (
+                "; a negative d_z: smaller errors than at ER 100%, a difference to the "
+                "paper's two-sided test too)"
+                if better
+                else ")"
+            )
+            if below
+            else f"At the critical ER {_pct(row['er'])}"
+        )
         L.append(
-            f"- At the critical ER {_pct(row['er'])}: paired effect d_z "
+            f"- {where}: paired effect d_z "
             f"{_f(row['dz_e_trans_mm'])} (E_trans) and {_f(row['dz_e_rot_x_deg'])} "
             f"(E_rot,x), power of the paired t-test against them "
             f"{_f(row['power_e_trans_mm'])} and {_f(row['power_e_rot_x_deg'])}; its power "
@@ -1342,10 +1356,11 @@ def critical_er_columns(
     m = (ers[0].get("margins") or DEFAULT_MARGINS) if ers else DEFAULT_MARGINS
 
     def at_critical(e, what):
-        row = e.get("critical_row")
-        if row is None or row["er"] == e.get("reference_er", 1.0):
+        row, below = critical_evidence_row(e)
+        if row is None:
             return "n/a"
-        return f"{_f(row[f'{what}_e_trans_mm'])} / {_f(row[f'{what}_e_rot_x_deg'])}"
+        at = f" (at {_pct(row['er'])}, the ER below)" if below else ""
+        return f"{_f(row[f'{what}_e_trans_mm'])} / {_f(row[f'{what}_e_rot_x_deg'])}{at}"
 
     paper_dz = (
         f"{_f(pp['e_trans_mm']['d_z'])} / {_f(pp['e_rot_x_deg']['d_z'])} (read back from p)"
