@@ -25,6 +25,7 @@ from pydrake.systems.primitives import ConstantValueSource, LogVectorOutput
 from drake_rus.config_schema import ScenarioError
 from drake_rus.control.diagram import AddController
 from drake_rus.control.supervisor import Phase, PivotModel
+from drake_rus.executor import MakeExecutor
 from drake_rus.imaging.frames import UsFrame
 from drake_rus.imaging.systems import PointCloudAccumulator, Segmenter
 from drake_rus.localization.localize import IcpLocalizer, body_directions_B
@@ -180,6 +181,7 @@ class ScanHandles:
     tracking: KidneyTrackingMonitor
     logs: dict  # name -> VectorLogSink
     terminator: ScanTerminator | None = None
+    executor: object = None  # where perception runs (drake_rus.executor)
 
     def __getitem__(self, name):  # handles["supervisor"] reads like a dict
         return getattr(self, name)
@@ -211,13 +213,24 @@ def PivotModelFor(template, imaging) -> PivotModel:
     )
 
 
-def BuildScanDiagram(scenario, station, template, *, builder: DiagramBuilder | None = None):
+def BuildScanDiagram(
+    scenario, station, template, *, builder: DiagramBuilder | None = None, executor=None
+):
     """Adds ``station`` (any station) and the scan around it to ``builder`` (default: a new
     one). Returns ``(builder, ScanHandles)``; the caller may add observers (simulation
-    truth) before ``builder.Build()``."""
+    truth) before ``builder.Build()``. ``executor`` (``drake_rus.executor``): where the
+    segmentation and the fits run (default: ``MakeExecutor(scenario.perception,
+    paced=False)``, inline for ``auto``; the caller closes it, ``handles.executor``)."""
     builder = builder or DiagramBuilder()
+    if executor is None:
+        executor = MakeExecutor(scenario.perception, paced=False)
     builder.AddNamedSystem("station", station)
-    segmenter = builder.AddNamedSystem("segmenter", Segmenter(scenario.imaging))
+    segmenter = builder.AddNamedSystem(
+        "segmenter",
+        Segmenter(
+            scenario.imaging, executor=executor, poll_period=1.0 / scenario.controller.rate_hz
+        ),
+    )
     builder.Connect(station.GetOutputPort("us_image"), segmenter.GetInputPort("us_image"))
     if scenario.imaging.segmenter == "oracle":
         if not station.HasOutputPort("label_image"):
@@ -248,6 +261,7 @@ def BuildScanDiagram(scenario, station, template, *, builder: DiagramBuilder | N
             rate_hz=scenario.imaging.frame_rate_hz,
             explore_phase=int(Phase.EXPLORE),
             kidney_length=scenario.controller.kidney_length,
+            executor=executor,
         ),
     )
     builder.Connect(accumulator.GetOutputPort("point_cloud"), localizer.GetInputPort("point_cloud"))
@@ -299,6 +313,7 @@ def BuildScanDiagram(scenario, station, template, *, builder: DiagramBuilder | N
             scenario.localization,
             scenario.imaging,
             check_phases=[int(Phase.TRANSIT), int(Phase.PIVOT)],
+            executor=executor,
         ),
     )
     builder.Connect(
@@ -347,4 +362,5 @@ def BuildScanDiagram(scenario, station, template, *, builder: DiagramBuilder | N
         tracking=tracking,
         logs=logs,
         terminator=terminator,
+        executor=executor,
     )
