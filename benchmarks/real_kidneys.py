@@ -81,6 +81,7 @@ def scan_case(job: dict) -> dict:
     """Scans one case (``job``: case, spec, side, template path, max_sim_time, out); never
     raises (a failure is a row with status ERROR and its reason)."""
     from benchmarks._scan_rows import scan_row
+    from drake_rus.anatomy.ct_patient import CtKidneyDoesNotFit
     from drake_rus.localization.localize import load_registration_template
     from drake_rus.scenario import LoadScenario
 
@@ -110,6 +111,7 @@ def scan_case(job: dict) -> dict:
         out=None if job["out"] is None else Path(job["out"]) / job["case"],
         fill=fill,
         progress=False,
+        skip=(CtKidneyDoesNotFit,),
     )
 
 
