@@ -99,9 +99,10 @@ DEFAULT_OUTPUTS = {
 
 
 # ------------------------------------------------------- helpers shared by the commands
-def add_scenario_arguments(parser) -> None:
-    """--scenario / --scenarios-file / --set, shared by every command that builds a station."""
-    parser.add_argument("--scenario", default="default", help="scenario name (default 'default')")
+def add_scenario_arguments(parser, default: str = "default") -> None:
+    """--scenario / --scenarios-file / --set, shared by every command that builds a station
+    (``default``: the scenario when none is named)."""
+    parser.add_argument("--scenario", default=default, help=f"scenario name (default '{default}')")
     parser.add_argument(
         "--scenarios-file", default=str(DEFAULT_SCENARIOS_FILE), help="YAML file of named scenarios"
     )

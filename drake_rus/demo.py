@@ -63,7 +63,11 @@ def add_commands(subparsers) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_scenario_arguments(p)
-    p.add_argument("--out", default="runs/demo", help="output directory (default runs/demo)")
+    p.add_argument(
+        "--out",
+        default="runs/press",
+        help="output directory (default runs/press; make demo's scan writes runs/demo)",
+    )
     p.add_argument(
         "--duration",
         type=float,

@@ -40,6 +40,7 @@ import math
 import multiprocessing
 import os
 import queue
+import signal
 import threading
 import time
 import traceback
@@ -255,7 +256,9 @@ def _portable(error: BaseException) -> BaseException:
 
 def _worker_main(jobs, results, lane: str, nice: int, parent: int) -> None:
     """A lane's worker process: installs shared objects, runs jobs, sends results; ends on
-    None or when its parent is gone."""
+    None or when its parent is gone. Ctrl-C is its parent's to handle (which then closes
+    it), not a traceback here."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     if nice:
         try:
             os.nice(int(nice))

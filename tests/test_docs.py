@@ -59,3 +59,23 @@ def test_readme_states_the_bad_input_corpus_count():
     assert int(m.group(1)) == int(collected.group(1)), (
         f"README says {m.group(1)} bad-input cases, pytest collects {collected.group(1)}"
     )
+
+
+def test_no_command_writes_where_make_demo_does_by_default():
+    """`make demo` writes its scan to runs/demo; a command run afterwards with its default
+    output folder must not overwrite that scan's summary.json."""
+    from drake_rus.cli import build_parser
+
+    make_demo_out = re.search(r"scan --patient \S+ --out (\S+)", (ROOT / "Makefile").read_text())
+    assert make_demo_out, "the Makefile's demo target no longer names its output folder"
+    parser = build_parser()
+    subparsers = next(a for a in parser._actions if a.dest == "command")
+    clashes = [
+        name
+        for name, sub in subparsers.choices.items()
+        for action in sub._actions
+        if action.dest == "out" and action.default == make_demo_out.group(1)
+    ]
+    assert not clashes, (
+        f"default --out {make_demo_out.group(1)} of {clashes} clashes with make demo"
+    )

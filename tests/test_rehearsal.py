@@ -46,6 +46,7 @@ from drake_rus.rehearsal.core import (
 )
 from drake_rus.rehearsal.drill import merge_overrides
 from drake_rus.rehearsal.mjpeg import FrameBuffer, MjpegServer
+from drake_rus.rehearsal.run import CpuLoad
 from drake_rus.rehearsal.sim import WireFaults
 from drake_rus.rehearsal.sim_process import sequence_gaps
 from drake_rus.scan import RunScan, ScanMetrics, Summary
@@ -246,6 +247,25 @@ def run_isolated(argv, log_path, timeout):
     return code, log_path.read_text(errors="replace")
 
 
+def skip_if_overloaded_by_others(report):
+    """A machine that other jobs load beyond twice its CPUs cannot run the rehearsal at real
+    time, and the scan must then stop, at zero velocity, naming the overload: that is checked
+    and the rest skipped. On a machine that is not (the rehearsal's own processes load 2
+    CPUs about 2) an overload stop fails the test like any other."""
+    reason = report.get("reason") or ""
+    loop = (report.get("realtime") or {}).get("scan", {}).get("loop") or {}
+    load = loop.get("load_average") or {}
+    if report.get("status") != "ABORT" or "the computer is overloaded" not in reason:
+        return
+    if not load.get("1min", 0.0) > 2.0 * (load.get("cpus") or 1):
+        return
+    assert np.abs(report["joint_velocity_end_at_sim"]).max() < 1e-3, reason  # at rest
+    pytest.skip(
+        f"machine overloaded by other jobs (load average {load['1min']:.1f} on "
+        f"{load['cpus']} CPUs): the scan stopped at zero velocity naming it ({reason[:90]})"
+    )
+
+
 @pytest.mark.slow
 def test_rehearsal_end_to_end(tmp_path):
     out = tmp_path / "rehearsal"
@@ -272,6 +292,7 @@ def test_rehearsal_end_to_end(tmp_path):
     )
     wall_rehearsal = time.monotonic() - t0
     report = json.loads((out / "rehearsal.json").read_text())
+    skip_if_overloaded_by_others(report)
     assert code == 0 and report["status"] == "DONE", (report.get("reason"), text[-3000:])
     assert report["network_isolated"]
     for name in ("summary.json", "sim_log.json", "partial_cloud.ply", "registration.png"):
@@ -357,6 +378,16 @@ def test_sigterm_mid_pivot_stops_the_robot_within_100_ms(tmp_path):
         timeout=300,
     )
     wall = time.monotonic() - t0
+    if code != 0 and "the computer is overloaded" in text:
+        # The scan stopped by itself before the signal: only a machine loaded by other jobs
+        # excuses it (see skip_if_overloaded_by_others), and then at zero velocity.
+        load, cpus = os.getloadavg()[0], os.cpu_count() or 1
+        if load > 2.0 * cpus:
+            assert "zero velocity" in text, text[-3000:]  # the session stopped the robot
+            pytest.skip(
+                f"machine overloaded by other jobs (load average {load:.1f} on {cpus} "
+                "CPUs): the scan stopped at zero velocity naming it before the signal"
+            )
     assert code == 0, text[-3000:]
     report = json.loads((out / "stop_drill.json").read_text())
     assert report["network_isolated"]
@@ -389,3 +420,26 @@ def test_threads_do_not_leak():
     """The fast tests leave no rehearsal thread behind (servers closed)."""
     names = [t.name for t in threading.enumerate()]
     assert not any(n.startswith("drake_rus_mjpeg") for n in names), names
+
+
+def test_cpu_load_spins_in_sessions_of_its_own_and_ends():
+    """--cpu-load's busy processes: each spins (its CPU time grows) in a session of its own,
+    like another program; leaving the context ends them all."""
+
+    def cpu_ticks(pid):
+        fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+        return int(fields[11]) + int(fields[12])  # utime + stime
+
+    with CpuLoad(2) as load:
+        assert len(load.pids) == 2
+        for pid in load.pids:
+            assert os.getsid(pid) == pid
+        first = {pid: cpu_ticks(pid) for pid in load.pids}
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline and not all(
+            cpu_ticks(pid) > first[pid] + 5 for pid in load.pids
+        ):
+            time.sleep(0.1)
+        assert all(cpu_ticks(pid) > first[pid] + 5 for pid in load.pids)
+        processes = list(load.processes)
+    assert all(p.poll() is not None for p in processes)

@@ -510,6 +510,8 @@ class Segmenter(LeafSystem):
                     h = dataclasses.replace(h, waiting=key)
                     changed = True
             else:
+                # A frame that waited and was overtaken by this newer one was never segmented.
+                self.frames_skipped += h.waiting is not None and h.waiting != key
                 args, kwargs = self._work(frame, new_prior if self._uses_prior else None)
                 ticket = self._executor.submit(
                     "frames",

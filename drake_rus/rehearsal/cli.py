@@ -51,7 +51,9 @@ def add_commands(subparsers) -> None:
         epilog=EXIT_STATUS_HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    add_scenario_arguments(p)
+    # The rehearsal rehearses the hardware scan: the shipped scenario of a real robot (its
+    # watchdogs), unless another is named.
+    add_scenario_arguments(p, default="hardware")
     p.add_argument(
         "--patient",
         default="test:0",
@@ -222,6 +224,9 @@ def run_rehearse_command(args) -> int:
     loop = rt["scan"].get("loop") or {"lag_ms": {}, "compute_ms": {}}
     sim_loop = rt["sim"].get("loop") or {"lag_ms": {}}
     gaps = report["status_packets"].get("gaps_ms") or {}
+    # The simulated robot's own joint velocities at the end: a stop is at zero velocity.
+    end = report.get("joint_velocity_end_at_sim") or []
+    end_speed = max((abs(v) for v in end), default=None)
     print(
         f"{report['status']}{': ' + report['reason'] if report['status'] != 'DONE' else ''}"
         f" | E_trans {f(report['e_trans_mm'])} mm, E_rot,x {f(report['e_rot_x_deg'])} deg"
@@ -231,7 +236,7 @@ def run_rehearse_command(args) -> int:
         f" ms, max {f(loop['lag_ms'].get('max'), 1)} ms, compute p99 "
         f"{f(loop['compute_ms'].get('p99'), 1)} ms | simulated robot: lag max "
         f"{f(sim_loop['lag_ms'].get('max'), 1)} ms, statuses up to {f(gaps.get('max'), 1)} ms "
-        f"apart"
+        f"apart, joint speed at the end {f(end_speed, 4)} rad/s"
     )
     lag = rt["sim"]["max_lag_s"]
     if lag > 0.1:

@@ -124,7 +124,7 @@ class RehearsalOptions:
     """What to rehearse (see ``drake-rus rehearse --help``)."""
 
     patient: str = "test:0"
-    scenario: str = "default"
+    scenario: str = "hardware"  # the shipped scenario of a real robot
     scenarios_file: str = str(DEFAULT_SCENARIOS_FILE)
     overrides: str | None = None
     latency_ms: float = 0.0

@@ -26,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import os
 import threading
 import time
 from typing import Callable
@@ -112,6 +113,10 @@ class VideoTap(LeafSystem):
             self._on_frame(frame, time.time())
 
 
+# Niceness of the video thread within the simulated robot's process.
+VIDEO_NICE = 5
+
+
 class VideoWorker:
     """The ultrasound machine's picture pipeline beside the simulation: a thread emulates
     each label frame offered (``emulate(labels, model, seed, frame_index)``, the picture the
@@ -138,6 +143,12 @@ class VideoWorker:
             self._cond.notify()
 
     def _run(self):
+        # Below the physics and the statuses (Linux: a thread's own nice value): a late
+        # picture is the machine's video latency, a late status a robot gone quiet.
+        try:
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), VIDEO_NICE)
+        except (AttributeError, OSError):
+            pass
         while True:
             with self._cond:
                 while self._waiting is None and not self._stop:
@@ -323,9 +334,11 @@ class RunStats:
     max_lag_s: float = 0.0
     ticks: int = 0
     late_ticks: int = 0
-    # Per tick: wall s of its step (compute) and how late it started (lag).
+    # Per tick: wall s of its step (compute), how late it started (lag), and what it held:
+    # "frame" (an ultrasound frame sliced), "plant" (a plant step), "wire" (neither).
     compute: list = dataclasses.field(default_factory=list, repr=False)
     lag: list = dataclasses.field(default_factory=list, repr=False)
+    kinds: list = dataclasses.field(default_factory=list, repr=False)
     period: float = math.nan
     # Garbage collections during the run: (generation, pause s).
     gc_pauses: list = dataclasses.field(default_factory=list, repr=False)
@@ -334,12 +347,17 @@ class RunStats:
         d = {
             k: v
             for k, v in dataclasses.asdict(self).items()
-            if k not in ("compute", "lag", "gc_pauses")
+            if k not in ("compute", "lag", "kinds", "gc_pauses")
         }
         d["margin"] = self.sim_s / self.busy_s if self.busy_s > 0 else None
         d["cpu_margin"] = self.sim_s / self.cpu_s if self.cpu_s > 0 else None
         if self.compute:
             d["loop"] = loop_statistics(self.period, self.compute, self.lag)
+            # Where the time goes: compute (ms) of the ticks by what they held.
+            compute, kinds = np.asarray(self.compute), np.asarray(self.kinds)
+            d["loop"]["compute_by_kind_ms"] = {
+                kind: percentiles_ms(compute[kinds == kind]) for kind in ("frame", "plant", "wire")
+            }
         d["gc"] = gc_statistics(self.gc_pauses)
         return d
 
@@ -365,9 +383,11 @@ class RehearsalSim:
         command_channel: str = "PANDA_COMMAND",
         lcm_url: str | None = None,
         status_thread: StatusPublisherThread | None = None,
+        plant_period: float | None = None,
     ):
         self.diagram, self.station, self.wire, self.lcm = diagram, station, wire, lcm
         self.status_thread = status_thread
+        self.plant_period = plant_period
         self.period = 1.0 / float(rate_hz)
         self.frame_period = float(frame_period)
         self.simulator = Simulator(diagram)
@@ -496,10 +516,12 @@ class RehearsalSim:
                 st.lag.append(max(0.0, (start - wall0) - k * self.period))
                 k += 1
                 target = t_sim0 + k * self.period
+                t_start = self.context.get_time()
                 self.simulator.AdvanceTo(target)
                 self.observe(truth=k % truth_every == 0)
                 now = time.monotonic()
                 st.compute.append(now - start)
+                st.kinds.append(self._kind(t_start))
                 st.busy_s += now - start
                 st.ticks += 1
                 lag = (now - wall0) - (target - t_sim0)
@@ -515,6 +537,17 @@ class RehearsalSim:
         st.wall_s = time.monotonic() - wall0
         st.cpu_s = time.process_time() - cpu0
         return st
+
+    def _kind(self, t_start: float) -> str:
+        """What the tick from ``t_start`` held (its updates are those at ``t_start``): a
+        frame sliced (with a plant step), else a plant step, else only the wire."""
+
+        def at(period):
+            return bool(period) and abs(t_start / period - round(t_start / period)) < 1e-6
+
+        if at(self.frame_period):
+            return "frame"
+        return "plant" if at(self.plant_period) else "wire"
 
     def _wait(self, seconds: float) -> None:
         """Sleeps ``seconds`` while handling arriving LCM messages at once (their arrival

@@ -82,7 +82,8 @@ def plot_registration(result, path: Path) -> None:
         ax.set_ylabel(yl)
         ax.set_title(title)
         ax.set_aspect("equal", adjustable="datalim")
-    axes[0].legend(loc="best", fontsize=7, markerscale=5)
+    if axes[0].get_legend_handles_labels()[0]:  # nothing to name after an early stop
+        axes[0].legend(loc="best", fontsize=7, markerscale=5)
     fig.suptitle(f"Registration: {result.patient}")
     fig.tight_layout()
     _save(fig, path)
@@ -105,7 +106,8 @@ def plot_coverage(result, metrics: dict, path: Path) -> None:
     axes[0].set_ylabel("volume reconstruction ratio V")
     axes[0].set_ylim(0, 1.05)
     axes[0].grid(alpha=0.3)
-    axes[0].legend(fontsize=7)
+    if axes[0].get_legend_handles_labels()[0]:
+        axes[0].legend(fontsize=7)
     axes[1].set_xlabel(r"imaging-window path length $\varepsilon$ (mm)")
     axes[1].set_ylabel("V")
     axes[1].set_ylim(0, 1.05)
@@ -228,6 +230,7 @@ def plot_loop_timing(result, path: Path) -> None:
         ax.plot(t[: len(values)], values, ".", ms=1.5, color="k")
         ax.axhline(tick_ms, ls=":", color="tab:blue", lw=1, label=f"tick {tick_ms:g} ms")
         ax.set_yscale("symlog", linthresh=1.0)
+        ax.set_ylim(bottom=0.0)  # times are never negative
         ax.set_ylabel(label)
         s = timing[f"{key}_ms"]
         ax.set_title(
