@@ -23,12 +23,15 @@ def scan_row(
     out=None,
     fill=None,
     progress: bool = True,
+    skip: tuple = (),
 ) -> dict:
     """Runs the scan of ``body`` (a patient spec or path) on ``scenario`` with the YAML
     ``overrides`` and adds to ``row``: status, reason, wall_s, then ``fill(row, result,
     summary, scenario)`` (the caller's fields). ``out``: also write the scan's outputs there;
-    ``progress``: progress bars while the patient is built.
-    Never raises: a failure is a row with status ERROR, its reason and traceback."""
+    ``progress``: progress bars while the patient is built; ``skip``: exception types that
+    make the case SKIPPED with the exception's message as reason (no scan is possible, e.g.
+    a patient that cannot be built). Never raises: any other failure is a row with status
+    ERROR, its reason and traceback."""
     start = time.perf_counter()
     try:
         s = ApplyOverrides(scenario, overrides)
@@ -46,6 +49,8 @@ def scan_row(
             row["segmentation_lost_in_view"] = lost
         if fill is not None:
             fill(row, result, summary, s)
+    except skip as e:
+        row.update(status="SKIPPED", reason=str(e))
     except Exception as e:  # noqa: BLE001 - a benchmark row, with the traceback kept
         row.update(
             status="ERROR",

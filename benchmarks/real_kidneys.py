@@ -10,7 +10,9 @@ body, :mod:`drake_rus.anatomy.ct_patient`; the right kidney by default) is scann
 product's default closed-loop scan (default scenario: start planner, learned segmenter,
 registration, pivot; the scanned side is the kidney's side, so nothing is mirrored). A case
 whose kidney cannot be used (missing, cut by the field of view, a frame the anatomy cannot
-establish) is skipped with its reason, before any scan.
+establish) is skipped with its reason, before any scan; so is one whose kidney fits none of
+the generated bodies tried (a very large tumour:
+:class:`~drake_rus.anatomy.ct_patient.CtKidneyDoesNotFit`), when its patient is built.
 
 ``--template real`` builds (or reads from the cache) the template of real kidneys of the
 same folder without any of the benchmarked cases
@@ -22,8 +24,10 @@ reason, E_trans, E_rot,x, V, tumour volume) and, last, one JSON line::
     {"n", "done", "skipped", "e_trans_mm": {"mean", "max"}, "e_rot_x_deg": {"mean", "max"},
      "volume_ratio": {"mean", "min"}, "rows": [...], ...}
 
-``n`` counts the cases looked at (skipped ones included); the error statistics are over the
-DONE scans (``null`` when there is none). Scans run in ``--workers`` processes (default: 2,
+``n`` counts the cases looked at (skipped ones included) and ``done`` the DONE scans
+among them: a skipped case counts as not done ("DONE on 28 of 30" means 28 of the 30
+cases attempted). The error statistics are over the DONE scans (``null`` when there is
+none). Scans run in ``--workers`` processes (default: 2,
 capped at the CPUs and memory available; 0 runs them in this process); each scan is
 deterministic, and rows come out in case order whatever the workers' timing.
 """
@@ -81,6 +85,7 @@ def scan_case(job: dict) -> dict:
     """Scans one case (``job``: case, spec, side, template path, max_sim_time, out); never
     raises (a failure is a row with status ERROR and its reason)."""
     from benchmarks._scan_rows import scan_row
+    from drake_rus.anatomy.ct_patient import CtKidneyDoesNotFit
     from drake_rus.localization.localize import load_registration_template
     from drake_rus.scenario import LoadScenario
 
@@ -110,6 +115,7 @@ def scan_case(job: dict) -> dict:
         out=None if job["out"] is None else Path(job["out"]) / job["case"],
         fill=fill,
         progress=False,
+        skip=(CtKidneyDoesNotFit,),
     )
 
 

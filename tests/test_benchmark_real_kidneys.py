@@ -141,3 +141,29 @@ def test_benchmark_bad_input(tmp_path, capsys):
     assert "--workers" in capsys.readouterr().err
     assert real_kidneys.main(["--cases", str(tmp_path), "--offset", "-1"]) == 2
     assert "--offset" in capsys.readouterr().err
+
+
+def test_a_patient_that_cannot_be_built_is_skipped_not_an_error(monkeypatch):
+    """scan_row: an exception of a ``skip`` type (a CT kidney that fits no body) makes the
+    case SKIPPED with its message; any other exception stays an ERROR with its traceback."""
+    from benchmarks import _scan_rows
+    from drake_rus.anatomy.ct_patient import CtKidneyDoesNotFit
+
+    def raise_(exc):
+        def f(*a, **k):
+            raise exc
+
+        return f
+
+    monkeypatch.setattr(_scan_rows, "load_patient", raise_(CtKidneyDoesNotFit("too wide")))
+    from drake_rus.scenario import LoadScenario
+
+    s = LoadScenario()
+    row = _scan_rows.scan_row({}, "ct:x", s, "{}", None, 1.0, skip=(CtKidneyDoesNotFit,))
+    assert row["status"] == "SKIPPED" and row["reason"] == "too wide"
+    assert "traceback" not in row
+    row = _scan_rows.scan_row({}, "ct:x", s, "{}", None, 1.0)
+    assert row["status"] == "ERROR" and "traceback" in row
+    monkeypatch.setattr(_scan_rows, "load_patient", raise_(RuntimeError("boom")))
+    row = _scan_rows.scan_row({}, "ct:x", s, "{}", None, 1.0, skip=(CtKidneyDoesNotFit,))
+    assert row["status"] == "ERROR" and row["reason"] == "RuntimeError: boom"

@@ -201,15 +201,15 @@ def test_rms_gate_widens_with_the_templates_own_shape_variability(template):
     assert max_rms_residual(config, shipped, True) == config.max_rms_residual_deformable
     assert max_rms_residual(config, shipped, False) == config.max_rms_residual
     n = len(template.points)
-    # Modes whose variances beyond the third give a per-point SD of 3 mm (shipped: 0.70).
-    var = np.array([4e-6, 3e-6, 2e-6, 0.5 * 0.003**2 * n, 0.5 * 0.003**2 * n])
+    # Modes whose variances beyond the third give a per-point SD of 4 mm (shipped: 0.70).
+    var = np.array([4e-6, 3e-6, 2e-6, 0.5 * 0.004**2 * n, 0.5 * 0.004**2 * n])
     varied = RegistrationTemplate(template.points, template.normals, np.zeros((5, n, 3)), var)
-    assert varied.unexplained_sd(3) == pytest.approx(0.003)
+    assert varied.unexplained_sd(3) == pytest.approx(0.004)
     s_ref = shipped.unexplained_sd(3)
     z = config.rms_shape_allowance_sd
-    expected = np.sqrt(0.005**2 + z**2 * (0.003**2 - s_ref**2))
+    expected = np.sqrt(0.005**2 + z**2 * (0.004**2 - s_ref**2))
     assert max_rms_residual(config, varied, True) == pytest.approx(expected)
-    assert expected > 0.0075
+    assert expected > 0.0062
     off = dataclasses.replace(config, rms_shape_allowance_sd=0.0)
     assert max_rms_residual(off, varied, True) == 0.005
     X_BK, P = partial_cloud(template)

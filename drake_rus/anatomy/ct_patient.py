@@ -70,10 +70,17 @@ __all__ = [
     "DEFAULT_KIDNEY_DEFINITION",
     "CT_PREFIX",
     "CT_BODY_OFFSET",
+    "CtKidneyDoesNotFit",
     "kidney_definition_difference",
 ]
 
 log = logging.getLogger(__name__)
+
+
+class CtKidneyDoesNotFit(ValueError):
+    """A CT kidney (a large tumour) fits none of the bodies tried: the patient cannot be
+    built (a benchmark skips the case with this reason; no scan is possible)."""
+
 
 CT_PREFIX = "ct:"
 KIDNEY_DEFINITIONS = ("with_tumour", "parenchyma")
@@ -359,7 +366,7 @@ def build_ct_patient(
         except KidneyDoesNotFit as e:
             why = str(e)
     tried = f"body {seeds[0]}" if len(seeds) == 1 else f"bodies {seeds[0]}-{seeds[-1]}"
-    raise ValueError(
+    raise CtKidneyDoesNotFit(
         f"label map {path}: the {ct_side} kidney ({width * 1e3:.0f} mm wide with "
         f"its tumour) fits none of {tried}: {why}"
     )
