@@ -197,6 +197,13 @@ class SupervisorState:
     visible_since: float = math.nan
     paused: bool = False  # exploration/pivot motion held (outside a breath-hold)
     paused_time: float = 0.0  # total time (s) motion was held
+    # Re-localization after the kidney moved (``_kidney_moved``): how many so far, the
+    # localization round (the localizer registers anew when it changes), and the
+    # re-exploration's first stage (holding still, turning the probe transverse; the
+    # exploration cloud is cleared meanwhile).
+    relocalizations: int = 0
+    localization_round: int = 0
+    reorienting: bool = False
     a_star: np.ndarray = dataclasses.field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
     approach_origin: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, math.nan))
     contact_since: float = math.nan  # APPROACH: when the force last reached contact
@@ -259,6 +266,8 @@ class SupervisorInputs:
     kidney_length_estimate: float = math.nan
     # The template and fan for the predicted_end pivot strategy (None: two_leg).
     pivot_model: PivotModel | None = None
+    # Why the breath-hold protocol cannot go on ("" = it can): the scan aborts.
+    breathing_error: str = ""
 
 
 def _goto(s: SupervisorState, phase: Phase, t: float, message: str) -> SupervisorState:
@@ -298,7 +307,7 @@ def _pivot_advance(s: SupervisorState, cfg, dt: float) -> None:
 def segmentation_required(s: SupervisorState) -> bool:
     """Whether the kidney must be visible now (EXPLORE; PIVOT except while returning from a
     leg that ended because it left the image); drives the safety layer's watchdog."""
-    if s.paused:
+    if s.paused or s.reorienting:
         return False  # holding still outside a breath-hold: the kidney may drift away
     if s.phase == Phase.EXPLORE:
         return not s.awaiting_kidney  # a line sweep before the kidney first came into view
@@ -466,6 +475,8 @@ def _explore(s, u, R, p, cfg, dt):
     pose estimate has settled; then LOCALIZE. With ``sweep: line``: :func:`_line_sweep`."""
     if cfg.sweep == "line":
         return _line_sweep(s, u, R, p, cfg, dt)
+    if s.reorienting:
+        return _reorient(s, u, R, p, cfg, dt)
     left = u.motion_allowed and _update_visibility(s, u, cfg.visibility_debounce)
     target = exploration_target(cfg, u.kidney_length_estimate)
     if s.travel >= target - 1e-12:
@@ -523,6 +534,8 @@ def _localize(s, u, R, p, cfg, dt):
     ):
         s.reason = "no finite kidney pose from localization"
         return _goto(s, Phase.ABORT, u.t, s.reason)
+    if not u.motion_allowed:
+        return s  # the breath-hold protocol: TRANSIT and PIVOT start in a sensed hold
     R_star, p_star = optimal_pivot_pose(u.R_BK, u.p_BK)
     return _to_transit(
         s, u.t, R_star, p_star, f"p* = ({p_star[0]:.4f}, {p_star[1]:.4f}, {p_star[2]:.4f}) m"
@@ -771,7 +784,9 @@ def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float)
     a tracking error: the kidney has moved away from its registered pose. The pivot tilt
     rate ramps with pivot_acceleration. While ``motion_allowed`` is False (outside a
     breath-hold) EXPLORE and PIVOT hold still (the pivot rate ramps to zero) and the kidney
-    may leave the image.
+    may leave the image; LOCALIZE waits for it to start TRANSIT. A tracking error in TRANSIT
+    or PIVOT re-localizes (``_kidney_moved``) up to ``max_relocalizations`` times; a
+    ``breathing_error`` aborts.
     """
     s = state.copy()
     R = np.asarray(u.R_BP, dtype=float)
@@ -792,8 +807,69 @@ def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float)
         return _goto(s, Phase.ABORT, u.t, s.reason)
     if not s.initialised:
         _start(s, u, R, p, cfg)
+    if u.breathing_error:
+        return _breathing_abort(s, u)
     if s.phase in (Phase.TRANSIT, Phase.PIVOT) and u.tracking_error:
+        return _kidney_moved(s, u, R, p, cfg)
+    return _PHASE_STEP[s.phase](s, u, R, p, cfg, dt)
+
+
+# ----------------------------------------------------------------------------- patient motion
+def _breathing_abort(s: SupervisorState, u: SupervisorInputs) -> SupervisorState:
+    """The breath-hold protocol cannot go on (the patient does not hold): ABORT."""
+    s.reason = f"breath-hold protocol: {u.breathing_error}"
+    s.pivot_speed = 0.0
+    return _goto(s, Phase.ABORT, u.t, s.reason)
+
+
+def _kidney_moved(s: SupervisorState, u: SupervisorInputs, R, p, cfg) -> SupervisorState:
+    """The kidney tracking says the kidney left its registered pose during TRANSIT or PIVOT:
+    re-localize (a short re-exploration from the current pose, then a new registration) up
+    to ``max_relocalizations`` times, then ABORT. The re-exploration starts still, turning
+    the probe straight down (r3*) and transverse (``_reorient``)."""
+    if s.relocalizations >= cfg.max_relocalizations:
         s.reason = f"kidney moved: {u.tracking_error}"
+        if s.relocalizations:
+            s.reason += f" (after {s.relocalizations} re-localizations)"
         s.pivot_speed = 0.0
         return _goto(s, Phase.ABORT, u.t, s.reason)
-    return _PHASE_STEP[s.phase](s, u, R, p, cfg, dt)
+    s.relocalizations += 1
+    s.localization_round += 1
+    s.reorienting = True
+    s.pivot_speed = 0.0
+    s.pivot_angle = 0.0
+    s.pivot_legs_done = 0
+    s.pivot_limits = ()
+    s.sweep_end_causes = ()
+    s.pivot_ends = ()
+    s.pretilt_stage = 0
+    s.expect_invisible = False
+    s.lag_since = math.nan
+    s.travel = 0.0
+    s.a_des = np.array([0.0, 0.0, -1.0])
+    s.o_des = transverse_orientation(s.a_des, R[:, 0])
+    s.P_des = p[:2].copy()
+    return _goto(
+        s,
+        Phase.EXPLORE,
+        u.t,
+        f"kidney moved: {u.tracking_error}; re-localizing "
+        f"({s.relocalizations} of {cfg.max_relocalizations})",
+    )
+
+
+def _reorient(s, u, R, p, cfg, dt):
+    """Re-exploration's first stage: hold the tip still until the probe points along a_des
+    and its array along o_des (transit_angle_tolerance), then explore."""
+    ang = max(angle_between(R[:, 2], s.a_des), angle_between(R[:, 0], s.o_des))
+    if ang <= cfg.transit_angle_tolerance:
+        s.reorienting = False
+        s.P_des = p[:2].copy()
+        s.events = s.events + ((u.t, "EXPLORE", "re-exploring from the current pose"),)
+        return s
+    if u.t - s.phase_start > cfg.transit_timeout:
+        s.reason = (
+            f"re-localization: the probe did not turn transverse ({math.degrees(ang):.1f} deg)"
+        )
+        return _goto(s, Phase.ABORT, u.t, s.reason)
+    return s

@@ -234,6 +234,7 @@ class LocalizationOutcome:
     time: float = -1.0  # simulation time (s) the estimate was made
     error: str = ""  # why no estimate (too few points, rejected registration, ...)
     rejected: IcpResult | None = None  # a registration that failed the sanity checks
+    round: int = 0  # the supervisor's localization round it belongs to (re-localization)
 
     # Drake clones abstract state with deepcopy on every update of the localizer (20 Hz);
     # an outcome is made once and never changed in place, so clones may share it.
@@ -281,7 +282,9 @@ class IcpLocalizer(LeafSystem):
     """Registers the explored cloud when the supervisor enters LOCALIZE.
 
     Inputs: ``point_cloud`` (abstract PointCloud: points (N, 3) in B, m), ``phase``
-    (1-vector, the supervisor's phase; LOCALIZE triggers one registration).
+    (1-vector, the supervisor's phase; LOCALIZE triggers one registration),
+    ``localization_round`` (1-vector, optional: when it changes, the estimate is dropped
+    and the next LOCALIZE registers anew: a re-localization).
     Outputs: ``X_BK`` (abstract RigidTransform: estimated canonical kidney frame in B, the
     heuristic initial guess until an estimate exists), ``localization_ready`` (1-vector: 1
     once the estimate is final), ``localization_error`` (abstract str: why there is no
@@ -315,6 +318,7 @@ class IcpLocalizer(LeafSystem):
         self._min_points = min_points
         self._cloud = self.DeclareAbstractInputPort("point_cloud", AbstractValue.Make(PointCloud()))
         self._phase_port = self.DeclareVectorInputPort("phase", 1)
+        self._round = self.DeclareVectorInputPort("localization_round", 1)
         initial = RigidTransform(
             heuristic_initial_rotation(self._superior_B, self._lateral_B), np.zeros(3)
         )
@@ -368,6 +372,13 @@ class IcpLocalizer(LeafSystem):
 
     def _update(self, context, state):
         outcome = context.get_abstract_state(self._outcome).get_value()
+        rnd = int(round(self._round.Eval(context)[0])) if self._round.HasValue(context) else 0
+        if rnd != outcome.round:  # re-localization: forget the estimate, register anew
+            state.get_mutable_abstract_state(self._outcome).set_value(
+                LocalizationOutcome(round=rnd)
+            )
+            state.get_mutable_abstract_state(self._adaptive).set_value(AdaptiveState())
+            return EventStatus.Succeeded()
         if outcome.result is not None or outcome.error:
             return EventStatus.DidNothing()
         phase = int(round(self._phase_port.Eval(context)[0]))
@@ -398,7 +409,9 @@ class IcpLocalizer(LeafSystem):
             )
         if error:
             state.get_mutable_abstract_state(self._outcome).set_value(
-                LocalizationOutcome(n_points=len(points), time=context.get_time(), error=error)
+                LocalizationOutcome(
+                    n_points=len(points), time=context.get_time(), error=error, round=rnd
+                )
             )
             return EventStatus.Succeeded()
         start = time.perf_counter()
@@ -412,6 +425,7 @@ class IcpLocalizer(LeafSystem):
                     time=context.get_time(),
                     error=error,
                     rejected=result,
+                    round=rnd,
                 )
             )
             return EventStatus.Succeeded()
@@ -422,6 +436,7 @@ class IcpLocalizer(LeafSystem):
                 n_points=len(points),
                 compute_s=time.perf_counter() - start,
                 time=context.get_time(),
+                round=rnd,
             )
         )
         return EventStatus.Succeeded()
