@@ -282,10 +282,12 @@ def summarize(results: list[dict]) -> dict:
                 r["status"] == "DONE" and r.get("relocalizations", 0) > 0 for r in rs
             )
             row["unnoticed_above_5mm"] = sum(
-                r.get("shift_mm", 0) > SHIFT_NOTICE_MM
-                and r.get("shift_started_in_scan")
-                and r.get("relocalizations", 0) == 0
-                and "kidney moved" not in (r.get("reason") or "")
+                bool(
+                    r.get("shift_mm", 0) > SHIFT_NOTICE_MM
+                    and r.get("shift_started_in_scan")
+                    and r.get("relocalizations", 0) == 0
+                    and "kidney moved" not in (r.get("reason") or "")
+                )
                 for r in rs
             )
             row["shift_before_localization"] = sum(
