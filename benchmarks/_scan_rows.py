@@ -17,15 +17,19 @@ def scan_row(
     max_sim_time: float,
     out=None,
     fill=None,
+    progress: bool = True,
 ) -> dict:
     """Runs the scan of ``body`` (a patient spec or path) on ``scenario`` with the YAML
     ``overrides`` and adds to ``row``: status, reason, wall_s, then ``fill(row, result,
-    summary, scenario)`` (the caller's fields). ``out``: also write the scan's outputs there.
+    summary, scenario)`` (the caller's fields). ``out``: also write the scan's outputs there;
+    ``progress``: progress bars while the patient is built.
     Never raises: a failure is a row with status ERROR, its reason and traceback."""
     start = time.perf_counter()
     try:
         s = ApplyOverrides(scenario, overrides)
-        patient = load_patient(str(body), side=s.patient.side, posture=s.patient.posture)
+        patient = load_patient(
+            str(body), side=s.patient.side, posture=s.patient.posture, progress=progress
+        )
         result = RunScan(s, patient, template, max_sim_time=max_sim_time, progress=False)
         metrics = ScanMetrics(result)
         summary = Summary(result, metrics)

@@ -37,6 +37,7 @@ def AdvanceWithProgress(
     should_stop=None,
     expected: float | None = None,
     log_phases: bool | None = None,
+    advance=None,
 ) -> None:
     """Advances ``simulator`` to ``t_final`` (s, a cap) in ``step`` chunks with a tqdm bar.
 
@@ -46,7 +47,8 @@ def AdvanceWithProgress(
     ``t_final``); a run that goes on longer stretches the total, a run that stops early
     ends the bar at 100 %. The bar is hidden when stderr is not a terminal unless
     ``disable=False``; then (``log_phases`` None) one line per new label goes to stderr
-    instead, unless ``disable=True``.
+    instead, unless ``disable=True``. ``advance(t)`` advances the simulator to t (default
+    ``simulator.AdvanceTo``; a live run paces it, ``drake_rus.scan.pacing``).
     """
     context = simulator.get_context()
     t0 = context.get_time()
@@ -93,7 +95,7 @@ def AdvanceWithProgress(
                 bar.set_postfix_str(label, refresh=False)
         while context.get_time() < t_final - 1e-12:
             t_next = min(t_final, context.get_time() + step)
-            simulator.AdvanceTo(t_next)
+            (advance or simulator.AdvanceTo)(t_next)
             done = context.get_time() - t0
             if done > 0.95 * bar.total:  # longer than expected: stretch, never > 100 %
                 bar.total = round(min(span, max(done / 0.95, done + step)), 3)

@@ -33,7 +33,7 @@ from drake_rus.imaging.config import ImagingConfig
 from drake_rus.localization.config import LocalizationConfig
 from drake_rus.paths import DIAGRAMS_DIR
 from drake_rus.reliability.config import FaultConfig
-from drake_rus.scan.config import StartConfig, VerdictConfig
+from drake_rus.scan.config import PerceptionConfig, StartConfig, VerdictConfig
 
 __all__ = [
     "ContactConfig",
@@ -251,6 +251,8 @@ class Scenario:
     respiration: RespirationConfig = field(default_factory=RespirationConfig)
     # The scan's checks of its own result before it says DONE (scan/verdict.py).
     verdict: VerdictConfig = field(default_factory=VerdictConfig)
+    # Where perception runs and when its results count (beside the control loop).
+    perception: PerceptionConfig = field(default_factory=PerceptionConfig)
     # false: simulated station; true: a real FR3 and ultrasound machine.
     hardware: bool = False
     hardware_interface: HardwareConfig = field(default_factory=HardwareConfig)

@@ -37,6 +37,7 @@ LAYERS = [
             "drake_rus.scan.config",
             "drake_rus.anatomy.motion",
             "drake_rus.interrupts",
+            "drake_rus.executor",
         ],
     ),
     ("scenario", ["drake_rus.scenario"]),

@@ -178,6 +178,17 @@ def test_rehearse_status_rate_is_checked_up_front(tmp_path, capsys, rate):
     _nothing_written(out)
 
 
+@pytest.mark.parametrize("load", ["-1", "65"])
+def test_rehearse_cpu_load_is_checked_up_front(tmp_path, capsys, load):
+    out = tmp_path / "r"
+    code, err = _run(["rehearse", "--cpu-load", load, "--out", str(out), "--netns", "no"], capsys)
+    assert code == 2
+    assert err.startswith(
+        "drake-rus rehearse: error: --cpu-load: expected a number of busy processes, 0-64"
+    )
+    _nothing_written(out)
+
+
 @pytest.mark.parametrize("duration", ["1e6", "601", "inf"])
 def test_demo_duration_is_bounded_with_its_reason(tmp_path, capsys, duration):
     out = tmp_path / "demo"

@@ -29,6 +29,10 @@ def test_tiny_closed_loop_paper_study(tmp_path, capsys):
             "1",
             "--mode",
             "closed-loop",
+            # The oracle (closed loop's default is the learned segmenter): the checks below
+            # are of the study's wiring, with exact masks.
+            "--segmenter",
+            "oracle",
             "--workers",
             "0",
             "--no-progress",

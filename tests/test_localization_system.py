@@ -19,6 +19,8 @@ from drake_rus.localization.localize import (
     check_registration,
     estimate_kidney_length,
     exploration_travel,
+    load_registration_template,
+    max_rms_residual,
 )
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -188,6 +190,36 @@ def test_rms_bound_depends_on_the_method(template):
     )
     deformable = dataclasses.replace(rigid, shape_coefficients=np.zeros(3))
     assert "RMS residual 5.5 mm > 5.0 mm" in check_registration(deformable, P, config)
+
+
+def test_rms_gate_widens_with_the_templates_own_shape_variability(template):
+    """The shipped template keeps the measured gates; a template whose subjects vary more
+    beyond the fitted modes widens them in quadrature (z SD of the excess per-point SD),
+    and check_registration applies the gate of the template it is given."""
+    config = LocalizationConfig()
+    shipped = load_registration_template(None)
+    assert max_rms_residual(config, shipped, True) == config.max_rms_residual_deformable
+    assert max_rms_residual(config, shipped, False) == config.max_rms_residual
+    n = len(template.points)
+    # Modes whose variances beyond the third give a per-point SD of 3 mm (shipped: 0.70).
+    var = np.array([4e-6, 3e-6, 2e-6, 0.5 * 0.003**2 * n, 0.5 * 0.003**2 * n])
+    varied = RegistrationTemplate(template.points, template.normals, np.zeros((5, n, 3)), var)
+    assert varied.unexplained_sd(3) == pytest.approx(0.003)
+    s_ref = shipped.unexplained_sd(3)
+    z = config.rms_shape_allowance_sd
+    expected = np.sqrt(0.005**2 + z**2 * (0.003**2 - s_ref**2))
+    assert max_rms_residual(config, varied, True) == pytest.approx(expected)
+    assert expected > 0.0075
+    off = dataclasses.replace(config, rms_shape_allowance_sd=0.0)
+    assert max_rms_residual(off, varied, True) == 0.005
+    X_BK, P = partial_cloud(template)
+    good = register_plane_to_plane(
+        P, template.points, template.normals, heuristic_initial_rotation(SUPERIOR_B, LATERAL_B)
+    )
+    fit = dataclasses.replace(good, rms_residual=0.006, shape_coefficients=np.zeros(3))
+    assert "RMS residual 6.0 mm > 5.0 mm" in check_registration(fit, P, config, shipped)
+    assert check_registration(fit, P, config, varied) == ""
+    assert "> 5.0 mm" in check_registration(fit, P, off, varied)
 
 
 def test_localizer_needs_the_kidney_seen_along_the_body(template):

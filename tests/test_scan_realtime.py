@@ -3,7 +3,10 @@ that commands zero velocity on exit, and is stopped when the diagram falls
 ``safety.realtime_lag`` behind the wall clock: its commands would reach the robot late.
 
 The station here is the simulated one given a ``stop()``, so RunScan treats it as live; a
-monitor stalls the loop once for 0.6 s of wall time, like a busy PC.
+monitor stalls the loop once for 0.6 s of wall time, like a busy PC. Its perception runs in
+worker processes beside the loop (perception.execution: auto); the image watchdog, which
+then also counts the segmentation's latency, is set to 1 s so that a busy CI machine's slow
+segmentations do not end these runs first (tests/test_realtime.py covers that).
 """
 
 import time
@@ -39,7 +42,9 @@ def patient_and_template():
 
 
 def _run_live(lag: float, patient, template, max_sim_time: float):
-    scenario = ApplyOverrides(LoadScenario(), "{safety: {realtime_lag: %g}}" % lag)
+    scenario = ApplyOverrides(
+        LoadScenario(), "{safety: {realtime_lag: %g, image_timeout: 1.0}}" % lag
+    )
     stops = []
 
     def make_live_station(scenario, meshcat=None, patient=None):
@@ -70,7 +75,7 @@ def test_a_live_run_that_falls_behind_real_time_is_stopped(patient_and_template)
 
 
 def test_the_lag_limit_is_the_scenario_s(patient_and_template):
-    # The same stall under a 1 s limit: the run goes on (the simulator catches up).
+    # The same stall under a 1 s limit: the run goes on (the schedule slips by the stall).
     result, stops = _run_live(1.0, *patient_and_template, max_sim_time=1.5)
     assert "behind real time" not in result.reason, result.reason
     assert result.sim_s == pytest.approx(1.5, abs=0.05)

@@ -273,15 +273,29 @@ def test_other_mode_side_by_side_only_of_one_setting(tmp_path, capsys, monkeypat
         "--out",
         str(out),
     ]
+    # Closed loop segments with the learned segmenter unless asked otherwise.
     assert main(common + ["--patients", "test:0-2"]) == 0
     assert main(common + ["--patients", "test:3-5", "--segmenter", "classical"]) == 0
+    records = [json.loads(p.read_text()) for p in (out / "runs").glob("*.json")]
+    assert sorted(r["task"]["segmenter"] for r in records) == ["classical"] * 6 + ["onnx"] * 6
     capsys.readouterr()
     patients = [f"test:{k}" for k in range(6)]
-    oracle = study_cli._expected_settings(specs.StudyOptions())
-    got = study_cli._other_mode(out, patients, "kinematic", "paper", settings=oracle)
-    assert got["settings"]["segmenter"] == "oracle" and got["er"]["patients"] == 3
-    onnx = study_cli._expected_settings(specs.StudyOptions(segmenter="onnx"))
-    assert study_cli._other_mode(out, patients, "kinematic", "paper", settings=onnx) is None
+
+    def columns(**options):
+        settings = study_cli._expected_settings(specs.StudyOptions(**options))
+        return study_cli._other_columns(
+            out, patients, "kinematic", None, "paper", settings=settings
+        )
+
+    # The kinematic oracle study is put beside the closed loop's default (learned)
+    # segmenter; a classical one beside the classical closed loop.
+    (got,) = columns()
+    assert got["settings"]["segmenter"] == "onnx" and got["er"]["patients"] == 3
+    assert got["mode"] == study_cli.CLOSED_LOOP and got["template"] == ""
+    (got,) = columns(segmenter="classical")
+    assert got["settings"]["segmenter"] == "classical"
+    # Other settings than any the closed loop holds, and two of them: none is picked.
+    assert columns(method="deformable") == []
     assert "2 different settings" in capsys.readouterr().err
 
 

@@ -1,7 +1,7 @@
 """The kidney template from real CT kidneys (issue 27, item 3), on synthetic shapes and tiny
 synthetic KiTS-layout label maps (no ../shared needed; the real-data test skips cleanly):
 a known mean is recovered with the right frame signs from kidneys in random poses, voxel
-grids and sides; the KiTS-layout adapter finds the body's axes and the sides from anatomy;
+grids and sides; kidneys come through the CT-kidney importer with the body's axes and sides;
 the cache is keyed on content; the train/test split is enforced; the template is never
 written under models/."""
 
@@ -166,12 +166,15 @@ def _kits_label_map(
     left_axes=MEAN_AXES,
     flip=(False, False, False),
     missing=None,
+    mirrored_header=False,
 ):
     """Writes a KiTS-style label map: array (slice, row, column) with the slice index running
     inferiorly, the row posteriorly, the column to the patient's left (``flip`` reverses the
     slice, row and column axes). Two kidneys posterior of the centre, upper poles medial and
     posterior (lower poles lateral and anterior), a hilum notch facing anteromedially; a
-    tumour ball on the right kidney of ``tumour_right`` of its volume."""
+    tumour ball on the right kidney of ``tumour_right`` of its volume. ``mirrored_header``:
+    the column axis is stored reversed on a grid whose header says so (direction
+    diag(1, 1, -1): a left-handed grid)."""
     import SimpleITK as sitk
 
     sp = np.asarray(spacing)
@@ -214,35 +217,53 @@ def _kits_label_map(
         arr = arr[:, ::-1]
     if flip[2]:
         arr = arr[:, :, ::-1]
+    if mirrored_header:
+        arr = arr[:, :, ::-1]
     img = sitk.GetImageFromArray(np.ascontiguousarray(arr.transpose(2, 1, 0)))
     img.SetSpacing(tuple(float(s) * 1000 for s in sp))
+    if mirrored_header:
+        img.SetDirection((1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1.0))
     path.parent.mkdir(parents=True, exist_ok=True)
     sitk.WriteImage(img, str(path))
     return path
 
 
 @pytest.mark.parametrize(
-    "flip", [(False, False, False), (True, False, True), (False, True, True), (True, True, False)]
+    "flip,mirrored",
+    [
+        ((False, False, False), False),
+        ((True, False, True), False),
+        ((False, True, True), False),
+        ((True, True, False), False),
+        ((False, False, False), True),
+    ],
 )
-def test_kits_adapter_finds_the_body_axes_and_sides(tmp_path, flip):
-    """Whichever way the axes are stored (rotated by 180 deg about any of them), the adapter
-    finds superior, posterior and left from the kidneys' anatomy, names the kidneys by side,
-    and measures the tumour. (A volume stored as a mirror image, one axis reversed, cannot
-    be told from kidneys alone: see drake_rus.template.ct._kits_frame.)"""
+def test_kidney_source_finds_the_body_axes_and_sides(tmp_path, flip, mirrored):
+    """Whichever way the axes are stored (rotated by 180 deg about any of them, or one axis
+    reversed with a header saying so: a left-handed grid), the kidneys come through the
+    importer (drake_rus.anatomy.ct_kidney) with superior, anterior and left found from
+    anatomy and the grid's handedness, named by side, the tumour measured, and the same
+    shape in the canonical frame."""
     path = _kits_label_map(
-        tmp_path / "case_00001" / "segmentation.nii.gz", flip=flip, tumour_right=0.15
+        tmp_path / "case_00001" / "segmentation.nii.gz",
+        flip=flip,
+        tumour_right=0.15,
+        mirrored_header=mirrored,
     )
     kidneys = {k.side: k for k in ct.kidney_masks(path)}
     assert set(kidneys) == {"right", "left"}
     rec = kidneys["right"].frame
-    assert rec["slice_axis"] == ("superior" if flip[0] else "inferior"), rec
-    assert rec["row_axis"] == ("anterior" if flip[1] else "posterior"), rec
-    assert rec["column_axis"] == ("right" if flip[2] else "left"), rec
-    assert rec["margin"] > 1.0
+    # The image's numpy axes are (column, row, slice) of the written array.
+    assert rec["status"] == "agree", rec
+    assert rec["handedness"] == (1 if mirrored else -1)
+    assert rec["axes"]["superior"] == ("+2" if flip[0] else "-2"), rec
+    assert rec["axes"]["anterior"] == ("+1" if flip[1] else "-1"), rec
+    assert rec["axes"]["left"] == ("-0" if flip[2] != mirrored else "+0"), rec
     assert kidneys["right"].tumour_fraction == pytest.approx(0.13, abs=0.06)
     assert kidneys["left"].tumour_fraction == 0.0
     for k in kidneys.values():
         assert k.cut == "" and k.anomaly == ""
+        assert np.linalg.det(k.X_BdV.rotation().matrix()) == pytest.approx(1.0)
     # In Bd the right kidney lies right of the left one (x_Bd to the patient's left) and the
     # kidneys' superior poles are superior (y_Bd).
     c = {s: k.X_BdV.multiply((np.argwhere(k.kidney) * k.spacing).T) for s, k in kidneys.items()}
@@ -253,9 +274,17 @@ def test_kits_adapter_finds_the_body_axes_and_sides(tmp_path, flip):
         bottom = p[:, p[1] < np.percentile(p[1], 10)].mean(axis=1)
         # Upper pole medial and posterior (-z) of the lower pole.
         assert abs(top[0] - mid) < abs(bottom[0] - mid) and top[2] < bottom[2], s
+    # The left kidney (no tumour) has the shape it was made with, whatever the storage.
+    ref = _kits_label_map(tmp_path / "ref" / "segmentation.nii.gz", tumour_right=0.15)
+    (left_ref,) = [k for k in ct.kidney_masks(ref) if k.side == "left"]
+    a, b = (
+        ct.subject_from_ct_kidney(k, voxel=0.002, mirror=True).points
+        for k in (left_ref, kidneys["left"])
+    )
+    assert ct.template_distance(a, b) < 0.001
 
 
-def test_kits_adapter_errors_name_the_file(tmp_path):
+def test_kidney_source_errors_name_the_file(tmp_path):
     bad = tmp_path / "case_00009" / "segmentation.nii.gz"
     bad.parent.mkdir(parents=True)
     bad.write_bytes(b"not an image")
@@ -269,8 +298,10 @@ def test_kits_adapter_errors_name_the_file(tmp_path):
         ct.kidney_masks(tmp_path / "nothing.nii.gz")
 
 
-def test_kits_adapter_flags_fused_kidneys(tmp_path):
-    """One labelled piece lying across the body (a horseshoe kidney) is no template subject."""
+def test_fused_kidneys_build_no_template(tmp_path):
+    """One labelled piece lying across the body (a horseshoe kidney, KiTS case 5): the
+    importer cannot establish the frame (its long axis is not the slice axis), so the case
+    is an error, recorded by the survey and skipped with that reason."""
     import SimpleITK as sitk
 
     shape, sp = (50, 100, 120), np.array([0.004, 0.003, 0.003])
@@ -282,14 +313,13 @@ def test_kits_adapter_flags_fused_kidneys(tmp_path):
     path = tmp_path / "case_00001" / "segmentation.nii.gz"
     path.parent.mkdir()
     sitk.WriteImage(img, str(path))
-    (kidney,) = ct.kidney_masks(path)
-    assert "fused or horseshoe" in kidney.anomaly
-    assert (
-        ct._eligible(
-            {"cut": "", "anomaly": kidney.anomaly, "tumour_fraction": 0.0}, ct.CtTemplateOptions()
-        )
-        == kidney.anomaly
+    with pytest.raises(ValueError, match="case_00001.*(axis|frame)"):
+        ct.kidney_masks(path)
+    survey = ct.survey_label_map(path)
+    selected, skipped = ct.select_kidneys(
+        [("case_00001", path)], {"case_00001": survey}, ct.CtTemplateOptions()
     )
+    assert selected == [] and skipped[0]["why"] == survey["error"]
 
 
 def test_match_cases():
@@ -526,14 +556,15 @@ def test_scan_selects_the_template(ct_dir, builds, monkeypatch, capsys):
     reason=f"KiTS19 label maps not found at {KITS}",
 )
 def test_real_kits_case_frame():
-    """A real KiTS case: two kidneys, the slice axis inferior and the row axis posterior
-    (the dataset's layout), every cue agreeing."""
+    """A real KiTS case through the importer: two kidneys, superior and anterior along the
+    dataset's layout (numpy axes: column, row, slice; the slice index running inferiorly,
+    the row posteriorly), every cue agreeing."""
     kidneys = ct.kidney_masks(KITS / "case_00139" / "segmentation.nii.gz")
     assert sorted(k.side for k in kidneys) == ["left", "right"]
     rec = kidneys[0].frame
-    assert (rec["slice_axis"], rec["row_axis"], rec["column_axis"]) == (
-        "inferior",
-        "posterior",
-        "left",
+    assert rec["status"] == "agree" and rec["conflicts"] == []
+    assert (rec["axes"]["superior"], rec["axes"]["anterior"], rec["axes"]["left"]) == (
+        "-2",
+        "-1",
+        "+0",
     )
-    assert all(v > 0 for v in rec["cues"].values())

@@ -155,17 +155,25 @@ def AddController(
     )
     for name in ("joint_position", "joint_velocity", "X_BP", "probe_force"):
         builder.Connect(S(name), safety.GetInputPort(name))
+    segmented = False
     if image_port is None:
         # Watch the frames the controller actually uses: the segmenter's mask (stamped with
         # its source frame's time) if there is one, else the station's ultrasound images.
         if segmenter is not None and segmenter.HasOutputPort("kidney_mask"):
             image_port = segmenter.GetOutputPort("kidney_mask")
+            segmented = True
         elif station.HasOutputPort("us_image"):
             image_port = S("us_image")
     if image_port is not None:
         stamp = builder.AddNamedSystem("image_stamp", FrameTime(image_port.Allocate()))
         builder.Connect(image_port, stamp.get_input_port())
         builder.Connect(stamp.get_output_port(), safety.GetInputPort("image_time"))
+    if segmented and station.HasOutputPort("us_image"):
+        # The station's newest frame too: a stale segmentation of a fresh video is
+        # perception falling behind (an overloaded computer), not a stopped video.
+        video = builder.AddNamedSystem("frame_stamp", FrameTime(S("us_image").Allocate()))
+        builder.Connect(S("us_image"), video.get_input_port())
+        builder.Connect(video.get_output_port(), safety.GetInputPort("frame_time"))
 
     if station.HasOutputPort("robot_ok"):
         builder.Connect(_vector1(builder, S("robot_ok")), safety.GetInputPort("robot_ok"))

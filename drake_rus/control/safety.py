@@ -62,6 +62,9 @@ class SafetyInputs:
     F_z: float  # contact force along a (N), positive pressing
     J: np.ndarray  # 6x7 tip Jacobian [w; v] in B
     image_time: float = math.nan  # time stamp (s) of the newest image; NaN: no images
+    # Time stamp (s) of the station's newest frame when ``image_time`` is that of the newest
+    # segmented frame (NaN: not known): tells a stopped video from perception behind it.
+    frame_time: float = math.nan
     kidney_visible: bool | None = None  # None: no segmenter connected
     segmentation_required: bool = True
     supervisor_abort: bool = False
@@ -132,6 +135,12 @@ def check_faults(u: SafetyInputs, s: SafetyState, cfg) -> tuple[str, str] | None
         i = int(np.argmax(over))
         return StopReason.JOINT_SPEED, f"joint {i + 1}: |v| = {abs(u.v[i]):.3f} rad/s"
     if math.isfinite(u.image_time) and u.t - u.image_time > cfg.image_timeout + 1e-9:
+        if math.isfinite(u.frame_time) and u.t - u.frame_time <= cfg.image_timeout + 1e-9:
+            return StopReason.STALE_IMAGE, (
+                f"the segmentation fell behind the video: its newest result is of a frame "
+                f"{u.t - u.image_time:.3f} s old while the video's newest is "
+                f"{u.t - u.frame_time:.3f} s old (the computer is overloaded)"
+            )
         return StopReason.STALE_IMAGE, f"newest image is {u.t - u.image_time:.3f} s old"
     q = np.asarray(u.q, dtype=float)
     if s.last_q is None or np.any(q != s.last_q):

@@ -389,7 +389,8 @@ class SafetyLayer(LeafSystem):
     logs each stop as a SafetyEvent.
     Inputs: joint_velocity_desired (7, rad/s), joint_position (7, rad), joint_velocity
     (7, rad/s), X_BP (RigidTransform), probe_force (6, on the probe in P); optional:
-    image_time (1, s: stamp of the newest image), kidney_visible (1, 0/1),
+    image_time (1, s: stamp of the newest image), frame_time (1, s: stamp of the station's
+    newest frame, when image_time is a segmentation's), kidney_visible (1, 0/1),
     segmentation_required (1, 0/1), supervisor_abort (1, 0/1), robot_ok (1, 0/1: the
     hardware station's robot/connection health).
     Outputs: joint_velocity_command (7, rad/s; state), stopped (1, 0/1; state),
@@ -416,6 +417,7 @@ class SafetyLayer(LeafSystem):
         self._X = self.DeclareAbstractInputPort("X_BP", AbstractValue.Make(RigidTransform()))
         self._F = self.DeclareVectorInputPort("probe_force", 6)
         self._img = self.DeclareVectorInputPort("image_time", 1)
+        self._frame = self.DeclareVectorInputPort("frame_time", 1)
         self._vis = self.DeclareVectorInputPort("kidney_visible", 1)
         self._req = self.DeclareVectorInputPort("segmentation_required", 1)
         self._abort = self.DeclareVectorInputPort("supervisor_abort", 1)
@@ -450,6 +452,7 @@ class SafetyLayer(LeafSystem):
             F_z=contact_force(self._F.Eval(context)),
             J=J,
             image_time=_optional_scalar(self._img, context, math.nan),
+            frame_time=_optional_scalar(self._frame, context, math.nan),
             kidney_visible=visible,
             segmentation_required=_optional_scalar(self._req, context, 1.0) > 0.5,
             supervisor_abort=_optional_scalar(self._abort, context, 0.0) > 0.5,

@@ -18,6 +18,11 @@ Studies (each a list of independent runs; a run is a
   distance from the patient's kidney. A patient may be a real body (a patient path);
   ``StudyOptions.posture`` (or a ``@decubitus`` suffix) lays patients in a posture.
 
+Patients are generated (``test:K``...), real CT kidneys in generated bodies (``ct:``, also
+as cohorts ``ct:DIR:0-14`` / ``ct:DIR:firstN``) or real bodies, each kind grouped apart; the
+registration template is the generated one or another (``StudyOptions.template``: ``real``,
+built from CT kidneys without the patients' cases), recorded in every run.
+
 Every run is kinematic (the fast twin, default) or, with ``mode`` "closed-loop", a full
 closed-loop scan on the Drake diagram with the same run record. Modules, lowest first:
 
@@ -26,7 +31,10 @@ closed-loop scan on the Drake diagram with the same run record. Modules, lowest 
 - :mod:`.specs`: what a study asks for: patient specs, options, the typed run
   (``StudyTask``) and the generators of a study's runs;
 - :mod:`.keys`: a run's id, settings key, resolved inputs and provenance;
-- :mod:`.templates`: the template study's template variants and distances;
+- :mod:`.templates`: the template study's template variants and distances, and what a
+  study's template is (``template_info``);
+- :mod:`.ct_cohort`: ``ct:DIR:SELECTION`` cohorts expanded, and the patients whose case
+  built the template;
 - :mod:`.patients`: a run's prepared patient, ER travel and random starts;
 - :mod:`.kinematic_runs` and :mod:`.closed_loop_runs`: one run in each mode;
 - :mod:`.tasks`: ``run_task``, one run dispatched to its mode (what the batch runner calls);

@@ -590,16 +590,33 @@ def analyze_efficiency(results: list[dict], alpha: float = 0.05, V_target: float
 DISTANCE_BINS_MM = (0.0, 3.0, 4.0, 5.0, 7.0, float("inf"))
 
 
+# The template study's group of the CT-kidney patients (``ct:``: real CT kidneys in
+# generated bodies), all together like the generated patients; each real body is its own.
+CT_GROUP = "real CT kidneys"
+
+
 def template_group(r: dict) -> str:
     """The group of a template-study run in the tables: ``generated`` (the virtual patients,
-    ``seed:N``/``train:K``/``test:K``) or the real body's folder or file name; ``, decubitus``
+    ``seed:N``/``train:K``/``test:K``), ``real CT kidneys`` (``ct:`` patients: real CT
+    kidneys in generated bodies) or the real body's folder or file name; ``, decubitus``
     appended for left-lateral-decubitus runs."""
     spec = str(r["patient"])
     kind = r.get("patient_kind") or (
-        "generated" if re.fullmatch(r"(test|train|seed):\d+", spec) else "real"
+        "generated"
+        if re.fullmatch(r"(test|train|seed):\d+", spec)
+        else "ct"
+        if spec.startswith("ct:")
+        else "real"
     )
-    name = "generated" if kind == "generated" else spec.rstrip("/").split("/")[-1]
+    name = {"generated": "generated", "ct": CT_GROUP}.get(kind) or spec.rstrip("/").split("/")[-1]
     return name + (", decubitus" if r.get("posture") == "left_lateral_decubitus" else "")
+
+
+def group_kind(group: str) -> str:
+    """ "generated", "ct" or "real" of a :func:`template_group` name."""
+    if group.startswith("generated"):
+        return "generated"
+    return "ct" if group.startswith(CT_GROUP) else "real"
 
 
 def _trend(results: list[dict]) -> dict:
@@ -639,7 +656,7 @@ def analyze_template(results: list[dict]) -> dict:
             r["patient"]
         ] = r
     rows = []
-    for g in sorted(groups, key=lambda g: (g != "generated", g)):
+    for g in sorted(groups, key=lambda g: ({"generated": 0, "ct": 1}.get(group_kind(g), 2), g)):
         by = groups[g]
         ref = by.get("mean", {})
         for v in sorted(by, key=_variant_order):
@@ -669,7 +686,8 @@ def analyze_template(results: list[dict]) -> dict:
             "from_mm": lo,
             "to_mm": hi,
             "n": len(sel),
-            "real_runs": sum(1 for r in sel if not template_group(r).startswith("generated")),
+            "real_runs": sum(1 for r in sel if group_kind(template_group(r)) == "real"),
+            "ct_runs": sum(1 for r in sel if group_kind(template_group(r)) == "ct"),
         }
         for key in ("template_distance_mm", "e_trans_mm", "e_rot_x_deg"):
             b[f"{key}_mean"], b[f"{key}_sd"] = mean_sd([r[key] for r in sel])

@@ -24,6 +24,7 @@ import json
 import math
 import sys
 import time
+import warnings
 from pathlib import Path
 
 from drake_rus import batch
@@ -38,10 +39,22 @@ from drake_rus.experiments.analysis import (
     critical_er_summary,
     sample_size_warning,
 )
-from drake_rus.experiments.keys import run_id, task_inputs_digest, task_key
+from drake_rus.experiments.ct_cohort import (
+    ct_case_path,
+    expand_ct_cohorts,
+    template_cases_of_patients,
+)
+from drake_rus.experiments.keys import (
+    run_id,
+    task_inputs_digest,
+    task_key,
+    template_file,
+    template_tag,
+)
 from drake_rus.experiments.report import (
     CLOSED_LOOP,
     KINEMATIC,
+    figure_note,
     report_markdown,
     write_closed_loop_outputs,
     write_efficiency_outputs,
@@ -51,26 +64,39 @@ from drake_rus.experiments.report import (
 )
 from drake_rus.experiments.results import load_study_results, results_of, run_settings, settings_of
 from drake_rus.experiments.specs import (
+    DEFAULT_SEGMENTER,
     ER_GRID,
     MODES,
+    PATIENT_KINDS,
     POSTURES,
     TEMPLATE_VARIANTS,
     StudyOptions,
     check_strategies,
     closed_loop_tasks,
+    ct_selection,
     default_strategies,
     efficiency_tasks,
     er_sweep_tasks,
     expand_patients,
+    patient_kind,
     population_of_variant,
+    split_posture,
     starts_tasks,
     template_tasks,
 )
 from drake_rus.experiments.tasks import run_task
+from drake_rus.experiments.templates import template_info
 from drake_rus.io_utils import MB, dumps_strict, output_dir, write_text_atomic
 from drake_rus.progress import stderr_is_terminal
 from drake_rus.provenance import Provenance
 from drake_rus.scenario import LoadScenario
+from drake_rus.template.ct import (
+    CtTemplateError,
+    TemplateSplitWarning,
+    is_template_spec,
+    resolve_template,
+)
+from drake_rus.template.io import DEFAULT_TEMPLATE_PATH
 from drake_rus.template.population import population_template
 
 # About what a study writes (bytes): per-run JSON, tables, figures, NRRD volumes.
@@ -105,7 +131,10 @@ def add_commands(subparsers) -> None:
             "--patients",
             default="test:0-14",
             help="comma (or semicolon) list: test:0-14, seed:100-120, train:3, "
-            "ct:PATH[#OPTIONS] or patient paths (default test:0-14); a "
+            "ct:PATH[#OPTIONS] (a real CT kidney in a generated body), ct:DIR:0-14 "
+            "(those cases of a folder of CT label maps; cases without a usable kidney "
+            "left out with their reason), ct:DIR:first15 (the first 15 usable cases "
+            "that did not build the template), or patient paths (default test:0-14); a "
             "ct: spec's own commas (ct:PATH#left,body=7) do not separate; "
             "study template: each optionally with @decubitus or @supine",
         )
@@ -127,9 +156,30 @@ def add_commands(subparsers) -> None:
         )
         q.add_argument(
             "--segmenter",
-            default="oracle",
+            default=None,
             choices=["oracle", "classical", "onnx"],
-            help="segmentation of the kinematic frames (default oracle, as the seed's simulation)",
+            help="segmentation of the frames (default: oracle in kinematic mode, the "
+            "label volume's kidney labels, as the seed's simulation; onnx in closed-loop "
+            "mode, the product's learned segmenter, as the seed's system used its "
+            "network); the oracle is labelled as such in every table and figure",
+        )
+        q.add_argument(
+            "--template",
+            default=None,
+            help="registration template: generated (the shipped template of 20 generated "
+            "kidneys), real (20 real CT kidneys of ../shared/anatomy/kits19, built once "
+            "into the cache without the patients' cases), real:DIR, or a template .npz "
+            "(default: the scenario's localization.template, the generated one); runs "
+            "with another template than the generated one have their own ids (__tpl-real) "
+            "and outputs (OUT/template-real), and the reports put the templates OUT "
+            "holds side by side",
+        )
+        q.add_argument(
+            "--allow-template-cases",
+            action="store_true",
+            help="run patients whose CT case helped build the template anyway (refused "
+            "by default: scoring them is not a test on unseen kidneys); the report says "
+            "which",
         )
         q.add_argument(
             "--method",
@@ -291,19 +341,103 @@ def _options(args):
     recon = float(getattr(args, "recon_spacing", 0.001))
     if not recon > 0:
         raise ValueError(f"--recon-spacing: expected a positive size in m, got {recon}")
+    mode = getattr(args, "mode", "kinematic")
     return StudyOptions(
         scenario=args.scenario,
         scenarios_file=args.scenarios_file,
         overrides=args.overrides,
-        segmenter=args.segmenter,
+        segmenter=args.segmenter or DEFAULT_SEGMENTER[mode],
         method=args.method,
         voxel=float(args.voxel),
         seed=int(args.seed),
         recon_spacing=recon,
         er_unit=getattr(args, "er_unit", "kidney"),
-        mode=getattr(args, "mode", "kinematic"),
+        mode=mode,
         posture=getattr(args, "posture", None),
     )
+
+
+def _is_shipped(value) -> bool:
+    """True when a template value names the shipped template of generated kidneys."""
+    if value is None or str(value).strip() in ("", "generated"):
+        return True
+    if is_template_spec(value):
+        return False
+    try:
+        return template_file(value).resolve() == DEFAULT_TEMPLATE_PATH.resolve()
+    except OSError:
+        return False
+
+
+def _resolve_study_template(spec, patients, log):
+    """The file of template ``spec`` for these patients (a ``real`` template is built
+    without their cases), with a one-line error naming ``--template``."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", TemplateSplitWarning)
+            path = resolve_template(
+                spec, exclude_cases=[str(p) for p in patients if ct_case_path(p)], log=log
+            )
+    except CtTemplateError as e:
+        raise ValueError(f"--template: {e.detail if e.field == 'template' else e}") from None
+    if not Path(path).is_file():
+        raise ValueError(
+            f"--template: {path}: no such template file (expected generated, real, "
+            "real:DIR or a template .npz)"
+        )
+    return Path(path)
+
+
+def patients_and_template(args, patients, scenario, options):
+    """The study's patients (``ct:DIR:SELECTION`` cohorts expanded,
+    :func:`~drake_rus.experiments.ct_cohort.expand_ct_cohorts`) and ``options`` with its
+    template resolved to a file (``--template``, else the scenario's; None while it is the
+    shipped one, so runs keep their ids and keys), and what the report says about them
+    (``{"ct_cases_left_out", "template_cases"}``). Refuses (ValueError naming
+    ``--patients`` / ``--template``) patients of several kinds in one paper study, and
+    patients whose CT case built the template unless ``--allow-template-cases``."""
+
+    def say(line):
+        print(line, file=sys.stderr, flush=True)
+
+    spec = args.template if args.template is not None else scenario.localization.template
+    shipped = _is_shipped(spec) and _is_shipped(scenario.localization.template)
+    note = {"ct_cases_left_out": [], "template_cases": []}
+    built = []
+    real = is_template_spec(spec) and str(spec).startswith("real")
+    if not shipped and not real and any(ct_selection(split_posture(p)[0]) for p in patients):
+        # firstN passes by the cases that built a template file; a real template is built
+        # without the patients' cases anyway.
+        built = template_info(None, str(_resolve_study_template(spec, [], say)))["cases"]
+    patients, left_out = expand_ct_cohorts(
+        patients, scenario.patient.side, template_cases=built, log=say
+    )
+    note["ct_cases_left_out"] = left_out
+    if args.study != "template":
+        kinds = {}
+        for p in patients:
+            kinds.setdefault(patient_kind(p), []).append(p)
+        if len(kinds) > 1:
+            raise ValueError(
+                "--patients: the paper's studies compare patients of one kind, got "
+                + ", ".join(f"{len(v)} {PATIENT_KINDS[k]}" for k, v in kinds.items())
+                + "; run each kind into its own --out (study template groups them apart)"
+            )
+    if shipped:
+        return patients, options, note
+    path = _resolve_study_template(spec, patients, say)
+    lines = template_cases_of_patients(path, patients)
+    if lines and not args.allow_template_cases:
+        raise ValueError(
+            f"--template: {len(lines)} patient(s) helped build the template ({lines[0]}); "
+            "leave them out (ct:DIR:firstN passes them by), use --template real (built "
+            "without them), or --allow-template-cases"
+        )
+    for line in lines:
+        say(f"warning: {line}")
+    note["template_cases"] = lines
+    options = dataclasses.replace(options, template=str(spec), template_file=str(path))
+    return patients, options, note
 
 
 def _strategies(args, mode):
@@ -313,86 +447,151 @@ def _strategies(args, mode):
     return check_strategies(text.split(","), mode)
 
 
-def _mode_dir(out: Path, mode: str) -> Path:
-    """Where a mode's tables, figures and report go: OUT (kinematic) or OUT/closed-loop."""
-    if mode == "closed-loop":
-        (out / "closed-loop").mkdir(exist_ok=True)
-        return out / "closed-loop"
-    return out
+def _dest(out: Path, mode: str, tag: str = "") -> Path:
+    """Where a mode's tables, figures and report go: OUT (kinematic) or OUT/closed-loop, and
+    for another template than the generated one (``tag``,
+    :func:`~drake_rus.experiments.keys.template_tag`) its own folder below
+    (``template-real``)."""
+    dest = out / "closed-loop" if mode == "closed-loop" else out
+    return dest / f"template-{tag[len('tpl-') :]}" if tag else dest
+
+
+def _mode_dir(out: Path, mode: str, tag: str = "") -> Path:
+    """:func:`_dest`, made."""
+    dest = _dest(out, mode, tag)
+    dest.mkdir(parents=True, exist_ok=True)
+    return dest
 
 
 def _without(settings: dict, *keys) -> dict:
     return {k: v for k, v in settings.items() if k not in keys}
 
 
-def _other_mode(
+# Settings in which the columns of the side-by-side report differ: the mode, the template
+# (whose bytes the inputs digest covers) and the segmenter (whose default is the mode's).
+COLUMN_FREE = ("mode", "template", "inputs_sha256", "segmenter")
+
+
+def _column_of(result: dict) -> tuple[str, str]:
+    """(mode, template tag) of a run: the column it belongs to in the side-by-side report."""
+    task = result.get("task") or {}
+    return task.get("mode", "kinematic"), template_tag(task.get("template"))
+
+
+def _other_columns(
     out: Path,
     patients,
     mode: str,
+    template: str | None,
     rule: str,
     study: str = "paper",
     er: float | None = None,
     settings: dict | None = None,
     margins: dict | None = None,
-) -> dict | None:
-    """The other mode's analyses from OUT, if it holds them (for the side-by-side report):
-    {"mode", "er", "starts", "eff", "settings"}, None for a study it lacks. Its starts and
-    efficiency runs are those at the ER its own ``study`` (else its paper study) used (its
-    critical ER may differ), else at ``er``. Runs of one setting only (:func:`settings_of`):
-    those with this invocation's ``settings`` (but the mode) if OUT holds them, else the
-    only setting OUT holds; with several and none of them this one's, that study is left
-    out, with a message."""
-    other = "kinematic" if mode == "closed-loop" else "closed-loop"
-    for name in dict.fromkeys((study, "paper")):
-        meta_path = _mode_dir(out, other) / f"study_{name}.json"
-        if meta_path.exists():
-            er = json.loads(meta_path.read_text()).get("er", er)
-            break
+) -> list[dict]:
+    """The other columns of the side-by-side report: every (mode, template) of OUT's runs of
+    these patients but this study's, each with its analyses {"mode", "template", "er",
+    "starts", "eff", "settings"} (None for a study it lacks). A column's starts and
+    efficiency runs are those at the ER its own ``study`` (else its paper study) used,
+    else at ``er``. Runs of one setting only (:func:`settings_of`): those with this
+    invocation's ``settings`` (but the mode, template and segmenter; the same segmenter
+    first, then the column mode's default) if OUT holds them, else the only setting the
+    column holds; with several and none of them this one's, that study is left out, with a
+    message."""
     wanted = set(patients)
-    found = {}
-    labels = None
-    for study, key in (("er-sweep", "er"), ("starts", "starts"), ("efficiency", "eff")):
-        rs = _usable(
-            [
-                r
-                for r in load_study_results(out, study)
-                if r["task"].get("mode", "kinematic") == other
-                and r["patient"] in wanted
-                and (study == "er-sweep" or (er is not None and abs(r["er"] - er) < 1e-6))
-            ],
-            study,
-        )
-        groups = {}
-        for r in rs:
-            groups.setdefault(repr(sorted(_without(run_settings(r), "mode").items())), []).append(r)
-        mine = None if settings is None else repr(sorted(_without(settings, "mode").items()))
-        if mine in groups:
-            rs = groups[mine]
-        elif len(groups) == 1:
-            rs = next(iter(groups.values()))
-        elif groups:
-            print(
-                f"{study}: the {other} runs in {out} were made with {len(groups)} different "
-                "settings, none of them this study's: not put side by side",
-                file=sys.stderr,
-                flush=True,
+    this = (mode, template_tag(template))
+    by_column = {}
+    for name in ("er-sweep", "starts", "efficiency"):
+        for r in load_study_results(out, name):
+            if r["patient"] in wanted and _column_of(r) != this:
+                by_column.setdefault(_column_of(r), {}).setdefault(name, []).append(r)
+    mine = None if settings is None else _without(settings, *COLUMN_FREE)
+    columns = []
+    for (col_mode, tag), studies in sorted(
+        by_column.items(), key=lambda kv: (kv[0][0] != "kinematic", kv[0][1])
+    ):
+        col_er = er
+        col_dir = _dest(out, col_mode, tag)
+        for name in dict.fromkeys((study, "paper")):
+            meta_path = col_dir / f"study_{name}.json"
+            if meta_path.exists():
+                col_er = json.loads(meta_path.read_text()).get("er", col_er)
+                break
+        found, labels = {}, None
+        for name, key in (("er-sweep", "er"), ("starts", "starts"), ("efficiency", "eff")):
+            rs = _usable(
+                [
+                    r
+                    for r in studies.get(name, [])
+                    if name == "er-sweep" or (col_er is not None and abs(r["er"] - col_er) < 1e-6)
+                ],
+                name,
             )
+            groups = {}
+            for r in rs:
+                groups.setdefault(
+                    repr(sorted(_without(run_settings(r), "mode", "inputs_sha256").items())), []
+                ).append(r)
+            pick = None
+            if mine is not None:
+                same = [
+                    g for g in groups.values() if _without(run_settings(g[0]), *COLUMN_FREE) == mine
+                ]
+                seg = [
+                    g for g in same if run_settings(g[0])["segmenter"] == settings.get("segmenter")
+                ]
+                dflt = [
+                    g
+                    for g in same
+                    if run_settings(g[0])["segmenter"] == DEFAULT_SEGMENTER[col_mode]
+                ]
+                pick = (seg or dflt or [None])[0] if len(seg) <= 1 else None
+            if pick is None and len(groups) == 1:
+                pick = next(iter(groups.values()))
+            if pick is None:
+                if groups:
+                    print(
+                        f"{name}: the {col_mode} runs in {out} "
+                        f"{'with template ' + tag if tag else ''} were made with "
+                        f"{len(groups)} different settings, none of them this study's: not "
+                        "put side by side",
+                        file=sys.stderr,
+                        flush=True,
+                    )
+                continue
+            try:
+                labels = settings_of(pick, f"{col_mode} {name}")
+                if name == "er-sweep":
+                    found[key] = analyze_er_sweep(pick, rule=rule, margins=margins)
+                elif name == "starts":
+                    found[key] = analyze_starts(pick)
+                else:
+                    found[key] = analyze_efficiency(pick)
+            except (ValueError, KeyError, ZeroDivisionError):
+                continue
+            found.setdefault("template_info", pick[0].get("template"))
+            found.setdefault("status", {})[name] = _status_counts(pick)
+        if not found or "er" not in found and "starts" not in found and "eff" not in found:
             continue
-        if not rs:
-            continue
-        try:
-            labels = settings_of(rs, f"{other} {study}")
-            if study == "er-sweep":
-                found[key] = analyze_er_sweep(rs, rule=rule, margins=margins)
-            elif study == "starts":
-                found[key] = analyze_starts(rs)
-            else:
-                found[key] = analyze_efficiency(rs)
-        except (ValueError, KeyError, ZeroDivisionError):
-            continue
-    if not found:
-        return None
-    return dict(found, mode=CLOSED_LOOP if other == "closed-loop" else KINEMATIC, settings=labels)
+        columns.append(
+            dict(
+                found,
+                mode=CLOSED_LOOP if col_mode == "closed-loop" else KINEMATIC,
+                template=tag,
+                settings=labels,
+            )
+        )
+    return columns
+
+
+def _status_counts(results) -> dict:
+    """How many of a study's closed-loop scans ended in each status ({} for kinematic
+    runs, which have none)."""
+    out = {}
+    for r in results:
+        if r.get("status"):
+            out[r["status"]] = out.get(r["status"], 0) + 1
+    return dict(sorted(out.items(), key=lambda kv: (kv[0] != "DONE", kv[0])))
 
 
 def _usable(results, study: str = ""):
@@ -459,9 +658,11 @@ def _critical_er(out: Path, settings: dict, default: float = DEFAULT_ER) -> floa
     return float(saved["critical_er"])
 
 
-def _expected_settings(options) -> dict:
-    """The settings runs of ``options`` record (:func:`run_settings`)."""
-    task = er_sweep_tasks(["test:0"], options, [1.0])[0]
+def _expected_settings(options, patients=("test:0",)) -> dict:
+    """The settings runs of ``options`` on ``patients`` (the first one's kind) record
+    (:func:`run_settings`)."""
+    patient = split_posture(str(list(patients)[0]))[0]
+    task = er_sweep_tasks([patient], options, [1.0])[0]
     return run_settings({"task": task.to_dict(), "inputs_sha256": task_inputs_digest(task)})
 
 
@@ -482,6 +683,7 @@ def run_study_command(args) -> int:
     scenario = LoadScenario(
         filename=args.scenarios_file, scenario_name=args.scenario, scenario_text=args.overrides
     )
+    patients, options, cohort = patients_and_template(args, patients, scenario, options)
     if args.study == "template":
         # Every run's posture in its record and run id (decubitus runs end in __lld).
         options = dataclasses.replace(options, posture=options.posture or scenario.patient.posture)
@@ -507,10 +709,19 @@ def run_study_command(args) -> int:
     with output_dir(
         args.out, "--out", need_bytes=STUDY_OUTPUT_BYTES, what=f"study {args.study}"
     ) as out:
-        return _study(args, patients, options, out, workers, margins, scenario)
+        return _study(args, patients, options, out, workers, margins, scenario, cohort)
 
 
-def _study(args, patients, options, out: Path, workers: int, margins: dict | None, scenario) -> int:
+def _study(
+    args,
+    patients,
+    options,
+    out: Path,
+    workers: int,
+    margins: dict | None,
+    scenario,
+    cohort: dict | None = None,
+) -> int:
     terminal = stderr_is_terminal()
     run = dict(
         workers=workers, scheduler=args.scheduler, progress=not args.no_progress and terminal
@@ -520,10 +731,21 @@ def _study(args, patients, options, out: Path, workers: int, margins: dict | Non
     er_an = starts_an = eff_an = None
     mode = options.mode
     mode_text = CLOSED_LOOP if mode == "closed-loop" else KINEMATIC
-    dest = _mode_dir(out, mode)
+    dest = _mode_dir(out, mode, template_tag(options.template))
     unusable = {}
     used = []  # every run a table below was made from: the report's labels
     study_argv = list(sys.argv)
+
+    def note_of(results, labels):
+        """A figure's second title line: segmenter, template, patients' kind."""
+        info = next((r["template"] for r in results if isinstance(r.get("template"), dict)), None)
+        return figure_note(
+            labels,
+            info
+            or template_info(
+                options.template, options.template_file or scenario.localization.template
+            ),
+        )
 
     def usable(study, results):
         ok = _usable(results, study)
@@ -621,13 +843,15 @@ def _study(args, patients, options, out: Path, workers: int, margins: dict | Non
         go(tasks, "er-sweep")
         ran["er-sweep"] = time.perf_counter() - t
         results = usable("er-sweep", runs_of("er-sweep", tasks))
+        er_labels = _labels(results, options, "er-sweep", patients)
         er_an = write_er_sweep_outputs(
             dest,
             results,
             rule=args.critical_er_rule,
             mode=mode_text,
             margins=margins,
-            settings=_labels(results, options, "er-sweep"),
+            settings=er_labels,
+            note=note_of(results, er_labels),
         )
         print(f"er-sweep: {critical_er_summary(er_an)} ({len(results)} runs)", flush=True)
         warning = sample_size_warning(er_an)
@@ -636,7 +860,7 @@ def _study(args, patients, options, out: Path, workers: int, margins: dict | Non
     er = getattr(args, "er", None)
     if er is None:
         if er_an is None:
-            er = _critical_er(dest, _expected_settings(options))
+            er = _critical_er(dest, _expected_settings(options, patients))
         elif er_an["critical_er"] is None:
             er = DEFAULT_ER
             if args.study != "er-sweep":
@@ -654,12 +878,24 @@ def _study(args, patients, options, out: Path, workers: int, margins: dict | Non
         go(tasks, "starts")
         ran["starts"] = time.perf_counter() - t
         results = usable("starts", runs_of("starts", tasks))
-        starts_an = write_starts_outputs(dest, results, mode=mode_text)
-        print(
-            f"starts at ER {er * 100:.0f}%: any significant difference: "
-            f"{starts_an['any_significant']}",
-            flush=True,
-        )
+        if not results:
+            print(
+                "starts: no run to analyse (every one left out): no starts tables",
+                file=sys.stderr,
+                flush=True,
+            )
+        else:
+            starts_an = write_starts_outputs(
+                dest,
+                results,
+                mode=mode_text,
+                note=note_of(results, _labels(results, options, "starts", patients)),
+            )
+            print(
+                f"starts at ER {er * 100:.0f}%: any significant difference: "
+                f"{starts_an['any_significant']}",
+                flush=True,
+            )
     if args.study in ("efficiency", "paper"):
         export = None if args.no_nrrd else (out / "volumes").resolve()
         tasks = efficiency_tasks(patients, options, er, export, _strategies(args, mode))
@@ -667,17 +903,29 @@ def _study(args, patients, options, out: Path, workers: int, margins: dict | Non
         go(tasks, "efficiency")
         ran["efficiency"] = time.perf_counter() - t
         results = usable("efficiency", runs_of("efficiency", tasks))
-        eff_an = write_efficiency_outputs(dest, results, mode=mode_text)
-        s = eff_an["summary"]
-        print(
-            "efficiency (pole to pole): "
-            + "; ".join(
-                f"{k} n {s[k]['n'][0]:.0f} eps {s[k]['eps_mm'][0]:.1f} mm V {s[k]['V'][0]:.3f}"
-                for k in STRATEGY_ORDER
-                if k in s
-            ),
-            flush=True,
-        )
+        if not results:
+            print(
+                "efficiency: no run to analyse (every one left out): no efficiency tables",
+                file=sys.stderr,
+                flush=True,
+            )
+        else:
+            eff_an = write_efficiency_outputs(
+                dest,
+                results,
+                mode=mode_text,
+                note=note_of(results, _labels(results, options, "efficiency", patients)),
+            )
+            s = eff_an["summary"]
+            print(
+                "efficiency (pole to pole): "
+                + "; ".join(
+                    f"{k} n {s[k]['n'][0]:.0f} eps {s[k]['eps_mm'][0]:.1f} mm V {s[k]['V'][0]:.3f}"
+                    for k in STRATEGY_ORDER
+                    if k in s
+                ),
+                flush=True,
+            )
     template_an = None
     population_builds = {}
     if args.study == "template":
@@ -704,8 +952,12 @@ def _study(args, patients, options, out: Path, workers: int, margins: dict | Non
         t = time.perf_counter()
         go(tasks, "template")
         ran["template"] = time.perf_counter() - t
+        results = usable("template", runs_of("template", tasks))
         template_an = write_template_outputs(
-            dest, usable("template", runs_of("template", tasks)), mode=mode_text
+            dest,
+            results,
+            mode=mode_text,
+            note=note_of(results, _labels(results, options, "template", patients)),
         )
         print(
             "template: "
@@ -727,7 +979,7 @@ def _study(args, patients, options, out: Path, workers: int, margins: dict | Non
         closed = runs_of("closed-loop", tasks)
         write_closed_loop_outputs(dest, closed)
     wall = time.perf_counter() - t0
-    labels = _labels(used, options, args.study)
+    labels = _labels(used, options, args.study, patients)
     meta = {
         "study": args.study,
         "patients": patients,
@@ -769,6 +1021,23 @@ def _study(args, patients, options, out: Path, workers: int, margins: dict | Non
             argv=study_argv,
         ),
     }
+    kinds = {}
+    for p in patients:
+        k = patient_kind(p)
+        kinds[k] = kinds.get(k, 0) + 1
+    meta["patient_kinds"] = {PATIENT_KINDS[k]: n for k, n in kinds.items()}
+    meta["template"] = next(
+        (r["template"] for r in used if isinstance(r.get("template"), dict)),
+        template_info(options.template, options.template_file or scenario.localization.template),
+    )
+    meta["run_status"] = {}
+    for r in used:
+        study = (r.get("task") or {}).get("study", "?")
+        if r.get("status"):
+            meta["run_status"].setdefault(study, []).append(r)
+    meta["run_status"] = {k: _status_counts(v) for k, v in meta["run_status"].items()}
+    meta["ct_cases_left_out"] = (cohort or {}).get("ct_cases_left_out", [])
+    meta["patients_in_template"] = (cohort or {}).get("template_cases", [])
     if args.study == "template":
         meta["posture"] = options.posture + (
             " (per-patient @posture suffixes override)" if any("@" in p for p in patients) else ""
@@ -799,37 +1068,40 @@ def _study(args, patients, options, out: Path, workers: int, margins: dict | Non
         )
         print(f"wrote {dest / 'report.md'}", flush=True)
     if args.study in ("paper", "efficiency", "er-sweep"):
-        compare = None
-        if args.study != "er-sweep":
-            compare = _other_mode(
-                out,
-                patients,
-                mode,
-                getattr(args, "critical_er_rule", "paper"),
-                args.study,
-                er,
-                settings=labels,
-                margins=margins,
-            )
+        compare = _other_columns(
+            out,
+            patients,
+            mode,
+            options.template,
+            getattr(args, "critical_er_rule", "paper"),
+            args.study,
+            er,
+            settings=labels,
+            margins=margins,
+        )
         write_text_atomic(
             dest / "report.md",
             report_markdown(meta, er_an, starts_an, eff_an, closed, compare=compare),
         )
         print(
             f"wrote {dest / 'report.md'}"
-            + (" (with the other mode's runs of OUT side by side)" if compare else ""),
+            + (
+                f" (with {len(compare)} other mode(s)/template(s) of OUT side by side)"
+                if compare
+                else ""
+            ),
             flush=True,
         )
     print(f"study {args.study}: {wall:.0f} s wall, outputs in {dest}", flush=True)
     return 1 if failed else 0
 
 
-def _labels(results: list[dict], options, study: str) -> dict:
+def _labels(results: list[dict], options, study: str, patients=("test:0",)) -> dict:
     """The settings to label tables and the report with: the runs' own (all of one setting,
     :func:`settings_of`), or, with no runs at all, what the command asked for."""
     if results:
         return settings_of(results, f"study {study}", study)
-    return _expected_settings(options)
+    return _expected_settings(options, patients)
 
 
 def _build_seconds(path) -> float | None:

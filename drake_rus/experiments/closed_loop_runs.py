@@ -30,7 +30,7 @@ import numpy as np
 
 from drake_rus.control.supervisor import Phase, pivot_pose_as_given
 from drake_rus.experiments import kinematic as km
-from drake_rus.experiments.keys import run_id, study_scenario
+from drake_rus.experiments.keys import run_id, study_scenario, with_template
 from drake_rus.experiments.kinematic_runs import sweep_entry
 from drake_rus.experiments.patients import (
     exploration_travel,
@@ -460,7 +460,9 @@ def run_closed_loop(task: StudyTask) -> dict:
     multiplies its controller's ``exploration_length`` (the estimated kidney length by
     default); the twin's the task's ``er_unit``."""
     t0 = time.perf_counter()
-    base = study_scenario(task.scenario, task.scenarios_file, task.overrides)
+    base = with_template(
+        study_scenario(task.scenario, task.scenarios_file, task.overrides), task.template_file
+    )
     scenario = dataclasses.replace(
         base,
         controller=dataclasses.replace(base.controller, exploration_ratio=task.er),

@@ -4,10 +4,12 @@ and its provenance record (:func:`run_provenance`).
 
 Resume: a run's settings key covers its whole task (:class:`~.specs.StudyTask`: study,
 patient, ER, start, segmenter, method, voxel, seed, ER unit, mode, posture, scenario name,
-overrides, strategies, template variant...) and the resolved inputs (:func:`inputs_digest`:
-the resolved scenario's YAML and the bytes of the registration template file it names); a
-stored run is reused only with the same key (:mod:`drake_rus.batch`). Closed-loop runs
-have their own run ids (suffix ``__cl``), so both modes' runs can share an output directory.
+overrides, strategies, template variant, the template asked for...) and the resolved inputs
+(:func:`inputs_digest`: the resolved scenario's YAML and the bytes of the registration
+template file it names); a stored run is reused only with the same key
+(:mod:`drake_rus.batch`). Closed-loop runs have their own run ids (suffix ``__cl``), and so
+have runs with another template than the generated one (``__tpl-real``...), so both modes'
+and both templates' runs can share an output directory.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import dataclasses
 import functools
 import hashlib
 import re
+import warnings
 from pathlib import Path
 
 from pydrake.common.yaml import yaml_dump_typed
@@ -25,11 +28,13 @@ from drake_rus.experiments.specs import POSTURES, StudyTask
 from drake_rus.paths import REPO_ROOT
 from drake_rus.provenance import Provenance
 from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, LoadScenario
+from drake_rus.template.ct import TemplateSplitWarning, is_template_spec, resolve_template
 from drake_rus.template.io import DEFAULT_TEMPLATE_PATH
 
 # Task fields that do not change a run's numbers: where its NRRD volumes go, and where the
-# scenarios file lies (its resolved contents are keyed instead, :func:`inputs_digest`).
-UNKEYED_FIELDS = ("export_dir", "scenarios_file")
+# scenarios file and the template file lie (their resolved contents are keyed instead,
+# :func:`inputs_digest`).
+UNKEYED_FIELDS = ("export_dir", "scenarios_file", "template_file")
 # Fields only some studies read (the reconstruction grid: the efficiency study's volumes).
 STUDY_FIELDS = {"recon_spacing": ("efficiency",)}
 
@@ -49,9 +54,27 @@ def run_id(task: StudyTask) -> str:
         parts.append("t-" + re.sub(r"[^A-Za-z0-9.+]+", "-", task.template_variant))
     if task.posture == "left_lateral_decubitus":
         parts.append("lld")
+    tag = template_tag(task.template)
+    if tag:
+        parts.append(tag)
     if task.mode == "closed-loop" and task.study != "closed-loop":
         parts.append("cl")
     return "__".join(parts)
+
+
+def template_tag(spec: str | None) -> str:
+    """The run-id part of a run's template (``StudyTask.template``): "" for the scenario's
+    or the generated template, ``tpl-real`` for ``real``, else ``tpl-`` with the spec's
+    name and a short hash of the whole spec (``real:DIR``, a file), so runs with different
+    templates never share a name."""
+    if spec is None or str(spec).strip() in ("", "generated"):
+        return ""
+    text = str(spec).strip()
+    if text == "real":
+        return "tpl-real"
+    name = "real" if text.startswith("real:") else Path(text).stem
+    name = re.sub(r"[^A-Za-z0-9]+", "-", name).strip("-")[:24] or "file"
+    return f"tpl-{name}-{hashlib.sha256(text.encode()).hexdigest()[:8]}"
 
 
 # ------------------------------------------------------------------------------- inputs
@@ -74,17 +97,38 @@ def with_posture(scenario, posture: str | None):
     )
 
 
+def with_template(scenario, template_file: str | None):
+    """``scenario`` with ``localization.template`` set to ``template_file`` (None:
+    unchanged)."""
+    if template_file is None or template_file == scenario.localization.template:
+        return scenario
+    return dataclasses.replace(
+        scenario,
+        localization=dataclasses.replace(scenario.localization, template=str(template_file)),
+    )
+
+
 def task_scenario(task: StudyTask):
-    """The scenario a study run starts from: its named scenario, overrides and posture."""
-    return with_posture(
-        study_scenario(task.scenario, task.scenarios_file, task.overrides), task.posture
+    """The scenario a study run starts from: its named scenario, overrides, posture and
+    template (``StudyTask.template_file``, resolved by the study command)."""
+    return with_template(
+        with_posture(
+            study_scenario(task.scenario, task.scenarios_file, task.overrides), task.posture
+        ),
+        task.template_file,
     )
 
 
 def template_file(path) -> Path:
-    """The registration template file a scenario's ``localization.template`` names."""
+    """The registration template file a scenario's ``localization.template`` names (the
+    symbolic ``generated``, ``real``, ``real:DIR`` resolved by
+    :func:`drake_rus.template.ct.resolve_template`: ``real`` built on first use)."""
     if path is None:
         return Path(DEFAULT_TEMPLATE_PATH)
+    if is_template_spec(path):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", TemplateSplitWarning)
+            return Path(resolve_template(path))
     return Path(path) if str(path).startswith("/") else REPO_ROOT / path
 
 
@@ -101,19 +145,28 @@ def _file_sha256(path: Path) -> str:
 
 @functools.lru_cache(maxsize=32)
 def inputs_digest(
-    scenario: str, scenarios_file: str | None, overrides: str | None, posture: str | None
+    scenario: str,
+    scenarios_file: str | None,
+    overrides: str | None,
+    posture: str | None,
+    template: str | None = None,
 ) -> str:
     """SHA-256 (hex) of what a study run reads besides its task: the resolved scenario (its
-    YAML, with the overrides and the task's posture) and the registration template file it
-    names. Two runs with equal tasks and digests are the same run."""
+    YAML, with the overrides and the task's posture; its template path stated as the
+    scenario's, so where a template file lies does not change the digest) and the bytes
+    of the registration template file it reads (``template``, the task's resolved file,
+    else the one the scenario names). Two runs with equal tasks and digests are the same
+    run."""
     sc = with_posture(study_scenario(scenario, scenarios_file, overrides), posture)
     h = hashlib.sha256(yaml_dump_typed(sc).encode())
-    h.update(_file_sha256(template_file(sc.localization.template)).encode())
+    h.update(_file_sha256(template_file(template or sc.localization.template)).encode())
     return h.hexdigest()
 
 
 def task_inputs_digest(task: StudyTask) -> str:
-    return inputs_digest(task.scenario, task.scenarios_file, task.overrides, task.posture)
+    return inputs_digest(
+        task.scenario, task.scenarios_file, task.overrides, task.posture, task.template_file
+    )
 
 
 # ------------------------------------------------------------------------------- the key

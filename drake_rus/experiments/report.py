@@ -15,6 +15,7 @@ import numpy as np
 from drake_rus.batch import json_default
 from drake_rus.experiments.analysis import (
     CRITICAL_ER_RULES,
+    CT_GROUP,
     DEFAULT_MARGINS,
     PAPER,
     PAPER_PATIENTS,
@@ -23,12 +24,19 @@ from drake_rus.experiments.analysis import (
     analyze_er_sweep,
     analyze_starts,
     analyze_template,
+    group_kind,
     mean_curve,
     paired_t_power,
     sample_size_warning,
     template_group,
 )
-from drake_rus.experiments.specs import CLOSED_LOOP_STRATEGY_HOW, ER_UNIT_TEXT, STRATEGY_TEXT
+from drake_rus.experiments.specs import (
+    CLOSED_LOOP_STRATEGY_HOW,
+    ER_UNIT_TEXT,
+    PATIENT_KINDS,
+    SEGMENTER_TEXT,
+    STRATEGY_TEXT,
+)
 from drake_rus.io_utils import save_figure, write_text_atomic
 from drake_rus.metrics.sweep import MATCHED_V, POLE_TO_POLE, WHOLE_PIVOT
 from drake_rus.tables import write_csv_atomic
@@ -36,6 +44,38 @@ from drake_rus.tables import write_csv_atomic
 MODE_NOTE = "kinematic mode (planned probe poses, no robot dynamics)"
 KINEMATIC = "kinematic twin (planned probe poses, no robot dynamics)"
 CLOSED_LOOP = "closed loop (Drake diagram: MultibodyPlant, controller, contact)"
+
+
+def segmenter_label(name) -> str:
+    """A segmenter as every table and figure names it: ``oracle`` is said to be the label
+    volume's kidney labels, not a segmenter the product ships."""
+    return f"`{name}` ({SEGMENTER_TEXT[name]})" if name in SEGMENTER_TEXT else f"`{name}`"
+
+
+def template_label(meta: dict) -> str:
+    """The registration template of a study's runs (their ``template`` record), for
+    people."""
+    t = meta.get("template") or {}
+    return t.get("label") or "generated (the shipped template)"
+
+
+def figure_note(settings: dict | None, template: dict | None = None) -> str:
+    """The second line of a figure's title: segmenter (the oracle named as such),
+    template, patients' kind."""
+    settings = settings or {}
+    seg = settings.get("segmenter")
+    parts = []
+    if seg:
+        parts.append(
+            "segmenter: ORACLE (label volume's kidney labels)"
+            if seg == "oracle"
+            else f"segmenter: {seg}"
+        )
+    parts.append(f"template: {(template or {}).get('label') or 'generated'}")
+    kind = settings.get("patient_kind")
+    if kind in PATIENT_KINDS:
+        parts.append(f"patients: {PATIENT_KINDS[kind]}")
+    return "; ".join(parts)
 
 
 def provenance(
@@ -47,14 +87,19 @@ def provenance(
     extra: str = "",
 ) -> str:
     """The line under every table and figure of report.md saying what produced it: mode,
-    registration method, segmenter, ER unit and (for sweep costs) the metric definition."""
+    registration method, segmenter (the oracle named as such), template, patients' kind,
+    ER unit and (for sweep costs) the metric definition."""
     unit = er_unit or meta.get("er_unit", "fixed")
     parts = [
         f"mode: {mode}",
         f"registration: `{meta.get('method', '?')}`",
-        f"segmenter: `{meta.get('segmenter', '?')}`",
+        f"segmenter: {segmenter_label(meta.get('segmenter', '?'))}",
+        f"template: {template_label(meta)}",
         f"ER unit: {ER_UNIT_TEXT.get(unit, unit)}",
     ]
+    kinds = meta.get("patient_kinds")
+    if kinds:
+        parts.insert(4, "patients: " + ", ".join(f"{k}: {n}" for k, n in kinds.items()))
     if definition:
         parts.append(f"metric: {definition}")
     if extra:
@@ -67,7 +112,7 @@ def _strategies(analysis: dict) -> list:
     return [k for k in STRATEGY_ORDER if k in analysis["summary"]]
 
 
-def plot_er_sweep(analysis: dict, path, mode: str = MODE_NOTE) -> Path:
+def plot_er_sweep(analysis: dict, path, mode: str = MODE_NOTE, note: str = "") -> Path:
     """Fig. 7d: E_trans and E_rot,x against ER, mean +- SD across patients."""
     import matplotlib
 
@@ -127,12 +172,17 @@ def plot_er_sweep(analysis: dict, path, mode: str = MODE_NOTE) -> Path:
         )
         + ")"
     )
-    fig.suptitle(f"Localization vs exploration ratio (Fig. 7d), {mode}", fontsize=8)
+    fig.suptitle(
+        f"Localization vs exploration ratio (Fig. 7d), {mode}" + (f"\n{note}" if note else ""),
+        fontsize=8,
+    )
     fig.tight_layout()
     return save_figure(fig, path)
 
 
-def plot_starts(results: list[dict], analysis: dict, path, mode: str = MODE_NOTE) -> Path:
+def plot_starts(
+    results: list[dict], analysis: dict, path, mode: str = MODE_NOTE, note: str = ""
+) -> Path:
     """Fig. 9d: box plots of both errors per random start."""
     import matplotlib
 
@@ -152,7 +202,7 @@ def plot_starts(results: list[dict], analysis: dict, path, mode: str = MODE_NOTE
     er = results[0]["er"] if results else float("nan")
     fig.suptitle(
         f"Random exploration starts at ER {er * 100:.0f}% (Fig. 9d), {mode}; "
-        f"Bonferroni p < {analysis['bonferroni_threshold']:.4f}",
+        f"Bonferroni p < {analysis['bonferroni_threshold']:.4f}" + (f"\n{note}" if note else ""),
         fontsize=8,
     )
     fig.tight_layout()
@@ -176,7 +226,9 @@ POSE_LABEL = {
 }
 
 
-def plot_efficiency(results: list[dict], analysis: dict, path, mode: str = MODE_NOTE) -> Path:
+def plot_efficiency(
+    results: list[dict], analysis: dict, path, mode: str = MODE_NOTE, note: str = ""
+) -> Path:
     """Fig. 10e-h (+ volume error): mean V against n and eps, box plots of totals."""
     import matplotlib
 
@@ -221,7 +273,11 @@ def plot_efficiency(results: list[dict], analysis: dict, path, mode: str = MODE_
     ax.set_xticklabels([p.split(":")[-1] for p in analysis["patients"]], fontsize=7)
     for a in axes.ravel():
         a.grid(alpha=0.3)
-    fig.suptitle(f"Sweep efficiency by strategy (Fig. 10e-h), pole to pole, {mode}", fontsize=9)
+    fig.suptitle(
+        f"Sweep efficiency by strategy (Fig. 10e-h), pole to pole, {mode}"
+        + (f"\n{note}" if note else ""),
+        fontsize=9,
+    )
     fig.tight_layout()
     return save_figure(fig, path)
 
@@ -233,6 +289,7 @@ def write_er_sweep_outputs(
     mode: str = KINEMATIC,
     margins: dict | None = None,
     settings: dict | None = None,
+    note: str = "",
 ) -> dict:
     """er_sweep_runs.csv, er_sweep_table.csv (per ER: errors, p-values, paired effect
     sizes, power, equivalence), fig7d_er_sweep.png and er_sweep.json (with ``settings``,
@@ -243,23 +300,23 @@ def write_er_sweep_outputs(
     write_csv_atomic(out / "er_sweep_table.csv", analysis["rows"])
     analysis["mode"] = mode
     analysis["settings"] = settings
-    plot_er_sweep(analysis, out / "fig7d_er_sweep.png", mode)
+    plot_er_sweep(analysis, out / "fig7d_er_sweep.png", mode, note)
     write_text_atomic(out / "er_sweep.json", json.dumps(analysis, default=json_default, indent=1))
     return analysis
 
 
-def write_starts_outputs(out_dir, results, mode: str = KINEMATIC) -> dict:
+def write_starts_outputs(out_dir, results, mode: str = KINEMATIC, note: str = "") -> dict:
     out = Path(out_dir)
     analysis = analyze_starts(results)
     write_csv_atomic(out / "starts_runs.csv", [_flat(r) for r in results])
     write_csv_atomic(out / "starts_tests.csv", analysis["tests"])
     analysis["mode"] = mode
-    plot_starts(results, analysis, out / "fig9d_starts.png", mode)
+    plot_starts(results, analysis, out / "fig9d_starts.png", mode, note)
     write_text_atomic(out / "starts.json", json.dumps(analysis, default=json_default, indent=1))
     return analysis
 
 
-def write_efficiency_outputs(out_dir, results, mode: str = KINEMATIC) -> dict:
+def write_efficiency_outputs(out_dir, results, mode: str = KINEMATIC, note: str = "") -> dict:
     out = Path(out_dir)
     analysis = analyze_efficiency(results)
     analysis["mode"] = mode
@@ -301,7 +358,7 @@ def write_efficiency_outputs(out_dir, results, mode: str = KINEMATIC) -> dict:
             )
     write_csv_atomic(out / "efficiency_runs.csv", rows)
     write_csv_atomic(out / "efficiency_tests.csv", analysis["comparisons"])
-    plot_efficiency(results, analysis, out / "fig10_efficiency.png", mode)
+    plot_efficiency(results, analysis, out / "fig10_efficiency.png", mode, note)
     write_text_atomic(
         out / "efficiency.json",
         json.dumps(
@@ -325,10 +382,11 @@ TEMPLATE_DISTANCE = (
     "canonical frames (eq. 13-14)"
 )
 TEMPLATE_VARIANT_TEXT = {
-    "mean": "the repository's template (mean of 20 generated training kidneys, eq. 15)",
+    "mean": "the study's template (the mean of its kidneys, eq. 15: the repository's 20 "
+    "generated training kidneys unless the header names another)",
     "scale-": "the mean template scaled by S",
-    "single:": "training kidney K alone",
-    "loo": "leave-one-out mean (training patients only: the mean of the other 19)",
+    "single:": "the template's kidney K alone",
+    "loo": "leave-one-out mean (training patients only: the mean of the other kidneys)",
     "population:": "a template built the same way from N generated kidneys of another "
     "population (drake_rus/template/population.py; base: other people, same "
     "statistics; short/long: kidney length -1/+1 SD of Glodny 2009, 108.5 +- "
@@ -336,11 +394,14 @@ TEMPLATE_VARIANT_TEXT = {
 }
 
 
-def plot_template(results: list[dict], analysis: dict, path, mode: str = KINEMATIC) -> Path:
+def plot_template(
+    results: list[dict], analysis: dict, path, mode: str = KINEMATIC, note: str = ""
+) -> Path:
     """E_trans and E_rot,x against the template's distance from the patient, per variant
-    (colour) and patient group (marker: generated patients dots, real bodies stars, in
-    decubitus diamonds), the least-squares line over the generated patients, and the paper's
-    localization-study mean +- SD (its template vs its test patients)."""
+    (colour) and patient group (marker: generated patients dots, real CT kidneys in
+    generated bodies triangles, real bodies stars, in decubitus diamonds), the least-squares
+    line over the generated patients, and the paper's localization-study mean +- SD (its
+    template vs its test patients)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -359,22 +420,20 @@ def plot_template(results: list[dict], analysis: dict, path, mode: str = KINEMAT
                 sel = [r for r in results if r["template_variant"] == v and template_group(r) == g]
                 if not sel:
                     continue
-                real = not g.startswith("generated")
+                kind = group_kind(g)
+                real = kind == "real"
                 lld = real and "decubitus" in g
-                marker = ("D" if lld else "*") if real else "o"
+                marker = ("D" if lld else "*") if real else "^" if kind == "ct" else "o"
                 ax.plot(
                     [r["template_distance_mm"] for r in sel],
                     [r[key] for r in sel],
                     marker,
-                    ms=13 if lld else 11 if real else 4,
+                    ms=13 if lld else 11 if real else 6 if kind == "ct" else 4,
                     color=colors[v],
                     mec=colors[v] if lld or not real else "k",
-                    mfc="none" if lld else colors[v],
+                    mfc="none" if lld or (kind == "ct" and "decubitus" in g) else colors[v],
                     mew=2 if lld else 1,
-                    label=v
-                    if g == "generated"
-                    or not any(template_group(x) == "generated" for x in results)
-                    else None,
+                    label=v if g == analysis.get("groups", ["generated"])[0] else None,
                 )
         t = analysis["trend"][key]
         if np.isfinite(t["slope_per_mm"]):
@@ -398,18 +457,25 @@ def plot_template(results: list[dict], analysis: dict, path, mode: str = KINEMAT
             ylim=(0, None),
         )
         ax.grid(alpha=0.3)
-    axes[0].plot([], [], "*", color="0.5", mec="k", ms=11, label="real body (supine)")
-    if any("decubitus" in g for g in analysis.get("groups", [])):
+    groups = analysis.get("groups", [])
+    kinds = {group_kind(g) for g in groups}
+    if "generated" in kinds:
+        axes[0].plot([], [], "o", color="0.5", ms=4, label="generated patient")
+    if "ct" in kinds:
+        axes[0].plot([], [], "^", color="0.5", ms=6, label=f"{PATIENT_KINDS['ct']} (triangle)")
+    if "real" in kinds:
+        axes[0].plot([], [], "*", color="0.5", mec="k", ms=11, label="real body (supine)")
+    if any("decubitus" in g and group_kind(g) == "real" for g in groups):
         axes[0].plot(
             [], [], "D", color="0.5", mfc="none", mew=2, ms=9, label="real body, decubitus"
         )
     axes[0].legend(fontsize=7, ncol=2)
-    fig.suptitle(f"Template mismatch, {mode}", fontsize=9)
+    fig.suptitle(f"Template mismatch, {mode}" + (f"\n{note}" if note else ""), fontsize=9)
     fig.tight_layout()
     return save_figure(fig, path)
 
 
-def write_template_outputs(out_dir, results, mode: str = KINEMATIC) -> dict:
+def write_template_outputs(out_dir, results, mode: str = KINEMATIC, note: str = "") -> dict:
     out = Path(out_dir)
     analysis = analyze_template(results)
     analysis["mode"] = mode
@@ -429,7 +495,7 @@ def write_template_outputs(out_dir, results, mode: str = KINEMATIC) -> dict:
     )
     write_csv_atomic(out / "template_table.csv", analysis["rows"])
     write_csv_atomic(out / "template_bins.csv", analysis["bins"])
-    plot_template(results, analysis, out / "fig_template_mismatch.png", mode)
+    plot_template(results, analysis, out / "fig_template_mismatch.png", mode, note)
     write_text_atomic(out / "template.json", json.dumps(analysis, default=json_default, indent=1))
     return analysis
 
@@ -475,7 +541,10 @@ def template_markdown(meta: dict, analysis: dict) -> list[str]:
         ]
     for g in analysis.get("groups", ["generated"]):
         rows = [r for r in analysis["rows"] if r.get("group", "generated") == g]
-        title = "Generated patients" if g.startswith("generated") else f"Real body: {g}"
+        title = {
+            "generated": f"Generated patients{g[len('generated') :]}",
+            "ct": f"Real CT kidneys in generated bodies{g[len(CT_GROUP) :]}",
+        }.get(group_kind(g), f"Real body: {g}")
         L += [
             f"**{title}** ({mode.split(' (')[0]}, registration `{meta.get('method', '?')}`, "
             f"segmenter `{meta.get('segmenter', '?')}`)",
@@ -498,14 +567,15 @@ def template_markdown(meta: dict, analysis: dict) -> list[str]:
         L += [
             f"**Errors by template distance** (all runs, {mode.split(' (')[0]})",
             "",
-            "| distance bin (mm) | runs (real body) | distance (mm) | E_trans (mm) | "
+            "| distance bin (mm) | runs (real CT kidneys; real bodies) | distance (mm) | "
+            "E_trans (mm) | "
             "E_rot,x (deg) |",
             "|---|---|---|---|---|",
         ]
         for b in analysis["bins"]:
             hi = "" if not np.isfinite(b["to_mm"]) else f"{b['to_mm']:g}"
             L.append(
-                f"| {b['from_mm']:g}-{hi} | {b['n']} ({b['real_runs']}) | "
+                f"| {b['from_mm']:g}-{hi} | {b['n']} ({b.get('ct_runs', 0)}; {b['real_runs']}) | "
                 f"{_f(b['template_distance_mm_mean'])} | {_f(b['e_trans_mm_mean'])} +- "
                 f"{_f(b['e_trans_mm_sd'])} | {_f(b['e_rot_x_deg_mean'])} +- "
                 f"{_f(b['e_rot_x_deg_sd'])} |"
@@ -798,8 +868,9 @@ def report_markdown(
 ) -> str:
     """report.md: our numbers beside the seed paper's for each table and figure, each with
     the mode, registration method, segmenter, ER unit and metric definition that produced
-    it (one section per analysis given). ``compare``: the other mode's analyses of the same
-    runs ({"mode", "er", "starts", "eff"}), put side by side with these and the paper's."""
+    it (one section per analysis given). ``compare``: the analyses of the same patients in
+    the other modes and templates OUT holds (a list of {"mode", "template_info", "er",
+    "starts", "eff", "settings"}), put side by side with these and the paper's."""
     L = header_markdown(meta, er, closed)
     if er is not None:
         L += er_sweep_markdown(meta, er)
@@ -810,9 +881,16 @@ def report_markdown(
     if closed:
         L += closed_loop_check_markdown(meta, closed)
     if compare:
-        L += compare_markdown(
-            meta, {"mode": _report_mode(meta), "er": er, "starts": starts, "eff": eff}, compare
-        )
+        this = {
+            "mode": _report_mode(meta),
+            "er": er,
+            "starts": starts,
+            "eff": eff,
+            "settings": meta.get("settings"),
+            "template_info": meta.get("template"),
+            "status": meta.get("run_status") or {},
+        }
+        L += compare_markdown(meta, this, compare if isinstance(compare, list) else [compare])
     if template is not None:
         L += template_markdown(meta, template)
     L += method_notes_markdown()
@@ -836,10 +914,18 @@ def header_markdown(meta: dict, er: dict | None, closed: list | None) -> list[st
     mode = _report_mode(meta)
     unit = meta.get("er_unit", "fixed")
     rule = meta.get("critical_er_rule", (er or {}).get("rule", "paper"))
+    kinds = meta.get("patient_kinds") or {}
     L = [
-        "# drake-rus studies: the seed paper's section III on our virtual cohort",
+        "# drake-rus studies: the seed paper's section III on "
+        + (
+            "real CT kidneys in generated bodies"
+            if list(kinds) == [PATIENT_KINDS["ct"]]
+            else "our virtual cohort"
+        ),
         "",
-        f"- Patients: {', '.join(meta['patients'])} ({len(meta['patients'])})",
+        f"- Patients: {', '.join(meta['patients'])} ({len(meta['patients'])}"
+        + ("; " + ", ".join(f"{k}: {n}" for k, n in kinds.items()) if kinds else "")
+        + ")",
         f"- Mode: **{mode}** for every run of the tables and figures unless a table "
         "says otherwise; "
         + (
@@ -847,10 +933,13 @@ def header_markdown(meta: dict, er: dict | None, closed: list | None) -> list[st
             if closed
             else "no closed-loop dynamic runs."
         ),
-        f"- Segmenter: `{meta['segmenter']}`; registration (localization method): "
-        f"`{meta['method']}`; label voxel {meta['voxel'] * 1e3:.0f} mm; study seed "
+        f"- Segmenter: {segmenter_label(meta['segmenter'])}; registration (localization "
+        f"method): `{meta['method']}`; label voxel {meta['voxel'] * 1e3:.0f} mm; study seed "
         f"{meta['seed']}"
         + (" (as the runs themselves record them)" if meta.get("settings_from") == "runs" else "")
+        + ".",
+        f"- Registration template: {template_label(meta)}"
+        + _template_cases_text(meta.get("template") or {})
         + ".",
         f"- ER: {ER_UNIT_TEXT.get(unit, unit)}."
         + (
@@ -885,7 +974,7 @@ def header_markdown(meta: dict, er: dict | None, closed: list | None) -> list[st
             f"- Scenario `{settings.get('scenario')}`"
             + (f" with overrides `{settings['overrides']}`" if settings.get("overrides") else "")
             + f"; resolved inputs (scenario YAML and template file) sha256 "
-            f"`{str(settings.get('inputs_sha256'))[:12]}`; runs made by commit(s) "
+            f"{_digest_text(settings.get('inputs_sha256'))}; runs made by commit(s) "
             + (
                 ", ".join(
                     f"`{c[:12]}`" + (" (dirty)" if c.endswith("(dirty)") else "")
@@ -896,6 +985,28 @@ def header_markdown(meta: dict, er: dict | None, closed: list | None) -> list[st
             + "; each run's record (OUT/runs) holds its task and provenance (resolved "
             "scenario, overrides, seeds, package versions)."
         ]
+    run_status = meta.get("run_status") or {}
+    if run_status:
+        L += [
+            "- Closed-loop scans by status: "
+            + "; ".join(f"{k} {_status_text(v)}" for k, v in run_status.items())
+            + " (a registration the product rejected stops the scan ABORT, its errors are "
+            "recorded and analysed, as the paper has no acceptance check)."
+        ]
+    ct_out = meta.get("ct_cases_left_out") or []
+    if ct_out:
+        L += [
+            f"- CT cases left out of the patient list ({len(ct_out)}): "
+            + "; ".join(f"{c['case']} ({c['reason']})" for c in ct_out)
+            + "."
+        ]
+    in_template = meta.get("patients_in_template") or []
+    if in_template:
+        L += [
+            f"- **Warning: {len(in_template)} patient(s) helped build the template** "
+            "(`--allow-template-cases`): their errors are not a test on unseen kidneys. "
+            + " ".join(in_template)
+        ]
     left_out = meta.get("runs_without_localization") or {}
     if left_out:
         L += [
@@ -905,6 +1016,26 @@ def header_markdown(meta: dict, er: dict | None, closed: list | None) -> list[st
             + "."
         ]
     return L + [""]
+
+
+def _digest_text(digest) -> str:
+    """An inputs digest (12 hex digits), or one per posture (the template study)."""
+    if isinstance(digest, dict):
+        return ", ".join(f"`{str(v)[:12]}` ({k})" for k, v in digest.items())
+    return f"`{str(digest)[:12]}`"
+
+
+def _template_cases_text(t: dict) -> str:
+    """Which CT cases built a real template (none of them a patient unless the header
+    warns)."""
+    cases = t.get("cases") or []
+    if not cases:
+        return ""
+    return (
+        f", built from the {len(cases)} CT kidneys of {', '.join(cases)} (sha256 "
+        f"`{str(t.get('sha256'))[:12]}`; the patients' cases are not among them unless a "
+        "warning below says so)"
+    )
 
 
 def er_sweep_markdown(meta: dict, er: dict) -> list[str]:
@@ -1195,35 +1326,146 @@ def _settings_text(settings: dict | None) -> str:
     )
 
 
-def compare_markdown(meta: dict, this: dict, other: dict) -> list[str]:
-    """The two modes side by side with the paper: ER sweep, starts, efficiency (OP)."""
-    cols = sorted([this, other], key=lambda d: _mode_label(d["mode"]) != "kinematic")
-    names = [_mode_label(c["mode"]) for c in cols]
+def _status_text(counts: dict | None) -> str:
+    """Closed-loop scans by status ("DONE 8, ABORT 1"), "-" for kinematic runs."""
+    return ", ".join(f"{k} {n}" for k, n in (counts or {}).items()) or "-"
+
+
+def critical_er_columns(
+    names: list[str], ers: list[dict], status: list[dict] | None = None
+) -> list[str]:
+    """The critical-ER block side by side: per column (and the paper's) the critical ER,
+    n, the ER-100% floor, the paired effect size and power at the critical ER, and the
+    equivalence ER within the margins."""
+    p = PAPER["er_sweep"]
+    pp = (ers[0].get("paper_power") or {}) if ers else {}
+    m = (ers[0].get("margins") or DEFAULT_MARGINS) if ers else DEFAULT_MARGINS
+
+    def at_critical(e, what):
+        row = e.get("critical_row")
+        if row is None or row["er"] == e.get("reference_er", 1.0):
+            return "n/a"
+        return f"{_f(row[f'{what}_e_trans_mm'])} / {_f(row[f'{what}_e_rot_x_deg'])}"
+
+    paper_dz = (
+        f"{_f(pp['e_trans_mm']['d_z'])} / {_f(pp['e_rot_x_deg']['d_z'])} (read back from p)"
+        if pp
+        else "n/a"
+    )
+    paper_pw = (
+        f"{_f(pp['e_trans_mm']['power'])} / {_f(pp['e_rot_x_deg']['power'])}" if pp else "n/a"
+    )
+    rows = [
+        (
+            "critical ER (rule of each column's sweep)",
+            f"{p['critical_er'] * 100:.0f}%",
+            [f"**{_pct(e['critical_er'])}** ({e.get('rule', 'paper')})" for e in ers],
+        ),
+        ("patients n", f"{PAPER_PATIENTS}", [str(e.get("patients", "?")) for e in ers]),
+        ("ER-100% floor (E_trans; E_rot,x)", "not reported", [_floor_text(e) for e in ers]),
+        (
+            "paired d_z at the critical ER (E_trans / E_rot,x)",
+            paper_dz,
+            [at_critical(e, "dz") for e in ers],
+        ),
+        ("power at the critical ER (alpha 0.05)", paper_pw, [at_critical(e, "power") for e in ers]),
+        (
+            f"equivalence ER (TOST, +-{m['e_trans_mm']:g} mm / +-{m['e_rot_x_deg']:g} deg)",
+            "not tested",
+            [_pct(e.get("equivalence_er")) for e in ers],
+        ),
+    ]
+    if status and any(status):
+        rows.append(
+            (
+                "closed-loop scans by status (errors of rejected registrations recorded)",
+                "-",
+                [_status_text(x) for x in status],
+            )
+        )
     L = [
-        "## Kinematic twin and closed loop side by side",
+        "Critical ER and what it rests on, side by side:",
         "",
-        provenance(meta, mode=" and ".join(c["mode"] for c in cols)),
+        "| | paper | " + " | ".join(names) + " |",
+        "|---|---|" + "---|" * len(names),
+    ]
+    L += [f"| {label} | {pap} | " + " | ".join(cells) + " |" for label, pap, cells in rows]
+    return L + [""]
+
+
+def _template_name(col: dict) -> str:
+    """A column's template as asked for: generated, real, real:DIR or a file's name."""
+    t = str((col.get("template_info") or {}).get("spec") or "generated")
+    return Path(t).name if t.endswith(".npz") else t
+
+
+def _column_names(cols: list[dict]) -> list[str]:
+    """The side-by-side columns' names: the mode, and the template and the segmenter where
+    the columns differ in them (the oracle named as such)."""
+    templates = [_template_name(c) for c in cols]
+    segs = [(c.get("settings") or {}).get("segmenter") for c in cols]
+    names = []
+    for c, t, seg in zip(cols, templates, segs):
+        parts = [_mode_label(c["mode"])]
+        if len(set(templates)) > 1:
+            parts.append(f"{t} template")
+        if len(set(segs)) > 1 or seg == "oracle":
+            parts.append("ORACLE segmenter" if seg == "oracle" else f"{seg} segmenter")
+        names.append(", ".join(parts))
+    return names
+
+
+def compare_markdown(meta: dict, this: dict, others: list[dict]) -> list[str]:
+    """The modes and templates OUT holds side by side with the paper: ER sweep (with each
+    column's critical ER, floor and equivalence ER), starts, efficiency (OP)."""
+    cols = sorted(
+        [this, *others],
+        key=lambda d: (
+            _mode_label(d["mode"]) != "kinematic",
+            ((d.get("template_info") or {}).get("spec") or "generated") != "generated",
+        ),
+    )
+    names = _column_names(cols)
+    modes = list(dict.fromkeys(_mode_label(c["mode"]) for c in cols))
+    templates = list(dict.fromkeys(_template_name(c) for c in cols))
+    what = []
+    if len(modes) > 1:
+        what.append("kinematic twin and closed loop")
+    if len(templates) > 1:
+        what.append("templates " + " and ".join(templates))
+    L = [
+        "## Side by side: " + ("; ".join(what) or "segmenters"),
+        "",
+        provenance(
+            meta
+            | ({"template": {"label": "each column's (below)"}} if len(templates) > 1 else {})
+            | (
+                {"segmenter": "each column's (below)"}
+                if len({(c.get("settings") or {}).get("segmenter") for c in cols}) > 1
+                else {}
+            ),
+            mode=" and ".join(dict.fromkeys(c["mode"] for c in cols)),
+        ),
+        "",
+        "Columns: "
+        + "; ".join(
+            f"**{n}**: {_settings_text(c.get('settings'))}, template "
+            f"{(c.get('template_info') or {}).get('label') or 'generated'}"
+            for n, c in zip(names, cols)
+        )
+        + ".",
         "",
     ]
-
-    def but_mode(x):
-        return {k: v for k, v in (x or {}).items() if k != "mode"}
-
-    if other.get("settings") and but_mode(other["settings"]) != but_mode(meta.get("settings")):
-        L += [
-            f"The {_mode_label(other['mode'])} runs' own settings: "
-            f"{_settings_text(other['settings'])}; this study's: "
-            f"{_settings_text(meta.get('settings'))}.",
-            "",
-        ]
-    ers = [c.get("er") for c in cols]
-    if all(ers):
+    # Each part shows the columns that hold that study (at least two).
+    er_names = [n for n, c in zip(names, cols) if c.get("er")]
+    ers = [c["er"] for c in cols if c.get("er")]
+    if len(ers) >= 2:
         p = PAPER["er_sweep"]
         L += [
-            "| ER | paper E_trans (mm) | "
-            + " | ".join(f"{n} E_trans (mm) | {n} E_rot,x (deg)" for n in names)
+            "| ER | paper | "
+            + " | ".join(f"{n} E_trans (mm) | {n} E_rot,x (deg)" for n in er_names)
             + " |",
-            "|---|---|" + "---|---|" * len(cols),
+            "|---|---|" + "---|---|" * len(ers),
         ]
         grid = sorted({round(r["er"], 3) for c in ers for r in c["rows"]})
         for g in grid:
@@ -1237,27 +1479,17 @@ def compare_markdown(meta: dict, this: dict, other: dict) -> list[str]:
                     f"{_f(r['e_rot_x_deg_mean'])} +- {_f(r['e_rot_x_deg_sd'])}"
                 )
             pap = (
-                f"{p['e_trans_mm_at_60'][0]} +- {p['e_trans_mm_at_60'][1]}"
+                f"{p['e_trans_mm_at_60'][0]} +- {p['e_trans_mm_at_60'][1]} mm, "
+                f"{p['e_rot_x_deg_at_60'][0]} +- {p['e_rot_x_deg_at_60'][1]} deg"
                 if abs(g - 0.6) < 1e-6
                 else ""
             )
             L.append(f"| {g * 100:.0f}% | {pap} | " + " | ".join(cells) + " |")
-        L += [
-            "",
-            "Critical ER: paper "
-            f"{p['critical_er'] * 100:.0f}% ({PAPER_PATIENTS} "
-            "patients); "
-            + "; ".join(
-                f"{n} {_pct(c['critical_er'])} (n = {c.get('patients', '?')}; ER-100% floor "
-                f"{_floor_text(c)}; equivalent within the margins from "
-                f"{_pct(c.get('equivalence_er'))})"
-                for n, c in zip(names, ers)
-            )
-            + ".",
-            "",
-        ]
-    sts = [c.get("starts") for c in cols]
-    if all(sts):
+        er_status = [(c.get("status") or {}).get("er-sweep") for c in cols if c.get("er")]
+        L += [""] + critical_er_columns(er_names, ers, er_status)
+    st_names = [n for n, c in zip(names, cols) if c.get("starts")]
+    sts = [c["starts"] for c in cols if c.get("starts")]
+    if len(sts) >= 2:
         pl = PAPER["localization"]
         L += [
             "Random starts, all runs: paper "
@@ -1267,13 +1499,14 @@ def compare_markdown(meta: dict, this: dict, other: dict) -> list[str]:
                 f"{n} {_f(c['e_trans_mm'][0])} +- {_f(c['e_trans_mm'][1])} mm, "
                 f"{_f(c['e_rot_x_deg'][0])} +- {_f(c['e_rot_x_deg'][1])} deg (any "
                 f"significant: {c['any_significant']})"
-                for n, c in zip(names, sts)
+                for n, c in zip(st_names, sts)
             )
             + ".",
             "",
         ]
-    effs = [c.get("eff") for c in cols]
-    if all(effs):
+    names = [n for n, c in zip(names, cols) if c.get("eff")]
+    effs = [c["eff"] for c in cols if c.get("eff")]
+    if len(effs) >= 2:
         order = [k for k in STRATEGY_ORDER if any(k in e["summary"] for e in effs)]
         tgt = effs[0].get("V_target", 0.9)
         L += [

@@ -40,6 +40,18 @@ MODES = ("kinematic", "closed-loop")
 STUDIES = ("er-sweep", "starts", "efficiency", "template", "closed-loop")
 
 
+# The segmenter a study's runs use unless asked (--segmenter): kinematic runs slice the
+# label volume and take its kidney labels (the oracle), as the seed's simulation sliced its
+# labelled CT volume (III-A); closed-loop runs segment the emulated images with the
+# product's learned segmenter, as the seed's system segmented with its network (II-C).
+DEFAULT_SEGMENTER = {"kinematic": "oracle", "closed-loop": "onnx"}
+SEGMENTER_TEXT = {
+    "oracle": "the label volume's kidney labels: an oracle, not a segmenter the product ships",
+    "onnx": "the product's learned segmenter (ONNX) on the emulated images",
+    "classical": "filtering, thresholding and morphology on the emulated images",
+}
+
+
 def check_mode(mode: str) -> str:
     if mode not in MODES:
         raise ValueError(f"--mode: expected one of {', '.join(MODES)}, got {mode!r}")
@@ -59,9 +71,17 @@ COHORT_RANGE = r"(test|train|seed):(\d+)-(\d+)"
 # options are comma-separated words or key=value pairs, optionally with a @posture suffix.
 CT_PREFIX = "ct:"
 CT_OPTION = r"[A-Za-z_][A-Za-z0-9_]*(=[A-Za-z0-9_.+-]*)?(@[A-Za-z_]+)?"
+# A cohort of real CT kidneys from a folder of label maps (KiTS layout):
+# ``ct:DIR:SELECTION[#OPTIONS]``, SELECTION either case numbers and ranges joined by "+"
+# (``0-14``, ``3``, ``0-4+20-29``: those cases, each a ``ct:DIR/CASE`` patient; a case
+# without a usable kidney is skipped with its reason) or ``firstN`` (the first N cases in
+# sorted order with a usable kidney that did not build the study's template);
+# :mod:`~drake_rus.experiments.ct_cohort` expands it.
+CT_SELECTION = r"first(\d+)|\d+(-\d+)?(\+\d+(-\d+)?)*"
 PATIENTS_SYNTAX = (
-    "test:0-14, seed:100-120, train:3, ct:PATH[#OPTIONS] or a patient path, "
-    "separated by commas (or semicolons)"
+    "test:0-14, seed:100-120, train:3, ct:PATH[#OPTIONS], ct:DIR:0-14 or ct:DIR:first15 "
+    "[#OPTIONS] (cases of a folder of CT label maps) or a patient path, separated by "
+    "commas (or semicolons)"
 )
 
 
@@ -120,6 +140,9 @@ def expand_patients(text: str) -> list[str]:
                 raise ValueError(
                     f"--patients: {part!r} names no label map (expected ct:PATH[#OPTIONS])"
                 )
+            sel = ct_selection(part)
+            if sel is not None and sel[1] == "first0":
+                raise ValueError(f"--patients: {part!r} selects no case (firstN needs N >= 1)")
             specs.append(part)
         elif re.fullmatch(COHORT_SPEC, part) or "/" in part or "." in part:
             specs.append(part)
@@ -130,9 +153,36 @@ def expand_patients(text: str) -> list[str]:
     return specs
 
 
+def ct_selection(spec: str) -> tuple[str, str, str] | None:
+    """(folder, selection, options) of a ``ct:DIR:SELECTION[#OPTIONS]`` cohort spec
+    (:data:`CT_SELECTION`; options without the "#", posture suffix included), None for any
+    other spec (a single ``ct:PATH`` patient among them)."""
+    spec = str(spec)
+    if not spec.startswith(CT_PREFIX):
+        return None
+    body = spec[len(CT_PREFIX) :]
+    head, sep, options = body.partition("#")
+    folder, colon, selection = head.rpartition(":")
+    if not colon or not folder.strip() or not re.fullmatch(CT_SELECTION, selection):
+        return None
+    return folder, selection, options if sep else ""
+
+
+# What each kind of patient is (issue 27): tables and figures group them apart.
+PATIENT_KINDS = {
+    "generated": "generated patient (the generator's body and kidney)",
+    "ct": "real CT kidney in a generated body",
+    "real": "real body (imported anatomy)",
+}
+
+
 def patient_kind(spec: str) -> str:
-    """ "generated" (seed:N, train:K, test:K) or "real" (a patient file or folder)."""
-    return "generated" if re.fullmatch(COHORT_SPEC, str(spec)) else "real"
+    """ "generated" (seed:N, train:K, test:K), "ct" (``ct:``: a real CT kidney in a generated
+    body) or "real" (a real body: a patient file or folder); :data:`PATIENT_KINDS`."""
+    spec = split_posture(str(spec))[0] if "@" in str(spec) else str(spec)
+    if re.fullmatch(COHORT_SPEC, spec):
+        return "generated"
+    return "ct" if spec.startswith(CT_PREFIX) else "real"
 
 
 # ------------------------------------------------------------------------------- templates
@@ -255,6 +305,12 @@ class StudyOptions:
     er_unit: str = "kidney"  # ER x the patient's kidney length, or "fixed" (x L_m)
     mode: str = "kinematic"  # "kinematic" (the twin) or "closed-loop" (RunScan)
     posture: str | None = None  # the patients' posture; None: the scenario's
+    # The registration template as asked for (--template: generated, real, real:DIR or a
+    # file; None: the scenario's localization.template, unresolved) and the file it
+    # resolved to (its bytes are keyed through the inputs digest, not its path). Left out
+    # of a run's task while None, so runs from before these fields keep their keys.
+    template: str | None = dataclasses.field(default=None, metadata={"omit_default": True})
+    template_file: str | None = dataclasses.field(default=None, metadata={"omit_default": True})
 
 
 # Task fields whose absence from a recorded task means another value than their default:
@@ -321,14 +377,16 @@ class StudyTask(StudyOptions):
                 )
 
     def to_dict(self) -> dict:
-        """The run file's ``task``: every field, but those of other studies (JSON-ready:
-        ``strategies`` a list)."""
+        """The run file's ``task``: every field, but those of other studies and those
+        marked ``omit_default`` at their default (JSON-ready: ``strategies`` a list)."""
         out = {}
         for f in dataclasses.fields(self):
             only = f.metadata.get("studies")
             if only and self.study not in only:
                 continue
             v = getattr(self, f.name)
+            if f.metadata.get("omit_default") and v == f.default:
+                continue
             out[f.name] = list(v) if isinstance(v, tuple) else v
         return out
 

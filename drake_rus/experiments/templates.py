@@ -16,11 +16,14 @@ against it. Both run modes take their template from here (``mean``: the scenario
 from __future__ import annotations
 
 import functools
+import hashlib
 import re
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from drake_rus.experiments.keys import template_file
 from drake_rus.experiments.specs import (
     StudyTask,
     check_variant,
@@ -28,15 +31,16 @@ from drake_rus.experiments.specs import (
     population_of_variant,
 )
 from drake_rus.localization.localize import RegistrationTemplate, load_registration_template
-from drake_rus.paths import REPO_ROOT
-from drake_rus.template.io import DEFAULT_TEMPLATE_PATH
+from drake_rus.template.io import load_template as read_template
 from drake_rus.template.population import population_template
 
 
-@functools.lru_cache(maxsize=2)
+@functools.lru_cache(maxsize=4)
 def load_template(path):
-    """The registration template file at ``path`` (None: the shipped one), cached."""
-    return load_registration_template(path)
+    """The registration template file at ``path`` (None: the shipped one; ``generated``,
+    ``real``, ``real:DIR``: resolved, :func:`~drake_rus.experiments.keys.template_file`),
+    cached."""
+    return load_registration_template(None if path is None else str(template_file(path)))
 
 
 def _normals_like(points: np.ndarray, reference_normals: np.ndarray, k: int = 12):
@@ -71,12 +75,7 @@ def template_variant(path, variant: str, patient: str = "", side: str = "right")
     if variant.startswith("scale-"):
         f = float(variant.split("-", 1)[1])
         return RegistrationTemplate(base.points * f, base.normals)
-    file = (
-        DEFAULT_TEMPLATE_PATH
-        if path is None
-        else (path if str(path).startswith("/") else REPO_ROOT / path)
-    )
-    with np.load(file) as z:
+    with np.load(template_file(path)) as z:
         aligned = np.asarray(z["aligned"], float)
     if variant.startswith("single:"):
         k = int(variant.split(":")[1])
@@ -95,6 +94,51 @@ def template_variant(path, variant: str, patient: str = "", side: str = "right")
         pts = np.delete(aligned, k, axis=0).mean(axis=0) if k < len(aligned) else aligned.mean(0)
     pts = pts - pts.mean(axis=0)
     return RegistrationTemplate(pts, _normals_like(pts, base.normals))
+
+
+@functools.lru_cache(maxsize=8)
+def template_info(spec: str | None, path) -> dict:
+    """What a study's registration template is, for its runs' records and the report:
+    ``spec`` (as asked for: generated, real, real:DIR, a file; None: the scenario's), the
+    resolved ``file``, its ``sha256``, ``kind`` ("generated" or "real CT"), ``subjects``
+    (how many kidneys built it), ``cases`` (the CT cases, for a real template) and a
+    ``label`` ("generated (20 generated kidneys)", "real (20 CT kidneys of kits19)")."""
+    from_file = template_file(path)
+    try:
+        meta = read_template(from_file).meta
+    except (OSError, ValueError):
+        meta = {}
+    used = meta.get("subjects_used") or []
+    cases = sorted({u["case"] for u in used}) if used else []
+    n = meta.get("n_subjects") or len(used) or None
+    real = bool(used) or str(meta.get("split", "")).startswith("ct:")
+    name = str(spec).strip() if spec else ("generated" if not real else "real")
+    if name.startswith("/") or name.endswith(".npz"):
+        name = from_file.name
+    where = Path(meta["ct_dir"]).name if meta.get("ct_dir") else ""
+    label = (
+        f"{name} ({n} CT kidneys{f' of {where}' if where else ''})"
+        if real
+        else f"{name} ({n} generated kidneys)"
+        if n
+        else name
+    )
+    return {
+        "spec": spec,
+        "file": str(from_file),
+        "sha256": _sha256(from_file),
+        "kind": "real CT" if real else "generated",
+        "subjects": n,
+        "cases": cases,
+        "label": label,
+    }
+
+
+def _sha256(path) -> str | None:
+    try:
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    except OSError:
+        return None
 
 
 def task_template(task: StudyTask, scenario):

@@ -38,6 +38,7 @@ __all__ = [
     "CommandExpiry",
     "SimulatedJoints",
     "LossyLcmPublisher",
+    "StatusSlot",
     "AddSimulatedDriverWire",
     "DriverWire",
     "DRIVER_EXPIRE_SEC",
@@ -170,16 +171,34 @@ class LossyLcmPublisher(LeafSystem):
         self.published += 1
 
 
+class StatusSlot(LeafSystem):
+    """Hands its input (a Python LCM message, stamped when evaluated) to ``sink(message)``
+    every ``period`` s and on a forced publish: the newest status for a publisher that runs
+    beside the simulation (``drake_rus.rehearsal.sim.StatusPublisherThread``), so that the
+    status stream keeps its rate while a simulation step takes long."""
+
+    def __init__(self, lcm_type, period: float, sink):
+        super().__init__()
+        self._sink = sink
+        self._in = self.DeclareAbstractInputPort(lcm_type.__name__, AbstractValue.Make(lcm_type()))
+        self.DeclarePeriodicPublishEvent(float(period), 0.0, self._publish)
+        self.DeclareForcedPublishEvent(self._publish)
+
+    def _publish(self, context):
+        self._sink(self._in.Eval(context))
+
+
 @dataclass
 class DriverWire:
     """What :func:`AddSimulatedDriverWire` added: ``velocity`` (the accepted joint-velocity
     command, an OutputPort for the robot's input), the ``expiry`` system (its command logs),
-    the ``receiver`` and the status ``publisher`` (its counts)."""
+    the ``receiver`` and the status ``publisher`` (its counts; a :class:`StatusSlot` when
+    the statuses are published beside the simulation)."""
 
     velocity: object
     expiry: CommandExpiry
     receiver: object
-    publisher: LossyLcmPublisher
+    publisher: object
 
 
 def AddSimulatedDriverWire(
@@ -196,6 +215,7 @@ def AddSimulatedDriverWire(
     seed: int = 0,
     command_channel: str = "PANDA_COMMAND",
     status_channel: str = "PANDA_STATUS",
+    status_sink=None,
 ) -> DriverWire:
     """Adds drake-franka-driver's wire side (velocity mode) to ``builder`` around a simulated
     robot whose joint ``position`` (7, rad), ``velocity`` (7, rad/s) and
@@ -204,7 +224,9 @@ def AddSimulatedDriverWire(
     ``command_latency``), Drake's PandaCommandReceiver, and the status every 1 / ``rate_hz``
     s through PandaStatusSender, stamped with wall-clock microseconds, external torque in
     the driver's sign, each status dropped with ``status_drop_probability``. Connect the
-    returned ``velocity`` port to the robot's joint-velocity input."""
+    returned ``velocity`` port to the robot's joint-velocity input. ``status_sink(msg)``:
+    instead of publishing, hand each status to it (a publisher beside the simulation, which
+    then also drops statuses)."""
     import drake
     from pydrake.manipulation import PandaCommandReceiver, PandaControlMode, PandaStatusSender
     from pydrake.systems.lcm import LcmInterfaceSystem, LcmSubscriberSystem
@@ -243,17 +265,22 @@ def AddSimulatedDriverWire(
         "wall_clock_stamper", WallClockStamper(drake.lcmt_panda_status)
     )
     builder.Connect(status.get_output_port(), stamper.get_input_port())
-    pub = builder.AddNamedSystem(
-        "status_publisher",
-        LossyLcmPublisher(
-            lcm,
-            status_channel,
-            drake.lcmt_panda_status,
-            1.0 / rate_hz,
-            drop_probability=status_drop_probability,
-            seed=seed,
-        ),
-    )
+    if status_sink is not None:
+        pub = builder.AddNamedSystem(
+            "status_publisher", StatusSlot(drake.lcmt_panda_status, 1.0 / rate_hz, status_sink)
+        )
+    else:
+        pub = builder.AddNamedSystem(
+            "status_publisher",
+            LossyLcmPublisher(
+                lcm,
+                status_channel,
+                drake.lcmt_panda_status,
+                1.0 / rate_hz,
+                drop_probability=status_drop_probability,
+                seed=seed,
+            ),
+        )
     builder.Connect(stamper.get_output_port(), pub.get_input_port())
     return DriverWire(
         velocity=receiver.GetOutputPort("velocity"), expiry=expiry, receiver=receiver, publisher=pub

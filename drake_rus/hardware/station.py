@@ -85,6 +85,12 @@ class HardwareStation(Diagram):
         self.grabber = grabber
         self.hardware_config = config
 
+    @property
+    def period(self) -> float:
+        """Its fastest periodic rate's period (s): commands sent, state and frames read
+        every 1 / ``command_rate_hz``; a live run is paced at it."""
+        return 1.0 / float(self.hardware_config.command_rate_hz)
+
     def stop(self) -> None:
         """Zero velocity now (never raises)."""
         try:

@@ -13,6 +13,7 @@ new frame: each keeps a frame's result in a Context cache entry, keyed on the fr
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -165,6 +166,16 @@ class UltrasoundEmulator(LeafSystem):
         # first simulation step.
         warm_emulator(self._model, self._seed)
 
+    @property
+    def model(self) -> EmulatorModel:
+        """The emulator's model (its ``us_image`` of a label frame k is
+        ``emulate(labels, model, seed, k)``: another thread can make the same picture)."""
+        return self._model
+
+    @property
+    def seed(self) -> int:
+        return self._seed
+
     def _emulate(self, context, value):
         frame = self._in.Eval(context)
         if not frame.valid:
@@ -205,12 +216,70 @@ def make_segmenter_backend(config: ImagingConfig, geometry: ProbeGeometry):
     )
 
 
+def segment_frame(
+    backend,
+    geometry: ProbeGeometry,
+    min_area: float,
+    frame: UsFrame,
+    prior,
+    *,
+    follows: bool,
+    uses_prior: bool,
+    track_confirm: float,
+    source: str,
+):
+    """(mask UsFrame, MaskReadout, BoundaryPixels) of one frame: the Segmenter's work,
+    wherever it runs (in the control loop's thread or a worker process).
+
+    ``backend(us, labels, prev, age)``: :func:`make_segmenter_backend`; ``frame``: the
+    source frame (grey for the classical and onnx backends, labels for the oracle, said by
+    ``source``: the port's name); ``prior``: the Segmenter's prior state (a KidneyTrack when
+    it ``follows`` the kidney, else the previous mask frame when it ``uses_prior``)."""
+    if not frame.valid:
+        empty = np.zeros(geometry.image_shape, bool)
+        return (
+            UsFrame(empty),
+            read_mask(empty, geometry, min_area),
+            BoundaryPixels(np.zeros((0, 2)), frame.time, frame.X_BP, -1),
+        )
+    if frame.image.shape != geometry.image_shape:
+        raise ValueError(
+            f"Segmenter: input '{source}' has shape "
+            f"{frame.image.shape}, expected {geometry.image_shape} (imaging.image_"
+            f"height_px x image_width_px)"
+        )
+    us = frame.image if source == "us_image" else None
+    labels = frame.image if source == "label_image" else None
+    if follows:
+        prev, age = track_prior(prior, frame.time, track_confirm)
+    elif uses_prior and prior.valid:
+        prev, age = prior.image, frame.time - prior.time
+    else:
+        prev, age = None, math.inf
+    mask = np.asarray(backend(us, labels, prev, age), bool) & geometry.fan_mask
+    readout = read_mask(mask, geometry, min_area)
+    return (
+        UsFrame(mask, frame.time, frame.X_BP, frame.frame_index),
+        readout,
+        BoundaryPixels(readout.boundary, frame.time, frame.X_BP, frame.frame_index),
+    )
+
+
+def warm_segmenter_backend(config: ImagingConfig, geometry: ProbeGeometry):
+    """:func:`make_segmenter_backend`, run once on a blank frame (a worker builds and warms
+    its own backend before the scan starts)."""
+    backend = make_segmenter_backend(config, geometry)
+    blank = np.zeros(geometry.image_shape, np.uint8)
+    backend(blank, blank, None, math.inf)
+    return backend
+
+
 class Segmenter(LeafSystem):
     """Kidney segmentation of the current frame and the read-outs the controller uses.
 
     Inputs: ``us_image`` (abstract UsFrame, uint8 grey) for the ``classical`` and ``onnx``
     backends; ``label_image`` (abstract UsFrame, uint8 labels) for the ``oracle`` backend.
-    Outputs (all for the latest frame):
+    Outputs (all for the latest frame segmented):
       ``kidney_mask`` (abstract UsFrame, bool mask, with the frame's time, X_BP, index);
       ``kidney_visible`` (1-vector, 1.0 when the mask area >= ``min_kidney_area``, else 0.0);
       ``mask_centroid`` (1-vector, c_msk in [0, 1] across the image width, eq. 17; 0.5
@@ -218,11 +287,22 @@ class Segmenter(LeafSystem):
       ``boundary_pixels`` (abstract BoundaryPixels, (N, 2) pixels (u, v) + time, X_BP, index).
     The classical backend keeps the previous frame's mask as a temporal prior; the onnx
     backend follows the kidney once seen (``imaging.track_gap``, ``track_reach``,
-    ``track_confirm``; :class:`~drake_rus.imaging.segment.KidneyTrack`); both are state
-    updated at the frame rate.
+    ``track_confirm``; :class:`~drake_rus.imaging.segment.KidneyTrack`).
+
+    Two ways to host the work (:func:`segment_frame`):
+
+    - ``executor`` None: direct feedthrough, the frame segmented when an output is first
+      evaluated (kept in a Context cache entry), the prior updated at the frame rate;
+    - an ``executor`` (``drake_rus.executor``; the scan diagram's): every ``poll_period`` s
+      (just after the sensor's and the controller's ticks, by 5% of the period) a new
+      frame is handed to the executor's ``frames`` lane when it is free (frames arriving
+      meanwhile are skipped: ``frames_skipped``), and a result is taken when it is ready:
+      the outputs then switch to it and the prior follows it. The control loop never waits
+      for a segmentation; the outputs keep the source frame's time stamp, so the safety
+      layer's stale-image watchdog counts the segmentation's latency too.
     """
 
-    def __init__(self, config: ImagingConfig):
+    def __init__(self, config: ImagingConfig, *, executor=None, poll_period: float = 0.01):
         super().__init__()
         self._geometry = ProbeGeometry.from_config(config)
         self._backend_name = config.segmenter
@@ -245,21 +325,11 @@ class Segmenter(LeafSystem):
         self._prior_index = self.DeclareAbstractState(
             AbstractValue.Make(KidneyTrack() if self._follows else self._empty_mask)
         )
-        tickets = {self.input_port_ticket(self._source.get_index())}
-        if self._uses_prior:
-            tickets.add(self.abstract_state_ticket(self._prior_index))
-            period = 1.0 / config.frame_rate_hz
-            self.DeclarePeriodicUnrestrictedUpdateEvent(period, 0.5 * period, self._keep_prior)
-        # The frame's segmentation (mask, read-outs, boundary), kept in the Context while the
-        # frame is the same (see _segment); every output reads it.
-        self._result_cache = self.DeclareCacheEntry(
-            description="segmentation of the current frame (key, result)",
-            value_producer=ValueProducer(
-                allocate=lambda: AbstractValue.Make((None, None)), calc=self._segment
-            ),
-            prerequisites_of_calc=tickets,
-        )
-        result = {self._result_cache.ticket()}
+        self._executor = executor
+        if executor is None:
+            result = self._declare_direct(config)
+        else:
+            result = self._declare_hosted(config, executor, float(poll_period))
         self.DeclareAbstractOutputPort(
             "kidney_mask",
             lambda: AbstractValue.Make(self._empty_mask),
@@ -289,22 +359,70 @@ class Segmenter(LeafSystem):
     def geometry(self) -> ProbeGeometry:
         return self._geometry
 
-    def _result(self, context):
-        """(mask UsFrame, MaskReadout, BoundaryPixels) of the current frame."""
+    def _work(self, frame: UsFrame, prior):
+        """The arguments of :func:`segment_frame` after the backend and geometry."""
+        return (
+            self._min_area,
+            frame,
+            prior,
+        ), dict(
+            follows=self._follows,
+            uses_prior=self._uses_prior,
+            track_confirm=self._track_confirm,
+            source=self._source.get_name(),
+        )
+
+    def _check_connected(self, context):
         if not self._source.HasValue(context):
             raise RuntimeError(
                 f"Segmenter ({self._backend_name}): input port "
                 f"'{self._source.get_name()}' is not connected"
             )
+
+    def _next_prior(self, prior, result):
+        """The prior after a segmented frame (``result``), or ``prior`` if unchanged."""
+        mask_frame, readout, _ = result
+        if not mask_frame.valid:
+            return prior
+        if self._follows:
+            return track_update(
+                prior,
+                mask_frame.image,
+                readout.visible,
+                mask_frame.time,
+                self._geometry,
+                **self._track_config,
+            )
+        return mask_frame
+
+    # --- direct feedthrough ---------------------------------------------------------------
+    def _declare_direct(self, config):
+        tickets = {self.input_port_ticket(self._source.get_index())}
+        if self._uses_prior:
+            tickets.add(self.abstract_state_ticket(self._prior_index))
+            period = 1.0 / config.frame_rate_hz
+            self.DeclarePeriodicUnrestrictedUpdateEvent(period, 0.5 * period, self._keep_prior)
+        # The frame's segmentation (mask, read-outs, boundary), kept in the Context while the
+        # frame is the same (see _segment); every output reads it.
+        self._result_cache = self.DeclareCacheEntry(
+            description="segmentation of the current frame (key, result)",
+            value_producer=ValueProducer(
+                allocate=lambda: AbstractValue.Make((None, None)), calc=self._segment
+            ),
+            prerequisites_of_calc=tickets,
+        )
+        return {self._result_cache.ticket()}
+
+    def _result(self, context):
+        """(mask UsFrame, MaskReadout, BoundaryPixels) of the current frame."""
+        if self._executor is not None:
+            return context.get_abstract_state(self._hosted_index).get_value().result
+        self._check_connected(context)
         return self._result_cache.Eval(context)[1]
 
     def _segment(self, context, value):
         memo_key, _ = value.get_value()
-        if not self._source.HasValue(context):
-            raise RuntimeError(
-                f"Segmenter ({self._backend_name}): input port "
-                f"'{self._source.get_name()}' is not connected"
-            )
+        self._check_connected(context)
         frame = self._source.Eval(context)
         prior = (
             context.get_abstract_state(self._prior_index).get_value()
@@ -330,58 +448,119 @@ class Segmenter(LeafSystem):
         key = (frame_key, id(prior))
         if key == memo_key:
             return
-        if not frame.valid:
-            readout = read_mask(self._empty_mask.image, self._geometry, self._min_area)
-            result = (
-                self._empty_mask,
-                readout,
-                BoundaryPixels(np.zeros((0, 2)), frame.time, frame.X_BP, -1),
-            )
-        else:
-            if frame.image.shape != self._geometry.image_shape:
-                raise ValueError(
-                    f"Segmenter: input '{self._source.get_name()}' has shape "
-                    f"{frame.image.shape}, expected {self._geometry.image_shape} (imaging.image_"
-                    f"height_px x image_width_px)"
-                )
-            us = frame.image if self._source is self._us else None
-            labels = frame.image if self._source is self._labels else None
-            if self._follows:
-                prev, age = track_prior(prior, frame.time, self._track_confirm)
-            else:
-                prev = prior.image if prior.valid else None
-                age = frame.time - prior.time if prior.valid else math.inf
-            mask = np.asarray(self._backend(us, labels, prev, age), bool) & self._geometry.fan_mask
-            readout = read_mask(mask, self._geometry, self._min_area)
-            mask_frame = UsFrame(mask, frame.time, frame.X_BP, frame.frame_index)
-            result = (
-                mask_frame,
-                readout,
-                BoundaryPixels(readout.boundary, frame.time, frame.X_BP, frame.frame_index),
-            )
-        value.set_value((key, result))
+        args, kwargs = self._work(frame, prior)
+        value.set_value((key, segment_frame(self._backend, self._geometry, *args, **kwargs)))
 
     def _keep_prior(self, context, state):
         if not self._source.HasValue(context):
             return EventStatus.DidNothing()
-        mask_frame, readout, _ = self._result(context)
-        if not mask_frame.valid:
+        result = self._result(context)
+        if not result[0].valid:
             return EventStatus.DidNothing()
-        if self._follows:
-            track = context.get_abstract_state(self._prior_index).get_value()
-            new = track_update(
-                track,
-                mask_frame.image,
-                readout.visible,
-                mask_frame.time,
-                self._geometry,
-                **self._track_config,
-            )
-            if new is not track:
-                state.get_mutable_abstract_state(self._prior_index).set_value(new)
-        else:
-            state.get_mutable_abstract_state(self._prior_index).set_value(mask_frame)
+        prior = context.get_abstract_state(self._prior_index).get_value()
+        new = self._next_prior(prior, result)
+        if new is not prior:
+            state.get_mutable_abstract_state(self._prior_index).set_value(new)
         return EventStatus.Succeeded()
+
+    # --- hosted by an executor ------------------------------------------------------------
+    def _declare_hosted(self, config, executor, poll_period: float):
+        if not poll_period > 0.0:
+            raise ValueError(f"Segmenter: poll_period must be > 0 s, got {poll_period}")
+        if executor.mode == "inline":
+            self._hosted_backend = self._backend
+        else:
+            # The worker builds (and warms) its own backend; this one was built to check the
+            # configuration here, at construction.
+            self._hosted_backend = executor.share(
+                "frames", warm_segmenter_backend, config, self._geometry
+            )
+            self._backend = None
+        empty = segment_frame(
+            None,
+            self._geometry,
+            self._min_area,
+            UsFrame(np.zeros(self._geometry.image_shape, np.uint8)),
+            None,
+            follows=False,
+            uses_prior=False,
+            track_confirm=0.0,
+            source=self._source.get_name(),
+        )
+        self._hosted_index = self.DeclareAbstractState(
+            AbstractValue.Make(HostedSegmentation(result=empty))
+        )
+        #: Frames that arrived while a segmentation was running and were never segmented.
+        self.frames_skipped = 0
+        self.DeclarePeriodicUnrestrictedUpdateEvent(poll_period, 0.05 * poll_period, self._poll)
+        return {self.abstract_state_ticket(self._hosted_index)}
+
+    def _poll(self, context, state):
+        self._check_connected(context)
+        h = context.get_abstract_state(self._hosted_index).get_value()
+        prior = context.get_abstract_state(self._prior_index).get_value()
+        t = context.get_time()
+        new_prior = prior
+        changed = False
+        if h.pending is not None:
+            done = self._executor.poll(h.pending, t)
+            if done is not None:
+                h = dataclasses.replace(h, result=done.value, pending=None)
+                new_prior = self._next_prior(prior, done.value) if self._uses_prior else prior
+                changed = True
+        frame = self._source.Eval(context)
+        key = (frame.frame_index, frame.time)
+        if frame.valid and key != h.submitted:
+            if h.pending is not None:
+                if h.waiting != key:
+                    self.frames_skipped += h.waiting is not None
+                    h = dataclasses.replace(h, waiting=key)
+                    changed = True
+            else:
+                args, kwargs = self._work(frame, new_prior if self._uses_prior else None)
+                ticket = self._executor.submit(
+                    "frames",
+                    _segment_job,
+                    self._hosted_backend,
+                    self._geometry,
+                    args,
+                    kwargs,
+                    t=t,
+                    kind="segmentation",
+                )
+                h = dataclasses.replace(h, pending=ticket, submitted=key, waiting=None)
+                changed = True
+                done = self._executor.poll(ticket, t)  # ready at once (inline, no latency)
+                if done is not None:
+                    h = dataclasses.replace(h, result=done.value, pending=None)
+                    if self._uses_prior:
+                        new_prior = self._next_prior(new_prior, done.value)
+        if not changed:
+            return EventStatus.DidNothing()
+        state.get_mutable_abstract_state(self._hosted_index).set_value(h)
+        if new_prior is not prior:
+            state.get_mutable_abstract_state(self._prior_index).set_value(new_prior)
+        return EventStatus.Succeeded()
+
+
+def _segment_job(backend, geometry, args, kwargs):
+    """:func:`segment_frame` as an executor job (a module-level function: it pickles)."""
+    return segment_frame(backend, geometry, *args, **kwargs)
+
+
+@dataclasses.dataclass(frozen=True)
+class HostedSegmentation:
+    """A hosted Segmenter's state: the latest result taken (mask UsFrame, MaskReadout,
+    BoundaryPixels), the segmentation running (its Ticket, or None), the key (frame index,
+    time) of the last frame handed over and of a newer one waiting (or None)."""
+
+    result: tuple
+    pending: object = None
+    submitted: tuple | None = None
+    waiting: tuple | None = None
+
+    def __deepcopy__(self, memo):  # immutable: clones may share it
+        return self
 
 
 class PointCloudAccumulator(LeafSystem):

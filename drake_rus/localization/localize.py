@@ -5,8 +5,8 @@ the LeafSystem the scan supervisor triggers in its LOCALIZE phase.
 """
 
 import dataclasses
+import functools
 import math
-import time
 
 import numpy as np
 from pydrake.common.value import AbstractValue
@@ -14,6 +14,7 @@ from pydrake.math import RigidTransform
 from pydrake.systems.framework import EventStatus, LeafSystem
 
 from drake_rus.anatomy.frames import reference_axes_Pt
+from drake_rus.executor import InlineExecutor
 from drake_rus.imaging.frames import PointCloud
 from drake_rus.localization.config import LocalizationConfig
 from drake_rus.localization.icp import (
@@ -23,7 +24,7 @@ from drake_rus.localization.icp import (
     register_plane_to_plane,
 )
 from drake_rus.paths import REPO_ROOT
-from drake_rus.template import load_template
+from drake_rus.template import DEFAULT_TEMPLATE_PATH, load_template
 from drake_rus.template.ct import is_template_spec, resolve_template
 
 
@@ -44,6 +45,15 @@ class RegistrationTemplate:
             self.modes = modes.reshape(modes.shape[0], -1, 3)
             self.variances = np.asarray(self.variances, dtype=float).reshape(-1)
         self._grid = None
+
+    def unexplained_sd(self, k: int) -> float:
+        """Per-point RMS deviation (m) of the template's own subjects from it that its first
+        ``k`` shape modes do not explain: sqrt(sum of the variances beyond k / points).
+        The variances of the stored modes only (a template keeps the modes that explain 95%
+        of its subjects' variance); 0 without modes."""
+        if self.variances is None or len(self.variances) <= k:
+            return 0.0
+        return float(np.sqrt(np.sum(self.variances[k:]) / len(self.points)))
 
     @property
     def tree(self) -> NearestPointGrid:
@@ -171,7 +181,7 @@ def estimate_kidney_length(
     )
     P = np.asarray(P_local_B, dtype=float).reshape(-1, 3)
     result = localize(P, template, cfg, superior_B, lateral_B, warm_start)
-    if check_registration(result, P, cfg):
+    if check_registration(result, P, cfg, template):
         return math.nan, result
     return kidney_length_of(template, result), result
 
@@ -194,8 +204,39 @@ def exploration_travel(poses) -> float:
     return float(np.max(np.linalg.norm(p - p[0], axis=1)))
 
 
-def check_registration(result: IcpResult, P_local_B: np.ndarray, config: LocalizationConfig) -> str:
-    """Why the estimate must not be used ('' when it passes the sanity checks)."""
+@functools.lru_cache(maxsize=1)
+def _shipped_template() -> RegistrationTemplate:
+    return load_registration_template(str(DEFAULT_TEMPLATE_PATH))
+
+
+def max_rms_residual(
+    config: LocalizationConfig, template: RegistrationTemplate | None, deformable: bool
+) -> float:
+    """The registration's RMS-residual gate (m) for ``template``: the config's gate
+    (``max_rms_residual_deformable`` for a fit with shape modes, else ``max_rms_residual``),
+    measured on the shipped template, widened by the shape variability that ``template``'s
+    own subjects show beyond the modes fitted and the shipped template's do not:
+    sqrt(gate^2 + z^2 max(0, s_T^2 - s_shipped^2)), s the unexplained per-point SD
+    (:meth:`RegistrationTemplate.unexplained_sd`), z = ``rms_shape_allowance_sd``. A kidney
+    of ``template``'s population at z SD of its unexplained shape leaves that much more
+    residual; the shipped template keeps the measured gate exactly."""
+    gate = config.max_rms_residual_deformable if deformable else config.max_rms_residual
+    z = config.rms_shape_allowance_sd
+    if z <= 0 or not isinstance(template, RegistrationTemplate) or template.variances is None:
+        return gate
+    k = min(config.shape_modes, len(template.variances)) if deformable else 0
+    excess = template.unexplained_sd(k) ** 2 - _shipped_template().unexplained_sd(k) ** 2
+    return float(np.sqrt(gate**2 + z**2 * max(0.0, excess)))
+
+
+def check_registration(
+    result: IcpResult,
+    P_local_B: np.ndarray,
+    config: LocalizationConfig,
+    template: RegistrationTemplate | None = None,
+) -> str:
+    """Why the estimate must not be used ('' when it passes the sanity checks); the RMS
+    gate is :func:`max_rms_residual` for ``template`` (the config's own without it)."""
     if not np.all(np.isfinite(result.X_BK.GetAsMatrix4())):
         return "registration produced a non-finite pose"
     if result.inlier_fraction < config.min_inlier_fraction:
@@ -205,11 +246,7 @@ def check_registration(result: IcpResult, P_local_B: np.ndarray, config: Localiz
             f"(need {100 * config.min_inlier_fraction:.0f}%)"
         )
     # The deformable fit absorbs part of the kidney's shape difference: its own bound.
-    max_rms = (
-        config.max_rms_residual_deformable
-        if result.shape_coefficients is not None
-        else config.max_rms_residual
-    )
+    max_rms = max_rms_residual(config, template, result.shape_coefficients is not None)
     if result.rms_residual > max_rms:
         return (
             f"registration rejected: RMS residual {1000 * result.rms_residual:.1f} mm "
@@ -224,6 +261,37 @@ def check_registration(result: IcpResult, P_local_B: np.ndarray, config: Localiz
     return ""
 
 
+def register_cloud(
+    P_local_B: np.ndarray,
+    template: RegistrationTemplate,
+    config: LocalizationConfig,
+    superior_B,
+    lateral_B,
+) -> tuple[IcpResult, str]:
+    """(the registration of ``P_local_B``, why it must not be used or ""): :func:`localize`
+    and :func:`check_registration`, the LOCALIZE registration and the adaptive checks as one
+    call (an executor job)."""
+    result = localize(P_local_B, template, config, superior_B, lateral_B)
+    return result, check_registration(result, P_local_B, config, template)
+
+
+def prepared_template(template: RegistrationTemplate) -> RegistrationTemplate:
+    """``template`` with its nearest-point lookup built and the fit's code warmed up (a
+    worker installs its copy with this before the scan starts)."""
+    template.tree  # noqa: B018  (builds the grid)
+    config = LocalizationConfig(method="seed", max_iterations=2)
+    localize(template.points[::10], template, config, np.array([1.0, 0, 0]), np.array([0, 1.0, 0]))
+    return template
+
+
+def portable_template(template: RegistrationTemplate) -> RegistrationTemplate:
+    """A copy of ``template`` without its nearest-point grid (megabytes; a worker builds its
+    own), to hand to a worker process."""
+    return RegistrationTemplate(
+        template.points, template.normals, template.modes, template.variances
+    )
+
+
 @dataclasses.dataclass
 class LocalizationOutcome:
     """What the localizer produced: the estimate, diagnostics and its compute time."""
@@ -235,6 +303,8 @@ class LocalizationOutcome:
     error: str = ""  # why no estimate (too few points, rejected registration, ...)
     rejected: IcpResult | None = None  # a registration that failed the sanity checks
     round: int = 0  # the supervisor's localization round it belongs to (re-localization)
+    # Simulation time (s) the result was taken (it was asked for at ``time``; -1: none).
+    ready_time: float = -1.0
 
     # Drake clones abstract state with deepcopy on every update of the localizer (20 Hz);
     # an outcome is made once and never changed in place, so clones may share it.
@@ -251,6 +321,9 @@ class LengthState:
     checks: tuple = ()  # ((time s, travel m, length m or NaN), ...)
     # The latest fit that passed the checks: the next fit's warm start.
     fit: IcpResult | None = dataclasses.field(default=None, compare=False)
+    # The fit running (an executor Ticket) and the probe's travel (m) when it was asked.
+    pending: object = dataclasses.field(default=None, compare=False)
+    pending_travel: float = math.nan
 
     def __deepcopy__(self, memo):  # immutable: clones may share it
         return self
@@ -264,6 +337,9 @@ class AdaptiveState:
     last_X_BK: RigidTransform | None = None
     sufficient: bool = False
     checks: tuple = ()  # (time s, travel m, change of translation m, of x-axis angle rad)
+    # The fit running (an executor Ticket) and the probe's travel (m) when it was asked.
+    pending: object = None
+    pending_travel: float = math.nan
 
     # Drake clones abstract state with deepcopy on every update of the localizer; a stored
     # state is never changed in place (the update works on a dataclasses.replace copy).
@@ -276,6 +352,17 @@ def estimate_change(X_a: RigidTransform, X_b: RigidTransform) -> tuple[float, fl
     dp = float(np.linalg.norm(X_a.translation() - X_b.translation()))
     xa, xb = X_a.rotation().matrix()[:, 0], X_b.rotation().matrix()[:, 0]
     return dp, float(np.arctan2(np.linalg.norm(np.cross(xa, xb)), float(xa @ xb)))
+
+
+@dataclasses.dataclass(frozen=True)
+class PendingRegistration:
+    """The LOCALIZE registration running: its executor Ticket and the number of points."""
+
+    ticket: object = None
+    n_points: int = 0
+
+    def __deepcopy__(self, memo):
+        return self
 
 
 class IcpLocalizer(LeafSystem):
@@ -293,6 +380,11 @@ class IcpLocalizer(LeafSystem):
     (1-vector, m: the kidney's length along its long axis estimated from the cloud explored
     so far, every ``adaptive_period`` s of EXPLORE once ``length_min_travel`` has been
     explored (``length_estimation``); NaN until known).
+
+    The fits (registration, length, adaptive) run on ``executor``'s ``fits`` lane
+    (``drake_rus.executor``; default: inline, ready at once): asked for at an update, taken
+    at the first update (every 1 / ``rate_hz`` s) at which they are ready, never waited
+    for. The supervisor holds the probe in LOCALIZE until ``localization_ready``.
     """
 
     def __init__(
@@ -306,6 +398,7 @@ class IcpLocalizer(LeafSystem):
         min_points: int = 50,
         explore_phase: int | None = None,
         kidney_length: float = 0.10,
+        executor=None,
     ):
         super().__init__()
         self._template = template
@@ -316,6 +409,13 @@ class IcpLocalizer(LeafSystem):
         self._explore_phase = explore_phase
         self._kidney_length = kidney_length
         self._min_points = min_points
+        self._executor = executor if executor is not None else InlineExecutor()
+        # The template as the fits see it: this object inline, a worker's own copy there.
+        self._fit_template = (
+            template
+            if self._executor.mode == "inline"
+            else self._executor.share("fits", prepared_template, portable_template(template))
+        )
         self._cloud = self.DeclareAbstractInputPort("point_cloud", AbstractValue.Make(PointCloud()))
         self._phase_port = self.DeclareVectorInputPort("phase", 1)
         self._round = self.DeclareVectorInputPort("localization_round", 1)
@@ -328,6 +428,7 @@ class IcpLocalizer(LeafSystem):
         # sufficient flag, list of (travel m, dtranslation m, dangle rad) per check).
         self._adaptive = self.DeclareAbstractState(AbstractValue.Make(AdaptiveState()))
         self._length = self.DeclareAbstractState(AbstractValue.Make(LengthState()))
+        self._registration = self.DeclareAbstractState(AbstractValue.Make(PendingRegistration()))
         self.DeclarePeriodicUnrestrictedUpdateEvent(1.0 / rate_hz, 0.0, self._update)
         self.DeclareAbstractOutputPort(
             "X_BK",
@@ -370,6 +471,9 @@ class IcpLocalizer(LeafSystem):
             prerequisites_of_calc={self.abstract_state_ticket(self._outcome)},
         )
 
+    def _submit(self, fn, *args, t: float, kind: str):
+        return self._executor.submit("fits", fn, *args, t=t, kind=kind)
+
     def _update(self, context, state):
         outcome = context.get_abstract_state(self._outcome).get_value()
         rnd = int(round(self._round.Eval(context)[0])) if self._round.HasValue(context) else 0
@@ -378,20 +482,28 @@ class IcpLocalizer(LeafSystem):
                 LocalizationOutcome(round=rnd)
             )
             state.get_mutable_abstract_state(self._adaptive).set_value(AdaptiveState())
+            # A fit still running for the old round is dropped (its result is never taken).
+            state.get_mutable_abstract_state(self._registration).set_value(PendingRegistration())
             return EventStatus.Succeeded()
         if outcome.result is not None or outcome.error:
             return EventStatus.DidNothing()
+        t = context.get_time()
+        # Results that are ready are taken whatever the phase (the length checks are kept
+        # for the record; the supervisor reads them in EXPLORE only).
+        did = self._take_length(state, t)
+        did |= self._take_adaptive(state, t)
+        if state.get_abstract_state(self._registration).get_value().ticket is not None:
+            did |= self._take_registration(state, t)
+            return EventStatus.Succeeded() if did else EventStatus.DidNothing()
         phase = int(round(self._phase_port.Eval(context)[0]))
         if self._explore_phase is not None and phase == self._explore_phase:
-            did = False
             if self._config.length_estimation:
                 did |= self._length_check(context, state)
             if self._config.adaptive_exploration:
-                status = self._adaptive_check(context, state)
-                did |= status.severity() != EventStatus.Severity.kDidNothing
+                did |= self._adaptive_check(context, state)
             return EventStatus.Succeeded() if did else EventStatus.DidNothing()
         if phase != self._phase:
-            return EventStatus.DidNothing()
+            return EventStatus.Succeeded() if did else EventStatus.DidNothing()
         cloud = self._cloud.Eval(context)
         points = cloud.points
         # The probe's travel, and how far along the body the kidney was actually seen (a
@@ -410,100 +522,159 @@ class IcpLocalizer(LeafSystem):
         if error:
             state.get_mutable_abstract_state(self._outcome).set_value(
                 LocalizationOutcome(
-                    n_points=len(points), time=context.get_time(), error=error, round=rnd
+                    n_points=len(points), time=t, error=error, ready_time=t, round=rnd
                 )
             )
             return EventStatus.Succeeded()
-        start = time.perf_counter()
-        result = localize(points, self._template, self._config, self._superior_B, self._lateral_B)
-        error = check_registration(result, points, self._config)
+        ticket = self._submit(
+            register_cloud,
+            points,
+            self._fit_template,
+            self._config,
+            self._superior_B,
+            self._lateral_B,
+            t=t,
+            kind="registration",
+        )
+        state.get_mutable_abstract_state(self._registration).set_value(
+            PendingRegistration(ticket, len(points))
+        )
+        self._take_registration(state, t)  # ready at once (inline, no latency)
+        return EventStatus.Succeeded()
+
+    def _take_registration(self, state, t: float) -> bool:
+        pending = state.get_abstract_state(self._registration).get_value()
+        done = self._executor.poll(pending.ticket, t)
+        if done is None:
+            return False
+        result, error = done.value
+        common = dict(
+            round=state.get_abstract_state(self._outcome).get_value().round,
+            n_points=pending.n_points,
+            compute_s=done.compute_s,
+            time=done.t_request,
+            ready_time=done.t_applied,
+        )
+        state.get_mutable_abstract_state(self._registration).set_value(PendingRegistration())
         if error:
             state.get_mutable_abstract_state(self._outcome).set_value(
-                LocalizationOutcome(
-                    n_points=len(points),
-                    compute_s=time.perf_counter() - start,
-                    time=context.get_time(),
-                    error=error,
-                    rejected=result,
-                    round=rnd,
-                )
+                LocalizationOutcome(error=error, rejected=result, **common)
             )
-            return EventStatus.Succeeded()
+            return True
         state.get_mutable_abstract_state(self._X).set_value(result.X_BK)
         state.get_mutable_abstract_state(self._outcome).set_value(
-            LocalizationOutcome(
-                result=result,
-                n_points=len(points),
-                compute_s=time.perf_counter() - start,
-                time=context.get_time(),
-                round=rnd,
-            )
+            LocalizationOutcome(result=result, **common)
         )
-        return EventStatus.Succeeded()
+        return True
 
     def length_checks(self, context) -> tuple:
         """The kidney-length estimates made during EXPLORE so far: ((time s, probe travel m,
-        estimated length m, NaN where the fit failed its checks), ...)."""
+        estimated length m, NaN where the fit failed its checks), ...); the time is when
+        the estimate was asked for (the cloud it saw)."""
         return context.get_abstract_state(self._length).get_value().checks
 
     def _length_check(self, context, state) -> bool:
         """During EXPLORE: every ``adaptive_period`` s (once ``length_min_travel`` has been
-        explored) re-estimate the kidney's length from the cloud so far, starting from the
-        previous estimate's fit (``length_warm_start``); a fit that fails the sanity checks
-        keeps the previous estimate. True if a check ran."""
+        explored) ask for the kidney's length from the cloud so far, starting from the
+        previous estimate's fit (``length_warm_start``), unless a fit is still running.
+        True if a check was asked for."""
         cfg = self._config
-        s = context.get_abstract_state(self._length).get_value()
+        s = state.get_abstract_state(self._length).get_value()
         t = context.get_time()
-        if t - s.last_time < cfg.adaptive_period - 1e-9:
+        if s.pending is not None or t - s.last_time < cfg.adaptive_period - 1e-9:
             return False
         cloud = self._cloud.Eval(context)
         travel = exploration_travel(cloud.poses)
         if travel < cfg.length_min_travel or len(cloud.points) < self._min_points:
             return False
-        length, fit = estimate_kidney_length(
+        ticket = self._submit(
+            estimate_kidney_length,
             cloud.points,
-            self._template,
+            self._fit_template,
             cfg,
             self._superior_B,
             self._lateral_B,
-            warm_start=s.fit if cfg.length_warm_start else None,
+            s.fit if cfg.length_warm_start else None,
+            t=t,
+            kind="length_fit",
         )
+        state.get_mutable_abstract_state(self._length).set_value(
+            dataclasses.replace(s, last_time=t, pending=ticket, pending_travel=travel)
+        )
+        self._take_length(state, t)  # ready at once (inline, no latency)
+        return True
+
+    def _take_length(self, state, t: float) -> bool:
+        """Takes the running length fit if it is ready: a fit that fails the sanity checks
+        keeps the previous estimate. True if one was taken."""
+        s = state.get_abstract_state(self._length).get_value()
+        if s.pending is None:
+            return False
+        done = self._executor.poll(s.pending, t)
+        if done is None:
+            return False
+        length, fit = done.value
         passed = math.isfinite(length)
         new = LengthState(
-            last_time=t,
+            last_time=s.last_time,
             length=length if passed else s.length,
-            checks=s.checks + ((t, travel, length),),
+            checks=s.checks + ((done.t_request, s.pending_travel, length),),
             fit=fit if passed else s.fit,
         )
         state.get_mutable_abstract_state(self._length).set_value(new)
         return True
 
-    def _adaptive_check(self, context, state):
-        """During EXPLORE: every ``adaptive_period`` s register the cloud so far; once two
-        successive estimates agree within the tolerances, flag the exploration as sufficient."""
+    def _adaptive_check(self, context, state) -> bool:
+        """During EXPLORE: every ``adaptive_period`` s ask for a registration of the cloud so
+        far (unless one is running); once two successive estimates agree within the
+        tolerances, the exploration is sufficient. True if a check was asked for."""
         cfg = self._config
-        a = context.get_abstract_state(self._adaptive).get_value()
+        a = state.get_abstract_state(self._adaptive).get_value()
         t = context.get_time()
-        if a.sufficient or t - a.last_time < cfg.adaptive_period - 1e-9:
-            return EventStatus.DidNothing()
+        if a.sufficient or a.pending is not None or t - a.last_time < cfg.adaptive_period - 1e-9:
+            return False
         cloud = self._cloud.Eval(context)
         travel = exploration_travel(cloud.poses)
         if (
             travel < cfg.adaptive_min_ratio * self._kidney_length
             or len(cloud.points) < self._min_points
         ):
-            return EventStatus.DidNothing()
-        result = localize(cloud.points, self._template, cfg, self._superior_B, self._lateral_B)
-        new = dataclasses.replace(a, last_time=t)
-        if check_registration(result, cloud.points, cfg):
+            return False
+        ticket = self._submit(
+            register_cloud,
+            cloud.points,
+            self._fit_template,
+            cfg,
+            self._superior_B,
+            self._lateral_B,
+            t=t,
+            kind="adaptive_fit",
+        )
+        state.get_mutable_abstract_state(self._adaptive).set_value(
+            dataclasses.replace(a, last_time=t, pending=ticket, pending_travel=travel)
+        )
+        self._take_adaptive(state, t)  # ready at once (inline, no latency)
+        return True
+
+    def _take_adaptive(self, state, t: float) -> bool:
+        a = state.get_abstract_state(self._adaptive).get_value()
+        if a.pending is None:
+            return False
+        done = self._executor.poll(a.pending, t)
+        if done is None:
+            return False
+        result, error = done.value
+        new = dataclasses.replace(a, pending=None, pending_travel=math.nan)
+        if error:
             new.last_X_BK = None
         else:
             if a.last_X_BK is not None:
                 dp, dangle = estimate_change(a.last_X_BK, result.X_BK)
-                new.checks = a.checks + ((t, travel, dp, dangle),)
+                new.checks = a.checks + ((done.t_request, a.pending_travel, dp, dangle),)
+                cfg = self._config
                 new.sufficient = dp < cfg.adaptive_translation_tol and dangle < np.deg2rad(
                     cfg.adaptive_rotation_tol_deg
                 )
             new.last_X_BK = result.X_BK
         state.get_mutable_abstract_state(self._adaptive).set_value(new)
-        return EventStatus.Succeeded()
+        return True

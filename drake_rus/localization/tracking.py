@@ -43,6 +43,7 @@ from pydrake.math import RigidTransform
 from pydrake.systems.framework import EventStatus, LeafSystem
 from scipy.spatial import cKDTree
 
+from drake_rus.executor import InlineExecutor
 from drake_rus.imaging.backprojection import backproject_pixels
 from drake_rus.imaging.frames import BoundaryPixels
 from drake_rus.imaging.probe import ProbeGeometry
@@ -59,6 +60,8 @@ __all__ = [
     "TrackingState",
     "tracking_update",
     "KidneyTrackingMonitor",
+    "drift_fit",
+    "registered_tree",
 ]
 
 
@@ -256,6 +259,7 @@ class TrackingState:
     segment: int = 0
     reference_segment: int = 0
     was_allowed: bool = True
+    pending: object = None  # the drift fit running (an executor Ticket), or None
 
     # Drake clones abstract state with deepcopy on every update (the frames hold point
     # arrays); the state is immutable, so clones may share it.
@@ -337,6 +341,42 @@ def tracking_update(
     )
 
 
+# kd-trees of registered template shapes, by content (the newest few): the monitor's drift
+# fits, in this process or a worker's, share one tree per registration.
+_SHAPE_TREES: dict = {}
+
+
+def registered_tree(shape_K: np.ndarray) -> cKDTree:
+    """The kd-tree of a registered template shape (M, 3), built once per shape."""
+    shape_K = np.ascontiguousarray(shape_K, dtype=float)
+    key = (shape_K.shape, hash(shape_K.tobytes()))
+    hit = _SHAPE_TREES.get(key)
+    if hit is not None and np.array_equal(hit[0], shape_K):
+        return hit[1]
+    while len(_SHAPE_TREES) >= 4:
+        _SHAPE_TREES.pop(next(iter(_SHAPE_TREES)))
+    tree = cKDTree(shape_K)
+    _SHAPE_TREES[key] = (shape_K.copy(), tree)
+    return tree
+
+
+def drift_fit(
+    points_B, X_BK, shape_K, normals_K, frame_ids, gate_factor: float, gate_floor: float
+) -> DriftEstimate:
+    """:func:`estimate_drift` with the registered shape's kd-tree (:func:`registered_tree`):
+    the tracking check as an executor job."""
+    return estimate_drift(
+        points_B,
+        X_BK,
+        shape_K,
+        normals_K,
+        tree=registered_tree(shape_K),
+        frame_ids=frame_ids,
+        frame_gate_factor=gate_factor,
+        frame_gate_floor=gate_floor,
+    )
+
+
 class KidneyTrackingMonitor(LeafSystem):
     """Checks, during the phases after localization, that the kidney is still where the
     registration put it (see the module docstring).
@@ -347,18 +387,20 @@ class KidneyTrackingMonitor(LeafSystem):
     frames acquired while it is 0, outside a breath-hold, are not used).
     Outputs: ``tracking_error`` (abstract str: "" while consistent); ``kidney_drift``
     (1-vector, m: the latest drift magnitude, NaN before the first check).
-    Frames are collected at the imaging frame rate; a check runs every
-    ``tracking_period`` s over the frames of the last ``tracking_window`` s.
+    Frames are collected at the imaging frame rate; a check is asked for every
+    ``tracking_period`` s over the frames of the last ``tracking_window`` s and runs on
+    ``executor``'s ``fits`` lane (``drake_rus.executor``; default: inline, ready at once);
+    its result is judged when it is ready, stamped with the time it was asked for.
     """
 
-    def __init__(self, template, config, imaging_config, check_phases):
+    def __init__(self, template, config, imaging_config, check_phases, executor=None):
         super().__init__()
         self._template = template
+        self._executor = executor if executor is not None else InlineExecutor()
         self._cfg = config
         self._geometry = ProbeGeometry.from_config(imaging_config)
         self._phases = {int(p) for p in check_phases}
-        self._tree_key = None
-        self._tree = None
+        self._shape_key = None
         self._shape = None
         self._shape_B = None
         self._boundary = self.DeclareAbstractInputPort(
@@ -390,16 +432,16 @@ class KidneyTrackingMonitor(LeafSystem):
         return context.get_abstract_state(self._state).get_value()
 
     def _registered_shape(self, outcome):
-        """(tree, shape_K, shape_B) of the registered template, cached per estimate."""
+        """(shape_K, shape_B) of the registered template, cached per estimate."""
         key = (outcome.time, id(outcome.result))
-        if key != self._tree_key:
+        if key != self._shape_key:
             shape = self._template.points
             b = outcome.result.shape_coefficients
             if b is not None and self._template.modes is not None:
                 shape = shape + np.einsum("k,kij->ij", b, self._template.modes[: len(b)])
-            self._tree_key, self._shape, self._tree = key, shape, cKDTree(shape)
+            self._shape_key, self._shape = key, shape
             self._shape_B = outcome.result.X_BK.multiply(shape.T).T
-        return self._tree, self._shape, self._shape_B
+        return self._shape, self._shape_B
 
     def _update(self, context, state):
         cfg = self._cfg
@@ -412,14 +454,17 @@ class KidneyTrackingMonitor(LeafSystem):
         if outcome.result is None:
             return EventStatus.DidNothing()
         if outcome.time != s.registered_at:
-            # A new registration (a re-localization): check it afresh, keep the history.
+            # A new registration (a re-localization): check it afresh, keep the history
+            # (a fit still running for the old one is dropped).
             s = TrackingState(history=s.history, registered_at=outcome.time)
+        elif s.error:
+            return EventStatus.DidNothing()  # latched until the next registration
         t = context.get_time()
         allowed = (not self._motion.HasValue(context)) or self._motion.Eval(context)[0] > 0.5
         frames = tuple(f for f in s.frames if t - f[0] <= cfg.tracking_window)
         boundary = self._boundary.Eval(context)
         new_index = s.last_index
-        tree, shape, shape_B = self._registered_shape(outcome)
+        shape, shape_B = self._registered_shape(outcome)
         if (
             allowed
             and boundary.frame_index > s.last_index
@@ -439,24 +484,42 @@ class KidneyTrackingMonitor(LeafSystem):
         s = dataclasses.replace(
             s, frames=frames, last_index=new_index, segment=segment, was_allowed=allowed
         )
-        if t - s.last_check >= cfg.tracking_period - 1e-9:
-            drift = None
+        s = self._take(s, t, outcome)
+        if s.pending is None and t - s.last_check >= cfg.tracking_period - 1e-9:
             if len(frames) >= cfg.tracking_min_frames:
                 points = np.concatenate([f[1] for f in frames])
                 ids = np.repeat(np.arange(len(frames)), [len(f[1]) for f in frames])
                 if len(points) > cfg.tracking_max_points:
                     pick = np.linspace(0, len(points) - 1, cfg.tracking_max_points).astype(int)
                     points, ids = points[pick], ids[pick]
-                drift = estimate_drift(
+                ticket = self._executor.submit(
+                    "fits",
+                    drift_fit,
                     points,
                     outcome.result.X_BK,
                     shape,
                     self._template.normals,
-                    tree=tree,
-                    frame_ids=ids,
-                    frame_gate_factor=cfg.tracking_frame_gate_factor,
-                    frame_gate_floor=cfg.tracking_frame_gate_floor,
+                    ids,
+                    cfg.tracking_frame_gate_factor,
+                    cfg.tracking_frame_gate_floor,
+                    t=t,
+                    kind="tracking_fit",
                 )
-            s = tracking_update(s, t, drift, cfg, tracking_limits(outcome.result, cfg))
+                s = self._take(dataclasses.replace(s, pending=ticket), t, outcome)
+            else:
+                s = tracking_update(s, t, None, cfg, tracking_limits(outcome.result, cfg))
         state.get_mutable_abstract_state(self._state).set_value(s)
         return EventStatus.Succeeded()
+
+    def _take(self, s: TrackingState, t: float, outcome) -> TrackingState:
+        """``s`` with the running drift fit judged, if it is ready (as of the time it was
+        asked for)."""
+        if s.pending is None:
+            return s
+        done = self._executor.poll(s.pending, t)
+        if done is None:
+            return s
+        s = dataclasses.replace(s, pending=None)
+        return tracking_update(
+            s, done.t_request, done.value, self._cfg, tracking_limits(outcome.result, self._cfg)
+        )

@@ -107,6 +107,15 @@ def add_commands(subparsers) -> None:
         "the cores busy, e.g. -5 keeps the rehearsal at real time",
     )
     p.add_argument(
+        "--cpu-load",
+        type=int,
+        default=0,
+        metavar="N",
+        help="a stress rehearsal: N busy processes beside the scan (each spinning on a "
+        "core, in its own session like another program); an overloaded computer must end "
+        "the scan at zero velocity with the overload named",
+    )
+    p.add_argument(
         "--netns",
         choices=["auto", "yes", "no"],
         default="auto",
@@ -143,6 +152,8 @@ def _argv(args) -> list[str]:
         repr(args.max_sim_time),
         "--nice",
         str(args.nice),
+        "--cpu-load",
+        str(args.cpu_load),
         "--netns",
         "no",
     ]
@@ -183,6 +194,7 @@ def run_rehearse_command(args) -> int:
         seed=args.seed,
         max_sim_time=args.max_sim_time,
         nice=args.nice,
+        cpu_load=args.cpu_load,
     )
     isolated = loopback_only()
     if not isolated and os.environ.get(NETNS_ENV) != "1":
@@ -204,18 +216,22 @@ def run_rehearse_command(args) -> int:
     cmd = report["commands_at_sim"]["age_ms"]
     rt = report["realtime"]
 
-    def f(x, digits=2):
-        return "n/a" if x is None else f"{x:.{digits}f}"
+    def f(x, digits=2, scale=1.0):
+        return "n/a" if x is None else f"{scale * x:.{digits}f}"
 
+    loop = rt["scan"].get("loop") or {"lag_ms": {}, "compute_ms": {}}
+    sim_loop = rt["sim"].get("loop") or {"lag_ms": {}}
+    gaps = report["status_packets"].get("gaps_ms") or {}
     print(
         f"{report['status']}{': ' + report['reason'] if report['status'] != 'DONE' else ''}"
         f" | E_trans {f(report['e_trans_mm'])} mm, E_rot,x {f(report['e_rot_x_deg'])} deg"
         f" | commands at the robot: {cmd['count']} (lost "
         f"{report['commands_at_sim']['sequence_gaps']}), age median {f(cmd['median_ms'])} "
-        f"ms, max {f(cmd['max_ms'])} ms | real time: scan {f(rt['scan']['margin'])}x per "
-        f"CPU s, max lag {f(1e3 * rt['scan']['max_lag_s'], 0)} ms; sim "
-        f"{f(rt['sim']['cpu_margin'])}x per CPU s ({f(rt['sim']['margin'])}x when running), "
-        f"max lag {f(1e3 * rt['sim']['max_lag_s'], 0)} ms"
+        f"ms, max {f(cmd['max_ms'])} ms | scan loop: lag p99 {f(loop['lag_ms'].get('p99'), 1)}"
+        f" ms, max {f(loop['lag_ms'].get('max'), 1)} ms, compute p99 "
+        f"{f(loop['compute_ms'].get('p99'), 1)} ms | simulated robot: lag max "
+        f"{f(sim_loop['lag_ms'].get('max'), 1)} ms, statuses up to {f(gaps.get('max'), 1)} ms "
+        f"apart"
     )
     lag = rt["sim"]["max_lag_s"]
     if lag > 0.1:

@@ -36,7 +36,7 @@ from drake_rus.rehearsal.core import (
 from drake_rus.rehearsal.sim_process import DEFAULT_LCM_URL
 from drake_rus.scan.metrics import ScanMetrics, Summary
 from drake_rus.scan.report import WriteScanOutputs
-from drake_rus.scan.run import RunScan, ScanMonitor
+from drake_rus.scan.run import RunScan
 from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, ApplyOverrides, LoadScenario
 from drake_rus.stations import MakeStation
 
@@ -45,7 +45,7 @@ __all__ = [
     "SimProcess",
     "SimProcessError",
     "RunRehearsal",
-    "LagMonitor",
+    "CpuLoad",
     "scan_scenario",
 ]
 
@@ -55,6 +55,64 @@ __all__ = [
 # (0.25 s by default, 2.5 ticks at 10 Hz); above 10 kHz a tick (0.1 ms) is shorter than
 # the simulation can keep up with.
 STATUS_RATE_HZ = (10.0, 10000.0)
+
+
+# At most this many busy processes beside a stress rehearsal.
+MAX_CPU_LOAD = 64
+
+# A busy process: spins until told to stop or its parent (the rehearsal) is gone.
+BUSY_LOOP = (
+    "import os, sys\n"
+    "parent = int(sys.argv[1])\n"
+    "while os.getppid() == parent:\n"
+    "    for _ in range(100000):\n"
+    "        pass\n"
+)
+
+
+class CpuLoad:
+    """``n`` busy processes (each spinning on a core), each in its own session like another
+    program on the computer; they end with :meth:`stop` (SIGTERM, then SIGKILL) or by
+    themselves when this process is gone. A context manager."""
+
+    def __init__(self, n: int):
+        self.processes: list[subprocess.Popen] = []
+        try:
+            for _ in range(int(n)):
+                self.processes.append(
+                    subprocess.Popen(
+                        [sys.executable, "-c", BUSY_LOOP, str(os.getpid())],
+                        stdin=subprocess.DEVNULL,
+                        stdout=subprocess.DEVNULL,
+                        stderr=subprocess.DEVNULL,
+                        start_new_session=True,
+                    )
+                )
+        except BaseException:
+            self.stop()
+            raise
+
+    @property
+    def pids(self) -> list[int]:
+        return [p.pid for p in self.processes]
+
+    def stop(self) -> None:
+        for p in self.processes:
+            if p.poll() is None:
+                p.terminate()
+        for p in self.processes:
+            try:
+                p.wait(5.0)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait(5.0)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.stop()
+        return False
 
 
 class SimProcessError(RuntimeError):
@@ -82,6 +140,8 @@ class RehearsalOptions:
     ready_timeout: float = 300.0
     # Scheduling priority of both processes (and their sessions); below 0 needs root.
     nice: int = 0
+    # Busy processes started beside the scan (a stress rehearsal: an overloaded computer).
+    cpu_load: int = 0
 
     def __post_init__(self):
         for name in ("latency_ms", "video_delay_ms"):
@@ -110,6 +170,11 @@ class RehearsalOptions:
             )
         if not (self.max_sim_time > 0):
             raise ValueError(f"--max-sim-time: expected a positive time, got {self.max_sim_time}")
+        if not (isinstance(self.cpu_load, int) and 0 <= self.cpu_load <= MAX_CPU_LOAD):
+            raise ValueError(
+                f"--cpu-load: expected a number of busy processes, 0-{MAX_CPU_LOAD}, "
+                f"got {self.cpu_load}"
+            )
 
 
 class SimProcess:
@@ -259,23 +324,6 @@ class SimProcess:
         return False
 
 
-class LagMonitor(ScanMonitor):
-    """Watches the scan's lag behind the wall clock (s) at every simulator step."""
-
-    def __init__(self):
-        self.max_lag = 0.0
-        self._start = None
-
-    def attach(self, diagram, handles, root_context) -> None:
-        self._start = None
-
-    def observe(self, root_context) -> None:
-        now = time.perf_counter()
-        if self._start is None:
-            self._start = now - root_context.get_time()
-        self.max_lag = max(self.max_lag, now - self._start - root_context.get_time())
-
-
 def scan_scenario(options: RehearsalOptions, ready: dict):
     """The scan side's scenario: the rehearsal's scenario on the hardware station, LCM route,
     at the depth preset the simulated machine runs (as the operator sets it)."""
@@ -358,6 +406,34 @@ def rehearsal_provenance(options: RehearsalOptions, argv=None) -> dict:
     return record
 
 
+def robot_side_overload(reason: str, log: dict, scenario) -> str:
+    """The scan's stop ``reason``, with the simulated robot's own overload named when the
+    stop is the robot's state going stale (the safety layer's stale state, the station's
+    lost robot) while the simulated robot's process fell behind the wall clock by more than
+    the watchdog allows: on this computer, not on a robot, the cause."""
+    if not reason or not any(
+        cue in reason for cue in ("stale robot state", "robot fault", "robot state lost")
+    ):
+        return reason
+    rt = log.get("realtime", {})
+    lag = float(rt.get("max_lag_s") or 0.0)
+    gap = (log.get("status", {}).get("gaps_ms") or {}).get("max") or 0.0
+    limit = min(scenario.safety.state_timeout, scenario.hardware_interface.status_timeout)
+    if max(lag, 1e-3 * gap) <= limit:
+        return reason
+    return (
+        f"{reason}; the simulated robot's process fell {1e3 * lag:.0f} ms behind the wall "
+        f"clock (statuses up to {gap:.0f} ms apart): the computer is overloaded"
+    )
+
+
+def _max_lag_s(timing: dict | None) -> float | None:
+    """The scan loop's largest lag (s) from its loop timing, if any."""
+    if not timing or timing["lag_ms"]["max"] is None:
+        return None
+    return timing["lag_ms"]["max"] * 1e-3
+
+
 def _rehearse(options, out: Path, report: dict, sim: SimProcess, progress) -> dict:
     """RunRehearsal's body (the caller stops ``sim`` whatever happens)."""
     ready = sim.start()
@@ -368,7 +444,6 @@ def _rehearse(options, out: Path, report: dict, sim: SimProcess, progress) -> di
     )
     scenario = scan_scenario(options, ready)
     template = load_registration_template(scenario.localization.template)
-    lag = LagMonitor()
     stations = []
 
     def make_station(scenario, **kwargs):  # MakeStation, keeping a handle to close it
@@ -377,15 +452,22 @@ def _rehearse(options, out: Path, report: dict, sim: SimProcess, progress) -> di
 
     cpu0 = time.process_time()
     try:
-        result = RunScan(
-            scenario,
-            None,
-            template,
-            make_station=make_station,
-            max_sim_time=options.max_sim_time,
-            progress=progress,
-            monitors=[lag],
-        )
+        with CpuLoad(options.cpu_load) as load:
+            if options.cpu_load:
+                report["cpu_load"] = {"processes": options.cpu_load, "pids": load.pids}
+                print(
+                    f"rehearse: {options.cpu_load} busy processes beside the scan "
+                    f"(pids {', '.join(map(str, load.pids))})",
+                    flush=True,
+                )
+            result = RunScan(
+                scenario,
+                None,
+                template,
+                make_station=make_station,
+                max_sim_time=options.max_sim_time,
+                progress=progress,
+            )
     finally:
         cpu = time.process_time() - cpu0
         for station in stations:  # the robot connection and the video thread
@@ -401,7 +483,7 @@ def _rehearse(options, out: Path, report: dict, sim: SimProcess, progress) -> di
     report.update(
         {
             "status": result.status,
-            "reason": result.reason,
+            "reason": robot_side_overload(result.reason, log, scenario),
             **errors,
             "X_BK_estimated": (
                 None
@@ -437,7 +519,10 @@ def _rehearse(options, out: Path, report: dict, sim: SimProcess, progress) -> di
                     "wall_s": result.wall_s,
                     "cpu_s": cpu,
                     "margin": result.sim_s / cpu if cpu > 0 else None,
-                    "max_lag_s": lag.max_lag,
+                    "max_lag_s": _max_lag_s(result.loop_timing),
+                    # Per-tick compute time and lag (ms), slips, load average.
+                    "loop": result.loop_timing,
+                    "perception": result.perception,
                 },
                 "sim": log["realtime"],
             },

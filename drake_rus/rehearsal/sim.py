@@ -5,8 +5,15 @@ wire, with the ultrasound machine's video output.
 FR3 + probe + soft patient, slice sensor and ultrasound emulator) behind
 :func:`drake_rus.hardware.lcm_sim_driver.AddSimulatedDriverWire` (PANDA_COMMAND in, velocity
 mode, the driver's command expiry; PANDA_STATUS out, wall-clock stamps, the driver's torque
-sign) and taps ``us_image`` at the imaging rate for a video output. :class:`RehearsalSim`
+sign) and taps the label frames at the imaging rate for a video output. :class:`RehearsalSim`
 runs it paced at real time (:meth:`RehearsalSim.run`).
+
+Only the physics steps in the simulation's own thread. What need not be there runs beside
+it, so that the robot keeps its status rate: the statuses are published by
+:class:`StatusPublisherThread` on its own wall-clock schedule (the newest state the
+simulation handed it, stamped when sent), and the ultrasound pictures are emulated (the
+station's own emulator model and seed: the same picture its ``us_image`` would give) and
+JPEG-encoded by :class:`VideoWorker` (numba and OpenCV release the interpreter lock).
 
 The reported external torque: the station's contact torques plus, with
 ``undeclared_load`` (the LCM route's situation: drake-franka-driver cannot declare the
@@ -19,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import threading
 import time
 from typing import Callable
 
@@ -28,17 +36,28 @@ from pydrake.math import RigidTransform
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
 
+from drake_rus.hardware.core import wall_clock_utime
 from drake_rus.hardware.lcm_sim_driver import DRIVER_EXPIRE_SEC, AddSimulatedDriverWire
 from drake_rus.hardware.systems import ProbeLoadTorque
+from drake_rus.imaging.emulator import emulate
 from drake_rus.imaging.frames import UsFrame
 from drake_rus.rehearsal.core import PivotDetector
 from drake_rus.rehearsal.wiretap import LcmUdpmTap
 from drake_rus.robot import NUM_JOINTS, MakeControlPlant, contact_force_along_approach
+from drake_rus.scan.pacing import GcPauses, gc_statistics, loop_statistics, percentiles_ms
 from drake_rus.station import MakeSimStation
 
 LOG = logging.getLogger("drake_rus.rehearsal")
 
-__all__ = ["WireFaults", "BuildRehearsalSim", "RehearsalSim", "VideoTap", "ProbeWeightTorque"]
+__all__ = [
+    "WireFaults",
+    "BuildRehearsalSim",
+    "RehearsalSim",
+    "VideoTap",
+    "VideoWorker",
+    "StatusPublisherThread",
+    "ProbeWeightTorque",
+]
 
 
 @dataclasses.dataclass
@@ -70,8 +89,9 @@ class WireFaults:
 
 
 class VideoTap(LeafSystem):
-    """Input ``us_image`` (UsFrame). Every ``period`` s, hands each new frame's image and
-    time to ``on_frame(image, time)`` (the video output)."""
+    """Input ``label_image`` (UsFrame of tissue labels). Every ``period`` s, hands each new
+    frame and the wall-clock time (s) it was taken to ``on_frame(frame, wall_time)`` (the
+    video output, which emulates it beside the simulation)."""
 
     def __init__(self, period: float, on_frame: Callable):
         super().__init__()
@@ -79,7 +99,7 @@ class VideoTap(LeafSystem):
         self._last = -1
         self.frames = 0
         self._in = self.DeclareAbstractInputPort(
-            "us_image", AbstractValue.Make(UsFrame(np.zeros((1, 1), np.uint8)))
+            "label_image", AbstractValue.Make(UsFrame(np.zeros((1, 1), np.uint8)))
         )
         self.DeclarePeriodicPublishEvent(float(period), 0.0, self._publish)
         self.DeclareForcedPublishEvent(self._publish)
@@ -89,7 +109,125 @@ class VideoTap(LeafSystem):
         if frame.valid and frame.frame_index != self._last:
             self._last = frame.frame_index
             self.frames += 1
-            self._on_frame(np.asarray(frame.image), context.get_time())
+            self._on_frame(frame, time.time())
+
+
+class VideoWorker:
+    """The ultrasound machine's picture pipeline beside the simulation: a thread emulates
+    each label frame offered (``emulate(labels, model, seed, frame_index)``, the picture the
+    station's ``us_image`` gives) and hands it to ``show(image, stamp)`` (the MJPEG output's
+    push, which JPEG-encodes it). Only the newest frame waits; an older one waiting is
+    dropped (``dropped``). ``close()`` stops it."""
+
+    def __init__(self, model, seed: int, show: Callable):
+        self._model, self._seed, self._show = model, int(seed), show
+        self._cond = threading.Condition()
+        self._waiting = None
+        self._stop = False
+        self.shown = 0
+        self.dropped = 0
+        self.busy: list[float] = []  # wall s per picture (emulation and encoding)
+        self._thread = threading.Thread(target=self._run, name="drake_rus_video", daemon=True)
+        self._thread.start()
+
+    def offer(self, frame: UsFrame, stamp: float) -> None:
+        with self._cond:
+            if self._waiting is not None:
+                self.dropped += 1
+            self._waiting = (frame, stamp)
+            self._cond.notify()
+
+    def _run(self):
+        while True:
+            with self._cond:
+                while self._waiting is None and not self._stop:
+                    self._cond.wait(0.5)
+                if self._stop:
+                    return
+                frame, stamp = self._waiting
+                self._waiting = None
+            start = time.perf_counter()
+            try:
+                image = emulate(frame.image, self._model, self._seed, frame.frame_index)
+                self._show(image, stamp)
+            except Exception as e:  # a picture lost must not stop the robot's simulation
+                LOG.error("video: %s: %s", type(e).__name__, e)
+            self.busy.append(time.perf_counter() - start)
+            self.shown += 1
+
+    def close(self) -> None:
+        with self._cond:
+            self._stop = True
+            self._cond.notify()
+        self._thread.join(2.0)
+
+
+class StatusPublisherThread:
+    """Publishes PANDA_STATUS on ``lcm`` every ``period`` s of the wall clock from its own
+    thread: the newest status the simulation offered (``offer(msg)``), stamped with the
+    wall clock when sent, each dropped with ``drop_probability`` (seeded by ``seed``). So
+    the robot's status rate does not depend on how long a simulation step takes. Counts
+    ``published`` and ``dropped``; ``times`` (monotonic s) of every status sent or
+    dropped. ``start()``; ``close()``."""
+
+    def __init__(
+        self, lcm, channel: str, period: float, *, drop_probability: float = 0.0, seed: int = 0
+    ):
+        import drake
+
+        self._type = drake.lcmt_panda_status
+        self._lcm, self._channel, self.period = lcm, channel, float(period)
+        self._p = float(drop_probability)
+        self._rng = np.random.default_rng(seed)
+        self._lock = threading.Lock()
+        self._latest = None
+        self._stop = threading.Event()
+        self.published = 0
+        self.dropped = 0
+        self.times: list[float] = []
+        self._thread = threading.Thread(
+            target=self._run, name="drake_rus_panda_status", daemon=True
+        )
+
+    def offer(self, msg) -> None:
+        copy = self._type.decode(msg.encode())  # this thread's own copy
+        with self._lock:
+            self._latest = copy
+
+    def start(self) -> None:
+        if not self._thread.is_alive():
+            self._thread.start()
+
+    def _run(self):
+        due = time.monotonic()
+        while not self._stop.is_set():
+            now = time.monotonic()
+            if now < due:
+                self._stop.wait(due - now)
+                continue
+            with self._lock:
+                msg = self._latest
+            if msg is not None:
+                self.times.append(now)
+                if self._p > 0.0 and self._rng.random() < self._p:
+                    self.dropped += 1
+                else:
+                    msg.utime = wall_clock_utime()
+                    self._lcm.Publish(self._channel, msg.encode())
+                    self.published += 1
+            due += self.period
+            if due < now - self.period:  # fell behind (a stall): do not burst
+                due = now + self.period
+
+    def gaps_ms(self) -> dict:
+        """p50, p99, p99.9 and max (ms) of the gaps between successive statuses."""
+        t = np.asarray(self.times, float)
+        return percentiles_ms(np.diff(t) if t.size > 1 else [])
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(2.0)
 
 
 class ProbeWeightTorque(LeafSystem):
@@ -126,10 +264,14 @@ def BuildRehearsalSim(
     seed: int = 0,
     command_channel: str = "PANDA_COMMAND",
     status_channel: str = "PANDA_STATUS",
+    status_sink: Callable | None = None,
 ):
     """The rehearsal's simulated robot, patient and machine as one Diagram; returns
     ``(diagram, station, wire)`` (see the module doc). ``scenario``: the simulated scenario
-    already prepared for the scan's start (``drake_rus.scan.run.PrepareScenario``)."""
+    already prepared for the scan's start (``drake_rus.scan.run.PrepareScenario``).
+    ``on_frame(label_frame, wall_time)``: each new label frame (emulate it with the
+    station's ``ultrasound_emulator``); ``status_sink(msg)``: each status, for a
+    :class:`StatusPublisherThread` (None: published by the diagram)."""
     builder = DiagramBuilder()
     station = builder.AddSystem(MakeSimStation(scenario, patient=patient, name="station"))
     tau = station.GetOutputPort("tau_external")
@@ -153,12 +295,13 @@ def BuildRehearsalSim(
         seed=seed,
         command_channel=command_channel,
         status_channel=status_channel,
+        status_sink=status_sink,
     )
     builder.Connect(wire.velocity, station.GetInputPort("joint_velocity_command"))
     tap = builder.AddNamedSystem(
         "video_tap", VideoTap(1.0 / scenario.imaging.frame_rate_hz, on_frame)
     )
-    builder.Connect(station.GetOutputPort("us_image"), tap.get_input_port())
+    builder.Connect(station.GetOutputPort("label_image"), tap.get_input_port())
     diagram = builder.Build()
     diagram.set_name("rehearsal_sim")
     return diagram, station, wire
@@ -180,11 +323,24 @@ class RunStats:
     max_lag_s: float = 0.0
     ticks: int = 0
     late_ticks: int = 0
+    # Per tick: wall s of its step (compute) and how late it started (lag).
+    compute: list = dataclasses.field(default_factory=list, repr=False)
+    lag: list = dataclasses.field(default_factory=list, repr=False)
+    period: float = math.nan
+    # Garbage collections during the run: (generation, pause s).
+    gc_pauses: list = dataclasses.field(default_factory=list, repr=False)
 
     def as_dict(self) -> dict:
-        d = dataclasses.asdict(self)
+        d = {
+            k: v
+            for k, v in dataclasses.asdict(self).items()
+            if k not in ("compute", "lag", "gc_pauses")
+        }
         d["margin"] = self.sim_s / self.busy_s if self.busy_s > 0 else None
         d["cpu_margin"] = self.sim_s / self.cpu_s if self.cpu_s > 0 else None
+        if self.compute:
+            d["loop"] = loop_statistics(self.period, self.compute, self.lag)
+        d["gc"] = gc_statistics(self.gc_pauses)
         return d
 
 
@@ -208,8 +364,10 @@ class RehearsalSim:
         frame_period: float,
         command_channel: str = "PANDA_COMMAND",
         lcm_url: str | None = None,
+        status_thread: StatusPublisherThread | None = None,
     ):
         self.diagram, self.station, self.wire, self.lcm = diagram, station, wire, lcm
+        self.status_thread = status_thread
         self.period = 1.0 / float(rate_hz)
         self.frame_period = float(frame_period)
         self.simulator = Simulator(diagram)
@@ -275,13 +433,17 @@ class RehearsalSim:
                 f"the simulated station produced no ultrasound picture in "
                 f"{max_time:g} s: does the patient have a label volume?"
             )
+        if self.status_thread is not None:
+            self._publisher.ForcedPublish(self._publisher.GetMyContextFromRoot(self.context))
+            self.status_thread.start()
 
     def hold(self, should_stop: Callable[[], bool]) -> None:
         """Until the first command (or ``should_stop()``): a status every period, no
         stepping (the video output keeps showing the first picture)."""
         pub_context = self._publisher.GetMyContextFromRoot(self.context)
         while self.first_command_wall is None and not should_stop():
-            self._publisher.ForcedPublish(pub_context)
+            if self.status_thread is None:
+                self._publisher.ForcedPublish(pub_context)
             self.lcm.HandleSubscriptions(max(1, int(round(self.period * 1e3))))
 
     def observe(self, truth: bool = True) -> None:
@@ -320,30 +482,35 @@ class RehearsalSim:
         the truth every ``truth_every`` ticks; calls ``every()`` about every
         ``every_period`` s of wall time."""
         st = self.stats
+        st.period = self.period
         t_sim0 = self.context.get_time()
         self.t_first_command = t_sim0
         wall0 = time.monotonic()
         cpu0 = time.process_time()
         next_every = wall0
         k = 0
-        while not should_stop():
-            k += 1
-            target = t_sim0 + k * self.period
-            b0 = time.perf_counter()
-            self.simulator.AdvanceTo(target)
-            self.observe(truth=k % truth_every == 0)
-            st.busy_s += time.perf_counter() - b0
-            st.ticks += 1
-            now = time.monotonic()
-            lag = (now - wall0) - (target - t_sim0)
-            if lag > self.period:
-                st.late_ticks += 1
-            st.max_lag_s = max(st.max_lag_s, lag)
-            if every is not None and now >= next_every:
-                every()
-                next_every = now + every_period
-            if lag < 0.0:
-                self._wait(-lag)
+        with GcPauses(st.gc_pauses):
+            while not should_stop():
+                # Tick k covers (t_{k-1}, t_k]; it is due when the wall clock reaches t_{k-1}.
+                start = time.monotonic()
+                st.lag.append(max(0.0, (start - wall0) - k * self.period))
+                k += 1
+                target = t_sim0 + k * self.period
+                self.simulator.AdvanceTo(target)
+                self.observe(truth=k % truth_every == 0)
+                now = time.monotonic()
+                st.compute.append(now - start)
+                st.busy_s += now - start
+                st.ticks += 1
+                lag = (now - wall0) - (target - t_sim0)
+                if lag > self.period:
+                    st.late_ticks += 1
+                st.max_lag_s = max(st.max_lag_s, lag)
+                if every is not None and now >= next_every:
+                    every()
+                    next_every = now + every_period
+                if lag < 0.0:
+                    self._wait(-lag)
         st.sim_s = self.context.get_time() - t_sim0
         st.wall_s = time.monotonic() - wall0
         st.cpu_s = time.process_time() - cpu0
@@ -365,6 +532,8 @@ class RehearsalSim:
     def close(self) -> None:
         if self.tap is not None:
             self.tap.close()
+        if self.status_thread is not None:
+            self.status_thread.close()
 
     def kidney_pose(self) -> RigidTransform:
         return self._port("X_BK_true")

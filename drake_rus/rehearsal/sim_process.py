@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import gc
 import json
 import logging
 import math
@@ -46,7 +47,14 @@ from drake_rus.hardware.lcm_sim_driver import DRIVER_EXPIRE_SEC
 from drake_rus.io_utils import write_text_atomic
 from drake_rus.rehearsal.core import age_statistics, pose_to_json, raise_priority
 from drake_rus.rehearsal.mjpeg import FrameBuffer, MjpegServer
-from drake_rus.rehearsal.sim import BuildRehearsalSim, RehearsalSim, WireFaults
+from drake_rus.rehearsal.sim import (
+    BuildRehearsalSim,
+    RehearsalSim,
+    StatusPublisherThread,
+    VideoWorker,
+    WireFaults,
+)
+from drake_rus.scan.pacing import percentiles_ms
 from drake_rus.scan.run import PrepareScenario
 from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, ApplyOverrides, LoadScenario
 
@@ -172,18 +180,28 @@ def main(argv=None) -> int:
         port=args.video_port,
     )
     holder = {}
+    # The statuses go out from their own thread (and, on udpm, their own socket): the
+    # robot's status rate does not depend on how long a simulation step takes.
+    status_lcm = DrakeLcm(args.lcm_url) if args.lcm_url.startswith("udpm://") else lcm
+    status_thread = StatusPublisherThread(
+        status_lcm,
+        args.status_channel,
+        1.0 / args.rate_hz,
+        drop_probability=faults.status_drop,
+        seed=args.seed,
+    )
 
-    def on_frame(image, t):
+    def on_frame(frame, wall):
         sim = holder.get("sim")
         t0 = getattr(sim, "t_first_command", None) if sim is not None else None
         if (
             faults.freeze_video_at is not None
             and t0 is not None
-            and t - t0 >= faults.freeze_video_at
+            and frame.time - t0 >= faults.freeze_video_at
         ):
             server.buffer.freeze()
             return
-        server.push(image)
+        holder["video"].offer(frame, wall)
 
     try:
         diagram, station, wire = BuildRehearsalSim(
@@ -198,7 +216,10 @@ def main(argv=None) -> int:
             seed=args.seed,
             command_channel=args.command_channel,
             status_channel=args.status_channel,
+            status_sink=status_thread.offer,
         )
+        emulator = station.GetSubsystemByName("ultrasound_emulator")
+        holder["video"] = VideoWorker(emulator.model, emulator.seed, server.push)
         sim = RehearsalSim(
             diagram,
             station,
@@ -208,6 +229,7 @@ def main(argv=None) -> int:
             frame_period=1.0 / scenario.imaging.frame_rate_hz,
             command_channel=args.command_channel,
             lcm_url=args.lcm_url,
+            status_thread=status_thread,
         )
         holder["sim"] = sim
         sim.prime()
@@ -233,6 +255,8 @@ def main(argv=None) -> int:
         )
 
         sim.hold(stop)
+        # What exists now lives to the end: keep it out of the collector's full passes.
+        gc.freeze()
 
         def live():
             if args.live:
@@ -253,10 +277,15 @@ def main(argv=None) -> int:
 
         stats = sim.run(stop, every=live) if not stop() else sim.stats
     finally:
+        status_thread.close()
+        if "video" in holder:
+            holder["video"].close()
         server.close()
         if "sim" in holder:
             holder["sim"].close()
-    log = sim_log(args, scenario, faults, sim, stats, stop, server, X_BK_start)
+    log = sim_log(
+        args, scenario, faults, sim, stats, stop, server, X_BK_start, video=holder.get("video")
+    )
     write_text_atomic(args.log, json.dumps(log, indent=1, default=_json_default) + "\n")
     c = log["commands"]["age_ms"]
     print(
@@ -292,7 +321,7 @@ def sequence_gaps(arrivals) -> int | None:
     )
 
 
-def sim_log(args, scenario, faults, sim, stats, stop, server, X_BK_start) -> dict:
+def sim_log(args, scenario, faults, sim, stats, stop, server, X_BK_start, video=None) -> dict:
     expiry = sim.wire.expiry
     arrivals = list(sim.arrivals)
     arrival_ages = [a[0] - a[1] * 1e-6 for a in arrivals]
@@ -331,11 +360,18 @@ def sim_log(args, scenario, faults, sim, stats, stop, server, X_BK_start) -> dic
         "applied_command_end": sim.applied_command().tolist(),
         "realtime": stats.as_dict(),
         "status": {
-            "published": sim.wire.publisher.published,
-            "dropped": sim.wire.publisher.dropped,
+            "published": sim.status_thread.published,
+            "dropped": sim.status_thread.dropped,
             "rate_hz": args.rate_hz,
+            # Gaps between successive statuses on the wire (ms): the robot's status rate.
+            "gaps_ms": sim.status_thread.gaps_ms(),
         },
         "video": {
+            # Pictures emulated and encoded beside the simulation, skipped (a newer frame
+            # came first), and the time each took (ms).
+            "emulated": video.shown if video is not None else 0,
+            "skipped": video.dropped if video is not None else 0,
+            "emulation_ms": percentiles_ms(video.busy if video is not None else []),
             "url": server.url,
             "pictures": server.buffer.pushed,
             "parts_sent": server.sent,

@@ -32,6 +32,7 @@ import numpy as np
 from pydrake.common.yaml import yaml_dump_typed
 from tqdm import tqdm
 
+from drake_rus.control.respiration import HOLDING
 from drake_rus.experiments.specs import expand_patients
 from drake_rus.io_utils import save_figure, write_text_atomic
 from drake_rus.provenance import Provenance
@@ -187,8 +188,6 @@ def hold_intervals(times, flags) -> list[tuple[float, float]]:
 def estimator_errors(true_holds, transitions, max_gap: float = 1.5) -> list[dict]:
     """For each true hold (start, end): the estimator's HOLDING onset and end (its
     estimated times and when it decided), matched to the nearest within ``max_gap`` s."""
-    from drake_rus.control.respiration import HOLDING
-
     onsets = [(w, d) for w, d, a, b in transitions if b == HOLDING]
     ends = [(w, d) for w, d, a, b in transitions if a == HOLDING]
     out = []

@@ -10,7 +10,9 @@ SI units (m, rad) unless a name says ``_deg``.
 
 from dataclasses import dataclass, field
 
-__all__ = ["StartConfig", "START_PLANNERS", "VerdictConfig"]
+__all__ = ["StartConfig", "START_PLANNERS", "VerdictConfig", "PerceptionConfig", "EXECUTIONS"]
+
+EXECUTIONS = ["auto", "inline", "worker"]
 
 START_PLANNERS = ["window", "vertical"]
 
@@ -124,3 +126,30 @@ class VerdictConfig:
     # room for an unusual kidney and still refuses one turned across the body (90 deg) or
     # with its upper pole pointing down (180 deg).
     max_axis_angle_deg: float = field(default=60.0, metadata={"positive": True, "max": 180.0})
+
+
+@dataclass
+class PerceptionConfig:
+    """Scenario section ``perception``: where the scan's perception runs and when its
+    results count (drake_rus/executor.py, docs/design.md "The scan diagram"). Segmenting
+    frames, fitting the kidney's length, registering the explored cloud and the tracking
+    fits run beside the control loop, which never waits for them; each result carries the
+    diagram time it was asked for and is taken at the first tick at which it is ready."""
+
+    # "auto": in worker processes when the run is paced at real time (a live station),
+    # inline otherwise; "inline": in the control loop's own thread, each result ready after
+    # the latencies below (deterministic: the simulated scan's default); "worker": one
+    # process per lane (frames; fits) below the loop's priority.
+    execution: str = field(default="auto", metadata={"choices": EXECUTIONS})
+    # Inline latency model (s of diagram time from a request to its result): a frame's
+    # segmentation, and a fit (registration, length, adaptive, tracking). 0: at once, as if
+    # perception took no time (the published simulation figures). On the 2-core reference
+    # PC the worker took 1-10 ms a frame and 20-110 ms a fit when quiet, up to 60 ms and
+    # 420 ms under load (docs/results/realtime.md).
+    segmentation_latency: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
+    fit_latency: float = field(default=0.0, metadata={"min": 0.0, "max": 10.0})
+    # Niceness added to the worker processes (0-19): the control loop takes the CPU first,
+    # then the segmentation (20 frames a second, the supervisor's and the safety layer's
+    # input), then the fits (a second's work at a time, waited for only in LOCALIZE).
+    segmentation_nice: int = field(default=5, metadata={"min": 0, "max": 19})
+    fit_nice: int = field(default=10, metadata={"min": 0, "max": 19})

@@ -32,6 +32,7 @@ from drake_rus.control.respiration_systems import (
     RespirationEstimator,
 )
 from drake_rus.control.supervisor import Phase, PivotModel
+from drake_rus.executor import MakeExecutor
 from drake_rus.imaging.frames import UsFrame
 from drake_rus.imaging.systems import PointCloudAccumulator, Segmenter
 from drake_rus.localization.localize import IcpLocalizer, body_directions_B
@@ -191,6 +192,7 @@ class ScanHandles:
     respiration: RespirationEstimator | None = None
     protocol: BreathHoldProtocol | None = None
     prompter: BreathPrompter | None = None
+    executor: object = None  # where perception runs (drake_rus.executor)
 
     def __getitem__(self, name):  # handles["supervisor"] reads like a dict
         return getattr(self, name)
@@ -209,13 +211,24 @@ def PivotModelFor(template, imaging) -> PivotModel:
     )
 
 
-def BuildScanDiagram(scenario, station, template, *, builder: DiagramBuilder | None = None):
+def BuildScanDiagram(
+    scenario, station, template, *, builder: DiagramBuilder | None = None, executor=None
+):
     """Adds ``station`` (any station) and the scan around it to ``builder`` (default: a new
     one). Returns ``(builder, ScanHandles)``; the caller may add observers (simulation
-    truth) before ``builder.Build()``."""
+    truth) before ``builder.Build()``. ``executor`` (``drake_rus.executor``): where the
+    segmentation and the fits run (default: ``MakeExecutor(scenario.perception,
+    paced=False)``, inline for ``auto``; the caller closes it, ``handles.executor``)."""
     builder = builder or DiagramBuilder()
+    if executor is None:
+        executor = MakeExecutor(scenario.perception, paced=False)
     builder.AddNamedSystem("station", station)
-    segmenter = builder.AddNamedSystem("segmenter", Segmenter(scenario.imaging))
+    segmenter = builder.AddNamedSystem(
+        "segmenter",
+        Segmenter(
+            scenario.imaging, executor=executor, poll_period=1.0 / scenario.controller.rate_hz
+        ),
+    )
     builder.Connect(station.GetOutputPort("us_image"), segmenter.GetInputPort("us_image"))
     if scenario.imaging.segmenter == "oracle":
         if not station.HasOutputPort("label_image"):
@@ -246,6 +259,7 @@ def BuildScanDiagram(scenario, station, template, *, builder: DiagramBuilder | N
             rate_hz=scenario.imaging.frame_rate_hz,
             explore_phase=int(Phase.EXPLORE),
             kidney_length=scenario.controller.kidney_length,
+            executor=executor,
         ),
     )
     builder.Connect(accumulator.GetOutputPort("point_cloud"), localizer.GetInputPort("point_cloud"))
@@ -302,6 +316,7 @@ def BuildScanDiagram(scenario, station, template, *, builder: DiagramBuilder | N
             scenario.localization,
             scenario.imaging,
             check_phases=[int(Phase.TRANSIT), int(Phase.PIVOT)],
+            executor=executor,
         ),
     )
     builder.Connect(
@@ -360,6 +375,7 @@ def BuildScanDiagram(scenario, station, template, *, builder: DiagramBuilder | N
         respiration=None if respiration is None else respiration[0],
         protocol=None if respiration is None else respiration[1],
         prompter=None if respiration is None else respiration[2],
+        executor=executor,
     )
 
 

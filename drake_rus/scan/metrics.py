@@ -330,5 +330,10 @@ def Summary(result: ScanResult, metrics: dict, provenance: dict | None = None) -
         "frames_total": len(result.frames),
         "safety_events": [str(e) for e in result.safety_events],
         "mode": _mode(result.scenario),
+        # Where perception ran and its jobs' compute times and latencies (executor.py).
+        "perception": getattr(result, "perception", None) or None,
+        # A live run's per-tick compute time and lag (ms: p50, p99, p99.9, max), slips and
+        # the load average (scan/pacing.py); None when not paced at real time.
+        "loop_timing": getattr(result, "loop_timing", None),
         **({} if provenance is None else {"provenance": provenance}),
     }

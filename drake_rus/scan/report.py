@@ -5,7 +5,8 @@
 Fig. 7/8); ``coverage.png`` (V against frames and against eps, like Fig. 10, and the probe
 path); ``traces.png`` (contact force, approach-vector tilt, manipulability, phases);
 ``pivot_frames.png`` (emulated frames of the pivot with the segmentation, like Fig. 11c);
-``start_plan.png`` (the start planner's acoustic window, depth preset and rejected windows).
+``start_plan.png`` (the start planner's acoustic window, depth preset and rejected windows);
+``loop_timing.png`` (a live run: each control tick's compute time and lag, phases).
 Every file is written to a temporary name and renamed when complete.
 """
 
@@ -207,6 +208,52 @@ def plot_frames(result, path: Path, count: int = 6) -> None:
     _save(fig, path)
 
 
+def plot_loop_timing(result, path: Path) -> None:
+    """Each tick's compute time and lag (ms) of a live run over the scan's time, with the
+    tick and ``safety.realtime_lag`` marked; nothing without a loop trace."""
+    trace = getattr(result, "loop_trace", None)
+    timing = getattr(result, "loop_timing", None)
+    if not trace or timing is None or len(trace["t"]) == 0:
+        return
+    plt = _plt()
+    fig, axes = plt.subplots(2, 1, figsize=(10, 5.5), sharex=True)
+    t = trace["t"]
+    tick_ms = timing["tick_ms"]
+    for ax, key, label in (
+        (axes[0], "compute", "compute per tick (ms)"),
+        (axes[1], "lag", "lag at the tick's start (ms)"),
+    ):
+        _shade_phases(ax, result.phases)
+        values = 1e3 * np.asarray(trace[key][: len(t)], float)
+        ax.plot(t[: len(values)], values, ".", ms=1.5, color="k")
+        ax.axhline(tick_ms, ls=":", color="tab:blue", lw=1, label=f"tick {tick_ms:g} ms")
+        ax.set_yscale("symlog", linthresh=1.0)
+        ax.set_ylabel(label)
+        s = timing[f"{key}_ms"]
+        ax.set_title(
+            f"p50 {s['p50']:.2f}, p99 {s['p99']:.2f}, p99.9 {s['p999']:.2f}, max {s['max']:.2f} ms",
+            fontsize=8,
+        )
+    axes[1].axhline(
+        1e3 * result.scenario.safety.realtime_lag,
+        ls="--",
+        color="darkred",
+        lw=0.8,
+        label="safety.realtime_lag",
+    )
+    axes[0].legend(fontsize=7, loc="upper right")
+    axes[1].legend(fontsize=7, loc="upper right")
+    axes[1].set_xlabel("scan time (s)")
+    load = timing.get("load_average") or {}
+    fig.suptitle(
+        f"Control loop timing: {result.patient} ({result.status}); {timing['ticks']} ticks, "
+        f"{timing['slips']} slips; load average {load.get('1min', float('nan')):.1f} on "
+        f"{load.get('cpus')} CPUs"
+    )
+    fig.tight_layout()
+    _save(fig, path)
+
+
 def WriteScanOutputs(result, metrics: dict, summary: dict, out: Path) -> list[Path]:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -232,6 +279,7 @@ def WriteScanOutputs(result, metrics: dict, summary: dict, out: Path) -> list[Pa
         ("coverage.png", lambda p: plot_coverage(result, metrics, p)),
         ("traces.png", lambda p: plot_traces(result, p)),
         ("pivot_frames.png", lambda p: plot_frames(result, p)),
+        ("loop_timing.png", lambda p: plot_loop_timing(result, p)),
     ):
         fn(out / name)
         if (out / name).exists():

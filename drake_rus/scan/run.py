@@ -12,6 +12,9 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import gc
+import math
+import sys
 import time
 from typing import Callable, Sequence
 
@@ -21,12 +24,15 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import EventStatus
 
 from drake_rus import interrupts
+from drake_rus.control.safety import StopReason
 from drake_rus.control.supervisor import Phase
+from drake_rus.executor import MakeExecutor
 from drake_rus.hardware.station import HardwareSession
 from drake_rus.patient_body import PatientMotionFor
 from drake_rus.progress import AdvanceWithProgress
 from drake_rus.robot import IkError, MakeControlPlant, SolveTipPose
 from drake_rus.scan.diagram import BuildScanDiagram, ScanHandles
+from drake_rus.scan.pacing import GcPauses, RealtimePacer, gc_statistics, load_average
 from drake_rus.scan.planning import DrawStartPlan, PlanStart, exploration_start
 from drake_rus.scan.truth import AttachSimulationTruth, SimulationTruth
 from drake_rus.scan.verdict import JudgeScan, Verdict
@@ -123,6 +129,14 @@ class ScanResult:
     events: tuple = ()
     # The respiration systems' record (``_respiration_record``; empty with mode none).
     respiration: dict = dataclasses.field(default_factory=dict)
+    # A live run's loop timing (scan.pacing.loop_statistics: per-tick compute time and lag,
+    # slips, load average) and its per-tick trace (t, compute, lag arrays, s); None when
+    # the run was not paced at real time.
+    loop_timing: dict | None = None
+    loop_trace: dict | None = None
+    # Where perception ran ("inline" or "worker") and, per kind of job, its count, compute
+    # time and latency (drake_rus.executor.Executor.statistics); frames skipped.
+    perception: dict = dataclasses.field(default_factory=dict)
 
     @property
     def X_BK_true(self) -> RigidTransform | None:
@@ -241,6 +255,11 @@ def CollectScanResult(
     events = list(
         safety.GetOutputPort("safety_events").Eval(safety.GetMyContextFromRoot(root_context))
     )
+    if status == "ABORT" and reason == "safety stop":
+        # The safety layer stopped on its own: say why (the first stop is the cause).
+        for e in events[:1]:
+            if e.reason != StopReason.SUPERVISOR_ABORT:
+                reason = f"safety stop: {e.reason}" + (f" ({e.detail})" if e.detail else "")
     logs = {}
     for name, logger in h.logs.items():
         log = logger.FindLog(root_context)
@@ -322,6 +341,7 @@ def RunScan(
     monitors: Sequence[ScanMonitor] = (),
     settle: float = 0.0,
     keep_sweep_masks: bool = False,
+    make_executor: Callable = MakeExecutor,
 ) -> ScanResult:
     """Runs the closed-loop scan until DONE, ABORT or ``max_sim_time`` (s).
 
@@ -335,6 +355,14 @@ def RunScan(
     the robot comes to rest; the result describes the scan proper. ``keep_sweep_masks``:
     keep every EXPLORE and PIVOT frame's kidney mask (``ScanResult.sweep_masks``, for a
     volume reconstruction; about 64 kB a frame).
+
+    A live run is paced tick by tick (``scan.pacing.RealtimePacer``: per-tick compute time
+    and lag in ``ScanResult.loop_timing``; stopped at zero velocity, ABORT naming the
+    overload, when the loop falls ``safety.realtime_lag`` behind) and its perception runs
+    in worker processes beside the loop (``perception.execution: auto``, drake_rus.executor);
+    otherwise perception runs inline with the scenario's latency model.
+    ``make_executor(scenario.perception, paced=...)`` builds the executor (default
+    ``drake_rus.executor.MakeExecutor``).
     """
     plan = None
     if patient is not None and not scenario.hardware:
@@ -342,7 +370,83 @@ def RunScan(
     if meshcat is not None and plan is not None:
         DrawStartPlan(meshcat, plan)
     station = make_station(scenario, meshcat=meshcat, patient=patient)
-    builder, h = BuildScanDiagram(scenario, station, template)
+    # A station that drives a real robot (it can stop() it) runs at real time, inside a
+    # session that commands zero velocity on every exit (end, exception, Ctrl-C, SIGTERM),
+    # and must keep up with the wall clock; its perception runs beside the loop.
+    live = callable(getattr(station, "stop", None))
+    try:
+        executor = make_executor(scenario.perception, paced=live)
+    except BaseException:
+        _close(station, live)
+        raise
+    try:
+        return _run(
+            scenario,
+            patient,
+            template,
+            station,
+            executor,
+            live,
+            plan,
+            meshcat=meshcat,
+            max_sim_time=max_sim_time,
+            progress=progress,
+            monitors=monitors,
+            settle=settle,
+            keep_sweep_masks=keep_sweep_masks,
+        )
+    finally:
+        executor.close()
+
+
+@contextlib.contextmanager
+def _live_interpreter(gc_pauses: list):
+    """The interpreter set for a live loop: what exists before the run (the diagram, the
+    template, the models) is kept out of the garbage collector's full passes (a pause of
+    every thread), the collections are recorded in ``gc_pauses``, and a thread holding the
+    interpreter lock (the video capture, the perception results' receivers) gives it up to
+    the control loop within 1 ms instead of 5 ms."""
+    switch = sys.getswitchinterval()
+    gc.freeze()
+    sys.setswitchinterval(0.001)
+    try:
+        with GcPauses(gc_pauses):
+            yield
+    finally:
+        sys.setswitchinterval(switch)
+        gc.unfreeze()
+
+
+def _close(station, live: bool) -> None:
+    # A live station holds a robot connection and a video capture thread: release them
+    # once the robot is at rest (the session already commanded zero velocity).
+    if live and callable(getattr(station, "close", None)):
+        station.close()
+
+
+def _run(
+    scenario,
+    patient,
+    template,
+    station,
+    executor,
+    live,
+    plan,
+    *,
+    meshcat,
+    max_sim_time,
+    progress,
+    monitors,
+    settle,
+    keep_sweep_masks,
+) -> ScanResult:
+    """RunScan's body once the station and the executor exist (the caller closes the
+    executor)."""
+    try:
+        builder, h = BuildScanDiagram(scenario, station, template, executor=executor)
+    except BaseException:
+        _close(station, live)
+        raise
     if keep_sweep_masks:
         h.recorder.keep_masks((Phase.EXPLORE, Phase.PIVOT))
     truth = (
@@ -372,29 +476,32 @@ def RunScan(
         simulator.set_monitor(monitor)
     for m in monitors:
         m.attach(diagram, h, context)
-    # A station that drives a real robot (it can stop() it) runs at real time, inside a
-    # session that commands zero velocity on every exit (end, exception, Ctrl-C, SIGTERM),
-    # and must keep up with the wall clock.
-    live = callable(getattr(station, "stop", None))
-    behind = []
     interrupted = []
+    pacer = None
     if live:
-        simulator.set_target_realtime_rate(1.0)
-    simulator.Initialize()
+        tick = min(1.0 / scenario.controller.rate_hz, getattr(station, "period", math.inf))
+        pacer = RealtimePacer(simulator, tick, scenario.safety.realtime_lag)
+    try:
+        executor.warm_up()
+        simulator.Initialize()
+    except BaseException:
+        _close(station, live)
+        raise
     start = time.perf_counter()
     cpu_start = time.process_time()
 
     def should_stop(root_context) -> bool:
-        if live:
-            lag = (time.perf_counter() - start) - root_context.get_time()
-            if lag > scenario.safety.realtime_lag:
-                behind.append(lag)
-                return True
+        if pacer is not None and pacer.overload is not None:
+            return True
         return phase_now() in TERMINAL_PHASES
 
+    gc_pauses: list = []
     try:
         try:
-            with HardwareSession(station) if live else contextlib.nullcontext():
+            with (
+                HardwareSession(station) if live else contextlib.nullcontext(),
+                _live_interpreter(gc_pauses) if live else contextlib.nullcontext(),
+            ):
                 AdvanceWithProgress(
                     simulator,
                     max_sim_time,
@@ -404,12 +511,13 @@ def RunScan(
                     on_step=lambda c: phase_now().name,
                     should_stop=should_stop,
                     expected=ExpectedScanTime(scenario),
+                    advance=None if pacer is None else pacer.advance_to,
                 )
                 t_end = context.get_time()
-                if settle > 0.0 and not behind:
+                if settle > 0.0 and (pacer is None or pacer.overload is None):
                     stop_at_terminal[0] = False
                     h.terminator.enabled = False
-                    simulator.AdvanceTo(t_end + settle)
+                    (simulator.AdvanceTo if pacer is None else pacer.advance_to)(t_end + settle)
         except BaseException as e:
             # Ctrl-C or SIGTERM (drake_rus.interrupts; on hardware the session's own
             # handler): the session has already commanded zero velocity; collect what there
@@ -428,13 +536,19 @@ def RunScan(
             scenario, name, template, h, truth, context, wall, end_time=t_end
         )
     finally:
-        # A live station holds a robot connection and a video capture thread: release them
-        # once the robot is at rest (the session already commanded zero velocity).
-        if live and callable(getattr(station, "close", None)):
-            station.close()
+        _close(station, live)
     result.sim_s = t_end
     result.cpu_s = cpu
     result.start_plan = plan
+    result.perception = {
+        "execution": executor.mode,
+        "jobs": executor.statistics(),
+        "frames_skipped": int(getattr(h.segmenter, "frames_skipped", 0)),
+    }
+    if pacer is not None:
+        result.loop_timing = pacer.statistics(load_average())
+        result.loop_timing["gc"] = gc_statistics(gc_pauses)
+        result.loop_trace = pacer.trace()
     if interrupted:
         result.status = "INTERRUPTED"
         result.reason = (
@@ -442,12 +556,13 @@ def RunScan(
             f"{t_end:.2f} s of simulated time, in {phase_now().name}; the "
             "outputs are partial"
         )
-    elif behind:
+    elif pacer is not None and pacer.overload is not None:
+        load = result.loop_timing["load_average"]
         result.status = "ABORT"
         result.reason = (
-            f"the diagram fell {behind[0]:.2f} s behind real time at "
-            f"{t_end:.2f} s (safety.realtime_lag {scenario.safety.realtime_lag:g}"
-            " s): stopped at zero velocity"
+            f"the computer is overloaded: {pacer.overload} at {t_end:.2f} s, in "
+            f"{phase_now().name} (load average {load['1min']:.1f} on {load['cpus']} CPUs): "
+            "stopped at zero velocity"
         )
     # DONE only if the result passes its own checks (scan/verdict.py; never the truth).
     result.checks = JudgeScan(result, template)

@@ -26,7 +26,7 @@ import numpy as np
 
 from drake_rus.control.supervisor import Phase
 from drake_rus.imaging.probe import ProbeGeometry
-from drake_rus.localization.localize import body_directions_B
+from drake_rus.localization.localize import body_directions_B, max_rms_residual
 from drake_rus.metrics import signed_pivot_angles
 
 __all__ = [
@@ -417,7 +417,7 @@ def JudgeScan(result, template) -> list[Check]:
     checks.append(
         check_rms_residual(
             loc.rms_residual,
-            lc.max_rms_residual_deformable if b is not None else lc.max_rms_residual,
+            max_rms_residual(lc, template, b is not None),
             cfg.min_rms_residual_pixels * min(geometry.dx, geometry.dz),
         )
     )

@@ -16,9 +16,10 @@ background, 1 kidney, 2 tumour), with the same builder as the generated template
 **Where kidneys come from.** The builder reads kidneys through one function,
 :func:`kidney_masks` ``(path) -> list[CtKidney]``: every kidney of a label map as its mask, its
 tumour mask, the voxel spacing and the pose ``X_BdV`` of the voxel grid in the body frame Bd
-(x left, y superior, z anterior), so the sign rules can be applied. Today it calls the
-private adapter :func:`_kits_layout_kidneys`; the project's CT-kidney importer replaces it
-when it is merged (the builder only needs masks and a frame).
+(x left, y superior, z anterior), so the sign rules can be applied. It reads them with the
+project's CT-kidney importer (:mod:`drake_rus.anatomy.ct_kidney`), the one place where the
+patient frame of a label map is established; a case whose frame the importer cannot
+establish is an error, and its kidneys build no template.
 
 **Tumours** (``tumour_policy``): ``exclude`` (default) leaves out every kidney whose tumour is
 more than ``max_tumour_fraction`` of its volume (default 0: only tumour-free kidneys, as in the
@@ -65,9 +66,16 @@ from typing import Callable
 import numpy as np
 from pydrake.math import RigidTransform, RotationMatrix
 from scipy import ndimage
-from scipy.spatial import ConvexHull, Delaunay, cKDTree
+from scipy.spatial import cKDTree
 
 from drake_rus.anatomy.cache import file_digest, library_versions
+from drake_rus.anatomy.ct_kidney import (
+    KIDNEY_VALUE,
+    TUMOUR_VALUE,
+    KidneyComponent,
+    import_ct_kidneys,
+    read_label_grid,
+)
 from drake_rus.anatomy.frames import lateral_direction_Bd
 from drake_rus.anatomy.rasterize import mask_to_mesh
 from drake_rus.paths import MODELS_DIR, REPO_ROOT
@@ -110,16 +118,11 @@ DEFAULT_POINTS = 2500  # as the shipped template
 DEFAULT_VOXEL = 0.001  # 1 mm isotropic masks, as the shipped template
 TUMOUR_POLICIES = ("exclude", "include", "mask")
 SIDES = ("right", "left", "both")
-# Connected label pieces smaller than this are not kidneys (segmentation fragments).
-MIN_KIDNEY_ML = 20.0
 # A kidney's long axis lies within about 10-50 deg of the body's long axis (coronal and
 # sagittal inclinations), so at least ~40 deg from the left-right axis; a labelled piece whose
 # long axis is nearer the left-right axis than this is not one kidney (fused or horseshoe
 # kidneys, or a tumour larger than its kidney).
 MIN_LR_ANGLE_DEG = 35.0
-# Below this margin of the frame's vote (see _kits_frame) a case's kidneys are not used to
-# build a template: a wrong superior direction would put a kidney in upside down.
-MIN_FRAME_MARGIN = 0.5
 LABEL_MAP_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd")
 FORMAT = 1
 _LIBRARIES = ("numpy", "scipy", "open3d", "scikit-image", "trimesh", "SimpleITK")
@@ -177,241 +180,67 @@ KidneySource = Callable[[Path], list]
 
 def kidney_masks(path) -> list[CtKidney]:
     """Every kidney of the label map at ``path`` in the body frame (the builder's one source
-    of kidneys; see the module doc). Raises ValueError naming the file when it cannot be
-    read or holds no kidney label."""
-    return _kits_layout_kidneys(Path(path))
-
-
-# ------------------------------------------------------- private adapter: the KiTS layout
-def _read_label_map(path: Path):
-    """(labels (I, J, K) uint8 in the file's storage order, spacing (3,) m)."""
-    import SimpleITK as sitk
-
-    if not path.is_file():
-        raise ValueError(f"label map {path}: file not found")
+    of kidneys), read by the project's CT-kidney importer (:mod:`drake_rus.anatomy.ct_kidney`:
+    the patient frame established from anatomy, right and left from the grid's handedness).
+    Raises ValueError naming the file when it cannot be read, holds no kidney label, or its
+    frame cannot be established (the importer's errors); a frame decided by the majority of
+    the cues (status ``conflict``) is used, its status kept in ``frame``."""
+    path = Path(path)
     try:
-        img = sitk.ReadImage(str(path))
-    except Exception as e:
-        why = (str(e).strip().splitlines() or ["unreadable"])[-1]
-        raise ValueError(f"label map {path}: cannot read it ({why})") from None
-    if img.GetDimension() != 3 or img.GetNumberOfComponentsPerPixel() != 1:
-        raise ValueError(f"label map {path}: expected a 3-D image of integer labels")
-    arr = sitk.GetArrayFromImage(img).transpose(2, 1, 0)  # (i, j, k): storage order
-    if arr.dtype.kind not in "iu":
-        if not np.all(np.isfinite(arr)) or np.any(arr != np.round(arr)):
-            raise ValueError(f"label map {path}: voxel values are not integer labels")
-    values = np.unique(arr[::4, ::4, ::4])
-    if np.any((values < 0) | (values > 2)):
-        raise ValueError(
-            f"label map {path}: expected labels 0 (background), 1 (kidney), 2 "
-            f"(tumour), found {values[(values < 0) | (values > 2)][:5].tolist()}"
-        )
-    spacing = np.array(img.GetSpacing(), dtype=float) / 1000.0
-    if not np.all(np.isfinite(spacing) & (spacing > 0)):
-        raise ValueError(f"label map {path}: voxel spacing {spacing * 1e3} mm is not positive")
-    return np.ascontiguousarray(arr, dtype=np.uint8), spacing
-
-
-def _hilum_direction(sub: np.ndarray, origin_ijk, spacing, centroid, v1) -> np.ndarray:
-    """Unit direction (index-physical frame) from the kidney's centroid to the centroid of
-    its largest concavity (the convex hull minus the kidney, on a ~2 mm grid): the renal
-    sinus opening, i.e. the hilum. Component along the long axis ``v1`` removed."""
-    stride = np.maximum(1, np.round(0.002 / spacing)).astype(int)
-    g = sub[:: stride[0], :: stride[1], :: stride[2]]
-    if g.sum() < 10:
-        return np.zeros(3)
-    gi = np.indices(g.shape).reshape(3, -1).T
-    gp = (gi * stride + origin_ijk) * spacing
-    inside = g.ravel()
-    try:
-        hull = Delaunay(gp[inside][ConvexHull(gp[inside]).vertices])
-    except Exception:  # a flat or degenerate piece: no hilum cue
-        return np.zeros(3)
-    deficit = ((hull.find_simplex(gp) >= 0) & ~inside).reshape(g.shape)
-    lab, n = ndimage.label(deficit)
-    if n == 0:
-        return np.zeros(3)
-    sizes = ndimage.sum(deficit, lab, range(1, n + 1))
-    d = gp[(lab == int(np.argmax(sizes)) + 1).ravel()].mean(axis=0) - centroid
-    d = d - (d @ v1) * v1
-    norm = np.linalg.norm(d)
-    return d / norm if norm > 0 else d
-
-
-def _kits_frame(pieces, shape, spacing) -> tuple[np.ndarray, dict]:
-    """R_BdV (rotation from the index-physical frame V to the body frame Bd) of a KiTS-layout
-    label map, from its kidneys' anatomy; and a record of the cues.
-
-    The KiTS README states the array order (axial slice, row, column); which way each axis
-    points is decided by anatomy, the file's orientation header being unreliable. With s = +1
-    when the slice index runs inferiorly and r = +1 when the row index runs posteriorly:
-
-    - the lower pole lies anterior to the upper pole (the kidney lies on the psoas): the long
-      axis' row component, oriented along +slice, is negative when s r = +1;
-    - the kidneys lie posterior to the centre of the field of view (the body's centre): +r;
-    - the hilum (sinus opening) faces anteriorly: its row component is negative when r = +1
-      (with two kidneys, only a concavity facing the other kidney counts);
-    - the lower poles lie more laterally than the upper poles (two kidneys): +s.
-
-    Each cue votes (scaled to about +-1 and clipped; a kidney's weight falls linearly to 0
-    at 20% tumour), the last one with half weight (on the 140 KiTS19 cases it disagreed
-    with the others in 10, the first in none), and the best of the four (s, r) wins. Right
-    and left then follow from the frame being right-handed: a label map stored as a mirror
-    image of the patient cannot be told from its kidneys alone (both kidneys are mirror
-    images of each other); the shape of each kidney, which the template uses, is right
-    either way (a mirrored right kidney is geometrically a left kidney).
-    """
-    centre = (np.array(shape) - 1) * spacing / 2
-    # A large tumour bends a kidney's principal axes and fills or fakes its concavity: its
-    # kidney's cues count less (none above 20% tumour, unless every kidney is so).
-    w = np.array([max(0.0, 1.0 - p["tumour_fraction"] / 0.2) for p in pieces])
-    w = w / w.sum() if w.sum() > 0 else np.full(len(pieces), 1.0 / len(pieces))
-    v1row = float(w @ [p["v1"][1] for p in pieces])
-    post = float(w @ [p["centroid"][1] - centre[1] for p in pieces])
-    div = 0.0
-    w_hilum = w.copy()
-    if len(pieces) == 2:
-        mid = 0.5 * (pieces[0]["centroid"][2] + pieces[1]["centroid"][2])
-        lateral = [np.sign(p["centroid"][2] - mid) for p in pieces]
-        div = float(w @ [lat * p["v1"][2] for lat, p in zip(lateral, pieces)])
-        # A concavity that does not face the other kidney is not the hilum (a tumour's
-        # notch, a malrotated kidney): it does not vote.
-        w_hilum = w * np.array([float(-lat * p["hilum"][2] > 0) for lat, p in zip(lateral, pieces)])
-    hilum_row = float(w_hilum @ [p["hilum"][1] for p in pieces])
-    cues = {
-        "lower_pole_anterior": float(np.clip(-v1row / 0.15, -1, 1)),
-        "posterior_of_centre": float(np.clip(post / 0.02, -1, 1)),
-        "hilum_anterior": float(np.clip(-hilum_row / 0.3, -1, 1)),
-        "lower_poles_lateral": float(np.clip(div / 0.2, -1, 1)),
+        case = import_ct_kidneys(read_label_grid(path))
+    except FileNotFoundError as e:
+        raise ValueError(str(e)) from None
+    frame = {
+        "method": "anatomy (drake_rus.anatomy.ct_kidney.import_ct_kidneys)",
+        "handedness": int(case.frame.handedness),
+        **case.frame.summary(),
     }
-    scores = {}
-    for s in (1, -1):
-        for r in (1, -1):
-            scores[(s, r)] = (
-                s * r * cues["lower_pole_anterior"]
-                + r * (cues["posterior_of_centre"] + cues["hilum_anterior"])
-                + 0.5 * s * cues["lower_poles_lateral"]
-            )
-    ranked = sorted(scores, key=scores.get, reverse=True)
-    s, r = ranked[0]
-    e_i = s * np.array([0.0, -1.0, 0.0])  # +slice: inferior when s = +1
-    e_j = r * np.array([0.0, 0.0, -1.0])  # +row: posterior when r = +1
-    R = np.column_stack([e_i, e_j, np.cross(e_i, e_j)])
-    record = {
-        "method": "kits-layout adapter: array (slice, row, column); directions from "
-        "anatomy (drake_rus.template.ct._kits_frame)",
-        "slice_axis": "inferior" if s > 0 else "superior",
-        "row_axis": "posterior" if r > 0 else "anterior",
-        "column_axis": "left" if s * r > 0 else "right",
-        "cues": {k: round(v, 3) for k, v in cues.items()},
-        "margin": round(float(scores[ranked[0]] - scores[ranked[1]]), 3),
-    }
-    return R, record
+    name = case_name_of(path)
+    return [_ct_kidney(k, case.frame.R_AG, name, frame) for k in case.kidneys]
 
 
-def _kits_layout_kidneys(path: Path) -> list[CtKidney]:
-    """Private adapter (until the CT-kidney importer is merged): the kidneys of a KiTS-layout
-    label map. Kidneys are the (at most two) largest 26-connected pieces of labels 1-2 of at
-    least ``MIN_KIDNEY_ML``; smaller pieces are ignored. The frame is :func:`_kits_frame`'s;
-    a kidney is right or left by its side of the midpoint between the two kidneys (one
-    kidney: of the field of view's centre). A kidney touching the volume's border is cut;
-    one whose long axis is within ``MIN_LR_ANGLE_DEG`` of the column (left-right) axis is an
-    anomaly."""
-    labels, spacing = _read_label_map(path)
-    any_k = labels > 0
-    if not any_k.any():
-        raise ValueError(f"label map {path}: no kidney label (1 or 2)")
-    bounds = []
-    for ax in range(3):
-        prof = np.flatnonzero(any_k.any(axis=tuple(a for a in range(3) if a != ax)))
-        bounds.append((int(prof[0]), int(prof[-1]) + 1))
-    del any_k
-    off = np.array([b[0] for b in bounds])
-    crop = labels[tuple(slice(a, b) for a, b in bounds)]
-    lab, n = ndimage.label(crop > 0, structure=np.ones((3, 3, 3), bool))
-    objects = ndimage.find_objects(lab)
-    voxel_ml = float(np.prod(spacing) * 1e6)
-    sizes = np.array([np.count_nonzero(lab[o] == k + 1) for k, o in enumerate(objects)])
-    order = [int(k) for k in np.argsort(sizes)[::-1][:2] if sizes[k] * voxel_ml >= MIN_KIDNEY_ML]
-    if not order:
-        raise ValueError(
-            f"label map {path}: no kidney of at least {MIN_KIDNEY_ML:g} ml "
-            f"(largest labelled piece {sizes.max() * voxel_ml:.1f} ml)"
+def _ct_kidney(k: KidneyComponent, R_AG: np.ndarray, case: str, frame: dict) -> CtKidney:
+    """A CtKidney from the importer's component: its crop of the grid G (numpy axes, mm) as
+    the voxel grid V, posed in Bd (the importer's anatomical frame A: x left, y superior,
+    z anterior). A left-handed grid makes R_AG improper: the crop's first axis is then
+    reversed so that V's axes form a rotation."""
+    labels = k.labels
+    sp = np.asarray(k.spacing, dtype=float) / 1000.0  # m
+    origin_G = np.asarray(k.lo, dtype=float) * sp
+    R = np.asarray(R_AG, dtype=float)
+    if np.linalg.det(R) < 0:
+        labels = labels[::-1]
+        origin_G = origin_G + np.array([(labels.shape[0] - 1) * sp[0], 0.0, 0.0])
+        R = R @ np.diag([-1.0, 1.0, 1.0])
+    X_BdV = RigidTransform(RotationMatrix(R), R_AG @ origin_G)
+    cut = ""
+    if k.touches:
+        cut = "touches the edge of the volume (" + ", ".join(k.touches) + ")"
+    p = np.argwhere(labels > 0)
+    step = max(1, len(p) // 200_000)
+    q = p[::step] * sp
+    _, V = np.linalg.eigh(np.cov((q - q.mean(axis=0)).T))
+    v1_Bd = R @ V[:, -1]
+    lr_deg = float(np.degrees(np.arccos(min(1.0, abs(v1_Bd[0])))))
+    anomaly = ""
+    if lr_deg < MIN_LR_ANGLE_DEG:
+        anomaly = (
+            f"long axis {lr_deg:.0f} deg from the left-right axis (a kidney's is at least "
+            f"{MIN_LR_ANGLE_DEG:g}): fused or horseshoe kidneys, or a tumour larger than "
+            f"the kidney"
         )
-    pieces = []
-    for k in order:
-        o = objects[k]
-        sub = lab[o] == k + 1
-        start = off + np.array([s.start for s in o])
-        idx = np.argwhere(sub)
-        p = (idx + start) * spacing
-        c = p.mean(axis=0)
-        step = max(1, len(p) // 200_000)
-        _, V = np.linalg.eigh(np.cov((p[::step] - c).T))
-        v1 = V[:, -1] * (np.sign(V[0, -1]) or 1.0)  # along +slice
-        stop = start + np.array(sub.shape)
-        touches = [ax for ax in range(3) if start[ax] == 0 or stop[ax] == labels.shape[ax]]
-        sub_labels = np.where(sub, crop[o], 0)
-        n_tumour = int(np.count_nonzero(sub_labels == 2))
-        lr_deg = float(np.degrees(np.arccos(min(1.0, abs(v1[2])))))
-        pieces.append(
-            {
-                "k": k,
-                "o": o,
-                "sub": sub,
-                "labels": sub_labels,
-                "start": start,
-                "centroid": c,
-                "v1": v1,
-                "tumour_fraction": n_tumour / len(p),
-                "hilum": _hilum_direction(sub, start, spacing, c, v1),
-                "touches": touches,
-                "lr_deg": lr_deg,
-            }
-        )
-    R, record = _kits_frame(pieces, labels.shape, spacing)
-    x_Bd = [float(R[0] @ p["centroid"]) for p in pieces]
-    if len(pieces) == 2:
-        mid = 0.5 * sum(x_Bd)
-    else:
-        mid = float(R[0] @ ((np.array(labels.shape) - 1) * spacing / 2))
-    case = case_name_of(path)
-    out = []
-    for p, x in zip(pieces, x_Bd):
-        side = "left" if x > mid else "right"  # x_Bd points to the patient's left
-        axes = {0: "slice", 1: "row", 2: "column"}
-        cut = ""
-        if p["touches"]:
-            cut = (
-                "touches the edge of the volume along the "
-                + " and ".join(axes[a] for a in p["touches"])
-                + " axis"
-            )
-        anomaly = ""
-        if p["lr_deg"] < MIN_LR_ANGLE_DEG:
-            anomaly = (
-                f"long axis {p['lr_deg']:.0f} deg from the left-right axis (a kidney's "
-                f"is at least {MIN_LR_ANGLE_DEG:g}): fused or horseshoe kidneys, or a "
-                f"tumour larger than the kidney"
-            )
-        X_BdV = RigidTransform(RotationMatrix(R), R @ (p["start"] * spacing))
-        out.append(
-            CtKidney(
-                name=f"{case}:{side}",
-                case=case,
-                side=side,
-                kidney=p["labels"] == 1,
-                tumour=p["labels"] == 2,
-                spacing=tuple(float(s) for s in spacing),
-                X_BdV=X_BdV,
-                cut=cut,
-                anomaly=anomaly,
-                frame=record,
-            )
-        )
-    if len(out) == 2 and out[0].side == out[1].side:  # cannot happen with two pieces
-        raise ValueError(f"label map {path}: both kidneys on the {out[0].side} side")
-    return out
+    return CtKidney(
+        name=f"{case}:{k.side}",
+        case=case,
+        side=k.side,
+        kidney=np.ascontiguousarray(labels == KIDNEY_VALUE),
+        tumour=np.ascontiguousarray(labels == TUMOUR_VALUE),
+        spacing=tuple(float(x) for x in sp),
+        X_BdV=X_BdV,
+        cut=cut,
+        anomaly=anomaly,
+        frame=frame,
+    )
 
 
 # ------------------------------------------------------------------- cases and selection
@@ -542,6 +371,7 @@ def _code_files() -> set:
         _source_file(f)
         for f in (
             subject_from_ct_kidney,
+            import_ct_kidneys,
             build_template,
             builder_module.mesh_canonical_frame,
             mask_to_mesh,
@@ -626,12 +456,6 @@ def _eligible(info: dict, opts: CtTemplateOptions) -> str:
         return f"cut by the field of view ({info['cut']})"
     if info.get("anomaly"):
         return info["anomaly"]
-    margin = (info.get("frame") or {}).get("margin", np.inf)
-    if margin < MIN_FRAME_MARGIN:
-        return (
-            f"body frame uncertain (the anatomical cues' margin {margin:.2f} < "
-            f"{MIN_FRAME_MARGIN:g})"
-        )
     if opts.tumour_policy == "exclude" and info["tumour_fraction"] > opts.max_tumour_fraction:
         return (
             f"tumour {100 * info['tumour_fraction']:.1f}% of the kidney (policy exclude, "
@@ -888,7 +712,9 @@ def ct_template(
         },
         "frame": {
             "method": frames[0].get("method") if frames else None,
-            "min_margin": min((f.get("margin", np.inf) for f in frames), default=None),
+            "status": {
+                st: sum(f.get("status") == st for f in frames) for st in ("agree", "conflict")
+            },
         },
         "licence": "derived from CC BY-NC-SA data: keep out of the repository",
         "survey_seconds": round(t_survey, 2),
