@@ -448,17 +448,21 @@ class KidneyTrackingMonitor(LeafSystem):
         if not cfg.tracking_check:
             return EventStatus.DidNothing()
         s = self.state(context)
-        if int(round(self._phase.Eval(context)[0])) not in self._phases:
-            return EventStatus.DidNothing()
         outcome = self._outcome.Eval(context)
-        if outcome.result is None:
-            return EventStatus.DidNothing()
-        if outcome.time != s.registered_at:
-            # A new registration (a re-localization): check it afresh, keep the history
-            # (a fit still running for the old one is dropped).
-            s = TrackingState(history=s.history, registered_at=outcome.time)
-        elif s.error:
-            return EventStatus.DidNothing()  # latched until the next registration
+        # The checks belong to one registration: whatever the phase, a dropped estimate (a
+        # re-localization under way) or a new one clears them (a latched error too, so the
+        # new registration does not start with the old one's error); the history stays.
+        registered_at = outcome.time if outcome.result is not None else math.nan
+        same = registered_at == s.registered_at or (
+            math.isnan(registered_at) and math.isnan(s.registered_at)
+        )
+        if not same:
+            s = TrackingState(history=s.history, registered_at=registered_at)
+            state.get_mutable_abstract_state(self._state).set_value(s)
+        if outcome.result is None or s.error:
+            return EventStatus.Succeeded() if not same else EventStatus.DidNothing()
+        if int(round(self._phase.Eval(context)[0])) not in self._phases:
+            return EventStatus.Succeeded() if not same else EventStatus.DidNothing()
         t = context.get_time()
         allowed = (not self._motion.HasValue(context)) or self._motion.Eval(context)[0] > 0.5
         frames = tuple(f for f in s.frames if t - f[0] <= cfg.tracking_window)
