@@ -353,6 +353,32 @@ def test_supervisor_exploration_holds_still_outside_breath_holds():
     assert s.phase == supervisor.Phase.LOCALIZE and not s.paused
 
 
+def test_a_hold_that_carries_the_kidney_out_of_view_does_not_end_exploration():
+    """The breath taken in for the first hold may move the kidney out of the image before
+    the sweep has started: it has not "left" the image (it was never in it while the probe
+    could move), so the sweep goes on until it finds the kidney, and ends when the kidney
+    leaves the image after that."""
+    c = cfg(exploration_ratio=0.5, kidney_length=0.1, visibility_debounce=0.05)
+    dt = 0.01
+    s = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0), c, dt)
+    s = supervisor.supervisor_step(s, gated(0.01, False), c, dt)
+    assert s.phase == supervisor.Phase.EXPLORE
+    t = 0.01
+    for _ in range(100):  # the hold starts with the kidney out of view: the sweep goes on
+        t += dt
+        s = supervisor.supervisor_step(s, gated(t, True, visible=False), c, dt)
+    assert s.phase == supervisor.Phase.EXPLORE and s.travel == pytest.approx(0.005, rel=0.05)
+    for _ in range(20):  # the sweep reaches the kidney
+        t += dt
+        s = supervisor.supervisor_step(s, gated(t, True), c, dt)
+    travel = s.travel
+    while s.phase == supervisor.Phase.EXPLORE and t < 5:  # and then leaves it
+        t += dt
+        s = supervisor.supervisor_step(s, gated(t, True, visible=False), c, dt)
+    assert s.phase == supervisor.Phase.LOCALIZE and "left the image" in s.events[-1][2]
+    assert s.travel < travel + 0.001
+
+
 def _to_pivot(c, dt=0.01):
     s, t = run_to_localize(c, dt)
     R_BK = RotationMatrix(RollPitchYaw(0.0, 0.0, math.pi / 2)).matrix()

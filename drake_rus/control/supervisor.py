@@ -195,6 +195,9 @@ class SupervisorState:
     # sweep nor is a segmentation loss); it has been, since visible_since, without a gap.
     awaiting_kidney: bool = False
     visible_since: float = math.nan
+    # EXPLORE: the kidney has been in the image while the probe could move (only then can
+    # it "leave the image": a breath-hold may carry it out of view before the sweep starts).
+    explore_seen: bool = False
     paused: bool = False  # exploration/pivot motion held (outside a breath-hold)
     paused_time: float = 0.0  # total time (s) motion was held
     # Re-localization after the kidney moved (``_kidney_moved``): how many so far, the
@@ -274,6 +277,7 @@ def _goto(s: SupervisorState, phase: Phase, t: float, message: str) -> Superviso
     s.phase = phase
     s.phase_start = t
     s.invisible_since = math.nan
+    s.explore_seen = False
     s.paused = False  # a pause belongs to the phase that held still
     s.events = s.events + ((t, phase.name, message),)
     return s
@@ -471,13 +475,16 @@ def _line_sweep(s, u, R, p, cfg, dt):
 
 def _explore(s, u, R, p, cfg, dt):
     """Constant orientation, eq. 17, until ER L of travel (``exploration_target``: L_m, or
-    the patient's estimated kidney length), the kidney has left the image or (adaptive) the
-    pose estimate has settled; then LOCALIZE. With ``sweep: line``: :func:`_line_sweep`."""
+    the patient's estimated kidney length), the kidney has left the image (having been in it
+    while the probe could move) or (adaptive) the pose estimate has settled; then LOCALIZE.
+    With ``sweep: line``: :func:`_line_sweep`."""
     if cfg.sweep == "line":
         return _line_sweep(s, u, R, p, cfg, dt)
     if s.reorienting:
         return _reorient(s, u, R, p, cfg, dt)
-    left = u.motion_allowed and _update_visibility(s, u, cfg.visibility_debounce)
+    if u.motion_allowed and u.kidney_visible:
+        s.explore_seen = True
+    left = u.motion_allowed and s.explore_seen and _update_visibility(s, u, cfg.visibility_debounce)
     target = exploration_target(cfg, u.kidney_length_estimate)
     if s.travel >= target - 1e-12:
         s.P_des = p[:2].copy()
