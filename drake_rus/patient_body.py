@@ -16,6 +16,7 @@ placeholder}``). The hull's triangles (a few cm across over the kidney) and the 
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import logging
 import tempfile
@@ -40,12 +41,14 @@ from pydrake.systems.primitives import ConstantVectorSource
 
 from drake_rus.anatomy.motion import (
     PatientMotion,
+    Prompt,
     breath_advance,
     breath_holding,
     breath_level,
     breath_prompted,
     breath_rate,
     breath_start,
+    scheduled_prompts,
 )
 from drake_rus.io_utils import write_text_atomic
 from drake_rus.scenario import Scenario
@@ -280,6 +283,7 @@ class BreathingPatient(LeafSystem):
         self._motion = motion
         self._cfg = motion.config.breathing
         self._prompt = self.DeclareVectorInputPort("breath_prompt", 1)
+        self._schedule, self._horizon = [], 0.0  # the patient's own holds (hold_period)
         self._state = self.DeclareAbstractState(
             AbstractValue.Make(breath_start(self._cfg, motion.seed))
         )
@@ -336,7 +340,26 @@ class BreathingPatient(LeafSystem):
         s = self.state(context)
         if self._cfg.follows_prompts and self._prompt.HasValue(context):
             s = breath_prompted(s, int(round(self._prompt.Eval(context)[0])), t, self._cfg)
+        elif self._cfg.hold_period > 0.0:
+            # Nobody prompts (or the patient does not listen): holds on their own schedule,
+            # acted on at the scheduled time (no reaction time), as BreathingProgram does.
+            when, kind = self._scheduled(t)
+            if kind != Prompt.NONE and kind != s.last_prompt:
+                s = dataclasses.replace(s, pending=kind, pending_t=when, last_prompt=kind)
         state.get_mutable_abstract_state(self._state).set_value(s)
+
+    def _scheduled(self, t: float) -> tuple[float, int]:
+        """(time, Prompt) of the patient's latest own prompt at or before t ((0, NONE) if
+        none yet)."""
+        if t >= self._horizon:
+            self._horizon = t + 600.0
+            self._schedule = scheduled_prompts(self._cfg, self._horizon)
+        latest = (0.0, Prompt.NONE)
+        for when, kind in self._schedule:
+            if when > t + 1e-9:
+                break
+            latest = (when, kind)
+        return latest
 
 
 class MovingPose(LeafSystem):

@@ -152,3 +152,35 @@ def test_patient_contact_body_moves_with_breathing_and_shift():
     for name in ("breath_hold", "respiratory_level_true", "patient_offset_true"):
         assert station.HasOutputPort(name) and not still.HasOutputPort(name)
     assert station.HasInputPort("breath_prompt") and not still.HasInputPort("breath_prompt")
+
+
+def test_a_patient_nobody_prompts_holds_on_their_own_schedule():
+    """The simulated station's patient with ``hold_period`` and no prompt heard (the
+    rehearsal's simulated side, or a patient who does not listen) holds when their schedule
+    says, as BreathingProgram does."""
+    from drake_rus.anatomy.motion import BreathingProgram
+    from drake_rus.patient_body import BreathingPatient
+
+    for listens in (True, False):
+        scenario = LoadScenario(
+            scenario_name="quick",
+            scenario_text=(
+                "{patient: {motion: {breathing: {enabled: true, amplitude: 0.015, "
+                "rate_per_min: 15, hold_period: 14, hold_duration: 6, first_hold: 5, "
+                "follows_prompts: " + ("true" if listens else "false") + "}}}}"
+            ),
+        )
+        motion = PatientMotionFor(scenario)
+        patient = BreathingPatient(motion)
+        simulator = Simulator(patient)
+        context = simulator.get_mutable_context()
+        program = BreathingProgram(scenario.patient.motion.breathing, motion.seed)
+        hold = patient.GetOutputPort("breath_hold")
+        level = patient.GetOutputPort("respiratory_level")
+        held = []
+        for t in np.arange(0.5, 30.0, 0.25) + 0.013:  # off the 10 ms update grid
+            simulator.AdvanceTo(float(t))
+            held.append(hold.Eval(context)[0] > 0.5)
+            assert held[-1] == program.holding(float(t)), t
+            assert level.Eval(context)[0] == pytest.approx(program.level(float(t)), abs=0.02)
+        assert sum(held) > 30  # two holds of ~6 s
