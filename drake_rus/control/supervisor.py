@@ -195,8 +195,9 @@ class SupervisorState:
     # sweep nor is a segmentation loss); it has been, since visible_since, without a gap.
     awaiting_kidney: bool = False
     visible_since: float = math.nan
-    # EXPLORE: the kidney has been in the image while the probe could move (only then can
-    # it "leave the image": a breath-hold may carry it out of view before the sweep starts).
+    # EXPLORE: the kidney has been in the image (for visibility_debounce) while the probe
+    # could move: only then can it "leave the image" (a breath-hold may carry it out of
+    # view before the sweep starts).
     explore_seen: bool = False
     paused: bool = False  # exploration/pivot motion held (outside a breath-hold)
     paused_time: float = 0.0  # total time (s) motion was held
@@ -482,8 +483,12 @@ def _explore(s, u, R, p, cfg, dt):
         return _line_sweep(s, u, R, p, cfg, dt)
     if s.reorienting:
         return _reorient(s, u, R, p, cfg, dt)
-    if u.motion_allowed and u.kidney_visible:
-        s.explore_seen = True
+    if u.motion_allowed and not s.explore_seen:
+        # In view where the sweep starts, or later for visibility_debounce without a gap (a
+        # glimpse of an edge passing by does not count).
+        s.explore_seen = (u.kidney_visible and s.travel == 0.0) or _came_into_view(
+            s, u, cfg.visibility_debounce
+        )
     left = u.motion_allowed and s.explore_seen and _update_visibility(s, u, cfg.visibility_debounce)
     target = exploration_target(cfg, u.kidney_length_estimate)
     if s.travel >= target - 1e-12:
