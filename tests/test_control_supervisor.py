@@ -494,6 +494,28 @@ def test_a_moved_kidney_is_localized_again_a_bounded_number_of_times():
     assert s.reason == "kidney moved: drift 9 mm (after 1 re-localizations)"
 
 
+def test_reexploration_starts_a_few_degrees_short_of_vertical_after_settling():
+    """A probe pressed on sloping skin that stops 4.5 deg short of straight down explores
+    from there after REORIENT_SETTLE s (it used to wait out the transit timeout and abort);
+    one still 10 deg off keeps turning."""
+    c = cfg(exploration_ratio=0.02, localize_hold_time=0.0, max_relocalizations=1)
+    dt = 0.01
+    for tilt_deg, explores in ((4.5, True), (10.0, False)):
+        s, t, R = _to_pivot(c, dt)
+        t += dt
+        u = dataclasses.replace(inputs(t, R=R), tracking_error="drift 9 mm")
+        s = supervisor.supervisor_step(s, u, c, dt)
+        R_short = RotationMatrix(RollPitchYaw(math.radians(tilt_deg), 0.0, 0.0)).matrix()
+        R_short = R_short @ np.column_stack([s.o_des, np.cross(s.a_des, s.o_des), s.a_des])
+        t0 = t
+        while s.reorienting and t - t0 < supervisor.REORIENT_SETTLE + 1.0:
+            t += dt
+            s = supervisor.supervisor_step(s, inputs(t, R=R_short), c, dt)
+        assert s.reorienting != explores, tilt_deg
+        if explores:
+            assert t - t0 == pytest.approx(supervisor.REORIENT_SETTLE, abs=2 * dt)
+
+
 def test_localize_waits_for_motion_allowed_and_a_breathing_error_aborts():
     """The breath-hold protocol: TRANSIT starts only in a sensed hold (motion_allowed); a
     protocol error (no hold sensed) aborts with its reason."""

@@ -870,11 +870,20 @@ def _kidney_moved(s: SupervisorState, u: SupervisorInputs, R, p, cfg) -> Supervi
     )
 
 
+# Re-exploration: a probe pressed on sloping skin may stop a few degrees short of straight
+# down; after REORIENT_SETTLE s within REORIENT_ACCEPT rad it explores from there (a sweep
+# a few degrees off the vertical sees the kidney as well).
+REORIENT_SETTLE = 3.0
+REORIENT_ACCEPT = 0.1
+
+
 def _reorient(s, u, R, p, cfg, dt):
     """Re-exploration's first stage: hold the tip still until the probe points along a_des
-    and its array along o_des (transit_angle_tolerance), then explore."""
+    and its array along o_des (transit_angle_tolerance, or REORIENT_ACCEPT once it has had
+    REORIENT_SETTLE s), then explore."""
     ang = max(angle_between(R[:, 2], s.a_des), angle_between(R[:, 0], s.o_des))
-    if ang <= cfg.transit_angle_tolerance:
+    settled = u.t - s.phase_start >= REORIENT_SETTLE and ang <= REORIENT_ACCEPT
+    if ang <= cfg.transit_angle_tolerance or settled:
         s.reorienting = False
         s.P_des = p[:2].copy()
         s.events = s.events + ((u.t, "EXPLORE", "re-exploring from the current pose"),)
