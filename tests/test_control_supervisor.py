@@ -495,12 +495,12 @@ def test_a_moved_kidney_is_localized_again_a_bounded_number_of_times():
 
 
 def test_reexploration_starts_a_few_degrees_short_of_vertical_after_settling():
-    """A probe pressed on sloping skin that stops 4.5 deg short of straight down explores
+    """A probe pressed on sloping skin that stops 4.5 or 7.3 deg short of straight down explores
     from there after REORIENT_SETTLE s (it used to wait out the transit timeout and abort);
     one still 10 deg off keeps turning."""
     c = cfg(exploration_ratio=0.02, localize_hold_time=0.0, max_relocalizations=1)
     dt = 0.01
-    for tilt_deg, explores in ((4.5, True), (10.0, False)):
+    for tilt_deg, explores in ((4.5, True), (7.3, True), (10.0, False)):
         s, t, R = _to_pivot(c, dt)
         t += dt
         u = dataclasses.replace(inputs(t, R=R), tracking_error="drift 9 mm")

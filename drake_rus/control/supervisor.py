@@ -874,7 +874,7 @@ def _kidney_moved(s: SupervisorState, u: SupervisorInputs, R, p, cfg) -> Supervi
 # down; after REORIENT_SETTLE s within REORIENT_ACCEPT rad it explores from there (a sweep
 # a few degrees off the vertical sees the kidney as well).
 REORIENT_SETTLE = 3.0
-REORIENT_ACCEPT = 0.1
+REORIENT_ACCEPT = 0.15
 
 
 def _reorient(s, u, R, p, cfg, dt):
