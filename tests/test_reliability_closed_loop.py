@@ -204,7 +204,7 @@ def test_breathing_study_tables_and_plots(tmp_path):
             "run_id": f"{p}_{c}",
             "fault": c,
             "patient": p,
-            "index": int(p[-1]),
+            "task": {"index": int(p[-1])},  # as stored: the index is the task's
             "status": st,
             "e_trans_mm": e,
             "sim_s": 30.0,

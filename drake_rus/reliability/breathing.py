@@ -306,6 +306,11 @@ def summarize(results: list[dict]) -> dict:
     return out
 
 
+def _index(r: dict) -> int:
+    """The run's patient index (a stored run keeps it in its task)."""
+    return int(r.get("index", r.get("task", {}).get("index", 0)))
+
+
 def table_markdown(results: list[dict], summary: dict) -> str:
     """breathing.md: the summary and the per-run table."""
     lines = [
@@ -338,7 +343,7 @@ def table_markdown(results: list[dict], summary: dict) -> str:
         "sim s | reason |",
         "|---|---|---|---|---|---|---|---|",
     ]
-    for r in sorted(results, key=lambda r: (CONDITIONS.index(r["fault"]), r["index"])):
+    for r in sorted(results, key=lambda r: (CONDITIONS.index(r["fault"]), _index(r))):
         lines.append(
             f"| {r['run_id']} | {r['status']} | {_fmt(r.get('e_trans_mm'))} | "
             f"{_fmt(r.get('e_trans_static_mm'))} | {r.get('relocalizations', '-')} | "
