@@ -40,6 +40,9 @@ from drake_rus.reliability.campaign import run_campaign
 from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, LoadScenario
 
 CONDITIONS = ("still", "protocol", "free", "shift")
+# Every condition checks the tracking's change from its first checks (off by default:
+# localization/config.py), so a shift along the kidney's long axis is caught too.
+TRACKING = "localization: {tracking_reference_checks: 2}"
 # The ranges drawn per patient.
 AMPLITUDE = (0.010, 0.020)  # m, craniocaudal
 AP_AMPLITUDE = (0.002, 0.006)  # m, the wall under the probe
@@ -79,21 +82,23 @@ def condition_overrides(condition: str, m: dict, index: int) -> str:
         m["rate_per_min"],
     )
     if condition == "still":
-        return "{}"
+        return "{%s}" % TRACKING
     if condition == "protocol":
         return (
-            "{respiration: {mode: breath_hold}, patient: {motion: {seed: %d, breathing: {%s}}}}"
-            % (index, breathing)
+            "{" + TRACKING + ", respiration: {mode: breath_hold}, "
+            "patient: {motion: {seed: %d, breathing: {%s}}}}" % (index, breathing)
         )
     if condition == "free":
         return (
-            "{respiration: {mode: gated}, patient: {motion: {seed: %d, breathing: {%s, "
+            "{" + TRACKING + ", respiration: {mode: gated}, patient: {motion: {seed: %d, "
+            "breathing: {%s, "
             "follows_prompts: false}}}}" % (index, breathing)
         )
     if condition == "shift":
         offset = "[" + ", ".join(f"{v:.5f}" for v in m["shift_offset"]) + "]"
         return (
-            "{patient: {motion: {seed: %d, shift: {enabled: true, time: %.3f, offset: %s, "
+            "{" + TRACKING + ", patient: {motion: {seed: %d, shift: {enabled: true, "
+            "time: %.3f, offset: %s, "
             "ramp: %.3f}}}}" % (index, m["shift_time"], offset, m["shift_ramp"])
         )
     raise ValueError(f"--conditions: unknown condition {condition!r} (one of {CONDITIONS})")
