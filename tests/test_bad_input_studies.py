@@ -73,6 +73,8 @@ BREATHING_CASES = [
     ("negative_workers", ["--workers", "-1"], "--workers"),
     ("max_sim_time_zero", ["--max-sim-time", "0"], "--max-sim-time"),
     ("max_sim_time_nan", ["--max-sim-time", "nan"], "--max-sim-time"),
+    ("max_sim_time_inf", ["--max-sim-time", "inf"], "--max-sim-time"),
+    ("max_sim_time_negative", ["--max-sim-time", "-5"], "--max-sim-time"),
 ]
 
 
