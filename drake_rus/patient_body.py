@@ -16,6 +16,7 @@ placeholder}``). The hull's triangles (a few cm across over the kidney) and the 
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import logging
 import tempfile
@@ -38,7 +39,17 @@ from pydrake.multibody.tree import PdControllerGains, PrismaticJoint, SpatialIne
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import ConstantVectorSource
 
-from drake_rus.anatomy.motion import PatientMotion
+from drake_rus.anatomy.motion import (
+    PatientMotion,
+    Prompt,
+    breath_advance,
+    breath_holding,
+    breath_level,
+    breath_prompted,
+    breath_rate,
+    breath_start,
+    scheduled_prompts,
+)
 from drake_rus.io_utils import write_text_atomic
 from drake_rus.scenario import Scenario
 
@@ -50,7 +61,7 @@ __all__ = [
     "AddPatientMotionDriver",
     "PatientMotionFor",
     "MovingPose",
-    "BreathHoldSignal",
+    "BreathingPatient",
     "PatientMotionDesiredState",
 ]
 
@@ -67,11 +78,13 @@ PATIENT_KD = 2.0 * (PATIENT_KP * PATIENT_MASS) ** 0.5
 
 def PatientMotionFor(scenario: Scenario) -> PatientMotion:
     """The patient's motion in B for ``scenario``: ``patient.motion`` along the patient's
-    superior axis (y of the patient frame Pt), seeded by (random_seed, motion.seed)."""
+    superior axis (y of the patient frame Pt) and the bed's normal (its z), seeded by
+    (random_seed, motion.seed)."""
     X_BPt = scenario.patient.X_BPt.GetDeterministicValue()
-    superior_B = X_BPt.rotation().matrix()[:, 1]
+    R = X_BPt.rotation().matrix()
     cfg = scenario.patient.motion
-    return PatientMotion(cfg, superior_B, int(scenario.random_seed) * 1000003 + int(cfg.seed))
+    seed = int(scenario.random_seed) * 1000003 + int(cfg.seed)
+    return PatientMotion(cfg, R[:, 1], seed, up_B=R[:, 2])
 
 
 def _patient_properties(scenario: Scenario) -> ProximityProperties:
@@ -254,64 +267,165 @@ def ContactHull(mesh, max_vertices: int):
     return trimesh.convex.convex_hull(v[chosen])
 
 
+class BreathingPatient(LeafSystem):
+    """The simulated patient's motion: breathing (a :class:`~drake_rus.anatomy.motion.
+    BreathState` stepped every ``period`` s, hearing the scan's prompts when
+    ``follows_prompts``) plus the rigid shift.
+
+    Input ``breath_prompt`` (1-vector, optional: a :class:`Prompt` value, what the scan
+    says to the patient). Outputs ``offset_B`` and ``velocity_B`` (3-vectors, m and m/s in
+    B: the displacement of the imaged anatomy, the true kidney and the contact body),
+    ``breath_hold`` (1-vector: 1 while holding) and ``respiratory_level`` (1-vector: u,
+    0 at end-expiration, 1 at a mean tidal inspiration). Simulation truth, all of them."""
+
+    def __init__(self, motion: PatientMotion, period: float = 0.01):
+        super().__init__()
+        self._motion = motion
+        self._cfg = motion.config.breathing
+        self._prompt = self.DeclareVectorInputPort("breath_prompt", 1)
+        self._schedule, self._horizon = [], 0.0  # the patient's own holds (hold_period)
+        self._state = self.DeclareAbstractState(
+            AbstractValue.Make(breath_start(self._cfg, motion.seed))
+        )
+        self.DeclarePeriodicUnrestrictedUpdateEvent(period, 0.0, self._update)
+        deps = {self.abstract_state_ticket(self._state), self.time_ticket()}
+        self.DeclareVectorOutputPort(
+            "offset_B",
+            3,
+            lambda c, o: o.SetFromVector(self._motion.offset_at(self.level(c), c.get_time())),
+            prerequisites_of_calc=deps,
+        )
+        self.DeclareVectorOutputPort(
+            "velocity_B",
+            3,
+            lambda c, o: o.SetFromVector(self._motion.velocity_at(self.rate(c), c.get_time())),
+            prerequisites_of_calc=deps,
+        )
+        self.DeclareVectorOutputPort(
+            "breath_hold",
+            1,
+            lambda c, o: o.SetAtIndex(0, float(self._enabled and breath_holding(self.state(c)))),
+            prerequisites_of_calc=deps,
+        )
+        self.DeclareVectorOutputPort(
+            "respiratory_level",
+            1,
+            lambda c, o: o.SetAtIndex(0, self.level(c)),
+            prerequisites_of_calc=deps,
+        )
+
+    @property
+    def _enabled(self) -> bool:
+        return self._cfg.enabled
+
+    def state(self, context):
+        """The breathing state, advanced to the context's time."""
+        s = context.get_abstract_state(self._state).get_value()
+        return breath_advance(s, context.get_time(), self._cfg, self._motion.seed)
+
+    def level(self, context) -> float:
+        if not self._enabled:
+            return 0.0
+        return breath_level(self.state(context), context.get_time(), self._cfg)
+
+    def rate(self, context) -> float:
+        if not self._enabled:
+            return 0.0
+        return breath_rate(self.state(context), context.get_time(), self._cfg)
+
+    def _update(self, context, state):
+        if not self._enabled:
+            return
+        t = context.get_time()
+        s = self.state(context)
+        if self._cfg.follows_prompts and self._prompt.HasValue(context):
+            s = breath_prompted(s, int(round(self._prompt.Eval(context)[0])), t, self._cfg)
+        elif self._cfg.hold_period > 0.0:
+            # Nobody prompts (or the patient does not listen): holds on their own schedule,
+            # acted on at the scheduled time (no reaction time), as BreathingProgram does.
+            when, kind = self._scheduled(t)
+            if kind != Prompt.NONE and kind != s.last_prompt:
+                s = dataclasses.replace(s, pending=kind, pending_t=when, last_prompt=kind)
+        state.get_mutable_abstract_state(self._state).set_value(s)
+
+    def _scheduled(self, t: float) -> tuple[float, int]:
+        """(time, Prompt) of the patient's latest own prompt at or before t ((0, NONE) if
+        none yet)."""
+        if t >= self._horizon:
+            self._horizon = t + 600.0
+            self._schedule = scheduled_prompts(self._cfg, self._horizon)
+        latest = (0.0, Prompt.NONE)
+        for when, kind in self._schedule:
+            if when > t + 1e-9:
+                break
+            latest = (when, kind)
+        return latest
+
+
 class MovingPose(LeafSystem):
-    """Output ``X`` (abstract RigidTransform): translate(offset_B(t)) * X0, a pose moving
-    with the patient (the true kidney pose of a breathing patient)."""
+    """Output ``X`` (abstract RigidTransform): translate(offset_B) * X0, a pose moving with
+    the patient (the true kidney pose of a breathing patient). Input ``offset_B`` (3-vector,
+    m in B; optional: unconnected, ``motion.offset_B(t)`` of a patient nobody prompts)."""
 
     def __init__(self, X0: RigidTransform, motion: PatientMotion):
         super().__init__()
         self._X0 = RigidTransform(X0)
         self._motion = motion
+        self._offset = self.DeclareVectorInputPort("offset_B", 3)
         self.DeclareAbstractOutputPort(
             "X",
             lambda: AbstractValue.Make(RigidTransform()),
-            lambda c, o: o.set_value(
-                RigidTransform(self._motion.offset_B(c.get_time())) @ self._X0
-            ),
-            prerequisites_of_calc={self.time_ticket()},
+            lambda c, o: o.set_value(RigidTransform(self._offset_of(c)) @ self._X0),
+            prerequisites_of_calc={self.time_ticket(), self.all_input_ports_ticket()},
         )
+
+    def _offset_of(self, context):
+        if self._offset.HasValue(context):
+            return np.asarray(self._offset.Eval(context), float)
+        return self._motion.offset_B(context.get_time())
 
 
 class PatientMotionDesiredState(LeafSystem):
-    """Output ``desired_state`` (6-vector): [offset_B(t), d offset_B/dt] (m, m/s), the
-    desired state of the patient body's x-y-z prismatic joints (base frame axes)."""
+    """Output ``desired_state`` (6-vector): [offset_B, d offset_B/dt] (m, m/s), the desired
+    state of the patient body's x-y-z prismatic joints (base frame axes). Inputs
+    ``offset_B``, ``velocity_B`` (3-vectors; optional: unconnected, those of a patient
+    nobody prompts)."""
 
     def __init__(self, motion: PatientMotion):
         super().__init__()
         self._motion = motion
+        self._offset = self.DeclareVectorInputPort("offset_B", 3)
+        self._velocity = self.DeclareVectorInputPort("velocity_B", 3)
         self.DeclareVectorOutputPort(
             "desired_state",
             6,
-            lambda c, o: o.SetFromVector(
-                np.concatenate(
-                    [self._motion.offset_B(c.get_time()), self._motion.velocity_B(c.get_time())]
-                )
-            ),
-            prerequisites_of_calc={self.time_ticket()},
+            self._calc,
+            prerequisites_of_calc={self.time_ticket(), self.all_input_ports_ticket()},
         )
 
-
-class BreathHoldSignal(LeafSystem):
-    """Output ``breath_hold`` (1-vector): 1.0 while the patient holds their breath (what a
-    respiratory belt or the operator's pedal reports on a real setup)."""
-
-    def __init__(self, motion: PatientMotion):
-        super().__init__()
-        self._motion = motion
-        self.DeclareVectorOutputPort(
-            "breath_hold",
-            1,
-            lambda c, o: o.SetAtIndex(0, float(self._motion.breath_hold(c.get_time()))),
-            prerequisites_of_calc={self.time_ticket()},
-        )
+    def _calc(self, context, output):
+        t = context.get_time()
+        if self._offset.HasValue(context):
+            x = np.concatenate([self._offset.Eval(context), self._velocity.Eval(context)])
+        else:
+            x = np.concatenate([self._motion.offset_B(t), self._motion.velocity_B(t)])
+        output.SetFromVector(x)
 
 
 def AddPatientMotionDriver(
-    builder: DiagramBuilder, plant: MultibodyPlant, motion: PatientMotion, instance
+    builder: DiagramBuilder,
+    plant: MultibodyPlant,
+    motion: PatientMotion,
+    instance,
+    patient: BreathingPatient | None = None,
 ) -> None:
     """Drives the moving patient body: desired state = the patient displacement of the
-    imaging chain (the same PatientMotion), gravity fed forward."""
+    imaging chain (``patient``'s outputs, or the same PatientMotion nobody prompts), gravity
+    fed forward."""
     desired = builder.AddNamedSystem("patient_motion", PatientMotionDesiredState(motion))
+    if patient is not None:
+        builder.Connect(patient.GetOutputPort("offset_B"), desired.GetInputPort("offset_B"))
+        builder.Connect(patient.GetOutputPort("velocity_B"), desired.GetInputPort("velocity_B"))
     builder.Connect(desired.get_output_port(), plant.get_desired_state_input_port(instance))
     mass = sum(plant.get_body(b).default_mass() for b in plant.GetBodyIndices(instance))
     g = float(np.linalg.norm(plant.gravity_field().gravity_vector()))

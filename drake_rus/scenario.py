@@ -27,7 +27,7 @@ from drake_rus.config_schema import (
     schema_transform,
     validate,
 )
-from drake_rus.control.config import ControllerConfig, SafetyConfig
+from drake_rus.control.config import ControllerConfig, RespirationConfig, SafetyConfig
 from drake_rus.hardware.config import HardwareConfig
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.localization.config import LocalizationConfig
@@ -247,6 +247,8 @@ class Scenario:
     start: StartConfig = field(default_factory=StartConfig)
     controller: ControllerConfig = field(default_factory=ControllerConfig)
     safety: SafetyConfig = field(default_factory=SafetyConfig)
+    # How the scan copes with a breathing patient (the breath-hold protocol, gating).
+    respiration: RespirationConfig = field(default_factory=RespirationConfig)
     # The scan's checks of its own result before it says DONE (scan/verdict.py).
     verdict: VerdictConfig = field(default_factory=VerdictConfig)
     # Where perception runs and when its results count (beside the control loop).

@@ -13,8 +13,10 @@ estimated from ``tau_external`` through the probe Jacobian, the same formula as 
 (pressing into the body gives f_z < 0; ``drake_rus.robot.contact_force_along_approach``
 returns the paper's F_z > 0); ``us_image`` exists when a patient with a label volume is on the
 bed. Simulation truth (``label_image``, ``X_BK_true``, ``probe_contact_wrench_true``,
-``contact_results``, ``plant_state``, ``breath_hold``) is for metrics and tests and is never
-wired into a controller.
+``contact_results``, ``plant_state``, ``breath_hold``, ``respiratory_level_true``,
+``patient_offset_true``) is for metrics and tests and is never wired into a controller. A
+breathing patient hears the scan through the input ``breath_prompt`` (a real patient hears
+the operator or the spoken prompt).
 
 Fault injection wraps this station from outside (``drake_rus.reliability.station``): the only
 hook is ``label_image_hook``, a filter on the label frames before the ultrasound emulator.
@@ -63,7 +65,7 @@ from drake_rus.imaging.chain import AddImagingChain, LabelImageHook
 from drake_rus.patient_body import (
     AddPatientBody,
     AddPatientMotionDriver,
-    BreathHoldSignal,
+    BreathingPatient,
     MovingPose,
     PatientMotionFor,
 )
@@ -344,6 +346,13 @@ def MakeSimStation(
     builder.Connect(plant.get_contact_results_output_port(), truth.get_input_port(0))
     builder.Connect(fk.get_output_port(), truth.get_input_port(1))
 
+    # The patient's motion (breathing, hearing the scan's prompts, and a shift): one system
+    # every moving part reads.
+    breathing = None
+    if motion.moves:
+        breathing = builder.AddNamedSystem(
+            "breathing_patient", BreathingPatient(motion, scenario.contact.time_step)
+        )
     if patient is not None:
         X_BPt = scenario.patient.X_BPt.GetDeterministicValue()
         volume = patient.labels
@@ -356,6 +365,7 @@ def MakeSimStation(
             seed=scenario.random_seed,
             motion=motion if motion.moves else None,
             label_image_hook=label_image_hook,
+            offset_port=None if breathing is None else breathing.GetOutputPort("offset_B"),
         )
         builder.ExportOutput(chain.us_image, "us_image")
         builder.ExportOutput(chain.label_image, "label_image")
@@ -366,12 +376,26 @@ def MakeSimStation(
             if motion.moves
             else ConstantValueSource(AbstractValue.Make(X_BK)),
         )
+        if breathing is not None:
+            builder.Connect(
+                breathing.GetOutputPort("offset_B"), kidney_pose.GetInputPort("offset_B")
+            )
         builder.ExportOutput(kidney_pose.get_output_port(), "X_BK_true")
         if "instance" in patient_parts:
-            AddPatientMotionDriver(builder, plant, motion, patient_parts["instance"])
-    if scenario.patient.motion.breathing.enabled:
-        hold = builder.AddNamedSystem("breath_hold", BreathHoldSignal(motion))
-        builder.ExportOutput(hold.get_output_port(), "breath_hold")
+            AddPatientMotionDriver(
+                builder, plant, motion, patient_parts["instance"], patient=breathing
+            )
+    if breathing is not None:
+        # Simulation truth: the patient's displacement and breathing. The prompt input is
+        # what the patient hears (the scan's breath_prompt; a real patient hears the
+        # operator or the spoken prompt).
+        builder.ExportOutput(breathing.GetOutputPort("offset_B"), "patient_offset_true")
+        if scenario.patient.motion.breathing.enabled:
+            builder.ExportOutput(breathing.GetOutputPort("breath_hold"), "breath_hold")
+            builder.ExportOutput(
+                breathing.GetOutputPort("respiratory_level"), "respiratory_level_true"
+            )
+            builder.ExportInput(breathing.GetInputPort("breath_prompt"), "breath_prompt")
 
     if meshcat is not None:
         MeshcatVisualizer.AddToBuilder(

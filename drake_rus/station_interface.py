@@ -44,8 +44,9 @@ class StationPort:
     (the class name). ``stations``: which stations export it; ``condition``: when a station
     exports it only in some configurations (then it is optional there). ``group``:
     ``command``, ``robot`` (what the robot senses; fault injection may corrupt these),
-    ``imaging``, ``truth`` (simulation ground truth: never wired into a controller) or
-    ``hardware`` (the real robot's own status)."""
+    ``imaging``, ``truth`` (simulation ground truth: never wired into a controller),
+    ``patient`` (what the simulated patient hears) or ``hardware`` (the real robot's own
+    status)."""
 
     name: str
     direction: str  # "in" or "out"
@@ -185,8 +186,44 @@ STATION_PORTS: tuple[StationPort, ...] = (
         1,
         "1",
         "",
-        "1 during a breath-hold of a patient who breathes with holds",
+        "1 while the simulated patient holds their breath",
         "truth",
+        stations=(SIM,),
+        condition="patient.motion.breathing.enabled",
+    ),
+    StationPort(
+        "respiratory_level_true",
+        "out",
+        1,
+        "1",
+        "",
+        "the simulated patient's respiratory level: 0 at end-expiration, 1 at a mean tidal "
+        "inspiration",
+        "truth",
+        stations=(SIM,),
+        condition="patient.motion.breathing.enabled",
+    ),
+    StationPort(
+        "patient_offset_true",
+        "out",
+        3,
+        "m",
+        "B",
+        "displacement of the simulated patient's anatomy (breathing and shift)",
+        "truth",
+        stations=(SIM,),
+        condition="patient.motion (breathing or shift) enabled",
+    ),
+    StationPort(
+        "breath_prompt",
+        "in",
+        1,
+        "1",
+        "",
+        "what the scan tells the simulated patient (motion.Prompt: 0 nothing, 1 breathe in "
+        "and hold, 2 breathe out and hold, 3 breathe normally); a real patient hears the "
+        "operator or the spoken prompt",
+        "patient",
         stations=(SIM,),
         condition="patient.motion.breathing.enabled",
     ),

@@ -154,7 +154,7 @@ SCENARIO_CASES = [
     ),
     (
         "first_hold_after_half_a_breath",
-        "{patient: {motion: {breathing: {enabled: true, first_hold: 0.5}}}}",
+        "{patient: {motion: {breathing: {enabled: true, hold_period: 12, first_hold: 0.5}}}}",
         ["patient.motion.breathing.first_hold"],
     ),
     (

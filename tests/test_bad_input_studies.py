@@ -68,13 +68,13 @@ def test_equivalence_margin_must_be_positive(tmp_path, capsys, case, args, flag)
 
 
 BREATHING_CASES = [
-    ("rate_zero", ["--rate", "0"], "--rate"),  # was: failed runs a --rate 15 rerun reused
-    ("rate_high", ["--rate", "100"], "--rate"),
-    ("rate_nan", ["--rate", "nan"], "--rate"),
-    ("amplitude_zero", ["--amplitude", "0"], "--amplitude"),
-    ("hold_period_zero", ["--hold-period", "0"], "--hold-period"),
-    ("hold_longer_than_period", ["--hold-period", "8", "--hold-duration", "9"], "--hold-duration"),
-    ("hold_zero", ["--hold-duration", "0"], "--hold-duration"),
+    ("unknown_condition", ["--conditions", "still,apnea"], "--conditions"),
+    ("no_condition", ["--conditions", ","], "--conditions"),
+    ("negative_workers", ["--workers", "-1"], "--workers"),
+    ("max_sim_time_zero", ["--max-sim-time", "0"], "--max-sim-time"),
+    ("max_sim_time_nan", ["--max-sim-time", "nan"], "--max-sim-time"),
+    ("max_sim_time_inf", ["--max-sim-time", "inf"], "--max-sim-time"),
+    ("max_sim_time_negative", ["--max-sim-time", "-5"], "--max-sim-time"),
 ]
 
 

@@ -353,8 +353,48 @@ def test_supervisor_exploration_holds_still_outside_breath_holds():
     assert s.phase == supervisor.Phase.LOCALIZE and not s.paused
 
 
+def test_a_hold_that_carries_the_kidney_out_of_view_does_not_end_exploration():
+    """The breath taken in for the first hold may move the kidney out of the image before
+    the sweep has started: it has not "left" the image (it was never in it while the probe
+    could move), so the sweep goes on until it finds the kidney, and ends when the kidney
+    leaves the image after that."""
+    c = cfg(exploration_ratio=0.5, kidney_length=0.1, visibility_debounce=0.05)
+    dt = 0.01
+    s = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0), c, dt)
+    s = supervisor.supervisor_step(s, gated(0.01, False), c, dt)
+    assert s.phase == supervisor.Phase.EXPLORE
+    t = 0.01
+    for k in range(100):  # the hold starts with the kidney out of view: the sweep goes on
+        t += dt
+        glimpse = k == 50  # an edge in one frame is not the kidney in view
+        s = supervisor.supervisor_step(s, gated(t, True, visible=glimpse), c, dt)
+    assert s.phase == supervisor.Phase.EXPLORE and s.travel == pytest.approx(0.005, rel=0.05)
+    for _ in range(20):  # the sweep reaches the kidney
+        t += dt
+        s = supervisor.supervisor_step(s, gated(t, True), c, dt)
+    travel = s.travel
+    while s.phase == supervisor.Phase.EXPLORE and t < 5:  # and then leaves it
+        t += dt
+        s = supervisor.supervisor_step(s, gated(t, True, visible=False), c, dt)
+    assert s.phase == supervisor.Phase.LOCALIZE and "left the image" in s.events[-1][2]
+    assert s.travel < travel + 0.001
+
+
 def _to_pivot(c, dt=0.01):
     s, t = run_to_localize(c, dt)
+    R_BK = RotationMatrix(RollPitchYaw(0.0, 0.0, math.pi / 2)).matrix()
+    p_BK = np.array([0.55, 0.0, 0.0])
+    t += 1.0
+    s = supervisor.supervisor_step(s, inputs(t, R_BK=R_BK, p_BK=p_BK), c, dt)
+    R_star, _ = supervisor.optimal_pivot_pose(R_BK, p_BK)
+    t += dt
+    s = supervisor.supervisor_step(s, inputs(t, p=(0.55, 0.0, 0.1), R=R_star), c, dt)
+    assert s.phase == supervisor.Phase.PIVOT
+    return s, t, R_star
+
+
+def _finish_to_pivot(s, t, c, dt=0.01):
+    """From LOCALIZE: a kidney pose, TRANSIT at p*, PIVOT (as _to_pivot)."""
     R_BK = RotationMatrix(RollPitchYaw(0.0, 0.0, math.pi / 2)).matrix()
     p_BK = np.array([0.55, 0.0, 0.0])
     t += 1.0
@@ -398,7 +438,7 @@ def test_supervisor_pivot_ramps_to_rest_outside_breath_holds_and_resumes():
 
 
 def test_supervisor_aborts_when_the_kidney_moved_after_localization():
-    c = cfg(exploration_ratio=0.02, localize_hold_time=0.0)
+    c = cfg(exploration_ratio=0.02, localize_hold_time=0.0, max_relocalizations=0)
     dt = 0.01
     s, t, R = _to_pivot(c, dt)
     t += dt
@@ -412,6 +452,92 @@ def test_supervisor_aborts_when_the_kidney_moved_after_localization():
         s2, dataclasses.replace(inputs(0.01), tracking_error="x"), c, dt
     )
     assert s2.phase == supervisor.Phase.EXPLORE
+
+
+def test_a_moved_kidney_is_localized_again_a_bounded_number_of_times():
+    """A tracking error in PIVOT starts a re-exploration from where the probe is (first
+    turning it straight down and transverse, the cloud cleared, a new localization round);
+    the next one after max_relocalizations aborts."""
+    c = cfg(exploration_ratio=0.02, localize_hold_time=0.0, max_relocalizations=1)
+    dt = 0.01
+    s, t, R = _to_pivot(c, dt)
+    assert s.localization_round == 0
+    t += dt
+    u = dataclasses.replace(inputs(t, R=R), tracking_error="drift 9 mm")
+    s = supervisor.supervisor_step(s, u, c, dt)
+    assert s.phase == supervisor.Phase.EXPLORE and s.reorienting
+    assert s.localization_round == 1 and s.relocalizations == 1
+    assert "re-localizing (1 of 1)" in s.events[-1][2]
+    assert not supervisor.segmentation_required(s)
+    np.testing.assert_allclose(s.a_des, [0.0, 0.0, -1.0])
+    assert abs(s.o_des[1]) < 1e-9  # transverse: across the body (base x)
+    # Still until the probe is turned (the pivot left it tilted): no travel.
+    y0 = s.P_des[1]
+    for _ in range(5):
+        t += dt
+        s = supervisor.supervisor_step(s, inputs(t, R=R), c, dt)
+    assert s.reorienting and s.travel == 0.0 and s.P_des[1] == y0
+    # Turned: it explores again, then localizes with the new round.
+    R_transverse = np.column_stack([s.o_des, np.cross(s.a_des, s.o_des), s.a_des])
+    for _ in range(400):
+        t += dt
+        s = supervisor.supervisor_step(s, inputs(t, R=R_transverse), c, dt)
+        if s.phase != supervisor.Phase.EXPLORE:
+            break
+    assert not s.reorienting and s.phase == supervisor.Phase.LOCALIZE and s.travel > 0
+    s, t, R = _finish_to_pivot(s, t, c, dt)
+    t += dt
+    s = supervisor.supervisor_step(
+        s, dataclasses.replace(inputs(t, R=R), tracking_error="drift 9 mm"), c, dt
+    )
+    assert s.phase == supervisor.Phase.ABORT
+    assert s.reason == "kidney moved: drift 9 mm (after 1 re-localizations)"
+
+
+def test_reexploration_starts_a_few_degrees_short_of_vertical_after_settling():
+    """A probe pressed on sloping skin that stops 4.5 or 7.3 deg short of straight down explores
+    from there after REORIENT_SETTLE s (it used to wait out the transit timeout and abort);
+    one still 10 deg off keeps turning."""
+    c = cfg(exploration_ratio=0.02, localize_hold_time=0.0, max_relocalizations=1)
+    dt = 0.01
+    for tilt_deg, explores in ((4.5, True), (7.3, True), (10.0, False)):
+        s, t, R = _to_pivot(c, dt)
+        t += dt
+        u = dataclasses.replace(inputs(t, R=R), tracking_error="drift 9 mm")
+        s = supervisor.supervisor_step(s, u, c, dt)
+        R_short = RotationMatrix(RollPitchYaw(math.radians(tilt_deg), 0.0, 0.0)).matrix()
+        R_short = R_short @ np.column_stack([s.o_des, np.cross(s.a_des, s.o_des), s.a_des])
+        t0 = t
+        while s.reorienting and t - t0 < supervisor.REORIENT_SETTLE + 1.0:
+            t += dt
+            s = supervisor.supervisor_step(s, inputs(t, R=R_short), c, dt)
+        assert s.reorienting != explores, tilt_deg
+        if explores:
+            assert t - t0 == pytest.approx(supervisor.REORIENT_SETTLE, abs=2 * dt)
+
+
+def test_localize_waits_for_motion_allowed_and_a_breathing_error_aborts():
+    """The breath-hold protocol: TRANSIT starts only in a sensed hold (motion_allowed); a
+    protocol error (no hold sensed) aborts with its reason."""
+    c = cfg(exploration_ratio=0.02, localize_hold_time=0.0)
+    dt = 0.01
+    s = supervisor.SupervisorState()
+    t = 0.0
+    while s.phase != supervisor.Phase.LOCALIZE:
+        s = supervisor.supervisor_step(s, inputs(t), c, dt)
+        t += dt
+    R_BK, p_BK = np.eye(3), np.array([0.55, 0.0, 0.05])
+    for _ in range(50):
+        u = dataclasses.replace(inputs(t, R_BK=R_BK, p_BK=p_BK), motion_allowed=False)
+        s = supervisor.supervisor_step(s, u, c, dt)
+        t += dt
+    assert s.phase == supervisor.Phase.LOCALIZE
+    s = supervisor.supervisor_step(s, inputs(t, R_BK=R_BK, p_BK=p_BK), c, dt)
+    assert s.phase == supervisor.Phase.TRANSIT
+    u = dataclasses.replace(inputs(t + dt), breathing_error="no breath-hold sensed")
+    s = supervisor.supervisor_step(s, u, c, dt)
+    assert s.phase == supervisor.Phase.ABORT
+    assert s.reason == "breath-hold protocol: no breath-hold sensed"
 
 
 def test_approach_without_contact_aborts_after_the_travel_limit():

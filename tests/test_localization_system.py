@@ -341,3 +341,55 @@ def test_icp_localizer_length_fits_start_from_the_previous_one(template, warm, m
         assert starts[1] == (None, None)
     length = system.GetOutputPort("kidney_length_estimate").Eval(context)[0]
     assert length == pytest.approx(np.ptp(K[:, 0]), abs=0.004)
+
+
+def test_relocalization_registers_anew_through_the_executor(template):
+    """A new localization round (the supervisor re-localizes) drops the estimate and submits
+    a new registration to the executor's fits lane, like the first one: not ready until the
+    lane's latency has passed (the supervisor holds still in LOCALIZE meanwhile), then the
+    new pose, stamped with the new round."""
+    from pydrake.systems.analysis import Simulator
+
+    from drake_rus.executor import InlineExecutor
+
+    executor = InlineExecutor({"frames": 0.0, "fits": 0.3})
+    X_BK, P = partial_cloud(template)
+    phase = supervisor.Phase.LOCALIZE
+    system = IcpLocalizer(
+        template,
+        LocalizationConfig(method="seed"),
+        SUPERIOR_B,
+        LATERAL_B,
+        localize_phase=int(phase),
+        executor=executor,
+    )
+    simulator = Simulator(system)
+    context = simulator.get_mutable_context()
+    system.GetInputPort("point_cloud").FixValue(context, _cloud(P, 0.04))
+    system.GetInputPort("phase").FixValue(context, [float(phase)])
+    system.GetInputPort("localization_round").FixValue(context, [0.0])
+    ready = system.GetOutputPort("localization_ready")
+    outcome = system.GetOutputPort("localization")
+    simulator.AdvanceTo(0.2)
+    assert ready.Eval(context)[0] == 0.0  # asked for, not back yet
+    simulator.AdvanceTo(0.5)
+    assert ready.Eval(context)[0] == 1.0 and outcome.Eval(context).round == 0
+    first = outcome.Eval(context)
+    # The kidney moved 12 mm along the body; the re-exploration saw it there.
+    shifted = P + 0.012 * np.asarray(SUPERIOR_B)
+    system.GetInputPort("phase").FixValue(context, [float(supervisor.Phase.EXPLORE)])
+    system.GetInputPort("localization_round").FixValue(context, [1.0])
+    simulator.AdvanceTo(0.6)
+    assert ready.Eval(context)[0] == 0.0 and outcome.Eval(context).round == 1
+    system.GetInputPort("point_cloud").FixValue(context, _cloud(shifted, 0.04))
+    system.GetInputPort("phase").FixValue(context, [float(phase)])
+    simulator.AdvanceTo(0.75)
+    assert ready.Eval(context)[0] == 0.0  # the new registration is running
+    simulator.AdvanceTo(1.1)
+    second = outcome.Eval(context)
+    assert ready.Eval(context)[0] == 1.0 and second.round == 1
+    assert second.ready_time - second.time == pytest.approx(0.3, abs=0.06)
+    assert second.time > first.ready_time
+    moved = second.result.X_BK.translation() - first.result.X_BK.translation()
+    assert np.linalg.norm(moved - 0.012 * np.asarray(SUPERIOR_B)) < 2e-3
+    assert executor.statistics()["registration"]["count"] == 2

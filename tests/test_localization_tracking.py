@@ -358,3 +358,47 @@ def test_estimate_drift_reuses_neighbours_with_the_kd_trees_answer(
     assert fast.rms_residual == plain.rms_residual
     assert (fast.n_frames_used, fast.n_frames) == (plain.n_frames_used, plain.n_frames) == (8, 10)
     assert fast.magnitude > 0.002
+
+
+def test_a_latched_error_clears_when_the_kidney_is_localized_again(template):
+    """The error that started a re-localization must not meet the new registration: it
+    clears as soon as the localizer drops its estimate (in EXPLORE, outside the checked
+    phases), and the new registration is checked afresh (the history is kept)."""
+    from pydrake.systems.analysis import Simulator
+
+    imaging = ImagingConfig()
+    geometry = ProbeGeometry.from_config(imaging)
+    monitor = KidneyTrackingMonitor(template, LocalizationConfig(), imaging, [4])
+    sim = Simulator(monitor)
+    ctx = sim.get_mutable_context()
+    R_KP = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+    X_BP = X_BK.multiply(RigidTransform(RotationMatrix(R_KP), [0.0, 0.0, 0.06]))
+    period = 1.0 / imaging.frame_rate_hz
+    k = 0
+
+    def run(outcome, phase, shift_B, seconds):
+        nonlocal k
+        monitor.GetInputPort("localization").FixValue(ctx, outcome)
+        monitor.GetInputPort("phase").FixValue(ctx, [float(phase)])
+        section = long_axis_slab(template, 0.0015) + np.asarray(shift_B)
+        pixels, _ = geometry.B_to_pixel(section, X_BP)
+        for _ in range(int(seconds / period)):
+            monitor.GetInputPort("boundary_pixels").FixValue(
+                ctx, BoundaryPixels(pixels, k * period, X_BP, k)
+            )
+            k += 1
+            sim.AdvanceTo(k * period)
+        return monitor.state(ctx), monitor.GetOutputPort("tracking_error").Eval(ctx)
+
+    first = LocalizationOutcome(result=_result(), time=0.0)
+    lateral = X_BK.rotation().matrix()[:, 2] * 0.02
+    state, error = run(first, 4, lateral, 2.0)
+    assert "from its registered pose" in error
+    n_checks = len(state.history)
+    state, error = run(LocalizationOutcome(round=1), 1, lateral, 0.2)  # re-exploring
+    assert error == "" and state.frames == () and len(state.history) == n_checks
+    # Re-registered where the kidney now is: checked afresh, consistent.
+    moved = RigidTransform(X_BK.rotation(), X_BK.translation() + lateral)
+    second = LocalizationOutcome(result=dataclasses.replace(_result(), X_BK=moved), time=5.0)
+    state, error = run(second, 4, lateral, 2.0)
+    assert error == "" and state.registered_at == 5.0 and len(state.history) > n_checks

@@ -20,36 +20,46 @@ from drake_rus.scenario import LoadScenario
 from drake_rus.stations import MakeStation
 
 
-def test_breathing_amplitude_rate_and_holds():
+def test_scheduled_holds_the_level_and_continuity():
+    """A patient on their own schedule of holds: each hold at its level (inspiration:
+    hold_depth, within hold_reproducibility; expiration: end-expiration) for
+    hold_duration s, drifting cranially by hold_drift; the displacement is continuous."""
     cfg = BreathingConfig(
         enabled=True,
         amplitude=0.012,
         rate_per_min=15.0,
         hold_period=12.0,
-        hold_duration=8.0,
+        hold_duration=6.0,
+        first_hold=4.0,
         hold_reproducibility=0.003,
     )
-    t = np.arange(0.0, 60.0, 0.001)
-    d = np.array([M.breathing_displacement(x, cfg, seed=3) for x in t])
-    hold = np.array([M.breath_hold(x, cfg) for x in t])
-    # Continuous: no 1 ms step beyond twice the peak breathing speed A pi f (one breath per
-    # 4 s of free breathing), bounded by amplitude + hold offset.
-    peak_speed = 0.012 * math.pi * 0.25
-    assert np.max(np.abs(np.diff(d))) < 2 * peak_speed * 0.001
-    assert d.min() >= 0.0 and d.max() <= 0.012 + 0.003 + 1e-12
-    assert d.max() > 0.0119
-    # Holds: 8 of every 12 s, still and within the reproducibility of end-expiration.
-    assert hold.mean() == pytest.approx(8 / 12, abs=0.01)
-    assert np.all(d[hold] <= 0.003)
-    for a, b in M.hold_windows(60.0, cfg):
+    t = np.arange(0.0, 60.0, 0.01)
+    program = M.BreathingProgram(cfg, 3)
+    d = np.array([cfg.amplitude * program.level(x) for x in t])
+    hold = np.array([program.holding(x) for x in t])
+    # 6 s every 12 s from 4 s, less the breath in to each hold.
+    assert 0.25 < hold.mean() < 0.5
+    assert M.breathing_displacement(30.0, cfg, seed=3) == pytest.approx(d[3000])
+    # Continuous: no 10 ms step beyond the fastest breath's speed.
+    assert np.max(np.abs(np.diff(d))) < 0.012 * 2.0 * 4 * math.pi / 4.0 * 0.01
+    windows = M.hold_windows(60.0, cfg, seed=3)
+    assert len(windows) >= 4
+    for a, b in windows:
         seg = d[(t >= a) & (t < b)]
-        assert np.ptp(seg) == 0.0
-    # Free breathing only: 15 breaths/min peaks every 4 s.
+        # A hold breathed in: at the mean tidal depth within the reproducibility, and
+        # drifting cranially (the displacement decreasing) by at most 1.5 x hold_drift.
+        assert abs(seg[0] - cfg.hold_depth * 0.012) <= 0.003 + 1e-9
+        assert 0.0 <= seg[0] - seg[-1] <= 1.5 * cfg.hold_drift * (b - a) + 1e-9
+        assert b - a <= cfg.hold_duration + 0.01
+    out = dataclasses.replace(cfg, hold_level="expiration")
+    for a, b in M.hold_windows(60.0, out, seed=3):
+        assert abs(M.breathing_displacement(a + 0.5, out, seed=3)) <= 0.003 + 0.002
+    # Free breathing only: no holds; breaths of about a period, each from end-expiration.
     free = dataclasses.replace(cfg, hold_period=0.0)
-    assert M.breathing_displacement(2.0, free) == pytest.approx(0.012)
-    assert M.breathing_displacement(4.0, free) == pytest.approx(0.0, abs=1e-12)
+    assert M.hold_windows(60.0, free) == []
+    assert M.breathing_displacement(0.0, free) == pytest.approx(0.0)
     assert not M.breath_hold(1.0, free)
-    assert M.breath_hold(1.0, BreathingConfig(enabled=False))
+    assert not M.breath_hold(1.0, BreathingConfig(enabled=False))
 
 
 def test_patient_shift_ramps_to_offset():
@@ -71,7 +81,14 @@ def test_slice_sensor_sees_the_kidney_move_with_the_patient(geometry):
     motion = M.PatientMotion(
         M.PatientMotionConfig(
             breathing=BreathingConfig(
-                enabled=True, amplitude=0.01, rate_per_min=15.0, hold_period=0.0
+                enabled=True,
+                amplitude=0.01,
+                ap_amplitude=0.0,
+                rate_per_min=15.0,
+                rate_cv=0.0,
+                amplitude_cv=0.0,
+                end_expiration_sd=0.0,
+                shape_exponent=1.0,
             )
         ),
         [-1.0, 0.0, 0.0],
@@ -122,14 +139,48 @@ def test_patient_contact_body_moves_with_breathing_and_shift():
     station.GetInputPort("joint_velocity_command").FixValue(context, np.zeros(7))
     motion = PatientMotionFor(scenario)
     moved = []
-    for t in (0.5, 1.2):
+    for t in (0.5, 1.6):
         simulator.AdvanceTo(t)
         x = station.GetOutputPort("plant_state").Eval(context)
         q_patient = x[7 : len(x) // 2]
         want = motion.offset_B(t)
-        assert np.linalg.norm(want) > 0.004
+        assert np.linalg.norm(want) > (0.0005 if t < 0.6 else 0.004)
         np.testing.assert_allclose(q_patient, want, atol=0.001)
         moved.append(q_patient)
     assert moved[1][0] == pytest.approx(0.01, abs=0.001)  # the shift along x
-    # A breathing patient's station reports breath-holds; a still one's does not.
-    assert station.HasOutputPort("breath_hold") and not still.HasOutputPort("breath_hold")
+    # A breathing patient's station reports its truth and hears prompts; a still one's not.
+    for name in ("breath_hold", "respiratory_level_true", "patient_offset_true"):
+        assert station.HasOutputPort(name) and not still.HasOutputPort(name)
+    assert station.HasInputPort("breath_prompt") and not still.HasInputPort("breath_prompt")
+
+
+def test_a_patient_nobody_prompts_holds_on_their_own_schedule():
+    """The simulated station's patient with ``hold_period`` and no prompt heard (the
+    rehearsal's simulated side, or a patient who does not listen) holds when their schedule
+    says, as BreathingProgram does."""
+    from drake_rus.anatomy.motion import BreathingProgram
+    from drake_rus.patient_body import BreathingPatient
+
+    for listens in (True, False):
+        scenario = LoadScenario(
+            scenario_name="quick",
+            scenario_text=(
+                "{patient: {motion: {breathing: {enabled: true, amplitude: 0.015, "
+                "rate_per_min: 15, hold_period: 14, hold_duration: 6, first_hold: 5, "
+                "follows_prompts: " + ("true" if listens else "false") + "}}}}"
+            ),
+        )
+        motion = PatientMotionFor(scenario)
+        patient = BreathingPatient(motion)
+        simulator = Simulator(patient)
+        context = simulator.get_mutable_context()
+        program = BreathingProgram(scenario.patient.motion.breathing, motion.seed)
+        hold = patient.GetOutputPort("breath_hold")
+        level = patient.GetOutputPort("respiratory_level")
+        held = []
+        for t in np.arange(0.5, 30.0, 0.25) + 0.013:  # off the 10 ms update grid
+            simulator.AdvanceTo(float(t))
+            held.append(hold.Eval(context)[0] > 0.5)
+            assert held[-1] == program.holding(float(t)), t
+            assert level.Eval(context)[0] == pytest.approx(program.level(float(t)), abs=0.02)
+        assert sum(held) > 30  # two holds of ~6 s

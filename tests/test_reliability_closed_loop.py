@@ -4,6 +4,7 @@ Short runs only (a fault at 1.5 s of simulated time)."""
 
 import json
 
+import numpy as np
 import pytest
 
 from drake_rus.reliability.campaign import make_tasks, run_campaign, summarize
@@ -127,75 +128,99 @@ def test_done_fraction_per_fault_type(tmp_path):
     assert "| breathing | 3 | 1 | 1 | 0.33 | 11.0 | 2.2 |" in md
 
 
-def test_respiration_aware_exploration_moves_only_during_breath_holds(patient_and_template):
-    """Closed loop, 15 mm breathing with 1.5 s holds every 3.5 s (2 s between holds: one
-    breath at 30 breaths/min, the fastest the scenario rules allow): the probe travels along
-    the kidney during holds and holds its target (in contact, no watchdog stop) between
-    them."""
+def test_gated_exploration_moves_only_at_end_expiration(patient_and_template):
+    """Closed loop, free breathing (15 mm, 4 mm of wall at 18/min, no holds), gated: the
+    probe travels along the kidney only while the patient is near end-expiration (the
+    simulation's truth, which the scan never reads), holds its target in between (in
+    contact, no watchdog stop), and the exploration cloud takes frames only then."""
     import numpy as np
-
-    from drake_rus.anatomy.motion import breath_hold
 
     patient, template = patient_and_template
     scenario = LoadScenario(
         scenario_name="quick",
         scenario_text=(
-            "{patient: {motion: {breathing: {enabled: true, amplitude: 0.015, rate_per_min: 20, "
-            "hold_period: 3.5, hold_duration: 1.5, gate_exploration: true}}}}"
+            "{respiration: {mode: gated}, patient: {motion: {breathing: {enabled: true, "
+            "amplitude: 0.015, ap_amplitude: 0.004, rate_per_min: 18, follows_prompts: false}}}}"
         ),
     )
-    result, check = RunFaultyScan(scenario, patient, template, max_sim_time=6.5)
+    result, check = RunFaultyScan(scenario, patient, template, max_sim_time=16.0)
     assert result.status == "TIMEOUT" and not result.safety_events, result.safety_events
+    t_lev, lev = result.logs["respiratory_level_true"]
+    t_ok, ok = result.logs["motion_allowed"]
     explore = [f for f in result.frames if f.phase == 1]  # EXPLORE
     t = np.array([f.time for f in explore])
     y = np.array([f.X_BP.translation()[1] for f in explore])
     speed = np.abs(np.gradient(y, t))
-    cfg = scenario.patient.motion.breathing
-    inside = np.array([breath_hold(ti - 0.3, cfg) and breath_hold(ti, cfg) for ti in t])
-    outside = np.array([not breath_hold(ti - 0.4, cfg) and not breath_hold(ti, cfg) for ti in t])
-    assert inside.sum() > 10 and outside.sum() > 10
+    allowed = np.interp(t, t_ok, ok[0]) > 0.5
+    level = np.interp(t, t_lev, lev[0])
+    assert allowed.sum() > 10 and (~allowed).sum() > 10
+    # Moving only near end-expiration (a third of a tidal breath at most).
+    assert np.all(level[allowed] < 0.35)
     v = scenario.controller.scan_speed
-    assert np.median(speed[inside]) == pytest.approx(v, rel=0.3)
-    # Between holds the target stands still; friction with the breathing skin (up to
-    # 16 mm/s) drags the probe at ~1 mm/s against the position loop.
-    assert np.median(speed[outside]) < 0.3 * v
+    # The probe's own speed also carries the breathing skin dragging it (friction, up to
+    # 16 mm/s of skin): measured 71% of the fast frames near end-expiration, where a third
+    # of the breath would give about a third.
+    moving = speed > 0.5 * v
+    assert moving.sum() > 5 and np.mean(level[moving] < 0.35) > 0.6
     assert min(f.force for f in explore) > 0.5 * scenario.controller.desired_force
     assert not check["force_violation"]
 
 
-def test_breathing_comparison_table_and_plot(tmp_path):
-    from drake_rus.reliability.breathing import breathing_tasks, compare, plot_comparison
+def test_breathing_study_tables_and_plots(tmp_path):
+    from drake_rus.reliability.breathing import (
+        breathing_tasks,
+        estimator_errors,
+        hold_intervals,
+        plot_comparison,
+        plot_estimator,
+        summarize,
+        table_markdown,
+    )
 
-    tasks = breathing_tasks(["test:0", "test:1"], amplitude=0.015)
-    assert [t["fault"] for t in tasks[:3]] == [
-        "no_breathing",
-        "breathing_ungated",
-        "breathing_gated",
-    ]
-    assert "gate_exploration: true" in tasks[2]["overrides"]
-    assert "gate_exploration: false" in tasks[1]["overrides"]
-    assert "amplitude: 0.0150" in tasks[1]["overrides"]
-    errors = {
-        "no_breathing": (4.0, 6.0),
-        "breathing_ungated": (9.0, None),
-        "breathing_gated": (5.0, 7.0),
+    tasks = breathing_tasks(["test:0", "test:1"])
+    assert [t["fault"] for t in tasks[:4]] == ["still", "protocol", "free", "shift"]
+    assert "mode: breath_hold" in tasks[1]["overrides"]
+    assert "mode: gated" in tasks[2]["overrides"]
+    assert "follows_prompts: false" in tasks[2]["overrides"]
+    m = tasks[3]["motion"]
+    assert 5.0 <= np.linalg.norm(m["shift_offset"]) * 1e3 <= 20.0
+    assert 0.010 <= m["amplitude"] <= 0.020 and 12 <= m["rate_per_min"] <= 20
+    assert tasks[0]["motion"] == tasks[1]["motion"]  # one patient, one draw
+    assert hold_intervals([0, 1, 2, 3, 4], [0, 1, 1, 0, 1]) == [(1.0, 3.0), (4.0, 4.0)]
+    errs = estimator_errors([(10.0, 20.0)], ((10.1, 10.3, 1, 2), (19.8, 20.2, 2, 1)))
+    assert errs[0]["onset_error_s"] == pytest.approx(0.1)
+    assert errs[0]["end_latency_s"] == pytest.approx(0.2)
+    rows = {
+        ("test:0", "still"): ("DONE", 4.0, {}),
+        ("test:0", "free"): ("DONE", 5.5, {}),
+        ("test:1", "still"): ("DONE", 6.0, {}),
+        ("test:1", "free"): ("DONE", 9.0, {}),
+        ("test:0", "shift"): ("DONE", 4.0, {"relocalizations": 1, "shift_mm": 12.0}),
+        (
+            "test:1",
+            "shift",
+        ): ("DONE", 7.0, {"relocalizations": 0, "shift_mm": 6.0, "shift_started_in_scan": True}),
+        ("test:0", "protocol"): ("DONE", 4.5, {"estimator": errs}),
     }
     results = [
         {
-            "run_id": t["run_id"],
-            "fault": t["fault"],
-            "patient": t["patient"],
-            "status": "DONE" if errors[t["fault"]][t["index"]] else "ABORT",
-            "e_trans_mm": errors[t["fault"]][t["index"]],
+            "run_id": f"{p}_{c}",
+            "fault": c,
+            "patient": p,
+            "task": {"index": int(p[-1])},  # as stored: the index is the task's
+            "status": st,
+            "e_trans_mm": e,
+            "sim_s": 30.0,
+            **extra,
         }
-        for t in tasks
+        for (p, c), (st, e, extra) in rows.items()
     ]
-    table = compare(results)
-    assert table["no_breathing"]["mean_e_trans_mm"] == pytest.approx(5.0)
-    assert table["breathing_ungated"]["e_trans_mm"] == [9.0]
-    assert table["breathing_ungated"]["done"] == 1
-    assert table["breathing_gated"]["max_e_trans_mm"] == 7.0
-    assert table["breathing_gated"]["mean_abs_change_mm"] == pytest.approx(1.0)
-    assert table["breathing_ungated"]["max_abs_change_mm"] == pytest.approx(5.0)
-    assert table["no_breathing"]["max_abs_change_mm"] == 0.0
+    summary = summarize(results)
+    assert summary["free"]["done_within_2mm_of_still"] == 1  # 5.5 vs 4.0; 9.0 vs 6.0 not
+    assert summary["shift"]["relocalized_done"] == 1
+    assert summary["shift"]["unnoticed_above_5mm"] == 1
+    assert summary["protocol"]["hold_onset_within_0.3s"] == 1
+    md = table_markdown(results, summary)
+    assert "| free | 2 | 2 |" in md and "test:1_shift" in md
     assert plot_comparison(results, tmp_path / "b.png").read_bytes()[:4] == b"\x89PNG"
+    assert plot_estimator(results, tmp_path / "e.png").read_bytes()[:4] == b"\x89PNG"

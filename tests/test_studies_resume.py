@@ -119,22 +119,25 @@ def test_a_stored_run_without_a_key_is_not_reused(tmp_path):
 
 
 def test_breathing_runs_are_keyed_on_their_parameters(tmp_path):
-    """--rate 10 then --rate 15: the second never takes the first's runs."""
-    slow = breathing.breathing_tasks(["test:0"], rate_per_min=10.0)
-    fast = breathing.breathing_tasks(["test:0"], rate_per_min=15.0)
-    assert [t["run_id"] for t in slow] == [t["run_id"] for t in fast]
+    """--seed 0 then --seed 1 (other breathing and shift draws): the second never takes
+    the first's runs."""
+    conditions = ("protocol", "free", "shift")
+    first = breathing.breathing_tasks(["test:0"], conditions, seed=0)
+    second = breathing.breathing_tasks(["test:0"], conditions, seed=1)
+    assert [t["run_id"] for t in first] == [t["run_id"] for t in second]
+    assert all(a["motion"] != b["motion"] for a, b in zip(first, second))
     ran = []
 
     def fake(task):
         ran.append(task["run_id"])
-        return {"run_id": task["run_id"], "task": task, "rate": task["rate_per_min"]}
+        return {"run_id": task["run_id"], "task": task, "motion": task["motion"]}
 
     ident = lambda t: t["run_id"]  # noqa: E731
-    batch.run_tasks(slow, fake, tmp_path, ident, workers=0, progress=False)
+    batch.run_tasks(first, fake, tmp_path, ident, workers=0, progress=False)
     ran.clear()
-    status = batch.run_tasks(fast, fake, tmp_path, ident, workers=0, progress=False)
+    status = batch.run_tasks(second, fake, tmp_path, ident, workers=0, progress=False)
     assert len(ran) == 3 and len(status["superseded"]) == 3
-    assert {r["rate"] for r in batch.load_results(tmp_path)} == {15.0}
+    assert [r["motion"] for r in batch.load_results(tmp_path)] == [t["motion"] for t in second]
 
 
 # ------------------------------------------------------------------------------- labels

@@ -207,6 +207,10 @@ class ControllerConfig:
     # The line sweep's longest travel (m) along the scan direction: there it ends, DONE if
     # the kidney was seen, ABORT if it never came into view.
     line_sweep_max_travel: float = field(default=0.2, metadata={"positive": True, "max": 0.5})
+    # When the kidney tracking says the kidney moved during TRANSIT or PIVOT (a patient
+    # shift): re-localize (a new exploration from the current pose and a new registration)
+    # at most this many times, then ABORT; 0: ABORT at once.
+    max_relocalizations: int = field(default=2, metadata={"min": 0, "max": 10})
 
 
 @dataclass
@@ -244,3 +248,69 @@ class SafetyConfig:
     # A live (hardware) run that falls this far (s) behind the wall clock is stopped at zero
     # velocity: its commands would reach the robot late.
     realtime_lag: float = field(default=0.25, metadata={"positive": True, "max": 2.0})
+
+
+RESPIRATION_MODES = ["none", "breath_hold", "gated"]
+
+
+@dataclass
+class RespirationConfig:
+    """Scenario section ``respiration``: how the scan copes with a breathing patient, from
+    what any station has (drake_rus/control/respiration.py; docs/reliability.md).
+
+    ``mode``: "none" (the seed's simulation: a still kidney is assumed); "breath_hold" (the
+    seed's in-vivo protocol, III-B: before EXPLORE and before TRANSIT/PIVOT the scan asks
+    for a breath-hold and moves only while one is sensed, at most ``hold_limit`` s each, the
+    patient breathing freely in between and during LOCALIZE); "gated" (free breathing: the
+    probe moves and the exploration cloud takes frames only in the end-expiration windows
+    the estimator finds). SI units."""
+
+    mode: str = field(default="none", metadata={"choices": RESPIRATION_MODES})
+    # --- the breath-hold protocol ---
+    # Longest hold asked for (s), counted from the sensed onset: a phase that needs longer
+    # is split into several holds, the probe held still under force control between them.
+    hold_limit: float = field(
+        default=15.0,
+        metadata=physical(
+            3.0,
+            40.0,
+            "s",
+            "the seed kept each breath-hold step under 20 s; lung cancer patients hold a "
+            "deep inspiration for a median 21 s (Tibdewal 2015)",
+        ),
+    )
+    # Free breathing between two holds (s), and before the first one: the estimator learns
+    # the patient's breathing from it.
+    recovery_time: float = field(default=8.0, metadata={"min": 0.0, "max": 60.0})
+    # The hold is asked again if none is sensed this long (s) after the prompt; the scan
+    # aborts after max_prompts unanswered prompts in a row.
+    hold_wait: float = field(default=8.0, metadata={"positive": True})
+    max_prompts: int = field(default=4, metadata={"min": 1})
+    # "in" (breathe in and hold: the seed's) or "out" (breathe out and hold).
+    hold_level: str = field(default="in", metadata={"choices": ["in", "out"]})
+    # Speak the prompts with a speech synthesiser (espeak-ng or espeak) when one is
+    # installed; the console line is always printed.
+    speak: bool = True
+    # --- the respiration-phase estimator ---
+    # The wall's level is the tip's height plus the indentation F / contact_stiffness.
+    contact_stiffness: float = field(
+        default=1500.0,
+        metadata=physical(
+            300.0,
+            1.0e5,
+            "N/m",
+            "the probe's normal contact stiffness on the simulated bodies is 441-4928 N/m "
+            "(docs/force_loop.md)",
+        ),
+    )
+    # The wall's speed is fitted over this window (s); it is "still" below still_speed.
+    speed_window: float = field(default=0.25, metadata={"positive": True, "max": 2.0})
+    still_speed: float = field(default=0.0006, metadata={"positive": True, "max": 0.01})
+    # Stillness this long (s) above the end-expiration band is a hold; stillness at any
+    # level for still_long s is one too (a hold at end-expiration, or no visible breathing).
+    hold_confirm: float = field(default=0.25, metadata={"min": 0.0, "max": 5.0})
+    still_long: float = field(default=3.0, metadata={"positive": True, "max": 30.0})
+    # The recent breathing (s) the end-expiration level and the tidal range are taken from.
+    history: float = field(default=10.0, metadata={"positive": True, "max": 60.0})
+    # End-expiration: within this fraction of the tidal range above its level, and still.
+    end_expiration_band: float = field(default=0.3, metadata={"min": 0.0, "max": 1.0})

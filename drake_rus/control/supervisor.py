@@ -209,8 +209,19 @@ class SupervisorState:
     # sweep nor is a segmentation loss); it has been, since visible_since, without a gap.
     awaiting_kidney: bool = False
     visible_since: float = math.nan
+    # EXPLORE: the kidney has been in the image (for visibility_debounce) while the probe
+    # could move: only then can it "leave the image" (a breath-hold may carry it out of
+    # view before the sweep starts).
+    explore_seen: bool = False
     paused: bool = False  # exploration/pivot motion held (outside a breath-hold)
     paused_time: float = 0.0  # total time (s) motion was held
+    # Re-localization after the kidney moved (``_kidney_moved``): how many so far, the
+    # localization round (the localizer registers anew when it changes), and the
+    # re-exploration's first stage (holding still, turning the probe transverse; the
+    # exploration cloud is cleared meanwhile).
+    relocalizations: int = 0
+    localization_round: int = 0
+    reorienting: bool = False
     a_star: np.ndarray = dataclasses.field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
     approach_origin: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, math.nan))
     contact_since: float = math.nan  # APPROACH: when the force last reached contact
@@ -273,12 +284,15 @@ class SupervisorInputs:
     kidney_length_estimate: float = math.nan
     # The template and fan for the predicted_end pivot strategy (None: two_leg).
     pivot_model: PivotModel | None = None
+    # Why the breath-hold protocol cannot go on ("" = it can): the scan aborts.
+    breathing_error: str = ""
 
 
 def _goto(s: SupervisorState, phase: Phase, t: float, message: str) -> SupervisorState:
     s.phase = phase
     s.phase_start = t
     s.invisible_since = math.nan
+    s.explore_seen = False
     s.paused = False  # a pause belongs to the phase that held still
     s.events = s.events + ((t, phase.name, message),)
     return s
@@ -338,7 +352,7 @@ def segmentation_required(s: SupervisorState) -> bool:
     """Whether the kidney must be visible now (EXPLORE; PIVOT except where its absence is
     expected, :func:`absence_expected`, updated every PIVOT period); drives the safety
     layer's watchdog."""
-    if s.paused:
+    if s.paused or s.reorienting:
         return False  # holding still outside a breath-hold: the kidney may drift away
     if s.phase == Phase.EXPLORE:
         return not s.awaiting_kidney  # a line sweep before the kidney first came into view
@@ -527,11 +541,20 @@ def _line_sweep(s, u, R, p, cfg, dt):
 
 def _explore(s, u, R, p, cfg, dt):
     """Constant orientation, eq. 17, until ER L of travel (``exploration_target``: L_m, or
-    the patient's estimated kidney length), the kidney has left the image or (adaptive) the
-    pose estimate has settled; then LOCALIZE. With ``sweep: line``: :func:`_line_sweep`."""
+    the patient's estimated kidney length), the kidney has left the image (having been in it
+    while the probe could move) or (adaptive) the pose estimate has settled; then LOCALIZE.
+    With ``sweep: line``: :func:`_line_sweep`."""
     if cfg.sweep == "line":
         return _line_sweep(s, u, R, p, cfg, dt)
-    left = u.motion_allowed and _update_visibility(s, u, cfg.visibility_debounce)
+    if s.reorienting:
+        return _reorient(s, u, R, p, cfg, dt)
+    if u.motion_allowed and not s.explore_seen:
+        # In view where the sweep starts, or later for visibility_debounce without a gap (a
+        # glimpse of an edge passing by does not count).
+        s.explore_seen = (u.kidney_visible and s.travel == 0.0) or _came_into_view(
+            s, u, cfg.visibility_debounce
+        )
+    left = u.motion_allowed and s.explore_seen and _update_visibility(s, u, cfg.visibility_debounce)
     target = exploration_target(cfg, u.kidney_length_estimate)
     if s.travel >= target - 1e-12:
         s.P_des = p[:2].copy()
@@ -588,6 +611,8 @@ def _localize(s, u, R, p, cfg, dt):
     ):
         s.reason = "no finite kidney pose from localization"
         return _goto(s, Phase.ABORT, u.t, s.reason)
+    if not u.motion_allowed:
+        return s  # the breath-hold protocol: TRANSIT and PIVOT start in a sensed hold
     R_star, p_star = optimal_pivot_pose(u.R_BK, u.p_BK)
     return _to_transit(
         s, u.t, R_star, p_star, f"p* = ({p_star[0]:.4f}, {p_star[1]:.4f}, {p_star[2]:.4f}) m"
@@ -854,7 +879,9 @@ def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float)
     a tracking error: the kidney has moved away from its registered pose. The pivot tilt
     rate ramps with pivot_acceleration. While ``motion_allowed`` is False (outside a
     breath-hold) EXPLORE and PIVOT hold still (the pivot rate ramps to zero) and the kidney
-    may leave the image.
+    may leave the image; LOCALIZE waits for it to start TRANSIT. A tracking error in TRANSIT
+    or PIVOT re-localizes (``_kidney_moved``) up to ``max_relocalizations`` times; a
+    ``breathing_error`` aborts.
     """
     s = state.copy()
     R = np.asarray(u.R_BP, dtype=float)
@@ -875,8 +902,78 @@ def supervisor_step(state: SupervisorState, u: SupervisorInputs, cfg, dt: float)
         return _goto(s, Phase.ABORT, u.t, s.reason)
     if not s.initialised:
         _start(s, u, R, p, cfg)
+    if u.breathing_error:
+        return _breathing_abort(s, u)
     if s.phase in (Phase.TRANSIT, Phase.PIVOT) and u.tracking_error:
+        return _kidney_moved(s, u, R, p, cfg)
+    return _PHASE_STEP[s.phase](s, u, R, p, cfg, dt)
+
+
+# ----------------------------------------------------------------------------- patient motion
+def _breathing_abort(s: SupervisorState, u: SupervisorInputs) -> SupervisorState:
+    """The breath-hold protocol cannot go on (the patient does not hold): ABORT."""
+    s.reason = f"breath-hold protocol: {u.breathing_error}"
+    s.pivot_speed = 0.0
+    return _goto(s, Phase.ABORT, u.t, s.reason)
+
+
+def _kidney_moved(s: SupervisorState, u: SupervisorInputs, R, p, cfg) -> SupervisorState:
+    """The kidney tracking says the kidney left its registered pose during TRANSIT or PIVOT:
+    re-localize (a short re-exploration from the current pose, then a new registration) up
+    to ``max_relocalizations`` times, then ABORT. The re-exploration starts still, turning
+    the probe straight down (r3*) and transverse (``_reorient``)."""
+    if s.relocalizations >= cfg.max_relocalizations:
         s.reason = f"kidney moved: {u.tracking_error}"
+        if s.relocalizations:
+            s.reason += f" (after {s.relocalizations} re-localizations)"
         s.pivot_speed = 0.0
         return _goto(s, Phase.ABORT, u.t, s.reason)
-    return _PHASE_STEP[s.phase](s, u, R, p, cfg, dt)
+    s.relocalizations += 1
+    s.localization_round += 1
+    s.reorienting = True
+    s.pivot_speed = 0.0
+    s.pivot_angle = 0.0
+    s.pivot_legs_done = 0
+    s.pivot_limits = ()
+    s.sweep_end_causes = ()
+    s.pivot_ends = ()
+    s.pretilt_stage = 0
+    s.expect_invisible = False
+    s.lag_since = math.nan
+    s.travel = 0.0
+    s.a_des = np.array([0.0, 0.0, -1.0])
+    s.o_des = transverse_orientation(s.a_des, R[:, 0])
+    s.P_des = p[:2].copy()
+    return _goto(
+        s,
+        Phase.EXPLORE,
+        u.t,
+        f"kidney moved: {u.tracking_error}; re-localizing "
+        f"({s.relocalizations} of {cfg.max_relocalizations})",
+    )
+
+
+# Re-exploration: a probe pressed on sloping skin may stop a few degrees short of straight
+# down; after REORIENT_SETTLE s within REORIENT_ACCEPT rad it explores from there (a sweep
+# a few degrees off the vertical sees the kidney as well).
+REORIENT_SETTLE = 3.0
+REORIENT_ACCEPT = 0.15
+
+
+def _reorient(s, u, R, p, cfg, dt):
+    """Re-exploration's first stage: hold the tip still until the probe points along a_des
+    and its array along o_des (transit_angle_tolerance, or REORIENT_ACCEPT once it has had
+    REORIENT_SETTLE s), then explore."""
+    ang = max(angle_between(R[:, 2], s.a_des), angle_between(R[:, 0], s.o_des))
+    settled = u.t - s.phase_start >= REORIENT_SETTLE and ang <= REORIENT_ACCEPT
+    if ang <= cfg.transit_angle_tolerance or settled:
+        s.reorienting = False
+        s.P_des = p[:2].copy()
+        s.events = s.events + ((u.t, "EXPLORE", "re-exploring from the current pose"),)
+        return s
+    if u.t - s.phase_start > cfg.transit_timeout:
+        s.reason = (
+            f"re-localization: the probe did not turn transverse ({math.degrees(ang):.1f} deg)"
+        )
+        return _goto(s, Phase.ABORT, u.t, s.reason)
+    return s

@@ -257,6 +257,8 @@ def _output_vectors(s: supervisor.SupervisorState) -> dict:
         "segmentation_required": [float(supervisor.segmentation_required(s))],
         "exploring": [float(s.phase == supervisor.Phase.EXPLORE)],
         "abort": [float(s.phase == supervisor.Phase.ABORT)],
+        "cloud_reset": [float(s.reorienting)],
+        "localization_round": [float(s.localization_round)],
     }
 
 
@@ -275,11 +277,14 @@ class ScanSupervisor(LeafSystem):
     (str; optional: "" while the kidney stays where localization put it, else why not);
     kidney_length_estimate (1, m; optional, NaN if unconnected: the localizer's estimate of
     the kidney's length, which ends EXPLORE with ``exploration_length: estimated``);
+    breathing_error (str; optional: the breath-hold protocol cannot go on: ABORT);
     pivot_model (supervisor.PivotModel; optional: the template points and fan the
     ``predicted_end`` pivot strategy predicts the pivot's ends with; unconnected: two-leg).
     Outputs: a_des (3), o_des (3), a_des_dot (3, 1/s), P_des (2, m), F_des (1, N), all in B;
     phase (1, supervisor.Phase value, e.g. the localizer's trigger); segmentation_required (1, 0/1);
     exploring (1, 0/1: enable of the point-cloud accumulator); abort (1, 0/1);
+    cloud_reset (1, 0/1: a re-localization clears the exploration cloud);
+    localization_round (1: counts re-localizations; the localizer registers anew);
     supervisor_state (SupervisorState, for logs).
 
     What the scan does follows the config: the seed's explore-localize-pivot; a given
@@ -308,6 +313,7 @@ class ScanSupervisor(LeafSystem):
         self._sufficient = self.DeclareVectorInputPort("exploration_sufficient", 1)
         self._motion = self.DeclareVectorInputPort("motion_allowed", 1)
         self._tracking = self.DeclareAbstractInputPort("tracking_error", AbstractValue.Make(""))
+        self._breathing = self.DeclareAbstractInputPort("breathing_error", AbstractValue.Make(""))
         self._length = self.DeclareVectorInputPort("kidney_length_estimate", 1)
         self._pivot_model = self.DeclareAbstractInputPort(
             "pivot_model", AbstractValue.Make(supervisor.PivotModel())
@@ -362,6 +368,9 @@ class ScanSupervisor(LeafSystem):
                 self._tracking.Eval(context) if self._tracking.HasValue(context) else ""
             ),
             kidney_length_estimate=_optional_scalar(self._length, context, math.nan),
+            breathing_error=(
+                self._breathing.Eval(context) if self._breathing.HasValue(context) else ""
+            ),
             pivot_model=(
                 self._pivot_model.Eval(context) if self._pivot_model.HasValue(context) else None
             ),

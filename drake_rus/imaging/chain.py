@@ -48,6 +48,7 @@ def AddImagingChain(
     seed: int = 0,
     motion=None,
     label_image_hook: LabelImageHook | None = None,
+    offset_port: OutputPort | None = None,
 ) -> ImagingChain:
     """Adds slice sensor -> [hook] -> emulator to ``builder``.
 
@@ -58,9 +59,13 @@ def AddImagingChain(
         seed: the emulator's speckle seed.
         motion: optional patient motion (``offset_B(t)``, m in B) moving the volume.
         label_image_hook: optional filter on the label frames before the emulator.
+        offset_port: optional 3-vector port (m in B) moving the volume instead of
+            ``motion`` (a patient who reacts to the scan's prompts).
     """
     sensor = builder.AddNamedSystem("slice_sensor", SliceSensor(config, volume, X_BV, motion))
     builder.Connect(X_BP_port, sensor.GetInputPort("X_BP"))
+    if offset_port is not None:
+        builder.Connect(offset_port, sensor.GetInputPort("offset_B"))
     label_image = sensor.GetOutputPort("label_image")
     if label_image_hook is not None:
         label_image = label_image_hook(builder, label_image)

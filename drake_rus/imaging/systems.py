@@ -56,7 +56,8 @@ class SliceSensor(LeafSystem):
 
     ``motion`` (optional, e.g. :class:`drake_rus.anatomy.motion.PatientMotion`): anything with
     ``offset_B(t)`` (m, in B); the volume then sits at translate(offset_B(t)) * X_BV, so a
-    breathing or shifting patient moves under the probe.
+    breathing or shifting patient moves under the probe. Input ``offset_B`` (3-vector, m in
+    B; optional): when connected, the volume's offset instead of ``motion``'s.
     """
 
     def __init__(
@@ -78,6 +79,7 @@ class SliceSensor(LeafSystem):
         self._X_BP_port = self.DeclareAbstractInputPort(
             "X_BP", AbstractValue.Make(RigidTransform())
         )
+        self._offset_port = self.DeclareVectorInputPort("offset_B", 3)
         empty = UsFrame(np.zeros(self._geometry.image_shape, np.uint8))
         self._state_index = self.DeclareAbstractState(AbstractValue.Make(empty))
         period = 1.0 / config.frame_rate_hz
@@ -100,6 +102,11 @@ class SliceSensor(LeafSystem):
             return self._X_BV
         return RigidTransform(self._motion.offset_B(t)) @ self._X_BV
 
+    def _X_BV_now(self, context) -> RigidTransform:
+        if self._offset_port.HasValue(context):
+            return RigidTransform(np.asarray(self._offset_port.Eval(context), float)) @ self._X_BV
+        return self.X_BV(context.get_time())
+
     def _acquire(self, context, state):
         if not self._X_BP_port.HasValue(context):
             raise RuntimeError("SliceSensor: input port 'X_BP' is not connected")
@@ -109,7 +116,7 @@ class SliceSensor(LeafSystem):
         image = slice_volume(
             self._geometry,
             self._volume,
-            self.X_BV(context.get_time()),
+            self._X_BV_now(context),
             X_BP,
             self._planes,
             self._combine,

@@ -302,6 +302,7 @@ class LocalizationOutcome:
     time: float = -1.0  # simulation time (s) the estimate was made
     error: str = ""  # why no estimate (too few points, rejected registration, ...)
     rejected: IcpResult | None = None  # a registration that failed the sanity checks
+    round: int = 0  # the supervisor's localization round it belongs to (re-localization)
     # Simulation time (s) the result was taken (it was asked for at ``time``; -1: none).
     ready_time: float = -1.0
 
@@ -368,7 +369,9 @@ class IcpLocalizer(LeafSystem):
     """Registers the explored cloud when the supervisor enters LOCALIZE.
 
     Inputs: ``point_cloud`` (abstract PointCloud: points (N, 3) in B, m), ``phase``
-    (1-vector, the supervisor's phase; LOCALIZE triggers one registration).
+    (1-vector, the supervisor's phase; LOCALIZE triggers one registration),
+    ``localization_round`` (1-vector, optional: when it changes, the estimate is dropped
+    and the next LOCALIZE registers anew: a re-localization).
     Outputs: ``X_BK`` (abstract RigidTransform: estimated canonical kidney frame in B, the
     heuristic initial guess until an estimate exists), ``localization_ready`` (1-vector: 1
     once the estimate is final), ``localization_error`` (abstract str: why there is no
@@ -415,6 +418,7 @@ class IcpLocalizer(LeafSystem):
         )
         self._cloud = self.DeclareAbstractInputPort("point_cloud", AbstractValue.Make(PointCloud()))
         self._phase_port = self.DeclareVectorInputPort("phase", 1)
+        self._round = self.DeclareVectorInputPort("localization_round", 1)
         initial = RigidTransform(
             heuristic_initial_rotation(self._superior_B, self._lateral_B), np.zeros(3)
         )
@@ -472,6 +476,15 @@ class IcpLocalizer(LeafSystem):
 
     def _update(self, context, state):
         outcome = context.get_abstract_state(self._outcome).get_value()
+        rnd = int(round(self._round.Eval(context)[0])) if self._round.HasValue(context) else 0
+        if rnd != outcome.round:  # re-localization: forget the estimate, register anew
+            state.get_mutable_abstract_state(self._outcome).set_value(
+                LocalizationOutcome(round=rnd)
+            )
+            state.get_mutable_abstract_state(self._adaptive).set_value(AdaptiveState())
+            # A fit still running for the old round is dropped (its result is never taken).
+            state.get_mutable_abstract_state(self._registration).set_value(PendingRegistration())
+            return EventStatus.Succeeded()
         if outcome.result is not None or outcome.error:
             return EventStatus.DidNothing()
         t = context.get_time()
@@ -508,7 +521,9 @@ class IcpLocalizer(LeafSystem):
             )
         if error:
             state.get_mutable_abstract_state(self._outcome).set_value(
-                LocalizationOutcome(n_points=len(points), time=t, error=error, ready_time=t)
+                LocalizationOutcome(
+                    n_points=len(points), time=t, error=error, ready_time=t, round=rnd
+                )
             )
             return EventStatus.Succeeded()
         ticket = self._submit(
@@ -534,6 +549,7 @@ class IcpLocalizer(LeafSystem):
             return False
         result, error = done.value
         common = dict(
+            round=state.get_abstract_state(self._outcome).get_value().round,
             n_points=pending.n_points,
             compute_s=done.compute_s,
             time=done.t_request,

@@ -257,6 +257,20 @@ class TrackingState:
     error: str = ""  # latched once the kidney is judged to have moved
     judged_m: float = math.nan  # latest judged drift (m, see judged_drift)
     limit_m: float = math.nan  # the limit the judged drift was compared with (m)
+    registered_at: float = math.nan  # time of the registration being checked
+    # The drift vectors of the checks ((time s, drift_B (3,) m), ...), and the reference
+    # drift: the mean of the first ``tracking_reference_checks`` of them after the
+    # registration (its own error seen through the view); ``change_m``: the latest drift's
+    # distance from it (m).
+    vectors: tuple = ()
+    reference: tuple = ()
+    change_m: float = math.nan
+    # Stretches of motion (breath-holds, end-expiration windows) since the registration:
+    # the reference belongs to the first; a later one may hold the kidney elsewhere by the
+    # breath-hold's reproducibility (``tracking_hold_allowance``).
+    segment: int = 0
+    reference_segment: int = 0
+    was_allowed: bool = True
     pending: object = None  # the drift fit running (an executor Ticket), or None
 
     # Drake clones abstract state with deepcopy on every update (the frames hold point
@@ -276,16 +290,39 @@ def tracking_update(
     limits: TrackingLimits | None = None,
 ) -> TrackingState:
     """One check: records the drift at time t and latches an error after
-    ``tracking_confirmations`` successive judged drifts above the limit (``limits``, by
-    default the plain ``tracking_max_drift`` on the whole drift)."""
+    ``tracking_confirmations`` successive checks where the judged drift is above the limit
+    (``limits``, by default the plain ``tracking_max_drift`` on the whole drift) or the
+    drift has changed by more than ``tracking_change_limit`` from the reference (the mean
+    of the first ``tracking_reference_checks`` drifts after the registration): a shift in
+    any direction, along the kidney's long axis too."""
     if state.error or drift is None:
         return dataclasses.replace(state, last_check=t)
     limits = limits or TrackingLimits(float(config.tracking_max_drift))
     d = drift.magnitude
     judged = judged_drift(drift.drift_B, limits)
-    count = state.exceed_count + 1 if judged > limits.limit else 0
+    vectors = state.vectors + ((t, np.asarray(drift.drift_B, float)),)
+    reference, change = state.reference, math.nan
+    n_ref = int(getattr(config, "tracking_reference_checks", 0))
+    reference_segment = state.reference_segment
+    if n_ref > 0 and len(vectors) <= n_ref:
+        reference = tuple(np.mean([v for _, v in vectors], axis=0))
+        reference_segment = state.segment
+    elif n_ref > 0:
+        change = float(np.linalg.norm(drift.drift_B - np.asarray(reference)))
+    change_limit = float(config.tracking_change_limit)
+    if state.segment != state.reference_segment:
+        change_limit += float(config.tracking_hold_allowance)
+    moved = math.isfinite(change) and change > change_limit
+    count = state.exceed_count + 1 if (judged > limits.limit or moved) else 0
     error = ""
-    if count >= config.tracking_confirmations:
+    if count >= config.tracking_confirmations and moved and judged <= limits.limit:
+        v = (drift.drift_B - np.asarray(reference)) * 1000
+        error = (
+            f"the frames since localization put the kidney {change * 1000:.1f} mm from "
+            f"where the first checks after it saw it ([{v[0]:.1f}, {v[1]:.1f}, {v[2]:.1f}] "
+            f"mm in B; limit {change_limit * 1000:.1f} mm)"
+        )
+    elif count >= config.tracking_confirmations:
         v = drift.drift_B * 1000
         judged_how = ""
         if limits.axis_B is not None:
@@ -309,6 +346,10 @@ def tracking_update(
         error=error,
         judged_m=judged,
         limit_m=limits.limit,
+        vectors=vectors,
+        reference=reference,
+        change_m=change,
+        reference_segment=reference_segment,
     )
 
 
@@ -416,11 +457,21 @@ class KidneyTrackingMonitor(LeafSystem):
         if not cfg.tracking_check:
             return EventStatus.DidNothing()
         s = self.state(context)
-        if s.error or int(round(self._phase.Eval(context)[0])) not in self._phases:
-            return EventStatus.DidNothing()
         outcome = self._outcome.Eval(context)
-        if outcome.result is None:
-            return EventStatus.DidNothing()
+        # The checks belong to one registration: whatever the phase, a dropped estimate (a
+        # re-localization under way) or a new one clears them (a latched error too, so the
+        # new registration does not start with the old one's error); the history stays.
+        registered_at = outcome.time if outcome.result is not None else math.nan
+        same = registered_at == s.registered_at or (
+            math.isnan(registered_at) and math.isnan(s.registered_at)
+        )
+        if not same:
+            s = TrackingState(history=s.history, registered_at=registered_at)
+            state.get_mutable_abstract_state(self._state).set_value(s)
+        if outcome.result is None or s.error:
+            return EventStatus.Succeeded() if not same else EventStatus.DidNothing()
+        if int(round(self._phase.Eval(context)[0])) not in self._phases:
+            return EventStatus.Succeeded() if not same else EventStatus.DidNothing()
         t = context.get_time()
         allowed = (not self._motion.HasValue(context)) or self._motion.Eval(context)[0] > 0.5
         frames = tuple(f for f in s.frames if t - f[0] <= cfg.tracking_window)
@@ -440,7 +491,12 @@ class KidneyTrackingMonitor(LeafSystem):
             ):
                 points = backproject_pixels(self._geometry, boundary.pixels, boundary.X_BP)
                 frames = frames + ((boundary.time, points),)
-        s = dataclasses.replace(s, frames=frames, last_index=new_index)
+        segment = s.segment + (1 if allowed and not s.was_allowed else 0)
+        if segment != s.segment:
+            frames = ()  # a new breath-hold or window: no frames of the last one
+        s = dataclasses.replace(
+            s, frames=frames, last_index=new_index, segment=segment, was_allowed=allowed
+        )
         s = self._take(s, t, outcome)
         if s.pending is None and t - s.last_check >= cfg.tracking_period - 1e-9:
             if len(frames) >= cfg.tracking_min_frames:

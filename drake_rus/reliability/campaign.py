@@ -13,6 +13,7 @@ existing Dask scheduler).
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import json
 import operator
 import time
@@ -60,19 +61,17 @@ def fault_overrides(kind: str, rng: np.random.Generator, seed: int) -> str:
     if kind == "none":
         return "{}"
     if kind == "breathing":
-        # Half the runs have breath-holds, and then scan respiration-aware (exploration,
-        # pivot and localization frames only during holds); the others breathe freely.
+        # Half the runs follow the breath-hold protocol (the patient holds when told), the
+        # others breathe freely and are scanned at end-expiration (respiration.mode).
         hold = rng.random() < 0.5
         return (
-            "{patient: {motion: {seed: %d, breathing: {enabled: true, amplitude: %.4f, "
-            "rate_per_min: %.2f, hold_period: %.2f, hold_duration: %.2f, "
-            "gate_exploration: %s}}}}"
+            "{respiration: {mode: %s}, patient: {motion: {seed: %d, breathing: {enabled: true, "
+            "amplitude: %.4f, rate_per_min: %.2f, follows_prompts: %s}}}}"
             % (
+                "breath_hold" if hold else "gated",
                 seed,
                 rng.uniform(0.005, 0.020),
                 rng.uniform(12.0, 20.0),
-                rng.uniform(12.0, 20.0) if hold else 0.0,
-                rng.uniform(6.0, 10.0),
                 "true" if hold else "false",
             )
         )
@@ -210,6 +209,10 @@ def run_task(task: dict) -> dict:
                 ],
             }
         )
+        if task.get("analyse"):
+            # A study's own figures of the run ("module:function"(result, scenario, task)).
+            module, _, name = task["analyse"].partition(":")
+            record.update(getattr(importlib.import_module(module), name)(result, scenario, task))
     except Exception as e:  # noqa: BLE001 - the campaign counts these
         record["exception"] = f"{type(e).__name__}: {e}"
         record["traceback"] = traceback.format_exc(limit=8)

@@ -8,8 +8,10 @@
 
 The station is built by the caller (``drake_rus.stations.MakeStation``, or a wrapped one).
 Optional station ports are used when present: ``label_image`` (the oracle segmenter reads
-it; simulation only) and ``breath_hold`` (respiration-aware scanning). Simulation truth
-(true contact force, true kidney pose) is attached separately by ``scan.truth``.
+it; simulation only) and the input ``breath_prompt`` (the simulated patient hears the
+breath-hold prompts). Respiration is sensed from the probe's pose and contact force
+(``respiration.mode``, ``AddRespiration``); the scan reads no simulation truth, which is
+attached separately by ``scan.truth``.
 """
 
 from __future__ import annotations
@@ -25,6 +27,11 @@ from pydrake.systems.primitives import ConstantValueSource, LogVectorOutput
 
 from drake_rus.config_schema import ScenarioError
 from drake_rus.control.diagram import AddController
+from drake_rus.control.respiration_systems import (
+    BreathHoldProtocol,
+    BreathPrompter,
+    RespirationEstimator,
+)
 from drake_rus.control.supervisor import Phase, PivotModel
 from drake_rus.executor import MakeExecutor
 from drake_rus.imaging.frames import UsFrame
@@ -193,23 +200,14 @@ class ScanHandles:
     tracking: KidneyTrackingMonitor
     logs: dict  # name -> VectorLogSink
     terminator: ScanTerminator | None = None
+    # Respiration (``respiration.mode`` not "none"): estimator, protocol, prompter.
+    respiration: RespirationEstimator | None = None
+    protocol: BreathHoldProtocol | None = None
+    prompter: BreathPrompter | None = None
     executor: object = None  # where perception runs (drake_rus.executor)
 
     def __getitem__(self, name):  # handles["supervisor"] reads like a dict
         return getattr(self, name)
-
-
-def _breath_hold_port(scenario, station):
-    """The station's ``breath_hold`` when respiration-aware scanning is asked for
-    (``patient.motion.breathing.gate_exploration``) and the station reports holds."""
-    if not scenario.patient.motion.breathing.gate_exploration:
-        return None
-    if not station.HasOutputPort("breath_hold"):
-        raise ScenarioError(
-            "field 'patient.motion.breathing.gate_exploration': the station "
-            "has no 'breath_hold' output to gate on"
-        )
-    return station.GetOutputPort("breath_hold")
 
 
 def PivotModelFor(template, imaging) -> PivotModel:
@@ -298,6 +296,10 @@ def BuildScanDiagram(
     phase = supervisor.GetOutputPort("phase")
     builder.Connect(phase, localizer.GetInputPort("phase"))
     builder.Connect(
+        supervisor.GetOutputPort("localization_round"), localizer.GetInputPort("localization_round")
+    )
+    builder.Connect(supervisor.GetOutputPort("cloud_reset"), accumulator.GetInputPort("reset"))
+    builder.Connect(
         localizer.GetOutputPort("localization_error"), supervisor.GetInputPort("localization_error")
     )
     builder.Connect(
@@ -319,10 +321,11 @@ def BuildScanDiagram(
     exploring = builder.AddNamedSystem("exploring", PhaseIs(Phase.EXPLORE))
     builder.Connect(phase, exploring.get_input_port(0))
     enable = exploring.get_output_port(0)
-    hold = _breath_hold_port(scenario, station)
+    respiration = AddRespiration(builder, scenario, station, parts, localizer)
+    hold = None if respiration is None else respiration[1].GetOutputPort("motion_allowed")
     if hold is not None:
-        # Respiration-aware: exploration frames enter P_local only during breath-holds, and
-        # exploration and pivot motion advance only then (the supervisor's motion_allowed).
+        # Exploration frames enter P_local only while the scan may move (a sensed hold, or
+        # end-expiration when gated): one respiratory phase.
         gate = builder.AddNamedSystem("breath_hold_gate", And2())
         builder.Connect(enable, gate.GetInputPort("a"))
         builder.Connect(hold, gate.GetInputPort("b"))
@@ -347,7 +350,6 @@ def BuildScanDiagram(
         tracking.GetOutputPort("tracking_error"), supervisor.GetInputPort("tracking_error")
     )
     if hold is not None:
-        builder.Connect(hold, supervisor.GetInputPort("motion_allowed"))
         builder.Connect(hold, tracking.GetInputPort("motion_allowed"))
 
     recorder = builder.AddNamedSystem("scan_recorder", ScanRecorder(scenario.imaging.frame_rate_hz))
@@ -368,6 +370,14 @@ def BuildScanDiagram(
         ),
         "q": LogVectorOutput(station.GetOutputPort("joint_position"), builder, LOG_PERIOD),
     }
+    if respiration is not None:
+        estimator, protocol, _ = respiration
+        for name, port in (
+            ("motion_allowed", protocol.GetOutputPort("motion_allowed")),
+            ("breath_prompt", protocol.GetOutputPort("breath_prompt")),
+            ("respiration_state", estimator.GetOutputPort("respiration_state")),
+        ):
+            logs[name] = LogVectorOutput(port, builder, LOG_PERIOD)
     terminator = builder.AddNamedSystem(
         "scan_terminator",
         ScanTerminator((Phase.DONE, Phase.ABORT), 1.0 / scenario.controller.rate_hz),
@@ -384,5 +394,52 @@ def BuildScanDiagram(
         tracking=tracking,
         logs=logs,
         terminator=terminator,
+        respiration=None if respiration is None else respiration[0],
+        protocol=None if respiration is None else respiration[1],
+        prompter=None if respiration is None else respiration[2],
         executor=executor,
     )
+
+
+def AddRespiration(builder, scenario, station, parts, localizer):
+    """With ``respiration.mode`` "breath_hold" or "gated": the respiration estimator (on the
+    probe pose and the filtered contact force: any station), the protocol (the supervisor's
+    motion_allowed and breathing_error) and the prompter (console, speech, and the
+    simulated patient's ``breath_prompt`` when the station has one). Returns (estimator,
+    protocol, prompter) or None."""
+    cfg = scenario.respiration
+    if cfg.mode == "none":
+        return None
+    period = 1.0 / scenario.controller.rate_hz
+    supervisor = parts.supervisor
+    estimator = builder.AddNamedSystem(
+        "respiration_estimator",
+        RespirationEstimator(cfg, scenario.controller.desired_force, period),
+    )
+    builder.Connect(station.GetOutputPort("X_BP"), estimator.GetInputPort("X_BP"))
+    builder.Connect(
+        parts.force.GetOutputPort("F_filtered"), estimator.GetInputPort("contact_force")
+    )
+    protocol = builder.AddNamedSystem("breath_hold_protocol", BreathHoldProtocol(cfg, period))
+    builder.Connect(supervisor.GetOutputPort("phase"), protocol.GetInputPort("phase"))
+    builder.Connect(
+        localizer.GetOutputPort("localization_ready"), protocol.GetInputPort("localization_ready")
+    )
+    for name in ("respiration_state", "respiration_since"):
+        builder.Connect(estimator.GetOutputPort(name), protocol.GetInputPort(name))
+    builder.Connect(
+        protocol.GetOutputPort("motion_allowed"), supervisor.GetInputPort("motion_allowed")
+    )
+    builder.Connect(
+        protocol.GetOutputPort("breathing_error"), supervisor.GetInputPort("breathing_error")
+    )
+    prompter = builder.AddNamedSystem(
+        "breath_prompter", BreathPrompter(period, speak=cfg.speak and scenario.hardware)
+    )
+    builder.Connect(protocol.GetOutputPort("breath_prompt"), prompter.GetInputPort("breath_prompt"))
+    if station.HasInputPort("breath_prompt"):
+        # The simulated patient hears the prompt (a real one hears the operator or the voice).
+        builder.Connect(
+            protocol.GetOutputPort("breath_prompt"), station.GetInputPort("breath_prompt")
+        )
+    return estimator, protocol, prompter

@@ -29,6 +29,7 @@ from drake_rus.control.supervisor import Phase
 from drake_rus.executor import MakeExecutor
 from drake_rus.hardware.station import HardwareSession
 from drake_rus.imaging.annotated import SavedFrame
+from drake_rus.patient_body import PatientMotionFor
 from drake_rus.progress import AdvanceWithProgress
 from drake_rus.robot import IkError, MakeControlPlant, SolveTipPose
 from drake_rus.scan.diagram import BuildScanDiagram, ScanHandles
@@ -127,6 +128,11 @@ class ScanResult:
     # Every frame's grey image and kidney mask (imaging.annotated.SavedFrame), when RunScan
     # was asked to keep them (keep_frames); else empty.
     saved_frames: list = dataclasses.field(default_factory=list)
+    # The supervisor's events ((time s, phase name, message), ...): every phase change and
+    # why, re-localizations included.
+    events: tuple = ()
+    # The respiration systems' record (``_respiration_record``; empty with mode none).
+    respiration: dict = dataclasses.field(default_factory=dict)
     # A live run's loop timing (scan.pacing.loop_statistics: per-tick compute time and lag,
     # slips, load average) and its per-tick trace (t, compute, lag arrays, s); None when
     # the run was not paced at real time.
@@ -152,6 +158,21 @@ def _can_reach(plant, tip):
     return reachable
 
 
+def PlacementPose(scenario) -> RigidTransform:
+    """Where the simulated operator sees the patient when placing the probe: X_BPt, moved
+    to the breath-hold's level when the scan holds the breath in (``respiration.mode``
+    breath_hold, ``hold_level`` in: the sonographer places the probe during a hold, where
+    the kidney then is). Simulation only (the stand-in for the operator's placement)."""
+    X_BPt = scenario.patient.X_BPt.GetDeterministicValue()
+    breathing = scenario.patient.motion.breathing
+    r = scenario.respiration
+    if not (breathing.enabled and r.mode == "breath_hold" and r.hold_level == "in"):
+        return X_BPt
+    offset = PatientMotionFor(scenario).offset_at(breathing.hold_depth, 0.0)
+    offset = offset - PatientMotionFor(scenario).offset_at(0.0, 0.0)  # no shift
+    return RigidTransform(offset) @ X_BPt
+
+
 def PrepareScenario(scenario, patient, start_fraction: float | None = None):
     """The scenario set up for the start of a scan on ``patient`` (simulation's stand-in for
     the operator's placement, ``scenario.start``): the robot's initial joints put the probe
@@ -159,7 +180,7 @@ def PrepareScenario(scenario, patient, start_fraction: float | None = None):
     depth preset. ``start_fraction`` overrides ``start.start_fraction``. Returns
     ``(scenario, X_start, plan)``; ``plan`` is the :class:`StartPlan` (None for the vertical
     planner). Raises StartPlanError or IkError with a clear message when no start works."""
-    X_BPt = scenario.patient.X_BPt.GetDeterministicValue()
+    X_BPt = PlacementPose(scenario)
     plant, tip = MakeControlPlant(scenario.robot, scenario.probe)
     sf = scenario.start.start_fraction if start_fraction is None else start_fraction
     plan = None
@@ -250,6 +271,9 @@ def CollectScanResult(
     if truth is not None and truth.force_log is not None:
         log = truth.force_log.FindLog(root_context)
         logs["force_true"] = (log.sample_times().copy(), log.data().copy())
+    for name, logger in ({} if truth is None else truth.motion_logs).items():
+        log = logger.FindLog(root_context)
+        logs[name] = (log.sample_times().copy(), log.data().copy())
     t, ph = logs["phase"][0], logs["phase"][1][0].round().astype(int)
     phases = _phase_intervals(t, ph, now, phase)
     outcome = h.localizer.GetOutputPort("localization").Eval(
@@ -288,7 +312,24 @@ def CollectScanResult(
         length_checks=h.localizer.length_checks(h.localizer.GetMyContextFromRoot(root_context)),
         pivot_limits=tuple(state.pivot_limits),
         sweep_end_causes=tuple(state.sweep_end_causes),
+        events=tuple(state.events),
+        respiration=_respiration_record(h, root_context),
     )
+
+
+def _respiration_record(h: ScanHandles, root_context) -> dict:
+    """What the respiration systems did (empty without them): the estimator's transitions
+    ((estimated time s, decided time s, from, to), ...), the prompts ((time s, Prompt),
+    ...) and the number of breath-holds used."""
+    if h.respiration is None:
+        return {}
+    estimate = h.respiration.state(h.respiration.GetMyContextFromRoot(root_context))
+    protocol = h.protocol.state(h.protocol.GetMyContextFromRoot(root_context))
+    return {
+        "transitions": tuple(estimate.transitions),
+        "prompts": tuple(protocol.prompts),
+        "holds": int(protocol.holds),
+    }
 
 
 def RunScan(

@@ -3,8 +3,9 @@
 The scan diagram never reads it (the controller and the localizer see only the ports a real
 setup has). It holds the patient's true kidney pose X_BK and kidney voxels (for E_trans,
 E_rot,x and the volume ratio V) and logs the true probe contact wrench when the station
-exports ``probe_contact_wrench_true``. On hardware there is none (``RunScan`` gets no
-patient), and the metrics that need it are reported as unknown.
+exports ``probe_contact_wrench_true``, and a moving patient's displacement and breathing.
+On hardware there is none (``RunScan`` gets no patient), and the metrics that need it are
+reported as unknown.
 """
 
 from __future__ import annotations
@@ -31,6 +32,8 @@ TRUTH_VOXEL = 0.002
 # Nyquist rate shows in the summary's ripple instead of aliasing (a 20 ms log folded a
 # 23 Hz oscillation of the 10 ms loop onto a slow wobble).
 FORCE_LOG_PERIOD: float | None = None
+# Period (s) of the patient-motion truth logs (breathing, shift).
+MOTION_LOG_PERIOD = 0.01
 
 
 @dataclasses.dataclass
@@ -42,6 +45,9 @@ class SimulationTruth:
     kidney_points_B: np.ndarray
     voxel_volume: float
     force_log: object | None = None
+    # Loggers of the moving patient's truth ports, by port name (``patient_offset_true``,
+    # ``breath_hold``, ``respiratory_level_true``), when the station exports them.
+    motion_logs: dict = dataclasses.field(default_factory=dict)
 
 
 def kidney_voxels_B(patient, X_BPt: RigidTransform, voxel_size: float) -> np.ndarray:
@@ -64,8 +70,17 @@ def AttachSimulationTruth(
         force_log = LogVectorOutput(
             station.GetOutputPort("probe_contact_wrench_true"), builder, period
         )
+    motion_logs = {
+        name: LogVectorOutput(station.GetOutputPort(name), builder, MOTION_LOG_PERIOD)
+        for name in ("patient_offset_true", "breath_hold", "respiratory_level_true")
+        if station.HasOutputPort(name)
+    }
     return SimulationTruth(
-        patient.X_BK(X_BPt), kidney_voxels_B(patient, X_BPt, voxel_size), voxel_size**3, force_log
+        patient.X_BK(X_BPt),
+        kidney_voxels_B(patient, X_BPt, voxel_size),
+        voxel_size**3,
+        force_log,
+        motion_logs,
     )
 
 
