@@ -111,8 +111,8 @@ def run_check_frames(args) -> int:
 
 
 def run_fine_tune(args) -> int:
-    require("torch", "drake-rus segmenter fine-tune")
-    require("onnx", "drake-rus segmenter fine-tune")
+    # The user's input is checked first: a bad folder is named with or without the train
+    # extra; the packages are asked for only once there is something to fine-tune on.
     scenario = load_scenario_from_args(args)
     if scenario.imaging.segmenter != "onnx":
         raise UserError(
@@ -132,6 +132,8 @@ def run_fine_tune(args) -> int:
     source = trainable_source(scenario.imaging.onnx_model)
     if not source.is_file():
         raise UserError(f"field 'imaging.onnx_model': {source}: no such model to fine-tune")
+    require("torch", "drake-rus segmenter fine-tune")
+    require("onnx", "drake-rus segmenter fine-tune")
     argv = getattr(args, "argv", None) or sys.argv[1:]
     out = Path(args.out)
     try:
