@@ -23,6 +23,7 @@ from drake_rus.template.builder import (
     farthest_point_sampling,
     mean_shape,
     save_template,
+    save_template_to_cache,
     shape_model,
     subject_from_mask,
     subject_from_mesh,
@@ -135,7 +136,7 @@ def test_template_reproduces_known_correspondence_mean():
     assert np.mean(np.sum(res.points * res.normals, axis=1) > 0) > 0.85
 
 
-def test_save_load_round_trip(tmp_path):
+def test_save_load_round_trip(tmp_path, capsys):
     rng = np.random.default_rng(4)
     subjects = [
         subject_from_mesh(
@@ -158,6 +159,17 @@ def test_save_load_round_trip(tmp_path):
     bad.write_text("not a zip")
     with pytest.raises(ValueError, match="bad.npz"):
         load_template(bad)
+
+    # A cache folder that cannot be written: the template goes to a temporary file, with a
+    # warning; a path the user asked for is never silently replaced.
+    blocked = tmp_path / "a_file" / "cache" / "t.npz"
+    (tmp_path / "a_file").write_text("not a folder")
+    fallback = save_template_to_cache(res, blocked, {"note": "x"}, asked_for=False)
+    assert "not writable" in capsys.readouterr().err
+    assert fallback != blocked and fallback.name == "t.npz" and fallback.is_file()
+    np.testing.assert_allclose(load_template(fallback).points, res.points)
+    with pytest.raises(OSError):
+        save_template_to_cache(res, blocked, {"note": "x"}, asked_for=True)
     with pytest.raises(FileNotFoundError, match="template build"):
         load_template(tmp_path / "missing.npz")
 

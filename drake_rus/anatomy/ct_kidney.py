@@ -134,25 +134,37 @@ class LabelGrid:
     header_R_AG: np.ndarray | None = None
 
 
+def read_label_image(path: Path):
+    """The SimpleITK image of a label map file (any SimpleITK-readable 3-D file, one label
+    per voxel). A missing, unreadable, non-3-D or multi-component file raises an error
+    naming the file (FileNotFoundError, ValueError)."""
+    import SimpleITK as sitk
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"label map: file not found: {path}")
+    where = f"label map {path}"
+    try:
+        img = sitk.ReadImage(str(path))
+    except Exception as e:
+        _fail(f"{where}: cannot read it ({(str(e).strip().splitlines() or ['?'])[-1].strip()})")
+    if img.GetDimension() != 3:
+        _fail(f"{where}: expected a 3-D image, got {img.GetDimension()}-D")
+    if img.GetNumberOfComponentsPerPixel() != 1:
+        _fail(
+            f"{where}: expected one label per voxel, got "
+            f"{img.GetNumberOfComponentsPerPixel()} components"
+        )
+    return img
+
+
 def read_label_grid(path) -> LabelGrid:
     """Reads a KiTS-style label map (any SimpleITK-readable 3-D file). Errors name the file."""
     import SimpleITK as sitk
 
     path = Path(path)
     where = f"label map {path}"
-    if not path.is_file():
-        raise FileNotFoundError(f"{where}: file not found")
-    try:
-        img = sitk.ReadImage(str(path))
-    except Exception as e:
-        _fail(f"{where}: cannot read it ({(str(e).strip().splitlines() or ['?'])[-1].strip()})")
-    if img.GetDimension() != 3:
-        _fail(f"{where}: expected a 3-D label map, got {img.GetDimension()}-D")
-    if img.GetNumberOfComponentsPerPixel() != 1:
-        _fail(
-            f"{where}: expected one label per voxel, got "
-            f"{img.GetNumberOfComponentsPerPixel()} components"
-        )
+    img = read_label_image(path)
     spacing = np.array(img.GetSpacing(), dtype=float)[::-1]
     if not (np.all(np.isfinite(spacing)) and np.all(spacing > 0)):
         _fail(f"{where}: voxel spacing {tuple(spacing[::-1])} is not positive")

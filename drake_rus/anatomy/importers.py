@@ -36,6 +36,7 @@ from drake_rus.anatomy.checks import (
     check_label_map_body_size,
     check_mesh_units,
 )
+from drake_rus.anatomy.ct_kidney import read_label_image
 from drake_rus.anatomy.frames import R_BdS, R_PtBd, check_side_posture, transform_mesh
 from drake_rus.anatomy.labels import Label, LabelVolume
 from drake_rus.anatomy.patient import Patient
@@ -395,19 +396,7 @@ def _read_label_map(path: Path, voxel_size: float, check_native=None):
     body is of human size (:func:`~drake_rus.anatomy.checks.check_label_map_body_size`)."""
     import SimpleITK as sitk
 
-    if not path.is_file():
-        raise FileNotFoundError(f"label map: file not found: {path}")
-    try:
-        img = sitk.ReadImage(str(path))
-    except Exception as e:
-        _fail(f"label map {path}: cannot read it ({str(e).strip().splitlines()[-1]})")
-    if img.GetDimension() != 3:
-        _fail(f"label map {path}: expected a 3-D image, got {img.GetDimension()}-D")
-    if img.GetNumberOfComponentsPerPixel() != 1:
-        _fail(
-            f"label map {path}: expected one label per voxel, got "
-            f"{img.GetNumberOfComponentsPerPixel()} components"
-        )
+    img = read_label_image(path)
     arr = sitk.GetArrayViewFromImage(img)
     if not np.issubdtype(arr.dtype, np.integer):
         a = np.asarray(arr)

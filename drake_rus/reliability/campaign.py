@@ -27,28 +27,13 @@ from drake_rus.anatomy import load_patient
 from drake_rus.anatomy.motion import shift_offset
 from drake_rus.io_utils import save_figure, write_text_atomic
 from drake_rus.localization.localize import load_registration_template
+from drake_rus.reliability.config import FAULT_KINDS
 from drake_rus.reliability.run import RunFaultyScan, outcome_reason
 from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, LoadScenario
 from drake_rus.tables import write_csv_atomic
 
 # Fault types of the campaign: the sensor faults, breathing, a patient shift, and none.
-CAMPAIGN_FAULTS = [
-    "none",
-    "image_dropout",
-    "frozen_image",
-    "segmentation_miss",
-    "segmentation_false_positive",
-    "force_spike",
-    "force_bias",
-    "joint_state_delay",
-    "nan_joint_position",
-    "nan_joint_velocity",
-    "nan_force",
-    "nan_pose",
-    "nan_image",
-    "breathing",
-    "patient_shift",
-]
+CAMPAIGN_FAULTS = [*FAULT_KINDS, "breathing", "patient_shift"]
 
 
 def _yaml_list(v) -> str:

@@ -14,6 +14,8 @@ the modes that explain 95% of the variance.
 from __future__ import annotations
 
 import json
+import sys
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -371,6 +373,26 @@ def save_template(result: TemplateResult, path, extra_meta: dict | None = None) 
             )
     write_metadata_json(path, meta)
     return path
+
+
+def save_template_to_cache(
+    result: TemplateResult, path, extra_meta: dict | None, *, asked_for: bool
+) -> Path:
+    """Saves the template at ``path`` and returns where it went. A path the user asked for
+    (``asked_for``) must be written (OSError raised); a cache folder that cannot be written
+    instead keeps the template in a temporary file, with a warning on stderr."""
+    path = Path(path)
+    try:
+        return save_template(result, path, extra_meta)
+    except OSError as e:
+        if asked_for:
+            raise
+        tmp = Path(tempfile.mkdtemp(prefix="drake_rus_template_")) / path.name
+        print(
+            f"warning: template cache {path.parent} not writable ({e}); using {tmp}",
+            file=sys.stderr,
+        )
+        return save_template(result, tmp, extra_meta)
 
 
 def write_metadata_json(npz_path, meta: dict) -> Path:

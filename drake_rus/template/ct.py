@@ -54,7 +54,6 @@ import inspect
 import json
 import os
 import re
-import sys
 import tempfile
 import time
 import warnings
@@ -80,7 +79,12 @@ from drake_rus.anatomy.frames import lateral_direction_Bd
 from drake_rus.anatomy.rasterize import mask_to_mesh
 from drake_rus.paths import MODELS_DIR, REPO_ROOT
 from drake_rus.template import builder as builder_module
-from drake_rus.template.builder import Subject, build_template, save_template, subject_from_mesh
+from drake_rus.template.builder import (
+    Subject,
+    build_template,
+    save_template_to_cache,
+    subject_from_mesh,
+)
 from drake_rus.template.io import DEFAULT_TEMPLATE_PATH, load_template
 from drake_rus.template.population import template_cache_dir
 
@@ -721,19 +725,7 @@ def ct_template(
         "subject_seconds": round(t2 - t1, 2),
         "total_seconds": round(t3 - t0, 2),
     }
-    try:
-        save_template(result, path, extra)
-    except OSError as e:
-        if out is not None:
-            raise
-        tmp = Path(tempfile.mkdtemp(prefix="drake_rus_template_")) / path.name
-        print(
-            f"warning: template cache {path.parent} not writable ({e}); using {tmp}",
-            file=sys.stderr,
-        )
-        save_template(result, tmp, extra)
-        return tmp
-    return path
+    return save_template_to_cache(result, path, extra, asked_for=out is not None)
 
 
 def _skip_summary(skipped) -> str:

@@ -47,7 +47,7 @@ from pydrake.math import RigidTransform
 
 from drake_rus.anatomy.cache import CACHE_DIR_ENV, library_versions, user_cache_home
 from drake_rus.anatomy.kidney_shape import KidneyShape, sample_kidney_shape_params
-from drake_rus.template.builder import build_template, save_template, subject_from_mask
+from drake_rus.template.builder import build_template, save_template_to_cache, subject_from_mask
 
 __all__ = [
     "Population",
@@ -286,20 +286,4 @@ def population_template(
         "source": "drake-rus kidney-shape sampler with shifted statistics "
         "(drake_rus.template.population)",
     }
-    try:
-        save_template(result, path, extra)
-    except OSError as e:
-        if out is not None:
-            raise
-        # A cache folder that cannot be written: keep the template in a temporary file.
-        import sys
-        import tempfile
-
-        tmp = Path(tempfile.mkdtemp(prefix="drake_rus_template_")) / path.name
-        print(
-            f"warning: template cache {path.parent} not writable ({e}); using {tmp}",
-            file=sys.stderr,
-        )
-        save_template(result, tmp, extra)
-        return tmp
-    return path
+    return save_template_to_cache(result, path, extra, asked_for=out is not None)
