@@ -39,6 +39,7 @@ import itertools
 import math
 import multiprocessing
 import os
+import pickle
 import queue
 import signal
 import threading
@@ -254,6 +255,19 @@ def _portable(error: BaseException) -> BaseException:
         return RuntimeError(f"{type(error).__name__}: {error}\n{text}")
 
 
+def _message(kind: str, key: int, fn: Callable, args: tuple) -> bytes:
+    """A share or a job for a worker, pickled now, in the caller's thread. A queue pickles
+    what it is given later, in its feeder thread: an argument the caller changes meanwhile
+    (a ProbeGeometry filling its cached properties, a growing buffer) would then be sent as
+    it is at that later moment, or fail to pickle ("dictionary changed size during
+    iteration") and be dropped without a word, so a job would find no shared object."""
+    try:
+        return pickle.dumps((kind, key, fn, args), protocol=pickle.HIGHEST_PROTOCOL)
+    except Exception as e:
+        name = getattr(fn, "__name__", repr(fn))
+        raise WorkerError(f"a perception {kind} ({name}) cannot be sent to its worker: {e}") from e
+
+
 def _worker_main(jobs, results, lane: str, nice: int, parent: int) -> None:
     """A lane's worker process: installs shared objects, runs jobs, sends results; ends on
     None or when its parent is gone. Ctrl-C is its parent's to handle (which then closes
@@ -274,6 +288,8 @@ def _worker_main(jobs, results, lane: str, nice: int, parent: int) -> None:
             continue
         if msg is None:
             return
+        if isinstance(msg, bytes):  # a share or a job, pickled by the caller (_message)
+            msg = pickle.loads(msg)
         if msg[0] == "share":
             _, key, factory, args = msg
             try:
@@ -380,13 +396,13 @@ class WorkerExecutor(Executor):
 
     def share(self, lane: str, factory: Callable, *args) -> Shared:
         handle = Shared(next(self._keys), lane)
-        self._lane(lane).jobs.put(("share", handle.key, factory, args))
+        self._lane(lane).jobs.put(_message("share", handle.key, factory, args))
         return handle
 
     def submit(self, lane: str, fn: Callable, *args, t: float, kind: str = "") -> Ticket:
         job_id = next(self._ids)
         self._submitted[job_id] = time.perf_counter()
-        self._lane(lane).jobs.put(("job", job_id, fn, args))
+        self._lane(lane).jobs.put(_message("job", job_id, fn, args))
         return Ticket(lane, kind or getattr(fn, "__name__", "job"), job_id, float(t))
 
     def poll(self, ticket: Ticket, t: float) -> Done | None:

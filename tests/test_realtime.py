@@ -101,6 +101,21 @@ def test_worker_runs_jobs_in_other_processes_and_never_blocks_a_poll():
                 time.sleep(0.05)
 
 
+def test_a_worker_gets_what_was_shared_as_it_was_when_shared():
+    """A share or a job is pickled when it is made: the caller may change its arguments at
+    once (the Segmenter's ProbeGeometry fills its cached properties right after sharing its
+    backend) without the worker getting them half-changed, or a dropped share ("KeyError: 0"
+    at a later job, seen in a stop-drill rehearsal)."""
+    with WorkerExecutor(nice=0) as ex:
+        table = {i: i for i in range(1000)}
+        shared = ex.share("frames", helpers.identity, table)
+        for i in range(1000, 300000):  # changed while a queue's feeder thread would pickle
+            table[i] = i
+        assert _wait_for(ex, ex.submit("frames", helpers.size_of, shared, t=0.0)).value == 1000
+        with pytest.raises(WorkerError, match="cannot be sent to its worker"):
+            ex.submit("frames", helpers.size_of, lambda: None, t=0.0)
+
+
 # --- pacing ---------------------------------------------------------------------------------
 class FakeClock:
     def __init__(self):
