@@ -197,12 +197,7 @@ def safety_step(state: SafetyState, u: SafetyInputs, cfg) -> tuple[np.ndarray, S
     n = len(u.q)
     if s.stopped:
         if u.t < s.retract_until and np.all(np.isfinite(np.asarray(u.J, dtype=float))):
-            return limit_command(
-                retract_velocity(u.J, s.retract_direction, cfg.retract_speed),
-                u.J,
-                cfg.joint_velocity_limits,
-                cfg.command_tip_speed,
-            ), s
+            return _retract_command(u, s, cfg), s
         return np.zeros(n), s
     fault = check_faults(u, s, cfg)
     if fault is None:
@@ -218,10 +213,16 @@ def safety_step(state: SafetyState, u: SafetyInputs, cfg) -> tuple[np.ndarray, S
     if reason == StopReason.FORCE and cfg.retract_distance > 0:
         s.retract_direction = -np.asarray(u.R_BP, dtype=float)[:, 2]
         s.retract_until = u.t + cfg.retract_distance / cfg.retract_speed
-        return limit_command(
-            retract_velocity(u.J, s.retract_direction, cfg.retract_speed),
-            u.J,
-            cfg.joint_velocity_limits,
-            cfg.command_tip_speed,
-        ), s
+        return _retract_command(u, s, cfg), s
     return np.zeros(n), s
+
+
+def _retract_command(u, s, cfg) -> np.ndarray:
+    """Joint velocities (rad/s) backing the probe off along ``s.retract_direction`` at
+    ``retract_speed``, within the joint and tip speed limits."""
+    return limit_command(
+        retract_velocity(u.J, s.retract_direction, cfg.retract_speed),
+        u.J,
+        cfg.joint_velocity_limits,
+        cfg.command_tip_speed,
+    )
