@@ -134,9 +134,17 @@ def validate(schema, data, path: str = "", meta: dict | None = None) -> None:
         fields = {f.name: f for f in dataclasses.fields(schema)}
         for key, value in data.items():
             if key not in fields:
+                name = f"{path + '.' if path else ''}{key}"
+                head = str(key).split(":")[0].strip()
+                if ":" in str(key) and head in fields:
+                    # YAML reads {a:{b:1}} as one key "a:{b:1}": a colon needs a space.
+                    raise ScenarioError(
+                        f"field '{name}': YAML needs a space after each colon: write "
+                        f"'{head}: ...', e.g. {{controller: {{scan_speed: 0.01}}}}"
+                    )
                 known = ", ".join(sorted(fields))
                 raise ScenarioError(
-                    f"field '{path + '.' if path else ''}{key}' is not a known field of "
+                    f"field '{name}' is not a known field of "
                     f"{schema.__name__}; known fields: {known}"
                 )
             f = fields[key]

@@ -21,6 +21,11 @@ def _load(tmp_path, text, name="s"):
 FIELD_CASES = [
     ("unknown_top_field", "s: {robott: {}}", ["robott"]),
     ("unknown_nested_field", "s: {contact: {modell: point}}", ["contact.modell"]),
+    (
+        "colon_without_space",
+        "s: {controller: {scan_speed:-1}}",
+        ["controller.scan_speed:-1", "space after each colon", "scan_speed: ..."],
+    ),
     ("string_for_number", "s: {contact: {time_step: fast}}", ["contact.time_step", "number"]),
     ("negative_time_step", "s: {contact: {time_step: -0.001}}", ["contact.time_step", "> 0"]),
     ("zero_time_step", "s: {contact: {time_step: 0}}", ["contact.time_step"]),
