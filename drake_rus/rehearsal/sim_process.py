@@ -45,16 +45,14 @@ from pydrake.lcm import DrakeLcm
 from drake_rus.anatomy import load_patient
 from drake_rus.hardware.lcm_sim_driver import DRIVER_EXPIRE_SEC
 from drake_rus.io_utils import write_text_atomic
-from drake_rus.rehearsal.core import age_statistics, pose_to_json, raise_priority
-from drake_rus.rehearsal.mjpeg import FrameBuffer, MjpegServer
+from drake_rus.rehearsal.core import age_statistics, pose_to_json, raise_priority, stall_causes
 from drake_rus.rehearsal.sim import (
     BuildRehearsalSim,
     RehearsalSim,
     StatusPublisherThread,
-    VideoWorker,
     WireFaults,
 )
-from drake_rus.scan.pacing import percentiles_ms
+from drake_rus.rehearsal.video_process import SliceEmulateRenderer, VideoProcess
 from drake_rus.scan.run import PrepareScenario
 from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, ApplyOverrides, LoadScenario
 
@@ -174,9 +172,12 @@ def main(argv=None) -> int:
     )
     scenario, X_start, plan = PrepareScenario(scenario, patient)
     lcm = DrakeLcm(args.lcm_url)
-    server = MjpegServer(
-        FrameBuffer(faults.video_delay),
+    # The pictures are sliced, emulated and encoded in a process of their own, from the
+    # poses the physics hands over (the station's own functions, model and seed).
+    video = VideoProcess(
+        SliceEmulateRenderer(scenario.imaging, patient.labels, scenario.random_seed),
         frame_rate_hz=scenario.imaging.frame_rate_hz,
+        delay=faults.video_delay,
         port=args.video_port,
     )
     holder = {}
@@ -191,24 +192,23 @@ def main(argv=None) -> int:
         seed=args.seed,
     )
 
-    def on_frame(frame, wall):
+    def on_pose(snapshot):
         sim = holder.get("sim")
         t0 = getattr(sim, "t_first_command", None) if sim is not None else None
-        if (
-            faults.freeze_video_at is not None
-            and t0 is not None
-            and frame.time - t0 >= faults.freeze_video_at
-        ):
-            server.buffer.freeze()
-            return
-        holder["video"].offer(frame, wall)
+        if faults.freeze_video_at is not None and t0 is not None:
+            if holder.get("frozen"):
+                return
+            if snapshot.t - t0 >= faults.freeze_video_at:
+                holder["frozen"] = True
+                video.freeze(snapshot.stamp)
+                return
+        video.offer(snapshot)
 
     try:
         diagram, station, wire = BuildRehearsalSim(
             scenario,
             patient,
             lcm,
-            on_frame=on_frame,
             faults=faults,
             rate_hz=args.rate_hz,
             expire_sec=args.expire_sec,
@@ -218,8 +218,6 @@ def main(argv=None) -> int:
             status_channel=args.status_channel,
             status_sink=status_thread.offer,
         )
-        emulator = station.GetSubsystemByName("ultrasound_emulator")
-        holder["video"] = VideoWorker(emulator.model, emulator.seed, server.push)
         sim = RehearsalSim(
             diagram,
             station,
@@ -231,6 +229,7 @@ def main(argv=None) -> int:
             lcm_url=args.lcm_url,
             status_thread=status_thread,
             plant_period=scenario.contact.time_step,
+            on_pose=on_pose,
         )
         holder["sim"] = sim
         sim.prime()
@@ -240,7 +239,7 @@ def main(argv=None) -> int:
             "lcm_url": args.lcm_url,
             "command_channel": args.command_channel,
             "status_channel": args.status_channel,
-            "video_url": server.url,
+            "video_url": video.url,
             "depth": float(scenario.imaging.depth),
             "q0": [float(v) for v in scenario.robot.initial_joint_positions],
             "X_BP_start": pose_to_json(X_start),
@@ -251,7 +250,7 @@ def main(argv=None) -> int:
         write_text_atomic(args.ready, json.dumps(ready, indent=2, default=str) + "\n")
         print(
             f"sim: ready in {ready['setup_s']:.1f} s: LCM {args.lcm_url}, video "
-            f"{server.url}, depth {scenario.imaging.depth:g} m",
+            f"{video.url}, depth {scenario.imaging.depth:g} m",
             flush=True,
         )
 
@@ -282,14 +281,10 @@ def main(argv=None) -> int:
         stats = sim.run(stop, every=live) if not stop() else sim.stats
     finally:
         status_thread.close()
-        if "video" in holder:
-            holder["video"].close()
-        server.close()
+        video_stats = video.close()
         if "sim" in holder:
             holder["sim"].close()
-    log = sim_log(
-        args, scenario, faults, sim, stats, stop, server, X_BK_start, video=holder.get("video")
-    )
+    log = sim_log(args, scenario, faults, sim, stats, stop, video.url, X_BK_start, video_stats)
     write_text_atomic(args.log, json.dumps(log, indent=1, default=_json_default) + "\n")
     c = log["commands"]["age_ms"]
     print(
@@ -325,7 +320,8 @@ def sequence_gaps(arrivals) -> int | None:
     )
 
 
-def sim_log(args, scenario, faults, sim, stats, stop, server, X_BK_start, video=None) -> dict:
+def sim_log(args, scenario, faults, sim, stats, stop, video_url, X_BK_start, video) -> dict:
+    """sim_log.json's content; ``video``: the video process's statistics."""
     expiry = sim.wire.expiry
     arrivals = list(sim.arrivals)
     arrival_ages = [a[0] - a[1] * 1e-6 for a in arrivals]
@@ -369,18 +365,26 @@ def sim_log(args, scenario, faults, sim, stats, stop, server, X_BK_start, video=
             "rate_hz": args.rate_hz,
             # Gaps between successive statuses on the wire (ms): the robot's status rate.
             "gaps_ms": sim.status_thread.gaps_ms(),
+            # Gaps of more than two periods and what ran meanwhile in this process.
+            "stalls": stall_causes(
+                sim.status_thread.times,
+                2.0 / args.rate_hz,
+                {
+                    "gc": stats.gc_spans,
+                    "frame_tick": stats.spans("frame"),
+                    "plant_tick": stats.spans("plant"),
+                    "wire_tick": stats.spans("wire"),
+                    "picture": video.get("spans", []),
+                },
+            ),
         },
         "video": {
-            # Pictures emulated and encoded beside the simulation, skipped (a newer frame
-            # came first), and the time each took (ms).
-            "emulated": video.shown if video is not None else 0,
-            "skipped": video.dropped if video is not None else 0,
-            "emulation_ms": percentiles_ms(video.busy if video is not None else []),
-            "url": server.url,
-            "pictures": server.buffer.pushed,
-            "parts_sent": server.sent,
-            "clients": server.clients,
-            "frozen_at_wall": server.buffer.frozen_at,
+            # Poses handed to the video process; pictures it sliced, emulated and encoded,
+            # skipped (a newer pose came first), the time each took and its age when shown
+            # (ms from the robot being at its pose).
+            "poses": sim.frames,
+            **{k: v for k, v in video.items() if k not in ("spans", "rendered")},
+            "url": video_url,
         },
         "faults": dataclasses.asdict(faults),
         "undeclared_load": not args.declared_load,
