@@ -142,3 +142,20 @@ def test_a_slow_renderer_does_not_delay_the_robots_statuses(prepared):
         assert stamp == offered[index].stamp
     indices = [i for i, _ in rendered]
     assert indices == sorted(indices) and indices[0] == 0
+
+
+def test_stall_causes_names_what_overlapped_each_gap():
+    times = [0.000, 0.005, 0.010, 0.040, 0.045, 0.050, 0.100, 0.105]  # gaps 30 ms, 50 ms
+    activities = {
+        "gc": [(0.012, 0.013)],  # inside the first gap
+        "picture": [(0.050, 0.055), (0.060, 0.080)],  # inside the second
+        "tick": [(0.001, 0.004), (0.101, 0.104)],  # in no gap
+    }
+    report = stall_causes(times, 0.010, activities)
+    assert report["stalls"] == 2
+    assert report["by_cause"] == {"gc": 1, "picture": 1, "tick": 0, "none": 0}
+    assert [w["gap_ms"] for w in report["worst"]] == [50.0, 30.0]
+    assert report["worst"][0]["during"] == ["picture"]
+    assert report["busy_fraction"]["picture"] == pytest.approx(0.025 / 0.105)
+    assert stall_causes(times, 0.010, {})["by_cause"] == {"none": 2}
+    assert stall_causes([1.0], 0.010, {"gc": []})["stalls"] == 0

@@ -28,6 +28,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import os
 import threading
 import time
 from typing import Callable
@@ -90,16 +91,37 @@ class WireFaults:
 WAIT_POLL = 0.5e-3
 
 
+def realtime_scheduling(priority: int) -> str:
+    """Puts the calling thread in SCHED_FIFO at ``priority``; says what it got ("SCHED_FIFO
+    10", or "normal (why not)")."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(priority)))
+    except (AttributeError, OSError, ValueError) as e:
+        return f"normal ({type(e).__name__}: {e})"
+    return f"SCHED_FIFO {int(priority)}"
+
+
 class StatusPublisherThread:
     """Publishes PANDA_STATUS on ``lcm`` every ``period`` s of the wall clock from its own
     thread: the newest status the simulation offered (``offer(msg)``), stamped with the
     wall clock when sent, each dropped with ``drop_probability`` (seeded by ``seed``). So
     the robot's status rate does not depend on how long a simulation step takes. Counts
     ``published`` and ``dropped``; ``times`` (monotonic s) of every status sent or
-    dropped. ``start()``; ``close()``."""
+    dropped. ``start()``; ``close()``.
+
+    ``realtime_priority`` (1-99; 0: none): the thread asks for the real-time scheduling
+    class (SCHED_FIFO) at that priority, as a robot's own controller has it; without the
+    permission (root or CAP_SYS_NICE) it runs as any thread. ``scheduling`` says which."""
 
     def __init__(
-        self, lcm, channel: str, period: float, *, drop_probability: float = 0.0, seed: int = 0
+        self,
+        lcm,
+        channel: str,
+        period: float,
+        *,
+        drop_probability: float = 0.0,
+        seed: int = 0,
+        realtime_priority: int = 0,
     ):
         import drake
 
@@ -113,6 +135,8 @@ class StatusPublisherThread:
         self.published = 0
         self.dropped = 0
         self.times: list[float] = []
+        self.realtime_priority = int(realtime_priority)
+        self.scheduling = "normal"
         self._thread = threading.Thread(
             target=self._run, name="drake_rus_panda_status", daemon=True
         )
@@ -127,6 +151,8 @@ class StatusPublisherThread:
             self._thread.start()
 
     def _run(self):
+        if self.realtime_priority > 0:
+            self.scheduling = realtime_scheduling(self.realtime_priority)
         due = time.monotonic()
         while not self._stop.is_set():
             now = time.monotonic()

@@ -60,6 +60,10 @@ LOG = logging.getLogger("drake_rus.rehearsal")
 
 DEFAULT_LCM_URL = "udpm://239.255.76.67:7667?ttl=0"
 
+# The status thread's SCHED_FIFO priority (when permitted): the real robot's statuses come
+# from its own real-time controller, not from a process that competes with the scan's.
+STATUS_PRIORITY = 10
+
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
@@ -91,6 +95,13 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="report external torques without the probe's weight (as if the "
         "probe were entered in Desk); default: the weight is in them",
+    )
+    p.add_argument(
+        "--status-priority",
+        type=int,
+        default=STATUS_PRIORITY,
+        help="real-time (SCHED_FIFO) priority of the status thread, as the robot's own "
+        "controller has it, when permitted (root or CAP_SYS_NICE); 0: none",
     )
     p.add_argument("--latency-ms", type=float, default=0.0)
     p.add_argument("--drop-status", type=float, default=0.0)
@@ -190,6 +201,7 @@ def main(argv=None) -> int:
         1.0 / args.rate_hz,
         drop_probability=faults.status_drop,
         seed=args.seed,
+        realtime_priority=args.status_priority,
     )
 
     def on_pose(snapshot):
@@ -365,11 +377,16 @@ def sim_log(args, scenario, faults, sim, stats, stop, video_url, X_BK_start, vid
             "rate_hz": args.rate_hz,
             # Gaps between successive statuses on the wire (ms): the robot's status rate.
             "gaps_ms": sim.status_thread.gaps_ms(),
+            "scheduling": sim.status_thread.scheduling,
             # Gaps of more than two periods and what ran meanwhile in this process.
             "stalls": stall_causes(
                 sim.status_thread.times,
                 2.0 / args.rate_hz,
                 {
+                    # Before the first command: the robot rests, nothing steps.
+                    "hold": [(sim.status_thread.times[0], stats.starts[0])]
+                    if sim.status_thread.times and stats.starts
+                    else [],
                     "gc": stats.gc_spans,
                     "frame_tick": stats.spans("frame"),
                     "plant_tick": stats.spans("plant"),
