@@ -159,3 +159,34 @@ def test_stall_causes_names_what_overlapped_each_gap():
     assert report["busy_fraction"]["picture"] == pytest.approx(0.025 / 0.105)
     assert stall_causes(times, 0.010, {})["by_cause"] == {"none": 2}
     assert stall_causes([1.0], 0.010, {"gc": []})["stalls"] == 0
+
+
+def test_status_slot_hands_over_the_newest_status_with_its_send_time():
+    import multiprocessing
+
+    import drake
+
+    from drake_rus.rehearsal.status_process import SlotWriter, read_slot, set_utime
+
+    slot = multiprocessing.get_context("spawn").RawArray("B", 16 + 1024)
+    assert read_slot(slot) is None  # nothing offered yet
+    writer = SlotWriter(slot)
+    for k in range(3):
+        msg = drake.lcmt_panda_status()
+        msg.utime, msg.num_joints = 5, 7
+        msg.joint_position = [0.1 * k] * 7
+        for name in (
+            "joint_position_desired",
+            "joint_velocity",
+            "joint_velocity_desired",
+            "joint_acceleration_desired",
+            "joint_torque",
+            "joint_torque_desired",
+            "joint_torque_external",
+        ):
+            setattr(msg, name, [0.0] * 7)
+        writer.write(msg.encode())
+    got = drake.lcmt_panda_status.decode(set_utime(read_slot(slot), 1234567))
+    assert got.utime == 1234567 and list(got.joint_position) == [0.2] * 7  # the newest
+    with pytest.raises(ValueError, match="room for 1024"):
+        writer.write(bytes(2000))

@@ -38,6 +38,7 @@ __all__ = [
     "NETNS_SETUP",
     "netns_argv",
     "raise_priority",
+    "realtime_scheduling",
 ]
 
 # Inside a fresh network namespace: bring the loopback up and route multicast (LCM's udpm)
@@ -264,3 +265,13 @@ def raise_priority(nice: int) -> str:
     except OSError:
         pass  # no autogroup scheduling: the process nice is enough
     return ", ".join(done)
+
+
+def realtime_scheduling(priority: int) -> str:
+    """Puts the calling thread in SCHED_FIFO at ``priority``; says what it got ("SCHED_FIFO
+    10", or "normal (why not)": it needs root or CAP_SYS_NICE)."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(priority)))
+    except (AttributeError, OSError, ValueError) as e:
+        return f"normal ({type(e).__name__}: {e})"
+    return f"SCHED_FIFO {int(priority)}"

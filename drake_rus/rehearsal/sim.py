@@ -28,7 +28,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-import os
 import threading
 import time
 from typing import Callable
@@ -41,7 +40,7 @@ from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from drake_rus.hardware.core import wall_clock_utime
 from drake_rus.hardware.lcm_sim_driver import DRIVER_EXPIRE_SEC, AddSimulatedDriverWire
 from drake_rus.hardware.systems import ProbeLoadTorque
-from drake_rus.rehearsal.core import PivotDetector
+from drake_rus.rehearsal.core import PivotDetector, realtime_scheduling
 from drake_rus.rehearsal.video_process import PoseSnapshot
 from drake_rus.rehearsal.wiretap import LcmUdpmTap
 from drake_rus.robot import NUM_JOINTS, MakeControlPlant, contact_force_along_approach
@@ -89,16 +88,6 @@ class WireFaults:
 
 # How often (s) a waiting simulation without a wire tap handles arriving LCM messages.
 WAIT_POLL = 0.5e-3
-
-
-def realtime_scheduling(priority: int) -> str:
-    """Puts the calling thread in SCHED_FIFO at ``priority``; says what it got ("SCHED_FIFO
-    10", or "normal (why not)")."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(priority)))
-    except (AttributeError, OSError, ValueError) as e:
-        return f"normal ({type(e).__name__}: {e})"
-    return f"SCHED_FIFO {int(priority)}"
 
 
 class StatusPublisherThread:

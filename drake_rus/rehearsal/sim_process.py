@@ -52,6 +52,7 @@ from drake_rus.rehearsal.sim import (
     StatusPublisherThread,
     WireFaults,
 )
+from drake_rus.rehearsal.status_process import StatusPublisherProcess
 from drake_rus.rehearsal.video_process import SliceEmulateRenderer, VideoProcess
 from drake_rus.scan.run import PrepareScenario
 from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, ApplyOverrides, LoadScenario
@@ -100,7 +101,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--status-priority",
         type=int,
         default=STATUS_PRIORITY,
-        help="real-time (SCHED_FIFO) priority of the status thread, as the robot's own "
+        help="real-time (SCHED_FIFO) priority of the status publisher, as the robot's own "
         "controller has it, when permitted (root or CAP_SYS_NICE); 0: none",
     )
     p.add_argument("--latency-ms", type=float, default=0.0)
@@ -192,17 +193,22 @@ def main(argv=None) -> int:
         port=args.video_port,
     )
     holder = {}
-    # The statuses go out from their own thread (and, on udpm, their own socket): the
-    # robot's status rate does not depend on how long a simulation step takes.
-    status_lcm = DrakeLcm(args.lcm_url) if args.lcm_url.startswith("udpm://") else lcm
-    status_thread = StatusPublisherThread(
-        status_lcm,
-        args.status_channel,
-        1.0 / args.rate_hz,
+    # The statuses go out from a process of their own on udpm (no interpreter lock shared
+    # with the physics), else from a thread: the robot's status rate does not depend on how
+    # long a simulation step takes.
+    status_options = dict(
         drop_probability=faults.status_drop,
         seed=args.seed,
         realtime_priority=args.status_priority,
     )
+    if args.lcm_url.startswith("udpm://"):
+        status_thread = StatusPublisherProcess(
+            args.lcm_url, args.status_channel, 1.0 / args.rate_hz, **status_options
+        )
+    else:
+        status_thread = StatusPublisherThread(
+            lcm, args.status_channel, 1.0 / args.rate_hz, **status_options
+        )
 
     def on_pose(snapshot):
         sim = holder.get("sim")
