@@ -10,12 +10,14 @@ time (:meth:`RehearsalSim.run`) and, at each imaging instant, hands the pose a p
 rendered from (``drake_rus.rehearsal.video_process.PoseSnapshot``) to the video output.
 
 Only the physics steps in the simulation's own thread. What need not be there runs beside
-it, so that the robot keeps its status rate: the statuses are published by
-:class:`StatusPublisherThread` on its own wall-clock schedule (the newest state the
-simulation handed it, stamped when sent), and the ultrasound pictures are sliced, emulated
-(the station's own functions, model and seed: the picture its ``us_image`` would give) and
-JPEG-encoded in a process of their own (``video_process.VideoProcess``), never in the
-physics thread and not under its interpreter lock.
+it, so that the robot keeps its status rate: the statuses are published on their own
+wall-clock schedule (the newest state the simulation handed them, stamped when sent) by
+``status_process.StatusPublisherProcess`` on udpm (a process: no interpreter lock shared
+with the physics) or :class:`StatusPublisherThread`, and the ultrasound pictures are
+sliced, emulated (the station's own functions, model and seed: the picture its
+``us_image`` would give) and JPEG-encoded in a process of their own
+(``video_process.VideoProcess``), never in the physics thread and not under its
+interpreter lock.
 
 The reported external torque: the station's contact torques plus, with
 ``undeclared_load`` (the LCM route's situation: drake-franka-driver cannot declare the
