@@ -17,6 +17,7 @@ other total-store-order machines keep the stores in order).
 
 from __future__ import annotations
 
+import gc
 import multiprocessing
 import struct
 import time
@@ -182,10 +183,15 @@ def _status_main(conn, slot, url, channel, period, drop_probability, seed, prior
         conn.send(("error", f"{type(e).__name__}: {e}"))
         return
     scheduling = realtime_scheduling(priority) if priority > 0 else "normal"
-    conn.send(("ready", scheduling))
     rng = np.random.default_rng(seed)
     published = dropped = 0
     times: list[float] = []
+    last = None
+    # This process imported what its parent's main module imports: keep all of it out of
+    # the collector's passes, or a full collection pauses the statuses for tens of ms.
+    gc.collect()
+    gc.freeze()
+    conn.send(("ready", scheduling))
     due = time.monotonic()
     try:
         while True:
@@ -194,7 +200,9 @@ def _status_main(conn, slot, url, channel, period, drop_probability, seed, prior
                 if conn.poll(due - now):
                     break  # stop (or the robot's process is gone)
                 continue
-            data = read_slot(slot)
+            # The newest status; the last one read while the physics is mid-write.
+            data = read_slot(slot, tries=3) or last
+            last = data
             if data is not None:
                 times.append(now)
                 if drop_probability > 0.0 and rng.random() < drop_probability:

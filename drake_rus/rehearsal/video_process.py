@@ -18,6 +18,7 @@ robot's status stream. In its own process the pictures cost the robot a pipe wri
 from __future__ import annotations
 
 import dataclasses
+import gc
 import logging
 import multiprocessing
 import os
@@ -192,6 +193,8 @@ def _video_main(conn, renderer, frame_rate_hz, delay, port, quality, nice) -> No
     except Exception as e:
         conn.send(("error", f"{type(e).__name__}: {e}"))
         return
+    gc.collect()
+    gc.freeze()  # what the process imported stays out of the collector's passes
     conn.send(("ready", server.port))
     shown = skipped = 0
     spans: list = []  # (start, end) monotonic s per picture
