@@ -224,6 +224,7 @@ def MakeSimStation(
     patient=None,
     name: str = "station",
     label_image_hook: LabelImageHook | None = None,
+    slice_frames: bool = True,
 ) -> Diagram:
     """Simulated station: discrete SAP plant (FR3 + probe + soft patient), velocity driver,
     force estimator and, with a patient, the imaging chain (see the module doc).
@@ -231,6 +232,9 @@ def MakeSimStation(
     ``patient``: a :class:`drake_rus.anatomy.Patient` (default: ``scenario.patient.source``;
     the placeholder torso has no images). ``label_image_hook``: see
     :func:`drake_rus.imaging.chain.AddImagingChain` (fault injection from outside).
+    ``slice_frames=False``: no ultrasound frames inside the diagram (``label_image`` and
+    ``us_image`` stay empty); a renderer beside the simulation makes them from the subsystem
+    ``slice_sensor``'s poses (the rehearsal's video process).
     """
     CheckScenario(scenario)
     if patient is None:
@@ -366,6 +370,7 @@ def MakeSimStation(
             motion=motion if motion.moves else None,
             label_image_hook=label_image_hook,
             offset_port=None if breathing is None else breathing.GetOutputPort("offset_B"),
+            slice_frames=slice_frames,
         )
         builder.ExportOutput(chain.us_image, "us_image")
         builder.ExportOutput(chain.label_image, "label_image")

@@ -10,7 +10,7 @@ They rehearse the shipped ``hardware`` scenario as it is (its watchdogs, the kid
 estimate on, no raised priority), made shorter by the ``quick`` scenario's two differences
 (``OVERRIDES``), and compare with the same scan in this process on the simulated station.
 The scan's perception runs beside its control loop (drake_rus/executor.py), and the
-simulated robot publishes its statuses from a thread of their own, so neither side's
+simulated robot publishes its statuses from a process of their own, so neither side's
 watchdogs need loosening on a shared 2-core machine.
 """
 

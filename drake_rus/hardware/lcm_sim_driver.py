@@ -174,7 +174,7 @@ class LossyLcmPublisher(LeafSystem):
 class StatusSlot(LeafSystem):
     """Hands its input (a Python LCM message, stamped when evaluated) to ``sink(message)``
     every ``period`` s and on a forced publish: the newest status for a publisher that runs
-    beside the simulation (``drake_rus.rehearsal.sim.StatusPublisherThread``), so that the
+    beside the simulation (``drake_rus.rehearsal``'s status thread or process), so that the
     status stream keeps its rate while a simulation step takes long."""
 
     def __init__(self, lcm_type, period: float, sink):

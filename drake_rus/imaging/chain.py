@@ -49,6 +49,7 @@ def AddImagingChain(
     motion=None,
     label_image_hook: LabelImageHook | None = None,
     offset_port: OutputPort | None = None,
+    slice_frames: bool = True,
 ) -> ImagingChain:
     """Adds slice sensor -> [hook] -> emulator to ``builder``.
 
@@ -61,8 +62,12 @@ def AddImagingChain(
         label_image_hook: optional filter on the label frames before the emulator.
         offset_port: optional 3-vector port (m in B) moving the volume instead of
             ``motion`` (a patient who reacts to the scan's prompts).
+        slice_frames: False: the sensor never slices (no frames in the diagram; a renderer
+            outside it slices at the sensor's poses, see ``SliceSensor``).
     """
-    sensor = builder.AddNamedSystem("slice_sensor", SliceSensor(config, volume, X_BV, motion))
+    sensor = builder.AddNamedSystem(
+        "slice_sensor", SliceSensor(config, volume, X_BV, motion, acquire=slice_frames)
+    )
     builder.Connect(X_BP_port, sensor.GetInputPort("X_BP"))
     if offset_port is not None:
         builder.Connect(offset_port, sensor.GetInputPort("offset_B"))

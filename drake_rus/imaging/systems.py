@@ -58,10 +58,20 @@ class SliceSensor(LeafSystem):
     ``offset_B(t)`` (m, in B); the volume then sits at translate(offset_B(t)) * X_BV, so a
     breathing or shifting patient moves under the probe. Input ``offset_B`` (3-vector, m in
     B; optional): when connected, the volume's offset instead of ``motion``'s.
+
+    ``acquire=False``: the sensor never slices (``label_image`` stays the empty frame); a
+    renderer outside the simulation slices at the poses ``volume_pose`` and ``X_BP`` give
+    (the rehearsal's video process: the robot's physics never waits for a picture).
     """
 
     def __init__(
-        self, config: ImagingConfig, volume: LabelVolume, X_BV: RigidTransform, motion=None
+        self,
+        config: ImagingConfig,
+        volume: LabelVolume,
+        X_BV: RigidTransform,
+        motion=None,
+        *,
+        acquire: bool = True,
     ):
         super().__init__()
         if not isinstance(volume, LabelVolume):
@@ -75,7 +85,8 @@ class SliceSensor(LeafSystem):
         self._planes = int(config.elevation_planes)
         self._combine = config.elevation_combine
         # The padded volume and the compiled kernel, now, not in the first frame.
-        warm_slicer(self._geometry, volume, self._planes, self._combine)
+        if acquire:
+            warm_slicer(self._geometry, volume, self._planes, self._combine)
         self._X_BP_port = self.DeclareAbstractInputPort(
             "X_BP", AbstractValue.Make(RigidTransform())
         )
@@ -83,8 +94,9 @@ class SliceSensor(LeafSystem):
         empty = UsFrame(np.zeros(self._geometry.image_shape, np.uint8))
         self._state_index = self.DeclareAbstractState(AbstractValue.Make(empty))
         period = 1.0 / config.frame_rate_hz
-        self.DeclareInitializationUnrestrictedUpdateEvent(self._acquire)
-        self.DeclarePeriodicUnrestrictedUpdateEvent(period, period, self._acquire)
+        if acquire:
+            self.DeclareInitializationUnrestrictedUpdateEvent(self._acquire)
+            self.DeclarePeriodicUnrestrictedUpdateEvent(period, period, self._acquire)
         self.DeclareAbstractOutputPort(
             "label_image",
             lambda: AbstractValue.Make(empty),
@@ -101,6 +113,14 @@ class SliceSensor(LeafSystem):
         if self._motion is None:
             return self._X_BV
         return RigidTransform(self._motion.offset_B(t)) @ self._X_BV
+
+    @property
+    def volume(self) -> LabelVolume:
+        return self._volume
+
+    def volume_pose(self, context) -> RigidTransform:
+        """Pose of the label grid in B now (``offset_B`` if connected, else ``motion``)."""
+        return self._X_BV_now(context)
 
     def _X_BV_now(self, context) -> RigidTransform:
         if self._offset_port.HasValue(context):

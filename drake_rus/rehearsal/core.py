@@ -7,6 +7,7 @@
   contact): how the simulated robot can tell, from outside the scan, that it is pivoting;
 - the scan side's scenario overrides from what the simulated robot announced;
 - poses to and from JSON; the errors of the scan's kidney estimate against the truth;
+- the simulated robot's status stalls: what else was running while a status was late;
 - network isolation: is this process in a network namespace with only the loopback?
 """
 
@@ -26,6 +27,7 @@ from drake_rus.metrics.core import geodesic_angle
 
 __all__ = [
     "age_statistics",
+    "stall_causes",
     "stop_reaction",
     "PivotDetector",
     "scan_overrides",
@@ -36,6 +38,7 @@ __all__ = [
     "NETNS_SETUP",
     "netns_argv",
     "raise_priority",
+    "realtime_scheduling",
 ]
 
 # Inside a fresh network namespace: bring the loopback up and route multicast (LCM's udpm)
@@ -54,6 +57,47 @@ def age_statistics(ages_s) -> dict:
         "p95_ms": float(np.percentile(a, 95) * 1e3),
         "max_ms": float(a.max() * 1e3),
         "min_ms": float(a.min() * 1e3),
+    }
+
+
+def stall_causes(times, threshold: float, activities: dict, *, worst: int = 10) -> dict:
+    """What overlapped each stall of a periodic stream.
+
+    ``times`` (s, one clock): when each message went out; a stall is a gap between
+    successive messages longer than ``threshold`` s. ``activities``: name -> intervals
+    ``(start, end)`` (s, the same clock) of what else ran (a garbage collection, a physics
+    tick holding a frame, a picture rendered). Returns ``stalls`` (count), ``by_cause``
+    (name -> stalls it overlapped; "none" when nothing did), ``busy_fraction`` (name -> the
+    share of the stream's time it ran: the overlap chance alone gives) and ``worst`` (the
+    ``worst`` longest: start s, gap ms, the names overlapping)."""
+    t = np.asarray(times, float)
+    gaps = np.diff(t) if t.size > 1 else np.zeros(0)
+    spans = {name: np.asarray(v, float).reshape(-1, 2) for name, v in activities.items()}
+    found = []
+    for i in np.flatnonzero(gaps > threshold):
+        a, b = t[i], t[i + 1]
+        names = sorted(name for name, s in spans.items() if np.any((s[:, 0] < b) & (s[:, 1] > a)))
+        found.append((float(a), float(1e3 * gaps[i]), names))
+    by_cause = {name: 0 for name in activities}
+    by_cause["none"] = 0
+    for _, _, names in found:
+        for name in names or ["none"]:
+            by_cause[name] += 1
+    found.sort(key=lambda s: -s[1])
+    # The share of the stream's time each activity ran: what chance alone would overlap.
+    duration = float(t[-1] - t[0]) if t.size > 1 else 0.0
+    busy = {
+        name: (float(np.sum(s[:, 1] - s[:, 0])) / duration if duration > 0 else None)
+        for name, s in spans.items()
+    }
+    return {
+        "threshold_ms": 1e3 * float(threshold),
+        "stalls": len(found),
+        "by_cause": by_cause,
+        "busy_fraction": busy,
+        "worst": [
+            {"start_s": a, "gap_ms": round(g, 2), "during": names} for a, g, names in found[:worst]
+        ],
     }
 
 
@@ -221,3 +265,13 @@ def raise_priority(nice: int) -> str:
     except OSError:
         pass  # no autogroup scheduling: the process nice is enough
     return ", ".join(done)
+
+
+def realtime_scheduling(priority: int) -> str:
+    """Puts the calling thread in SCHED_FIFO at ``priority``; says what it got ("SCHED_FIFO
+    10", or "normal (why not)": it needs root or CAP_SYS_NICE)."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(priority)))
+    except (AttributeError, OSError, ValueError) as e:
+        return f"normal ({type(e).__name__}: {e})"
+    return f"SCHED_FIFO {int(priority)}"

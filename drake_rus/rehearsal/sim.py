@@ -5,15 +5,19 @@ wire, with the ultrasound machine's video output.
 FR3 + probe + soft patient, slice sensor and ultrasound emulator) behind
 :func:`drake_rus.hardware.lcm_sim_driver.AddSimulatedDriverWire` (PANDA_COMMAND in, velocity
 mode, the driver's command expiry; PANDA_STATUS out, wall-clock stamps, the driver's torque
-sign) and taps the label frames at the imaging rate for a video output. :class:`RehearsalSim`
-runs it paced at real time (:meth:`RehearsalSim.run`).
+sign); its station makes no ultrasound frames. :class:`RehearsalSim` runs it paced at real
+time (:meth:`RehearsalSim.run`) and, at each imaging instant, hands the pose a picture is
+rendered from (``drake_rus.rehearsal.video_process.PoseSnapshot``) to the video output.
 
 Only the physics steps in the simulation's own thread. What need not be there runs beside
-it, so that the robot keeps its status rate: the statuses are published by
-:class:`StatusPublisherThread` on its own wall-clock schedule (the newest state the
-simulation handed it, stamped when sent), and the ultrasound pictures are emulated (the
-station's own emulator model and seed: the same picture its ``us_image`` would give) and
-JPEG-encoded by :class:`VideoWorker` (numba and OpenCV release the interpreter lock).
+it, so that the robot keeps its status rate: the statuses are published on their own
+wall-clock schedule (the newest state the simulation handed them, stamped when sent) by
+``status_process.StatusPublisherProcess`` on udpm (a process: no interpreter lock shared
+with the physics) or :class:`StatusPublisherThread`, and the ultrasound pictures are
+sliced, emulated (the station's own functions, model and seed: the picture its
+``us_image`` would give) and JPEG-encoded in a process of their own
+(``video_process.VideoProcess``), never in the physics thread and not under its
+interpreter lock.
 
 The reported external torque: the station's contact torques plus, with
 ``undeclared_load`` (the LCM route's situation: drake-franka-driver cannot declare the
@@ -26,13 +30,11 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-import os
 import threading
 import time
 from typing import Callable
 
 import numpy as np
-from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
@@ -40,9 +42,8 @@ from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from drake_rus.hardware.core import wall_clock_utime
 from drake_rus.hardware.lcm_sim_driver import DRIVER_EXPIRE_SEC, AddSimulatedDriverWire
 from drake_rus.hardware.systems import ProbeLoadTorque
-from drake_rus.imaging.emulator import emulate
-from drake_rus.imaging.frames import UsFrame
-from drake_rus.rehearsal.core import PivotDetector
+from drake_rus.rehearsal.core import PivotDetector, realtime_scheduling
+from drake_rus.rehearsal.video_process import PoseSnapshot
 from drake_rus.rehearsal.wiretap import LcmUdpmTap
 from drake_rus.robot import NUM_JOINTS, MakeControlPlant, contact_force_along_approach
 from drake_rus.scan.pacing import GcPauses, gc_statistics, loop_statistics, percentiles_ms
@@ -54,8 +55,6 @@ __all__ = [
     "WireFaults",
     "BuildRehearsalSim",
     "RehearsalSim",
-    "VideoTap",
-    "VideoWorker",
     "StatusPublisherThread",
     "ProbeWeightTorque",
 ]
@@ -89,88 +88,8 @@ class WireFaults:
             raise ValueError(f"freeze_video_at: expected a time >= 0 s, got {self.freeze_video_at}")
 
 
-class VideoTap(LeafSystem):
-    """Input ``label_image`` (UsFrame of tissue labels). Every ``period`` s, hands each new
-    frame and the wall-clock time (s) it was taken to ``on_frame(frame, wall_time)`` (the
-    video output, which emulates it beside the simulation)."""
-
-    def __init__(self, period: float, on_frame: Callable):
-        super().__init__()
-        self._on_frame = on_frame
-        self._last = -1
-        self.frames = 0
-        self._in = self.DeclareAbstractInputPort(
-            "label_image", AbstractValue.Make(UsFrame(np.zeros((1, 1), np.uint8)))
-        )
-        self.DeclarePeriodicPublishEvent(float(period), 0.0, self._publish)
-        self.DeclareForcedPublishEvent(self._publish)
-
-    def _publish(self, context):
-        frame = self._in.Eval(context)
-        if frame.valid and frame.frame_index != self._last:
-            self._last = frame.frame_index
-            self.frames += 1
-            self._on_frame(frame, time.time())
-
-
-# Niceness of the video thread within the simulated robot's process.
-VIDEO_NICE = 5
-
-
-class VideoWorker:
-    """The ultrasound machine's picture pipeline beside the simulation: a thread emulates
-    each label frame offered (``emulate(labels, model, seed, frame_index)``, the picture the
-    station's ``us_image`` gives) and hands it to ``show(image, stamp)`` (the MJPEG output's
-    push, which JPEG-encodes it). Only the newest frame waits; an older one waiting is
-    dropped (``dropped``). ``close()`` stops it."""
-
-    def __init__(self, model, seed: int, show: Callable):
-        self._model, self._seed, self._show = model, int(seed), show
-        self._cond = threading.Condition()
-        self._waiting = None
-        self._stop = False
-        self.shown = 0
-        self.dropped = 0
-        self.busy: list[float] = []  # wall s per picture (emulation and encoding)
-        self._thread = threading.Thread(target=self._run, name="drake_rus_video", daemon=True)
-        self._thread.start()
-
-    def offer(self, frame: UsFrame, stamp: float) -> None:
-        with self._cond:
-            if self._waiting is not None:
-                self.dropped += 1
-            self._waiting = (frame, stamp)
-            self._cond.notify()
-
-    def _run(self):
-        # Below the physics and the statuses (Linux: a thread's own nice value): a late
-        # picture is the machine's video latency, a late status a robot gone quiet.
-        try:
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), VIDEO_NICE)
-        except (AttributeError, OSError):
-            pass
-        while True:
-            with self._cond:
-                while self._waiting is None and not self._stop:
-                    self._cond.wait(0.5)
-                if self._stop:
-                    return
-                frame, stamp = self._waiting
-                self._waiting = None
-            start = time.perf_counter()
-            try:
-                image = emulate(frame.image, self._model, self._seed, frame.frame_index)
-                self._show(image, stamp)
-            except Exception as e:  # a picture lost must not stop the robot's simulation
-                LOG.error("video: %s: %s", type(e).__name__, e)
-            self.busy.append(time.perf_counter() - start)
-            self.shown += 1
-
-    def close(self) -> None:
-        with self._cond:
-            self._stop = True
-            self._cond.notify()
-        self._thread.join(2.0)
+# How often (s) a waiting simulation without a wire tap handles arriving LCM messages.
+WAIT_POLL = 0.5e-3
 
 
 class StatusPublisherThread:
@@ -179,10 +98,21 @@ class StatusPublisherThread:
     wall clock when sent, each dropped with ``drop_probability`` (seeded by ``seed``). So
     the robot's status rate does not depend on how long a simulation step takes. Counts
     ``published`` and ``dropped``; ``times`` (monotonic s) of every status sent or
-    dropped. ``start()``; ``close()``."""
+    dropped. ``start()``; ``close()``.
+
+    ``realtime_priority`` (1-99; 0: none): the thread asks for the real-time scheduling
+    class (SCHED_FIFO) at that priority, as a robot's own controller has it; without the
+    permission (root or CAP_SYS_NICE) it runs as any thread. ``scheduling`` says which."""
 
     def __init__(
-        self, lcm, channel: str, period: float, *, drop_probability: float = 0.0, seed: int = 0
+        self,
+        lcm,
+        channel: str,
+        period: float,
+        *,
+        drop_probability: float = 0.0,
+        seed: int = 0,
+        realtime_priority: int = 0,
     ):
         import drake
 
@@ -196,6 +126,8 @@ class StatusPublisherThread:
         self.published = 0
         self.dropped = 0
         self.times: list[float] = []
+        self.realtime_priority = int(realtime_priority)
+        self.scheduling = "normal"
         self._thread = threading.Thread(
             target=self._run, name="drake_rus_panda_status", daemon=True
         )
@@ -210,6 +142,8 @@ class StatusPublisherThread:
             self._thread.start()
 
     def _run(self):
+        if self.realtime_priority > 0:
+            self.scheduling = realtime_scheduling(self.realtime_priority)
         due = time.monotonic()
         while not self._stop.is_set():
             now = time.monotonic()
@@ -267,7 +201,6 @@ def BuildRehearsalSim(
     patient,
     lcm,
     *,
-    on_frame: Callable,
     faults: WireFaults,
     rate_hz: float = 200.0,
     expire_sec: float = DRIVER_EXPIRE_SEC,
@@ -279,12 +212,14 @@ def BuildRehearsalSim(
 ):
     """The rehearsal's simulated robot, patient and machine as one Diagram; returns
     ``(diagram, station, wire)`` (see the module doc). ``scenario``: the simulated scenario
-    already prepared for the scan's start (``drake_rus.scan.run.PrepareScenario``).
-    ``on_frame(label_frame, wall_time)``: each new label frame (emulate it with the
-    station's ``ultrasound_emulator``); ``status_sink(msg)``: each status, for a
+    already prepared for the scan's start (``drake_rus.scan.run.PrepareScenario``). The
+    station slices no frames (its ``slice_sensor`` gives the poses to render at, see
+    :class:`RehearsalSim`). ``status_sink(msg)``: each status, for a
     :class:`StatusPublisherThread` (None: published by the diagram)."""
     builder = DiagramBuilder()
-    station = builder.AddSystem(MakeSimStation(scenario, patient=patient, name="station"))
+    station = builder.AddSystem(
+        MakeSimStation(scenario, patient=patient, name="station", slice_frames=False)
+    )
     tau = station.GetOutputPort("tau_external")
     if undeclared_load:
         weight = builder.AddNamedSystem("probe_weight", ProbeWeightTorque(scenario))
@@ -309,10 +244,6 @@ def BuildRehearsalSim(
         status_sink=status_sink,
     )
     builder.Connect(wire.velocity, station.GetInputPort("joint_velocity_command"))
-    tap = builder.AddNamedSystem(
-        "video_tap", VideoTap(1.0 / scenario.imaging.frame_rate_hz, on_frame)
-    )
-    builder.Connect(station.GetOutputPort("label_image"), tap.get_input_port())
     diagram = builder.Build()
     diagram.set_name("rehearsal_sim")
     return diagram, station, wire
@@ -335,19 +266,27 @@ class RunStats:
     ticks: int = 0
     late_ticks: int = 0
     # Per tick: wall s of its step (compute), how late it started (lag), and what it held:
-    # "frame" (an ultrasound frame sliced), "plant" (a plant step), "wire" (neither).
+    # "frame" (a picture's pose snapshot taken), "plant" (a plant step), "wire" (neither).
     compute: list = dataclasses.field(default_factory=list, repr=False)
     lag: list = dataclasses.field(default_factory=list, repr=False)
     kinds: list = dataclasses.field(default_factory=list, repr=False)
     period: float = math.nan
-    # Garbage collections during the run: (generation, pause s).
+    # Garbage collections during the run: (generation, pause s), and their (start, end)
+    # (monotonic s).
     gc_pauses: list = dataclasses.field(default_factory=list, repr=False)
+    gc_spans: list = dataclasses.field(default_factory=list, repr=False)
+    # Per tick: when its step started (monotonic s).
+    starts: list = dataclasses.field(default_factory=list, repr=False)
+
+    def spans(self, kind: str) -> list:
+        """(start, end) (monotonic s) of the ticks that held ``kind``."""
+        return [(s, s + c) for s, c, k in zip(self.starts, self.compute, self.kinds) if k == kind]
 
     def as_dict(self) -> dict:
         d = {
             k: v
             for k, v in dataclasses.asdict(self).items()
-            if k not in ("compute", "lag", "kinds", "gc_pauses")
+            if k not in ("compute", "lag", "kinds", "gc_pauses", "gc_spans", "starts")
         }
         d["margin"] = self.sim_s / self.busy_s if self.busy_s > 0 else None
         d["cpu_margin"] = self.sim_s / self.cpu_s if self.cpu_s > 0 else None
@@ -369,7 +308,12 @@ class RehearsalSim:
     simulation holds (statuses and the first picture keep coming) so that it costs nothing
     while the scan side starts; from the first command on it steps in ticks of
     1 / ``rate_hz`` s paced to the wall clock. Records the applied command and joint speeds
-    per tick, the true contact force peak and the PIVOT-like motion (for drills)."""
+    per tick, the true contact force peak and the PIVOT-like motion (for drills).
+
+    ``on_pose(snapshot)``: at the first tick and every ``frame_period`` s of simulated time
+    after it, the :class:`~drake_rus.rehearsal.video_process.PoseSnapshot` a picture is
+    rendered from (the probe pose and the label volume's pose at the end of that tick,
+    stamped with the wall clock then); it must return at once (e.g. a pipe write)."""
 
     def __init__(
         self,
@@ -384,8 +328,12 @@ class RehearsalSim:
         lcm_url: str | None = None,
         status_thread: StatusPublisherThread | None = None,
         plant_period: float | None = None,
+        on_pose: Callable[[PoseSnapshot], None] | None = None,
     ):
         self.diagram, self.station, self.wire, self.lcm = diagram, station, wire, lcm
+        self._on_pose = on_pose
+        self.frames = 0  # pose snapshots handed to on_pose
+        self._next_frame = -math.inf  # simulated time (s) of the next snapshot
         self.status_thread = status_thread
         self.plant_period = plant_period
         self.period = 1.0 / float(rate_hz)
@@ -420,7 +368,11 @@ class RehearsalSim:
         # PIVOT-like s.
         self.motion: list[tuple] = []
         self.simulator.Initialize()
-        self._tap = diagram.GetSubsystemByName("video_tap")
+        self._sensor = (
+            station.GetSubsystemByName("slice_sensor")
+            if station.HasSubsystemNamed("slice_sensor")
+            else None
+        )
         self._publisher = wire.publisher
 
     def _on_command(
@@ -441,21 +393,32 @@ class RehearsalSim:
     def _port(self, name):
         return self.station.GetOutputPort(name).Eval(self.station_context)
 
-    def prime(self, max_time: float = 1.0) -> None:
-        """Steps the resting robot until the first ultrasound picture exists (the imaging
-        chain's first update), at most ``max_time`` s of simulated time."""
-        tap_context = self._tap.GetMyContextFromRoot(self.context)
-        while self._tap.frames == 0 and self.context.get_time() < max_time:
-            self.simulator.AdvanceTo(self.context.get_time() + self.frame_period / 5)
-            self._tap.ForcedPublish(tap_context)
-        if self._tap.frames == 0:
-            raise RuntimeError(
-                f"the simulated station produced no ultrasound picture in "
-                f"{max_time:g} s: does the patient have a label volume?"
-            )
+    def prime(self) -> None:
+        """The first picture's pose (the robot at rest where the operator placed it) and
+        the first status; starts the status thread."""
+        self.snapshot()
         if self.status_thread is not None:
             self._publisher.ForcedPublish(self._publisher.GetMyContextFromRoot(self.context))
             self.status_thread.start()
+
+    def snapshot(self) -> PoseSnapshot | None:
+        """Hands the pose now to ``on_pose`` (None without one or without a patient's label
+        volume) and schedules the next one a frame period later."""
+        t = self.context.get_time()
+        self._next_frame = t + self.frame_period
+        if self._on_pose is None or self._sensor is None:
+            return None
+        sensor_context = self._sensor.GetMyContextFromRoot(self.context)
+        snap = PoseSnapshot(
+            frame_index=self.frames,
+            t=t,
+            stamp=time.time(),
+            X_BP=np.asarray(self._port("X_BP").GetAsMatrix4(), float),
+            X_BV=np.asarray(self._sensor.volume_pose(sensor_context).GetAsMatrix4(), float),
+        )
+        self.frames += 1
+        self._on_pose(snap)
+        return snap
 
     def hold(self, should_stop: Callable[[], bool]) -> None:
         """Until the first command (or ``should_stop()``): a status every period, no
@@ -464,7 +427,7 @@ class RehearsalSim:
         while self.first_command_wall is None and not should_stop():
             if self.status_thread is None:
                 self._publisher.ForcedPublish(pub_context)
-            self.lcm.HandleSubscriptions(max(1, int(round(self.period * 1e3))))
+            self._wait(self.period)
 
     def observe(self, truth: bool = True) -> None:
         """Per tick: joint speeds and the applied command; with ``truth``, also the true
@@ -509,19 +472,23 @@ class RehearsalSim:
         cpu0 = time.process_time()
         next_every = wall0
         k = 0
-        with GcPauses(st.gc_pauses):
+        with GcPauses(st.gc_pauses, st.gc_spans):
             while not should_stop():
                 # Tick k covers (t_{k-1}, t_k]; it is due when the wall clock reaches t_{k-1}.
                 start = time.monotonic()
+                st.starts.append(start)
                 st.lag.append(max(0.0, (start - wall0) - k * self.period))
                 k += 1
                 target = t_sim0 + k * self.period
                 t_start = self.context.get_time()
                 self.simulator.AdvanceTo(target)
                 self.observe(truth=k % truth_every == 0)
+                framed = target >= self._next_frame - 1e-9
+                if framed:
+                    self.snapshot()
                 now = time.monotonic()
                 st.compute.append(now - start)
-                st.kinds.append(self._kind(t_start))
+                st.kinds.append("frame" if framed else self._kind(t_start))
                 st.busy_s += now - start
                 st.ticks += 1
                 lag = (now - wall0) - (target - t_sim0)
@@ -540,27 +507,28 @@ class RehearsalSim:
 
     def _kind(self, t_start: float) -> str:
         """What the tick from ``t_start`` held (its updates are those at ``t_start``): a
-        frame sliced (with a plant step), else a plant step, else only the wire."""
-
-        def at(period):
-            return bool(period) and abs(t_start / period - round(t_start / period)) < 1e-6
-
-        if at(self.frame_period):
-            return "frame"
-        return "plant" if at(self.plant_period) else "wire"
+        plant step, else only the wire. (A tick that took a pose snapshot is "frame".)"""
+        period = self.plant_period
+        at = bool(period) and abs(t_start / period - round(t_start / period)) < 1e-6
+        return "plant" if at else "wire"
 
     def _wait(self, seconds: float) -> None:
-        """Sleeps ``seconds`` while handling arriving LCM messages at once (their arrival
-        times stay exact; the diagram's subscriber latches them at the next step)."""
+        """Sleeps ``seconds`` with the interpreter lock released (the statuses go out
+        meanwhile). With a wire tap every command's arrival is recorded by the tap's thread;
+        without, arriving messages are handled every ``WAIT_POLL`` s (the diagram's
+        subscriber latches the newest at the next step either way). Never a blocking
+        ``HandleSubscriptions(timeout)``: DrakeLcm holds the interpreter lock while it
+        waits, and every other thread of the process with it."""
+        if self.tap is not None:
+            time.sleep(max(0.0, seconds))
+            return
         end = time.monotonic() + seconds
         while True:
+            self.lcm.HandleSubscriptions(0)
             remaining = end - time.monotonic()
             if remaining <= 0.0:
                 return
-            if remaining < 1e-3:
-                time.sleep(remaining)
-                return
-            self.lcm.HandleSubscriptions(int(remaining * 1e3))
+            time.sleep(min(remaining, WAIT_POLL))
 
     def close(self) -> None:
         if self.tap is not None:

@@ -45,22 +45,25 @@ from pydrake.lcm import DrakeLcm
 from drake_rus.anatomy import load_patient
 from drake_rus.hardware.lcm_sim_driver import DRIVER_EXPIRE_SEC
 from drake_rus.io_utils import write_text_atomic
-from drake_rus.rehearsal.core import age_statistics, pose_to_json, raise_priority
-from drake_rus.rehearsal.mjpeg import FrameBuffer, MjpegServer
+from drake_rus.rehearsal.core import age_statistics, pose_to_json, raise_priority, stall_causes
 from drake_rus.rehearsal.sim import (
     BuildRehearsalSim,
     RehearsalSim,
     StatusPublisherThread,
-    VideoWorker,
     WireFaults,
 )
-from drake_rus.scan.pacing import percentiles_ms
+from drake_rus.rehearsal.status_process import StatusPublisherProcess
+from drake_rus.rehearsal.video_process import SliceEmulateRenderer, VideoProcess
 from drake_rus.scan.run import PrepareScenario
 from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, ApplyOverrides, LoadScenario
 
 LOG = logging.getLogger("drake_rus.rehearsal")
 
 DEFAULT_LCM_URL = "udpm://239.255.76.67:7667?ttl=0"
+
+# The status thread's SCHED_FIFO priority (when permitted): the real robot's statuses come
+# from its own real-time controller, not from a process that competes with the scan's.
+STATUS_PRIORITY = 10
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -93,6 +96,13 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="report external torques without the probe's weight (as if the "
         "probe were entered in Desk); default: the weight is in them",
+    )
+    p.add_argument(
+        "--status-priority",
+        type=int,
+        default=STATUS_PRIORITY,
+        help="real-time (SCHED_FIFO) priority of the status publisher, as the robot's own "
+        "controller has it, when permitted (root or CAP_SYS_NICE); 0: none",
     )
     p.add_argument("--latency-ms", type=float, default=0.0)
     p.add_argument("--drop-status", type=float, default=0.0)
@@ -174,41 +184,49 @@ def main(argv=None) -> int:
     )
     scenario, X_start, plan = PrepareScenario(scenario, patient)
     lcm = DrakeLcm(args.lcm_url)
-    server = MjpegServer(
-        FrameBuffer(faults.video_delay),
+    # The pictures are sliced, emulated and encoded in a process of their own, from the
+    # poses the physics hands over (the station's own functions, model and seed).
+    video = VideoProcess(
+        SliceEmulateRenderer(scenario.imaging, patient.labels, scenario.random_seed),
         frame_rate_hz=scenario.imaging.frame_rate_hz,
+        delay=faults.video_delay,
         port=args.video_port,
     )
     holder = {}
-    # The statuses go out from their own thread (and, on udpm, their own socket): the
-    # robot's status rate does not depend on how long a simulation step takes.
-    status_lcm = DrakeLcm(args.lcm_url) if args.lcm_url.startswith("udpm://") else lcm
-    status_thread = StatusPublisherThread(
-        status_lcm,
-        args.status_channel,
-        1.0 / args.rate_hz,
+    # The statuses go out from a process of their own on udpm (no interpreter lock shared
+    # with the physics), else from a thread: the robot's status rate does not depend on how
+    # long a simulation step takes.
+    status_options = dict(
         drop_probability=faults.status_drop,
         seed=args.seed,
+        realtime_priority=args.status_priority,
     )
+    if args.lcm_url.startswith("udpm://"):
+        status_thread = StatusPublisherProcess(
+            args.lcm_url, args.status_channel, 1.0 / args.rate_hz, **status_options
+        )
+    else:
+        status_thread = StatusPublisherThread(
+            lcm, args.status_channel, 1.0 / args.rate_hz, **status_options
+        )
 
-    def on_frame(frame, wall):
+    def on_pose(snapshot):
         sim = holder.get("sim")
         t0 = getattr(sim, "t_first_command", None) if sim is not None else None
-        if (
-            faults.freeze_video_at is not None
-            and t0 is not None
-            and frame.time - t0 >= faults.freeze_video_at
-        ):
-            server.buffer.freeze()
-            return
-        holder["video"].offer(frame, wall)
+        if faults.freeze_video_at is not None and t0 is not None:
+            if holder.get("frozen"):
+                return
+            if snapshot.t - t0 >= faults.freeze_video_at:
+                holder["frozen"] = True
+                video.freeze(snapshot.stamp)
+                return
+        video.offer(snapshot)
 
     try:
         diagram, station, wire = BuildRehearsalSim(
             scenario,
             patient,
             lcm,
-            on_frame=on_frame,
             faults=faults,
             rate_hz=args.rate_hz,
             expire_sec=args.expire_sec,
@@ -218,8 +236,6 @@ def main(argv=None) -> int:
             status_channel=args.status_channel,
             status_sink=status_thread.offer,
         )
-        emulator = station.GetSubsystemByName("ultrasound_emulator")
-        holder["video"] = VideoWorker(emulator.model, emulator.seed, server.push)
         sim = RehearsalSim(
             diagram,
             station,
@@ -231,6 +247,7 @@ def main(argv=None) -> int:
             lcm_url=args.lcm_url,
             status_thread=status_thread,
             plant_period=scenario.contact.time_step,
+            on_pose=on_pose,
         )
         holder["sim"] = sim
         sim.prime()
@@ -240,7 +257,7 @@ def main(argv=None) -> int:
             "lcm_url": args.lcm_url,
             "command_channel": args.command_channel,
             "status_channel": args.status_channel,
-            "video_url": server.url,
+            "video_url": video.url,
             "depth": float(scenario.imaging.depth),
             "q0": [float(v) for v in scenario.robot.initial_joint_positions],
             "X_BP_start": pose_to_json(X_start),
@@ -251,7 +268,7 @@ def main(argv=None) -> int:
         write_text_atomic(args.ready, json.dumps(ready, indent=2, default=str) + "\n")
         print(
             f"sim: ready in {ready['setup_s']:.1f} s: LCM {args.lcm_url}, video "
-            f"{server.url}, depth {scenario.imaging.depth:g} m",
+            f"{video.url}, depth {scenario.imaging.depth:g} m",
             flush=True,
         )
 
@@ -282,14 +299,10 @@ def main(argv=None) -> int:
         stats = sim.run(stop, every=live) if not stop() else sim.stats
     finally:
         status_thread.close()
-        if "video" in holder:
-            holder["video"].close()
-        server.close()
+        video_stats = video.close()
         if "sim" in holder:
             holder["sim"].close()
-    log = sim_log(
-        args, scenario, faults, sim, stats, stop, server, X_BK_start, video=holder.get("video")
-    )
+    log = sim_log(args, scenario, faults, sim, stats, stop, video.url, X_BK_start, video_stats)
     write_text_atomic(args.log, json.dumps(log, indent=1, default=_json_default) + "\n")
     c = log["commands"]["age_ms"]
     print(
@@ -325,7 +338,8 @@ def sequence_gaps(arrivals) -> int | None:
     )
 
 
-def sim_log(args, scenario, faults, sim, stats, stop, server, X_BK_start, video=None) -> dict:
+def sim_log(args, scenario, faults, sim, stats, stop, video_url, X_BK_start, video) -> dict:
+    """sim_log.json's content; ``video``: the video process's statistics."""
     expiry = sim.wire.expiry
     arrivals = list(sim.arrivals)
     arrival_ages = [a[0] - a[1] * 1e-6 for a in arrivals]
@@ -369,18 +383,31 @@ def sim_log(args, scenario, faults, sim, stats, stop, server, X_BK_start, video=
             "rate_hz": args.rate_hz,
             # Gaps between successive statuses on the wire (ms): the robot's status rate.
             "gaps_ms": sim.status_thread.gaps_ms(),
+            "scheduling": sim.status_thread.scheduling,
+            # Gaps of more than two periods and what ran meanwhile in this process.
+            "stalls": stall_causes(
+                sim.status_thread.times,
+                2.0 / args.rate_hz,
+                {
+                    # Before the first command: the robot rests, nothing steps.
+                    "hold": [(sim.status_thread.times[0], stats.starts[0])]
+                    if sim.status_thread.times and stats.starts
+                    else [],
+                    "gc": stats.gc_spans,
+                    "frame_tick": stats.spans("frame"),
+                    "plant_tick": stats.spans("plant"),
+                    "wire_tick": stats.spans("wire"),
+                    "picture": video.get("spans", []),
+                },
+            ),
         },
         "video": {
-            # Pictures emulated and encoded beside the simulation, skipped (a newer frame
-            # came first), and the time each took (ms).
-            "emulated": video.shown if video is not None else 0,
-            "skipped": video.dropped if video is not None else 0,
-            "emulation_ms": percentiles_ms(video.busy if video is not None else []),
-            "url": server.url,
-            "pictures": server.buffer.pushed,
-            "parts_sent": server.sent,
-            "clients": server.clients,
-            "frozen_at_wall": server.buffer.frozen_at,
+            # Poses handed to the video process; pictures it sliced, emulated and encoded,
+            # skipped (a newer pose came first), the time each took and its age when shown
+            # (ms from the robot being at its pose).
+            "poses": sim.frames,
+            **{k: v for k, v in video.items() if k not in ("spans", "rendered")},
+            "url": video_url,
         },
         "faults": dataclasses.asdict(faults),
         "undeclared_load": not args.declared_load,

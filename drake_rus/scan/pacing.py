@@ -179,17 +179,23 @@ class RealtimePacer:
 class GcPauses:
     """``with GcPauses(pauses):`` appends (generation, pause s) of every garbage collection
     in the block to ``pauses`` (a stall of every thread: the collector holds the
-    interpreter lock)."""
+    interpreter lock); with ``spans``, also appends its (start, end) on ``time.monotonic()``
+    (s) there."""
 
-    def __init__(self, pauses: list):
+    def __init__(self, pauses: list, spans: list | None = None):
         self.pauses = pauses
+        self.spans = spans
         self._start = None
+        self._start_monotonic = None
 
     def _callback(self, phase, info):
         if phase == "start":
             self._start = time.perf_counter()
+            self._start_monotonic = time.monotonic()
         elif self._start is not None:
             self.pauses.append((info.get("generation"), time.perf_counter() - self._start))
+            if self.spans is not None:
+                self.spans.append((self._start_monotonic, time.monotonic()))
             self._start = None
 
     def __enter__(self):
