@@ -3,6 +3,7 @@ at rest afterwards, and the true contact force never above the ceiling for > 50 
 Short runs only (a fault at 1.5 s of simulated time)."""
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -186,7 +187,9 @@ def test_breathing_study_tables_and_plots(tmp_path):
     assert 5.0 <= np.linalg.norm(m["shift_offset"]) * 1e3 <= 20.0
     assert 0.010 <= m["amplitude"] <= 0.020 and 12 <= m["rate_per_min"] <= 20
     assert tasks[0]["motion"] == tasks[1]["motion"]  # one patient, one draw
-    assert hold_intervals([0, 1, 2, 3, 4], [0, 1, 1, 0, 1]) == [(1.0, 3.0), (4.0, 4.0)]
+    holds = hold_intervals([0, 1, 2, 3, 4], [0, 1, 1, 0, 1])
+    assert holds[0] == (1.0, 3.0) and holds[1][0] == 4.0 and math.isnan(holds[1][1])
+    assert "end_error_s" not in estimator_errors(holds, ((4.0, 4.0, 2, 1),))[1]
     errs = estimator_errors([(10.0, 20.0)], ((10.1, 10.3, 1, 2), (19.8, 20.2, 2, 1)))
     assert errs[0]["onset_error_s"] == pytest.approx(0.1)
     assert errs[0]["end_latency_s"] == pytest.approx(0.2)

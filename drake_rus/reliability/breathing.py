@@ -176,7 +176,8 @@ def registration_offset(result) -> np.ndarray:
 
 
 def hold_intervals(times, flags) -> list[tuple[float, float]]:
-    """[(start, end)] s where ``flags`` (0/1 samples at ``times``) is 1."""
+    """[(start, end)] s where ``flags`` (0/1 samples at ``times``) is 1; end NaN for a hold
+    still on at the last sample (the scan ended first: it has no end to sense)."""
     flags = np.asarray(flags).reshape(-1) > 0.5
     out, start = [], None
     for t, f in zip(times, flags):
@@ -186,7 +187,7 @@ def hold_intervals(times, flags) -> list[tuple[float, float]]:
             out.append((start, float(t)))
             start = None
     if start is not None:
-        out.append((start, float(times[-1])))
+        out.append((start, math.nan))
     return out
 
 
@@ -199,6 +200,8 @@ def estimator_errors(true_holds, transitions, max_gap: float = 1.5) -> list[dict
     for start, end in true_holds:
         row = {"start": start, "end": end}
         for key, truth, cands in (("onset", start, onsets), ("end", end, ends)):
+            if not math.isfinite(truth):
+                continue
             best = min(cands, key=lambda c: abs(c[0] - truth), default=None)
             if best is not None and abs(best[0] - truth) <= max_gap:
                 row[f"{key}_error_s"] = best[0] - truth
@@ -302,7 +305,9 @@ def summarize(results: list[dict]) -> dict:
             for key in ("onset", "end"):
                 errs_k = [abs(e[f"{key}_error_s"]) for e in est if f"{key}_error_s" in e]
                 lat = [e[f"{key}_latency_s"] for e in est if f"{key}_latency_s" in e]
-                row[f"hold_{key}s"] = len(est)
+                row[f"hold_{key}s"] = sum(
+                    math.isfinite(e[key if key == "end" else "start"]) for e in est
+                )
                 row[f"hold_{key}s_found"] = len(errs_k)
                 row[f"hold_{key}_within_0.3s"] = sum(e <= 0.3 for e in errs_k)
                 row[f"hold_{key}_max_error_s"] = float(max(errs_k)) if errs_k else None
@@ -335,8 +340,9 @@ def table_markdown(results: list[dict], summary: dict) -> str:
         if "hold_onsets" in row:
             notes.append(
                 f"holds {row['hold_onsets']}: onset within 0.3 s {row['hold_onset_within_0.3s']}"
-                f" (max {_fmt(row['hold_onset_max_error_s'], 2)} s), end within 0.3 s "
-                f"{row['hold_end_within_0.3s']} (max {_fmt(row['hold_end_max_error_s'], 2)} s)"
+                f" (max {_fmt(row['hold_onset_max_error_s'], 2)} s); of {row['hold_ends']} "
+                f"ending before the scan did, end within 0.3 s {row['hold_end_within_0.3s']} "
+                f"(max {_fmt(row['hold_end_max_error_s'], 2)} s)"
             )
         lines.append(
             f"| {name} | {row['runs']} | {row['done']} | {_fmt(row['mean_e_trans_mm'])} / "
