@@ -222,6 +222,7 @@ def test_breathing_study_tables_and_plots(tmp_path):
     assert summary["free"]["done_within_2mm_of_still"] == 1  # 5.5 vs 4.0; 9.0 vs 6.0 not
     assert summary["shift"]["relocalized_done"] == 1
     assert summary["shift"]["unnoticed_above_5mm"] == 1
+    assert summary["shift"]["done_unnoticed_above_5mm"] == 1
     assert summary["protocol"]["hold_onset_within_0.3s"] == 1
     md = table_markdown(results, summary)
     assert "| free | 2 | 2 |" in md and "test:1_shift" in md

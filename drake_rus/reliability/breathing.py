@@ -297,6 +297,17 @@ def summarize(results: list[dict]) -> dict:
                 )
                 for r in rs
             )
+            # Of those, the ones that ended DONE: a wrong result reported as success (the
+            # others stopped on the way: a safety stop, a failed check).
+            row["done_unnoticed_above_5mm"] = sum(
+                bool(
+                    r["status"] == "DONE"
+                    and r.get("shift_mm", 0) > SHIFT_NOTICE_MM
+                    and r.get("shift_started_in_scan")
+                    and r.get("relocalizations", 0) == 0
+                )
+                for r in rs
+            )
             row["shift_before_localization"] = sum(
                 not r.get("shift_after_localization", True) for r in rs
             )
@@ -334,7 +345,8 @@ def table_markdown(results: list[dict], summary: dict) -> str:
         if "relocalized_done" in row:
             notes.append(
                 f"re-localized and DONE: {row['relocalized_done']}; unnoticed above 5 mm: "
-                f"{row['unnoticed_above_5mm']}; shift before localization: "
+                f"{row['unnoticed_above_5mm']} (of them DONE: "
+                f"{row['done_unnoticed_above_5mm']}); shift before localization: "
                 f"{row['shift_before_localization']}"
             )
         if "hold_onsets" in row:
