@@ -174,6 +174,7 @@ def test_breathing_study_tables_and_plots(tmp_path):
         hold_intervals,
         plot_comparison,
         plot_estimator,
+        sensed_holds,
         summarize,
         table_markdown,
     )
@@ -190,6 +191,9 @@ def test_breathing_study_tables_and_plots(tmp_path):
     holds = hold_intervals([0, 1, 2, 3, 4], [0, 1, 1, 0, 1])
     assert holds[0] == (1.0, 3.0) and holds[1][0] == 4.0 and math.isnan(holds[1][1])
     assert "end_error_s" not in estimator_errors(holds, ((4.0, 4.0, 2, 1),))[1]
+    late = {"sim_s": 20.0, "estimator": estimator_errors([(10.0, 19.8)], ((19.9, 20.0, 2, 1),))}
+    assert math.isnan(sensed_holds(late)[0]["end"])  # let go after DONE: nothing to sense
+    assert "end_error_s" not in sensed_holds(late)[0] and sensed_holds(late)[0]["start"] == 10.0
     errs = estimator_errors([(10.0, 20.0)], ((10.1, 10.3, 1, 2), (19.8, 20.2, 2, 1)))
     assert errs[0]["onset_error_s"] == pytest.approx(0.1)
     assert errs[0]["end_latency_s"] == pytest.approx(0.2)
