@@ -146,7 +146,7 @@ def test_supervisor_approach_to_start_xy():
 
 
 def test_supervisor_explore_ends_when_kidney_leaves_after_debounce():
-    c = cfg(visibility_debounce=0.1)
+    c = cfg(visibility_debounce=0.1, explore_min_seen_travel=0.0)
     dt = 0.01
     s = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0, F=9.0), c, dt)
     s = supervisor.supervisor_step(s, inputs(0.01), c, dt)
@@ -358,7 +358,12 @@ def test_a_hold_that_carries_the_kidney_out_of_view_does_not_end_exploration():
     the sweep has started: it has not "left" the image (it was never in it while the probe
     could move), so the sweep goes on until it finds the kidney, and ends when the kidney
     leaves the image after that."""
-    c = cfg(exploration_ratio=0.5, kidney_length=0.1, visibility_debounce=0.05)
+    c = cfg(
+        exploration_ratio=0.5,
+        kidney_length=0.1,
+        visibility_debounce=0.05,
+        explore_min_seen_travel=0.0,
+    )
     dt = 0.01
     s = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0), c, dt)
     s = supervisor.supervisor_step(s, gated(0.01, False), c, dt)
@@ -378,6 +383,30 @@ def test_a_hold_that_carries_the_kidney_out_of_view_does_not_end_exploration():
         s = supervisor.supervisor_step(s, gated(t, True, visible=False), c, dt)
     assert s.phase == supervisor.Phase.LOCALIZE and "left the image" in s.events[-1][2]
     assert s.travel < travel + 0.001
+
+
+def test_a_kidney_seen_too_briefly_to_localize_does_not_end_exploration():
+    """A kidney that leaves the image before it has been seen over explore_min_seen_travel
+    cannot be localized: the sighting is forgotten and the sweep goes on; once seen over
+    that much, its leaving ends the exploration."""
+    c = cfg(exploration_ratio=0.5, kidney_length=0.2, visibility_debounce=0.05)
+    dt = 0.01
+    s = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0), c, dt)
+    s = supervisor.supervisor_step(s, gated(0.01, True), c, dt)
+    assert s.phase == supervisor.Phase.EXPLORE
+    t = 0.01
+    for k in range(200):  # in view at the start, then gone after a few mm
+        t += dt
+        s = supervisor.supervisor_step(s, gated(t, True, visible=k < 40), c, dt)
+    assert s.phase == supervisor.Phase.EXPLORE and not s.explore_seen
+    start = s.travel
+    while s.travel - start < c.explore_min_seen_travel + 0.002:  # found again, seen longer
+        t += dt
+        s = supervisor.supervisor_step(s, gated(t, True), c, dt)
+    for _ in range(10):
+        t += dt
+        s = supervisor.supervisor_step(s, gated(t, True, visible=False), c, dt)
+    assert s.phase == supervisor.Phase.LOCALIZE and "left the image" in s.events[-1][2]
 
 
 def _to_pivot(c, dt=0.01):

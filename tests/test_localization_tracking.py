@@ -290,6 +290,33 @@ def test_tracking_update_judges_with_the_limits():
     assert "from its registered pose" in s.error and "limit 15.0 mm" in s.error
 
 
+def test_each_phase_takes_its_own_reference_for_the_change_check():
+    """TRANSIT's slide views another part of the kidney than PIVOT: a still kidney's drift
+    changes by 14 mm between them, which is not motion. PIVOT's first checks are its
+    reference; a 12 mm change from them on two checks is."""
+    cfg = LocalizationConfig(tracking_reference_checks=2, tracking_confirmations=2)
+    lim = TrackingLimits(0.015, 0.015, np.array([0.0, 1.0, 0.0]))
+
+    def check(s, t, v_mm, phase):
+        return tracking_update(
+            s, t, DriftEstimate(np.array(v_mm) * 1e-3, 0.001, 100), cfg, lim, phase=phase
+        )
+
+    s = TrackingState()
+    for k, v in enumerate([[0, 14, 0], [0, 14.5, 0], [0, 10, 0]]):
+        s = check(s, 1.0 + 0.5 * k, v, 3)  # TRANSIT
+    for k, v in enumerate([[-3, 0, 0], [-3, 1, 0], [-2, 0, 0], [-3, 0.5, 0]]):
+        s = check(s, 3.0 + 0.5 * k, v, 4)  # PIVOT: 14 mm from TRANSIT's reference
+    assert s.error == "" and s.change_m < 0.002
+    s = check(check(s, 5.0, [-3, 12.5, 0], 4), 5.5, [-3, 13, 0], 4)
+    assert "from where the first checks after it saw it" in s.error
+    assert cfg.tracking_change_limit == pytest.approx(0.011)
+    one = TrackingState()  # one reference for both phases: the view change reads as motion
+    for k, v in enumerate([[0, 14, 0], [0, 14.5, 0], [0, 10, 0], [-3, 0, 0], [-3, 1, 0]]):
+        one = check(one, 1.0 + 0.5 * k, v, -1)
+    assert one.error
+
+
 def test_monitor_passes_a_still_kidney_its_template_misplaces_along_the_axis(template):
     """The pivot frames of a kidney longer than the template pull the template along the
     kidney's axis (half the length difference) although nothing moved: not motion."""

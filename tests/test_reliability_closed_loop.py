@@ -3,6 +3,7 @@ at rest afterwards, and the true contact force never above the ceiling for > 50 
 Short runs only (a fault at 1.5 s of simulated time)."""
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -173,6 +174,7 @@ def test_breathing_study_tables_and_plots(tmp_path):
         hold_intervals,
         plot_comparison,
         plot_estimator,
+        sensed_holds,
         summarize,
         table_markdown,
     )
@@ -186,7 +188,12 @@ def test_breathing_study_tables_and_plots(tmp_path):
     assert 5.0 <= np.linalg.norm(m["shift_offset"]) * 1e3 <= 20.0
     assert 0.010 <= m["amplitude"] <= 0.020 and 12 <= m["rate_per_min"] <= 20
     assert tasks[0]["motion"] == tasks[1]["motion"]  # one patient, one draw
-    assert hold_intervals([0, 1, 2, 3, 4], [0, 1, 1, 0, 1]) == [(1.0, 3.0), (4.0, 4.0)]
+    holds = hold_intervals([0, 1, 2, 3, 4], [0, 1, 1, 0, 1])
+    assert holds[0] == (1.0, 3.0) and holds[1][0] == 4.0 and math.isnan(holds[1][1])
+    assert "end_error_s" not in estimator_errors(holds, ((4.0, 4.0, 2, 1),))[1]
+    late = {"sim_s": 20.0, "estimator": estimator_errors([(10.0, 19.8)], ((19.9, 20.0, 2, 1),))}
+    assert math.isnan(sensed_holds(late)[0]["end"])  # let go after DONE: nothing to sense
+    assert "end_error_s" not in sensed_holds(late)[0] and sensed_holds(late)[0]["start"] == 10.0
     errs = estimator_errors([(10.0, 20.0)], ((10.1, 10.3, 1, 2), (19.8, 20.2, 2, 1)))
     assert errs[0]["onset_error_s"] == pytest.approx(0.1)
     assert errs[0]["end_latency_s"] == pytest.approx(0.2)
@@ -219,6 +226,7 @@ def test_breathing_study_tables_and_plots(tmp_path):
     assert summary["free"]["done_within_2mm_of_still"] == 1  # 5.5 vs 4.0; 9.0 vs 6.0 not
     assert summary["shift"]["relocalized_done"] == 1
     assert summary["shift"]["unnoticed_above_5mm"] == 1
+    assert summary["shift"]["done_unnoticed_above_5mm"] == 1
     assert summary["protocol"]["hold_onset_within_0.3s"] == 1
     md = table_markdown(results, summary)
     assert "| free | 2 | 2 |" in md and "test:1_shift" in md

@@ -117,6 +117,26 @@ def test_a_hold_stays_a_hold_while_the_probe_slides_over_sloping_skin():
     assert abs(out_of[0] - off[0]) <= 0.3
 
 
+def test_a_hold_end_after_the_slide_stopped_is_dated_by_a_change_point():
+    """EXPLORE ends half a second before the patient breathes out (the probe slid over
+    sloping skin, then stood still): the end is dated where the wall leaves the still
+    course, not where the slide stopped."""
+    cfg = M.BreathingConfig(enabled=True, amplitude=0.015, rate_per_min=15.0)
+    prompts = [(12.0, M.Prompt.HOLD_IN), (26.0, M.Prompt.BREATHE)]
+    times, holds, s = breathe(
+        cfg, prompts, 32.0, slope=0.2, speed=0.005, moving=lambda t: 15.0 <= t <= 26.0
+    )
+    on, off = true_hold_edges(times, holds)
+    out_of = [w for w, d, a, b in s.transitions if a == R.HOLDING and on[0] < w < off[0] + 1]
+    assert len(out_of) == 1 and abs(out_of[0] - off[0]) <= 0.3, (out_of, off)
+
+
+def test_hinge_change_point_finds_the_break_of_two_lines():
+    t = np.arange(0.0, 0.8, DT)
+    x = 0.001 - 0.0002 * t - 0.004 * np.maximum(t - 0.55, 0.0)
+    assert R.hinge_change_point(t, x) == pytest.approx(0.55, abs=DT)
+
+
 def test_a_patient_without_visible_breathing_is_still_a_hold():
     cfg = M.BreathingConfig(enabled=False)
     _, _, s = breathe(cfg, [], 6.0, wall=0.0)

@@ -134,6 +134,12 @@ class ControllerConfig:
     approach_timeout: float = field(default=20.0, metadata={"positive": True})
     # The kidney counts as having left the image after this long invisible (s).
     visibility_debounce: float = field(default=0.15, metadata={"min": 0.0})
+    # EXPLORE ends when the kidney leaves the image only once it has been seen over this
+    # much of the sweep (m; localization.min_exploration_travel): a kidney seen over less
+    # cannot be localized (the scan would ABORT), so the sighting is forgotten and the sweep
+    # goes on. A breath that carries the kidney out of a plane near its pole as a hold
+    # begins left it in view for 0.8 mm (test:2, the breath-hold protocol: ABORT).
+    explore_min_seen_travel: float = field(default=0.015, metadata={"min": 0.0})
     # LOCALIZE holds the probe at least this long (s) before reading the kidney pose.
     localize_hold_time: float = field(default=0.5, metadata={"min": 0.0})
     # LOCALIZE aborts if the localizer has no pose ready after this time (s).

@@ -38,6 +38,7 @@ __all__ = [
     "END_EXPIRATION",
     "STATE_NAMES",
     "wall_level",
+    "hinge_change_point",
     "RespirationState",
     "respiration_update",
     "ProtocolState",
@@ -70,6 +71,11 @@ FACE_RADIUS = 0.05
 # A still segment ends when the wall leaves the line fitted over it by this much (m), or
 # moves faster than still_speed on two successive periods.
 END_DEVIATION = 0.0003
+# A hold's end is dated by a change point over the segment's last this many s (the decision
+# comes 0.15-0.3 s after the wall starts to move; the hold's course before it needs the
+# rest), with at least HINGE_MIN_SAMPLES samples on either side of the break.
+DEPARTURE_WINDOW = 0.8
+HINGE_MIN_SAMPLES = 3
 
 
 def wall_level(p_BP, a_B, force: float, stiffness: float) -> float:
@@ -195,23 +201,33 @@ def _still_segment_update(s, t, w, v_w, v_d, ee, tidal, half, cfg) -> Respiratio
 
 
 def _departure(s: RespirationState, t: float, g: float, sign: int) -> float:
-    """When the wall left its still segment (s): the last of the segment's samples of the
-    last second still on the segment's course (within DEPARTURE_NOISE in the leaving
-    direction): the skin's shape along the travel (slope ``g``) and the hold's drift in
-    time fitted over the samples before that second."""
-    seg = (s.t >= s.segment_start) & (s.t >= t - 1.0)
+    """When the wall left its still segment (s): a change point. Over the segment's samples
+    of the last DEPARTURE_WINDOW s (the skin's shape along the travel, slope ``g``, taken
+    out), the break of the continuous two-piece line (the hold's course, then the breath's)
+    that fits them best. Each piece has its own slope: the hold's slow drift, or what the
+    skin's shape fit left of a slide that stopped, before; the breath after."""
+    seg = (s.t >= s.segment_start) & (s.t >= t - DEPARTURE_WINDOW)
     ts, ws = s.t[seg], s.w[seg] - g * s.d[seg]
-    before = (s.t >= s.segment_start) & (s.t < t - 1.0)
-    if np.count_nonzero(before) >= 10:
-        # The hold's own slow drift: a line in time over the samples before.
-        ref_t, ref_w = s.t[before], s.w[before] - g * s.d[before]
-        slope = _slope(ref_t, ref_w)
-        r = ws - (ref_w.mean() + slope * (ts - ref_t.mean()))
-    else:
-        r = ws - ws[: max(3, len(ws) // 4)].mean()
-    r = sign * r if sign else np.abs(r)
-    on_line = np.nonzero(r <= DEPARTURE_NOISE)[0]
-    return float(ts[on_line[-1]]) if len(on_line) else float(ts[0])
+    if len(ts) < 2 * HINGE_MIN_SAMPLES:
+        return float(ts[0]) if len(ts) else float(t)
+    return hinge_change_point(ts, ws)
+
+
+def hinge_change_point(t: np.ndarray, x: np.ndarray) -> float:
+    """The time tau (one of ``t``) whose continuous two-piece line x = c + b (t - tau) +
+    d max(0, t - tau) fits the samples best (least squares); at least HINGE_MIN_SAMPLES
+    samples on either side."""
+    t = np.asarray(t, dtype=float)
+    x = np.asarray(x, dtype=float)
+    best, when = math.inf, float(t[0])
+    for k in range(HINGE_MIN_SAMPLES, len(t) - HINGE_MIN_SAMPLES + 1):
+        dt = t - t[k]
+        A = np.column_stack([np.ones_like(t), dt, np.maximum(dt, 0.0)])
+        coef, *_ = np.linalg.lstsq(A, x, rcond=None)
+        sse = float(np.sum((A @ coef - x) ** 2))
+        if sse < best:
+            best, when = sse, float(t[k])
+    return when
 
 
 def _transition(s: RespirationState, new: int, when: float, t: float) -> RespirationState:

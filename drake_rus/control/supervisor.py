@@ -213,6 +213,7 @@ class SupervisorState:
     # could move: only then can it "leave the image" (a breath-hold may carry it out of
     # view before the sweep starts).
     explore_seen: bool = False
+    explore_seen_travel: float = 0.0  # the sweep's travel (m) when the kidney came into view
     paused: bool = False  # exploration/pivot motion held (outside a breath-hold)
     paused_time: float = 0.0  # total time (s) motion was held
     # Re-localization after the kidney moved (``_kidney_moved``): how many so far, the
@@ -554,7 +555,14 @@ def _explore(s, u, R, p, cfg, dt):
         s.explore_seen = (u.kidney_visible and s.travel == 0.0) or _came_into_view(
             s, u, cfg.visibility_debounce
         )
+        s.explore_seen_travel = s.travel
     left = u.motion_allowed and s.explore_seen and _update_visibility(s, u, cfg.visibility_debounce)
+    if left and s.travel - s.explore_seen_travel < cfg.explore_min_seen_travel:
+        # Seen over too little of the sweep to localize: forget it and sweep on.
+        s.explore_seen = False
+        s.invisible_since = math.nan
+        s.visible_since = math.nan
+        left = False
     target = exploration_target(cfg, u.kidney_length_estimate)
     if s.travel >= target - 1e-12:
         s.P_des = p[:2].copy()

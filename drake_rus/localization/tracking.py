@@ -270,6 +270,12 @@ class TrackingState:
     # breath-hold's reproducibility (``tracking_hold_allowance``).
     segment: int = 0
     reference_segment: int = 0
+    # The supervisor phase of the checks the reference is taken from (-1: none yet), and of
+    # the fit running: a new phase (TRANSIT's slide, then PIVOT about one point) views
+    # another part of the kidney, and takes its own reference.
+    reference_phase: int = -1
+    phase_start_check: int = 0  # index in ``vectors`` of the reference phase's first check
+    pending_phase: int = -1
     was_allowed: bool = True
     pending: object = None  # the drift fit running (an executor Ticket), or None
 
@@ -288,13 +294,15 @@ def tracking_update(
     drift: DriftEstimate | None,
     config,
     limits: TrackingLimits | None = None,
+    phase: int = -1,
 ) -> TrackingState:
     """One check: records the drift at time t and latches an error after
     ``tracking_confirmations`` successive checks where the judged drift is above the limit
     (``limits``, by default the plain ``tracking_max_drift`` on the whole drift) or the
     drift has changed by more than ``tracking_change_limit`` from the reference (the mean
-    of the first ``tracking_reference_checks`` drifts after the registration): a shift in
-    any direction, along the kidney's long axis too."""
+    of the first ``tracking_reference_checks`` drifts of the check's ``phase``, the
+    supervisor's, after the registration): a shift in any direction, along the kidney's
+    long axis too."""
     if state.error or drift is None:
         return dataclasses.replace(state, last_check=t)
     limits = limits or TrackingLimits(float(config.tracking_max_drift))
@@ -304,8 +312,12 @@ def tracking_update(
     reference, change = state.reference, math.nan
     n_ref = int(getattr(config, "tracking_reference_checks", 0))
     reference_segment = state.reference_segment
-    if n_ref > 0 and len(vectors) <= n_ref:
-        reference = tuple(np.mean([v for _, v in vectors], axis=0))
+    reference_phase, phase_start = state.reference_phase, state.phase_start_check
+    if int(phase) != reference_phase:
+        reference_phase, phase_start = int(phase), len(vectors) - 1
+    in_phase = [v for _, v in vectors[phase_start:]]
+    if n_ref > 0 and len(in_phase) <= n_ref:
+        reference = tuple(np.mean(in_phase, axis=0))
         reference_segment = state.segment
     elif n_ref > 0:
         change = float(np.linalg.norm(drift.drift_B - np.asarray(reference)))
@@ -350,6 +362,8 @@ def tracking_update(
         reference=reference,
         change_m=change,
         reference_segment=reference_segment,
+        reference_phase=reference_phase,
+        phase_start_check=phase_start,
     )
 
 
@@ -470,7 +484,8 @@ class KidneyTrackingMonitor(LeafSystem):
             state.get_mutable_abstract_state(self._state).set_value(s)
         if outcome.result is None or s.error:
             return EventStatus.Succeeded() if not same else EventStatus.DidNothing()
-        if int(round(self._phase.Eval(context)[0])) not in self._phases:
+        phase = int(round(self._phase.Eval(context)[0]))
+        if phase not in self._phases:
             return EventStatus.Succeeded() if not same else EventStatus.DidNothing()
         t = context.get_time()
         allowed = (not self._motion.HasValue(context)) or self._motion.Eval(context)[0] > 0.5
@@ -518,7 +533,8 @@ class KidneyTrackingMonitor(LeafSystem):
                     t=t,
                     kind="tracking_fit",
                 )
-                s = self._take(dataclasses.replace(s, pending=ticket), t, outcome)
+                s = dataclasses.replace(s, pending=ticket, pending_phase=phase)
+                s = self._take(s, t, outcome)
             else:
                 s = tracking_update(s, t, None, cfg, tracking_limits(outcome.result, cfg))
         state.get_mutable_abstract_state(self._state).set_value(s)
@@ -534,7 +550,12 @@ class KidneyTrackingMonitor(LeafSystem):
             return s
         s = dataclasses.replace(s, pending=None)
         return tracking_update(
-            s, done.t_request, done.value, self._cfg, tracking_limits(outcome.result, self._cfg)
+            s,
+            done.t_request,
+            done.value,
+            self._cfg,
+            tracking_limits(outcome.result, self._cfg),
+            phase=s.pending_phase,
         )
 
 
