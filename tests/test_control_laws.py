@@ -134,17 +134,88 @@ def test_force_loop_settles_on_a_spring():
 def test_position_p():
     v = laws.position_p([0.5, 0.1], [0.4, 0.2, 0.3], K_p4=2.0, K_p5=3.0)
     np.testing.assert_allclose(v, [0.2, -0.3, 0.0])
+    # A vertical probe: eq. 7 unchanged.
+    v = laws.position_p([0.5, 0.1], [0.4, 0.2, 0.3], 2.0, 3.0, a_curr=[0, 0, -1])
+    np.testing.assert_allclose(v, [0.2, -0.3, 0.0])
+
+
+def test_position_p_never_presses_along_a_tilted_probe():
+    """A probe tilted by 27 deg (towards +x) sliding towards +x: eq. 7's horizontal
+    velocity has sin(27 deg) of itself along the probe's axis (into the body); in the
+    plane normal to the axis it has none, and still moves the tip towards the target."""
+    phi = math.radians(27.0)
+    a = np.array([math.sin(phi), 0.0, -math.cos(phi)])
+    v_seed = laws.position_p([0.44, 0.0], [0.40, 0.0, 0.2], 2.0, 2.0)
+    assert float(v_seed @ a) == pytest.approx(0.08 * math.sin(phi))
+    v = laws.position_p([0.44, 0.0], [0.40, 0.0, 0.2], 2.0, 2.0, a_curr=a)
+    assert abs(float(v @ a)) < 1e-12
+    assert v[0] > 0 and v[2] > 0  # towards the target, rising along the tilted skin
+    np.testing.assert_allclose(laws.tangential([1.0, 2.0, 3.0], [0, 0, 2.0]), [1.0, 2.0, 0.0])
+
+
+def _slide_on_tilted_skin(a_curr_in_position: bool, phi_deg: float = 27.0):
+    """Peak contact force (N) of a probe tilted by phi, normal to skin of that slope
+    (stiffness 3 N/mm), sliding 40 mm towards +x under eq. 6-9 at 100 Hz with the
+    default gains: the tip follows the commanded velocity exactly."""
+    phi = math.radians(phi_deg)
+    a = np.array([math.sin(phi), 0.0, -math.cos(phi)])  # skin normal, into the body
+    k, dt, alpha = 3000.0, 0.01, laws.lowpass_alpha(0.01, 1.25)
+    p = np.array([0.0, 0.0, 0.0])
+    depth0 = 9.0 / k
+    state, peak = (0.0, 0.0, 0.0), 0.0
+    for _ in range(300):
+        F = k * max(depth0 + float(p @ a), 0.0)
+        peak = max(peak, F)
+        v_f, state = laws.force_pd_step(state, F, 9.0, a, dt, alpha, 0.004, 0.00001)
+        v_p = laws.position_p([0.04, 0.0], p, 2.0, 2.0, a_curr=a if a_curr_in_position else None)
+        xi = laws.assemble_twist(np.zeros(3), v_p, v_f, max_tip_speed=0.05)
+        p = p + xi[3:] * dt
+    return peak, p
+
+
+def test_sliding_a_tilted_probe_keeps_the_force():
+    """Case 9 of KiTS19 in small: with eq. 7 in the horizontal plane the slide presses the
+    tilted probe into the skin, to more than 15 N; in the plane normal to the probe
+    the force stays at the desired 9 N, and the tip still reaches the target."""
+    peak_seed, _ = _slide_on_tilted_skin(False)
+    peak, p = _slide_on_tilted_skin(True)
+    assert peak_seed > 15.0
+    assert peak < 9.5
+    assert abs(p[0] - 0.04) < 2e-3
 
 
 def test_assemble_twist_orders_and_saturates():
     xi = laws.assemble_twist([0.1, 0, 0], [0.01, 0, 0], [0, 0, -0.02])
     np.testing.assert_allclose(xi, [0.1, 0, 0, 0.01, 0, -0.02])
     xi = laws.assemble_twist(
-        [3.0, 4.0, 0], [0.3, 0, 0], [0, 0, 0.4], max_tip_speed=0.05, max_angular_speed=0.5
+        [3.0, 4.0, 0], [0.3, 0, 0], [0, 0, 0.04], max_tip_speed=0.05, max_angular_speed=0.5
     )
     np.testing.assert_allclose(np.linalg.norm(xi[:3]), 0.5)
+    np.testing.assert_allclose(xi[:3] / 0.5, [0.6, 0.8, 0])  # direction kept
     np.testing.assert_allclose(np.linalg.norm(xi[3:]), 0.05)
-    np.testing.assert_allclose(xi[3:] / 0.05, [0.6, 0, 0.8])  # direction kept
+    # The force loop first: its 40 mm/s is kept whole, the position loop gets the rest.
+    np.testing.assert_allclose(xi[3:], [0.03, 0, 0.04])
+
+
+def test_force_first_speed_limit():
+    # Within the limit: the plain sum.
+    np.testing.assert_allclose(
+        laws.force_first_speed_limit([0.01, 0, 0], [0, 0, 0.02], 0.05), [0.01, 0, 0.02]
+    )
+    # A force velocity above the limit alone: scaled to it, no position motion at all.
+    np.testing.assert_allclose(
+        laws.force_first_speed_limit([0.05, 0, 0], [0, 0, -0.1], 0.05), [0, 0, -0.05]
+    )
+    # Opposed parts: the position part is scaled so that the sum is on the limit.
+    v = laws.force_first_speed_limit([0.1, 0.0, 0.0], [-0.02, 0.0, 0.01], 0.05)
+    assert np.linalg.norm(v) == pytest.approx(0.05)
+    s = (v[0] + 0.02) / 0.1
+    np.testing.assert_allclose(v, [-0.02 + 0.1 * s, 0.0, 0.01])
+    assert 0 < s < 1
+    # An unlimited speed: the sum.
+    np.testing.assert_allclose(
+        laws.force_first_speed_limit([1.0, 0, 0], [0, 1.0, 0], math.inf), [1.0, 1.0, 0]
+    )
 
 
 # ------------------------------------------------------------------ eq. 10-12

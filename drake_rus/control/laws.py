@@ -136,15 +136,32 @@ def force_pd_step(
 
 
 # ----------------------------------------------------------------------------- position
-def position_p(P_des_xy, p_BP, K_p4: float, K_p5: float) -> np.ndarray:
+def position_p(P_des_xy, p_BP, K_p4: float, K_p5: float, a_curr=None) -> np.ndarray:
     """Tip linear velocity (m/s, in B) tracking the desired tip x, y (eq. 7).
 
     v_x = K_p4 (P_x_des - P_x), v_y = K_p5 (P_y_des - P_y); the z component is left to the
-    force loop (eq. 6), so this returns [v_x, v_y, 0].
+    force loop (eq. 6), so this returns [v_x, v_y, 0]. With ``a_curr`` (the probe's approach
+    vector, unit, in B) the velocity is [v_x, v_y, 0] minus its component along a_curr:
+    the position loop moves the tip in the plane normal to the probe's axis and leaves
+    the axis to the force loop alone (:func:`tangential`). For a vertical probe (the
+    seed's, eq. 8) nothing changes; a probe tilted by phi would otherwise push into the
+    body at sin(phi) times the sliding speed, faster than the force loop backs off.
     """
     P_des_xy = np.asarray(P_des_xy, dtype=float).reshape(2)
     p = _vec3(p_BP)
-    return np.array([K_p4 * (P_des_xy[0] - p[0]), K_p5 * (P_des_xy[1] - p[1]), 0.0])
+    v = np.array([K_p4 * (P_des_xy[0] - p[0]), K_p5 * (P_des_xy[1] - p[1]), 0.0])
+    return v if a_curr is None else tangential(v, a_curr)
+
+
+def tangential(v, a_curr) -> np.ndarray:
+    """``v`` (3,) without its component along the unit vector ``a_curr``: v - (v . a) a."""
+    v = _vec3(v)
+    a = _vec3(a_curr)
+    n = float(np.linalg.norm(a))
+    if not n > 0.0:
+        return v.copy()
+    a = a / n
+    return v - float(v @ a) * a
 
 
 def assemble_twist(
@@ -156,19 +173,43 @@ def assemble_twist(
 ) -> np.ndarray:
     """Task twist xi_b = [omega_total; v_total] (eq. 8-9), saturated.
 
-    v_total = [v_x, v_y, 0] + v_z: eq. 8 stacks v_x, v_y (eq. 7) with the force velocity
+    v_total = v_position + v_force: eq. 8 stacks v_x, v_y (eq. 7) with the force velocity
     (eq. 6), which is a vector along a_curr; for a vertical probe this is exactly
-    [v_x, v_y, v_z]. Linear and angular parts are scaled down (direction kept) to the speed
-    limits (m/s, rad/s).
+    [v_x, v_y, v_z]. The angular part is scaled down (direction kept) to
+    ``max_angular_speed`` (rad/s). The linear part is limited to ``max_tip_speed`` (m/s)
+    with the force loop first (:func:`force_first_speed_limit`): a pressing force that
+    rises while the tip slides is backed off at the force law's full rate, not slowed down
+    with the sliding.
     """
     w = _vec3(omega_total).copy()
-    v = _vec3(v_position) + _vec3(v_force)
-    nw, nv = np.linalg.norm(w), np.linalg.norm(v)
+    nw = np.linalg.norm(w)
     if nw > max_angular_speed:
         w *= max_angular_speed / nw
-    if nv > max_tip_speed:
-        v *= max_tip_speed / nv
+    v = force_first_speed_limit(v_position, v_force, max_tip_speed)
     return np.concatenate([w, v])
+
+
+def force_first_speed_limit(v_position, v_force, max_speed: float) -> np.ndarray:
+    """v_force + s v_position (m/s) within ``max_speed``: v_force alone is scaled down to
+    ``max_speed`` if it exceeds it (direction kept), then s in [0, 1] is the largest scale of
+    v_position keeping |v_force + s v_position| <= max_speed. The force loop (eq. 6) has
+    priority over the position loop (eq. 7): a sliding tip slows down for it."""
+    vf = _vec3(v_force).copy()
+    vp = _vec3(v_position)
+    if not math.isfinite(max_speed):
+        return vf + vp
+    nf = float(np.linalg.norm(vf))
+    if nf > max_speed:
+        return vf * (max_speed / nf)
+    total = vf + vp
+    if float(np.linalg.norm(total)) <= max_speed:
+        return total
+    # |vf + s vp|^2 = max^2: pp s^2 + 2 fp s + (ff - max^2) = 0, ff <= max^2: one root >= 0.
+    pp = float(vp @ vp)
+    fp = float(vf @ vp)
+    c = nf * nf - max_speed * max_speed
+    s = (-fp + math.sqrt(max(fp * fp - pp * c, 0.0))) / pp
+    return vf + min(max(s, 0.0), 1.0) * vp
 
 
 # ----------------------------------------------------------------------------- diff IK

@@ -135,7 +135,8 @@ class PositionP(LeafSystem):
     """Tip x/y tracking (eq. 7).
 
     Inputs: X_BP (RigidTransform), P_des (2, m, desired tip x, y in B).
-    Output: v_position (3, m/s, in B; z = 0).
+    Output: v_position (3, m/s, in B): eq. 7's [v_x, v_y, 0] in the plane normal to the
+    probe's axis (``laws.position_p`` with a_curr), so it never presses along the axis.
     """
 
     def __init__(self, config):
@@ -146,9 +147,15 @@ class PositionP(LeafSystem):
         self.DeclareVectorOutputPort("v_position", 3, self._calc)
 
     def _calc(self, context, output):
-        p = _X(self._X, context).translation()
+        X = _X(self._X, context)
         output.SetFromVector(
-            laws.position_p(self._P.Eval(context), p, self._cfg.K_p4, self._cfg.K_p5)
+            laws.position_p(
+                self._P.Eval(context),
+                X.translation(),
+                self._cfg.K_p4,
+                self._cfg.K_p5,
+                a_curr=X.rotation().matrix()[:, 2],
+            )
         )
 
 

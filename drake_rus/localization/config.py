@@ -56,7 +56,7 @@ class LocalizationConfig:
     # Those gates were measured with the shipped template of generated kidneys, whose own
     # subjects deviate from it by 0.70 mm per point beyond its 3 fitted modes (2.19 mm
     # with none fitted). A template built from more varied kidneys (20 real CT kidneys:
-    # 2.47 / 3.72 mm) leaves more residual on a kidney of its own population, so the gate
+    # 2.39 / 3.55 mm) leaves more residual on a kidney of its own population, so the gate
     # widens by that template's excess shape variability, in quadrature, at this many SD
     # (localize.max_rms_residual; 0 = the fixed gates). 1 SD, not 2: replaying the
     # registration with the real template on the explored clouds of 27 KiTS kidneys
@@ -64,7 +64,11 @@ class LocalizationConfig:
     # truth left at most 5.57 mm RMS and the two wrong ones (tumours of 603 and 231 mL:
     # 41 and 22 mm off) 5.91 and 6.81 mm; 2 SD (6.9 mm) passed both wrong fits, 1 SD
     # (5.53 mm) rejects them and one correct fit (5.57 mm). The shipped template's gates are
-    # unchanged; the real template's become 5.5 mm (deformable) / 6.7 mm (rigid).
+    # unchanged; the real template's become 5.5 mm (deformable) / 6.6 mm (rigid). No other
+    # measure the scan has without truth (inlier fraction, Mahalanobis distance of the shape
+    # weights, template-to-cloud distance, residual median, the cloud's centroid line
+    # against the template's, the spread of fits from perturbed starts) separates correct
+    # from wrong fits on real kidneys better (docs/results/real_kidneys.md, 2026-11-26).
     rms_shape_allowance_sd: float = field(default=1.0, metadata={"min": 0.0, "max": 5.0})
     # Points within 3 mm of the registered template. Real kidneys: >= 0.42 deformable (ER
     # up to 1.2), >= 0.31 rigid at ER <= 0.8 (a rigid 108 mm template on a 136 mm kidney

@@ -38,6 +38,9 @@ __all__ = [
     "correspond",
     "mean_shape",
     "shape_model",
+    "centred_shapes",
+    "point_area_weights",
+    "axis_agreement_deg",
     "convergence",
     "build_template",
     "TemplateResult",
@@ -217,6 +220,37 @@ def shape_model(aligned: np.ndarray, keep: float = 0.95):
     return mean, Vt[:k].reshape(k, *mean.shape), var[:k], frac[:k]
 
 
+def point_area_weights(points: np.ndarray, k: int = 6) -> np.ndarray:
+    """Surface area (relative, sums to 1) each of ``points`` (M, 3), samples of a closed
+    surface, stands for: the mean squared distance to its ``k`` nearest neighbours (a
+    sample's share of a uniformly sampled surface is the square of the local spacing).
+    Moments weighted by it are those of the surface, not of the sampling."""
+    p = np.asarray(points, dtype=float)
+    d, _ = cKDTree(p).query(p, k=k + 1)
+    a = np.mean(d[:, 1:] ** 2, axis=1)
+    return a / a.sum()
+
+
+def centred_shapes(aligned: np.ndarray) -> np.ndarray:
+    """The corresponded shapes (N, M, 3) each translated so that its centroid is the mean
+    shape's: their mean is unchanged, and the PCA of their deviations (:func:`shape_model`)
+    gives centroid-free modes (a mode deforms the kidney about its centre, it does not move
+    it; the registration's translation owns that). kNN correspondence samples each subject
+    at the reference's vertices, so their centroids scatter by about a millimetre, which
+    the modes otherwise carry as translation."""
+    a = np.asarray(aligned, dtype=float)
+    return a - a.mean(axis=1, keepdims=True) + a.mean(axis=(0, 1))
+
+
+def axis_agreement_deg(rotations: np.ndarray) -> np.ndarray:
+    """Angle (deg) between each subject's long axis x_k (its own canonical frame, eq. 14:
+    inferior -> superior) and the template's, from the rotations (N, 3, 3) that take each
+    subject's canonical frame into the template's. Above 90 deg a subject was aligned
+    upside down: its superior pole on the template's inferior one."""
+    R = np.asarray(rotations, dtype=float).reshape(-1, 3, 3)
+    return np.degrees(np.arccos(np.clip(R[:, 0, 0], -1.0, 1.0)))
+
+
 def convergence(aligned: np.ndarray) -> dict:
     """Template convergence as N grows (seed Fig. 3d): mean per-vertex change of the running
     mean when subject n is added (n = 2..N), and mean distance to the final template."""
@@ -309,16 +343,20 @@ def build_template(
             transforms[i] = T
         aligned, normals = gather(mean)
         mean = mean_shape(aligned)
-    # Express everything in the template's own canonical frame (eq. 13-14 on the mean).
-    X = canonical_frame(mean, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    # Express everything in the template's own canonical frame (eq. 13-14 on the mean),
+    # from its surface moments as for patients (mesh_canonical_frame is area-weighted):
+    # kNN correspondence leaves the mean's points unevenly spread over its surface.
+    X = canonical_frame(mean, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], point_area_weights(mean))
     R, c = X.rotation().matrix(), X.translation()
     aligned = (aligned - c) @ R
     normals = normals @ R
     mean = mean_shape(aligned)
     mean_n = normals.mean(axis=0)
     mean_n /= np.linalg.norm(mean_n, axis=1, keepdims=True)
-    _, modes, var, frac = shape_model(aligned, keep_variance)
+    # Modes from the centred shapes: centroid-free and orthonormal (the mean is the same).
+    _, modes, var, frac = shape_model(centred_shapes(aligned), keep_variance)
     conv = convergence(aligned)
+    x_axis_deg = axis_agreement_deg([R.T @ T[:3, :3] for T in transforms])
     meta = {
         "format_version": FORMAT_VERSION,
         "equations": "seed II-D eq. 13-15",
@@ -334,6 +372,8 @@ def build_template(
         "n_modes": int(len(var)),
         "explained": [float(f) for f in frac],
         "convergence": conv,
+        # Each subject's long axis against the template's (deg; > 90: aligned upside down).
+        "x_axis_agreement_deg": [round(float(d), 2) for d in x_axis_deg],
         "extent_mm": (np.ptp(mean, axis=0) * 1e3).round(2).tolist(),
         "build_seconds": round(time.time() - t0, 2),
     }
