@@ -166,5 +166,15 @@ class ImagingConfig:
     # Measured on seed 5,000,002 decubitus: the masks drawn in a rib's shadow lay 0.82-1.00
     # in it; a kidney partly under a rib's shadow, seen beside it, 0.2-0.3.
     shadow_max_fraction: float = field(default=0.5, metadata={"min": 0.0, "max": 1.0})
+    # The exploration cloud leaves out a frame whose section (the extent in B of its
+    # boundary points) lies more than this distance (m) from the median of the last 5
+    # frames' sections on any side (backprojection.accumulate_consistent): between frames a
+    # fraction of a millimetre apart a kidney's section moves millimetres (about 3 mm at a
+    # pole), a mask leaking into a neighbour or drawn where the image shows nothing jumps
+    # further. 0 switches the check off.
+    cloud_section_jump: float = field(
+        default=0.010,
+        metadata=physical(0.0, 0.1, "m", "a section moves millimetres between frames"),
+    )
     # ONNX Runtime intra-op threads (1 leaves the other cores to the simulation).
     onnx_threads: int = field(default=1, metadata={"min": 1, "max": 64})

@@ -22,7 +22,7 @@ from pydrake.math import RigidTransform
 from pydrake.systems.framework import EventStatus, LeafSystem, ValueProducer
 
 from drake_rus.anatomy.labels import LabelVolume
-from drake_rus.imaging.backprojection import accumulate
+from drake_rus.imaging.backprojection import accumulate_consistent
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.emulator import EmulatorModel, emulate
 from drake_rus.imaging.emulator import warm_up as warm_emulator
@@ -635,12 +635,18 @@ class PointCloudAccumulator(LeafSystem):
     Outputs: ``point_cloud`` (abstract PointCloud: points (N, 3) in B (m), frame count, the
     X_BP and time (s) of every kept frame); ``frame_count`` (1-vector).
     Checks for a new frame at ``frame_rate_hz``, half a period after the sensor's clock.
+    A frame whose section jumps from the last frames' (``imaging.cloud_section_jump``;
+    :func:`~drake_rus.imaging.backprojection.accumulate_consistent`) counts, but its points
+    are left out.
     """
 
     def __init__(self, config: ImagingConfig, max_points_per_frame: int = 0):
         super().__init__()
         self._geometry = ProbeGeometry.from_config(config)
         self._max_points = int(max_points_per_frame)
+        self._jump = config.cloud_section_jump
+        # ((time s, section extent (6,)), ...) of the last frames with a section.
+        self._recent_index = self.DeclareAbstractState(AbstractValue.Make(()))
         self._boundary = self.DeclareAbstractInputPort(
             "boundary_pixels", AbstractValue.Make(BoundaryPixels(np.zeros((0, 2))))
         )
@@ -674,6 +680,7 @@ class PointCloudAccumulator(LeafSystem):
     def _update(self, context, state):
         if self._flag(self._reset, context, False):
             state.get_mutable_abstract_state(self._cloud_index).set_value(PointCloud())
+            state.get_mutable_abstract_state(self._recent_index).set_value(())
             return EventStatus.Succeeded()
         if not self._flag(self._enable, context, True) or not self._boundary.HasValue(context):
             return EventStatus.DidNothing()
@@ -682,8 +689,11 @@ class PointCloudAccumulator(LeafSystem):
         if boundary.frame_index < 0 or boundary.frame_index <= last:
             return EventStatus.DidNothing()
         cloud = context.get_abstract_state(self._cloud_index).get_value()
-        state.get_mutable_abstract_state(self._cloud_index).set_value(
-            accumulate(cloud, boundary, self._geometry, self._max_points)
+        recent = context.get_abstract_state(self._recent_index).get_value()
+        cloud, recent = accumulate_consistent(
+            cloud, recent, boundary, self._geometry, self._max_points, self._jump
         )
+        state.get_mutable_abstract_state(self._cloud_index).set_value(cloud)
+        state.get_mutable_abstract_state(self._recent_index).set_value(recent)
         state.get_mutable_abstract_state(self._last_index).set_value(boundary.frame_index)
         return EventStatus.Succeeded()
