@@ -163,8 +163,8 @@ class ImagingConfig:
     shadow_floor: float = field(default=0.3, metadata={"min": 0.0, "max": 1.0})
     # A frame whose kidney mask lies more than this fraction in shadow gives no boundary
     # pixels at all (its controller read-outs are kept: the kidney goes on under a rib).
-    # Measured on seed 5,000,002 decubitus: the masks drawn in a rib's shadow lay 0.82-1.00
-    # in it; a kidney partly under a rib's shadow, seen beside it, 0.2-0.3.
+    # Measured on seed 5,000,002 decubitus: the masks drawn in a rib's shadow lay 0.57-1.00
+    # in it (48 frames); a kidney partly under the shadow, seen beside it, 0.06-0.31.
     shadow_max_fraction: float = field(default=0.5, metadata={"min": 0.0, "max": 1.0})
     # The exploration cloud leaves out a frame whose section (the extent in B of its
     # boundary points) lies more than this distance (m) from the median of the last 5
