@@ -278,3 +278,175 @@ def test_a_region_that_only_touches_the_grown_mask_is_not_the_kidney():
     track = KidneyTrack(kidney, 1.0, 0.0)
     assert track_update(track, top, True, 1.05, g, **follow).since == pytest.approx(1.05)
     assert track_update(track, moved, True, 1.05, g, **follow).since == 0.0
+
+
+def _rib_shadow_frame(geometry, wedge=(-0.12, 0.0), rib_depth=0.02, seed=0):
+    """A speckled frame (grey 150 +- 40 in the fan) whose scan lines at angles in ``wedge``
+    (rad) are black below a bright echo at ``rib_depth`` (m): a rib's shadow. An anechoic
+    disc (a vessel) lies elsewhere, with tissue below it."""
+    rng = np.random.default_rng(seed)
+    img = np.zeros(geometry.image_shape, np.uint8)
+    idx = geometry.fan_flat_index
+    theta, d = geometry.fan_polar
+    grey = np.clip(rng.normal(150.0, 40.0, len(idx)), 0, 255)
+    in_wedge = (theta >= wedge[0]) & (theta <= wedge[1])
+    grey[in_wedge & (np.abs(d - rib_depth) < 0.0015)] = 250.0
+    grey[in_wedge & (d >= rib_depth + 0.0015)] = rng.uniform(
+        0, 6, np.count_nonzero(in_wedge & (d >= rib_depth + 0.0015))
+    )
+    vessel = (np.abs(theta - 0.2) < 0.06) & (np.abs(d - 0.06) < 0.008)
+    grey[vessel] = 0.0
+    img.reshape(-1)[idx] = grey.astype(np.uint8)
+    shadow_truth = np.zeros(geometry.image_shape, bool)
+    shadow_truth.reshape(-1)[idx] = in_wedge & (d >= rib_depth + 0.0015)
+    vessel_px = np.zeros(geometry.image_shape, bool)
+    vessel_px.reshape(-1)[idx] = vessel
+    return img, shadow_truth, vessel_px
+
+
+def _polar_disc(geometry, theta0, d0, radius):
+    """Bool mask of the fan pixels within ``radius`` (m) of the point at (theta0, d0)."""
+    p0 = geometry.polar_to_P(theta0, d0)[0]
+    out = np.zeros(geometry.image_shape, bool)
+    p = geometry.fan_p_P
+    out.reshape(-1)[geometry.fan_flat_index] = np.hypot(p[:, 0] - p0[0], p[:, 2] - p0[2]) <= radius
+    return out
+
+
+def test_acoustic_shadow_is_the_dark_lines_below_a_strong_reflector(geometry):
+    from drake_rus.imaging.segment import acoustic_shadow
+
+    img, truth, vessel = _rib_shadow_frame(geometry)
+    shadow = acoustic_shadow(img, geometry, 0.3)
+    assert not (shadow & ~geometry.fan_mask).any()
+    # The shadow's lines below the rib (1-degree lines: their edges may share a line).
+    assert np.count_nonzero(shadow & truth) >= 0.9 * np.count_nonzero(truth)
+    lit = geometry.fan_mask & ~truth
+    assert np.count_nonzero(shadow & lit) <= 0.02 * np.count_nonzero(lit)
+    # An anechoic vessel with tissue below it is no shadow; nor are the rib and above it.
+    assert not (shadow & vessel).any()
+    theta, d = geometry.fan_polar
+    above = np.zeros(geometry.image_shape, bool)
+    above.reshape(-1)[geometry.fan_flat_index] = d < 0.018
+    assert not (shadow & above).any()
+    # floor 0 switches it off; a frame without echo (no contact) is all shadow.
+    assert not acoustic_shadow(img, geometry, 0.0).any()
+    dark = np.zeros(geometry.image_shape, np.uint8)
+    assert np.array_equal(acoustic_shadow(dark, geometry, 0.3), geometry.fan_mask)
+
+
+def test_a_mask_drawn_in_shadow_gives_no_boundary_and_its_edge_by_the_shadow_none(geometry):
+    from drake_rus.imaging.segment import acoustic_shadow, echo_supported_boundary
+
+    img, _, _ = _rib_shadow_frame(geometry, wedge=(-0.3, 0.0))
+    shadow = acoustic_shadow(img, geometry, 0.3)
+    # Wholly in the shadow: the segmenter's guess, no boundary at all.
+    inside = _polar_disc(geometry, -0.15, 0.07, 0.012)
+    assert np.count_nonzero(inside & shadow) > 0.9 * np.count_nonzero(inside)
+    b = boundary_pixels(inside)
+    assert len(echo_supported_boundary(inside, b, shadow, geometry, 0.5)) == 0
+    # Mostly lit, partly under the shadow: only the boundary away from the shadow is kept.
+    side = _polar_disc(geometry, 0.04, 0.07, 0.02)
+    frac = np.count_nonzero(side & shadow) / np.count_nonzero(side)
+    assert 0.05 < frac < 0.5
+    b = boundary_pixels(side)
+    kept = echo_supported_boundary(side, b, shadow, geometry, 0.5)
+    assert 0.3 * len(b) < len(kept) < len(b)
+    p_kept = geometry.pixel_to_P(kept)
+    p_shadow = geometry.pixel_to_P(np.argwhere(shadow)[:, ::-1])
+    gap = np.min(
+        np.hypot(
+            p_kept[:, None, 0] - p_shadow[None, ::7, 0], p_kept[:, None, 2] - p_shadow[None, ::7, 2]
+        )
+    )
+    assert gap > 0.0015  # the shadow's 2 mm margin (its pixels subsampled)
+    # Without shadow every boundary pixel is kept.
+    none = np.zeros_like(shadow)
+    assert np.array_equal(echo_supported_boundary(side, b, none, geometry, 0.5), b)
+
+
+def test_frames_whose_mask_lies_in_shadow_feed_no_points_to_the_cloud(geometry):
+    """A sweep whose middle frames pass under a rib while the segmenter keeps drawing the
+    kidney there (as the learned one does): those frames count, but add no points."""
+    from drake_rus.imaging.frames import UsFrame
+    from drake_rus.imaging.systems import segment_frame
+
+    lit_img = _rib_shadow_frame(geometry, wedge=(1.0, 1.0))[0]  # no shadow at all
+    shadowed_img = _rib_shadow_frame(geometry, wedge=(-0.35, 0.35))[0]  # the whole fan
+    kidney = _polar_disc(geometry, 0.0, 0.07, 0.02)
+
+    def backend(us, labels, prev, age, section):
+        return kidney  # the segmenter marks the kidney whatever the image shows
+
+    cloud = PointCloud()
+    fed = []
+    for k in range(9):
+        img = shadowed_img if 3 <= k <= 5 else lit_img
+        X_BP = RigidTransform(DOWN, [0.5, 0.01 * k, 0.3])
+        for floor in (0.0, 0.3):
+            mask, readout, boundary = segment_frame(
+                backend,
+                geometry,
+                1.0e-4,
+                UsFrame(img, 0.05 * k, X_BP, k),
+                None,
+                follows=False,
+                uses_prior=False,
+                track_confirm=0.0,
+                source="us_image",
+                shadow_floor=floor,
+                shadow_max_fraction=0.5,
+            )
+            assert readout.visible and np.array_equal(mask.image, kidney)  # read-outs kept
+            if floor == 0.0:
+                assert len(boundary.pixels) == len(readout.boundary)  # the rule switched off
+        fed.append(len(boundary.pixels))
+        cloud = accumulate(cloud, boundary, geometry)
+    assert fed[3:6] == [0, 0, 0]
+    assert all(n == len(boundary_pixels(kidney)) for n in fed[:3] + fed[6:])
+    assert cloud.frame_count == 9 and len(cloud.points) == 6 * len(boundary_pixels(kidney))
+    # No point from the shadowed frames' planes (y_B = 0.03-0.05 m).
+    assert not np.any(np.isclose(cloud.points[:, 1], [[0.03], [0.04], [0.05]]).any(axis=0))
+
+
+def test_a_section_that_jumps_from_its_neighbours_is_left_out_of_the_cloud(geometry):
+    """A sweep (0.25 mm a frame) over a kidney section that changes smoothly; frame 8's mask
+    leaks 20 mm deeper (a neighbour taken for the kidney): its points are left out. From
+    frame 14 on the section moves for good by 15 mm: it is followed again after half the
+    window (the recent sections include the left-out ones)."""
+    from drake_rus.imaging.backprojection import accumulate_consistent
+
+    cloud, recent = PointCloud(), ()
+    kept = []
+    for k in range(24):
+        depth = 0.07 + 0.0002 * k + (0.015 if k >= 14 else 0.0)
+        mask = _polar_disc(geometry, 0.0, depth, 0.02 - 0.0001 * k)
+        if k == 8:
+            mask = mask | _polar_disc(geometry, 0.0, depth + 0.02, 0.01)
+        X_BP = RigidTransform(DOWN, [0.5, 0.00025 * k, 0.3])
+        px = boundary_pixels(mask)
+        before = len(cloud.points)
+        cloud, recent = accumulate_consistent(
+            cloud, recent, BoundaryPixels(px, 0.05 * k, X_BP, k), geometry, jump=0.010
+        )
+        kept.append(len(cloud.points) > before)
+        assert len(cloud.points) in (before, before + len(px))
+    assert cloud.frame_count == 24 and len(cloud.poses) == 24
+    assert kept[:8] == [True] * 8 and not kept[8] and all(kept[9:14])
+    # The lasting move: 1-2 frames left out, then followed again.
+    assert not kept[14] and all(kept[17:])
+    assert cloud.frames_inconsistent == kept.count(False) <= 4
+    # The check off (jump 0): every frame's points are kept.
+    cloud0, recent0 = PointCloud(), ()
+    for k in range(10):
+        mask = _polar_disc(geometry, 0.0, 0.07 + (0.03 if k == 8 else 0.0), 0.02)
+        X_BP = RigidTransform(DOWN, [0.5, 0.00025 * k, 0.3])
+        cloud0, recent0 = accumulate_consistent(
+            cloud0, recent0, BoundaryPixels(boundary_pixels(mask), 0.05 * k, X_BP, k), geometry
+        )
+    assert cloud0.frames_inconsistent == 0
+    # A gap longer than max_age (0.5 s) forgets the recent sections: the next one is kept.
+    far = BoundaryPixels(boundary_pixels(_polar_disc(geometry, 0.0, 0.11, 0.01)), 5.0, X_BP, 99)
+    n = len(cloud.points)
+    cloud, recent = accumulate_consistent(cloud, recent, far, geometry, jump=0.010)
+    assert len(cloud.points) > n and len(recent) == 1

@@ -153,5 +153,28 @@ class ImagingConfig:
         default=0.015,
         metadata=physical(0.0, 0.1, "m", "registration errors are millimetres"),
     )
+    # Acoustic shadow (segment.acoustic_shadow): a pixel is shadowed when its scan line's
+    # grey, averaged over 4 mm of depth, stays below this fraction of the lit fan's median
+    # grey from the pixel's depth down (bone and gas leave their lines dark; the emulator's
+    # shadows are black, a real machine's dim to 0-25% of the tissue's grey: the training's
+    # synthetic shadows). A kidney mask's outline in a shadow is drawn, not seen: its
+    # boundary pixels there do not feed the point cloud nor the kidney tracking
+    # (segment.echo_supported_boundary). 0 switches the rule off.
+    shadow_floor: float = field(default=0.3, metadata={"min": 0.0, "max": 1.0})
+    # A frame whose kidney mask lies more than this fraction in shadow gives no boundary
+    # pixels at all (its controller read-outs are kept: the kidney goes on under a rib).
+    # Measured on seed 5,000,002 decubitus: the masks drawn in a rib's shadow lay 0.57-1.00
+    # in it (48 frames); a kidney partly under the shadow, seen beside it, 0.06-0.31.
+    shadow_max_fraction: float = field(default=0.5, metadata={"min": 0.0, "max": 1.0})
+    # The exploration cloud leaves out a frame whose section (the extent in B of its
+    # boundary points) lies more than this distance (m) from the median of the last 5
+    # frames' sections on any side (backprojection.accumulate_consistent): between frames a
+    # fraction of a millimetre apart a kidney's section moves millimetres (about 3 mm at a
+    # pole), a mask leaking into a neighbour or drawn where the image shows nothing jumps
+    # further. 0 switches the check off.
+    cloud_section_jump: float = field(
+        default=0.010,
+        metadata=physical(0.0, 0.1, "m", "a section moves millimetres between frames"),
+    )
     # ONNX Runtime intra-op threads (1 leaves the other cores to the simulation).
     onnx_threads: int = field(default=1, metadata={"min": 1, "max": 64})

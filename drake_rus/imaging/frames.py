@@ -72,12 +72,15 @@ class BoundaryPixels:
 @dataclass(frozen=True)
 class PointCloud:
     """An accumulated point cloud ``points`` (N, 3) in the base frame B (m), the number of
-    frames that contributed, and the probe poses X_BP (and times, s) of those frames."""
+    frames that contributed, and the probe poses X_BP (and times, s) of those frames;
+    ``frames_inconsistent``: of those, the frames whose section jumped from its neighbours'
+    (counted, their points left out: backprojection.accumulate_consistent)."""
 
     points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     frame_count: int = 0
     poses: tuple = ()
     times: tuple = ()
+    frames_inconsistent: int = 0
 
     def __post_init__(self):
         object.__setattr__(self, "points", _freeze(np.asarray(self.points, float).reshape(-1, 3)))

@@ -204,6 +204,15 @@ class ProbeGeometry:
         return p
 
     @cached_property
+    def fan_polar(self) -> tuple[np.ndarray, np.ndarray]:
+        """(scan-line angle theta (rad), depth along the line d (m)) (N,) each of the fan
+        pixels' centres, in ``fan_flat_index`` order."""
+        theta, d = self.P_to_polar(self.fan_p_P)
+        theta.flags.writeable = False
+        d.flags.writeable = False
+        return theta, d
+
+    @cached_property
     def fan_x_z(self) -> tuple[np.ndarray, np.ndarray]:
         """(x_P, z_P) coordinates (N,) each of the fan pixels' centres (contiguous arrays)."""
         x = np.ascontiguousarray(self.fan_p_P[:, 0])

@@ -22,7 +22,7 @@ from pydrake.math import RigidTransform
 from pydrake.systems.framework import EventStatus, LeafSystem, ValueProducer
 
 from drake_rus.anatomy.labels import LabelVolume
-from drake_rus.imaging.backprojection import accumulate
+from drake_rus.imaging.backprojection import accumulate_consistent
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.emulator import EmulatorModel, emulate
 from drake_rus.imaging.emulator import warm_up as warm_emulator
@@ -31,6 +31,8 @@ from drake_rus.imaging.onnx_backend import OnnxSegmenter
 from drake_rus.imaging.probe import ProbeGeometry, check_pose
 from drake_rus.imaging.segment import (
     KidneyTrack,
+    acoustic_shadow,
+    echo_supported_boundary,
     predicted_section,
     read_mask,
     segment_classical,
@@ -253,6 +255,8 @@ def segment_frame(
     source: str,
     surface_points: np.ndarray | None = None,
     slab: float = 0.0,
+    shadow_floor: float = 0.0,
+    shadow_max_fraction: float = 1.0,
 ):
     """(mask UsFrame, MaskReadout, BoundaryPixels) of one frame: the Segmenter's work,
     wherever it runs (in the control loop's thread or a worker process).
@@ -265,6 +269,10 @@ def segment_frame(
     localization yet), whose section in the frame's image plane (:func:`predicted_section`,
     points within ``slab`` m of it) is the backend's ``section`` prior. The section is cut
     here, with the segmentation (in the worker when one hosts it), not in the control loop.
+    With a grey source and ``shadow_floor`` > 0 the BoundaryPixels hold only the boundary
+    the echoes support (:func:`echo_supported_boundary` in the frame's
+    :func:`acoustic_shadow`, ``shadow_max_fraction``); the mask and read-outs are the
+    segmenter's.
     """
     if not frame.valid:
         empty = np.zeros(geometry.image_shape, bool)
@@ -292,10 +300,14 @@ def segment_frame(
         section = predicted_section(surface_points, frame.X_BP, geometry, slab)
     mask = np.asarray(backend(us, labels, prev, age, section), bool) & geometry.fan_mask
     readout = read_mask(mask, geometry, min_area)
+    boundary = readout.boundary
+    if us is not None and shadow_floor > 0.0 and len(boundary):
+        shadow = acoustic_shadow(us, geometry, shadow_floor)
+        boundary = echo_supported_boundary(mask, boundary, shadow, geometry, shadow_max_fraction)
     return (
         UsFrame(mask, frame.time, frame.X_BP, frame.frame_index),
         readout,
-        BoundaryPixels(readout.boundary, frame.time, frame.X_BP, frame.frame_index),
+        BoundaryPixels(boundary, frame.time, frame.X_BP, frame.frame_index),
     )
 
 
@@ -324,7 +336,9 @@ class Segmenter(LeafSystem):
       ``kidney_visible`` (1-vector, 1.0 when the mask area >= ``min_kidney_area``, else 0.0);
       ``mask_centroid`` (1-vector, c_msk in [0, 1] across the image width, eq. 17; 0.5
       when not visible);
-      ``boundary_pixels`` (abstract BoundaryPixels, (N, 2) pixels (u, v) + time, X_BP, index).
+      ``boundary_pixels`` (abstract BoundaryPixels, (N, 2) pixels (u, v) + time, X_BP, index):
+      the mask's boundary that the image's echoes support (``imaging.shadow_floor``: none
+      from a mask drawn in acoustic shadow, none within 2 mm of a shadow).
     The classical backend keeps the previous frame's mask as a temporal prior; the onnx
     backend follows the kidney once seen (``imaging.track_gap``, ``track_reach``,
     ``track_confirm``; :class:`~drake_rus.imaging.segment.KidneyTrack`).
@@ -357,6 +371,8 @@ class Segmenter(LeafSystem):
             "kidney_surface", AbstractValue.Make(KidneySurface())
         )
         self._slab = 0.5 * config.elevation_width
+        self._shadow_floor = config.shadow_floor
+        self._shadow_max_fraction = config.shadow_max_fraction
         self._source = self._labels if self._backend_name == "oracle" else self._us
         self._uses_prior = self._backend_name in ("classical", "onnx")
         # The classical prior is the previous frame's mask; the onnx backend follows a
@@ -416,6 +432,8 @@ class Segmenter(LeafSystem):
             source=self._source.get_name(),
             surface_points=None if surface is None else surface.points_B,
             slab=self._slab,
+            shadow_floor=self._shadow_floor,
+            shadow_max_fraction=self._shadow_max_fraction,
         )
 
     def _surface_now(self, context) -> KidneySurface | None:
@@ -637,12 +655,18 @@ class PointCloudAccumulator(LeafSystem):
     Outputs: ``point_cloud`` (abstract PointCloud: points (N, 3) in B (m), frame count, the
     X_BP and time (s) of every kept frame); ``frame_count`` (1-vector).
     Checks for a new frame at ``frame_rate_hz``, half a period after the sensor's clock.
+    A frame whose section jumps from the last frames' (``imaging.cloud_section_jump``;
+    :func:`~drake_rus.imaging.backprojection.accumulate_consistent`) counts, but its points
+    are left out.
     """
 
     def __init__(self, config: ImagingConfig, max_points_per_frame: int = 0):
         super().__init__()
         self._geometry = ProbeGeometry.from_config(config)
         self._max_points = int(max_points_per_frame)
+        self._jump = config.cloud_section_jump
+        # ((time s, section extent (6,)), ...) of the last frames with a section.
+        self._recent_index = self.DeclareAbstractState(AbstractValue.Make(()))
         self._boundary = self.DeclareAbstractInputPort(
             "boundary_pixels", AbstractValue.Make(BoundaryPixels(np.zeros((0, 2))))
         )
@@ -676,6 +700,7 @@ class PointCloudAccumulator(LeafSystem):
     def _update(self, context, state):
         if self._flag(self._reset, context, False):
             state.get_mutable_abstract_state(self._cloud_index).set_value(PointCloud())
+            state.get_mutable_abstract_state(self._recent_index).set_value(())
             return EventStatus.Succeeded()
         if not self._flag(self._enable, context, True) or not self._boundary.HasValue(context):
             return EventStatus.DidNothing()
@@ -684,8 +709,11 @@ class PointCloudAccumulator(LeafSystem):
         if boundary.frame_index < 0 or boundary.frame_index <= last:
             return EventStatus.DidNothing()
         cloud = context.get_abstract_state(self._cloud_index).get_value()
-        state.get_mutable_abstract_state(self._cloud_index).set_value(
-            accumulate(cloud, boundary, self._geometry, self._max_points)
+        recent = context.get_abstract_state(self._recent_index).get_value()
+        cloud, recent = accumulate_consistent(
+            cloud, recent, boundary, self._geometry, self._max_points, self._jump
         )
+        state.get_mutable_abstract_state(self._cloud_index).set_value(cloud)
+        state.get_mutable_abstract_state(self._recent_index).set_value(recent)
         state.get_mutable_abstract_state(self._last_index).set_value(boundary.frame_index)
         return EventStatus.Succeeded()

@@ -328,6 +328,9 @@ def Summary(result: ScanResult, metrics: dict, provenance: dict | None = None) -
         "peak_force_n": float(np.max(force)) if len(force) else 0.0,
         "force": _force_block(result),
         "frames_total": len(result.frames),
+        # Exploration frames left out of the partial cloud: their section jumped from the
+        # last frames' (imaging.cloud_section_jump; docs/imaging.md).
+        "cloud_frames_inconsistent": getattr(result, "cloud_frames_inconsistent", 0),
         "safety_events": [str(e) for e in result.safety_events],
         "mode": _mode(result.scenario),
         # Where perception ran and its jobs' compute times and latencies (executor.py).

@@ -133,6 +133,9 @@ class ScanResult:
     events: tuple = ()
     # The respiration systems' record (``_respiration_record``; empty with mode none).
     respiration: dict = dataclasses.field(default_factory=dict)
+    # Exploration frames whose section jumped from its neighbours' and whose points the
+    # partial cloud left out (PointCloud.frames_inconsistent).
+    cloud_frames_inconsistent: int = 0
     # A live run's loop timing (scan.pacing.loop_statistics: per-tick compute time and lag,
     # slips, load average) and its per-tick trace (t, compute, lag arrays, s); None when
     # the run was not paced at real time.
@@ -300,6 +303,7 @@ def CollectScanResult(
         frames=list(h.recorder.frames),
         images=list(h.recorder.images),
         partial_cloud_B=np.array(cloud.points),
+        cloud_frames_inconsistent=cloud.frames_inconsistent,
         localization=outcome,
         X_BK_estimated=X_BK_est,
         registered_template_B=registered,
