@@ -88,7 +88,7 @@ class WireFaults:
             raise ValueError(f"freeze_video_at: expected a time >= 0 s, got {self.freeze_video_at}")
 
 
-# How often (s) a waiting simulation without a wire tap handles arriving LCM messages.
+# How often (s) a waiting simulation handles arriving LCM messages.
 WAIT_POLL = 0.5e-3
 
 
@@ -514,14 +514,14 @@ class RehearsalSim:
 
     def _wait(self, seconds: float) -> None:
         """Sleeps ``seconds`` with the interpreter lock released (the statuses go out
-        meanwhile). With a wire tap every command's arrival is recorded by the tap's thread;
-        without, arriving messages are handled every ``WAIT_POLL`` s (the diagram's
-        subscriber latches the newest at the next step either way). Never a blocking
-        ``HandleSubscriptions(timeout)``: DrakeLcm holds the interpreter lock while it
-        waits, and every other thread of the process with it."""
-        if self.tap is not None:
-            time.sleep(max(0.0, seconds))
-            return
+        meanwhile), handling arriving messages every ``WAIT_POLL`` s (the diagram's
+        subscriber latches the newest at the next step). The subscription holds one
+        pending message and LCM drops what arrives while it is full, so it is drained at
+        once, tap or not: waiting for the next tick lost a stop command that followed a
+        moving one within the tick (the robot then ran on the moving one until the
+        driver's expiry). With a wire tap every arrival is also recorded, exactly, by the
+        tap's thread. Never a blocking ``HandleSubscriptions(timeout)``: DrakeLcm holds the
+        interpreter lock while it waits, and every other thread of the process with it."""
         end = time.monotonic() + seconds
         while True:
             self.lcm.HandleSubscriptions(0)
