@@ -450,3 +450,12 @@ def test_a_section_that_jumps_from_its_neighbours_is_left_out_of_the_cloud(geome
     n = len(cloud.points)
     cloud, recent = accumulate_consistent(cloud, recent, far, geometry, jump=0.010)
     assert len(cloud.points) > n and len(recent) == 1
+
+
+def test_scan_line_bins_cover_the_fan_once_and_are_computed_once(geometry):
+    flat, n_lines, n_depth, counts = geometry.scan_line_bins(np.radians(1.0))
+    assert len(flat) == len(geometry.fan_flat_index)
+    assert counts.shape == (n_lines, n_depth) and counts.sum() == len(flat)
+    assert flat.min() >= 0 and flat.max() < n_lines * n_depth
+    assert geometry.scan_line_bins(np.radians(1.0))[0] is flat  # cached
+    assert geometry.scan_line_bins(np.radians(2.0))[1] < n_lines  # per line width

@@ -212,6 +212,28 @@ class ProbeGeometry:
         d.flags.writeable = False
         return theta, d
 
+    def scan_line_bins(self, line_step: float) -> tuple[np.ndarray, int, int, np.ndarray]:
+        """The fan's pixels binned into scan lines ``line_step`` rad wide and depth steps of
+        one pixel row: (bin (N,) of each fan pixel in ``fan_flat_index`` order, row-major in
+        a (lines, depths) grid; lines; depths; pixels per bin (lines, depths)). Geometry
+        only, so computed once per ``line_step`` (``segment.acoustic_shadow`` runs it on
+        every frame)."""
+        cache = self.__dict__.setdefault("_scan_line_bins", {})
+        key = float(line_step)
+        if key not in cache:
+            theta, d = self.fan_polar
+            n_lines = max(int(np.ceil(2.0 * self.half_angle / key)), 1)
+            line = ((theta + self.half_angle) * (n_lines / (2.0 * self.half_angle))).astype(int)
+            np.clip(line, 0, n_lines - 1, out=line)
+            n_depth = int(np.ceil(self.depth / self.dz)) + 1
+            k = np.clip((d / self.dz).astype(int), 0, n_depth - 1)
+            flat = line * n_depth + k
+            counts = np.bincount(flat, minlength=n_lines * n_depth).reshape(n_lines, -1)
+            flat.flags.writeable = False
+            counts.flags.writeable = False
+            cache[key] = (flat, n_lines, n_depth, counts)
+        return cache[key]
+
     @cached_property
     def fan_x_z(self) -> tuple[np.ndarray, np.ndarray]:
         """(x_P, z_P) coordinates (N,) each of the fan pixels' centres (contiguous arrays)."""

@@ -176,22 +176,15 @@ def acoustic_shadow(
         out.reshape(-1)[idx] = True
         return out
     ref = float(np.median(grey[lit]))
-    theta, d = geometry.fan_polar
-    n_lines = max(int(math.ceil(2.0 * geometry.half_angle / line_step)), 1)
-    line = ((theta + geometry.half_angle) * (n_lines / (2.0 * geometry.half_angle))).astype(int)
-    np.clip(line, 0, n_lines - 1, out=line)
-    n_depth = int(math.ceil(geometry.depth / geometry.dz)) + 1
-    k = np.clip((d / geometry.dz).astype(int), 0, n_depth - 1)
-    flat = line * n_depth + k
+    flat, n_lines, n_depth, counts = geometry.scan_line_bins(line_step)
     sums = np.bincount(flat, weights=grey, minlength=n_lines * n_depth).reshape(n_lines, -1)
-    counts = np.bincount(flat, minlength=n_lines * n_depth).reshape(n_lines, -1)
     size = max(int(round(window / geometry.dz)), 1)
     s = ndimage.uniform_filter1d(sums, size, axis=1, mode="constant")
     c = ndimage.uniform_filter1d(counts.astype(np.float64), size, axis=1, mode="constant")
     mean = np.where(c > 1e-9, s / np.maximum(c, 1e-9), 0.0)
     # The largest echo from each depth down the line (a running maximum from the bottom).
     below = np.maximum.accumulate(mean[:, ::-1], axis=1)[:, ::-1]
-    out.reshape(-1)[idx] = (below < floor * ref)[line, k]
+    out.reshape(-1)[idx] = (below < floor * ref).reshape(-1)[flat]
     return out
 
 
