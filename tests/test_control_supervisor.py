@@ -411,19 +411,11 @@ def test_a_kidney_seen_too_briefly_to_localize_does_not_end_exploration():
 
 def _to_pivot(c, dt=0.01):
     s, t = run_to_localize(c, dt)
-    R_BK = RotationMatrix(RollPitchYaw(0.0, 0.0, math.pi / 2)).matrix()
-    p_BK = np.array([0.55, 0.0, 0.0])
-    t += 1.0
-    s = supervisor.supervisor_step(s, inputs(t, R_BK=R_BK, p_BK=p_BK), c, dt)
-    R_star, _ = supervisor.optimal_pivot_pose(R_BK, p_BK)
-    t += dt
-    s = supervisor.supervisor_step(s, inputs(t, p=(0.55, 0.0, 0.1), R=R_star), c, dt)
-    assert s.phase == supervisor.Phase.PIVOT
-    return s, t, R_star
+    return _finish_to_pivot(s, t, c, dt)
 
 
 def _finish_to_pivot(s, t, c, dt=0.01):
-    """From LOCALIZE: a kidney pose, TRANSIT at p*, PIVOT (as _to_pivot)."""
+    """From LOCALIZE: a kidney pose, TRANSIT at p*, PIVOT."""
     R_BK = RotationMatrix(RollPitchYaw(0.0, 0.0, math.pi / 2)).matrix()
     p_BK = np.array([0.55, 0.0, 0.0])
     t += 1.0
