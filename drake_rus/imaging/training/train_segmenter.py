@@ -13,8 +13,9 @@ the upper skin; left lateral decubitus: views down through the right flank, whic
 up), ``--frames`` views per patient and posture (random kidney point, up to 25 mm lateral
 offset, 15% up to 70 mm, 10% aimed 80-160 mm away (kidney-free), up to 30 deg tilt, random
 array rotation; views crossing ribs and gas are kept, with their shadows), each at a random
-depth preset (150 mm, the scenario's default, and 100 mm, where the kidney is often cut by
-the image's bottom edge, 1.6 times as often as each other). 35% of
+depth preset (150 mm, the scenario's default, 1.6 times and 100 mm, where the kidney is often
+cut by the image's bottom edge, 2.2 times as often as each other: :data:`PRESET_WEIGHTS`; the
+shipped model was trained at 1.6 times for both, its card records its own recipe). 35% of
 the frames use the scenario's emulator as is; the others are
 randomised (:class:`~drake_rus.imaging.training.dataset.Randomisation`): gain (-18..-6 dB), TGC
 (+-10 dB at the image's bottom), dynamic range (42-58 dB), frequency (2.5-5 MHz: attenuation
@@ -27,13 +28,15 @@ four); volumes are also rebuilt with a thicker wall
 more tissue between wall and kidney supine, 20-50 mm in decubitus) so that kidneys lie as
 deep as in real bodies; a thick wall is used only at presets deep enough (extra depth <=
 preset - 70 mm). The kidney's context and structure are randomised per volume
-(:func:`draw_anatomy`, :func:`randomised_anatomy`): no perirenal fat (50%: fat within 10-30
-mm of the kidney becomes soft tissue,
+(:func:`draw_anatomy`, :func:`randomised_anatomy`): no perirenal fat
+(:data:`P_NO_PERIRENAL_FAT`, 60%; the shipped model 50%: fat within 10-30 mm of the kidney
+becomes soft tissue,
 :func:`~drake_rus.imaging.training.dataset.remove_perirenal_fat`,
 so the cortex lies directly against soft tissue, with only the cortex / soft-tissue
 echogenicity step, randomised above, to find its edge), and the kidney's inside by one draw:
-layered (40%: cortex, a continuous medulla and the sinus at depths drawn around the published
-cortex 6.6 +- 1.9 mm and parenchyma 15.4 +- 2.8 mm, Glodny 2009,
+layered (:data:`P_LAYERED`, 45%; the shipped model 40%: cortex, a continuous medulla and
+the sinus at depths drawn around the published cortex 6.6 +- 1.9 mm and parenchyma
+15.4 +- 2.8 mm, Glodny 2009,
 :func:`~drake_rus.imaging.training.dataset.layered_kidney` /
 :func:`~drake_rus.imaging.training.dataset.draw_kidney_layers`: the layer rule the importer applies
 to every imported kidney, whose meshes resolve no pyramids), a thin cortex over a continuous
