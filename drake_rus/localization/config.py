@@ -113,9 +113,10 @@ class LocalizationConfig:
     # passes). Stopping short costs a wrong registration, going on costs seconds and ends
     # at the pole. Measured on KiTS19 right kidneys with the shipped template (generated
     # kidneys, narrower than real ones): every length fit of case 1 (123 mm) failed, so
-    # "keep" explored 0.7 x L_m = 70 mm (57-64 mm of kidney seen) and its registration was
-    # 27 deg off; case 19 (122 mm) kept a 96 mm estimate of an early fit while the later
-    # ones failed (docs/results/real_kidneys.md, 2026-11-27).
+    # "keep" explored 0.7 x L_m = 70 mm and registered it 5.9 mm off (27 deg in an earlier
+    # run); "unknown" explores 96 mm and registers it 1.8 mm / 5.8 deg off. Cases 7, 18 and
+    # 22 likewise explore 3-20 mm further; no scan explores less
+    # (docs/results/real_kidneys.md, 2026-11-27).
     length_failed_fit: str = field(default="unknown", metadata={"choices": ["unknown", "keep"]})
     # Each length fit starts from the previous one that passed the checks (its pose and
     # shape weights; the first from the heuristic rotation), not from the heuristic start
