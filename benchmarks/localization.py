@@ -47,6 +47,7 @@ from drake_rus.localization.localize import (
     estimate_kidney_length,
     load_registration_template,
     thin_cloud,
+    updated_length_estimate,
 )
 from drake_rus.metrics.core import e_rot_x, e_trans
 from drake_rus.scenario import ApplyOverrides, LoadScenario
@@ -116,7 +117,8 @@ def explore_estimated(kp, imager, controller, localization, template):
     """The scan's ``exploration_length: estimated`` rule replayed kinematically: one sweep to
     the travel cap (f ER L_m), the kidney length estimated from its prefix every
     ``adaptive_period`` s of travel from ``length_min_travel`` on, cut where ER x the
-    latest estimate is reached (or the kidney left the image). Returns (sweep, estimate m,
+    latest estimate is reached (or the kidney left the image); after a failed fit the estimate
+    is ``updated_length_estimate``'s. Returns (sweep, estimate m,
     ((travel m, estimate m), ...))."""
     cap = (
         controller.exploration_ratio
@@ -145,11 +147,11 @@ def explore_estimated(kp, imager, controller, localization, template):
             checks.append((travel, length))
             if np.isfinite(length):
                 fit = result
-                estimate = length
-                target = exploration_target(controller, estimate)
-                if target <= travel:  # a shorter kidney than assumed: ends now
-                    stop = travel
-                    break
+            estimate = updated_length_estimate(estimate, length, localization.length_failed_fit)
+            target = exploration_target(controller, estimate)
+            if target <= travel:  # a shorter kidney than assumed: ends now
+                stop = travel
+                break
         travel += step
     stop = min(target if stop is None else stop, end)
     return full.prefix(stop), estimate, tuple(checks)

@@ -609,6 +609,9 @@ def test_exploration_target_rule():
     assert supervisor.exploration_target(est, 0.30) == pytest.approx(1.5 * 0.06)
     assert supervisor.exploration_target(est, 0.02) == pytest.approx(0.06 / 1.5)
     assert supervisor.exploration_target(est, -1.0) == pytest.approx(0.06)
+    # An unknown length (the latest fit failed its checks) is the longest allowed.
+    assert supervisor.exploration_target(est, math.inf) == pytest.approx(1.5 * 0.06)
+    assert supervisor.exploration_target(fixed, math.inf) == pytest.approx(0.06)
 
 
 def _explore_until_localize(c, estimate, t_max=20.0):
@@ -640,6 +643,20 @@ def test_exploration_ends_at_er_times_the_estimated_length():
     fixed = dataclasses.replace(c, exploration_length="fixed")
     s = _explore_until_localize(fixed, lambda travel: 0.127)
     assert s.travel == pytest.approx(0.05) and "estimated" not in s.events[-1][2]
+
+
+def test_exploration_goes_on_while_the_length_is_unknown():
+    """After a failed length fit (+inf) the sweep goes on towards the longest kidney
+    (1.5 x 0.5 x 100 mm); a later fit that passes ends it at ER x its length."""
+    c = cfg(exploration_ratio=0.5, kidney_length=0.1, exploration_length="estimated")
+    s = _explore_until_localize(c, lambda travel: math.inf if travel >= 0.03 else math.nan)
+    assert s.travel == pytest.approx(0.075, abs=1e-6)
+    assert "longest kidney length 150 mm" in s.events[-1][2]
+    s = _explore_until_localize(
+        c, lambda travel: 0.13 if travel >= 0.06 else (math.inf if travel >= 0.03 else math.nan)
+    )
+    assert s.travel == pytest.approx(0.065, abs=1e-6)
+    assert "estimated kidney length 130 mm" in s.events[-1][2]
 
 
 # ------------------------------------------------------------------ given pivot pose

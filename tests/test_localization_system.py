@@ -1,6 +1,7 @@
 """The localizer's safeguards and the IcpLocalizer LeafSystem in isolation."""
 
 import dataclasses
+import math
 import sys
 from pathlib import Path
 
@@ -21,6 +22,7 @@ from drake_rus.localization.localize import (
     exploration_travel,
     load_registration_template,
     max_rms_residual,
+    updated_length_estimate,
 )
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -310,6 +312,40 @@ def test_icp_localizer_kidney_length_estimate_port(template, enabled):
         assert port.Eval(context)[0] == pytest.approx(np.ptp(K[:, 0]), abs=0.004)
     else:
         assert np.isnan(port.Eval(context)[0])
+
+
+def test_updated_length_estimate_after_a_failed_fit():
+    assert updated_length_estimate(0.11, 0.12, "unknown") == 0.12
+    assert updated_length_estimate(0.11, 0.12, "keep") == 0.12
+    assert updated_length_estimate(0.11, math.nan, "unknown") == math.inf
+    assert updated_length_estimate(0.11, math.nan, "keep") == 0.11
+    assert np.isnan(updated_length_estimate(math.nan, math.nan, "keep"))
+    with pytest.raises(ValueError, match="length_failed_fit"):
+        updated_length_estimate(0.11, math.nan, "guess")
+
+
+@pytest.mark.parametrize("failed_fit", ["unknown", "keep"])
+def test_icp_localizer_length_after_a_failed_fit(template, failed_fit):
+    """A length fit that fails its checks (here: a cloud far wider than the template, RMS
+    above the gate) makes the estimate unknown (+inf) or keeps the previous one; the next
+    fit starts from the last one that passed."""
+    system, simulator, context, K, P = _length_localizer(template, length_failed_fit=failed_fit)
+    port = system.GetOutputPort("kidney_length_estimate")
+    system.GetInputPort("phase").FixValue(context, [float(supervisor.Phase.EXPLORE)])
+    system.GetInputPort("point_cloud").FixValue(context, _cloud(P, 0.04))
+    simulator.AdvanceTo(0.1)  # the first check passes
+    passed = port.Eval(context)[0]
+    assert passed == pytest.approx(np.ptp(K[:, 0]), abs=0.004)
+    fit = context.get_abstract_state(system._length).get_value().fit
+    centre = P.mean(axis=0)
+    wide = centre + 3.0 * (P - centre)  # three times the kidney's size in every direction
+    system.GetInputPort("point_cloud").FixValue(context, _cloud(wide, 0.06))
+    simulator.AdvanceTo(0.3)  # the second check fails
+    state = context.get_abstract_state(system._length).get_value()
+    assert len(state.checks) == 2 and np.isnan(state.checks[-1][2])
+    assert state.fit is fit
+    expected = math.inf if failed_fit == "unknown" else passed
+    assert port.Eval(context)[0] == expected
 
 
 @pytest.mark.parametrize("warm", [True, False])

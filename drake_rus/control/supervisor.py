@@ -466,10 +466,11 @@ def exploration_target(cfg, kidney_length_estimate: float = math.nan) -> float:
     reference length L_m (``kidney_length``) with ``exploration_length: fixed`` or while no
     estimate exists (NaN); with ``estimated`` it is the patient's estimated length, clipped
     to [L_m / f, f L_m] (f = ``exploration_length_factor``), so the travel never exceeds
-    f ER L_m."""
+    f ER L_m. An unknown length (+inf: the latest length fit failed its checks) is the
+    longest allowed, f L_m."""
     L = float(cfg.kidney_length)
     estimate = float(kidney_length_estimate)
-    if cfg.exploration_length == "estimated" and math.isfinite(estimate) and estimate > 0:
+    if cfg.exploration_length == "estimated" and not math.isnan(estimate) and estimate > 0:
         f = float(cfg.exploration_length_factor)
         L = min(max(estimate, L / f), f * L)
     return cfg.exploration_ratio * L
@@ -567,7 +568,14 @@ def _explore(s, u, R, p, cfg, dt):
     if s.travel >= target - 1e-12:
         s.P_des = p[:2].copy()
         how = ""
-        if cfg.exploration_length == "estimated" and math.isfinite(u.kidney_length_estimate):
+        estimated = cfg.exploration_length == "estimated"
+        if estimated and math.isinf(u.kidney_length_estimate):
+            longest = cfg.exploration_length_factor * cfg.kidney_length
+            how = (
+                f" (ER {cfg.exploration_ratio:g} x the longest kidney length "
+                f"{longest * 1e3:.0f} mm: the latest length fit failed its checks)"
+            )
+        elif estimated and math.isfinite(u.kidney_length_estimate):
             how = (
                 f" (ER {cfg.exploration_ratio:g} x the estimated kidney length "
                 f"{u.kidney_length_estimate * 1e3:.0f} mm)"

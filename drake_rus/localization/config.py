@@ -105,6 +105,19 @@ class LocalizationConfig:
     length_min_travel: float = field(default=0.04, metadata={"min": 0.0})
     length_shape_modes: int = field(default=6, metadata={"min": 1})
     length_shape_residual_variance: float = field(default=1e-8, metadata={"positive": True})
+    # After a length fit that fails its checks (the template cannot fit the cloud explored
+    # so far): "unknown" (default) sets the estimate to +inf, the kidney's length not known,
+    # and the controller explores for the longest kidney it allows (its
+    # exploration_length_factor x L_m; the far pole leaving the image ends the sweep
+    # earlier) until a later fit passes; "keep" keeps the previous estimate (L_m until one
+    # passes). Stopping short costs a wrong registration, going on costs seconds and ends
+    # at the pole. Measured on KiTS19 right kidneys with the shipped template (generated
+    # kidneys, narrower than real ones): every length fit of case 1 (123 mm) failed, so
+    # "keep" explored 0.7 x L_m = 70 mm and registered it 5.9 mm off (27 deg in an earlier
+    # run); "unknown" explores 96 mm and registers it 1.8 mm / 5.8 deg off. Cases 7, 18 and
+    # 22 likewise explore 3-20 mm further; no scan explores less
+    # (docs/results/real_kidneys.md, 2026-11-27).
+    length_failed_fit: str = field(default="unknown", metadata={"choices": ["unknown", "keep"]})
     # Each length fit starts from the previous one that passed the checks (its pose and
     # shape weights; the first from the heuristic rotation), not from the heuristic start
     # again: the cloud only grows between checks. Measured against the heuristic start: the

@@ -186,6 +186,21 @@ def estimate_kidney_length(
     return kidney_length_of(template, result), result
 
 
+def updated_length_estimate(previous: float, length: float, failed_fit: str) -> float:
+    """The exploration's kidney-length estimate (m) after a length check that read
+    ``length`` (NaN: the fit failed its checks): ``length`` when it passed; after a failed
+    fit the ``previous`` estimate (``failed_fit`` "keep") or +inf ("unknown": the template
+    cannot fit the kidney explored so far, so its length is not known;
+    ``supervisor.exploration_target`` then explores for the longest kidney it allows)."""
+    if math.isfinite(length):
+        return float(length)
+    if failed_fit == "keep":
+        return float(previous)
+    if failed_fit == "unknown":
+        return math.inf
+    raise ValueError(f"length_failed_fit: expected 'unknown' or 'keep', got {failed_fit!r}")
+
+
 def kidney_extent_along(points: np.ndarray, direction) -> float:
     """Extent (m) of ``points`` along ``direction`` (e.g. the body's superior direction):
     how far along the body the kidney was actually seen."""
@@ -317,7 +332,9 @@ class LengthState:
     """Kidney length estimates during exploration (beyond the seed)."""
 
     last_time: float = -math.inf
-    length: float = math.nan  # latest estimate (m); NaN until one passes the checks
+    # Latest estimate (m); NaN until a check is made, +inf after a fit that failed its
+    # checks (``LocalizationConfig.length_failed_fit``: "unknown").
+    length: float = math.nan
     checks: tuple = ()  # ((time s, travel m, length m or NaN), ...)
     # The latest fit that passed the checks: the next fit's warm start.
     fit: IcpResult | None = dataclasses.field(default=None, compare=False)
@@ -379,7 +396,8 @@ class IcpLocalizer(LeafSystem):
     ``exploration_sufficient`` (1-vector, adaptive exploration), ``kidney_length_estimate``
     (1-vector, m: the kidney's length along its long axis estimated from the cloud explored
     so far, every ``adaptive_period`` s of EXPLORE once ``length_min_travel`` has been
-    explored (``length_estimation``); NaN until known).
+    explored (``length_estimation``); NaN until the first check, +inf while the latest fit
+    failed its checks: see ``updated_length_estimate``).
 
     The fits (registration, length, adaptive) run on ``executor``'s ``fits`` lane
     (``drake_rus.executor``; default: inline, ready at once): asked for at an update, taken
@@ -617,7 +635,7 @@ class IcpLocalizer(LeafSystem):
         passed = math.isfinite(length)
         new = LengthState(
             last_time=s.last_time,
-            length=length if passed else s.length,
+            length=updated_length_estimate(s.length, length, self._config.length_failed_fit),
             checks=s.checks + ((done.t_request, s.pending_travel, length),),
             fit=fit if passed else s.fit,
         )
