@@ -180,6 +180,22 @@ class LocalizationConfig:
     # Added to the limit for a later breath-hold or end-expiration window than the
     # reference's (m): repeat breath-holds put the kidney within 4 mm (Schwartz 1994).
     tracking_hold_allowance: float = field(default=0.004, metadata={"min": 0.0})
+    # A patient sliding under the probe (beyond the seed): the skin drags the probe by
+    # friction, so the tangential part (x_P, y_P) of ``probe_force`` jumps, which no
+    # registration error does. A change of more than ``tracking_slip_force`` (N) within
+    # ``tracking_slip_lag`` s, once the probe has been in the same TRANSIT or PIVOT
+    # stretch (and breath-hold or end-expiration window) for ``tracking_slip_settle`` s
+    # (the probe's own start turns the force by up to 3.3 N), reports the kidney moved.
+    # Measured on 10 still quick scans of test:0-9 (TRANSIT and PIVOT past their first
+    # 0.5 s): at most 0.6 N within 0.1 s; the breathing study's shifts along the bed
+    # (13-19 mm in 0.3-1.0 s under an 8-9 N probe, gel-on-skin friction 0.2): 2.7-6.6 N.
+    # Along the kidney's long axis, where the drift fit sees little of a shift, the force
+    # sees all of it. 0: off (the default: measured in simulation only; a real station's
+    # force estimate from joint torques is noisier and needs its own still-scan
+    # measurement); the breathing study turns it on at 1.5 N.
+    tracking_slip_force: float = field(default=0.0, metadata={"min": 0.0})
+    tracking_slip_lag: float = field(default=0.1, metadata={"positive": True, "max": 2.0})
+    tracking_slip_settle: float = field(default=0.5, metadata={"min": 0.0, "max": 10.0})
     tracking_view_slab: float = field(default=0.003, metadata={"positive": True})
     tracking_min_view_points: int = field(default=10, metadata={"min": 0})
     tracking_frame_gate_factor: float = field(default=3.0, metadata={"min": 1.0})

@@ -346,6 +346,8 @@ def BuildScanDiagram(
     )
     builder.Connect(localizer.GetOutputPort("localization"), tracking.GetInputPort("localization"))
     builder.Connect(phase, tracking.GetInputPort("phase"))
+    # The probe's force: the patient sliding under it (localization/tracking.slip_update).
+    builder.Connect(station.GetOutputPort("probe_force"), tracking.GetInputPort("probe_force"))
     builder.Connect(
         tracking.GetOutputPort("tracking_error"), supervisor.GetInputPort("tracking_error")
     )
