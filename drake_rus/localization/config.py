@@ -186,13 +186,14 @@ class LocalizationConfig:
     # ``tracking_slip_lag`` s, once the probe has been in the same TRANSIT or PIVOT
     # stretch (and breath-hold or end-expiration window) for ``tracking_slip_settle`` s
     # (the probe's own start turns the force by up to 3.3 N), reports the kidney moved.
-    # Measured on 10 still quick scans of test:0-9 (TRANSIT and PIVOT past their first
-    # 0.5 s): at most 0.6 N within 0.1 s; the breathing study's shifts along the bed
-    # (13-19 mm in 0.3-1.0 s under an 8-9 N probe, gel-on-skin friction 0.2): 2.7-6.6 N.
-    # Along the kidney's long axis, where the drift fit sees little of a shift, the force
-    # sees all of it. 0: off (the default: measured in simulation only; a real station's
-    # force estimate from joint torques is noisier and needs its own still-scan
-    # measurement); the breathing study turns it on at 1.5 N.
+    # Measured on the still quick scans of test:0-9 (TRANSIT and PIVOT past their first
+    # 0.5 s): 0.49-0.59 N within 0.1 s, 1.18 N on test:8 (TRANSIT); during the breathing
+    # study's shifts (10.7-19.9 mm in 0.3-1.0 s under an 8-9 N probe, gel-on-skin friction
+    # 0.2): 2.14-6.64 N. Hence 1.6 N, about the geometric mean of 1.18 and 2.14. Along the
+    # kidney's long axis, where the drift fit sees little of a shift, the force sees all of
+    # it. 0: off (the default: measured in simulation only; a real station's force
+    # estimate from joint torques is noisier and needs its own still-scan measurement);
+    # the breathing study turns it on at 1.6 N.
     tracking_slip_force: float = field(default=0.0, metadata={"min": 0.0})
     tracking_slip_lag: float = field(default=0.1, metadata={"positive": True, "max": 2.0})
     tracking_slip_settle: float = field(default=0.5, metadata={"min": 0.0, "max": 10.0})
