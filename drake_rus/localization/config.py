@@ -193,7 +193,9 @@ class LocalizationConfig:
     # kidney's long axis, where the drift fit sees little of a shift, the force sees all of
     # it. 0: off (the default: measured in simulation only; a real station's force
     # estimate from joint torques is noisier and needs its own still-scan measurement);
-    # the breathing study turns it on at 1.6 N.
+    # the breathing study turns it on at 1.6 N. Not in gated free breathing
+    # (``respiration.mode: gated``): there the breath itself slides the skin under the
+    # probe at the end-expiration windows' edges (1.6 N on test:5, a false "kidney moved").
     tracking_slip_force: float = field(default=0.0, metadata={"min": 0.0})
     tracking_slip_lag: float = field(default=0.1, metadata={"positive": True, "max": 2.0})
     tracking_slip_settle: float = field(default=0.5, metadata={"min": 0.0, "max": 10.0})

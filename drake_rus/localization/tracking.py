@@ -482,7 +482,7 @@ class KidneyTrackingMonitor(LeafSystem):
     ``phase`` (1-vector, the supervisor's phase); ``motion_allowed`` (1-vector, optional:
     frames acquired while it is 0, outside a breath-hold, are not used); ``probe_force``
     (6-vector [tau; f], N m and N, on the probe by the environment in P, optional: the
-    slip check, :func:`slip_update`, needs it).
+    slip check, :func:`slip_update`, needs it; ``slip_check`` False turns it off).
     Outputs: ``tracking_error`` (abstract str: "" while consistent); ``kidney_drift``
     (1-vector, m: the latest drift magnitude, NaN before the first check).
     Frames are collected at the imaging frame rate; a check is asked for every
@@ -491,8 +491,13 @@ class KidneyTrackingMonitor(LeafSystem):
     its result is judged when it is ready, stamped with the time it was asked for.
     """
 
-    def __init__(self, template, config, imaging_config, check_phases, executor=None):
+    def __init__(
+        self, template, config, imaging_config, check_phases, executor=None, slip_check=True
+    ):
         super().__init__()
+        # False: the patient breathes while the scan moves (gated free breathing), so the
+        # skin slides under the probe at every end-expiration window's edge.
+        self._slip_check = bool(slip_check)
         self._template = template
         self._executor = executor if executor is not None else InlineExecutor()
         self._cfg = config
@@ -580,7 +585,7 @@ class KidneyTrackingMonitor(LeafSystem):
             ):
                 points = backproject_pixels(self._geometry, boundary.pixels, boundary.X_BP)
                 frames = frames + ((boundary.time, points),)
-        if allowed and self._force.HasValue(context):
+        if self._slip_check and allowed and self._force.HasValue(context):
             s = slip_update(s, t, self._force.Eval(context)[3:6], phase, cfg, max_gap=self._max_gap)
         segment = s.segment + (1 if allowed and not s.was_allowed else 0)
         if segment != s.segment:
