@@ -23,6 +23,8 @@ from drake_rus.localization.tracking import (
     group_medians,
     judged_drift,
     kidney_in_view,
+    slip_update,
+    tangential_force_change,
     tracking_limits,
     tracking_update,
 )
@@ -429,3 +431,81 @@ def test_a_latched_error_clears_when_the_kidney_is_localized_again(template):
     second = LocalizationOutcome(result=dataclasses.replace(_result(), X_BK=moved), time=5.0)
     state, error = run(second, 4, lateral, 2.0)
     assert error == "" and state.registered_at == 5.0 and len(state.history) > n_checks
+
+
+def test_tangential_force_change_looks_back_by_the_lag():
+    forces = ((0.0, 0.0, 0.0), (0.05, 0.5, 0.0), (0.10, 1.0, 0.0), (0.15, 3.0, 4.0))
+    # Newest (3, 4) against the newest sample at least 0.1 s older: (0.5, 0) at 0.05 s.
+    assert tangential_force_change(forces, 0.1) == pytest.approx(math.hypot(2.5, 4.0))
+    assert tangential_force_change(forces, 0.15) == pytest.approx(5.0)
+    assert math.isnan(tangential_force_change(forces, 0.2))  # nothing that old
+    assert math.isnan(tangential_force_change((), 0.1))
+
+
+def _slip(samples, config, phases=None, period=0.05):
+    """slip_update over force samples f_P (3,) one period apart; the final state."""
+    s = TrackingState()
+    for k, f in enumerate(samples):
+        phase = 4 if phases is None else phases[k]
+        s = slip_update(s, k * period, f, phase, config, max_gap=2.5 * period)
+    return s
+
+
+def test_slip_update_catches_a_jump_of_the_tangential_force_after_the_settle_time():
+    cfg = LocalizationConfig(tracking_slip_force=1.5)
+    # The pivot turns the force slowly (0.28 N per 0.1 s; the normal force changes by 3 N,
+    # which is not tangential): no slip.
+    slow = [(-1.0 + 0.1 * k, -6.0 + 0.1 * k, -9.0 + 0.075 * k) for k in range(40)]
+    s = _slip(slow, cfg)
+    assert s.error == "" and s.slip_N == pytest.approx(math.hypot(0.2, 0.2))
+    # The skin slides under the probe at 1.0 s: friction drags it by 2 N along x_P.
+    slid = slow[:20] + [(f[0] + 2.0, f[1], f[2]) for f in slow[20:]]
+    s = _slip(slid, cfg)
+    assert "slid under the probe" in s.error and "2.2 N within 0.10 s" in s.error
+    # The same jump within the settle time of the stretch (the probe's own start): no
+    # error, nor when the check is off.
+    s = _slip(slid[13:], cfg)  # the jump at 0.35 s
+    assert s.error == "" and s.stretch_start == 0.0
+    assert _slip(slid, LocalizationConfig()).error == ""
+    # A new phase starts a new stretch (its own settle time); so does a gap in the samples
+    # (the checks paused outside a breath-hold).
+    s = _slip(slid, cfg, phases=[3] * 18 + [4] * 22)
+    assert s.error == "" and s.stretch_start == pytest.approx(0.9)
+    s = TrackingState()
+    for k, f in enumerate(slid):
+        t = k * 0.05 + (1.0 if k >= 18 else 0.0)  # no sample between 0.85 and 1.9 s
+        s = slip_update(s, t, f, 4, cfg, max_gap=0.125)
+    assert s.error == "" and s.stretch_start == pytest.approx(1.9)
+
+
+def test_the_monitor_reports_a_patient_sliding_under_the_probe(template):
+    """The LeafSystem feeds ``probe_force`` to the slip check in the checked phases while
+    the scan may move, and reports a slip on ``tracking_error`` at once (no frames
+    needed); outside a breath-hold the force is not judged."""
+    from pydrake.systems.analysis import Simulator
+
+    imaging = ImagingConfig()
+    cfg = LocalizationConfig(tracking_slip_force=1.5)
+
+    def run(allowed, slip_check=True):
+        monitor = KidneyTrackingMonitor(template, cfg, imaging, [4], slip_check=slip_check)
+        sim = Simulator(monitor)
+        ctx = sim.get_mutable_context()
+        monitor.GetInputPort("localization").FixValue(
+            ctx, LocalizationOutcome(result=_result(), time=0.0)
+        )
+        monitor.GetInputPort("phase").FixValue(ctx, [4.0])
+        monitor.GetInputPort("motion_allowed").FixValue(ctx, [allowed])
+        monitor.GetInputPort("boundary_pixels").FixValue(ctx, BoundaryPixels(np.zeros((0, 2))))
+        force = monitor.GetInputPort("probe_force")
+        force.FixValue(ctx, [0.0, 0.0, 0.0, -0.5, 0.2, -9.0])
+        sim.AdvanceTo(1.0)
+        quiet = monitor.GetOutputPort("tracking_error").Eval(ctx)
+        force.FixValue(ctx, [0.0, 0.0, 0.0, 1.8, 0.2, -9.0])  # dragged along x_P
+        sim.AdvanceTo(1.2)
+        return quiet, monitor.GetOutputPort("tracking_error").Eval(ctx)
+
+    quiet, slid = run(1.0)
+    assert quiet == "" and "slid under the probe: its tangential force changed by 2.3 N" in slid
+    assert run(0.0) == ("", "")
+    assert run(1.0, slip_check=False) == ("", "")  # gated free breathing: not judged

@@ -25,6 +25,7 @@ from drake_rus.scan.verdict import (
     check_template_coverage,
     check_translation_sd,
     imaged_counts,
+    sweep_frames,
     template_volume_sample,
 )
 from drake_rus.scenario import LoadScenario
@@ -201,7 +202,7 @@ def _result(
         scenario=LoadScenario(),
         frames=frames,
         sweep_end_causes=tuple(causes),
-        localization=types.SimpleNamespace(result=fit),
+        localization=types.SimpleNamespace(result=fit, time=0.0),
         registered_template_B=registered_B,
     )
 
@@ -379,3 +380,17 @@ def test_patient_rolled_180_deg_is_not_done(test0):
     if result.status == INCOMPLETE:
         assert "pole_offsets" in result.reason
         assert ScanMetrics(result)["volume_ratio"] < 0.5
+
+
+def test_the_sweep_judged_is_the_one_after_the_registration():
+    """After a re-localization the first pivot's frames (about the former registration's
+    pivot point, before a shift moved the kidney) are not the new registration's sweep:
+    judged together, a good re-localized scan failed pole_offsets (the breathing study's
+    test:1, 4, 5 shifts)."""
+    frames = [
+        types.SimpleNamespace(phase=int(p), time=t)
+        for p, t in [(Phase.PIVOT, 15.0), (Phase.EXPLORE, 18.0), (Phase.PIVOT, 30.0)]
+    ]
+    assert [f.time for f in sweep_frames(frames, "pivot", 25.0)] == [30.0]
+    assert [f.time for f in sweep_frames(frames, "pivot")] == [15.0, 30.0]
+    assert [f.time for f in sweep_frames(frames, "line", 25.0)] == []  # EXPLORE before

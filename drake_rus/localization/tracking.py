@@ -28,8 +28,14 @@ frames whose points lie far from the template while the window's other frames fi
 moved kidney moves in every frame; a muscle band the segmenter takes for the kidney shows in
 a few).
 
-``estimate_drift``, ``kidney_in_view``, ``tracking_limits``, ``judged_drift`` and
-``tracking_update`` are the plain functions; ``KidneyTrackingMonitor`` is the LeafSystem.
+A shift along the kidney's long axis barely moves a longitudinal section (test:3: 11.2 mm
+along the axis read 2.6 mm), but the patient sliding under the probe drags it by friction:
+the tangential part of the probe's force jumps (``tangential_force_change``,
+``slip_update``; ``tracking_slip_force``), which no registration error does.
+
+``estimate_drift``, ``kidney_in_view``, ``tracking_limits``, ``judged_drift``,
+``tracking_update``, ``tangential_force_change`` and ``slip_update`` are the plain
+functions; ``KidneyTrackingMonitor`` is the LeafSystem.
 """
 
 from __future__ import annotations
@@ -64,6 +70,8 @@ __all__ = [
     "RegisteredKidneySurface",
     "drift_fit",
     "registered_tree",
+    "tangential_force_change",
+    "slip_update",
 ]
 
 
@@ -278,6 +286,13 @@ class TrackingState:
     pending_phase: int = -1
     was_allowed: bool = True
     pending: object = None  # the drift fit running (an executor Ticket), or None
+    # The slip check (slip_update): the probe's tangential force ((time s, f_x N, f_y N),
+    # ...) of the current stretch (one phase, motion allowed, no gap), the stretch's start
+    # (s), its phase, and the latest change (N) over tracking_slip_lag.
+    forces: tuple = ()
+    stretch_start: float = math.nan
+    stretch_phase: int = -1
+    slip_N: float = math.nan
 
     # Drake clones abstract state with deepcopy on every update (the frames hold point
     # arrays); the state is immutable, so clones may share it.
@@ -367,6 +382,61 @@ def tracking_update(
     )
 
 
+def tangential_force_change(forces, lag: float) -> float:
+    """Change (N) of the probe's tangential force from the newest sample of ``forces``
+    ((time s, f_x N, f_y N), ..., oldest first) back to the newest one at least ``lag`` s
+    older; NaN when no sample is that old."""
+    if not forces:
+        return math.nan
+    t, fx, fy = forces[-1]
+    for t0, fx0, fy0 in reversed(forces[:-1]):
+        if t - t0 >= lag - 1e-9:
+            return float(math.hypot(fx - fx0, fy - fy0))
+    return math.nan
+
+
+def slip_update(
+    state: TrackingState,
+    t: float,
+    force_P,
+    phase: int,
+    config,
+    max_gap: float,
+) -> TrackingState:
+    """One sample of the slip check: ``force_P`` is the probe's force f (3,) on it by the
+    environment in P (N; ``probe_force``'s last three), sampled at time t during a checked
+    ``phase`` while the scan may move. A stretch is one phase without a gap over
+    ``max_gap`` s between samples; once it has lasted ``tracking_slip_settle`` s, a
+    tangential (x_P, y_P) change above ``tracking_slip_force`` N within
+    ``tracking_slip_lag`` s latches the error: the patient slid under the probe."""
+    if state.error or float(config.tracking_slip_force) <= 0.0:
+        return state
+    f = np.asarray(force_P, dtype=float).reshape(3)
+    if not np.all(np.isfinite(f)):
+        return state
+    lag = float(config.tracking_slip_lag)
+    forces, start = state.forces, state.stretch_start
+    if int(phase) != state.stretch_phase or not forces or t - forces[-1][0] > max_gap:
+        forces, start = (), t
+    forces = tuple(x for x in forces if t - x[0] <= lag + max_gap) + ((t, f[0], f[1]),)
+    change = tangential_force_change(forces, lag)
+    error = ""
+    settled = t - start >= float(config.tracking_slip_settle) - 1e-9
+    if settled and math.isfinite(change) and change > float(config.tracking_slip_force):
+        error = (
+            f"the patient slid under the probe: its tangential force changed by "
+            f"{change:.1f} N within {lag:.2f} s (limit {config.tracking_slip_force:.1f} N)"
+        )
+    return dataclasses.replace(
+        state,
+        forces=forces,
+        stretch_start=start,
+        stretch_phase=int(phase),
+        slip_N=change,
+        error=error,
+    )
+
+
 # kd-trees of registered template shapes, by content (the newest few): the monitor's drift
 # fits, in this process or a worker's, share one tree per registration.
 _SHAPE_TREES: dict = {}
@@ -410,7 +480,9 @@ class KidneyTrackingMonitor(LeafSystem):
     Inputs: ``boundary_pixels`` (abstract BoundaryPixels from the Segmenter: pixels, frame
     time, X_BP, index); ``localization`` (abstract LocalizationOutcome from IcpLocalizer);
     ``phase`` (1-vector, the supervisor's phase); ``motion_allowed`` (1-vector, optional:
-    frames acquired while it is 0, outside a breath-hold, are not used).
+    frames acquired while it is 0, outside a breath-hold, are not used); ``probe_force``
+    (6-vector [tau; f], N m and N, on the probe by the environment in P, optional: the
+    slip check, :func:`slip_update`, needs it; ``slip_check`` False turns it off).
     Outputs: ``tracking_error`` (abstract str: "" while consistent); ``kidney_drift``
     (1-vector, m: the latest drift magnitude, NaN before the first check).
     Frames are collected at the imaging frame rate; a check is asked for every
@@ -419,8 +491,13 @@ class KidneyTrackingMonitor(LeafSystem):
     its result is judged when it is ready, stamped with the time it was asked for.
     """
 
-    def __init__(self, template, config, imaging_config, check_phases, executor=None):
+    def __init__(
+        self, template, config, imaging_config, check_phases, executor=None, slip_check=True
+    ):
         super().__init__()
+        # False: the patient breathes while the scan moves (gated free breathing), so the
+        # skin slides under the probe at every end-expiration window's edge.
+        self._slip_check = bool(slip_check)
         self._template = template
         self._executor = executor if executor is not None else InlineExecutor()
         self._cfg = config
@@ -437,6 +514,8 @@ class KidneyTrackingMonitor(LeafSystem):
         )
         self._phase = self.DeclareVectorInputPort("phase", 1)
         self._motion = self.DeclareVectorInputPort("motion_allowed", 1)
+        self._force = self.DeclareVectorInputPort("probe_force", 6)
+        self._max_gap = 2.5 / imaging_config.frame_rate_hz  # s: a missed sample or two
         self._state = self.DeclareAbstractState(AbstractValue.Make(TrackingState()))
         period = 1.0 / imaging_config.frame_rate_hz
         self.DeclarePeriodicUnrestrictedUpdateEvent(period, 0.5 * period, self._update)
@@ -506,6 +585,8 @@ class KidneyTrackingMonitor(LeafSystem):
             ):
                 points = backproject_pixels(self._geometry, boundary.pixels, boundary.X_BP)
                 frames = frames + ((boundary.time, points),)
+        if self._slip_check and allowed and self._force.HasValue(context):
+            s = slip_update(s, t, self._force.Eval(context)[3:6], phase, cfg, max_gap=self._max_gap)
         segment = s.segment + (1 if allowed and not s.was_allowed else 0)
         if segment != s.segment:
             frames = ()  # a new breath-hold or window: no frames of the last one

@@ -40,9 +40,10 @@ from drake_rus.reliability.campaign import run_campaign
 from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, LoadScenario
 
 CONDITIONS = ("still", "protocol", "free", "shift")
-# Every condition checks the tracking's change from its first checks (off by default:
+# Every condition checks the tracking's change from its first checks and the probe's
+# tangential force for a patient sliding under it (both off by default:
 # localization/config.py), so a shift along the kidney's long axis is caught too.
-TRACKING = "localization: {tracking_reference_checks: 2}"
+TRACKING = "localization: {tracking_reference_checks: 2, tracking_slip_force: 1.6}"
 # The ranges drawn per patient.
 AMPLITUDE = (0.010, 0.020)  # m, craniocaudal
 AP_AMPLITUDE = (0.002, 0.006)  # m, the wall under the probe

@@ -339,6 +339,9 @@ def BuildScanDiagram(
             scenario.imaging,
             check_phases=[int(Phase.TRANSIT), int(Phase.PIVOT)],
             executor=executor,
+            # Gated free breathing: the breath itself slides the skin under the probe at
+            # the windows' edges (1.6 N on test:5), so a slip is no sign of a shift there.
+            slip_check=scenario.respiration.mode != "gated",
         ),
     )
     builder.Connect(
@@ -346,6 +349,8 @@ def BuildScanDiagram(
     )
     builder.Connect(localizer.GetOutputPort("localization"), tracking.GetInputPort("localization"))
     builder.Connect(phase, tracking.GetInputPort("phase"))
+    # The probe's force: the patient sliding under it (localization/tracking.slip_update).
+    builder.Connect(station.GetOutputPort("probe_force"), tracking.GetInputPort("probe_force"))
     builder.Connect(
         tracking.GetOutputPort("tracking_error"), supervisor.GetInputPort("tracking_error")
     )

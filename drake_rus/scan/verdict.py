@@ -38,6 +38,7 @@ __all__ = [
     "check_inlier_fraction",
     "check_kidney_depth",
     "check_pole_offsets",
+    "sweep_frames",
     "check_rms_residual",
     "check_shape_weights",
     "check_sweep_ends",
@@ -358,9 +359,22 @@ def check_axis_direction(x_K_B, superior_B, max_angle: float) -> Check:
 
 
 # -------------------------------------------------------------------------- the scan
-def _sweep_frames(result, kind: str):
+def sweep_frames(frames, kind: str, registered_at: float = -math.inf) -> list:
+    """The frames of the sweep (``kind`` "line": EXPLORE, else PIVOT) acquired from
+    ``registered_at`` (s, the time of the registration judged) on: after a re-localization
+    the PIVOT frames about the former registration's pivot point belong to another sweep
+    (a patient shift moved the kidney 10-20 mm between them) and would be judged against
+    the new one."""
     phase = int(Phase.EXPLORE if kind == "line" else Phase.PIVOT)
-    return [f for f in result.frames if int(f.phase) == phase]
+    return [f for f in frames if int(f.phase) == phase and f.time >= registered_at]
+
+
+def _sweep_frames(result, kind: str):
+    outcome = result.localization
+    registered_at = -math.inf
+    if kind != "line" and outcome is not None and outcome.result is not None:
+        registered_at = float(outcome.time)
+    return sweep_frames(result.frames, kind, registered_at)
 
 
 def JudgeScan(result, template) -> list[Check]:
