@@ -7,6 +7,7 @@ with the real rehearsal diagram (test:0's station behind the driver's wire).
 
 from __future__ import annotations
 
+import multiprocessing
 import time
 import urllib.request
 
@@ -15,7 +16,7 @@ import pytest
 from pydrake.lcm import DrakeLcm
 
 from drake_rus.anatomy import load_patient
-from drake_rus.rehearsal.core import stall_causes
+from drake_rus.rehearsal.core import await_ready, stall_causes
 from drake_rus.rehearsal.sim import (
     BuildRehearsalSim,
     RehearsalSim,
@@ -190,3 +191,38 @@ def test_status_slot_hands_over_the_newest_status_with_its_send_time():
     assert got.utime == 1234567 and list(got.joint_position) == [0.2] * 7  # the newest
     with pytest.raises(ValueError, match="room for 1024"):
         writer.write(bytes(2000))
+
+
+def _send_and_wait(conn, message, wait_s):
+    if message is not None:
+        conn.send(message)
+    time.sleep(wait_s)
+
+
+@pytest.mark.parametrize(
+    "message, expected",
+    [
+        (("ready", 8123), None),
+        (("error", "port in use"), "the probe process failed: port in use"),
+        (None, "the probe process was not ready within 0.5 s"),
+    ],
+)
+def test_await_ready_returns_the_value_or_stops_the_process(message, expected):
+    """A helper process's handshake (the video and status processes share it): the value
+    of its "ready", else the process is stopped and the error names it."""
+    ctx = multiprocessing.get_context("spawn")
+    parent, child = ctx.Pipe()
+    process = ctx.Process(target=_send_and_wait, args=(child, message, 30.0), daemon=True)
+    process.start()
+    try:
+        if expected is None:
+            assert await_ready(process, parent, 30.0, "probe") == 8123
+        else:
+            with pytest.raises(RuntimeError, match=expected):
+                await_ready(process, parent, 0.5 if message is None else 30.0, "probe")
+            process.join(5.0)
+            assert not process.is_alive()
+    finally:
+        if process.is_alive():
+            process.terminate()
+            process.join(2.0)

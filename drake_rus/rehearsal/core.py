@@ -275,3 +275,25 @@ def realtime_scheduling(priority: int) -> str:
     except (AttributeError, OSError, ValueError) as e:
         return f"normal ({type(e).__name__}: {e})"
     return f"SCHED_FIFO {int(priority)}"
+
+
+def stop_process(process, timeout: float = 2.0) -> None:
+    """Terminates a helper ``multiprocessing.Process`` if it still runs, waiting up to
+    ``timeout`` s for it to end."""
+    if process.is_alive():
+        process.terminate()
+        process.join(timeout)
+
+
+def await_ready(process, conn, timeout: float, name: str):
+    """Waits up to ``timeout`` s for a started helper ``process`` to send ("ready", value)
+    on ``conn`` and returns the value; on silence or any other message stops it and raises
+    RuntimeError naming the ``name`` process."""
+    if not conn.poll(timeout):
+        stop_process(process)
+        raise RuntimeError(f"the {name} process was not ready within {timeout:g} s")
+    kind, value = conn.recv()
+    if kind != "ready":
+        stop_process(process)
+        raise RuntimeError(f"the {name} process failed: {value}")
+    return value

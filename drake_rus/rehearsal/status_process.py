@@ -26,7 +26,7 @@ import numpy as np
 from pydrake.lcm import DrakeLcm
 
 from drake_rus.hardware.core import wall_clock_utime
-from drake_rus.rehearsal.core import realtime_scheduling
+from drake_rus.rehearsal.core import await_ready, realtime_scheduling, stop_process
 from drake_rus.scan.pacing import percentiles_ms
 
 __all__ = ["StatusPublisherProcess", "SlotWriter", "read_slot", "set_utime"]
@@ -137,14 +137,7 @@ class StatusPublisherProcess:
             return
         self._process.start()
         self._child.close()
-        if not self._conn.poll(timeout):
-            self._kill()
-            raise RuntimeError(f"the status process was not ready within {timeout:g} s")
-        kind, value = self._conn.recv()
-        if kind != "ready":
-            self._kill()
-            raise RuntimeError(f"the status process failed: {value}")
-        self.scheduling = value
+        self.scheduling = await_ready(self._process, self._conn, timeout, "status")
 
     def gaps_ms(self) -> dict:
         t = np.asarray(self.times, float)
@@ -170,9 +163,7 @@ class StatusPublisherProcess:
         self._conn.close()
 
     def _kill(self) -> None:
-        if self._process.is_alive():
-            self._process.terminate()
-            self._process.join(2.0)
+        stop_process(self._process)
 
 
 def _status_main(conn, slot, url, channel, period, drop_probability, seed, priority) -> None:

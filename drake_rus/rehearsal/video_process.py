@@ -32,6 +32,7 @@ from drake_rus.imaging.emulator import warm_up as warm_emulator
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.imaging.slicing import slice_volume
 from drake_rus.imaging.slicing import warm_up as warm_slicer
+from drake_rus.rehearsal.core import await_ready, stop_process
 from drake_rus.rehearsal.mjpeg import FrameBuffer, MjpegServer
 from drake_rus.scan.pacing import percentiles_ms
 
@@ -129,14 +130,7 @@ class VideoProcess:
         child.close()
         self.stats: dict | None = None
         self.offered = 0
-        if not self._conn.poll(timeout):
-            self._kill()
-            raise RuntimeError(f"the video process was not ready within {timeout:g} s")
-        kind, value = self._conn.recv()
-        if kind != "ready":
-            self._kill()
-            raise RuntimeError(f"the video process failed: {value}")
-        self.port = int(value)
+        self.port = int(await_ready(self._process, self._conn, timeout, "video"))
 
     @property
     def url(self) -> str:
@@ -173,9 +167,7 @@ class VideoProcess:
         return self.stats
 
     def _kill(self) -> None:
-        if self._process.is_alive():
-            self._process.terminate()
-            self._process.join(2.0)
+        stop_process(self._process)
 
 
 def _video_main(conn, renderer, frame_rate_hz, delay, port, quality, nice) -> None:
