@@ -111,6 +111,15 @@ class ImagingConfig:
     onnx_kidney_channel: int = field(default=0, metadata={"min": 0})
     # Threshold on the kidney probability.
     onnx_threshold: float = field(default=0.5, metadata={"min": 0.0, "max": 1.0})
+    # Test-time augmentation (onnx backend): average the kidney probability of the frame and
+    # of its lateral mirror (onnx_backend.mirror_average; a curvilinear fan is symmetric
+    # about its axis). Two model runs per frame.
+    onnx_mirror_average: bool = False
+    # Candidate kidney regions smaller than this (m^2) are dropped before the largest or the
+    # tracked one is chosen (onnx_backend.drop_small_regions); 0 keeps every region.
+    onnx_min_region_area: float = field(
+        default=0.0, metadata=physical(0.0, 0.01, "m^2", "a kidney section is 5-60 cm^2")
+    )
     # Following the kidney from frame to frame (onnx backend): the model may also mark a
     # hypoechoic region that is not the kidney (a muscle band, a bowel loop). Once the kidney
     # is seen, a frame's kidney is the candidate region overlapping the last kidney mask grown
