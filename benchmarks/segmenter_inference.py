@@ -267,6 +267,17 @@ def main(argv=None) -> int:
             if v not in shown:
                 print(row(v))
     print(f"\nchosen: mirror {best[0]}, threshold {best[1]}, post-processing {best[2]}")
+    # Per preset and kind of volume: the plain, the chosen, the best by worst preset
+    # whatever its false positives, and the mirror average alone.
+    by_depth_kind = score_variants(records, lambda r: (r["depth"], r["kind"]))
+    kinds = sorted({r["kind"] for r in records})
+    print("per preset and volume kind (" + ", ".join(f"{d * 1000:.0f}mm" for d in presets) + ")")
+    for v in dict.fromkeys([PLAIN, best, variants[0], ("on", 0.5, "lcc")]):
+        cells = "   ".join(
+            f"{k} " + " ".join(f"{by_depth_kind[(d, k)][v]['iou']:.3f}" for d in presets)
+            for k in kinds
+        )
+        print(f"  {v[0]:>3} {v[1]:4.2f} {v[2]:>10}: {cells}")
 
     def pack(v):
         return {
@@ -285,6 +296,13 @@ def main(argv=None) -> int:
         "frames_shadowed": groups["shadowed"][PLAIN]["frames"],
         "chosen": {"mirror": best[0], "threshold": best[1], "post": best[2]},
         "variants": {f"{v[0]}|{v[1]}|{v[2]}": pack(v) for v in variants},
+        "iou_by_depth_kind": {
+            f"{v[0]}|{v[1]}|{v[2]}": {
+                k: {f"{d:.2f}": round(by_depth_kind[(d, k)][v]["iou"], 4) for d in presets}
+                for k in kinds
+            }
+            for v in dict.fromkeys([PLAIN, best, variants[0], ("on", 0.5, "lcc")])
+        },
         "seconds": round(time.perf_counter() - t0, 1),
         "load_average": [round(x, 2) for x in os.getloadavg()],
     }
