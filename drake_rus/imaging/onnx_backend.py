@@ -643,9 +643,7 @@ class OnnxSegmenter:
         mapping back are dropped, and so are regions smaller than ``min_region_area``."""
         regions = self._candidates(self.model_probability(image), largest_only)
         if self.min_region_area > 0.0:
-            return drop_small_regions(
-                regions, self.min_region_area / self.geometry.pixel_area
-            )
+            return drop_small_regions(regions, self.min_region_area / self.geometry.pixel_area)
         return regions
 
     def _candidates(self, prob: np.ndarray, largest_only: bool) -> list[np.ndarray]:
