@@ -27,7 +27,11 @@ Across depths and postures (the onnx model, one segmenter per depth preset):
   10 mm margin), and at every preset;
 - ``ms_model_resample``: ms per frame of preprocessing (the physical-canvas resampling) +
   ONNX inference (``onnx_threads``, default 1) + mapping the probability back, per preset;
-  ``ms_segment``: the whole onnx segment call (+ largest component, threshold).
+  ``ms_segment``: the whole onnx segment call (+ largest component, threshold);
+  ``ms_segment_plain``: the whole call of the plain segmenter (no mirror average, no
+  minimum region area) on the same frames, ``ms_segment_ratio_to_plain`` the ratio of the
+  means (what the inference-side options cost).
+``--set`` measures another scenario's imaging section (e.g. the mirror average off).
 With ``--source phantom`` the depth study uses the phantoms and the VH body is skipped.
 The last line is one JSON object.
 """
@@ -39,6 +43,7 @@ import json
 import os
 import sys
 import time
+from dataclasses import replace
 
 import numpy as np
 from tqdm import tqdm
@@ -105,6 +110,13 @@ def main(argv=None) -> int:
         default=None,
         help="ONNX model to measure (default: the scenario's imaging.onnx_model)",
     )
+    ap.add_argument(
+        "--set",
+        dest="overrides",
+        default=None,
+        help="YAML overrides of the default scenario, e.g. "
+        '"{imaging: {onnx_mirror_average: false}}" (its imaging section is measured)',
+    )
     args = ap.parse_args(argv)
 
     from pydrake.math import RigidTransform
@@ -119,8 +131,16 @@ def main(argv=None) -> int:
     from drake_rus.imaging.training.evaluation import load_volume, make_source_frames, mean_iou
 
     cfg = ImagingConfig()
+    if args.overrides:
+        from drake_rus.scenario import LoadScenario
+
+        try:
+            cfg = LoadScenario(scenario_text=args.overrides).imaging
+        except ValueError as e:
+            print(f"--set: {e}", file=sys.stderr)
+            return 2
     if args.onnx_model:
-        cfg = ImagingConfig(onnx_model=args.onnx_model)
+        cfg = replace(cfg, onnx_model=args.onnx_model)
     g = ProbeGeometry.from_config(cfg)
     model = EmulatorModel.from_config(cfg, g)
     specs = (
@@ -224,10 +244,13 @@ def _round(x, nd=3):
     return None if x is None or not np.isfinite(x) else round(float(x), nd)
 
 
-def _segment_speed(segmenters: dict, frames_by_depth: dict) -> tuple[dict, dict]:
+def _segment_speed(segmenters: dict, frames_by_depth: dict, plain: dict | None = None):
     """({depth: ms of resampling + model + back-mapping}, {depth: ms of the whole segment
-    call}) per frame, best of 3 passes (wall clock, one ONNX thread by default)."""
-    ms_model, ms_seg = {}, {}
+    call}, {depth: ms of the whole call of the ``plain`` segmenter}) per frame, best of 3
+    passes (wall clock, one ONNX thread by default). ``plain`` ({depth: (config, geometry,
+    segmenter)}, e.g. without the mirror average) is timed on the same frames right after
+    each preset's, so both see the same load; without it the third dict is empty."""
+    ms_model, ms_seg, ms_plain = {}, {}, {}
     for d, (_, _, seg) in segmenters.items():
         images = frames_by_depth[d]
         if not images:
@@ -238,7 +261,9 @@ def _segment_speed(segmenters: dict, frames_by_depth: dict) -> tuple[dict, dict]
 
         ms_model[d] = 1e3 / _rate(model_only, images)[1]
         ms_seg[d] = 1e3 / _rate(seg, images)[1]
-    return ms_model, ms_seg
+        if plain is not None:
+            ms_plain[d] = 1e3 / _rate(plain[d][2], images)[1]
+    return ms_model, ms_seg, ms_plain
 
 
 def depth_and_posture_study(cfg, args) -> dict:
@@ -386,16 +411,35 @@ def depth_and_posture_study(cfg, args) -> dict:
             emulate(slice_volume(g, src.volume, RigidTransform(), X), model, 0, i)
             for i, X in enumerate(poses)
         ]
-    ms_model, ms_seg = _segment_speed(segmenters, frames_by_depth)
+    # The plain segmenter: the same model and threshold, one model run per frame, no
+    # minimum region area (the cost of the inference-side options, measured in this run).
+    plain_cfg = replace(cfg, onnx_mirror_average=False, onnx_min_region_area=0.0)
+    plain = segmenters_by_depth(presets, plain_cfg)
+    ms_model, ms_seg, ms_plain = _segment_speed(segmenters, frames_by_depth, plain)
     print(
         "\nsegmenter speed (ms per frame, wall clock, "
         f"{cfg.onnx_threads} ONNX thread(s)): resampling + model + back-mapping / whole call"
+        f" (mirror average {'on' if cfg.onnx_mirror_average else 'off'}) / whole call of the "
+        "plain segmenter (one model run)"
     )
     print(
-        "  " + "  ".join(f"{d * 1000:.0f}mm {ms_model[d]:.2f} / {ms_seg[d]:.2f}" for d in ms_model)
+        "  "
+        + "  ".join(
+            f"{d * 1000:.0f}mm {ms_model[d]:.2f} / {ms_seg[d]:.2f} / {ms_plain[d]:.2f}"
+            for d in ms_model
+        )
     )
+    ratio = float(np.mean(list(ms_seg.values())) / np.mean(list(ms_plain.values())))
+    print(f"  whole call against the plain segmenter's: x{ratio:.2f} (mean over presets)")
     out["ms_model_resample"] = {f"{d:.2f}": _round(v, 2) for d, v in ms_model.items()}
     out["ms_segment"] = {f"{d:.2f}": _round(v, 2) for d, v in ms_seg.items()}
+    out["ms_segment_plain"] = {f"{d:.2f}": _round(v, 2) for d, v in ms_plain.items()}
+    out["ms_segment_ratio_to_plain"] = _round(ratio, 2)
+    out["inference"] = {
+        "threshold": cfg.onnx_threshold,
+        "mirror_average": cfg.onnx_mirror_average,
+        "min_region_area_m2": cfg.onnx_min_region_area,
+    }
     out["ms_model_resample_mean"] = _round(float(np.mean(list(ms_model.values()))), 2)
     return out
 

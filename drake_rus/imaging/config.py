@@ -111,6 +111,22 @@ class ImagingConfig:
     onnx_kidney_channel: int = field(default=0, metadata={"min": 0})
     # Threshold on the kidney probability.
     onnx_threshold: float = field(default=0.5, metadata={"min": 0.0, "max": 1.0})
+    # Test-time augmentation (onnx backend): average the kidney probability of the frame and
+    # of its lateral mirror (onnx_backend.mirror_average; a curvilinear fan is symmetric
+    # about its axis). Two model runs per frame (1.8 times the segment call's time). Off:
+    # on the validation split (benchmarks/segmenter_inference.py) it gained 0.001-0.003 IoU
+    # at 200-300 mm on generated patients, lost 0.001-0.004 at 100 mm, and had fewer false
+    # positives (docs/results/segmenter.md). The threshold above, 0.35 instead of 0.5,
+    # gained on imported-like kidneys (VH female 0.816 / 0.846 instead of 0.803 / 0.831)
+    # and lost 0.002-0.004 at every preset on the generated test patients: 0.5 stays.
+    onnx_mirror_average: bool = False
+    # Candidate kidney regions smaller than this (m^2) are dropped before the largest or the
+    # tracked one is chosen (onnx_backend.drop_small_regions); 0 keeps every region. On the
+    # validation split 0.5-1 cm^2 changed nothing and 2 cm^2 cost 0.028 IoU at 100 mm (a
+    # pole's small sections are kidney).
+    onnx_min_region_area: float = field(
+        default=0.0, metadata=physical(0.0, 0.01, "m^2", "a kidney section is 5-60 cm^2")
+    )
     # Following the kidney from frame to frame (onnx backend): the model may also mark a
     # hypoechoic region that is not the kidney (a muscle band, a bowel loop). Once the kidney
     # is seen, a frame's kidney is the candidate region overlapping the last kidney mask grown

@@ -356,12 +356,24 @@ class OnnxSegmenter:
         track_reach: float = 0.010,
         track_min_overlap: float = 0.5,
         track_section_reach: float = 0.015,
+        mirror_average: bool = False,
+        min_region_area: float = 0.0,
     ):
         """``card``: the model card's fields (default: read from the ``.json`` next to the
         model); ``pixel_size_mm`` and ``canvas_px`` switch on the physical canvas.
         ``track_gap`` (s), ``track_reach`` (m), ``track_min_overlap``,
         ``track_section_reach`` (m): how a kidney seen before, or predicted by the
-        registered template, is followed (see ``ImagingConfig.track_gap``)."""
+        registered template, is followed (see ``ImagingConfig.track_gap``).
+        ``mirror_average``: average the probability of the image and of its lateral mirror
+        (:func:`mirror_average`; two model runs per frame). ``min_region_area`` (m^2):
+        candidate regions smaller than this are dropped (:func:`drop_small_regions`)."""
+        self.mirror_average = bool(mirror_average)
+        if not (np.isfinite(min_region_area) and min_region_area >= 0.0):
+            raise ValueError(
+                f"imaging.onnx_min_region_area: expected an area >= 0 (m^2), "
+                f"got {min_region_area!r}"
+            )
+        self.min_region_area = float(min_region_area)
         self.track_gap, self.track_reach = float(track_gap), float(track_reach)
         self.track_min_overlap = float(track_min_overlap)
         self.track_section_reach = float(track_section_reach)
@@ -472,6 +484,8 @@ class OnnxSegmenter:
             track_reach=config.track_reach,
             track_min_overlap=config.track_min_overlap,
             track_section_reach=config.track_section_reach,
+            mirror_average=config.onnx_mirror_average,
+            min_region_area=config.onnx_min_region_area,
         )
 
     @property
@@ -576,11 +590,18 @@ class OnnxSegmenter:
                 f"OnnxSegmenter: image shape {image.shape} != probe image shape "
                 f"{self.geometry.image_shape}"
             )
-        out = self.session.run([self.output_name], {self.input_name: self.preprocess(image)})[0]
-        prob = self._kidney_map(out)  # a new array: zeroed outside the fan in place
+        x = self.preprocess(image)
+        if self.mirror_average:
+            prob = mirror_average(self._run, x)
+        else:
+            prob = self._run(x)  # a new array: zeroed outside the fan in place
         if self.canvas is not None:
             np.copyto(prob, np.float32(0.0), where=self._canvas_outside(*prob.shape))
         return prob
+
+    def _run(self, x: np.ndarray) -> np.ndarray:
+        """(h, w) kidney probability of one preprocessed model input (N, C, H, W)."""
+        return self._kidney_map(self.session.run([self.output_name], {self.input_name: x})[0])
 
     def __call__(
         self,
@@ -619,8 +640,15 @@ class OnnxSegmenter:
         cols): an 8-connected component of the thresholded probability at the model's
         resolution (holes filled), mapped back to the image bilinearly (from the physical
         canvas, when there is one), thresholded, in the fan. Regions that vanish in the
-        mapping back are dropped."""
-        prob = self.model_probability(image)
+        mapping back are dropped, and so are regions smaller than ``min_region_area``."""
+        regions = self._candidates(self.model_probability(image), largest_only)
+        if self.min_region_area > 0.0:
+            return drop_small_regions(regions, self.min_region_area / self.geometry.pixel_area)
+        return regions
+
+    def _candidates(self, prob: np.ndarray, largest_only: bool) -> list[np.ndarray]:
+        """:meth:`candidates` of a kidney probability at the model's resolution (before
+        the minimum area)."""
         above = prob > self.threshold
         # Labelled on the bounding box of the pixels above the threshold: the components,
         # their raster order (hence their numbers) and sizes are those of the whole grid.
@@ -693,6 +721,25 @@ class OnnxSegmenter:
         mask = np.zeros(self.geometry.image_shape, bool)
         mask[rows, cols] = inside
         return mask
+
+
+def mirror_average(run, x: np.ndarray) -> np.ndarray:
+    """Test-time augmentation with the lateral mirror: the mean of ``run(x)`` and of
+    ``run`` on ``x`` mirrored left-right, mirrored back. ``x`` is a model input (..., H, W)
+    whose columns are symmetric about the beam axis (the physical canvas is centred on
+    x_P = 0, and the probe's image grid is symmetric), so the mirror is the same fan seen
+    from the array's other end: a kidney's section is as plausible either way round.
+    ``run`` maps an input to a (h, w) probability; returns float32 (h, w)."""
+    p = np.asarray(run(x), dtype=np.float32)
+    q = np.asarray(run(np.ascontiguousarray(x[..., ::-1])), dtype=np.float32)
+    out = p + q[..., ::-1]
+    out *= np.float32(0.5)
+    return out
+
+
+def drop_small_regions(regions: list[np.ndarray], min_pixels: float) -> list[np.ndarray]:
+    """The bool masks of ``regions`` with at least ``min_pixels`` pixels, in their order."""
+    return [m for m in regions if np.count_nonzero(m) >= min_pixels]
 
 
 def _true_box(mask: np.ndarray) -> tuple[slice, slice] | None:
