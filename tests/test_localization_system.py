@@ -324,6 +324,35 @@ def test_updated_length_estimate_after_a_failed_fit():
         updated_length_estimate(0.11, math.nan, "guess")
 
 
+def test_updated_length_estimate_needs_confirmation_to_shorten():
+    """A reading lowers the estimate only when the check before read within the
+    tolerance; unconfirmed, it may only lengthen the exploration."""
+    tol = 0.006
+
+    def update(previous, length, previous_reading, reference=0.10):
+        return updated_length_estimate(
+            previous,
+            length,
+            "unknown",
+            previous_reading=previous_reading,
+            confirm_tolerance=tol,
+            reference=reference,
+        )
+
+    assert update(0.132, 0.080, 0.132) == 0.132  # a jump down: the estimate stays
+    assert update(0.132, 0.082, 0.080) == 0.082  # confirmed by the check before
+    assert update(0.122, 0.132, 0.122) == 0.132  # a jump up lengthens at once
+    assert update(0.132, 0.127, 0.132) == 0.127  # within the tolerance
+    assert update(math.inf, 0.118, math.nan) == math.inf  # after a failed fit: unknown
+    assert update(math.inf, 0.118, 0.119) == 0.118  # until two readings agree
+    # The first reading: the reference length L_m is the estimate it would lower.
+    assert update(math.nan, 0.09, math.nan) == 0.10
+    assert update(math.nan, 0.12, math.nan) == 0.12
+    assert update(math.nan, 0.09, math.nan, reference=math.nan) == 0.09
+    # Off: every reading that passed is the estimate, as before.
+    assert updated_length_estimate(0.132, 0.080, "unknown", 0.132, 0.0, 0.10) == 0.080
+
+
 @pytest.mark.parametrize("failed_fit", ["unknown", "keep"])
 def test_icp_localizer_length_after_a_failed_fit(template, failed_fit):
     """A length fit that fails its checks (here: a cloud far wider than the template, RMS
@@ -346,6 +375,29 @@ def test_icp_localizer_length_after_a_failed_fit(template, failed_fit):
     assert state.fit is fit
     expected = math.inf if failed_fit == "unknown" else passed
     assert port.Eval(context)[0] == expected
+
+
+def test_icp_localizer_length_lowered_only_when_confirmed(template):
+    """A reading 24 mm shorter than the previous one leaves the estimate where it was; the
+    next check, reading the same again, confirms it and lowers the estimate."""
+    system, simulator, context, K, P = _length_localizer(template)
+    port = system.GetOutputPort("kidney_length_estimate")
+    system.GetInputPort("phase").FixValue(context, [float(supervisor.Phase.EXPLORE)])
+    system.GetInputPort("point_cloud").FixValue(context, _cloud(P, 0.04))
+    simulator.AdvanceTo(0.1)  # the first check
+    long = port.Eval(context)[0]
+    assert long == pytest.approx(np.ptp(K[:, 0]), abs=0.004)
+    shaped, mode = lengthening_template(template)
+    short = template.points - 0.012 * mode  # 48 mm shorter than K
+    seen = short[short[:, 0] > short[:, 0].max() - 0.6 * np.ptp(short[:, 0])]
+    P_short = true_pose((5.0, -4.0, 6.0)).multiply(seen.T).T
+    system.GetInputPort("point_cloud").FixValue(context, _cloud(P_short, 0.05))
+    simulator.AdvanceTo(0.3)  # the second check reads the short kidney: not confirmed
+    checks = context.get_abstract_state(system._length).get_value().checks
+    assert len(checks) == 2 and checks[-1][2] == pytest.approx(np.ptp(short[:, 0]), abs=0.004)
+    assert port.Eval(context)[0] == long
+    simulator.AdvanceTo(0.5)  # the third reads it again: confirmed
+    assert port.Eval(context)[0] == pytest.approx(np.ptp(short[:, 0]), abs=0.004)
 
 
 @pytest.mark.parametrize("warm", [True, False])

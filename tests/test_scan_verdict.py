@@ -18,6 +18,7 @@ from drake_rus.scan.verdict import (
     Verdict,
     check_axis_direction,
     check_kidney_depth,
+    check_pivot_residual,
     check_pole_offsets,
     check_rms_residual,
     check_shape_weights,
@@ -178,6 +179,20 @@ def test_placement_checks():
 
 
 # -------------------------------------------------------------------- the whole verdict
+def section_boundaries(geometry, poses, kidney, slab=0.0005):
+    """BoundaryPixels of each pose: the points of ``kidney`` (B) within ``slab`` of its
+    image plane, inside the fan, as pixels (the segmentation's boundary of a true kidney)."""
+    from drake_rus.imaging.frames import BoundaryPixels
+
+    out = []
+    for i, X in enumerate(poses):
+        p_P = (kidney - X.translation()) @ X.rotation().matrix()
+        p_P = p_P[np.abs(p_P[:, 1]) <= slab]
+        p_P = p_P[geometry.in_fan(p_P)] if len(p_P) else p_P
+        out.append(BoundaryPixels(geometry.P_to_pixel(p_P), 0.05 * i, X, i))
+    return out
+
+
 def _result(
     poses,
     visible,
@@ -186,9 +201,13 @@ def _result(
     rms=0.0015,
     b=(0.01, -0.005, 0.0),
     X_BK=None,
+    cloud_B=None,
+    pivot_boundaries=(),
 ):
     frames = [
-        types.SimpleNamespace(phase=int(Phase.PIVOT), X_BP=X, visible=v, time=0.05 * i)
+        types.SimpleNamespace(
+            phase=int(Phase.PIVOT), X_BP=X, visible=v, time=0.05 * i, frame_index=i
+        )
         for i, (X, v) in enumerate(zip(poses, visible))
     ]
     fit = types.SimpleNamespace(
@@ -204,6 +223,8 @@ def _result(
         sweep_end_causes=tuple(causes),
         localization=types.SimpleNamespace(result=fit, time=0.0),
         registered_template_B=registered_B,
+        partial_cloud_B=cloud_B,
+        pivot_boundaries=list(pivot_boundaries),
     )
 
 
@@ -212,12 +233,23 @@ TEMPLATE = types.SimpleNamespace(variances=np.array([6.4e-3, 2.8e-3, 1.5e-3]))
 
 def test_verdict_good_scan_is_done(geometry):
     poses, visible = two_leg_pivot(geometry, kidney_B())
-    checks = JudgeScan(_result(poses, visible, kidney_B()), TEMPLATE)
+    dense = SURFACE_DENSE_K @ R_BK.T + P_BK
+    result = _result(
+        poses,
+        visible,
+        kidney_B(),
+        cloud_B=dense[dense[:, 1] > P_BK[1] - 0.01],  # explored: the upper 60%
+        pivot_boundaries=section_boundaries(geometry, poses, dense),
+    )
+    checks = JudgeScan(result, TEMPLATE)
     assert Verdict(checks) == ("DONE", ""), [c.detail for c in checks if not c.passed]
+    pivot = next(c for c in checks if c.name == "pivot_residual")
+    assert abs(pivot.value) < 0.001, pivot.detail
     assert {c.name for c in checks} == {
         "sweep_ends",
         "pole_offsets",
         "template_coverage",
+        "pivot_residual",
         "rms_residual",
         "inlier_fraction",
         "shape_weights",
@@ -226,6 +258,34 @@ def test_verdict_good_scan_is_done(geometry):
         "axis_direction",
     }
     assert all(c.passed for c in checks)
+
+
+SURFACE_DENSE_K = ellipsoid_surface(40000)
+
+
+def test_pivot_residual_against_the_explored_cloud():
+    """The pivot's boundary may lie no farther from the registered template than the
+    explored cloud does, by more than the bound: a template turned about the explored upper
+    part, or lacking a bulge the pivot sees, fails; the true pose passes."""
+    kidney = SURFACE_DENSE_K @ R_BK.T + P_BK
+    x = (kidney - P_BK) @ R_BK[:, 0]  # along the long axis, towards the upper pole
+    cloud, pivot = kidney[x > 0.01], kidney[np.abs(x) < 0.02]
+    good = check_pivot_residual(kidney, cloud, pivot, 0.005)
+    assert good.passed and abs(good.value) < 0.001 and good.unit == "m"
+    # Registered 20 deg off about the explored part's middle (across the body): the cloud
+    # stays near it, the pivot's sections at the kidney's middle do not.
+    angle = math.radians(20.0)
+    turn = RotationMatrix.MakeXRotation(angle).matrix()
+    centre = P_BK + 0.03 * R_BK[:, 0]
+    turned = (kidney - centre) @ turn.T + centre
+    bad = check_pivot_residual(turned, cloud, pivot, 0.005)
+    assert bad.passed is False and bad.value > 0.005, bad.detail
+    # A bulge (a 15 mm tumour on the lateral side) the template lacks, seen by the pivot.
+    bulge = P_BK + 0.03 * R_BK[:, 1] + 0.015 * ellipsoid_surface(4000, (1.0, 1.0, 1.0))
+    tumour = check_pivot_residual(kidney, cloud, np.vstack([pivot, bulge]), 0.005)
+    assert tumour.passed is False and "pivot boundary" in tumour.detail
+    empty = check_pivot_residual(kidney, cloud, np.zeros((0, 3)), 0.005)
+    assert empty.passed is None and "not applicable" in empty.detail
 
 
 def test_verdict_tilt_cap_is_not_done(geometry):
@@ -291,7 +351,7 @@ def test_healthy_scan_passes_its_checks(test0):
     summary = Summary(result, ScanMetrics(result))
     assert summary["status"] == "DONE", summary["reason"]
     checks = summary["checks"]
-    assert len(checks) == 9 and all(c["passed"] for c in checks.values()), checks
+    assert len(checks) == 10 and all(c["passed"] for c in checks.values()), checks
     assert checks["sweep_ends"]["value"] == 2 and checks["template_coverage"]["value"] > 0.95
     assert result.sweep_end_causes == ("kidney_left", "kidney_left")
 

@@ -186,19 +186,40 @@ def estimate_kidney_length(
     return kidney_length_of(template, result), result
 
 
-def updated_length_estimate(previous: float, length: float, failed_fit: str) -> float:
+def updated_length_estimate(
+    previous: float,
+    length: float,
+    failed_fit: str,
+    previous_reading: float = math.nan,
+    confirm_tolerance: float = 0.0,
+    reference: float = math.nan,
+) -> float:
     """The exploration's kidney-length estimate (m) after a length check that read
-    ``length`` (NaN: the fit failed its checks): ``length`` when it passed; after a failed
-    fit the ``previous`` estimate (``failed_fit`` "keep") or +inf ("unknown": the template
-    cannot fit the kidney explored so far, so its length is not known;
-    ``supervisor.exploration_target`` then explores for the longest kidney it allows)."""
-    if math.isfinite(length):
+    ``length`` (NaN: the fit failed its checks).
+
+    After a failed fit: the ``previous`` estimate (``failed_fit`` "keep") or +inf
+    ("unknown": the template cannot fit the kidney explored so far, so its length is not
+    known; ``supervisor.exploration_target`` then explores for the longest kidney it
+    allows).
+
+    After a fit that passed: ``length`` when it is confirmed, i.e. within
+    ``confirm_tolerance`` (m) of the check before it (``previous_reading``, NaN if that
+    fit failed or there was none), or the confirmation is off (``confirm_tolerance`` <= 0).
+    An unconfirmed reading may lengthen the exploration, never shorten it: the estimate is
+    then the larger of ``length`` and the ``previous`` estimate (``reference``, the
+    reference length L_m, before any). The far pole is not in the cloud: the reading is
+    the shape model's extrapolation, and a reading that the next 5 mm of kidney
+    contradict was not the cloud's."""
+    if not math.isfinite(length):
+        if failed_fit == "keep":
+            return float(previous)
+        if failed_fit == "unknown":
+            return math.inf
+        raise ValueError(f"length_failed_fit: expected 'unknown' or 'keep', got {failed_fit!r}")
+    if not confirm_tolerance > 0.0 or abs(length - previous_reading) <= confirm_tolerance:
         return float(length)
-    if failed_fit == "keep":
-        return float(previous)
-    if failed_fit == "unknown":
-        return math.inf
-    raise ValueError(f"length_failed_fit: expected 'unknown' or 'keep', got {failed_fit!r}")
+    floor = reference if math.isnan(previous) else previous
+    return float(length) if math.isnan(floor) else max(float(length), float(floor))
 
 
 def kidney_extent_along(points: np.ndarray, direction) -> float:
@@ -333,9 +354,10 @@ class LengthState:
 
     last_time: float = -math.inf
     # Latest estimate (m); NaN until a check is made, +inf after a fit that failed its
-    # checks (``LocalizationConfig.length_failed_fit``: "unknown").
+    # checks (``LocalizationConfig.length_failed_fit``: "unknown"); a reading the check
+    # before does not confirm cannot lower it (``updated_length_estimate``).
     length: float = math.nan
-    checks: tuple = ()  # ((time s, travel m, length m or NaN), ...)
+    checks: tuple = ()  # ((time s, travel m, length m read or NaN), ...)
     # The latest fit that passed the checks: the next fit's warm start.
     fit: IcpResult | None = dataclasses.field(default=None, compare=False)
     # The fit running (an executor Ticket) and the probe's travel (m) when it was asked.
@@ -623,8 +645,8 @@ class IcpLocalizer(LeafSystem):
         return True
 
     def _take_length(self, state, t: float) -> bool:
-        """Takes the running length fit if it is ready: a fit that fails the sanity checks
-        keeps the previous estimate. True if one was taken."""
+        """Takes the running length fit if it is ready (the estimate it gives:
+        ``updated_length_estimate``). True if one was taken."""
         s = state.get_abstract_state(self._length).get_value()
         if s.pending is None:
             return False
@@ -635,7 +657,14 @@ class IcpLocalizer(LeafSystem):
         passed = math.isfinite(length)
         new = LengthState(
             last_time=s.last_time,
-            length=updated_length_estimate(s.length, length, self._config.length_failed_fit),
+            length=updated_length_estimate(
+                s.length,
+                length,
+                self._config.length_failed_fit,
+                previous_reading=s.checks[-1][2] if s.checks else math.nan,
+                confirm_tolerance=self._config.length_confirm_tolerance,
+                reference=self._kidney_length,
+            ),
             checks=s.checks + ((done.t_request, s.pending_travel, length),),
             fit=fit if passed else s.fit,
         )

@@ -34,7 +34,7 @@ from drake_rus.control.respiration_systems import (
 )
 from drake_rus.control.supervisor import Phase, PivotModel
 from drake_rus.executor import MakeExecutor
-from drake_rus.imaging.frames import UsFrame
+from drake_rus.imaging.frames import BoundaryPixels, UsFrame
 from drake_rus.imaging.systems import PointCloudAccumulator, Segmenter
 from drake_rus.localization.localize import IcpLocalizer, body_directions_B
 from drake_rus.localization.tracking import KidneyTrackingMonitor, RegisteredKidneySurface
@@ -121,14 +121,20 @@ class ScanRecorder(LeafSystem):
     """Records every acquired frame (time, pose, phase, visibility, force) and keeps a few
     grey images and masks of the PIVOT phase for the report. A publish-only observer.
 
-    Inputs ``us_image`` and ``kidney_mask`` (UsFrame), ``phase``, ``kidney_visible``,
-    ``contact_force`` (1-vectors; N for the force)."""
+    Inputs ``us_image`` and ``kidney_mask`` (UsFrame), ``boundary_pixels``
+    (BoundaryPixels: the segmentation's boundary the point cloud takes, with its frame's
+    X_BP), ``phase``, ``kidney_visible``, ``contact_force`` (1-vectors; N for the force).
+    Keeps the boundary of every PIVOT frame (``pivot_boundaries``) for the verdict's
+    ``pivot_residual`` check."""
 
     def __init__(self, frame_rate_hz: float, keep_every: int = 10, keep_max: int = 40):
         super().__init__()
         empty = UsFrame(np.zeros((1, 1), np.uint8))
         self._us = self.DeclareAbstractInputPort("us_image", AbstractValue.Make(empty))
         self._mask = self.DeclareAbstractInputPort("kidney_mask", AbstractValue.Make(empty))
+        self._boundary = self.DeclareAbstractInputPort(
+            "boundary_pixels", AbstractValue.Make(BoundaryPixels(np.zeros((0, 2))))
+        )
         self._phase = self.DeclareVectorInputPort("phase", 1)
         self._visible = self.DeclareVectorInputPort("kidney_visible", 1)
         self._force = self.DeclareVectorInputPort("contact_force", 1)
@@ -138,6 +144,10 @@ class ScanRecorder(LeafSystem):
         self.images: list[tuple] = []
         #: Kidney masks (bool, rows x cols) by frame index, of the phases ``keep_masks`` asks.
         self.sweep_masks: dict[int, np.ndarray] = {}
+        #: The segmentation's boundary (BoundaryPixels, with its frame's index and X_BP) of
+        #: every PIVOT frame that had one (a few kB a frame).
+        self.pivot_boundaries: list[BoundaryPixels] = []
+        self._last_boundary = -1
         self._mask_phases: frozenset = frozenset()
         #: With ``keep_frames``: (us_image UsFrame, kidney_mask UsFrame, phase, visible) of
         #: every frame (the frames are immutable: kept, not copied).
@@ -179,6 +189,10 @@ class ScanRecorder(LeafSystem):
         if self._keep_all:
             self.kept_frames.append((us, self._mask.Eval(context), phase, visible))
         if phase == Phase.PIVOT:
+            boundary = self._boundary.Eval(context)
+            if boundary.frame_index not in (-1, self._last_boundary) and len(boundary.pixels):
+                self._last_boundary = boundary.frame_index
+                self.pivot_boundaries.append(boundary)
             if self._pivot_count % self._keep_every == 0 and len(self.images) < self._keep_max:
                 mask = self._mask.Eval(context)
                 self.images.append((us.time, np.array(us.image), np.array(mask.image)))
@@ -360,6 +374,9 @@ def BuildScanDiagram(
     recorder = builder.AddNamedSystem("scan_recorder", ScanRecorder(scenario.imaging.frame_rate_hz))
     builder.Connect(station.GetOutputPort("us_image"), recorder.GetInputPort("us_image"))
     builder.Connect(segmenter.GetOutputPort("kidney_mask"), recorder.GetInputPort("kidney_mask"))
+    builder.Connect(
+        segmenter.GetOutputPort("boundary_pixels"), recorder.GetInputPort("boundary_pixels")
+    )
     builder.Connect(phase, recorder.GetInputPort("phase"))
     builder.Connect(
         segmenter.GetOutputPort("kidney_visible"), recorder.GetInputPort("kidney_visible")

@@ -115,6 +115,9 @@ class ScanResult:
     # Kidney masks (bool, rows x cols) by frame index of the EXPLORE and PIVOT frames, when
     # RunScan was asked to keep them (keep_sweep_masks); else empty.
     sweep_masks: dict = dataclasses.field(default_factory=dict)
+    # The segmentation's boundary (imaging.frames.BoundaryPixels: pixels, frame index,
+    # X_BP) of every PIVOT frame that had one: the verdict's pivot_residual check.
+    pivot_boundaries: list = dataclasses.field(default_factory=list)
     # The localizer's kidney-length estimates during EXPLORE: ((time s, travel m, length m
     # or NaN), ...); empty without length estimation.
     length_checks: tuple = ()
@@ -312,6 +315,7 @@ def CollectScanResult(
         scenario=scenario,
         truth=truth,
         sweep_masks=dict(h.recorder.sweep_masks),
+        pivot_boundaries=list(h.recorder.pivot_boundaries),
         tracking_drift=h.tracking.state(h.tracking.GetMyContextFromRoot(root_context)).history,
         length_checks=h.localizer.length_checks(h.localizer.GetMyContextFromRoot(root_context)),
         pivot_limits=tuple(state.pivot_limits),

@@ -23,6 +23,7 @@ import dataclasses
 import math
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from drake_rus.control.supervisor import Phase
 from drake_rus.imaging.probe import ProbeGeometry
@@ -37,6 +38,7 @@ __all__ = [
     "check_axis_direction",
     "check_inlier_fraction",
     "check_kidney_depth",
+    "check_pivot_residual",
     "check_pole_offsets",
     "sweep_frames",
     "check_rms_residual",
@@ -267,6 +269,52 @@ def check_pole_offsets(
     return Check("pole_offsets", float(value), float(max_offset), "m", "<=", ok, detail)
 
 
+def check_pivot_residual(
+    surface_B, cloud_B, pivot_B, max_excess: float, percentile: float = 90.0
+) -> Check:
+    """(b) How far the kidney the pivot saw lies from the registered template, against how
+    far the explored cloud the template was fitted to lies: the ``percentile`` of the
+    distances from the pivot frames' boundary points ``pivot_B`` (M, 3) to the nearest
+    point of the registered template ``surface_B`` (N, 3), minus the same of the explored
+    cloud ``cloud_B`` (K, 3) (m); at most ``max_excess``. The pivot images the kidney across
+    its long axis, a view the registration did not use: a template that explains the
+    explored cloud but not the pivot's view (turned about the seen part, or missing a
+    bulge such as a tumour) leaves the pivot's boundary farther off than the cloud's. The
+    difference, not the pivot's distance alone, so that the template's own mismatch with
+    the kidney (the cloud's residual) is not counted twice."""
+    pivot = np.asarray(pivot_B, float).reshape(-1, 3)
+    cloud = np.asarray(cloud_B, float).reshape(-1, 3)
+    if len(pivot) == 0 or len(cloud) == 0:
+        what = "no pivot boundary points" if len(pivot) == 0 else "no explored cloud"
+        return _na("pivot_residual", "m", "<=", what)
+    tree = cKDTree(np.asarray(surface_B, float).reshape(-1, 3))
+    seen = float(np.percentile(tree.query(pivot)[0], percentile))
+    fitted = float(np.percentile(tree.query(cloud)[0], percentile))
+    value = seen - fitted
+    ok = value <= max_excess
+    detail = (
+        f"{percentile:g}th percentile of the distances to the registered template: pivot "
+        f"boundary {seen * 1e3:.1f} mm, explored cloud {fitted * 1e3:.1f} mm, "
+        f"{value * 1e3:.1f} mm more ({'' if ok else 'not '}<= {max_excess * 1e3:.3g} mm)"
+    )
+    return Check("pivot_residual", value, float(max_excess), "m", "<=", ok, detail)
+
+
+def pivot_boundary_points(boundaries, frames, geometry: ProbeGeometry) -> np.ndarray:
+    """(M, 3) in B: the boundary pixels (``boundaries``: BoundaryPixels of the PIVOT
+    frames) of the sweep ``frames`` that showed the kidney, each back-projected with its
+    own frame's X_BP."""
+    if not len(boundaries):
+        return np.zeros((0, 3))
+    shown = {int(f.frame_index) for f in frames if f.visible}
+    points = [
+        geometry.pixel_to_B(b.pixels, b.X_BP)
+        for b in boundaries
+        if int(b.frame_index) in shown and len(b.pixels)
+    ]
+    return np.concatenate(points) if points else np.zeros((0, 3))
+
+
 # ------------------------------------------------------------------- (c) registration
 def check_rms_residual(rms: float, max_rms: float, min_rms: float = 0.0) -> Check:
     """(c) The registration's RMS plane-to-plane residual (m) within the localizer's bound
@@ -393,6 +441,7 @@ def JudgeScan(result, template) -> list[Check]:
     names = (
         "pole_offsets",
         "template_coverage",
+        "pivot_residual",
         "rms_residual",
         "inlier_fraction",
         "shape_weights",
@@ -400,8 +449,8 @@ def JudgeScan(result, template) -> list[Check]:
         "kidney_depth",
         "axis_direction",
     )
-    units = ("m", "fraction", "m", "fraction", "SD", "m", "m", "deg")
-    rules = ("<=", ">=", "<=", ">=", "<=", "<=", ">=", "<=")
+    units = ("m", "fraction", "m", "m", "fraction", "SD", "m", "m", "deg")
+    rules = ("<=", ">=", "<=", "<=", ">=", "<=", "<=", ">=", "<=")
     if loc is None or result.registered_template_B is None:
         why = (
             "a line sweep has no registration"
@@ -428,10 +477,27 @@ def JudgeScan(result, template) -> list[Check]:
         ]
     lc = sc.localization
     b = loc.shape_coefficients
+    max_rms = max_rms_residual(lc, template, b is not None)
+    pivot_B = (
+        pivot_boundary_points(getattr(result, "pivot_boundaries", ()), frames, geometry)
+        if kind != "line"
+        else np.zeros((0, 3))
+    )
+    checks.append(
+        check_pivot_residual(
+            surface,
+            np.zeros((0, 3))
+            if getattr(result, "partial_cloud_B", None) is None
+            else result.partial_cloud_B,
+            pivot_B,
+            cfg.pivot_residual_excess * max_rms,
+            cfg.pivot_residual_percentile,
+        )
+    )
     checks.append(
         check_rms_residual(
             loc.rms_residual,
-            max_rms_residual(lc, template, b is not None),
+            max_rms,
             cfg.min_rms_residual_pixels * min(geometry.dx, geometry.dz),
         )
     )
