@@ -17,10 +17,24 @@ DT = 0.01
 A_DOWN = np.array([0.0, 0.0, -1.0])
 
 
-def breathe(cfg, prompts, t_end, *, wall=0.004, slope=0.0, speed=0.0, moving=None, seed=1):
+def breathe(
+    cfg,
+    prompts,
+    t_end,
+    *,
+    wall=0.004,
+    slope=0.0,
+    speed=0.0,
+    moving=None,
+    seed=1,
+    turn=None,
+    own=None,
+):
     """Feeds the estimator a probe pressing on a wall that rises ``wall`` m per unit of
     the patient's respiratory level, sliding at ``speed`` m/s along y over skin of
-    ``slope`` while ``moving(t)``. Returns (times, true holds, estimator state)."""
+    ``slope`` while ``moving(t)``; ``turn(t)`` (m) adds what the probe's own tilts and turns
+    do to the wall's reading, ``own(t)`` (m/s) is the speed the scan commands (unknown if
+    None). Returns (times, true holds, estimator state)."""
     rcfg = RespirationConfig(mode="breath_hold")
     s_b = M.breath_start(cfg, seed)
     s_r = R.RespirationState()
@@ -35,7 +49,11 @@ def breathe(cfg, prompts, t_end, *, wall=0.004, slope=0.0, speed=0.0, moving=Non
         if moving is not None and moving(t):
             y += speed * DT
         z = 0.2 + wall * M.breath_level(s_b, t, cfg) + slope * y + rng.normal(0, 2e-5)
-        s_r = R.respiration_update(s_r, t, np.array([0.5, y, z]), A_DOWN, 9.0, True, rcfg)
+        z += turn(t) if turn is not None else 0.0
+        speed_cmd = own(t) if own is not None else math.nan
+        s_r = R.respiration_update(
+            s_r, t, np.array([0.5, y, z]), A_DOWN, 9.0, True, rcfg, speed_cmd
+        )
     return times, np.array(holds), s_r
 
 
@@ -129,6 +147,37 @@ def test_a_hold_end_after_the_slide_stopped_is_dated_by_a_change_point():
     on, off = true_hold_edges(times, holds)
     out_of = [w for w, d, a, b in s.transitions if a == R.HOLDING and on[0] < w < off[0] + 1]
     assert len(out_of) == 1 and abs(out_of[0] - off[0]) <= 0.3, (out_of, off)
+
+
+def test_the_probes_own_turns_do_not_end_a_hold_and_its_end_is_found_after_them():
+    """PIVOT in a hold: three tilts of 1 s each (commanded at 10 mm/s) change the wall's
+    reading by 1.5 mm and back, as the recorded scans' TRANSIT and PIVOT did. Told how the
+    scan moves the probe, the estimator keeps the hold through them and dates its end,
+    which comes after the probe stopped, within 0.3 s; not told, it loses the hold."""
+    cfg = M.BreathingConfig(enabled=True, amplitude=0.015, rate_per_min=15.0)
+    prompts = [(12.0, M.Prompt.HOLD_IN), (26.0, M.Prompt.BREATHE)]
+    tilts = [(16.0, 17.0), (19.0, 20.0), (22.0, 23.0)]
+
+    def turn(t):
+        return sum(0.0015 * math.sin(math.pi * (t - a) / (b - a)) for a, b in tilts if a <= t <= b)
+
+    def own(t):
+        return 0.01 if any(a <= t <= b for a, b in tilts) or 25.6 <= t <= 26.0 else 0.0005
+
+    for told in (True, False):
+        times, holds, s = breathe(cfg, prompts, 32.0, turn=turn, own=own if told else None)
+        on, off = true_hold_edges(times, holds)
+        out_of = [w for w, d, a, b in s.transitions if a == R.HOLDING and on[0] < w < off[0] + 1]
+        if told:
+            assert len(out_of) == 1 and abs(out_of[0] - off[0]) <= 0.3, (out_of, off)
+        else:
+            assert len(out_of) > 1 and out_of[0] < off[0] - 1.0, out_of
+
+
+def test_own_motion_speed_adds_the_face_roll():
+    assert R.own_motion_speed([0.003, 0.004, 0.0], [0.0, 0.0, 0.2]) == pytest.approx(
+        0.005 + R.FACE_RADIUS * 0.2
+    )
 
 
 def test_hinge_change_point_finds_the_break_of_two_lines():

@@ -425,6 +425,11 @@ def AddRespiration(builder, scenario, station, parts, localizer):
     builder.Connect(
         parts.force.GetOutputPort("F_filtered"), estimator.GetInputPort("contact_force")
     )
+    # The probe's own motion (the scan's commands): the wall's reading moves with it.
+    builder.Connect(parts.position.GetOutputPort("v_position"), estimator.GetInputPort("v_command"))
+    builder.Connect(
+        parts.orientation.GetOutputPort("omega_BP"), estimator.GetInputPort("omega_command")
+    )
     protocol = builder.AddNamedSystem("breath_hold_protocol", BreathHoldProtocol(cfg, period))
     builder.Connect(supervisor.GetOutputPort("phase"), protocol.GetInputPort("phase"))
     builder.Connect(
