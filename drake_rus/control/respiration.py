@@ -39,6 +39,7 @@ __all__ = [
     "STATE_NAMES",
     "wall_level",
     "own_motion_speed",
+    "probe_moving",
     "hinge_change_point",
     "RespirationState",
     "respiration_update",
@@ -273,6 +274,12 @@ def _transition(s: RespirationState, new: int, when: float, t: float) -> Respira
         since=when,
         transitions=s.transitions + ((float(when), float(t), s.state, new),),
     )
+
+
+def probe_moving(s: RespirationState) -> bool:
+    """Whether, at its latest sample, the estimator took the probe as moving of its own
+    accord (or its force loop as settling after such motion)."""
+    return bool(len(s.t)) and float(s.t[-1]) - s.own_until < OWN_MOTION_SETTLE
 
 
 def own_motion_speed(v_B, omega_B) -> float:

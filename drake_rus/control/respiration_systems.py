@@ -41,8 +41,9 @@ class RespirationEstimator(LeafSystem):
     B: the angular velocity it commands): the probe's own motion (``own_motion_speed``),
     unknown when unconnected. Outputs: ``respiration_state`` (1-vector: UNKNOWN 0,
     BREATHING 1, HOLDING 2, END_EXPIRATION 3), ``respiration_since`` (1-vector, s: when the
-    current state began, estimated), ``respiration`` (abstract RespirationState, for logs).
-    Updated every ``period`` s (the controller's)."""
+    current state began, estimated), ``probe_moving`` (1-vector 0/1: the probe taken as
+    moving of its own accord, ``probe_moving``), ``respiration`` (abstract
+    RespirationState, for logs). Updated every ``period`` s (the controller's)."""
 
     def __init__(self, config, desired_force: float, period: float):
         super().__init__()
@@ -65,6 +66,12 @@ class RespirationEstimator(LeafSystem):
             "respiration_since",
             1,
             lambda c, o: o.SetAtIndex(0, self.state(c).since),
+            prerequisites_of_calc=ticket,
+        )
+        self.DeclareVectorOutputPort(
+            "probe_moving",
+            1,
+            lambda c, o: o.SetAtIndex(0, float(R.probe_moving(self.state(c)))),
             prerequisites_of_calc=ticket,
         )
         self.DeclareAbstractOutputPort(

@@ -381,6 +381,7 @@ def BuildScanDiagram(
             ("motion_allowed", protocol.GetOutputPort("motion_allowed")),
             ("breath_prompt", protocol.GetOutputPort("breath_prompt")),
             ("respiration_state", estimator.GetOutputPort("respiration_state")),
+            ("probe_moving", estimator.GetOutputPort("probe_moving")),
         ):
             logs[name] = LogVectorOutput(port, builder, LOG_PERIOD)
     terminator = builder.AddNamedSystem(
