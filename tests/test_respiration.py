@@ -248,6 +248,22 @@ def test_protocol_tolerates_a_moment_of_doubt_but_not_a_let_go():
     assert s.prompts[1][0] == pytest.approx(8.0 + R.REGAIN_TIME, abs=0.02)
 
 
+def test_protocol_waits_out_a_stillness_that_began_before_the_prompt():
+    """Still since before "breathe in and hold" (a breath's top, or a patient already
+    holding): no motion until it has lasted ALREADY_HOLDING_CONFIRM past the prompt; a
+    breath's top is over by then, a hold is not."""
+    cfg = RespirationConfig(mode="breath_hold", recovery_time=1.0)
+    top = lambda t, s: (R.HOLDING, 0.9) if t < 1.3 else (R.BREATHING, 1.3)  # noqa: E731
+    s, log = _run_protocol(cfg, top, 3.0)
+    assert s.prompts[0] == (pytest.approx(1.0), M.Prompt.HOLD_IN)
+    assert not any(a for _, a, _ in log) and s.holds == 0
+    held = lambda t, s: (R.HOLDING, 0.9)  # noqa: E731
+    s, log = _run_protocol(cfg, held, 3.0)
+    first = next(t for t, a, _ in log if a)
+    assert first == pytest.approx(1.0 + R.ALREADY_HOLDING_CONFIRM, abs=0.02)
+    assert s.hold_since == pytest.approx(1.0)  # counted from the prompt
+
+
 def test_protocol_holds_for_transit_and_pivot_not_for_localize():
     cfg = RespirationConfig(mode="breath_hold")
     assert R.phase_needs_hold(1, False) and R.phase_needs_hold(4, False)

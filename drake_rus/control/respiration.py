@@ -408,6 +408,12 @@ HOLD_PHASES = (_EXPLORE, _TRANSIT, _PIVOT)
 # back (a wall that only seemed to move; after a long slide the estimator needs still_long
 # to sense a hold again).
 REGAIN_TIME = 3.5
+# A hold sensed as begun before the prompt counts only once it has lasted this long (s) past
+# the prompt: a patient told to hold answers after a reaction time (0.5 s in the simulated
+# patient) and a breath in, so a stillness at the prompt may be a breath's turning point
+# (test:9: the top of a breath, still for hold_confirm just as the prompt came, let TRANSIT
+# start 1.3 s before the patient held). A patient already holding is still holding by then.
+ALREADY_HOLDING_CONFIRM = 1.0
 
 # Prompt values (anatomy.motion.Prompt).
 _NONE, _HOLD_IN, _HOLD_OUT, _BREATHE = 0, 1, 2, 3
@@ -499,6 +505,8 @@ def protocol_step(
     if s.prompt != hold_prompt:
         return _prompt(s, hold_prompt, t, attempts=1, allowed=False)
     if resp_state == HOLDING:
+        if float(resp_since) < s.prompted_at and t - s.prompted_at < ALREADY_HOLDING_CONFIRM:
+            return dataclasses.replace(s, allowed=False)  # a hold, or a breath's top?
         # The hold counts from the prompt at the earliest (a patient already still).
         since = max(float(resp_since), s.prompted_at)
         return dataclasses.replace(s, hold_since=since, holds=s.holds + 1, attempts=0, allowed=True)

@@ -463,8 +463,9 @@ def plot_estimator(results: list[dict], path) -> Path | None:
         if "moving" in tl:
             ax0.fill_between(
                 tl["t_state"],
+                -0.25,
                 -0.1,
-                np.asarray(tl["moving"]) * -0.25,
+                where=np.asarray(tl["moving"]) > 0.5,
                 color="0.4",
                 alpha=0.5,
                 lw=0,
