@@ -216,11 +216,13 @@ def _still_segment_update(s, t, w, v_w, v_d, ee, tidal, half, cfg) -> Respiratio
         and residual > 0.2 * tidal
         and moving >= 1
     )
-    if s.state == HOLDING and t - s.own_until < OWN_MOTION_SETTLE:
+    if s.state == HOLDING and cfg.mode == "breath_hold" and t - s.own_until < OWN_MOTION_SETTLE:
         # The probe moves of its own accord (or its force loop settles): the wall's reading
-        # follows the skin under it. Only a departure no motion makes ends the hold. (An
-        # end-expiration window is left by the next breath in, within 1-2 s: gating must
-        # see it at once, whatever the probe does.)
+        # follows the skin under it. Only a departure no motion makes ends the hold. Only
+        # in the breath-hold protocol, where the hold was asked for and the scan stops the
+        # probe before it says "breathe normally". Gating asks for none: a hold it senses
+        # (a long end-expiration) and an end-expiration window end with the next breath
+        # in, which must stop the probe at once, whatever it does.
         gross = (sign * residual if sign else abs(residual)) > MOTION_DEPARTURE
         if not (gross and moving >= 1):
             return dataclasses.replace(s, moving_count=0)
