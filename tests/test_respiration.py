@@ -179,6 +179,31 @@ def test_the_probes_own_turns_do_not_end_a_hold_and_its_end_is_found_after_them(
             assert len(out_of) > 1 and out_of[0] < off[0] - 1.0, out_of
 
 
+def test_a_breaths_top_taken_for_a_hold_ends_when_the_wall_rises_on():
+    """Told to hold at the top of a breath, the patient pauses there (a hold is sensed),
+    then breathes in further and holds: the first "hold" ends when the wall rises on, and
+    the real hold is dated where the wall stops, within 0.3 s."""
+    rcfg = RespirationConfig(mode="breath_hold")
+    s = R.RespirationState()
+    times = np.arange(0.0, 24.0, DT)
+    rng = np.random.default_rng(0)
+
+    def wall(t):  # m: 4 s breaths of 3 mm; a pause at a top at 14 s, 2 mm more in 1 s
+        if t < 14.0:
+            return 0.0015 * (1.0 - math.cos(2.0 * math.pi * t / 4.0))
+        if t < 15.0:
+            return 0.003
+        return 0.003 + 0.002 * min(1.0, (t - 15.0)) ** 2 * (3.0 - 2.0 * min(1.0, t - 15.0))
+
+    for t in times:
+        z = 0.2 + wall(t) + rng.normal(0, 2e-5)
+        s = R.respiration_update(s, t, np.array([0.5, 0.0, z]), A_DOWN, 9.0, True, rcfg, 0.0)
+    holds = [(w, a, b) for w, d, a, b in s.transitions if w > 13.0]
+    onsets = [w for w, a, b in holds if b == R.HOLDING]
+    assert any(a == R.HOLDING and b == R.BREATHING for _, a, b in holds), holds
+    assert s.state == R.HOLDING and abs(onsets[-1] - 16.0) <= 0.3, holds
+
+
 def test_own_motion_speed_adds_the_face_roll():
     assert R.own_motion_speed([0.003, 0.004, 0.0], [0.0, 0.0, 0.2]) == pytest.approx(
         0.005 + R.FACE_RADIUS * 0.2

@@ -198,7 +198,8 @@ def _still_segment_update(s, t, w, v_w, v_d, ee, tidal, half, cfg) -> Respiratio
     the segment), in the direction it is expected to leave (``segment_exit``) on three
     successive periods, or once with the wall END_DEVIATION off the line. Until the probe
     has slid 3 mm the fit is young: up to 0.3 x the sliding speed is tolerated as skin
-    slope. A long END_EXPIRATION becomes a hold; one that rises becomes one too."""
+    slope. A long END_EXPIRATION becomes a hold; one that rises becomes one too. A hold
+    breathed in that rises END_DEVIATION on ends: a breath's top, not a hold."""
     residual, g = _segment_residual(s, t, min(0.15, half))
     s = dataclasses.replace(s, geom_now=s.geom_seg0 + g * (s.travel - s.d_seg0))
     seg = s.t >= _fit_start(s)
@@ -226,7 +227,10 @@ def _still_segment_update(s, t, w, v_w, v_d, ee, tidal, half, cfg) -> Respiratio
         gross = (sign * residual if sign else abs(residual)) > MOTION_DEPARTURE
         if not (gross and moving >= 1):
             return dataclasses.replace(s, moving_count=0)
-    if moving >= 3 or (off and moving >= 1) or left_band:
+    # A hold breathed in that rises on: the patient was still breathing in (a breath's top,
+    # still for a moment, taken for a hold); the hold comes when the wall stops again.
+    deeper = s.state == HOLDING and sign < 0 and residual > END_DEVIATION and v > tol
+    if moving >= 3 or (off and moving >= 1) or left_band or deeper:
         when = _departure(s, t, g, sign)
         s = dataclasses.replace(
             s, still_since=math.nan, still_seen=math.nan, segment_start=math.nan
