@@ -19,6 +19,7 @@ from drake_rus.localization.tracking import (
     KidneyTrackingMonitor,
     TrackingLimits,
     TrackingState,
+    changed_across_stretches,
     estimate_drift,
     group_medians,
     judged_drift,
@@ -317,6 +318,36 @@ def test_each_phase_takes_its_own_reference_for_the_change_check():
     for k, v in enumerate([[0, 14, 0], [0, 14.5, 0], [0, 10, 0], [-3, 0, 0], [-3, 1, 0]]):
         one = check(one, 1.0 + 0.5 * k, v, -1)
     assert one.error
+
+
+def test_a_change_in_one_breaths_window_is_not_a_shift_one_in_two_is():
+    """Gated free breathing: every end-expiration window is a stretch of its own. A change
+    over the limit in the reference's stretch (continuous motion) is a shift at once; in a
+    later window it must show in two windows (two breaths): one window caught at another
+    point of the breath, or fitted over a few frames, is not."""
+    assert changed_across_stretches((0, 0), 0)
+    assert not changed_across_stretches((3, 3), 0)
+    assert not changed_across_stretches((0, 3), 0)
+    assert changed_across_stretches((3, 4), 0)
+    assert not changed_across_stretches((), 0)
+    cfg = LocalizationConfig(tracking_reference_checks=2, tracking_confirmations=2)
+    lim = TrackingLimits(0.05, 0.015, np.array([0.0, 1.0, 0.0]))
+
+    def check(s, t, v_mm, segment):
+        s = dataclasses.replace(s, segment=segment)
+        return tracking_update(
+            s, t, DriftEstimate(np.array(v_mm) * 1e-3, 0.001, 100), cfg, lim, phase=4
+        )
+
+    s = check(check(TrackingState(), 1.0, [0, 0, 0], 0), 1.5, [0, 0, 0], 0)
+    window = check(check(s, 5.0, [0, 16, 0], 3), 5.5, [0, 16, 0], 3)  # one breath's window
+    assert window.error == "" and window.change_m > 0.015
+    window = check(check(window, 9.0, [0, 0.5, 0], 4), 9.5, [0, 1, 0], 4)  # the next: back
+    assert window.error == "" and window.exceed_count == 0
+    moved = check(check(window, 13.0, [0, 17, 0], 5), 17.0, [0, 17, 0], 6)  # two breaths
+    assert "from where the first checks after it saw it" in moved.error
+    still = check(check(s, 2.0, [0, 16, 0], 0), 2.5, [0, 16, 0], 0)  # no gating: at once
+    assert "limit 11.0 mm" in still.error
 
 
 def test_monitor_passes_a_still_kidney_its_template_misplaces_along_the_axis(template):

@@ -195,6 +195,15 @@ def test_breathing_study_tables_and_plots(tmp_path):
     assert math.isnan(sensed_holds(late)[0]["end"])  # let go after DONE: nothing to sense
     assert "end_error_s" not in sensed_holds(late)[0] and sensed_holds(late)[0]["start"] == 10.0
     errs = estimator_errors([(10.0, 20.0)], ((10.1, 10.3, 1, 2), (19.8, 20.2, 2, 1)))
+    t = list(np.arange(0.0, 30.0, 0.5))
+    timeline = {
+        "t": t,
+        "level": [float(10.0 <= x < 20.0) for x in t],
+        "hold": [float(10.0 <= x < 20.0) for x in t],
+        "t_state": t,
+        "state": [2.0 if 10.0 <= x < 20.0 else 1.0 for x in t],
+        "moving": [float(12.0 <= x < 15.0) for x in t],
+    }
     assert errs[0]["onset_error_s"] == pytest.approx(0.1)
     assert errs[0]["end_latency_s"] == pytest.approx(0.2)
     rows = {
@@ -207,7 +216,7 @@ def test_breathing_study_tables_and_plots(tmp_path):
             "test:1",
             "shift",
         ): ("DONE", 7.0, {"relocalizations": 0, "shift_mm": 6.0, "shift_started_in_scan": True}),
-        ("test:0", "protocol"): ("DONE", 4.5, {"estimator": errs}),
+        ("test:0", "protocol"): ("DONE", 4.5, {"estimator": errs, "timeline": timeline}),
     }
     results = [
         {

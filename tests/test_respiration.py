@@ -17,11 +17,26 @@ DT = 0.01
 A_DOWN = np.array([0.0, 0.0, -1.0])
 
 
-def breathe(cfg, prompts, t_end, *, wall=0.004, slope=0.0, speed=0.0, moving=None, seed=1):
+def breathe(
+    cfg,
+    prompts,
+    t_end,
+    *,
+    wall=0.004,
+    slope=0.0,
+    speed=0.0,
+    moving=None,
+    seed=1,
+    turn=None,
+    own=None,
+    mode="breath_hold",
+):
     """Feeds the estimator a probe pressing on a wall that rises ``wall`` m per unit of
     the patient's respiratory level, sliding at ``speed`` m/s along y over skin of
-    ``slope`` while ``moving(t)``. Returns (times, true holds, estimator state)."""
-    rcfg = RespirationConfig(mode="breath_hold")
+    ``slope`` while ``moving(t)``; ``turn(t)`` (m) adds what the probe's own tilts and turns
+    do to the wall's reading, ``own(t)`` (m/s) is the speed the scan commands (unknown if
+    None). Returns (times, true holds, estimator state)."""
+    rcfg = RespirationConfig(mode=mode)
     s_b = M.breath_start(cfg, seed)
     s_r = R.RespirationState()
     y, holds, prompts = 0.0, [], sorted(prompts)
@@ -35,7 +50,11 @@ def breathe(cfg, prompts, t_end, *, wall=0.004, slope=0.0, speed=0.0, moving=Non
         if moving is not None and moving(t):
             y += speed * DT
         z = 0.2 + wall * M.breath_level(s_b, t, cfg) + slope * y + rng.normal(0, 2e-5)
-        s_r = R.respiration_update(s_r, t, np.array([0.5, y, z]), A_DOWN, 9.0, True, rcfg)
+        z += turn(t) if turn is not None else 0.0
+        speed_cmd = own(t) if own is not None else math.nan
+        s_r = R.respiration_update(
+            s_r, t, np.array([0.5, y, z]), A_DOWN, 9.0, True, rcfg, speed_cmd
+        )
     return times, np.array(holds), s_r
 
 
@@ -131,6 +150,66 @@ def test_a_hold_end_after_the_slide_stopped_is_dated_by_a_change_point():
     assert len(out_of) == 1 and abs(out_of[0] - off[0]) <= 0.3, (out_of, off)
 
 
+def test_the_probes_own_turns_do_not_end_a_hold_and_its_end_is_found_after_them():
+    """PIVOT in a hold: three tilts of 1 s each (commanded at 10 mm/s) change the wall's
+    reading by 1.5 mm and back, as the recorded scans' TRANSIT and PIVOT did. Told how the
+    scan moves the probe, the estimator keeps the hold through them and dates its end,
+    which comes after the probe stopped, within 0.3 s; not told, it loses the hold. Gated
+    free breathing asks for no hold: there any departure ends one at once, the probe's own
+    motion or not (a breath in must stop the probe)."""
+    cfg = M.BreathingConfig(enabled=True, amplitude=0.015, rate_per_min=15.0)
+    prompts = [(12.0, M.Prompt.HOLD_IN), (26.0, M.Prompt.BREATHE)]
+    tilts = [(16.0, 17.0), (19.0, 20.0), (22.0, 23.0)]
+
+    def turn(t):
+        return sum(0.0015 * math.sin(math.pi * (t - a) / (b - a)) for a, b in tilts if a <= t <= b)
+
+    def own(t):
+        return 0.01 if any(a <= t <= b for a, b in tilts) or 25.6 <= t <= 26.0 else 0.0005
+
+    for told, mode in ((True, "breath_hold"), (False, "breath_hold"), (True, "gated")):
+        times, holds, s = breathe(
+            cfg, prompts, 32.0, turn=turn, own=own if told else None, mode=mode
+        )
+        on, off = true_hold_edges(times, holds)
+        out_of = [w for w, d, a, b in s.transitions if a == R.HOLDING and on[0] < w < off[0] + 1]
+        if told and mode == "breath_hold":
+            assert len(out_of) == 1 and abs(out_of[0] - off[0]) <= 0.3, (out_of, off)
+        else:
+            assert len(out_of) > 1 and out_of[0] < off[0] - 1.0, out_of
+
+
+def test_a_breaths_top_taken_for_a_hold_ends_when_the_wall_rises_on():
+    """Told to hold at the top of a breath, the patient pauses there (a hold is sensed),
+    then breathes in further and holds: the first "hold" ends when the wall rises on, and
+    the real hold is dated where the wall stops, within 0.3 s."""
+    rcfg = RespirationConfig(mode="breath_hold")
+    s = R.RespirationState()
+    times = np.arange(0.0, 24.0, DT)
+    rng = np.random.default_rng(0)
+
+    def wall(t):  # m: 4 s breaths of 3 mm; a pause at a top at 14 s, 2 mm more in 1 s
+        if t < 14.0:
+            return 0.0015 * (1.0 - math.cos(2.0 * math.pi * t / 4.0))
+        if t < 15.0:
+            return 0.003
+        return 0.003 + 0.002 * min(1.0, (t - 15.0)) ** 2 * (3.0 - 2.0 * min(1.0, t - 15.0))
+
+    for t in times:
+        z = 0.2 + wall(t) + rng.normal(0, 2e-5)
+        s = R.respiration_update(s, t, np.array([0.5, 0.0, z]), A_DOWN, 9.0, True, rcfg, 0.0)
+    holds = [(w, a, b) for w, d, a, b in s.transitions if w > 13.0]
+    onsets = [w for w, a, b in holds if b == R.HOLDING]
+    assert any(a == R.HOLDING and b == R.BREATHING for _, a, b in holds), holds
+    assert s.state == R.HOLDING and abs(onsets[-1] - 16.0) <= 0.3, holds
+
+
+def test_own_motion_speed_adds_the_face_roll():
+    assert R.own_motion_speed([0.003, 0.004, 0.0], [0.0, 0.0, 0.2]) == pytest.approx(
+        0.005 + R.FACE_RADIUS * 0.2
+    )
+
+
 def test_hinge_change_point_finds_the_break_of_two_lines():
     t = np.arange(0.0, 0.8, DT)
     x = 0.001 - 0.0002 * t - 0.004 * np.maximum(t - 0.55, 0.0)
@@ -197,6 +276,22 @@ def test_protocol_tolerates_a_moment_of_doubt_but_not_a_let_go():
     assert allowed[3.0] and not allowed[4.2] and allowed[5.0]  # regained
     assert not allowed[13.0] and s.prompts[1][1] == M.Prompt.BREATHE  # let go: rest
     assert s.prompts[1][0] == pytest.approx(8.0 + R.REGAIN_TIME, abs=0.02)
+
+
+def test_protocol_waits_out_a_stillness_that_began_before_the_prompt():
+    """Still since before "breathe in and hold" (a breath's top, or a patient already
+    holding): no motion until it has lasted ALREADY_HOLDING_CONFIRM past the prompt; a
+    breath's top is over by then, a hold is not."""
+    cfg = RespirationConfig(mode="breath_hold", recovery_time=1.0)
+    top = lambda t, s: (R.HOLDING, 0.9) if t < 1.3 else (R.BREATHING, 1.3)  # noqa: E731
+    s, log = _run_protocol(cfg, top, 3.0)
+    assert s.prompts[0] == (pytest.approx(1.0), M.Prompt.HOLD_IN)
+    assert not any(a for _, a, _ in log) and s.holds == 0
+    held = lambda t, s: (R.HOLDING, 0.9)  # noqa: E731
+    s, log = _run_protocol(cfg, held, 3.0)
+    first = next(t for t, a, _ in log if a)
+    assert first == pytest.approx(1.0 + R.ALREADY_HOLDING_CONFIRM, abs=0.02)
+    assert s.hold_since == pytest.approx(1.0)  # counted from the prompt
 
 
 def test_protocol_holds_for_transit_and_pivot_not_for_localize():

@@ -38,6 +38,8 @@ __all__ = [
     "END_EXPIRATION",
     "STATE_NAMES",
     "wall_level",
+    "own_motion_speed",
+    "probe_moving",
     "hinge_change_point",
     "RespirationState",
     "respiration_update",
@@ -76,6 +78,20 @@ END_DEVIATION = 0.0003
 # rest), with at least HINGE_MIN_SAMPLES samples on either side of the break.
 DEPARTURE_WINDOW = 0.8
 HINGE_MIN_SAMPLES = 3
+# The probe moves of its own accord when the scan commands it faster than this (m/s: its
+# commanded speed across the beam plus FACE_RADIUS x its commanded angular speed). Breathing
+# alone makes the tip-position loop command at most 2.2 mm/s (99th percentile over the
+# free breathing of recorded protocol scans); EXPLORE slides at 5 mm/s, TRANSIT and PIVOT
+# reach 10-140 mm/s.
+OWN_MOTION_SPEED = 0.003
+# After the command falls below OWN_MOTION_SPEED the force loop settles for this long (s):
+# the contact force swings by up to 0.6 N for 0.4-0.5 s after a PIVOT tilt stops.
+OWN_MOTION_SETTLE = 0.6
+# While the probe moves of its own accord, a still segment ends only on a departure larger
+# than this (m) from its fitted line: a slide, a tilt or a turn about the beam changes the
+# wall's reading by up to 2.2 mm within a hold (TRANSIT and PIVOT of recorded protocol
+# scans), which no speed test tells from a breath; the fit starts anew once it stops.
+MOTION_DEPARTURE = 0.003
 
 
 def wall_level(p_BP, a_B, force: float, stiffness: float) -> float:
@@ -120,6 +136,10 @@ class RespirationState:
     still_since: float = math.nan  # the stillness's estimated start (the speed window's centre)
     still_seen: float = math.nan  # when the stillness was first seen
     segment_start: float = math.nan  # the current still segment (HOLDING/END_EXPIRATION)
+    # The probe's own motion: the last time its command exceeded OWN_MOTION_SPEED, and the
+    # start of the segment's samples its line is fitted to (after the last such motion).
+    own_until: float = -math.inf
+    fit_since: float = -math.inf
     # Which way the wall leaves it: -1 down (an expiration: from a hold breathed in), +1 up
     # (an inspiration: from end-expiration or a hold breathed out), 0 either.
     segment_exit: int = 0
@@ -147,11 +167,18 @@ def _history_levels(s: RespirationState, t: float, cfg) -> tuple[float, float]:
     return float(lo), float(hi - lo)
 
 
+def _fit_start(s: RespirationState) -> float:
+    """The start of the current still segment's samples its line is fitted to: the segment's
+    start, or the end of the probe's last own motion within it (plus the settling)."""
+    return max(s.segment_start, s.fit_since)
+
+
 def _segment_residual(s: RespirationState, t: float, lag: float) -> tuple[float, float]:
     """(residual m, geometric slope m/m) of the wall's newest samples (the last ``lag`` s)
     against a line in the probe's travel fitted over the rest of the current still segment
-    (the skin's shape under a sliding probe; ridge-regularised towards no slope)."""
-    seg = s.t >= s.segment_start
+    since the probe's last own motion (the skin's shape under a sliding probe;
+    ridge-regularised towards no slope)."""
+    seg = s.t >= _fit_start(s)
     old = seg & (s.t < t - lag)
     new = seg & (s.t >= t - lag)
     if np.count_nonzero(old) < 3 or not new.any():
@@ -171,10 +198,11 @@ def _still_segment_update(s, t, w, v_w, v_d, ee, tidal, half, cfg) -> Respiratio
     the segment), in the direction it is expected to leave (``segment_exit``) on three
     successive periods, or once with the wall END_DEVIATION off the line. Until the probe
     has slid 3 mm the fit is young: up to 0.3 x the sliding speed is tolerated as skin
-    slope. A long END_EXPIRATION becomes a hold; one that rises becomes one too."""
+    slope. A long END_EXPIRATION becomes a hold; one that rises becomes one too. A hold
+    breathed in that rises END_DEVIATION on ends: a breath's top, not a hold."""
     residual, g = _segment_residual(s, t, min(0.15, half))
     s = dataclasses.replace(s, geom_now=s.geom_seg0 + g * (s.travel - s.d_seg0))
-    seg = s.t >= s.segment_start
+    seg = s.t >= _fit_start(s)
     seg_travel = float(s.d[seg][-1] - s.d[seg][0]) if seg.any() else 0.0
     v = v_w - g * v_d
     tol = cfg.still_speed + (0.3 * abs(v_d) if seg_travel < 0.003 else 0.0)
@@ -189,7 +217,20 @@ def _still_segment_update(s, t, w, v_w, v_d, ee, tidal, half, cfg) -> Respiratio
         and residual > 0.2 * tidal
         and moving >= 1
     )
-    if moving >= 3 or (off and moving >= 1) or left_band:
+    if s.state == HOLDING and cfg.mode == "breath_hold" and t - s.own_until < OWN_MOTION_SETTLE:
+        # The probe moves of its own accord (or its force loop settles): the wall's reading
+        # follows the skin under it. Only a departure no motion makes ends the hold. Only
+        # in the breath-hold protocol, where the hold was asked for and the scan stops the
+        # probe before it says "breathe normally". Gating asks for none: a hold it senses
+        # (a long end-expiration) and an end-expiration window end with the next breath
+        # in, which must stop the probe at once, whatever it does.
+        gross = (sign * residual if sign else abs(residual)) > MOTION_DEPARTURE
+        if not (gross and moving >= 1):
+            return dataclasses.replace(s, moving_count=0)
+    # A hold breathed in that rises on: the patient was still breathing in (a breath's top,
+    # still for a moment, taken for a hold); the hold comes when the wall stops again.
+    deeper = s.state == HOLDING and sign < 0 and residual > END_DEVIATION and v > tol
+    if moving >= 3 or (off and moving >= 1) or left_band or deeper:
         when = _departure(s, t, g, sign)
         s = dataclasses.replace(
             s, still_since=math.nan, still_seen=math.nan, segment_start=math.nan
@@ -206,7 +247,9 @@ def _departure(s: RespirationState, t: float, g: float, sign: int) -> float:
     out), the break of the continuous two-piece line (the hold's course, then the breath's)
     that fits them best. Each piece has its own slope: the hold's slow drift, or what the
     skin's shape fit left of a slide that stopped, before; the breath after."""
-    seg = (s.t >= s.segment_start) & (s.t >= t - DEPARTURE_WINDOW)
+    # From the probe's last own motion on: its force loop's settling may hold the break.
+    since = max(s.segment_start, s.fit_since - OWN_MOTION_SETTLE)
+    seg = (s.t >= since) & (s.t >= t - DEPARTURE_WINDOW)
     ts, ws = s.t[seg], s.w[seg] - g * s.d[seg]
     if len(ts) < 2 * HINGE_MIN_SAMPLES:
         return float(ts[0]) if len(ts) else float(t)
@@ -239,13 +282,35 @@ def _transition(s: RespirationState, new: int, when: float, t: float) -> Respira
     )
 
 
+def probe_moving(s: RespirationState) -> bool:
+    """Whether, at its latest sample, the estimator took the probe as moving of its own
+    accord (or its force loop as settling after such motion)."""
+    return bool(len(s.t)) and float(s.t[-1]) - s.own_until < OWN_MOTION_SETTLE
+
+
+def own_motion_speed(v_B, omega_B) -> float:
+    """The speed (m/s) the scan commands the probe at of its own accord: its commanded tip
+    velocity ``v_B`` (m/s, across the beam: the tip-position loop's) plus FACE_RADIUS x its
+    commanded angular velocity ``omega_B`` (rad/s; a tilt rolls the face, a turn about the
+    beam swings its contact line over curved skin)."""
+    return float(np.linalg.norm(v_B)) + FACE_RADIUS * float(np.linalg.norm(omega_B))
+
+
 def respiration_update(
-    s: RespirationState, t: float, p_BP, a_B, force: float, in_contact: bool, cfg
+    s: RespirationState,
+    t: float,
+    p_BP,
+    a_B,
+    force: float,
+    in_contact: bool,
+    cfg,
+    own_speed: float = math.nan,
 ) -> RespirationState:
     """One control period of the respiration-phase estimator (module doc) at time t (s),
     from the probe tip position ``p_BP`` and beam ``a_B`` (in B) and the contact ``force``
-    (N, positive pressing). ``cfg``: the scenario's ``respiration`` section. Out of contact
-    the estimator forgets and says UNKNOWN."""
+    (N, positive pressing); ``own_speed`` (m/s, :func:`own_motion_speed`; NaN: unknown) is
+    how fast the scan commands the probe to move. ``cfg``: the scenario's ``respiration``
+    section. Out of contact the estimator forgets and says UNKNOWN."""
     if not in_contact or not (np.all(np.isfinite(p_BP)) and math.isfinite(force)):
         if s.state == UNKNOWN and not len(s.t):
             return s
@@ -276,8 +341,15 @@ def respiration_update(
         # other skin. Learn it again.
         keep = np.zeros(len(s.t), bool)
         learning, unmodelled = t, 0.0
+    own_until, fit_since = s.own_until, s.fit_since
+    if math.isfinite(own_speed) and own_speed > OWN_MOTION_SPEED:
+        own_until = t
+    elif t - own_until >= OWN_MOTION_SETTLE and own_until + OWN_MOTION_SETTLE > fit_since:
+        fit_since = own_until + OWN_MOTION_SETTLE  # the motion ended: fit the wall anew
     s = dataclasses.replace(
         s,
+        own_until=own_until,
+        fit_since=fit_since,
         t=np.append(s.t[keep], t),
         w=np.append(s.w[keep], w),
         d=np.append(s.d[keep], travel),
@@ -342,6 +414,12 @@ HOLD_PHASES = (_EXPLORE, _TRANSIT, _PIVOT)
 # back (a wall that only seemed to move; after a long slide the estimator needs still_long
 # to sense a hold again).
 REGAIN_TIME = 3.5
+# A hold sensed as begun before the prompt counts only once it has lasted this long (s) past
+# the prompt: a patient told to hold answers after a reaction time (0.5 s in the simulated
+# patient) and a breath in, so a stillness at the prompt may be a breath's turning point
+# (test:9: the top of a breath, still for hold_confirm just as the prompt came, let TRANSIT
+# start 1.3 s before the patient held). A patient already holding is still holding by then.
+ALREADY_HOLDING_CONFIRM = 1.0
 
 # Prompt values (anatomy.motion.Prompt).
 _NONE, _HOLD_IN, _HOLD_OUT, _BREATHE = 0, 1, 2, 3
@@ -433,6 +511,8 @@ def protocol_step(
     if s.prompt != hold_prompt:
         return _prompt(s, hold_prompt, t, attempts=1, allowed=False)
     if resp_state == HOLDING:
+        if float(resp_since) < s.prompted_at and t - s.prompted_at < ALREADY_HOLDING_CONFIRM:
+            return dataclasses.replace(s, allowed=False)  # a hold, or a breath's top?
         # The hold counts from the prompt at the earliest (a patient already still).
         since = max(float(resp_since), s.prompted_at)
         return dataclasses.replace(s, hold_since=since, holds=s.holds + 1, attempts=0, allowed=True)

@@ -36,10 +36,14 @@ class RespirationEstimator(LeafSystem):
     """The respiratory state of the patient under the probe (``respiration_update``).
 
     Inputs: ``X_BP`` (RigidTransform: the probe tip in B), ``contact_force`` (1-vector, N,
-    filtered, positive pressing). Outputs: ``respiration_state`` (1-vector: UNKNOWN 0,
+    filtered, positive pressing), optional ``v_command`` (3-vector, m/s, in B: the tip
+    velocity the scan commands across the beam) and ``omega_command`` (3-vector, rad/s, in
+    B: the angular velocity it commands): the probe's own motion (``own_motion_speed``),
+    unknown when unconnected. Outputs: ``respiration_state`` (1-vector: UNKNOWN 0,
     BREATHING 1, HOLDING 2, END_EXPIRATION 3), ``respiration_since`` (1-vector, s: when the
-    current state began, estimated), ``respiration`` (abstract RespirationState, for logs).
-    Updated every ``period`` s (the controller's)."""
+    current state began, estimated), ``probe_moving`` (1-vector 0/1: the probe taken as
+    moving of its own accord, ``probe_moving``), ``respiration`` (abstract
+    RespirationState, for logs). Updated every ``period`` s (the controller's)."""
 
     def __init__(self, config, desired_force: float, period: float):
         super().__init__()
@@ -47,6 +51,8 @@ class RespirationEstimator(LeafSystem):
         self._contact = 0.5 * float(desired_force)
         self._X = self.DeclareAbstractInputPort("X_BP", AbstractValue.Make(RigidTransform()))
         self._F = self.DeclareVectorInputPort("contact_force", 1)
+        self._v = self.DeclareVectorInputPort("v_command", 3)
+        self._w = self.DeclareVectorInputPort("omega_command", 3)
         self._s = self.DeclareAbstractState(AbstractValue.Make(R.RespirationState()))
         self.DeclarePeriodicUnrestrictedUpdateEvent(period, 0.0, self._update)
         ticket = {self.abstract_state_ticket(self._s)}
@@ -62,6 +68,12 @@ class RespirationEstimator(LeafSystem):
             lambda c, o: o.SetAtIndex(0, self.state(c).since),
             prerequisites_of_calc=ticket,
         )
+        self.DeclareVectorOutputPort(
+            "probe_moving",
+            1,
+            lambda c, o: o.SetAtIndex(0, float(R.probe_moving(self.state(c)))),
+            prerequisites_of_calc=ticket,
+        )
         self.DeclareAbstractOutputPort(
             "respiration",
             lambda: AbstractValue.Make(R.RespirationState()),
@@ -75,6 +87,9 @@ class RespirationEstimator(LeafSystem):
     def _update(self, context, state):
         X = self._X.Eval(context)
         F = float(self._F.Eval(context)[0])
+        own = math.nan
+        if self._v.HasValue(context) and self._w.HasValue(context):
+            own = R.own_motion_speed(self._v.Eval(context), self._w.Eval(context))
         new = R.respiration_update(
             self.state(context),
             context.get_time(),
@@ -83,6 +98,7 @@ class RespirationEstimator(LeafSystem):
             F,
             math.isfinite(F) and F > self._contact,
             self._cfg,
+            own,
         )
         state.get_mutable_abstract_state(self._s).set_value(new)
 

@@ -71,6 +71,7 @@ __all__ = [
     "drift_fit",
     "registered_tree",
     "tangential_force_change",
+    "changed_across_stretches",
     "slip_update",
 ]
 
@@ -278,6 +279,9 @@ class TrackingState:
     # breath-hold's reproducibility (``tracking_hold_allowance``).
     segment: int = 0
     reference_segment: int = 0
+    # The stretches the current run of over-the-limit change checks came from: in a later
+    # stretch than the reference's, a change must show in two of them (two breaths) to count.
+    exceed_segments: tuple = ()
     # The supervisor phase of the checks the reference is taken from (-1: none yet), and of
     # the fit running: a new phase (TRANSIT's slide, then PIVOT about one point) views
     # another part of the kidney, and takes its own reference.
@@ -341,15 +345,18 @@ def tracking_update(
         change_limit += float(config.tracking_hold_allowance)
     moved = math.isfinite(change) and change > change_limit
     count = state.exceed_count + 1 if (judged > limits.limit or moved) else 0
+    exceed_segments = state.exceed_segments + (state.segment,) if moved else ()
     error = ""
-    if count >= config.tracking_confirmations and moved and judged <= limits.limit:
+    # Within gated motion, a change counts once it showed in two breaths' stretches.
+    shifted = moved and changed_across_stretches(exceed_segments, reference_segment)
+    if count >= config.tracking_confirmations and shifted and judged <= limits.limit:
         v = (drift.drift_B - np.asarray(reference)) * 1000
         error = (
             f"the frames since localization put the kidney {change * 1000:.1f} mm from "
             f"where the first checks after it saw it ([{v[0]:.1f}, {v[1]:.1f}, {v[2]:.1f}] "
             f"mm in B; limit {change_limit * 1000:.1f} mm)"
         )
-    elif count >= config.tracking_confirmations:
+    elif count >= config.tracking_confirmations and (shifted or judged > limits.limit):
         v = drift.drift_B * 1000
         judged_how = ""
         if limits.axis_B is not None:
@@ -377,9 +384,26 @@ def tracking_update(
         reference=reference,
         change_m=change,
         reference_segment=reference_segment,
+        exceed_segments=exceed_segments,
         reference_phase=reference_phase,
         phase_start_check=phase_start,
     )
+
+
+def changed_across_stretches(exceed_segments, reference_segment: int) -> bool:
+    """Whether a run of over-the-limit drift changes, seen in the stretches of motion
+    ``exceed_segments`` (one per check: breath-holds or end-expiration windows, counted
+    from the registration), is a shift rather than one breath's window: all in the
+    reference's own stretch (continuous motion: the scan's view of one kidney), or in at
+    least two different later stretches. A patient who moved stays moved across breaths; a
+    window caught at another point of the breath, or a short window's fit over a few
+    frames, does not repeat in the next one."""
+    segs = set(int(k) for k in exceed_segments)
+    if not segs:
+        return False
+    if segs == {int(reference_segment)}:
+        return True
+    return len(segs - {int(reference_segment)}) >= 2
 
 
 def tangential_force_change(forces, lag: float) -> float:

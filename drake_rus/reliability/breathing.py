@@ -268,6 +268,9 @@ def analyse_run(result, scenario, task) -> dict:
                 "t_state": t_st.round(3).tolist(),
                 "state": st[0].round(0).tolist(),
             }
+            t_mv, mv = _log(result, "probe_moving")
+            if t_mv is not None:
+                record["timeline"]["moving"] = np.interp(t_st, t_mv, mv[0]).round(0).tolist()
     return record
 
 
@@ -433,7 +436,8 @@ def plot_comparison(results: list[dict], path) -> Path:
 
 def plot_estimator(results: list[dict], path) -> Path | None:
     """estimator.png: one protocol run's true respiratory level and holds with the
-    estimator's state, and every hold's onset and end error (estimated minus true, s)."""
+    estimator's state and when it took the probe as moving of its own accord, and every
+    hold's onset and end error (estimated minus true, s)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -456,6 +460,17 @@ def plot_estimator(results: list[dict], path) -> Path | None:
             label="true breath-hold",
         )
         st = np.asarray(tl["state"])
+        if "moving" in tl:
+            ax0.fill_between(
+                tl["t_state"],
+                -0.25,
+                -0.1,
+                where=np.asarray(tl["moving"]) > 0.5,
+                color="0.4",
+                alpha=0.5,
+                lw=0,
+                label="probe moving by the scan's command (hold kept unless > 3 mm)",
+            )
         ax0.plot(
             tl["t_state"],
             np.where(st == 2, 1.4, np.where(st == 3, 0.1, np.nan)),

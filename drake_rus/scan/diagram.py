@@ -398,6 +398,7 @@ def BuildScanDiagram(
             ("motion_allowed", protocol.GetOutputPort("motion_allowed")),
             ("breath_prompt", protocol.GetOutputPort("breath_prompt")),
             ("respiration_state", estimator.GetOutputPort("respiration_state")),
+            ("probe_moving", estimator.GetOutputPort("probe_moving")),
         ):
             logs[name] = LogVectorOutput(port, builder, LOG_PERIOD)
     terminator = builder.AddNamedSystem(
@@ -441,6 +442,11 @@ def AddRespiration(builder, scenario, station, parts, localizer):
     builder.Connect(station.GetOutputPort("X_BP"), estimator.GetInputPort("X_BP"))
     builder.Connect(
         parts.force.GetOutputPort("F_filtered"), estimator.GetInputPort("contact_force")
+    )
+    # The probe's own motion (the scan's commands): the wall's reading moves with it.
+    builder.Connect(parts.position.GetOutputPort("v_position"), estimator.GetInputPort("v_command"))
+    builder.Connect(
+        parts.orientation.GetOutputPort("omega_BP"), estimator.GetInputPort("omega_command")
     )
     protocol = builder.AddNamedSystem("breath_hold_protocol", BreathHoldProtocol(cfg, period))
     builder.Connect(supervisor.GetOutputPort("phase"), protocol.GetInputPort("phase"))
