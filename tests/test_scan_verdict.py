@@ -454,3 +454,41 @@ def test_the_sweep_judged_is_the_one_after_the_registration():
     assert [f.time for f in sweep_frames(frames, "pivot", 25.0)] == [30.0]
     assert [f.time for f in sweep_frames(frames, "pivot")] == [15.0, 30.0]
     assert [f.time for f in sweep_frames(frames, "line", 25.0)] == []  # EXPLORE before
+
+
+@pytest.mark.parametrize("allowed, kept", [(None, 1), (1.0, 1), (0.0, 0)])
+def test_recorder_keeps_pivot_boundaries_only_while_motion_is_allowed(allowed, kept):
+    """A PIVOT frame taken while the patient breathes (the breath-hold protocol's or the
+    gating's motion_allowed is 0) shows the kidney away from where the registration put it:
+    the recorder keeps no boundary of it for pivot_residual; unconnected, it keeps all."""
+    from pydrake.systems.analysis import Simulator
+
+    from drake_rus.imaging.frames import BoundaryPixels, UsFrame
+    from drake_rus.scan.diagram import ScanRecorder
+
+    recorder = ScanRecorder(frame_rate_hz=20.0)
+    context = recorder.CreateDefaultContext()
+    image = np.zeros((4, 4), np.uint8)
+    recorder.GetInputPort("us_image").FixValue(context, UsFrame(image, 0.0, frame_index=3))
+    recorder.GetInputPort("kidney_mask").FixValue(context, UsFrame(image, 0.0, frame_index=3))
+    recorder.GetInputPort("boundary_pixels").FixValue(
+        context, BoundaryPixels(np.array([[1.0, 2.0], [2.0, 2.0]]), 0.0, frame_index=3)
+    )
+    recorder.GetInputPort("phase").FixValue(context, [float(Phase.PIVOT)])
+    recorder.GetInputPort("kidney_visible").FixValue(context, [1.0])
+    recorder.GetInputPort("contact_force").FixValue(context, [5.0])
+    if allowed is not None:
+        recorder.GetInputPort("motion_allowed").FixValue(context, [allowed])
+    Simulator(recorder, context).AdvanceTo(0.1)
+    assert len(recorder.frames) == 1  # the frame itself is always recorded
+    assert len(recorder.pivot_boundaries) == kept
+
+
+def test_pivot_residual_bound_grows_by_the_hold_allowance_only_when_breathing():
+    """Still patient: excess x the RMS bound; breath-hold protocol or gating: plus the
+    repeat-hold allowance, since the pivot's frames come from other holds than the cloud."""
+    from drake_rus.scan.verdict import pivot_residual_bound
+
+    assert pivot_residual_bound(1.25, 0.005, "none", 0.004) == pytest.approx(0.00625)
+    assert pivot_residual_bound(1.25, 0.005, "breath_hold", 0.004) == pytest.approx(0.01025)
+    assert pivot_residual_bound(1.25, 0.005, "gated", 0.004) == pytest.approx(0.01025)

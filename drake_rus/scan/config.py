@@ -110,7 +110,9 @@ class VerdictConfig:
     # left, quick test:0-1, seed_method test:0-3; docs/results/real_kidneys.md, 2026-11-27
     # (night)): healthy -0.7 to +5.2 mm (quick test:0, against 5.0 mm: 1.04 x), KiTS19 case
     # 24's wrong fits (113 mL tumour; 15.9 and 23.7 deg off) +8.1 and +12.3 mm (1.47 and
-    # 2.5 x); 1.25 lies between.
+    # 2.5 x); 1.25 lies between. Under a breath-hold protocol or gating the bound grows by
+    # localization.tracking_hold_allowance (the pivot's frames, only those taken while
+    # motion was allowed, come from other holds than the cloud: verdict.pivot_residual_bound).
     pivot_residual_percentile: float = field(default=90.0, metadata={"min": 50.0, "max": 100.0})
     pivot_residual_excess: float = field(default=1.25, metadata={"positive": True})
     # The registration's RMS residual may not fall below this many image pixels (the finer

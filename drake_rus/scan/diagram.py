@@ -123,9 +123,11 @@ class ScanRecorder(LeafSystem):
 
     Inputs ``us_image`` and ``kidney_mask`` (UsFrame), ``boundary_pixels``
     (BoundaryPixels: the segmentation's boundary the point cloud takes, with its frame's
-    X_BP), ``phase``, ``kidney_visible``, ``contact_force`` (1-vectors; N for the force).
-    Keeps the boundary of every PIVOT frame (``pivot_boundaries``) for the verdict's
-    ``pivot_residual`` check."""
+    X_BP), ``phase``, ``kidney_visible``, ``contact_force`` (1-vectors; N for the force),
+    optional ``motion_allowed`` (1-vector 0/1: the breath-hold protocol's or the gating's
+    permission; unconnected: always). Keeps the boundary of every PIVOT frame taken while
+    motion was allowed (``pivot_boundaries``) for the verdict's ``pivot_residual`` check:
+    the registration's respiratory phase, as the explored cloud takes only such frames."""
 
     def __init__(self, frame_rate_hz: float, keep_every: int = 10, keep_max: int = 40):
         super().__init__()
@@ -138,6 +140,7 @@ class ScanRecorder(LeafSystem):
         self._phase = self.DeclareVectorInputPort("phase", 1)
         self._visible = self.DeclareVectorInputPort("kidney_visible", 1)
         self._force = self.DeclareVectorInputPort("contact_force", 1)
+        self._allowed = self.DeclareVectorInputPort("motion_allowed", 1)
         period = 1.0 / frame_rate_hz
         self.DeclarePeriodicPublishEvent(period, 0.5 * period, self._record)
         self.frames: list[FrameRecord] = []
@@ -190,7 +193,11 @@ class ScanRecorder(LeafSystem):
             self.kept_frames.append((us, self._mask.Eval(context), phase, visible))
         if phase == Phase.PIVOT:
             boundary = self._boundary.Eval(context)
-            if boundary.frame_index not in (-1, self._last_boundary) and len(boundary.pixels):
+            # A frame taken while the patient breathes shows the kidney displaced from where
+            # the registration (one respiratory phase) put it: not a view to judge it by.
+            allowed = not self._allowed.HasValue(context) or self._allowed.Eval(context)[0] > 0.5
+            fresh = boundary.frame_index not in (-1, self._last_boundary)
+            if fresh and allowed and len(boundary.pixels):
                 self._last_boundary = boundary.frame_index
                 self.pivot_boundaries.append(boundary)
             if self._pivot_count % self._keep_every == 0 and len(self.images) < self._keep_max:
@@ -377,6 +384,8 @@ def BuildScanDiagram(
     builder.Connect(
         segmenter.GetOutputPort("boundary_pixels"), recorder.GetInputPort("boundary_pixels")
     )
+    if hold is not None:
+        builder.Connect(hold, recorder.GetInputPort("motion_allowed"))
     builder.Connect(phase, recorder.GetInputPort("phase"))
     builder.Connect(
         segmenter.GetOutputPort("kidney_visible"), recorder.GetInputPort("kidney_visible")

@@ -39,6 +39,7 @@ __all__ = [
     "check_inlier_fraction",
     "check_kidney_depth",
     "check_pivot_residual",
+    "pivot_residual_bound",
     "check_pole_offsets",
     "sweep_frames",
     "check_rms_residual",
@@ -300,6 +301,21 @@ def check_pivot_residual(
     return Check("pivot_residual", value, float(max_excess), "m", "<=", ok, detail)
 
 
+def pivot_residual_bound(
+    excess: float, max_rms: float, respiration_mode: str, hold_allowance: float
+) -> float:
+    """The largest pivot residual (m) :func:`check_pivot_residual` accepts: ``excess`` x the
+    registration's RMS bound ``max_rms``, plus, when the patient breathes under a breath-hold
+    protocol or gating (``respiration_mode`` other than "none"), ``hold_allowance`` (m,
+    localization.tracking_hold_allowance): the pivot's frames come from other holds or
+    end-expiration windows than the explored cloud, and repeat holds put the kidney only
+    within about 4 mm of each other (Schwartz 1994, docs/facts)."""
+    bound = float(excess) * float(max_rms)
+    if respiration_mode != "none":
+        bound += float(hold_allowance)
+    return bound
+
+
 def pivot_boundary_points(boundaries, frames, geometry: ProbeGeometry) -> np.ndarray:
     """(M, 3) in B: the boundary pixels (``boundaries``: BoundaryPixels of the PIVOT
     frames) of the sweep ``frames`` that showed the kidney, each back-projected with its
@@ -490,7 +506,12 @@ def JudgeScan(result, template) -> list[Check]:
             if getattr(result, "partial_cloud_B", None) is None
             else result.partial_cloud_B,
             pivot_B,
-            cfg.pivot_residual_excess * max_rms,
+            pivot_residual_bound(
+                cfg.pivot_residual_excess,
+                max_rms,
+                sc.respiration.mode,
+                lc.tracking_hold_allowance,
+            ),
             cfg.pivot_residual_percentile,
         )
     )
