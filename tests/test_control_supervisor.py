@@ -847,7 +847,7 @@ def test_cap_slide_direction_is_horizontal_across_the_array_towards_the_lean():
     np.testing.assert_allclose(supervisor.cap_slide_direction(a_star, a_star, 0.6), [0.0, 0.0])
 
 
-def _box_model(half_width: float):
+def _box_model(half_width: float, depth: float = 0.1):
     """A pivot model whose template is a box 80 mm long (along x), 2 half_width wide (along
     y) and 40 mm deep, a 100 mm fan (the probe pointing down from its tip)."""
     g, gy = np.linspace(-1.0, 1.0, 9), np.arange(-half_width, half_width + 1e-9, 0.001)
@@ -856,7 +856,7 @@ def _box_model(half_width: float):
         points_K=pts,
         probe_radius=0.05,
         half_angle=math.radians(30.0),
-        depth=0.1,
+        depth=depth,
         slab_half_width=0.001,
         min_section_area=1.0e-4,
     )
@@ -962,3 +962,45 @@ def test_the_slide_at_the_tilt_cap_is_bounded_and_can_be_switched_off():
         assert s.sweep_end_causes == ("tilt_cap", "tilt_cap")
         assert slid == pytest.approx(slide, abs=1e-9)
         assert [d for _, d in s.cap_slides] == pytest.approx([slide, slide] if slide else [])
+
+
+def test_the_slide_goes_on_to_the_templates_predicted_end_when_the_segmentation_loses_it():
+    """The template (a box 80 mm wide, its centre 100 mm below the tip) is in view at the
+    0.3 rad cap until the tip has slid 40 - 80 tan(0.3) = 15.3 mm (less the 1 mm slab);
+    the segmentation loses the kidney after 5 mm: the slide goes on to the predicted 15
+    mm, then the leg ends (kidney left)."""
+    c = cfg(
+        exploration_ratio=0.02,
+        localize_hold_time=0.0,
+        pivot_rate=0.3,
+        max_pivot_tilt=0.3,
+        visibility_debounce=0.05,
+    )
+    dt = 0.01
+    model = _box_model(0.04, depth=0.15)
+    s, t, R = _to_pivot(c, dt)
+    R_BK = RotationMatrix(RollPitchYaw(0.0, 0.0, math.pi / 2)).matrix()
+    p_BK = np.array([0.55, 0.0, 0.0])
+
+    def step(s, t):
+        u = inputs(
+            t,
+            p=(0.55, 0.0, 0.1),
+            R=R,
+            visible=s.cap_slide != 1 or s.cap_slide_travel < 0.005,
+            R_BK=R_BK,
+            p_BK=p_BK,
+        )
+        return supervisor.supervisor_step(s, dataclasses.replace(u, pivot_model=model), c, dt)
+
+    while s.phase == supervisor.Phase.PIVOT and not s.cap_slide:
+        t += dt
+        s = step(s, t)
+    assert s.cap_slide == 1 and "the template predicts 15 mm" in s.events[-1][2]
+    assert s.cap_slide_limit == pytest.approx(s.cap_slide_predicted + c.cap_slide_margin)
+    while s.cap_slide == 1:
+        t += dt
+        s = step(s, t)
+    assert s.sweep_end_causes == ("kidney_left",)
+    assert s.cap_slides[0][1] == pytest.approx(s.cap_slide_predicted, abs=c.scan_speed * dt)
+    assert 0.014 <= s.cap_slide_predicted <= 0.016

@@ -156,9 +156,10 @@ class ControllerConfig:
     # tilt on one side than max_pivot_tilt allows; fresh decubitus patients at the 100 mm
     # preset need up to 45 deg), the tip slides on the skin, tilt held, across the array
     # towards the side the probe leans to (the image plane moves on past the cap's plane,
-    # as a sonographer slides the probe) at scan_speed until the kidney leaves the image,
-    # at most the slide the registered template predicts plus cap_slide_margin and at
-    # most cap_slide_max (m); after the first leg it slides back to p* before the second.
+    # as a sonographer slides the probe) at scan_speed until the kidney has left the image
+    # and the slide has passed the one the registered template predicts (the segmenter
+    # misses a pole's last small sections), at most that slide plus cap_slide_margin and
+    # at most cap_slide_max (m); after the first leg it slides back to p* before the second.
     # 0: no slide (the leg ends at the cap, the scan's verdict then INCOMPLETE).
     cap_slide_max: float = field(default=0.03, metadata={"min": 0.0, "max": 0.1})
     # Beyond the template's predicted slide (m): the template (one length for every

@@ -204,12 +204,14 @@ class SupervisorState:
     pivot_ends: tuple = ()
     # The slide at the tilt cap (controller.cap_slide_max): stage 0 none, 1 sliding out
     # (the kidney still in the image at the cap), 2 sliding back to p* after the first
-    # leg; the unit direction (x, y) in B, the slide so far and its limit (m), when stage 2
+    # leg; the unit direction (x, y) in B, the slide so far, its limit and the template's
+    # predicted slide (m; 0 without one), when stage 2
     # brought P_des back to p* (s), and each slide's (leg, distance m) so far.
     cap_slide: int = 0
     cap_slide_dir: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(2))
     cap_slide_travel: float = 0.0
     cap_slide_limit: float = 0.0
+    cap_slide_predicted: float = 0.0
     cap_slide_back_at: float = math.nan
     cap_slides: tuple = ()
     pretilt_stage: int = 0
@@ -898,9 +900,9 @@ def _end_leg(s, u, R, p, cfg, cause: str, detail: str = ""):
 
 def _start_cap_slide(s, u, R, p, cfg):
     """The tilt cap reached with the kidney still in the image: hold the tilt and slide
-    the tip (``cap_slide_direction``) up to ``cap_slide_limit`` of the template's
-    predicted slide (``cap_slide_needed``; without a registered template up to
-    cap_slide_max)."""
+    the tip (``cap_slide_direction``) at least the template's predicted slide
+    (``cap_slide_needed``) and up to ``cap_slide_limit`` of it (without a registered
+    template: up to cap_slide_max)."""
     s.pivot_speed = 0.0
     s.cap_slide = 1
     s.cap_slide_dir = cap_slide_direction(s.o_des, s.a_star, s.pivot_angle)
@@ -908,8 +910,13 @@ def _start_cap_slide(s, u, R, p, cfg):
     model = u.pivot_model
     needed = math.nan
     if math.isfinite(section_in_view(model, u, R, p)):
-        needed = cap_slide_needed(model, u.R_BK, u.p_BK, R, p, s.cap_slide_dir, cfg.cap_slide_max)
+        # The commanded orientation (the probe follows it within pivot_follow_limit).
+        R_cmd = np.column_stack([s.o_des, cross3(s.a_des, s.o_des), s.a_des])
+        needed = cap_slide_needed(
+            model, u.R_BK, u.p_BK, R_cmd, p, s.cap_slide_dir, cfg.cap_slide_max
+        )
     s.cap_slide_limit = cap_slide_limit(needed, cfg.cap_slide_margin, cfg.cap_slide_max)
+    s.cap_slide_predicted = 0.0 if math.isnan(needed) else min(needed, s.cap_slide_limit)
     predicted = "" if math.isnan(needed) else f"; the template predicts {needed * 1e3:.0f} mm"
     s.events = s.events + (
         (
@@ -923,15 +930,18 @@ def _start_cap_slide(s, u, R, p, cfg):
 
 
 def _cap_slide(s, u, R, p, cfg, dt, left: bool):
-    """The slide at the tilt cap (tilt held): out at scan_speed until the kidney leaves the
-    image (debounced; the leg's end, "kidney_left") or the limit (the leg's end at the
-    cap, "tilt_cap"); after the first leg back to p* the same way, then the second leg
-    (once the tip is within transit_position_tolerance of p*, or 2 s after P_des got
-    there)."""
+    """The slide at the tilt cap (tilt held): out at scan_speed until the kidney has left the
+    image (debounced) and the slide has passed the template's predicted one (the
+    segmentation misses a pole's last small sections; the leg's end, "kidney_left"), or
+    to the limit with the kidney still seen (the leg's end at the cap, "tilt_cap"); after
+    the first leg back to p* the same way, then the second leg (once the tip is within
+    transit_position_tolerance of p*, or 2 s after P_des got there)."""
     s.pivot_speed = 0.0
     step = cfg.scan_speed * dt
     if s.cap_slide == 1:
-        if left or s.cap_slide_travel >= s.cap_slide_limit - 1e-9:
+        at_limit = s.cap_slide_travel >= s.cap_slide_limit - 1e-9
+        past = s.cap_slide_travel >= s.cap_slide_predicted - 1e-9
+        if (left and past) or at_limit:
             s.cap_slides = s.cap_slides + ((s.pivot_legs_done + 1, s.cap_slide_travel),)
             done = _end_leg(
                 s,
