@@ -1001,6 +1001,7 @@ def test_the_slide_goes_on_to_the_templates_predicted_end_when_the_segmentation_
     while s.cap_slide == 1:
         t += dt
         s = step(s, t)
+        assert not supervisor.segmentation_required(s)  # looking for the edge: no loss
     assert s.sweep_end_causes == ("kidney_left",)
     assert s.cap_slides[0][1] == pytest.approx(s.cap_slide_predicted, abs=c.scan_speed * dt)
     assert 0.014 <= s.cap_slide_predicted <= 0.016

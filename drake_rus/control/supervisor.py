@@ -939,6 +939,9 @@ def _cap_slide(s, u, R, p, cfg, dt, left: bool):
     s.pivot_speed = 0.0
     step = cfg.scan_speed * dt
     if s.cap_slide == 1:
+        # Sliding out to find the kidney's edge: its leaving the image is what the slide
+        # waits for, not a loss (the slide is bounded by cap_slide_limit).
+        s.kidney_absence_expected = True
         at_limit = s.cap_slide_travel >= s.cap_slide_limit - 1e-9
         past = s.cap_slide_travel >= s.cap_slide_predicted - 1e-9
         if (left and past) or at_limit:
