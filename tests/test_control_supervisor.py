@@ -832,3 +832,176 @@ def test_supervisor_state_copy_owns_its_arrays_and_keeps_every_field():
         else:
             assert a == b or (a != a and b != b), f.name
     assert type(c) is supervisor.SupervisorState
+
+
+# ------------------------------------------------------------------ slide at the tilt cap
+def test_cap_slide_direction_is_horizontal_across_the_array_towards_the_lean():
+    o = np.array([0.0, 1.0, 0.0])
+    a_star = np.array([0.0, 0.0, -1.0])
+    plus = supervisor.cap_slide_direction(o, a_star, 0.6)
+    # a(theta) = a* cos + (o x a*) sin leans towards o x a* = -x for theta > 0.
+    np.testing.assert_allclose(plus, [-1.0, 0.0])
+    a = supervisor.rodrigues_pivot_update(a_star, o, 0.6)
+    assert float(a[:2] @ plus) > 0.0  # the probe leans the way the tip slides
+    np.testing.assert_allclose(supervisor.cap_slide_direction(o, a_star, -0.6), [1.0, 0.0])
+    np.testing.assert_allclose(supervisor.cap_slide_direction(a_star, a_star, 0.6), [0.0, 0.0])
+
+
+def _box_model(half_width: float, depth: float = 0.1):
+    """A pivot model whose template is a box 80 mm long (along x), 2 half_width wide (along
+    y) and 40 mm deep, a 100 mm fan (the probe pointing down from its tip)."""
+    g, gy = np.linspace(-1.0, 1.0, 9), np.arange(-half_width, half_width + 1e-9, 0.001)
+    pts = np.array([[0.04 * x, y, 0.02 * z] for x in g for y in gy for z in g])
+    return supervisor.PivotModel(
+        points_K=pts,
+        probe_radius=0.05,
+        half_angle=math.radians(30.0),
+        depth=depth,
+        slab_half_width=0.001,
+        min_section_area=1.0e-4,
+    )
+
+
+def test_cap_slide_needed_is_where_the_template_leaves_the_image():
+    # The array along x, the image plane x-z; the kidney (centre 50 mm below the tip)
+    # reaches 20 mm across: a vertical probe leaves it after a 20 mm slide along y.
+    model = _box_model(0.02)
+    R_BP = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+    tip = np.array([0.0, 0.0, 0.05])
+    needed = supervisor.cap_slide_needed(model, np.eye(3), np.zeros(3), R_BP, tip, [0, 1], 0.05)
+    assert needed == pytest.approx(0.021, abs=0.0015)
+    assert supervisor.cap_slide_needed(
+        model, np.eye(3), np.zeros(3), R_BP, tip + [0, 0.03, 0], [0, 1], 0.05
+    ) == pytest.approx(0.0)  # already out of view
+    assert supervisor.cap_slide_needed(
+        _box_model(0.08), np.eye(3), np.zeros(3), R_BP, tip, [0, 1], 0.05
+    ) == pytest.approx(0.05)  # still in view at the bound
+    assert supervisor.cap_slide_limit(0.007, 0.01, 0.03) == pytest.approx(0.017)
+    assert supervisor.cap_slide_limit(0.025, 0.01, 0.03) == pytest.approx(0.03)
+    assert supervisor.cap_slide_limit(math.nan, 0.01, 0.03) == pytest.approx(0.03)
+
+
+def _pivot_to_cap(c, dt, visible):
+    """A two-leg pivot run until the first slide at the tilt cap starts; ``visible(s)``
+    says whether the kidney is in the image."""
+    s, t, R = _to_pivot(c, dt)
+    p = (0.55, 0.0, 0.1)
+    while s.phase == supervisor.Phase.PIVOT and not s.cap_slide:
+        t += dt
+        s = supervisor.supervisor_step(s, inputs(t, p=p, R=R, visible=visible(s)), c, dt)
+    return s, t, R
+
+
+def test_at_the_tilt_cap_with_the_kidney_in_view_the_tip_slides_until_it_leaves():
+    c = cfg(
+        exploration_ratio=0.02,
+        localize_hold_time=0.0,
+        pivot_rate=0.3,
+        max_pivot_tilt=0.3,
+        visibility_debounce=0.05,
+        cap_slide_max=0.03,
+    )
+    dt = 0.01
+
+    # The kidney is in view on the + side up to the cap and 8 mm of slide beyond; on the
+    # - side until -0.2 rad.
+    def visible(s):
+        return s.pivot_angle > -0.2 and (s.cap_slide != 1 or s.cap_slide_travel < 0.008)
+
+    s, t, R = _pivot_to_cap(c, dt, visible)
+    assert s.cap_slide == 1 and s.pivot_angle == pytest.approx(0.3)
+    assert "sliding up to 30 mm" in s.events[-1][2]  # no template: cap_slide_max
+    start = s.P_des.copy()
+    direction = supervisor.cap_slide_direction(s.o_des, s.a_star, 0.3)
+    p = (0.55, 0.0, 0.1)
+    travel, required = [], []
+    while s.phase == supervisor.Phase.PIVOT and s.pivot_legs_done == 0:
+        t += dt
+        s = supervisor.supervisor_step(s, inputs(t, p=p, R=R, visible=visible(s)), c, dt)
+        travel.append(float((s.P_des - start) @ direction))
+        assert s.pivot_angle == pytest.approx(0.3)  # the tilt is held
+    # Ended by the kidney leaving (debounced), at scan_speed, along the lean.
+    assert s.sweep_end_causes == ("kidney_left",)
+    assert 0.008 <= s.cap_slides[0][1] <= 0.008 + c.scan_speed * (0.05 + 3 * dt)
+    assert np.all(np.diff(travel) <= c.scan_speed * dt + 1e-12)
+    assert "mm of slide: kidney left the image" in s.events[-1][2]
+    # Back to p* (tilt still held), then the second leg.
+    while s.cap_slide:
+        t += dt
+        s = supervisor.supervisor_step(s, inputs(t, p=p, R=R, visible=visible(s)), c, dt)
+        required.append(supervisor.segmentation_required(s))
+        assert s.pivot_angle == pytest.approx(0.3)
+    np.testing.assert_allclose(s.P_des, s.p_star[:2])
+    while s.phase == supervisor.Phase.PIVOT:
+        t += dt
+        s = supervisor.supervisor_step(s, inputs(t, p=p, R=R, visible=visible(s)), c, dt)
+    assert s.phase == supervisor.Phase.DONE
+    assert s.sweep_end_causes == ("kidney_left", "kidney_left")
+    assert s.pivot_limits[1] < -0.2
+
+
+def test_the_slide_at_the_tilt_cap_is_bounded_and_can_be_switched_off():
+    base = dict(
+        exploration_ratio=0.02,
+        localize_hold_time=0.0,
+        pivot_rate=0.5,
+        max_pivot_tilt=0.3,
+        visibility_debounce=0.05,
+    )
+    dt = 0.01
+    for slide in (0.01, 0.0):
+        c = cfg(cap_slide_max=slide, **base)
+        s, t, R = _to_pivot(c, dt)
+        slid = 0.0
+        start = s.P_des.copy()
+        while s.phase == supervisor.Phase.PIVOT:  # the kidney always in view
+            t += dt
+            s = supervisor.supervisor_step(s, inputs(t, p=(0.55, 0.0, 0.1), R=R), c, dt)
+            slid = max(slid, float(np.linalg.norm(s.P_des - start)))
+        assert s.phase == supervisor.Phase.DONE
+        assert s.sweep_end_causes == ("tilt_cap", "tilt_cap")
+        assert slid == pytest.approx(slide, abs=1e-9)
+        assert [d for _, d in s.cap_slides] == pytest.approx([slide, slide] if slide else [])
+
+
+def test_the_slide_goes_on_to_the_templates_predicted_end_when_the_segmentation_loses_it():
+    """The template (a box 80 mm wide, its centre 100 mm below the tip) is in view at the
+    0.3 rad cap until the tip has slid 40 - 80 tan(0.3) = 15.3 mm (less the 1 mm slab);
+    the segmentation loses the kidney after 5 mm: the slide goes on to the predicted 15
+    mm, then the leg ends (kidney left)."""
+    c = cfg(
+        exploration_ratio=0.02,
+        localize_hold_time=0.0,
+        pivot_rate=0.3,
+        max_pivot_tilt=0.3,
+        visibility_debounce=0.05,
+    )
+    dt = 0.01
+    model = _box_model(0.04, depth=0.15)
+    s, t, R = _to_pivot(c, dt)
+    R_BK = RotationMatrix(RollPitchYaw(0.0, 0.0, math.pi / 2)).matrix()
+    p_BK = np.array([0.55, 0.0, 0.0])
+
+    def step(s, t):
+        u = inputs(
+            t,
+            p=(0.55, 0.0, 0.1),
+            R=R,
+            visible=s.cap_slide != 1 or s.cap_slide_travel < 0.005,
+            R_BK=R_BK,
+            p_BK=p_BK,
+        )
+        return supervisor.supervisor_step(s, dataclasses.replace(u, pivot_model=model), c, dt)
+
+    while s.phase == supervisor.Phase.PIVOT and not s.cap_slide:
+        t += dt
+        s = step(s, t)
+    assert s.cap_slide == 1 and "the template predicts 15 mm" in s.events[-1][2]
+    assert s.cap_slide_limit == pytest.approx(s.cap_slide_predicted + c.cap_slide_margin)
+    while s.cap_slide == 1:
+        t += dt
+        s = step(s, t)
+        assert not supervisor.segmentation_required(s)  # looking for the edge: no loss
+    assert s.sweep_end_causes == ("kidney_left",)
+    assert s.cap_slides[0][1] == pytest.approx(s.cap_slide_predicted, abs=c.scan_speed * dt)
+    assert 0.014 <= s.cap_slide_predicted <= 0.016

@@ -145,6 +145,12 @@ def test_scan_metrics_of_the_closed_loop_use_the_same_definition():
         [math.degrees(25 * STEP), -math.degrees(30 * STEP)], abs=1e-6
     )
     assert m["pivot"]["tilt_cap_legs"] == []  # the default cap is 0.6 rad
+    assert m["pivot"]["end_causes"] == [] and m["pivot"]["cap_slide_mm"] == {}
+    result.sweep_end_causes = ("kidney_left", "kidney_left")
+    result.cap_slides = ((1, 0.0071),)  # leg 1 slid 7.1 mm at the tilt cap
+    m = ScanMetrics(result)
+    assert m["pivot"]["end_causes"] == ["kidney_left", "kidney_left"]
+    assert m["pivot"]["cap_slide_mm"] == {"1": pytest.approx(7.1)}
     assert m["volume_ratio"] is None and m["at_matched_V"]["0.9"]["pole_to_pole"] is None
 
 

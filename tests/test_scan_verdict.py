@@ -25,6 +25,7 @@ from drake_rus.scan.verdict import (
     check_sweep_ends,
     check_template_coverage,
     check_translation_sd,
+    equivalent_tilts,
     imaged_counts,
     sweep_frames,
     template_volume_sample,
@@ -141,6 +142,46 @@ def test_a_leg_cut_short_shows_as_a_pole_offset(geometry):
     pole = check_pole_offsets(kidney, poses, visible, geometry, 0.02, 10)
     assert pole.passed is False and "negative side" in pole.detail, pole.detail
     assert check_template_coverage(kidney, poses, visible, geometry, 0.9).passed is False
+
+
+def test_equivalent_tilts_count_a_slide_at_the_cap_as_tilt():
+    b0 = np.cross(O_AXIS, A0)
+    poses = [pose_at(0.3).GetAsMatrix4(), pose_at(-0.2).GetAsMatrix4()]
+    slid = pose_at(0.3).GetAsMatrix4()
+    slid[:3, 3] = P0 + 0.01 * b0  # 10 mm further across, tilt held
+    tilts = equivalent_tilts(poses + [slid], P0, A0, O_AXIS, 0.05)
+    np.testing.assert_allclose(tilts[:2], [0.3, -0.2], atol=1e-12)
+    assert tilts[2] == pytest.approx(math.atan((0.05 * math.tan(0.3) + 0.01) / 0.05))
+
+
+def test_a_slide_at_the_tilt_cap_reaches_the_predicted_pole(geometry):
+    """A leg capped short of the pole, then slid across until the kidney leaves: the pole
+    offset counts how far the slide moved the image plane at the kidney's depth."""
+    kidney = kidney_B()
+    cap = math.radians(12)
+    poses, visible = two_leg_pivot(geometry, kidney, cap_deg=12)
+    capped = check_pole_offsets(kidney, poses, visible, geometry, 0.02, 10)
+    b0 = np.cross(O_AXIS, A0)
+    slid, seen = [], []
+    for side in (1.0, -1.0):
+        for k in range(1, 60):  # the tip 1 mm further each frame, tilt held at the cap
+            X = pose_at(side * cap).GetAsMatrix4()
+            X[:3, 3] = P0 + side * 0.001 * k * b0
+            count = imaged_counts(
+                kidney,
+                X[:3, 3],
+                A0,
+                O_AXIS,
+                [side * cap],
+                geometry,
+                0.5 * geometry.elevation_width,
+            )[0]
+            slid.append(RigidTransform(X))
+            seen.append(bool(count >= 10))
+            if not seen[-1]:
+                break
+    pole = check_pole_offsets(kidney, poses + slid, visible + seen, geometry, 0.02, 10)
+    assert capped.value > 0.01 and pole.value < 0.004, (capped.detail, pole.detail)
 
 
 def test_never_seen_fails(geometry):

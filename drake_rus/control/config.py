@@ -152,6 +152,19 @@ class ControllerConfig:
     # Pivot angular rate theta_dot (rad/s) (eq. 23) and maximum tilt from r3* (rad).
     pivot_rate: float = field(default=0.1, metadata={"positive": True, "max": 1.0})
     max_pivot_tilt: float = field(default=0.6, metadata={"positive": True, "max": 1.2})
+    # At the tilt cap with the kidney still in the image (a wide or shallow kidney needs more
+    # tilt on one side than max_pivot_tilt allows; fresh decubitus patients at the 100 mm
+    # preset need up to 45 deg), the tip slides on the skin, tilt held, across the array
+    # towards the side the probe leans to (the image plane moves on past the cap's plane,
+    # as a sonographer slides the probe) at scan_speed until the kidney has left the image
+    # and the slide has passed the one the registered template predicts (the segmenter
+    # misses a pole's last small sections), at most that slide plus cap_slide_margin and
+    # at most cap_slide_max (m); after the first leg it slides back to p* before the second.
+    # 0: no slide (the leg ends at the cap, the scan's verdict then INCOMPLETE).
+    cap_slide_max: float = field(default=0.03, metadata={"min": 0.0, "max": 0.1})
+    # Beyond the template's predicted slide (m): the template (one length for every
+    # kidney) misplaces a kidney's edge by up to ~10 mm (the pole offsets, scan/verdict.py).
+    cap_slide_margin: float = field(default=0.01, metadata={"min": 0.0, "max": 0.1})
     # The probe must follow the pivot: its axis may lag the commanded a_des by more than
     # pivot_follow_limit (rad) for at most pivot_follow_time (s), else ABORT (a joint held
     # at its limit would otherwise let the sweep "finish" without imaging). A normal pivot

@@ -202,6 +202,18 @@ class SupervisorState:
     # stage in TRANSIT (0 none/not yet, 1 tilting to the target, 2 at it: checking the
     # kidney is out of the image) and side (+-1) and target tilt (rad).
     pivot_ends: tuple = ()
+    # The slide at the tilt cap (controller.cap_slide_max): stage 0 none, 1 sliding out
+    # (the kidney still in the image at the cap), 2 sliding back to p* after the first
+    # leg; the unit direction (x, y) in B, the slide so far, its limit and the template's
+    # predicted slide (m; 0 without one), when stage 2
+    # brought P_des back to p* (s), and each slide's (leg, distance m) so far.
+    cap_slide: int = 0
+    cap_slide_dir: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(2))
+    cap_slide_travel: float = 0.0
+    cap_slide_limit: float = 0.0
+    cap_slide_predicted: float = 0.0
+    cap_slide_back_at: float = math.nan
+    cap_slides: tuple = ()
     pretilt_stage: int = 0
     pretilt_side: float = 1.0
     pretilt_target: float = 0.0
@@ -665,6 +677,53 @@ def predicted_pivot_ends(
     return predict_pivot_ends(model, u.R_BK, u.p_BK, p, s.a_des, s.o_des, cfg.max_pivot_tilt)
 
 
+def cap_slide_direction(o, a_star, angle: float) -> np.ndarray:
+    """Unit (x, y) direction in B of the slide at the tilt cap: across the array ``o``, in
+    the horizontal plane, towards the side a probe tilted by ``angle`` (rad, eq. 23's sign:
+    a = a* cos + (o x a*) sin) leans to, where translating the tip moves the image plane on
+    past the cap's plane. Zero when o x a* has no horizontal part."""
+    b = cross3(np.asarray(o, float), np.asarray(a_star, float))[:2] * math.copysign(1.0, angle)
+    n = float(np.linalg.norm(b))
+    return b / n if n > 1e-9 else np.zeros(2)
+
+
+def cap_slide_needed(
+    model: PivotModel, R_BK, p_BK, R_BP, p_BP, direction_xy, max_slide: float, step=0.001
+) -> float:
+    """Slide (m) of the tip along ``direction_xy`` (unit, in B's x-y plane; orientation
+    ``R_BP`` held) after which the template of ``model`` registered at (R_BK, p_BK) leaves
+    the image (its section, laws.template_section_area, below ``model.min_section_area``),
+    on a grid of ``step`` up to ``max_slide``; ``max_slide`` when it is still in view there.
+    The tip's height is kept (force control follows the skin)."""
+    d_xy = np.asarray(direction_xy, float).reshape(2)
+    d = np.array([d_xy[0], d_xy[1], 0.0])
+    n = max(1, int(math.ceil(max_slide / step - 1e-9)))
+    for k in range(n + 1):
+        slide = min(k * step, max_slide)
+        area = template_section_area(
+            R_BK,
+            p_BK,
+            model.points_K,
+            R_BP,
+            np.asarray(p_BP, float).reshape(3) + slide * d,
+            probe_radius=model.probe_radius,
+            half_angle=model.half_angle,
+            depth=model.depth,
+            slab_half_width=model.slab_half_width,
+        )
+        if area < model.min_section_area:
+            return float(slide)
+    return float(max_slide)
+
+
+def cap_slide_limit(needed: float, margin: float, max_slide: float) -> float:
+    """How far (m) the slide at the tilt cap may go: the template's predicted ``needed``
+    slide plus ``margin``, at most ``max_slide``; ``max_slide`` without a prediction (NaN)."""
+    if not math.isfinite(needed):
+        return float(max_slide)
+    return float(min(max_slide, max(0.0, needed) + margin))
+
+
 def pretilt_plan(ends, margin: float, max_tilt: float) -> tuple:
     """(side, target) of the predicted_end pre-tilt from the predicted ends
     (theta_plus, theta_minus): the nearer end's side (+1 on a tie) and its end plus
@@ -815,6 +874,114 @@ def pivot_follow_error(R_BP, a_des) -> float:
     return math.acos(min(1.0, max(-1.0, c)))
 
 
+def _end_leg(s, u, R, p, cfg, cause: str, detail: str = ""):
+    """Records the end of a pivot leg (its tilt, ``cause`` "kidney_left" or "tilt_cap");
+    the DONE state after the second, else None (the next leg turns the other way)."""
+    why = "kidney left the image" if cause == "kidney_left" else "maximum tilt"
+    s.pivot_limits = s.pivot_limits + (s.pivot_angle,)
+    s.sweep_end_causes = s.sweep_end_causes + (cause,)
+    s.pivot_legs_done += 1
+    s.events = s.events + (
+        (
+            u.t,
+            "PIVOT",
+            f"leg {s.pivot_legs_done} ended at {math.degrees(s.pivot_angle):.1f} deg"
+            f"{detail}: {why}",
+        ),
+    )
+    if s.pivot_legs_done >= 2:
+        return _goto(s, Phase.DONE, u.t, "pivot sweep complete")
+    s.pivot_direction = -s.pivot_direction
+    s.invisible_since = math.nan
+    s.expect_invisible = True
+    _update_absence(s, u, R, p, cfg)
+    return None
+
+
+def _start_cap_slide(s, u, R, p, cfg):
+    """The tilt cap reached with the kidney still in the image: hold the tilt and slide
+    the tip (``cap_slide_direction``) at least the template's predicted slide
+    (``cap_slide_needed``) and up to ``cap_slide_limit`` of it (without a registered
+    template: up to cap_slide_max)."""
+    s.pivot_speed = 0.0
+    s.cap_slide = 1
+    s.cap_slide_dir = cap_slide_direction(s.o_des, s.a_star, s.pivot_angle)
+    s.cap_slide_travel = 0.0
+    model = u.pivot_model
+    needed = math.nan
+    if math.isfinite(section_in_view(model, u, R, p)):
+        # The commanded orientation (the probe follows it within pivot_follow_limit).
+        R_cmd = np.column_stack([s.o_des, cross3(s.a_des, s.o_des), s.a_des])
+        needed = cap_slide_needed(
+            model, u.R_BK, u.p_BK, R_cmd, p, s.cap_slide_dir, cfg.cap_slide_max
+        )
+    s.cap_slide_limit = cap_slide_limit(needed, cfg.cap_slide_margin, cfg.cap_slide_max)
+    s.cap_slide_predicted = 0.0 if math.isnan(needed) else min(needed, s.cap_slide_limit)
+    predicted = "" if math.isnan(needed) else f"; the template predicts {needed * 1e3:.0f} mm"
+    s.events = s.events + (
+        (
+            u.t,
+            "PIVOT",
+            f"tilt cap {math.degrees(s.pivot_angle):.1f} deg with the kidney in view: sliding "
+            f"up to {s.cap_slide_limit * 1e3:.0f} mm{predicted}",
+        ),
+    )
+    return s
+
+
+def _cap_slide(s, u, R, p, cfg, dt, left: bool):
+    """The slide at the tilt cap (tilt held): out at scan_speed until the kidney has left the
+    image (debounced) and the slide has passed the template's predicted one (the
+    segmentation misses a pole's last small sections; the leg's end, "kidney_left"), or
+    to the limit with the kidney still seen (the leg's end at the cap, "tilt_cap"); after
+    the first leg back to p* the same way, then the second leg (once the tip is within
+    transit_position_tolerance of p*, or 2 s after P_des got there)."""
+    s.pivot_speed = 0.0
+    step = cfg.scan_speed * dt
+    if s.cap_slide == 1:
+        # Sliding out to find the kidney's edge: its leaving the image is what the slide
+        # waits for, not a loss (the slide is bounded by cap_slide_limit).
+        s.kidney_absence_expected = True
+        at_limit = s.cap_slide_travel >= s.cap_slide_limit - 1e-9
+        past = s.cap_slide_travel >= s.cap_slide_predicted - 1e-9
+        if (left and past) or at_limit:
+            s.cap_slides = s.cap_slides + ((s.pivot_legs_done + 1, s.cap_slide_travel),)
+            done = _end_leg(
+                s,
+                u,
+                R,
+                p,
+                cfg,
+                "kidney_left" if left else "tilt_cap",
+                f" and {s.cap_slide_travel * 1e3:.1f} mm of slide",
+            )
+            if done is not None:
+                done.cap_slide = 0
+                return done
+            s.cap_slide = 2
+            s.cap_slide_back_at = math.nan
+            return s
+        step = min(step, s.cap_slide_limit - s.cap_slide_travel)
+        s.P_des = s.P_des + step * s.cap_slide_dir
+        s.cap_slide_travel += step
+        return s
+    if s.cap_slide_travel > 0.0:
+        step = min(step, s.cap_slide_travel)
+        s.P_des = s.P_des - step * s.cap_slide_dir
+        s.cap_slide_travel -= step
+        if s.cap_slide_travel <= 0.0:
+            s.P_des = s.p_star[:2].copy()
+            s.cap_slide_back_at = u.t
+        return s
+    if math.isnan(s.cap_slide_back_at):
+        s.cap_slide_back_at = u.t
+    there = float(np.linalg.norm(p[:2] - s.p_star[:2])) <= cfg.transit_position_tolerance
+    if there or u.t - s.cap_slide_back_at >= 2.0:
+        s.cap_slide = 0
+        s.invisible_since = math.nan
+    return s
+
+
 def _pivot(s, u, R, p, cfg, dt):
     """a_des rotates about o_des (eq. 23) one way until the kidney leaves the image (or the
     maximum tilt), then back through r3* to the other side; then DONE. ABORT when the probe
@@ -846,26 +1013,14 @@ def _pivot(s, u, R, p, cfg, dt):
     )
     at_tilt = abs(s.pivot_angle) >= cfg.max_pivot_tilt - 1e-9 and on_new_side
     _update_absence(s, u, R, p, cfg)
+    if s.cap_slide:
+        return _cap_slide(s, u, R, p, cfg, dt, left)
+    if at_tilt and not left and cfg.cap_slide_max > 0.0:
+        return _start_cap_slide(s, u, R, p, cfg)
     if (left and on_new_side) or at_tilt:
-        why = "kidney left the image" if (left and on_new_side) else "maximum tilt"
-        s.pivot_limits = s.pivot_limits + (s.pivot_angle,)
-        s.sweep_end_causes = s.sweep_end_causes + (
-            "kidney_left" if (left and on_new_side) else "tilt_cap",
-        )
-        s.pivot_legs_done += 1
-        s.events = s.events + (
-            (
-                u.t,
-                "PIVOT",
-                f"leg {s.pivot_legs_done} ended at {math.degrees(s.pivot_angle):.1f} deg: {why}",
-            ),
-        )
-        if s.pivot_legs_done >= 2:
-            return _goto(s, Phase.DONE, u.t, "pivot sweep complete")
-        s.pivot_direction = -s.pivot_direction
-        s.invisible_since = math.nan
-        s.expect_invisible = True
-        _update_absence(s, u, R, p, cfg)
+        done = _end_leg(s, u, R, p, cfg, "kidney_left" if (left and on_new_side) else "tilt_cap")
+        if done is not None:
+            return done
     # The tilt rate ramps (pivot_acceleration) to +-pivot_rate: a reversal is smooth, not a
     # jump of the commanded angular velocity (which presses the probe edge in).
     s.pivot_speed = _ramp(
@@ -953,6 +1108,8 @@ def _kidney_moved(s: SupervisorState, u: SupervisorInputs, R, p, cfg) -> Supervi
     s.pivot_limits = ()
     s.sweep_end_causes = ()
     s.pivot_ends = ()
+    s.cap_slide = 0
+    s.cap_slide_travel = 0.0
     s.pretilt_stage = 0
     s.expect_invisible = False
     s.lag_since = math.nan

@@ -169,6 +169,11 @@ def ScanMetrics(result: ScanResult) -> dict:
             "leg_end_tilt_deg": ends,
             "tilt_cap_deg": float(np.rad2deg(ctrl.max_pivot_tilt)),
             "tilt_cap_legs": eff["tilt_cap_legs"],
+            # Why each leg ended (the supervisor) and the slides at the tilt cap (mm).
+            "end_causes": list(getattr(result, "sweep_end_causes", ())),
+            "cap_slide_mm": {
+                str(int(leg)): float(d) * 1000 for leg, d in getattr(result, "cap_slides", ())
+            },
             "pole_to_pole_frames": (
                 [int(eff["pole_to_pole"][0]), int(eff["pole_to_pole"][-1])]
                 if len(eff["pole_to_pole"])

@@ -125,6 +125,8 @@ class ScanResult:
     # pivot leg ended and why each end was declared (SupervisorState.sweep_end_causes).
     pivot_limits: tuple = ()
     sweep_end_causes: tuple = ()
+    # The slides at the tilt cap ((leg, slide m), ...; SupervisorState.cap_slides).
+    cap_slides: tuple = ()
     # The scan's own checks of its result before it may say DONE (scan/verdict.py):
     # a list of Check; empty when the scan did not reach DONE.
     checks: list = dataclasses.field(default_factory=list)
@@ -320,6 +322,7 @@ def CollectScanResult(
         length_checks=h.localizer.length_checks(h.localizer.GetMyContextFromRoot(root_context)),
         pivot_limits=tuple(state.pivot_limits),
         sweep_end_causes=tuple(state.sweep_end_causes),
+        cap_slides=tuple(state.cap_slides),
         events=tuple(state.events),
         respiration=_respiration_record(h, root_context),
     )

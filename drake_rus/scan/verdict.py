@@ -41,6 +41,7 @@ __all__ = [
     "check_pivot_residual",
     "pivot_residual_bound",
     "check_pole_offsets",
+    "equivalent_tilts",
     "sweep_frames",
     "check_rms_residual",
     "check_shape_weights",
@@ -191,6 +192,25 @@ def imaged_counts(
     return seen.sum(axis=1)
 
 
+def equivalent_tilts(poses, p0, a0, o, depth: float) -> np.ndarray:
+    """The tilt (rad, about ``o`` from ``a0``, eq. 23's sign) that a probe with its tip at
+    ``p0`` needs for its image plane to pass where each pose's plane does at ``depth`` (m)
+    below p0 along a0: atan(l / depth), l the plane's offset across the array there. A
+    pose whose tip is at p0 gives its own tilt; a tip slid across (the slide at the tilt
+    cap) adds the slide to l. ``poses``: 4x4 X_BP matrices whose array is along ``o``."""
+    o = np.asarray(o, float).reshape(3)
+    a0 = np.asarray(a0, float).reshape(3)
+    p0 = np.asarray(p0, float).reshape(3)
+    b0 = np.cross(o, a0)
+    out = []
+    for M in poses:
+        M = np.asarray(M, float)
+        p, a = M[:3, 3], M[:3, 2]
+        s = (depth - float((p - p0) @ a0)) / max(float(a @ a0), 1e-9)
+        out.append(math.atan2(float((p - p0 + s * a) @ b0), depth))
+    return np.asarray(out, float)
+
+
 def check_pole_offsets(
     surface_B,
     poses,
@@ -202,9 +222,11 @@ def check_pole_offsets(
     step: float = math.radians(0.25),
 ) -> Check:
     """(b) Where the pivot saw the kidney against where the registered template predicts
-    it: the sweep's tilt angles (about the first frame's array axis, from its approach)
-    of the first and last frames showing the kidney, against the tilts at which at least
-    ``min_points`` of the registered template ``surface_B`` lie in the slab and fan
+    it: the sweep's tilt angles (about the first frame's array axis, from its approach;
+    :func:`equivalent_tilts`, so that a slide at the tilt cap counts as far as it moved
+    the image plane at the kidney's depth) of the first and last frames showing the
+    kidney, against the tilts at which at least ``min_points`` of the registered template
+    ``surface_B`` lie in the slab and fan
     (:func:`imaged_counts` on a grid of ``step`` over +-``angle_range``). Each end's
     disagreement as a distance at the registered kidney's depth D below the pivot point,
     D |tan(theta_seen) - tan(theta_predicted)| (m); value: the larger of the two."""
@@ -232,6 +254,9 @@ def check_pole_offsets(
     )
     surface = np.asarray(surface_B, float).reshape(-1, 3)
     depth = float((surface.mean(axis=0) - p0) @ a0)
+    if depth > 0:  # a slide at the tilt cap moves the plane on: its tilt as far at D
+        mats = [np.asarray(X.GetAsMatrix4() if hasattr(X, "GetAsMatrix4") else X) for X in poses]
+        angles = equivalent_tilts(mats, p0, a0, o, depth)
     grid = np.arange(-angle_range, angle_range + 0.5 * step, step)
     counts = imaged_counts(
         surface,
@@ -262,7 +287,8 @@ def check_pole_offsets(
     side = ("negative", "positive")[worst]
     detail = (
         f"the kidney was seen from {math.degrees(seen[0]):.1f} to "
-        f"{math.degrees(seen[1]):.1f} deg of tilt, the registered template predicts "
+        f"{math.degrees(seen[1]):.1f} deg of tilt (a slide at the cap as the tilt reaching "
+        f"as far at its depth), the registered template predicts "
         f"{math.degrees(predicted[0]):.1f} to {math.degrees(predicted[1]):.1f} deg: "
         f"{value * 1e3:.1f} mm apart at its depth ({depth * 1e3:.0f} mm) on the "
         f"{side} side ({'' if ok else 'not '}<= {max_offset * 1e3:.3g} mm)"
