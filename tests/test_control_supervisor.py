@@ -498,13 +498,36 @@ def test_a_moved_kidney_is_localized_again_a_bounded_number_of_times():
         t += dt
         s = supervisor.supervisor_step(s, inputs(t, R=R), c, dt)
     assert s.reorienting and s.travel == 0.0 and s.P_des[1] == y0
-    # Turned: it explores again, then localizes with the new round.
+    # Turned: it backs out of the kidney against the scan direction (-y: +y), the kidney's
+    # leaving the image no loss, until it has left the image for visibility_debounce.
     R_transverse = np.column_stack([s.o_des, np.cross(s.a_des, s.o_des), s.a_des])
+    t += dt
+    s = supervisor.supervisor_step(s, inputs(t, R=R_transverse), c, dt)
+    assert not s.reorienting and s.retreating
+    assert "backing out" in s.events[-1][2]
+    for _ in range(100):
+        t += dt
+        s = supervisor.supervisor_step(s, inputs(t, R=R_transverse), c, dt)
+    assert s.retreating and s.P_des[1] > y0 + 0.004 and not supervisor.segmentation_required(s)
+    while s.retreating:
+        t += dt
+        s = supervisor.supervisor_step(s, inputs(t, R=R_transverse, visible=False), c, dt)
+        assert not supervisor.segmentation_required(s)
+    assert "re-exploring from" in s.events[-1][2] and "left the image" in s.events[-1][2]
+    assert s.travel == 0.0 and s.awaiting_kidney
+    # Sweeping forward from behind the kidney: its absence is no loss until it comes into
+    # view; then it explores and localizes with the new round.
+    y_back = s.P_des[1]
+    for _ in range(10):
+        t += dt
+        s = supervisor.supervisor_step(s, inputs(t, R=R_transverse, visible=False), c, dt)
+    assert s.P_des[1] < y_back and not supervisor.segmentation_required(s)
     for _ in range(400):
         t += dt
         s = supervisor.supervisor_step(s, inputs(t, R=R_transverse), c, dt)
         if s.phase != supervisor.Phase.EXPLORE:
             break
+    assert not s.awaiting_kidney
     assert not s.reorienting and s.phase == supervisor.Phase.LOCALIZE and s.travel > 0
     s, t, R = _finish_to_pivot(s, t, c, dt)
     t += dt
@@ -513,6 +536,29 @@ def test_a_moved_kidney_is_localized_again_a_bounded_number_of_times():
     )
     assert s.phase == supervisor.Phase.ABORT
     assert s.reason == "kidney moved: drift 9 mm (after 1 re-localizations)"
+
+
+def test_reexploration_backs_out_at_most_one_kidney_length():
+    """A kidney that never leaves the image while the probe backs out: the re-exploration
+    sweeps forward after the kidney length the exploration plans with (retreat_limit)."""
+    c = cfg(exploration_ratio=0.02, localize_hold_time=0.0, max_relocalizations=1)
+    assert supervisor.retreat_limit(c) == pytest.approx(c.kidney_length)
+    dt = 0.01
+    s, t, R = _to_pivot(c, dt)
+    t += dt
+    s = supervisor.supervisor_step(
+        s, dataclasses.replace(inputs(t, R=R), tracking_error="drift 9 mm"), c, dt
+    )
+    R_transverse = np.column_stack([s.o_des, np.cross(s.a_des, s.o_des), s.a_des])
+    n, y_max = 0, -math.inf
+    while (s.reorienting or s.retreating) and n < 10000:
+        t += dt
+        n += 1
+        y_max = max(y_max, s.P_des[1])
+        s = supervisor.supervisor_step(s, inputs(t, R=R_transverse), c, dt)
+    assert not s.retreating
+    assert s.events[-1][2] == "re-exploring from 100.0 mm back (one kidney length)"
+    assert y_max == pytest.approx(c.kidney_length, abs=0.002)  # from y = 0, against -y
 
 
 def test_reexploration_starts_a_few_degrees_short_of_vertical_after_settling():

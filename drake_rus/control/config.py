@@ -227,8 +227,8 @@ class ControllerConfig:
     # the kidney was seen, ABORT if it never came into view.
     line_sweep_max_travel: float = field(default=0.2, metadata={"positive": True, "max": 0.5})
     # When the kidney tracking says the kidney moved during TRANSIT or PIVOT (a patient
-    # shift): re-localize (a new exploration from the current pose and a new registration)
-    # at most this many times, then ABORT; 0: ABORT at once.
+    # shift): re-localize (backing out of the kidney, a new exploration into it and a new
+    # registration) at most this many times, then ABORT; 0: ABORT at once.
     max_relocalizations: int = field(default=2, metadata={"min": 0, "max": 10})
 
 

@@ -235,6 +235,9 @@ class SupervisorState:
     relocalizations: int = 0
     localization_round: int = 0
     reorienting: bool = False
+    # Its second stage (``_retreat``): sweeping back against the scan direction until the
+    # kidney has left the image, so the new sweep starts behind the kidney as the first did.
+    retreating: bool = False
     a_star: np.ndarray = dataclasses.field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
     approach_origin: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, math.nan))
     contact_since: float = math.nan  # APPROACH: when the force last reached contact
@@ -365,8 +368,10 @@ def segmentation_required(s: SupervisorState) -> bool:
     """Whether the kidney must be visible now (EXPLORE; PIVOT except where its absence is
     expected, :func:`absence_expected`, updated every PIVOT period); drives the safety
     layer's watchdog."""
-    if s.paused or s.reorienting:
-        return False  # holding still outside a breath-hold: the kidney may drift away
+    if s.paused or s.reorienting or s.retreating:
+        # Holding still outside a breath-hold: the kidney may drift away; a re-exploration
+        # turning or backing out of the kidney: its leaving the image is the aim.
+        return False
     if s.phase == Phase.EXPLORE:
         return not s.awaiting_kidney  # a line sweep before the kidney first came into view
     return s.phase == Phase.PIVOT and not s.kidney_absence_expected
@@ -473,25 +478,33 @@ def _approach(s, u, R, p, cfg, dt):
     return s
 
 
-def exploration_target(cfg, kidney_length_estimate: float = math.nan) -> float:
-    """Exploration travel (m) after which EXPLORE ends: ER x L (section III-C). L is the
-    reference length L_m (``kidney_length``) with ``exploration_length: fixed`` or while no
-    estimate exists (NaN); with ``estimated`` it is the patient's estimated length, clipped
-    to [L_m / f, f L_m] (f = ``exploration_length_factor``), so the travel never exceeds
-    f ER L_m. An unknown length (+inf: the latest length fit failed its checks) is the
-    longest allowed, f L_m."""
+def exploration_kidney_length(cfg, kidney_length_estimate: float = math.nan) -> float:
+    """The kidney length L (m) the exploration plans with: the reference length L_m
+    (``kidney_length``) with ``exploration_length: fixed`` or while no estimate exists
+    (NaN); with ``estimated`` the patient's estimated length, clipped to [L_m / f, f L_m]
+    (f = ``exploration_length_factor``). An unknown length (+inf: the latest length fit
+    failed its checks) is the longest allowed, f L_m."""
     L = float(cfg.kidney_length)
     estimate = float(kidney_length_estimate)
     if cfg.exploration_length == "estimated" and not math.isnan(estimate) and estimate > 0:
         f = float(cfg.exploration_length_factor)
         L = min(max(estimate, L / f), f * L)
-    return cfg.exploration_ratio * L
+    return L
 
 
-def _advance_exploration(s, u, R, cfg, dt, target: float):
+def exploration_target(cfg, kidney_length_estimate: float = math.nan) -> float:
+    """Exploration travel (m) after which EXPLORE ends: ER x L (section III-C), L from
+    :func:`exploration_kidney_length`, so the travel never exceeds f ER L_m."""
+    return cfg.exploration_ratio * exploration_kidney_length(cfg, kidney_length_estimate)
+
+
+def _advance_exploration(s, u, R, cfg, dt, target: float, backwards: bool = False):
     """One control period of eq. 17 towards ``target`` m of travel along the scan
-    direction (the x correction from the mask centroid while the kidney is visible)."""
+    direction (against it with ``backwards``; the x correction from the mask centroid while
+    the kidney is visible)."""
     sign = 1.0 if cfg.scan_direction == "+y" else -1.0
+    if backwards:
+        sign = -sign
     step = min(cfg.scan_speed * dt, target - s.travel)
     c = u.c_msk if u.kidney_visible else math.nan
     s.P_des = exploration_update(s.P_des, c, R[:, 0], sign * step / dt, cfg.K_p7, dt)
@@ -562,6 +575,8 @@ def _explore(s, u, R, p, cfg, dt):
         return _line_sweep(s, u, R, p, cfg, dt)
     if s.reorienting:
         return _reorient(s, u, R, p, cfg, dt)
+    if s.retreating:
+        return _retreat(s, u, R, p, cfg, dt)
     if u.motion_allowed and not s.explore_seen:
         # In view where the sweep starts, or later for visibility_debounce without a gap (a
         # glimpse of an edge passing by does not count).
@@ -569,6 +584,8 @@ def _explore(s, u, R, p, cfg, dt):
             s, u, cfg.visibility_debounce
         )
         s.explore_seen_travel = s.travel
+        if s.explore_seen:
+            s.awaiting_kidney = False  # a re-exploration from behind the kidney: now in view
     left = u.motion_allowed and s.explore_seen and _update_visibility(s, u, cfg.visibility_debounce)
     if left and s.travel - s.explore_seen_travel < cfg.explore_min_seen_travel:
         # Seen over too little of the sweep to localize: forget it and sweep on.
@@ -1090,9 +1107,10 @@ def _breathing_abort(s: SupervisorState, u: SupervisorInputs) -> SupervisorState
 
 def _kidney_moved(s: SupervisorState, u: SupervisorInputs, R, p, cfg) -> SupervisorState:
     """The kidney tracking says the kidney left its registered pose during TRANSIT or PIVOT:
-    re-localize (a short re-exploration from the current pose, then a new registration) up
-    to ``max_relocalizations`` times, then ABORT. The re-exploration starts still, turning
-    the probe straight down (r3*) and transverse (``_reorient``)."""
+    re-localize (a re-exploration, then a new registration) up to ``max_relocalizations``
+    times, then ABORT. The re-exploration starts still, turning the probe straight down
+    (r3*) and transverse (``_reorient``), backs out of the kidney (``_retreat``), then
+    explores as the first exploration did."""
     if s.relocalizations >= cfg.max_relocalizations:
         s.reason = f"kidney moved: {u.tracking_error}"
         if s.relocalizations:
@@ -1102,6 +1120,8 @@ def _kidney_moved(s: SupervisorState, u: SupervisorInputs, R, p, cfg) -> Supervi
     s.relocalizations += 1
     s.localization_round += 1
     s.reorienting = True
+    s.retreating = False
+    s.awaiting_kidney = False
     s.pivot_speed = 0.0
     s.pivot_angle = 0.0
     s.pivot_legs_done = 0
@@ -1133,6 +1153,47 @@ REORIENT_SETTLE = 3.0
 REORIENT_ACCEPT = 0.15
 
 
+def retreat_limit(cfg, kidney_length_estimate: float = math.nan) -> float:
+    """The longest backing-out travel (m) of a re-exploration: the kidney length L the
+    exploration plans with (:func:`exploration_kidney_length`). From anywhere over a
+    kidney, one kidney length back is behind it."""
+    return exploration_kidney_length(cfg, kidney_length_estimate)
+
+
+def _retreat(s, u, R, p, cfg, dt):
+    """Re-exploration's second stage: eq. 17 against the scan direction until the kidney
+    has left the image (``visibility_debounce``) or after :func:`retreat_limit`, then the
+    exploration proper from there (the cloud cleared until then, the kidney's absence not
+    a loss until it comes into view).
+
+    Why: the probe was over the kidney's middle (at p*) when the patient moved. A sweep
+    from there sees the kidney from its middle to one pole only, and a half kidney leaves
+    the registration free to slide along and turn about the long axis (test:0, 6 and 7 of
+    the breathing study: re-registrations 10-38 mm off, or rejected). Backing out first
+    makes the re-exploration sweep into the kidney from behind its near pole, as the first
+    exploration did, over the same ER x L."""
+    left = u.motion_allowed and _update_visibility(s, u, cfg.visibility_debounce)
+    limit = retreat_limit(cfg, u.kidney_length_estimate)
+    if left or s.travel >= limit - 1e-12:
+        why = "the kidney left the image" if left else "one kidney length"
+        back = s.travel
+        s.retreating = False
+        s.awaiting_kidney = True
+        s.travel = 0.0
+        s.invisible_since = math.nan
+        s.visible_since = math.nan
+        s.explore_seen = False
+        s.P_des = p[:2].copy()
+        s.events = s.events + (
+            (u.t, "EXPLORE", f"re-exploring from {back * 1e3:.1f} mm back ({why})"),
+        )
+        return s
+    if not u.motion_allowed:
+        return _hold_motion(s, dt)
+    s.paused = False
+    return _advance_exploration(s, u, R, cfg, dt, limit, backwards=True)
+
+
 def _reorient(s, u, R, p, cfg, dt):
     """Re-exploration's first stage: hold the tip still until the probe points along a_des
     and its array along o_des (transit_angle_tolerance, or REORIENT_ACCEPT once it has had
@@ -1141,8 +1202,10 @@ def _reorient(s, u, R, p, cfg, dt):
     settled = u.t - s.phase_start >= REORIENT_SETTLE and ang <= REORIENT_ACCEPT
     if ang <= cfg.transit_angle_tolerance or settled:
         s.reorienting = False
+        s.retreating = True
         s.P_des = p[:2].copy()
-        s.events = s.events + ((u.t, "EXPLORE", "re-exploring from the current pose"),)
+        s.invisible_since = math.nan
+        s.events = s.events + ((u.t, "EXPLORE", "backing out of the kidney to re-explore"),)
         return s
     if u.t - s.phase_start > cfg.transit_timeout:
         s.reason = (

@@ -264,7 +264,7 @@ def _output_vectors(s: supervisor.SupervisorState) -> dict:
         "segmentation_required": [float(supervisor.segmentation_required(s))],
         "exploring": [float(s.phase == supervisor.Phase.EXPLORE)],
         "abort": [float(s.phase == supervisor.Phase.ABORT)],
-        "cloud_reset": [float(s.reorienting)],
+        "cloud_reset": [float(s.reorienting or s.retreating)],
         "localization_round": [float(s.localization_round)],
     }
 
