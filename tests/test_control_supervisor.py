@@ -483,10 +483,12 @@ def test_a_moved_kidney_is_localized_again_a_bounded_number_of_times():
     dt = 0.01
     s, t, R = _to_pivot(c, dt)
     assert s.localization_round == 0
+    s.cap_slides = ((1, 0.007),)  # a slide at the tilt cap of the pivot being abandoned
     t += dt
     u = dataclasses.replace(inputs(t, R=R), tracking_error="drift 9 mm")
     s = supervisor.supervisor_step(s, u, c, dt)
     assert s.phase == supervisor.Phase.EXPLORE and s.reorienting
+    assert s.cap_slides == () and s.cap_slide == 0
     assert s.localization_round == 1 and s.relocalizations == 1
     assert "re-localizing (1 of 1)" in s.events[-1][2]
     assert not supervisor.segmentation_required(s)

@@ -1130,6 +1130,7 @@ def _kidney_moved(s: SupervisorState, u: SupervisorInputs, R, p, cfg) -> Supervi
     s.pivot_ends = ()
     s.cap_slide = 0
     s.cap_slide_travel = 0.0
+    s.cap_slides = ()  # the abandoned pivot's slides are not the new one's
     s.pretilt_stage = 0
     s.expect_invisible = False
     s.lag_since = math.nan
