@@ -24,10 +24,12 @@ from drake_rus.localization.tracking import (
     group_medians,
     judged_drift,
     kidney_in_view,
+    same_view,
     slip_update,
     tangential_force_change,
     tracking_limits,
     tracking_update,
+    window_view,
 )
 
 X_BK = RigidTransform(RollPitchYaw(0.05, -0.1, math.pi / 2 + 0.2), [0.55, 0.02, 0.08])
@@ -318,6 +320,76 @@ def test_each_phase_takes_its_own_reference_for_the_change_check():
     for k, v in enumerate([[0, 14, 0], [0, 14.5, 0], [0, 10, 0], [-3, 0, 0], [-3, 1, 0]]):
         one = check(one, 1.0 + 0.5 * k, v, -1)
     assert one.error
+
+
+def _view(angle_deg, offset_m=0.0):
+    """A view turned ``angle_deg`` about B's z from transverse (normal -y_B), the probe
+    ``offset_m`` along x_B."""
+    a = math.radians(angle_deg)
+    return (np.array([math.sin(a), -math.cos(a), 0.0]), np.array([0.48 + offset_m, 0, 0.2]))
+
+
+def test_same_view_is_the_same_image_plane_and_probe_place():
+    assert same_view(_view(0), _view(7.5), 0.138, 0.0075)
+    assert not same_view(_view(0), _view(9), 0.138, 0.0075)
+    flipped = (-_view(3)[0], _view(3)[1])  # a plane and its flip are one plane
+    assert same_view(_view(0), flipped, 0.138, 0.0075)
+    assert not same_view(_view(0), _view(0, 0.009), 0.138, 0.0075)
+    assert same_view(None, _view(40), 0.138, 0.0075)  # a view not known: any view
+    assert same_view((None, None), _view(40), 0.138, 0.0075)
+
+
+def test_a_window_of_frames_is_viewed_along_its_mean_plane():
+    """A fit over the frames of the last second views what they viewed: the mean plane (a
+    flipped frame the same plane) and the mean probe place."""
+    n, origin = window_view([_view(0), (-_view(20)[0], _view(20)[1]), _view(10, 0.003)])
+    assert abs(float(n @ _view(10)[0])) == pytest.approx(1.0, abs=1e-9)
+    assert np.allclose(origin, [0.481, 0, 0.2])
+
+
+def test_the_change_is_judged_against_checks_of_the_same_view():
+    """test:9's still scan, TRANSIT turning the probe from transverse to longitudinal about
+    p* (15 deg between checks): the drift's long-axis part read 13.6, 12.7, 9.0, 1.6,
+    -3.6 mm, a 17.3 mm change from the first two checks that stopped a good scan. Against
+    checks of its own view nothing changed; a shift at one view still does."""
+    cfg = LocalizationConfig(tracking_reference_checks=2, tracking_confirmations=2)
+    assert cfg.tracking_reference_view_angle == pytest.approx(math.atan(7.5 / 54), abs=1e-3)
+    lim = TrackingLimits(0.015, 0.015, np.array([0.0, 1.0, 0.0]))
+    readings = [[0.7, 13.6, -2.6], [0.1, 12.7, -3.1], [2.0, 9.0, -0.4], [1.0, 1.6, -0.3]]
+    readings.append([2.5, -3.6, 1.0])
+    turn = [17, 33, 51, 68, 79]  # deg from transverse, as the probe turned
+
+    def check(s, t, v_mm, view, phase=3):
+        return tracking_update(
+            s,
+            t,
+            DriftEstimate(np.array(v_mm) * 1e-3, 0.001, 100),
+            cfg,
+            lim,
+            phase=phase,
+            view=view,
+        )
+
+    plain = turning = TrackingState()
+    for k, (v, a) in enumerate(zip(readings, turn)):
+        plain = check(plain, 11.2 + 0.5 * k, v, None)  # the former rule: one reference
+        turning = check(turning, 11.2 + 0.5 * k, v, _view(a))
+    assert "17.3 mm from where the first checks after it saw it" in plain.error
+    assert turning.error == "" and math.isnan(turning.change_m)
+    # PIVOT at p*, the plane standing still: its first two checks are the reference, and a
+    # kidney moved 12 mm along the body shows on the next two of the same view.
+    s = turning
+    for k, v in enumerate([[8.7, 1.6, 2.6], [7.7, 3.3, 2.1], [8.0, 2.0, 2.4]]):
+        s = check(s, 14.0 + 0.5 * k, v, _view(80 + k), phase=4)
+    assert s.error == "" and s.change_m < 0.002
+    s = check(s, 15.5, [8.0, 14.5, 2.4], _view(96), phase=4)  # another view: not judged
+    assert math.isnan(s.change_m) and s.exceed_count == 0
+    s = check(s, 16.0, [8.0, 15.0, 2.4], _view(81), phase=4)
+    assert s.error == "" and s.exceed_count == 1 and s.change_m > 0.011
+    s = check(s, 16.5, [8.0, 15.5, 2.0], _view(110), phase=4)  # not judged: the run holds
+    assert s.exceed_count == 1
+    s = check(s, 17.0, [8.0, 14.5, 2.4], _view(80), phase=4)
+    assert "from where the first checks after it saw it" in s.error
 
 
 def test_a_change_in_one_breaths_window_is_not_a_shift_one_in_two_is():

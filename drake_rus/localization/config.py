@@ -203,6 +203,18 @@ class LocalizationConfig:
     # measured on the quick scenario only); the breathing study's conditions turn it on.
     tracking_reference_checks: int = field(default=0, metadata={"min": 0, "max": 20})
     tracking_change_limit: float = field(default=0.011, metadata={"positive": True})
+    # The reference of a check is taken from checks of the same view: the image planes
+    # within tracking_reference_view_angle (rad) and the probe within
+    # tracking_reference_view_offset (m). A registration's own error reads differently
+    # through each view (the long-axis part above all, which a transverse section hardly
+    # determines): as TRANSIT turns the probe from transverse to longitudinal about p*, a
+    # still kidney's drift moved by 17 mm along the body (test:9, 15 deg between checks),
+    # and a re-registration 10 mm off read 14 mm at a 17 deg pivot tilt (test:0). The same
+    # view: the section the tracking compares (tracking_min_view_points, about 15 mm)
+    # moves by at most its half-width, 7.5 mm, at the template's half length (54 mm):
+    # atan(7.5 / 54) = 0.138 rad (7.9 deg), and the probe by at most the same 7.5 mm.
+    tracking_reference_view_angle: float = field(default=0.138, metadata={"positive": True})
+    tracking_reference_view_offset: float = field(default=0.0075, metadata={"positive": True})
     # Added to the limit for a later breath-hold or end-expiration window than the
     # reference's (m): repeat breath-holds put the kidney within 4 mm (Schwartz 1994).
     tracking_hold_allowance: float = field(default=0.004, metadata={"min": 0.0})

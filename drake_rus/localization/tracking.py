@@ -73,6 +73,8 @@ __all__ = [
     "tangential_force_change",
     "changed_across_stretches",
     "slip_update",
+    "same_view",
+    "window_view",
 ]
 
 
@@ -257,7 +259,9 @@ def judged_drift(drift_B: np.ndarray, limits: TrackingLimits) -> float:
 class TrackingState:
     """The monitor's memory: recent post-localization frames and the check history."""
 
-    frames: tuple = ()  # ((time s, points (N, 3) in B), ...) within the window
+    # ((time s, points (N, 3) in B, view: (normal y_P (3,), probe origin (3,) m)), ...)
+    # within the window
+    frames: tuple = ()
     last_index: int = -1  # index of the newest frame taken
     last_check: float = -math.inf
     exceed_count: int = 0  # successive checks above the drift limit
@@ -288,6 +292,11 @@ class TrackingState:
     reference_phase: int = -1
     phase_start_check: int = 0  # index in ``vectors`` of the reference phase's first check
     pending_phase: int = -1
+    # The view of each check in ``vectors`` ((image-plane normal y_P (3,), probe origin
+    # (3,) m, stretch), ...; the normal None: not known): a check is compared only with
+    # reference checks of the same view (``same_view``), and the view of the fit running.
+    views: tuple = ()
+    pending_view: object = None
     was_allowed: bool = True
     pending: object = None  # the drift fit running (an executor Ticket), or None
     # The slip check (slip_update): the probe's tangential force ((time s, f_x N, f_y N),
@@ -307,6 +316,30 @@ class TrackingState:
         return self
 
 
+def same_view(view_a, view_b, max_angle: float, max_offset: float) -> bool:
+    """Whether two checks' views (image-plane normal y_P (3,), probe origin (3,) m, ...;
+    a normal None: not known, taken as the same) image the same section of the kidney:
+    the image planes within ``max_angle`` (rad; a plane and its flip are one plane) and the
+    probe origins within ``max_offset`` (m)."""
+    if view_a is None or view_b is None or view_a[0] is None or view_b[0] is None:
+        return True
+    n_a, n_b = np.asarray(view_a[0], float), np.asarray(view_b[0], float)
+    cos = abs(float(n_a @ n_b)) / max(float(np.linalg.norm(n_a) * np.linalg.norm(n_b)), 1e-12)
+    offset = float(np.linalg.norm(np.asarray(view_a[1], float) - np.asarray(view_b[1], float)))
+    return math.acos(min(1.0, cos)) <= max_angle + 1e-12 and offset <= max_offset + 1e-12
+
+
+def window_view(views) -> tuple:
+    """The view of a drift fit over a window of frames, from the frames' views ((image-plane
+    normal y_P (3,), probe origin (3,) m in B), ...): the mean normal (each flipped to the
+    first's side; a plane and its flip are one plane), unit, and the mean origin."""
+    normals = np.array([np.asarray(v[0], float) for v in views])
+    normals = normals * np.where(normals @ normals[0] < 0, -1.0, 1.0)[:, None]
+    n = normals.mean(axis=0)
+    origin = np.mean([np.asarray(v[1], float) for v in views], axis=0)
+    return n / max(float(np.linalg.norm(n)), 1e-12), origin
+
+
 def tracking_update(
     state: TrackingState,
     t: float,
@@ -314,38 +347,58 @@ def tracking_update(
     config,
     limits: TrackingLimits | None = None,
     phase: int = -1,
+    view=None,
 ) -> TrackingState:
     """One check: records the drift at time t and latches an error after
-    ``tracking_confirmations`` successive checks where the judged drift is above the limit
+    ``tracking_confirmations`` checks where the judged drift is above the limit
     (``limits``, by default the plain ``tracking_max_drift`` on the whole drift) or the
-    drift has changed by more than ``tracking_change_limit`` from the reference (the mean
-    of the first ``tracking_reference_checks`` drifts of the check's ``phase``, the
-    supervisor's, after the registration): a shift in any direction, along the kidney's
-    long axis too."""
+    drift has changed by more than ``tracking_change_limit`` from the reference: the mean
+    of the first ``tracking_reference_checks`` drifts of the check's ``phase`` (the
+    supervisor's) after the registration taken from the same ``view`` (image-plane normal
+    y_P (3,), probe origin (3,) m, both in B; None: every view is the same): a shift in
+    any direction, along the kidney's long axis too. The drift a registration's own error
+    shows depends on the view (the long-axis part of a transverse section's fit swings by
+    16 mm as TRANSIT turns the probe, a 10 mm registration error reads 14 mm at a 17 deg
+    pivot tilt), so a check with no reference of its own view is not judged for a change,
+    and does not break a run of over-the-limit checks either."""
     if state.error or drift is None:
         return dataclasses.replace(state, last_check=t)
     limits = limits or TrackingLimits(float(config.tracking_max_drift))
     d = drift.magnitude
     judged = judged_drift(drift.drift_B, limits)
     vectors = state.vectors + ((t, np.asarray(drift.drift_B, float)),)
+    this_view = (None, None) if view is None else (view[0], view[1])
+    views = state.views + ((*this_view, state.segment),)
     reference, change = state.reference, math.nan
     n_ref = int(getattr(config, "tracking_reference_checks", 0))
     reference_segment = state.reference_segment
     reference_phase, phase_start = state.reference_phase, state.phase_start_check
     if int(phase) != reference_phase:
         reference_phase, phase_start = int(phase), len(vectors) - 1
-    in_phase = [v for _, v in vectors[phase_start:]]
-    if n_ref > 0 and len(in_phase) <= n_ref:
-        reference = tuple(np.mean(in_phase, axis=0))
-        reference_segment = state.segment
-    elif n_ref > 0:
+    max_angle = float(getattr(config, "tracking_reference_view_angle", math.pi))
+    max_offset = float(getattr(config, "tracking_reference_view_offset", math.inf))
+    matching = [
+        k
+        for k in range(phase_start, len(vectors))
+        if same_view(views[k], views[-1], max_angle, max_offset)
+    ][:n_ref]
+    judgeable = n_ref > 0 and len(matching) == n_ref and matching[-1] != len(vectors) - 1
+    if n_ref > 0 and len(matching):
+        reference = tuple(np.mean([vectors[k][1] for k in matching], axis=0))
+        reference_segment = int(views[matching[-1]][2])
+    if judgeable:
         change = float(np.linalg.norm(drift.drift_B - np.asarray(reference)))
     change_limit = float(config.tracking_change_limit)
-    if state.segment != state.reference_segment:
+    if state.segment != reference_segment:
         change_limit += float(config.tracking_hold_allowance)
     moved = math.isfinite(change) and change > change_limit
-    count = state.exceed_count + 1 if (judged > limits.limit or moved) else 0
-    exceed_segments = state.exceed_segments + (state.segment,) if moved else ()
+    # The phase has its first checks, none of this view: neither a change nor its absence.
+    other_view = n_ref > 0 and not judgeable and len(vectors) - 1 - phase_start >= n_ref
+    if other_view and judged <= limits.limit:
+        count, exceed_segments = state.exceed_count, state.exceed_segments
+    else:
+        count = state.exceed_count + 1 if (judged > limits.limit or moved) else 0
+        exceed_segments = state.exceed_segments + (state.segment,) if moved else ()
     error = ""
     # Within gated motion, a change counts once it showed in two breaths' stretches.
     shifted = moved and changed_across_stretches(exceed_segments, reference_segment)
@@ -387,6 +440,7 @@ def tracking_update(
         exceed_segments=exceed_segments,
         reference_phase=reference_phase,
         phase_start_check=phase_start,
+        views=views,
     )
 
 
@@ -608,7 +662,9 @@ class KidneyTrackingMonitor(LeafSystem):
                 >= cfg.tracking_min_view_points
             ):
                 points = backproject_pixels(self._geometry, boundary.pixels, boundary.X_BP)
-                frames = frames + ((boundary.time, points),)
+                X_BP = boundary.X_BP
+                view = (X_BP.rotation().matrix()[:, 1].copy(), X_BP.translation().copy())
+                frames = frames + ((boundary.time, points, view),)
         if self._slip_check and allowed and self._force.HasValue(context):
             s = slip_update(s, t, self._force.Eval(context)[3:6], phase, cfg, max_gap=self._max_gap)
         segment = s.segment + (1 if allowed and not s.was_allowed else 0)
@@ -638,7 +694,8 @@ class KidneyTrackingMonitor(LeafSystem):
                     t=t,
                     kind="tracking_fit",
                 )
-                s = dataclasses.replace(s, pending=ticket, pending_phase=phase)
+                view = window_view([f[2] for f in frames])
+                s = dataclasses.replace(s, pending=ticket, pending_phase=phase, pending_view=view)
                 s = self._take(s, t, outcome)
             else:
                 s = tracking_update(s, t, None, cfg, tracking_limits(outcome.result, cfg))
@@ -661,6 +718,7 @@ class KidneyTrackingMonitor(LeafSystem):
             self._cfg,
             tracking_limits(outcome.result, self._cfg),
             phase=s.pending_phase,
+            view=s.pending_view,
         )
 
 
