@@ -174,6 +174,7 @@ def test_breathing_study_tables_and_plots(tmp_path):
         hold_intervals,
         plot_comparison,
         plot_estimator,
+        relocalization_triggers,
         sensed_holds,
         summarize,
         table_markdown,
@@ -206,12 +207,35 @@ def test_breathing_study_tables_and_plots(tmp_path):
     }
     assert errs[0]["onset_error_s"] == pytest.approx(0.1)
     assert errs[0]["end_latency_s"] == pytest.approx(0.2)
+    events = (
+        (9.0, "TRANSIT", "explored 70.0 mm"),
+        (
+            17.84,
+            "EXPLORE",
+            "kidney moved: the patient slid under the probe: its tangential force changed by "
+            "2.4 N within 0.10 s (limit 1.6 N); re-localizing (1 of 2)",
+        ),
+        (20.0, "EXPLORE", "backing out of the kidney to re-explore"),
+    )
+    triggers = relocalization_triggers(events)
+    assert triggers == [
+        {
+            "t_s": 17.84,
+            "why": "the patient slid under the probe: its tangential force changed by 2.4 N "
+            "within 0.10 s (limit 1.6 N)",
+        }
+    ]
+    assert relocalization_triggers(events[:1]) == []
     rows = {
         ("test:0", "still"): ("DONE", 4.0, {}),
         ("test:0", "free"): ("DONE", 5.5, {}),
         ("test:1", "still"): ("DONE", 6.0, {}),
         ("test:1", "free"): ("DONE", 9.0, {}),
-        ("test:0", "shift"): ("DONE", 4.0, {"relocalizations": 1, "shift_mm": 12.0}),
+        ("test:0", "shift"): (
+            "DONE",
+            4.0,
+            {"relocalizations": 1, "shift_mm": 12.0, "relocalization_triggers": triggers},
+        ),
         (
             "test:1",
             "shift",
@@ -239,5 +263,6 @@ def test_breathing_study_tables_and_plots(tmp_path):
     assert summary["protocol"]["hold_onset_within_0.3s"] == 1
     md = table_markdown(results, summary)
     assert "| free | 2 | 2 |" in md and "test:1_shift" in md
+    assert "re-localized at 17.8 s: the patient slid under the probe" in md
     assert plot_comparison(results, tmp_path / "b.png").read_bytes()[:4] == b"\x89PNG"
     assert plot_estimator(results, tmp_path / "e.png").read_bytes()[:4] == b"\x89PNG"

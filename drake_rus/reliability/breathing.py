@@ -229,9 +229,22 @@ def sensed_holds(r: dict) -> list[dict]:
     return out
 
 
+def relocalization_triggers(events) -> list[dict]:
+    """What started each re-localization of a scan, from the supervisor's events ((time s,
+    phase, message), ...): its time (s) and the tracking check's own words (which check
+    fired: the drift limit, the drift-change rule or the slip check, and its reading)."""
+    out = []
+    for t, _, message in events:
+        if "re-localizing" in message:
+            why = message.split("; re-localizing")[0]
+            out.append({"t_s": round(float(t), 2), "why": why.removeprefix("kidney moved: ")})
+    return out
+
+
 def analyse_run(result, scenario, task) -> dict:
     """The study's figures of one finished scan (module doc)."""
-    record: dict = {"relocalizations": sum(1 for _, _, m in result.events if "re-localizing" in m)}
+    triggers = relocalization_triggers(result.events)
+    record: dict = {"relocalizations": len(triggers), "relocalization_triggers": triggers}
     if result.X_BK_estimated is not None and result.truth is not None:
         est = result.X_BK_estimated.translation()
         truth = result.X_BK_true.translation()
@@ -393,9 +406,21 @@ def table_markdown(results: list[dict], summary: dict) -> str:
             f"| {r['run_id']} | {r['status']} | {_fmt(r.get('e_trans_mm'))} | "
             f"{_fmt(r.get('e_trans_static_mm'))} | {r.get('relocalizations', '-')} | "
             f"{_fmt(r.get('shift_mm'))} | {_fmt(r.get('sim_s'), 0)} | "
-            f"{(r.get('reason') or '')[:120]} |"
+            f"{_run_reason(r)} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def _run_reason(r: dict) -> str:
+    """The table's reason cell: each re-localization's time and trigger, then the end's
+    reason (each cut to fit a table)."""
+    parts = [
+        f"re-localized at {t['t_s']:.1f} s: {t['why'][:90]}"
+        for t in r.get("relocalization_triggers", ())
+    ]
+    if r.get("reason"):
+        parts.append(r["reason"][:120])
+    return "; ".join(parts)
 
 
 def _fmt(v, digits: int = 1) -> str:
