@@ -377,9 +377,10 @@ def tracking_update(
         reference_phase, phase_start = int(phase), len(vectors) - 1
     max_angle = float(getattr(config, "tracking_reference_view_angle", math.pi))
     max_offset = float(getattr(config, "tracking_reference_view_offset", math.inf))
+    # The phase's first n_ref checks of this view (none looked for with the rule off).
     matching = [
         k
-        for k in range(phase_start, len(vectors))
+        for k in range(phase_start, len(vectors) if n_ref > 0 else phase_start)
         if same_view(views[k], views[-1], max_angle, max_offset)
     ][:n_ref]
     judgeable = n_ref > 0 and len(matching) == n_ref and matching[-1] != len(vectors) - 1

@@ -28,7 +28,6 @@ from scipy.spatial import cKDTree
 from drake_rus.control.supervisor import Phase
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.localization.localize import body_directions_B, max_rms_residual
-from drake_rus.metrics import signed_pivot_angles
 
 __all__ = [
     "Check",
@@ -242,21 +241,10 @@ def check_pole_offsets(
             False,
             "the kidney was never seen during the sweep",
         )
-    M0 = np.asarray(
-        poses[0].GetAsMatrix4() if hasattr(poses[0], "GetAsMatrix4") else poses[0], float
-    )
-    p0, o, a0 = M0[:3, 3], M0[:3, 0], M0[:3, 2]
-    angles = signed_pivot_angles(
-        [
-            np.asarray(X.GetAsMatrix4() if hasattr(X, "GetAsMatrix4") else X, float)[:3, :3]
-            for X in poses
-        ]
-    )
+    mats = [np.asarray(X.GetAsMatrix4() if hasattr(X, "GetAsMatrix4") else X, float) for X in poses]
+    p0, o, a0 = mats[0][:3, 3], mats[0][:3, 0], mats[0][:3, 2]
     surface = np.asarray(surface_B, float).reshape(-1, 3)
     depth = float((surface.mean(axis=0) - p0) @ a0)
-    if depth > 0:  # a slide at the tilt cap moves the plane on: its tilt as far at D
-        mats = [np.asarray(X.GetAsMatrix4() if hasattr(X, "GetAsMatrix4") else X) for X in poses]
-        angles = equivalent_tilts(mats, p0, a0, o, depth)
     grid = np.arange(-angle_range, angle_range + 0.5 * step, step)
     counts = imaged_counts(
         surface,
@@ -268,7 +256,6 @@ def check_pole_offsets(
         slab_half_width=0.5 * geometry.elevation_width,
     )
     in_view = grid[counts >= min_points]
-    seen = (float(angles[visible].min()), float(angles[visible].max()))
     if len(in_view) == 0 or depth <= 0:
         return Check(
             "pole_offsets",
@@ -279,6 +266,9 @@ def check_pole_offsets(
             False,
             "the registered kidney is never in view of the pivot",
         )
+    # Each frame's tilt; a slide at the tilt cap counts as far as it moved the plane at D.
+    angles = equivalent_tilts(mats, p0, a0, o, depth)
+    seen = (float(angles[visible].min()), float(angles[visible].max()))
     predicted = (float(in_view.min()), float(in_view.max()))
     offsets = [abs(depth * (math.tan(s) - math.tan(p))) for s, p in zip(seen, predicted)]
     worst = int(np.argmax(offsets))
