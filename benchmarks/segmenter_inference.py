@@ -2,7 +2,8 @@
 segmenter_inference``).
 
 No retraining: the scenario's model (``--onnx-model``, default ``imaging.onnx_model``) as it
-is, with three inference-side choices measured per frame on the same probability maps:
+is, without the guided filter (``imaging.onnx_guided_radius`` 0; this study came first), with
+three inference-side choices measured per frame on the same probability maps:
 
 - ``mirror``: test-time augmentation with the lateral mirror (``onnx_backend.mirror_average``:
   the probability of the frame and of its mirror about the beam axis, averaged);
@@ -159,7 +160,13 @@ def main(argv=None) -> int:
 
     t0 = time.perf_counter()
     cfg = ImagingConfig() if args.onnx_model is None else ImagingConfig(onnx_model=args.onnx_model)
-    cfg = replace(cfg, onnx_mirror_average=False, onnx_min_region_area=0.0, onnx_threshold=0.5)
+    cfg = replace(
+        cfg,
+        onnx_mirror_average=False,
+        onnx_min_region_area=0.0,
+        onnx_threshold=0.5,
+        onnx_guided_radius=0.0,
+    )
     presets = [float(p) for p in cfg.depth_presets]
     segmenters = segmenters_by_depth(presets, cfg)
     min_areas = [c * 1e-4 for c in MIN_AREAS_CM2]
