@@ -379,11 +379,6 @@ class OnnxSegmenter:
         if not (np.isfinite(guided_eps) and guided_eps > 0.0):
             raise ValueError(f"imaging.onnx_guided_eps: expected a number > 0, got {guided_eps!r}")
         self.guided_radius, self.guided_eps = float(guided_radius), float(guided_eps)
-        #: The guided filter's window radius in image pixels (rows, columns).
-        self.guided_px = (
-            max(1, round(self.guided_radius / geometry.dz)),
-            max(1, round(self.guided_radius / geometry.dx)),
-        )
         if not (np.isfinite(min_region_area) and min_region_area >= 0.0):
             raise ValueError(
                 f"imaging.onnx_min_region_area: expected an area >= 0 (m^2), "
@@ -505,6 +500,12 @@ class OnnxSegmenter:
             guided_radius=config.onnx_guided_radius,
             guided_eps=config.onnx_guided_eps,
         )
+
+    @property
+    def guided_px(self) -> tuple[int, int]:
+        """The guided filter's window radius in image pixels (rows, columns): at least 1."""
+        g = self.geometry
+        return max(1, round(self.guided_radius / g.dz)), max(1, round(self.guided_radius / g.dx))
 
     @property
     def pixel_size_mm(self) -> float | None:
