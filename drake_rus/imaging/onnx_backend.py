@@ -7,7 +7,8 @@ H x W (block mean when the sizes divide, else nearest), scaled to [0, 1], normal
 (N, K, h, w) or (N, h, w): ``logits`` (a sigmoid is applied; with K > 1 a softmax over K),
 ``probability`` or ``labels`` (integer class per pixel, or K scores to argmax); channel
 (or class index) ``onnx_kidney_channel`` is the kidney. The kidney probability is resized back to
-the image (bilinear) and thresholded.
+the image (bilinear), refined at the image's resolution by a guided filter with the frame as
+guide (``onnx_guided_radius``, ``onnx_guided_eps``; :func:`guided_filter`) and thresholded.
 
 Physical pixel size (model card): when the JSON card next to the model (same name, ``.json``)
 declares ``pixel_size_mm`` (p) and ``canvas_px`` ([H, W]), the model sees every frame at that
