@@ -29,8 +29,8 @@ Across depths and postures (the onnx model, one segmenter per depth preset):
   ONNX inference (``onnx_threads``, default 1) + mapping the probability back, per preset;
   ``ms_segment``: the whole onnx segment call (+ largest component, threshold);
   ``ms_segment_plain``: the whole call of the plain segmenter (no mirror average, no
-  minimum region area) on the same frames, ``ms_segment_ratio_to_plain`` the ratio of the
-  means (what the inference-side options cost).
+  minimum region area, no guided filter) on the same frames, ``ms_segment_ratio_to_plain``
+  the ratio of the means (what the inference-side options cost).
 ``--set`` measures another scenario's imaging section (e.g. the mirror average off).
 With ``--source phantom`` the depth study uses the phantoms and the VH body is skipped.
 The last line is one JSON object.
@@ -413,7 +413,9 @@ def depth_and_posture_study(cfg, args) -> dict:
         ]
     # The plain segmenter: the same model and threshold, one model run per frame, no
     # minimum region area (the cost of the inference-side options, measured in this run).
-    plain_cfg = replace(cfg, onnx_mirror_average=False, onnx_min_region_area=0.0)
+    plain_cfg = replace(
+        cfg, onnx_mirror_average=False, onnx_min_region_area=0.0, onnx_guided_radius=0.0
+    )
     plain = segmenters_by_depth(presets, plain_cfg)
     ms_model, ms_seg, ms_plain = _segment_speed(segmenters, frames_by_depth, plain)
     print(
@@ -439,6 +441,8 @@ def depth_and_posture_study(cfg, args) -> dict:
         "threshold": cfg.onnx_threshold,
         "mirror_average": cfg.onnx_mirror_average,
         "min_region_area_m2": cfg.onnx_min_region_area,
+        "guided_radius_m": cfg.onnx_guided_radius,
+        "guided_eps": cfg.onnx_guided_eps,
     }
     out["ms_model_resample_mean"] = _round(float(np.mean(list(ms_model.values()))), 2)
     return out

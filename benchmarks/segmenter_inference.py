@@ -2,7 +2,8 @@
 segmenter_inference``).
 
 No retraining: the scenario's model (``--onnx-model``, default ``imaging.onnx_model``) as it
-is, with three inference-side choices measured per frame on the same probability maps:
+is, without the guided filter (``imaging.onnx_guided_radius`` 0; this study came first), with
+three inference-side choices measured per frame on the same probability maps:
 
 - ``mirror``: test-time augmentation with the lateral mirror (``onnx_backend.mirror_average``:
   the probability of the frame and of its mirror about the beam axis, averaged);
@@ -121,6 +122,47 @@ def choose(by_depth: dict, fp_margin: float = 0.01, tie: float = 0.001):
     return best, worst
 
 
+def validation_sources(a: int, b: int, imported_like: bool = True, log: str | None = None):
+    """[(kind, Source)] of the validation patients ``train:a..b`` in both postures, each as
+    generated (kind "generated") and, with ``imported_like``, as an imported-like volume (no
+    perirenal fat, a layered kidney; kind "imported_like", seeded per patient and posture).
+    ``log``: a name for one progress line per source on stderr."""
+    from drake_rus.imaging.training.evaluation import POSTURES, Source, load_source
+    from drake_rus.imaging.training.train_segmenter import randomised_anatomy
+
+    t0 = time.perf_counter()
+    sources = []
+    for k in range(a, b + 1):
+        for posture in POSTURES:
+            src = load_source(f"train:{k}", posture=posture)
+            sources.append(("generated", src))
+            if imported_like:
+                rng = np.random.default_rng(1000 + 2 * k + POSTURES.index(posture))
+                vol = randomised_anatomy(src.volume, rng, True, "layered")
+                sources.append(
+                    (
+                        "imported_like",
+                        Source(src.name, posture, vol, src.up_V, src.target, src.size_class),
+                    )
+                )
+            if log:
+                print(
+                    f"[{log} {time.perf_counter() - t0:5.0f} s] loaded train:{k} {posture}",
+                    file=sys.stderr,
+                    flush=True,
+                )
+    return sources
+
+
+def parse_patients(text: str) -> tuple[int, int] | None:
+    """(A, B) of ``--patients A..B`` (0 <= A <= B), None when malformed."""
+    try:
+        a, b = (int(x) for x in text.split(".."))
+    except ValueError:
+        return None
+    return (a, b) if 0 <= a <= b else None
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(
         prog="python -m benchmarks segmenter_inference", description=__doc__
@@ -148,42 +190,25 @@ def main(argv=None) -> int:
     from drake_rus.imaging.segment import iou
     from drake_rus.imaging.slicing import slice_volume
     from drake_rus.imaging.training.evaluation import (
-        POSTURES,
         VISIBLE_GREY,
-        Source,
-        load_source,
         sample_views,
         segmenters_by_depth,
     )
-    from drake_rus.imaging.training.train_segmenter import randomised_anatomy
 
     t0 = time.perf_counter()
     cfg = ImagingConfig() if args.onnx_model is None else ImagingConfig(onnx_model=args.onnx_model)
-    cfg = replace(cfg, onnx_mirror_average=False, onnx_min_region_area=0.0, onnx_threshold=0.5)
+    cfg = replace(
+        cfg,
+        onnx_mirror_average=False,
+        onnx_min_region_area=0.0,
+        onnx_threshold=0.5,
+        onnx_guided_radius=0.0,
+    )
     presets = [float(p) for p in cfg.depth_presets]
     segmenters = segmenters_by_depth(presets, cfg)
     min_areas = [c * 1e-4 for c in MIN_AREAS_CM2]
 
-    sources = []
-    for k in range(a, b + 1):
-        for posture in POSTURES:
-            src = load_source(f"train:{k}", posture=posture)
-            sources.append(("generated", src))
-            if not args.no_imported_like:
-                rng = np.random.default_rng(1000 + 2 * k + POSTURES.index(posture))
-                vol = randomised_anatomy(src.volume, rng, True, "layered")
-                sources.append(
-                    (
-                        "imported_like",
-                        Source(src.name, posture, vol, src.up_V, src.target, src.size_class),
-                    )
-                )
-            print(
-                f"[segmenter_inference {time.perf_counter() - t0:5.0f} s] loaded "
-                f"train:{k} {posture}",
-                file=sys.stderr,
-                flush=True,
-            )
+    sources = validation_sources(a, b, not args.no_imported_like, "segmenter_inference")
 
     records = []
     total = len(sources) * args.views * len(presets)

@@ -193,11 +193,13 @@ def test_record_benchmark_replaces_the_measured_figures_and_keeps_the_notes(tmp_
                 "iou_by_depth": {"0.10": 0.86},
                 "iou_by_depth_ci95": {"0.10": [0.84, 0.88]},
                 "vh_female_iou": {"supine": 0.81},
+                "inference": {"threshold": 0.5, "guided_radius_m": 0.0015},
             }
         )
         + "\n"
     )
     e = record_benchmark(card, bench)["evaluation"]
+    assert e["inference"] == {"threshold": 0.5, "guided_radius_m": 0.0015}
     assert e["iou_by_depth"] == {"0.10": 0.86} and e["iou_by_depth_ci95"] == {"0.10": [0.84, 0.88]}
     assert e["diagnosis"] == "a note from another measurement"
     assert e["targets"]["met"] and not e["targets"]["generated_interval_above_by_preset"]["0.10"]

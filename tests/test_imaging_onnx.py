@@ -344,9 +344,12 @@ def _candidates_on_the_whole_grid(seg: OnnxSegmenter, prob: np.ndarray) -> list[
 def test_candidates_on_their_boxes_equal_the_whole_grid(depth, monkeypatch):
     """Regions anywhere on the grid (inside the fan, across its edges, on the canvas's
     border, with holes, several at once): the masks are those of the whole-grid computation,
-    bit for bit, and so is the window of the back map."""
+    bit for bit, and so is the window of the back map (the guided filter off: its window is
+    tested in test_guided_filter.py)."""
     g = ProbeGeometry.from_config(ImagingConfig(depth=depth))
-    seg = OnnxSegmenter.from_config(ImagingConfig(depth=depth, segmenter="onnx"), g)
+    seg = OnnxSegmenter.from_config(
+        ImagingConfig(depth=depth, segmenter="onnx", onnx_guided_radius=0.0), g
+    )
     h, w = seg.input_shape[2:]
     rng = np.random.default_rng(int(depth * 100))
     r, c = np.ogrid[:h, :w]

@@ -7,7 +7,8 @@ H x W (block mean when the sizes divide, else nearest), scaled to [0, 1], normal
 (N, K, h, w) or (N, h, w): ``logits`` (a sigmoid is applied; with K > 1 a softmax over K),
 ``probability`` or ``labels`` (integer class per pixel, or K scores to argmax); channel
 (or class index) ``onnx_kidney_channel`` is the kidney. The kidney probability is resized back to
-the image (bilinear) and thresholded.
+the image (bilinear), refined at the image's resolution by a guided filter with the frame as
+guide (``onnx_guided_radius``, ``onnx_guided_eps``; :func:`guided_filter`) and thresholded.
 
 Physical pixel size (model card): when the JSON card next to the model (same name, ``.json``)
 declares ``pixel_size_mm`` (p) and ``canvas_px`` ([H, W]), the model sees every frame at that
@@ -358,6 +359,8 @@ class OnnxSegmenter:
         track_section_reach: float = 0.015,
         mirror_average: bool = False,
         min_region_area: float = 0.0,
+        guided_radius: float = 0.0,
+        guided_eps: float = 0.01,
     ):
         """``card``: the model card's fields (default: read from the ``.json`` next to the
         model); ``pixel_size_mm`` and ``canvas_px`` switch on the physical canvas.
@@ -366,8 +369,17 @@ class OnnxSegmenter:
         registered template, is followed (see ``ImagingConfig.track_gap``).
         ``mirror_average``: average the probability of the image and of its lateral mirror
         (:func:`mirror_average`; two model runs per frame). ``min_region_area`` (m^2):
-        candidate regions smaller than this are dropped (:func:`drop_small_regions`)."""
+        candidate regions smaller than this are dropped (:func:`drop_small_regions`).
+        ``guided_radius`` (m, 0: off) and ``guided_eps``: the image-resolution refinement of
+        the probability before the threshold (:func:`guided_filter`, the frame as guide)."""
         self.mirror_average = bool(mirror_average)
+        if not (np.isfinite(guided_radius) and guided_radius >= 0.0):
+            raise ValueError(
+                f"imaging.onnx_guided_radius: expected a radius >= 0 (m), got {guided_radius!r}"
+            )
+        if not (np.isfinite(guided_eps) and guided_eps > 0.0):
+            raise ValueError(f"imaging.onnx_guided_eps: expected a number > 0, got {guided_eps!r}")
+        self.guided_radius, self.guided_eps = float(guided_radius), float(guided_eps)
         if not (np.isfinite(min_region_area) and min_region_area >= 0.0):
             raise ValueError(
                 f"imaging.onnx_min_region_area: expected an area >= 0 (m^2), "
@@ -486,7 +498,15 @@ class OnnxSegmenter:
             track_section_reach=config.track_section_reach,
             mirror_average=config.onnx_mirror_average,
             min_region_area=config.onnx_min_region_area,
+            guided_radius=config.onnx_guided_radius,
+            guided_eps=config.onnx_guided_eps,
         )
+
+    @property
+    def guided_px(self) -> tuple[int, int]:
+        """The guided filter's window radius in image pixels (rows, columns): at least 1."""
+        g = self.geometry
+        return max(1, round(self.guided_radius / g.dz)), max(1, round(self.guided_radius / g.dx))
 
     @property
     def pixel_size_mm(self) -> float | None:
@@ -640,15 +660,20 @@ class OnnxSegmenter:
         cols): an 8-connected component of the thresholded probability at the model's
         resolution (holes filled), mapped back to the image bilinearly (from the physical
         canvas, when there is one), thresholded, in the fan. Regions that vanish in the
-        mapping back are dropped, and so are regions smaller than ``min_region_area``."""
-        regions = self._candidates(self.model_probability(image), largest_only)
+        mapping back are dropped, and so are regions smaller than ``min_region_area``. With
+        ``guided_radius`` > 0 each region's probability on the image grid is refined by
+        :func:`guided_filter` with the frame as guide before the threshold."""
+        regions = self._candidates(self.model_probability(image), largest_only, image)
         if self.min_region_area > 0.0:
             return drop_small_regions(regions, self.min_region_area / self.geometry.pixel_area)
         return regions
 
-    def _candidates(self, prob: np.ndarray, largest_only: bool) -> list[np.ndarray]:
+    def _candidates(
+        self, prob: np.ndarray, largest_only: bool, image: np.ndarray | None = None
+    ) -> list[np.ndarray]:
         """:meth:`candidates` of a kidney probability at the model's resolution (before
-        the minimum area)."""
+        the minimum area); ``image``: the frame (the guided filter's guide; None: no
+        refinement)."""
         above = prob > self.threshold
         # Labelled on the bounding box of the pixels above the threshold: the components,
         # their raster order (hence their numbers) and sizes are those of the whole grid.
@@ -658,7 +683,7 @@ class OnnxSegmenter:
         labels, n = ndimage.label(above[crop], structure=_EIGHT)
         r0, c0 = crop[0].start, crop[1].start
         if n == 1:  # the one component is every pixel above the threshold
-            mask = self._component_mask(prob, above[crop], crop)
+            mask = self._component_mask(prob, above[crop], crop, image)
             return [] if mask is None else [mask]
         sizes = np.bincount(labels.ravel())[1:]
         order = np.argsort(-sizes, kind="stable")[: 1 if largest_only else None]
@@ -668,7 +693,7 @@ class OnnxSegmenter:
             b = boxes[k]
             box = (slice(b[0].start + r0, b[0].stop + r0), slice(b[1].start + c0, b[1].stop + c0))
             # The component's pixels within its own box; _component_mask grows the window.
-            mask = self._component_mask(prob, labels[b] == k + 1, box)
+            mask = self._component_mask(prob, labels[b] == k + 1, box, image)
             if mask is not None:
                 out.append(mask)
         return out
@@ -682,7 +707,11 @@ class OnnxSegmenter:
         return self._component_mask(prob, labels[box] == label, box)
 
     def _component_mask(
-        self, prob: np.ndarray, component: np.ndarray, box: tuple[slice, slice]
+        self,
+        prob: np.ndarray,
+        component: np.ndarray,
+        box: tuple[slice, slice],
+        image: np.ndarray | None = None,
     ) -> np.ndarray | None:
         """Bool image mask (rows, cols) of one component of the thresholded probability,
         given as its pixels ``component`` (bool) within its bounding box ``box`` on the
@@ -708,12 +737,17 @@ class OnnxSegmenter:
         if self.canvas is None:
             full = np.zeros((h, w), np.float32)
             full[window] = p
-            mask = (self.to_image(full) > self.threshold) & self.geometry.fan_mask
+            values = self.to_image(full)
+            if self.guided_radius > 0.0 and image is not None:
+                values = guided_filter(values, _grey(image), self.guided_px, self.guided_eps)
+            mask = (values > self.threshold) & self.geometry.fan_mask
             return mask if mask.any() else None
         fan = self._canvas_fan(h, w)[window]
         if not fan.all():  # as _past_fan (nothing to do in the fan's interior)
             p = np.where(fan, p, _max_3x3(p))
         rows, cols, values = self.canvas.to_image_window(p, (r0, c0), (h, w))
+        if self.guided_radius > 0.0 and image is not None:
+            rows, cols, values = self._guided_window(rows, cols, values, image)
         inside = values > self.threshold
         inside &= self.geometry.fan_mask[rows, cols]
         if not inside.any():
@@ -721,6 +755,56 @@ class OnnxSegmenter:
         mask = np.zeros(self.geometry.image_shape, bool)
         mask[rows, cols] = inside
         return mask
+
+    def _guided_window(
+        self, rows: slice, cols: slice, values: np.ndarray, image: np.ndarray
+    ) -> tuple[slice, slice, np.ndarray]:
+        """:func:`guided_filter` of an image-grid probability that is 0 outside (rows, cols),
+        with the frame as guide: on that window grown by twice the filter's radius and a
+        pixel (clipped to the image), beyond which the filter's output is 0 too (a window
+        of zero probability fits a = b = 0). Returns the grown (rows, cols, values)."""
+        rz, rx = self.guided_px
+        H, W = self.geometry.image_shape
+        R0, R1 = max(rows.start - 2 * rz - 1, 0), min(rows.stop + 2 * rz + 1, H)
+        C0, C1 = max(cols.start - 2 * rx - 1, 0), min(cols.stop + 2 * rx + 1, W)
+        p = np.zeros((R1 - R0, C1 - C0), np.float32)
+        p[rows.start - R0 : rows.stop - R0, cols.start - C0 : cols.stop - C0] = values
+        q = guided_filter(p, _grey(image[R0:R1, C0:C1]), (rz, rx), self.guided_eps)
+        return slice(R0, R1), slice(C0, C1), q
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    """float32 grey in [0, 1] of a uint8 (0-255) image."""
+    return np.asarray(image, np.float32) * np.float32(1.0 / 255.0)
+
+
+def guided_filter(
+    p: np.ndarray, guide: np.ndarray, radius_px: tuple[int, int], eps: float
+) -> np.ndarray:
+    """The guided filter (He, Sun and Tang, 2013) of a map ``p`` with the image ``guide``
+    (same shape, float): in every (2 r_rows + 1) x (2 r_cols + 1) window the least-squares
+    fit p ~ a guide + b with ``eps`` a^2 added (a window of flat guide gives a = 0: the
+    window's mean of p), and each pixel's output is its windows' mean a times its guide
+    plus their mean b. An edge of ``p`` near an edge of the guide moves onto it; elsewhere
+    ``p`` is box-smoothed. Box means by ``ndimage.uniform_filter`` (the border repeated).
+    float32 of ``p``'s shape."""
+    p = np.asarray(p, np.float32)
+    guide = np.asarray(guide, np.float32)
+    if p.shape != guide.shape or p.ndim != 2:
+        raise ValueError(
+            f"guided_filter: p and guide must be 2-D of one shape, got {p.shape}, {guide.shape}"
+        )
+    size = (2 * int(radius_px[0]) + 1, 2 * int(radius_px[1]) + 1)
+
+    def box(x):
+        return ndimage.uniform_filter(x, size=size, mode="nearest")
+
+    mean_i, mean_p = box(guide), box(p)
+    var_i = box(guide * guide) - mean_i * mean_i
+    cov_ip = box(guide * p) - mean_i * mean_p
+    a = cov_ip / (var_i + np.float32(eps))
+    b = mean_p - a * mean_i
+    return box(a) * guide + box(b)
 
 
 def mirror_average(run, x: np.ndarray) -> np.ndarray:

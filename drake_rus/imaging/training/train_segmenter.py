@@ -719,9 +719,10 @@ def record_benchmark(card_path: Path, bench_json: Path) -> dict:
     """Adds the evaluation of ``python -m benchmarks imaging`` (its JSON line, in a file) to
     the model card ``card_path`` (any model's: the fp32 or the int8 one), replacing the
     figures the benchmark measures in its ``evaluation`` and keeping the card's other notes
-    there (diagnoses, earlier measurements, ...). A benchmark of another model than the
-    card's (``onnx_model`` vs the card's ``model``), or a file without the JSON line, raises
-    ValueError."""
+    there (diagnoses, earlier measurements, ...); ``inference`` says the inference-side
+    settings measured (threshold, mirror average, guided filter, ...). A benchmark of
+    another model than the card's (``onnx_model`` vs the card's ``model``), or a file
+    without the JSON line, raises ValueError."""
     card = json.loads(card_path.read_text())
     lines = [ln for ln in bench_json.read_text().splitlines() if ln.startswith("{")]
     if not lines:
@@ -751,6 +752,8 @@ def record_benchmark(card_path: Path, bench_json: Path) -> dict:
         },
         "ms_model_resample": b.get("ms_model_resample"),
         "ms_segment": b.get("ms_segment"),
+        "ms_segment_plain": b.get("ms_segment_plain"),
+        "inference": b.get("inference"),
         "load_average": b.get("load_average"),
         "measured_by": "python -m benchmarks imaging",
         "targets": targets_met(
