@@ -1053,3 +1053,152 @@ def test_the_slide_goes_on_to_the_templates_predicted_end_when_the_segmentation_
     assert s.sweep_end_causes == ("kidney_left",)
     assert s.cap_slides[0][1] == pytest.approx(s.cap_slide_predicted, abs=c.scan_speed * dt)
     assert 0.014 <= s.cap_slide_predicted <= 0.016
+
+
+# ------------------------------------------------------------------ the second look
+REJECTED = "registration rejected: RMS residual 6.2 mm > 5.0 mm"
+
+
+def test_second_look_rules():
+    """A rejected registration is answered by exploring on only while the kidney is still
+    in the image, once, with the field on; a re-localization explores the whole kidney only
+    when the view contradicts the fit, never after a shift or slip."""
+    c = cfg()
+    assert c.second_look
+    rule = supervisor.second_look_after_rejection
+    assert rule(c, False, REJECTED, "travel") and rule(c, False, REJECTED, "settled")
+    assert not rule(c, False, REJECTED, "kidney_left")  # the far pole was already seen
+    assert not rule(c, True, REJECTED, "travel")  # once per scan
+    assert not rule(cfg(second_look=False), False, REJECTED, "travel")
+    assert not rule(c, False, "only 12 kidney boundary points were explored", "travel")
+    contradicted = (
+        "the view since localization contradicts the registration: the frames since "
+        "localization put the kidney 17.9 mm from its registered pose"
+    )
+    rule = supervisor.second_look_after_contradiction
+    assert rule(c, False, contradicted)
+    assert not rule(c, True, contradicted) and not rule(cfg(second_look=False), False, contradicted)
+    shift = "the frames since localization put the kidney 16.6 mm from where the first checks"
+    assert not rule(c, False, shift)
+    assert not rule(c, False, "the patient slid under the probe: its tangential force changed")
+    # Bounded by the longest kidney allowed past where the kidney came into view.
+    assert supervisor.whole_kidney_target(c, 0.02) == pytest.approx(0.02 + 1.5 * 0.10)
+
+
+def test_a_rejected_registration_explores_on_to_the_far_pole_once():
+    """The partial exploration stops with the kidney in view, its registration is rejected:
+    the sweep goes on from there (the cloud kept, a new localization round) past ER x L until
+    the kidney leaves the image; a second rejection ends the scan."""
+    c = cfg(exploration_ratio=0.05, localize_hold_time=0.0)
+    dt = 0.01
+    s, t = run_to_localize(c, dt)
+    travel = s.travel
+    assert s.explore_end == "travel" and travel == pytest.approx(0.005)
+    t += dt
+    s = supervisor.supervisor_step(
+        s, dataclasses.replace(inputs(t), localization_error=REJECTED), c, dt
+    )
+    assert s.phase == supervisor.Phase.EXPLORE and s.whole_kidney and s.second_look_used
+    assert s.localization_round == 1 and s.travel == travel and not s.reorienting
+    assert "second look" in s.events[-1][2] and REJECTED in s.second_look_reason
+    assert supervisor.segmentation_required(s)
+    for _ in range(300):  # 15 mm more, the kidney still in view: past ER x L
+        t += dt
+        s = supervisor.supervisor_step(s, inputs(t), c, dt)
+    assert s.phase == supervisor.Phase.EXPLORE and s.travel > travel + 0.01
+    while s.phase == supervisor.Phase.EXPLORE:
+        s, t = _unseen(s, t, 1, c, dt)
+    assert s.phase == supervisor.Phase.LOCALIZE and s.explore_end == "kidney_left"
+    assert "(second look: the whole kidney)" in s.events[-1][2]
+    t += dt
+    s = supervisor.supervisor_step(
+        s, dataclasses.replace(inputs(t), localization_error=REJECTED), c, dt
+    )
+    assert s.phase == supervisor.Phase.ABORT and s.reason == f"localization failed: {REJECTED}"
+
+
+def test_a_whole_kidney_exploration_ends_at_the_longest_kidney():
+    """A kidney that never leaves the image: the second look ends after the longest kidney
+    length allowed; without the field the rejection ends the scan at once."""
+    c = cfg(exploration_ratio=0.05, localize_hold_time=0.0, kidney_length=0.02)
+    dt = 0.01
+    s, t = run_to_localize(c, dt)
+    u = dataclasses.replace(inputs(t + dt), localization_error=REJECTED)
+    off = supervisor.supervisor_step(s, u, cfg(exploration_ratio=0.05, second_look=False), dt)
+    assert off.phase == supervisor.Phase.ABORT
+    s = supervisor.supervisor_step(s, u, c, dt)
+    t += dt
+    while s.phase == supervisor.Phase.EXPLORE:
+        t += dt
+        s = supervisor.supervisor_step(s, inputs(t), c, dt)
+    assert s.travel == pytest.approx(1.5 * 0.02)  # the kidney was in view from the start
+    assert "second look: the longest kidney length 30 mm" in s.events[-1][2]
+
+
+def test_a_contradicted_fit_reexplores_the_whole_kidney_a_shift_does_not():
+    """The tracking check finds the kidney far from its fit with no change: the
+    re-exploration (after backing out) sweeps until the kidney leaves the image; after a
+    shift (or once the second look is used) it sweeps ER x L."""
+    c = cfg(exploration_ratio=0.02, localize_hold_time=0.0, max_relocalizations=2)
+    dt = 0.01
+    contradicted = "the view since localization contradicts the registration: 18 mm"
+    for error, whole in ((contradicted, True), ("drift 9 mm", False)):
+        s, t, R = _to_pivot(c, dt)
+        t += dt
+        s = supervisor.supervisor_step(
+            s, dataclasses.replace(inputs(t, R=R), tracking_error=error), c, dt
+        )
+        assert s.whole_kidney == whole and s.second_look_used == whole
+        assert ("second look: the whole kidney" in s.events[-1][2]) == whole
+        R_transverse = np.column_stack([s.o_des, np.cross(s.a_des, s.o_des), s.a_des])
+        while s.reorienting or s.retreating:
+            t += dt
+            s = supervisor.supervisor_step(s, inputs(t, R=R_transverse, visible=False), c, dt)
+        while s.phase == supervisor.Phase.EXPLORE and s.travel < 0.05:
+            t += dt
+            s = supervisor.supervisor_step(s, inputs(t, R=R_transverse), c, dt)
+        # ER x L is 2 mm; the whole kidney goes on while it is in view.
+        assert (s.phase == supervisor.Phase.EXPLORE) == whole, error
+        if whole:
+            while s.phase == supervisor.Phase.EXPLORE:
+                s, t = _unseen(s, t, 1, c, dt)
+            s, t, R = _finish_to_pivot(s, t, c, dt)
+            t += dt
+            s = supervisor.supervisor_step(
+                s, dataclasses.replace(inputs(t, R=R), tracking_error=contradicted), c, dt
+            )
+            assert s.phase == supervisor.Phase.EXPLORE and not s.whole_kidney  # used once
+
+
+def test_a_stalled_turn_takes_the_other_transverse_direction():
+    """A re-exploration whose array turn stalls short of transverse (the wrist at its limit)
+    turns the array to the other transverse direction (the same image plane) once."""
+    assert supervisor.turn_progress(math.inf, math.nan, 0.5, 1.0) == (0.5, 1.0)
+    assert supervisor.turn_progress(0.5, 1.0, 0.499, 2.0) == (0.5, 1.0)  # creeping
+    assert supervisor.turn_progress(0.5, 1.0, 0.4, 2.0) == (0.4, 2.0)
+    stall = math.radians(11.8)
+    assert supervisor.turn_stalled(0.3, 1.0, 1.0 + supervisor.REORIENT_SETTLE, stall)
+    assert not supervisor.turn_stalled(0.3, 1.0, 1.0 + supervisor.REORIENT_SETTLE, 0.1)
+    assert not supervisor.turn_stalled(0.3, 1.0, 2.0, stall)
+    c = cfg(exploration_ratio=0.02, localize_hold_time=0.0, max_relocalizations=1)
+    dt = 0.01
+    s, t, R = _to_pivot(c, dt)
+    t += dt
+    s = supervisor.supervisor_step(
+        s, dataclasses.replace(inputs(t, R=R), tracking_error="drift 9 mm"), c, dt
+    )
+    o_first = s.o_des.copy()
+    # The probe stops with its array 11.8 deg short of o_first, about the vertical.
+    R_target = np.column_stack([s.o_des, np.cross(s.a_des, s.o_des), s.a_des])
+    R_short = RotationMatrix(RollPitchYaw(0.0, 0.0, stall)).matrix() @ R_target
+    t0 = t
+    while t - t0 < supervisor.REORIENT_SETTLE + 0.5:
+        t += dt
+        s = supervisor.supervisor_step(s, inputs(t, R=R_short), c, dt)
+    assert s.reorienting and s.reorient_flipped
+    np.testing.assert_allclose(s.o_des, -o_first)
+    assert "other transverse direction" in s.events[-1][2]
+    R_other = np.column_stack([s.o_des, np.cross(s.a_des, s.o_des), s.a_des])
+    t += dt
+    s = supervisor.supervisor_step(s, inputs(t, R=R_other), c, dt)
+    assert not s.reorienting and s.retreating
