@@ -230,17 +230,6 @@ class ControllerConfig:
     # shift): re-localize (backing out of the kidney, a new exploration into it and a new
     # registration) at most this many times, then ABORT; 0: ABORT at once.
     max_relocalizations: int = field(default=2, metadata={"min": 0, "max": 10})
-    # A sonographer's second look: when what the partial exploration (ER x L) produced is
-    # refused, the next exploration sweeps until the kidney leaves the image (at most the
-    # longest kidney allowed, exploration_length_factor x kidney_length, past where it
-    # came into view), once per scan, and its registration is judged by the same gates.
-    # Refused: the registration is rejected while the kidney is still in the image (the
-    # sweep goes on from there), or the kidney tracking finds the view since localization
-    # contradicting the fit (the re-exploration backs out first, as after a shift; a
-    # shift, slip or drift keeps the ER x L re-exploration). A full cloud leaves the
-    # registration no wrong minimum (25 of 25 real kidneys without a giant tumour,
-    # docs/results/real_kidneys.md). False: the refusal ends the scan as the paper's does.
-    second_look: bool = True
 
 
 @dataclass

@@ -23,7 +23,6 @@ from drake_rus.control.laws import (
     pivot_end_angles,
     template_section_area,
 )
-from drake_rus.localization.config import FIT_CONTRADICTED, REGISTRATION_REJECTED
 
 
 # ----------------------------------------------------------------------------- eq. 17
@@ -239,20 +238,12 @@ class SupervisorState:
     # Its second stage (``_retreat``): sweeping back against the scan direction until the
     # kidney has left the image, so the new sweep starts behind the kidney as the first did.
     retreating: bool = False
-    # The second look (controller.second_look): the current exploration sweeps until the
-    # kidney leaves the image (:func:`whole_kidney_target`), not ER x L; whether the scan's
-    # one second look has been taken and what refusal asked for it ("" none); how the
-    # latest EXPLORE ended ("travel", "kidney_left", "settled"; "" not yet).
     # The re-exploration's turn (``_reorient``): the smallest angle to the target so far
     # (rad), since when (s), and whether the array's target has been flipped to the other
     # transverse direction (the turn stalled short of the first: a joint at its limit).
     reorient_best: float = math.inf
     reorient_best_since: float = math.nan
     reorient_flipped: bool = False
-    whole_kidney: bool = False
-    second_look_used: bool = False
-    second_look_reason: str = ""
-    explore_end: str = ""
     a_star: np.ndarray = dataclasses.field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
     approach_origin: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, math.nan))
     contact_since: float = math.nan  # APPROACH: when the force last reached contact
@@ -513,40 +504,6 @@ def exploration_target(cfg, kidney_length_estimate: float = math.nan) -> float:
     return cfg.exploration_ratio * exploration_kidney_length(cfg, kidney_length_estimate)
 
 
-def whole_kidney_target(cfg, seen_travel: float) -> float:
-    """Exploration travel (m) after which a whole-kidney exploration (the second look) ends
-    if the kidney has not left the image by then: the longest kidney length allowed,
-    ``exploration_length_factor`` x ``kidney_length`` (as
-    :func:`exploration_kidney_length` bounds an unknown length), past ``seen_travel``, the
-    travel where the kidney came into view (0 when it was in view where the sweep began)."""
-    return float(seen_travel) + cfg.exploration_length_factor * cfg.kidney_length
-
-
-def second_look_after_rejection(cfg, used: bool, localization_error: str, explore_end: str) -> bool:
-    """Whether a refused registration is answered by exploring on until the kidney leaves
-    the image (the second look) rather than ABORT: ``controller.second_look`` on, the
-    scan's one second look not ``used``, the localizer's error a rejected registration
-    (``REGISTRATION_REJECTED``: too few inliers, the RMS gate, the centre off the cloud;
-    not too few points or too short a sighting) and the exploration ended with the kidney
-    still in the image (``explore_end`` "travel" or "settled": the sweep can go on from
-    there; "kidney_left": it already saw the far pole, a second sweep sees nothing new)."""
-    return (
-        bool(cfg.second_look)
-        and not used
-        and localization_error.startswith(REGISTRATION_REJECTED)
-        and explore_end in ("travel", "settled")
-    )
-
-
-def second_look_after_contradiction(cfg, used: bool, tracking_error: str) -> bool:
-    """Whether a re-localization explores the whole kidney (the second look) rather than
-    ER x L: ``controller.second_look`` on, the scan's one second look not ``used`` and the
-    tracking error the view contradicting the registration (``FIT_CONTRADICTED``: far from
-    the fit with no change since the first checks), not a patient's shift, slip or drift,
-    whose re-exploration stays the first exploration's ER x L."""
-    return bool(cfg.second_look) and not used and tracking_error.startswith(FIT_CONTRADICTED)
-
-
 def _advance_exploration(s, u, R, cfg, dt, target: float, backwards: bool = False):
     """One control period of eq. 17 towards ``target`` m of travel along the scan
     direction (against it with ``backwards``; the x correction from the mask centroid while
@@ -642,22 +599,12 @@ def _explore(s, u, R, p, cfg, dt):
         s.invisible_since = math.nan
         s.visible_since = math.nan
         left = False
-    if s.whole_kidney:
-        target = whole_kidney_target(cfg, s.explore_seen_travel if s.explore_seen else 0.0)
-    else:
-        target = exploration_target(cfg, u.kidney_length_estimate)
+    target = exploration_target(cfg, u.kidney_length_estimate)
     if s.travel >= target - 1e-12:
         s.P_des = p[:2].copy()
-        s.explore_end = "travel"
         how = ""
         estimated = cfg.exploration_length == "estimated"
-        if s.whole_kidney:
-            how = (
-                f" (second look: the longest kidney length "
-                f"{cfg.exploration_length_factor * cfg.kidney_length * 1e3:.0f} mm past where "
-                f"it came into view, the kidney still in the image)"
-            )
-        elif estimated and math.isinf(u.kidney_length_estimate):
+        if estimated and math.isinf(u.kidney_length_estimate):
             longest = cfg.exploration_length_factor * cfg.kidney_length
             how = (
                 f" (ER {cfg.exploration_ratio:g} x the longest kidney length "
@@ -671,14 +618,9 @@ def _explore(s, u, R, p, cfg, dt):
         return _goto(s, Phase.LOCALIZE, u.t, f"explored {s.travel * 1e3:.1f} mm{how}")
     if left:
         s.P_des = p[:2].copy()
-        s.explore_end = "kidney_left"
-        how = " (second look: the whole kidney)" if s.whole_kidney else ""
-        return _goto(
-            s, Phase.LOCALIZE, u.t, f"kidney left the image after {s.travel * 1e3:.1f} mm{how}"
-        )
-    if u.exploration_sufficient and not s.whole_kidney:
+        return _goto(s, Phase.LOCALIZE, u.t, f"kidney left the image after {s.travel * 1e3:.1f} mm")
+    if u.exploration_sufficient:
         s.P_des = p[:2].copy()
-        s.explore_end = "settled"
         return _goto(
             s,
             Phase.LOCALIZE,
@@ -706,10 +648,6 @@ def _localize(s, u, R, p, cfg, dt):
     """Hold (force control only) for localize_hold_time and until the localizer is ready,
     then T* (eq. 20-22) and TRANSIT; ABORT on a localization error or timeout."""
     if u.localization_error:
-        if second_look_after_rejection(
-            cfg, s.second_look_used, u.localization_error, s.explore_end
-        ):
-            return _explore_on(s, u, p, f"localization failed: {u.localization_error}")
         s.reason = f"localization failed: {u.localization_error}"
         return _goto(s, Phase.ABORT, u.t, s.reason)
     if u.t - s.phase_start < cfg.localize_hold_time - 1e-9 or not u.localization_ready:
@@ -730,30 +668,6 @@ def _localize(s, u, R, p, cfg, dt):
     return _to_transit(
         s, u.t, R_star, p_star, f"p* = ({p_star[0]:.4f}, {p_star[1]:.4f}, {p_star[2]:.4f}) m"
     )
-
-
-def _explore_on(s, u, p, why: str) -> SupervisorState:
-    """The second look after a rejected registration: the sweep goes on from where it
-    stopped (the kidney still in the image, the cloud kept) until the kidney leaves the
-    image (:func:`whole_kidney_target`); the localizer registers anew at the next LOCALIZE
-    (a new localization round)."""
-    seen_travel = s.explore_seen_travel
-    s.second_look_used = True
-    s.second_look_reason = why
-    s.whole_kidney = True
-    s.localization_round += 1
-    s.P_des = p[:2].copy()
-    s = _goto(
-        s,
-        Phase.EXPLORE,
-        u.t,
-        f"{why}; second look: exploring on until the kidney leaves the image",
-    )
-    # The kidney is in the image and has been since the sweep's first sighting.
-    s.explore_seen = True
-    s.explore_seen_travel = seen_travel
-    s.visible_since = math.nan
-    return s
 
 
 def predict_pivot_ends(model: PivotModel, R_BK, p_BK, pivot_point, a0, o, max_tilt: float) -> tuple:
@@ -1212,10 +1126,6 @@ def _kidney_moved(s: SupervisorState, u: SupervisorInputs, R, p, cfg) -> Supervi
     s.relocalizations += 1
     s.localization_round += 1
     s.reorient_best, s.reorient_best_since, s.reorient_flipped = math.inf, math.nan, False
-    s.whole_kidney = second_look_after_contradiction(cfg, s.second_look_used, u.tracking_error)
-    if s.whole_kidney:
-        s.second_look_used = True
-        s.second_look_reason = f"kidney tracking: {u.tracking_error}"
     s.reorienting = True
     s.retreating = False
     s.awaiting_kidney = False
@@ -1240,8 +1150,7 @@ def _kidney_moved(s: SupervisorState, u: SupervisorInputs, R, p, cfg) -> Supervi
         Phase.EXPLORE,
         u.t,
         f"kidney moved: {u.tracking_error}; re-localizing "
-        f"({s.relocalizations} of {cfg.max_relocalizations})"
-        + ("; second look: the whole kidney" if s.whole_kidney else ""),
+        f"({s.relocalizations} of {cfg.max_relocalizations})",
     )
 
 
@@ -1270,8 +1179,8 @@ def turn_stalled(best: float, best_since: float, t: float, array_angle: float) -
     ``array_angle`` (rad) from its target beyond REORIENT_ACCEPT. A transverse image has
     two array directions (o and -o: the same plane, mirrored); the turn goes the shorter
     way, which the wrist may not reach (FR3 joint 7 at its limit after a pivot that
-    turned the array along the kidney: case 58, 11.8 deg short), while the other way it
-    can."""
+    turned the array along the kidney: KiTS19 case 58, 11.8 deg short), while the other
+    way it can."""
     return (
         math.isfinite(best_since)
         and t - best_since >= REORIENT_SETTLE - 1e-9

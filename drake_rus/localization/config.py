@@ -242,12 +242,3 @@ class LocalizationConfig:
     tracking_frame_gate_factor: float = field(default=3.0, metadata={"min": 1.0})
     tracking_frame_gate_floor: float = field(default=0.010, metadata={"positive": True})
     tracking_max_points: int = field(default=1500, metadata={"min": 10})
-
-
-# The opening words of the two refusals the scan supervisor answers with a second look, a
-# whole-kidney exploration (``controller.second_look``): a registration that fails its
-# checks (``localize.check_registration``), and a tracking check that finds the kidney far
-# from its registered pose with no change since the first checks (``tracking_update``: the
-# view since localization contradicts the fit; a shift or slip keeps its own words).
-REGISTRATION_REJECTED = "registration rejected"
-FIT_CONTRADICTED = "the view since localization contradicts the registration"

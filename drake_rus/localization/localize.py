@@ -16,7 +16,7 @@ from pydrake.systems.framework import EventStatus, LeafSystem
 from drake_rus.anatomy.frames import reference_axes_Pt
 from drake_rus.executor import InlineExecutor
 from drake_rus.imaging.frames import PointCloud
-from drake_rus.localization.config import REGISTRATION_REJECTED, LocalizationConfig
+from drake_rus.localization.config import LocalizationConfig
 from drake_rus.localization.icp import (
     IcpResult,
     NearestPointGrid,
@@ -277,7 +277,7 @@ def check_registration(
         return "registration produced a non-finite pose"
     if result.inlier_fraction < config.min_inlier_fraction:
         return (
-            f"{REGISTRATION_REJECTED}: only {100 * result.inlier_fraction:.0f}% of the "
+            f"registration rejected: only {100 * result.inlier_fraction:.0f}% of the "
             f"explored points lie within 3 mm of the registered template "
             f"(need {100 * config.min_inlier_fraction:.0f}%)"
         )
@@ -285,13 +285,13 @@ def check_registration(
     max_rms = max_rms_residual(config, template, result.shape_coefficients is not None)
     if result.rms_residual > max_rms:
         return (
-            f"{REGISTRATION_REJECTED}: RMS residual {1000 * result.rms_residual:.1f} mm "
+            f"registration rejected: RMS residual {1000 * result.rms_residual:.1f} mm "
             f"> {1000 * max_rms:.1f} mm"
         )
     offset = np.linalg.norm(result.X_BK.translation() - np.mean(P_local_B, axis=0))
     if offset > config.max_centroid_offset:
         return (
-            f"{REGISTRATION_REJECTED}: the estimated kidney centre is {1000 * offset:.0f} mm "
+            f"registration rejected: the estimated kidney centre is {1000 * offset:.0f} mm "
             f"from the explored points (limit {1000 * config.max_centroid_offset:.0f} mm)"
         )
     return ""

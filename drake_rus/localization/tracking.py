@@ -53,7 +53,6 @@ from drake_rus.executor import InlineExecutor
 from drake_rus.imaging.backprojection import backproject_pixels
 from drake_rus.imaging.frames import BoundaryPixels, KidneySurface
 from drake_rus.imaging.probe import ProbeGeometry
-from drake_rus.localization.config import FIT_CONTRADICTED
 from drake_rus.localization.icp import MovingNearest, _template_tree
 from drake_rus.localization.localize import LocalizationOutcome
 
@@ -421,11 +420,8 @@ def tracking_update(
                 f"{limits.axial_allowance * 1000:.0f} mm are allowed for the "
                 f"registration's uncertainty: judged {judged * 1000:.1f} mm; "
             )
-        # Far from the fit with no change since the first checks: the view contradicts
-        # the registration (a second look may answer it); with a change, the kidney moved.
-        contradicts = "" if shifted else f"{FIT_CONTRADICTED}: "
         error = (
-            f"{contradicts}the frames since localization put the kidney {d * 1000:.1f} mm "
+            f"the frames since localization put the kidney {d * 1000:.1f} mm "
             f"from its registered pose ({judged_how}drift [{v[0]:.1f}, {v[1]:.1f}, "
             f"{v[2]:.1f}] mm in B; limit {limits.limit * 1000:.1f} mm)"
         )
