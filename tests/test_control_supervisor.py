@@ -1053,3 +1053,37 @@ def test_the_slide_goes_on_to_the_templates_predicted_end_when_the_segmentation_
     assert s.sweep_end_causes == ("kidney_left",)
     assert s.cap_slides[0][1] == pytest.approx(s.cap_slide_predicted, abs=c.scan_speed * dt)
     assert 0.014 <= s.cap_slide_predicted <= 0.016
+
+
+def test_a_stalled_turn_takes_the_other_transverse_direction():
+    """A re-exploration whose array turn stalls short of transverse (the wrist at its limit)
+    turns the array to the other transverse direction (the same image plane) once."""
+    assert supervisor.turn_progress(math.inf, math.nan, 0.5, 1.0) == (0.5, 1.0)
+    assert supervisor.turn_progress(0.5, 1.0, 0.499, 2.0) == (0.5, 1.0)  # creeping
+    assert supervisor.turn_progress(0.5, 1.0, 0.4, 2.0) == (0.4, 2.0)
+    stall = math.radians(11.8)
+    assert supervisor.turn_stalled(0.3, 1.0, 1.0 + supervisor.REORIENT_SETTLE, stall)
+    assert not supervisor.turn_stalled(0.3, 1.0, 1.0 + supervisor.REORIENT_SETTLE, 0.1)
+    assert not supervisor.turn_stalled(0.3, 1.0, 2.0, stall)
+    c = cfg(exploration_ratio=0.02, localize_hold_time=0.0, max_relocalizations=1)
+    dt = 0.01
+    s, t, R = _to_pivot(c, dt)
+    t += dt
+    s = supervisor.supervisor_step(
+        s, dataclasses.replace(inputs(t, R=R), tracking_error="drift 9 mm"), c, dt
+    )
+    o_first = s.o_des.copy()
+    # The probe stops with its array 11.8 deg short of o_first, about the vertical.
+    R_target = np.column_stack([s.o_des, np.cross(s.a_des, s.o_des), s.a_des])
+    R_short = RotationMatrix(RollPitchYaw(0.0, 0.0, stall)).matrix() @ R_target
+    t0 = t
+    while t - t0 < supervisor.REORIENT_SETTLE + 0.5:
+        t += dt
+        s = supervisor.supervisor_step(s, inputs(t, R=R_short), c, dt)
+    assert s.reorienting and s.reorient_flipped
+    np.testing.assert_allclose(s.o_des, -o_first)
+    assert "other transverse direction" in s.events[-1][2]
+    R_other = np.column_stack([s.o_des, np.cross(s.a_des, s.o_des), s.a_des])
+    t += dt
+    s = supervisor.supervisor_step(s, inputs(t, R=R_other), c, dt)
+    assert not s.reorienting and s.retreating

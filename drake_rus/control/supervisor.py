@@ -238,6 +238,12 @@ class SupervisorState:
     # Its second stage (``_retreat``): sweeping back against the scan direction until the
     # kidney has left the image, so the new sweep starts behind the kidney as the first did.
     retreating: bool = False
+    # The re-exploration's turn (``_reorient``): the smallest angle to the target so far
+    # (rad), since when (s), and whether the array's target has been flipped to the other
+    # transverse direction (the turn stalled short of the first: a joint at its limit).
+    reorient_best: float = math.inf
+    reorient_best_since: float = math.nan
+    reorient_flipped: bool = False
     a_star: np.ndarray = dataclasses.field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
     approach_origin: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, math.nan))
     contact_since: float = math.nan  # APPROACH: when the force last reached contact
@@ -1119,6 +1125,7 @@ def _kidney_moved(s: SupervisorState, u: SupervisorInputs, R, p, cfg) -> Supervi
         return _goto(s, Phase.ABORT, u.t, s.reason)
     s.relocalizations += 1
     s.localization_round += 1
+    s.reorient_best, s.reorient_best_since, s.reorient_flipped = math.inf, math.nan, False
     s.reorienting = True
     s.retreating = False
     s.awaiting_kidney = False
@@ -1152,6 +1159,33 @@ def _kidney_moved(s: SupervisorState, u: SupervisorInputs, R, p, cfg) -> Supervi
 # a few degrees off the vertical sees the kidney as well).
 REORIENT_SETTLE = 3.0
 REORIENT_ACCEPT = 0.15
+# The turn has stalled once it has not come this much closer (rad) for REORIENT_SETTLE s.
+REORIENT_PROGRESS = math.radians(0.5)
+
+
+def turn_progress(best: float, best_since: float, angle: float, t: float) -> tuple:
+    """(best, best_since): the smallest angle (rad) to the turn's target so far and since
+    when (s), after the angle ``angle`` at time ``t``: a new best only once it is
+    REORIENT_PROGRESS closer (the probe settling on sloping skin creeps, it does not
+    turn)."""
+    if not math.isfinite(best) or angle < best - REORIENT_PROGRESS:
+        return float(angle), float(t)
+    return float(best), float(best_since)
+
+
+def turn_stalled(best: float, best_since: float, t: float, array_angle: float) -> bool:
+    """Whether the re-exploration's turn has stalled with the array short of its transverse
+    target: no progress (:func:`turn_progress`) for REORIENT_SETTLE s and the array
+    ``array_angle`` (rad) from its target beyond REORIENT_ACCEPT. A transverse image has
+    two array directions (o and -o: the same plane, mirrored); the turn goes the shorter
+    way, which the wrist may not reach (FR3 joint 7 at its limit after a pivot that
+    turned the array along the kidney: KiTS19 case 58, 11.8 deg short), while the other
+    way it can."""
+    return (
+        math.isfinite(best_since)
+        and t - best_since >= REORIENT_SETTLE - 1e-9
+        and array_angle > REORIENT_ACCEPT
+    )
 
 
 def retreat_limit(cfg, kidney_length_estimate: float = math.nan) -> float:
@@ -1199,8 +1233,30 @@ def _reorient(s, u, R, p, cfg, dt):
     """Re-exploration's first stage: hold the tip still until the probe points along a_des
     and its array along o_des (transit_angle_tolerance, or REORIENT_ACCEPT once it has had
     REORIENT_SETTLE s), then explore."""
-    ang = max(angle_between(R[:, 2], s.a_des), angle_between(R[:, 0], s.o_des))
+    array = angle_between(R[:, 0], s.o_des)
+    ang = max(angle_between(R[:, 2], s.a_des), array)
     settled = u.t - s.phase_start >= REORIENT_SETTLE and ang <= REORIENT_ACCEPT
+    s.reorient_best, s.reorient_best_since = turn_progress(
+        s.reorient_best, s.reorient_best_since, ang, u.t
+    )
+    if (
+        not (ang <= cfg.transit_angle_tolerance or settled)
+        and not s.reorient_flipped
+        and turn_stalled(s.reorient_best, s.reorient_best_since, u.t, array)
+    ):
+        # The same transverse plane with the array the other way round.
+        s.o_des = -s.o_des
+        s.reorient_flipped = True
+        s.reorient_best, s.reorient_best_since = math.inf, math.nan
+        s.events = s.events + (
+            (
+                u.t,
+                "EXPLORE",
+                f"the array stalled {math.degrees(array):.1f} deg short of transverse: "
+                "turning it to the other transverse direction",
+            ),
+        )
+        return s
     if ang <= cfg.transit_angle_tolerance or settled:
         s.reorienting = False
         s.retreating = True
