@@ -61,6 +61,8 @@ ROW_KEYS = (
     "parenchyma_ml",
     "rms_residual_mm",
     "wall_s",
+    "exploration",
+    "second_look",
 )
 
 
