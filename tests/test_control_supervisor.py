@@ -1146,6 +1146,7 @@ def test_a_pivot_view_contradicting_the_fit_takes_a_second_look_over_the_whole_k
         s, t = _pivot_to_end(s, t, c, R, dt, lambda t: (t - 1.0, answer))
         assert s.phase == supervisor.Phase.PIVOT and s.reviewing and s.pivot_legs_done == 2
         assert "checking its view" in s.events[-1][2]
+        assert not supervisor.segmentation_required(s)  # the sweep saw the kidney leave
         end = s.review_since
         while s.phase == supervisor.Phase.PIVOT:  # the answers lag the end by 0.05 s
             t += dt

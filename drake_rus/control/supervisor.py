@@ -387,9 +387,10 @@ def segmentation_required(s: SupervisorState) -> bool:
     """Whether the kidney must be visible now (EXPLORE; PIVOT except where its absence is
     expected, :func:`absence_expected`, updated every PIVOT period); drives the safety
     layer's watchdog."""
-    if s.paused or s.reorienting or s.retreating:
+    if s.paused or s.reorienting or s.retreating or s.reviewing:
         # Holding still outside a breath-hold: the kidney may drift away; a re-exploration
-        # turning or backing out of the kidney: its leaving the image is the aim.
+        # turning or backing out of the kidney: its leaving the image is the aim; the
+        # pivot's end awaiting the pivot-view check: the sweep saw it leave.
         return False
     if s.phase == Phase.EXPLORE:
         return not s.awaiting_kidney  # a line sweep before the kidney first came into view
