@@ -61,6 +61,8 @@ ROW_KEYS = (
     "parenchyma_ml",
     "rms_residual_mm",
     "wall_s",
+    "exploration",
+    "second_look",
 )
 
 
@@ -97,7 +99,10 @@ def scan_case(job: dict) -> dict:
             volume_ratio=summary["volume_ratio"],
             rms_residual_mm=loc.get("rms_residual_mm"),
             sim_s=summary["sim_s"],
+            exploration=summary.get("exploration"),
         )
+        if summary.get("second_look"):
+            row["second_look"] = summary["second_look"]
 
     row = {"case": job["case"], "tumour_ml": job["tumour_ml"], "parenchyma_ml": job["par_ml"]}
     try:
@@ -169,7 +174,8 @@ def print_table(rows, file=sys.stdout) -> None:
         print(
             f"{r['case']:12s} {r['status']:10s} {_fmt(r.get('e_trans_mm'), '10.2f')} "
             f"{_fmt(r.get('e_rot_x_deg'), '11.2f')} {_fmt(r.get('volume_ratio'), '6.3f')} "
-            f"{_fmt(r.get('tumour_ml'), '9.1f')}  {r.get('reason') or ''}",
+            f"{_fmt(r.get('tumour_ml'), '9.1f')}  {r.get('reason') or ''}"
+            + (" [second look: whole kidney]" if r.get("second_look") else ""),
             file=file,
         )
 

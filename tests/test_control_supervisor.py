@@ -1087,3 +1087,99 @@ def test_a_stalled_turn_takes_the_other_transverse_direction():
     t += dt
     s = supervisor.supervisor_step(s, inputs(t, R=R_other), c, dt)
     assert not s.reorienting and s.retreating
+
+
+# ------------------------------------------------------------------ the second look
+CONTRADICTS = "the pivot's view contradicts the registration: 11.7 mm more (limit 6.87 mm)"
+
+
+def test_second_look_rules():
+    """The pivot's end awaits the check only with the field on, once, while a
+    re-localization is allowed and a check is connected; the check's answer counts only
+    once it covers the whole pivot, and a silent check ends in DONE after the timeout."""
+    c = cfg()
+    assert c.second_look
+    wanted = supervisor.review_wanted
+    assert wanted(c, False, 0, (math.nan, ""))
+    assert not wanted(c, True, 0, (math.nan, ""))  # once per scan
+    assert not wanted(c, False, c.max_relocalizations, (math.nan, ""))
+    assert not wanted(c, False, 0, None)  # no check connected
+    assert not wanted(cfg(second_look=False), False, 0, (math.nan, ""))
+    assert not wanted(cfg(pivot_pose=[0.5, 0.0, 0.1, 0.0, 0.0, 0.0]), False, 0, (0.0, ""))
+    outcome = supervisor.review_outcome
+    assert outcome((9.9, CONTRADICTS), 10.0, 10.1) == "wait"  # asked before the end
+    assert outcome((math.nan, ""), 10.0, 10.1) == "wait"
+    assert outcome((10.0, CONTRADICTS), 10.0, 10.1) == "second_look"
+    assert outcome((10.5, ""), 10.0, 10.6) == "done"
+    assert outcome((9.0, CONTRADICTS), 10.0, 10.0 + supervisor.REVIEW_TIMEOUT) == "done"
+    # Bounded by the longest kidney allowed past where the kidney came into view.
+    assert supervisor.whole_kidney_target(c, 0.02) == pytest.approx(0.02 + 1.5 * 0.10)
+
+
+def _pivot_to_end(s, t, c, R, dt, view):
+    """Pivots (the kidney in view between -0.2 and +0.3 rad) until both legs ended, with
+    the pivot-view check answering ``view(t)``; returns (state, time)."""
+    while s.phase == supervisor.Phase.PIVOT and not s.reviewing and t < 60:
+        t += dt
+        vis = -0.2 < s.pivot_angle < 0.3
+        u = dataclasses.replace(inputs(t, R=R, visible=vis), pivot_view=view(t))
+        s = supervisor.supervisor_step(s, u, c, dt)
+    return s, t
+
+
+def test_a_pivot_view_contradicting_the_fit_takes_a_second_look_over_the_whole_kidney():
+    """At the pivot's end the scan holds until the pivot-view check has covered the whole
+    pivot: an agreeing view ends in DONE; a contradicting one backs out and explores until
+    the kidney leaves the image (past ER x L), once; the next pivot then ends in DONE
+    whatever its view (the verdict judges it)."""
+    c = cfg(
+        exploration_ratio=0.02,
+        localize_hold_time=0.0,
+        pivot_rate=0.2,
+        max_pivot_tilt=0.6,
+        visibility_debounce=0.05,
+    )
+    dt = 0.01
+    for contradicts in (False, True):
+        s, t, R = _to_pivot(c, dt)
+        answer = CONTRADICTS if contradicts else ""
+        s, t = _pivot_to_end(s, t, c, R, dt, lambda t: (t - 1.0, answer))
+        assert s.phase == supervisor.Phase.PIVOT and s.reviewing and s.pivot_legs_done == 2
+        assert "checking its view" in s.events[-1][2]
+        assert not supervisor.segmentation_required(s)  # the sweep saw the kidney leave
+        end = s.review_since
+        while s.phase == supervisor.Phase.PIVOT:  # the answers lag the end by 0.05 s
+            t += dt
+            u = dataclasses.replace(inputs(t, R=R, visible=False), pivot_view=(t - 0.05, answer))
+            s = supervisor.supervisor_step(s, u, c, dt)
+        assert t >= end + 0.05 - 1e-9
+        if not contradicts:
+            assert s.phase == supervisor.Phase.DONE and not s.second_look_used
+            assert "its view agrees with the fit" in s.events[-1][2]
+            continue
+        assert s.phase == supervisor.Phase.EXPLORE and s.whole_kidney and s.second_look_used
+        assert s.second_look_reason == CONTRADICTS and s.relocalizations == 1
+        assert "second look" in s.events[-1][2] and "whole kidney" in s.events[-1][2]
+        R_transverse = np.column_stack([s.o_des, np.cross(s.a_des, s.o_des), s.a_des])
+        while s.reorienting or s.retreating:
+            t += dt
+            s = supervisor.supervisor_step(s, inputs(t, R=R_transverse, visible=False), c, dt)
+        while s.phase == supervisor.Phase.EXPLORE and s.travel < 0.05:
+            t += dt
+            s = supervisor.supervisor_step(s, inputs(t, R=R_transverse), c, dt)
+        assert s.phase == supervisor.Phase.EXPLORE  # ER x L is 2 mm: the whole kidney goes on
+        while s.phase == supervisor.Phase.EXPLORE:
+            s, t = _unseen(s, t, 1, c, dt)
+        assert s.phase == supervisor.Phase.LOCALIZE
+        assert "(second look: the whole kidney)" in s.events[-1][2]
+        s, t, R = _finish_to_pivot(s, t, c, dt)
+        s, t = _pivot_to_end(s, t, c, R, dt, lambda t: (t, CONTRADICTS))
+        assert s.phase == supervisor.Phase.DONE and not s.reviewing  # used once
+
+
+def test_the_pivot_end_is_done_at_once_without_the_second_look():
+    c = cfg(pivot_rate=0.2, max_pivot_tilt=0.6, visibility_debounce=0.05, second_look=False)
+    dt = 0.01
+    s, t, R = _to_pivot(c, dt)
+    s, t = _pivot_to_end(s, t, c, R, dt, lambda t: (t, CONTRADICTS))
+    assert s.phase == supervisor.Phase.DONE and s.events[-1][2] == "pivot sweep complete"

@@ -612,3 +612,59 @@ def test_the_monitor_reports_a_patient_sliding_under_the_probe(template):
     assert quiet == "" and "slid under the probe: its tangential force changed by 2.3 N" in slid
     assert run(0.0) == ("", "")
     assert run(1.0, slip_check=False) == ("", "")  # gated free breathing: not judged
+
+
+def test_the_monitor_answers_whether_the_pivots_view_contradicts_the_fit(template):
+    """During PIVOT the monitor keeps the pivot frames' boundary points and answers, on
+    ``pivot_view``, with the verdict's rule against the explored cloud: stamped with the
+    time of the newest frame covered; off without ``pivot_view``."""
+    from pydrake.systems.analysis import Simulator
+
+    from drake_rus.imaging.frames import PointCloud
+    from drake_rus.localization.pivot_view import PIVOT_VIEW_CONTRADICTS
+
+    imaging = ImagingConfig()
+    geometry = ProbeGeometry.from_config(imaging)
+    R_KP = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+    X_BP = X_BK.multiply(RigidTransform(RotationMatrix(R_KP), [0.0, 0.0, 0.06]))
+    period = 1.0 / imaging.frame_rate_hz
+    # The explored cloud on the registered template (its residual 0); the pivot's section
+    # 2 mm off it across the body (the tracking limit is larger: no tracking error).
+    cloud = PointCloud(points=X_BK.multiply(np.asarray(template.points, float).T).T)
+    section = long_axis_slab(template, 0.0015) + X_BK.rotation().matrix()[:, 2] * 0.002
+    pixels, _ = geometry.B_to_pixel(section, X_BP)
+
+    def run(pivot_view, phase=4, seconds=1.0):
+        monitor = KidneyTrackingMonitor(
+            template, LocalizationConfig(), imaging, [4], pivot_view=pivot_view, pivot_phase=4
+        )
+        sim = Simulator(monitor)
+        ctx = sim.get_mutable_context()
+        monitor.GetInputPort("localization").FixValue(
+            ctx, LocalizationOutcome(result=_result(), time=0.0)
+        )
+        monitor.GetInputPort("phase").FixValue(ctx, [float(phase)])
+        monitor.GetInputPort("partial_cloud").FixValue(ctx, cloud)
+        for k in range(int(seconds / period)):
+            monitor.GetInputPort("boundary_pixels").FixValue(
+                ctx, BoundaryPixels(pixels, k * period, X_BP, k)
+            )
+            sim.AdvanceTo((k + 1) * period)
+        state = monitor.state(ctx)
+        return state, monitor.GetOutputPort("pivot_view").Eval(ctx)
+
+    # Excess 0: any pivot boundary farther off than the cloud contradicts the fit.
+    state, (covered, error) = run((90.0, 0.0, "none"))
+    assert state.error == "" and len(state.pivot_points) > 10
+    assert error.startswith(PIVOT_VIEW_CONTRADICTS), error
+    seen = float(error.split("pivot boundary ")[1].split(" mm")[0])
+    assert seen == pytest.approx(2.0, abs=0.5)  # 2 mm, and the pixels' quantization
+    assert 0.5 <= covered <= 1.0  # a check every tracking_period (0.5 s), stamped
+    # The shipped bound (1.25 x the RMS bound) accepts 2 mm.
+    _, (covered, error) = run((90.0, 1.25, "none"))
+    assert error == "" and covered >= 0.5
+    # Not in PIVOT (TRANSIT), or switched off: no answer.
+    state, (covered, _) = run((90.0, 0.0, "none"), phase=3)
+    assert math.isnan(covered) and state.pivot_points == ()
+    _, (covered, _) = run(None)
+    assert math.isnan(covered)

@@ -230,6 +230,16 @@ class ControllerConfig:
     # shift): re-localize (backing out of the kidney, a new exploration into it and a new
     # registration) at most this many times, then ABORT; 0: ABORT at once.
     max_relocalizations: int = field(default=2, metadata={"min": 0, "max": 10})
+    # A sonographer's second look: at the pivot's end, before DONE, the scan compares the
+    # pivot's view of the kidney with the registration (the rule the verdict's
+    # pivot_residual check applies afterwards, localization.pivot_view); when it
+    # contradicts the fit and a re-localization is still allowed (max_relocalizations),
+    # the scan backs out, sweeps the whole kidney (until it leaves the image, at most
+    # exploration_length_factor x kidney_length past where it came into view: a full
+    # cloud leaves the registration no wrong minimum, docs/results/real_kidneys.md),
+    # registers and pivots again; once per scan. False: DONE at the pivot's end, the
+    # verdict alone judging the pivot's view.
+    second_look: bool = True
 
 
 @dataclass

@@ -244,6 +244,15 @@ class SupervisorState:
     reorient_best: float = math.inf
     reorient_best_since: float = math.nan
     reorient_flipped: bool = False
+    # The second look (controller.second_look): the pivot's end awaits the pivot-view check
+    # (``reviewing``, since ``review_since`` s); the current exploration sweeps the whole
+    # kidney (:func:`whole_kidney_target`), not ER x L; the scan's one second look has been
+    # taken, and why ("" none).
+    reviewing: bool = False
+    review_since: float = math.nan
+    whole_kidney: bool = False
+    second_look_used: bool = False
+    second_look_reason: str = ""
     a_star: np.ndarray = dataclasses.field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
     approach_origin: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, math.nan))
     contact_since: float = math.nan  # APPROACH: when the force last reached contact
@@ -308,6 +317,10 @@ class SupervisorInputs:
     pivot_model: PivotModel | None = None
     # Why the breath-hold protocol cannot go on ("" = it can): the scan aborts.
     breathing_error: str = ""
+    # The pivot-view check (localization.pivot_view, run beside the loop by the kidney
+    # tracking monitor): (time (s) of the newest frame it covered, why the pivot's view
+    # contradicts the registration, "" = it does not); None: no check connected.
+    pivot_view: tuple | None = None
 
 
 def _goto(s: SupervisorState, phase: Phase, t: float, message: str) -> SupervisorState:
@@ -374,9 +387,10 @@ def segmentation_required(s: SupervisorState) -> bool:
     """Whether the kidney must be visible now (EXPLORE; PIVOT except where its absence is
     expected, :func:`absence_expected`, updated every PIVOT period); drives the safety
     layer's watchdog."""
-    if s.paused or s.reorienting or s.retreating:
+    if s.paused or s.reorienting or s.retreating or s.reviewing:
         # Holding still outside a breath-hold: the kidney may drift away; a re-exploration
-        # turning or backing out of the kidney: its leaving the image is the aim.
+        # turning or backing out of the kidney: its leaving the image is the aim; the
+        # pivot's end awaiting the pivot-view check: the sweep saw it leave.
         return False
     if s.phase == Phase.EXPLORE:
         return not s.awaiting_kidney  # a line sweep before the kidney first came into view
@@ -504,6 +518,47 @@ def exploration_target(cfg, kidney_length_estimate: float = math.nan) -> float:
     return cfg.exploration_ratio * exploration_kidney_length(cfg, kidney_length_estimate)
 
 
+def whole_kidney_target(cfg, seen_travel: float) -> float:
+    """Exploration travel (m) after which a whole-kidney exploration (the second look) ends
+    if the kidney has not left the image by then: the longest kidney length allowed,
+    ``exploration_length_factor`` x ``kidney_length`` (as
+    :func:`exploration_kidney_length` bounds an unknown length), past ``seen_travel``, the
+    travel where the kidney came into view (0 when it was in view where the sweep began)."""
+    return float(seen_travel) + cfg.exploration_length_factor * cfg.kidney_length
+
+
+def review_wanted(cfg, used: bool, relocalizations: int, pivot_view) -> bool:
+    """Whether the pivot's end awaits the pivot-view check before DONE: ``second_look``
+    on, no given ``pivot_pose`` (no registration to judge), the scan's one second look not
+    ``used``, a re-localization still allowed
+    (``relocalizations`` < ``max_relocalizations``) and a check connected (``pivot_view``
+    not None)."""
+    return (
+        bool(cfg.second_look)
+        and not cfg.pivot_pose
+        and not used
+        and relocalizations < cfg.max_relocalizations
+        and pivot_view is not None
+    )
+
+
+# The pivot-view check runs beside the loop; past this wait (s) the scan says DONE and
+# leaves the pivot's view to the verdict.
+REVIEW_TIMEOUT = 5.0
+
+
+def review_outcome(pivot_view, review_since: float, t: float) -> str:
+    """What the pivot's end does next, from the check's answer ``pivot_view`` ((time of
+    the newest frame covered s, error str)) awaited since ``review_since`` (s), at time
+    ``t``: "second_look" (a check covering the whole pivot found its view contradicting
+    the registration), "done" (it found none, or none came within REVIEW_TIMEOUT s) or
+    "wait"."""
+    covered, error = pivot_view if pivot_view is not None else (math.nan, "")
+    if math.isfinite(covered) and covered >= review_since - 1e-9:
+        return "second_look" if error else "done"
+    return "done" if t - review_since >= REVIEW_TIMEOUT - 1e-9 else "wait"
+
+
 def _advance_exploration(s, u, R, cfg, dt, target: float, backwards: bool = False):
     """One control period of eq. 17 towards ``target`` m of travel along the scan
     direction (against it with ``backwards``; the x correction from the mask centroid while
@@ -599,12 +654,21 @@ def _explore(s, u, R, p, cfg, dt):
         s.invisible_since = math.nan
         s.visible_since = math.nan
         left = False
-    target = exploration_target(cfg, u.kidney_length_estimate)
+    if s.whole_kidney:
+        target = whole_kidney_target(cfg, s.explore_seen_travel if s.explore_seen else 0.0)
+    else:
+        target = exploration_target(cfg, u.kidney_length_estimate)
     if s.travel >= target - 1e-12:
         s.P_des = p[:2].copy()
         how = ""
         estimated = cfg.exploration_length == "estimated"
-        if estimated and math.isinf(u.kidney_length_estimate):
+        if s.whole_kidney:
+            how = (
+                f" (second look: the longest kidney length "
+                f"{cfg.exploration_length_factor * cfg.kidney_length * 1e3:.0f} mm past where "
+                f"it came into view, the kidney still in the image)"
+            )
+        elif estimated and math.isinf(u.kidney_length_estimate):
             longest = cfg.exploration_length_factor * cfg.kidney_length
             how = (
                 f" (ER {cfg.exploration_ratio:g} x the longest kidney length "
@@ -618,8 +682,11 @@ def _explore(s, u, R, p, cfg, dt):
         return _goto(s, Phase.LOCALIZE, u.t, f"explored {s.travel * 1e3:.1f} mm{how}")
     if left:
         s.P_des = p[:2].copy()
-        return _goto(s, Phase.LOCALIZE, u.t, f"kidney left the image after {s.travel * 1e3:.1f} mm")
-    if u.exploration_sufficient:
+        how = " (second look: the whole kidney)" if s.whole_kidney else ""
+        return _goto(
+            s, Phase.LOCALIZE, u.t, f"kidney left the image after {s.travel * 1e3:.1f} mm{how}"
+        )
+    if u.exploration_sufficient and not s.whole_kidney:
         s.P_des = p[:2].copy()
         return _goto(
             s,
@@ -913,6 +980,13 @@ def _end_leg(s, u, R, p, cfg, cause: str, detail: str = ""):
         ),
     )
     if s.pivot_legs_done >= 2:
+        if review_wanted(cfg, s.second_look_used, s.relocalizations, u.pivot_view):
+            s.reviewing = True
+            s.review_since = u.t
+            s.events = s.events + (
+                (u.t, "PIVOT", "pivot sweep complete: checking its view against the fit"),
+            )
+            return s
         return _goto(s, Phase.DONE, u.t, "pivot sweep complete")
     s.pivot_direction = -s.pivot_direction
     s.invisible_since = math.nan
@@ -1023,6 +1097,8 @@ def _pivot(s, u, R, p, cfg, dt):
                 f" deg; a joint at its limit?)"
             )
             return _goto(s, Phase.ABORT, u.t, s.reason)
+    if s.reviewing:
+        return _review(s, u, R, p, cfg, dt)
     if not u.motion_allowed:
         return _hold_pivot(s, cfg, dt)
     s.paused = False
@@ -1051,6 +1127,27 @@ def _pivot(s, u, R, p, cfg, dt):
     )
     _pivot_advance(s, cfg, dt)
     return s
+
+
+def _review(s, u, R, p, cfg, dt):
+    """The pivot's end awaiting the pivot-view check (:func:`review_outcome`): the tilt
+    rate ramps down to zero and the probe holds; then DONE, or the second look."""
+    s.pivot_speed = _ramp(s.pivot_speed, 0.0, cfg.pivot_acceleration * dt)
+    _pivot_advance(s, cfg, dt)
+    what = review_outcome(u.pivot_view, s.review_since, u.t)
+    if what == "wait":
+        return s
+    s.reviewing = False
+    if what == "second_look":
+        return _kidney_moved(s, u, R, p, cfg, why=u.pivot_view[1], second_look=True)
+    covered = u.pivot_view[0] if u.pivot_view is not None else math.nan
+    how = (
+        "its view agrees with the fit"
+        if math.isfinite(covered) and covered >= s.review_since - 1e-9
+        else f"no pivot-view check within {REVIEW_TIMEOUT:g} s"
+    )
+    s.pivot_speed = 0.0
+    return _goto(s, Phase.DONE, u.t, f"pivot sweep complete ({how})")
 
 
 _PHASE_STEP = {
@@ -1111,14 +1208,18 @@ def _breathing_abort(s: SupervisorState, u: SupervisorInputs) -> SupervisorState
     return _goto(s, Phase.ABORT, u.t, s.reason)
 
 
-def _kidney_moved(s: SupervisorState, u: SupervisorInputs, R, p, cfg) -> SupervisorState:
+def _kidney_moved(
+    s: SupervisorState, u: SupervisorInputs, R, p, cfg, why: str = "", second_look: bool = False
+) -> SupervisorState:
     """The kidney tracking says the kidney left its registered pose during TRANSIT or PIVOT:
     re-localize (a re-exploration, then a new registration) up to ``max_relocalizations``
     times, then ABORT. The re-exploration starts still, turning the probe straight down
     (r3*) and transverse (``_reorient``), backs out of the kidney (``_retreat``), then
-    explores as the first exploration did."""
+    explores as the first exploration did. ``second_look``: the pivot's view contradicted
+    the registration (``why``): the same, but the exploration sweeps the whole kidney."""
+    why = why or u.tracking_error
     if s.relocalizations >= cfg.max_relocalizations:
-        s.reason = f"kidney moved: {u.tracking_error}"
+        s.reason = f"kidney moved: {why}"
         if s.relocalizations:
             s.reason += f" (after {s.relocalizations} re-localizations)"
         s.pivot_speed = 0.0
@@ -1126,6 +1227,11 @@ def _kidney_moved(s: SupervisorState, u: SupervisorInputs, R, p, cfg) -> Supervi
     s.relocalizations += 1
     s.localization_round += 1
     s.reorient_best, s.reorient_best_since, s.reorient_flipped = math.inf, math.nan, False
+    s.whole_kidney = bool(second_look)
+    if second_look:
+        s.second_look_used = True
+        s.second_look_reason = why
+    s.reviewing = False
     s.reorienting = True
     s.retreating = False
     s.awaiting_kidney = False
@@ -1145,12 +1251,14 @@ def _kidney_moved(s: SupervisorState, u: SupervisorInputs, R, p, cfg) -> Supervi
     s.a_des = np.array([0.0, 0.0, -1.0])
     s.o_des = transverse_orientation(s.a_des, R[:, 0])
     s.P_des = p[:2].copy()
+    opening = "second look" if second_look else "kidney moved"
     return _goto(
         s,
         Phase.EXPLORE,
         u.t,
-        f"kidney moved: {u.tracking_error}; re-localizing "
-        f"({s.relocalizations} of {cfg.max_relocalizations})",
+        f"{opening}: {why}; re-localizing "
+        f"({s.relocalizations} of {cfg.max_relocalizations})"
+        + ("; sweeping the whole kidney" if second_look else ""),
     )
 
 

@@ -286,7 +286,10 @@ class ScanSupervisor(LeafSystem):
     the kidney's length, which ends EXPLORE with ``exploration_length: estimated``);
     breathing_error (str; optional: the breath-hold protocol cannot go on: ABORT);
     pivot_model (supervisor.PivotModel; optional: the template points and fan the
-    ``predicted_end`` pivot strategy predicts the pivot's ends with; unconnected: two-leg).
+    ``predicted_end`` pivot strategy predicts the pivot's ends with; unconnected: two-leg);
+    pivot_view ((time s of the newest frame covered, str why the pivot's view contradicts
+    the registration, "" = it does not); optional: the pivot-view check the pivot's end
+    awaits before DONE, ``controller.second_look``; unconnected: DONE at once).
     Outputs: a_des (3), o_des (3), a_des_dot (3, 1/s), P_des (2, m), F_des (1, N), all in B;
     phase (1, supervisor.Phase value, e.g. the localizer's trigger); segmentation_required (1, 0/1);
     exploring (1, 0/1: enable of the point-cloud accumulator); abort (1, 0/1);
@@ -324,6 +327,9 @@ class ScanSupervisor(LeafSystem):
         self._length = self.DeclareVectorInputPort("kidney_length_estimate", 1)
         self._pivot_model = self.DeclareAbstractInputPort(
             "pivot_model", AbstractValue.Make(supervisor.PivotModel())
+        )
+        self._pivot_view = self.DeclareAbstractInputPort(
+            "pivot_view", AbstractValue.Make((math.nan, ""))
         )
         self._s = self.DeclareAbstractState(AbstractValue.Make(supervisor.SupervisorState()))
         self.DeclarePeriodicUnrestrictedUpdateEvent(self._dt, 0.0, self._update)
@@ -380,6 +386,11 @@ class ScanSupervisor(LeafSystem):
             ),
             pivot_model=(
                 self._pivot_model.Eval(context) if self._pivot_model.HasValue(context) else None
+            ),
+            pivot_view=(
+                tuple(self._pivot_view.Eval(context))
+                if self._pivot_view.HasValue(context)
+                else None
             ),
         )
         new = supervisor.supervisor_step(self.state(context), u, self._cfg, self._dt)

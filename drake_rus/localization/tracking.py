@@ -51,10 +51,11 @@ from scipy.spatial import cKDTree
 
 from drake_rus.executor import InlineExecutor
 from drake_rus.imaging.backprojection import backproject_pixels
-from drake_rus.imaging.frames import BoundaryPixels, KidneySurface
+from drake_rus.imaging.frames import BoundaryPixels, KidneySurface, PointCloud
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.localization.icp import MovingNearest, _template_tree
-from drake_rus.localization.localize import LocalizationOutcome
+from drake_rus.localization.localize import LocalizationOutcome, max_rms_residual
+from drake_rus.localization.pivot_view import pivot_residual_bound, pivot_view_error
 
 __all__ = [
     "estimate_drift",
@@ -306,6 +307,14 @@ class TrackingState:
     stretch_start: float = math.nan
     stretch_phase: int = -1
     slip_N: float = math.nan
+    # The pivot-view check (localization.pivot_view): the boundary points (N, 3) in B of
+    # each PIVOT frame taken while motion was allowed, the check running (an executor
+    # Ticket, or None), when the latest was asked for (s), and its answer ((time s of the
+    # newest frame it covered, error str): the ``pivot_view`` output).
+    pivot_points: tuple = ()
+    pivot_pending: object = None
+    pivot_last_check: float = -math.inf
+    pivot_view: tuple = (math.nan, "")
 
     # Drake clones abstract state with deepcopy on every update (the frames hold point
     # arrays); the state is immutable, so clones may share it.
@@ -552,6 +561,12 @@ def drift_fit(
     )
 
 
+# The pivot-view check's largest set of pivot boundary points, taken evenly from all of
+# them: its percentile is the whole set's to a fraction of a millimetre, at a bounded cost
+# per check.
+PIVOT_VIEW_MAX_POINTS = 20000
+
+
 class KidneyTrackingMonitor(LeafSystem):
     """Checks, during the phases after localization, that the kidney is still where the
     registration put it (see the module docstring).
@@ -568,12 +583,31 @@ class KidneyTrackingMonitor(LeafSystem):
     ``tracking_period`` s over the frames of the last ``tracking_window`` s and runs on
     ``executor``'s ``fits`` lane (``drake_rus.executor``; default: inline, ready at once);
     its result is judged when it is ready, stamped with the time it was asked for.
+
+    With ``pivot_view`` ((percentile, excess, respiration mode): the scan's
+    ``verdict.pivot_residual_percentile`` and ``pivot_residual_excess`` and
+    ``respiration.mode``), the monitor also keeps the boundary points of every PIVOT frame
+    and every ``tracking_period`` s during PIVOT asks the same lane whether the pivot's
+    view contradicts the registration (``pivot_view.pivot_view_error``, the verdict's
+    rule) against the explored cloud (input ``partial_cloud``, abstract PointCloud in B);
+    output ``pivot_view``: (time s of the newest frame the latest answer covered, NaN
+    none; why the view contradicts the fit, "" = it does not).
     """
 
     def __init__(
-        self, template, config, imaging_config, check_phases, executor=None, slip_check=True
+        self,
+        template,
+        config,
+        imaging_config,
+        check_phases,
+        executor=None,
+        slip_check=True,
+        pivot_view=None,
+        pivot_phase=None,
     ):
         super().__init__()
+        self._pivot_view = None if pivot_view is None else tuple(pivot_view)
+        self._pivot_phase = None if pivot_phase is None else int(pivot_phase)
         # False: the patient breathes while the scan moves (gated free breathing), so the
         # skin slides under the probe at every end-expiration window's edge.
         self._slip_check = bool(slip_check)
@@ -594,6 +628,9 @@ class KidneyTrackingMonitor(LeafSystem):
         self._phase = self.DeclareVectorInputPort("phase", 1)
         self._motion = self.DeclareVectorInputPort("motion_allowed", 1)
         self._force = self.DeclareVectorInputPort("probe_force", 6)
+        self._cloud = self.DeclareAbstractInputPort(
+            "partial_cloud", AbstractValue.Make(PointCloud())
+        )
         self._max_gap = 2.5 / imaging_config.frame_rate_hz  # s: a missed sample or two
         self._state = self.DeclareAbstractState(AbstractValue.Make(TrackingState()))
         period = 1.0 / imaging_config.frame_rate_hz
@@ -609,6 +646,12 @@ class KidneyTrackingMonitor(LeafSystem):
             "kidney_drift",
             1,
             lambda c, o: o.SetAtIndex(0, c.get_abstract_state(self._state).get_value().drift_m),
+            prerequisites_of_calc=ticket,
+        )
+        self.DeclareAbstractOutputPort(
+            "pivot_view",
+            lambda: AbstractValue.Make((math.nan, "")),
+            lambda c, o: o.set_value(c.get_abstract_state(self._state).get_value().pivot_view),
             prerequisites_of_calc=ticket,
         )
 
@@ -658,6 +701,9 @@ class KidneyTrackingMonitor(LeafSystem):
             and np.all(np.isfinite(boundary.X_BP.GetAsMatrix4()))
         ):
             new_index = boundary.frame_index
+            if self._pivot_view is not None and phase == self._pivot_phase:
+                points = backproject_pixels(self._geometry, boundary.pixels, boundary.X_BP)
+                s = dataclasses.replace(s, pivot_points=s.pivot_points + (points,))
             if (
                 kidney_in_view(shape_B, boundary.X_BP, self._geometry, cfg.tracking_view_slab)
                 >= cfg.tracking_min_view_points
@@ -675,6 +721,7 @@ class KidneyTrackingMonitor(LeafSystem):
             s, frames=frames, last_index=new_index, segment=segment, was_allowed=allowed
         )
         s = self._take(s, t, outcome)
+        s = self._pivot_check(context, s, t, phase, outcome, shape_B)
         if s.pending is None and t - s.last_check >= cfg.tracking_period - 1e-9:
             if len(frames) >= cfg.tracking_min_frames:
                 points = np.concatenate([f[1] for f in frames])
@@ -702,6 +749,47 @@ class KidneyTrackingMonitor(LeafSystem):
                 s = tracking_update(s, t, None, cfg, tracking_limits(outcome.result, cfg))
         state.get_mutable_abstract_state(self._state).set_value(s)
         return EventStatus.Succeeded()
+
+    def _pivot_check(self, context, s: TrackingState, t, phase, outcome, shape_B):
+        """``s`` with the pivot-view check's answer taken if it is ready, and a new one asked
+        for every ``tracking_period`` s during PIVOT (on the frames so far)."""
+        if self._pivot_view is None:
+            return s
+        if s.pivot_pending is not None:
+            done = self._executor.poll(s.pivot_pending, t)
+            if done is None:
+                return s
+            s = dataclasses.replace(
+                s, pivot_pending=None, pivot_view=(float(done.t_request), str(done.value))
+            )
+        if (
+            phase != self._pivot_phase
+            or not s.pivot_points
+            or t - s.pivot_last_check < self._cfg.tracking_period - 1e-9
+            or not self._cloud.HasValue(context)
+        ):
+            return s
+        percentile, excess, mode = self._pivot_view
+        result = outcome.result
+        has_shape = getattr(result, "shape_coefficients", None) is not None
+        max_rms = max_rms_residual(self._cfg, self._template, has_shape)
+        bound = pivot_residual_bound(excess, max_rms, mode, self._cfg.tracking_hold_allowance)
+        pivot_B = np.concatenate(s.pivot_points)
+        if len(pivot_B) > PIVOT_VIEW_MAX_POINTS:  # evenly over the sweep's frames
+            pivot_B = pivot_B[np.linspace(0, len(pivot_B) - 1, PIVOT_VIEW_MAX_POINTS).astype(int)]
+        ticket = self._executor.submit(
+            "fits",
+            pivot_view_error,
+            shape_B,
+            np.asarray(self._cloud.Eval(context).points),
+            pivot_B,
+            bound,
+            percentile,
+            t=t,
+            kind="pivot_view",
+        )
+        s = dataclasses.replace(s, pivot_pending=ticket, pivot_last_check=t)
+        return self._pivot_check(context, s, t, -1, outcome, shape_B)
 
     def _take(self, s: TrackingState, t: float, outcome) -> TrackingState:
         """``s`` with the running drift fit judged, if it is ready (as of the time it was

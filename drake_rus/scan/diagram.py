@@ -363,6 +363,18 @@ def BuildScanDiagram(
             # Gated free breathing: the breath itself slides the skin under the probe at
             # the windows' edges (1.6 N on test:5), so a slip is no sign of a shift there.
             slip_check=scenario.respiration.mode != "gated",
+            # The second look (controller.second_look): the pivot's end awaits the
+            # verdict's pivot_residual rule on the pivot's view so far.
+            pivot_view=(
+                (
+                    scenario.verdict.pivot_residual_percentile,
+                    scenario.verdict.pivot_residual_excess,
+                    scenario.respiration.mode,
+                )
+                if scenario.controller.second_look
+                else None
+            ),
+            pivot_phase=int(Phase.PIVOT),
         ),
     )
     builder.Connect(
@@ -375,6 +387,11 @@ def BuildScanDiagram(
     builder.Connect(
         tracking.GetOutputPort("tracking_error"), supervisor.GetInputPort("tracking_error")
     )
+    builder.Connect(
+        accumulator.GetOutputPort("point_cloud"), tracking.GetInputPort("partial_cloud")
+    )
+    if scenario.controller.second_look and scenario.localization.tracking_check:
+        builder.Connect(tracking.GetOutputPort("pivot_view"), supervisor.GetInputPort("pivot_view"))
     if hold is not None:
         builder.Connect(hold, tracking.GetInputPort("motion_allowed"))
 

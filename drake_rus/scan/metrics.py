@@ -318,6 +318,13 @@ def Summary(result: ScanResult, metrics: dict, provenance: dict | None = None) -
         "tracking_axial_allowance_mm": (
             limits.axial_allowance * 1000 if loc.result is not None else None
         ),
+        # The exploration the registration came from: "partial" (ER x L, the paper's) or
+        # "whole_kidney" (the second look, controller.second_look), and why the second look
+        # was taken (None: not taken).
+        "exploration": (
+            "whole_kidney" if getattr(result, "whole_kidney_exploration", False) else "partial"
+        ),
+        "second_look": getattr(result, "second_look_reason", "") or None,
         "exploration_length": result.scenario.controller.exploration_length,
         "exploration_ratio": result.scenario.controller.exploration_ratio,
         "exploration_ratio_unit": _er_unit(result.scenario.controller),

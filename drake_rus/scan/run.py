@@ -127,6 +127,10 @@ class ScanResult:
     sweep_end_causes: tuple = ()
     # The slides at the tilt cap ((leg, slide m), ...; SupervisorState.cap_slides).
     cap_slides: tuple = ()
+    # The second look (controller.second_look): whether the latest registration came from
+    # a whole-kidney exploration, and why it was taken ("" none was).
+    whole_kidney_exploration: bool = False
+    second_look_reason: str = ""
     # The scan's own checks of its result before it may say DONE (scan/verdict.py):
     # a list of Check; empty when the scan did not reach DONE.
     checks: list = dataclasses.field(default_factory=list)
@@ -323,6 +327,8 @@ def CollectScanResult(
         pivot_limits=tuple(state.pivot_limits),
         sweep_end_causes=tuple(state.sweep_end_causes),
         cap_slides=tuple(state.cap_slides),
+        whole_kidney_exploration=bool(state.whole_kidney),
+        second_look_reason=state.second_look_reason,
         events=tuple(state.events),
         respiration=_respiration_record(h, root_context),
     )

@@ -23,11 +23,11 @@ import dataclasses
 import math
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from drake_rus.control.supervisor import Phase
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.localization.localize import body_directions_B, max_rms_residual
+from drake_rus.localization.pivot_view import pivot_residual, pivot_residual_bound
 
 __all__ = [
     "Check",
@@ -293,20 +293,15 @@ def check_pivot_residual(
     far the explored cloud the template was fitted to lies: the ``percentile`` of the
     distances from the pivot frames' boundary points ``pivot_B`` (M, 3) to the nearest
     point of the registered template ``surface_B`` (N, 3), minus the same of the explored
-    cloud ``cloud_B`` (K, 3) (m); at most ``max_excess``. The pivot images the kidney across
-    its long axis, a view the registration did not use: a template that explains the
-    explored cloud but not the pivot's view (turned about the seen part, or missing a
-    bulge such as a tumour) leaves the pivot's boundary farther off than the cloud's. The
-    difference, not the pivot's distance alone, so that the template's own mismatch with
-    the kidney (the cloud's residual) is not counted twice."""
+    cloud ``cloud_B`` (K, 3) (m); at most ``max_excess``. The rule is
+    ``localization.pivot_view.pivot_residual``, the one the scan evaluates at the pivot's
+    end before DONE (its second look)."""
     pivot = np.asarray(pivot_B, float).reshape(-1, 3)
     cloud = np.asarray(cloud_B, float).reshape(-1, 3)
     if len(pivot) == 0 or len(cloud) == 0:
         what = "no pivot boundary points" if len(pivot) == 0 else "no explored cloud"
         return _na("pivot_residual", "m", "<=", what)
-    tree = cKDTree(np.asarray(surface_B, float).reshape(-1, 3))
-    seen = float(np.percentile(tree.query(pivot)[0], percentile))
-    fitted = float(np.percentile(tree.query(cloud)[0], percentile))
+    seen, fitted = pivot_residual(surface_B, cloud, pivot, percentile)
     value = seen - fitted
     ok = value <= max_excess
     detail = (
@@ -315,21 +310,6 @@ def check_pivot_residual(
         f"{value * 1e3:.1f} mm more ({'' if ok else 'not '}<= {max_excess * 1e3:.3g} mm)"
     )
     return Check("pivot_residual", value, float(max_excess), "m", "<=", ok, detail)
-
-
-def pivot_residual_bound(
-    excess: float, max_rms: float, respiration_mode: str, hold_allowance: float
-) -> float:
-    """The largest pivot residual (m) :func:`check_pivot_residual` accepts: ``excess`` x the
-    registration's RMS bound ``max_rms``, plus, when the patient breathes under a breath-hold
-    protocol or gating (``respiration_mode`` other than "none"), ``hold_allowance`` (m,
-    localization.tracking_hold_allowance): the pivot's frames come from other holds or
-    end-expiration windows than the explored cloud, and repeat holds put the kidney only
-    within about 4 mm of each other (Schwartz 1994, docs/facts)."""
-    bound = float(excess) * float(max_rms)
-    if respiration_mode != "none":
-        bound += float(hold_allowance)
-    return bound
 
 
 def pivot_boundary_points(boundaries, frames, geometry: ProbeGeometry) -> np.ndarray:
