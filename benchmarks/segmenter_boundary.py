@@ -29,7 +29,6 @@ that gain is under 0.002. The last line is one JSON object.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import sys
@@ -39,7 +38,7 @@ from dataclasses import replace
 import numpy as np
 from scipy import ndimage
 
-from benchmarks.segmenter_inference import parse_patients, validation_sources
+from benchmarks.segmenter_inference import validation_arguments, validation_sources
 
 BAND_CANVAS_PX = 2
 PLAIN = ("plain",)
@@ -180,22 +179,10 @@ def choose(table: dict, presets, tie: float = 0.001, least_gain: float = 0.002):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(
-        prog="python -m benchmarks segmenter_boundary", description=__doc__
-    )
-    ap.add_argument("--patients", default="22..29", help="validation patients train:A..B")
-    ap.add_argument("--views", type=int, default=30, help="views per source and posture")
-    ap.add_argument("--onnx-model", default=None, help="default: imaging.onnx_model")
-    ap.add_argument("--no-imported-like", action="store_true", help="generated volumes only")
-    ap.add_argument("--no-progress", action="store_true")
-    args = ap.parse_args(argv)
-    ab = parse_patients(args.patients)
-    if ab is None:
-        print(f"--patients: expected A..B with 0 <= A <= B, got {args.patients!r}", file=sys.stderr)
+    parsed = validation_arguments("python -m benchmarks segmenter_boundary", __doc__, argv)
+    if parsed is None:
         return 2
-    if args.views < 1:
-        print(f"--views: expected 1 or more, got {args.views}", file=sys.stderr)
-        return 2
+    args, ab = parsed
 
     from pydrake.math import RigidTransform
     from tqdm import tqdm

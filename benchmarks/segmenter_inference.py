@@ -163,24 +163,31 @@ def parse_patients(text: str) -> tuple[int, int] | None:
     return (a, b) if 0 <= a <= b else None
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(
-        prog="python -m benchmarks segmenter_inference", description=__doc__
-    )
+def validation_arguments(prog: str, description: str, argv=None):
+    """The arguments of the validation-split benchmarks (this one and segmenter_boundary):
+    (args, (A, B)), or None after one line on stderr naming the bad argument."""
+    ap = argparse.ArgumentParser(prog=prog, description=description)
     ap.add_argument("--patients", default="22..29", help="validation patients train:A..B")
     ap.add_argument("--views", type=int, default=30, help="views per source and posture")
     ap.add_argument("--onnx-model", default=None, help="default: imaging.onnx_model")
     ap.add_argument("--no-imported-like", action="store_true", help="generated volumes only")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
-    try:
-        a, b = (int(x) for x in args.patients.split(".."))
-    except ValueError:
-        print(f"--patients: expected A..B (train:A..B), got {args.patients!r}", file=sys.stderr)
+    ab = parse_patients(args.patients)
+    if ab is None:
+        print(f"--patients: expected A..B with 0 <= A <= B, got {args.patients!r}", file=sys.stderr)
+        return None
+    if args.views < 1:
+        print(f"--views: expected 1 or more, got {args.views}", file=sys.stderr)
+        return None
+    return args, ab
+
+
+def main(argv=None) -> int:
+    parsed = validation_arguments("python -m benchmarks segmenter_inference", __doc__, argv)
+    if parsed is None:
         return 2
-    if not 0 <= a <= b:
-        print(f"--patients: expected 0 <= A <= B, got {args.patients!r}", file=sys.stderr)
-        return 2
+    args, (a, b) = parsed
 
     from pydrake.math import RigidTransform
     from tqdm import tqdm
