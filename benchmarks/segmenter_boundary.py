@@ -79,15 +79,9 @@ def error_split(pred: np.ndarray, gt: np.ndarray, geometry, band: float) -> dict
     ``pred`` against the truth ``gt`` (both bool, image grid): a pixel is in the boundary band
     when it lies within ``band`` (m) of the true edge (distance from the kidney's outside to
     its inside, or back); errors as fractions of the true kidney's area."""
-    from drake_rus.imaging.segment import iou
+    from drake_rus.imaging.segment import edge_distance, iou
 
-    sampling = (geometry.dz, geometry.dx)
-    dist = np.where(
-        gt,
-        ndimage.distance_transform_edt(gt, sampling=sampling),
-        ndimage.distance_transform_edt(~gt, sampling=sampling),
-    )
-    near = dist <= band
+    near = edge_distance(gt, sampling=(geometry.dz, geometry.dx)) <= band
     wrong = pred ^ gt
     area = max(int(gt.sum()), 1)
     return {

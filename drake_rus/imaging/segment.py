@@ -227,6 +227,19 @@ def iou(a: np.ndarray, b: np.ndarray) -> float:
     return 1.0 if union == 0 else np.count_nonzero(a & b) / union
 
 
+def edge_distance(mask: np.ndarray, sampling=None) -> np.ndarray:
+    """Distance from each pixel centre of a 2-D bool ``mask`` to the nearest pixel centre
+    on the other side of its edge (inside: to the nearest outside pixel; outside: to the
+    nearest inside one), in the units of ``sampling`` (per-axis pixel sizes; None: pixels).
+    The mask's boundary band, for a segmentation loss or an error split."""
+    m = np.asarray(mask, bool)
+    return np.where(
+        m,
+        ndimage.distance_transform_edt(m, sampling=sampling),
+        ndimage.distance_transform_edt(~m, sampling=sampling),
+    )
+
+
 # --- classical ------------------------------------------------------------------------------
 def _block_mean(image: np.ndarray, f: int) -> np.ndarray:
     h, w = image.shape

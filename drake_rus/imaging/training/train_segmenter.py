@@ -104,6 +104,7 @@ from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.emulator import EmulatorModel
 from drake_rus.imaging.onnx_backend import read_model_card, resize_to
 from drake_rus.imaging.probe import ProbeGeometry
+from drake_rus.imaging.segment import edge_distance
 from drake_rus.imaging.training.dataset import (
     CORTEX_MM,
     PARENCHYMA_MM,
@@ -547,8 +548,6 @@ def boundary_band_weight(
     ``band`` (m) of the true edge (the boundary of target > 0.5, half a pixel beyond the
     last pixel centre on either side; canvas pixels of ``pixel_size`` m), 1 elsewhere and on
     frames without kidney. The canvas's own border is no edge."""
-    from scipy import ndimage
-
     if pixel_size <= 0 or band < 0 or gain < 0:
         raise ValueError(
             f"boundary band: expected pixel_size > 0, band >= 0, gain >= 0 (m, m, 1), got "
@@ -562,7 +561,7 @@ def boundary_band_weight(
             continue
         # Distance (px) from each pixel centre to the nearest centre across the edge;
         # the edge lies half a pixel short of it.
-        d = np.where(m, ndimage.distance_transform_edt(m), ndimage.distance_transform_edt(~m))
+        d = edge_distance(m)
         w[i][(d - 0.5) * pixel_size <= band + 1e-12] += np.float32(gain)
     return w
 
