@@ -121,3 +121,17 @@ def test_the_length_estimate_and_a_zero_prior_fit_no_size_modes():
     assert len(size_prior(template, off)[0]) == 0
     rigid = RegistrationTemplate(template.points, template.normals)
     assert len(size_prior(rigid, CONFIG)[0]) == 0
+
+
+def test_warm_starts_with_and_without_size_modes():
+    template = bean_registration_template()
+    shape = scaled_shape(template.points, (1, 2), np.array([0.1, 0.2]))
+    P_B = true_pose().multiply(shape.T).T
+    off = dataclasses.replace(CONFIG, size_sd_length=0, size_sd_width=0, size_sd_thickness=0)
+    first = localize(P_B[::2], template, off, SUPERIOR_B, LATERAL_B)
+    again = localize(P_B, template, off, SUPERIOR_B, LATERAL_B, warm_start=first)
+    assert again.size_coefficients is None
+    sized = localize(P_B, template, CONFIG, SUPERIOR_B, LATERAL_B, warm_start=first)
+    assert sized.size_axes == (0, 1, 2)
+    resized = localize(P_B, template, CONFIG, SUPERIOR_B, LATERAL_B, warm_start=sized)
+    np.testing.assert_allclose(resized.size_coefficients, sized.size_coefficients, atol=0.01)

@@ -134,9 +134,11 @@ def localize(
             variances = np.concatenate([variances, size_variances])
         b0 = None
         if warm_start is not None and warm_start.shape_coefficients is not None:
+            # The warm start's size changes when it fitted the same axes, else none.
             s0 = warm_start.size_coefficients
-            same_axes = tuple(warm_start.size_axes) == tuple(axes)
-            b0 = np.concatenate([warm_start.shape_coefficients, s0 if same_axes else []])
+            if s0 is None or tuple(warm_start.size_axes) != tuple(int(a) for a in axes):
+                s0 = np.zeros(len(axes))
+            b0 = np.concatenate([warm_start.shape_coefficients, s0])
         result = register_plane_to_plane(
             P,
             template.points,
