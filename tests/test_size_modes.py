@@ -34,7 +34,7 @@ def bean_registration_template(variance=0.004**2):
     return RegistrationTemplate(Q, N, bend_mode(Q)[None], np.array([variance]))
 
 
-CONFIG = LocalizationConfig(shape_modes=1)
+CONFIG = LocalizationConfig(shape_modes=1, size_modes=True)
 
 
 def test_size_modes_scale_about_the_origin_along_each_axis():
@@ -113,10 +113,11 @@ def test_a_kidney_of_the_templates_own_size_gets_no_scale():
     assert np.all(np.abs(result.size_coefficients) < 0.01)
 
 
-def test_the_length_estimate_and_a_zero_prior_fit_no_size_modes():
+def test_the_default_and_a_zero_prior_fit_no_size_modes():
     template = bean_registration_template()
     axes, var = size_prior(template, CONFIG)
     assert axes.tolist() == [0, 1, 2] and np.all(var > 0)
+    assert len(size_prior(template, LocalizationConfig(shape_modes=1))[0]) == 0  # off
     off = dataclasses.replace(CONFIG, size_sd_length=0, size_sd_width=0, size_sd_thickness=0)
     assert len(size_prior(template, off)[0]) == 0
     rigid = RegistrationTemplate(template.points, template.normals)

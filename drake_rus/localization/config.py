@@ -42,9 +42,11 @@ class LocalizationConfig:
     # Glodny 2009, 12.2 / 108.5 mm (CT, 2,068 kidneys); width: Emamian 1993's 10th-90th
     # percentile band 51-64 mm about 58 mm, SD ~5.1 mm; thickness: Jos 2005's
     # anteroposterior diameter 28 +- 8 mm (ultrasound, 100 patients; an upper bound, it
-    # includes the measurement's error) (docs/facts/anatomy_and_ultrasound.md). All three
-    # 0 = no size modes (the registration before issue 27's size modes). The length
-    # estimate during EXPLORE (length_shape_modes) does not use them.
+    # includes the measurement's error) (docs/facts/anatomy_and_ultrasound.md). The length
+    # estimate during EXPLORE (length_shape_modes) does not use them. Off by default: on
+    # saved clouds of 27 real kidneys they let two wrong fits through the unchanged gates
+    # (docs/results/real_kidneys.md, 2026-11-27 afternoon; a negative result).
+    size_modes: bool = False
     size_sd_length: float = field(default=0.112, metadata={"min": 0.0, "max": 1.0})
     size_sd_width: float = field(default=0.088, metadata={"min": 0.0, "max": 1.0})
     size_sd_thickness: float = field(default=0.29, metadata={"min": 0.0, "max": 1.0})

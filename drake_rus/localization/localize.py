@@ -170,9 +170,9 @@ def size_prior(
     """(axes, prior variances) of the size modes the deformable fit adds for ``template``
     (:func:`drake_rus.localization.size_modes.size_mode_prior` with the scenario's relative
     SDs, less what the template's first ``config.shape_modes`` modes explain); none
-    without shape modes or with the three SDs 0."""
+    with ``config.size_modes`` off, without shape modes or with the three SDs 0."""
     sd = (config.size_sd_length, config.size_sd_width, config.size_sd_thickness)
-    if template.modes is None or not any(v > 0 for v in sd):
+    if not config.size_modes or template.modes is None or not any(v > 0 for v in sd):
         return np.zeros(0, dtype=int), np.zeros(0)
     k = min(config.shape_modes, template.modes.shape[0])
     return size_mode_prior(template.points, template.modes[:k], template.variances[:k], sd)
@@ -223,9 +223,7 @@ def estimate_kidney_length(
         method="deformable",
         shape_modes=k,
         shape_residual_variance=config.length_shape_residual_variance,
-        size_sd_length=0.0,
-        size_sd_width=0.0,
-        size_sd_thickness=0.0,
+        size_modes=False,
     )
     P = np.asarray(P_local_B, dtype=float).reshape(-1, 3)
     result = localize(P, template, cfg, superior_B, lateral_B, warm_start)
