@@ -13,7 +13,13 @@ from pydrake.math import RigidTransform
 
 from drake_rus.anatomy import Label, is_kidney, load_patient
 from drake_rus.anatomy.canonical_frame import mesh_canonical_frame
-from drake_rus.anatomy.ct_patient import CtKidneyDoesNotFit, parse_ct_spec
+from drake_rus.anatomy.ct_patient import (
+    CT_BODY_MAX_HALF_WIDTH,
+    CtKidneyDoesNotFit,
+    body_attempts,
+    parse_ct_spec,
+)
+from drake_rus.anatomy.generator import sample_patient_params
 from drake_rus.anatomy.rasterize import mask_to_mesh, rasterize_mesh
 from drake_rus.cli import main as cli_main
 
@@ -129,6 +135,17 @@ def test_a_kidney_too_large_for_its_body_is_refused(tmp_path):
         load_patient(
             f"ct:{path}#body=6", side="right", voxel_size=VOXEL, progress=False, cache=False
         )
+
+
+def test_bodies_are_widened_only_after_every_body_as_drawn_and_within_adult_widths():
+    seeds = [3000000 + i for i in range(10)]
+    attempts = list(body_attempts(seeds, "right", "supine"))
+    assert attempts[:10] == [(1.0, b) for b in seeds]
+    widen = [w for w, _ in attempts]
+    assert widen == sorted(widen) and widen[10] == pytest.approx(1.05)
+    for w, b in attempts:
+        half_width = sample_patient_params(b, "right", "supine").torso.half_width
+        assert half_width * w <= CT_BODY_MAX_HALF_WIDTH + 1e-9
 
 
 def test_spec_errors(ct_file, capsys):

@@ -14,7 +14,8 @@ case folder: ``case_00003`` holds ``segmentation.nii.gz``). Options:
 - ``body=N``: the generator seed of the body (default: derived from the label map's
   content, ``3000000 + (SHA-256 mod 1000000)``, disjoint from train/test seeds; if the
   kidney does not fit between that body's spine and flank, the next of ``CT_BODY_TRIES``
-  seeds);
+  seeds, then those bodies widened within adult abdominal widths, ``body_attempts``; a
+  given ``body=N`` is used as drawn);
 - ``kidney=with_tumour|parenchyma``: what "the kidney" is when a tumour bulges from it
   (default ``with_tumour``): the true pose, kidney mask and segmentation target include
   the tumour, or only the parenchyma (the tumour is then a separate tissue beside it). Both
@@ -90,6 +91,15 @@ POSES = ("ct", "generator")
 # the kidney (a large tumour) does not fit that body, the next seeds are tried.
 CT_BODY_OFFSET = 3_000_000
 CT_BODY_TRIES = 10
+# When the kidney fits none of those bodies as drawn (a large tumour: in the real patient it
+# displaces the liver, bowel and flank muscles, which a generated body does not move), the
+# same bodies are tried again with the torso widened at the kidney's level in steps of
+# CT_BODY_WIDEN_STEP, as long as the half-width stays within adult abdominal transverse
+# diameters (about 260-380 mm at L1-L2, anatomy/body.py): at most CT_BODY_MAX_HALF_WIDTH.
+# The smallest widening that fits wins (then the first seed). KiTS19 case 28 (176 x 123 x
+# 78 mm with a 286 mL tumour) and case 56 (189 x 123 x 114 mm, 737 mL) fit none as drawn.
+CT_BODY_WIDEN_STEP = 0.05
+CT_BODY_MAX_HALF_WIDTH = 0.190
 # Glodny 2009 (facts file): cortex 6.6 mm, parenchyma 15.4 mm (the generator's defaults).
 CORTEX_M = 0.0066
 PARENCHYMA_M = 0.0154
@@ -342,8 +352,13 @@ def build_ct_patient(
         }
     }
     seeds = [seed] if spec.body_seed is not None else [seed + i for i in range(CT_BODY_TRIES)]
-    for body in seeds:
+    why = ""
+    given = spec.body_seed is not None  # a given body is used as drawn
+    attempts = [(1.0, seed)] if given else body_attempts(seeds, side, posture)
+    for widen, body in attempts:
         prm = sample_patient_params(body, side, posture)
+        drawn_half_width = prm.torso.half_width
+        prm.torso.half_width = drawn_half_width * widen
         prm.kidney = KidneyShapeParams(
             length=length,
             width=width,
@@ -353,6 +368,11 @@ def build_ct_patient(
         )
         meta["ct"]["body_seed"] = body
         meta["ct"]["body_tries"] = body - seed + 1
+        meta["ct"]["body_widened"] = round(widen, 3)
+        meta["ct"]["body_half_width_mm"] = [
+            round(drawn_half_width * 1e3, 1),
+            round(prm.torso.half_width * 1e3, 1),
+        ]
         try:
             return generate_patient_with_kidney(
                 prm,
@@ -364,12 +384,32 @@ def build_ct_patient(
                 meta=_jsonable(meta),
             )
         except KidneyDoesNotFit as e:
-            why = str(e)
+            why = why or str(e)
     tried = f"body {seeds[0]}" if len(seeds) == 1 else f"bodies {seeds[0]}-{seeds[-1]}"
     raise CtKidneyDoesNotFit(
         f"label map {path}: the {ct_side} kidney ({width * 1e3:.0f} mm wide with "
-        f"its tumour) fits none of {tried}: {why}"
+        f"its tumour) fits none of {tried}"
+        + ("" if given else f", even widened up to {CT_BODY_MAX_HALF_WIDTH * 2e3:.0f} mm across")
+        + f": {why}"
     )
+
+
+def body_attempts(seeds, side: str, posture: str):
+    """(widening factor, seed) in the order tried: every seed as drawn, then every seed
+    whose torso, widened by 1 + k x ``CT_BODY_WIDEN_STEP`` (k = 1, 2, ...), keeps a
+    half-width of at most ``CT_BODY_MAX_HALF_WIDTH`` (the smallest widening first)."""
+    half_widths = {b: sample_patient_params(b, side, posture).torso.half_width for b in seeds}
+    for b in seeds:
+        yield 1.0, b
+    k = 1
+    while True:
+        widen = 1.0 + k * CT_BODY_WIDEN_STEP
+        fits = [b for b in seeds if half_widths[b] * widen <= CT_BODY_MAX_HALF_WIDTH + 1e-9]
+        if not fits:
+            return
+        for b in fits:
+            yield widen, b
+        k += 1
 
 
 def kidney_definition_difference(case: CTKidneys, side: str, voxel: float = 0.001) -> dict:

@@ -34,6 +34,22 @@ class LocalizationConfig:
     # residual variance weighing data against the shape prior (m^2).
     shape_modes: int = field(default=3, metadata={"min": 0})
     shape_residual_variance: float = field(default=1e-6, metadata={"positive": True})
+    # Deformable method: size modes (localization/size_modes.py) scale the template about
+    # its centre along x_k (length), y_k (width) and z_k (thickness), fitted with the pose
+    # and shape weights; each has a Gaussian prior on the relative size change whose SD is
+    # the published relative spread below less what the template's fitted shape modes
+    # already explain along that axis (an axis left with under 1% is not fitted). Length:
+    # Glodny 2009, 12.2 / 108.5 mm (CT, 2,068 kidneys); width: Emamian 1993's 10th-90th
+    # percentile band 51-64 mm about 58 mm, SD ~5.1 mm; thickness: Jos 2005's
+    # anteroposterior diameter 28 +- 8 mm (ultrasound, 100 patients; an upper bound, it
+    # includes the measurement's error) (docs/facts/anatomy_and_ultrasound.md). The length
+    # estimate during EXPLORE (length_shape_modes) does not use them. Off by default: on
+    # saved clouds of 27 real kidneys they let two wrong fits through the unchanged gates
+    # (docs/results/real_kidneys.md, 2026-11-27 afternoon; a negative result).
+    size_modes: bool = False
+    size_sd_length: float = field(default=0.112, metadata={"min": 0.0, "max": 1.0})
+    size_sd_width: float = field(default=0.088, metadata={"min": 0.0, "max": 1.0})
+    size_sd_thickness: float = field(default=0.29, metadata={"min": 0.0, "max": 1.0})
     # Per-iteration bound on the translation step (m): a degenerate partial view (one
     # cross-section) leaves directions unconstrained, and an unbounded least-squares step
     # along them can throw the template far away. Not in the seed (it bounds rotation only).

@@ -71,6 +71,10 @@ class IcpResult:
     errors: np.ndarray  # mean squared projection error per iteration (m^2)
     max_rotation_steps: np.ndarray  # max |dtheta component| applied per iteration (rad)
     shape_coefficients: np.ndarray | None = None  # deformable fit: mode weights b
+    # Deformable fit with size modes (localization/size_modes.py): the relative size changes
+    # fitted along the canonical axes ``size_axes`` (0 = x_k, 1 = y_k, 2 = z_k).
+    size_coefficients: np.ndarray | None = None
+    size_axes: tuple = ()
     # Why the iteration ended: "converged" (error change or step below tolerance), "cycle"
     # (the iterates returned to an earlier one: a limit cycle) or "iteration cap".
     stop_reason: str = ""

@@ -23,6 +23,7 @@ from drake_rus.localization.icp import (
     heuristic_initial_rotation,
     register_plane_to_plane,
 )
+from drake_rus.localization.size_modes import scaled_shape, size_mode_prior, size_modes_K
 from drake_rus.paths import REPO_ROOT
 from drake_rus.template import DEFAULT_TEMPLATE_PATH, load_template
 from drake_rus.template.ct import is_template_spec, resolve_template
@@ -126,31 +127,75 @@ def localize(
     )
     if config.method == "deformable" and template.modes is not None and config.shape_modes > 0:
         k = min(config.shape_modes, template.modes.shape[0])
-        b0 = None if warm_start is None else warm_start.shape_coefficients
-        return register_plane_to_plane(
+        modes, variances = template.modes[:k], template.variances[:k]
+        axes, size_variances = size_prior(template, config)
+        if len(axes):
+            modes = np.concatenate([modes, size_modes_K(template.points)[axes]])
+            variances = np.concatenate([variances, size_variances])
+        b0 = None
+        if warm_start is not None and warm_start.shape_coefficients is not None:
+            # The warm start's size changes when it fitted the same axes, else none.
+            s0 = warm_start.size_coefficients
+            if s0 is None or tuple(warm_start.size_axes) != tuple(int(a) for a in axes):
+                s0 = np.zeros(len(axes))
+            b0 = np.concatenate([warm_start.shape_coefficients, s0])
+        result = register_plane_to_plane(
             P,
             template.points,
             template.normals,
             R0,
-            shape_modes_K=template.modes[:k],
-            shape_variances=template.variances[:k],
+            shape_modes_K=modes,
+            shape_variances=variances,
             shape_regularization=config.shape_residual_variance,
-            initial_shape=b0 if b0 is not None and len(b0) == k else None,
+            initial_shape=b0 if b0 is not None and len(b0) == len(variances) else None,
             **kwargs,
         )
+        if len(axes):
+            b = result.shape_coefficients
+            result = dataclasses.replace(
+                result,
+                shape_coefficients=b[:k],
+                size_coefficients=b[k:],
+                size_axes=tuple(int(a) for a in axes),
+            )
+        return result
     return register_plane_to_plane(
         P, template.points, template.normals, R0, template_tree=template.tree, **kwargs
     )
 
 
+def size_prior(
+    template: RegistrationTemplate, config: LocalizationConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """(axes, prior variances) of the size modes the deformable fit adds for ``template``
+    (:func:`drake_rus.localization.size_modes.size_mode_prior` with the scenario's relative
+    SDs, less what the template's first ``config.shape_modes`` modes explain); none
+    with ``config.size_modes`` off, without shape modes or with the three SDs 0."""
+    sd = (config.size_sd_length, config.size_sd_width, config.size_sd_thickness)
+    if not config.size_modes or template.modes is None or not any(v > 0 for v in sd):
+        return np.zeros(0, dtype=int), np.zeros(0)
+    k = min(config.shape_modes, template.modes.shape[0])
+    return size_mode_prior(template.points, template.modes[:k], template.variances[:k], sd)
+
+
+def fitted_shape_K(template: RegistrationTemplate, result) -> np.ndarray:
+    """(N, 3) the template's points in K (m) as the registration ``result`` fitted them:
+    the mean shape, plus its shape modes' weights (``shape_coefficients``), plus its size
+    modes' relative size changes (``size_coefficients``); a rigid result: the mean shape."""
+    shape = np.asarray(template.points, dtype=float)
+    b = getattr(result, "shape_coefficients", None)
+    if b is not None and template.modes is not None and len(b):
+        shape = shape + np.einsum("k,kij->ij", b, template.modes[: len(b)])
+    s = getattr(result, "size_coefficients", None)
+    if s is not None and len(s):
+        shape = shape + scaled_shape(template.points, result.size_axes, s) - template.points
+    return shape
+
+
 def kidney_length_of(template: RegistrationTemplate, result: IcpResult) -> float:
     """Extent (m) along the kidney's long axis (K's x) of the registered template, deformed
-    by the result's shape coefficients if it has them."""
-    shape = template.points
-    b = result.shape_coefficients
-    if b is not None and template.modes is not None:
-        shape = shape + np.einsum("k,kij->ij", b, template.modes[: len(b)])
-    return float(np.ptp(shape[:, 0]))
+    by the result's shape (and size) coefficients if it has them."""
+    return float(np.ptp(fitted_shape_K(template, result)[:, 0]))
 
 
 def estimate_kidney_length(
@@ -178,6 +223,7 @@ def estimate_kidney_length(
         method="deformable",
         shape_modes=k,
         shape_residual_variance=config.length_shape_residual_variance,
+        size_modes=False,
     )
     P = np.asarray(P_local_B, dtype=float).reshape(-1, 3)
     result = localize(P, template, cfg, superior_B, lateral_B, warm_start)

@@ -54,7 +54,11 @@ from drake_rus.imaging.backprojection import backproject_pixels
 from drake_rus.imaging.frames import BoundaryPixels, KidneySurface, PointCloud
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.localization.icp import MovingNearest, _template_tree
-from drake_rus.localization.localize import LocalizationOutcome, max_rms_residual
+from drake_rus.localization.localize import (
+    LocalizationOutcome,
+    fitted_shape_K,
+    max_rms_residual,
+)
 from drake_rus.localization.pivot_view import pivot_residual_bound, pivot_view_error
 
 __all__ = [
@@ -199,11 +203,7 @@ def estimate_drift(
 def registered_shape_K(template, result) -> np.ndarray:
     """(M, 3) the registration template's points in K (m) with the shape modes the
     registration ``result`` fitted (its ``shape_coefficients``; none: the mean shape)."""
-    shape = np.asarray(template.points, float)
-    b = getattr(result, "shape_coefficients", None)
-    if b is not None and template.modes is not None:
-        shape = shape + np.einsum("k,kij->ij", b, template.modes[: len(b)])
-    return shape
+    return fitted_shape_K(template, result)
 
 
 def kidney_in_view(

@@ -29,6 +29,7 @@ from drake_rus.control.supervisor import Phase
 from drake_rus.executor import MakeExecutor
 from drake_rus.hardware.station import HardwareSession
 from drake_rus.imaging.annotated import SavedFrame
+from drake_rus.localization.localize import fitted_shape_K
 from drake_rus.patient_body import PatientMotionFor
 from drake_rus.progress import AdvanceWithProgress
 from drake_rus.robot import IkError, MakeControlPlant, SolveTipPose
@@ -297,10 +298,7 @@ def CollectScanResult(
     X_BK_est, registered = None, None
     if outcome.result is not None:
         X_BK_est = outcome.result.X_BK
-        shape = template.points
-        if outcome.result.shape_coefficients is not None:
-            b = outcome.result.shape_coefficients
-            shape = template.points + np.einsum("k,kij->ij", b, template.modes[: len(b)])
+        shape = fitted_shape_K(template, outcome.result)
         registered = X_BK_est.multiply(shape.T).T
     return ScanResult(
         status=status,
