@@ -120,6 +120,13 @@ class ImagingConfig:
     # gained on imported-like kidneys (VH female 0.816 / 0.846 instead of 0.803 / 0.831)
     # and lost 0.002-0.004 at every preset on the generated test patients: 0.5 stays.
     onnx_mirror_average: bool = False
+    # A second ONNX model (path as onnx_model; "" for none) whose kidney probability is
+    # averaged with onnx_model's, pixel by pixel on the model grid, before the guided filter
+    # and the threshold (onnx_backend.ensemble_average; with onnx_mirror_average each model
+    # runs on the frame and on its mirror). It takes the same input and output fields
+    # (onnx_input_*, onnx_output, onnx_kidney_channel) and its card must declare the same
+    # canvas as onnx_model's. One more model run per frame.
+    onnx_ensemble_model: str = ""
     # Candidate kidney regions smaller than this (m^2) are dropped before the largest or the
     # tracked one is chosen (onnx_backend.drop_small_regions); 0 keeps every region. On the
     # validation split 0.5-1 cm^2 changed nothing and 2 cm^2 cost 0.028 IoU at 100 mm (a
