@@ -125,7 +125,11 @@ class ImagingConfig:
     # and the threshold (onnx_backend.ensemble_average; with onnx_mirror_average each model
     # runs on the frame and on its mirror). It takes the same input and output fields
     # (onnx_input_*, onnx_output, onnx_kidney_channel) and its card must declare the same
-    # canvas as onnx_model's. One more model run per frame.
+    # canvas as onnx_model's. One more model run per frame. Off: with the boundary-band
+    # candidate as second model, on validation patients neither model saw, neither the
+    # ensemble nor ensemble + mirror passed the rule fixed before scoring (ensemble + mirror
+    # gained at every generated preset but lost 0.004 IoU on imported-like kidneys at
+    # 100 mm; docs/results/segmenter.md).
     onnx_ensemble_model: str = ""
     # Candidate kidney regions smaller than this (m^2) are dropped before the largest or the
     # tracked one is chosen (onnx_backend.drop_small_regions); 0 keeps every region. On the
