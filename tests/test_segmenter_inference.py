@@ -12,7 +12,9 @@ import pytest
 from benchmarks.segmenter_inference import (
     PLAIN,
     choose,
+    choose_edge_threshold,
     choose_test_time,
+    parse_edge_thresholds,
     score_variants,
     variant_masks,
 )
@@ -232,3 +234,61 @@ def test_test_time_choice_follows_the_written_rule():
     iou[("generated", d1)]["mirror"] = 0.8515  # +0.0015 at 100 mm: not enough
     chosen, verdict = choose_test_time(iou, fp, ms)
     assert chosen == "default" and "100 mm gain +0.0015" in verdict["mirror"]
+
+
+def test_edge_threshold_grows_the_same_regions_outward():
+    """``onnx_edge_threshold`` below ``onnx_threshold`` draws each region's edge further
+    out (every pixel of the default mask kept, more added next to it), finds the same
+    regions, and equals the default when it is 0 or the threshold itself; outside (0, 1)
+    it is refused naming the field."""
+    cfg = ImagingConfig(depth=0.15, segmenter="onnx")
+    g = ProbeGeometry.from_config(cfg)
+    frames = make_source_frames("phantom:5001", EmulatorModel.from_config(cfg, g), 4, seed=1)
+    image = max(frames, key=lambda f: f[1].sum())[0]
+    base = OnnxSegmenter.from_config(cfg, g)
+    low = OnnxSegmenter.from_config(replace(cfg, onnx_edge_threshold=0.3), g)
+    same = OnnxSegmenter.from_config(replace(cfg, onnx_edge_threshold=cfg.onnx_threshold), g)
+    assert base.edge_level == same.edge_level == cfg.onnx_threshold and low.edge_level == 0.3
+    m0, m1 = base.candidates(image), low.candidates(image)
+    assert len(m0) == len(m1) >= 1
+    for a, b in zip(m0, m1):
+        assert np.all(b[a]) and b.sum() > a.sum()
+        # Only pixels next to the default region are added (within a canvas pixel).
+        grown = a.copy()
+        for _ in range(int(np.ceil(2.4e-3 / min(g.dx, g.dz))) + 1):
+            grown |= np.roll(grown, 1, 0) | np.roll(grown, -1, 0)
+            grown |= np.roll(grown, 1, 1) | np.roll(grown, -1, 1)
+        assert not np.any(b & ~grown)
+    np.testing.assert_array_equal(same(image), base(image))
+    for bad in (1.0, 1.5, -0.2):
+        with pytest.raises(ValueError, match="imaging.onnx_edge_threshold"):
+            OnnxSegmenter.from_config(replace(cfg, onnx_edge_threshold=bad), g)
+    with pytest.raises(ScenarioError, match="onnx_edge_threshold"):
+        LoadScenario(scenario_text="{imaging: {onnx_edge_threshold: 1.5}}")
+
+
+def test_edge_threshold_choice_follows_the_written_rule():
+    """A value passes with no loss beyond 0.001 on either kind at any preset, +0.002 on the
+    imported-like mean and no more false positives; the highest gain, or a value nearer
+    the default within 0.001 of it; none: the default."""
+    d1, d2 = 0.10, 0.15
+    iou = {
+        ("generated", d1): {0.5: 0.870, 0.45: 0.8695, 0.4: 0.869, 0.3: 0.860},
+        ("generated", d2): {0.5: 0.900, 0.45: 0.8995, 0.4: 0.8992, 0.3: 0.890},
+        ("imported_like", d1): {0.5: 0.750, 0.45: 0.759, 0.4: 0.7595, 0.3: 0.770},
+        ("imported_like", d2): {0.5: 0.800, 0.45: 0.809, 0.4: 0.8095, 0.3: 0.820},
+    }
+    fp = {d: {0.5: 3, 0.45: 3, 0.4: 3, 0.3: 3} for d in (d1, d2)}
+    chosen, verdict = choose_edge_threshold(iou, fp, 0.5)
+    # 0.3 gains most but loses 0.010 on generated frames; 0.4 gains 0.0005 more than 0.45.
+    assert "generated 100 mm -0.0100" in verdict[0.3]
+    assert verdict[0.45] == verdict[0.4] == "" and chosen == 0.45
+    fp[d2][0.45] = 4
+    chosen, verdict = choose_edge_threshold(iou, fp, 0.5)
+    assert chosen == 0.4 and "false positives 150 mm 4 > 3" in verdict[0.45]
+    for cell in (iou[("imported_like", d1)], iou[("imported_like", d2)]):
+        cell[0.4] = cell[0.5] + 0.001  # +0.001: not enough
+    chosen, verdict = choose_edge_threshold(iou, fp, 0.5)
+    assert chosen == 0.5 and "imported-like gain +0.0010" in verdict[0.4]
+    assert parse_edge_thresholds("0.45,0.3") == [0.45, 0.3]
+    assert parse_edge_thresholds("0.45,x") is None and parse_edge_thresholds("0,0.4") is None

@@ -111,6 +111,16 @@ class ImagingConfig:
     onnx_kidney_channel: int = field(default=0, metadata={"min": 0})
     # Threshold on the kidney probability.
     onnx_threshold: float = field(default=0.5, metadata={"min": 0.0, "max": 1.0})
+    # The kidney probability at which a region's edge is drawn on the image grid (onnx
+    # backend; after the guided filter), the region itself being found at onnx_threshold:
+    # below it, the mask reaches further out where the model is unsure (a fat-free cortex
+    # against soft tissue, where the shipped model draws the kidney a canvas pixel too
+    # small), without new regions. 0: onnx_threshold's value (one level for both). On the
+    # validation split 0.45 gained 0.008-0.010 IoU on imported-like kidneys at every
+    # preset and lost at most 0.0008 on generated ones, but marked one more kidney-free
+    # frame at 250 mm, so it failed the rule fixed before scoring; lower values lost
+    # 0.004-0.03 on generated kidneys (docs/results/segmenter.md).
+    onnx_edge_threshold: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
     # Test-time augmentation (onnx backend): average the kidney probability of the frame and
     # of its lateral mirror (onnx_backend.mirror_average; a curvilinear fan is symmetric
     # about its axis). Two model runs per frame (1.8 times the segment call's time). Off:

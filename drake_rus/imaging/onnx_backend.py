@@ -363,6 +363,7 @@ class OnnxSegmenter:
         guided_eps: float = 0.01,
         ensemble_model: str | Path | None = None,
         model_field: str = "onnx_model",
+        edge_threshold: float | None = None,
     ):
         """``card``: the model card's fields (default: read from the ``.json`` next to the
         model); ``pixel_size_mm`` and ``canvas_px`` switch on the physical canvas.
@@ -376,8 +377,16 @@ class OnnxSegmenter:
         the probability before the threshold (:func:`guided_filter`, the frame as guide).
         ``ensemble_model``: a second model (same input and output fields, same canvas) whose
         probability is averaged with this one's (:func:`ensemble_average`; None or "": none).
-        ``model_field``: the scenario field that names the model, for error messages."""
+        ``model_field``: the scenario field that names the model, for error messages.
+        ``edge_threshold``: the probability level at which a region's edge is drawn on the
+        image grid (after the guided filter; None: ``threshold``); the regions themselves
+        are found at ``threshold``."""
         self.mirror_average = bool(mirror_average)
+        if edge_threshold is not None and not (0.0 < edge_threshold < 1.0):
+            raise ValueError(
+                f"{field_prefix}onnx_edge_threshold: expected a probability in (0, 1), or 0 "
+                f"for onnx_threshold's, got {edge_threshold!r}"
+            )
         if not (np.isfinite(guided_radius) and guided_radius >= 0.0):
             raise ValueError(
                 f"imaging.onnx_guided_radius: expected a radius >= 0 (m), got {guided_radius!r}"
@@ -423,6 +432,9 @@ class OnnxSegmenter:
             )
         self.mean, self.std, self.output = float(mean), float(std), output
         self.kidney_channel, self.threshold = int(kidney_channel), float(threshold)
+        #: The probability level at which a region's edge is drawn on the image grid (the
+        #: region itself is found at ``threshold``); see ``edge_threshold`` in __init__.
+        self.edge_threshold = None if edge_threshold is None else float(edge_threshold)
         options = ort.SessionOptions()
         options.intra_op_num_threads = int(threads)
         options.inter_op_num_threads = 1
@@ -549,7 +561,14 @@ class OnnxSegmenter:
             guided_radius=config.onnx_guided_radius,
             guided_eps=config.onnx_guided_eps,
             ensemble_model=config.onnx_ensemble_model,
+            edge_threshold=config.onnx_edge_threshold or None,
         )
+
+    @property
+    def edge_level(self) -> float:
+        """The level of the image-grid probability above which a region's pixel is kidney:
+        ``edge_threshold``, or ``threshold`` when that is None."""
+        return self.threshold if self.edge_threshold is None else self.edge_threshold
 
     @property
     def guided_px(self) -> tuple[int, int]:
@@ -794,7 +813,7 @@ class OnnxSegmenter:
             values = self.to_image(full)
             if self.guided_radius > 0.0 and image is not None:
                 values = guided_filter(values, _grey(image), self.guided_px, self.guided_eps)
-            mask = (values > self.threshold) & self.geometry.fan_mask
+            mask = (values > self.edge_level) & self.geometry.fan_mask
             return mask if mask.any() else None
         fan = self._canvas_fan(h, w)[window]
         if not fan.all():  # as _past_fan (nothing to do in the fan's interior)
@@ -802,7 +821,7 @@ class OnnxSegmenter:
         rows, cols, values = self.canvas.to_image_window(p, (r0, c0), (h, w))
         if self.guided_radius > 0.0 and image is not None:
             rows, cols, values = self._guided_window(rows, cols, values, image)
-        inside = values > self.threshold
+        inside = values > self.edge_level
         inside &= self.geometry.fan_mask[rows, cols]
         if not inside.any():
             return None
