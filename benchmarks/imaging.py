@@ -411,10 +411,15 @@ def depth_and_posture_study(cfg, args) -> dict:
             emulate(slice_volume(g, src.volume, RigidTransform(), X), model, 0, i)
             for i, X in enumerate(poses)
         ]
-    # The plain segmenter: the same model and threshold, one model run per frame, no
-    # minimum region area (the cost of the inference-side options, measured in this run).
+    # The plain segmenter: the same model and threshold, one model run per frame (no mirror,
+    # no ensemble), no minimum region area (the cost of the inference-side options, measured
+    # in this run).
     plain_cfg = replace(
-        cfg, onnx_mirror_average=False, onnx_min_region_area=0.0, onnx_guided_radius=0.0
+        cfg,
+        onnx_mirror_average=False,
+        onnx_min_region_area=0.0,
+        onnx_guided_radius=0.0,
+        onnx_ensemble_model="",
     )
     plain = segmenters_by_depth(presets, plain_cfg)
     ms_model, ms_seg, ms_plain = _segment_speed(segmenters, frames_by_depth, plain)
@@ -440,6 +445,7 @@ def depth_and_posture_study(cfg, args) -> dict:
     out["inference"] = {
         "threshold": cfg.onnx_threshold,
         "mirror_average": cfg.onnx_mirror_average,
+        "ensemble_model": cfg.onnx_ensemble_model,
         "min_region_area_m2": cfg.onnx_min_region_area,
         "guided_radius_m": cfg.onnx_guided_radius,
         "guided_eps": cfg.onnx_guided_eps,

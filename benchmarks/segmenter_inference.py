@@ -27,6 +27,26 @@ rate on kidney-free frames exceeds the plain segmenter's (no mirror, 0.5, ``lcc`
 most 0.01 at every preset; a variant within 0.001 of a simpler one (fewer changes from the
 plain segmenter) does not count as better: the simplest variant within 0.001 of the best
 is chosen. The last line is one JSON object.
+
+With ``--ensemble-model M`` it runs the test-time study instead: the scenario's segmenter as
+it ships (guided filter included) against the lateral mirror average, the ensemble of the
+scenario's model with ``M`` (``imaging.onnx_ensemble_model``) and both, each a whole segment
+call per frame, timed in the same run (the mean time per frame, and its ratio to the
+default's). Choice (:func:`choose_test_time`, written in docs/results/segmenter.md before it
+was scored): on the generated and on the imported-like frames no preset more than 0.001
+below the default, at least +0.002 at 100 mm on the generated frames, no more false
+positives at any preset, at most 3 times the default's time; then the highest 100 mm gain,
+a cheaper variant within 0.001 of it taken instead; none: the default.
+
+With ``--edge-thresholds T1,T2,..`` it runs the edge study instead: the scenario's segmenter
+as it ships against the same with each value as ``imaging.onnx_edge_threshold`` (the regions
+found at ``onnx_threshold`` as before, their edge drawn where the probability crosses T),
+on the same frames, with the mean mask area over the true section's per kind and preset.
+Choice (:func:`choose_edge_threshold`, written in docs/results/segmenter.md before it was
+scored): on the generated and on the imported-like frames no preset more than 0.001 below
+the default, the imported-like frames' mean over the presets at least +0.002, no more false
+positives at any preset; then the highest imported-like gain, a value nearer the default
+within 0.001 of it taken instead; none: the default.
 """
 
 from __future__ import annotations
@@ -40,6 +60,7 @@ from dataclasses import replace
 
 import numpy as np
 
+TEST_TIME = ("default", "mirror", "ensemble", "ensemble+mirror")
 THRESHOLDS = (0.3, 0.35, 0.4, 0.45, 0.5, 0.55, 0.6, 0.65, 0.7)
 MIN_AREAS_CM2 = (0.5, 1.0, 2.0)
 PLAIN = ("off", 0.5, "lcc")
@@ -163,10 +184,22 @@ def parse_patients(text: str) -> tuple[int, int] | None:
     return (a, b) if 0 <= a <= b else None
 
 
-def validation_arguments(prog: str, description: str, argv=None):
+def validation_arguments(prog: str, description: str, argv=None, ensemble: bool = False):
     """The arguments of the validation-split benchmarks (this one and segmenter_boundary):
-    (args, (A, B)), or None after one line on stderr naming the bad argument."""
+    (args, (A, B)), or None after one line on stderr naming the bad argument. ``ensemble``:
+    also ``--ensemble-model`` (this one's test-time study)."""
     ap = argparse.ArgumentParser(prog=prog, description=description)
+    if ensemble:
+        ap.add_argument(
+            "--ensemble-model",
+            default=None,
+            help="run the test-time study: mirror and ensemble with this second model",
+        )
+        ap.add_argument(
+            "--edge-thresholds",
+            default=None,
+            help="run the edge study: these imaging.onnx_edge_threshold values (T1,T2,..)",
+        )
     ap.add_argument("--patients", default="22..29", help="validation patients train:A..B")
     ap.add_argument("--views", type=int, default=30, help="views per source and posture")
     ap.add_argument("--onnx-model", default=None, help="default: imaging.onnx_model")
@@ -180,14 +213,351 @@ def validation_arguments(prog: str, description: str, argv=None):
     if args.views < 1:
         print(f"--views: expected 1 or more, got {args.views}", file=sys.stderr)
         return None
+    if getattr(args, "edge_thresholds", None) is not None:
+        edges = parse_edge_thresholds(args.edge_thresholds)
+        if edges is None:
+            print(
+                "--edge-thresholds: expected comma-separated probabilities in (0, 1), got "
+                f"{args.edge_thresholds!r}",
+                file=sys.stderr,
+            )
+            return None
+        args.edge_thresholds = edges
     return args, ab
 
 
+def parse_edge_thresholds(text: str) -> list[float] | None:
+    """[T, ..] of ``--edge-thresholds T1,T2,..`` (each in (0, 1)), None when malformed."""
+    try:
+        values = [float(x) for x in text.split(",")]
+    except ValueError:
+        return None
+    return values if values and all(0.0 < v < 1.0 for v in values) else None
+
+
+def choose_edge_threshold(
+    iou: dict, fp: dict, default: float, loss: float = 0.001, gain: float = 0.002
+):
+    """The edge threshold by the rule of the module's docstring, and why each other value
+    failed: (chosen, {value: reason or ""}). ``iou``: {(kind, depth): {value: mean IoU}}
+    with kinds "generated" and "imported_like" and ``default`` among the values; ``fp``:
+    {depth: {value: false-positive frames}}."""
+    values = [v for v in next(iter(fp.values())) if v != default]
+    depths = sorted(fp)
+    verdict = {}
+
+    def imported_gain(v):
+        return float(
+            np.mean(
+                [iou[("imported_like", d)][v] - iou[("imported_like", d)][default] for d in depths]
+            )
+        )
+
+    for v in values:
+        why = []
+        for (kind, d), cell in sorted(iou.items()):
+            if cell[v] < cell[default] - loss:
+                why.append(f"{kind} {d * 1000:.0f} mm {cell[v] - cell[default]:+.4f}")
+        if imported_gain(v) < gain:
+            why.append(f"imported-like gain {imported_gain(v):+.4f} < {gain}")
+        for d in depths:
+            if fp[d][v] > fp[d][default]:
+                why.append(f"false positives {d * 1000:.0f} mm {fp[d][v]} > {fp[d][default]}")
+        verdict[v] = "; ".join(why)
+    passed = [v for v in values if not verdict[v]]
+    if not passed:
+        return default, verdict
+    top = max(imported_gain(v) for v in passed)
+    near = [v for v in passed if imported_gain(v) >= top - loss]
+    return min(near, key=lambda v: abs(v - default)), verdict
+
+
+def choose_test_time(
+    iou: dict, fp: dict, ms: dict, loss: float = 0.001, gain: float = 0.002, cost: float = 3.0
+):
+    """The test-time variant by the rule of the module's docstring, and why each other one
+    failed: (chosen, {variant: reason or ""}). ``iou``: {(kind, depth): {variant: mean IoU}}
+    with kinds "generated" and "imported_like"; ``fp``: {depth: {variant: false-positive
+    frames}}; ``ms``: {variant: mean segment time per frame}. The variants are compared
+    with ``"default"``; the shallowest depth is the 100 mm preset."""
+    depths = sorted(fp)
+    first = depths[0]
+    verdict = {}
+    for v in ms:
+        if v == "default":
+            continue
+        why = []
+        for (kind, d), cell in sorted(iou.items()):
+            if cell[v] < cell["default"] - loss:
+                why.append(f"{kind} {d * 1000:.0f} mm {cell[v] - cell['default']:+.4f}")
+        g100 = iou[("generated", first)][v] - iou[("generated", first)]["default"]
+        if g100 < gain:
+            why.append(f"100 mm gain {g100:+.4f} < {gain}")
+        for d in depths:
+            if fp[d][v] > fp[d]["default"]:
+                why.append(f"false positives {d * 1000:.0f} mm {fp[d][v]} > {fp[d]['default']}")
+        if ms[v] > cost * ms["default"]:
+            why.append(f"cost x{ms[v] / ms['default']:.2f} > x{cost:g}")
+        verdict[v] = "; ".join(why)
+    passed = [v for v in verdict if not verdict[v]]
+    if not passed:
+        return "default", verdict
+
+    def g(v):
+        return iou[("generated", first)][v]
+
+    top = max(g(v) for v in passed)
+    return min((v for v in passed if g(v) >= top - loss), key=lambda v: ms[v]), verdict
+
+
+def score_settings(segs: dict, sources, views: int, seed: int, no_progress: bool = False):
+    """Every setting's whole segment call on the same validation frames. ``segs``: {depth:
+    (config, geometry, {setting: segmenter})}; ``sources``: [(kind, Source)]; ``views``
+    per source at every depth, drawn and emulated from ``seed``. Returns (iou {(kind,
+    depth): {setting: [IoU]}}, false-positive frames {depth: {setting: n}}, kidney-free
+    frames {depth: n}, seconds {setting: s}, frames, mask area over the true section's
+    {(kind, depth): {setting: [ratio]}})."""
+    from pydrake.math import RigidTransform
+    from tqdm import tqdm
+
+    from drake_rus.imaging.emulator import EmulatorModel, emulate
+    from drake_rus.imaging.segment import iou
+    from drake_rus.imaging.slicing import slice_volume
+    from drake_rus.imaging.training.evaluation import sample_views
+
+    settings = list(next(iter(segs.values()))[2])
+    iou_acc: dict = {}
+    area: dict = {}
+    fp: dict = {d: dict.fromkeys(settings, 0) for d in segs}
+    empty = dict.fromkeys(segs, 0)
+    seconds = dict.fromkeys(settings, 0.0)
+    calls = 0
+    bar = tqdm(
+        total=len(sources) * views * len(segs),
+        desc="validation frames",
+        disable=no_progress,
+        mininterval=2.0,
+    )
+    for si, (kind, src) in enumerate(sources):
+        poses = sample_views(src, views, seed + 7919 * si)
+        for d, (c, g, by_variant) in segs.items():
+            model = EmulatorModel.from_config(c, g)
+            for i, X_VP in enumerate(poses):
+                labels = slice_volume(g, src.volume, RigidTransform(), X_VP)
+                us = emulate(labels, model, seed + si, i)
+                gt = src.kidney_mask(labels, g, X_VP)
+                has = bool(gt.sum() * g.pixel_area >= c.min_kidney_area)
+                empty[d] += not has
+                calls += 1
+                for v, seg in by_variant.items():
+                    t = time.perf_counter()
+                    m = seg(us)
+                    seconds[v] += time.perf_counter() - t
+                    if has:
+                        iou_acc.setdefault((kind, d), {}).setdefault(v, []).append(iou(m, gt))
+                        ratio = np.count_nonzero(m) / np.count_nonzero(gt)
+                        area.setdefault((kind, d), {}).setdefault(v, []).append(ratio)
+                    else:
+                        fp[d][v] += int(np.count_nonzero(m) * g.pixel_area >= c.min_kidney_area)
+                bar.update()
+    bar.close()
+    return iou_acc, fp, empty, seconds, calls, area
+
+
+def edge_study(args, a: int, b: int) -> int:
+    """The ``--edge-thresholds`` study (see the module docstring); prints its table and one
+    JSON line."""
+    from drake_rus.imaging.config import ImagingConfig
+    from drake_rus.imaging.onnx_backend import OnnxSegmenter
+    from drake_rus.imaging.probe import ProbeGeometry
+
+    t0 = time.perf_counter()
+    base = ImagingConfig() if args.onnx_model is None else ImagingConfig(onnx_model=args.onnx_model)
+    default = base.onnx_edge_threshold or base.onnx_threshold
+    values = [default] + [v for v in args.edge_thresholds if v != default]
+    presets = [float(p) for p in base.depth_presets]
+    segs = {}
+    for d in presets:
+        c = replace(base, depth=d)
+        g = ProbeGeometry.from_config(c)
+        segs[d] = (
+            c,
+            g,
+            {v: OnnxSegmenter.from_config(replace(c, onnx_edge_threshold=v), g) for v in values},
+        )
+    sources = validation_sources(a, b, not args.no_imported_like, "segmenter_inference")
+    iou_acc, fp, empty, _, _, area = score_settings(
+        segs, sources, args.views, 9150, args.no_progress
+    )
+    mean_iou = {k: {v: float(np.mean(x)) for v, x in cell.items()} for k, cell in iou_acc.items()}
+    # The mask's area over the true section's, on the frames where the mask meets it.
+    mean_area = {
+        k: {
+            v: float(np.mean([r for r, j in zip(x, iou_acc[k][v]) if j > 0] or [np.nan]))
+            for v, x in cell.items()
+        }
+        for k, cell in area.items()
+    }
+    chosen, verdict = choose_edge_threshold(mean_iou, fp, default)
+    kinds = sorted({k for k, _ in mean_iou})
+    print(
+        f"\nvalidation: train:{a}..{b}, both postures, {args.views} views each per preset; "
+        "frames with a kidney per preset and kind: "
+        + ", ".join(
+            f"{k} {d * 1000:.0f} mm {len(iou_acc[(k, d)][default])}" for k in kinds for d in presets
+        )
+        + "; kidney-free per preset: "
+        + "/".join(str(empty[d]) for d in presets)
+    )
+    for v in values:
+        cells = "   ".join(
+            f"{k} " + " ".join(f"{mean_iou[(k, d)][v]:.4f}" for d in presets) for k in kinds
+        )
+        areas = "   ".join(
+            f"{k} " + " ".join(f"{mean_area[(k, d)][v]:.3f}" for d in presets) for k in kinds
+        )
+        fps = "/".join(str(fp[d][v]) for d in presets)
+        print(
+            f"edge {v:.2f}: IoU {cells} | area {areas} | FP {fps}"
+            + ("" if v == default else f" | {'passes' if not verdict[v] else verdict[v]}")
+        )
+    print(f"chosen: edge threshold {chosen}")
+    print(
+        json.dumps(
+            {
+                "validation": f"train:{a}..{b}",
+                "views": args.views,
+                "onnx_model": base.onnx_model,
+                "iou": {
+                    f"{k}|{d:.2f}": {f"{v:g}": round(x, 4) for v, x in cell.items()}
+                    for (k, d), cell in sorted(mean_iou.items())
+                },
+                "area_ratio": {
+                    f"{k}|{d:.2f}": {f"{v:g}": round(x, 4) for v, x in cell.items()}
+                    for (k, d), cell in sorted(mean_area.items())
+                },
+                "false_positives": {
+                    f"{d:.2f}": {f"{v:g}": n for v, n in fp[d].items()} for d in presets
+                },
+                "kidney_free_frames": {f"{d:.2f}": empty[d] for d in presets},
+                "verdict": {f"{v:g}": why for v, why in verdict.items()},
+                "chosen": chosen,
+                "seconds": round(time.perf_counter() - t0, 1),
+                "load_average": [round(x, 2) for x in os.getloadavg()],
+            }
+        )
+    )
+    return 0
+
+
+def test_time_study(args, a: int, b: int) -> int:
+    """The ``--ensemble-model`` study (see the module docstring); prints its table and one
+    JSON line."""
+    from drake_rus.imaging.config import ImagingConfig
+    from drake_rus.imaging.onnx_backend import OnnxSegmenter
+    from drake_rus.imaging.probe import ProbeGeometry
+
+    t0 = time.perf_counter()
+    base = ImagingConfig() if args.onnx_model is None else ImagingConfig(onnx_model=args.onnx_model)
+    base = replace(base, onnx_mirror_average=False, onnx_ensemble_model="")
+    settings = {
+        "default": {},
+        "mirror": {"onnx_mirror_average": True},
+        "ensemble": {"onnx_ensemble_model": args.ensemble_model},
+        "ensemble+mirror": {
+            "onnx_mirror_average": True,
+            "onnx_ensemble_model": args.ensemble_model,
+        },
+    }
+    presets = [float(p) for p in base.depth_presets]
+    segs = {}
+    for d in presets:
+        c = replace(base, depth=d)
+        g = ProbeGeometry.from_config(c)
+        try:
+            segs[d] = (
+                c,
+                g,
+                {v: OnnxSegmenter.from_config(replace(c, **kw), g) for v, kw in settings.items()},
+            )
+        except ValueError as e:
+            print(
+                str(e).replace("imaging.onnx_ensemble_model", "--ensemble-model"), file=sys.stderr
+            )
+            return 2
+    sources = validation_sources(a, b, not args.no_imported_like, "segmenter_inference")
+    iou_acc, fp, empty, seconds, calls, _ = score_settings(
+        segs, sources, args.views, 9150, args.no_progress
+    )
+    mean_iou = {k: {v: float(np.mean(x)) for v, x in cell.items()} for k, cell in iou_acc.items()}
+    ms = {v: 1e3 * s / calls for v, s in seconds.items()}
+    chosen, verdict = choose_test_time(mean_iou, fp, ms)
+    kinds = sorted({k for k, _ in mean_iou})
+    print(
+        f"\nvalidation: train:{a}..{b}, both postures, {args.views} views each per preset; "
+        f"ensemble with {args.ensemble_model}; frames with a kidney per preset and kind: "
+        + ", ".join(
+            f"{k} {d * 1000:.0f} mm {len(iou_acc[(k, d)]['default'])}"
+            for k in kinds
+            for d in presets
+        )
+        + "; kidney-free per preset: "
+        + "/".join(str(empty[d]) for d in presets)
+    )
+    for v in settings:
+        cells = "   ".join(
+            f"{k} " + " ".join(f"{mean_iou[(k, d)][v]:.4f}" for d in presets) for k in kinds
+        )
+        fps = "/".join(str(fp[d][v]) for d in presets)
+        print(
+            f"{v:>16}: {cells} | FP {fps} | {ms[v]:.2f} ms x{ms[v] / ms['default']:.2f}"
+            + ("" if v == "default" else f" | {'passes' if not verdict[v] else verdict[v]}")
+        )
+    print(f"chosen: {chosen}")
+    print(
+        json.dumps(
+            {
+                "validation": f"train:{a}..{b}",
+                "views": args.views,
+                "onnx_model": base.onnx_model,
+                "ensemble_model": args.ensemble_model,
+                "iou": {
+                    f"{k}|{d:.2f}": {v: round(x, 4) for v, x in cell.items()}
+                    for (k, d), cell in sorted(mean_iou.items())
+                },
+                "frames_with_kidney": {
+                    f"{k}|{d:.2f}": len(cell["default"]) for (k, d), cell in sorted(iou_acc.items())
+                },
+                "false_positives": {f"{d:.2f}": fp[d] for d in presets},
+                "kidney_free_frames": {f"{d:.2f}": empty[d] for d in presets},
+                "ms_segment": {v: round(x, 3) for v, x in ms.items()},
+                "ratio_to_default": {v: round(ms[v] / ms["default"], 2) for v in ms},
+                "verdict": verdict,
+                "chosen": chosen,
+                "seconds": round(time.perf_counter() - t0, 1),
+                "load_average": [round(x, 2) for x in os.getloadavg()],
+            }
+        )
+    )
+    return 0
+
+
 def main(argv=None) -> int:
-    parsed = validation_arguments("python -m benchmarks segmenter_inference", __doc__, argv)
+    parsed = validation_arguments(
+        "python -m benchmarks segmenter_inference", __doc__, argv, ensemble=True
+    )
     if parsed is None:
         return 2
     args, (a, b) = parsed
+    if args.ensemble_model is not None and args.edge_thresholds is not None:
+        print(
+            "--ensemble-model and --edge-thresholds: expected one study, got both", file=sys.stderr
+        )
+        return 2
+    if args.ensemble_model is not None:
+        return test_time_study(args, a, b)
+    if args.edge_thresholds is not None:
+        return edge_study(args, a, b)
 
     from pydrake.math import RigidTransform
     from tqdm import tqdm

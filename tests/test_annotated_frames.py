@@ -191,3 +191,37 @@ def test_fine_tuning_writes_a_model_a_scenario_selects(tmp_path):
     scenario = ApplyOverrides(Scenario(), "{imaging: {onnx_model: %s}}" % model)
     seg = Segmenter(scenario.imaging)
     assert seg.GetInputPort("kidney_surface") is not None
+
+
+def test_fine_tuning_takes_the_boundary_band(tmp_path, monkeypatch):
+    """--boundary-band-mm reaches the training as (canvas pixel size, band, gain) in m and
+    is named in the card's loss; 0 trains unweighted; a negative band is refused."""
+    pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    from drake_rus.imaging.annotated import read_annotated_frames
+    from drake_rus.imaging.config import ImagingConfig
+    from drake_rus.imaging.training import fine_tune as ft
+
+    seen = []
+    real_train = ft.train
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs.get("boundary"))
+        return real_train(*args, **kwargs)
+
+    monkeypatch.setattr(ft, "train", spy)
+    frames = read_annotated_frames(make_folder(tmp_path / "frames", n=5), SHAPE)
+    card = ft.fine_tune(
+        frames,
+        ImagingConfig(),
+        tmp_path / "band",
+        epochs=1,
+        boundary_band_mm=5.0,
+        boundary_gain=2.0,
+        log=lambda s: None,
+    )
+    assert seen[-1] == pytest.approx((2.4e-3, 5e-3, 2.0))
+    assert "within 5 mm" in card["fine_tuning"]["loss"]
+    with pytest.raises(ValueError, match="--boundary-band-mm"):
+        ft.fine_tune(frames, ImagingConfig(), tmp_path / "bad", boundary_band_mm=-1.0)
+    assert not (tmp_path / "bad").exists()

@@ -18,6 +18,7 @@ from drake_rus.imaging.training.train_segmenter import (
     P_NO_PERIRENAL_FAT,
     P_THIN_CORTEX,
     draw_anatomy,
+    imported_like_variants,
     one_cycle_lr,
     randomised_anatomy,
     schedule_progress,
@@ -114,6 +115,27 @@ def test_wall_variants_include_an_imported_like_kidney(phantom):
     _, n = ndimage.label(imported == Label.KIDNEY_MEDULLA)
     assert n == 1 and variants[2].extra_depth == 0.0
     assert all(v.extra_depth > 0 for v in variants[3:])
+
+
+def test_imported_like_variants_are_all_fat_free(phantom):
+    """The extra data of --imported-like-frames: every volume without perirenal fat next to
+    the same kidney; a layered and a thin-cortex one as they lie, thickened walls after."""
+    from drake_rus.imaging.training.evaluation import Source
+
+    src = Source("phantom:7", "supine", phantom.volume, np.array([0.0, 0.0, 1.0]))
+    variants = imported_like_variants(src, "supine", np.random.default_rng(3))
+    kid = is_kidney(phantom.volume.labels)
+    near = ndimage.distance_transform_edt(~kid) * phantom.volume.voxel_size <= 0.010
+    assert (phantom.volume.labels[near] == Label.FAT).any()
+    assert len(variants) > 2
+    for v in variants[:2]:
+        assert np.array_equal(is_kidney(v.volume.labels), kid) and v.extra_depth == 0.0
+        assert not (v.volume.labels[near] == Label.FAT).any()
+    assert all(v.extra_depth > 0 for v in variants[2:])
+    # The two unthickened kidneys differ inside: one layered (one medulla), one thin cortex.
+    assert not np.array_equal(variants[0].volume.labels, variants[1].volume.labels)
+    _, n = ndimage.label(variants[0].volume.labels == Label.KIDNEY_MEDULLA)
+    assert n == 1
 
 
 def test_one_cycle_lr_shape():

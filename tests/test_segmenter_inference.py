@@ -1,14 +1,32 @@
 """The segmenter's inference-side options: the lateral mirror average, the minimum region
 area, and the validation study's variants and choice (benchmarks/segmenter_inference.py)."""
 
+import json
+import shutil
+from dataclasses import replace
+from pathlib import Path
+
 import numpy as np
 import pytest
 
-from benchmarks.segmenter_inference import PLAIN, choose, score_variants, variant_masks
+from benchmarks.segmenter_inference import (
+    PLAIN,
+    choose,
+    choose_edge_threshold,
+    choose_test_time,
+    parse_edge_thresholds,
+    score_variants,
+    variant_masks,
+)
 from drake_rus.config_schema import ScenarioError
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.emulator import EmulatorModel
-from drake_rus.imaging.onnx_backend import OnnxSegmenter, drop_small_regions, mirror_average
+from drake_rus.imaging.onnx_backend import (
+    OnnxSegmenter,
+    drop_small_regions,
+    ensemble_average,
+    mirror_average,
+)
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.imaging.training.evaluation import make_source_frames
 from drake_rus.scenario import LoadScenario
@@ -131,3 +149,146 @@ def test_choice_is_the_best_worst_preset_within_the_false_positive_margin():
     records[0]["scores"][b] = 0.8005
     best, _ = choose(score_variants(records, lambda r: r["depth"]))
     assert best == PLAIN
+
+
+def test_ensemble_average_is_the_pixelwise_mean():
+    a = np.array([[0.2, 0.9], [0.6, 0.0]], np.float32)
+    b = np.array([[0.4, 0.1], [0.6, 1.0]], np.float32)
+    a0 = a.copy()
+    got = ensemble_average([a, b])
+    np.testing.assert_allclose(got, [[0.3, 0.5], [0.6, 0.5]], rtol=1e-6)
+    assert got.dtype == np.float32 and np.array_equal(a, a0)  # inputs untouched
+    np.testing.assert_array_equal(ensemble_average([a]), a)
+    with pytest.raises(ValueError, match="one shape"):
+        ensemble_average([a, np.zeros((2, 3), np.float32)])
+    with pytest.raises(ValueError, match="at least one"):
+        ensemble_average([])
+
+
+def test_ensemble_segmenter_averages_its_two_models(tmp_path):
+    """With ``onnx_ensemble_model`` the probability is the mean of the two models' (the
+    shipped int8 model and its fp32 master, which differ slightly), on the mirror too; a
+    second model on another canvas, the same file or a missing file is refused naming the
+    field."""
+    fp32 = "models/segmenter/kidney_unet.onnx"
+    cfg = ImagingConfig(depth=0.15, segmenter="onnx", onnx_ensemble_model=fp32)
+    g = ProbeGeometry.from_config(cfg)
+    seg = OnnxSegmenter.from_config(cfg, g)
+    assert seg.ensemble is not None and seg.ensemble.path.name == "kidney_unet.onnx"
+    frames = make_source_frames("phantom:5001", EmulatorModel.from_config(cfg, g), 4, seed=1)
+    image = max(frames, key=lambda f: f[1].sum())[0]
+    x = seg.preprocess(image)
+    pa, pb = seg._run(x), seg.ensemble._run(x)
+    assert np.abs(pa - pb).max() > 1e-3  # two different models
+    fan = seg.canvas.fan_mask
+    np.testing.assert_allclose(seg.model_probability(image), 0.5 * (pa + pb) * fan, atol=1e-6)
+    seg.mirror_average = True
+    want = 0.5 * (
+        0.5 * (pa + pb) + 0.5 * (seg._run(x[..., ::-1]) + seg.ensemble._run(x[..., ::-1]))[:, ::-1]
+    )
+    np.testing.assert_allclose(seg.model_probability(image), want * fan, atol=1e-5)
+    assert LoadScenario().imaging.onnx_ensemble_model == ImagingConfig().onnx_ensemble_model
+
+    card = json.loads(Path(seg.ensemble.path).with_suffix(".json").read_text())
+    card["canvas_top_mm"] = 0.0  # the same grid, 4 mm lower: another canvas
+    other = tmp_path / "other.onnx"
+    shutil.copy(seg.ensemble.path, other)
+    other.with_suffix(".json").write_text(json.dumps(card))
+    for bad, match in (
+        (str(other), "onnx_ensemble_model: model other.onnx"),
+        (cfg.onnx_model, "onnx_ensemble_model: names the same file"),
+        (str(tmp_path / "missing.onnx"), "onnx_ensemble_model: ONNX model file not found"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            OnnxSegmenter.from_config(replace(cfg, onnx_ensemble_model=bad), g)
+
+
+def test_test_time_choice_follows_the_written_rule():
+    """Passes only with no loss beyond 0.001 anywhere, +0.002 at 100 mm, no more false
+    positives and at most 3 times the cost; the cheaper of two within 0.001 is taken."""
+    d1, d2 = 0.10, 0.15
+
+    def table(v100, v150, imp):
+        return {
+            ("generated", d1): {"default": 0.850, **v100},
+            ("generated", d2): {"default": 0.880, **v150},
+            ("imported_like", d1): {"default": 0.800, **imp},
+            ("imported_like", d2): {"default": 0.800, **imp},
+        }
+
+    iou = table(
+        {"mirror": 0.8545, "ensemble": 0.855, "both": 0.860},
+        {"mirror": 0.880, "ensemble": 0.8795, "both": 0.878},
+        {"mirror": 0.80, "ensemble": 0.81, "both": 0.81},
+    )
+    fp = {d: {"default": 2, "mirror": 2, "ensemble": 1, "both": 2} for d in (d1, d2)}
+    ms = {"default": 1.0, "mirror": 1.8, "ensemble": 1.4, "both": 3.2}
+    chosen, verdict = choose_test_time(iou, fp, ms)
+    # "both" gains most but costs x3.2 and loses 0.002 at 150 mm; the two others pass and
+    # lie within 0.001 of each other at 100 mm: the cheaper is taken.
+    assert "cost x3.20" in verdict["both"] and "generated 150 mm -0.0020" in verdict["both"]
+    assert verdict["mirror"] == verdict["ensemble"] == "" and chosen == "ensemble"
+    fp[d2]["ensemble"] = 3
+    chosen, verdict = choose_test_time(iou, fp, ms)
+    assert chosen == "mirror" and "false positives 150 mm 3 > 2" in verdict["ensemble"]
+    iou[("generated", d1)]["mirror"] = 0.8515  # +0.0015 at 100 mm: not enough
+    chosen, verdict = choose_test_time(iou, fp, ms)
+    assert chosen == "default" and "100 mm gain +0.0015" in verdict["mirror"]
+
+
+def test_edge_threshold_grows_the_same_regions_outward():
+    """``onnx_edge_threshold`` below ``onnx_threshold`` draws each region's edge further
+    out (every pixel of the default mask kept, more added next to it), finds the same
+    regions, and equals the default when it is 0 or the threshold itself; outside (0, 1)
+    it is refused naming the field."""
+    cfg = ImagingConfig(depth=0.15, segmenter="onnx")
+    g = ProbeGeometry.from_config(cfg)
+    frames = make_source_frames("phantom:5001", EmulatorModel.from_config(cfg, g), 4, seed=1)
+    image = max(frames, key=lambda f: f[1].sum())[0]
+    base = OnnxSegmenter.from_config(cfg, g)
+    low = OnnxSegmenter.from_config(replace(cfg, onnx_edge_threshold=0.3), g)
+    same = OnnxSegmenter.from_config(replace(cfg, onnx_edge_threshold=cfg.onnx_threshold), g)
+    assert base.edge_level == same.edge_level == cfg.onnx_threshold and low.edge_level == 0.3
+    m0, m1 = base.candidates(image), low.candidates(image)
+    assert len(m0) == len(m1) >= 1
+    for a, b in zip(m0, m1):
+        assert np.all(b[a]) and b.sum() > a.sum()
+        # Only pixels next to the default region are added (within a canvas pixel).
+        grown = a.copy()
+        for _ in range(int(np.ceil(2.4e-3 / min(g.dx, g.dz))) + 1):
+            grown |= np.roll(grown, 1, 0) | np.roll(grown, -1, 0)
+            grown |= np.roll(grown, 1, 1) | np.roll(grown, -1, 1)
+        assert not np.any(b & ~grown)
+    np.testing.assert_array_equal(same(image), base(image))
+    for bad in (1.0, 1.5, -0.2):
+        with pytest.raises(ValueError, match="imaging.onnx_edge_threshold"):
+            OnnxSegmenter.from_config(replace(cfg, onnx_edge_threshold=bad), g)
+    with pytest.raises(ScenarioError, match="onnx_edge_threshold"):
+        LoadScenario(scenario_text="{imaging: {onnx_edge_threshold: 1.5}}")
+
+
+def test_edge_threshold_choice_follows_the_written_rule():
+    """A value passes with no loss beyond 0.001 on either kind at any preset, +0.002 on the
+    imported-like mean and no more false positives; the highest gain, or a value nearer
+    the default within 0.001 of it; none: the default."""
+    d1, d2 = 0.10, 0.15
+    iou = {
+        ("generated", d1): {0.5: 0.870, 0.45: 0.8695, 0.4: 0.869, 0.3: 0.860},
+        ("generated", d2): {0.5: 0.900, 0.45: 0.8995, 0.4: 0.8992, 0.3: 0.890},
+        ("imported_like", d1): {0.5: 0.750, 0.45: 0.759, 0.4: 0.7595, 0.3: 0.770},
+        ("imported_like", d2): {0.5: 0.800, 0.45: 0.809, 0.4: 0.8095, 0.3: 0.820},
+    }
+    fp = {d: {0.5: 3, 0.45: 3, 0.4: 3, 0.3: 3} for d in (d1, d2)}
+    chosen, verdict = choose_edge_threshold(iou, fp, 0.5)
+    # 0.3 gains most but loses 0.010 on generated frames; 0.4 gains 0.0005 more than 0.45.
+    assert "generated 100 mm -0.0100" in verdict[0.3]
+    assert verdict[0.45] == verdict[0.4] == "" and chosen == 0.45
+    fp[d2][0.45] = 4
+    chosen, verdict = choose_edge_threshold(iou, fp, 0.5)
+    assert chosen == 0.4 and "false positives 150 mm 4 > 3" in verdict[0.45]
+    for cell in (iou[("imported_like", d1)], iou[("imported_like", d2)]):
+        cell[0.4] = cell[0.5] + 0.001  # +0.001: not enough
+    chosen, verdict = choose_edge_threshold(iou, fp, 0.5)
+    assert chosen == 0.5 and "imported-like gain +0.0010" in verdict[0.4]
+    assert parse_edge_thresholds("0.45,0.3") == [0.45, 0.3]
+    assert parse_edge_thresholds("0.45,x") is None and parse_edge_thresholds("0,0.4") is None

@@ -111,6 +111,16 @@ class ImagingConfig:
     onnx_kidney_channel: int = field(default=0, metadata={"min": 0})
     # Threshold on the kidney probability.
     onnx_threshold: float = field(default=0.5, metadata={"min": 0.0, "max": 1.0})
+    # The kidney probability at which a region's edge is drawn on the image grid (onnx
+    # backend; after the guided filter), the region itself being found at onnx_threshold:
+    # below it, the mask reaches further out where the model is unsure (a fat-free cortex
+    # against soft tissue, where the shipped model draws the kidney a canvas pixel too
+    # small), without new regions. 0: onnx_threshold's value (one level for both). On the
+    # validation split 0.45 gained 0.008-0.010 IoU on imported-like kidneys at every
+    # preset and lost at most 0.0008 on generated ones, but marked one more kidney-free
+    # frame at 250 mm, so it failed the rule fixed before scoring; lower values lost
+    # 0.004-0.03 on generated kidneys (docs/results/segmenter.md).
+    onnx_edge_threshold: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
     # Test-time augmentation (onnx backend): average the kidney probability of the frame and
     # of its lateral mirror (onnx_backend.mirror_average; a curvilinear fan is symmetric
     # about its axis). Two model runs per frame (1.8 times the segment call's time). Off:
@@ -120,6 +130,17 @@ class ImagingConfig:
     # gained on imported-like kidneys (VH female 0.816 / 0.846 instead of 0.803 / 0.831)
     # and lost 0.002-0.004 at every preset on the generated test patients: 0.5 stays.
     onnx_mirror_average: bool = False
+    # A second ONNX model (path as onnx_model; "" for none) whose kidney probability is
+    # averaged with onnx_model's, pixel by pixel on the model grid, before the guided filter
+    # and the threshold (onnx_backend.ensemble_average; with onnx_mirror_average each model
+    # runs on the frame and on its mirror). It takes the same input and output fields
+    # (onnx_input_*, onnx_output, onnx_kidney_channel) and its card must declare the same
+    # canvas as onnx_model's. One more model run per frame. Off: with the boundary-band
+    # candidate as second model, on validation patients neither model saw, neither the
+    # ensemble nor ensemble + mirror passed the rule fixed before scoring (ensemble + mirror
+    # gained at every generated preset but lost 0.004 IoU on imported-like kidneys at
+    # 100 mm; docs/results/segmenter.md).
+    onnx_ensemble_model: str = ""
     # Candidate kidney regions smaller than this (m^2) are dropped before the largest or the
     # tracked one is chosen (onnx_backend.drop_small_regions); 0 keeps every region. On the
     # validation split 0.5-1 cm^2 changed nothing and 2 cm^2 cost 0.028 IoU at 100 mm (a

@@ -361,6 +361,9 @@ class OnnxSegmenter:
         min_region_area: float = 0.0,
         guided_radius: float = 0.0,
         guided_eps: float = 0.01,
+        ensemble_model: str | Path | None = None,
+        model_field: str = "onnx_model",
+        edge_threshold: float | None = None,
     ):
         """``card``: the model card's fields (default: read from the ``.json`` next to the
         model); ``pixel_size_mm`` and ``canvas_px`` switch on the physical canvas.
@@ -371,8 +374,19 @@ class OnnxSegmenter:
         (:func:`mirror_average`; two model runs per frame). ``min_region_area`` (m^2):
         candidate regions smaller than this are dropped (:func:`drop_small_regions`).
         ``guided_radius`` (m, 0: off) and ``guided_eps``: the image-resolution refinement of
-        the probability before the threshold (:func:`guided_filter`, the frame as guide)."""
+        the probability before the threshold (:func:`guided_filter`, the frame as guide).
+        ``ensemble_model``: a second model (same input and output fields, same canvas) whose
+        probability is averaged with this one's (:func:`ensemble_average`; None or "": none).
+        ``model_field``: the scenario field that names the model, for error messages.
+        ``edge_threshold``: the probability level at which a region's edge is drawn on the
+        image grid (after the guided filter; None: ``threshold``); the regions themselves
+        are found at ``threshold``."""
         self.mirror_average = bool(mirror_average)
+        if edge_threshold is not None and not (0.0 < edge_threshold < 1.0):
+            raise ValueError(
+                f"{field_prefix}onnx_edge_threshold: expected a probability in (0, 1), or 0 "
+                f"for onnx_threshold's, got {edge_threshold!r}"
+            )
         if not (np.isfinite(guided_radius) and guided_radius >= 0.0):
             raise ValueError(
                 f"imaging.onnx_guided_radius: expected a radius >= 0 (m), got {guided_radius!r}"
@@ -393,7 +407,7 @@ class OnnxSegmenter:
 
         self.geometry = geometry
         self.path = resolve_model_path(str(model_path))
-        where = f"{field_prefix}onnx_model"
+        where = f"{field_prefix}{model_field}"
         if not self.path.is_file():
             raise ValueError(f"{where}: ONNX model file not found: {self.path}")
         if len(input_shape) != 4 or not all(int(d) > 0 for d in input_shape):
@@ -418,6 +432,9 @@ class OnnxSegmenter:
             )
         self.mean, self.std, self.output = float(mean), float(std), output
         self.kidney_channel, self.threshold = int(kidney_channel), float(threshold)
+        #: The probability level at which a region's edge is drawn on the image grid (the
+        #: region itself is found at ``threshold``); see ``edge_threshold`` in __init__.
+        self.edge_threshold = None if edge_threshold is None else float(edge_threshold)
         options = ort.SessionOptions()
         options.intra_op_num_threads = int(threads)
         options.inter_op_num_threads = 1
@@ -479,6 +496,49 @@ class OnnxSegmenter:
             field_prefix,
         )
         self._kidney_map(probe)
+        #: The second model whose probability is averaged with this one's (None: none).
+        self.ensemble = None
+        if ensemble_model is not None and str(ensemble_model) != "":
+            self.ensemble = self._ensemble_member(ensemble_model, threads, field_prefix)
+
+    def _ensemble_member(self, model_path, threads: int, field_prefix: str) -> "OnnxSegmenter":
+        """The second model of an ensemble, loaded with this one's input and output fields;
+        ValueError naming ``onnx_ensemble_model`` when its canvas or its output's grid
+        differs from this model's (the probabilities are averaged pixel by pixel)."""
+        where = f"{field_prefix}onnx_ensemble_model"
+        other = OnnxSegmenter(
+            model_path,
+            self.geometry,
+            self.input_shape,
+            self.mean,
+            self.std,
+            self.output,
+            self.kidney_channel,
+            self.threshold,
+            threads,
+            field_prefix,
+            model_field="onnx_ensemble_model",
+        )
+        if other.path.resolve() == self.path.resolve():
+            raise ValueError(
+                f"{where}: names the same file as {field_prefix}onnx_model ({self.path.name}); "
+                'expected a second model, or "" for none'
+            )
+
+        def canvas(seg):
+            c = seg.canvas
+            return None if c is None else (round(c.pixel_size * 1e3, 6), c.shape, round(c.top, 9))
+
+        blank = np.zeros(self.input_shape, np.float32)
+        grids = (self._run(blank).shape, other._run(blank).shape)
+        if canvas(self) != canvas(other) or grids[0] != grids[1]:
+            raise ValueError(
+                f"{where}: model {other.path.name} (canvas {canvas(other)}, output grid "
+                f"{list(grids[1])}) does not match {field_prefix}onnx_model {self.path.name} "
+                f"(canvas {canvas(self)}, output grid {list(grids[0])}); the two "
+                "probabilities are averaged pixel by pixel"
+            )
+        return other
 
     @classmethod
     def from_config(cls, config: ImagingConfig, geometry: ProbeGeometry) -> "OnnxSegmenter":
@@ -500,7 +560,15 @@ class OnnxSegmenter:
             min_region_area=config.onnx_min_region_area,
             guided_radius=config.onnx_guided_radius,
             guided_eps=config.onnx_guided_eps,
+            ensemble_model=config.onnx_ensemble_model,
+            edge_threshold=config.onnx_edge_threshold or None,
         )
+
+    @property
+    def edge_level(self) -> float:
+        """The level of the image-grid probability above which a region's pixel is kidney:
+        ``edge_threshold``, or ``threshold`` when that is None."""
+        return self.threshold if self.edge_threshold is None else self.edge_threshold
 
     @property
     def guided_px(self) -> tuple[int, int]:
@@ -611,10 +679,11 @@ class OnnxSegmenter:
                 f"{self.geometry.image_shape}"
             )
         x = self.preprocess(image)
+        run = self._run if self.ensemble is None else self._run_ensemble
         if self.mirror_average:
-            prob = mirror_average(self._run, x)
+            prob = mirror_average(run, x)
         else:
-            prob = self._run(x)  # a new array: zeroed outside the fan in place
+            prob = run(x)  # a new array: zeroed outside the fan in place
         if self.canvas is not None:
             np.copyto(prob, np.float32(0.0), where=self._canvas_outside(*prob.shape))
         return prob
@@ -622,6 +691,10 @@ class OnnxSegmenter:
     def _run(self, x: np.ndarray) -> np.ndarray:
         """(h, w) kidney probability of one preprocessed model input (N, C, H, W)."""
         return self._kidney_map(self.session.run([self.output_name], {self.input_name: x})[0])
+
+    def _run_ensemble(self, x: np.ndarray) -> np.ndarray:
+        """(h, w) mean kidney probability of this model and the ensemble's second one."""
+        return ensemble_average([self._run(x), self.ensemble._run(x)])
 
     def __call__(
         self,
@@ -740,7 +813,7 @@ class OnnxSegmenter:
             values = self.to_image(full)
             if self.guided_radius > 0.0 and image is not None:
                 values = guided_filter(values, _grey(image), self.guided_px, self.guided_eps)
-            mask = (values > self.threshold) & self.geometry.fan_mask
+            mask = (values > self.edge_level) & self.geometry.fan_mask
             return mask if mask.any() else None
         fan = self._canvas_fan(h, w)[window]
         if not fan.all():  # as _past_fan (nothing to do in the fan's interior)
@@ -748,7 +821,7 @@ class OnnxSegmenter:
         rows, cols, values = self.canvas.to_image_window(p, (r0, c0), (h, w))
         if self.guided_radius > 0.0 and image is not None:
             rows, cols, values = self._guided_window(rows, cols, values, image)
-        inside = values > self.threshold
+        inside = values > self.edge_level
         inside &= self.geometry.fan_mask[rows, cols]
         if not inside.any():
             return None
@@ -818,6 +891,26 @@ def mirror_average(run, x: np.ndarray) -> np.ndarray:
     q = np.asarray(run(np.ascontiguousarray(x[..., ::-1])), dtype=np.float32)
     out = p + q[..., ::-1]
     out *= np.float32(0.5)
+    return out
+
+
+def ensemble_average(probabilities: list[np.ndarray]) -> np.ndarray:
+    """The pixel-wise mean (float32) of kidney probabilities of one frame from several
+    models, all (h, w) on one grid: an ensemble. Where the models disagree the mean falls
+    between them, so a region one model alone marks survives the 0.5 threshold only where
+    the other gives it some weight too. ValueError when the maps differ in shape."""
+    maps = [np.asarray(p, dtype=np.float32) for p in probabilities]
+    if not maps:
+        raise ValueError("ensemble_average: expected at least one probability map")
+    if any(m.shape != maps[0].shape or m.ndim != 2 for m in maps):
+        raise ValueError(
+            "ensemble_average: expected 2-D maps of one shape, got "
+            + ", ".join(str(m.shape) for m in maps)
+        )
+    out = maps[0].copy()
+    for m in maps[1:]:
+        out += m
+    out *= np.float32(1.0 / len(maps))
     return out
 
 

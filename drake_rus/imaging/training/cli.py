@@ -58,6 +58,19 @@ def add_commands(subparsers) -> None:
     ft.add_argument("--batch", type=int, default=8, help="frames per step")
     ft.add_argument("--seed", type=int, default=0, help="seed of the shuffling and augmentation")
     ft.add_argument("--threads", type=int, default=1, help="PyTorch threads (CPU)")
+    ft.add_argument(
+        "--boundary-band-mm",
+        type=float,
+        default=0.0,
+        help="weight the loss by 1 + --boundary-gain within this distance (mm) of the "
+        "annotated kidney edge (0: unweighted, the default)",
+    )
+    ft.add_argument(
+        "--boundary-gain",
+        type=float,
+        default=4.0,
+        help="extra loss weight in the --boundary-band-mm band (default 4)",
+    )
     ft.set_defaults(func=run_fine_tune, outputs={"out": "dir"})
     ck = sub.add_parser(
         "check-frames",
@@ -123,6 +136,11 @@ def run_fine_tune(args) -> int:
         raise UserError("--epochs, --batch and --threads: expected integers >= 1")
     if not args.lr > 0:
         raise UserError(f"--lr: expected a learning rate > 0, got {args.lr}")
+    if not args.boundary_band_mm >= 0 or not args.boundary_gain >= 0:
+        raise UserError(
+            "--boundary-band-mm / --boundary-gain: expected values >= 0 (mm, 1), got "
+            f"{args.boundary_band_mm}, {args.boundary_gain}"
+        )
     if not 0.0 < args.holdout < 1.0:
         raise UserError(f"--holdout: expected a share between 0 and 1, got {args.holdout}")
     frames = _read(args, scenario)
@@ -152,6 +170,8 @@ def run_fine_tune(args) -> int:
             frames_source=str(Path(args.frames).resolve()),
             held_out=held_out,
             held_out_source=None if args.held_out is None else str(Path(args.held_out).resolve()),
+            boundary_band_mm=args.boundary_band_mm,
+            boundary_gain=args.boundary_gain,
             log=lambda line: print(line, flush=True),
         )
     except ValueError as e:

@@ -86,9 +86,10 @@ def frames_on_canvas(
 
 def frames_iou(model_path, frames: AnnotatedFrames, config: ImagingConfig) -> dict:
     """Mean IoU of an ONNX model (as the scan runs it: physical canvas, largest region, no
-    tracking) against the frames' masks, over the frames that show the kidney; and the
-    share of frames without it where the model marks one (false positives)."""
-    cfg = replace(config, segmenter="onnx", onnx_model=str(model_path))
+    tracking; the model alone, without an ``onnx_ensemble_model``) against the frames'
+    masks, over the frames that show the kidney; and the share of frames without it where
+    the model marks one (false positives)."""
+    cfg = replace(config, segmenter="onnx", onnx_model=str(model_path), onnx_ensemble_model="")
     segmenters: dict = {}
     ious, fp, empty = [], 0, 0
     for i in range(len(frames)):
@@ -142,6 +143,8 @@ def fine_tune(
     frames_source: str = "",
     held_out: AnnotatedFrames | None = None,
     held_out_source: str = "",
+    boundary_band_mm: float = 0.0,
+    boundary_gain: float = 4.0,
     log=print,
 ) -> dict:
     """Fine-tunes the scenario's model (``config.onnx_model``; an int8 model's fp32 source)
@@ -149,7 +152,16 @@ def fine_tune(
     ``out/NAME.onnx`` and its card ``out/NAME.json`` and returns the card. ``held_out``:
     frames of their own to measure on (every frame of ``frames`` is then trained on). The
     card's ``evaluation`` holds the held-out IoU of the scenario's model before and of the
-    new one after."""
+    new one after. ``boundary_band_mm`` > 0: the BCE weighted by 1 + ``boundary_gain``
+    within that distance (mm) of the true kidney edge on the canvas
+    (``train_segmenter.boundary_band_weight``, as ``train_segmenter --boundary-band-mm``);
+    0, the default, is the unweighted loss."""
+    if not (np.isfinite(boundary_band_mm) and boundary_band_mm >= 0):
+        raise ValueError(
+            f"--boundary-band-mm: expected a distance >= 0 (mm), got {boundary_band_mm}"
+        )
+    if not (np.isfinite(boundary_gain) and boundary_gain >= 0):
+        raise ValueError(f"--boundary-gain: expected a weight >= 0, got {boundary_gain}")
     scenario_model = resolve_model_path(config.onnx_model)
     source = trainable_source(scenario_model)
     card = read_model_card(source)
@@ -172,6 +184,9 @@ def fine_tune(
     before = frames_iou(scenario_model, held, config)
     X, Y = frames_on_canvas(train_frames, config, card)
     net = unet_from_onnx(source, card.get("architecture") or {})
+    boundary = None
+    if boundary_band_mm > 0:
+        boundary = (float(card["pixel_size_mm"]) * 1e-3, boundary_band_mm * 1e-3, boundary_gain)
     t0 = time.time()
     net = train(
         X,
@@ -184,6 +199,7 @@ def fine_tune(
         threads=threads,
         log=log,
         net=net,
+        boundary=boundary,
     )
     seconds = round(time.time() - t0, 1)
     out = Path(out)
@@ -207,6 +223,13 @@ def fine_tune(
         "batch": batch,
         "seed": seed,
         "augmentation": "left-right flip; grey x U(0.85, 1.15) + U(-0.05, 0.05) in the fan",
+        "loss": "BCE + soft Dice on the canvas kidney area fraction"
+        + (
+            f"; BCE weighted 1 + {boundary_gain:g} within {boundary_band_mm:g} mm of the "
+            "true edge (boundary_band_weight)"
+            if boundary is not None
+            else ""
+        ),
         "train_seconds": seconds,
         "command": command,
     }

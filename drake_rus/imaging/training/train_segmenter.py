@@ -282,6 +282,31 @@ def wall_variants(source, posture: str, rng: np.random.Generator) -> list[Volume
     return out
 
 
+def imported_like_variants(source, posture: str, rng: np.random.Generator) -> list[VolumeVariant]:
+    """Only fat-free volumes of the source (no perirenal fat: the kidney's cortex directly
+    against soft tissue, how the VH female's and every imported kidney look): a layered
+    and a thin-cortex kidney, and thickened versions (:data:`WALL_VARIANTS`) with a layered
+    kidney. The extra data of ``--imported-like-frames``, which weights the edge the
+    shipped model draws too small (docs/results/segmenter.md)."""
+    kw = {"sampler_kw": dict(SAMPLER)}
+    out = [
+        VolumeVariant(randomised_anatomy(source.volume, rng, True, inside), source.up_V, **kw)
+        for inside in ("layered", "thin")
+    ]
+    for fat_range, inner_range in WALL_VARIANTS[posture]:
+        fat, inner = float(rng.uniform(*fat_range)), float(rng.uniform(*inner_range))
+        vol = thicken_wall(
+            randomised_anatomy(source.volume, rng, True, "layered"),
+            source.up_V,
+            fat=fat,
+            inner=inner,
+        )
+        out.append(
+            VolumeVariant(vol, source.up_V, extra_depth=fat + inner, fat=fat, inner=inner, **kw)
+        )
+    return out
+
+
 def build_canvas_dataset(
     specs: list[str],
     postures,
@@ -294,10 +319,13 @@ def build_canvas_dataset(
     config: ImagingConfig | None = None,
     log=print,
     randomised: bool = True,
+    imported_like_only: bool = False,
 ) -> dict:
     """Canvas frames of every (spec, posture): uint8 images (N, H, W) grey, uint8 masks
     (kidney area fraction x 255), depth, posture index, source index; cached per source.
-    ``randomised`` False: the scenario's emulator and the volume as it is (validation)."""
+    ``randomised`` False: the scenario's emulator and the volume as it is (validation).
+    ``imported_like_only``: the volumes of :func:`imported_like_variants` only (cached
+    under their own name)."""
     config = config or ImagingConfig()
     presets = [float(p) for p in config.depth_presets]
     bank = EmulatorBank(config)
@@ -305,6 +333,7 @@ def build_canvas_dataset(
     tag = (
         f"v6_{frames}_{pixel_size * 1e3:g}mm_{canvas[0]}x{canvas[1]}_{canvas_top * 1e3:g}_"
         f"{'-'.join(f'{p:g}' for p in presets)}_{seed}{'' if randomised else '_nominal'}"
+        f"{'_imported_like' if imported_like_only else ''}"
     )
     for i, spec in enumerate(specs):
         for j, posture in enumerate(postures):
@@ -323,7 +352,7 @@ def build_canvas_dataset(
             rng = np.random.default_rng([seed, i, j, 77])
             src = load_source(spec, posture=posture, target=False)
             variants = (
-                wall_variants(src, posture, rng)
+                (imported_like_variants if imported_like_only else wall_variants)(src, posture, rng)
                 if randomised
                 else [VolumeVariant(src.volume, src.up_V, sampler_kw=dict(SAMPLER))]
             )
@@ -901,6 +930,13 @@ def main(argv=None) -> int:
         help="share of training frames given a synthetic acoustic shadow",
     )
     ap.add_argument(
+        "--imported-like-frames",
+        type=int,
+        default=0,
+        help="also this many frames per training patient and posture of fat-free volumes "
+        "only (imported_like_variants; 0: none, the shipped recipe)",
+    )
+    ap.add_argument(
         "--boundary-band-mm",
         type=float,
         default=0.0,
@@ -930,6 +966,8 @@ def main(argv=None) -> int:
             f"--boundary-band-mm / --boundary-gain: expected values >= 0 (mm, 1), got "
             f"{args.boundary_band_mm}, {args.boundary_gain}"
         )
+    if args.imported_like_frames < 0:
+        ap.error(f"--imported-like-frames: expected 0 or more, got {args.imported_like_frames}")
     out = Path(args.out)
     if args.record_benchmark:
         card = Path(args.card) if args.card else out / "kidney_unet.json"
@@ -969,6 +1007,20 @@ def main(argv=None) -> int:
     data = build_canvas_dataset(
         specs, postures, args.frames, p, canvas, top, cache, args.seed, log=log
     )
+    if args.imported_like_frames > 0:
+        extra = build_canvas_dataset(
+            [s for s in specs if s.startswith("train:")],
+            postures,
+            args.imported_like_frames,
+            p,
+            canvas,
+            top,
+            cache,
+            args.seed + 2,  # + 1 is the validation's
+            log=log,
+            imported_like_only=True,
+        )
+        data = {k: np.concatenate([data[k], extra[k]]) for k in data}
     val_specs = [f"train:{args.patients + k}" for k in range(args.val_patients)]
     val = None
     if val_specs:
@@ -1085,6 +1137,7 @@ def main(argv=None) -> int:
             "sources": specs,
             "postures": postures,
             "frames_per_source_and_posture": args.frames,
+            "imported_like_frames_per_patient_and_posture": args.imported_like_frames,
             "frames": int(len(data["image"])),
             "frames_with_kidney": float(round(has_kidney.mean(), 3)),
             "validation_sources": val_specs,
