@@ -99,7 +99,10 @@ class LocalizationConfig:
     # sweep runs (coronal tilt at most 26 deg, sagittal 10-25 deg: together at most 34 deg,
     # plus 11 deg for the patient's placement), and the fitted centre within
     # max_centre_off_cloud_axis of the line through the explored slices' centroids (half
-    # the kidney's mean anteroposterior thickness, 28 mm, Jos 2005).
+    # the kidney's mean anteroposterior thickness, 28 mm, Jos 2005). Off by default: real
+    # CT kidneys lean 10-53 deg from the body's axis, so it refuses correct fits (KiTS
+    # cases 21, 22), and the wrong fits the gates pass agree with their clouds
+    # (docs/results/real_kidneys.md, 2026-11-27 evening; a negative result).
     geometry_check: bool = False
     max_axis_tilt_deg: float = field(default=45.0, metadata={"positive": True, "max": 90.0})
     max_centre_off_cloud_axis: float = field(default=0.014, metadata={"positive": True})
