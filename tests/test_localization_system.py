@@ -7,7 +7,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from pydrake.math import RigidTransform
+from pydrake.common.eigen_geometry import AngleAxis
+from pydrake.math import RigidTransform, RotationMatrix
 
 from drake_rus.control import supervisor
 from drake_rus.control.config import ControllerConfig
@@ -17,7 +18,9 @@ from drake_rus.localization.icp import heuristic_initial_rotation, register_plan
 from drake_rus.localization.localize import (
     IcpLocalizer,
     RegistrationTemplate,
+    check_geometry,
     check_registration,
+    cloud_axis_offset,
     estimate_kidney_length,
     exploration_travel,
     load_registration_template,
@@ -56,6 +59,57 @@ def test_check_registration_accepts_good_and_rejects_bad(template):
     assert "only 10%" in check_registration(sloppy, P, config)
     rough = dataclasses.replace(good, rms_residual=0.01)
     assert "RMS residual 10.0 mm" in check_registration(rough, P, config)
+
+
+def test_cloud_axis_offset_follows_a_tilted_line_of_sections():
+    """A tube of points whose axis leans 30 deg off the sweep direction: a point on its axis
+    is 0 mm off the sections' line, one 10 mm across the sweep 10 mm (a plain centroid,
+    not following the lean, would put the on-axis point 15 mm off at 30 mm along it)."""
+    rng = np.random.default_rng(0)
+    up = np.array([0.0, 0.0, 1.0])
+    c = np.radians(30)
+    axis = np.array([np.sin(c), 0.0, np.cos(c)])
+    t = rng.uniform(-0.06, 0.06, 6000)
+    phi = rng.uniform(0, 2 * np.pi, 6000)
+    ring = 0.01 * np.outer(np.cos(phi), [np.cos(c), 0, -np.sin(c)])
+    ring += 0.01 * np.outer(np.sin(phi), [0.0, 1.0, 0.0])
+    centre = np.array([0.1, 0.2, 0.3])
+    P = np.outer(t, axis) + ring + centre
+    for along in (0.0, 0.03):
+        on_axis = centre + along * axis
+        assert cloud_axis_offset(P, on_axis, up) == pytest.approx(0.0, abs=2e-3)
+        assert cloud_axis_offset(P, on_axis + [0, 0.01, 0], up) == pytest.approx(0.01, abs=2e-3)
+    # One slab only: the cloud's centroid.
+    flat = P[np.abs(P[:, 2] - 0.3) < 0.001]
+    assert cloud_axis_offset(flat, flat.mean(axis=0) + [0.005, 0, 0], up) == pytest.approx(0.005)
+
+
+def test_geometry_check_refuses_a_turned_or_displaced_fit(template):
+    """The geometric check (off by default) passes the correct fit, refuses the same fit
+    with its long axis turned 60 deg off the body's axis, or its centre moved 20 mm across
+    the sweep (both still within the centroid-offset gate), and names why."""
+    X_BK, P = partial_cloud(template)
+    R0 = heuristic_initial_rotation(SUPERIOR_B, LATERAL_B)
+    good = register_plane_to_plane(P, template.points, template.normals, R0)
+    config = LocalizationConfig(geometry_check=True)
+    assert check_registration(good, P, config, None, SUPERIOR_B) == ""
+    assert check_geometry(good, P, config, SUPERIOR_B) == ""
+    lateral = np.cross(SUPERIOR_B, np.cross(LATERAL_B, SUPERIOR_B))
+    turn = RotationMatrix(AngleAxis(np.radians(60), lateral / np.linalg.norm(lateral)))
+    R_turned = turn.multiply(good.X_BK.rotation())
+    turned = dataclasses.replace(good, X_BK=RigidTransform(R_turned, good.X_BK.translation()))
+    why = check_registration(turned, P, config, None, SUPERIOR_B)
+    assert "long axis lies" in why and "limit 45 deg" in why
+    across = lateral / np.linalg.norm(lateral) * 0.02
+    moved = dataclasses.replace(
+        good, X_BK=RigidTransform(good.X_BK.rotation(), good.X_BK.translation() + across)
+    )
+    assert "from the explored sections' axis (limit 14 mm)" in check_geometry(
+        moved, P, config, SUPERIOR_B
+    )
+    # Off by default, and without the body's axis.
+    assert check_registration(turned, P, LocalizationConfig(), None, SUPERIOR_B) == ""
+    assert check_registration(turned, P, config) == ""
 
 
 def test_translation_step_is_bounded(template):

@@ -311,14 +311,69 @@ def max_rms_residual(
     return float(np.sqrt(gate**2 + z**2 * max(0.0, excess)))
 
 
+def cloud_axis_offset(
+    P_local_B: np.ndarray, p_B: np.ndarray, superior_B, slab: float = 0.004
+) -> float:
+    """Distance (m) of the point ``p_B`` from the explored cloud's axis, across the sweep:
+    the line fitted (least squares) through the centroids of the cloud's ``slab``-thick
+    slices along ``superior_B``, taken at ``p_B``'s height along it (the cloud's centroid
+    when it spans fewer than two slices)."""
+    P = np.asarray(P_local_B, dtype=float).reshape(-1, 3)
+    u = np.asarray(superior_B, dtype=float)
+    u = u / np.linalg.norm(u)
+    h = P @ u
+    across = P - np.outer(h, u)
+    index = np.floor((h - h.min()) / slab).astype(int)
+    slabs = np.unique(index)
+    p = np.asarray(p_B, dtype=float)
+    p_across = p - (p @ u) * u
+    if len(slabs) < 2:
+        return float(np.linalg.norm(p_across - across.mean(axis=0)))
+    heights = np.array([h[index == i].mean() for i in slabs])
+    centroids = np.array([across[index == i].mean(axis=0) for i in slabs])
+    A = np.column_stack([np.ones_like(heights), heights])
+    coefficients, *_ = np.linalg.lstsq(A, centroids, rcond=None)
+    on_axis = coefficients[0] + coefficients[1] * float(p @ u)
+    return float(np.linalg.norm(p_across - on_axis))
+
+
+def check_geometry(
+    result: IcpResult, P_local_B: np.ndarray, config: LocalizationConfig, superior_B
+) -> str:
+    """Why the fit's geometry is not a kidney's ('' when it is), without the residual:
+    the fitted long axis (K's x) more than ``config.max_axis_tilt_deg`` from the body's
+    craniocaudal axis ``superior_B`` (the transverse sweep's direction), or the fitted
+    centre more than ``config.max_centre_off_cloud_axis`` (m) from the explored cloud's
+    axis (:func:`cloud_axis_offset`)."""
+    u = np.asarray(superior_B, dtype=float)
+    u = u / np.linalg.norm(u)
+    x_k = result.X_BK.rotation().matrix()[:, 0]
+    tilt = math.degrees(math.acos(min(1.0, abs(float(x_k @ u)))))
+    if tilt > config.max_axis_tilt_deg:
+        return (
+            f"registration rejected: the fitted kidney's long axis lies {tilt:.0f} deg from "
+            f"the body's axis along which the sweep ran (limit {config.max_axis_tilt_deg:.0f} deg)"
+        )
+    offset = cloud_axis_offset(P_local_B, result.X_BK.translation(), u)
+    if offset > config.max_centre_off_cloud_axis:
+        return (
+            f"registration rejected: the fitted kidney centre is {1000 * offset:.0f} mm from "
+            f"the explored sections' axis (limit {1000 * config.max_centre_off_cloud_axis:.0f} mm)"
+        )
+    return ""
+
+
 def check_registration(
     result: IcpResult,
     P_local_B: np.ndarray,
     config: LocalizationConfig,
     template: RegistrationTemplate | None = None,
+    superior_B=None,
 ) -> str:
     """Why the estimate must not be used ('' when it passes the sanity checks); the RMS
-    gate is :func:`max_rms_residual` for ``template`` (the config's own without it)."""
+    gate is :func:`max_rms_residual` for ``template`` (the config's own without it); with
+    ``config.geometry_check`` and the body's ``superior_B`` given, also
+    :func:`check_geometry`."""
     if not np.all(np.isfinite(result.X_BK.GetAsMatrix4())):
         return "registration produced a non-finite pose"
     if result.inlier_fraction < config.min_inlier_fraction:
@@ -340,6 +395,8 @@ def check_registration(
             f"registration rejected: the estimated kidney centre is {1000 * offset:.0f} mm "
             f"from the explored points (limit {1000 * config.max_centroid_offset:.0f} mm)"
         )
+    if config.geometry_check and superior_B is not None:
+        return check_geometry(result, P_local_B, config, superior_B)
     return ""
 
 
@@ -354,7 +411,7 @@ def register_cloud(
     and :func:`check_registration`, the LOCALIZE registration and the adaptive checks as one
     call (an executor job)."""
     result = localize(P_local_B, template, config, superior_B, lateral_B)
-    return result, check_registration(result, P_local_B, config, template)
+    return result, check_registration(result, P_local_B, config, template, superior_B)
 
 
 def prepared_template(template: RegistrationTemplate) -> RegistrationTemplate:
