@@ -317,13 +317,10 @@ def score_settings(segs: dict, sources, views: int, seed: int, no_progress: bool
     depth): {setting: [IoU]}}, false-positive frames {depth: {setting: n}}, kidney-free
     frames {depth: n}, seconds {setting: s}, frames, mask area over the true section's
     {(kind, depth): {setting: [ratio]}})."""
-    from pydrake.math import RigidTransform
     from tqdm import tqdm
 
-    from drake_rus.imaging.emulator import EmulatorModel, emulate
     from drake_rus.imaging.segment import iou
-    from drake_rus.imaging.slicing import slice_volume
-    from drake_rus.imaging.training.evaluation import sample_views
+    from drake_rus.imaging.training.evaluation import emulated_views
 
     settings = list(next(iter(segs.values()))[2])
     iou_acc: dict = {}
@@ -338,28 +335,22 @@ def score_settings(segs: dict, sources, views: int, seed: int, no_progress: bool
         disable=no_progress,
         mininterval=2.0,
     )
-    for si, (kind, src) in enumerate(sources):
-        poses = sample_views(src, views, seed + 7919 * si)
-        for d, (c, g, by_variant) in segs.items():
-            model = EmulatorModel.from_config(c, g)
-            for i, X_VP in enumerate(poses):
-                labels = slice_volume(g, src.volume, RigidTransform(), X_VP)
-                us = emulate(labels, model, seed + si, i)
-                gt = src.kidney_mask(labels, g, X_VP)
-                has = bool(gt.sum() * g.pixel_area >= c.min_kidney_area)
-                empty[d] += not has
-                calls += 1
-                for v, seg in by_variant.items():
-                    t = time.perf_counter()
-                    m = seg(us)
-                    seconds[v] += time.perf_counter() - t
-                    if has:
-                        iou_acc.setdefault((kind, d), {}).setdefault(v, []).append(iou(m, gt))
-                        ratio = np.count_nonzero(m) / np.count_nonzero(gt)
-                        area.setdefault((kind, d), {}).setdefault(v, []).append(ratio)
-                    else:
-                        fp[d][v] += int(np.count_nonzero(m) * g.pixel_area >= c.min_kidney_area)
-                bar.update()
+    frames = emulated_views([src for _, src in sources], segs, views, seed)
+    for si, d, c, g, by_variant, us, gt, has in frames:
+        kind = sources[si][0]
+        empty[d] += not has
+        calls += 1
+        for v, seg in by_variant.items():
+            t = time.perf_counter()
+            m = seg(us)
+            seconds[v] += time.perf_counter() - t
+            if has:
+                iou_acc.setdefault((kind, d), {}).setdefault(v, []).append(iou(m, gt))
+                ratio = np.count_nonzero(m) / np.count_nonzero(gt)
+                area.setdefault((kind, d), {}).setdefault(v, []).append(ratio)
+            else:
+                fp[d][v] += int(np.count_nonzero(m) * g.pixel_area >= c.min_kidney_area)
+        bar.update()
     bar.close()
     return iou_acc, fp, empty, seconds, calls, area
 

@@ -229,6 +229,24 @@ def segmenters_by_depth(presets, config: ImagingConfig | None = None) -> dict:
     return out
 
 
+def emulated_views(sources: list[Source], by_depth: dict, n_views: int, seed: int = 0):
+    """The frames of each source's ``n_views`` views (the same poses at every depth), imaged
+    at every depth of ``by_depth`` ({depth: (config, geometry, anything)}) with that
+    depth's emulator; the speckle is seeded per source. Yields (source index, depth,
+    config, geometry, the entry's third item, grey frame, true kidney mask, whether the
+    kidney is visible: its true section at least ``config.min_kidney_area``)."""
+    for si, src in enumerate(sources):
+        poses = sample_views(src, n_views, seed + 7919 * si)
+        for depth, (cfg, g, item) in by_depth.items():
+            model = EmulatorModel.from_config(cfg, g)
+            for i, X_VP in enumerate(poses):
+                labels = slice_volume(g, src.volume, RigidTransform(), X_VP)
+                us = emulate(labels, model, seed + si, i)
+                gt = src.kidney_mask(labels, g, X_VP)
+                has = bool(gt.sum() * g.pixel_area >= cfg.min_kidney_area)
+                yield si, depth, cfg, g, item, us, gt, has
+
+
 def depth_study(
     sources: list[Source],
     segmenters: dict,
@@ -239,33 +257,28 @@ def depth_study(
 ) -> list[dict]:
     """Per-frame records ``{source, posture, depth, iou (None if no kidney), false_positive}``
     of each source's ``n_views`` views (the same poses at every depth) segmented by
-    ``segmenters`` ({depth: (config, geometry, segment)}, see :func:`segmenters_by_depth`).
-    The emulator is the scenario's at each depth; the speckle is seeded per source."""
+    ``segmenters`` ({depth: (config, geometry, segment)}, see :func:`segmenters_by_depth`),
+    imaged by :func:`emulated_views`."""
     records = []
     total = len(sources) * n_views * len(segmenters)
     with tqdm(total=total, desc=desc, unit="frame", disable=not progress, mininterval=1.0) as bar:
-        for si, src in enumerate(sources):
-            poses = sample_views(src, n_views, seed + 7919 * si)
-            for depth, (cfg, g, segment) in segmenters.items():
-                model = EmulatorModel.from_config(cfg, g)
-                for i, X_VP in enumerate(poses):
-                    labels = slice_volume(g, src.volume, RigidTransform(), X_VP)
-                    us = emulate(labels, model, seed + si, i)
-                    gt = src.kidney_mask(labels, g, X_VP)
-                    pred = np.asarray(segment(us), bool)
-                    has = gt.sum() * g.pixel_area >= cfg.min_kidney_area
-                    records.append(
-                        {
-                            "source": src.name,
-                            "posture": src.posture,
-                            "depth": depth,
-                            "iou": iou(pred, gt) if has else None,
-                            "visible": float(np.mean(us[gt] > VISIBLE_GREY)) if has else None,
-                            "false_positive": (not has)
-                            and bool(pred.sum() * g.pixel_area >= cfg.min_kidney_area),
-                        }
-                    )
-                    bar.update()
+        for si, depth, cfg, g, segment, us, gt, has in emulated_views(
+            sources, segmenters, n_views, seed
+        ):
+            src = sources[si]
+            pred = np.asarray(segment(us), bool)
+            records.append(
+                {
+                    "source": src.name,
+                    "posture": src.posture,
+                    "depth": depth,
+                    "iou": iou(pred, gt) if has else None,
+                    "visible": float(np.mean(us[gt] > VISIBLE_GREY)) if has else None,
+                    "false_positive": (not has)
+                    and bool(pred.sum() * g.pixel_area >= cfg.min_kidney_area),
+                }
+            )
+            bar.update()
     return records
 
 
