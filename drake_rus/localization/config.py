@@ -45,7 +45,7 @@ class LocalizationConfig:
     # includes the measurement's error) (docs/facts/anatomy_and_ultrasound.md). The length
     # estimate during EXPLORE (length_shape_modes) does not use them. Off by default: on
     # saved clouds of 27 real kidneys they let two wrong fits through the unchanged gates
-    # (docs/results/real_kidneys.md, 2026-11-27 afternoon; a negative result).
+    # (docs/results/real_kidneys.md, 2026-11-27 midday, first; a negative result).
     size_modes: bool = False
     size_sd_length: float = field(default=0.112, metadata={"min": 0.0, "max": 1.0})
     size_sd_width: float = field(default=0.088, metadata={"min": 0.0, "max": 1.0})
@@ -102,7 +102,7 @@ class LocalizationConfig:
     # the kidney's mean anteroposterior thickness, 28 mm, Jos 2005). Off by default: real
     # CT kidneys lean 10-53 deg from the body's axis, so it refuses correct fits (KiTS
     # cases 21, 22), and the wrong fits the gates pass agree with their clouds
-    # (docs/results/real_kidneys.md, 2026-11-27 evening; a negative result).
+    # (docs/results/real_kidneys.md, 2026-11-27 noon, second; a negative result).
     geometry_check: bool = False
     max_axis_tilt_deg: float = field(default=45.0, metadata={"positive": True, "max": 90.0})
     max_centre_off_cloud_axis: float = field(default=0.014, metadata={"positive": True})
