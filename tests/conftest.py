@@ -24,6 +24,17 @@ needs_kits = pytest.mark.skipif(
 )
 
 
+def tiny_training_frames(n: int, size: int = 32) -> tuple[np.ndarray, np.ndarray]:
+    """(frames, masks), each (n, size, size) uint8: random grey frames and a square kidney
+    mask (255) at rows and columns 10..19, for training-loop tests that only need the
+    loop to run on something learnable."""
+    rng = np.random.default_rng(0)
+    X = rng.integers(0, 255, (n, size, size)).astype(np.uint8)
+    Y = np.zeros_like(X)
+    Y[:, 10:20, 10:20] = 255
+    return X, Y
+
+
 def synthetic_ct_case(
     tumour=True, left=True, spacing=(3.0, 4.0, 3.0), n=(128, 50, 128), tumour_radius=16.0
 ):

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from conftest import tiny_training_frames
 
 from drake_rus.imaging.training.train_segmenter import boundary_band_weight, main
 
@@ -76,10 +77,7 @@ def test_train_with_the_band_runs_and_the_cli_rejects_a_negative_band(capsys):
     pytest.importorskip("torch")
     from drake_rus.imaging.training.train_segmenter import train
 
-    rng = np.random.default_rng(0)
-    X = rng.integers(0, 255, (4, 32, 32)).astype(np.uint8)
-    Y = np.zeros_like(X)
-    Y[:, 10:20, 10:20] = 255
+    X, Y = tiny_training_frames(4)
     logs = []
     net = train(
         X,

@@ -3,6 +3,7 @@ learning-rate schedule (issue 13)."""
 
 import numpy as np
 import pytest
+from conftest import tiny_training_frames
 from scipy import ndimage
 
 from drake_rus.anatomy.labels import Label, is_kidney
@@ -160,10 +161,7 @@ def test_train_stops_at_the_time_limit_with_an_annealed_schedule():
     pytest.importorskip("torch")
     from drake_rus.imaging.training.train_segmenter import train
 
-    rng = np.random.default_rng(0)
-    X = rng.integers(0, 255, (8, 32, 32)).astype(np.uint8)
-    Y = np.zeros_like(X)
-    Y[:, 10:20, 10:20] = 255
+    X, Y = tiny_training_frames(8)
     logs = []
     net = train(
         X, Y, width=4, epochs=2000, batch=4, time_limit=0.3, log=logs.append, space_to_depth=2
