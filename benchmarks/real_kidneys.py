@@ -1,6 +1,6 @@
 """The default scan on real CT kidneys (``python -m benchmarks real_kidneys --cases DIR
 [--limit N] [--template generated|real] [--side right|left] [--workers N] [--offset K]
-[--out DIR]``).
+[--set YAML] [--out DIR]``).
 
 For every case under DIR (KiTS layout: ``DIR/case_*/segmentation.nii.gz``, labels 0
 background, 1 kidney, 2 tumour; cases in sorted order, the first ``--limit`` after
@@ -17,6 +17,11 @@ the generated bodies tried (a very large tumour:
 ``--template real`` builds (or reads from the cache) the template of real kidneys of the
 same folder without any of the benchmarked cases
 (:func:`drake_rus.template.ct.resolve_template`'s exclusion) and says which cases built it.
+
+``--set YAML`` changes the scenario of every scan (as ``drake-rus scan --set``), for
+example ``"{imaging: {segmenter: oracle}}"`` to measure what the learned segmenter costs:
+the JSON keeps the text (``overrides``), and a row set measured so is labelled by it. The
+template is ``--template``'s; ``localization.template`` in ``--set`` is refused.
 
 Prints one line per case as it finishes, a table (one row per case in case order: status,
 reason, E_trans, E_rot,x, V, tumour volume) and, last, one JSON line::
@@ -66,6 +71,27 @@ ROW_KEYS = (
 )
 
 
+def check_overrides(text: str | None) -> str | None:
+    """The one-line error of a ``--set`` text the scans cannot use (bad YAML, an unknown
+    field or value, ``localization.template``, which ``--template`` decides), or None."""
+    if text is None:
+        return None
+    from drake_rus.config_schema import ScenarioError, check_nesting_depth
+    from drake_rus.scenario import LoadScenario
+
+    try:
+        check_nesting_depth(text, "--set")
+        scenario = LoadScenario(scenario_text=text)
+    except (ScenarioError, ValueError, RuntimeError) as e:
+        return f"--set: {e}"
+    if scenario.localization.template != LoadScenario().localization.template:
+        return (
+            "--set: localization.template: the template is --template's "
+            f"({'|'.join(TEMPLATES)}), not a scenario field here"
+        )
+    return None
+
+
 def find_cases(ct_dir: Path, limit: int | None, offset: int = 0) -> list[tuple[str, Path]]:
     """(case name, label map) of the KiTS-layout folder, sorted; from the ``offset``-th,
     the first ``limit``."""
@@ -113,7 +139,7 @@ def scan_case(job: dict) -> dict:
     return scan_row(
         row,
         job["spec"],
-        LoadScenario(),
+        LoadScenario(scenario_text=job.get("overrides")),
         "{patient: {side: %s}}" % job["side"],
         template,
         job["max_sim_time"],
@@ -196,6 +222,13 @@ def main(argv=None) -> int:
     parser.add_argument("--workers", type=int, default=2, help="scan processes (0: this one)")
     parser.add_argument("--max-sim-time", type=float, default=120.0)
     parser.add_argument("--out", default=None, help="also write each scan's outputs here")
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        default=None,
+        metavar="YAML",
+        help='scenario overrides for every scan, e.g. "{imaging: {segmenter: oracle}}"',
+    )
     args = parser.parse_args(argv)
     ct_dir = Path(args.cases).expanduser().resolve()
     if args.limit is not None and args.limit < 1:
@@ -203,6 +236,10 @@ def main(argv=None) -> int:
         return 2
     if args.offset < 0:
         print(f"--offset: expected 0 or more cases, got {args.offset}", file=sys.stderr)
+        return 2
+    error = check_overrides(args.overrides)
+    if error:
+        print(error, file=sys.stderr)
         return 2
     try:
         workers, note = bound_workers(args.workers)
@@ -262,6 +299,7 @@ def main(argv=None) -> int:
                 "par_ml": k["parenchyma_ml"],
                 "max_sim_time": args.max_sim_time,
                 "out": args.out,
+                "overrides": args.overrides,
             }
         )
     bar = tqdm(total=len(jobs), desc="scans", unit="scan")
@@ -302,6 +340,7 @@ def main(argv=None) -> int:
         cases_dir=str(ct_dir),
         side=args.side,
         template=template_info,
+        overrides=args.overrides,
         workers=workers,
         wall_s=round(time.time() - t0, 1),
         rows=[{k: _round(r[k]) for k in ROW_KEYS if k in r} for r in rows],

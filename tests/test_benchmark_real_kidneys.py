@@ -167,3 +167,52 @@ def test_a_patient_that_cannot_be_built_is_skipped_not_an_error(monkeypatch):
     monkeypatch.setattr(_scan_rows, "load_patient", raise_(RuntimeError("boom")))
     row = _scan_rows.scan_row({}, "ct:x", s, "{}", None, 1.0, skip=(CtKidneyDoesNotFit,))
     assert row["status"] == "ERROR" and row["reason"] == "RuntimeError: boom"
+
+
+def test_benchmark_scenario_overrides(cases, scans, capsys):
+    """--set reaches every scan and the JSON; bad text or the template field is refused
+    with one line naming --set, before any scan."""
+    text = "{imaging: {segmenter: oracle}}"
+    code = real_kidneys.main(
+        ["--cases", str(cases), "--limit", "1", "--workers", "0", "--set", text]
+    )
+    assert code == 0
+    assert _json(capsys)["overrides"] == text
+    assert [j["overrides"] for j in scans] == [text]
+    for bad, word in [
+        ("{imaging: {segmenter: foo}}", "imaging.segmenter"),
+        ("{localization: {template: real}}", "--template"),
+    ]:
+        scans.clear()
+        assert real_kidneys.main(["--cases", str(cases), "--workers", "0", "--set", bad]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("--set: ") and word in err
+        assert scans == []
+
+
+def test_scan_case_applies_the_overrides(monkeypatch):
+    """The worker builds its scenario from the job's --set text."""
+    seen = {}
+
+    def fake_scan_row(row, spec, scenario, overrides, template, *a, **k):
+        seen["segmenter"] = scenario.imaging.segmenter
+        return row
+
+    import benchmarks._scan_rows as scan_rows
+
+    monkeypatch.setattr(scan_rows, "scan_row", fake_scan_row)
+    job = {
+        "case": "case_00000",
+        "tumour_ml": 0.0,
+        "par_ml": 100.0,
+        "template": str(ct.resolve_template("generated")),
+        "spec": "ct:x#right",
+        "side": "right",
+        "max_sim_time": 1.0,
+        "out": None,
+        "overrides": "{imaging: {segmenter: oracle}}",
+    }
+    real_kidneys.scan_case(job)
+    assert seen["segmenter"] == "oracle"
+    real_kidneys.scan_case({**job, "overrides": None})
+    assert seen["segmenter"] == "onnx"
