@@ -2,6 +2,7 @@
 shape model, convergence, file round trip, and a ground truth the pipeline cannot cheat."""
 
 import json
+import tempfile
 
 import numpy as np
 import pytest
@@ -189,7 +190,7 @@ def test_template_reproduces_known_correspondence_mean():
     assert np.mean(np.sum(res.points * res.normals, axis=1) > 0) > 0.85
 
 
-def test_save_load_round_trip(tmp_path, capsys):
+def test_save_load_round_trip(tmp_path, capsys, monkeypatch):
     rng = np.random.default_rng(4)
     subjects = [
         subject_from_mesh(
@@ -214,12 +215,15 @@ def test_save_load_round_trip(tmp_path, capsys):
         load_template(bad)
 
     # A cache folder that cannot be written: the template goes to a temporary file, with a
-    # warning; a path the user asked for is never silently replaced.
+    # warning; a path the user asked for is never silently replaced. (The temporary folder
+    # is made under tmp_path, so the test leaves nothing in the machine's /tmp.)
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     blocked = tmp_path / "a_file" / "cache" / "t.npz"
     (tmp_path / "a_file").write_text("not a folder")
     fallback = save_template_to_cache(res, blocked, {"note": "x"}, asked_for=False)
     assert "not writable" in capsys.readouterr().err
     assert fallback != blocked and fallback.name == "t.npz" and fallback.is_file()
+    assert fallback.parent.parent == tmp_path
     np.testing.assert_allclose(load_template(fallback).points, res.points)
     with pytest.raises(OSError):
         save_template_to_cache(res, blocked, {"note": "x"}, asked_for=True)
