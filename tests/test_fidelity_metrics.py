@@ -319,3 +319,44 @@ def test_report_says_what_produced_every_figure():
     assert "metric: pole to pole" in eff_block and "metric: whole pivot" in eff_block
     assert "at matched coverage" in eff_block and "Tilt cap" in eff_block
     assert "Kidney length along the exploration line: 110.0" in blocks[0]
+
+
+def test_critical_er_passes_over_an_er_with_a_patient_not_localized():
+    """An ER at which a patient localized at ER 100% has no localization is neither the
+    critical ER nor the equivalence ER, however its remaining pairs test: a sweep whose
+    ER-10% scans mostly failed once reported a critical ER of 10% from the three that did
+    not."""
+    rows = _rows({0.1: True, 0.6: True, 1.0: True})
+    rows[0]["missing"] = 12
+    assert analysis.critical_er(rows, rule="paper") == 0.6
+    assert analysis.critical_er(rows, rule="strict") == 0.6
+    for r in rows:
+        r["equivalent_e_trans_mm"] = r["equivalent_e_rot_x_deg"] = True
+    assert analysis.equivalence_er(rows, rule="paper") == 0.6
+    rows[0]["missing"] = 0
+    assert analysis.critical_er(rows, rule="paper") == 0.1
+    assert analysis.equivalence_er(rows, rule="paper") == 0.1
+
+
+def test_er_sweep_analysis_counts_the_patients_not_localized():
+    """``missing`` per ER: patients with a run at ER 100% and none at that ER (runs without
+    a localization are left out before the analysis)."""
+
+    def run(patient, er, e):
+        return {
+            "patient": patient,
+            "er": er,
+            "e_trans_mm": e,
+            "e_rot_x_deg": e,
+            "registration_ms": 1.0,
+            "points": 100,
+        }
+
+    patients = [f"p{k}" for k in range(6)]
+    results = [run(p, 1.0, 1.0 + 0.1 * k) for k, p in enumerate(patients)]
+    results += [run(p, 0.6, 1.2 + 0.1 * k) for k, p in enumerate(patients)]
+    results += [run(p, 0.1, 1.0 + 0.1 * k) for k, p in enumerate(patients[:3])]
+    an = analysis.analyze_er_sweep(results)
+    missing = {r["er"]: r["missing"] for r in an["rows"]}
+    assert missing == {0.1: 3, 0.6: 0, 1.0: 0}
+    assert an["critical_er"] != 0.1 and an["equivalence_er"] != 0.1

@@ -229,11 +229,29 @@ CRITICAL_ER_RULES = {
     "strict": "the smallest ER from which on every ER (it and all larger) differs from ER "
     "100% in neither error (p > alpha): ours, stricter",
 }
+# Both rules (and the equivalence ER) pass over an ER at which a patient localized at ER
+# 100% has no localization: a scan that cannot localize is a failure of that ER, not "no
+# different" (left out, it once made a sweep whose ER-10% scans mostly failed report a
+# critical ER of 10% from the few that did not).
+ALL_LOCALIZED_TEXT = (
+    "an ER at which a patient localized at ER 100% has no localization cannot be it"
+)
+
+
+def _all_localized(row: dict) -> bool:
+    """Every patient with a run at the reference ER has a localization at this ER too
+    (``missing``: how many have none; 0 when the row does not say)."""
+    return row.get("missing", 0) == 0
 
 
 def _testable(row: dict) -> bool:
-    """At least two paired runs and both p-values: a paired test was possible."""
-    return row.get("n", 2) >= 2 and all(np.isfinite(row[k]) for k in ("p_e_trans", "p_e_rot_x"))
+    """At least two paired runs, both p-values (a paired test was possible) and no patient
+    without a localization at this ER."""
+    return (
+        row.get("n", 2) >= 2
+        and all(np.isfinite(row[k]) for k in ("p_e_trans", "p_e_rot_x"))
+        and _all_localized(row)
+    )
 
 
 def _passes(row: dict, alpha: float) -> bool:
@@ -271,9 +289,10 @@ def critical_er(rows: list[dict], alpha: float = ALPHA, rule: str = "paper") -> 
 
 def equivalence_er(rows: list[dict], rule: str = "paper") -> float | None:
     """The smallest ER equivalent to ER 100% in both errors (TOST within the margins, the
-    rows' ``equivalent_*``) under ``rule`` (as :func:`critical_er`); None if none is."""
+    rows' ``equivalent_*``) with every patient localized (as :func:`critical_er`) under
+    ``rule``; None if none is."""
     keys = [f"equivalent_{k}" for k, _, _ in ERRORS]
-    return _smallest(rows, lambda r: all(r.get(k) for k in keys), rule)
+    return _smallest(rows, lambda r: _all_localized(r) and all(r.get(k) for k in keys), rule)
 
 
 REFERENCE_ER = 1.0
@@ -310,6 +329,8 @@ def analyze_er_sweep(
         row = {
             "er": er,
             "n": len(common),
+            # patients localized at ER 100% but not at this ER (their runs are left out)
+            "missing": len(set(ref) - set(by[er])),
             "e_trans_mm_mean": mean_sd(et)[0],
             "e_trans_mm_sd": mean_sd(et)[1],
             "e_rot_x_deg_mean": mean_sd(erx)[0],

@@ -14,6 +14,7 @@ import numpy as np
 
 from drake_rus.batch import json_default
 from drake_rus.experiments.analysis import (
+    ALL_LOCALIZED_TEXT,
     CRITICAL_ER_RULES,
     CT_GROUP,
     DEFAULT_MARGINS,
@@ -774,7 +775,8 @@ def critical_er_markdown(er: dict) -> list[str]:
         f"ER 100%), paper {p['critical_er'] * 100:.0f}% ({PAPER_PATIENTS} patients; p = "
         f"{p['p_e_trans_at_60']} and {p['p_e_rot_at_60']} at 60%). Under the paper's rule "
         f"({CRITICAL_ER_RULES['paper']}): {_pct(paper_rule)}; under ours "
-        f"({CRITICAL_ER_RULES['strict']}): {_pct(strict_rule)}.",
+        f"({CRITICAL_ER_RULES['strict']}): {_pct(strict_rule)}. Under both, and for the "
+        f"equivalence ER, {ALL_LOCALIZED_TEXT} (a scan that cannot localize fails that ER).",
         "",
     ]
     warning = sample_size_warning(er) if "below_minimum" in er else None
@@ -867,7 +869,8 @@ def critical_er_markdown(er: dict) -> list[str]:
                 f"{_f(r[f'dz_{k}'])} | {_f(r[f'power_{k}'])} | "
                 f"{_p(r[f'tost_p_{k}'])}{eq}"
             )
-        L.append(f"| {r['er'] * 100:.0f}% | {r['n']} | " + " | ".join(cells) + " |")
+        n_cell = f"{r['n']}" + (f" ({r['missing']} not localized)" if r.get("missing") else "")
+        L.append(f"| {r['er'] * 100:.0f}% | {n_cell} | " + " | ".join(cells) + " |")
     return L + [""]
 
 
