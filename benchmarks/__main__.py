@@ -2,7 +2,9 @@
 
 A benchmark is a module ``benchmarks/NAME.py`` with ``main(argv=None)`` that prints one JSON
 object as its last output line. Speeds are reported next to a reference measured in the same
-run (the machines are noisy), never asserted in tests.
+run (the machines are noisy), never asserted in tests. A scenario a benchmark cannot use
+(``--scenario``, ``--set``: :class:`~drake_rus.config_schema.ScenarioError`) is one line on
+stderr naming the benchmark and the field, and exit status 2.
 """
 
 import importlib
@@ -35,7 +37,13 @@ def main(argv=None) -> int:
     if name not in names:
         print(f"unknown benchmark {name!r}; available: {', '.join(names)}", file=sys.stderr)
         return 2
-    return int(importlib.import_module(f"benchmarks.{name}").main(rest) or 0)
+    from drake_rus.config_schema import ScenarioError
+
+    try:
+        return int(importlib.import_module(f"benchmarks.{name}").main(rest) or 0)
+    except ScenarioError as e:
+        print(f"python -m benchmarks {name}: {e}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -1,4 +1,5 @@
-"""One default scan as a benchmark row (shared by ``real_anatomy`` and ``pivot``)."""
+"""One default scan as a benchmark row (shared by ``real_anatomy``, ``real_kidneys`` and
+``pivot``), and the benchmarks' scenario from ``--scenario``/``--scenarios-file``/``--set``."""
 
 import time
 import traceback
@@ -6,6 +7,8 @@ import traceback
 import numpy as np
 
 from drake_rus.anatomy import load_patient
+from drake_rus.cli import load_scenario_from_args
+from drake_rus.config_schema import ScenarioError
 from drake_rus.control.safety import StopReason
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.localization.tracking import kidney_in_view
@@ -86,3 +89,13 @@ def segmentation_lost_in_view(result, share: float = 0.5) -> dict | None:
     ]
     n = int(sum(seen))
     return {"in_view": n >= share * len(frames), "frames": len(frames), "frames_in_view": n}
+
+
+def scenario_from_args(args):
+    """(scenario, None) from the arguments of :func:`drake_rus.cli.add_scenario_arguments`,
+    or (None, the one-line error naming the argument) when the scenario name, file or
+    ``--set`` text cannot be used (the benchmark then exits 2, before any scan)."""
+    try:
+        return load_scenario_from_args(args), None
+    except (ScenarioError, ValueError) as e:
+        return None, f"--scenario/--set: {e}"

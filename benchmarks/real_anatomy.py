@@ -22,10 +22,10 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from benchmarks._scan_rows import scan_row
+from benchmarks._scan_rows import scan_row, scenario_from_args
+from drake_rus.cli import add_scenario_arguments
 from drake_rus.localization.localize import load_registration_template
 from drake_rus.paths import REPO_ROOT
-from drake_rus.scenario import LoadScenario
 
 DEFAULT_BODIES = [REPO_ROOT.parent / "shared" / "anatomy" / "hubmap_vh_female"]
 FRESH_SEED_BASE = 5_000_000
@@ -75,8 +75,7 @@ def main(argv=None) -> int:
         help="real bodies: patient folders or label maps",
     )
     parser.add_argument("--postures", nargs="+", default=list(POSTURES), choices=POSTURES)
-    parser.add_argument("--scenario", default="default")
-    parser.add_argument("--set", dest="overrides", default=None, help="YAML overrides")
+    add_scenario_arguments(parser)
     parser.add_argument("--max-sim-time", type=float, default=120.0)
     parser.add_argument("--out", default=None, help="also write each scan's outputs here")
     parser.add_argument(
@@ -98,7 +97,10 @@ def main(argv=None) -> int:
     if missing:
         print(f"--patients: not found: {', '.join(missing)}")
         return 2
-    scenario = LoadScenario(scenario_name=args.scenario, scenario_text=args.overrides)
+    scenario, error = scenario_from_args(args)
+    if error:
+        print(error)
+        return 2
     template = load_registration_template(scenario.localization.template)
     out = Path(args.out) if args.out else None
     rows = []

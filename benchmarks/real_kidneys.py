@@ -1,6 +1,6 @@
 """The default scan on real CT kidneys (``python -m benchmarks real_kidneys --cases DIR
 [--limit N] [--template generated|real] [--side right|left] [--workers N] [--offset K]
-[--set YAML] [--out DIR]``).
+[--scenario NAME] [--set YAML] [--out DIR]``).
 
 For every case under DIR (KiTS layout: ``DIR/case_*/segmentation.nii.gz``, labels 0
 background, 1 kidney, 2 tumour; cases in sorted order, the first ``--limit`` after
@@ -18,9 +18,9 @@ the generated bodies tried (a very large tumour:
 same folder without any of the benchmarked cases
 (:func:`drake_rus.template.ct.resolve_template`'s exclusion) and says which cases built it.
 
-``--set YAML`` changes the scenario of every scan (as ``drake-rus scan --set``), for
-example ``"{imaging: {segmenter: oracle}}"`` to measure what the learned segmenter costs:
-the JSON keeps the text (``overrides``), and a row set measured so is labelled by it. The
+``--scenario NAME`` and ``--set YAML`` choose and change the scenario of every scan (as
+for ``drake-rus scan``), for example ``--set "{imaging: {segmenter: oracle}}"`` to measure
+what the learned segmenter costs: the JSON keeps both (``scenario``, ``overrides``). The
 template is ``--template``'s; ``localization.template`` in ``--set`` is refused.
 
 Prints one line per case as it finishes, a table (one row per case in case order: status,
@@ -47,9 +47,12 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from benchmarks._scan_rows import scenario_from_args
 from drake_rus.anatomy.ct_kidney import import_ct_kidneys, read_label_grid, select_kidney
 from drake_rus.batch import bound_workers
+from drake_rus.cli import add_scenario_arguments
 from drake_rus.io_utils import dumps_strict
+from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, LoadScenario
 from drake_rus.template.ct import CtTemplateError, find_label_maps, resolve_template
 from drake_rus.template.io import load_template
 
@@ -71,20 +74,10 @@ ROW_KEYS = (
 )
 
 
-def check_overrides(text: str | None) -> str | None:
-    """The one-line error of a ``--set`` text the scans cannot use (bad YAML, an unknown
-    field or value, ``localization.template``, which ``--template`` decides), or None."""
-    if text is None:
-        return None
-    from drake_rus.config_schema import ScenarioError, check_nesting_depth
-    from drake_rus.scenario import LoadScenario
-
-    try:
-        check_nesting_depth(text, "--set")
-        scenario = LoadScenario(scenario_text=text)
-    except (ScenarioError, ValueError, RuntimeError) as e:
-        return f"--set: {e}"
-    if scenario.localization.template != LoadScenario().localization.template:
+def check_template_field(scenario, base) -> str | None:
+    """The error when ``--set`` moved ``localization.template`` (``scenario`` against the
+    same named scenario without the overrides, ``base``): ``--template`` decides it."""
+    if scenario.localization.template != base.localization.template:
         return (
             "--set: localization.template: the template is --template's "
             f"({'|'.join(TEMPLATES)}), not a scenario field here"
@@ -115,7 +108,6 @@ def scan_case(job: dict) -> dict:
     from benchmarks._scan_rows import scan_row
     from drake_rus.anatomy.ct_patient import CtKidneyDoesNotFit
     from drake_rus.localization.localize import load_registration_template
-    from drake_rus.scenario import LoadScenario
 
     def fill(row, result, summary, s):
         loc = summary.get("localization") or {}
@@ -139,7 +131,11 @@ def scan_case(job: dict) -> dict:
     return scan_row(
         row,
         job["spec"],
-        LoadScenario(scenario_text=job.get("overrides")),
+        LoadScenario(
+            filename=job.get("scenarios_file") or DEFAULT_SCENARIOS_FILE,
+            scenario_name=job.get("scenario", "default"),
+            scenario_text=job.get("overrides"),
+        ),
         "{patient: {side: %s}}" % job["side"],
         template,
         job["max_sim_time"],
@@ -222,13 +218,7 @@ def main(argv=None) -> int:
     parser.add_argument("--workers", type=int, default=2, help="scan processes (0: this one)")
     parser.add_argument("--max-sim-time", type=float, default=120.0)
     parser.add_argument("--out", default=None, help="also write each scan's outputs here")
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        default=None,
-        metavar="YAML",
-        help='scenario overrides for every scan, e.g. "{imaging: {segmenter: oracle}}"',
-    )
+    add_scenario_arguments(parser)
     args = parser.parse_args(argv)
     ct_dir = Path(args.cases).expanduser().resolve()
     if args.limit is not None and args.limit < 1:
@@ -237,7 +227,10 @@ def main(argv=None) -> int:
     if args.offset < 0:
         print(f"--offset: expected 0 or more cases, got {args.offset}", file=sys.stderr)
         return 2
-    error = check_overrides(args.overrides)
+    scenario, error = scenario_from_args(args)
+    if scenario is not None and args.overrides:
+        base = LoadScenario(filename=args.scenarios_file, scenario_name=args.scenario)
+        error = check_template_field(scenario, base)
     if error:
         print(error, file=sys.stderr)
         return 2
@@ -299,6 +292,8 @@ def main(argv=None) -> int:
                 "par_ml": k["parenchyma_ml"],
                 "max_sim_time": args.max_sim_time,
                 "out": args.out,
+                "scenarios_file": args.scenarios_file,
+                "scenario": args.scenario,
                 "overrides": args.overrides,
             }
         )
@@ -340,6 +335,7 @@ def main(argv=None) -> int:
         cases_dir=str(ct_dir),
         side=args.side,
         template=template_info,
+        scenario=args.scenario,
         overrides=args.overrides,
         workers=workers,
         wall_s=round(time.time() - t0, 1),

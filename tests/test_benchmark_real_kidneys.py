@@ -13,6 +13,7 @@ import SimpleITK as sitk
 from conftest import stored_as, synthetic_ct_case
 
 from benchmarks import real_kidneys
+from drake_rus.scenario import LoadScenario
 from drake_rus.template import ct
 from drake_rus.template.io import load_template
 
@@ -179,15 +180,17 @@ def test_benchmark_scenario_overrides(cases, scans, capsys):
     assert code == 0
     assert _json(capsys)["overrides"] == text
     assert [j["overrides"] for j in scans] == [text]
-    for bad, word in [
-        ("{imaging: {segmenter: foo}}", "imaging.segmenter"),
-        ("{localization: {template: real}}", "--template"),
+    assert [j["scenario"] for j in scans] == ["default"]
+    for args, word in [
+        (["--set", "{imaging: {segmenter: foo}}"], "imaging.segmenter"),
+        (["--set", "{localization: {template: real}}"], "--template"),
+        (["--scenario", "no_such_scenario"], "no_such_scenario"),
     ]:
         scans.clear()
-        assert real_kidneys.main(["--cases", str(cases), "--workers", "0", "--set", bad]) == 2
+        assert real_kidneys.main(["--cases", str(cases), "--workers", "0", *args]) == 2
         err = capsys.readouterr().err
-        assert err.startswith("--set: ") and word in err
-        assert scans == []
+        assert err.startswith(("--set: ", "--scenario/--set: ")) and word in err
+        assert len(err.strip().splitlines()) == 1 and scans == []
 
 
 def test_scan_case_applies_the_overrides(monkeypatch):
@@ -216,3 +219,5 @@ def test_scan_case_applies_the_overrides(monkeypatch):
     assert seen["segmenter"] == "oracle"
     real_kidneys.scan_case({**job, "overrides": None})
     assert seen["segmenter"] == "onnx"
+    real_kidneys.scan_case({**job, "overrides": None, "scenario": "seed_method"})
+    assert seen["segmenter"] == LoadScenario(scenario_name="seed_method").imaging.segmenter
