@@ -307,3 +307,33 @@ def test_a_signal_caught_by_the_hardware_session_keeps_its_number():
         with pytest.raises(interrupts.Interrupted):
             interrupts.check()
     assert interrupts.pending() is None
+
+
+@linux_only
+def test_sigterm_while_the_lock_is_taken(tmp_path, cached_patient):
+    """SIGTERM that arrives while the output folder's lock is being taken (the process
+    signals itself at that moment, which a loaded machine once hit by chance): it waits
+    until the run can write its INTERRUPTED summary; the folder is not removed."""
+    out = tmp_path / "scan"
+    code = (
+        "import os, signal, sys\n"
+        "import drake_rus.io_utils as io\n"
+        "take = io._take_lock\n"
+        "def signalled(*a, **k):\n"
+        "    take(*a, **k)\n"
+        "    os.kill(os.getpid(), signal.SIGTERM)\n"
+        "io._take_lock = signalled\n"
+        "from drake_rus.cli import main\n"
+        "sys.exit(main(['scan', '--scenario', 'quick', '--patient', 'test:0', '--no-record',"
+        f" '--out', {str(out)!r}]))\n"
+    )
+    env = dict(
+        os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 143, done.stderr[-2000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "INTERRUPTED" and "no scan ran" in summary["reason"]
+    assert sorted(p.name for p in out.iterdir()) == ["summary.json"]

@@ -19,6 +19,7 @@ status (summary.json) and exit status:
 """
 
 import argparse
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -379,12 +380,22 @@ def run_scan_command(args) -> int:
     if record and args.record:
         check_output_file(args.record, "--record", need_bytes=RECORDING_BYTES, suffixes=(".html",))
     # The output folder is checked and locked before any work, and removed again if the run
-    # fails before writing into it. A signal from here on leaves an INTERRUPTED summary.
-    with output_dir(
-        args.out, "--out", need_bytes=need, what="scan", argv=getattr(args, "argv", None)
-    ) as out:
-        run = _ScanRun(args, scenario, template, out, provenance)
+    # fails before writing into it. A signal from here on leaves an INTERRUPTED summary: one
+    # that arrives while the lock is taken waits (deferred) until the run can write it.
+    with contextlib.ExitStack() as stack:
+        with interrupts.deferred(reraise=False):
+            out = stack.enter_context(
+                output_dir(
+                    args.out,
+                    "--out",
+                    need_bytes=need,
+                    what="scan",
+                    argv=getattr(args, "argv", None),
+                )
+            )
+            run = _ScanRun(args, scenario, template, out, provenance)
         try:
+            interrupts.check()
             return run.go()
         except BaseException as e:
             if not (isinstance(e, KeyboardInterrupt) or interrupts.pending() is not None):
