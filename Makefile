@@ -13,19 +13,19 @@ JUPYTER_ROOT := $(if $(filter 0,$(shell id -u)),--allow-root,)
 
 .PHONY: demo test lint setup setup-test notebooks diagrams benchmarks clean
 
-$(STAMP): pyproject.toml scripts/install_system_deps.sh
+$(STAMP): pyproject.toml scripts/install_system_deps.sh scripts/pip_install.sh
 	bash scripts/install_system_deps.sh
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e .
+	bash scripts/pip_install.sh $(VENV) 2800 drake-rus -e .
 	touch $(STAMP)
 
 $(TEST_STAMP): $(STAMP)
-	$(PY) -m pip install --quiet -e '.[test]'
+	bash scripts/pip_install.sh $(VENV) 600 "the test extra" -e '.[test]'
 	touch $(TEST_STAMP)
 
 $(NOTEBOOKS_STAMP): $(STAMP)
-	$(PY) -m pip install --quiet -e '.[notebooks]'
+	bash scripts/pip_install.sh $(VENV) 300 "the notebooks extra" -e '.[notebooks]'
 	touch $(NOTEBOOKS_STAMP)
 
 setup: $(STAMP)
