@@ -328,6 +328,22 @@ def test_kidney_length_estimate_from_a_partial_cloud(template):
     assert np.isnan(estimate_kidney_length(P, template, config, SUPERIOR_B, LATERAL_B)[0])
 
 
+def test_kidney_length_fit_is_checked_like_the_registration(template):
+    """With the geometry check on, a length fit whose long axis lies further from the
+    body's axis than the check allows gives no length, as the registration would be
+    refused; with it off the same fit gives one."""
+    shaped, mode = lengthening_template(template)
+    X_BK = true_pose((5.0, -4.0, 6.0))  # the long axis about 7 deg from SUPERIOR_B
+    K = template.points + 0.012 * mode
+    P = X_BK.multiply(K[K[:, 0] > K[:, 0].max() - 0.6 * np.ptp(K[:, 0])].T).T
+    loose = LocalizationConfig(length_shape_modes=1, geometry_check=True)
+    assert np.isfinite(estimate_kidney_length(P, shaped, loose, SUPERIOR_B, LATERAL_B)[0])
+    strict = dataclasses.replace(loose, max_axis_tilt_deg=2.0)
+    length, result = estimate_kidney_length(P, shaped, strict, SUPERIOR_B, LATERAL_B)
+    assert np.isnan(length)
+    assert "long axis" in check_geometry(result, P, strict, SUPERIOR_B)
+
+
 def _length_localizer(template, **config):
     """An IcpLocalizer on a template that lengthens along its one shape mode, checking the
     length every 0.2 s from 30 mm of travel; and the 60% of a 12 mm-longer kidney K it

@@ -211,10 +211,12 @@ def estimate_kidney_length(
     the weak prior ``config.length_shape_residual_variance``, the length being the fitted
     shape's extent along K's x. NaN (and None) without shape modes in the template (the
     rigid template's length is the template's, not the kidney's); NaN (with the fit) when
-    the fit fails the sanity checks. The seen part of a kidney constrains its length only
-    through the shape model (the far pole is not seen); see ``LocalizationConfig`` for how
-    well it works. ``warm_start``: the previous length fit of the growing cloud to start
-    from (``localize``; ``LocalizationConfig.length_warm_start``)."""
+    the fit fails the sanity checks (:func:`check_registration`, with the geometry check
+    when ``config.geometry_check`` is on, as the registration's own). The seen part of a
+    kidney constrains its length only through the shape model (the far pole is not seen);
+    see ``LocalizationConfig`` for how well it works. ``warm_start``: the previous length
+    fit of the growing cloud to start from (``localize``;
+    ``LocalizationConfig.length_warm_start``)."""
     if template.modes is None or config.length_shape_modes < 1:
         return math.nan, None
     k = min(config.length_shape_modes, template.modes.shape[0])
@@ -227,7 +229,7 @@ def estimate_kidney_length(
     )
     P = np.asarray(P_local_B, dtype=float).reshape(-1, 3)
     result = localize(P, template, cfg, superior_B, lateral_B, warm_start)
-    if check_registration(result, P, cfg, template):
+    if check_registration(result, P, cfg, template, superior_B):
         return math.nan, result
     return kidney_length_of(template, result), result
 
