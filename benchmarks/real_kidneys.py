@@ -48,10 +48,12 @@ import numpy as np
 from tqdm import tqdm
 
 from benchmarks._scan_rows import scenario_from_args
+from drake_rus.anatomy.cache import file_digest
 from drake_rus.anatomy.ct_kidney import import_ct_kidneys, read_label_grid, select_kidney
 from drake_rus.batch import bound_workers
 from drake_rus.cli import add_scenario_arguments
 from drake_rus.io_utils import dumps_strict
+from drake_rus.provenance import Provenance
 from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, LoadScenario
 from drake_rus.template.ct import CtTemplateError, find_label_maps, resolve_template
 from drake_rus.template.io import load_template
@@ -270,6 +272,8 @@ def main(argv=None) -> int:
     else:
         path = resolve_template("generated")
         template_info["path"] = str(path)
+    # A template rebuilt elsewhere may differ: its digest tells two runs' templates apart.
+    template_info["sha256"] = file_digest(path)
     rows: list = [None] * len(cases)
     jobs = []
     for i, (case, seg) in tqdm(
@@ -339,6 +343,8 @@ def main(argv=None) -> int:
         overrides=args.overrides,
         workers=workers,
         wall_s=round(time.time() - t0, 1),
+        # What produced the rows: package versions, commit, Python, platform, command line.
+        provenance=Provenance(argv=list(sys.argv if argv is None else argv)),
         rows=[{k: _round(r[k]) for k in ROW_KEYS if k in r} for r in rows],
     )
     print(dumps_strict(doc, default=_plain))

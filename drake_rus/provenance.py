@@ -47,6 +47,21 @@ def _version(name: str) -> str | None:
         return None
 
 
+def cpu_model(cpuinfo: str = "/proc/cpuinfo") -> str | None:
+    """The processor's model name (Linux ``/proc/cpuinfo``; else ``platform.processor()``,
+    None when neither names it). Compiled kernels (onnxruntime's int8 matrix products,
+    BLAS) choose their code by the instruction set, so two machines may round differently."""
+    try:
+        with open(cpuinfo, encoding="utf-8", errors="replace") as f:
+            for line in f:
+                key, _, value = line.partition(":")
+                if key.strip() == "model name" and value.strip():
+                    return value.strip()
+    except OSError:
+        pass
+    return platform.processor() or None
+
+
 def project_commit() -> dict:
     """{"commit": sha or None, "dirty": bool or None}: the checkout the code runs from."""
     if not (REPO_ROOT / ".git").exists():
@@ -99,6 +114,7 @@ def Provenance(
         "seeds": dict(seeds or {}),
         "python": platform.python_version(),
         "platform": platform.platform(),
+        "cpu": cpu_model(),
         "packages": package_versions(),
         **project_commit(),
     }

@@ -5,7 +5,9 @@ bad input as one line with exit status 2. The scan itself is stubbed (a closed-l
 takes minutes; it is measured by the benchmark, not by the tests)."""
 
 import functools
+import hashlib
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -93,6 +95,12 @@ def test_benchmark_json_on_two_tiny_cases(cases, scans, capsys):
     assert doc["volume_ratio"] == {"mean": 0.9, "min": 0.9}
     assert list(doc)[:6] == ["n", "done", "skipped", "statuses", "e_trans_mm", "e_rot_x_deg"]
     assert list(doc)[-1] == "rows"
+    # What produced the rows: the template's bytes and the packages that shape a scan.
+    shipped = Path(job["template"])
+    assert doc["template"]["sha256"] == hashlib.sha256(shipped.read_bytes()).hexdigest()
+    packages = doc["provenance"]["packages"]
+    assert packages["onnxruntime"] and packages["open3d"] and packages["numpy"]
+    assert doc["provenance"]["argv"] == ["--cases", str(cases), "--limit", "2", "--workers", "0"]
 
 
 def test_benchmark_offset(cases, scans, capsys):

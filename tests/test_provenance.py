@@ -1,8 +1,10 @@
 """The provenance record: enough to repeat a run (scenario as resolved, seeds, versions)."""
 
+import platform
+
 import yaml
 
-from drake_rus.provenance import Provenance, package_versions, project_commit
+from drake_rus.provenance import Provenance, cpu_model, package_versions, project_commit
 from drake_rus.scenario import LoadScenario, Scenario
 
 
@@ -35,3 +37,12 @@ def test_commit_is_a_sha_or_none():
     c = project_commit()
     assert c["commit"] is None or (len(c["commit"]) == 40 and int(c["commit"], 16) >= 0)
     assert Provenance(Scenario())["seeds"]["random_seed"] == 0
+
+
+def test_cpu_model_from_cpuinfo(tmp_path):
+    info = tmp_path / "cpuinfo"
+    info.write_text("processor\t: 0\nvendor_id\t: X\nmodel name\t: Example CPU @ 2.0GHz\n")
+    assert cpu_model(str(info)) == "Example CPU @ 2.0GHz"
+    # Without a readable model name: platform's answer, or None; never an exception.
+    assert cpu_model(str(tmp_path / "missing")) in (None, platform.processor())
+    assert "cpu" in Provenance()
