@@ -423,6 +423,26 @@ def test_ct_template_cache_split_and_selection(ct_dir, builds):
     assert p4 != p1 and len(builds) == 3
 
 
+def test_template_key_covers_every_module_it_is_built_by(monkeypatch):
+    """The CT template's cache key hashes every module of the packages its builder lives
+    in, not only the files of the functions it calls: a change to a helper (the body's
+    lateral direction in anatomy/frames.py, which the key once missed) gives another key."""
+    files = {Path(f).resolve() for f in ct._code_files()}
+    for package in ("anatomy", "template"):
+        for module in (REPO_ROOT / "drake_rus" / package).glob("*.py"):
+            assert module.resolve() in files, module
+    frames = (REPO_ROOT / "drake_rus" / "anatomy" / "frames.py").resolve()
+    source = ct._source_file(ct.kidney_masks)
+    before = ct._code_key.__wrapped__(source)
+    real_read = Path.read_bytes
+    monkeypatch.setattr(
+        Path,
+        "read_bytes",
+        lambda self: real_read(self) + (b"# changed" if self.resolve() == frames else b""),
+    )
+    assert ct._code_key.__wrapped__(source)["code"] != before["code"]
+
+
 def test_split_is_checked(ct_dir, builds):
     """A case that built the template warns when scored against it; resolve_template builds
     the real template without the cases to be scored."""

@@ -370,8 +370,12 @@ class CtTemplateOptions:
 
 def _code_files() -> set:
     """The source files a CT template is made by: this module, the builder, the canonical
-    frame's module and marching cubes' (found through the functions, wherever they live)."""
-    return {
+    frame's module and marching cubes' (found through the functions, wherever they live),
+    and every module of the packages they live in (``drake_rus.anatomy``,
+    ``drake_rus.template``): a helper they call (the importer's frame cues, the body's
+    directions) changes the template as much as they do, and a key that missed it would
+    serve a template the running code no longer builds."""
+    direct = {
         _source_file(f)
         for f in (
             subject_from_ct_kidney,
@@ -381,6 +385,8 @@ def _code_files() -> set:
             mask_to_mesh,
         )
     }
+    packages = {Path(f).parent for f in direct}
+    return direct | {str(p.resolve()) for d in packages for p in d.glob("*.py")}
 
 
 @lru_cache(maxsize=4)
