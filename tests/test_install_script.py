@@ -7,12 +7,8 @@ import stat
 import subprocess
 from pathlib import Path
 
-import pytest
-
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "scripts" / "pip_install.sh"
-
-pytestmark = pytest.mark.skipif(shutil.which("bash") is None, reason="needs bash")
 
 
 def _fake_venv(tmp_path: Path, pip_exit: int) -> Path:

@@ -385,8 +385,7 @@ def _code_files() -> set:
             mask_to_mesh,
         )
     }
-    packages = {Path(f).parent for f in direct}
-    return direct | {str(p.resolve()) for d in packages for p in d.glob("*.py")}
+    return {str(p.resolve()) for d in {Path(f).parent for f in direct} for p in d.glob("*.py")}
 
 
 @lru_cache(maxsize=4)
