@@ -121,6 +121,19 @@ def _sha256(path: Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
+def _evaluation(before: dict, after: dict, before_model: str) -> dict:
+    """The card's ``evaluation``: held-out IoU of the scenario's model before and of the
+    written model after (:func:`frames_iou` records)."""
+    return {
+        "held_out_iou_before": round(before["iou"], 4),
+        "held_out_iou_after": round(after["iou"], 4),
+        "before": before,
+        "after": after,
+        "before_model": before_model,
+        "measured_by": "drake-rus segmenter fine-tune (imaging.training.fine_tune.frames_iou)",
+    }
+
+
 def _check_interpolate(alpha) -> float:
     """``--interpolate`` as a float in (0, 1], or ValueError naming it."""
     try:
@@ -286,27 +299,18 @@ def fine_tune(
     if tmp.exists():
         shutil.rmtree(tmp)
     tmp.mkdir(parents=True)
-    measured_by = "drake-rus segmenter fine-tune (imaging.training.fine_tune.frames_iou)"
     written = [onnx_name, f"{name}.json"]
     try:
         export_onnx(net, tmp / onnx_name, tuple(card["canvas_px"]))
         (tmp / f"{name}.json").write_text(json.dumps(new, indent=2) + "\n")
         after = frames_iou(tmp / onnx_name, held, config)
-        evaluation = {
-            "held_out_iou_before": round(before["iou"], 4),
-            "held_out_iou_after": round(after["iou"], 4),
-            "before": before,
-            "after": after,
-            "before_model": scenario_model.name,
-            "measured_by": measured_by,
-        }
         if alpha < 1.0:
             alone = f"{name}_alone"
             alone_card = {
                 **new,
                 "model": f"{alone}.onnx",
                 "scenario": {**new["scenario"], "onnx_model": str(out / f"{alone}.onnx")},
-                "evaluation": evaluation,
+                "evaluation": _evaluation(before, after, scenario_model.name),
             }
             (tmp / onnx_name).replace(tmp / f"{alone}.onnx")
             (tmp / f"{alone}.json").write_text(json.dumps(alone_card, indent=2) + "\n")
@@ -315,15 +319,15 @@ def fine_tune(
                 source, tmp / f"{alone}.onnx", alpha, tmp / onnx_name, out / f"{alone}.onnx"
             )
             (tmp / f"{name}.json").write_text(json.dumps(new, indent=2) + "\n")
-            mixed = frames_iou(tmp / onnx_name, held, config)
-            evaluation = {
-                **evaluation,
-                "held_out_iou_after": round(mixed["iou"], 4),
+            new["evaluation"] = {
+                **_evaluation(
+                    before, frames_iou(tmp / onnx_name, held, config), scenario_model.name
+                ),
                 "held_out_iou_fine_tune_alone": round(after["iou"], 4),
-                "after": mixed,
                 "fine_tune_alone": after,
             }
-        new["evaluation"] = evaluation
+        else:
+            new["evaluation"] = _evaluation(before, after, scenario_model.name)
         (tmp / f"{name}.json").write_text(json.dumps(new, indent=2) + "\n")
         out.mkdir(parents=True, exist_ok=True)
         for f in written:
