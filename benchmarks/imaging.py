@@ -95,8 +95,9 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--vh-views",
         type=int,
-        default=60,
-        help="views per posture of the VH female body (0: skip it)",
+        default=240,
+        help="views per posture of the VH female body (0: skip it; 60 views gave two "
+        "samples 0.02 apart)",
     )
     ap.add_argument(
         "--speed-frames",
@@ -276,6 +277,7 @@ def depth_and_posture_study(cfg, args) -> dict:
     from drake_rus.imaging.training.evaluation import (
         POSTURES,
         VH_FEMALE,
+        cluster_bootstrap_ci,
         depth_study,
         load_source,
         sample_views,
@@ -387,10 +389,24 @@ def depth_and_posture_study(cfg, args) -> dict:
                 f"over {row.get('frames_with_kidney', 0)} frames (unshadowed "
                 f"{row.get('iou_visible', float('nan')):.3f}); per preset: {cells}"
             )
+            at_preset = [
+                q["iou"]
+                for q in vh_records
+                if q["posture"] == p and q["depth"] == preset and q["iou"] is not None
+            ]
+            # One body: the views are the sample (independent probe poses, one frame each
+            # at the preset), so the interval resamples views.
+            ci = cluster_bootstrap_ci(at_preset, list(range(len(at_preset))))
+            print(
+                f"    {p} at {preset * 1000:.0f} mm: 95% interval over views "
+                f"{ci[0]:.3f}-{ci[1]:.3f}"
+            )
             vh[p] = {
                 "preset": preset,
                 "needed_depth": _round(src.needed_depth()),
                 "iou": _round(row.get("iou")),
+                "iou_ci95_views": [_round(x) for x in ci],
+                "views": args.vh_views,
                 "frames_with_kidney": row.get("frames_with_kidney", 0),
                 "iou_unshadowed": _round(row.get("iou_visible")),
                 "false_positive_rate": _round(row.get("false_positive_rate")),

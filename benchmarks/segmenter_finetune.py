@@ -14,7 +14,10 @@ patients ``train:0..`` (supine, each at the preset a scan would pick). Held-out 
 in the new look (and the same views in the emulator's own look, to see what fine-tuning
 costs there). Both are written as folders in the Open Kidney layout (``--out``) and the
 fine-tuning is the command's own (:func:`drake_rus.imaging.training.fine_tune.fine_tune`
-with ``--held-out``). Prints a table and, last, one JSON line.
+with ``--held-out``). ``--interpolate``: the same fine-tune mixed with the original model,
+weight by weight, at each of these weights of the fine-tune (WiSE-FT,
+:mod:`drake_rus.imaging.training.interpolate`; ``fine-tune --interpolate``), scored on both
+looks. Prints a table and, last, one JSON line.
 """
 
 from __future__ import annotations
@@ -88,7 +91,21 @@ def main(argv=None) -> int:
     ap.add_argument("--lr", type=float, default=5e-4)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="runs/segmenter_finetune_demo")
+    ap.add_argument(
+        "--interpolate",
+        default="0.5,0.75",
+        help="comma-separated weights of the fine-tune in (0, 1) to mix with the original "
+        "model and score too ('' for none)",
+    )
     args = ap.parse_args(argv)
+    try:
+        alphas = [float(a) for a in args.interpolate.split(",") if a.strip()]
+    except ValueError:
+        alphas = [float("nan")]
+    if not all(0.0 < a < 1.0 for a in alphas):
+        ap.error(
+            f"--interpolate: expected weights in (0, 1) like 0.5,0.75, got {args.interpolate!r}"
+        )
     try:
         import torch  # noqa: F401
     except ImportError:
@@ -97,7 +114,8 @@ def main(argv=None) -> int:
 
     from drake_rus.imaging.annotated import read_annotated_frames, write_annotated_frames
     from drake_rus.imaging.config import ImagingConfig
-    from drake_rus.imaging.training.fine_tune import fine_tune, frames_iou
+    from drake_rus.imaging.training.fine_tune import fine_tune, frames_iou, trainable_source
+    from drake_rus.imaging.training.interpolate import interpolate_models
 
     t0 = time.perf_counter()
     config = ImagingConfig()
@@ -143,17 +161,38 @@ def main(argv=None) -> int:
         ("new machine (held-out test:0..)", ev["before"], ev["after"]),
         ("the emulator's own look (same views)", before_a, after_a),
     ]
+    mixes = []
+    source = trainable_source(config.onnx_model)
+    for alpha in alphas:
+        mixed = interpolate_models(
+            source, new_model, alpha, out / f"model_alpha_{alpha:g}", name=new_model.stem
+        )
+        mixes.append(
+            (
+                alpha,
+                frames_iou(mixed, folders["held_out_machine_b"], config),
+                frames_iou(mixed, folders["held_out_emulator"], config),
+                mixed,
+            )
+        )
     print(
         f"\nfine-tuned on {len(tune)} frames of the new machine's look "
         f"({args.tune_patients} training patients); IoU on held-out frames"
     )
     print(
         f"{'frames':40s} {'n':>4s} {'before':>7s} {'after':>7s} {'FP before':>9s} {'FP after':>9s}"
+        + "".join(f" {'alpha ' + format(a, 'g'):>10s}" for a in alphas)
     )
-    for name, b, a in rows:
+    for k, (name, b, a) in enumerate(rows):
         print(
             f"{name:40s} {b['frames_with_kidney']:4d} {b['iou']:7.3f} {a['iou']:7.3f} "
             f"{b['false_positive_rate']:9.2f} {a['false_positive_rate']:9.2f}"
+            + "".join(f" {m[1 + k]['iou']:10.3f}" for m in mixes)
+        )
+    if mixes:
+        print(
+            "alpha: (1 - alpha) x the original + alpha x the fine-tune, weight by weight "
+            "(after = alpha 1)"
         )
     print(
         json.dumps(
@@ -170,6 +209,19 @@ def main(argv=None) -> int:
                 "iou_emulator_after": round(after_a["iou"], 4),
                 "fp_machine_b_before": round(ev["before"]["false_positive_rate"], 3),
                 "fp_machine_b_after": round(ev["after"]["false_positive_rate"], 3),
+                "interpolated": [
+                    {
+                        "alpha": alpha,
+                        "iou_machine_b": round(b["iou"], 4),
+                        "iou_emulator": round(a["iou"], 4),
+                        "fp_machine_b": round(b["false_positive_rate"], 3),
+                        "fp_emulator": round(a["false_positive_rate"], 3),
+                        "model": str(path),
+                    }
+                    for alpha, b, a, path in mixes
+                ],
+                "fp_emulator_before": round(before_a["false_positive_rate"], 3),
+                "fp_emulator_after": round(after_a["false_positive_rate"], 3),
                 "epochs": args.epochs,
                 "train_seconds": card["fine_tuning"]["train_seconds"],
                 "model": str(new_model),

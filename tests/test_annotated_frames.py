@@ -3,6 +3,7 @@ Ultrasound Data Set's mask layout is imported; ``scan --save-frames`` writes one
 imports again; bad folders get one line and exit status 2, and nothing is written."""
 
 import csv
+import json
 import subprocess
 import sys
 
@@ -225,3 +226,66 @@ def test_fine_tuning_takes_the_boundary_band(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="--boundary-band-mm"):
         ft.fine_tune(frames, ImagingConfig(), tmp_path / "bad", boundary_band_mm=-1.0)
     assert not (tmp_path / "bad").exists()
+
+
+def test_fine_tuning_can_mix_the_fine_tune_with_the_original(tmp_path):
+    """--interpolate 0.5 writes the weight-by-weight mean of the original fp32 model and
+    the fine-tune (written beside it as NAME_alone.onnx), and the card gives both IoUs."""
+    pytest.importorskip("torch")
+    onnx = pytest.importorskip("onnx")
+    from onnx import numpy_helper
+
+    from drake_rus.imaging.annotated import read_annotated_frames
+    from drake_rus.imaging.config import ImagingConfig
+    from drake_rus.imaging.training.fine_tune import fine_tune, trainable_source
+    from drake_rus.imaging.training.interpolate import pair_initializers, sha256
+
+    frames = read_annotated_frames(make_folder(tmp_path / "frames", n=5), SHAPE)
+    for bad in (0.0, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="--interpolate"):
+            fine_tune(frames, ImagingConfig(), tmp_path / "bad", interpolate=bad)
+    assert not (tmp_path / "bad").exists()
+    out = tmp_path / "mixed"
+    card = fine_tune(frames, ImagingConfig(), out, epochs=1, interpolate=0.5, log=lambda s: None)
+    mixed_path = out / "kidney_unet_finetuned.onnx"
+    alone_path = out / "kidney_unet_finetuned_alone.onnx"
+    assert alone_path.with_suffix(".json").is_file() and mixed_path.with_suffix(".json").is_file()
+    source = trainable_source(ImagingConfig().onnx_model)
+    rec = card["interpolation"]
+    assert rec["alpha"] == 0.5 and rec["original_sha256"] == sha256(source)
+    assert rec["fine_tune_alone_sha256"] == sha256(alone_path)
+    original, alone, mixed = (onnx.load(str(p)) for p in (source, alone_path, mixed_path))
+    by_name = {
+        m: {t.name: numpy_helper.to_array(t) for t in g.graph.initializer}
+        for m, g in (("o", original), ("a", alone), ("m", mixed))
+    }
+    pairs = pair_initializers(original, alone)
+    assert pairs and all(n_b in by_name["m"] for _, n_b in pairs)
+    moved = 0
+    for n_o, n_a in pairs:
+        o, a, m = by_name["o"][n_o], by_name["a"][n_a], by_name["m"][n_a]
+        np.testing.assert_allclose(m, 0.5 * (o + a), rtol=1e-6, atol=1e-7)
+        moved += not np.allclose(o, a)
+    assert moved > 0  # the fine-tune moved the weights: the mean is neither model
+    ev = card["evaluation"]
+    assert 0.0 <= ev["held_out_iou_fine_tune_alone"] <= 1.0
+    assert ev["held_out_iou_after"] == round(ev["after"]["iou"], 4)
+    alone_card = json.loads(alone_path.with_suffix(".json").read_text())
+    assert alone_card["model"] == alone_path.name
+    assert alone_card["evaluation"]["held_out_iou_after"] == ev["held_out_iou_fine_tune_alone"]
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        [mixed_path.name, alone_path.name, "kidney_unet_finetuned.json"]
+        + ["kidney_unet_finetuned_alone.json"]
+    )
+
+
+def test_the_command_line_refuses_a_bad_interpolation_weight(tmp_path):
+    root = make_folder(tmp_path / "frames")
+    out = tmp_path / "model"
+    r = _cli(
+        "segmenter", "fine-tune", "--frames", str(root), "--out", str(out), "--interpolate", "0"
+    )
+    assert r.returncode == 2
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "--interpolate" in lines[0], r.stderr
+    assert not out.exists()

@@ -71,6 +71,15 @@ def add_commands(subparsers) -> None:
         default=4.0,
         help="extra loss weight in the --boundary-band-mm band (default 4)",
     )
+    ft.add_argument(
+        "--interpolate",
+        type=float,
+        default=1.0,
+        metavar="ALPHA",
+        help="write (1 - ALPHA) x the original + ALPHA x the fine-tune, weight by weight "
+        "(WiSE-FT; keeps more of the original's accuracy on its own looks), and the "
+        "fine-tune alone beside it as NAME_alone.onnx (default 1: the fine-tune alone)",
+    )
     ft.set_defaults(func=run_fine_tune, outputs={"out": "dir"})
     ck = sub.add_parser(
         "check-frames",
@@ -143,6 +152,11 @@ def run_fine_tune(args) -> int:
         )
     if not 0.0 < args.holdout < 1.0:
         raise UserError(f"--holdout: expected a share between 0 and 1, got {args.holdout}")
+    if not 0.0 < args.interpolate <= 1.0:
+        raise UserError(
+            "--interpolate: expected the fine-tune's weight in (0, 1] (1: the fine-tune "
+            f"alone), got {args.interpolate:g}"
+        )
     frames = _read(args, scenario)
     held_out = None if args.held_out is None else _read(args, scenario, args.held_out)
     if len(frames) < 2 and held_out is None:
@@ -172,6 +186,7 @@ def run_fine_tune(args) -> int:
             held_out_source=None if args.held_out is None else str(Path(args.held_out).resolve()),
             boundary_band_mm=args.boundary_band_mm,
             boundary_gain=args.boundary_gain,
+            interpolate=args.interpolate,
             log=lambda line: print(line, flush=True),
         )
     except ValueError as e:
@@ -182,6 +197,12 @@ def run_fine_tune(args) -> int:
         f"{ev['held_out_iou_before']:.3f} ({ev['before_model']}) -> "
         f"{ev['held_out_iou_after']:.3f} ({card['model']})"
     )
+    if "held_out_iou_fine_tune_alone" in ev:
+        print(
+            f"the fine-tune alone ({args.name}_alone.onnx, beside it): "
+            f"{ev['held_out_iou_fine_tune_alone']:.3f}; the written model mixes "
+            f"{1 - args.interpolate:g} x the original with {args.interpolate:g} x it"
+        )
     print(f"wrote {out / card['model']} and its card {out / (args.name + '.json')}")
     print('scan with it: --set "{imaging: {onnx_model: ' + str(out / card["model"]) + '}}"')
     return 0

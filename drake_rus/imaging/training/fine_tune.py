@@ -10,7 +10,11 @@ keeps the last ``holdout`` share (by name: the end of a recorded sequence, whose
 are not in training) aside, rebuilds the U-Net from the ONNX model's weights
 (:func:`~drake_rus.imaging.training.train_segmenter.unet_from_onnx`), trains it on the rest
 (flips, gain and contrast jitter; one-cycle learning rate) and exports it with a card that
-records the held-out IoU before (the model the scenario runs now) and after.
+records the held-out IoU before (the model the scenario runs now) and after. With
+``interpolate`` below 1 the model it writes is the weight-space mix ``(1 - alpha) x the
+original + alpha x the fine-tune`` (:mod:`~drake_rus.imaging.training.interpolate`, WiSE-FT),
+which keeps more of the original's accuracy on the looks it was trained on; the plain
+fine-tune is written beside it (``NAME_alone.onnx``) and the card gives both held-out IoUs.
 
 The plain functions: :func:`held_out_split`, :func:`frames_on_canvas`, :func:`frames_iou`.
 """
@@ -117,6 +121,56 @@ def _sha256(path: Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
+def _evaluation(before: dict, after: dict, before_model: str) -> dict:
+    """The card's ``evaluation``: held-out IoU of the scenario's model before and of the
+    written model after (:func:`frames_iou` records)."""
+    return {
+        "held_out_iou_before": round(before["iou"], 4),
+        "held_out_iou_after": round(after["iou"], 4),
+        "before": before,
+        "after": after,
+        "before_model": before_model,
+        "measured_by": "drake-rus segmenter fine-tune (imaging.training.fine_tune.frames_iou)",
+    }
+
+
+def _check_interpolate(alpha) -> float:
+    """``--interpolate`` as a float in (0, 1], or ValueError naming it."""
+    try:
+        a = float(alpha)
+    except (TypeError, ValueError):
+        a = float("nan")
+    if isinstance(alpha, bool) or not (np.isfinite(a) and 0.0 < a <= 1.0):
+        raise ValueError(
+            "--interpolate: expected the fine-tune's weight in (0, 1] (1: the fine-tune "
+            f"alone; 0.5: halfway between the original and the fine-tune), got {alpha!r}"
+        )
+    return a
+
+
+def _interpolate_into(source: Path, tuned: Path, alpha: float, target: Path, tuned_final: Path):
+    """Writes ``target``, ``(1 - alpha)`` x ``source`` + ``alpha`` x ``tuned`` (both fp32
+    ONNX, the same network), and returns the card's ``interpolation`` record
+    (``tuned_final``: where the fine-tune alone will be)."""
+    import onnx
+
+    from drake_rus.imaging.training.interpolate import interpolated_model, load_model, sha256
+
+    onnx.save(
+        interpolated_model(load_model(source, "model"), load_model(tuned, "fine-tune"), alpha),
+        str(target),
+    )
+    return {
+        "alpha": alpha,
+        "original": str(source),
+        "original_sha256": sha256(source),
+        "fine_tune_alone": str(tuned_final),
+        "fine_tune_alone_sha256": sha256(tuned),
+        "rule": "every float weight (1 - alpha) x the original + alpha x the fine-tune, "
+        "paired by their place in the graph (imaging.training.interpolate, WiSE-FT)",
+    }
+
+
 def trainable_source(model_path) -> Path:
     """The fp32 ONNX model to fine-tune for a model: itself, or for an int8 model of
     ``quantize_segmenter`` the fp32 model its card names (``quantization.source_model``,
@@ -145,6 +199,7 @@ def fine_tune(
     held_out_source: str = "",
     boundary_band_mm: float = 0.0,
     boundary_gain: float = 4.0,
+    interpolate: float = 1.0,
     log=print,
 ) -> dict:
     """Fine-tunes the scenario's model (``config.onnx_model``; an int8 model's fp32 source)
@@ -155,7 +210,12 @@ def fine_tune(
     new one after. ``boundary_band_mm`` > 0: the BCE weighted by 1 + ``boundary_gain``
     within that distance (mm) of the true kidney edge on the canvas
     (``train_segmenter.boundary_band_weight``, as ``train_segmenter --boundary-band-mm``);
-    0, the default, is the unweighted loss."""
+    0, the default, is the unweighted loss. ``interpolate`` (alpha in (0, 1]): below 1, the
+    written model is ``(1 - alpha)`` x the scenario model's fp32 source ``+ alpha`` x the
+    fine-tune (WiSE-FT, :func:`~drake_rus.imaging.training.interpolate.interpolated_model`),
+    the fine-tune alone is written beside it as ``NAME_alone.onnx`` (and its card), and the
+    card's ``evaluation`` adds ``held_out_iou_fine_tune_alone``."""
+    alpha = _check_interpolate(interpolate)
     if not (np.isfinite(boundary_band_mm) and boundary_band_mm >= 0):
         raise ValueError(
             f"--boundary-band-mm: expected a distance >= 0 (mm), got {boundary_band_mm}"
@@ -239,21 +299,38 @@ def fine_tune(
     if tmp.exists():
         shutil.rmtree(tmp)
     tmp.mkdir(parents=True)
+    written = [onnx_name, f"{name}.json"]
     try:
         export_onnx(net, tmp / onnx_name, tuple(card["canvas_px"]))
         (tmp / f"{name}.json").write_text(json.dumps(new, indent=2) + "\n")
         after = frames_iou(tmp / onnx_name, held, config)
-        new["evaluation"] = {
-            "held_out_iou_before": round(before["iou"], 4),
-            "held_out_iou_after": round(after["iou"], 4),
-            "before": before,
-            "after": after,
-            "before_model": scenario_model.name,
-            "measured_by": "drake-rus segmenter fine-tune (imaging.training.fine_tune.frames_iou)",
-        }
+        if alpha < 1.0:
+            alone = f"{name}_alone"
+            alone_card = {
+                **new,
+                "model": f"{alone}.onnx",
+                "scenario": {**new["scenario"], "onnx_model": str(out / f"{alone}.onnx")},
+                "evaluation": _evaluation(before, after, scenario_model.name),
+            }
+            (tmp / onnx_name).replace(tmp / f"{alone}.onnx")
+            (tmp / f"{alone}.json").write_text(json.dumps(alone_card, indent=2) + "\n")
+            written += [f"{alone}.onnx", f"{alone}.json"]
+            new["interpolation"] = _interpolate_into(
+                source, tmp / f"{alone}.onnx", alpha, tmp / onnx_name, out / f"{alone}.onnx"
+            )
+            (tmp / f"{name}.json").write_text(json.dumps(new, indent=2) + "\n")
+            new["evaluation"] = {
+                **_evaluation(
+                    before, frames_iou(tmp / onnx_name, held, config), scenario_model.name
+                ),
+                "held_out_iou_fine_tune_alone": round(after["iou"], 4),
+                "fine_tune_alone": after,
+            }
+        else:
+            new["evaluation"] = _evaluation(before, after, scenario_model.name)
         (tmp / f"{name}.json").write_text(json.dumps(new, indent=2) + "\n")
         out.mkdir(parents=True, exist_ok=True)
-        for f in (onnx_name, f"{name}.json"):
+        for f in written:
             (tmp / f).replace(out / f)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
