@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import hashlib
 import json
 import math
 import os
@@ -45,6 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drake_rus.anatomy.cache import file_digest
 from drake_rus.extras import MissingExtra, require
 from drake_rus.imaging.onnx_backend import read_model_card
 
@@ -255,12 +255,8 @@ def interpolated_model(model_a, model_b, alpha: float):
     return out
 
 
-def sha256(path: str | Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+#: SHA-256 (hex) of a file's bytes, as the patient cache and the model cards record it.
+sha256 = file_digest
 
 
 def interpolated_card(
