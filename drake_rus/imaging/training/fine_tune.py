@@ -21,7 +21,6 @@ The plain functions: :func:`held_out_split`, :func:`frames_on_canvas`, :func:`fr
 
 from __future__ import annotations
 
-import hashlib
 import json
 import shutil
 import time
@@ -41,6 +40,7 @@ from drake_rus.imaging.onnx_backend import (
 )
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.imaging.segment import iou
+from drake_rus.imaging.training.interpolate import interpolated_model, load_model, sha256
 from drake_rus.imaging.training.train_segmenter import export_onnx, train, unet_from_onnx
 
 
@@ -117,10 +117,6 @@ def frames_iou(model_path, frames: AnnotatedFrames, config: ImagingConfig) -> di
     }
 
 
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-
-
 def _evaluation(before: dict, after: dict, before_model: str) -> dict:
     """The card's ``evaluation``: held-out IoU of the scenario's model before and of the
     written model after (:func:`frames_iou` records)."""
@@ -153,8 +149,6 @@ def _interpolate_into(source: Path, tuned: Path, alpha: float, target: Path, tun
     ONNX, the same network), and returns the card's ``interpolation`` record
     (``tuned_final``: where the fine-tune alone will be)."""
     import onnx
-
-    from drake_rus.imaging.training.interpolate import interpolated_model, load_model, sha256
 
     onnx.save(
         interpolated_model(load_model(source, "model"), load_model(tuned, "fine-tune"), alpha),
@@ -270,7 +264,7 @@ def fine_tune(
     new["scenario"] = {**(card.get("scenario") or {}), "onnx_model": str(out / onnx_name)}
     new["fine_tuned_from"] = {
         "model": str(source),
-        "sha256": _sha256(source),
+        "sha256": sha256(source),
         "scenario_model": str(scenario_model),
     }
     new["fine_tuning"] = {
