@@ -251,9 +251,10 @@ def test_fine_tuning_can_mix_the_fine_tune_with_the_original(tmp_path):
     alone_path = out / "kidney_unet_finetuned_alone.onnx"
     assert alone_path.with_suffix(".json").is_file() and mixed_path.with_suffix(".json").is_file()
     source = trainable_source(ImagingConfig().onnx_model)
-    rec = card["interpolation"]
-    assert rec["alpha"] == 0.5 and rec["original_sha256"] == sha256(source)
-    assert rec["fine_tune_alone_sha256"] == sha256(alone_path)
+    rec = card["training"]["interpolation"]
+    assert rec["alpha"] == 0.5 and rec["model_a_sha256"] == sha256(source)
+    assert rec["model_b_sha256"] == sha256(alone_path)
+    assert rec["model_b"] == str(alone_path.resolve())
     original, alone, mixed = (onnx.load(str(p)) for p in (source, alone_path, mixed_path))
     by_name = {
         m: {t.name: numpy_helper.to_array(t) for t in g.graph.initializer}

@@ -40,7 +40,12 @@ from drake_rus.imaging.onnx_backend import (
 )
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.imaging.segment import iou
-from drake_rus.imaging.training.interpolate import interpolated_model, load_model, sha256
+from drake_rus.imaging.training.interpolate import (
+    interpolated_model,
+    interpolation_record,
+    load_model,
+    sha256,
+)
 from drake_rus.imaging.training.train_segmenter import export_onnx, train, unet_from_onnx
 
 
@@ -144,25 +149,19 @@ def _check_interpolate(alpha) -> float:
     return a
 
 
-def _interpolate_into(source: Path, tuned: Path, alpha: float, target: Path, tuned_final: Path):
+def _interpolate_into(
+    source: Path, tuned: Path, alpha: float, target: Path, tuned_final: Path, command: str
+) -> dict:
     """Writes ``target``, ``(1 - alpha)`` x ``source`` + ``alpha`` x ``tuned`` (both fp32
-    ONNX, the same network), and returns the card's ``interpolation`` record
-    (``tuned_final``: where the fine-tune alone will be)."""
+    ONNX, the same network), and returns the card's ``training.interpolation`` record, as
+    the interpolation tool writes it (``tuned_final``: where the fine-tune alone will be)."""
     import onnx
 
     onnx.save(
         interpolated_model(load_model(source, "model"), load_model(tuned, "fine-tune"), alpha),
         str(target),
     )
-    return {
-        "alpha": alpha,
-        "original": str(source),
-        "original_sha256": sha256(source),
-        "fine_tune_alone": str(tuned_final),
-        "fine_tune_alone_sha256": sha256(tuned),
-        "rule": "every float weight (1 - alpha) x the original + alpha x the fine-tune, "
-        "paired by their place in the graph (imaging.training.interpolate, WiSE-FT)",
-    }
+    return interpolation_record(source, tuned, alpha, command, model_b_at=tuned_final)
 
 
 def trainable_source(model_path) -> Path:
@@ -206,7 +205,8 @@ def fine_tune(
     (``train_segmenter.boundary_band_weight``, as ``train_segmenter --boundary-band-mm``);
     0, the default, is the unweighted loss. ``interpolate`` (alpha in (0, 1]): below 1, the
     written model is ``(1 - alpha)`` x the scenario model's fp32 source ``+ alpha`` x the
-    fine-tune (WiSE-FT, :func:`~drake_rus.imaging.training.interpolate.interpolated_model`),
+    fine-tune (WiSE-FT, :func:`~drake_rus.imaging.training.interpolate.interpolated_model`;
+    the card's ``training.interpolation`` as the interpolation tool records it),
     the fine-tune alone is written beside it as ``NAME_alone.onnx`` (and its card), and the
     card's ``evaluation`` adds ``held_out_iou_fine_tune_alone``."""
     alpha = _check_interpolate(interpolate)
@@ -309,9 +309,16 @@ def fine_tune(
             (tmp / onnx_name).replace(tmp / f"{alone}.onnx")
             (tmp / f"{alone}.json").write_text(json.dumps(alone_card, indent=2) + "\n")
             written += [f"{alone}.onnx", f"{alone}.json"]
-            new["interpolation"] = _interpolate_into(
-                source, tmp / f"{alone}.onnx", alpha, tmp / onnx_name, out / f"{alone}.onnx"
-            )
+            new["training"] = {
+                "interpolation": _interpolate_into(
+                    source,
+                    tmp / f"{alone}.onnx",
+                    alpha,
+                    tmp / onnx_name,
+                    out / f"{alone}.onnx",
+                    command,
+                )
+            }
             (tmp / f"{name}.json").write_text(json.dumps(new, indent=2) + "\n")
             new["evaluation"] = {
                 **_evaluation(

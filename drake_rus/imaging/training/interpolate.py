@@ -198,10 +198,10 @@ def pair_initializers(model_a, model_b) -> list[tuple[str, str]]:
         )
     ta = {t.name: t for t in model_a.graph.initializer}
     tb = {t.name: t for t in model_b.graph.initializer}
+    place_b = {v: k for k, v in ib.items()}
     pairs = []
     for t in model_b.graph.initializer:
-        key = next(k for k, v in ib.items() if v == t.name)
-        a, b = ta[ia[key]], t
+        a, b = ta[ia[place_b[t.name]]], t
         if a.data_type != b.data_type or list(a.dims) != list(b.dims):
             raise ValueError(
                 f"the graphs differ: initializer {a.name} of model A is {list(a.dims)} of "
@@ -259,6 +259,28 @@ def interpolated_model(model_a, model_b, alpha: float):
 sha256 = file_digest
 
 
+def interpolation_record(
+    path_a: Path, path_b: Path, alpha: float, command: str = "", model_b_at: Path | None = None
+) -> dict:
+    """The card's ``training.interpolation``: both sources, their SHA-256, alpha, the rule.
+    ``model_b_at``: where B will be kept when ``path_b`` is a staging copy (its bytes are
+    hashed here)."""
+    return {
+        "model_a": str(Path(path_a).resolve()),
+        "model_a_sha256": sha256(path_a),
+        "model_b": str(Path(model_b_at or path_b).resolve()),
+        "model_b_sha256": sha256(path_b),
+        "alpha": alpha,
+        "rule": (
+            "every float initializer (1 - alpha) * A + alpha * B, paired by their place in "
+            "the graph (the node and input slot that first reads them); the graph, its "
+            "names and this card's other fields are model B's"
+        ),
+        "method": "drake_rus.imaging.training.interpolate (WiSE-FT, Wortsman et al. 2022)",
+        "command": command,
+    }
+
+
 def interpolated_card(
     card_a: dict, card_b: dict, path_a: Path, path_b: Path, alpha: float, model: Path, command=""
 ) -> dict:
@@ -278,20 +300,7 @@ def interpolated_card(
     if isinstance(card.get("scenario"), dict):
         card["scenario"]["onnx_model"] = str(model.resolve())
     training = card.get("training") if isinstance(card.get("training"), dict) else {}
-    training["interpolation"] = {
-        "model_a": str(path_a.resolve()),
-        "model_a_sha256": sha256(path_a),
-        "model_b": str(path_b.resolve()),
-        "model_b_sha256": sha256(path_b),
-        "alpha": alpha,
-        "rule": (
-            "every float initializer (1 - alpha) * A + alpha * B, paired by their place in "
-            "the graph (the node and input slot that first reads them); the graph, its "
-            "names and this card's other fields are model B's"
-        ),
-        "method": "drake_rus.imaging.training.interpolate (WiSE-FT, Wortsman et al. 2022)",
-        "command": command,
-    }
+    training["interpolation"] = interpolation_record(path_a, path_b, alpha, command)
     card["training"] = training
     return card
 
