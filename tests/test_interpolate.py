@@ -124,6 +124,21 @@ def test_card_is_bs_with_the_interpolation_record(pair, tmp_path):
     assert rec["command"] == "cmd"
 
 
+def test_a_mix_of_mixes_keeps_every_record(pair, tmp_path):
+    # A soup (the mean of two fine-tunes) mixed again with the original: the second card
+    # keeps the first mix's record, so the weights trace back to trained models.
+    a, b = pair
+    soup = interpolate_models(a, b, 0.5, tmp_path / "soup", name="m")
+    mix = interpolate_models(a, soup, 0.75, tmp_path / "mix", name="m")
+    rec = json.loads(mix.with_suffix(".json").read_text())["training"]["interpolation"]
+    assert rec["alpha"] == 0.75 and rec["model_b"] == str(soup.resolve())
+    inner = rec["model_b_interpolation"]
+    assert inner["alpha"] == 0.5
+    assert inner["model_a"] == str(a.resolve()) and inner["model_b"] == str(b.resolve())
+    assert "model_a_interpolation" not in rec  # a has a trained model's card
+    assert "model_b_interpolation" not in inner
+
+
 def test_pairs_follow_the_graph_not_the_names(tmp_path):
     # B names its weight "b" and its bias "W": pairing by name would cross them.
     a = linear_model(tmp_path / "a.onnx", np.ones((3, 4)), np.zeros(4))

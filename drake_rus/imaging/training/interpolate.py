@@ -286,8 +286,10 @@ def interpolated_card(
 ) -> dict:
     """B's card for the interpolated ``model``: ``model`` and ``scenario.onnx_model`` name
     it, no ``evaluation`` (B's figures), and ``training.interpolation`` recording the
-    sources, their SHA-256 and alpha. ValueError when A's and B's cards give another
-    canvas or input (the backend would feed the two models differently)."""
+    sources, their SHA-256 and alpha (and, under ``model_a_interpolation`` /
+    ``model_b_interpolation``, the record of a source that was itself a mix). ValueError
+    when A's and B's cards give another canvas or input (the backend would feed the two
+    models differently)."""
     for field in CANVAS_FIELDS:
         if card_a and card_b and card_a.get(field) != card_b.get(field):
             raise ValueError(
@@ -300,9 +302,24 @@ def interpolated_card(
     if isinstance(card.get("scenario"), dict):
         card["scenario"]["onnx_model"] = str(model.resolve())
     training = card.get("training") if isinstance(card.get("training"), dict) else {}
-    training["interpolation"] = interpolation_record(path_a, path_b, alpha, command)
+    record = interpolation_record(path_a, path_b, alpha, command)
+    # A source that was itself a mix (a soup of seeds, say) keeps its own record, so the
+    # card traces every weight back to trained models.
+    for label, source in (("model_a", card_a), ("model_b", card_b)):
+        earlier = earlier_interpolation(source)
+        if earlier is not None:
+            record[f"{label}_interpolation"] = earlier
+    training["interpolation"] = record
     card["training"] = training
     return card
+
+
+def earlier_interpolation(card: dict | None) -> dict | None:
+    """A copy of ``card``'s ``training.interpolation`` (the record of the mix the card's model
+    is), or None for a trained model's card or no card."""
+    training = (card or {}).get("training")
+    record = training.get("interpolation") if isinstance(training, dict) else None
+    return copy.deepcopy(record) if isinstance(record, dict) else None
 
 
 def _check_runs(path: Path) -> None:
