@@ -211,6 +211,35 @@ def test_summarise_groups_records():
     assert out[0.1]["iou_ci95"] == (0.8, 0.8)  # one source: no spread to resample
 
 
+def test_false_positive_interval_resamples_whole_sources():
+    # Kidney-free frames of 6 sources: two mark 4 of their 10 frames, the others none.
+    recs = [
+        {
+            "depth": 0.1,
+            "source": f"test:{k}",
+            "posture": "supine",
+            "iou": None,
+            "false_positive": k < 2 and i < 4,
+        }
+        for k in range(6)
+        for i in range(10)
+    ]
+    row = summarise(recs)[0.1]
+    assert row["false_positive_rate"] == pytest.approx(8 / 60)
+    lo, hi = row["false_positive_rate_ci95"]
+    assert lo < 8 / 60 < hi
+    # The marked frames sit in two sources: resampling sources gives a wide interval (no
+    # source marked at all is a likely draw), far wider than 60 independent frames would.
+    assert lo == 0.0 and hi > 0.2
+    frames = [dict(r, source=f"frame:{j}") for j, r in enumerate(recs)]
+    lo_iid, hi_iid = summarise(frames)[0.1]["false_positive_rate_ci95"]
+    assert (hi - lo) > 1.5 * (hi_iid - lo_iid)
+    # No kidney-free frame: no interval.
+    assert np.isnan(
+        summarise(recs[:0] + [dict(recs[0], iou=0.9)])[0.1]["false_positive_rate_ci95"][0]
+    )
+
+
 def test_cluster_bootstrap_interval_resamples_whole_sources():
     rng = np.random.default_rng(3)
     # 8 sources of 40 frames each: a per-source level (patient effect, sd 0.05) + frame noise.

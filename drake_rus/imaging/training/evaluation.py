@@ -316,9 +316,12 @@ def cluster_bootstrap_ci(
 
 def summarise(records: list[dict], key=lambda r: r["depth"]) -> dict:
     """{key: {iou, iou_ci95, iou_median, frames_with_kidney, frames_without_kidney,
-    false_positive_rate, iou_visible, frames_visible}} of :func:`depth_study` records grouped
-    by ``key``. ``iou_ci95``: the 95% interval of the mean IoU, resampling a
-    source-and-posture with all its views at once (:func:`cluster_bootstrap_ci`).
+    false_positive_rate, false_positive_rate_ci95, iou_visible, frames_visible}} of
+    :func:`depth_study` records grouped by ``key``. ``iou_ci95`` and
+    ``false_positive_rate_ci95``: the 95% intervals of the mean IoU and of the share of
+    kidney-free frames marked as kidney, each resampling a source-and-posture with all its
+    views at once (:func:`cluster_bootstrap_ci`; a few marked frames of a few sources make
+    the second wide).
     ``iou_visible``: over the frames where at least half the kidney is out of acoustic shadow
     (grey > :data:`VISIBLE_GREY`; the others can hardly be segmented)."""
     groups: dict = {}
@@ -338,6 +341,10 @@ def summarise(records: list[dict], key=lambda r: r["depth"]) -> dict:
             "frames_without_kidney": len(empty),
             "false_positive_rate": (
                 sum(r["false_positive"] for r in empty) / len(empty) if empty else 0.0
+            ),
+            "false_positive_rate_ci95": cluster_bootstrap_ci(
+                [float(r["false_positive"]) for r in empty],
+                [f"{r.get('source')}|{r.get('posture')}" for r in empty],
             ),
             "iou_visible": float(np.mean(seen)) if seen else float("nan"),
             "frames_visible": len(seen),
