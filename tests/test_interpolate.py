@@ -139,6 +139,19 @@ def test_a_mix_of_mixes_keeps_every_record(pair, tmp_path):
     assert "model_b_interpolation" not in inner
 
 
+def test_the_record_keeps_a_mixed_original_for_the_fine_tune_too(pair):
+    # The fine-tune's mix passes its original's card: a mixed original keeps its record.
+    from drake_rus.imaging.training.interpolate import interpolation_record
+
+    a, b = pair
+    soup_card = {"training": {"interpolation": {"alpha": 0.5, "model_a": "s0", "model_b": "s1"}}}
+    rec = interpolation_record(a, b, 0.75, card_a=soup_card, card_b={"training": {}})
+    assert rec["model_a_interpolation"] == {"alpha": 0.5, "model_a": "s0", "model_b": "s1"}
+    assert "model_b_interpolation" not in rec
+    rec["model_a_interpolation"]["alpha"] = 1.0  # a copy: the source card is untouched
+    assert soup_card["training"]["interpolation"]["alpha"] == 0.5
+
+
 def test_pairs_follow_the_graph_not_the_names(tmp_path):
     # B names its weight "b" and its bias "W": pairing by name would cross them.
     a = linear_model(tmp_path / "a.onnx", np.ones((3, 4)), np.zeros(4))

@@ -150,18 +150,27 @@ def _check_interpolate(alpha) -> float:
 
 
 def _interpolate_into(
-    source: Path, tuned: Path, alpha: float, target: Path, tuned_final: Path, command: str
+    source: Path,
+    tuned: Path,
+    alpha: float,
+    target: Path,
+    tuned_final: Path,
+    command: str,
+    source_card: dict,
 ) -> dict:
     """Writes ``target``, ``(1 - alpha)`` x ``source`` + ``alpha`` x ``tuned`` (both fp32
     ONNX, the same network), and returns the card's ``training.interpolation`` record, as
-    the interpolation tool writes it (``tuned_final``: where the fine-tune alone will be)."""
+    the interpolation tool writes it (``tuned_final``: where the fine-tune alone will be;
+    ``source_card``: the source's card, whose own mix record, if any, is kept)."""
     import onnx
 
     onnx.save(
         interpolated_model(load_model(source, "model"), load_model(tuned, "fine-tune"), alpha),
         str(target),
     )
-    return interpolation_record(source, tuned, alpha, command, model_b_at=tuned_final)
+    return interpolation_record(
+        source, tuned, alpha, command, model_b_at=tuned_final, card_a=source_card
+    )
 
 
 def trainable_source(model_path) -> Path:
@@ -317,6 +326,7 @@ def fine_tune(
                     tmp / onnx_name,
                     out / f"{alone}.onnx",
                     command,
+                    card,
                 )
             }
             (tmp / f"{name}.json").write_text(json.dumps(new, indent=2) + "\n")

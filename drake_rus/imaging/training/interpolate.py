@@ -260,12 +260,20 @@ sha256 = file_digest
 
 
 def interpolation_record(
-    path_a: Path, path_b: Path, alpha: float, command: str = "", model_b_at: Path | None = None
+    path_a: Path,
+    path_b: Path,
+    alpha: float,
+    command: str = "",
+    model_b_at: Path | None = None,
+    card_a: dict | None = None,
+    card_b: dict | None = None,
 ) -> dict:
     """The card's ``training.interpolation``: both sources, their SHA-256, alpha, the rule.
     ``model_b_at``: where B will be kept when ``path_b`` is a staging copy (its bytes are
-    hashed here)."""
-    return {
+    hashed here). ``card_a`` / ``card_b``: the sources' cards; a source that was itself a mix
+    (a soup of seeds, say) keeps its own record under ``model_a_interpolation`` /
+    ``model_b_interpolation``, so the card traces every weight back to trained models."""
+    record = {
         "model_a": str(Path(path_a).resolve()),
         "model_a_sha256": sha256(path_a),
         "model_b": str(Path(model_b_at or path_b).resolve()),
@@ -279,6 +287,11 @@ def interpolation_record(
         "method": "drake_rus.imaging.training.interpolate (WiSE-FT, Wortsman et al. 2022)",
         "command": command,
     }
+    for label, card in (("model_a", card_a), ("model_b", card_b)):
+        earlier = earlier_interpolation(card)
+        if earlier is not None:
+            record[f"{label}_interpolation"] = earlier
+    return record
 
 
 def interpolated_card(
@@ -302,14 +315,9 @@ def interpolated_card(
     if isinstance(card.get("scenario"), dict):
         card["scenario"]["onnx_model"] = str(model.resolve())
     training = card.get("training") if isinstance(card.get("training"), dict) else {}
-    record = interpolation_record(path_a, path_b, alpha, command)
-    # A source that was itself a mix (a soup of seeds, say) keeps its own record, so the
-    # card traces every weight back to trained models.
-    for label, source in (("model_a", card_a), ("model_b", card_b)):
-        earlier = earlier_interpolation(source)
-        if earlier is not None:
-            record[f"{label}_interpolation"] = earlier
-    training["interpolation"] = record
+    training["interpolation"] = interpolation_record(
+        path_a, path_b, alpha, command, card_a=card_a, card_b=card_b
+    )
     card["training"] = training
     return card
 
