@@ -47,16 +47,30 @@ scored): on the generated and on the imported-like frames no preset more than 0.
 the default, the imported-like frames' mean over the presets at least +0.002, no more false
 positives at any preset; then the highest imported-like gain, a value nearer the default
 within 0.001 of it taken instead; none: the default.
+
+With ``--compare-models M1,M2,..`` it runs the comparison instead: the scenario's segmenter
+as it ships against the same with each other model (``imaging.onnx_model``), on the same
+frames. It chooses nothing: a rule written beforehand reads its figures.
+
+Every study takes ``--draws N``: N independent draws of views (the first is the draw every
+earlier rule was scored on), pooled. The test-time, edge and comparison studies print each
+draw's kidney-free and marked frames (how far the counts move with the draw alone), the
+share of kidney-free frames each setting marks, and each setting's paired difference to
+the default, in IoU per kind and preset and in that share, with 95% intervals that
+resample whole patient-postures (a patient's generated and imported-like volumes are one
+cluster; ``evaluation.cluster_bootstrap_ci``). The variant study prints the share's
+interval for the plain and the chosen variant.
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import sys
 import time
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -196,6 +210,18 @@ def validation_arguments(prog: str, description: str, argv=None, ensemble: bool 
             help="run the test-time study: mirror and ensemble with this second model",
         )
         ap.add_argument(
+            "--compare-models",
+            default=None,
+            help="run the comparison: the scenario's model against these (M1,M2,..), "
+            "paired, with intervals",
+        )
+        ap.add_argument(
+            "--draws",
+            type=int,
+            default=1,
+            help="independent draws of views, pooled (default 1: the draw every earlier rule used)",
+        )
+        ap.add_argument(
             "--edge-thresholds",
             default=None,
             help="run the edge study: these imaging.onnx_edge_threshold values (T1,T2,..)",
@@ -213,6 +239,9 @@ def validation_arguments(prog: str, description: str, argv=None, ensemble: bool 
     if args.views < 1:
         print(f"--views: expected 1 or more, got {args.views}", file=sys.stderr)
         return None
+    if getattr(args, "draws", 1) < 1:
+        print(f"--draws: expected 1 or more, got {args.draws}", file=sys.stderr)
+        return None
     if getattr(args, "edge_thresholds", None) is not None:
         edges = parse_edge_thresholds(args.edge_thresholds)
         if edges is None:
@@ -223,6 +252,16 @@ def validation_arguments(prog: str, description: str, argv=None, ensemble: bool 
             )
             return None
         args.edge_thresholds = edges
+    if getattr(args, "compare_models", None) is not None:
+        models = [m.strip() for m in args.compare_models.split(",")]
+        if not all(models):
+            print(
+                "--compare-models: expected comma-separated ONNX model paths, got "
+                f"{args.compare_models!r}",
+                file=sys.stderr,
+            )
+            return None
+        args.compare_models = models
     return args, ab
 
 
@@ -310,49 +349,253 @@ def choose_test_time(
     return min((v for v in passed if g(v) >= top - loss), key=lambda v: ms[v]), verdict
 
 
-def score_settings(segs: dict, sources, views: int, seed: int, no_progress: bool = False):
+# The views of draw k are drawn and emulated from VIEW_SEED + DRAW_STRIDE * k (the first
+# draw is the one every earlier rule in docs/results/segmenter.md was scored on). The stride
+# keeps the per-source seeds of emulated_views (seed + 7919 * source, seed + source) of
+# different draws apart.
+VIEW_SEED = 9150
+DRAW_STRIDE = 100_003
+# The variant study's first draw (its own, older seed).
+VARIANT_SEED = 5150
+
+
+def draw_seeds(draws: int, first: int = VIEW_SEED) -> list[int]:
+    """The view seeds of ``draws`` independent draws of views, the first one ``first``."""
+    if draws < 1:
+        raise ValueError(f"draws: expected 1 or more, got {draws}")
+    return [first + DRAW_STRIDE * k for k in range(draws)]
+
+
+@dataclass
+class SettingScores:
+    """Every setting's whole segment call on the same validation frames (all draws pooled).
+
+    ``iou``: {(kind, depth): {setting: [IoU per frame with a kidney]}} with the frames'
+    source clusters in ``iou_clusters`` {(kind, depth): [cluster]} (patient and posture:
+    the unit the intervals resample; a patient's generated and imported-like volumes share
+    its anatomy, so they are one cluster); ``false_positive``: {depth: {setting:
+    [marked, per kidney-free frame]}} with ``free_clusters`` {depth: [cluster]};
+    ``free_by_draw`` {depth: [kidney-free frames per draw]} and ``marked_by_draw``
+    {depth: {setting: [marked frames per draw]}}; ``seconds``: {setting: s} over ``calls``
+    frames; ``area``: {(kind, depth): {setting: [mask area / true section area]}}."""
+
+    iou: dict = field(default_factory=dict)
+    iou_clusters: dict = field(default_factory=dict)
+    false_positive: dict = field(default_factory=dict)
+    free_clusters: dict = field(default_factory=dict)
+    free_by_draw: dict = field(default_factory=dict)
+    marked_by_draw: dict = field(default_factory=dict)
+    seconds: dict = field(default_factory=dict)
+    calls: int = 0
+    area: dict = field(default_factory=dict)
+
+    @property
+    def fp(self) -> dict:
+        """{depth: {setting: kidney-free frames marked as kidney}} (the rules' counts)."""
+        return {d: {v: int(sum(x)) for v, x in c.items()} for d, c in self.false_positive.items()}
+
+    @property
+    def empty(self) -> dict:
+        """{depth: kidney-free frames}."""
+        return {d: len(c) for d, c in self.free_clusters.items()}
+
+
+def paired_intervals(values: dict, clusters, reference) -> dict:
+    """{setting: {mean, ci95, difference, difference_ci95}} of per-frame ``values``
+    ({setting: [value]}, every setting on the same frames, whose clusters are
+    ``clusters``): each setting's mean and the mean of its frame-by-frame difference to
+    ``reference``'s, each with its 95% interval resampling whole clusters
+    (``evaluation.cluster_bootstrap_ci``). The paired difference is what tells two
+    settings apart: both means move together with the draw of sources."""
+    from drake_rus.imaging.training.evaluation import cluster_bootstrap_ci
+
+    if reference not in values:
+        raise ValueError(f"reference setting {reference!r} not among {sorted(map(str, values))}")
+    ref = np.asarray(values[reference], float)
+    out = {}
+    for v, x in values.items():
+        x = np.asarray(x, float)
+        if x.shape != ref.shape or len(clusters) != len(ref):
+            raise ValueError(
+                f"setting {v!r}: expected {len(ref)} values on the reference's frames and "
+                f"{len(ref)} clusters, got {x.size} values and {len(clusters)} clusters"
+            )
+        diff = x - ref
+        out[v] = {
+            "mean": float(np.mean(x)) if x.size else float("nan"),
+            "ci95": cluster_bootstrap_ci(x, clusters),
+            "difference": float(np.mean(diff)) if x.size else float("nan"),
+            "difference_ci95": cluster_bootstrap_ci(diff, clusters),
+        }
+    return out
+
+
+def interval_tables(scores: SettingScores, reference) -> dict:
+    """The intervals of a :class:`SettingScores` against the ``reference`` setting:
+    {"iou": {(kind, depth): paired_intervals}, "false_positive": {depth: paired_intervals}}."""
+    return {
+        "iou": {
+            k: paired_intervals(cell, scores.iou_clusters[k], reference)
+            for k, cell in scores.iou.items()
+        },
+        "false_positive": {
+            d: paired_intervals(cell, scores.free_clusters[d], reference)
+            for d, cell in scores.false_positive.items()
+        },
+    }
+
+
+def share_text(cell: dict) -> str:
+    """ "4.3% (0.6-16.4)": a share of kidney-free frames with its 95% interval, or "no
+    frames"."""
+    if np.isnan(cell["mean"]):
+        return "no frames"
+    lo, hi = cell["ci95"]
+    return f"{100 * cell['mean']:.1f}% ({100 * lo:.1f}-{100 * hi:.1f})"
+
+
+def json_number(x: float):
+    """``x`` rounded to 4 decimals, None for NaN (JSON has no NaN: a preset without
+    frames)."""
+    return None if np.isnan(x) else round(float(x), 4)
+
+
+def print_intervals(tables: dict, settings, reference, presets, draws: int) -> None:
+    """Print the kidney-free share and the IoU difference to ``reference`` with their 95%
+    intervals (whole patient-postures resampled), per setting and preset."""
+
+    def fmt(x, lo, hi):
+        return "no frames" if np.isnan(x) else f"{x:+.4f} ({lo:+.4f}..{hi:+.4f})"
+
+    print(
+        f"\n95% intervals resampling patient and posture ({draws} draw(s) of views "
+        f"pooled); differences are paired against {reference!r}"
+    )
+    for v in settings:
+        shares = "  ".join(share_text(tables["false_positive"][d][v]) for d in presets)
+        line = f"  {v!s:>16} kidney-free marked: {shares}"
+        if v != reference:
+            diffs = "  ".join(
+                fmt(c[v]["difference"], *c[v]["difference_ci95"])
+                for c in (tables["false_positive"][d] for d in presets)
+            )
+            line += f" | difference {diffs}"
+        print(line)
+    kinds = sorted({k for k, _ in tables["iou"]})
+    for v in settings:
+        if v == reference:
+            continue
+        for k in kinds:
+            cells = "  ".join(
+                fmt(
+                    tables["iou"][(k, d)][v]["difference"],
+                    *tables["iou"][(k, d)][v]["difference_ci95"],
+                )
+                for d in presets
+            )
+            print(f"  {v!s:>16} IoU difference, {k}: {cells}")
+
+
+def intervals_json(tables: dict) -> dict:
+    """The JSON form of :func:`interval_tables` (keys "kind|depth" and "depth")."""
+
+    def pack(cell):
+        return {
+            f"{v:g}" if isinstance(v, float) else str(v): {
+                "mean": json_number(c["mean"]),
+                "ci95": [json_number(x) for x in c["ci95"]],
+                "difference": json_number(c["difference"]),
+                "difference_ci95": [json_number(x) for x in c["difference_ci95"]],
+            }
+            for v, c in cell.items()
+        }
+
+    return {
+        "iou": {f"{k}|{d:.2f}": pack(c) for (k, d), c in sorted(tables["iou"].items())},
+        "false_positive_share": {
+            f"{d:.2f}": pack(c) for d, c in sorted(tables["false_positive"].items())
+        },
+    }
+
+
+def print_draws(scores: SettingScores, settings, presets, seeds) -> None:
+    """One line per draw of views: its seed, kidney-free frames per preset, and each
+    setting's marked frames per preset (how much the counts move with the draw alone)."""
+    for k, seed in enumerate(seeds):
+        free = "/".join(str(scores.free_by_draw[d][k]) for d in presets)
+        marked = "  ".join(
+            f"{v}: " + "/".join(str(scores.marked_by_draw[d][v][k]) for d in presets)
+            for v in settings
+        )
+        print(f"  draw {k} (seed {seed}): kidney-free {free} | marked {marked}")
+
+
+def draws_json(scores: SettingScores, seeds, presets) -> dict:
+    """The per-draw counts of :func:`print_draws` as JSON."""
+    return {
+        "seeds": list(seeds),
+        "kidney_free_frames": {f"{d:.2f}": scores.free_by_draw[d] for d in presets},
+        "marked": {
+            f"{d:.2f}": {
+                (f"{v:g}" if isinstance(v, float) else str(v)): n
+                for v, n in scores.marked_by_draw[d].items()
+            }
+            for d in presets
+        },
+    }
+
+
+def score_settings(
+    segs: dict, sources, views: int, seeds, no_progress: bool = False
+) -> SettingScores:
     """Every setting's whole segment call on the same validation frames. ``segs``: {depth:
     (config, geometry, {setting: segmenter})}; ``sources``: [(kind, Source)]; ``views``
-    per source at every depth, drawn and emulated from ``seed``. Returns (iou {(kind,
-    depth): {setting: [IoU]}}, false-positive frames {depth: {setting: n}}, kidney-free
-    frames {depth: n}, seconds {setting: s}, frames, mask area over the true section's
-    {(kind, depth): {setting: [ratio]}})."""
+    per source at every depth, drawn and emulated from each of ``seeds`` (one draw of views
+    per seed, pooled)."""
     from tqdm import tqdm
 
     from drake_rus.imaging.segment import iou
     from drake_rus.imaging.training.evaluation import emulated_views
 
     settings = list(next(iter(segs.values()))[2])
-    iou_acc: dict = {}
-    area: dict = {}
-    fp: dict = {d: dict.fromkeys(settings, 0) for d in segs}
-    empty = dict.fromkeys(segs, 0)
-    seconds = dict.fromkeys(settings, 0.0)
-    calls = 0
+    out = SettingScores(seconds=dict.fromkeys(settings, 0.0))
+    for d in segs:
+        out.false_positive[d] = {v: [] for v in settings}
+        out.free_clusters[d] = []
+        out.free_by_draw[d] = [0] * len(seeds)
+        out.marked_by_draw[d] = {v: [0] * len(seeds) for v in settings}
     bar = tqdm(
-        total=len(sources) * views * len(segs),
+        total=len(sources) * views * len(segs) * len(seeds),
         desc="validation frames",
         disable=no_progress,
         mininterval=2.0,
     )
-    frames = emulated_views([src for _, src in sources], segs, views, seed)
-    for si, d, c, g, by_variant, us, gt, has in frames:
-        kind = sources[si][0]
-        empty[d] += not has
-        calls += 1
-        for v, seg in by_variant.items():
-            t = time.perf_counter()
-            m = seg(us)
-            seconds[v] += time.perf_counter() - t
+    for k, seed in enumerate(seeds):
+        frames = emulated_views([src for _, src in sources], segs, views, seed)
+        for si, d, c, g, by_variant, us, gt, has in frames:
+            kind, src = sources[si]
+            cluster = f"{src.name}|{src.posture}"
+            out.calls += 1
             if has:
-                iou_acc.setdefault((kind, d), {}).setdefault(v, []).append(iou(m, gt))
-                ratio = np.count_nonzero(m) / np.count_nonzero(gt)
-                area.setdefault((kind, d), {}).setdefault(v, []).append(ratio)
+                out.iou_clusters.setdefault((kind, d), []).append(cluster)
             else:
-                fp[d][v] += int(np.count_nonzero(m) * g.pixel_area >= c.min_kidney_area)
-        bar.update()
+                out.free_clusters[d].append(cluster)
+                out.free_by_draw[d][k] += 1
+            for v, seg in by_variant.items():
+                t = time.perf_counter()
+                m = seg(us)
+                out.seconds[v] += time.perf_counter() - t
+                if has:
+                    out.iou.setdefault((kind, d), {}).setdefault(v, []).append(iou(m, gt))
+                    ratio = np.count_nonzero(m) / np.count_nonzero(gt)
+                    out.area.setdefault((kind, d), {}).setdefault(v, []).append(ratio)
+                else:
+                    marked = bool(np.count_nonzero(m) * g.pixel_area >= c.min_kidney_area)
+                    out.false_positive[d][v].append(marked)
+                    out.marked_by_draw[d][v][k] += marked
+            bar.update()
     bar.close()
-    return iou_acc, fp, empty, seconds, calls, area
+    return out
 
 
 def edge_study(args, a: int, b: int) -> int:
@@ -377,9 +620,9 @@ def edge_study(args, a: int, b: int) -> int:
             {v: OnnxSegmenter.from_config(replace(c, onnx_edge_threshold=v), g) for v in values},
         )
     sources = validation_sources(a, b, not args.no_imported_like, "segmenter_inference")
-    iou_acc, fp, empty, _, _, area = score_settings(
-        segs, sources, args.views, 9150, args.no_progress
-    )
+    seeds = draw_seeds(args.draws)
+    scores = score_settings(segs, sources, args.views, seeds, args.no_progress)
+    iou_acc, fp, empty, area = scores.iou, scores.fp, scores.empty, scores.area
     mean_iou = {k: {v: float(np.mean(x)) for v, x in cell.items()} for k, cell in iou_acc.items()}
     # The mask's area over the true section's, on the frames where the mask meets it.
     mean_area = {
@@ -392,8 +635,8 @@ def edge_study(args, a: int, b: int) -> int:
     chosen, verdict = choose_edge_threshold(mean_iou, fp, default)
     kinds = sorted({k for k, _ in mean_iou})
     print(
-        f"\nvalidation: train:{a}..{b}, both postures, {args.views} views each per preset; "
-        "frames with a kidney per preset and kind: "
+        f"\nvalidation: train:{a}..{b}, both postures, {args.views} views each per preset"
+        f" and draw, {args.draws} draw(s); frames with a kidney per preset and kind: "
         + ", ".join(
             f"{k} {d * 1000:.0f} mm {len(iou_acc[(k, d)][default])}" for k in kinds for d in presets
         )
@@ -412,12 +655,17 @@ def edge_study(args, a: int, b: int) -> int:
             f"edge {v:.2f}: IoU {cells} | area {areas} | FP {fps}"
             + ("" if v == default else f" | {'passes' if not verdict[v] else verdict[v]}")
         )
+    print_draws(scores, values, presets, seeds)
+    tables = interval_tables(scores, default)
+    print_intervals(tables, values, default, presets, args.draws)
     print(f"chosen: edge threshold {chosen}")
     print(
         json.dumps(
             {
                 "validation": f"train:{a}..{b}",
                 "views": args.views,
+                "draws": draws_json(scores, seeds, presets),
+                "intervals": intervals_json(tables),
                 "onnx_model": base.onnx_model,
                 "iou": {
                     f"{k}|{d:.2f}": {f"{v:g}": round(x, 4) for v, x in cell.items()}
@@ -433,6 +681,75 @@ def edge_study(args, a: int, b: int) -> int:
                 "kidney_free_frames": {f"{d:.2f}": empty[d] for d in presets},
                 "verdict": {f"{v:g}": why for v, why in verdict.items()},
                 "chosen": chosen,
+                "seconds": round(time.perf_counter() - t0, 1),
+                "load_average": [round(x, 2) for x in os.getloadavg()],
+            }
+        )
+    )
+    return 0
+
+
+def compare_study(args, a: int, b: int) -> int:
+    """The ``--compare-models`` study (see the module docstring): the scenario's segmenter
+    as it ships against the same with each other model, on the same frames; prints the
+    means, the paired differences with their intervals and one JSON line. A measurement:
+    it chooses nothing (a rule written beforehand reads its intervals)."""
+    from drake_rus.imaging.config import ImagingConfig
+    from drake_rus.imaging.onnx_backend import OnnxSegmenter
+    from drake_rus.imaging.probe import ProbeGeometry
+
+    t0 = time.perf_counter()
+    base = ImagingConfig() if args.onnx_model is None else ImagingConfig(onnx_model=args.onnx_model)
+    models = [base.onnx_model] + [m for m in args.compare_models if m != base.onnx_model]
+    presets = [float(p) for p in base.depth_presets]
+    segs = {}
+    for d in presets:
+        c = replace(base, depth=d)
+        g = ProbeGeometry.from_config(c)
+        try:
+            segs[d] = (
+                c,
+                g,
+                {m: OnnxSegmenter.from_config(replace(c, onnx_model=m), g) for m in models},
+            )
+        except ValueError as e:
+            print(str(e).replace("imaging.onnx_model", "--compare-models"), file=sys.stderr)
+            return 2
+    sources = validation_sources(a, b, not args.no_imported_like, "segmenter_inference")
+    seeds = draw_seeds(args.draws)
+    scores = score_settings(segs, sources, args.views, seeds, args.no_progress)
+    kinds = sorted({k for k, _ in scores.iou})
+    print(
+        f"\nvalidation: train:{a}..{b}, both postures, {args.views} views each per preset"
+        f" and draw, {args.draws} draw(s); frames with a kidney per preset and kind: "
+        + ", ".join(
+            f"{k} {d * 1000:.0f} mm {len(scores.iou[(k, d)][models[0]])}"
+            for k in kinds
+            for d in presets
+        )
+        + "; kidney-free per preset: "
+        + "/".join(str(scores.empty[d]) for d in presets)
+    )
+    for m in models:
+        cells = "   ".join(
+            f"{k} " + " ".join(f"{np.mean(scores.iou[(k, d)][m]):.4f}" for d in presets)
+            for k in kinds
+        )
+        fps = "/".join(str(scores.fp[d][m]) for d in presets)
+        print(f"{m}: IoU {cells} | FP {fps}")
+    print_draws(scores, models, presets, seeds)
+    tables = interval_tables(scores, models[0])
+    print_intervals(tables, models, models[0], presets, args.draws)
+    print(
+        json.dumps(
+            {
+                "validation": f"train:{a}..{b}",
+                "views": args.views,
+                "reference": models[0],
+                "models": models,
+                "draws": draws_json(scores, seeds, presets),
+                "intervals": intervals_json(tables),
+                "kidney_free_frames": {f"{d:.2f}": scores.empty[d] for d in presets},
                 "seconds": round(time.perf_counter() - t0, 1),
                 "load_average": [round(x, 2) for x in os.getloadavg()],
             }
@@ -477,16 +794,18 @@ def test_time_study(args, a: int, b: int) -> int:
             )
             return 2
     sources = validation_sources(a, b, not args.no_imported_like, "segmenter_inference")
-    iou_acc, fp, empty, seconds, calls, _ = score_settings(
-        segs, sources, args.views, 9150, args.no_progress
-    )
+    seeds = draw_seeds(args.draws)
+    scores = score_settings(segs, sources, args.views, seeds, args.no_progress)
+    iou_acc, fp, empty = scores.iou, scores.fp, scores.empty
+    seconds, calls = scores.seconds, scores.calls
     mean_iou = {k: {v: float(np.mean(x)) for v, x in cell.items()} for k, cell in iou_acc.items()}
     ms = {v: 1e3 * s / calls for v, s in seconds.items()}
     chosen, verdict = choose_test_time(mean_iou, fp, ms)
     kinds = sorted({k for k, _ in mean_iou})
     print(
-        f"\nvalidation: train:{a}..{b}, both postures, {args.views} views each per preset; "
-        f"ensemble with {args.ensemble_model}; frames with a kidney per preset and kind: "
+        f"\nvalidation: train:{a}..{b}, both postures, {args.views} views each per preset"
+        f" and draw, {args.draws} draw(s); ensemble with {args.ensemble_model}; frames with a "
+        "kidney per preset and kind: "
         + ", ".join(
             f"{k} {d * 1000:.0f} mm {len(iou_acc[(k, d)]['default'])}"
             for k in kinds
@@ -504,12 +823,17 @@ def test_time_study(args, a: int, b: int) -> int:
             f"{v:>16}: {cells} | FP {fps} | {ms[v]:.2f} ms x{ms[v] / ms['default']:.2f}"
             + ("" if v == "default" else f" | {'passes' if not verdict[v] else verdict[v]}")
         )
+    print_draws(scores, list(settings), presets, seeds)
+    tables = interval_tables(scores, "default")
+    print_intervals(tables, list(settings), "default", presets, args.draws)
     print(f"chosen: {chosen}")
     print(
         json.dumps(
             {
                 "validation": f"train:{a}..{b}",
                 "views": args.views,
+                "draws": draws_json(scores, seeds, presets),
+                "intervals": intervals_json(tables),
                 "onnx_model": base.onnx_model,
                 "ensemble_model": args.ensemble_model,
                 "iou": {
@@ -540,11 +864,20 @@ def main(argv=None) -> int:
     if parsed is None:
         return 2
     args, (a, b) = parsed
-    if args.ensemble_model is not None and args.edge_thresholds is not None:
-        print(
-            "--ensemble-model and --edge-thresholds: expected one study, got both", file=sys.stderr
+    studies = [
+        f
+        for f, x in (
+            ("--ensemble-model", args.ensemble_model),
+            ("--edge-thresholds", args.edge_thresholds),
+            ("--compare-models", args.compare_models),
         )
+        if x is not None
+    ]
+    if len(studies) > 1:
+        print(f"{' and '.join(studies)}: expected one study, got {len(studies)}", file=sys.stderr)
         return 2
+    if args.compare_models is not None:
+        return compare_study(args, a, b)
     if args.ensemble_model is not None:
         return test_time_study(args, a, b)
     if args.edge_thresholds is not None:
@@ -579,15 +912,16 @@ def main(argv=None) -> int:
     sources = validation_sources(a, b, not args.no_imported_like, "segmenter_inference")
 
     records = []
-    total = len(sources) * args.views * len(presets)
+    seeds = draw_seeds(args.draws, VARIANT_SEED)
+    total = len(sources) * args.views * len(presets) * len(seeds)
     bar = tqdm(total=total, desc="validation frames", disable=args.no_progress, mininterval=2.0)
-    for si, (kind, src) in enumerate(sources):
-        poses = sample_views(src, args.views, 5150 + 7919 * si)
+    for seed, (si, (kind, src)) in itertools.product(seeds, enumerate(sources)):
+        poses = sample_views(src, args.views, seed + 7919 * si)
         for depth, (c, g, seg) in segmenters.items():
             model = EmulatorModel.from_config(c, g)
             for i, X_VP in enumerate(poses):
                 labels = slice_volume(g, src.volume, RigidTransform(), X_VP)
-                us = emulate(labels, model, 5150 + si, i)
+                us = emulate(labels, model, seed + si, i)
                 gt = src.kidney_mask(labels, g, X_VP)
                 has = bool(gt.sum() * g.pixel_area >= c.min_kidney_area)
                 seg.mirror_average = False
@@ -606,6 +940,7 @@ def main(argv=None) -> int:
                 records.append(
                     {
                         "kind": kind,
+                        "cluster": f"{src.name}|{src.posture}",
                         "posture": src.posture,
                         "depth": depth,
                         "has_kidney": has,
@@ -659,6 +994,25 @@ def main(argv=None) -> int:
             v = (mirror, 0.5, post)
             if v not in shown:
                 print(row(v))
+    free = [r for r in records if not r["has_kidney"]]
+    fp_tables = {
+        d: paired_intervals(
+            {v: [r["scores"][v] for r in free if r["depth"] == d] for v in (PLAIN, best)},
+            [r["cluster"] for r in free if r["depth"] == d],
+            PLAIN,
+        )
+        for d in presets
+    }
+    print(
+        f"kidney-free frames marked, 95% interval resampling patient and posture "
+        f"({args.draws} draw(s) of views pooled), "
+        + ", ".join(f"{d * 1000:.0f}mm" for d in presets)
+    )
+    for v in dict.fromkeys([PLAIN, best]):
+        print(
+            f"  {v[0]:>3} {v[1]:4.2f} {v[2]:>10}: "
+            + "  ".join(share_text(fp_tables[d][v]) for d in presets)
+        )
     print(f"\nchosen: mirror {best[0]}, threshold {best[1]}, post-processing {best[2]}")
     # Per preset and kind of volume: the plain, the chosen, the best by worst preset
     # whatever its false positives, and the mirror average alone.
@@ -684,10 +1038,22 @@ def main(argv=None) -> int:
         "validation": f"train:{a}..{b}",
         "imported_like": not args.no_imported_like,
         "views": args.views,
+        "draws": args.draws,
+        "seeds": seeds,
         "onnx_model": cfg.onnx_model,
         "frames_with_kidney": {f"{d:.2f}": n for d, n in n_frames.items()},
         "frames_shadowed": groups["shadowed"][PLAIN]["frames"],
         "chosen": {"mirror": best[0], "threshold": best[1], "post": best[2]},
+        "false_positive_share": {
+            f"{v[0]}|{v[1]}|{v[2]}": {
+                f"{d:.2f}": {
+                    "mean": json_number(fp_tables[d][v]["mean"]),
+                    "ci95": [json_number(x) for x in fp_tables[d][v]["ci95"]],
+                }
+                for d in presets
+            }
+            for v in dict.fromkeys([PLAIN, best])
+        },
         "variants": {f"{v[0]}|{v[1]}|{v[2]}": pack(v) for v in variants},
         "iou_by_depth_kind": {
             f"{v[0]}|{v[1]}|{v[2]}": {

@@ -14,10 +14,17 @@ from benchmarks.segmenter_inference import (
     choose,
     choose_edge_threshold,
     choose_test_time,
+    draw_seeds,
+    interval_tables,
+    json_number,
+    paired_intervals,
     parse_edge_thresholds,
+    score_settings,
     score_variants,
+    share_text,
     variant_masks,
 )
+from benchmarks.segmenter_inference import main as segmenter_inference_main
 from drake_rus.config_schema import ScenarioError
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.emulator import EmulatorModel
@@ -292,3 +299,110 @@ def test_edge_threshold_choice_follows_the_written_rule():
     assert chosen == 0.5 and "imported-like gain +0.0010" in verdict[0.4]
     assert parse_edge_thresholds("0.45,0.3") == [0.45, 0.3]
     assert parse_edge_thresholds("0.45,x") is None and parse_edge_thresholds("0,0.4") is None
+
+
+def test_paired_intervals_resample_patients_not_frames():
+    """The difference to the reference is the mean of the frame-by-frame differences; a
+    setting equal to the reference differs by exactly 0; marked frames all in one of four
+    patient-postures give a difference whose interval reaches 0 (a resample may leave that
+    patient out), where frames taken as independent would exclude it."""
+    clusters = [c for c in "ABCD" for _ in range(10)]
+    ref = [0.0] * 40
+    one_patient = [1.0] * 10 + [0.0] * 30
+    out = paired_intervals({"default": ref, "same": ref, "new": one_patient}, clusters, "default")
+    assert out["same"]["difference"] == 0.0 and out["same"]["difference_ci95"] == (0.0, 0.0)
+    assert out["new"]["difference"] == pytest.approx(0.25)
+    lo, hi = out["new"]["difference_ci95"]
+    assert lo == 0.0 and hi >= 0.75
+    # Spread over every patient, the same share is told apart from 0.
+    spread = [1.0 if i % 4 == 0 else 0.0 for i in range(40)]
+    lo, _ = paired_intervals({"default": ref, "new": spread}, clusters, "default")["new"][
+        "difference_ci95"
+    ]
+    assert lo > 0.0
+    with pytest.raises(ValueError, match="setting 'new': expected 40 values"):
+        paired_intervals({"default": ref, "new": [1.0] * 39}, clusters, "default")
+    with pytest.raises(ValueError, match="reference setting 'plain'"):
+        paired_intervals({"default": ref}, clusters, "plain")
+
+
+def test_draws_are_independent_and_the_first_is_the_rules_draw():
+    """The first draw is the seed every earlier rule used; the per-source seeds of
+    emulated_views (seed + 7919 * source for poses, seed + source for speckle) of different
+    draws never meet for up to 100 sources."""
+    seeds = draw_seeds(3)
+    assert seeds[0] == 9150 and len(set(seeds)) == 3
+    for offset in (7919, 1):
+        used = [{s + offset * si for si in range(100)} for s in seeds]
+        assert not (used[0] & used[1] or used[0] & used[2] or used[1] & used[2])
+    with pytest.raises(ValueError, match="draws: expected 1 or more, got 0"):
+        draw_seeds(0)
+
+
+def test_score_settings_pools_draws_and_counts_each(monkeypatch):
+    """Frames of two draws are pooled per preset, with each draw's kidney-free and marked
+    counts kept apart and every frame tagged with its patient and posture."""
+    from types import SimpleNamespace
+
+    import drake_rus.imaging.training.evaluation as evaluation
+
+    d = 0.10
+    cfg = SimpleNamespace(min_kidney_area=2e-6)
+    g = SimpleNamespace(pixel_area=1e-6)
+    gt = np.zeros((4, 4), bool)
+    gt[:2, :2] = True
+
+    def fake_views(sources, by_depth, n_views, seed):
+        # Draw 0 (seed 9150): one kidney-free frame per source; later draws: two.
+        free = 1 if seed == 9150 else 2
+        for si in range(len(sources)):
+            for i in range(n_views):
+                has = i >= free
+                us = np.full((4, 4), si + 1.0)
+                yield si, d, cfg, g, by_depth[d][2], us, (gt if has else gt & False), has
+
+    monkeypatch.setattr(evaluation, "emulated_views", fake_views)
+    sources = [
+        ("generated", SimpleNamespace(name="train:28", posture="supine")),
+        ("imported_like", SimpleNamespace(name="train:28", posture="supine")),
+    ]
+    segs = {
+        d: (
+            cfg,
+            g,
+            {"default": lambda us: us * 0 > 0, "marks_all": lambda us: np.ones_like(us, bool)},
+        )
+    }
+    scores = score_settings(segs, sources, 3, draw_seeds(2), no_progress=True)
+    assert scores.free_by_draw[d] == [2, 4] and scores.empty[d] == 6
+    assert scores.marked_by_draw[d] == {"default": [0, 0], "marks_all": [2, 4]}
+    assert scores.fp[d] == {"default": 0, "marks_all": 6}
+    assert set(scores.free_clusters[d]) == {"train:28|supine"}
+    # Frames with a kidney: 2 + 1 per source over the two draws; "marks_all" covers the
+    # whole 4 x 4 frame around a 2 x 2 kidney.
+    assert scores.iou[("generated", d)]["marks_all"] == [0.25] * 3
+    assert scores.iou[("generated", d)]["default"] == [0.0] * 3
+    assert scores.calls == 12
+    tables = interval_tables(scores, "default")
+    assert tables["false_positive"][d]["marks_all"]["difference"] == 1.0
+
+
+def test_draws_argument_is_checked():
+    """``--draws`` below 1 is one line naming the flag, before any frame is made."""
+    import contextlib
+    import io
+
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        assert segmenter_inference_main(["--draws", "0", "--edge-thresholds", "0.45"]) == 2
+    assert err.getvalue().strip() == "--draws: expected 1 or more, got 0"
+
+
+def test_a_preset_without_kidney_free_frames_reads_no_frames():
+    """No kidney-free frame at a preset: the text says so and the JSON gives null, never
+    NaN (which is not JSON)."""
+    empty = paired_intervals({"default": [], "other": []}, [], "default")
+    assert share_text(empty["other"]) == "no frames"
+    assert json_number(empty["other"]["difference"]) is None
+    assert json.loads(json.dumps({"x": json_number(float("nan"))})) == {"x": None}
+    assert share_text({"mean": 0.043, "ci95": (0.006, 0.164)}) == "4.3% (0.6-16.4)"
