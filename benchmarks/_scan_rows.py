@@ -10,6 +10,7 @@ from drake_rus.anatomy import load_patient
 from drake_rus.cli import load_scenario_from_args
 from drake_rus.config_schema import ScenarioError
 from drake_rus.control.safety import StopReason
+from drake_rus.control.supervisor import Phase
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.localization.tracking import kidney_in_view
 from drake_rus.scan import RunScan, ScanMetrics, Summary, WriteScanOutputs
@@ -50,6 +51,9 @@ def scan_row(
         lost = segmentation_lost_in_view(result)
         if lost is not None:
             row["segmentation_lost_in_view"] = lost
+        in_loop = segmentation_in_loop(result)
+        if in_loop is not None:
+            row["segmentation_in_loop"] = in_loop
         if fill is not None:
             fill(row, result, summary, s)
     except skip as e:
@@ -89,6 +93,120 @@ def segmentation_lost_in_view(result, share: float = 0.5) -> dict | None:
     ]
     n = int(sum(seen))
     return {"in_view": n >= share * len(frames), "frames": len(frames), "frames_in_view": n}
+
+
+# The phases whose frames segmentation_in_loop reports apart: the sweep the registration
+# takes its cloud from, and the pivot the volume is imaged in.
+IN_LOOP_PHASES = {"explore": Phase.EXPLORE, "pivot": Phase.PIVOT}
+
+
+def true_section_areas(result, frames) -> np.ndarray:
+    """The true kidney section's area (m^2) in each of ``frames`` (FrameRecords of
+    ``result``; simulation truth, benchmarks only): the true kidney voxels within half a
+    voxel of the image plane and inside the fan, each one voxel face."""
+    geometry = ProbeGeometry.from_config(result.scenario.imaging)
+    voxel = round(float(np.cbrt(result.truth.voxel_volume)), 6)
+    points = result.truth.kidney_points_B
+    return np.array(
+        [kidney_in_view(points, f.X_BP, geometry, 0.5 * voxel) * voxel**2 for f in frames]
+    )
+
+
+def agreement_counts(marked, areas, min_area: float) -> dict:
+    """How a scan's per-frame "kidney visible" (``marked``) agrees with the true section
+    areas (m^2, ``areas``): frames; ``in_view`` (a true section of at least ``min_area``,
+    what the segmenter is asked to find) and ``missed_in_view`` among them; ``out_of_view``
+    (no true kidney in the image at all) and ``marked_out_of_view`` among them (a false
+    mark: something else taken for the kidney); ``edge`` (a true section under
+    ``min_area``: either answer is right)."""
+    marked = np.asarray(marked, bool)
+    areas = np.asarray(areas, float)
+    if marked.shape != areas.shape:
+        raise ValueError(
+            f"agreement_counts: one mark per frame expected, got {marked.size} marks and "
+            f"{areas.size} areas"
+        )
+    in_view = areas >= min_area
+    out = areas <= 0.0
+    return {
+        "frames": int(marked.size),
+        "in_view": int(in_view.sum()),
+        "missed_in_view": int((in_view & ~marked).sum()),
+        "out_of_view": int(out.sum()),
+        "marked_out_of_view": int((out & marked).sum()),
+        "edge": int((~in_view & ~out).sum()),
+    }
+
+
+def segmentation_in_loop(result) -> dict | None:
+    """How the scan's own segmentation decisions (``kidney_visible``: model, tracker and
+    prior together, as the scan acted on them) agreed with the simulation truth
+    (benchmarks only; the scan never reads it): :func:`agreement_counts` over every frame
+    that was segmented, each judged at its own pose (a decision is paired with the frame it
+    was segmented from, once, even when it was read on later ticks), and per phase
+    (``IN_LOOP_PHASES``, the phase in which the decision was first read). None without
+    truth, or when the patient moves (the truth holds the kidney where it lay at the
+    start)."""
+    if result.truth is None or not result.frames or result.scenario.patient.motion.moves:
+        return None
+    by_index = {f.frame_index: f for f in result.frames}
+    decisions = {}
+    for f in result.frames:
+        source = by_index.get(f.mask_frame_index)
+        if source is not None and f.mask_frame_index not in decisions:
+            decisions[f.mask_frame_index] = (source, f.visible, f.phase)
+    if not decisions:
+        return None
+    sources = [d[0] for d in decisions.values()]
+    areas = true_section_areas(result, sources)
+    marked = np.array([d[1] for d in decisions.values()], bool)
+    phases = np.array([d[2] for d in decisions.values()])
+    min_area = result.scenario.imaging.min_kidney_area
+    out = agreement_counts(marked, areas, min_area)
+    out["by_phase"] = {
+        name: agreement_counts(marked[phases == ph], areas[phases == ph], min_area)
+        for name, ph in IN_LOOP_PHASES.items()
+    }
+    return out
+
+
+def in_loop_totals(rows) -> dict | None:
+    """The rows' ``segmentation_in_loop`` counts summed (all frames and per phase), with
+    the shares a reader compares: ``missed_share`` (of the frames with the kidney in view,
+    the share the scan did not see it in) and ``false_mark_share`` (of the frames without
+    any kidney, the share it marked one in); ``scans`` counted. None when no row has
+    them."""
+    cells = [r["segmentation_in_loop"] for r in rows if r.get("segmentation_in_loop")]
+    if not cells:
+        return None
+
+    def total(parts):
+        out = {k: sum(p[k] for p in parts) for k in parts[0]}
+        seen, free = out["in_view"], out["out_of_view"]
+        out["missed_share"] = round(out["missed_in_view"] / seen, 4) if seen else None
+        out["false_mark_share"] = round(out["marked_out_of_view"] / free, 4) if free else None
+        return out
+
+    keys = [k for k in cells[0] if k != "by_phase"]
+    out = total([{k: c[k] for k in keys} for c in cells])
+    out["by_phase"] = {name: total([c["by_phase"][name] for c in cells]) for name in IN_LOOP_PHASES}
+    out["scans"] = len(cells)
+    return out
+
+
+def in_loop_line(totals: dict | None) -> str:
+    """One line for a benchmark's table: the in-loop segmentation totals."""
+    if totals is None:
+        return "segmentation in the loop: no truth to compare with"
+    return (
+        f"segmentation in the loop ({totals['scans']} scans, simulation truth): kidney in "
+        f"view and not seen in {totals['missed_in_view']} of {totals['in_view']} frames, "
+        f"kidney marked with none in the image in {totals['marked_out_of_view']} of "
+        f"{totals['out_of_view']} frames (pivot {totals['by_phase']['pivot']['missed_in_view']}"
+        f" / {totals['by_phase']['pivot']['marked_out_of_view']}, explore "
+        f"{totals['by_phase']['explore']['missed_in_view']} / "
+        f"{totals['by_phase']['explore']['marked_out_of_view']})"
+    )
 
 
 def scenario_from_args(args):

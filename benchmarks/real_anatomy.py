@@ -7,9 +7,11 @@ decubitus, and prints a table and, last, one JSON line: per body and posture the
 reason of a stop, E_trans (mm), E_rot,x (deg), V, the depth preset and window the planner
 chose; a safety stop on "segmentation lost" says in how many frames of the watchdog's
 window the true kidney was in the image (``segmentation_lost_in_view``: a loss, not an
-expected absence; the JSON counts them). Real bodies are never used for training or
-tuning; this is how we check the generator is not the world. ``--out DIR`` also writes
-every scan's outputs (summary, pictures).
+expected absence; the JSON counts them). Every scan also says how its own kidney-visible
+decisions agreed with the truth (``segmentation_in_loop``: frames with the kidney in view
+it did not see, frames with no kidney in the image it marked one in; summed in the JSON).
+Real bodies are never used for training or tuning; this is how we check the generator is
+not the world. ``--out DIR`` also writes every scan's outputs (summary, pictures).
 ``--fresh-seeds K`` also scans K generated patients never seen before (generator seeds
 5,000,000 + k, outside the training and test cohorts), supine unless ``--fresh-postures``
 says otherwise (``left_lateral_decubitus``, or both): the default scan must keep working on
@@ -22,7 +24,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from benchmarks._scan_rows import scan_row, scenario_from_args
+from benchmarks._scan_rows import in_loop_line, in_loop_totals, scan_row, scenario_from_args
 from drake_rus.cli import add_scenario_arguments
 from drake_rus.localization.localize import load_registration_template
 from drake_rus.paths import REPO_ROOT
@@ -137,6 +139,8 @@ def main(argv=None) -> int:
             f"{_fmt(r.get('depth_preset_m'), '6.2f')}  {r.get('reason', '')}"
         )
     fresh = [r for r in rows if r["body"].startswith("seed:")]
+    in_loop = in_loop_totals(rows)
+    print(in_loop_line(in_loop))
     print(
         json.dumps(
             {
@@ -155,6 +159,7 @@ def main(argv=None) -> int:
                             "depth_preset_m",
                             "wall_s",
                             "segmentation_lost_in_view",
+                            "segmentation_in_loop",
                         )
                     }
                     for r in rows
@@ -174,6 +179,8 @@ def main(argv=None) -> int:
                 "segmentation_lost": sum(
                     r.get("segmentation_lost_in_view") is not None for r in rows
                 ),
+                # The scans' own kidney-visible decisions against the truth, summed.
+                "segmentation_in_loop": in_loop,
             }
         )
     )

@@ -47,7 +47,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from benchmarks._scan_rows import scenario_from_args
+from benchmarks._scan_rows import in_loop_totals, scenario_from_args
 from drake_rus.anatomy.cache import file_digest
 from drake_rus.anatomy.ct_kidney import import_ct_kidneys, read_label_grid, select_kidney
 from drake_rus.batch import bound_workers
@@ -73,6 +73,7 @@ ROW_KEYS = (
     "wall_s",
     "exploration",
     "second_look",
+    "segmentation_in_loop",
 )
 
 
@@ -170,6 +171,8 @@ def summarise(rows: list[dict]) -> dict:
         "e_rot_x_deg": _stat([r.get("e_rot_x_deg") for r in done], "max"),
         "volume_ratio": _stat([r.get("volume_ratio") for r in done], "min"),
         "tracebacks": sum("traceback" in r for r in rows),
+        # The scans' own kidney-visible decisions against the truth, summed.
+        "segmentation_in_loop": in_loop_totals(rows),
     }
 
 

@@ -107,7 +107,10 @@ class ScanTerminator(LeafSystem):
 @dataclasses.dataclass
 class FrameRecord:
     """One acquired frame as the scan saw it: capture time (s), frame index, supervisor
-    phase, probe pose X_BP, kidney visible, filtered contact force F_z (N)."""
+    phase, probe pose X_BP, kidney visible, filtered contact force F_z (N), and the index of
+    the frame that ``visible`` was segmented from (the latest segmentation ready when the
+    frame was recorded: this frame's, or an earlier one's while perception runs beside the
+    loop; -1 before the first)."""
 
     time: float
     frame_index: int
@@ -115,6 +118,7 @@ class FrameRecord:
     X_BP: RigidTransform
     visible: bool
     force: float
+    mask_frame_index: int = -1
 
 
 class ScanRecorder(LeafSystem):
@@ -185,6 +189,7 @@ class ScanRecorder(LeafSystem):
                 RigidTransform(us.X_BP),
                 visible,
                 float(self._force.Eval(context)[0]),
+                self._mask.Eval(context).frame_index,
             )
         )
         if phase in self._mask_phases:
