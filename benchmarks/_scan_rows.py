@@ -95,9 +95,17 @@ def segmentation_lost_in_view(result, share: float = 0.5) -> dict | None:
     return {"in_view": n >= share * len(frames), "frames": len(frames), "frames_in_view": n}
 
 
-# The phases whose frames segmentation_in_loop reports apart: the sweep the registration
-# takes its cloud from, and the pivot the volume is imaged in.
-IN_LOOP_PHASES = {"explore": Phase.EXPLORE, "pivot": Phase.PIVOT}
+# The phases whose frames segmentation_in_loop reports apart: the landing (the probe may
+# not touch the skin yet: no image, nothing to see), the sweep the registration takes its
+# cloud from, the registration and the move to the pivot, and the pivot the volume is
+# imaged in.
+IN_LOOP_PHASES = {
+    "approach": Phase.APPROACH,
+    "explore": Phase.EXPLORE,
+    "localize": Phase.LOCALIZE,
+    "transit": Phase.TRANSIT,
+    "pivot": Phase.PIVOT,
+}
 
 
 def true_section_areas(result, frames) -> np.ndarray:
@@ -195,17 +203,22 @@ def in_loop_totals(rows) -> dict | None:
 
 
 def in_loop_line(totals: dict | None) -> str:
-    """One line for a benchmark's table: the in-loop segmentation totals."""
+    """One line for a benchmark's table: the in-loop segmentation totals of the sweep and
+    the pivot (the landing's frames, taken before the probe rests on the skin, are in the
+    JSON only)."""
     if totals is None:
         return "segmentation in the loop: no truth to compare with"
+
+    def phase(name):
+        c = totals["by_phase"][name]
+        return (
+            f"{name} missed {c['missed_in_view']} of {c['in_view']} frames with the kidney "
+            f"in view, marked {c['marked_out_of_view']} of {c['out_of_view']} with none"
+        )
+
     return (
-        f"segmentation in the loop ({totals['scans']} scans, simulation truth): kidney in "
-        f"view and not seen in {totals['missed_in_view']} of {totals['in_view']} frames, "
-        f"kidney marked with none in the image in {totals['marked_out_of_view']} of "
-        f"{totals['out_of_view']} frames (pivot {totals['by_phase']['pivot']['missed_in_view']}"
-        f" / {totals['by_phase']['pivot']['marked_out_of_view']}, explore "
-        f"{totals['by_phase']['explore']['missed_in_view']} / "
-        f"{totals['by_phase']['explore']['marked_out_of_view']})"
+        f"segmentation in the loop ({totals['scans']} scans, against the simulation truth): "
+        f"{phase('explore')}; {phase('pivot')}"
     )
 
 

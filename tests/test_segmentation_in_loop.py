@@ -104,7 +104,9 @@ def test_totals_sum_the_scans_and_give_the_shares():
     assert totals["marked_out_of_view"] == 5 and totals["out_of_view"] == 8
     assert totals["missed_share"] == 0.125 and totals["false_mark_share"] == 0.625
     assert totals["by_phase"]["pivot"]["marked_out_of_view"] == 5
-    assert "not seen in 1 of 8 frames" in in_loop_line(totals)
+    assert "pivot missed 0 of 0 frames with the kidney in view, marked 5 of 8 with none" in (
+        in_loop_line(totals)
+    )
     assert in_loop_totals([{}]) is None
     assert "no truth" in in_loop_line(None)
 
