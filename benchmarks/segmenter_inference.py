@@ -598,27 +598,36 @@ def score_settings(
     return out
 
 
+def segmenters_for_settings(base, settings: dict) -> dict:
+    """{depth: (config, geometry, {setting: OnnxSegmenter})}: every setting's imaging
+    overrides ({setting: {field: value}}) applied to ``base`` at each depth preset. A bad
+    model raises ValueError (``OnnxSegmenter.from_config``'s, naming the field)."""
+    from drake_rus.imaging.onnx_backend import OnnxSegmenter
+    from drake_rus.imaging.probe import ProbeGeometry
+
+    segs = {}
+    for d in (float(p) for p in base.depth_presets):
+        c = replace(base, depth=d)
+        g = ProbeGeometry.from_config(c)
+        segs[d] = (
+            c,
+            g,
+            {v: OnnxSegmenter.from_config(replace(c, **kw), g) for v, kw in settings.items()},
+        )
+    return segs
+
+
 def edge_study(args, a: int, b: int) -> int:
     """The ``--edge-thresholds`` study (see the module docstring); prints its table and one
     JSON line."""
     from drake_rus.imaging.config import ImagingConfig
-    from drake_rus.imaging.onnx_backend import OnnxSegmenter
-    from drake_rus.imaging.probe import ProbeGeometry
 
     t0 = time.perf_counter()
     base = ImagingConfig() if args.onnx_model is None else ImagingConfig(onnx_model=args.onnx_model)
     default = base.onnx_edge_threshold or base.onnx_threshold
     values = [default] + [v for v in args.edge_thresholds if v != default]
     presets = [float(p) for p in base.depth_presets]
-    segs = {}
-    for d in presets:
-        c = replace(base, depth=d)
-        g = ProbeGeometry.from_config(c)
-        segs[d] = (
-            c,
-            g,
-            {v: OnnxSegmenter.from_config(replace(c, onnx_edge_threshold=v), g) for v in values},
-        )
+    segs = segmenters_for_settings(base, {v: {"onnx_edge_threshold": v} for v in values})
     sources = validation_sources(a, b, not args.no_imported_like, "segmenter_inference")
     seeds = draw_seeds(args.draws)
     scores = score_settings(segs, sources, args.views, seeds, args.no_progress)
@@ -695,26 +704,16 @@ def compare_study(args, a: int, b: int) -> int:
     means, the paired differences with their intervals and one JSON line. A measurement:
     it chooses nothing (a rule written beforehand reads its intervals)."""
     from drake_rus.imaging.config import ImagingConfig
-    from drake_rus.imaging.onnx_backend import OnnxSegmenter
-    from drake_rus.imaging.probe import ProbeGeometry
 
     t0 = time.perf_counter()
     base = ImagingConfig() if args.onnx_model is None else ImagingConfig(onnx_model=args.onnx_model)
     models = [base.onnx_model] + [m for m in args.compare_models if m != base.onnx_model]
     presets = [float(p) for p in base.depth_presets]
-    segs = {}
-    for d in presets:
-        c = replace(base, depth=d)
-        g = ProbeGeometry.from_config(c)
-        try:
-            segs[d] = (
-                c,
-                g,
-                {m: OnnxSegmenter.from_config(replace(c, onnx_model=m), g) for m in models},
-            )
-        except ValueError as e:
-            print(str(e).replace("imaging.onnx_model", "--compare-models"), file=sys.stderr)
-            return 2
+    try:
+        segs = segmenters_for_settings(base, {m: {"onnx_model": m} for m in models})
+    except ValueError as e:
+        print(str(e).replace("imaging.onnx_model", "--compare-models"), file=sys.stderr)
+        return 2
     sources = validation_sources(a, b, not args.no_imported_like, "segmenter_inference")
     seeds = draw_seeds(args.draws)
     scores = score_settings(segs, sources, args.views, seeds, args.no_progress)
@@ -762,8 +761,6 @@ def test_time_study(args, a: int, b: int) -> int:
     """The ``--ensemble-model`` study (see the module docstring); prints its table and one
     JSON line."""
     from drake_rus.imaging.config import ImagingConfig
-    from drake_rus.imaging.onnx_backend import OnnxSegmenter
-    from drake_rus.imaging.probe import ProbeGeometry
 
     t0 = time.perf_counter()
     base = ImagingConfig() if args.onnx_model is None else ImagingConfig(onnx_model=args.onnx_model)
@@ -778,21 +775,11 @@ def test_time_study(args, a: int, b: int) -> int:
         },
     }
     presets = [float(p) for p in base.depth_presets]
-    segs = {}
-    for d in presets:
-        c = replace(base, depth=d)
-        g = ProbeGeometry.from_config(c)
-        try:
-            segs[d] = (
-                c,
-                g,
-                {v: OnnxSegmenter.from_config(replace(c, **kw), g) for v, kw in settings.items()},
-            )
-        except ValueError as e:
-            print(
-                str(e).replace("imaging.onnx_ensemble_model", "--ensemble-model"), file=sys.stderr
-            )
-            return 2
+    try:
+        segs = segmenters_for_settings(base, settings)
+    except ValueError as e:
+        print(str(e).replace("imaging.onnx_ensemble_model", "--ensemble-model"), file=sys.stderr)
+        return 2
     sources = validation_sources(a, b, not args.no_imported_like, "segmenter_inference")
     seeds = draw_seeds(args.draws)
     scores = score_settings(segs, sources, args.views, seeds, args.no_progress)
