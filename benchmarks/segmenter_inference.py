@@ -617,6 +617,23 @@ def segmenters_for_settings(base, settings: dict) -> dict:
     return segs
 
 
+def score_study(args, a: int, b: int, base, settings: dict, field=None, flag=None):
+    """(SettingScores, seeds) of the settings (:func:`segmenters_for_settings`) on the
+    validation frames of ``train:a..b`` over ``args.draws`` draws; None after one line on
+    stderr when a model named by the imaging ``field`` cannot be loaded (the message names
+    the command-line ``flag`` instead)."""
+    try:
+        segs = segmenters_for_settings(base, settings)
+    except ValueError as e:
+        if field is None:
+            raise
+        print(str(e).replace(field, flag), file=sys.stderr)
+        return None
+    sources = validation_sources(a, b, not args.no_imported_like, "segmenter_inference")
+    seeds = draw_seeds(args.draws)
+    return score_settings(segs, sources, args.views, seeds, args.no_progress), seeds
+
+
 def edge_study(args, a: int, b: int) -> int:
     """The ``--edge-thresholds`` study (see the module docstring); prints its table and one
     JSON line."""
@@ -627,10 +644,7 @@ def edge_study(args, a: int, b: int) -> int:
     default = base.onnx_edge_threshold or base.onnx_threshold
     values = [default] + [v for v in args.edge_thresholds if v != default]
     presets = [float(p) for p in base.depth_presets]
-    segs = segmenters_for_settings(base, {v: {"onnx_edge_threshold": v} for v in values})
-    sources = validation_sources(a, b, not args.no_imported_like, "segmenter_inference")
-    seeds = draw_seeds(args.draws)
-    scores = score_settings(segs, sources, args.views, seeds, args.no_progress)
+    scores, seeds = score_study(args, a, b, base, {v: {"onnx_edge_threshold": v} for v in values})
     iou_acc, fp, empty, area = scores.iou, scores.fp, scores.empty, scores.area
     mean_iou = {k: {v: float(np.mean(x)) for v, x in cell.items()} for k, cell in iou_acc.items()}
     # The mask's area over the true section's, on the frames where the mask meets it.
@@ -709,14 +723,11 @@ def compare_study(args, a: int, b: int) -> int:
     base = ImagingConfig() if args.onnx_model is None else ImagingConfig(onnx_model=args.onnx_model)
     models = [base.onnx_model] + [m for m in args.compare_models if m != base.onnx_model]
     presets = [float(p) for p in base.depth_presets]
-    try:
-        segs = segmenters_for_settings(base, {m: {"onnx_model": m} for m in models})
-    except ValueError as e:
-        print(str(e).replace("imaging.onnx_model", "--compare-models"), file=sys.stderr)
+    settings = {m: {"onnx_model": m} for m in models}
+    done = score_study(args, a, b, base, settings, "imaging.onnx_model", "--compare-models")
+    if done is None:
         return 2
-    sources = validation_sources(a, b, not args.no_imported_like, "segmenter_inference")
-    seeds = draw_seeds(args.draws)
-    scores = score_settings(segs, sources, args.views, seeds, args.no_progress)
+    scores, seeds = done
     kinds = sorted({k for k, _ in scores.iou})
     print(
         f"\nvalidation: train:{a}..{b}, both postures, {args.views} views each per preset"
@@ -775,14 +786,12 @@ def test_time_study(args, a: int, b: int) -> int:
         },
     }
     presets = [float(p) for p in base.depth_presets]
-    try:
-        segs = segmenters_for_settings(base, settings)
-    except ValueError as e:
-        print(str(e).replace("imaging.onnx_ensemble_model", "--ensemble-model"), file=sys.stderr)
+    done = score_study(
+        args, a, b, base, settings, "imaging.onnx_ensemble_model", "--ensemble-model"
+    )
+    if done is None:
         return 2
-    sources = validation_sources(a, b, not args.no_imported_like, "segmenter_inference")
-    seeds = draw_seeds(args.draws)
-    scores = score_settings(segs, sources, args.views, seeds, args.no_progress)
+    scores, seeds = done
     iou_acc, fp, empty = scores.iou, scores.fp, scores.empty
     seconds, calls = scores.seconds, scores.calls
     mean_iou = {k: {v: float(np.mean(x)) for v, x in cell.items()} for k, cell in iou_acc.items()}

@@ -406,3 +406,27 @@ def test_a_preset_without_kidney_free_frames_reads_no_frames():
     assert json_number(empty["other"]["difference"]) is None
     assert json.loads(json.dumps({"x": json_number(float("nan"))})) == {"x": None}
     assert share_text({"mean": 0.043, "ci95": (0.006, 0.164)}) == "4.3% (0.6-16.4)"
+
+
+def test_compare_models_argument_is_checked(tmp_path):
+    """A missing model or an empty entry in ``--compare-models`` is one line naming the
+    flag, before any frame is made; two studies at once are refused."""
+    import contextlib
+    import io
+
+    for argv, line in (
+        (
+            ["--compare-models", str(tmp_path / "none.onnx")],
+            f"--compare-models: ONNX model file not found: {tmp_path / 'none.onnx'}",
+        ),
+        (["--compare-models", "a.onnx,"], "--compare-models: expected comma-separated ONNX"),
+        (
+            ["--compare-models", "a.onnx", "--edge-thresholds", "0.45"],
+            "--edge-thresholds and --compare-models: expected one study, got 2",
+        ),
+    ):
+        err = io.StringIO()
+        with contextlib.redirect_stderr(err):
+            assert segmenter_inference_main(argv + ["--no-progress"]) == 2
+        assert err.getvalue().strip().startswith(line)
+        assert len(err.getvalue().strip().splitlines()) == 1
