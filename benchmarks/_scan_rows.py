@@ -150,11 +150,12 @@ def segmentation_in_loop(result) -> dict | None:
     """How the scan's own segmentation decisions (``kidney_visible``: model, tracker and
     prior together, as the scan acted on them) agreed with the simulation truth
     (benchmarks only; the scan never reads it): :func:`agreement_counts` over every frame
-    that was segmented, each judged at its own pose (a decision is paired with the frame it
-    was segmented from, once, even when it was read on later ticks), and per phase
-    (``IN_LOOP_PHASES``, the phase in which the decision was first read). None without
-    truth, or when the patient moves (the truth holds the kidney where it lay at the
-    start)."""
+    segmented after the landing, each judged at its own pose (a decision is paired with the
+    frame it was segmented from, once, even when it was read on later ticks), and per phase
+    (``IN_LOOP_PHASES``, the phase in which the decision was first read; the landing's
+    frames, taken before the probe rests on the skin and shows anything, only there). None
+    without truth, or when the patient moves (the truth holds the kidney where it lay at
+    the start)."""
     if result.truth is None or not result.frames or result.scenario.patient.motion.moves:
         return None
     by_index = {f.frame_index: f for f in result.frames}
@@ -170,7 +171,8 @@ def segmentation_in_loop(result) -> dict | None:
     marked = np.array([d[1] for d in decisions.values()], bool)
     phases = np.array([d[2] for d in decisions.values()])
     min_area = result.scenario.imaging.min_kidney_area
-    out = agreement_counts(marked, areas, min_area)
+    landed = phases != Phase.APPROACH
+    out = agreement_counts(marked[landed], areas[landed], min_area)
     out["by_phase"] = {
         name: agreement_counts(marked[phases == ph], areas[phases == ph], min_area)
         for name, ph in IN_LOOP_PHASES.items()
@@ -179,7 +181,7 @@ def segmentation_in_loop(result) -> dict | None:
 
 
 def in_loop_totals(rows) -> dict | None:
-    """The rows' ``segmentation_in_loop`` counts summed (all frames and per phase), with
+    """The rows' ``segmentation_in_loop`` counts summed (after the landing, and per phase), with
     the shares a reader compares: ``missed_share`` (of the frames with the kidney in view,
     the share the scan did not see it in) and ``false_mark_share`` (of the frames without
     any kidney, the share it marked one in); ``scans`` counted. None when no row has

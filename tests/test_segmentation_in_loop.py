@@ -2,6 +2,7 @@
 (benchmarks/_scan_rows.py: ``segmentation_in_loop``, benchmarks only), and the recorder's
 note of which frame each decision was segmented from."""
 
+import dataclasses
 from types import SimpleNamespace
 
 import numpy as np
@@ -131,3 +132,14 @@ def test_the_recorder_notes_which_frame_a_decision_came_from():
     assert [(f.frame_index, f.mask_frame_index, f.visible) for f in recorder.frames] == [
         (4, 3, True)
     ]
+
+
+def test_the_landing_is_counted_apart():
+    """A frame taken while the probe lands (APPROACH) over the kidney, unmarked: counted in
+    its phase, not in the totals (nothing can be seen before the probe rests on the
+    skin)."""
+    r = _result([True, True, False, False])
+    r.frames[0] = dataclasses.replace(r.frames[0], phase=int(Phase.APPROACH), visible=False)
+    out = segmentation_in_loop(r)
+    assert out["by_phase"]["approach"]["missed_in_view"] == 1
+    assert out["frames"] == 3 and out["missed_in_view"] == 0
