@@ -153,7 +153,7 @@ def segmentation_in_loop(result) -> dict | None:
     segmented after the landing, each judged at its own pose (a decision is paired with the
     frame it was segmented from, once, even when it was read on later ticks), and per phase
     (``IN_LOOP_PHASES``, the phase in which the decision was first read; the landing's
-    frames, taken before the probe rests on the skin and shows anything, only there). None
+    frames, taken while the probe may not touch the skin yet, only there). None
     without truth, or when the patient moves (the truth holds the kidney where it lay at
     the start)."""
     if result.truth is None or not result.frames or result.scenario.patient.motion.moves:
@@ -206,8 +206,8 @@ def in_loop_totals(rows) -> dict | None:
 
 def in_loop_line(totals: dict | None) -> str:
     """One line for a benchmark's table: the in-loop segmentation totals of the sweep and
-    the pivot (the landing's frames, taken before the probe rests on the skin, are in the
-    JSON only)."""
+    the pivot (the landing's frames, taken while the probe may not touch the skin yet, are
+    in the JSON only)."""
     if totals is None:
         return "segmentation in the loop: no truth to compare with"
 

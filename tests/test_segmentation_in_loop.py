@@ -136,8 +136,7 @@ def test_the_recorder_notes_which_frame_a_decision_came_from():
 
 def test_the_landing_is_counted_apart():
     """A frame taken while the probe lands (APPROACH) over the kidney, unmarked: counted in
-    its phase, not in the totals (nothing can be seen before the probe rests on the
-    skin)."""
+    its phase, not in the totals (the probe may not touch the skin yet)."""
     r = _result([True, True, False, False])
     r.frames[0] = dataclasses.replace(r.frames[0], phase=int(Phase.APPROACH), visible=False)
     out = segmentation_in_loop(r)
