@@ -83,20 +83,13 @@ def segmentation_lost_in_view(result, share: float = 0.5) -> dict | None:
     frames = [f for f in result.frames if stop - window <= f.time <= stop]
     if not frames:
         return None
-    imaging = result.scenario.imaging
-    geometry = ProbeGeometry.from_config(imaging)
-    voxel = round(float(np.cbrt(result.truth.voxel_volume)), 6)
-    need = imaging.min_kidney_area / voxel**2
-    seen = [
-        kidney_in_view(result.truth.kidney_points_B, f.X_BP, geometry, 0.5 * voxel) >= need
-        for f in frames
-    ]
-    n = int(sum(seen))
+    min_area = result.scenario.imaging.min_kidney_area
+    n = int(np.count_nonzero(true_section_areas(result, frames) >= min_area))
     return {"in_view": n >= share * len(frames), "frames": len(frames), "frames_in_view": n}
 
 
 # The phases whose frames segmentation_in_loop reports apart: the landing (the probe may
-# not touch the skin yet: no image, nothing to see), the sweep the registration takes its
+# not touch the skin yet), the sweep the registration takes its
 # cloud from, the registration and the move to the pivot, and the pivot the volume is
 # imaged in.
 IN_LOOP_PHASES = {

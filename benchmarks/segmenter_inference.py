@@ -446,12 +446,17 @@ def interval_tables(scores: SettingScores, reference) -> dict:
 
 
 def share_text(cell: dict) -> str:
-    """ "4.3% (0.6-16.4)": a share of kidney-free frames with its 95% interval, or "no
-    frames"."""
+    """A share of kidney-free frames with its 95% interval, as "4.3% (0.6-16.4)", or
+    "no frames"."""
     if np.isnan(cell["mean"]):
         return "no frames"
     lo, hi = cell["ci95"]
     return f"{100 * cell['mean']:.1f}% ({100 * lo:.1f}-{100 * hi:.1f})"
+
+
+def setting_key(v) -> str:
+    """A setting's JSON key: an edge threshold as "0.45", anything else as its text."""
+    return f"{v:g}" if isinstance(v, float) else str(v)
 
 
 def json_number(x: float):
@@ -501,7 +506,7 @@ def intervals_json(tables: dict) -> dict:
 
     def pack(cell):
         return {
-            f"{v:g}" if isinstance(v, float) else str(v): {
+            setting_key(v): {
                 "mean": json_number(c["mean"]),
                 "ci95": [json_number(x) for x in c["ci95"]],
                 "difference": json_number(c["difference"]),
@@ -536,10 +541,7 @@ def draws_json(scores: SettingScores, seeds, presets) -> dict:
         "seeds": list(seeds),
         "kidney_free_frames": {f"{d:.2f}": scores.free_by_draw[d] for d in presets},
         "marked": {
-            f"{d:.2f}": {
-                (f"{v:g}" if isinstance(v, float) else str(v)): n
-                for v, n in scores.marked_by_draw[d].items()
-            }
+            f"{d:.2f}": {setting_key(v): n for v, n in scores.marked_by_draw[d].items()}
             for d in presets
         },
     }
@@ -617,17 +619,17 @@ def segmenters_for_settings(base, settings: dict) -> dict:
     return segs
 
 
-def score_study(args, a: int, b: int, base, settings: dict, field=None, flag=None):
+def score_study(args, a: int, b: int, base, settings: dict, model_field=None, flag=None):
     """(SettingScores, seeds) of the settings (:func:`segmenters_for_settings`) on the
     validation frames of ``train:a..b`` over ``args.draws`` draws; None after one line on
-    stderr when a model named by the imaging ``field`` cannot be loaded (the message names
-    the command-line ``flag`` instead)."""
+    stderr when a model named by the imaging ``model_field`` cannot be loaded (the message
+    names the command-line ``flag`` instead)."""
     try:
         segs = segmenters_for_settings(base, settings)
     except ValueError as e:
-        if field is None:
+        if model_field is None:
             raise
-        print(str(e).replace(field, flag), file=sys.stderr)
+        print(str(e).replace(model_field, flag), file=sys.stderr)
         return None
     sources = validation_sources(a, b, not args.no_imported_like, "segmenter_inference")
     seeds = draw_seeds(args.draws)
