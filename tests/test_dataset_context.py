@@ -251,3 +251,21 @@ def test_issue31_targets_need_the_interval_and_both_vh_postures():
     assert not issue31_targets_met({"0.10": 0.859}, vh, {"0.10": [0.851, 0.87]})["met"]
     assert not issue31_targets_met(means, vh, None)["met"]  # no interval: not shown
     assert not issue31_targets_met(means, {"supine": 0.9}, ci)["met"]  # one posture only
+
+
+def test_near_miss_variant_keeps_the_volume_and_draws_only_near_misses(phantom):
+    """The extra data of --near-miss-frames: the same volume and views' settings, every view
+    a near miss; the option refuses a negative count with one line."""
+    from drake_rus.imaging.training.evaluation import Source
+    from drake_rus.imaging.training.train_segmenter import main, near_miss_variant
+
+    src = Source("phantom:7", "supine", phantom.volume, np.array([0.0, 0.0, 1.0]))
+    variant = wall_variants(src, "supine", np.random.default_rng(3))[0]
+    near = near_miss_variant(variant)
+    assert near.volume is variant.volume and near.extra_depth == variant.extra_depth
+    assert near.sampler.near_miss_fraction == 1.0 and variant.sampler.near_miss_fraction == 0.0
+    assert {k: v for k, v in near.sampler_kw.items() if k != "near_miss_fraction"} == {
+        k: v for k, v in variant.sampler_kw.items()
+    }
+    with pytest.raises(SystemExit):
+        main(["--near-miss-frames", "-1", "--data-only"])

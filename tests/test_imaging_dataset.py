@@ -285,3 +285,37 @@ def test_kidney_context_and_structure_randomisation(phantom):
     assert not (lean.labels[fat_near] == Label.FAT).any()
     far_fat = (vol.labels == Label.FAT) & ~fat_near
     assert (lean.labels[far_fat] == Label.FAT).all()
+
+
+def test_near_miss_views_clear_the_kidney_by_the_offset(phantom):
+    """A near-miss view's image plane lies beyond every kidney voxel, within the offset of
+    the nearest: kidney-free frames of the kidney's surroundings (the pivot past its edge)."""
+    cfg = ImagingConfig(
+        image_height_px=128, image_width_px=128, scan_lines=64, samples_per_line=128
+    )
+    g = ProbeGeometry.from_config(cfg)
+    up = np.array([0.0, 0.0, 1.0])
+    offset = (0.002, 0.006)
+    sampler = ViewSampler(phantom.volume, up, near_miss_fraction=1.0, near_miss_offset=offset)
+    frames = make_frames(
+        phantom.volume,
+        up,
+        EmulatorModel.from_config(cfg, g),
+        10,
+        np.random.default_rng(4),
+        sampler=sampler,
+    )
+    assert len(frames) == 10
+    h = phantom.volume.voxel_size
+    kidney_V = np.argwhere(is_kidney(phantom.volume.labels)) * h
+    for _, mask, labels, X_VP in frames:
+        assert not mask.any() and not is_kidney(labels).any()
+        y = X_VP.rotation().matrix()[:, 1]
+        gap = float(np.min((X_VP.translation() - kidney_V) @ y))
+        # Beyond the last voxel centre by one voxel plus the drawn offset.
+        assert h + offset[0] - 1e-9 <= gap <= h + offset[1] + 1e-9
+    # The plain sampler's views look at the kidney: the option changes only its own draws.
+    plain = ViewSampler(phantom.volume, up, near_miss_fraction=0.0)
+    a = plain.sample(np.random.default_rng(9))
+    b = ViewSampler(phantom.volume, up).sample(np.random.default_rng(9))
+    assert a.IsExactlyEqualTo(b)

@@ -11,8 +11,11 @@ Recipe (the same for training and evaluation; only the patients differ):
    views only graze the kidney or miss it), an approach direction within ``tilt_deg`` of
    the volume's skin-facing direction (a ``far_fraction`` of views up to ``far_jitter``
    off, which often miss it; a ``free_fraction`` aimed ``free_offset`` away, kidney-free
-   at most depths), the face placed on the skin along that line and pressed ``indent``
-   into it, a random rotation of the array about the beam;
+   at most depths; a ``near_miss_fraction`` whose image plane passes ``near_miss_offset``
+   beyond the kidney's last voxel along the plane's normal: kidney-free, with the kidney's
+   surroundings, its perirenal fat shell among them, in view), the face placed on the skin
+   along that line and pressed ``indent`` into it, a random rotation of the array about the
+   beam;
 3. per pose: label image (:func:`slice_volume`), emulated image (:func:`emulate`, speckle
    seeded by the frame index), mask = kidney labels.
 
@@ -57,6 +60,13 @@ class ViewSampler:
     max_depth: float = 0.16  # m, give up if no skin within this distance
     free_fraction: float = 0.0  # share of views aimed free_offset away (kidney-free)
     free_offset: tuple = (0.08, 0.16)  # m, range of that offset across the beam
+    # Share of views whose image plane lies just beyond the kidney: the plane through the
+    # aim point is moved along its normal until it clears every kidney voxel, then
+    # near_miss_offset further (m). What the scan's pivot images past the kidney's edge: the
+    # perirenal fat shell's section, an ellipse like a kidney's (docs/results/segmenter.md,
+    # 2026-11-28, "false marks past the kidney's edge").
+    near_miss_fraction: float = 0.0
+    near_miss_offset: tuple = (0.001, 0.012)
     targets_V: np.ndarray | None = field(default=None, repr=False)  # (N, 3) aim points in V
 
     def __post_init__(self):
@@ -100,7 +110,13 @@ class ViewSampler:
             w = rng.normal(size=3)
             w -= w.dot(u) * u
             w /= np.linalg.norm(w)
-            # (The free-view draw only when asked for, so the default keeps its old sequence.)
+            # (The near-miss and free-view draws only when asked for, so the default keeps its
+            # old sequence.)
+            if self.near_miss_fraction > 0 and rng.random() < self.near_miss_fraction:
+                X_VP = self._near_miss(target, u, rng)
+                if X_VP is None:
+                    continue
+                return X_VP
             if self.free_fraction > 0 and rng.random() < self.free_fraction:
                 target = target + rng.uniform(*self.free_offset) * w
                 if sample_labels(self.volume, target[None])[0] == Label.OUTSIDE:
@@ -120,6 +136,24 @@ class ViewSampler:
             y = np.cross(z, x)
             return RigidTransform(RotationMatrix(np.column_stack([x, y, z])), origin)
         return None
+
+    def _near_miss(self, target, u, rng: np.random.Generator) -> RigidTransform | None:
+        """A pose looking along ``u`` whose image plane (normal y_P, a random rotation about
+        the beam) lies ``near_miss_offset`` beyond the kidney's last voxel along y_P, or
+        None when no skin is found."""
+        z = -np.asarray(u, float)
+        x = np.cross(rng.normal(size=3), z)
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        # Nearest-voxel slicing reaches up to sqrt(3) h / 2 from a voxel centre along any
+        # normal: the plane clears the last centre by one voxel h more.
+        clear = float(np.max((self._kidney_V - target) @ y)) + self.volume.voxel_size
+        moved = target + (clear + rng.uniform(*self.near_miss_offset)) * y
+        skin = self._skin_along(moved, u)
+        if skin is None:
+            return None
+        origin = skin - (self.indent + 0.5 * self.volume.voxel_size) * u
+        return RigidTransform(RotationMatrix(np.column_stack([x, y, z])), origin)
 
 
 def make_frames(

@@ -94,7 +94,7 @@ import json
 import shlex
 import sys
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -307,6 +307,15 @@ def imported_like_variants(source, posture: str, rng: np.random.Generator) -> li
     return out
 
 
+def near_miss_variant(variant: VolumeVariant) -> VolumeVariant:
+    """``variant`` with every view a near miss: the image plane 1-12 mm beyond the kidney
+    (``ViewSampler.near_miss_fraction`` 1), kidney-free with the kidney's surroundings in
+    view. The extra data of ``--near-miss-frames``: the scan's pivot marks the perirenal
+    fat shell just past the kidney's edge (docs/results/segmenter.md)."""
+    kw = {**variant.sampler_kw, "near_miss_fraction": 1.0}
+    return replace(variant, sampler_kw=kw)
+
+
 def build_canvas_dataset(
     specs: list[str],
     postures,
@@ -320,12 +329,15 @@ def build_canvas_dataset(
     log=print,
     randomised: bool = True,
     imported_like_only: bool = False,
+    near_miss_only: bool = False,
 ) -> dict:
     """Canvas frames of every (spec, posture): uint8 images (N, H, W) grey, uint8 masks
     (kidney area fraction x 255), depth, posture index, source index; cached per source.
     ``randomised`` False: the scenario's emulator and the volume as it is (validation).
     ``imported_like_only``: the volumes of :func:`imported_like_variants` only (cached
-    under their own name)."""
+    under their own name). ``near_miss_only``: the volumes of :func:`wall_variants`, every
+    view a near miss (``ViewSampler.near_miss_fraction`` 1: the image plane just beyond the
+    kidney; cached under their own name)."""
     config = config or ImagingConfig()
     presets = [float(p) for p in config.depth_presets]
     bank = EmulatorBank(config)
@@ -334,6 +346,7 @@ def build_canvas_dataset(
         f"v6_{frames}_{pixel_size * 1e3:g}mm_{canvas[0]}x{canvas[1]}_{canvas_top * 1e3:g}_"
         f"{'-'.join(f'{p:g}' for p in presets)}_{seed}{'' if randomised else '_nominal'}"
         f"{'_imported_like' if imported_like_only else ''}"
+        f"{'_near_miss' if near_miss_only else ''}"
     )
     for i, spec in enumerate(specs):
         for j, posture in enumerate(postures):
@@ -356,6 +369,8 @@ def build_canvas_dataset(
                 if randomised
                 else [VolumeVariant(src.volume, src.up_V, sampler_kw=dict(SAMPLER))]
             )
+            if near_miss_only:
+                variants = [near_miss_variant(v) for v in variants]
             d = canvas_frames(
                 variants,
                 presets,
@@ -969,6 +984,13 @@ def main(argv=None) -> int:
         "only (imported_like_variants; 0: none, the shipped recipe)",
     )
     ap.add_argument(
+        "--near-miss-frames",
+        type=int,
+        default=0,
+        help="also this many kidney-free frames per training patient and posture whose image "
+        "plane lies 1-12 mm beyond the kidney (near_miss_variant; 0: none, the shipped recipe)",
+    )
+    ap.add_argument(
         "--boundary-band-mm",
         type=float,
         default=0.0,
@@ -1000,6 +1022,8 @@ def main(argv=None) -> int:
         )
     if args.imported_like_frames < 0:
         ap.error(f"--imported-like-frames: expected 0 or more, got {args.imported_like_frames}")
+    if args.near_miss_frames < 0:
+        ap.error(f"--near-miss-frames: expected 0 or more, got {args.near_miss_frames}")
     out = Path(args.out)
     if args.record_benchmark:
         card = Path(args.card) if args.card else out / "kidney_unet.json"
@@ -1051,6 +1075,20 @@ def main(argv=None) -> int:
             args.seed + 2,  # + 1 is the validation's
             log=log,
             imported_like_only=True,
+        )
+        data = {k: np.concatenate([data[k], extra[k]]) for k in data}
+    if args.near_miss_frames > 0:
+        extra = build_canvas_dataset(
+            [s for s in specs if s.startswith("train:")],
+            postures,
+            args.near_miss_frames,
+            p,
+            canvas,
+            top,
+            cache,
+            args.seed + 3,  # + 1 is the validation's, + 2 the imported-like frames'
+            log=log,
+            near_miss_only=True,
         )
         data = {k: np.concatenate([data[k], extra[k]]) for k in data}
     val_specs = [f"train:{args.patients + k}" for k in range(args.val_patients)]
@@ -1170,6 +1208,7 @@ def main(argv=None) -> int:
             "postures": postures,
             "frames_per_source_and_posture": args.frames,
             "imported_like_frames_per_patient_and_posture": args.imported_like_frames,
+            "near_miss_frames_per_patient_and_posture": args.near_miss_frames,
             "frames": int(len(data["image"])),
             "frames_with_kidney": float(round(has_kidney.mean(), 3)),
             "validation_sources": val_specs,
