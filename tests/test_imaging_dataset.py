@@ -131,21 +131,23 @@ def test_thicken_wall_puts_the_kidney_deeper_and_keeps_it(phantom):
         thicken_wall(vol, [1.0, 0, 1.0], fat=0.01)
 
 
-def test_free_views_mostly_miss_the_kidney(phantom):
+def _sampled_frames(phantom, n: int, seed: int, **sampler_kw):
+    """``n`` small frames of ``phantom`` from a ViewSampler with ``sampler_kw``, and their
+    probe geometry."""
     cfg = ImagingConfig(
         image_height_px=128, image_width_px=128, scan_lines=64, samples_per_line=128
     )
     g = ProbeGeometry.from_config(cfg)
     up = np.array([0.0, 0.0, 1.0])
-    sampler = ViewSampler(phantom.volume, up, free_fraction=1.0, free_offset=(0.07, 0.09))
-    frames = make_frames(
-        phantom.volume,
-        up,
-        EmulatorModel.from_config(cfg, g),
-        12,
-        np.random.default_rng(2),
-        sampler=sampler,
-    )
+    sampler = ViewSampler(phantom.volume, up, **sampler_kw)
+    model = EmulatorModel.from_config(cfg, g)
+    return make_frames(
+        phantom.volume, up, model, n, np.random.default_rng(seed), sampler=sampler
+    ), g
+
+
+def test_free_views_mostly_miss_the_kidney(phantom):
+    frames, g = _sampled_frames(phantom, 12, 2, free_fraction=1.0, free_offset=(0.07, 0.09))
     seen = [m.sum() * g.pixel_area >= 1e-4 for _, m, *_ in frames]
     assert len(frames) == 12 and np.mean(seen) < 0.5
 
@@ -290,21 +292,9 @@ def test_kidney_context_and_structure_randomisation(phantom):
 def test_near_miss_views_clear_the_kidney_by_the_offset(phantom):
     """A near-miss view's image plane lies beyond every kidney voxel, within the offset of
     the nearest: kidney-free frames of the kidney's surroundings (the pivot past its edge)."""
-    cfg = ImagingConfig(
-        image_height_px=128, image_width_px=128, scan_lines=64, samples_per_line=128
-    )
-    g = ProbeGeometry.from_config(cfg)
     up = np.array([0.0, 0.0, 1.0])
     offset = (0.002, 0.006)
-    sampler = ViewSampler(phantom.volume, up, near_miss_fraction=1.0, near_miss_offset=offset)
-    frames = make_frames(
-        phantom.volume,
-        up,
-        EmulatorModel.from_config(cfg, g),
-        10,
-        np.random.default_rng(4),
-        sampler=sampler,
-    )
+    frames, _ = _sampled_frames(phantom, 10, 4, near_miss_fraction=1.0, near_miss_offset=offset)
     assert len(frames) == 10
     h = phantom.volume.voxel_size
     kidney_V = np.argwhere(is_kidney(phantom.volume.labels)) * h
@@ -314,7 +304,7 @@ def test_near_miss_views_clear_the_kidney_by_the_offset(phantom):
         gap = float(np.min((X_VP.translation() - kidney_V) @ y))
         # Beyond the last voxel centre by one voxel plus the drawn offset.
         assert h + offset[0] - 1e-9 <= gap <= h + offset[1] + 1e-9
-    # The plain sampler's views look at the kidney: the option changes only its own draws.
+    # At 0 the option draws nothing of its own: the default sampler's views, to the bit.
     plain = ViewSampler(phantom.volume, up, near_miss_fraction=0.0)
     a = plain.sample(np.random.default_rng(9))
     b = ViewSampler(phantom.volume, up).sample(np.random.default_rng(9))

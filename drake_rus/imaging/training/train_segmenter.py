@@ -1063,34 +1063,27 @@ def main(argv=None) -> int:
     data = build_canvas_dataset(
         specs, postures, args.frames, p, canvas, top, cache, args.seed, log=log
     )
-    if args.imported_like_frames > 0:
-        extra = build_canvas_dataset(
-            [s for s in specs if s.startswith("train:")],
-            postures,
-            args.imported_like_frames,
-            p,
-            canvas,
-            top,
-            cache,
-            args.seed + 2,  # + 1 is the validation's
-            log=log,
-            imported_like_only=True,
-        )
-        data = {k: np.concatenate([data[k], extra[k]]) for k in data}
-    if args.near_miss_frames > 0:
-        extra = build_canvas_dataset(
-            [s for s in specs if s.startswith("train:")],
-            postures,
-            args.near_miss_frames,
-            p,
-            canvas,
-            top,
-            cache,
-            args.seed + 3,  # + 1 is the validation's, + 2 the imported-like frames'
-            log=log,
-            near_miss_only=True,
-        )
-        data = {k: np.concatenate([data[k], extra[k]]) for k in data}
+    # The extra frames of the training patients, each kind with its own seed (+ 1 is the
+    # validation's): fat-free volumes only, and near misses past the kidney's edge.
+    extras = (
+        (args.imported_like_frames, 2, {"imported_like_only": True}),
+        (args.near_miss_frames, 3, {"near_miss_only": True}),
+    )
+    for count, seed_offset, kind in extras:
+        if count > 0:
+            extra = build_canvas_dataset(
+                [s for s in specs if s.startswith("train:")],
+                postures,
+                count,
+                p,
+                canvas,
+                top,
+                cache,
+                args.seed + seed_offset,
+                log=log,
+                **kind,
+            )
+            data = {k: np.concatenate([data[k], extra[k]]) for k in data}
     val_specs = [f"train:{args.patients + k}" for k in range(args.val_patients)]
     val = None
     if val_specs:
