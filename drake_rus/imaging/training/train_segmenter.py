@@ -316,6 +316,36 @@ def near_miss_variant(variant: VolumeVariant) -> VolumeVariant:
     return replace(variant, sampler_kw=kw)
 
 
+def teacher_targets(model_path: str | Path, images: np.ndarray, threads: int = 1) -> np.ndarray:
+    """uint8 (N, H, W): the kidney probability x 255 that the ONNX model of this tool at
+    ``model_path`` (logits on the canvas, input grey / 255) gives each canvas image of
+    ``images`` (uint8, N x H x W): the targets of ``--distill-from``. A model for another
+    canvas raises ValueError naming the file and both shapes."""
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = int(threads)
+    options.log_severity_level = 3
+    try:
+        session = ort.InferenceSession(
+            str(model_path), sess_options=options, providers=["CPUExecutionProvider"]
+        )
+    except Exception as e:  # onnxruntime raises its own NoSuchFile / InvalidProtobuf types
+        raise ValueError(f"{model_path}: not a readable ONNX model ({e})") from None
+    (inp,) = session.get_inputs()
+    if list(inp.shape[2:]) != list(images.shape[1:]):
+        raise ValueError(
+            f"{model_path}: the model takes {list(inp.shape[2:])} px canvases, the data are "
+            f"{list(images.shape[1:])}"
+        )
+    out = np.empty(images.shape, np.uint8)
+    for i, image in enumerate(images):
+        x = (image.astype(np.float32) / 255.0)[None, None]
+        logits = session.run(None, {inp.name: x})[0][0, 0]
+        out[i] = np.rint(255.0 / (1.0 + np.exp(-logits.astype(np.float64))))
+    return out
+
+
 def build_canvas_dataset(
     specs: list[str],
     postures,
@@ -991,6 +1021,13 @@ def main(argv=None) -> int:
         "plane lies 1-12 mm beyond the kidney (near_miss_variant; 0: none, the shipped recipe)",
     )
     ap.add_argument(
+        "--distill-from",
+        metavar="MODEL",
+        help="train the recipe's frames towards this ONNX model's kidney probability "
+        "instead of the truth (the extra frames keep theirs): a fine-tune that learns the "
+        "extras while keeping MODEL's behaviour elsewhere (off: the truth everywhere)",
+    )
+    ap.add_argument(
         "--boundary-band-mm",
         type=float,
         default=0.0,
@@ -1022,6 +1059,8 @@ def main(argv=None) -> int:
         )
     if args.imported_like_frames < 0:
         ap.error(f"--imported-like-frames: expected 0 or more, got {args.imported_like_frames}")
+    if args.distill_from and not Path(args.distill_from).is_file():
+        ap.error(f"--distill-from: no such ONNX model file: {args.distill_from}")
     if args.near_miss_frames < 0:
         ap.error(f"--near-miss-frames: expected 0 or more, got {args.near_miss_frames}")
     out = Path(args.out)
@@ -1063,6 +1102,12 @@ def main(argv=None) -> int:
     data = build_canvas_dataset(
         specs, postures, args.frames, p, canvas, top, cache, args.seed, log=log
     )
+    if args.distill_from:
+        try:
+            data["kidney"] = teacher_targets(args.distill_from, data["image"], args.threads)
+        except (OSError, ValueError) as e:
+            ap.error(f"--distill-from: {e}")
+        log(f"targets of the {len(data['image'])} recipe frames: {args.distill_from}")
     # The extra frames of the training patients, each kind with its own seed (+ 1 is the
     # validation's): fat-free volumes only, and near misses past the kidney's edge.
     extras = (
@@ -1202,6 +1247,7 @@ def main(argv=None) -> int:
             "frames_per_source_and_posture": args.frames,
             "imported_like_frames_per_patient_and_posture": args.imported_like_frames,
             "near_miss_frames_per_patient_and_posture": args.near_miss_frames,
+            "distilled_from": args.distill_from,
             "frames": int(len(data["image"])),
             "frames_with_kidney": float(round(has_kidney.mean(), 3)),
             "validation_sources": val_specs,
