@@ -90,6 +90,20 @@ def upsample_to(prob: np.ndarray, H: int, W: int) -> np.ndarray:
     return rows[:, c0] + (rows[:, c1] - rows[:, c0]) * wc
 
 
+def cpu_session(model_path: str | Path, threads: int = 1):
+    """An ONNX Runtime session of ``model_path`` on the CPU: ``threads`` intra-op threads,
+    one inter-op thread, warnings silenced (the segmenter's and the training tools')."""
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = int(threads)
+    options.inter_op_num_threads = 1
+    options.log_severity_level = 3
+    return ort.InferenceSession(
+        str(model_path), sess_options=options, providers=["CPUExecutionProvider"]
+    )
+
+
 def read_model_card(model_path: str | Path) -> dict:
     """The model card (the ``.json`` next to the ``.onnx``) as a dict; {} when there is none.
     A card that is not a JSON object raises ValueError naming the file."""
@@ -403,8 +417,6 @@ class OnnxSegmenter:
         self.track_gap, self.track_reach = float(track_gap), float(track_reach)
         self.track_min_overlap = float(track_min_overlap)
         self.track_section_reach = float(track_section_reach)
-        import onnxruntime as ort
-
         self.geometry = geometry
         self.path = resolve_model_path(str(model_path))
         where = f"{field_prefix}{model_field}"
@@ -435,14 +447,8 @@ class OnnxSegmenter:
         #: The probability level at which a region's edge is drawn on the image grid (the
         #: region itself is found at ``threshold``); see ``edge_threshold`` in __init__.
         self.edge_threshold = None if edge_threshold is None else float(edge_threshold)
-        options = ort.SessionOptions()
-        options.intra_op_num_threads = int(threads)
-        options.inter_op_num_threads = 1
-        options.log_severity_level = 3
         try:
-            self.session = ort.InferenceSession(
-                str(self.path), sess_options=options, providers=["CPUExecutionProvider"]
-            )
+            self.session = cpu_session(self.path, threads)
         except Exception as e:  # onnxruntime raises its own Fail/InvalidGraph types
             raise ValueError(f"{where}: cannot load ONNX model {self.path}: {e}") from None
         inputs = self.session.get_inputs()

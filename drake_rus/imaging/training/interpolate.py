@@ -46,7 +46,7 @@ import numpy as np
 
 from drake_rus.anatomy.cache import file_digest
 from drake_rus.extras import MissingExtra, require
-from drake_rus.imaging.onnx_backend import read_model_card
+from drake_rus.imaging.onnx_backend import cpu_session, read_model_card
 
 #: Operators of quantized graphs (QDQ or integer operator formats).
 QUANTIZED_OPS = frozenset(
@@ -333,12 +333,7 @@ def earlier_interpolation(card: dict | None) -> dict | None:
 def _check_runs(path: Path) -> None:
     """Loads the model in ONNX Runtime and runs it once on random inputs of its declared
     shapes (symbolic dimensions 1)."""
-    import onnxruntime as ort
-
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = 1
-    options.log_severity_level = 3
-    s = ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
+    s = cpu_session(path)
     rng = np.random.default_rng(0)
     feed = {}
     for i in s.get_inputs():

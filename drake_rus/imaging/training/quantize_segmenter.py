@@ -52,7 +52,7 @@ from pathlib import Path
 import numpy as np
 
 from drake_rus.extras import MissingExtra, require
-from drake_rus.imaging.onnx_backend import read_model_card, resolve_model_path
+from drake_rus.imaging.onnx_backend import cpu_session, read_model_card, resolve_model_path
 from drake_rus.imaging.training import train_segmenter
 from drake_rus.imaging.training.evaluation import POSTURES
 from drake_rus.paths import REPO_ROOT
@@ -90,18 +90,6 @@ def _quantization_api():
     return quantization, quant_pre_process
 
 
-def _session(model_path: str | Path, threads: int = 1):
-    import onnxruntime as ort
-
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = int(threads)
-    options.inter_op_num_threads = 1
-    options.log_severity_level = 3
-    return ort.InferenceSession(
-        str(model_path), sess_options=options, providers=["CPUExecutionProvider"]
-    )
-
-
 def _input_spec(session) -> tuple[str, list]:
     """(input name, declared shape) of a one-input image model."""
     inputs = session.get_inputs()
@@ -124,7 +112,7 @@ def _batch(images: np.ndarray, shape: list) -> np.ndarray:
 def run_model(model_path: str | Path, images: np.ndarray, threads: int = 1) -> np.ndarray:
     """The model's first output for each frame of ``images`` (N, H, W) (model input units),
     one frame per run: (N, ...) float32."""
-    session = _session(model_path, threads)
+    session = cpu_session(model_path, threads)
     name, shape = _input_spec(session)
     x = _batch(np.asarray(images, np.float32), shape)
     out = session.get_outputs()[0].name
@@ -136,7 +124,7 @@ def time_model(
 ) -> float:
     """ms per frame of one model run (one frame per run, ``threads`` intra-op threads):
     the best of ``repeats`` passes over ``images`` (the least disturbed by other jobs)."""
-    session = _session(model_path, threads)
+    session = cpu_session(model_path, threads)
     name, shape = _input_spec(session)
     x = _batch(np.asarray(images, np.float32), shape)
     out = session.get_outputs()[0].name
@@ -205,7 +193,7 @@ def quantize_segmenter(
     if out_path.suffix != ".onnx":
         raise ValueError(f"out_path: expected a .onnx file name, got {out_path.name}")
     try:
-        session = _session(model_path)
+        session = cpu_session(model_path)
     except Exception as e:  # onnxruntime raises its own Fail / InvalidGraph types
         raise ValueError(f"model_path: cannot load ONNX model {model_path}: {e}") from None
     name, shape = _input_spec(session)

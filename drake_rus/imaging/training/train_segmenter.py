@@ -102,7 +102,7 @@ import numpy as np
 from drake_rus.extras import MissingExtra, require
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.emulator import EmulatorModel
-from drake_rus.imaging.onnx_backend import read_model_card, resize_to
+from drake_rus.imaging.onnx_backend import cpu_session, read_model_card, resize_to
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.imaging.segment import edge_distance
 from drake_rus.imaging.training.dataset import (
@@ -321,15 +321,10 @@ def teacher_targets(model_path: str | Path, images: np.ndarray, threads: int = 1
     ``model_path`` (logits on the canvas, input grey / 255) gives each canvas image of
     ``images`` (uint8, N x H x W): the targets of ``--distill-from``. A model for another
     canvas raises ValueError naming the file and both shapes."""
-    import onnxruntime as ort
+    from scipy.special import expit
 
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = int(threads)
-    options.log_severity_level = 3
     try:
-        session = ort.InferenceSession(
-            str(model_path), sess_options=options, providers=["CPUExecutionProvider"]
-        )
+        session = cpu_session(model_path, threads)
     except Exception as e:  # onnxruntime raises its own NoSuchFile / InvalidProtobuf types
         raise ValueError(f"{model_path}: not a readable ONNX model ({e})") from None
     (inp,) = session.get_inputs()
@@ -342,7 +337,7 @@ def teacher_targets(model_path: str | Path, images: np.ndarray, threads: int = 1
     for i, image in enumerate(images):
         x = (image.astype(np.float32) / 255.0)[None, None]
         logits = session.run(None, {inp.name: x})[0][0, 0]
-        out[i] = np.rint(255.0 / (1.0 + np.exp(-logits.astype(np.float64))))
+        out[i] = np.rint(255.0 * expit(logits.astype(np.float64)))
     return out
 
 
