@@ -15,7 +15,10 @@ not the world. ``--out DIR`` also writes every scan's outputs (summary, pictures
 ``--fresh-seeds K`` also scans K generated patients never seen before (generator seeds
 5,000,000 + k, outside the training and test cohorts), supine unless ``--fresh-postures``
 says otherwise (``left_lateral_decubitus``, or both): the default scan must keep working on
-the generator's own world.
+the generator's own world. Every rule of this project has been read on those same K seeds,
+so they are no longer unseen by the people tuning the scan: ``--fresh-seed-base N`` starts
+them at N instead (any N whose K seeds miss the reserved cohorts, generator seeds
+1,000,000-3,999,999: training, test, CT bodies and population subjects).
 """
 
 import argparse
@@ -25,13 +28,32 @@ from pathlib import Path
 from tqdm import tqdm
 
 from benchmarks._scan_rows import in_loop_line, in_loop_totals, scan_row, scenario_from_args
+from drake_rus.anatomy.cohort import TRAIN_OFFSET
+from drake_rus.anatomy.ct_patient import CT_BODY_OFFSET
 from drake_rus.cli import add_scenario_arguments
 from drake_rus.localization.localize import load_registration_template
 from drake_rus.paths import REPO_ROOT
 
 DEFAULT_BODIES = [REPO_ROOT.parent / "shared" / "anatomy" / "hubmap_vh_female"]
 FRESH_SEED_BASE = 5_000_000
+# Generator seeds the cohorts own: train 1e6 + K, test 2e6 + K, CT bodies and population
+# template subjects 3e6 + (0..999,999).
+RESERVED_SEEDS = range(TRAIN_OFFSET, CT_BODY_OFFSET + 1_000_000)
 POSTURES = ("supine", "left_lateral_decubitus")
+
+
+def check_fresh_seed_base(base: int, count: int) -> str | None:
+    """None if the ``count`` seeds from ``base`` are fresh generator seeds, else the error
+    line (negative, or overlapping the reserved cohorts)."""
+    if base < 0:
+        return f"--fresh-seed-base: expected a non-negative integer, got {base}"
+    if count > 0 and base < RESERVED_SEEDS.stop and base + count > RESERVED_SEEDS.start:
+        return (
+            f"--fresh-seed-base: seeds {base}..{base + count - 1} overlap the reserved "
+            f"cohorts {RESERVED_SEEDS.start}..{RESERVED_SEEDS.stop - 1} (training, test, CT "
+            "bodies, population subjects); choose a base outside them"
+        )
+    return None
 
 
 def run_one(body, posture: str, scenario, template, out: Path | None, max_sim_time: float) -> dict:
@@ -87,6 +109,13 @@ def main(argv=None) -> int:
         help="also scan this many never-seen generated patients",
     )
     parser.add_argument(
+        "--fresh-seed-base",
+        type=int,
+        default=FRESH_SEED_BASE,
+        help=f"first generator seed of the fresh patients (default {FRESH_SEED_BASE:,}; "
+        "not in the reserved cohorts 1,000,000-3,999,999)",
+    )
+    parser.add_argument(
         "--fresh-postures",
         nargs="+",
         default=["supine"],
@@ -99,6 +128,13 @@ def main(argv=None) -> int:
     if missing:
         print(f"--patients: not found: {', '.join(missing)}")
         return 2
+    if args.fresh_seeds < 0:
+        print(f"--fresh-seeds: expected 0 or more, got {args.fresh_seeds}")
+        return 2
+    error = check_fresh_seed_base(args.fresh_seed_base, args.fresh_seeds)
+    if error:
+        print(error)
+        return 2
     scenario, error = scenario_from_args(args)
     if error:
         print(error)
@@ -106,12 +142,9 @@ def main(argv=None) -> int:
     template = load_registration_template(scenario.localization.template)
     out = Path(args.out) if args.out else None
     rows = []
-    if args.fresh_seeds < 0:
-        print(f"--fresh-seeds: expected 0 or more, got {args.fresh_seeds}")
-        return 2
     jobs = [(b, p) for b in bodies for p in args.postures]
     jobs += [
-        (f"seed:{FRESH_SEED_BASE + k}", p)
+        (f"seed:{args.fresh_seed_base + k}", p)
         for p in args.fresh_postures
         for k in range(args.fresh_seeds)
     ]
@@ -166,6 +199,7 @@ def main(argv=None) -> int:
                 ],
                 "fresh_seeds_done": sum(r["status"] == "DONE" for r in fresh),
                 "fresh_seeds": len(fresh),
+                "fresh_seed_base": args.fresh_seed_base,
                 "fresh_seeds_done_by_posture": {
                     p: sum(r["status"] == "DONE" for r in fresh if r["posture"] == p)
                     for p in args.fresh_postures

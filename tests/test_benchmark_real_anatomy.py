@@ -1,6 +1,8 @@
 """``python -m benchmarks real_anatomy``: a scenario or ``--set`` it cannot use is one line
 and exit 2, before any patient is loaded or scanned (it once raised a traceback)."""
 
+import json
+
 import pytest
 
 from benchmarks import real_anatomy
@@ -41,3 +43,55 @@ def test_any_benchmark_refuses_a_bad_scenario_in_one_line(capsys, argv, word):
     err = capsys.readouterr().err.strip()
     assert err.startswith(f"python -m benchmarks {argv[0]}: ") and word in err
     assert len(err.splitlines()) == 1
+
+
+def _record_scans(monkeypatch):
+    scanned = []
+
+    def fake_run_one(body, posture, *args):
+        scanned.append((str(body), posture))
+        return {"body": str(body), "posture": posture, "status": "DONE"}
+
+    monkeypatch.setattr(real_anatomy, "run_one", fake_run_one)
+    return scanned
+
+
+def test_fresh_seed_base_moves_the_fresh_patients(tmp_path, monkeypatch, capsys):
+    """``--fresh-seed-base N`` scans seeds N.. instead of 5,000,000.., and the JSON says so."""
+    scanned = _record_scans(monkeypatch)
+    body = tmp_path / "body"
+    body.mkdir()
+    argv = ["--patients", str(body), "--postures", "supine", "--fresh-seeds", "2"]
+    assert real_anatomy.main([*argv, "--fresh-seed-base", "7000000"]) == 0
+    assert [b for b, _ in scanned[1:]] == ["seed:7000000", "seed:7000001"]
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["fresh_seed_base"] == 7_000_000 and summary["fresh_seeds"] == 2
+    scanned.clear()
+    assert real_anatomy.main(argv) == 0
+    assert [b for b, _ in scanned[1:]] == ["seed:5000000", "seed:5000001"]
+
+
+@pytest.mark.parametrize(
+    "base, count, word",
+    [
+        (-1, 3, "non-negative"),
+        (2_000_000, 3, "overlap"),  # the test cohort
+        (999_999, 2, "overlap"),  # runs into the training cohort
+        (3_999_999, 1, "overlap"),  # the last CT-body seed
+    ],
+)
+def test_fresh_seed_base_in_a_cohort_is_one_line(tmp_path, monkeypatch, capsys, base, count, word):
+    scanned = _record_scans(monkeypatch)
+    body = tmp_path / "body"
+    body.mkdir()
+    argv = ["--patients", str(body), "--fresh-seeds", str(count)]
+    assert real_anatomy.main([*argv, "--fresh-seed-base", str(base)]) == 2
+    out = capsys.readouterr().out.strip()
+    assert out.startswith("--fresh-seed-base: ") and word in out and len(out.splitlines()) == 1
+    assert scanned == []
+
+
+def test_fresh_seed_base_just_outside_the_cohorts_is_accepted():
+    assert real_anatomy.check_fresh_seed_base(999_998, 2) is None
+    assert real_anatomy.check_fresh_seed_base(4_000_000, 30) is None
+    assert real_anatomy.check_fresh_seed_base(2_000_000, 0) is None
