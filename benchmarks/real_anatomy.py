@@ -37,7 +37,7 @@ from drake_rus.paths import REPO_ROOT
 DEFAULT_BODIES = [REPO_ROOT.parent / "shared" / "anatomy" / "hubmap_vh_female"]
 FRESH_SEED_BASE = 5_000_000
 # Generator seeds the cohorts own: train 1e6 + K, test 2e6 + K, CT bodies and population
-# template subjects 3e6 + (0..999,999).
+# template subjects 3e6 + (0..999,999) (ct_patient.ct_body_seed's modulus).
 RESERVED_SEEDS = range(TRAIN_OFFSET, CT_BODY_OFFSET + 1_000_000)
 POSTURES = ("supine", "left_lateral_decubitus")
 
@@ -113,7 +113,7 @@ def main(argv=None) -> int:
         type=int,
         default=FRESH_SEED_BASE,
         help=f"first generator seed of the fresh patients (default {FRESH_SEED_BASE:,}; "
-        "not in the reserved cohorts 1,000,000-3,999,999)",
+        f"not in the reserved cohorts {RESERVED_SEEDS.start:,}-{RESERVED_SEEDS.stop - 1:,})",
     )
     parser.add_argument(
         "--fresh-postures",

@@ -98,6 +98,7 @@ from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
+from scipy.special import expit
 
 from drake_rus.extras import MissingExtra, require
 from drake_rus.imaging.config import ImagingConfig
@@ -321,8 +322,6 @@ def teacher_targets(model_path: str | Path, images: np.ndarray, threads: int = 1
     ``model_path`` (logits on the canvas, input grey / 255) gives each canvas image of
     ``images`` (uint8, N x H x W): the targets of ``--distill-from``. A model for another
     canvas raises ValueError naming the file and both shapes."""
-    from scipy.special import expit
-
     try:
         session = cpu_session(model_path, threads)
     except Exception as e:  # onnxruntime raises its own NoSuchFile / InvalidProtobuf types
