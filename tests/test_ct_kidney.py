@@ -11,11 +11,13 @@ from pydrake.math import RigidTransform
 
 from drake_rus.anatomy.canonical_frame import mesh_canonical_frame
 from drake_rus.anatomy.ct_kidney import (
+    CLOSING_POLE_MAX_SHARE,
     LabelGrid,
     estimate_frame,
     import_ct_kidneys,
     kidney_components,
     kidney_fields_A,
+    pole_closes_on_border,
     read_label_grid,
     right_lower_statistic,
     select_kidney,
@@ -181,6 +183,31 @@ def test_one_line_errors_name_the_file(case, tmp_path):
         r"of view \(.*axis 1 high",
     ):
         select_kidney(ct, "left")
+    # Cut just past the same pole's tip: the border holds only the closing tip (3 voxels,
+    # after 35): the kidney is whole, and its face is reported as a pole on the border.
+    tip = labels[:, :41, :]
+    ct = import_ct_kidneys(LabelGrid(np.ascontiguousarray(tip), spacing, 1, "tip.nii.gz"))
+    left = select_kidney(ct, "left")
+    assert left.touches == [] and left.pole_on_border == ["axis 1 high"]
+    assert ct.report()["kidneys"][[k.side for k in ct.kidneys].index("left")]["pole_on_border"] == [
+        "axis 1 high"
+    ]
+
+
+def test_a_pole_closing_on_the_border_is_not_a_cut():
+    # KiTS case 10's right kidney along its slices (3 mm): the last section is a pole's tip.
+    assert pole_closes_on_border([356, 4712, 4096, 1309, 930, 515, 77])
+    # Cut across the pole's body: the border section is a fifth of the largest.
+    assert not pole_closes_on_border([356, 4712, 4096, 1309, 930])
+    # Small but not shrinking fast enough to close within a voxel.
+    assert not pole_closes_on_border([4712, 930, 515, 300])
+    # Shrinking fast but still large: a kidney cut through its middle.
+    assert not pole_closes_on_border([1000, 4712, 2000])
+    assert not pole_closes_on_border([5]) and not pole_closes_on_border([0, 0])
+    # The rule's edges: a tenth of the largest and half the one before are still whole.
+    assert pole_closes_on_border([1000, 200, 100])
+    assert not pole_closes_on_border([1000, 199, 100])
+    assert CLOSING_POLE_MAX_SHARE == pytest.approx(0.10)
 
 
 def test_undetermined_frames_are_errors_not_guesses(case):

@@ -49,7 +49,8 @@ signs (its shape no longer follows normal anatomy). A case whose sign cues disag
 status ``conflict`` (the majority decides, the disagreeing cues are listed as a warning); a
 tie, or an undetermined axis, is an error.
 Errors name the file in one line: unreadable, no kidney labels, labels other than 0/1/2,
-the requested kidney missing, a kidney cut by the field of view.
+the requested kidney missing, a kidney cut by the field of view. A kidney that reaches
+the border only with the tip of a closing pole (``CLOSING_POLE_MAX_SHARE``) is whole.
 """
 
 from __future__ import annotations
@@ -73,6 +74,8 @@ __all__ = [
     "CTKidneys",
     "read_label_grid",
     "kidney_components",
+    "pole_closes_on_border",
+    "CLOSING_POLE_MAX_SHARE",
     "estimate_frame",
     "import_ct_kidneys",
     "select_kidney",
@@ -102,6 +105,12 @@ MIN_TUMOUR_ML = 0.5
 # Kidneys whose centroids differ by less than this along superior-inferior are "level"
 # (modelling choice: about a third of a vertebral body).
 LEVEL_TOLERANCE_MM = 10.0
+# A kidney on the volume's border is whole when its section in the border plane is the tip
+# of a closing pole: at most this share of its largest section parallel to that face, and
+# at most half the section one voxel inside (shrinking at that rate, the sections close
+# within one more voxel, so what lies outside is under half a voxel layer of the border
+# section). A pole cut across its body, or a kidney cut lengthwise, fails both.
+CLOSING_POLE_MAX_SHARE = 0.10
 # Thresholds below which a sign cue abstains (modelling choices, well inside the published
 # angles: coronal 15-20 deg, hilum 40-45 deg above the horizontal).
 _MIN_TILT_DEG = 3.0
@@ -225,13 +234,15 @@ def _as_label_array(a: np.ndarray, where: str) -> np.ndarray:
 class KidneyComponent:
     """One kidney: a connected component of labels 1|2 with its tumour, cropped from the
     grid. ``labels`` (uint8, 0 outside this kidney) starts at voxel ``lo`` of the full grid;
-    ``touches``: the grid faces it lies on ("axis 0 low", ...), i.e. cut by the field of
-    view."""
+    ``touches``: the grid faces that cut it ("axis 0 low", ...), i.e. cut by the field of
+    view; ``pole_on_border``: the faces it reaches only with the tip of a closing pole
+    (:func:`pole_closes_on_border`: whole, not cut)."""
 
     labels: np.ndarray
     lo: np.ndarray
     spacing: np.ndarray
     touches: list = field(default_factory=list)
+    pole_on_border: list = field(default_factory=list)
     side: str | None = None
 
     @property
@@ -267,6 +278,15 @@ class KidneyComponent:
         w, V = np.linalg.eigh(C)
         order = np.argsort(w)[::-1]
         return c, w[order], V[:, order]
+
+
+def pole_closes_on_border(sections) -> bool:
+    """True when a kidney's sections parallel to a border face (voxel counts, inside out:
+    the border plane's last) end in the tip of a closing pole (``CLOSING_POLE_MAX_SHARE``)."""
+    a = np.asarray(sections, dtype=float)
+    if a.size < 2 or a.max() <= 0:
+        return False
+    return bool(a[-1] <= CLOSING_POLE_MAX_SHARE * a.max() and 2.0 * a[-1] <= a[-2])
 
 
 def kidney_components(grid: LabelGrid) -> tuple[list[KidneyComponent], dict]:
@@ -316,14 +336,22 @@ def kidney_components(grid: LabelGrid) -> tuple[list[KidneyComponent], dict]:
         labels = np.where(keep, sub[box], 0).astype(np.uint8)
         g_lo = lo + b_lo
         g_hi = lo + b_hi
-        touches = [
-            f"axis {ax} {end}"
-            for ax in range(3)
-            for end, hit in (("low", g_lo[ax] == 0), ("high", g_hi[ax] == a.shape[ax]))
-            if hit
-        ]
+        touches, poles = [], []
+        for ax in range(3):
+            for end, hit in (("low", g_lo[ax] == 0), ("high", g_hi[ax] == a.shape[ax])):
+                if not hit:
+                    continue
+                sections = (labels > 0).sum(axis=tuple(x for x in range(3) if x != ax))
+                closes = pole_closes_on_border(sections if end == "high" else sections[::-1])
+                (poles if closes else touches).append(f"axis {ax} {end}")
         out.append(
-            KidneyComponent(labels=labels, lo=g_lo, spacing=grid.spacing.copy(), touches=touches)
+            KidneyComponent(
+                labels=labels,
+                lo=g_lo,
+                spacing=grid.spacing.copy(),
+                touches=touches,
+                pole_on_border=poles,
+            )
         )
     out.sort(key=lambda c: -(c.labels > 0).sum())
     extra = {"fragments": left_out[0], "fragments_ml": round(left_out[1], 2)}
@@ -774,6 +802,7 @@ class CTKidneys:
                     "parenchyma_ml": round(k.parenchyma_ml, 1),
                     "tumour_ml": round(k.tumour_ml, 1),
                     "cut": k.touches,
+                    "pole_on_border": k.pole_on_border,
                 }
                 for k in self.kidneys
             ],
