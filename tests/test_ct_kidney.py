@@ -238,3 +238,17 @@ def test_real_kits_cases_have_an_agreed_frame():
         assert r["right_minus_left_mm"] < -10.0  # the right kidney lower
     s = survey_summary(rows)
     assert s["status"]["agree"] == 2 and s["right_lower"]["right_lower"] == 2
+
+
+@needs_kits
+def test_kits_case_10_reaches_the_last_slice_with_its_lower_pole_tip_only():
+    """KiTS case 10's right kidney touches the scan's last slice (the inferior end) with a
+    77-voxel tip after 515 and 930: whole, usable, and listed as such by the survey."""
+    row = survey_case(KITS / "case_00010" / "segmentation.nii.gz")
+    assert row["usable"] == {"right": "ok", "left": "ok"}
+    right = next(k for k in row["kidneys"] if k["side"] == "right")
+    assert right["cut"] == [] and right["pole_on_border"] == ["axis 2 high"]
+    assert row["frame"]["axes"]["superior"] == "-2"  # axis 2 high is the inferior end
+    s = survey_summary([row])
+    assert s["usable"]["right"] == {"ok": 1, "missing": 0, "cut": 0}
+    assert len(s["pole_on_border"]) == 1 and s["pole_on_border"][0].endswith("right: axis 2 high")

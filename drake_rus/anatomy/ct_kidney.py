@@ -972,12 +972,12 @@ def survey_case(grid_or_path, extra=None) -> dict:
 
 def survey_summary(rows: list[dict]) -> dict:
     """Totals of :func:`survey_case` rows: statuses, errors, per-cue verdicts, usable
-    kidneys per side, the header's axes against anatomy, and the right-kidney-lower
-    statistic."""
+    kidneys per side, the kidneys whole with a pole's tip on the border ("source side:
+    faces"), the header's axes against anatomy, and the right-kidney-lower statistic."""
     cues: dict = {}
     status = {"agree": 0, "conflict": 0, "error": 0}
     usable = {s: {"ok": 0, "missing": 0, "cut": 0} for s in ("right", "left")}
-    errors = []
+    errors, poles = [], []
     header: dict = {}
     for r in rows:
         if "error" in r:
@@ -985,6 +985,11 @@ def survey_summary(rows: list[dict]) -> dict:
             errors.append(r["error"])
             continue
         status[r["frame"]["status"]] += 1
+        poles.extend(
+            f"{r['source']} {k['side']}: {', '.join(k['pole_on_border'])}"
+            for k in r.get("kidneys", [])
+            if k.get("pole_on_border")
+        )
         for c in r["cue_verdicts"]:
             cues.setdefault(c["cue"], {"agrees": 0, "disagrees": 0, "abstains": 0})
             cues[c["cue"]][c["verdict"]] += 1
@@ -998,6 +1003,7 @@ def survey_summary(rows: list[dict]) -> dict:
         "status": status,
         "cues": cues,
         "usable": usable,
+        "pole_on_border": poles,
         "errors": errors,
         "header_axes_vs_anatomy": header,
         "right_lower": right_lower_statistic(
