@@ -180,7 +180,7 @@ def test_one_line_errors_name_the_file(case, tmp_path):
     with pytest.raises(
         ValueError,
         match=r"cut\.nii\.gz: the left kidney is cut by the field "
-        r"of view \(.*axis 1 high",
+        r"of view \(.*more than a pole's closing tip: axis 1 high",
     ):
         select_kidney(ct, "left")
     # Cut just past the same pole's tip: the border holds only the closing tip (3 voxels,

@@ -844,7 +844,8 @@ def select_kidney(case: CTKidneys, side: str) -> KidneyComponent:
     if k.touches:
         _fail(
             f"label map {case.source}: the {side} kidney is cut by the field of view "
-            f"(kidney voxels on the volume's border: {', '.join(k.touches)})"
+            f"(kidney voxels on the volume's border, more than a pole's closing tip: "
+            f"{', '.join(k.touches)})"
         )
     return k
 
