@@ -4,6 +4,7 @@ held-out patient (test:0: skin, fat, muscle, ribs, bowel gas, the kidney) and on
 edge cases. No tolerance anywhere: every fast path does the same float operations in the
 same order on every value."""
 
+import warnings
 from dataclasses import replace
 
 import numpy as np
@@ -243,10 +244,12 @@ def test_segmenter_preprocessing_and_probability_equal_their_definitions(source)
         assert np.array_equal(seg._kidney_map(out), sigmoid)
         assert np.array_equal(seg.model_probability(us), np.where(fan, sigmoid, 0.0))
     logits = np.array([[[[-200.0, -30.0, -1e-3, 0.0, 1e-3, 30.0, 200.0]]]], np.float32)
-    with np.errstate(over="ignore"):  # exp(200) is inf: the probability 0, as before
-        assert np.array_equal(
-            seg._kidney_map(logits), (1.0 / (1.0 + np.exp(-logits[0, 0]))).astype(np.float32)
-        )
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # exp(200) is inf: the probability 0, silently
+        kidney_map = seg._kidney_map(logits)
+    with np.errstate(over="ignore"):
+        assert np.array_equal(kidney_map, (1.0 / (1.0 + np.exp(-logits[0, 0]))).astype(np.float32))
+    assert kidney_map[0, 0] == 0.0 and kidney_map[0, -1] == 1.0
     # A normalisation other than (0, 1): (x - mean) / std as before.
     other = OnnxSegmenter(seg.path, g, seg.input_shape, mean=0.3, std=0.7)
     x = canvas.to_canvas(us) * np.float32(1.0 / 255.0)

@@ -627,9 +627,11 @@ class OnnxSegmenter:
         if self.output == "probability":
             return out[0, self.kidney_channel].astype(np.float32)
         if k == 1:
-            # 1 / (1 + exp(-x)) in place, in the output's own precision, then float32.
+            # 1 / (1 + exp(-x)) in place, in the output's own precision, then float32. A
+            # logit far below 0 overflows exp to inf and gives the right 0: no warning.
             p = np.negative(out[0, 0])
-            np.exp(p, out=p)
+            with np.errstate(over="ignore"):
+                np.exp(p, out=p)
             p += 1.0
             np.divide(1.0, p, out=p)
             return p.astype(np.float32, copy=False)
