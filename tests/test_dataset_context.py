@@ -269,3 +269,36 @@ def test_near_miss_variant_keeps_the_volume_and_draws_only_near_misses(phantom):
     }
     with pytest.raises(SystemExit):
         main(["--near-miss-frames", "-1", "--data-only"])
+
+
+def test_cached_frames_are_named_by_their_recipe(tmp_path, monkeypatch):
+    """A canvas cache file carries the recipe's digest: the same recipe reads it back, an
+    edited constant (here P_LAYERED) draws its frames again instead of reading frames drawn
+    under the old one."""
+    from drake_rus.imaging.training import train_segmenter as ts
+
+    digest = ts.recipe_digest()
+    assert len(digest) == 8 and digest == ts.recipe_digest()
+
+    def build():
+        return ts.build_canvas_dataset(
+            ["phantom:5001"],
+            ["supine"],
+            2,
+            0.0024,
+            (128, 112),
+            -0.004,
+            tmp_path,
+            log=lambda *a: None,
+        )
+
+    first = build()
+    files = sorted(p.name for p in tmp_path.iterdir())
+    assert len(files) == 1 and f"-{digest}_" in files[0]
+    again = build()
+    np.testing.assert_array_equal(first["image"], again["image"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == files  # read, not drawn again
+    monkeypatch.setattr(ts, "P_LAYERED", P_LAYERED + 0.05)
+    assert ts.recipe_digest() != digest
+    build()
+    assert len(list(tmp_path.iterdir())) == 2

@@ -169,6 +169,42 @@ P_SHADOW = 0.2
 THIN_CORTEX = (0.003, 0.006)
 
 
+def recipe_digest() -> str:
+    """Eight hex digits naming the frame recipe: the constants above that shape the cached
+    training frames (view sampling, walls, the kidney's context and structure, the depth
+    and variant weights), the view sampler's and the randomisation's defaults, and the
+    kidney layer depths. Part of every canvas cache file's name, so frames drawn under
+    other constants (an edited recipe, another commit) are drawn again, never read as this
+    recipe's. ``P_SHADOW`` is not in it: the shadow is drawn in training, not cached."""
+    import dataclasses
+    import hashlib
+
+    from drake_rus.imaging.training import dataset
+
+    sampler_defaults = {
+        f.name: f.default
+        for f in dataclasses.fields(dataset.ViewSampler)
+        if f.default is not dataclasses.MISSING
+    }
+    recipe = {
+        "SAMPLER": SAMPLER,
+        "WALL_VARIANTS": WALL_VARIANTS,
+        "P_NO_PERIRENAL_FAT": P_NO_PERIRENAL_FAT,
+        "PERIRENAL_MARGIN": PERIRENAL_MARGIN,
+        "P_LAYERED": P_LAYERED,
+        "P_THIN_CORTEX": P_THIN_CORTEX,
+        "PRESET_WEIGHTS": sorted(PRESET_WEIGHTS.items()),
+        "IMPORTED_LIKE_WEIGHT": IMPORTED_LIKE_WEIGHT,
+        "THIN_CORTEX": THIN_CORTEX,
+        "CORTEX_MM": CORTEX_MM,
+        "PARENCHYMA_MM": PARENCHYMA_MM,
+        "ViewSampler": sampler_defaults,
+        "Randomisation": asdict(Randomisation()),
+    }
+    text = json.dumps(recipe, sort_keys=True, default=repr)
+    return hashlib.sha256(text.encode()).hexdigest()[:8]
+
+
 def max_extra_depth(depth: float) -> float:
     """Thickest wall (extra kidney depth, m) used at a depth preset."""
     return max(0.0, depth - 0.10) + 0.03
@@ -367,7 +403,8 @@ def build_canvas_dataset(
     bank = EmulatorBank(config)
     parts = []
     tag = (
-        f"v6_{frames}_{pixel_size * 1e3:g}mm_{canvas[0]}x{canvas[1]}_{canvas_top * 1e3:g}_"
+        f"v6-{recipe_digest()}_{frames}_{pixel_size * 1e3:g}mm_{canvas[0]}x{canvas[1]}_"
+        f"{canvas_top * 1e3:g}_"
         f"{'-'.join(f'{p:g}' for p in presets)}_{seed}{'' if randomised else '_nominal'}"
         f"{'_imported_like' if imported_like_only else ''}"
         f"{'_near_miss' if near_miss_only else ''}"
