@@ -198,6 +198,17 @@ def parse_patients(text: str) -> tuple[int, int] | None:
     return (a, b) if 0 <= a <= b else None
 
 
+def patients_and_draws(args) -> tuple[tuple[int, int] | None, str | None]:
+    """((A, B), None) of ``args.patients`` (``A..B``), or (None, the one line naming the bad
+    argument) when it, or ``args.draws`` where the command has one, is malformed."""
+    ab = parse_patients(args.patients)
+    if ab is None:
+        return None, f"--patients: expected A..B with 0 <= A <= B, got {args.patients!r}"
+    if getattr(args, "draws", 1) < 1:
+        return None, f"--draws: expected 1 or more, got {args.draws}"
+    return ab, None
+
+
 def validation_arguments(prog: str, description: str, argv=None, ensemble: bool = False):
     """The arguments of the validation-split benchmarks (this one and segmenter_boundary):
     (args, (A, B)), or None after one line on stderr naming the bad argument. ``ensemble``:
@@ -232,15 +243,11 @@ def validation_arguments(prog: str, description: str, argv=None, ensemble: bool 
     ap.add_argument("--no-imported-like", action="store_true", help="generated volumes only")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
-    ab = parse_patients(args.patients)
-    if ab is None:
-        print(f"--patients: expected A..B with 0 <= A <= B, got {args.patients!r}", file=sys.stderr)
-        return None
-    if args.views < 1:
-        print(f"--views: expected 1 or more, got {args.views}", file=sys.stderr)
-        return None
-    if getattr(args, "draws", 1) < 1:
-        print(f"--draws: expected 1 or more, got {args.draws}", file=sys.stderr)
+    ab, error = patients_and_draws(args)
+    if error is None and args.views < 1:
+        error = f"--views: expected 1 or more, got {args.views}"
+    if error:
+        print(error, file=sys.stderr)
         return None
     if getattr(args, "edge_thresholds", None) is not None:
         edges = parse_edge_thresholds(args.edge_thresholds)

@@ -46,7 +46,7 @@ import numpy as np
 from pydrake.math import RigidTransform, RollPitchYaw
 
 from benchmarks._scan_rows import scenario_from_args
-from benchmarks.segmenter_inference import paired_intervals, parse_patients
+from benchmarks.segmenter_inference import paired_intervals, patients_and_draws
 
 # A registration error of the size the default scan leaves on fresh generated patients
 # (docs/results/segmenter.md, 2026-11-28 fifth: median E_trans 1.6-1.7 mm over 62 scans;
@@ -258,15 +258,11 @@ def arguments(argv=None):
     ap.add_argument("--no-progress", action="store_true")
     add_scenario_arguments(ap)
     args = ap.parse_args(argv)
-    ab = parse_patients(args.patients)
-    if ab is None:
-        print(f"--patients: expected A..B with 0 <= A <= B, got {args.patients!r}", file=sys.stderr)
-        return None
-    if args.draws < 1:
-        print(f"--draws: expected 1 or more, got {args.draws}", file=sys.stderr)
-        return None
-    if not 0.0 <= args.margin <= 0.5:
-        print(f"--margin: expected 0 to 0.5 rad, got {args.margin}", file=sys.stderr)
+    ab, error = patients_and_draws(args)
+    if error is None and not 0.0 <= args.margin <= 0.5:
+        error = f"--margin: expected 0 to 0.5 rad, got {args.margin}"
+    if error:
+        print(error, file=sys.stderr)
         return None
     models = [m.strip() for m in args.compare_models.split(",")] if args.compare_models else []
     if not all(models):
