@@ -90,11 +90,12 @@ scenario runs the int8 model derived from this one
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import shlex
 import sys
 import time
-from dataclasses import asdict, replace
+from dataclasses import MISSING, asdict, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -111,6 +112,7 @@ from drake_rus.imaging.training.dataset import (
     PARENCHYMA_MM,
     EmulatorBank,
     Randomisation,
+    ViewSampler,
     VolumeVariant,
     canvas_frames,
     draw_kidney_layers,
@@ -176,16 +178,7 @@ def recipe_digest() -> str:
     kidney layer depths. Part of every canvas cache file's name, so frames drawn under
     other constants (an edited recipe, another commit) are drawn again, never read as this
     recipe's. ``P_SHADOW`` is not in it: the shadow is drawn in training, not cached."""
-    import dataclasses
-    import hashlib
-
-    from drake_rus.imaging.training import dataset
-
-    sampler_defaults = {
-        f.name: f.default
-        for f in dataclasses.fields(dataset.ViewSampler)
-        if f.default is not dataclasses.MISSING
-    }
+    sampler_defaults = {f.name: f.default for f in fields(ViewSampler) if f.default is not MISSING}
     recipe = {
         "SAMPLER": SAMPLER,
         "WALL_VARIANTS": WALL_VARIANTS,
