@@ -574,6 +574,19 @@ def track_prior(track: KidneyTrack, t: float, confirm: float) -> tuple[np.ndarra
     return track.mask, t - track.time
 
 
+def track_settings(imaging) -> dict:
+    """The tracker's settings in an imaging config (``ImagingConfig``), as the keyword
+    arguments of :func:`track_update`: ``max_gap`` (s, ``track_gap``), ``reach`` (m,
+    ``track_reach``) and ``min_overlap`` (``track_min_overlap``). The scan's Segmenter, the
+    kinematic studies' imager and the benchmarks read them here, so they follow the kidney
+    alike."""
+    return dict(
+        max_gap=float(imaging.track_gap),
+        reach=float(imaging.track_reach),
+        min_overlap=float(imaging.track_min_overlap),
+    )
+
+
 def track_update(
     track: KidneyTrack,
     mask: np.ndarray,
@@ -591,8 +604,12 @@ def track_update(
     track otherwise."""
     if not visible:
         return track
+    # A mask after more than max_gap s without the kidney starts a new track, whatever it
+    # overlaps: tracked_component takes the largest region then, without asking whether it
+    # continues the last mask, so the new sight must be confirmed (track_prior) again.
     continues = (
         track.mask is not None
+        and t - track.time <= max_gap
         and tracked_component(
             [np.asarray(mask, bool)],
             track.mask,
