@@ -132,7 +132,7 @@ def segment_sweep(frames: list[PivotFrame], config, geometry, surface_B: np.ndar
     :func:`track_update`) and the registered surface ``surface_B`` (N, 3; m, B; None: no
     template prior)."""
     from drake_rus.imaging.frames import UsFrame
-    from drake_rus.imaging.segment import KidneyTrack, track_update
+    from drake_rus.imaging.segment import KidneyTrack, track_settings, track_update
     from drake_rus.imaging.systems import make_segmenter_backend, segment_frame
 
     backend = make_segmenter_backend(config, geometry)
@@ -160,9 +160,7 @@ def segment_sweep(frames: list[PivotFrame], config, geometry, surface_B: np.ndar
             readout.visible,
             f.time,
             geometry,
-            max_gap=config.track_gap,
-            reach=config.track_reach,
-            min_overlap=config.track_min_overlap,
+            **track_settings(config),
         )
         out.append((bool(readout.visible), np.asarray(mask_frame.image, bool)))
     return out

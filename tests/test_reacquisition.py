@@ -18,6 +18,7 @@ from drake_rus.imaging.segment import (
     KidneyTrack,
     predicted_section,
     track_prior,
+    track_settings,
     track_update,
     tracked_component,
 )
@@ -98,9 +99,7 @@ def _run(sequence, sections, dt=0.05, **kw):
             k is not None,
             t,
             GEOMETRY,
-            max_gap=cfg.track_gap,
-            reach=cfg.track_reach,
-            min_overlap=cfg.track_min_overlap,
+            **track_settings(cfg),
         )
         taken.append(k)
     return taken
@@ -136,6 +135,22 @@ def _pivot_sequence():
         else:
             sections.append(_disc((175 + shift, 120), 12 + (i - 40)))
     return seq, sections, kidney_index
+
+
+def test_track_settings_read_each_tracker_field_of_the_config():
+    """Every follower of the kidney (the Segmenter, the kinematic imager, the benchmarks)
+    takes the tracker's settings from one place: each field goes to its own argument, and
+    the gap decides whether a mask continues the track."""
+    cfg = dataclasses.replace(
+        ImagingConfig(), track_gap=0.7, track_reach=0.013, track_min_overlap=0.3
+    )
+    assert track_settings(cfg) == {"max_gap": 0.7, "reach": 0.013, "min_overlap": 0.3}
+    disc = _disc((100, 120), 20)
+    track = track_update(KidneyTrack(), disc, True, 0.0, GEOMETRY, **track_settings(cfg))
+    within = track_update(track, disc, True, 0.5, GEOMETRY, **track_settings(cfg))
+    beyond = track_update(track, disc, True, 0.9, GEOMETRY, **track_settings(cfg))
+    assert within.since == 0.0  # continued: 0.5 s < track_gap
+    assert beyond.since == 0.9  # a new track: 0.9 s > track_gap
 
 
 def test_the_kidney_is_found_again_after_a_pivot_leg_with_the_template_prior():

@@ -50,7 +50,13 @@ from drake_rus.control.supervisor import (
 )
 from drake_rus.imaging.emulator import EmulatorModel, emulate
 from drake_rus.imaging.probe import ProbeGeometry
-from drake_rus.imaging.segment import KidneyTrack, read_mask, track_prior, track_update
+from drake_rus.imaging.segment import (
+    KidneyTrack,
+    read_mask,
+    track_prior,
+    track_settings,
+    track_update,
+)
 from drake_rus.imaging.slicing import slice_volume
 from drake_rus.imaging.systems import make_segmenter_backend
 from drake_rus.localization.icp import heuristic_initial_rotation
@@ -291,9 +297,7 @@ class Imager:
                 readout.visible,
                 t,
                 g,
-                max_gap=self.imaging.track_gap,
-                reach=self.imaging.track_reach,
-                min_overlap=self.imaging.track_min_overlap,
+                **track_settings(self.imaging),
             )
         boundary = (
             g.pixel_to_B(readout.boundary, X_BP) if len(readout.boundary) else np.zeros((0, 3))

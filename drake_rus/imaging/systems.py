@@ -38,6 +38,7 @@ from drake_rus.imaging.segment import (
     segment_classical,
     segment_oracle,
     track_prior,
+    track_settings,
     track_update,
 )
 from drake_rus.imaging.slicing import slice_volume
@@ -378,9 +379,7 @@ class Segmenter(LeafSystem):
         # The classical prior is the previous frame's mask; the onnx backend follows a
         # KidneyTrack (the last visible kidney, kept while the kidney is not seen).
         self._follows = self._backend_name == "onnx"
-        self._track_config = dict(
-            max_gap=config.track_gap, reach=config.track_reach, min_overlap=config.track_min_overlap
-        )
+        self._track_config = track_settings(config)
         self._track_confirm = config.track_confirm
         self._prior_index = self.DeclareAbstractState(
             AbstractValue.Make(KidneyTrack() if self._follows else self._empty_mask)
