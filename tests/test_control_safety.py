@@ -169,3 +169,66 @@ def test_safety_step_leaves_the_state_it_was_given_unchanged(kin):
     _, after = safety_step(before, nominal(kin, F_z=25.0), SafetyConfig())
     assert after.stopped and after is not before
     assert not before.stopped and before.events == () and before.last_q is None
+
+
+@pytest.mark.parametrize("stamp", [math.nan, math.inf, -math.inf])
+def test_an_image_stamp_that_turns_non_finite_stops(kin, stamp):
+    """NaN means "no images" only until a finite stamp has been seen; after that a
+    non-finite stamp must not switch the stale-image watchdog off."""
+    cfg = SafetyConfig(retract_distance=0.0)
+    s = SafetyState()
+    for k in range(5):  # no images yet: not a fault
+        _, s = safety_step(s, nominal(kin, t=0.5 + 0.01 * k, image_time=math.nan), cfg)
+    assert not s.stopped
+    for k in range(5):
+        _, s = safety_step(s, nominal(kin, t=1.0 + 0.01 * k), cfg)
+    assert not s.stopped
+    cmd, s = safety_step(s, nominal(kin, t=1.05, image_time=stamp), cfg)
+    assert s.stopped and s.reason == StopReason.NAN and s.stop_time == 1.05
+    assert "image time stamp" in s.events[0].detail
+    np.testing.assert_array_equal(cmd, 0.0)
+
+
+@pytest.mark.parametrize(
+    "fault, reason",
+    [
+        (dict(v=np.array([0, 0, math.nan, 0, 0, 0, 0])), StopReason.NAN),
+        (dict(F_z=math.nan), StopReason.NAN),
+        (dict(p_BP=np.array([0.5, 0.0, math.nan])), StopReason.NAN),
+        (dict(robot_ok=False), StopReason.ROBOT_FAULT),
+        (dict(p_BP=np.array([0.55, 0.6, 0.2])), StopReason.WORKSPACE),
+    ],
+)
+def test_a_fault_during_the_retract_ends_it(kin, fault, reason):
+    """The retract after a force stop moves the robot: a non-finite input, a robot fault or
+    a workspace exit while it runs ends it with zero velocity, logged."""
+    cfg = SafetyConfig(retract_distance=0.01, retract_speed=0.02)
+    cmd, s = safety_step(SafetyState(), nominal(kin, F_z=30.0), cfg)
+    assert s.reason == StopReason.FORCE and np.linalg.norm(cmd) > 0
+    cmd, s = safety_step(s, nominal(kin, t=1.1), cfg)
+    assert np.linalg.norm(cmd) > 0  # retracting
+    cmd, s = safety_step(s, nominal(kin, t=1.2, **fault), cfg)
+    np.testing.assert_array_equal(cmd, 0.0)
+    assert s.reason == StopReason.FORCE  # the stop's cause stays the first fault
+    assert [e.reason for e in s.events] == [StopReason.FORCE, reason]
+    cmd, s = safety_step(s, nominal(kin, t=1.3), cfg)  # healthy again, retract time left
+    np.testing.assert_array_equal(cmd, 0.0)
+
+
+def test_rest_is_not_a_stale_state(kin):
+    """Joints unchanged while no motion is commanded (a driver repeating its last status at
+    rest) do not count towards the stale-state timeout once motion is commanded."""
+    cfg = SafetyConfig(state_timeout=0.05)
+    s = SafetyState()
+    q = Q0.copy()
+    for k in range(200):  # 1 s at rest, zero command
+        _, s = safety_step(s, nominal(kin, t=1.0 + 0.005 * k, q=q, qdot_desired=np.zeros(7)), cfg)
+    # Commanded from t = 2.000 (the last period at rest: 1.995), joints not yet moving:
+    # up to 45 ms after the last period at rest, still fine.
+    for k in range(9):
+        cmd, s = safety_step(s, nominal(kin, t=2.0 + 0.005 * k, q=q), cfg)
+        assert not s.stopped
+        assert np.linalg.norm(cmd) > 0
+    cmd, s = safety_step(s, nominal(kin, t=2.045, q=q), cfg)  # 50 ms: stale
+    assert s.reason == StopReason.STALE_STATE
+    np.testing.assert_array_equal(cmd, 0.0)

@@ -8,7 +8,8 @@ velocities above their limits, a stale image, a stale robot state, the kidney lo
 long while the supervisor needs it, and a supervisor abort. The first fault latches a stop
 (the command becomes zero in the same period) and is logged as an event with its reason. A
 force-ceiling stop first retracts the probe along -a (out of the body) by a short distance,
-then holds zero. Limits: docs/facts/fr3.md (FR3 joint velocity rectangular set
+then holds zero; a non-finite input, a robot fault or a workspace exit ends the retract.
+Limits: docs/facts/fr3.md (FR3 joint velocity rectangular set
 [2, 1, 1.5, 1.25, 3, 1.5, 3] rad/s, Cartesian 3.0 m/s, 2.5 rad/s).
 """
 
@@ -80,7 +81,12 @@ class SafetyState:
     retract_until: float = -math.inf
     retract_direction: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
     last_q: np.ndarray | None = None
+    # Since when (s) the joints have not moved while motion was commanded: reset by a joint
+    # change and by every period that commands no motion (rest is not a stale state).
     last_q_change: float = 0.0
+    # A finite image stamp has been seen: from then on a non-finite one is a fault, not
+    # "no images".
+    image_seen: bool = False
     invisible_since: float = math.nan
     events: tuple = ()
 
@@ -100,9 +106,9 @@ class SafetyState:
         return new
 
 
-def check_faults(u: SafetyInputs, s: SafetyState, cfg) -> tuple[str, str] | None:
-    """The first fault present in ``u`` as (reason, detail), or None. Also updates the
-    watchdog bookkeeping in ``s`` (last joint change, kidney invisible since)."""
+def _non_finite(u: SafetyInputs, s: SafetyState, with_command: bool = True) -> str | None:
+    """The name of the first non-finite input of ``u`` (the commanded joint velocities
+    only ``with_command``; the image stamp once ``s`` has seen a finite one), or None."""
     arrays = (
         ("q", u.q),
         ("v", u.v),
@@ -111,22 +117,44 @@ def check_faults(u: SafetyInputs, s: SafetyState, cfg) -> tuple[str, str] | None
         ("p_BP", u.p_BP),
         ("J", u.J),
     )
+    if not with_command:
+        arrays = tuple(a for a in arrays if a[0] != "commanded qdot")
     # One pass over all of them (this runs every control period); which one, only on a fault.
     if not all_finite(np.concatenate([np.asarray(x, dtype=float).ravel() for _, x in arrays])):
         for name, x in arrays:
             if not np.all(np.isfinite(np.asarray(x, dtype=float))):
-                return StopReason.NAN, f"{name} is not finite"
+                return f"{name} is not finite"
     if not math.isfinite(u.F_z):
-        return StopReason.NAN, "contact force is not finite"
-    if not u.robot_ok:
-        return StopReason.ROBOT_FAULT, "the station reports robot_ok = 0"
-    if u.F_z > cfg.force_ceiling:
-        return StopReason.FORCE, f"F_z = {u.F_z:.2f} N > {cfg.force_ceiling:.2f} N"
+        return "contact force is not finite"
+    if s.image_seen and not math.isfinite(u.image_time):
+        return f"image time stamp is {u.image_time} after finite ones"
+    return None
+
+
+def _workspace_fault(u: SafetyInputs, cfg) -> tuple[str, str] | None:
+    """The tip outside the workspace box, as (reason, detail), or None."""
     p = np.asarray(u.p_BP, dtype=float)
     if any(
         not lo <= x <= hi for x, lo, hi in zip(p.tolist(), cfg.workspace_min, cfg.workspace_max)
     ):
         return StopReason.WORKSPACE, f"p_BP = {np.round(p, 4).tolist()} m outside the box"
+    return None
+
+
+def check_faults(u: SafetyInputs, s: SafetyState, cfg) -> tuple[str, str] | None:
+    """The first fault present in ``u`` as (reason, detail), or None. Also updates the
+    watchdog bookkeeping in ``s`` (last joint change, image stamps seen, kidney invisible
+    since)."""
+    bad = _non_finite(u, s)
+    if bad is not None:
+        return StopReason.NAN, bad
+    if not u.robot_ok:
+        return StopReason.ROBOT_FAULT, "the station reports robot_ok = 0"
+    if u.F_z > cfg.force_ceiling:
+        return StopReason.FORCE, f"F_z = {u.F_z:.2f} N > {cfg.force_ceiling:.2f} N"
+    fault = _workspace_fault(u, cfg)
+    if fault is not None:
+        return fault
     tip_speed = float(np.linalg.norm(np.asarray(u.J)[3:] @ np.asarray(u.v)))
     if tip_speed > cfg.max_tip_speed:
         return StopReason.TIP_SPEED, f"|v_BP| = {tip_speed:.3f} m/s > {cfg.max_tip_speed} m/s"
@@ -134,6 +162,8 @@ def check_faults(u: SafetyInputs, s: SafetyState, cfg) -> tuple[str, str] | None
     if np.any(over):
         i = int(np.argmax(over))
         return StopReason.JOINT_SPEED, f"joint {i + 1}: |v| = {abs(u.v[i]):.3f} rad/s"
+    if math.isfinite(u.image_time):
+        s.image_seen = True
     if math.isfinite(u.image_time) and u.t - u.image_time > cfg.image_timeout + 1e-9:
         if math.isfinite(u.frame_time) and u.t - u.frame_time <= cfg.image_timeout + 1e-9:
             return StopReason.STALE_IMAGE, (
@@ -143,12 +173,14 @@ def check_faults(u: SafetyInputs, s: SafetyState, cfg) -> tuple[str, str] | None
             )
         return StopReason.STALE_IMAGE, f"newest image is {u.t - u.image_time:.3f} s old"
     q = np.asarray(u.q, dtype=float)
-    if s.last_q is None or np.any(q != s.last_q):
+    changed = s.last_q is None or bool(np.any(q != s.last_q))
+    if changed:
         s.last_q = q.copy()
+    if changed or not np.linalg.norm(u.qdot_desired) > 1e-6:
+        # Joints moved, or no motion commanded: the watchdog's clock starts again (time at
+        # rest is not time "unchanged while moving").
         s.last_q_change = u.t
-    elif (
-        np.linalg.norm(u.qdot_desired) > 1e-6 and u.t - s.last_q_change >= cfg.state_timeout - 1e-9
-    ):
+    elif u.t - s.last_q_change >= cfg.state_timeout - 1e-9:
         return StopReason.STALE_STATE, (
             f"joint positions unchanged for {u.t - s.last_q_change:.3f} s while moving"
         )
@@ -191,13 +223,27 @@ def safety_step(state: SafetyState, u: SafetyInputs, cfg) -> tuple[np.ndarray, S
 
     While running, the desired command is limited (:func:`limit_command`). On the first
     fault the stop latches: the command is zero from this period on, except after a force
-    ceiling stop, which retracts along -a for retract_distance / retract_speed seconds.
+    ceiling stop, which retracts along -a for retract_distance / retract_speed seconds. A
+    non-finite input, a robot fault or a workspace exit during the retract ends it (zero
+    from that period on, logged as an event).
     """
     s = state.replace()
     n = len(u.q)
     if s.stopped:
-        if u.t < s.retract_until and np.all(np.isfinite(np.asarray(u.J, dtype=float))):
-            return _retract_command(u, s, cfg), s
+        if u.t < s.retract_until:
+            bad = _non_finite(u, s, with_command=False)
+            if bad is not None:
+                fault = StopReason.NAN, bad
+            elif not u.robot_ok:
+                fault = StopReason.ROBOT_FAULT, "the station reports robot_ok = 0"
+            else:
+                fault = _workspace_fault(u, cfg)
+            if fault is None:
+                return _retract_command(u, s, cfg), s
+            s.retract_until = -math.inf
+            reason, detail = fault
+            s.events = s.events + (SafetyEvent(u.t, reason, f"retract ended: {detail}"),)
+            LOG.warning("safety: retract ended at t = %.3f s: %s (%s)", u.t, reason, detail)
         return np.zeros(n), s
     fault = check_faults(u, s, cfg)
     if fault is None:
