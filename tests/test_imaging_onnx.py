@@ -134,6 +134,11 @@ def test_fill_holes_matches_scipy():
     for _ in range(50):
         m = ndimage.binary_opening(rng.random((40, 40)) < 0.6)
         assert np.array_equal(fill_holes(m), ndimage.binary_fill_holes(m))
+    # One background region, enclosed: a mask covering the whole border around a hole.
+    ring = np.ones((9, 9), bool)
+    ring[3:6, 4] = False
+    assert fill_holes(ring).all()
+    assert np.array_equal(fill_holes(~ring), ~ring)  # one region touching the border
 
 
 # --- physical pixel size ------------------------------------------------------------------------

@@ -397,3 +397,38 @@ def test_the_template_prior_reaches_the_segmentation_wherever_it_runs(mode):
             ex.close()
     assert (without & left).sum() > 0.8 * left.sum() and not (without & right).any()
     assert (with_prior & right).sum() > 0.8 * right.sum() and not (with_prior & left).any()
+
+
+def test_the_classical_segmenter_takes_the_template_section_after_a_frame_without_kidney():
+    """After a frame in which no kidney was found, the classical segmenter's previous mask is
+    empty: the registered template's section is its prior then, so the region the template
+    puts the kidney in is taken, not the larger one beside it."""
+    from drake_rus.imaging.frames import UsFrame
+    from drake_rus.imaging.systems import make_segmenter_backend, segment_frame
+
+    cfg, g, frame, surface, left, right = _two_kidney_like_regions()
+    frame = UsFrame(frame.image, time=0.05, X_BP=frame.X_BP, frame_index=1)
+    nothing_seen = UsFrame(np.zeros(g.image_shape, bool), 0.0, frame.X_BP, 0)
+    backend = make_segmenter_backend(cfg, g)
+
+    def segment(surface_points):
+        mask, _, _ = segment_frame(
+            backend,
+            g,
+            cfg.min_kidney_area,
+            frame,
+            nothing_seen,
+            follows=False,
+            uses_prior=True,
+            track_confirm=cfg.track_confirm,
+            source="us_image",
+            surface_points=surface_points,
+            slab=0.5 * cfg.elevation_width,
+        )
+        return mask.image
+
+    without = segment(None)
+    with_template = segment(surface.points_B)
+    assert (without & left).sum() > 0.8 * left.sum() and not (without & right).any()
+    assert (with_template & right).sum() > 0.8 * right.sum()
+    assert not (with_template & left).any()

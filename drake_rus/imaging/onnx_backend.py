@@ -970,8 +970,10 @@ def fill_holes(mask: np.ndarray) -> np.ndarray:
     """``mask`` with every background region that does not touch the border filled
     (one labelling of the background; faster than iterative hole filling)."""
     bg, n = ndimage.label(~mask, structure=_CROSS)
-    if n <= 1:
-        return mask if n == 1 else np.ones_like(mask)
+    if n == 0:
+        return np.ones_like(mask)
+    if n == 1 and (bg[0].any() or bg[-1].any() or bg[:, 0].any() or bg[:, -1].any()):
+        return mask  # the one background region touches the border: no hole
     border = np.unique(np.concatenate([bg[0], bg[-1], bg[:, 0], bg[:, -1]]))
     outside = np.zeros(n + 1, bool)
     outside[border] = True

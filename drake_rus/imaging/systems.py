@@ -232,8 +232,13 @@ def make_segmenter_backend(config: ImagingConfig, geometry: ProbeGeometry):
         return lambda us, labels, prev, age=math.inf, section=None: segment_oracle(labels)
     if backend == "classical":
         min_area = config.min_kidney_area
+        # An all-False previous mask (the last frame found no kidney) is no previous mask:
+        # the template's section, when there is one, is the prior then.
         return lambda us, labels, prev, age=math.inf, section=None: segment_classical(
-            us, geometry, prev if prev is not None else section, min_area
+            us,
+            geometry,
+            prev if section is None or (prev is not None and prev.any()) else section,
+            min_area,
         )
     if backend == "onnx":
         model = OnnxSegmenter.from_config(config, geometry)
