@@ -48,7 +48,7 @@ def AdvanceWithProgress(
     ends the bar at 100 %. The bar is hidden when stderr is not a terminal unless
     ``disable=False``; then (``log_phases`` None) one line per new label goes to stderr
     instead, unless ``disable=True``. ``advance(t)`` advances the simulator to t (default
-    ``simulator.AdvanceTo``; a live run paces it, ``drake_rus.scan.pacing``).
+    ``simulator.AdvanceTo``; a live run paces it, ``drake_rus.pacing``).
     """
     context = simulator.get_context()
     t0 = context.get_time()

@@ -38,6 +38,7 @@ LAYERS = [
             "drake_rus.anatomy.motion",
             "drake_rus.interrupts",
             "drake_rus.executor",
+            "drake_rus.pacing",
         ],
     ),
     ("scenario", ["drake_rus.scenario"]),

@@ -289,6 +289,46 @@ class Stall(LeafSystem):
             time.sleep(self._s)
 
 
+def test_a_live_run_that_falls_behind_the_wall_clock_stops():
+    """RunHardware at real time (the bring-up's motions and read-outs) is paced tick by tick
+    like a live scan: a stall longer than safety.realtime_lag stops it with HardwareFault
+    (zero velocity, by the session) instead of racing through the missed ticks."""
+    scenario = lcm_scenario()
+    station, step = _rig(scenario, np.zeros(7))
+    try:
+        b = DiagramBuilder()
+        stall = b.AddSystem(Stall(0.2, 0.4))
+        b.AddSystem(station)
+        sim = Simulator(b.Build())
+        ctx = station.GetMyContextFromRoot(sim.get_context())
+        station.get_input_port().FixValue(ctx, np.zeros(7))
+        sim.Initialize()
+        last = [time.monotonic()]
+
+        def driver_in_real_time():
+            now = time.monotonic()
+            while last[0] < now:
+                step()
+                last[0] += 0.005
+
+        with pytest.raises(HardwareFault, match="overloaded"):
+            RunHardware(
+                sim,
+                station,
+                1.0,
+                check_period=0.005,
+                realtime_rate=1.0,
+                on_step=driver_in_real_time,
+                max_lag=0.25,
+            )
+        assert stall.done
+        assert sim.get_context().get_time() < 0.3  # stopped at the stall, not raced through
+        with pytest.raises(ValueError, match="realtime_rate"):
+            RunHardware(sim, station, 0.1, realtime_rate=-1.0)
+    finally:
+        station.close()
+
+
 def test_own_stall_is_not_a_lost_robot():
     """Our loop stalls 0.4 s (longer than status_timeout 0.25 s) while the driver keeps
     publishing: the status latch does not declare the robot lost; a driver that really

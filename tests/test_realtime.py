@@ -1,5 +1,5 @@
 """Perception beside the control loop (drake_rus/executor.py) and the live loop's pacing
-(drake_rus/scan/pacing.py): inline results ready on a deterministic latency model; worker
+(drake_rus/pacing.py): inline results ready on a deterministic latency model; worker
 processes that never make the loop wait; ticks that slip instead of racing after a stall;
 an overload stopped and named. The live test runs the scan against a stand-in robot (the
 simulated station marked live: paced at real time, perception in workers) with every
@@ -20,8 +20,8 @@ from drake_rus.executor import (
     WorkerExecutor,
     execution_mode,
 )
+from drake_rus.pacing import RealtimePacer, loop_statistics
 from drake_rus.scan.config import PerceptionConfig
-from drake_rus.scan.pacing import RealtimePacer, loop_statistics
 
 pytestmark = pytest.mark.timeout(300)
 

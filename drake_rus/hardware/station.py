@@ -40,6 +40,7 @@ from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import PassThrough
 
 from drake_rus.config_schema import ScenarioError
+from drake_rus.control.config import SafetyConfig
 from drake_rus.hardware.config import HardwareConfig
 from drake_rus.hardware.franky_backend import FrankyBackend, HardwareFault
 from drake_rus.hardware.image_calibration import (
@@ -55,6 +56,7 @@ from drake_rus.hardware.systems import (
     ProbeLoadTorque,
 )
 from drake_rus.imaging.probe import ProbeGeometry
+from drake_rus.pacing import RealtimePacer
 from drake_rus.robot import NUM_JOINTS, MakeControlPlant, ProbeForceEstimator, ProbePoseFromJoints
 from drake_rus.station_interface import CheckStationPorts
 
@@ -76,14 +78,24 @@ __all__ = [
 
 class HardwareStation(Diagram):
     """The hardware station Diagram, with handles on its backend for a clean stop and on its
-    frame grabber (``grabber``: pose history, diagram clock, tick times, video stats)."""
+    frame grabber (``grabber``: pose history, diagram clock, tick times, video stats);
+    ``realtime_lag`` (s): how far behind the wall clock a run on it may fall before it is
+    stopped (the scenario's ``safety.realtime_lag``; :func:`RunHardware`)."""
 
-    def __init__(self, builder: DiagramBuilder, backend, grabber: FrameGrabber, config):
+    def __init__(
+        self,
+        builder: DiagramBuilder,
+        backend,
+        grabber: FrameGrabber,
+        config,
+        realtime_lag: float = SafetyConfig().realtime_lag,
+    ):
         super().__init__()
         builder.BuildInto(self)
         self.backend = backend
         self.grabber = grabber
         self.hardware_config = config
+        self.realtime_lag = float(realtime_lag)
 
     @property
     def period(self) -> float:
@@ -240,7 +252,7 @@ def MakeHardwareStation(
     builder.ExportOutput(grabber.GetOutputPort("us_image"), "us_image")
     builder.ExportOutput(sent_port, "commanded_velocity")
     builder.ExportOutput(ok_port, "robot_ok")
-    station = HardwareStation(builder, backend, grabber, cfg)
+    station = HardwareStation(builder, backend, grabber, cfg, scenario.safety.realtime_lag)
     station.set_name(name)
     try:
         CheckStationPorts(station, "hardware")
@@ -294,20 +306,44 @@ def RunHardware(
     realtime_rate: float = 1.0,
     on_step=None,
     until=None,
+    max_lag: float | None = None,
 ) -> float:
-    """Advances ``simulator`` (whose diagram contains ``station``) by ``duration`` s at
-    ``realtime_rate`` (0: as fast as possible) inside a :class:`HardwareSession`, in
-    chunks of ``check_period`` s, calling ``on_step()`` after each and ending early when
-    ``until()`` returns True; raises HardwareFault as soon as the station's ``robot_ok``
-    drops (the command is zero by then). Returns the end time."""
-    simulator.set_target_realtime_rate(realtime_rate)
+    """Advances ``simulator`` (whose diagram contains ``station``) by ``duration`` s inside
+    a :class:`HardwareSession`, in chunks of ``check_period`` s, calling ``on_step()`` after
+    each and ending early when ``until()`` returns True; raises HardwareFault as soon as the
+    station's ``robot_ok`` drops (the command is zero by then). Returns the end time.
+
+    ``realtime_rate`` 1 (a live robot): paced tick by tick at the station's period
+    (:class:`drake_rus.pacing.RealtimePacer`: no racing through ticks after a stall), and
+    stopped with HardwareFault (zero velocity) when the loop falls more than ``max_lag`` s
+    (default: the station's ``realtime_lag``, the scenario's ``safety.realtime_lag``) behind
+    the wall clock, as a live scan is. 0: as fast
+    as possible (a simulated driver stepped by ``on_step``); other rates: Drake's own
+    pacing, for simulated drivers only."""
+    if not realtime_rate >= 0.0:
+        raise ValueError(f"RunHardware: realtime_rate must be >= 0, got {realtime_rate}")
     root = simulator.get_context()
     station_context = station.GetMyContextFromRoot(root)
     ok_port = station.GetOutputPort("robot_ok")
     t_end = root.get_time() + duration
+    pacer = None
+    if realtime_rate == 1.0:
+        simulator.set_target_realtime_rate(0.0)  # the pacer keeps time, tick by tick
+        lag = station.realtime_lag if max_lag is None else float(max_lag)
+        pacer = RealtimePacer(simulator, station.period, lag)
+    else:
+        simulator.set_target_realtime_rate(realtime_rate)
     with HardwareSession(station):
         while root.get_time() < t_end - 1e-12:
-            simulator.AdvanceTo(min(t_end, root.get_time() + check_period))
+            target = min(t_end, root.get_time() + check_period)
+            if pacer is None:
+                simulator.AdvanceTo(target)
+            else:
+                pacer.advance_to(target)
+                if pacer.overload is not None:
+                    raise HardwareFault(
+                        f"run stopped at t = {root.get_time():.3f} s: overloaded: {pacer.overload}"
+                    )
             if on_step is not None:
                 on_step()
             if ok_port.Eval(station_context)[0] < 0.5:

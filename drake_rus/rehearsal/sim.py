@@ -42,11 +42,11 @@ from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from drake_rus.hardware.core import wall_clock_utime
 from drake_rus.hardware.lcm_sim_driver import DRIVER_EXPIRE_SEC, AddSimulatedDriverWire
 from drake_rus.hardware.systems import ProbeLoadTorque
+from drake_rus.pacing import GcPauses, gc_statistics, loop_statistics, percentiles_ms
 from drake_rus.rehearsal.core import PivotDetector, realtime_scheduling
 from drake_rus.rehearsal.video_process import PoseSnapshot
 from drake_rus.rehearsal.wiretap import LcmUdpmTap
 from drake_rus.robot import NUM_JOINTS, MakeControlPlant, contact_force_along_approach
-from drake_rus.scan.pacing import GcPauses, gc_statistics, loop_statistics, percentiles_ms
 from drake_rus.station import MakeSimStation
 
 LOG = logging.getLogger("drake_rus.rehearsal")

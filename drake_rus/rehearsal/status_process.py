@@ -26,8 +26,8 @@ import numpy as np
 from pydrake.lcm import DrakeLcm
 
 from drake_rus.hardware.core import wall_clock_utime
+from drake_rus.pacing import percentiles_ms
 from drake_rus.rehearsal.core import await_ready, realtime_scheduling, stop_process
-from drake_rus.scan.pacing import percentiles_ms
 
 __all__ = ["StatusPublisherProcess", "SlotWriter", "read_slot", "set_utime"]
 

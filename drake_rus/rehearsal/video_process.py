@@ -32,9 +32,9 @@ from drake_rus.imaging.emulator import warm_up as warm_emulator
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.imaging.slicing import slice_volume
 from drake_rus.imaging.slicing import warm_up as warm_slicer
+from drake_rus.pacing import percentiles_ms
 from drake_rus.rehearsal.core import await_ready, stop_process
 from drake_rus.rehearsal.mjpeg import FrameBuffer, MjpegServer
-from drake_rus.scan.pacing import percentiles_ms
 
 LOG = logging.getLogger("drake_rus.rehearsal")
 

@@ -348,7 +348,7 @@ def Summary(result: ScanResult, metrics: dict, provenance: dict | None = None) -
         # Where perception ran and its jobs' compute times and latencies (executor.py).
         "perception": getattr(result, "perception", None) or None,
         # A live run's per-tick compute time and lag (ms: p50, p99, p99.9, max), slips and
-        # the load average (scan/pacing.py); None when not paced at real time.
+        # the load average (drake_rus/pacing.py); None when not paced at real time.
         "loop_timing": getattr(result, "loop_timing", None),
         **({} if provenance is None else {"provenance": provenance}),
     }

@@ -30,11 +30,11 @@ from drake_rus.executor import MakeExecutor
 from drake_rus.hardware.station import HardwareSession
 from drake_rus.imaging.annotated import SavedFrame
 from drake_rus.localization.localize import fitted_shape_K
+from drake_rus.pacing import GcPauses, RealtimePacer, gc_statistics, load_average
 from drake_rus.patient_body import PatientMotionFor
 from drake_rus.progress import AdvanceWithProgress
 from drake_rus.robot import IkError, MakeControlPlant, SolveTipPose
 from drake_rus.scan.diagram import BuildScanDiagram, ScanHandles
-from drake_rus.scan.pacing import GcPauses, RealtimePacer, gc_statistics, load_average
 from drake_rus.scan.planning import DrawStartPlan, PlanStart, exploration_start
 from drake_rus.scan.truth import AttachSimulationTruth, SimulationTruth
 from drake_rus.scan.verdict import JudgeScan, Verdict
@@ -146,7 +146,7 @@ class ScanResult:
     # Exploration frames whose section jumped from its neighbours' and whose points the
     # partial cloud left out (PointCloud.frames_inconsistent).
     cloud_frames_inconsistent: int = 0
-    # A live run's loop timing (scan.pacing.loop_statistics: per-tick compute time and lag,
+    # A live run's loop timing (drake_rus.pacing.loop_statistics: per-tick compute time and lag,
     # slips, load average) and its per-tick trace (t, compute, lag arrays, s); None when
     # the run was not paced at real time.
     loop_timing: dict | None = None
@@ -378,7 +378,7 @@ def RunScan(
     image, kidney mask, pose, time and phase (``ScanResult.saved_frames``, for ``scan
     --save-frames``; about 128 kB a frame).
 
-    A live run is paced tick by tick (``scan.pacing.RealtimePacer``: per-tick compute time
+    A live run is paced tick by tick (``drake_rus.pacing.RealtimePacer``: per-tick compute time
     and lag in ``ScanResult.loop_timing``; stopped at zero velocity, ABORT naming the
     overload, when the loop falls ``safety.realtime_lag`` behind) and its perception runs
     in worker processes beside the loop (``perception.execution: auto``, drake_rus.executor);

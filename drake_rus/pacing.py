@@ -1,6 +1,7 @@
 """Pacing a live run at real time, tick by tick, and measuring every tick.
 
-A live scan (a station that drives a real robot) advances its diagram one *tick* at a time
+A live run (a station that drives a real robot: the scan, and the bring-up steps through
+``hardware.station.RunHardware``) advances its diagram one *tick* at a time
 (``tick`` s, the fastest periodic rate of the loop: the station's command rate): it sleeps
 until the tick is due on the wall clock, advances the diagram through it and records
 
