@@ -318,6 +318,37 @@ def timing_report(station, config) -> tuple[str, list[str]]:
     return line, failures
 
 
+def status_age_report(station, config) -> tuple[str | None, list[str]]:
+    """The LCM route's clock check (docs/hardware_bringup.md, "Clock synchronisation"):
+    the wall-clock age of the robot's statuses at arrival (this PC's wall clock minus the
+    driver's ``utime``: the transport delay plus the offset between the two clocks). A
+    median beyond a third of ``command_timeout`` either way fails: the driver judges our
+    commands' freshness by the same two clocks, so an offset that large eats the command
+    expiry's margin (client ahead: stale commands look fresh; behind: every command
+    expires). (None, []) on the franky route, which has no wall-clock stamps."""
+    if config.backend != "lcm":
+        return None, []
+    ages = np.asarray(station.GetSubsystemByName("panda_status_latch").status_ages, float)
+    if not ages.size:
+        return "robot status age: no status arrived", ["no robot status arrived during the check"]
+    median = float(np.median(ages))
+    bound = config.command_timeout / 3.0
+    line = (
+        f"robot status age at arrival: median {1e3 * median:.1f} ms, min "
+        f"{1e3 * ages.min():.1f} ms, max {1e3 * ages.max():.1f} ms (this PC's wall clock minus "
+        f"the driver's; within +-{1e3 * bound:.0f} ms, a third of command_timeout)"
+    )
+    failures = []
+    if abs(median) > bound:
+        failures.append(
+            f"the robot's statuses arrive {1e3 * median:.0f} ms old by this PC's wall clock: "
+            f"its clock and the driver's differ by more than a third of "
+            f"hardware_interface.command_timeout ({1e3 * config.command_timeout:.0f} ms); "
+            f"synchronise them (PTP or chrony) or run the client on the driver's PC"
+        )
+    return line, failures
+
+
 def video_checks(scenario, station, readout: Readout) -> list[str]:
     capture = station.grabber.capture
     if capture is None:
@@ -461,6 +492,10 @@ def CheckStation(
         line, timing = timing_report(station, cfg)
         print(line)
         failures += timing
+        line, clock = status_age_report(station, cfg)
+        if line is not None:
+            print(line)
+        failures += clock
         print("dry run: no motion was commanded")
         return failures
     loop = BuildHardwareClosedLoop(scenario, station)
@@ -485,7 +520,10 @@ def CheckStation(
         failures += video_checks(scenario, station, holder["readout"])
     line, timing = timing_report(station, cfg)
     print(line)
-    return failures + timing
+    line, clock = status_age_report(station, cfg)
+    if line is not None:
+        print(line)
+    return failures + timing + clock
 
 
 def pivot_failures(cal) -> list[str]:

@@ -145,8 +145,31 @@ def test_check_dry_run_live_readouts_and_push_test(monkeypatch, capsys):
     assert "q=[" in lines[0] and "|f|=" in lines[0] and "no video" in lines[0]
     assert "push test: strongest push f = [" in out and "-6.0] N" in out
     assert "control loop:" in out and "dry run: no motion was commanded" in out
+    assert "robot status age at arrival: median" in out  # the clock check of the guide
     assert rc == 0, out
     assert "all checks passed" in out
+
+
+def test_check_fails_when_the_two_wall_clocks_differ(monkeypatch, capsys):
+    """docs/hardware_bringup.md, "Clock synchronisation": the dry run prints the robot
+    status age and fails it when this PC's wall clock and the driver's differ by more than a
+    third of command_timeout (here 1 s, so 333 ms; this PC's clock 0.5 s ahead). Everything
+    else passes, as in the test above."""
+    import types
+
+    from drake_rus.hardware import systems as hardware_systems
+
+    skewed = types.SimpleNamespace(time=lambda: time.time() + 0.5, monotonic=time.monotonic)
+    monkeypatch.setattr(hardware_systems, "time", skewed)
+    scenario = lcm_scenario()
+    push = wrench_torque(scenario, [0, 0, 0, 0, 0, -6.0])
+    rc = run_check(monkeypatch, Rig(scenario), scenario, push=push)
+    out = capsys.readouterr().out
+    assert rc == 1, out
+    assert "robot status age at arrival: median 5" in out  # about 500 ms
+    assert "its clock and the driver's differ" in out
+    missed = out.split("FAILED:")[1].strip().splitlines()
+    assert len(missed) == 1 and "its clock and the driver's differ" in missed[0], missed
 
 
 def test_check_exit_code_names_missed_checks(monkeypatch, capsys):

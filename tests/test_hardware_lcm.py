@@ -176,6 +176,36 @@ def test_lcm_station_ports_stamps_tracking_and_torque_sign():
     )
 
 
+def test_commands_on_the_wire_keep_the_acceleration_limit():
+    """The publisher runs after the tick's updates, so it must send the command the guard
+    stored: what goes on the wire changes by at most max_joint_acceleration * dt a period,
+    ramping and when the desired command reverses every period (the guard's feedthrough,
+    read after its update, is limited against the command just stored: two or three steps
+    a period)."""
+    scenario = lcm_scenario()
+    rig = Rig(scenario)
+    st = rig.station
+    sim = Simulator(st)
+    ctx = st.GetMyContextFromRoot(sim.get_context())
+    cfg = scenario.hardware_interface
+    dt = 1.0 / cfg.command_rate_hz
+    sim.Initialize()
+    for k in range(40):
+        v = np.zeros(7)
+        v[0] = 0.5 if k % 2 == 0 else -0.5  # reverses every period
+        v[3] = 0.3  # a ramp
+        st.get_input_port().FixValue(ctx, v)
+        sim.AdvanceTo(sim.get_context().get_time() + dt)
+        rig.step_driver(dt)
+        rig.pump()
+    sent = np.array([m.joint_velocity for _, m in rig.wire if m.num_joint_velocity == 7])
+    assert len(sent) >= 40
+    steps = np.abs(np.diff(sent, axis=0)).max(axis=0)
+    limit = np.asarray(cfg.max_joint_acceleration) * dt
+    assert np.all(steps <= limit + 1e-12), (steps, limit)
+    assert sent[:, 3].max() > 10 * limit[3]  # it did ramp
+
+
 def test_simulation_time_stamps_would_be_dropped_by_the_driver():
     """Why the stamper exists: PandaCommandSender stamps context time, which the driver
     (and our simulated one) never accepts."""

@@ -188,7 +188,9 @@ def AddLcmBackend(builder, backend: LcmBackend, guard, rate, control_plant, prob
     sender = builder.AddNamedSystem(
         "panda_command_sender", PandaCommandSender(NUM_JOINTS, PandaControlMode.kVelocity)
     )
-    builder.Connect(guard.GetOutputPort("joint_velocity_sent"), sender.get_input_port())
+    # The publisher runs after the tick's updates: it sends the command the guard's update
+    # stored, not the guard's feedthrough (which would limit against that stored command).
+    builder.Connect(guard.GetOutputPort("joint_velocity_committed"), sender.get_input_port())
     if not backend.dry_run:
         # A dry run publishes nothing: the driver never receives a command.
         stamper = builder.AddNamedSystem("wall_clock_stamper", WallClockCommandStamper())
@@ -208,7 +210,7 @@ def AddLcmBackend(builder, backend: LcmBackend, guard, rate, control_plant, prob
         receiver.get_position_measured_output_port(),
         receiver.get_velocity_measured_output_port(),
         tau_port,
-        guard.GetOutputPort("joint_velocity_sent"),
+        guard.GetOutputPort("joint_velocity_committed"),
         latch.GetOutputPort("robot_ok"),
         latch.GetOutputPort("state_time"),
     )

@@ -53,7 +53,12 @@ class CommandGuard(LeafSystem):
     Inputs: ``joint_velocity_command`` (7, rad/s, from the safety layer); ``robot_ok`` (1;
     0 latches a stop). Output ``joint_velocity_sent`` (7, rad/s): the guarded command for
     this period (direct feedthrough: limits against the previous period's command, kept in
-    state and updated every 1 / ``rate_hz`` s). ``stopped`` (1): the latch.
+    state and updated every 1 / ``rate_hz`` s), for a consumer that reads it in its own
+    update at the same tick (the franky route). ``joint_velocity_committed`` (7, rad/s,
+    state): the command the latest update stored, for a consumer that runs after the
+    updates (a publisher at the same tick, the LCM route): reading ``joint_velocity_sent``
+    there would limit against the command just stored and step twice. ``stopped`` (1): the
+    latch.
     """
 
     def __init__(self, config: HardwareConfig, rate_hz: float):
@@ -68,6 +73,7 @@ class CommandGuard(LeafSystem):
         self._stopped = self.DeclareDiscreteState(1)
         self.DeclarePeriodicDiscreteUpdateEvent(self._dt, 0.0, self._update)
         self.DeclareVectorOutputPort("joint_velocity_sent", NUM_JOINTS, self._calc)
+        self.DeclareStateOutputPort("joint_velocity_committed", self._prev)
         self.DeclareStateOutputPort("stopped", self._stopped)
 
     def _guarded(self, context) -> tuple[np.ndarray, bool]:
@@ -187,7 +193,10 @@ class PandaStatusLatch(LeafSystem):
     ``status_utime`` (1, s): the newest status stamp. ``state_time`` (1, s): when that
     status was measured, on this process's monotonic clock (its wall-clock age at arrival,
     from ``utime``, taken off the arrival time; NaN before the first): the probe pose
-    history's stamp.
+    history's stamp. ``status_ages`` (attribute, s): the last minute's wall-clock ages of
+    new statuses at arrival, unclamped (this PC's wall clock minus the driver's ``utime``:
+    the transport delay plus the offset between the two clocks; the bring-up check reads
+    them, docs/hardware_bringup.md "Clock synchronisation").
     """
 
     def __init__(
@@ -205,6 +214,7 @@ class PandaStatusLatch(LeafSystem):
         self._serializer = lcm_systems._Serializer_[drake.lcmt_panda_status]()
         self._timeout = float(status_timeout)
         self._min_quiet = int(min_quiet_ticks)
+        self.status_ages = collections.deque(maxlen=int(60.0 * float(rate_hz)))
         first = self._msg_type.decode(first_status_bytes)
         model = self._serializer.CreateDefaultValue()
         self._in = self.DeclareAbstractInputPort("lcmt_panda_status_in", model)
@@ -256,7 +266,9 @@ class PandaStatusLatch(LeafSystem):
             msg = self._msg_type.decode(raw)
             if msg.num_joints == NUM_JOINTS and int(msg.utime) != rec.utime:
                 data, utime, arrival, quiet = raw, int(msg.utime), now, 0
-                age = min(max(time.time() - utime * 1e-6, 0.0), 1.0)
+                raw_age = time.time() - utime * 1e-6
+                self.status_ages.append(raw_age)
+                age = min(max(raw_age, 0.0), 1.0)
                 state_time = now - age
         expired = watchdog_expired(now, arrival, self._timeout) and quiet >= self._min_quiet
         ok = rec.ok and not expired
