@@ -184,12 +184,47 @@ def test_a_critical_er_of_100_is_explained_by_the_er_below():
     row, below = an.critical_evidence_row(sweep)
     assert below and row["er"] == 0.9
     assert row["dz_e_trans_mm"] < -1 and row["p_e_trans"] < 0.05
-    assert "at 90% (the ER below, which differs): d_z -" in an.critical_er_summary(sweep)
+    assert "at 90% (the ER below, which fails the rule): d_z -" in an.critical_er_summary(sweep)
     text = "\n".join(report.critical_er_markdown(sweep))
-    assert "The critical ER is ER 100% itself; at the ER below it, 90%" in text
+    assert "The critical ER is ER 100% itself; at the ER below it, 90%, which differs in" in text
+    assert "a negative d_z in E_trans and E_rot,x" in text
     cols = "\n".join(report.critical_er_columns(["a"], [sweep]))
     assert "(at 90%, the ER below)" in cols
     # A critical ER below 100% keeps its own row.
     other = an.analyze_er_sweep(_sweep(0.5, 15, shift=0.0, ers=(0.6, 0.9, 1.0)))
     row, below = an.critical_evidence_row(other)
     assert not below and row["er"] == other["critical_er"] < 1.0
+
+
+def test_a_missing_error_is_no_test_not_no_difference():
+    """A non-finite paired error gives no p-value and no d_z (NaN), never p = 1 and an
+    infinite d_z: the row is not testable, so the ER cannot pass on it."""
+    d = [2.0, 2.5, math.nan, 3.0, 1.8]
+    assert math.isnan(an.paired_p(d, [0.0] * 5))
+    assert math.isnan(an.cohens_dz(d))
+    assert an.paired_p([1.0, 2.0], [1.0, 2.0]) == 1.0  # all differences zero: kept
+    runs = _sweep(0.5, 15, ers=(0.6, 1.0))
+    clean = an.analyze_er_sweep(runs)
+    assert clean["critical_er"] == 1.0  # ER 60% differs by 3 mm
+    for r in runs:
+        if r["er"] == 0.6 and r["patient"] == "test:3":
+            r["e_trans_mm"] = math.nan
+    broken = an.analyze_er_sweep(runs)
+    assert broken["critical_er"] == 1.0  # not 0.6 on a p = 1 from the NaN
+
+
+def test_a_critical_er_of_100_from_an_unlocalized_patient_says_so():
+    """The ER below fails only because a patient was not localized there: the report says
+    that, not that it "differs" (both p-values are far above alpha)."""
+    from drake_rus.experiments import report
+
+    runs = [
+        r
+        for r in _sweep(0.5, 15, shift=0.0, ers=(0.9, 1.0))
+        if not (r["er"] == 0.9 and r["patient"] == "test:4")
+    ]
+    sweep = an.analyze_er_sweep(runs)
+    assert sweep["critical_er"] == 1.0
+    text = "\n".join(report.critical_er_markdown(sweep))
+    assert "which fails the rule because 1 patient(s) were not localized there" in text
+    assert "which differs" not in text and "negative d_z" not in text

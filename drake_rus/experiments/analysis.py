@@ -77,11 +77,14 @@ MIN_N_POWER = 0.8
 
 
 def paired_p(a, b) -> float:
-    """Two-sided paired t-test p-value; 1.0 when the differences are all zero."""
+    """Two-sided paired t-test p-value; 1.0 when the differences are all zero; NaN for fewer
+    than two pairs or a non-finite difference (a missing error is not "no difference")."""
     a, b = np.asarray(a, float), np.asarray(b, float)
     if len(a) < 2:
         return float("nan")
     d = a - b
+    if not np.all(np.isfinite(d)):
+        return float("nan")
     if np.allclose(d, d[0]) and np.allclose(d, 0):
         return 1.0
     p = float(ttest_rel(a, b).pvalue)
@@ -99,9 +102,9 @@ def mean_sd(v) -> tuple[float, float]:
 # ------------------------------------------------------------------------------- power
 def cohens_dz(differences) -> float:
     """Cohen's d_z of paired differences: their mean over their SD (ddof 1). NaN for fewer
-    than two; with zero SD, 0 (all differences zero) or +-inf."""
+    than two or a non-finite difference; with zero SD, 0 (all differences zero) or +-inf."""
     d = np.asarray(differences, float)
-    if len(d) < 2:
+    if len(d) < 2 or not np.all(np.isfinite(d)):
         return float("nan")
     sd = float(d.std(ddof=1))
     mean = float(d.mean())
@@ -431,7 +434,7 @@ def critical_er_summary(an: dict) -> str:
     row, below = critical_evidence_row(an)
     if row is not None:
         line += (
-            f"; at {pct(row['er'])}{' (the ER below, which differs)' if below else ''}: "
+            f"; at {pct(row['er'])}{' (the ER below, which fails the rule)' if below else ''}: "
             f"d_z {row['dz_e_trans_mm']:.2f} / "
             f"{row['dz_e_rot_x_deg']:.2f}, power {row['power_e_trans_mm']:.2f} / "
             f"{row['power_e_rot_x_deg']:.2f}"
@@ -462,7 +465,9 @@ def sample_size_warning(an: dict) -> str | None:
 
 
 def analyze_starts(results: list[dict], alpha: float = 0.05) -> dict:
-    """Pairwise paired t-tests between starts over patients, Bonferroni-corrected."""
+    """Pairwise paired t-tests between starts over patients, Bonferroni-corrected per error
+    (alpha over the number of pairs, for E_trans and E_rot,x each, as the paper tests each
+    error on its own; ``tests`` counts both errors' tests)."""
     by = {}
     for r in results:
         by.setdefault(int(r["start"]), {})[r["patient"]] = r

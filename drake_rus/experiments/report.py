@@ -758,6 +758,32 @@ def _pct(er) -> str:
     return "not determined" if er is None else f"{er * 100:.0f}%"
 
 
+def _why_below_fails(row: dict, alpha: float) -> str:
+    """Why the ER below a critical ER of 100% fails the rule, for the report: the errors
+    that differ (p <= alpha; a negative d_z noted only for those), else the patients not
+    localized there, else no test possible."""
+    p = {"E_trans": row["p_e_trans"], "E_rot,x": row["p_e_rot_x"]}
+    dz = {"E_trans": row["dz_e_trans_mm"], "E_rot,x": row["dz_e_rot_x_deg"]}
+    differ = [k for k, v in p.items() if np.isfinite(v) and v <= alpha]
+    ps = f"p = {_p(p['E_trans'])} and {_p(p['E_rot,x'])}"
+    if differ:
+        smaller = [k for k in differ if dz[k] < 0]
+        note = (
+            f"; a negative d_z in {' and '.join(smaller)}: smaller errors than at ER 100%, a "
+            "difference to the paper's two-sided test too"
+            if smaller
+            else ""
+        )
+        return f"which differs in {' and '.join(differ)} ({ps}{note})"
+    missing = int(row.get("missing", 0) or 0)
+    if missing:
+        return (
+            f"which fails the rule because {missing} patient(s) were not localized there "
+            f"({ps} on the others: no significant difference)"
+        )
+    return f"where no paired test was possible ({ps})"
+
+
 def critical_er_markdown(er: dict) -> list[str]:
     """The critical ER with what it rests on (issue 27): n against the minimum sample size,
     the ER-100% floor, the paired effect size and power at each ER, equivalence to ER 100%
@@ -807,16 +833,9 @@ def critical_er_markdown(er: dict) -> list[str]:
             else float("nan")
             for k in ("e_trans_mm", "e_rot_x_deg")
         ]
-        better = min(row["dz_e_trans_mm"], row["dz_e_rot_x_deg"]) < 0
         where = (
-            f"The critical ER is ER 100% itself; at the ER below it, {_pct(row['er'])}, which "
-            f"differs (p = {_p(row['p_e_trans'])} and {_p(row['p_e_rot_x'])}"
-            + (
-                "; a negative d_z: smaller errors than at ER 100%, a difference to the "
-                "paper's two-sided test too)"
-                if better
-                else ")"
-            )
+            f"The critical ER is ER 100% itself; at the ER below it, {_pct(row['er'])}, "
+            + _why_below_fails(row, alpha)
             if below
             else f"At the critical ER {_pct(row['er'])}"
         )
@@ -1127,7 +1146,8 @@ def starts_markdown(meta: dict, starts: dict) -> list[str]:
     return L + [
         "",
         f"Pairwise paired t-tests ({len(starts['tests'])} pairs x 2 errors, "
-        f"Bonferroni threshold p < {starts['bonferroni_threshold']:.4f}): "
+        f"Bonferroni per error over the {len(starts['tests'])} pairs, p < "
+        f"{starts['bonferroni_threshold']:.4f}): "
         f"**{n_sig} significant** (smallest p = {_p(pmin)}). Paper: "
         f"{PAPER['starts']}.",
         "",
