@@ -42,7 +42,6 @@ The last line is one JSON object.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -52,6 +51,7 @@ import numpy as np
 from tqdm import tqdm
 
 from drake_rus.anatomy.cohort import DEFAULT_COUNTS
+from drake_rus.io_utils import dumps_strict
 
 
 def _rate(fn, items, repeat: int = 3):
@@ -240,7 +240,7 @@ def main(argv=None) -> int:
         "seconds": round(time.perf_counter() - t0, 1),
         "load_average": [round(x, 2) for x in os.getloadavg()],
     }
-    print(json.dumps(result))
+    print(dumps_strict(result))  # NaN (e.g. no kidney-free frames) as null
     return 0
 
 

@@ -30,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
+from drake_rus.io_utils import dumps_strict
+
 MACHINE_B = {"speckle": False, "dynamic_range_db": 30.0}
 GREY_GAMMA = 0.5
 
@@ -195,7 +197,7 @@ def main(argv=None) -> int:
             "(after = alpha 1)"
         )
     print(
-        json.dumps(
+        dumps_strict(
             {
                 "tune_frames": len(tune),
                 "tune_sources": [f"train:{k}" for k in range(args.tune_patients)],

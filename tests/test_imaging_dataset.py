@@ -210,6 +210,8 @@ def test_summarise_groups_records():
     out = summarise(recs)
     assert out[0.1]["iou"] == 0.8 and out[0.1]["false_positive_rate"] == 1.0
     assert out[0.2]["frames_with_kidney"] == 1 and out[0.2]["frames_without_kidney"] == 0
+    # No kidney-free frame: no false-positive rate (NaN), not a perfect 0.
+    assert np.isnan(out[0.2]["false_positive_rate"])
     assert out[0.1]["iou_ci95"] == (0.8, 0.8)  # one source: no spread to resample
 
 

@@ -340,7 +340,8 @@ def summarise(records: list[dict], key=lambda r: r["depth"]) -> dict:
             "frames_with_kidney": len(ious),
             "frames_without_kidney": len(empty),
             "false_positive_rate": (
-                sum(r["false_positive"] for r in empty) / len(empty) if empty else 0.0
+                # NaN without kidney-free frames: none were marked, but none could be.
+                sum(r["false_positive"] for r in empty) / len(empty) if empty else float("nan")
             ),
             "false_positive_rate_ci95": cluster_bootstrap_ci(
                 [float(r["false_positive"]) for r in empty],
