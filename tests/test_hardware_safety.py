@@ -289,28 +289,36 @@ class Stall(LeafSystem):
             time.sleep(self._s)
 
 
+def _stalled_rig():
+    """(station, stall, simulator, station context, driver step): the LCM station on a
+    simulated driver, in a diagram whose loop stalls 0.4 s once at t = 0.2 s, initialized
+    with a zero command; ``driver_in_real_time()`` steps the driver by the wall time that
+    passed (like a separate process publishing meanwhile)."""
+    station, step = _rig(lcm_scenario(), np.zeros(7))
+    b = DiagramBuilder()
+    stall = b.AddSystem(Stall(0.2, 0.4))  # added first: its update runs first
+    b.AddSystem(station)
+    sim = Simulator(b.Build())
+    ctx = station.GetMyContextFromRoot(sim.get_context())
+    station.get_input_port().FixValue(ctx, np.zeros(7))
+    sim.Initialize()
+    last = [time.monotonic()]
+
+    def driver_in_real_time():
+        now = time.monotonic()
+        while last[0] < now:
+            step()
+            last[0] += 0.005
+
+    return station, stall, sim, ctx, driver_in_real_time
+
+
 def test_a_live_run_that_falls_behind_the_wall_clock_stops():
     """RunHardware at real time (the bring-up's motions and read-outs) is paced tick by tick
     like a live scan: a stall longer than safety.realtime_lag stops it with HardwareFault
     (zero velocity, by the session) instead of racing through the missed ticks."""
-    scenario = lcm_scenario()
-    station, step = _rig(scenario, np.zeros(7))
+    station, stall, sim, ctx, driver_in_real_time = _stalled_rig()
     try:
-        b = DiagramBuilder()
-        stall = b.AddSystem(Stall(0.2, 0.4))
-        b.AddSystem(station)
-        sim = Simulator(b.Build())
-        ctx = station.GetMyContextFromRoot(sim.get_context())
-        station.get_input_port().FixValue(ctx, np.zeros(7))
-        sim.Initialize()
-        last = [time.monotonic()]
-
-        def driver_in_real_time():
-            now = time.monotonic()
-            while last[0] < now:
-                step()
-                last[0] += 0.005
-
         with pytest.raises(HardwareFault, match="overloaded"):
             RunHardware(
                 sim,
@@ -333,26 +341,8 @@ def test_own_stall_is_not_a_lost_robot():
     """Our loop stalls 0.4 s (longer than status_timeout 0.25 s) while the driver keeps
     publishing: the status latch does not declare the robot lost; a driver that really
     stops is still detected."""
-    scenario = lcm_scenario()
-    station, step = _rig(scenario, np.zeros(7))
+    station, stall, sim, ctx, driver_in_real_time = _stalled_rig()
     try:
-        b = DiagramBuilder()
-        stall = b.AddSystem(Stall(0.2, 0.4))  # added first: its update runs first
-        b.AddSystem(station)
-        sim = Simulator(b.Build())
-        ctx = station.GetMyContextFromRoot(sim.get_context())
-        station.get_input_port().FixValue(ctx, np.zeros(7))
-        sim.Initialize()
-        # The driver runs in real time next to us (here: stepped after each of our steps by
-        # the wall time that passed, like a separate process publishing meanwhile).
-        last = [time.monotonic()]
-
-        def driver_in_real_time():
-            now = time.monotonic()
-            while last[0] < now:
-                step()
-                last[0] += 0.005
-
         RunHardware(
             sim, station, 0.5, check_period=0.005, realtime_rate=0.0, on_step=driver_in_real_time
         )
