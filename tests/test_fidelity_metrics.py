@@ -83,6 +83,10 @@ def test_legs_and_angles_are_recovered_from_the_poses():
     np.testing.assert_array_equal(
         pole_to_pole_indices(visible, pivot_legs(noisy)), pole_to_pole_indices(visible, legs)
     )
+    # A short first leg (a pivot point off the kidney's middle): out to +9 deg, back to -40
+    # deg. Leg 1 ends at +9 deg although it stays under a quarter of the largest tilt.
+    short = np.deg2rad(np.r_[np.arange(0, 9.01, 1), np.arange(8, -40.01, -1)])
+    np.testing.assert_array_equal(pivot_legs(short), np.r_[np.ones(10, int), np.full(49, 2)])
 
 
 def test_straight_line_pole_to_pole():
@@ -360,3 +364,36 @@ def test_er_sweep_analysis_counts_the_patients_not_localized():
     missing = {r["er"]: r["missing"] for r in an["rows"]}
     assert missing == {0.1: 3, 0.6: 0, 1.0: 0}
     assert an["critical_er"] != 0.1 and an["equivalence_er"] != 0.1
+
+
+def test_every_study_reports_the_papers_e_trans_in_x_and_y():
+    """E_trans is the x-y distance of the centroids (paper III-C) in every study: the fault
+    campaign and the breathing study too, not the 3-D distance (a depth error is no part of
+    it); with a patient shift taken off as before."""
+    from drake_rus.metrics import e_trans, e_trans_of_offset
+    from drake_rus.reliability.breathing import analyse_run
+    from drake_rus.reliability.campaign import error_at_localization_mm
+
+    X_true = RigidTransform([0.0, 0.0, 0.10])
+    X_est = RigidTransform([0.003, -0.004, 0.112])  # 5 mm in x-y, 12 mm in depth
+    assert e_trans_of_offset(X_est.translation() - X_true.translation()) == pytest.approx(0.005)
+    assert e_trans(X_est, X_true) == pytest.approx(0.005)
+    with pytest.raises(ValueError, match="3-vector"):
+        e_trans_of_offset([0.0, 0.0])
+    shift = types.SimpleNamespace(enabled=False, offset=[0, 0, 0], time=0.0, ramp=1.0)
+    scenario = types.SimpleNamespace(
+        patient=types.SimpleNamespace(motion=types.SimpleNamespace(shift=shift))
+    )
+    result = types.SimpleNamespace(
+        X_BK_estimated=X_est,
+        X_BK_true=X_true,
+        truth=object(),
+        events=[],
+        logs={},
+        phases=[],
+        frames=[],
+        respiration=None,
+        localization=types.SimpleNamespace(time=5.0),
+    )
+    assert error_at_localization_mm(scenario, result) == pytest.approx(5.0)
+    assert analyse_run(result, scenario, {})["e_trans_mm"] == pytest.approx(5.0)

@@ -536,3 +536,57 @@ def test_pivot_residual_bound_grows_by_the_hold_allowance_only_when_breathing():
     assert pivot_residual_bound(1.25, 0.005, "none", 0.004) == pytest.approx(0.00625)
     assert pivot_residual_bound(1.25, 0.005, "breath_hold", 0.004) == pytest.approx(0.01025)
     assert pivot_residual_bound(1.25, 0.005, "gated", 0.004) == pytest.approx(0.01025)
+
+
+def _pivot_frames(tip, yaw, t0, a=20, b=20):
+    """FrameRecords of one two-leg pivot about the array axis: 0 -> +a deg -> -b deg in
+    1-deg frames 0.1 s apart, the kidney visible within 15 deg."""
+    from drake_rus.scan.diagram import FrameRecord
+
+    tilts = list(np.arange(0, a + 1e-9, 1.0)) + list(np.arange(a - 1.0, -b - 1e-9, -1.0))
+    R0 = RotationMatrix.MakeZRotation(yaw) @ RotationMatrix.MakeXRotation(math.pi)
+    return [
+        FrameRecord(
+            t0 + 0.1 * k,
+            0,
+            int(Phase.PIVOT),
+            RigidTransform(R0 @ RotationMatrix.MakeXRotation(math.radians(d)), tip),
+            abs(d) <= 15,
+            5.0,
+        )
+        for k, d in enumerate(tilts)
+    ]
+
+
+def test_metrics_measure_the_pivot_the_verdict_judges():
+    """After a re-localization (a second look, a moved kidney) the scan holds two pivots:
+    n, eps and the legs are those of the last one, from the registration the scan ended with,
+    not both pooled (the jump between the two pivot points counted as one step)."""
+    from drake_rus.scan import ScanMetrics
+
+    first = _pivot_frames(np.array([0.0, 0.0, 0.3]), 0.0, 10.0)
+    last = _pivot_frames(np.array([0.02, 0.015, 0.3]), math.radians(30), 40.0)
+    scenario = types.SimpleNamespace(
+        imaging=types.SimpleNamespace(depth=0.16),
+        controller=types.SimpleNamespace(
+            sweep="pivot", pivot_pose=None, pivot_strategy="two_leg", max_pivot_tilt=0.6
+        ),
+    )
+
+    def metrics(frames, registered_at):
+        result = types.SimpleNamespace(
+            scenario=scenario,
+            frames=frames,
+            truth=None,
+            X_BK_estimated=None,
+            sweep_end_causes=("kidney_left",) * 2,
+            cap_slides=(),
+            localization=types.SimpleNamespace(time=registered_at, result=object()),
+        )
+        return ScanMetrics(result)
+
+    alone = metrics(last, 35.0)
+    both = metrics(first + last, 35.0)
+    for key in ("n_frames", "eps_mm", "n_whole_pivot", "eps_whole_pivot_mm"):
+        assert both[key] == alone[key], key
+    assert alone["n_whole_pivot"] == len(last)

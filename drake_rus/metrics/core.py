@@ -25,6 +25,16 @@ def e_trans(X_BK_estimated: RigidTransform, X_BK_true: RigidTransform) -> float:
     return float(np.linalg.norm(d))
 
 
+def e_trans_of_offset(offset_B) -> float:
+    """E_trans (m) of a centroid offset (estimated minus true, m, in B; e.g. with a patient
+    shift taken off): its x-y length, the paper's E_trans (section III-C); the depth (z)
+    error is not part of it."""
+    d = np.asarray(offset_B, float)
+    if d.shape != (3,):
+        raise ValueError(f"e_trans_of_offset: expected a 3-vector (m), got shape {d.shape}")
+    return float(np.linalg.norm(d[:2]))
+
+
 def e_rot_x(X_BK_estimated: RigidTransform, X_BK_true: RigidTransform) -> float:
     """E_rot,x (rad): absolute angle between the estimated and true kidney x-axes."""
     a = X_BK_estimated.rotation().matrix()[:, 0]

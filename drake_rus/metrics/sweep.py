@@ -24,6 +24,8 @@ the frames in question (a fresh :class:`~drake_rus.metrics.core.CoverageAccumula
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from drake_rus.metrics.core import window_steps
@@ -73,18 +75,26 @@ def signed_pivot_angles(R_BP_list, o: np.ndarray | None = None) -> np.ndarray:
     return np.asarray(out)
 
 
-def pivot_legs(angles, tol: float = 1e-9, direction_fraction: float = 0.25) -> np.ndarray:
+def pivot_legs(
+    angles,
+    tol: float = 1e-9,
+    direction_fraction: float = 0.25,
+    direction_tilt: float = math.radians(2.0),
+) -> np.ndarray:
     """The leg (1 or 2) of each frame of a two-leg pivot from its signed tilt angles: leg 1
     runs to the first frame of the largest tilt in its direction (the reversal), leg 2 is
     every later frame. Leg 1's direction is the sign of the first tilt beyond
-    ``direction_fraction`` of the largest tilt: a closed-loop pivot starts with a residual
-    tilt of either sign (the alignment's error, a fraction of a degree), which must not
-    decide it. A sweep that never tilts beyond ``tol`` is all leg 1."""
+    ``direction_tilt`` (rad, 2 deg) or ``direction_fraction`` of the largest tilt, whichever
+    is smaller: a closed-loop pivot starts with a residual tilt of either sign (the
+    alignment's error, a fraction of a degree), which must not decide it, and a short first
+    leg (a pivot point off the kidney's middle: leg 1 may reach under a quarter of leg 2's
+    extent) must still be leg 1. A sweep that never tilts beyond ``tol`` is all leg 1."""
     th = np.asarray(angles, float)
     legs = np.ones(len(th), int)
     if len(th) == 0 or np.max(np.abs(th)) <= tol:
         return legs
-    moved = np.flatnonzero(np.abs(th) > max(tol, direction_fraction * np.max(np.abs(th))))
+    beyond = min(direction_tilt, direction_fraction * np.max(np.abs(th)))
+    moved = np.flatnonzero(np.abs(th) > max(tol, beyond))
     direction = np.sign(th[moved[0]])
     turn = int(np.argmax(direction * th))
     legs[turn + 1 :] = 2

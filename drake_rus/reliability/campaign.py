@@ -27,6 +27,7 @@ from drake_rus.anatomy import load_patient
 from drake_rus.anatomy.motion import shift_offset
 from drake_rus.io_utils import save_figure, write_text_atomic
 from drake_rus.localization.localize import load_registration_template
+from drake_rus.metrics import e_trans_of_offset
 from drake_rus.reliability.config import FAULT_KINDS
 from drake_rus.reliability.run import RunFaultyScan, outcome_reason
 from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, LoadScenario
@@ -181,11 +182,9 @@ def run_task(task: dict) -> dict:
                 "e_trans_mm": (
                     None
                     if result.X_BK_estimated is None
-                    else float(
-                        np.linalg.norm(
-                            result.X_BK_estimated.translation() - result.X_BK_true.translation()
-                        )
-                        * 1000
+                    else 1e3
+                    * e_trans_of_offset(
+                        result.X_BK_estimated.translation() - result.X_BK_true.translation()
                     )
                 ),
                 "e_trans_at_localization_mm": error_at_localization_mm(scenario, result),
@@ -215,7 +214,7 @@ def error_at_localization_mm(scenario, result) -> float | None:
     truth = result.X_BK_true.translation() + shift_offset(
         result.localization.time, scenario.patient.motion.shift
     )
-    return float(np.linalg.norm(result.X_BK_estimated.translation() - truth) * 1000)
+    return 1e3 * e_trans_of_offset(result.X_BK_estimated.translation() - truth)
 
 
 # The id of a campaign run (its result file's name): picklable, unlike a lambda.

@@ -21,7 +21,6 @@ import math
 import numpy as np
 
 from drake_rus.control.force_loop import phase_force_statistics
-from drake_rus.control.supervisor import Phase
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.localization.tracking import tracking_limits
 from drake_rus.metrics import (
@@ -36,6 +35,7 @@ from drake_rus.metrics import (
     sweep_efficiency,
 )
 from drake_rus.scan.run import ScanResult
+from drake_rus.scan.verdict import judged_sweep_frames
 
 __all__ = ["METRIC_DEFINITIONS", "ScanMetrics", "Summary", "SweepDescription", "V_TARGETS"]
 
@@ -104,12 +104,13 @@ def _reach_mm(r):
 
 def ScanMetrics(result: ScanResult) -> dict:
     """The seed's metrics for one scan (section III): E_trans, E_rot,x, and eps, n, V pole to
-    pole (the paper's) with the whole pivot's beside them."""
+    pole (the paper's) with the whole pivot's beside them, on the sweep the verdict judges
+    (after a re-localization, the last pivot only: :func:`verdict.judged_sweep_frames`)."""
     imaging = result.scenario.imaging
     ctrl = result.scenario.controller
     sweep = SweepDescription(ctrl)
     line = sweep["kind"] == "line"
-    pivot = [f for f in result.frames if f.phase == (Phase.EXPLORE if line else Phase.PIVOT)]
+    pivot = judged_sweep_frames(result, sweep["kind"])
     poses = [f.X_BP for f in pivot]
     angles = None if line else signed_pivot_angles([X.rotation() for X in poses])
     legs = np.zeros(len(poses), int) if line else pivot_legs(angles)

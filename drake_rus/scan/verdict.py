@@ -429,8 +429,11 @@ def sweep_frames(frames, kind: str, registered_at: float = -math.inf) -> list:
     return [f for f in frames if int(f.phase) == phase and f.time >= registered_at]
 
 
-def _sweep_frames(result, kind: str):
-    outcome = result.localization
+def judged_sweep_frames(result, kind: str) -> list:
+    """The frames of ``result``'s sweep that the verdict judges and the metrics measure
+    (:func:`sweep_frames` from the time of the registration the scan ended with: after a
+    re-localization, only the last pivot)."""
+    outcome = getattr(result, "localization", None)
     registered_at = -math.inf
     if kind != "line" and outcome is not None and outcome.result is not None:
         registered_at = float(outcome.time)
@@ -446,7 +449,7 @@ def JudgeScan(result, template) -> list[Check]:
     cfg = sc.verdict
     kind = getattr(sc.controller, "sweep", "pivot")
     checks = [check_sweep_ends(result.sweep_end_causes, kind)]
-    frames = _sweep_frames(result, kind)
+    frames = judged_sweep_frames(result, kind)
     poses = [f.X_BP for f in frames]
     visible = [bool(f.visible) for f in frames]
     loc = result.localization.result if result.localization is not None else None
