@@ -3,6 +3,8 @@ KiTS-style label map with a known pose, stored permuted and mirrored in several 
 kidney pose and tumour after resampling; the one-line errors; 2 real KiTS cases (skip
 without ../shared)."""
 
+import gzip
+
 import numpy as np
 import pytest
 import SimpleITK as sitk
@@ -160,6 +162,18 @@ def test_one_line_errors_name_the_file(case, tmp_path):
         read_label_grid(bad)
     with pytest.raises(FileNotFoundError, match="missing.nii.gz"):
         read_label_grid(tmp_path / "missing.nii.gz")
+    # Cut short (an interrupted copy): SimpleITK would read the missing voxels as background.
+    whole = _write(tmp_path / "whole.nii.gz", a, sp, R)
+    data = whole.read_bytes()
+    (tmp_path / "short.nii.gz").write_bytes(data[: len(data) * 2 // 3])
+    with pytest.raises(ValueError, match=r"short\.nii\.gz: the file is truncated or corrupt"):
+        read_label_grid(tmp_path / "short.nii.gz")
+    raw = tmp_path / "whole.nii"
+    raw.write_bytes(gzip.decompress(data))
+    assert read_label_grid(raw).labels.shape == read_label_grid(whole).labels.shape
+    (tmp_path / "short.nii").write_bytes(raw.read_bytes()[:-1000])
+    with pytest.raises(ValueError, match=r"short\.nii: the file is truncated: its header"):
+        read_label_grid(tmp_path / "short.nii")
     empty = _write(tmp_path / "empty.nii.gz", np.zeros_like(a), sp, R)
     with pytest.raises(ValueError, match=r"empty\.nii\.gz: no kidney labels"):
         read_label_grid(empty)
@@ -252,3 +266,23 @@ def test_kits_case_10_reaches_the_last_slice_with_its_lower_pole_tip_only():
     s = survey_summary([row])
     assert s["usable"]["right"] == {"ok": 1, "missing": 0, "cut": 0}
     assert len(s["pole_on_border"]) == 1 and s["pole_on_border"][0].endswith("right: axis 2 high")
+
+
+def test_a_detached_headers_voxels_are_part_of_its_digest(tmp_path):
+    """A MetaImage header (.mhd) keeps its voxels in another file: the cache keys (the
+    patient's and the real template's, both by file_digest) change when only that file
+    changes, so no stale patient or template is reused."""
+    from drake_rus.anatomy.cache import detached_data_files, file_digest
+
+    a = np.zeros((6, 7, 8), np.uint8)
+    a[2:4, 2:5, 3:6] = 1
+    header = tmp_path / "segmentation.mhd"
+    sitk.WriteImage(sitk.GetImageFromArray(a), str(header))
+    (data,) = detached_data_files(header)
+    assert data.is_file() and data.parent == tmp_path
+    before = file_digest(header)
+    a[2, 2, 3] = 2  # a tumour voxel: only the voxel file changes
+    data.write_bytes(a.tobytes())
+    assert header.read_text().count("ElementDataFile") == 1
+    assert file_digest(header) != before
+    assert detached_data_files(tmp_path / "x.nii.gz") == []

@@ -341,6 +341,10 @@ def test_match_cases():
     assert ct._exclusions(
         names, ["test:0", "kits:/d/case_00004", "/d/case_00005/seg.nii.gz", "7"]
     ) == ["case_00004", "case_00005", "case_00007"]
+    # ct: specs with options name their label map's case, whatever the file is called.
+    assert ct._exclusions(
+        ["case_00001", "patA"], ["ct:/d/cts/patA.nii.gz#left", "ct:/d/case_00001#right,body=7"]
+    ) == ["patA", "case_00001"]
 
 
 @pytest.fixture(scope="module")
@@ -455,6 +459,8 @@ def test_split_is_checked(ct_dir, builds):
     copy.parent.mkdir()
     copy.write_bytes(seg3.read_bytes())
     assert "case_00003" in ct.split_warnings(p, [str(copy)])[0]
+    # The same bytes named by a scan's ct: spec, with options: matched by digest too.
+    assert "case_00003" in ct.split_warnings(p, [f"ct:{copy}#right"])[0]
     with pytest.warns(ct.TemplateSplitWarning, match="case_00003"):
         ct.resolve_template(str(p), exclude_cases=["case_00003"])
     q = ct.resolve_template(f"real:{ct_dir}", exclude_cases=["3"], opts=FAST)

@@ -79,12 +79,43 @@ def patient_cache_dir() -> Path:
     return user_cache_home() / "patients"
 
 
+def detached_data_files(path) -> list[Path]:
+    """The voxel files a detached image header names, beside it: a MetaImage ``.mhd``'s
+    ``ElementDataFile`` or an NRRD ``.nhdr``'s ``data file``; [] for any other file and for
+    inline data (``LOCAL``). A list or pattern of files is not followed."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in (".mhd", ".nhdr"):
+        return []
+    keys = ("elementdatafile",) if suffix == ".mhd" else ("data file", "datafile")
+    sep = "=" if suffix == ".mhd" else ":"
+    try:
+        text = path.read_text(errors="replace")
+    except OSError:
+        return []
+    for line in text.splitlines():
+        key, found, value = line.partition(sep)
+        if found and key.strip().lower() in keys:
+            name = value.strip()
+            if not name or name.upper() in ("LOCAL", "LIST") or " " in name or "%" in name:
+                return []
+            return [path.parent / name]
+    return []
+
+
 def file_digest(path) -> str:
-    """SHA-256 of a file's bytes."""
+    """SHA-256 of a file's bytes, and of the voxel file a detached header names
+    (:func:`detached_data_files`): a changed ``.raw`` beside an ``.mhd`` changes it."""
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):
             h.update(block)
+    for data in detached_data_files(path):
+        if data.is_file():
+            h.update(b"\0" + data.name.encode() + b"\0")
+            with open(data, "rb") as f:
+                for block in iter(lambda: f.read(1 << 20), b""):
+                    h.update(block)
     return h.hexdigest()
 
 

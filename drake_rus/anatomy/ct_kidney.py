@@ -55,6 +55,9 @@ the border only with the tip of a closing pole (``CLOSING_POLE_MAX_SHARE``) is w
 
 from __future__ import annotations
 
+import gzip
+import struct
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -143,16 +146,73 @@ class LabelGrid:
     header_R_AG: np.ndarray | None = None
 
 
+def _nifti_payload_end(header: bytes) -> int | None:
+    """The byte where a NIfTI-1 or NIfTI-2 file's voxels end (vox_offset + voxels x bytes),
+    from its first 540 bytes; None when they are no NIfTI header."""
+    for order in "<>":
+        if len(header) >= 348 and struct.unpack(order + "i", header[:4])[0] == 348:
+            dims = struct.unpack(order + "8h", header[40:56])
+            bitpix = struct.unpack(order + "h", header[72:74])[0]
+            offset = int(struct.unpack(order + "f", header[108:112])[0])
+        elif len(header) >= 540 and struct.unpack(order + "i", header[:4])[0] == 540:
+            bitpix = struct.unpack(order + "h", header[14:16])[0]
+            dims = struct.unpack(order + "8q", header[16:80])
+            offset = struct.unpack(order + "q", header[168:176])[0]
+        else:
+            continue
+        n = 1
+        for d in dims[1 : 1 + max(0, min(int(dims[0]), 7))]:
+            n *= max(int(d), 1)
+        return offset + n * max(int(bitpix), 0) // 8
+    return None
+
+
+def check_complete(path: Path) -> None:
+    """Refuses a label map file cut short (an interrupted copy or download), which SimpleITK
+    reads without complaint, the missing voxels as background (a half kidney would pass as
+    whole): a gzip stream that ends early, or a NIfTI file (plain or gzipped) shorter than
+    its header says. Raises ValueError naming the file."""
+    path = Path(path)
+    where = f"label map {path}"
+    name = path.name.lower()
+    if not (name.endswith(".gz") or name.endswith(".nii")):
+        return
+    if name.endswith(".gz"):
+        with open(path, "rb") as f:
+            if f.read(2) != b"\x1f\x8b":
+                return  # no gzip stream at all: SimpleITK's own error says so
+    try:
+        if name.endswith(".gz"):
+            with gzip.open(path, "rb") as f:
+                header = f.read(540)
+                size = len(header)
+                while chunk := f.read(1 << 22):
+                    size += len(chunk)
+        else:
+            with open(path, "rb") as f:
+                header = f.read(540)
+            size = path.stat().st_size
+    except (EOFError, OSError, zlib.error) as e:
+        _fail(f"{where}: the file is truncated or corrupt ({e}); copy it again")
+    end = _nifti_payload_end(header) if ".nii" in name else None
+    if end is not None and size < end:
+        _fail(
+            f"{where}: the file is truncated: its header promises {end} bytes, it holds "
+            f"{size}; copy it again"
+        )
+
+
 def read_label_image(path: Path):
     """The SimpleITK image of a label map file (any SimpleITK-readable 3-D file, one label
-    per voxel). A missing, unreadable, non-3-D or multi-component file raises an error
-    naming the file (FileNotFoundError, ValueError)."""
+    per voxel). A missing, unreadable, truncated (:func:`check_complete`), non-3-D or
+    multi-component file raises an error naming the file (FileNotFoundError, ValueError)."""
     import SimpleITK as sitk
 
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"label map: file not found: {path}")
     where = f"label map {path}"
+    check_complete(path)
     try:
         img = sitk.ReadImage(str(path))
     except Exception as e:

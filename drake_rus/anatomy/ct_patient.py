@@ -12,10 +12,10 @@ case folder: ``case_00003`` holds ``segmentation.nii.gz``). Options:
 - ``right`` / ``left``: which CT kidney (default: the scenario's target side,
   ``patient.side``); a kidney of the other side is mirrored through the sagittal plane;
 - ``body=N``: the generator seed of the body (default: derived from the label map's
-  content, ``3000000 + (SHA-256 mod 1000000)``, disjoint from train/test seeds; if the
-  kidney does not fit between that body's spine and flank, the next of ``CT_BODY_TRIES``
-  seeds, then those bodies widened within adult abdominal widths, ``body_attempts``; a
-  given ``body=N`` is used as drawn);
+  content, ``3000000 + int(SHA-256[:12], 16) mod 1000000``: the digest's first 12 hex
+  digits), disjoint from train/test seeds; if the kidney does not fit between that body's
+  spine and flank, the next of ``CT_BODY_TRIES`` seeds, then those bodies widened within
+  adult abdominal widths, ``body_attempts``; a given ``body=N`` is used as drawn);
 - ``kidney=with_tumour|parenchyma``: what "the kidney" is when a tumour bulges from it
   (default ``with_tumour``): the true pose, kidney mask and segmentation target include
   the tumour, or only the parenchyma (the tumour is then a separate tissue beside it). Both

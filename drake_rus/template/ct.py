@@ -75,6 +75,7 @@ from drake_rus.anatomy.ct_kidney import (
     import_ct_kidneys,
     read_label_grid,
 )
+from drake_rus.anatomy.ct_patient import CT_PREFIX, ct_label_map_path, parse_ct_spec
 from drake_rus.anatomy.frames import lateral_direction_Bd
 from drake_rus.anatomy.rasterize import mask_to_mesh
 from drake_rus.paths import MODELS_DIR, REPO_ROOT
@@ -798,12 +799,27 @@ def resolve_template(
     return path
 
 
+def _spec_target(item: str) -> str:
+    """A ``ct:PATH[#OPTIONS]`` patient spec as the label map it names (a folder as given
+    when it holds none, an unparsable spec as is); any other item unchanged."""
+    if not item.startswith(CT_PREFIX):
+        return item
+    try:
+        path = parse_ct_spec(item).path
+    except ValueError:
+        return item
+    try:
+        return str(ct_label_map_path(path, item))
+    except (ValueError, OSError):
+        return str(path)
+
+
 def _exclusions(names, cases) -> list[str]:
     """Case names among ``names`` that ``cases`` (names, numbers, ranges, paths) selects;
     items that select nothing are ignored (a generated patient has no case)."""
     out = []
     for c in [cases] if isinstance(cases, (str, Path)) else list(cases or ()):
-        c = str(c)
+        c = _spec_target(str(c))
         item = case_name_of(c) if ("/" in c or c.lower().endswith(LABEL_MAP_SUFFIXES)) else c
         try:
             hit = match_cases(names, [item])
@@ -840,7 +856,7 @@ def split_warnings(template, cases) -> list[str]:
     for c in [cases] if isinstance(cases, (str, Path)) else list(cases or ()):
         c = str(c)
         hit = None
-        p = Path(c).expanduser()
+        p = Path(_spec_target(c)).expanduser()
         if p.is_dir():
             maps = [p / f"segmentation{s}" for s in LABEL_MAP_SUFFIXES]
             p = next((f for f in maps if f.is_file()), p)
