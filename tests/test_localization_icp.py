@@ -412,3 +412,20 @@ def test_icp_with_moving_nearest_equals_plain_kd_tree_queries(monkeypatch, movin
     assert np.array_equal(fast.errors, plain.errors)
     assert np.array_equal(fast.X_BK.GetAsMatrix4(), plain.X_BK.GetAsMatrix4())
     assert np.array_equal(fast.shape_coefficients, plain.shape_coefficients)
+
+
+@pytest.mark.parametrize(
+    "superior, lateral, match",
+    [
+        ([0, 0, 0], [-1, 0, 0], "superior_B: expected a non-zero direction"),
+        ([np.nan, 1, 0], [-1, 0, 0], "superior_B: expected a finite 3-vector"),
+        ([0, 1, 0], [0, 0, 0], "lateral_B: expected a non-zero direction"),
+        ([0, 1, 0], [np.inf, 0, 0], "lateral_B: expected a finite 3-vector"),
+        ([0, 1], [-1, 0, 0], "superior_B: expected a finite 3-vector"),
+    ],
+)
+def test_heuristic_initial_rotation_refuses_a_degenerate_direction(superior, lateral, match):
+    # A zero or NaN body direction used to give a NaN rotation without a word (and a zero
+    # lateral direction was reported as parallel to the superior one).
+    with pytest.raises(ValueError, match=match):
+        heuristic_initial_rotation(superior, lateral)

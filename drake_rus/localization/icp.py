@@ -312,17 +312,30 @@ def heuristic_initial_rotation(superior_B, lateral_B) -> RotationMatrix:
     ``superior_B``: head direction of the patient in B (the base +y for the default bed).
     ``lateral_B``: medial->lateral direction of the target kidney in B (for the right kidney
     of a supine patient, the patient's right). ``lateral_B`` is orthogonalised against
-    ``superior_B``; z = x cross y.
+    ``superior_B``; z = x cross y. Raises ValueError for a direction that is not a finite,
+    non-zero 3-vector, or for ``lateral_B`` parallel to ``superior_B``.
     """
-    x = np.asarray(superior_B, dtype=float)
-    x = x / np.linalg.norm(x)
-    y = np.asarray(lateral_B, dtype=float)
+    x = _direction("superior_B", superior_B)
+    y = _direction("lateral_B", lateral_B)
     y = y - (y @ x) * x
     norm = np.linalg.norm(y)
     if norm < 1e-9:
         raise ValueError("lateral_B: must not be parallel to superior_B")
     y = y / norm
     return RotationMatrix(np.column_stack([x, y, np.cross(x, y)]))
+
+
+def _direction(name: str, v) -> np.ndarray:
+    """``v`` as a unit 3-vector; ValueError naming ``name`` unless it is a finite, non-zero
+    3-vector (a zero or NaN direction would make every rotation built from it NaN)."""
+    v = np.asarray(v, dtype=float)
+    if v.size != 3 or not np.all(np.isfinite(v)):
+        raise ValueError(f"{name}: expected a finite 3-vector, got {v.tolist()}")
+    v = v.reshape(3)
+    norm = float(np.linalg.norm(v))
+    if norm < 1e-9:
+        raise ValueError(f"{name}: expected a non-zero direction, got {v.tolist()}")
+    return v / norm
 
 
 def _check_cloud(name: str, points) -> np.ndarray:
