@@ -292,6 +292,21 @@ def test_er_in_units_of_the_patients_kidney_length():
     assert full.travel[-1] > CTRL.kidney_length
 
 
+def test_a_shared_exploration_leaves_the_imager_as_exploring_would():
+    """An efficiency run's sweeps (emulated images: the speckle follows the imager's frame
+    counter) are the same whether or not its process explored the patient before (an
+    er-sweep run of it with --workers 0, or an earlier task on the same Dask worker)."""
+    kp = synthetic()
+    task = StudyTask(study="er-sweep", patient="synthetic-shared", voxel=VOXEL, er=0.6)
+    kinematic_runs._EXPLORATIONS.clear()
+    first, again = km.Imager(kp, IMG, "classical"), km.Imager(kp, IMG, "classical")
+    kinematic_runs.exploration(task, kp, first, CTRL, 0.0, 0.0)  # explores
+    kinematic_runs.exploration(task, kp, again, CTRL, 0.0, 0.0)  # takes the stored one
+    assert again.frame_index == first.frame_index > 0
+    X = km.tip_pose(kp, km.R_B_TRANSVERSE, *kp.roi.centroid_B[:2])
+    np.testing.assert_array_equal(first(X, keep=True).image, again(X, keep=True).image)
+
+
 def test_kinematic_pivot_and_closed_loop_definitions_agree():
     """The legs found from the poses (what the closed-loop scan does) are the kinematic
     sweep's own legs, so both modes measure pole to pole alike."""

@@ -54,7 +54,10 @@ _EXPLORATIONS: dict = {}
 def exploration(task: StudyTask, kp, imager, controller, start_fraction: float, x_offset: float):
     """The exploration of ``task``. Runs that differ only in ER share one full (ER 100%)
     exploration per process and take its prefix (identical to exploring less: see
-    ``Sweep.prefix``)."""
+    ``Sweep.prefix``). ``imager`` is left as the full exploration leaves it (its frame
+    counter, which the emulator's speckle of later sweeps depends on, past the full
+    exploration's frames) whether or not this process explored before, so a run's numbers
+    do not depend on which runs its process ran first (the worker count)."""
     key = (
         task.patient,
         task.posture,
@@ -68,7 +71,9 @@ def exploration(task: StudyTask, kp, imager, controller, start_fraction: float, 
         x_offset,
     )
     full = _EXPLORATIONS.get(key)
-    if full is None:
+    if full is not None:
+        imager.frame_index += len(full.frames)  # as exploring it here would have
+    else:
         full = km.explore(
             kp,
             imager,
