@@ -61,6 +61,30 @@ def test_check_registration_accepts_good_and_rejects_bad(template):
     assert "RMS residual 10.0 mm" in check_registration(rough, P, config)
 
 
+def test_a_refusal_shows_the_value_beyond_its_limit(template):
+    # Rounded to the usual digits, a value just beyond its limit read as the limit itself
+    # ("RMS residual 5.0 mm > 5.0 mm", "only 25% ... (need 25%)").
+    config = LocalizationConfig()
+    X_BK, P = partial_cloud(template)
+    R0 = heuristic_initial_rotation(SUPERIOR_B, LATERAL_B)
+    good = register_plane_to_plane(P, template.points, template.normals, R0)
+    rough = dataclasses.replace(good, rms_residual=0.00602)
+    assert check_registration(rough, P, config).endswith("RMS residual 6.02 mm > 6.00 mm")
+    sparse = dataclasses.replace(good, inlier_fraction=0.2496)
+    assert "only 24.96% of the" in check_registration(sparse, P, config)
+    assert "(need 25.00%)" in check_registration(sparse, P, config)
+    far = dataclasses.replace(
+        good, X_BK=RigidTransform(good.X_BK.rotation(), P.mean(axis=0) + [0.0803, 0, 0])
+    )
+    assert "centre is 80.3 mm from the explored points (limit 80.0 mm)" in (
+        check_registration(far, P, config)
+    )
+    # Far enough apart, the usual digits.
+    assert check_registration(dataclasses.replace(good, rms_residual=0.01), P, config).endswith(
+        "RMS residual 10.0 mm > 6.0 mm"
+    )
+
+
 def test_cloud_axis_offset_follows_a_tilted_line_of_sections():
     """A tube of points whose axis leans 30 deg off the sweep direction: a point on its axis
     is 0 mm off the sections' line, one 10 mm across the sweep 10 mm (a plain centroid,
@@ -104,7 +128,8 @@ def test_geometry_check_refuses_a_turned_or_displaced_fit(template):
     moved = dataclasses.replace(
         good, X_BK=RigidTransform(good.X_BK.rotation(), good.X_BK.translation() + across)
     )
-    assert "from the explored sections' axis (limit 14 mm)" in check_geometry(
+    # 14.1 mm: the refusal shows the decimal that puts it past the limit.
+    assert "14.1 mm from the explored sections' axis (limit 14.0 mm)" in check_geometry(
         moved, P, config, SUPERIOR_B
     )
     # Off by default, and without the body's axis.
@@ -129,7 +154,7 @@ def _cloud(points, travel_m):
     )
 
 
-@pytest.mark.parametrize("travel, expect_pose", [(0.04, True), (0.005, False)])
+@pytest.mark.parametrize("travel, expect_pose", [(0.04, True), (0.005, False), (0.01496, False)])
 def test_icp_localizer_system(template, travel, expect_pose):
     X_BK, P = partial_cloud(template)
     phase = supervisor.Phase.LOCALIZE
@@ -157,8 +182,10 @@ def test_icp_localizer_system(template, travel, expect_pose):
         assert ready == 1.0 and error == ""
         X = system.GetOutputPort("X_BK").Eval(context)
         assert np.linalg.norm(X.translation() - X_BK.translation()) < 2e-3
-    else:
+    elif travel == 0.005:
         assert ready == 0.0 and "5.0 mm of exploration" in error
+    else:  # just short of the 15 mm: not "15.0 mm (need 15 mm)"
+        assert ready == 0.0 and "only 14.96 mm of exploration (need 15.00 mm)" in error
 
 
 def test_exploration_travel():

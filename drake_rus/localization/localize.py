@@ -339,6 +339,18 @@ def cloud_axis_offset(
     return float(np.linalg.norm(p_across - on_axis))
 
 
+def _shown(value: float, limit: float, decimals: int, above: bool) -> tuple[str, str]:
+    """(value, limit) as a refusal states them: rounded to ``decimals``, with more decimals
+    (up to 4 more) while the rounding hides why the value fails (``above``: the value
+    exceeds the limit; else it falls short of it), e.g. an RMS of 5.02 mm against 5.0 mm
+    reads "5.02 mm > 5.00 mm", not "5.0 mm > 5.0 mm"."""
+    for d in range(decimals, decimals + 5):
+        a, b = f"{value:.{d}f}", f"{limit:.{d}f}"
+        if (float(a) > float(b)) if above else (float(a) < float(b)):
+            break
+    return a, b
+
+
 def check_geometry(
     result: IcpResult, P_local_B: np.ndarray, config: LocalizationConfig, superior_B
 ) -> str:
@@ -352,15 +364,17 @@ def check_geometry(
     x_k = result.X_BK.rotation().matrix()[:, 0]
     tilt = math.degrees(math.acos(min(1.0, abs(float(x_k @ u)))))
     if tilt > config.max_axis_tilt_deg:
+        a, b = _shown(tilt, config.max_axis_tilt_deg, 0, above=True)
         return (
-            f"registration rejected: the fitted kidney's long axis lies {tilt:.0f} deg from "
-            f"the body's axis along which the sweep ran (limit {config.max_axis_tilt_deg:.0f} deg)"
+            f"registration rejected: the fitted kidney's long axis lies {a} deg from "
+            f"the body's axis along which the sweep ran (limit {b} deg)"
         )
     offset = cloud_axis_offset(P_local_B, result.X_BK.translation(), u)
     if offset > config.max_centre_off_cloud_axis:
+        a, b = _shown(1000 * offset, 1000 * config.max_centre_off_cloud_axis, 0, above=True)
         return (
-            f"registration rejected: the fitted kidney centre is {1000 * offset:.0f} mm from "
-            f"the explored sections' axis (limit {1000 * config.max_centre_off_cloud_axis:.0f} mm)"
+            f"registration rejected: the fitted kidney centre is {a} mm from "
+            f"the explored sections' axis (limit {b} mm)"
         )
     return ""
 
@@ -379,23 +393,23 @@ def check_registration(
     if not np.all(np.isfinite(result.X_BK.GetAsMatrix4())):
         return "registration produced a non-finite pose"
     if result.inlier_fraction < config.min_inlier_fraction:
+        a, b = _shown(100 * result.inlier_fraction, 100 * config.min_inlier_fraction, 0, False)
         return (
-            f"registration rejected: only {100 * result.inlier_fraction:.0f}% of the "
+            f"registration rejected: only {a}% of the "
             f"explored points lie within 3 mm of the registered template "
-            f"(need {100 * config.min_inlier_fraction:.0f}%)"
+            f"(need {b}%)"
         )
     # The deformable fit absorbs part of the kidney's shape difference: its own bound.
     max_rms = max_rms_residual(config, template, result.shape_coefficients is not None)
     if result.rms_residual > max_rms:
-        return (
-            f"registration rejected: RMS residual {1000 * result.rms_residual:.1f} mm "
-            f"> {1000 * max_rms:.1f} mm"
-        )
+        a, b = _shown(1000 * result.rms_residual, 1000 * max_rms, 1, above=True)
+        return f"registration rejected: RMS residual {a} mm > {b} mm"
     offset = np.linalg.norm(result.X_BK.translation() - np.mean(P_local_B, axis=0))
     if offset > config.max_centroid_offset:
+        a, b = _shown(1000 * offset, 1000 * config.max_centroid_offset, 0, above=True)
         return (
-            f"registration rejected: the estimated kidney centre is {1000 * offset:.0f} mm "
-            f"from the explored points (limit {1000 * config.max_centroid_offset:.0f} mm)"
+            f"registration rejected: the estimated kidney centre is {a} mm "
+            f"from the explored points (limit {b} mm)"
         )
     if config.geometry_check and superior_B is not None:
         return check_geometry(result, P_local_B, config, superior_B)
@@ -660,10 +674,9 @@ class IcpLocalizer(LeafSystem):
                 f"only {len(points)} kidney boundary points were explored (need {self._min_points})"
             )
         elif travel < self._config.min_exploration_travel:
-            error = (
-                f"the kidney was seen over only {1000 * travel:.1f} mm of exploration "
-                f"(need {1000 * self._config.min_exploration_travel:.0f} mm)"
-            )
+            a = _shown(1000 * travel, 1000 * self._config.min_exploration_travel, 1, False)[0]
+            b = _shown(1000 * travel, 1000 * self._config.min_exploration_travel, 0, False)[1]
+            error = f"the kidney was seen over only {a} mm of exploration (need {b} mm)"
         if error:
             state.get_mutable_abstract_state(self._outcome).set_value(
                 LocalizationOutcome(
