@@ -3,7 +3,9 @@
 A batch is a list of tasks (dicts, or picklable objects with a ``to_dict()`` such as the
 studies' typed tasks) and a function ``run(task) -> dict`` (module-level, so that Dask can
 pickle it by reference). Each run's result is written atomically to
-``OUT/runs/<id>.json`` as it finishes, ``<id>`` given by the caller's id function, with the
+``OUT/runs/<id>.json`` as it finishes (a process killed while writing leaves at most a
+hidden temporary file, which is never read as a run), ``<id>`` given by the caller's id
+function, with the
 task's settings key (``task_key``: a hash of everything that changes the run, by default the
 whole task, :func:`content_key`). An interrupted batch resumes: running it again skips every
 task whose file exists AND holds the same key. A stored run whose key differs (the same run
@@ -91,9 +93,13 @@ def save_result(out_dir, run_id: str, result: dict) -> Path:
 
 def load_results(out_dir, where: Callable[[dict], bool] | None = None) -> list[dict]:
     """All finished run results under ``out_dir/runs`` in file-name order (not the
-    superseded ones); with ``where``, only those for which ``where(result)`` is true."""
+    superseded ones, nor the temporary file, ``.<id>.json.*.json``, of a write a killed
+    process left unfinished); with ``where``, only those for which ``where(result)`` is
+    true."""
     rows = []
     for p in sorted(runs_dir(out_dir).glob("*.json")):
+        if p.name.startswith("."):  # io_utils.atomic_path's temporary file: not a run
+            continue
         r = json.loads(p.read_text())
         if where is None or where(r):
             rows.append(r)

@@ -109,6 +109,19 @@ def test_batch_sets_aside_other_settings_and_takes_them_back(tmp_path):
     )
 
 
+def test_a_killed_write_leaves_no_run(tmp_path):
+    """A process killed while a result was written (SIGKILL, the OOM killer) leaves the
+    atomic writer's temporary file in OUT/runs: half-written, or whole but not renamed.
+    Neither is a run: loading must neither fail on it nor count a run twice."""
+    task = _task()
+    rid = keys.run_id(task)
+    batch.save_result(tmp_path, rid, {"run_id": rid, "task": task.to_dict()})
+    runs = tmp_path / "runs"
+    (runs / f".{rid}.json.k1lled0.json").write_text('{"run_id": "' + rid + '", "ta')
+    (runs / f".{rid}.json.n0tm0ved.json").write_text(json.dumps({"run_id": rid}))
+    assert [r["run_id"] for r in batch.load_results(tmp_path)] == [rid]
+
+
 def test_a_stored_run_without_a_key_is_not_reused(tmp_path):
     task = _task()
     batch.save_result(
