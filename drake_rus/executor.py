@@ -26,7 +26,8 @@ is paced at real time, inline otherwise):
   switch interval (5 ms); a process below the loop's priority takes only the CPU the loop
   leaves. Functions and arguments must pickle (module-level functions); large constant
   objects are installed once per lane with :meth:`share` and passed as the returned
-  :class:`Shared` handle.
+  :class:`Shared` handle. A result that does not pickle is the job's error
+  (:class:`WorkerError`, raised by ``poll``), not a job that never ends.
 
 Lanes: ``frames`` (segmentation, at the imaging frame rate) and ``fits`` (registration,
 length, adaptive and tracking fits), so a 400 ms fit never delays a frame.
@@ -306,7 +307,24 @@ def _worker_main(jobs, results, lane: str, nice: int, parent: int) -> None:
             value, error = fn(*_resolve(args, shared)), None
         except Exception as e:
             value, error = None, _portable(e)
-        results.put(("done", job_id, value, time.perf_counter() - start, error))
+        results.put(_done(job_id, value, time.perf_counter() - start, error, fn))
+
+
+def _done(job_id: int, value, compute: float, error, fn: Callable) -> bytes:
+    """A job's result for the caller, pickled now, in the worker (see :func:`_message`: the
+    queue's feeder thread would drop a value that does not pickle without a word, and the
+    job would never be done). Such a value is the job's error instead, raised by ``poll``."""
+    try:
+        return pickle.dumps(
+            ("done", job_id, value, compute, error), protocol=pickle.HIGHEST_PROTOCOL
+        )
+    except Exception as e:
+        name = getattr(fn, "__name__", repr(fn))
+        error = WorkerError(
+            f"the result of a perception job ({name}) cannot be sent back from its worker: "
+            f"{type(e).__name__}: {e}"
+        )
+        return pickle.dumps(("done", job_id, None, compute, error))
 
 
 class _Lane:
@@ -337,7 +355,10 @@ class _Lane:
     def _receive(self):
         while not self._stop.is_set():
             try:
-                kind, job_id, value, compute, error = self.results.get(timeout=0.2)
+                msg = self.results.get(timeout=0.2)
+                if isinstance(msg, bytes):  # a job's result, pickled by the worker (_done)
+                    msg = pickle.loads(msg)
+                kind, job_id, value, compute, error = msg
             except queue.Empty:
                 if not self.process.is_alive():
                     self.failure = (

@@ -116,6 +116,19 @@ def test_a_worker_gets_what_was_shared_as_it_was_when_shared():
             ex.submit("frames", helpers.size_of, lambda: None, t=0.0)
 
 
+def test_a_result_that_cannot_be_sent_back_is_the_jobs_error():
+    """A job whose value does not pickle (here a lock) raises at its poll: it is not
+    dropped by the result queue's feeder thread, leaving a job that never ends."""
+    import threading
+
+    with WorkerExecutor(nice=0, lanes=("fits",)) as ex:
+        ex.warm_up()
+        bad = ex.submit("fits", threading.Lock, t=0.0)
+        with pytest.raises(WorkerError, match="cannot be sent back"):
+            _wait_for(ex, bad, timeout=20.0)
+        assert _wait_for(ex, ex.submit("fits", sum, [1, 2], t=0.0)).value == 3
+
+
 # --- pacing ---------------------------------------------------------------------------------
 class FakeClock:
     def __init__(self):
