@@ -21,6 +21,7 @@ from drake_rus.localization.localize import (
     check_geometry,
     check_registration,
     cloud_axis_offset,
+    cloud_spread,
     estimate_kidney_length,
     exploration_travel,
     load_registration_template,
@@ -59,6 +60,23 @@ def test_check_registration_accepts_good_and_rejects_bad(template):
     assert "only 10%" in check_registration(sloppy, P, config)
     rough = dataclasses.replace(good, rms_residual=0.01)
     assert "RMS residual 10.0 mm" in check_registration(rough, P, config)
+
+
+@pytest.mark.parametrize("radius", [0.0, 0.0005])
+def test_points_along_a_line_are_refused(template, radius):
+    # One point a frame along the sweep (or a thin streak): the template lays itself along
+    # them with a residual and inlier fraction no kidney reaches, and that pose used to pass.
+    rng = np.random.default_rng(0)
+    y = np.linspace(0.0, 0.045, 60)
+    a = rng.uniform(0.0, 2 * np.pi, len(y))
+    P = np.column_stack([0.5 + radius * np.cos(a), y, 0.02 + radius * np.sin(a)])
+    R0 = heuristic_initial_rotation(SUPERIOR_B, LATERAL_B)
+    fit = register_plane_to_plane(P, template.points, template.normals, R0)
+    assert fit.rms_residual < 1e-3 and fit.inlier_fraction > 0.9  # a "perfect" fit
+    assert "explored points lie along a line" in check_registration(fit, P, LocalizationConfig())
+    assert check_registration(fit, P, LocalizationConfig(min_cloud_spread=0.0)) == ""
+    # A kidney's partial cloud spreads far more.
+    assert cloud_spread(partial_cloud(template, 0.15)[1]) > 0.004
 
 
 def test_a_refusal_shows_the_value_beyond_its_limit(template):

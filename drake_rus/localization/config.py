@@ -92,6 +92,13 @@ class LocalizationConfig:
     # 2.5 mm off). Every measured garbage cloud below 0.36 already fails the RMS test; the
     # fraction is a backstop.
     min_inlier_fraction: float = field(default=0.25, metadata={"min": 0.0, "max": 1.0})
+    # The explored points must span a surface: their spread (SD, m) across their principal
+    # axis at least this. Points along a line (one point a frame, or a thin streak the
+    # segmenter marks) leave the rotation about the line free, and the template lays itself
+    # along them with a residual and inlier fraction better than a kidney's (a line: 0.1 mm
+    # RMS, all inliers; a 2 mm-wide streak: 0.7 mm). A kidney's partial cloud spreads by
+    # 4 mm or more (the top arc alone of the first 15% of the template: 4.3 mm). 0 = off.
+    min_cloud_spread: float = field(default=0.001, metadata={"min": 0.0})
     max_centroid_offset: float = field(default=0.08, metadata={"positive": True})
     # A check of the fit's geometry that does not use the residual (localize.check_geometry;
     # size modes lower wrong fits' residuals as much as correct ones'): the fitted long axis

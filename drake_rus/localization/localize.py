@@ -339,6 +339,16 @@ def cloud_axis_offset(
     return float(np.linalg.norm(p_across - on_axis))
 
 
+def cloud_spread(P_local_B: np.ndarray) -> float:
+    """Spread (m, SD) of the points across their principal axis: the square root of the
+    second-largest eigenvalue of their covariance; 0 for fewer than three points."""
+    P = np.asarray(P_local_B, dtype=float).reshape(-1, 3)
+    if len(P) < 3:
+        return 0.0
+    s = np.linalg.svd(P - P.mean(axis=0), compute_uv=False)
+    return float(s[1] / np.sqrt(len(P) - 1))
+
+
 def _shown(value: float, limit: float, decimals: int, above: bool) -> tuple[str, str]:
     """(value, limit) as a refusal states them: rounded to ``decimals``, with more decimals
     (up to 4 more) while the rounding hides why the value fails (``above``: the value
@@ -386,12 +396,21 @@ def check_registration(
     template: RegistrationTemplate | None = None,
     superior_B=None,
 ) -> str:
-    """Why the estimate must not be used ('' when it passes the sanity checks); the RMS
-    gate is :func:`max_rms_residual` for ``template`` (the config's own without it); with
-    ``config.geometry_check`` and the body's ``superior_B`` given, also
-    :func:`check_geometry`."""
+    """Why the estimate must not be used ('' when it passes the sanity checks): a
+    non-finite pose, explored points along a line (:func:`cloud_spread` below
+    ``config.min_cloud_spread``), too few inliers, the RMS residual, the centre's offset
+    from the points. The RMS gate is :func:`max_rms_residual` for ``template`` (the
+    config's own without it); with ``config.geometry_check`` and the body's
+    ``superior_B`` given, also :func:`check_geometry`."""
     if not np.all(np.isfinite(result.X_BK.GetAsMatrix4())):
         return "registration produced a non-finite pose"
+    spread = cloud_spread(P_local_B)
+    if spread < config.min_cloud_spread:
+        a, b = _shown(1000 * spread, 1000 * config.min_cloud_spread, 1, above=False)
+        return (
+            f"registration rejected: the explored points lie along a line ({a} mm across "
+            f"it, need {b} mm), which leaves the kidney's pose undetermined"
+        )
     if result.inlier_fraction < config.min_inlier_fraction:
         a, b = _shown(100 * result.inlier_fraction, 100 * config.min_inlier_fraction, 0, False)
         return (
