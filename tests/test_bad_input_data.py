@@ -125,14 +125,32 @@ def test_patient_rejects_empty_mesh():
         (np.zeros((4, 4, 4), np.uint8), 0.0, ["LabelVolume.voxel_size"]),
         (np.zeros((4, 4, 4), np.uint8), float("nan"), ["LabelVolume.voxel_size"]),
         (np.zeros((4, 4, 4), np.uint8), -0.001, ["LabelVolume.voxel_size"]),
+        (np.full((4, 4, 4), 263, np.int16), 0.001, ["LabelVolume.labels", "0-255", "263"]),
+        (np.full((4, 4, 4), -1, np.int64), 0.001, ["LabelVolume.labels", "0-255", "-1"]),
     ],
-    ids=["empty", "2d", "float", "zero_voxel", "nan_voxel", "negative_voxel"],
+    ids=[
+        "empty",
+        "2d",
+        "float",
+        "zero_voxel",
+        "nan_voxel",
+        "negative_voxel",
+        "label_above_255",
+        "negative_label",
+    ],
 )
 def test_bad_label_volume_names_field(labels, voxel, words):
     with pytest.raises(ValueError) as e:
         LabelVolume(labels, voxel_size=voxel)
     for w in words:
         assert w in str(e.value)
+
+
+def test_label_volume_keeps_wide_integer_labels_in_range():
+    """Labels 0-255 in a wider integer type are fine (slicing reads them as uint8); only
+    values uint8 cannot hold are refused (263 would be sliced as the liver, -1 as gel)."""
+    vol = LabelVolume(np.full((4, 4, 4), 255, np.int64), voxel_size=0.001)
+    assert vol.labels.max() == 255
 
 
 def _write_label_map(path, array, dtype=np.uint8):

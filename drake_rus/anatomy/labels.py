@@ -64,6 +64,13 @@ class LabelVolume:
             )
         if self.labels.size == 0:
             raise ValueError(f"LabelVolume.labels: the volume is empty (shape {self.labels.shape})")
+        if self.labels.dtype != np.uint8:
+            # Slicing reads the labels as uint8: 263 would pass for the liver, -1 for gel.
+            lo, hi = int(self.labels.min()), int(self.labels.max())
+            if lo < 0 or hi > 255:
+                raise ValueError(
+                    f"LabelVolume.labels: expected label values 0-255 (uint8), got {lo}..{hi}"
+                )
         if not (np.isfinite(self.voxel_size) and self.voxel_size > 0):
             raise ValueError(
                 f"LabelVolume.voxel_size: expected a positive size in m, got {self.voxel_size}"
