@@ -150,3 +150,23 @@ def test_probe_in_air_sees_nothing(model):
 def test_wrong_shape_is_named(model):
     with pytest.raises(ValueError, match="shape"):
         emulate(np.zeros((10, 10), np.uint8), model)
+
+
+@pytest.mark.parametrize(
+    "image, match",
+    [
+        (np.full((1, 1), 263, np.int32), "label values 0-255, got 263..263"),
+        (np.full((1, 1), -1, np.int64), "label values 0-255, got -1..-1"),
+        (np.full((1, 1), np.nan), "integer label values 0-255, got dtype float64"),
+    ],
+    ids=["above_255", "negative", "float"],
+)
+def test_label_values_outside_uint8_are_refused(model, image, match):
+    # They used to be cast to uint8 without a word: 263 was imaged as the liver (7), as
+    # line_db refuses them.
+    g = model.geometry
+    labels = np.broadcast_to(image, g.image_shape)
+    with pytest.raises(ValueError, match=match):
+        emulate(labels, model)
+    wide = np.full(g.image_shape, Label.LIVER, np.int64)  # a wider type in range is fine
+    assert np.array_equal(emulate(wide, model), emulate(wide.astype(np.uint8), model))

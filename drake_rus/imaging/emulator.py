@@ -468,7 +468,8 @@ def emulate(
 ) -> np.ndarray:
     """Emulated B-mode image (rows, cols) uint8 of a label image (rows, cols).
 
-    Deterministic in (label_image, seed, frame_index). Pixels outside the fan are 0.
+    Deterministic in (label_image, seed, frame_index). Pixels outside the fan are 0. Labels
+    are label values 0-255 of any integer type (others raise ValueError).
     """
     g = model.geometry
     label_image = np.asarray(label_image)
@@ -479,6 +480,15 @@ def emulate(
         )
     flat = label_image.reshape(-1)
     if flat.dtype != np.uint8:
+        # As line_db: the labels are read as uint8, so 263 would be imaged as the liver.
+        if not (np.issubdtype(flat.dtype, np.integer) or flat.dtype == np.bool_):
+            raise ValueError(
+                f"emulate: label image: expected integer label values 0-255, got dtype {flat.dtype}"
+            )
+        if flat.size and (flat.min() < 0 or flat.max() > 255):
+            raise ValueError(
+                f"emulate: label image: expected label values 0-255, got {flat.min()}..{flat.max()}"
+            )
         flat = flat.astype(np.uint8)  # as the samples' uint8 cast after the gather
     bank, i, j = None, 0, 0
     if model.speckle:
