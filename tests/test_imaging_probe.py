@@ -5,7 +5,7 @@ import pytest
 from pydrake.math import RigidTransform, RollPitchYaw
 
 from drake_rus.imaging.config import ImagingConfig
-from drake_rus.imaging.probe import check_pose
+from drake_rus.imaging.probe import ProbeGeometry, check_pose
 
 
 def random_pose(rng):
@@ -97,3 +97,14 @@ def test_scenario_defaults_validate():
 
     with pytest.raises(ScenarioError, match="imaging.segmenter"):
         LoadScenario(scenario_text="{imaging: {segmenter: magic}}")
+
+
+@pytest.mark.parametrize("bad", [256.5, "256", 1, True])
+def test_pixel_counts_must_be_integers(bad):
+    # 256.5 and "256" used to be accepted and fail later, deep in numpy (fan_mask's
+    # reshape: "'float' object cannot be interpreted as an integer").
+    with pytest.raises(ValueError, match="ProbeGeometry.height_px: expected an integer number"):
+        ProbeGeometry(0.05, 0.3, 0.15, bad, 64)
+    with pytest.raises(ValueError, match="ProbeGeometry.width_px: expected an integer number"):
+        ProbeGeometry(0.05, 0.3, 0.15, 64, bad)
+    assert ProbeGeometry(0.05, 0.3, 0.15, np.int64(64), 64).fan_mask.shape == (64, 64)

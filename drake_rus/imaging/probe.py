@@ -55,8 +55,13 @@ class ProbeGeometry:
                 f"ProbeGeometry.half_angle: expected < 90 deg, got {np.degrees(self.half_angle)}"
             )
         for name in ("height_px", "width_px"):
-            if int(getattr(self, name)) < 2:
-                raise ValueError(f"ProbeGeometry.{name}: expected at least 2 pixels")
+            v = getattr(self, name)
+            # A count, not int(v): 256.5 or "256" passed and failed later, deep in numpy.
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 2:
+                raise ValueError(
+                    f"ProbeGeometry.{name}: expected an integer number of pixels, at least 2, "
+                    f"got {v!r}"
+                )
 
     @classmethod
     def from_config(cls, config: ImagingConfig) -> "ProbeGeometry":
