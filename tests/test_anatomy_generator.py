@@ -140,6 +140,14 @@ def test_kidney_length_keeps_the_published_distribution():
     assert L.min() >= 0.075 and L.max() <= 0.145
 
 
+@pytest.mark.parametrize("side", ["RIGHT", "r", None])
+def test_kidney_shape_refuses_an_unknown_side(side):
+    # Any side but "right" used to draw the left kidney's lengths (Glodny 2009: 111.3 mm
+    # instead of 108.5 mm) without a word.
+    with pytest.raises(ValueError, match="side: expected one of"):
+        sample_kidney_shape_params(np.random.default_rng(0), side)
+
+
 def test_canonical_frame_follows_sign_rules():
     for seed in range(4):
         for side, lateral in (("right", [-1, 0, 0]), ("left", [1, 0, 0])):

@@ -26,6 +26,7 @@ import numpy as np
 import trimesh
 
 from drake_rus.anatomy.canonical_frame import extents_in_frame, mesh_canonical_frame
+from drake_rus.anatomy.frames import SIDES
 
 __all__ = [
     "KidneyShapeParams",
@@ -62,7 +63,10 @@ class KidneyShapeParams:
 
 
 def sample_kidney_shape_params(rng: np.random.Generator, side: str = "right") -> KidneyShapeParams:
-    """Draws shape parameters from the published distributions (facts file, kidney size)."""
+    """Draws shape parameters from the published distributions (facts file, kidney size) of
+    the ``side`` ("right" or "left") kidney."""
+    if side not in SIDES:  # anything else used to get the left kidney's lengths
+        raise ValueError(f"side: expected one of {SIDES}, got {side!r}")
     # Length: Glodny 2009 CT mean and SD, truncated to 75-145 mm (about -2.7 to +3 SD); the
     # length is drawn first and kept, so its distribution is the published one (real bodies
     # reach 127 mm: about the 93rd percentile). Width and thickness are correlated with
