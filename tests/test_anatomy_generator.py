@@ -14,7 +14,7 @@ from drake_rus.anatomy.cohort import (
     kidney_statistics,
     summarize,
 )
-from drake_rus.anatomy.generator import generate_patient
+from drake_rus.anatomy.generator import generate_patient, patient_builders
 from drake_rus.anatomy.kidney_shape import KidneyShape, sample_kidney_shape_params
 
 
@@ -92,6 +92,17 @@ def test_determinism_and_disjoint_splits():
     train, test = set(cohort_seeds("train", 20)), set(cohort_seeds("test", 15))
     assert not train & test
     assert min(train) == TRAIN_OFFSET and min(test) == TEST_OFFSET
+
+
+@pytest.mark.parametrize("seed", [1.7, -1, "3", True])
+def test_generator_refuses_a_seed_that_is_not_a_non_negative_integer(seed):
+    # 1.7 used to give seed 1's patient named "seed:1.7"; -1 failed deep in numpy ("expected
+    # non-negative integer", the field unnamed).
+    with pytest.raises(ValueError, match="seed: expected a non-negative integer"):
+        generate_patient(seed, progress=False)
+    with pytest.raises(ValueError, match="seed: expected a non-negative integer"):
+        patient_builders(seed)
+    assert generate_patient(np.int64(3), progress=False).meta["seed"] == 3
 
 
 @pytest.mark.parametrize("seed", [0, 5, 9])

@@ -90,7 +90,15 @@ class PatientParams:
         return asdict(self)
 
 
+def _check_seed(seed) -> None:
+    """A generator seed is a non-negative integer (1.7 was read as seed 1, -1 failed deep in
+    numpy)."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed: expected a non-negative integer, got {seed!r}")
+
+
 def sample_patient_params(seed: int, side: str = "right", posture: str = "supine") -> PatientParams:
+    _check_seed(seed)
     check_side_posture(side, posture)
     rng = np.random.default_rng(np.random.SeedSequence([20240, int(seed)]))
     names = list(BODY_SIZES)
@@ -506,6 +514,7 @@ def patient_builders(
     """The builders (``label_builder``, ``torso_builder``, ``kidney_mask_builder``) that
     :func:`generate_patient` gives its Patient, for a Patient rebuilt from stored meshes (the
     patient cache): the body layout is recomputed from the seed on first use (about 30 ms)."""
+    _check_seed(seed)
     check_side_posture(side, posture)
     holder = []
 
