@@ -181,6 +181,7 @@ def test_study_relaxes_the_product_minimums_only_below_them():
     assert product.min_exploration_travel == pytest.approx(0.015)
     cfg, note = closed_loop_runs.study_localization(product, 0.1, 0.009)
     assert cfg.min_exploration_travel == 0.0 and cfg.min_inlier_fraction == 0.0
+    assert cfg.min_cloud_spread == 0.0
     assert cfg.max_rms_residual >= 1.0 and cfg.max_centroid_offset >= 1.0
     assert "below the product's minimum 15 mm" in note
     assert product.min_exploration_travel == pytest.approx(0.015)  # untouched

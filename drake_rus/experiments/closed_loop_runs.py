@@ -69,7 +69,7 @@ def study_localization(config, er: float, planned_travel: float):
 
     The product refuses to localize from an exploration shorter than
     ``min_exploration_travel`` (15 mm) and rejects registrations that fail its acceptance
-    checks (RMS residual, inlier fraction, centre offset); the paper's registration (II-F)
+    checks (RMS residual, inlier fraction, centre offset, points along a line); the paper's registration (II-F)
     has neither, and its ER sweep (III-C) reports both errors at every ER of its grid. So a
     study run whose planned exploration (ER x length) is shorter than the product's minimum
     registers whatever it explored, unchecked, as the paper (and the kinematic twin) do.
@@ -82,6 +82,7 @@ def study_localization(config, er: float, planned_travel: float):
         config,
         min_exploration_travel=0.0,
         min_inlier_fraction=0.0,
+        min_cloud_spread=0.0,
         max_rms_residual=RELAXED_LIMIT,
         max_rms_residual_deformable=RELAXED_LIMIT,
         max_centroid_offset=RELAXED_LIMIT,
