@@ -116,6 +116,52 @@ def _check_min_length(where: str, values, meta: dict) -> None:
         )
 
 
+# The fixed rotations a scenario's transform may have: Drake's YAML tag (None: untagged, the
+# identity) -> its fields. A random rotation (!Uniform) has no single value to build with.
+_ROTATION_FIELDS = {
+    None: (),
+    "!Identity": (),
+    "!Rpy": ("deg",),
+    "!AngleAxis": ("angle_deg", "axis"),
+}
+_ROTATION_FORMS = "!Rpy {deg: [r, p, y]} or !AngleAxis {angle_deg: a, axis: [x, y, z]}"
+
+
+def _check_rotation(where: str, rotation: dict) -> None:
+    """Raises ScenarioError naming ``where`` unless the raw rotation mapping is a fixed
+    rotation of :data:`_ROTATION_FIELDS` with a finite angle and a non-zero axis."""
+    tag = rotation.get("_tag")
+    if tag not in _ROTATION_FIELDS:
+        random = " (a scenario's transforms are fixed, not random)" if tag == "!Uniform" else ""
+        raise ScenarioError(f"field '{where}': expected {_ROTATION_FORMS}, got {tag}{random}")
+    known = _ROTATION_FIELDS[tag]
+    for key in rotation:
+        if key != "_tag" and key not in known:
+            if tag is None:
+                raise ScenarioError(
+                    f"field '{where}.{key}': an untagged rotation is the identity; expected "
+                    f"{_ROTATION_FORMS}"
+                )
+            raise ScenarioError(
+                f"field '{where}.{key}' is not a known field of {tag}; known fields: "
+                f"{', '.join(known)}"
+            )
+    if "angle_deg" in rotation:
+        angle = _yaml12_float(rotation["angle_deg"])
+        if not (_is_number(angle) and math.isfinite(angle)):
+            raise ScenarioError(
+                f"field '{where}.angle_deg': expected a finite angle in deg, got {angle!r}"
+            )
+    axis = rotation.get("axis")
+    if (
+        tag == "!AngleAxis"
+        and isinstance(axis, list)
+        and all(_is_number(x) for x in axis)
+        and not any(axis)
+    ):
+        raise ScenarioError(f"field '{where}.axis': expected a non-zero axis, got {axis!r}")
+
+
 def validate(schema, data, path: str = "", meta: dict | None = None) -> None:
     """Raises ScenarioError if ``data`` (raw YAML) does not fit ``schema`` at ``path``."""
     meta = meta or {}
@@ -186,6 +232,7 @@ def validate(schema, data, path: str = "", meta: dict | None = None) -> None:
                             f"field '{where}.rotation.{key}': expected a list of {n} finite "
                             f"numbers, got {v!r}"
                         )
+            _check_rotation(f"{where}.rotation", rotation)
         elif rotation is not None:
             raise ScenarioError(
                 f"field '{where}.rotation': expected !Rpy {{deg: [r, p, y]}} or "

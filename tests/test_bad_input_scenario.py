@@ -81,6 +81,43 @@ FIELD_CASES = [
         ["probe.X_FP.rotation.deg"],
     ),
     ("unknown_transform_key", "s: {probe: {X_FP: {scale: 2}}}", ["probe.X_FP.scale"]),
+    # Rotations Drake builds but cannot evaluate (a NaN angle, a random rotation), or refuses
+    # without naming the field.
+    (
+        "nan_angle",
+        "s: {patient: {X_BPt: {rotation: !AngleAxis {angle_deg: .nan, axis: [0, 0, 1]}}}}",
+        ["patient.X_BPt.rotation.angle_deg", "finite"],
+    ),
+    (
+        "inf_angle_probe",
+        "s: {probe: {X_FP: {rotation: !AngleAxis {angle_deg: .inf, axis: [0, 0, 1]}}}}",
+        ["probe.X_FP.rotation.angle_deg"],
+    ),
+    (
+        "string_angle",
+        "s: {probe: {X_FP: {rotation: !AngleAxis {angle_deg: ten, axis: [0, 0, 1]}}}}",
+        ["probe.X_FP.rotation.angle_deg"],
+    ),
+    (
+        "zero_axis",
+        "s: {probe: {X_FP: {rotation: !AngleAxis {angle_deg: 10, axis: [0, 0, 0]}}}}",
+        ["probe.X_FP.rotation.axis", "non-zero"],
+    ),
+    (
+        "random_rotation",
+        "s: {patient: {X_BPt: {rotation: !Uniform {}}}}",
+        ["patient.X_BPt.rotation", "!Rpy", "fixed"],
+    ),
+    (
+        "untagged_rpy",
+        "s: {probe: {X_FP: {rotation: {deg: [0, 0, 90]}}}}",
+        ["probe.X_FP.rotation.deg", "!Rpy"],
+    ),
+    (
+        "rpy_in_radians",
+        "s: {probe: {X_FP: {rotation: !Rpy {rad: [0, 0, 1]}}}}",
+        ["probe.X_FP.rotation.rad", "deg"],
+    ),
     ("negative_probe_mass", "s: {probe: {mass: -0.5}}", ["probe.mass"]),
     (
         "negative_inertia",
