@@ -569,6 +569,20 @@ def check_nesting_depth(text: str, where: str, limit: int = MAX_YAML_DEPTH) -> N
         )
 
 
+# ------------------------------------------------------------------------ YAML errors
+def yaml_error_text(error: Exception) -> str:
+    """One line for a YAML parse error: the problem, where (line, column) and what the parser
+    was doing; PyYAML's own text spans four lines with the source quoted."""
+    import yaml
+
+    if isinstance(error, yaml.MarkedYAMLError) and error.problem:
+        mark = error.problem_mark
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        context = f" ({error.context})" if error.context else ""
+        return f"{error.problem}{where}{context}"
+    return " ".join(str(error).split())
+
+
 # ------------------------------------------------------------------------ duplicate keys
 def check_duplicate_keys(text: str, scenarios_file: bool = False) -> None:
     """Raises ScenarioError naming the field path and line of the first key written twice in

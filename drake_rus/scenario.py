@@ -26,6 +26,7 @@ from drake_rus.config_schema import (
     physical,
     schema_transform,
     validate,
+    yaml_error_text,
 )
 from drake_rus.control.config import ControllerConfig, RespirationConfig, SafetyConfig
 from drake_rus.hardware.config import HardwareConfig
@@ -282,7 +283,9 @@ def _load_raw(path: Path) -> dict:
     try:
         raw = yaml_load_file(str(path))
     except Exception as e:  # yaml syntax errors
-        raise ScenarioError(f"scenario file {path} is not valid YAML: {e}") from None
+        raise ScenarioError(
+            f"scenario file {path} is not valid YAML: {yaml_error_text(e)}"
+        ) from None
     if not isinstance(raw, dict) or not raw:
         raise ScenarioError(
             f"scenario file {path} must map scenario names to scenarios, got {type(raw).__name__}"
@@ -342,7 +345,7 @@ def ApplyOverrides(scenario: Scenario, text: str, context: str = "overrides") ->
     try:
         node = yaml_load(data=text)
     except Exception as e:
-        raise ScenarioError(f"{context}: not valid YAML: {e}") from None
+        raise ScenarioError(f"{context}: not valid YAML: {yaml_error_text(e)}") from None
     try:
         validate(Scenario, node or {})
         return yaml_load_typed(schema=Scenario, data=text, defaults=scenario)

@@ -102,6 +102,25 @@ def test_scan_bad_arguments(tmp_path, capsys, case, args, words):
     assert not out.exists()
 
 
+@pytest.mark.parametrize("where", ["set", "file", "campaign"])
+def test_yaml_syntax_error_is_one_line(tmp_path, capsys, where):
+    """A YAML syntax error in --set or a scenarios file is one line saying where (PyYAML's
+    own text is four, quoting the source)."""
+    scenarios = tmp_path / "bad.scenarios.yaml"
+    scenarios.write_text("default: {contact: [\n")
+    out = tmp_path / "out"
+    argv = {
+        "set": ["scan", "--set", "{contact: ["],
+        "file": ["scan", "--scenarios-file", str(scenarios)],
+        "campaign": ["campaign", "--runs", "1", "--scenario", "default"]
+        + ["--scenarios-file", str(scenarios)],
+    }[where]
+    code, err = _run([*argv, "--out", str(out)], capsys)
+    assert code == 2 and "not valid YAML" in err and "line" in err, err
+    assert err.count("\n") == 1, err
+    assert not out.exists()
+
+
 # ------------------------------------------------ issue 17: fail before the work, not after
 import errno  # noqa: E402
 import os  # noqa: E402
