@@ -189,6 +189,30 @@ def test_rehearse_cpu_load_is_checked_up_front(tmp_path, capsys, load):
     _nothing_written(out)
 
 
+@pytest.mark.parametrize(
+    "spec,words",
+    [
+        ("test:abc", ["test:K", "'test:abc'"]),
+        ("train:1000000", ["train:K", "out of range"]),
+        ("seed:-1", ["seed:N"]),
+        ("phantom:3", ["imaging-pictures only"]),
+        ("no/such/patient", ["no such file or folder", "test:K"]),
+    ],
+    ids=["not_an_integer", "index_too_big", "negative_seed", "phantom", "missing_path"],
+)
+def test_rehearse_patient_is_checked_up_front(tmp_path, capsys, spec, words):
+    """The rehearsal's simulated side loads the patient in its own process: a spec that
+    cannot load is refused before it starts (it used to end, some 30 s later, in the sim
+    process's traceback and a rehearsal.json)."""
+    out = tmp_path / "r"
+    code, err = _run(["rehearse", "--patient", spec, "--out", str(out), "--netns", "no"], capsys)
+    assert code == 2 and err.startswith("drake-rus rehearse: error: --patient:"), err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    for word in words:
+        assert word in err, err
+    _nothing_written(out)
+
+
 @pytest.mark.parametrize("duration", ["1e6", "601", "inf"])
 def test_demo_duration_is_bounded_with_its_reason(tmp_path, capsys, duration):
     out = tmp_path / "demo"

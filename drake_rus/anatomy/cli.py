@@ -7,7 +7,14 @@ from pathlib import Path
 
 import numpy as np
 
-from drake_rus.anatomy.cohort import check_regular_path, cohort_seeds, cohort_stats, load_patient
+from drake_rus.anatomy.cohort import (
+    SPLIT_OFFSETS,
+    check_regular_path,
+    cohort_seeds,
+    cohort_stats,
+    load_patient,
+    split_seed,
+)
 from drake_rus.anatomy.ct_kidney import survey_case, survey_summary
 from drake_rus.anatomy.ct_patient import (
     CT_PREFIX,
@@ -69,9 +76,14 @@ def check_label_map_spacing(path: Path, arg: str) -> None:
             )
 
 
-def check_patient_spec(spec: str, arg: str = "--patient") -> None:
-    """Checks a patient spec before any work: ``phantom:N`` has an integer N, label maps
-    have a plausible voxel spacing. Other problems are found by the loader."""
+# The forms of a patient spec, for messages.
+PATIENT_SPEC_FORMS = "seed:N, train:K, test:K, ct:PATH[#OPTIONS], a patient folder or a label map"
+
+
+def check_patient_spec(spec: str, arg: str = "--patient", phantom: bool = True) -> None:
+    """Checks a patient spec before any work: ``seed:N`` / ``train:K`` / ``test:K`` have an
+    index in range, ``phantom:N`` (only where ``phantom``) an integer N, a path exists, label
+    maps have a plausible voxel spacing. Other problems are found by the loader."""
     head, sep, tail = spec.partition(":")
     if spec.startswith(CT_PREFIX):
         try:
@@ -81,26 +93,46 @@ def check_patient_spec(spec: str, arg: str = "--patient") -> None:
         check_label_map_spacing(path, arg)
         return
     if sep and head == "phantom":
+        if not phantom:
+            raise _user_error(
+                f"{arg}: phantom:N (a synthetic kidney volume) is for imaging-pictures only; "
+                f"expected {PATIENT_SPEC_FORMS}, got {spec!r}"
+            )
         if not tail.strip().isdigit():
             raise _user_error(
                 f"{arg}: expected phantom:N with a non-negative integer N, got {spec!r}"
             )
         return
-    path = Path(spec)
-    if path.exists():
+    if sep and head in SPLIT_OFFSETS:
         try:
-            check_regular_path(path, arg)
+            split_seed(head, int(tail))
         except ValueError as e:
-            raise _user_error(e) from None
-        check_label_map_spacing(path, arg)
+            text = str(e) if tail.strip().lstrip("+-").isdigit() else "not an integer"
+            raise _user_error(
+                f"{arg}: expected {head}:{'N' if head == 'seed' else 'K'} with a non-negative "
+                f"integer, got {spec!r} ({text})"
+            ) from None
+        return
+    path = Path(spec)
+    if not path.exists():
+        raise _user_error(
+            f"{arg}: expected {PATIENT_SPEC_FORMS}, got {spec!r} (no such file or folder)"
+        )
+    try:
+        check_regular_path(path, arg)
+    except ValueError as e:
+        raise _user_error(e) from None
+    check_label_map_spacing(path, arg)
 
 
 def check_patient_arguments(args) -> None:
-    """Preflight check of every command's ``--patient`` (or patient ``spec``) argument."""
+    """Preflight check of every command's ``--patient`` (or patient ``spec``) argument;
+    ``phantom:N`` is read by imaging-pictures only."""
+    phantom = getattr(args, "command", None) == "imaging-pictures"
     for name, arg in (("patient", "--patient"), ("spec", "patient spec")):
         spec = getattr(args, name, None)
         if isinstance(spec, str):
-            check_patient_spec(spec, arg)
+            check_patient_spec(spec, arg, phantom=phantom)
 
 
 def load_patient_for(spec: str, arg: str = "--patient", **kwargs):
