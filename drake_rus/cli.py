@@ -85,6 +85,13 @@ ARGUMENT_RULES = {
     "recon_spacing": (lambda v: _finite(v) and 0.0 < v <= 0.01, "a voxel size in m, 0 < v <= 0.01"),
     "max_sim_time": (lambda v: _finite(v) and v > 0, "a positive time in s"),
     "duration": (lambda v: _finite(v) and v > 0, "a positive time in s"),
+    # hardware pivot / check / calibrate-latency: checked before the robot is connected.
+    "rate": (lambda v: _finite(v) and v > 0, "a positive number of samples per s"),
+    "rest": (lambda v: _finite(v) and v >= 0, "a time >= 0 s"),
+    "amplitude": (lambda v: _finite(v) and v > 0, "a positive distance in m"),
+    "period": (lambda v: _finite(v) and v > 0, "a positive time in s"),
+    "cycles": (lambda v: _finite(v) and v > 0, "a positive number of periods"),
+    "max_latency": (lambda v: _finite(v) and v > 0, "a positive time in s"),
 }
 
 # More checks before any command runs, added by the command modules in add_commands (e.g.

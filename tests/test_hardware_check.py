@@ -367,3 +367,37 @@ def test_pivot_command_refuses_a_probe_that_did_not_pivot(monkeypatch, tmp_path,
     assert "do not rotate enough" in captured.err
     assert any(ln.startswith("t=") for ln in captured.out.splitlines())
     assert np.loadtxt(csv, delimiter=",").shape[1] == 7
+
+
+@pytest.mark.parametrize(
+    "argv,flag",
+    [
+        (["calibrate-latency", "--period", "0"], "--period"),
+        (["calibrate-latency", "--cycles", "-1"], "--cycles"),
+        (["calibrate-latency", "--amplitude", "nan"], "--amplitude"),
+        (["calibrate-latency", "--max-latency", "-0.5"], "--max-latency"),
+        (["pivot", "--rate", "0"], "--rate"),
+        (["check", "--rest", "nan"], "--rest"),
+    ],
+    ids=[
+        "zero_period",
+        "negative_cycles",
+        "nan_amplitude",
+        "negative_latency",
+        "zero_rate",
+        "nan_rest",
+    ],
+)
+def test_motion_arguments_are_checked_before_connecting(monkeypatch, capsys, argv, flag):
+    """A bad number is refused in one line before the robot is connected (it used to wait
+    for the connection, then divide by zero or command NaN while connected)."""
+    from drake_rus.cli import main
+
+    def connect(*args, **kwargs):
+        raise AssertionError("the robot was connected")
+
+    monkeypatch.setattr(cli, "MakeHardwareStation", connect)
+    rc = main(["hardware", *argv])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.startswith(f"drake-rus hardware: error: {flag}: expected"), err
+    assert err.count("\n") == 1
