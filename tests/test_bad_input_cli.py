@@ -102,6 +102,17 @@ def test_scan_bad_arguments(tmp_path, capsys, case, args, words):
     assert not out.exists()
 
 
+def test_missing_template_says_how_to_build_it_once(tmp_path, capsys):
+    out = tmp_path / "scan"
+    code, err = _run(
+        ["scan", "--out", str(out), "--set", "{localization: {template: /nonexistent/t.npz}}"],
+        capsys,
+    )
+    assert code == 2 and "localization.template" in err and "/nonexistent/t.npz" in err, err
+    assert err.count("template build") == 1, err
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("where", ["set", "file", "campaign"])
 def test_yaml_syntax_error_is_one_line(tmp_path, capsys, where):
     """A YAML syntax error in --set or a scenarios file is one line saying where (PyYAML's

@@ -453,9 +453,8 @@ def load_template_for(scenario):
     try:
         return load_registration_template(path)
     except FileNotFoundError as e:
-        raise FileNotFoundError(
-            f"localization.template: {e} (build one with 'drake-rus template build')"
-        ) from None
+        # The message already says how to build one (drake_rus.template.io).
+        raise FileNotFoundError(f"localization.template: {e}") from None
     except ValueError as e:
         raise ScenarioError(f"field 'localization.template': {e}") from None
 
