@@ -70,9 +70,10 @@ def study_localization(config, er: float, planned_travel: float):
     The product refuses to localize from an exploration shorter than
     ``min_exploration_travel`` (15 mm) and rejects registrations that fail its acceptance
     checks (RMS residual, inlier fraction, centre offset, points along a line); the paper's
-    registration (II-F) has neither, and its ER sweep (III-C) reports both errors at every ER of its grid. So a
-    study run whose planned exploration (ER x length) is shorter than the product's minimum
-    registers whatever it explored, unchecked, as the paper (and the kinematic twin) do.
+    registration (II-F) has neither, and its ER sweep (III-C) reports both errors at every
+    ER of its grid. So a study run whose planned exploration (ER x length) is shorter than
+    the product's minimum registers whatever it explored, unchecked, as the paper (and the
+    kinematic twin) do.
     ER 0 is left alone: it has nothing to register (the study takes the initial alignment,
     :func:`initial_alignment_record`). Only the study's scenario changes, never the product
     default."""
