@@ -78,6 +78,7 @@ ARGUMENT_RULES = {
     "count": (lambda v: v >= 1, "at least 1"),
     "runs": (lambda v: v >= 1, "a positive number of runs"),
     "workers": (lambda v: v >= 0, "0 or more workers"),
+    "closed_loop": (lambda v: v >= 0, "0 or more patients (0 skips the closed-loop scans)"),
     "seed": (lambda v: v >= 0, "a non-negative integer"),
     "n": (lambda v: v >= 1, "at least 1 subject"),
     "voxel_mm": (lambda v: _finite(v) and 0.1 <= v <= 10.0, "a voxel size of 0.1-10 mm"),

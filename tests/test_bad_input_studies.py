@@ -67,6 +67,16 @@ def test_equivalence_margin_must_be_positive(tmp_path, capsys, case, args, flag)
     assert err.count("\n") == 1 and not out.exists()
 
 
+def test_closed_loop_count_must_not_be_negative(tmp_path, capsys):
+    out = tmp_path / "study"
+    code, err = _run(
+        ["study", "paper", "--patients", "test:0", "--out", str(out), "--closed-loop", "-1"],
+        capsys,
+    )
+    assert code == 2 and "error: --closed-loop: expected 0 or more patients" in err, err
+    assert err.count("\n") == 1 and not out.exists()
+
+
 BREATHING_CASES = [
     ("unknown_condition", ["--conditions", "still,apnea"], "--conditions"),
     ("no_condition", ["--conditions", ","], "--conditions"),
