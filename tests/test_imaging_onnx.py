@@ -54,6 +54,11 @@ def test_missing_model_is_named(geometry, tmp_path):
         OnnxSegmenter(tmp_path / "nope.onnx", geometry)
 
 
+def test_a_folder_given_as_the_model_is_named(geometry, tmp_path):
+    with pytest.raises(ValueError, match="imaging.onnx_model: expected an .onnx model file, got a"):
+        OnnxSegmenter(tmp_path, geometry)
+
+
 def test_garbage_model_is_named(geometry, tmp_path):
     bad = tmp_path / "bad.onnx"
     bad.write_bytes(b"this is not an onnx model" * 10)

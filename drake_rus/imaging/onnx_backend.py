@@ -420,6 +420,8 @@ class OnnxSegmenter:
         self.geometry = geometry
         self.path = resolve_model_path(str(model_path))
         where = f"{field_prefix}{model_field}"
+        if self.path.is_dir():
+            raise ValueError(f"{where}: expected an .onnx model file, got a folder: {self.path}")
         if not self.path.is_file():
             raise ValueError(f"{where}: ONNX model file not found: {self.path}")
         if len(input_shape) != 4 or not all(int(d) > 0 for d in input_shape):
