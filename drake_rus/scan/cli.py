@@ -77,7 +77,8 @@ SEED_USES = {
 RERUN_HELP = """rerun:
   --rerun DIR/summary.json repeats a recorded scan from its summary alone: the patient, the
   resolved scenario (the --set overrides and --seed already in it) and --max-sim-time; only
-  --out (default DIR/rerun), --record, --no-record and --meshcat may be given with it. If
+  --out (default DIR/rerun), --record, --no-record, --meshcat and --save-frames may be
+  given with it. If
   this checkout's commit, package versions or input files differ from the recorded ones,
   one warning line says so and the run goes on."""
 
@@ -299,7 +300,7 @@ def _apply_rerun(args) -> None:
         raise UserError(
             f"--rerun: repeats the recorded run as it was; {', '.join(given)} "
             "cannot be given with it (only --out, --record, --no-record, "
-            "--meshcat)"
+            "--meshcat, --save-frames)"
         )
     rerun = read_rerun(args.rerun)
     arguments = rerun["provenance"]["arguments"]
