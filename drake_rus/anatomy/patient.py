@@ -40,7 +40,8 @@ def _check_mesh(mesh, what: str) -> trimesh.Trimesh:
 
 def vertical_depth(kidney_mesh: trimesh.Trimesh, skin_mesh: trimesh.Trimesh, point=None) -> float:
     """Depth (m) of the kidney below the upper skin surface, along the vertical (-z_Pt) line
-    through ``point`` (default: the kidney's surface centroid): top skin hit minus top kidney
+    through ``point`` (default: the mean of the kidney mesh's vertices, not its surface
+    centroid, which lies 2-2.5 mm away on generated kidneys): top skin hit minus top kidney
     hit. This is what a probe on the upper surface pointing straight down must see through."""
     if point is None:
         point = kidney_mesh.vertices.mean(axis=0)
