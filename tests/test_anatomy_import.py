@@ -178,6 +178,26 @@ def test_label_map_errors(tmp_path):
         patient_from_label_map(tmp_path / "missing.nrrd")
 
 
+def test_label_of_a_few_voxels_is_named_not_a_marching_cubes_error(tmp_path):
+    """A kidney label of one stray voxel used to end in skimage's "Surface level must be
+    within volume data range" without the file; a liver the map only grazes has no mesh."""
+    lab, _ = _synthetic_label_volume()
+    lab[lab == 2] = 200
+    lab[40, 80, 40] = 2
+    path = tmp_path / "stray_kidney.nii.gz"
+    _write_label_map(path, lab, (2.0, 2.0, 2.0), (-160.0, -120.0, -80.0))
+    with pytest.raises(ValueError, match=r"stray_kidney.nii.gz: the right kidney: .* 1 voxel"):
+        patient_from_label_map(path, voxel_size=0.002)
+    lab, _ = _synthetic_label_volume()
+    lab[lab == 5] = 200
+    lab[90, 50, 70] = 5
+    path = tmp_path / "grazed_liver.nii.gz"
+    _write_label_map(path, lab, (2.0, 2.0, 2.0), (-160.0, -120.0, -80.0))
+    p = patient_from_label_map(path, voxel_size=0.002)
+    assert p.liver_mesh is None
+    assert (p.labels.labels == Label.LIVER).sum() == 1
+
+
 def test_export_and_reimport(tmp_path):
     p = generate_patient(3, voxel_size=0.003, progress=False)
     paths = p.export(tmp_path / "out", "nifti")

@@ -640,6 +640,27 @@ def patient_from_mask_folder(
     )
 
 
+class _TooSmall(ValueError):
+    """A label too small (a few voxels) for marching cubes to find its surface."""
+
+
+def _label_surface(mask, X_BdV, voxel_size, what: str, **kw) -> trimesh.Trimesh:
+    """:func:`mask_to_mesh` of a label's mask; a label of a few stray voxels, which the
+    smoothing leaves without a surface, raises :class:`_TooSmall` naming ``what`` (the
+    file and the structure) instead of the marching-cubes error."""
+    try:
+        return mask_to_mesh(mask, X_BdV, voxel_size, what=what, **kw)
+    except ValueError as e:
+        if str(e).startswith(what):
+            raise
+        n = int(np.count_nonzero(mask))
+        raise _TooSmall(
+            f"{what}: the label holds only {n} voxel{'s' if n != 1 else ''} "
+            f"({n * voxel_size**3 * 1e6:.3g} ml at {voxel_size * 1e3:g} mm), too few for a "
+            f"surface ({e})"
+        ) from None
+
+
 def _air_around(mask: np.ndarray, body: np.ndarray) -> float:
     """Share of the voxels one step outside ``mask`` (within the grid) not in ``body``."""
     idx = np.argwhere(mask)
@@ -729,18 +750,25 @@ def _patient_from_raw(
     # Grid frame V in LPS, then in Bd.
     R_BdLPS = R_BdS("LPS")
     X_BdV = RigidTransform(RotationMatrix(R_BdLPS @ D), R_BdLPS @ origin)
-    kidney_Bd = mask_to_mesh(kidney_mask, X_BdV, voxel_size, sigma_vox=1.0, what=f"{path}: kidney")
+    kidney_Bd = _label_surface(
+        kidney_mask, X_BdV, voxel_size, f"label map {path}: the {side} kidney", sigma_vox=1.0
+    )
     coarse = max(1, int(round(0.003 / voxel_size)))
     body_c = body[::coarse, ::coarse, ::coarse]
     skin_Bd = mask_to_mesh(
         body_c, X_BdV, voxel_size * coarse, sigma_vox=0.7, keep_point=None, what=f"{path}: body"
     )
     liver_vals = [k for k, v in mapping.items() if v == "liver" and k in present]
-    liver_Bd = (
-        mask_to_mesh(np.isin(raw, liver_vals), X_BdV, voxel_size, what=f"{path}: liver")
-        if liver_vals
-        else None
-    )
+    liver_Bd = None
+    if liver_vals:
+        # A liver the volume only grazes (a few voxels) has no surface: no liver mesh then
+        # (its voxels stay in the label volume), as for a patient without a liver label.
+        try:
+            liver_Bd = _label_surface(
+                np.isin(raw, liver_vals), X_BdV, voxel_size, f"label map {path}: the liver"
+            )
+        except _TooSmall:
+            liver_Bd = None
     meta = dict(meta)
     meta.update(
         {
