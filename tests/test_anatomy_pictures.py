@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from drake_rus.anatomy import patient_from_label_map, pictures
 from drake_rus.anatomy.generator import generate_patient
 from drake_rus.anatomy.pictures import plot_cohort_overview, plot_label_slices, show_in_meshcat
 from drake_rus.cli import MakeMeshcat
@@ -26,6 +27,34 @@ def test_pictures_are_written(tmp_path):
     out = plot_cohort_overview([p, generate_patient(9)], tmp_path / "cohort.png")
     assert out.is_file()
     assert not list(tmp_path.glob("*.tmp.png"))
+
+
+def test_label_slices_of_a_label_map_are_anatomical_planes(tmp_path, monkeypatch):
+    """A label map keeps its scanner's (LPS) grid: i left, j posterior, k superior. The
+    slice titled axial used to be the one normal to j, a coronal slice."""
+    import SimpleITK as sitk
+
+    n = (80, 60, 40)  # 4 mm voxels: 320 x 240 x 160 mm
+    ii, jj, kk = np.meshgrid(*[np.arange(s) for s in n], indexing="ij")
+    x, y, z = (ii - 40) * 4.0, (jj - 30) * 4.0, (kk - 20) * 4.0
+    lab = np.zeros(n, np.uint8)
+    lab[(x / 150) ** 2 + (y / 100) ** 2 <= 1] = 200
+    lab[((x + 75) / 28) ** 2 + ((y - 40) / 20) ** 2 + (z / 55) ** 2 <= 1] = 2
+    img = sitk.GetImageFromArray(np.ascontiguousarray(lab.transpose(2, 1, 0)))
+    img.SetSpacing((4.0, 4.0, 4.0))
+    img.SetOrigin((-160.0, -120.0, -80.0))
+    sitk.WriteImage(img, str(tmp_path / "seg.nii.gz"))
+    p = patient_from_label_map(tmp_path / "seg.nii.gz", voxel_size=0.004)
+    drawn = []
+    real = pictures.label_image
+    monkeypatch.setattr(pictures, "label_image", lambda a: drawn.append(a.shape) or real(a))
+    plot_label_slices(p, tmp_path / "slices.png")
+    # Drawn transposed: axial = the (i, j) plane, coronal = (i, k), sagittal = (j, k).
+    assert drawn == [(n[1], n[0]), (n[2], n[0]), (n[2], n[1])]
+    # The generator's grid is the body's (Bd) in both postures: j superior, k anterior.
+    for posture in ("supine", "left_lateral_decubitus"):
+        q = generate_patient(8, posture=posture, voxel_size=0.004, progress=False)
+        assert [a for _, a, _ in pictures.label_slice_views(q)] == [1, 2, 0]
 
 
 def test_meshcat_scene():

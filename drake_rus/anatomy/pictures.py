@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drake_rus.anatomy.frames import R_PtBd
 from drake_rus.anatomy.labels import Label
 from drake_rus.anatomy.tissue_colors import (
     TISSUE_COLORS,
@@ -22,25 +23,40 @@ def _save(fig, path):
     return save_figure(fig, path, dpi=110)
 
 
+def label_slice_views(patient) -> list[tuple[str, int, int]]:
+    """(plane, grid axis, index) of the axial, coronal and sagittal label slices through the
+    kidney centroid: each plane is the slice normal to the label grid's axis nearest to the
+    body's superior, anterior and left axis. The grid need not be aligned with Pt or with
+    the body (a label map keeps its scanner's axes)."""
+    lv = patient.labels
+    c = patient.X_PtK.translation()
+    R = lv.X_PtV.rotation().matrix()
+    ijk = np.round(R.T @ (c - lv.X_PtV.translation()) / lv.voxel_size).astype(int)
+    ijk = np.clip(ijk, 0, np.array(lv.shape) - 1)
+    R_BdV = R_PtBd(patient.posture).T @ R
+    views = []
+    for plane, bd_axis in (("axial", 1), ("coronal", 2), ("sagittal", 0)):
+        axis = int(np.argmax(np.abs(R_BdV[bd_axis])))
+        views.append((plane, axis, int(ijk[axis])))
+    return views
+
+
 def plot_label_slices(patient, path) -> Path:
-    """Three orthogonal label slices through the kidney centroid (Pt axes)."""
+    """Three orthogonal label slices through the kidney centroid: axial, coronal and
+    sagittal (:func:`label_slice_views`), drawn in label grid axes."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     lv = patient.labels
-    c = patient.X_PtK.translation()
-    R = lv.X_PtV.rotation().matrix()
-    ijk = np.round(R.T @ (c - lv.X_PtV.translation()) / lv.voxel_size).astype(int)
-    ijk = np.clip(ijk, 0, np.array(lv.shape) - 1)
     vs = lv.voxel_size * 1e3
     fig, axes = plt.subplots(1, 3, figsize=(14, 4.8))
-    views = [
-        ("axial (j = kidney centroid)", lv.labels[:, ijk[1], :], ("i", "k")),
-        ("coronal (k = kidney centroid)", lv.labels[:, :, ijk[2]], ("i", "j")),
-        ("sagittal (i = kidney centroid)", lv.labels[ijk[0], :, :], ("j", "k")),
-    ]
+    views = []
+    for plane, axis, index in label_slice_views(patient):
+        a, b = [n for g, n in enumerate("ijk") if g != axis]
+        sl = np.take(lv.labels, index, axis=axis)
+        views.append((f"{plane} ({'ijk'[axis]} = kidney centroid)", sl, (a, b)))
     for ax, (title, sl, (a, b)) in zip(axes, views):
         ax.imshow(
             label_image(sl.T),
@@ -54,8 +70,8 @@ def plot_label_slices(patient, path) -> Path:
     present = labels_present(*(sl for _, sl, _ in views))
     fig.legend(handles=tissue_handles(present), loc="lower center", ncol=6, fontsize=8)
     fig.suptitle(
-        f"{patient.name}: labels ({patient.posture}, {patient.side} kidney; grid axes "
-        f"= Pt axes{' rotated' if patient.posture != 'supine' else ''})",
+        f"{patient.name}: labels ({patient.posture}, {patient.side} kidney; anatomical "
+        "planes, drawn in label grid axes)",
         fontsize=10,
     )
     fig.tight_layout(rect=(0, 0.08, 1, 0.95))
