@@ -155,6 +155,20 @@ def test_mesh_units_name_the_files_and_their_units():
     check_mesh_units(112.5, 230.0, "kidney.stl", "liver.stl", 1e-3, "auto", other="liver")
 
 
+def test_meshes_in_one_unit_read_wrongly_are_not_told_to_share_a_unit():
+    """Both meshes in mm read as m (or both in cm) used to get "the kidney mesh seems to be
+    in mm and the skin mesh in mm; give all meshes in one unit": they are in one unit."""
+    with pytest.raises(AnatomyError) as e:
+        check_mesh_units(110.0, 1700.0, "kidney.stl", "skin.stl", 1.0, "m")
+    assert "kidney.stl" in str(e.value) and "skin.stl" in str(e.value)
+    assert "seem to be in mm: units='mm' or 'auto'" in str(e.value)
+    assert "give all meshes in one unit" not in str(e.value)
+    with pytest.raises(AnatomyError, match="seem to be in cm: give the meshes in mm or m"):
+        check_mesh_units(11.0, 170.0, "kidney.stl", "skin.stl", 1e-3, "auto")
+    with pytest.raises(AnatomyError, match="seem to be in mm: units='mm'"):
+        check_mesh_units(112.5, 230.0, "kidney.stl", "liver.stl", 1.0, "m", other="liver")
+
+
 def test_label_map_spacing_giving_an_18_mm_body_names_the_spacing():
     body = np.zeros((200, 150, 60), bool)
     body[10:190, 10:140, :] = True  # 180 x 130 voxels across

@@ -326,8 +326,10 @@ def check_mesh_units(
 ) -> None:
     """Refuses a kidney mesh and the ``other`` mesh ("skin" or "liver") in different units
     (a kidney 1000 times smaller or larger than the body, or a body the size of a kidney),
-    naming the files and the unit each seems to be in. Extents are the meshes' largest
-    extent in file units; ``scale`` is the file-unit -> m factor chosen for ``units``."""
+    naming the files and the unit each seems to be in; meshes in one unit that ``units``
+    reads wrongly (mm read as m, or cm) are refused naming the unit they seem to be in.
+    Extents are the meshes' largest extent in file units; ``scale`` is the file-unit -> m
+    factor chosen for ``units``."""
     k_m, o_m = kidney_extent * scale, other_extent * scale
     ratio = other_extent / kidney_extent if kidney_extent > 0 else float("inf")
     lo_r, hi_r = _RATIO_TO_KIDNEY[other]
@@ -339,6 +341,18 @@ def check_mesh_units(
         return
     k_unit = _unit_guess(kidney_extent, _EXTENTS["kidney"])
     o_unit = _unit_guess(other_extent, _EXTENTS[other])
+    if lo_r <= ratio <= hi_r:
+        # One unit for both (their ratio is human): the unit read is wrong, not the files.
+        fix = {"mm": "units='mm' or 'auto'", "m": "units='m' or 'auto'"}.get(
+            k_unit, "give the meshes in mm or m"
+        )
+        seems = f"; the meshes seem to be in {k_unit}: {fix}" if k_unit else ""
+        raise AnatomyError(
+            f"kidney mesh {kidney_file}: {kidney_extent:.4g} across (file units), which "
+            f"units={units!r} reads as {k_m:.4g} m, a kidney is "
+            f"{_EXTENTS['kidney'][0] * 1e3:g}-{_EXTENTS['kidney'][1] * 1e3:g} mm (the {other} "
+            f"mesh {other_file} is in the same unit: {ratio:.3g} times the kidney){seems}"
+        )
     seems = []
     if k_unit:
         seems.append(f"the kidney mesh seems to be in {k_unit}")
