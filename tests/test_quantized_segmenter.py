@@ -9,13 +9,16 @@ import numpy as np
 import pytest
 from pydrake.math import RigidTransform
 
+from drake_rus.imaging import onnx_backend as ob
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.onnx_backend import (
     OnnxSegmenter,
     card_canvas,
+    int8_saturation_note,
     read_model_card,
     resolve_model_path,
 )
+from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.imaging.training import quantize_segmenter as qs
 
 CFG = ImagingConfig(segmenter="onnx")
@@ -126,18 +129,26 @@ def _leftovers(directory, keep):
     return sorted(p for p in os.listdir(directory) if p not in keep)
 
 
-def _cpu_has_vnni() -> bool:
-    """Whether this CPU has VNNI (x86 avx512_vnni / avx_vnni), or is no x86 (no saturation
-    caveat); False on x86 without it."""
-    import platform
-
-    if platform.machine().lower() not in ("x86_64", "amd64", "i686", "x86"):
-        return True
-    try:
-        flags = open("/proc/cpuinfo").read()
-    except OSError:
-        return True
-    return "avx512_vnni" in flags or "avx_vnni" in flags
+def test_a_cpu_without_vnni_is_told_once_about_the_int8_model(monkeypatch, caplog):
+    """The shipped U8S8 model on an x86 CPU without VNNI: one warning naming the fp32 model;
+    none with VNNI, off x86, or for the fp32 model."""
+    card = read_model_card(INT8)
+    note = int8_saturation_note(card, INT8.name, False)
+    assert INT8.name in note and FP32.name in note and "VNNI" in note and "\n" not in note
+    assert int8_saturation_note(card, INT8.name, True) == ""
+    assert int8_saturation_note(card, INT8.name, None) == ""
+    assert int8_saturation_note(read_model_card(FP32), FP32.name, False) == ""
+    reduced = {**card, "quantization": {**card["quantization"], "reduce_range": True}}
+    assert int8_saturation_note(reduced, INT8.name, False) == ""
+    monkeypatch.setattr(ob, "cpu_has_vnni", lambda: False)
+    monkeypatch.setattr(ob, "_SATURATION_NOTED", set())
+    geometry = ProbeGeometry.from_config(CFG)
+    with caplog.at_level("WARNING", logger="drake_rus.imaging"):
+        OnnxSegmenter(INT8, geometry)
+        OnnxSegmenter(INT8, geometry)
+        OnnxSegmenter(FP32, geometry)
+    notes = [r.getMessage() for r in caplog.records if "VNNI" in r.getMessage()]
+    assert notes == [note]
 
 
 def test_quantizing_a_small_model_keeps_its_outputs(tmp_path):
@@ -151,7 +162,7 @@ def test_quantizing_a_small_model_keeps_its_outputs(tmp_path):
     x = rng.random((8, 16, 16), np.float32)
     ref, got = qs.run_model(src, x), qs.run_model(out, x)
     assert ref.shape == got.shape == (8, 1, 16, 16)
-    if _cpu_has_vnni():
+    if ob.cpu_has_vnni() is not False:  # VNNI, or no x86 (no saturation caveat)
         assert np.linalg.norm(got - ref) / np.linalg.norm(ref) < 0.05
     # Without VNNI (x86 AVX2 only) ONNX Runtime's U8S8 kernels saturate their int16 pair
     # sums on this random full-range tiny model (18% off on an AMD EPYC): the tool's

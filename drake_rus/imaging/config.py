@@ -89,11 +89,11 @@ class ImagingConfig:
     min_kidney_area: float = field(default=1.0e-4, metadata={"min": 0.0})
     # ONNX model file: absolute, or relative to the repository root. The default is the int8
     # quantization of our fp32 model (drake_rus/imaging/training/quantize_segmenter.py): 0.84
-    # instead
-    # of 1.42 ms per frame (one thread, AVX512-VNNI), the same held-out IoU within 0.002. On
-    # an x86 CPU without VNNI its uint8 x int8 products may saturate (tests/
-    # test_quantized_segmenter.py then fails): use "models/segmenter/kidney_unet.onnx", the fp32
-    # master, instead.
+    # instead of 1.42 ms per frame (one thread, AVX512-VNNI), the same held-out IoU within
+    # 0.002. On
+    # an x86 CPU without VNNI its uint8 x int8 products may saturate: measured on an AVX2 AMD
+    # EPYC, IoU up to 0.011 under the fp32 master "models/segmenter/kidney_unet.onnx", which
+    # the segmenter's one-line warning then names (docs/imaging.md).
     onnx_model: str = "models/segmenter/kidney_unet_int8.onnx"
     # Model input shape (N, C, H, W); N may be 1. The grey image (0-255) is resized to H x W,
     # scaled to [0, 1], then normalised as (x - mean) / std, and repeated over C channels.

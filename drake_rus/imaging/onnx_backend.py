@@ -25,7 +25,9 @@ card, keeps the resize above. :class:`PhysicalCanvas` does the mapping.
 from __future__ import annotations
 
 import json
+import logging
 import math
+import platform
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +38,47 @@ from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.imaging.segment import tracked_component
 from drake_rus.paths import REPO_ROOT
+
+_log = logging.getLogger("drake_rus.imaging")
+# Models whose int8 saturation note was logged in this process (once each).
+_SATURATION_NOTED: set = set()
+
+
+def cpu_has_vnni() -> bool | None:
+    """Whether this x86 CPU has VNNI (AVX512-VNNI or AVX-VNNI); None when not x86 or unknown
+    (/proc/cpuinfo unreadable)."""
+    if platform.machine().lower() not in ("x86_64", "amd64", "i686", "x86"):
+        return None
+    try:
+        flags = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return None
+    return "avx512_vnni" in flags or "avx_vnni" in flags
+
+
+def int8_saturation_note(card: dict, model_name: str, has_vnni: bool | None) -> str:
+    """One line for a user whose x86 CPU lacks VNNI and whose model is U8S8 (uint8
+    activations x int8 weights, without reduce_range, per its card's ``quantization``):
+    ONNX Runtime's AVX2 kernels may saturate those products, and the model then reads
+    lower than on a CPU with VNNI. '' otherwise (has_vnni True or None, or another model).
+    Measured on an AMD EPYC with AVX2 and no VNNI (docs/results/segmenter.md, 2026-11-28,
+    night): the shipped int8 model's held-out IoU 0.001-0.005 under the fp32 model's per
+    depth preset and 0.011 on the VH female supine; the fp32 model costs about 1.3 ms more
+    per frame there."""
+    q = card.get("quantization") if isinstance(card, dict) else None
+    if has_vnni is not False or not isinstance(q, dict):
+        return ""
+    if q.get("activation_type") != "QUInt8" or q.get("weight_type") != "QInt8":
+        return ""
+    if q.get("reduce_range"):
+        return ""
+    source = q.get("source_model") or "its fp32 source model"
+    return (
+        f"imaging.onnx_model: {model_name} is int8 (uint8 x int8) and this x86 CPU has no "
+        f"VNNI, so its products may saturate: on such a CPU it reads up to 0.011 IoU under "
+        f"{source}, the fp32 model beside it (docs/imaging.md); set imaging.onnx_model to "
+        f"that model for the fp32 figures (about 1.3 ms more per frame)"
+    )
 
 
 def resolve_model_path(path: str) -> Path:
@@ -432,6 +475,10 @@ class OnnxSegmenter:
         self.input_shape = tuple(int(d) for d in input_shape)
         card_name = self.path.with_suffix(".json").name
         self.card = read_model_card(self.path) if card is None else dict(card)
+        note = int8_saturation_note(self.card, self.path.name, cpu_has_vnni())
+        if note and str(self.path) not in _SATURATION_NOTED:
+            _SATURATION_NOTED.add(str(self.path))
+            _log.warning(note)
         spec = card_canvas(self.card, f"{where}: model card {card_name}")
         #: The physical canvas (None: the plain resize of the whole image to H x W).
         self.canvas = None

@@ -52,7 +52,12 @@ from pathlib import Path
 import numpy as np
 
 from drake_rus.extras import MissingExtra, require
-from drake_rus.imaging.onnx_backend import cpu_session, read_model_card, resolve_model_path
+from drake_rus.imaging.onnx_backend import (
+    cpu_has_vnni,
+    cpu_session,
+    read_model_card,
+    resolve_model_path,
+)
 from drake_rus.imaging.training import train_segmenter
 from drake_rus.imaging.training.evaluation import POSTURES
 from drake_rus.paths import REPO_ROOT
@@ -294,15 +299,6 @@ def sha256(path: str | Path) -> str:
         for block in iter(lambda: f.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()
-
-
-def cpu_has_vnni() -> bool | None:
-    """Whether this x86 CPU has VNNI (AVX512-VNNI or AVX-VNNI), None when unknown."""
-    try:
-        flags = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return None
-    return "avx512_vnni" in flags or "avx_vnni" in flags
 
 
 def _repo_path(path: Path) -> str:
