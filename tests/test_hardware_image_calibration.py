@@ -282,3 +282,22 @@ def test_station_maps_pictures_with_the_entry_for_imaging_depth(tmp_path):
     other = ApplyOverrides(scenario, "{imaging: {depth: 0.25}}")
     with pytest.raises(ScenarioError, match="no entry for imaging.depth 0.25"):
         MakeHardwareStation(other, lcm=DrakeLcm("memq://"))
+
+
+def test_yaml_syntax_errors_are_one_line_naming_the_file(tmp_path, capsys):
+    """A YAML syntax error in the target file (calibrate-image) or in the calibration file is
+    one line naming the file, the line and the column, not PyYAML's four-line text."""
+    from drake_rus.cli import main
+
+    bad = tmp_path / "targets.yaml"
+    bad.write_text("depth: 0.15\ntargets: [\n  {image: a.png\n")
+    out = tmp_path / "cal.yaml"
+    assert main(["hardware", "calibrate-image", str(bad), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and str(bad) in err and "line 4, column 1" in err, err
+    assert not out.exists()
+    out.write_text("presets: [\n")
+    with pytest.raises(ScenarioError) as info:
+        load_image_calibration(out)
+    assert "\n" not in str(info.value) and "not valid YAML" in str(info.value)
+    assert "line 2, column 1" in str(info.value)

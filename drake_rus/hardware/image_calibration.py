@@ -32,7 +32,7 @@ from pydrake.common.schema import Transform
 from pydrake.common.yaml import yaml_dump_typed, yaml_load_file, yaml_load_typed
 from pydrake.math import RigidTransform, RotationMatrix
 
-from drake_rus.config_schema import ScenarioError, schema_transform, validate
+from drake_rus.config_schema import ScenarioError, schema_transform, validate, yaml_error_text
 from drake_rus.extras import require
 from drake_rus.hardware.core import check_crop, to_grey
 from drake_rus.robot import MakeControlPlant
@@ -100,7 +100,7 @@ def load_image_calibration(path, field_name: str = CALIBRATION_FIELD) -> ImageCa
     try:
         raw = yaml_load_file(str(path))
     except Exception as e:
-        raise ScenarioError(f"{where}: not valid YAML: {e}") from None
+        raise ScenarioError(f"{where}: not valid YAML: {yaml_error_text(e)}") from None
     try:
         validate(ImageCalibration, raw or {})
         cal = yaml_load_typed(
@@ -441,7 +441,11 @@ def load_target_set(path) -> TargetSet:
     if not path.is_file():
         raise ScenarioError(f"target file not found: {path}")
     try:
-        validate(TargetSet, yaml_load_file(str(path)) or {})
+        raw = yaml_load_file(str(path))
+    except Exception as e:
+        raise ScenarioError(f"{path}: not valid YAML: {yaml_error_text(e)}") from None
+    try:
+        validate(TargetSet, raw or {})
         return yaml_load_typed(schema=TargetSet, filename=str(path), defaults=TargetSet())
     except ScenarioError as e:
         raise ScenarioError(f"{path}: {e}") from None
