@@ -187,6 +187,39 @@ def test_capture_thread_drains_a_live_source_and_never_blocks():
     assert not cap.stats().running
 
 
+def test_first_picture_is_stamped_when_read_returned_not_after_processing():
+    """The constructor reads and processes the first picture; its capture time is when
+    read() returned, not after the processing (which can take a while: the map to the probe
+    grid is built on the first picture)."""
+    now = [100.0]
+
+    class OnePicture:
+        def __init__(self):
+            self.reads = 0
+
+        def read(self):
+            self.reads += 1
+            if self.reads > 1:
+                time.sleep(0.01)
+                return False, None
+            return True, np.zeros((8, 8), np.uint8)
+
+        def release(self):
+            pass
+
+    def slow_process(picture):
+        now[0] += 5.0  # the processing takes 5 s on the fake clock
+        return picture
+
+    cap = FrameCapture(OnePicture(), process=slow_process, clock=lambda: now[0])
+    try:
+        first = cap.wait_for(-1, timeout=2.0)
+        assert first is not None and first.counter == 0
+        assert first.capture_time == 100.0
+    finally:
+        cap.close()
+
+
 def test_capture_thread_replays_a_file_at_its_own_rate(tmp_path):
     path = tmp_path / "v.avi"
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (64, 48))

@@ -211,6 +211,7 @@ class FrameCapture:
                 fps if math.isfinite(fps) and 0.5 <= fps <= 1000.0 else float(fallback_fps)
             )
         ok, picture = self._cap.read()
+        read_time = self._clock()  # the capture time: before processing, which takes a while
         if not ok or picture is None:
             self._cap.release()
             raise ValueError(f"field '{field}': no picture from {self.spec.value}")
@@ -227,7 +228,7 @@ class FrameCapture:
             ) from None
         if self.spec.kind == "file":
             self._rewind()
-        self._first = None if self.spec.kind == "file" else (picture, self._clock())
+        self._first = None if self.spec.kind == "file" else (picture, read_time)
         self._lock = threading.Condition()
         self._latest: CapturedFrame | None = None
         self._counter = 0
