@@ -301,3 +301,34 @@ def test_yaml_syntax_errors_are_one_line_naming_the_file(tmp_path, capsys):
         load_image_calibration(out)
     assert "\n" not in str(info.value) and "not valid YAML" in str(info.value)
     assert "line 2, column 1" in str(info.value)
+
+
+def test_a_failed_write_leaves_the_calibration_file_as_it_was(tmp_path, monkeypatch):
+    """Writing the calibration file is atomic: a write that fails part-way (a full disk, a
+    file size limit) leaves the old file, not a cut-off one whose last entry would load
+    with the default scale and origin."""
+    import pathlib
+
+    path = tmp_path / "cal.yaml"
+    cal = true_calibration()
+    save_image_calibration(cal, path)
+    before = path.read_text()
+    deeper = with_preset(
+        cal,
+        DepthPresetCalibration(
+            depth=0.3, crop=list(CROP), mm_per_pixel=[0.7, 0.72], origin_px=[321.0, 50.0]
+        ),
+    )
+    real_write_text = pathlib.Path.write_text
+
+    def write_half_then_fail(self, text, *args, **kwargs):
+        real_write_text(self, text[: len(text) // 2], *args, **kwargs)
+        raise OSError(27, "File too large")
+
+    monkeypatch.setattr(pathlib.Path, "write_text", write_half_then_fail)
+    with pytest.raises(OSError):
+        save_image_calibration(deeper, path)
+    monkeypatch.undo()
+    assert path.read_text() == before
+    assert [p.depth for p in load_image_calibration(path).presets] == [0.15]
+    assert sorted(q.name for q in tmp_path.iterdir()) == ["cal.yaml"]

@@ -35,6 +35,7 @@ from pydrake.math import RigidTransform, RotationMatrix
 from drake_rus.config_schema import ScenarioError, schema_transform, validate, yaml_error_text
 from drake_rus.extras import require
 from drake_rus.hardware.core import check_crop, to_grey
+from drake_rus.io_utils import write_text_atomic
 from drake_rus.robot import MakeControlPlant
 
 __all__ = [
@@ -117,12 +118,15 @@ def load_image_calibration(path, field_name: str = CALIBRATION_FIELD) -> ImageCa
 
 
 def save_image_calibration(cal: ImageCalibration, path) -> None:
-    """Writes ``cal`` as YAML (entries sorted by depth)."""
+    """Writes ``cal`` as YAML (entries sorted by depth), atomically: a write that fails
+    leaves the file as it was, never a cut-off file whose last entry would load with
+    default values."""
     cal = dataclasses.replace(cal, presets=sorted(cal.presets, key=lambda p: p.depth))
-    Path(path).write_text(
+    write_text_atomic(
+        path,
         "# Image-to-probe calibration (drake_rus/hardware/image_calibration.py); written by\n"
         "# `drake-rus hardware calibrate-image`. Lengths: mm per pixel; pixels: [column, row].\n"
-        + yaml_dump_typed(cal)
+        + yaml_dump_typed(cal),
     )
 
 
