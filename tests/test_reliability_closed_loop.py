@@ -167,6 +167,23 @@ def test_gated_exploration_moves_only_at_end_expiration(patient_and_template):
     assert not check["force_violation"]
 
 
+def test_breathing_seed_changes_the_patients_breath_draws_too():
+    """--seed changes every breathing draw: the amplitudes and rates (draw_motion) and the
+    breath-to-breath and hold draws (patient.motion.seed); seed 0 keeps the stored study's
+    runs (the patient's index as the motion seed)."""
+    import re
+
+    from drake_rus.reliability.breathing import breathing_tasks
+
+    def motion_seeds(seed):
+        tasks = breathing_tasks(["test:0", "test:1"], ("protocol", "free"), seed=seed)
+        return [int(re.search(r"motion: \{seed: (\d+)", t["overrides"])[1]) for t in tasks]
+
+    assert motion_seeds(0) == [0, 0, 1, 1]
+    assert set(motion_seeds(1)).isdisjoint(motion_seeds(0))
+    assert motion_seeds(1) != motion_seeds(2)
+
+
 def test_breathing_study_tables_and_plots(tmp_path):
     from drake_rus.reliability.breathing import (
         breathing_tasks,

@@ -76,8 +76,16 @@ def draw_motion(index: int, seed: int = 0) -> dict:
     }
 
 
-def condition_overrides(condition: str, m: dict, index: int) -> str:
-    """Scenario YAML overrides of ``condition`` for the motion ``m`` (draw_motion)."""
+def motion_seed(index: int, seed: int = 0) -> int:
+    """``patient.motion.seed`` of patient ``index`` (its breath-to-breath and hold draws)
+    under ``--seed``: the index itself for seed 0, so every seed gives other draws."""
+    return (int(seed) * 100003 + int(index)) % 2**31
+
+
+def condition_overrides(condition: str, m: dict, index: int, seed: int = 0) -> str:
+    """Scenario YAML overrides of ``condition`` for the motion ``m`` (draw_motion) of
+    patient ``index`` under ``--seed`` ``seed``."""
+    index = motion_seed(index, seed)
     breathing = "enabled: true, amplitude: %.4f, ap_amplitude: %.4f, rate_per_min: %.2f" % (
         m["amplitude"],
         m["ap_amplitude"],
@@ -126,7 +134,7 @@ def breathing_tasks(
     for i, spec in enumerate(patients):
         m = draw_motion(i, seed)
         for name in conditions:
-            text = condition_overrides(name, m, i)
+            text = condition_overrides(name, m, i, seed)
             tasks.append(
                 {
                     "run_id": f"{spec.replace(':', '')}_{name}",
