@@ -389,7 +389,7 @@ def plot_campaign(results: list[dict], ceiling: float, path) -> Path:
     ax2.set_yticks(y, [r["fault"] for r in rows])
     ax2.invert_yaxis()
     ax2.set_xlabel("peak TRUE contact force per run (N)")
-    ax2.set_title("Peak contact force (simulation ground truth, 1 ms)")
+    ax2.set_title("Peak contact force (simulation ground truth, every plant step)")
     ax2.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), fontsize=8)
     fig.suptitle(f"Reliability campaign: {len(results)} runs")
     return save_figure(fig, path)

@@ -2,10 +2,10 @@
 
 :func:`RunFaultyScan` runs ``drake_rus.scan.RunScan`` on the faulty station
 (:func:`~drake_rus.reliability.station.MakeFaultyStation`) with a :class:`SafetyWatch`
-monitor that records the TRUE probe contact force (simulation ground truth, 1 ms
-resolution): its peak, the total time above the force ceiling and the longest continuous
-stretch above it. After the scan ends it keeps simulating ``settle`` s and checks the robot
-has come to rest.
+monitor that records the TRUE probe contact force (simulation ground truth, at every plant
+step: ``contact.time_step``, 10 ms by default): its peak, the total time above the force
+ceiling and the longest continuous stretch above it. After the scan ends it keeps
+simulating ``settle`` s and checks the robot has come to rest.
 """
 
 from __future__ import annotations
@@ -57,8 +57,9 @@ class ForceWatch:
 
 class SafetyWatch(ScanMonitor):
     """A scan monitor: the TRUE probe contact force at every plant step (simulation truth,
-    1 ms resolution) through a :class:`ForceWatch`, and, once the run is over, whether the
-    stopped robot is at rest (true joint speed from the plant state, and a zero command)."""
+    ``contact.time_step`` resolution, 10 ms by default) through a :class:`ForceWatch`, and,
+    once the run is over, whether the stopped robot is at rest (true joint speed from the
+    plant state, and a zero command)."""
 
     def __init__(self, ceiling: float):
         self.watch = ForceWatch(ceiling)
