@@ -54,6 +54,7 @@ from drake_rus.hardware.image_calibration import (
     with_preset,
 )
 from drake_rus.hardware.station import HardwareFault, MakeHardwareStation
+from drake_rus.io_utils import write_text_atomic
 from drake_rus.scenario import ApplyOverrides, LoadScenario
 
 __all__ = ["add_commands"]
@@ -326,7 +327,7 @@ def run_grab(args) -> int:
             q=[] if args.p_P else [float(v) for v in q],
         )
     )
-    index_file.write_text(yaml_dump_typed(targets))
+    write_text_atomic(index_file, yaml_dump_typed(targets))  # a cut-off index loses targets
     found = find_point_target(
         frame.picture, targets.crop, targets.search_radius_px, targets.min_contrast
     )
