@@ -723,7 +723,13 @@ def test_given_pivot_pose_is_t_star_shaped_and_round_trips():
     R, _ = supervisor.given_pivot_pose([0.5, 0.0, math.pi / 2])
     np.testing.assert_allclose(R[:, 0], [0, 1, 0], atol=1e-12)  # yaw from base x about z
     np.testing.assert_allclose(R[:, 2], [0, 0, -1])
-    for bad in ([0.5, 0.0], [0.5, math.nan, 0.0], [0.5, 0.0, 1.0, 2.0]):
+    for bad in (
+        [0.5, 0.0],
+        [0.5, math.nan, 0.0],
+        [0.5, 0.0, 1.0, 2.0],
+        [0.5, 0.0, "a"],
+        [0.5, None, 0.0],
+    ):
         with pytest.raises(ValueError, match="controller.pivot_pose"):
             supervisor.given_pivot_pose(bad)
 

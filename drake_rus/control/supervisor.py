@@ -72,6 +72,13 @@ def optimal_pivot_pose(R_BK, p_BK):
     return np.column_stack([r1, r2, r3]), np.asarray(p_BK, dtype=float).reshape(3).copy()
 
 
+def _finite_number(v) -> bool:
+    """``v`` is a finite real number (not a string, None or bool)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+        return False
+    return math.isfinite(float(v))
+
+
 def given_pivot_pose(pose, z: float = math.nan):
     """The pivot pose of a given ``controller.pivot_pose`` [x, y, yaw] (m, m, rad), shaped
     like eq. 20-22's T*: r3 = [0, 0, -1] (probe pointing down), r1 = [cos yaw, sin yaw, 0]
@@ -81,7 +88,7 @@ def given_pivot_pose(pose, z: float = math.nan):
     Returns (R_BPstar (3x3), p_star (3,)). Raises ValueError naming controller.pivot_pose
     unless ``pose`` holds three finite numbers."""
     values = list(pose) if pose is not None else []
-    if len(values) != 3 or not all(math.isfinite(float(v)) for v in values):
+    if len(values) != 3 or not all(_finite_number(v) for v in values):
         raise ValueError(
             f"controller.pivot_pose: expected [] or [x (m), y (m), yaw (rad)], "
             f"three finite numbers, got {values}"
