@@ -10,6 +10,7 @@ from pydrake.math import RollPitchYaw, RotationMatrix
 from drake_rus.control import supervisor
 from drake_rus.control.config import ControllerConfig
 from drake_rus.control.laws import angle_between
+from drake_rus.control.systems import ScanSupervisor
 
 R_DOWN = np.diag([1.0, -1.0, -1.0])  # x_P = +x_B, z_P = -z_B
 
@@ -143,6 +144,19 @@ def test_supervisor_approach_to_start_xy():
         supervisor.supervisor_step(
             supervisor.SupervisorState(), inputs(0.0), cfg(start_xy=[0.5]), dt
         )
+
+
+def test_a_bad_start_xy_is_refused_when_the_supervisor_is_built():
+    # The scenario loader accepts any list of finite numbers; a start point that is not
+    # [x, y] must fail when the diagram is built (as a bad pivot_pose does), not at the
+    # first control period of the simulation.
+    assert supervisor.given_start_xy([]) is None
+    np.testing.assert_allclose(supervisor.given_start_xy([0.5, 0.02]), [0.5, 0.02])
+    for bad in ([0.5], [0.5, 0.0, 0.1], [0.5, math.nan], [0.5, "a"]):
+        with pytest.raises(ValueError, match="controller.start_xy"):
+            supervisor.given_start_xy(bad)
+        with pytest.raises(ValueError, match="controller.start_xy"):
+            ScanSupervisor(cfg(start_xy=bad))
 
 
 def test_supervisor_explore_ends_when_kidney_leaves_after_debounce():

@@ -445,6 +445,20 @@ def _hold_pivot(s: SupervisorState, cfg, dt: float) -> SupervisorState:
     return _hold_motion(s, dt)
 
 
+def given_start_xy(start_xy) -> np.ndarray | None:
+    """The tip (x, y) (m, base frame) APPROACH lands at from ``controller.start_xy``: None
+    for [] (straight down from the start pose). Raises ValueError naming
+    controller.start_xy unless it is [] or two finite numbers."""
+    values = list(start_xy) if start_xy is not None else []
+    if not values:
+        return None
+    if len(values) != 2 or not all(_finite_number(v) for v in values):
+        raise ValueError(
+            f"controller.start_xy: expected [] or [x (m), y (m)], two finite numbers, got {values}"
+        )
+    return np.array([float(v) for v in values])
+
+
 def _start(s: SupervisorState, u: SupervisorInputs, R, p, cfg) -> None:
     """First period: hold the current orientation (or turn o transverse) and tip position,
     or head for ``start_xy``; press to the desired force."""
@@ -452,12 +466,8 @@ def _start(s: SupervisorState, u: SupervisorInputs, R, p, cfg) -> None:
     s.o_des = R[:, 0].copy()
     if cfg.explore_orientation == "transverse":
         s.o_des = transverse_orientation(s.a_des, s.o_des)
-    s.P_des = p[:2].copy()
-    start_xy = list(cfg.start_xy or [])
-    if start_xy:
-        if len(start_xy) != 2:
-            raise ValueError(f"controller.start_xy: expected [] or [x, y] (m), got {start_xy}")
-        s.P_des = np.asarray(start_xy, dtype=float)
+    start_xy = given_start_xy(cfg.start_xy)
+    s.P_des = p[:2].copy() if start_xy is None else start_xy
     s.F_des = float(cfg.desired_force)
     s.awaiting_kidney = cfg.sweep == "line"
     s.approach_origin = p.copy()

@@ -304,8 +304,10 @@ class ScanSupervisor(LeafSystem):
 
     def __init__(self, config):
         super().__init__()
-        if config.pivot_pose:  # a bad given pose fails when the diagram is built
+        # A bad given pose or start point fails when the diagram is built, not mid-run.
+        if config.pivot_pose:
             supervisor.given_pivot_pose(config.pivot_pose)
+        supervisor.given_start_xy(config.start_xy)
         self._cfg = config
         self._dt = 1.0 / config.rate_hz
         self._X = self.DeclareAbstractInputPort("X_BP", AbstractValue.Make(RigidTransform()))
