@@ -79,3 +79,17 @@ def test_no_command_writes_where_make_demo_does_by_default():
     assert not clashes, (
         f"default --out {make_demo_out.group(1)} of {clashes} clashes with make demo"
     )
+
+
+def test_the_control_docs_state_the_configured_force_filter_cutoff():
+    """docs/control.md and docs/design.md name the force low-pass the controller runs."""
+    from drake_rus.control.config import ControllerConfig
+
+    cutoff = ControllerConfig().force_filter_cutoff_hz
+    for page, pattern in (
+        ("control.md", r"force PD on the ([\d.]+) Hz low-passed"),
+        ("design.md", r"eq\. 6 on the ([\d.]+) Hz low-passed"),
+    ):
+        m = re.search(pattern, (ROOT / "docs" / page).read_text())
+        assert m, f"docs/{page} should state the force filter's cut-off"
+        assert float(m.group(1)) == cutoff, f"docs/{page}: {m.group(1)} Hz, config {cutoff} Hz"
