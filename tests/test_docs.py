@@ -93,3 +93,15 @@ def test_the_control_docs_state_the_configured_force_filter_cutoff():
         m = re.search(pattern, (ROOT / "docs" / page).read_text())
         assert m, f"docs/{page} should state the force filter's cut-off"
         assert float(m.group(1)) == cutoff, f"docs/{page}: {m.group(1)} Hz, config {cutoff} Hz"
+
+
+def test_the_exploration_length_is_not_described_as_l_m_alone():
+    """EXPLORE ends after ER x the estimated kidney length by default
+    (``controller.exploration_length: estimated``), not ER x L_m: a page that names the
+    rule says so."""
+    from drake_rus.control.config import ControllerConfig
+
+    assert ControllerConfig().exploration_length == "estimated"
+    for page in ("control.md", "design.md"):
+        text = (ROOT / "docs" / page).read_text()
+        assert "ER x L_m" not in text, f"docs/{page} says EXPLORE ends after ER x L_m"
