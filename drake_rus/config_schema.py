@@ -401,6 +401,12 @@ CROSS_FIELD_RULES = [
         "velocity targets must be sent at least as often as the controller computes them",
     ),
     (
+        ("controller.start_xy",),
+        lambda s: len(s.controller.start_xy) in (0, 2),
+        "the landing point is [x (m), y (m)] of the probe tip in the base frame; [] lands "
+        "straight down from the start pose",
+    ),
+    (
         ("controller.pivot_pose",),
         lambda s: len(s.controller.pivot_pose) in (0, 3),
         "a given pivot pose is [x (m), y (m), yaw (rad)]; [] pivots at T* of the registered "
