@@ -85,7 +85,7 @@ def kidney_phantom(
 ) -> KidneyPhantom:
     """A bean-ish kidney (ellipsoid with medulla and sinus) under fat and muscle, with a liver
     slab, optionally a rib bar above one pole and a bowel-gas pocket, at random sizes/poses
-    when ``rng`` is given (else the mean values: 110 x 58 x 40 mm kidney, facts "Kidney
+    when ``rng`` is given (else the mean values: 110 x 58 x 38 mm kidney, facts "Kidney
     size")."""
     r = rng if rng is not None else None
 
@@ -110,7 +110,8 @@ def kidney_phantom(
     liver_y = ext[1] * U(0.60, 0.75)
     liver = (y > liver_y + 0.2 * (x - ext[0] / 2)) & (depth > fat_t + muscle_t + 0.003)
     labels[np.broadcast_to(liver, shape)] = Label.LIVER
-    # Kidney: semi-axes (m) from length 98-123 mm, width 51-64 mm, thickness 30-45 mm.
+    # Kidney: semi-axes (m) from length 98-122 mm, width 52-64 mm, thickness 32-44 mm (the
+    # facts' 30-45 mm textbook range).
     a = np.array([U(0.049, 0.061), U(0.026, 0.032), U(0.016, 0.022)])
     kd = U(0.060, 0.085)  # skin to kidney centre (m)
     c = np.array([ext[0] / 2 + U(-0.01, 0.01), ext[1] / 2 + U(-0.01, 0.01), skin_z - kd])
