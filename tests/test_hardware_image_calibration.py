@@ -22,6 +22,7 @@ from drake_rus.hardware.image_calibration import (
     fit_image_calibration,
     fit_target_set,
     load_image_calibration,
+    load_target_set,
     preset_for_depth,
     save_image_calibration,
     targets_in_probe_frame,
@@ -301,6 +302,20 @@ def test_yaml_syntax_errors_are_one_line_naming_the_file(tmp_path, capsys):
         load_image_calibration(out)
     assert "\n" not in str(info.value) and "not valid YAML" in str(info.value)
     assert "line 2, column 1" in str(info.value)
+
+
+@pytest.mark.parametrize("text,expected", [("", "the file is empty"), ("- 1\n", "got a list")])
+def test_an_empty_or_non_mapping_file_is_named(tmp_path, text, expected):
+    """An empty target or calibration file, or one holding a list, is one line naming the
+    file and the expected mapping, not Drake's "YAML root was a <class 'NoneType'>"."""
+    for name, load in (("targets.yaml", load_target_set), ("cal.yaml", load_image_calibration)):
+        path = tmp_path / name
+        path.write_text(text)
+        with pytest.raises(ScenarioError) as info:
+            load(path)
+        message = str(info.value)
+        assert str(path) in message and expected in message and "YAML mapping" in message
+        assert "\n" not in message and "YAML root" not in message
 
 
 def test_a_failed_write_leaves_the_calibration_file_as_it_was(tmp_path, monkeypatch):

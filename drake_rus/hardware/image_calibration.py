@@ -102,6 +102,7 @@ def load_image_calibration(path, field_name: str = CALIBRATION_FIELD) -> ImageCa
         raw = yaml_load_file(str(path))
     except Exception as e:
         raise ScenarioError(f"{where}: not valid YAML: {yaml_error_text(e)}") from None
+    _check_mapping(where, raw, "presets: [{depth, mm_per_pixel, origin_px, ...}]")
     try:
         validate(ImageCalibration, raw or {})
         cal = yaml_load_typed(
@@ -440,6 +441,17 @@ class TargetSet:
     targets: list[TargetImage] = field(default_factory=list)
 
 
+def _check_mapping(where: str, raw, fields: str) -> None:
+    """ScenarioError naming ``where`` unless the file's YAML is a mapping (an empty file,
+    a list or a scalar otherwise fail inside Drake's loader with "YAML root was a ...")."""
+    if raw is None:
+        raise ScenarioError(f"{where}: the file is empty; expected a YAML mapping of {fields}")
+    if not isinstance(raw, dict):
+        raise ScenarioError(
+            f"{where}: expected a YAML mapping of {fields}, got a {type(raw).__name__}"
+        )
+
+
 def load_target_set(path) -> TargetSet:
     path = Path(path)
     if not path.is_file():
@@ -448,6 +460,7 @@ def load_target_set(path) -> TargetSet:
         raw = yaml_load_file(str(path))
     except Exception as e:
         raise ScenarioError(f"{path}: not valid YAML: {yaml_error_text(e)}") from None
+    _check_mapping(str(path), raw, "depth, crop and targets: [{image, p_P or q}]")
     try:
         validate(TargetSet, raw or {})
         return yaml_load_typed(schema=TargetSet, filename=str(path), defaults=TargetSet())
