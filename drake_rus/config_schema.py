@@ -594,8 +594,9 @@ def check_duplicate_keys(text: str, scenarios_file: bool = False) -> None:
     """Raises ScenarioError naming the field path and line of the first key written twice in
     one mapping of the YAML ``text`` (YAML loaders keep the last silently); in a
     ``scenarios_file`` the top-level keys are scenario names. Merge keys
-    (``<<: *anchor``) and what they bring in may be overridden, as YAML intends. Text that is
-    not YAML is left to the loader's own error."""
+    (``<<: *anchor``) and what they bring in may be overridden, as YAML intends. A null or
+    empty key is refused too (the loader fails on it without naming it). Text that is not
+    YAML is left to the loader's own error."""
     import yaml
 
     try:
@@ -613,6 +614,19 @@ def check_duplicate_keys(text: str, scenarios_file: bool = False) -> None:
             for key_node, value_node in node.value:
                 if key_node.tag == "tag:yaml.org,2002:merge" or key_node.value == "<<":
                     continue
+                if key_node.tag == "tag:yaml.org,2002:null":  # `null: 1`, `~: 1`, `: 1`
+                    line = key_node.start_mark.line + 1
+                    if scenarios_file and not path:
+                        raise ScenarioError(f"a scenario name is null or empty (line {line})")
+                    scenario, inside = "", path
+                    if scenarios_file:
+                        name, _, inside = path.partition(".")
+                        scenario = f"scenario '{name}': "
+                    inside = f" in '{inside}'" if inside else ""
+                    raise ScenarioError(
+                        f"{scenario}a field name{inside} is null or empty (line {line}); "
+                        "expected a field name such as controller or exploration_ratio"
+                    )
                 key = key_node.value if isinstance(key_node, yaml.ScalarNode) else None
                 if key is not None:
                     where = f"{path}.{key}" if path else key

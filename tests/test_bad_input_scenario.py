@@ -160,6 +160,7 @@ FIELD_CASES = [
     ("old_breathing_place", "s: {faults: {breathing: {enabled: true}}}", ["faults.breathing"]),
     ("random_seed_negative", "s: {random_seed: -1}", ["random_seed"]),
     ("workspace_length", "s: {safety: {workspace_min: [0, 0]}}", ["safety.workspace_min"]),
+    ("null_field_name", "s: {controller: {null: 1}}", ["null or empty", "in 'controller'"]),
     ("start_xy_length", "s: {controller: {start_xy: [0.5]}}", ["controller.start_xy", "[x (m)"]),
     # Physical ranges (each field's metadata, config_schema.physical), issue 17.
     ("probe_1000_kg", "s: {probe: {mass: 1000}}", ["probe.mass", "0.05-3 kg"]),
