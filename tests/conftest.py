@@ -174,3 +174,20 @@ def moving_nearest_doubles():
             return cKDTree(points).query(x)
 
     return Counted, Plain, made
+
+
+def write_small_label_map(path):
+    """A small TotalSegmentator-like label map (4 mm voxels, LPS grid: i left, j posterior,
+    k superior) written to ``path``: body 200, right kidney 2."""
+    import SimpleITK as sitk
+
+    n = (80, 60, 40)
+    ii, jj, kk = np.meshgrid(*[np.arange(s) for s in n], indexing="ij")
+    x, y, z = (ii - 40) * 4.0, (jj - 30) * 4.0, (kk - 20) * 4.0
+    lab = np.zeros(n, np.uint8)
+    lab[(x / 150) ** 2 + (y / 100) ** 2 <= 1] = 200
+    lab[((x + 75) / 28) ** 2 + ((y - 40) / 20) ** 2 + (z / 55) ** 2 <= 1] = 2
+    img = sitk.GetImageFromArray(np.ascontiguousarray(lab.transpose(2, 1, 0)))
+    img.SetSpacing((4.0, 4.0, 4.0))
+    img.SetOrigin((-160.0, -120.0, -80.0))
+    sitk.WriteImage(img, str(path))

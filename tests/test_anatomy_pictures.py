@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from conftest import write_small_label_map
 
 from drake_rus.anatomy import patient_from_label_map, pictures
 from drake_rus.anatomy.generator import generate_patient
@@ -32,18 +33,8 @@ def test_pictures_are_written(tmp_path):
 def test_label_slices_of_a_label_map_are_anatomical_planes(tmp_path, monkeypatch):
     """A label map keeps its scanner's (LPS) grid: i left, j posterior, k superior. The
     slice titled axial used to be the one normal to j, a coronal slice."""
-    import SimpleITK as sitk
-
-    n = (80, 60, 40)  # 4 mm voxels: 320 x 240 x 160 mm
-    ii, jj, kk = np.meshgrid(*[np.arange(s) for s in n], indexing="ij")
-    x, y, z = (ii - 40) * 4.0, (jj - 30) * 4.0, (kk - 20) * 4.0
-    lab = np.zeros(n, np.uint8)
-    lab[(x / 150) ** 2 + (y / 100) ** 2 <= 1] = 200
-    lab[((x + 75) / 28) ** 2 + ((y - 40) / 20) ** 2 + (z / 55) ** 2 <= 1] = 2
-    img = sitk.GetImageFromArray(np.ascontiguousarray(lab.transpose(2, 1, 0)))
-    img.SetSpacing((4.0, 4.0, 4.0))
-    img.SetOrigin((-160.0, -120.0, -80.0))
-    sitk.WriteImage(img, str(tmp_path / "seg.nii.gz"))
+    write_small_label_map(tmp_path / "seg.nii.gz")  # 320 x 240 x 160 mm
+    n = (80, 60, 40)  # its grid (4 mm voxels)
     p = patient_from_label_map(tmp_path / "seg.nii.gz", voxel_size=0.004)
     drawn = []
     real = pictures.label_image

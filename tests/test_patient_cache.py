@@ -6,7 +6,7 @@ import os
 
 import numpy as np
 import pytest
-import SimpleITK as sitk
+from conftest import write_small_label_map
 
 from drake_rus.anatomy import cache as cache_mod
 from drake_rus.anatomy import cohort, generator, load_patient
@@ -235,18 +235,7 @@ def test_cache_false_writes_nothing(cache_dir, builds):
     assert len(builds) == 3  # cache=False never reads either
 
 
-def _write_label_map(path):
-    """A small TotalSegmentator-like map (4 mm voxels, LPS): body 200, right kidney 2."""
-    n = (80, 60, 40)
-    ii, jj, kk = np.meshgrid(*[np.arange(s) for s in n], indexing="ij")
-    x, y, z = (ii - 40) * 4.0, (jj - 30) * 4.0, (kk - 20) * 4.0
-    lab = np.zeros(n, np.uint8)
-    lab[(x / 150) ** 2 + (y / 100) ** 2 <= 1] = 200
-    lab[((x + 75) / 28) ** 2 + ((y - 40) / 20) ** 2 + (z / 55) ** 2 <= 1] = 2
-    img = sitk.GetImageFromArray(np.ascontiguousarray(lab.transpose(2, 1, 0)))
-    img.SetSpacing((4.0, 4.0, 4.0))
-    img.SetOrigin((-160.0, -120.0, -80.0))
-    sitk.WriteImage(img, str(path))
+_write_label_map = write_small_label_map
 
 
 def test_imported_patient_keyed_by_file_bytes(cache_dir, tmp_path, monkeypatch):
