@@ -6,12 +6,12 @@ The slow tests run inside a private network namespace (``unshare -n``, loopback 
 multicast routed over it): nothing leaves the host. They skip, saying why, only when
 ``unshare`` is not permitted.
 
-They rehearse the shipped ``hardware`` scenario as it is (its watchdogs, the kidney-length
-estimate on, no raised priority), made shorter by the ``quick`` scenario's two differences
-(``OVERRIDES``), and compare with the same scan in this process on the simulated station.
-The scan's perception runs beside its control loop (drake_rus/executor.py), and the
-simulated robot publishes its statuses from a process of their own, so neither side's
-watchdogs need loosening on a shared 2-core machine.
+They rehearse the shipped ``hardware`` scenario (its watchdogs, the kidney-length estimate
+on, no raised priority), made shorter by the ``quick`` scenario's two differences, and
+compare with the same scan in this process on the simulated station. The scan's perception
+runs beside its control loop (drake_rus/executor.py), and the simulated robot publishes its
+statuses from a process of their own; still, on a shared 2-core CI machine the two
+load-sensitive watchdogs (real-time lag, image age) get 1 s (``OVERRIDES``).
 """
 
 import json
@@ -55,8 +55,15 @@ from drake_rus.scenario import LoadScenario
 # realtime_lag 1 s, as in tests/test_realtime.py: on a slower 2-core CI machine (an AMD
 # EPYC without VNNI, 2026-11-28) the rehearsal's own three processes let the loop's slips add
 # up to 0.26 s within a second, past the default 0.25 s, on the last stop's head as well;
-# the overload stop itself is tested in tests/test_scan_realtime.py.
-OVERRIDES = "{controller: {exploration_ratio: 0.5, pivot_rate: 0.2}, safety: {realtime_lag: 1.0}}"
+# the overload stop itself is tested in tests/test_scan_realtime.py. image_timeout 1 s for the
+# same reason: on the CI machine (2026-11-29) the segmentation worker fell 0.351 s behind the
+# video in EXPLORE (the `hardware` scenario's limit is 0.35 s) and the SIGTERM drill stopped
+# before its signal; that stop is tested in tests/test_realtime.py and
+# tests/test_control_safety.py.
+OVERRIDES = (
+    "{controller: {exploration_ratio: 0.5, pivot_rate: 0.2},"
+    " safety: {realtime_lag: 1.0, image_timeout: 1.0}}"
+)
 PATIENT = "test:0"
 SCENARIO = "hardware"
 
@@ -90,8 +97,11 @@ def test_mjpeg_stream_reads_in_opencv():
         cap = cv2.VideoCapture(server.url, cv2.CAP_FFMPEG)
         try:
             assert cap.isOpened()
+            # 21 frames: FFmpeg's probe on opening may have buffered a few that then read at
+            # once (6 frames once read at 43 Hz on a busy machine); over 20 intervals that
+            # shows as less than half the pace.
             times = []
-            for _ in range(6):
+            for _ in range(21):
                 ok, picture = cap.read()
                 assert ok
                 times.append(time.monotonic())
@@ -100,7 +110,7 @@ def test_mjpeg_stream_reads_in_opencv():
             assert abs(grey[30, 45] - 200) < 8 and grey[80, 100] < 8  # JPEG, lossy
         finally:
             cap.release()
-        assert 12.0 < 5 / (times[-1] - times[0]) < 40.0  # paced near 20 Hz
+        assert 12.0 < 20 / (times[-1] - times[0]) < 40.0  # paced near 20 Hz
     with pytest.raises(ValueError, match="loopback"):
         MjpegServer(FrameBuffer(), host="0.0.0.0")
 
