@@ -14,6 +14,7 @@ the modes that explain 95% of the variance.
 from __future__ import annotations
 
 import json
+import math
 import sys
 import tempfile
 import time
@@ -119,6 +120,113 @@ def _rotation_angle(T: np.ndarray) -> float:
     return float(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1, 1)))
 
 
+def order_free_sum(terms) -> np.ndarray:
+    """Sum of ``terms`` over axis 0, the same to the last bit whatever the order of the
+    additions (a permutation of the rows, another BLAS, another memory alignment): every
+    term is rounded to one fixed-point grid, 2^-40 of the largest term (about 1e-12
+    relative), and the integers are added exactly. Up to 2^22 rows."""
+    terms = np.asarray(terms, dtype=float)
+    if len(terms) > 2**22:
+        raise ValueError(f"order_free_sum: at most 2^22 rows, got {len(terms)}")
+    largest = float(np.max(np.abs(terms))) if terms.size else 0.0
+    if not largest > 0.0:
+        return np.zeros(terms.shape[1:])
+    quantum = math.ldexp(1.0, math.frexp(largest)[1] - 40)  # a power of two: exact scaling
+    return np.rint(terms / quantum).astype(np.int64).sum(axis=0).astype(float) * quantum
+
+
+def transform_points(T: np.ndarray, points: np.ndarray, *, rotate_only: bool = False):
+    """``points`` (N, 3) moved by the 4x4 ``T`` (or only rotated), written out element by
+    element so that every point's result is the same whatever the array's length or memory
+    alignment (a BLAS product need not be)."""
+    T = np.asarray(T, dtype=float)
+    p = np.asarray(points, dtype=float)
+    out = p[:, 0:1] * T[:3, 0] + p[:, 1:2] * T[:3, 1] + p[:, 2:3] * T[:3, 2]
+    return out if rotate_only else out + T[:3, 3]
+
+
+def _small_motion(x: np.ndarray) -> np.ndarray:
+    """4x4 for the update x = (alpha, beta, gamma, t) of a point-to-plane step: rotation
+    Rz(gamma) Ry(beta) Rx(alpha), translation t (the parameterisation of Open3D's
+    TransformationEstimationPointToPlane)."""
+    a, b, g = (float(v) for v in x[:3])
+    ca, sa, cb, sb, cg, sg = (
+        math.cos(a),
+        math.sin(a),
+        math.cos(b),
+        math.sin(b),
+        math.cos(g),
+        math.sin(g),
+    )
+    T = np.eye(4)
+    T[:3, :3] = [
+        [cg * cb, cg * sb * sa - sg * ca, cg * sb * ca + sg * sa],
+        [sg * cb, sg * sb * sa + cg * ca, sg * sb * ca - cg * sa],
+        [-sb, cb * sa, cb * ca],
+    ]
+    T[:3, 3] = x[3:]
+    return T
+
+
+def point_to_plane_icp(
+    src_pts,
+    ref_pts,
+    ref_nrm,
+    T0,
+    max_corr: float,
+    max_iteration: int = 60,
+    relative_fitness: float = 1e-6,
+    relative_rmse: float = 1e-6,
+):
+    """Point-to-plane ICP of the source points onto the reference surface (points and unit
+    normals), from the 4x4 ``T0``; pairs farther apart than ``max_corr`` (m) are left out.
+    Returns (T, fitness, inlier_rmse): fitness is the share of source points paired, the
+    rmse (m) over the pairs. Open3D's iteration and stopping rule (fitness and rmse both
+    changing by less than their tolerances), with nearest neighbours from one k-d tree and
+    the normal equations summed by :func:`order_free_sum`: the same inputs give the same T
+    to the last bit, in any process, in any order of the source points."""
+    src = np.asarray(src_pts, dtype=float)
+    ref = np.asarray(ref_pts, dtype=float)
+    nrm = np.asarray(ref_nrm, dtype=float)
+    tree = cKDTree(ref)
+    T = np.array(T0, dtype=float)
+
+    def pairs(T):
+        moved = transform_points(T, src)
+        dist, idx = tree.query(moved, distance_upper_bound=max_corr)
+        ok = np.isfinite(dist)
+        n_pairs = int(ok.sum())
+        fitness = n_pairs / len(src) if len(src) else 0.0
+        rmse = math.sqrt(float(order_free_sum(dist[ok] ** 2)) / n_pairs) if n_pairs else 0.0
+        return moved[ok], idx[ok], fitness, rmse
+
+    moved, idx, fitness, rmse = pairs(T)
+    for _ in range(max_iteration):
+        if len(idx) < 6:
+            break
+        q, n = ref[idx], nrm[idx]
+        r = (moved[:, 0] - q[:, 0]) * n[:, 0]
+        r = r + (moved[:, 1] - q[:, 1]) * n[:, 1] + (moved[:, 2] - q[:, 2]) * n[:, 2]
+        J = np.concatenate([np.cross(moved, n), n], axis=1)  # (K, 6)
+        JTJ = order_free_sum(J[:, :, None] * J[:, None, :])
+        JTr = order_free_sum(J * r[:, None])
+        try:
+            x = np.linalg.solve(JTJ, -JTr)
+        except np.linalg.LinAlgError:
+            break
+        if not np.all(np.isfinite(x)):
+            break
+        T = np.sum(_small_motion(x)[:, :, None] * T[None, :, :], axis=1)  # no BLAS
+        previous = (fitness, rmse)
+        moved, idx, fitness, rmse = pairs(T)
+        if (
+            abs(previous[0] - fitness) < relative_fitness
+            and abs(previous[1] - rmse) < relative_rmse
+        ):
+            break
+    return T, float(fitness), float(rmse)
+
+
 def align_to_reference(
     src_pts,
     src_nrm,
@@ -167,25 +275,14 @@ def align_to_reference(
             info["ransac"] = True
         else:
             info["ransac_rejected"] = True
-    icp = reg.registration_icp(
-        src,
-        ref,
-        2 * max_corr,
-        T0,
-        reg.TransformationEstimationPointToPlane(),
-        reg.ICPConvergenceCriteria(max_iteration=60),
-    )
-    icp = reg.registration_icp(
-        src,
-        ref,
-        max_corr,
-        icp.transformation,
-        reg.TransformationEstimationPointToPlane(),
-        reg.ICPConvergenceCriteria(max_iteration=60),
-    )
-    info["fitness"] = float(icp.fitness)
-    info["rmse"] = float(icp.inlier_rmse)
-    return np.asarray(icp.transformation), info
+    # Point-to-plane ICP, coarse then fine, in this module (point_to_plane_icp), not
+    # Open3D's: Open3D's sums differ in their last bits from call to call, and over the
+    # refinement passes a poorly fitting subject then lands in another basin.
+    T, _, _ = point_to_plane_icp(src_pts, ref_pts, ref_nrm, T0, 2 * max_corr, 60)
+    T, fitness, rmse = point_to_plane_icp(src_pts, ref_pts, ref_nrm, T, max_corr, 60)
+    info["fitness"] = fitness
+    info["rmse"] = rmse
+    return T, info
 
 
 def correspond(ref_points: np.ndarray, points: np.ndarray, normals: np.ndarray):
@@ -324,8 +421,8 @@ def build_template(
         shapes, normals = [], []
         for i, s in enumerate(subjects):
             T = transforms[i]
-            pts = s.points @ T[:3, :3].T + T[:3, 3]
-            nrm = s.normals @ T[:3, :3].T
+            pts = transform_points(T, s.points)
+            nrm = transform_points(T, s.normals, rotate_only=True)
             P, N = correspond(ref, pts, nrm)
             shapes.append(P)
             normals.append(N)
