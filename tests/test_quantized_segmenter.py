@@ -142,6 +142,7 @@ def test_a_cpu_without_vnni_is_told_once_about_the_int8_model(monkeypatch, caplo
     assert int8_saturation_note(reduced, INT8.name, False) == ""
     monkeypatch.setattr(ob, "cpu_has_vnni", lambda: False)
     monkeypatch.setattr(ob, "_SATURATION_NOTED", set())
+    monkeypatch.delenv(ob.SATURATION_NOTED_ENV, raising=False)
     geometry = ProbeGeometry.from_config(CFG)
     with caplog.at_level("WARNING", logger="drake_rus.imaging"):
         OnnxSegmenter(INT8, geometry)
@@ -149,6 +150,14 @@ def test_a_cpu_without_vnni_is_told_once_about_the_int8_model(monkeypatch, caplo
         OnnxSegmenter(FP32, geometry)
     notes = [r.getMessage() for r in caplog.records if "VNNI" in r.getMessage()]
     assert notes == [note]
+    # A process started afterwards (a perception worker inherits the environment) does not
+    # repeat it: the drill's log showed it twice, once from the scan and once from its worker.
+    assert str(INT8) in os.environ[ob.SATURATION_NOTED_ENV].split(os.pathsep)
+    monkeypatch.setattr(ob, "_SATURATION_NOTED", set())  # the child's own, empty
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="drake_rus.imaging"):
+        OnnxSegmenter(INT8, geometry)
+    assert not [r for r in caplog.records if "VNNI" in r.getMessage()]
 
 
 def test_quantizing_a_small_model_keeps_its_outputs(tmp_path):

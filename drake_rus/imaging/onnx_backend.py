@@ -24,9 +24,11 @@ card, keeps the resize above. :class:`PhysicalCanvas` does the mapping.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import math
+import os
 import platform
 from pathlib import Path
 
@@ -42,8 +44,12 @@ from drake_rus.paths import REPO_ROOT
 _log = logging.getLogger("drake_rus.imaging")
 # Models whose int8 saturation note was logged in this process (once each).
 _SATURATION_NOTED: set = set()
+# The same, for the processes this one starts afterwards (the perception workers, a study's
+# workers inherit the environment): they do not repeat the note. Paths, os.pathsep-joined.
+SATURATION_NOTED_ENV = "DRAKE_RUS_INT8_NOTED"
 
 
+@functools.lru_cache(maxsize=1)
 def cpu_has_vnni() -> bool | None:
     """Whether this x86 CPU has VNNI (AVX512-VNNI or AVX-VNNI); None when not x86 or unknown
     (/proc/cpuinfo unreadable)."""
@@ -79,6 +85,17 @@ def int8_saturation_note(card: dict, model_name: str, has_vnni: bool | None) -> 
         f"{source}, the fp32 model beside it (docs/imaging.md); set imaging.onnx_model to "
         f"that model for the fp32 figures (about 1.3 ms more per frame)"
     )
+
+
+def _note_once(key: str, note: str) -> None:
+    """Log ``note`` unless this process, or the one that started it, already did for
+    ``key`` (see SATURATION_NOTED_ENV)."""
+    inherited = os.environ.get(SATURATION_NOTED_ENV, "").split(os.pathsep)
+    if key in _SATURATION_NOTED or key in inherited:
+        return
+    _SATURATION_NOTED.add(key)
+    os.environ[SATURATION_NOTED_ENV] = os.pathsep.join([k for k in inherited if k] + [key])
+    _log.warning(note)
 
 
 def resolve_model_path(path: str) -> Path:
@@ -476,9 +493,8 @@ class OnnxSegmenter:
         card_name = self.path.with_suffix(".json").name
         self.card = read_model_card(self.path) if card is None else dict(card)
         note = int8_saturation_note(self.card, self.path.name, cpu_has_vnni())
-        if note and str(self.path) not in _SATURATION_NOTED:
-            _SATURATION_NOTED.add(str(self.path))
-            _log.warning(note)
+        if note:
+            _note_once(str(self.path), note)
         spec = card_canvas(self.card, f"{where}: model card {card_name}")
         #: The physical canvas (None: the plain resize of the whole image to H x W).
         self.canvas = None
