@@ -203,7 +203,15 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
-    specs = parse_patients(args.patients)
+    try:
+        specs = parse_patients(args.patients)
+    except ValueError as e:  # the message names --patients
+        print(e, file=sys.stderr)
+        return 2
+    for option, value in (("--er", args.er), ("--voxel", args.voxel)):
+        if not (np.isfinite(value) and value > 0.0):
+            print(f"{option}: expected a positive number, got {value}", file=sys.stderr)
+            return 2
     scenario = ApplyOverrides(LoadScenario(scenario_name=args.scenario), args.set)
     controller = dataclasses.replace(
         scenario.controller,
