@@ -24,6 +24,7 @@ and prints ``{"skipped": ...}``.
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -36,6 +37,8 @@ from drake_rus.io_utils import dumps_strict
 from drake_rus.template.builder import subject_from_mesh
 from drake_rus.template.ct import (
     DEFAULT_CT_DIR,
+    TUMOUR_POLICIES,
+    CtTemplateError,
     CtTemplateOptions,
     ct_template,
     find_label_maps,
@@ -152,7 +155,18 @@ def main(argv=None) -> int:
         "(exclude, include, mask; default exclude)",
     )
     parser.add_argument("--out", default=None, help="folder for the plots")
-    args, _ = parser.parse_known_args(argv)
+    args = parser.parse_args(argv)
+    policies = [p.strip() for p in args.policies.split(",") if p.strip()]
+    if not policies or any(p not in TUMOUR_POLICIES for p in policies):
+        print(
+            f"--policies: expected comma-separated {', '.join(TUMOUR_POLICIES)}, got "
+            f"{args.policies!r}",
+            file=sys.stderr,
+        )
+        return 2
+    if args.n < 1:
+        print(f"--n: expected 1 or more kidneys, got {args.n}", file=sys.stderr)
+        return 2
     ct_dir = Path(args.cases).expanduser()
     if not ct_dir.is_dir():
         print(f"real_template: no CT label maps at {ct_dir}; skipped")
@@ -162,15 +176,33 @@ def main(argv=None) -> int:
     def log(line):
         print(line, flush=True)
 
-    names = [c for c, _ in find_label_maps(ct_dir)]
-    test = match_cases(names, args.test)
+    try:
+        names = [c for c, _ in find_label_maps(ct_dir)]
+    except CtTemplateError as e:
+        print(f"--cases: {e}", file=sys.stderr)
+        return 2
+    try:
+        test = match_cases(names, args.test)
+    except CtTemplateError as e:
+        print(f"--test: {e}", file=sys.stderr)
+        return 2
+    if not test:
+        print(
+            f"--test: {args.test!r} selects none of the {len(names)} cases of {ct_dir}",
+            file=sys.stderr,
+        )
+        return 2
     generated = load_template(DEFAULT_TEMPLATE_PATH)
     templates = {"generated": generated}
     builds = {}
-    for policy in [p.strip() for p in args.policies.split(",") if p.strip()]:
+    for policy in policies:
         opts = CtTemplateOptions(n=args.n, side=args.side, tumour_policy=policy)
         t0 = time.time()
-        path = ct_template(ct_dir, opts, exclude=test, log=log)
+        try:
+            path = ct_template(ct_dir, opts, exclude=test, log=log)
+        except CtTemplateError as e:  # e.g. no eligible kidney outside the test cases
+            print(f"real_template: {e}", file=sys.stderr)
+            return 2
         wall = time.time() - t0
         t = load_template(path)
         templates[f"real:{policy}"] = t

@@ -31,3 +31,40 @@ def test_localization_bad_arguments(capsys, monkeypatch, args, option):
 
     monkeypatch.setattr(localization, "load_patient", lambda *a, **k: pytest.fail("loaded"))
     _one_line_error(capsys, ["localization", *args], option)
+
+
+@pytest.fixture
+def label_map_folder(tmp_path):
+    """A KiTS-layout folder of two cases (the files are never read before a build)."""
+    for case in ("case_00000", "case_00001"):
+        (tmp_path / case).mkdir()
+        (tmp_path / case / "segmentation.nii.gz").write_bytes(b"")
+    return tmp_path
+
+
+@pytest.mark.parametrize(
+    "args, option",
+    [
+        (["--policies", "exclude,foo"], "--policies"),
+        (["--policies", ","], "--policies"),
+        (["--n", "0"], "--n"),
+        (["--test", "x/y"], "--test"),
+        (["--test", "5-9"], "--test"),  # selects no case: it once built, then failed
+    ],
+)
+def test_real_template_bad_arguments(capsys, monkeypatch, label_map_folder, args, option):
+    from benchmarks import real_template
+
+    monkeypatch.setattr(real_template, "ct_template", lambda *a, **k: pytest.fail("built"))
+    _one_line_error(capsys, ["real_template", "--cases", str(label_map_folder), *args], option)
+
+
+def test_real_template_refuses_an_unknown_option(capsys, tmp_path):
+    """A misspelt option (``--polices``) was ignored: the run measured the default policy."""
+    with pytest.raises(SystemExit) as stop:
+        run_benchmark(["real_template", "--cases", str(tmp_path / "none"), "--polices", "mask"])
+    assert stop.value.code == 2 and "--polices" in capsys.readouterr().err
+
+
+def test_real_template_folder_without_label_maps_is_one_line(capsys, tmp_path):
+    _one_line_error(capsys, ["real_template", "--cases", str(tmp_path)], "--cases")
