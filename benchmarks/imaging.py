@@ -76,12 +76,34 @@ def _stage(text: str) -> None:
     print(f"[imaging {time.perf_counter() - _T0:5.0f} s] {text}", file=sys.stderr, flush=True)
 
 
+def check_arguments(args) -> str | None:
+    """The one-line error for a count the benchmark cannot use, or None."""
+    for option, least in (
+        ("frames", 1),
+        ("patients", 1),
+        ("iou_frames", 1),
+        ("speed_frames", 1),
+        ("depth_patients", 0),
+        ("depth_views", 0),
+        ("vh_views", 0),
+    ):
+        value = getattr(args, option)
+        if value < least:
+            return f"--{option.replace('_', '-')}: expected {least} or more, got {value}"
+    return None
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks imaging", description=__doc__)
     ap.add_argument("--frames", type=int, default=200, help="frames per speed measurement")
     ap.add_argument("--patients", type=int, default=3, help="test patients for the IoU")
     ap.add_argument("--iou-frames", type=int, default=60, help="frames per test patient")
-    ap.add_argument("--source", default="test", help="'test' (test:K patients) or 'phantom'")
+    ap.add_argument(
+        "--source",
+        default="test",
+        choices=["test", "phantom"],
+        help="'test' (test:K patients) or 'phantom'",
+    )
     ap.add_argument(
         "--depth-patients",
         type=int,
@@ -122,6 +144,10 @@ def main(argv=None) -> int:
         '"{imaging: {onnx_mirror_average: false}}" (its imaging section is measured)',
     )
     args = ap.parse_args(argv)
+    error = check_arguments(args)
+    if error:
+        print(error, file=sys.stderr)
+        return 2
 
     from pydrake.math import RigidTransform
 
@@ -144,6 +170,9 @@ def main(argv=None) -> int:
             print(f"--set: {e}", file=sys.stderr)
             return 2
     if args.onnx_model:
+        if not resolve_model_path(args.onnx_model).is_file():
+            print(f"--onnx-model: no model at {args.onnx_model}", file=sys.stderr)
+            return 2
         cfg = replace(cfg, onnx_model=args.onnx_model)
     g = ProbeGeometry.from_config(cfg)
     model = EmulatorModel.from_config(cfg, g)

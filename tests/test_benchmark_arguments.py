@@ -68,3 +68,28 @@ def test_real_template_refuses_an_unknown_option(capsys, tmp_path):
 
 def test_real_template_folder_without_label_maps_is_one_line(capsys, tmp_path):
     _one_line_error(capsys, ["real_template", "--cases", str(tmp_path)], "--cases")
+
+
+@pytest.mark.parametrize(
+    "args, option",
+    [
+        (["--patients", "0"], "--patients"),  # was an IndexError on specs[0]
+        (["--frames", "0"], "--frames"),
+        (["--iou-frames", "-1"], "--iou-frames"),
+        (["--speed-frames", "0"], "--speed-frames"),
+        (["--depth-views", "-3"], "--depth-views"),
+        (["--onnx-model", "/nonexistent/model.onnx"], "--onnx-model"),
+    ],
+)
+def test_imaging_bad_arguments(capsys, monkeypatch, args, option):
+    from drake_rus.imaging.training import evaluation
+
+    monkeypatch.setattr(evaluation, "load_volume", lambda *a, **k: pytest.fail("loaded"))
+    _one_line_error(capsys, ["imaging", *args], option)
+
+
+def test_imaging_refuses_an_unknown_source(capsys):
+    """Any --source but 'test' once ran the phantoms."""
+    with pytest.raises(SystemExit) as stop:
+        run_benchmark(["imaging", "--source", "tset"])
+    assert stop.value.code == 2 and "--source" in capsys.readouterr().err
