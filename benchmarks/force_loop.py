@@ -17,20 +17,22 @@ docs/force_loop.md): the figures behind the reduced model of ``drake_rus.control
   the laws before and after issue 32 (the worst arm pose of the scans of test:0-2), and the
   design table: candidate gains against the criterion.
 
-Without options: ``--stiffness --validate --hold 60``. The last line is one JSON object.
+Without options: ``--stiffness --validate --hold 60``. The last line is one JSON object
+(strict JSON: an infinite value, e.g. the cut-off of a law without a force filter, is
+``null``).
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import math
 import time
 
 import numpy as np
 
 from drake_rus.control import force_loop as fl
+from drake_rus.io_utils import dumps_strict
 
 # The press law before issue 32: v = 0.004 (F_des - F_z), no filter, no orientation hold.
 OLD_PRESS = {"K_p3": 0.004, "K_d1": 0.0, "force_filter_cutoff_hz": 1e9}
@@ -132,7 +134,7 @@ def stiffness_range(scenario, force: float) -> dict:
         )
         row = out["placeholder"][f"{E:g}"] = normal_stiffness(s, None, force)
         every.append(row["stiffness_n_per_m"])
-        print(json.dumps({"placeholder_modulus_pa": E, **row}), flush=True)
+        print(dumps_strict({"placeholder_modulus_pa": E, **row}), flush=True)
     for name in PATIENTS + (VISIBLE_HUMAN,):
         try:
             patient = load_patient(name, progress=False)
@@ -147,7 +149,7 @@ def stiffness_range(scenario, force: float) -> dict:
             )
             row[f"{E:g}"] = normal_stiffness(s_E, patient, force)
             every.append(row[f"{E:g}"]["stiffness_n_per_m"])
-        print(json.dumps({"patient": name, **row}), flush=True)
+        print(dumps_strict({"patient": name, **row}), flush=True)
     out["min_n_per_m"], out["max_n_per_m"] = min(every), max(every)
     return out
 
@@ -345,7 +347,7 @@ def validate(scenario) -> list:
             ("configured", _configured(scenario), True),
         ):
             row = validate_once(scenario, h, gains, VALIDATION_TIMES[(name, h)], hold)
-            print(json.dumps(row), flush=True)
+            print(dumps_strict(row), flush=True)
             rows.append(row)
     return rows
 
@@ -427,7 +429,7 @@ def holds(scenario, seconds: float) -> dict:
         for name, run in runs.items():
             key = f"{name}_{h * 1e3:g}ms"
             out[key] = run()
-            print(json.dumps({key: out[key]}), flush=True)
+            print(dumps_strict({key: out[key]}), flush=True)
     return out
 
 
@@ -504,7 +506,7 @@ def design_table(arms, candidates=CANDIDATES) -> list:
                 ),
             }
         )
-        print(json.dumps(rows[-1]), flush=True)
+        print(dumps_strict(rows[-1]), flush=True)
     return rows
 
 
@@ -597,5 +599,5 @@ def main(argv=None) -> int:
         configured = fl.ForceLaw.from_config(scenario.controller)
         candidates = CANDIDATES + ((configured.gain, configured.derivative, configured.cutoff_hz),)
         result["design_table"] = design_table(arms, tuple(dict.fromkeys(candidates)))
-    print(json.dumps(result))
+    print(dumps_strict(result))
     return 0

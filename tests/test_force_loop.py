@@ -2,6 +2,7 @@
 and unstable gains, the margin of the configured gains over the contact stiffness range, and
 the force statistics the summaries report."""
 
+import json
 import math
 
 import numpy as np
@@ -226,3 +227,22 @@ def test_scan_controller_holds_still_at_test0_start():
 
     stats = scan_controller_hold(LoadScenario(), "test:0", 6.0, window=2.0)
     assert stats["settled"] and stats["ripple_n"] < 0.01, stats
+
+
+def test_benchmark_json_is_strict_with_a_law_without_filter(monkeypatch, capsys, tmp_path):
+    """The design table's first candidate has no force filter (cut-off inf): its rows and
+    the last line were written as ``Infinity``, which is not JSON; now null."""
+    from benchmarks import force_loop as bench
+
+    monkeypatch.setattr(bench, "scan_arms", lambda scenario: [])
+    monkeypatch.setattr(bench, "plot_margins", lambda *a, **k: {})
+    assert bench.main(["--plot", str(tmp_path / "margins.png")]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+
+    def refuse(constant):
+        raise ValueError(f"not JSON: {constant}")
+
+    docs = [json.loads(line, parse_constant=refuse) for line in lines]
+    table = docs[-1]["design_table"]
+    assert table[0]["cutoff_hz"] is None and table[0] == docs[0]
+    assert len(table) == len(docs) - 1
