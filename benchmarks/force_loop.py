@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import sys
 import time
 
 import numpy as np
@@ -577,7 +578,10 @@ def main(argv=None) -> int:
     parser.add_argument("--hold", type=float, default=None, metavar="SECONDS")
     parser.add_argument("--plot", default=None, metavar="PATH")
     args = parser.parse_args(argv)
-    if not (args.stiffness or args.validate or args.hold or args.plot):
+    if args.hold is not None and not (math.isfinite(args.hold) and args.hold > 0.0):
+        print(f"--hold: expected a positive number of seconds, got {args.hold}", file=sys.stderr)
+        return 2
+    if not (args.stiffness or args.validate or args.hold is not None or args.plot):
         args.stiffness, args.validate, args.hold = True, True, 60.0
     scenario = LoadScenario(scenario_name=args.scenario)
     force = scenario.controller.desired_force
@@ -586,7 +590,7 @@ def main(argv=None) -> int:
         result["stiffness"] = stiffness_range(scenario, force)
     if args.validate:
         result["validate"] = validate(scenario)
-    if args.hold:
+    if args.hold is not None:
         result["holds"] = holds(scenario, args.hold)
     if args.plot:
         band = (

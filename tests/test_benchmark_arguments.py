@@ -93,3 +93,14 @@ def test_imaging_refuses_an_unknown_source(capsys):
     with pytest.raises(SystemExit) as stop:
         run_benchmark(["imaging", "--source", "tset"])
     assert stop.value.code == 2 and "--source" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("hold", ["0", "-5", "nan"])
+def test_force_loop_hold_must_be_positive(capsys, monkeypatch, hold):
+    """``--hold 0`` once read as "no option given" and ran the whole default set
+    (stiffness, validation, 60 s holds): tens of minutes."""
+    from benchmarks import force_loop
+
+    for step in ("stiffness_range", "validate", "holds"):
+        monkeypatch.setattr(force_loop, step, lambda *a, **k: pytest.fail("ran"))
+    _one_line_error(capsys, ["force_loop", "--hold", hold], "--hold")
