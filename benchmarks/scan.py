@@ -34,6 +34,7 @@ The last line is one JSON object.
 import argparse
 import collections
 import json
+import math
 import os
 import re
 import shutil
@@ -311,12 +312,26 @@ def check_against_reference(row: dict, ref: dict) -> dict:
     return checks
 
 
+def parse_steps(text: str) -> list[float]:
+    """The plant steps (s) of ``--steps``: comma-separated positive numbers; ValueError
+    naming ``--steps`` otherwise."""
+    try:
+        steps = [float(s) for s in str(text).split(",")]
+    except ValueError:
+        steps = []
+    if not steps or not all(math.isfinite(h) and h > 0.0 for h in steps):
+        raise ValueError(
+            f"--steps: expected comma-separated positive plant steps in s, got {text!r}"
+        )
+    return steps
+
+
 def validate(args, base) -> dict:
     """Every step of ``--steps`` on every patient of ``--patients``, against the first step."""
     from drake_rus.scan import truth
 
     truth.FORCE_LOG_PERIOD = args.force_log_period  # fine enough for the landing peak
-    steps = [float(s) for s in args.steps.split(",")]
+    steps = parse_steps(args.steps)
     rows = []
     verdict = {}
     for patient in args.patients.split(","):
@@ -384,6 +399,14 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.repeat < 1:
         parser.error(f"--repeat: expected a whole number >= 1, got {args.repeat}")
+    if not (math.isfinite(args.force_log_period) and args.force_log_period > 0.0):
+        parser.error(f"--force-log-period: expected a positive number, got {args.force_log_period}")
+    try:
+        parse_steps(args.steps)
+    except ValueError as e:
+        parser.error(str(e))
+    if not [p for p in args.patients.split(",") if p.strip()]:
+        parser.error(f"--patients: expected comma-separated patient specs, got {args.patients!r}")
     base = ApplyOverrides(LoadScenario(scenario_name=args.scenario), args.set)
     load_before = os.getloadavg()
     if args.validate:

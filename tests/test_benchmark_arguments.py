@@ -104,3 +104,25 @@ def test_force_loop_hold_must_be_positive(capsys, monkeypatch, hold):
     for step in ("stiffness_range", "validate", "holds"):
         monkeypatch.setattr(force_loop, step, lambda *a, **k: pytest.fail("ran"))
     _one_line_error(capsys, ["force_loop", "--hold", hold], "--hold")
+
+
+@pytest.mark.parametrize(
+    "args, option",
+    [
+        (["--steps", "0.001,abc"], "--steps"),  # was a float() traceback after the import
+        (["--steps", "0.001,0"], "--steps"),
+        (["--steps", "-0.01"], "--steps"),
+        (["--steps", ""], "--steps"),
+        (["--force-log-period", "0"], "--force-log-period"),
+        (["--patients", ","], "--patients"),
+    ],
+)
+def test_scan_validate_bad_arguments(capsys, monkeypatch, args, option):
+    from benchmarks import scan
+
+    monkeypatch.setattr(scan, "run_one", lambda *a, **k: pytest.fail("scanned"))
+    with pytest.raises(SystemExit) as stop:
+        run_benchmark(["scan", "--validate", "--no-profile", *args])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and option in err.strip().splitlines()[-1]
+    assert "Traceback" not in err
