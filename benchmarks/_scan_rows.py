@@ -1,5 +1,6 @@
 """One default scan as a benchmark row (shared by ``real_anatomy``, ``real_kidneys`` and
-``pivot``), and the benchmarks' scenario from ``--scenario``/``--scenarios-file``/``--set``."""
+``pivot``), the benchmarks' scenario from ``--scenario``/``--scenarios-file``/``--set``, and
+their arguments checked against the commands' shared rules."""
 
 import time
 import traceback
@@ -7,7 +8,7 @@ import traceback
 import numpy as np
 
 from drake_rus.anatomy import load_patient
-from drake_rus.cli import load_scenario_from_args
+from drake_rus.cli import UserError, check_arguments, load_scenario_from_args
 from drake_rus.config_schema import ScenarioError
 from drake_rus.control.safety import StopReason
 from drake_rus.control.supervisor import Phase
@@ -225,3 +226,14 @@ def scenario_from_args(args):
         return load_scenario_from_args(args), None
     except (ScenarioError, ValueError) as e:
         return None, f"--scenario/--set: {e}"
+
+
+def argument_error(args) -> str | None:
+    """The one line naming the first argument of ``args`` that breaks one of the commands'
+    shared rules (:data:`drake_rus.cli.ARGUMENT_RULES`: ``--max-sim-time`` and
+    ``--duration`` positive, ...), or None: checked before anything is loaded or run."""
+    try:
+        check_arguments(args)
+    except UserError as e:
+        return str(e)
+    return None

@@ -14,11 +14,13 @@ The last line is one JSON object.
 import argparse
 import json
 import math
+import sys
 import time
 
 from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.systems.analysis import Simulator
 
+from benchmarks._scan_rows import argument_error
 from drake_rus.closed_loop import BuildClosedLoop, BuildClosedLoopOnPatient
 from drake_rus.control import supervisor
 from drake_rus.control.synthetic_view import GeometricKidneyView
@@ -70,6 +72,10 @@ def main(argv=None) -> int:
         "--no-reference", action="store_true", help="skip the station-alone reference run"
     )
     args = parser.parse_args(argv)
+    error = argument_error(args)
+    if error:
+        print(error, file=sys.stderr)
+        return 2
     if args.patient in ("none", ""):
         args.patient = None
 

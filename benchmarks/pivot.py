@@ -16,10 +16,11 @@ is reported too (``eps_pretilt_mm``), since it is not a PIVOT frame.
 import argparse
 import json
 import math
+import sys
 
 import numpy as np
 
-from benchmarks._scan_rows import scan_row
+from benchmarks._scan_rows import argument_error, scan_row
 from drake_rus.control.supervisor import Phase
 from drake_rus.experiments.specs import expand_patients
 from drake_rus.localization.localize import load_registration_template
@@ -77,6 +78,10 @@ def main(argv=None) -> int:
     parser.add_argument("--set", dest="overrides", default=None, help="YAML overrides")
     parser.add_argument("--max-sim-time", type=float, default=150.0)
     args = parser.parse_args(argv)
+    error = argument_error(args)
+    if error:
+        print(error, file=sys.stderr)
+        return 2
     scenario = LoadScenario(scenario_name=args.scenario, scenario_text=args.overrides)
     template = load_registration_template(scenario.localization.template)
     rows = []

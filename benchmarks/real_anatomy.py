@@ -27,7 +27,13 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from benchmarks._scan_rows import in_loop_line, in_loop_totals, scan_row, scenario_from_args
+from benchmarks._scan_rows import (
+    argument_error,
+    in_loop_line,
+    in_loop_totals,
+    scan_row,
+    scenario_from_args,
+)
 from drake_rus.anatomy.cohort import TRAIN_OFFSET
 from drake_rus.anatomy.ct_patient import CT_BODY_OFFSET
 from drake_rus.cli import add_scenario_arguments
@@ -127,6 +133,10 @@ def main(argv=None) -> int:
     missing = [str(p) for p in bodies if not p.exists()]
     if missing:
         print(f"--patients: not found: {', '.join(missing)}")
+        return 2
+    error = argument_error(args)
+    if error:
+        print(error)
         return 2
     if args.fresh_seeds < 0:
         print(f"--fresh-seeds: expected 0 or more, got {args.fresh_seeds}")

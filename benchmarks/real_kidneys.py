@@ -47,7 +47,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from benchmarks._scan_rows import in_loop_totals, scenario_from_args
+from benchmarks._scan_rows import argument_error, in_loop_totals, scenario_from_args
 from drake_rus.anatomy.cache import file_digest
 from drake_rus.anatomy.ct_kidney import import_ct_kidneys, read_label_grid, select_kidney
 from drake_rus.batch import bound_workers
@@ -226,6 +226,10 @@ def main(argv=None) -> int:
     add_scenario_arguments(parser)
     args = parser.parse_args(argv)
     ct_dir = Path(args.cases).expanduser().resolve()
+    error = argument_error(args)
+    if error:
+        print(error, file=sys.stderr)
+        return 2
     if args.limit is not None and args.limit < 1:
         print(f"--limit: expected 1 or more cases, got {args.limit}", file=sys.stderr)
         return 2

@@ -14,6 +14,7 @@ The last line is one JSON object.
 
 import argparse
 import json
+import sys
 import time
 
 import numpy as np
@@ -21,6 +22,7 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import Sine
 
+from benchmarks._scan_rows import argument_error
 from drake_rus.closed_loop import PressDiagram
 from drake_rus.control.force_loop import force_statistics
 from drake_rus.scenario import ApplyOverrides, LoadScenario
@@ -76,6 +78,10 @@ def main(argv=None) -> int:
         "--sweep", action="store_true", help="also time a grid of patient/probe resolution hints"
     )
     args = parser.parse_args(argv)
+    error = argument_error(args)
+    if error:
+        print(error, file=sys.stderr)
+        return 2
     scenario = LoadScenario(scenario_name=args.scenario)
     hydro = _press_run(ApplyOverrides(scenario, "{contact: {model: hydroelastic}}"), args.duration)
     point = _press_run(ApplyOverrides(scenario, "{contact: {model: point}}"), args.duration)

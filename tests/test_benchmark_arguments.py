@@ -126,3 +126,35 @@ def test_scan_validate_bad_arguments(capsys, monkeypatch, args, option):
     err = capsys.readouterr().err
     assert stop.value.code == 2 and option in err.strip().splitlines()[-1]
     assert "Traceback" not in err
+
+
+@pytest.mark.parametrize("value", ["0", "-10", "nan"])
+def test_scan_benchmarks_refuse_a_max_sim_time_that_is_not_positive(
+    capsys, monkeypatch, tmp_path, value
+):
+    """--max-sim-time 0 started every scan (each after building its patient) and ended it at
+    once: a whole run of TIMEOUT rows instead of one line."""
+    from benchmarks import pivot, real_anatomy, real_kidneys
+
+    monkeypatch.setattr(pivot, "run_one", lambda *a, **k: pytest.fail("scanned"))
+    monkeypatch.setattr(real_kidneys, "scan_case", lambda *a, **k: pytest.fail("scanned"))
+    monkeypatch.setattr(real_anatomy, "run_one", lambda *a, **k: pytest.fail("scanned"))
+    flag = ["--max-sim-time", value]
+    _one_line_error(capsys, ["pivot", "--patients", "test:0", *flag], "--max-sim-time")
+    _one_line_error(capsys, ["real_kidneys", "--cases", str(tmp_path), *flag], "--max-sim-time")
+    body = tmp_path / "body"
+    body.mkdir()
+    assert real_anatomy.main(["--patients", str(body), *flag]) == 2
+    out = capsys.readouterr().out.strip()
+    assert out.startswith("--max-sim-time: ") and len(out.splitlines()) == 1
+
+
+@pytest.mark.parametrize("name", ["station", "control"])
+@pytest.mark.parametrize("value", ["0", "-1"])
+def test_rate_benchmarks_refuse_a_duration_that_is_not_positive(capsys, monkeypatch, name, value):
+    """--duration 0 divided by a wall time of almost nothing; negative went back in time."""
+    import importlib
+
+    bench = importlib.import_module(f"benchmarks.{name}")
+    monkeypatch.setattr(bench, "LoadScenario", lambda *a, **k: pytest.fail("built"))
+    _one_line_error(capsys, [name, "--duration", value], "--duration")
