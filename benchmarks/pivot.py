@@ -82,10 +82,15 @@ def main(argv=None) -> int:
     if error:
         print(error, file=sys.stderr)
         return 2
+    try:
+        specs = expand_patients(args.patients)
+    except ValueError as e:  # the message names --patients
+        print(e, file=sys.stderr)
+        return 2
     scenario = LoadScenario(scenario_name=args.scenario, scenario_text=args.overrides)
     template = load_registration_template(scenario.localization.template)
     rows = []
-    for spec in expand_patients(args.patients):
+    for spec in specs:
         for strategy in args.strategies:
             row = run_one(spec, strategy, scenario, template, args.max_sim_time)
             rows.append(row)

@@ -158,3 +158,12 @@ def test_rate_benchmarks_refuse_a_duration_that_is_not_positive(capsys, monkeypa
     bench = importlib.import_module(f"benchmarks.{name}")
     monkeypatch.setattr(bench, "LoadScenario", lambda *a, **k: pytest.fail("built"))
     _one_line_error(capsys, [name, "--duration", value], "--duration")
+
+
+@pytest.mark.parametrize("patients", ["test:x", "test:4-0", ","])
+def test_pivot_bad_patients_is_one_line(capsys, monkeypatch, patients):
+    """expand_patients' ValueError (its message names --patients) was a traceback."""
+    from benchmarks import pivot
+
+    monkeypatch.setattr(pivot, "run_one", lambda *a, **k: pytest.fail("scanned"))
+    _one_line_error(capsys, ["pivot", "--patients", patients], "--patients")
