@@ -101,6 +101,18 @@ def test_bad_folders_get_one_line(tmp_path, spoil, expected):
     assert expected in text
 
 
+def test_a_spreadsheets_frames_csv_is_read(tmp_path):
+    # A spreadsheet's "CSV UTF-8" starts with a byte-order mark, and a table typed by hand
+    # may put a space after each comma: the columns are still known by their names, so the
+    # kidney-free mark and the depths are not silently dropped.
+    root = make_folder(tmp_path / "frames", table=False, empty=(3,))
+    rows = "".join(f"f{k:02d}, {0 if k == 3 else 1}, 0.2\n" for k in range(4))
+    (root / "frames.csv").write_text("\ufeffname, kidney, depth_m\n" + rows, encoding="utf-8")
+    f = read_annotated_frames(root, SHAPE, depth=0.15)
+    assert f.kidney.tolist() == [True, True, True, False]
+    np.testing.assert_allclose(f.depth, 0.2)
+
+
 def test_an_empty_mask_needs_the_frame_marked_kidney_free(tmp_path):
     root = make_folder(tmp_path / "frames", table=False, empty=(1,))
     with pytest.raises(FramesError, match="no kidney pixel"):

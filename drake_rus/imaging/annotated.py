@@ -116,10 +116,15 @@ def _files(folder: Path) -> dict:
 def _read_table(path: Path) -> dict:
     """{name: row} of a frames.csv."""
     try:
-        text = path.read_text()
+        # utf-8-sig: a table saved by a spreadsheet ("CSV UTF-8") starts with a byte-order
+        # mark, which would otherwise become part of the first column's name.
+        text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as e:
         raise FramesError(f"{path}: cannot be read as text ({e})") from None
-    reader = csv.DictReader(io.StringIO(text))
+    reader = csv.DictReader(io.StringIO(text), skipinitialspace=True)
+    if reader.fieldnames:
+        # "name, kidney, depth_m": a column is known by its name without the spaces around it
+        reader.fieldnames = [f.strip() for f in reader.fieldnames]
     if not reader.fieldnames or "name" not in reader.fieldnames:
         raise FramesError(
             f"{path}: expected a header with a 'name' column, got {reader.fieldnames}"
