@@ -302,3 +302,20 @@ def test_the_command_line_refuses_a_bad_interpolation_weight(tmp_path):
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and "--interpolate" in lines[0], r.stderr
     assert not out.exists()
+
+
+@pytest.mark.parametrize("name", ["sub/model", "", ".hidden"])
+def test_the_command_line_refuses_a_model_name_with_a_folder_before_training(tmp_path, name):
+    # --name is a file name in --out: a folder in it made the run train, then fail to move
+    # the model into place and leave its temporary folders behind.
+    root = make_folder(tmp_path / "frames")
+    out = tmp_path / "model"
+    r = _cli(
+        "segmenter", "fine-tune", "--frames", str(root), "--out", str(out), "--name", name,
+        "--epochs", "1",
+    )  # fmt: skip
+    assert r.returncode == 2, r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "--name" in lines[0], r.stderr
+    assert "epoch" not in r.stdout
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frames"]

@@ -18,7 +18,7 @@ from pathlib import Path
 from drake_rus.cli import UserError, add_scenario_arguments, load_scenario_from_args
 from drake_rus.extras import require
 from drake_rus.imaging.annotated import FramesError, read_annotated_frames
-from drake_rus.imaging.training.fine_tune import fine_tune, trainable_source
+from drake_rus.imaging.training.fine_tune import check_model_name, fine_tune, trainable_source
 
 
 def add_commands(subparsers) -> None:
@@ -141,6 +141,10 @@ def run_fine_tune(args) -> int:
             f"field 'imaging.segmenter': {scenario.imaging.segmenter!r}; fine-tuning needs "
             "the onnx backend's model (imaging.onnx_model)"
         )
+    try:
+        check_model_name(args.name)
+    except ValueError as e:
+        raise UserError(str(e)) from None
     if args.epochs < 1 or args.batch < 1 or args.threads < 1:
         raise UserError("--epochs, --batch and --threads: expected integers >= 1")
     if not args.lr > 0:

@@ -135,6 +135,26 @@ def _evaluation(before: dict, after: dict, before_model: str) -> dict:
     }
 
 
+def check_model_name(name) -> str:
+    """``--name`` as a plain file name (no folder, not hidden, not empty), or ValueError
+    naming it: the model, its card and, when mixed, ``NAME_alone`` go into ``out`` as
+    ``NAME.onnx`` and ``NAME.json``."""
+    text = str(name)
+    if (
+        not text.strip()
+        or text != text.strip()
+        or "/" in text
+        or "\\" in text
+        or "\0" in text
+        or text.startswith(".")
+    ):
+        raise ValueError(
+            f"--name: expected a file name without a folder (the model is written as "
+            f"OUT/NAME.onnx beside its card OUT/NAME.json), got {name!r}"
+        )
+    return text
+
+
 def _check_interpolate(alpha) -> float:
     """``--interpolate`` as a float in (0, 1], or ValueError naming it."""
     try:
@@ -219,6 +239,7 @@ def fine_tune(
     the fine-tune alone is written beside it as ``NAME_alone.onnx`` (and its card), and the
     card's ``evaluation`` adds ``held_out_iou_fine_tune_alone``."""
     alpha = _check_interpolate(interpolate)
+    name = check_model_name(name)
     if not (np.isfinite(boundary_band_mm) and boundary_band_mm >= 0):
         raise ValueError(
             f"--boundary-band-mm: expected a distance >= 0 (mm), got {boundary_band_mm}"
