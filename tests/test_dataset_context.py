@@ -302,3 +302,37 @@ def test_cached_frames_are_named_by_their_recipe(tmp_path, monkeypatch):
     assert ts.recipe_digest() != digest
     build()
     assert len(list(tmp_path.iterdir())) == 2
+
+
+@pytest.mark.parametrize(
+    "argv, option",
+    [
+        (["--space-to-depth", "0"], "--space-to-depth"),
+        (["--epochs", "0"], "--epochs"),
+        (["--patients", "0"], "--patients / --phantoms"),
+        (["--frames", "0"], "--frames"),
+        (["--lr", "nan"], "--lr"),
+        (["--threads", "0"], "--threads"),
+        (["--pixel-size-mm", "0"], "--pixel-size-mm"),
+        (["--shadow", "1.5"], "--shadow"),
+        (["--time-limit-min", "-5"], "--time-limit-min"),
+        (["--postures", "sideways"], "--postures"),
+        (["--boundary-band-mm", "inf"], "--boundary-band-mm / --boundary-gain"),
+    ],
+)
+def test_train_segmenter_refuses_bad_options_before_drawing_data(argv, option, capsys, monkeypatch):
+    """Each bad option is one line naming it and exit status 2, before the frames are drawn
+    (minutes): not a ZeroDivisionError, an IndexError on no sources, nor an error after the
+    data (--epochs 0 ended training with an unbound epoch counter)."""
+    from drake_rus.imaging.training import train_segmenter as ts
+
+    def no_data(*args, **kwargs):
+        raise AssertionError("training frames drawn")
+
+    monkeypatch.setattr(ts, "build_canvas_dataset", no_data)
+    monkeypatch.setattr(ts, "require", lambda *a, **k: None)
+    with pytest.raises(SystemExit) as e:
+        ts.main([*argv, "--val-patients", "0", "--out", "unused"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert f"{option}:" in err[-1], err

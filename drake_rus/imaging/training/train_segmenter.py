@@ -92,6 +92,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import math
 import shlex
 import sys
 import time
@@ -976,6 +977,66 @@ def issue31_targets_met(
     }
 
 
+def _check_options(ap: argparse.ArgumentParser, args) -> None:
+    """The training options, before any data is drawn (minutes) or a network trained:
+    ``ap.error`` (one line naming the option, exit status 2) on the first bad one."""
+
+    def finite(v) -> bool:
+        return v is not None and math.isfinite(v)
+
+    rules = (
+        ("--patients", args.patients >= 0, "0 or more training patients"),
+        ("--phantoms", args.phantoms >= 0, "0 or more phantoms"),
+        (
+            "--patients / --phantoms",
+            args.patients + args.phantoms >= 1,
+            "at least one training patient or phantom",
+        ),
+        ("--frames", args.frames >= 1, "at least 1 frame per patient and posture"),
+        ("--val-patients", args.val_patients >= 0, "0 or more validation patients"),
+        ("--val-frames", args.val_frames >= 1, "at least 1 frame per patient and posture"),
+        ("--pixel-size-mm", finite(args.pixel_size_mm) and args.pixel_size_mm > 0, "a size > 0"),
+        ("--canvas", min(args.canvas) >= 1, "two sizes H W >= 1 (px)"),
+        ("--canvas-top-mm", finite(args.canvas_top_mm), "a finite distance (mm)"),
+        ("--width", args.width >= 1, "at least 1 channel"),
+        ("--space-to-depth", args.space_to_depth >= 1, "a factor >= 1"),
+        ("--epochs", args.epochs >= 1, "at least 1 epoch"),
+        ("--lr", finite(args.lr) and args.lr > 0, "a learning rate > 0"),
+        ("--threads", args.threads >= 1, "at least 1 thread"),
+        (
+            "--time-limit-min",
+            args.time_limit_min is None
+            or (finite(args.time_limit_min) and args.time_limit_min > 0),
+            "a time > 0 (min)",
+        ),
+        ("--shadow", finite(args.shadow) and 0.0 <= args.shadow <= 1.0, "a share in [0, 1]"),
+        (
+            "--boundary-band-mm / --boundary-gain",
+            finite(args.boundary_band_mm)
+            and finite(args.boundary_gain)
+            and args.boundary_band_mm >= 0
+            and args.boundary_gain >= 0,
+            "values >= 0 (mm, 1)",
+        ),
+    )
+    for option, ok, expected in rules:
+        if not ok:
+            values = {
+                "--canvas": args.canvas,
+                "--patients / --phantoms": (args.patients, args.phantoms),
+                "--boundary-band-mm / --boundary-gain": (args.boundary_band_mm, args.boundary_gain),
+            }
+            got = values.get(option, getattr(args, option[2:].replace("-", "_"), None))
+            ap.error(f"{option}: expected {expected}, got {got}")
+    postures = [p for p in args.postures.split(",") if p]
+    bad = [p for p in postures if p not in POSTURES]
+    if not postures or bad:
+        ap.error(
+            f"--postures: expected a comma-separated list of {', '.join(POSTURES)}, "
+            f"got {args.postures!r}"
+        )
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--patients", type=int, default=20, help="training patients train:0..N-1")
@@ -1076,11 +1137,7 @@ def main(argv=None) -> int:
         help="the card --record-benchmark writes to (default: kidney_unet.json in --out)",
     )
     args = ap.parse_args(argv)
-    if args.boundary_band_mm < 0 or args.boundary_gain < 0:
-        ap.error(
-            f"--boundary-band-mm / --boundary-gain: expected values >= 0 (mm, 1), got "
-            f"{args.boundary_band_mm}, {args.boundary_gain}"
-        )
+    _check_options(ap, args)
     if args.imported_like_frames < 0:
         ap.error(f"--imported-like-frames: expected 0 or more, got {args.imported_like_frames}")
     if args.distill_from and not Path(args.distill_from).is_file():
