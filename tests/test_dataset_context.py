@@ -1,6 +1,9 @@
 """The segmenter recipe's kidney context and structure randomisation and its time-bounded
 learning-rate schedule (issue 13)."""
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 from conftest import tiny_training_frames
@@ -336,3 +339,61 @@ def test_train_segmenter_refuses_bad_options_before_drawing_data(argv, option, c
     assert e.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert f"{option}:" in err[-1], err
+
+
+def _fake_training(monkeypatch, export):
+    """train_segmenter.main without data, torch or a network: ``export(net, path, size)``
+    stands in for the ONNX export."""
+    from drake_rus.imaging.training import train_segmenter as ts
+
+    data = {
+        "image": np.zeros((2, 128, 112), np.uint8),
+        "kidney": np.zeros((2, 128, 112), np.uint8),
+        "depth": np.array([0.15, 0.15], np.float32),
+        "kidney_px": np.array([10, 0]),
+    }
+
+    class Net:
+        epochs_run = 1
+
+        def parameters(self):
+            return []
+
+    monkeypatch.setattr(ts, "build_canvas_dataset", lambda *a, **k: data)
+    monkeypatch.setattr(ts, "require", lambda *a, **k: None)
+    monkeypatch.setattr(ts, "train", lambda *a, **k: Net())
+    monkeypatch.setattr(ts, "export_onnx", export)
+    return ts
+
+
+def test_train_segmenter_replaces_model_and_card_together_or_not_at_all(tmp_path, monkeypatch):
+    """The export is checked against torch after it is written: a model that fails the
+    check (or a run stopped between the two files) must not replace the model in --out
+    (the shipped one, say) and leave it beside the old card."""
+    out = tmp_path / "segmenter"
+    out.mkdir()
+    (out / "kidney_unet.onnx").write_bytes(b"old model")
+    (out / "kidney_unet.json").write_text('{"model": "kidney_unet.onnx", "old": true}\n')
+
+    def failing_export(net, path, size):
+        Path(path).write_bytes(b"a model ONNX Runtime disagrees with")
+        raise RuntimeError("export_onnx: ONNX Runtime differs from torch by 1.0e+00")
+
+    ts = _fake_training(monkeypatch, failing_export)
+    argv = ["--val-patients", "0", "--epochs", "1", "--out", str(out)]
+    with pytest.raises(RuntimeError, match="differs from torch"):
+        ts.main(argv)
+    assert sorted(p.name for p in out.iterdir()) == ["kidney_unet.json", "kidney_unet.onnx"]
+    assert (out / "kidney_unet.onnx").read_bytes() == b"old model"
+    assert json.loads((out / "kidney_unet.json").read_text())["old"] is True
+
+    def export(net, path, size):
+        Path(path).write_bytes(b"new model")
+
+    ts = _fake_training(monkeypatch, export)
+    assert ts.main(argv) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["kidney_unet.json", "kidney_unet.onnx"]
+    assert (out / "kidney_unet.onnx").read_bytes() == b"new model"
+    card = json.loads((out / "kidney_unet.json").read_text())
+    assert card["model"] == "kidney_unet.onnx" and "old" not in card
+    assert card["scenario"]["onnx_model"] == str(out / "kidney_unet.onnx")

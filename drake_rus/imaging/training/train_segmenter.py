@@ -80,10 +80,11 @@ weights (the same cached data):
         --init runs/segmenter_stage1/kidney_unet.pt --out models/segmenter
 
 Writes ``kidney_unet.onnx`` and ``kidney_unet.json`` (shapes, canvas, normalisation, data,
-augmentation, training time, command). The held-out IoU comes from ``python -m benchmarks
-imaging --onnx-model models/segmenter/kidney_unet.onnx``; ``--record-benchmark FILE`` (its
-JSON line) adds it to the card (``--card``, default ``kidney_unet.json`` in ``--out``). The
-scenario runs the int8 model derived from this one
+augmentation, training time, command), both or neither: a model that fails its check
+against torch leaves the ones in ``--out`` as they were. The held-out IoU comes from
+``python -m benchmarks imaging --onnx-model models/segmenter/kidney_unet.onnx``;
+``--record-benchmark FILE`` (its JSON line) adds it to the card (``--card``, default
+``kidney_unet.json`` in ``--out``). The scenario runs the int8 model derived from this one
 (:mod:`~drake_rus.imaging.training.quantize_segmenter`): quantize again after retraining.
 """
 
@@ -93,8 +94,11 @@ import argparse
 import hashlib
 import json
 import math
+import os
 import shlex
+import shutil
 import sys
+import tempfile
 import time
 from dataclasses import MISSING, asdict, fields, replace
 from pathlib import Path
@@ -1282,7 +1286,6 @@ def main(argv=None) -> int:
         Path(args.save_torch).parent.mkdir(parents=True, exist_ok=True)
         torch.save(net.state_dict(), args.save_torch)
     onnx_path = out / "kidney_unet.onnx"
-    export_onnx(net, onnx_path, canvas)
     n_params = sum(q.numel() for q in net.parameters())
     shape = [1, 1, canvas[0], canvas[1]]
     meta = {
@@ -1400,7 +1403,23 @@ def main(argv=None) -> int:
             ),
         },
     }
-    (out / "kidney_unet.json").write_text(json.dumps(meta, indent=2) + "\n")
+    # Written whole or not at all (--out may hold the shipped model): the model is exported
+    # and checked against torch, and its card written, in a temporary folder inside --out,
+    # then both are renamed into place; on any error the old model and card stay as they were.
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=".kidney_unet-", dir=out))
+    try:
+        export_onnx(net, stage / onnx_path.name, canvas)
+        (stage / "kidney_unet.json").write_text(json.dumps(meta, indent=2) + "\n")
+        for name in (onnx_path.name, "kidney_unet.json"):
+            os.replace(stage / name, out / name)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        if created:
+            shutil.rmtree(out, ignore_errors=True)
+        raise
+    shutil.rmtree(stage, ignore_errors=True)
     log(
         f"wrote {onnx_path} ({onnx_path.stat().st_size / 1e3:.0f} kB, {n_params} parameters), "
         f"trained in {train_seconds} s"
