@@ -397,3 +397,36 @@ def test_train_segmenter_replaces_model_and_card_together_or_not_at_all(tmp_path
     card = json.loads((out / "kidney_unet.json").read_text())
     assert card["model"] == "kidney_unet.onnx" and "old" not in card
     assert card["scenario"]["onnx_model"] == str(out / "kidney_unet.onnx")
+
+
+def test_an_interrupted_cache_write_leaves_no_file_to_read_back(tmp_path, monkeypatch):
+    """A run stopped while it writes a canvas cache file (Ctrl-C, a full disk) must not
+    leave a truncated .npz under the cache's name: the next run would take it for the
+    cached frames and fail reading it (BadZipFile)."""
+    from drake_rus.imaging.training import train_segmenter as ts
+
+    class Interrupted(Exception):
+        pass
+
+    def interrupted(file, **arrays):
+        data = b"PK\x03\x04 the first bytes of a zip archive"
+        if hasattr(file, "write"):
+            file.write(data)
+        else:
+            Path(file).write_bytes(data)
+        raise Interrupted
+
+    def build():
+        return ts.build_canvas_dataset(
+            ["phantom:5001"], ["supine"], 2, 0.0024, (128, 112), -0.004, tmp_path,
+            log=lambda *a: None,
+        )  # fmt: skip
+
+    with monkeypatch.context() as m:
+        m.setattr(np, "savez_compressed", interrupted)
+        with pytest.raises(Interrupted):
+            build()
+    assert list(tmp_path.iterdir()) == []
+    first = build()
+    assert len(list(tmp_path.iterdir())) == 1
+    np.testing.assert_array_equal(build()["image"], first["image"])  # read back

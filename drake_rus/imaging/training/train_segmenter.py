@@ -218,6 +218,20 @@ def reduce_frames(frames, size: int):
     return X, Y
 
 
+def save_cache(path: Path, **arrays) -> None:
+    """Writes ``arrays`` as the compressed ``.npz`` cache file ``path``, whole or not at
+    all (a temporary file beside it, then a rename): a run stopped while writing (Ctrl-C,
+    a full disk) leaves no truncated file that the next run would read as cached frames."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.partial")
+    try:
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, **arrays)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
 def build_dataset(
     sources: list[str],
     frames_per_source: int,
@@ -245,7 +259,7 @@ def build_dataset(
         frames = make_source_frames(spec, model, frames_per_source, seed=seed * 1000 + i)
         X, Y = reduce_frames(frames, size)
         if path is not None:
-            np.savez_compressed(path, X=X, Y=Y)
+            save_cache(path, X=X, Y=Y)
         print(f"data {spec}: {len(X)} frames in {time.time() - t:.0f} s", flush=True)
         Xs.append(X)
         Ys.append(Y)
@@ -454,7 +468,7 @@ def build_canvas_dataset(
                 "posture": np.full(frames, j, np.int8),
             }
             if path is not None:
-                np.savez_compressed(path, **out)
+                save_cache(path, **out)
             out["source"] = np.full(frames, i, np.int16)
             parts.append(out)
             log(
