@@ -2,6 +2,8 @@
 learning-rate schedule (issue 13)."""
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -430,3 +432,33 @@ def test_an_interrupted_cache_write_leaves_no_file_to_read_back(tmp_path, monkey
     first = build()
     assert len(list(tmp_path.iterdir())) == 1
     np.testing.assert_array_equal(build()["image"], first["image"])  # read back
+
+
+def test_record_benchmark_leaves_the_card_whole_when_the_write_fails(tmp_path):
+    """The card is rewritten in place by --record-benchmark: a write that fails part-way (a
+    full disk; here a file size limit) must leave the old card, not a truncated one."""
+    card = tmp_path / "kidney_unet.json"
+    old = json.dumps({"model": "kidney_unet.onnx", "note": "x" * 100}, indent=2) + "\n"
+    card.write_text(old)
+    bench = tmp_path / "bench.log"
+    figures = {"iou_by_depth": {f"0.{k}": 0.86 for k in range(10, 31)}, "note": "y" * 4000}
+    bench.write_text(json.dumps(figures) + "\n")
+    script = f"""
+import resource, signal
+from pathlib import Path
+from drake_rus.imaging.training.train_segmenter import record_benchmark
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, (2000, 2000))
+try:
+    record_benchmark(Path({str(card)!r}), Path({str(bench)!r}))
+except OSError as e:
+    print("write failed:", e.strerror)
+"""
+    from drake_rus.paths import REPO_ROOT
+
+    r = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=120, cwd=REPO_ROOT
+    )
+    assert "write failed" in r.stdout, r.stdout + r.stderr
+    assert card.read_text() == old
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bench.log", "kidney_unet.json"]

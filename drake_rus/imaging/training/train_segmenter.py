@@ -927,8 +927,24 @@ def record_benchmark(card_path: Path, bench_json: Path) -> dict:
             b.get("iou_by_depth"), b.get("vh_female_iou"), b.get("iou_by_depth_ci95")
         ),
     }
-    card_path.write_text(json.dumps(card, indent=2) + "\n")
+    write_card(card_path, card)
     return card
+
+
+def write_card(path: Path, card: dict) -> None:
+    """Writes a model card (JSON) whole or not at all: a temporary file beside it, then a
+    rename, so a failed write (a full disk, a run stopped) leaves the old card as it was."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}-", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(json.dumps(card, indent=2) + "\n")
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes it 0600; a card is shared
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
 
 
 # Issue 13's segmenter targets: IoU at every depth preset on held-out generated patients, and
