@@ -149,6 +149,27 @@ def test_force_statistics_ripple_and_settled():
     assert empty["mean_n"] is None and not empty["settled"]
 
 
+def test_step_response_metrics_say_none_for_a_response_that_never_happens():
+    """The controller notebook's step metrics: a good response gives its times; a force
+    still oscillating at the tilt, an error never below 1 deg, no touch give None, never the
+    0 s (or the window's length) the notebook's test would take for a pass."""
+    t = np.arange(0.0, 5.5, 0.01)
+    landing = np.where(t > 2.6, 9.0 + 3.0 * np.exp(-(t - 2.6) / 0.1), 0.0)
+    decay = np.where(t >= 4.0, 20.0 * np.exp(-(t - 4.0) / 0.2), 0.1)
+    good = fl.step_response_metrics(t, landing, decay, 9.0, 4.0)
+    assert good["touch_s"] == pytest.approx(2.61)
+    assert 0.05 < good["force_settling_s"] < 0.2
+    assert good["force_final_n"] == pytest.approx(9.0, abs=1e-3)
+    assert good["tilt_below_1deg_s"] == pytest.approx(0.2 * math.log(20.0), abs=0.011)
+    oscillating = np.where(t > 2.6, 9.0 + 2.0 * np.sin(20.0 * t), 0.0)
+    bad = fl.step_response_metrics(t, oscillating, np.where(t >= 4.0, 20.0, 0.1), 9.0, 4.0)
+    assert bad["touch_s"] == pytest.approx(2.61)
+    assert bad["force_settling_s"] is None
+    assert bad["tilt_below_1deg_s"] is None and bad["tilt_final_deg"] == 20.0
+    never = fl.step_response_metrics(t, np.zeros_like(t), decay, 9.0, 4.0)
+    assert never["touch_s"] is None and never["force_settling_s"] is None
+
+
 def test_phase_force_statistics_and_the_scan_summary_force_block():
     import types
 

@@ -330,6 +330,51 @@ def force_statistics(
     return out
 
 
+def step_response_metrics(
+    times,
+    forces,
+    errors_deg,
+    desired: float,
+    step_at: float,
+    band: float = 0.5,
+    tolerance_deg: float = 1.0,
+    touch_n: float = 0.5,
+) -> dict:
+    """The step responses of one log (s, N, deg; notebooks/controller_tuning.ipynb): the force
+    step from the start (the probe lands and presses towards ``desired``) until ``step_at``,
+    then a step of the approach vector there.
+
+    ``touch_s``: the first sample above ``touch_n``; ``force_settling_s``: from the touch to
+    the last sample before ``step_at`` outside ``desired`` +- ``band`` (0 if none is);
+    ``force_final_n``: the force at the orientation step; ``tilt_below_1deg_s``: from
+    ``step_at`` to the first sample with an approach error below ``tolerance_deg``;
+    ``tilt_final_deg``: the last error. A response that does not happen within the log is
+    None: no touch, a force still outside the band at the step (not settled), an error never
+    below the tolerance; never a time of 0 s."""
+    t = np.asarray(times, dtype=float)
+    F = np.asarray(forces, dtype=float)
+    err = np.asarray(errors_deg, dtype=float)
+    before, after = t < step_at, t >= step_at
+    touched = np.nonzero(before & (F > touch_n))[0]
+    touch = float(t[touched[0]]) if touched.size else None
+    settle = None
+    if touch is not None:
+        outside = np.nonzero(before & (t >= touch) & ~(np.abs(F - desired) <= band))[0]
+        last = np.nonzero(before)[0][-1]
+        if not outside.size:
+            settle = 0.0
+        elif outside[-1] != last:
+            settle = float(t[outside[-1]] - touch)
+    below = np.nonzero(after & (err < tolerance_deg))[0]
+    return {
+        "touch_s": touch,
+        "force_settling_s": settle,
+        "force_final_n": float(F[after][0]) if after.any() else None,
+        "tilt_below_1deg_s": float(t[below[0]] - step_at) if below.size else None,
+        "tilt_final_deg": float(err[-1]) if err.size else None,
+    }
+
+
 def phase_force_statistics(
     times, forces, phases, names=("EXPLORE", "LOCALIZE", "PIVOT"), settle: float = 0.5
 ) -> dict:
