@@ -22,7 +22,7 @@ from drake_rus.paths import DIAGRAMS_DIR
 from drake_rus.progress import stderr_is_terminal
 from drake_rus.scan import BuildScanDiagram
 from drake_rus.scan.cli import load_template_for
-from drake_rus.scenario import LoadScenario
+from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, LoadScenario
 from drake_rus.stations import MakeStation
 
 # The pictures committed in diagrams/ and how each is drawn: (diagram, patient, depth), on
@@ -148,16 +148,27 @@ def committed_picture_drift(name: str, scenario=None) -> tuple[Counter, Counter]
 
 
 def _render_all(args) -> int:
-    if (
-        args.out is not None
-        or args.diagram is not None
-        or args.overrides
-        or args.scenario != "default"
-    ):
+    # Each committed picture has its own patient and depth, on the default scenario of the
+    # default scenarios file: a setting given with --all would be silently ignored.
+    given = [
+        flag
+        for flag, value, default in (
+            ("--out", args.out, None),
+            ("--diagram", args.diagram, None),
+            ("--scenario", args.scenario, "default"),
+            ("--set", args.overrides or None, None),
+            ("--patient", args.patient, "test:0"),
+            ("--depth", args.depth, 1),
+        )
+        if value != default
+    ]
+    if Path(args.scenarios_file).resolve() != DEFAULT_SCENARIOS_FILE.resolve():
+        given.append("--scenarios-file")
+    if given:
         raise UserError(
-            "--all: draws the committed pictures with their own settings "
-            "(diagrams/*.svg, the default scenario); leave out --out, --diagram, "
-            "--scenario and --set"
+            f"{', '.join(given)}: --all draws the committed pictures with their own settings "
+            "(diagrams/*.svg, the default scenario); leave out --out, --diagram, --scenario, "
+            "--scenarios-file, --set, --patient and --depth"
         )
     scenario = load_scenario_from_args(args)
     stale = 0

@@ -402,6 +402,23 @@ def test_render_diagram_negative_depth(tmp_path, capsys):
     assert code == 2 and "--depth" in err and not out.exists(), err
 
 
+@pytest.mark.parametrize(
+    "extra, flag",
+    [
+        (["--depth", "3"], "--depth"),
+        (["--patient", "test:7"], "--patient"),
+        (["--scenarios-file", "other.scenarios.yaml"], "--scenarios-file"),
+        (["--scenario", "other"], "--scenario"),
+    ],
+    ids=["depth", "patient", "scenarios_file", "scenario"],
+)
+def test_render_diagram_all_refuses_what_it_would_ignore(capsys, extra, flag):
+    """--all draws each committed picture with its own patient and depth on the default
+    scenario: a --depth or --patient given with it is named, not silently dropped."""
+    code, err = _run(["render-diagram", "--all", "--check", *extra], capsys)
+    assert code == 2 and f"{flag}:" in err and "--all" in err, err
+
+
 @pytest.mark.parametrize("name", ["d.pdf", "d"], ids=["pdf", "no_suffix"])
 def test_render_diagram_bad_out(tmp_path, capsys, name):
     code, err = _run(["render-diagram", "--out", str(tmp_path / name)], capsys)
