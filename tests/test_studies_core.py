@@ -302,6 +302,14 @@ def test_reproduce_paper_notebook_runs_on_the_tiny_study(tiny_paper, tmp_path, m
         o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
     )
     assert "OP vs NOP" in text
+    # Each comparison names its definition of the costs (the same pair is tested under
+    # three) and the strategy its count is of.
+    lines = [ln for ln in text.splitlines() if " vs " in ln and "reduction" in ln]
+    assert lines and all(
+        ln.split()[0] in ("pole_to_pole", "whole_pivot", "at_V0.9") for ln in lines
+    )
+    assert {ln.split()[0] for ln in lines} == {"pole_to_pole", "whole_pivot", "at_V0.9"}
+    assert all("OP-PE lower on" in ln for ln in lines if "OP-PE vs OP" in ln)
 
 
 def test_cli_errors_are_named(capsys):
