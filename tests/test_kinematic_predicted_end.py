@@ -284,7 +284,7 @@ def test_er0_is_the_initial_alignment_in_both_modes():
 
 
 def test_a_rejected_registration_is_measured_but_not_swept():
-    from drake_rus.experiments.cli import _usable
+    from drake_rus.experiments.results import usable_runs as _usable
 
     kp = synthetic()
     X = RigidTransform(kp.X_BK_true.rotation(), kp.X_BK_true.translation() + [0.0, 0.004, 0.0])

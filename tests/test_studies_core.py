@@ -161,6 +161,46 @@ def test_efficiency_reductions_and_mean_curves():
     assert V[-1] == pytest.approx(1.0) and 0.4 < V[1] < 0.55
 
 
+def test_figure_groups_split_runs_as_the_study_tables_do(tmp_path):
+    """The paper notebook's figures: one group per mode and template and, for starts, per
+    ER; runs without a localization left out and counted; mixed settings named, not drawn."""
+
+    def run(run_id, er, mode="kinematic", template=None, e_trans=1.0, segmenter="oracle"):
+        task = {"study": "starts", "mode": mode, "template": template, "segmenter": segmenter}
+        return {
+            "run_id": run_id,
+            "task": task,
+            "patient": "test:0",
+            "er": er,
+            "start": 0,
+            "e_trans_mm": e_trans,
+            "e_rot_x_deg": 1.0,
+        }
+
+    runs = [
+        run("a", 0.6),
+        run("b", 0.8),
+        run("c", 0.6, mode="closed-loop", e_trans=None),
+        run("d", 0.6, mode="closed-loop"),
+        run("e", 0.6, template="real"),
+        run("f", 0.6, template="real", segmenter="unet"),
+    ]
+    (tmp_path / "runs").mkdir()
+    for r in runs:
+        (tmp_path / "runs" / f"{r['run_id']}.json").write_text(json.dumps(r))
+    groups = study_results.figure_groups(tmp_path, "starts")
+    got = [(g["label"], g["folder"], [r["run_id"] for r in g["runs"]]) for g in groups]
+    assert got == [
+        ("kinematic, ER 60%", "er060", ["a"]),
+        ("kinematic, ER 80%", "er080", ["b"]),
+        ("kinematic, template real, ER 60%", "template-real", []),
+        ("closed loop, ER 60%", "closed-loop", ["d"]),
+    ]
+    assert groups[3]["left_out"] == 1 and groups[3]["settings"]["mode"] == "closed-loop"
+    assert "segmenter" in groups[2]["error"]
+    assert study_results.figure_groups(tmp_path, "er-sweep") == []
+
+
 def test_runner_writes_each_run_and_resumes(tmp_path):
     calls = []
 

@@ -62,7 +62,14 @@ from drake_rus.experiments.report import (
     write_starts_outputs,
     write_template_outputs,
 )
-from drake_rus.experiments.results import load_study_results, results_of, run_settings, settings_of
+from drake_rus.experiments.results import (
+    column_of,
+    load_study_results,
+    results_of,
+    run_settings,
+    settings_of,
+    usable_runs,
+)
 from drake_rus.experiments.specs import (
     DEFAULT_SEGMENTER,
     ER_GRID,
@@ -472,12 +479,6 @@ def _without(settings: dict, *keys) -> dict:
 COLUMN_FREE = ("mode", "template", "inputs_sha256", "segmenter")
 
 
-def _column_of(result: dict) -> tuple[str, str]:
-    """(mode, template tag) of a run: the column it belongs to in the side-by-side report."""
-    task = result.get("task") or {}
-    return task.get("mode", "kinematic"), template_tag(task.get("template"))
-
-
 def _other_columns(
     out: Path,
     patients,
@@ -503,8 +504,8 @@ def _other_columns(
     by_column = {}
     for name in ("er-sweep", "starts", "efficiency"):
         for r in load_study_results(out, name):
-            if r["patient"] in wanted and _column_of(r) != this:
-                by_column.setdefault(_column_of(r), {}).setdefault(name, []).append(r)
+            if r["patient"] in wanted and column_of(r) != this:
+                by_column.setdefault(column_of(r), {}).setdefault(name, []).append(r)
     mine = None if settings is None else _without(settings, *COLUMN_FREE)
     columns = []
     for (col_mode, tag), studies in sorted(
@@ -519,7 +520,7 @@ def _other_columns(
                 break
         found, labels = {}, None
         for name, key in (("er-sweep", "er"), ("starts", "starts"), ("efficiency", "eff")):
-            rs = _usable(
+            rs = usable_runs(
                 [
                     r
                     for r in studies.get(name, [])
@@ -592,27 +593,6 @@ def _status_counts(results) -> dict:
         if r.get("status"):
             out[r["status"]] = out.get(r["status"], 0) + 1
     return dict(sorted(out.items(), key=lambda kv: (kv[0] != "DONE", kv[0])))
-
-
-def _usable(results, study: str = ""):
-    """Runs with a localization (a closed-loop scan that stopped before it has none); for
-    the efficiency study, closed-loop runs whose scans all finished (DONE: the run's own
-    scan and each strategy's; a scan that stopped before or during its sweep has no
-    comparable sweep)."""
-    return [
-        r
-        for r in results
-        if r.get("e_trans_mm") is not None
-        and (
-            study != "efficiency"
-            or (
-                r.get("status", "DONE") == "DONE"
-                and all(
-                    e.get("status", "DONE") == "DONE" for e in (r.get("strategies") or {}).values()
-                )
-            )
-        )
-    ]
 
 
 # The ER of starts, efficiency and template runs when no er-sweep of the same settings says
@@ -748,7 +728,7 @@ def _study(
         )
 
     def usable(study, results):
-        ok = _usable(results, study)
+        ok = usable_runs(results, study)
         if len(ok) < len(results):
             kept = {r["run_id"] for r in ok}
             unusable[study] = [

@@ -12,7 +12,7 @@ recorded (an older run may lack a field).
 from __future__ import annotations
 
 from drake_rus import batch
-from drake_rus.experiments.keys import run_id, task_key
+from drake_rus.experiments.keys import run_id, task_key, template_tag
 from drake_rus.experiments.specs import StudyTask, patient_kind
 
 # What a table's runs must share (per-run fields, e.g. the patient, ER, start, template
@@ -45,6 +45,86 @@ def load_study_results(out_dir, study: str | None = None) -> list[dict]:
     if study is None:
         return batch.load_results(out_dir)
     return batch.load_results(out_dir, lambda r: r["task"]["study"] == study)
+
+
+def column_of(result: dict) -> tuple[str, str]:
+    """(mode, template tag) of a run: the column it belongs to in the side-by-side report
+    (``kinematic`` or ``closed-loop``; "" for the generated template,
+    :func:`~drake_rus.experiments.keys.template_tag`)."""
+    task = result.get("task") or {}
+    return task.get("mode", "kinematic"), template_tag(task.get("template"))
+
+
+def usable_runs(results: list[dict], study: str = "") -> list[dict]:
+    """Runs with a localization (a closed-loop scan that stopped before it has none); for
+    the efficiency study, closed-loop runs whose scans all finished (DONE: the run's own
+    scan and each strategy's; a scan that stopped before or during its sweep has no
+    comparable sweep)."""
+    return [
+        r
+        for r in results
+        if r.get("e_trans_mm") is not None
+        and (
+            study != "efficiency"
+            or (
+                r.get("status", "DONE") == "DONE"
+                and all(
+                    e.get("status", "DONE") == "DONE" for e in (r.get("strategies") or {}).values()
+                )
+            )
+        )
+    ]
+
+
+def figure_groups(out_dir, study: str) -> list[dict]:
+    """The runs of ``study`` in the study folder ``out_dir`` split as the study's own tables
+    split them, one figure each (notebooks/reproduce_paper.ipynb): per column (mode and
+    template, :func:`column_of`; both modes' and several templates' runs share a folder)
+    and, for the starts and efficiency studies, per ER. Each group: ``mode``, ``template``
+    (the tag), ``er`` (None for the ER sweep), ``label`` (for people), ``folder`` (where its
+    figures go below the figure folder: "" for the kinematic runs on the generated template,
+    else as the study writes its tables: ``closed-loop``, ``template-real``..., then ``erNNN``
+    where a column holds several ERs), ``runs`` (those :func:`usable_runs` keeps),
+    ``left_out`` (how many it does not), ``settings`` (:func:`settings_of`) and
+    ``template_info`` (the runs' template record); or, where the runs mix settings,
+    ``error`` (the :class:`MixedSettingsError` message) and no runs. The kinematic runs on
+    the generated template first."""
+    columns = {}
+    for r in load_study_results(out_dir, study):
+        er = None if study == "er-sweep" else round(float(r["er"]), 3)
+        columns.setdefault(column_of(r), {}).setdefault(er, []).append(r)
+    groups = []
+    for (mode, tag), by_er in sorted(
+        columns.items(), key=lambda kv: (kv[0][0] != "kinematic", kv[0][1])
+    ):
+        column = "closed-loop" if mode == "closed-loop" else ""
+        if tag:
+            column = "/".join(filter(None, (column, f"template-{tag[len('tpl-') :]}")))
+        for er, runs in sorted(by_er.items(), key=lambda kv: kv[0] or 0.0):
+            ok = usable_runs(runs, study)
+            label = ("closed loop" if mode == "closed-loop" else "kinematic") + (
+                f", template {tag[len('tpl-') :]}" if tag else ""
+            )
+            group = {
+                "mode": mode,
+                "template": tag,
+                "er": er,
+                "label": label + ("" if er is None else f", ER {er * 100:.0f}%"),
+                "folder": "/".join(
+                    filter(None, (column, f"er{round(er * 100):03d}" if len(by_er) > 1 else ""))
+                ),
+                "runs": ok,
+                "left_out": len(runs) - len(ok),
+                "template_info": next(
+                    (r["template"] for r in ok if isinstance(r.get("template"), dict)), None
+                ),
+            }
+            try:
+                group["settings"] = settings_of(ok, f"{study} ({group['label']})", study)
+            except MixedSettingsError as e:
+                group.update(runs=[], error=str(e))
+            groups.append(group)
+    return groups
 
 
 def results_of(results: list[dict], tasks: list[StudyTask]) -> list[dict]:
