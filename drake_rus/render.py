@@ -108,13 +108,23 @@ def render_graphviz(dot_source: str, out: Path) -> Path:
     if dot is None:
         raise UserError(GRAPHVIZ_MISSING)
     with atomic_path(out) as tmp:
-        subprocess.run(
-            [dot, f"-T{fmt}", "-o", str(tmp)],
-            input=dot_source.encode(),
-            check=True,
-            capture_output=True,
-        )
+        _run_dot([dot, f"-T{fmt}", "-o", str(tmp)], dot_source)
     return out
+
+
+def _run_dot(argv: list, dot_source: str) -> bytes:
+    """Graphviz's output for ``dot_source``; a failure of ``dot`` is one line (a
+    UserError with the first line dot printed), not a traceback."""
+    try:
+        done = subprocess.run(argv, input=dot_source.encode(), capture_output=True)
+    except OSError as e:
+        raise UserError(f"Graphviz 'dot' could not be started ({argv[0]}): {e}") from None
+    if done.returncode != 0:
+        said = done.stderr.decode(errors="replace").strip().splitlines()
+        raise UserError(
+            f"Graphviz 'dot' failed (exit {done.returncode})" + (f": {said[0]}" if said else "")
+        )
+    return done.stdout
 
 
 def svg_labels(svg: str) -> Counter:
@@ -137,11 +147,7 @@ def committed_picture_drift(name: str, scenario=None) -> tuple[Counter, Counter]
     if dot is None:
         raise UserError(GRAPHVIZ_MISSING)
     source = build_diagram(kind, scenario, patient).GetGraphvizString(max_depth=depth)
-    now = svg_labels(
-        subprocess.run(
-            [dot, "-Tsvg"], input=source.encode(), check=True, capture_output=True
-        ).stdout.decode()
-    )
+    now = svg_labels(_run_dot([dot, "-Tsvg"], source).decode())
     path = DIAGRAMS_DIR / name
     committed = svg_labels(path.read_text()) if path.is_file() else Counter()
     return now - committed, committed - now

@@ -419,6 +419,21 @@ def test_render_diagram_all_refuses_what_it_would_ignore(capsys, extra, flag):
     assert code == 2 and f"{flag}:" in err and "--all" in err, err
 
 
+def test_render_diagram_when_graphviz_fails(tmp_path, capsys, monkeypatch):
+    """A Graphviz that fails (a broken install, a dot that cannot write) is one line with
+    what dot said, not a CalledProcessError traceback, and nothing is left behind."""
+    fake = tmp_path / "bin" / "dot"
+    fake.parent.mkdir()
+    fake.write_text("#!/bin/sh\necho 'Error: layout was not done' >&2\nexit 3\n")
+    fake.chmod(0o755)
+    monkeypatch.setenv("PATH", f"{fake.parent}{os.pathsep}{os.environ['PATH']}")
+    out = tmp_path / "out" / "d.svg"
+    out.parent.mkdir()
+    code, err = _run(["render-diagram", "--out", str(out)], capsys)
+    assert code == 2 and "Graphviz 'dot' failed (exit 3): Error: layout" in err, err
+    assert "Traceback" not in err and not any(out.parent.iterdir())
+
+
 @pytest.mark.parametrize("name", ["d.pdf", "d"], ids=["pdf", "no_suffix"])
 def test_render_diagram_bad_out(tmp_path, capsys, name):
     code, err = _run(["render-diagram", "--out", str(tmp_path / name)], capsys)
