@@ -34,13 +34,16 @@ among them: a skipped case counts as not done ("DONE on 28 of 30" means 28 of th
 cases attempted). The error statistics are over the DONE scans (``null`` when there is
 none). Scans run in ``--workers`` processes (default: 2,
 capped at the CPUs and memory available; 0 runs them in this process); each scan is
-deterministic, and rows come out in case order whatever the workers' timing.
+deterministic, and rows come out in case order whatever the workers' timing. Ctrl-C, or a
+worker that dies, ends the run with the table and JSON of the scans finished so far (the
+others NOT RUN, ``interrupted`` saying why) and exit status 1.
 """
 
 import argparse
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from multiprocessing import get_context
 from pathlib import Path
 
@@ -325,17 +328,33 @@ def main(argv=None) -> int:
             + f"{row.get('reason') or ''} ({row['wall_s']} s)"
         )
 
-    if workers == 0 or len(jobs) <= 1:
-        for job in jobs:
-            done(job, scan_case(job))
-    else:
-        with ProcessPoolExecutor(
-            max_workers=min(workers, len(jobs)), mp_context=get_context("spawn")
-        ) as pool:
-            futures = {pool.submit(scan_case, job): job for job in jobs}
-            for f in as_completed(futures):
-                done(futures[f], f.result())
+    # Ctrl-C or a dead worker ends the run with the rows it has, not a traceback that
+    # loses them: the missing cases are NOT RUN and the exit status is 1.
+    interrupted = None
+    try:
+        if workers == 0 or len(jobs) <= 1:
+            for job in jobs:
+                done(job, scan_case(job))
+        else:
+            pool = ProcessPoolExecutor(
+                max_workers=min(workers, len(jobs)), mp_context=get_context("spawn")
+            )
+            try:
+                futures = {pool.submit(scan_case, job): job for job in jobs}
+                for f in as_completed(futures):
+                    done(futures[f], f.result())
+            except BaseException:
+                pool.shutdown(wait=False, cancel_futures=True)  # do not wait for the rest
+                raise
+            pool.shutdown()
+    except KeyboardInterrupt:
+        interrupted = "interrupted (Ctrl-C) before this case's scan ended"
+    except BrokenProcessPool as e:
+        interrupted = f"a scan worker died before this case's scan ended ({e})"
     bar.close()
+    for i, r in enumerate(rows):
+        if r is None:
+            rows[i] = {"case": cases[i][0], "status": "NOT RUN", "reason": interrupted}
     print()
     print_table(rows)
     for r in rows:
@@ -349,13 +368,14 @@ def main(argv=None) -> int:
         scenario=args.scenario,
         overrides=args.overrides,
         workers=workers,
+        interrupted=interrupted,
         wall_s=round(time.time() - t0, 1),
         # What produced the rows: package versions, commit, Python, platform, command line.
         provenance=Provenance(argv=list(sys.argv if argv is None else argv)),
         rows=[{k: _round(r[k]) for k in ROW_KEYS if k in r} for r in rows],
     )
     print(dumps_strict(doc, default=_plain))
-    return 0
+    return 0 if interrupted is None else 1
 
 
 if __name__ == "__main__":

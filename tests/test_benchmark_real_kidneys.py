@@ -103,6 +103,39 @@ def test_benchmark_json_on_two_tiny_cases(cases, scans, capsys):
     assert doc["provenance"]["argv"] == ["--cases", str(cases), "--limit", "2", "--workers", "0"]
 
 
+def test_an_interrupted_run_keeps_the_rows_it_has(cases, monkeypatch, capsys):
+    """Ctrl-C during the second scan: the first scan's row, the second NOT RUN, the table
+    and the JSON printed, exit status 1 (before, a traceback lost every finished row)."""
+    calls = []
+
+    def fake(job):
+        calls.append(job["case"])
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return {
+            "case": job["case"],
+            "status": "DONE",
+            "reason": "",
+            "e_trans_mm": 1.5,
+            "e_rot_x_deg": 2.5,
+            "volume_ratio": 0.98,
+            "wall_s": 0.1,
+        }
+
+    monkeypatch.setattr(real_kidneys, "scan_case", fake)
+    code = real_kidneys.main(["--cases", str(cases), "--workers", "0"])
+    assert code == 1
+    doc = _json(capsys)
+    statuses = [(r["case"], r["status"]) for r in doc["rows"]]
+    assert statuses == [
+        ("case_00000", "DONE"),
+        ("case_00001", "SKIPPED"),
+        ("case_00002", "NOT RUN"),
+    ]
+    assert "Ctrl-C" in doc["interrupted"] and "Ctrl-C" in doc["rows"][2]["reason"]
+    assert doc["done"] == 1 and doc["e_trans_mm"] == {"mean": 1.5, "max": 1.5}
+
+
 def test_benchmark_offset(cases, scans, capsys):
     """--offset skips the first cases (held-out runs), in sorted order."""
     assert real_kidneys.main(["--cases", str(cases), "--offset", "2", "--workers", "0"]) == 0
