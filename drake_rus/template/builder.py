@@ -2,22 +2,24 @@
 
 Per subject: kidney mask -> marching cubes surface -> canonical frame by PCA with the sign
 rules (eq. 13-14) -> surface expressed in its canonical frame -> farthest-point resampling.
-Across subjects: feature-based alignment to a reference, the subject of median size (FPFH +
-RANSAC, then point-to-plane ICP; Open3D, the pipeline of the seed's ref. [34]), kNN
-re-indexing so vertex j corresponds across subjects, mean shape (eq. 15). Two refinement passes
-re-align every subject to the
-current mean (generalised Procrustes, rigid). The template is finally expressed in its own
+Across subjects: feature-based alignment to a reference, the subject of median size (FPFH
+features from Open3D, then RANSAC and point-to-plane ICP here, deterministic: the pipeline of
+the seed's ref. [34]), kNN re-indexing so vertex j corresponds across subjects, mean shape
+(eq. 15). Two refinement passes re-align every subject to the current mean (generalised
+Procrustes, rigid). The template is finally expressed in its own
 canonical frame. The corresponded shapes also give a statistical shape model: PCA, keeping
 the modes that explain 95% of the variance.
 """
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import sys
 import tempfile
 import time
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -49,6 +51,8 @@ __all__ = [
 ]
 
 FORMAT_VERSION = 1
+# Metadata keys that hold a build's timings (s): in the .json beside a template, not in it.
+TIMING_SUFFIX = "_seconds"
 
 
 @dataclass
@@ -227,6 +231,104 @@ def point_to_plane_icp(
     return T, float(fitness), float(rmse)
 
 
+def feature_correspondences(f_src: np.ndarray, f_ref: np.ndarray, min_mutual: float = 0.1):
+    """Pairs (i, j) of source and reference points whose FPFH features (rows) are mutual
+    nearest neighbours; every source point with its nearest when fewer than ``min_mutual``
+    of the source points have a mutual one (Open3D's mutual filter and its fallback)."""
+    j = cKDTree(f_ref).query(f_src)[1]
+    i_back = cKDTree(f_src).query(f_ref)[1]
+    i = np.arange(len(f_src))
+    mutual = i_back[j] == i
+    if mutual.sum() >= min_mutual * len(f_src):
+        return i[mutual], j[mutual]
+    return i, j
+
+
+def _kabsch_batch(P: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotations R (K, 3, 3) and translations t (K, 3) with R P_k + t ~ Q_k, least squares,
+    for point sets P, Q (K, n, 3)."""
+    cp, cq = P.mean(axis=1), Q.mean(axis=1)
+    H = np.einsum("kni,knj->kij", P - cp[:, None], Q - cq[:, None])
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(U) * np.linalg.det(Vt))  # det(V U^T): no reflection
+    d[d == 0] = 1.0
+    D = np.zeros_like(H)
+    D[:, 0, 0] = D[:, 1, 1] = 1.0
+    D[:, 2, 2] = d
+    R = np.einsum("kji,kjl,klm->kim", Vt, D, U.transpose(0, 2, 1))
+    t = cq - np.einsum("kij,kj->ki", R, cp)
+    return R, t
+
+
+def feature_ransac(
+    src_pts,
+    ref_pts,
+    f_src,
+    f_ref,
+    max_dist: float,
+    *,
+    seed: int = 0,
+    iterations: int = 20000,
+    edge_ratio: float = 0.9,
+    chunk: int = 500,
+) -> np.ndarray:
+    """Global rigid alignment (4x4, source onto reference) from FPFH feature matches
+    (:func:`feature_correspondences`): RANSAC over ``iterations`` triples of matches drawn
+    with numpy's generator seeded by ``seed`` (all of them: Open3D's early stop at 0.999
+    confidence, tried here, stopped on wrong turns, as any rough overlay pairs most of a
+    kidney's points within ``max_dist``), each kept only when its three edges agree in
+    length within ``edge_ratio`` and its points land within ``max_dist`` (m) of their
+    matches (Open3D's two checkers); the winner, as Open3D scores them, pairs the most
+    source points with a reference point within ``max_dist`` (ties: the smaller RMS).
+    Identity when no triple passes. Open3D's RANSAC (its threads race to the result) gave
+    another answer from run to run; this one gives the same for the same inputs."""
+    src = np.asarray(src_pts, dtype=float)
+    ref = np.asarray(ref_pts, dtype=float)
+    i, j = feature_correspondences(np.asarray(f_src, float), np.asarray(f_ref, float))
+    A, B = src[i], ref[j]
+    if len(A) < 3:
+        return np.eye(4)
+    rng = np.random.default_rng(int(seed))
+    tree = cKDTree(ref)
+    best = (-1, np.inf, None)
+    for start in range(0, iterations, chunk):
+        k = min(chunk, iterations - start)
+        tri = rng.integers(0, len(A), size=(k, 3))
+        tri = tri[(tri[:, 0] != tri[:, 1]) & (tri[:, 0] != tri[:, 2]) & (tri[:, 1] != tri[:, 2])]
+        if len(tri) == 0:
+            continue
+        P, Q = A[tri], B[tri]
+        ok = np.ones(len(tri), bool)
+        for a, b in ((0, 1), (0, 2), (1, 2)):
+            dp = np.linalg.norm(P[:, a] - P[:, b], axis=1)
+            dq = np.linalg.norm(Q[:, a] - Q[:, b], axis=1)
+            ok &= (dp >= edge_ratio * dq) & (dq >= edge_ratio * dp)
+        if not ok.any():
+            continue
+        R, t = _kabsch_batch(P[ok], Q[ok])
+        moved = np.einsum("kij,knj->kni", R, P[ok]) + t[:, None]
+        ok_dist = np.all(np.linalg.norm(moved - Q[ok], axis=2) <= max_dist, axis=1)
+        R, t = R[ok_dist], t[ok_dist]
+        if len(R) == 0:
+            continue
+        # Scored as Open3D scores them: the whole source cloud moved, each point paired with
+        # its nearest reference point within max_dist; most pairs, then the smallest RMS.
+        moved = np.einsum("kij,nj->kni", R, src) + t[:, None]
+        dist = tree.query(moved.reshape(-1, 3), distance_upper_bound=max_dist)[0]
+        dist = dist.reshape(len(R), len(src))
+        paired = np.isfinite(dist)
+        count = paired.sum(axis=1)
+        rms = np.sqrt(np.where(paired, dist, 0.0) ** 2 @ np.ones(len(src)) / np.maximum(count, 1))
+        m = np.lexsort((rms, -count))[0]  # the first such in draw order on ties
+        if count[m] > best[0] or (count[m] == best[0] and rms[m] < best[1]):
+            best = (int(count[m]), float(rms[m]), (R[m], t[m]))
+    if best[2] is None or best[0] < 3:
+        return np.eye(4)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = best[2]
+    return T
+
+
 def align_to_reference(
     src_pts,
     src_nrm,
@@ -250,26 +352,10 @@ def align_to_reference(
     T0 = np.eye(4) if init is None else np.asarray(init, dtype=float)
     info = {"ransac": False, "ransac_rejected": False}
     if use_features:
-        o3d.utility.random.seed(int(seed))
         param = o3d.geometry.KDTreeSearchParamHybrid(radius=feature_radius, max_nn=100)
-        f_src = reg.compute_fpfh_feature(src, param)
-        f_ref = reg.compute_fpfh_feature(ref, param)
-        result = reg.registration_ransac_based_on_feature_matching(
-            src,
-            ref,
-            f_src,
-            f_ref,
-            True,
-            2 * max_corr,
-            reg.TransformationEstimationPointToPoint(False),
-            3,
-            [
-                reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
-                reg.CorrespondenceCheckerBasedOnDistance(2 * max_corr),
-            ],
-            reg.RANSACConvergenceCriteria(20000, 0.999),
-        )
-        T = np.asarray(result.transformation)
+        f_src = np.asarray(reg.compute_fpfh_feature(src, param).data).T
+        f_ref = np.asarray(reg.compute_fpfh_feature(ref, param).data).T
+        T = feature_ransac(src_pts, ref_pts, f_src, f_ref, 2 * max_corr, seed=seed)
         if _rotation_angle(T) <= max_angle and np.linalg.norm(T[:3, 3]) < 0.03:
             T0 = T
             info["ransac"] = True
@@ -488,28 +574,46 @@ def build_template(
 
 def save_template(result: TemplateResult, path, extra_meta: dict | None = None) -> Path:
     """Writes the template npz atomically (temporary file, then rename; mode 0644 under the
-    usual umask, like every written file: ``drake_rus.io_utils.atomic_path``)."""
+    usual umask, like every written file: ``drake_rus.io_utils.atomic_path``), and its
+    metadata beside it (.json). The same template gives the same .npz, byte for byte: its
+    zip entries carry a fixed date and its metadata leaves out the build's timings (the
+    keys ending in ``_seconds``, kept in the .json, where :func:`load_template` finds
+    them), so a study's or a benchmark's digest of the file names the template, not the
+    moment it was built."""
     path = Path(path)
     meta = dict(result.meta)
     meta.update(extra_meta or {})
+    timeless = {k: v for k, v in meta.items() if not k.endswith(TIMING_SUFFIX)}
+    arrays = {
+        "points": result.points.astype(np.float64),
+        "normals": result.normals,
+        "mean_shape": result.points,
+        "modes": result.modes,
+        "variances": result.variances,
+        "explained": result.explained,
+        "aligned": result.aligned.astype(np.float32),
+        "convergence_n": np.asarray(result.convergence["n"]),
+        "convergence_change": np.asarray(result.convergence["change"]),
+        "convergence_to_final": np.asarray(result.convergence["to_final"]),
+        "metadata": np.asarray(json.dumps(timeless)),
+    }
     with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            np.savez_compressed(
-                f,
-                points=result.points.astype(np.float64),
-                normals=result.normals,
-                mean_shape=result.points,
-                modes=result.modes,
-                variances=result.variances,
-                explained=result.explained,
-                aligned=result.aligned.astype(np.float32),
-                convergence_n=np.asarray(result.convergence["n"]),
-                convergence_change=np.asarray(result.convergence["change"]),
-                convergence_to_final=np.asarray(result.convergence["to_final"]),
-                metadata=np.asarray(json.dumps(meta)),
-            )
+        write_npz_reproducibly(tmp, arrays)
     write_metadata_json(path, meta)
     return path
+
+
+def write_npz_reproducibly(path, arrays: dict) -> None:
+    """``arrays`` as a compressed .npz that :func:`numpy.load` reads, whose bytes depend on
+    the arrays alone (``numpy.savez_compressed`` stamps every entry with the time)."""
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as z:
+        for name, value in arrays.items():
+            buffer = io.BytesIO()
+            np.lib.format.write_array(buffer, np.asanyarray(value), allow_pickle=False)
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = zipfile.ZIP_DEFLATED
+            info.external_attr = 0o644 << 16
+            z.writestr(info, buffer.getvalue())
 
 
 def save_template_to_cache(

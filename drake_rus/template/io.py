@@ -158,6 +158,19 @@ def check_template_arrays(points, normals, modes, variances) -> str:
     return ""
 
 
+def _build_timings(npz_path: Path) -> dict:
+    """The build's timings (the metadata keys ending in ``_seconds``) from the .json beside
+    a template, where :func:`~drake_rus.template.builder.save_template` keeps them; {} when
+    there is none or it does not read."""
+    try:
+        doc = json.loads(Path(npz_path).with_suffix(".json").read_text())
+    except (OSError, ValueError):
+        return {}
+    if not isinstance(doc, dict):
+        return {}
+    return {k: v for k, v in doc.items() if isinstance(k, str) and k.endswith("_seconds")}
+
+
 def load_template(path=None) -> Template:
     """Loads a template file; ``path`` defaults to ``models/kidney_template.npz``."""
     path = Path(path) if path is not None else DEFAULT_TEMPLATE_PATH
@@ -179,6 +192,7 @@ def load_template(path=None) -> Template:
         meta = json.loads(str(data["metadata"]))
     except json.JSONDecodeError as e:
         raise ValueError(f"kidney template {path}: 'metadata' is not valid JSON ({e})") from None
+    meta.update(_build_timings(path))
     problem = check_template_arrays(
         data["points"], data["normals"], data["modes"], data["variances"]
     )
