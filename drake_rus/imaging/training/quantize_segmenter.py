@@ -60,6 +60,7 @@ from drake_rus.imaging.onnx_backend import (
 )
 from drake_rus.imaging.training import train_segmenter
 from drake_rus.imaging.training.evaluation import POSTURES
+from drake_rus.io_utils import atomic_path
 from drake_rus.paths import REPO_ROOT
 
 DEFAULT_MODEL = "models/segmenter/kidney_unet.onnx"
@@ -322,18 +323,11 @@ def quantized_card(fp32_card: dict, out_path: Path, quantization: dict) -> dict:
 
 
 def _write_json(path: Path, data: dict) -> None:
-    """Writes ``data`` to ``path`` atomically (a temporary file beside it, then a rename)."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}-", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(json.dumps(data, indent=2) + "\n")
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes it 0600; a card is shared
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    """Writes a model card (JSON) whole or not at all (``io_utils.atomic_path``: a
+    temporary file beside it, then a rename), so a failed write (a full disk, a run
+    stopped) leaves the old card as it was."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=2) + "\n")
 
 
 def main(argv=None) -> int:

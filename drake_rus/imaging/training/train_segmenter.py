@@ -127,6 +127,7 @@ from drake_rus.imaging.training.dataset import (
     thin_cortex,
 )
 from drake_rus.imaging.training.evaluation import POSTURES, load_source, make_source_frames
+from drake_rus.io_utils import atomic_path
 
 # View sampling of the training frames.
 SAMPLER = {
@@ -932,19 +933,11 @@ def record_benchmark(card_path: Path, bench_json: Path) -> dict:
 
 
 def write_card(path: Path, card: dict) -> None:
-    """Writes a model card (JSON) whole or not at all: a temporary file beside it, then a
-    rename, so a failed write (a full disk, a run stopped) leaves the old card as it was."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}-", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(json.dumps(card, indent=2) + "\n")
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes it 0600; a card is shared
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    """Writes a model card (JSON) whole or not at all (``io_utils.atomic_path``: a
+    temporary file beside it, then a rename), so a failed write (a full disk, a run
+    stopped) leaves the old card as it was."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(card, indent=2) + "\n")
 
 
 # Issue 13's segmenter targets: IoU at every depth preset on held-out generated patients, and
