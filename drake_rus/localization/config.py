@@ -80,8 +80,8 @@ class LocalizationConfig:
     # truth left at most 5.57 mm RMS and the two wrong ones (tumours of 603 and 231 mL:
     # 41 and 22 mm off) 5.91 and 6.81 mm; 2 SD (6.9 mm) passed both wrong fits, 1 SD
     # (5.53 mm) rejects them and one correct fit (5.57 mm). The shipped template's gates are
-    # unchanged; the real template's become 5.5 mm (deformable) / 6.7 mm (rigid; 6.68 mm with
-    # the template's deterministic build of 2026-11-29, 6.72 mm before). No other
+    # unchanged; the real template's become 5.5 mm (deformable) / 6.7 mm (rigid; 5.48 / 6.70
+    # mm with the template's deterministic build of 2026-11-29, 5.51 / 6.72 mm before). No other
     # measure the scan has without truth (inlier fraction, Mahalanobis distance of the shape
     # weights, template-to-cloud distance, residual median, the cloud's centroid line
     # against the template's, the spread of fits from perturbed starts) separates correct
