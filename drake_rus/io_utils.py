@@ -57,6 +57,28 @@ def atomic_path(path: str | Path):
         cleanup.done = True
 
 
+@contextmanager
+def staged_files(folder: str | Path, prefix: str):
+    """Yields a temporary folder inside ``folder`` (created, with its parents, if missing).
+    On success every file written into it is renamed into ``folder``, so files that belong
+    together (a model and its card) appear whole and together; on any exception nothing is
+    left behind: the temporary folder goes, and so does ``folder`` if this call made it."""
+    folder = Path(folder)
+    created = not folder.exists()
+    folder.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=prefix, dir=folder))
+    try:
+        yield stage
+        for f in sorted(stage.iterdir()):
+            os.replace(f, folder / f.name)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        if created:
+            shutil.rmtree(folder, ignore_errors=True)
+        raise
+    shutil.rmtree(stage, ignore_errors=True)
+
+
 class _TemporaryFile:
     """Removes a temporary file unless ``done`` (when the block ends by any exception)."""
 

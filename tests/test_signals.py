@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 
 from drake_rus import interrupts
-from drake_rus.io_utils import LOCK_NAME, atomic_path, write_text_atomic
+from drake_rus.io_utils import LOCK_NAME, atomic_path, staged_files, write_text_atomic
 
 REPO = Path(__file__).resolve().parents[1]
 linux_only = pytest.mark.skipif(
@@ -337,3 +337,24 @@ def test_sigterm_while_the_lock_is_taken(tmp_path, cached_patient):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "INTERRUPTED" and "no scan ran" in summary["reason"]
     assert sorted(p.name for p in out.iterdir()) == ["summary.json"]
+
+
+def test_staged_files_appear_together_or_not_at_all(tmp_path):
+    """A model and its card: both renamed into place on success; on an error the folder
+    keeps its old files untouched, and a folder the call made is removed."""
+    out = tmp_path / "models"
+    with staged_files(out, ".m-") as stage:
+        (stage / "m.onnx").write_text("new model")
+        (stage / "m.json").write_text("new card")
+    assert sorted(p.name for p in out.iterdir()) == ["m.json", "m.onnx"]
+    with pytest.raises(RuntimeError):
+        with staged_files(out, ".m-") as stage:
+            (stage / "m.onnx").write_text("half")
+            raise RuntimeError("the check failed")
+    assert sorted(p.name for p in out.iterdir()) == ["m.json", "m.onnx"]
+    assert (out / "m.onnx").read_text() == "new model"
+    fresh = tmp_path / "a" / "b"
+    with pytest.raises(RuntimeError):
+        with staged_files(fresh, ".m-") as stage:
+            raise RuntimeError("boom")
+    assert not fresh.exists()

@@ -35,11 +35,8 @@ import argparse
 import copy
 import json
 import math
-import os
 import shlex
-import shutil
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -47,6 +44,7 @@ import numpy as np
 from drake_rus.anatomy.cache import file_digest
 from drake_rus.extras import MissingExtra, require
 from drake_rus.imaging.onnx_backend import cpu_session, read_model_card
+from drake_rus.io_utils import staged_files
 
 #: Operators of quantized graphs (QDQ or integer operator formats).
 QUANTIZED_OPS = frozenset(
@@ -373,21 +371,10 @@ def interpolate_models(
         read_model_card(path_a), read_model_card(path_b), path_a, path_b, alpha, target, command
     )
     onnx, _ = _onnx()
-    created = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=f".{name}-", dir=out))
-    try:
+    with staged_files(out, f".{name}-") as stage:
         onnx.save(mixed, str(stage / target.name))
         _check_runs(stage / target.name)
         (stage / f"{name}.json").write_text(json.dumps(card, indent=2) + "\n")
-        for f in (f"{name}.json", target.name):
-            os.replace(stage / f, out / f)
-    except BaseException:
-        shutil.rmtree(stage, ignore_errors=True)
-        if created:
-            shutil.rmtree(out, ignore_errors=True)
-        raise
-    shutil.rmtree(stage, ignore_errors=True)
     return target
 
 

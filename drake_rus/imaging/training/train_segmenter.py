@@ -96,9 +96,7 @@ import json
 import math
 import os
 import shlex
-import shutil
 import sys
-import tempfile
 import time
 from dataclasses import MISSING, asdict, fields, replace
 from pathlib import Path
@@ -127,7 +125,7 @@ from drake_rus.imaging.training.dataset import (
     thin_cortex,
 )
 from drake_rus.imaging.training.evaluation import POSTURES, load_source, make_source_frames
-from drake_rus.io_utils import atomic_path
+from drake_rus.io_utils import atomic_path, staged_files
 
 # View sampling of the training frames.
 SAMPLER = {
@@ -1429,20 +1427,9 @@ def main(argv=None) -> int:
     # Written whole or not at all (--out may hold the shipped model): the model is exported
     # and checked against torch, and its card written, in a temporary folder inside --out,
     # then both are renamed into place; on any error the old model and card stay as they were.
-    created = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=".kidney_unet-", dir=out))
-    try:
+    with staged_files(out, ".kidney_unet-") as stage:
         export_onnx(net, stage / onnx_path.name, canvas)
         (stage / "kidney_unet.json").write_text(json.dumps(meta, indent=2) + "\n")
-        for name in (onnx_path.name, "kidney_unet.json"):
-            os.replace(stage / name, out / name)
-    except BaseException:
-        shutil.rmtree(stage, ignore_errors=True)
-        if created:
-            shutil.rmtree(out, ignore_errors=True)
-        raise
-    shutil.rmtree(stage, ignore_errors=True)
     log(
         f"wrote {onnx_path} ({onnx_path.stat().st_size / 1e3:.0f} kB, {n_params} parameters), "
         f"trained in {train_seconds} s"
