@@ -199,11 +199,33 @@ def test_fine_tuning_writes_a_model_a_scenario_selects(tmp_path):
     assert card["fine_tuned_from"]["model"].endswith("kidney_unet.onnx")
     model = tmp_path / "model" / "kidney_unet_finetuned.onnx"
     assert model.is_file() and model.with_suffix(".json").is_file()
+    # The held-out frame shows the kidney: no false-positive rate was measured, and the card
+    # (valid JSON) says null, not 0.0.
+    written = json.loads(
+        model.with_suffix(".json").read_text(), parse_constant=lambda c: pytest.fail(c)
+    )
+    assert written["evaluation"]["after"]["false_positive_rate"] is None
     assert not any(p.name.endswith(".partial") for p in tmp_path.iterdir())
     # imaging.onnx_model selects it; the card beside it gives the physical canvas.
     scenario = ApplyOverrides(Scenario(), "{imaging: {onnx_model: %s}}" % model)
     seg = Segmenter(scenario.imaging)
     assert seg.GetInputPort("kidney_surface") is not None
+
+
+def test_held_out_iou_says_not_measured_without_kidney_free_frames(tmp_path):
+    """frames_iou (the shipped model, no torch): the false-positive rate is NaN when every
+    frame shows the kidney, and a share when some do not."""
+    from drake_rus.imaging.annotated import read_annotated_frames
+    from drake_rus.imaging.config import ImagingConfig
+    from drake_rus.imaging.training.fine_tune import frames_iou
+
+    model = REPO_ROOT / "models" / "segmenter" / "kidney_unet.onnx"
+    all_kidney = read_annotated_frames(make_folder(tmp_path / "a", n=2), SHAPE)
+    r = frames_iou(model, all_kidney, ImagingConfig())
+    assert r["frames_without_kidney"] == 0 and np.isnan(r["false_positive_rate"])
+    some_empty = read_annotated_frames(make_folder(tmp_path / "b", n=3, empty=(2,)), SHAPE)
+    r = frames_iou(model, some_empty, ImagingConfig())
+    assert r["frames_without_kidney"] == 1 and r["false_positive_rate"] in (0.0, 1.0)
 
 
 def test_fine_tuning_takes_the_boundary_band(tmp_path, monkeypatch):

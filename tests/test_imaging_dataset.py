@@ -61,6 +61,10 @@ def test_frames_mostly_see_the_kidney_and_iou_counts(phantom):
     assert r["iou"] == 1.0 and r["false_positive_rate"] == 0.0
     r0 = mean_iou(lambda us: np.zeros_like(us, bool), frames, g)
     assert r0["iou"] == 0.0 and r0["frames_with_kidney"] == sum(seen)
+    # Without a kidney-free frame the false-positive rate is not measured (NaN), not 0.
+    with_kidney = [f for f, s in zip(frames, seen) if s]
+    r1 = mean_iou(lambda us: perfect[id(us)], with_kidney, g)
+    assert r1["frames_without_kidney"] == 0 and np.isnan(r1["false_positive_rate"])
 
 
 def test_pictures_command_writes_pngs(tmp_path):

@@ -149,7 +149,8 @@ def make_source_frames(
 
 def mean_iou(segment, frames, geometry, min_area: float = 1.0e-4) -> dict:
     """Mean IoU of ``segment(us) -> mask`` over frames whose true kidney area >= min_area,
-    and the fraction of kidney-free frames where it (wrongly) reports a kidney."""
+    and the fraction of kidney-free frames where it (wrongly) reports a kidney (NaN, not
+    measured, when no frame is kidney-free; as :func:`summarise`)."""
     ious, false_pos, n_empty = [], 0, 0
     for us, gt, *_ in frames:
         pred = np.asarray(segment(us), bool)
@@ -163,7 +164,7 @@ def mean_iou(segment, frames, geometry, min_area: float = 1.0e-4) -> dict:
         "iou_median": float(np.median(ious)) if ious else float("nan"),
         "frames_with_kidney": len(ious),
         "frames_without_kidney": n_empty,
-        "false_positive_rate": false_pos / n_empty if n_empty else 0.0,
+        "false_positive_rate": false_pos / n_empty if n_empty else float("nan"),
     }
 
 

@@ -21,7 +21,6 @@ The plain functions: :func:`held_out_split`, :func:`frames_on_canvas`, :func:`fr
 
 from __future__ import annotations
 
-import json
 import shutil
 import time
 from dataclasses import replace
@@ -47,6 +46,7 @@ from drake_rus.imaging.training.interpolate import (
     sha256,
 )
 from drake_rus.imaging.training.train_segmenter import export_onnx, train, unet_from_onnx
+from drake_rus.io_utils import dumps_strict
 
 
 def held_out_split(n: int, share: float) -> tuple[np.ndarray, np.ndarray]:
@@ -97,7 +97,8 @@ def frames_iou(model_path, frames: AnnotatedFrames, config: ImagingConfig) -> di
     """Mean IoU of an ONNX model (as the scan runs it: physical canvas, largest region, no
     tracking; the model alone, without an ``onnx_ensemble_model``) against the frames'
     masks, over the frames that show the kidney; and the share of frames without it where
-    the model marks one (false positives)."""
+    the model marks one (false positives; NaN, not measured, when every frame shows the
+    kidney: the card writes it as null)."""
     cfg = replace(config, segmenter="onnx", onnx_model=str(model_path), onnx_ensemble_model="")
     segmenters: dict = {}
     ious, fp, empty = [], 0, 0
@@ -118,7 +119,7 @@ def frames_iou(model_path, frames: AnnotatedFrames, config: ImagingConfig) -> di
         "iou_median": float(np.median(ious)) if ious else float("nan"),
         "frames_with_kidney": len(ious),
         "frames_without_kidney": empty,
-        "false_positive_rate": fp / empty if empty else 0.0,
+        "false_positive_rate": fp / empty if empty else float("nan"),
     }
 
 
@@ -326,7 +327,7 @@ def fine_tune(
     written = [onnx_name, f"{name}.json"]
     try:
         export_onnx(net, tmp / onnx_name, tuple(card["canvas_px"]))
-        (tmp / f"{name}.json").write_text(json.dumps(new, indent=2) + "\n")
+        (tmp / f"{name}.json").write_text(dumps_strict(new, indent=2) + "\n")
         after = frames_iou(tmp / onnx_name, held, config)
         if alpha < 1.0:
             alone = f"{name}_alone"
@@ -337,7 +338,7 @@ def fine_tune(
                 "evaluation": _evaluation(before, after, scenario_model.name),
             }
             (tmp / onnx_name).replace(tmp / f"{alone}.onnx")
-            (tmp / f"{alone}.json").write_text(json.dumps(alone_card, indent=2) + "\n")
+            (tmp / f"{alone}.json").write_text(dumps_strict(alone_card, indent=2) + "\n")
             written += [f"{alone}.onnx", f"{alone}.json"]
             new["training"] = {
                 "interpolation": _interpolate_into(
@@ -350,7 +351,7 @@ def fine_tune(
                     card,
                 )
             }
-            (tmp / f"{name}.json").write_text(json.dumps(new, indent=2) + "\n")
+            (tmp / f"{name}.json").write_text(dumps_strict(new, indent=2) + "\n")
             new["evaluation"] = {
                 **_evaluation(
                     before, frames_iou(tmp / onnx_name, held, config), scenario_model.name
@@ -360,7 +361,7 @@ def fine_tune(
             }
         else:
             new["evaluation"] = _evaluation(before, after, scenario_model.name)
-        (tmp / f"{name}.json").write_text(json.dumps(new, indent=2) + "\n")
+        (tmp / f"{name}.json").write_text(dumps_strict(new, indent=2) + "\n")
         out.mkdir(parents=True, exist_ok=True)
         for f in written:
             (tmp / f).replace(out / f)
