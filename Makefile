@@ -10,6 +10,9 @@ TEST_STAMP := $(VENV)/.drake_rus_test_installed
 NOTEBOOKS_STAMP := $(VENV)/.drake_rus_notebooks_installed
 # JupyterLab refuses to run as root unless told; the set-up may run as root (system packages).
 JUPYTER_ROOT := $(if $(filter 0,$(shell id -u)),--allow-root,)
+# make test runs the suite on this many processes (pytest-xdist; at most 4: each takes about
+# a core and a GB), then, alone, the tests marked `wallclock` (they time a live loop).
+TEST_WORKERS ?= $(shell n=$$(nproc 2>/dev/null || echo 1); [ $$n -gt 4 ] && n=4; echo $$n)
 
 .PHONY: demo test lint setup setup-test notebooks diagrams benchmarks clean
 
@@ -39,8 +42,13 @@ lint: $(TEST_STAMP)
 	$(VENV)/bin/ruff check drake_rus tests benchmarks models notebooks
 	$(VENV)/bin/ruff format --check drake_rus tests benchmarks models notebooks
 
+# Both passes run even when the first fails; the target fails if either did.
 test: lint
-	$(PY) -m pytest
+	@status=0; \
+	echo "tests: $(TEST_WORKERS) processes, then the wallclock tests alone"; \
+	$(PY) -m pytest -n $(TEST_WORKERS) -m "not wallclock" || status=$$?; \
+	$(PY) -m pytest -m wallclock || status=$$?; \
+	exit $$status
 
 notebooks: $(NOTEBOOKS_STAMP)
 	$(VENV)/bin/jupyter lab --ip=127.0.0.1 $(JUPYTER_ROOT) notebooks/

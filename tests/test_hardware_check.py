@@ -31,7 +31,7 @@ from drake_rus.hardware.video import SyntheticVideo
 from drake_rus.robot import MakeControlPlant
 from drake_rus.scenario import LoadScenario
 
-pytestmark = pytest.mark.timeout(180)
+pytestmark = [pytest.mark.timeout(180), pytest.mark.wallclock]
 
 
 def lcm_scenario(**hw):

@@ -35,7 +35,7 @@ from drake_rus.hardware.station import (
 )
 from drake_rus.stations import MakeStation
 
-pytestmark = pytest.mark.timeout(240)
+pytestmark = [pytest.mark.timeout(240), pytest.mark.wallclock]
 
 cv2 = pytest.importorskip("cv2", reason="opencv-python-headless is not installed")
 pytest.importorskip("franky", reason="franky-control is not installed")

@@ -19,7 +19,7 @@ from drake_rus.hardware.video import SyntheticVideo
 
 cv2 = pytest.importorskip("cv2", reason="opencv-python-headless is not installed")
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.timeout(120), pytest.mark.wallclock]
 
 SHAPE = (128, 96)  # rows, cols of the probe's image
 RATE = 200.0  # the control rate the grabber ticks at

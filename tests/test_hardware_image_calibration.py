@@ -36,7 +36,7 @@ from drake_rus.scenario import ApplyOverrides, LoadScenario, Scenario
 
 cv2 = pytest.importorskip("cv2", reason="opencv-python-headless is not installed")
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.timeout(120), pytest.mark.wallclock]
 
 PICTURE = (480, 640)  # rows, cols of the grabbed picture
 CROP = [100, 30, 440, 430]  # the sector in it

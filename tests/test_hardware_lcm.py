@@ -31,7 +31,7 @@ from drake_rus.stations import MakeStation
 EXPIRY = 0.25  # s, the simulated driver's command expiry (generous: shared CPU)
 STEP = 0.005  # s, lockstep chunk (one control period at 200 Hz)
 
-pytestmark = pytest.mark.timeout(300)
+pytestmark = [pytest.mark.timeout(300), pytest.mark.wallclock]
 
 
 def lcm_scenario(**hw):

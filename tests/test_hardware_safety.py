@@ -29,7 +29,7 @@ from drake_rus.hardware.systems import ProbeLoadTorque
 from drake_rus.robot import MakeControlPlant, estimate_tip_wrench
 from drake_rus.scenario import ApplyOverrides, LoadScenario, Scenario
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.timeout(120), pytest.mark.wallclock]
 
 
 # --- franky route, against a fake franky ---------------------------------------------------

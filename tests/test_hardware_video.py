@@ -27,7 +27,7 @@ from drake_rus.hardware.video import (
 
 cv2 = pytest.importorskip("cv2", reason="opencv-python-headless is not installed")
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.timeout(120), pytest.mark.wallclock]
 
 
 # --- pure functions ----------------------------------------------------------------------

@@ -23,7 +23,7 @@ from drake_rus.executor import (
 from drake_rus.pacing import RealtimePacer, loop_statistics
 from drake_rus.scan.config import PerceptionConfig
 
-pytestmark = pytest.mark.timeout(300)
+pytestmark = [pytest.mark.timeout(300), pytest.mark.wallclock]
 
 
 # --- executors ------------------------------------------------------------------------------

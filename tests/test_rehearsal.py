@@ -67,7 +67,7 @@ OVERRIDES = (
 PATIENT = "test:0"
 SCENARIO = "hardware"
 
-pytestmark = pytest.mark.timeout(600)
+pytestmark = [pytest.mark.timeout(600), pytest.mark.wallclock]
 
 
 # --- fast: pieces -------------------------------------------------------------------------

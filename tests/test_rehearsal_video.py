@@ -28,6 +28,8 @@ from drake_rus.scan.run import PrepareScenario
 from drake_rus.scenario import ApplyOverrides, LoadScenario
 from drake_rus.station import MakeSimStation
 
+pytestmark = pytest.mark.wallclock
+
 RATE_HZ = 200.0
 RENDER_S = 0.2  # the slow renderer's time per picture
 

@@ -11,6 +11,8 @@ from drake_rus.scan import RunScan, ScanMetrics, Summary
 pytest.importorskip("franky")
 from test_hardware_franky import franky_scenario, franky_sim, video_file  # noqa: E402,F401
 
+pytestmark = pytest.mark.wallclock
+
 
 def test_hardware_scan_in_free_air_aborts_no_contact_at_rest(franky_sim, video_file):  # noqa: F811
     scenario = franky_scenario(franky_sim.host, video_file)

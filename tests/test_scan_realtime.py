@@ -19,6 +19,8 @@ from drake_rus.scan import RunScan, ScanMonitor
 from drake_rus.scenario import ApplyOverrides, LoadScenario
 from drake_rus.stations import MakeStation
 
+pytestmark = pytest.mark.wallclock
+
 STALL_AT = 0.8  # simulated s
 STALL_FOR = 0.6  # wall s
 

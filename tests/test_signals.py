@@ -22,6 +22,8 @@ import pytest
 from drake_rus import interrupts
 from drake_rus.io_utils import LOCK_NAME, atomic_path, staged_files, write_text_atomic
 
+pytestmark = pytest.mark.wallclock
+
 REPO = Path(__file__).resolve().parents[1]
 linux_only = pytest.mark.skipif(
     not Path("/proc/self/status").exists(),

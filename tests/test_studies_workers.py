@@ -15,6 +15,8 @@ import pytest
 
 from drake_rus import batch
 
+pytestmark = pytest.mark.wallclock
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
