@@ -315,3 +315,32 @@ def test_the_folder_checker_catches_a_cycle_between_folders():
     assert cycles(folder_graph(graph)) == [
         ["drake_rus.anatomy[models]", "drake_rus.template[models]"]
     ]
+
+
+# Tests that run the robot against the wall clock (paced at real time, or franky-sim on its
+# fixed port 1337) carry the `wallclock` mark: make test runs them alone, after the others
+# ran on several processes, so no test beside them slows the loop they time, and two of
+# them never share a port.
+WALLCLOCK_SIGNS = ("realtime_rate", "franky_sim", "FRANKY_SIM")
+
+
+def unmarked_wallclock_tests(folder: Path) -> list[str]:
+    """Test files in ``folder`` that show a sign of a wall-clock run but no wallclock mark."""
+    return sorted(
+        p.name
+        for p in folder.glob("test_*.py")
+        if any(sign in (text := p.read_text()) for sign in WALLCLOCK_SIGNS)
+        and "pytest.mark.wallclock" not in text
+    )
+
+
+def test_wall_clock_tests_are_marked():
+    assert unmarked_wallclock_tests(Path(__file__).resolve().parent) == []
+
+
+def test_the_wallclock_check_can_fail(tmp_path):
+    (tmp_path / "test_a.py").write_text("def test_x(franky_sim):\n    pass\n")
+    (tmp_path / "test_b.py").write_text(
+        "import pytest\npytestmark = pytest.mark.wallclock\ndef test_y(franky_sim):\n    pass\n"
+    )
+    assert unmarked_wallclock_tests(tmp_path) == ["test_a.py"]
