@@ -3,7 +3,9 @@
 - franky route (a fake franky module standing in for franky-control): the FR3's collision
   thresholds are set at connection, below the safety layer's force ceiling; the probe's load
   is declared; a robot with errors pending is refused (operator) or reset (at_connect);
-  an unreachable robot is reported after connect_timeout with the time actually spent;
+  an unreachable robot is reported after connect_timeout with the time actually spent; the
+  command log keeps only the newest commands, and a command that is not 7 velocities is
+  refused in one line before anything is sent;
 - LCM route (simulated driver on memq://): the probe's weight, which drake-franka-driver
   cannot declare, is removed when lcm_compensate_load is set, and the check tells which load
   model the torques at rest fit; a stall of our own loop is not taken for a lost robot.
@@ -85,6 +87,12 @@ class FakeRobot:
     def poll_motion(self):
         return False
 
+    def move(self, motion, asynchronous=False):
+        self.calls.append(("move", motion))
+
+    def join_motion(self, timeout):
+        return True
+
 
 @pytest.fixture
 def fake_franky(monkeypatch):
@@ -92,6 +100,9 @@ def fake_franky(monkeypatch):
         Robot=FakeRobot,
         RealtimeConfig=types.SimpleNamespace(Ignore=0),
         IncompatibleVersionException=type("Incompatible", (Exception,), {}),
+        Duration=lambda ms: ms,
+        JointVelocityMotion=lambda v, duration: ("velocity", np.array(v, float), duration),
+        JointVelocityStopMotion=lambda: ("stop",),
     )
     monkeypatch.setattr(franky_backend, "_import_franky", lambda: module)
     monkeypatch.setattr(
@@ -156,6 +167,31 @@ def test_franky_errors_pending_operator_or_automatic_recovery(fake_franky):
     backend = _backend(error_recovery="at_connect")
     try:
         assert fake_franky.instances[-1].calls[0][0] == "recover_from_errors"
+    finally:
+        backend.close()
+
+
+def test_franky_command_log_is_bounded_and_a_wrong_length_is_one_line(fake_franky, monkeypatch):
+    """The log keeps the newest COMMAND_LOG_LENGTH commands (about 200 a second live); a
+    vector that is not 7 velocities is refused before anything is sent, robot not faulted."""
+    monkeypatch.setattr(franky_backend, "COMMAND_LOG_LENGTH", 5)
+    backend = _backend(dry_run=False, set_collision_behavior=False, set_load=False)
+    try:
+        robot = fake_franky.instances[-1]
+        for i in range(12):
+            backend.send(np.full(7, 0.01 * (i + 1)))
+        assert len(backend.command_log) == 5
+        np.testing.assert_array_equal(backend.command_log[-1][1], np.full(7, 0.12))
+        np.testing.assert_array_equal(backend.command_log[0][1], np.full(7, 0.08))
+        with pytest.raises(ValueError) as caught:
+            backend.send(np.full(6, 0.1))
+        message = str(caught.value)
+        assert "\n" not in message
+        assert "7 joint velocities" in message and "(6,)" in message
+        # Nothing of length 6 reached the robot (the watchdog may have sent its zero).
+        sent = [c[1][1] for c in robot.calls if c[0] == "move" and c[1][0] == "velocity"]
+        assert len(sent) >= 12 and all(v.shape == (7,) for v in sent)
+        assert backend.fault is None
     finally:
         backend.close()
 

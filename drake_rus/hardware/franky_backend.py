@@ -19,6 +19,7 @@ reset (``error_recovery: at_connect``); never during a run.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import logging
 import math
@@ -45,11 +46,14 @@ __all__ = [
     "WatchdogEvent",
     "FrankyBackend",
     "FCI_PORT",
+    "COMMAND_LOG_LENGTH",
     "robot_error_names",
     "wait_for_port",
 ]
 
 FCI_PORT = 1337  # libfranka's command port on the robot's control box
+# Commands kept in FrankyBackend.command_log: the newest 60 s at a 200 Hz command rate.
+COMMAND_LOG_LENGTH = 12_000
 
 
 def robot_error_names(errors) -> list[str]:
@@ -155,6 +159,10 @@ class FrankyBackend:
     the caller has limited them); ``stop()`` brings the robot to rest; ``close()`` stops the
     watchdog and the robot. With ``config.dry_run`` the robot is never commanded: ``send``
     only records the zero it did not send.
+
+    ``command_log`` holds the newest :data:`COMMAND_LOG_LENGTH` commands sent, as
+    (``time.monotonic`` s, joint velocities rad/s), oldest first (a deque: the commands of a
+    long run would otherwise fill the memory at the command rate).
     """
 
     def __init__(self, config: HardwareConfig, load=None):
@@ -173,7 +181,9 @@ class FrankyBackend:
         self._robot_time = math.nan
         self._robot_time_change = math.nan
         self.watchdog_events: list[WatchdogEvent] = []
-        self.command_log: list[tuple[float, np.ndarray]] = []  # (monotonic s, rad/s)
+        self.command_log: collections.deque[tuple[float, np.ndarray]] = collections.deque(
+            maxlen=COMMAND_LOG_LENGTH
+        )  # (monotonic s, rad/s)
         # (robot clock s, q rad, velocity sent right after that read rad/s, wall clock of the
         # read s monotonic), when tracing.
         self.trace: list[tuple[float, np.ndarray, np.ndarray, float]] | None = None
@@ -380,8 +390,13 @@ class FrankyBackend:
 
     # --- commanding -------------------------------------------------------------------
     def send(self, v) -> np.ndarray:
-        """Commands joint velocities ``v`` (rad/s) now; returns what was actually sent."""
+        """Commands joint velocities ``v`` (rad/s) now; returns what was actually sent.
+        ValueError, before anything is sent, when ``v`` is not 7 numbers."""
         v = np.asarray(v, float)
+        if v.shape != (7,):
+            raise ValueError(
+                f"FrankyBackend.send: v must be 7 joint velocities (rad/s), got shape {v.shape}"
+            )
         with self._lock:
             now = time.monotonic()
             self._last_command_time = now
