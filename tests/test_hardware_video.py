@@ -46,9 +46,14 @@ def test_parse_video_source(tmp_path):
         ("http://host:99999/x", "bad URL"),
         (str(tmp_path / "missing.avi"), "video file not found"),
         ("", "empty video source"),
+        # A device path, present or not (a character device is no file): the index to give.
+        ("/dev/video0", r"'/dev/video0' is a device path; give a capture device index \('0'"),
+        ("/dev/video17", r"device path; give a capture device index \('17' for /dev/video17"),
+        ("/dev/null", r"device path; give a capture device index \(N for /dev/videoN"),
     ):
-        with pytest.raises(ValueError, match=f"hardware_interface.video_source.*{message}"):
+        with pytest.raises(ValueError, match=f"hardware_interface.video_source.*{message}") as e:
             parse_video_source(bad)
+        assert "\n" not in str(e.value)
 
 
 def test_slerp_and_pose_interpolation():

@@ -35,6 +35,7 @@ import dataclasses
 import logging
 import math
 import os
+import re
 import threading
 import time
 import urllib.parse
@@ -89,7 +90,8 @@ class VideoSourceSpec:
 
 def parse_video_source(text: str, field: str = VIDEO_FIELD) -> VideoSourceSpec:
     """``"0"`` -> device 0; ``"scheme://..."`` -> a URL (scheme in :data:`URL_SCHEMES`, with a
-    host); anything else -> a video file that must exist. Raises ValueError naming
+    host); anything else -> a video file that must exist. A device path (``/dev/video0``,
+    present or not) is refused with the index to give instead. Raises ValueError naming
     ``field``."""
     source = str(text).strip()
     if not source:
@@ -113,8 +115,20 @@ def parse_video_source(text: str, field: str = VIDEO_FIELD) -> VideoSourceSpec:
             raise ValueError(f"field '{field}': URL {source!r} names no host")
         del port
         return VideoSourceSpec("url", source)
+    others = f"a stream URL ({', '.join(URL_SCHEMES)}) or a video file path"
+    if source.startswith("/dev/"):
+        # OpenCV opens V4L2 devices by index; /dev/v4l/by-id/... links resolve to /dev/videoN.
+        video = re.fullmatch(r"/dev/video(\d+)", os.path.realpath(source))
+        index = f"'{video.group(1)}' for {source}" if video else "N for /dev/videoN"
+        raise ValueError(
+            f"field '{field}': {source!r} is a device path; give a capture device index "
+            f"({index}), {others}"
+        )
     if not os.path.isfile(source):
-        raise ValueError(f"field '{field}': video file not found: {source}")
+        raise ValueError(
+            f"field '{field}': video file not found: {source} (the source is a capture "
+            f"device index, {others})"
+        )
     return VideoSourceSpec("file", source)
 
 
