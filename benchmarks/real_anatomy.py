@@ -23,6 +23,7 @@ them at N instead (any N whose K seeds miss the reserved cohorts, generator seed
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from tqdm import tqdm
@@ -132,22 +133,22 @@ def main(argv=None) -> int:
     bodies = [Path(p) for p in args.patients]
     missing = [str(p) for p in bodies if not p.exists()]
     if missing:
-        print(f"--patients: not found: {', '.join(missing)}")
+        print(f"--patients: not found: {', '.join(missing)}", file=sys.stderr)
         return 2
     error = argument_error(args)
     if error:
-        print(error)
+        print(error, file=sys.stderr)
         return 2
     if args.fresh_seeds < 0:
-        print(f"--fresh-seeds: expected 0 or more, got {args.fresh_seeds}")
+        print(f"--fresh-seeds: expected 0 or more, got {args.fresh_seeds}", file=sys.stderr)
         return 2
     error = check_fresh_seed_base(args.fresh_seed_base, args.fresh_seeds)
     if error:
-        print(error)
+        print(error, file=sys.stderr)
         return 2
     scenario, error = scenario_from_args(args)
     if error:
-        print(error)
+        print(error, file=sys.stderr)
         return 2
     template = load_registration_template(scenario.localization.template)
     out = Path(args.out) if args.out else None

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -123,7 +124,7 @@ def main(argv=None) -> int:
     config = ImagingConfig()
     out = Path(args.out)
     if out.exists() and any(out.iterdir()):
-        print(f"--out: {out} is not empty; give a new folder")
+        print(f"--out: {out} is not empty; give a new folder", file=sys.stderr)
         return 2
     per = int(np.ceil(args.tune_frames / args.tune_patients))
     tune, tune_d = make_frames(

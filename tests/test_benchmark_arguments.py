@@ -145,8 +145,8 @@ def test_scan_benchmarks_refuse_a_max_sim_time_that_is_not_positive(
     body = tmp_path / "body"
     body.mkdir()
     assert real_anatomy.main(["--patients", str(body), *flag]) == 2
-    out = capsys.readouterr().out.strip()
-    assert out.startswith("--max-sim-time: ") and len(out.splitlines()) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("--max-sim-time: ") and len(err.splitlines()) == 1
 
 
 @pytest.mark.parametrize("name", ["station", "control"])
@@ -167,3 +167,10 @@ def test_pivot_bad_patients_is_one_line(capsys, monkeypatch, patients):
 
     monkeypatch.setattr(pivot, "run_one", lambda *a, **k: pytest.fail("scanned"))
     _one_line_error(capsys, ["pivot", "--patients", patients], "--patients")
+
+
+def test_segmenter_finetune_refuses_a_used_out_folder_on_stderr(capsys, tmp_path):
+    """The error went to stdout, whose last line is the JSON a machine parses."""
+    pytest.importorskip("torch", reason="the train extra (PyTorch) is not installed")
+    (tmp_path / "old.txt").write_text("x")
+    _one_line_error(capsys, ["segmenter_finetune", "--out", str(tmp_path)], "--out")

@@ -22,8 +22,10 @@ def test_bad_scenario_is_one_line_before_any_scan(tmp_path, monkeypatch, capsys,
     body = tmp_path / "body"
     body.mkdir()
     assert real_anatomy.main(["--patients", str(body), *args]) == 2
-    out = capsys.readouterr().out.strip()
-    assert out.startswith("--scenario/--set: ") and word in out
+    captured = capsys.readouterr()
+    err = captured.err.strip()
+    assert err.startswith("--scenario/--set: ") and word in err
+    assert captured.out == ""  # stdout is for the table and the JSON
     assert scanned == []
 
 
@@ -86,8 +88,37 @@ def test_fresh_seed_base_in_a_cohort_is_one_line(tmp_path, monkeypatch, capsys, 
     body.mkdir()
     argv = ["--patients", str(body), "--fresh-seeds", str(count)]
     assert real_anatomy.main([*argv, "--fresh-seed-base", str(base)]) == 2
-    out = capsys.readouterr().out.strip()
-    assert out.startswith("--fresh-seed-base: ") and word in out and len(out.splitlines()) == 1
+    captured = capsys.readouterr()
+    err = captured.err.strip()
+    assert err.startswith("--fresh-seed-base: ") and word in err and len(err.splitlines()) == 1
+    assert captured.out == ""
+    assert scanned == []
+
+
+@pytest.mark.parametrize(
+    "args, start",
+    [
+        (["--fresh-seeds", "-1"], "--fresh-seeds: "),
+        (["--max-sim-time", "0"], "--max-sim-time: "),
+    ],
+)
+def test_argument_errors_go_to_stderr(tmp_path, monkeypatch, capsys, args, start):
+    """The last stdout line is the JSON machines parse: an error is one line on stderr."""
+    scanned = _record_scans(monkeypatch)
+    body = tmp_path / "body"
+    body.mkdir()
+    assert real_anatomy.main(["--patients", str(body), *args]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and captured.err.startswith(start)
+    assert len(captured.err.strip().splitlines()) == 1
+    assert scanned == []
+
+
+def test_missing_patients_go_to_stderr(tmp_path, monkeypatch, capsys):
+    scanned = _record_scans(monkeypatch)
+    assert real_anatomy.main(["--patients", str(tmp_path / "missing")]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and captured.err.startswith("--patients: not found: ")
     assert scanned == []
 
 
