@@ -12,7 +12,6 @@ The last line is one JSON object.
 """
 
 import argparse
-import json
 import math
 import sys
 import time
@@ -24,6 +23,7 @@ from benchmarks._scan_rows import argument_error
 from drake_rus.closed_loop import BuildClosedLoop, BuildClosedLoopOnPatient
 from drake_rus.control import supervisor
 from drake_rus.control.synthetic_view import GeometricKidneyView
+from drake_rus.io_utils import dumps_strict
 from drake_rus.scenario import ApplyOverrides, LoadScenario
 
 
@@ -149,7 +149,7 @@ def main(argv=None) -> int:
         f"exploration: {args.duration} s simulated in {wall:.2f} s wall "
         f"(real-time factor {args.duration / wall:.2f})"
     )
-    print(json.dumps(result))
+    print(dumps_strict(result))
     return 0
 
 

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 import time
 
@@ -42,6 +41,7 @@ from drake_rus.anatomy import load_patient
 from drake_rus.control.supervisor import exploration_target
 from drake_rus.experiments import kinematic as km
 from drake_rus.experiments.specs import expand_patients
+from drake_rus.io_utils import dumps_strict
 from drake_rus.localization.icp import heuristic_initial_rotation
 from drake_rus.localization.localize import (
     estimate_kidney_length,
@@ -349,7 +349,7 @@ def main(argv=None) -> int:
         f"{out['er_of_true_length']['sd']}"
     )
     print(f"{'seed paper':24s} E_trans 8.73 +- 6.93 mm | E_rot,x 12.86 +- 20.86 deg")
-    print(json.dumps(out))
+    print(dumps_strict(out))
     return 0
 
 

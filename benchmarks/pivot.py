@@ -14,7 +14,6 @@ is reported too (``eps_pretilt_mm``), since it is not a PIVOT frame.
 """
 
 import argparse
-import json
 import math
 import sys
 
@@ -23,6 +22,7 @@ import numpy as np
 from benchmarks._scan_rows import argument_error, scan_row
 from drake_rus.control.supervisor import Phase
 from drake_rus.experiments.specs import expand_patients
+from drake_rus.io_utils import dumps_strict
 from drake_rus.localization.localize import load_registration_template
 from drake_rus.metrics.sweep import cumulative_eps
 from drake_rus.scenario import LoadScenario
@@ -145,7 +145,7 @@ def main(argv=None) -> int:
             f"{reduction:.1%}"
         )
     print(
-        json.dumps(
+        dumps_strict(
             {
                 "scans": [
                     {

@@ -22,7 +22,6 @@ them at N instead (any N whose K seeds miss the reserved cohorts, generator seed
 """
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -38,6 +37,7 @@ from benchmarks._scan_rows import (
 from drake_rus.anatomy.cohort import TRAIN_OFFSET
 from drake_rus.anatomy.ct_patient import CT_BODY_OFFSET
 from drake_rus.cli import add_scenario_arguments
+from drake_rus.io_utils import dumps_strict
 from drake_rus.localization.localize import load_registration_template
 from drake_rus.paths import REPO_ROOT
 
@@ -186,7 +186,7 @@ def main(argv=None) -> int:
     in_loop = in_loop_totals(rows)
     print(in_loop_line(in_loop))
     print(
-        json.dumps(
+        dumps_strict(
             {
                 "scans": [
                     {

@@ -23,7 +23,6 @@ and prints ``{"skipped": ...}``.
 """
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -170,7 +169,7 @@ def main(argv=None) -> int:
     ct_dir = Path(args.cases).expanduser()
     if not ct_dir.is_dir():
         print(f"real_template: no CT label maps at {ct_dir}; skipped")
-        print(json.dumps({"skipped": f"no CT label maps at {ct_dir}"}))
+        print(dumps_strict({"skipped": f"no CT label maps at {ct_dir}"}))
         return 0
 
     def log(line):

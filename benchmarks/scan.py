@@ -33,7 +33,6 @@ The last line is one JSON object.
 
 import argparse
 import collections
-import json
 import math
 import os
 import re
@@ -50,6 +49,7 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import ConstantVectorSource
 
+from drake_rus.io_utils import dumps_strict
 from drake_rus.scenario import ApplyOverrides, LoadScenario
 
 # py-spy's sampling rate for the per-system profile (samples per second).
@@ -354,7 +354,7 @@ def validate(args, base) -> dict:
                     if row["volume_ratio"] is None or ref["volume_ratio"] is None
                     else round(row["volume_ratio"] - ref["volume_ratio"], 4)
                 )
-            print(json.dumps(row), flush=True)
+            print(dumps_strict(row), flush=True)
             rows.append(row)
             verdict.setdefault(step, []).append(row["checks"]["all"])
     return {
@@ -413,7 +413,7 @@ def main(argv=None) -> int:
         out = validate(args, base)
         out["load_before"] = [round(x, 2) for x in load_before]
         out["load_after"] = [round(x, 2) for x in os.getloadavg()]
-        print(json.dumps(out))
+        print(dumps_strict(out))
         return 0
     out = {"scenario": args.scenario, "overrides": args.set, "time_step": base.contact.time_step}
     if not args.no_reference:
@@ -444,5 +444,5 @@ def main(argv=None) -> int:
         out["profile"] = profile_run(args)
     out["load_before"] = [round(x, 2) for x in load_before]
     out["load_after"] = [round(x, 2) for x in os.getloadavg()]
-    print(json.dumps(out))
+    print(dumps_strict(out))
     return 0

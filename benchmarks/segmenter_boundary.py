@@ -29,7 +29,6 @@ that gain is under 0.002. The last line is one JSON object.
 
 from __future__ import annotations
 
-import json
 import os
 import sys
 import time
@@ -39,6 +38,7 @@ import numpy as np
 from scipy import ndimage
 
 from benchmarks.segmenter_inference import validation_arguments, validation_sources
+from drake_rus.io_utils import dumps_strict
 
 BAND_CANVAS_PX = 2
 PLAIN = ("plain",)
@@ -301,7 +301,7 @@ def main(argv=None) -> int:
         "seconds": round(time.perf_counter() - t0, 1),
         "load_average": [round(x, 2) for x in os.getloadavg()],
     }
-    print(json.dumps(result))
+    print(dumps_strict(result))
     return 0
 
 

@@ -23,7 +23,6 @@ looks. Prints a table and, last, one JSON line.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from dataclasses import replace
@@ -112,7 +111,7 @@ def main(argv=None) -> int:
     try:
         import torch  # noqa: F401
     except ImportError:
-        print(json.dumps({"skipped": "needs the train extra (PyTorch)"}))
+        print(dumps_strict({"skipped": "needs the train extra (PyTorch)"}))
         return 0
 
     from drake_rus.imaging.annotated import read_annotated_frames, write_annotated_frames

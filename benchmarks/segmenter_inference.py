@@ -66,13 +66,14 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 import os
 import sys
 import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+
+from drake_rus.io_utils import dumps_strict
 
 TEST_TIME = ("default", "mirror", "ensemble", "ensemble+mirror")
 THRESHOLDS = (0.3, 0.35, 0.4, 0.45, 0.5, 0.55, 0.6, 0.65, 0.7)
@@ -692,7 +693,7 @@ def edge_study(args, a: int, b: int) -> int:
     print_intervals(tables, values, default, presets, args.draws)
     print(f"chosen: edge threshold {chosen}")
     print(
-        json.dumps(
+        dumps_strict(
             {
                 "validation": f"train:{a}..{b}",
                 "views": args.views,
@@ -760,7 +761,7 @@ def compare_study(args, a: int, b: int) -> int:
     tables = interval_tables(scores, models[0])
     print_intervals(tables, models, models[0], presets, args.draws)
     print(
-        json.dumps(
+        dumps_strict(
             {
                 "validation": f"train:{a}..{b}",
                 "views": args.views,
@@ -833,7 +834,7 @@ def test_time_study(args, a: int, b: int) -> int:
     print_intervals(tables, list(settings), "default", presets, args.draws)
     print(f"chosen: {chosen}")
     print(
-        json.dumps(
+        dumps_strict(
             {
                 "validation": f"train:{a}..{b}",
                 "views": args.views,
@@ -1070,7 +1071,7 @@ def main(argv=None) -> int:
         "seconds": round(time.perf_counter() - t0, 1),
         "load_average": [round(x, 2) for x in os.getloadavg()],
     }
-    print(json.dumps(result))
+    print(dumps_strict(result))
     return 0
 
 

@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import math
 import os
 import sys
@@ -47,6 +46,7 @@ from pydrake.math import RigidTransform, RollPitchYaw
 
 from benchmarks._scan_rows import scenario_from_args
 from benchmarks.segmenter_inference import paired_intervals, patients_and_draws
+from drake_rus.io_utils import dumps_strict
 
 # A registration error of the size the default scan leaves on fresh generated patients
 # (docs/results/segmenter.md, 2026-11-28 fifth: median E_trans 1.6-1.7 mm over 62 scans;
@@ -420,7 +420,7 @@ def main(argv=None) -> int:
         }
 
     print(
-        json.dumps(
+        dumps_strict(
             {
                 "validation": f"train:{a}..{b}",
                 "draws": args.draws,

@@ -13,7 +13,6 @@ The last line is one JSON object.
 """
 
 import argparse
-import json
 import sys
 import time
 
@@ -25,6 +24,7 @@ from pydrake.systems.primitives import Sine
 from benchmarks._scan_rows import argument_error
 from drake_rus.closed_loop import PressDiagram
 from drake_rus.control.force_loop import force_statistics
+from drake_rus.io_utils import dumps_strict
 from drake_rus.scenario import ApplyOverrides, LoadScenario
 from drake_rus.stations import MakeStation
 
@@ -123,8 +123,8 @@ def main(argv=None) -> int:
                     "ratio_to_free": round(r["rtf"] / free["rtf"], 3),
                     "force_error_n": r["force_error_n"],
                 }
-                print(json.dumps(row), flush=True)
+                print(dumps_strict(row), flush=True)
                 sweep.append(row)
         result["sweep"] = sweep
-    print(json.dumps(result))
+    print(dumps_strict(result))
     return 0
