@@ -1,6 +1,7 @@
 """One default scan as a benchmark row (shared by ``real_anatomy``, ``real_kidneys`` and
 ``pivot``), the benchmarks' scenario from ``--scenario``/``--scenarios-file``/``--set``, and
-their arguments checked against the commands' shared rules."""
+their arguments checked against the commands' shared rules (list options without
+repeats)."""
 
 import time
 import traceback
@@ -226,6 +227,13 @@ def scenario_from_args(args):
         return load_scenario_from_args(args), None
     except (ScenarioError, ValueError) as e:
         return None, f"--scenario/--set: {e}"
+
+
+def distinct(values) -> list:
+    """``values`` without repeats, in the order first given: a list option's repeated value
+    counts once (``--postures supine supine`` scans each body once), as the commands'
+    ``--strategies`` and ``--ers`` do."""
+    return list(dict.fromkeys(values))
 
 
 def argument_error(args) -> str | None:

@@ -19,7 +19,7 @@ import sys
 
 import numpy as np
 
-from benchmarks._scan_rows import argument_error, scan_row
+from benchmarks._scan_rows import argument_error, distinct, scan_row
 from drake_rus.control.supervisor import Phase
 from drake_rus.experiments.specs import expand_patients
 from drake_rus.io_utils import dumps_strict
@@ -73,11 +73,18 @@ def _f(v, spec):
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks pivot", description=__doc__)
     parser.add_argument("--patients", default="test:0-4")
-    parser.add_argument("--strategies", nargs="+", default=list(STRATEGIES), choices=STRATEGIES)
+    parser.add_argument(
+        "--strategies",
+        nargs="+",
+        default=list(STRATEGIES),
+        choices=STRATEGIES,
+        help="pivot strategies to compare (default: all; a repeated one counts once)",
+    )
     parser.add_argument("--scenario", default="default")
     parser.add_argument("--set", dest="overrides", default=None, help="YAML overrides")
     parser.add_argument("--max-sim-time", type=float, default=150.0)
     args = parser.parse_args(argv)
+    args.strategies = distinct(args.strategies)
     error = argument_error(args)
     if error:
         print(error, file=sys.stderr)

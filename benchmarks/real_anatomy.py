@@ -29,6 +29,7 @@ from tqdm import tqdm
 
 from benchmarks._scan_rows import (
     argument_error,
+    distinct,
     in_loop_line,
     in_loop_totals,
     scan_row,
@@ -105,7 +106,13 @@ def main(argv=None) -> int:
         default=[str(p) for p in DEFAULT_BODIES],
         help="real bodies: patient folders or label maps",
     )
-    parser.add_argument("--postures", nargs="+", default=list(POSTURES), choices=POSTURES)
+    parser.add_argument(
+        "--postures",
+        nargs="+",
+        default=list(POSTURES),
+        choices=POSTURES,
+        help="postures of the real bodies (default: both; a repeated one counts once)",
+    )
     add_scenario_arguments(parser)
     parser.add_argument("--max-sim-time", type=float, default=120.0)
     parser.add_argument("--out", default=None, help="also write each scan's outputs here")
@@ -127,9 +134,11 @@ def main(argv=None) -> int:
         nargs="+",
         default=["supine"],
         choices=POSTURES,
-        help="postures of the fresh generated patients (default: supine)",
+        help="postures of the fresh generated patients (default: supine; a repeated one "
+        "counts once)",
     )
     args = parser.parse_args(argv)
+    args.postures, args.fresh_postures = distinct(args.postures), distinct(args.fresh_postures)
     bodies = [Path(p) for p in args.patients]
     missing = [str(p) for p in bodies if not p.exists()]
     if missing:

@@ -174,3 +174,22 @@ def test_segmenter_finetune_refuses_a_used_out_folder_on_stderr(capsys, tmp_path
     pytest.importorskip("torch", reason="the train extra (PyTorch) is not installed")
     (tmp_path / "old.txt").write_text("x")
     _one_line_error(capsys, ["segmenter_finetune", "--out", str(tmp_path)], "--out")
+
+
+def test_pivot_runs_a_repeated_strategy_once(capsys, monkeypatch):
+    """``--strategies two_leg two_leg`` ran and listed every patient's scan twice."""
+    from benchmarks import pivot
+
+    runs = []
+
+    def fake_run_one(spec, strategy, *args):
+        runs.append((spec, strategy))
+        row = {k: 1.0 for k in (*pivot.FIELDS, "eps_pretilt_mm")}
+        row.update(n_whole_pivot=10, n_frames=10)
+        return {"patient": spec, "strategy": strategy, "status": "DONE", "wall_s": 0.0, **row}
+
+    monkeypatch.setattr(pivot, "run_one", fake_run_one)
+    monkeypatch.setattr(pivot, "load_registration_template", lambda path: None)
+    argv = ["--patients", "test:0", "--strategies", "two_leg", "predicted_end", "two_leg"]
+    assert run_benchmark(["pivot", *argv]) == 0
+    assert runs == [("test:0", "two_leg"), ("test:0", "predicted_end")]

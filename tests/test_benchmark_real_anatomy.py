@@ -126,3 +126,21 @@ def test_fresh_seed_base_just_outside_the_cohorts_is_accepted():
     assert real_anatomy.check_fresh_seed_base(999_998, 2) is None
     assert real_anatomy.check_fresh_seed_base(4_000_000, 30) is None
     assert real_anatomy.check_fresh_seed_base(2_000_000, 0) is None
+
+
+def test_a_repeated_posture_is_scanned_once(tmp_path, monkeypatch, capsys):
+    """``--postures supine supine`` scanned every body twice and listed both rows; a
+    repeated value counts once, as in the commands' list options."""
+    scanned = _record_scans(monkeypatch)
+    body = tmp_path / "body"
+    body.mkdir()
+    argv = ["--patients", str(body), "--postures", "supine", "supine", "left_lateral_decubitus"]
+    argv += ["--fresh-seeds", "1", "--fresh-postures", "supine", "supine"]
+    assert real_anatomy.main(argv) == 0
+    assert scanned == [
+        (str(body), "supine"),
+        (str(body), "left_lateral_decubitus"),
+        ("seed:5000000", "supine"),
+    ]
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert len(summary["scans"]) == 3 and summary["fresh_seeds"] == 1
