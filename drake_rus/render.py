@@ -1,6 +1,8 @@
 """``drake-rus render-diagram``: draws the station or the whole scan diagram with Graphviz.
 
-``--all`` re-draws every picture committed in ``diagrams/`` (``COMMITTED``, each with its
+One picture goes to ``--out``, by default ``runs/diagrams/DIAGRAM.svg`` (beside the other
+commands' runs, in the current folder; never the committed pictures, which only ``--all``
+writes). ``--all`` re-draws every picture committed in ``diagrams/`` (``COMMITTED``, each with its
 fixed settings); ``--all --check`` only compares them with the diagrams built now (the
 names of the systems and ports, not the bytes, which depend on Graphviz's version) and exits
 1 naming what a stale picture lacks or shows in excess. ``tests/test_new_user.py`` runs the
@@ -32,6 +34,9 @@ COMMITTED = {
     "scan.svg": ("scan", "test:0", 1),
 }
 GRAPHVIZ_MISSING = "Graphviz 'dot' is not installed (apt-get install graphviz)"
+# Where one picture goes by default (DIAGRAM.svg in it): a user path beside the other runs,
+# not diagrams/, whose committed pictures --all draws with their fixed settings.
+DEFAULT_OUT_DIR = Path("runs/diagrams")
 
 
 def add_commands(subparsers) -> None:
@@ -51,7 +56,10 @@ def add_commands(subparsers) -> None:
         "--patient", default="test:0", help="patient of the simulated scan diagram (default test:0)"
     )
     p.add_argument(
-        "--out", default=None, help="output file; .svg or .png (default diagrams/DIAGRAM.svg)"
+        "--out",
+        default=None,
+        help=f"output file; .svg or .png (default {DEFAULT_OUT_DIR}/DIAGRAM.svg, DIAGRAM the "
+        "--diagram drawn; the committed diagrams/*.svg are re-drawn with --all)",
     )
     p.add_argument(
         "--depth",
@@ -211,7 +219,9 @@ def run_render(args) -> int:
         raise UserError("--check: compares the committed pictures; use it with --all")
     scenario = load_scenario_from_args(args)
     kind = args.diagram or "station"
-    out = check_output_file(args.out or f"diagrams/{kind}.svg", "--out", suffixes=(".svg", ".png"))
+    out = check_output_file(
+        args.out or DEFAULT_OUT_DIR / f"{kind}.svg", "--out", suffixes=(".svg", ".png")
+    )
     diagram = build_diagram(kind, scenario, args.patient)
     out = render_graphviz(diagram.GetGraphvizString(max_depth=args.depth), out)
     print(f"wrote {out}")

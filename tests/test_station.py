@@ -212,3 +212,14 @@ def test_render_diagram(tmp_path):
     assert cli_main(["render-diagram", "--out", str(out)]) == 0
     svg = out.read_text()
     assert "<svg" in svg and "plant" in svg and "joint_velocity_command" in svg
+
+
+def test_render_diagram_default_out_is_beside_the_runs(tmp_path, monkeypatch, capsys):
+    """Without --out the picture goes to runs/diagrams/, like the other commands' outputs;
+    it went to ./diagrams/, which in the repository is the committed picture --all draws
+    (a --depth or --set run there overwrote it with other settings)."""
+    monkeypatch.chdir(tmp_path)
+    assert cli_main(["render-diagram"]) == 0
+    assert (tmp_path / "runs" / "diagrams" / "station.svg").is_file()
+    assert not (tmp_path / "diagrams").exists()
+    assert "wrote runs/diagrams/station.svg" in capsys.readouterr().out
