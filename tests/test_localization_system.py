@@ -206,6 +206,29 @@ def test_icp_localizer_system(template, travel, expect_pose):
         assert ready == 0.0 and "only 14.96 mm of exploration (need 15.00 mm)" in error
 
 
+@pytest.mark.parametrize(
+    "travel, limit, words",
+    [
+        (0.005, 0.015, "only 5.0 mm of exploration (need 15.0 mm)"),
+        # The value and the limit widened together: "need 15 mm" hid a 14.54 mm limit.
+        (0.01446, 0.01454, "only 14.46 mm of exploration (need 14.54 mm)"),
+    ],
+)
+def test_short_exploration_states_value_and_limit_alike(template, travel, limit, words):
+    X_BK, P = partial_cloud(template)
+    phase = supervisor.Phase.LOCALIZE
+    config = LocalizationConfig(method="seed", min_exploration_travel=limit)
+    system = IcpLocalizer(template, config, SUPERIOR_B, LATERAL_B, localize_phase=int(phase))
+    from pydrake.systems.analysis import Simulator
+
+    simulator = Simulator(system)
+    context = simulator.get_mutable_context()
+    system.GetInputPort("point_cloud").FixValue(context, _cloud(P, travel))
+    system.GetInputPort("phase").FixValue(context, [float(phase)])
+    simulator.AdvanceTo(0.2)
+    assert words in system.GetOutputPort("localization_error").Eval(context)
+
+
 def test_exploration_travel():
     assert exploration_travel(()) == 0.0
     poses = [RigidTransform([0, -0.001 * k, 0]) for k in range(11)]

@@ -693,8 +693,7 @@ class IcpLocalizer(LeafSystem):
                 f"only {len(points)} kidney boundary points were explored (need {self._min_points})"
             )
         elif travel < self._config.min_exploration_travel:
-            a = _shown(1000 * travel, 1000 * self._config.min_exploration_travel, 1, False)[0]
-            b = _shown(1000 * travel, 1000 * self._config.min_exploration_travel, 0, False)[1]
+            a, b = _shown(1000 * travel, 1000 * self._config.min_exploration_travel, 1, False)
             error = f"the kidney was seen over only {a} mm of exploration (need {b} mm)"
         if error:
             state.get_mutable_abstract_state(self._outcome).set_value(
