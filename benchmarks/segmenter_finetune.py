@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drake_rus.config_schema import SEED_MAX, SEED_RANGE
 from drake_rus.io_utils import dumps_strict
 
 MACHINE_B = {"speckle": False, "dynamic_range_db": 30.0}
@@ -108,6 +109,8 @@ def main(argv=None) -> int:
         ap.error(
             f"--interpolate: expected weights in (0, 1) like 0.5,0.75, got {args.interpolate!r}"
         )
+    if not 0 <= args.seed <= SEED_MAX:
+        ap.error(f"--seed: expected {SEED_RANGE}, got {args.seed}")
     try:
         import torch  # noqa: F401
     except ImportError:

@@ -38,7 +38,12 @@ from urllib.parse import urlparse  # noqa: E402
 
 from pydrake.geometry import Meshcat, MeshcatParams  # noqa: E402
 
-from drake_rus.config_schema import ScenarioError, check_nesting_depth  # noqa: E402
+from drake_rus.config_schema import (  # noqa: E402
+    SEED_MAX,
+    SEED_RANGE,
+    ScenarioError,
+    check_nesting_depth,
+)
 from drake_rus.io_utils import check_output_dir, check_output_file, describe_os_error  # noqa: E402
 from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, LoadScenario  # noqa: E402
 
@@ -79,7 +84,7 @@ ARGUMENT_RULES = {
     "runs": (lambda v: v >= 1, "a positive number of runs"),
     "workers": (lambda v: v >= 0, "0 or more workers"),
     "closed_loop": (lambda v: v >= 0, "0 or more patients (0 skips the closed-loop scans)"),
-    "seed": (lambda v: v >= 0, "a non-negative integer"),
+    "seed": (lambda v: 0 <= v <= SEED_MAX, SEED_RANGE),
     "n": (lambda v: v >= 1, "at least 1 subject"),
     "voxel_mm": (lambda v: _finite(v) and 0.1 <= v <= 10.0, "a voxel size of 0.1-10 mm"),
     "voxel": (lambda v: _finite(v) and 0.0 < v <= 0.01, "a voxel size in m, 0 < v <= 0.01"),

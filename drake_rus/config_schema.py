@@ -11,7 +11,8 @@ Field constraints are declared on the dataclass fields themselves with ``metadat
 - ``length``: the exact length of a list field;
 - ``min_length``: the least length of a list field (e.g. a list that must not be empty);
 - ``min`` / ``max``: bounds of a number (or of every element of a list of numbers);
-- ``positive``: the number (or every element) must be > 0.
+- ``positive``: the number (or every element) must be > 0;
+- ``seed``: a seed, 0 to :data:`SEED_MAX` (:func:`seed_metadata`).
 """
 
 from __future__ import annotations
@@ -34,6 +35,19 @@ def schema_transform(*, xyz=(0.0, 0.0, 0.0), rpy_deg=(0.0, 0.0, 0.0)) -> Transfo
     t.translation = list(xyz)
     t.set_rotation_rpy_deg(list(rpy_deg))
     return t
+
+
+# The seeds a run accepts (``--seed`` options and the scenario's seed fields): 0 to 2**32 - 1.
+# The emulator seeds its speckle with 32 bits, so a larger seed would silently repeat a
+# smaller one's pictures, and PyTorch's generator refuses 2**64 and above.
+SEED_MAX = 2**32 - 1
+SEED_RANGE = f"an integer 0-{SEED_MAX}"
+
+
+def seed_metadata() -> dict:
+    """Field metadata of a seed: 0 to :data:`SEED_MAX` (see there); loading refuses any
+    other integer in one line with the range."""
+    return {"min": 0, "max": SEED_MAX, "seed": True}
 
 
 class ScenarioError(ValueError):
@@ -91,8 +105,11 @@ def _check_number(path: str, value, meta: dict, integer: bool = False) -> None:
             raise ScenarioError(f"field '{path}': expected an integer, got {value!r}")
     elif not _is_number(value):
         raise ScenarioError(f"field '{path}': expected a number, got {value!r}")
-    if not math.isfinite(float(value)):
+    # An int is finite (and float() of a 400-digit one overflows).
+    if not isinstance(value, int) and not math.isfinite(float(value)):
         raise ScenarioError(f"field '{path}': expected a finite number, got {value!r}")
+    if meta.get("seed") and not 0 <= value <= SEED_MAX:
+        raise ScenarioError(f"field '{path}': expected a seed, {SEED_RANGE}, got {value!r}")
     if meta.get("positive") and not value > 0:
         raise ScenarioError(f"field '{path}': expected a number > 0, got {value!r}")
     if "why" in meta and "min" in meta and not meta["min"] <= value <= meta["max"]:

@@ -25,6 +25,7 @@ from drake_rus.config_schema import (
     check_physical,
     physical,
     schema_transform,
+    seed_metadata,
     validate,
     yaml_error_text,
 )
@@ -261,7 +262,7 @@ class Scenario:
     # station from outside; the product never reads this section). All off by default.
     faults: FaultConfig = field(default_factory=FaultConfig)
     # Seed of every random draw in a run (noise, speckle, starts).
-    random_seed: int = field(default=0, metadata={"min": 0})
+    random_seed: int = field(default=0, metadata=seed_metadata())
 
 
 def ListScenarios(filename: str | Path = DEFAULT_SCENARIOS_FILE) -> list[str]:

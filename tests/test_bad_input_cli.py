@@ -19,6 +19,7 @@ CAMPAIGN_CASES = [
     ("nan_time", ["--runs", "2", "--max-sim-time", "nan"], ["--max-sim-time"]),
     ("zero_time", ["--runs", "2", "--max-sim-time", "0"], ["--max-sim-time"]),
     ("negative_seed", ["--runs", "2", "--seed", "-3"], ["--seed"]),
+    ("seed_2_64", ["--runs", "2", "--seed", str(2**64)], ["--seed", "0-4294967295"]),
     ("zero_patients", ["--runs", "2", "--patients", "0"], ["--patients"]),
     ("unknown_scenario", ["--runs", "2", "--scenario", "nope"], ["'nope'", "available"]),
 ]
@@ -77,6 +78,9 @@ def test_argparse_errors_name_the_argument(capsys, argv, word):
 
 SCAN_CASES = [
     ("negative_seed", ["--seed", "-1"], ["--seed"]),
+    # A seed above 2**32 - 1 (a 400-digit one was a traceback from the scenario check).
+    ("seed_2_32", ["--seed", str(2**32)], ["--seed", "0-4294967295"]),
+    ("seed_400_digits", ["--seed", "1" + "0" * 400], ["--seed", "0-4294967295"]),
     ("zero_time", ["--max-sim-time", "0"], ["--max-sim-time"]),
     ("inf_time", ["--max-sim-time", "inf"], ["--max-sim-time"]),
     ("unknown_scenario", ["--scenario", "nope"], ["'nope'"]),
@@ -396,6 +400,15 @@ def test_negative_views(tmp_path, capsys, views):
     assert code == 2 and "--views" in err and not out.exists(), err
 
 
+def test_segmenter_fine_tune_seed_out_of_range(tmp_path, capsys):
+    """PyTorch's generator refuses 2**64: a traceback once the frames were read."""
+    out = tmp_path / "tuned"
+    argv = ["segmenter", "fine-tune", "--frames", str(tmp_path), "--out", str(out)]
+    code, err = _run([*argv, "--seed", str(2**64)], capsys)
+    assert code == 2 and "--seed: expected an integer 0-4294967295" in err, err
+    assert not out.exists()
+
+
 def test_render_diagram_negative_depth(tmp_path, capsys):
     out = tmp_path / "d.svg"
     code, err = _run(["render-diagram", "--depth", "-1", "--out", str(out)], capsys)
@@ -471,6 +484,7 @@ def test_template_build_out_in_readonly_folder(readonly_dir, capsys):
         ("efficiency", ["--recon-spacing", "-0.001"], "--recon-spacing"),
         ("er-sweep", ["--workers", "-1"], "--workers"),
         ("er-sweep", ["--seed", "-1"], "--seed"),
+        ("er-sweep", ["--seed", str(2**63)], "--seed"),
         ("er-sweep", ["--set", "{controller: {desired_force: 25}}"], "controller.desired_force"),
         ("er-sweep", ["--scenario", "nope"], "'nope'"),
     ],
@@ -486,6 +500,7 @@ def test_template_build_out_in_readonly_folder(readonly_dir, capsys):
         "recon_negative",
         "workers_negative",
         "seed_negative",
+        "seed_2_63",
         "force_above_ceiling",
         "unknown_scenario",
     ],

@@ -159,6 +159,20 @@ FIELD_CASES = [
     ),
     ("old_breathing_place", "s: {faults: {breathing: {enabled: true}}}", ["faults.breathing"]),
     ("random_seed_negative", "s: {random_seed: -1}", ["random_seed"]),
+    # Seeds: 0 to 2**32 - 1 (config_schema.SEED_MAX); a 400-digit one overflowed float().
+    ("random_seed_2_32", "s: {random_seed: 4294967296}", ["random_seed", "0-4294967295"]),
+    (
+        "random_seed_400_digits",
+        "s: {random_seed: 1%s}" % ("0" * 400),
+        ["random_seed", "0-4294967295"],
+    ),
+    (
+        "placement_seed_2_64",
+        "s: {start: {placement_seed: 18446744073709551616}}",
+        ["start.placement_seed", "0-4294967295"],
+    ),
+    ("motion_seed_2_32", "s: {patient: {motion: {seed: 4294967296}}}", ["patient.motion.seed"]),
+    ("faults_seed_2_32", "s: {faults: {seed: 4294967296}}", ["faults.seed", "0-4294967295"]),
     ("workspace_length", "s: {safety: {workspace_min: [0, 0]}}", ["safety.workspace_min"]),
     ("null_field_name", "s: {controller: {null: 1}}", ["null or empty", "in 'controller'"]),
     ("start_xy_length", "s: {controller: {start_xy: [0.5]}}", ["controller.start_xy", "[x (m)"]),

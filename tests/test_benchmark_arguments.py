@@ -193,3 +193,15 @@ def test_pivot_runs_a_repeated_strategy_once(capsys, monkeypatch):
     argv = ["--patients", "test:0", "--strategies", "two_leg", "predicted_end", "two_leg"]
     assert run_benchmark(["pivot", *argv]) == 0
     assert runs == [("test:0", "two_leg"), ("test:0", "predicted_end")]
+
+
+@pytest.mark.parametrize("seed", ["-200", str(2**64)])
+def test_segmenter_finetune_refuses_a_seed_out_of_range(capsys, tmp_path, seed):
+    """-200 failed in numpy's generator after the first patient was built; 2**64 in
+    PyTorch's after the frames. (A used --out, refused later, keeps the old code fast.)"""
+    (tmp_path / "old.txt").write_text("x")
+    argv = ["segmenter_finetune", "--out", str(tmp_path), "--seed", seed]
+    with pytest.raises(SystemExit) as stop:
+        run_benchmark(argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert stop.value.code == 2 and "--seed: expected an integer 0-4294967295" in err[-1], err

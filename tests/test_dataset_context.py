@@ -323,6 +323,8 @@ def test_cached_frames_are_named_by_their_recipe(tmp_path, monkeypatch):
         (["--time-limit-min", "-5"], "--time-limit-min"),
         (["--postures", "sideways"], "--postures"),
         (["--boundary-band-mm", "inf"], "--boundary-band-mm / --boundary-gain"),
+        (["--seed", "-1"], "--seed"),
+        (["--seed", str(2**64)], "--seed"),
     ],
 )
 def test_train_segmenter_refuses_bad_options_before_drawing_data(argv, option, capsys, monkeypatch):

@@ -341,3 +341,19 @@ def test_cli_writes_the_int8_card_and_records_its_benchmark(tmp_path, monkeypatc
     with pytest.raises(SystemExit):
         qs.main(["--out", str(out), "--record-benchmark", str(bench)])
     assert "measured" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("seed", ["-1", str(2**64)])
+def test_cli_refuses_a_seed_out_of_range_before_the_frames(tmp_path, monkeypatch, capsys, seed):
+    """A negative seed failed in numpy's generator once the calibration frames were drawn."""
+
+    def frames(*args, **kwargs):
+        raise AssertionError("calibration frames drawn")
+
+    monkeypatch.setattr(qs, "calibration_images", frames)
+    with pytest.raises(SystemExit) as e:
+        qs.main(["--out", str(tmp_path / "q.onnx"), "--seed", seed])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].endswith(f"--seed: expected an integer 0-4294967295, got {seed}"), err
+    assert not any(tmp_path.iterdir())

@@ -37,7 +37,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drake_rus.config_schema import BREATHING_RATE_MAX, BREATHING_RATE_MIN, physical
+from drake_rus.config_schema import (
+    BREATHING_RATE_MAX,
+    BREATHING_RATE_MIN,
+    physical,
+    seed_metadata,
+)
 
 __all__ = [
     "BreathingConfig",
@@ -242,7 +247,7 @@ class PatientMotionConfig:
     breathing: BreathingConfig = field(default_factory=BreathingConfig)
     shift: PatientShiftConfig = field(default_factory=PatientShiftConfig)
     # Seed of the breathing draws; combined with the scenario's random_seed.
-    seed: int = field(default=0, metadata={"min": 0})
+    seed: int = field(default=0, metadata=seed_metadata())
 
     @property
     def moves(self) -> bool:

@@ -10,6 +10,8 @@ before. Times are simulated seconds from the start of the run, SI units otherwis
 
 from dataclasses import dataclass, field
 
+from drake_rus.config_schema import seed_metadata
+
 __all__ = ["FaultConfig", "SensorFaultConfig", "FAULT_KINDS"]
 
 # Sensor fault kinds (SensorFaultConfig.kind).
@@ -67,7 +69,7 @@ class FaultConfig:
 
     sensor: list[SensorFaultConfig] = field(default_factory=list)
     # Seed of the fault draws (which frames drop); combined with random_seed.
-    seed: int = field(default=0, metadata={"min": 0})
+    seed: int = field(default=0, metadata=seed_metadata())
 
     @property
     def active_sensor_faults(self) -> list:

@@ -10,6 +10,8 @@ SI units (m, rad) unless a name says ``_deg``.
 
 from dataclasses import dataclass, field
 
+from drake_rus.config_schema import seed_metadata
+
 __all__ = ["StartConfig", "START_PLANNERS", "VerdictConfig", "PerceptionConfig", "EXECUTIONS"]
 
 EXECUTIONS = ["auto", "inline", "worker"]
@@ -58,7 +60,7 @@ class StartConfig:
     # beam, and a tilt of this angle (deg) about a random axis across the beam.
     placement_error: float = field(default=0.005, metadata={"min": 0.0, "max": 0.05})
     placement_error_angle_deg: float = field(default=3.0, metadata={"min": 0.0, "max": 20.0})
-    placement_seed: int = field(default=0, metadata={"min": 0})
+    placement_seed: int = field(default=0, metadata=seed_metadata())
 
 
 @dataclass

@@ -51,6 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drake_rus.config_schema import SEED_MAX, SEED_RANGE
 from drake_rus.extras import MissingExtra, require
 from drake_rus.imaging.onnx_backend import (
     cpu_has_vnni,
@@ -381,6 +382,8 @@ def main(argv=None) -> int:
         ap.error(f"--per-source: expected 1..--frames ({args.frames}), got {args.per_source}")
     if args.patients < 1:
         ap.error(f"--patients: expected >= 1, got {args.patients}")
+    if not 0 <= args.seed <= SEED_MAX:
+        ap.error(f"--seed: expected {SEED_RANGE}, got {args.seed}")
     try:
         _quantization_api()  # before the calibration frames: the extra is there
     except MissingExtra as e:

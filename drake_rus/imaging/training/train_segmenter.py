@@ -104,6 +104,7 @@ from pathlib import Path
 import numpy as np
 from scipy.special import expit
 
+from drake_rus.config_schema import SEED_MAX, SEED_RANGE
 from drake_rus.extras import MissingExtra, require
 from drake_rus.imaging.config import ImagingConfig
 from drake_rus.imaging.emulator import EmulatorModel
@@ -1028,6 +1029,7 @@ def _check_options(ap: argparse.ArgumentParser, args) -> None:
         ("--epochs", args.epochs >= 1, "at least 1 epoch"),
         ("--lr", finite(args.lr) and args.lr > 0, "a learning rate > 0"),
         ("--threads", args.threads >= 1, "at least 1 thread"),
+        ("--seed", 0 <= args.seed <= SEED_MAX, SEED_RANGE),
         (
             "--time-limit-min",
             args.time_limit_min is None
