@@ -158,6 +158,35 @@ def test_order_free_sum_is_the_same_in_any_order():
     assert np.array_equal(order_free_sum(np.zeros((4, 2))), np.zeros(2))
 
 
+def test_order_free_sum_refuses_non_finite_terms_and_sums_tiny_ones_exactly():
+    """A NaN or an inf among the terms is an error, not a sum of 0 or of garbage integers
+    (the old grid made NaN's sum 0 and cast inf to int64's minimum); subnormal terms, below
+    the grid's 2^-40 of a subnormal, are still summed exactly."""
+    for bad in (np.nan, np.inf, -np.inf):
+        with pytest.raises(ValueError, match="order_free_sum: terms must be finite"):
+            order_free_sum([[bad, 0.0], [1.0, 2.0]])
+    tiny = np.array([[5e-324], [5e-324], [1e-320]])
+    assert np.array_equal(order_free_sum(tiny), [1e-323 + 1e-320])
+
+
+def test_point_to_plane_icp_refuses_non_finite_input():
+    """A NaN normal (say, a mean of opposite normals) made the normal equations NaN, their
+    fixed-point sum 0 and the ICP return its start as if aligned; now one line names it."""
+    rng = np.random.default_rng(1)
+    ref = rng.normal(size=(50, 3)) * 0.02
+    nrm = ref / np.linalg.norm(ref, axis=1, keepdims=True)
+    bad = nrm.copy()
+    bad[7] = np.nan
+    with pytest.raises(ValueError, match="ref_nrm: 1 of 50 rows contain NaN"):
+        point_to_plane_icp(ref + 0.001, ref, bad, np.eye(4), 0.01)
+    with pytest.raises(ValueError, match="ref_nrm: expected one normal per reference point"):
+        point_to_plane_icp(ref, ref, nrm[:10], np.eye(4), 0.01)
+    with pytest.raises(ValueError, match=r"src_pts: expected an \(N, 3\) array"):
+        point_to_plane_icp(ref[:, :2], ref, nrm, np.eye(4), 0.01)
+    with pytest.raises(ValueError, match="T0: expected a finite 4x4"):
+        point_to_plane_icp(ref, ref, nrm, np.eye(3), 0.01)
+
+
 def test_point_to_plane_icp_does_not_depend_on_the_order_of_the_points():
     """The builder's ICP gives the same transform, to the last bit, for the source points in
     any order (Open3D's does not: its sums follow the order and its threads), so a template

@@ -128,14 +128,23 @@ def order_free_sum(terms) -> np.ndarray:
     """Sum of ``terms`` over axis 0, the same to the last bit whatever the order of the
     additions (a permutation of the rows, another BLAS, another memory alignment): every
     term is rounded to one fixed-point grid, 2^-40 of the largest term (about 1e-12
-    relative), and the integers are added exactly. Up to 2^22 rows."""
+    relative), and the integers are added exactly. Up to 2^22 rows (2^22 terms of at most
+    2^40 quanta each stay below int64's 2^63), all finite (ValueError otherwise)."""
     terms = np.asarray(terms, dtype=float)
     if len(terms) > 2**22:
         raise ValueError(f"order_free_sum: at most 2^22 rows, got {len(terms)}")
+    finite = np.isfinite(terms)
+    if not finite.all():
+        raise ValueError(
+            f"order_free_sum: terms must be finite numbers; {int((~finite).sum())} of "
+            f"{terms.size} are NaN or inf"
+        )
     largest = float(np.max(np.abs(terms))) if terms.size else 0.0
     if not largest > 0.0:
         return np.zeros(terms.shape[1:])
-    quantum = math.ldexp(1.0, math.frexp(largest)[1] - 40)  # a power of two: exact scaling
+    # A power of two (exact scaling), never below the smallest double, 2^-1074 (every
+    # double is a whole multiple of it, so subnormal terms are summed exactly too).
+    quantum = math.ldexp(1.0, max(math.frexp(largest)[1] - 40, -1074))
     return np.rint(terms / quantum).astype(np.int64).sum(axis=0).astype(float) * quantum
 
 
@@ -172,6 +181,19 @@ def _small_motion(x: np.ndarray) -> np.ndarray:
     return T
 
 
+def _finite_points(name: str, a) -> np.ndarray:
+    """``a`` as a float (N, 3) array of finite numbers, or one line naming ``name``."""
+    p = np.asarray(a, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"point_to_plane_icp: {name}: expected an (N, 3) array, got {p.shape}")
+    bad = ~np.all(np.isfinite(p), axis=1)
+    if bad.any():
+        raise ValueError(
+            f"point_to_plane_icp: {name}: {int(bad.sum())} of {len(p)} rows contain NaN or inf"
+        )
+    return p
+
+
 def point_to_plane_icp(
     src_pts,
     ref_pts,
@@ -188,12 +210,21 @@ def point_to_plane_icp(
     rmse (m) over the pairs. Open3D's iteration and stopping rule (fitness and rmse both
     changing by less than their tolerances), with nearest neighbours from one k-d tree and
     the normal equations summed by :func:`order_free_sum`: the same inputs give the same T
-    to the last bit, in any process, in any order of the source points."""
-    src = np.asarray(src_pts, dtype=float)
-    ref = np.asarray(ref_pts, dtype=float)
-    nrm = np.asarray(ref_nrm, dtype=float)
-    tree = cKDTree(ref)
+    to the last bit, in any process, in any order of the source points. Points, normals and
+    ``T0`` must be finite (ValueError naming the argument otherwise)."""
+    src = _finite_points("src_pts", src_pts)
+    ref = _finite_points("ref_pts", ref_pts)
+    nrm = _finite_points("ref_nrm", ref_nrm)
+    if nrm.shape != ref.shape:
+        raise ValueError(
+            f"point_to_plane_icp: ref_nrm: expected one normal per reference point, shape "
+            f"{ref.shape}, got {nrm.shape}"
+        )
     T = np.array(T0, dtype=float)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        what = f"shape {T.shape}" if T.shape != (4, 4) else "NaN or inf"
+        raise ValueError(f"point_to_plane_icp: T0: expected a finite 4x4 transform, got {what}")
+    tree = cKDTree(ref)
 
     def pairs(T):
         moved = transform_points(T, src)
