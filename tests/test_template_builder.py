@@ -212,6 +212,24 @@ def test_point_to_plane_icp_does_not_depend_on_the_order_of_the_points():
     assert np.array_equal(T_far, np.eye(4)) and fitness_far == 0.0
 
 
+def test_point_to_plane_icp_moves_along_what_a_symmetric_surface_determines():
+    """On a cylinder the pairs fix the shift across the axis but not along it: the normal
+    equations are singular (exactly, with exact normals; nearly, with normals off by 1e-7).
+    The ICP still recovers the shift across the axis, as Open3D's does, and stays put along
+    it: it used to stop at its start (singular) or jump kilometres along the axis."""
+    rng = np.random.default_rng(0)
+    th, x = rng.uniform(0, 2 * np.pi, 4000), rng.uniform(-0.05, 0.05, 4000)
+    cyl = np.c_[x, 0.02 * np.cos(th), 0.02 * np.sin(th)]
+    exact = np.c_[0 * x, np.cos(th), np.sin(th)]
+    rough = exact + 1e-7 * rng.standard_normal(exact.shape)
+    rough /= np.linalg.norm(rough, axis=1, keepdims=True)
+    t = np.array([0.0, 0.002, 0.001])
+    for nrm in (exact, rough):
+        T, fitness, rmse = point_to_plane_icp(cyl[::3] - t, cyl, nrm, np.eye(4), 0.01)
+        np.testing.assert_allclose(T[1:3, 3], t[1:], atol=2e-5)
+        assert abs(T[0, 3]) < 1e-4 and fitness == 1.0 and rmse < 5e-5
+
+
 def test_feature_ransac_finds_a_large_turn_the_same_way_every_time():
     """FPFH matches + RANSAC recover a 20 deg turn and 8 mm shift (beyond ICP's reach), and
     the same inputs give the same transform to the bit (Open3D's RANSAC did not)."""
