@@ -34,6 +34,7 @@ from drake_rus.template.builder import (
     shape_model,
     subject_from_mask,
     subject_from_mesh,
+    write_npz_reproducibly,
 )
 from drake_rus.template.io import DEFAULT_TEMPLATE_PATH
 
@@ -326,6 +327,20 @@ def test_the_same_kidneys_give_the_same_template_file(tmp_path):
     assert t.meta["total_seconds"] == 2.5 and t.meta["build_seconds"] >= 0
     assert "total_seconds" not in json.loads(str(np.load(paths[1])["metadata"]))
     np.testing.assert_array_equal(t.points, load_template(paths[0]).points)
+
+
+def test_write_npz_reproducibly_leaves_nothing_half_written(tmp_path):
+    """An array that cannot be stored (object dtype) fails after the first entries are
+    written: the file that was there stays as it was, and no temporary is left. (It used to
+    open the path itself: the old file was truncated and a half-written zip left.)"""
+    path = tmp_path / "t.npz"
+    write_npz_reproducibly(path, {"a": np.arange(3.0)})
+    before = path.read_bytes()
+    with pytest.raises(ValueError, match="allow_pickle"):
+        write_npz_reproducibly(path, {"a": np.arange(5.0), "b": np.array([{"x": 1}], dtype=object)})
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["t.npz"]
+    np.testing.assert_array_equal(np.load(path)["a"], np.arange(3.0))
 
 
 def test_save_load_round_trip(tmp_path, capsys, monkeypatch):

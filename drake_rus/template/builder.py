@@ -647,16 +647,17 @@ def save_template(result: TemplateResult, path, extra_meta: dict | None = None) 
         "convergence_to_final": np.asarray(result.convergence["to_final"]),
         "metadata": np.asarray(json.dumps(timeless)),
     }
-    with atomic_path(path) as tmp:
-        write_npz_reproducibly(tmp, arrays)
+    write_npz_reproducibly(path, arrays)
     write_metadata_json(path, meta)
     return path
 
 
 def write_npz_reproducibly(path, arrays: dict) -> None:
     """``arrays`` as a compressed .npz that :func:`numpy.load` reads, whose bytes depend on
-    the arrays alone (``numpy.savez_compressed`` stamps every entry with the time)."""
-    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as z:
+    the arrays alone (``numpy.savez_compressed`` stamps every entry with the time). Written
+    atomically (``atomic_path``): an array that cannot be stored (an object array) raises
+    and leaves whatever was at ``path`` as it was, and nothing half-written."""
+    with atomic_path(path) as tmp, zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as z:
         for name, value in arrays.items():
             buffer = io.BytesIO()
             np.lib.format.write_array(buffer, np.asanyarray(value), allow_pickle=False)
