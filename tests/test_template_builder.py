@@ -17,6 +17,7 @@ from drake_rus.anatomy.rasterize import mesh_mask_on_aligned_grid
 from drake_rus.cli import main as cli_main
 from drake_rus.template import load_template
 from drake_rus.template.builder import (
+    TemplateResult,
     align_to_reference,
     axis_agreement_deg,
     build_template,
@@ -34,6 +35,7 @@ from drake_rus.template.builder import (
     shape_model,
     subject_from_mask,
     subject_from_mesh,
+    write_metadata_json,
     write_npz_reproducibly,
 )
 from drake_rus.template.io import DEFAULT_TEMPLATE_PATH
@@ -341,6 +343,43 @@ def test_write_npz_reproducibly_leaves_nothing_half_written(tmp_path):
     assert path.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["t.npz"]
     np.testing.assert_array_equal(np.load(path)["a"], np.arange(3.0))
+
+
+def _ellipsoid_template(meta: dict) -> TemplateResult:
+    """A minimal valid template (an ellipsoid, no modes), built without registration."""
+    k = np.arange(400) + 0.5
+    phi, z = np.pi * (1 + 5**0.5) * k, 1 - 2 * k / 400
+    u = np.c_[np.sqrt(1 - z**2) * np.cos(phi), np.sqrt(1 - z**2) * np.sin(phi), z]
+    axes = np.array([0.055, 0.03, 0.025])
+    n = u / axes
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    conv = {"n": [1], "change": [float("nan")], "to_final": [0.0]}
+    return TemplateResult(
+        points=u * axes,
+        normals=n,
+        aligned=(u * axes)[None],
+        modes=np.zeros((0, 400, 3)),
+        variances=np.zeros(0),
+        explained=np.zeros(0),
+        convergence=conv,
+        meta=dict(meta, convergence=conv),
+    )
+
+
+def test_load_template_takes_timings_only_from_its_own_json(tmp_path):
+    """The timings live in the .json beside the .npz; a .json that describes another
+    template (left by an earlier build, or beside an .npz copied over another) is not
+    merged: its timings used to be reported as this template's."""
+    a = save_template(_ellipsoid_template({"n_subjects": 1}), tmp_path / "a.npz")
+    write_metadata_json(a, {**json.loads(a.with_suffix(".json").read_text()), "total_seconds": 1.0})
+    assert load_template(a).meta["total_seconds"] == 1.0  # its own .json
+    b = save_template(
+        _ellipsoid_template({"n_subjects": 2}), tmp_path / "b.npz", {"total_seconds": 9.0}
+    )
+    a.with_suffix(".json").write_bytes(b.with_suffix(".json").read_bytes())
+    meta = load_template(a).meta
+    assert "total_seconds" not in meta and meta["n_subjects"] == 1
+    assert load_template(b).meta["total_seconds"] == 9.0
 
 
 def test_save_load_round_trip(tmp_path, capsys, monkeypatch):

@@ -158,17 +158,24 @@ def check_template_arrays(points, normals, modes, variances) -> str:
     return ""
 
 
-def _build_timings(npz_path: Path) -> dict:
+def _timeless(meta: dict) -> str:
+    """``meta`` without its timings (keys ending in ``_seconds``), as canonical JSON."""
+    return json.dumps({k: v for k, v in meta.items() if not k.endswith("_seconds")}, sort_keys=True)
+
+
+def _build_timings(npz_path: Path, meta: dict) -> dict:
     """The build's timings (the metadata keys ending in ``_seconds``) from the .json beside
     a template, where :func:`~drake_rus.template.builder.save_template` keeps them; {} when
-    there is none or it does not read."""
+    there is none, it does not read, or it describes another template: its other keys must
+    be the file's ``meta`` exactly (a .json left by an earlier build, or beside an .npz
+    copied over another, is not this file's)."""
     try:
         doc = json.loads(Path(npz_path).with_suffix(".json").read_text())
     except (OSError, ValueError):
         return {}
-    if not isinstance(doc, dict):
+    if not isinstance(doc, dict) or _timeless(doc) != _timeless(meta):
         return {}
-    return {k: v for k, v in doc.items() if isinstance(k, str) and k.endswith("_seconds")}
+    return {k: v for k, v in doc.items() if k.endswith("_seconds")}
 
 
 def load_template(path=None) -> Template:
@@ -192,7 +199,7 @@ def load_template(path=None) -> Template:
         meta = json.loads(str(data["metadata"]))
     except json.JSONDecodeError as e:
         raise ValueError(f"kidney template {path}: 'metadata' is not valid JSON ({e})") from None
-    meta.update(_build_timings(path))
+    meta.update(_build_timings(path, meta))
     problem = check_template_arrays(
         data["points"], data["normals"], data["modes"], data["variances"]
     )
