@@ -405,6 +405,12 @@ def test_save_load_round_trip(tmp_path, capsys, monkeypatch):
     bad.write_text("not a zip")
     with pytest.raises(ValueError, match="bad.npz"):
         load_template(bad)
+    # Metadata that is JSON but not an object: one line naming it (was an AttributeError).
+    arrays = dict(np.load(out))
+    arrays["metadata"] = np.asarray("[1, 2]")
+    write_npz_reproducibly(bad, arrays)
+    with pytest.raises(ValueError, match="'metadata': expected a JSON object, got list"):
+        load_template(bad)
 
     # A cache folder that cannot be written: the template goes to a temporary file, with a
     # warning; a path the user asked for is never silently replaced. (The temporary folder

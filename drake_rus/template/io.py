@@ -199,6 +199,10 @@ def load_template(path=None) -> Template:
         meta = json.loads(str(data["metadata"]))
     except json.JSONDecodeError as e:
         raise ValueError(f"kidney template {path}: 'metadata' is not valid JSON ({e})") from None
+    if not isinstance(meta, dict):
+        raise ValueError(
+            f"kidney template {path}: 'metadata': expected a JSON object, got {type(meta).__name__}"
+        )
     meta.update(_build_timings(path, meta))
     problem = check_template_arrays(
         data["points"], data["normals"], data["modes"], data["variances"]
