@@ -382,6 +382,18 @@ def test_load_template_takes_timings_only_from_its_own_json(tmp_path):
     assert load_template(b).meta["total_seconds"] == 9.0
 
 
+def test_save_template_writes_nothing_when_the_json_cannot_be(tmp_path):
+    """A timing JSON cannot hold (a numpy float32) used to fail only after the new .npz had
+    replaced the old one, which was left beside the old build's .json."""
+    path = save_template(_ellipsoid_template({"n_subjects": 1}), tmp_path / "t.npz")
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    with pytest.raises(TypeError, match="float32"):
+        save_template(
+            _ellipsoid_template({"n_subjects": 2}), path, {"total_seconds": np.float32(1.5)}
+        )
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+
+
 def test_save_load_round_trip(tmp_path, capsys, monkeypatch):
     rng = np.random.default_rng(4)
     subjects = [

@@ -647,6 +647,7 @@ def save_template(result: TemplateResult, path, extra_meta: dict | None = None) 
         "convergence_to_final": np.asarray(result.convergence["to_final"]),
         "metadata": np.asarray(json.dumps(timeless)),
     }
+    json.dumps(meta)  # a value JSON cannot hold raises before anything is written
     write_npz_reproducibly(path, arrays)
     write_metadata_json(path, meta)
     return path
