@@ -655,9 +655,11 @@ def save_template(result: TemplateResult, path, extra_meta: dict | None = None) 
 
 def write_npz_reproducibly(path, arrays: dict) -> None:
     """``arrays`` as a compressed .npz that :func:`numpy.load` reads, whose bytes depend on
-    the arrays alone (``numpy.savez_compressed`` stamps every entry with the time). Written
-    atomically (``atomic_path``): an array that cannot be stored (an object array) raises
-    and leaves whatever was at ``path`` as it was, and nothing half-written."""
+    the arrays alone (``numpy.savez_compressed`` stamps every entry with the time), on any
+    operating system, given numpy's .npy header and zlib's deflate (another zlib build, such
+    as zlib-ng, compresses the same bytes differently). Written atomically
+    (``atomic_path``): an array that cannot be stored (an object array) raises and leaves
+    whatever was at ``path`` as it was, and nothing half-written."""
     with atomic_path(path) as tmp, zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as z:
         for name, value in arrays.items():
             buffer = io.BytesIO()
@@ -665,6 +667,7 @@ def write_npz_reproducibly(path, arrays: dict) -> None:
             info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
             info.compress_type = zipfile.ZIP_DEFLATED
             info.external_attr = 0o644 << 16
+            info.create_system = 3  # Unix, as the mode above says (ZipInfo: 0 on Windows)
             z.writestr(info, buffer.getvalue())
 
 
