@@ -393,6 +393,20 @@ def test_load_template_takes_timings_only_from_its_own_json(tmp_path):
     assert load_template(b).meta["total_seconds"] == 9.0
 
 
+def test_the_template_study_reads_the_build_time_as_load_template_does(tmp_path):
+    """The template study's "built in N s" came from whatever .json sat beside the file."""
+    from drake_rus.experiments.cli import _build_seconds
+
+    a = save_template(_ellipsoid_template({"n_subjects": 1}), tmp_path / "a.npz")
+    b = save_template(
+        _ellipsoid_template({"n_subjects": 2}), tmp_path / "b.npz", {"total_seconds": 9.0}
+    )
+    assert _build_seconds(b) == 9.0 and _build_seconds(a) is None
+    a.with_suffix(".json").write_bytes(b.with_suffix(".json").read_bytes())
+    assert _build_seconds(a) is None  # another build's .json
+    assert _build_seconds(tmp_path / "missing.npz") is None
+
+
 def test_save_template_writes_nothing_when_the_json_cannot_be(tmp_path):
     """A timing JSON cannot hold (a numpy float32) used to fail only after the new .npz had
     replaced the old one, which was left beside the old build's .json."""

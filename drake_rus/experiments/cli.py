@@ -103,7 +103,7 @@ from drake_rus.template.ct import (
     is_template_spec,
     resolve_template,
 )
-from drake_rus.template.io import DEFAULT_TEMPLATE_PATH
+from drake_rus.template.io import DEFAULT_TEMPLATE_PATH, load_template
 from drake_rus.template.population import population_template
 
 # About what a study writes (bytes): per-run JSON, tables, figures, NRRD volumes.
@@ -1085,8 +1085,10 @@ def _labels(results: list[dict], options, study: str, patients=("test:0",)) -> d
 
 
 def _build_seconds(path) -> float | None:
-    """The build time a template's metadata records (s), None if it has none."""
+    """The build time a template's metadata records (s), None if it has none: read as
+    :func:`~drake_rus.template.io.load_template` reads it, from the .json beside the file
+    only when that .json describes this file (not one an earlier build left)."""
     try:
-        return json.loads(Path(path).with_suffix(".json").read_text()).get("total_seconds")
+        return load_template(path).meta.get("total_seconds")
     except (OSError, ValueError):
         return None
