@@ -777,6 +777,8 @@ def localize_cloud(
             f"only {len(P)} boundary points: initial alignment only",
         )
     t = time.perf_counter()
+    # As the scan does: a template of the other side's kidneys is mirrored.
+    template = template.for_side(kp.patient.side)
     result = localize(P, template, config, kp.superior_B, kp.lateral_B)
     return Localization(result.X_BK, len(P), time.perf_counter() - t, result)
 

@@ -28,15 +28,19 @@ from drake_rus.paths import REPO_ROOT
 from drake_rus.template import DEFAULT_TEMPLATE_PATH, load_template
 from drake_rus.template.ct import is_template_spec, resolve_template
 
+KIDNEY_SIDES = ("right", "left")
+
 
 @dataclasses.dataclass
 class RegistrationTemplate:
-    """Template points/normals in the canonical frame K (m) and its shape modes."""
+    """Template points/normals in the canonical frame K (m) and its shape modes; ``side``:
+    the kidney side its subjects were ("right", "left"; None when its file does not say)."""
 
     points: np.ndarray  # (N, 3)
     normals: np.ndarray  # (N, 3) unit outward normals
     modes: np.ndarray | None = None  # (n_modes, N, 3) displacement fields (m per unit b)
     variances: np.ndarray | None = None  # (n_modes,) variances of the mode weights
+    side: str | None = None
 
     def __post_init__(self):
         self.points = np.asarray(self.points, dtype=float)
@@ -63,6 +67,30 @@ class RegistrationTemplate:
             self._grid = NearestPointGrid(self.points)
         return self._grid
 
+    def for_side(self, side: str) -> "RegistrationTemplate":
+        """This template for a ``side`` ("right" or "left") kidney: itself when it was built
+        from that side (or its side is unknown), else its mirror image through the sagittal
+        plane.
+
+        The canonical frame (eq. 13-14) takes y_k medial -> lateral, so z_k = x_k x y_k
+        points anteriorly for a right kidney and posteriorly for a left one: the left kidney,
+        the right one's mirror image, is the right kidney's shape reflected through z_k (the
+        template builder's ``--side both`` rule, ``template.ct.subject_from_ct_kidney``). No
+        rotation turns a right template into that shape; the reflection does: z_k -> -z_k
+        for the points, the normals and the shape modes."""
+        if side not in KIDNEY_SIDES:
+            raise ValueError(f"side: expected one of {KIDNEY_SIDES}, got {side!r}")
+        if self.side is None or self.side == side:
+            return self
+        flip = np.array([1.0, 1.0, -1.0])
+        return RegistrationTemplate(
+            self.points * flip,
+            self.normals * flip,
+            None if self.modes is None else self.modes * flip,
+            self.variances,
+            side=side,
+        )
+
 
 def load_registration_template(path: str | None = None) -> RegistrationTemplate:
     """Loads the kidney template (``models/kidney_template.npz`` by default); ``generated``,
@@ -78,7 +106,10 @@ def load_registration_template(path: str | None = None) -> RegistrationTemplate:
     variances = getattr(template, "variances", None)
     if modes is not None and len(modes) == 0:
         modes, variances = None, None
-    return RegistrationTemplate(template.points, template.normals, modes, variances)
+    # The side its subjects were: "both" (real kidneys, the left ones mirrored onto right
+    # ones, template.ct) is a right template; a file that does not say stays None.
+    side = {"right": "right", "left": "left", "both": "right"}.get(template.meta.get("side"))
+    return RegistrationTemplate(template.points, template.normals, modes, variances, side=side)
 
 
 def body_directions_B(X_BPt: RigidTransform, side: str, posture: str):

@@ -262,6 +262,8 @@ def BuildScanDiagram(
     builder = builder or DiagramBuilder()
     if executor is None:
         executor = MakeExecutor(scenario.perception, paced=False)
+    # A template of the other side's kidneys is mirrored (RegistrationTemplate.for_side).
+    template = template.for_side(scenario.patient.side)
     builder.AddNamedSystem("station", station)
     segmenter = builder.AddNamedSystem(
         "segmenter",

@@ -466,6 +466,9 @@ def _run(
 ) -> ScanResult:
     """RunScan's body once the station and the executor exist (the caller closes the
     executor)."""
+    # The template for the scanned kidney's side (a right template mirrored for a left
+    # kidney): the diagram, the fitted shape and the verdict all use this one.
+    template = template.for_side(scenario.patient.side)
     try:
         builder, h = BuildScanDiagram(scenario, station, template, executor=executor)
     except BaseException:
