@@ -48,6 +48,7 @@ def test_for_side_mirrors_only_the_other_side():
     np.testing.assert_array_equal(left.variances, t.variances)
     assert left.for_side("left") is left
     np.testing.assert_array_equal(left.for_side("right").points, t.points)
+    assert t.for_side("left") is left and left.for_side("right") is t  # made once
     unknown = dataclasses.replace(t, side=None)
     assert unknown.for_side("left") is unknown  # a file that does not say: as it is
     with pytest.raises(ValueError, match="side: expected one of"):

@@ -50,6 +50,7 @@ class RegistrationTemplate:
             self.modes = modes.reshape(modes.shape[0], -1, 3)
             self.variances = np.asarray(self.variances, dtype=float).reshape(-1)
         self._grid = None
+        self._mirrored = None  # for_side's mirror image, made once
 
     def unexplained_sd(self, k: int) -> float:
         """Per-point RMS deviation (m) of the template's own subjects from it that its first
@@ -82,14 +83,19 @@ class RegistrationTemplate:
             raise ValueError(f"side: expected one of {KIDNEY_SIDES}, got {side!r}")
         if self.side is None or self.side == side:
             return self
-        flip = np.array([1.0, 1.0, -1.0])
-        return RegistrationTemplate(
-            self.points * flip,
-            self.normals * flip,
-            None if self.modes is None else self.modes * flip,
-            self.variances,
-            side=side,
-        )
+        # Made once and kept (with its nearest-point lookup, ~1 s to build): every scan and
+        # every kinematic fit of a left kidney asks again.
+        if self._mirrored is None:
+            flip = np.array([1.0, 1.0, -1.0])
+            self._mirrored = RegistrationTemplate(
+                self.points * flip,
+                self.normals * flip,
+                None if self.modes is None else self.modes * flip,
+                self.variances,
+                side=side,
+            )
+            self._mirrored._mirrored = self
+        return self._mirrored
 
 
 def load_registration_template(path: str | None = None) -> RegistrationTemplate:
