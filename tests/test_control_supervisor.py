@@ -84,6 +84,7 @@ def cfg(**kw):
     hold it still; the follow guard has its own test)."""
     kw.setdefault("contact_dwell", 0.0)
     kw.setdefault("pivot_follow_limit", 3.2)
+    kw.setdefault("explore_follow_limit", 1.0)
     return dataclasses.replace(ControllerConfig(), **kw)
 
 
@@ -1203,3 +1204,68 @@ def test_the_pivot_end_is_done_at_once_without_the_second_look():
     s, t, R = _to_pivot(c, dt)
     s, t = _pivot_to_end(s, t, c, R, dt, lambda t: (t, CONTRADICTS))
     assert s.phase == supervisor.Phase.DONE and s.events[-1][2] == "pivot sweep complete"
+
+
+def test_a_probe_that_stops_following_the_sweep_aborts_the_scan():
+    """EXPLORE: a tip that follows its set-point never aborts; a tip held still (a joint at
+    its limit holds the whole arm) ABORTs once it has lagged the set-point by more than
+    explore_follow_bound for explore_follow_time, and not while motion is held."""
+    c = cfg(explore_follow_limit=0.015, explore_follow_time=2.0, exploration_ratio=2.0)
+    assert supervisor.explore_follow_bound(c) == pytest.approx(0.015)
+    fast = dataclasses.replace(c, scan_speed=0.02)
+    assert supervisor.explore_follow_bound(fast) == pytest.approx(
+        supervisor.EXPLORE_LAG_TIME * 0.02
+    )
+    dt = 0.01
+    s = supervisor.supervisor_step(supervisor.SupervisorState(), inputs(0.0), c, dt)
+    t = 0.0
+    # Following, 3 mm behind the set-point (a normal sweep's lag): 20 s, no abort.
+    while t < 20.0:
+        t += dt
+        behind = s.P_des - np.array([0.0, 0.003 * np.sign(c.scan_speed)])
+        s = supervisor.supervisor_step(s, inputs(t, p=(*behind, 0.1)), c, dt)
+        assert s.phase == supervisor.Phase.EXPLORE, s.reason
+    # Stuck where it is: the set-point runs away at scan_speed.
+    stuck = (*s.P_des, 0.1)
+    held = dataclasses.replace(inputs(t, p=stuck), motion_allowed=False)
+    for _ in range(1000):  # motion held (a breath-hold's gap): the set-point waits
+        t += dt
+        s = supervisor.supervisor_step(s, dataclasses.replace(held, t=t), c, dt)
+    assert s.phase == supervisor.Phase.EXPLORE
+    lagging_from = None
+    while s.phase == supervisor.Phase.EXPLORE and t < 60.0:
+        t += dt
+        lag = float(np.linalg.norm(np.asarray(stuck[:2]) - s.P_des))
+        if lagging_from is None and lag > 0.015:
+            lagging_from = t
+        s = supervisor.supervisor_step(s, inputs(t, p=stuck), c, dt)
+    assert s.phase == supervisor.Phase.ABORT
+    assert "does not follow the sweep" in s.reason and "limit 15.0 mm" in s.reason
+    assert t - lagging_from == pytest.approx(2.0, abs=2 * dt)
+    np.testing.assert_allclose(s.P_des, stuck[:2])  # no set-point left far away
+
+
+def test_a_reexploration_turns_the_array_back_the_way_the_first_exploration_had_it():
+    """After a pivot the array lies along the kidney (here along base y, a hair towards -x):
+    the smaller turn to transverse would be to -x; the re-exploration turns it back to the
+    first exploration's side (+x), the turn the wrist has already made (KiTS19 case 12,
+    left: the other way held joint 7 at its limit)."""
+    a = np.array([0.0, 0.0, -1.0])
+    along_kidney = np.array([-0.02, 1.0, 0.0]) / np.linalg.norm([-0.02, 1.0, 0.0])
+    np.testing.assert_allclose(supervisor.transverse_orientation(a, along_kidney), [-1, 0, 0])
+    np.testing.assert_allclose(
+        supervisor.reexploration_array(a, along_kidney, np.array([1.0, 0.0, 0.0])), [1, 0, 0]
+    )
+    np.testing.assert_allclose(supervisor.reexploration_array(a, along_kidney), [-1, 0, 0])
+    # Through the state machine: the start's transverse array is remembered and used.
+    c = cfg(exploration_ratio=0.02, localize_hold_time=0.0, max_relocalizations=1)
+    dt = 0.01
+    s, t, _ = _to_pivot(c, dt)
+    np.testing.assert_allclose(s.o_explore, [1.0, 0.0, 0.0])
+    R_along = np.column_stack([along_kidney, np.cross(a, along_kidney), a])
+    t += dt
+    s = supervisor.supervisor_step(
+        s, dataclasses.replace(inputs(t, R=R_along), tracking_error="drift 9 mm"), c, dt
+    )
+    assert s.reorienting
+    np.testing.assert_allclose(s.o_des, [1.0, 0.0, 0.0])

@@ -140,6 +140,16 @@ class ControllerConfig:
     # goes on. A breath that carries the kidney out of a plane near its pole as a hold
     # begins left it in view for 0.8 mm (test:2, the breath-hold protocol: ABORT).
     explore_min_seen_travel: float = field(default=0.015, metadata={"min": 0.0})
+    # The probe must follow the sweep: its tip may lie more than explore_follow_bound (m:
+    # explore_follow_limit, or EXPLORE_LAG_TIME x scan_speed if larger) from the sweep's
+    # x-y set-point for at most explore_follow_time (s), else ABORT. A normal sweep lags
+    # by about 0.7 s of travel (3.4 mm at most at 5 mm/s: test:0, KiTS19 case 1); a wrist
+    # at its limit holds the whole arm still (the differential IK scales every joint's
+    # velocity into its bounds), and the sweep's travel would go on counting without the
+    # probe moving (KiTS19 case 12, left kidney, before the re-exploration's turn went
+    # back the wrist's way: 55 s still, then "seen over 0 mm").
+    explore_follow_limit: float = field(default=0.015, metadata={"positive": True, "max": 1.0})
+    explore_follow_time: float = field(default=2.0, metadata={"positive": True, "max": 30.0})
     # LOCALIZE holds the probe at least this long (s) before reading the kidney pose.
     localize_hold_time: float = field(default=0.5, metadata={"min": 0.0})
     # LOCALIZE aborts if the localizer has no pose ready after this time (s).

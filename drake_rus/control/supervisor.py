@@ -251,6 +251,13 @@ class SupervisorState:
     reorient_best: float = math.inf
     reorient_best_since: float = math.nan
     reorient_flipped: bool = False
+    # The first exploration's array direction o_des (unit, B; set by ``_start``): a
+    # re-exploration turns its array back to this side of the transverse plane, the turn
+    # the wrist has already made (:func:`reexploration_array`).
+    o_explore: np.ndarray | None = None
+    # EXPLORE: since when (s) the tip has been more than explore_follow_bound from the
+    # sweep's set-point (NaN: it follows).
+    explore_lag_since: float = math.nan
     # The second look (controller.second_look): the pivot's end awaits the pivot-view check
     # (``reviewing``, since ``review_since`` s); the current exploration sweeps the whole
     # kidney (:func:`whole_kidney_target`), not ER x L; the scan's one second look has been
@@ -466,6 +473,7 @@ def _start(s: SupervisorState, u: SupervisorInputs, R, p, cfg) -> None:
     s.o_des = R[:, 0].copy()
     if cfg.explore_orientation == "transverse":
         s.o_des = transverse_orientation(s.a_des, s.o_des)
+    s.o_explore = s.o_des.copy()
     start_xy = given_start_xy(cfg.start_xy)
     s.P_des = p[:2].copy() if start_xy is None else start_xy
     s.F_des = float(cfg.desired_force)
@@ -644,11 +652,49 @@ def _line_sweep(s, u, R, p, cfg, dt):
     return _advance_exploration(s, u, R, cfg, dt, cfg.line_sweep_max_travel)
 
 
+# A normal sweep's tip lags its set-point by about 0.7 s of travel; explore_follow_bound
+# allows four times that at any scan speed (s).
+EXPLORE_LAG_TIME = 3.0
+
+
+def explore_follow_bound(cfg) -> float:
+    """How far (m) the tip may lie from the sweep's x-y set-point before the sweep counts as
+    not followed: ``explore_follow_limit``, or EXPLORE_LAG_TIME x ``scan_speed`` if larger."""
+    return max(float(cfg.explore_follow_limit), EXPLORE_LAG_TIME * float(cfg.scan_speed))
+
+
+def explore_not_followed(s, u, p, cfg) -> str:
+    """ "" while the probe follows the sweep; else why not: the tip (x, y) ``p`` has been
+    more than :func:`explore_follow_bound` from the set-point ``s.P_des`` for
+    ``explore_follow_time`` s (updates ``s.explore_lag_since``). Not judged while the
+    probe turns in place before a re-exploration or motion is held (breath-holds)."""
+    lag = float(np.linalg.norm(np.asarray(p, dtype=float)[:2] - s.P_des))
+    bound = explore_follow_bound(cfg)
+    if s.reorienting or not u.motion_allowed or lag <= bound:
+        s.explore_lag_since = math.nan
+        return ""
+    if math.isnan(s.explore_lag_since):
+        s.explore_lag_since = u.t
+    if u.t - s.explore_lag_since < cfg.explore_follow_time - 1e-9:
+        return ""
+    return (
+        f"the probe does not follow the sweep: its tip is {lag * 1e3:.1f} mm from the "
+        f"set-point after {u.t - s.explore_lag_since:.2f} s (limit {bound * 1e3:.1f} mm; "
+        "a joint at its limit?)"
+    )
+
+
 def _explore(s, u, R, p, cfg, dt):
     """Constant orientation, eq. 17, until ER L of travel (``exploration_target``: L_m, or
     the patient's estimated kidney length), the kidney has left the image (having been in it
     while the probe could move) or (adaptive) the pose estimate has settled; then LOCALIZE.
-    With ``sweep: line``: :func:`_line_sweep`."""
+    With ``sweep: line``: :func:`_line_sweep`. ABORT when the probe does not follow the
+    sweep (:func:`explore_not_followed`)."""
+    why = explore_not_followed(s, u, p, cfg)
+    if why:
+        s.reason = why
+        s.P_des = p[:2].copy()
+        return _goto(s, Phase.ABORT, u.t, s.reason)
     if cfg.sweep == "line":
         return _line_sweep(s, u, R, p, cfg, dt)
     if s.reorienting:
@@ -1266,8 +1312,9 @@ def _kidney_moved(
     s.lag_since = math.nan
     s.travel = 0.0
     s.a_des = np.array([0.0, 0.0, -1.0])
-    s.o_des = transverse_orientation(s.a_des, R[:, 0])
+    s.o_des = reexploration_array(s.a_des, R[:, 0], s.o_explore)
     s.P_des = p[:2].copy()
+    s.explore_lag_since = math.nan
     opening = "second look" if second_look else "kidney moved"
     return _goto(
         s,
@@ -1296,6 +1343,22 @@ def turn_progress(best: float, best_since: float, angle: float, t: float) -> tup
     if not math.isfinite(best) or angle < best - REORIENT_PROGRESS:
         return float(angle), float(t)
     return float(best), float(best_since)
+
+
+def reexploration_array(a, o_curr, o_explore=None) -> np.ndarray:
+    """The array direction (unit, B) a re-exploration turns to: transverse to ``a``
+    (:func:`transverse_orientation`), on the side of the first exploration's array
+    ``o_explore`` (None: the side nearer the current array ``o_curr``, the smaller turn).
+
+    Why not the smaller turn: after a pivot the array lies along the kidney's long axis,
+    which runs nearly along the base's y axis, so both transverse directions are about
+    90 deg away and the "smaller" one is a coin toss. Half the time it is the turn that
+    carries FR3 joint 7 further past where the pivot left it: on KiTS19 case 12 (left
+    kidney) the wrist reached its limit 5-8 deg short of transverse, close enough for the
+    turn to be accepted, and the joint-limit scaling of the differential IK then held the
+    whole arm still for the rest of the scan. The first exploration's side is the turn
+    back the way the wrist came."""
+    return transverse_orientation(a, o_curr if o_explore is None else o_explore)
 
 
 def turn_stalled(best: float, best_since: float, t: float, array_angle: float) -> bool:
