@@ -264,6 +264,27 @@ def test_feature_ransac_finds_a_large_turn_the_same_way_every_time():
     assert np.array_equal(far, np.eye(4))
 
 
+@pytest.mark.parametrize(
+    "kwargs, name",
+    [
+        ({"iterations": 0}, "iterations"),
+        ({"iterations": -5}, "iterations"),
+        ({"iterations": 2.5}, "iterations"),
+        ({"iterations": True}, "iterations"),
+        ({"chunk": 0}, "chunk"),
+        ({"chunk": -1}, "chunk"),
+        ({"chunk": 10.0}, "chunk"),
+    ],
+)
+def test_feature_ransac_refuses_a_count_that_is_not_a_positive_integer(kwargs, name):
+    """0 iterations silently gave the identity, a zero chunk failed in range() and a float
+    count in range(): each is one line naming the argument."""
+    p = np.random.default_rng(0).normal(size=(20, 3))
+    f = np.random.default_rng(1).normal(size=(20, 33))
+    with pytest.raises(ValueError, match=f"feature_ransac: {name}: expected a positive integer"):
+        feature_ransac(p, p, f, f, 0.01, **kwargs)
+
+
 def test_correspond_reindexes_by_nearest_neighbour():
     ref = np.array([[0, 0, 0], [1, 0, 0]], float)
     pts = np.array([[1.1, 0, 0], [0.05, 0, 0], [5, 5, 5]], float)

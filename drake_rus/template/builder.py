@@ -331,7 +331,12 @@ def feature_ransac(
     matches (Open3D's two checkers); the winner, as Open3D scores them, pairs the most
     source points with a reference point within ``max_dist`` (ties: the smaller RMS).
     Identity when no triple passes. Open3D's RANSAC (its threads race to the result) gave
-    another answer from run to run; this one gives the same for the same inputs."""
+    another answer from run to run; this one gives the same for the same inputs.
+    ``iterations`` and ``chunk`` (triples drawn per batch) must be positive integers
+    (ValueError naming the argument otherwise)."""
+    for name, value in (("iterations", iterations), ("chunk", chunk)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            raise ValueError(f"feature_ransac: {name}: expected a positive integer, got {value!r}")
     src = np.asarray(src_pts, dtype=float)
     ref = np.asarray(ref_pts, dtype=float)
     i, j = feature_correspondences(np.asarray(f_src, float), np.asarray(f_ref, float))
