@@ -279,7 +279,7 @@ def test_franky_stale_command_watchdog(franky_sim):
         assert np.abs(last[1]).max() > 0.2  # moving when frozen
         before = len(station.backend.watchdog_events)  # (a loaded CPU may add some)
         time.sleep(0.5)  # frozen: nothing sent
-        events = station.backend.watchdog_events[before:]
+        events = list(station.backend.watchdog_events)[before:]  # a deque: no slicing
         assert len(events) == 1
         latency = events[0].latency
         assert 0.05 <= latency < 0.5

@@ -4,8 +4,8 @@
   thresholds are set at connection, below the safety layer's force ceiling; the probe's load
   is declared; a robot with errors pending is refused (operator) or reset (at_connect);
   an unreachable robot is reported after connect_timeout with the time actually spent; the
-  command log keeps only the newest commands, and a command that is not 7 velocities is
-  refused in one line before anything is sent;
+  command log, the watchdog events and the trace keep only the newest entries, and a
+  command that is not 7 velocities is refused in one line before anything is sent;
 - LCM route (simulated driver on memq://): the probe's weight, which drake-franka-driver
   cannot declare, is removed when lcm_compensate_load is set, and the check tells which load
   model the torques at rest fit; a stall of our own loop is not taken for a lost robot.
@@ -27,7 +27,7 @@ from drake_rus.hardware.config import HardwareConfig
 from drake_rus.hardware.franky_backend import FrankyBackend, HardwareFault
 from drake_rus.hardware.lcm_sim_driver import SimulatedPandaDriver
 from drake_rus.hardware.station import MakeHardwareStation, RunHardware
-from drake_rus.hardware.systems import ProbeLoadTorque
+from drake_rus.hardware.systems import FrankaRobotInterface, ProbeLoadTorque
 from drake_rus.robot import MakeControlPlant, estimate_tip_wrench
 from drake_rus.scenario import ApplyOverrides, LoadScenario, Scenario
 
@@ -192,6 +192,42 @@ def test_franky_command_log_is_bounded_and_a_wrong_length_is_one_line(fake_frank
         sent = [c[1][1] for c in robot.calls if c[0] == "move" and c[1][0] == "velocity"]
         assert len(sent) >= 12 and all(v.shape == (7,) for v in sent)
         assert backend.fault is None
+    finally:
+        backend.close()
+
+
+def test_franky_watchdog_events_and_trace_are_bounded(fake_franky, monkeypatch):
+    """watchdog_events keeps the newest WATCHDOG_EVENTS_LENGTH events and the trace the
+    newest TRACE_LENGTH ticks (about 200 a second live): a long run does not fill the
+    memory."""
+    monkeypatch.setattr(franky_backend, "WATCHDOG_EVENTS_LENGTH", 2)
+    monkeypatch.setattr(franky_backend, "TRACE_LENGTH", 5)
+    backend = _backend(
+        dry_run=False, set_collision_behavior=False, set_load=False, command_timeout=0.02
+    )
+    try:
+        for _ in range(4):  # each command left to go stale: one watchdog event
+            backend.send(np.full(7, 0.05))
+            deadline = time.monotonic() + 5.0
+            while np.any(backend.last_sent) and time.monotonic() < deadline:
+                time.sleep(0.005)
+            assert not np.any(backend.last_sent), "the watchdog did not zero the command"
+        events = list(backend.watchdog_events)
+        assert len(events) == 2 and events[0].wall_time < events[1].wall_time
+
+        builder = DiagramBuilder()
+        robot = builder.AddSystem(FrankaRobotInterface(backend, 200.0))
+        diagram = builder.Build()
+        sim = Simulator(diagram)
+        robot.get_input_port().FixValue(robot.GetMyContextFromRoot(sim.get_context()), [0] * 7)
+        backend.trace = []
+        sim.AdvanceTo(0.1)  # 21 ticks at 200 Hz
+        trace = list(backend.trace)
+        assert len(trace) == 5
+        assert [t[3] for t in trace] == sorted(t[3] for t in trace)
+        backend.trace = None
+        sim.AdvanceTo(0.2)
+        assert backend.trace is None
     finally:
         backend.close()
 

@@ -47,6 +47,8 @@ __all__ = [
     "FrankyBackend",
     "FCI_PORT",
     "COMMAND_LOG_LENGTH",
+    "TRACE_LENGTH",
+    "WATCHDOG_EVENTS_LENGTH",
     "robot_error_names",
     "wait_for_port",
 ]
@@ -54,6 +56,11 @@ __all__ = [
 FCI_PORT = 1337  # libfranka's command port on the robot's control box
 # Commands kept in FrankyBackend.command_log: the newest 60 s at a 200 Hz command rate.
 COMMAND_LOG_LENGTH = 12_000
+# Ticks kept in FrankyBackend.trace (one per command tick): the same 60 s at 200 Hz.
+TRACE_LENGTH = 12_000
+# Events kept in FrankyBackend.watchdog_events: the watchdog fires at most once per nonzero
+# command, so as many as the command log holds commands.
+WATCHDOG_EVENTS_LENGTH = 12_000
 
 
 def robot_error_names(errors) -> list[str]:
@@ -162,7 +169,11 @@ class FrankyBackend:
 
     ``command_log`` holds the newest :data:`COMMAND_LOG_LENGTH` commands sent, as
     (``time.monotonic`` s, joint velocities rad/s), oldest first (a deque: the commands of a
-    long run would otherwise fill the memory at the command rate).
+    long run would otherwise fill the memory at the command rate). ``watchdog_events``
+    holds the newest :data:`WATCHDOG_EVENTS_LENGTH` :class:`WatchdogEvent` s and ``trace``,
+    when tracing, the newest :data:`TRACE_LENGTH` ticks: deques too (``list()`` one to
+    slice it). Tracing starts by setting ``trace`` to a list (``[]``), kept as such a deque,
+    and stops with ``None``.
     """
 
     def __init__(self, config: HardwareConfig, load=None):
@@ -180,13 +191,13 @@ class FrankyBackend:
         self._moving = False
         self._robot_time = math.nan
         self._robot_time_change = math.nan
-        self.watchdog_events: list[WatchdogEvent] = []
+        self.watchdog_events: collections.deque[WatchdogEvent] = collections.deque(
+            maxlen=WATCHDOG_EVENTS_LENGTH
+        )
         self.command_log: collections.deque[tuple[float, np.ndarray]] = collections.deque(
             maxlen=COMMAND_LOG_LENGTH
         )  # (monotonic s, rad/s)
-        # (robot clock s, q rad, velocity sent right after that read rad/s, wall clock of the
-        # read s monotonic), when tracing.
-        self.trace: list[tuple[float, np.ndarray, np.ndarray, float]] | None = None
+        self._trace: collections.deque[tuple[float, np.ndarray, np.ndarray, float]] | None = None
         self.tau_bias = np.zeros(7)
         self.collision_thresholds: dict | None = None
         self._stop_watchdog = threading.Event()
@@ -200,6 +211,18 @@ class FrankyBackend:
             target=self._watchdog_loop, name="drake_rus_watchdog", daemon=True
         )
         self._watchdog.start()
+
+    @property
+    def trace(self) -> collections.deque | None:
+        """The ticks traced, oldest first: (robot clock s, q rad, velocity sent right after
+        that read rad/s, wall clock of the read s monotonic); None when not tracing."""
+        return self._trace
+
+    @trace.setter
+    def trace(self, ticks) -> None:
+        """None stops tracing; a list (``[]``) starts it, kept as a deque of the newest
+        :data:`TRACE_LENGTH` ticks (a long live run would otherwise fill the memory)."""
+        self._trace = None if ticks is None else collections.deque(ticks, maxlen=TRACE_LENGTH)
 
     # --- connection -------------------------------------------------------------------
     def _connect(self):
