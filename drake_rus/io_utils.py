@@ -33,28 +33,59 @@ class OutputError(ValueError):
 def atomic_path(path: str | Path):
     """Yields a temporary path beside ``path``; renames it onto ``path`` on success.
 
-    On any exception (a signal included) the temporary file is removed and ``path`` is left
-    untouched; an OSError without a file name (a write that fills the disk) is raised again
-    naming ``path``.
+    On any exception (a signal included) the temporary file is removed, and so are the
+    folders this call made for ``path`` that are still empty (none other), and ``path`` is
+    left untouched; an OSError without a file name (a write that fills the disk) is raised
+    again naming ``path``.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with ExitStack() as stack:
-        # Creating the temporary file and taking charge of it is one step for signals.
+    made = _missing_folders(path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with ExitStack() as stack:
+            # Creating the temporary file and taking charge of it is one step for signals.
+            with interrupts.deferred(reraise=False):
+                fd, tmp = tempfile.mkstemp(
+                    prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent
+                )
+                os.close(fd)
+                cleanup = stack.enter_context(_TemporaryFile(tmp))
+            interrupts.check()
+            try:
+                yield Path(tmp)
+            except OSError as e:
+                if e.errno is not None and e.filename in (None, tmp):
+                    raise OSError(e.errno, e.strerror or os.strerror(e.errno), str(path)) from e
+                raise
+            os.chmod(tmp, FILE_MODE)
+            os.replace(tmp, path)
+            cleanup.done = True
+    except BaseException:
         with interrupts.deferred(reraise=False):
-            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
-            os.close(fd)
-            cleanup = stack.enter_context(_TemporaryFile(tmp))
-        interrupts.check()
+            _remove_empty_folders(made)
+        raise
+
+
+def _missing_folders(folder: Path) -> list[Path]:
+    """The folders on the way to ``folder`` (itself included) that do not exist yet,
+    deepest first: those a ``mkdir(parents=True)`` of it would make."""
+    missing = []
+    while not folder.exists() and folder != folder.parent:
+        missing.append(folder)
+        folder = folder.parent
+    return missing
+
+
+def _remove_empty_folders(folders: list[Path]) -> None:
+    """Removes ``folders`` (deepest first) while they are empty; a folder that is not (or
+    cannot be removed) is kept, and so are the ones above it."""
+    for folder in folders:
         try:
-            yield Path(tmp)
-        except OSError as e:
-            if e.errno is not None and e.filename in (None, tmp):
-                raise OSError(e.errno, e.strerror or os.strerror(e.errno), str(path)) from e
-            raise
-        os.chmod(tmp, FILE_MODE)
-        os.replace(tmp, path)
-        cleanup.done = True
+            folder.rmdir()
+        except FileNotFoundError:
+            continue  # never made (the failure came first)
+        except OSError:
+            return
 
 
 @contextmanager

@@ -3,6 +3,7 @@ Each bad input gives one clear error that names the file or the field."""
 
 import json
 import os
+import shutil
 import stat
 
 import numpy as np
@@ -384,9 +385,46 @@ def test_atomic_write_leaves_nothing_on_failure(tmp_path):
             tmp.write_text("{partial")
             raise RuntimeError("crash mid-write")
     assert not target.exists()
-    assert list(target.parent.iterdir()) == []
+    assert list(tmp_path.iterdir()) == []  # nor the folder made for it
     write_text_atomic(target, "{}")
     assert target.read_text() == "{}" and len(list(target.parent.iterdir())) == 1
+
+
+def test_atomic_write_failure_removes_only_the_empty_folders_it_made(tmp_path):
+    """A failed write leaves none of the folders it made when they are still empty, and
+    keeps a folder that was there before (empty or not) and one that something else wrote
+    into meanwhile."""
+    from drake_rus.io_utils import atomic_path
+
+    (tmp_path / "runs").mkdir()
+    (tmp_path / "runs" / "old.json").write_text("{}")
+    (tmp_path / "empty").mkdir()
+    for target in (tmp_path / "runs/a/b/c.json", tmp_path / "empty/x.json"):
+        with pytest.raises(RuntimeError):
+            with atomic_path(target) as tmp:
+                tmp.write_text("{partial")
+                raise RuntimeError("the work failed")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty", "runs"]
+    assert [p.name for p in (tmp_path / "runs").iterdir()] == ["old.json"]
+    assert list((tmp_path / "empty").iterdir()) == []
+
+    with pytest.raises(RuntimeError):
+        with atomic_path(tmp_path / "runs/a/b/c.json") as tmp:
+            (tmp_path / "runs/a/other.txt").write_text("not ours")
+            raise RuntimeError("the work failed")
+    assert [p.name for p in (tmp_path / "runs/a").iterdir()] == ["other.txt"]
+
+
+@pytest.mark.skipif(shutil.which("dot") is None, reason="Graphviz 'dot' is not installed")
+def test_a_failed_diagram_render_leaves_no_folder(tmp_path):
+    """Graphviz refusing the source: one line, and no empty folder left for --out."""
+    from drake_rus.cli import UserError
+    from drake_rus.render import render_graphviz
+
+    out = tmp_path / "pictures" / "scan.svg"
+    with pytest.raises(UserError):
+        render_graphviz("digraph { this is not dot", out)
+    assert list(tmp_path.iterdir()) == []
 
 
 # ------------------------------------------------------- issue 17: exports and strict JSON
