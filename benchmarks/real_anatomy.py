@@ -104,7 +104,7 @@ def main(argv=None) -> int:
         "--patients",
         nargs="+",
         default=[str(p) for p in DEFAULT_BODIES],
-        help="real bodies: patient folders or label maps",
+        help="real bodies: patient folders or label maps (a repeated one counts once)",
     )
     parser.add_argument(
         "--postures",
@@ -139,7 +139,7 @@ def main(argv=None) -> int:
     )
     args = parser.parse_args(argv)
     args.postures, args.fresh_postures = distinct(args.postures), distinct(args.fresh_postures)
-    bodies = [Path(p) for p in args.patients]
+    bodies = distinct(Path(p) for p in args.patients)  # body/ and ./body: one body
     missing = [str(p) for p in bodies if not p.exists()]
     if missing:
         print(f"--patients: not found: {', '.join(missing)}", file=sys.stderr)

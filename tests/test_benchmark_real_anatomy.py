@@ -128,6 +128,20 @@ def test_fresh_seed_base_just_outside_the_cohorts_is_accepted():
     assert real_anatomy.check_fresh_seed_base(2_000_000, 0) is None
 
 
+def test_a_repeated_body_is_scanned_once(tmp_path, monkeypatch, capsys):
+    """``--patients A A/ B A`` scanned A three times; a repeated body (the same path,
+    written with or without a trailing slash) counts once, in the order first given."""
+    scanned = _record_scans(monkeypatch)
+    a, b = tmp_path / "a", tmp_path / "b"
+    a.mkdir()
+    b.mkdir()
+    argv = ["--patients", str(a), f"{a}/", str(b), str(a), "--postures", "supine"]
+    assert real_anatomy.main(argv) == 0
+    assert scanned == [(str(a), "supine"), (str(b), "supine")]
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert len(summary["scans"]) == 2
+
+
 def test_a_repeated_posture_is_scanned_once(tmp_path, monkeypatch, capsys):
     """``--postures supine supine`` scanned every body twice and listed both rows; a
     repeated value counts once, as in the commands' list options."""

@@ -345,6 +345,29 @@ def test_train_segmenter_refuses_bad_options_before_drawing_data(argv, option, c
     assert f"{option}:" in err[-1], err
 
 
+def test_train_segmenter_draws_a_repeated_posture_once(monkeypatch):
+    """``--postures supine,supine`` drew each patient's supine frames twice (weighing them
+    double); a repeated posture counts once, in the order first given, as in the other list
+    options."""
+    from drake_rus.imaging.training import train_segmenter as ts
+
+    class Drawn(Exception):
+        pass
+
+    asked = []
+
+    def record(specs, postures, *args, **kwargs):
+        asked.append(list(postures))
+        raise Drawn
+
+    monkeypatch.setattr(ts, "build_canvas_dataset", record)
+    monkeypatch.setattr(ts, "require", lambda *a, **k: None)
+    postures = "left_lateral_decubitus,supine,left_lateral_decubitus,supine"
+    with pytest.raises(Drawn):
+        ts.main(["--postures", postures, "--val-patients", "0", "--out", "unused"])
+    assert asked == [["left_lateral_decubitus", "supine"]]
+
+
 def _fake_training(monkeypatch, export):
     """train_segmenter.main without data, torch or a network: ``export(net, path, size)``
     stands in for the ONNX export."""

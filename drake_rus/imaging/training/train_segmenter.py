@@ -1068,7 +1068,11 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--patients", type=int, default=20, help="training patients train:0..N-1")
     ap.add_argument("--frames", type=int, default=300, help="frames per patient and posture")
-    ap.add_argument("--postures", default=",".join(POSTURES))
+    ap.add_argument(
+        "--postures",
+        default=",".join(POSTURES),
+        help="comma-separated postures (a repeated one counts once)",
+    )
     ap.add_argument("--phantoms", type=int, default=0, help="also N synthetic phantoms")
     ap.add_argument(
         "--val-patients",
@@ -1189,7 +1193,9 @@ def main(argv=None) -> int:
     command = "nice .venv/bin/python -m drake_rus.imaging.training.train_segmenter " + " ".join(
         shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv)
     )
-    postures = [p for p in args.postures.split(",") if p]
+    # A repeated posture counts once, in the order first given (as --strategies and the
+    # benchmarks' list options): drawn twice, its frames would weigh double.
+    postures = list(dict.fromkeys(p for p in args.postures.split(",") if p))
     p = args.pixel_size_mm * 1e-3
     canvas = tuple(args.canvas)
     top = args.canvas_top_mm * 1e-3
