@@ -467,10 +467,10 @@ def setting_key(v) -> str:
     return f"{v:g}" if isinstance(v, float) else str(v)
 
 
-def json_number(x: float):
-    """``x`` rounded to 4 decimals, None for NaN (JSON has no NaN: a preset without
-    frames)."""
-    return None if np.isnan(x) else round(float(x), 4)
+def round4(x: float) -> float:
+    """``x`` rounded to 4 decimals for the JSON; a NaN (a preset without frames) stays NaN,
+    written as null by :func:`drake_rus.io_utils.dumps_strict` (JSON has no NaN)."""
+    return round(float(x), 4)
 
 
 def print_intervals(tables: dict, settings, reference, presets, draws: int) -> None:
@@ -510,15 +510,16 @@ def print_intervals(tables: dict, settings, reference, presets, draws: int) -> N
 
 
 def intervals_json(tables: dict) -> dict:
-    """The JSON form of :func:`interval_tables` (keys "kind|depth" and "depth")."""
+    """The JSON form of :func:`interval_tables` (keys "kind|depth" and "depth"), for
+    :func:`drake_rus.io_utils.dumps_strict` (which writes a preset's NaN as null)."""
 
     def pack(cell):
         return {
             setting_key(v): {
-                "mean": json_number(c["mean"]),
-                "ci95": [json_number(x) for x in c["ci95"]],
-                "difference": json_number(c["difference"]),
-                "difference_ci95": [json_number(x) for x in c["difference_ci95"]],
+                "mean": round4(c["mean"]),
+                "ci95": [round4(x) for x in c["ci95"]],
+                "difference": round4(c["difference"]),
+                "difference_ci95": [round4(x) for x in c["difference_ci95"]],
             }
             for v, c in cell.items()
         }
@@ -1053,8 +1054,8 @@ def main(argv=None) -> int:
         "false_positive_share": {
             f"{v[0]}|{v[1]}|{v[2]}": {
                 f"{d:.2f}": {
-                    "mean": json_number(fp_tables[d][v]["mean"]),
-                    "ci95": [json_number(x) for x in fp_tables[d][v]["ci95"]],
+                    "mean": round4(fp_tables[d][v]["mean"]),
+                    "ci95": [round4(x) for x in fp_tables[d][v]["ci95"]],
                 }
                 for d in presets
             }

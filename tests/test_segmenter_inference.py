@@ -16,7 +16,7 @@ from benchmarks.segmenter_inference import (
     choose_test_time,
     draw_seeds,
     interval_tables,
-    json_number,
+    intervals_json,
     paired_intervals,
     parse_edge_thresholds,
     score_settings,
@@ -36,6 +36,7 @@ from drake_rus.imaging.onnx_backend import (
 )
 from drake_rus.imaging.probe import ProbeGeometry
 from drake_rus.imaging.training.evaluation import make_source_frames
+from drake_rus.io_utils import dumps_strict
 from drake_rus.scenario import LoadScenario
 
 
@@ -403,9 +404,52 @@ def test_a_preset_without_kidney_free_frames_reads_no_frames():
     NaN (which is not JSON)."""
     empty = paired_intervals({"default": [], "other": []}, [], "default")
     assert share_text(empty["other"]) == "no frames"
-    assert json_number(empty["other"]["difference"]) is None
-    assert json.loads(json.dumps({"x": json_number(float("nan"))})) == {"x": None}
+    text = dumps_strict(intervals_json({"iou": {}, "false_positive": {0.15: empty}}))
+    cell = json.loads(text)["false_positive_share"]["0.15"]["other"]
+    assert cell["mean"] is None and cell["difference"] is None
     assert share_text({"mean": 0.043, "ci95": (0.006, 0.164)}) == "4.3% (0.6-16.4)"
+
+
+def test_the_interval_json_is_rounded_with_null_for_nan():
+    """The intervals' JSON, written by the shared strict writer (dumps_strict: NaN and
+    infinities as null), reads as it did with the study's own NaN -> null helper: values
+    rounded to 4 decimals, numpy scalars as numbers, a preset without frames as null."""
+    nan = float("nan")
+    tables = {
+        "iou": {
+            ("generated", 0.15): {
+                "default": {
+                    "mean": 0.812345678,
+                    "ci95": (np.float64(0.71234567), np.float32(0.9)),
+                    "difference": 0.0,
+                    "difference_ci95": (0.0, 0.0),
+                },
+                0.45: {
+                    "mean": np.float64(0.80004999),
+                    "ci95": (0.7, 0.91),
+                    "difference": -0.01234567,
+                    "difference_ci95": (-0.02, float("inf")),
+                },
+            }
+        },
+        "false_positive": {
+            0.2: {
+                "default": {
+                    "mean": nan,
+                    "ci95": (nan, nan),
+                    "difference": nan,
+                    "difference_ci95": (nan, nan),
+                }
+            },
+        },
+    }
+    assert dumps_strict({"intervals": intervals_json(tables)}) == (
+        '{"intervals": {"iou": {"generated|0.15": {"default": {"mean": 0.8123, "ci95": '
+        '[0.7123, 0.9], "difference": 0.0, "difference_ci95": [0.0, 0.0]}, "0.45": {"mean": '
+        '0.8, "ci95": [0.7, 0.91], "difference": -0.0123, "difference_ci95": [-0.02, null]}}}, '
+        '"false_positive_share": {"0.20": {"default": {"mean": null, "ci95": [null, null], '
+        '"difference": null, "difference_ci95": [null, null]}}}}}'
+    )
 
 
 def test_compare_models_argument_is_checked(tmp_path):
