@@ -1,5 +1,7 @@
 """Fixtures shared by the test modules."""
 
+import os
+
 import numpy as np
 import pytest
 
@@ -191,3 +193,15 @@ def write_small_label_map(path):
     img.SetSpacing((4.0, 4.0, 4.0))
     img.SetOrigin((-160.0, -120.0, -80.0))
     sitk.WriteImage(img, str(path))
+
+
+@pytest.fixture
+def failing_dot(tmp_path, monkeypatch):
+    """A Graphviz ``dot`` first on PATH that fails (exit 3, "Error: layout was not done"),
+    as a broken install would; the real one need not be installed."""
+    fake = tmp_path / "fake_bin" / "dot"
+    fake.parent.mkdir()
+    fake.write_text("#!/bin/sh\necho 'Error: layout was not done' >&2\nexit 3\n")
+    fake.chmod(0o755)
+    monkeypatch.setenv("PATH", f"{fake.parent}{os.pathsep}{os.environ['PATH']}")
+    return fake

@@ -432,14 +432,9 @@ def test_render_diagram_all_refuses_what_it_would_ignore(capsys, extra, flag):
     assert code == 2 and f"{flag}:" in err and "--all" in err, err
 
 
-def test_render_diagram_when_graphviz_fails(tmp_path, capsys, monkeypatch):
+def test_render_diagram_when_graphviz_fails(tmp_path, capsys, failing_dot):
     """A Graphviz that fails (a broken install, a dot that cannot write) is one line with
     what dot said, not a CalledProcessError traceback, and nothing is left behind."""
-    fake = tmp_path / "bin" / "dot"
-    fake.parent.mkdir()
-    fake.write_text("#!/bin/sh\necho 'Error: layout was not done' >&2\nexit 3\n")
-    fake.chmod(0o755)
-    monkeypatch.setenv("PATH", f"{fake.parent}{os.pathsep}{os.environ['PATH']}")
     out = tmp_path / "out" / "d.svg"
     out.parent.mkdir()
     code, err = _run(["render-diagram", "--out", str(out)], capsys)

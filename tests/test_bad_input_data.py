@@ -3,7 +3,6 @@ Each bad input gives one clear error that names the file or the field."""
 
 import json
 import os
-import shutil
 import stat
 
 import numpy as np
@@ -415,16 +414,15 @@ def test_atomic_write_failure_removes_only_the_empty_folders_it_made(tmp_path):
     assert [p.name for p in (tmp_path / "runs/a").iterdir()] == ["other.txt"]
 
 
-@pytest.mark.skipif(shutil.which("dot") is None, reason="Graphviz 'dot' is not installed")
-def test_a_failed_diagram_render_leaves_no_folder(tmp_path):
-    """Graphviz refusing the source: one line, and no empty folder left for --out."""
+def test_a_failed_diagram_render_leaves_no_folder(tmp_path, failing_dot):
+    """Graphviz failing: one line, and no empty folder left for --out."""
     from drake_rus.cli import UserError
     from drake_rus.render import render_graphviz
 
     out = tmp_path / "pictures" / "scan.svg"
-    with pytest.raises(UserError):
-        render_graphviz("digraph { this is not dot", out)
-    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(UserError, match="Graphviz 'dot' failed"):
+        render_graphviz("digraph { }", out)
+    assert not (tmp_path / "pictures").exists()
 
 
 # ------------------------------------------------------- issue 17: exports and strict JSON
