@@ -1269,3 +1269,14 @@ def test_a_reexploration_turns_the_array_back_the_way_the_first_exploration_had_
     )
     assert s.reorienting
     np.testing.assert_allclose(s.o_des, [1.0, 0.0, 0.0])
+
+
+def test_lagging_since_keeps_the_start_of_an_unbroken_lag():
+    """The follow checks' timer: NaN while following, the first lagging period's time
+    while the lag goes on, NaN again after one period of following."""
+    since = supervisor.lagging_since(math.nan, 1.0, False)
+    assert math.isnan(since)
+    since = supervisor.lagging_since(since, 1.1, True)
+    assert since == 1.1
+    assert supervisor.lagging_since(since, 1.5, True) == 1.1
+    assert math.isnan(supervisor.lagging_since(since, 1.6, False))

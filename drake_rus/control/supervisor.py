@@ -657,6 +657,15 @@ def _line_sweep(s, u, R, p, cfg, dt):
 EXPLORE_LAG_TIME = 3.0
 
 
+def lagging_since(since: float, t: float, lagging: bool) -> float:
+    """Since when (s) the probe has lagged its command without a break, after a control
+    period at ``t`` that ``lagging`` or not: NaN while it follows. The follow checks of
+    EXPLORE and PIVOT stop the scan once ``t`` minus this reaches their time."""
+    if not lagging:
+        return math.nan
+    return t if math.isnan(since) else since
+
+
 def explore_follow_bound(cfg) -> float:
     """How far (m) the tip may lie from the sweep's x-y set-point before the sweep counts as
     not followed: ``explore_follow_limit``, or EXPLORE_LAG_TIME x ``scan_speed`` if larger."""
@@ -670,12 +679,9 @@ def explore_not_followed(s, u, p, cfg) -> str:
     probe turns in place before a re-exploration or motion is held (breath-holds)."""
     lag = float(np.linalg.norm(np.asarray(p, dtype=float)[:2] - s.P_des))
     bound = explore_follow_bound(cfg)
-    if s.reorienting or not u.motion_allowed or lag <= bound:
-        s.explore_lag_since = math.nan
-        return ""
-    if math.isnan(s.explore_lag_since):
-        s.explore_lag_since = u.t
-    if u.t - s.explore_lag_since < cfg.explore_follow_time - 1e-9:
+    judged = u.motion_allowed and not s.reorienting
+    s.explore_lag_since = lagging_since(s.explore_lag_since, u.t, judged and lag > bound)
+    if not u.t - s.explore_lag_since >= cfg.explore_follow_time - 1e-9:  # also while NaN
         return ""
     return (
         f"the probe does not follow the sweep: its tip is {lag * 1e3:.1f} mm from the "
@@ -1147,19 +1153,15 @@ def _pivot(s, u, R, p, cfg, dt):
     maximum tilt), then back through r3* to the other side; then DONE. ABORT when the probe
     lags a_des by more than pivot_follow_limit for pivot_follow_time."""
     lag = pivot_follow_error(R, s.a_des)
-    if lag <= cfg.pivot_follow_limit:
-        s.lag_since = math.nan
-    else:
-        if math.isnan(s.lag_since):
-            s.lag_since = u.t
-        if u.t - s.lag_since >= cfg.pivot_follow_time - 1e-9:
-            s.reason = (
-                f"the probe does not follow the pivot: its axis lags the commanded "
-                f"one by {math.degrees(lag):.1f} deg after "
-                f"{u.t - s.lag_since:.2f} s (limit {math.degrees(cfg.pivot_follow_limit):.1f}"
-                f" deg; a joint at its limit?)"
-            )
-            return _goto(s, Phase.ABORT, u.t, s.reason)
+    s.lag_since = lagging_since(s.lag_since, u.t, lag > cfg.pivot_follow_limit)
+    if u.t - s.lag_since >= cfg.pivot_follow_time - 1e-9:  # False while NaN
+        s.reason = (
+            f"the probe does not follow the pivot: its axis lags the commanded "
+            f"one by {math.degrees(lag):.1f} deg after "
+            f"{u.t - s.lag_since:.2f} s (limit {math.degrees(cfg.pivot_follow_limit):.1f}"
+            f" deg; a joint at its limit?)"
+        )
+        return _goto(s, Phase.ABORT, u.t, s.reason)
     if s.reviewing:
         return _review(s, u, R, p, cfg, dt)
     if not u.motion_allowed:
