@@ -9,7 +9,7 @@ sends; Ctrl-C is the same path) and measures at the simulated robot: the first z
 command after the signal, when the applied command became zero for good, and when the
 joints came to rest. Writes ``stop_drill.json``.
 
-``python -m drake_rus.rehearsal.drill --out DIR [--scenario quick --patient test:0 ...]``;
+``python -m drake_rus.rehearsal.drill --out DIR [--scenario hardware --patient test:0 ...]``;
 run it inside the rehearsal's network namespace (see ``drake-rus rehearse --help``).
 """
 
@@ -26,11 +26,12 @@ from pathlib import Path
 
 import yaml
 
+from drake_rus.config_schema import ScenarioError
 from drake_rus.extras import MissingExtra, require
 from drake_rus.io_utils import write_text_atomic
 from drake_rus.rehearsal.core import loopback_only, raise_priority, scan_overrides, stop_reaction
 from drake_rus.rehearsal.run import RehearsalOptions, SimProcess, SimProcessError
-from drake_rus.scenario import DEFAULT_SCENARIOS_FILE
+from drake_rus.scenario import DEFAULT_SCENARIOS_FILE, LoadScenario
 
 __all__ = ["RunStopDrill", "merge_overrides"]
 
@@ -107,7 +108,8 @@ def RunStopDrill(
                 if scan.poll() is not None:
                     raise SimProcessError(
                         f"the scan ended (code {scan.returncode}) before "
-                        f"the robot pivoted:\n{_tail(out / 'scan.out')}"
+                        f"the robot pivoted:\n{_tail(out / 'scan.out')}\n"
+                        f"{sim_lateness(sim.stop())}"
                     )
                 if not sim.alive():
                     raise SimProcessError(f"the simulated robot died:\n{sim.tail()}")
@@ -152,6 +154,21 @@ def RunStopDrill(
     return report
 
 
+def sim_lateness(log: dict | None) -> str:
+    """One line on how late the simulated robot's process ran (from its ``log``), so that a
+    scan stopped on a stale robot state shows whether the simulator or the scan fell behind."""
+    if not log:
+        return "the simulated robot wrote no log"
+    lag = (log.get("realtime") or {}).get("max_lag_s")
+    gap = ((log.get("status") or {}).get("gaps_ms") or {}).get("max")
+    lag_text = "unknown" if lag is None else f"{1e3 * float(lag):.0f} ms"
+    gap_text = "unknown" if gap is None else f"{float(gap):.0f} ms"
+    return (
+        f"the simulated robot's process fell at most {lag_text} behind the wall clock; "
+        f"its statuses came at most {gap_text} apart"
+    )
+
+
 def _tail(path: Path, lines: int = 20) -> str:
     try:
         return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
@@ -167,7 +184,11 @@ def main(argv=None) -> int:
     )
     p.add_argument("--out", required=True)
     p.add_argument("--patient", default="test:0")
-    p.add_argument("--scenario", default="quick")
+    p.add_argument(
+        "--scenario",
+        default="hardware",
+        help="the scan's scenario (default: hardware, as `drake-rus rehearse`)",
+    )
     p.add_argument("--scenarios-file", default=str(DEFAULT_SCENARIOS_FILE))
     p.add_argument("--set", dest="overrides", default=None)
     p.add_argument(
@@ -188,8 +209,15 @@ def main(argv=None) -> int:
         max_sim_time=args.max_sim_time,
     )
     try:
+        # The scenario and its overrides checked here, before any process starts or anything
+        # is written: one line naming the field, not the simulated robot's traceback.
+        LoadScenario(
+            filename=options.scenarios_file,
+            scenario_name=options.scenario,
+            scenario_text=options.overrides,
+        )
         report = RunStopDrill(options, args.out, pivot_after=args.pivot_after)
-    except (SimProcessError, MissingExtra) as e:
+    except (SimProcessError, MissingExtra, ScenarioError) as e:
         print(f"stop drill: error: {e}", file=sys.stderr)
         return 2
     r = report["reaction_s"]
