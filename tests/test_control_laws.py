@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import pytest
+from pydrake.common.eigen_geometry import AngleAxis
 from pydrake.math import RollPitchYaw, RotationMatrix
 
 from drake_rus.control import kernels, laws
@@ -450,6 +451,97 @@ def test_compiled_damped_svd_matches_numpy(kin):
     assert inv[-1] == 0.0 and np.all(inv[:5] < 1.0)
 
 
+def _saturate_one_joint_reference(J, xi, qdot, lo, up):
+    """One step of saturation in the null space, with numpy's solver: the most limiting joint
+    held at its bound, the other six solve J qdot = xi; the better-scaled of that and qdot."""
+    s0 = _bound_scale_loop(qdot, lo, up)
+    if s0 >= 1.0:
+        return qdot
+    ratios = [
+        (up[i] / v if v > 0 else 0.0)
+        if v > up[i]
+        else ((lo[i] / v if v < 0 else 0.0) if v < lo[i] else 1.0)
+        for i, v in enumerate(qdot)
+    ]
+    j = int(np.argmin(ratios))
+    b = up[j] if qdot[j] > up[j] else lo[j]
+    free = [i for i in range(7) if i != j]
+    if np.linalg.svd(J[:, free], compute_uv=False)[-1] < 0.03:
+        return qdot * s0
+    held = np.empty(7)
+    held[j] = b
+    held[free] = np.linalg.solve(J[:, free], xi - J[:, j] * b)
+    s1 = _bound_scale_loop(held, lo, up)
+    return held * s1 if s1 > s0 else qdot * s0
+
+
+def _bound_scale_loop(qdot, lo, up):
+    s = 1.0
+    for v, a, b in zip(qdot, lo, up):
+        if v > b:
+            s = min(s, b / v if v > 0 else 0.0)
+        if v < a:
+            s = min(s, a / v if v < 0 else 0.0)
+    return max(s, 0.0)
+
+
+def test_a_joint_at_its_limit_no_longer_stops_the_probe(kin):
+    """Joint 7 at its upper limit, the task the twist it alone would give (into the limit):
+    uniform scaling stopped every joint; now the other six carry the task exactly."""
+    q = Q0.copy()
+    q[6] = kin.q_max[6]
+    J = kin.jacobian(q)
+    xi = J[:, 6] * 0.3  # rad/s of joint 7: its twist (angular about its axis, and linear)
+    dq_max = np.array([2, 1, 1.5, 1.25, 3, 1.5, 3]) * 0.5
+    args = dict(q_min=kin.q_min, q_max=kin.q_max, dq_max=dq_max, joint_limit_margin=0.1)
+    qdot = laws.solve_joint_velocities(q, xi, kin.jacobian, qdot_null=np.zeros(7), **args)
+    lo, up = laws.joint_velocity_bounds(q, kin.q_min, kin.q_max, dq_max, 0.1)
+    assert qdot[6] == 0.0  # held at its bound (0: at the limit)
+    assert np.all(qdot >= lo - 1e-12) and np.all(qdot <= up + 1e-12)
+    v = J @ qdot
+    scale = float(v @ xi / (xi @ xi))
+    assert scale > 0.3, scale  # most of the commanded twist ...
+    np.testing.assert_allclose(v, scale * xi, atol=1e-9)  # ... and in its direction
+    # The old rule: the whole command scaled by joint 7's bound, zero.
+    old = laws.scale_into_bounds(laws.null_space_diff_ik(J, xi, np.zeros(7)), lo, up)
+    assert np.allclose(old, 0.0)
+
+
+def test_a_turn_past_a_wrist_limit_completes_with_the_other_joints(kin):
+    """Kinematic integration: the probe turned 25 deg about its own axis, the way joint 7
+    turns, from 0.05 rad before joint 7's limit. The turn completes, the position held, and
+    joint 7 never passes its limit."""
+    q = Q0.copy()
+    q[6] = kin.q_max[6] - 0.05
+    X0 = kin.pose(q)
+    J = kin.jacobian(q)
+    axis = J[:3, 6] / np.linalg.norm(J[:3, 6])  # joint 7's axis in B (the probe's)
+    R_goal = RotationMatrix(AngleAxis(math.radians(25.0), axis)) @ X0.rotation()
+    dq_max = np.array([1.0, 0.5, 0.75, 0.625, 1.5, 0.75, 1.5])
+    dt = 0.01
+    for _ in range(800):
+        X = kin.pose(q)
+        aa = (R_goal @ X.rotation().inverse()).ToAngleAxis()
+        w = 2.0 * aa.angle() * aa.axis()
+        v = 2.0 * (X0.translation() - X.translation())
+        xi = np.concatenate([np.clip(w, -0.5, 0.5), v])
+        q = q + dt * laws.solve_joint_velocities(
+            q,
+            xi,
+            kin.jacobian,
+            q_min=kin.q_min,
+            q_max=kin.q_max,
+            dq_max=dq_max,
+            joint_limit_margin=0.1,
+            qdot_null=np.zeros(7),
+        )
+        assert q[6] <= kin.q_max[6] + 1e-9
+    X = kin.pose(q)
+    left = (R_goal @ X.rotation().inverse()).ToAngleAxis().angle()
+    assert math.degrees(left) < 0.5, math.degrees(left)
+    assert np.linalg.norm(X.translation() - X0.translation()) < 1e-3
+
+
 def test_solve_joint_velocities_kernel_equals_the_numpy_equations(kin):
     """The compiled IK against eq. 10 written with numpy's pseudo-inverse (away from
     singularities, where the damping is off) plus the same bounds and scaling."""
@@ -462,7 +554,7 @@ def test_solve_joint_velocities_kernel_equals_the_numpy_equations(kin):
         expected = np.linalg.pinv(J) @ xi + (np.eye(7) - np.linalg.pinv(J) @ J) @ qn
         lo = -np.clip((q - kin.q_min) / 0.1, 0, 1) * dq_max
         up = np.clip((kin.q_max - q) / 0.1, 0, 1) * dq_max
-        expected = _scale_into_bounds_loop(expected, lo, up)
+        expected = _saturate_one_joint_reference(J, xi, expected, lo, up)
         got = laws.solve_joint_velocities(
             q,
             xi,

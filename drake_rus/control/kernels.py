@@ -100,6 +100,74 @@ def scale_into_bounds(qdot, lower, upper):
 
 
 @njit(cache=True)
+def bound_scale(qdot, lower, upper):
+    """The largest s in [0, 1] with lower <= s qdot <= upper (the factor of
+    :func:`scale_into_bounds`)."""
+    s = 1.0
+    for i in range(qdot.size):
+        v = qdot[i]
+        if v > upper[i]:
+            s = min(s, upper[i] / v if v > 0.0 else 0.0)
+        if v < lower[i]:
+            s = min(s, lower[i] / v if v < 0.0 else 0.0)
+    return max(s, 0.0)
+
+
+@njit(cache=True)
+def saturate_one_joint(J, xi_b, qdot, lower, upper, sigma_threshold, damping_max):
+    """qdot (from eq. 10) brought into lower <= qdot <= upper keeping the task J qdot = xi_b
+    wherever the arm's redundancy allows: the joint that limits the uniform scale most is
+    held at its bound and the other joints solve the task exactly (one step of the
+    saturation in the null space of Flacco, De Luca and Khatib, ICRA 2012); the result is
+    scaled uniformly if it is still out of bounds. Kept only when it achieves a larger share
+    of the task than ``qdot`` scaled uniformly, and only when the remaining joints' Jacobian
+    is square, of full rank and above ``sigma_threshold`` (no damping: the task exactly, so
+    scaling keeps the probe's direction). Returns (qdot, task scale)."""
+    s0 = bound_scale(qdot, lower, upper)
+    m, n = J.shape
+    if s0 >= 1.0 or n != m + 1:
+        return qdot * s0, s0
+    j = -1
+    worst = 2.0
+    for i in range(n):
+        v = qdot[i]
+        r = 1.0
+        if v > upper[i]:
+            r = upper[i] / v if v > 0.0 else 0.0
+        elif v < lower[i]:
+            r = lower[i] / v if v < 0.0 else 0.0
+        if r < worst:
+            worst = r
+            j = i
+    b = upper[j] if qdot[j] > upper[j] else lower[j]
+    Jf = np.empty((m, m))
+    rhs = xi_b.copy()
+    for r in range(m):
+        rhs[r] -= J[r, j] * b
+        c = 0
+        for i in range(n):
+            if i != j:
+                Jf[r, c] = J[r, i]
+                c += 1
+    U, Vt, inv, rank, lam2 = damped_svd(Jf, sigma_threshold, damping_max)
+    if rank < m or lam2 > 0.0:
+        return qdot * s0, s0
+    qf = null_space_diff_ik(Jf, rhs, np.zeros(m), sigma_threshold, damping_max)
+    held = np.empty(n)
+    c = 0
+    for i in range(n):
+        if i == j:
+            held[i] = b
+        else:
+            held[i] = qf[c]
+            c += 1
+    s1 = bound_scale(held, lower, upper)
+    if s1 > s0:
+        return held * s1, s1
+    return qdot * s0, s0
+
+
+@njit(cache=True)
 def _finite(x):
     for v in x.flat:
         if not math.isfinite(v):
@@ -111,13 +179,14 @@ def _finite(x):
 def solve_joint_velocities(
     q, xi_b, J, qdot_null, q_min, q_max, dq_max, margin, sigma_threshold, damping_max
 ):
-    """eq. 10 then the joint-limit margin and speed limits (``laws.solve_joint_velocities``
-    with the Jacobian and the null-space velocity given); zeros for non-finite input."""
+    """eq. 10 then the joint-limit margin and speed limits, one joint saturated
+    (:func:`saturate_one_joint`; ``laws.solve_joint_velocities`` with the Jacobian and the
+    null-space velocity given); zeros for non-finite input."""
     if not (_finite(q) and _finite(xi_b)):
         return np.zeros(q.size)
     qdot = null_space_diff_ik(J, xi_b, qdot_null, sigma_threshold, damping_max)
     lo, up = joint_velocity_bounds(q, q_min, q_max, dq_max, margin)
-    qdot = scale_into_bounds(qdot, lo, up)
+    qdot, _ = saturate_one_joint(J, xi_b, qdot, lo, up, sigma_threshold, damping_max)
     if not _finite(qdot):
         return np.zeros(q.size)
     return qdot
