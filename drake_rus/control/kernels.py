@@ -114,31 +114,43 @@ def bound_scale(qdot, lower, upper):
 
 
 @njit(cache=True)
-def saturate_one_joint(J, xi_b, qdot, lower, upper, sigma_threshold, damping_max):
-    """qdot (from eq. 10) brought into lower <= qdot <= upper keeping the task J qdot = xi_b
-    wherever the arm's redundancy allows: the joint that limits the uniform scale most is
-    held at its bound and the other joints solve the task exactly (one step of the
-    saturation in the null space of Flacco, De Luca and Khatib, ICRA 2012); the result is
-    scaled uniformly if it is still out of bounds. Kept only when it achieves a larger share
-    of the task than ``qdot`` scaled uniformly, and only when the remaining joints' Jacobian
-    is square, of full rank and above ``sigma_threshold`` (no damping: the task exactly, so
-    scaling keeps the probe's direction). Returns (qdot, task scale)."""
+def saturate_one_joint(J, xi_b, qdot, lower, upper, dq_max, sigma_threshold, damping_max):
+    """qdot (from eq. 10) brought into lower <= qdot <= upper, keeping the task J qdot = xi_b
+    where the arm's redundancy allows. Returns (qdot, share of the task kept).
+
+    Uniform scaling (:func:`bound_scale`, share s0) unless a joint near its position limit
+    (its bound ramped below ``dq_max`` by :func:`joint_velocity_bounds`) limits it: then
+    that joint (the most limiting such) is held at its bound and the other joints solve the
+    task exactly (one step of the saturation in the null space of Flacco, De Luca and
+    Khatib, ICRA 2012), scaled into the bounds (share s1). The two are blended with the
+    held solution's weight w = (1 - (s0 / s1)^2) d c (0 when s1 <= s0), d the depth into the
+    joint's ramp (0 at its start, 1 at the limit) and c the remaining joints' conditioning
+    (0 at a smallest singular value of ``sigma_threshold``, 1 from twice that): a command
+    continuous in q and the task, where choosing one or the other jumped. Both solve the task
+    in the same direction and lie in the box of bounds, and so does the blend."""
     s0 = bound_scale(qdot, lower, upper)
     m, n = J.shape
     if s0 >= 1.0 or n != m + 1:
         return qdot * s0, s0
     j = -1
     worst = 2.0
+    depth = 0.0
     for i in range(n):
         v = qdot[i]
-        r = 1.0
+        r = 2.0
+        bound = dq_max[i]
         if v > upper[i]:
             r = upper[i] / v if v > 0.0 else 0.0
+            bound = upper[i]
         elif v < lower[i]:
             r = lower[i] / v if v < 0.0 else 0.0
-        if r < worst:
+            bound = -lower[i]
+        if r < worst and dq_max[i] > 0.0 and bound < dq_max[i]:
             worst = r
             j = i
+            depth = min(max(1.0 - bound / dq_max[i], 0.0), 1.0)
+    if j < 0:
+        return qdot * s0, s0
     b = upper[j] if qdot[j] > upper[j] else lower[j]
     Jf = np.empty((m, m))
     rhs = xi_b.copy()
@@ -150,8 +162,9 @@ def saturate_one_joint(J, xi_b, qdot, lower, upper, sigma_threshold, damping_max
                 Jf[r, c] = J[r, i]
                 c += 1
     U, Vt, inv, rank, lam2 = damped_svd(Jf, sigma_threshold, damping_max)
-    if rank < m or lam2 > 0.0:
+    if rank < m or lam2 > 0.0 or not inv[m - 1] > 0.0:
         return qdot * s0, s0
+    conditioning = min(max((1.0 / inv[m - 1]) / sigma_threshold - 1.0, 0.0), 1.0)
     qf = null_space_diff_ik(Jf, rhs, np.zeros(m), sigma_threshold, damping_max)
     held = np.empty(n)
     c = 0
@@ -162,9 +175,10 @@ def saturate_one_joint(J, xi_b, qdot, lower, upper, sigma_threshold, damping_max
             held[i] = qf[c]
             c += 1
     s1 = bound_scale(held, lower, upper)
-    if s1 > s0:
-        return held * s1, s1
-    return qdot * s0, s0
+    if not s1 > s0:
+        return qdot * s0, s0
+    w = (1.0 - (s0 / s1) ** 2) * depth * conditioning
+    return (1.0 - w) * s0 * qdot + w * s1 * held, (1.0 - w) * s0 + w * s1
 
 
 @njit(cache=True)
@@ -186,7 +200,7 @@ def solve_joint_velocities(
         return np.zeros(q.size)
     qdot = null_space_diff_ik(J, xi_b, qdot_null, sigma_threshold, damping_max)
     lo, up = joint_velocity_bounds(q, q_min, q_max, dq_max, margin)
-    qdot, _ = saturate_one_joint(J, xi_b, qdot, lo, up, sigma_threshold, damping_max)
+    qdot, _ = saturate_one_joint(J, xi_b, qdot, lo, up, dq_max, sigma_threshold, damping_max)
     if not _finite(qdot):
         return np.zeros(q.size)
     return qdot

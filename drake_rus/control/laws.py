@@ -359,10 +359,10 @@ def solve_joint_velocities(
 
     qdot_null = K_p6 grad m(q) (eq. 11-12) unless given precomputed; qdot from eq. 10;
     finally qdot is brought into the per-joint bounds of :func:`joint_velocity_bounds` so the
-    probe path keeps its direction while slowing before a joint limit: the joint that limits
-    most is held at its bound and the other six solve the task exactly (the arm's one
-    redundant degree of freedom; :func:`drake_rus.control.kernels.saturate_one_joint`), then
-    whatever is still out of bounds is scaled uniformly. A joint at its limit therefore no
+    probe path keeps its direction while slowing before a joint limit: scaled uniformly,
+    blended with a joint near its limit held at its bound while the other six solve the task
+    exactly (the arm's one redundant degree of freedom;
+    :func:`drake_rus.control.kernels.saturate_one_joint`). A joint at its limit therefore no
     longer stops the probe: only a task the other joints cannot carry slows down. Non-finite
     input gives zeros.
     """
