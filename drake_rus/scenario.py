@@ -81,6 +81,8 @@ class RobotConfig:
     # Model file, as a package:// URL resolved through models/package.xml.
     model: str = "package://drake_rus_models/fr3/fr3.urdf"
     # Joint configuration at t = 0 (rad): probe pointing down above the patient placeholder.
+    # A scan on a patient starts at its planned start pose, in the posture closest to this
+    # one (the arm's redundancy: the elbow, the wrist's turn).
     initial_joint_positions: list[float] = field(
         default_factory=lambda: [0.0, 0.15, 0.0, -2.0, 0.0, 2.15, 0.785],
         metadata={

@@ -304,3 +304,30 @@ def test_vertical_depth_preset_ignores_shadows_but_not_depth():
     assert vertical_depth_preset(box_body(0.15), X_BPT, ImagingConfig(), cfg) == 0.20
     with pytest.raises(StartPlanError, match="deepest preset 150 mm"):
         vertical_depth_preset(box_body(0.15), X_BPT, ImagingConfig(depth_presets=[0.1, 0.15]), cfg)
+
+
+def test_the_scan_starts_in_the_posture_closest_to_the_scenario_s():
+    """``robot.initial_joint_positions`` chooses among the postures that put the probe at the
+    planned start pose (the arm's redundancy, here the elbow's split between joints 1 and
+    3); before, the scan always started closest to the default and ignored the field."""
+    from drake_rus.anatomy import load_patient
+    from drake_rus.robot.kinematics import TipKinematics
+    from drake_rus.robot.model import MakeControlPlant
+    from drake_rus.scan.run import PrepareScenario
+    from drake_rus.scenario import ApplyOverrides, LoadScenario
+
+    patient = load_patient("test:0", progress=False)
+    default, X_start, _ = PrepareScenario(LoadScenario(scenario_name="quick"), patient)
+    split = ApplyOverrides(
+        LoadScenario(scenario_name="quick"),
+        "{robot: {initial_joint_positions: [0.5, 0.15, -0.5, -2.0, 0.0, 2.15, 0.785]}}",
+        "test",
+    )
+    split, X_start_split, _ = PrepareScenario(split, patient)
+    q_default = np.array(default.robot.initial_joint_positions)
+    q_split = np.array(split.robot.initial_joint_positions)
+    assert abs(q_default[0]) < 0.15 and abs(q_default[2]) < 0.15  # the default's elbow
+    assert abs(q_split[0] - 0.5) < 0.15 and abs(q_split[2] + 0.5) < 0.15  # the scenario's
+    assert X_start_split.IsNearlyEqualTo(X_start, 1e-9)  # the same start pose ...
+    kin = TipKinematics(*MakeControlPlant(split.robot, split.probe))
+    assert kin.pose(q_split).IsNearlyEqualTo(X_start, 2e-3)  # ... reached by both
