@@ -379,13 +379,7 @@ def test_manipulability_gradient_analytic_zero_at_singularity():
 
 def _scale_into_bounds_loop(qdot, lower, upper):
     """The per-joint loop the vectorised scale_into_bounds replaced (reference)."""
-    s = 1.0
-    for v, lo, hi in zip(qdot, lower, upper):
-        if v > hi:
-            s = min(s, hi / v if v > 0 else 0.0)
-        elif v < lo:
-            s = min(s, lo / v if v < 0 else 0.0)
-    return np.asarray(qdot, dtype=float) * max(s, 0.0)
+    return np.asarray(qdot, dtype=float) * _bound_scale_loop(qdot, lower, upper)
 
 
 def test_scale_into_bounds_matches_the_per_joint_rule():
@@ -451,6 +445,20 @@ def test_compiled_damped_svd_matches_numpy(kin):
     assert inv[-1] == 0.0 and np.all(inv[:5] < 1.0)
 
 
+def _solve(kin, q, xi, dq_max, qdot_null):
+    """The whole IK on the FR3 with the 0.1 rad joint-limit margin."""
+    return laws.solve_joint_velocities(
+        q,
+        xi,
+        kin.jacobian,
+        q_min=kin.q_min,
+        q_max=kin.q_max,
+        dq_max=dq_max,
+        joint_limit_margin=0.1,
+        qdot_null=qdot_null,
+    )
+
+
 def _saturate_one_joint_reference(J, xi, qdot, lo, up, dq_max):
     """The joint-limit rule with numpy's solver: uniform scaling, blended with the most
     limiting ramped joint held at its bound and the other six solving J qdot = xi."""
@@ -482,11 +490,12 @@ def _saturate_one_joint_reference(J, xi, qdot, lo, up, dq_max):
 
 
 def _bound_scale_loop(qdot, lo, up):
+    """The largest uniform scale in [0, 1] keeping qdot within [lo, up] (reference)."""
     s = 1.0
     for v, a, b in zip(qdot, lo, up):
         if v > b:
             s = min(s, b / v if v > 0 else 0.0)
-        if v < a:
+        elif v < a:
             s = min(s, a / v if v < 0 else 0.0)
     return max(s, 0.0)
 
@@ -501,8 +510,7 @@ def test_a_joint_at_its_limit_no_longer_stops_the_probe(kin):
     J = kin.jacobian(q)
     xi = J[:, 6] * 0.3  # rad/s of joint 7: its twist (angular about its axis, and linear)
     dq_max = np.array([2, 1, 1.5, 1.25, 3, 1.5, 3]) * 0.5
-    args = dict(q_min=kin.q_min, q_max=kin.q_max, dq_max=dq_max, joint_limit_margin=0.1)
-    qdot = laws.solve_joint_velocities(q, xi, kin.jacobian, qdot_null=np.zeros(7), **args)
+    qdot = _solve(kin, q, xi, dq_max, np.zeros(7))
     lo, up = laws.joint_velocity_bounds(q, kin.q_min, kin.q_max, dq_max, 0.1)
     assert qdot[6] == 0.0  # held at its bound (0: at the limit)
     assert np.all(qdot >= lo - 1e-12) and np.all(qdot <= up + 1e-12)
@@ -534,16 +542,7 @@ def test_a_turn_past_a_wrist_limit_completes_with_the_other_joints(kin):
         w = 2.0 * aa.angle() * aa.axis()
         v = 2.0 * (X0.translation() - X.translation())
         xi = np.concatenate([np.clip(w, -0.5, 0.5), v])
-        qdot = laws.solve_joint_velocities(
-            q,
-            xi,
-            kin.jacobian,
-            q_min=kin.q_min,
-            q_max=kin.q_max,
-            dq_max=dq_max,
-            joint_limit_margin=0.1,
-            qdot_null=np.zeros(7),
-        )
+        qdot = _solve(kin, q, xi, dq_max, np.zeros(7))
         if previous is not None:
             largest_change = max(largest_change, float(np.abs(qdot - previous).max()))
         previous = qdot
@@ -577,16 +576,7 @@ def test_solve_joint_velocities_kernel_equals_the_numpy_equations(kin):
         up = np.clip((kin.q_max - q) / 0.1, 0, 1) * dq_max
         expected = _saturate_one_joint_reference(J, xi, free, lo, up, dq_max)
         held += not np.allclose(expected, free * _bound_scale_loop(free, lo, up))
-        got = laws.solve_joint_velocities(
-            q,
-            xi,
-            kin.jacobian,
-            q_min=kin.q_min,
-            q_max=kin.q_max,
-            dq_max=dq_max,
-            joint_limit_margin=0.1,
-            qdot_null=qn,
-        )
+        got = _solve(kin, q, xi, dq_max, qn)
         np.testing.assert_allclose(got, expected, atol=1e-10)
         assert np.all(got >= lo - 1e-12) and np.all(got <= up + 1e-12)
     assert held >= 5, held  # the held-joint blend was exercised, not only uniform scaling

@@ -85,24 +85,9 @@ def joint_velocity_bounds(q, q_min, q_max, dq_max, margin):
 
 
 @njit(cache=True)
-def scale_into_bounds(qdot, lower, upper):
-    """qdot scaled uniformly (direction kept) into lower <= qdot <= upper: per violated
-    joint the largest admissible scale (0 when its bound has the other sign), the smallest
-    of them, at most 1. A copy of qdot when nothing is violated."""
-    s = 1.0
-    for i in range(qdot.size):
-        v = qdot[i]
-        if v > upper[i]:
-            s = min(s, upper[i] / v if v > 0.0 else 0.0)
-        if v < lower[i]:
-            s = min(s, lower[i] / v if v < 0.0 else 0.0)
-    return qdot * max(s, 0.0)
-
-
-@njit(cache=True)
 def bound_scale(qdot, lower, upper):
-    """The largest s in [0, 1] with lower <= s qdot <= upper (the factor of
-    :func:`scale_into_bounds`)."""
+    """The largest s in [0, 1] with lower <= s qdot <= upper: per violated joint the largest
+    admissible scale (0 when its bound has the other sign), the smallest of them, at most 1."""
     s = 1.0
     for i in range(qdot.size):
         v = qdot[i]
@@ -111,6 +96,13 @@ def bound_scale(qdot, lower, upper):
         if v < lower[i]:
             s = min(s, lower[i] / v if v < 0.0 else 0.0)
     return max(s, 0.0)
+
+
+@njit(cache=True)
+def scale_into_bounds(qdot, lower, upper):
+    """qdot scaled uniformly (direction kept) into lower <= qdot <= upper by
+    :func:`bound_scale`. A copy of qdot when nothing is violated."""
+    return qdot * bound_scale(qdot, lower, upper)
 
 
 @njit(cache=True)
