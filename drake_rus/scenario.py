@@ -82,7 +82,7 @@ class RobotConfig:
     model: str = "package://drake_rus_models/fr3/fr3.urdf"
     # Joint configuration at t = 0 (rad): probe pointing down above the patient placeholder.
     # A scan on a patient starts at its planned start pose, in the posture closest to this
-    # one (the arm's redundancy: the elbow, the wrist's turn).
+    # one (the arm's redundancy at a fixed probe pose: the elbow's split).
     initial_joint_positions: list[float] = field(
         default_factory=lambda: [0.0, 0.15, 0.0, -2.0, 0.0, 2.15, 0.785],
         metadata={

@@ -85,16 +85,23 @@ def joint_velocity_bounds(q, q_min, q_max, dq_max, margin):
 
 
 @njit(cache=True)
+def _joint_scale(v, lower, upper):
+    """The largest admissible scale of one joint's velocity v within [lower, upper]: 1 when
+    inside, 0 when its bound has the other sign."""
+    if v > upper:
+        return upper / v if v > 0.0 else 0.0
+    if v < lower:
+        return lower / v if v < 0.0 else 0.0
+    return 1.0
+
+
+@njit(cache=True)
 def bound_scale(qdot, lower, upper):
-    """The largest s in [0, 1] with lower <= s qdot <= upper: per violated joint the largest
-    admissible scale (0 when its bound has the other sign), the smallest of them, at most 1."""
+    """The largest s in [0, 1] with lower <= s qdot <= upper: the smallest joint's
+    :func:`_joint_scale`."""
     s = 1.0
     for i in range(qdot.size):
-        v = qdot[i]
-        if v > upper[i]:
-            s = min(s, upper[i] / v if v > 0.0 else 0.0)
-        if v < lower[i]:
-            s = min(s, lower[i] / v if v < 0.0 else 0.0)
+        s = min(s, _joint_scale(qdot[i], lower[i], upper[i]))
     return max(s, 0.0)
 
 
@@ -125,19 +132,12 @@ def saturate_one_joint(J, xi_b, qdot, lower, upper, dq_max, sigma_threshold, dam
     if s0 >= 1.0 or n != m + 1:
         return qdot * s0, s0
     j = -1
-    worst = 2.0
+    worst = 1.0
     depth = 0.0
     for i in range(n):
-        v = qdot[i]
-        r = 2.0
-        bound = dq_max[i]
-        if v > upper[i]:
-            r = upper[i] / v if v > 0.0 else 0.0
-            bound = upper[i]
-        elif v < lower[i]:
-            r = lower[i] / v if v < 0.0 else 0.0
-            bound = -lower[i]
-        if r < worst and dq_max[i] > 0.0 and bound < dq_max[i]:
+        r = _joint_scale(qdot[i], lower[i], upper[i])
+        bound = upper[i] if qdot[i] > upper[i] else -lower[i]  # its magnitude, if violated
+        if r < worst and dq_max[i] > 0.0 and bound < dq_max[i]:  # violated, inside the ramp
             worst = r
             j = i
             depth = min(max(1.0 - bound / dq_max[i], 0.0), 1.0)

@@ -68,6 +68,13 @@ def RunStopDrill(
     signal's wall time, the scan's exit code, the PIVOT-like state when signalled and
     :func:`drake_rus.rehearsal.core.stop_reaction` at the simulated robot."""
     require("cv2", "the stop drill (the rehearsal's ultrasound video stream)")
+    # The scenario and its overrides checked before any process starts or anything is
+    # written: ScenarioError naming the field, not the simulated robot's traceback.
+    LoadScenario(
+        filename=options.scenarios_file,
+        scenario_name=options.scenario,
+        scenario_text=options.overrides,
+    )
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     report: dict = {"network_isolated": loopback_only(), "pivot_after_s": pivot_after}
@@ -209,13 +216,6 @@ def main(argv=None) -> int:
         max_sim_time=args.max_sim_time,
     )
     try:
-        # The scenario and its overrides checked here, before any process starts or anything
-        # is written: one line naming the field, not the simulated robot's traceback.
-        LoadScenario(
-            filename=options.scenarios_file,
-            scenario_name=options.scenario,
-            scenario_text=options.overrides,
-        )
         report = RunStopDrill(options, args.out, pivot_after=args.pivot_after)
     except (SimProcessError, MissingExtra, ScenarioError) as e:
         print(f"stop drill: error: {e}", file=sys.stderr)

@@ -221,8 +221,8 @@ def PrepareScenario(scenario, patient, start_fraction: float | None = None):
         scenario = dataclasses.replace(
             scenario, imaging=dataclasses.replace(scenario.imaging, depth=plan.depth_preset)
         )
-    # The start posture closest to the scenario's initial joint positions (the robot's
-    # redundancy: which elbow, how far the wrist is turned), so the field means what it says.
+    # The start posture closest to the scenario's initial joint positions (the arm's
+    # redundancy at a fixed probe pose: the elbow's split), so the field means what it says.
     q0 = SolveTipPose(plant, tip, X_start, q_nominal=scenario.robot.initial_joint_positions)
     robot = dataclasses.replace(scenario.robot, initial_joint_positions=[float(v) for v in q0])
     return dataclasses.replace(scenario, robot=robot), X_start, plan
