@@ -8,7 +8,8 @@ import math
 
 import numpy as np
 import pytest
-from pydrake.math import RigidTransform, RollPitchYaw
+from pydrake.common.eigen_geometry import AngleAxis
+from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
 from pydrake.systems.analysis import Simulator
 
 from drake_rus.closed_loop import AdvanceUntilScanEnds, BuildClosedLoop
@@ -17,7 +18,7 @@ from drake_rus.control.laws import angle_between, manipulability
 from drake_rus.control.safety import StopReason
 from drake_rus.control.synthetic_view import GeometricKidneyView
 from drake_rus.reliability.injector import BuildClosedLoopWithFault
-from drake_rus.scenario import LoadScenario
+from drake_rus.scenario import FR3_Q_MAX, LoadScenario
 
 pytestmark = pytest.mark.slow
 
@@ -196,6 +197,67 @@ def test_orientation_error_below_1_deg_within_2_s_after_20_deg_step():
     assert errs[-1, 1] < 1.0 and errs[-1, 2] < 1.0
     F = -L["probe_force"].data()[5][L["probe_force"].sample_times() > 4.0]
     assert np.all(F > 5.0)  # stayed in contact while tilting
+
+
+def test_a_turn_into_the_wrist_limit_completes_on_the_station():
+    """The array turned 25 deg about the probe's axis, the way joint 7 turns, from 0.05 rad
+    before joint 7's limit, in contact with the body: the diagram (force PD, orientation
+    alignment, differential IK, safety layer, FR3 plant) completes the turn with the other
+    six joints, joint 7 stays within its limit, the probe stays in contact and the held
+    joint's solution enters without a jump. Uniform scaling into the bounds (before c61f2ae)
+    stopped the arm 22.05 deg short, the probe still pressed on the body."""
+    q0 = np.array(scenario().robot.initial_joint_positions, dtype=float)
+    q_max_7 = FR3_Q_MAX[6]
+    q0[6] = q_max_7 - 0.05
+    s = scenario("{robot: {initial_joint_positions: [%s]}}" % ", ".join(map(str, q0)))
+    cl = BuildClosedLoop(s, use_supervisor=False, log_period=0.01)
+    kin = cl.parts.ik.kinematics
+    assert kin.q_max[6] == pytest.approx(q_max_7)
+    sim = Simulator(cl.diagram)
+    ctx = sim.get_mutable_context()
+    sim.AdvanceTo(2.5)  # in contact and settled
+    a0, o0 = (
+        np.array(
+            cl.references[name]
+            .get_output_port()
+            .Eval(cl.references[name].GetMyContextFromRoot(ctx))
+        )
+        for name in ("a_des", "o_des")
+    )
+    q_step = logs(cl, ctx)["q"].data()[:, -1]
+    axis = kin.jacobian(q_step)[:3, 6]  # joint 7's axis in B: the probe's, +q7's turn
+    axis /= np.linalg.norm(axis)
+    o1 = RotationMatrix(AngleAxis(math.radians(25.0), axis)).multiply(o0)
+    cl.reference_value(ctx, "o_des").set_value(o1)
+    sim.AdvanceTo(5.0)
+    L = logs(cl, ctx)
+    t, Q = L["q"].sample_times(), L["q"].data()
+    after = t >= 2.5
+    R_end = kin.pose(Q[:, -1]).rotation().matrix()
+    o_error = math.degrees(angle_between(R_end[:, 0], o1))
+    a_error = math.degrees(angle_between(R_end[:, 2], a0))
+    # The command's changes from one 10 ms period to the next, after the first: that one is
+    # the 25 deg step of o_des itself (0.585 rad/s on joint 7, before and since c61f2ae).
+    command = L["command"].data()[:, L["command"].sample_times() >= 2.505]
+    largest_step = float(np.abs(np.diff(command, axis=1)).max())
+    F = -L["probe_force"].data()[5][L["probe_force"].sample_times() >= 2.5]
+    print(
+        f"\nwrist turn into joint 7's limit: o error 25 -> {o_error:.2f} deg in 2.5 s, "
+        f"a error {a_error:.2f} deg; q7 {q_step[6]:.4f} -> max {Q[6, after].max():.4f} "
+        f"(limit {q_max_7:.4f}); force {F.min():.1f}-{F.max():.1f} N; largest command step "
+        f"{largest_step:.3f} rad/s"
+    )
+    assert q_max_7 - q_step[6] > 0.04  # the turn starts before the limit ...
+    assert Q[6, after].max() > q_max_7 - 1e-3  # ... and reaches it
+    assert Q[6, after].max() <= q_max_7 + 1e-4  # never past it
+    assert o_error < 1.0 and a_error < 1.0  # completed by the other joints
+    assert np.all(F > 5.0)  # in contact throughout
+    # The other joints take over continuously: 0.126 rad/s in one period at most (12.6
+    # rad/s^2, as joint 7 runs into its ramp; uniform scaling 0.079), where choosing between
+    # the held and the scaled solution jumped 0.74 rad/s. On the robot the command guard
+    # limits the acceleration further (hardware_interface.max_joint_acceleration, 2 rad/s^2
+    # by default; the FR3's own limit is 10 rad/s^2, docs/facts/fr3.md).
+    assert largest_step < 0.15, largest_step
 
 
 def _min_manipulability(use_null_space):
