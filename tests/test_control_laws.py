@@ -281,6 +281,86 @@ def test_joint_limit_bounds_and_scaling():
     np.testing.assert_allclose(qdot, 0)  # would push joint 3 further past its limit
 
 
+def test_braking_speed_stops_a_rate_limited_command_at_the_limit():
+    """From the braking speed, a command ramped down by a T a period (held one period
+    first) covers exactly the distance; the bound binds only near a limit."""
+    a, T = 2.0, 0.01
+    for d in (0.0, 0.001, 0.03, 0.1, 0.4):
+        v = kernels.braking_speed(d, a, T)
+        travelled, u = 0.0, v
+        while u > 0.0:
+            travelled += u * T
+            u -= a * T
+        assert 0.0 <= travelled <= d
+        assert travelled >= d - 0.13 * a * T * T - 1e-12  # no slower than the ramp needs
+    assert kernels.braking_speed(-0.01, a, T) == 0.0  # past the limit: nothing towards it
+    assert kernels.braking_speed(0.1, 0.0, T) == math.inf  # no acceleration limit
+    # Bounds: the ramp alone far from the limit's braking distance; braking where faster.
+    q_min, q_max = -np.ones(4), np.ones(4)
+    q = [0.0, 0.995, 0.95, 0.8]
+    lo, up = laws.joint_velocity_bounds(q, q_min, q_max, [1] * 4, 0.1, braking_acceleration=2.0)
+    brake = [kernels.braking_speed(d, 2.0, 0.01) for d in (0.05, 0.2)]
+    np.testing.assert_allclose(up, [1.0, 0.05] + brake)  # free; the ramp; braking, twice
+    assert brake[0] < 0.5 and brake[1] < 1.0
+    np.testing.assert_allclose(lo, -1.0)  # away from the lower limits: not braked
+    np.testing.assert_allclose(
+        laws.joint_velocity_bounds(q, q_min, q_max, [1] * 4, 0.1)[1], [1.0, 0.05, 0.5, 1.0]
+    )
+    with pytest.raises(ValueError, match="braking_acceleration: expected one value or 4"):
+        laws.joint_velocity_bounds(q, q_min, q_max, [1] * 4, 0.1, [2.0, 2.0])
+
+
+def _guarded_wrist_turn(kin, braking_acceleration):
+    """A 40 deg turn about the probe's axis into joint 7's limit from 0.3 rad before it, at
+    the IK's 0.6 rad/s angular speed, each command passed through the hardware's command
+    guard (hardware.core.guard_command, its default 2 rad/s^2 and joint speeds) before
+    the joints integrate it. Returns joint 7's largest excursion past its limit (rad) and
+    the turn's remaining angle (rad)."""
+    from drake_rus.hardware.config import HardwareConfig
+    from drake_rus.hardware.core import guard_command
+
+    hw = HardwareConfig()
+    q = Q0.copy()
+    q[6] = kin.q_max[6] - 0.3
+    X0 = kin.pose(q)
+    axis = kin.jacobian(q)[:3, 6] / np.linalg.norm(kin.jacobian(q)[:3, 6])
+    R_goal = RotationMatrix(AngleAxis(math.radians(40.0), axis)) @ X0.rotation()
+    dq_max = np.array([2, 1, 1.5, 1.25, 3, 1.5, 3]) * 0.5
+    dt, sent, past = 0.01, np.zeros(7), -math.inf
+    for _ in range(1000):
+        X = kin.pose(q)
+        aa = (R_goal @ X.rotation().inverse()).ToAngleAxis()
+        w = 4.0 * aa.angle() * aa.axis()
+        w *= min(1.0, 0.6 / max(np.linalg.norm(w), 1e-12))
+        v = 2.0 * (X0.translation() - X.translation())
+        qdot = _solve(kin, q, np.concatenate([w, v]), dq_max, np.zeros(7), braking_acceleration)
+        sent = guard_command(qdot, sent, dt, hw.max_joint_velocity, hw.max_joint_acceleration)
+        q = q + dt * sent
+        past = max(past, q[6] - kin.q_max[6])
+    left = (R_goal @ kin.pose(q).rotation().inverse()).ToAngleAxis().angle()
+    return past, left
+
+
+def test_a_fast_turn_into_a_limit_stops_before_it_under_the_command_guard(kin):
+    """The joint-limit ramp assumes the command changes at once; the hardware's command
+    guard lets it change by 2 rad/s^2. Without the braking bound joint 7, turning at 0.6
+    rad/s, runs past its limit (the FR3 would stop on its own joint-limit reflex); with
+    it the joint stops before the limit and the other joints complete the turn."""
+    from drake_rus.hardware.config import HardwareConfig
+
+    past_unbraked, _ = _guarded_wrist_turn(kin, braking_acceleration=None)
+    past, left = _guarded_wrist_turn(
+        kin, braking_acceleration=HardwareConfig().max_joint_acceleration
+    )
+    print(
+        f"\njoint 7 past its limit: {1e3 * past_unbraked:.2f} mrad without the braking bound, "
+        f"{1e3 * past:.4f} mrad with it ({math.degrees(left):.3f} deg of the turn left)"
+    )
+    assert past_unbraked > 0.01  # the ramp alone: the guard carries the joint past it
+    assert past <= 0.0
+    assert math.degrees(left) < 0.5
+
+
 def test_solve_joint_velocities_respects_limits(kin):
     xi = np.array([0, 0, 0, 0.0, 0.0, -2.0])  # far too fast on purpose
     dq_max = np.array([2, 1, 1.5, 1.25, 3, 1.5, 3]) * 0.5
@@ -445,8 +525,8 @@ def test_compiled_damped_svd_matches_numpy(kin):
     assert inv[-1] == 0.0 and np.all(inv[:5] < 1.0)
 
 
-def _solve(kin, q, xi, dq_max, qdot_null):
-    """The whole IK on the FR3 with the 0.1 rad joint-limit margin."""
+def _solve(kin, q, xi, dq_max, qdot_null, braking_acceleration=None):
+    """The whole IK on the FR3 with the 0.1 rad joint-limit margin (10 ms period)."""
     return laws.solve_joint_velocities(
         q,
         xi,
@@ -456,6 +536,8 @@ def _solve(kin, q, xi, dq_max, qdot_null):
         dq_max=dq_max,
         joint_limit_margin=0.1,
         qdot_null=qdot_null,
+        braking_acceleration=braking_acceleration,
+        period=0.01,
     )
 
 

@@ -136,7 +136,17 @@ def AddController(
     position = builder.AddNamedSystem("position_p", PositionP(cfg))
     ik = builder.AddNamedSystem(
         "null_space_diff_ik",
-        NullSpaceDiffIK(plant, tip_frame, cfg, use_null_space, kinematics=kinematics),
+        NullSpaceDiffIK(
+            plant,
+            tip_frame,
+            cfg,
+            use_null_space,
+            kinematics=kinematics,
+            # The hardware's command guard limits the command's acceleration; the IK sends
+            # no joint towards its limit faster than that can stop (on every station, so
+            # the simulation moves as the robot will).
+            braking_acceleration=scenario.hardware_interface.max_joint_acceleration,
+        ),
     )
     safety = builder.AddNamedSystem(
         "safety", SafetyLayer(plant, tip_frame, scfg, cfg.rate_hz, kinematics=kinematics)

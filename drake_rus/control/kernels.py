@@ -72,15 +72,35 @@ def null_space_diff_ik(J, xi_b, qdot_null, sigma_threshold, damping_max):
 
 
 @njit(cache=True)
-def joint_velocity_bounds(q, q_min, q_max, dq_max, margin):
+def braking_speed(distance, acceleration, period):
+    """The largest speed (rad/s) from which a command whose change is limited to
+    ``acceleration`` (rad/s^2) each ``period`` (s) still stops within ``distance`` (rad): v
+    with v^2 / (2 a) + v T / 2 = d - a T^2 / 8: a command held one period, then ramped down
+    by a T each period to 0, travels v^2 / (2 a) + v T / 2 plus at most a T^2 / 8 (the last,
+    partial step of the ramp). inf when ``acceleration`` is not positive (no limit); 0 at or
+    past the limit."""
+    if not acceleration > 0.0:
+        return math.inf
+    h = 0.5 * acceleration * period
+    d = max(distance - 0.125 * acceleration * period * period, 0.0)
+    return math.sqrt(h * h + 2.0 * acceleration * d) - h
+
+
+@njit(cache=True)
+def joint_velocity_bounds(q, q_min, q_max, dq_max, margin, acceleration, period):
     """(lower <= 0, upper >= 0) per-joint velocity bounds (rad/s): dq_max, ramping linearly
-    to 0 over the last ``margin`` (rad) before a joint limit (towards it only)."""
+    to 0 over the last ``margin`` (rad) before a joint limit (towards it only), and no
+    faster towards a limit than a command changing by at most ``acceleration`` (rad/s^2,
+    per joint; 0: unlimited) each ``period`` (s) can stop before it
+    (:func:`braking_speed`)."""
     n = q.size
     lo = np.empty(n)
     up = np.empty(n)
     for i in range(n):
         up[i] = min(max((q_max[i] - q[i]) / margin, 0.0), 1.0) * dq_max[i]
         lo[i] = -(min(max((q[i] - q_min[i]) / margin, 0.0), 1.0) * dq_max[i])
+        up[i] = min(up[i], braking_speed(q_max[i] - q[i], acceleration[i], period))
+        lo[i] = max(lo[i], -braking_speed(q[i] - q_min[i], acceleration[i], period))
     return lo, up
 
 
@@ -118,7 +138,7 @@ def saturate_one_joint(J, xi_b, qdot, lower, upper, dq_max, sigma_threshold, dam
     where the arm's redundancy allows. Returns (qdot, share of the task kept).
 
     Uniform scaling (:func:`bound_scale`, share s0) unless a joint near its position limit
-    (its bound ramped below ``dq_max`` by :func:`joint_velocity_bounds`) limits it: then
+    (its bound lowered below ``dq_max`` by :func:`joint_velocity_bounds`) limits it: then
     that joint (the most limiting such) is held at its bound and the other joints solve the
     task exactly (one step of the saturation in the null space of Flacco, De Luca and
     Khatib, ICRA 2012), scaled into the bounds (share s1). The two are blended with the
@@ -137,7 +157,7 @@ def saturate_one_joint(J, xi_b, qdot, lower, upper, dq_max, sigma_threshold, dam
     for i in range(n):
         r = _joint_scale(qdot[i], lower[i], upper[i])
         bound = upper[i] if qdot[i] > upper[i] else -lower[i]  # its magnitude, if violated
-        if r < worst and dq_max[i] > 0.0 and bound < dq_max[i]:  # violated, inside the ramp
+        if r < worst and dq_max[i] > 0.0 and bound < dq_max[i]:  # violated, near its limit
             worst = r
             j = i
             depth = min(max(1.0 - bound / dq_max[i], 0.0), 1.0)
@@ -183,15 +203,26 @@ def _finite(x):
 
 @njit(cache=True)
 def solve_joint_velocities(
-    q, xi_b, J, qdot_null, q_min, q_max, dq_max, margin, sigma_threshold, damping_max
+    q,
+    xi_b,
+    J,
+    qdot_null,
+    q_min,
+    q_max,
+    dq_max,
+    margin,
+    acceleration,
+    period,
+    sigma_threshold,
+    damping_max,
 ):
-    """eq. 10 then the joint-limit margin and speed limits, one joint saturated
-    (:func:`saturate_one_joint`; ``laws.solve_joint_velocities`` with the Jacobian and the
-    null-space velocity given); zeros for non-finite input."""
+    """eq. 10 then the joint-limit margin, braking distance and speed limits, one joint
+    saturated (:func:`saturate_one_joint`; ``laws.solve_joint_velocities`` with the Jacobian
+    and the null-space velocity given); zeros for non-finite input."""
     if not (_finite(q) and _finite(xi_b)):
         return np.zeros(q.size)
     qdot = null_space_diff_ik(J, xi_b, qdot_null, sigma_threshold, damping_max)
-    lo, up = joint_velocity_bounds(q, q_min, q_max, dq_max, margin)
+    lo, up = joint_velocity_bounds(q, q_min, q_max, dq_max, margin, acceleration, period)
     qdot, _ = saturate_one_joint(J, xi_b, qdot, lo, up, dq_max, sigma_threshold, damping_max)
     if not _finite(qdot):
         return np.zeros(q.size)
@@ -202,4 +233,6 @@ def warm_up() -> None:
     """Compiles (or loads from the cache) every kernel for the types the laws pass."""
     J = np.hstack([np.eye(6), np.zeros((6, 1))])
     q = np.zeros(7)
-    solve_joint_velocities(q, np.zeros(6), J, q, q - 1.0, q + 1.0, q + 1.0, 0.1, 0.03, 0.03)
+    solve_joint_velocities(
+        q, np.zeros(6), J, q, q - 1.0, q + 1.0, q + 1.0, 0.1, q + 2.0, 0.01, 0.03, 0.03
+    )

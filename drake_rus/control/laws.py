@@ -311,16 +311,45 @@ def damped_pseudo_inverse(J, sigma_threshold: float = 0.03, damping_max: float =
     return J_pinv, N, math.sqrt(lam2)
 
 
-def joint_velocity_bounds(q, q_min, q_max, dq_max, margin: float):
+def joint_velocity_bounds(
+    q, q_min, q_max, dq_max, margin: float, braking_acceleration=None, period: float = 0.01
+):
     """Per-joint velocity bounds (rad/s) from speed limits and a joint-limit margin.
 
     Within ``margin`` (rad) of a limit, the allowed speed towards it ramps linearly from
     dq_max down to 0 at the limit (and stays 0 beyond it); away from the limit is always
-    allowed. Returns (lower <= 0, upper >= 0).
+    allowed. With ``braking_acceleration`` (rad/s^2 per joint; None or 0: unlimited) the
+    speed towards a limit is also at most the one from which a command changing by at most
+    that much each ``period`` (s) still stops before the limit
+    (:func:`drake_rus.control.kernels.braking_speed`): the hardware's command guard limits
+    the command's acceleration (``hardware_interface.max_joint_acceleration``), and a ramp
+    it cannot follow would carry the joint past its limit. Returns (lower <= 0, upper >= 0).
     """
+    q = _f64(q)
     return kernels.joint_velocity_bounds(
-        _f64(q), _f64(q_min), _f64(q_max), _f64(dq_max), float(margin)
+        q,
+        _f64(q_min),
+        _f64(q_max),
+        _f64(dq_max),
+        float(margin),
+        _braking(braking_acceleration, q.size),
+        float(period),
     )
+
+
+def _braking(acceleration, n: int) -> np.ndarray:
+    """Per-joint braking accelerations (rad/s^2) for the kernels; zeros (unlimited) for None."""
+    if acceleration is None:
+        return np.zeros(n)
+    a = np.asarray(acceleration, dtype=np.float64)
+    if a.ndim == 0:
+        return np.full(n, float(a))
+    if a.shape != (n,):
+        raise ValueError(
+            f"braking_acceleration: expected one value or {n} (one per joint, rad/s^2), "
+            f"got shape {a.shape}"
+        )
+    return np.ascontiguousarray(a)
 
 
 def scale_into_bounds(qdot, lower, upper) -> np.ndarray:
@@ -354,11 +383,14 @@ def solve_joint_velocities(
     qdot_null=None,
     sigma_threshold: float = 0.03,
     damping_max: float = 0.03,
+    braking_acceleration=None,
+    period: float = 0.01,
 ) -> np.ndarray:
     """The whole differential IK: eq. 10-12 then the joint-limit margin and speed limits.
 
     qdot_null = K_p6 grad m(q) (eq. 11-12) unless given precomputed; qdot from eq. 10;
-    finally qdot is brought into the per-joint bounds of :func:`joint_velocity_bounds` so the
+    finally qdot is brought into the per-joint bounds of :func:`joint_velocity_bounds`
+    (``braking_acceleration``, ``period``: the braking distance to a limit) so the
     probe path keeps its direction while slowing before a joint limit: scaled uniformly,
     blended with a joint near its limit held at its bound while the other six solve the task
     exactly (the arm's one redundant degree of freedom;
@@ -384,6 +416,8 @@ def solve_joint_velocities(
         _f64(q_max),
         _f64(dq_max),
         float(joint_limit_margin),
+        _braking(braking_acceleration, q.size),
+        float(period),
         float(sigma_threshold),
         float(damping_max),
     )

@@ -165,6 +165,9 @@ class NullSpaceDiffIK(LeafSystem):
 
     Constructed with a control plant holding only the FR3 and the probe (``MakeControlPlant``).
     The null-space velocity K_p6 grad m(q) is state, refreshed every null_space_period.
+    ``braking_acceleration`` (rad/s^2 per joint, or None): the acceleration the command may
+    have on its way to the robot (the hardware's command guard); no joint is sent towards
+    its limit faster than such a command can stop before it (``laws.joint_velocity_bounds``).
     Inputs: joint_position (7, rad), omega_BP (3, rad/s, in B), v_force (3, m/s, in B),
     v_position (3, m/s, in B).
     Outputs: joint_velocity_desired (7, rad/s), V_BP_desired (6, [rad/s, m/s], in B),
@@ -178,9 +181,13 @@ class NullSpaceDiffIK(LeafSystem):
         config,
         use_null_space: bool = True,
         kinematics: TipKinematics | None = None,
+        braking_acceleration=None,
     ):
         super().__init__()
         self._cfg = config
+        self._braking = (
+            None if braking_acceleration is None else np.asarray(braking_acceleration, float)
+        )
         kernels.warm_up()  # compile or load the IK kernels now, not in the first period
         # ``kinematics`` may be shared with the safety layer: one FK + Jacobian per tick.
         self._kin = kinematics or TipKinematics(plant, tip_frame)
@@ -243,6 +250,8 @@ class NullSpaceDiffIK(LeafSystem):
             joint_limit_margin=c.joint_limit_margin,
             sigma_threshold=c.singular_value_threshold,
             damping_max=c.singular_damping_max,
+            braking_acceleration=self._braking,
+            period=1.0 / c.rate_hz,
         )
         output.SetFromVector(qdot)
 
