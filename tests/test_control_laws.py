@@ -283,7 +283,8 @@ def test_joint_limit_bounds_and_scaling():
 
 def test_braking_speed_stops_a_rate_limited_command_at_the_limit():
     """From the braking speed, a command ramped down by a T a period (held one period
-    first) covers exactly the distance; the bound binds only near a limit."""
+    first) stops within the distance, at most a T^2 / 8 short of it; the bound binds only
+    near a limit."""
     a, T = 2.0, 0.01
     for d in (0.0, 0.001, 0.03, 0.1, 0.4):
         v = kernels.braking_speed(d, a, T)
