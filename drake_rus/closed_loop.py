@@ -53,6 +53,12 @@ class ClosedLoop:
     references: dict  # name -> ConstantVectorSource when the supervisor is off
     loggers: dict  # name -> VectorLogSink
 
+    def reference(self, context, name) -> np.ndarray:
+        """The current value (a copy) of a constant reference source (a_des, o_des,
+        a_des_dot, P_des, F_des) in the root ``context``."""
+        src = self.references[name]
+        return np.array(src.get_output_port().Eval(src.GetMyContextFromRoot(context)))
+
     def reference_value(self, context, name):
         """The mutable value of a constant reference source (a_des, o_des, a_des_dot, P_des,
         F_des) in the root ``context``."""

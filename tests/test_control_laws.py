@@ -324,7 +324,8 @@ def _guarded_wrist_turn(kin, braking_acceleration):
     q = Q0.copy()
     q[6] = kin.q_max[6] - 0.3
     X0 = kin.pose(q)
-    axis = kin.jacobian(q)[:3, 6] / np.linalg.norm(kin.jacobian(q)[:3, 6])
+    axis = kin.jacobian(q)[:3, 6]
+    axis /= np.linalg.norm(axis)
     R_goal = RotationMatrix(AngleAxis(math.radians(40.0), axis)) @ X0.rotation()
     dq_max = np.array([2, 1, 1.5, 1.25, 3, 1.5, 3]) * 0.5
     dt, sent, past = 0.01, np.zeros(7), -math.inf

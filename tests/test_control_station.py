@@ -163,16 +163,8 @@ def test_orientation_error_below_1_deg_within_2_s_after_20_deg_step():
     sim = Simulator(cl.diagram)
     ctx = sim.get_mutable_context()
     sim.AdvanceTo(2.5)  # in contact and settled
-    a0 = np.array(
-        cl.references["a_des"]
-        .get_output_port()
-        .Eval(cl.references["a_des"].GetMyContextFromRoot(ctx))
-    )
-    o0 = np.array(
-        cl.references["o_des"]
-        .get_output_port()
-        .Eval(cl.references["o_des"].GetMyContextFromRoot(ctx))
-    )
+    a0 = cl.reference(ctx, "a_des")
+    o0 = cl.reference(ctx, "o_des")
     a1 = supervisor.rodrigues_pivot_update(a0, o0, math.radians(20.0))  # tilt 20 deg about o
     cl.reference_value(ctx, "a_des").set_value(a1)
     sim.AdvanceTo(4.5)
@@ -216,14 +208,7 @@ def test_a_turn_into_the_wrist_limit_completes_on_the_station():
     sim = Simulator(cl.diagram)
     ctx = sim.get_mutable_context()
     sim.AdvanceTo(2.5)  # in contact and settled
-    a0, o0 = (
-        np.array(
-            cl.references[name]
-            .get_output_port()
-            .Eval(cl.references[name].GetMyContextFromRoot(ctx))
-        )
-        for name in ("a_des", "o_des")
-    )
+    a0, o0 = cl.reference(ctx, "a_des"), cl.reference(ctx, "o_des")
     q_step = logs(cl, ctx)["q"].data()[:, -1]
     axis = kin.jacobian(q_step)[:3, 6]  # joint 7's axis in B: the probe's, +q7's turn
     axis /= np.linalg.norm(axis)
@@ -269,11 +254,7 @@ def _min_manipulability(use_null_space):
     cl = BuildClosedLoop(s, use_supervisor=False, use_null_space=use_null_space, log_period=0.02)
     sim = Simulator(cl.diagram)
     ctx = sim.get_mutable_context()
-    P0 = np.array(
-        cl.references["P_des"]
-        .get_output_port()
-        .Eval(cl.references["P_des"].GetMyContextFromRoot(ctx))
-    )
+    P0 = cl.reference(ctx, "P_des")
     # A long motion in free space: 20 cm along +y, 1 cm per step every 0.2 s.
     for k in range(20):
         cl.reference_value(ctx, "P_des").set_value(P0 + [0.0, 0.01 * (k + 1)])

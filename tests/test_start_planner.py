@@ -306,7 +306,7 @@ def test_vertical_depth_preset_ignores_shadows_but_not_depth():
         vertical_depth_preset(box_body(0.15), X_BPT, ImagingConfig(depth_presets=[0.1, 0.15]), cfg)
 
 
-def test_the_scan_starts_in_the_posture_closest_to_the_scenario_s():
+def test_the_scan_starts_in_the_posture_closest_to_the_scenarios_posture():
     """``robot.initial_joint_positions`` chooses among the postures that put the probe at the
     planned start pose (the arm's redundancy, here the elbow's split between joints 1 and
     3); before, the scan always started closest to the default and ignored the field."""

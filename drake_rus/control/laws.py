@@ -332,13 +332,14 @@ def joint_velocity_bounds(
         _f64(q_max),
         _f64(dq_max),
         float(margin),
-        _braking(braking_acceleration, q.size),
+        braking_accelerations(braking_acceleration, q.size),
         float(period),
     )
 
 
-def _braking(acceleration, n: int) -> np.ndarray:
-    """Per-joint braking accelerations (rad/s^2) for the kernels; zeros (unlimited) for None."""
+def braking_accelerations(acceleration, n: int) -> np.ndarray:
+    """Per-joint braking accelerations (rad/s^2) for the kernels from one value or ``n``;
+    zeros (unlimited) for None. A clear ValueError for any other shape."""
     if acceleration is None:
         return np.zeros(n)
     a = np.asarray(acceleration, dtype=np.float64)
@@ -416,7 +417,7 @@ def solve_joint_velocities(
         _f64(q_max),
         _f64(dq_max),
         float(joint_limit_margin),
-        _braking(braking_acceleration, q.size),
+        braking_accelerations(braking_acceleration, q.size),
         float(period),
         float(sigma_threshold),
         float(damping_max),

@@ -185,12 +185,11 @@ class NullSpaceDiffIK(LeafSystem):
     ):
         super().__init__()
         self._cfg = config
-        self._braking = (
-            None if braking_acceleration is None else np.asarray(braking_acceleration, float)
-        )
         kernels.warm_up()  # compile or load the IK kernels now, not in the first period
         # ``kinematics`` may be shared with the safety layer: one FK + Jacobian per tick.
         self._kin = kinematics or TipKinematics(plant, tip_frame)
+        # Checked once here (a bad shape fails at build time, naming the field).
+        self._braking = laws.braking_accelerations(braking_acceleration, self._kin.nq)
         self._K_p6 = config.K_p6 if use_null_space else 0.0
         n = self._kin.nq
         self._q = self.DeclareVectorInputPort("joint_position", n)
